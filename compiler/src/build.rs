@@ -1,0 +1,1 @@
+//! The orchestration shared by `kiln build` and the build-script API (under construction).

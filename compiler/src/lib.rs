@@ -1,0 +1,37 @@
+//! Kiln bakes shader permutations.
+//!
+//! A shader is written once in a `.usf`-like dialect (WGSL plus a C preprocessor) and
+//! `permutations.toml` declares which macros vary per feature level. The stages, in the order
+//! data flows:
+//!
+//! - [`preprocess`]: the dialect's C preprocessor with an exact source map;
+//! - [`permute`]: the configuration schema, enumeration, skip rules and derived defines;
+//! - [`compile`]: naga parse, validation per level, one writer per target, reflection;
+//! - [`cache`]: the content-addressed artifact store;
+//! - [`archive`]: the packed file the runtime loads (the only module built without the
+//!   `compiler` feature, so the runtime reads archives with the same types and no naga);
+//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares.
+
+pub mod archive;
+
+#[cfg(feature = "compiler")]
+pub mod build;
+#[cfg(feature = "compiler")]
+pub mod build_script;
+#[cfg(feature = "compiler")]
+pub mod cache;
+#[cfg(feature = "compiler")]
+pub mod cli;
+#[cfg(feature = "compiler")]
+pub mod compile;
+#[cfg(feature = "compiler")]
+pub mod permute;
+#[cfg(feature = "compiler")]
+pub mod preprocess;
+
+pub use archive::{Stage, Target};
+#[cfg(feature = "compiler")]
+pub use build_script::Build;
+
+/// Kiln's version, part of every cache key.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
