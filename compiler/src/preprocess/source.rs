@@ -184,6 +184,11 @@ impl SourceCache {
         self.get(id).map(|f| f.name.clone()).unwrap_or_default()
     }
 
+    /// 1-based (line, column) of a byte offset in a file's original text.
+    pub fn location(&self, id: FileId, offset: usize) -> (usize, usize) {
+        self.get(id).map_or((0, 0), |f| f.line_col(offset.min(f.original.len())))
+    }
+
     /// Adds an in-memory file (tests, generated sources). Each call makes a new file.
     pub fn add_virtual(&self, name: &str, text: &str) -> FileId {
         let file = SourceFile::new(PathBuf::from(name), name.to_string(), text.to_string());
