@@ -20,16 +20,20 @@ pub struct Args {
 }
 
 pub fn exec(args: Args) -> CliResult {
-    let config = load_config(&args.config)?;
+    let (text, failure) = run(&args, std::io::stderr().is_terminal())?;
+    print_stdout(&text)?;
+    failure.map_or(Ok(()), Err)
+}
+
+/// The text `kiln explain` prints, and how it fails after printing it. A name that does not
+/// exist is exit code 2 (with the nearest names); a permutation that fails to preprocess is
+/// explained, then fails with exit code 1 and the rendered error.
+pub(super) fn run(args: &Args, color: bool) -> Result<(String, Option<Failure>), Failure> {
+    let config = load_config(&args.config, color)?;
     let cache = SourceCache::new(config.dir.clone());
     let report = permute::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
-    print_stdout(&report.text)?;
-    match report.error {
-        Some(diagnostic) => Err(Failure::shader(crate::preprocess::render(
-            std::slice::from_ref(&diagnostic),
-            &cache,
-            std::io::stderr().is_terminal(),
-        ))),
-        None => Ok(()),
-    }
+    let failure = report
+        .error
+        .map(|d| Failure::shader(crate::preprocess::render(std::slice::from_ref(&d), &cache, color)));
+    Ok((report.text, failure))
 }
