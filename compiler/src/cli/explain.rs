@@ -37,3 +37,50 @@ pub(super) fn run(args: &Args, color: bool) -> Result<(String, Option<Failure>),
         .map(|d| Failure::shader(crate::preprocess::render(std::slice::from_ref(&d), &cache, color)));
     Ok((report.text, failure))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    fn explain(args: &[&str]) -> Result<(String, Option<Failure>), Failure> {
+        let cli = Cli::try_parse_from(std::iter::once("explain").chain(args.iter().copied())).unwrap();
+        run(&cli.args, false)
+    }
+
+    #[test]
+    fn unknown_name_is_exit_2_with_the_closest() {
+        let config = format!("{}/../tests/in/permute/mobile/permutations.toml", env!("CARGO_MANIFEST_DIR"));
+        let f = explain(&["Tonemap@sm5{BLEND_MODE=MASKED,DEBUG_VIEW=0}", "--config", &config]).unwrap_err();
+        assert_eq!(f.code, 2);
+        assert_eq!(
+            f.message,
+            "error: no permutation named `Tonemap@sm5{BLEND_MODE=MASKED,DEBUG_VIEW=0}`
+  = no value for dimension `GRAIN`
+closest permutations:
+  Tonemap@sm5{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=0}  (GRAIN: (missing) -> 0)
+  Tonemap@sm5{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=1}  (GRAIN: (missing) -> 1)
+  Tonemap@sm5{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=2}  (GRAIN: (missing) -> 2)
+  Tonemap@sm5{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=0}  (BLEND_MODE: MASKED -> OPAQUE, GRAIN: (missing) -> 0)
+  Tonemap@sm5{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=1}  (BLEND_MODE: MASKED -> OPAQUE, GRAIN: (missing) -> 1)
+"
+        );
+    }
+
+    #[test]
+    fn bad_config_is_exit_2() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("permutations.toml");
+        std::fs::write(&path, "[levels.sm5]\ndefines = { X = [1] }\n").unwrap();
+        let f = explain(&["S@sm5", "--config", path.to_str().unwrap()]).unwrap_err();
+        assert_eq!(f.code, 2);
+        assert!(f.message.starts_with("error: invalid type: sequence, expected an integer or a boolean\n"), "{}", f.message);
+        assert!(f.message.contains("permutations.toml:2:17"), "{}", f.message);
+    }
+}

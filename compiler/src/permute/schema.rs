@@ -312,7 +312,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             return Err(fail(vec![d]));
         }
     };
-    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let path = path.canonicalize().or_else(|_| std::path::absolute(path)).unwrap_or_else(|_| path.to_path_buf());
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let mut c = Checker { diagnostics: Vec::new() };
 
