@@ -29,7 +29,7 @@ pub fn exec(args: Args) -> CliResult {
 /// exist is exit code 2 (with the nearest names); a permutation that fails to preprocess is
 /// explained, then fails with exit code 1 and the rendered error.
 pub(super) fn run(args: &Args, color: bool) -> Result<(String, Option<Failure>), Failure> {
-    let config = load_config(&args.config, color)?;
+    let config = load_config(&args.config, color, &mut std::io::stderr())?;
     let cache = SourceCache::new(config.dir.clone());
     let report = permute::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
     let failure = report

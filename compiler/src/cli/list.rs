@@ -33,8 +33,13 @@ pub struct Args {
 }
 
 /// Loads a permutation set, rendering a bad one as exit code 2.
-pub(super) fn load_config(path: &std::path::Path, color: bool) -> Result<Config, Failure> {
-    permute::load(path).map_err(|e| Failure::usage(e.render_with(color)))
+/// Its warnings go to `err`.
+pub(super) fn load_config(path: &std::path::Path, color: bool, err: &mut dyn Write) -> Result<Config, Failure> {
+    let config = permute::load(path).map_err(|e| Failure::usage(e.render_with(color)))?;
+    for w in &config.warnings {
+        let _ = write!(err, "{w}");
+    }
+    Ok(config)
 }
 
 /// A write error: a closed pipe (`kiln list | head`) is success.
@@ -65,7 +70,7 @@ pub fn exec(args: Args) -> CliResult {
 
 /// `kiln list` writing to `out` (the listing) and `err` (warnings).
 pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: bool) -> CliResult {
-    let config = load_config(&args.config, color)?;
+    let config = load_config(&args.config, color, err)?;
     if let Some(s) = &args.shader {
         if config.shader(s).is_none() {
             let names: Vec<&str> = config.shaders.iter().map(|s| s.name.as_str()).collect();

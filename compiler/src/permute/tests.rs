@@ -850,3 +850,42 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     let lone: Vec<Preprocessed> = (0..3).map(|b| pp(&[0, b], b as u8)).collect();
     assert!(analysis::find_dead(s, l, &lone).is_empty());
 }
+
+#[test]
+fn unknown_identifiers_in_expressions_warn() {
+    let c = config(
+        r#"
+[[shader]]
+name = "S"
+source = "A.usf"
+stage = "vertex"
+levels = ["sm5"]
+dimensions = { DEFERRED = "bool" }
+derived = { D = "DEFERED || defined(ES3_1_PROFILE)" }
+skip = [{ when = "DEFERRED && SM5_PROFILE && !LATE", why = "x" }]
+"#,
+    );
+    assert_eq!(
+        c.warnings,
+        [
+            r#"warning: derived define `D` uses `DEFERED`, which no level, shader, dimension or derived define defines
+   ┌─ permutations.toml:19:18
+   │
+19 │ derived = { D = "DEFERED || defined(ES3_1_PROFILE)" }
+   │                  ^^^^^^^ reads as 0
+   │
+   = an unknown identifier is 0, as in `#if`; check the spelling
+
+"#,
+            r#"warning: skip rule uses `LATE`, which no level, shader, dimension or derived define defines
+   ┌─ permutations.toml:20:47
+   │
+20 │ skip = [{ when = "DEFERRED && SM5_PROFILE && !LATE", why = "x" }]
+   │                                               ^^^^ reads as 0
+   │
+   = an unknown identifier is 0, as in `#if`; check the spelling
+
+"#,
+        ]
+    );
+}
