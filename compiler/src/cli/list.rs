@@ -341,6 +341,48 @@ total                 14         4         -
     }
 
     #[test]
+    fn counts_with_distinct_streams_and_dead_dimensions() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, err) = list(&["--config", &config]);
+        assert_eq!((code, err.as_str()), (0, ""));
+        let tail: Vec<&str> = out.lines().skip(48).collect();
+        assert_eq!(
+            tail.join("\n"),
+            "
+shader            level      kept   skipped  distinct
+MobileBasePassPS  es3_1        20        12        18
+Tonemap           sm5          14         4         6
+Tonemap           es3_1        14         4         6
+total                          48        20        30
+
+dead dimensions (they never change the preprocessed text):
+  Tonemap@sm5: DEBUG_VIEW (x2 permutations for nothing)
+  Tonemap@es3_1: DEBUG_VIEW (x2 permutations for nothing)"
+        );
+        let (_, out, _) = list(&["--config", &config, "--json", "--shader", "Tonemap"]);
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(v["totals"], serde_json::json!({ "kept": 28, "skipped": 8, "distinct": 12 }));
+        assert_eq!(v["dead_dimensions"][1], serde_json::json!({ "shader": "Tonemap", "level": "es3_1", "dimension": "DEBUG_VIEW", "multiplier": 2 }));
+        assert_eq!(v["failed"], serde_json::json!([]));
+    }
+
+    #[test]
+    fn preprocessing_failures_warn_and_leave_distinct_out() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("S.usf"), "#if MODE == 2\n#error mode 2 is not written yet\n#endif\nfn f() {}\n").unwrap();
+        std::fs::write(
+            dir.path().join("permutations.toml"),
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\n[[shader]]\nname = \"S\"\nsource = \"S.usf\"\nstage = \"compute\"\ndimensions = { MODE = [1, 2] }\n",
+        )
+        .unwrap();
+        let config = dir.path().join("permutations.toml");
+        let (code, out, err) = list(&["--config", config.to_str().unwrap()]);
+        assert_eq!(code, 0);
+        assert!(out.ends_with("S       sm5           2         0         -\ntotal                 2         0         -\n"), "{out}");
+        assert!(err.starts_with("warning: 1 permutation(s) failed to preprocess (their levels show no distinct count). The first, S@sm5{MODE=2}:\nerror: "), "{err}");
+    }
+
+    #[test]
     fn config_errors_and_unknown_filters_exit_2() {
         let (code, out, err) = list(&["--config", "/nonexistent/permutations.toml"]);
         assert_eq!((code, out.as_str()), (2, ""));
