@@ -44,14 +44,6 @@ error: duplicate shader name `A`
 17 │ name = "A"
    │        ^^^ declared again here
 
-error: unknown level `es3_1`
-   ┌─ permutations.toml:20:11
-   │
-20 │ levels = ["es3_1"]
-   │           ^^^^^^^ no `[levels.*]` table has this name
-   │
-   = expected one of: sm5
-
 error: cannot resolve source `Missing.usf` of shader `A`
    ┌─ permutations.toml:18:10
    │
@@ -60,6 +52,14 @@ error: cannot resolve source `Missing.usf` of shader `A`
    │
    = cannot find `Missing.usf` in the include roots
    = a source resolves like `#include <...>`: through a virtual root or against the include roots
+
+error: unknown level `es3_1`
+   ┌─ permutations.toml:20:11
+   │
+20 │ levels = ["es3_1"]
+   │           ^^^^^^^ no `[levels.*]` table has this name
+   │
+   = expected one of: sm5
 
 "#
     );

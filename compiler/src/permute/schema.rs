@@ -10,7 +10,7 @@ use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use codespan_reporting::diagnostic::{Diagnostic, Label};
+use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use indexmap::IndexMap;
 use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use serde::Deserialize;
@@ -566,6 +566,9 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     }
 
     if !c.diagnostics.is_empty() {
+        // In file order, by where each problem is (stable: one place keeps the order found).
+        let at = |d: &Diagnostic<()>| d.labels.iter().find(|l| l.style == LabelStyle::Primary).map_or(0, |l| l.range.start);
+        c.diagnostics.sort_by_key(at);
         return Err(fail(c.diagnostics));
     }
     let warnings = c
