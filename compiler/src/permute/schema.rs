@@ -343,7 +343,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                 .notes
                 .push(format!("include roots are relative to the folder of {display}"));
         }
-        include_roots.push(p);
+        include_roots.push(p.canonicalize().unwrap_or(p));
     }
     let mut virtual_roots = Vec::new();
     for (name, target) in &raw.compiler.virtual_roots {
@@ -354,8 +354,10 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         if !p.is_dir() {
             c.error(target.span(), format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()), "no such folder");
         }
-        virtual_roots.push((name.get_ref().clone(), p));
+        virtual_roots.push((name.get_ref().clone(), p.canonicalize().unwrap_or(p)));
     }
+    // Sources resolve through the roots: with a bad root, their errors would only be noise.
+    let roots_ok = c.diagnostics.is_empty();
 
     // [levels.*]
     let mut levels = Vec::new();
@@ -399,7 +401,6 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         virtual_roots: virtual_roots.clone(),
         ..preprocess::Options::default()
     };
-    let roots_ok = c.diagnostics.is_empty();
 
     // [[shader]]
     let mut shaders = Vec::new();

@@ -889,3 +889,51 @@ skip = [{ when = "DEFERRED && SM5_PROFILE && !LATE", why = "x" }]
         ]
     );
 }
+
+#[test]
+fn error_roots_targets_names_and_reasons() {
+    assert_eq!(error("[compiler]\ninclude = [\"nowhere\"]\nvirtual = { Engine = \"shaders\" }\n"), r#"error: include root `nowhere` is not a folder
+  ┌─ permutations.toml:2:12
+  │
+2 │ include = ["nowhere"]
+  │            ^^^^^^^^^ no such folder
+  │
+  = include roots are relative to the folder of permutations.toml
+
+error: virtual root `Engine` must start with `/`
+  ┌─ permutations.toml:3:13
+  │
+3 │ virtual = { Engine = "shaders" }
+  │             ^^^^^^ expected a name like "/Engine"
+
+"#);
+    assert_eq!(error("[levels.sm5]\ntargets = [\"wgsl\", \"wgsl\"]\ndefines = { \"NOT AN IDENT\" = 1 }\n"), r#"error: target `wgsl` is listed twice
+  ┌─ permutations.toml:2:20
+  │
+2 │ targets = ["wgsl", "wgsl"]
+  │                    ^^^^^^ listed again here
+
+error: `NOT AN IDENT` is not a valid define name
+  ┌─ permutations.toml:3:13
+  │
+3 │ defines = { "NOT AN IDENT" = 1 }
+  │             ^^^^^^^^^^^^^^ expected an identifier
+
+"#);
+    assert_eq!(
+        error("[compiler]\ninclude = [\"shaders\"]\n[levels.sm5]\n[[shader]]\nname = \"A{B}\"\nsource = \"A.usf\"\nstage = \"vertex\"\nskip = [{ when = \"1\", why = \" \" }]\n"),
+        r#"error: shader name `A{B}` cannot appear in a permutation name
+  ┌─ permutations.toml:5:8
+  │
+5 │ name = "A{B}"
+  │        ^^^^^^ use letters, digits, `_`, `.` and `-`
+
+error: a skip rule needs a reason
+  ┌─ permutations.toml:8:29
+  │
+8 │ skip = [{ when = "1", why = " " }]
+  │                             ^^^ expected a sentence saying why these permutations are not needed
+
+"#
+    );
+}
