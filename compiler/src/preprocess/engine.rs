@@ -1089,29 +1089,28 @@ impl<'a> Pp<'a> {
             let b = body[i];
             let prev_pastes = i > 0 && body[i - 1].flags & PASTE_LEFT != 0;
             if b.flags & VA_COMMA != 0 {
-                // GNU `, ## __VA_ARGS__`: absent variable arguments drop the comma; otherwise
-                // the comma stays and the arguments are substituted as usual.
-                if absent_va {
-                    i += 2;
-                    continue;
-                }
-                out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
-                i += 1;
-                let p = body[i];
+                // GNU `, ## __VA_ARGS__`: absent variable arguments drop the comma; empty ones
+                // leave it (pasted with a placemarker); otherwise the comma stays unpasted and
+                // the arguments go in unexpanded, as `##` operands do.
+                let p = body[i + 1];
                 let arg = args.get(p.param as usize).cloned().unwrap_or_default();
-                let exp = self.expanded_arg(p.param as usize, args, expanded, name)?;
-                let _ = arg;
-                let start = out.len();
-                out.extend(exp);
-                if let Some(t) = out.get_mut(start) {
-                    t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
-                }
-                if p.flags & PASTE_LEFT != 0 && out.len() > start {
+                let va_paste = p.flags & PASTE_LEFT;
+                if absent_va && va_paste == 0 {
+                    // Dropped with its comma.
+                } else if arg.is_empty() {
+                    out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
+                } else {
+                    out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
+                    let start = out.len();
+                    out.extend(arg);
+                    if let Some(t) = out.get_mut(start) {
+                        t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
+                    }
                     if let Some(t) = out.last_mut() {
-                        t.flags |= PASTE_LEFT;
+                        t.flags |= va_paste;
                     }
                 }
-                i += 1;
+                i += 2;
                 continue;
             }
             if b.param == NO_PARAM {
