@@ -131,7 +131,13 @@ fn explain_a_skipped_permutation_with_derived_defines() {
         "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=2,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0}",
     )
     .unwrap();
-    assert!(forward.text.ends_with("dedup group: no other kept permutation of MobileBasePassPS@es3_1 has this token stream\n"), "{}", forward.text);
+    assert!(
+        forward
+            .text
+            .ends_with("dedup group: no other kept permutation of MobileBasePassPS@es3_1 has this token stream\n"),
+        "{}",
+        forward.text
+    );
 }
 
 #[test]
@@ -157,18 +163,34 @@ fn distinct_streams_and_dead_dimensions() {
     let (config, cache) = mobile();
     let analysis = permute::analyze(&config, &cache, |_, _| true);
     assert!(analysis.failed.is_empty(), "{}", analysis.failed[0].error);
-    let distinct: Vec<(&str, &str, usize, usize)> =
-        analysis.levels.iter().map(|l| (l.shader.as_str(), l.level.as_str(), l.permutations.len(), l.distinct)).collect();
+    let distinct: Vec<(&str, &str, usize, usize)> = analysis
+        .levels
+        .iter()
+        .map(|l| (l.shader.as_str(), l.level.as_str(), l.permutations.len(), l.distinct))
+        .collect();
     // MobileBasePassPS: 16 forward streams (rough x lights x fog) + 2 deferred (fog); FULLY_ROUGH
     // and the light count do not change the deferred text. Tonemap: OPAQUE and TRANSLUCENT
     // share text, DEBUG_VIEW is never read: 2 at GRAIN=0, 2 each at GRAIN=1 and 2.
-    assert_eq!(distinct, [("MobileBasePassPS", "es3_1", 20, 18), ("Tonemap", "sm5", 14, 6), ("Tonemap", "es3_1", 14, 6)]);
+    assert_eq!(
+        distinct,
+        [("MobileBasePassPS", "es3_1", 20, 18), ("Tonemap", "sm5", 14, 6), ("Tonemap", "es3_1", 14, 6)]
+    );
     let dead = permute::dead_dimensions(&config, &cache);
     assert_eq!(
         dead,
         [
-            DeadDimension { shader: "Tonemap".into(), level: "sm5".into(), dimension: "DEBUG_VIEW".into(), multiplier: 2 },
-            DeadDimension { shader: "Tonemap".into(), level: "es3_1".into(), dimension: "DEBUG_VIEW".into(), multiplier: 2 },
+            DeadDimension {
+                shader: "Tonemap".into(),
+                level: "sm5".into(),
+                dimension: "DEBUG_VIEW".into(),
+                multiplier: 2
+            },
+            DeadDimension {
+                shader: "Tonemap".into(),
+                level: "es3_1".into(),
+                dimension: "DEBUG_VIEW".into(),
+                multiplier: 2
+            },
         ]
     );
     assert_eq!(

@@ -94,14 +94,22 @@ closest permutations:
         std::fs::write(&path, "[levels.sm5]\ndefines = { X = [1] }\n").unwrap();
         let f = explain(&["S@sm5", "--config", path.to_str().unwrap()]).unwrap_err();
         assert_eq!(f.code, 2);
-        assert!(f.message.starts_with("error: invalid type: sequence, expected an integer or a boolean\n"), "{}", f.message);
+        assert!(
+            f.message.starts_with("error: invalid type: sequence, expected an integer or a boolean\n"),
+            "{}",
+            f.message
+        );
         assert!(f.message.contains("permutations.toml:2:17"), "{}", f.message);
     }
 
     #[test]
     fn preprocessing_failure_is_exit_1_when_kept_and_shown_when_skipped() {
         let dir = tempfile::tempdir().unwrap();
-        std::fs::write(dir.path().join("S.usf"), "#if MODE == 2\n#error mode 2 is not written yet\n#endif\nfn f() {}\n").unwrap();
+        std::fs::write(
+            dir.path().join("S.usf"),
+            "#if MODE == 2\n#error mode 2 is not written yet\n#endif\nfn f() {}\n",
+        )
+        .unwrap();
         std::fs::write(
             dir.path().join("permutations.toml"),
             "[compiler]\ninclude = [\".\"]\n[levels.sm5]\n[[shader]]\nname = \"S\"\nsource = \"S.usf\"\nstage = \"compute\"\ndimensions = { MODE = [1, 2], OFF = \"bool\" }\nskip = [{ when = \"OFF\", why = \"off\" }]\n",
@@ -109,7 +117,12 @@ closest permutations:
         .unwrap();
         let config = dir.path().join("permutations.toml");
         let (text, failure) = explain(&["S@sm5{MODE=2,OFF=0}", "--config", config.to_str().unwrap()]).unwrap();
-        assert!(text.contains("\nfiles read:\n  (none: preprocessing failed)\n\ntoken hash: (none: preprocessing failed)\n"), "{text}");
+        assert!(
+            text.contains(
+                "\nfiles read:\n  (none: preprocessing failed)\n\ntoken hash: (none: preprocessing failed)\n"
+            ),
+            "{text}"
+        );
         let f = failure.unwrap();
         assert_eq!(f.code, 1);
         assert!(f.message.starts_with("error: #error mode 2 is not written yet\n  ┌─ S.usf:2:1\n"), "{}", f.message);

@@ -100,7 +100,10 @@ pub fn analyze(config: &Config, cache: &SourceCache, filter: impl Fn(&Shader, &L
     }
     let results: Vec<Result<blake3::Hash, preprocess::Error>> = kept
         .par_iter()
-        .map(|(_, p)| preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache).map(|o| o.token_hash()))
+        .map(|(_, p)| {
+            preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache)
+                .map(|o| o.token_hash())
+        })
         .collect();
 
     let mut per_pair: Vec<Vec<Preprocessed>> = vec![Vec::new(); pairs.len()];
