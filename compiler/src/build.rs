@@ -440,12 +440,23 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
                 for &m in members {
                     let Ok(pm) = &pre[m] else { continue };
-                    let diagnostic = if Some(pm.text_hash) == rep_hash {
+                    let mut diagnostic = if Some(pm.text_hash) == rep_hash {
                         map_error(&e, &rep.as_ref().expect("hash of it").map)
                     } else {
                         // Same tokens, other spacing: this member's own spans.
                         remap_member(config, &kept[m], &options.targets, &sources, &e)
                     };
+                    if e.kind == compile::ErrorKind::EntryPoint {
+                        let s = kept[m].shader;
+                        let file = config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+                        diagnostic.notes.push(format!(
+                            "shader `{}` of {file} names entry point `{}` ({}) in {}",
+                            s.name,
+                            s.entry,
+                            s.stage,
+                            sources.display_name(&s.source_path)
+                        ));
+                    }
                     failures.push((diagnostic, vec![m]));
                 }
             }
