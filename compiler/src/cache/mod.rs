@@ -2,8 +2,10 @@
 //!
 //! Takes a [`Key`] (blake3 of everything that decides a compile's output: the token hash
 //! of the preprocessed text, entry point, stage, level name, limits and targets, Kiln's and
-//! naga's versions) and the [`Compiled`] outputs of that key; gives them back on a later
-//! build. Guarantees: an entry is one file written to a temporary file in the cache folder
+//! naga's versions, a fingerprint of Kiln's own sources) and the [`Compiled`] outputs of
+//! that key; gives them back on a later build. It also keeps, per permutation, a
+//! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
+//! archive, a stamp (so an up-to-date archive is not rewritten). Guarantees: an entry is one file written to a temporary file in the cache folder
 //! and renamed into place, so readers (other processes included) see a whole entry or none,
 //! and two builds sharing a cache both succeed; every entry carries a checksum of its
 //! content, so a corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never
@@ -65,6 +67,7 @@ impl Key {
             field(t.name().as_bytes());
         }
         field(crate::VERSION.as_bytes());
+        field(env!("KILN_SOURCE_HASH").as_bytes());
         field(crate::compile::NAGA_VERSION.as_bytes());
         Key(*h.finalize().as_bytes())
     }
