@@ -857,7 +857,7 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     let (s, l) = (&c.shaders[0], &c.levels[0]);
     // The hash depends on B only: A is dead, B is not.
     let all: Vec<Preprocessed> = (0..2).flat_map(|a| (0..3).map(move |b| pp(&[a, b], b as u8))).collect();
-    let dead = analysis::find_dead(s, l, &all);
+    let dead = dead_dimensions_in(s, l, &all);
     assert_eq!(
         dead,
         vec![DeadDimension { shader: "S".into(), level: "sm5".into(), dimension: "A".into(), multiplier: 2 }]
@@ -865,14 +865,14 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     // One group where A matters (B=2): A is live.
     let mut some = all.clone();
     some[5] = pp(&[1, 2], 9);
-    assert!(analysis::find_dead(s, l, &some).is_empty());
+    assert!(dead_dimensions_in(s, l, &some).is_empty());
     // A failure is never the same as anything.
     let mut failed = all.clone();
     failed[3].hash = None;
-    assert!(analysis::find_dead(s, l, &failed).is_empty());
+    assert!(dead_dimensions_in(s, l, &failed).is_empty());
     // Skip rules left one member per group for A: it costs nothing, so it is not reported.
     let lone: Vec<Preprocessed> = (0..3).map(|b| pp(&[0, b], b as u8)).collect();
-    assert!(analysis::find_dead(s, l, &lone).is_empty());
+    assert!(dead_dimensions_in(s, l, &lone).is_empty());
 }
 
 #[test]
