@@ -521,6 +521,17 @@ impl<'a> Pp<'a> {
         labels
     }
 
+    /// Labels for a whole invocation whose name is `name`: from the name to the last token
+    /// read from the file when the name is text of the file.
+    fn invocation_labels(&self, name: &Tok, message: &str) -> Vec<Label<FileId>> {
+        match self.inv {
+            Some((ctx, _, end)) if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src => {
+                self.labels_at(ctx, name.src..end, message)
+            }
+            _ => self.tok_labels(name, message),
+        }
+    }
+
     /// Labels at the current position of the current file.
     fn frame_labels(&self, message: &str) -> Vec<Label<FileId>> {
         match self.frames.last() {
@@ -968,18 +979,12 @@ impl<'a> Pp<'a> {
             if variadic && args.len() + 1 == nparams {
                 // The variable arguments are absent (not merely empty).
             } else if !(nparams == 1 && args.is_empty()) {
-                return self.err_tok(
-                    &name,
-                    format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()),
-                    "this invocation",
-                );
+                let labels = self.invocation_labels(&name, "this invocation");
+                return Err(Error::new(format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()), labels));
             }
         } else if args.len() > nparams && !(nparams == 0 && args.len() == 1 && args[0].is_empty()) {
-            return self.err_tok(
-                &name,
-                format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()),
-                "this invocation",
-            );
+            let labels = self.invocation_labels(&name, "this invocation");
+            return Err(Error::new(format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()), labels));
         }
         if nparams == 0 {
             args.clear();
