@@ -486,7 +486,7 @@ pub fn create_module(
 
 /// SPIR-V bytes as words, checking the length and the magic number.
 pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
-    if bytes.len() % 4 != 0 || bytes.len() < 20 {
+    if !bytes.len().is_multiple_of(4) || bytes.len() < 20 {
         return Err(format!("SPIR-V artifact is {} bytes, not a whole module", bytes.len()));
     }
     let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();

@@ -41,7 +41,7 @@ struct Args {
     /// Where to write the tonemapped frame.
     #[arg(long, default_value = "frame.png")]
     out: PathBuf,
-    /// Write every pass's output as DIR/<NN>_<Pass>.png and DIR/passes.json.
+    /// Write every pass's output as `DIR/<NN>_<Pass>.png` and `DIR/passes.json`.
     #[arg(long, value_name = "DIR")]
     dump_passes: Option<PathBuf>,
     /// Load this archive instead of the one embedded at build time.
