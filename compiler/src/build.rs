@@ -355,7 +355,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         _ => None,
     };
     if let Some((c, out, fingerprint)) = &stamp {
-        if let Some(counts) = c.fresh_archive(out, fingerprint) {
+        let keys: Vec<Key> = groups.iter().map(|g| g.0).collect();
+        if let Some(counts) = c.fresh_archive(out, fingerprint, &keys) {
             report.stats.cache_hits = groups.len();
             report.stats.artifacts = counts.0;
             report.stats.permutation_artifacts = counts.1;

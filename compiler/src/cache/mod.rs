@@ -223,8 +223,11 @@ impl Cache {
     }
 
     /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
-    /// build with `fingerprint`.
-    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash) -> Option<(usize, usize)> {
+    /// build with `fingerprint`, and every key of `keys` still has its entry.
+    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
+        if !keys.iter().all(|k| self.path(k).is_file()) {
+            return None;
+        }
         let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
         let mut lines = text.lines();
         if lines.next()? != fingerprint.to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
@@ -319,11 +322,13 @@ impl Cache {
         report
     }
 
-    /// Removes every entry and temporary file; returns how many entries were removed.
+    /// Removes every entry, record, archive stamp and temporary file; returns how many
+    /// entries were removed.
     pub fn clear(&self) -> Result<u64, Error> {
         let mut n = 0;
         for (path, _) in self.files() {
-            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) {
+            let stamp = path.extension().is_some_and(|e| e == "stamp");
+            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) || stamp {
                 fs::remove_file(&path).map_err(|source| Error { path: path.clone(), source })?;
                 n += u64::from(Self::is_entry(&path));
             }
