@@ -505,7 +505,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     Some(f) => f.clone(),
                     None => {
                         let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(p.shader.stage));
-                        archive::write_atomic(&dir.join(&f), bytes)
+                        archive::write_atomic_unsynced(&dir.join(&f), bytes)
                             .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", dir.join(&f).display())))?;
                         emitted.insert(hash, f.clone());
                         f
@@ -527,11 +527,11 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     if let Some(dir) = &options.emit_dir {
         let json = serde_json::to_vec_pretty(&index).expect("index serializes");
         let path = dir.join("index.json");
-        archive::write_atomic(&path, &json)
+        archive::write_atomic_unsynced(&path, &json)
             .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     if let Some(out) = &options.output {
-        writer.write(out).map_err(|e| Error::Io(format!("error: {e}")))?;
+        writer.write_unsynced(out).map_err(|e| Error::Io(format!("error: {e}")))?;
         report.archive = Some(out.clone());
         if let Some((c, out, fingerprint)) = &stamp {
             // Failing to stamp only costs a full warm build next time.
@@ -546,7 +546,7 @@ fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result
     report.stats.seconds.total = start.elapsed().as_secs_f64();
     if let Some(path) = &options.stats_json {
         let json = serde_json::to_vec_pretty(&report.stats).expect("stats serialize");
-        archive::write_atomic(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        archive::write_atomic_unsynced(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     Ok(())
 }
