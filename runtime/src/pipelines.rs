@@ -104,6 +104,8 @@ pub struct RenderState {
     pub topology: wgpu::PrimitiveTopology,
     pub cull_mode: Option<wgpu::Face>,
     pub depth: Option<DepthState>,
+    /// Stencil test and writes (needs a depth format with stencil).
+    pub stencil: wgpu::StencilState,
     pub color_targets: Vec<ColorTarget>,
     pub sample_count: u32,
 }
@@ -116,6 +118,7 @@ impl RenderState {
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: Some(wgpu::Face::Back),
             depth: None,
+            stencil: wgpu::StencilState::default(),
             color_targets: Vec::new(),
             sample_count: 1,
         }
@@ -128,6 +131,7 @@ impl RenderState {
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: None,
             depth: None,
+            stencil: wgpu::StencilState::default(),
             color_targets: vec![target],
             sample_count: 1,
         }
@@ -145,6 +149,17 @@ impl RenderState {
 
     pub fn with_cull(mut self, cull: Option<wgpu::Face>) -> RenderState {
         self.cull_mode = cull;
+        self
+    }
+
+    pub fn with_stencil(mut self, stencil: wgpu::StencilState) -> RenderState {
+        self.stencil = stencil;
+        self
+    }
+
+    /// MSAA sample count of every attachment.
+    pub fn with_samples(mut self, count: u32) -> RenderState {
+        self.sample_count = count;
         self
     }
 }
@@ -355,7 +370,7 @@ impl PipelineCache {
                 format: d.format,
                 depth_write_enabled: Some(d.write),
                 depth_compare: Some(d.compare),
-                stencil: Default::default(),
+                stencil: state.stencil.clone(),
                 bias: wgpu::DepthBiasState { constant: d.bias, slope_scale: f32::from_bits(d.slope_scale_bits), clamp: 0.0 },
             }),
             multisample: wgpu::MultisampleState { count: state.sample_count, ..Default::default() },
