@@ -163,7 +163,9 @@ struct Macro {
     func: bool,
     variadic: bool,
     params: Vec<Sym>,
-    body: Vec<Tok>,
+    body: Arc<[Tok]>,
+    /// The body has `##` (else expansion is a plain copy).
+    pastes: bool,
     builtin: Builtin,
     /// Where the name was defined (`ctx == NONE`: predefined).
     ctx: u32,
@@ -243,6 +245,11 @@ pub(crate) struct Pp<'a> {
     macro_of: Vec<u32>,
     defs: Vec<Macro>,
     pushed: HashMap<Sym, Vec<u32>, FxBuild>,
+    /// Spare token vectors.
+    pool: Vec<Vec<Tok>>,
+    /// Filter of macro names: bit `len & 63` of `first byte`'s word is set when some macro
+    /// with that first byte and length was ever defined.
+    name_filter: [u64; 256],
     frames: Vec<Frame>,
     stack: Vec<Context>,
     out: String,
@@ -397,6 +404,8 @@ impl<'a> Pp<'a> {
             macro_of: Vec::new(),
             defs: Vec::new(),
             pushed: HashMap::default(),
+            pool: Vec::new(),
+            name_filter: [0; 256],
             frames: Vec::new(),
             stack: Vec::new(),
             out: String::with_capacity(main.text().len() + main.text().len() / 4),
@@ -423,7 +432,7 @@ impl<'a> Pp<'a> {
             ("_Pragma", Builtin::Pragma),
         ] {
             let sym = pp.it.intern(name);
-            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Vec::new(), builtin: b, ctx: NONE, site: 0..0, disabled: false });
+            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Arc::from(Vec::new()), pastes: false, builtin: b, ctx: NONE, site: 0..0, disabled: false });
         }
         let predefined = [
             ("__STDC__", "1"),
@@ -443,6 +452,10 @@ impl<'a> Pp<'a> {
 
     fn set_macro(&mut self, sym: Sym, m: Macro) -> u32 {
         let idx = self.defs.len() as u32;
+        let name = self.it.str(sym).as_bytes();
+        if let Some(&b) = name.first() {
+            self.name_filter[b as usize] |= 1u64 << (name.len() & 63);
+        }
         self.defs.push(m);
         if self.macro_of.len() <= sym as usize {
             self.macro_of.resize(sym as usize + 1, NONE);
@@ -662,10 +675,12 @@ impl<'a> Pp<'a> {
         if t.kind == TK::Placemarker || t.kind == TK::Eof {
             return Ok(());
         }
-        let text = self.it.strs[t.sym as usize].clone();
+        let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
         if (t.flags & WHITE != 0) || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes())) {
-            self.emit_space();
+            if !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
+                self.out.push(' ');
+            }
         }
         let out_at = self.out.len() as u32;
         if t.flags & FROM_DEF == 0 && t.ctx != NONE {
@@ -674,7 +689,8 @@ impl<'a> Pp<'a> {
             let (ctx, src, end) = self.inv.unwrap_or((NONE, 0, 0));
             self.map.entries.push(Entry { out: out_at, ctx, src, end, def_ctx: t.ctx, def_src: t.src, def_len: t.len, is_macro: true });
         }
-        self.out.push_str(&text);
+        let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
+        self.out.push_str(text);
         self.last_tok = out_at as usize..self.out.len();
         self.check_output()
     }
@@ -735,7 +751,7 @@ impl<'a> Pp<'a> {
                     }
                     bol = false;
                     match kind {
-                        Kind::Ident => {
+                        Kind::Ident if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63)) != 0 => {
                             let name = &text[pos..pos + len];
                             if let Some(sym) = self.it.get(name) {
                                 let m = self.macro_idx(sym);
@@ -875,7 +891,9 @@ impl<'a> Pp<'a> {
                     return Ok(Some(Tok::eof()));
                 }
                 let mac = c.mac;
-                self.stack.pop();
+                if let Some(c) = self.stack.pop() {
+                    self.give_vec(c.toks);
+                }
                 if let Some(m) = self.defs.get_mut(mac as usize) {
                     m.disabled = false;
                 }
@@ -929,6 +947,18 @@ impl<'a> Pp<'a> {
     // -----------------------------------------------------------------------------------------
     // Macro expansion
 
+    /// An empty token vector, reusing the storage of finished contexts.
+    fn take_vec(&mut self) -> Vec<Tok> {
+        self.pool.pop().unwrap_or_default()
+    }
+
+    fn give_vec(&mut self, mut v: Vec<Tok>) {
+        if self.pool.len() < 64 && v.capacity() <= 4096 {
+            v.clear();
+            self.pool.push(v);
+        }
+    }
+
     fn push_context(&mut self, toks: Vec<Tok>, mac: u32, barrier: bool, at: &Tok) -> PResult<()> {
         if self.stack.len() >= self.opts.max_expansion_depth {
             return self.err_tok(
@@ -961,7 +991,17 @@ impl<'a> Pp<'a> {
         }
         if !mac.func {
             let body = mac.body.clone();
-            let toks = self.substitute(m, &name, &body, &[], &mut [])?;
+            let toks = if mac.pastes {
+                self.substitute(m, &name, &body, &[], &mut [])?
+            } else {
+                let mut toks = self.take_vec();
+                toks.extend_from_slice(&body);
+                match toks.first_mut() {
+                    Some(first) => first.flags = (first.flags & !WHITE) | (name.flags & WHITE),
+                    None => toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..name }),
+                }
+                toks
+            };
             self.push_context(toks, m, false, &name)?;
             return Ok(true);
         }
@@ -1052,7 +1092,17 @@ impl<'a> Pp<'a> {
 
     /// Fully macro-expands an argument in isolation.
     fn expand_arg(&mut self, arg: &[Tok], at: &Tok) -> PResult<Vec<Tok>> {
-        self.push_context(arg.to_vec(), NONE, true, at)?;
+        // Nothing to expand: no identifiers (the common case of numbers and punctuation).
+        if !arg.iter().any(|t| t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE) {
+            if arg.len() > self.budget {
+                return self.err_tok(at, format!("macro expansion makes more than {} tokens", self.opts.max_output_bytes.max(1024)), "while expanding this");
+            }
+            self.budget -= arg.len();
+            return Ok(arg.to_vec());
+        }
+        let mut v = self.take_vec();
+        v.extend_from_slice(arg);
+        self.push_context(v, NONE, true, at)?;
         let mut out = Vec::with_capacity(arg.len());
         loop {
             match self.get_token(false)? {
@@ -1061,7 +1111,9 @@ impl<'a> Pp<'a> {
                 None => break,
             }
         }
-        self.stack.pop();
+        if let Some(c) = self.stack.pop() {
+            self.give_vec(c.toks);
+        }
         Ok(out)
     }
 
@@ -1088,7 +1140,8 @@ impl<'a> Pp<'a> {
         expanded: &mut [Option<Vec<Tok>>],
         absent_va: bool,
     ) -> PResult<Vec<Tok>> {
-        let mut out: Vec<Tok> = Vec::with_capacity(body.len() + args.iter().map(Vec::len).sum::<usize>());
+        let mut out: Vec<Tok> = self.take_vec();
+        out.reserve(body.len() + args.iter().map(Vec::len).sum::<usize>());
         let mut i = 0;
         while i < body.len() {
             let b = body[i];
@@ -1132,10 +1185,13 @@ impl<'a> Pp<'a> {
                 continue;
             }
             let raw = b.flags & PASTE_LEFT != 0 || prev_pastes;
-            let toks: Vec<Tok> = if raw {
-                args.get(pi).cloned().unwrap_or_default()
+            if !raw {
+                self.expanded_arg(pi, args, expanded, name)?;
+            }
+            let toks: &[Tok] = if raw {
+                args.get(pi).map_or(&[][..], |a| &a[..])
             } else {
-                self.expanded_arg(pi, args, expanded, name)?
+                expanded.get(pi).and_then(|e| e.as_deref()).unwrap_or(&[])
             };
             let start = out.len();
             if toks.is_empty() {
@@ -1143,7 +1199,7 @@ impl<'a> Pp<'a> {
                     out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: b.flags & (PASTE_LEFT | WHITE), ..b });
                 }
             } else {
-                out.extend(toks);
+                out.extend_from_slice(toks);
                 if let Some(t) = out.get_mut(start) {
                     t.flags = (t.flags & !WHITE) | (b.flags & WHITE);
                 }
@@ -1168,16 +1224,17 @@ impl<'a> Pp<'a> {
         Ok(out)
     }
 
-    fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
-        if let Some(Some(e)) = expanded.get(pi) {
-            return Ok(e.clone());
+    /// Makes sure `expanded[pi]` holds the macro-expanded argument `pi`.
+    fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<()> {
+        if matches!(expanded.get(pi), Some(Some(_)) | None) {
+            return Ok(());
         }
-        let raw = args.get(pi).cloned().unwrap_or_default();
-        let e = self.expand_arg(&raw, name)?;
+        let raw = args.get(pi).map_or(&[][..], |a| &a[..]);
+        let e = self.expand_arg(raw, name)?;
         if let Some(slot) = expanded.get_mut(pi) {
-            *slot = Some(e.clone());
+            *slot = Some(e);
         }
-        Ok(e)
+        Ok(())
     }
 
     /// Applies every `##` (tokens flagged `PASTE_LEFT` join the next one).
@@ -1707,9 +1764,9 @@ impl<'a> Pp<'a> {
         self.directive_line = saved_line;
         self.inv = saved_inv;
         let expanded = r?;
-        let texts: Vec<String> = expanded.iter().map(|t| self.it.str(t.sym).to_string()).collect();
         let mut etoks = Vec::with_capacity(expanded.len());
-        for (t, s) in expanded.iter().zip(&texts) {
+        for t in &expanded {
+            let s = self.it.str(t.sym);
             let kind = match t.kind {
                 TK::Ident => Kind::Ident,
                 TK::Number => Kind::Number,
@@ -1720,7 +1777,9 @@ impl<'a> Pp<'a> {
             };
             etoks.push(expr::Token::from_lexed(kind, s, &|_| None));
         }
-        match expr::eval_tokens(&etoks) {
+        let result = expr::eval_tokens(&etoks);
+        drop(etoks);
+        match result {
             Ok(v) => Ok(v.v != 0),
             Err(e) => {
                 let label = if e.message.contains("division by zero") { "this divisor is zero" } else { "here" };
@@ -2156,11 +2215,13 @@ impl<'a> Pp<'a> {
         if params.len() >= NO_PARAM as usize {
             return self.err_tok(&name, "too many macro parameters", "here");
         }
+        let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
         let m = Macro {
             func,
             variadic,
             params,
-            body,
+            body: body.into(),
+            pastes,
             builtin: Builtin::None,
             ctx: name.ctx,
             site: name.src..name.src + name.len,
@@ -2192,7 +2253,7 @@ impl<'a> Pp<'a> {
             && a.variadic == b.variadic
             && a.params == b.params
             && a.body.len() == b.body.len()
-            && a.body.iter().zip(&b.body).enumerate().all(|(i, (x, y))| {
+            && a.body.iter().zip(b.body.iter()).enumerate().all(|(i, (x, y))| {
                 x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
             })
     }
