@@ -131,9 +131,6 @@ impl Tok {
     fn eof() -> Tok {
         Tok { sym: 0, ctx: NONE, src: 0, len: 0, param: NO_PARAM, kind: TK::Eof, flags: 0 }
     }
-    fn is_punct(&self, it: &Interner, s: &str) -> bool {
-        self.kind == TK::Punct && it.str(self.sym) == s
-    }
 }
 
 fn tk_of(kind: Kind) -> TK {
@@ -156,6 +153,10 @@ enum Builtin {
     IncludeLevel,
     BaseFile,
     Pragma,
+    /// `__has_include` / `__has_include_next`, only meaningful in `#if`.
+    HasInclude,
+    Date,
+    Time,
 }
 
 #[derive(Clone, Debug)]
@@ -166,6 +167,8 @@ struct Macro {
     body: Arc<[Tok]>,
     /// The body has `##` (else expansion is a plain copy).
     pastes: bool,
+    /// The body has `__VA_OPT__`.
+    va_opt: bool,
     builtin: Builtin,
     /// Where the name was defined (`ctx == NONE`: predefined).
     ctx: u32,
@@ -227,13 +230,14 @@ type PResult<T> = Result<T, Error>;
 struct Syms {
     defined: Sym,
     va_args: Sym,
+    va_opt: Sym,
+    has_include: Sym,
+    has_include_next: Sym,
     lparen: Sym,
     rparen: Sym,
     comma: Sym,
-    space_placeholder: Sym,
     one: Sym,
     zero: Sym,
-    once: Sym,
 }
 
 pub(crate) struct Pp<'a> {
@@ -269,7 +273,6 @@ pub(crate) struct Pp<'a> {
     directive_line: Option<i64>,
     /// Allowed roots for includes (canonical).
     roots: Vec<PathBuf>,
-    main_dir: Option<PathBuf>,
     base_name: String,
 }
 
@@ -377,13 +380,14 @@ impl<'a> Pp<'a> {
         let syms = Syms {
             defined: it.intern("defined"),
             va_args: it.intern("__VA_ARGS__"),
+            va_opt: it.intern("__VA_OPT__"),
+            has_include: it.intern("__has_include"),
+            has_include_next: it.intern("__has_include_next"),
             lparen: it.intern("("),
             rparen: it.intern(")"),
             comma: it.intern(","),
-            space_placeholder: it.intern(""),
             one: it.intern("1"),
             zero: it.intern("0"),
-            once: it.intern("once"),
         };
         let mut roots: Vec<PathBuf> = Vec::new();
         let main_dir = main.path.parent().filter(|p| p.is_dir()).map(|p| p.to_path_buf());
@@ -420,7 +424,6 @@ impl<'a> Pp<'a> {
             inv: None,
             directive_line: None,
             roots,
-            main_dir,
             base_name: String::new(),
         };
         for (name, b) in [
@@ -430,9 +433,13 @@ impl<'a> Pp<'a> {
             ("__INCLUDE_LEVEL__", Builtin::IncludeLevel),
             ("__BASE_FILE__", Builtin::BaseFile),
             ("_Pragma", Builtin::Pragma),
+            ("__has_include", Builtin::HasInclude),
+            ("__has_include_next", Builtin::HasInclude),
+            ("__DATE__", Builtin::Date),
+            ("__TIME__", Builtin::Time),
         ] {
             let sym = pp.it.intern(name);
-            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Arc::from(Vec::new()), pastes: false, builtin: b, ctx: NONE, site: 0..0, disabled: false });
+            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Arc::from(Vec::new()), pastes: false, va_opt: false, builtin: b, ctx: NONE, site: 0..0, disabled: false });
         }
         let predefined = [
             ("__STDC__", "1"),
@@ -1030,8 +1037,11 @@ impl<'a> Pp<'a> {
             args.clear();
         }
         let absent_va = variadic && args.len() < nparams;
-        let body = self.defs[m as usize].body.clone();
+        let mut body = self.defs[m as usize].body.clone();
         let mut expanded: Vec<Option<Vec<Tok>>> = vec![None; args.len()];
+        if self.defs[m as usize].va_opt {
+            body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
+        }
         let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
         if let Some(first) = toks.first_mut() {
             first.flags = (first.flags & !WHITE) | (name.flags & WHITE);
@@ -1224,6 +1234,60 @@ impl<'a> Pp<'a> {
         Ok(out)
     }
 
+    /// Replaces each `__VA_OPT__(...)` of a body by its contents when the variable arguments
+    /// expand to some tokens, else by a placemarker (C2x, as GCC 12 does in every mode).
+    fn resolve_va_opt(&mut self, body: &[Tok], va: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
+        self.expanded_arg(va, args, expanded, name)?;
+        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| e.iter().any(|t| t.kind != TK::Placemarker));
+        let mut out = Vec::with_capacity(body.len());
+        let mut i = 0;
+        while i < body.len() {
+            let t = body[i];
+            let opens = body.get(i + 1).is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
+            if !(t.kind == TK::Ident && t.sym == self.syms.va_opt && t.param == NO_PARAM && opens) {
+                out.push(t);
+                i += 1;
+                continue;
+            }
+            // Find the matching `)`.
+            let mut depth = 0usize;
+            let mut j = i + 1;
+            while j < body.len() {
+                if body[j].kind == TK::Punct && body[j].sym == self.syms.lparen {
+                    depth += 1;
+                } else if body[j].kind == TK::Punct && body[j].sym == self.syms.rparen {
+                    depth -= 1;
+                    if depth == 0 {
+                        break;
+                    }
+                }
+                j += 1;
+            }
+            if j >= body.len() {
+                return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
+            }
+            let close_paste = body[j].flags & PASTE_LEFT;
+            let inner = &body[i + 2..j];
+            if t.flags & STRINGIFY != 0 {
+                let toks = if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
+                let text = self.stringify(&toks);
+                let sym = self.it.intern(&text);
+                out.push(Tok { sym, kind: TK::Str, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste | FROM_DEF, ..t });
+            } else if present && !inner.is_empty() {
+                let start = out.len();
+                out.extend_from_slice(inner);
+                out[start].flags = (out[start].flags & !WHITE) | (t.flags & WHITE);
+                if let Some(last) = out.last_mut() {
+                    last.flags |= close_paste;
+                }
+            } else {
+                out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste, ..t });
+            }
+            i = j + 1;
+        }
+        Ok(out)
+    }
+
     /// Makes sure `expanded[pi]` holds the macro-expanded argument `pi`.
     fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<()> {
         if matches!(expanded.get(pi), Some(Some(_)) | None) {
@@ -1338,9 +1402,19 @@ impl<'a> Pp<'a> {
             }
             Builtin::IncludeLevel => (self.frames.len().saturating_sub(1)).to_string(),
             Builtin::Pragma => return self.pragma_operator(name),
+            // Left for the `#if` evaluation to read.
+            Builtin::HasInclude if self.directive_line.is_some() => return Ok(false),
+            Builtin::HasInclude => {
+                let n = self.it.str(name.sym).to_string();
+                return self.err_tok(&name, format!("\"{n}\" used outside of preprocessing directive"), "only in #if and #elif");
+            }
+            Builtin::Date | Builtin::Time => {
+                let (date, time) = date_time();
+                quote(if b == Builtin::Date { &date } else { &time })
+            }
             Builtin::None => return Ok(false),
         };
-        let kind = if b == Builtin::File || b == Builtin::BaseFile { TK::Str } else { TK::Number };
+        let kind = if matches!(b, Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time) { TK::Str } else { TK::Number };
         let sym = self.it.intern(&text);
         let t = Tok { sym, kind, flags: (name.flags & WHITE) | FROM_DEF, param: NO_PARAM, ..name };
         self.push_context(vec![t], NONE, false, &name)?;
@@ -1800,6 +1874,12 @@ impl<'a> Pp<'a> {
             if t.kind == TK::Eof {
                 break;
             }
+            if t.kind == TK::Ident && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next) && t.flags & NO_EXPAND == 0 {
+                let found = self.has_include(&t)?;
+                let sym = if found { self.syms.one } else { self.syms.zero };
+                out.push(Tok { sym, kind: TK::Number, ..t });
+                continue;
+            }
             if t.kind == TK::Ident && t.sym == self.syms.defined {
                 let Some(mut n) = self.next_raw(false)? else { break };
                 let paren = n.kind == TK::Punct && n.sym == self.syms.lparen;
@@ -1823,6 +1903,43 @@ impl<'a> Pp<'a> {
             out.push(t);
         }
         Ok(out)
+    }
+
+    /// `__has_include ( "file" )` / `( <file> )` in `#if`: whether the include resolves.
+    fn has_include(&mut self, at: &Tok) -> PResult<bool> {
+        let name = self.it.str(at.sym).to_string();
+        let open = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
+            return self.err_tok(at, format!("missing '(' after \"{name}\""), "expected '(' after this");
+        }
+        let first = self.get_token(false)?.unwrap_or(Tok::eof());
+        let (spelling, angle) = if first.kind == TK::Str {
+            let s = self.it.str(first.sym);
+            (s.get(1..s.len().saturating_sub(1)).unwrap_or("").to_string(), false)
+        } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
+            let mut s = String::new();
+            loop {
+                let t = self.get_token(false)?.unwrap_or(Tok::eof());
+                if t.kind == TK::Eof {
+                    return self.err_tok(at, format!("missing terminating > character in \"{name}\""), "here");
+                }
+                if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
+                    break;
+                }
+                if !s.is_empty() && t.flags & WHITE != 0 {
+                    s.push(' ');
+                }
+                s.push_str(self.it.str(t.sym));
+            }
+            (s, true)
+        } else {
+            return self.err_tok(at, format!("operator \"{name}\" requires a header-name"), "expected \"FILE\" or <FILE> after this");
+        };
+        let close = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
+            return self.err_tok(at, format!("missing ')' after \"{name}\" operand"), "expected ')'");
+        }
+        Ok(matches!(self.resolve_include(&spelling, angle), Resolved::Found(..)))
     }
 
     /// Skips a group whose condition is false, up to the `#elif`/`#else`/`#endif` that ends
@@ -1958,7 +2075,7 @@ impl<'a> Pp<'a> {
                 let (s, angle) = self.computed_header(&exp).ok_or(()).or_else(|_| {
                     self.err_at(ctx, range.clone(), "#include expects \"FILENAME\" or <FILENAME>", "this does not expand to a file name")
                 })?;
-                return self.do_include(&s, angle, ctx, hash, range, &source);
+                return self.do_include(&s, angle, ctx, hash, range);
             }
         };
         if let Some(f) = self.frames.last_mut() {
@@ -1969,7 +2086,7 @@ impl<'a> Pp<'a> {
             let l = self.tok_labels(t, "unexpected");
             self.warn("extra tokens at end of #include directive", l);
         }
-        self.do_include(&spelling, angle, ctx, hash, spell_range, &source)
+        self.do_include(&spelling, angle, ctx, hash, spell_range)
     }
 
     /// The file name of a macro-expanded `#include` line.
@@ -1997,18 +2114,13 @@ impl<'a> Pp<'a> {
         None
     }
 
-    fn do_include(&mut self, spelling: &str, angle: bool, ctx: u32, hash: u32, range: Range<u32>, includer: &SourceFile) -> PResult<()> {
-        if spelling.is_empty() {
-            return self.err_at(ctx, range, "empty filename in #include", "no file name");
-        }
-        if self.frames.len() >= 200 {
-            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
-        }
+    /// Where an include of `spelling` leads from the current file.
+    fn resolve_include(&self, spelling: &str, angle: bool) -> Resolved {
         let includer_name = self.frames.last().map(|f| f.name.clone()).unwrap_or_default();
         let mut found = Resolved::NotFound;
         let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
         if !angle && !is_virtual && relative_ok(spelling) {
-            if let Some(dir) = includer.path.parent().filter(|d| d.is_dir()) {
+            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()).filter(|d| d.is_dir()) {
                 let cand = dir.join(spelling);
                 if cand.is_file() {
                     found = Resolved::NotFound;
@@ -2027,6 +2139,17 @@ impl<'a> Pp<'a> {
         if matches!(found, Resolved::NotFound) {
             found = resolve_in_roots(spelling, self.opts);
         }
+        found
+    }
+
+    fn do_include(&mut self, spelling: &str, angle: bool, ctx: u32, hash: u32, range: Range<u32>) -> PResult<()> {
+        if spelling.is_empty() {
+            return self.err_at(ctx, range, "empty filename in #include", "no file name");
+        }
+        if self.frames.len() >= 200 {
+            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
+        }
+        let found = self.resolve_include(spelling, angle);
         let (path, cpp_name) = match found {
             Resolved::Found(p, n) => (p, n),
             Resolved::Escapes(p) => {
@@ -2174,6 +2297,12 @@ impl<'a> Pp<'a> {
             }
             if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
                 let next = toks.get(j + 1).copied();
+                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
+                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
+                    body.push(Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
+                    j += 2;
+                    continue;
+                }
                 match next.filter(|n| n.kind == TK::Ident).and_then(|n| params.iter().position(|&p| p == n.sym)) {
                     Some(pi) => {
                         let n = toks[j + 1];
@@ -2216,12 +2345,14 @@ impl<'a> Pp<'a> {
             return self.err_tok(&name, "too many macro parameters", "here");
         }
         let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
+        let va_opt = variadic && body.iter().any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
         let m = Macro {
             func,
             variadic,
             params,
             body: body.into(),
             pastes,
+            va_opt,
             builtin: Builtin::None,
             ctx: name.ctx,
             site: name.src..name.src + name.len,
@@ -2322,4 +2453,30 @@ fn _assert_send_sync() {
     fn is<T: Send + Sync>() {}
     is::<SourceCache>();
     is::<Output>();
+}
+
+/// `__DATE__` and `__TIME__` of now (UTC, or `SOURCE_DATE_EPOCH` like GCC).
+fn date_time() -> (String, String) {
+    let secs = std::env::var("SOURCE_DATE_EPOCH")
+        .ok()
+        .and_then(|v| v.parse::<i64>().ok())
+        .unwrap_or_else(|| {
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
+        });
+    let days = secs.div_euclid(86_400);
+    let rem = secs.rem_euclid(86_400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    const MONTHS: [&str; 12] = ["Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec"];
+    let date = format!("{} {day:2} {year}", MONTHS[(month - 1) as usize]);
+    let time = format!("{:02}:{:02}:{:02}", rem / 3600, rem % 3600 / 60, rem % 60);
+    (date, time)
 }
