@@ -237,6 +237,10 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
             }
         } else if roll < 75 {
             out.push('\n');
+        } else if roll < 80 && depth == 0 {
+            out.push_str("XSTR(");
+            gen_use(r, out, depth + 1, sigs);
+            out.push(')');
         } else {
             out.push_str(r.pick(&PLAIN));
         }
@@ -245,7 +249,8 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
 }
 
 fn gen_program(r: &mut Rng) -> String {
-    let mut out = String::new();
+    // Stringizing after expansion shows spacing, which the token comparison then checks.
+    let mut out = String::from("#define STR(x) #x\n#define XSTR(x) STR(x)\n");
     let mut sigs = Sigs::new();
     for _ in 0..(4 + r.below(6)) {
         if r.chance(70) {
