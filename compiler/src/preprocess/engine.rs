@@ -100,6 +100,9 @@ enum TK {
     Other,
     /// An empty `##` operand.
     Placemarker,
+    /// cpp's padding token: no text, only spacing for the printer and for `#`. `WHITE` is its
+    /// source token's leading whitespace; `NULL_SOURCE` marks one with no source.
+    Padding,
     /// The end of a barrier context or of the current file.
     Eof,
 }
@@ -112,6 +115,8 @@ const PASTE_LEFT: u8 = 8;
 const STRINGIFY: u8 = 16;
 /// A `,` before `__VA_ARGS__` joined by GNU `, ##`.
 const VA_COMMA: u8 = 32;
+/// A padding token with no source (cpp's `avoid_paste`).
+const NULL_SOURCE: u8 = 64;
 
 const NO_PARAM: u16 = u16::MAX;
 
@@ -679,6 +684,12 @@ impl<'a> Pp<'a> {
 
     /// Writes a token made by macro expansion at top level.
     fn emit(&mut self, t: Tok) -> PResult<()> {
+        if t.kind == TK::Padding {
+            if t.flags & (WHITE | NULL_SOURCE) == WHITE {
+                self.emit_space();
+            }
+            return Ok(());
+        }
         if t.kind == TK::Placemarker || t.kind == TK::Eof {
             return Ok(());
         }
@@ -904,6 +915,10 @@ impl<'a> Pp<'a> {
                 if let Some(m) = self.defs.get_mut(mac as usize) {
                     m.disabled = false;
                 }
+                if self.directive_line.is_none() {
+                    // cpp's `avoid_paste` padding at the end of every expansion.
+                    return Ok(Some(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() }));
+                }
                 continue;
             }
             if !file_ok {
@@ -916,7 +931,8 @@ impl<'a> Pp<'a> {
     /// Is the next token (without consuming anything) a `(`?
     fn peek_lparen(&self) -> bool {
         for c in self.stack.iter().rev() {
-            if let Some(t) = c.toks.get(c.pos) {
+            let rest = c.toks.get(c.pos..).unwrap_or(&[]);
+            if let Some(t) = rest.iter().find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker)) {
                 return t.kind == TK::Punct && t.sym == self.syms.lparen;
             }
             if c.barrier {
@@ -947,6 +963,21 @@ impl<'a> Pp<'a> {
             }
             if !self.enter_macro(t, m)? {
                 return Ok(Some(t));
+            }
+            if self.directive_line.is_none() {
+                // cpp's padding whose source is the macro name.
+                return Ok(Some(Tok { kind: TK::Padding, flags: t.flags & WHITE, param: NO_PARAM, ..t }));
+            }
+        }
+    }
+
+    /// The next expanded token that is not a placemarker (`Eof` where `get_token` gives none).
+    fn get_real_token(&mut self, file_ok: bool) -> PResult<Tok> {
+        loop {
+            match self.get_token(file_ok)? {
+                Some(t) if matches!(t.kind, TK::Placemarker | TK::Padding) => continue,
+                Some(t) => return Ok(t),
+                None => return Ok(Tok::eof()),
             }
         }
     }
@@ -1003,10 +1034,6 @@ impl<'a> Pp<'a> {
             } else {
                 let mut toks = self.take_vec();
                 toks.extend_from_slice(&body);
-                match toks.first_mut() {
-                    Some(first) => first.flags = (first.flags & !WHITE) | (name.flags & WHITE),
-                    None => toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..name }),
-                }
                 toks
             };
             self.push_context(toks, m, false, &name)?;
@@ -1015,7 +1042,12 @@ impl<'a> Pp<'a> {
         if !self.peek_lparen() {
             return Ok(false);
         }
-        let _lparen = self.next_raw(true)?;
+        // Up to the `(` the peek saw, past paddings and finished contexts.
+        while let Some(t) = self.next_raw(true)? {
+            if !matches!(t.kind, TK::Padding | TK::Placemarker) {
+                break;
+            }
+        }
         let args = self.collect_args(&name, m)?;
         let mac = &self.defs[m as usize];
         let nparams = mac.params.len();
@@ -1043,11 +1075,8 @@ impl<'a> Pp<'a> {
             body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
         }
         let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
-        if let Some(first) = toks.first_mut() {
-            first.flags = (first.flags & !WHITE) | (name.flags & WHITE);
-        }
-        if toks.is_empty() {
-            toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..name });
+        if toks.iter().all(|t| t.kind == TK::Placemarker) {
+            toks.clear();
         }
         self.push_context(toks, m, false, &name)?;
         Ok(true)
@@ -1087,6 +1116,16 @@ impl<'a> Pp<'a> {
             }
             if args.iter().map(Vec::len).sum::<usize>() > self.budget {
                 return self.err_tok(name, "macro arguments exceed the expansion budget", "while collecting these arguments");
+            }
+        }
+        // Like cpp's padding, placemarkers at either end of an argument do not count.
+        for a in &mut args {
+            while a.last().is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding)) {
+                a.pop();
+            }
+            let lead = a.iter().take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding)).count();
+            if lead > 0 {
+                a.drain(..lead);
             }
         }
         if args.len() == 1 && args[0].is_empty() && nparams == 0 {
@@ -1130,11 +1169,8 @@ impl<'a> Pp<'a> {
     /// Object-like replacement: pastes only.
     fn substitute(&mut self, m: u32, name: &Tok, body: &[Tok], args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>]) -> PResult<Vec<Tok>> {
         let mut toks = self.substitute_args(m, name, body, args, expanded, false)?;
-        if let Some(first) = toks.first_mut() {
-            first.flags = (first.flags & !WHITE) | (name.flags & WHITE);
-        }
-        if toks.is_empty() {
-            toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..*name });
+        if toks.iter().all(|t| t.kind == TK::Placemarker) {
+            toks.clear();
         }
         Ok(toks)
     }
@@ -1169,13 +1205,12 @@ impl<'a> Pp<'a> {
                     out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
                 } else {
                     out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
-                    let start = out.len();
                     out.extend(arg);
-                    if let Some(t) = out.get_mut(start) {
-                        t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
-                    }
                     if let Some(t) = out.last_mut() {
                         t.flags |= va_paste;
+                    }
+                    if va_paste == 0 && self.directive_line.is_none() {
+                        out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
                     }
                 }
                 i += 2;
@@ -1203,21 +1238,27 @@ impl<'a> Pp<'a> {
             } else {
                 expanded.get(pi).and_then(|e| e.as_deref()).unwrap_or(&[])
             };
-            let start = out.len();
+            // cpp's paddings around an argument: on the left (its source the parameter) unless
+            // it is the first token or the right operand of `##`, on the right unless `##`
+            // follows.
+            let pad = self.directive_line.is_none();
+            if pad && i > 0 && !prev_pastes {
+                out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
+            }
             if toks.is_empty() {
                 if raw {
                     out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: b.flags & (PASTE_LEFT | WHITE), ..b });
                 }
             } else {
                 out.extend_from_slice(toks);
-                if let Some(t) = out.get_mut(start) {
-                    t.flags = (t.flags & !WHITE) | (b.flags & WHITE);
-                }
                 if b.flags & PASTE_LEFT != 0 {
                     if let Some(t) = out.last_mut() {
                         t.flags |= PASTE_LEFT;
                     }
                 }
+            }
+            if pad && b.flags & PASTE_LEFT == 0 {
+                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
             }
             i += 1;
         }
@@ -1238,7 +1279,7 @@ impl<'a> Pp<'a> {
     /// expand to some tokens, else by a placemarker (C2x, as GCC 12 does in every mode).
     fn resolve_va_opt(&mut self, body: &[Tok], va: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
         self.expanded_arg(va, args, expanded, name)?;
-        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| e.iter().any(|t| t.kind != TK::Placemarker));
+        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| e.iter().any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding)));
         let mut out = Vec::with_capacity(body.len());
         let mut i = 0;
         while i < body.len() {
@@ -1351,13 +1392,28 @@ impl<'a> Pp<'a> {
     /// `#x`: the spelling of the argument, spaces normalized, `"` and `\` escaped in literals.
     fn stringify(&self, arg: &[Tok]) -> String {
         let mut s = String::from("\"");
-        for (i, t) in arg.iter().enumerate() {
+        // cpp's rule: the whitespace before a token is that of the source of the padding
+        // before it, if any (a padding with no source resets it), else its own.
+        // `source`: None is cpp's NULL, Some(w) a source token with leading whitespace `w`.
+        let mut source: Option<bool> = None;
+        for t in arg {
+            if t.kind == TK::Padding {
+                let tsrc = if t.flags & NULL_SOURCE != 0 { None } else { Some(t.flags & WHITE != 0) };
+                if source.is_none() || (source == Some(false) && tsrc.is_none()) {
+                    source = tsrc;
+                }
+                continue;
+            }
             if t.kind == TK::Placemarker {
                 continue;
             }
-            if i > 0 && t.flags & WHITE != 0 && !s.ends_with(' ') && s.len() > 1 {
-                s.push(' ');
+            if s.len() > 1 {
+                let white = source.unwrap_or(t.flags & WHITE != 0);
+                if white {
+                    s.push(' ');
+                }
             }
+            source = None;
             let text = self.it.str(t.sym);
             if matches!(t.kind, TK::Str | TK::Char) {
                 for c in text.chars() {
@@ -1426,9 +1482,13 @@ impl<'a> Pp<'a> {
         if !self.peek_lparen() {
             return Ok(false);
         }
-        let _ = self.next_raw(true)?;
-        let Some(s) = self.get_token(true)? else { return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here") };
-        let Some(close) = self.get_token(true)? else { return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here") };
+        while let Some(t) = self.next_raw(true)? {
+            if !matches!(t.kind, TK::Padding | TK::Placemarker) {
+                break;
+            }
+        }
+        let s = self.get_real_token(true)?;
+        let close = self.get_real_token(true)?;
         if s.kind != TK::Str || !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
             return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here");
         }
@@ -1798,6 +1858,7 @@ impl<'a> Pp<'a> {
         let r = loop {
             match self.get_token(false) {
                 Ok(Some(t)) if t.kind == TK::Eof => break Ok(()),
+                Ok(Some(t)) if matches!(t.kind, TK::Placemarker | TK::Padding) => {}
                 Ok(Some(t)) => out.push(t),
                 Ok(None) => break Ok(()),
                 Err(e) => break Err(e),
@@ -1874,6 +1935,9 @@ impl<'a> Pp<'a> {
             if t.kind == TK::Eof {
                 break;
             }
+            if matches!(t.kind, TK::Placemarker | TK::Padding) {
+                continue;
+            }
             if t.kind == TK::Ident && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next) && t.flags & NO_EXPAND == 0 {
                 let found = self.has_include(&t)?;
                 let sym = if found { self.syms.one } else { self.syms.zero };
@@ -1912,14 +1976,14 @@ impl<'a> Pp<'a> {
         if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
             return self.err_tok(at, format!("missing '(' after \"{name}\""), "expected '(' after this");
         }
-        let first = self.get_token(false)?.unwrap_or(Tok::eof());
+        let first = self.get_real_token(false)?;
         let (spelling, angle) = if first.kind == TK::Str {
             let s = self.it.str(first.sym);
             (s.get(1..s.len().saturating_sub(1)).unwrap_or("").to_string(), false)
         } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
             let mut s = String::new();
             loop {
-                let t = self.get_token(false)?.unwrap_or(Tok::eof());
+                let t = self.get_real_token(false)?;
                 if t.kind == TK::Eof {
                     return self.err_tok(at, format!("missing terminating > character in \"{name}\""), "here");
                 }
