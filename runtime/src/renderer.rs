@@ -14,6 +14,7 @@ use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
 use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
 use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
+use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
@@ -77,11 +78,21 @@ pub enum RenderError {
     Size { width: u32, height: u32, max: u32 },
     #[error("the frame produced no output image")]
     NoOutput,
+    #[error("rendering the frame failed: {0}")]
+    Wgpu(String),
 }
 
 /// The passes of each frame, built once.
 enum Passes {
-    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    Desktop {
+        particles: ParticleSimulationPass,
+        prepass: DepthPass,
+        shadows: DepthPass,
+        base: BasePass,
+        lighting: LightingPass,
+        translucency: TranslucencyPass,
+        tonemap: TonemapPass,
+    },
     MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
 }
@@ -103,6 +114,7 @@ pub struct Renderer {
     gpu_scene: GpuScene,
     shared: SharedResources,
     passes: Passes,
+    depth_copy: Option<crate::frame::DepthCopy>,
 }
 
 impl Renderer {
@@ -146,30 +158,45 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
-                FramePipeline::Desktop => Passes::Desktop {
-                    prepass: DepthPass::new(&init, DepthView::Camera)?,
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: BasePass::new(&init)?,
-                    lighting: LightingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    Passes::Desktop {
+                        prepass: DepthPass::new(&init, DepthView::Camera)?,
+                        shadows: DepthPass::new(&init, DepthView::Sun)?,
+                        base: BasePass::new(&init)?,
+                        lighting: LightingPass::new(&init)?,
+                        translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop, particles.systems())?,
+                        tonemap: TonemapPass::new(&init)?,
+                        particles,
+                    }
+                }
                 FramePipeline::MobileForward => Passes::MobileForward {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::forward())?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
                 FramePipeline::MobileDeferred => Passes::MobileDeferred {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::deferred())?,
                     shading: MobileDeferredShadingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
             }
         };
-        Ok(Renderer { device: device.clone(), queue: gpu.queue.clone(), timestamps: gpu.timestamps, options, cache, gpu_scene, shared, passes })
+        let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        Ok(Renderer {
+            device: device.clone(),
+            queue: gpu.queue.clone(),
+            timestamps: gpu.timestamps,
+            options,
+            cache,
+            gpu_scene,
+            shared,
+            passes,
+            depth_copy,
+        })
     }
 
     pub fn options(&self) -> &RendererOptions {
@@ -186,10 +213,20 @@ impl Renderer {
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
+        let scopes = crate::pipelines::ErrorScopes::push(&self.device);
+        let result = self.record_and_submit(capture);
+        if let Some(message) = scopes.pop() {
+            return Err(RenderError::Wgpu(message));
+        }
+        result
+    }
+
+    fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
+            Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
                 frame.pass("BasePass", |ctx| base.record(ctx, s, t));
@@ -212,7 +249,7 @@ impl Renderer {
             }
         }
         // The output is always read back, as a capture of a final pseudo-pass.
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true);
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
         let passes = frame.finish();
         readback.pass("Output", |ctx| ctx.output(&t.output.texture, crate::frame::Visualize::Direct));
         let mut out = readback.finish();

@@ -123,7 +123,7 @@ pub fn analyze(config: &Config, cache: &SourceCache, filter: impl Fn(&Shader, &L
         .zip(per_pair)
         .map(|((shader, level), permutations)| {
             let distinct = permutations.iter().filter_map(|p| p.hash).collect::<HashSet<_>>().len();
-            let dead = find_dead(shader, level, &permutations);
+            let dead = dead_dimensions_in(shader, level, &permutations);
             LevelAnalysis { shader: shader.name.clone(), level: level.name.clone(), permutations, distinct, dead }
         })
         .collect();
@@ -136,10 +136,14 @@ pub fn dead_dimensions(config: &Config, cache: &SourceCache) -> Vec<DeadDimensio
     analyze(config, cache, |_, _| true).dead().cloned().collect()
 }
 
+/// The dead dimensions of `shader` at `level`, from the token hashes of its kept permutations
+/// (for a caller that already preprocessed them, such as the build).
+///
 /// Dimension `d` is dead when every group of kept permutations that differ only in `d` has one
 /// token stream, and at least one such group has two or more members (otherwise skip rules
-/// already fix its value and it costs nothing).
-pub(super) fn find_dead(shader: &Shader, level: &Level, permutations: &[Preprocessed]) -> Vec<DeadDimension> {
+/// already fix its value and it costs nothing). A permutation without a hash (it failed) is
+/// distinct from every other, so it never makes a dimension dead.
+pub fn dead_dimensions_in(shader: &Shader, level: &Level, permutations: &[Preprocessed]) -> Vec<DeadDimension> {
     let mut dead = Vec::new();
     for (d, dim) in shader.dimensions.iter().enumerate() {
         if dim.values.len() < 2 {

@@ -857,7 +857,7 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     let (s, l) = (&c.shaders[0], &c.levels[0]);
     // The hash depends on B only: A is dead, B is not.
     let all: Vec<Preprocessed> = (0..2).flat_map(|a| (0..3).map(move |b| pp(&[a, b], b as u8))).collect();
-    let dead = analysis::find_dead(s, l, &all);
+    let dead = dead_dimensions_in(s, l, &all);
     assert_eq!(
         dead,
         vec![DeadDimension { shader: "S".into(), level: "sm5".into(), dimension: "A".into(), multiplier: 2 }]
@@ -865,14 +865,14 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     // One group where A matters (B=2): A is live.
     let mut some = all.clone();
     some[5] = pp(&[1, 2], 9);
-    assert!(analysis::find_dead(s, l, &some).is_empty());
+    assert!(dead_dimensions_in(s, l, &some).is_empty());
     // A failure is never the same as anything.
     let mut failed = all.clone();
     failed[3].hash = None;
-    assert!(analysis::find_dead(s, l, &failed).is_empty());
+    assert!(dead_dimensions_in(s, l, &failed).is_empty());
     // Skip rules left one member per group for A: it costs nothing, so it is not reported.
     let lone: Vec<Preprocessed> = (0..3).map(|b| pp(&[0, b], b as u8)).collect();
-    assert!(analysis::find_dead(s, l, &lone).is_empty());
+    assert!(dead_dimensions_in(s, l, &lone).is_empty());
 }
 
 #[test]
@@ -966,4 +966,46 @@ error: a skip rule needs a reason
 
 "#
     );
+}
+
+/// Damaged files (a byte deleted, or a troublesome one inserted, at many places) load or fail
+/// with diagnostics; none panics, and every error renders.
+#[test]
+fn damaged_files_never_panic() {
+    let good = format!(
+        "{LEVELS}{}",
+        r#"
+[[shader]]
+name = "S"
+source = "A.usf"
+stage = "fragment"
+defines = { TWO_SIDED = 1 }
+dimensions = { M = { enum = ["A", "B"] }, R = { range = [0, 3] }, L = [0, 2, 4], F = "bool" }
+derived = { P = "F && ES3_1_PROFILE", Q = "P + R * 2" }
+skip = [{ when = "M == M_B && L > 2", why = "é, unicode in a reason" }]
+"#
+    );
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("shaders")).unwrap();
+    std::fs::write(dir.path().join("shaders/A.usf"), "fn a() {}\n").unwrap();
+    let path = dir.path().join("permutations.toml");
+    let boundaries: Vec<usize> = (0..=good.len()).filter(|i| good.is_char_boundary(*i)).collect();
+    let (mut ok, mut failed) = (0, 0);
+    for (n, &i) in boundaries.iter().enumerate().step_by(3) {
+        let next = boundaries.get(n + 1).copied().unwrap_or(good.len());
+        let insert = ["\"", "{", "]", "=", "\n", "1", "é"][n % 7];
+        for text in [format!("{}{}", &good[..i], &good[next..]), format!("{}{insert}{}", &good[..i], &good[i..])] {
+            match schema::parse(&text, &path, "permutations.toml") {
+                Ok(c) => {
+                    ok += 1;
+                    let _ = c.permutations().take(64).map(|p| p.name()).count();
+                }
+                Err(e) => {
+                    failed += 1;
+                    assert!(e.render().starts_with("error: "), "{}", e.render());
+                }
+            }
+        }
+    }
+    assert!(ok > 0 && failed > 0, "{ok} loaded, {failed} failed");
 }
