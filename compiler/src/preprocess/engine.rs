@@ -2399,7 +2399,7 @@ impl<'a> Pp<'a> {
                     && body[k].sym == self.syms.comma
                     && body[k].flags & PASTE_LEFT != 0
                     && body[k + 1].param == va
-                    && body[k + 1].flags & STRINGIFY == 0
+                    && body[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
                 {
                     body[k].flags |= VA_COMMA;
                 }
