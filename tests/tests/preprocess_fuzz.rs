@@ -42,6 +42,8 @@ fn check(text: &str, what: &str) {
             Err(e) => {
                 let r = preprocess::render(&[e.diagnostic], &cache, false);
                 assert!(r.starts_with("error"), "{r}");
+                // A panic inside the preprocessor's worker thread comes back as this error.
+                assert!(!r.contains("internal error"), "{r}");
             }
         }
     }));
@@ -119,5 +121,20 @@ fn mutated_corpus_never_panics() {
             let s: String = b.into_iter().collect();
             check(&s, &format!("mutation {m} of {}", f.display()));
         }
+    }
+}
+
+#[test]
+fn deep_nesting_is_an_error_not_a_stack_overflow() {
+    // Test threads have small stacks: these must fail cleanly well before that matters.
+    let args = format!("#define f(x) x\n{}1{}\n", "f(".repeat(5000), ")".repeat(5000));
+    let parens = format!("#if {}1{}\n#endif\n", "(".repeat(50_000), ")".repeat(50_000));
+    let includes_text = "#include \"fuzz.usf\"\n";
+    for (what, text) in [("nested arguments", args.as_str()), ("nested parentheses", parens.as_str()), ("self include", includes_text)] {
+        let cache = SourceCache::new(std::env::temp_dir());
+        let id = cache.add_virtual("fuzz.usf", text);
+        let r = preprocess::preprocess_file_id(id, &Options::default(), &cache);
+        let e = r.expect_err(what);
+        assert!(!e.to_string().contains("internal error"), "{what}: {e}");
     }
 }

@@ -288,7 +288,27 @@ pub(crate) fn run(file: FileId, opts: &Options, cache: &SourceCache) -> Result<O
     run_named(file, None, opts, cache)
 }
 
+/// Stack for one preprocessing run: nested macro arguments recurse (one level per
+/// `max_expansion_depth`), and a caller's thread (a test's, a rayon worker's) may be small.
+const STACK_BYTES: usize = 256 << 20;
+
 pub(crate) fn run_named(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
+    // The stack is only reserved address space; pages are touched as deep as the input goes.
+    std::thread::scope(|s| {
+        let worker = std::thread::Builder::new()
+            .name("kiln-preprocess".into())
+            .stack_size(STACK_BYTES)
+            .spawn_scoped(s, || run_here(file, name.clone(), opts, cache));
+        match worker {
+            Ok(handle) => handle
+                .join()
+                .unwrap_or_else(|_| Err(Error::new("internal error: the preprocessor panicked", Vec::new()))),
+            Err(_) => run_here(file, name.clone(), opts, cache),
+        }
+    })
+}
+
+fn run_here(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
     let Some(source) = cache.get(file) else {
         return Err(Error::new("unknown file id", Vec::new()));
     };

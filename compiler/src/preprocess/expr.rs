@@ -328,7 +328,7 @@ pub fn eval_tokens(toks: &[Token<'_>]) -> Result<Value, TokError> {
     if toks.is_empty() {
         return Err(TokError { at: 0, message: "#if with no expression".into() });
     }
-    let mut p = Parser { toks, pos: 0 };
+    let mut p = Parser { toks, pos: 0, depth: 0 };
     let v = p.comma(true)?;
     if p.pos < toks.len() {
         let t = &toks[p.pos];
@@ -349,7 +349,13 @@ pub fn eval_tokens(toks: &[Token<'_>]) -> Result<Value, TokError> {
 struct Parser<'t, 'a> {
     toks: &'t [Token<'a>],
     pos: usize,
+    /// Nesting of parentheses, unary operators and `?:`, bounded so that no input overflows
+    /// the stack.
+    depth: usize,
 }
+
+/// Deepest nesting an expression may have.
+const MAX_DEPTH: usize = 1000;
 
 fn is_expr_punct(op: &str) -> bool {
     binary_prec(op).is_some() || matches!(op, "(" | ")" | "?" | ":" | "," | "~" | "!")
@@ -393,6 +399,16 @@ impl Parser<'_, '_> {
     }
 
     fn ternary(&mut self, eval: bool) -> Result<Value, TokError> {
+        self.depth += 1;
+        if self.depth > MAX_DEPTH {
+            return self.err(self.pos.min(self.toks.len()), format!("expression nested more than {MAX_DEPTH} levels deep"));
+        }
+        let r = self.ternary_inner(eval);
+        self.depth -= 1;
+        r
+    }
+
+    fn ternary_inner(&mut self, eval: bool) -> Result<Value, TokError> {
         let cond = self.binary(0, eval)?;
         if self.peek_punct() != Some("?") {
             return Ok(cond);
@@ -495,6 +511,16 @@ impl Parser<'_, '_> {
     }
 
     fn unary(&mut self, eval: bool) -> Result<Value, TokError> {
+        self.depth += 1;
+        if self.depth > MAX_DEPTH {
+            return self.err(self.pos.min(self.toks.len()), format!("expression nested more than {MAX_DEPTH} levels deep"));
+        }
+        let r = self.unary_inner(eval);
+        self.depth -= 1;
+        r
+    }
+
+    fn unary_inner(&mut self, eval: bool) -> Result<Value, TokError> {
         let at = self.pos;
         let Some(t) = self.toks.get(at) else {
             return self.err(at, "#if with no expression");
@@ -634,6 +660,12 @@ mod tests {
             ("12abc", "invalid suffix \"abc\" on integer constant@0+5"),
             ("09", "invalid digit \"9\" in octal constant@0+2"),
         ];
+        let deep = format!("{}1{}", "(".repeat(100_000), ")".repeat(100_000));
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
+        let deep = format!("{}1", "- ".repeat(100_000));
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
+        let deep = "1 ? ".repeat(100_000) + "1";
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
         for (s, want) in cases {
             assert_eq!(ev(s).unwrap_err(), *want, "{s}");
         }
