@@ -446,10 +446,10 @@ fn argument_bomb_is_bounded() {
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
 error: macro expansion makes more than 1048576 tokens
-  ┌─ main.usf:2:43
+  ┌─ main.usf:2:47
   │
 2 │ D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(1))))))))))))))))))))))))))))))))))))))))
-  │                                           ^ while expanding this
+  │                                               ^ while expanding this
 "#
     .trim_start();
     assert_eq!(err.trim_end(), expected.trim_end(), "\n{err}");
