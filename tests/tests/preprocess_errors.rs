@@ -414,7 +414,7 @@ fn macro_bomb_is_bounded() {
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
-error: macro expansion makes more than 1048576 tokens
+error: macro expansion makes more than 262144 tokens
    ┌─ main.usf:42:1
    │
  3 │ #define L2 L1 L1
@@ -445,7 +445,7 @@ fn argument_bomb_is_bounded() {
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
-error: macro expansion makes more than 1048576 tokens
+error: macro expansion makes more than 262144 tokens
   ┌─ main.usf:2:47
   │
 2 │ D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(1))))))))))))))))))))))))))))))))))))))))

@@ -276,7 +276,10 @@ pub(crate) struct Pp<'a> {
     once: HashSet<FileId>,
     guards: HashMap<FileId, Sym, FxBuild>,
     /// Tokens macro expansion may still make.
-    budget: usize,
+    /// Tokens macro expansion made so far (see [`Pp::spend`]).
+    made: usize,
+    /// Bytes of source read so far.
+    input_bytes: usize,
     counter: i64,
     /// Output range of the last token written (for paste avoidance).
     last_tok: Range<usize>,
@@ -351,6 +354,12 @@ fn run_here(
         files: pp.files,
         warnings: pp.warnings,
     })
+}
+
+/// Tokens macro expansion may make in one run: a quarter of the output limit (a token
+/// prints as at least one byte plus, often, a space), so a macro bomb stops early and small.
+fn token_budget(opts: &Options) -> usize {
+    (opts.max_output_bytes / 4).max(1024)
 }
 
 /// Resolves `<spelling>` through the virtual roots, then the include roots.
@@ -485,7 +494,8 @@ impl<'a> Pp<'a> {
             files: Vec::new(),
             once: HashSet::new(),
             guards: HashMap::default(),
-            budget: opts.max_output_bytes.max(1024),
+            made: 0,
+            input_bytes: 0,
             counter: 0,
             last_tok: 0..0,
             inv: None,
@@ -707,6 +717,7 @@ impl<'a> Pp<'a> {
         site: Range<u32>,
     ) {
         let ctx = self.map.ctxs.len() as u32;
+        self.input_bytes += source.text().len();
         self.map.ctxs.push(IncludeCtx {
             file,
             source: source.clone(),
@@ -869,7 +880,7 @@ impl<'a> Pp<'a> {
             self.push_copy_entry(t.ctx, t.src, t.src + t.len, out_at);
         } else {
             let (ctx, src, end) = self.inv.unwrap_or((NONE, 0, 0));
-            self.map.entries.push(Entry {
+            let e = Entry {
                 out: out_at,
                 ctx,
                 src,
@@ -878,7 +889,17 @@ impl<'a> Pp<'a> {
                 def_src: t.src,
                 def_len: t.len,
                 is_macro: true,
-            });
+            };
+            // Runs of tokens with one origin (a repeated expansion) share an entry.
+            let key = |e: &Entry| (e.ctx, e.src, e.end, e.def_ctx, e.def_src, e.def_len);
+            if !self
+                .map
+                .entries
+                .last()
+                .is_some_and(|l| l.is_macro && key(l) == key(&e))
+            {
+                self.map.entries.push(e);
+            }
         }
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         self.out.push_str(text);
@@ -1224,6 +1245,29 @@ impl<'a> Pp<'a> {
     // -----------------------------------------------------------------------------------------
     // Macro expansion
 
+    /// Most tokens expansion may make: a million plus a few per byte of input read, and never
+    /// more than the output limit allows. A macro bomb in a small file stops within
+    /// milliseconds; a large real input is never cut short.
+    fn token_limit(&self) -> usize {
+        (1usize << 20)
+            .saturating_add(self.input_bytes.saturating_mul(8))
+            .min(token_budget(self.opts))
+    }
+
+    /// Counts `n` tokens made by expansion against [`Pp::token_limit`].
+    fn spend(&mut self, n: usize, at: &Tok) -> PResult<()> {
+        self.made += n;
+        if self.made > self.token_limit() {
+            let limit = self.token_limit();
+            return self.err_tok(
+                at,
+                format!("macro expansion makes more than {limit} tokens"),
+                "while expanding this",
+            );
+        }
+        Ok(())
+    }
+
     /// An empty token vector, reusing the storage of finished contexts.
     fn take_vec(&mut self) -> Vec<Tok> {
         self.pool.pop().unwrap_or_default()
@@ -1247,17 +1291,7 @@ impl<'a> Pp<'a> {
                 "while expanding this",
             );
         }
-        if toks.len() > self.budget {
-            return self.err_tok(
-                at,
-                format!(
-                    "macro expansion makes more than {} tokens",
-                    self.opts.max_output_bytes.max(1024)
-                ),
-                "while expanding this",
-            );
-        }
-        self.budget -= toks.len();
+        self.spend(toks.len(), at)?;
         if let Some(m) = self.defs.get_mut(mac as usize) {
             m.disabled = true;
         }
@@ -1384,7 +1418,7 @@ impl<'a> Pp<'a> {
             if let Some(a) = args.last_mut() {
                 a.push(t);
             }
-            if args.iter().map(Vec::len).sum::<usize>() > self.budget {
+            if self.made + args.iter().map(Vec::len).sum::<usize>() > self.token_limit() {
                 return self.err_tok(
                     name,
                     "macro arguments exceed the expansion budget",
@@ -1429,17 +1463,7 @@ impl<'a> Pp<'a> {
         if !arg.iter().any(|t| {
             t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE
         }) {
-            if arg.len() > self.budget {
-                return self.err_tok(
-                    at,
-                    format!(
-                        "macro expansion makes more than {} tokens",
-                        self.opts.max_output_bytes.max(1024)
-                    ),
-                    "while expanding this",
-                );
-            }
-            self.budget -= arg.len();
+            self.spend(arg.len(), at)?;
             return Ok(arg.to_vec());
         }
         let mut v = self.take_vec();

@@ -40,7 +40,8 @@ pub struct Options {
     pub defines: Vec<(String, String)>,
     /// Most macro expansions nested inside each other (also bounds `#include` nesting).
     pub max_expansion_depth: usize,
-    /// Largest output, in bytes; also the budget of tokens macro expansion may make.
+    /// Largest output, in bytes; a quarter of it is the number of tokens macro expansion may
+    /// make (so a macro bomb fails fast, in bounded memory).
     pub max_output_bytes: usize,
 }
 
@@ -51,7 +52,7 @@ impl Default for Options {
             virtual_roots: Vec::new(),
             defines: Vec::new(),
             max_expansion_depth: 256,
-            max_output_bytes: 64 << 20,
+            max_output_bytes: 16 << 20,
         }
     }
 }
