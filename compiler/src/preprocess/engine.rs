@@ -1852,6 +1852,11 @@ impl<'a> Pp<'a> {
                 s.push_str(text);
             }
         }
+        // cpp: "invalid string literal, ignoring final '\\'".
+        let trailing = s.len() - s.trim_end_matches('\\').len();
+        if trailing % 2 == 1 {
+            s.pop();
+        }
         s.push('"');
         s
     }
