@@ -727,11 +727,13 @@ impl<'a> Pp<'a> {
         if !self.files.contains(&file) {
             self.files.push(file);
         }
+        // A UTF-8 byte order mark is not text (cpp skips it too).
+        let pos = if source.text().starts_with('\u{feff}') { 3 } else { 0 };
         self.frames.push(Frame {
             source,
             file,
             ctx,
-            pos: 0,
+            pos,
             bol: true,
             conds: Vec::new(),
             name,
