@@ -16,6 +16,13 @@ pub struct Args {
     /// Add an include root (searched in order after the including file's folder).
     #[arg(short = 'I', value_name = "DIR")]
     pub include: Vec<PathBuf>,
+    /// Take include roots, virtual roots and a level's defines from a permutation set
+    /// (requires `--level`). `-D` and `-I` still apply, after the configuration's.
+    #[arg(long, value_name = "FILE", requires = "level")]
+    pub config: Option<PathBuf>,
+    /// The feature level of `--config` whose defines are predefined (`sm5`, `es3_1`, ...).
+    #[arg(long, value_name = "L", requires = "config")]
+    pub level: Option<String>,
     /// Show warnings and errors with ANSI colours.
     #[arg(long)]
     pub color: bool,
@@ -44,13 +51,32 @@ pub fn exec(args: Args) -> CliResult {
             )));
         }
     }
-    let opts = Options {
-        include_roots: args.include.clone(),
-        defines: args.define.iter().map(|d| parse_define(d)).collect(),
-        ..Options::default()
+    // DESIGN.md: for `kiln preprocess` the roots are the input file's folder and each `-I`
+    // folder; with `--config`, the configuration's roots and virtual roots come first.
+    let mut opts = Options::default();
+    let mut display_base = std::env::current_dir().unwrap_or_else(|_| PathBuf::from("."));
+    if let (Some(config_path), Some(level_name)) = (&args.config, &args.level) {
+        let config = super::list::load_config(config_path, args.color, &mut std::io::stderr())?;
+        let level = config.level(level_name).ok_or_else(|| {
+            let names: Vec<&str> = config.levels.iter().map(|l| l.name.as_str()).collect();
+            Failure::usage(format!(
+                "error: `{}` has no level `{level_name}` (its levels: {})",
+                config_path.display(),
+                names.join(", ")
+            ))
+        })?;
+        opts = config.preprocess_options();
+        opts.defines.extend(level.defines.iter().map(|(n, v)| (n.clone(), v.to_string())));
+        display_base = config.dir.clone();
+    }
+    opts.include_roots.extend(args.include.iter().cloned());
+    let file_dir = match args.file.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
     };
-    let cwd = std::env::current_dir().unwrap_or_else(|_| PathBuf::from("."));
-    let cache = SourceCache::new(cwd);
+    opts.include_roots.push(file_dir);
+    opts.defines.extend(args.define.iter().map(|d| parse_define(d)));
+    let cache = SourceCache::new(display_base);
     match preprocess::preprocess_file(&args.file, &opts, &cache) {
         Ok(out) => {
             if !out.warnings.is_empty() {
@@ -83,6 +109,8 @@ mod tests {
             file,
             define: vec!["N=4".into()],
             include: Vec::new(),
+            config: None,
+            level: None,
             color: false,
         }
     }
