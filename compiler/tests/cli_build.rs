@@ -140,3 +140,33 @@ fn cache_stats_gc_clear() {
     let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
     assert!(stdout(&o).contains("entries: 0\n"));
 }
+
+#[test]
+fn two_processes_at_once_on_one_cache() {
+    let fx = fixture();
+    let d = fx.path();
+    let spawn = |out: &str, stats: &str| {
+        Command::new(env!("CARGO_BIN_EXE_kiln"))
+            .args(["build", "--config", "lit.toml", "--cache-dir", "shared", "-o", out, "--stats-json", stats, "-j", "2"])
+            .current_dir(d)
+            .env("CI", "1")
+            .spawn()
+            .unwrap()
+    };
+    let (mut a, mut b) = (spawn("a.kpak", "a.json"), spawn("b.kpak", "b.json"));
+    assert!(a.wait().unwrap().success());
+    assert!(b.wait().unwrap().success());
+    assert_eq!(std::fs::read(d.join("a.kpak")).unwrap(), std::fs::read(d.join("b.kpak")).unwrap());
+    for stats in ["a.json", "b.json"] {
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join(stats)).unwrap()).unwrap();
+        assert_eq!(v["compiled"].as_u64().unwrap() + v["cache_hits"].as_u64().unwrap(), 24);
+    }
+    // The cache holds exactly the 24 entries, none damaged: a third build compiles nothing.
+    let o = kiln(d, &["build", "--config", "lit.toml", "--cache-dir", "shared", "-o", "c.kpak", "--stats-json", "c.json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("corrupted"), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("c.json")).unwrap()).unwrap();
+    assert_eq!((v["compiled"].as_u64(), v["cache_hits"].as_u64()), (Some(0), Some(24)));
+    let o = kiln(d, &["cache", "--cache-dir", "shared", "stats"]);
+    assert!(stdout(&o).contains("entries: 24\n"), "{}", stdout(&o));
+}
