@@ -20,8 +20,10 @@ pub struct Args {
 
 /// Opens the archive; a missing, truncated, corrupted or foreign file is exit code 2.
 pub fn exec(args: Args) -> CliResult {
-    let archive = Archive::open(&args.archive)
-        .map_err(|e| Failure::usage(format!("error: {}: {e}", args.archive.display())))?;
+    let archive = Archive::open(&args.archive).map_err(|e| match e {
+        crate::archive::ArchiveError::Io { .. } => Failure::usage(format!("error: {e}")),
+        _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
+    })?;
     let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
     print_stdout(&text)
 }
