@@ -55,7 +55,8 @@ fn naga_alone(s: &Source, entry_only: bool) -> usize {
     } else {
         naga::valid::Capabilities::MULTISAMPLED_SHADING | naga::valid::Capabilities::CUBE_ARRAY_TEXTURES
     };
-    let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
+    let info =
+        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
     let stage = naga_stage(s.stage);
     let mut bytes = 0;
     for t in &s.targets {
@@ -163,8 +164,9 @@ fn main() {
             kept_perms
                 .par_iter()
                 .map(|p| {
-                    let out = preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(&config), &fresh)
-                        .expect("preprocesses");
+                    let out =
+                        preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(&config), &fresh)
+                            .expect("preprocesses");
                     std::hint::black_box(out.token_hash());
                     out.text.len()
                 })
@@ -184,7 +186,8 @@ fn main() {
             distinct
                 .par_iter()
                 .map(|s| {
-                    let limits = if s.gles { kiln::compile::Limits::downlevel() } else { kiln::compile::Limits::desktop() };
+                    let limits =
+                        if s.gles { kiln::compile::Limits::downlevel() } else { kiln::compile::Limits::desktop() };
                     let o = kiln::compile::Options { targets: s.targets.clone(), limits };
                     kiln::compile::compile(&s.text, &s.entry, s.stage, &o).unwrap().artifacts.len()
                 })

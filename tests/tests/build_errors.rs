@@ -68,8 +68,9 @@ fn one_error_in_many_permutations_is_reported_once_naming_them_all() {
     assert_eq!(report.failures.len(), 2, "one diagnostic per level:\n{text}");
     let es = &report.failures[1];
     assert!(es.contains("┌─ include/fog.ush:"), "{es}");
-    assert!(es.ends_with(
-        "   = in 7 permutations (level `es3_1`, downlevel limits):
+    assert!(
+        es.ends_with(
+            "   = in 7 permutations (level `es3_1`, downlevel limits):
        LitVS@es3_1{USE_FOG=1,DEBUG_VIEW=0}
        LitVS@es3_1{USE_FOG=1,DEBUG_VIEW=1}
        LitPS@es3_1{USE_FOG=1,BLEND=OPAQUE,NUM_LIGHTS=0}
@@ -79,7 +80,9 @@ fn one_error_in_many_permutations_is_reported_once_naming_them_all() {
        LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=2}
 
 "
-    ), "{es}");
+        ),
+        "{es}"
+    );
 }
 
 #[test]

@@ -51,11 +51,19 @@ fn kind_name(k: &BindingKind) -> String {
         BindingKind::StorageBuffer { read_only, min_size } => {
             format!("storage{}({min_size} B)", if *read_only { ", read" } else { ", read_write" })
         }
-        BindingKind::Sampler { comparison } => if *comparison { "sampler_comparison".into() } else { "sampler".into() },
+        BindingKind::Sampler { comparison } => {
+            if *comparison {
+                "sampler_comparison".into()
+            } else {
+                "sampler".into()
+            }
+        }
         BindingKind::Texture { dim, sample, multisampled } => {
             format!("texture({dim:?}, {sample:?}{})", if *multisampled { ", multisampled" } else { "" })
         }
-        BindingKind::StorageTexture { dim, format, access } => format!("storage_texture({dim:?}, {format}, {access:?})"),
+        BindingKind::StorageTexture { dim, format, access } => {
+            format!("storage_texture({dim:?}, {format}, {access:?})")
+        }
     }
 }
 
