@@ -909,9 +909,9 @@ impl Progress {
     }
     fn stage(&self, name: &'static str, len: usize) {
         if let Some(b) = &self.bar {
-            b.set_prefix(name);
             b.set_length(len as u64);
             b.set_position(0);
+            b.set_prefix(name);
         }
     }
     fn inc(&self) {
