@@ -492,11 +492,12 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        fresh
-            .par_iter()
-            .filter_map(|k| c.put(k, &compiled[k]).err())
-            .map(|e| format!("warning: cannot store a cache entry: {e}"))
-            .collect()
+        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
+        match errors.first() {
+            None => Vec::new(),
+            Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
+            Some(e) => vec![format!("warning: cannot store {} cache entries: {e} (and {} more)", errors.len(), errors.len() - 1)],
+        }
     };
     if report.stats.failed > 0 {
         let warnings = store();
