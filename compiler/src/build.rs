@@ -3,12 +3,18 @@
 //! Takes [`Options`] (the `permutations.toml`, where to write, filters, cache, threads);
 //! gives a [`Report`] with the counts of DESIGN.md's `--stats-json`, every file the build
 //! read (for `cargo:rerun-if-changed`), the rendered warnings and failures. `kiln build` and
-//! [`crate::Build`] both call [`run`]. Guarantees: every kept permutation is preprocessed
-//! with one shared [`SourceCache`] (each file read once), permutations whose cache keys are
-//! equal compile once, distinct keys compile in parallel, the cache serves keys it holds; a
-//! failing permutation never stops the others, and every failure is reported with its
-//! mapped location and permutation name; the archive is written atomically, and only when
-//! nothing failed.
+//! [`crate::Build`] both call [`run`]. Guarantees: every kept permutation gets its cache key
+//! from the preprocessor's token hash, with one shared [`SourceCache`] (each file read
+//! once); permutations whose keys are equal compile once, distinct keys compile in
+//! parallel, and the cache serves keys it holds; a failing permutation never stops the
+//! others, and every failure is reported with its mapped location and permutation name;
+//! the archive is written atomically, and only when nothing failed.
+//!
+//! Work is skipped where the result is known: a permutation whose preprocessing record
+//! (in the cache) lists files whose contents have not changed is not preprocessed; a
+//! permutation that agrees with an already preprocessed one of its shader and level on
+//! every define the latter's files name reuses its result; and an archive that is, byte
+//! for byte, the output of a build with the same keys is not written again.
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::IsTerminal;
