@@ -158,6 +158,20 @@ pub fn validate(source: &str, entry: &str, stage: Stage, limits: &Limits) -> Res
             notes,
         }
     })?;
+    // Drop what the kept entry point does not use (other entry points' globals and helpers).
+    // Writers would otherwise declare resources the pipeline's layout does not bind, which
+    // Mesa's lavapipe does not survive at pipeline creation. The whole module was validated
+    // first, so errors in unused code are still reported; the compacted module is validated
+    // again because writers need a `ModuleInfo` that matches it.
+    let before = (module.global_variables.len(), module.functions.len(), module.types.len());
+    naga::compact::compact(&mut module, naga::compact::KeepUnused::No);
+    let info = if before == (module.global_variables.len(), module.functions.len(), module.types.len()) {
+        info
+    } else {
+        validator.validate(&module).map_err(|e| {
+            Error::new(ErrorKind::Validation, format!("internal error: the compacted module does not validate: {}", e.as_inner()))
+        })?
+    };
     Ok(Validated { module, info, entry: entry.to_string(), stage })
 }
 

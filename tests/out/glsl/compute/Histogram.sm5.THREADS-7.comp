@@ -14,16 +14,12 @@ layout(std140) uniform View_block_0Compute { View _group_0_binding_0_cs; };
 
 uniform highp sampler2D _group_0_binding_1_cs;
 
-layout(std430) buffer type_7_block_1Compute { uint _group_0_binding_2_cs[64]; };
+layout(std430) buffer type_6_block_1Compute { uint _group_0_binding_2_cs[64]; };
 
 layout(rgba8) writeonly uniform highp image2D _group_0_binding_3_cs;
 
 shared uint local_bins[64];
 
-
-float Lambert(vec3 n, vec3 to_light) {
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
 
 void main() {
     if (gl_LocalInvocationID == uvec3(0u)) {

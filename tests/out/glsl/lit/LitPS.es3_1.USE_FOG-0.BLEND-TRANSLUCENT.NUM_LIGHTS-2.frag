@@ -3,11 +3,6 @@
 precision highp float;
 precision highp int;
 
-struct View {
-    mat4x4 view_proj;
-    mat4x4 model;
-    vec4 camera;
-};
 struct VsOut {
     vec4 clip;
     vec3 world;
@@ -20,7 +15,7 @@ struct Light {
 };
 uniform highp sampler2D _group_1_binding_0_fs;
 
-layout(std140) uniform type_7_block_0Fragment { Light _group_2_binding_0_fs[2]; };
+layout(std140) uniform type_6_block_0Fragment { Light _group_2_binding_0_fs[2]; };
 
 layout(location = 0) smooth in vec3 _vs2fs_location0;
 layout(location = 1) smooth in vec3 _vs2fs_location1;

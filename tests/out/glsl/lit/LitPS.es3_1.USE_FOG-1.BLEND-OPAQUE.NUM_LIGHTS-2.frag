@@ -3,11 +3,6 @@
 precision highp float;
 precision highp int;
 
-struct View {
-    mat4x4 view_proj;
-    mat4x4 model;
-    vec4 camera;
-};
 struct VsOut {
     vec4 clip;
     vec3 world;
@@ -23,7 +18,7 @@ const float FOG_DENSITY = 0.02;
 
 uniform highp sampler2D _group_1_binding_0_fs;
 
-layout(std140) uniform type_7_block_0Fragment { Light _group_2_binding_0_fs[2]; };
+layout(std140) uniform type_6_block_0Fragment { Light _group_2_binding_0_fs[2]; };
 
 layout(location = 0) smooth in vec3 _vs2fs_location0;
 layout(location = 1) smooth in vec3 _vs2fs_location1;
@@ -33,11 +28,6 @@ layout(location = 0) out vec4 _fs2p_location0;
 
 float Lambert(vec3 n, vec3 to_light) {
     return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
-
-float FogFactor(vec3 world, vec3 camera) {
-    float d = distance(world, camera);
-    return clamp((1.0 - exp((-(d) * FOG_DENSITY))), 0.0, 1.0);
 }
 
 void main() {

@@ -23,10 +23,6 @@ layout(location = 0) smooth out vec3 _vs2fs_location0;
 layout(location = 1) smooth out vec3 _vs2fs_location1;
 layout(location = 2) smooth out vec2 _vs2fs_location2;
 
-float Lambert(vec3 n, vec3 to_light) {
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
-
 void main() {
     vec3 position = _p2vs_location0;
     vec3 normal = _p2vs_location1;

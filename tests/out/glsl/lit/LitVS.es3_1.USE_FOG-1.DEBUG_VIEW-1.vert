@@ -27,10 +27,6 @@ layout(location = 1) smooth out vec3 _vs2fs_location1;
 layout(location = 2) smooth out vec2 _vs2fs_location2;
 layout(location = 3) smooth out float _vs2fs_location3;
 
-float Lambert(vec3 n, vec3 to_light) {
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
-
 float FogFactor(vec3 world, vec3 camera) {
     float d = distance(world, camera);
     return clamp((1.0 - exp((-(d) * FOG_DENSITY))), 0.0, 1.0);

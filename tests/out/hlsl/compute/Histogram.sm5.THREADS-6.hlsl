@@ -10,11 +10,6 @@ RWByteAddressBuffer histogram : register(u2);
 RWTexture2D<unorm float4> debug_out : register(u3);
 groupshared uint local_bins[64];
 
-float Lambert(float3 n, float3 to_light)
-{
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
-
 uint naga_f2u32(float value) {
     return uint(clamp(value, 0.0, 4294967000.0));
 }

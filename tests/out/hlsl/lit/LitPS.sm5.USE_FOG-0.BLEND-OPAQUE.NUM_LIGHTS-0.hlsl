@@ -1,9 +1,3 @@
-struct View {
-    row_major float4x4 view_proj;
-    row_major float4x4 model;
-    float4 camera;
-};
-
 struct VsOut {
     float4 clip_ : SV_Position;
     float3 world : LOC0;
@@ -11,7 +5,6 @@ struct VsOut {
     float2 uv : LOC2;
 };
 
-cbuffer view : register(b0) { View view; }
 Texture2D<float4> base_color : register(t0, space1);
 SamplerState nagaSamplerHeap[2048]: register(s0, space0);
 SamplerComparisonState nagaComparisonSamplerHeap[2048]: register(s0, space1);
@@ -24,11 +17,6 @@ struct FragmentInput_main_ps {
     float2 uv : LOC2;
     float4 clip_ : SV_Position;
 };
-
-float Lambert(float3 n, float3 to_light)
-{
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
 
 float4 main_ps(FragmentInput_main_ps fragmentinput_main_ps) : SV_Target0
 {

@@ -1,9 +1,3 @@
-struct View {
-    row_major float4x4 view_proj;
-    row_major float4x4 model;
-    float4 camera;
-};
-
 struct VsOut {
     float4 clip_ : SV_Position;
     float3 world : LOC0;
@@ -16,7 +10,6 @@ struct Light {
     float4 color;
 };
 
-cbuffer view : register(b0) { View view; }
 Texture2D<float4> base_color : register(t0, space1);
 SamplerState nagaSamplerHeap[2048]: register(s0, space0);
 SamplerComparisonState nagaComparisonSamplerHeap[2048]: register(s0, space1);

@@ -12,11 +12,6 @@ struct VsOut {
 };
 
 cbuffer view : register(b0) { View view; }
-Texture2D<float4> base_color : register(t0, space1);
-SamplerState nagaSamplerHeap[2048]: register(s0, space0);
-SamplerComparisonState nagaComparisonSamplerHeap[2048]: register(s0, space1);
-StructuredBuffer<uint> nagaGroup1SamplerIndexArray : register(t1, space255);
-static const SamplerState base_sampler = nagaSamplerHeap[nagaGroup1SamplerIndexArray[1]];
 
 struct VertexOutput_main_vs {
     float3 world : LOC0;
@@ -24,11 +19,6 @@ struct VertexOutput_main_vs {
     float2 uv_1 : LOC2;
     float4 clip_ : SV_Position;
 };
-
-float Lambert(float3 n, float3 to_light)
-{
-    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
-}
 
 VertexOutput_main_vs main_vs(float3 position : LOC0, float3 normal : LOC1, float2 uv : LOC2)
 {

@@ -9,16 +9,9 @@ struct View {
     metal::float4x4 model;
     metal::float4 camera;
 };
-struct type_7 {
+struct type_6 {
     metal::atomic_uint inner[64];
 };
-
-float Lambert(
-    metal::float3 n,
-    metal::float3 to_light
-) {
-    return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
-}
 uint naga_f2u32(float value) {
     return static_cast<uint>(metal::clamp(value, 0.0, 4294967000.0));
 }
@@ -31,9 +24,9 @@ struct main_csInput {
 , uint li [[thread_index_in_threadgroup]]
 , constant View& view [[user(fake0)]]
 , metal::texture2d<float, metal::access::sample> input [[user(fake0)]]
-, device type_7& histogram [[user(fake0)]]
+, device type_6& histogram [[user(fake0)]]
 , metal::texture2d<float, metal::access::write> debug_out [[user(fake0)]]
-, threadgroup type_7& local_bins
+, threadgroup type_6& local_bins
 ) {
     if (li == 0u) {
         for (int __i0 = 0; __i0 < 64; __i0++) {

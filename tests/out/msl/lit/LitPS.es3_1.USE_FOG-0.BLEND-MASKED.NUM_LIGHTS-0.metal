@@ -4,11 +4,6 @@
 
 using metal::uint;
 
-struct View {
-    metal::float4x4 view_proj;
-    metal::float4x4 model;
-    metal::float4 camera;
-};
 struct VsOut {
     metal::float4 clip;
     metal::float3 world;
@@ -16,13 +11,6 @@ struct VsOut {
     metal::float2 uv;
     char _pad4[8];
 };
-
-float Lambert(
-    metal::float3 n,
-    metal::float3 to_light
-) {
-    return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
-}
 
 struct main_psInput {
     metal::float3 world [[user(loc0), center_perspective]];

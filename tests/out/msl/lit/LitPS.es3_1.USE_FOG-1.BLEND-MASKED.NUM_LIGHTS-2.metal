@@ -4,11 +4,6 @@
 
 using metal::uint;
 
-struct View {
-    metal::float4x4 view_proj;
-    metal::float4x4 model;
-    metal::float4 camera;
-};
 struct VsOut {
     metal::float4 clip;
     metal::float3 world;
@@ -21,7 +16,7 @@ struct Light {
     metal::float4 position;
     metal::float4 color;
 };
-struct type_7 {
+struct type_6 {
     Light inner[2];
 };
 constant float FOG_DENSITY = 0.02;
@@ -33,16 +28,8 @@ float Lambert(
     return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
 }
 
-float FogFactor(
-    metal::float3 world,
-    metal::float3 camera
-) {
-    float d = metal::distance(world, camera);
-    return metal::clamp(1.0 - metal::exp(-(d) * FOG_DENSITY), 0.0, 1.0);
-}
-
 struct main_psInput {
-    metal::float3 world_1 [[user(loc0), center_perspective]];
+    metal::float3 world [[user(loc0), center_perspective]];
     metal::float3 normal [[user(loc1), center_perspective]];
     metal::float2 uv [[user(loc2), center_perspective]];
     float fog [[user(loc3), center_perspective]];
@@ -55,9 +42,9 @@ fragment main_psOutput main_ps(
 , metal::float4 clip [[position]]
 , metal::texture2d<float, metal::access::sample> base_color [[user(fake0)]]
 , metal::sampler base_sampler [[user(fake0)]]
-, constant type_7& lights [[user(fake0)]]
+, constant type_6& lights [[user(fake0)]]
 ) {
-    const VsOut i = { clip, varyings.world_1, varyings.normal, varyings.uv, varyings.fog };
+    const VsOut i = { clip, varyings.world, varyings.normal, varyings.uv, varyings.fog };
     metal::float3 color = {};
     uint l = 0u;
     metal::float4 albedo = base_color.sample(base_sampler, i.uv);

@@ -4,11 +4,6 @@
 
 using metal::uint;
 
-struct View {
-    metal::float4x4 view_proj;
-    metal::float4x4 model;
-    metal::float4 camera;
-};
 struct VsOut {
     metal::float4 clip;
     metal::float3 world;
@@ -20,7 +15,7 @@ struct Light {
     metal::float4 position;
     metal::float4 color;
 };
-struct type_7 {
+struct type_6 {
     Light inner[2];
 };
 
@@ -44,7 +39,7 @@ fragment main_psOutput main_ps(
 , metal::float4 clip [[position]]
 , metal::texture2d<float, metal::access::sample> base_color [[user(fake0)]]
 , metal::sampler base_sampler [[user(fake0)]]
-, constant type_7& lights [[user(fake0)]]
+, constant type_6& lights [[user(fake0)]]
 ) {
     const VsOut i = { clip, varyings.world, varyings.normal, varyings.uv };
     metal::float3 color = {};

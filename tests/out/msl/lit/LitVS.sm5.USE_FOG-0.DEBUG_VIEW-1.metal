@@ -17,13 +17,6 @@ struct VsOut {
     char _pad4[8];
 };
 
-float Lambert(
-    metal::float3 n,
-    metal::float3 to_light
-) {
-    return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
-}
-
 struct main_vsInput {
     metal::float3 position [[attribute(0)]];
     metal::float3 normal [[attribute(1)]];

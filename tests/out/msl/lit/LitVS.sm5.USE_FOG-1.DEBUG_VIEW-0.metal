@@ -19,13 +19,6 @@ struct VsOut {
 };
 constant float FOG_DENSITY = 0.02;
 
-float Lambert(
-    metal::float3 n,
-    metal::float3 to_light
-) {
-    return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
-}
-
 float FogFactor(
     metal::float3 world,
     metal::float3 camera

@@ -14,10 +14,6 @@ var<storage, read_write> histogram: array<atomic<u32>, 64>;
 var debug_out: texture_storage_2d<rgba8unorm,write>;
 var<workgroup> local_bins: array<atomic<u32>, 64>;
 
-fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
-    return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
-}
-
 @compute @workgroup_size(128, 1, 1) 
 fn main_cs(@builtin(global_invocation_id) id: vec3<u32>, @builtin(local_invocation_index) li: u32) {
     if (li < 64u) {

@@ -1,9 +1,3 @@
-struct View {
-    view_proj: mat4x4<f32>,
-    model: mat4x4<f32>,
-    camera: vec4<f32>,
-}
-
 struct VsOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -19,8 +13,6 @@ struct Light {
 
 const FOG_DENSITY: f32 = 0.02f;
 
-@group(0) @binding(0) 
-var<uniform> view: View;
 @group(1) @binding(0) 
 var base_color: texture_2d<f32>;
 @group(1) @binding(1) 
@@ -30,11 +22,6 @@ var<uniform> lights: array<Light, 2>;
 
 fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
     return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
-}
-
-fn FogFactor(world: vec3<f32>, camera: vec3<f32>) -> f32 {
-    let d = distance(world, camera);
-    return clamp((1f - exp((-(d) * FOG_DENSITY))), 0f, 1f);
 }
 
 @fragment 

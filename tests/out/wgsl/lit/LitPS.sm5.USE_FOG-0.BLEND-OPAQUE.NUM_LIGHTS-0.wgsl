@@ -1,9 +1,3 @@
-struct View {
-    view_proj: mat4x4<f32>,
-    model: mat4x4<f32>,
-    camera: vec4<f32>,
-}
-
 struct VsOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -11,16 +5,10 @@ struct VsOut {
     @location(2) uv: vec2<f32>,
 }
 
-@group(0) @binding(0) 
-var<uniform> view: View;
 @group(1) @binding(0) 
 var base_color: texture_2d<f32>;
 @group(1) @binding(1) 
 var base_sampler: sampler;
-
-fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
-    return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
-}
 
 @fragment 
 fn main_ps(i: VsOut) -> @location(0) vec4<f32> {

@@ -1,9 +1,3 @@
-struct View {
-    view_proj: mat4x4<f32>,
-    model: mat4x4<f32>,
-    camera: vec4<f32>,
-}
-
 struct VsOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -16,8 +10,6 @@ struct Light {
     color: vec4<f32>,
 }
 
-@group(0) @binding(0) 
-var<uniform> view: View;
 @group(1) @binding(0) 
 var base_color: texture_2d<f32>;
 @group(1) @binding(1) 

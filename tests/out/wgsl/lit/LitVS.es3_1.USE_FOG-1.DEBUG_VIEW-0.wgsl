@@ -16,14 +16,6 @@ const FOG_DENSITY: f32 = 0.02f;
 
 @group(0) @binding(0) 
 var<uniform> view: View;
-@group(1) @binding(0) 
-var base_color: texture_2d<f32>;
-@group(1) @binding(1) 
-var base_sampler: sampler;
-
-fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
-    return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
-}
 
 fn FogFactor(world: vec3<f32>, camera: vec3<f32>) -> f32 {
     let d = distance(world, camera);

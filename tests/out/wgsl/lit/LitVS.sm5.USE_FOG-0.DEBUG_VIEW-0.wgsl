@@ -13,14 +13,6 @@ struct VsOut {
 
 @group(0) @binding(0) 
 var<uniform> view: View;
-@group(1) @binding(0) 
-var base_color: texture_2d<f32>;
-@group(1) @binding(1) 
-var base_sampler: sampler;
-
-fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
-    return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
-}
 
 @vertex 
 fn main_vs(@location(0) position: vec3<f32>, @location(1) normal: vec3<f32>, @location(2) uv: vec2<f32>) -> VsOut {
