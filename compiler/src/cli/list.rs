@@ -1,11 +1,356 @@
 //! `kiln list`.
 
+use std::io::{self, IsTerminal, Write};
+use std::path::PathBuf;
+
+use serde_json::json;
+
 use super::{CliResult, Failure};
+use crate::permute::{self, Analysis, Config, Permutation};
+use crate::preprocess::{self, SourceCache};
 
 /// Arguments of `kiln list`.
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// The permutation set.
+    #[arg(long, value_name = "FILE", default_value = "permutations.toml")]
+    pub config: PathBuf,
+    /// Only this shader.
+    #[arg(long, value_name = "NAME")]
+    pub shader: Option<String>,
+    /// Only this feature level.
+    #[arg(long, value_name = "L")]
+    pub level: Option<String>,
+    /// Also list the skipped permutations, with the rule and reason that skipped each.
+    #[arg(long)]
+    pub all: bool,
+    /// Print JSON: the permutations, the counts and the dead dimensions.
+    #[arg(long)]
+    pub json: bool,
+    /// Do not preprocess: no distinct counts and no dead dimensions, but much faster.
+    #[arg(long)]
+    pub no_analysis: bool,
+}
 
-pub fn exec(_args: Args) -> CliResult {
-    Err(Failure::usage("error: `kiln list` is not available yet"))
+/// Loads a permutation set, rendering a bad one as exit code 2.
+/// Its warnings go to `err`.
+pub(super) fn load_config(path: &std::path::Path, color: bool, err: &mut dyn Write) -> Result<Config, Failure> {
+    let config = permute::load(path).map_err(|e| Failure::usage(e.render_with(color)))?;
+    for w in &config.warnings {
+        let _ = write!(err, "{w}");
+    }
+    Ok(config)
+}
+
+/// A write error: a closed pipe (`kiln list | head`) is success.
+pub(super) fn write_result(r: io::Result<()>) -> CliResult {
+    match r {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == io::ErrorKind::BrokenPipe => Ok(()),
+        Err(e) => Err(Failure::usage(format!("error: cannot write to stdout: {e}"))),
+    }
+}
+
+#[derive(Default)]
+struct Count {
+    shader: String,
+    level: String,
+    kept: usize,
+    skipped: usize,
+}
+
+pub fn exec(args: Args) -> CliResult {
+    let stdout = io::stdout();
+    let mut out = io::BufWriter::new(stdout.lock());
+    let color = io::stderr().is_terminal();
+    let r = run(&args, &mut out, &mut io::stderr(), color);
+    write_result(out.flush())?;
+    r
+}
+
+/// `kiln list` writing to `out` (the listing) and `err` (warnings).
+pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: bool) -> CliResult {
+    let config = load_config(&args.config, color, err)?;
+    if let Some(s) = &args.shader {
+        if config.shader(s).is_none() {
+            let names: Vec<&str> = config.shaders.iter().map(|s| s.name.as_str()).collect();
+            return Err(Failure::usage(format!("error: no shader named `{s}` in {} (shaders: {})", args.config.display(), names.join(", "))));
+        }
+    }
+    if let Some(l) = &args.level {
+        if config.level(l).is_none() {
+            let names: Vec<&str> = config.levels.iter().map(|l| l.name.as_str()).collect();
+            return Err(Failure::usage(format!("error: no level named `{l}` in {} (levels: {})", args.config.display(), names.join(", "))));
+        }
+    }
+    let shader = args.shader.clone();
+    let level = args.level.clone();
+    let filter = move |s: &permute::Shader, l: &permute::Level| {
+        shader.as_deref().is_none_or(|n| n == s.name) && level.as_deref().is_none_or(|n| n == l.name)
+    };
+
+    let mut counts: Vec<Count> = Vec::new();
+    let mut errors: Vec<String> = Vec::new();
+    let mut tally = |p: &Permutation<'_>, counts: &mut Vec<Count>| {
+        if !matches!(counts.last(), Some(c) if c.shader == p.shader.name && c.level == p.level.name) {
+            counts.push(Count { shader: p.shader.name.clone(), level: p.level.name.clone(), ..Count::default() });
+        }
+        let c = counts.last_mut().expect("pushed above");
+        if p.is_kept() {
+            c.kept += 1;
+        } else {
+            c.skipped += 1;
+        }
+        if let Some(e) = &p.error {
+            errors.push(format!("warning: {}: {e}", p.name()));
+        }
+    };
+
+    // The names stream out first; the analysis (which preprocesses) comes after.
+    let cache = SourceCache::new(config.dir.clone());
+    let mut analysis: Option<Analysis> = None;
+    let result = write_result((|| {
+        if args.json {
+            writeln!(out, "{{")?;
+            writeln!(out, "  \"config\": {},", json!(config.path.display().to_string()))?;
+            write!(out, "  \"permutations\": [")?;
+            let mut first = true;
+            for p in config.permutations_where(&filter) {
+                tally(&p, &mut counts);
+                if !(args.all || p.is_kept()) {
+                    continue;
+                }
+                let values: serde_json::Map<String, serde_json::Value> = p
+                    .shader
+                    .dimensions
+                    .iter()
+                    .zip(&p.values)
+                    .map(|(d, v)| (d.name.clone(), if d.labels.is_empty() { json!(v) } else { json!(d.display(*v)) }))
+                    .collect();
+                let skip = p.skipped_by.map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
+                let obj = json!({
+                    "name": p.name(), "shader": p.shader.name, "level": p.level.name, "values": values,
+                    "kept": p.is_kept(), "skip": skip,
+                });
+                write!(out, "{}\n    {obj}", if first { "" } else { "," })?;
+                first = false;
+            }
+            writeln!(out, "\n  ],")?;
+            if !args.no_analysis {
+                analysis = Some(permute::analyze(&config, &cache, &filter));
+            }
+            let count_json: Vec<serde_json::Value> = counts
+                .iter()
+                .map(|c| {
+                    let distinct = analysis
+                        .as_ref()
+                        .and_then(|a| a.find(&c.shader, &c.level))
+                        .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
+                        .map(|l| l.distinct);
+                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": c.skipped, "distinct": distinct })
+                })
+                .collect();
+            let kept: usize = counts.iter().map(|c| c.kept).sum();
+            let skipped: usize = counts.iter().map(|c| c.skipped).sum();
+            let distinct =
+                analysis.as_ref().filter(|a| a.failed.is_empty()).map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
+            let dead: Vec<serde_json::Value> = analysis
+                .iter()
+                .flat_map(|a| a.dead())
+                .map(|d| json!({ "shader": d.shader, "level": d.level, "dimension": d.dimension, "multiplier": d.multiplier }))
+                .collect();
+            let failed: Vec<&str> = analysis.iter().flat_map(|a| a.failed.iter().map(|f| f.name.as_str())).collect();
+            writeln!(out, "  \"counts\": {},", serde_json::to_string(&count_json).map_err(io::Error::other)?)?;
+            writeln!(out, "  \"totals\": {},", json!({ "kept": kept, "skipped": skipped, "distinct": distinct }))?;
+            writeln!(out, "  \"dead_dimensions\": {},", json!(dead))?;
+            writeln!(out, "  \"failed\": {}", json!(failed))?;
+            writeln!(out, "}}")?;
+            return Ok(());
+        }
+
+        for p in config.permutations_where(&filter) {
+            tally(&p, &mut counts);
+            match p.skipped_by {
+                None => writeln!(out, "{}", p.name())?,
+                Some(i) if args.all => {
+                    let rule = &p.shader.skip[i];
+                    writeln!(out, "{}  skipped by rule {}: {} (when {})", p.name(), i + 1, rule.why, rule.when)?
+                }
+                Some(_) => {}
+            }
+        }
+        out.flush()?;
+        if !args.no_analysis {
+            analysis = Some(permute::analyze(&config, &cache, &filter));
+        }
+        write_summary(out, &counts, analysis.as_ref())
+    })());
+    let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
+    result
+}
+
+fn write_warnings(err: &mut dyn Write, errors: &[String], analysis: Option<&Analysis>, cache: &SourceCache, color: bool) -> io::Result<()> {
+    for e in errors.iter().take(20) {
+        writeln!(err, "{e}")?;
+    }
+    if let Some(first) = analysis.and_then(|a| a.failed.first()) {
+        writeln!(
+            err,
+            "warning: {} permutation(s) failed to preprocess (their levels show no distinct count). The first, {}:",
+            analysis.map_or(0, |a| a.failed.len()),
+            first.name
+        )?;
+        write!(err, "{}", preprocess::render(std::slice::from_ref(&first.error.diagnostic), cache, color))?;
+    }
+    Ok(())
+}
+
+fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analysis>) -> io::Result<()> {
+    let distinct = |c: &Count| -> String {
+        match analysis.and_then(|a| a.find(&c.shader, &c.level)) {
+            Some(l) if l.permutations.iter().all(|p| p.hash.is_some()) => l.distinct.to_string(),
+            _ => "-".to_string(),
+        }
+    };
+    let total_kept: usize = counts.iter().map(|c| c.kept).sum();
+    let total_skipped: usize = counts.iter().map(|c| c.skipped).sum();
+    let total_distinct = match analysis {
+        Some(a) if a.failed.is_empty() => a.levels.iter().map(|l| l.distinct).sum::<usize>().to_string(),
+        _ => "-".to_string(),
+    };
+    let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6);
+    let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5);
+    writeln!(out)?;
+    writeln!(out, "{:<ws$}  {:<wl$}  {:>8}  {:>8}  {:>8}", "shader", "level", "kept", "skipped", "distinct")?;
+    for c in counts {
+        writeln!(out, "{:<ws$}  {:<wl$}  {:>8}  {:>8}  {:>8}", c.shader, c.level, c.kept, c.skipped, distinct(c))?;
+    }
+    writeln!(out, "{:<ws$}  {:<wl$}  {:>8}  {:>8}  {:>8}", "total", "", total_kept, total_skipped, total_distinct)?;
+    if let Some(a) = analysis {
+        let dead: Vec<_> = a.dead().collect();
+        if !dead.is_empty() {
+            writeln!(out)?;
+            writeln!(out, "dead dimensions (they never change the preprocessed text):")?;
+            for d in dead {
+                writeln!(out, "  {}@{}: {} (x{} permutations for nothing)", d.shader, d.level, d.dimension, d.multiplier)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    fn fixture(name: &str) -> String {
+        format!("{}/../tests/in/permute/{name}", env!("CARGO_MANIFEST_DIR"))
+    }
+
+    /// `kiln list ARGS...`: (exit code, stdout, stderr).
+    fn list(args: &[&str]) -> (u8, String, String) {
+        let cli = Cli::try_parse_from(std::iter::once("list").chain(args.iter().copied())).unwrap();
+        let (mut out, mut err) = (Vec::new(), Vec::new());
+        let code = match run(&cli.args, &mut out, &mut err, false) {
+            Ok(()) => 0,
+            Err(f) => {
+                err.extend_from_slice(f.message.as_bytes());
+                f.code
+            }
+        };
+        (code, String::from_utf8(out).unwrap(), String::from_utf8(err).unwrap())
+    }
+
+    #[test]
+    fn defaults() {
+        let cli = Cli::try_parse_from(["list"]).unwrap();
+        assert_eq!(cli.args.config, PathBuf::from("permutations.toml"));
+        assert!(!cli.args.all && !cli.args.json && cli.args.shader.is_none());
+        let cli = Cli::try_parse_from(["list", "--config", "x.toml", "--shader", "S", "--level", "sm5", "--all", "--json"]).unwrap();
+        assert_eq!(cli.args.shader.as_deref(), Some("S"));
+        assert!(cli.args.all && cli.args.json);
+    }
+
+    #[test]
+    fn kept_names_then_counts() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, err) = list(&["--config", &config, "--shader", "Tonemap", "--level", "es3_1", "--no-analysis"]);
+        assert_eq!((code, err.as_str()), (0, ""));
+        assert_eq!(
+            out,
+            "Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=1,GRAIN=0}
+
+shader   level      kept   skipped  distinct
+Tonemap  es3_1        14         4         -
+total                 14         4         -
+"
+        );
+    }
+
+    #[test]
+    fn all_adds_skipped_with_rule_and_reason() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, _) = list(&["--config", &config, "--shader", "MobileBasePassPS", "--all", "--no-analysis"]);
+        assert_eq!(code, 0);
+        let lines: Vec<&str> = out.lines().collect();
+        assert_eq!(lines.len(), 32 + 4);
+        assert_eq!(
+            lines[5],
+            "MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=1,USE_VERTEX_FOG=0,DEFERRED_SHADING_PATH=1}  skipped by rule 1: deferred lights run in their own pass (when DEFERRED_SHADING_PATH && MAX_DYNAMIC_POINT_LIGHTS > 0)"
+        );
+        assert_eq!(lines.iter().filter(|l| l.contains("  skipped by rule 1: ")).count(), 12);
+        assert_eq!(lines[34], "MobileBasePassPS  es3_1        20        12         -");
+    }
+
+    #[test]
+    fn json_form() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, _) = list(&["--config", &config, "--all", "--json", "--no-analysis"]);
+        assert_eq!(code, 0);
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        let perms = v["permutations"].as_array().unwrap();
+        assert_eq!(perms.len(), 32 + 18 + 18);
+        let skipped = perms.iter().find(|p| p["kept"] == false).unwrap();
+        assert_eq!(skipped["skip"]["rule"], 1);
+        assert_eq!(skipped["skip"]["why"], "deferred lights run in their own pass");
+        let t = perms.iter().find(|p| p["shader"] == "Tonemap").unwrap();
+        assert_eq!(t["values"], serde_json::json!({ "BLEND_MODE": "OPAQUE", "DEBUG_VIEW": 0, "GRAIN": 0 }));
+        assert_eq!(t["level"], "sm5");
+        assert_eq!(v["totals"], serde_json::json!({ "kept": 48, "skipped": 20, "distinct": null }));
+        assert_eq!(v["counts"][1], serde_json::json!({ "shader": "Tonemap", "level": "sm5", "kept": 14, "skipped": 4, "distinct": null }));
+    }
+
+    #[test]
+    fn config_errors_and_unknown_filters_exit_2() {
+        let (code, out, err) = list(&["--config", "/nonexistent/permutations.toml"]);
+        assert_eq!((code, out.as_str()), (2, ""));
+        assert!(err.starts_with("error: cannot read permutation set `/nonexistent/permutations.toml`: "), "{err}");
+        let config = fixture("mobile/permutations.toml");
+        let (code, _, err) = list(&["--config", &config, "--shader", "Nope"]);
+        assert_eq!(code, 2);
+        assert!(err.ends_with("(shaders: MobileBasePassPS, Tonemap)"), "{err}");
+        let (code, _, err) = list(&["--config", &config, "--level", "sm6"]);
+        assert_eq!(code, 2);
+        assert!(err.ends_with("(levels: sm5, es3_1)"), "{err}");
+    }
 }
