@@ -8,13 +8,11 @@
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec4;
+use glam::{Mat4, Vec4};
 
-use crate::gpu_types::formats;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
-use crate::scene::gpu::GpuScene;
 
-use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{perm, color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
 use super::particles::Particles;
 
 pub const DISTORTION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
@@ -35,8 +33,9 @@ pub struct Distortion {
     apply: Arc<RenderPipeline>,
     accumulate_group: wgpu::BindGroup,
     apply_group: wgpu::BindGroup,
-    /// Scene objects drawn with refraction.
-    objects: Vec<usize>,
+    /// The refracting meshes.
+    meshes: Vec<InstancedMesh>,
+    depth_format: wgpu::TextureFormat,
     _material: wgpu::Buffer,
 }
 
@@ -47,16 +46,17 @@ impl Distortion {
         frame_view: &wgpu::Buffer,
         size: [u32; 2],
         scene_color_format: wgpu::TextureFormat,
-        refracting: &[usize],
+        depth_format: wgpu::TextureFormat,
+        refracting: Vec<InstancedMesh>,
     ) -> Result<Distortion, PipelineError> {
         let accumulate_state = RenderState::mesh()
             .with_cull(None)
             .with_targets(&[ColorTarget { format: DISTORTION_FORMAT, blend: Blend::Additive }])
-            .with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
-        let accumulate = cache.render("DistortAccumulateVS@sm5", Some("DistortAccumulatePS@sm5"), &accumulate_state)?;
-        let apply = cache.render("DistortApplyScreenVS@sm5", Some("DistortApplyScreenPS@sm5"), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }))?;
+            .with_depth(DepthState::reverse_z(depth_format, false));
+        let accumulate = cache.render(&perm(cache, "DistortAccumulateVS", &[])?, Some(&perm(cache, "DistortAccumulatePS", &[])?), &accumulate_state)?;
+        let apply = cache.render(&perm(cache, "DistortApplyScreenVS", &[])?, Some(&perm(cache, "DistortApplyScreenPS", &[])?), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }))?;
         // the heat haze pipeline, created now so recording creates none
-        cache.render("ParticleSpriteVS@sm5", Some("ParticleDistortionPS@sm5"), &Particles::distortion_state(DISTORTION_FORMAT, Some(formats::SCENE_DEPTH)))?;
+        cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(DISTORTION_FORMAT, Some(depth_format)))?;
         let offsets = target_2d(device, "Distortion", size, DISTORTION_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
         let offsets_view = view(&offsets);
         let scene_color_copy = target_2d(device, "SceneColor copy", size, scene_color_format, wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING);
@@ -81,13 +81,18 @@ impl Distortion {
             apply,
             accumulate_group,
             apply_group,
-            objects: refracting.to_vec(),
+            meshes: refracting,
+            depth_format,
             _material: material,
         })
     }
 
     /// DistortionAccum: the offsets of the glass and the heat haze.
-    pub fn record_accumulate(&self, cache: &PipelineCache, encoder: &mut wgpu::CommandEncoder, scene: &GpuScene, scene_depth: &wgpu::TextureView, particles: Option<&Particles>) -> Result<(), PipelineError> {
+    /// `transforms[i]`: this frame's instances of refracting mesh `i`.
+    pub fn record_accumulate(&mut self, cache: &PipelineCache, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>], particles: Option<&Particles>) -> Result<(), PipelineError> {
+        for (m, t) in self.meshes.iter_mut().zip(transforms) {
+            m.set_transforms(queue, t);
+        }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("DistortionAccum"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -107,11 +112,11 @@ impl Distortion {
         });
         pass.set_pipeline(&self.accumulate.pipeline);
         pass.set_bind_group(0, &self.accumulate_group, &[]);
-        for &o in &self.objects {
-            scene.draw(&mut pass, &scene.objects[o]);
+        for m in &self.meshes {
+            m.draw(&mut pass);
         }
         if let Some(p) = particles {
-            p.draw_distortion(cache, &mut pass, DISTORTION_FORMAT, Some(formats::SCENE_DEPTH))?;
+            p.draw_distortion(cache, &mut pass, DISTORTION_FORMAT, Some(self.depth_format))?;
         }
         Ok(())
     }

@@ -13,7 +13,7 @@ use glam::{UVec4, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, target_2d, uniform_buffer, view};
+use super::frame_view::{perm, groups, target_2d, uniform_buffer, view};
 
 pub const BINS: usize = 64;
 pub const MIN_LOG2_LUMINANCE: f32 = -10.0;
@@ -84,9 +84,9 @@ pub struct EyeAdaptation {
 
 impl EyeAdaptation {
     pub fn new(device: &wgpu::Device, cache: &PipelineCache, scene_color: &wgpu::TextureView, size: [u32; 2]) -> Result<EyeAdaptation, PipelineError> {
-        let histogram_pipeline = cache.compute("PostProcessHistogramCS@sm5")?;
-        let adapt_pipeline = cache.compute("PostProcessEyeAdaptationCS@sm5")?;
-        let debug_pipeline = cache.compute("PostProcessHistogramDebugCS@sm5")?;
+        let histogram_pipeline = cache.compute(&perm(cache, "PostProcessHistogramCS", &[])?)?;
+        let adapt_pipeline = cache.compute(&perm(cache, "PostProcessEyeAdaptationCS", &[])?)?;
+        let debug_pipeline = cache.compute(&perm(cache, "PostProcessHistogramDebugCS", &[])?)?;
         let histogram = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("PostProcessHistogram"),
             size: (BINS * 4) as u64,

@@ -7,6 +7,8 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec2, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
+use crate::pipelines::{PipelineCache, PipelineError};
+
 /// `FrameView` of `DeferredFrame2Common.ush`, member for member (mat4 and vec4 only).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -123,6 +125,84 @@ impl FrameView {
     }
 }
 
+/// The directional light's shadow map as the fog and the translucency volumes read it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DirectionalShadow {
+    /// World -> clip of each cascade (reverse-Z).
+    pub cascades: [Mat4; 3],
+    /// View distances where cascades 0, 1, 2 end.
+    pub splits: [f32; 3],
+    /// Tiles of the atlas in x: 3 for the 3x1 cascade atlas, 1 for a single shadow map.
+    pub atlas_tiles: u32,
+}
+
+impl DirectionalShadow {
+    /// One shadow map covering every distance.
+    pub fn single(view_proj: Mat4) -> DirectionalShadow {
+        DirectionalShadow { cascades: [view_proj; 3], splits: [f32::MAX; 3], atlas_tiles: 1 }
+    }
+
+    /// The matrices and the splits vector of the shaders (w: atlas tiles, 0 without shadow).
+    pub fn uniforms(shadow: Option<&DirectionalShadow>) -> ([Mat4; 3], Vec4) {
+        match shadow {
+            Some(s) => (s.cascades, Vec4::new(s.splits[0], s.splits[1], s.splits[2], s.atlas_tiles as f32)),
+            None => ([Mat4::IDENTITY; 3], Vec4::ZERO),
+        }
+    }
+}
+
+/// A scene mesh the passes of part 2 draw again (Velocity, DistortionAccum), with the
+/// instance vertex buffer they keep themselves (the local vertex factory's layout:
+/// `MeshVertex` in buffer 0, one local-to-world matrix per instance in buffer 1).
+pub struct InstancedMesh {
+    pub vertices: wgpu::Buffer,
+    pub indices: wgpu::Buffer,
+    pub index_count: u32,
+    pub instances: wgpu::Buffer,
+    pub instance_count: u32,
+}
+
+/// Most instances of one [`InstancedMesh`].
+pub const MAX_MESH_INSTANCES: usize = 2;
+
+impl InstancedMesh {
+    pub fn new(device: &wgpu::Device, label: &str, vertices: &wgpu::Buffer, indices: &wgpu::Buffer, index_count: u32) -> InstancedMesh {
+        let instances = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(&format!("{label} instances")),
+            size: (MAX_MESH_INSTANCES * 64) as u64,
+            usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        InstancedMesh { vertices: vertices.clone(), indices: indices.clone(), index_count, instances, instance_count: 0 }
+    }
+
+    /// This frame's transforms (at most [`MAX_MESH_INSTANCES`]).
+    pub fn set_transforms(&mut self, queue: &wgpu::Queue, transforms: &[Mat4]) {
+        let n = transforms.len().min(MAX_MESH_INSTANCES);
+        let cols: Vec<[[f32; 4]; 4]> = transforms[..n].iter().map(|m| m.to_cols_array_2d()).collect();
+        if n > 0 {
+            queue.write_buffer(&self.instances, 0, bytemuck::cast_slice(&cols));
+        }
+        self.instance_count = n as u32;
+    }
+
+    pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
+        pass.set_vertex_buffer(0, self.vertices.slice(..));
+        pass.set_vertex_buffer(1, self.instances.slice(..));
+        pass.set_index_buffer(self.indices.slice(..), wgpu::IndexFormat::Uint32);
+        pass.draw_indexed(0..self.index_count, 0, 0..self.instance_count);
+    }
+}
+
+/// The canonical name of `shader`'s `sm5` permutation with the given dimension values.
+pub fn perm(cache: &PipelineCache, shader: &str, values: &[(&str, &str)]) -> Result<String, PipelineError> {
+    let mut q = cache.archive().shader(shader).level("sm5");
+    for (d, v) in values {
+        q = q.with(d, v);
+    }
+    Ok(q.find()?.name().to_string())
+}
+
 /// A uniform buffer holding `value`, writable with `queue.write_buffer` (and the target of
 /// GPU copies, like the eye adaptation's exposure).
 pub fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
@@ -224,7 +304,7 @@ mod tests {
             let j = taa_jitter(frame, 320, 180);
             assert!(j.x.abs() <= 1.0 / 320.0 && j.y.abs() <= 1.0 / 180.0, "{j}");
         }
-        let proj = Mat4::perspective_infinite_reverse_rh(1.0, 16.0 / 9.0, 0.1);
+        let proj = glam::camera::rh::proj::directx::perspective_infinite_reverse(1.0, 16.0 / 9.0, 0.1);
         let j = Vec2::new(0.01, -0.02);
         let p = Vec3::new(0.3, -0.2, -4.0);
         let a = proj.project_point3(p);
@@ -234,8 +314,8 @@ mod tests {
 
     #[test]
     fn still_camera_reprojects_onto_itself() {
-        let view = Mat4::look_at_rh(Vec3::new(1.0, 2.0, 5.0), Vec3::ZERO, Vec3::Y);
-        let proj = Mat4::perspective_infinite_reverse_rh(1.0, 1.5, 0.1);
+        let view = glam::camera::rh::view::look_at_mat4(Vec3::new(1.0, 2.0, 5.0), Vec3::ZERO, Vec3::Y);
+        let proj = glam::camera::rh::proj::directx::perspective_infinite_reverse(1.0, 1.5, 0.1);
         let cam = CameraState::new(view, proj, 0.1, Vec2::new(0.001, 0.002));
         let lights = FrameLights { sun_direction: Vec3::Y, sun_color: Vec3::ONE, sun_enabled: true, sky_color: Vec3::ONE, sky_intensity: 1.0 };
         let v = FrameView::new(&cam, &cam, 300, 200, 3, 0.0, 1.0 / 30.0, &lights);

@@ -10,7 +10,7 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, uniform_buffer};
+use super::frame_view::{perm, groups, uniform_buffer};
 
 pub const HZB_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
 
@@ -46,8 +46,8 @@ pub struct Hzb {
 impl Hzb {
     /// The chain for a scene depth of `scene_size`, reading `scene_depth` (a depth-aspect view).
     pub fn new(device: &wgpu::Device, cache: &PipelineCache, scene_depth: &wgpu::TextureView, scene_size: [u32; 2]) -> Result<Hzb, PipelineError> {
-        let first = cache.compute("HZBBuildCS@sm5{HZB_FIRST_MIP=1}")?;
-        let rest = cache.compute("HZBBuildCS@sm5{HZB_FIRST_MIP=0}")?;
+        let first = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "1")])?)?;
+        let rest = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "0")])?)?;
         let size = hzb_size(scene_size);
         let mip_count = 32 - size[0].max(size[1]).leading_zeros();
         let texture = device.create_texture(&wgpu::TextureDescriptor {

@@ -10,7 +10,7 @@ use glam::Vec4;
 
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, uniform_buffer};
+use super::frame_view::{perm, color_pass, linear_sampler, uniform_buffer};
 
 /// Fraction of the frame the shutter is open (Unreal's default 0.5).
 pub const SHUTTER: f32 = 0.5;
@@ -42,7 +42,7 @@ impl MotionBlur {
         scene_depth: &wgpu::TextureView,
         output_format: wgpu::TextureFormat,
     ) -> Result<MotionBlur, PipelineError> {
-        let pipeline = cache.render("MotionBlurVS@sm5", Some("MotionBlurPS@sm5"), &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }))?;
+        let pipeline = cache.render(&perm(cache, "MotionBlurVS", &[])?, Some(&perm(cache, "MotionBlurPS", &[])?), &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }))?;
         let params = uniform_buffer(device, "MotionBlur params", &MotionBlurParams { shutter: Vec4::new(SHUTTER, MAX_LENGTH, SAMPLES, 0.0) });
         let sampler = linear_sampler(device, "MotionBlur sampler");
         let groups = inputs

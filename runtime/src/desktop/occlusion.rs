@@ -16,10 +16,9 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::gpu_types::formats;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{target_2d, view};
+use super::frame_view::{perm, target_2d, view};
 
 /// Most queries of one frame.
 pub const MAX_QUERIES: u32 = 128;
@@ -130,10 +129,10 @@ fn box_proxy((lo, hi): (Vec3, Vec3), color: Vec3) -> OcclusionProxy {
 
 impl OcclusionCulling {
     /// `bounds`: each prop's world-space box (a prop is an object of the scene, by index).
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], bounds: Vec<(Vec3, Vec3)>, lights: usize) -> Result<OcclusionCulling, PipelineError> {
+    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], depth_format: wgpu::TextureFormat, bounds: Vec<(Vec3, Vec3)>, lights: usize) -> Result<OcclusionCulling, PipelineError> {
         let state = RenderState::fullscreen(ColorTarget { format: wgpu::TextureFormat::Rgba8Unorm, blend: Blend::Additive })
-            .with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
-        let pipeline = cache.render("OcclusionQueryVS@sm5", Some("OcclusionQueryPS@sm5"), &state)?;
+            .with_depth(DepthState::reverse_z(depth_format, false));
+        let pipeline = cache.render(&perm(cache, "OcclusionQueryVS", &[])?, Some(&perm(cache, "OcclusionQueryPS", &[])?), &state)?;
         let query_set = device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("occlusion queries"), ty: wgpu::QueryType::Occlusion, count: MAX_QUERIES });
         let resolve = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("occlusion resolve"),

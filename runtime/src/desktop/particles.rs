@@ -15,7 +15,7 @@ use glam::{UVec4, Vec3, Vec4};
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout};
 use crate::scene::ParticleEmitter;
 
-use super::frame_view::{groups, uniform_buffer, view};
+use super::frame_view::{perm, groups, uniform_buffer, view};
 
 pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -144,10 +144,10 @@ pub struct Particles {
 
 impl Particles {
     pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, descs: Vec<EmitterDesc>, collision: &CollisionInputs<'_>) -> Result<Particles, PipelineError> {
-        let sprite_pipeline_layout = cache.render("ParticleSpriteVS@sm5", Some("ParticleSpritePS@sm5"), &sprite_state(wgpu::TextureFormat::Rgba16Float, None))?;
+        let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(wgpu::TextureFormat::Rgba16Float, None))?;
         let mut emitters = Vec::new();
         for (index, desc) in descs.into_iter().enumerate() {
-            let sim = cache.compute(&format!("ParticleSimulationCS@sm5{{PARTICLE_COLLISION={}}}", u32::from(desc.collides)))?;
+            let sim = cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", if desc.collides { "1" } else { "0" })])?)?;
             let rows = desc.max_particles.div_ceil(STATE_WIDTH);
             let state = |label: &str, format| {
                 device.create_texture(&wgpu::TextureDescriptor {
@@ -224,7 +224,7 @@ impl Particles {
                 counts: UVec4::new(STATE_WIDTH, d.max_particles, self.frame, e.seed),
             };
             queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-            let pipeline = cache.compute(&format!("ParticleSimulationCS@sm5{{PARTICLE_COLLISION={}}}", u32::from(colliding)))?;
+            let pipeline = cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", if colliding { "1" } else { "0" })])?)?;
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("ParticleSimulation {}", d.name)), timestamp_writes: None });
             pass.set_pipeline(&pipeline.pipeline);
             pass.set_bind_group(0, &e.simulate[e.current], &[]);
@@ -233,6 +233,18 @@ impl Particles {
             e.current = 1 - e.current;
         }
         Ok(())
+    }
+
+    /// The state textures (positions, velocities) of the first emitter that (does not)
+    /// collide.
+    pub fn state_textures(&self, colliding: bool) -> (&[wgpu::Texture; 2], &[wgpu::Texture; 2]) {
+        let e = self.emitters.iter().find(|e| e.desc.collides == colliding).unwrap_or(&self.emitters[0]);
+        (&e.positions, &e.velocities)
+    }
+
+    /// Which state of that emitter holds the latest simulation (0 or 1).
+    pub fn current_index(&self, colliding: bool) -> usize {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map_or(0, |e| e.current)
     }
 
     /// The latest position state of the first emitter that (does not) collide, for the dump.
@@ -247,7 +259,7 @@ impl Particles {
     /// Draws every emitter's sprites, instanced, into a translucency pass whose colour target
     /// has `format` (premultiplied alpha) and, when given, a read-only reverse-Z depth test.
     pub fn draw_sprites(&self, cache: &PipelineCache, pass: &mut wgpu::RenderPass<'_>, format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> Result<(), PipelineError> {
-        let pipeline = cache.render("ParticleSpriteVS@sm5", Some("ParticleSpritePS@sm5"), &sprite_state(format, depth))?;
+        let pipeline = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(format, depth))?;
         self.draw_with(&pipeline, pass);
         Ok(())
     }
@@ -255,13 +267,19 @@ impl Particles {
     /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
     /// additive offsets).
     pub fn draw_distortion(&self, cache: &PipelineCache, pass: &mut wgpu::RenderPass<'_>, format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> Result<(), PipelineError> {
-        let pipeline = cache.render("ParticleSpriteVS@sm5", Some("ParticleDistortionPS@sm5"), &Particles::distortion_state(format, depth))?;
+        let pipeline = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(format, depth))?;
         pass.set_pipeline(&pipeline.pipeline);
         for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
             pass.set_bind_group(0, &e.sprites[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
         }
         Ok(())
+    }
+
+    /// The fixed-function state of the sprites: premultiplied over the target, depth-tested
+    /// (read-only).
+    pub fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+        sprite_state(format, depth)
     }
 
     /// The fixed-function state of the heat haze: additive offsets.

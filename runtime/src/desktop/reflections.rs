@@ -14,7 +14,7 @@ use glam::{Vec3, Vec4};
 
 use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{perm, color_pass, groups, linear_sampler, target_2d, uniform_buffer, view};
 
 pub const SSR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 pub const CAPTURE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -82,9 +82,9 @@ impl Reflections {
         capture: &CaptureDesc,
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<Reflections, PipelineError> {
-        let ssr_pipeline = cache.render("ScreenSpaceReflectionsVS@sm5", Some("ScreenSpaceReflectionsPS@sm5{SSR_QUALITY=1}"), &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }))?;
-        let environment = cache.render("ReflectionEnvironmentVS@sm5", Some("ReflectionEnvironmentPS@sm5"), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }))?;
-        let filter = cache.compute("ReflectionCaptureFilterCS@sm5")?;
+        let ssr_pipeline = cache.render(&perm(cache, "ScreenSpaceReflectionsVS", &[])?, Some(&perm(cache, "ScreenSpaceReflectionsPS", &[("SSR_QUALITY", "1")])?), &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }))?;
+        let environment = cache.render(&perm(cache, "ReflectionEnvironmentVS", &[])?, Some(&perm(cache, "ReflectionEnvironmentPS", &[])?), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }))?;
+        let filter = cache.compute(&perm(cache, "ReflectionCaptureFilterCS", &[])?)?;
         let ssr = target_2d(device, "ScreenSpaceReflections", size, SSR_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
         let ssr_view = view(&ssr);
         let capture_texture = device.create_texture(&wgpu::TextureDescriptor {
@@ -132,7 +132,7 @@ impl Reflections {
             let group = filter.layout.bind_group(device, 0, "ReflectionCaptureFilter", &[
                 ("view", frame_view.as_entire_binding()),
                 ("reflection", params.as_entire_binding()),
-                ("capture_face", tex(&face_view)),
+                ("capture_face", wgpu::BindingResource::TextureView(&face_view)),
             ])?;
             filter_groups.push((group, (CAPTURE_SIZE >> mip).max(1)));
             buffers.push(params);

@@ -11,7 +11,7 @@ use glam::Vec4;
 
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{perm, color_pass, linear_sampler, target_2d, uniform_buffer, view};
 
 pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weight of the current frame in the history (Unreal: 0.04 at 8 samples; a larger weight
@@ -45,7 +45,7 @@ impl TemporalAA {
         velocity: &wgpu::TextureView,
         scene_depth: &wgpu::TextureView,
     ) -> Result<TemporalAA, PipelineError> {
-        let pipeline = cache.render("TemporalAAVS@sm5", Some("TemporalAAPS@sm5"), &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }))?;
+        let pipeline = cache.render(&perm(cache, "TemporalAAVS", &[])?, Some(&perm(cache, "TemporalAAPS", &[])?), &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }))?;
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
         let history = [target_2d(device, "TemporalAAHistory0", size, HISTORY_FORMAT, usage), target_2d(device, "TemporalAAHistory1", size, HISTORY_FORMAT, usage)];
         let history_views = [view(&history[0]), view(&history[1])];

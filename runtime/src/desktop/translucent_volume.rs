@@ -13,7 +13,7 @@ use glam::{Mat4, Vec3, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, uniform_buffer, view, volume_3d};
+use super::frame_view::{perm, groups, uniform_buffer, view, volume_3d, DirectionalShadow};
 
 pub const VOLUME_SIZE: u32 = 64;
 pub const VOLUME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -74,8 +74,8 @@ impl TranslucentVolumes {
         shadow_compare: wgpu::CompareFunction,
         lights: Vec<InjectedLight>,
     ) -> Result<TranslucentVolumes, PipelineError> {
-        let inject = [cache.compute("TranslucentVolumeInjectCS@sm5{DYNAMICALLY_SHADOWED=0}")?, cache.compute("TranslucentVolumeInjectCS@sm5{DYNAMICALLY_SHADOWED=1}")?];
-        let filter = cache.compute("TranslucentVolumeFilterCS@sm5")?;
+        let inject = [cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "0")])?)?, cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "1")])?)?];
+        let filter = cache.compute(&perm(cache, "TranslucentVolumeFilterCS", &[])?)?;
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("TranslucentVolume shadow sampler"),
             mag_filter: wgpu::FilterMode::Linear,
@@ -147,13 +147,10 @@ impl TranslucentVolumes {
         (origin, cell)
     }
 
-    /// InjectTranslucentVolume: every light into both cascades. `cascades`: world -> cascade
-    /// clip of the directional shadow and the view distances where cascades end.
-    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, cascades: Option<([Mat4; 3], [f32; 3])>) {
-        let (matrices, splits) = match cascades {
-            Some((m, s)) => (m, Vec4::new(s[0], s[1], s[2], 1.0)),
-            None => ([Mat4::IDENTITY; 3], Vec4::ZERO),
-        };
+    /// InjectTranslucentVolume: every light into both cascades, the directional light
+    /// shadowed by `shadow`.
+    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>) {
+        let (matrices, splits) = DirectionalShadow::uniforms(shadow);
         let n = groups(VOLUME_SIZE, 4);
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);

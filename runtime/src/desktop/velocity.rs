@@ -4,17 +4,14 @@
 //! motion blur reproject it from depth and the camera. Depth-tested against the prepass
 //! depth (reverse-Z, greater-or-equal), no depth write.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Mat4;
 
-use crate::gpu_types::formats;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
-use crate::scene::gpu::GpuScene;
 
-use super::frame_view::{target_2d, uniform_buffer, view};
+use super::frame_view::{perm, target_2d, uniform_buffer, view, InstancedMesh, MAX_MESH_INSTANCES};
 
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
 
@@ -22,57 +19,57 @@ pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 struct PreviousTransforms {
-    prev_local_to_world: [Mat4; 2],
+    prev_local_to_world: [Mat4; MAX_MESH_INSTANCES],
 }
 
-struct MovableObject {
-    object: usize,
+struct MovableMesh {
+    mesh: InstancedMesh,
     previous: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
+    /// The transforms of the last frame recorded.
+    last: Option<Vec<Mat4>>,
 }
 
 pub struct Velocity {
     pub texture: wgpu::Texture,
     pub view: wgpu::TextureView,
     pipeline: Arc<RenderPipeline>,
-    objects: Vec<MovableObject>,
-    /// Each movable object's transforms of the last frame recorded.
-    last: HashMap<usize, Vec<Mat4>>,
+    meshes: Vec<MovableMesh>,
 }
 
 impl Velocity {
-    /// `movable`: indices into the scene's objects of the meshes that move.
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], movable: &[usize]) -> Result<Velocity, PipelineError> {
+    /// `movable`: the meshes that move, each with its own instance buffer.
+    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], depth_format: wgpu::TextureFormat, movable: Vec<InstancedMesh>) -> Result<Velocity, PipelineError> {
         let state = RenderState::mesh()
             .with_targets(&[ColorTarget { format: VELOCITY_FORMAT, blend: Blend::Replace }])
-            .with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
-        let pipeline = cache.render("VelocityVS@sm5", Some("VelocityPS@sm5"), &state)?;
+            .with_depth(DepthState::reverse_z(depth_format, false));
+        let pipeline = cache.render(&perm(cache, "VelocityVS", &[])?, Some(&perm(cache, "VelocityPS", &[])?), &state)?;
         let texture = target_2d(device, "Velocity", size, VELOCITY_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
-        let mut objects = Vec::new();
-        for &object in movable {
+        let mut meshes = Vec::new();
+        for mesh in movable {
             let previous = uniform_buffer(device, "Velocity previous transforms", &PreviousTransforms::default());
             let bind_group = pipeline.layout.bind_group(device, 0, "Velocity", &[
                 ("view", frame_view.as_entire_binding()),
                 ("previous", previous.as_entire_binding()),
             ])?;
-            objects.push(MovableObject { object, previous, bind_group });
+            meshes.push(MovableMesh { mesh, previous, bind_group, last: None });
         }
-        Ok(Velocity { view: view(&texture), texture, pipeline, objects, last: HashMap::new() })
+        Ok(Velocity { view: view(&texture), texture, pipeline, meshes })
     }
 
-    /// Draws the movable objects; `transforms(object)` gives their instances' local-to-world
-    /// matrices this frame (as uploaded in their instance buffers). The previous frame's are
-    /// remembered from the last call (the same on the first frame: no motion).
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene: &GpuScene, scene_depth: &wgpu::TextureView, transforms: &dyn Fn(usize) -> Vec<Mat4>) {
-        for o in &self.objects {
-            let current = transforms(o.object);
-            let previous = self.last.get(&o.object).cloned().unwrap_or_else(|| current.clone());
+    /// Draws the movable meshes at `transforms[i]` (this frame's instances of mesh `i`, as
+    /// the other passes draw them); the previous frame's come from the last call (the same
+    /// on the first frame: no motion).
+    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>]) {
+        for (m, current) in self.meshes.iter_mut().zip(transforms) {
+            m.mesh.set_transforms(queue, current);
+            let previous = m.last.clone().unwrap_or_else(|| current.clone());
             let mut uniforms = PreviousTransforms::default();
-            for (i, m) in previous.iter().take(2).enumerate() {
-                uniforms.prev_local_to_world[i] = *m;
+            for (i, t) in previous.iter().take(MAX_MESH_INSTANCES).enumerate() {
+                uniforms.prev_local_to_world[i] = *t;
             }
-            queue.write_buffer(&o.previous, 0, bytemuck::bytes_of(&uniforms));
-            self.last.insert(o.object, current);
+            queue.write_buffer(&m.previous, 0, bytemuck::bytes_of(&uniforms));
+            m.last = Some(current.clone());
         }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("Velocity"),
@@ -92,9 +89,9 @@ impl Velocity {
             multiview_mask: None,
         });
         pass.set_pipeline(&self.pipeline.pipeline);
-        for o in &self.objects {
-            pass.set_bind_group(0, &o.bind_group, &[]);
-            scene.draw(&mut pass, &scene.objects[o.object]);
+        for m in &self.meshes {
+            pass.set_bind_group(0, &m.bind_group, &[]);
+            m.mesh.draw(&mut pass);
         }
     }
 }

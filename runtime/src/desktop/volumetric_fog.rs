@@ -15,7 +15,7 @@ use glam::{Mat4, UVec4, Vec3, Vec4};
 
 use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{groups, linear_sampler, uniform_buffer, view, volume_3d};
+use super::frame_view::{perm, groups, linear_sampler, uniform_buffer, view, volume_3d, DirectionalShadow};
 
 pub const TILE_SIZE: u32 = 8;
 pub const DEPTH_SLICES: u32 = 128;
@@ -72,9 +72,8 @@ pub struct FogSettings {
     /// View distance of the first and last slices.
     pub near: f32,
     pub far: f32,
-    /// World -> cascade clip (reverse-Z), and the view distances where cascades end; `None`
-    /// when the directional light casts no shadow.
-    pub cascades: Option<([Mat4; 3], [f32; 3])>,
+    /// The directional light's shadow; `None` when it casts none.
+    pub shadow: Option<DirectionalShadow>,
 }
 
 pub struct VolumetricFog {
@@ -97,6 +96,7 @@ pub struct VolumetricFog {
     apply_group: wgpu::BindGroup,
     current: usize,
     history_valid: bool,
+    use_history: bool,
     frame: u32,
 }
 
@@ -113,15 +113,15 @@ impl VolumetricFog {
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<VolumetricFog, PipelineError> {
         let grid = [size[0].div_ceil(TILE_SIZE), size[1].div_ceil(TILE_SIZE), DEPTH_SLICES];
-        let init = cache.compute("VolumetricFogInitializeCS@sm5")?;
+        let init = cache.compute(&perm(cache, "VolumetricFogInitializeCS", &[])?)?;
         let scattering = [
-            cache.compute("VolumetricFogLightScatteringCS@sm5{USE_TEMPORAL_REPROJECTION=0}")?,
-            cache.compute("VolumetricFogLightScatteringCS@sm5{USE_TEMPORAL_REPROJECTION=1}")?,
+            cache.compute(&perm(cache, "VolumetricFogLightScatteringCS", &[("USE_TEMPORAL_REPROJECTION", "0")])?)?,
+            cache.compute(&perm(cache, "VolumetricFogLightScatteringCS", &[("USE_TEMPORAL_REPROJECTION", "1")])?)?,
         ];
-        let integration = cache.compute("VolumetricFogFinalIntegrationCS@sm5")?;
+        let integration = cache.compute(&perm(cache, "VolumetricFogFinalIntegrationCS", &[])?)?;
         let apply = cache.render(
-            "VolumetricFogApplyVS@sm5",
-            Some("VolumetricFogApplyPS@sm5"),
+            &perm(cache, "VolumetricFogApplyVS", &[])?,
+            Some(&perm(cache, "VolumetricFogApplyPS", &[])?),
             &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::PremultipliedAlpha }),
         )?;
         let vbuffer_a = volume_3d(device, "VBufferA", grid, VOLUME_FORMAT);
@@ -209,6 +209,7 @@ impl VolumetricFog {
             apply_group,
             current: 0,
             history_valid: false,
+            use_history: false,
             frame: 0,
         })
     }
@@ -223,17 +224,18 @@ impl VolumetricFog {
         &self.light_scattering[self.current]
     }
 
-    /// The three compute steps.
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings, lights: &[FogLight]) {
+    /// Which LightScattering volume holds this frame's (0 or 1).
+    pub fn current_index(&self) -> usize {
+        self.current
+    }
+
+    /// InitializeVolumeAttributes (and this frame's parameters).
+    pub fn record_initialize(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings, lights: &[FogLight]) {
         let count = lights.len().min(MAX_FOG_LIGHTS);
         if count > 0 {
             queue.write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights[..count]));
         }
-        let (cascades, splits, shadowed) = match settings.cascades {
-            Some((m, s)) => (m, Vec4::new(s[0], s[1], s[2], 1.0), true),
-            None => ([Mat4::IDENTITY; 3], Vec4::ZERO, false),
-        };
-        let _ = shadowed;
+        let (cascades, splits) = DirectionalShadow::uniforms(settings.shadow.as_ref());
         let use_history = self.history_valid;
         let params = FogParams {
             grid_size: UVec4::new(self.grid[0], self.grid[1], self.grid[2], self.frame),
@@ -253,8 +255,13 @@ impl VolumetricFog {
         pass.set_pipeline(&self.init.pipeline);
         pass.set_bind_group(0, &self.init_group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
-        drop(pass);
+        self.use_history = use_history;
+    }
 
+    /// LightScattering, with the history when there is one.
+    pub fn record_light_scattering(&mut self, encoder: &mut wgpu::CommandEncoder) {
+        let [gx, gy, gz] = self.grid;
+        let use_history = self.use_history;
         // this frame writes `out`; the history is the other volume
         let out = if use_history { 1 - self.current } else { 0 };
         let (pipeline, group) = if use_history { (&self.scattering[1], &self.scattering_groups[1 + out]) } else { (&self.scattering[0], &self.scattering_groups[0]) };
@@ -265,7 +272,12 @@ impl VolumetricFog {
         drop(pass);
         self.current = out;
         self.history_valid = true;
+    }
 
+    /// FinalIntegration of this frame's LightScattering.
+    pub fn record_final_integration(&mut self, encoder: &mut wgpu::CommandEncoder) {
+        let [gx, gy, _] = self.grid;
+        let out = self.current;
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("FinalIntegration"), timestamp_writes: None });
         pass.set_pipeline(&self.integration.pipeline);
         pass.set_bind_group(0, &self.integration_groups[out], &[]);
