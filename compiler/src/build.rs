@@ -664,22 +664,24 @@ fn render_failures(
     sources: &SourceCache,
     color: bool,
 ) -> Vec<String> {
-    // Group by the diagnostic as rendered without colour and without the permutation note.
-    let mut order: Vec<String> = Vec::new();
-    let mut groups: HashMap<String, (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
+    // Group by level and the diagnostic as rendered without colour and without the
+    // permutation note.
+    let mut order: Vec<(String, String)> = Vec::new();
+    let mut groups: HashMap<(String, String), (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
     for (d, members) in failures {
         let text = preprocess::render(std::slice::from_ref(&d), sources, false);
-        match groups.get_mut(&text) {
+        let key = (kept[members[0]].level.name.clone(), text);
+        match groups.get_mut(&key) {
             Some(g) => g.1.extend(members),
             None => {
-                order.push(text.clone());
-                groups.insert(text, (d, members));
+                order.push(key.clone());
+                groups.insert(key, (d, members));
             }
         }
     }
     let mut out = Vec::new();
-    for text in order {
-        let (mut d, mut members) = groups.remove(&text).expect("grouped above");
+    for key in order {
+        let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
         let p = &kept[members[0]];
         let limits = match p.level.limits {
@@ -689,8 +691,8 @@ fn render_failures(
         let note = if members.len() == 1 {
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {
-            let names: Vec<String> = members.iter().map(|&m| kept[m].name()).collect();
-            format!("in {} permutations (level `{}`, {limits} limits): {}", names.len(), p.level.name, names.join(", "))
+            let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
+            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), p.level.name, names.join("\n"))
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));

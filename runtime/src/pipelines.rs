@@ -481,8 +481,23 @@ pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
 fn check_scope(scope: wgpu::ErrorScopeGuard, what: impl FnOnce() -> String) -> Result<(), PipelineError> {
     match pollster::block_on(scope.pop()) {
         None => Ok(()),
-        Some(e) => Err(PipelineError::Wgpu { what: what(), message: e.to_string() }),
+        Some(e) => Err(PipelineError::Wgpu { what: what(), message: error_chain(&e) }),
     }
+}
+
+/// An error and its sources on one line each (wgpu's own Display says only "Validation Error").
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let line = s.to_string();
+        if !text.contains(&line) {
+            text.push_str(": ");
+            text.push_str(&line);
+        }
+        source = s.source();
+    }
+    text
 }
 
 fn stage_bits(stage: Stage) -> wgpu::ShaderStages {

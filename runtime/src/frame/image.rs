@@ -119,13 +119,12 @@ pub(super) fn decode(
             texels.push(texel(format, &row[x * bpp..x * bpp + bpp])?);
         }
     }
-    let srgb_storage = format.is_srgb();
     let rgba = match visualize {
         Visualize::Direct => texels
             .iter()
             .flat_map(|t| {
-                let c = if srgb_storage { [srgb_encode(t[0]), srgb_encode(t[1]), srgb_encode(t[2])] } else { [unorm(t[0]), unorm(t[1]), unorm(t[2])] };
-                [c[0], c[1], c[2], 255]
+                // sRGB formats hold encoded bytes already: written as they are.
+                [unorm(t[0]), unorm(t[1]), unorm(t[2]), 255]
             })
             .collect(),
         Visualize::Hdr => texels

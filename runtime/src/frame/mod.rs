@@ -1,7 +1,8 @@
 //! Recording a frame pass by pass.
 //!
 //! A frame is a function that calls [`FrameRecorder::pass`] once per pass, in frame order.
-//! Each pass runs inside a debug group named after it, is timed with timestamp queries
+//! Each pass's render passes run inside debug groups named after it
+//! ([`PassContext::render_pass`]); each pass is timed with timestamp queries
 //! where the device has them, and declares the textures it wrote with
 //! [`PassContext::output`]; when capturing (`--dump-passes`) each output is copied out right
 //! after the pass, before later passes change it, and comes back as an 8-bit image (depth
@@ -98,16 +99,15 @@ impl FrameRecorder {
         Some(i)
     }
 
-    /// Records one pass: a debug group, timestamps around it, and its outputs.
+    /// Records one pass: timestamps around it, its render passes in debug groups named after
+    /// it, and its outputs.
     pub fn pass<R>(&mut self, name: &str, record: impl FnOnce(&mut PassContext<'_>) -> R) -> R {
-        self.encoder.push_debug_group(name);
         let start = self.timestamp();
         let index = self.passes.len();
         self.passes.push(PassRecord { name: name.to_string(), timestamps: None, steps: Vec::new() });
         let result = record(&mut PassContext { recorder: self, pass: index });
         let end = self.timestamp();
         self.passes[index].timestamps = start.zip(end);
-        self.encoder.pop_debug_group();
         result
     }
 
@@ -190,16 +190,49 @@ impl PassContext<'_> {
         &self.recorder.device
     }
 
-    /// A named step of this pass, in its own debug group and timed on its own.
+    /// The debug group name of the current pass or step (`PostProcessing/Tonemapper`).
+    pub fn debug_name(&self) -> String {
+        let r = &*self.recorder;
+        match &r.current_step {
+            Some(step) => format!("{}/{step}", r.passes[self.pass].name),
+            None => r.passes[self.pass].name.clone(),
+        }
+    }
+
+    /// Begins a render pass inside a debug group named after the pass (and step).
+    ///
+    /// Debug groups are pushed inside render passes, not on the command encoder: wgpu splits
+    /// an encoder into several Vulkan command buffers, and an encoder-level group spanning a
+    /// render pass is unbalanced per command buffer (gfx-rs/wgpu#3733), which crashes
+    /// lavapipe.
+    pub fn render_pass<R>(&mut self, desc: &wgpu::RenderPassDescriptor<'_>, record: impl FnOnce(&mut wgpu::RenderPass<'_>) -> R) -> R {
+        let name = self.debug_name();
+        let mut pass = self.recorder.encoder.begin_render_pass(desc);
+        pass.push_debug_group(&name);
+        let result = record(&mut pass);
+        pass.pop_debug_group();
+        result
+    }
+
+    /// Begins a compute pass inside a debug group named after the pass (and step).
+    pub fn compute_pass<R>(&mut self, label: &str, record: impl FnOnce(&mut wgpu::ComputePass<'_>) -> R) -> R {
+        let name = self.debug_name();
+        let mut pass = self.recorder.encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+        pass.push_debug_group(&name);
+        let result = record(&mut pass);
+        pass.pop_debug_group();
+        result
+    }
+
+    /// A named step of this pass, timed on its own; its render passes' debug groups are
+    /// named `Pass/Step`.
     pub fn step<R>(&mut self, name: &str, record: impl FnOnce(&mut PassContext<'_>) -> R) -> R {
-        self.recorder.encoder.push_debug_group(name);
         let start = self.recorder.timestamp();
         let outer = self.recorder.current_step.replace(name.to_string());
         let result = record(&mut PassContext { recorder: self.recorder, pass: self.pass });
         self.recorder.current_step = outer;
         let end = self.recorder.timestamp();
         self.recorder.passes[self.pass].steps.push((name.to_string(), start.zip(end)));
-        self.recorder.encoder.pop_debug_group();
         result
     }
 

@@ -61,7 +61,7 @@ impl BasePass {
                 })
             }
             let none = wgpu::Color::TRANSPARENT;
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("BasePass"),
                 color_attachments: &[clear(&t.scene_color.view, self.sky), clear(&t.gbuffer_a.view, none), clear(&t.gbuffer_b.view, none), clear(&t.gbuffer_c.view, none)],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -72,11 +72,12 @@ impl BasePass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                for (i, draw) in &self.draws {
+                    draw.bind(pass);
+                    scene.draw(pass, &scene.objects[*i]);
+                }
             });
-            for (i, draw) in &self.draws {
-                draw.bind(&mut pass);
-                scene.draw(&mut pass, &scene.objects[*i]);
-            }
         }
         ctx.output(&t.scene_color.texture, Visualize::Hdr);
         ctx.output_named("GBufferA", &t.gbuffer_a.texture, Visualize::Direct);
@@ -130,7 +131,7 @@ impl TranslucencyPass {
     /// Reads SceneDepth (test only) and the shadow map; blends over SceneColor.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, t: &Targets) {
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("Translucency"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &t.scene_color.view,
@@ -146,11 +147,12 @@ impl TranslucencyPass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                for (i, draw) in &self.draws {
+                    draw.bind(pass);
+                    scene.draw(pass, &scene.objects[*i]);
+                }
             });
-            for (i, draw) in &self.draws {
-                draw.bind(&mut pass);
-                scene.draw(&mut pass, &scene.objects[*i]);
-            }
         }
         ctx.output(&t.scene_color.texture, Visualize::Hdr);
     }

@@ -65,7 +65,7 @@ impl DepthPass {
                 DepthView::Camera => "PrePass",
                 DepthView::Sun => "ShadowDepths",
             };
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some(label),
                 color_attachments: &[],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -76,11 +76,12 @@ impl DepthPass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                for (i, draw) in &self.draws {
+                    draw.bind(pass);
+                    scene.draw(pass, &scene.objects[*i]);
+                }
             });
-            for (i, draw) in &self.draws {
-                draw.bind(&mut pass);
-                scene.draw(&mut pass, &scene.objects[*i]);
-            }
         }
         ctx.output(&depth.texture, Visualize::Depth);
     }

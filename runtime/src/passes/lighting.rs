@@ -75,7 +75,7 @@ impl LightingPass {
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         ctx.step("StandardDeferredLighting", |ctx| {
             {
-                let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+                ctx.render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("StandardDeferredLighting"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                         view: &t.scene_color.view,
@@ -87,15 +87,16 @@ impl LightingPass {
                     timestamp_writes: None,
                     occlusion_query_set: None,
                     multiview_mask: None,
-                });
-                for light in &self.lights {
-                    pass.insert_debug_marker(&light.name);
-                    pass.set_pipeline(&light.pipeline.pipeline);
-                    for (i, g) in light.groups.iter().enumerate() {
-                        pass.set_bind_group(i as u32, g, &[]);
+                }, |pass| {
+                    for light in &self.lights {
+                        pass.insert_debug_marker(&light.name);
+                        pass.set_pipeline(&light.pipeline.pipeline);
+                        for (i, g) in light.groups.iter().enumerate() {
+                            pass.set_bind_group(i as u32, g, &[]);
+                        }
+                        pass.draw(0..3, 0..1);
                     }
-                    pass.draw(0..3, 0..1);
-                }
+                });
             }
             ctx.output(&t.scene_color.texture, Visualize::Hdr);
         });

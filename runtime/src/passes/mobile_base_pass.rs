@@ -99,7 +99,7 @@ impl MobileBasePass {
             } else {
                 vec![clear(&t.scene_color.view, self.sky)]
             };
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("BasePass"),
                 color_attachments: &color,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -110,11 +110,12 @@ impl MobileBasePass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                for (i, draw) in &self.draws {
+                    draw.bind(pass);
+                    scene.draw(pass, &scene.objects[*i]);
+                }
             });
-            for (i, draw) in &self.draws {
-                draw.bind(&mut pass);
-                scene.draw(&mut pass, &scene.objects[*i]);
-            }
         }
         ctx.output(&t.scene_color.texture, Visualize::Hdr);
         ctx.output_named("SceneDepth", &t.scene_depth.texture, Visualize::Depth);

@@ -39,7 +39,7 @@ impl MobileDeferredShadingPass {
     /// Reads SceneDepth, GBufferA/B/C and the shadow map; adds into SceneColor.
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("MobileDeferredShading"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &t.scene_color.view,
@@ -51,12 +51,13 @@ impl MobileDeferredShadingPass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                pass.set_pipeline(&self.pipeline.pipeline);
+                for (i, g) in self.groups.iter().enumerate() {
+                    pass.set_bind_group(i as u32, g, &[]);
+                }
+                pass.draw(0..3, 0..1);
             });
-            pass.set_pipeline(&self.pipeline.pipeline);
-            for (i, g) in self.groups.iter().enumerate() {
-                pass.set_bind_group(i as u32, g, &[]);
-            }
-            pass.draw(0..3, 0..1);
         }
         ctx.output(&t.scene_color.texture, Visualize::Hdr);
     }

@@ -32,7 +32,7 @@ impl TonemapPass {
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         ctx.step("Tonemapper", |ctx| {
             {
-                let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+                ctx.render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("Tonemapper"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                         view: &t.output.view,
@@ -44,12 +44,13 @@ impl TonemapPass {
                     timestamp_writes: None,
                     occlusion_query_set: None,
                     multiview_mask: None,
+                }, |pass| {
+                    pass.set_pipeline(&self.pipeline.pipeline);
+                    for (i, g) in self.groups.iter().enumerate() {
+                        pass.set_bind_group(i as u32, g, &[]);
+                    }
+                    pass.draw(0..3, 0..1);
                 });
-                pass.set_pipeline(&self.pipeline.pipeline);
-                for (i, g) in self.groups.iter().enumerate() {
-                    pass.set_bind_group(i as u32, g, &[]);
-                }
-                pass.draw(0..3, 0..1);
             }
             ctx.output(&t.output.texture, Visualize::Direct);
         });

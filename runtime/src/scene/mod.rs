@@ -319,7 +319,7 @@ impl Scene {
             sun: DirectionalLight {
                 direction: Vec3::new(-1.0, -0.75, -0.35).normalize(),
                 color: Vec3::new(1.0, 0.95, 0.85),
-                intensity: 3.0,
+                intensity: 2.5,
                 casts_shadows: true,
                 enabled: true,
             },
@@ -370,7 +370,7 @@ impl Scene {
                 fov_y: 60f32.to_radians(),
                 near: 0.1,
             },
-            sky_color: Vec3::new(0.35, 0.45, 0.6),
+            sky_color: Vec3::new(0.22, 0.28, 0.4),
             fog: HeightFog {
                 color: Vec3::new(0.45, 0.5, 0.6),
                 density: 0.02,
@@ -393,7 +393,7 @@ impl Scene {
                 color_start: Vec3::new(8.0, 3.0, 0.6),
                 color_end: Vec3::new(0.6, 0.1, 0.02),
             }],
-            exposure: 1.0,
+            exposure: 0.8,
         }
     }
 
