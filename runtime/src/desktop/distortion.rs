@@ -68,7 +68,6 @@ impl Distortion {
         ])?;
         let sampler = linear_sampler(device, "Distortion sampler");
         let apply_group = apply.layout.bind_group(device, 0, "DistortionApply", &[
-            ("view", frame_view.as_entire_binding()),
             ("scene_color_copy", wgpu::BindingResource::TextureView(&copy_view)),
             ("distortion", wgpu::BindingResource::TextureView(&offsets_view)),
             ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),

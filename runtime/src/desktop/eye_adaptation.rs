@@ -117,7 +117,6 @@ impl EyeAdaptation {
         ])?;
         let debug_view = view(&debug);
         let debug_group = debug_pipeline.layout.bind_group(device, 0, "PostProcessHistogram image", &[
-            ("params", histogram_params.as_entire_binding()),
             ("histogram", histogram.as_entire_binding()),
             ("debug_image", wgpu::BindingResource::TextureView(&debug_view)),
         ])?;

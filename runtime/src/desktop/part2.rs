@@ -214,6 +214,12 @@ impl Part2 {
         let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor { label: Some("ShadowDepth (part 2)"), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() });
         let scene_color_format = targets.scene_color.format();
 
+        let mut lights = vec![InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity }];
+        for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
+            lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+        }
+        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
+
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
         for e in &scene.emitters {
@@ -240,11 +246,6 @@ impl Part2 {
         };
         let velocity = Velocity::new(device, cache, &frame_view, size, depth_format, movable.iter().map(|&i| instanced(i, "Velocity")).collect())?;
 
-        let mut lights = vec![InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity }];
-        for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
-            lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
-        }
-        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
 
         let hzb_view = view(&hzb.texture);
         let reflections = Reflections::new(
@@ -337,6 +338,11 @@ impl Part2 {
 
     pub fn options(&self) -> Part2Options {
         self.lock().options
+    }
+
+    /// Turns effects on or off (from the next frame on; every pipeline exists already).
+    pub fn set_options(&self, options: Part2Options) {
+        self.lock().options = options;
     }
 
     /// Moves the camera (from the next frame on).

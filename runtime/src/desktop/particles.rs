@@ -126,8 +126,9 @@ struct Emitter {
     velocities: [wgpu::Texture; 2],
     /// simulate[i] reads state i and writes state 1 - i.
     simulate: [wgpu::BindGroup; 2],
-    /// sprites[i] reads state i.
+    /// sprites[i] reads state i (the sprite pipeline; distortion: the heat haze's).
     sprites: [wgpu::BindGroup; 2],
+    distortion: [wgpu::BindGroup; 2],
     current: usize,
 }
 
@@ -144,6 +145,7 @@ pub struct Particles {
 
 impl Particles {
     pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, descs: Vec<EmitterDesc>, collision: &CollisionInputs<'_>) -> Result<Particles, PipelineError> {
+        let distortion_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(wgpu::TextureFormat::Rg16Float, None))?;
         let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(wgpu::TextureFormat::Rgba16Float, None))?;
         let mut emitters = Vec::new();
         for (index, desc) in descs.into_iter().enumerate() {
@@ -169,7 +171,6 @@ impl Particles {
             let vel_views = [view(&velocities[0]), view(&velocities[1])];
             let make_sim = |i: usize| {
                 let mut resources = vec![
-                    ("view", frame_view.as_entire_binding()),
                     ("sim", sim_params.as_entire_binding()),
                     ("prev_position", wgpu::BindingResource::TextureView(&pos_views[i])),
                     ("prev_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
@@ -177,13 +178,14 @@ impl Particles {
                     ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
                 ];
                 if desc.collides {
+                    resources.push(("view", frame_view.as_entire_binding()));
                     resources.push(("scene_depth", wgpu::BindingResource::TextureView(collision.scene_depth)));
                     resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
                 }
                 sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
             };
-            let make_sprites = |i: usize| {
-                sprite_pipeline_layout.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &[
+            let make_sprites = |i: usize, pipeline: &RenderPipeline| {
+                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &[
                     ("view", frame_view.as_entire_binding()),
                     ("sprite", sprite_params.as_entire_binding()),
                     ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
@@ -191,7 +193,8 @@ impl Particles {
                 ])
             };
             let simulate = [make_sim(0)?, make_sim(1)?];
-            let sprites = [make_sprites(0)?, make_sprites(1)?];
+            let sprites = [make_sprites(0, &sprite_pipeline_layout)?, make_sprites(1, &sprite_pipeline_layout)?];
+            let distortion = [make_sprites(0, &distortion_layout)?, make_sprites(1, &distortion_layout)?];
             emitters.push(Emitter {
                 desc,
                 seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
@@ -201,6 +204,7 @@ impl Particles {
                 velocities,
                 simulate,
                 sprites,
+                distortion,
                 current: 0,
             });
         }
@@ -270,7 +274,7 @@ impl Particles {
         let pipeline = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(format, depth))?;
         pass.set_pipeline(&pipeline.pipeline);
         for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
-            pass.set_bind_group(0, &e.sprites[e.current], &[]);
+            pass.set_bind_group(0, &e.distortion[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
         }
         Ok(())

@@ -45,7 +45,6 @@ struct Cascade {
     /// one per light: (params, bind group, shadowed)
     injections: Vec<(wgpu::Buffer, wgpu::BindGroup, bool)>,
     filter_group: wgpu::BindGroup,
-    _filter_params: wgpu::Buffer,
 }
 
 pub struct TranslucentVolumes {
@@ -74,7 +73,9 @@ impl TranslucentVolumes {
         shadow_compare: wgpu::CompareFunction,
         lights: Vec<InjectedLight>,
     ) -> Result<TranslucentVolumes, PipelineError> {
-        let inject = [cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "0")])?)?, cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "1")])?)?];
+        let unshadowed = cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "0")])?)?;
+        let shadowed = cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "1")])?)?;
+        let inject = [unshadowed, shadowed];
         let filter = cache.compute(&perm(cache, "TranslucentVolumeFilterCS", &[])?)?;
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("TranslucentVolume shadow sampler"),
@@ -98,7 +99,6 @@ impl TranslucentVolumes {
                 let params = uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
                 let (r, w) = (read_pair(k), written_pair(k));
                 let mut resources = vec![
-                    ("view", frame_view.as_entire_binding()),
                     ("volume", params.as_entire_binding()),
                     ("prev_ambient", tex(&ambient_views[r])),
                     ("prev_dir", tex(&dir_views[r])),
@@ -106,6 +106,7 @@ impl TranslucentVolumes {
                     ("out_dir", tex(&dir_views[w])),
                 ];
                 if shadowed {
+                    resources.push(("view", frame_view.as_entire_binding()));
                     resources.push(("shadow_atlas", tex(shadow_atlas)));
                     resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
                 }
@@ -113,16 +114,13 @@ impl TranslucentVolumes {
                 injections.push((params, group, shadowed));
             }
             let last = if lights.is_empty() { 0 } else { written_pair(lights.len() - 1) };
-            let filter_params = uniform_buffer(device, "FilterTranslucentVolume", &VolumeParams::default());
             let filter_group = filter.layout.bind_group(device, 0, "FilterTranslucentVolume", &[
-                ("view", frame_view.as_entire_binding()),
-                ("volume", filter_params.as_entire_binding()),
                 ("in_ambient", tex(&ambient_views[last])),
                 ("in_dir", tex(&dir_views[last])),
                 ("out_ambient", tex(&ambient_views[3])),
                 ("out_dir", tex(&dir_views[3])),
             ])?;
-            cascades.push(Cascade { ambient, dir, injections, filter_group, _filter_params: filter_params });
+            cascades.push(Cascade { ambient, dir, injections, filter_group });
         }
         Ok(TranslucentVolumes { cascades, inject, filter, lights })
     }
