@@ -98,6 +98,9 @@ pub struct Stats {
     pub permutation_artifacts: usize,
     /// Permutations that failed to preprocess or compile.
     pub failed: usize,
+    /// Permutations preprocessed by this build (the others matched their cached
+    /// preprocessing record: same defines, same file contents).
+    pub preprocessed: usize,
     pub seconds: Seconds,
 }
 
@@ -167,18 +170,41 @@ impl Error {
     }
 }
 
-/// One kept permutation after preprocessing.
+/// One kept permutation after preprocessing (or after its preprocessing record matched).
 struct Pre {
     key: Key,
     text_hash: blake3::Hash,
     token_hash: blake3::Hash,
-    files: Vec<FileId>,
+    /// Every file it read (absolute).
+    files: Vec<PathBuf>,
+    /// Its preprocessor warnings, rendered without colour.
+    warnings: Vec<String>,
 }
 
-/// The first (lowest index) permutation's preprocessed output of a key.
+/// The first (lowest index) preprocessed permutation's output of a key.
 struct Representative {
     index: usize,
     output: preprocess::Output,
+}
+
+/// blake3 of files' texts, each read once per build (for checking preprocessing records).
+#[derive(Default)]
+struct FileHashes {
+    map: Mutex<HashMap<PathBuf, Option<String>>>,
+}
+
+impl FileHashes {
+    fn get(&self, path: &Path) -> Option<String> {
+        if let Some(h) = self.map.lock().expect("no panics while locked").get(path) {
+            return h.clone();
+        }
+        let h = std::fs::read(path).ok().map(|bytes| {
+            let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+            blake3::hash(text.as_bytes()).to_hex().to_string()
+        });
+        self.map.lock().expect("no panics while locked").insert(path.to_path_buf(), h.clone());
+        h
+    }
 }
 
 /// Runs a build.
@@ -235,18 +261,34 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     }
     report.stats.permutations = kept.len();
 
-    // 2. Preprocess, keeping one output per key.
+    // 2. Preprocess, keeping one output per key. A permutation whose preprocessing record
+    //    is in the cache and whose files all still have the recorded contents is not
+    //    preprocessed again.
     let t_pre = Instant::now();
     let sources = SourceCache::new(config.dir.clone());
     progress.stage("preprocessing", kept.len());
     let reps: Mutex<HashMap<Key, Representative>> = Mutex::new(HashMap::new());
+    let hashes = FileHashes::default();
+    let preprocessed = std::sync::atomic::AtomicUsize::new(0);
     let pre: Vec<Result<Pre, Diagnostic<FileId>>> = kept
         .par_iter()
         .enumerate()
         .map(|(index, p)| {
+            let direct = cache.map(|c| (c, direct_key(config, p, &options.targets)));
+            if let Some((c, dk)) = &direct {
+                if let Some(pre) = c.get_record(dk).and_then(|r| from_record(r, &hashes)) {
+                    progress.inc();
+                    return Ok(pre);
+                }
+            }
+            preprocessed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             let result = preprocess_one(config, p, &options.targets, &sources);
             progress.inc();
             let (pre, output) = result?;
+            if let Some((c, dk)) = &direct {
+                // Failing to store a record only costs a preprocessing next time.
+                let _ = c.put_record(dk, &to_record(&pre, &output, &sources));
+            }
             let mut reps = reps.lock().expect("no panics while locked");
             let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
             if replace {
@@ -255,17 +297,15 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             Ok(pre)
         })
         .collect();
-    let mut reps = reps.into_inner().expect("no panics while locked");
+    let reps = reps.into_inner().expect("no panics while locked");
+    report.stats.preprocessed = preprocessed.into_inner();
     report.stats.seconds.preprocess = t_pre.elapsed().as_secs_f64();
 
     // Warnings: each distinct rendered warning once.
     let mut seen_warnings = std::collections::HashSet::new();
-    for r in reps.values() {
-        for w in &r.output.warnings {
-            let text = preprocess::render(std::slice::from_ref(w), &sources, options.color);
-            if seen_warnings.insert(text.clone()) {
-                report.warnings.push(text);
-            }
+    for w in pre.iter().flatten().flat_map(|p| &p.warnings) {
+        if seen_warnings.insert(w.clone()) {
+            report.warnings.push(w.clone());
         }
     }
     let mut failures: Vec<(Diagnostic<FileId>, Vec<usize>)> = Vec::new();
@@ -273,7 +313,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     files.insert(config.path.clone());
     for (i, r) in pre.iter().enumerate() {
         match r {
-            Ok(p) => files.extend(p.files.iter().map(|f| sources.path(*f))),
+            Ok(p) => files.extend(p.files.iter().cloned()),
             Err(d) => {
                 failures.push((d.clone(), vec![i]));
                 // A failed permutation still read files: the failing header among them.
@@ -283,6 +323,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             }
         }
     }
+    files.retain(|f| !f.as_os_str().is_empty());
     report.files_read = files.into_iter().collect();
 
     // 3. Group by key, in order of first appearance.
@@ -329,12 +370,21 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     Lookup::Corrupt(why) => warning = Some(format!("warning: {why}")),
                 }
             }
-            let rep = &reps[key];
+            let Some(rep) = representative(&reps, key, members, &kept, config, &options.targets, &sources) else {
+                progress.inc();
+                let e = compile::Error {
+                    kind: compile::ErrorKind::Parse,
+                    message: "the sources changed during the build".into(),
+                    labels: Vec::new(),
+                    notes: vec!["run the build again".into()],
+                };
+                return Got::Failed(e, warning);
+            };
             let opts = compile::Options {
                 targets: level_targets(p.level, &options.targets),
                 limits: level_limits(p.level),
             };
-            let got = match compile::compile(&rep.output.text, &p.shader.entry, p.shader.stage, &opts) {
+            let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
                 Ok(c) => {
                     if let Some(cache) = cache {
                         if let Err(e) = cache.put(key, &c) {
@@ -367,12 +417,12 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             Got::Failed(e, w) => {
                 report.stats.compiled += 1;
                 report.warnings.extend(w);
-                let rep = &reps[key];
-                let rep_hash = blake3::hash(rep.output.text.as_bytes());
+                let rep = representative(&reps, key, members, &kept, config, &options.targets, &sources);
+                let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
                 for &m in members {
                     let Ok(pm) = &pre[m] else { continue };
-                    let diagnostic = if pm.text_hash == rep_hash {
-                        map_error(&e, &rep.output.map)
+                    let diagnostic = if Some(pm.text_hash) == rep_hash {
+                        map_error(&e, &rep.as_ref().expect("hash of it").map)
                     } else {
                         // Same tokens, other spacing: this member's own spans.
                         remap_member(config, &kept[m], &options.targets, &sources, &e)
@@ -382,7 +432,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             }
         }
     }
-    reps.clear();
+    drop(reps);
 
     // Render failures: identical diagnostics once, naming every permutation they hit.
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
@@ -486,8 +536,90 @@ fn preprocess_one(
         &level_limits(p.level),
         &level_targets(p.level, targets),
     );
-    let pre = Pre { key, text_hash: blake3::hash(output.text.as_bytes()), token_hash, files: output.files.clone() };
+    let pre = Pre {
+        key,
+        text_hash: blake3::hash(output.text.as_bytes()),
+        token_hash,
+        files: output.files.iter().map(|f| sources.path(*f)).collect(),
+        warnings: output.warnings.iter().map(|w| preprocess::render(std::slice::from_ref(w), sources, false)).collect(),
+    };
     Ok((pre, output))
+}
+
+/// The preprocessed output of a key's first member: kept from preprocessing, or (when every
+/// member was served by its record) made now. `None` if it no longer gives that key.
+fn representative<'a>(
+    reps: &'a HashMap<Key, Representative>,
+    key: &Key,
+    members: &[usize],
+    kept: &[Permutation<'_>],
+    config: &Config,
+    targets: &[Target],
+    sources: &SourceCache,
+) -> Option<std::borrow::Cow<'a, preprocess::Output>> {
+    if let Some(r) = reps.get(key) {
+        return Some(std::borrow::Cow::Borrowed(&r.output));
+    }
+    let (pre, output) = preprocess_one(config, &kept[members[0]], targets, sources).ok()?;
+    (pre.key == *key).then_some(std::borrow::Cow::Owned(output))
+}
+
+/// The key of a permutation's preprocessing record: everything preprocessing and the
+/// compile key depend on, except the files' contents (checked against the record).
+fn direct_key(config: &Config, p: &Permutation<'_>, targets: &[Target]) -> Key {
+    let opts = p.preprocess_options(config);
+    let inputs = format!(
+        "kiln direct v1\n{}\n{}\n{:?}\n{:?}\n{}",
+        config.dir.display(),
+        p.shader.source_path.display(),
+        opts,
+        level_targets(p.level, targets),
+        crate::compile::NAGA_VERSION,
+    );
+    Key::new(
+        &blake3::hash(inputs.as_bytes()),
+        &p.shader.entry,
+        p.shader.stage,
+        &p.level.name,
+        &level_limits(p.level),
+        &level_targets(p.level, targets),
+    )
+}
+
+fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache) -> cache::Record {
+    use codespan_reporting::files::Files;
+    cache::Record {
+        key: pre.key.to_hex(),
+        token_hash: pre.token_hash.to_hex().to_string(),
+        text_hash: pre.text_hash.to_hex().to_string(),
+        files: output
+            .files
+            .iter()
+            .map(|&f| {
+                let text = sources.source(f).map(|t| blake3::hash(t.as_ref().as_bytes()).to_hex().to_string());
+                (sources.path(f), text.unwrap_or_default())
+            })
+            .collect(),
+        warnings: pre.warnings.clone(),
+    }
+}
+
+/// The record's result, if every file it lists still has the recorded contents.
+fn from_record(r: cache::Record, hashes: &FileHashes) -> Option<Pre> {
+    for (path, hash) in &r.files {
+        if hashes.get(path).as_deref() != Some(hash.as_str()) {
+            return None;
+        }
+    }
+    let hash = |hex: &str| blake3::Hash::from_hex(hex).ok();
+    let key = hash(&r.key)?;
+    Some(Pre {
+        key: Key(*key.as_bytes()),
+        text_hash: hash(&r.text_hash)?,
+        token_hash: hash(&r.token_hash)?,
+        files: r.files.into_iter().map(|(p, _)| p).collect(),
+        warnings: r.warnings,
+    })
 }
 
 /// A failing key's error on a member whose text differs from the representative's only in
@@ -532,22 +664,24 @@ fn render_failures(
     sources: &SourceCache,
     color: bool,
 ) -> Vec<String> {
-    // Group by the diagnostic as rendered without colour and without the permutation note.
-    let mut order: Vec<String> = Vec::new();
-    let mut groups: HashMap<String, (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
+    // Group by level and the diagnostic as rendered without colour and without the
+    // permutation note.
+    let mut order: Vec<(String, String)> = Vec::new();
+    let mut groups: HashMap<(String, String), (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
     for (d, members) in failures {
         let text = preprocess::render(std::slice::from_ref(&d), sources, false);
-        match groups.get_mut(&text) {
+        let key = (kept[members[0]].level.name.clone(), text);
+        match groups.get_mut(&key) {
             Some(g) => g.1.extend(members),
             None => {
-                order.push(text.clone());
-                groups.insert(text, (d, members));
+                order.push(key.clone());
+                groups.insert(key, (d, members));
             }
         }
     }
     let mut out = Vec::new();
-    for text in order {
-        let (mut d, mut members) = groups.remove(&text).expect("grouped above");
+    for key in order {
+        let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
         let p = &kept[members[0]];
         let limits = match p.level.limits {
@@ -557,8 +691,8 @@ fn render_failures(
         let note = if members.len() == 1 {
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {
-            let names: Vec<String> = members.iter().map(|&m| kept[m].name()).collect();
-            format!("in {} permutations (level `{}`, {limits} limits): {}", names.len(), p.level.name, names.join(", "))
+            let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
+            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), p.level.name, names.join("\n"))
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));

@@ -221,10 +221,13 @@ pub(super) fn canonical_name(shader: &Shader, level: &Level, values: &[i64]) -> 
     s
 }
 
+/// Which (shader, level) pairs a stream enumerates.
+type Filter<'c> = Box<dyn Fn(&Shader, &Level) -> bool + 'c>;
+
 /// The lazy stream of [`Config::permutations`].
 pub struct Permutations<'c> {
     config: &'c Config,
-    filter: Box<dyn Fn(&Shader, &Level) -> bool + 'c>,
+    filter: Filter<'c>,
     shader: usize,
     level: usize,
     /// The current (shader, level) and the defines its expressions see before dimensions.

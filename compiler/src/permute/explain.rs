@@ -58,8 +58,7 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     let l = p.level;
     let _ = writeln!(t, "{name}");
     let _ = writeln!(t, "  shader:  {} ({}, entry {})", s.name, s.stage, s.entry);
-    let source = s.source_path.strip_prefix(&config.dir).unwrap_or(&s.source_path);
-    let _ = writeln!(t, "  source:  {} ({})", s.source, source.display());
+    let _ = writeln!(t, "  source:  {} ({})", s.source, cache.display_name(&s.source_path));
     let targets: Vec<&str> = l.targets.iter().map(|t| t.name()).collect();
     let _ = writeln!(t, "  level:   {} (targets: {}; limits: {})", l.name, targets.join(", "), l.limits.name());
     match p.skipped_by {

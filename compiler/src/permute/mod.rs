@@ -48,6 +48,8 @@ pub struct Config {
     pub levels: Vec<Level>,
     /// `[[shader]]` in file order.
     pub shaders: Vec<Shader>,
+    /// Rendered warnings about the file (an expression using an identifier nothing defines).
+    pub warnings: Vec<String>,
 }
 
 /// A feature level: the defines it sets, the targets it compiles to, the limits it validates against.

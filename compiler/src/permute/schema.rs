@@ -248,6 +248,7 @@ impl<'de> Deserialize<'de> for EnumNames {
 /// Collects diagnostics against the toml file.
 struct Checker {
     diagnostics: Vec<Diagnostic<()>>,
+    warnings: Vec<Diagnostic<()>>,
 }
 
 impl Checker {
@@ -255,6 +256,23 @@ impl Checker {
         self.diagnostics
             .push(Diagnostic::error().with_message(message.into()).with_labels(vec![Label::primary((), span).with_message(label.into())]));
         self.diagnostics.last_mut().expect("just pushed")
+    }
+
+    /// Warns about identifiers of `expr` that nothing defines (they read as 0: likely a typo).
+    fn unknown_identifiers(&mut self, text: &str, expr: &Spanned<String>, known: &dyn Fn(&str) -> bool, what: &str) {
+        for id in preprocess::expr::identifiers(expr.get_ref()) {
+            if known(&id) {
+                continue;
+            }
+            let at = find_word(expr.get_ref(), &id).unwrap_or(0);
+            let span = inner_span(text, &expr.span(), expr.get_ref(), at, id.len());
+            self.warnings.push(
+                Diagnostic::warning()
+                    .with_message(format!("{what} uses `{id}`, which no level, shader, dimension or derived define defines"))
+                    .with_labels(vec![Label::primary((), span).with_message("reads as 0")])
+                    .with_notes(vec!["an unknown identifier is 0, as in `#if`; check the spelling".into()]),
+            );
+        }
     }
 }
 
@@ -312,9 +330,9 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             return Err(fail(vec![d]));
         }
     };
-    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let path = path.canonicalize().or_else(|_| std::path::absolute(path)).unwrap_or_else(|_| path.to_path_buf());
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let mut c = Checker { diagnostics: Vec::new() };
+    let mut c = Checker { diagnostics: Vec::new(), warnings: Vec::new() };
 
     // [compiler]
     let mut include_roots = Vec::new();
@@ -372,6 +390,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         };
         levels.push(Level { name: name.get_ref().clone(), defines, targets, limits });
     }
+    let all_level_defines: HashSet<&str> = raw.levels.values().flat_map(|l| l.defines.keys().map(|k| k.get_ref().as_str())).collect();
     let level_defines: HashMap<&str, &IndexMap<Spanned<String>, Spanned<DefineValue>>> =
         raw.levels.iter().map(|(k, v)| (k.get_ref().as_str(), &v.defines)).collect();
 
@@ -490,6 +509,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             shader_scope.insert(dname.clone(), (k.span(), "derived define"));
             if check_expression(&mut c, text, expr) {
                 check_derived_dependencies(&mut c, text, &s.derived, &derived_names, i);
+                let known = |id: &str| all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id);
+                c.unknown_identifiers(text, expr, &known, &format!("derived define `{dname}`"));
             }
             derived.push((dname.clone(), expr.get_ref().clone()));
         }
@@ -508,6 +529,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                         d.notes.push("skip rules see the dimensions and the level's and shader's defines; write the condition in those terms".into());
                     }
                 }
+                let known = |id: &str| all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id);
+                c.unknown_identifiers(text, &r.when, &known, "skip rule");
             }
             if r.why.get_ref().trim().is_empty() {
                 c.error(r.why.span(), "a skip rule needs a reason", "expected a sentence saying why these permutations are not needed");
@@ -545,7 +568,12 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     if !c.diagnostics.is_empty() {
         return Err(fail(c.diagnostics));
     }
-    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders })
+    let warnings = c
+        .warnings
+        .into_iter()
+        .map(|w| ConfigError::new(display.to_string(), text.to_string(), vec![w]).render())
+        .collect();
+    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders, warnings })
 }
 
 /// The label under a serde/toml error, from its message.

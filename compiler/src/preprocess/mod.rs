@@ -131,7 +131,9 @@ pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Resu
     let (id, _) = cache
         .load(&canonical)
         .map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
-    engine::run(id, opts, cache)
+    // `__FILE__` spells the main file as it was given, like cpp does.
+    let name = if path.is_relative() { Some(path.to_string_lossy().into_owned()) } else { None };
+    engine::run_named(id, name, opts, cache)
 }
 
 /// Preprocesses a file already in `cache` (for example one added with
