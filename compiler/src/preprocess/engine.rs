@@ -1098,11 +1098,10 @@ impl<'a> Pp<'a> {
                 out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
                 i += 1;
                 let p = body[i];
+                // As a `##` operand the arguments go in unexpanded (rescanning expands them).
                 let arg = args.get(p.param as usize).cloned().unwrap_or_default();
-                let exp = self.expanded_arg(p.param as usize, args, expanded, name)?;
-                let _ = arg;
                 let start = out.len();
-                out.extend(exp);
+                out.extend(arg);
                 if let Some(t) = out.get_mut(start) {
                     t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
                 }
