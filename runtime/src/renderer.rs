@@ -73,6 +73,8 @@ impl Default for RendererOptions {
 pub enum RenderError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Desktop(#[from] crate::desktop::DesktopError),
     #[error("frame size {width}x{height} is outside 1..={max} pixels per side on this device")]
     Size { width: u32, height: u32, max: u32 },
     #[error("the frame produced no output image")]
@@ -81,6 +83,8 @@ pub enum RenderError {
 
 /// The passes of each frame, built once.
 enum Passes {
+    /// The desktop deferred frame of `crate::desktop`.
+    DesktopDeferred(Box<crate::desktop::DesktopFrame>),
     Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
@@ -146,6 +150,15 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
+                FramePipeline::Desktop => Passes::DesktopDeferred(Box::new(crate::desktop::DesktopFrame::new(
+                    device,
+                    &gpu.queue,
+                    gpu.timestamps,
+                    &cache,
+                    scene,
+                    crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                )?)),
+                #[allow(unreachable_patterns)]
                 FramePipeline::Desktop => Passes::Desktop {
                     prepass: DepthPass::new(&init, DepthView::Camera)?,
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
@@ -189,6 +202,7 @@ impl Renderer {
         let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
+            Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
             Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));

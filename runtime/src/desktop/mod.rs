@@ -1,0 +1,287 @@
+//! The desktop deferred frame (`--pipeline desktop`, feature level `sm5`), pass by pass as
+//! the seeds describe Unreal's: PrePass, ComputeLightGrid, ShadowDepths, BasePass,
+//! AmbientOcclusion, Lighting, ExponentialHeightFog, Translucency, PostProcessing.
+//!
+//! Takes a [`Scene`], a [`PipelineCache`] over an archive holding the `sm5` permutations of
+//! `shader_src/Private/Desktop/` and [`DesktopOptions`]; gives the tonemapped sRGB frame and,
+//! through the [`FrameRecorder`], every pass's (and named step's) output and GPU time.
+//! Guarantees: every pipeline the frame uses is created in [`DesktopFrame::new`] (the
+//! warm-up), none while recording; a permutation missing from the archive, or a resource a
+//! permutation binds that the frame does not have, is an error naming it, never a panic.
+
+mod ambient_occlusion;
+mod base_pass;
+mod fog;
+mod light_grid;
+mod lighting;
+mod pipelines;
+mod post_processing;
+mod prepass;
+mod resources;
+mod shadow_depths;
+mod translucency;
+pub mod view;
+
+use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
+use crate::pipelines::{PipelineCache, PipelineError};
+use crate::scene::Scene;
+
+pub use resources::{frame_lights, FrameLight, LocalShadow};
+pub use shadow_depths::{cascade_matrices, cube_face_matrices, CASCADE_SPLITS};
+pub use view::FrameView;
+
+/// Which way unshadowed local lights are shaded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightingPath {
+    /// Per-light volumes, or tiled above `tiled_threshold` lights (Unreal's rule).
+    Auto,
+    /// Always per-light volumes.
+    PerLight,
+    /// Always the tiled compute pass.
+    Tiled,
+}
+
+#[derive(Clone, Debug)]
+pub struct DesktopOptions {
+    pub width: u32,
+    pub height: u32,
+    /// Above this many unshadowed local lights, `Auto` shades them in one tiled compute
+    /// pass (Unreal switches above 80).
+    pub tiled_threshold: usize,
+    pub lighting_path: LightingPath,
+    /// Shadow filtering, 1 to 3 (1x1, 3x3, 5x5 PCF): `SHADOW_QUALITY`.
+    pub shadow_quality: u32,
+    /// Ambient occlusion quality, 0 to 2 (4, 8, 12 samples): `SHADER_QUALITY`.
+    pub ao_quality: u32,
+    /// Size of one cascade of the directional light's shadow atlas (others are half).
+    pub shadow_map_size: u32,
+    /// Selects the AO jitter of this frame.
+    pub frame_index: u32,
+    /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
+    pub output_format: wgpu::TextureFormat,
+}
+
+impl Default for DesktopOptions {
+    fn default() -> Self {
+        DesktopOptions {
+            width: 640,
+            height: 360,
+            tiled_threshold: 80,
+            lighting_path: LightingPath::Auto,
+            shadow_quality: 2,
+            ao_quality: 2,
+            shadow_map_size: 512,
+            frame_index: 0,
+            output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DesktopError {
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error("{what}: wgpu rejected it: {message}")]
+    Wgpu { what: String, message: String },
+    #[error("pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame")]
+    MissingResource { pipeline: String, group: u32, binding: u32, name: String },
+    #[error("pipeline `{pipeline}`: storage texture format `{format}` is not known to the runtime")]
+    StorageFormat { pipeline: String, format: String },
+}
+
+/// What passes read while they are built.
+pub(crate) struct Build<'a> {
+    pub device: &'a wgpu::Device,
+    pub pipelines: &'a pipelines::Pipelines<'a>,
+    pub scene: &'a Scene,
+    pub buffers: &'a resources::SceneBuffers,
+    pub targets: &'a resources::Targets,
+    pub samplers: &'a resources::Samplers,
+    pub view: &'a FrameView,
+    pub view_buffer: &'a wgpu::Buffer,
+    pub lights: &'a [FrameLight],
+    pub lights_buffer: &'a wgpu::Buffer,
+    pub options: &'a DesktopOptions,
+}
+
+impl Build<'_> {
+    /// View, instances and materials: what every mesh pass binds.
+    pub fn scene_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
+        vec![
+            ("View", self.view_buffer.as_entire_binding()),
+            ("Instances", self.buffers.instances.as_entire_binding()),
+            ("Materials", self.buffers.materials.as_entire_binding()),
+        ]
+    }
+}
+
+/// The desktop frame, built once per (scene, size): resources, pipelines, bind groups.
+pub struct DesktopFrame {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    timestamps: bool,
+    options: DesktopOptions,
+    buffers: resources::SceneBuffers,
+    targets: resources::Targets,
+    output: resources::Texture,
+    view: FrameView,
+    lights: Vec<FrameLight>,
+    prepass: prepass::PrePass,
+    light_grid: light_grid::LightGrid,
+    shadows: shadow_depths::ShadowDepths,
+    base_pass: base_pass::BasePass,
+    ambient_occlusion: ambient_occlusion::AmbientOcclusion,
+    lighting: lighting::Lighting,
+    fog: fog::HeightFog,
+    translucency: translucency::Translucency,
+    post: post_processing::PostProcessing,
+}
+
+impl DesktopFrame {
+    /// Uploads the scene, creates the targets and builds every pass (every pipeline).
+    /// `timestamps`: the device has timestamp queries inside encoders.
+    pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        timestamps: bool,
+        cache: &PipelineCache,
+        scene: &Scene,
+        options: DesktopOptions,
+    ) -> Result<DesktopFrame, DesktopError> {
+        let (w, h) = (options.width.max(1), options.height.max(1));
+        let view = FrameView::new(scene, w, h);
+        let lights = frame_lights(scene);
+        let gpu_lights: Vec<view::LocalLightGpu> = lights.iter().map(|l| l.gpu).collect();
+        let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
+        let view_buffer = resources::uniform(device, "View", &view.uniforms(scene, lights.len() as u32, options.frame_index));
+        let buffers = resources::SceneBuffers::upload(device, scene);
+        let targets = resources::Targets::new(device, w, h);
+        let samplers = resources::Samplers::new(device, queue);
+        let output = resources::Texture::target(device, "Output", options.output_format, w, h);
+        let pipelines = pipelines::Pipelines::new(cache, device, "sm5");
+        let b = Build {
+            device,
+            pipelines: &pipelines,
+            scene,
+            buffers: &buffers,
+            targets: &targets,
+            samplers: &samplers,
+            view: &view,
+            view_buffer: &view_buffer,
+            lights: &lights,
+            lights_buffer: &lights_buffer,
+            options: &options,
+        };
+        let dummy_shadow = shadow_depths::dummy_shadow_texture(device, queue);
+        let prepass = prepass::PrePass::new(&b)?;
+        let light_grid = light_grid::LightGrid::new(&b)?;
+        let shadows = shadow_depths::ShadowDepths::new(&b)?;
+        let base_pass = base_pass::BasePass::new(&b)?;
+        let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
+        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow)?;
+        let fog = fog::HeightFog::new(&b)?;
+        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow)?;
+        let post = post_processing::PostProcessing::new(&b, options.output_format)?;
+        Ok(DesktopFrame {
+            device: device.clone(),
+            queue: queue.clone(),
+            timestamps,
+            options,
+            buffers,
+            targets,
+            output,
+            view,
+            lights,
+            prepass,
+            light_grid,
+            shadows,
+            base_pass,
+            ambient_occlusion,
+            lighting,
+            fog,
+            translucency,
+            post,
+        })
+    }
+
+    /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
+    /// of `DesktopOptions::output_format` and the frame's size).
+    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
+        let (s, t) = (&self.buffers, &self.targets);
+        frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
+        frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
+        frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s));
+        frame.pass("BasePass", |ctx| self.base_pass.record(ctx, s, t));
+        frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
+        frame.pass("Lighting", |ctx| self.lighting.record(ctx, s, t));
+        frame.pass("ExponentialHeightFog", |ctx| self.fog.record(ctx, t));
+        frame.pass("Translucency", |ctx| self.translucency.record(ctx, s, t));
+        frame.pass("PostProcessing", |ctx| self.post.record(ctx, t, output));
+    }
+
+    /// Records the frame into its own output target.
+    pub fn record(&self, frame: &mut FrameRecorder) {
+        self.record_into(frame, (&self.output.texture, &self.output.view));
+    }
+
+    /// Renders one frame: the output image and every pass (with images when `capture`).
+    pub fn render(&self, capture: bool) -> (Option<Image>, Vec<PassResult>) {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
+        self.record(&mut frame);
+        let passes = frame.finish();
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true);
+        readback.pass("Output", |ctx| ctx.output(&self.output.texture, Visualize::Direct));
+        let image = readback.finish().pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
+        (image, passes)
+    }
+
+    pub fn options(&self) -> &DesktopOptions {
+        &self.options
+    }
+
+    pub fn view(&self) -> &FrameView {
+        &self.view
+    }
+
+    /// The scene's local lights as the light grid indexes them.
+    pub fn lights(&self) -> &[FrameLight] {
+        &self.lights
+    }
+
+    /// Whether Lighting shades the unshadowed local lights in the tiled compute pass.
+    pub fn uses_tiled_lighting(&self) -> bool {
+        self.lighting.tiled_path
+    }
+
+    /// Names of the lights drawn under ShadowedLights, in order.
+    pub fn shadowed_lights(&self) -> Vec<String> {
+        self.lighting.shadowed_light_names()
+    }
+
+    /// Reads the light grid back after a frame: (count, offset) per cell and the compacted
+    /// light indices.
+    pub fn read_light_grid(&self) -> (Vec<[u32; 2]>, Vec<u32>) {
+        let read = |src: &wgpu::Buffer| -> Vec<u32> {
+            let size = src.size();
+            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("light grid readback"),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("light grid readback") });
+            encoder.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+            self.queue.submit([encoder.finish()]);
+            staging.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+            let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+            let words = match staging.slice(..).get_mapped_range() {
+                Ok(view) => bytemuck::pod_collect_to_vec(&view),
+                Err(_) => Vec::new(),
+            };
+            words
+        };
+        let cells = read(&self.light_grid.num_culled_lights);
+        let counts = cells.chunks_exact(2).take(self.view.grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
+        (counts, read(&self.light_grid.culled_light_data))
+    }
+}
