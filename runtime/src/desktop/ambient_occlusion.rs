@@ -29,7 +29,7 @@ pub struct AmbientOcclusion {
 }
 
 /// World radius of the AO kernel (meters), intensity, angle bias, fade-out depth.
-pub const AO_PARAMS: [f32; 4] = [0.6, 1.6, 0.08, 60.0];
+pub const AO_PARAMS: [f32; 4] = [1.0, 3.0, 0.1, 60.0];
 
 impl AmbientOcclusion {
     pub fn new(b: &Build<'_>) -> Result<AmbientOcclusion, DesktopError> {
@@ -58,12 +58,15 @@ impl AmbientOcclusion {
                 &[("USE_AO_SETUP_AS_INPUT", u32::from(setup).to_string()), ("USE_UPSAMPLE", u32::from(upsample).to_string()), ("SHADER_QUALITY", quality.clone())],
             )
         };
-        Ok(AmbientOcclusion {
+        let mut ao = AmbientOcclusion {
             setup: step("Setup", p.permutation("AmbientOcclusionSetupPS", &[])?, None, formats::AO_SETUP, &ao_resources(b, &half_uniforms))?,
             half: step("HalfResolution", ao_ps(true, false)?, None, formats::AO, &ao_resources(b, &half_uniforms))?,
             full: step("FullResolution", ao_ps(false, true)?, None, formats::AO, &ao_resources(b, &full_uniforms))?,
             apply: step("ApplyToSceneColor", p.permutation("AmbientOcclusionApplyPS", &[])?, Some(blend::MULTIPLY), formats::SCENE_COLOR, &ao_resources(b, &full_uniforms))?,
-        })
+        };
+        ao.half.groups.keep.push(half_uniforms);
+        ao.full.groups.keep.push(full_uniforms);
+        Ok(ao)
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {

@@ -101,7 +101,7 @@ impl Lighting {
             let pipeline = p.render(&vs, Some(&ps), &desc)?;
             let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
             let buffer = uniform(device, &format!("DeferredLight {label}"), &DeferredLightUniforms { light: gpu, depth_bounds: bounds });
-            let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?;
+            let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer);
             Ok(LightDraw { pipeline, groups, radial })
         };
 
@@ -131,7 +131,9 @@ impl Lighting {
                     ("LocalLights", lights.as_entire_binding()),
                     ("TiledLighting", params.as_entire_binding()),
                 ],
-            )?;
+            )?
+            .keeping(lights)
+            .keeping(params);
             tiled = Some((cs, groups));
         } else {
             for l in &unshadowed {
@@ -160,7 +162,8 @@ impl Lighting {
                     ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
                     ("ShadowProjection", buffer.as_entire_binding()),
                 ],
-            )?;
+            )?
+            .keeping(buffer);
             Ok(Projection { pipeline, groups })
         };
         let sun = &b.scene.sun;

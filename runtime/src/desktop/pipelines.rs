@@ -59,16 +59,26 @@ impl Layout {
         for g in 0..self.groups.len() as u32 {
             groups.push(self.bind_group(device, g, resources)?);
         }
-        Ok(BindGroups(groups))
+        Ok(BindGroups { groups, keep: Vec::new() })
     }
 }
 
-/// The bind groups of one draw or dispatch, by group index (`None` for unused groups).
-pub struct BindGroups(pub Vec<Option<wgpu::BindGroup>>);
+/// The bind groups of one draw or dispatch, by group index (`None` for unused groups), and
+/// the buffers made for them alone (kept alive as long as the groups).
+pub struct BindGroups {
+    pub groups: Vec<Option<wgpu::BindGroup>>,
+    pub keep: Vec<wgpu::Buffer>,
+}
 
 impl BindGroups {
+    /// Keeps `buffer` (a uniform made for these groups) alive with them.
+    pub fn keeping(mut self, buffer: wgpu::Buffer) -> BindGroups {
+        self.keep.push(buffer);
+        self
+    }
+
     pub fn set_render(&self, pass: &mut wgpu::RenderPass<'_>) {
-        for (i, g) in self.0.iter().enumerate() {
+        for (i, g) in self.groups.iter().enumerate() {
             if let Some(g) = g {
                 pass.set_bind_group(i as u32, g, &[]);
             }
@@ -76,7 +86,7 @@ impl BindGroups {
     }
 
     pub fn set_compute(&self, pass: &mut wgpu::ComputePass<'_>) {
-        for (i, g) in self.0.iter().enumerate() {
+        for (i, g) in self.groups.iter().enumerate() {
             if let Some(g) = g {
                 pass.set_bind_group(i as u32, g, &[]);
             }

@@ -45,7 +45,8 @@ impl PostProcessing {
             let groups = pipeline.layout.bind_groups(
                 b.device,
                 &[("SourceTexture", wgpu::BindingResource::TextureView(source)), ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)), ("Bloom", u.as_entire_binding())],
-            )?;
+            )?
+            .keeping(u);
             bloom.push(Draw { pipeline, groups, target: Some(target), clear: blend.is_none() });
             Ok(())
         };
@@ -70,7 +71,8 @@ impl PostProcessing {
                 ("Tonemap", u.as_entire_binding()),
                 ("BloomTexture", wgpu::BindingResource::TextureView(&t.bloom[0].view)),
             ],
-        )?;
+        )?
+        .keeping(u);
         Ok(PostProcessing { bloom, tonemap: Draw { pipeline, groups, target: None, clear: true } })
     }
 

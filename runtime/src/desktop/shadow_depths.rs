@@ -138,7 +138,7 @@ impl ShadowDepths {
         let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
         let view_groups = |pipeline: &Render, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
             let buffer = uniform(device, label, &ShadowDepthPassUniforms { view_proj: m });
-            pipeline.layout.bind_groups(device, &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())])
+            Ok(pipeline.layout.bind_groups(device, &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())])?.keeping(buffer))
         };
         let size = b.options.shadow_map_size;
         let mut atlases = Vec::new();
@@ -149,11 +149,13 @@ impl ShadowDepths {
             let matrices = cascade_matrices(b.view, b.scene.sun.direction);
             let mut u = ShadowProjectionUniforms {
                 cascade_far_depths: Vec4::new(CASCADE_SPLITS[0], CASCADE_SPLITS[1], CASCADE_SPLITS[2], CASCADES as f32),
-                params: Vec4::new(0.0005, 0.02, 0.0, 0.0),
+                params: Vec4::new(0.0005, 2.0, 0.0, 0.0),
                 ..Default::default()
             };
             let mut views = Vec::new();
             for (i, m) in matrices.iter().enumerate() {
+                // World size of one shadow texel of this cascade (its box is 2r wide).
+                u.light_position[i] = 2.0 / m.row(0).truncate().length() / size as f32;
                 u.world_to_shadow[i] = *m;
                 u.atlas_rects[i] = Vec4::new(i as f32 / CASCADES as f32, 0.0, 1.0 / CASCADES as f32, 1.0);
                 views.push(ShadowView {

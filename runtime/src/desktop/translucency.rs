@@ -53,7 +53,8 @@ impl Translucency {
                 ("DirectionalShadow", directional.as_entire_binding()),
             ]);
             let groups = pipeline.layout.bind_groups(b.device, &resources)?;
-            Some((pipeline, groups))
+            drop(resources);
+            Some((pipeline, groups.keeping(directional)))
         } else {
             None
         };
