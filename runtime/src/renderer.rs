@@ -79,6 +79,8 @@ pub enum RenderError {
     Size { width: u32, height: u32, max: u32 },
     #[error("the frame produced no output image")]
     NoOutput,
+    #[error("rendering the frame failed: {0}")]
+    Wgpu(String),
 }
 
 /// The passes of each frame, built once.
@@ -107,6 +109,7 @@ pub struct Renderer {
     gpu_scene: GpuScene,
     shared: SharedResources,
     passes: Passes,
+    depth_copy: Option<crate::frame::DepthCopy>,
 }
 
 impl Renderer {
@@ -182,7 +185,18 @@ impl Renderer {
                 },
             }
         };
-        Ok(Renderer { device: device.clone(), queue: gpu.queue.clone(), timestamps: gpu.timestamps, options, cache, gpu_scene, shared, passes })
+        let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        Ok(Renderer {
+            device: device.clone(),
+            queue: gpu.queue.clone(),
+            timestamps: gpu.timestamps,
+            options,
+            cache,
+            gpu_scene,
+            shared,
+            passes,
+            depth_copy,
+        })
     }
 
     pub fn options(&self) -> &RendererOptions {
@@ -199,7 +213,16 @@ impl Renderer {
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
+        let scopes = crate::pipelines::ErrorScopes::push(&self.device);
+        let result = self.record_and_submit(capture);
+        if let Some(message) = scopes.pop() {
+            return Err(RenderError::Wgpu(message));
+        }
+        result
+    }
+
+    fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
             Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
@@ -226,7 +249,7 @@ impl Renderer {
             }
         }
         // The output is always read back, as a capture of a final pseudo-pass.
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true);
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
         let passes = frame.finish();
         readback.pass("Output", |ctx| ctx.output(&t.output.texture, crate::frame::Visualize::Direct));
         let mut out = readback.finish();

@@ -112,7 +112,19 @@ fn run(args: &Args) -> Result<(), Failure> {
         kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => Failure::Usage(format!("{l}")),
         e => Failure::Render(e.to_string()),
     })?;
-    let frame = renderer.render(args.dump_passes.is_some()).map_err(|e| Failure::Render(e.to_string()))?;
+    let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+    let mut frame = render(false)?;
+    if args.dump_passes.is_some() {
+        // Captures copy every pass's output inside the frame; the GPU times come from the
+        // frame without them.
+        let timed = std::mem::replace(&mut frame, render(true)?);
+        for (captured, timed) in frame.passes.iter_mut().zip(&timed.passes) {
+            captured.gpu_ms = timed.gpu_ms;
+            for (step, t) in captured.steps.iter_mut().zip(&timed.steps) {
+                step.gpu_ms = t.gpu_ms;
+            }
+        }
+    }
     kiln::archive::write_atomic(&args.out, &frame.image.to_png())
         .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))?;
     if let Some(dir) = &args.dump_passes {
@@ -139,4 +151,24 @@ fn run(args: &Args) -> Result<(), Failure> {
         args.out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    use super::*;
+
+    #[test]
+    fn args_are_consistent() {
+        Args::command().debug_assert();
+    }
+
+    #[test]
+    fn sizes() {
+        assert_eq!(parse_size("640x360"), Ok((640, 360)));
+        assert_eq!(parse_size("8X2"), Ok((8, 2)));
+        assert_eq!(parse_size("0x10"), Err("0x10 is outside 1x1..16384x16384".to_string()));
+        assert_eq!(parse_size("x10"), Err("`` is not a width".to_string()));
+    }
 }

@@ -89,14 +89,14 @@ impl Mesh {
                 let quad = [(a, a + 1, b + 1), (a, b + 1, b)];
                 for (i, j, k) in quad {
                     let (pi, pj, pk) = (positions[i as usize], positions[j as usize], positions[k as usize]);
-                    let n = (pk - pi).cross(pj - pi);
+                    let n = (pj - pi).cross(pk - pi);
                     if n.length_squared() < 1e-12 {
                         continue;
                     }
                     for v in [i, j, k] {
                         normals[v as usize] += n;
                     }
-                    tris.push([i, k, j]);
+                    tris.push([i, j, k]);
                 }
             }
         }
