@@ -117,7 +117,10 @@ fn main() {
     }
     let seq_secs = t.elapsed().as_secs_f64();
     let seq_rate = kept_big.len() as f64 / seq_secs;
-    println!("preprocess (1 thread, shared cache): {} permutations in {seq_secs:.3} s = {seq_rate:.0} permutations/s", kept_big.len());
+    println!(
+        "preprocess (1 thread, shared cache): {} permutations in {seq_secs:.3} s = {seq_rate:.0} permutations/s",
+        kept_big.len()
+    );
 
     // 4. One thread, a fresh cache per permutation (every file read again each time).
     let sample = &kept_big[..kept_big.len().min(256)];

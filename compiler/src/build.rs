@@ -347,6 +347,25 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         ));
     }
 
+    // Up to date? When every permutation has the key it had when the archive was written,
+    // and the archive is the file that build wrote, there is nothing to do (like cargo's
+    // freshness check). Only with a cache (the stamp lives there) and without --emit-dir.
+    let stamp = match (cache, &options.output, &options.emit_dir, failures.is_empty()) {
+        (Some(c), Some(out), None, true) => Some((c, out, build_fingerprint(&kept, &pre))),
+        _ => None,
+    };
+    if let Some((c, out, fingerprint)) = &stamp {
+        if let Some(counts) = c.fresh_archive(out, fingerprint) {
+            report.stats.cache_hits = groups.len();
+            report.stats.artifacts = counts.0;
+            report.stats.permutation_artifacts = counts.1;
+            report.archive = Some(out.to_path_buf());
+            progress.finish();
+            write_stats(options, &mut report, start)?;
+            return Ok(report);
+        }
+    }
+
     // 4. Compile each distinct key once (or take it from the cache).
     let t_compile = Instant::now();
     progress.stage("compiling", groups.len());
@@ -421,12 +440,23 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
                 for &m in members {
                     let Ok(pm) = &pre[m] else { continue };
-                    let diagnostic = if Some(pm.text_hash) == rep_hash {
+                    let mut diagnostic = if Some(pm.text_hash) == rep_hash {
                         map_error(&e, &rep.as_ref().expect("hash of it").map)
                     } else {
                         // Same tokens, other spacing: this member's own spans.
                         remap_member(config, &kept[m], &options.targets, &sources, &e)
                     };
+                    if e.kind == compile::ErrorKind::EntryPoint {
+                        let s = kept[m].shader;
+                        let file = config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+                        diagnostic.notes.push(format!(
+                            "shader `{}` of {file} names entry point `{}` ({}) in {}",
+                            s.name,
+                            s.entry,
+                            s.stage,
+                            sources.display_name(&s.source_path)
+                        ));
+                    }
                     failures.push((diagnostic, vec![m]));
                 }
             }
@@ -502,6 +532,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     if let Some(out) = &options.output {
         writer.write(out).map_err(|e| Error::Io(format!("error: {e}")))?;
         report.archive = Some(out.clone());
+        if let Some((c, out, fingerprint)) = &stamp {
+            // Failing to stamp only costs a full warm build next time.
+            let _ = c.stamp_archive(out, fingerprint, (report.stats.artifacts, report.stats.permutation_artifacts));
+        }
     }
     write_stats(options, &mut report, start)?;
     Ok(report)
@@ -544,6 +578,24 @@ fn preprocess_one(
         warnings: output.warnings.iter().map(|w| preprocess::render(std::slice::from_ref(w), sources, false)).collect(),
     };
     Ok((pre, output))
+}
+
+/// Everything the archive's content depends on: each kept permutation's name, shader
+/// record and key, in order, and the versions.
+fn build_fingerprint(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<FileId>>]) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    h.update(b"kiln build fingerprint v1\0");
+    h.update(crate::VERSION.as_bytes());
+    h.update(b"\0");
+    h.update(compile::NAGA_VERSION.as_bytes());
+    for (p, r) in kept.iter().zip(pre) {
+        let Ok(r) = r else { continue };
+        let dims: Vec<(&str, &[String])> = p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+        let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
+        h.update(line.as_bytes());
+        h.update(&r.key.0);
+    }
+    h.finalize()
 }
 
 /// The preprocessed output of a key's first member: kept from preprocessing, or (when every

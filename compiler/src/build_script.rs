@@ -1,13 +1,11 @@
 //! The build-script API: compile a permutation set from a crate's `build.rs`.
 //!
 //! ```no_run
-//! // build.rs
-//! fn main() {
-//!     kiln::Build::new("../permutations.toml")
-//!         .out_dir_from_env() // OUT_DIR/shaders.kpak
-//!         .run()
-//!         .unwrap_or_else(|e| e.exit_for_cargo());
-//! }
+//! // build.rs, in `fn main()`:
+//! kiln::Build::new("../permutations.toml")
+//!     .out_dir_from_env() // OUT_DIR/shaders.kpak
+//!     .run()
+//!     .unwrap_or_else(|e| e.exit_for_cargo());
 //! ```
 //!
 //! [`Build::run`] calls the same [`crate::build::run`] as `kiln build`. It prints
@@ -15,7 +13,6 @@
 //! warnings into `cargo:warning=` lines, keeps its cache under cargo's target folder (found
 //! from `OUT_DIR`), and on failure renders every failure with its mapped location.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use crate::build::{self, CacheDir, Report};

@@ -88,6 +88,8 @@ pub struct Gpu {
     pub spirv_passthrough: bool,
     /// Timestamps can be written between passes (`TIMESTAMP_QUERY_INSIDE_ENCODERS`).
     pub timestamps: bool,
+    /// Depth textures can be copied to buffers (not on GL).
+    pub depth_copies: bool,
 }
 
 impl fmt::Debug for Gpu {
@@ -146,6 +148,8 @@ impl Gpu {
         if timestamps {
             features |= timestamp_features;
         }
+        // The desktop frame's scene depth with stencil, copyable for --dump-passes.
+        features |= available & wgpu::Features::DEPTH32FLOAT_STENCIL8;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("kiln-runtime device"),
@@ -157,7 +161,14 @@ impl Gpu {
             })
             .await
             .map_err(|source| GpuError::Device { backend, adapter: info.name.clone(), source })?;
-        Ok(Gpu { instance, adapter, device, queue, backend, info, spirv_passthrough: passthrough, timestamps })
+        // Errors outside an error scope are reported, not panicked on: every frame and
+        // pipeline creation runs in a scope that turns them into results.
+        device.on_uncaptured_error(std::sync::Arc::new(|e: wgpu::Error| {
+            eprintln!("wgpu error: {}", crate::pipelines::error_chain(&e));
+        }));
+        let depth_copies =
+            adapter.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES);
+        Ok(Gpu { instance, adapter, device, queue, backend, info, spirv_passthrough: passthrough, timestamps, depth_copies })
     }
 
     /// Waits until the GPU has finished everything submitted.

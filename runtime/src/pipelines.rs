@@ -188,7 +188,7 @@ impl PipelineLayoutInfo {
             entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
         }
         let layout = &self.bind_group_layouts[group as usize];
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(device);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries });
         check_scope(scope, || format!("bind group `{label}`"))?;
         Ok(bind_group)
@@ -317,7 +317,7 @@ impl PipelineCache {
             .iter()
             .map(|t| Some(wgpu::ColorTargetState { format: t.format, blend: t.blend.state(), write_mask: wgpu::ColorWrites::ALL }))
             .collect();
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some(&label),
             layout: Some(&layout.layout),
@@ -365,7 +365,7 @@ impl PipelineCache {
         }
         let (module, reflection) = self.module(name, Stage::Compute)?;
         let layout = self.layout(name, &[&reflection])?;
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(name),
             layout: Some(&layout.layout),
@@ -411,7 +411,7 @@ impl PipelineCache {
             bind_group_layouts.push(layout);
         }
         let refs: Vec<Option<&wgpu::BindGroupLayout>> = bind_group_layouts.iter().map(Some).collect();
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(&self.device);
         let layout = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some(label),
             bind_group_layouts: &refs,
@@ -440,7 +440,7 @@ pub fn create_module(
             name: Cow::Borrowed(&reflection.entry),
             workgroup_size: reflection.workgroup_size.map(|[x, y, z]| (x, y, z)).unwrap_or((1, 1, 1)),
         };
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(device);
         // SAFETY: the SPIR-V was produced by naga from a module naga validated (the archive
         // holds nothing else), for the same wgpu/naga major version, and checked by
         // spirv-val in Kiln's tests; pipelines using it have explicit layouts built from
@@ -460,7 +460,7 @@ pub fn create_module(
         return Err(PipelineError::NoArtifact { name: name.to_string(), targets: targets.to_string() });
     };
     let text = std::str::from_utf8(bytes).map_err(|e| bad(format!("WGSL artifact is not UTF-8: {e}")))?;
-    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let scope = ErrorScopes::push(device);
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(text)) });
     check_scope(scope, || format!("WGSL module `{name}`"))?;
     Ok(module)
@@ -478,10 +478,34 @@ pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
     Ok(words)
 }
 
-fn check_scope(scope: wgpu::ErrorScopeGuard, what: impl FnOnce() -> String) -> Result<(), PipelineError> {
-    match pollster::block_on(scope.pop()) {
+/// Validation and internal errors (a backend's shader translation failing) of what runs
+/// while they are pushed.
+pub struct ErrorScopes {
+    // Dropped in declaration order: the reverse of the order pushed.
+    memory: wgpu::ErrorScopeGuard,
+    internal: wgpu::ErrorScopeGuard,
+    validation: wgpu::ErrorScopeGuard,
+}
+
+impl ErrorScopes {
+    pub fn push(device: &wgpu::Device) -> ErrorScopes {
+        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);
+        let memory = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        ErrorScopes { memory, internal, validation }
+    }
+
+    /// The first error caught, with its sources.
+    pub fn pop(self) -> Option<String> {
+        let errors = [pollster::block_on(self.memory.pop()), pollster::block_on(self.internal.pop()), pollster::block_on(self.validation.pop())];
+        errors.into_iter().flatten().next().map(|e| error_chain(&e))
+    }
+}
+
+fn check_scope(scope: ErrorScopes, what: impl FnOnce() -> String) -> Result<(), PipelineError> {
+    match scope.pop() {
         None => Ok(()),
-        Some(e) => Err(PipelineError::Wgpu { what: what(), message: error_chain(&e) }),
+        Some(message) => Err(PipelineError::Wgpu { what: what(), message }),
     }
 }
 

@@ -7,8 +7,6 @@ use std::sync::Arc;
 
 use wgpu::util::DeviceExt;
 
-use crate::desktop::part2::{MeshRef, Part2, Part2Options, Part2Targets};
-use crate::desktop::frame_view::DirectionalShadow;
 use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
 use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
@@ -75,36 +73,21 @@ impl Default for RendererOptions {
 pub enum RenderError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Desktop(#[from] crate::desktop::DesktopError),
     #[error("frame size {width}x{height} is outside 1..={max} pixels per side on this device")]
     Size { width: u32, height: u32, max: u32 },
     #[error("the frame produced no output image")]
     NoOutput,
-}
-
-/// Byte offsets in `ViewUniforms`: camera_position, post_params.x (the exposure).
-const CAMERA_POSITION_OFFSET: u64 = 3 * 64;
-const EXPOSURE_OFFSET: u64 = 3 * 64 + 8 * 16;
-
-/// Builds the desktop frame's part 2 over the shared targets.
-fn desktop_part2(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, shared: &SharedResources, options: Part2Options) -> Result<Part2, PipelineError> {
-    let t = &shared.targets;
-    let meshes: Vec<MeshRef<'_>> = gpu_scene.meshes.iter().map(|m| MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count }).collect();
-    let targets = Part2Targets {
-        size: [t.width, t.height],
-        scene_depth: &t.scene_depth.texture,
-        scene_color: &t.scene_color.texture,
-        gbuffer_a: &t.gbuffer_a.texture,
-        gbuffer_b: &t.gbuffer_b.texture,
-        gbuffer_c: &t.gbuffer_c.texture,
-        shadow_depth: &t.shadow_depth.texture,
-        shadow_compare: wgpu::CompareFunction::GreaterEqual,
-    };
-    Part2::new(&gpu.device, &gpu.queue, cache, scene, &meshes, &targets, Some(DirectionalShadow::single(scene.sun_shadow_view_proj())), options)
+    #[error("rendering the frame failed: {0}")]
+    Wgpu(String),
 }
 
 /// The passes of each frame, built once.
 enum Passes {
-    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass, part2: Box<Part2> },
+    /// The desktop deferred frame of `crate::desktop`.
+    DesktopDeferred(Box<crate::desktop::DesktopFrame>),
+    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
 }
@@ -126,6 +109,7 @@ pub struct Renderer {
     gpu_scene: GpuScene,
     shared: SharedResources,
     passes: Passes,
+    depth_copy: Option<crate::frame::DepthCopy>,
 }
 
 impl Renderer {
@@ -169,6 +153,15 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
+                FramePipeline::Desktop => Passes::DesktopDeferred(Box::new(crate::desktop::DesktopFrame::new(
+                    device,
+                    &gpu.queue,
+                    gpu.timestamps,
+                    &cache,
+                    scene,
+                    crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                )?)),
+                #[allow(unreachable_patterns)]
                 FramePipeline::Desktop => Passes::Desktop {
                     prepass: DepthPass::new(&init, DepthView::Camera)?,
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
@@ -176,7 +169,6 @@ impl Renderer {
                     lighting: LightingPass::new(&init)?,
                     translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
                     tonemap: TonemapPass::new(&init)?,
-                    part2: Box::new(desktop_part2(gpu, &cache, scene, &gpu_scene, &shared, Part2Options::default())?),
                 },
                 FramePipeline::MobileForward => Passes::MobileForward {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
@@ -193,7 +185,18 @@ impl Renderer {
                 },
             }
         };
-        Ok(Renderer { device: device.clone(), queue: gpu.queue.clone(), timestamps: gpu.timestamps, options, cache, gpu_scene, shared, passes })
+        let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        Ok(Renderer {
+            device: device.clone(),
+            queue: gpu.queue.clone(),
+            timestamps: gpu.timestamps,
+            options,
+            cache,
+            gpu_scene,
+            shared,
+            passes,
+            depth_copy,
+        })
     }
 
     pub fn options(&self) -> &RendererOptions {
@@ -208,66 +211,36 @@ impl Renderer {
         self.cache.stats()
     }
 
-    /// The desktop frame's part 2, for tests that look at its state across frames.
-    pub fn desktop_part2(&self) -> Option<&Part2> {
+    /// The desktop frame's part 2 (issue 7), for tests that look at its state across frames.
+    pub fn desktop_part2(&self) -> Option<&crate::desktop::part2::Part2> {
         match &self.passes {
-            Passes::Desktop { part2, .. } => Some(part2),
+            Passes::DesktopDeferred(d) => Some(d.part2()),
             _ => None,
-        }
-    }
-
-    /// Moves the desktop frame's camera (from the next frame on).
-    pub fn set_camera(&self, camera: crate::scene::Camera) {
-        if let Some(p) = self.desktop_part2() {
-            p.set_camera(camera);
-        }
-    }
-
-    /// This frame's (jittered) camera into the View uniforms, and the movable props' new
-    /// transforms into their instance buffers.
-    fn write_camera(&self, camera: &crate::desktop::part2::FrameCamera, part2: &Part2) {
-        let q = &self.queue;
-        q.write_buffer(&self.shared.view, 0, bytemuck::cast_slice(&[camera.view_proj, camera.inv_view_proj]));
-        q.write_buffer(&self.shared.view, CAMERA_POSITION_OFFSET, bytemuck::bytes_of(&camera.position.extend(1.0)));
-        for o in part2.movable_objects() {
-            let instances: Vec<crate::gpu_types::InstanceData> = part2.object_transforms(o).into_iter().map(crate::gpu_types::InstanceData::new).collect();
-            q.write_buffer(&self.gpu_scene.objects[o].instances, 0, bytemuck::cast_slice(&instances));
         }
     }
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
+        let scopes = crate::pipelines::ErrorScopes::push(&self.device);
+        let result = self.record_and_submit(capture);
+        if let Some(message) = scopes.pop() {
+            return Err(RenderError::Wgpu(message));
+        }
+        result
+    }
+
+    fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap, part2 } => {
-                let camera = part2.begin_frame();
-                self.write_camera(&camera, part2);
-                part2.particle_simulation(&mut frame, &self.cache)?;
+            Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
+            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
-                part2.begin_occlusion_tests(&mut frame);
-                part2.build_hzb(&mut frame);
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
-                part2.volumetric_fog(&mut frame);
                 frame.pass("BasePass", |ctx| base.record(ctx, s, t));
-                part2.particle_collision(&mut frame, &self.cache)?;
-                part2.velocity(&mut frame);
-                frame.pass("Lighting", |ctx| {
-                    lighting.record(ctx, t);
-                    part2.translucent_volumes(ctx);
-                });
-                part2.reflections(&mut frame);
-                frame.pass("ExponentialHeightFog", |ctx| part2.apply_volumetric_fog(ctx));
-                frame.pass("Translucency", |ctx| -> Result<(), PipelineError> {
-                    translucency.record(ctx, s, t);
-                    part2.particle_sprites(ctx, &self.cache)
-                })?;
-                part2.distortion(&mut frame, &self.cache)?;
-                frame.pass("PostProcessing", |ctx| {
-                    part2.temporal_post_processing(ctx, Some((&self.shared.view, EXPOSURE_OFFSET)));
-                    tonemap.record(ctx, t)
-                });
-                part2.end_frame();
+                frame.pass("Lighting", |ctx| lighting.record(ctx, t));
+                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
+                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
             }
             Passes::MobileForward { shadows, base, translucency, tonemap } => {
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
@@ -284,7 +257,7 @@ impl Renderer {
             }
         }
         // The output is always read back, as a capture of a final pseudo-pass.
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true);
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
         let passes = frame.finish();
         readback.pass("Output", |ctx| ctx.output(&t.output.texture, crate::frame::Visualize::Direct));
         let mut out = readback.finish();

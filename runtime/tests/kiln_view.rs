@@ -34,6 +34,17 @@ fn renders_and_dumps_every_pass() {
 }
 
 #[test]
+fn gl_backend_dumps_depth_too() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--backend", "gl", "--pipeline", "mobile-forward", "--size", "160x90", "--dump-passes", "dump"], dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.path().join("dump/00_ShadowDepths.png").is_file());
+    assert!(dir.path().join("dump/01_BasePass_SceneDepth.png").is_file());
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    assert_eq!(json["backend"], "gl");
+}
+
+#[test]
 fn truncated_archive_is_a_usage_error() {
     let dir = tempfile::tempdir().unwrap();
     let bytes = kiln_runtime::EMBEDDED_ARCHIVE;

@@ -148,3 +148,23 @@ fn downlevel_limit_names_the_binding_and_the_limit() {
 "#
     );
 }
+
+#[test]
+fn missing_entry_point_names_the_shader_and_its_source() {
+    let fx = fixture();
+    replace(&fx.path().join("compute.toml"), "entry = \"main_cs\"", "entry = \"main\"");
+    match build::run(&options(&fx.path().join("compute.toml"), &fx.path().join("a.kpak"), None)) {
+        Err(build::Error::Failed(r)) => assert_eq!(
+            r.failures[0],
+            "error: no entry point named `main`
+ = the module's entry points: `main_cs` (compute)
+ = shader `Histogram` of compute.toml names entry point `main` (compute) in histogram.usf
+ = in 2 permutations (level `sm5`, default limits):
+     Histogram@sm5{THREADS=6}
+     Histogram@sm5{THREADS=7}
+
+"
+        ),
+        other => panic!("{other:?}"),
+    }
+}

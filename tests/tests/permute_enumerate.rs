@@ -34,7 +34,11 @@ fn mobile_fixture_counts_match_an_independent_enumeration() {
             for debug in [0, 1] {
                 for grain in 0..=2 {
                     let skipped = blend == 2 && grain > 0;
-                    expected.push((format!("Tonemap@{level}{{BLEND_MODE={label},DEBUG_VIEW={debug},GRAIN={grain}}}"), !skipped, -1));
+                    expected.push((
+                        format!("Tonemap@{level}{{BLEND_MODE={label},DEBUG_VIEW={debug},GRAIN={grain}}}"),
+                        !skipped,
+                        -1,
+                    ));
                 }
             }
         }
@@ -74,7 +78,9 @@ fn generated_set_matches_brute_force() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::create_dir(dir.path().join("src")).unwrap();
     std::fs::write(dir.path().join("src/S.usf"), "fn f() {}\n").unwrap();
-    let rules: [(&str, fn(i64, i64, i64, i64, i64) -> bool); 4] = [
+    // (A, B, C, D, ES) -> skipped
+    type Rule = fn(i64, i64, i64, i64, i64) -> bool;
+    let rules: [(&str, Rule); 4] = [
         ("A == MODE_HIGH && B > 2", |a, b, _, _, _| a == 2 && b > 2),
         ("(C % 3 == 0) && !ES", |_, _, c, _, es| c % 3 == 0 && es == 0),
         ("D < 0 ? B == 1 : B == 4", |_, b, _, d, _| if d < 0 { b == 1 } else { b == 4 }),

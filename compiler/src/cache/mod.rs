@@ -2,8 +2,10 @@
 //!
 //! Takes a [`Key`] (blake3 of everything that decides a compile's output: the token hash
 //! of the preprocessed text, entry point, stage, level name, limits and targets, Kiln's and
-//! naga's versions) and the [`Compiled`] outputs of that key; gives them back on a later
-//! build. Guarantees: an entry is one file written to a temporary file in the cache folder
+//! naga's versions, a fingerprint of Kiln's own sources) and the [`Compiled`] outputs of
+//! that key; gives them back on a later build. It also keeps, per permutation, a
+//! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
+//! archive, a stamp (so an up-to-date archive is not rewritten). Guarantees: an entry is one file written to a temporary file in the cache folder
 //! and renamed into place, so readers (other processes included) see a whole entry or none,
 //! and two builds sharing a cache both succeed; every entry carries a checksum of its
 //! content, so a corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never
@@ -65,6 +67,7 @@ impl Key {
             field(t.name().as_bytes());
         }
         field(crate::VERSION.as_bytes());
+        field(env!("KILN_SOURCE_HASH").as_bytes());
         field(crate::compile::NAGA_VERSION.as_bytes());
         Key(*h.finalize().as_bytes())
     }
@@ -202,6 +205,34 @@ impl Cache {
         self.write_file(&self.record_path(key), &bytes)
     }
 
+    /// The stamp of the archive at `archive`: `DIR/builds/<blake3 of its absolute path>`.
+    fn stamp_path(&self, archive: &Path) -> PathBuf {
+        let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());
+        let name = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
+        self.dir.join("builds").join(format!("{}.stamp", &name[..32]))
+    }
+
+    /// Records that the archive now at `archive` is the output of the build with
+    /// `fingerprint` (with its artifact counts), identified by its length, modification
+    /// time and header checksum.
+    pub fn stamp_archive(&self, archive: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) -> Result<(), Error> {
+        let err = |source| Error { path: archive.to_path_buf(), source };
+        let id = archive_identity(archive).map_err(err)?;
+        let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
+        self.write_file(&self.stamp_path(archive), text.as_bytes())
+    }
+
+    /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
+    /// build with `fingerprint`.
+    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash) -> Option<(usize, usize)> {
+        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
+        let mut lines = text.lines();
+        if lines.next()? != fingerprint.to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
+            return None;
+        }
+        Some((lines.next()?.parse().ok()?, lines.next()?.parse().ok()?))
+    }
+
     fn write_file(&self, path: &Path, bytes: &[u8]) -> Result<(), Error> {
         let dir = path.parent().expect("entry has a folder").to_path_buf();
         let err = |source| Error { path: path.to_path_buf(), source };
@@ -299,6 +330,17 @@ impl Cache {
         }
         Ok(n)
     }
+}
+
+/// Length, modification time and header checksum of an archive file.
+fn archive_identity(path: &Path) -> io::Result<String> {
+    use std::io::Read;
+    let mut f = fs::File::open(path)?;
+    let meta = f.metadata()?;
+    let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
+    let mut header = [0u8; 64];
+    f.read_exact(&mut header)?;
+    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.

@@ -74,13 +74,21 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
     if let Some(s) = &args.shader {
         if config.shader(s).is_none() {
             let names: Vec<&str> = config.shaders.iter().map(|s| s.name.as_str()).collect();
-            return Err(Failure::usage(format!("error: no shader named `{s}` in {} (shaders: {})", args.config.display(), names.join(", "))));
+            return Err(Failure::usage(format!(
+                "error: no shader named `{s}` in {} (shaders: {})",
+                args.config.display(),
+                names.join(", ")
+            )));
         }
     }
     if let Some(l) = &args.level {
         if config.level(l).is_none() {
             let names: Vec<&str> = config.levels.iter().map(|l| l.name.as_str()).collect();
-            return Err(Failure::usage(format!("error: no level named `{l}` in {} (levels: {})", args.config.display(), names.join(", "))));
+            return Err(Failure::usage(format!(
+                "error: no level named `{l}` in {} (levels: {})",
+                args.config.display(),
+                names.join(", ")
+            )));
         }
     }
     let shader = args.shader.clone();
@@ -127,7 +135,9 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                     .zip(&p.values)
                     .map(|(d, v)| (d.name.clone(), if d.labels.is_empty() { json!(v) } else { json!(d.display(*v)) }))
                     .collect();
-                let skip = p.skipped_by.map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
+                let skip = p
+                    .skipped_by
+                    .map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
                 let obj = json!({
                     "name": p.name(), "shader": p.shader.name, "level": p.level.name, "values": values,
                     "kept": p.is_kept(), "skip": skip,
@@ -152,8 +162,10 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                 .collect();
             let kept: usize = counts.iter().map(|c| c.kept).sum();
             let skipped: usize = counts.iter().map(|c| c.skipped).sum();
-            let distinct =
-                analysis.as_ref().filter(|a| a.failed.is_empty()).map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
+            let distinct = analysis
+                .as_ref()
+                .filter(|a| a.failed.is_empty())
+                .map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
             let dead: Vec<serde_json::Value> = analysis
                 .iter()
                 .flat_map(|a| a.dead())
@@ -189,7 +201,13 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
     result
 }
 
-fn write_warnings(err: &mut dyn Write, errors: &[String], analysis: Option<&Analysis>, cache: &SourceCache, color: bool) -> io::Result<()> {
+fn write_warnings(
+    err: &mut dyn Write,
+    errors: &[String],
+    analysis: Option<&Analysis>,
+    cache: &SourceCache,
+    color: bool,
+) -> io::Result<()> {
     for e in errors.iter().take(20) {
         writeln!(err, "{e}")?;
     }
@@ -232,7 +250,11 @@ fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analys
             writeln!(out)?;
             writeln!(out, "dead dimensions (they never change the preprocessed text):")?;
             for d in dead {
-                writeln!(out, "  {}@{}: {} (x{} permutations for nothing)", d.shader, d.level, d.dimension, d.multiplier)?;
+                writeln!(
+                    out,
+                    "  {}@{}: {} (x{} permutations for nothing)",
+                    d.shader, d.level, d.dimension, d.multiplier
+                )?;
             }
         }
     }
@@ -273,7 +295,9 @@ mod tests {
         let cli = Cli::try_parse_from(["list"]).unwrap();
         assert_eq!(cli.args.config, PathBuf::from("permutations.toml"));
         assert!(!cli.args.all && !cli.args.json && cli.args.shader.is_none());
-        let cli = Cli::try_parse_from(["list", "--config", "x.toml", "--shader", "S", "--level", "sm5", "--all", "--json"]).unwrap();
+        let cli =
+            Cli::try_parse_from(["list", "--config", "x.toml", "--shader", "S", "--level", "sm5", "--all", "--json"])
+                .unwrap();
         assert_eq!(cli.args.shader.as_deref(), Some("S"));
         assert!(cli.args.all && cli.args.json);
     }
@@ -337,7 +361,62 @@ total                 14         4         -
         assert_eq!(t["values"], serde_json::json!({ "BLEND_MODE": "OPAQUE", "DEBUG_VIEW": 0, "GRAIN": 0 }));
         assert_eq!(t["level"], "sm5");
         assert_eq!(v["totals"], serde_json::json!({ "kept": 48, "skipped": 20, "distinct": null }));
-        assert_eq!(v["counts"][1], serde_json::json!({ "shader": "Tonemap", "level": "sm5", "kept": 14, "skipped": 4, "distinct": null }));
+        assert_eq!(
+            v["counts"][1],
+            serde_json::json!({ "shader": "Tonemap", "level": "sm5", "kept": 14, "skipped": 4, "distinct": null })
+        );
+    }
+
+    #[test]
+    fn counts_with_distinct_streams_and_dead_dimensions() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, err) = list(&["--config", &config]);
+        assert_eq!((code, err.as_str()), (0, ""));
+        let tail: Vec<&str> = out.lines().skip(48).collect();
+        assert_eq!(
+            tail.join("\n"),
+            "
+shader            level      kept   skipped  distinct
+MobileBasePassPS  es3_1        20        12        18
+Tonemap           sm5          14         4         6
+Tonemap           es3_1        14         4         6
+total                          48        20        30
+
+dead dimensions (they never change the preprocessed text):
+  Tonemap@sm5: DEBUG_VIEW (x2 permutations for nothing)
+  Tonemap@es3_1: DEBUG_VIEW (x2 permutations for nothing)"
+        );
+        let (_, out, _) = list(&["--config", &config, "--json", "--shader", "Tonemap"]);
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(v["totals"], serde_json::json!({ "kept": 28, "skipped": 8, "distinct": 12 }));
+        assert_eq!(
+            v["dead_dimensions"][1],
+            serde_json::json!({ "shader": "Tonemap", "level": "es3_1", "dimension": "DEBUG_VIEW", "multiplier": 2 })
+        );
+        assert_eq!(v["failed"], serde_json::json!([]));
+    }
+
+    #[test]
+    fn preprocessing_failures_warn_and_leave_distinct_out() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("S.usf"),
+            "#if MODE == 2\n#error mode 2 is not written yet\n#endif\nfn f() {}\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.path().join("permutations.toml"),
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\n[[shader]]\nname = \"S\"\nsource = \"S.usf\"\nstage = \"compute\"\ndimensions = { MODE = [1, 2] }\n",
+        )
+        .unwrap();
+        let config = dir.path().join("permutations.toml");
+        let (code, out, err) = list(&["--config", config.to_str().unwrap()]);
+        assert_eq!(code, 0);
+        assert!(
+            out.ends_with("S       sm5           2         0         -\ntotal                 2         0         -\n"),
+            "{out}"
+        );
+        assert!(err.starts_with("warning: 1 permutation(s) failed to preprocess (their levels show no distinct count). The first, S@sm5{MODE=2}:\nerror: "), "{err}");
     }
 
     #[test]

@@ -489,7 +489,12 @@ fn error_source_not_resolved() {
         ),
         "{e}"
     );
-    assert!(e.ends_with("   = a source resolves like `#include <...>`: through a virtual root or against the include roots\n\n"), "{e}");
+    assert!(
+        e.ends_with(
+            "   = a source resolves like `#include <...>`: through a virtual root or against the include roots\n\n"
+        ),
+        "{e}"
+    );
 }
 
 #[test]
@@ -520,7 +525,11 @@ fn error_toml_syntax() {
 #[test]
 fn unreadable_file_is_a_config_error() {
     let e = load(Path::new("/nonexistent/permutations.toml")).unwrap_err();
-    assert!(e.render().starts_with("error: cannot read permutation set `/nonexistent/permutations.toml`: "), "{}", e.render());
+    assert!(
+        e.render().starts_with("error: cannot read permutation set `/nonexistent/permutations.toml`: "),
+        "{}",
+        e.render()
+    );
 }
 
 // --- enumeration -----------------------------------------------------------------------
@@ -690,7 +699,11 @@ skip = [{ when = "BLEND_MODE == BLEND_MODE_TRANSLUCENT && CASCADES > 2", why = "
         ]
     );
     // Names accept an enum's label or its index, dimensions in any order, spaces.
-    for name in ["S@sm5{BLEND_MODE=MASKED,CASCADES=3}", "S@sm5{BLEND_MODE=1,CASCADES=3}", "S@sm5{ CASCADES = 3 , BLEND_MODE = MASKED }"] {
+    for name in [
+        "S@sm5{BLEND_MODE=MASKED,CASCADES=3}",
+        "S@sm5{BLEND_MODE=1,CASCADES=3}",
+        "S@sm5{ CASCADES = 3 , BLEND_MODE = MASKED }",
+    ] {
         let p = c.find(name).unwrap();
         assert_eq!(p.values, vec![1, 3]);
         assert_eq!(p.name(), "S@sm5{BLEND_MODE=MASKED,CASCADES=3}");
@@ -728,7 +741,8 @@ dimensions = { D = [0, 2] }
 skip = [{ when = "4 / D == 2", why = "the half" }]
 "#,
     );
-    let all: Vec<(String, bool, Option<String>)> = c.permutations().map(|p| (p.name(), p.is_kept(), p.error.clone())).collect();
+    let all: Vec<(String, bool, Option<String>)> =
+        c.permutations().map(|p| (p.name(), p.is_kept(), p.error.clone())).collect();
     assert_eq!(all[1], ("S@sm5{D=2}".to_string(), false, None));
     assert_eq!(all[0].0, "S@sm5{D=0}");
     assert!(all[0].1);
@@ -797,7 +811,10 @@ closest permutations:
     assert_eq!(e.reason, "no value for dimension `MAX_DYNAMIC_POINT_LIGHTS`");
     assert_eq!(e.nearest[0].differences, ["MAX_DYNAMIC_POINT_LIGHTS: (missing) -> 0"]);
     let e = c.find("MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=0,FOG=1}").unwrap_err();
-    assert_eq!(e.reason, "shader `MobileBasePassPS` has no dimension `FOG` (its dimensions: FULLY_ROUGH, MAX_DYNAMIC_POINT_LIGHTS)");
+    assert_eq!(
+        e.reason,
+        "shader `MobileBasePassPS` has no dimension `FOG` (its dimensions: FULLY_ROUGH, MAX_DYNAMIC_POINT_LIGHTS)"
+    );
     assert_eq!(e.nearest[0].differences, ["FOG: 1 -> (no such dimension)"]);
     let e = c.find("MobileBasePassPS").unwrap_err();
     assert_eq!(e.reason, "no `@level`: a permutation name has the form `Shader@level{DIM=value,...}`");
@@ -807,7 +824,11 @@ closest permutations:
 fn parse_names() {
     assert_eq!(
         names::parse_name("S@l{A=1,B=X}").unwrap(),
-        names::ParsedName { shader: "S".into(), level: "l".into(), dims: vec![("A".into(), "1".into()), ("B".into(), "X".into())] }
+        names::ParsedName {
+            shader: "S".into(),
+            level: "l".into(),
+            dims: vec![("A".into(), "1".into()), ("B".into(), "X".into())]
+        }
     );
     assert_eq!(names::parse_name("S@l").unwrap().dims, vec![]);
     assert_eq!(names::parse_name("S@l{}").unwrap().level, "l");
@@ -836,19 +857,22 @@ dimensions = { A = "bool", B = [0, 1, 2] }
     let (s, l) = (&c.shaders[0], &c.levels[0]);
     // The hash depends on B only: A is dead, B is not.
     let all: Vec<Preprocessed> = (0..2).flat_map(|a| (0..3).map(move |b| pp(&[a, b], b as u8))).collect();
-    let dead = analysis::find_dead(s, l, &all);
-    assert_eq!(dead, vec![DeadDimension { shader: "S".into(), level: "sm5".into(), dimension: "A".into(), multiplier: 2 }]);
+    let dead = dead_dimensions_in(s, l, &all);
+    assert_eq!(
+        dead,
+        vec![DeadDimension { shader: "S".into(), level: "sm5".into(), dimension: "A".into(), multiplier: 2 }]
+    );
     // One group where A matters (B=2): A is live.
     let mut some = all.clone();
     some[5] = pp(&[1, 2], 9);
-    assert!(analysis::find_dead(s, l, &some).is_empty());
+    assert!(dead_dimensions_in(s, l, &some).is_empty());
     // A failure is never the same as anything.
     let mut failed = all.clone();
     failed[3].hash = None;
-    assert!(analysis::find_dead(s, l, &failed).is_empty());
+    assert!(dead_dimensions_in(s, l, &failed).is_empty());
     // Skip rules left one member per group for A: it costs nothing, so it is not reported.
     let lone: Vec<Preprocessed> = (0..3).map(|b| pp(&[0, b], b as u8)).collect();
-    assert!(analysis::find_dead(s, l, &lone).is_empty());
+    assert!(dead_dimensions_in(s, l, &lone).is_empty());
 }
 
 #[test]
@@ -888,4 +912,100 @@ skip = [{ when = "DEFERRED && SM5_PROFILE && !LATE", why = "x" }]
 "#,
         ]
     );
+}
+
+#[test]
+fn error_roots_targets_names_and_reasons() {
+    assert_eq!(
+        error("[compiler]\ninclude = [\"nowhere\"]\nvirtual = { Engine = \"shaders\" }\n"),
+        r#"error: include root `nowhere` is not a folder
+  ┌─ permutations.toml:2:12
+  │
+2 │ include = ["nowhere"]
+  │            ^^^^^^^^^ no such folder
+  │
+  = include roots are relative to the folder of permutations.toml
+
+error: virtual root `Engine` must start with `/`
+  ┌─ permutations.toml:3:13
+  │
+3 │ virtual = { Engine = "shaders" }
+  │             ^^^^^^ expected a name like "/Engine"
+
+"#
+    );
+    assert_eq!(
+        error("[levels.sm5]\ntargets = [\"wgsl\", \"wgsl\"]\ndefines = { \"NOT AN IDENT\" = 1 }\n"),
+        r#"error: target `wgsl` is listed twice
+  ┌─ permutations.toml:2:20
+  │
+2 │ targets = ["wgsl", "wgsl"]
+  │                    ^^^^^^ listed again here
+
+error: `NOT AN IDENT` is not a valid define name
+  ┌─ permutations.toml:3:13
+  │
+3 │ defines = { "NOT AN IDENT" = 1 }
+  │             ^^^^^^^^^^^^^^ expected an identifier
+
+"#
+    );
+    assert_eq!(
+        error("[compiler]\ninclude = [\"shaders\"]\n[levels.sm5]\n[[shader]]\nname = \"A{B}\"\nsource = \"A.usf\"\nstage = \"vertex\"\nskip = [{ when = \"1\", why = \" \" }]\n"),
+        r#"error: shader name `A{B}` cannot appear in a permutation name
+  ┌─ permutations.toml:5:8
+  │
+5 │ name = "A{B}"
+  │        ^^^^^^ use letters, digits, `_`, `.` and `-`
+
+error: a skip rule needs a reason
+  ┌─ permutations.toml:8:29
+  │
+8 │ skip = [{ when = "1", why = " " }]
+  │                             ^^^ expected a sentence saying why these permutations are not needed
+
+"#
+    );
+}
+
+/// Damaged files (a byte deleted, or a troublesome one inserted, at many places) load or fail
+/// with diagnostics; none panics, and every error renders.
+#[test]
+fn damaged_files_never_panic() {
+    let good = format!(
+        "{LEVELS}{}",
+        r#"
+[[shader]]
+name = "S"
+source = "A.usf"
+stage = "fragment"
+defines = { TWO_SIDED = 1 }
+dimensions = { M = { enum = ["A", "B"] }, R = { range = [0, 3] }, L = [0, 2, 4], F = "bool" }
+derived = { P = "F && ES3_1_PROFILE", Q = "P + R * 2" }
+skip = [{ when = "M == M_B && L > 2", why = "é, unicode in a reason" }]
+"#
+    );
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("shaders")).unwrap();
+    std::fs::write(dir.path().join("shaders/A.usf"), "fn a() {}\n").unwrap();
+    let path = dir.path().join("permutations.toml");
+    let boundaries: Vec<usize> = (0..=good.len()).filter(|i| good.is_char_boundary(*i)).collect();
+    let (mut ok, mut failed) = (0, 0);
+    for (n, &i) in boundaries.iter().enumerate().step_by(3) {
+        let next = boundaries.get(n + 1).copied().unwrap_or(good.len());
+        let insert = ["\"", "{", "]", "=", "\n", "1", "é"][n % 7];
+        for text in [format!("{}{}", &good[..i], &good[next..]), format!("{}{insert}{}", &good[..i], &good[i..])] {
+            match schema::parse(&text, &path, "permutations.toml") {
+                Ok(c) => {
+                    ok += 1;
+                    let _ = c.permutations().take(64).map(|p| p.name()).count();
+                }
+                Err(e) => {
+                    failed += 1;
+                    assert!(e.render().starts_with("error: "), "{}", e.render());
+                }
+            }
+        }
+    }
+    assert!(ok > 0 && failed > 0, "{ok} loaded, {failed} failed");
 }

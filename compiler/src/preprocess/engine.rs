@@ -521,6 +521,17 @@ impl<'a> Pp<'a> {
         labels
     }
 
+    /// Labels for a whole invocation whose name is `name`: from the name to the last token
+    /// read from the file when the name is text of the file.
+    fn invocation_labels(&self, name: &Tok, message: &str) -> Vec<Label<FileId>> {
+        match self.inv {
+            Some((ctx, _, end)) if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src => {
+                self.labels_at(ctx, name.src..end, message)
+            }
+            _ => self.tok_labels(name, message),
+        }
+    }
+
     /// Labels at the current position of the current file.
     fn frame_labels(&self, message: &str) -> Vec<Label<FileId>> {
         match self.frames.last() {
@@ -968,18 +979,12 @@ impl<'a> Pp<'a> {
             if variadic && args.len() + 1 == nparams {
                 // The variable arguments are absent (not merely empty).
             } else if !(nparams == 1 && args.is_empty()) {
-                return self.err_tok(
-                    &name,
-                    format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()),
-                    "this invocation",
-                );
+                let labels = self.invocation_labels(&name, "this invocation");
+                return Err(Error::new(format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()), labels));
             }
         } else if args.len() > nparams && !(nparams == 0 && args.len() == 1 && args[0].is_empty()) {
-            return self.err_tok(
-                &name,
-                format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()),
-                "this invocation",
-            );
+            let labels = self.invocation_labels(&name, "this invocation");
+            return Err(Error::new(format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()), labels));
         }
         if nparams == 0 {
             args.clear();
@@ -1089,29 +1094,28 @@ impl<'a> Pp<'a> {
             let b = body[i];
             let prev_pastes = i > 0 && body[i - 1].flags & PASTE_LEFT != 0;
             if b.flags & VA_COMMA != 0 {
-                // GNU `, ## __VA_ARGS__`: absent variable arguments drop the comma; otherwise
-                // the comma stays and the arguments are substituted as usual.
-                if absent_va {
-                    i += 2;
-                    continue;
-                }
-                out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
-                i += 1;
-                let p = body[i];
+                // GNU `, ## __VA_ARGS__`: absent variable arguments drop the comma; empty ones
+                // leave it (pasted with a placemarker); otherwise the comma stays unpasted and
+                // the arguments go in unexpanded, as `##` operands do.
+                let p = body[i + 1];
                 let arg = args.get(p.param as usize).cloned().unwrap_or_default();
-                let exp = self.expanded_arg(p.param as usize, args, expanded, name)?;
-                let _ = arg;
-                let start = out.len();
-                out.extend(exp);
-                if let Some(t) = out.get_mut(start) {
-                    t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
-                }
-                if p.flags & PASTE_LEFT != 0 && out.len() > start {
+                let va_paste = p.flags & PASTE_LEFT;
+                if absent_va && va_paste == 0 {
+                    // Dropped with its comma.
+                } else if arg.is_empty() {
+                    out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
+                } else {
+                    out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
+                    let start = out.len();
+                    out.extend(arg);
+                    if let Some(t) = out.get_mut(start) {
+                        t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
+                    }
                     if let Some(t) = out.last_mut() {
-                        t.flags |= PASTE_LEFT;
+                        t.flags |= va_paste;
                     }
                 }
-                i += 1;
+                i += 2;
                 continue;
             }
             if b.param == NO_PARAM {

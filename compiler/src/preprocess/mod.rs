@@ -19,8 +19,10 @@ mod source;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use codespan_reporting::diagnostic::{Diagnostic, Label};
+use codespan_reporting::diagnostic::Diagnostic;
 
+/// The diagnostic types of this module's API, re-exported for callers.
+pub use codespan_reporting::diagnostic::{Diagnostic as CodespanDiagnostic, Label, Severity};
 pub use map::{Origin, SourceMap};
 pub use source::{FileId, SourceCache, SourceText};
 

@@ -35,7 +35,6 @@ pub struct Distortion {
     apply_group: wgpu::BindGroup,
     /// The refracting meshes.
     meshes: Vec<InstancedMesh>,
-    depth_format: wgpu::TextureFormat,
     _material: wgpu::Buffer,
 }
 
@@ -55,8 +54,6 @@ impl Distortion {
             .with_depth(DepthState::reverse_z(depth_format, false));
         let accumulate = cache.render(&perm(cache, "DistortAccumulateVS", &[])?, Some(&perm(cache, "DistortAccumulatePS", &[])?), &accumulate_state)?;
         let apply = cache.render(&perm(cache, "DistortApplyScreenVS", &[])?, Some(&perm(cache, "DistortApplyScreenPS", &[])?), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }))?;
-        // the heat haze pipeline, created now so recording creates none
-        cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(DISTORTION_FORMAT, Some(depth_format)))?;
         let offsets = target_2d(device, "Distortion", size, DISTORTION_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
         let offsets_view = view(&offsets);
         let scene_color_copy = target_2d(device, "SceneColor copy", size, scene_color_format, wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING);
@@ -81,14 +78,13 @@ impl Distortion {
             accumulate_group,
             apply_group,
             meshes: refracting,
-            depth_format,
             _material: material,
         })
     }
 
     /// DistortionAccum: the offsets of the glass and the heat haze.
     /// `transforms[i]`: this frame's instances of refracting mesh `i`.
-    pub fn record_accumulate(&mut self, cache: &PipelineCache, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>], particles: Option<&Particles>) -> Result<(), PipelineError> {
+    pub fn record_accumulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>], particles: Option<&Particles>) {
         for (m, t) in self.meshes.iter_mut().zip(transforms) {
             m.set_transforms(queue, t);
         }
@@ -115,9 +111,8 @@ impl Distortion {
             m.draw(&mut pass);
         }
         if let Some(p) = particles {
-            p.draw_distortion(cache, &mut pass, DISTORTION_FORMAT, Some(self.depth_format))?;
+            p.draw_distortion(&mut pass);
         }
-        Ok(())
     }
 
     /// DistortionApply: copies SceneColor, then refracts it where offsets were accumulated.

@@ -72,7 +72,7 @@ pub struct EyeAdaptation {
     histogram_pipeline: Arc<ComputePipeline>,
     adapt_pipeline: Arc<ComputePipeline>,
     debug_pipeline: Arc<ComputePipeline>,
-    histogram_group: wgpu::BindGroup,
+    histogram_groups: Vec<wgpu::BindGroup>,
     adapt_group: wgpu::BindGroup,
     debug_group: wgpu::BindGroup,
     adapt_params: wgpu::Buffer,
@@ -83,7 +83,8 @@ pub struct EyeAdaptation {
 }
 
 impl EyeAdaptation {
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, scene_color: &wgpu::TextureView, size: [u32; 2]) -> Result<EyeAdaptation, PipelineError> {
+    /// `inputs`: the textures the histogram may measure (one bind group each).
+    pub fn new(device: &wgpu::Device, cache: &PipelineCache, inputs: &[&wgpu::TextureView], size: [u32; 2]) -> Result<EyeAdaptation, PipelineError> {
         let histogram_pipeline = cache.compute(&perm(cache, "PostProcessHistogramCS", &[])?)?;
         let adapt_pipeline = cache.compute(&perm(cache, "PostProcessEyeAdaptationCS", &[])?)?;
         let debug_pipeline = cache.compute(&perm(cache, "PostProcessHistogramDebugCS", &[])?)?;
@@ -105,11 +106,16 @@ impl EyeAdaptation {
             size: UVec4::new(size[0], size[1], 0, 0),
         });
         let adapt_params = uniform_buffer(device, "EyeAdaptation params", &EyeAdaptationParams::default());
-        let histogram_group = histogram_pipeline.layout.bind_group(device, 0, "PostProcessHistogram", &[
-            ("params", histogram_params.as_entire_binding()),
-            ("histogram", histogram.as_entire_binding()),
-            ("scene_color", wgpu::BindingResource::TextureView(scene_color)),
-        ])?;
+        let histogram_groups = inputs
+            .iter()
+            .map(|input| {
+                histogram_pipeline.layout.bind_group(device, 0, "PostProcessHistogram", &[
+                    ("params", histogram_params.as_entire_binding()),
+                    ("histogram", histogram.as_entire_binding()),
+                    ("scene_color", wgpu::BindingResource::TextureView(input)),
+                ])
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         let adapt_group = adapt_pipeline.layout.bind_group(device, 0, "PostProcessEyeAdaptation", &[
             ("params", adapt_params.as_entire_binding()),
             ("histogram", histogram.as_entire_binding()),
@@ -127,7 +133,7 @@ impl EyeAdaptation {
             histogram_pipeline,
             adapt_pipeline,
             debug_pipeline,
-            histogram_group,
+            histogram_groups,
             adapt_group,
             debug_group,
             adapt_params,
@@ -138,8 +144,9 @@ impl EyeAdaptation {
         })
     }
 
-    /// Histogram, its image, then the adapted exposure (`delta_time` seconds after the last).
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, delta_time: f32) {
+    /// Histogram of input `input`, its image, then the adapted exposure (`delta_time` seconds
+    /// after the last).
+    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, input: usize, delta_time: f32) {
         let s = &self.settings;
         let params = EyeAdaptationParams {
             log_range: Vec4::new(MIN_LOG2_LUMINANCE, MAX_LOG2_LUMINANCE, s.low_percent, s.high_percent),
@@ -150,7 +157,7 @@ impl EyeAdaptation {
         encoder.clear_buffer(&self.histogram, 0, None);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("PostProcessHistogram"), timestamp_writes: None });
         pass.set_pipeline(&self.histogram_pipeline.pipeline);
-        pass.set_bind_group(0, &self.histogram_group, &[]);
+        pass.set_bind_group(0, &self.histogram_groups[input], &[]);
         pass.dispatch_workgroups(groups(self.size[0], 16), groups(self.size[1], 16), 1);
         pass.set_pipeline(&self.debug_pipeline.pipeline);
         pass.set_bind_group(0, &self.debug_group, &[]);
@@ -159,6 +166,12 @@ impl EyeAdaptation {
         pass.set_bind_group(0, &self.adapt_group, &[]);
         pass.dispatch_workgroups(1, 1, 1);
         self.valid = true;
+    }
+
+    /// Sets the exposure to `exposure` without measuring (eye adaptation off).
+    pub fn set_fixed(&mut self, queue: &wgpu::Queue, exposure: f32) {
+        queue.write_buffer(&self.result, 0, bytemuck::bytes_of(&EyeAdaptationResult { exposure, average_luminance: 0.0, target_exposure: exposure, pad: 0.0 }));
+        self.valid = false;
     }
 
     /// Copies the adapted exposure (one f32) into `buffer` at `offset` (a uniform the

@@ -128,25 +128,25 @@ impl FrameView {
 /// The directional light's shadow map as the fog and the translucency volumes read it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DirectionalShadow {
-    /// World -> clip of each cascade (reverse-Z).
+    /// World -> clip of each cascade.
     pub cascades: [Mat4; 3],
     /// View distances where cascades 0, 1, 2 end.
     pub splits: [f32; 3],
-    /// Tiles of the atlas in x: 3 for the 3x1 cascade atlas, 1 for a single shadow map.
-    pub atlas_tiles: u32,
+    /// Where each cascade lies in the atlas: uv offset (xy) and scale (zw).
+    pub rects: [Vec4; 3],
 }
 
 impl DirectionalShadow {
     /// One shadow map covering every distance.
     pub fn single(view_proj: Mat4) -> DirectionalShadow {
-        DirectionalShadow { cascades: [view_proj; 3], splits: [f32::MAX; 3], atlas_tiles: 1 }
+        DirectionalShadow { cascades: [view_proj; 3], splits: [f32::MAX; 3], rects: [Vec4::new(0.0, 0.0, 1.0, 1.0); 3] }
     }
 
-    /// The matrices and the splits vector of the shaders (w: atlas tiles, 0 without shadow).
-    pub fn uniforms(shadow: Option<&DirectionalShadow>) -> ([Mat4; 3], Vec4) {
+    /// The shaders' matrices, splits (w: 1 with a shadow) and rects.
+    pub fn uniforms(shadow: Option<&DirectionalShadow>) -> ([Mat4; 3], Vec4, [Vec4; 3]) {
         match shadow {
-            Some(s) => (s.cascades, Vec4::new(s.splits[0], s.splits[1], s.splits[2], s.atlas_tiles as f32)),
-            None => ([Mat4::IDENTITY; 3], Vec4::ZERO),
+            Some(s) => (s.cascades, Vec4::new(s.splits[0], s.splits[1], s.splits[2], 1.0), s.rects),
+            None => ([Mat4::IDENTITY; 3], Vec4::ZERO, [Vec4::ZERO; 3]),
         }
     }
 }

@@ -1,7 +1,7 @@
 //! PostProcessing MotionBlur (`MotionBlur.usf`): gathers the anti-aliased scene colour along
 //! each pixel's motion (the velocity target for movable meshes, camera reprojection from depth
-//! elsewhere), scaled by the shutter and capped, and writes the result back to SceneColor for
-//! the Bloom and Tonemapper that follow.
+//! elsewhere), scaled by the shutter and capped, and writes the result, times the eye
+//! adaptation's exposure, back to SceneColor for the Bloom and Tonemapper that follow.
 
 use std::sync::Arc;
 
@@ -28,7 +28,7 @@ pub struct MotionBlur {
     pipeline: Arc<RenderPipeline>,
     /// One bind group per input (the TAA history pair).
     groups: Vec<wgpu::BindGroup>,
-    _params: wgpu::Buffer,
+    params: wgpu::Buffer,
 }
 
 impl MotionBlur {
@@ -40,6 +40,7 @@ impl MotionBlur {
         inputs: &[&wgpu::TextureView],
         velocity: &wgpu::TextureView,
         scene_depth: &wgpu::TextureView,
+        eye_adaptation: &wgpu::Buffer,
         output_format: wgpu::TextureFormat,
     ) -> Result<MotionBlur, PipelineError> {
         let pipeline = cache.render(&perm(cache, "MotionBlurVS", &[])?, Some(&perm(cache, "MotionBlurPS", &[])?), &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }))?;
@@ -55,14 +56,18 @@ impl MotionBlur {
                     ("velocity", wgpu::BindingResource::TextureView(velocity)),
                     ("scene_depth", wgpu::BindingResource::TextureView(scene_depth)),
                     ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+                    ("eye_adaptation", eye_adaptation.as_entire_binding()),
                 ])
             })
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(MotionBlur { pipeline, groups, _params: params })
+        Ok(MotionBlur { pipeline, groups, params })
     }
 
-    /// Blurs input `input` (an index into the inputs given to `new`) into `output`.
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, input: usize, output: &wgpu::TextureView) {
+    /// Blurs input `input` (an index into the inputs given to `new`) into `output`, with the
+    /// shutter open (`blur`) or closed (exposure only).
+    pub fn record(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, input: usize, output: &wgpu::TextureView, blur: bool) {
+        let shutter = if blur { SHUTTER } else { 0.0 };
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&MotionBlurParams { shutter: Vec4::new(shutter, MAX_LENGTH, SAMPLES, 0.0) }));
         let mut pass = color_pass(encoder, "MotionBlur", output, wgpu::LoadOp::Clear(wgpu::Color::BLACK));
         pass.set_pipeline(&self.pipeline.pipeline);
         pass.set_bind_group(0, &self.groups[input], &[]);

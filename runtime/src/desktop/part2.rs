@@ -145,6 +145,7 @@ struct Visualizations {
     integrated: Visualization,
     volume_ambient: Visualization,
     volume_filtered: Visualization,
+    distortion: Visualization,
 }
 
 struct State {
@@ -178,13 +179,17 @@ struct State {
     scene_color: wgpu::Texture,
     scene_color_view: wgpu::TextureView,
     scene_depth_view: wgpu::TextureView,
-    depth_format: wgpu::TextureFormat,
+    /// Every aspect (depth and stencil, where the format has one): for depth attachments.
+    scene_depth_attachment: wgpu::TextureView,
 }
 
 /// The passes of part 2 with their state across frames.
 pub struct Part2 {
     state: Mutex<State>,
 }
+
+/// The froxel slice the fog's dumps show (about 8 m from the camera, inside the room).
+const FOG_SLICE: u32 = 80;
 
 /// A movable prop's transform at `time` (seconds): the rock circles slowly and turns.
 pub fn animate_movable(base: Mat4, time: f32) -> Mat4 {
@@ -226,9 +231,7 @@ impl Part2 {
             emitters.push(EmitterDesc::fire(e));
             emitters.push(EmitterDesc::sparks(e));
         }
-        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a })?;
-        // the sprite pipeline over SceneColor, created now
-        cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &Particles::sprite_state(scene_color_format, Some(depth_format)))?;
+        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format))?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
@@ -269,8 +272,8 @@ impl Part2 {
 
         let taa = TemporalAA::new(device, cache, &frame_view, size, &color_view, &velocity.view, &depth_view)?;
         let [h0, h1] = taa.history_views();
-        let motion_blur = MotionBlur::new(device, cache, &frame_view, &[h0, h1], &velocity.view, &depth_view, scene_color_format)?;
-        let eye = EyeAdaptation::new(device, cache, &color_view, size)?;
+        let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
+        let motion_blur = MotionBlur::new(device, cache, &frame_view, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
 
         let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
             let s = if source.dimension() == wgpu::TextureDimension::D3 { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
@@ -286,14 +289,15 @@ impl Part2 {
             particle_velocity: [v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?, v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?],
             spark_position: [v("SparkStatePosition", &sparks.0[0], pos_scale, pos_bias, 0)?, v("SparkStatePosition", &sparks.0[1], pos_scale, pos_bias, 0)?],
             velocity: v("Velocity", &velocity.texture, Vec4::new(40.0, 40.0, 0.0, 0.0), Vec4::ZERO, 0)?,
-            vbuffer_a: v("VBufferA", &fog.vbuffer_a, Vec4::splat(8.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES / 4)?,
+            vbuffer_a: v("VBufferA", &fog.vbuffer_a, Vec4::splat(10.0), Vec4::ZERO, FOG_SLICE)?,
             light_scattering: [
-                v("LightScattering", &fog.light_scattering[0], Vec4::splat(20.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES / 4)?,
-                v("LightScattering", &fog.light_scattering[1], Vec4::splat(20.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES / 4)?,
+                v("LightScattering", &fog.light_scattering[0], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
+                v("LightScattering", &fog.light_scattering[1], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
             ],
             integrated: v("IntegratedLightScattering", &fog.integrated, Vec4::new(2.0, 2.0, 2.0, 0.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES - 1)?,
-            volume_ambient: v("TranslucentVolume0", volumes.injected(0).0, Vec4::splat(0.3), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
-            volume_filtered: v("TranslucentVolume0", volumes.volumes(0).0, Vec4::splat(0.3), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
+            volume_ambient: v("TranslucentVolume1", volumes.injected(1).0, Vec4::splat(0.25), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
+            volume_filtered: v("TranslucentVolume1", volumes.volumes(1).0, Vec4::splat(0.25), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
+            distortion: v("Distortion", &distortion.offsets, Vec4::new(25.0, 25.0, 0.0, 0.0), Vec4::ZERO, 0)?,
         };
 
         let state = State {
@@ -327,7 +331,7 @@ impl Part2 {
             scene_color: targets.scene_color.clone(),
             scene_color_view: color_view,
             scene_depth_view: depth_view,
-            depth_format,
+            scene_depth_attachment: view(targets.scene_depth),
         };
         Ok(Part2 { state: Mutex::new(state) })
     }
@@ -410,16 +414,15 @@ impl Part2 {
     }
 
     /// ParticleSimulation at the start of the frame (emitters without collision).
-    pub fn particle_simulation(&self, frame: &mut FrameRecorder, cache: &PipelineCache) -> Result<(), PipelineError> {
+    pub fn particle_simulation(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
-        frame.pass("ParticleSimulation", |ctx| -> Result<(), PipelineError> {
-            s.particles.simulate(cache, &s.queue, ctx.encoder(), false)?;
+        frame.pass("ParticleSimulation", |ctx| {
+            s.particles.simulate(&s.queue, ctx.encoder(), false);
             let i = s.particles.current_index(false);
             s.vis.particle_position[i].output(ctx, Some("Position"));
             s.vis.particle_velocity[i].output(ctx, Some("Velocity"));
-            Ok(())
-        })
+        });
     }
 
     /// BeginOcclusionTests, after the PrePass.
@@ -445,7 +448,7 @@ impl Part2 {
             s.occlusion.set_bounds(o, b);
         }
         frame.pass("BeginOcclusionTests", |ctx| {
-            s.occlusion.record(&s.device, &s.queue, ctx.encoder(), &s.scene_depth_view, camera, &lights);
+            s.occlusion.record(&s.device, &s.queue, ctx.encoder(), &s.scene_depth_attachment, camera, &lights);
             ctx.output(&s.occlusion.debug, Visualize::Direct);
         });
     }
@@ -483,17 +486,16 @@ impl Part2 {
 
     /// The second ParticleSimulation, after the BasePass: the particles that collide with the
     /// depth buffer.
-    pub fn particle_collision(&self, frame: &mut FrameRecorder, cache: &PipelineCache) -> Result<(), PipelineError> {
+    pub fn particle_collision(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
         frame.pass("ParticleSimulation", |ctx| {
-            ctx.step("PostRenderOpaque", |ctx| -> Result<(), PipelineError> {
-                s.particles.simulate(cache, &s.queue, ctx.encoder(), true)?;
+            ctx.step("PostRenderOpaque", |ctx| {
+                s.particles.simulate(&s.queue, ctx.encoder(), true);
                 let i = s.particles.current_index(true);
                 s.vis.spark_position[i].output(ctx, None);
-                Ok(())
-            })
-        })
+            });
+        });
     }
 
     /// Velocity, after the BasePass.
@@ -502,7 +504,7 @@ impl Part2 {
         let s = &mut *s;
         let transforms: Vec<Vec<Mat4>> = s.movable.iter().map(|&o| object_transforms(s, o)).collect();
         frame.pass("Velocity", |ctx| {
-            s.velocity.record(&s.queue, ctx.encoder(), &s.scene_depth_view, &transforms);
+            s.velocity.record(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms);
             s.vis.velocity.output(ctx, None);
         });
     }
@@ -551,9 +553,9 @@ impl Part2 {
     }
 
     /// The particle sprites over SceneColor: a step of Translucency.
-    pub fn particle_sprites(&self, ctx: &mut PassContext<'_>, cache: &PipelineCache) -> Result<(), PipelineError> {
+    pub fn particle_sprites(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
-        ctx.step("ParticleSprites", |ctx| -> Result<(), PipelineError> {
+        ctx.step("ParticleSprites", |ctx| {
             {
                 let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("ParticleSprites"),
@@ -564,7 +566,7 @@ impl Part2 {
                         ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
                     })],
                     depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                        view: &s.scene_depth_view,
+                        view: &s.scene_depth_attachment,
                         depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store }),
                         stencil_ops: None,
                     }),
@@ -572,36 +574,33 @@ impl Part2 {
                     occlusion_query_set: None,
                     multiview_mask: None,
                 });
-                s.particles.draw_sprites(cache, &mut pass, s.scene_color.format(), Some(s.depth_format))?;
+                s.particles.draw_sprites(&mut pass);
             }
             ctx.output(&s.scene_color, Visualize::Hdr);
-            Ok(())
-        })
+        });
     }
 
     /// Distortion, after Translucency.
-    pub fn distortion(&self, frame: &mut FrameRecorder, cache: &PipelineCache) -> Result<(), PipelineError> {
+    pub fn distortion(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
         let transforms: Vec<Vec<Mat4>> = s.refracting.iter().map(|&o| object_transforms(s, o)).collect();
-        frame.pass("Distortion", |ctx| -> Result<(), PipelineError> {
-            ctx.step("DistortionAccum", |ctx| -> Result<(), PipelineError> {
-                s.distortion.record_accumulate(cache, &s.queue, ctx.encoder(), &s.scene_depth_view, &transforms, Some(&s.particles))?;
-                ctx.output(&s.distortion.offsets, Visualize::Hdr);
-                Ok(())
-            })?;
+        frame.pass("Distortion", |ctx| {
+            ctx.step("DistortionAccum", |ctx| {
+                s.distortion.record_accumulate(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms, Some(&s.particles));
+                s.vis.distortion.output(ctx, None);
+            });
             ctx.step("DistortionApply", |ctx| {
                 s.distortion.record_apply(ctx.encoder(), &s.scene_color, &s.scene_color_view);
                 ctx.output(&s.scene_color, Visualize::Hdr);
             });
-            Ok(())
-        })
+        });
     }
 
-    /// TAA, MotionBlur and EyeAdaptation: the first steps of PostProcessing. The result is
-    /// back in SceneColor; `exposure` (buffer, byte offset of an f32) receives the adapted
-    /// exposure, on the GPU.
-    pub fn temporal_post_processing(&self, ctx: &mut PassContext<'_>, exposure: Option<(&wgpu::Buffer, u64)>) {
+    /// TAA, EyeAdaptation and MotionBlur: the first steps of PostProcessing, before Bloom
+    /// and the Tonemapper. TAA resolves SceneColor into its history; the histogram measures
+    /// that; MotionBlur writes it back to SceneColor, blurred and times the exposure.
+    pub fn temporal_post_processing(&self, ctx: &mut PassContext<'_>) {
         let mut s = self.lock();
         let s = &mut *s;
         if s.options.taa {
@@ -609,25 +608,23 @@ impl Part2 {
                 s.taa.record(&s.queue, ctx.encoder());
                 ctx.output(s.taa.output(), Visualize::Hdr);
             });
+        } else {
+            s.taa.bypass(ctx.encoder(), &s.scene_color);
         }
-        if s.options.motion_blur && s.options.taa {
-            ctx.step("MotionBlur", |ctx| {
-                s.motion_blur.record(ctx.encoder(), s.taa.current(), &s.scene_color_view);
-                ctx.output(&s.scene_color, Visualize::Hdr);
-            });
-        } else if s.options.taa {
-            let out = s.taa.output();
-            ctx.encoder().copy_texture_to_texture(out.as_image_copy(), s.scene_color.as_image_copy(), out.size());
-        }
+        let input = s.taa.current();
         if s.options.eye_adaptation {
             ctx.step("EyeAdaptation", |ctx| {
-                s.eye.record(&s.queue, ctx.encoder(), TIME_STEP);
-                if let Some((buffer, offset)) = exposure {
-                    s.eye.copy_exposure_to(ctx.encoder(), buffer, offset);
-                }
+                s.eye.record(&s.queue, ctx.encoder(), input, TIME_STEP);
                 ctx.output(&s.eye.debug, Visualize::Direct);
             });
+        } else {
+            s.eye.set_fixed(&s.queue, 1.0);
         }
+        let blur = s.options.motion_blur;
+        ctx.step("MotionBlur", |ctx| {
+            s.motion_blur.record(&s.queue, ctx.encoder(), input, &s.scene_color_view, blur);
+            ctx.output(&s.scene_color, Visualize::Hdr);
+        });
     }
 
     /// Ends the frame: this frame's camera becomes the previous one.

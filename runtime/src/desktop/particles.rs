@@ -141,15 +141,32 @@ pub struct CollisionInputs<'a> {
 pub struct Particles {
     emitters: Vec<Emitter>,
     frame: u32,
+    /// [without collision, with collision]
+    simulation: [Arc<crate::pipelines::ComputePipeline>; 2],
+    /// The sprites over the target given to `new`, and the heat haze into RG16F offsets.
+    sprite_pipeline: Arc<RenderPipeline>,
+    distortion_pipeline: Arc<RenderPipeline>,
 }
 
 impl Particles {
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, descs: Vec<EmitterDesc>, collision: &CollisionInputs<'_>) -> Result<Particles, PipelineError> {
-        let distortion_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(wgpu::TextureFormat::Rg16Float, None))?;
-        let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(wgpu::TextureFormat::Rgba16Float, None))?;
+    /// `target`: the colour and depth formats of the pass the sprites are drawn in.
+    pub fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        frame_view: &wgpu::Buffer,
+        descs: Vec<EmitterDesc>,
+        collision: &CollisionInputs<'_>,
+        target: (wgpu::TextureFormat, wgpu::TextureFormat),
+    ) -> Result<Particles, PipelineError> {
+        let distortion_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
+        let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(target.0, Some(target.1)))?;
+        let simulation = [
+            cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", "0")])?)?,
+            cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", "1")])?)?,
+        ];
         let mut emitters = Vec::new();
         for (index, desc) in descs.into_iter().enumerate() {
-            let sim = cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", if desc.collides { "1" } else { "0" })])?)?;
+            let sim = &simulation[usize::from(desc.collides)];
             let rows = desc.max_particles.div_ceil(STATE_WIDTH);
             let state = |label: &str, format| {
                 device.create_texture(&wgpu::TextureDescriptor {
@@ -208,12 +225,12 @@ impl Particles {
                 current: 0,
             });
         }
-        Ok(Particles { emitters, frame: 0 })
+        Ok(Particles { emitters, frame: 0, simulation, sprite_pipeline: sprite_pipeline_layout, distortion_pipeline: distortion_layout })
     }
 
     /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
     /// or of the others (`false`, at the start of the frame).
-    pub fn simulate(&mut self, cache: &PipelineCache, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, colliding: bool) -> Result<(), PipelineError> {
+    pub fn simulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, colliding: bool) {
         if !colliding {
             self.frame += 1;
         }
@@ -228,7 +245,7 @@ impl Particles {
                 counts: UVec4::new(STATE_WIDTH, d.max_particles, self.frame, e.seed),
             };
             queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-            let pipeline = cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", if colliding { "1" } else { "0" })])?)?;
+            let pipeline = &self.simulation[usize::from(colliding)];
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("ParticleSimulation {}", d.name)), timestamp_writes: None });
             pass.set_pipeline(&pipeline.pipeline);
             pass.set_bind_group(0, &e.simulate[e.current], &[]);
@@ -236,7 +253,6 @@ impl Particles {
             drop(pass);
             e.current = 1 - e.current;
         }
-        Ok(())
     }
 
     /// The state textures (positions, velocities) of the first emitter that (does not)
@@ -262,22 +278,18 @@ impl Particles {
 
     /// Draws every emitter's sprites, instanced, into a translucency pass whose colour target
     /// has `format` (premultiplied alpha) and, when given, a read-only reverse-Z depth test.
-    pub fn draw_sprites(&self, cache: &PipelineCache, pass: &mut wgpu::RenderPass<'_>, format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> Result<(), PipelineError> {
-        let pipeline = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(format, depth))?;
-        self.draw_with(&pipeline, pass);
-        Ok(())
+    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>) {
+        self.draw_with(&self.sprite_pipeline, pass);
     }
 
     /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
     /// additive offsets).
-    pub fn draw_distortion(&self, cache: &PipelineCache, pass: &mut wgpu::RenderPass<'_>, format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> Result<(), PipelineError> {
-        let pipeline = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(format, depth))?;
-        pass.set_pipeline(&pipeline.pipeline);
+    pub fn draw_distortion(&self, pass: &mut wgpu::RenderPass<'_>) {
+        pass.set_pipeline(&self.distortion_pipeline.pipeline);
         for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
             pass.set_bind_group(0, &e.distortion[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
         }
-        Ok(())
     }
 
     /// The fixed-function state of the sprites: premultiplied over the target, depth-tested

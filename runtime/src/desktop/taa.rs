@@ -46,7 +46,7 @@ impl TemporalAA {
         scene_depth: &wgpu::TextureView,
     ) -> Result<TemporalAA, PipelineError> {
         let pipeline = cache.render(&perm(cache, "TemporalAAVS", &[])?, Some(&perm(cache, "TemporalAAPS", &[])?), &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }))?;
-        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::COPY_DST;
         let history = [target_2d(device, "TemporalAAHistory0", size, HISTORY_FORMAT, usage), target_2d(device, "TemporalAAHistory1", size, HISTORY_FORMAT, usage)];
         let history_views = [view(&history[0]), view(&history[1])];
         let params = uniform_buffer(device, "TemporalAA params", &TaaParams::default());
@@ -84,6 +84,15 @@ impl TemporalAA {
         self.current = out;
         self.history_valid = true;
         &self.history_views[out]
+    }
+
+    /// Without TAA: SceneColor copied into the next history slot as it is (the passes after
+    /// read it from there); the history becomes invalid.
+    pub fn bypass(&mut self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::Texture) {
+        let out = 1 - self.current;
+        encoder.copy_texture_to_texture(scene_color.as_image_copy(), self.history[out].as_image_copy(), scene_color.size());
+        self.current = out;
+        self.history_valid = false;
     }
 
     pub fn output(&self) -> &wgpu::Texture {

@@ -28,6 +28,7 @@ struct VolumeParams {
     light_color: Vec4,
     cascade_view_proj: [Mat4; 3],
     cascade_splits: Vec4,
+    cascade_rects: [Vec4; 3],
 }
 
 /// A light injected into the volumes.
@@ -148,7 +149,7 @@ impl TranslucentVolumes {
     /// InjectTranslucentVolume: every light into both cascades, the directional light
     /// shadowed by `shadow`.
     pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>) {
-        let (matrices, splits) = DirectionalShadow::uniforms(shadow);
+        let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
         let n = groups(VOLUME_SIZE, 4);
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
@@ -159,7 +160,7 @@ impl TranslucentVolumes {
                     InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0)),
                     InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0)),
                 };
-                let p = VolumeParams { origin: origin.extend(cell), light_position: position, light_color: color, cascade_view_proj: matrices, cascade_splits: splits };
+                let p = VolumeParams { origin: origin.extend(cell), light_position: position, light_color: color, cascade_view_proj: matrices, cascade_splits: splits, cascade_rects: rects };
                 queue.write_buffer(params, 0, bytemuck::bytes_of(&p));
                 pass.set_pipeline(&self.inject[usize::from(*shadowed)].pipeline);
                 pass.set_bind_group(0, group, &[]);

@@ -35,6 +35,7 @@ pub struct FogParams {
     pub intensities: Vec4,
     pub cascade_view_proj: [Mat4; 3],
     pub cascade_splits: Vec4,
+    pub cascade_rects: [Vec4; 3],
 }
 
 /// `LocalLight` of `VolumetricFog.usf`.
@@ -235,7 +236,7 @@ impl VolumetricFog {
         if count > 0 {
             queue.write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights[..count]));
         }
-        let (cascades, splits) = DirectionalShadow::uniforms(settings.shadow.as_ref());
+        let (cascades, splits, rects) = DirectionalShadow::uniforms(settings.shadow.as_ref());
         let use_history = self.history_valid;
         let params = FogParams {
             grid_size: UVec4::new(self.grid[0], self.grid[1], self.grid[2], self.frame),
@@ -246,6 +247,7 @@ impl VolumetricFog {
             intensities: Vec4::new(settings.sun_intensity, settings.sky_intensity, settings.local_intensity, count as f32),
             cascade_view_proj: cascades,
             cascade_splits: splits,
+            cascade_rects: rects,
         };
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         self.frame = self.frame.wrapping_add(1);

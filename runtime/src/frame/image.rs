@@ -94,7 +94,7 @@ fn texel(format: wgpu::TextureFormat, b: &[u8]) -> Option<[f32; 4]> {
         F::Rgba16Float => [f16_at(0), f16_at(2), f16_at(4), f16_at(6)],
         F::Rg16Float => [f16_at(0), f16_at(2), 0.0, 1.0],
         F::R16Float => [f16_at(0), 0.0, 0.0, 1.0],
-        F::R32Float | F::Depth32Float => [f32_at(0), 0.0, 0.0, 1.0],
+        F::R32Float | F::Depth32Float | F::Depth32FloatStencil8 => [f32_at(0), 0.0, 0.0, 1.0],
         F::Rg32Float => [f32_at(0), f32_at(4), 0.0, 1.0],
         F::Rgba32Float => [f32_at(0), f32_at(4), f32_at(8), f32_at(12)],
         F::R32Uint => [u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32, 0.0, 0.0, 1.0],
@@ -112,11 +112,14 @@ pub(super) fn decode(
     visualize: Visualize,
 ) -> Option<Image> {
     let bpp = format.block_copy_size(Some(wgpu::TextureAspect::All)).or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly)))? as usize;
+    // Depth packed into rgba8unorm by `VisualizeDepthPS`: the bytes are the float's bits.
+    let packed_depth = visualize == Visualize::Depth && format == wgpu::TextureFormat::Rgba8Unorm;
     let mut texels = Vec::with_capacity((width * height) as usize);
     for y in 0..height as usize {
         let row = &bytes[y * padded_row as usize..];
         for x in 0..width as usize {
-            texels.push(texel(format, &row[x * bpp..x * bpp + bpp])?);
+            let b = &row[x * bpp..x * bpp + bpp];
+            texels.push(if packed_depth { [f32::from_le_bytes([b[0], b[1], b[2], b[3]]), 0.0, 0.0, 1.0] } else { texel(format, b)? });
         }
     }
     let rgba = match visualize {
@@ -190,6 +193,14 @@ mod tests {
         let img = decode(&bytes, 4, 1, 16, wgpu::TextureFormat::Depth32Float, Visualize::Depth).unwrap();
         let v: Vec<u8> = img.rgba.chunks(4).map(|c| c[0]).collect();
         assert_eq!(v, vec![0, 26, 140, 255]);
+    }
+
+    #[test]
+    fn packed_depth_is_read_from_its_bits() {
+        let bytes: Vec<u8> = [0.0f32, 0.25, 0.5].iter().flat_map(|d| d.to_le_bytes()).collect();
+        let img = decode(&bytes, 3, 1, 12, wgpu::TextureFormat::Rgba8Unorm, Visualize::Depth).unwrap();
+        let v: Vec<u8> = img.rgba.chunks(4).map(|c| c[0]).collect();
+        assert_eq!(v, vec![0, 26, 255]);
     }
 
     #[test]

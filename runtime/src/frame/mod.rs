@@ -14,6 +14,9 @@ mod image;
 pub use image::{Image, Visualize};
 
 use std::path::Path;
+use std::sync::Arc;
+
+use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
 use serde::Serialize;
 
@@ -51,6 +54,65 @@ struct PassRecord {
     steps: Vec<(String, Option<(u32, u32)>)>,
 }
 
+/// Copies a depth target into an `rgba8unorm` texture holding each depth's bits, with a
+/// draw (`VisualizeDepthPS`), for capturing depth where the device cannot copy depth
+/// textures to buffers (GL).
+#[derive(Clone, Debug)]
+pub struct DepthCopy {
+    pipeline: Arc<RenderPipeline>,
+}
+
+impl DepthCopy {
+    pub const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+
+    pub fn new(cache: &PipelineCache, level: &str) -> Result<DepthCopy, PipelineError> {
+        let archive = cache.archive();
+        let vs = archive.shader("ScreenVS").level(level).find()?.name().to_string();
+        let ps = archive.shader("VisualizeDepthPS").level(level).find()?.name().to_string();
+        let state = RenderState::fullscreen(ColorTarget { format: DepthCopy::FORMAT, blend: Blend::Replace });
+        Ok(DepthCopy { pipeline: cache.render(&vs, Some(&ps), &state)? })
+    }
+
+    /// Records the copy; returns the texture holding the depth bits.
+    fn record(&self, device: &wgpu::Device, encoder: &mut wgpu::CommandEncoder, depth: &wgpu::Texture) -> Option<wgpu::Texture> {
+        let target = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("depth capture"),
+            size: depth.size(),
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DepthCopy::FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let source = depth.create_view(&wgpu::TextureViewDescriptor { label: Some("depth capture source"), ..Default::default() });
+        let group = self
+            .pipeline
+            .layout
+            .bind_group(device, 1, "depth capture", &[("SourceDepthTexture", wgpu::BindingResource::TextureView(&source))])
+            .ok()?;
+        let view = target.create_view(&wgpu::TextureViewDescriptor::default());
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("depth capture"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: None,
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(&self.pipeline.pipeline);
+        pass.set_bind_group(1, &group, &[]);
+        pass.draw(0..3, 0..1);
+        drop(pass);
+        Some(target)
+    }
+}
+
 /// Queries of one frame: two per pass or step.
 const MAX_QUERIES: u32 = 256;
 
@@ -65,12 +127,14 @@ pub struct FrameRecorder {
     passes: Vec<PassRecord>,
     captures: Vec<PendingCapture>,
     current_step: Option<String>,
+    depth_copy: Option<DepthCopy>,
 }
 
 impl FrameRecorder {
     /// `timestamps`: the device has `TIMESTAMP_QUERY_INSIDE_ENCODERS`. `capture`: copy
-    /// every pass output for dumping.
-    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, timestamps: bool, capture: bool) -> FrameRecorder {
+    /// every pass output for dumping. `depth_copy`: how to capture depth where the device
+    /// cannot copy depth textures to buffers.
+    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, timestamps: bool, capture: bool, depth_copy: Option<DepthCopy>) -> FrameRecorder {
         let encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let queries = timestamps.then(|| {
             device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("pass timestamps"), ty: wgpu::QueryType::Timestamp, count: MAX_QUERIES })
@@ -85,6 +149,7 @@ impl FrameRecorder {
             passes: Vec::new(),
             captures: Vec::new(),
             current_step: None,
+            depth_copy,
         }
     }
 
@@ -256,6 +321,17 @@ impl PassContext<'_> {
             full.push('_');
             full.push_str(part);
         }
+        let copied;
+        let texture = match (&r.depth_copy, texture.format().is_depth_stencil_format()) {
+            (Some(copy), true) => match copy.record(&r.device, &mut r.encoder, texture) {
+                Some(t) => {
+                    copied = t;
+                    &copied
+                }
+                None => return,
+            },
+            _ => texture,
+        };
         let format = texture.format();
         let Some(bytes_per_texel) = format.block_copy_size(Some(wgpu::TextureAspect::All)).or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly))) else {
             return;
