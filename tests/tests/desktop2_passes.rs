@@ -27,8 +27,8 @@ const PART2_IMAGES: &[&str] = &[
     "Distortion_DistortionAccum",
     "Distortion_DistortionApply",
     "PostProcessing_TAA",
-    "PostProcessing_MotionBlur",
     "PostProcessing_EyeAdaptation",
+    "PostProcessing_MotionBlur",
 ];
 
 #[test]

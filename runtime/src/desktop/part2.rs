@@ -52,7 +52,7 @@ pub struct Part2Options {
 
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, fog_density: 0.06 }
+        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, fog_density: 0.02 }
     }
 }
 
@@ -284,6 +284,9 @@ impl Part2 {
         let pos_scale = Vec4::new(0.1, 0.25, 0.1, 0.0);
         let pos_bias = Vec4::new(0.0, 0.0, 0.5, 0.0);
         let vel_scale = Vec4::new(0.5, 0.3, 0.5, 0.0);
+        // the dumps show the large cascade's slice through the middle of the room (z = 0)
+        let (origin, cell) = TranslucentVolumes::cascade_box(scene.camera.position, 1);
+        let volume_slice = ((-origin.z / cell) as u32).min(super::translucent_volume::VOLUME_SIZE - 1);
         let vis = Visualizations {
             particle_position: [v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?, v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?],
             particle_velocity: [v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?, v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?],
@@ -295,8 +298,8 @@ impl Part2 {
                 v("LightScattering", &fog.light_scattering[1], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
             ],
             integrated: v("IntegratedLightScattering", &fog.integrated, Vec4::new(2.0, 2.0, 2.0, 0.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES - 1)?,
-            volume_ambient: v("TranslucentVolume1", volumes.injected(1).0, Vec4::splat(0.25), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
-            volume_filtered: v("TranslucentVolume1", volumes.volumes(1).0, Vec4::splat(0.25), Vec4::ZERO, super::translucent_volume::VOLUME_SIZE / 2)?,
+            volume_ambient: v("TranslucentVolume1", volumes.injected(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
+            volume_filtered: v("TranslucentVolume1", volumes.volumes(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
             distortion: v("Distortion", &distortion.offsets, Vec4::new(25.0, 25.0, 0.0, 0.0), Vec4::ZERO, 0)?,
         };
 
@@ -679,7 +682,7 @@ fn fog_settings(s: &State) -> FogSettings {
         emissive: Vec3::ZERO,
         anisotropy: 0.4,
         sun_intensity: 1.0,
-        sky_intensity: 0.05,
+        sky_intensity: 0.02,
         local_intensity: 1.0,
         near: 0.5,
         far: 40.0,
