@@ -159,8 +159,8 @@ pub struct DesktopFrame {
     part2: part2::Part2,
     /// The View uniforms as built, patched every frame with part 2's (jittered) camera.
     base_view: view::ViewUniforms,
-    /// Movable objects' instance rows: (object, first row, local bounds centre, row).
-    movable_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
+    /// Every object's instance rows: (object, first row, local bounds centre, row).
+    object_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
 }
 
 impl DesktopFrame {
@@ -210,7 +210,7 @@ impl DesktopFrame {
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
         let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, w, h)?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index);
-        let movable_rows = movable_rows(scene, &buffers);
+        let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
             device: device.clone(),
             queue: queue.clone(),
@@ -236,7 +236,7 @@ impl DesktopFrame {
             post,
             part2,
             base_view,
-            movable_rows,
+            object_rows,
         })
     }
 
@@ -294,11 +294,15 @@ impl DesktopFrame {
         v.proj = camera.proj;
         v.camera_position = camera.position.extend(v.camera_position.w);
         self.queue.write_buffer(&self._view_buffer, 0, bytemuck::bytes_of(&v));
-        for (object, first, local_center, template) in &self.movable_rows {
+        // every object's rows: movable props move, props that occlusion culling found hidden
+        // get empty transforms (nothing rasterised) until a query finds them visible again
+        for (object, first, local_center, template) in &self.object_rows {
+            let visible = self.part2.is_visible(*object);
             for (i, m) in self.part2.object_transforms(*object).into_iter().enumerate() {
+                let m = if visible { m } else { glam::Mat4::ZERO };
                 let row = view::InstanceGpu {
                     local_to_world: m,
-                    normal_to_world: glam::Mat4::from_mat3(glam::Mat3::from_mat4(m).inverse().transpose()),
+                    normal_to_world: if visible { glam::Mat4::from_mat3(glam::Mat3::from_mat4(m).inverse().transpose()) } else { glam::Mat4::ZERO },
                     material: template.material,
                     bounds: m.transform_point3(*local_center).extend(template.bounds.w),
                 };
@@ -413,16 +417,13 @@ fn desktop_part2(
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
 }
 
-/// The instance rows of the movable objects, to move them every frame.
-fn movable_rows(scene: &Scene, buffers: &resources::SceneBuffers) -> Vec<(usize, u32, glam::Vec3, view::InstanceGpu)> {
+/// The objects' instance rows, rewritten every frame (movable props move, culled props hide).
+fn object_rows(scene: &Scene, buffers: &resources::SceneBuffers) -> Vec<(usize, u32, glam::Vec3, view::InstanceGpu)> {
     let mut rows = Vec::new();
     for (i, (o, d)) in scene.objects.iter().zip(&buffers.draws).enumerate() {
-        if !d.movable {
-            continue;
-        }
         let (lo, hi) = scene.meshes[o.mesh].bounds();
         let template = view::InstanceGpu {
-            material: glam::UVec4::new(o.material as u32, 1, 0, 0),
+            material: glam::UVec4::new(o.material as u32, u32::from(d.movable), 0, 0),
             bounds: glam::Vec4::new(0.0, 0.0, 0.0, (hi - lo).length() * 0.5),
             ..Default::default()
         };

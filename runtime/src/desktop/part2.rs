@@ -412,6 +412,11 @@ impl Part2 {
         self.lock().occlusion.is_visible(index)
     }
 
+    /// Object `index`'s visibility as the occlusion queries last found it.
+    pub fn visibility(&self, index: usize) -> Option<super::occlusion::PropVisibility> {
+        self.lock().occlusion.visibility(index)
+    }
+
     pub fn occlusion_stats(&self) -> super::occlusion::OcclusionStats {
         self.lock().occlusion.stats.clone()
     }
@@ -639,6 +644,11 @@ impl Part2 {
     /// The eye adaptation's result buffer (exposure, average luminance, target), for tests.
     pub fn eye_adaptation_buffer(&self) -> wgpu::Buffer {
         self.lock().eye.result.clone()
+    }
+
+    /// The scene depth texture part 2 reads, for tests.
+    pub fn scene_depth(&self) -> wgpu::Texture {
+        self.lock().scene_depth_attachment.texture().clone()
     }
 
     /// The HZB texture and its mip count, for tests.

@@ -65,3 +65,35 @@ pub fn luma_stddev(image: &Image) -> f64 {
     let mean = lumas.iter().sum::<f64>() / lumas.len() as f64;
     (lumas.iter().map(|l| (l - mean) * (l - mean)).sum::<f64>() / lumas.len() as f64).sqrt()
 }
+
+/// Reads mip `level` of a single-channel 32-bit float texture (R32Float, or the depth aspect
+/// of a depth texture) back as rows of f32.
+pub fn read_f32(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture, level: u32) -> (u32, u32, Vec<f32>) {
+    let (w, h) = ((texture.width() >> level).max(1), (texture.height() >> level).max(1));
+    let row = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("test readback"),
+        size: u64::from(row * h),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let aspect = if texture.format().is_depth_stencil_format() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
+    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo { texture, mip_level: level, origin: wgpu::Origin3d::ZERO, aspect },
+        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) } },
+        wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+    );
+    gpu.queue.submit([encoder.finish()]);
+    buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+    gpu.wait();
+    let bytes = buffer.slice(..).get_mapped_range().unwrap();
+    let mut out = Vec::with_capacity((w * h) as usize);
+    for y in 0..h {
+        let r = &bytes[(y * row) as usize..];
+        for x in 0..w as usize {
+            out.push(f32::from_le_bytes([r[x * 4], r[x * 4 + 1], r[x * 4 + 2], r[x * 4 + 3]]));
+        }
+    }
+    (w, h, out)
+}
