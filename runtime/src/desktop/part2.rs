@@ -46,13 +46,15 @@ pub struct Part2Options {
     /// Movable props move (the rock circles); off for still frames.
     pub animate: bool,
     pub volumetric_fog: bool,
+    /// The particle sprites and the heat haze are drawn (they are always simulated).
+    pub particles: bool,
     /// Extinction of the volumetric fog at the fog height.
     pub fog_density: f32,
 }
 
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, fog_density: 0.02 }
+        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, fog_density: 0.02 }
     }
 }
 
@@ -582,7 +584,9 @@ impl Part2 {
                     occlusion_query_set: None,
                     multiview_mask: None,
                 });
-                s.particles.draw_sprites(&mut pass);
+                if s.options.particles {
+                    s.particles.draw_sprites(&mut pass);
+                }
             }
             ctx.output(&s.scene_color, Visualize::Hdr);
         });
@@ -595,7 +599,8 @@ impl Part2 {
         let transforms: Vec<Vec<Mat4>> = s.refracting.iter().map(|&o| object_transforms(s, o)).collect();
         frame.pass("Distortion", |ctx| {
             ctx.step("DistortionAccum", |ctx| {
-                s.distortion.record_accumulate(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms, Some(&s.particles));
+                let particles = s.options.particles.then_some(&s.particles);
+                s.distortion.record_accumulate(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms, particles);
                 s.vis.distortion.output(ctx, None);
             });
             ctx.step("DistortionApply", |ctx| {
