@@ -211,6 +211,14 @@ impl Renderer {
         self.cache.stats()
     }
 
+    /// The desktop deferred frame, for tests that look at its state across frames.
+    pub fn desktop_frame(&self) -> Option<&crate::desktop::DesktopFrame> {
+        match &self.passes {
+            Passes::DesktopDeferred(d) => Some(d),
+            _ => None,
+        }
+    }
+
     /// The desktop frame's part 2 (issue 7), for tests that look at its state across frames.
     pub fn desktop_part2(&self) -> Option<&crate::desktop::part2::Part2> {
         match &self.passes {

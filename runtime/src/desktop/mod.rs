@@ -279,6 +279,16 @@ impl DesktopFrame {
         p2.end_frame();
     }
 
+    /// How many times the movable lights' cube shadows rendered their cached static depth.
+    pub fn cached_shadow_rebuilds(&self) -> u32 {
+        self.shadows.cached_shadow_rebuilds()
+    }
+
+    /// A movable light moved: its cube shadow's static depth is rendered again.
+    pub fn invalidate_cached_shadows(&self) {
+        self.shadows.invalidate_cached_shadows();
+    }
+
     /// Part 2 of the frame (its state across frames: camera, histories, occlusion).
     pub fn part2(&self) -> &part2::Part2 {
         &self.part2

@@ -34,6 +34,19 @@ struct Atlas {
     texture: Texture,
     pipeline: Arc<Render>,
     views: Vec<ShadowView>,
+    /// Cube shadows of movable lights: the static casters' depth, cached (part 2).
+    cache: Option<CubeCache>,
+}
+
+/// The cached static depth of a movable point light's cube shadow (CopyCachedShadowMap):
+/// rendered once with the static casters, copied into the cube every frame, the movable
+/// props drawn on top; rendered again only when invalidated (the light moved).
+struct CubeCache {
+    texture: Texture,
+    /// Per view (face): the static casters; `ShadowView::draws` keeps the movable ones.
+    static_draws: Vec<Vec<usize>>,
+    valid: std::sync::atomic::AtomicBool,
+    rebuilds: std::sync::atomic::AtomicU32,
 }
 
 /// The projections lighting needs, per shadowed light.
@@ -171,6 +184,7 @@ impl ShadowDepths {
                 texture: shadow_texture(device, "ShadowDepthAtlas0", size * CASCADES as u32, size),
                 pipeline: ortho.clone(),
                 views,
+                cache: None,
             });
         }
 
@@ -202,29 +216,38 @@ impl ShadowDepths {
                 });
             }
             per_object = Some(atlases.len());
-            atlases.push(Atlas { step: "Atlas1".into(), texture: shadow_texture(device, "ShadowDepthAtlas1", tile * n, tile), pipeline: perspective.clone(), views });
+            atlases.push(Atlas { step: "Atlas1".into(), texture: shadow_texture(device, "ShadowDepthAtlas1", tile * n, tile), pipeline: perspective.clone(), views, cache: None });
         }
 
         for (li, light) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow == LocalShadow::Cube) {
             let matrices = cube_face_matrices(light.position(), light.radius());
             let mut u = ShadowProjectionUniforms { light_position: light.position().extend(1.0), params: Vec4::new(0.0002, 0.03, 0.0, 0.0), ..Default::default() };
             let mut views = Vec::new();
+            let (movable_casters, static_casters): (Vec<usize>, Vec<usize>) = casters.iter().partition(|&&d| b.buffers.draws[d].movable);
             for (f, m) in matrices.iter().enumerate() {
                 u.world_to_shadow[f] = *m;
                 u.atlas_rects[f] = Vec4::new(f as f32 / 6.0, 0.0, 1.0 / 6.0, 1.0);
                 views.push(ShadowView {
                     viewport: [(f as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
                     groups: view_groups(&perspective, *m, &format!("{} face {f}", light.name))?,
-                    draws: casters.clone(),
+                    draws: movable_casters.clone(),
                 });
             }
+            let cache = CubeCache {
+                texture: shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile),
+                static_draws: vec![static_casters; 6],
+                valid: std::sync::atomic::AtomicBool::new(false),
+                rebuilds: std::sync::atomic::AtomicU32::new(0),
+            };
             setup.cubes.push((li, cubes.len(), u));
             cubes.push(atlases.len());
+            let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::COPY_DST;
             atlases.push(Atlas {
                 step: format!("Cubemap_{}", light.name),
-                texture: shadow_texture(device, &format!("ShadowDepthCube {}", light.name), tile * 6, tile),
+                texture: Texture::new(device, &format!("ShadowDepthCube {}", light.name), formats::SHADOW_DEPTH, tile * 6, tile, usage),
                 pipeline: perspective.clone(),
                 views,
+                cache: Some(cache),
             });
         }
         Ok(ShadowDepths { atlases, setup, csm, per_object, cubes })
@@ -243,9 +266,55 @@ impl ShadowDepths {
         &self.atlases[self.cubes[cube]].texture
     }
 
+    /// How many times the cube shadows' cached static depth was rendered (all cubes).
+    pub fn cached_shadow_rebuilds(&self) -> u32 {
+        self.atlases.iter().filter_map(|a| a.cache.as_ref()).map(|c| c.rebuilds.load(std::sync::atomic::Ordering::Relaxed)).sum()
+    }
+
+    /// The movable lights moved: their cached static depth is rendered again next frame.
+    pub fn invalidate_cached_shadows(&self) {
+        for c in self.atlases.iter().filter_map(|a| a.cache.as_ref()) {
+            c.valid.store(false, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers) {
+        let draw_views = |pass: &mut wgpu::RenderPass<'_>, atlas: &Atlas, draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
+            pass.set_pipeline(&atlas.pipeline.pipeline);
+            for (i, v) in atlas.views.iter().enumerate() {
+                let [x, y, w, h] = v.viewport;
+                pass.set_viewport(x, y, w, h, 0.0, 1.0);
+                v.groups.set_render(pass);
+                for d in draws(i, v) {
+                    scene.draw(pass, &scene.draws[d]);
+                }
+            }
+        };
         for atlas in &self.atlases {
             ctx.step(&atlas.step, |ctx| {
+                let mut load = wgpu::LoadOp::Clear(1.0);
+                if let Some(cache) = &atlas.cache {
+                    if !cache.valid.swap(true, std::sync::atomic::Ordering::Relaxed) {
+                        // the static casters, rendered once into the cache
+                        let mut pass = begin(
+                            ctx.encoder(),
+                            "CachedShadowDepth",
+                            &[],
+                            Some(wgpu::RenderPassDepthStencilAttachment {
+                                view: &cache.texture.view,
+                                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+                                stencil_ops: None,
+                            }),
+                        );
+                        draw_views(&mut pass, atlas, &|i, _| cache.static_draws[i].clone());
+                        cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                    ctx.step("CopyCachedShadowMap", |ctx| {
+                        ctx.encoder().copy_texture_to_texture(cache.texture.texture.as_image_copy(), atlas.texture.texture.as_image_copy(), cache.texture.texture.size());
+                        ctx.output(&atlas.texture.texture, Visualize::Depth);
+                    });
+                    load = wgpu::LoadOp::Load;
+                }
                 {
                     let mut pass = begin(
                         ctx.encoder(),
@@ -253,19 +322,11 @@ impl ShadowDepths {
                         &[],
                         Some(wgpu::RenderPassDepthStencilAttachment {
                             view: &atlas.texture.view,
-                            depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+                            depth_ops: Some(wgpu::Operations { load, store: wgpu::StoreOp::Store }),
                             stencil_ops: None,
                         }),
                     );
-                    pass.set_pipeline(&atlas.pipeline.pipeline);
-                    for v in &atlas.views {
-                        let [x, y, w, h] = v.viewport;
-                        pass.set_viewport(x, y, w, h, 0.0, 1.0);
-                        v.groups.set_render(&mut pass);
-                        for &d in &v.draws {
-                            scene.draw(&mut pass, &scene.draws[d]);
-                        }
-                    }
+                    draw_views(&mut pass, atlas, &|_, v| v.draws.clone());
                 }
                 ctx.output(&atlas.texture.texture, Visualize::Depth);
             });
