@@ -76,7 +76,10 @@ fn create_every_pipeline(module_source: ModuleSource) -> (usize, bool) {
         created += 1;
     }
     let stats = cache.stats();
-    assert_eq!(stats.modules, archive.permutations().count(), "one module per permutation");
+    let target = if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
+    let blobs: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(target).unwrap()).collect();
+    assert_eq!(stats.modules, blobs.len(), "one module per distinct artifact");
+    assert_eq!(cache.permutations_used().len(), archive.permutations().count());
     (created, cache.uses_spirv_passthrough())
 }
 
@@ -113,6 +116,9 @@ fn pipelines_are_cached_per_permutation_and_state() {
     let names: Vec<_> = a.layout.groups[1].iter().map(|b| b.name.clone().unwrap()).collect();
     assert_eq!(names, ["SceneColorTexture"]);
     assert_eq!(a.layout.groups[0][0].visibility, wgpu::ShaderStages::FRAGMENT);
+    // Bind groups are built by name; a missing resource is named.
+    let e = a.layout.bind_group(&gpu.device, 1, "tonemap input", &[]).unwrap_err().to_string();
+    assert_eq!(e, "bind group 1 of `ScreenVS@sm5{} + TonemapPS@sm5{USE_BLOOM=0}`: no resource given for binding 0 `SceneColorTexture`");
 }
 
 #[test]
