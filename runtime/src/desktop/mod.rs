@@ -57,6 +57,12 @@ pub struct DesktopOptions {
     pub shadow_map_size: u32,
     /// Selects the AO jitter of this frame.
     pub frame_index: u32,
+    /// Create shader modules through the runtime's cache (SPIR-V passthrough on Vulkan)
+    /// instead of from the archive's WGSL. Off by default: on lavapipe, Kiln's SPIR-V 1.0
+    /// artifacts of `StandardDeferredLightingPS` crash the driver in about a third of the
+    /// frames and `AmbientOcclusionPS{USE_AO_SETUP_AS_INPUT=1}` reads garbage, while the same
+    /// permutations from WGSL (compiled by wgpu with its bounds checks) render correctly.
+    pub spirv_passthrough: bool,
     /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
     pub output_format: wgpu::TextureFormat,
 }
@@ -72,6 +78,7 @@ impl Default for DesktopOptions {
             ao_quality: 2,
             shadow_map_size: 512,
             frame_index: 0,
+            spirv_passthrough: false,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
         }
     }
@@ -163,7 +170,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, device, "sm5");
+        let pipelines = pipelines::Pipelines::new(cache, device, "sm5", options.spirv_passthrough);
         let b = Build {
             device,
             pipelines: &pipelines,
@@ -235,10 +242,10 @@ impl DesktopFrame {
 
     /// Renders one frame: the output image and every pass (with images when `capture`).
     pub fn render(&self, capture: bool) -> (Option<Image>, Vec<PassResult>) {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture);
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, None);
         self.record(&mut frame);
         let passes = frame.finish();
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true);
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
         readback.pass("Output", |ctx| ctx.output(&self.output.texture, Visualize::Direct));
         let image = readback.finish().pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
         (image, passes)
