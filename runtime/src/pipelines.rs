@@ -236,7 +236,10 @@ pub struct CacheStats {
 
 #[derive(Default)]
 struct CacheInner {
-    modules: HashMap<String, wgpu::ShaderModule>,
+    /// By the artifact blob the module was made from: permutations that compiled to the same
+    /// code share one module.
+    modules: HashMap<(Target, kiln::archive::BlobId), wgpu::ShaderModule>,
+    used: std::collections::BTreeSet<String>,
     layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
     render: HashMap<RenderKey, Arc<RenderPipeline>>,
     compute: HashMap<String, Arc<ComputePipeline>>,
@@ -269,24 +272,39 @@ impl PipelineCache {
         self.lock().stats
     }
 
+    /// Every permutation a module was created for, sorted.
+    pub fn permutations_used(&self) -> Vec<String> {
+        self.lock().used.iter().cloned().collect()
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, CacheInner> {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The shader module of a permutation, created on first use.
+    /// The shader module of a permutation, created on first use (and shared with every
+    /// permutation whose artifact is the same blob).
     pub fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, Reflection), PipelineError> {
         let perm = self.archive.get(name)?;
         let reflection = perm.reflection().clone();
         if reflection.stage != stage {
             return Err(PipelineError::WrongStage { name: name.to_string(), found: reflection.stage, wanted: stage });
         }
-        if let Some(m) = self.lock().modules.get(name) {
-            return Ok((m.clone(), reflection));
+        let target = if self.passthrough && perm.blob_id(Target::Spirv).is_some() { Target::Spirv } else { Target::Wgsl };
+        let key = perm.blob_id(target).map(|blob| (target, blob));
+        {
+            let mut inner = self.lock();
+            inner.used.insert(name.to_string());
+            if let Some(m) = key.and_then(|k| inner.modules.get(&k)) {
+                return Ok((m.clone(), reflection));
+            }
         }
-        let module = create_module(&self.device, self.passthrough, name, perm.artifact(Target::Spirv), perm.artifact(Target::Wgsl), &reflection, &perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", "))?;
+        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+        let module = create_module(&self.device, self.passthrough, name, perm.artifact(Target::Spirv), perm.artifact(Target::Wgsl), &reflection, &targets)?;
         let mut inner = self.lock();
         inner.stats.modules += 1;
-        inner.modules.insert(name.to_string(), module.clone());
+        if let Some(k) = key {
+            inner.modules.insert(k, module.clone());
+        }
         Ok((module, reflection))
     }
 
@@ -468,7 +486,7 @@ pub fn create_module(
 
 /// SPIR-V bytes as words, checking the length and the magic number.
 pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
-    if bytes.len() % 4 != 0 || bytes.len() < 20 {
+    if !bytes.len().is_multiple_of(4) || bytes.len() < 20 {
         return Err(format!("SPIR-V artifact is {} bytes, not a whole module", bytes.len()));
     }
     let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();

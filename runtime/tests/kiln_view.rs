@@ -23,6 +23,11 @@ fn renders_and_dumps_every_pass() {
     let names: Vec<&str> = json["passes"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["ShadowDepths", "BasePass", "MobileDeferredShading", "Translucency", "PostProcessing"]);
     assert_eq!(json["pipeline"], "mobile-deferred");
+    // The mobile frame runs es3_1 permutations only.
+    let permutations = json["permutations"].as_array().unwrap();
+    assert!(permutations.len() >= 6);
+    assert!(permutations.iter().all(|p| p.as_str().unwrap().contains("@es3_1{")), "{permutations:?}");
+    assert!(permutations.iter().any(|p| p.as_str().unwrap().contains("DEFERRED_SHADING_PATH=1")), "{permutations:?}");
     for pass in json["passes"].as_array().unwrap() {
         for image in pass["images"].as_array().unwrap() {
             assert!(dir.path().join("dump").join(image.as_str().unwrap()).is_file(), "{image}");
@@ -63,6 +68,20 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
     let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `DepthOnlyVS` in the archive");
+}
+
+#[test]
+fn verify_looks_every_permutation_up_and_creates_its_module() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("s.kpak"), kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
+    let o = kiln_view(&["--shaders", "s.kpak", "--verify"], dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let archive = kiln_runtime::ShaderArchive::embedded().unwrap();
+    let count = archive.permutations().count();
+    let distinct: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(kiln::archive::Target::Spirv).unwrap()).collect();
+    let out = String::from_utf8_lossy(&o.stdout);
+    let expected = format!("{count} permutations looked up by name and by dimension values; {} distinct modules created from SPIR-V passthrough on ", distinct.len());
+    assert!(out.starts_with(&expected), "{out}");
 }
 
 #[test]

@@ -76,7 +76,10 @@ fn create_every_pipeline(module_source: ModuleSource) -> (usize, bool) {
         created += 1;
     }
     let stats = cache.stats();
-    assert_eq!(stats.modules, archive.permutations().count(), "one module per permutation");
+    let target = if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
+    let blobs: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(target).unwrap()).collect();
+    assert_eq!(stats.modules, blobs.len(), "one module per distinct artifact");
+    assert_eq!(cache.permutations_used().len(), archive.permutations().count());
     (created, cache.uses_spirv_passthrough())
 }
 

@@ -164,10 +164,21 @@ fn dump_captures_every_pass_in_frame_order() {
     // The last capture is the output itself.
     assert_eq!(frame.passes.last().unwrap().images[0].1, frame.image);
     let dir = tempfile::tempdir().unwrap();
-    let info = kiln_runtime::frame::DumpInfo { pipeline: "desktop", backend: "vulkan", adapter: &gpu.info.name, width: W, height: H, timestamps: gpu.timestamps };
+    let permutations = vec!["DepthOnlyVS@sm5{}".to_string()];
+    let info = kiln_runtime::frame::DumpInfo {
+        pipeline: "desktop",
+        backend: "vulkan",
+        adapter: &gpu.info.name,
+        width: W,
+        height: H,
+        timestamps: gpu.timestamps,
+        spirv_passthrough: gpu.spirv_passthrough,
+        permutations: &permutations,
+    };
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
     assert_eq!(json["passes"][2]["images"][1], "02_BasePass_GBufferA.png");
+    assert_eq!(json["permutations"][0], "DepthOnlyVS@sm5{}");
     assert!(dir.path().join("05_PostProcessing_Tonemapper.png").is_file());
 }
 

@@ -41,7 +41,7 @@ struct Args {
     /// Where to write the tonemapped frame.
     #[arg(long, default_value = "frame.png")]
     out: PathBuf,
-    /// Write every pass's output as DIR/<NN>_<Pass>.png and DIR/passes.json.
+    /// Write every pass's output as `DIR/<NN>_<Pass>.png` and `DIR/passes.json`.
     #[arg(long, value_name = "DIR")]
     dump_passes: Option<PathBuf>,
     /// Load this archive instead of the one embedded at build time.
@@ -50,6 +50,10 @@ struct Args {
     /// Create shader modules from WGSL even where SPIR-V passthrough is available.
     #[arg(long)]
     wgsl: bool,
+    /// Instead of rendering: look every permutation of the archive up (by name and by its
+    /// dimension values) and create its shader module on the device.
+    #[arg(long)]
+    verify: bool,
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -105,6 +109,9 @@ fn run(args: &Args) -> Result<(), Failure> {
     };
     let module_source = if args.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
     let gpu = Gpu::new(&GpuOptions { backend, module_source, timestamps: true }).map_err(|e| Failure::Render(e.to_string()))?;
+    if args.verify {
+        return verify(&gpu, archive);
+    }
     let (width, height) = args.size;
     let scene = Scene::bundled();
     let renderer = Renderer::new(&gpu, Arc::new(archive), &scene, RendererOptions { pipeline, width, height }).map_err(|e| match e {
@@ -128,6 +135,7 @@ fn run(args: &Args) -> Result<(), Failure> {
     kiln::archive::write_atomic(&args.out, &frame.image.to_png())
         .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))?;
     if let Some(dir) = &args.dump_passes {
+        let permutations = renderer.pipeline_cache().permutations_used();
         let info = DumpInfo {
             pipeline: pipeline.name(),
             backend: backend.name(),
@@ -135,6 +143,8 @@ fn run(args: &Args) -> Result<(), Failure> {
             width,
             height,
             timestamps: gpu.timestamps,
+            spirv_passthrough: gpu.spirv_passthrough,
+            permutations: &permutations,
         };
         write_dump(dir, &info, &frame.passes).map_err(|e| Failure::Render(format!("cannot write {}: {e}", dir.display())))?;
     }
@@ -151,6 +161,42 @@ fn run(args: &Args) -> Result<(), Failure> {
         args.out.display()
     );
     Ok(())
+}
+
+/// `--verify`: every permutation found by name and by builder, and its module created.
+fn verify(gpu: &Gpu, archive: ShaderArchive) -> Result<(), Failure> {
+    let archive = Arc::new(archive);
+    let cache = kiln_runtime::pipelines::PipelineCache::new(gpu, archive.clone());
+    let mut failures = Vec::new();
+    let mut count = 0;
+    for p in archive.permutations() {
+        count += 1;
+        let shader = p.shader();
+        let mut q = archive.shader(&shader.name).level(&shader.level);
+        for (d, v) in shader.dimensions.iter().zip(p.values()) {
+            q = q.with(&d.name, v);
+        }
+        let found = match (archive.get(p.name()), q.find()) {
+            (Ok(a), Ok(b)) if a.name() == p.name() && b.name() == p.name() => Ok(()),
+            (Err(e), _) | (_, Err(e)) => Err(e.to_string()),
+            _ => Err("lookup returned another permutation".to_string()),
+        };
+        let made = found.and_then(|()| cache.module(p.name(), shader.stage).map(|_| ()).map_err(|e| e.to_string()));
+        if let Err(e) = made {
+            failures.push(format!("{}: {e}", p.name()));
+        }
+    }
+    let source = if gpu.spirv_passthrough { "SPIR-V passthrough" } else { "WGSL" };
+    println!(
+        "{count} permutations looked up by name and by dimension values; {} distinct modules created from {source} on {}",
+        cache.stats().modules,
+        gpu.info.name
+    );
+    if failures.is_empty() {
+        Ok(())
+    } else {
+        Err(Failure::Render(format!("{} of {count} permutations failed:\n{}", failures.len(), failures.join("\n"))))
+    }
 }
 
 #[cfg(test)]

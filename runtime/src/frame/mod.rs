@@ -365,7 +365,11 @@ struct PassesJson<'a> {
     width: u32,
     height: u32,
     timestamps: bool,
+    /// Modules from SPIR-V passthrough (else WGSL).
+    spirv_passthrough: bool,
     passes: Vec<PassJson>,
+    /// Every permutation the frame's pipelines run.
+    permutations: &'a [String],
 }
 
 #[derive(Serialize)]
@@ -391,6 +395,8 @@ pub struct DumpInfo<'a> {
     pub width: u32,
     pub height: u32,
     pub timestamps: bool,
+    pub spirv_passthrough: bool,
+    pub permutations: &'a [String],
 }
 
 /// Writes `DIR/<NN>_<Name>.png` for every captured image and `DIR/passes.json` (frame
@@ -404,7 +410,9 @@ pub fn write_dump(dir: &Path, info: &DumpInfo<'_>, passes: &[PassResult]) -> std
         width: info.width,
         height: info.height,
         timestamps: info.timestamps,
+        spirv_passthrough: info.spirv_passthrough,
         passes: Vec::new(),
+        permutations: info.permutations,
     };
     for (i, p) in passes.iter().enumerate() {
         let mut files = Vec::new();

@@ -1,6 +1,25 @@
 //! One module per pass. A pass is a struct built once (pipelines, bind groups, uniform
 //! buffers) and a `record` that says what it reads and writes. Building a pass creates every
 //! pipeline it will use (the warm-up); recording never creates pipelines.
+//!
+//! Adding a pass:
+//! 1. Write its shaders in `shader_src/` and declare them in `permutations.toml` (the build
+//!    script recompiles the embedded archive).
+//! 2. Add `passes/<name>.rs` with a `struct` and `new(init: &PassInit) -> Result<_, PipelineError>`:
+//!    name permutations with [`PassInit::permutation`] (`("LIGHT_TYPE", "POINT")`), get
+//!    pipelines with `init.cache.render(vs, Some(ps), &RenderState::...)` (or `.compute(cs)`)
+//!    and build bind groups by resource name with `pipeline.layout.bind_group(device, group,
+//!    label, &[("SceneColorTexture", ...)])`: the reflection says which binding each name is.
+//!    New render targets go in [`Targets`] with a format constant in
+//!    [`crate::gpu_types::formats`]; uniforms are `#[repr(C)]` Pod structs in `gpu_types`.
+//! 3. Add `record(&self, ctx: &mut PassContext, ...)`: open render passes with
+//!    `ctx.render_pass(&desc, |pass| ...)` (compute: `ctx.compute_pass`), wrap named steps
+//!    in `ctx.step("Bloom", |ctx| ...)`, and declare what was written with
+//!    `ctx.output(&texture, Visualize::Hdr)` / `ctx.output_named("GBufferA", ...)`: that is
+//!    what `--dump-passes` writes and what the timings cover.
+//! 4. Build it in [`crate::renderer::Renderer::new`] for the frames that use it and call it
+//!    from the frame function with `frame.pass("Name", |ctx| pass.record(ctx, ...))` in
+//!    frame order.
 
 pub mod base_pass;
 pub mod depth;
