@@ -90,7 +90,17 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
         .unwrap_or_else(|e| panic!("renderer: {e}"));
     let out = renderer.render(true).unwrap_or_else(|e| panic!("render: {e}"));
     let dir = tempfile::tempdir().unwrap();
-    let info = DumpInfo { pipeline: "desktop", backend: "vulkan", adapter: &gpu.info.name, width: W, height: H, timestamps: gpu.timestamps };
+    let permutations = renderer.pipeline_cache().permutations_used();
+    let info = DumpInfo {
+        pipeline: "desktop",
+        backend: "vulkan",
+        adapter: &gpu.info.name,
+        width: W,
+        height: H,
+        timestamps: gpu.timestamps,
+        spirv_passthrough: gpu.spirv_passthrough,
+        permutations: &permutations,
+    };
     write_dump(dir.path(), &info, &out.passes).unwrap();
 
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("passes.json")).unwrap()).unwrap();
@@ -120,6 +130,11 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
         }
     }
     assert!(names.iter().filter(|n| PASSES.contains(n)).count() == PASSES.len());
+    // The frame's permutations are the sm5 ones of the desktop shaders.
+    let used: Vec<&str> = json["permutations"].as_array().unwrap().iter().map(|p| p.as_str().unwrap()).collect();
+    for shader in ["DepthPassVS", "LightGridInjectionCS", "LightGridCompactCS", "ShadowDepthVS", "DeferredBasePassPS", "AmbientOcclusionPS", "ShadowProjectionPS", "StandardDeferredLightingPS", "ExponentialHeightFogPS", "TonemapperPS"] {
+        assert!(used.iter().any(|p| p.starts_with(&format!("{shader}@sm5"))), "{shader} not among {used:?}");
+    }
 }
 
 struct Png {

@@ -150,14 +150,13 @@ impl<'a> Pipelines<'a> {
     /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
     /// WGSL artifact, which wgpu compiles with its own bounds checks.
     fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
+        // Through the cache either way, so the permutation counts as used (passes.json) and
+        // its stage is checked.
+        let (module, reflection) = self.cache.module(name, stage)?;
         if self.spirv_passthrough {
-            return Ok(self.cache.module(name, stage)?);
+            return Ok((module, reflection));
         }
         let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
-        let reflection = perm.reflection().clone();
-        if reflection.stage != stage {
-            return Err(PipelineError::WrongStage { name: name.to_string(), found: reflection.stage, wanted: stage }.into());
-        }
         let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
         let module = crate::pipelines::create_module(self.device, false, name, None, perm.artifact(kiln::archive::Target::Wgsl), &reflection, &targets)?;
         Ok((module, reflection))
