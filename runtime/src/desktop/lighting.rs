@@ -43,7 +43,6 @@ pub struct Lighting {
     shadowed: Vec<ShadowedLight>,
     /// Whether the tiled path runs this frame.
     pub tiled_path: bool,
-    pub non_shadowed_count: usize,
 }
 
 /// Light type label of `StandardDeferredLightingPS`.
@@ -198,7 +197,7 @@ impl Lighting {
             let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
             shadowed.push(ShadowedLight { name: l.name.clone(), projections, light });
         }
-        Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path, non_shadowed_count: unshadowed.len() })
+        Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path })
     }
 
     fn draw_light(pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {

@@ -73,6 +73,12 @@ pub struct DesktopOptions {
     pub shadow_map_size: u32,
     /// Selects the AO jitter of this frame.
     pub frame_index: u32,
+    /// Create shader modules through the runtime's cache (SPIR-V passthrough on Vulkan)
+    /// instead of from the archive's WGSL. Off by default: on lavapipe, Kiln's SPIR-V 1.0
+    /// artifacts of `StandardDeferredLightingPS` crash the driver in about a third of the
+    /// frames and `AmbientOcclusionPS{USE_AO_SETUP_AS_INPUT=1}` reads garbage, while the same
+    /// permutations from WGSL (compiled by wgpu with its bounds checks) render correctly.
+    pub spirv_passthrough: bool,
     /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
     pub output_format: wgpu::TextureFormat,
 }
@@ -88,6 +94,7 @@ impl Default for DesktopOptions {
             ao_quality: 2,
             shadow_map_size: 512,
             frame_index: 0,
+            spirv_passthrough: false,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
         }
     }
@@ -184,7 +191,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, device, "sm5");
+        let pipelines = pipelines::Pipelines::new(cache, device, "sm5", options.spirv_passthrough);
         let b = Build {
             device,
             pipelines: &pipelines,

@@ -136,13 +136,30 @@ pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
     pub device: &'a wgpu::Device,
     pub level: &'a str,
+    spirv_passthrough: bool,
     render: Mutex<Vec<(String, Option<String>, RenderDesc, Arc<Render>)>>,
     compute: Mutex<HashMap<String, Arc<Compute>>>,
 }
 
 impl<'a> Pipelines<'a> {
-    pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device, level: &'a str) -> Pipelines<'a> {
-        Pipelines { cache, device, level, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
+    pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device, level: &'a str, spirv_passthrough: bool) -> Pipelines<'a> {
+        Pipelines { cache, device, level, spirv_passthrough, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
+    }
+
+    /// A permutation's module and reflection: through the runtime's cache (SPIR-V
+    /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
+    /// WGSL artifact, which wgpu compiles with its own bounds checks.
+    fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
+        // Through the cache either way, so the permutation counts as used (passes.json) and
+        // its stage is checked.
+        let (module, reflection) = self.cache.module(name, stage)?;
+        if self.spirv_passthrough {
+            return Ok((module, reflection));
+        }
+        let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
+        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+        let module = crate::pipelines::create_module(self.device, false, name, None, perm.artifact(kiln::archive::Target::Wgsl), &reflection, &targets)?;
+        Ok((module, reflection))
     }
 
     /// The canonical name of `shader` at the frame's level with these dimension values.
@@ -178,9 +195,9 @@ impl<'a> Pipelines<'a> {
             Some(f) => format!("{vertex} + {f}"),
             None => vertex.to_string(),
         };
-        let (vs, vs_reflection) = self.cache.module(vertex, Stage::Vertex)?;
+        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
         let fs = match fragment {
-            Some(f) => Some(self.cache.module(f, Stage::Fragment)?),
+            Some(f) => Some(self.module(f, Stage::Fragment)?),
             None => None,
         };
         let mut reflections = vec![&vs_reflection];
@@ -222,7 +239,7 @@ impl<'a> Pipelines<'a> {
         if let Some(c) = self.compute.lock().unwrap_or_else(|e| e.into_inner()).get(name) {
             return Ok(c.clone());
         }
-        let (module, reflection) = self.cache.module(name, Stage::Compute)?;
+        let (module, reflection) = self.module(name, Stage::Compute)?;
         let layout = self.layout(name, &[&reflection])?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {

@@ -67,6 +67,7 @@ impl PrePass {
                 pass.set_pipeline(&pipeline.pipeline);
                 groups.set_render(&mut pass);
                 for draw in scene.draws.iter().filter(|d| d.blend == blend) {
+                    pass.insert_debug_marker(&draw.name);
                     scene.draw(&mut pass, draw);
                 }
             }

@@ -30,6 +30,7 @@ pub const STENCIL_LIT: u32 = 1;
 /// One object's draw: a mesh, a range of rows in the instance buffer.
 #[derive(Clone, Debug)]
 pub struct Draw {
+    /// The scene object's name (a debug label).
     pub name: String,
     pub mesh: usize,
     pub first_instance: u32,
