@@ -149,6 +149,7 @@ fn main() {
     let mut naga_entry_times = Vec::new();
     let mut cold_times = Vec::new();
     let mut warm_times = Vec::new();
+    let mut nocache_times = Vec::new();
     let mut last = None;
     let (mut naga_cpu, mut cold_cpu) = (Duration::ZERO, Duration::ZERO);
     for _ in 0..rounds {
@@ -180,6 +181,9 @@ fn main() {
         let t = Instant::now();
         let warm = build::run(&options).unwrap_or_else(|e| panic!("{e}"));
         warm_times.push(t.elapsed());
+        let t = Instant::now();
+        build::run(&build::Options { cache: CacheDir::Disabled, ..options.clone() }).unwrap_or_else(|e| panic!("{e}"));
+        nocache_times.push(t.elapsed());
         assert_eq!(warm.stats.compiled, 0);
         last = Some((cold, warm));
     }
@@ -193,6 +197,7 @@ fn main() {
         cold.stats.seconds.preprocess * 1e3,
         cold.stats.seconds.compile * 1e3
     );
+    println!("kiln build without a cache:                   {:>9.1} ms", median(nocache_times).as_secs_f64() * 1e3);
     println!(
         "kiln warm build:                              {:>9.1} ms  ({} of {} permutations preprocessed)",
         w.as_secs_f64() * 1e3,

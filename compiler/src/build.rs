@@ -429,14 +429,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 limits: level_limits(p.level),
             };
             let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
-                Ok(c) => {
-                    if let Some(cache) = cache {
-                        if let Err(e) = cache.put(key, &c) {
-                            warning = Some(format!("warning: cannot store a cache entry: {e}"));
-                        }
-                    }
-                    Got::Compiled(c, warning)
-                }
+                Ok(c) => Got::Compiled(c, warning),
                 Err(e) => Got::Failed(e, warning),
             };
             progress.inc();
@@ -447,6 +440,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     progress.finish();
 
     let mut compiled: HashMap<Key, Compiled> = HashMap::new();
+    let mut fresh: Vec<Key> = Vec::new();
     for ((key, members), got) in groups.iter().zip(results) {
         match got {
             Got::Hit(c) => {
@@ -457,6 +451,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 report.stats.compiled += 1;
                 report.warnings.extend(w);
                 compiled.insert(*key, c);
+                fresh.push(*key);
             }
             Got::Failed(e, w) => {
                 report.stats.compiled += 1;
@@ -493,11 +488,39 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
     report.failures = render_failures(failures, &kept, &sources, options.color);
 
+    // 5. Store what was compiled in the cache (on the other thread), while the archive and
+    //    the loose files are written.
+    let store = || -> Vec<String> {
+        let Some(c) = cache else { return Vec::new() };
+        fresh
+            .par_iter()
+            .filter_map(|k| c.put(k, &compiled[k]).err())
+            .map(|e| format!("warning: cannot store a cache entry: {e}"))
+            .collect()
+    };
     if report.stats.failed > 0 {
+        let warnings = store();
+        report.warnings.extend(warnings);
         write_stats(options, &mut report, start)?;
         return Err(Error::Failed(Box::new(report)));
     }
+    let (written, warnings) =
+        rayon::join(|| write_outputs(options, &kept, &pre, &compiled, stamp.as_ref(), &mut report), store);
+    report.warnings.extend(warnings);
+    written?;
+    write_stats(options, &mut report, start)?;
+    Ok(report)
+}
 
+/// The archive, the loose files of `--emit-dir` and the archive's stamp.
+fn write_outputs(
+    options: &Options,
+    kept: &[Permutation<'_>],
+    pre: &[Result<Pre, Diagnostic<FileId>>],
+    compiled: &HashMap<Key, Compiled>,
+    stamp: Option<&(&Cache, &PathBuf, blake3::Hash)>,
+    report: &mut Report,
+) -> Result<(), Error> {
     // 5. The archive and the loose files.
     let mut writer = ArchiveWriter::new();
     writer.set_naga_version(compile::NAGA_VERSION);
@@ -557,13 +580,12 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     if let Some(out) = &options.output {
         writer.write_unsynced(out).map_err(|e| Error::Io(format!("error: {e}")))?;
         report.archive = Some(out.clone());
-        if let Some((c, out, fingerprint)) = &stamp {
+        if let Some((c, out, fingerprint)) = stamp {
             // Failing to stamp only costs a full warm build next time.
             let _ = c.stamp_archive(out, fingerprint, (report.stats.artifacts, report.stats.permutation_artifacts));
         }
     }
-    write_stats(options, &mut report, start)?;
-    Ok(report)
+    Ok(())
 }
 
 fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result<(), Error> {

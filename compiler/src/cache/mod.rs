@@ -147,10 +147,10 @@ impl Cache {
         &self.dir
     }
 
-    /// The file of `key`: `DIR/ab/abcdef….kce` (two-character fan-out folders).
+    /// The file of `key`: `DIR/abcdef….kce`. One flat folder: creating fan-out folders
+    /// costs more than ext4's hashed directories save.
     pub fn path(&self, key: &Key) -> PathBuf {
-        let hex = key.to_hex();
-        self.dir.join(&hex[..2]).join(format!("{hex}.{EXTENSION}"))
+        self.dir.join(format!("{}.{EXTENSION}", key.to_hex()))
     }
 
     pub fn get(&self, key: &Key) -> Lookup {
@@ -179,9 +179,9 @@ impl Cache {
         self.write_file(&self.path(key), &encode(key, compiled))
     }
 
-    /// The file of a set of preprocessing records: `DIR/pp/<key>.kpp`.
+    /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
     pub fn records_path(&self, key: &Key) -> PathBuf {
-        self.dir.join("pp").join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
+        self.dir.join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
     }
 
     /// The preprocessing records stored under `key` (one set per configuration and
@@ -209,11 +209,11 @@ impl Cache {
         self.write_file(&self.records_path(key), &bytes)
     }
 
-    /// The stamp of the archive at `archive`: `DIR/builds/<blake3 of its absolute path>`.
+    /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.
     fn stamp_path(&self, archive: &Path) -> PathBuf {
         let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());
         let name = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
-        self.dir.join("builds").join(format!("{}.stamp", &name[..32]))
+        self.dir.join(format!("{}.stamp", &name[..32]))
     }
 
     /// Records that the archive now at `archive` is the output of the build with
@@ -241,10 +241,15 @@ impl Cache {
     }
 
     fn write_file(&self, path: &Path, bytes: &[u8]) -> Result<(), Error> {
-        let dir = path.parent().expect("entry has a folder").to_path_buf();
         let err = |source| Error { path: path.to_path_buf(), source };
-        fs::create_dir_all(&dir).map_err(err)?;
-        let mut tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(err)?;
+        let mut tmp = match tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir) {
+            Ok(t) => t,
+            Err(_) => {
+                // The folder was removed under us (`kiln cache clear` by hand): make it again.
+                fs::create_dir_all(&self.dir).map_err(err)?;
+                tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir).map_err(err)?
+            }
+        };
         tmp.write_all(bytes).map_err(err)?;
         tmp.persist(path).map_err(|e| err(e.error))?;
         Ok(())
@@ -253,7 +258,7 @@ impl Cache {
     fn files(&self) -> impl Iterator<Item = (PathBuf, fs::Metadata)> {
         walkdir::WalkDir::new(&self.dir)
             .min_depth(1)
-            .max_depth(3)
+            .max_depth(1)
             .into_iter()
             .filter_map(Result::ok)
             .filter(|e| e.file_type().is_file())

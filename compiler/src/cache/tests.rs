@@ -194,3 +194,4 @@ fn sizes_parse_and_format() {
     assert_eq!(format_size(100), "100 B");
     assert_eq!(format_size(3 << 19), "1.5 MiB");
 }
+
