@@ -94,11 +94,12 @@ impl EyeAdaptation {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let result = device.create_buffer(&wgpu::BufferDescriptor {
+        // the eye starts adapted to exposure 1 and moves from there at the adaptation speed,
+        // frame after frame (one frame changes the exposure by a few percent)
+        let result = wgpu::util::DeviceExt::create_buffer_init(device, &wgpu::util::BufferInitDescriptor {
             label: Some("EyeAdaptation"),
-            size: std::mem::size_of::<EyeAdaptationResult>() as u64,
+            contents: bytemuck::bytes_of(&EyeAdaptationResult { exposure: 1.0, average_luminance: 0.18, target_exposure: 1.0, pad: 0.0 }),
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
         });
         let debug = target_2d(device, "PostProcessHistogram image", DEBUG_SIZE, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING);
         let histogram_params = uniform_buffer(device, "PostProcessHistogram params", &HistogramParams {
@@ -139,7 +140,7 @@ impl EyeAdaptation {
             adapt_params,
             _histogram_params: histogram_params,
             size,
-            valid: false,
+            valid: true,
             settings: EyeAdaptationSettings::default(),
         })
     }
@@ -168,10 +169,10 @@ impl EyeAdaptation {
         self.valid = true;
     }
 
-    /// Sets the exposure to `exposure` without measuring (eye adaptation off).
+    /// Sets the exposure to `exposure` without measuring (eye adaptation off); adaptation
+    /// resumes from it.
     pub fn set_fixed(&mut self, queue: &wgpu::Queue, exposure: f32) {
         queue.write_buffer(&self.result, 0, bytemuck::bytes_of(&EyeAdaptationResult { exposure, average_luminance: 0.0, target_exposure: exposure, pad: 0.0 }));
-        self.valid = false;
     }
 
     /// Copies the adapted exposure (one f32) into `buffer` at `offset` (a uniform the

@@ -78,7 +78,7 @@ impl Hzb {
             let bind_group = if level == 0 {
                 first.layout.bind_group(device, 0, "HZB mip 0", &[
                     ("params", buffer.as_entire_binding()),
-                    ("scene_depth", wgpu::BindingResource::TextureView(scene_depth)),
+                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
                     ("out_mip", wgpu::BindingResource::TextureView(&out)),
                 ])?
             } else {

@@ -54,7 +54,7 @@ impl MotionBlur {
                     ("blur", params.as_entire_binding()),
                     ("scene_color", wgpu::BindingResource::TextureView(input)),
                     ("velocity", wgpu::BindingResource::TextureView(velocity)),
-                    ("scene_depth", wgpu::BindingResource::TextureView(scene_depth)),
+                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
                     ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
                     ("eye_adaptation", eye_adaptation.as_entire_binding()),
                 ])

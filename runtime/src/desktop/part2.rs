@@ -553,7 +553,8 @@ impl Part2 {
     /// The volumetric fog composited over SceneColor: a step of ExponentialHeightFog.
     pub fn apply_volumetric_fog(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
-        if !s.options.volumetric_fog {
+        // off with the option, and where the scene has no fog
+        if !s.options.volumetric_fog || s.scene.fog.density <= 0.0 {
             return;
         }
         ctx.step("VolumetricFog", |ctx| {

@@ -196,7 +196,7 @@ impl Particles {
                 ];
                 if desc.collides {
                     resources.push(("view", frame_view.as_entire_binding()));
-                    resources.push(("scene_depth", wgpu::BindingResource::TextureView(collision.scene_depth)));
+                    resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
                     resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
                 }
                 sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)

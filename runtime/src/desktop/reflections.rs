@@ -107,7 +107,7 @@ impl Reflections {
             ("view", frame_view.as_entire_binding()),
             ("ssr", ssr_params.as_entire_binding()),
             ("scene_color", tex(inputs.scene_color)),
-            ("scene_depth", tex(inputs.scene_depth)),
+            ("SceneDepthTexture", tex(inputs.scene_depth)),
             ("gbuffer_a", tex(inputs.gbuffer_a)),
             ("gbuffer_b", tex(inputs.gbuffer_b)),
             ("HZBDepthTexture", tex(inputs.hzb)),
@@ -146,7 +146,7 @@ impl Reflections {
         let environment_group = environment.layout.bind_group(device, 0, "ReflectionEnvironmentAndSky", &[
             ("view", frame_view.as_entire_binding()),
             ("reflection", env_params.as_entire_binding()),
-            ("scene_depth", tex(inputs.scene_depth)),
+            ("SceneDepthTexture", tex(inputs.scene_depth)),
             ("gbuffer_a", tex(inputs.gbuffer_a)),
             ("gbuffer_b", tex(inputs.gbuffer_b)),
             ("gbuffer_c", tex(inputs.gbuffer_c)),

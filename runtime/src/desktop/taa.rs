@@ -58,7 +58,7 @@ impl TemporalAA {
                 ("scene_color", wgpu::BindingResource::TextureView(scene_color)),
                 ("history", wgpu::BindingResource::TextureView(&history_views[1 - i])),
                 ("velocity", wgpu::BindingResource::TextureView(velocity)),
-                ("scene_depth", wgpu::BindingResource::TextureView(scene_depth)),
+                ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
                 ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
             ])
         };

@@ -190,7 +190,7 @@ impl VolumetricFog {
             ("fog", params.as_entire_binding()),
             ("integrated_volume", tex(&integrated_view)),
             ("volume_sampler", wgpu::BindingResource::Sampler(&sampler)),
-            ("scene_depth", tex(scene_depth)),
+            ("SceneDepthTexture", tex(scene_depth)),
         ])?;
         Ok(VolumetricFog {
             grid,
