@@ -652,6 +652,11 @@ impl Part2 {
         self.lock().eye.result.clone()
     }
 
+    /// The velocity target (RG16F), for tests.
+    pub fn velocity_texture(&self) -> wgpu::Texture {
+        self.lock().velocity.texture.clone()
+    }
+
     /// The scene depth texture part 2 reads, for tests.
     pub fn scene_depth(&self) -> wgpu::Texture {
         self.lock().scene_depth_attachment.texture().clone()

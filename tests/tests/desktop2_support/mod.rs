@@ -97,3 +97,48 @@ pub fn read_f32(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture, level: u32) ->
     }
     (w, h, out)
 }
+
+/// Reads a buffer's first `n` f32 values.
+pub fn read_buffer_f32(gpu: &kiln_runtime::Gpu, src: &wgpu::Buffer, n: usize) -> Vec<f32> {
+    let size = (n * 4) as u64;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some("test readback"), size, usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
+    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    encoder.copy_buffer_to_buffer(src, 0, &buffer, 0, size);
+    gpu.queue.submit([encoder.finish()]);
+    buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+    gpu.wait();
+    let bytes = buffer.slice(..).get_mapped_range().unwrap();
+    bytemuck::pod_collect_to_vec(&bytes)
+}
+
+/// Reads an RG16F texture back as (x, y) pairs.
+pub fn read_rg16f(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture) -> (u32, u32, Vec<[f32; 2]>) {
+    let (w, h) = (texture.width(), texture.height());
+    let row = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some("test readback"), size: u64::from(row * h), usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
+    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) } },
+        texture.size(),
+    );
+    gpu.queue.submit([encoder.finish()]);
+    buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+    gpu.wait();
+    let bytes = buffer.slice(..).get_mapped_range().unwrap();
+    let half = |b: &[u8]| {
+        let h = u16::from_le_bytes([b[0], b[1]]);
+        let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+        let exp = i32::from((h >> 10) & 0x1f);
+        let frac = f32::from(h & 0x3ff);
+        sign * if exp == 0 { frac * 2f32.powi(-24) } else { (1.0 + frac / 1024.0) * 2f32.powi(exp - 15) }
+    };
+    let mut out = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * row + x * 4) as usize;
+            out.push([half(&bytes[i..i + 2]), half(&bytes[i + 2..i + 4])]);
+        }
+    }
+    (w, h, out)
+}
