@@ -215,7 +215,14 @@ impl DesktopFrame {
         let fog = fog::HeightFog::new(&b)?;
         let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow)?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
-        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, w, h)?;
+        let grid = part2::LightGridInputs {
+            lights: &lights_buffer,
+            num_culled_lights: &light_grid.num_culled_lights,
+            culled_light_data: &light_grid.culled_light_data,
+            size: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_size,
+            z_params: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_z_params,
+        };
+        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, w, h)?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index);
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
@@ -407,6 +414,7 @@ fn desktop_part2(
     targets: &resources::Targets,
     shadows: &shadow_depths::ShadowDepths,
     dummy_shadow: &resources::Texture,
+    light_grid: part2::LightGridInputs<'_>,
     w: u32,
     h: u32,
 ) -> Result<part2::Part2, DesktopError> {
@@ -430,6 +438,7 @@ fn desktop_part2(
         shadow_depth,
         // the cascades are stored with standard depth (lit where receiver <= stored)
         shadow_compare: wgpu::CompareFunction::LessEqual,
+        light_grid,
     };
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
 }

@@ -34,7 +34,8 @@ use super::reflections::{CaptureDesc, ReflectionInputs, Reflections};
 use super::taa::TemporalAA;
 use super::translucent_volume::{InjectedLight, TranslucentVolumes};
 use super::velocity::Velocity;
-use super::volumetric_fog::{FogLight, FogSettings, ShadowInputs, VolumetricFog};
+pub use super::volumetric_fog::LightGridInputs;
+use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
 
 /// Which parts of part 2 run (all by default).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -70,6 +71,8 @@ pub struct Part2Targets<'a> {
     pub shadow_depth: &'a wgpu::Texture,
     /// Lit where `receiver OP stored` holds (reverse-Z shadow maps: GreaterEqual).
     pub shadow_compare: wgpu::CompareFunction,
+    /// ComputeLightGrid's lists: the local lights the volumetric fog scatters.
+    pub light_grid: LightGridInputs<'a>,
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -180,7 +183,6 @@ struct State {
     vis: Visualizations,
     scene_color: wgpu::Texture,
     scene_color_view: wgpu::TextureView,
-    scene_depth_view: wgpu::TextureView,
     /// Every aspect (depth and stencil, where the format has one): for depth attachments.
     scene_depth_attachment: wgpu::TextureView,
 }
@@ -241,7 +243,7 @@ impl Part2 {
 
         let hzb = Hzb::new(device, cache, &depth_view, size)?;
 
-        let fog = VolumetricFog::new(device, cache, &frame_view, size, &depth_view, &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare }, scene_color_format)?;
+        let fog = VolumetricFog::new(device, cache, &frame_view, size, &depth_view, &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare }, &targets.light_grid, scene_color_format)?;
 
         let movable: Vec<usize> = scene.objects.iter().enumerate().filter(|(_, o)| o.mobility == Mobility::Movable).map(|(i, _)| i).collect();
         let instanced = |i: usize, label: &str| {
@@ -335,7 +337,6 @@ impl Part2 {
             vis,
             scene_color: targets.scene_color.clone(),
             scene_color_view: color_view,
-            scene_depth_view: depth_view,
             scene_depth_attachment: view(targets.scene_depth),
         };
         Ok(Part2 { state: Mutex::new(state) })
@@ -477,10 +478,9 @@ impl Part2 {
         let mut s = self.lock();
         let s = &mut *s;
         let settings = fog_settings(s);
-        let lights = fog_lights(&s.scene);
         frame.pass("VolumetricFog", |ctx| {
             ctx.step("InitializeVolumeAttributes", |ctx| {
-                s.fog.record_initialize(&s.queue, ctx.encoder(), &settings, &lights);
+                s.fog.record_initialize(&s.queue, ctx.encoder(), &settings);
                 s.vis.vbuffer_a.output(ctx, None);
             });
             ctx.step("LightScattering", |ctx| {
@@ -711,8 +711,3 @@ fn fog_settings(s: &State) -> FogSettings {
     }
 }
 
-fn fog_lights(scene: &Scene) -> Vec<FogLight> {
-    let mut lights: Vec<FogLight> = scene.point_lights.iter().map(|l| FogLight { position_radius: l.position.extend(l.radius), color: (l.color * l.intensity).extend(1.0) }).collect();
-    lights.extend(scene.spot_lights.iter().map(|l| FogLight { position_radius: l.position.extend(l.radius), color: (l.color * l.intensity * 0.3).extend(1.0) }));
-    lights
-}

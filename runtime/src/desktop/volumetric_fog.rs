@@ -36,14 +36,22 @@ pub struct FogParams {
     pub cascade_view_proj: [Mat4; 3],
     pub cascade_splits: Vec4,
     pub cascade_rects: [Vec4; 3],
+    pub light_grid_size: UVec4,
+    pub light_grid_z_params: Vec4,
 }
 
-/// `LocalLight` of `VolumetricFog.usf`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct FogLight {
-    pub position_radius: Vec4,
-    pub color: Vec4,
+/// ComputeLightGrid's output: the local lights the fog scatters, cell by cell.
+pub struct LightGridInputs<'a> {
+    /// `LocalLight`s (`GridLight` of `VolumetricFog.usf`).
+    pub lights: &'a wgpu::Buffer,
+    /// (count, first index) per cell.
+    pub num_culled_lights: &'a wgpu::Buffer,
+    /// Light indices, cell after cell.
+    pub culled_light_data: &'a wgpu::Buffer,
+    /// Cells in x, y, z and the tile size in pixels.
+    pub size: UVec4,
+    /// slice = log2(depth * x + y) * z.
+    pub z_params: Vec4,
 }
 
 /// The directional light's cascaded shadow map as the fog reads it.
@@ -85,7 +93,8 @@ pub struct VolumetricFog {
     pub light_scattering: [wgpu::Texture; 2],
     pub integrated: wgpu::Texture,
     params: wgpu::Buffer,
-    lights: wgpu::Buffer,
+    /// The light grid's size and depth distribution.
+    light_grid: (UVec4, Vec4),
     init: Arc<ComputePipeline>,
     scattering: [Arc<ComputePipeline>; 2],
     integration: Arc<ComputePipeline>,
@@ -101,7 +110,6 @@ pub struct VolumetricFog {
     frame: u32,
 }
 
-pub const MAX_FOG_LIGHTS: usize = 32;
 
 impl VolumetricFog {
     pub fn new(
@@ -111,6 +119,7 @@ impl VolumetricFog {
         size: [u32; 2],
         scene_depth: &wgpu::TextureView,
         shadow: &ShadowInputs<'_>,
+        light_grid: &LightGridInputs<'_>,
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<VolumetricFog, PipelineError> {
         let grid = [size[0].div_ceil(TILE_SIZE), size[1].div_ceil(TILE_SIZE), DEPTH_SLICES];
@@ -130,12 +139,6 @@ impl VolumetricFog {
         let light_scattering = [volume_3d(device, "LightScattering0", grid, VOLUME_FORMAT), volume_3d(device, "LightScattering1", grid, VOLUME_FORMAT)];
         let integrated = volume_3d(device, "IntegratedLightScattering", grid, VOLUME_FORMAT);
         let params = uniform_buffer(device, "VolumetricFog params", &FogParams::default());
-        let lights = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("VolumetricFog local lights"),
-            size: (MAX_FOG_LIGHTS * std::mem::size_of::<FogLight>()) as u64,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("VolumetricFog shadow sampler"),
             mag_filter: wgpu::FilterMode::Linear,
@@ -163,7 +166,9 @@ impl VolumetricFog {
                 ("light_scattering", tex(&ls[out])),
                 ("shadow_atlas", tex(shadow.atlas)),
                 ("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)),
-                ("local_lights", lights.as_entire_binding()),
+                ("LocalLights", light_grid.lights.as_entire_binding()),
+                ("NumCulledLightsGrid", light_grid.num_culled_lights.as_entire_binding()),
+                ("CulledLightDataGrid", light_grid.culled_light_data.as_entire_binding()),
             ];
             let pipeline = match history {
                 Some(h) => {
@@ -199,7 +204,7 @@ impl VolumetricFog {
             light_scattering,
             integrated,
             params,
-            lights,
+            light_grid: (light_grid.size, light_grid.z_params),
             init,
             scattering,
             integration,
@@ -231,11 +236,7 @@ impl VolumetricFog {
     }
 
     /// InitializeVolumeAttributes (and this frame's parameters).
-    pub fn record_initialize(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings, lights: &[FogLight]) {
-        let count = lights.len().min(MAX_FOG_LIGHTS);
-        if count > 0 {
-            queue.write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights[..count]));
-        }
+    pub fn record_initialize(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings) {
         let (cascades, splits, rects) = DirectionalShadow::uniforms(settings.shadow.as_ref());
         let use_history = self.history_valid;
         let params = FogParams {
@@ -244,10 +245,12 @@ impl VolumetricFog {
             height_fog: Vec4::new(settings.density, settings.height_falloff, settings.fog_height, settings.start_distance),
             albedo: settings.albedo.extend(1.0),
             emissive: settings.emissive.extend(settings.anisotropy),
-            intensities: Vec4::new(settings.sun_intensity, settings.sky_intensity, settings.local_intensity, count as f32),
+            intensities: Vec4::new(settings.sun_intensity, settings.sky_intensity, settings.local_intensity, 0.0),
             cascade_view_proj: cascades,
             cascade_splits: splits,
             cascade_rects: rects,
+            light_grid_size: self.light_grid.0,
+            light_grid_z_params: self.light_grid.1,
         };
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         self.frame = self.frame.wrapping_add(1);
