@@ -234,8 +234,11 @@ impl Part2 {
         for e in &scene.emitters {
             emitters.push(EmitterDesc::fire(e));
             emitters.push(EmitterDesc::sparks(e));
+            emitters.push(EmitterDesc::smoke(e));
         }
-        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format))?;
+        // the smoke is lit by the large translucency volume cascade
+        let (lit_ambient, lit_dir) = (view(volumes.volumes(1).0), view(volumes.volumes(1).1));
+        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), (&lit_ambient, &lit_dir))?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
@@ -566,6 +569,9 @@ impl Part2 {
     /// The particle sprites over SceneColor: a step of Translucency.
     pub fn particle_sprites(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
+        let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
+        let (origin, cell) = TranslucentVolumes::cascade_box(camera, 1);
+        s.particles.update_sprites(&s.queue, origin.extend(cell));
         ctx.step("ParticleSprites", |ctx| {
             {
                 let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {

@@ -43,6 +43,8 @@ struct SpriteParams {
     color_death: Vec4,
     size: Vec4,
     counts: UVec4,
+    lighting: Vec4,
+    volume_origin: Vec4,
 }
 
 /// What an emitter simulates and draws.
@@ -68,6 +70,8 @@ pub struct EmitterDesc {
     pub color_death: Vec4,
     /// Heat haze strength (0: no distortion).
     pub distortion: f32,
+    /// Lit by the translucency lighting volume (the colours are albedo); else emissive.
+    pub lit: bool,
 }
 
 impl EmitterDesc {
@@ -90,6 +94,30 @@ impl EmitterDesc {
             color_birth: e.color_start.extend(0.6),
             color_death: e.color_end.extend(0.0),
             distortion: 0.6,
+            lit: false,
+        }
+    }
+
+    /// Smoke rising from the fire: grey, growing, lit by the translucency lighting volume.
+    pub fn smoke(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: format!("{}Smoke", e.name),
+            position: e.position + Vec3::Y * 0.9,
+            spawn_radius: e.spawn_radius,
+            max_particles: 256,
+            lifetime: (2.5, 4.0),
+            initial_velocity: Vec3::new(0.0, 0.5, 0.0),
+            velocity_jitter: 0.15,
+            acceleration: Vec3::new(0.1, 0.2, 0.0),
+            drag: 0.3,
+            collides: false,
+            restitution: 0.0,
+            size: (0.4, 1.4),
+            stretch: 0.0,
+            color_birth: Vec4::new(0.5, 0.5, 0.52, 0.35),
+            color_death: Vec4::new(0.6, 0.6, 0.62, 0.0),
+            distortion: 0.0,
+            lit: true,
         }
     }
 
@@ -113,6 +141,7 @@ impl EmitterDesc {
             color_birth: Vec4::new(12.0, 6.0, 1.5, 0.0),
             color_death: Vec4::new(2.0, 0.4, 0.05, 0.0),
             distortion: 0.0,
+            lit: false,
         }
     }
 }
@@ -157,7 +186,9 @@ impl Particles {
         descs: Vec<EmitterDesc>,
         collision: &CollisionInputs<'_>,
         target: (wgpu::TextureFormat, wgpu::TextureFormat),
+        lighting_volume: (&wgpu::TextureView, &wgpu::TextureView),
     ) -> Result<Particles, PipelineError> {
+        let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
         let distortion_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
         let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(target.0, Some(target.1)))?;
         let simulation = [
@@ -183,7 +214,7 @@ impl Particles {
             let positions = [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
             let velocities = [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
             let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
-            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
+            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc, Vec4::ZERO));
             let pos_views = [view(&positions[0]), view(&positions[1])];
             let vel_views = [view(&velocities[0]), view(&velocities[1])];
             let make_sim = |i: usize| {
@@ -201,17 +232,23 @@ impl Particles {
                 }
                 sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
             };
-            let make_sprites = |i: usize, pipeline: &RenderPipeline| {
-                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &[
+            let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
+                let mut resources = vec![
                     ("view", frame_view.as_entire_binding()),
                     ("sprite", sprite_params.as_entire_binding()),
                     ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
                     ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
-                ])
+                ];
+                if lit {
+                    resources.push(("translucency_ambient", wgpu::BindingResource::TextureView(lighting_volume.0)));
+                    resources.push(("translucency_dir", wgpu::BindingResource::TextureView(lighting_volume.1)));
+                    resources.push(("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)));
+                }
+                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
             };
+            let sprites = [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
+            let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
             let simulate = [make_sim(0)?, make_sim(1)?];
-            let sprites = [make_sprites(0, &sprite_pipeline_layout)?, make_sprites(1, &sprite_pipeline_layout)?];
-            let distortion = [make_sprites(0, &distortion_layout)?, make_sprites(1, &distortion_layout)?];
             emitters.push(Emitter {
                 desc,
                 seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
@@ -313,21 +350,22 @@ impl Particles {
         }
     }
 
-    /// Keeps the uniform buffers alive with the bind groups (and the sprite parameters
-    /// current if an emitter changed).
-    pub fn update_sprites(&self, queue: &wgpu::Queue) {
+    /// This frame's translucency volume box (it follows the camera): min corner, cell size.
+    pub fn update_sprites(&self, queue: &wgpu::Queue, volume_origin: Vec4) {
         for e in &self.emitters {
-            queue.write_buffer(&e.sprite_params, 0, bytemuck::bytes_of(&sprite_params(&e.desc)));
+            queue.write_buffer(&e.sprite_params, 0, bytemuck::bytes_of(&sprite_params(&e.desc, volume_origin)));
         }
     }
 }
 
-fn sprite_params(d: &EmitterDesc) -> SpriteParams {
+fn sprite_params(d: &EmitterDesc, volume_origin: Vec4) -> SpriteParams {
     SpriteParams {
         color_birth: d.color_birth,
         color_death: d.color_death,
         size: Vec4::new(d.size.0, d.size.1, d.stretch, d.distortion * 0.02),
         counts: UVec4::new(STATE_WIDTH, d.max_particles, 0, 0),
+        lighting: Vec4::new(if d.lit { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0),
+        volume_origin,
     }
 }
 
