@@ -12,6 +12,7 @@ use crate::gpu::Gpu;
 use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
 use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
+use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
 use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
 use crate::passes::tonemap::TonemapPass;
@@ -87,7 +88,15 @@ pub enum RenderError {
 enum Passes {
     /// The desktop deferred frame of `crate::desktop`.
     DesktopDeferred(Box<crate::desktop::DesktopFrame>),
-    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    Desktop {
+        particles: ParticleSimulationPass,
+        prepass: DepthPass,
+        shadows: DepthPass,
+        base: BasePass,
+        lighting: LightingPass,
+        translucency: TranslucencyPass,
+        tonemap: TonemapPass,
+    },
     MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
 }
@@ -162,25 +171,29 @@ impl Renderer {
                     crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
                 )?)),
                 #[allow(unreachable_patterns)]
-                FramePipeline::Desktop => Passes::Desktop {
-                    prepass: DepthPass::new(&init, DepthView::Camera)?,
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: BasePass::new(&init)?,
-                    lighting: LightingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    Passes::Desktop {
+                        prepass: DepthPass::new(&init, DepthView::Camera)?,
+                        shadows: DepthPass::new(&init, DepthView::Sun)?,
+                        base: BasePass::new(&init)?,
+                        lighting: LightingPass::new(&init)?,
+                        translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop, particles.systems())?,
+                        tonemap: TonemapPass::new(&init)?,
+                        particles,
+                    }
+                }
                 FramePipeline::MobileForward => Passes::MobileForward {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::forward())?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
                 FramePipeline::MobileDeferred => Passes::MobileDeferred {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::deferred())?,
                     shading: MobileDeferredShadingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
             }
@@ -242,7 +255,8 @@ impl Renderer {
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
             Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
-            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
+            Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
                 frame.pass("BasePass", |ctx| base.record(ctx, s, t));

@@ -26,6 +26,7 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
     let q = match shader.name.as_str() {
         "BasePassPS" => archive.shader("BasePassVS").level(&shader.level),
         "DepthOnlyPS" => archive.shader("DepthOnlyVS").level(&shader.level),
+        "ParticleSpritePS" => archive.shader("ParticleSpriteVS").level(&shader.level),
         "MobileBasePassPS" => archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG")),
         _ => archive.shader("ScreenVS").level(&shader.level),
     };

@@ -189,11 +189,11 @@ impl Particles {
         lighting_volume: (&wgpu::TextureView, &wgpu::TextureView),
     ) -> Result<Particles, PipelineError> {
         let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
-        let distortion_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
-        let sprite_pipeline_layout = cache.render(&perm(cache, "ParticleSpriteVS", &[])?, Some(&perm(cache, "ParticleSpritePS", &[])?), &sprite_state(target.0, Some(target.1)))?;
+        let distortion_layout = cache.render(&perm(cache, "GPUSpriteVS", &[])?, Some(&perm(cache, "GPUSpriteDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
+        let sprite_pipeline_layout = cache.render(&perm(cache, "GPUSpriteVS", &[])?, Some(&perm(cache, "GPUSpritePS", &[])?), &sprite_state(target.0, Some(target.1)))?;
         let simulation = [
-            cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", "0")])?)?,
-            cache.compute(&perm(cache, "ParticleSimulationCS", &[("PARTICLE_COLLISION", "1")])?)?,
+            cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "0")])?)?,
+            cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "1")])?)?,
         ];
         let mut emitters = Vec::new();
         for (index, desc) in descs.into_iter().enumerate() {
