@@ -135,7 +135,10 @@ fn dump_captures_every_pass_in_frame_order() {
     let scene = Scene::bundled();
     let frame = render(&gpu, &scene, FramePipeline::Desktop, true);
     let names: Vec<&str> = frame.passes.iter().map(|p| p.name.as_str()).collect();
-    assert_eq!(names, ["PrePass", "ShadowDepths", "BasePass", "Lighting", "Translucency", "PostProcessing"]);
+    assert_eq!(
+        names,
+        ["PrePass", "ComputeLightGrid", "ShadowDepths", "BasePass", "AmbientOcclusion", "Lighting", "ExponentialHeightFog", "Translucency", "PostProcessing"]
+    );
     for p in &frame.passes {
         assert!(!p.images.is_empty(), "{} captured nothing", p.name);
         for (name, image) in &p.images {
@@ -151,18 +154,36 @@ fn dump_captures_every_pass_in_frame_order() {
         image_names,
         [
             "PrePass",
-            "ShadowDepths",
+            "ComputeLightGrid",
+            "ShadowDepths_Atlas0",
+            "ShadowDepths_Atlas1",
+            "ShadowDepths_Cubemap_FireLight",
             "BasePass",
             "BasePass_GBufferA",
             "BasePass_GBufferB",
             "BasePass_GBufferC",
-            "Lighting_StandardDeferredLighting",
-            "Translucency",
+            "AmbientOcclusion_Setup",
+            "AmbientOcclusion_HalfResolution",
+            "AmbientOcclusion_FullResolution",
+            "AmbientOcclusion_ApplyToSceneColor",
+            "Lighting_NonShadowedLights",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_DirectionalLight",
+            "Lighting_ShadowedLights_StandardDeferredLighting_DirectionalLight",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_CeilingLampA",
+            "Lighting_ShadowedLights_StandardDeferredLighting_CeilingLampA",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_CeilingLampB",
+            "Lighting_ShadowedLights_StandardDeferredLighting_CeilingLampB",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_FireLight",
+            "Lighting_ShadowedLights_StandardDeferredLighting_FireLight",
+            "ExponentialHeightFog",
+            "Translucency_SeparateTranslucency",
+            "Translucency_ComposeSeparateTranslucency",
+            "PostProcessing_Bloom",
             "PostProcessing_Tonemapper"
         ]
     );
     // The last capture is the output itself.
-    assert_eq!(frame.passes.last().unwrap().images[0].1, frame.image);
+    assert_eq!(frame.passes.last().unwrap().images.last().unwrap().1, frame.image);
     let dir = tempfile::tempdir().unwrap();
     let permutations = vec!["DepthOnlyVS@sm5{}".to_string()];
     let info = kiln_runtime::frame::DumpInfo {
@@ -177,9 +198,9 @@ fn dump_captures_every_pass_in_frame_order() {
     };
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
-    assert_eq!(json["passes"][2]["images"][1], "02_BasePass_GBufferA.png");
+    assert_eq!(json["passes"][3]["images"][1], "03_BasePass_GBufferA.png");
     assert_eq!(json["permutations"][0], "DepthOnlyVS@sm5{}");
-    assert!(dir.path().join("05_PostProcessing_Tonemapper.png").is_file());
+    assert!(dir.path().join("08_PostProcessing_Tonemapper.png").is_file());
 }
 
 #[test]

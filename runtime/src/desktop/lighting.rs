@@ -71,6 +71,9 @@ impl Lighting {
         let t = b.targets;
         let device = b.device;
         let read_only = |compare: wgpu::CompareFunction| {
+            if !t.scene_depth.read_only_attachment {
+                return None;
+            }
             Some(wgpu::DepthStencilState {
                 format: t.scene_depth.format,
                 depth_write_enabled: Some(false),

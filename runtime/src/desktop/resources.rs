@@ -257,16 +257,20 @@ pub struct SceneDepth {
     pub attachment: wgpu::TextureView,
     pub depth_view: wgpu::TextureView,
     pub format: wgpu::TextureFormat,
+    /// Whether the depth can be attached read-only (depth and stencil tests) while passes
+    /// sample it. wgpu's GL backend cannot; there the lighting passes test in the shader
+    /// only (depth bounds and shading model), without the attachment.
+    pub read_only_attachment: bool,
 }
 
 impl SceneDepth {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> SceneDepth {
         // Depth32FloatStencil8 can be copied out for --dump-passes; Depth24PlusStencil8 is
-        // the fallback every device has.
-        let copyable = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
-        let format = if copyable { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
+        // the fallback every device has (its capture is drawn, as on GL).
+        let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
+        let format = if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
-        if copyable {
+        if d32s8 {
             usage |= wgpu::TextureUsages::COPY_SRC;
         }
         let t = Texture::new(device, "SceneDepthZ", format, width, height, usage);
@@ -275,12 +279,10 @@ impl SceneDepth {
             aspect: wgpu::TextureAspect::DepthOnly,
             ..Default::default()
         });
-        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format }
+        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
+        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment }
     }
 
-    pub fn copyable(&self) -> bool {
-        self.format == wgpu::TextureFormat::Depth32FloatStencil8
-    }
 }
 
 /// The frame's full and reduced resolution targets.
@@ -446,6 +448,9 @@ pub fn begin<'e>(
 /// The scene depth bound read-only (depth and stencil tested, nothing written), so it can be
 /// sampled in the same pass.
 pub fn read_only_depth(depth: &SceneDepth) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
+    if !depth.read_only_attachment {
+        return None;
+    }
     Some(wgpu::RenderPassDepthStencilAttachment { view: &depth.attachment, depth_ops: None, stencil_ops: None })
 }
 
