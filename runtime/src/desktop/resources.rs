@@ -140,8 +140,10 @@ impl SceneBuffers {
 pub fn material_gpu(m: &crate::scene::Material) -> MaterialGpu {
     let (pattern, scale, contrast) = match m.pattern {
         Pattern::None => (0.0, 1.0, 0.0),
-        Pattern::Checker => (1.0, 1.0, 1.0),
-        Pattern::Slats => (6.0, 8.0, 0.0),
+        // The scene's patterns, as `MaterialCommon.ush` defines them: an 8x8 checker per uv
+        // unit tinting the base color, vertical slats (6 per uv unit) masking.
+        Pattern::Checker => (7.0, 8.0, 1.0),
+        Pattern::Slats => (6.0, 6.0, 0.0),
     };
     let opacity = if m.blend == BlendMode::Translucent { m.opacity } else { 1.0 };
     MaterialGpu {
