@@ -131,13 +131,16 @@ pub struct Compute {
     pub workgroup_size: [u32; 3],
 }
 
+/// A cached render pipeline with its key (vertex, fragment, state).
+type RenderEntry = (String, Option<String>, RenderDesc, Arc<Render>);
+
 /// Builds and caches the desktop pipelines of one frame.
 pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
     pub device: &'a wgpu::Device,
     pub level: &'a str,
     spirv_passthrough: bool,
-    render: Mutex<Vec<(String, Option<String>, RenderDesc, Arc<Render>)>>,
+    render: Mutex<Vec<RenderEntry>>,
     compute: Mutex<HashMap<String, Arc<Compute>>>,
 }
 
