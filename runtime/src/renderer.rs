@@ -14,6 +14,7 @@ use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
 use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
 use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
+use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
@@ -85,9 +86,18 @@ pub enum RenderError {
 
 /// The passes of each frame, built once.
 enum Passes {
-    /// The desktop deferred frame of `crate::desktop`.
-    DesktopDeferred(Box<crate::desktop::DesktopFrame>),
-    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
+    /// before it (the sprites are drawn in its Translucency).
+    DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
+    Desktop {
+        particles: ParticleSimulationPass,
+        prepass: DepthPass,
+        shadows: DepthPass,
+        base: BasePass,
+        lighting: LightingPass,
+        translucency: TranslucencyPass,
+        tonemap: TonemapPass,
+    },
     MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
     MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
 }
@@ -153,34 +163,43 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
-                FramePipeline::Desktop => Passes::DesktopDeferred(Box::new(crate::desktop::DesktopFrame::new(
-                    device,
-                    &gpu.queue,
-                    gpu.timestamps,
-                    &cache,
-                    scene,
-                    crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
-                )?)),
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    let frame = crate::desktop::DesktopFrame::new(
+                        device,
+                        &gpu.queue,
+                        gpu.timestamps,
+                        &cache,
+                        scene,
+                        crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                        Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
+                    )?;
+                    Passes::DesktopDeferred { particles, frame: Box::new(frame) }
+                }
                 #[allow(unreachable_patterns)]
-                FramePipeline::Desktop => Passes::Desktop {
-                    prepass: DepthPass::new(&init, DepthView::Camera)?,
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: BasePass::new(&init)?,
-                    lighting: LightingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    Passes::Desktop {
+                        prepass: DepthPass::new(&init, DepthView::Camera)?,
+                        shadows: DepthPass::new(&init, DepthView::Sun)?,
+                        base: BasePass::new(&init)?,
+                        lighting: LightingPass::new(&init)?,
+                        translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop, particles.systems())?,
+                        tonemap: TonemapPass::new(&init)?,
+                        particles,
+                    }
+                }
                 FramePipeline::MobileForward => Passes::MobileForward {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::forward())?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
                 FramePipeline::MobileDeferred => Passes::MobileDeferred {
                     shadows: DepthPass::new(&init, DepthView::Sun)?,
                     base: MobileBasePass::new(&init, MobileBasePassOptions::deferred())?,
                     shading: MobileDeferredShadingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
                     tonemap: TonemapPass::new(&init)?,
                 },
             }
@@ -225,8 +244,12 @@ impl Renderer {
         let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
-            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
+            Passes::DesktopDeferred { particles, frame: desktop } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
+            }
+            Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
                 frame.pass("BasePass", |ctx| base.record(ctx, s, t));

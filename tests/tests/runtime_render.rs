@@ -112,12 +112,13 @@ fn spirv_passthrough_and_wgsl_draw_the_same_frame() {
 fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
     // Effects one path lacks are turned off: local lights (mobile deferred has no light
     // volumes yet), fog (mobile fogs per vertex), translucency (drawn by each path's own
-    // shaders).
+    // shaders), particles (desktop only).
     let mut scene = Scene::bundled();
     scene.point_lights.clear();
     scene.spot_lights.clear();
     scene.fog.density = 0.0;
     scene.objects.retain(|o| o.name != "GlassStatues");
+    scene.emitters.clear();
     let gpu = gpu(Backend::Vulkan, ModuleSource::Auto);
     let desktop = render(&gpu, &scene, FramePipeline::Desktop, false).image;
     let forward = render(&gpu, &scene, FramePipeline::MobileForward, false).image;
@@ -130,6 +131,29 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
 }
 
 #[test]
+fn fire_particles_glow_and_move_between_frames() {
+    let gpu = gpu(Backend::Vulkan, ModuleSource::Auto);
+    let scene = Scene::bundled();
+    let mut no_fire = scene.clone();
+    no_fire.emitters.clear();
+    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let options = RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H };
+    let renderer = Renderer::new(&gpu, archive.clone(), &scene, options.clone()).unwrap();
+    let first = renderer.render(false).unwrap().image;
+    let second = renderer.render(false).unwrap().image;
+    let without = Renderer::new(&gpu, archive, &no_fire, options).unwrap().render(false).unwrap().image;
+    // Just above the emitter the flames add light.
+    let (x, y) = pixel(&scene, scene.emitters[0].position + Vec3::new(0.0, 0.5, 0.0));
+    let area = |img: &Image| img.mean_luma(x - 4, y - 4, x + 5, y + 5);
+    eprintln!("fire {:.1}, without {:.1}", area(&first), area(&without));
+    assert!(area(&first) > area(&without) + 20.0, "fire {:.1} vs none {:.1}", area(&first), area(&without));
+    // The simulation advances: consecutive frames differ around the fire, and only there.
+    assert_ne!(first, second);
+    let far = pixel(&scene, LIT_FLOOR);
+    assert_eq!(luma_at(&first, far), luma_at(&second, far));
+}
+
+#[test]
 fn dump_captures_every_pass_in_frame_order() {
     let gpu = gpu(Backend::Vulkan, ModuleSource::Auto);
     let scene = Scene::bundled();
@@ -137,7 +161,18 @@ fn dump_captures_every_pass_in_frame_order() {
     let names: Vec<&str> = frame.passes.iter().map(|p| p.name.as_str()).collect();
     assert_eq!(
         names,
-        ["PrePass", "ComputeLightGrid", "ShadowDepths", "BasePass", "AmbientOcclusion", "Lighting", "ExponentialHeightFog", "Translucency", "PostProcessing"]
+        [
+            "ParticleSimulation",
+            "PrePass",
+            "ComputeLightGrid",
+            "ShadowDepths",
+            "BasePass",
+            "AmbientOcclusion",
+            "Lighting",
+            "ExponentialHeightFog",
+            "Translucency",
+            "PostProcessing"
+        ]
     );
     for p in &frame.passes {
         assert!(!p.images.is_empty(), "{} captured nothing", p.name);
@@ -153,6 +188,7 @@ fn dump_captures_every_pass_in_frame_order() {
     assert_eq!(
         image_names,
         [
+            "ParticleSimulation",
             "PrePass",
             "ComputeLightGrid",
             "ShadowDepths_Atlas0",
@@ -198,9 +234,9 @@ fn dump_captures_every_pass_in_frame_order() {
     };
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
-    assert_eq!(json["passes"][3]["images"][1], "03_BasePass_GBufferA.png");
+    assert_eq!(json["passes"][4]["images"][1], "04_BasePass_GBufferA.png");
     assert_eq!(json["permutations"][0], "DepthOnlyVS@sm5{}");
-    assert!(dir.path().join("08_PostProcessing_Tonemapper.png").is_file());
+    assert!(dir.path().join("09_PostProcessing_Tonemapper.png").is_file());
 }
 
 #[test]

@@ -96,6 +96,14 @@ pub enum DesktopError {
     StorageFormat { pipeline: String, format: String },
 }
 
+/// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
+/// frame; Translucency draws their sprites (additively, depth tested against the scene).
+pub struct ParticleInputs<'a> {
+    /// The runtime's view uniforms (`FViewUniforms`), which the sprite shaders read.
+    pub view: &'a wgpu::Buffer,
+    pub systems: &'a [crate::passes::particles::ParticleSystem],
+}
+
 /// What passes read while they are built.
 pub(crate) struct Build<'a> {
     pub device: &'a wgpu::Device,
@@ -159,6 +167,7 @@ impl DesktopFrame {
         cache: &PipelineCache,
         scene: &Scene,
         options: DesktopOptions,
+        particles: Option<ParticleInputs<'_>>,
     ) -> Result<DesktopFrame, DesktopError> {
         let (w, h) = (options.width.max(1), options.height.max(1));
         let view = FrameView::new(scene, w, h);
@@ -192,7 +201,7 @@ impl DesktopFrame {
         let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
         let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow)?;
         let fog = fog::HeightFog::new(&b)?;
-        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow)?;
+        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref())?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
         Ok(DesktopFrame {
             device: device.clone(),
