@@ -41,7 +41,7 @@ impl Translucency {
             bias: wgpu::DepthBiasState::default(),
         });
         let mut sprites = Vec::new();
-        for inputs in particles {
+        if let Some(inputs) = particles {
             for system in inputs.systems {
                 let pipeline = p.render(
                     &p.permutation("ParticleSpriteVS", &[])?,
