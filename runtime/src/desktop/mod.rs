@@ -49,6 +49,9 @@ pub struct DesktopOptions {
     /// pass (Unreal switches above 80).
     pub tiled_threshold: usize,
     pub lighting_path: LightingPath,
+    /// The tiled pass reads each pixel's lights from the light grid (`USE_LIGHT_GRID=1`)
+    /// instead of culling them per 16x16 tile itself, as Unreal 4.17 does.
+    pub tiled_uses_light_grid: bool,
     /// Shadow filtering, 1 to 3 (1x1, 3x3, 5x5 PCF): `SHADOW_QUALITY`.
     pub shadow_quality: u32,
     /// Ambient occlusion quality, 0 to 2 (4, 8, 12 samples): `SHADER_QUALITY`.
@@ -74,6 +77,7 @@ impl Default for DesktopOptions {
             height: 360,
             tiled_threshold: 80,
             lighting_path: LightingPath::Auto,
+            tiled_uses_light_grid: true,
             shadow_quality: 2,
             ao_quality: 2,
             shadow_map_size: 512,
@@ -199,7 +203,7 @@ impl DesktopFrame {
         let shadows = shadow_depths::ShadowDepths::new(&b)?;
         let base_pass = base_pass::BasePass::new(&b)?;
         let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
-        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow)?;
+        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
         let fog = fog::HeightFog::new(&b)?;
         let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref())?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;

@@ -184,6 +184,15 @@ impl FrameLight {
     }
 }
 
+/// `LocalLight.spot_angles.z`: 1 for lights ShadowedLights draws.
+fn shadowed_flag(casts_shadows: bool) -> f32 {
+    if casts_shadows {
+        1.0
+    } else {
+        0.0
+    }
+}
+
 /// Every point and spot light of the scene, in scene order (points, then spots).
 pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
     let shadow = |casts: bool, mobility: Mobility| match (casts, mobility) {
@@ -199,7 +208,7 @@ pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
                 position_radius: l.position.extend(l.radius),
                 color_falloff: (l.color * l.intensity).extend(0.0),
                 direction_type: Vec4::new(0.0, -1.0, 0.0, 1.0),
-                spot_angles: Vec4::new(-2.0, 1.0, 0.0, 0.0),
+                spot_angles: Vec4::new(-2.0, 1.0, shadowed_flag(l.casts_shadows), 0.0),
             },
             shadow: shadow(l.casts_shadows, l.mobility),
             spot: false,
@@ -214,7 +223,7 @@ pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
                 position_radius: l.position.extend(l.radius),
                 color_falloff: (l.color * l.intensity).extend(0.0),
                 direction_type: l.direction.normalize().extend(2.0),
-                spot_angles: Vec4::new(cos_outer, 1.0 / (cos_inner - cos_outer).max(1e-4), 0.0, 0.0),
+                spot_angles: Vec4::new(cos_outer, 1.0 / (cos_inner - cos_outer).max(1e-4), shadowed_flag(l.casts_shadows), 0.0),
             },
             shadow: shadow(l.casts_shadows, l.mobility),
             spot: true,
