@@ -198,7 +198,8 @@ impl FileHashes {
     fn get(&self, path: &Path) -> Option<String> {
         self.get_or_insert_with(path, || {
             std::fs::read(path).ok().map(|bytes| {
-                let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+                let text =
+                    String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
                 blake3::hash(text.as_bytes()).to_hex().to_string()
             })
         })
@@ -424,10 +425,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 };
                 return Got::Failed(e, warning);
             };
-            let opts = compile::Options {
-                targets: level_targets(p.level, &options.targets),
-                limits: level_limits(p.level),
-            };
+            let opts =
+                compile::Options { targets: level_targets(p.level, &options.targets), limits: level_limits(p.level) };
             let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
                 Ok(c) => Got::Compiled(c, warning),
                 Err(e) => Got::Failed(e, warning),
@@ -468,7 +467,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     };
                     if e.kind == compile::ErrorKind::EntryPoint {
                         let s = kept[m].shader;
-                        let file = config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+                        let file =
+                            config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
                         diagnostic.notes.push(format!(
                             "shader `{}` of {file} names entry point `{}` ({}) in {}",
                             s.name,
@@ -492,11 +492,12 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        fresh
-            .par_iter()
-            .filter_map(|k| c.put(k, &compiled[k]).err())
-            .map(|e| format!("warning: cannot store a cache entry: {e}"))
-            .collect()
+        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
+        match errors.first() {
+            None => Vec::new(),
+            Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
+            Some(e) => vec![format!("warning: cannot store {} cache entries: {e} (and {} more)", errors.len(), errors.len() - 1)],
+        }
     };
     if report.stats.failed > 0 {
         let warnings = store();
@@ -562,13 +563,7 @@ fn write_outputs(
             }
         }
         report.stats.permutation_artifacts += artifacts.len();
-        writer.add_permutation(PermutationRecord {
-            name,
-            shader,
-            values: p.values.clone(),
-            reflection,
-            artifacts,
-        });
+        writer.add_permutation(PermutationRecord { name, shader, values: p.values.clone(), reflection, artifacts });
     }
     report.stats.artifacts = writer.blob_count();
     if let Some(dir) = &options.emit_dir {
@@ -592,7 +587,8 @@ fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result
     report.stats.seconds.total = start.elapsed().as_secs_f64();
     if let Some(path) = &options.stats_json {
         let json = serde_json::to_vec_pretty(&report.stats).expect("stats serialize");
-        archive::write_atomic_unsynced(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        archive::write_atomic_unsynced(path, &json)
+            .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     Ok(())
 }
@@ -637,7 +633,8 @@ fn build_fingerprint(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<Fil
     h.update(compile::NAGA_VERSION.as_bytes());
     for (p, r) in kept.iter().zip(pre) {
         let Ok(r) = r else { continue };
-        let dims: Vec<(&str, &[String])> = p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+        let dims: Vec<(&str, &[String])> =
+            p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
         let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
         h.update(line.as_bytes());
         h.update(&r.key.0);
@@ -801,7 +798,12 @@ fn render_failures(
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {
             let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
-            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), p.level.name, names.join("\n"))
+            format!(
+                "in {} permutations (level `{}`, {limits} limits):\n{}",
+                names.len(),
+                p.level.name,
+                names.join("\n")
+            )
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));
@@ -908,9 +910,9 @@ impl Progress {
     }
     fn stage(&self, name: &'static str, len: usize) {
         if let Some(b) = &self.bar {
-            b.set_prefix(name);
             b.set_length(len as u64);
             b.set_position(0);
+            b.set_prefix(name);
         }
     }
     fn inc(&self) {

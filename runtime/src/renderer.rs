@@ -12,9 +12,9 @@ use crate::gpu::Gpu;
 use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
 use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
-use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
 use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
+use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
@@ -86,8 +86,9 @@ pub enum RenderError {
 
 /// The passes of each frame, built once.
 enum Passes {
-    /// The desktop deferred frame of `crate::desktop`.
-    DesktopDeferred(Box<crate::desktop::DesktopFrame>),
+    /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
+    /// before it (the sprites are drawn in its Translucency).
+    DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
     Desktop {
         particles: ParticleSimulationPass,
         prepass: DepthPass,
@@ -162,14 +163,19 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
-                FramePipeline::Desktop => Passes::DesktopDeferred(Box::new(crate::desktop::DesktopFrame::new(
-                    device,
-                    &gpu.queue,
-                    gpu.timestamps,
-                    &cache,
-                    scene,
-                    crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
-                )?)),
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    let frame = crate::desktop::DesktopFrame::new(
+                        device,
+                        &gpu.queue,
+                        gpu.timestamps,
+                        &cache,
+                        scene,
+                        crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                        Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
+                    )?;
+                    Passes::DesktopDeferred { particles, frame: Box::new(frame) }
+                }
                 #[allow(unreachable_patterns)]
                 FramePipeline::Desktop => {
                     let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
@@ -227,17 +233,14 @@ impl Renderer {
     /// The desktop deferred frame, for tests that look at its state across frames.
     pub fn desktop_frame(&self) -> Option<&crate::desktop::DesktopFrame> {
         match &self.passes {
-            Passes::DesktopDeferred(d) => Some(d),
+            Passes::DesktopDeferred { frame, .. } => Some(frame),
             _ => None,
         }
     }
 
     /// The desktop frame's part 2 (issue 7), for tests that look at its state across frames.
     pub fn desktop_part2(&self) -> Option<&crate::desktop::part2::Part2> {
-        match &self.passes {
-            Passes::DesktopDeferred(d) => Some(d.part2()),
-            _ => None,
-        }
+        self.desktop_frame().map(|d| d.part2())
     }
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
@@ -254,7 +257,10 @@ impl Renderer {
         let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::DesktopDeferred(desktop) => desktop.record_into(&mut frame, (&t.output.texture, &t.output.view)),
+            Passes::DesktopDeferred { particles, frame: desktop } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
+            }
             Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
                 frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));

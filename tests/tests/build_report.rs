@@ -17,14 +17,21 @@ fn counts_and_dead_dimensions() {
     assert_eq!(r.stats.failed, 0);
     let dead: Vec<(String, String, String)> =
         r.dead_dimensions.iter().map(|d| (d.shader.clone(), d.level.clone(), d.dimension.clone())).collect();
-    assert_eq!(dead, vec![
-        ("LitVS".to_string(), "sm5".to_string(), "DEBUG_VIEW".to_string()),
-        ("LitVS".to_string(), "es3_1".to_string(), "DEBUG_VIEW".to_string()),
-    ]);
+    assert_eq!(
+        dead,
+        vec![
+            ("LitVS".to_string(), "sm5".to_string(), "DEBUG_VIEW".to_string()),
+            ("LitVS".to_string(), "es3_1".to_string(), "DEBUG_VIEW".to_string()),
+        ]
+    );
     assert!(r.warnings.contains(&"warning: dimension `DEBUG_VIEW` of `LitVS` never changes the shader's text at level `sm5`: its 2 values multiply the permutations for nothing".to_string()), "{:?}", r.warnings);
-    assert_eq!(r.summary().split(" in ").next().unwrap(), "28 permutations (4 skipped), 24 distinct, 24 compiled, 0 cache hits, 0 failed");
+    assert_eq!(
+        r.summary().split(" in ").next().unwrap(),
+        "28 permutations (4 skipped), 24 distinct, 24 compiled, 0 cache hits, 0 failed"
+    );
     // Files read: the config and every source and header.
-    let names: Vec<String> = r.files_read.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    let names: Vec<String> =
+        r.files_read.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
     assert_eq!(names, vec!["common.ush", "fog.ush", "lit.toml", "lit.usf"]);
 }
 

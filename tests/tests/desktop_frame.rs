@@ -36,7 +36,7 @@ struct Frame {
 fn build(scene: &Scene, options: DesktopOptions) -> Frame {
     let gpu = gpu();
     let cache = PipelineCache::new(&gpu, archive());
-    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options).unwrap_or_else(|e| panic!("desktop frame: {e}"));
+    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options, None).unwrap_or_else(|e| panic!("desktop frame: {e}"));
     Frame { _gpu: gpu, _cache: cache, frame }
 }
 
@@ -125,8 +125,9 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
             let file = file.as_str().unwrap();
             assert!(file.starts_with(&format!("{:02}_{name}", p["index"].as_u64().unwrap())), "{file}");
             let img = read_png(&dir.path().join(file));
-            // Non-trivial: more than a handful of colors (a cleared target has one).
-            assert!(distinct(&img) > 8, "{file} is (nearly) constant");
+            // Non-trivial: a cleared target has one color; GBufferB holds a handful of
+            // material constants.
+            assert!(distinct(&img) > 3, "{file} is (nearly) constant");
         }
     }
     assert!(names.iter().filter(|n| PASSES.contains(n)).count() == PASSES.len());
@@ -405,24 +406,30 @@ fn tiled_lighting_above_80_lights_matches_the_per_light_path() {
     let at_threshold = with_extra_lights(80 - unshadowed_in_bundled);
     assert!(!build(&at_threshold, small()).frame.uses_tiled_lighting(), "80 lights stay per-light");
     let scene = with_extra_lights(100);
-    let tiled = build(&scene, small());
-    assert!(tiled.frame.uses_tiled_lighting(), "101 unshadowed lights take the tiled path");
     let per_light = build(&scene, DesktopOptions { lighting_path: LightingPath::PerLight, ..small() });
     assert!(!per_light.frame.uses_tiled_lighting());
-    let (a, images) = render(&tiled);
-    assert!(images.iter().any(|(n, _)| n == "Lighting_TiledDeferredLighting"));
     let (b, _) = render(&per_light);
-    let mut sum = 0.0;
-    let mut worst = 0;
-    for (p, q) in a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)) {
-        for c in 0..3 {
-            let d = (i32::from(p[c]) - i32::from(q[c])).abs();
-            sum += f64::from(d);
-            worst = worst.max(d);
+    // Both ways of finding a pixel's lights: the light grid, and culling per 16x16 tile.
+    let mut tiled_image = None;
+    for use_grid in [true, false] {
+        let tiled = build(&scene, DesktopOptions { tiled_uses_light_grid: use_grid, ..small() });
+        assert!(tiled.frame.uses_tiled_lighting(), "101 unshadowed lights take the tiled path");
+        let (a, images) = render(&tiled);
+        assert!(images.iter().any(|(n, _)| n == "Lighting_TiledDeferredLighting"));
+        let mut sum = 0.0;
+        let mut worst = 0;
+        for (p, q) in a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)) {
+            for c in 0..3 {
+                let d = (i32::from(p[c]) - i32::from(q[c])).abs();
+                sum += f64::from(d);
+                worst = worst.max(d);
+            }
         }
+        let mean = sum / f64::from(W * H * 3);
+        assert!(mean <= 0.5 && worst <= 4, "light grid {use_grid}: mean {mean:.3}, worst {worst}");
+        tiled_image = Some(a);
     }
-    let mean = sum / f64::from(W * H * 3);
-    assert!(mean <= 0.5 && worst <= 4, "mean {mean:.3}, worst {worst}");
+    let a = tiled_image.unwrap();
     // The extra lights are visible at all: the frame is brighter than without them.
     let (base, _) = render(&build(&Scene::bundled(), small()));
     assert!(a.mean_luma(0, 0, W, H) > base.mean_luma(0, 0, W, H) + 2.0);

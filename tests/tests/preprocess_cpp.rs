@@ -62,7 +62,9 @@ fn run_kiln(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> 
     } else {
         preprocess::preprocess_file(&abs, &opts, &cache)
     };
-    result.map(|o| o.text).map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
+    result
+        .map(|o| o.text)
+        .map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
 }
 
 fn args_of(text: &str) -> Vec<String> {
@@ -82,7 +84,11 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             if ta == tb {
                 return None;
             }
-            let i = ta.iter().zip(&tb).position(|(x, y)| x != y).unwrap_or(ta.len().min(tb.len()));
+            let i = ta
+                .iter()
+                .zip(&tb)
+                .position(|(x, y)| x != y)
+                .unwrap_or(ta.len().min(tb.len()));
             let ctx = |t: &[&str]| t[i.saturating_sub(6)..(i + 6).min(t.len())].join(" ");
             Some(format!(
                 "{}: token {i} differs\n   cpp: {}\n  kiln: {}\n--- cpp output\n{a}\n--- kiln output\n{b}",
@@ -92,8 +98,14 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             ))
         }
         (Err(_), Err(_)) => None,
-        (Ok(_), Err(e)) => Some(format!("{}: cpp succeeds, kiln fails:\n{e}", file.display())),
-        (Err(e), Ok(_)) => Some(format!("{}: cpp fails, kiln succeeds; cpp says:\n{e}", file.display())),
+        (Ok(_), Err(e)) => Some(format!(
+            "{}: cpp succeeds, kiln fails:\n{e}",
+            file.display()
+        )),
+        (Err(e), Ok(_)) => Some(format!(
+            "{}: cpp fails, kiln succeeds; cpp says:\n{e}",
+            file.display()
+        )),
     }
 }
 
@@ -116,14 +128,23 @@ fn corpus_matches_cpp() {
         let args = args_of(&text);
         // Every corpus case is valid C preprocessor input.
         if let Err(e) = run_cpp(&cwd, rel, &args) {
-            failures.push(format!("{}: cpp rejects a corpus case:\n{e}", rel.display()));
+            failures.push(format!(
+                "{}: cpp rejects a corpus case:\n{e}",
+                rel.display()
+            ));
             continue;
         }
         if let Some(f) = compare(&cwd, rel, &args) {
             failures.push(f);
         }
     }
-    assert!(failures.is_empty(), "{} of {} cases differ from cpp:\n\n{}", failures.len(), files.len(), failures.join("\n\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {} cases differ from cpp:\n\n{}",
+        failures.len(),
+        files.len(),
+        failures.join("\n\n")
+    );
 }
 
 /// A small deterministic generator (xorshift64*).
@@ -222,7 +243,9 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
             if r.chance(85) {
                 out.push('(');
                 let args = match sigs.get(f) {
-                    Some(&(n, variadic)) if r.chance(90) => n + if variadic { r.below(3) } else { 0 },
+                    Some(&(n, variadic)) if r.chance(90) => {
+                        n + if variadic { r.below(3) } else { 0 }
+                    }
                     _ => r.below(4),
                 };
                 for a in 0..args {
@@ -277,8 +300,14 @@ fn random_macro_programs_match_cpp() {
     require_cpp();
     let dir = tempfile::tempdir().expect("temp dir");
     // `KILN_RANDOM_PROGRAMS=N` and `KILN_RANDOM_SEED=S` run a longer or different search.
-    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS").ok().and_then(|v| v.parse().ok()).unwrap_or(400);
-    let seed: u64 = std::env::var("KILN_RANDOM_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0x5eed_1234_abcd_0001);
+    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(400);
+    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0x5eed_1234_abcd_0001);
     let mut r = Rng(seed | 1);
     let mut failures = Vec::new();
     let (mut ok, mut both_fail) = (0, 0);
@@ -293,7 +322,20 @@ fn random_macro_programs_match_cpp() {
             Some(f) => failures.push(format!("program {i}:\n{program}\n{f}")),
         }
     }
-    assert!(failures.is_empty(), "{} random programs differ from cpp:\n\n{}", failures.len(), failures.iter().take(5).cloned().collect::<Vec<_>>().join("\n\n"));
+    assert!(
+        failures.is_empty(),
+        "{} random programs differ from cpp:\n\n{}",
+        failures.len(),
+        failures
+            .iter()
+            .take(5)
+            .cloned()
+            .collect::<Vec<_>>()
+            .join("\n\n")
+    );
     // The generator must mostly make valid programs, or the test proves little.
-    assert!(ok * 2 >= count, "only {ok} of {count} programs valid ({both_fail} rejected by both)");
+    assert!(
+        ok * 2 >= count,
+        "only {ok} of {count} programs valid ({both_fail} rejected by both)"
+    );
 }

@@ -219,7 +219,12 @@ impl Cache {
     /// Records that the archive now at `archive` is the output of the build with
     /// `fingerprint` (with its artifact counts), identified by its length, modification
     /// time and header checksum.
-    pub fn stamp_archive(&self, archive: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) -> Result<(), Error> {
+    pub fn stamp_archive(
+        &self,
+        archive: &Path,
+        fingerprint: &blake3::Hash,
+        counts: (usize, usize),
+    ) -> Result<(), Error> {
         let err = |source| Error { path: archive.to_path_buf(), source };
         let id = archive_identity(archive).map_err(err)?;
         let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
@@ -354,7 +359,13 @@ fn archive_identity(path: &Path) -> io::Result<String> {
     let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
     let mut header = [0u8; 64];
     f.read_exact(&mut header)?;
-    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()))
+    Ok(format!(
+        "{} {}.{:09} {}",
+        meta.len(),
+        mtime.as_secs(),
+        mtime.subsec_nanos(),
+        blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()
+    ))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.

@@ -134,7 +134,15 @@ struct Tok {
 
 impl Tok {
     fn eof() -> Tok {
-        Tok { sym: 0, ctx: NONE, src: 0, len: 0, param: NO_PARAM, kind: TK::Eof, flags: 0 }
+        Tok {
+            sym: 0,
+            ctx: NONE,
+            src: 0,
+            len: 0,
+            param: NO_PARAM,
+            kind: TK::Eof,
+            flags: 0,
+        }
     }
 }
 
@@ -268,7 +276,10 @@ pub(crate) struct Pp<'a> {
     once: HashSet<FileId>,
     guards: HashMap<FileId, Sym, FxBuild>,
     /// Tokens macro expansion may still make.
-    budget: usize,
+    /// Tokens macro expansion made so far (see [`Pp::spend`]).
+    made: usize,
+    /// Bytes of source read so far.
+    input_bytes: usize,
     counter: i64,
     /// Output range of the last token written (for paste avoidance).
     last_tok: Range<usize>,
@@ -288,12 +299,48 @@ pub(crate) fn run(file: FileId, opts: &Options, cache: &SourceCache) -> Result<O
     run_named(file, None, opts, cache)
 }
 
-pub(crate) fn run_named(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
+/// Stack for one preprocessing run: nested macro arguments recurse (one level per
+/// `max_expansion_depth`), and a caller's thread (a test's, a rayon worker's) may be small.
+const STACK_BYTES: usize = 256 << 20;
+
+pub(crate) fn run_named(
+    file: FileId,
+    name: Option<String>,
+    opts: &Options,
+    cache: &SourceCache,
+) -> Result<Output, Error> {
+    // The stack is only reserved address space; pages are touched as deep as the input goes.
+    std::thread::scope(|s| {
+        let worker = std::thread::Builder::new()
+            .name("kiln-preprocess".into())
+            .stack_size(STACK_BYTES)
+            .spawn_scoped(s, || run_here(file, name.clone(), opts, cache));
+        match worker {
+            Ok(handle) => handle.join().unwrap_or_else(|_| {
+                Err(Error::new(
+                    "internal error: the preprocessor panicked",
+                    Vec::new(),
+                ))
+            }),
+            Err(_) => run_here(file, name.clone(), opts, cache),
+        }
+    })
+}
+
+fn run_here(
+    file: FileId,
+    name: Option<String>,
+    opts: &Options,
+    cache: &SourceCache,
+) -> Result<Output, Error> {
     let Some(source) = cache.get(file) else {
         return Err(Error::new("unknown file id", Vec::new()));
     };
     if source.text().len() >= (u32::MAX / 2) as usize {
-        return Err(Error::new(format!("`{}` is too large to preprocess", source.name), Vec::new()));
+        return Err(Error::new(
+            format!("`{}` is too large to preprocess", source.name),
+            Vec::new(),
+        ));
     }
     let mut pp = Pp::new(opts, cache, &source)?;
     let name = name.unwrap_or_else(|| source.name.clone());
@@ -301,14 +348,28 @@ pub(crate) fn run_named(file: FileId, name: Option<String>, opts: &Options, cach
     pp.push_file(file, source, name, NONE, 0..0);
     pp.run_main()?;
     pp.map.entries.shrink_to_fit();
-    Ok(Output { text: pp.out, map: pp.map, files: pp.files, warnings: pp.warnings })
+    Ok(Output {
+        text: pp.out,
+        map: pp.map,
+        files: pp.files,
+        warnings: pp.warnings,
+    })
+}
+
+/// Tokens macro expansion may make in one run: a quarter of the output limit (a token
+/// prints as at least one byte plus, often, a space), so a macro bomb stops early and small.
+fn token_budget(opts: &Options) -> usize {
+    (opts.max_output_bytes / 4).max(1024)
 }
 
 /// Resolves `<spelling>` through the virtual roots, then the include roots.
 pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, String> {
     match resolve_in_roots(spelling, opts) {
         Resolved::Found(p, _) => Ok(p),
-        Resolved::Escapes(p) => Err(format!("`{spelling}` resolves to `{}`, outside its root", p.display())),
+        Resolved::Escapes(p) => Err(format!(
+            "`{spelling}` resolves to `{}`, outside its root",
+            p.display()
+        )),
         Resolved::NotFound => Err(format!("cannot find `{spelling}` in the include roots")),
     }
 }
@@ -322,7 +383,9 @@ enum Resolved {
 
 /// `candidate` if it exists inside `root` (both canonicalized).
 fn contained(candidate: &Path, root: &Path) -> Resolved {
-    let Ok(c) = candidate.canonicalize() else { return Resolved::NotFound };
+    let Ok(c) = candidate.canonicalize() else {
+        return Resolved::NotFound;
+    };
     if !c.is_file() {
         return Resolved::NotFound;
     }
@@ -345,14 +408,18 @@ fn virtual_match<'s>(spelling: &'s str, prefix: &str) -> Option<&'s str> {
 }
 
 fn relative_ok(rel: &str) -> bool {
-    !Path::new(rel).components().any(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
+    !Path::new(rel)
+        .components()
+        .any(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
 }
 
 fn resolve_in_roots(spelling: &str, opts: &Options) -> Resolved {
     for (prefix, dir) in &opts.virtual_roots {
         if let Some(rest) = virtual_match(spelling, prefix) {
             return match contained(&dir.join(rest), dir) {
-                Resolved::Found(p, _) => Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/'))),
+                Resolved::Found(p, _) => {
+                    Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/')))
+                }
                 other => other,
             };
         }
@@ -395,7 +462,11 @@ impl<'a> Pp<'a> {
             zero: it.intern("0"),
         };
         let mut roots: Vec<PathBuf> = Vec::new();
-        let main_dir = main.path.parent().filter(|p| p.is_dir()).map(|p| p.to_path_buf());
+        let main_dir = main
+            .path
+            .parent()
+            .filter(|p| p.is_dir())
+            .map(|p| p.to_path_buf());
         if let Some(d) = &main_dir {
             roots.push(d.clone());
         }
@@ -423,7 +494,8 @@ impl<'a> Pp<'a> {
             files: Vec::new(),
             once: HashSet::new(),
             guards: HashMap::default(),
-            budget: opts.max_output_bytes.max(1024),
+            made: 0,
+            input_bytes: 0,
             counter: 0,
             last_tok: 0..0,
             inv: None,
@@ -444,7 +516,21 @@ impl<'a> Pp<'a> {
             ("__TIME__", Builtin::Time),
         ] {
             let sym = pp.it.intern(name);
-            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Arc::from(Vec::new()), pastes: false, va_opt: false, builtin: b, ctx: NONE, site: 0..0, disabled: false });
+            pp.set_macro(
+                sym,
+                Macro {
+                    func: false,
+                    variadic: false,
+                    params: Vec::new(),
+                    body: Arc::from(Vec::new()),
+                    pastes: false,
+                    va_opt: false,
+                    builtin: b,
+                    ctx: NONE,
+                    site: 0..0,
+                    disabled: false,
+                },
+            );
         }
         let predefined = [
             ("__STDC__", "1"),
@@ -487,7 +573,12 @@ impl<'a> Pp<'a> {
         let toks = self.lex_string(&line);
         let toks = match toks {
             Some(t) => t,
-            None => return Err(Error::new(format!("invalid definition `{name}={value}`"), Vec::new())),
+            None => {
+                return Err(Error::new(
+                    format!("invalid definition `{name}={value}`"),
+                    Vec::new(),
+                ))
+            }
         };
         // `NAME(x)` must keep `(` attached to the name.
         self.parse_define(toks, true)
@@ -503,12 +594,25 @@ impl<'a> Pp<'a> {
             let (kind, len) = lexer::next(b, pos);
             match kind {
                 Kind::Eof => return Some(out),
-                Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { terminated: true } => white = true,
-                Kind::BlockComment { terminated: false } | Kind::Str { terminated: false } => return None,
+                Kind::Space
+                | Kind::Newline
+                | Kind::LineComment
+                | Kind::BlockComment { terminated: true } => white = true,
+                Kind::BlockComment { terminated: false } | Kind::Str { terminated: false } => {
+                    return None
+                }
                 _ => {
                     let sym = self.it.intern(&s[pos..pos + len]);
                     let flags = if white { WHITE } else { 0 } | FROM_DEF;
-                    out.push(Tok { sym, ctx: NONE, src: 0, len: len as u32, param: NO_PARAM, kind: tk_of(kind), flags });
+                    out.push(Tok {
+                        sym,
+                        ctx: NONE,
+                        src: 0,
+                        len: len as u32,
+                        param: NO_PARAM,
+                        kind: tk_of(kind),
+                        flags,
+                    });
                     white = false;
                 }
             }
@@ -520,8 +624,12 @@ impl<'a> Pp<'a> {
     // Diagnostics
 
     fn labels_at(&self, ctx: u32, range: Range<u32>, message: &str) -> Vec<Label<FileId>> {
-        let Some(c) = self.map.ctxs.get(ctx as usize) else { return Vec::new() };
-        let r = c.source.original_range(range.start as usize..range.end as usize);
+        let Some(c) = self.map.ctxs.get(ctx as usize) else {
+            return Vec::new();
+        };
+        let r = c
+            .source
+            .original_range(range.start as usize..range.end as usize);
         let mut labels = vec![Label::primary(c.file, r).with_message(message)];
         for (f, r) in self.map.chain(ctx) {
             labels.push(Label::secondary(f, r).with_message("included from here"));
@@ -540,8 +648,13 @@ impl<'a> Pp<'a> {
             None => self.frame_labels(message),
         };
         if let Some(c) = self.map.ctxs.get(t.ctx as usize) {
-            let r = c.source.original_range(t.src as usize..(t.src + t.len) as usize);
-            labels.insert(1.min(labels.len()), Label::secondary(c.file, r).with_message("in this macro's definition"));
+            let r = c
+                .source
+                .original_range(t.src as usize..(t.src + t.len) as usize);
+            labels.insert(
+                1.min(labels.len()),
+                Label::secondary(c.file, r).with_message("in this macro's definition"),
+            );
         }
         labels
     }
@@ -550,7 +663,9 @@ impl<'a> Pp<'a> {
     /// read from the file when the name is text of the file.
     fn invocation_labels(&self, name: &Tok, message: &str) -> Vec<Label<FileId>> {
         match self.inv {
-            Some((ctx, _, end)) if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src => {
+            Some((ctx, _, end))
+                if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src =>
+            {
                 self.labels_at(ctx, name.src..end, message)
             }
             _ => self.tok_labels(name, message),
@@ -572,20 +687,43 @@ impl<'a> Pp<'a> {
         Err(Error::new(message, self.tok_labels(t, label)))
     }
 
-    fn err_at<T>(&self, ctx: u32, range: Range<u32>, message: impl Into<String>, label: &str) -> PResult<T> {
+    fn err_at<T>(
+        &self,
+        ctx: u32,
+        range: Range<u32>,
+        message: impl Into<String>,
+        label: &str,
+    ) -> PResult<T> {
         Err(Error::new(message, self.labels_at(ctx, range, label)))
     }
 
     fn warn(&mut self, message: impl Into<String>, labels: Vec<Label<FileId>>) {
-        self.warnings.push(Diagnostic::warning().with_message(message.into()).with_labels(labels));
+        self.warnings.push(
+            Diagnostic::warning()
+                .with_message(message.into())
+                .with_labels(labels),
+        );
     }
 
     // -----------------------------------------------------------------------------------------
     // Files
 
-    fn push_file(&mut self, file: FileId, source: Arc<SourceFile>, name: String, parent: u32, site: Range<u32>) {
+    fn push_file(
+        &mut self,
+        file: FileId,
+        source: Arc<SourceFile>,
+        name: String,
+        parent: u32,
+        site: Range<u32>,
+    ) {
         let ctx = self.map.ctxs.len() as u32;
-        self.map.ctxs.push(IncludeCtx { file, source: source.clone(), parent, site });
+        self.input_bytes += source.text().len();
+        self.map.ctxs.push(IncludeCtx {
+            file,
+            source: source.clone(),
+            parent,
+            site,
+        });
         if !self.files.contains(&file) {
             self.files.push(file);
         }
@@ -611,10 +749,17 @@ impl<'a> Pp<'a> {
 
     /// End of the current file: checks conditionals, records guards, pops it.
     fn end_of_file(&mut self) -> PResult<()> {
-        let Some(frame) = self.frames.last() else { return Ok(()) };
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
         if let Some(c) = frame.conds.last() {
             let (ctx, site, name) = (frame.ctx, c.site.clone(), c.name);
-            return self.err_at(ctx, site, format!("unterminated #{name}"), "this conditional is never closed");
+            return self.err_at(
+                ctx,
+                site,
+                format!("unterminated #{name}"),
+                "this conditional is never closed",
+            );
         }
         if let GuardState::Closed(sym) = frame.guard {
             self.guards.insert(frame.file, sym);
@@ -632,15 +777,28 @@ impl<'a> Pp<'a> {
     fn check_output(&self) -> PResult<()> {
         if self.out.len() > self.opts.max_output_bytes {
             return Err(Error::new(
-                format!("output exceeds the limit of {} bytes", self.opts.max_output_bytes),
-                self.inv.map_or_else(|| self.frame_labels("while preprocessing this"), |(c, s, e)| self.labels_at(c, s..e, "while expanding this")),
+                format!(
+                    "output exceeds the limit of {} bytes",
+                    self.opts.max_output_bytes
+                ),
+                self.inv.map_or_else(
+                    || self.frame_labels("while preprocessing this"),
+                    |(c, s, e)| self.labels_at(c, s..e, "while expanding this"),
+                ),
             ));
         }
         Ok(())
     }
 
     /// Copies `text[start..end]` of the current frame to the output.
-    fn copy_run(&mut self, ctx: u32, text: &str, start: usize, end: usize, last_tok: Option<Range<usize>>) -> PResult<()> {
+    fn copy_run(
+        &mut self,
+        ctx: u32,
+        text: &str,
+        start: usize,
+        end: usize,
+        last_tok: Option<Range<usize>>,
+    ) -> PResult<()> {
         if end <= start {
             return Ok(());
         }
@@ -651,7 +809,10 @@ impl<'a> Pp<'a> {
             if !matches!(first, b' ' | b'\t' | b'\n' | b'\r') {
                 let (_, len) = lexer::next(bytes, start);
                 let len = len.min(end - start).max(1);
-                if lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]) {
+                if lexer::would_paste(
+                    self.out[self.last_tok.clone()].as_bytes(),
+                    &bytes[start..start + len],
+                ) {
                     self.out.push(' ');
                 }
             }
@@ -668,12 +829,25 @@ impl<'a> Pp<'a> {
 
     fn push_copy_entry(&mut self, ctx: u32, src: u32, end: u32, out: u32) {
         if let Some(last) = self.map.entries.last_mut() {
-            if !last.is_macro && last.ctx == ctx && last.end == src && last.out + (last.end - last.src) == out {
+            if !last.is_macro
+                && last.ctx == ctx
+                && last.end == src
+                && last.out + (last.end - last.src) == out
+            {
                 last.end = end;
                 return;
             }
         }
-        self.map.entries.push(Entry { out, ctx, src, end, def_ctx: NONE, def_src: 0, def_len: 0, is_macro: false });
+        self.map.entries.push(Entry {
+            out,
+            ctx,
+            src,
+            end,
+            def_ctx: NONE,
+            def_src: 0,
+            def_len: 0,
+            is_macro: false,
+        });
     }
 
     fn emit_space(&mut self) {
@@ -695,17 +869,37 @@ impl<'a> Pp<'a> {
         }
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
-        if (t.flags & WHITE != 0) || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes())) {
-            if !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
-                self.out.push(' ');
-            }
+        let space = (t.flags & WHITE != 0)
+            || (adjacent
+                && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes()));
+        if space && !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
+            self.out.push(' ');
         }
         let out_at = self.out.len() as u32;
         if t.flags & FROM_DEF == 0 && t.ctx != NONE {
             self.push_copy_entry(t.ctx, t.src, t.src + t.len, out_at);
         } else {
             let (ctx, src, end) = self.inv.unwrap_or((NONE, 0, 0));
-            self.map.entries.push(Entry { out: out_at, ctx, src, end, def_ctx: t.ctx, def_src: t.src, def_len: t.len, is_macro: true });
+            let e = Entry {
+                out: out_at,
+                ctx,
+                src,
+                end,
+                def_ctx: t.ctx,
+                def_src: t.src,
+                def_len: t.len,
+                is_macro: true,
+            };
+            // Runs of tokens with one origin (a repeated expansion) share an entry.
+            let key = |e: &Entry| (e.ctx, e.src, e.end, e.def_ctx, e.def_src, e.def_len);
+            if !self
+                .map
+                .entries
+                .last()
+                .is_some_and(|l| l.is_macro && key(l) == key(&e))
+            {
+                self.map.entries.push(e);
+            }
         }
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         self.out.push_str(text);
@@ -717,7 +911,9 @@ impl<'a> Pp<'a> {
     // The scanner: text outside macro invocations
 
     fn scan_text(&mut self) -> PResult<()> {
-        let Some(frame) = self.frames.last_mut() else { return Ok(()) };
+        let Some(frame) = self.frames.last_mut() else {
+            return Ok(());
+        };
         let source = frame.source.clone();
         let ctx = frame.ctx;
         let text = source.text();
@@ -750,9 +946,17 @@ impl<'a> Pp<'a> {
                     run_start = pos;
                 }
                 Kind::BlockComment { terminated: false } => {
-                    return self.err_at(ctx, pos as u32..pos as u32 + 2, "unterminated comment", "this comment is never closed");
+                    return self.err_at(
+                        ctx,
+                        pos as u32..pos as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    );
                 }
-                Kind::Punct if bol && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) => {
+                Kind::Punct
+                    if bol
+                        && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) =>
+                {
                     self.copy_run(ctx, text, run_start, pos, last_tok)?;
                     if let Some(f) = self.frames.last_mut() {
                         f.pos = pos + len;
@@ -769,7 +973,10 @@ impl<'a> Pp<'a> {
                     }
                     bol = false;
                     match kind {
-                        Kind::Ident if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63)) != 0 => {
+                        Kind::Ident
+                            if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63))
+                                != 0 =>
+                        {
                             let name = &text[pos..pos + len];
                             if let Some(sym) = self.it.get(name) {
                                 let m = self.macro_idx(sym);
@@ -781,17 +988,34 @@ impl<'a> Pp<'a> {
                                             f.pos = pos + len;
                                             f.bol = false;
                                         }
-                                        let name_tok = Tok { sym, ctx, src: pos as u32, len: len as u32, param: NO_PARAM, kind: TK::Ident, flags: 0 };
+                                        let name_tok = Tok {
+                                            sym,
+                                            ctx,
+                                            src: pos as u32,
+                                            len: len as u32,
+                                            param: NO_PARAM,
+                                            kind: TK::Ident,
+                                            flags: 0,
+                                        };
                                         return self.expand_top(name_tok, m);
                                     }
                                 }
                             }
                         }
                         Kind::Str { terminated: false } => {
-                            return self.err_at(ctx, pos as u32..pos as u32 + 1, "missing terminating \" character", "this string is never closed");
+                            return self.err_at(
+                                ctx,
+                                pos as u32..pos as u32 + 1,
+                                "missing terminating \" character",
+                                "this string is never closed",
+                            );
                         }
                         Kind::Char { terminated: false } => {
-                            let labels = self.labels_at(ctx, pos as u32..pos as u32 + 1, "this character constant is never closed");
+                            let labels = self.labels_at(
+                                ctx,
+                                pos as u32..pos as u32 + 1,
+                                "this character constant is never closed",
+                            );
                             self.warn("missing terminating ' character", labels);
                         }
                         _ => {}
@@ -847,7 +1071,9 @@ impl<'a> Pp<'a> {
     fn lex_file_token(&mut self) -> PResult<Tok> {
         let mut white = false;
         loop {
-            let Some(frame) = self.frames.last_mut() else { return Ok(Tok::eof()) };
+            let Some(frame) = self.frames.last_mut() else {
+                return Ok(Tok::eof());
+            };
             let source = frame.source.clone();
             let bytes = source.text().as_bytes();
             let pos = frame.pos;
@@ -865,9 +1091,16 @@ impl<'a> Pp<'a> {
                 }
                 Kind::BlockComment { terminated: false } => {
                     let ctx = frame.ctx;
-                    return self.err_at(ctx, pos as u32..pos as u32 + 2, "unterminated comment", "this comment is never closed");
+                    return self.err_at(
+                        ctx,
+                        pos as u32..pos as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    );
                 }
-                Kind::Punct if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") => {
+                Kind::Punct
+                    if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") =>
+                {
                     frame.pos += len;
                     frame.bol = false;
                     self.directive_in_args(pos)?;
@@ -881,7 +1114,12 @@ impl<'a> Pp<'a> {
                     frame.pos += len;
                     let ctx = frame.ctx;
                     if kind == (Kind::Str { terminated: false }) {
-                        return self.err_at(ctx, pos as u32..pos as u32 + 1, "missing terminating \" character", "this string is never closed");
+                        return self.err_at(
+                            ctx,
+                            pos as u32..pos as u32 + 1,
+                            "missing terminating \" character",
+                            "this string is never closed",
+                        );
                     }
                     let sym = self.it.intern(&source.text()[pos..pos + len]);
                     if let Some((c, _, e)) = self.inv.as_mut() {
@@ -890,7 +1128,15 @@ impl<'a> Pp<'a> {
                         }
                     }
                     let flags = if white { WHITE } else { 0 };
-                    return Ok(Tok { sym, ctx, src: pos as u32, len: len as u32, param: NO_PARAM, kind: tk_of(kind), flags });
+                    return Ok(Tok {
+                        sym,
+                        ctx,
+                        src: pos as u32,
+                        len: len as u32,
+                        param: NO_PARAM,
+                        kind: tk_of(kind),
+                        flags,
+                    });
                 }
             }
         }
@@ -917,7 +1163,11 @@ impl<'a> Pp<'a> {
                 }
                 if self.directive_line.is_none() {
                     // cpp's `avoid_paste` padding at the end of every expansion.
-                    return Ok(Some(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() }));
+                    return Ok(Some(Tok {
+                        kind: TK::Padding,
+                        flags: NULL_SOURCE,
+                        ..Tok::eof()
+                    }));
                 }
                 continue;
             }
@@ -932,7 +1182,10 @@ impl<'a> Pp<'a> {
     fn peek_lparen(&self) -> bool {
         for c in self.stack.iter().rev() {
             let rest = c.toks.get(c.pos..).unwrap_or(&[]);
-            if let Some(t) = rest.iter().find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker)) {
+            if let Some(t) = rest
+                .iter()
+                .find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker))
+            {
                 return t.kind == TK::Punct && t.sym == self.syms.lparen;
             }
             if c.barrier {
@@ -949,7 +1202,9 @@ impl<'a> Pp<'a> {
     /// `file_ok`; `Eof` at a barrier or the file's end).
     fn get_token(&mut self, file_ok: bool) -> PResult<Option<Tok>> {
         loop {
-            let Some(mut t) = self.next_raw(file_ok)? else { return Ok(None) };
+            let Some(mut t) = self.next_raw(file_ok)? else {
+                return Ok(None);
+            };
             if t.kind != TK::Ident || t.flags & NO_EXPAND != 0 {
                 return Ok(Some(t));
             }
@@ -966,7 +1221,12 @@ impl<'a> Pp<'a> {
             }
             if self.directive_line.is_none() {
                 // cpp's padding whose source is the macro name.
-                return Ok(Some(Tok { kind: TK::Padding, flags: t.flags & WHITE, param: NO_PARAM, ..t }));
+                return Ok(Some(Tok {
+                    kind: TK::Padding,
+                    flags: t.flags & WHITE,
+                    param: NO_PARAM,
+                    ..t
+                }));
             }
         }
     }
@@ -985,6 +1245,29 @@ impl<'a> Pp<'a> {
     // -----------------------------------------------------------------------------------------
     // Macro expansion
 
+    /// Most tokens expansion may make: a million plus a few per byte of input read, and never
+    /// more than the output limit allows. A macro bomb in a small file stops within
+    /// milliseconds; a large real input is never cut short.
+    fn token_limit(&self) -> usize {
+        (1usize << 20)
+            .saturating_add(self.input_bytes.saturating_mul(8))
+            .min(token_budget(self.opts))
+    }
+
+    /// Counts `n` tokens made by expansion against [`Pp::token_limit`].
+    fn spend(&mut self, n: usize, at: &Tok) -> PResult<()> {
+        self.made += n;
+        if self.made > self.token_limit() {
+            let limit = self.token_limit();
+            return self.err_tok(
+                at,
+                format!("macro expansion makes more than {limit} tokens"),
+                "while expanding this",
+            );
+        }
+        Ok(())
+    }
+
     /// An empty token vector, reusing the storage of finished contexts.
     fn take_vec(&mut self) -> Vec<Tok> {
         self.pool.pop().unwrap_or_default()
@@ -1001,22 +1284,23 @@ impl<'a> Pp<'a> {
         if self.stack.len() >= self.opts.max_expansion_depth {
             return self.err_tok(
                 at,
-                format!("macro expansion nested deeper than {} levels", self.opts.max_expansion_depth),
+                format!(
+                    "macro expansion nested deeper than {} levels",
+                    self.opts.max_expansion_depth
+                ),
                 "while expanding this",
             );
         }
-        if toks.len() > self.budget {
-            return self.err_tok(
-                at,
-                format!("macro expansion makes more than {} tokens", self.opts.max_output_bytes.max(1024)),
-                "while expanding this",
-            );
-        }
-        self.budget -= toks.len();
+        self.spend(toks.len(), at)?;
         if let Some(m) = self.defs.get_mut(mac as usize) {
             m.disabled = true;
         }
-        self.stack.push(Context { toks, pos: 0, mac, barrier });
+        self.stack.push(Context {
+            toks,
+            pos: 0,
+            mac,
+            barrier,
+        });
         Ok(())
     }
 
@@ -1059,11 +1343,23 @@ impl<'a> Pp<'a> {
                 // The variable arguments are absent (not merely empty).
             } else if !(nparams == 1 && args.is_empty()) {
                 let labels = self.invocation_labels(&name, "this invocation");
-                return Err(Error::new(format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()), labels));
+                return Err(Error::new(
+                    format!(
+                        "macro \"{name_str}\" requires {nparams} arguments, but only {} given",
+                        args.len()
+                    ),
+                    labels,
+                ));
             }
         } else if args.len() > nparams && !(nparams == 0 && args.len() == 1 && args[0].is_empty()) {
             let labels = self.invocation_labels(&name, "this invocation");
-            return Err(Error::new(format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()), labels));
+            return Err(Error::new(
+                format!(
+                    "macro \"{name_str}\" passed {} arguments, but takes just {nparams}",
+                    args.len()
+                ),
+                labels,
+            ));
         }
         if nparams == 0 {
             args.clear();
@@ -1072,7 +1368,9 @@ impl<'a> Pp<'a> {
         let mut body = self.defs[m as usize].body.clone();
         let mut expanded: Vec<Option<Vec<Tok>>> = vec![None; args.len()];
         if self.defs[m as usize].va_opt {
-            body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
+            body = self
+                .resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?
+                .into();
         }
         let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
         if toks.iter().all(|t| t.kind == TK::Placemarker) {
@@ -1089,7 +1387,9 @@ impl<'a> Pp<'a> {
         let mut args: Vec<Vec<Tok>> = vec![Vec::new()];
         let mut depth = 0usize;
         loop {
-            let Some(mut t) = self.next_raw(true)? else { return self.unterminated(name) };
+            let Some(mut t) = self.next_raw(true)? else {
+                return self.unterminated(name);
+            };
             match t.kind {
                 TK::Eof => return self.unterminated(name),
                 TK::Punct if t.sym == self.syms.lparen => depth += 1,
@@ -1099,7 +1399,11 @@ impl<'a> Pp<'a> {
                     }
                     depth -= 1;
                 }
-                TK::Punct if t.sym == self.syms.comma && depth == 0 && !(variadic && args.len() >= nparams) => {
+                TK::Punct
+                    if t.sym == self.syms.comma
+                        && depth == 0
+                        && !(variadic && args.len() >= nparams) =>
+                {
                     args.push(Vec::new());
                     continue;
                 }
@@ -1114,16 +1418,26 @@ impl<'a> Pp<'a> {
             if let Some(a) = args.last_mut() {
                 a.push(t);
             }
-            if args.iter().map(Vec::len).sum::<usize>() > self.budget {
-                return self.err_tok(name, "macro arguments exceed the expansion budget", "while collecting these arguments");
+            if self.made + args.iter().map(Vec::len).sum::<usize>() > self.token_limit() {
+                return self.err_tok(
+                    name,
+                    "macro arguments exceed the expansion budget",
+                    "while collecting these arguments",
+                );
             }
         }
         // Like cpp's padding, placemarkers at either end of an argument do not count.
         for a in &mut args {
-            while a.last().is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding)) {
+            while a
+                .last()
+                .is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding))
+            {
                 a.pop();
             }
-            let lead = a.iter().take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding)).count();
+            let lead = a
+                .iter()
+                .take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding))
+                .count();
             if lead > 0 {
                 a.drain(..lead);
             }
@@ -1136,17 +1450,20 @@ impl<'a> Pp<'a> {
 
     fn unterminated<T>(&self, name: &Tok) -> PResult<T> {
         let n = self.it.str(name.sym).to_string();
-        self.err_tok(name, format!("unterminated argument list invoking macro \"{n}\""), "this invocation is never closed")
+        self.err_tok(
+            name,
+            format!("unterminated argument list invoking macro \"{n}\""),
+            "this invocation is never closed",
+        )
     }
 
     /// Fully macro-expands an argument in isolation.
     fn expand_arg(&mut self, arg: &[Tok], at: &Tok) -> PResult<Vec<Tok>> {
         // Nothing to expand: no identifiers (the common case of numbers and punctuation).
-        if !arg.iter().any(|t| t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE) {
-            if arg.len() > self.budget {
-                return self.err_tok(at, format!("macro expansion makes more than {} tokens", self.opts.max_output_bytes.max(1024)), "while expanding this");
-            }
-            self.budget -= arg.len();
+        if !arg.iter().any(|t| {
+            t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE
+        }) {
+            self.spend(arg.len(), at)?;
             return Ok(arg.to_vec());
         }
         let mut v = self.take_vec();
@@ -1167,7 +1484,14 @@ impl<'a> Pp<'a> {
     }
 
     /// Object-like replacement: pastes only.
-    fn substitute(&mut self, m: u32, name: &Tok, body: &[Tok], args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>]) -> PResult<Vec<Tok>> {
+    fn substitute(
+        &mut self,
+        m: u32,
+        name: &Tok,
+        body: &[Tok],
+        args: &[Vec<Tok>],
+        expanded: &mut [Option<Vec<Tok>>],
+    ) -> PResult<Vec<Tok>> {
         let mut toks = self.substitute_args(m, name, body, args, expanded, false)?;
         if toks.iter().all(|t| t.kind == TK::Placemarker) {
             toks.clear();
@@ -1202,15 +1526,25 @@ impl<'a> Pp<'a> {
                 if absent_va && va_paste == 0 {
                     // Dropped with its comma.
                 } else if arg.is_empty() {
-                    out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
+                    out.push(Tok {
+                        flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste,
+                        ..b
+                    });
                 } else {
-                    out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
+                    out.push(Tok {
+                        flags: b.flags & !(PASTE_LEFT | VA_COMMA),
+                        ..b
+                    });
                     out.extend(arg);
                     if let Some(t) = out.last_mut() {
                         t.flags |= va_paste;
                     }
                     if va_paste == 0 && self.directive_line.is_none() {
-                        out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
+                        out.push(Tok {
+                            kind: TK::Padding,
+                            flags: NULL_SOURCE,
+                            ..Tok::eof()
+                        });
                     }
                 }
                 i += 2;
@@ -1225,7 +1559,13 @@ impl<'a> Pp<'a> {
             if b.flags & STRINGIFY != 0 {
                 let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
                 let sym = self.it.intern(&s);
-                out.push(Tok { sym, kind: TK::Str, param: NO_PARAM, flags: (b.flags & (WHITE | PASTE_LEFT)) | FROM_DEF, ..b });
+                out.push(Tok {
+                    sym,
+                    kind: TK::Str,
+                    param: NO_PARAM,
+                    flags: (b.flags & (WHITE | PASTE_LEFT)) | FROM_DEF,
+                    ..b
+                });
                 i += 1;
                 continue;
             }
@@ -1243,11 +1583,21 @@ impl<'a> Pp<'a> {
             // follows.
             let pad = self.directive_line.is_none();
             if pad && i > 0 && !prev_pastes {
-                out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
+                out.push(Tok {
+                    kind: TK::Padding,
+                    flags: b.flags & WHITE,
+                    param: NO_PARAM,
+                    ..b
+                });
             }
             if toks.is_empty() {
                 if raw {
-                    out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: b.flags & (PASTE_LEFT | WHITE), ..b });
+                    out.push(Tok {
+                        kind: TK::Placemarker,
+                        param: NO_PARAM,
+                        flags: b.flags & (PASTE_LEFT | WHITE),
+                        ..b
+                    });
                 }
             } else {
                 out.extend_from_slice(toks);
@@ -1258,7 +1608,11 @@ impl<'a> Pp<'a> {
                 }
             }
             if pad && b.flags & PASTE_LEFT == 0 {
-                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
+                out.push(Tok {
+                    kind: TK::Padding,
+                    flags: NULL_SOURCE,
+                    ..Tok::eof()
+                });
             }
             i += 1;
         }
@@ -1277,14 +1631,26 @@ impl<'a> Pp<'a> {
 
     /// Replaces each `__VA_OPT__(...)` of a body by its contents when the variable arguments
     /// expand to some tokens, else by a placemarker (C2x, as GCC 12 does in every mode).
-    fn resolve_va_opt(&mut self, body: &[Tok], va: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
+    fn resolve_va_opt(
+        &mut self,
+        body: &[Tok],
+        va: usize,
+        args: &[Vec<Tok>],
+        expanded: &mut [Option<Vec<Tok>>],
+        name: &Tok,
+    ) -> PResult<Vec<Tok>> {
         self.expanded_arg(va, args, expanded, name)?;
-        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| e.iter().any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding)));
+        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| {
+            e.iter()
+                .any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding))
+        });
         let mut out = Vec::with_capacity(body.len());
         let mut i = 0;
         while i < body.len() {
             let t = body[i];
-            let opens = body.get(i + 1).is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
+            let opens = body
+                .get(i + 1)
+                .is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
             if !(t.kind == TK::Ident && t.sym == self.syms.va_opt && t.param == NO_PARAM && opens) {
                 out.push(t);
                 i += 1;
@@ -1305,15 +1671,29 @@ impl<'a> Pp<'a> {
                 j += 1;
             }
             if j >= body.len() {
-                return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
+                return self.err_tok(
+                    &t,
+                    "unterminated __VA_OPT__",
+                    "this __VA_OPT__ is never closed",
+                );
             }
             let close_paste = body[j].flags & PASTE_LEFT;
             let inner = &body[i + 2..j];
             if t.flags & STRINGIFY != 0 {
-                let toks = if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
+                let toks = if present {
+                    self.substitute_args(NONE, name, inner, args, expanded, false)?
+                } else {
+                    Vec::new()
+                };
                 let text = self.stringify(&toks);
                 let sym = self.it.intern(&text);
-                out.push(Tok { sym, kind: TK::Str, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste | FROM_DEF, ..t });
+                out.push(Tok {
+                    sym,
+                    kind: TK::Str,
+                    param: NO_PARAM,
+                    flags: (t.flags & WHITE) | close_paste | FROM_DEF,
+                    ..t
+                });
             } else if present && !inner.is_empty() {
                 let start = out.len();
                 out.extend_from_slice(inner);
@@ -1322,7 +1702,12 @@ impl<'a> Pp<'a> {
                     last.flags |= close_paste;
                 }
             } else {
-                out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste, ..t });
+                out.push(Tok {
+                    kind: TK::Placemarker,
+                    param: NO_PARAM,
+                    flags: (t.flags & WHITE) | close_paste,
+                    ..t
+                });
             }
             i = j + 1;
         }
@@ -1330,7 +1715,13 @@ impl<'a> Pp<'a> {
     }
 
     /// Makes sure `expanded[pi]` holds the macro-expanded argument `pi`.
-    fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<()> {
+    fn expanded_arg(
+        &mut self,
+        pi: usize,
+        args: &[Vec<Tok>],
+        expanded: &mut [Option<Vec<Tok>>],
+        name: &Tok,
+    ) -> PResult<()> {
         if matches!(expanded.get(pi), Some(Some(_)) | None) {
             return Ok(());
         }
@@ -1362,16 +1753,32 @@ impl<'a> Pp<'a> {
     fn paste(&mut self, lhs: Tok, rhs: Tok, name: &Tok) -> PResult<Tok> {
         let keep = (lhs.flags & WHITE) | (rhs.flags & PASTE_LEFT);
         if rhs.kind == TK::Placemarker {
-            return Ok(Tok { flags: (lhs.flags & !PASTE_LEFT) | keep, ..lhs });
+            return Ok(Tok {
+                flags: (lhs.flags & !PASTE_LEFT) | keep,
+                ..lhs
+            });
         }
         if lhs.kind == TK::Placemarker {
-            return Ok(Tok { flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep, ..rhs });
+            return Ok(Tok {
+                flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep,
+                ..rhs
+            });
         }
         let joined = format!("{}{}", self.it.str(lhs.sym), self.it.str(rhs.sym));
         let (kind, len) = lexer::next(joined.as_bytes(), 0);
         let valid = len == joined.len()
-            && !matches!(kind, Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { .. } | Kind::Eof)
-            && !matches!(kind, Kind::Str { terminated: false } | Kind::Char { terminated: false });
+            && !matches!(
+                kind,
+                Kind::Space
+                    | Kind::Newline
+                    | Kind::LineComment
+                    | Kind::BlockComment { .. }
+                    | Kind::Eof
+            )
+            && !matches!(
+                kind,
+                Kind::Str { terminated: false } | Kind::Char { terminated: false }
+            );
         if !valid {
             let msg = format!(
                 "pasting \"{}\" and \"{}\" does not give a valid preprocessing token",
@@ -1382,11 +1789,26 @@ impl<'a> Pp<'a> {
         }
         let sym = self.it.intern(&joined);
         let mut flags = keep | FROM_DEF;
-        if lhs.flags & FROM_DEF == 0 && rhs.flags & FROM_DEF == 0 && lhs.ctx == rhs.ctx && lhs.src + lhs.len == rhs.src {
+        if lhs.flags & FROM_DEF == 0
+            && rhs.flags & FROM_DEF == 0
+            && lhs.ctx == rhs.ctx
+            && lhs.src + lhs.len == rhs.src
+        {
             flags &= !FROM_DEF;
         }
         let _ = name;
-        Ok(Tok { sym, kind: tk_of(kind), flags, len: if flags & FROM_DEF == 0 { joined.len() as u32 } else { lhs.len }, param: NO_PARAM, ..lhs })
+        Ok(Tok {
+            sym,
+            kind: tk_of(kind),
+            flags,
+            len: if flags & FROM_DEF == 0 {
+                joined.len() as u32
+            } else {
+                lhs.len
+            },
+            param: NO_PARAM,
+            ..lhs
+        })
     }
 
     /// `#x`: the spelling of the argument, spaces normalized, `"` and `\` escaped in literals.
@@ -1398,7 +1820,11 @@ impl<'a> Pp<'a> {
         let mut source: Option<bool> = None;
         for t in arg {
             if t.kind == TK::Padding {
-                let tsrc = if t.flags & NULL_SOURCE != 0 { None } else { Some(t.flags & WHITE != 0) };
+                let tsrc = if t.flags & NULL_SOURCE != 0 {
+                    None
+                } else {
+                    Some(t.flags & WHITE != 0)
+                };
                 if source.is_none() || (source == Some(false) && tsrc.is_none()) {
                     source = tsrc;
                 }
@@ -1462,7 +1888,11 @@ impl<'a> Pp<'a> {
             Builtin::HasInclude if self.directive_line.is_some() => return Ok(false),
             Builtin::HasInclude => {
                 let n = self.it.str(name.sym).to_string();
-                return self.err_tok(&name, format!("\"{n}\" used outside of preprocessing directive"), "only in #if and #elif");
+                return self.err_tok(
+                    &name,
+                    format!("\"{n}\" used outside of preprocessing directive"),
+                    "only in #if and #elif",
+                );
             }
             Builtin::Date | Builtin::Time => {
                 let (date, time) = date_time();
@@ -1470,9 +1900,22 @@ impl<'a> Pp<'a> {
             }
             Builtin::None => return Ok(false),
         };
-        let kind = if matches!(b, Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time) { TK::Str } else { TK::Number };
+        let kind = if matches!(
+            b,
+            Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time
+        ) {
+            TK::Str
+        } else {
+            TK::Number
+        };
         let sym = self.it.intern(&text);
-        let t = Tok { sym, kind, flags: (name.flags & WHITE) | FROM_DEF, param: NO_PARAM, ..name };
+        let t = Tok {
+            sym,
+            kind,
+            flags: (name.flags & WHITE) | FROM_DEF,
+            param: NO_PARAM,
+            ..name
+        };
         self.push_context(vec![t], NONE, false, &name)?;
         Ok(true)
     }
@@ -1490,7 +1933,11 @@ impl<'a> Pp<'a> {
         let s = self.get_real_token(true)?;
         let close = self.get_real_token(true)?;
         if s.kind != TK::Str || !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-            return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here");
+            return self.err_tok(
+                &name,
+                "_Pragma takes a parenthesized string literal",
+                "here",
+            );
         }
         let lit = self.it.str(s.sym).to_string();
         let start = lit.find('"').map_or(0, |i| i + 1);
@@ -1501,11 +1948,27 @@ impl<'a> Pp<'a> {
                 let id = f.file;
                 self.once.insert(id);
             }
-            return self.push_context(vec![Tok { kind: TK::Placemarker, ..name }], NONE, false, &name).map(|_| true);
+            return self
+                .push_context(
+                    vec![Tok {
+                        kind: TK::Placemarker,
+                        ..name
+                    }],
+                    NONE,
+                    false,
+                    &name,
+                )
+                .map(|_| true);
         }
         let line = format!("\n#pragma {body}\n");
         let sym = self.it.intern(&line);
-        let t = Tok { sym, kind: TK::Other, flags: FROM_DEF, param: NO_PARAM, ..name };
+        let t = Tok {
+            sym,
+            kind: TK::Other,
+            flags: FROM_DEF,
+            param: NO_PARAM,
+            ..name
+        };
         self.push_context(vec![t], NONE, false, &name)?;
         Ok(true)
     }
@@ -1516,7 +1979,9 @@ impl<'a> Pp<'a> {
     /// Reads the rest of the directive line as tokens (comments are spaces; a block comment
     /// may carry the line on). Leaves the frame at the start of the next line.
     fn directive_tokens(&mut self) -> PResult<(Vec<Tok>, u32)> {
-        let Some(frame) = self.frames.last_mut() else { return Ok((Vec::new(), 0)) };
+        let Some(frame) = self.frames.last_mut() else {
+            return Ok((Vec::new(), 0));
+        };
         let source = frame.source.clone();
         let ctx = frame.ctx;
         let bytes = source.text().as_bytes();
@@ -1536,14 +2001,29 @@ impl<'a> Pp<'a> {
                     pos += 1;
                     break;
                 }
-                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => white = true,
+                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => {
+                    white = true
+                }
                 Kind::BlockComment { terminated: false } => {
-                    return self.err_at(ctx, pos as u32..pos as u32 + 2, "unterminated comment", "this comment is never closed");
+                    return self.err_at(
+                        ctx,
+                        pos as u32..pos as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    );
                 }
                 _ => {
                     let sym = self.it.intern(&source.text()[pos..pos + len]);
                     let flags = if white { WHITE } else { 0 };
-                    toks.push(Tok { sym, ctx, src: pos as u32, len: len as u32, param: NO_PARAM, kind: tk_of(kind), flags });
+                    toks.push(Tok {
+                        sym,
+                        ctx,
+                        src: pos as u32,
+                        len: len as u32,
+                        param: NO_PARAM,
+                        kind: tk_of(kind),
+                        flags,
+                    });
                     white = false;
                 }
             }
@@ -1566,7 +2046,9 @@ impl<'a> Pp<'a> {
 
     /// Runs the directive whose `#` is at `hash` (the frame is just after the `#`).
     fn directive(&mut self, hash: usize) -> PResult<()> {
-        let Some(frame) = self.frames.last() else { return Ok(()) };
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
         let ctx = frame.ctx;
         let source = frame.source.clone();
         let text = source.text();
@@ -1581,7 +2063,11 @@ impl<'a> Pp<'a> {
             }
         }
         let (kind, len) = lexer::next(bytes, p);
-        let name = if kind == Kind::Ident { &text[p..p + len] } else { "" };
+        let name = if kind == Kind::Ident {
+            &text[p..p + len]
+        } else {
+            ""
+        };
         let name_range = p as u32..(p + len) as u32;
         let hash_range = hash as u32..(hash + 1) as u32;
         let in_args = !self.stack.is_empty() || self.inv.is_some();
@@ -1594,7 +2080,10 @@ impl<'a> Pp<'a> {
             if closed || (first_directive && name != "ifndef") {
                 f.guard = GuardState::No;
             }
-            if matches!(name, "else" | "elif") && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
+            if matches!(name, "else" | "elif")
+                && f.conds.len() == 1
+                && matches!(f.guard, GuardState::Inside(_))
+            {
                 f.guard = GuardState::No;
             }
         }
@@ -1602,7 +2091,12 @@ impl<'a> Pp<'a> {
             "define" => {
                 let (toks, _) = self.directive_tokens()?;
                 if toks.is_empty() {
-                    return self.err_at(ctx, name_range, "no macro name given in #define directive", "expected a macro name");
+                    return self.err_at(
+                        ctx,
+                        name_range,
+                        "no macro name given in #define directive",
+                        "expected a macro name",
+                    );
                 }
                 self.parse_define(toks, false)
             }
@@ -1620,7 +2114,12 @@ impl<'a> Pp<'a> {
             }
             "include" | "include_next" | "import" => {
                 if in_args {
-                    return self.err_at(ctx, name_range, "#include inside macro arguments is not supported", "inside this invocation's arguments");
+                    return self.err_at(
+                        ctx,
+                        name_range,
+                        "#include inside macro arguments is not supported",
+                        "inside this invocation's arguments",
+                    );
                 }
                 self.include(hash_range.start, p + len)
             }
@@ -1637,10 +2136,18 @@ impl<'a> Pp<'a> {
                         let defined = self.macro_idx(sym) != NONE;
                         if name == "ifndef" && first_directive {
                             if let Some(f) = self.frames.last_mut() {
-                                f.guard = if f.conds.is_empty() && toks.len() == 1 { GuardState::Inside(sym) } else { GuardState::No };
+                                f.guard = if f.conds.is_empty() && toks.len() == 1 {
+                                    GuardState::Inside(sym)
+                                } else {
+                                    GuardState::No
+                                };
                             }
                         }
-                        if name == "ifdef" { defined } else { !defined }
+                        if name == "ifdef" {
+                            defined
+                        } else {
+                            !defined
+                        }
                     }
                 };
                 let nm: &'static str = match name {
@@ -1649,7 +2156,12 @@ impl<'a> Pp<'a> {
                     _ => "ifndef",
                 };
                 if let Some(f) = self.frames.last_mut() {
-                    f.conds.push(Cond { site: hash_range.start..name_range.end, name: nm, taken, else_seen: false });
+                    f.conds.push(Cond {
+                        site: hash_range.start..name_range.end,
+                        name: nm,
+                        taken,
+                        else_seen: false,
+                    });
                 }
                 if !taken {
                     self.skip_group()?;
@@ -1658,12 +2170,24 @@ impl<'a> Pp<'a> {
             }
             "elif" | "else" => {
                 let (toks, _) = self.directive_tokens()?;
-                let Some(f) = self.frames.last_mut() else { return Ok(()) };
+                let Some(f) = self.frames.last_mut() else {
+                    return Ok(());
+                };
                 let Some(c) = f.conds.last_mut() else {
-                    return self.err_at(ctx, hash_range.start..name_range.end, format!("#{name} without #if"), "no open conditional");
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        format!("#{name} without #if"),
+                        "no open conditional",
+                    );
                 };
                 if c.else_seen {
-                    return self.err_at(ctx, hash_range.start..name_range.end, format!("#{name} after #else"), "after the #else of this conditional");
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        format!("#{name} after #else"),
+                        "after the #else of this conditional",
+                    );
                 }
                 if name == "else" {
                     c.else_seen = true;
@@ -1677,9 +2201,16 @@ impl<'a> Pp<'a> {
             }
             "endif" => {
                 let (toks, _) = self.directive_tokens()?;
-                let Some(f) = self.frames.last_mut() else { return Ok(()) };
+                let Some(f) = self.frames.last_mut() else {
+                    return Ok(());
+                };
                 if f.conds.pop().is_none() {
-                    return self.err_at(ctx, hash_range.start..name_range.end, "#endif without #if", "no open conditional");
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        "#endif without #if",
+                        "no open conditional",
+                    );
                 }
                 if f.conds.is_empty() {
                     if let GuardState::Inside(sym) = f.guard {
@@ -1697,7 +2228,11 @@ impl<'a> Pp<'a> {
                 let (_, end) = self.directive_tokens()?;
                 let msg = text.get(start..end as usize).unwrap_or("").trim();
                 let msg = collapse_comments(msg);
-                let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
+                let message = if msg.is_empty() {
+                    format!("#{name}")
+                } else {
+                    format!("#{name} {msg}")
+                };
                 let labels = self.labels_at(ctx, hash_range.start..end, "");
                 if name == "error" {
                     return Err(Error::new(message, labels));
@@ -1728,13 +2263,22 @@ impl<'a> Pp<'a> {
                     Some(t) if t.kind == TK::Number => self.line_directive(toks, ctx, name_range),
                     Some(t) => {
                         let s = self.it.str(t.sym).to_string();
-                        self.err_tok(t, format!("invalid preprocessing directive #{s}"), "not a directive")
+                        self.err_tok(
+                            t,
+                            format!("invalid preprocessing directive #{s}"),
+                            "not a directive",
+                        )
                     }
                 }
             }
             other => {
                 let other = other.to_string();
-                self.err_at(ctx, name_range, format!("invalid preprocessing directive #{other}"), "unknown directive")
+                self.err_at(
+                    ctx,
+                    name_range,
+                    format!("invalid preprocessing directive #{other}"),
+                    "unknown directive",
+                )
             }
         }
     }
@@ -1742,7 +2286,12 @@ impl<'a> Pp<'a> {
     /// The macro name of `#undef`/`#ifdef`/`#ifndef`.
     fn directive_name(&self, toks: &[Tok], dir: &str, ctx: u32, at: Range<u32>) -> PResult<Sym> {
         match toks.first() {
-            None => self.err_at(ctx, at, format!("no macro name given in #{dir} directive"), "expected a macro name"),
+            None => self.err_at(
+                ctx,
+                at,
+                format!("no macro name given in #{dir} directive"),
+                "expected a macro name",
+            ),
             Some(t) if t.kind == TK::Ident => {
                 if t.sym == self.syms.defined && dir == "undef" {
                     return self.err_tok(t, "\"defined\" cannot be used as a macro name", "here");
@@ -1759,7 +2308,16 @@ impl<'a> Pp<'a> {
             self.out.push('\n');
         }
         let out_at = self.out.len() as u32;
-        self.map.entries.push(Entry { out: out_at, ctx, src: at as u32, end: at as u32 + 1, def_ctx: NONE, def_src: 0, def_len: 0, is_macro: true });
+        self.map.entries.push(Entry {
+            out: out_at,
+            ctx,
+            src: at as u32,
+            end: at as u32 + 1,
+            def_ctx: NONE,
+            def_src: 0,
+            def_len: 0,
+            is_macro: true,
+        });
         self.out.push_str(line);
         self.out.push('\n');
         self.last_tok = 0..0;
@@ -1768,10 +2326,15 @@ impl<'a> Pp<'a> {
 
     fn pragma(&mut self, start: usize, ctx: u32) -> PResult<()> {
         let (toks, end) = self.directive_tokens()?;
-        let Some(frame) = self.frames.last() else { return Ok(()) };
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
         let source = frame.source.clone();
         let file = frame.file;
-        let first = toks.first().map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
+        let first = toks
+            .first()
+            .map(|t| self.it.str(t.sym).to_string())
+            .unwrap_or_default();
         match first.as_str() {
             "once" => {
                 self.once.insert(file);
@@ -1798,10 +2361,16 @@ impl<'a> Pp<'a> {
                 Ok(())
             }
             "GCC" => {
-                let second = toks.get(1).map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
+                let second = toks
+                    .get(1)
+                    .map(|t| self.it.str(t.sym).to_string())
+                    .unwrap_or_default();
                 match second.as_str() {
                     "error" | "warning" => {
-                        let msg = toks.get(2).map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
+                        let msg = toks
+                            .get(2)
+                            .map(|t| self.it.str(t.sym).to_string())
+                            .unwrap_or_default();
                         let labels = self.labels_at(ctx, start as u32..end, "");
                         if second == "error" {
                             return Err(Error::new(msg.trim_matches('"').to_string(), labels));
@@ -1809,15 +2378,19 @@ impl<'a> Pp<'a> {
                         self.warn(msg.trim_matches('"').to_string(), labels);
                         Ok(())
                     }
-                    "system_header" | "poison" | "dependency" | "push_options" | "pop_options" | "diagnostic" => Ok(()),
+                    "system_header" | "poison" | "dependency" | "push_options" | "pop_options"
+                    | "diagnostic" => Ok(()),
                     _ => {
-                        let rest = collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
+                        let rest = collapse_comments(
+                            source.text().get(start..end as usize).unwrap_or("").trim(),
+                        );
                         self.emit_line(ctx, start, &format!("#pragma {rest}"))
                     }
                 }
             }
             _ => {
-                let rest = collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
+                let rest =
+                    collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
                 self.emit_line(ctx, start, &format!("#pragma {rest}"))
             }
         }
@@ -1825,17 +2398,29 @@ impl<'a> Pp<'a> {
 
     fn line_directive(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<()> {
         let line_here = match self.frames.last() {
-            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64,
+            Some(f) => {
+                f.source
+                    .line_col(f.source.original_offset(at.start as usize))
+                    .0 as i64
+            }
             None => return Ok(()),
         };
         let toks = self.expand_line(toks, Some(line_here))?;
         let Some(n) = toks.first().filter(|t| t.kind == TK::Number) else {
-            return self.err_at(ctx, at, "#line directive requires a simple digit sequence", "here");
+            return self.err_at(
+                ctx,
+                at,
+                "#line directive requires a simple digit sequence",
+                "here",
+            );
         };
         let Ok(value) = self.it.str(n.sym).parse::<i64>() else {
             return self.err_tok(n, "line number out of range", "here");
         };
-        let name = toks.get(1).filter(|t| t.kind == TK::Str).map(|t| self.it.str(t.sym).to_string());
+        let name = toks
+            .get(1)
+            .filter(|t| t.kind == TK::Str)
+            .map(|t| self.it.str(t.sym).to_string());
         if let Some(f) = self.frames.last_mut() {
             // The line after the directive gets `value`.
             f.line_delta = value - (line_here + 1);
@@ -1848,7 +2433,9 @@ impl<'a> Pp<'a> {
 
     /// Macro-expands directive tokens in isolation.
     fn expand_line(&mut self, toks: Vec<Tok>, line: Option<i64>) -> PResult<Vec<Tok>> {
-        let Some(first) = toks.first().copied() else { return Ok(Vec::new()) };
+        let Some(first) = toks.first().copied() else {
+            return Ok(Vec::new());
+        };
         let saved_line = self.directive_line;
         self.directive_line = line;
         let saved_inv = self.inv.take();
@@ -1884,7 +2471,12 @@ impl<'a> Pp<'a> {
     /// Evaluates an `#if`/`#elif` line.
     fn eval_if(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<bool> {
         let line = match self.frames.last() {
-            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64 + f.line_delta,
+            Some(f) => {
+                f.source
+                    .line_col(f.source.original_offset(at.start as usize))
+                    .0 as i64
+                    + f.line_delta
+            }
             None => 0,
         };
         let Some(first) = toks.first().copied() else {
@@ -1917,7 +2509,11 @@ impl<'a> Pp<'a> {
         match result {
             Ok(v) => Ok(v.v != 0),
             Err(e) => {
-                let label = if e.message.contains("division by zero") { "this divisor is zero" } else { "here" };
+                let label = if e.message.contains("division by zero") {
+                    "this divisor is zero"
+                } else {
+                    "here"
+                };
                 match expanded.get(e.at).or(expanded.last()) {
                     Some(t) => self.err_tok(t, e.message, label),
                     None => self.err_at(ctx, at, e.message, label),
@@ -1930,38 +2526,58 @@ impl<'a> Pp<'a> {
     fn expand_if_tokens(&mut self, toks: Vec<Tok>, first: &Tok) -> PResult<Vec<Tok>> {
         self.push_context(toks, NONE, true, first)?;
         let mut out = Vec::new();
-        loop {
-            let Some(t) = self.get_token(false)? else { break };
+        while let Some(t) = self.get_token(false)? {
             if t.kind == TK::Eof {
                 break;
             }
             if matches!(t.kind, TK::Placemarker | TK::Padding) {
                 continue;
             }
-            if t.kind == TK::Ident && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next) && t.flags & NO_EXPAND == 0 {
+            if t.kind == TK::Ident
+                && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next)
+                && t.flags & NO_EXPAND == 0
+            {
                 let found = self.has_include(&t)?;
                 let sym = if found { self.syms.one } else { self.syms.zero };
-                out.push(Tok { sym, kind: TK::Number, ..t });
+                out.push(Tok {
+                    sym,
+                    kind: TK::Number,
+                    ..t
+                });
                 continue;
             }
             if t.kind == TK::Ident && t.sym == self.syms.defined {
-                let Some(mut n) = self.next_raw(false)? else { break };
+                let Some(mut n) = self.next_raw(false)? else {
+                    break;
+                };
                 let paren = n.kind == TK::Punct && n.sym == self.syms.lparen;
                 if paren {
                     n = self.next_raw(false)?.unwrap_or(Tok::eof());
                 }
                 if n.kind != TK::Ident {
-                    return self.err_tok(if n.kind == TK::Eof { &t } else { &n }, "operator \"defined\" requires an identifier", "expected an identifier");
+                    return self.err_tok(
+                        if n.kind == TK::Eof { &t } else { &n },
+                        "operator \"defined\" requires an identifier",
+                        "expected an identifier",
+                    );
                 }
                 if paren {
                     let close = self.next_raw(false)?.unwrap_or(Tok::eof());
                     if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-                        return self.err_tok(&n, "missing ')' after \"defined\"", "expected ')' after this");
+                        return self.err_tok(
+                            &n,
+                            "missing ')' after \"defined\"",
+                            "expected ')' after this",
+                        );
                     }
                 }
                 let is = self.macro_idx(n.sym) != NONE;
                 let sym = if is { self.syms.one } else { self.syms.zero };
-                out.push(Tok { sym, kind: TK::Number, ..t });
+                out.push(Tok {
+                    sym,
+                    kind: TK::Number,
+                    ..t
+                });
                 continue;
             }
             out.push(t);
@@ -1974,18 +2590,31 @@ impl<'a> Pp<'a> {
         let name = self.it.str(at.sym).to_string();
         let open = self.next_raw(false)?.unwrap_or(Tok::eof());
         if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
-            return self.err_tok(at, format!("missing '(' after \"{name}\""), "expected '(' after this");
+            return self.err_tok(
+                at,
+                format!("missing '(' after \"{name}\""),
+                "expected '(' after this",
+            );
         }
         let first = self.get_real_token(false)?;
         let (spelling, angle) = if first.kind == TK::Str {
             let s = self.it.str(first.sym);
-            (s.get(1..s.len().saturating_sub(1)).unwrap_or("").to_string(), false)
+            (
+                s.get(1..s.len().saturating_sub(1))
+                    .unwrap_or("")
+                    .to_string(),
+                false,
+            )
         } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
             let mut s = String::new();
             loop {
                 let t = self.get_real_token(false)?;
                 if t.kind == TK::Eof {
-                    return self.err_tok(at, format!("missing terminating > character in \"{name}\""), "here");
+                    return self.err_tok(
+                        at,
+                        format!("missing terminating > character in \"{name}\""),
+                        "here",
+                    );
                 }
                 if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
                     break;
@@ -1997,19 +2626,32 @@ impl<'a> Pp<'a> {
             }
             (s, true)
         } else {
-            return self.err_tok(at, format!("operator \"{name}\" requires a header-name"), "expected \"FILE\" or <FILE> after this");
+            return self.err_tok(
+                at,
+                format!("operator \"{name}\" requires a header-name"),
+                "expected \"FILE\" or <FILE> after this",
+            );
         };
         let close = self.next_raw(false)?.unwrap_or(Tok::eof());
         if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-            return self.err_tok(at, format!("missing ')' after \"{name}\" operand"), "expected ')'");
+            return self.err_tok(
+                at,
+                format!("missing ')' after \"{name}\" operand"),
+                "expected ')'",
+            );
         }
-        Ok(matches!(self.resolve_include(&spelling, angle), Resolved::Found(..)))
+        Ok(matches!(
+            self.resolve_include(&spelling, angle),
+            Resolved::Found(..)
+        ))
     }
 
     /// Skips a group whose condition is false, up to the `#elif`/`#else`/`#endif` that ends
     /// it, taking an `#elif`/`#else` branch when no earlier branch was taken.
     fn skip_group(&mut self) -> PResult<()> {
-        let Some(frame) = self.frames.last() else { return Ok(()) };
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
         let source = frame.source.clone();
         let ctx = frame.ctx;
         let text = source.text();
@@ -2045,7 +2687,11 @@ impl<'a> Pp<'a> {
                     }
                 }
                 let (k, l) = lexer::next(bytes, q);
-                let name = if k == Kind::Ident { &text[q..q + l] } else { "" };
+                let name = if k == Kind::Ident {
+                    &text[q..q + l]
+                } else {
+                    ""
+                };
                 let name_range = q as u32..(q + l) as u32;
                 match name {
                     "if" | "ifdef" | "ifndef" => depth += 1,
@@ -2055,11 +2701,18 @@ impl<'a> Pp<'a> {
                             f.pos = q + l;
                         }
                         let (toks, _) = self.directive_tokens()?;
-                        let Some(f) = self.frames.last_mut() else { return Ok(()) };
-                        if name != "endif" && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
+                        let Some(f) = self.frames.last_mut() else {
+                            return Ok(());
+                        };
+                        if name != "endif"
+                            && f.conds.len() == 1
+                            && matches!(f.guard, GuardState::Inside(_))
+                        {
                             f.guard = GuardState::No;
                         }
-                        let Some(c) = f.conds.last_mut() else { return Ok(()) };
+                        let Some(c) = f.conds.last_mut() else {
+                            return Ok(());
+                        };
                         match name {
                             "endif" => {
                                 f.conds.pop();
@@ -2071,7 +2724,12 @@ impl<'a> Pp<'a> {
                                 return Ok(());
                             }
                             _ if c.else_seen => {
-                                return self.err_at(ctx, hash as u32..name_range.end, format!("#{name} after #else"), "after the #else of this conditional");
+                                return self.err_at(
+                                    ctx,
+                                    hash as u32..name_range.end,
+                                    format!("#{name} after #else"),
+                                    "after the #else of this conditional",
+                                );
                             }
                             "else" => {
                                 c.else_seen = true;
@@ -2085,7 +2743,9 @@ impl<'a> Pp<'a> {
                                 if !c.taken {
                                     let v = self.eval_if(toks, ctx, name_range.clone())?;
                                     if v {
-                                        if let Some(c) = self.frames.last_mut().and_then(|f| f.conds.last_mut()) {
+                                        if let Some(c) =
+                                            self.frames.last_mut().and_then(|f| f.conds.last_mut())
+                                        {
                                             c.taken = true;
                                         }
                                         return Ok(());
@@ -2105,7 +2765,9 @@ impl<'a> Pp<'a> {
     }
 
     fn include(&mut self, hash: u32, after_name: usize) -> PResult<()> {
-        let Some(frame) = self.frames.last() else { return Ok(()) };
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
         let ctx = frame.ctx;
         let source = frame.source.clone();
         let text = source.text();
@@ -2118,12 +2780,36 @@ impl<'a> Pp<'a> {
         let line_end = lexer::memchr_nl(bytes, p);
         let (spelling, angle, spell_range, rest_at) = match bytes.get(p) {
             Some(b'<') => match text[p + 1..line_end].find('>') {
-                Some(i) => (text[p + 1..p + 1 + i].to_string(), true, p as u32..(p + i + 2) as u32, p + i + 2),
-                None => return self.err_at(ctx, p as u32..line_end as u32, "missing terminating > character", "this header name is never closed"),
+                Some(i) => (
+                    text[p + 1..p + 1 + i].to_string(),
+                    true,
+                    p as u32..(p + i + 2) as u32,
+                    p + i + 2,
+                ),
+                None => {
+                    return self.err_at(
+                        ctx,
+                        p as u32..line_end as u32,
+                        "missing terminating > character",
+                        "this header name is never closed",
+                    )
+                }
             },
             Some(b'"') => match text[p + 1..line_end].find('"') {
-                Some(i) => (text[p + 1..p + 1 + i].to_string(), false, p as u32..(p + i + 2) as u32, p + i + 2),
-                None => return self.err_at(ctx, p as u32..line_end as u32, "missing terminating \" character", "this file name is never closed"),
+                Some(i) => (
+                    text[p + 1..p + 1 + i].to_string(),
+                    false,
+                    p as u32..(p + i + 2) as u32,
+                    p + i + 2,
+                ),
+                None => {
+                    return self.err_at(
+                        ctx,
+                        p as u32..line_end as u32,
+                        "missing terminating \" character",
+                        "this file name is never closed",
+                    )
+                }
             },
             _ => {
                 if let Some(f) = self.frames.last_mut() {
@@ -2131,13 +2817,23 @@ impl<'a> Pp<'a> {
                 }
                 let (toks, end) = self.directive_tokens()?;
                 if toks.is_empty() {
-                    return self.err_at(ctx, hash..end, "#include expects \"FILENAME\" or <FILENAME>", "no file name");
+                    return self.err_at(
+                        ctx,
+                        hash..end,
+                        "#include expects \"FILENAME\" or <FILENAME>",
+                        "no file name",
+                    );
                 }
                 let range = toks[0].src..end;
                 let line = source.line_col(source.original_offset(hash as usize)).0 as i64;
                 let exp = self.expand_line(toks, Some(line))?;
                 let (s, angle) = self.computed_header(&exp).ok_or(()).or_else(|_| {
-                    self.err_at(ctx, range.clone(), "#include expects \"FILENAME\" or <FILENAME>", "this does not expand to a file name")
+                    self.err_at(
+                        ctx,
+                        range.clone(),
+                        "#include expects \"FILENAME\" or <FILENAME>",
+                        "this does not expand to a file name",
+                    )
                 })?;
                 return self.do_include(&s, angle, ctx, hash, range);
             }
@@ -2180,16 +2876,33 @@ impl<'a> Pp<'a> {
 
     /// Where an include of `spelling` leads from the current file.
     fn resolve_include(&self, spelling: &str, angle: bool) -> Resolved {
-        let includer_name = self.frames.last().map(|f| f.name.clone()).unwrap_or_default();
+        let includer_name = self
+            .frames
+            .last()
+            .map(|f| f.name.clone())
+            .unwrap_or_default();
         let mut found = Resolved::NotFound;
-        let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
+        let is_virtual = self
+            .opts
+            .virtual_roots
+            .iter()
+            .any(|(p, _)| virtual_match(spelling, p).is_some());
         if !angle && !is_virtual && relative_ok(spelling) {
-            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()).filter(|d| d.is_dir()) {
+            if let Some(dir) = self
+                .frames
+                .last()
+                .and_then(|f| f.source.path.parent())
+                .filter(|d| d.is_dir())
+            {
                 let cand = dir.join(spelling);
                 if cand.is_file() {
                     found = Resolved::NotFound;
                     if let Ok(c) = cand.canonicalize() {
-                        found = if self.roots.iter().any(|r| c.starts_with(r)) { Resolved::Found(c, String::new()) } else { Resolved::Escapes(c) };
+                        found = if self.roots.iter().any(|r| c.starts_with(r)) {
+                            Resolved::Found(c, String::new())
+                        } else {
+                            Resolved::Escapes(c)
+                        };
                     }
                     if let Resolved::Found(_, name) = &mut found {
                         *name = match includer_name.rfind('/') {
@@ -2206,28 +2919,53 @@ impl<'a> Pp<'a> {
         found
     }
 
-    fn do_include(&mut self, spelling: &str, angle: bool, ctx: u32, hash: u32, range: Range<u32>) -> PResult<()> {
+    fn do_include(
+        &mut self,
+        spelling: &str,
+        angle: bool,
+        ctx: u32,
+        hash: u32,
+        range: Range<u32>,
+    ) -> PResult<()> {
         if spelling.is_empty() {
             return self.err_at(ctx, range, "empty filename in #include", "no file name");
         }
         if self.frames.len() >= 200 {
-            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
+            return self.err_at(
+                ctx,
+                range,
+                "#include nested depth 200 exceeds maximum of 200",
+                "this include",
+            );
         }
         let found = self.resolve_include(spelling, angle);
         let (path, cpp_name) = match found {
             Resolved::Found(p, n) => (p, n),
             Resolved::Escapes(p) => {
                 let shown = self.cache.display_name(&p);
-                return self.err_at(ctx, range, format!("#include \"{spelling}\" resolves to `{shown}`, outside the include roots"), "this include escapes its root");
+                return self.err_at(
+                    ctx,
+                    range,
+                    format!(
+                        "#include \"{spelling}\" resolves to `{shown}`, outside the include roots"
+                    ),
+                    "this include escapes its root",
+                );
             }
             Resolved::NotFound => {
-                let mut e = Error::new(format!("cannot find include file `{spelling}`"), self.labels_at(ctx, range, "not found"));
+                let mut e = Error::new(
+                    format!("cannot find include file `{spelling}`"),
+                    self.labels_at(ctx, range, "not found"),
+                );
                 let mut searched: Vec<String> = Vec::new();
                 if !angle {
                     searched.push("the including file's folder".to_string());
                 }
                 for r in &self.opts.include_roots {
-                    searched.push(self.cache.display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())));
+                    searched.push(
+                        self.cache
+                            .display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())),
+                    );
                 }
                 e.diagnostic = e.diagnostic.with_notes(vec![if searched.is_empty() {
                     "no include roots are configured".to_string()
@@ -2237,7 +2975,12 @@ impl<'a> Pp<'a> {
                 return Err(e);
             }
         };
-        let (id, source) = self.cache.load(&path).map_err(|e| Error::new(format!("cannot read `{}`: {e}", self.cache.display_name(&path)), self.labels_at(ctx, range.clone(), "included here")))?;
+        let (id, source) = self.cache.load(&path).map_err(|e| {
+            Error::new(
+                format!("cannot read `{}`: {e}", self.cache.display_name(&path)),
+                self.labels_at(ctx, range.clone(), "included here"),
+            )
+        })?;
         if source.text().len() >= (u32::MAX / 2) as usize {
             return self.err_at(ctx, range, "included file is too large", "this include");
         }
@@ -2252,7 +2995,11 @@ impl<'a> Pp<'a> {
                 return Ok(());
             }
         }
-        let name = if cpp_name.is_empty() { source.name.clone() } else { cpp_name };
+        let name = if cpp_name.is_empty() {
+            source.name.clone()
+        } else {
+            cpp_name
+        };
         let site_end = range.end.max(hash);
         if !self.out.is_empty() && !self.out.ends_with('\n') {
             self.out.push('\n');
@@ -2267,7 +3014,11 @@ impl<'a> Pp<'a> {
     fn parse_define(&mut self, toks: Vec<Tok>, predefined: bool) -> PResult<()> {
         let name = toks[0];
         if name.kind != TK::Ident {
-            return self.err_tok(&name, "macro names must be identifiers", "not an identifier");
+            return self.err_tok(
+                &name,
+                "macro names must be identifiers",
+                "not an identifier",
+            );
         }
         if name.sym == self.syms.defined {
             return self.err_tok(&name, "\"defined\" cannot be used as a macro name", "here");
@@ -2276,23 +3027,37 @@ impl<'a> Pp<'a> {
         let mut func = false;
         let mut variadic = false;
         let mut params: Vec<Sym> = Vec::new();
-        if toks.get(1).is_some_and(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
+        if toks.get(1).is_some_and(|t| {
+            t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0
+        }) {
             func = true;
             i = 2;
             let mut expect_param = true;
             loop {
                 let Some(t) = toks.get(i).copied() else {
-                    return self.err_tok(&toks[i - 1], "missing ')' in macro parameter list", "expected ')' after this");
+                    return self.err_tok(
+                        &toks[i - 1],
+                        "missing ')' in macro parameter list",
+                        "expected ')' after this",
+                    );
                 };
                 i += 1;
                 let s = self.it.str(t.sym).to_string();
                 if expect_param {
                     if t.kind == TK::Ident {
                         if params.contains(&t.sym) {
-                            return self.err_tok(&t, format!("duplicate macro parameter \"{s}\""), "already a parameter");
+                            return self.err_tok(
+                                &t,
+                                format!("duplicate macro parameter \"{s}\""),
+                                "already a parameter",
+                            );
                         }
                         if t.sym == self.syms.va_args {
-                            return self.err_tok(&t, "__VA_ARGS__ can not be used as a parameter name", "here");
+                            return self.err_tok(
+                                &t,
+                                "__VA_ARGS__ can not be used as a parameter name",
+                                "here",
+                            );
                         }
                         params.push(t.sym);
                         expect_param = false;
@@ -2302,7 +3067,11 @@ impl<'a> Pp<'a> {
                         variadic = true;
                         params.push(self.syms.va_args);
                         let Some(c) = toks.get(i).copied() else {
-                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
+                            return self.err_tok(
+                                &t,
+                                "missing ')' in macro parameter list",
+                                "expected ')' after this",
+                            );
                         };
                         i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
@@ -2313,7 +3082,11 @@ impl<'a> Pp<'a> {
                     if s == ")" && params.is_empty() {
                         break;
                     }
-                    return self.err_tok(&t, format!("expected parameter name, found \"{s}\""), "expected a parameter name");
+                    return self.err_tok(
+                        &t,
+                        format!("expected parameter name, found \"{s}\""),
+                        "expected a parameter name",
+                    );
                 }
                 match s.as_str() {
                     "," => expect_param = true,
@@ -2322,7 +3095,11 @@ impl<'a> Pp<'a> {
                         // GNU named variadic parameter: `args...`.
                         variadic = true;
                         let Some(c) = toks.get(i).copied() else {
-                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
+                            return self.err_tok(
+                                &t,
+                                "missing ')' in macro parameter list",
+                                "expected ')' after this",
+                            );
                         };
                         i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
@@ -2330,7 +3107,13 @@ impl<'a> Pp<'a> {
                         }
                         break;
                     }
-                    _ => return self.err_tok(&t, format!("expected ',' or ')', found \"{s}\""), "expected ',' or ')'"),
+                    _ => {
+                        return self.err_tok(
+                            &t,
+                            format!("expected ',' or ')', found \"{s}\""),
+                            "expected ',' or ')'",
+                        )
+                    }
                 }
             }
         } else if let Some(t) = toks.get(1) {
@@ -2351,7 +3134,11 @@ impl<'a> Pp<'a> {
             let s = self.it.str(t.sym);
             if t.kind == TK::Punct && (s == "##" || s == "%:%:") {
                 if body.is_empty() || j + 1 == toks.len() {
-                    return self.err_tok(&toks[j], "'##' cannot appear at either end of a macro expansion", "here");
+                    return self.err_tok(
+                        &toks[j],
+                        "'##' cannot appear at either end of a macro expansion",
+                        "here",
+                    );
                 }
                 if let Some(last) = body.last_mut() {
                     last.flags |= PASTE_LEFT;
@@ -2361,20 +3148,38 @@ impl<'a> Pp<'a> {
             }
             if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
                 let next = toks.get(j + 1).copied();
-                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
+                if let Some(n) =
+                    next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt)
+                {
                     // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
-                    body.push(Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
+                    body.push(Tok {
+                        flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
+                        ..n
+                    });
                     j += 2;
                     continue;
                 }
-                match next.filter(|n| n.kind == TK::Ident).and_then(|n| params.iter().position(|&p| p == n.sym)) {
+                match next
+                    .filter(|n| n.kind == TK::Ident)
+                    .and_then(|n| params.iter().position(|&p| p == n.sym))
+                {
                     Some(pi) => {
                         let n = toks[j + 1];
-                        body.push(Tok { param: pi as u16, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
+                        body.push(Tok {
+                            param: pi as u16,
+                            flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
+                            ..n
+                        });
                         j += 2;
                         continue;
                     }
-                    None => return self.err_tok(&toks[j], "'#' is not followed by a macro parameter", "here"),
+                    None => {
+                        return self.err_tok(
+                            &toks[j],
+                            "'#' is not followed by a macro parameter",
+                            "here",
+                        )
+                    }
                 }
             }
             if t.kind == TK::Ident {
@@ -2383,9 +3188,15 @@ impl<'a> Pp<'a> {
                         t.param = pi as u16;
                     }
                 }
-                if t.sym == self.syms.va_args && (!variadic || named_variadic) && t.param == NO_PARAM {
+                if t.sym == self.syms.va_args
+                    && (!variadic || named_variadic)
+                    && t.param == NO_PARAM
+                {
                     let l = self.tok_labels(&toks[j], "here");
-                    self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
+                    self.warn(
+                        "__VA_ARGS__ can only appear in the expansion of a C99 variadic macro",
+                        l,
+                    );
                 }
             }
             body.push(t);
@@ -2399,7 +3210,7 @@ impl<'a> Pp<'a> {
                     && body[k].sym == self.syms.comma
                     && body[k].flags & PASTE_LEFT != 0
                     && body[k + 1].param == va
-                    && body[k + 1].flags & STRINGIFY == 0
+                    && body[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
                 {
                     body[k].flags |= VA_COMMA;
                 }
@@ -2409,7 +3220,10 @@ impl<'a> Pp<'a> {
             return self.err_tok(&name, "too many macro parameters", "here");
         }
         let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
-        let va_opt = variadic && body.iter().any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
+        let va_opt = variadic
+            && body
+                .iter()
+                .any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
         let m = Macro {
             func,
             variadic,
@@ -2430,8 +3244,11 @@ impl<'a> Pp<'a> {
                 let mut labels = self.tok_labels(&name, "redefined here");
                 if prev.ctx != NONE {
                     if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
-                        let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
-                        labels.push(Label::secondary(c.file, r).with_message("previous definition"));
+                        let r = c
+                            .source
+                            .original_range(prev.site.start as usize..prev.site.end as usize);
+                        labels
+                            .push(Label::secondary(c.file, r).with_message("previous definition"));
                     }
                 }
                 self.warn(format!("\"{n}\" redefined"), labels);
@@ -2448,9 +3265,15 @@ impl<'a> Pp<'a> {
             && a.variadic == b.variadic
             && a.params == b.params
             && a.body.len() == b.body.len()
-            && a.body.iter().zip(b.body.iter()).enumerate().all(|(i, (x, y))| {
-                x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
-            })
+            && a.body
+                .iter()
+                .zip(b.body.iter())
+                .enumerate()
+                .all(|(i, (x, y))| {
+                    x.sym == y.sym
+                        && x.param == y.param
+                        && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
+                })
     }
 }
 
@@ -2488,7 +3311,10 @@ fn quote(s: &str) -> String {
 }
 
 fn unquote(s: &str) -> String {
-    let inner = s.strip_prefix('"').and_then(|s| s.strip_suffix('"')).unwrap_or(s);
+    let inner = s
+        .strip_prefix('"')
+        .and_then(|s| s.strip_suffix('"'))
+        .unwrap_or(s);
     inner.replace("\\\"", "\"").replace("\\\\", "\\")
 }
 
@@ -2525,7 +3351,9 @@ fn date_time() -> (String, String) {
         .ok()
         .and_then(|v| v.parse::<i64>().ok())
         .unwrap_or_else(|| {
-            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs() as i64)
         });
     let days = secs.div_euclid(86_400);
     let rem = secs.rem_euclid(86_400);
@@ -2539,7 +3367,9 @@ fn date_time() -> (String, String) {
     let day = doy - (153 * mp + 2) / 5 + 1;
     let month = if mp < 10 { mp + 3 } else { mp - 9 };
     let year = yoe + era * 400 + i64::from(month <= 2);
-    const MONTHS: [&str; 12] = ["Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec"];
+    const MONTHS: [&str; 12] = [
+        "Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec",
+    ];
     let date = format!("{} {day:2} {year}", MONTHS[(month - 1) as usize]);
     let time = format!("{:02}:{:02}:{:02}", rem / 3600, rem % 3600 / 60, rem % 60);
     (date, time)

@@ -66,11 +66,14 @@ fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
 }
 
 impl Lighting {
-    pub fn new(b: &Build<'_>, shadows: &ShadowDepths, dummy_shadow: &Texture) -> Result<Lighting, DesktopError> {
+    pub fn new(b: &Build<'_>, shadows: &ShadowDepths, dummy_shadow: &Texture, grid: &super::light_grid::LightGrid) -> Result<Lighting, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let device = b.device;
         let read_only = |compare: wgpu::CompareFunction| {
+            if !t.scene_depth.read_only_attachment {
+                return None;
+            }
             Some(wgpu::DepthStencilState {
                 format: t.scene_depth.format,
                 depth_write_enabled: Some(false),
@@ -113,10 +116,17 @@ impl Lighting {
         let mut non_shadowed = Vec::new();
         let mut tiled = None;
         if tiled_path {
+            // With the light grid the pass reads every light (and skips the shadowed ones);
+            // culling per tile, it gets the unshadowed ones only.
+            let use_grid = b.options.tiled_uses_light_grid;
             let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
             let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
             let params = uniform(device, "TiledLighting", &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) });
-            let cs = p.compute(&p.permutation("TiledDeferredLightingCS", &[("VISUALIZE_LIGHT_CULLING", "0".into())])?)?;
+            let cs = p.compute(&p.permutation(
+                "TiledDeferredLightingCS",
+                &[("USE_LIGHT_GRID", u32::from(use_grid).to_string()), ("VISUALIZE_LIGHT_CULLING", "0".into())],
+            )?)?;
+            let lights_binding = if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
             let groups = cs.layout.bind_groups(
                 device,
                 &[
@@ -127,8 +137,10 @@ impl Lighting {
                     ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
                     ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
                     ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
-                    ("LocalLights", lights.as_entire_binding()),
+                    ("LocalLights", lights_binding),
                     ("TiledLighting", params.as_entire_binding()),
+                    ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
+                    ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
                 ],
             )?
             .keeping(lights)

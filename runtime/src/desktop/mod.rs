@@ -65,6 +65,9 @@ pub struct DesktopOptions {
     /// pass (Unreal switches above 80).
     pub tiled_threshold: usize,
     pub lighting_path: LightingPath,
+    /// The tiled pass reads each pixel's lights from the light grid (`USE_LIGHT_GRID=1`)
+    /// instead of culling them per 16x16 tile itself, as Unreal 4.17 does.
+    pub tiled_uses_light_grid: bool,
     /// Shadow filtering, 1 to 3 (1x1, 3x3, 5x5 PCF): `SHADOW_QUALITY`.
     pub shadow_quality: u32,
     /// Ambient occlusion quality, 0 to 2 (4, 8, 12 samples): `SHADER_QUALITY`.
@@ -90,6 +93,7 @@ impl Default for DesktopOptions {
             height: 360,
             tiled_threshold: 80,
             lighting_path: LightingPath::Auto,
+            tiled_uses_light_grid: true,
             shadow_quality: 2,
             ao_quality: 2,
             shadow_map_size: 512,
@@ -110,6 +114,14 @@ pub enum DesktopError {
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
     #[error("pipeline `{pipeline}`: storage texture format `{format}` is not known to the runtime")]
     StorageFormat { pipeline: String, format: String },
+}
+
+/// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
+/// frame; Translucency draws their sprites (additively, depth tested against the scene).
+pub struct ParticleInputs<'a> {
+    /// The runtime's view uniforms (`FViewUniforms`), which the sprite shaders read.
+    pub view: &'a wgpu::Buffer,
+    pub systems: &'a [crate::passes::particles::ParticleSystem],
 }
 
 /// What passes read while they are built.
@@ -180,6 +192,7 @@ impl DesktopFrame {
         cache: &PipelineCache,
         scene: &Scene,
         options: DesktopOptions,
+        particles: Option<ParticleInputs<'_>>,
     ) -> Result<DesktopFrame, DesktopError> {
         let (w, h) = (options.width.max(1), options.height.max(1));
         let view = FrameView::new(scene, w, h);
@@ -211,9 +224,9 @@ impl DesktopFrame {
         let shadows = shadow_depths::ShadowDepths::new(&b)?;
         let base_pass = base_pass::BasePass::new(&b)?;
         let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
-        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow)?;
+        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
         let fog = fog::HeightFog::new(&b)?;
-        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow)?;
+        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref())?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
         let grid = part2::LightGridInputs {
             lights: &lights_buffer,
@@ -222,7 +235,7 @@ impl DesktopFrame {
             size: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_size,
             z_params: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_z_params,
         };
-        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, w, h)?;
+        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index);
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
@@ -415,6 +428,7 @@ fn desktop_part2(
     shadows: &shadow_depths::ShadowDepths,
     dummy_shadow: &resources::Texture,
     light_grid: part2::LightGridInputs<'_>,
+    frame_draws_fire: bool,
     w: u32,
     h: u32,
 ) -> Result<part2::Part2, DesktopError> {
@@ -439,6 +453,7 @@ fn desktop_part2(
         // the cascades are stored with standard depth (lit where receiver <= stored)
         shadow_compare: wgpu::CompareFunction::LessEqual,
         light_grid,
+        frame_draws_fire,
     };
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
 }

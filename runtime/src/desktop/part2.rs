@@ -73,6 +73,10 @@ pub struct Part2Targets<'a> {
     pub shadow_compare: wgpu::CompareFunction,
     /// ComputeLightGrid's lists: the local lights the volumetric fog scatters.
     pub light_grid: LightGridInputs<'a>,
+    /// The frame draws the scene emitters' fire sprites itself (the runtime's
+    /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
+    /// haze.
+    pub frame_draws_fire: bool,
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -232,7 +236,7 @@ impl Part2 {
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
         for e in &scene.emitters {
-            emitters.push(EmitterDesc::fire(e));
+            emitters.push(EmitterDesc { draw_sprites: !targets.frame_draws_fire, ..EmitterDesc::fire(e) });
             emitters.push(EmitterDesc::sparks(e));
             emitters.push(EmitterDesc::smoke(e));
         }

@@ -72,6 +72,9 @@ pub struct EmitterDesc {
     pub distortion: f32,
     /// Lit by the translucency lighting volume (the colours are albedo); else emissive.
     pub lit: bool,
+    /// Its sprites are drawn (off where the frame draws this emitter's sprites itself; the
+    /// heat haze is drawn either way).
+    pub draw_sprites: bool,
 }
 
 impl EmitterDesc {
@@ -95,6 +98,7 @@ impl EmitterDesc {
             color_death: e.color_end.extend(0.0),
             distortion: 0.6,
             lit: false,
+            draw_sprites: true,
         }
     }
 
@@ -118,6 +122,7 @@ impl EmitterDesc {
             color_death: Vec4::new(0.6, 0.6, 0.62, 0.0),
             distortion: 0.0,
             lit: true,
+            draw_sprites: true,
         }
     }
 
@@ -142,6 +147,7 @@ impl EmitterDesc {
             color_death: Vec4::new(2.0, 0.4, 0.05, 0.0),
             distortion: 0.0,
             lit: false,
+            draw_sprites: true,
         }
     }
 }
@@ -344,7 +350,7 @@ impl Particles {
 
     fn draw_with(&self, pipeline: &Arc<RenderPipeline>, pass: &mut wgpu::RenderPass<'_>) {
         pass.set_pipeline(&pipeline.pipeline);
-        for e in &self.emitters {
+        for e in self.emitters.iter().filter(|e| e.desc.draw_sprites) {
             pass.set_bind_group(0, &e.sprites[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
         }

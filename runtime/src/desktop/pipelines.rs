@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 use kiln::archive::{BindingKind, SampleKind, StorageAccess, TextureDim};
 use kiln::Stage;
 
-use crate::pipelines::{merge_bindings, storage_format, MergedBinding, PipelineCache, PipelineError};
+use crate::pipelines::{merge_bindings, storage_format, ErrorScopes, MergedBinding, PipelineCache, PipelineError};
 
 use super::DesktopError;
 
@@ -41,14 +41,14 @@ impl Layout {
                 .ok_or_else(|| DesktopError::MissingResource { pipeline: self.label.clone(), group, binding: b.binding, name: name.clone() })?;
             entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
         }
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(device);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(&format!("{} group {group}", self.label)),
             layout: &self.bind_group_layouts[group as usize],
             entries: &entries,
         });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", self.label), message: e.to_string() });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", self.label), message });
         }
         Ok(Some(bind_group))
     }
@@ -131,13 +131,16 @@ pub struct Compute {
     pub workgroup_size: [u32; 3],
 }
 
+/// A cached render pipeline with its key (vertex, fragment, state).
+type RenderEntry = (String, Option<String>, RenderDesc, Arc<Render>);
+
 /// Builds and caches the desktop pipelines of one frame.
 pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
     pub device: &'a wgpu::Device,
     pub level: &'a str,
     spirv_passthrough: bool,
-    render: Mutex<Vec<(String, Option<String>, RenderDesc, Arc<Render>)>>,
+    render: Mutex<Vec<RenderEntry>>,
     compute: Mutex<HashMap<String, Arc<Compute>>>,
 }
 
@@ -215,7 +218,7 @@ impl<'a> Pipelines<'a> {
         };
         let targets: Vec<Option<wgpu::ColorTargetState>> =
             desc.targets.iter().map(|(format, blend)| Some(wgpu::ColorTargetState { format: *format, blend: *blend, write_mask: wgpu::ColorWrites::ALL })).collect();
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some(&label),
             layout: Some(&layout.pipeline_layout),
@@ -227,8 +230,8 @@ impl<'a> Pipelines<'a> {
             multiview_mask: None,
             cache: None,
         });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(DesktopError::Wgpu { what: format!("render pipeline `{label}`"), message: e.to_string() });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("render pipeline `{label}`"), message });
         }
         let handle = Arc::new(Render { pipeline, layout });
         self.render.lock().unwrap_or_else(|e| e.into_inner()).push((vertex.to_string(), fragment.map(str::to_string), desc.clone(), handle.clone()));
@@ -241,7 +244,7 @@ impl<'a> Pipelines<'a> {
         }
         let (module, reflection) = self.module(name, Stage::Compute)?;
         let layout = self.layout(name, &[&reflection])?;
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let scope = ErrorScopes::push(self.device);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(name),
             layout: Some(&layout.pipeline_layout),
@@ -250,8 +253,8 @@ impl<'a> Pipelines<'a> {
             compilation_options: Default::default(),
             cache: None,
         });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(DesktopError::Wgpu { what: format!("compute pipeline `{name}`"), message: e.to_string() });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("compute pipeline `{name}`"), message });
         }
         let handle = Arc::new(Compute { pipeline, layout, workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]) });
         self.compute.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), handle.clone());
@@ -272,8 +275,8 @@ fn view_dimension(dim: TextureDim) -> wgpu::TextureViewDimension {
     }
 }
 
-/// The layout entry of a merged binding (every float texture of the desktop frame is
-/// filterable; depth is read through `texture_depth_2d`).
+/// The layout entry of a merged binding. A float texture is filterable unless its name ends
+/// in `DepthTexture` (the scene depth, read as unfilterable float: the runtime's rule).
 fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutEntry, DesktopError> {
     let ty = match &b.kind {
         BindingKind::UniformBuffer { min_size } => {
@@ -288,7 +291,10 @@ fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutE
         BindingKind::Sampler { comparison: false } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
         BindingKind::Texture { dim, sample, multisampled } => wgpu::BindingType::Texture {
             sample_type: match sample {
-                SampleKind::Float => wgpu::TextureSampleType::Float { filterable: !multisampled },
+                SampleKind::Float => {
+                    let depth = b.name.as_deref().is_some_and(|n| n.ends_with("DepthTexture"));
+                    wgpu::TextureSampleType::Float { filterable: !multisampled && !depth }
+                }
                 SampleKind::Depth => wgpu::TextureSampleType::Depth,
                 SampleKind::Sint => wgpu::TextureSampleType::Sint,
                 SampleKind::Uint => wgpu::TextureSampleType::Uint,

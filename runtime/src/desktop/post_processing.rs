@@ -27,7 +27,7 @@ pub struct PostProcessing {
 }
 
 /// Bloom threshold, soft knee, and intensity in the tonemapper.
-pub const BLOOM: [f32; 3] = [1.0, 0.5, 0.35];
+pub const BLOOM: [f32; 3] = [1.5, 0.5, 0.2];
 
 impl PostProcessing {
     pub fn new(b: &Build<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {

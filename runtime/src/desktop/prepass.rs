@@ -72,8 +72,6 @@ impl PrePass {
                 }
             }
         }
-        if targets.scene_depth.copyable() {
-            ctx.output(&targets.scene_depth.texture, Visualize::Depth);
-        }
+        ctx.output(&targets.scene_depth.texture, Visualize::Depth);
     }
 }

@@ -144,8 +144,10 @@ impl SceneBuffers {
 pub fn material_gpu(m: &crate::scene::Material) -> MaterialGpu {
     let (pattern, scale, contrast) = match m.pattern {
         Pattern::None => (0.0, 1.0, 0.0),
-        Pattern::Checker => (1.0, 1.0, 1.0),
-        Pattern::Slats => (6.0, 8.0, 0.0),
+        // The scene's patterns, as `MaterialCommon.ush` defines them: an 8x8 checker per uv
+        // unit tinting the base color, vertical slats (6 per uv unit) masking.
+        Pattern::Checker => (7.0, 8.0, 1.0),
+        Pattern::Slats => (6.0, 6.0, 0.0),
     };
     let opacity = if m.blend == BlendMode::Translucent { m.opacity } else { 1.0 };
     MaterialGpu {
@@ -186,6 +188,15 @@ impl FrameLight {
     }
 }
 
+/// `LocalLight.spot_angles.z`: 1 for lights ShadowedLights draws.
+fn shadowed_flag(casts_shadows: bool) -> f32 {
+    if casts_shadows {
+        1.0
+    } else {
+        0.0
+    }
+}
+
 /// Every point and spot light of the scene, in scene order (points, then spots).
 pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
     let shadow = |casts: bool, mobility: Mobility| match (casts, mobility) {
@@ -201,7 +212,7 @@ pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
                 position_radius: l.position.extend(l.radius),
                 color_falloff: (l.color * l.intensity).extend(0.0),
                 direction_type: Vec4::new(0.0, -1.0, 0.0, 1.0),
-                spot_angles: Vec4::new(-2.0, 1.0, 0.0, 0.0),
+                spot_angles: Vec4::new(-2.0, 1.0, shadowed_flag(l.casts_shadows), 0.0),
             },
             shadow: shadow(l.casts_shadows, l.mobility),
             spot: false,
@@ -216,7 +227,7 @@ pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
                 position_radius: l.position.extend(l.radius),
                 color_falloff: (l.color * l.intensity).extend(0.0),
                 direction_type: l.direction.normalize().extend(2.0),
-                spot_angles: Vec4::new(cos_outer, 1.0 / (cos_inner - cos_outer).max(1e-4), 0.0, 0.0),
+                spot_angles: Vec4::new(cos_outer, 1.0 / (cos_inner - cos_outer).max(1e-4), shadowed_flag(l.casts_shadows), 0.0),
             },
             shadow: shadow(l.casts_shadows, l.mobility),
             spot: true,
@@ -261,16 +272,20 @@ pub struct SceneDepth {
     pub attachment: wgpu::TextureView,
     pub depth_view: wgpu::TextureView,
     pub format: wgpu::TextureFormat,
+    /// Whether the depth can be attached read-only (depth and stencil tests) while passes
+    /// sample it. wgpu's GL backend cannot; there the lighting passes test in the shader
+    /// only (depth bounds and shading model), without the attachment.
+    pub read_only_attachment: bool,
 }
 
 impl SceneDepth {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> SceneDepth {
         // Depth32FloatStencil8 can be copied out for --dump-passes; Depth24PlusStencil8 is
-        // the fallback every device has.
-        let copyable = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
-        let format = if copyable { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
+        // the fallback every device has (its capture is drawn, as on GL).
+        let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
+        let format = if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
-        if copyable {
+        if d32s8 {
             usage |= wgpu::TextureUsages::COPY_SRC;
         }
         let t = Texture::new(device, "SceneDepthZ", format, width, height, usage);
@@ -279,12 +294,10 @@ impl SceneDepth {
             aspect: wgpu::TextureAspect::DepthOnly,
             ..Default::default()
         });
-        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format }
+        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
+        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment }
     }
 
-    pub fn copyable(&self) -> bool {
-        self.format == wgpu::TextureFormat::Depth32FloatStencil8
-    }
 }
 
 /// The frame's full and reduced resolution targets.
@@ -450,6 +463,9 @@ pub fn begin<'e>(
 /// The scene depth bound read-only (depth and stencil tested, nothing written), so it can be
 /// sampled in the same pass.
 pub fn read_only_depth(depth: &SceneDepth) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
+    if !depth.read_only_attachment {
+        return None;
+    }
     Some(wgpu::RenderPassDepthStencilAttachment { view: &depth.attachment, depth_ops: None, stencil_ops: None })
 }
 

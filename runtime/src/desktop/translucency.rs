@@ -1,7 +1,8 @@
 //! Translucency: the glass statues, forward shaded (sky light, the directional light with
 //! its cascaded shadow, and the local lights of the light grid cell each pixel falls in)
 //! into the separate translucency target (premultiplied color, alpha = transmittance),
-//! depth tested against the scene; then composited over SceneColor.
+//! depth tested against the scene, and the fire's particle sprites added to it; then
+//! composited over SceneColor.
 
 use std::sync::Arc;
 
@@ -16,14 +17,45 @@ use super::{Build, DesktopError};
 
 pub struct Translucency {
     surfaces: Option<(Arc<Render>, BindGroups)>,
+    /// Particle sprites: pipeline, bind groups, particle count.
+    sprites: Vec<(Arc<Render>, BindGroups, u32)>,
     compose: Arc<Render>,
     compose_groups: BindGroups,
 }
 
 impl Translucency {
-    pub fn new(b: &Build<'_>, grid: &LightGrid, shadows: &ShadowDepths, dummy_shadow: &Texture) -> Result<Translucency, DesktopError> {
+    pub fn new(
+        b: &Build<'_>,
+        grid: &LightGrid,
+        shadows: &ShadowDepths,
+        dummy_shadow: &Texture,
+        particles: Option<&super::ParticleInputs<'_>>,
+    ) -> Result<Translucency, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
+        let depth_test = Some(wgpu::DepthStencilState {
+            format: t.scene_depth.format,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState::default(),
+        });
+        let mut sprites = Vec::new();
+        if let Some(inputs) = particles {
+            for system in inputs.systems {
+                let pipeline = p.render(
+                    &p.permutation("ParticleSpriteVS", &[])?,
+                    Some(&p.permutation("ParticleSpritePS", &[])?),
+                    &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: depth_test.clone(), targets: vec![(formats::TRANSLUCENCY, Some(blend::ADDITIVE))] },
+                )?;
+                let (uniforms, buffer, count) = system.sprite_buffers();
+                let groups = pipeline.layout.bind_groups(
+                    b.device,
+                    &[("View", inputs.view.as_entire_binding()), ("Emitter", uniforms.as_entire_binding()), ("Particles", buffer.as_entire_binding())],
+                )?;
+                sprites.push((pipeline, groups, count));
+            }
+        }
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
             let pipeline = p.render(
                 &p.permutation("DeferredBasePassVS", &[])?,
@@ -64,7 +96,7 @@ impl Translucency {
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;
         let compose_groups = compose.layout.bind_groups(b.device, &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))])?;
-        Ok(Translucency { surfaces, compose, compose_groups })
+        Ok(Translucency { surfaces, sprites, compose, compose_groups })
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
@@ -82,6 +114,12 @@ impl Translucency {
                     for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
                         scene.draw(&mut pass, draw);
                     }
+                }
+                // The fire's sprites add light; they cover nothing behind them.
+                for (pipeline, groups, count) in &self.sprites {
+                    pass.set_pipeline(&pipeline.pipeline);
+                    groups.set_render(&mut pass);
+                    pass.draw(0..6, 0..*count);
                 }
             }
             ctx.output(&t.translucency.texture, Visualize::Hdr);
