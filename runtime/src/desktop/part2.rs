@@ -519,7 +519,9 @@ impl Part2 {
     pub fn velocity(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
-        let transforms: Vec<Vec<Mat4>> = s.movable.iter().map(|&o| object_transforms(s, o)).collect();
+        // the previous frame's transforms: where the props were one time step ago (on the
+        // first frame too: they were already moving)
+        let transforms: Vec<(Vec<Mat4>, Vec<Mat4>)> = s.movable.iter().map(|&o| (object_transforms(s, o), object_transforms_at(s, o, s.time - TIME_STEP))).collect();
         frame.pass("Velocity", |ctx| {
             s.velocity.record(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms);
             s.vis.velocity.output(ctx, None);
@@ -686,9 +688,13 @@ impl Part2 {
 }
 
 fn object_transforms(s: &State, index: usize) -> Vec<Mat4> {
+    object_transforms_at(s, index, s.time)
+}
+
+fn object_transforms_at(s: &State, index: usize, time: f32) -> Vec<Mat4> {
     let o = &s.scene.objects[index];
     if o.mobility == Mobility::Movable && s.options.animate {
-        o.instances.iter().map(|m| animate_movable(*m, s.time)).collect()
+        o.instances.iter().map(|m| animate_movable(*m, time)).collect()
     } else {
         o.instances.clone()
     }

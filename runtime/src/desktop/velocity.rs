@@ -26,8 +26,6 @@ struct MovableMesh {
     mesh: InstancedMesh,
     previous: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
-    /// The transforms of the last frame recorded.
-    last: Option<Vec<Mat4>>,
 }
 
 pub struct Velocity {
@@ -52,24 +50,21 @@ impl Velocity {
                 ("view", frame_view.as_entire_binding()),
                 ("previous", previous.as_entire_binding()),
             ])?;
-            meshes.push(MovableMesh { mesh, previous, bind_group, last: None });
+            meshes.push(MovableMesh { mesh, previous, bind_group });
         }
         Ok(Velocity { view: view(&texture), texture, pipeline, meshes })
     }
 
-    /// Draws the movable meshes at `transforms[i]` (this frame's instances of mesh `i`, as
-    /// the other passes draw them); the previous frame's come from the last call (the same
-    /// on the first frame: no motion).
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>]) {
-        for (m, current) in self.meshes.iter_mut().zip(transforms) {
+    /// Draws the movable meshes: `transforms[i]` holds mesh `i`'s instances this frame and in
+    /// the previous frame, as the other passes drew them.
+    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[(Vec<Mat4>, Vec<Mat4>)]) {
+        for (m, (current, previous)) in self.meshes.iter_mut().zip(transforms) {
             m.mesh.set_transforms(queue, current);
-            let previous = m.last.clone().unwrap_or_else(|| current.clone());
             let mut uniforms = PreviousTransforms::default();
             for (i, t) in previous.iter().take(MAX_MESH_INSTANCES).enumerate() {
                 uniforms.prev_local_to_world[i] = *t;
             }
             queue.write_buffer(&m.previous, 0, bytemuck::bytes_of(&uniforms));
-            m.last = Some(current.clone());
         }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("Velocity"),
