@@ -98,7 +98,7 @@ fn volumetric_fog_shows_the_directional_lights_shafts() {
         let mut scene = Scene::bundled();
         scene.sun.casts_shadows = shadows;
         let r = renderer(&gpu, &scene, RendererOptions { width: W * 2, height: H * 2, ..Default::default() });
-        r.desktop_part2().unwrap().set_options(Part2Options { animate: false, ..Part2Options::default() });
+        r.desktop_part2().unwrap().set_options(Part2Options { animate: false, fog_density: 0.03, ..Part2Options::default() });
         let mut frame = None;
         for _ in 0..3 {
             frame = Some(r.render(true).unwrap());

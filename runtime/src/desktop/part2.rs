@@ -55,7 +55,7 @@ pub struct Part2Options {
 
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, fog_density: 0.02 }
+        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, fog_density: 0.01 }
     }
 }
 

@@ -181,6 +181,8 @@ pub struct Particles {
     /// The sprites over the target given to `new`, and the heat haze into RG16F offsets.
     sprite_pipeline: Arc<RenderPipeline>,
     distortion_pipeline: Arc<RenderPipeline>,
+    /// States of no emitter (1x1), for scenes without one.
+    empty: ([wgpu::Texture; 2], [wgpu::Texture; 2]),
 }
 
 impl Particles {
@@ -268,7 +270,23 @@ impl Particles {
                 current: 0,
             });
         }
-        Ok(Particles { emitters, frame: 0, simulation, sprite_pipeline: sprite_pipeline_layout, distortion_pipeline: distortion_layout })
+        let empty_state = |label: &str, format| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width: 1, height: 1, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let empty = (
+            [empty_state("NoParticles position", POSITION_FORMAT), empty_state("NoParticles position", POSITION_FORMAT)],
+            [empty_state("NoParticles velocity", VELOCITY_FORMAT), empty_state("NoParticles velocity", VELOCITY_FORMAT)],
+        );
+        Ok(Particles { emitters, frame: 0, simulation, sprite_pipeline: sprite_pipeline_layout, distortion_pipeline: distortion_layout, empty })
     }
 
     /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
@@ -300,9 +318,12 @@ impl Particles {
 
     /// The state textures (positions, velocities) of the first emitter that (does not)
     /// collide.
+    /// (A scene without emitters has empty 1x1 states, so the dumps still have a source.)
     pub fn state_textures(&self, colliding: bool) -> (&[wgpu::Texture; 2], &[wgpu::Texture; 2]) {
-        let e = self.emitters.iter().find(|e| e.desc.collides == colliding).unwrap_or(&self.emitters[0]);
-        (&e.positions, &e.velocities)
+        match self.emitters.iter().find(|e| e.desc.collides == colliding) {
+            Some(e) => (&e.positions, &e.velocities),
+            None => (&self.empty.0, &self.empty.1),
+        }
     }
 
     /// Which state of that emitter holds the latest simulation (0 or 1).
