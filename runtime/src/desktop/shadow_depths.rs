@@ -43,6 +43,9 @@ struct Atlas {
 /// props drawn on top; rendered again only when invalidated (the light moved).
 struct CubeCache {
     texture: Texture,
+    /// CopyCachedShadowMap: a full-atlas draw writing the cached depth with frag_depth.
+    copy: Arc<Render>,
+    copy_groups: BindGroups,
     /// Per view (face): the static casters; `ShadowView::draws` keeps the movable ones.
     static_draws: Vec<Vec<usize>>,
     valid: std::sync::atomic::AtomicBool,
@@ -233,8 +236,28 @@ impl ShadowDepths {
                     draws: movable_casters.clone(),
                 });
             }
+            let cached = shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
+            let copy = b.pipelines.render(
+                &b.pipelines.permutation("CopyCachedShadowMapVS", &[])?,
+                Some(&b.pipelines.permutation("CopyCachedShadowMapPS", &[])?),
+                &RenderDesc {
+                    vertices: Vertices::None,
+                    cull: None,
+                    depth_stencil: Some(wgpu::DepthStencilState {
+                        format: formats::SHADOW_DEPTH,
+                        depth_write_enabled: Some(true),
+                        depth_compare: Some(wgpu::CompareFunction::Always),
+                        stencil: Default::default(),
+                        bias: Default::default(),
+                    }),
+                    targets: Vec::new(),
+                },
+            )?;
+            let copy_groups = copy.layout.bind_groups(device, &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))])?;
             let cache = CubeCache {
-                texture: shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile),
+                texture: cached,
+                copy,
+                copy_groups,
                 static_draws: vec![static_casters; 6],
                 valid: std::sync::atomic::AtomicBool::new(false),
                 rebuilds: std::sync::atomic::AtomicU32::new(0),
@@ -310,7 +333,21 @@ impl ShadowDepths {
                         cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                     ctx.step("CopyCachedShadowMap", |ctx| {
-                        ctx.encoder().copy_texture_to_texture(cache.texture.texture.as_image_copy(), atlas.texture.texture.as_image_copy(), cache.texture.texture.size());
+                        {
+                            let mut pass = begin(
+                                ctx.encoder(),
+                                "CopyCachedShadowMap",
+                                &[],
+                                Some(wgpu::RenderPassDepthStencilAttachment {
+                                    view: &atlas.texture.view,
+                                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+                                    stencil_ops: None,
+                                }),
+                            );
+                            pass.set_pipeline(&cache.copy.pipeline);
+                            cache.copy_groups.set_render(&mut pass);
+                            pass.draw(0..3, 0..1);
+                        }
                         ctx.output(&atlas.texture.texture, Visualize::Depth);
                     });
                     load = wgpu::LoadOp::Load;
