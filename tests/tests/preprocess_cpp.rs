@@ -271,6 +271,52 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
     }
 }
 
+/// A random `#if` expression over constants, macros and operators.
+fn gen_expr(r: &mut Rng, out: &mut String, depth: usize) {
+    let roll = r.below(100);
+    if depth > 3 || roll < 35 {
+        let term = r.pick(&[
+            "0",
+            "1",
+            "2",
+            "7",
+            "0x10",
+            "10u",
+            "3000000000",
+            "9223372036854775807",
+            "'a'",
+            "A",
+            "B",
+            "Z",
+        ]);
+        out.push_str(term);
+    } else if roll < 45 {
+        out.push_str(&format!("defined({})", r.pick(&["A", "F", "Z"])));
+    } else if roll < 55 {
+        out.push_str(r.pick(&["!", "~", "-", "+"]));
+        out.push(' ');
+        gen_expr(r, out, depth + 1);
+    } else if roll < 65 {
+        out.push('(');
+        gen_expr(r, out, depth + 1);
+        out.push_str(" ? ");
+        gen_expr(r, out, depth + 1);
+        out.push_str(" : ");
+        gen_expr(r, out, depth + 1);
+        out.push(')');
+    } else {
+        out.push('(');
+        gen_expr(r, out, depth + 1);
+        let ops = [
+            "+", "-", "*", "/", "%", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^",
+            "&&", "||",
+        ];
+        out.push_str(&format!(" {} ", r.pick(&ops)));
+        gen_expr(r, out, depth + 1);
+        out.push(')');
+    }
+}
+
 fn gen_program(r: &mut Rng) -> String {
     // Stringizing after expansion shows spacing, which the token comparison then checks.
     let mut out = String::from("#define STR(x) #x\n#define XSTR(x) STR(x)\n");
@@ -281,6 +327,11 @@ fn gen_program(r: &mut Rng) -> String {
         } else {
             gen_use(r, &mut out, 0, &sigs);
             out.push('\n');
+            if r.chance(30) {
+                let mut e = String::new();
+                gen_expr(r, &mut e, 0);
+                out.push_str(&format!("#if {e}\nyes\n#else\nno\n#endif\n"));
+            }
             if r.chance(20) {
                 let f = r.pick(&FUN);
                 sigs.remove(f);
@@ -338,4 +389,93 @@ fn random_macro_programs_match_cpp() {
         ok * 2 >= count,
         "only {ok} of {count} programs valid ({both_fail} rejected by both)"
     );
+}
+
+/// A random valid `#if` expression: constants, `defined`, every operator (divisors are
+/// never zero), signed and unsigned operands.
+fn gen_const_expr(r: &mut Rng, out: &mut String, depth: usize) {
+    let roll = r.below(100);
+    if depth > 4 || roll < 30 {
+        let consts = [
+            "0",
+            "1",
+            "2",
+            "7",
+            "63",
+            "64",
+            "0x10",
+            "10u",
+            "0u",
+            "3000000000",
+            "9223372036854775807",
+            "0xffffffffffffffff",
+            "'a'",
+            "'\\377'",
+            "N",
+            "UNDEFINED",
+        ];
+        out.push_str(r.pick(&consts));
+    } else if roll < 38 {
+        out.push_str(&format!("defined({})", r.pick(&["N", "UNDEFINED"])));
+    } else if roll < 50 {
+        out.push_str(r.pick(&["!", "~", "-", "+"]));
+        out.push(' ');
+        gen_const_expr(r, out, depth + 1);
+    } else if roll < 60 {
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(" ? ");
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(" : ");
+        gen_const_expr(r, out, depth + 1);
+        out.push(')');
+    } else if roll < 66 {
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(&format!(" {} ", r.pick(&["/", "%"])));
+        out.push_str(r.pick(&["1", "2", "7", "3u", "-3", "N"]));
+        out.push(')');
+    } else {
+        let ops = [
+            "+", "-", "*", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^", "&&", "||",
+        ];
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(&format!(" {} ", r.pick(&ops)));
+        gen_const_expr(r, out, depth + 1);
+        out.push(')');
+    }
+}
+
+#[test]
+fn random_if_expressions_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0x1f1f_2e2e_3d3d_4c4b);
+    let files: usize = std::env::var("KILN_RANDOM_PROGRAMS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .map_or(4, |n: usize| n / 100);
+    let mut r = Rng(seed | 1);
+    let mut failures = Vec::new();
+    for file in 0..files {
+        let mut program = String::from("#define N 5\n");
+        for i in 0..250 {
+            let mut e = String::new();
+            gen_const_expr(&mut r, &mut e, 0);
+            program.push_str(&format!("#if {e}\nt{i}\n#else\nf{i}\n#endif\n"));
+        }
+        let name = PathBuf::from(format!("expr{file}.usf"));
+        std::fs::write(dir.path().join(&name), &program).expect("write");
+        if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+            panic!("cpp must accept every generated expression:\n{e}");
+        }
+        if let Some(f) = compare(dir.path(), &name, &[]) {
+            failures.push(f);
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }

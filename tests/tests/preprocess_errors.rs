@@ -417,8 +417,8 @@ fn macro_bomb_is_bounded() {
 error: macro expansion makes more than 262144 tokens
    ┌─ main.usf:42:1
    │
- 3 │ #define L2 L1 L1
-   │            -- in this macro's definition
+ 2 │ #define L1 L0 L0
+   │               -- in this macro's definition
    ·
 42 │ L40
    │ ^^^ while expanding this
@@ -446,10 +446,10 @@ fn argument_bomb_is_bounded() {
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
 error: macro expansion makes more than 262144 tokens
-  ┌─ main.usf:2:47
+  ┌─ main.usf:2:51
   │
 2 │ D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(1))))))))))))))))))))))))))))))))))))))))
-  │                                               ^ while expanding this
+  │                                                   ^ while expanding this
 "#
     .trim_start();
     assert_eq!(err.trim_end(), expected.trim_end(), "\n{err}");

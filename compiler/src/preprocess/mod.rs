@@ -36,12 +36,16 @@ pub struct Options {
     pub include_roots: Vec<PathBuf>,
     /// Path prefixes mapped to folders: `("/Engine", <abs path of shader_src>)`.
     pub virtual_roots: Vec<(String, PathBuf)>,
-    /// Predefined object-like macros, `NAME` → replacement text (like `-D NAME=text`).
+    /// Predefined macros, `NAME` → replacement text (like `-D NAME=text`; `NAME` may carry a
+    /// parameter list, `F(x)`). `__STDC__`, `__STDC_VERSION__` (201112L) and the other macros
+    /// `cpp -undef -std=c11` keeps are always defined.
     pub defines: Vec<(String, String)>,
-    /// Most macro expansions nested inside each other (also bounds `#include` nesting).
+    /// Most macro expansions nested inside each other (`#include` nesting stops at 200, as
+    /// in cpp).
     pub max_expansion_depth: usize,
-    /// Largest output, in bytes; a quarter of it is the number of tokens macro expansion may
-    /// make (so a macro bomb fails fast, in bounded memory).
+    /// Largest output, in bytes. Macro expansion may make at most a quarter as many tokens,
+    /// and at most a million plus eight per byte of input read, so a macro bomb fails within
+    /// milliseconds, in bounded memory.
     pub max_output_bytes: usize,
 }
 

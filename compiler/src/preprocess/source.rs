@@ -247,6 +247,11 @@ impl SourceCache {
                 return Ok((id, inner.files[id.0 as usize].clone()));
             }
         }
+        // Read under the write lock: two threads wanting the same new file read it once.
+        let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(&id) = inner.by_path.get(canonical) {
+            return Ok((id, inner.files[id.0 as usize].clone()));
+        }
         let bytes = std::fs::read(canonical)?;
         let text = String::from_utf8(bytes)
             .unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
@@ -255,10 +260,6 @@ impl SourceCache {
             self.display_name(canonical),
             text,
         ));
-        let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
-        if let Some(&id) = inner.by_path.get(canonical) {
-            return Ok((id, inner.files[id.0 as usize].clone()));
-        }
         let id = FileId(inner.files.len() as u32);
         inner.files.push(file.clone());
         inner.by_path.insert(canonical.to_path_buf(), id);

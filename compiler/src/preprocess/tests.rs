@@ -188,6 +188,8 @@ fn pragma_and_line() {
         ),
         ("# 5 \"marker.usf\"\n__LINE__", "5"),
         ("#\nx", "x"),
+        ("\u{feff}#define B 1\nB", "1"),
+        ("a\r\n#define C 2\r\nC\r\n", "a 2"),
     ]);
     assert_eq!(
         err("#nonsense\n"),
