@@ -118,3 +118,55 @@ fn a_failure_does_not_stop_the_others() {
         other => panic!("{other:?}"),
     }
 }
+
+/// Builds a one-shader set written into a temporary folder, on one thread.
+fn build_files(files: &[(&str, &str)], dims: &str) -> build::Report {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, text) in files {
+        std::fs::write(dir.path().join(name), text).unwrap();
+    }
+    std::fs::write(
+        dir.path().join("set.toml"),
+        format!(
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\ntargets = [\"wgsl\"]\n[[shader]]\nname = \"S\"\nsource = \"main.usf\"\nentry = \"main\"\nstage = \"compute\"\ndimensions = {{ {dims} }}\n"
+        ),
+    )
+    .unwrap();
+    let mut opts = options(&dir.path().join("set.toml"), &dir.path().join("a.kpak"), None);
+    opts.jobs = Some(1);
+    build_ok(&opts)
+}
+
+#[test]
+fn permutations_differing_only_in_defines_their_files_never_name_are_preprocessed_once() {
+    // lit.toml: LitVS's DEBUG_VIEW is named nowhere, so half of LitVS is not preprocessed.
+    let fx = fixture();
+    let mut opts = options(&fx.path().join("lit.toml"), &fx.path().join("a.kpak"), None);
+    opts.jobs = Some(1);
+    let r = build_ok(&opts);
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (28, 24, 24));
+
+    // B is named only in a header that A=1 includes: with A=0 it cannot matter.
+    let r = build_files(
+        &[
+            ("main.usf", "#if A\n#include \"b.ush\"\n#endif\n@compute @workgroup_size(1) fn main() {}\n"),
+            ("b.ush", "#if B\nconst X: u32 = 1u;\n#else\nconst X: u32 = 2u;\n#endif\n"),
+        ],
+        "A = \"bool\", B = \"bool\"",
+    );
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (4, 3, 3));
+}
+
+#[test]
+fn token_pasting_turns_reuse_off() {
+    // MODE is named only through `##`: every permutation is preprocessed, and both differ.
+    let r = build_files(
+        &[(
+            "main.usf",
+            "#define CAT(a, b) a##b\n#if CAT(MO, DE)\nconst X: u32 = 1u;\n#else\nconst X: u32 = 2u;\n#endif\n@compute @workgroup_size(1) fn main() {}\n",
+        )],
+        "MODE = \"bool\"",
+    );
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (2, 2, 2));
+    assert!(r.dead_dimensions.is_empty());
+}

@@ -82,6 +82,14 @@ pub struct DesktopOptions {
     /// frames and `AmbientOcclusionPS{USE_AO_SETUP_AS_INPUT=1}` reads garbage, while the same
     /// permutations from WGSL (compiled by wgpu with its bounds checks) render correctly.
     pub spirv_passthrough: bool,
+    /// Effects the mobile paths lack, on by default; the cross-check against the mobile
+    /// frames turns them off. `ambient_occlusion`: the AmbientOcclusion pass; `bloom` and
+    /// `vignette`: the tonemapper's inputs; `sky_gradient`: the sky's horizon gradient and sun
+    /// disk (off: the flat sky color the mobile frames clear to).
+    pub ambient_occlusion: bool,
+    pub bloom: bool,
+    pub vignette: bool,
+    pub sky_gradient: bool,
     /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
     pub output_format: wgpu::TextureFormat,
 }
@@ -99,6 +107,10 @@ impl Default for DesktopOptions {
             shadow_map_size: 512,
             frame_index: 0,
             spirv_passthrough: false,
+            ambient_occlusion: true,
+            bloom: true,
+            vignette: true,
+            sky_gradient: true,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
         }
     }
@@ -199,7 +211,7 @@ impl DesktopFrame {
         let lights = frame_lights(scene);
         let gpu_lights: Vec<view::LocalLightGpu> = lights.iter().map(|l| l.gpu).collect();
         let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
-        let view_buffer = resources::uniform(device, "View", &view.uniforms(scene, lights.len() as u32, options.frame_index));
+        let view_buffer = resources::uniform(device, "View", &view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)));
         let buffers = resources::SceneBuffers::upload(device, scene);
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
@@ -232,11 +244,11 @@ impl DesktopFrame {
             lights: &lights_buffer,
             num_culled_lights: &light_grid.num_culled_lights,
             culled_light_data: &light_grid.culled_light_data,
-            size: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_size,
-            z_params: view.uniforms(scene, lights.len() as u32, options.frame_index).light_grid_z_params,
+            size: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_size,
+            z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
         };
         let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
-        let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index);
+        let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
             device: device.clone(),
@@ -284,7 +296,9 @@ impl DesktopFrame {
         frame.pass("BasePass", |ctx| self.base_pass.record(ctx, s, t));
         p2.particle_collision(frame);
         p2.velocity(frame);
-        frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
+        if self.options.ambient_occlusion {
+            frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
+        }
         frame.pass("Lighting", |ctx| {
             self.lighting.record(ctx, s, t);
             p2.translucent_volumes(ctx);

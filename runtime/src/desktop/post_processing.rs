@@ -23,6 +23,7 @@ struct Draw {
 
 pub struct PostProcessing {
     bloom: Vec<Draw>,
+    tonemap_uses_bloom: bool,
     tonemap: Draw,
 }
 
@@ -59,7 +60,14 @@ impl PostProcessing {
         }
         let pipeline = p.render(
             &vs,
-            Some(&p.permutation("TonemapperPS", &[("USE_BLOOM", "1".into()), ("USE_VIGNETTE", "1".into()), ("USE_GAMMA_ONLY", "0".into())])?),
+            Some(&p.permutation(
+                "TonemapperPS",
+                &[
+                    ("USE_BLOOM", u32::from(b.options.bloom).to_string()),
+                    ("USE_VIGNETTE", u32::from(b.options.vignette).to_string()),
+                    ("USE_GAMMA_ONLY", "0".into()),
+                ],
+            )?),
             &RenderDesc::fullscreen(output_format, None),
         )?;
         let u = uniform(b.device, "Tonemap", &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) });
@@ -73,7 +81,7 @@ impl PostProcessing {
             ],
         )?
         .keeping(u);
-        Ok(PostProcessing { bloom, tonemap: Draw { pipeline, groups, target: None, clear: true } })
+        Ok(PostProcessing { bloom, tonemap_uses_bloom: b.options.bloom, tonemap: Draw { pipeline, groups, target: None, clear: true } })
     }
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
@@ -84,13 +92,15 @@ impl PostProcessing {
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets, output: (&wgpu::Texture, &wgpu::TextureView)) {
-        ctx.step("Bloom", |ctx| {
+        if self.tonemap_uses_bloom {
+            ctx.step("Bloom", |ctx| {
             for d in &self.bloom {
                 let target = d.target.unwrap_or(0);
                 Self::run(ctx, d, &t.bloom[target].view);
             }
             ctx.output(&t.bloom[0].texture, Visualize::Hdr);
-        });
+            });
+        }
         ctx.step("Tonemapper", |ctx| {
             Self::run(ctx, &self.tonemap, output.1);
             ctx.output(output.0, Visualize::Direct);

@@ -197,7 +197,8 @@ impl FrameView {
     }
 
     /// Uniforms of `DesktopCommon.ush` for this view and scene.
-    pub fn uniforms(&self, scene: &Scene, num_local_lights: u32, frame_index: u32) -> ViewUniforms {
+    /// `flags`: bit 0, a flat sky (`View.frame.w`).
+    pub fn uniforms(&self, scene: &Scene, num_local_lights: u32, frame_index: u32, flags: u32) -> ViewUniforms {
         let sun = &scene.sun;
         let to_sun = (-sun.direction).normalize();
         let sun_color = sun.color * sun.intensity;
@@ -218,7 +219,7 @@ impl FrameView {
             fog_params: Vec4::new(fog.density, fog.height_falloff, fog.base_height, fog.start_distance),
             fog_color: fog.color.extend(fog.max_opacity),
             fog_directional: (sun.color * sun.intensity * 0.15).extend(8.0),
-            frame: UVec4::new(frame_index, num_local_lights, 0, 0),
+            frame: UVec4::new(frame_index, num_local_lights, 0, flags),
         }
     }
 }
