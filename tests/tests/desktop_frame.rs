@@ -463,7 +463,14 @@ fn desktop_agrees_with_mobile_forward_with_the_effects_mobile_lacks_turned_off()
     scene.emitters.clear();
     scene.fog.density = 0.0;
     scene.objects.retain(|o| o.name != "GlassStatues");
-    let options = DesktopOptions { ambient_occlusion: false, bloom: false, vignette: false, sky_gradient: false, ..small() };
+    let options = DesktopOptions {
+        ambient_occlusion: false,
+        bloom: false,
+        vignette: false,
+        sky_gradient: false,
+        part2: kiln_runtime::desktop::part2::Part2Options::off(),
+        ..small()
+    };
     let desktop = build(&scene, options).frame.render(false).0.unwrap();
     let gpu = gpu();
     let mobile = Renderer::new(&gpu, archive(), &scene, RendererOptions { pipeline: FramePipeline::MobileForward, width: W, height: H })

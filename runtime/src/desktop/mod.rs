@@ -92,6 +92,9 @@ pub struct DesktopOptions {
     pub sky_gradient: bool,
     /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
     pub output_format: wgpu::TextureFormat,
+    /// What part 2 (issue 7) changes in the frame: TAA, motion blur, eye adaptation,
+    /// volumetric fog, sprites, reflections (`Part2Options::off()` for none).
+    pub part2: part2::Part2Options,
 }
 
 impl Default for DesktopOptions {
@@ -112,6 +115,7 @@ impl Default for DesktopOptions {
             vignette: true,
             sky_gradient: true,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            part2: part2::Part2Options::default(),
         }
     }
 }
@@ -248,6 +252,7 @@ impl DesktopFrame {
             z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
         };
         let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
+        part2.set_options(options.part2);
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {

@@ -49,13 +49,24 @@ pub struct Part2Options {
     pub volumetric_fog: bool,
     /// The particle sprites and the heat haze are drawn (they are always simulated).
     pub particles: bool,
+    /// ReflectionEnvironmentAndSky adds the reflections to SceneColor (SSR is always traced).
+    pub reflections: bool,
     /// Extinction of the volumetric fog at the fog height.
     pub fog_density: f32,
 }
 
+impl Part2Options {
+    /// Every pass still runs and is dumped, but none changes the frame: no jitter, TAA, motion
+    /// blur, eye adaptation, volumetric fog, sprites or reflections, and nothing moves (for
+    /// comparisons with frames that lack these effects).
+    pub fn off() -> Part2Options {
+        Part2Options { taa: false, motion_blur: false, eye_adaptation: false, animate: false, volumetric_fog: false, particles: false, reflections: false, ..Part2Options::default() }
+    }
+}
+
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, fog_density: 0.01 }
+        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, reflections: true, fog_density: 0.01 }
     }
 }
 
@@ -552,8 +563,11 @@ impl Part2 {
                 s.reflections.record_ssr(ctx.encoder());
                 ctx.output(&s.reflections.ssr, Visualize::Hdr);
             });
+            let apply = s.options.reflections;
             ctx.step("ReflectionEnvironmentAndSky", |ctx| {
-                s.reflections.record_environment(ctx.encoder(), &s.scene_color_view);
+                if apply {
+                    s.reflections.record_environment(ctx.encoder(), &s.scene_color_view);
+                }
                 ctx.output(&s.scene_color, Visualize::Hdr);
             });
         });
