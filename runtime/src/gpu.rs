@@ -148,6 +148,8 @@ impl Gpu {
         if timestamps {
             features |= timestamp_features;
         }
+        // The desktop frame's scene depth with stencil, copyable for --dump-passes.
+        features |= available & wgpu::Features::DEPTH32FLOAT_STENCIL8;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("kiln-runtime device"),

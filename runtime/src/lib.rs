@@ -14,6 +14,7 @@
 //! captures), [`passes`] (one module per pass) and [`renderer`] (the frames, one function
 //! per `--pipeline`).
 
+pub mod desktop;
 pub mod frame;
 pub mod gpu;
 pub mod gpu_types;

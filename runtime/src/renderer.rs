@@ -74,6 +74,8 @@ impl Default for RendererOptions {
 pub enum RenderError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Desktop(#[from] crate::desktop::DesktopError),
     #[error("frame size {width}x{height} is outside 1..={max} pixels per side on this device")]
     Size { width: u32, height: u32, max: u32 },
     #[error("the frame produced no output image")]
@@ -84,6 +86,9 @@ pub enum RenderError {
 
 /// The passes of each frame, built once.
 enum Passes {
+    /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
+    /// before it (the sprites are drawn in its Translucency).
+    DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
     Desktop {
         particles: ParticleSimulationPass,
         prepass: DepthPass,
@@ -160,6 +165,20 @@ impl Renderer {
             match options.pipeline {
                 FramePipeline::Desktop => {
                     let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    let frame = crate::desktop::DesktopFrame::new(
+                        device,
+                        &gpu.queue,
+                        gpu.timestamps,
+                        &cache,
+                        scene,
+                        crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                        Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
+                    )?;
+                    Passes::DesktopDeferred { particles, frame: Box::new(frame) }
+                }
+                #[allow(unreachable_patterns)]
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
                     Passes::Desktop {
                         prepass: DepthPass::new(&init, DepthView::Camera)?,
                         shadows: DepthPass::new(&init, DepthView::Sun)?,
@@ -211,6 +230,19 @@ impl Renderer {
         self.cache.stats()
     }
 
+    /// The desktop deferred frame, for tests that look at its state across frames.
+    pub fn desktop_frame(&self) -> Option<&crate::desktop::DesktopFrame> {
+        match &self.passes {
+            Passes::DesktopDeferred { frame, .. } => Some(frame),
+            _ => None,
+        }
+    }
+
+    /// The desktop frame's part 2 (issue 7), for tests that look at its state across frames.
+    pub fn desktop_part2(&self) -> Option<&crate::desktop::part2::Part2> {
+        self.desktop_frame().map(|d| d.part2())
+    }
+
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
         let scopes = crate::pipelines::ErrorScopes::push(&self.device);
@@ -225,6 +257,10 @@ impl Renderer {
         let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
+            Passes::DesktopDeferred { particles, frame: desktop } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
+            }
             Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
                 frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));

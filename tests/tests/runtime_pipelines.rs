@@ -26,6 +26,10 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
     let q = match shader.name.as_str() {
         "BasePassPS" => archive.shader("BasePassVS").level(&shader.level),
         "DepthOnlyPS" => archive.shader("DepthOnlyVS").level(&shader.level),
+        // The desktop frame's mesh pixel shaders (runtime/src/desktop); its other pixel shaders
+        // read only the pixel position and pair with any full-screen vertex shader.
+        "DepthPassPS" => archive.shader("DepthPassVS").level(&shader.level).with("MATERIAL_MASKED", 1),
+        "DeferredBasePassPS" => archive.shader("DeferredBasePassVS").level(&shader.level),
         "ParticleSpritePS" => archive.shader("ParticleSpriteVS").level(&shader.level),
         "MobileBasePassPS" => archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG")),
         _ => archive.shader("ScreenVS").level(&shader.level),

@@ -150,7 +150,9 @@ fn fire_particles_glow_and_move_between_frames() {
     // The simulation advances: consecutive frames differ around the fire, and only there.
     assert_ne!(first, second);
     let far = pixel(&scene, LIT_FLOOR);
-    assert_eq!(luma_at(&first, far), luma_at(&second, far));
+    // The desktop frame's bloom carries a trace of the flicker across the frame.
+    let (a, b) = (luma_at(&first, far), luma_at(&second, far));
+    assert!((a - b).abs() < 0.5, "far floor {a:.3} -> {b:.3}");
 }
 
 #[test]
@@ -159,7 +161,21 @@ fn dump_captures_every_pass_in_frame_order() {
     let scene = Scene::bundled();
     let frame = render(&gpu, &scene, FramePipeline::Desktop, true);
     let names: Vec<&str> = frame.passes.iter().map(|p| p.name.as_str()).collect();
-    assert_eq!(names, ["ParticleSimulation", "PrePass", "ShadowDepths", "BasePass", "Lighting", "Translucency", "PostProcessing"]);
+    assert_eq!(
+        names,
+        [
+            "ParticleSimulation",
+            "PrePass",
+            "ComputeLightGrid",
+            "ShadowDepths",
+            "BasePass",
+            "AmbientOcclusion",
+            "Lighting",
+            "ExponentialHeightFog",
+            "Translucency",
+            "PostProcessing"
+        ]
+    );
     for p in &frame.passes {
         assert!(!p.images.is_empty(), "{} captured nothing", p.name);
         for (name, image) in &p.images {
@@ -176,18 +192,36 @@ fn dump_captures_every_pass_in_frame_order() {
         [
             "ParticleSimulation",
             "PrePass",
-            "ShadowDepths",
+            "ComputeLightGrid",
+            "ShadowDepths_Atlas0",
+            "ShadowDepths_Atlas1",
+            "ShadowDepths_Cubemap_FireLight",
             "BasePass",
             "BasePass_GBufferA",
             "BasePass_GBufferB",
             "BasePass_GBufferC",
-            "Lighting_StandardDeferredLighting",
-            "Translucency",
+            "AmbientOcclusion_Setup",
+            "AmbientOcclusion_HalfResolution",
+            "AmbientOcclusion_FullResolution",
+            "AmbientOcclusion_ApplyToSceneColor",
+            "Lighting_NonShadowedLights",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_DirectionalLight",
+            "Lighting_ShadowedLights_StandardDeferredLighting_DirectionalLight",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_CeilingLampA",
+            "Lighting_ShadowedLights_StandardDeferredLighting_CeilingLampA",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_CeilingLampB",
+            "Lighting_ShadowedLights_StandardDeferredLighting_CeilingLampB",
+            "Lighting_ShadowedLights_ShadowProjectionOnOpaque_FireLight",
+            "Lighting_ShadowedLights_StandardDeferredLighting_FireLight",
+            "ExponentialHeightFog",
+            "Translucency_SeparateTranslucency",
+            "Translucency_ComposeSeparateTranslucency",
+            "PostProcessing_Bloom",
             "PostProcessing_Tonemapper"
         ]
     );
     // The last capture is the output itself.
-    assert_eq!(frame.passes.last().unwrap().images[0].1, frame.image);
+    assert_eq!(frame.passes.last().unwrap().images.last().unwrap().1, frame.image);
     let dir = tempfile::tempdir().unwrap();
     let permutations = vec!["DepthOnlyVS@sm5{}".to_string()];
     let info = kiln_runtime::frame::DumpInfo {
@@ -202,9 +236,9 @@ fn dump_captures_every_pass_in_frame_order() {
     };
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
-    assert_eq!(json["passes"][3]["images"][1], "03_BasePass_GBufferA.png");
+    assert_eq!(json["passes"][4]["images"][1], "04_BasePass_GBufferA.png");
     assert_eq!(json["permutations"][0], "DepthOnlyVS@sm5{}");
-    assert!(dir.path().join("06_PostProcessing_Tonemapper.png").is_file());
+    assert!(dir.path().join("09_PostProcessing_Tonemapper.png").is_file());
 }
 
 #[test]

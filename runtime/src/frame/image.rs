@@ -94,7 +94,7 @@ fn texel(format: wgpu::TextureFormat, b: &[u8]) -> Option<[f32; 4]> {
         F::Rgba16Float => [f16_at(0), f16_at(2), f16_at(4), f16_at(6)],
         F::Rg16Float => [f16_at(0), f16_at(2), 0.0, 1.0],
         F::R16Float => [f16_at(0), 0.0, 0.0, 1.0],
-        F::R32Float | F::Depth32Float => [f32_at(0), 0.0, 0.0, 1.0],
+        F::R32Float | F::Depth32Float | F::Depth32FloatStencil8 => [f32_at(0), 0.0, 0.0, 1.0],
         F::Rg32Float => [f32_at(0), f32_at(4), 0.0, 1.0],
         F::Rgba32Float => [f32_at(0), f32_at(4), f32_at(8), f32_at(12)],
         F::R32Uint => [u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32, 0.0, 0.0, 1.0],

@@ -85,7 +85,8 @@ impl DepthCopy {
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
-        let source = depth.create_view(&wgpu::TextureViewDescriptor { label: Some("depth capture source"), ..Default::default() });
+        let aspect = if depth.format().has_stencil_aspect() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
+        let source = depth.create_view(&wgpu::TextureViewDescriptor { label: Some("depth capture source"), aspect, ..Default::default() });
         let group = self
             .pipeline
             .layout

@@ -99,6 +99,12 @@ impl ParticleSystem {
         ctx.compute_pass("ParticleSimulation", |pass| self.dispatch(pass));
     }
 
+    /// The emitter uniforms, the particle buffer and the particle count, for frames that
+    /// draw the sprites with their own pipelines (the desktop frame's Translucency).
+    pub fn sprite_buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer, u32) {
+        (&self.uniforms, &self.particles, self.count)
+    }
+
     pub fn count(&self) -> u32 {
         self.count
     }

@@ -1,0 +1,42 @@
+//! ExponentialHeightFog: fog whose density falls off with height, integrated along each
+//! camera ray and blended over SceneColor (SceneColor * transmittance + inscattering), with
+//! the directional light's inscattering lobe.
+
+use std::sync::Arc;
+
+use crate::frame::{PassContext, Visualize};
+
+use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::resources::{begin, color_attachment, formats, Targets};
+use super::{Build, DesktopError};
+
+pub struct HeightFog {
+    pipeline: Arc<Render>,
+    groups: BindGroups,
+}
+
+impl HeightFog {
+    pub fn new(b: &Build<'_>) -> Result<HeightFog, DesktopError> {
+        let p = b.pipelines;
+        let pipeline = p.render(
+            &p.permutation("PostProcessVS", &[])?,
+            Some(&p.permutation("ExponentialHeightFogPS", &[("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", u32::from(b.scene.sun.enabled).to_string())])?),
+            &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        )?;
+        let groups = pipeline.layout.bind_groups(
+            b.device,
+            &[("View", b.view_buffer.as_entire_binding()), ("SceneDepthTexture", wgpu::BindingResource::TextureView(&b.targets.scene_depth.depth_view))],
+        )?;
+        Ok(HeightFog { pipeline, groups })
+    }
+
+    pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
+        {
+            let mut pass = begin(ctx.encoder(), "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
+            pass.set_pipeline(&self.pipeline.pipeline);
+            self.groups.set_render(&mut pass);
+            pass.draw(0..3, 0..1);
+        }
+        ctx.output(&t.scene_color.texture, Visualize::Hdr);
+    }
+}

@@ -1,0 +1,295 @@
+//! Lighting: direct light into SceneColor, as Unreal's deferred renderer does it.
+//!   NonShadowedLights: each unshadowed local light drawn as a sphere around its attenuation
+//!     radius (front faces with the depth test, or back faces when the camera is inside),
+//!     pixels outside the sphere's depth range rejected (the seeds' depth bounds test),
+//!     stencil limited to lit pixels. Above `DesktopOptions::tiled_threshold` lights, all of
+//!     them in one `TiledDeferredLightingCS` dispatch instead.
+//!   ShadowedLights, per light: ShadowProjectionOnOpaque (the screen-space shadow mask,
+//!     cleared to 1, projections blended with Min), then StandardDeferredLighting reading it.
+
+use std::sync::Arc;
+
+use glam::{UVec4, Vec3, Vec4};
+
+use crate::frame::{PassContext, Visualize};
+
+use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
+use super::resources::{begin, color_attachment, formats, read_only_depth, stencil_lit_only, uniform, FrameLight, LocalShadow, SceneBuffers, Targets, Texture};
+use super::shadow_depths::ShadowDepths;
+use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, TiledLightingUniforms};
+use super::{Build, DesktopError, LightingPath};
+
+/// A light draw: pipeline, bind groups, and whether it is a sphere or the full screen.
+struct LightDraw {
+    pipeline: Arc<Render>,
+    groups: BindGroups,
+    radial: bool,
+}
+
+struct Projection {
+    pipeline: Arc<Render>,
+    groups: BindGroups,
+}
+
+struct ShadowedLight {
+    name: String,
+    projections: Vec<Projection>,
+    light: LightDraw,
+}
+
+pub struct Lighting {
+    non_shadowed: Vec<LightDraw>,
+    tiled: Option<(Arc<Compute>, BindGroups)>,
+    shadowed: Vec<ShadowedLight>,
+    /// Whether the tiled path runs this frame.
+    pub tiled_path: bool,
+}
+
+/// Light type label of `StandardDeferredLightingPS`.
+fn light_type(l: &FrameLight) -> &'static str {
+    if l.spot {
+        "SPOT"
+    } else {
+        "POINT"
+    }
+}
+
+/// Depth bounds (device z, farthest and nearest) of a light sphere, reverse-Z.
+fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
+    let depth = -(view.view.transform_point3(center)).z;
+    let near = (depth - radius).max(view.near);
+    let far = depth + radius;
+    if far <= view.near {
+        return Vec4::new(2.0, 2.0, 0.0, 0.0);
+    }
+    Vec4::new(view.near / far, view.near / near, 0.0, 0.0)
+}
+
+impl Lighting {
+    pub fn new(b: &Build<'_>, shadows: &ShadowDepths, dummy_shadow: &Texture, grid: &super::light_grid::LightGrid) -> Result<Lighting, DesktopError> {
+        let p = b.pipelines;
+        let t = b.targets;
+        let device = b.device;
+        let read_only = |compare: wgpu::CompareFunction| {
+            if !t.scene_depth.read_only_attachment {
+                return None;
+            }
+            Some(wgpu::DepthStencilState {
+                format: t.scene_depth.format,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(compare),
+                stencil: stencil_lit_only(),
+                bias: wgpu::DepthBiasState::default(),
+            })
+        };
+        // One pipeline per (light permutation, inside-the-volume or not).
+        let light_draw = |light_type: &str, shadowed: bool, inverse_squared: bool, gpu: LocalLightGpu, label: &str| -> Result<LightDraw, DesktopError> {
+            let radial = light_type != "DIRECTIONAL";
+            let vs = p.permutation("DeferredLightVS", &[("RADIAL_LIGHT", u32::from(radial).to_string())])?;
+            let mut values = vec![("LIGHT_TYPE", light_type.to_string()), ("USE_SHADOW_MASK", u32::from(shadowed).to_string())];
+            values.push(("INVERSE_SQUARED_FALLOFF", u32::from(radial && inverse_squared).to_string()));
+            let ps = p.permutation("StandardDeferredLightingPS", &values)?;
+            let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
+            // The sphere mesh encloses the unit sphere; the camera is inside the volume when
+            // it is within that radius (plus the near plane).
+            let inside = radial && b.view.position.distance(center) < radius * 1.03 + b.view.near * 2.0;
+            let desc = if !radial {
+                RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
+            } else if inside {
+                RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Front), depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
+            } else {
+                RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Back), depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
+            };
+            let pipeline = p.render(&vs, Some(&ps), &desc)?;
+            let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
+            let buffer = uniform(device, &format!("DeferredLight {label}"), &DeferredLightUniforms { light: gpu, depth_bounds: bounds });
+            let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer);
+            Ok(LightDraw { pipeline, groups, radial })
+        };
+
+        let unshadowed: Vec<&FrameLight> = b.lights.iter().filter(|l| l.shadow == LocalShadow::None).collect();
+        let tiled_path = match b.options.lighting_path {
+            LightingPath::Auto => unshadowed.len() > b.options.tiled_threshold,
+            LightingPath::PerLight => false,
+            LightingPath::Tiled => true,
+        };
+        let mut non_shadowed = Vec::new();
+        let mut tiled = None;
+        if tiled_path {
+            // With the light grid the pass reads every light (and skips the shadowed ones);
+            // culling per tile, it gets the unshadowed ones only.
+            let use_grid = b.options.tiled_uses_light_grid;
+            let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
+            let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
+            let params = uniform(device, "TiledLighting", &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) });
+            let cs = p.compute(&p.permutation(
+                "TiledDeferredLightingCS",
+                &[("USE_LIGHT_GRID", u32::from(use_grid).to_string()), ("VISUALIZE_LIGHT_CULLING", "0".into())],
+            )?)?;
+            let lights_binding = if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
+            let groups = cs.layout.bind_groups(
+                device,
+                &[
+                    ("View", b.view_buffer.as_entire_binding()),
+                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                    ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                    ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
+                    ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
+                    ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
+                    ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
+                    ("LocalLights", lights_binding),
+                    ("TiledLighting", params.as_entire_binding()),
+                    ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
+                    ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
+                ],
+            )?
+            .keeping(lights)
+            .keeping(params);
+            tiled = Some((cs, groups));
+        } else {
+            for l in &unshadowed {
+                non_shadowed.push(light_draw(light_type(l), false, l.inverse_squared, l.gpu, &l.name)?);
+            }
+        }
+
+        let mut shadowed = Vec::new();
+        let quality = b.options.shadow_quality.clamp(1, 3).to_string();
+        let vs = p.permutation("PostProcessVS", &[])?;
+        let projection = |kind: &str, texture: &Texture, u: &super::view::ShadowProjectionUniforms, label: &str| -> Result<Projection, DesktopError> {
+            let ps = p.permutation("ShadowProjectionPS", &[("SHADOW_PROJECTION_TYPE", kind.to_string()), ("SHADOW_QUALITY", quality.clone())])?;
+            let pipeline = p.render(
+                &vs,
+                Some(&ps),
+                &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))] },
+            )?;
+            let buffer = uniform(device, &format!("ShadowProjection {label}"), u);
+            let groups = pipeline.layout.bind_groups(
+                device,
+                &[
+                    ("View", b.view_buffer.as_entire_binding()),
+                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                    ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                    ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
+                    ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
+                    ("ShadowProjection", buffer.as_entire_binding()),
+                ],
+            )?
+            .keeping(buffer);
+            Ok(Projection { pipeline, groups })
+        };
+        let sun = &b.scene.sun;
+        if sun.enabled {
+            let gpu = LocalLightGpu {
+                position_radius: Vec4::ZERO,
+                color_falloff: (sun.color * sun.intensity).extend(0.0),
+                direction_type: (-sun.direction).normalize().extend(0.0),
+                spot_angles: Vec4::ZERO,
+            };
+            let mut projections = Vec::new();
+            if let (Some(u), Some(texture)) = (&shadows.setup.cascaded, shadows.csm_texture()) {
+                projections.push(projection("CASCADED", texture, u, "DirectionalLight")?);
+            }
+            let shadowed_sun = !projections.is_empty();
+            let light = light_draw("DIRECTIONAL", shadowed_sun, false, gpu, "DirectionalLight")?;
+            if shadowed_sun {
+                shadowed.push(ShadowedLight { name: "DirectionalLight".into(), projections, light });
+            } else {
+                non_shadowed.insert(0, light);
+            }
+        }
+        for (li, l) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow != LocalShadow::None) {
+            let mut projections = Vec::new();
+            for (_, u) in shadows.setup.per_object.iter().filter(|(i, _)| *i == li) {
+                let texture = shadows.per_object_texture().unwrap_or(dummy_shadow);
+                projections.push(projection("PER_OBJECT", texture, u, &l.name)?);
+            }
+            for (_, cube, u) in shadows.setup.cubes.iter().filter(|(i, _, _)| *i == li) {
+                projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?);
+            }
+            let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
+            shadowed.push(ShadowedLight { name: l.name.clone(), projections, light });
+        }
+        Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path })
+    }
+
+    fn draw_light(pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
+        pass.set_pipeline(&d.pipeline.pipeline);
+        d.groups.set_render(pass);
+        if d.radial {
+            pass.set_vertex_buffer(0, scene.sphere.vertices.slice(..));
+            pass.set_index_buffer(scene.sphere.indices.slice(..), wgpu::IndexFormat::Uint32);
+            pass.draw_indexed(0..scene.sphere.index_count, 0, 0..1);
+        } else {
+            pass.draw(0..3, 0..1);
+        }
+    }
+
+    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
+        ctx.step("NonShadowedLights", |ctx| {
+            {
+                let mut pass = begin(ctx.encoder(), "NonShadowedLights", &[color_attachment(&t.scene_color.view, None)], read_only_depth(&t.scene_depth));
+                pass.set_stencil_reference(super::resources::STENCIL_LIT);
+                for d in &self.non_shadowed {
+                    Self::draw_light(&mut pass, scene, d);
+                }
+            }
+            ctx.output(&t.scene_color.texture, Visualize::Hdr);
+        });
+        if let Some((cs, groups)) = &self.tiled {
+            ctx.step("TiledDeferredLighting", |ctx| {
+                {
+                    let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("TiledDeferredLighting"), timestamp_writes: None });
+                    pass.set_pipeline(&cs.pipeline);
+                    groups.set_compute(&mut pass);
+                    let [wx, wy, _] = cs.workgroup_size;
+                    pass.dispatch_workgroups(t.width.div_ceil(wx), t.height.div_ceil(wy), 1);
+                }
+                ctx.encoder().copy_texture_to_texture(
+                    t.scene_color_tiled.texture.as_image_copy(),
+                    t.scene_color.texture.as_image_copy(),
+                    wgpu::Extent3d { width: t.width, height: t.height, depth_or_array_layers: 1 },
+                );
+                ctx.output(&t.scene_color.texture, Visualize::Hdr);
+            });
+        }
+        ctx.step("ShadowedLights", |ctx| {
+            for light in &self.shadowed {
+                {
+                    let mut pass =
+                        begin(ctx.encoder(), "ShadowProjectionOnOpaque", &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))], read_only_depth(&t.scene_depth));
+                    pass.set_stencil_reference(super::resources::STENCIL_LIT);
+                    for p in &light.projections {
+                        pass.set_pipeline(&p.pipeline.pipeline);
+                        p.groups.set_render(&mut pass);
+                        pass.draw(0..3, 0..1);
+                    }
+                }
+                ctx.output_named(&format!("ShadowProjectionOnOpaque_{}", light.name), &t.shadow_mask.texture, Visualize::Direct);
+                {
+                    let mut pass = begin(ctx.encoder(), "StandardDeferredLighting", &[color_attachment(&t.scene_color.view, None)], read_only_depth(&t.scene_depth));
+                    pass.set_stencil_reference(super::resources::STENCIL_LIT);
+                    Self::draw_light(&mut pass, scene, &light.light);
+                }
+                ctx.output_named(&format!("StandardDeferredLighting_{}", light.name), &t.scene_color.texture, Visualize::Hdr);
+            }
+        });
+    }
+
+    /// Names of the shadowed lights, in the order they are drawn.
+    pub fn shadowed_light_names(&self) -> Vec<String> {
+        self.shadowed.iter().map(|l| l.name.clone()).collect()
+    }
+}
+
+fn light_resources<'r>(b: &'r Build<'_>, light: &'r wgpu::Buffer) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
+    let t = b.targets;
+    vec![
+        ("View", b.view_buffer.as_entire_binding()),
+        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+        ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+        ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
+        ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
+        ("ShadowMaskTexture", wgpu::BindingResource::TextureView(&t.shadow_mask.view)),
+        ("DeferredLight", light.as_entire_binding()),
+    ]
+}

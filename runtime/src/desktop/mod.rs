@@ -1,0 +1,493 @@
+//! The desktop deferred frame (`--pipeline desktop`, feature level `sm5`), pass by pass as
+//! the seeds describe Unreal's: PrePass, ComputeLightGrid, ShadowDepths, BasePass,
+//! AmbientOcclusion, Lighting, ExponentialHeightFog, Translucency, PostProcessing.
+//!
+//! Takes a [`Scene`], a [`PipelineCache`] over an archive holding the `sm5` permutations of
+//! `shader_src/Private/Desktop/` and [`DesktopOptions`]; gives the tonemapped sRGB frame and,
+//! through the [`FrameRecorder`], every pass's (and named step's) output and GPU time.
+//! Guarantees: every pipeline the frame uses is created in [`DesktopFrame::new`] (the
+//! warm-up), none while recording; a permutation missing from the archive, or a resource a
+//! permutation binds that the frame does not have, is an error naming it, never a panic.
+
+mod ambient_occlusion;
+mod base_pass;
+mod fog;
+mod light_grid;
+mod lighting;
+mod pipelines;
+mod post_processing;
+mod prepass;
+mod resources;
+mod shadow_depths;
+mod translucency;
+pub mod view;
+
+// Part 2 (issue 7): particles, occlusion, HZB, volumetric fog, velocity, translucency volumes,
+// reflections, distortion, temporal post-processing, driven by `part2::Part2`.
+pub mod distortion;
+pub mod eye_adaptation;
+pub mod frame_view;
+pub mod hzb;
+pub mod motion_blur;
+pub mod occlusion;
+pub mod part2;
+pub mod particles;
+pub mod reflections;
+pub mod taa;
+pub mod translucent_volume;
+pub mod velocity;
+pub mod volumetric_fog;
+
+use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
+use crate::pipelines::{PipelineCache, PipelineError};
+use crate::scene::Scene;
+
+pub use resources::{frame_lights, FrameLight, LocalShadow};
+pub use shadow_depths::{cascade_matrices, cube_face_matrices, CASCADE_SPLITS};
+pub use view::FrameView;
+
+/// Which way unshadowed local lights are shaded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightingPath {
+    /// Per-light volumes, or tiled above `tiled_threshold` lights (Unreal's rule).
+    Auto,
+    /// Always per-light volumes.
+    PerLight,
+    /// Always the tiled compute pass.
+    Tiled,
+}
+
+#[derive(Clone, Debug)]
+pub struct DesktopOptions {
+    pub width: u32,
+    pub height: u32,
+    /// Above this many unshadowed local lights, `Auto` shades them in one tiled compute
+    /// pass (Unreal switches above 80).
+    pub tiled_threshold: usize,
+    pub lighting_path: LightingPath,
+    /// The tiled pass reads each pixel's lights from the light grid (`USE_LIGHT_GRID=1`)
+    /// instead of culling them per 16x16 tile itself, as Unreal 4.17 does.
+    pub tiled_uses_light_grid: bool,
+    /// Shadow filtering, 1 to 3 (1x1, 3x3, 5x5 PCF): `SHADOW_QUALITY`.
+    pub shadow_quality: u32,
+    /// Ambient occlusion quality, 0 to 2 (4, 8, 12 samples): `SHADER_QUALITY`.
+    pub ao_quality: u32,
+    /// Size of one cascade of the directional light's shadow atlas (others are half).
+    pub shadow_map_size: u32,
+    /// Selects the AO jitter of this frame.
+    pub frame_index: u32,
+    /// Create shader modules through the runtime's cache (SPIR-V passthrough on Vulkan)
+    /// instead of from the archive's WGSL. Off by default: on lavapipe, Kiln's SPIR-V 1.0
+    /// artifacts of `StandardDeferredLightingPS` crash the driver in about a third of the
+    /// frames and `AmbientOcclusionPS{USE_AO_SETUP_AS_INPUT=1}` reads garbage, while the same
+    /// permutations from WGSL (compiled by wgpu with its bounds checks) render correctly.
+    pub spirv_passthrough: bool,
+    /// Effects the mobile paths lack, on by default; the cross-check against the mobile
+    /// frames turns them off. `ambient_occlusion`: the AmbientOcclusion pass; `bloom` and
+    /// `vignette`: the tonemapper's inputs; `sky_gradient`: the sky's horizon gradient and sun
+    /// disk (off: the flat sky color the mobile frames clear to).
+    pub ambient_occlusion: bool,
+    pub bloom: bool,
+    pub vignette: bool,
+    pub sky_gradient: bool,
+    /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
+    pub output_format: wgpu::TextureFormat,
+    /// What part 2 (issue 7) changes in the frame: TAA, motion blur, eye adaptation,
+    /// volumetric fog, sprites, reflections (`Part2Options::off()` for none).
+    pub part2: part2::Part2Options,
+}
+
+impl Default for DesktopOptions {
+    fn default() -> Self {
+        DesktopOptions {
+            width: 640,
+            height: 360,
+            tiled_threshold: 80,
+            lighting_path: LightingPath::Auto,
+            tiled_uses_light_grid: true,
+            shadow_quality: 2,
+            ao_quality: 2,
+            shadow_map_size: 512,
+            frame_index: 0,
+            spirv_passthrough: false,
+            ambient_occlusion: true,
+            bloom: true,
+            vignette: true,
+            sky_gradient: true,
+            output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            part2: part2::Part2Options::default(),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DesktopError {
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error("{what}: wgpu rejected it: {message}")]
+    Wgpu { what: String, message: String },
+    #[error("pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame")]
+    MissingResource { pipeline: String, group: u32, binding: u32, name: String },
+    #[error("pipeline `{pipeline}`: storage texture format `{format}` is not known to the runtime")]
+    StorageFormat { pipeline: String, format: String },
+}
+
+/// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
+/// frame; Translucency draws their sprites (additively, depth tested against the scene).
+pub struct ParticleInputs<'a> {
+    /// The runtime's view uniforms (`FViewUniforms`), which the sprite shaders read.
+    pub view: &'a wgpu::Buffer,
+    pub systems: &'a [crate::passes::particles::ParticleSystem],
+}
+
+/// What passes read while they are built.
+pub(crate) struct Build<'a> {
+    pub device: &'a wgpu::Device,
+    pub pipelines: &'a pipelines::Pipelines<'a>,
+    pub scene: &'a Scene,
+    pub buffers: &'a resources::SceneBuffers,
+    pub targets: &'a resources::Targets,
+    pub samplers: &'a resources::Samplers,
+    pub view: &'a FrameView,
+    pub view_buffer: &'a wgpu::Buffer,
+    pub lights: &'a [FrameLight],
+    pub lights_buffer: &'a wgpu::Buffer,
+    pub options: &'a DesktopOptions,
+}
+
+impl Build<'_> {
+    /// View, instances and materials: what every mesh pass binds.
+    pub fn scene_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
+        vec![
+            ("View", self.view_buffer.as_entire_binding()),
+            ("Instances", self.buffers.instances.as_entire_binding()),
+            ("Materials", self.buffers.materials.as_entire_binding()),
+        ]
+    }
+}
+
+/// The desktop frame, built once per (scene, size): resources, pipelines, bind groups.
+pub struct DesktopFrame {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    timestamps: bool,
+    options: DesktopOptions,
+    buffers: resources::SceneBuffers,
+    targets: resources::Targets,
+    output: resources::Texture,
+    /// Bound where the directional light has no cascades (kept alive with the bind groups).
+    _dummy_shadow: resources::Texture,
+    _lights_buffer: wgpu::Buffer,
+    _view_buffer: wgpu::Buffer,
+    _samplers: resources::Samplers,
+    view: FrameView,
+    lights: Vec<FrameLight>,
+    prepass: prepass::PrePass,
+    light_grid: light_grid::LightGrid,
+    shadows: shadow_depths::ShadowDepths,
+    base_pass: base_pass::BasePass,
+    ambient_occlusion: ambient_occlusion::AmbientOcclusion,
+    lighting: lighting::Lighting,
+    fog: fog::HeightFog,
+    translucency: translucency::Translucency,
+    post: post_processing::PostProcessing,
+    part2: part2::Part2,
+    /// The View uniforms as built, patched every frame with part 2's (jittered) camera.
+    base_view: view::ViewUniforms,
+    /// Every object's instance rows: (object, first row, local bounds centre, row).
+    object_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
+}
+
+impl DesktopFrame {
+    /// Uploads the scene, creates the targets and builds every pass (every pipeline).
+    /// `timestamps`: the device has timestamp queries inside encoders.
+    pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        timestamps: bool,
+        cache: &PipelineCache,
+        scene: &Scene,
+        options: DesktopOptions,
+        particles: Option<ParticleInputs<'_>>,
+    ) -> Result<DesktopFrame, DesktopError> {
+        let (w, h) = (options.width.max(1), options.height.max(1));
+        let view = FrameView::new(scene, w, h);
+        let lights = frame_lights(scene);
+        let gpu_lights: Vec<view::LocalLightGpu> = lights.iter().map(|l| l.gpu).collect();
+        let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
+        let view_buffer = resources::uniform(device, "View", &view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)));
+        let buffers = resources::SceneBuffers::upload(device, scene);
+        let targets = resources::Targets::new(device, w, h);
+        let samplers = resources::Samplers::new(device, queue);
+        let output = resources::Texture::target(device, "Output", options.output_format, w, h);
+        let pipelines = pipelines::Pipelines::new(cache, device, "sm5", options.spirv_passthrough);
+        let b = Build {
+            device,
+            pipelines: &pipelines,
+            scene,
+            buffers: &buffers,
+            targets: &targets,
+            samplers: &samplers,
+            view: &view,
+            view_buffer: &view_buffer,
+            lights: &lights,
+            lights_buffer: &lights_buffer,
+            options: &options,
+        };
+        let dummy_shadow = shadow_depths::dummy_shadow_texture(device, queue);
+        let prepass = prepass::PrePass::new(&b)?;
+        let light_grid = light_grid::LightGrid::new(&b)?;
+        let shadows = shadow_depths::ShadowDepths::new(&b)?;
+        let base_pass = base_pass::BasePass::new(&b)?;
+        let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
+        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
+        let fog = fog::HeightFog::new(&b)?;
+        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref())?;
+        let post = post_processing::PostProcessing::new(&b, options.output_format)?;
+        let grid = part2::LightGridInputs {
+            lights: &lights_buffer,
+            num_culled_lights: &light_grid.num_culled_lights,
+            culled_light_data: &light_grid.culled_light_data,
+            size: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_size,
+            z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
+        };
+        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
+        part2.set_options(options.part2);
+        let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
+        let object_rows = object_rows(scene, &buffers);
+        Ok(DesktopFrame {
+            device: device.clone(),
+            queue: queue.clone(),
+            timestamps,
+            options,
+            buffers,
+            targets,
+            output,
+            _dummy_shadow: dummy_shadow,
+            _lights_buffer: lights_buffer,
+            _view_buffer: view_buffer,
+            _samplers: samplers,
+            view,
+            lights,
+            prepass,
+            light_grid,
+            shadows,
+            base_pass,
+            ambient_occlusion,
+            lighting,
+            fog,
+            translucency,
+            post,
+            part2,
+            base_view,
+            object_rows,
+        })
+    }
+
+    /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
+    /// of `DesktopOptions::output_format` and the frame's size).
+    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
+        let (s, t) = (&self.buffers, &self.targets);
+        let p2 = &self.part2;
+        let camera = p2.begin_frame();
+        self.write_camera(&camera);
+        p2.particle_simulation(frame);
+        frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
+        frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
+        p2.begin_occlusion_tests(frame);
+        p2.build_hzb(frame);
+        frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s));
+        p2.volumetric_fog(frame);
+        frame.pass("BasePass", |ctx| self.base_pass.record(ctx, s, t));
+        p2.particle_collision(frame);
+        p2.velocity(frame);
+        if self.options.ambient_occlusion {
+            frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
+        }
+        frame.pass("Lighting", |ctx| {
+            self.lighting.record(ctx, s, t);
+            p2.translucent_volumes(ctx);
+        });
+        p2.reflections(frame);
+        frame.pass("ExponentialHeightFog", |ctx| {
+            self.fog.record(ctx, t);
+            p2.apply_volumetric_fog(ctx);
+        });
+        frame.pass("Translucency", |ctx| {
+            self.translucency.record(ctx, s, t);
+            p2.particle_sprites(ctx);
+        });
+        p2.distortion(frame);
+        frame.pass("PostProcessing", |ctx| {
+            p2.temporal_post_processing(ctx);
+            self.post.record(ctx, t, output);
+        });
+        p2.end_frame();
+    }
+
+    /// How many times the movable lights' cube shadows rendered their cached static depth.
+    pub fn cached_shadow_rebuilds(&self) -> u32 {
+        self.shadows.cached_shadow_rebuilds()
+    }
+
+    /// A movable light moved: its cube shadow's static depth is rendered again.
+    pub fn invalidate_cached_shadows(&self) {
+        self.shadows.invalidate_cached_shadows();
+    }
+
+    /// Part 2 of the frame (its state across frames: camera, histories, occlusion).
+    pub fn part2(&self) -> &part2::Part2 {
+        &self.part2
+    }
+
+    /// This frame's camera (jittered for TAA) into the View uniforms, and the movable props'
+    /// transforms into their instance rows.
+    fn write_camera(&self, camera: &part2::FrameCamera) {
+        let mut v = self.base_view;
+        v.view_proj = camera.view_proj;
+        v.inv_view_proj = camera.inv_view_proj;
+        v.view = camera.view;
+        v.proj = camera.proj;
+        v.camera_position = camera.position.extend(v.camera_position.w);
+        self.queue.write_buffer(&self._view_buffer, 0, bytemuck::bytes_of(&v));
+        // every object's rows: movable props move, props that occlusion culling found hidden
+        // get empty transforms (nothing rasterised) until a query finds them visible again
+        for (object, first, local_center, template) in &self.object_rows {
+            let visible = self.part2.is_visible(*object);
+            for (i, m) in self.part2.object_transforms(*object).into_iter().enumerate() {
+                let m = if visible { m } else { glam::Mat4::ZERO };
+                let row = view::InstanceGpu {
+                    local_to_world: m,
+                    normal_to_world: if visible { glam::Mat4::from_mat3(glam::Mat3::from_mat4(m).inverse().transpose()) } else { glam::Mat4::ZERO },
+                    material: template.material,
+                    bounds: m.transform_point3(*local_center).extend(template.bounds.w),
+                };
+                let offset = u64::from(first + i as u32) * std::mem::size_of::<view::InstanceGpu>() as u64;
+                self.queue.write_buffer(&self.buffers.instances, offset, bytemuck::bytes_of(&row));
+            }
+        }
+    }
+
+    /// Records the frame into its own output target.
+    pub fn record(&self, frame: &mut FrameRecorder) {
+        self.record_into(frame, (&self.output.texture, &self.output.view));
+    }
+
+    /// Renders one frame: the output image and every pass (with images when `capture`).
+    pub fn render(&self, capture: bool) -> (Option<Image>, Vec<PassResult>) {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, None);
+        self.record(&mut frame);
+        let passes = frame.finish();
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
+        readback.pass("Output", |ctx| ctx.output(&self.output.texture, Visualize::Direct));
+        let image = readback.finish().pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
+        (image, passes)
+    }
+
+    pub fn options(&self) -> &DesktopOptions {
+        &self.options
+    }
+
+    pub fn view(&self) -> &FrameView {
+        &self.view
+    }
+
+    /// The scene's local lights as the light grid indexes them.
+    pub fn lights(&self) -> &[FrameLight] {
+        &self.lights
+    }
+
+    /// Whether Lighting shades the unshadowed local lights in the tiled compute pass.
+    pub fn uses_tiled_lighting(&self) -> bool {
+        self.lighting.tiled_path
+    }
+
+    /// Names of the lights drawn under ShadowedLights, in order.
+    pub fn shadowed_lights(&self) -> Vec<String> {
+        self.lighting.shadowed_light_names()
+    }
+
+    /// Reads the light grid back after a frame: (count, offset) per cell and the compacted
+    /// light indices.
+    pub fn read_light_grid(&self) -> (Vec<[u32; 2]>, Vec<u32>) {
+        let read = |src: &wgpu::Buffer| -> Vec<u32> {
+            let size = src.size();
+            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("light grid readback"),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("light grid readback") });
+            encoder.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+            self.queue.submit([encoder.finish()]);
+            staging.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+            let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+            let words = match staging.slice(..).get_mapped_range() {
+                Ok(view) => bytemuck::pod_collect_to_vec(&view),
+                Err(_) => Vec::new(),
+            };
+            words
+        };
+        let cells = read(&self.light_grid.num_culled_lights);
+        let counts = cells.chunks_exact(2).take(self.view.grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
+        (counts, read(&self.light_grid.culled_light_data))
+    }
+}
+
+/// Part 2 of the frame over the frame's targets and the directional light's cascades.
+#[allow(clippy::too_many_arguments)]
+fn desktop_part2(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    cache: &PipelineCache,
+    scene: &Scene,
+    buffers: &resources::SceneBuffers,
+    targets: &resources::Targets,
+    shadows: &shadow_depths::ShadowDepths,
+    dummy_shadow: &resources::Texture,
+    light_grid: part2::LightGridInputs<'_>,
+    frame_draws_fire: bool,
+    w: u32,
+    h: u32,
+) -> Result<part2::Part2, DesktopError> {
+    let meshes: Vec<part2::MeshRef<'_>> = buffers.meshes.iter().map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count }).collect();
+    let shadow = match (shadows.csm_texture(), &shadows.setup.cascaded) {
+        (Some(_), Some(c)) => Some(frame_view::DirectionalShadow {
+            cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],
+            splits: CASCADE_SPLITS,
+            rects: [c.atlas_rects[0], c.atlas_rects[1], c.atlas_rects[2]],
+        }),
+        _ => None,
+    };
+    let shadow_depth = shadows.csm_texture().map_or(&dummy_shadow.texture, |t| &t.texture);
+    let part2_targets = part2::Part2Targets {
+        size: [w, h],
+        scene_depth: &targets.scene_depth.texture,
+        scene_color: &targets.scene_color.texture,
+        gbuffer_a: &targets.gbuffer_a.texture,
+        gbuffer_b: &targets.gbuffer_b.texture,
+        gbuffer_c: &targets.gbuffer_c.texture,
+        shadow_depth,
+        // the cascades are stored with standard depth (lit where receiver <= stored)
+        shadow_compare: wgpu::CompareFunction::LessEqual,
+        light_grid,
+        frame_draws_fire,
+    };
+    Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
+}
+
+/// The objects' instance rows, rewritten every frame (movable props move, culled props hide).
+fn object_rows(scene: &Scene, buffers: &resources::SceneBuffers) -> Vec<(usize, u32, glam::Vec3, view::InstanceGpu)> {
+    let mut rows = Vec::new();
+    for (i, (o, d)) in scene.objects.iter().zip(&buffers.draws).enumerate() {
+        let (lo, hi) = scene.meshes[o.mesh].bounds();
+        let template = view::InstanceGpu {
+            material: glam::UVec4::new(o.material as u32, u32::from(d.movable), 0, 0),
+            bounds: glam::Vec4::new(0.0, 0.0, 0.0, (hi - lo).length() * 0.5),
+            ..Default::default()
+        };
+        rows.push((i, d.first_instance, (lo + hi) * 0.5, template));
+    }
+    rows
+}

@@ -1,0 +1,338 @@
+//! Pipelines of the desktop frame. Modules and reflection come from the runtime's
+//! [`PipelineCache`] (lazy, SPIR-V passthrough or WGSL); the desktop passes need
+//! fixed-function state the shared cache does not describe (stencil, min and multiply
+//! blending, vertex layouts of light volumes), so their pipelines are built here, from the
+//! same reflection, once per (permutations, state) when the frame is built.
+
+use std::collections::HashMap;
+use std::num::NonZeroU64;
+use std::sync::{Arc, Mutex};
+
+use kiln::archive::{BindingKind, SampleKind, StorageAccess, TextureDim};
+use kiln::Stage;
+
+use crate::pipelines::{merge_bindings, storage_format, ErrorScopes, MergedBinding, PipelineCache, PipelineError};
+
+use super::DesktopError;
+
+/// The bind group layouts of one pipeline and a by-name way to fill them.
+pub struct Layout {
+    pub label: String,
+    pub groups: Vec<Vec<MergedBinding>>,
+    pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
+    pub pipeline_layout: wgpu::PipelineLayout,
+}
+
+impl Layout {
+    /// A bind group for `group` from `(name in the shader, resource)` pairs. Resources the
+    /// permutation does not use are left out; a binding it uses without a resource is an error.
+    pub fn bind_group(&self, device: &wgpu::Device, group: u32, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<Option<wgpu::BindGroup>, DesktopError> {
+        let Some(bindings) = self.groups.get(group as usize) else { return Ok(None) };
+        if bindings.is_empty() {
+            return Ok(None);
+        }
+        let mut entries = Vec::with_capacity(bindings.len());
+        for b in bindings {
+            let name = b.name.clone().unwrap_or_default();
+            let resource = resources
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, r)| r.clone())
+                .ok_or_else(|| DesktopError::MissingResource { pipeline: self.label.clone(), group, binding: b.binding, name: name.clone() })?;
+            entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
+        }
+        let scope = ErrorScopes::push(device);
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(&format!("{} group {group}", self.label)),
+            layout: &self.bind_group_layouts[group as usize],
+            entries: &entries,
+        });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", self.label), message });
+        }
+        Ok(Some(bind_group))
+    }
+
+    /// Bind groups for every group the pipeline uses, from one resource list.
+    pub fn bind_groups(&self, device: &wgpu::Device, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<BindGroups, DesktopError> {
+        let mut groups = Vec::new();
+        for g in 0..self.groups.len() as u32 {
+            groups.push(self.bind_group(device, g, resources)?);
+        }
+        Ok(BindGroups { groups, keep: Vec::new() })
+    }
+}
+
+/// The bind groups of one draw or dispatch, by group index (`None` for unused groups), and
+/// the buffers made for them alone (kept alive as long as the groups).
+pub struct BindGroups {
+    pub groups: Vec<Option<wgpu::BindGroup>>,
+    pub keep: Vec<wgpu::Buffer>,
+}
+
+impl BindGroups {
+    /// Keeps `buffer` (a uniform made for these groups) alive with them.
+    pub fn keeping(mut self, buffer: wgpu::Buffer) -> BindGroups {
+        self.keep.push(buffer);
+        self
+    }
+
+    pub fn set_render(&self, pass: &mut wgpu::RenderPass<'_>) {
+        for (i, g) in self.groups.iter().enumerate() {
+            if let Some(g) = g {
+                pass.set_bind_group(i as u32, g, &[]);
+            }
+        }
+    }
+
+    pub fn set_compute(&self, pass: &mut wgpu::ComputePass<'_>) {
+        for (i, g) in self.groups.iter().enumerate() {
+            if let Some(g) = g {
+                pass.set_bind_group(i as u32, g, &[]);
+            }
+        }
+    }
+}
+
+/// Vertex buffers a desktop pipeline reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Vertices {
+    /// None: a triangle from the vertex index.
+    None,
+    /// [`crate::gpu_types::MeshVertex`] in buffer 0 (locations 0 to 2); instances come from a
+    /// storage buffer indexed by `instance_index`.
+    Mesh,
+}
+
+/// The fixed-function state of a desktop render pipeline.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderDesc {
+    pub vertices: Vertices,
+    pub cull: Option<wgpu::Face>,
+    pub depth_stencil: Option<wgpu::DepthStencilState>,
+    pub targets: Vec<(wgpu::TextureFormat, Option<wgpu::BlendState>)>,
+}
+
+impl RenderDesc {
+    pub fn fullscreen(format: wgpu::TextureFormat, blend: Option<wgpu::BlendState>) -> RenderDesc {
+        RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: None, targets: vec![(format, blend)] }
+    }
+}
+
+/// A built render pipeline and its layout.
+pub struct Render {
+    pub pipeline: wgpu::RenderPipeline,
+    pub layout: Layout,
+}
+
+pub struct Compute {
+    pub pipeline: wgpu::ComputePipeline,
+    pub layout: Layout,
+    pub workgroup_size: [u32; 3],
+}
+
+/// A cached render pipeline with its key (vertex, fragment, state).
+type RenderEntry = (String, Option<String>, RenderDesc, Arc<Render>);
+
+/// Builds and caches the desktop pipelines of one frame.
+pub struct Pipelines<'a> {
+    pub cache: &'a PipelineCache,
+    pub device: &'a wgpu::Device,
+    pub level: &'a str,
+    spirv_passthrough: bool,
+    render: Mutex<Vec<RenderEntry>>,
+    compute: Mutex<HashMap<String, Arc<Compute>>>,
+}
+
+impl<'a> Pipelines<'a> {
+    pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device, level: &'a str, spirv_passthrough: bool) -> Pipelines<'a> {
+        Pipelines { cache, device, level, spirv_passthrough, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
+    }
+
+    /// A permutation's module and reflection: through the runtime's cache (SPIR-V
+    /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
+    /// WGSL artifact, which wgpu compiles with its own bounds checks.
+    fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
+        // Through the cache either way, so the permutation counts as used (passes.json) and
+        // its stage is checked.
+        let (module, reflection) = self.cache.module(name, stage)?;
+        if self.spirv_passthrough {
+            return Ok((module, reflection));
+        }
+        let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
+        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+        let module = crate::pipelines::create_module(self.device, false, name, None, perm.artifact(kiln::archive::Target::Wgsl), &reflection, &targets)?;
+        Ok((module, reflection))
+    }
+
+    /// The canonical name of `shader` at the frame's level with these dimension values.
+    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, DesktopError> {
+        let mut q = self.cache.archive().shader(shader).level(self.level);
+        for (d, v) in values {
+            q = q.with(d, v);
+        }
+        Ok(q.find().map_err(PipelineError::from)?.name().to_string())
+    }
+
+    fn layout(&self, label: &str, reflections: &[&kiln::archive::Reflection]) -> Result<Layout, DesktopError> {
+        let groups = merge_bindings(label, reflections)?;
+        let mut bind_group_layouts = Vec::with_capacity(groups.len());
+        for (g, bindings) in groups.iter().enumerate() {
+            let entries = bindings.iter().map(|b| layout_entry(label, b)).collect::<Result<Vec<_>, _>>()?;
+            bind_group_layouts.push(self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(&format!("{label} group {g}")), entries: &entries }));
+        }
+        let refs: Vec<Option<&wgpu::BindGroupLayout>> = bind_group_layouts.iter().map(Some).collect();
+        let pipeline_layout = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(label), bind_group_layouts: &refs, immediate_size: 0 });
+        Ok(Layout { label: label.to_string(), groups, bind_group_layouts, pipeline_layout })
+    }
+
+    /// A render pipeline of (vertex permutation, fragment permutation or none, state).
+    pub fn render(&self, vertex: &str, fragment: Option<&str>, desc: &RenderDesc) -> Result<Arc<Render>, DesktopError> {
+        {
+            let cached = self.render.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some((_, _, _, r)) = cached.iter().find(|(v, f, d, _)| v == vertex && f.as_deref() == fragment && d == desc) {
+                return Ok(r.clone());
+            }
+        }
+        let label = match fragment {
+            Some(f) => format!("{vertex} + {f}"),
+            None => vertex.to_string(),
+        };
+        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
+        let fs = match fragment {
+            Some(f) => Some(self.module(f, Stage::Fragment)?),
+            None => None,
+        };
+        let mut reflections = vec![&vs_reflection];
+        if let Some((_, r)) = &fs {
+            reflections.push(r);
+        }
+        let layout = self.layout(&label, &reflections)?;
+        let buffers: Vec<Option<wgpu::VertexBufferLayout<'static>>> = match desc.vertices {
+            Vertices::None => Vec::new(),
+            Vertices::Mesh => vec![Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &MESH_ATTRIBUTES,
+            })],
+        };
+        let targets: Vec<Option<wgpu::ColorTargetState>> =
+            desc.targets.iter().map(|(format, blend)| Some(wgpu::ColorTargetState { format: *format, blend: *blend, write_mask: wgpu::ColorWrites::ALL })).collect();
+        let scope = ErrorScopes::push(self.device);
+        let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some(&label),
+            layout: Some(&layout.pipeline_layout),
+            vertex: wgpu::VertexState { module: &vs, entry_point: Some(&vs_reflection.entry), compilation_options: Default::default(), buffers: &buffers },
+            primitive: wgpu::PrimitiveState { topology: wgpu::PrimitiveTopology::TriangleList, cull_mode: desc.cull, front_face: wgpu::FrontFace::Ccw, ..Default::default() },
+            depth_stencil: desc.depth_stencil.clone(),
+            multisample: wgpu::MultisampleState::default(),
+            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState { module, entry_point: Some(&r.entry), compilation_options: Default::default(), targets: &targets }),
+            multiview_mask: None,
+            cache: None,
+        });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("render pipeline `{label}`"), message });
+        }
+        let handle = Arc::new(Render { pipeline, layout });
+        self.render.lock().unwrap_or_else(|e| e.into_inner()).push((vertex.to_string(), fragment.map(str::to_string), desc.clone(), handle.clone()));
+        Ok(handle)
+    }
+
+    pub fn compute(&self, name: &str) -> Result<Arc<Compute>, DesktopError> {
+        if let Some(c) = self.compute.lock().unwrap_or_else(|e| e.into_inner()).get(name) {
+            return Ok(c.clone());
+        }
+        let (module, reflection) = self.module(name, Stage::Compute)?;
+        let layout = self.layout(name, &[&reflection])?;
+        let scope = ErrorScopes::push(self.device);
+        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(name),
+            layout: Some(&layout.pipeline_layout),
+            module: &module,
+            entry_point: Some(&reflection.entry),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(message) = scope.pop() {
+            return Err(DesktopError::Wgpu { what: format!("compute pipeline `{name}`"), message });
+        }
+        let handle = Arc::new(Compute { pipeline, layout, workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]) });
+        self.compute.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), handle.clone());
+        Ok(handle)
+    }
+}
+
+const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+
+fn view_dimension(dim: TextureDim) -> wgpu::TextureViewDimension {
+    match dim {
+        TextureDim::D1 => wgpu::TextureViewDimension::D1,
+        TextureDim::D2 => wgpu::TextureViewDimension::D2,
+        TextureDim::D2Array => wgpu::TextureViewDimension::D2Array,
+        TextureDim::Cube => wgpu::TextureViewDimension::Cube,
+        TextureDim::CubeArray => wgpu::TextureViewDimension::CubeArray,
+        TextureDim::D3 => wgpu::TextureViewDimension::D3,
+    }
+}
+
+/// The layout entry of a merged binding. A float texture is filterable unless its name ends
+/// in `DepthTexture` (the scene depth, read as unfilterable float: the runtime's rule).
+fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutEntry, DesktopError> {
+    let ty = match &b.kind {
+        BindingKind::UniformBuffer { min_size } => {
+            wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: NonZeroU64::new(*min_size) }
+        }
+        BindingKind::StorageBuffer { read_only, min_size } => wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: *read_only },
+            has_dynamic_offset: false,
+            min_binding_size: NonZeroU64::new(*min_size),
+        },
+        BindingKind::Sampler { comparison: true } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+        BindingKind::Sampler { comparison: false } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+        BindingKind::Texture { dim, sample, multisampled } => wgpu::BindingType::Texture {
+            sample_type: match sample {
+                SampleKind::Float => {
+                    let depth = b.name.as_deref().is_some_and(|n| n.ends_with("DepthTexture"));
+                    wgpu::TextureSampleType::Float { filterable: !multisampled && !depth }
+                }
+                SampleKind::Depth => wgpu::TextureSampleType::Depth,
+                SampleKind::Sint => wgpu::TextureSampleType::Sint,
+                SampleKind::Uint => wgpu::TextureSampleType::Uint,
+            },
+            view_dimension: view_dimension(*dim),
+            multisampled: *multisampled,
+        },
+        BindingKind::StorageTexture { dim, format, access } => wgpu::BindingType::StorageTexture {
+            access: match access {
+                StorageAccess::ReadOnly => wgpu::StorageTextureAccess::ReadOnly,
+                StorageAccess::WriteOnly => wgpu::StorageTextureAccess::WriteOnly,
+                StorageAccess::ReadWrite => wgpu::StorageTextureAccess::ReadWrite,
+            },
+            format: storage_format(format).ok_or_else(|| DesktopError::StorageFormat { pipeline: label.to_string(), format: format.clone() })?,
+            view_dimension: view_dimension(*dim),
+        },
+    };
+    Ok(wgpu::BindGroupLayoutEntry { binding: b.binding, visibility: b.visibility, ty, count: None })
+}
+
+/// Blend states the desktop passes use beyond replace.
+pub mod blend {
+    use wgpu::{BlendComponent, BlendFactor as F, BlendOperation as Op, BlendState};
+
+    const fn component(src: F, dst: F, operation: Op) -> BlendComponent {
+        BlendComponent { src_factor: src, dst_factor: dst, operation }
+    }
+
+    /// dst + src: lights accumulating into SceneColor, bloom levels.
+    pub const ADDITIVE: BlendState = BlendState { color: component(F::One, F::One, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    /// min(dst, src): several shadow projections of one light into the shadow mask.
+    pub const MIN: BlendState = BlendState { color: component(F::One, F::One, Op::Min), alpha: component(F::One, F::One, Op::Min) };
+    /// dst * src: ambient occlusion applied to SceneColor.
+    pub const MULTIPLY: BlendState = BlendState { color: component(F::Zero, F::Src, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    /// dst * src.a + src.rgb: height fog (inscattering, transmittance) and the separate
+    /// translucency composite (premultiplied color, transmittance).
+    pub const TRANSMITTANCE: BlendState = BlendState { color: component(F::One, F::SrcAlpha, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    /// Premultiplied "over" for color; alpha keeps the transmittance of what lies behind:
+    /// a = dst.a * (1 - src.a). Translucent surfaces into the separate translucency target.
+    pub const TRANSLUCENT: BlendState = BlendState { color: component(F::One, F::OneMinusSrcAlpha, Op::Add), alpha: component(F::Zero, F::OneMinusSrcAlpha, Op::Add) };
+}

@@ -1,0 +1,109 @@
+//! PostProcessing: Bloom (threshold at half resolution, a chain of filtered downsamples, then
+//! tent upsamples added back up the chain) and the Tonemapper (exposure, bloom, filmic curve,
+//! vignette) into the sRGB output.
+
+use std::sync::Arc;
+
+use glam::Vec4;
+
+use crate::frame::{PassContext, Visualize};
+
+use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::resources::{begin, color_attachment, formats, uniform, Targets};
+use super::view::{BloomUniforms, TonemapUniforms};
+use super::{Build, DesktopError};
+
+struct Draw {
+    pipeline: Arc<Render>,
+    groups: BindGroups,
+    /// Index into the bloom chain it writes (None: the output).
+    target: Option<usize>,
+    clear: bool,
+}
+
+pub struct PostProcessing {
+    bloom: Vec<Draw>,
+    tonemap_uses_bloom: bool,
+    tonemap: Draw,
+}
+
+/// Bloom threshold, soft knee, and intensity in the tonemapper.
+pub const BLOOM: [f32; 3] = [1.5, 0.5, 0.2];
+
+impl PostProcessing {
+    pub fn new(b: &Build<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
+        let p = b.pipelines;
+        let t = b.targets;
+        let vs = p.permutation("PostProcessVS", &[])?;
+        let setup_ps = p.permutation("BloomSetupPS", &[])?;
+        let down_ps = p.permutation("BloomDownsamplePS", &[])?;
+        let up_ps = p.permutation("BloomUpsamplePS", &[])?;
+        let texel = |tex: &wgpu::Texture| Vec4::new(1.0 / tex.width() as f32, 1.0 / tex.height() as f32, 0.0, 0.0);
+        let mut bloom = Vec::new();
+        let mut add = |ps: &str, source: &wgpu::TextureView, source_tex: &wgpu::Texture, target: usize, blend: Option<wgpu::BlendState>, intensity: f32| -> Result<(), DesktopError> {
+            let pipeline = p.render(&vs, Some(ps), &RenderDesc::fullscreen(formats::BLOOM, blend))?;
+            let u = uniform(b.device, "Bloom", &BloomUniforms { params: Vec4::new(BLOOM[0], BLOOM[1], intensity, 0.0), source_texel: texel(source_tex) });
+            let groups = pipeline.layout.bind_groups(
+                b.device,
+                &[("SourceTexture", wgpu::BindingResource::TextureView(source)), ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)), ("Bloom", u.as_entire_binding())],
+            )?
+            .keeping(u);
+            bloom.push(Draw { pipeline, groups, target: Some(target), clear: blend.is_none() });
+            Ok(())
+        };
+        add(&setup_ps, &t.scene_color.view, &t.scene_color.texture, 0, None, 1.0)?;
+        for i in 1..t.bloom.len() {
+            add(&down_ps, &t.bloom[i - 1].view, &t.bloom[i - 1].texture, i, None, 1.0)?;
+        }
+        for i in (1..t.bloom.len()).rev() {
+            add(&up_ps, &t.bloom[i].view, &t.bloom[i].texture, i - 1, Some(blend::ADDITIVE), 1.0)?;
+        }
+        let pipeline = p.render(
+            &vs,
+            Some(&p.permutation(
+                "TonemapperPS",
+                &[
+                    ("USE_BLOOM", u32::from(b.options.bloom).to_string()),
+                    ("USE_VIGNETTE", u32::from(b.options.vignette).to_string()),
+                    ("USE_GAMMA_ONLY", "0".into()),
+                ],
+            )?),
+            &RenderDesc::fullscreen(output_format, None),
+        )?;
+        let u = uniform(b.device, "Tonemap", &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) });
+        let groups = pipeline.layout.bind_groups(
+            b.device,
+            &[
+                ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
+                ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)),
+                ("Tonemap", u.as_entire_binding()),
+                ("BloomTexture", wgpu::BindingResource::TextureView(&t.bloom[0].view)),
+            ],
+        )?
+        .keeping(u);
+        Ok(PostProcessing { bloom, tonemap_uses_bloom: b.options.bloom, tonemap: Draw { pipeline, groups, target: None, clear: true } })
+    }
+
+    fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
+        let mut pass = begin(ctx.encoder(), "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
+        pass.set_pipeline(&d.pipeline.pipeline);
+        d.groups.set_render(&mut pass);
+        pass.draw(0..3, 0..1);
+    }
+
+    pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets, output: (&wgpu::Texture, &wgpu::TextureView)) {
+        if self.tonemap_uses_bloom {
+            ctx.step("Bloom", |ctx| {
+            for d in &self.bloom {
+                let target = d.target.unwrap_or(0);
+                Self::run(ctx, d, &t.bloom[target].view);
+            }
+            ctx.output(&t.bloom[0].texture, Visualize::Hdr);
+            });
+        }
+        ctx.step("Tonemapper", |ctx| {
+            Self::run(ctx, &self.tonemap, output.1);
+            ctx.output(output.0, Visualize::Direct);
+        });
+    }
+}

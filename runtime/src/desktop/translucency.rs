@@ -1,0 +1,137 @@
+//! Translucency: the glass statues, forward shaded (sky light, the directional light with
+//! its cascaded shadow, and the local lights of the light grid cell each pixel falls in)
+//! into the separate translucency target (premultiplied color, alpha = transmittance),
+//! depth tested against the scene, and the fire's particle sprites added to it; then
+//! composited over SceneColor.
+
+use std::sync::Arc;
+
+use crate::frame::{PassContext, Visualize};
+use crate::scene::BlendMode;
+
+use super::light_grid::LightGrid;
+use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
+use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
+use super::shadow_depths::ShadowDepths;
+use super::{Build, DesktopError};
+
+pub struct Translucency {
+    surfaces: Option<(Arc<Render>, BindGroups)>,
+    /// Particle sprites: pipeline, bind groups, particle count.
+    sprites: Vec<(Arc<Render>, BindGroups, u32)>,
+    compose: Arc<Render>,
+    compose_groups: BindGroups,
+}
+
+impl Translucency {
+    pub fn new(
+        b: &Build<'_>,
+        grid: &LightGrid,
+        shadows: &ShadowDepths,
+        dummy_shadow: &Texture,
+        particles: Option<&super::ParticleInputs<'_>>,
+    ) -> Result<Translucency, DesktopError> {
+        let p = b.pipelines;
+        let t = b.targets;
+        let depth_test = Some(wgpu::DepthStencilState {
+            format: t.scene_depth.format,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState::default(),
+        });
+        let mut sprites = Vec::new();
+        if let Some(inputs) = particles {
+            for system in inputs.systems {
+                let pipeline = p.render(
+                    &p.permutation("ParticleSpriteVS", &[])?,
+                    Some(&p.permutation("ParticleSpritePS", &[])?),
+                    &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: depth_test.clone(), targets: vec![(formats::TRANSLUCENCY, Some(blend::ADDITIVE))] },
+                )?;
+                let (uniforms, buffer, count) = system.sprite_buffers();
+                let groups = pipeline.layout.bind_groups(
+                    b.device,
+                    &[("View", inputs.view.as_entire_binding()), ("Emitter", uniforms.as_entire_binding()), ("Particles", buffer.as_entire_binding())],
+                )?;
+                sprites.push((pipeline, groups, count));
+            }
+        }
+        let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
+            let pipeline = p.render(
+                &p.permutation("DeferredBasePassVS", &[])?,
+                Some(&p.permutation("DeferredBasePassPS", &[("MATERIAL_BLEND_MODE", "TRANSLUCENT".into()), ("MATERIAL_SHADINGMODEL", "DEFAULT_LIT".into())])?),
+                &RenderDesc {
+                    vertices: Vertices::Mesh,
+                    cull: Some(wgpu::Face::Back),
+                    depth_stencil: Some(wgpu::DepthStencilState {
+                        format: t.scene_depth.format,
+                        depth_write_enabled: Some(false),
+                        depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+                        stencil: wgpu::StencilState::default(),
+                        bias: wgpu::DepthBiasState::default(),
+                    }),
+                    targets: vec![(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
+                },
+            )?;
+            let csm = shadows.csm_texture().unwrap_or(dummy_shadow);
+            let directional = uniform(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
+            let mut resources = b.scene_resources();
+            resources.extend([
+                ("LocalLights", b.lights_buffer.as_entire_binding()),
+                ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
+                ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
+                ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&csm.view)),
+                ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
+                ("DirectionalShadow", directional.as_entire_binding()),
+            ]);
+            let groups = pipeline.layout.bind_groups(b.device, &resources)?;
+            drop(resources);
+            Some((pipeline, groups.keeping(directional)))
+        } else {
+            None
+        };
+        let compose = p.render(
+            &p.permutation("PostProcessVS", &[])?,
+            Some(&p.permutation("ComposeSeparateTranslucencyPS", &[])?),
+            &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        )?;
+        let compose_groups = compose.layout.bind_groups(b.device, &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))])?;
+        Ok(Translucency { surfaces, sprites, compose, compose_groups })
+    }
+
+    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
+        ctx.step("SeparateTranslucency", |ctx| {
+            {
+                let mut pass = begin(
+                    ctx.encoder(),
+                    "SeparateTranslucency",
+                    &[color_attachment(&t.translucency.view, Some(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a: 1.0 }))],
+                    Some(wgpu::RenderPassDepthStencilAttachment { view: &t.scene_depth.attachment, depth_ops: None, stencil_ops: None }),
+                );
+                if let Some((pipeline, groups)) = &self.surfaces {
+                    pass.set_pipeline(&pipeline.pipeline);
+                    groups.set_render(&mut pass);
+                    for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
+                        scene.draw(&mut pass, draw);
+                    }
+                }
+                // The fire's sprites add light; they cover nothing behind them.
+                for (pipeline, groups, count) in &self.sprites {
+                    pass.set_pipeline(&pipeline.pipeline);
+                    groups.set_render(&mut pass);
+                    pass.draw(0..6, 0..*count);
+                }
+            }
+            ctx.output(&t.translucency.texture, Visualize::Hdr);
+        });
+        ctx.step("ComposeSeparateTranslucency", |ctx| {
+            {
+                let mut pass = begin(ctx.encoder(), "ComposeSeparateTranslucency", &[color_attachment(&t.scene_color.view, None)], None);
+                pass.set_pipeline(&self.compose.pipeline);
+                self.compose_groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
+            ctx.output(&t.scene_color.texture, Visualize::Hdr);
+        });
+    }
+}
