@@ -1,1 +1,683 @@
-//! The orchestration shared by `kiln build` and the build-script API (under construction).
+//! The build: a permutation set in, an archive (and optionally loose files) out.
+//!
+//! Takes [`Options`] (the `permutations.toml`, where to write, filters, cache, threads);
+//! gives a [`Report`] with the counts of DESIGN.md's `--stats-json`, every file the build
+//! read (for `cargo:rerun-if-changed`), the rendered warnings and failures. `kiln build` and
+//! [`crate::Build`] both call [`run`]. Guarantees: every kept permutation is preprocessed
+//! with one shared [`SourceCache`] (each file read once), permutations whose cache keys are
+//! equal compile once, distinct keys compile in parallel, the cache serves keys it holds; a
+//! failing permutation never stops the others, and every failure is reported with its
+//! mapped location and permutation name; the archive is written atomically, and only when
+//! nothing failed.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
+use rayon::prelude::*;
+
+use crate::archive::{self, ArchiveWriter, DimensionRecord, PermutationRecord, ShaderRecord, Target};
+use crate::cache::{self, Cache, Key, Lookup};
+use crate::compile::{self, Compiled, Limits};
+use crate::permute::{self, Config, Permutation};
+use crate::preprocess::{self, FileId, SourceCache};
+
+/// What to build and where.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// The `permutations.toml`.
+    pub config: PathBuf,
+    /// The archive to write; `None` writes none (a check-only build).
+    pub output: Option<PathBuf>,
+    /// Write each distinct artifact once as `DIR/<hash>.<ext>`, plus `DIR/index.json`.
+    pub emit_dir: Option<PathBuf>,
+    /// Build only these levels (all when empty).
+    pub levels: Vec<String>,
+    /// Write only these targets (each level's own when empty).
+    pub targets: Vec<Target>,
+    /// Worker threads; `None` uses one per core.
+    pub jobs: Option<usize>,
+    /// Where the cache lives: [`CacheDir::Auto`] finds cargo's target folder.
+    pub cache: CacheDir,
+    /// Write the counts as JSON here.
+    pub stats_json: Option<PathBuf>,
+    /// Show a progress bar (only honoured when stderr is a terminal and `CI` is unset).
+    pub progress: bool,
+    /// Colour in rendered diagnostics.
+    pub color: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            config: PathBuf::from("permutations.toml"),
+            output: Some(PathBuf::from("shaders.kpak")),
+            emit_dir: None,
+            levels: Vec::new(),
+            targets: Vec::new(),
+            jobs: None,
+            cache: CacheDir::Auto,
+            stats_json: None,
+            progress: false,
+            color: false,
+        }
+    }
+}
+
+/// Where the cache lives.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CacheDir {
+    /// `KILN_CACHE_DIR`, else `CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` of the
+    /// cargo workspace holding the config, else `.kiln-cache` next to the config.
+    Auto,
+    /// This folder.
+    Dir(PathBuf),
+    /// No cache: compile everything.
+    Disabled,
+}
+
+/// The counts of `--stats-json` (DESIGN.md, "Command line").
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Stats {
+    /// Kept permutations.
+    pub permutations: usize,
+    /// Permutations dropped by skip rules.
+    pub skipped: usize,
+    /// Distinct cache keys among the kept permutations that preprocessed.
+    pub unique_sources: usize,
+    /// Distinct keys this build compiled (one naga parse and validation each).
+    pub compiled: usize,
+    /// Distinct keys served from the cache.
+    pub cache_hits: usize,
+    /// Distinct blobs in the archive (identical outputs are stored once).
+    pub artifacts: usize,
+    /// (permutation, target) pairs in the archive.
+    pub permutation_artifacts: usize,
+    /// Permutations that failed to preprocess or compile.
+    pub failed: usize,
+    pub seconds: Seconds,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Seconds {
+    pub total: f64,
+    pub preprocess: f64,
+    pub compile: f64,
+}
+
+/// A dimension that never changes its shader's text at a level.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DeadDimension {
+    pub shader: String,
+    pub level: String,
+    pub dimension: String,
+    /// How many values it takes: the factor of build work it multiplies for nothing.
+    pub values: usize,
+}
+
+/// What a build did.
+#[derive(Debug, Default)]
+pub struct Report {
+    pub stats: Stats,
+    /// The config and every file any permutation read (absolute, sorted, deduplicated).
+    pub files_read: Vec<PathBuf>,
+    /// Rendered warnings (preprocessor warnings, corrupted cache entries, dead dimensions).
+    pub warnings: Vec<String>,
+    /// Rendered failures, one per distinct diagnostic, each naming its permutations.
+    pub failures: Vec<String>,
+    pub dead_dimensions: Vec<DeadDimension>,
+    /// The archive written, if any.
+    pub archive: Option<PathBuf>,
+}
+
+impl Report {
+    /// The summary line: kept, skipped, distinct, compiled, cache hits, failed, time.
+    pub fn summary(&self) -> String {
+        let s = &self.stats;
+        format!(
+            "{} permutations ({} skipped), {} distinct, {} compiled, {} cache hits, {} failed in {:.2}s",
+            s.permutations, s.skipped, s.unique_sources, s.compiled, s.cache_hits, s.failed, s.seconds.total
+        )
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The configuration or a command-line choice is wrong (exit code 2). Rendered.
+    #[error("{0}")]
+    Config(String),
+    /// Something outside the shaders failed: a file could not be written (exit code 2).
+    #[error("{0}")]
+    Io(String),
+    /// At least one permutation failed (exit code 1); the report has the failures.
+    #[error("{} permutation(s) failed", .0.stats.failed)]
+    Failed(Box<Report>),
+}
+
+impl Error {
+    /// The exit code of DESIGN.md: 1 for shader failures, 2 for the rest.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            Error::Failed(_) => 1,
+            _ => 2,
+        }
+    }
+}
+
+/// One kept permutation after preprocessing.
+struct Pre {
+    key: Key,
+    text_hash: blake3::Hash,
+    token_hash: blake3::Hash,
+    files: Vec<FileId>,
+}
+
+/// The first (lowest index) permutation's preprocessed output of a key.
+struct Representative {
+    index: usize,
+    output: preprocess::Output,
+}
+
+/// Runs a build.
+pub fn run(options: &Options) -> Result<Report, Error> {
+    let start = Instant::now();
+    let config = permute::load(&options.config).map_err(|e| Error::Config(e.render()))?;
+    for l in &options.levels {
+        if config.level(l).is_none() {
+            let names: Vec<&str> = config.levels.iter().map(|l| l.name.as_str()).collect();
+            return Err(Error::Config(format!(
+                "error: no level named `{l}` in {} (its levels: {})",
+                options.config.display(),
+                names.join(", ")
+            )));
+        }
+    }
+    let cache = match open_cache(options, &config) {
+        Ok(c) => c,
+        Err(e) => return Err(Error::Io(format!("error: {e}"))),
+    };
+    let pool = {
+        let mut b = rayon::ThreadPoolBuilder::new();
+        if let Some(j) = options.jobs {
+            b = b.num_threads(j.max(1));
+        }
+        b.build().map_err(|e| Error::Io(format!("error: cannot start worker threads: {e}")))?
+    };
+    pool.install(|| run_in_pool(options, &config, cache.as_ref(), start))
+}
+
+fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Target> {
+    level.targets.iter().copied().filter(|t| filter.is_empty() || filter.contains(t)).collect()
+}
+
+fn level_limits(level: &permute::Level) -> Limits {
+    match level.limits {
+        permute::Limits::Default => Limits::desktop(),
+        permute::Limits::Downlevel => Limits::downlevel(),
+    }
+}
+
+fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start: Instant) -> Result<Report, Error> {
+    let mut report = Report::default();
+    let progress = Progress::new(options.progress);
+
+    // 1. Enumerate.
+    let mut kept: Vec<Permutation<'_>> = Vec::new();
+    for p in config.permutations_where(|_, level| options.levels.is_empty() || options.levels.contains(&level.name)) {
+        if p.is_kept() {
+            kept.push(p);
+        } else {
+            report.stats.skipped += 1;
+        }
+    }
+    report.stats.permutations = kept.len();
+
+    // 2. Preprocess, keeping one output per key.
+    let t_pre = Instant::now();
+    let sources = SourceCache::new(config.dir.clone());
+    progress.stage("preprocessing", kept.len());
+    let reps: Mutex<HashMap<Key, Representative>> = Mutex::new(HashMap::new());
+    let pre: Vec<Result<Pre, Diagnostic<FileId>>> = kept
+        .par_iter()
+        .enumerate()
+        .map(|(index, p)| {
+            let result = preprocess_one(config, p, &options.targets, &sources);
+            progress.inc();
+            let (pre, output) = result?;
+            let mut reps = reps.lock().expect("no panics while locked");
+            let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
+            if replace {
+                reps.insert(pre.key, Representative { index, output });
+            }
+            Ok(pre)
+        })
+        .collect();
+    let mut reps = reps.into_inner().expect("no panics while locked");
+    report.stats.seconds.preprocess = t_pre.elapsed().as_secs_f64();
+
+    // Warnings: each distinct rendered warning once.
+    let mut seen_warnings = std::collections::HashSet::new();
+    for r in reps.values() {
+        for w in &r.output.warnings {
+            let text = preprocess::render(std::slice::from_ref(w), &sources, options.color);
+            if seen_warnings.insert(text.clone()) {
+                report.warnings.push(text);
+            }
+        }
+    }
+    let mut failures: Vec<(Diagnostic<FileId>, Vec<usize>)> = Vec::new();
+    let mut files = std::collections::BTreeSet::new();
+    files.insert(config.path.clone());
+    for (i, r) in pre.iter().enumerate() {
+        match r {
+            Ok(p) => files.extend(p.files.iter().map(|f| sources.path(*f))),
+            Err(d) => {
+                failures.push((d.clone(), vec![i]));
+                // A failed permutation still read files: the failing header among them.
+                for l in &d.labels {
+                    files.insert(sources.path(l.file_id));
+                }
+            }
+        }
+    }
+    report.files_read = files.into_iter().collect();
+
+    // 3. Group by key, in order of first appearance.
+    let mut groups: Vec<(Key, Vec<usize>)> = Vec::new();
+    let mut group_of: HashMap<Key, usize> = HashMap::new();
+    for (i, r) in pre.iter().enumerate() {
+        if let Ok(p) = r {
+            let g = *group_of.entry(p.key).or_insert_with(|| {
+                groups.push((p.key, Vec::new()));
+                groups.len() - 1
+            });
+            groups[g].1.push(i);
+        }
+    }
+    report.stats.unique_sources = groups.len();
+    report.dead_dimensions = dead_dimensions(&kept, &pre);
+    for d in &report.dead_dimensions {
+        report.warnings.push(format!(
+            "warning: dimension `{}` of `{}` never changes the shader's text at level `{}`: its {} values multiply the permutations for nothing",
+            d.dimension, d.shader, d.level, d.values
+        ));
+    }
+
+    // 4. Compile each distinct key once (or take it from the cache).
+    let t_compile = Instant::now();
+    progress.stage("compiling", groups.len());
+    enum Got {
+        Hit(Compiled),
+        Compiled(Compiled, Option<String>),
+        Failed(compile::Error, Option<String>),
+    }
+    let results: Vec<Got> = groups
+        .par_iter()
+        .map(|(key, members)| {
+            let p = &kept[members[0]];
+            let mut warning = None;
+            if let Some(cache) = cache {
+                match cache.get(key) {
+                    Lookup::Hit(c) => {
+                        progress.inc();
+                        return Got::Hit(c);
+                    }
+                    Lookup::Miss => {}
+                    Lookup::Corrupt(why) => warning = Some(format!("warning: {why}")),
+                }
+            }
+            let rep = &reps[key];
+            let opts = compile::Options {
+                targets: level_targets(p.level, &options.targets),
+                limits: level_limits(p.level),
+            };
+            let got = match compile::compile(&rep.output.text, &p.shader.entry, p.shader.stage, &opts) {
+                Ok(c) => {
+                    if let Some(cache) = cache {
+                        if let Err(e) = cache.put(key, &c) {
+                            warning = Some(format!("warning: cannot store a cache entry: {e}"));
+                        }
+                    }
+                    Got::Compiled(c, warning)
+                }
+                Err(e) => Got::Failed(e, warning),
+            };
+            progress.inc();
+            got
+        })
+        .collect();
+    report.stats.seconds.compile = t_compile.elapsed().as_secs_f64();
+    progress.finish();
+
+    let mut compiled: HashMap<Key, Compiled> = HashMap::new();
+    for ((key, members), got) in groups.iter().zip(results) {
+        match got {
+            Got::Hit(c) => {
+                report.stats.cache_hits += 1;
+                compiled.insert(*key, c);
+            }
+            Got::Compiled(c, w) => {
+                report.stats.compiled += 1;
+                report.warnings.extend(w);
+                compiled.insert(*key, c);
+            }
+            Got::Failed(e, w) => {
+                report.stats.compiled += 1;
+                report.warnings.extend(w);
+                let rep = &reps[key];
+                let rep_hash = blake3::hash(rep.output.text.as_bytes());
+                for &m in members {
+                    let Ok(pm) = &pre[m] else { continue };
+                    let diagnostic = if pm.text_hash == rep_hash {
+                        map_error(&e, &rep.output.map)
+                    } else {
+                        // Same tokens, other spacing: this member's own spans.
+                        remap_member(config, &kept[m], &options.targets, &sources, &e)
+                    };
+                    failures.push((diagnostic, vec![m]));
+                }
+            }
+        }
+    }
+    reps.clear();
+
+    // Render failures: identical diagnostics once, naming every permutation they hit.
+    report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
+    report.failures = render_failures(failures, &kept, &sources, options.color);
+
+    if report.stats.failed > 0 {
+        write_stats(options, &mut report, start)?;
+        return Err(Error::Failed(Box::new(report)));
+    }
+
+    // 5. The archive and the loose files.
+    let mut writer = ArchiveWriter::new();
+    writer.set_naga_version(compile::NAGA_VERSION);
+    let mut index: BTreeMap<String, BTreeMap<&'static str, String>> = BTreeMap::new();
+    let mut emitted: HashMap<blake3::Hash, String> = HashMap::new();
+    for (i, p) in kept.iter().enumerate() {
+        let Ok(pm) = &pre[i] else { continue };
+        let c = &compiled[&pm.key];
+        let shader = writer.add_shader(ShaderRecord {
+            name: p.shader.name.clone(),
+            level: p.level.name.clone(),
+            entry: p.shader.entry.clone(),
+            stage: p.shader.stage,
+            dimensions: p
+                .shader
+                .dimensions
+                .iter()
+                .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
+                .collect(),
+        });
+        let reflection = writer.add_reflection(&c.reflection);
+        let name = p.name();
+        let mut artifacts = Vec::with_capacity(c.artifacts.len());
+        for (t, bytes) in &c.artifacts {
+            artifacts.push((*t, writer.add_blob(bytes)));
+            if let Some(dir) = &options.emit_dir {
+                let hash = blake3::hash(bytes);
+                let file = match emitted.get(&hash) {
+                    Some(f) => f.clone(),
+                    None => {
+                        let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(p.shader.stage));
+                        archive::write_atomic(&dir.join(&f), bytes)
+                            .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", dir.join(&f).display())))?;
+                        emitted.insert(hash, f.clone());
+                        f
+                    }
+                };
+                index.entry(name.clone()).or_default().insert(t.name(), file);
+            }
+        }
+        report.stats.permutation_artifacts += artifacts.len();
+        writer.add_permutation(PermutationRecord {
+            name,
+            shader,
+            values: p.values.clone(),
+            reflection,
+            artifacts,
+        });
+    }
+    report.stats.artifacts = writer.blob_count();
+    if let Some(dir) = &options.emit_dir {
+        let json = serde_json::to_vec_pretty(&index).expect("index serializes");
+        let path = dir.join("index.json");
+        archive::write_atomic(&path, &json)
+            .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+    }
+    if let Some(out) = &options.output {
+        writer.write(out).map_err(|e| Error::Io(format!("error: {e}")))?;
+        report.archive = Some(out.clone());
+    }
+    write_stats(options, &mut report, start)?;
+    Ok(report)
+}
+
+fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result<(), Error> {
+    report.stats.seconds.total = start.elapsed().as_secs_f64();
+    if let Some(path) = &options.stats_json {
+        let json = serde_json::to_vec_pretty(&report.stats).expect("stats serialize");
+        archive::write_atomic(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+    }
+    Ok(())
+}
+
+fn preprocess_one(
+    config: &Config,
+    p: &Permutation<'_>,
+    targets: &[Target],
+    sources: &SourceCache,
+) -> Result<(Pre, preprocess::Output), Diagnostic<FileId>> {
+    if let Some(message) = &p.error {
+        return Err(Diagnostic::error().with_message(message.clone()));
+    }
+    let opts = p.preprocess_options(config);
+    let output = preprocess::preprocess_file(&p.shader.source_path, &opts, sources).map_err(|e| e.diagnostic)?;
+    let token_hash = output.token_hash();
+    let key = Key::new(
+        &token_hash,
+        &p.shader.entry,
+        p.shader.stage,
+        &p.level.name,
+        &level_limits(p.level),
+        &level_targets(p.level, targets),
+    );
+    let pre = Pre { key, text_hash: blake3::hash(output.text.as_bytes()), token_hash, files: output.files.clone() };
+    Ok((pre, output))
+}
+
+/// A failing key's error on a member whose text differs from the representative's only in
+/// spacing: preprocess and compile that member again for spans into its own text.
+fn remap_member(
+    config: &Config,
+    p: &Permutation<'_>,
+    targets: &[Target],
+    sources: &SourceCache,
+    fallback: &compile::Error,
+) -> Diagnostic<FileId> {
+    let unmapped = || Diagnostic::error().with_message(fallback.message.clone()).with_notes(fallback.notes.clone());
+    let Ok((_, output)) = preprocess_one(config, p, targets, sources) else {
+        return unmapped();
+    };
+    let opts = compile::Options { targets: level_targets(p.level, targets), limits: level_limits(p.level) };
+    match compile::compile(&output.text, &p.shader.entry, p.shader.stage, &opts) {
+        Err(e) => map_error(&e, &output.map),
+        Ok(_) => unmapped(),
+    }
+}
+
+/// Maps a compile error's spans (into preprocessed text) onto the original files.
+pub fn map_error(e: &compile::Error, map: &preprocess::SourceMap) -> Diagnostic<FileId> {
+    let mut labels: Vec<Label<FileId>> = Vec::new();
+    for (i, (range, message)) in e.labels.iter().enumerate() {
+        for mut l in map.labels(range.clone(), message) {
+            if i > 0 {
+                l.style = LabelStyle::Secondary;
+            }
+            if !labels.iter().any(|x| x.file_id == l.file_id && x.range == l.range && x.message == l.message) {
+                labels.push(l);
+            }
+        }
+    }
+    Diagnostic::error().with_message(e.message.clone()).with_labels(labels).with_notes(e.notes.clone())
+}
+
+fn render_failures(
+    failures: Vec<(Diagnostic<FileId>, Vec<usize>)>,
+    kept: &[Permutation<'_>],
+    sources: &SourceCache,
+    color: bool,
+) -> Vec<String> {
+    // Group by the diagnostic as rendered without colour and without the permutation note.
+    let mut order: Vec<String> = Vec::new();
+    let mut groups: HashMap<String, (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
+    for (d, members) in failures {
+        let text = preprocess::render(std::slice::from_ref(&d), sources, false);
+        match groups.get_mut(&text) {
+            Some(g) => g.1.extend(members),
+            None => {
+                order.push(text.clone());
+                groups.insert(text, (d, members));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for text in order {
+        let (mut d, mut members) = groups.remove(&text).expect("grouped above");
+        members.sort_unstable();
+        let p = &kept[members[0]];
+        let limits = match p.level.limits {
+            permute::Limits::Default => "default",
+            permute::Limits::Downlevel => "downlevel",
+        };
+        let note = if members.len() == 1 {
+            format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
+        } else {
+            let names: Vec<String> = members.iter().map(|&m| kept[m].name()).collect();
+            format!("in {} permutations (level `{}`, {limits} limits): {}", names.len(), p.level.name, names.join(", "))
+        };
+        d.notes.push(note);
+        out.push(preprocess::render(std::slice::from_ref(&d), sources, color));
+    }
+    out
+}
+
+/// Dimensions whose value never changes the token stream: in every set of kept permutations
+/// that differ only in that dimension, all have one token hash.
+fn dead_dimensions(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<FileId>>]) -> Vec<DeadDimension> {
+    let mut by_shader: BTreeMap<(usize, &str, &str), Vec<usize>> = BTreeMap::new();
+    let mut first: HashMap<(&str, &str), usize> = HashMap::new();
+    for (i, p) in kept.iter().enumerate() {
+        let n = first.len();
+        let order = *first.entry((&p.shader.name, &p.level.name)).or_insert(n);
+        by_shader.entry((order, &p.shader.name, &p.level.name)).or_default().push(i);
+    }
+    let mut out = Vec::new();
+    for ((_, shader, level), members) in by_shader {
+        let dims = &kept[members[0]].shader.dimensions;
+        for (d, dim) in dims.iter().enumerate() {
+            if dim.values.len() < 2 {
+                continue;
+            }
+            let mut rows: HashMap<Vec<i64>, Vec<blake3::Hash>> = HashMap::new();
+            let mut complete = true;
+            for &m in &members {
+                let Ok(pm) = &pre[m] else {
+                    complete = false;
+                    break;
+                };
+                let mut rest = kept[m].values.clone();
+                rest.remove(d);
+                rows.entry(rest).or_default().push(pm.token_hash);
+            }
+            let varies = rows.values().any(|hs| hs.len() > 1);
+            let dead = complete && varies && rows.values().all(|hs| hs.iter().all(|h| *h == hs[0]));
+            if dead {
+                out.push(DeadDimension {
+                    shader: shader.to_string(),
+                    level: level.to_string(),
+                    dimension: dim.name.clone(),
+                    values: dim.values.len(),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The cache folder for `options` (see [`CacheDir::Auto`]), opened; `None` without a cache.
+fn open_cache(options: &Options, config: &Config) -> Result<Option<Cache>, cache::Error> {
+    let dir = match &options.cache {
+        CacheDir::Disabled => return Ok(None),
+        CacheDir::Dir(d) => d.clone(),
+        CacheDir::Auto => default_cache_dir(&config.dir),
+    };
+    Cache::open(dir).map(Some)
+}
+
+/// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the
+/// cargo workspace around `config_dir`, else `config_dir/.kiln-cache`.
+pub fn default_cache_dir(config_dir: &Path) -> PathBuf {
+    if let Some(d) = std::env::var_os("KILN_CACHE_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d);
+    }
+    if let Some(d) = std::env::var_os("CARGO_TARGET_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d).join("kiln-cache");
+    }
+    let mut package = None;
+    for dir in config_dir.ancestors() {
+        let manifest = dir.join("Cargo.toml");
+        if let Ok(text) = std::fs::read_to_string(&manifest) {
+            if text.contains("[workspace]") {
+                return dir.join("target").join("kiln-cache");
+            }
+            package.get_or_insert_with(|| dir.to_path_buf());
+        }
+    }
+    match package {
+        Some(dir) => dir.join("target").join("kiln-cache"),
+        None => config_dir.join(".kiln-cache"),
+    }
+}
+
+/// A progress bar on a terminal; nothing in CI or when stderr is redirected.
+struct Progress {
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress {
+    fn new(wanted: bool) -> Progress {
+        let show = wanted && std::io::stderr().is_terminal() && std::env::var_os("CI").is_none();
+        let bar = show.then(|| {
+            let bar = indicatif::ProgressBar::new(0);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("{prefix:>13} [{bar:30}] {pos}/{len} {elapsed}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            bar
+        });
+        Progress { bar }
+    }
+    fn stage(&self, name: &'static str, len: usize) {
+        if let Some(b) = &self.bar {
+            b.set_prefix(name);
+            b.set_length(len as u64);
+            b.set_position(0);
+        }
+    }
+    fn inc(&self) {
+        if let Some(b) = &self.bar {
+            b.inc(1);
+        }
+    }
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_and_clear();
+        }
+    }
+}

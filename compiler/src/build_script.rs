@@ -1,4 +1,223 @@
-//! The `build.rs` API (under construction).
+//! The build-script API: compile a permutation set from a crate's `build.rs`.
+//!
+//! ```no_run
+//! // build.rs
+//! fn main() {
+//!     kiln::Build::new("../permutations.toml")
+//!         .out_dir_from_env() // OUT_DIR/shaders.kpak
+//!         .run()
+//!         .unwrap_or_else(|e| e.exit_for_cargo());
+//! }
+//! ```
+//!
+//! [`Build::run`] calls the same [`crate::build::run`] as `kiln build`. It prints
+//! `cargo:rerun-if-changed` for the config and every file any permutation read, turns
+//! warnings into `cargo:warning=` lines, keeps its cache under cargo's target folder (found
+//! from `OUT_DIR`), and on failure renders every failure with its mapped location.
+
+use std::path::{Path, PathBuf};
+
+use crate::build::{self, CacheDir, Report};
+use crate::Target;
 
 /// A build of a permutation set, configured like `cc::Build`.
-pub struct Build {}
+#[derive(Clone, Debug)]
+pub struct Build {
+    config: PathBuf,
+    out_dir: Option<PathBuf>,
+    archive_name: String,
+    levels: Vec<String>,
+    targets: Vec<Target>,
+    cache: Option<CacheDir>,
+    jobs: Option<usize>,
+    cargo_output: bool,
+}
+
+/// A failed [`Build::run`]: the rendered failures, or what else went wrong.
+#[derive(Debug)]
+pub struct BuildError {
+    /// Rendered text, ready to print.
+    pub message: String,
+    /// 1 when shaders failed, 2 for configuration and I/O errors.
+    pub code: u8,
+    /// The build's report when it got as far as compiling.
+    pub report: Option<Box<Report>>,
+}
+
+impl std::fmt::Display for BuildError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.message.trim_end())
+    }
+}
+
+impl std::error::Error for BuildError {}
+
+impl BuildError {
+    /// Prints the failures on stderr (cargo shows it when a build script fails) and exits
+    /// the build script with a failing status.
+    pub fn exit_for_cargo(self) -> ! {
+        eprintln!("{}", self.message.trim_end());
+        std::process::exit(i32::from(self.code.max(1)))
+    }
+}
+
+impl Build {
+    /// A build of the `permutations.toml` at `config`; a relative path starts at the
+    /// crate's folder (`CARGO_MANIFEST_DIR`) when cargo runs the build script.
+    pub fn new(config: impl AsRef<Path>) -> Build {
+        let config = config.as_ref();
+        let config = match std::env::var_os("CARGO_MANIFEST_DIR") {
+            Some(dir) if config.is_relative() => PathBuf::from(dir).join(config),
+            _ => config.to_path_buf(),
+        };
+        Build {
+            config,
+            out_dir: None,
+            archive_name: "shaders.kpak".into(),
+            levels: Vec::new(),
+            targets: Vec::new(),
+            cache: None,
+            jobs: None,
+            cargo_output: true,
+        }
+    }
+
+    /// Writes into `OUT_DIR` (set by cargo for build scripts).
+    pub fn out_dir_from_env(mut self) -> Build {
+        self.out_dir = std::env::var_os("OUT_DIR").map(PathBuf::from);
+        self
+    }
+
+    /// Writes into `dir`.
+    pub fn out_dir(mut self, dir: impl Into<PathBuf>) -> Build {
+        self.out_dir = Some(dir.into());
+        self
+    }
+
+    /// The archive's file name inside the output folder (`shaders.kpak` by default).
+    pub fn archive_name(mut self, name: impl Into<String>) -> Build {
+        self.archive_name = name.into();
+        self
+    }
+
+    /// Builds only this level (may be called several times; all levels by default).
+    pub fn level(mut self, level: impl Into<String>) -> Build {
+        self.levels.push(level.into());
+        self
+    }
+
+    /// Writes only this target (may be called several times; each level's own by default).
+    pub fn target(mut self, target: Target) -> Build {
+        self.targets.push(target);
+        self
+    }
+
+    /// Uses this cache folder instead of the one under cargo's target folder.
+    pub fn cache_dir(mut self, dir: impl Into<PathBuf>) -> Build {
+        self.cache = Some(CacheDir::Dir(dir.into()));
+        self
+    }
+
+    /// Compiles everything, caching nothing.
+    pub fn no_cache(mut self) -> Build {
+        self.cache = Some(CacheDir::Disabled);
+        self
+    }
+
+    /// Worker threads (one per core by default).
+    pub fn jobs(mut self, jobs: usize) -> Build {
+        self.jobs = Some(jobs);
+        self
+    }
+
+    /// Whether to print `cargo:` lines (on by default; off for use outside build scripts).
+    pub fn cargo_output(mut self, on: bool) -> Build {
+        self.cargo_output = on;
+        self
+    }
+
+    /// Runs the build; returns the archive's path.
+    pub fn run(self) -> Result<PathBuf, BuildError> {
+        let out_dir = self.out_dir.clone().ok_or_else(|| BuildError {
+            message: "error: kiln::Build has no output folder: call .out_dir_from_env() in a build script (OUT_DIR is not set) or .out_dir(DIR)".into(),
+            code: 2,
+            report: None,
+        })?;
+        let archive = out_dir.join(&self.archive_name);
+        let cache = match &self.cache {
+            Some(c) => c.clone(),
+            None => CacheDir::Dir(cache_dir_for(&out_dir, &self.config)),
+        };
+        let options = build::Options {
+            config: self.config.clone(),
+            output: Some(archive.clone()),
+            emit_dir: None,
+            levels: self.levels.clone(),
+            targets: self.targets.clone(),
+            jobs: self.jobs,
+            cache,
+            stats_json: None,
+            progress: false,
+            color: false,
+        };
+        if self.cargo_output {
+            println!("cargo:rerun-if-changed={}", self.config.display());
+            println!("cargo:rerun-if-env-changed=KILN_CACHE_DIR");
+        }
+        let result = build::run(&options);
+        let report = match &result {
+            Ok(r) => Some(r),
+            Err(build::Error::Failed(r)) => Some(&**r),
+            Err(_) => None,
+        };
+        if let (true, Some(report)) = (self.cargo_output, report) {
+            for f in &report.files_read {
+                println!("cargo:rerun-if-changed={}", f.display());
+            }
+            for w in &report.warnings {
+                for line in w.trim_end().lines() {
+                    println!("cargo:warning={line}");
+                }
+            }
+        }
+        match result {
+            Ok(_) => Ok(archive),
+            Err(build::Error::Failed(report)) => {
+                let mut message = String::new();
+                for f in &report.failures {
+                    message.push_str(f.trim_end());
+                    message.push_str("\n\n");
+                }
+                message.push_str(&format!(
+                    "error: {} of {} shader permutations failed ({})",
+                    report.stats.failed,
+                    report.stats.permutations,
+                    self.config.display()
+                ));
+                Err(BuildError { message, code: 1, report: Some(report) })
+            }
+            Err(e) => {
+                let code = e.exit_code();
+                Err(BuildError { message: e.to_string(), code, report: None })
+            }
+        }
+    }
+}
+
+/// `KILN_CACHE_DIR`, else `kiln-cache` in cargo's target folder: the ancestor of `OUT_DIR`
+/// holding cargo's `CACHEDIR.TAG`, else the folder above `OUT_DIR`'s `build/`, else the
+/// default of [`build::default_cache_dir`].
+fn cache_dir_for(out_dir: &Path, config: &Path) -> PathBuf {
+    if let Some(d) = std::env::var_os("KILN_CACHE_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d);
+    }
+    if let Some(target) = out_dir.ancestors().find(|a| a.join("CACHEDIR.TAG").is_file()) {
+        return target.join("kiln-cache");
+    }
+    if let Some(build) = out_dir.ancestors().find(|a| a.file_name().is_some_and(|n| n == "build")) {
+        if let Some(profile) = build.parent() {
+            return profile.join("kiln-cache");
+        }
+    }
+    build::default_cache_dir(config.parent().unwrap_or(Path::new(".")))
+}

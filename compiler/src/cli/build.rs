@@ -1,11 +1,93 @@
 //! `kiln build`.
 
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
 use super::{CliResult, Failure};
+use crate::build::{self, CacheDir};
+use crate::Target;
 
 /// Arguments of `kiln build`.
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// The permutation set.
+    #[arg(long, default_value = "permutations.toml")]
+    pub config: PathBuf,
+    /// The archive to write.
+    #[arg(short, long, default_value = "shaders.kpak")]
+    pub output: PathBuf,
+    /// Also write each distinct artifact once as DIR/<hash>.<ext>, and DIR/index.json
+    /// mapping every permutation and target to its file.
+    #[arg(long, value_name = "DIR")]
+    pub emit_dir: Option<PathBuf>,
+    /// Build only this level (repeatable).
+    #[arg(long = "level", value_name = "L")]
+    pub levels: Vec<String>,
+    /// Write only this target: wgsl, spirv, msl, glsl, hlsl (repeatable).
+    #[arg(long = "target", value_name = "T", value_parser = parse_target)]
+    pub targets: Vec<Target>,
+    /// Worker threads (default: one per core).
+    #[arg(short = 'j', long, value_name = "N")]
+    pub jobs: Option<usize>,
+    /// The cache folder (default: KILN_CACHE_DIR, else kiln-cache in cargo's target folder,
+    /// else .kiln-cache next to the config).
+    #[arg(long, value_name = "DIR")]
+    pub cache_dir: Option<PathBuf>,
+    /// Compile everything; neither read nor write the cache.
+    #[arg(long, conflicts_with = "cache_dir")]
+    pub no_cache: bool,
+    /// Write the build's counts and timings as JSON.
+    #[arg(long, value_name = "FILE")]
+    pub stats_json: Option<PathBuf>,
+}
 
-pub fn exec(_args: Args) -> CliResult {
-    Err(Failure::usage("error: `kiln build` is not available yet"))
+pub fn parse_target(s: &str) -> Result<Target, String> {
+    Target::from_name(s).ok_or_else(|| {
+        let names: Vec<&str> = Target::ALL.iter().map(|t| t.name()).collect();
+        format!("unknown target `{s}` (expected one of: {})", names.join(", "))
+    })
+}
+
+pub fn exec(args: Args) -> CliResult {
+    let color = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
+    let options = build::Options {
+        config: args.config,
+        output: Some(args.output),
+        emit_dir: args.emit_dir,
+        levels: args.levels,
+        targets: args.targets,
+        jobs: args.jobs,
+        cache: match (args.no_cache, args.cache_dir) {
+            (true, _) => CacheDir::Disabled,
+            (false, Some(d)) => CacheDir::Dir(d),
+            (false, None) => CacheDir::Auto,
+        },
+        stats_json: args.stats_json,
+        progress: true,
+        color,
+    };
+    match build::run(&options) {
+        Ok(report) => {
+            for w in &report.warnings {
+                eprintln!("{}", w.trim_end());
+            }
+            eprintln!("kiln: {}", report.summary());
+            Ok(())
+        }
+        Err(build::Error::Failed(report)) => {
+            for w in &report.warnings {
+                eprintln!("{}", w.trim_end());
+            }
+            for f in &report.failures {
+                eprintln!("{}\n", f.trim_end());
+            }
+            Err(Failure::shader(format!(
+                "kiln: {}\nerror: {} of {} permutations failed; no archive written",
+                report.summary(),
+                report.stats.failed,
+                report.stats.permutations
+            )))
+        }
+        Err(e) => Err(Failure::usage(e.to_string())),
+    }
 }

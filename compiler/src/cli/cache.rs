@@ -1,11 +1,68 @@
 //! `kiln cache`.
 
-use super::{CliResult, Failure};
+use std::path::PathBuf;
+
+use super::{print_stdout, CliResult, Failure};
+use crate::cache::{format_size, parse_size, Cache};
 
 /// Arguments of `kiln cache`.
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// The cache folder (default: as `kiln build` finds it from the config's folder).
+    #[arg(long, value_name = "DIR", global = true)]
+    pub cache_dir: Option<PathBuf>,
+    /// The permutation set whose default cache to use.
+    #[arg(long, default_value = "permutations.toml", global = true)]
+    pub config: PathBuf,
+    #[command(subcommand)]
+    pub action: Action,
+}
 
-pub fn exec(_args: Args) -> CliResult {
-    Err(Failure::usage("error: `kiln cache` is not available yet"))
+#[derive(Debug, clap::Subcommand)]
+pub enum Action {
+    /// Print the number of entries and their size.
+    Stats,
+    /// Evict least recently used entries until the cache fits in SIZE (10M, 1G, ...).
+    Gc {
+        #[arg(long, value_name = "SIZE", value_parser = parse_size)]
+        max_size: u64,
+    },
+    /// Remove every entry.
+    Clear,
+}
+
+pub fn exec(args: Args) -> CliResult {
+    let dir = args.cache_dir.unwrap_or_else(|| {
+        let config_dir = std::path::absolute(&args.config)
+            .ok()
+            .and_then(|p| p.parent().map(|p| p.to_path_buf()))
+            .unwrap_or_else(|| PathBuf::from("."));
+        crate::build::default_cache_dir(&config_dir)
+    });
+    let cache = Cache::open(&dir).map_err(|e| Failure::usage(format!("error: {e}")))?;
+    let text = match args.action {
+        Action::Stats => {
+            let s = cache.stats();
+            let mut t = format!("cache: {}\nentries: {}\nsize: {} ({} bytes)\n", dir.display(), s.entries, format_size(s.bytes), s.bytes);
+            if s.temporaries > 0 {
+                t += &format!("temporary files: {} (left by interrupted writes; `kiln cache gc` removes them)\n", s.temporaries);
+            }
+            t
+        }
+        Action::Gc { max_size } => {
+            let r = cache.gc(max_size);
+            format!(
+                "removed {} entries ({}); kept {} entries ({})\n",
+                r.removed,
+                format_size(r.freed),
+                r.kept,
+                format_size(r.kept_bytes)
+            )
+        }
+        Action::Clear => {
+            let n = cache.clear().map_err(|e| Failure::usage(format!("error: {e}")))?;
+            format!("removed {n} entries from {}\n", dir.display())
+        }
+    };
+    print_stdout(&text)
 }

@@ -1,1 +1,237 @@
-//! (stage under construction)
+//! The permutation model: `permutations.toml` in, a lazy stream of permutations out.
+//!
+//! Takes a `permutations.toml` (include and virtual roots, feature levels, shaders with their
+//! constant defines, dimensions, derived defines and skip rules) and gives a checked
+//! [`Config`]; [`Config::permutations`] enumerates every (shader, level, dimension values)
+//! in a stable order, marks the ones a skip rule drops, and hands each permutation's defines
+//! (with where each came from) and preprocessing options to the next stage. [`analyze`]
+//! preprocesses them to find deduplication groups and dead dimensions.
+//!
+//! Guarantees: a bad configuration is one [`ConfigError`] that points at the toml line and
+//! column of every problem, never a panic; `skip` and `derived` are evaluated by the
+//! preprocessor's own `#if` evaluator ([`crate::preprocess::expr`]); enumeration streams (an
+//! odometer over dimension indices: memory does not grow with the number of permutations);
+//! canonical names are `Shader@level{DIM=value,...}` with dimensions in declared order, enum
+//! values by name, and `Shader@level{}` for a shader without dimensions, exactly as
+//! [`crate::archive::Archive::canonical_name`] builds them.
+
+mod analysis;
+mod enumerate;
+mod error;
+mod explain;
+mod names;
+mod schema;
+
+use std::path::{Path, PathBuf};
+
+pub use analysis::{analyze, dead_dimensions, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed};
+pub use enumerate::{Define, DefineOrigin, Permutation, Permutations, RuleResult};
+pub use error::{ConfigError, Near, NotFound};
+pub use explain::{explain, Explanation};
+pub use schema::MAX_DIMENSION_VALUES;
+
+use crate::preprocess;
+use crate::{Stage, Target};
+
+/// A checked permutation set.
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// The toml file (absolute).
+    pub path: PathBuf,
+    /// Its folder: relative paths in the file, and file names in diagnostics, start here.
+    pub dir: PathBuf,
+    /// `[compiler] include`, absolute, in order.
+    pub include_roots: Vec<PathBuf>,
+    /// `[compiler] virtual`: (`"/Engine"`, absolute folder), in order.
+    pub virtual_roots: Vec<(String, PathBuf)>,
+    /// `[levels.*]` in file order.
+    pub levels: Vec<Level>,
+    /// `[[shader]]` in file order.
+    pub shaders: Vec<Shader>,
+}
+
+/// A feature level: the defines it sets, the targets it compiles to, the limits it validates against.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Level {
+    pub name: String,
+    pub defines: Vec<(String, i64)>,
+    /// The targets written for this level; all of them when the file names none.
+    pub targets: Vec<Target>,
+    pub limits: Limits,
+}
+
+/// Which wgpu limits a level is validated against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Limits {
+    /// `wgpu::Limits::default()`.
+    #[default]
+    Default,
+    /// `wgpu::Limits::downlevel_defaults()` and no storage buffers or textures in vertex shaders.
+    Downlevel,
+}
+
+impl Limits {
+    pub fn name(self) -> &'static str {
+        match self {
+            Limits::Default => "default",
+            Limits::Downlevel => "downlevel",
+        }
+    }
+}
+
+/// One `[[shader]]`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Shader {
+    pub name: String,
+    /// `source` as written.
+    pub source: String,
+    /// `source` resolved like `#include <...>` (absolute).
+    pub source_path: PathBuf,
+    /// The entry point (`main` when the file names none).
+    pub entry: String,
+    pub stage: Stage,
+    /// The levels it is built for, in its order (every level, in file order, when the file names none).
+    pub levels: Vec<String>,
+    /// Constant defines; one with the name of a level define overrides it.
+    pub defines: Vec<(String, i64)>,
+    pub dimensions: Vec<Dimension>,
+    /// (name, `#if` expression), in order: each sees the ones before it.
+    pub derived: Vec<(String, String)>,
+    pub skip: Vec<SkipRule>,
+}
+
+/// A dimension and its domain.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Dimension {
+    pub name: String,
+    /// The values it takes, in enumeration order (an enum's indices).
+    pub values: Vec<i64>,
+    /// An enum's names (`values[i]` is `i`), else empty.
+    pub labels: Vec<String>,
+}
+
+impl Dimension {
+    /// How `value` appears in a canonical name: an enum's name, or the integer.
+    pub fn display(&self, value: i64) -> String {
+        usize::try_from(value).ok().and_then(|i| self.labels.get(i)).cloned().unwrap_or_else(|| value.to_string())
+    }
+
+    /// The index in `values` of a value written in a name (an enum's name or index, or an integer).
+    pub fn parse(&self, text: &str) -> Option<usize> {
+        if let Some(i) = self.labels.iter().position(|l| l == text) {
+            return Some(i);
+        }
+        let v: i64 = text.trim().parse().ok()?;
+        self.values.iter().position(|x| *x == v)
+    }
+
+    /// A short description of the domain for messages: `bool`, `[0, 1, 2, 4]`, `enum [A, B]`.
+    pub fn describe(&self) -> String {
+        if !self.labels.is_empty() {
+            format!("enum [{}]", self.labels.join(", "))
+        } else if self.values == [0, 1] {
+            "bool".to_string()
+        } else if self.values.len() > 2 && self.values.windows(2).all(|w| w[1] == w[0] + 1) {
+            format!("range [{}, {}]", self.values[0], self.values[self.values.len() - 1])
+        } else {
+            let v: Vec<String> = self.values.iter().map(i64::to_string).collect();
+            format!("[{}]", v.join(", "))
+        }
+    }
+}
+
+/// `{ when = "...", why = "..." }`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SkipRule {
+    /// An `#if` expression over dimensions and the level's and shader's defines.
+    pub when: String,
+    /// The reason, shown by `kiln list --all` and `kiln explain`.
+    pub why: String,
+}
+
+/// Reads and checks a `permutations.toml`. File names in diagnostics are `path` as given.
+pub fn load(path: &Path) -> Result<Config, ConfigError> {
+    let display = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        ConfigError::new(
+            display.clone(),
+            String::new(),
+            vec![codespan_reporting::diagnostic::Diagnostic::error()
+                .with_message(format!("cannot read permutation set `{display}`: {e}"))],
+        )
+    })?;
+    load_str(&text, path)
+}
+
+/// Checks the text of a `permutations.toml` located at `path` (which relative paths in it start
+/// from; the file itself is not read).
+pub fn load_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
+    schema::parse(text, path, &path.display().to_string())
+}
+
+impl Config {
+    pub fn level(&self, name: &str) -> Option<&Level> {
+        self.levels.iter().find(|l| l.name == name)
+    }
+
+    pub fn shader(&self, name: &str) -> Option<&Shader> {
+        self.shaders.iter().find(|s| s.name == name)
+    }
+
+    /// Options for preprocessing: the include and virtual roots, no permutation defines.
+    pub fn preprocess_options(&self) -> preprocess::Options {
+        preprocess::Options {
+            include_roots: self.include_roots.clone(),
+            virtual_roots: self.virtual_roots.clone(),
+            ..preprocess::Options::default()
+        }
+    }
+
+    /// Every permutation, kept and skipped: shaders in file order, each shader's levels in its
+    /// order, then the product of its dimensions (first dimension slowest). Lazy: nothing is
+    /// held but the current position.
+    pub fn permutations(&self) -> Permutations<'_> {
+        Permutations::new(self, |_, _| true)
+    }
+
+    /// The permutations of the shaders and levels `filter` accepts, in the same order.
+    pub fn permutations_where<'c>(&'c self, filter: impl Fn(&Shader, &Level) -> bool + 'c) -> Permutations<'c> {
+        Permutations::new(self, filter)
+    }
+
+    /// Looks a permutation name up (enum values by name or index, dimensions in any order).
+    /// A skipped permutation is found too ([`Permutation::skipped_by`] says so).
+    pub fn find(&self, name: &str) -> Result<Permutation<'_>, NotFound> {
+        names::find(self, name)
+    }
+
+    /// The number of permutations of each shader at each level: (shader, level, kept, skipped).
+    pub fn counts(&self) -> Vec<Count> {
+        let mut out: Vec<Count> = Vec::new();
+        for p in self.permutations() {
+            let same = matches!(out.last(), Some(c) if c.shader == p.shader.name && c.level == p.level.name);
+            if !same {
+                out.push(Count { shader: p.shader.name.clone(), level: p.level.name.clone(), kept: 0, skipped: 0 });
+            }
+            let c = out.last_mut().expect("pushed above");
+            if p.is_kept() {
+                c.kept += 1;
+            } else {
+                c.skipped += 1;
+            }
+        }
+        out
+    }
+}
+
+/// Permutation counts of one shader at one level.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Count {
+    pub shader: String,
+    pub level: String,
+    pub kept: usize,
+    pub skipped: usize,
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,151 @@
+//! Reading permutation names back: exact lookup, and the nearest existing names when a name
+//! names nothing.
+
+use super::{Config, Near, NotFound, Permutation};
+
+/// A permutation name split into its parts, values as written.
+#[derive(Debug, PartialEq, Eq)]
+pub(super) struct ParsedName {
+    pub shader: String,
+    pub level: String,
+    pub dims: Vec<(String, String)>,
+}
+
+/// Splits `Shader@level{A=1,B=X}`; `Err` says what is malformed.
+pub(super) fn parse_name(name: &str) -> Result<ParsedName, String> {
+    const FORM: &str = "a permutation name has the form `Shader@level{DIM=value,...}`";
+    let name = name.trim();
+    let Some((shader, rest)) = name.split_once('@') else {
+        return Err(format!("no `@level`: {FORM}"));
+    };
+    let (level, dims) = match rest.find('{') {
+        Some(i) => {
+            let body = &rest[i + 1..];
+            let Some(body) = body.trim_end().strip_suffix('}') else {
+                return Err(format!("missing `}}` at the end: {FORM}"));
+            };
+            (&rest[..i], body)
+        }
+        None => (rest, ""),
+    };
+    let mut parsed = Vec::new();
+    for part in dims.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        let Some((k, v)) = part.split_once('=') else {
+            return Err(format!("`{part}` has no `=value`: {FORM}"));
+        };
+        parsed.push((k.trim().to_string(), v.trim().to_string()));
+    }
+    Ok(ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims: parsed })
+}
+
+pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>, NotFound> {
+    let not_found = |reason: String, wanted: Option<&ParsedName>| NotFound {
+        name: name.to_string(),
+        reason,
+        nearest: wanted.map(|w| nearest(config, w, 5)).unwrap_or_default(),
+    };
+    let wanted = parse_name(name).map_err(|r| not_found(r, None))?;
+    let Some(shader) = config.shader(&wanted.shader) else {
+        return Err(not_found(format!("no shader named `{}`", wanted.shader), Some(&wanted)));
+    };
+    let level = match config.level(&wanted.level) {
+        Some(l) if shader.levels.contains(&l.name) => l,
+        _ => {
+            return Err(not_found(
+                format!("shader `{}` has no level `{}` (its levels: {})", shader.name, wanted.level, shader.levels.join(", ")),
+                Some(&wanted),
+            ))
+        }
+    };
+    let mut values = Vec::with_capacity(shader.dimensions.len());
+    for (k, _) in &wanted.dims {
+        if !shader.dimensions.iter().any(|d| &d.name == k) {
+            let names: Vec<&str> = shader.dimensions.iter().map(|d| d.name.as_str()).collect();
+            let have = if names.is_empty() { "none".to_string() } else { names.join(", ") };
+            return Err(not_found(format!("shader `{}` has no dimension `{k}` (its dimensions: {have})", shader.name), Some(&wanted)));
+        }
+        if wanted.dims.iter().filter(|(o, _)| o == k).count() > 1 {
+            return Err(not_found(format!("dimension `{k}` is given twice"), Some(&wanted)));
+        }
+    }
+    for d in &shader.dimensions {
+        let Some((_, raw)) = wanted.dims.iter().find(|(k, _)| *k == d.name) else {
+            return Err(not_found(format!("no value for dimension `{}`", d.name), Some(&wanted)));
+        };
+        let Some(i) = d.parse(raw) else {
+            return Err(not_found(
+                format!("`{raw}` is not a value of dimension `{}` ({})", d.name, d.describe()),
+                Some(&wanted),
+            ));
+        };
+        values.push(d.values[i]);
+    }
+    Ok(Permutation::new(shader, level, values))
+}
+
+/// The `limit` kept permutations closest to `wanted`: same shader first (then by edit
+/// distance of the shader name), same level, fewest differing dimensions; ties in
+/// enumeration order.
+pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec<Near> {
+    let mut best: Vec<(usize, usize, Near)> = Vec::new();
+    let mut worst = usize::MAX;
+    for (order, p) in config.permutations().filter(Permutation::is_kept).enumerate() {
+        let mut score = 0;
+        if p.shader.name != wanted.shader {
+            score += 1000 + 10 * edit_distance(&p.shader.name, &wanted.shader);
+        }
+        if p.level.name != wanted.level {
+            score += 100;
+        }
+        for (d, v) in p.shader.dimensions.iter().zip(&p.values) {
+            match wanted.dims.iter().find(|(k, _)| *k == d.name) {
+                Some((_, raw)) if d.parse(raw).map(|i| d.values[i]) == Some(*v) => {}
+                _ => score += 1,
+            }
+        }
+        score += wanted.dims.iter().filter(|(k, _)| !p.shader.dimensions.iter().any(|d| &d.name == k)).count();
+        if best.len() >= limit && score >= worst {
+            continue;
+        }
+        let mut differences = Vec::new();
+        if p.shader.name != wanted.shader {
+            differences.push(format!("shader: {} -> {}", wanted.shader, p.shader.name));
+        }
+        if p.level.name != wanted.level {
+            differences.push(format!("level: {} -> {}", wanted.level, p.level.name));
+        }
+        for (d, v) in p.shader.dimensions.iter().zip(&p.values) {
+            let have = d.display(*v);
+            match wanted.dims.iter().find(|(k, _)| *k == d.name) {
+                Some((_, raw)) if d.parse(raw).map(|i| d.values[i]) == Some(*v) => {}
+                Some((_, raw)) => differences.push(format!("{}: {raw} -> {have}", d.name)),
+                None => differences.push(format!("{}: (missing) -> {have}", d.name)),
+            }
+        }
+        for (k, raw) in &wanted.dims {
+            if !p.shader.dimensions.iter().any(|d| &d.name == k) {
+                differences.push(format!("{k}: {raw} -> (no such dimension)"));
+            }
+        }
+        best.push((score, order, Near { name: p.name(), differences }));
+        best.sort_by_key(|(s, o, _)| (*s, *o));
+        best.truncate(limit);
+        if best.len() >= limit {
+            worst = best[best.len() - 1].0;
+        }
+    }
+    best.into_iter().map(|(_, _, n)| n).collect()
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
+}

@@ -1,0 +1,644 @@
+//! `permutations.toml`: the serde shape of the file, and its check into a [`Config`].
+//!
+//! serde and toml report syntax, unknown keys and wrong types (with the span of the offending
+//! value); everything that needs more than one value at a time (clashing defines, unknown
+//! levels, derived dependencies, expressions) is checked here, after deserialization, and
+//! reported together.
+
+use std::collections::{HashMap, HashSet};
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use codespan_reporting::diagnostic::{Diagnostic, Label};
+use indexmap::IndexMap;
+use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
+use serde::Deserialize;
+use toml::Spanned;
+
+use super::error::ConfigError;
+use super::{Config, Dimension, Level, Limits, Shader, SkipRule};
+use crate::preprocess;
+use crate::{Stage, Target};
+
+/// Most values one dimension may take (a larger range is almost certainly a typo).
+pub const MAX_DIMENSION_VALUES: usize = 65_536;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawConfig {
+    #[serde(default)]
+    compiler: RawCompiler,
+    #[serde(default)]
+    levels: IndexMap<Spanned<String>, RawLevel>,
+    #[serde(default)]
+    shader: Vec<Spanned<RawShader>>,
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawCompiler {
+    #[serde(default)]
+    include: Vec<Spanned<String>>,
+    #[serde(default, rename = "virtual")]
+    virtual_roots: IndexMap<Spanned<String>, Spanned<String>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLevel {
+    #[serde(default)]
+    defines: IndexMap<Spanned<String>, Spanned<DefineValue>>,
+    targets: Option<Vec<Spanned<Target>>>,
+    limits: Option<RawLimits>,
+}
+
+#[derive(Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum RawLimits {
+    Default,
+    Downlevel,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawShader {
+    name: Spanned<String>,
+    source: Spanned<String>,
+    entry: Option<String>,
+    stage: Stage,
+    levels: Option<Spanned<Vec<Spanned<String>>>>,
+    #[serde(default)]
+    defines: IndexMap<Spanned<String>, Spanned<DefineValue>>,
+    #[serde(default)]
+    dimensions: IndexMap<Spanned<String>, Spanned<DimensionKind>>,
+    #[serde(default)]
+    derived: IndexMap<Spanned<String>, Spanned<String>>,
+    #[serde(default)]
+    skip: Vec<Spanned<RawSkip>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSkip {
+    when: Spanned<String>,
+    why: Spanned<String>,
+}
+
+/// A constant define: an integer, or a boolean read as 0 / 1.
+struct DefineValue(i64);
+
+impl<'de> Deserialize<'de> for DefineValue {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = DefineValue;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("an integer or a boolean")
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<DefineValue, E> {
+                Ok(DefineValue(v))
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<DefineValue, E> {
+                i64::try_from(v).map(DefineValue).map_err(|_| E::custom("integer out of range: defines are 64-bit signed"))
+            }
+            fn visit_bool<E: de::Error>(self, v: bool) -> Result<DefineValue, E> {
+                Ok(DefineValue(i64::from(v)))
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+/// The value of one entry of `dimensions`, checked as it is read so that an error points at
+/// the value itself.
+enum DimensionKind {
+    Values(Vec<i64>),
+    Enum(Vec<String>),
+}
+
+const DIMENSION_EXPECTED: &str =
+    "a dimension: \"bool\", a list of integers, { range = [lo, hi] } or { enum = [\"NAME\", ...] }";
+
+impl<'de> Deserialize<'de> for DimensionKind {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = DimensionKind;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str(DIMENSION_EXPECTED)
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<DimensionKind, E> {
+                if v == "bool" {
+                    Ok(DimensionKind::Values(vec![0, 1]))
+                } else {
+                    Err(E::custom(format!("unknown dimension kind `{v}`, expected \"bool\", a list of integers, {{ range = [lo, hi] }} or {{ enum = [...] }}")))
+                }
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<DimensionKind, A::Error> {
+                let mut values = Vec::new();
+                while let Some(v) = seq.next_element::<i64>()? {
+                    if values.contains(&v) {
+                        return Err(de::Error::custom(format!("the value {v} appears twice in this dimension")));
+                    }
+                    values.push(v);
+                }
+                if values.is_empty() {
+                    return Err(de::Error::custom("empty dimension: a dimension needs at least one value"));
+                }
+                Ok(DimensionKind::Values(values))
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<DimensionKind, A::Error> {
+                let Some(key) = map.next_key::<String>()? else {
+                    return Err(de::Error::custom("empty table, expected { range = [lo, hi] } or { enum = [\"NAME\", ...] }"));
+                };
+                let kind = match key.as_str() {
+                    "range" => {
+                        let Range2(lo, hi) = map.next_value()?;
+                        if lo > hi {
+                            return Err(de::Error::custom(format!("empty range: {lo} is greater than {hi} (both ends are included)")));
+                        }
+                        let count = (hi as i128 - lo as i128 + 1) as u128;
+                        if count > MAX_DIMENSION_VALUES as u128 {
+                            return Err(de::Error::custom(format!(
+                                "range of {count} values: a dimension may have at most {MAX_DIMENSION_VALUES}"
+                            )));
+                        }
+                        DimensionKind::Values((lo..=hi).collect())
+                    }
+                    "enum" => {
+                        let EnumNames(names) = map.next_value()?;
+                        DimensionKind::Enum(names)
+                    }
+                    other => {
+                        return Err(de::Error::custom(format!("unknown key `{other}`, expected `range` or `enum`")));
+                    }
+                };
+                if let Some(extra) = map.next_key::<String>()? {
+                    return Err(de::Error::custom(format!(
+                        "unexpected key `{extra}`: a dimension table has exactly one key, `range` or `enum`"
+                    )));
+                }
+                Ok(kind)
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+/// `[lo, hi]`.
+struct Range2(i64, i64);
+
+impl<'de> Deserialize<'de> for Range2 {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = Range2;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("[lo, hi], two integers")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Range2, A::Error> {
+                let lo = seq.next_element::<i64>()?;
+                let hi = seq.next_element::<i64>()?;
+                let more = seq.next_element::<de::IgnoredAny>()?;
+                match (lo, hi, more) {
+                    (Some(lo), Some(hi), None) => Ok(Range2(lo, hi)),
+                    _ => Err(de::Error::custom("expected [lo, hi], two integers")),
+                }
+            }
+        }
+        d.deserialize_seq(V)
+    }
+}
+
+/// `["A", "B"]`: non-empty, distinct, each usable in a define name.
+struct EnumNames(Vec<String>);
+
+impl<'de> Deserialize<'de> for EnumNames {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = EnumNames;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a list of names")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<EnumNames, A::Error> {
+                let mut names: Vec<String> = Vec::new();
+                while let Some(n) = seq.next_element::<String>()? {
+                    if n.is_empty() || !n.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
+                        return Err(de::Error::custom(format!(
+                            "enum name `{n}` is not usable in a define: use letters, digits and `_`"
+                        )));
+                    }
+                    if names.contains(&n) {
+                        return Err(de::Error::custom(format!("enum name `{n}` appears twice")));
+                    }
+                    names.push(n);
+                }
+                if names.is_empty() {
+                    return Err(de::Error::custom("empty enum: a dimension needs at least one value"));
+                }
+                Ok(EnumNames(names))
+            }
+        }
+        d.deserialize_seq(V)
+    }
+}
+
+/// Collects diagnostics against the toml file.
+struct Checker {
+    diagnostics: Vec<Diagnostic<()>>,
+}
+
+impl Checker {
+    fn error(&mut self, span: Range<usize>, message: impl Into<String>, label: impl Into<String>) -> &mut Diagnostic<()> {
+        self.diagnostics
+            .push(Diagnostic::error().with_message(message.into()).with_labels(vec![Label::primary((), span).with_message(label.into())]));
+        self.diagnostics.last_mut().expect("just pushed")
+    }
+}
+
+fn is_ident(s: &str) -> bool {
+    let mut b = s.bytes();
+    matches!(b.next(), Some(c) if c.is_ascii_alphabetic() || c == b'_') && b.all(|c| c.is_ascii_alphanumeric() || c == b'_')
+}
+
+/// Whether `s` can be a shader or level name inside a canonical name.
+fn is_name(s: &str) -> bool {
+    !s.is_empty() && s.bytes().all(|c| c.is_ascii_alphanumeric() || c == b'_' || c == b'.' || c == b'-')
+}
+
+/// The span, in the toml text, of bytes `offset..offset+len` of a string value spanning
+/// `span`. Exact when the string is written without escapes; otherwise the whole string.
+fn inner_span(text: &str, span: &Range<usize>, value: &str, offset: usize, len: usize) -> Range<usize> {
+    let raw = text.get(span.clone()).unwrap_or("");
+    for quote in ['"', '\''] {
+        if raw.len() >= 2 && raw.starts_with(quote) && raw.ends_with(quote) && !raw.starts_with(&format!("{quote}{quote}{quote}")) && &raw[1..raw.len() - 1] == value {
+            let start = span.start + 1 + offset.min(value.len());
+            let end = (start + len.max(1)).min(span.end).max(start + 1);
+            return start..end;
+        }
+    }
+    span.clone()
+}
+
+/// Byte offset of identifier `name` as a whole word in `expr`.
+fn find_word(expr: &str, name: &str) -> Option<usize> {
+    let bytes = expr.as_bytes();
+    let word = |b: u8| b.is_ascii_alphanumeric() || b == b'_';
+    let mut from = 0;
+    while let Some(i) = expr[from..].find(name) {
+        let at = from + i;
+        let end = at + name.len();
+        if (at == 0 || !word(bytes[at - 1])) && (end == bytes.len() || !word(bytes[end])) {
+            return Some(at);
+        }
+        from = at + 1;
+    }
+    None
+}
+
+/// Parses and checks `text` (the contents of the file at `path`).
+pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, ConfigError> {
+    let fail = |diagnostics: Vec<Diagnostic<()>>| ConfigError::new(display.to_string(), text.to_string(), diagnostics);
+    let raw: RawConfig = match toml::from_str(text) {
+        Ok(raw) => raw,
+        Err(e) => {
+            let message = e.message().trim_end().to_string();
+            let mut d = Diagnostic::error().with_message(message.clone());
+            if let Some(span) = e.span() {
+                d = d.with_labels(vec![Label::primary((), span).with_message(label_for(&message))]);
+            }
+            return Err(fail(vec![d]));
+        }
+    };
+    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let mut c = Checker { diagnostics: Vec::new() };
+
+    // [compiler]
+    let mut include_roots = Vec::new();
+    for inc in &raw.compiler.include {
+        let p = dir.join(inc.get_ref());
+        if !p.is_dir() {
+            c.error(inc.span(), format!("include root `{}` is not a folder", inc.get_ref()), "no such folder")
+                .notes
+                .push(format!("include roots are relative to the folder of {display}"));
+        }
+        include_roots.push(p);
+    }
+    let mut virtual_roots = Vec::new();
+    for (name, target) in &raw.compiler.virtual_roots {
+        if !name.get_ref().starts_with('/') {
+            c.error(name.span(), format!("virtual root `{}` must start with `/`", name.get_ref()), "expected a name like \"/Engine\"");
+        }
+        let p = dir.join(target.get_ref());
+        if !p.is_dir() {
+            c.error(target.span(), format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()), "no such folder");
+        }
+        virtual_roots.push((name.get_ref().clone(), p));
+    }
+
+    // [levels.*]
+    let mut levels = Vec::new();
+    for (name, raw_level) in &raw.levels {
+        if !is_name(name.get_ref()) {
+            c.error(name.span(), format!("level name `{}` cannot appear in a permutation name", name.get_ref()), "use letters, digits, `_`, `.` and `-`");
+        }
+        let mut defines = Vec::new();
+        for (k, v) in &raw_level.defines {
+            if !is_ident(k.get_ref()) {
+                c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
+            }
+            defines.push((k.get_ref().clone(), v.get_ref().0));
+        }
+        let targets = match &raw_level.targets {
+            Some(ts) => {
+                let mut out: Vec<Target> = Vec::new();
+                for t in ts {
+                    if out.contains(t.get_ref()) {
+                        c.error(t.span(), format!("target `{}` is listed twice", t.get_ref()), "listed again here");
+                    } else {
+                        out.push(*t.get_ref());
+                    }
+                }
+                out
+            }
+            None => Target::ALL.to_vec(),
+        };
+        let limits = match raw_level.limits {
+            Some(RawLimits::Downlevel) => Limits::Downlevel,
+            Some(RawLimits::Default) | None => Limits::Default,
+        };
+        levels.push(Level { name: name.get_ref().clone(), defines, targets, limits });
+    }
+    let level_defines: HashMap<&str, &IndexMap<Spanned<String>, Spanned<DefineValue>>> =
+        raw.levels.iter().map(|(k, v)| (k.get_ref().as_str(), &v.defines)).collect();
+
+    let pp_options = preprocess::Options {
+        include_roots: include_roots.clone(),
+        virtual_roots: virtual_roots.clone(),
+        ..preprocess::Options::default()
+    };
+    let roots_ok = c.diagnostics.is_empty();
+
+    // [[shader]]
+    let mut shaders = Vec::new();
+    let mut seen_names: HashMap<String, Range<usize>> = HashMap::new();
+    for raw_shader in &raw.shader {
+        let s = raw_shader.get_ref();
+        let name = s.name.get_ref();
+        if !is_name(name) {
+            c.error(s.name.span(), format!("shader name `{name}` cannot appear in a permutation name"), "use letters, digits, `_`, `.` and `-`");
+        }
+        if let Some(first) = seen_names.get(name) {
+            let d = c.error(s.name.span(), format!("duplicate shader name `{name}`"), "declared again here");
+            d.labels.push(Label::secondary((), first.clone()).with_message("first declared here"));
+        } else {
+            seen_names.insert(name.clone(), s.name.span());
+        }
+
+        // levels
+        let level_names: Vec<Spanned<String>> = match &s.levels {
+            Some(ls) => {
+                if ls.get_ref().is_empty() {
+                    c.error(ls.span(), format!("shader `{name}` has no levels"), "expected at least one level name");
+                }
+                ls.get_ref().clone()
+            }
+            None => raw.levels.keys().cloned().collect(),
+        };
+        let mut shader_levels: Vec<String> = Vec::new();
+        for l in &level_names {
+            if !level_defines.contains_key(l.get_ref().as_str()) {
+                let known: Vec<&str> = raw.levels.keys().map(|k| k.get_ref().as_str()).collect();
+                let d = c.error(l.span(), format!("unknown level `{}`", l.get_ref()), "no `[levels.*]` table has this name");
+                d.notes.push(if known.is_empty() {
+                    "no levels are declared: add a `[levels.NAME]` table".to_string()
+                } else {
+                    format!("expected one of: {}", known.join(", "))
+                });
+            } else if shader_levels.contains(l.get_ref()) {
+                c.error(l.span(), format!("level `{}` is listed twice", l.get_ref()), "listed again here");
+            } else {
+                shader_levels.push(l.get_ref().clone());
+            }
+        }
+        if s.levels.is_none() && raw.levels.is_empty() {
+            c.error(s.name.span(), format!("shader `{name}` has no levels"), "no `[levels.*]` table is declared");
+        }
+
+        // Every name a define or expression can see, with where it was written, for clashes.
+        // Level defines may differ per level: each one of the shader's levels is checked.
+        let mut defines = Vec::new();
+        let mut shader_scope: HashMap<String, (Range<usize>, &'static str)> = HashMap::new();
+        for (k, v) in &s.defines {
+            if !is_ident(k.get_ref()) {
+                c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
+            }
+            defines.push((k.get_ref().clone(), v.get_ref().0));
+            shader_scope.insert(k.get_ref().clone(), (k.span(), "shader define"));
+        }
+        let clash = |c: &mut Checker, what: &str, key: &Spanned<String>, shader_scope: &HashMap<String, (Range<usize>, &'static str)>, defined: &str| {
+            if let Some((span, kind)) = shader_scope.get(defined) {
+                let d = c.error(key.span(), format!("{what} `{defined}` clashes with a {kind}"), format!("{what} declared here"));
+                d.labels.push(Label::secondary((), span.clone()).with_message(format!("`{defined}` is already a {kind}")));
+                return true;
+            }
+            for l in &shader_levels {
+                if let Some((lk, _)) = level_defines[l.as_str()].get_key_value(defined) {
+                    let d = c.error(key.span(), format!("{what} `{defined}` clashes with a define of level `{l}`"), format!("{what} declared here"));
+                    d.labels.push(Label::secondary((), lk.span()).with_message(format!("`{defined}` is defined by level `{l}` here")));
+                    return true;
+                }
+            }
+            false
+        };
+
+        let mut dimensions = Vec::new();
+        for (k, v) in &s.dimensions {
+            let dname = k.get_ref();
+            if !is_ident(dname) {
+                c.error(k.span(), format!("`{dname}` is not a valid dimension name"), "expected an identifier");
+            }
+            clash(&mut c, "dimension", k, &shader_scope, dname);
+            shader_scope.insert(dname.clone(), (k.span(), "dimension"));
+            let dim = match v.get_ref() {
+                DimensionKind::Values(values) => Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new() },
+                DimensionKind::Enum(labels) => {
+                    for label in labels {
+                        let define = format!("{dname}_{label}");
+                        if !clash(&mut c, "enum value", k, &shader_scope, &define) {
+                            shader_scope.insert(define, (k.span(), "dimension's enum value"));
+                        }
+                    }
+                    Dimension { name: dname.clone(), values: (0..labels.len() as i64).collect(), labels: labels.clone() }
+                }
+            };
+            dimensions.push(dim);
+        }
+
+        // derived
+        let derived_names: Vec<&str> = s.derived.keys().map(|k| k.get_ref().as_str()).collect();
+        let mut derived = Vec::new();
+        for (i, (k, expr)) in s.derived.iter().enumerate() {
+            let dname = k.get_ref();
+            if !is_ident(dname) {
+                c.error(k.span(), format!("`{dname}` is not a valid define name"), "expected an identifier");
+            }
+            clash(&mut c, "derived define", k, &shader_scope, dname);
+            shader_scope.insert(dname.clone(), (k.span(), "derived define"));
+            if check_expression(&mut c, text, expr) {
+                check_derived_dependencies(&mut c, text, &s.derived, &derived_names, i);
+            }
+            derived.push((dname.clone(), expr.get_ref().clone()));
+        }
+
+        // skip
+        let mut skip = Vec::new();
+        for rule in &s.skip {
+            let r = rule.get_ref();
+            if check_expression(&mut c, text, &r.when) {
+                for id in preprocess::expr::identifiers(r.when.get_ref()) {
+                    if let Some((dk, _)) = s.derived.get_key_value(id.as_str()) {
+                        let at = find_word(r.when.get_ref(), &id).unwrap_or(0);
+                        let span = inner_span(text, &r.when.span(), r.when.get_ref(), at, id.len());
+                        let d = c.error(span, format!("skip rule uses derived define `{id}`"), "skip rules do not see derived defines");
+                        d.labels.push(Label::secondary((), dk.span()).with_message("derived here"));
+                        d.notes.push("skip rules see the dimensions and the level's and shader's defines; write the condition in those terms".into());
+                    }
+                }
+            }
+            if r.why.get_ref().trim().is_empty() {
+                c.error(r.why.span(), "a skip rule needs a reason", "expected a sentence saying why these permutations are not needed");
+            }
+            skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone() });
+        }
+
+        // source
+        let mut source_path = PathBuf::new();
+        if roots_ok {
+            match preprocess::resolve_source(s.source.get_ref(), &pp_options) {
+                Ok(p) => source_path = p,
+                Err(e) => {
+                    let d = c.error(s.source.span(), format!("cannot resolve source `{}` of shader `{name}`", s.source.get_ref()), "not found");
+                    d.notes.push(e.to_string());
+                    d.notes.push("a source resolves like `#include <...>`: through a virtual root or against the include roots".into());
+                }
+            }
+        }
+
+        shaders.push(Shader {
+            name: name.clone(),
+            source: s.source.get_ref().clone(),
+            source_path,
+            entry: s.entry.clone().unwrap_or_else(|| "main".to_string()),
+            stage: s.stage,
+            levels: shader_levels,
+            defines,
+            dimensions,
+            derived,
+            skip,
+        });
+    }
+
+    if !c.diagnostics.is_empty() {
+        return Err(fail(c.diagnostics));
+    }
+    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders })
+}
+
+/// The label under a serde/toml error, from its message.
+fn label_for(message: &str) -> String {
+    if message.starts_with("unknown field") {
+        "unknown key".into()
+    } else if message.starts_with("missing field") {
+        "in this table".into()
+    } else if message.starts_with("invalid type") {
+        "wrong type".into()
+    } else if message.starts_with("unknown variant") {
+        "unknown value".into()
+    } else {
+        "here".into()
+    }
+}
+
+/// Checks that `expr` parses; reports the column of the problem. Returns whether it parsed.
+fn check_expression(c: &mut Checker, text: &str, expr: &Spanned<String>) -> bool {
+    // Every identifier reads as 1, so a division by an identifier cannot fail here: what
+    // fails is the syntax.
+    match preprocess::expr::eval(expr.get_ref(), &|_| Some(1)) {
+        Ok(_) => true,
+        Err(e) => {
+            let span = inner_span(text, &expr.span(), expr.get_ref(), e.offset, e.len);
+            c.error(span, format!("invalid expression: {}", e.message), e.message.clone())
+                .notes
+                .push("expressions use the `#if` language: integers, defined(X), ! ~ * / % + - << >> < <= > >= == != & ^ | && || ?:".into());
+            false
+        }
+    }
+}
+
+/// Derived define `index` may use only derived defines written before it.
+fn check_derived_dependencies(
+    c: &mut Checker,
+    text: &str,
+    derived: &IndexMap<Spanned<String>, Spanned<String>>,
+    names: &[&str],
+    index: usize,
+) {
+    let (key, expr) = derived.get_index(index).expect("index in range");
+    let name = key.get_ref().as_str();
+    let uses = |i: usize| -> Vec<usize> {
+        let (_, e) = derived.get_index(i).expect("index in range");
+        let ids = preprocess::expr::identifiers(e.get_ref());
+        (0..names.len()).filter(|j| ids.iter().any(|id| id == names[*j])).collect()
+    };
+    let point_at = |id: &str| {
+        let at = find_word(expr.get_ref(), id).unwrap_or(0);
+        inner_span(text, &expr.span(), expr.get_ref(), at, id.len())
+    };
+    for j in uses(index) {
+        if j == index {
+            c.error(point_at(name), format!("derived define `{name}` depends on itself"), format!("`{name}` is used in its own definition"));
+            return;
+        }
+        if j < index {
+            continue;
+        }
+        // A later derived define: is there a path back to `index`?
+        let mut seen = HashSet::new();
+        let mut stack = vec![(j, vec![j])];
+        let mut cycle = None;
+        while let Some((k, path)) = stack.pop() {
+            if !seen.insert(k) {
+                continue;
+            }
+            for n in uses(k) {
+                if n == index {
+                    cycle = Some(path.clone());
+                    break;
+                }
+                let mut p = path.clone();
+                p.push(n);
+                stack.push((n, p));
+            }
+            if cycle.is_some() {
+                break;
+            }
+        }
+        let later = names[j];
+        match cycle {
+            Some(path) => {
+                let chain: Vec<&str> = std::iter::once(name).chain(path.iter().map(|k| names[*k])).chain(std::iter::once(name)).collect();
+                let d = c.error(point_at(later), format!("derived define `{name}` depends on itself through `{later}`"), format!("`{later}` depends on `{name}`"));
+                d.notes.push(format!("cycle: {}", chain.join(" -> ")));
+            }
+            None => {
+                let d = c.error(point_at(later), format!("derived define `{name}` uses `{later}`, which is derived after it"), "declared later");
+                d.notes.push("a derived define sees only the derived defines written before it: move it after the ones it uses".into());
+            }
+        }
+        return;
+    }
+}

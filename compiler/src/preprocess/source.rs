@@ -1,0 +1,301 @@
+//! The source cache: every file read once per process, translation phases 1 and 2
+//! (trigraphs, line splices) done once, and a table to map the spliced text back to the
+//! original bytes for diagnostics.
+
+use std::collections::HashMap;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, RwLock};
+
+use codespan_reporting::files::{self, Files};
+
+/// A file known to a [`SourceCache`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct FileId(pub(crate) u32);
+
+/// One file: its original text and the text the lexer sees.
+#[derive(Debug)]
+pub struct SourceFile {
+    /// The canonical path (for in-memory files, the name).
+    pub path: PathBuf,
+    /// The name used in diagnostics.
+    pub name: String,
+    /// The text as read.
+    pub original: String,
+    /// The text after trigraph replacement and line splicing (`None`: same as `original`).
+    spliced: Option<String>,
+    /// `(spliced offset, original offset)` at each point where the two stop moving together.
+    splices: Vec<(u32, u32)>,
+    line_starts: Vec<usize>,
+}
+
+impl SourceFile {
+    fn new(path: PathBuf, name: String, original: String) -> SourceFile {
+        let (spliced, splices) = splice(&original);
+        let line_starts = files::line_starts(&original).collect();
+        SourceFile { path, name, original, spliced, splices, line_starts }
+    }
+
+    /// The text the lexer works on.
+    pub fn text(&self) -> &str {
+        self.spliced.as_deref().unwrap_or(&self.original)
+    }
+
+    /// Original byte offset of spliced offset `at`.
+    pub fn original_offset(&self, at: usize) -> usize {
+        if self.splices.is_empty() {
+            return at;
+        }
+        let i = self.splices.partition_point(|&(s, _)| s as usize <= at);
+        if i == 0 {
+            return at;
+        }
+        let (s, o) = self.splices[i - 1];
+        (o as usize + (at - s as usize)).min(self.original.len())
+    }
+
+    /// Original byte range of a spliced range.
+    pub fn original_range(&self, r: Range<usize>) -> Range<usize> {
+        let start = self.original_offset(r.start);
+        if r.is_empty() {
+            return start..start;
+        }
+        // The end is just after the last byte, so map the last byte and step over it.
+        let last = self.original_offset(r.end - 1);
+        let step = self.original[last..].chars().next().map_or(1, |c| c.len_utf8()).min(r.end - r.start).max(1);
+        start..(last + step).min(self.original.len())
+    }
+
+    /// 1-based line and column (in characters) of an original byte offset.
+    pub fn line_col(&self, at: usize) -> (usize, usize) {
+        let line = self.line_starts.partition_point(|&s| s <= at).saturating_sub(1);
+        let start = self.line_starts[line];
+        let at = at.min(self.original.len());
+        let col = self.original.get(start..at).map_or(at - start, |s| s.chars().count());
+        (line + 1, col + 1)
+    }
+}
+
+/// Phases 1 and 2: trigraphs (cpp -std=c11 replaces them) and backslash-newline splices
+/// (GNU: whitespace between the backslash and the newline is allowed).
+fn splice(text: &str) -> (Option<String>, Vec<(u32, u32)>) {
+    let b = text.as_bytes();
+    let has_work = b.windows(2).any(|w| w == b"??") || b.contains(&b'\\');
+    if !has_work {
+        return (None, Vec::new());
+    }
+    let mut out: Vec<u8> = Vec::with_capacity(b.len());
+    let mut map = Vec::new();
+    let mut i = 0;
+    let mut changed = false;
+    while i < b.len() {
+        let c = b[i];
+        if c == b'?' && i + 2 < b.len() && b[i + 1] == b'?' {
+            let r = match b[i + 2] {
+                b'=' => Some(b'#'),
+                b'(' => Some(b'['),
+                b'/' => Some(b'\\'),
+                b')' => Some(b']'),
+                b'\'' => Some(b'^'),
+                b'<' => Some(b'{'),
+                b'!' => Some(b'|'),
+                b'>' => Some(b'}'),
+                b'-' => Some(b'~'),
+                _ => None,
+            };
+            if let Some(r) = r {
+                // `??/` is a backslash and may itself splice.
+                if r == b'\\' {
+                    if let Some(end) = splice_end(b, i + 3) {
+                        i = end;
+                        map.push((out.len() as u32, i as u32));
+                        changed = true;
+                        continue;
+                    }
+                }
+                out.push(r);
+                i += 3;
+                map.push((out.len() as u32, i as u32));
+                changed = true;
+                continue;
+            }
+        }
+        if c == b'\\' {
+            if let Some(end) = splice_end(b, i + 1) {
+                i = end;
+                map.push((out.len() as u32, i as u32));
+                changed = true;
+                continue;
+            }
+        }
+        out.push(c);
+        i += 1;
+    }
+    if !changed {
+        return (None, Vec::new());
+    }
+    // Only whole sequences were removed or replaced, so the result stays UTF-8.
+    let s = String::from_utf8(out).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+    (Some(s), map)
+}
+
+/// If a backslash ending at `from` starts a line splice, where the next line begins.
+fn splice_end(b: &[u8], from: usize) -> Option<usize> {
+    let mut j = from;
+    while j < b.len() && matches!(b[j], b' ' | b'\t' | b'\r' | b'\x0c' | b'\x0b') {
+        j += 1;
+    }
+    (j < b.len() && b[j] == b'\n').then_some(j + 1)
+}
+
+#[derive(Default)]
+struct Inner {
+    files: Vec<Arc<SourceFile>>,
+    by_path: HashMap<PathBuf, FileId>,
+}
+
+/// Thread-safe store of source files shared by every permutation of a build: reads each file
+/// once (keyed by canonical path), hands out [`FileId`]s, and names files for diagnostics
+/// relative to `display_base`.
+pub struct SourceCache {
+    display_base: PathBuf,
+    inner: RwLock<Inner>,
+}
+
+impl std::fmt::Debug for SourceCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SourceCache").field("display_base", &self.display_base).finish_non_exhaustive()
+    }
+}
+
+impl SourceCache {
+    pub fn new(display_base: PathBuf) -> Self {
+        let display_base = display_base.canonicalize().unwrap_or(display_base);
+        SourceCache { display_base, inner: RwLock::new(Inner::default()) }
+    }
+
+    /// The canonical path of a file (an in-memory file: its name).
+    pub fn path(&self, id: FileId) -> PathBuf {
+        self.get(id).map(|f| f.path.clone()).unwrap_or_default()
+    }
+
+    /// The diagnostic name of a file: its path relative to the display base.
+    pub fn name(&self, id: FileId) -> String {
+        self.get(id).map(|f| f.name.clone()).unwrap_or_default()
+    }
+
+    /// Adds an in-memory file (tests, generated sources). Each call makes a new file.
+    pub fn add_virtual(&self, name: &str, text: &str) -> FileId {
+        let file = SourceFile::new(PathBuf::from(name), name.to_string(), text.to_string());
+        let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
+        let id = FileId(inner.files.len() as u32);
+        inner.files.push(Arc::new(file));
+        id
+    }
+
+    pub(crate) fn get(&self, id: FileId) -> Option<Arc<SourceFile>> {
+        let inner = self.inner.read().unwrap_or_else(|e| e.into_inner());
+        inner.files.get(id.0 as usize).cloned()
+    }
+
+    /// The display name of a path: relative to the display base when inside it.
+    pub fn display_name(&self, path: &Path) -> String {
+        match path.strip_prefix(&self.display_base) {
+            Ok(rel) if !rel.as_os_str().is_empty() => rel.to_string_lossy().into_owned(),
+            _ => path.to_string_lossy().into_owned(),
+        }
+    }
+
+    /// Loads a file by its canonical path, reading it only the first time.
+    pub(crate) fn load(&self, canonical: &Path) -> std::io::Result<(FileId, Arc<SourceFile>)> {
+        {
+            let inner = self.inner.read().unwrap_or_else(|e| e.into_inner());
+            if let Some(&id) = inner.by_path.get(canonical) {
+                return Ok((id, inner.files[id.0 as usize].clone()));
+            }
+        }
+        let bytes = std::fs::read(canonical)?;
+        let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+        let file = Arc::new(SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text));
+        let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(&id) = inner.by_path.get(canonical) {
+            return Ok((id, inner.files[id.0 as usize].clone()));
+        }
+        let id = FileId(inner.files.len() as u32);
+        inner.files.push(file.clone());
+        inner.by_path.insert(canonical.to_path_buf(), id);
+        Ok((id, file))
+    }
+
+    /// How many files were read from disk or added (tests check "read once").
+    pub fn len(&self) -> usize {
+        self.inner.read().unwrap_or_else(|e| e.into_inner()).files.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The text of a cached file, for codespan.
+#[derive(Clone, Debug)]
+pub struct SourceText(Arc<SourceFile>);
+
+impl AsRef<str> for SourceText {
+    fn as_ref(&self) -> &str {
+        &self.0.original
+    }
+}
+
+impl<'a> Files<'a> for SourceCache {
+    type FileId = FileId;
+    type Name = String;
+    type Source = SourceText;
+
+    fn name(&'a self, id: FileId) -> Result<String, files::Error> {
+        self.get(id).map(|f| f.name.clone()).ok_or(files::Error::FileMissing)
+    }
+
+    fn source(&'a self, id: FileId) -> Result<SourceText, files::Error> {
+        self.get(id).map(SourceText).ok_or(files::Error::FileMissing)
+    }
+
+    fn line_index(&'a self, id: FileId, byte_index: usize) -> Result<usize, files::Error> {
+        let f = self.get(id).ok_or(files::Error::FileMissing)?;
+        Ok(f.line_starts.partition_point(|&s| s <= byte_index).saturating_sub(1))
+    }
+
+    fn line_range(&'a self, id: FileId, line_index: usize) -> Result<Range<usize>, files::Error> {
+        let f = self.get(id).ok_or(files::Error::FileMissing)?;
+        let start = *f
+            .line_starts
+            .get(line_index)
+            .ok_or(files::Error::LineTooLarge { given: line_index, max: f.line_starts.len() - 1 })?;
+        let end = f.line_starts.get(line_index + 1).copied().unwrap_or(f.original.len());
+        Ok(start..end)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn splices_and_trigraphs_map_back() {
+        let f = SourceFile::new("t".into(), "t".into(), "ab\\\ncd??=e\\  \nf".into());
+        assert_eq!(f.text(), "abcd#ef");
+        assert_eq!(f.original_offset(2), 4); // c
+        assert_eq!(f.original_offset(4), 6); // # from ??=
+        assert_eq!(f.original_offset(5), 9); // e
+        assert_eq!(f.original_offset(6), 14); // f
+        assert_eq!(f.line_col(14), (3, 1));
+        assert_eq!(f.original_range(0..4), 0..6);
+    }
+
+    #[test]
+    fn plain_text_is_not_copied() {
+        let f = SourceFile::new("t".into(), "t".into(), "a\\b ?x".into());
+        assert!(f.spliced.is_none());
+        assert_eq!(f.original_offset(3), 3);
+    }
+}

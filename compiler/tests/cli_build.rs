@@ -1,0 +1,141 @@
+//! `kiln build`, `kiln inspect` and `kiln cache` as a user runs them: exit codes, files
+//! written, messages.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn kiln(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kiln"))
+        .args(args)
+        .current_dir(dir)
+        .env_remove("KILN_CACHE_DIR")
+        .env_remove("CARGO_TARGET_DIR")
+        .env("CI", "1")
+        .output()
+        .unwrap()
+}
+
+fn fixture() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    copy(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/in"), dir.path());
+    dir
+}
+
+fn copy(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+#[test]
+fn build_writes_archive_stats_and_emit_dir_then_hits_the_cache() {
+    let fx = fixture();
+    let d = fx.path();
+    let o = kiln(d, &["build", "--config", "compute.toml", "--emit-dir", "emit", "--stats-json", "stats.json", "-j", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(d.join("shaders.kpak").is_file());
+    assert!(d.join("emit/index.json").is_file());
+    let err = stderr(&o);
+    assert!(err.contains("kiln: 4 permutations (0 skipped), 4 distinct, 4 compiled, 0 cache hits, 0 failed in "), "{err}");
+    // No cargo workspace around the temporary folder: the cache sits next to the config.
+    assert!(d.join(".kiln-cache").is_dir());
+
+    let o = kiln(d, &["build", "--config", "compute.toml", "-o", "again.kpak", "--stats-json", "stats.json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+    assert_eq!((v["compiled"].as_u64(), v["cache_hits"].as_u64()), (Some(0), Some(4)));
+    assert_eq!(std::fs::read(d.join("shaders.kpak")).unwrap(), std::fs::read(d.join("again.kpak")).unwrap());
+
+    let o = kiln(d, &["build", "--config", "compute.toml", "--no-cache", "--stats-json", "stats.json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+    assert_eq!(v["compiled"].as_u64(), Some(4));
+}
+
+#[test]
+fn exit_codes() {
+    let fx = fixture();
+    let d = fx.path();
+    // Bad configuration: 2.
+    std::fs::write(d.join("bad.toml"), "[levels.sm5]\ntargets = [\"spirv\"]\n[[shader]]\nname = 1\n").unwrap();
+    let o = kiln(d, &["build", "--config", "bad.toml"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let o = kiln(d, &["build", "--config", "missing.toml"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let o = kiln(d, &["build", "--config", "lit.toml", "--target", "dxil"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("unknown target `dxil`"), "{}", stderr(&o));
+    // A shader failure: 1, every failure reported, no archive.
+    let usf = d.join("histogram.usf");
+    let text = std::fs::read_to_string(&usf).unwrap();
+    std::fs::write(&usf, text.replace("atomicAdd(&local_bins[bin], 1u);", "atomicAdd(&local_bins[bin], 1.0);")).unwrap();
+    let o = kiln(d, &["build", "--config", "compute.toml", "--cache-dir", "c"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(err.contains("Histogram@sm5{THREADS=6}") && err.contains("Histogram@es3_1{THREADS=7}"), "{err}");
+    assert!(err.contains("histogram.usf:"), "{err}");
+    assert!(err.contains("error: 4 of 4 permutations failed; no archive written"), "{err}");
+    assert!(!d.join("shaders.kpak").exists());
+}
+
+#[test]
+fn inspect_shows_the_archive_and_rejects_damage() {
+    let fx = fixture();
+    let d = fx.path();
+    assert!(kiln(d, &["build", "--config", "compute.toml", "--no-cache"]).status.success());
+    let o = kiln(d, &["inspect", "shaders.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("permutations: 4"), "{out}");
+    assert!(out.contains("Histogram@sm5  compute `main_cs`  2 permutations  dimensions: [THREADS]"), "{out}");
+    assert!(out.contains("@group(0) @binding(2) histogram: storage, read_write(256 B)"), "{out}");
+    assert!(out.contains("workgroup size (64, 1, 1)"), "{out}");
+    let o = kiln(d, &["inspect", "shaders.kpak", "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["permutations"].as_array().unwrap().len(), 4);
+    assert_eq!(v["naga_version"], "30.0.1");
+
+    let bytes = std::fs::read(d.join("shaders.kpak")).unwrap();
+    std::fs::write(d.join("cut.kpak"), &bytes[..bytes.len() / 2]).unwrap();
+    let o = kiln(d, &["inspect", "cut.kpak"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).starts_with("error: cut.kpak: archive is truncated: the header announces"), "{}", stderr(&o));
+    let o = kiln(d, &["inspect", "lit.toml"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("not a kiln archive"), "{}", stderr(&o));
+}
+
+#[test]
+fn cache_stats_gc_clear() {
+    let fx = fixture();
+    let d = fx.path();
+    let cache: PathBuf = d.join("c");
+    let c = cache.to_str().unwrap();
+    assert!(kiln(d, &["build", "--config", "compute.toml", "--cache-dir", c]).status.success());
+    let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("entries: 4\n"), "{}", stdout(&o));
+    let o = kiln(d, &["cache", "--cache-dir", c, "gc", "--max-size", "1"]);
+    assert!(stdout(&o).starts_with("removed 4 entries ("), "{}", stdout(&o));
+    let o = kiln(d, &["cache", "gc", "--max-size", "10Q", "--cache-dir", c]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(kiln(d, &["build", "--config", "compute.toml", "--cache-dir", c]).status.success());
+    let o = kiln(d, &["cache", "--cache-dir", c, "clear"]);
+    assert_eq!(stdout(&o), format!("removed 4 entries from {c}\n"));
+    let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
+    assert!(stdout(&o).contains("entries: 0\n"));
+}

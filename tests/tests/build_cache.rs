@@ -1,0 +1,151 @@
+//! The content-hashed cache, seen through builds of `tests/in/lit.toml`.
+//!
+//! lit.toml has 28 kept permutations and 24 distinct keys: LitVS has 4 permutations per
+//! level but DEBUG_VIEW never changes its text (2 keys per level); LitPS has 10 kept
+//! permutations per level, all distinct. `USE_FOG = 1` selects 1 LitVS key and 5 LitPS keys
+//! per level: 12 keys in all, the ones whose tokens change when `fog.ush` changes.
+
+mod build_support;
+
+use std::path::{Path, PathBuf};
+
+use build_support::*;
+use kiln::build;
+
+const DISTINCT: usize = 24;
+const WITH_FOG: usize = 12;
+
+fn entries(cache: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for sub in std::fs::read_dir(cache).unwrap() {
+        let sub = sub.unwrap().path();
+        if sub.is_dir() {
+            for e in std::fs::read_dir(&sub).unwrap() {
+                let p = e.unwrap().path();
+                if p.extension().is_some_and(|e| e == "kce") {
+                    out.push(p);
+                }
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn second_build_compiles_nothing() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let first = build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
+    assert_eq!(first.stats.permutations, 28);
+    assert_eq!(first.stats.skipped, 4);
+    assert_eq!(first.stats.unique_sources, DISTINCT);
+    assert_eq!((first.stats.compiled, first.stats.cache_hits), (DISTINCT, 0));
+    assert_eq!(entries(&cache).len(), DISTINCT);
+
+    let second = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
+    assert_eq!((second.stats.compiled, second.stats.cache_hits), (0, DISTINCT));
+    assert_eq!(std::fs::read(fx.path().join("a.kpak")).unwrap(), std::fs::read(fx.path().join("b.kpak")).unwrap());
+}
+
+#[test]
+fn editing_a_header_recompiles_exactly_the_permutations_whose_tokens_changed() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let out = fx.path().join("shaders.kpak");
+    build_ok(&options(&config, &out, Some(&cache)));
+
+    // A comment and spacing change no token: nothing recompiles.
+    let fog = fx.path().join("include/fog.ush");
+    let text = std::fs::read_to_string(&fog).unwrap();
+    std::fs::write(&fog, text.replace("fn FogFactor(", "// reformatted\nfn   FogFactor(\n")).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (0, DISTINCT));
+
+    // A token change in fog.ush: only the USE_FOG=1 keys recompile.
+    std::fs::write(&fog, text.replace("FOG_DENSITY: f32 = 0.02", "FOG_DENSITY: f32 = 0.03")).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!(r.stats.unique_sources, DISTINCT);
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (WITH_FOG, DISTINCT - WITH_FOG));
+
+    // And back: the old entries are still there.
+    std::fs::write(&fog, &text).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (0, DISTINCT));
+}
+
+#[test]
+fn two_builds_at_once_on_one_cache_both_succeed() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let outs = [fx.path().join("a.kpak"), fx.path().join("b.kpak")];
+    let reports: Vec<build::Report> = std::thread::scope(|s| {
+        let handles: Vec<_> = outs.iter().map(|o| s.spawn(|| build_ok(&options(&config, o, Some(&cache))))).collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    for r in &reports {
+        assert_eq!(r.stats.compiled + r.stats.cache_hits, DISTINCT);
+    }
+    assert_eq!(std::fs::read(&outs[0]).unwrap(), std::fs::read(&outs[1]).unwrap());
+    // Nothing is corrupted or half-written: a third build is served entirely from the cache.
+    let third = build_ok(&options(&config, &fx.path().join("c.kpak"), Some(&cache)));
+    assert_eq!((third.stats.compiled, third.stats.cache_hits), (0, DISTINCT));
+    assert!(third.warnings.iter().all(|w| !w.contains("corrupted")), "{:?}", third.warnings);
+    assert_eq!(entries(&cache).len(), DISTINCT);
+}
+
+#[test]
+fn corrupted_entry_is_reported_and_recompiled() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
+    let victim = entries(&cache)[3].clone();
+    let mut bytes = std::fs::read(&victim).unwrap();
+    let at = bytes.len() - 10;
+    bytes[at] ^= 0x20;
+    std::fs::write(&victim, bytes).unwrap();
+
+    let r = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (1, DISTINCT - 1));
+    let warning = r.warnings.iter().find(|w| w.contains("corrupted")).expect("a warning about the entry");
+    assert_eq!(
+        warning,
+        &format!("warning: cache entry {} is corrupted (checksum mismatch); recompiling", victim.display())
+    );
+    assert_eq!(std::fs::read(fx.path().join("a.kpak")).unwrap(), std::fs::read(fx.path().join("b.kpak")).unwrap());
+    let r = build_ok(&options(&config, &fx.path().join("c.kpak"), Some(&cache)));
+    assert_eq!(r.stats.compiled, 0, "the recompiled entry was stored again");
+}
+
+#[test]
+fn interrupted_write_leaves_no_entry_and_does_not_disturb_builds() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
+    // A writer killed half way leaves only its temporary file: replace one entry by that.
+    let victim = entries(&cache)[0].clone();
+    let bytes = std::fs::read(&victim).unwrap();
+    std::fs::remove_file(&victim).unwrap();
+    std::fs::write(victim.with_file_name(".tmp-killed"), &bytes[..bytes.len() / 2]).unwrap();
+    assert_eq!(kiln::cache::Cache::open(&cache).unwrap().stats().entries as usize, DISTINCT - 1);
+
+    let r = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (1, DISTINCT - 1));
+    assert!(r.warnings.is_empty() || r.warnings.iter().all(|w| !w.contains("corrupted")));
+    assert_eq!(std::fs::read(fx.path().join("a.kpak")).unwrap(), std::fs::read(fx.path().join("b.kpak")).unwrap());
+}
+
+#[test]
+fn no_cache_compiles_everything_and_writes_no_entry() {
+    let fx = fixture();
+    let config = fx.path().join("lit.toml");
+    let r = build_ok(&options(&config, &fx.path().join("a.kpak"), None));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (DISTINCT, 0));
+    let r = build_ok(&options(&config, &fx.path().join("a.kpak"), None));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (DISTINCT, 0));
+}
