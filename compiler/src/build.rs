@@ -98,6 +98,9 @@ pub struct Stats {
     pub permutation_artifacts: usize,
     /// Permutations that failed to preprocess or compile.
     pub failed: usize,
+    /// Permutations preprocessed by this build (the others matched their cached
+    /// preprocessing record: same defines, same file contents).
+    pub preprocessed: usize,
     pub seconds: Seconds,
 }
 
@@ -167,18 +170,41 @@ impl Error {
     }
 }
 
-/// One kept permutation after preprocessing.
+/// One kept permutation after preprocessing (or after its preprocessing record matched).
 struct Pre {
     key: Key,
     text_hash: blake3::Hash,
     token_hash: blake3::Hash,
-    files: Vec<FileId>,
+    /// Every file it read (absolute).
+    files: Vec<PathBuf>,
+    /// Its preprocessor warnings, rendered without colour.
+    warnings: Vec<String>,
 }
 
-/// The first (lowest index) permutation's preprocessed output of a key.
+/// The first (lowest index) preprocessed permutation's output of a key.
 struct Representative {
     index: usize,
     output: preprocess::Output,
+}
+
+/// blake3 of files' texts, each read once per build (for checking preprocessing records).
+#[derive(Default)]
+struct FileHashes {
+    map: Mutex<HashMap<PathBuf, Option<String>>>,
+}
+
+impl FileHashes {
+    fn get(&self, path: &Path) -> Option<String> {
+        if let Some(h) = self.map.lock().expect("no panics while locked").get(path) {
+            return h.clone();
+        }
+        let h = std::fs::read(path).ok().map(|bytes| {
+            let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+            blake3::hash(text.as_bytes()).to_hex().to_string()
+        });
+        self.map.lock().expect("no panics while locked").insert(path.to_path_buf(), h.clone());
+        h
+    }
 }
 
 /// Runs a build.
@@ -235,18 +261,34 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     }
     report.stats.permutations = kept.len();
 
-    // 2. Preprocess, keeping one output per key.
+    // 2. Preprocess, keeping one output per key. A permutation whose preprocessing record
+    //    is in the cache and whose files all still have the recorded contents is not
+    //    preprocessed again.
     let t_pre = Instant::now();
     let sources = SourceCache::new(config.dir.clone());
     progress.stage("preprocessing", kept.len());
     let reps: Mutex<HashMap<Key, Representative>> = Mutex::new(HashMap::new());
+    let hashes = FileHashes::default();
+    let preprocessed = std::sync::atomic::AtomicUsize::new(0);
     let pre: Vec<Result<Pre, Diagnostic<FileId>>> = kept
         .par_iter()
         .enumerate()
         .map(|(index, p)| {
+            let direct = cache.map(|c| (c, direct_key(config, p, &options.targets)));
+            if let Some((c, dk)) = &direct {
+                if let Some(pre) = c.get_record(dk).and_then(|r| from_record(r, &hashes)) {
+                    progress.inc();
+                    return Ok(pre);
+                }
+            }
+            preprocessed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             let result = preprocess_one(config, p, &options.targets, &sources);
             progress.inc();
             let (pre, output) = result?;
+            if let Some((c, dk)) = &direct {
+                // Failing to store a record only costs a preprocessing next time.
+                let _ = c.put_record(dk, &to_record(&pre, &output, &sources));
+            }
             let mut reps = reps.lock().expect("no panics while locked");
             let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
             if replace {
@@ -255,17 +297,15 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             Ok(pre)
         })
         .collect();
-    let mut reps = reps.into_inner().expect("no panics while locked");
+    let reps = reps.into_inner().expect("no panics while locked");
+    report.stats.preprocessed = preprocessed.into_inner();
     report.stats.seconds.preprocess = t_pre.elapsed().as_secs_f64();
 
     // Warnings: each distinct rendered warning once.
     let mut seen_warnings = std::collections::HashSet::new();
-    for r in reps.values() {
-        for w in &r.output.warnings {
-            let text = preprocess::render(std::slice::from_ref(w), &sources, options.color);
-            if seen_warnings.insert(text.clone()) {
-                report.warnings.push(text);
-            }
+    for w in pre.iter().flatten().flat_map(|p| &p.warnings) {
+        if seen_warnings.insert(w.clone()) {
+            report.warnings.push(w.clone());
         }
     }
     let mut failures: Vec<(Diagnostic<FileId>, Vec<usize>)> = Vec::new();
@@ -273,7 +313,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     files.insert(config.path.clone());
     for (i, r) in pre.iter().enumerate() {
         match r {
-            Ok(p) => files.extend(p.files.iter().map(|f| sources.path(*f))),
+            Ok(p) => files.extend(p.files.iter().cloned()),
             Err(d) => {
                 failures.push((d.clone(), vec![i]));
                 // A failed permutation still read files: the failing header among them.
@@ -283,6 +323,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             }
         }
     }
+    files.retain(|f| !f.as_os_str().is_empty());
     report.files_read = files.into_iter().collect();
 
     // 3. Group by key, in order of first appearance.
@@ -304,6 +345,25 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             "warning: dimension `{}` of `{}` never changes the shader's text at level `{}`: its {} values multiply the permutations for nothing",
             d.dimension, d.shader, d.level, d.values
         ));
+    }
+
+    // Up to date? When every permutation has the key it had when the archive was written,
+    // and the archive is the file that build wrote, there is nothing to do (like cargo's
+    // freshness check). Only with a cache (the stamp lives there) and without --emit-dir.
+    let stamp = match (cache, &options.output, &options.emit_dir, failures.is_empty()) {
+        (Some(c), Some(out), None, true) => Some((c, out, build_fingerprint(&kept, &pre))),
+        _ => None,
+    };
+    if let Some((c, out, fingerprint)) = &stamp {
+        if let Some(counts) = c.fresh_archive(out, fingerprint) {
+            report.stats.cache_hits = groups.len();
+            report.stats.artifacts = counts.0;
+            report.stats.permutation_artifacts = counts.1;
+            report.archive = Some(out.to_path_buf());
+            progress.finish();
+            write_stats(options, &mut report, start)?;
+            return Ok(report);
+        }
     }
 
     // 4. Compile each distinct key once (or take it from the cache).
@@ -329,12 +389,21 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     Lookup::Corrupt(why) => warning = Some(format!("warning: {why}")),
                 }
             }
-            let rep = &reps[key];
+            let Some(rep) = representative(&reps, key, members, &kept, config, &options.targets, &sources) else {
+                progress.inc();
+                let e = compile::Error {
+                    kind: compile::ErrorKind::Parse,
+                    message: "the sources changed during the build".into(),
+                    labels: Vec::new(),
+                    notes: vec!["run the build again".into()],
+                };
+                return Got::Failed(e, warning);
+            };
             let opts = compile::Options {
                 targets: level_targets(p.level, &options.targets),
                 limits: level_limits(p.level),
             };
-            let got = match compile::compile(&rep.output.text, &p.shader.entry, p.shader.stage, &opts) {
+            let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
                 Ok(c) => {
                     if let Some(cache) = cache {
                         if let Err(e) = cache.put(key, &c) {
@@ -367,22 +436,33 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             Got::Failed(e, w) => {
                 report.stats.compiled += 1;
                 report.warnings.extend(w);
-                let rep = &reps[key];
-                let rep_hash = blake3::hash(rep.output.text.as_bytes());
+                let rep = representative(&reps, key, members, &kept, config, &options.targets, &sources);
+                let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
                 for &m in members {
                     let Ok(pm) = &pre[m] else { continue };
-                    let diagnostic = if pm.text_hash == rep_hash {
-                        map_error(&e, &rep.output.map)
+                    let mut diagnostic = if Some(pm.text_hash) == rep_hash {
+                        map_error(&e, &rep.as_ref().expect("hash of it").map)
                     } else {
                         // Same tokens, other spacing: this member's own spans.
                         remap_member(config, &kept[m], &options.targets, &sources, &e)
                     };
+                    if e.kind == compile::ErrorKind::EntryPoint {
+                        let s = kept[m].shader;
+                        let file = config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+                        diagnostic.notes.push(format!(
+                            "shader `{}` of {file} names entry point `{}` ({}) in {}",
+                            s.name,
+                            s.entry,
+                            s.stage,
+                            sources.display_name(&s.source_path)
+                        ));
+                    }
                     failures.push((diagnostic, vec![m]));
                 }
             }
         }
     }
-    reps.clear();
+    drop(reps);
 
     // Render failures: identical diagnostics once, naming every permutation they hit.
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
@@ -452,6 +532,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     if let Some(out) = &options.output {
         writer.write(out).map_err(|e| Error::Io(format!("error: {e}")))?;
         report.archive = Some(out.clone());
+        if let Some((c, out, fingerprint)) = &stamp {
+            // Failing to stamp only costs a full warm build next time.
+            let _ = c.stamp_archive(out, fingerprint, (report.stats.artifacts, report.stats.permutation_artifacts));
+        }
     }
     write_stats(options, &mut report, start)?;
     Ok(report)
@@ -486,8 +570,108 @@ fn preprocess_one(
         &level_limits(p.level),
         &level_targets(p.level, targets),
     );
-    let pre = Pre { key, text_hash: blake3::hash(output.text.as_bytes()), token_hash, files: output.files.clone() };
+    let pre = Pre {
+        key,
+        text_hash: blake3::hash(output.text.as_bytes()),
+        token_hash,
+        files: output.files.iter().map(|f| sources.path(*f)).collect(),
+        warnings: output.warnings.iter().map(|w| preprocess::render(std::slice::from_ref(w), sources, false)).collect(),
+    };
     Ok((pre, output))
+}
+
+/// Everything the archive's content depends on: each kept permutation's name, shader
+/// record and key, in order, and the versions.
+fn build_fingerprint(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<FileId>>]) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    h.update(b"kiln build fingerprint v1\0");
+    h.update(crate::VERSION.as_bytes());
+    h.update(b"\0");
+    h.update(compile::NAGA_VERSION.as_bytes());
+    for (p, r) in kept.iter().zip(pre) {
+        let Ok(r) = r else { continue };
+        let dims: Vec<(&str, &[String])> = p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+        let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
+        h.update(line.as_bytes());
+        h.update(&r.key.0);
+    }
+    h.finalize()
+}
+
+/// The preprocessed output of a key's first member: kept from preprocessing, or (when every
+/// member was served by its record) made now. `None` if it no longer gives that key.
+fn representative<'a>(
+    reps: &'a HashMap<Key, Representative>,
+    key: &Key,
+    members: &[usize],
+    kept: &[Permutation<'_>],
+    config: &Config,
+    targets: &[Target],
+    sources: &SourceCache,
+) -> Option<std::borrow::Cow<'a, preprocess::Output>> {
+    if let Some(r) = reps.get(key) {
+        return Some(std::borrow::Cow::Borrowed(&r.output));
+    }
+    let (pre, output) = preprocess_one(config, &kept[members[0]], targets, sources).ok()?;
+    (pre.key == *key).then_some(std::borrow::Cow::Owned(output))
+}
+
+/// The key of a permutation's preprocessing record: everything preprocessing and the
+/// compile key depend on, except the files' contents (checked against the record).
+fn direct_key(config: &Config, p: &Permutation<'_>, targets: &[Target]) -> Key {
+    let opts = p.preprocess_options(config);
+    let inputs = format!(
+        "kiln direct v1\n{}\n{}\n{:?}\n{:?}\n{}",
+        config.dir.display(),
+        p.shader.source_path.display(),
+        opts,
+        level_targets(p.level, targets),
+        crate::compile::NAGA_VERSION,
+    );
+    Key::new(
+        &blake3::hash(inputs.as_bytes()),
+        &p.shader.entry,
+        p.shader.stage,
+        &p.level.name,
+        &level_limits(p.level),
+        &level_targets(p.level, targets),
+    )
+}
+
+fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache) -> cache::Record {
+    use codespan_reporting::files::Files;
+    cache::Record {
+        key: pre.key.to_hex(),
+        token_hash: pre.token_hash.to_hex().to_string(),
+        text_hash: pre.text_hash.to_hex().to_string(),
+        files: output
+            .files
+            .iter()
+            .map(|&f| {
+                let text = sources.source(f).map(|t| blake3::hash(t.as_ref().as_bytes()).to_hex().to_string());
+                (sources.path(f), text.unwrap_or_default())
+            })
+            .collect(),
+        warnings: pre.warnings.clone(),
+    }
+}
+
+/// The record's result, if every file it lists still has the recorded contents.
+fn from_record(r: cache::Record, hashes: &FileHashes) -> Option<Pre> {
+    for (path, hash) in &r.files {
+        if hashes.get(path).as_deref() != Some(hash.as_str()) {
+            return None;
+        }
+    }
+    let hash = |hex: &str| blake3::Hash::from_hex(hex).ok();
+    let key = hash(&r.key)?;
+    Some(Pre {
+        key: Key(*key.as_bytes()),
+        text_hash: hash(&r.text_hash)?,
+        token_hash: hash(&r.token_hash)?,
+        files: r.files.into_iter().map(|(p, _)| p).collect(),
+        warnings: r.warnings,
+    })
 }
 
 /// A failing key's error on a member whose text differs from the representative's only in
@@ -532,22 +716,24 @@ fn render_failures(
     sources: &SourceCache,
     color: bool,
 ) -> Vec<String> {
-    // Group by the diagnostic as rendered without colour and without the permutation note.
-    let mut order: Vec<String> = Vec::new();
-    let mut groups: HashMap<String, (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
+    // Group by level and the diagnostic as rendered without colour and without the
+    // permutation note.
+    let mut order: Vec<(String, String)> = Vec::new();
+    let mut groups: HashMap<(String, String), (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
     for (d, members) in failures {
         let text = preprocess::render(std::slice::from_ref(&d), sources, false);
-        match groups.get_mut(&text) {
+        let key = (kept[members[0]].level.name.clone(), text);
+        match groups.get_mut(&key) {
             Some(g) => g.1.extend(members),
             None => {
-                order.push(text.clone());
-                groups.insert(text, (d, members));
+                order.push(key.clone());
+                groups.insert(key, (d, members));
             }
         }
     }
     let mut out = Vec::new();
-    for text in order {
-        let (mut d, mut members) = groups.remove(&text).expect("grouped above");
+    for key in order {
+        let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
         let p = &kept[members[0]];
         let limits = match p.level.limits {
@@ -557,8 +743,8 @@ fn render_failures(
         let note = if members.len() == 1 {
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {
-            let names: Vec<String> = members.iter().map(|&m| kept[m].name()).collect();
-            format!("in {} permutations (level `{}`, {limits} limits): {}", names.len(), p.level.name, names.join(", "))
+            let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
+            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), p.level.name, names.join("\n"))
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));

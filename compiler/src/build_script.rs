@@ -1,13 +1,11 @@
 //! The build-script API: compile a permutation set from a crate's `build.rs`.
 //!
 //! ```no_run
-//! // build.rs
-//! fn main() {
-//!     kiln::Build::new("../permutations.toml")
-//!         .out_dir_from_env() // OUT_DIR/shaders.kpak
-//!         .run()
-//!         .unwrap_or_else(|e| e.exit_for_cargo());
-//! }
+//! // build.rs, in `fn main()`:
+//! kiln::Build::new("../permutations.toml")
+//!     .out_dir_from_env() // OUT_DIR/shaders.kpak
+//!     .run()
+//!     .unwrap_or_else(|e| e.exit_for_cargo());
 //! ```
 //!
 //! [`Build::run`] calls the same [`crate::build::run`] as `kiln build`. It prints
@@ -136,8 +134,15 @@ impl Build {
         self
     }
 
-    /// Runs the build; returns the archive's path.
+    /// Runs the build; returns the archive's path. `cargo:` lines go to stdout.
     pub fn run(self) -> Result<PathBuf, BuildError> {
+        let stdout = std::io::stdout();
+        let mut lock = stdout.lock();
+        self.run_with_output(&mut lock)
+    }
+
+    /// [`Build::run`], writing the `cargo:` lines to `out`.
+    pub fn run_with_output(self, out: &mut dyn std::io::Write) -> Result<PathBuf, BuildError> {
         let out_dir = self.out_dir.clone().ok_or_else(|| BuildError {
             message: "error: kiln::Build has no output folder: call .out_dir_from_env() in a build script (OUT_DIR is not set) or .out_dir(DIR)".into(),
             code: 2,
@@ -161,8 +166,8 @@ impl Build {
             color: false,
         };
         if self.cargo_output {
-            println!("cargo:rerun-if-changed={}", self.config.display());
-            println!("cargo:rerun-if-env-changed=KILN_CACHE_DIR");
+            let _ = writeln!(out, "cargo:rerun-if-changed={}", self.config.display());
+            let _ = writeln!(out, "cargo:rerun-if-env-changed=KILN_CACHE_DIR");
         }
         let result = build::run(&options);
         let report = match &result {
@@ -172,11 +177,13 @@ impl Build {
         };
         if let (true, Some(report)) = (self.cargo_output, report) {
             for f in &report.files_read {
-                println!("cargo:rerun-if-changed={}", f.display());
+                if f != &self.config {
+                    let _ = writeln!(out, "cargo:rerun-if-changed={}", f.display());
+                }
             }
             for w in &report.warnings {
                 for line in w.trim_end().lines() {
-                    println!("cargo:warning={line}");
+                    let _ = writeln!(out, "cargo:warning={line}");
                 }
             }
         }

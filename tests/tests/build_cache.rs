@@ -149,3 +149,35 @@ fn no_cache_compiles_everything_and_writes_no_entry() {
     let r = build_ok(&options(&config, &fx.path().join("a.kpak"), None));
     assert_eq!((r.stats.compiled, r.stats.cache_hits), (DISTINCT, 0));
 }
+
+#[test]
+fn an_up_to_date_archive_is_left_alone_and_a_touched_one_is_rewritten() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let out = fx.path().join("shaders.kpak");
+    build_ok(&options(&config, &out, Some(&cache)));
+    let bytes = std::fs::read(&out).unwrap();
+    let modified = std::fs::metadata(&out).unwrap().modified().unwrap();
+
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.preprocessed), (0, DISTINCT, 0));
+    assert_eq!(r.stats.artifacts, 60);
+    assert_eq!(std::fs::metadata(&out).unwrap().modified().unwrap(), modified, "not rewritten");
+
+    // Deleted or replaced: written again from the cache.
+    std::fs::remove_file(&out).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (0, DISTINCT));
+    assert_eq!(std::fs::read(&out).unwrap(), bytes);
+    std::fs::write(&out, b"something else").unwrap();
+    build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!(std::fs::read(&out).unwrap(), bytes);
+
+    // Other options give another archive.
+    let mut opts = options(&config, &out, Some(&cache));
+    opts.targets = vec![kiln::archive::Target::Wgsl];
+    let r = build_ok(&opts);
+    assert_eq!(r.stats.compiled, DISTINCT, "other targets are other keys");
+    assert_ne!(std::fs::read(&out).unwrap(), bytes);
+}

@@ -16,8 +16,8 @@ use kiln::archive::{Archive, Target};
 fn file_name(permutation: &str) -> String {
     // `LitPS@es3_1{USE_FOG=1,BLEND=MASKED}` -> `LitPS.es3_1.USE_FOG-1.BLEND-MASKED`
     permutation
-        .replace('@', ".")
-        .replace(['{', '}'], "")
+        .replace(['@', '{'], ".")
+        .replace('}', "")
         .replace(',', ".")
         .replace('=', "-")
         .trim_end_matches('.')

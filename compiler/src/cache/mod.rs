@@ -2,8 +2,10 @@
 //!
 //! Takes a [`Key`] (blake3 of everything that decides a compile's output: the token hash
 //! of the preprocessed text, entry point, stage, level name, limits and targets, Kiln's and
-//! naga's versions) and the [`Compiled`] outputs of that key; gives them back on a later
-//! build. Guarantees: an entry is one file written to a temporary file in the cache folder
+//! naga's versions, a fingerprint of Kiln's own sources) and the [`Compiled`] outputs of
+//! that key; gives them back on a later build. It also keeps, per permutation, a
+//! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
+//! archive, a stamp (so an up-to-date archive is not rewritten). Guarantees: an entry is one file written to a temporary file in the cache folder
 //! and renamed into place, so readers (other processes included) see a whole entry or none,
 //! and two builds sharing a cache both succeed; every entry carries a checksum of its
 //! content, so a corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never
@@ -20,6 +22,21 @@ use crate::compile::{Compiled, Limits};
 
 const MAGIC: &[u8; 8] = b"KILNCE\0\x01";
 const EXTENSION: &str = "kce";
+const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
+const RECORD_EXTENSION: &str = "kpp";
+
+/// What preprocessing one permutation gave, kept so that a later build whose inputs are
+/// unchanged skips the preprocessor (like ccache's direct mode): the files read with the
+/// blake3 of their contents, the hashes, the compile key, and the rendered warnings.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Record {
+    pub key: String,
+    pub token_hash: String,
+    pub text_hash: String,
+    /// (absolute path, blake3 of the text the preprocessor read).
+    pub files: Vec<(PathBuf, String)>,
+    pub warnings: Vec<String>,
+}
 
 /// The cache key of one distinct compile.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -50,6 +67,7 @@ impl Key {
             field(t.name().as_bytes());
         }
         field(crate::VERSION.as_bytes());
+        field(env!("KILN_SOURCE_HASH").as_bytes());
         field(crate::compile::NAGA_VERSION.as_bytes());
         Key(*h.finalize().as_bytes())
     }
@@ -78,7 +96,11 @@ pub enum Lookup {
 /// Counts of [`Cache::stats`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Stats {
+    /// Compiled entries (`.kce`).
     pub entries: u64,
+    /// Preprocessing records (`.kpp`).
+    pub records: u64,
+    /// Bytes of entries and records.
     pub bytes: u64,
     /// Temporary files left by interrupted writes (removed by `gc` and `clear`).
     pub temporaries: u64,
@@ -87,7 +109,10 @@ pub struct Stats {
 /// What [`Cache::gc`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct GcReport {
+    /// Compiled entries removed.
     pub removed: u64,
+    /// Preprocessing records removed.
+    pub removed_records: u64,
     pub freed: u64,
     pub kept: u64,
     pub kept_bytes: u64,
@@ -147,20 +172,81 @@ impl Cache {
 
     /// Stores `compiled` under `key` atomically.
     pub fn put(&self, key: &Key, compiled: &Compiled) -> Result<(), Error> {
-        let path = self.path(key);
+        self.write_file(&self.path(key), &encode(key, compiled))
+    }
+
+    /// The file of a preprocessing record: `DIR/pp/ab/abcdef….kpp`.
+    pub fn record_path(&self, key: &Key) -> PathBuf {
+        let hex = key.to_hex();
+        self.dir.join("pp").join(&hex[..2]).join(format!("{hex}.{RECORD_EXTENSION}"))
+    }
+
+    /// The preprocessing record under `key`; `None` when missing or damaged.
+    pub fn get_record(&self, key: &Key) -> Option<Record> {
+        let path = self.record_path(key);
+        let bytes = fs::read(&path).ok()?;
+        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+            return None;
+        }
+        let record = serde_json::from_slice(&bytes[40..]).ok()?;
+        if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        Some(record)
+    }
+
+    /// Stores a preprocessing record atomically.
+    pub fn put_record(&self, key: &Key, record: &Record) -> Result<(), Error> {
+        let body = serde_json::to_vec(record).expect("record serializes");
+        let mut bytes = Vec::with_capacity(40 + body.len());
+        bytes.extend_from_slice(RECORD_MAGIC);
+        bytes.extend_from_slice(blake3::hash(&body).as_bytes());
+        bytes.extend_from_slice(&body);
+        self.write_file(&self.record_path(key), &bytes)
+    }
+
+    /// The stamp of the archive at `archive`: `DIR/builds/<blake3 of its absolute path>`.
+    fn stamp_path(&self, archive: &Path) -> PathBuf {
+        let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());
+        let name = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
+        self.dir.join("builds").join(format!("{}.stamp", &name[..32]))
+    }
+
+    /// Records that the archive now at `archive` is the output of the build with
+    /// `fingerprint` (with its artifact counts), identified by its length, modification
+    /// time and header checksum.
+    pub fn stamp_archive(&self, archive: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) -> Result<(), Error> {
+        let err = |source| Error { path: archive.to_path_buf(), source };
+        let id = archive_identity(archive).map_err(err)?;
+        let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
+        self.write_file(&self.stamp_path(archive), text.as_bytes())
+    }
+
+    /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
+    /// build with `fingerprint`.
+    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash) -> Option<(usize, usize)> {
+        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
+        let mut lines = text.lines();
+        if lines.next()? != fingerprint.to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
+            return None;
+        }
+        Some((lines.next()?.parse().ok()?, lines.next()?.parse().ok()?))
+    }
+
+    fn write_file(&self, path: &Path, bytes: &[u8]) -> Result<(), Error> {
         let dir = path.parent().expect("entry has a folder").to_path_buf();
-        let err = |source| Error { path: path.clone(), source };
+        let err = |source| Error { path: path.to_path_buf(), source };
         fs::create_dir_all(&dir).map_err(err)?;
         let mut tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(err)?;
-        tmp.write_all(&encode(key, compiled)).map_err(err)?;
-        tmp.persist(&path).map_err(|e| err(e.error))?;
+        tmp.write_all(bytes).map_err(err)?;
+        tmp.persist(path).map_err(|e| err(e.error))?;
         Ok(())
     }
 
     fn files(&self) -> impl Iterator<Item = (PathBuf, fs::Metadata)> {
         walkdir::WalkDir::new(&self.dir)
             .min_depth(1)
-            .max_depth(2)
+            .max_depth(3)
             .into_iter()
             .filter_map(Result::ok)
             .filter(|e| e.file_type().is_file())
@@ -169,6 +255,10 @@ impl Cache {
 
     fn is_entry(path: &Path) -> bool {
         path.extension().is_some_and(|e| e == EXTENSION)
+    }
+
+    fn is_record(path: &Path) -> bool {
+        path.extension().is_some_and(|e| e == RECORD_EXTENSION)
     }
 
     fn is_temporary(path: &Path) -> bool {
@@ -181,6 +271,9 @@ impl Cache {
             if Self::is_entry(&path) {
                 s.entries += 1;
                 s.bytes += meta.len();
+            } else if Self::is_record(&path) {
+                s.records += 1;
+                s.bytes += meta.len();
             } else if Self::is_temporary(&path) {
                 s.temporaries += 1;
             }
@@ -188,13 +281,13 @@ impl Cache {
         s
     }
 
-    /// Evicts least recently used entries until the entries take at most `max_bytes`;
+    /// Evicts least recently used entries and records until they take at most `max_bytes`;
     /// removes temporary files older than a minute (left by interrupted writes).
     pub fn gc(&self, max_bytes: u64) -> GcReport {
         let mut entries = Vec::new();
         let now = SystemTime::now();
         for (path, meta) in self.files() {
-            if Self::is_entry(&path) {
+            if Self::is_entry(&path) || Self::is_record(&path) {
                 entries.push((meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), meta.len(), path));
             } else if Self::is_temporary(&path) {
                 let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
@@ -212,11 +305,16 @@ impl Cache {
             }
             if fs::remove_file(path).is_ok() {
                 total -= len;
-                report.removed += 1;
+                if Self::is_entry(path) {
+                    report.removed += 1;
+                } else {
+                    report.removed_records += 1;
+                }
                 report.freed += len;
             }
         }
-        report.kept = entries.len() as u64 - report.removed;
+        let total_entries = entries.iter().filter(|e| Self::is_entry(&e.2)).count() as u64;
+        report.kept = total_entries - report.removed;
         report.kept_bytes = total;
         report
     }
@@ -225,13 +323,24 @@ impl Cache {
     pub fn clear(&self) -> Result<u64, Error> {
         let mut n = 0;
         for (path, _) in self.files() {
-            if Self::is_entry(&path) || Self::is_temporary(&path) {
+            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) {
                 fs::remove_file(&path).map_err(|source| Error { path: path.clone(), source })?;
                 n += u64::from(Self::is_entry(&path));
             }
         }
         Ok(n)
     }
+}
+
+/// Length, modification time and header checksum of an archive file.
+fn archive_identity(path: &Path) -> io::Result<String> {
+    use std::io::Read;
+    let mut f = fs::File::open(path)?;
+    let meta = f.metadata()?;
+    let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
+    let mut header = [0u8; 64];
+    f.read_exact(&mut header)?;
+    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.

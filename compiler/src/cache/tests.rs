@@ -47,7 +47,7 @@ fn put_then_get_round_trips() {
         Lookup::Hit(c) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
-    assert_eq!(cache.stats(), Stats { entries: 1, bytes: fs::metadata(cache.path(&k)).unwrap().len(), temporaries: 0 });
+    assert_eq!(cache.stats(), Stats { entries: 1, records: 0, bytes: fs::metadata(cache.path(&k)).unwrap().len(), temporaries: 0 });
 }
 
 #[test]
@@ -99,7 +99,7 @@ fn interrupted_write_leaves_no_entry() {
     fs::write(tmp.path(), &full[..full.len() / 2]).unwrap();
     let (_, kept) = tmp.keep().unwrap();
     assert!(matches!(cache.get(&k), Lookup::Miss));
-    assert_eq!(cache.stats(), Stats { entries: 0, bytes: 0, temporaries: 1 });
+    assert_eq!(cache.stats(), Stats { entries: 0, records: 0, bytes: 0, temporaries: 1 });
     // gc leaves young temporaries alone (a concurrent writer may own them)...
     cache.gc(0);
     assert!(kept.exists());
@@ -152,6 +152,32 @@ fn gc_evicts_least_recently_used_first() {
     assert!(cache.path(&keys[0]).exists() && cache.path(&keys[2]).exists());
     assert_eq!(cache.clear().unwrap(), 2);
     assert_eq!(cache.stats(), Stats::default());
+}
+
+#[test]
+fn records_round_trip_and_damage_is_a_miss() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let k = key("r");
+    assert_eq!(cache.get_record(&k), None);
+    let r = Record {
+        key: key("a").to_hex(),
+        token_hash: "t".into(),
+        text_hash: "x".into(),
+        files: vec![(PathBuf::from("/a/b.ush"), "h".into())],
+        warnings: vec!["warning: w".into()],
+    };
+    cache.put_record(&k, &r).unwrap();
+    assert_eq!(cache.get_record(&k), Some(r));
+    assert_eq!(cache.stats().records, 1);
+    let path = cache.record_path(&k);
+    let mut bytes = fs::read(&path).unwrap();
+    let at = bytes.len() - 5;
+    bytes[at] ^= 1;
+    fs::write(&path, bytes).unwrap();
+    assert_eq!(cache.get_record(&k), None);
+    let report = cache.gc(0);
+    assert_eq!((report.removed, report.removed_records), (0, 1));
 }
 
 #[test]

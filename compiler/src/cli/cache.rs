@@ -43,7 +43,14 @@ pub fn exec(args: Args) -> CliResult {
     let text = match args.action {
         Action::Stats => {
             let s = cache.stats();
-            let mut t = format!("cache: {}\nentries: {}\nsize: {} ({} bytes)\n", dir.display(), s.entries, format_size(s.bytes), s.bytes);
+            let mut t = format!(
+                "cache: {}\nentries: {}\npreprocessing records: {}\nsize: {} ({} bytes)\n",
+                dir.display(),
+                s.entries,
+                s.records,
+                format_size(s.bytes),
+                s.bytes
+            );
             if s.temporaries > 0 {
                 t += &format!("temporary files: {} (left by interrupted writes; `kiln cache gc` removes them)\n", s.temporaries);
             }
@@ -52,8 +59,9 @@ pub fn exec(args: Args) -> CliResult {
         Action::Gc { max_size } => {
             let r = cache.gc(max_size);
             format!(
-                "removed {} entries ({}); kept {} entries ({})\n",
+                "removed {} entries and {} preprocessing records ({}); kept {} entries ({})\n",
                 r.removed,
+                r.removed_records,
                 format_size(r.freed),
                 r.kept,
                 format_size(r.kept_bytes)

@@ -33,15 +33,18 @@ pub struct Args {
 }
 
 /// Loads a permutation set, rendering a bad one as exit code 2.
-pub(super) fn load_config(path: &std::path::Path) -> Result<Config, Failure> {
-    permute::load(path).map_err(|e| Failure::usage(e.render_with(io::stderr().is_terminal())))
+/// Its warnings go to `err`.
+pub(super) fn load_config(path: &std::path::Path, color: bool, err: &mut dyn Write) -> Result<Config, Failure> {
+    let config = permute::load(path).map_err(|e| Failure::usage(e.render_with(color)))?;
+    for w in &config.warnings {
+        let _ = write!(err, "{w}");
+    }
+    Ok(config)
 }
 
-/// Runs `body` on a buffered stdout; a closed pipe (`kiln list | head`) is success.
-pub(super) fn with_stdout(body: impl FnOnce(&mut dyn Write) -> io::Result<()>) -> CliResult {
-    let stdout = io::stdout();
-    let mut out = io::BufWriter::new(stdout.lock());
-    match body(&mut out).and_then(|_| out.flush()) {
+/// A write error: a closed pipe (`kiln list | head`) is success.
+pub(super) fn write_result(r: io::Result<()>) -> CliResult {
+    match r {
         Ok(()) => Ok(()),
         Err(e) if e.kind() == io::ErrorKind::BrokenPipe => Ok(()),
         Err(e) => Err(Failure::usage(format!("error: cannot write to stdout: {e}"))),
@@ -57,17 +60,35 @@ struct Count {
 }
 
 pub fn exec(args: Args) -> CliResult {
-    let config = load_config(&args.config)?;
+    let stdout = io::stdout();
+    let mut out = io::BufWriter::new(stdout.lock());
+    let color = io::stderr().is_terminal();
+    let r = run(&args, &mut out, &mut io::stderr(), color);
+    write_result(out.flush())?;
+    r
+}
+
+/// `kiln list` writing to `out` (the listing) and `err` (warnings).
+pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: bool) -> CliResult {
+    let config = load_config(&args.config, color, err)?;
     if let Some(s) = &args.shader {
         if config.shader(s).is_none() {
             let names: Vec<&str> = config.shaders.iter().map(|s| s.name.as_str()).collect();
-            return Err(Failure::usage(format!("error: no shader named `{s}` in {} (shaders: {})", args.config.display(), names.join(", "))));
+            return Err(Failure::usage(format!(
+                "error: no shader named `{s}` in {} (shaders: {})",
+                args.config.display(),
+                names.join(", ")
+            )));
         }
     }
     if let Some(l) = &args.level {
         if config.level(l).is_none() {
             let names: Vec<&str> = config.levels.iter().map(|l| l.name.as_str()).collect();
-            return Err(Failure::usage(format!("error: no level named `{l}` in {} (levels: {})", args.config.display(), names.join(", "))));
+            return Err(Failure::usage(format!(
+                "error: no level named `{l}` in {} (levels: {})",
+                args.config.display(),
+                names.join(", ")
+            )));
         }
     }
     let shader = args.shader.clone();
@@ -96,7 +117,7 @@ pub fn exec(args: Args) -> CliResult {
     // The names stream out first; the analysis (which preprocesses) comes after.
     let cache = SourceCache::new(config.dir.clone());
     let mut analysis: Option<Analysis> = None;
-    let result = with_stdout(|out| {
+    let result = write_result((|| {
         if args.json {
             writeln!(out, "{{")?;
             writeln!(out, "  \"config\": {},", json!(config.path.display().to_string()))?;
@@ -114,7 +135,9 @@ pub fn exec(args: Args) -> CliResult {
                     .zip(&p.values)
                     .map(|(d, v)| (d.name.clone(), if d.labels.is_empty() { json!(v) } else { json!(d.display(*v)) }))
                     .collect();
-                let skip = p.skipped_by.map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
+                let skip = p
+                    .skipped_by
+                    .map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
                 let obj = json!({
                     "name": p.name(), "shader": p.shader.name, "level": p.level.name, "values": values,
                     "kept": p.is_kept(), "skip": skip,
@@ -129,13 +152,20 @@ pub fn exec(args: Args) -> CliResult {
             let count_json: Vec<serde_json::Value> = counts
                 .iter()
                 .map(|c| {
-                    let distinct = analysis.as_ref().and_then(|a| a.find(&c.shader, &c.level)).map(|l| l.distinct);
+                    let distinct = analysis
+                        .as_ref()
+                        .and_then(|a| a.find(&c.shader, &c.level))
+                        .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
+                        .map(|l| l.distinct);
                     json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": c.skipped, "distinct": distinct })
                 })
                 .collect();
             let kept: usize = counts.iter().map(|c| c.kept).sum();
             let skipped: usize = counts.iter().map(|c| c.skipped).sum();
-            let distinct = analysis.as_ref().map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
+            let distinct = analysis
+                .as_ref()
+                .filter(|a| a.failed.is_empty())
+                .map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
             let dead: Vec<serde_json::Value> = analysis
                 .iter()
                 .flat_map(|a| a.dead())
@@ -166,35 +196,45 @@ pub fn exec(args: Args) -> CliResult {
             analysis = Some(permute::analyze(&config, &cache, &filter));
         }
         write_summary(out, &counts, analysis.as_ref())
-    });
-    for e in errors.iter().take(20) {
-        eprintln!("{e}");
-    }
-    if let Some(a) = &analysis {
-        if let Some(first) = a.failed.first() {
-            eprintln!(
-                "warning: {} permutation(s) failed to preprocess; distinct counts and dead dimensions leave them out. The first, {}:",
-                a.failed.len(),
-                first.name
-            );
-            eprint!("{}", preprocess::render(std::slice::from_ref(&first.error.diagnostic), &cache, io::stderr().is_terminal()));
-        }
-    }
+    })());
+    let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
     result
+}
+
+fn write_warnings(
+    err: &mut dyn Write,
+    errors: &[String],
+    analysis: Option<&Analysis>,
+    cache: &SourceCache,
+    color: bool,
+) -> io::Result<()> {
+    for e in errors.iter().take(20) {
+        writeln!(err, "{e}")?;
+    }
+    if let Some(first) = analysis.and_then(|a| a.failed.first()) {
+        writeln!(
+            err,
+            "warning: {} permutation(s) failed to preprocess (their levels show no distinct count). The first, {}:",
+            analysis.map_or(0, |a| a.failed.len()),
+            first.name
+        )?;
+        write!(err, "{}", preprocess::render(std::slice::from_ref(&first.error.diagnostic), cache, color))?;
+    }
+    Ok(())
 }
 
 fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analysis>) -> io::Result<()> {
     let distinct = |c: &Count| -> String {
         match analysis.and_then(|a| a.find(&c.shader, &c.level)) {
-            Some(l) => l.distinct.to_string(),
-            None => "-".to_string(),
+            Some(l) if l.permutations.iter().all(|p| p.hash.is_some()) => l.distinct.to_string(),
+            _ => "-".to_string(),
         }
     };
     let total_kept: usize = counts.iter().map(|c| c.kept).sum();
     let total_skipped: usize = counts.iter().map(|c| c.skipped).sum();
     let total_distinct = match analysis {
-        Some(a) => a.levels.iter().map(|l| l.distinct).sum::<usize>().to_string(),
-        None => "-".to_string(),
+        Some(a) if a.failed.is_empty() => a.levels.iter().map(|l| l.distinct).sum::<usize>().to_string(),
+        _ => "-".to_string(),
     };
     let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6);
     let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5);
@@ -210,7 +250,11 @@ fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analys
             writeln!(out)?;
             writeln!(out, "dead dimensions (they never change the preprocessed text):")?;
             for d in dead {
-                writeln!(out, "  {}@{}: {} (x{} permutations for nothing)", d.shader, d.level, d.dimension, d.multiplier)?;
+                writeln!(
+                    out,
+                    "  {}@{}: {} (x{} permutations for nothing)",
+                    d.shader, d.level, d.dimension, d.multiplier
+                )?;
             }
         }
     }
@@ -228,13 +272,164 @@ mod tests {
         args: Args,
     }
 
+    fn fixture(name: &str) -> String {
+        format!("{}/../tests/in/permute/{name}", env!("CARGO_MANIFEST_DIR"))
+    }
+
+    /// `kiln list ARGS...`: (exit code, stdout, stderr).
+    fn list(args: &[&str]) -> (u8, String, String) {
+        let cli = Cli::try_parse_from(std::iter::once("list").chain(args.iter().copied())).unwrap();
+        let (mut out, mut err) = (Vec::new(), Vec::new());
+        let code = match run(&cli.args, &mut out, &mut err, false) {
+            Ok(()) => 0,
+            Err(f) => {
+                err.extend_from_slice(f.message.as_bytes());
+                f.code
+            }
+        };
+        (code, String::from_utf8(out).unwrap(), String::from_utf8(err).unwrap())
+    }
+
     #[test]
     fn defaults() {
         let cli = Cli::try_parse_from(["list"]).unwrap();
         assert_eq!(cli.args.config, PathBuf::from("permutations.toml"));
         assert!(!cli.args.all && !cli.args.json && cli.args.shader.is_none());
-        let cli = Cli::try_parse_from(["list", "--config", "x.toml", "--shader", "S", "--level", "sm5", "--all", "--json"]).unwrap();
+        let cli =
+            Cli::try_parse_from(["list", "--config", "x.toml", "--shader", "S", "--level", "sm5", "--all", "--json"])
+                .unwrap();
         assert_eq!(cli.args.shader.as_deref(), Some("S"));
         assert!(cli.args.all && cli.args.json);
+    }
+
+    #[test]
+    fn kept_names_then_counts() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, err) = list(&["--config", &config, "--shader", "Tonemap", "--level", "es3_1", "--no-analysis"]);
+        assert_eq!((code, err.as_str()), (0, ""));
+        assert_eq!(
+            out,
+            "Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=0,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=0,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=1}
+Tonemap@es3_1{BLEND_MODE=MASKED,DEBUG_VIEW=1,GRAIN=2}
+Tonemap@es3_1{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=0,GRAIN=0}
+Tonemap@es3_1{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=1,GRAIN=0}
+
+shader   level      kept   skipped  distinct
+Tonemap  es3_1        14         4         -
+total                 14         4         -
+"
+        );
+    }
+
+    #[test]
+    fn all_adds_skipped_with_rule_and_reason() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, _) = list(&["--config", &config, "--shader", "MobileBasePassPS", "--all", "--no-analysis"]);
+        assert_eq!(code, 0);
+        let lines: Vec<&str> = out.lines().collect();
+        assert_eq!(lines.len(), 32 + 4);
+        assert_eq!(
+            lines[5],
+            "MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=1,USE_VERTEX_FOG=0,DEFERRED_SHADING_PATH=1}  skipped by rule 1: deferred lights run in their own pass (when DEFERRED_SHADING_PATH && MAX_DYNAMIC_POINT_LIGHTS > 0)"
+        );
+        assert_eq!(lines.iter().filter(|l| l.contains("  skipped by rule 1: ")).count(), 12);
+        assert_eq!(lines[34], "MobileBasePassPS  es3_1        20        12         -");
+    }
+
+    #[test]
+    fn json_form() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, _) = list(&["--config", &config, "--all", "--json", "--no-analysis"]);
+        assert_eq!(code, 0);
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        let perms = v["permutations"].as_array().unwrap();
+        assert_eq!(perms.len(), 32 + 18 + 18);
+        let skipped = perms.iter().find(|p| p["kept"] == false).unwrap();
+        assert_eq!(skipped["skip"]["rule"], 1);
+        assert_eq!(skipped["skip"]["why"], "deferred lights run in their own pass");
+        let t = perms.iter().find(|p| p["shader"] == "Tonemap").unwrap();
+        assert_eq!(t["values"], serde_json::json!({ "BLEND_MODE": "OPAQUE", "DEBUG_VIEW": 0, "GRAIN": 0 }));
+        assert_eq!(t["level"], "sm5");
+        assert_eq!(v["totals"], serde_json::json!({ "kept": 48, "skipped": 20, "distinct": null }));
+        assert_eq!(
+            v["counts"][1],
+            serde_json::json!({ "shader": "Tonemap", "level": "sm5", "kept": 14, "skipped": 4, "distinct": null })
+        );
+    }
+
+    #[test]
+    fn counts_with_distinct_streams_and_dead_dimensions() {
+        let config = fixture("mobile/permutations.toml");
+        let (code, out, err) = list(&["--config", &config]);
+        assert_eq!((code, err.as_str()), (0, ""));
+        let tail: Vec<&str> = out.lines().skip(48).collect();
+        assert_eq!(
+            tail.join("\n"),
+            "
+shader            level      kept   skipped  distinct
+MobileBasePassPS  es3_1        20        12        18
+Tonemap           sm5          14         4         6
+Tonemap           es3_1        14         4         6
+total                          48        20        30
+
+dead dimensions (they never change the preprocessed text):
+  Tonemap@sm5: DEBUG_VIEW (x2 permutations for nothing)
+  Tonemap@es3_1: DEBUG_VIEW (x2 permutations for nothing)"
+        );
+        let (_, out, _) = list(&["--config", &config, "--json", "--shader", "Tonemap"]);
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(v["totals"], serde_json::json!({ "kept": 28, "skipped": 8, "distinct": 12 }));
+        assert_eq!(
+            v["dead_dimensions"][1],
+            serde_json::json!({ "shader": "Tonemap", "level": "es3_1", "dimension": "DEBUG_VIEW", "multiplier": 2 })
+        );
+        assert_eq!(v["failed"], serde_json::json!([]));
+    }
+
+    #[test]
+    fn preprocessing_failures_warn_and_leave_distinct_out() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("S.usf"),
+            "#if MODE == 2\n#error mode 2 is not written yet\n#endif\nfn f() {}\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.path().join("permutations.toml"),
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\n[[shader]]\nname = \"S\"\nsource = \"S.usf\"\nstage = \"compute\"\ndimensions = { MODE = [1, 2] }\n",
+        )
+        .unwrap();
+        let config = dir.path().join("permutations.toml");
+        let (code, out, err) = list(&["--config", config.to_str().unwrap()]);
+        assert_eq!(code, 0);
+        assert!(
+            out.ends_with("S       sm5           2         0         -\ntotal                 2         0         -\n"),
+            "{out}"
+        );
+        assert!(err.starts_with("warning: 1 permutation(s) failed to preprocess (their levels show no distinct count). The first, S@sm5{MODE=2}:\nerror: "), "{err}");
+    }
+
+    #[test]
+    fn config_errors_and_unknown_filters_exit_2() {
+        let (code, out, err) = list(&["--config", "/nonexistent/permutations.toml"]);
+        assert_eq!((code, out.as_str()), (2, ""));
+        assert!(err.starts_with("error: cannot read permutation set `/nonexistent/permutations.toml`: "), "{err}");
+        let config = fixture("mobile/permutations.toml");
+        let (code, _, err) = list(&["--config", &config, "--shader", "Nope"]);
+        assert_eq!(code, 2);
+        assert!(err.ends_with("(shaders: MobileBasePassPS, Tonemap)"), "{err}");
+        let (code, _, err) = list(&["--config", &config, "--level", "sm6"]);
+        assert_eq!(code, 2);
+        assert!(err.ends_with("(levels: sm5, es3_1)"), "{err}");
     }
 }

@@ -1,11 +1,70 @@
 //! `kiln preprocess`.
 
-use super::{CliResult, Failure};
+use std::path::PathBuf;
+
+use super::{print_stdout, CliResult, Failure};
+use crate::preprocess::{self, Options, SourceCache};
 
 /// Arguments of `kiln preprocess`.
 #[derive(Debug, clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// The file to preprocess.
+    pub file: PathBuf,
+    /// Define a macro: `NAME` (as 1) or `NAME=VALUE`.
+    #[arg(short = 'D', value_name = "NAME[=VALUE]")]
+    pub define: Vec<String>,
+    /// Add an include root (searched in order after the including file's folder).
+    #[arg(short = 'I', value_name = "DIR")]
+    pub include: Vec<PathBuf>,
+    /// Show warnings and errors with ANSI colours.
+    #[arg(long)]
+    pub color: bool,
+}
 
-pub fn exec(_args: Args) -> CliResult {
-    Err(Failure::usage("error: `kiln preprocess` is not available yet"))
+/// `-D NAME[=VALUE]` as a (name, replacement text) pair; `-D NAME` defines it as 1.
+pub fn parse_define(d: &str) -> (String, String) {
+    match d.split_once('=') {
+        Some((n, v)) => (n.to_string(), v.to_string()),
+        None => (d.to_string(), "1".to_string()),
+    }
+}
+
+pub fn exec(args: Args) -> CliResult {
+    if !args.file.is_file() {
+        return Err(Failure::usage(format!("error: cannot read `{}`: no such file", args.file.display())));
+    }
+    for dir in &args.include {
+        if !dir.is_dir() {
+            return Err(Failure::usage(format!("error: include folder `{}` does not exist", dir.display())));
+        }
+    }
+    let opts = Options {
+        include_roots: args.include.clone(),
+        defines: args.define.iter().map(|d| parse_define(d)).collect(),
+        ..Options::default()
+    };
+    let cwd = std::env::current_dir().unwrap_or_else(|_| PathBuf::from("."));
+    let cache = SourceCache::new(cwd);
+    match preprocess::preprocess_file(&args.file, &opts, &cache) {
+        Ok(out) => {
+            if !out.warnings.is_empty() {
+                eprint!("{}", preprocess::render(&out.warnings, &cache, args.color));
+            }
+            print_stdout(&out.text)
+        }
+        Err(e) => Err(Failure::shader(preprocess::render(std::slice::from_ref(&e.diagnostic), &cache, args.color))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defines() {
+        assert_eq!(parse_define("A"), ("A".into(), "1".into()));
+        assert_eq!(parse_define("A=2"), ("A".into(), "2".into()));
+        assert_eq!(parse_define("A="), ("A".into(), "".into()));
+        assert_eq!(parse_define("F(x)=x+1"), ("F(x)".into(), "x+1".into()));
+    }
 }

@@ -215,6 +215,18 @@ fn writer_failures_become_errors() {
 }
 
 #[test]
+fn a_panicking_writer_is_an_error_of_the_permutation() {
+    let e = writers::guarded(Target::Msl, || panic!("unsupported scalar width")).unwrap_err();
+    assert_eq!(e.kind, ErrorKind::Writer(Target::Msl));
+    assert_eq!(e.message, "the msl writer panicked: unsupported scalar width");
+    assert_eq!(e.notes, vec![format!("naga {NAGA_VERSION} cannot write this shader as msl")]);
+    let e = writers::guarded(Target::Hlsl, || Err("no".to_string())).unwrap_err();
+    assert_eq!(e.message, "the hlsl writer failed: no");
+    // Later panics outside writers still reach the normal hook (and the flag is reset).
+    assert_eq!(writers::guarded(Target::Wgsl, || Ok(vec![1])).unwrap(), vec![1]);
+}
+
+#[test]
 fn naga_version_matches_cargo_lock() {
     let lock = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../Cargo.lock")).unwrap();
     let at = lock.find("name = \"naga\"\nversion = \"").expect("naga in Cargo.lock");

@@ -75,7 +75,35 @@ pub fn write(
             }
         }
     };
-    match catch_unwind(AssertUnwindSafe(run)) {
+    guarded(target, run)
+}
+
+thread_local! {
+    /// Set while a writer runs: its panics are reported as errors, not printed.
+    static IN_WRITER: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Installs (once per process) a panic hook that stays quiet for panics inside a writer,
+/// which [`guarded`] turns into errors, and defers to the previous hook for all others.
+fn quiet_writer_panics() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !IN_WRITER.with(|w| w.get()) {
+                previous(info);
+            }
+        }));
+    });
+}
+
+/// Runs a writer, turning an `Err` or a panic into the permutation's [`Error`].
+pub(crate) fn guarded(target: Target, run: impl FnOnce() -> Result<Vec<u8>, String>) -> Result<Vec<u8>, Error> {
+    quiet_writer_panics();
+    IN_WRITER.with(|w| w.set(true));
+    let result = catch_unwind(AssertUnwindSafe(run));
+    IN_WRITER.with(|w| w.set(false));
+    match result {
         Ok(Ok(bytes)) => Ok(bytes),
         Ok(Err(message)) => Err(Error::new(ErrorKind::Writer(target), format!("the {target} writer failed: {message}"))),
         Err(panic) => {

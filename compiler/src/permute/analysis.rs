@@ -86,40 +86,47 @@ impl Analysis {
 /// parallel, every file read once through `cache`), then groups them by token stream and
 /// finds dead dimensions.
 pub fn analyze(config: &Config, cache: &SourceCache, filter: impl Fn(&Shader, &Level) -> bool + Sync) -> Analysis {
-    let mut levels = Vec::new();
-    let mut failed = Vec::new();
-    for shader in &config.shaders {
-        for level_name in &shader.levels {
-            let Some(level) = config.level(level_name) else { continue };
-            if !filter(shader, level) {
-                continue;
-            }
-            let kept: Vec<Permutation<'_>> = config
-                .permutations_where(|s, l| std::ptr::eq(s, shader) && std::ptr::eq(l, level))
-                .filter(Permutation::is_kept)
-                .collect();
-            let results: Vec<Result<blake3::Hash, preprocess::Error>> = kept
-                .par_iter()
-                .map(|p| {
-                    preprocess::preprocess_file(&shader.source_path, &p.preprocess_options(config), cache).map(|o| o.token_hash())
-                })
-                .collect();
-            let mut permutations = Vec::with_capacity(kept.len());
-            for (p, r) in kept.into_iter().zip(results) {
-                let hash = match r {
-                    Ok(h) => Some(h),
-                    Err(error) => {
-                        failed.push(Failed { name: p.name(), error });
-                        None
-                    }
-                };
-                permutations.push(Preprocessed { values: p.values, hash });
-            }
-            let distinct = permutations.iter().filter_map(|p| p.hash).collect::<HashSet<_>>().len();
-            let dead = find_dead(shader, level, &permutations);
-            levels.push(LevelAnalysis { shader: shader.name.clone(), level: level.name.clone(), permutations, distinct, dead });
+    // Every (shader, level) the filter accepts, and all their kept permutations in one list,
+    // so that many small shaders preprocess in parallel as well as one big one.
+    let mut pairs: Vec<(&Shader, &Level)> = Vec::new();
+    let mut kept: Vec<(usize, Permutation<'_>)> = Vec::new();
+    for p in config.permutations_where(&filter) {
+        if !matches!(pairs.last(), Some((s, l)) if std::ptr::eq(*s, p.shader) && std::ptr::eq(*l, p.level)) {
+            pairs.push((p.shader, p.level));
+        }
+        if p.is_kept() {
+            kept.push((pairs.len() - 1, p));
         }
     }
+    let results: Vec<Result<blake3::Hash, preprocess::Error>> = kept
+        .par_iter()
+        .map(|(_, p)| {
+            preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache)
+                .map(|o| o.token_hash())
+        })
+        .collect();
+
+    let mut per_pair: Vec<Vec<Preprocessed>> = vec![Vec::new(); pairs.len()];
+    let mut failed = Vec::new();
+    for ((pair, p), r) in kept.into_iter().zip(results) {
+        let hash = match r {
+            Ok(h) => Some(h),
+            Err(error) => {
+                failed.push(Failed { name: p.name(), error });
+                None
+            }
+        };
+        per_pair[pair].push(Preprocessed { values: p.values, hash });
+    }
+    let levels = pairs
+        .into_iter()
+        .zip(per_pair)
+        .map(|((shader, level), permutations)| {
+            let distinct = permutations.iter().filter_map(|p| p.hash).collect::<HashSet<_>>().len();
+            let dead = dead_dimensions_in(shader, level, &permutations);
+            LevelAnalysis { shader: shader.name.clone(), level: level.name.clone(), permutations, distinct, dead }
+        })
+        .collect();
     Analysis { levels, failed }
 }
 
@@ -129,10 +136,14 @@ pub fn dead_dimensions(config: &Config, cache: &SourceCache) -> Vec<DeadDimensio
     analyze(config, cache, |_, _| true).dead().cloned().collect()
 }
 
+/// The dead dimensions of `shader` at `level`, from the token hashes of its kept permutations
+/// (for a caller that already preprocessed them, such as the build).
+///
 /// Dimension `d` is dead when every group of kept permutations that differ only in `d` has one
 /// token stream, and at least one such group has two or more members (otherwise skip rules
-/// already fix its value and it costs nothing).
-pub(super) fn find_dead(shader: &Shader, level: &Level, permutations: &[Preprocessed]) -> Vec<DeadDimension> {
+/// already fix its value and it costs nothing). A permutation without a hash (it failed) is
+/// distinct from every other, so it never makes a dimension dead.
+pub fn dead_dimensions_in(shader: &Shader, level: &Level, permutations: &[Preprocessed]) -> Vec<DeadDimension> {
     let mut dead = Vec::new();
     for (d, dim) in shader.dimensions.iter().enumerate() {
         if dim.values.len() < 2 {

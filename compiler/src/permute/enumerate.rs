@@ -182,11 +182,17 @@ impl<'c> Permutation<'c> {
     pub fn defines(&self) -> Vec<Define> {
         let mut out = base_defines(self.shader, self.level);
         // Enum names come after their dimension in the listing.
-        let enum_names: Vec<Define> = out.iter().filter(|d| matches!(d.origin, DefineOrigin::EnumValue { .. })).cloned().collect();
+        let enum_names: Vec<Define> =
+            out.iter().filter(|d| matches!(d.origin, DefineOrigin::EnumValue { .. })).cloned().collect();
         out.retain(|d| !matches!(d.origin, DefineOrigin::EnumValue { .. }));
         for (d, v) in self.shader.dimensions.iter().zip(&self.values) {
             out.push(Define { name: d.name.clone(), value: *v, origin: DefineOrigin::Dimension });
-            out.extend(enum_names.iter().filter(|e| matches!(&e.origin, DefineOrigin::EnumValue { dimension } if *dimension == d.name)).cloned());
+            out.extend(
+                enum_names
+                    .iter()
+                    .filter(|e| matches!(&e.origin, DefineOrigin::EnumValue { dimension } if *dimension == d.name))
+                    .cloned(),
+            );
         }
         for ((name, e), v) in self.shader.derived.iter().zip(&self.derived) {
             out.push(Define { name: name.clone(), value: *v, origin: DefineOrigin::Derived { expr: e.clone() } });
@@ -221,10 +227,13 @@ pub(super) fn canonical_name(shader: &Shader, level: &Level, values: &[i64]) -> 
     s
 }
 
+/// Which (shader, level) pairs a stream enumerates.
+type Filter<'c> = Box<dyn Fn(&Shader, &Level) -> bool + 'c>;
+
 /// The lazy stream of [`Config::permutations`].
 pub struct Permutations<'c> {
     config: &'c Config,
-    filter: Box<dyn Fn(&Shader, &Level) -> bool + 'c>,
+    filter: Filter<'c>,
     shader: usize,
     level: usize,
     /// The current (shader, level) and the defines its expressions see before dimensions.

@@ -38,18 +38,16 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     let name = p.name();
     let defines = p.defines();
     let rules = p.skip_results();
-    let (files, hash, error) = match preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache) {
-        Ok(out) => (out.files.iter().map(|f| cache.name(*f)).collect(), Some(out.token_hash()), None),
-        Err(e) => (Vec::new(), None, Some(e.diagnostic)),
-    };
+    let (files, hash, error) =
+        match preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache) {
+            Ok(out) => (out.files.iter().map(|f| cache.name(*f)).collect(), Some(out.token_hash()), None),
+            Err(e) => (Vec::new(), None, Some(e.diagnostic)),
+        };
     let mut group = Vec::new();
     if let Some(hash) = hash {
         let analysis = analyze(config, cache, |s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level));
         if let Some(level) = analysis.levels.first() {
-            group = level
-                .group(hash)
-                .map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values))
-                .collect();
+            group = level.group(hash).map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values)).collect();
         }
     }
 
@@ -58,8 +56,7 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     let l = p.level;
     let _ = writeln!(t, "{name}");
     let _ = writeln!(t, "  shader:  {} ({}, entry {})", s.name, s.stage, s.entry);
-    let source = s.source_path.strip_prefix(&config.dir).unwrap_or(&s.source_path);
-    let _ = writeln!(t, "  source:  {} ({})", s.source, source.display());
+    let _ = writeln!(t, "  source:  {} ({})", s.source, cache.display_name(&s.source_path));
     let targets: Vec<&str> = l.targets.iter().map(|t| t.name()).collect();
     let _ = writeln!(t, "  level:   {} (targets: {}; limits: {})", l.name, targets.join(", "), l.limits.name());
     match p.skipped_by {
@@ -111,7 +108,11 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
             let _ = writeln!(t, "\ntoken hash: {}", h.to_hex());
             let others = group.iter().filter(|g| **g != name).count();
             if others == 0 {
-                let _ = writeln!(t, "dedup group: no other kept permutation of {}@{} has this token stream", s.name, l.name);
+                let _ = writeln!(
+                    t,
+                    "dedup group: no other kept permutation of {}@{} has this token stream",
+                    s.name, l.name
+                );
             } else {
                 let _ = writeln!(
                     t,

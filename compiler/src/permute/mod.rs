@@ -24,7 +24,7 @@ mod schema;
 
 use std::path::{Path, PathBuf};
 
-pub use analysis::{analyze, dead_dimensions, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed};
+pub use analysis::{analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed};
 pub use enumerate::{Define, DefineOrigin, Permutation, Permutations, RuleResult};
 pub use error::{ConfigError, Near, NotFound};
 pub use explain::{explain, Explanation};
@@ -48,6 +48,8 @@ pub struct Config {
     pub levels: Vec<Level>,
     /// `[[shader]]` in file order.
     pub shaders: Vec<Shader>,
+    /// Rendered warnings about the file (an expression using an identifier nothing defines).
+    pub warnings: Vec<String>,
 }
 
 /// A feature level: the defines it sets, the targets it compiles to, the limits it validates against.

@@ -52,7 +52,12 @@ pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>
         Some(l) if shader.levels.contains(&l.name) => l,
         _ => {
             return Err(not_found(
-                format!("shader `{}` has no level `{}` (its levels: {})", shader.name, wanted.level, shader.levels.join(", ")),
+                format!(
+                    "shader `{}` has no level `{}` (its levels: {})",
+                    shader.name,
+                    wanted.level,
+                    shader.levels.join(", ")
+                ),
                 Some(&wanted),
             ))
         }
@@ -62,7 +67,10 @@ pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>
         if !shader.dimensions.iter().any(|d| &d.name == k) {
             let names: Vec<&str> = shader.dimensions.iter().map(|d| d.name.as_str()).collect();
             let have = if names.is_empty() { "none".to_string() } else { names.join(", ") };
-            return Err(not_found(format!("shader `{}` has no dimension `{k}` (its dimensions: {have})", shader.name), Some(&wanted)));
+            return Err(not_found(
+                format!("shader `{}` has no dimension `{k}` (its dimensions: {have})", shader.name),
+                Some(&wanted),
+            ));
         }
         if wanted.dims.iter().filter(|(o, _)| o == k).count() > 1 {
             return Err(not_found(format!("dimension `{k}` is given twice"), Some(&wanted)));

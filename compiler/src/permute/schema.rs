@@ -10,7 +10,7 @@ use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use codespan_reporting::diagnostic::{Diagnostic, Label};
+use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use indexmap::IndexMap;
 use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use serde::Deserialize;
@@ -100,7 +100,9 @@ impl<'de> Deserialize<'de> for DefineValue {
                 Ok(DefineValue(v))
             }
             fn visit_u64<E: de::Error>(self, v: u64) -> Result<DefineValue, E> {
-                i64::try_from(v).map(DefineValue).map_err(|_| E::custom("integer out of range: defines are 64-bit signed"))
+                i64::try_from(v)
+                    .map(DefineValue)
+                    .map_err(|_| E::custom("integer out of range: defines are 64-bit signed"))
             }
             fn visit_bool<E: de::Error>(self, v: bool) -> Result<DefineValue, E> {
                 Ok(DefineValue(i64::from(v)))
@@ -150,13 +152,17 @@ impl<'de> Deserialize<'de> for DimensionKind {
             }
             fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<DimensionKind, A::Error> {
                 let Some(key) = map.next_key::<String>()? else {
-                    return Err(de::Error::custom("empty table, expected { range = [lo, hi] } or { enum = [\"NAME\", ...] }"));
+                    return Err(de::Error::custom(
+                        "empty table, expected { range = [lo, hi] } or { enum = [\"NAME\", ...] }",
+                    ));
                 };
                 let kind = match key.as_str() {
                     "range" => {
                         let Range2(lo, hi) = map.next_value()?;
                         if lo > hi {
-                            return Err(de::Error::custom(format!("empty range: {lo} is greater than {hi} (both ends are included)")));
+                            return Err(de::Error::custom(format!(
+                                "empty range: {lo} is greater than {hi} (both ends are included)"
+                            )));
                         }
                         let count = (hi as i128 - lo as i128 + 1) as u128;
                         if count > MAX_DIMENSION_VALUES as u128 {
@@ -248,19 +254,48 @@ impl<'de> Deserialize<'de> for EnumNames {
 /// Collects diagnostics against the toml file.
 struct Checker {
     diagnostics: Vec<Diagnostic<()>>,
+    warnings: Vec<Diagnostic<()>>,
 }
 
 impl Checker {
-    fn error(&mut self, span: Range<usize>, message: impl Into<String>, label: impl Into<String>) -> &mut Diagnostic<()> {
-        self.diagnostics
-            .push(Diagnostic::error().with_message(message.into()).with_labels(vec![Label::primary((), span).with_message(label.into())]));
+    fn error(
+        &mut self,
+        span: Range<usize>,
+        message: impl Into<String>,
+        label: impl Into<String>,
+    ) -> &mut Diagnostic<()> {
+        self.diagnostics.push(
+            Diagnostic::error()
+                .with_message(message.into())
+                .with_labels(vec![Label::primary((), span).with_message(label.into())]),
+        );
         self.diagnostics.last_mut().expect("just pushed")
+    }
+
+    /// Warns about identifiers of `expr` that nothing defines (they read as 0: likely a typo).
+    fn unknown_identifiers(&mut self, text: &str, expr: &Spanned<String>, known: &dyn Fn(&str) -> bool, what: &str) {
+        for id in preprocess::expr::identifiers(expr.get_ref()) {
+            if known(&id) {
+                continue;
+            }
+            let at = find_word(expr.get_ref(), &id).unwrap_or(0);
+            let span = inner_span(text, &expr.span(), expr.get_ref(), at, id.len());
+            self.warnings.push(
+                Diagnostic::warning()
+                    .with_message(format!(
+                        "{what} uses `{id}`, which no level, shader, dimension or derived define defines"
+                    ))
+                    .with_labels(vec![Label::primary((), span).with_message("reads as 0")])
+                    .with_notes(vec!["an unknown identifier is 0, as in `#if`; check the spelling".into()]),
+            );
+        }
     }
 }
 
 fn is_ident(s: &str) -> bool {
     let mut b = s.bytes();
-    matches!(b.next(), Some(c) if c.is_ascii_alphabetic() || c == b'_') && b.all(|c| c.is_ascii_alphanumeric() || c == b'_')
+    matches!(b.next(), Some(c) if c.is_ascii_alphabetic() || c == b'_')
+        && b.all(|c| c.is_ascii_alphanumeric() || c == b'_')
 }
 
 /// Whether `s` can be a shader or level name inside a canonical name.
@@ -273,7 +308,12 @@ fn is_name(s: &str) -> bool {
 fn inner_span(text: &str, span: &Range<usize>, value: &str, offset: usize, len: usize) -> Range<usize> {
     let raw = text.get(span.clone()).unwrap_or("");
     for quote in ['"', '\''] {
-        if raw.len() >= 2 && raw.starts_with(quote) && raw.ends_with(quote) && !raw.starts_with(&format!("{quote}{quote}{quote}")) && &raw[1..raw.len() - 1] == value {
+        if raw.len() >= 2
+            && raw.starts_with(quote)
+            && raw.ends_with(quote)
+            && !raw.starts_with(&format!("{quote}{quote}{quote}"))
+            && &raw[1..raw.len() - 1] == value
+        {
             let start = span.start + 1 + offset.min(value.len());
             let end = (start + len.max(1)).min(span.end).max(start + 1);
             return start..end;
@@ -312,9 +352,9 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             return Err(fail(vec![d]));
         }
     };
-    let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let path = path.canonicalize().or_else(|_| std::path::absolute(path)).unwrap_or_else(|_| path.to_path_buf());
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let mut c = Checker { diagnostics: Vec::new() };
+    let mut c = Checker { diagnostics: Vec::new(), warnings: Vec::new() };
 
     // [compiler]
     let mut include_roots = Vec::new();
@@ -325,25 +365,39 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                 .notes
                 .push(format!("include roots are relative to the folder of {display}"));
         }
-        include_roots.push(p);
+        include_roots.push(p.canonicalize().unwrap_or(p));
     }
     let mut virtual_roots = Vec::new();
     for (name, target) in &raw.compiler.virtual_roots {
         if !name.get_ref().starts_with('/') {
-            c.error(name.span(), format!("virtual root `{}` must start with `/`", name.get_ref()), "expected a name like \"/Engine\"");
+            c.error(
+                name.span(),
+                format!("virtual root `{}` must start with `/`", name.get_ref()),
+                "expected a name like \"/Engine\"",
+            );
         }
         let p = dir.join(target.get_ref());
         if !p.is_dir() {
-            c.error(target.span(), format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()), "no such folder");
+            c.error(
+                target.span(),
+                format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()),
+                "no such folder",
+            );
         }
-        virtual_roots.push((name.get_ref().clone(), p));
+        virtual_roots.push((name.get_ref().clone(), p.canonicalize().unwrap_or(p)));
     }
+    // Sources resolve through the roots: with a bad root, their errors would only be noise.
+    let roots_ok = c.diagnostics.is_empty();
 
     // [levels.*]
     let mut levels = Vec::new();
     for (name, raw_level) in &raw.levels {
         if !is_name(name.get_ref()) {
-            c.error(name.span(), format!("level name `{}` cannot appear in a permutation name", name.get_ref()), "use letters, digits, `_`, `.` and `-`");
+            c.error(
+                name.span(),
+                format!("level name `{}` cannot appear in a permutation name", name.get_ref()),
+                "use letters, digits, `_`, `.` and `-`",
+            );
         }
         let mut defines = Vec::new();
         for (k, v) in &raw_level.defines {
@@ -372,6 +426,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         };
         levels.push(Level { name: name.get_ref().clone(), defines, targets, limits });
     }
+    let all_level_defines: HashSet<&str> =
+        raw.levels.values().flat_map(|l| l.defines.keys().map(|k| k.get_ref().as_str())).collect();
     let level_defines: HashMap<&str, &IndexMap<Spanned<String>, Spanned<DefineValue>>> =
         raw.levels.iter().map(|(k, v)| (k.get_ref().as_str(), &v.defines)).collect();
 
@@ -380,7 +436,6 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         virtual_roots: virtual_roots.clone(),
         ..preprocess::Options::default()
     };
-    let roots_ok = c.diagnostics.is_empty();
 
     // [[shader]]
     let mut shaders = Vec::new();
@@ -389,7 +444,11 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         let s = raw_shader.get_ref();
         let name = s.name.get_ref();
         if !is_name(name) {
-            c.error(s.name.span(), format!("shader name `{name}` cannot appear in a permutation name"), "use letters, digits, `_`, `.` and `-`");
+            c.error(
+                s.name.span(),
+                format!("shader name `{name}` cannot appear in a permutation name"),
+                "use letters, digits, `_`, `.` and `-`",
+            );
         }
         if let Some(first) = seen_names.get(name) {
             let d = c.error(s.name.span(), format!("duplicate shader name `{name}`"), "declared again here");
@@ -412,7 +471,11 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         for l in &level_names {
             if !level_defines.contains_key(l.get_ref().as_str()) {
                 let known: Vec<&str> = raw.levels.keys().map(|k| k.get_ref().as_str()).collect();
-                let d = c.error(l.span(), format!("unknown level `{}`", l.get_ref()), "no `[levels.*]` table has this name");
+                let d = c.error(
+                    l.span(),
+                    format!("unknown level `{}`", l.get_ref()),
+                    "no `[levels.*]` table has this name",
+                );
                 d.notes.push(if known.is_empty() {
                     "no levels are declared: add a `[levels.NAME]` table".to_string()
                 } else {
@@ -439,16 +502,32 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             defines.push((k.get_ref().clone(), v.get_ref().0));
             shader_scope.insert(k.get_ref().clone(), (k.span(), "shader define"));
         }
-        let clash = |c: &mut Checker, what: &str, key: &Spanned<String>, shader_scope: &HashMap<String, (Range<usize>, &'static str)>, defined: &str| {
+        let clash = |c: &mut Checker,
+                     what: &str,
+                     key: &Spanned<String>,
+                     shader_scope: &HashMap<String, (Range<usize>, &'static str)>,
+                     defined: &str| {
             if let Some((span, kind)) = shader_scope.get(defined) {
-                let d = c.error(key.span(), format!("{what} `{defined}` clashes with a {kind}"), format!("{what} declared here"));
-                d.labels.push(Label::secondary((), span.clone()).with_message(format!("`{defined}` is already a {kind}")));
+                let d = c.error(
+                    key.span(),
+                    format!("{what} `{defined}` clashes with a {kind}"),
+                    format!("{what} declared here"),
+                );
+                d.labels
+                    .push(Label::secondary((), span.clone()).with_message(format!("`{defined}` is already a {kind}")));
                 return true;
             }
             for l in &shader_levels {
                 if let Some((lk, _)) = level_defines[l.as_str()].get_key_value(defined) {
-                    let d = c.error(key.span(), format!("{what} `{defined}` clashes with a define of level `{l}`"), format!("{what} declared here"));
-                    d.labels.push(Label::secondary((), lk.span()).with_message(format!("`{defined}` is defined by level `{l}` here")));
+                    let d = c.error(
+                        key.span(),
+                        format!("{what} `{defined}` clashes with a define of level `{l}`"),
+                        format!("{what} declared here"),
+                    );
+                    d.labels.push(
+                        Label::secondary((), lk.span())
+                            .with_message(format!("`{defined}` is defined by level `{l}` here")),
+                    );
                     return true;
                 }
             }
@@ -464,7 +543,9 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             clash(&mut c, "dimension", k, &shader_scope, dname);
             shader_scope.insert(dname.clone(), (k.span(), "dimension"));
             let dim = match v.get_ref() {
-                DimensionKind::Values(values) => Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new() },
+                DimensionKind::Values(values) => {
+                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new() }
+                }
                 DimensionKind::Enum(labels) => {
                     for label in labels {
                         let define = format!("{dname}_{label}");
@@ -472,7 +553,11 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                             shader_scope.insert(define, (k.span(), "dimension's enum value"));
                         }
                     }
-                    Dimension { name: dname.clone(), values: (0..labels.len() as i64).collect(), labels: labels.clone() }
+                    Dimension {
+                        name: dname.clone(),
+                        values: (0..labels.len() as i64).collect(),
+                        labels: labels.clone(),
+                    }
                 }
             };
             dimensions.push(dim);
@@ -490,6 +575,10 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             shader_scope.insert(dname.clone(), (k.span(), "derived define"));
             if check_expression(&mut c, text, expr) {
                 check_derived_dependencies(&mut c, text, &s.derived, &derived_names, i);
+                let known = |id: &str| {
+                    all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id)
+                };
+                c.unknown_identifiers(text, expr, &known, &format!("derived define `{dname}`"));
             }
             derived.push((dname.clone(), expr.get_ref().clone()));
         }
@@ -503,14 +592,26 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                     if let Some((dk, _)) = s.derived.get_key_value(id.as_str()) {
                         let at = find_word(r.when.get_ref(), &id).unwrap_or(0);
                         let span = inner_span(text, &r.when.span(), r.when.get_ref(), at, id.len());
-                        let d = c.error(span, format!("skip rule uses derived define `{id}`"), "skip rules do not see derived defines");
+                        let d = c.error(
+                            span,
+                            format!("skip rule uses derived define `{id}`"),
+                            "skip rules do not see derived defines",
+                        );
                         d.labels.push(Label::secondary((), dk.span()).with_message("derived here"));
                         d.notes.push("skip rules see the dimensions and the level's and shader's defines; write the condition in those terms".into());
                     }
                 }
+                let known = |id: &str| {
+                    all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id)
+                };
+                c.unknown_identifiers(text, &r.when, &known, "skip rule");
             }
             if r.why.get_ref().trim().is_empty() {
-                c.error(r.why.span(), "a skip rule needs a reason", "expected a sentence saying why these permutations are not needed");
+                c.error(
+                    r.why.span(),
+                    "a skip rule needs a reason",
+                    "expected a sentence saying why these permutations are not needed",
+                );
             }
             skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone() });
         }
@@ -521,9 +622,16 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             match preprocess::resolve_source(s.source.get_ref(), &pp_options) {
                 Ok(p) => source_path = p,
                 Err(e) => {
-                    let d = c.error(s.source.span(), format!("cannot resolve source `{}` of shader `{name}`", s.source.get_ref()), "not found");
+                    let d = c.error(
+                        s.source.span(),
+                        format!("cannot resolve source `{}` of shader `{name}`", s.source.get_ref()),
+                        "not found",
+                    );
                     d.notes.push(e.to_string());
-                    d.notes.push("a source resolves like `#include <...>`: through a virtual root or against the include roots".into());
+                    d.notes.push(
+                        "a source resolves like `#include <...>`: through a virtual root or against the include roots"
+                            .into(),
+                    );
                 }
             }
         }
@@ -543,9 +651,18 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     }
 
     if !c.diagnostics.is_empty() {
+        // In file order, by where each problem is (stable: one place keeps the order found).
+        let at =
+            |d: &Diagnostic<()>| d.labels.iter().find(|l| l.style == LabelStyle::Primary).map_or(0, |l| l.range.start);
+        c.diagnostics.sort_by_key(at);
         return Err(fail(c.diagnostics));
     }
-    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders })
+    let warnings = c
+        .warnings
+        .into_iter()
+        .map(|w| ConfigError::new(display.to_string(), text.to_string(), vec![w]).render())
+        .collect();
+    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders, warnings })
 }
 
 /// The label under a serde/toml error, from its message.
@@ -600,7 +717,11 @@ fn check_derived_dependencies(
     };
     for j in uses(index) {
         if j == index {
-            c.error(point_at(name), format!("derived define `{name}` depends on itself"), format!("`{name}` is used in its own definition"));
+            c.error(
+                point_at(name),
+                format!("derived define `{name}` depends on itself"),
+                format!("`{name}` is used in its own definition"),
+            );
             return;
         }
         if j < index {
@@ -630,13 +751,25 @@ fn check_derived_dependencies(
         let later = names[j];
         match cycle {
             Some(path) => {
-                let chain: Vec<&str> = std::iter::once(name).chain(path.iter().map(|k| names[*k])).chain(std::iter::once(name)).collect();
-                let d = c.error(point_at(later), format!("derived define `{name}` depends on itself through `{later}`"), format!("`{later}` depends on `{name}`"));
+                let chain: Vec<&str> =
+                    std::iter::once(name).chain(path.iter().map(|k| names[*k])).chain(std::iter::once(name)).collect();
+                let d = c.error(
+                    point_at(later),
+                    format!("derived define `{name}` depends on itself through `{later}`"),
+                    format!("`{later}` depends on `{name}`"),
+                );
                 d.notes.push(format!("cycle: {}", chain.join(" -> ")));
             }
             None => {
-                let d = c.error(point_at(later), format!("derived define `{name}` uses `{later}`, which is derived after it"), "declared later");
-                d.notes.push("a derived define sees only the derived defines written before it: move it after the ones it uses".into());
+                let d = c.error(
+                    point_at(later),
+                    format!("derived define `{name}` uses `{later}`, which is derived after it"),
+                    "declared later",
+                );
+                d.notes.push(
+                    "a derived define sees only the derived defines written before it: move it after the ones it uses"
+                        .into(),
+                );
             }
         }
         return;

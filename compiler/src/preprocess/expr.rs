@@ -241,6 +241,9 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
         Some(q) => (&text[..q], q),
         None => return Err(format!("token \"{text}\" is not valid in preprocessor expressions")),
     };
+    if b.len() < q + 2 || b[b.len() - 1] != b'\'' {
+        return Err("missing terminating ' character".into());
+    }
     let body = &b[q + 1..b.len() - 1];
     let mut chars: Vec<u32> = Vec::new();
     let mut i = 0;

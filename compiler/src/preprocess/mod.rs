@@ -19,8 +19,10 @@ mod source;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use codespan_reporting::diagnostic::{Diagnostic, Label};
+use codespan_reporting::diagnostic::Diagnostic;
 
+/// The diagnostic types of this module's API, re-exported for callers.
+pub use codespan_reporting::diagnostic::{Diagnostic as CodespanDiagnostic, Label, Severity};
 pub use map::{Origin, SourceMap};
 pub use source::{FileId, SourceCache, SourceText};
 
@@ -131,7 +133,9 @@ pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Resu
     let (id, _) = cache
         .load(&canonical)
         .map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
-    engine::run(id, opts, cache)
+    // `__FILE__` spells the main file as it was given, like cpp does.
+    let name = if path.is_relative() { Some(path.to_string_lossy().into_owned()) } else { None };
+    engine::run_named(id, name, opts, cache)
 }
 
 /// Preprocesses a file already in `cache` (for example one added with

@@ -54,16 +54,22 @@ impl SourceFile {
         (o as usize + (at - s as usize)).min(self.original.len())
     }
 
-    /// Original byte range of a spliced range.
+    /// Original byte range of a spliced range, widened to character boundaries.
     pub fn original_range(&self, r: Range<usize>) -> Range<usize> {
-        let start = self.original_offset(r.start);
-        if r.is_empty() {
+        let text = &self.original;
+        let mut start = self.original_offset(r.start).min(text.len());
+        while !text.is_char_boundary(start) {
+            start -= 1;
+        }
+        if r.end <= r.start {
             return start..start;
         }
-        // The end is just after the last byte, so map the last byte and step over it.
-        let last = self.original_offset(r.end - 1);
-        let step = self.original[last..].chars().next().map_or(1, |c| c.len_utf8()).min(r.end - r.start).max(1);
-        start..(last + step).min(self.original.len())
+        // The end is just after the last byte: map the last byte and step past its character.
+        let mut end = (self.original_offset(r.end - 1) + 1).min(text.len()).max(start);
+        while !text.is_char_boundary(end) {
+            end += 1;
+        }
+        start..end
     }
 
     /// 1-based line and column (in characters) of an original byte offset.
@@ -182,6 +188,11 @@ impl SourceCache {
     /// The diagnostic name of a file: its path relative to the display base.
     pub fn name(&self, id: FileId) -> String {
         self.get(id).map(|f| f.name.clone()).unwrap_or_default()
+    }
+
+    /// 1-based (line, column) of a byte offset in a file's original text.
+    pub fn location(&self, id: FileId, offset: usize) -> (usize, usize) {
+        self.get(id).map_or((0, 0), |f| f.line_col(offset.min(f.original.len())))
     }
 
     /// Adds an in-memory file (tests, generated sources). Each call makes a new file.

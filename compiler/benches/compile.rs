@@ -1,0 +1,191 @@
+//! Kiln's build against naga alone, in one run.
+//!
+//! `cargo bench -p kiln --bench compile [-- CONFIG [ROUNDS]]` (CONFIG defaults to the
+//! workspace's `permutations.toml`; `KILN_BENCH_JOBS` sets the threads, 2 by default).
+//!
+//! 1. naga alone: the distinct preprocessed sources of the set (preprocessed by Kiln, not
+//!    timed) go through `naga::front::wgsl::parse_str`, the validator and every writer of
+//!    their level, on the same number of threads;
+//! 2. Kiln cold: `kiln::build::run` with an empty cache (enumerate, preprocess, dedup,
+//!    compile, reflect, cache writes, archive);
+//! 3. Kiln warm: the same build again, nothing changed.
+//!
+//! naga alone is timed twice: on the whole module as a naga user would call it, and keeping
+//! only the entry point before validation (the work Kiln asks of naga).
+//!
+//! Each is run ROUNDS times (3 by default) and the median is printed, with the ratios
+//! cold / naga (goal <= 1.15) and warm / cold (goal <= 2%).
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use kiln::archive::{Stage, Target};
+use kiln::build::{self, CacheDir};
+use kiln::permute;
+use kiln::preprocess::{self, SourceCache};
+use naga::back::{glsl, hlsl, msl, spv, wgsl};
+use rayon::prelude::*;
+
+struct Source {
+    text: String,
+    entry: String,
+    stage: Stage,
+    targets: Vec<Target>,
+    gles: bool,
+}
+
+fn naga_stage(s: Stage) -> naga::ShaderStage {
+    match s {
+        Stage::Vertex => naga::ShaderStage::Vertex,
+        Stage::Fragment => naga::ShaderStage::Fragment,
+        Stage::Compute => naga::ShaderStage::Compute,
+    }
+}
+
+/// parse, validate, every writer: what a tool calling naga directly does. With
+/// `entry_only`, the module keeps only the entry point before validation, as Kiln does.
+fn naga_alone(s: &Source, entry_only: bool) -> usize {
+    let mut module = naga::front::wgsl::parse_str(&s.text).expect("parses");
+    if entry_only {
+        module.entry_points.retain(|e| e.name == s.entry);
+    }
+    let caps = if s.gles {
+        naga::valid::Capabilities::empty()
+    } else {
+        naga::valid::Capabilities::MULTISAMPLED_SHADING | naga::valid::Capabilities::CUBE_ARRAY_TEXTURES
+    };
+    let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
+    let stage = naga_stage(s.stage);
+    let mut bytes = 0;
+    for t in &s.targets {
+        bytes += match t {
+            Target::Wgsl => wgsl::write_string(&module, &info, wgsl::WriterFlags::empty()).unwrap().len(),
+            Target::Spirv => {
+                let o = spv::Options {
+                    lang_version: (1, 0),
+                    flags: spv::WriterFlags::LABEL_VARYINGS | spv::WriterFlags::FORCE_POINT_SIZE,
+                    ..Default::default()
+                };
+                let p = spv::PipelineOptions { shader_stage: stage, entry_point: s.entry.clone() };
+                spv::write_vec(&module, &info, &o, Some(&p)).unwrap().len() * 4
+            }
+            Target::Msl => {
+                let o = msl::Options { lang_version: (2, 4), ..Default::default() };
+                let p = msl::PipelineOptions { entry_point: Some((stage, s.entry.clone())), ..Default::default() };
+                msl::write_string(&module, &info, &o, &p).unwrap().0.len()
+            }
+            Target::Glsl => {
+                let o = glsl::Options { version: glsl::Version::new_gles(310), ..Default::default() };
+                let p = glsl::PipelineOptions { shader_stage: stage, entry_point: s.entry.clone(), multiview: None };
+                let mut out = String::new();
+                glsl::Writer::new(&mut out, &module, &info, &o, &p, Default::default()).unwrap().write().unwrap();
+                out.len()
+            }
+            Target::Hlsl => {
+                let o = hlsl::Options { shader_model: hlsl::ShaderModel::V5_1, ..Default::default() };
+                let p = hlsl::PipelineOptions { entry_point: Some((stage, s.entry.clone())) };
+                let mut out = String::new();
+                hlsl::Writer::new(&mut out, &o, &p).write(&module, &info, None).unwrap();
+                out.len()
+            }
+        };
+    }
+    bytes
+}
+
+fn median(mut v: Vec<Duration>) -> Duration {
+    v.sort();
+    v[v.len() / 2]
+}
+
+fn main() {
+    let mut args = std::env::args().skip(1).filter(|a| a != "--bench");
+    let config_path = args
+        .next()
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../permutations.toml")));
+    let rounds: usize = args.next().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
+    let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
+    let config = permute::load(&config_path).unwrap_or_else(|e| panic!("{}", e.render()));
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(jobs).build().unwrap();
+
+    // The distinct sources (untimed), as Kiln's dedup sees them.
+    let sources = SourceCache::new(config.dir.clone());
+    let mut distinct: HashMap<(blake3::Hash, String, Stage, String), Source> = HashMap::new();
+    let mut kept = 0;
+    for p in config.permutations().filter(|p| p.is_kept()) {
+        kept += 1;
+        let out = preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(&config), &sources)
+            .unwrap_or_else(|e| panic!("{}: {}", p.name(), e));
+        let key = (out.token_hash(), p.shader.entry.clone(), p.shader.stage, p.level.name.clone());
+        distinct.entry(key).or_insert_with(|| Source {
+            text: out.text,
+            entry: p.shader.entry.clone(),
+            stage: p.shader.stage,
+            targets: p.level.targets.clone(),
+            gles: p.level.limits == permute::Limits::Downlevel,
+        });
+    }
+    let distinct: Vec<Source> = distinct.into_values().collect();
+    let wgsl_bytes: usize = distinct.iter().map(|s| s.text.len()).sum();
+    println!(
+        "set: {} ({kept} permutations, {} distinct sources, {:.1} KiB of WGSL), {jobs} threads, {rounds} rounds",
+        config_path.display(),
+        distinct.len(),
+        wgsl_bytes as f64 / 1024.0
+    );
+
+    let mut naga_times = Vec::new();
+    let mut naga_entry_times = Vec::new();
+    let mut cold_times = Vec::new();
+    let mut warm_times = Vec::new();
+    let mut last = None;
+    for _ in 0..rounds {
+        let t = Instant::now();
+        let out: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone(s, false)).sum());
+        naga_times.push(t.elapsed());
+        std::hint::black_box(out);
+        let t = Instant::now();
+        let out: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone(s, true)).sum());
+        naga_entry_times.push(t.elapsed());
+        std::hint::black_box(out);
+
+        let tmp = tempfile::tempdir().unwrap();
+        let options = build::Options {
+            config: config_path.clone(),
+            output: Some(tmp.path().join("shaders.kpak")),
+            jobs: Some(jobs),
+            cache: CacheDir::Dir(tmp.path().join("cache")),
+            ..build::Options::default()
+        };
+        let t = Instant::now();
+        let cold = build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+        cold_times.push(t.elapsed());
+        assert_eq!(cold.stats.compiled, distinct.len());
+        let t = Instant::now();
+        let warm = build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+        warm_times.push(t.elapsed());
+        assert_eq!(warm.stats.compiled, 0);
+        last = Some((cold, warm));
+    }
+    let (cold, warm) = last.unwrap();
+    let (n, ne, c, w) = (median(naga_times), median(naga_entry_times), median(cold_times), median(warm_times));
+    println!("naga alone (parse + validate + every writer): {:>9.1} ms", n.as_secs_f64() * 1e3);
+    println!("  the same keeping only the entry point:      {:>9.1} ms", ne.as_secs_f64() * 1e3);
+    println!(
+        "kiln cold build:                              {:>9.1} ms  (preprocess {:.1} ms, compile {:.1} ms)",
+        c.as_secs_f64() * 1e3,
+        cold.stats.seconds.preprocess * 1e3,
+        cold.stats.seconds.compile * 1e3
+    );
+    println!(
+        "kiln warm build:                              {:>9.1} ms  ({} of {} permutations preprocessed)",
+        w.as_secs_f64() * 1e3,
+        warm.stats.preprocessed,
+        warm.stats.permutations
+    );
+    println!("cold / naga alone: {:.3}  (goal <= 1.15)", c.as_secs_f64() / n.as_secs_f64());
+    println!("cold / naga alone, entry point only: {:.3}", c.as_secs_f64() / ne.as_secs_f64());
+    println!("warm / cold:       {:.2}%  (goal <= 2%)", 100.0 * w.as_secs_f64() / c.as_secs_f64());
+}

@@ -1,0 +1,31 @@
+//! Fingerprints Kiln's own sources into `KILN_SOURCE_HASH`, part of every cache key, so a
+//! cache never serves outputs of a different Kiln (a released version or a work tree).
+
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+
+fn files(dir: &Path, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            files(&p, out);
+        } else if p.extension().is_some_and(|x| x == "rs") {
+            out.push(p);
+        }
+    }
+}
+
+fn main() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut list = Vec::new();
+    files(&src, &mut list);
+    list.sort();
+    let mut h = std::hash::DefaultHasher::new();
+    for f in &list {
+        f.strip_prefix(&src).unwrap_or(f).hash(&mut h);
+        std::fs::read(f).unwrap_or_default().hash(&mut h);
+    }
+    println!("cargo:rustc-env=KILN_SOURCE_HASH={:016x}", h.finish());
+    println!("cargo:rerun-if-changed=src");
+}

@@ -1,0 +1,220 @@
+//! `kiln-view`: renders the bundled scene headless to PNG with the shaders of a Kiln archive.
+//!
+//! Exit codes: 0 success, 1 render failure (no adapter, pipeline or device error), 2 bad
+//! usage or a bad archive.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use clap::{Parser, ValueEnum};
+use kiln_runtime::frame::{write_dump, DumpInfo};
+use kiln_runtime::scene::Scene;
+use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum PipelineArg {
+    Desktop,
+    MobileForward,
+    MobileDeferred,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum BackendArg {
+    Vulkan,
+    Gl,
+}
+
+/// Render the bundled scene headless with precompiled Kiln shaders.
+#[derive(Parser, Debug)]
+#[command(name = "kiln-view", version)]
+struct Args {
+    /// Which frame to render.
+    #[arg(long, value_enum, default_value = "desktop")]
+    pipeline: PipelineArg,
+    /// Graphics API (Mesa's lavapipe or llvmpipe where there is no GPU).
+    #[arg(long, value_enum, default_value = "vulkan")]
+    backend: BackendArg,
+    /// Frame size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x360", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Where to write the tonemapped frame.
+    #[arg(long, default_value = "frame.png")]
+    out: PathBuf,
+    /// Write every pass's output as `DIR/<NN>_<Pass>.png` and `DIR/passes.json`.
+    #[arg(long, value_name = "DIR")]
+    dump_passes: Option<PathBuf>,
+    /// Load this archive instead of the one embedded at build time.
+    #[arg(long, value_name = "ARCHIVE")]
+    shaders: Option<PathBuf>,
+    /// Create shader modules from WGSL even where SPIR-V passthrough is available.
+    #[arg(long)]
+    wgsl: bool,
+    /// Instead of rendering: look every permutation of the archive up (by name and by its
+    /// dimension values) and create its shader module on the device.
+    #[arg(long)]
+    verify: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("`{w}` is not a width"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("`{h}` is not a height"))?;
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        return Err(format!("{w}x{h} is outside 1x1..16384x16384"));
+    }
+    Ok((w, h))
+}
+
+enum Failure {
+    Usage(String),
+    Render(String),
+}
+
+fn main() -> ExitCode {
+    let args = match Args::try_parse() {
+        Ok(a) => a,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
+    match run(&args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(Failure::Usage(m)) => {
+            eprintln!("error: {m}");
+            ExitCode::from(2)
+        }
+        Err(Failure::Render(m)) => {
+            eprintln!("error: {m}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn run(args: &Args) -> Result<(), Failure> {
+    let archive = match &args.shaders {
+        Some(path) => ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?,
+        None => ShaderArchive::embedded().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
+    };
+    let pipeline = match args.pipeline {
+        PipelineArg::Desktop => FramePipeline::Desktop,
+        PipelineArg::MobileForward => FramePipeline::MobileForward,
+        PipelineArg::MobileDeferred => FramePipeline::MobileDeferred,
+    };
+    let backend = match args.backend {
+        BackendArg::Vulkan => Backend::Vulkan,
+        BackendArg::Gl => Backend::Gl,
+    };
+    let module_source = if args.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
+    let gpu = Gpu::new(&GpuOptions { backend, module_source, timestamps: true }).map_err(|e| Failure::Render(e.to_string()))?;
+    if args.verify {
+        return verify(&gpu, archive);
+    }
+    let (width, height) = args.size;
+    let scene = Scene::bundled();
+    let renderer = Renderer::new(&gpu, Arc::new(archive), &scene, RendererOptions { pipeline, width, height }).map_err(|e| match e {
+        // A permutation the frame needs is missing from the archive: the archive is wrong.
+        kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => Failure::Usage(format!("{l}")),
+        e => Failure::Render(e.to_string()),
+    })?;
+    let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+    let mut frame = render(false)?;
+    if args.dump_passes.is_some() {
+        // Captures copy every pass's output inside the frame; the GPU times come from the
+        // frame without them.
+        let timed = std::mem::replace(&mut frame, render(true)?);
+        for (captured, timed) in frame.passes.iter_mut().zip(&timed.passes) {
+            captured.gpu_ms = timed.gpu_ms;
+            for (step, t) in captured.steps.iter_mut().zip(&timed.steps) {
+                step.gpu_ms = t.gpu_ms;
+            }
+        }
+    }
+    kiln::archive::write_atomic(&args.out, &frame.image.to_png())
+        .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))?;
+    if let Some(dir) = &args.dump_passes {
+        let permutations = renderer.pipeline_cache().permutations_used();
+        let info = DumpInfo {
+            pipeline: pipeline.name(),
+            backend: backend.name(),
+            adapter: &gpu.info.name,
+            width,
+            height,
+            timestamps: gpu.timestamps,
+            spirv_passthrough: gpu.spirv_passthrough,
+            permutations: &permutations,
+        };
+        write_dump(dir, &info, &frame.passes).map_err(|e| Failure::Render(format!("cannot write {}: {e}", dir.display())))?;
+    }
+    let stats = renderer.cache_stats();
+    eprintln!(
+        "kiln-view: {} on {} ({}), {}x{}, {} pipelines, modules from {}; wrote {}",
+        pipeline.name(),
+        gpu.info.name,
+        backend,
+        width,
+        height,
+        stats.render_pipelines + stats.compute_pipelines,
+        if gpu.spirv_passthrough { "SPIR-V passthrough" } else { "WGSL" },
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// `--verify`: every permutation found by name and by builder, and its module created.
+fn verify(gpu: &Gpu, archive: ShaderArchive) -> Result<(), Failure> {
+    let archive = Arc::new(archive);
+    let cache = kiln_runtime::pipelines::PipelineCache::new(gpu, archive.clone());
+    let mut failures = Vec::new();
+    let mut count = 0;
+    for p in archive.permutations() {
+        count += 1;
+        let shader = p.shader();
+        let mut q = archive.shader(&shader.name).level(&shader.level);
+        for (d, v) in shader.dimensions.iter().zip(p.values()) {
+            q = q.with(&d.name, v);
+        }
+        let found = match (archive.get(p.name()), q.find()) {
+            (Ok(a), Ok(b)) if a.name() == p.name() && b.name() == p.name() => Ok(()),
+            (Err(e), _) | (_, Err(e)) => Err(e.to_string()),
+            _ => Err("lookup returned another permutation".to_string()),
+        };
+        let made = found.and_then(|()| cache.module(p.name(), shader.stage).map(|_| ()).map_err(|e| e.to_string()));
+        if let Err(e) = made {
+            failures.push(format!("{}: {e}", p.name()));
+        }
+    }
+    let source = if gpu.spirv_passthrough { "SPIR-V passthrough" } else { "WGSL" };
+    println!(
+        "{count} permutations looked up by name and by dimension values; {} distinct modules created from {source} on {}",
+        cache.stats().modules,
+        gpu.info.name
+    );
+    if failures.is_empty() {
+        Ok(())
+    } else {
+        Err(Failure::Render(format!("{} of {count} permutations failed:\n{}", failures.len(), failures.join("\n"))))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    use super::*;
+
+    #[test]
+    fn args_are_consistent() {
+        Args::command().debug_assert();
+    }
+
+    #[test]
+    fn sizes() {
+        assert_eq!(parse_size("640x360"), Ok((640, 360)));
+        assert_eq!(parse_size("8X2"), Ok((8, 2)));
+        assert_eq!(parse_size("0x10"), Err("0x10 is outside 1x1..16384x16384".to_string()));
+        assert_eq!(parse_size("x10"), Err("`` is not a width".to_string()));
+    }
+}

@@ -1,0 +1,706 @@
+//! Shader modules, bind group layouts and pipelines from the archive.
+//!
+//! Modules are created lazily, once per permutation: SPIR-V passthrough when the device has
+//! it (`Gpu::spirv_passthrough`), WGSL otherwise. Bind group layouts come from the archive's
+//! reflection, merging the stages of a pipeline (visibility is the set of stages that use a
+//! binding). Pipelines are cached per (permutations, fixed-function state). Bind groups are
+//! built by resource name: a pass hands over `("View", buffer)`-style pairs and the
+//! reflection says where each goes.
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::num::NonZeroU64;
+use std::sync::{Arc, Mutex};
+
+use kiln::archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
+use kiln::Stage;
+
+use crate::gpu::Gpu;
+use crate::shaders::{LookupError, ShaderArchive};
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Lookup(#[from] LookupError),
+    #[error("permutation `{name}` is a {found} shader, used as a {wanted} shader")]
+    WrongStage { name: String, found: Stage, wanted: Stage },
+    #[error("permutation `{name}` has neither a WGSL nor a SPIR-V artifact (it has: {targets})")]
+    NoArtifact { name: String, targets: String },
+    #[error("permutation `{name}`: {message}")]
+    BadArtifact { name: String, message: String },
+    #[error("{what}: wgpu rejected it: {message}")]
+    Wgpu { what: String, message: String },
+    #[error("pipeline `{label}`: binding @group({group}) @binding({binding}) is `{kind_a}` in one stage and `{kind_b}` in another")]
+    StageConflict { label: String, group: u32, binding: u32, kind_a: String, kind_b: String },
+    #[error("pipeline `{label}`: vertex input @location({location}) is not provided by the {layout:?} vertex layout")]
+    VertexInput { label: String, location: u32, layout: VertexLayout },
+    #[error("pipeline `{label}`: storage texture format `{format}` is not known to the runtime")]
+    StorageFormat { label: String, format: String },
+    #[error("bind group {group} of `{label}`: no resource given for binding {binding} `{name}`")]
+    MissingResource { label: String, group: u32, binding: u32, name: String },
+}
+
+/// Vertex buffers a render pipeline reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum VertexLayout {
+    /// No vertex buffers (full-screen triangles from the vertex index).
+    None,
+    /// [`crate::gpu_types::MeshVertex`] in buffer 0 and [`crate::gpu_types::InstanceData`]
+    /// (one local-to-world matrix per instance) in buffer 1.
+    MeshInstanced,
+}
+
+/// How a color target blends.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Blend {
+    Replace,
+    /// dst + src (lights accumulating into SceneColor).
+    Additive,
+    /// dst * (1 - src.a) + src (premultiplied translucency).
+    PremultipliedAlpha,
+}
+
+impl Blend {
+    fn state(self) -> Option<wgpu::BlendState> {
+        match self {
+            Blend::Replace => None,
+            Blend::Additive => Some(wgpu::BlendState {
+                color: wgpu::BlendComponent { src_factor: wgpu::BlendFactor::One, dst_factor: wgpu::BlendFactor::One, operation: wgpu::BlendOperation::Add },
+                alpha: wgpu::BlendComponent { src_factor: wgpu::BlendFactor::Zero, dst_factor: wgpu::BlendFactor::One, operation: wgpu::BlendOperation::Add },
+            }),
+            Blend::PremultipliedAlpha => Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ColorTarget {
+    pub format: wgpu::TextureFormat,
+    pub blend: Blend,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct DepthState {
+    pub format: wgpu::TextureFormat,
+    pub write: bool,
+    pub compare: wgpu::CompareFunction,
+    /// Constant depth bias (shadow depths).
+    pub bias: i32,
+    /// Slope-scaled bias, as `f32::to_bits` so the state hashes.
+    pub slope_scale_bits: u32,
+}
+
+impl DepthState {
+    /// Reverse-Z depth test (near = 1, far = 0).
+    pub fn reverse_z(format: wgpu::TextureFormat, write: bool) -> DepthState {
+        DepthState { format, write, compare: wgpu::CompareFunction::GreaterEqual, bias: 0, slope_scale_bits: 0 }
+    }
+}
+
+/// The fixed-function state of a render pipeline: everything but the shaders.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct RenderState {
+    pub vertex_layout: VertexLayout,
+    pub topology: wgpu::PrimitiveTopology,
+    pub cull_mode: Option<wgpu::Face>,
+    pub depth: Option<DepthState>,
+    pub color_targets: Vec<ColorTarget>,
+    pub sample_count: u32,
+}
+
+impl RenderState {
+    /// Triangles from mesh vertex buffers, back faces culled, no targets yet.
+    pub fn mesh() -> RenderState {
+        RenderState {
+            vertex_layout: VertexLayout::MeshInstanced,
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            cull_mode: Some(wgpu::Face::Back),
+            depth: None,
+            color_targets: Vec::new(),
+            sample_count: 1,
+        }
+    }
+
+    /// A full-screen triangle (no vertex buffers, no culling, no depth).
+    pub fn fullscreen(target: ColorTarget) -> RenderState {
+        RenderState {
+            vertex_layout: VertexLayout::None,
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            cull_mode: None,
+            depth: None,
+            color_targets: vec![target],
+            sample_count: 1,
+        }
+    }
+
+    pub fn with_depth(mut self, depth: DepthState) -> RenderState {
+        self.depth = Some(depth);
+        self
+    }
+
+    pub fn with_targets(mut self, targets: &[ColorTarget]) -> RenderState {
+        self.color_targets = targets.to_vec();
+        self
+    }
+
+    pub fn with_cull(mut self, cull: Option<wgpu::Face>) -> RenderState {
+        self.cull_mode = cull;
+        self
+    }
+}
+
+/// One resource binding of a pipeline, merged over its stages.
+#[derive(Clone, Debug)]
+pub struct MergedBinding {
+    pub binding: u32,
+    pub name: Option<String>,
+    pub kind: BindingKind,
+    pub visibility: wgpu::ShaderStages,
+}
+
+/// The bind group layouts of a pipeline, one per group index from 0 to the highest used.
+#[derive(Clone, Debug)]
+pub struct PipelineLayoutInfo {
+    pub label: String,
+    pub groups: Vec<Vec<MergedBinding>>,
+    pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
+    pub layout: wgpu::PipelineLayout,
+}
+
+impl PipelineLayoutInfo {
+    /// A bind group for `group`, with each binding's resource given by its name in the
+    /// shader. Every binding the reflection lists must be given; resources it does not list
+    /// are left out (callers pass one list for every pipeline of a pass).
+    pub fn bind_group(
+        &self,
+        device: &wgpu::Device,
+        group: u32,
+        label: &str,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<wgpu::BindGroup, PipelineError> {
+        let bindings = self.groups.get(group as usize).map(Vec::as_slice).unwrap_or(&[]);
+        let mut entries = Vec::with_capacity(bindings.len());
+        for b in bindings {
+            let name = b.name.clone().unwrap_or_default();
+            let resource = resources.iter().find(|(n, _)| *n == name).map(|(_, r)| r.clone()).ok_or_else(|| {
+                PipelineError::MissingResource { label: self.label.clone(), group, binding: b.binding, name: name.clone() }
+            })?;
+            entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
+        }
+        let layout = &self.bind_group_layouts[group as usize];
+        let scope = ErrorScopes::push(device);
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries });
+        check_scope(scope, || format!("bind group `{label}`"))?;
+        Ok(bind_group)
+    }
+
+    /// Whether the pipeline uses group `group` at all.
+    pub fn uses_group(&self, group: u32) -> bool {
+        self.groups.get(group as usize).is_some_and(|g| !g.is_empty())
+    }
+}
+
+/// A cached render pipeline with its layouts.
+#[derive(Debug)]
+pub struct RenderPipeline {
+    pub pipeline: wgpu::RenderPipeline,
+    pub layout: PipelineLayoutInfo,
+    /// The permutations it runs.
+    pub vertex: String,
+    pub fragment: Option<String>,
+}
+
+#[derive(Debug)]
+pub struct ComputePipeline {
+    pub pipeline: wgpu::ComputePipeline,
+    pub layout: PipelineLayoutInfo,
+    pub compute: String,
+    pub workgroup_size: [u32; 3],
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+struct RenderKey {
+    vertex: String,
+    fragment: Option<String>,
+    state: RenderState,
+}
+
+/// Counters of what the cache created (for tests and the warm-up check).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CacheStats {
+    pub modules: usize,
+    pub render_pipelines: usize,
+    pub compute_pipelines: usize,
+    pub bind_group_layouts: usize,
+}
+
+#[derive(Default)]
+struct CacheInner {
+    /// By the artifact blob the module was made from: permutations that compiled to the same
+    /// code share one module.
+    modules: HashMap<(Target, kiln::archive::BlobId), wgpu::ShaderModule>,
+    used: std::collections::BTreeSet<String>,
+    layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
+    render: HashMap<RenderKey, Arc<RenderPipeline>>,
+    compute: HashMap<String, Arc<ComputePipeline>>,
+    stats: CacheStats,
+}
+
+/// Creates and caches modules, layouts and pipelines for one device and one archive.
+pub struct PipelineCache {
+    archive: Arc<ShaderArchive>,
+    device: wgpu::Device,
+    passthrough: bool,
+    inner: Mutex<CacheInner>,
+}
+
+impl PipelineCache {
+    pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>) -> PipelineCache {
+        PipelineCache { archive, device: gpu.device.clone(), passthrough: gpu.spirv_passthrough, inner: Mutex::default() }
+    }
+
+    pub fn archive(&self) -> &ShaderArchive {
+        &self.archive
+    }
+
+    /// Whether modules come from SPIR-V passthrough.
+    pub fn uses_spirv_passthrough(&self) -> bool {
+        self.passthrough
+    }
+
+    pub fn stats(&self) -> CacheStats {
+        self.lock().stats
+    }
+
+    /// Every permutation a module was created for, sorted.
+    pub fn permutations_used(&self) -> Vec<String> {
+        self.lock().used.iter().cloned().collect()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, CacheInner> {
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The shader module of a permutation, created on first use (and shared with every
+    /// permutation whose artifact is the same blob).
+    pub fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, Reflection), PipelineError> {
+        let perm = self.archive.get(name)?;
+        let reflection = perm.reflection().clone();
+        if reflection.stage != stage {
+            return Err(PipelineError::WrongStage { name: name.to_string(), found: reflection.stage, wanted: stage });
+        }
+        let target = if self.passthrough && perm.blob_id(Target::Spirv).is_some() { Target::Spirv } else { Target::Wgsl };
+        let key = perm.blob_id(target).map(|blob| (target, blob));
+        {
+            let mut inner = self.lock();
+            inner.used.insert(name.to_string());
+            if let Some(m) = key.and_then(|k| inner.modules.get(&k)) {
+                return Ok((m.clone(), reflection));
+            }
+        }
+        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+        let module = create_module(&self.device, self.passthrough, name, perm.artifact(Target::Spirv), perm.artifact(Target::Wgsl), &reflection, &targets)?;
+        let mut inner = self.lock();
+        inner.stats.modules += 1;
+        if let Some(k) = key {
+            inner.modules.insert(k, module.clone());
+        }
+        Ok((module, reflection))
+    }
+
+    /// A render pipeline for (vertex permutation, fragment permutation, state), created on
+    /// first use. `fragment` is `None` for depth-only pipelines.
+    pub fn render(&self, vertex: &str, fragment: Option<&str>, state: &RenderState) -> Result<Arc<RenderPipeline>, PipelineError> {
+        let key = RenderKey { vertex: vertex.to_string(), fragment: fragment.map(str::to_string), state: state.clone() };
+        if let Some(p) = self.lock().render.get(&key) {
+            return Ok(p.clone());
+        }
+        let label = match fragment {
+            Some(f) => format!("{vertex} + {f}"),
+            None => vertex.to_string(),
+        };
+        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
+        let fs = match fragment {
+            Some(f) => Some(self.module(f, Stage::Fragment)?),
+            None => None,
+        };
+        let mut reflections = vec![&vs_reflection];
+        if let Some((_, r)) = &fs {
+            reflections.push(r);
+        }
+        let layout = self.layout(&label, &reflections)?;
+        let buffers = vertex_buffers(&label, state.vertex_layout, &vs_reflection)?;
+        let targets: Vec<Option<wgpu::ColorTargetState>> = state
+            .color_targets
+            .iter()
+            .map(|t| Some(wgpu::ColorTargetState { format: t.format, blend: t.blend.state(), write_mask: wgpu::ColorWrites::ALL }))
+            .collect();
+        let scope = ErrorScopes::push(&self.device);
+        let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some(&label),
+            layout: Some(&layout.layout),
+            vertex: wgpu::VertexState {
+                module: &vs,
+                entry_point: Some(&vs_reflection.entry),
+                compilation_options: Default::default(),
+                buffers: &buffers,
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: state.topology,
+                cull_mode: state.cull_mode,
+                front_face: wgpu::FrontFace::Ccw,
+                ..Default::default()
+            },
+            depth_stencil: state.depth.map(|d| wgpu::DepthStencilState {
+                format: d.format,
+                depth_write_enabled: Some(d.write),
+                depth_compare: Some(d.compare),
+                stencil: Default::default(),
+                bias: wgpu::DepthBiasState { constant: d.bias, slope_scale: f32::from_bits(d.slope_scale_bits), clamp: 0.0 },
+            }),
+            multisample: wgpu::MultisampleState { count: state.sample_count, ..Default::default() },
+            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
+                module,
+                entry_point: Some(&r.entry),
+                compilation_options: Default::default(),
+                targets: &targets,
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        check_scope(scope, || format!("render pipeline `{label}`"))?;
+        let handle = Arc::new(RenderPipeline { pipeline, layout, vertex: vertex.to_string(), fragment: fragment.map(str::to_string) });
+        let mut inner = self.lock();
+        inner.stats.render_pipelines += 1;
+        inner.render.insert(key, handle.clone());
+        Ok(handle)
+    }
+
+    /// A compute pipeline for a compute permutation, created on first use.
+    pub fn compute(&self, name: &str) -> Result<Arc<ComputePipeline>, PipelineError> {
+        if let Some(p) = self.lock().compute.get(name) {
+            return Ok(p.clone());
+        }
+        let (module, reflection) = self.module(name, Stage::Compute)?;
+        let layout = self.layout(name, &[&reflection])?;
+        let scope = ErrorScopes::push(&self.device);
+        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(name),
+            layout: Some(&layout.layout),
+            module: &module,
+            entry_point: Some(&reflection.entry),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        check_scope(scope, || format!("compute pipeline `{name}`"))?;
+        let handle = Arc::new(ComputePipeline {
+            pipeline,
+            layout,
+            compute: name.to_string(),
+            workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]),
+        });
+        let mut inner = self.lock();
+        inner.stats.compute_pipelines += 1;
+        inner.compute.insert(name.to_string(), handle.clone());
+        Ok(handle)
+    }
+
+    fn layout(&self, label: &str, reflections: &[&Reflection]) -> Result<PipelineLayoutInfo, PipelineError> {
+        let groups = merge_bindings(label, reflections)?;
+        let mut bind_group_layouts = Vec::with_capacity(groups.len());
+        for (g, bindings) in groups.iter().enumerate() {
+            let entries = bindings
+                .iter()
+                .map(|b| layout_entry(label, b))
+                .collect::<Result<Vec<_>, _>>()?;
+            let mut inner = self.lock();
+            let layout = match inner.layouts.get(&entries) {
+                Some(l) => l.clone(),
+                None => {
+                    let l = self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                        label: Some(&format!("{label} group {g}")),
+                        entries: &entries,
+                    });
+                    inner.stats.bind_group_layouts += 1;
+                    inner.layouts.insert(entries, l.clone());
+                    l
+                }
+            };
+            bind_group_layouts.push(layout);
+        }
+        let refs: Vec<Option<&wgpu::BindGroupLayout>> = bind_group_layouts.iter().map(Some).collect();
+        let scope = ErrorScopes::push(&self.device);
+        let layout = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(label),
+            bind_group_layouts: &refs,
+            immediate_size: 0,
+        });
+        check_scope(scope, || format!("pipeline layout `{label}`"))?;
+        Ok(PipelineLayoutInfo { label: label.to_string(), groups, bind_group_layouts, layout })
+    }
+}
+
+/// Creates a module from an archive's artifacts, bypassing the cache (the benchmark compares
+/// the two paths with this).
+pub fn create_module(
+    device: &wgpu::Device,
+    passthrough: bool,
+    name: &str,
+    spirv: Option<&[u8]>,
+    wgsl: Option<&[u8]>,
+    reflection: &Reflection,
+    targets: &str,
+) -> Result<wgpu::ShaderModule, PipelineError> {
+    let bad = |message: String| PipelineError::BadArtifact { name: name.to_string(), message };
+    if let (true, Some(bytes)) = (passthrough, spirv) {
+        let words = spirv_words(bytes).map_err(bad)?;
+        let entry = wgpu::PassthroughShaderEntryPoint {
+            name: Cow::Borrowed(&reflection.entry),
+            workgroup_size: reflection.workgroup_size.map(|[x, y, z]| (x, y, z)).unwrap_or((1, 1, 1)),
+        };
+        let scope = ErrorScopes::push(device);
+        // SAFETY: the SPIR-V was produced by naga from a module naga validated (the archive
+        // holds nothing else), for the same wgpu/naga major version, and checked by
+        // spirv-val in Kiln's tests; pipelines using it have explicit layouts built from
+        // the same module's reflection.
+        let module = unsafe {
+            device.create_shader_module_passthrough(wgpu::ShaderModuleDescriptorPassthrough {
+                label: Some(name),
+                entry_points: Cow::Owned(vec![entry]),
+                spirv: Some(Cow::Owned(words)),
+                ..Default::default()
+            })
+        };
+        check_scope(scope, || format!("SPIR-V module `{name}`"))?;
+        return Ok(module);
+    }
+    let Some(bytes) = wgsl else {
+        return Err(PipelineError::NoArtifact { name: name.to_string(), targets: targets.to_string() });
+    };
+    let text = std::str::from_utf8(bytes).map_err(|e| bad(format!("WGSL artifact is not UTF-8: {e}")))?;
+    let scope = ErrorScopes::push(device);
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(text)) });
+    check_scope(scope, || format!("WGSL module `{name}`"))?;
+    Ok(module)
+}
+
+/// SPIR-V bytes as words, checking the length and the magic number.
+pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
+    if !bytes.len().is_multiple_of(4) || bytes.len() < 20 {
+        return Err(format!("SPIR-V artifact is {} bytes, not a whole module", bytes.len()));
+    }
+    let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    if words[0] != 0x0723_0203 {
+        return Err(format!("SPIR-V artifact starts with {:#010x}, not the SPIR-V magic number", words[0]));
+    }
+    Ok(words)
+}
+
+/// Validation and internal errors (a backend's shader translation failing) of what runs
+/// while they are pushed.
+pub struct ErrorScopes {
+    // Dropped in declaration order: the reverse of the order pushed.
+    memory: wgpu::ErrorScopeGuard,
+    internal: wgpu::ErrorScopeGuard,
+    validation: wgpu::ErrorScopeGuard,
+}
+
+impl ErrorScopes {
+    pub fn push(device: &wgpu::Device) -> ErrorScopes {
+        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);
+        let memory = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        ErrorScopes { memory, internal, validation }
+    }
+
+    /// The first error caught, with its sources.
+    pub fn pop(self) -> Option<String> {
+        let errors = [pollster::block_on(self.memory.pop()), pollster::block_on(self.internal.pop()), pollster::block_on(self.validation.pop())];
+        errors.into_iter().flatten().next().map(|e| error_chain(&e))
+    }
+}
+
+fn check_scope(scope: ErrorScopes, what: impl FnOnce() -> String) -> Result<(), PipelineError> {
+    match scope.pop() {
+        None => Ok(()),
+        Some(message) => Err(PipelineError::Wgpu { what: what(), message }),
+    }
+}
+
+/// An error and its sources on one line each (wgpu's own Display says only "Validation Error").
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let line = s.to_string();
+        if !text.contains(&line) {
+            text.push_str(": ");
+            text.push_str(&line);
+        }
+        source = s.source();
+    }
+    text
+}
+
+fn stage_bits(stage: Stage) -> wgpu::ShaderStages {
+    match stage {
+        Stage::Vertex => wgpu::ShaderStages::VERTEX,
+        Stage::Fragment => wgpu::ShaderStages::FRAGMENT,
+        Stage::Compute => wgpu::ShaderStages::COMPUTE,
+    }
+}
+
+/// Merges the bindings of a pipeline's stages into groups (index = group number).
+pub fn merge_bindings(label: &str, reflections: &[&Reflection]) -> Result<Vec<Vec<MergedBinding>>, PipelineError> {
+    let mut groups: Vec<Vec<MergedBinding>> = Vec::new();
+    for r in reflections {
+        for Binding { group, binding, name, kind } in &r.bindings {
+            let g = *group as usize;
+            if groups.len() <= g {
+                groups.resize_with(g + 1, Vec::new);
+            }
+            match groups[g].iter_mut().find(|b| b.binding == *binding) {
+                Some(existing) => {
+                    if existing.kind != *kind {
+                        return Err(PipelineError::StageConflict {
+                            label: label.to_string(),
+                            group: *group,
+                            binding: *binding,
+                            kind_a: format!("{:?}", existing.kind),
+                            kind_b: format!("{kind:?}"),
+                        });
+                    }
+                    existing.visibility |= stage_bits(r.stage);
+                    if existing.name.is_none() {
+                        existing.name = name.clone();
+                    }
+                }
+                None => groups[g].push(MergedBinding { binding: *binding, name: name.clone(), kind: kind.clone(), visibility: stage_bits(r.stage) }),
+            }
+        }
+    }
+    for g in &mut groups {
+        g.sort_by_key(|b| b.binding);
+    }
+    Ok(groups)
+}
+
+fn view_dimension(dim: TextureDim) -> wgpu::TextureViewDimension {
+    match dim {
+        TextureDim::D1 => wgpu::TextureViewDimension::D1,
+        TextureDim::D2 => wgpu::TextureViewDimension::D2,
+        TextureDim::D2Array => wgpu::TextureViewDimension::D2Array,
+        TextureDim::Cube => wgpu::TextureViewDimension::Cube,
+        TextureDim::CubeArray => wgpu::TextureViewDimension::CubeArray,
+        TextureDim::D3 => wgpu::TextureViewDimension::D3,
+    }
+}
+
+/// The texel format of a storage texture, by its WGSL name.
+pub fn storage_format(name: &str) -> Option<wgpu::TextureFormat> {
+    use wgpu::TextureFormat as F;
+    Some(match name {
+        "rgba8unorm" => F::Rgba8Unorm,
+        "rgba8snorm" => F::Rgba8Snorm,
+        "rgba8uint" => F::Rgba8Uint,
+        "rgba8sint" => F::Rgba8Sint,
+        "rgba16uint" => F::Rgba16Uint,
+        "rgba16sint" => F::Rgba16Sint,
+        "rgba16float" => F::Rgba16Float,
+        "r32uint" => F::R32Uint,
+        "r32sint" => F::R32Sint,
+        "r32float" => F::R32Float,
+        "rg32uint" => F::Rg32Uint,
+        "rg32sint" => F::Rg32Sint,
+        "rg32float" => F::Rg32Float,
+        "rgba32uint" => F::Rgba32Uint,
+        "rgba32sint" => F::Rgba32Sint,
+        "rgba32float" => F::Rgba32Float,
+        "bgra8unorm" => F::Bgra8Unorm,
+        "r16float" => F::R16Float,
+        "rg16float" => F::Rg16Float,
+        "r8unorm" => F::R8Unorm,
+        "rgb10a2unorm" => F::Rgb10a2Unorm,
+        "rg11b10ufloat" => F::Rg11b10Ufloat,
+        _ => return None,
+    })
+}
+
+/// The layout entry of a merged binding. A float texture is filterable unless its name
+/// ends in `DepthTexture` (depth read as an unfilterable float, as the mobile path does).
+fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutEntry, PipelineError> {
+    let ty = match &b.kind {
+        BindingKind::UniformBuffer { min_size } => wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: NonZeroU64::new(*min_size),
+        },
+        BindingKind::StorageBuffer { read_only, min_size } => wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: *read_only },
+            has_dynamic_offset: false,
+            min_binding_size: NonZeroU64::new(*min_size),
+        },
+        BindingKind::Sampler { comparison: true } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+        BindingKind::Sampler { comparison: false } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+        BindingKind::Texture { dim, sample, multisampled } => {
+            let depth_named = b.name.as_deref().is_some_and(|n| n.ends_with("DepthTexture"));
+            wgpu::BindingType::Texture {
+                sample_type: match sample {
+                    SampleKind::Float => wgpu::TextureSampleType::Float { filterable: !depth_named && !multisampled },
+                    SampleKind::Depth => wgpu::TextureSampleType::Depth,
+                    SampleKind::Sint => wgpu::TextureSampleType::Sint,
+                    SampleKind::Uint => wgpu::TextureSampleType::Uint,
+                },
+                view_dimension: view_dimension(*dim),
+                multisampled: *multisampled,
+            }
+        }
+        BindingKind::StorageTexture { dim, format, access } => wgpu::BindingType::StorageTexture {
+            access: match access {
+                StorageAccess::ReadOnly => wgpu::StorageTextureAccess::ReadOnly,
+                StorageAccess::WriteOnly => wgpu::StorageTextureAccess::WriteOnly,
+                StorageAccess::ReadWrite => wgpu::StorageTextureAccess::ReadWrite,
+            },
+            format: storage_format(format)
+                .ok_or_else(|| PipelineError::StorageFormat { label: label.to_string(), format: format.clone() })?,
+            view_dimension: view_dimension(*dim),
+        },
+    };
+    Ok(wgpu::BindGroupLayoutEntry { binding: b.binding, visibility: b.visibility, ty, count: None })
+}
+
+const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
+    wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
+
+fn vertex_buffers(
+    label: &str,
+    layout: VertexLayout,
+    reflection: &Reflection,
+) -> Result<Vec<Option<wgpu::VertexBufferLayout<'static>>>, PipelineError> {
+    let buffers = match layout {
+        VertexLayout::None => Vec::new(),
+        VertexLayout::MeshInstanced => vec![
+            Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &MESH_ATTRIBUTES,
+            }),
+            Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<crate::gpu_types::InstanceData>() as u64,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes: &INSTANCE_ATTRIBUTES,
+            }),
+        ],
+    };
+    for input in &reflection.vertex_inputs {
+        let provided = buffers.iter().flatten().flat_map(|b| b.attributes.iter()).any(|a| {
+            a.shader_location == input.location
+                && a.format.size() == u64::from(input.ty.width) * u64::from(input.ty.components)
+        });
+        if !provided {
+            return Err(PipelineError::VertexInput { label: label.to_string(), location: input.location, layout });
+        }
+    }
+    Ok(buffers)
+}

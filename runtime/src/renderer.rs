@@ -1,0 +1,245 @@
+//! The frames. A [`Renderer`] owns the scene on the GPU, the render targets and every pass
+//! of one `--pipeline`, all built (and every pipeline created) in [`Renderer::new`], the
+//! warm-up. [`Renderer::render`] records the frame function of that pipeline, pass by pass
+//! in frame order, and returns the output image with each pass's timings and captures.
+
+use std::sync::Arc;
+
+use wgpu::util::DeviceExt;
+
+use crate::frame::{FrameRecorder, Image, PassResult};
+use crate::gpu::Gpu;
+use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
+use crate::passes::depth::{DepthPass, DepthView};
+use crate::passes::lighting::LightingPass;
+use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
+use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
+use crate::passes::tonemap::TonemapPass;
+use crate::passes::{PassInit, SharedResources, Targets};
+use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
+use crate::scene::gpu::{mobile_local_lights, shadow_view_uniforms, view_uniforms, GpuScene};
+use crate::scene::Scene;
+use crate::shaders::ShaderArchive;
+
+/// Which frame to render (`--pipeline`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum FramePipeline {
+    /// Deferred shading at the `sm5` level.
+    Desktop,
+    /// Forward shading at the `es3_1` level.
+    MobileForward,
+    /// Deferred shading at the `es3_1` level (`DEFERRED_SHADING_PATH`).
+    MobileDeferred,
+}
+
+impl FramePipeline {
+    pub const ALL: [FramePipeline; 3] = [FramePipeline::Desktop, FramePipeline::MobileForward, FramePipeline::MobileDeferred];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            FramePipeline::Desktop => "desktop",
+            FramePipeline::MobileForward => "mobile-forward",
+            FramePipeline::MobileDeferred => "mobile-deferred",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<FramePipeline> {
+        FramePipeline::ALL.into_iter().find(|p| p.name() == name)
+    }
+
+    /// The feature level whose permutations the frame uses.
+    pub fn level(self) -> &'static str {
+        match self {
+            FramePipeline::Desktop => "sm5",
+            FramePipeline::MobileForward | FramePipeline::MobileDeferred => "es3_1",
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct RendererOptions {
+    pub pipeline: FramePipeline,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Default for RendererOptions {
+    fn default() -> Self {
+        RendererOptions { pipeline: FramePipeline::Desktop, width: 640, height: 360 }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    #[error("frame size {width}x{height} is outside 1..={max} pixels per side on this device")]
+    Size { width: u32, height: u32, max: u32 },
+    #[error("the frame produced no output image")]
+    NoOutput,
+    #[error("rendering the frame failed: {0}")]
+    Wgpu(String),
+}
+
+/// The passes of each frame, built once.
+enum Passes {
+    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+}
+
+/// One rendered frame.
+pub struct FrameOutput {
+    /// The tonemapped sRGB output.
+    pub image: Image,
+    /// Every pass in frame order, with GPU times and (when captured) images.
+    pub passes: Vec<PassResult>,
+}
+
+pub struct Renderer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    timestamps: bool,
+    options: RendererOptions,
+    cache: PipelineCache,
+    gpu_scene: GpuScene,
+    shared: SharedResources,
+    passes: Passes,
+    depth_copy: Option<crate::frame::DepthCopy>,
+}
+
+impl Renderer {
+    /// Uploads the scene, creates the targets and builds every pass of the frame; this
+    /// creates every pipeline the frame uses (the warm-up), so [`Renderer::render`] creates
+    /// none.
+    pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>, scene: &Scene, options: RendererOptions) -> Result<Renderer, RenderError> {
+        let max = gpu.device.limits().max_texture_dimension_2d;
+        if options.width == 0 || options.height == 0 || options.width > max || options.height > max {
+            return Err(RenderError::Size { width: options.width, height: options.height, max });
+        }
+        let device = &gpu.device;
+        let cache = PipelineCache::new(gpu, archive);
+        let gpu_scene = GpuScene::upload(device, scene);
+        let uniform = |label: &str, bytes: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            })
+        };
+        let shared = SharedResources {
+            view: uniform("View uniforms", bytemuck::bytes_of(&view_uniforms(scene, options.width, options.height))),
+            shadow_view: uniform("ShadowDepths view uniforms", bytemuck::bytes_of(&shadow_view_uniforms(scene))),
+            mobile_lights: uniform("MobileLocalLights", bytemuck::bytes_of(&mobile_local_lights(scene))),
+            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("ShadowDepthSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                compare: Some(wgpu::CompareFunction::GreaterEqual),
+                ..Default::default()
+            }),
+            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("LinearClampSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                ..Default::default()
+            }),
+            targets: Targets::new(device, options.width, options.height),
+        };
+        let passes = {
+            let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
+            match options.pipeline {
+                FramePipeline::Desktop => Passes::Desktop {
+                    prepass: DepthPass::new(&init, DepthView::Camera)?,
+                    shadows: DepthPass::new(&init, DepthView::Sun)?,
+                    base: BasePass::new(&init)?,
+                    lighting: LightingPass::new(&init)?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
+                    tonemap: TonemapPass::new(&init)?,
+                },
+                FramePipeline::MobileForward => Passes::MobileForward {
+                    shadows: DepthPass::new(&init, DepthView::Sun)?,
+                    base: MobileBasePass::new(&init, MobileBasePassOptions::forward())?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    tonemap: TonemapPass::new(&init)?,
+                },
+                FramePipeline::MobileDeferred => Passes::MobileDeferred {
+                    shadows: DepthPass::new(&init, DepthView::Sun)?,
+                    base: MobileBasePass::new(&init, MobileBasePassOptions::deferred())?,
+                    shading: MobileDeferredShadingPass::new(&init)?,
+                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()))?,
+                    tonemap: TonemapPass::new(&init)?,
+                },
+            }
+        };
+        let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        Ok(Renderer {
+            device: device.clone(),
+            queue: gpu.queue.clone(),
+            timestamps: gpu.timestamps,
+            options,
+            cache,
+            gpu_scene,
+            shared,
+            passes,
+            depth_copy,
+        })
+    }
+
+    pub fn options(&self) -> &RendererOptions {
+        &self.options
+    }
+
+    pub fn pipeline_cache(&self) -> &PipelineCache {
+        &self.cache
+    }
+
+    pub fn cache_stats(&self) -> CacheStats {
+        self.cache.stats()
+    }
+
+    /// Renders one frame. With `capture`, every pass's outputs come back as images.
+    pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        let scopes = crate::pipelines::ErrorScopes::push(&self.device);
+        let result = self.record_and_submit(capture);
+        if let Some(message) = scopes.pop() {
+            return Err(RenderError::Wgpu(message));
+        }
+        result
+    }
+
+    fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
+        let (s, t) = (&self.gpu_scene, &self.shared.targets);
+        match &self.passes {
+            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
+                frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
+                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
+                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
+                frame.pass("Lighting", |ctx| lighting.record(ctx, t));
+                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
+                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
+            }
+            Passes::MobileForward { shadows, base, translucency, tonemap } => {
+                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
+                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
+                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
+                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
+            }
+            Passes::MobileDeferred { shadows, base, shading, translucency, tonemap } => {
+                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
+                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
+                frame.pass("MobileDeferredShading", |ctx| shading.record(ctx, t));
+                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
+                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
+            }
+        }
+        // The output is always read back, as a capture of a final pseudo-pass.
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
+        let passes = frame.finish();
+        readback.pass("Output", |ctx| ctx.output(&t.output.texture, crate::frame::Visualize::Direct));
+        let mut out = readback.finish();
+        let image = out.pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i).ok_or(RenderError::NoOutput)?;
+        Ok(FrameOutput { image, passes })
+    }
+}

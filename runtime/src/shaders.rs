@@ -1,0 +1,152 @@
+//! Access to a Kiln archive: open it (memory-mapped file, embedded bytes or a vector),
+//! find permutations by canonical name or with a builder, in one hash-map lookup.
+
+use std::fmt;
+use std::path::Path;
+
+use kiln::archive::{Archive, ArchiveError, Lookup, Near, PermutationRef};
+
+/// Why a permutation could not be found.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LookupError {
+    /// The name is well formed but the archive does not hold it; `nearest` lists the closest
+    /// permutations with the dimensions that differ.
+    #[error("{}", render_missing(.name, .nearest))]
+    Missing { name: String, nearest: Vec<Near> },
+    /// The builder named a shader, level or dimension the archive does not know.
+    #[error("cannot name permutation: {0}")]
+    BadName(String),
+}
+
+fn render_missing(name: &str, nearest: &[Near]) -> String {
+    let mut s = format!("permutation `{name}` is not in the archive");
+    if nearest.is_empty() {
+        s.push_str(" (the archive holds no permutations)");
+        return s;
+    }
+    s.push_str("; nearest:");
+    for n in nearest {
+        s.push_str(&format!("\n  {}", n.name));
+        if !n.differences.is_empty() {
+            s.push_str(&format!("  (differs in {})", n.differences.join(", ")));
+        }
+    }
+    s
+}
+
+/// A loaded archive of shader permutations.
+pub struct ShaderArchive {
+    archive: Archive,
+}
+
+impl fmt::Debug for ShaderArchive {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("ShaderArchive")
+            .field("bytes", &self.archive.len())
+            .field("permutations", &self.archive.permutations().count())
+            .finish()
+    }
+}
+
+impl ShaderArchive {
+    /// Memory-maps and verifies an archive file (header, version, checksum, manifest).
+    pub fn open(path: &Path) -> Result<ShaderArchive, ArchiveError> {
+        Ok(ShaderArchive { archive: Archive::open(path)? })
+    }
+
+    /// An archive embedded with `include_bytes!`.
+    pub fn from_static(bytes: &'static [u8]) -> Result<ShaderArchive, ArchiveError> {
+        Ok(ShaderArchive { archive: Archive::from_static(bytes)? })
+    }
+
+    pub fn from_vec(bytes: Vec<u8>) -> Result<ShaderArchive, ArchiveError> {
+        Ok(ShaderArchive { archive: Archive::from_vec(bytes)? })
+    }
+
+    /// The archive built from `../permutations.toml` by `runtime/build.rs`.
+    pub fn embedded() -> Result<ShaderArchive, ArchiveError> {
+        ShaderArchive::from_static(crate::EMBEDDED_ARCHIVE)
+    }
+
+    pub fn archive(&self) -> &Archive {
+        &self.archive
+    }
+
+    /// O(1) lookup by canonical name (`Shader@level{DIM=value,...}`).
+    pub fn get(&self, name: &str) -> Result<PermutationRef<'_>, LookupError> {
+        match self.archive.lookup(name) {
+            Lookup::Found(p) => Ok(p),
+            Lookup::Missing(nearest) => Err(LookupError::Missing { name: name.to_string(), nearest }),
+        }
+    }
+
+    /// Starts a lookup by shader name and dimension values:
+    /// `archive.shader("MobileBasePassPS").level("es3_1").with("FULLY_ROUGH", 1).find()`.
+    pub fn shader<'a>(&'a self, name: &str) -> PermutationQuery<'a> {
+        PermutationQuery { archive: self, shader: name.to_string(), level: None, values: Vec::new() }
+    }
+
+    pub fn permutations(&self) -> impl Iterator<Item = PermutationRef<'_>> {
+        self.archive.permutations()
+    }
+}
+
+/// A permutation named by shader, level and dimension values. Every dimension must be
+/// given (a default would pick a permutation silently); values are numbers or enum labels.
+#[derive(Clone, Debug)]
+pub struct PermutationQuery<'a> {
+    archive: &'a ShaderArchive,
+    shader: String,
+    level: Option<String>,
+    values: Vec<(String, String)>,
+}
+
+impl<'a> PermutationQuery<'a> {
+    /// The feature level (`sm5`, `es3_1`). May be left out when the shader has one level.
+    pub fn level(mut self, level: &str) -> Self {
+        self.level = Some(level.to_string());
+        self
+    }
+
+    /// A dimension's value: an integer (`1`, `4`) or, for an enum, its label or index.
+    pub fn with(mut self, dimension: &str, value: impl fmt::Display) -> Self {
+        self.values.push((dimension.to_string(), value.to_string()));
+        self
+    }
+
+    /// The canonical name this query denotes.
+    pub fn name(&self) -> Result<String, LookupError> {
+        let level = match &self.level {
+            Some(l) => l.clone(),
+            None => {
+                let levels: Vec<&str> = self
+                    .archive
+                    .archive
+                    .shaders()
+                    .iter()
+                    .filter(|s| s.name == self.shader)
+                    .map(|s| s.level.as_str())
+                    .collect();
+                match levels.as_slice() {
+                    [one] => one.to_string(),
+                    [] => return Err(LookupError::BadName(format!("no shader named `{}` in the archive", self.shader))),
+                    many => {
+                        return Err(LookupError::BadName(format!(
+                            "shader `{}` has several levels ({}); say which with .level()",
+                            self.shader,
+                            many.join(", ")
+                        )))
+                    }
+                }
+            }
+        };
+        let values: Vec<(&str, &str)> = self.values.iter().map(|(d, v)| (d.as_str(), v.as_str())).collect();
+        self.archive.archive.canonical_name(&self.shader, &level, &values).map_err(LookupError::BadName)
+    }
+
+    /// Finds the permutation; a missing one is an error naming the nearest.
+    pub fn find(&self) -> Result<PermutationRef<'a>, LookupError> {
+        let name = self.name()?;
+        self.archive.get(&name)
+    }
+}

@@ -1,0 +1,121 @@
+//! `kiln-view` as a process: exit codes, files written, and the message when there is no
+//! adapter.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn kiln_view(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kiln-view")).args(args).current_dir(dir).output().expect("kiln-view runs")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).lines().filter(|l| !l.contains("XDG_RUNTIME_DIR")).collect::<Vec<_>>().join("\n")
+}
+
+#[test]
+fn renders_and_dumps_every_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--pipeline", "mobile-deferred", "--size", "160x90", "--out", "f.png", "--dump-passes", "dump"], dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = std::fs::read(dir.path().join("f.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    let names: Vec<&str> = json["passes"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["ShadowDepths", "BasePass", "MobileDeferredShading", "Translucency", "PostProcessing"]);
+    assert_eq!(json["pipeline"], "mobile-deferred");
+    // The mobile frame runs es3_1 permutations only.
+    let permutations = json["permutations"].as_array().unwrap();
+    assert!(permutations.len() >= 6);
+    assert!(permutations.iter().all(|p| p.as_str().unwrap().contains("@es3_1{")), "{permutations:?}");
+    assert!(permutations.iter().any(|p| p.as_str().unwrap().contains("DEFERRED_SHADING_PATH=1")), "{permutations:?}");
+    for pass in json["passes"].as_array().unwrap() {
+        for image in pass["images"].as_array().unwrap() {
+            assert!(dir.path().join("dump").join(image.as_str().unwrap()).is_file(), "{image}");
+        }
+        assert!(pass["gpu_ms"].is_number() || !json["timestamps"].as_bool().unwrap(), "{pass}");
+    }
+    assert!(dir.path().join("dump/04_PostProcessing_Tonemapper.png").is_file());
+    assert!(dir.path().join("dump/01_BasePass_GBufferA.png").is_file());
+}
+
+#[test]
+fn gl_backend_dumps_depth_too() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--backend", "gl", "--pipeline", "mobile-forward", "--size", "160x90", "--dump-passes", "dump"], dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.path().join("dump/00_ShadowDepths.png").is_file());
+    assert!(dir.path().join("dump/01_BasePass_SceneDepth.png").is_file());
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    assert_eq!(json["backend"], "gl");
+}
+
+#[test]
+fn truncated_archive_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = kiln_runtime::EMBEDDED_ARCHIVE;
+    std::fs::write(dir.path().join("cut.kpak"), &bytes[..bytes.len() / 2]).unwrap();
+    let o = kiln_view(&["--shaders", "cut.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let expected = format!("error: archive is truncated: the header announces {} bytes, the file has {}", bytes.len(), bytes.len() / 2);
+    assert_eq!(stderr(&o), expected);
+    assert!(!dir.path().join("frame.png").exists());
+}
+
+#[test]
+fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() {
+    let dir = tempfile::tempdir().unwrap();
+    kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
+    let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `DepthOnlyVS` in the archive");
+}
+
+#[test]
+fn verify_looks_every_permutation_up_and_creates_its_module() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("s.kpak"), kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
+    let o = kiln_view(&["--shaders", "s.kpak", "--verify"], dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let archive = kiln_runtime::ShaderArchive::embedded().unwrap();
+    let count = archive.permutations().count();
+    let distinct: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(kiln::archive::Target::Spirv).unwrap()).collect();
+    let out = String::from_utf8_lossy(&o.stdout);
+    let expected = format!("{count} permutations looked up by name and by dimension values; {} distinct modules created from SPIR-V passthrough on ", distinct.len());
+    assert!(out.starts_with(&expected), "{out}");
+}
+
+#[test]
+fn bad_size_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--size", "640by360"], dir.path());
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("`640by360` is not WIDTHxHEIGHT"), "{}", stderr(&o));
+}
+
+#[test]
+fn no_vulkan_driver_fails_naming_the_debian_package() {
+    let dir = tempfile::tempdir().unwrap();
+    // The Vulkan loader sees no driver at all: the state of a machine without
+    // mesa-vulkan-drivers.
+    let o = Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+        .current_dir(dir.path())
+        .env("VK_ICD_FILENAMES", dir.path().join("none.json"))
+        .env("VK_DRIVER_FILES", dir.path().join("none.json"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let text = stderr(&o);
+    assert!(text.starts_with("error: no vulkan adapter found"), "{text}");
+    assert!(text.contains("Debian package `mesa-vulkan-drivers`"), "{text}");
+}
+
+#[test]
+fn help_documents_every_option() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--help"], dir.path());
+    assert!(o.status.success());
+    let text = String::from_utf8_lossy(&o.stdout);
+    for option in ["--pipeline", "--backend", "--size", "--out", "--dump-passes", "--shaders"] {
+        assert!(text.contains(option), "{option} missing from --help");
+    }
+}

@@ -1,0 +1,69 @@
+#version 310 es
+
+precision highp float;
+precision highp int;
+
+struct View {
+    mat4x4 view_proj;
+    mat4x4 model;
+    vec4 camera;
+};
+struct VsOut {
+    vec4 clip;
+    vec3 world;
+    vec3 normal;
+    vec2 uv;
+};
+struct Light {
+    vec4 position;
+    vec4 color;
+};
+uniform highp sampler2D _group_1_binding_0_fs;
+
+layout(std140) uniform type_7_block_0Fragment { Light _group_2_binding_0_fs[2]; };
+
+layout(location = 0) smooth in vec3 _vs2fs_location0;
+layout(location = 1) smooth in vec3 _vs2fs_location1;
+layout(location = 2) smooth in vec2 _vs2fs_location2;
+layout(location = 0) out vec4 _fs2p_location0;
+
+float Lambert(vec3 n, vec3 to_light) {
+    return clamp(dot(normalize(n), normalize(to_light)), 0.0, 1.0);
+}
+
+void main() {
+    VsOut i = VsOut(gl_FragCoord, _vs2fs_location0, _vs2fs_location1, _vs2fs_location2);
+    vec3 color = vec3(0.0);
+    uint l = 0u;
+    vec4 albedo = texture(_group_1_binding_0_fs, vec2(i.uv));
+    if ((albedo.w < 0.5)) {
+        discard;
+    }
+    color = (albedo.xyz * vec3(0.03, 0.03, 0.04));
+    bool loop_init = true;
+    while(true) {
+        if (!loop_init) {
+            uint _e42 = l;
+            l = (_e42 + 1u);
+        }
+        loop_init = false;
+        uint _e17 = l;
+        if ((_e17 < 2u)) {
+        } else {
+            break;
+        }
+        {
+            vec3 _e20 = color;
+            uint _e23 = l;
+            vec4 _e26 = _group_2_binding_0_fs[_e23].position;
+            float _e30 = Lambert(i.normal, (_e26.xyz - i.world));
+            uint _e32 = l;
+            vec4 _e35 = _group_2_binding_0_fs[_e32].color;
+            color = (_e20 + ((_e30 * _e35.xyz) * albedo.xyz));
+        }
+    }
+    vec3 _e44 = color;
+    _fs2p_location0 = vec4(_e44, albedo.w);
+    return;
+}
+

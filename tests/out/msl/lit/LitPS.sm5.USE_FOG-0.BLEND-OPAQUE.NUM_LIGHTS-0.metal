@@ -1,0 +1,47 @@
+// language: metal2.4
+#include <metal_stdlib>
+#include <simd/simd.h>
+
+using metal::uint;
+
+struct View {
+    metal::float4x4 view_proj;
+    metal::float4x4 model;
+    metal::float4 camera;
+};
+struct VsOut {
+    metal::float4 clip;
+    metal::float3 world;
+    metal::float3 normal;
+    metal::float2 uv;
+    char _pad4[8];
+};
+
+float Lambert(
+    metal::float3 n,
+    metal::float3 to_light
+) {
+    return metal::clamp(metal::dot(metal::normalize(n), metal::normalize(to_light)), 0.0, 1.0);
+}
+
+struct main_psInput {
+    metal::float3 world [[user(loc0), center_perspective]];
+    metal::float3 normal [[user(loc1), center_perspective]];
+    metal::float2 uv [[user(loc2), center_perspective]];
+};
+struct main_psOutput {
+    metal::float4 member [[color(0)]];
+};
+fragment main_psOutput main_ps(
+  main_psInput varyings [[stage_in]]
+, metal::float4 clip [[position]]
+, metal::texture2d<float, metal::access::sample> base_color [[user(fake0)]]
+, metal::sampler base_sampler [[user(fake0)]]
+) {
+    const VsOut i = { clip, varyings.world, varyings.normal, varyings.uv };
+    metal::float3 color = {};
+    metal::float4 albedo = base_color.sample(base_sampler, i.uv);
+    color = albedo.xyz * metal::float3(0.03, 0.03, 0.04);
+    metal::float3 _e12 = color;
+    return main_psOutput { metal::float4(_e12, 1.0) };
+}

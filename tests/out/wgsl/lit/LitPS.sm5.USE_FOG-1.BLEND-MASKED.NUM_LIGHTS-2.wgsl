@@ -1,0 +1,74 @@
+struct View {
+    view_proj: mat4x4<f32>,
+    model: mat4x4<f32>,
+    camera: vec4<f32>,
+}
+
+struct VsOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) uv: vec2<f32>,
+    @location(3) fog: f32,
+}
+
+struct Light {
+    position: vec4<f32>,
+    color: vec4<f32>,
+}
+
+const FOG_DENSITY: f32 = 0.02f;
+
+@group(0) @binding(0) 
+var<uniform> view: View;
+@group(1) @binding(0) 
+var base_color: texture_2d<f32>;
+@group(1) @binding(1) 
+var base_sampler: sampler;
+@group(2) @binding(0) 
+var<uniform> lights: array<Light, 2>;
+
+fn Lambert(n: vec3<f32>, to_light: vec3<f32>) -> f32 {
+    return clamp(dot(normalize(n), normalize(to_light)), 0f, 1f);
+}
+
+fn FogFactor(world: vec3<f32>, camera: vec3<f32>) -> f32 {
+    let d = distance(world, camera);
+    return clamp((1f - exp((-(d) * FOG_DENSITY))), 0f, 1f);
+}
+
+@fragment 
+fn main_ps(i: VsOut) -> @location(0) vec4<f32> {
+    var color: vec3<f32>;
+    var l: u32 = 0u;
+
+    let albedo = textureSample(base_color, base_sampler, i.uv);
+    if (albedo.w < 0.5f) {
+        discard;
+    }
+    color = (albedo.xyz * vec3<f32>(0.03f, 0.03f, 0.04f));
+    loop {
+        let _e17 = l;
+        if (_e17 < 2u) {
+        } else {
+            break;
+        }
+        {
+            let _e20 = color;
+            let _e23 = l;
+            let _e26 = lights[_e23].position;
+            let _e30 = Lambert(i.normal, (_e26.xyz - i.world));
+            let _e32 = l;
+            let _e35 = lights[_e32].color;
+            color = (_e20 + ((_e30 * _e35.xyz) * albedo.xyz));
+        }
+        continuing {
+            let _e42 = l;
+            l = (_e42 + 1u);
+        }
+    }
+    let _e44 = color;
+    color = mix(_e44, vec3<f32>(0.5f, 0.6f, 0.7f), i.fog);
+    let _e51 = color;
+    return vec4<f32>(_e51, albedo.w);
+}

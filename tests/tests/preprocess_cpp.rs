@@ -1,0 +1,294 @@
+//! Differential tests: Kiln's preprocessor against GNU `cpp -x c -P -undef -nostdinc -std=c11`
+//! on the same files, comparing token streams (whitespace ignored).
+//!
+//! The corpus is `tests/in/preprocess/*.usf`; a first line `// args: -DNAME=V -Idir` gives
+//! extra options to both. Then a few hundred random macro programs from a fixed seed.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use kiln::preprocess::{self, Options, SourceCache};
+
+const CPP_ARGS: [&str; 6] = ["-x", "c", "-P", "-undef", "-nostdinc", "-std=c11"];
+
+fn package_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Fails with a clear message when `cpp` is missing: these tests need it.
+fn require_cpp() {
+    match Command::new("cpp").arg("--version").output() {
+        Ok(o) if o.status.success() => {}
+        _ => panic!(
+            "the differential preprocessor tests need GNU `cpp` on PATH (Debian/Ubuntu: `apt-get install cpp`); \
+             `.ci/run` installs it"
+        ),
+    }
+}
+
+/// Runs cpp from `cwd` on `file` (relative to `cwd`). Ok(stdout) or Err(stderr).
+fn run_cpp(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> {
+    let out = Command::new("cpp")
+        .args(CPP_ARGS)
+        .args(args)
+        .arg(file)
+        .current_dir(cwd)
+        .output()
+        .expect("cpp runs");
+    if out.status.success() {
+        Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+    } else {
+        Err(String::from_utf8_lossy(&out.stderr).into_owned())
+    }
+}
+
+/// Runs Kiln on `file` the way `kiln preprocess` does from `cwd`.
+fn run_kiln(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> {
+    let mut opts = Options::default();
+    for a in args {
+        if let Some(d) = a.strip_prefix("-D") {
+            let (n, v) = d.split_once('=').unwrap_or((d, "1"));
+            opts.defines.push((n.to_string(), v.to_string()));
+        } else if let Some(i) = a.strip_prefix("-I") {
+            opts.include_roots.push(cwd.join(i));
+        }
+    }
+    let cache = SourceCache::new(cwd.to_path_buf());
+    // The file name relative to `cwd`, as cpp sees it (for `__FILE__`).
+    let prev = std::env::current_dir().ok();
+    let abs = cwd.join(file);
+    let result = if prev.as_deref() == Some(cwd) {
+        preprocess::preprocess_file(file, &opts, &cache)
+    } else {
+        preprocess::preprocess_file(&abs, &opts, &cache)
+    };
+    result.map(|o| o.text).map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
+}
+
+fn args_of(text: &str) -> Vec<String> {
+    match text.lines().next().and_then(|l| l.strip_prefix("// args:")) {
+        Some(rest) => rest.split_whitespace().map(str::to_string).collect(),
+        None => Vec::new(),
+    }
+}
+
+/// Compares one file; `None` if the token streams agree (or both fail).
+fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
+    let cpp = run_cpp(cwd, file, args);
+    let kiln = run_kiln(cwd, file, args);
+    match (&cpp, &kiln) {
+        (Ok(a), Ok(b)) => {
+            let (ta, tb) = (preprocess::tokens(a), preprocess::tokens(b));
+            if ta == tb {
+                return None;
+            }
+            let i = ta.iter().zip(&tb).position(|(x, y)| x != y).unwrap_or(ta.len().min(tb.len()));
+            let ctx = |t: &[&str]| t[i.saturating_sub(6)..(i + 6).min(t.len())].join(" ");
+            Some(format!(
+                "{}: token {i} differs\n   cpp: {}\n  kiln: {}\n--- cpp output\n{a}\n--- kiln output\n{b}",
+                file.display(),
+                ctx(&ta),
+                ctx(&tb)
+            ))
+        }
+        (Err(_), Err(_)) => None,
+        (Ok(_), Err(e)) => Some(format!("{}: cpp succeeds, kiln fails:\n{e}", file.display())),
+        (Err(e), Ok(_)) => Some(format!("{}: cpp fails, kiln succeeds; cpp says:\n{e}", file.display())),
+    }
+}
+
+#[test]
+fn corpus_matches_cpp() {
+    require_cpp();
+    let cwd = package_dir();
+    let dir = cwd.join("in/preprocess");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("tests/in/preprocess exists")
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "usf"))
+        .collect();
+    files.sort();
+    assert!(files.len() >= 20, "the corpus has {} cases", files.len());
+    let mut failures = Vec::new();
+    for f in &files {
+        let rel = f.strip_prefix(&cwd).expect("inside the package");
+        let text = std::fs::read_to_string(f).expect("readable");
+        let args = args_of(&text);
+        // Every corpus case is valid C preprocessor input.
+        if let Err(e) = run_cpp(&cwd, rel, &args) {
+            failures.push(format!("{}: cpp rejects a corpus case:\n{e}", rel.display()));
+            continue;
+        }
+        if let Some(f) = compare(&cwd, rel, &args) {
+            failures.push(f);
+        }
+    }
+    assert!(failures.is_empty(), "{} of {} cases differ from cpp:\n\n{}", failures.len(), files.len(), failures.join("\n\n"));
+}
+
+/// A small deterministic generator (xorshift64*).
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n as u64) as usize
+    }
+    fn pick<'a>(&mut self, items: &[&'a str]) -> &'a str {
+        items[self.below(items.len())]
+    }
+    fn chance(&mut self, percent: usize) -> bool {
+        self.below(100) < percent
+    }
+}
+
+const OBJ: [&str; 5] = ["A", "B", "C", "D", "E"];
+const FUN: [&str; 5] = ["F", "G", "H", "J", "K"];
+const PLAIN: [&str; 8] = ["x", "y", "1", "2", "+", "*", "-", "."];
+
+/// Parameter counts of the function-like macros defined so far (so most calls are valid).
+type Sigs = std::collections::HashMap<&'static str, (usize, bool)>;
+
+/// One random macro definition.
+fn gen_define(r: &mut Rng, out: &mut String, sigs: &mut Sigs) {
+    let func = r.chance(60);
+    let name = if func { r.pick(&FUN) } else { r.pick(&OBJ) };
+    let mut params: Vec<&str> = Vec::new();
+    let mut variadic = false;
+    if func {
+        let n = r.below(4);
+        params.extend(["p", "q", "s"].iter().take(n));
+        variadic = r.chance(25);
+        let mut list: Vec<&str> = params.clone();
+        if variadic {
+            list.push("...");
+        }
+        out.push_str(&format!("#define {name}({})", list.join(", ")));
+        sigs.insert(name, (params.len(), variadic));
+    } else {
+        out.push_str(&format!("#define {name}"));
+    }
+    let len = r.below(7);
+    let mut prev_operand = false;
+    for i in 0..len {
+        out.push(' ');
+        let roll = r.below(100);
+        let item: String = if roll < 25 && (!params.is_empty() || variadic) {
+            let mut all = params.clone();
+            if variadic {
+                all.push("__VA_ARGS__");
+            }
+            let p = r.pick(&all);
+            if r.chance(20) {
+                format!("#{p}")
+            } else {
+                p.to_string()
+            }
+        } else if roll < 45 {
+            r.pick(&OBJ).to_string()
+        } else if roll < 65 {
+            r.pick(&FUN).to_string()
+        } else if roll < 75 {
+            r.pick(&["(", ")", ","]).to_string()
+        } else if roll < 85 && prev_operand && i + 1 < len {
+            // Paste onto something that makes a valid token most of the time.
+            format!("## {}", r.pick(&["x", "y", "1", "A", "F"]))
+        } else if roll < 88 && variadic && prev_operand {
+            ", ## __VA_ARGS__".to_string()
+        } else {
+            r.pick(&PLAIN).to_string()
+        };
+        prev_operand = item != "##";
+        out.push_str(&item);
+    }
+    out.push('\n');
+}
+
+/// A random piece of text using the macros: names, calls with balanced arguments, noise.
+fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
+    let n = 1 + r.below(6);
+    for _ in 0..n {
+        let roll = r.below(100);
+        if roll < 30 {
+            out.push_str(r.pick(&OBJ));
+        } else if roll < 70 && depth < 3 {
+            let f = r.pick(&FUN);
+            out.push_str(f);
+            if r.chance(85) {
+                out.push('(');
+                let args = match sigs.get(f) {
+                    Some(&(n, variadic)) if r.chance(90) => n + if variadic { r.below(3) } else { 0 },
+                    _ => r.below(4),
+                };
+                for a in 0..args {
+                    if a > 0 {
+                        out.push(',');
+                    }
+                    if r.chance(70) {
+                        gen_use(r, out, depth + 1, sigs);
+                    }
+                }
+                out.push(')');
+            }
+        } else if roll < 75 {
+            out.push('\n');
+        } else {
+            out.push_str(r.pick(&PLAIN));
+        }
+        out.push(' ');
+    }
+}
+
+fn gen_program(r: &mut Rng) -> String {
+    let mut out = String::new();
+    let mut sigs = Sigs::new();
+    for _ in 0..(4 + r.below(6)) {
+        if r.chance(70) {
+            gen_define(r, &mut out, &mut sigs);
+        } else {
+            gen_use(r, &mut out, 0, &sigs);
+            out.push('\n');
+            if r.chance(20) {
+                let f = r.pick(&FUN);
+                sigs.remove(f);
+                out.push_str(&format!("#undef {f}\n"));
+            }
+        }
+    }
+    for _ in 0..4 {
+        gen_use(r, &mut out, 0, &sigs);
+        out.push('\n');
+    }
+    out
+}
+
+#[test]
+fn random_macro_programs_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    // `KILN_RANDOM_PROGRAMS=N` and `KILN_RANDOM_SEED=S` run a longer or different search.
+    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS").ok().and_then(|v| v.parse().ok()).unwrap_or(400);
+    let seed: u64 = std::env::var("KILN_RANDOM_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0x5eed_1234_abcd_0001);
+    let mut r = Rng(seed | 1);
+    let mut failures = Vec::new();
+    let (mut ok, mut both_fail) = (0, 0);
+    for i in 0..count {
+        let program = gen_program(&mut r);
+        let name = PathBuf::from(format!("gen{i}.usf"));
+        std::fs::write(dir.path().join(&name), &program).expect("write");
+        let cpp_ok = run_cpp(dir.path(), &name, &[]).is_ok();
+        match compare(dir.path(), &name, &[]) {
+            None if cpp_ok => ok += 1,
+            None => both_fail += 1,
+            Some(f) => failures.push(format!("program {i}:\n{program}\n{f}")),
+        }
+    }
+    assert!(failures.is_empty(), "{} random programs differ from cpp:\n\n{}", failures.len(), failures.iter().take(5).cloned().collect::<Vec<_>>().join("\n\n"));
+    // The generator must mostly make valid programs, or the test proves little.
+    assert!(ok * 8 >= count * 5, "only {ok} of {count} programs valid ({both_fail} rejected by both)");
+}

@@ -1,0 +1,122 @@
+//! The runtime's archive access: the embedded archive opens and every permutation is found
+//! by name and by the builder; missing names, truncated and corrupted archives are errors
+//! that say what is wrong.
+
+use kiln_runtime::{LookupError, ShaderArchive};
+
+fn embedded() -> ShaderArchive {
+    ShaderArchive::embedded().expect("the embedded archive opens")
+}
+
+#[test]
+fn embedded_archive_holds_both_levels() {
+    let a = embedded();
+    let names: Vec<String> = a.permutations().map(|p| p.name().to_string()).collect();
+    assert!(names.len() > 50, "{} permutations", names.len());
+    assert!(names.iter().any(|n| n.contains("@sm5")));
+    assert!(names.iter().any(|n| n.contains("@es3_1")));
+}
+
+#[test]
+fn every_permutation_is_found_by_name_and_by_builder() {
+    let a = embedded();
+    let archive = a.archive();
+    for p in a.permutations() {
+        assert_eq!(a.get(p.name()).unwrap().name(), p.name());
+        let shader = p.shader();
+        let mut q = a.shader(&shader.name).level(&shader.level);
+        for (d, v) in shader.dimensions.iter().zip(p.values()) {
+            q = q.with(&d.name, v);
+        }
+        assert_eq!(q.find().unwrap().name(), p.name(), "builder with indices");
+        assert!(archive.get(p.name()).is_some());
+    }
+}
+
+#[test]
+fn builder_accepts_enum_labels_and_any_order() {
+    let a = embedded();
+    let p = a
+        .shader("MobileBasePassPS")
+        .level("es3_1")
+        .with("MATERIAL_BLEND_MODE", "MASKED")
+        .with("DEFERRED_SHADING_PATH", 0)
+        .with("USE_VERTEX_FOG", 1)
+        .with("MAX_DYNAMIC_POINT_LIGHTS", 4)
+        .with("FULLY_ROUGH", 1)
+        .find()
+        .unwrap();
+    assert_eq!(
+        p.name(),
+        "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=4,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0,MATERIAL_BLEND_MODE=MASKED}"
+    );
+    // A shader with one level needs no .level().
+    assert_eq!(a.shader("BasePassVS").find().unwrap().name(), "BasePassVS@sm5{}");
+}
+
+#[test]
+fn skipped_permutation_names_the_nearest_and_what_differs() {
+    let a = embedded();
+    // Skipped in permutations.toml: deferred lights run in their own pass.
+    let err = a
+        .shader("MobileBasePassPS")
+        .level("es3_1")
+        .with("FULLY_ROUGH", 0)
+        .with("MAX_DYNAMIC_POINT_LIGHTS", 2)
+        .with("USE_VERTEX_FOG", 0)
+        .with("DEFERRED_SHADING_PATH", 1)
+        .with("MATERIAL_BLEND_MODE", "OPAQUE")
+        .find()
+        .err()
+        .expect("lookup should fail");
+    let LookupError::Missing { name, nearest } = &err else { panic!("{err}") };
+    assert_eq!(name, "MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2,USE_VERTEX_FOG=0,DEFERRED_SHADING_PATH=1,MATERIAL_BLEND_MODE=OPAQUE}");
+    assert_eq!(nearest[0].differences.len(), 1, "{err}");
+    let text = err.to_string();
+    assert!(text.starts_with("permutation `MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2"), "{text}");
+    assert!(text.contains("; nearest:\n  MobileBasePassPS@es3_1{"), "{text}");
+    assert!(
+        text.contains("(differs in MAX_DYNAMIC_POINT_LIGHTS: 2 -> 0)") || text.contains("(differs in DEFERRED_SHADING_PATH: 1 -> 0)"),
+        "{text}"
+    );
+}
+
+#[test]
+fn builder_errors_name_the_unknown_part() {
+    let a = embedded();
+    let e = a.shader("NoSuchPS").level("sm5").find().err().expect("lookup should fail").to_string();
+    assert_eq!(e, "cannot name permutation: no shader named `NoSuchPS` in the archive");
+    let e = a.shader("BasePassPS").level("sm5").with("MATERIAL_BLEND_MODE", "OPAQUE").with("BOGUS", 1).find().err().expect("lookup should fail").to_string();
+    assert_eq!(e, "cannot name permutation: shader `BasePassPS` has no dimension `BOGUS` (its dimensions: MATERIAL_BLEND_MODE)");
+    let e = a.shader("TonemapPS").with("USE_BLOOM", 0).find().err().expect("lookup should fail").to_string();
+    assert_eq!(e, "cannot name permutation: shader `TonemapPS` has several levels (sm5, es3_1); say which with .level()");
+    let e = a.shader("DeferredLightPS").level("sm5").with("LIGHT_TYPE", "POINT").find().err().expect("lookup should fail").to_string();
+    assert!(e.contains("no value given for dimension `USE_SHADOWS`"), "{e}");
+}
+
+#[test]
+fn truncated_and_corrupted_archives_are_errors() {
+    let bytes = kiln_runtime::EMBEDDED_ARCHIVE.to_vec();
+    for len in [0, 10, 64, bytes.len() / 3, bytes.len() - 1] {
+        let e = ShaderArchive::from_vec(bytes[..len].to_vec()).unwrap_err().to_string();
+        assert!(e.contains("truncated") || e.contains("shorter than"), "{len}: {e}");
+    }
+    let mut flipped = bytes.clone();
+    let i = bytes.len() - 5;
+    flipped[i] ^= 0x10;
+    let e = ShaderArchive::from_vec(flipped).unwrap_err().to_string();
+    assert!(e.contains("checksum mismatch"), "{e}");
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("none.kpak");
+    let e = ShaderArchive::open(&missing).unwrap_err().to_string();
+    assert!(e.starts_with("cannot read archive"), "{e}");
+}
+
+#[test]
+fn opening_a_file_maps_the_same_archive() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("shaders.kpak");
+    std::fs::write(&path, kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
+    let a = ShaderArchive::open(&path).unwrap();
+    assert_eq!(a.permutations().count(), embedded().permutations().count());
+}

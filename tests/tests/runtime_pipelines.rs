@@ -1,0 +1,131 @@
+//! Every render permutation of the bundled archive becomes a pipeline on a real device
+//! (lavapipe in CI), from SPIR-V passthrough and from WGSL, with layouts from reflection.
+
+use std::sync::Arc;
+
+use kiln::archive::{PermutationRef, ScalarKind};
+use kiln::Stage;
+use kiln_runtime::gpu_types::formats;
+use kiln_runtime::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, RenderState, VertexLayout};
+use kiln_runtime::{Backend, Gpu, GpuOptions, ModuleSource, ShaderArchive};
+
+/// A device, or a failing test that says what to install: a render test never passes by
+/// skipping.
+fn gpu(module_source: ModuleSource) -> Gpu {
+    Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source, timestamps: true })
+        .unwrap_or_else(|e| panic!("render tests need a Vulkan adapter: {e}"))
+}
+
+/// The vertex shader a fragment permutation runs with in the frames: same interface.
+fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
+    let shader = fs.shader();
+    let value = |dim: &str| {
+        let i = shader.dimensions.iter().position(|d| d.name == dim).unwrap();
+        fs.values()[i]
+    };
+    let q = match shader.name.as_str() {
+        "BasePassPS" => archive.shader("BasePassVS").level(&shader.level),
+        "DepthOnlyPS" => archive.shader("DepthOnlyVS").level(&shader.level),
+        "MobileBasePassPS" => archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG")),
+        _ => archive.shader("ScreenVS").level(&shader.level),
+    };
+    q.find().unwrap_or_else(|e| panic!("no vertex shader for {}: {e}", fs.name())).name().to_string()
+}
+
+fn state_for(vs: &PermutationRef<'_>, fs: Option<&PermutationRef<'_>>) -> RenderState {
+    let vertex_layout = if vs.reflection().vertex_inputs.is_empty() { VertexLayout::None } else { VertexLayout::MeshInstanced };
+    let mut state = RenderState::mesh();
+    state.vertex_layout = vertex_layout;
+    if vertex_layout == VertexLayout::MeshInstanced || fs.is_none() {
+        state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, true));
+    }
+    if let Some(fs) = fs {
+        let targets: Vec<ColorTarget> = fs
+            .reflection()
+            .color_outputs
+            .iter()
+            .map(|o| {
+                assert_eq!(o.ty.scalar, ScalarKind::Float, "{}", fs.name());
+                ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Replace }
+            })
+            .collect();
+        state = state.with_targets(&targets);
+    }
+    state
+}
+
+fn create_every_pipeline(module_source: ModuleSource) -> (usize, bool) {
+    let gpu = gpu(module_source);
+    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let cache = PipelineCache::new(&gpu, archive.clone());
+    let mut created = 0;
+    for p in archive.permutations() {
+        match p.reflection().stage {
+            Stage::Fragment => {
+                let vs_name = partner(&archive, &p);
+                let vs = archive.get(&vs_name).unwrap();
+                cache.render(&vs_name, Some(p.name()), &state_for(&vs, Some(&p))).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
+            }
+            Stage::Vertex => {
+                cache.render(p.name(), None, &state_for(&p, None)).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
+            }
+            Stage::Compute => {
+                cache.compute(p.name()).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
+            }
+        }
+        created += 1;
+    }
+    let stats = cache.stats();
+    let target = if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
+    let blobs: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(target).unwrap()).collect();
+    assert_eq!(stats.modules, blobs.len(), "one module per distinct artifact");
+    assert_eq!(cache.permutations_used().len(), archive.permutations().count());
+    (created, cache.uses_spirv_passthrough())
+}
+
+#[test]
+fn every_permutation_makes_a_pipeline_from_spirv_passthrough() {
+    let (created, passthrough) = create_every_pipeline(ModuleSource::Auto);
+    assert!(created > 50);
+    // lavapipe offers PASSTHROUGH_SHADERS; a device without it falls back to WGSL.
+    eprintln!("{created} pipelines, SPIR-V passthrough: {passthrough}");
+}
+
+#[test]
+fn every_permutation_makes_a_pipeline_from_wgsl() {
+    let (created, passthrough) = create_every_pipeline(ModuleSource::Wgsl);
+    assert!(created > 50);
+    assert!(!passthrough);
+}
+
+#[test]
+fn pipelines_are_cached_per_permutation_and_state() {
+    let gpu = gpu(ModuleSource::Auto);
+    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let cache = PipelineCache::new(&gpu, archive);
+    let state = RenderState::fullscreen(ColorTarget { format: formats::OUTPUT, blend: Blend::Replace });
+    let a = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &state).unwrap();
+    let b = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &state).unwrap();
+    assert!(Arc::ptr_eq(&a, &b));
+    let other = RenderState::fullscreen(ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Additive });
+    let c = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &other).unwrap();
+    assert!(!Arc::ptr_eq(&a, &c));
+    let stats = cache.stats();
+    assert_eq!((stats.modules, stats.render_pipelines), (2, 2));
+    // Layouts come from reflection: group 1 holds the scene color texture.
+    let names: Vec<_> = a.layout.groups[1].iter().map(|b| b.name.clone().unwrap()).collect();
+    assert_eq!(names, ["SceneColorTexture"]);
+    assert_eq!(a.layout.groups[0][0].visibility, wgpu::ShaderStages::FRAGMENT);
+}
+
+#[test]
+fn missing_permutation_and_wrong_stage_are_errors() {
+    let gpu = gpu(ModuleSource::Auto);
+    let cache = PipelineCache::new(&gpu, Arc::new(ShaderArchive::embedded().unwrap()));
+    let state = RenderState::fullscreen(ColorTarget { format: formats::OUTPUT, blend: Blend::Replace });
+    let e = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=2}"), &state).unwrap_err().to_string();
+    assert!(e.starts_with("permutation `TonemapPS@sm5{USE_BLOOM=2}` is not in the archive; nearest:"), "{e}");
+    assert!(e.contains("USE_BLOOM: 2 -> 0"), "{e}");
+    let e = cache.render("TonemapPS@sm5{USE_BLOOM=0}", None, &state).unwrap_err().to_string();
+    assert_eq!(e, "permutation `TonemapPS@sm5{USE_BLOOM=0}` is a fragment shader, used as a vertex shader");
+}
