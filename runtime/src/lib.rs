@@ -17,6 +17,7 @@
 pub mod frame;
 pub mod gpu;
 pub mod gpu_types;
+pub mod mobile;
 pub mod passes;
 pub mod pipelines;
 pub mod renderer;

@@ -405,7 +405,7 @@ impl PipelineCache {
         Ok(handle)
     }
 
-    fn layout(&self, label: &str, reflections: &[&Reflection]) -> Result<PipelineLayoutInfo, PipelineError> {
+    pub fn layout(&self, label: &str, reflections: &[&Reflection]) -> Result<PipelineLayoutInfo, PipelineError> {
         let groups = merge_bindings(label, reflections)?;
         let mut bind_group_layouts = Vec::with_capacity(groups.len());
         for (g, bindings) in groups.iter().enumerate() {

@@ -117,7 +117,7 @@ impl PrePass {
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets) {
         let stencil = targets.scene_depth.texture.format().has_stencil_aspect();
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("PrePass"),
                 color_attachments: &[],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -128,11 +128,12 @@ impl PrePass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                self.draw.bind(pass);
+                for &i in &self.objects {
+                    scene.draw(pass, &scene.objects[i]);
+                }
             });
-            self.draw.bind(&mut pass);
-            for &i in &self.objects {
-                scene.draw(&mut pass, &scene.objects[i]);
-            }
         }
         if targets.samples == 1 && !stencil {
             ctx.output(&targets.scene_depth.texture, Visualize::Depth);
@@ -228,9 +229,9 @@ impl BasePass {
             }
         }
         let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
-        let depth_store = if deferred || keep_for_translucency || std::env::var("KILN_X").is_ok() { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
+        let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("BasePass"),
                 color_attachments: &colors,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -244,20 +245,17 @@ impl BasePass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
-            });
-            let skip: i64 = std::env::var("KILN_MOBILE_SKIP").ok().and_then(|v| v.parse().ok()).unwrap_or(-1);
-            for o in &self.objects {
-                if skip == 99 || skip == 97 || skip == o.object as i64 { continue; }
-                o.draw.bind(&mut pass);
-                if deferred {
-                    pass.set_stencil_reference(o.stencil_ref);
+            }, |pass| {
+                for o in &self.objects {
+                    o.draw.bind(pass);
+                    if deferred {
+                        pass.set_stencil_reference(o.stencil_ref);
+                    }
+                    scene.draw(pass, &scene.objects[o.object]);
                 }
-                scene.draw(&mut pass, &scene.objects[o.object]);
-            }
-            if skip != 98 && skip != 97 {
-            self.sky.bind(&mut pass);
-            pass.draw(0..3, 0..1);
-            }
+                self.sky.bind(pass);
+                pass.draw(0..3, 0..1);
+            });
         }
         let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
         ctx.output(&targets.scene_color.texture, vis);

@@ -157,7 +157,7 @@ impl MobileDeferredShading {
         let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
         ctx.step("SceneDepthAux", |ctx| {
             {
-                let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+                ctx.render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("SceneDepthAux"),
                     color_attachments: &[],
                     depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -168,14 +168,15 @@ impl MobileDeferredShading {
                     timestamp_writes: None,
                     occlusion_query_set: None,
                     multiview_mask: None,
+                }, |pass| {
+                    self.depth_aux.bind(pass);
+                    pass.draw(0..3, 0..1);
                 });
-                self.depth_aux.bind(&mut pass);
-                pass.draw(0..3, 0..1);
             }
             ctx.output(&aux.texture, Visualize::Depth);
         });
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("MobileDeferredShading"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &targets.scene_color.view,
@@ -192,23 +193,24 @@ impl MobileDeferredShading {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
-            });
-            pass.push_debug_group("DirectionalLight");
-            self.directional.bind(&mut pass);
-            pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-            pass.draw(0..3, 0..1);
-            pass.pop_debug_group();
-            pass.push_debug_group("LocalLights");
-            for l in &self.lights {
-                let volume = if l.is_spot { &self.cone } else { &self.sphere };
-                l.stencil.bind(&mut pass);
-                pass.set_stencil_reference(STENCIL_SANDBOX);
-                volume.draw(&mut pass);
-                l.light.bind(&mut pass);
+            }, |pass| {
+                pass.push_debug_group("DirectionalLight");
+                self.directional.bind(pass);
                 pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-                volume.draw(&mut pass);
-            }
-            pass.pop_debug_group();
+                pass.draw(0..3, 0..1);
+                pass.pop_debug_group();
+                pass.push_debug_group("LocalLights");
+                for l in &self.lights {
+                    let volume = if l.is_spot { &self.cone } else { &self.sphere };
+                    l.stencil.bind(pass);
+                    pass.set_stencil_reference(STENCIL_SANDBOX);
+                    volume.draw(pass);
+                    l.light.bind(pass);
+                    pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                    volume.draw(pass);
+                }
+                pass.pop_debug_group();
+            });
         }
         ctx.output(&targets.scene_color.texture, Visualize::Hdr);
     }

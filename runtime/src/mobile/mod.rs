@@ -156,6 +156,14 @@ impl MobileOptions {
         MobileOptions::default()
     }
 
+    /// The defaults of a `--pipeline`.
+    pub fn for_pipeline(pipeline: crate::renderer::FramePipeline) -> MobileOptions {
+        match pipeline {
+            crate::renderer::FramePipeline::MobileDeferred => MobileOptions::deferred(),
+            _ => MobileOptions::forward(),
+        }
+    }
+
     pub fn deferred() -> MobileOptions {
         MobileOptions { path: ShadingPath::Deferred, msaa: 1, vertex_fog: false, ..MobileOptions::default() }
     }
@@ -405,13 +413,10 @@ impl MobileFrame {
     /// Records the frame's passes, in the seed's order.
     pub fn record(&self, recorder: &mut FrameRecorder, scene: &GpuScene) {
         let t = &self.targets;
-        let dbg: usize = std::env::var("KILN_MOBILE_PASSES").ok().and_then(|v| v.parse().ok()).unwrap_or(99);
-        if dbg == 0 { return; }
         recorder.pass("ShadowDepths", |ctx| self.shadow_depths.record(ctx, scene, &t.shadow_atlas));
         if let Some(prepass) = &self.prepass {
             recorder.pass("PrePass", |ctx| prepass.record(ctx, scene, t));
         }
-        if dbg == 1 { return; }
         recorder.pass("BasePass", |ctx| self.base_pass.record(ctx, scene, t, self.prepass.is_some(), self.translucency.is_some()));
         if let Some(d) = &self.deferred_shading {
             recorder.pass("MobileDeferredShading", |ctx| d.record(ctx, t));
@@ -481,7 +486,8 @@ pub fn read_rgba8(device: &wgpu::Device, queue: &wgpu::Queue, texture: &wgpu::Te
 /// and the final image.
 pub fn render(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, options: MobileOptions, width: u32, height: u32, capture: bool) -> Result<(Vec<PassResult>, Image), PipelineError> {
     let frame = MobileFrame::new(gpu, cache, scene, gpu_scene, options, width, height)?;
-    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture);
+    let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
+    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);
     let passes = recorder.finish();
     let image = frame.read_output(&gpu.device, &gpu.queue);

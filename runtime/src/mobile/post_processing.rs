@@ -102,7 +102,7 @@ impl PostProcessing {
     }
 
     fn fullscreen_pass(ctx: &mut PassContext<'_>, label: &str, target: &Target, draw: &Draw) {
-        let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+        ctx.render_pass(&wgpu::RenderPassDescriptor {
             label: Some(label),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                 view: &target.view,
@@ -114,9 +114,10 @@ impl PostProcessing {
             timestamp_writes: None,
             occlusion_query_set: None,
             multiview_mask: None,
+        }, |pass| {
+            draw.bind(pass);
+            pass.draw(0..3, 0..1);
         });
-        draw.bind(&mut pass);
-        pass.draw(0..3, 0..1);
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, targets: &MobileTargets) {

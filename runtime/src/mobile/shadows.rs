@@ -200,7 +200,7 @@ impl ShadowDepths {
     /// Writes (clears) the atlas.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, atlas: &Target) {
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ShadowDepths"),
                 color_attachments: &[],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
@@ -211,14 +211,15 @@ impl ShadowDepths {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
-            });
-            for (viewport, draw) in &self.tiles {
-                pass.set_viewport(viewport[0] as f32, viewport[1] as f32, viewport[2] as f32, viewport[3] as f32, 0.0, 1.0);
-                draw.bind(&mut pass);
-                for &i in &self.casters {
-                    scene.draw(&mut pass, &scene.objects[i]);
+            }, |pass| {
+                for (viewport, draw) in &self.tiles {
+                    pass.set_viewport(viewport[0] as f32, viewport[1] as f32, viewport[2] as f32, viewport[3] as f32, 0.0, 1.0);
+                    draw.bind(pass);
+                    for &i in &self.casters {
+                        scene.draw(pass, &scene.objects[i]);
+                    }
                 }
-            }
+            });
         }
         ctx.output(&atlas.texture, Visualize::Depth);
     }

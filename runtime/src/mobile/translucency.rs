@@ -76,7 +76,7 @@ impl Translucency {
         let msaa = targets.scene_color_msaa.is_some();
         let stencil = self.path == ShadingPath::Deferred;
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("Translucency"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &targets.color_attachment().view,
@@ -93,11 +93,12 @@ impl Translucency {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
+            }, |pass| {
+                for (i, draw) in &self.draws {
+                    draw.bind(pass);
+                    scene.draw(pass, &scene.objects[*i]);
+                }
             });
-            for (i, draw) in &self.draws {
-                draw.bind(&mut pass);
-                scene.draw(&mut pass, &scene.objects[*i]);
-            }
         }
         ctx.output(&targets.scene_color.texture, if self.hdr { Visualize::Hdr } else { Visualize::Direct });
     }
