@@ -194,14 +194,21 @@ struct FileHashes {
 }
 
 impl FileHashes {
+    /// The hash of the file's text as it is on disk now.
     fn get(&self, path: &Path) -> Option<String> {
+        self.get_or_insert_with(path, || {
+            std::fs::read(path).ok().map(|bytes| {
+                let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+                blake3::hash(text.as_bytes()).to_hex().to_string()
+            })
+        })
+    }
+
+    fn get_or_insert_with(&self, path: &Path, f: impl FnOnce() -> Option<String>) -> Option<String> {
         if let Some(h) = self.map.lock().expect("no panics while locked").get(path) {
             return h.clone();
         }
-        let h = std::fs::read(path).ok().map(|bytes| {
-            let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
-            blake3::hash(text.as_bytes()).to_hex().to_string()
-        });
+        let h = f();
         self.map.lock().expect("no panics while locked").insert(path.to_path_buf(), h.clone());
         h
     }
@@ -269,25 +276,35 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     progress.stage("preprocessing", kept.len());
     let reps: Mutex<HashMap<Key, Representative>> = Mutex::new(HashMap::new());
     let hashes = FileHashes::default();
+    let text_hashes = FileHashes::default();
     let preprocessed = std::sync::atomic::AtomicUsize::new(0);
+    let records_key = cache.map(|_| records_key(config, options));
+    let old_records = match (cache, &records_key) {
+        (Some(c), Some(k)) => c.get_records(k),
+        _ => cache::Records::default(),
+    };
+    let new_records: Mutex<cache::Records> = Mutex::new(cache::Records::new());
     let pre: Vec<Result<Pre, Diagnostic<FileId>>> = kept
         .par_iter()
         .enumerate()
         .map(|(index, p)| {
-            let direct = cache.map(|c| (c, direct_key(config, p, &options.targets)));
-            if let Some((c, dk)) = &direct {
-                if let Some(pre) = c.get_record(dk).and_then(|r| from_record(r, &hashes)) {
-                    progress.inc();
-                    return Ok(pre);
+            let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
+            if let Some(dk) = &direct {
+                if let Some(record) = old_records.get(dk) {
+                    if let Some(pre) = from_record(record, &hashes) {
+                        new_records.lock().expect("no panics while locked").insert(dk.clone(), record.clone());
+                        progress.inc();
+                        return Ok(pre);
+                    }
                 }
             }
             preprocessed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             let result = preprocess_one(config, p, &options.targets, &sources);
             progress.inc();
             let (pre, output) = result?;
-            if let Some((c, dk)) = &direct {
-                // Failing to store a record only costs a preprocessing next time.
-                let _ = c.put_record(dk, &to_record(&pre, &output, &sources));
+            if let Some(dk) = direct {
+                let record = to_record(&pre, &output, &sources, &text_hashes);
+                new_records.lock().expect("no panics while locked").insert(dk, record);
             }
             let mut reps = reps.lock().expect("no panics while locked");
             let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
@@ -299,6 +316,13 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         .collect();
     let reps = reps.into_inner().expect("no panics while locked");
     report.stats.preprocessed = preprocessed.into_inner();
+    if let (Some(c), Some(k)) = (cache, &records_key) {
+        let new_records = new_records.into_inner().expect("no panics while locked");
+        if new_records != old_records {
+            // Failing to store the records only costs preprocessing next time.
+            let _ = c.put_records(k, &new_records);
+        }
+    }
     report.stats.seconds.preprocess = t_pre.elapsed().as_secs_f64();
 
     // Warnings: each distinct rendered warning once.
@@ -355,7 +379,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         _ => None,
     };
     if let Some((c, out, fingerprint)) = &stamp {
-        if let Some(counts) = c.fresh_archive(out, fingerprint) {
+        let keys: Vec<Key> = groups.iter().map(|g| g.0).collect();
+        if let Some(counts) = c.fresh_archive(out, fingerprint, &keys) {
             report.stats.cache_hits = groups.len();
             report.stats.artifacts = counts.0;
             report.stats.permutation_artifacts = counts.1;
@@ -404,14 +429,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 limits: level_limits(p.level),
             };
             let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
-                Ok(c) => {
-                    if let Some(cache) = cache {
-                        if let Err(e) = cache.put(key, &c) {
-                            warning = Some(format!("warning: cannot store a cache entry: {e}"));
-                        }
-                    }
-                    Got::Compiled(c, warning)
-                }
+                Ok(c) => Got::Compiled(c, warning),
                 Err(e) => Got::Failed(e, warning),
             };
             progress.inc();
@@ -422,6 +440,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     progress.finish();
 
     let mut compiled: HashMap<Key, Compiled> = HashMap::new();
+    let mut fresh: Vec<Key> = Vec::new();
     for ((key, members), got) in groups.iter().zip(results) {
         match got {
             Got::Hit(c) => {
@@ -432,6 +451,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 report.stats.compiled += 1;
                 report.warnings.extend(w);
                 compiled.insert(*key, c);
+                fresh.push(*key);
             }
             Got::Failed(e, w) => {
                 report.stats.compiled += 1;
@@ -468,11 +488,39 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
     report.failures = render_failures(failures, &kept, &sources, options.color);
 
+    // 5. Store what was compiled in the cache (on the other thread), while the archive and
+    //    the loose files are written.
+    let store = || -> Vec<String> {
+        let Some(c) = cache else { return Vec::new() };
+        fresh
+            .par_iter()
+            .filter_map(|k| c.put(k, &compiled[k]).err())
+            .map(|e| format!("warning: cannot store a cache entry: {e}"))
+            .collect()
+    };
     if report.stats.failed > 0 {
+        let warnings = store();
+        report.warnings.extend(warnings);
         write_stats(options, &mut report, start)?;
         return Err(Error::Failed(Box::new(report)));
     }
+    let (written, warnings) =
+        rayon::join(|| write_outputs(options, &kept, &pre, &compiled, stamp.as_ref(), &mut report), store);
+    report.warnings.extend(warnings);
+    written?;
+    write_stats(options, &mut report, start)?;
+    Ok(report)
+}
 
+/// The archive, the loose files of `--emit-dir` and the archive's stamp.
+fn write_outputs(
+    options: &Options,
+    kept: &[Permutation<'_>],
+    pre: &[Result<Pre, Diagnostic<FileId>>],
+    compiled: &HashMap<Key, Compiled>,
+    stamp: Option<&(&Cache, &PathBuf, blake3::Hash)>,
+    report: &mut Report,
+) -> Result<(), Error> {
     // 5. The archive and the loose files.
     let mut writer = ArchiveWriter::new();
     writer.set_naga_version(compile::NAGA_VERSION);
@@ -504,7 +552,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     Some(f) => f.clone(),
                     None => {
                         let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(p.shader.stage));
-                        archive::write_atomic(&dir.join(&f), bytes)
+                        archive::write_atomic_unsynced(&dir.join(&f), bytes)
                             .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", dir.join(&f).display())))?;
                         emitted.insert(hash, f.clone());
                         f
@@ -526,26 +574,25 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     if let Some(dir) = &options.emit_dir {
         let json = serde_json::to_vec_pretty(&index).expect("index serializes");
         let path = dir.join("index.json");
-        archive::write_atomic(&path, &json)
+        archive::write_atomic_unsynced(&path, &json)
             .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     if let Some(out) = &options.output {
-        writer.write(out).map_err(|e| Error::Io(format!("error: {e}")))?;
+        writer.write_unsynced(out).map_err(|e| Error::Io(format!("error: {e}")))?;
         report.archive = Some(out.clone());
-        if let Some((c, out, fingerprint)) = &stamp {
+        if let Some((c, out, fingerprint)) = stamp {
             // Failing to stamp only costs a full warm build next time.
             let _ = c.stamp_archive(out, fingerprint, (report.stats.artifacts, report.stats.permutation_artifacts));
         }
     }
-    write_stats(options, &mut report, start)?;
-    Ok(report)
+    Ok(())
 }
 
 fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result<(), Error> {
     report.stats.seconds.total = start.elapsed().as_secs_f64();
     if let Some(path) = &options.stats_json {
         let json = serde_json::to_vec_pretty(&report.stats).expect("stats serialize");
-        archive::write_atomic(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        archive::write_atomic_unsynced(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     Ok(())
 }
@@ -638,7 +685,14 @@ fn direct_key(config: &Config, p: &Permutation<'_>, targets: &[Target]) -> Key {
     )
 }
 
-fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache) -> cache::Record {
+/// The key of a configuration's set of preprocessing records: its path and the options
+/// that choose its permutations.
+fn records_key(config: &Config, options: &Options) -> Key {
+    let inputs = format!("kiln records v1\n{}\n{:?}\n{:?}", config.path.display(), options.levels, options.targets);
+    Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
+}
+
+fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache, text_hashes: &FileHashes) -> cache::Record {
     use codespan_reporting::files::Files;
     cache::Record {
         key: pre.key.to_hex(),
@@ -648,8 +702,11 @@ fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache) -> c
             .files
             .iter()
             .map(|&f| {
-                let text = sources.source(f).map(|t| blake3::hash(t.as_ref().as_bytes()).to_hex().to_string());
-                (sources.path(f), text.unwrap_or_default())
+                let path = sources.path(f);
+                let hash = text_hashes.get_or_insert_with(&path, || {
+                    sources.source(f).ok().map(|t| blake3::hash(t.as_ref().as_bytes()).to_hex().to_string())
+                });
+                (path, hash.unwrap_or_default())
             })
             .collect(),
         warnings: pre.warnings.clone(),
@@ -657,7 +714,7 @@ fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache) -> c
 }
 
 /// The record's result, if every file it lists still has the recorded contents.
-fn from_record(r: cache::Record, hashes: &FileHashes) -> Option<Pre> {
+fn from_record(r: &cache::Record, hashes: &FileHashes) -> Option<Pre> {
     for (path, hash) in &r.files {
         if hashes.get(path).as_deref() != Some(hash.as_str()) {
             return None;
@@ -669,8 +726,8 @@ fn from_record(r: cache::Record, hashes: &FileHashes) -> Option<Pre> {
         key: Key(*key.as_bytes()),
         text_hash: hash(&r.text_hash)?,
         token_hash: hash(&r.token_hash)?,
-        files: r.files.into_iter().map(|(p, _)| p).collect(),
-        warnings: r.warnings,
+        files: r.files.iter().map(|(p, _)| p.clone()).collect(),
+        warnings: r.warnings.clone(),
     })
 }
 

@@ -79,6 +79,62 @@ fn archive_bench() {
     println!("  open + 1,000 lookups:                              {:8.1} us", us(open_static + lookups));
     println!("  ratio linear scan / hash lookup:                   {:8.1}x", scans.as_secs_f64() / lookups.as_secs_f64());
     let _ = std::fs::remove_dir_all(&dir);
+
+    // Lookups stay flat as archives grow: a synthetic archive of 16,384 permutations
+    // (one 4-dimension shader, every permutation its own small blob).
+    let mut w = kiln::archive::ArchiveWriter::new();
+    let dims = ["QUALITY", "LIGHT_COUNT", "USE_FOG", "VARIANT"];
+    let shader = w.add_shader(kiln::archive::ShaderRecord {
+        name: "SyntheticPS".into(),
+        level: "sm5".into(),
+        entry: "main_ps".into(),
+        stage: kiln::Stage::Fragment,
+        dimensions: dims.iter().map(|d| kiln::archive::DimensionRecord { name: d.to_string(), labels: vec![] }).collect(),
+    });
+    let reflection = w.add_reflection(&kiln::archive::Reflection {
+        entry: "main_ps".into(),
+        stage: kiln::Stage::Fragment,
+        bindings: vec![],
+        vertex_inputs: vec![],
+        color_outputs: vec![],
+        workgroup_size: None,
+    });
+    let mut big_names = Vec::new();
+    for i in 0..16384i64 {
+        let values = [i / 2048, (i / 256) % 8, (i / 128) % 2, i % 128];
+        let name = format!("SyntheticPS@sm5{{{}}}", dims.iter().zip(values).map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(","));
+        let blob = w.add_blob(name.as_bytes());
+        w.add_permutation(kiln::archive::PermutationRecord {
+            name: name.clone(),
+            shader,
+            values: values.to_vec(),
+            reflection,
+            artifacts: vec![(Target::Wgsl, blob)],
+        });
+        big_names.push(name);
+    }
+    let big_bytes = w.to_bytes();
+    let big_open = time(5, || {
+        black_box(ShaderArchive::from_vec(big_bytes.clone()).unwrap());
+    });
+    let big = ShaderArchive::from_vec(big_bytes.clone()).unwrap();
+    let big_wanted: Vec<&str> = (0..1000).map(|i| big_names[(i * 7919) % big_names.len()].as_str()).collect();
+    let big_lookups = time(200, || {
+        for n in &big_wanted {
+            black_box(big.get(n).unwrap());
+        }
+    });
+    let big_scans = time(2, || {
+        for n in &big_wanted {
+            black_box(big.permutations().find(|p| p.name() == *n).unwrap());
+        }
+    });
+    println!("synthetic archive: {} bytes, {} permutations", big_bytes.len(), big_names.len());
+    println!("  open:                                              {:8.1} us", us(big_open));
+    println!("  1,000 lookups by name (hash map):                  {:8.1} us  ({:.0} ns each)", us(big_lookups), us(big_lookups));
+    println!("  1,000 lookups by linear scan (baseline):           {:8.1} us", us(big_scans));
+    println!("  ratio linear scan / hash lookup:                   {:8.1}x", big_scans.as_secs_f64() / big_lookups.as_secs_f64());
+    println!("  hash lookup, 16,384 vs {} permutations:            {:8.2}x", names.len(), big_lookups.as_secs_f64() / lookups.as_secs_f64());
 }
 
 fn module_bench() {
@@ -115,6 +171,8 @@ fn module_bench() {
         let mut ms = [0.0; 2];
         for (i, source) in [ModuleSource::Auto, ModuleSource::Wgsl].into_iter().enumerate() {
             let gpu = Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: false }).unwrap();
+            // One unmeasured round: the driver's first-use costs are not the warm-up's.
+            black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360 }).unwrap());
             let t = time(3, || {
                 black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360 }).unwrap());
             });

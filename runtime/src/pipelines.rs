@@ -104,6 +104,8 @@ pub struct RenderState {
     pub topology: wgpu::PrimitiveTopology,
     pub cull_mode: Option<wgpu::Face>,
     pub depth: Option<DepthState>,
+    /// Stencil test and writes (needs a depth format with stencil).
+    pub stencil: wgpu::StencilState,
     pub color_targets: Vec<ColorTarget>,
     pub sample_count: u32,
 }
@@ -116,6 +118,7 @@ impl RenderState {
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: Some(wgpu::Face::Back),
             depth: None,
+            stencil: wgpu::StencilState::default(),
             color_targets: Vec::new(),
             sample_count: 1,
         }
@@ -128,6 +131,7 @@ impl RenderState {
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: None,
             depth: None,
+            stencil: wgpu::StencilState::default(),
             color_targets: vec![target],
             sample_count: 1,
         }
@@ -145,6 +149,17 @@ impl RenderState {
 
     pub fn with_cull(mut self, cull: Option<wgpu::Face>) -> RenderState {
         self.cull_mode = cull;
+        self
+    }
+
+    pub fn with_stencil(mut self, stencil: wgpu::StencilState) -> RenderState {
+        self.stencil = stencil;
+        self
+    }
+
+    /// MSAA sample count of every attachment.
+    pub fn with_samples(mut self, count: u32) -> RenderState {
+        self.sample_count = count;
         self
     }
 }
@@ -355,7 +370,7 @@ impl PipelineCache {
                 format: d.format,
                 depth_write_enabled: Some(d.write),
                 depth_compare: Some(d.compare),
-                stencil: Default::default(),
+                stencil: state.stencil.clone(),
                 bias: wgpu::DepthBiasState { constant: d.bias, slope_scale: f32::from_bits(d.slope_scale_bits), clamp: 0.0 },
             }),
             multisample: wgpu::MultisampleState { count: state.sample_count, ..Default::default() },
@@ -703,4 +718,135 @@ fn vertex_buffers(
         }
     }
     Ok(buffers)
+}
+
+#[cfg(test)]
+mod tests {
+    use kiln::archive::{NumericType, ScalarKind, VertexInput};
+
+    use super::*;
+
+    fn binding(group: u32, binding: u32, name: &str, kind: BindingKind) -> Binding {
+        Binding { group, binding, name: Some(name.into()), kind }
+    }
+
+    fn reflection(stage: Stage, bindings: Vec<Binding>) -> Reflection {
+        Reflection { entry: "main".into(), stage, bindings, vertex_inputs: vec![], color_outputs: vec![], workgroup_size: None }
+    }
+
+    #[test]
+    fn stages_merge_into_groups_with_the_union_of_visibilities() {
+        let view = BindingKind::UniformBuffer { min_size: 320 };
+        let vs = reflection(Stage::Vertex, vec![binding(0, 0, "View", view.clone())]);
+        let fs = reflection(
+            Stage::Fragment,
+            vec![
+                binding(0, 0, "View", view.clone()),
+                binding(0, 2, "ShadowDepthSampler", BindingKind::Sampler { comparison: true }),
+                binding(2, 0, "Light", BindingKind::UniformBuffer { min_size: 64 }),
+            ],
+        );
+        let groups = merge_bindings("p", &[&vs, &fs]).unwrap();
+        assert_eq!(groups.len(), 3, "group 1 is empty but present");
+        assert!(groups[1].is_empty());
+        let summary: Vec<(u32, &str, wgpu::ShaderStages)> =
+            groups[0].iter().map(|b| (b.binding, b.name.as_deref().unwrap(), b.visibility)).collect();
+        assert_eq!(
+            summary,
+            [(0, "View", wgpu::ShaderStages::VERTEX_FRAGMENT), (2, "ShadowDepthSampler", wgpu::ShaderStages::FRAGMENT)]
+        );
+    }
+
+    #[test]
+    fn a_binding_of_two_kinds_is_an_error() {
+        let vs = reflection(Stage::Vertex, vec![binding(0, 1, "A", BindingKind::UniformBuffer { min_size: 16 })]);
+        let fs = reflection(Stage::Fragment, vec![binding(0, 1, "B", BindingKind::Sampler { comparison: false })]);
+        let e = merge_bindings("Pipe", &[&vs, &fs]).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "pipeline `Pipe`: binding @group(0) @binding(1) is `UniformBuffer { min_size: 16 }` in one stage and `Sampler { comparison: false }` in another"
+        );
+    }
+
+    #[test]
+    fn layout_entries_follow_reflection() {
+        let entry = |name: &str, kind: BindingKind| {
+            let b = MergedBinding { binding: 3, name: Some(name.into()), kind, visibility: wgpu::ShaderStages::FRAGMENT };
+            layout_entry("p", &b).unwrap().ty
+        };
+        let tex = |sample| BindingKind::Texture { dim: TextureDim::D2, sample, multisampled: false };
+        assert_eq!(
+            entry("GBufferATexture", tex(SampleKind::Float)),
+            wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false
+            }
+        );
+        // Depth read as a float texture is unfilterable (GLES path).
+        assert_eq!(
+            entry("SceneDepthTexture", tex(SampleKind::Float)),
+            wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false
+            }
+        );
+        assert_eq!(
+            entry("ShadowDepthTexture", tex(SampleKind::Depth)),
+            wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Depth,
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false
+            }
+        );
+        assert_eq!(
+            entry("Grid", BindingKind::StorageBuffer { read_only: true, min_size: 8 }),
+            wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: true },
+                has_dynamic_offset: false,
+                min_binding_size: NonZeroU64::new(8)
+            }
+        );
+        assert_eq!(
+            entry("Out", BindingKind::StorageTexture { dim: TextureDim::D2, format: "rgba16float".into(), access: StorageAccess::WriteOnly }),
+            wgpu::BindingType::StorageTexture {
+                access: wgpu::StorageTextureAccess::WriteOnly,
+                format: wgpu::TextureFormat::Rgba16Float,
+                view_dimension: wgpu::TextureViewDimension::D2
+            }
+        );
+        let b = MergedBinding {
+            binding: 0,
+            name: None,
+            kind: BindingKind::StorageTexture { dim: TextureDim::D2, format: "bgra4".into(), access: StorageAccess::ReadOnly },
+            visibility: wgpu::ShaderStages::COMPUTE,
+        };
+        assert_eq!(layout_entry("Pipe", &b).unwrap_err().to_string(), "pipeline `Pipe`: storage texture format `bgra4` is not known to the runtime");
+    }
+
+    #[test]
+    fn vertex_inputs_must_be_in_the_mesh_layout() {
+        let input = |location, components| VertexInput { location, name: None, ty: NumericType { scalar: ScalarKind::Float, width: 4, components } };
+        let mut vs = reflection(Stage::Vertex, vec![]);
+        vs.vertex_inputs = vec![input(0, 3), input(2, 2), input(6, 4)];
+        assert_eq!(vertex_buffers("p", VertexLayout::MeshInstanced, &vs).unwrap().len(), 2);
+        vs.vertex_inputs = vec![input(2, 4)];
+        let e = vertex_buffers("Depth", VertexLayout::MeshInstanced, &vs).unwrap_err().to_string();
+        assert_eq!(e, "pipeline `Depth`: vertex input @location(2) is not provided by the MeshInstanced vertex layout");
+        vs.vertex_inputs = vec![input(0, 3)];
+        let e = vertex_buffers("Screen", VertexLayout::None, &vs).unwrap_err().to_string();
+        assert_eq!(e, "pipeline `Screen`: vertex input @location(0) is not provided by the None vertex layout");
+    }
+
+    #[test]
+    fn spirv_words_checks_length_and_magic() {
+        let mut ok = 0x0723_0203u32.to_le_bytes().to_vec();
+        ok.extend_from_slice(&[0; 16]);
+        assert_eq!(spirv_words(&ok).unwrap()[0], 0x0723_0203);
+        assert_eq!(spirv_words(&ok[..19]).unwrap_err(), "SPIR-V artifact is 19 bytes, not a whole module");
+        let mut bad = ok.clone();
+        bad[0] = 0;
+        assert_eq!(spirv_words(&bad).unwrap_err(), "SPIR-V artifact starts with 0x07230200, not the SPIR-V magic number");
+    }
 }

@@ -12,6 +12,7 @@ use crate::gpu::Gpu;
 use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
 use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
+use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
@@ -81,7 +82,15 @@ pub enum RenderError {
 
 /// The passes of each frame, built once.
 enum Passes {
-    Desktop { prepass: DepthPass, shadows: DepthPass, base: BasePass, lighting: LightingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    Desktop {
+        particles: ParticleSimulationPass,
+        prepass: DepthPass,
+        shadows: DepthPass,
+        base: BasePass,
+        lighting: LightingPass,
+        translucency: TranslucencyPass,
+        tonemap: TonemapPass,
+    },
     /// Both mobile frames (`crate::mobile`).
     Mobile(Box<crate::mobile::MobileFrame>),
 }
@@ -148,14 +157,18 @@ impl Renderer {
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
-                FramePipeline::Desktop => Passes::Desktop {
-                    prepass: DepthPass::new(&init, DepthView::Camera)?,
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: BasePass::new(&init)?,
-                    lighting: LightingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop)?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
+                FramePipeline::Desktop => {
+                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
+                    Passes::Desktop {
+                        prepass: DepthPass::new(&init, DepthView::Camera)?,
+                        shadows: DepthPass::new(&init, DepthView::Sun)?,
+                        base: BasePass::new(&init)?,
+                        lighting: LightingPass::new(&init)?,
+                        translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop, particles.systems())?,
+                        tonemap: TonemapPass::new(&init)?,
+                        particles,
+                    }
+                }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let options = crate::mobile::MobileOptions::for_pipeline(options.pipeline);
                     Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?))
@@ -202,7 +215,8 @@ impl Renderer {
         let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::Desktop { prepass, shadows, base, lighting, translucency, tonemap } => {
+            Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
+                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
                 frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
                 frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
                 frame.pass("BasePass", |ctx| base.record(ctx, s, t));

@@ -67,7 +67,7 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
     kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
     let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `DepthOnlyVS` in the archive");
+    assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `ParticleSimulationCS` in the archive");
 }
 
 #[test]

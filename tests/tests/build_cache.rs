@@ -16,18 +16,11 @@ const DISTINCT: usize = 24;
 const WITH_FOG: usize = 12;
 
 fn entries(cache: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for sub in std::fs::read_dir(cache).unwrap() {
-        let sub = sub.unwrap().path();
-        if sub.is_dir() {
-            for e in std::fs::read_dir(&sub).unwrap() {
-                let p = e.unwrap().path();
-                if p.extension().is_some_and(|e| e == "kce") {
-                    out.push(p);
-                }
-            }
-        }
-    }
+    let mut out: Vec<PathBuf> = std::fs::read_dir(cache)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "kce"))
+        .collect();
     out.sort();
     out
 }

@@ -26,6 +26,7 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
     let q = match shader.name.as_str() {
         "BasePassPS" => archive.shader("BasePassVS").level(&shader.level),
         "DepthOnlyPS" => archive.shader("DepthOnlyVS").level(&shader.level),
+        "ParticleSpritePS" => archive.shader("ParticleSpriteVS").level(&shader.level),
         "MobileBasePassPS" => archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG")),
         _ => archive.shader("ScreenVS").level(&shader.level),
     };
@@ -117,6 +118,9 @@ fn pipelines_are_cached_per_permutation_and_state() {
     let names: Vec<_> = a.layout.groups[1].iter().map(|b| b.name.clone().unwrap()).collect();
     assert_eq!(names, ["SceneColorTexture"]);
     assert_eq!(a.layout.groups[0][0].visibility, wgpu::ShaderStages::FRAGMENT);
+    // Bind groups are built by name; a missing resource is named.
+    let e = a.layout.bind_group(&gpu.device, 1, "tonemap input", &[]).unwrap_err().to_string();
+    assert_eq!(e, "bind group 1 of `ScreenVS@sm5{} + TonemapPS@sm5{USE_BLOOM=0}`: no resource given for binding 0 `SceneColorTexture`");
 }
 
 #[test]

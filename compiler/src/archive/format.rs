@@ -197,10 +197,28 @@ impl ArchiveWriter {
     pub fn write(&self, path: &Path) -> Result<(), ArchiveError> {
         write_atomic(path, &self.to_bytes()).map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
     }
+
+    /// [`ArchiveWriter::write`] without the fsync: still atomic for readers (temporary file
+    /// and rename), not durable across a power loss, like a compiler's outputs. A truncated
+    /// file after a crash is reported by [`Archive::open`] and rebuilt.
+    pub fn write_unsynced(&self, path: &Path) -> Result<(), ArchiveError> {
+        write_atomic_unsynced(path, &self.to_bytes())
+            .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
+    }
 }
 
 /// Writes `bytes` to `path` through a uniquely named temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_atomic_impl(path, bytes, true)
+}
+
+/// [`write_atomic`] without syncing the temporary file before the rename.
+pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_atomic_impl(path, bytes, false)
+}
+
+fn write_atomic_impl(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()> {
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
@@ -211,11 +229,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.subsec_nanos())
         .unwrap_or(0);
-    let tmp = dir.join(format!(".{name}.{}.{nanos}.tmp", std::process::id()));
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
         let mut f = File::create(&tmp)?;
         f.write_all(bytes)?;
-        f.sync_all()?;
+        if sync {
+            f.sync_all()?;
+        }
         std::fs::rename(&tmp, path)
     })();
     if result.is_err() {

@@ -13,7 +13,7 @@ mod format;
 mod reflect;
 
 pub use format::{
-    write_atomic, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord, Lookup, Near, PermutationRecord,
+    write_atomic, write_atomic_unsynced, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord, Lookup, Near, PermutationRecord,
     PermutationRef, ShaderRecord, FORMAT_VERSION, MAGIC,
 };
 pub use reflect::{

@@ -25,9 +25,13 @@ const EXTENSION: &str = "kce";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 const RECORD_EXTENSION: &str = "kpp";
 
-/// What preprocessing one permutation gave, kept so that a later build whose inputs are
-/// unchanged skips the preprocessor (like ccache's direct mode): the files read with the
-/// blake3 of their contents, the hashes, the compile key, and the rendered warnings.
+/// Preprocessing records of one configuration, by the hex key of each permutation's
+/// inputs (see `build`): a later build skips the preprocessor for every permutation whose
+/// record still matches (like ccache's direct mode).
+pub type Records = std::collections::BTreeMap<String, Record>;
+
+/// What preprocessing one permutation gave: the files read with the blake3 of their
+/// contents, the hashes, the compile key, and the rendered warnings.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Record {
     pub key: String,
@@ -98,7 +102,7 @@ pub enum Lookup {
 pub struct Stats {
     /// Compiled entries (`.kce`).
     pub entries: u64,
-    /// Preprocessing records (`.kpp`).
+    /// Sets of preprocessing records (`.kpp`, one per configuration and options).
     pub records: u64,
     /// Bytes of entries and records.
     pub bytes: u64,
@@ -143,10 +147,10 @@ impl Cache {
         &self.dir
     }
 
-    /// The file of `key`: `DIR/ab/abcdef….kce` (two-character fan-out folders).
+    /// The file of `key`: `DIR/abcdef….kce`. One flat folder: creating fan-out folders
+    /// costs more than ext4's hashed directories save.
     pub fn path(&self, key: &Key) -> PathBuf {
-        let hex = key.to_hex();
-        self.dir.join(&hex[..2]).join(format!("{hex}.{EXTENSION}"))
+        self.dir.join(format!("{}.{EXTENSION}", key.to_hex()))
     }
 
     pub fn get(&self, key: &Key) -> Lookup {
@@ -175,41 +179,41 @@ impl Cache {
         self.write_file(&self.path(key), &encode(key, compiled))
     }
 
-    /// The file of a preprocessing record: `DIR/pp/ab/abcdef….kpp`.
-    pub fn record_path(&self, key: &Key) -> PathBuf {
-        let hex = key.to_hex();
-        self.dir.join("pp").join(&hex[..2]).join(format!("{hex}.{RECORD_EXTENSION}"))
+    /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
+    pub fn records_path(&self, key: &Key) -> PathBuf {
+        self.dir.join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
     }
 
-    /// The preprocessing record under `key`; `None` when missing or damaged.
-    pub fn get_record(&self, key: &Key) -> Option<Record> {
-        let path = self.record_path(key);
-        let bytes = fs::read(&path).ok()?;
+    /// The preprocessing records stored under `key` (one set per configuration and
+    /// options), by permutation key; empty when missing or damaged.
+    pub fn get_records(&self, key: &Key) -> Records {
+        let path = self.records_path(key);
+        let Ok(bytes) = fs::read(&path) else { return Records::default() };
         if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
-            return None;
+            return Records::default();
         }
-        let record = serde_json::from_slice(&bytes[40..]).ok()?;
+        let records = serde_json::from_slice(&bytes[40..]).unwrap_or_default();
         if let Ok(f) = fs::File::options().append(true).open(&path) {
             let _ = f.set_modified(SystemTime::now());
         }
-        Some(record)
+        records
     }
 
-    /// Stores a preprocessing record atomically.
-    pub fn put_record(&self, key: &Key, record: &Record) -> Result<(), Error> {
-        let body = serde_json::to_vec(record).expect("record serializes");
+    /// Replaces the records stored under `key`, atomically.
+    pub fn put_records(&self, key: &Key, records: &Records) -> Result<(), Error> {
+        let body = serde_json::to_vec(records).expect("records serialize");
         let mut bytes = Vec::with_capacity(40 + body.len());
         bytes.extend_from_slice(RECORD_MAGIC);
         bytes.extend_from_slice(blake3::hash(&body).as_bytes());
         bytes.extend_from_slice(&body);
-        self.write_file(&self.record_path(key), &bytes)
+        self.write_file(&self.records_path(key), &bytes)
     }
 
-    /// The stamp of the archive at `archive`: `DIR/builds/<blake3 of its absolute path>`.
+    /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.
     fn stamp_path(&self, archive: &Path) -> PathBuf {
         let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());
         let name = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
-        self.dir.join("builds").join(format!("{}.stamp", &name[..32]))
+        self.dir.join(format!("{}.stamp", &name[..32]))
     }
 
     /// Records that the archive now at `archive` is the output of the build with
@@ -223,8 +227,11 @@ impl Cache {
     }
 
     /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
-    /// build with `fingerprint`.
-    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash) -> Option<(usize, usize)> {
+    /// build with `fingerprint`, and every key of `keys` still has its entry.
+    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
+        if !keys.iter().all(|k| self.path(k).is_file()) {
+            return None;
+        }
         let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
         let mut lines = text.lines();
         if lines.next()? != fingerprint.to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
@@ -234,10 +241,15 @@ impl Cache {
     }
 
     fn write_file(&self, path: &Path, bytes: &[u8]) -> Result<(), Error> {
-        let dir = path.parent().expect("entry has a folder").to_path_buf();
         let err = |source| Error { path: path.to_path_buf(), source };
-        fs::create_dir_all(&dir).map_err(err)?;
-        let mut tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(err)?;
+        let mut tmp = match tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir) {
+            Ok(t) => t,
+            Err(_) => {
+                // The folder was removed under us (`kiln cache clear` by hand): make it again.
+                fs::create_dir_all(&self.dir).map_err(err)?;
+                tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir).map_err(err)?
+            }
+        };
         tmp.write_all(bytes).map_err(err)?;
         tmp.persist(path).map_err(|e| err(e.error))?;
         Ok(())
@@ -246,7 +258,7 @@ impl Cache {
     fn files(&self) -> impl Iterator<Item = (PathBuf, fs::Metadata)> {
         walkdir::WalkDir::new(&self.dir)
             .min_depth(1)
-            .max_depth(3)
+            .max_depth(1)
             .into_iter()
             .filter_map(Result::ok)
             .filter(|e| e.file_type().is_file())
@@ -319,11 +331,13 @@ impl Cache {
         report
     }
 
-    /// Removes every entry and temporary file; returns how many entries were removed.
+    /// Removes every entry, record, archive stamp and temporary file; returns how many
+    /// entries were removed.
     pub fn clear(&self) -> Result<u64, Error> {
         let mut n = 0;
         for (path, _) in self.files() {
-            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) {
+            let stamp = path.extension().is_some_and(|e| e == "stamp");
+            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) || stamp {
                 fs::remove_file(&path).map_err(|source| Error { path: path.clone(), source })?;
                 n += u64::from(Self::is_entry(&path));
             }

@@ -159,7 +159,7 @@ fn records_round_trip_and_damage_is_a_miss() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     let k = key("r");
-    assert_eq!(cache.get_record(&k), None);
+    assert!(cache.get_records(&k).is_empty());
     let r = Record {
         key: key("a").to_hex(),
         token_hash: "t".into(),
@@ -167,15 +167,16 @@ fn records_round_trip_and_damage_is_a_miss() {
         files: vec![(PathBuf::from("/a/b.ush"), "h".into())],
         warnings: vec!["warning: w".into()],
     };
-    cache.put_record(&k, &r).unwrap();
-    assert_eq!(cache.get_record(&k), Some(r));
+    let records: Records = [("p1".to_string(), r)].into_iter().collect();
+    cache.put_records(&k, &records).unwrap();
+    assert_eq!(cache.get_records(&k), records);
     assert_eq!(cache.stats().records, 1);
-    let path = cache.record_path(&k);
+    let path = cache.records_path(&k);
     let mut bytes = fs::read(&path).unwrap();
     let at = bytes.len() - 5;
     bytes[at] ^= 1;
     fs::write(&path, bytes).unwrap();
-    assert_eq!(cache.get_record(&k), None);
+    assert!(cache.get_records(&k).is_empty());
     let report = cache.gc(0);
     assert_eq!((report.removed, report.removed_records), (0, 1));
 }
@@ -193,3 +194,4 @@ fn sizes_parse_and_format() {
     assert_eq!(format_size(100), "100 B");
     assert_eq!(format_size(3 << 19), "1.5 MiB");
 }
+

@@ -67,4 +67,46 @@ mod tests {
         assert_eq!(parse_define("A="), ("A".into(), "".into()));
         assert_eq!(parse_define("F(x)=x+1"), ("F(x)".into(), "x+1".into()));
     }
+
+    fn args(file: PathBuf) -> Args {
+        Args { file, define: vec!["N=4".into()], include: Vec::new(), color: false }
+    }
+
+    #[test]
+    fn exit_codes() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let ok = dir.path().join("ok.usf");
+        std::fs::write(&ok, "#if N == 4
+fn f() {}
+#endif
+").expect("write");
+        assert!(exec(args(ok)).is_ok());
+
+        let bad = dir.path().join("bad.usf");
+        std::fs::write(&bad, "#if N == 4
+#error four
+#endif
+").expect("write");
+        let f = exec(args(bad)).expect_err("#error fails");
+        assert_eq!(f.code, 1);
+        assert!(f.message.starts_with("error: #error four\n"), "{}", f.message);
+        assert!(f.message.contains("bad.usf:2:1"), "{}", f.message);
+
+        let f = exec(args(dir.path().join("missing.usf"))).expect_err("no file");
+        assert_eq!(f.code, 2);
+        let mut a = args(dir.path().join("bad.usf"));
+        a.include.push(dir.path().join("no-such-dir"));
+        assert_eq!(exec(a).expect_err("bad -I").code, 2);
+    }
+
+    #[test]
+    fn args_definition_is_consistent() {
+        use clap::CommandFactory;
+        #[derive(clap::Parser)]
+        struct Wrapper {
+            #[command(flatten)]
+            args: Args,
+        }
+        Wrapper::command().debug_assert();
+    }
 }

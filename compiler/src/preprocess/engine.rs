@@ -100,6 +100,9 @@ enum TK {
     Other,
     /// An empty `##` operand.
     Placemarker,
+    /// cpp's padding token: no text, only spacing for the printer and for `#`. `WHITE` is its
+    /// source token's leading whitespace; `NULL_SOURCE` marks one with no source.
+    Padding,
     /// The end of a barrier context or of the current file.
     Eof,
 }
@@ -112,6 +115,8 @@ const PASTE_LEFT: u8 = 8;
 const STRINGIFY: u8 = 16;
 /// A `,` before `__VA_ARGS__` joined by GNU `, ##`.
 const VA_COMMA: u8 = 32;
+/// A padding token with no source (cpp's `avoid_paste`).
+const NULL_SOURCE: u8 = 64;
 
 const NO_PARAM: u16 = u16::MAX;
 
@@ -130,9 +135,6 @@ struct Tok {
 impl Tok {
     fn eof() -> Tok {
         Tok { sym: 0, ctx: NONE, src: 0, len: 0, param: NO_PARAM, kind: TK::Eof, flags: 0 }
-    }
-    fn is_punct(&self, it: &Interner, s: &str) -> bool {
-        self.kind == TK::Punct && it.str(self.sym) == s
     }
 }
 
@@ -156,6 +158,10 @@ enum Builtin {
     IncludeLevel,
     BaseFile,
     Pragma,
+    /// `__has_include` / `__has_include_next`, only meaningful in `#if`.
+    HasInclude,
+    Date,
+    Time,
 }
 
 #[derive(Clone, Debug)]
@@ -163,7 +169,11 @@ struct Macro {
     func: bool,
     variadic: bool,
     params: Vec<Sym>,
-    body: Vec<Tok>,
+    body: Arc<[Tok]>,
+    /// The body has `##` (else expansion is a plain copy).
+    pastes: bool,
+    /// The body has `__VA_OPT__`.
+    va_opt: bool,
     builtin: Builtin,
     /// Where the name was defined (`ctx == NONE`: predefined).
     ctx: u32,
@@ -225,13 +235,14 @@ type PResult<T> = Result<T, Error>;
 struct Syms {
     defined: Sym,
     va_args: Sym,
+    va_opt: Sym,
+    has_include: Sym,
+    has_include_next: Sym,
     lparen: Sym,
     rparen: Sym,
     comma: Sym,
-    space_placeholder: Sym,
     one: Sym,
     zero: Sym,
-    once: Sym,
 }
 
 pub(crate) struct Pp<'a> {
@@ -243,6 +254,11 @@ pub(crate) struct Pp<'a> {
     macro_of: Vec<u32>,
     defs: Vec<Macro>,
     pushed: HashMap<Sym, Vec<u32>, FxBuild>,
+    /// Spare token vectors.
+    pool: Vec<Vec<Tok>>,
+    /// Filter of macro names: bit `len & 63` of `first byte`'s word is set when some macro
+    /// with that first byte and length was ever defined.
+    name_filter: [u64; 256],
     frames: Vec<Frame>,
     stack: Vec<Context>,
     out: String,
@@ -262,7 +278,6 @@ pub(crate) struct Pp<'a> {
     directive_line: Option<i64>,
     /// Allowed roots for includes (canonical).
     roots: Vec<PathBuf>,
-    main_dir: Option<PathBuf>,
     base_name: String,
 }
 
@@ -370,13 +385,14 @@ impl<'a> Pp<'a> {
         let syms = Syms {
             defined: it.intern("defined"),
             va_args: it.intern("__VA_ARGS__"),
+            va_opt: it.intern("__VA_OPT__"),
+            has_include: it.intern("__has_include"),
+            has_include_next: it.intern("__has_include_next"),
             lparen: it.intern("("),
             rparen: it.intern(")"),
             comma: it.intern(","),
-            space_placeholder: it.intern(""),
             one: it.intern("1"),
             zero: it.intern("0"),
-            once: it.intern("once"),
         };
         let mut roots: Vec<PathBuf> = Vec::new();
         let main_dir = main.path.parent().filter(|p| p.is_dir()).map(|p| p.to_path_buf());
@@ -397,6 +413,8 @@ impl<'a> Pp<'a> {
             macro_of: Vec::new(),
             defs: Vec::new(),
             pushed: HashMap::default(),
+            pool: Vec::new(),
+            name_filter: [0; 256],
             frames: Vec::new(),
             stack: Vec::new(),
             out: String::with_capacity(main.text().len() + main.text().len() / 4),
@@ -411,7 +429,6 @@ impl<'a> Pp<'a> {
             inv: None,
             directive_line: None,
             roots,
-            main_dir,
             base_name: String::new(),
         };
         for (name, b) in [
@@ -421,9 +438,13 @@ impl<'a> Pp<'a> {
             ("__INCLUDE_LEVEL__", Builtin::IncludeLevel),
             ("__BASE_FILE__", Builtin::BaseFile),
             ("_Pragma", Builtin::Pragma),
+            ("__has_include", Builtin::HasInclude),
+            ("__has_include_next", Builtin::HasInclude),
+            ("__DATE__", Builtin::Date),
+            ("__TIME__", Builtin::Time),
         ] {
             let sym = pp.it.intern(name);
-            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Vec::new(), builtin: b, ctx: NONE, site: 0..0, disabled: false });
+            pp.set_macro(sym, Macro { func: false, variadic: false, params: Vec::new(), body: Arc::from(Vec::new()), pastes: false, va_opt: false, builtin: b, ctx: NONE, site: 0..0, disabled: false });
         }
         let predefined = [
             ("__STDC__", "1"),
@@ -443,6 +464,10 @@ impl<'a> Pp<'a> {
 
     fn set_macro(&mut self, sym: Sym, m: Macro) -> u32 {
         let idx = self.defs.len() as u32;
+        let name = self.it.str(sym).as_bytes();
+        if let Some(&b) = name.first() {
+            self.name_filter[b as usize] |= 1u64 << (name.len() & 63);
+        }
         self.defs.push(m);
         if self.macro_of.len() <= sym as usize {
             self.macro_of.resize(sym as usize + 1, NONE);
@@ -659,13 +684,21 @@ impl<'a> Pp<'a> {
 
     /// Writes a token made by macro expansion at top level.
     fn emit(&mut self, t: Tok) -> PResult<()> {
+        if t.kind == TK::Padding {
+            if t.flags & (WHITE | NULL_SOURCE) == WHITE {
+                self.emit_space();
+            }
+            return Ok(());
+        }
         if t.kind == TK::Placemarker || t.kind == TK::Eof {
             return Ok(());
         }
-        let text = self.it.strs[t.sym as usize].clone();
+        let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
         if (t.flags & WHITE != 0) || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes())) {
-            self.emit_space();
+            if !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
+                self.out.push(' ');
+            }
         }
         let out_at = self.out.len() as u32;
         if t.flags & FROM_DEF == 0 && t.ctx != NONE {
@@ -674,7 +707,8 @@ impl<'a> Pp<'a> {
             let (ctx, src, end) = self.inv.unwrap_or((NONE, 0, 0));
             self.map.entries.push(Entry { out: out_at, ctx, src, end, def_ctx: t.ctx, def_src: t.src, def_len: t.len, is_macro: true });
         }
-        self.out.push_str(&text);
+        let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
+        self.out.push_str(text);
         self.last_tok = out_at as usize..self.out.len();
         self.check_output()
     }
@@ -735,7 +769,7 @@ impl<'a> Pp<'a> {
                     }
                     bol = false;
                     match kind {
-                        Kind::Ident => {
+                        Kind::Ident if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63)) != 0 => {
                             let name = &text[pos..pos + len];
                             if let Some(sym) = self.it.get(name) {
                                 let m = self.macro_idx(sym);
@@ -875,9 +909,15 @@ impl<'a> Pp<'a> {
                     return Ok(Some(Tok::eof()));
                 }
                 let mac = c.mac;
-                self.stack.pop();
+                if let Some(c) = self.stack.pop() {
+                    self.give_vec(c.toks);
+                }
                 if let Some(m) = self.defs.get_mut(mac as usize) {
                     m.disabled = false;
+                }
+                if self.directive_line.is_none() {
+                    // cpp's `avoid_paste` padding at the end of every expansion.
+                    return Ok(Some(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() }));
                 }
                 continue;
             }
@@ -891,7 +931,8 @@ impl<'a> Pp<'a> {
     /// Is the next token (without consuming anything) a `(`?
     fn peek_lparen(&self) -> bool {
         for c in self.stack.iter().rev() {
-            if let Some(t) = c.toks.get(c.pos) {
+            let rest = c.toks.get(c.pos..).unwrap_or(&[]);
+            if let Some(t) = rest.iter().find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker)) {
                 return t.kind == TK::Punct && t.sym == self.syms.lparen;
             }
             if c.barrier {
@@ -923,11 +964,38 @@ impl<'a> Pp<'a> {
             if !self.enter_macro(t, m)? {
                 return Ok(Some(t));
             }
+            if self.directive_line.is_none() {
+                // cpp's padding whose source is the macro name.
+                return Ok(Some(Tok { kind: TK::Padding, flags: t.flags & WHITE, param: NO_PARAM, ..t }));
+            }
+        }
+    }
+
+    /// The next expanded token that is not a placemarker (`Eof` where `get_token` gives none).
+    fn get_real_token(&mut self, file_ok: bool) -> PResult<Tok> {
+        loop {
+            match self.get_token(file_ok)? {
+                Some(t) if matches!(t.kind, TK::Placemarker | TK::Padding) => continue,
+                Some(t) => return Ok(t),
+                None => return Ok(Tok::eof()),
+            }
         }
     }
 
     // -----------------------------------------------------------------------------------------
     // Macro expansion
+
+    /// An empty token vector, reusing the storage of finished contexts.
+    fn take_vec(&mut self) -> Vec<Tok> {
+        self.pool.pop().unwrap_or_default()
+    }
+
+    fn give_vec(&mut self, mut v: Vec<Tok>) {
+        if self.pool.len() < 64 && v.capacity() <= 4096 {
+            v.clear();
+            self.pool.push(v);
+        }
+    }
 
     fn push_context(&mut self, toks: Vec<Tok>, mac: u32, barrier: bool, at: &Tok) -> PResult<()> {
         if self.stack.len() >= self.opts.max_expansion_depth {
@@ -961,14 +1029,25 @@ impl<'a> Pp<'a> {
         }
         if !mac.func {
             let body = mac.body.clone();
-            let toks = self.substitute(m, &name, &body, &[], &mut [])?;
+            let toks = if mac.pastes {
+                self.substitute(m, &name, &body, &[], &mut [])?
+            } else {
+                let mut toks = self.take_vec();
+                toks.extend_from_slice(&body);
+                toks
+            };
             self.push_context(toks, m, false, &name)?;
             return Ok(true);
         }
         if !self.peek_lparen() {
             return Ok(false);
         }
-        let _lparen = self.next_raw(true)?;
+        // Up to the `(` the peek saw, past paddings and finished contexts.
+        while let Some(t) = self.next_raw(true)? {
+            if !matches!(t.kind, TK::Padding | TK::Placemarker) {
+                break;
+            }
+        }
         let args = self.collect_args(&name, m)?;
         let mac = &self.defs[m as usize];
         let nparams = mac.params.len();
@@ -990,14 +1069,14 @@ impl<'a> Pp<'a> {
             args.clear();
         }
         let absent_va = variadic && args.len() < nparams;
-        let body = self.defs[m as usize].body.clone();
+        let mut body = self.defs[m as usize].body.clone();
         let mut expanded: Vec<Option<Vec<Tok>>> = vec![None; args.len()];
-        let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
-        if let Some(first) = toks.first_mut() {
-            first.flags = (first.flags & !WHITE) | (name.flags & WHITE);
+        if self.defs[m as usize].va_opt {
+            body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
         }
-        if toks.is_empty() {
-            toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..name });
+        let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
+        if toks.iter().all(|t| t.kind == TK::Placemarker) {
+            toks.clear();
         }
         self.push_context(toks, m, false, &name)?;
         Ok(true)
@@ -1039,6 +1118,16 @@ impl<'a> Pp<'a> {
                 return self.err_tok(name, "macro arguments exceed the expansion budget", "while collecting these arguments");
             }
         }
+        // Like cpp's padding, placemarkers at either end of an argument do not count.
+        for a in &mut args {
+            while a.last().is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding)) {
+                a.pop();
+            }
+            let lead = a.iter().take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding)).count();
+            if lead > 0 {
+                a.drain(..lead);
+            }
+        }
         if args.len() == 1 && args[0].is_empty() && nparams == 0 {
             return Ok(Vec::new());
         }
@@ -1052,7 +1141,17 @@ impl<'a> Pp<'a> {
 
     /// Fully macro-expands an argument in isolation.
     fn expand_arg(&mut self, arg: &[Tok], at: &Tok) -> PResult<Vec<Tok>> {
-        self.push_context(arg.to_vec(), NONE, true, at)?;
+        // Nothing to expand: no identifiers (the common case of numbers and punctuation).
+        if !arg.iter().any(|t| t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE) {
+            if arg.len() > self.budget {
+                return self.err_tok(at, format!("macro expansion makes more than {} tokens", self.opts.max_output_bytes.max(1024)), "while expanding this");
+            }
+            self.budget -= arg.len();
+            return Ok(arg.to_vec());
+        }
+        let mut v = self.take_vec();
+        v.extend_from_slice(arg);
+        self.push_context(v, NONE, true, at)?;
         let mut out = Vec::with_capacity(arg.len());
         loop {
             match self.get_token(false)? {
@@ -1061,18 +1160,17 @@ impl<'a> Pp<'a> {
                 None => break,
             }
         }
-        self.stack.pop();
+        if let Some(c) = self.stack.pop() {
+            self.give_vec(c.toks);
+        }
         Ok(out)
     }
 
     /// Object-like replacement: pastes only.
     fn substitute(&mut self, m: u32, name: &Tok, body: &[Tok], args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>]) -> PResult<Vec<Tok>> {
         let mut toks = self.substitute_args(m, name, body, args, expanded, false)?;
-        if let Some(first) = toks.first_mut() {
-            first.flags = (first.flags & !WHITE) | (name.flags & WHITE);
-        }
-        if toks.is_empty() {
-            toks.push(Tok { kind: TK::Placemarker, flags: name.flags & WHITE, ..*name });
+        if toks.iter().all(|t| t.kind == TK::Placemarker) {
+            toks.clear();
         }
         Ok(toks)
     }
@@ -1088,7 +1186,8 @@ impl<'a> Pp<'a> {
         expanded: &mut [Option<Vec<Tok>>],
         absent_va: bool,
     ) -> PResult<Vec<Tok>> {
-        let mut out: Vec<Tok> = Vec::with_capacity(body.len() + args.iter().map(Vec::len).sum::<usize>());
+        let mut out: Vec<Tok> = self.take_vec();
+        out.reserve(body.len() + args.iter().map(Vec::len).sum::<usize>());
         let mut i = 0;
         while i < body.len() {
             let b = body[i];
@@ -1106,13 +1205,12 @@ impl<'a> Pp<'a> {
                     out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
                 } else {
                     out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
-                    let start = out.len();
                     out.extend(arg);
-                    if let Some(t) = out.get_mut(start) {
-                        t.flags = (t.flags & !WHITE) | (p.flags & WHITE);
-                    }
                     if let Some(t) = out.last_mut() {
                         t.flags |= va_paste;
+                    }
+                    if va_paste == 0 && self.directive_line.is_none() {
+                        out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
                     }
                 }
                 i += 2;
@@ -1132,26 +1230,35 @@ impl<'a> Pp<'a> {
                 continue;
             }
             let raw = b.flags & PASTE_LEFT != 0 || prev_pastes;
-            let toks: Vec<Tok> = if raw {
-                args.get(pi).cloned().unwrap_or_default()
+            if !raw {
+                self.expanded_arg(pi, args, expanded, name)?;
+            }
+            let toks: &[Tok] = if raw {
+                args.get(pi).map_or(&[][..], |a| &a[..])
             } else {
-                self.expanded_arg(pi, args, expanded, name)?
+                expanded.get(pi).and_then(|e| e.as_deref()).unwrap_or(&[])
             };
-            let start = out.len();
+            // cpp's paddings around an argument: on the left (its source the parameter) unless
+            // it is the first token or the right operand of `##`, on the right unless `##`
+            // follows.
+            let pad = self.directive_line.is_none();
+            if pad && i > 0 && !prev_pastes {
+                out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
+            }
             if toks.is_empty() {
                 if raw {
                     out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: b.flags & (PASTE_LEFT | WHITE), ..b });
                 }
             } else {
-                out.extend(toks);
-                if let Some(t) = out.get_mut(start) {
-                    t.flags = (t.flags & !WHITE) | (b.flags & WHITE);
-                }
+                out.extend_from_slice(toks);
                 if b.flags & PASTE_LEFT != 0 {
                     if let Some(t) = out.last_mut() {
                         t.flags |= PASTE_LEFT;
                     }
                 }
+            }
+            if pad && b.flags & PASTE_LEFT == 0 {
+                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
             }
             i += 1;
         }
@@ -1168,16 +1275,71 @@ impl<'a> Pp<'a> {
         Ok(out)
     }
 
-    fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
-        if let Some(Some(e)) = expanded.get(pi) {
-            return Ok(e.clone());
+    /// Replaces each `__VA_OPT__(...)` of a body by its contents when the variable arguments
+    /// expand to some tokens, else by a placemarker (C2x, as GCC 12 does in every mode).
+    fn resolve_va_opt(&mut self, body: &[Tok], va: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<Vec<Tok>> {
+        self.expanded_arg(va, args, expanded, name)?;
+        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| e.iter().any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding)));
+        let mut out = Vec::with_capacity(body.len());
+        let mut i = 0;
+        while i < body.len() {
+            let t = body[i];
+            let opens = body.get(i + 1).is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
+            if !(t.kind == TK::Ident && t.sym == self.syms.va_opt && t.param == NO_PARAM && opens) {
+                out.push(t);
+                i += 1;
+                continue;
+            }
+            // Find the matching `)`.
+            let mut depth = 0usize;
+            let mut j = i + 1;
+            while j < body.len() {
+                if body[j].kind == TK::Punct && body[j].sym == self.syms.lparen {
+                    depth += 1;
+                } else if body[j].kind == TK::Punct && body[j].sym == self.syms.rparen {
+                    depth -= 1;
+                    if depth == 0 {
+                        break;
+                    }
+                }
+                j += 1;
+            }
+            if j >= body.len() {
+                return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
+            }
+            let close_paste = body[j].flags & PASTE_LEFT;
+            let inner = &body[i + 2..j];
+            if t.flags & STRINGIFY != 0 {
+                let toks = if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
+                let text = self.stringify(&toks);
+                let sym = self.it.intern(&text);
+                out.push(Tok { sym, kind: TK::Str, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste | FROM_DEF, ..t });
+            } else if present && !inner.is_empty() {
+                let start = out.len();
+                out.extend_from_slice(inner);
+                out[start].flags = (out[start].flags & !WHITE) | (t.flags & WHITE);
+                if let Some(last) = out.last_mut() {
+                    last.flags |= close_paste;
+                }
+            } else {
+                out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste, ..t });
+            }
+            i = j + 1;
         }
-        let raw = args.get(pi).cloned().unwrap_or_default();
-        let e = self.expand_arg(&raw, name)?;
+        Ok(out)
+    }
+
+    /// Makes sure `expanded[pi]` holds the macro-expanded argument `pi`.
+    fn expanded_arg(&mut self, pi: usize, args: &[Vec<Tok>], expanded: &mut [Option<Vec<Tok>>], name: &Tok) -> PResult<()> {
+        if matches!(expanded.get(pi), Some(Some(_)) | None) {
+            return Ok(());
+        }
+        let raw = args.get(pi).map_or(&[][..], |a| &a[..]);
+        let e = self.expand_arg(raw, name)?;
         if let Some(slot) = expanded.get_mut(pi) {
-            *slot = Some(e.clone());
+            *slot = Some(e);
         }
-        Ok(e)
+        Ok(())
     }
 
     /// Applies every `##` (tokens flagged `PASTE_LEFT` join the next one).
@@ -1230,13 +1392,28 @@ impl<'a> Pp<'a> {
     /// `#x`: the spelling of the argument, spaces normalized, `"` and `\` escaped in literals.
     fn stringify(&self, arg: &[Tok]) -> String {
         let mut s = String::from("\"");
-        for (i, t) in arg.iter().enumerate() {
+        // cpp's rule: the whitespace before a token is that of the source of the padding
+        // before it, if any (a padding with no source resets it), else its own.
+        // `source`: None is cpp's NULL, Some(w) a source token with leading whitespace `w`.
+        let mut source: Option<bool> = None;
+        for t in arg {
+            if t.kind == TK::Padding {
+                let tsrc = if t.flags & NULL_SOURCE != 0 { None } else { Some(t.flags & WHITE != 0) };
+                if source.is_none() || (source == Some(false) && tsrc.is_none()) {
+                    source = tsrc;
+                }
+                continue;
+            }
             if t.kind == TK::Placemarker {
                 continue;
             }
-            if i > 0 && t.flags & WHITE != 0 && !s.ends_with(' ') && s.len() > 1 {
-                s.push(' ');
+            if s.len() > 1 {
+                let white = source.unwrap_or(t.flags & WHITE != 0);
+                if white {
+                    s.push(' ');
+                }
             }
+            source = None;
             let text = self.it.str(t.sym);
             if matches!(t.kind, TK::Str | TK::Char) {
                 for c in text.chars() {
@@ -1281,9 +1458,19 @@ impl<'a> Pp<'a> {
             }
             Builtin::IncludeLevel => (self.frames.len().saturating_sub(1)).to_string(),
             Builtin::Pragma => return self.pragma_operator(name),
+            // Left for the `#if` evaluation to read.
+            Builtin::HasInclude if self.directive_line.is_some() => return Ok(false),
+            Builtin::HasInclude => {
+                let n = self.it.str(name.sym).to_string();
+                return self.err_tok(&name, format!("\"{n}\" used outside of preprocessing directive"), "only in #if and #elif");
+            }
+            Builtin::Date | Builtin::Time => {
+                let (date, time) = date_time();
+                quote(if b == Builtin::Date { &date } else { &time })
+            }
             Builtin::None => return Ok(false),
         };
-        let kind = if b == Builtin::File || b == Builtin::BaseFile { TK::Str } else { TK::Number };
+        let kind = if matches!(b, Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time) { TK::Str } else { TK::Number };
         let sym = self.it.intern(&text);
         let t = Tok { sym, kind, flags: (name.flags & WHITE) | FROM_DEF, param: NO_PARAM, ..name };
         self.push_context(vec![t], NONE, false, &name)?;
@@ -1295,9 +1482,13 @@ impl<'a> Pp<'a> {
         if !self.peek_lparen() {
             return Ok(false);
         }
-        let _ = self.next_raw(true)?;
-        let Some(s) = self.get_token(true)? else { return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here") };
-        let Some(close) = self.get_token(true)? else { return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here") };
+        while let Some(t) = self.next_raw(true)? {
+            if !matches!(t.kind, TK::Padding | TK::Placemarker) {
+                break;
+            }
+        }
+        let s = self.get_real_token(true)?;
+        let close = self.get_real_token(true)?;
         if s.kind != TK::Str || !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
             return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here");
         }
@@ -1667,6 +1858,7 @@ impl<'a> Pp<'a> {
         let r = loop {
             match self.get_token(false) {
                 Ok(Some(t)) if t.kind == TK::Eof => break Ok(()),
+                Ok(Some(t)) if matches!(t.kind, TK::Placemarker | TK::Padding) => {}
                 Ok(Some(t)) => out.push(t),
                 Ok(None) => break Ok(()),
                 Err(e) => break Err(e),
@@ -1707,9 +1899,9 @@ impl<'a> Pp<'a> {
         self.directive_line = saved_line;
         self.inv = saved_inv;
         let expanded = r?;
-        let texts: Vec<String> = expanded.iter().map(|t| self.it.str(t.sym).to_string()).collect();
         let mut etoks = Vec::with_capacity(expanded.len());
-        for (t, s) in expanded.iter().zip(&texts) {
+        for t in &expanded {
+            let s = self.it.str(t.sym);
             let kind = match t.kind {
                 TK::Ident => Kind::Ident,
                 TK::Number => Kind::Number,
@@ -1720,7 +1912,9 @@ impl<'a> Pp<'a> {
             };
             etoks.push(expr::Token::from_lexed(kind, s, &|_| None));
         }
-        match expr::eval_tokens(&etoks) {
+        let result = expr::eval_tokens(&etoks);
+        drop(etoks);
+        match result {
             Ok(v) => Ok(v.v != 0),
             Err(e) => {
                 let label = if e.message.contains("division by zero") { "this divisor is zero" } else { "here" };
@@ -1740,6 +1934,15 @@ impl<'a> Pp<'a> {
             let Some(t) = self.get_token(false)? else { break };
             if t.kind == TK::Eof {
                 break;
+            }
+            if matches!(t.kind, TK::Placemarker | TK::Padding) {
+                continue;
+            }
+            if t.kind == TK::Ident && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next) && t.flags & NO_EXPAND == 0 {
+                let found = self.has_include(&t)?;
+                let sym = if found { self.syms.one } else { self.syms.zero };
+                out.push(Tok { sym, kind: TK::Number, ..t });
+                continue;
             }
             if t.kind == TK::Ident && t.sym == self.syms.defined {
                 let Some(mut n) = self.next_raw(false)? else { break };
@@ -1764,6 +1967,43 @@ impl<'a> Pp<'a> {
             out.push(t);
         }
         Ok(out)
+    }
+
+    /// `__has_include ( "file" )` / `( <file> )` in `#if`: whether the include resolves.
+    fn has_include(&mut self, at: &Tok) -> PResult<bool> {
+        let name = self.it.str(at.sym).to_string();
+        let open = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
+            return self.err_tok(at, format!("missing '(' after \"{name}\""), "expected '(' after this");
+        }
+        let first = self.get_real_token(false)?;
+        let (spelling, angle) = if first.kind == TK::Str {
+            let s = self.it.str(first.sym);
+            (s.get(1..s.len().saturating_sub(1)).unwrap_or("").to_string(), false)
+        } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
+            let mut s = String::new();
+            loop {
+                let t = self.get_real_token(false)?;
+                if t.kind == TK::Eof {
+                    return self.err_tok(at, format!("missing terminating > character in \"{name}\""), "here");
+                }
+                if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
+                    break;
+                }
+                if !s.is_empty() && t.flags & WHITE != 0 {
+                    s.push(' ');
+                }
+                s.push_str(self.it.str(t.sym));
+            }
+            (s, true)
+        } else {
+            return self.err_tok(at, format!("operator \"{name}\" requires a header-name"), "expected \"FILE\" or <FILE> after this");
+        };
+        let close = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
+            return self.err_tok(at, format!("missing ')' after \"{name}\" operand"), "expected ')'");
+        }
+        Ok(matches!(self.resolve_include(&spelling, angle), Resolved::Found(..)))
     }
 
     /// Skips a group whose condition is false, up to the `#elif`/`#else`/`#endif` that ends
@@ -1899,7 +2139,7 @@ impl<'a> Pp<'a> {
                 let (s, angle) = self.computed_header(&exp).ok_or(()).or_else(|_| {
                     self.err_at(ctx, range.clone(), "#include expects \"FILENAME\" or <FILENAME>", "this does not expand to a file name")
                 })?;
-                return self.do_include(&s, angle, ctx, hash, range, &source);
+                return self.do_include(&s, angle, ctx, hash, range);
             }
         };
         if let Some(f) = self.frames.last_mut() {
@@ -1910,7 +2150,7 @@ impl<'a> Pp<'a> {
             let l = self.tok_labels(t, "unexpected");
             self.warn("extra tokens at end of #include directive", l);
         }
-        self.do_include(&spelling, angle, ctx, hash, spell_range, &source)
+        self.do_include(&spelling, angle, ctx, hash, spell_range)
     }
 
     /// The file name of a macro-expanded `#include` line.
@@ -1938,18 +2178,13 @@ impl<'a> Pp<'a> {
         None
     }
 
-    fn do_include(&mut self, spelling: &str, angle: bool, ctx: u32, hash: u32, range: Range<u32>, includer: &SourceFile) -> PResult<()> {
-        if spelling.is_empty() {
-            return self.err_at(ctx, range, "empty filename in #include", "no file name");
-        }
-        if self.frames.len() >= 200 {
-            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
-        }
+    /// Where an include of `spelling` leads from the current file.
+    fn resolve_include(&self, spelling: &str, angle: bool) -> Resolved {
         let includer_name = self.frames.last().map(|f| f.name.clone()).unwrap_or_default();
         let mut found = Resolved::NotFound;
         let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
         if !angle && !is_virtual && relative_ok(spelling) {
-            if let Some(dir) = includer.path.parent().filter(|d| d.is_dir()) {
+            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()).filter(|d| d.is_dir()) {
                 let cand = dir.join(spelling);
                 if cand.is_file() {
                     found = Resolved::NotFound;
@@ -1968,6 +2203,17 @@ impl<'a> Pp<'a> {
         if matches!(found, Resolved::NotFound) {
             found = resolve_in_roots(spelling, self.opts);
         }
+        found
+    }
+
+    fn do_include(&mut self, spelling: &str, angle: bool, ctx: u32, hash: u32, range: Range<u32>) -> PResult<()> {
+        if spelling.is_empty() {
+            return self.err_at(ctx, range, "empty filename in #include", "no file name");
+        }
+        if self.frames.len() >= 200 {
+            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
+        }
+        let found = self.resolve_include(spelling, angle);
         let (path, cpp_name) = match found {
             Resolved::Found(p, n) => (p, n),
             Resolved::Escapes(p) => {
@@ -2115,6 +2361,12 @@ impl<'a> Pp<'a> {
             }
             if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
                 let next = toks.get(j + 1).copied();
+                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
+                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
+                    body.push(Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
+                    j += 2;
+                    continue;
+                }
                 match next.filter(|n| n.kind == TK::Ident).and_then(|n| params.iter().position(|&p| p == n.sym)) {
                     Some(pi) => {
                         let n = toks[j + 1];
@@ -2156,11 +2408,15 @@ impl<'a> Pp<'a> {
         if params.len() >= NO_PARAM as usize {
             return self.err_tok(&name, "too many macro parameters", "here");
         }
+        let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
+        let va_opt = variadic && body.iter().any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
         let m = Macro {
             func,
             variadic,
             params,
-            body,
+            body: body.into(),
+            pastes,
+            va_opt,
             builtin: Builtin::None,
             ctx: name.ctx,
             site: name.src..name.src + name.len,
@@ -2192,7 +2448,7 @@ impl<'a> Pp<'a> {
             && a.variadic == b.variadic
             && a.params == b.params
             && a.body.len() == b.body.len()
-            && a.body.iter().zip(&b.body).enumerate().all(|(i, (x, y))| {
+            && a.body.iter().zip(b.body.iter()).enumerate().all(|(i, (x, y))| {
                 x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
             })
     }
@@ -2261,4 +2517,30 @@ fn _assert_send_sync() {
     fn is<T: Send + Sync>() {}
     is::<SourceCache>();
     is::<Output>();
+}
+
+/// `__DATE__` and `__TIME__` of now (UTC, or `SOURCE_DATE_EPOCH` like GCC).
+fn date_time() -> (String, String) {
+    let secs = std::env::var("SOURCE_DATE_EPOCH")
+        .ok()
+        .and_then(|v| v.parse::<i64>().ok())
+        .unwrap_or_else(|| {
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
+        });
+    let days = secs.div_euclid(86_400);
+    let rem = secs.rem_euclid(86_400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    const MONTHS: [&str; 12] = ["Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec"];
+    let date = format!("{} {day:2} {year}", MONTHS[(month - 1) as usize]);
+    let time = format!("{:02}:{:02}:{:02}", rem / 3600, rem % 3600 / 60, rem % 60);
+    (date, time)
 }

@@ -15,6 +15,8 @@ pub mod expr;
 mod lexer;
 mod map;
 mod source;
+#[cfg(test)]
+mod tests;
 
 use std::fmt;
 use std::path::{Path, PathBuf};

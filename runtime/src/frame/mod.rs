@@ -255,6 +255,12 @@ impl PassContext<'_> {
         &self.recorder.device
     }
 
+    /// Whether outputs are captured (`--dump-passes`): passes whose output is not an image
+    /// (a buffer) draw a picture of it only then.
+    pub fn capturing(&self) -> bool {
+        self.recorder.capture
+    }
+
     /// The debug group name of the current pass or step (`PostProcessing/Tonemapper`).
     pub fn debug_name(&self) -> String {
         let r = &*self.recorder;

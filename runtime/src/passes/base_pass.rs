@@ -2,7 +2,7 @@
 //! and sky light, GBufferA normals, GBufferB metallic/specular/roughness/shading model,
 //! GBufferC base color and AO), depth-tested against the PrePass. And Translucency: the
 //! translucent meshes forward lit over SceneColor, on desktop with `BasePassPS`, on mobile
-//! with the forward `MobileBasePassPS`.
+//! with the forward `MobileBasePassPS`, then the particle sprites added.
 
 use crate::frame::{PassContext, Visualize};
 use crate::gpu_types::formats;
@@ -11,6 +11,7 @@ use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
 
 use super::mobile_base_pass::MobileBasePassOptions;
+use super::particles::{ParticleSprites, ParticleSystem};
 use super::{sky_clear, MaterialDraw, PassInit, Targets};
 
 pub const GBUFFER_TARGETS: [ColorTarget; 4] = [
@@ -97,10 +98,13 @@ pub enum TranslucencyShading {
 
 pub struct TranslucencyPass {
     draws: Vec<(usize, MaterialDraw)>,
+    /// Particle sprites, added after the translucent meshes.
+    sprites: Vec<ParticleSprites>,
 }
 
 impl TranslucencyPass {
-    pub fn new(init: &PassInit<'_>, shading: TranslucencyShading) -> Result<TranslucencyPass, PipelineError> {
+    /// `particles`: systems whose sprites this pass draws (the desktop frame's).
+    pub fn new(init: &PassInit<'_>, shading: TranslucencyShading, particles: &[ParticleSystem]) -> Result<TranslucencyPass, PipelineError> {
         let view = init.shared.view_resources();
         let mut draws = Vec::new();
         for (i, object) in init.gpu_scene.objects.iter().enumerate() {
@@ -125,7 +129,8 @@ impl TranslucencyPass {
             let buffer = &init.gpu_scene.materials[object.material].uniforms;
             draws.push((i, MaterialDraw::new(init.device, pipeline, &view, Some(buffer))?));
         }
-        Ok(TranslucencyPass { draws })
+        let sprites = particles.iter().map(|p| ParticleSprites::new(init, p, true)).collect::<Result<_, _>>()?;
+        Ok(TranslucencyPass { draws, sprites })
     }
 
     /// Reads SceneDepth (test only) and the shadow map; blends over SceneColor.
@@ -151,6 +156,9 @@ impl TranslucencyPass {
                 for (i, draw) in &self.draws {
                     draw.bind(pass);
                     scene.draw(pass, &scene.objects[*i]);
+                }
+                for s in &self.sprites {
+                    s.draw(pass);
                 }
             });
         }

@@ -26,6 +26,7 @@ pub mod depth;
 pub mod lighting;
 pub mod mobile_base_pass;
 pub mod mobile_deferred_shading;
+pub mod particles;
 pub mod tonemap;
 
 use std::sync::Arc;
@@ -93,6 +94,8 @@ pub struct Targets {
     pub gbuffer_c: Target,
     pub shadow_depth: Target,
     pub output: Target,
+    /// Scratch HDR target for pictures of passes that write buffers (ParticleSimulation).
+    pub preview: Target,
 }
 
 impl Targets {
@@ -108,6 +111,7 @@ impl Targets {
             gbuffer_c: Target::new(device, "GBufferC", formats::GBUFFER_C, width, height),
             shadow_depth: Target::new(device, "ShadowDepth", formats::SHADOW_DEPTH, s, s),
             output: Target::new(device, "Output", formats::OUTPUT, width, height),
+            preview: Target::new(device, "Preview", formats::SCENE_COLOR, width, height),
         }
     }
 }

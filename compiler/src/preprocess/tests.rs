@@ -1,0 +1,202 @@
+//! Directive by directive: small input → expected tokens (joined by one space), and error
+//! messages. The differential tests against cpp live in `tests/tests/preprocess_cpp.rs`.
+
+use super::*;
+
+fn run_with(src: &str, opts: &Options) -> Result<Output, Error> {
+    let cache = SourceCache::new(std::env::temp_dir());
+    let id = cache.add_virtual("t.usf", src);
+    preprocess_file_id(id, opts, &cache)
+}
+
+fn pp(src: &str) -> String {
+    match run_with(src, &Options::default()) {
+        Ok(out) => tokens(&out.text).join(" "),
+        Err(e) => panic!("unexpected error {e} for:\n{src}"),
+    }
+}
+
+fn err(src: &str) -> String {
+    match run_with(src, &Options::default()) {
+        Ok(out) => panic!("expected an error, got {:?} for:\n{src}", out.text),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[track_caller]
+fn cases(cases: &[(&str, &str)]) {
+    for (src, want) in cases {
+        assert_eq!(pp(src), *want, "input:\n{src}");
+    }
+}
+
+#[test]
+fn define_object_like() {
+    cases(&[
+        ("#define A 1\nA", "1"),
+        ("#define A\n[A]", "[ ]"),
+        ("#define A B\n#define B 2\nA", "2"),
+        ("#define A A + 1\nA", "A + 1"),
+        ("#define A (x)\nA", "( x )"),
+        ("#define A /* c */ 1 /* d */\nA", "1"),
+        ("#define A 1 \\\n + 2\nA", "1 + 2"),
+        ("  #  define A 3\nA", "3"),
+        ("%:define A 4\nA", "4"),
+    ]);
+}
+
+#[test]
+fn define_function_like() {
+    cases(&[
+        ("#define F(x) [x]\nF(1) F (2) F\n(3)", "[ 1 ] [ 2 ] [ 3 ]"),
+        ("#define F(x) [x]\nF + 1", "F + 1"),
+        ("#define F(x, y) x y\nF((a, b), c)", "( a , b ) c"),
+        ("#define F() z\nF() F( )", "z z"),
+        ("#define F(x) [x]\nF()", "[ ]"),
+        ("#define F(x) #x\nF(a  \"b\\n\"  'c')", r#""a \"b\\n\" 'c'""#),
+        ("#define F(a, b) a ## b\nF(x, y) F(, y) F(x, ) F(,)", "xy y x"),
+        ("#define F(...) <__VA_ARGS__>\nF() F(1, 2)", "< > < 1 , 2 >"),
+        ("#define F(a, ...) a __VA_OPT__(+) __VA_ARGS__\nF(1) F(1, 2)", "1 1 + 2"),
+        ("#define F(x) x F(x)\nF(1)", "1 F ( 1 )"),
+        ("#define F(x, y) x y\nF(\n1\n,\n)", "1"),
+    ]);
+}
+
+#[test]
+fn undef() {
+    cases(&[
+        ("#define A 1\n#undef A\nA", "A"),
+        ("#undef NEVER_DEFINED\nok", "ok"),
+        ("#define F(x) x\n#undef F\nF(1)", "F ( 1 )"),
+    ]);
+    assert_eq!(err("#undef\n"), "no macro name given in #undef directive");
+    assert_eq!(err("#undef 1\n"), "macro names must be identifiers");
+}
+
+#[test]
+fn conditionals() {
+    cases(&[
+        ("#if 1\na\n#else\nb\n#endif", "a"),
+        ("#if 0\na\n#else\nb\n#endif", "b"),
+        ("#if 0\na\n#elif 2 > 1\nb\n#elif 1\nc\n#endif", "b"),
+        ("#define X\n#ifdef X\na\n#endif\n#ifndef X\nb\n#endif", "a"),
+        ("#if defined X || defined(Y)\na\n#else\nb\n#endif", "b"),
+        ("#define V 3\n#if V * 2 == 6 && V << 1 == 6\nok\n#endif", "ok"),
+        ("#if 0\n#if 1\nnested\n#endif\n#bogus\n#else\nouter\n#endif", "outer"),
+        ("#if 1\n#elif 1 / 0\n#endif\nok", "ok"),
+        ("#if 0\n#elif 0\n#else\nlast\n#endif", "last"),
+        ("#if 0\n'unterminated\n\"also\n#endif\nok", "ok"),
+        ("#if 0\n/*\n#endif\n*/\n#endif\nok", "ok"),
+        ("#define F(x) x\n#if F(2) == 2\nok\n#endif", "ok"),
+        ("#define D defined(Z)\n#if !D\nok\n#endif", "ok"),
+    ]);
+    assert_eq!(err("#if 1\n"), "unterminated #if");
+    assert_eq!(err("#endif\n"), "#endif without #if");
+    assert_eq!(err("#elif 1\n"), "#elif without #if");
+    assert_eq!(err("#if 1\n#else\n#elif 1\n#endif\n"), "#elif after #else");
+    assert_eq!(err("#if 0\n#else\n#else\n#endif\n"), "#else after #else");
+    assert_eq!(err("#if 1 / 0\n#endif\n"), "division by zero in #if");
+    assert_eq!(err("#if\n#endif\n"), "#if with no expression");
+    assert_eq!(err("#ifdef\n#endif\n"), "no macro name given in #ifdef directive");
+    assert_eq!(err("#if defined\n#endif\n"), "operator \"defined\" requires an identifier");
+}
+
+#[test]
+fn include_and_once() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let w = |p: &str, t: &str| {
+        let p = dir.path().join(p);
+        std::fs::create_dir_all(p.parent().expect("parent")).expect("mkdir");
+        std::fs::write(p, t).expect("write");
+    };
+    w("main.usf", "#include \"a.ush\"\n#include \"a.ush\"\n#include <lib/b.ush>\n#include \"/Engine/c.ush\"\n#define H \"a.ush\"\n#include H\nend\n");
+    w("a.ush", "#pragma once\nA\n");
+    w("roots/lib/b.ush", "#ifndef B\n#define B\nB_BODY\n#endif\n");
+    w("engine/c.ush", "#include <lib/b.ush>\nC\n");
+    let cache = SourceCache::new(dir.path().to_path_buf());
+    let opts = Options {
+        include_roots: vec![dir.path().join("roots")],
+        virtual_roots: vec![("/Engine".into(), dir.path().join("engine"))],
+        ..Options::default()
+    };
+    let out = preprocess_file(&dir.path().join("main.usf"), &opts, &cache).expect("preprocesses");
+    assert_eq!(tokens(&out.text).join(" "), "A B_BODY C end");
+    let names: Vec<String> = out.files.iter().map(|&f| cache.name(f)).collect();
+    assert_eq!(names, ["main.usf", "a.ush", "roots/lib/b.ush", "engine/c.ush"]);
+    assert_eq!(
+        resolve_source("/Engine/c.ush", &opts).expect("resolves"),
+        dir.path().join("engine/c.ush").canonicalize().expect("exists")
+    );
+    assert_eq!(resolve_source("lib/b.ush", &opts).expect("resolves"), dir.path().join("roots/lib/b.ush").canonicalize().expect("exists"));
+    assert!(resolve_source("missing.ush", &opts).is_err());
+    assert!(resolve_source("../main.usf", &opts).is_err());
+}
+
+#[test]
+fn error_and_warning() {
+    assert_eq!(err("#error stop /* here */ now\n"), "#error stop   now");
+    assert_eq!(err("#error\n"), "#error");
+    let out = run_with("#warning careful\nx\n", &Options::default()).expect("warnings continue");
+    assert_eq!(tokens(&out.text), ["x"]);
+    assert_eq!(out.warnings.len(), 1);
+    assert_eq!(out.warnings[0].message, "#warning careful");
+}
+
+#[test]
+fn pragma_and_line() {
+    cases(&[
+        ("#pragma once\nx", "x"),
+        ("#pragma unroll\nx", "# pragma unroll x"),
+        ("_Pragma(\"omp parallel\") x", "# pragma omp parallel x"),
+        ("#line 10\n__LINE__", "10"),
+        ("#line 20 \"other.usf\"\n__LINE__ __FILE__", "20 \"other.usf\""),
+        ("# 5 \"marker.usf\"\n__LINE__", "5"),
+        ("#\nx", "x"),
+    ]);
+    assert_eq!(err("#nonsense\n"), "invalid preprocessing directive #nonsense");
+}
+
+#[test]
+fn builtins_and_predefined() {
+    cases(&[
+        ("__LINE__\n\n__LINE__", "1 3"),
+        ("__FILE__", "\"t.usf\""),
+        ("__STDC__ __STDC_VERSION__", "1 201112L"),
+        ("__COUNTER__ __COUNTER__", "0 1"),
+        ("#define L __LINE__\n\nL", "3"),
+    ]);
+    let opts = Options { defines: vec![("N".into(), "4".into()), ("F(x)".into(), "x*N".into())], ..Options::default() };
+    let out = run_with("N F(2)", &opts).expect("ok");
+    assert_eq!(tokens(&out.text).join(" "), "4 2 * 4");
+}
+
+#[test]
+fn wgsl_passes_through() {
+    let src = "@group(0) @binding(1) var<uniform> u: array<vec4<f32>, 4>;\nfn f(x: f32) -> f32 { return x; }\n";
+    let out = run_with(src, &Options::default()).expect("ok");
+    assert_eq!(out.text, src);
+    assert_eq!(out.map.len(), 1);
+}
+
+#[test]
+fn pastes_never_merge_by_accident() {
+    cases(&[
+        ("#define M -\n-M M- M-1", "- - - - - - 1"),
+        ("#define E\na E b", "a b"),
+        ("#define F(x) -x\nF(-1)", "- - 1"),
+        ("#define S /\nS/ /S", "/ / / /"),
+    ]);
+}
+
+#[test]
+fn macro_errors() {
+    assert_eq!(err("#define F(x) x\nF(1, 2)\n"), "macro \"F\" passed 2 arguments, but takes just 1");
+    assert_eq!(err("#define F(x, y) x\nF(1)\n"), "macro \"F\" requires 2 arguments, but only 1 given");
+    assert_eq!(err("#define F(x) x\nF(1\n"), "unterminated argument list invoking macro \"F\"");
+    assert_eq!(err("#define F(x, x) x\n"), "duplicate macro parameter \"x\"");
+    assert_eq!(err("#define F(x x\n"), "expected ',' or ')', found \"x\"");
+    assert_eq!(err("#define F(x\n"), "missing ')' in macro parameter list");
+    assert_eq!(err("#define defined 1\n"), "\"defined\" cannot be used as a macro name");
+    assert_eq!(err("#define C(a, b) a ## b\nC(+, /)\n"), "pasting \"+\" and \"/\" does not give a valid preprocessing token");
+    assert_eq!(err("/* open\n"), "unterminated comment");
+}
