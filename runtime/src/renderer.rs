@@ -92,7 +92,7 @@ enum Passes {
         tonemap: TonemapPass,
     },
     /// Both mobile frames (`crate::mobile`).
-    Mobile(Box<crate::mobile::MobileFrame>),
+    Mobile(crate::mobile::MobileFrame),
 }
 
 /// One rendered frame.
@@ -171,7 +171,7 @@ impl Renderer {
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let options = crate::mobile::MobileOptions::for_pipeline(options.pipeline);
-                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?))
+                    Passes::Mobile(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?)
                 }
             }
         };

@@ -127,7 +127,7 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
         let cache = kiln_runtime::pipelines::PipelineCache::new(&gpu, archive);
         let gpu_scene = kiln_runtime::scene::gpu::GpuScene::upload(&gpu.device, &scene);
         let options = kiln_runtime::mobile::MobileOptions::comparable(path);
-        kiln_runtime::mobile::render(&gpu, &cache, &scene, &gpu_scene, options, W, H, false).unwrap().1
+        kiln_runtime::mobile::render(&gpu, &cache, &scene, &gpu_scene, options, (W, H), false).unwrap().1
     };
     let forward = mobile(kiln_runtime::mobile::ShadingPath::Forward);
     let deferred = mobile(kiln_runtime::mobile::ShadingPath::Deferred);

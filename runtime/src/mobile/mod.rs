@@ -387,7 +387,7 @@ impl MobileFrame {
         };
         let translucency = if options.translucency { translucency::Translucency::new(&pipelines, gpu_scene, scene, &options, &targets, &shared)? } else { None };
         let post_processing = if options.hdr { Some(post_processing::PostProcessing::new(&pipelines, &options, &targets, &shared)?) } else { None };
-        let pipelines_built = pipelines.len();
+        let pipelines_built = pipelines.count();
         Ok(MobileFrame {
             options,
             targets,
@@ -484,8 +484,8 @@ pub fn read_rgba8(device: &wgpu::Device, queue: &wgpu::Queue, texture: &wgpu::Te
 
 /// Builds a frame, records it once and returns every pass (with its images when `capture`)
 /// and the final image.
-pub fn render(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, options: MobileOptions, width: u32, height: u32, capture: bool) -> Result<(Vec<PassResult>, Image), PipelineError> {
-    let frame = MobileFrame::new(gpu, cache, scene, gpu_scene, options, width, height)?;
+pub fn render(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, options: MobileOptions, size: (u32, u32), capture: bool) -> Result<(Vec<PassResult>, Image), PipelineError> {
+    let frame = MobileFrame::new(gpu, cache, scene, gpu_scene, options, size.0, size.1)?;
     let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
     let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);

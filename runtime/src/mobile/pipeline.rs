@@ -160,7 +160,7 @@ impl<'a> MobilePipelines<'a> {
     }
 
     /// How many distinct pipelines were built.
-    pub fn len(&self) -> usize {
+    pub fn count(&self) -> usize {
         self.built.lock().unwrap_or_else(|e| e.into_inner()).len()
     }
 }

@@ -18,6 +18,20 @@ const BLOOM_LEVELS: usize = 4;
 const BLOOM_THRESHOLD: f32 = 1.0;
 const BLOOM_INTENSITY: f32 = 0.6;
 
+/// One planned bloom step: its shader, what it reads (bloom target indices, or SceneColor)
+/// and which bloom target it writes.
+struct BloomStep {
+    name: String,
+    shader: &'static str,
+    input: usize,
+    additive: Option<usize>,
+    output: usize,
+    uniforms: BloomUniforms,
+}
+
+/// `BloomStep::input` naming SceneColor rather than a bloom target.
+const SCENE_COLOR_INPUT: usize = usize::MAX;
+
 struct Step {
     name: String,
     draw: Draw,
@@ -55,7 +69,7 @@ impl PostProcessing {
         };
         const NAMES: [&str; 4] = ["BloomHalf", "BloomQuarter", "BloomEighth", "BloomSixteenth"];
         const UP_NAMES: [&str; 3] = ["BloomUpEighth", "BloomUpQuarter", "BloomUpHalf"];
-        let mut plan: Vec<(String, &str, usize, Option<usize>, usize, BloomUniforms)> = Vec::new();
+        let mut plan: Vec<BloomStep> = Vec::new();
         if options.bloom {
             for (level, name) in NAMES.iter().enumerate() {
                 bloom_targets.push(Target::new(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
@@ -63,30 +77,36 @@ impl PostProcessing {
             for (i, name) in UP_NAMES.iter().enumerate() {
                 bloom_targets.push(Target::new(device, name, SCENE_COLOR_FORMAT, level_size(w, h, BLOOM_LEVELS - 2 - i), 1));
             }
-            // (step name, shader, input target (usize::MAX = SceneColor), additive, output, uniforms)
             let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
-            plan.push(("BloomSetup".into(), "MobileBloomSetupPS", usize::MAX, None, 0, BloomUniforms { texel: texel((w, h)) * 1.0, params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) }));
+            plan.push(BloomStep { name: "BloomSetup".into(), shader: "MobileBloomSetupPS", input: SCENE_COLOR_INPUT, additive: None, output: 0, uniforms: BloomUniforms { texel: texel((w, h)), params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) } });
             for level in 1..BLOOM_LEVELS {
                 let src = level_size(w, h, level - 1);
-                plan.push((format!("BloomDown{level}"), "MobileBloomDownPS", level - 1, None, level, BloomUniforms { texel: texel(src), params: Vec4::ZERO }));
+                plan.push(BloomStep { name: format!("BloomDown{level}"), shader: "MobileBloomDownPS", input: level - 1, additive: None, output: level, uniforms: BloomUniforms { texel: texel(src), params: Vec4::ZERO } });
             }
             for i in 0..BLOOM_LEVELS - 1 {
                 let input = if i == 0 { BLOOM_LEVELS - 1 } else { BLOOM_LEVELS + i - 1 };
                 let fine = BLOOM_LEVELS - 2 - i;
                 let coarse = if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
-                plan.push((format!("BloomUp{}", i + 1), "MobileBloomUpPS", input, Some(fine), BLOOM_LEVELS + i, BloomUniforms { texel: texel(coarse), params: Vec4::new(0.0, 0.5, 0.5, 0.0) }));
+                plan.push(BloomStep {
+                    name: format!("BloomUp{}", i + 1),
+                    shader: "MobileBloomUpPS",
+                    input,
+                    additive: Some(fine),
+                    output: BLOOM_LEVELS + i,
+                    uniforms: BloomUniforms { texel: texel(coarse), params: Vec4::new(0.0, 0.5, 0.5, 0.0) },
+                });
             }
         }
         let scene_color = wgpu::BindingResource::TextureView(&targets.scene_color.view);
-        let view_of = |i: usize| if i == usize::MAX { scene_color.clone() } else { wgpu::BindingResource::TextureView(&bloom_targets[i].view) };
-        for (name, shader, input, additive, output, u) in plan {
-            let b = uniform(&name, u);
-            let pipeline = fullscreen(shader, SCENE_COLOR_FORMAT)?;
-            let mut r = vec![("Input", view_of(input)), ("InputSampler", sampler.clone()), ("Bloom", b.as_entire_binding())];
-            if let Some(a) = additive {
+        let view_of = |i: usize| if i == SCENE_COLOR_INPUT { scene_color.clone() } else { wgpu::BindingResource::TextureView(&bloom_targets[i].view) };
+        for step in plan {
+            let b = uniform(&step.name, step.uniforms);
+            let pipeline = fullscreen(step.shader, SCENE_COLOR_FORMAT)?;
+            let mut r = vec![("Input", view_of(step.input)), ("InputSampler", sampler.clone()), ("Bloom", b.as_entire_binding())];
+            if let Some(a) = step.additive {
                 r.push(("Additive", view_of(a)));
             }
-            steps.push(Step { name, draw: Draw::new(device, pipeline, &r)?, target: output });
+            steps.push(Step { name: step.name, draw: Draw::new(device, pipeline, &r)?, target: step.output });
             buffers.push(b);
         }
         let bloom_result = if options.bloom { view_of(bloom_targets.len() - 1) } else { scene_color.clone() };

@@ -255,13 +255,18 @@ mod tests {
         let options = MobileOptions::default();
         let layout = ShadowLayout::new(&scene, &options, 16.0 / 9.0);
         assert_eq!(layout.cascades.len(), 2);
-        // The point the camera looks at is inside the first cascade's box, nearer the light
-        // at larger depth.
-        let target = scene.camera.target;
-        let c = &layout.cascades[0];
-        let p = c.view_proj.project_point3(target);
-        assert!(p.x.abs() <= 1.0 && p.y.abs() <= 1.0 && (0.0..=1.0).contains(&p.z), "{p}");
-        let towards_light = c.view_proj.project_point3(target - scene.sun.direction);
-        assert!(towards_light.z > p.z);
+        // A point in the middle of each cascade's slice of the view is inside its box, and
+        // a point nearer the light has a larger depth.
+        let camera = &scene.camera;
+        let forward = (camera.target - camera.position).normalize();
+        let splits = cascade_splits(camera.near, options.shadow_distance, 2);
+        for (i, c) in layout.cascades.iter().enumerate() {
+            let inside = camera.position + forward * (splits[i] + splits[i + 1]) * 0.5;
+            let p = c.view_proj.project_point3(inside);
+            assert!(p.x.abs() <= 1.0 && p.y.abs() <= 1.0 && (0.0..=1.0).contains(&p.z), "cascade {i}: {p}");
+            let towards_light = c.view_proj.project_point3(inside - scene.sun.direction);
+            assert!(towards_light.z > p.z, "cascade {i}: reverse-Z");
+            assert_eq!(c.far, splits[i + 1]);
+        }
     }
 }

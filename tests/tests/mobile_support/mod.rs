@@ -42,7 +42,7 @@ impl Rig {
             Some(size) => size,
             None => (WIDTH, HEIGHT),
         };
-        let (passes, image) = mobile::render(&self.gpu, &self.cache, scene, &gpu_scene, options, w, h, capture)
+        let (passes, image) = mobile::render(&self.gpu, &self.cache, scene, &gpu_scene, options, (w, h), capture)
             .unwrap_or_else(|e| panic!("mobile frame: {e}"));
         if let Ok(dir) = std::env::var("KILN_MOBILE_DUMP") {
             let dir = PathBuf::from(dir);
