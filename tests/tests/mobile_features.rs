@@ -97,3 +97,70 @@ fn gl_and_vulkan_draw_the_same_mobile_frames() {
         assert!(p > GL_VULKAN_PSNR, "{name}: GL/Vulkan PSNR {p:.1} dB");
     }
 }
+
+fn light_sum(img: &Image) -> u64 {
+    img.rgba.iter().map(|&v| u64::from(v)).sum()
+}
+
+#[test]
+fn spot_shadows_come_from_the_shared_atlas() {
+    let rig = rig(Backend::Vulkan);
+    let mut unshadowed = Scene::bundled();
+    // The spot light alone (plus the sky), so its shadow is what changes.
+    unshadowed.sun.enabled = false;
+    unshadowed.point_lights.clear();
+    for l in &mut unshadowed.spot_lights {
+        l.casts_shadows = false;
+    }
+    let mut shadowed = unshadowed.clone();
+    for l in &mut shadowed.spot_lights {
+        l.casts_shadows = true;
+    }
+    for path in [ShadingPath::Forward, ShadingPath::Deferred] {
+        let options = MobileOptions::comparable(path);
+        let (passes, with_shadow) = rig.render_passes(&shadowed, options.clone(), true);
+        let without = rig.render(&unshadowed, options);
+        // The atlas holds the spot's tile under the cascades (one capture of ShadowDepths).
+        let atlas = &passes[0].images[0].1;
+        let n = (with_shadow.width * with_shadow.height) as usize;
+        let darker = (0..n).filter(|&i| luma(&with_shadow, i) + 8.0 < luma(&without, i)).count();
+        let brighter = (0..n).filter(|&i| luma(&with_shadow, i) > luma(&without, i) + 2.0).count();
+        eprintln!("{}: spot shadow darkens {darker} pixels, brightens {brighter}; atlas {}x{}", path.name(), atlas.width, atlas.height);
+        assert!(darker > 50, "{}: the spot light casts no shadow", path.name());
+        assert_eq!(brighter, 0, "{}: a shadow added light", path.name());
+        assert!(light_sum(&with_shadow) < light_sum(&without));
+    }
+}
+
+#[test]
+fn full_prepass_and_cascade_count_keep_the_frame() {
+    let rig = rig(Backend::Vulkan);
+    let scene = Scene::bundled();
+    for path in [ShadingPath::Forward, ShadingPath::Deferred] {
+        let base = MobileOptions::comparable(path);
+        let reference = rig.render(&scene, base.clone());
+        let (passes, prepass) = rig.render_passes(&scene, MobileOptions { full_prepass: true, ..base.clone() }, true);
+        assert_eq!(passes[1].name, "PrePass");
+        let p = psnr(&reference, &prepass);
+        // Four cascades move shadow edges by a texel here and there, no more.
+        let four = psnr(&reference, &rig.render(&scene, MobileOptions { cascades: 4, ..base.clone() }));
+        eprintln!("{}: full prepass {p:.1} dB, 4 cascades {four:.1} dB", path.name());
+        assert!(p > 50.0, "{}: the prepass changed the frame ({p:.1} dB)", path.name());
+        assert!(four > 30.0, "{}: 4 cascades changed the frame ({four:.1} dB)", path.name());
+    }
+}
+
+#[test]
+fn reflections_blend_captures_with_hq_reflections() {
+    let rig = rig(Backend::Vulkan);
+    let scene = Scene::bundled();
+    let base = MobileOptions::comparable(ShadingPath::Forward);
+    let none = rig.render(&scene, base.clone());
+    let nearest = rig.render(&scene, MobileOptions { reflections: true, hq_reflections: false, ..base.clone() });
+    let hq = rig.render(&scene, MobileOptions { reflections: true, hq_reflections: true, ..base });
+    let (a, b) = (psnr(&none, &nearest), psnr(&nearest, &hq));
+    eprintln!("no reflections / nearest capture {a:.1} dB, nearest / HQ blend {b:.1} dB");
+    // Reflections add light to glossy and metal surfaces; blending captures changes them.
+    assert!(light_sum(&nearest) > light_sum(&none));
+    assert!(a < 45.0 && b < 62.0, "reflections changed nothing: {a:.1} / {b:.1} dB");
+}

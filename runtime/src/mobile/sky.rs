@@ -87,7 +87,7 @@ impl Captures {
     pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, scene: &Scene) -> Captures {
         let sun_dir = -scene.sun.direction.normalize();
         let sun_color = if scene.sun.enabled { scene.sun.color * scene.sun.intensity } else { Vec3::ZERO };
-        let positions = [Vec4::new(-4.0, 2.0, -3.0, 7.0), Vec4::new(0.0, 2.0, 2.0, 7.0), Vec4::new(5.0, 2.0, -2.0, 7.0)];
+        let positions = [Vec4::new(-4.0, 2.0, -3.0, 10.0), Vec4::new(0.0, 2.0, 2.0, 10.0), Vec4::new(5.0, 2.0, -2.0, 10.0)];
         let mips = CAPTURE_SIZE.ilog2() + 1;
         let mut textures = Vec::new();
         let mut views = Vec::new();
