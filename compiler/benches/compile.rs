@@ -55,7 +55,8 @@ fn naga_alone(s: &Source, entry_only: bool) -> usize {
     } else {
         naga::valid::Capabilities::MULTISAMPLED_SHADING | naga::valid::Capabilities::CUBE_ARRAY_TEXTURES
     };
-    let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
+    let info =
+        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
     let stage = naga_stage(s.stage);
     let mut bytes = 0;
     for t in &s.targets {
@@ -145,19 +146,54 @@ fn main() {
         wgsl_bytes as f64 / 1024.0
     );
 
+    let mut pre_times = Vec::new();
     let mut naga_times = Vec::new();
+    let mut kc_times = Vec::new();
     let mut naga_entry_times = Vec::new();
     let mut cold_times = Vec::new();
     let mut warm_times = Vec::new();
     let mut nocache_times = Vec::new();
     let mut last = None;
     let (mut naga_cpu, mut cold_cpu) = (Duration::ZERO, Duration::ZERO);
+    let kept_perms: Vec<permute::Permutation<'_>> = config.permutations().filter(|p| p.is_kept()).collect();
     for _ in 0..rounds {
+        // Kiln's preprocessor alone on every kept permutation (what dedup needs).
+        let t = Instant::now();
+        let fresh = SourceCache::new(config.dir.clone());
+        let n: usize = pool.install(|| {
+            kept_perms
+                .par_iter()
+                .map(|p| {
+                    let out =
+                        preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(&config), &fresh)
+                            .expect("preprocesses");
+                    std::hint::black_box(out.token_hash());
+                    out.text.len()
+                })
+                .sum()
+        });
+        std::hint::black_box(n);
+        pre_times.push(t.elapsed());
+
         let t = Instant::now();
         let c0 = cpu_time();
         let out: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone(s, false)).sum());
         naga_cpu += cpu_time() - c0;
         naga_times.push(t.elapsed());
+        std::hint::black_box(out);
+        let t = Instant::now();
+        let out: usize = pool.install(|| {
+            distinct
+                .par_iter()
+                .map(|s| {
+                    let limits =
+                        if s.gles { kiln::compile::Limits::downlevel() } else { kiln::compile::Limits::desktop() };
+                    let o = kiln::compile::Options { targets: s.targets.clone(), limits };
+                    kiln::compile::compile(&s.text, &s.entry, s.stage, &o).unwrap().artifacts.len()
+                })
+                .sum()
+        });
+        kc_times.push(t.elapsed());
         std::hint::black_box(out);
         let t = Instant::now();
         let out: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone(s, true)).sum());
@@ -190,12 +226,19 @@ fn main() {
     let (cold, warm) = last.unwrap();
     let (n, ne, c, w) = (median(naga_times), median(naga_entry_times), median(cold_times), median(warm_times));
     println!("naga alone (parse + validate + every writer): {:>9.1} ms", n.as_secs_f64() * 1e3);
+    let p = median(pre_times);
+    println!("kiln::compile::compile on the same sources:  {:>9.1} ms", median(kc_times).as_secs_f64() * 1e3);
     println!("  the same keeping only the entry point:      {:>9.1} ms", ne.as_secs_f64() * 1e3);
     println!(
         "kiln cold build:                              {:>9.1} ms  (preprocess {:.1} ms, compile {:.1} ms)",
         c.as_secs_f64() * 1e3,
         cold.stats.seconds.preprocess * 1e3,
         cold.stats.seconds.compile * 1e3
+    );
+    println!(
+        "kiln's preprocessor alone, every permutation:  {:>9.1} ms  ({:.0}% of naga alone)",
+        p.as_secs_f64() * 1e3,
+        100.0 * p.as_secs_f64() / n.as_secs_f64()
     );
     println!("kiln build without a cache:                   {:>9.1} ms", median(nocache_times).as_secs_f64() * 1e3);
     println!(

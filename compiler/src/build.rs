@@ -3,12 +3,18 @@
 //! Takes [`Options`] (the `permutations.toml`, where to write, filters, cache, threads);
 //! gives a [`Report`] with the counts of DESIGN.md's `--stats-json`, every file the build
 //! read (for `cargo:rerun-if-changed`), the rendered warnings and failures. `kiln build` and
-//! [`crate::Build`] both call [`run`]. Guarantees: every kept permutation is preprocessed
-//! with one shared [`SourceCache`] (each file read once), permutations whose cache keys are
-//! equal compile once, distinct keys compile in parallel, the cache serves keys it holds; a
-//! failing permutation never stops the others, and every failure is reported with its
-//! mapped location and permutation name; the archive is written atomically, and only when
-//! nothing failed.
+//! [`crate::Build`] both call [`run`]. Guarantees: every kept permutation gets its cache key
+//! from the preprocessor's token hash, with one shared [`SourceCache`] (each file read
+//! once); permutations whose keys are equal compile once, distinct keys compile in
+//! parallel, and the cache serves keys it holds; a failing permutation never stops the
+//! others, and every failure is reported with its mapped location and permutation name;
+//! the archive is written atomically, and only when nothing failed.
+//!
+//! Work is skipped where the result is known: a permutation whose preprocessing record
+//! (in the cache) lists files whose contents have not changed is not preprocessed; a
+//! permutation that agrees with an already preprocessed one of its shader and level on
+//! every define the latter's files name reuses its result; and an archive that is, byte
+//! for byte, the output of a build with the same keys is not written again.
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::IsTerminal;
@@ -171,6 +177,7 @@ impl Error {
 }
 
 /// One kept permutation after preprocessing (or after its preprocessing record matched).
+#[derive(Clone)]
 struct Pre {
     key: Key,
     text_hash: blake3::Hash,
@@ -187,6 +194,97 @@ struct Representative {
     output: preprocess::Output,
 }
 
+/// The identifiers of each file read this build, and whether it pastes tokens (`##`).
+#[derive(Default)]
+struct FileIdentifiers {
+    map: Mutex<HashMap<FileId, std::sync::Arc<(std::collections::HashSet<String>, bool)>>>,
+}
+
+impl FileIdentifiers {
+    fn get(&self, id: FileId, sources: &SourceCache) -> std::sync::Arc<(std::collections::HashSet<String>, bool)> {
+        use codespan_reporting::files::Files;
+        if let Some(v) = self.map.lock().expect("no panics while locked").get(&id) {
+            return v.clone();
+        }
+        let text = sources.source(id).map(|t| t.as_ref().to_string()).unwrap_or_default();
+        let mut names = std::collections::HashSet::new();
+        let mut pastes = false;
+        for tok in preprocess::tokens(&text) {
+            if tok.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_') {
+                names.insert(tok.to_string());
+            } else if tok == "##" || tok == "%:%:" {
+                pastes = true;
+            }
+        }
+        let v = std::sync::Arc::new((names, pastes));
+        self.map.lock().expect("no panics while locked").insert(id, v.clone());
+        v
+    }
+}
+
+/// Results reused between permutations of one shader at one level. The preprocessor's
+/// output depends only on the texts of the files it reads and on the values of the macros
+/// those texts name; a permutation that agrees with an earlier one on every define named
+/// in the earlier one's files reads the same files, takes the same branches and gives the
+/// same output. (Files that paste tokens with `##` can make names that appear nowhere, so
+/// their permutations are never reused.)
+#[derive(Default)]
+struct Reuse {
+    /// (shader, level) → [(define names that mattered, values of those names → result)].
+    groups: Mutex<HashMap<(String, String), Vec<(Vec<String>, HashMap<Vec<i64>, (Pre, Option<cache::Record>)>)>>>,
+}
+
+fn define_values(p: &Permutation<'_>) -> HashMap<String, i64> {
+    p.defines().into_iter().map(|d| (d.name, d.value)).collect()
+}
+
+impl Reuse {
+    fn find(&self, p: &Permutation<'_>, values: &HashMap<String, i64>) -> Option<(Pre, Option<cache::Record>)> {
+        let groups = self.groups.lock().expect("no panics while locked");
+        let sets = groups.get(&(p.shader.name.clone(), p.level.name.clone()))?;
+        for (names, results) in sets {
+            let signature: Option<Vec<i64>> = names.iter().map(|n| values.get(n).copied()).collect();
+            if let Some(hit) = signature.and_then(|sig| results.get(&sig)) {
+                return Some(hit.clone());
+            }
+        }
+        None
+    }
+
+    fn insert(
+        &self,
+        p: &Permutation<'_>,
+        values: &HashMap<String, i64>,
+        output: &preprocess::Output,
+        pre: &Pre,
+        record: Option<cache::Record>,
+        identifiers: &FileIdentifiers,
+        sources: &SourceCache,
+    ) {
+        let mut used = std::collections::HashSet::new();
+        for &f in &output.files {
+            let ids = identifiers.get(f, sources);
+            if ids.1 {
+                return;
+            }
+            used.extend(values.keys().filter(|n| ids.0.contains(*n)).cloned());
+        }
+        let mut names: Vec<String> = used.into_iter().collect();
+        names.sort();
+        let signature: Vec<i64> = names.iter().map(|n| values[n]).collect();
+        let mut groups = self.groups.lock().expect("no panics while locked");
+        let sets = groups.entry((p.shader.name.clone(), p.level.name.clone())).or_default();
+        let i = match sets.iter().position(|(n, _)| *n == names) {
+            Some(i) => i,
+            None => {
+                sets.push((names, HashMap::new()));
+                sets.len() - 1
+            }
+        };
+        sets[i].1.entry(signature).or_insert_with(|| (pre.clone(), record));
+    }
+}
+
 /// blake3 of files' texts, each read once per build (for checking preprocessing records).
 #[derive(Default)]
 struct FileHashes {
@@ -198,7 +296,8 @@ impl FileHashes {
     fn get(&self, path: &Path) -> Option<String> {
         self.get_or_insert_with(path, || {
             std::fs::read(path).ok().map(|bytes| {
-                let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+                let text =
+                    String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
                 blake3::hash(text.as_bytes()).to_hex().to_string()
             })
         })
@@ -284,36 +383,62 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         _ => cache::Records::default(),
     };
     let new_records: Mutex<cache::Records> = Mutex::new(cache::Records::new());
-    let pre: Vec<Result<Pre, Diagnostic<FileId>>> = kept
-        .par_iter()
-        .enumerate()
-        .map(|(index, p)| {
-            let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
-            if let Some(dk) = &direct {
-                if let Some(record) = old_records.get(dk) {
-                    if let Some(pre) = from_record(record, &hashes) {
-                        new_records.lock().expect("no panics while locked").insert(dk.clone(), record.clone());
-                        progress.inc();
-                        return Ok(pre);
-                    }
+    let reuse = Reuse::default();
+    let identifiers = FileIdentifiers::default();
+    let one = |index: usize, p: &Permutation<'_>| -> Result<Pre, Diagnostic<FileId>> {
+        let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
+        if let Some(dk) = &direct {
+            if let Some(record) = old_records.get(dk) {
+                if let Some(pre) = from_record(record, &hashes) {
+                    new_records.lock().expect("no panics while locked").insert(dk.clone(), record.clone());
+                    progress.inc();
+                    return Ok(pre);
                 }
             }
-            preprocessed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let result = preprocess_one(config, p, &options.targets, &sources);
-            progress.inc();
-            let (pre, output) = result?;
-            if let Some(dk) = direct {
-                let record = to_record(&pre, &output, &sources, &text_hashes);
-                new_records.lock().expect("no panics while locked").insert(dk, record);
+        }
+        let values = define_values(p);
+        if p.error.is_none() {
+            if let Some((pre, record)) = reuse.find(p, &values) {
+                if let (Some(dk), Some(record)) = (direct, record) {
+                    new_records.lock().expect("no panics while locked").insert(dk, record);
+                }
+                progress.inc();
+                return Ok(pre);
             }
-            let mut reps = reps.lock().expect("no panics while locked");
-            let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
-            if replace {
-                reps.insert(pre.key, Representative { index, output });
-            }
-            Ok(pre)
-        })
-        .collect();
+        }
+        preprocessed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let result = preprocess_one(config, p, &options.targets, &sources);
+        progress.inc();
+        let (pre, output) = result?;
+        let record = direct.as_ref().map(|_| to_record(&pre, &output, &sources, &text_hashes));
+        if let (Some(dk), Some(record)) = (direct, &record) {
+            new_records.lock().expect("no panics while locked").insert(dk, record.clone());
+        }
+        reuse.insert(p, &values, &output, &pre, record, &identifiers, &sources);
+        let mut reps = reps.lock().expect("no panics while locked");
+        let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
+        if replace {
+            reps.insert(pre.key, Representative { index, output });
+        }
+        Ok(pre)
+    };
+    // The first permutation of each (shader, level) first, so that the others find what
+    // they may reuse; then all the others.
+    let mut first_of_group = vec![false; kept.len()];
+    let mut seen_groups = std::collections::HashSet::new();
+    for (i, p) in kept.iter().enumerate() {
+        first_of_group[i] = seen_groups.insert((p.shader.name.as_str(), p.level.name.as_str()));
+    }
+    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
+        kept.par_iter().enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
+    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
+        kept.par_iter().enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
+    let mut pre: Vec<Option<Result<Pre, Diagnostic<FileId>>>> = (0..kept.len()).map(|_| None).collect();
+    for (i, r) in firsts.into_iter().chain(rest) {
+        pre[i] = Some(r);
+    }
+    let pre: Vec<Result<Pre, Diagnostic<FileId>>> =
+        pre.into_iter().map(|r| r.expect("every permutation was preprocessed")).collect();
     let reps = reps.into_inner().expect("no panics while locked");
     report.stats.preprocessed = preprocessed.into_inner();
     if let (Some(c), Some(k)) = (cache, &records_key) {
@@ -424,10 +549,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                 };
                 return Got::Failed(e, warning);
             };
-            let opts = compile::Options {
-                targets: level_targets(p.level, &options.targets),
-                limits: level_limits(p.level),
-            };
+            let opts =
+                compile::Options { targets: level_targets(p.level, &options.targets), limits: level_limits(p.level) };
             let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
                 Ok(c) => Got::Compiled(c, warning),
                 Err(e) => Got::Failed(e, warning),
@@ -468,7 +591,8 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
                     };
                     if e.kind == compile::ErrorKind::EntryPoint {
                         let s = kept[m].shader;
-                        let file = config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+                        let file =
+                            config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
                         diagnostic.notes.push(format!(
                             "shader `{}` of {file} names entry point `{}` ({}) in {}",
                             s.name,
@@ -492,11 +616,16 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        fresh
-            .par_iter()
-            .filter_map(|k| c.put(k, &compiled[k]).err())
-            .map(|e| format!("warning: cannot store a cache entry: {e}"))
-            .collect()
+        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
+        match errors.first() {
+            None => Vec::new(),
+            Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
+            Some(e) => vec![format!(
+                "warning: cannot store {} cache entries: {e} (and {} more)",
+                errors.len(),
+                errors.len() - 1
+            )],
+        }
     };
     if report.stats.failed > 0 {
         let warnings = store();
@@ -562,13 +691,7 @@ fn write_outputs(
             }
         }
         report.stats.permutation_artifacts += artifacts.len();
-        writer.add_permutation(PermutationRecord {
-            name,
-            shader,
-            values: p.values.clone(),
-            reflection,
-            artifacts,
-        });
+        writer.add_permutation(PermutationRecord { name, shader, values: p.values.clone(), reflection, artifacts });
     }
     report.stats.artifacts = writer.blob_count();
     if let Some(dir) = &options.emit_dir {
@@ -592,7 +715,8 @@ fn write_stats(options: &Options, report: &mut Report, start: Instant) -> Result
     report.stats.seconds.total = start.elapsed().as_secs_f64();
     if let Some(path) = &options.stats_json {
         let json = serde_json::to_vec_pretty(&report.stats).expect("stats serialize");
-        archive::write_atomic_unsynced(path, &json).map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        archive::write_atomic_unsynced(path, &json)
+            .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
     Ok(())
 }
@@ -637,7 +761,8 @@ fn build_fingerprint(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<Fil
     h.update(compile::NAGA_VERSION.as_bytes());
     for (p, r) in kept.iter().zip(pre) {
         let Ok(r) = r else { continue };
-        let dims: Vec<(&str, &[String])> = p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+        let dims: Vec<(&str, &[String])> =
+            p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
         let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
         h.update(line.as_bytes());
         h.update(&r.key.0);
@@ -801,7 +926,12 @@ fn render_failures(
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {
             let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
-            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), p.level.name, names.join("\n"))
+            format!(
+                "in {} permutations (level `{}`, {limits} limits):\n{}",
+                names.len(),
+                p.level.name,
+                names.join("\n")
+            )
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));
@@ -908,9 +1038,9 @@ impl Progress {
     }
     fn stage(&self, name: &'static str, len: usize) {
         if let Some(b) = &self.bar {
-            b.set_prefix(name);
             b.set_length(len as u64);
             b.set_position(0);
+            b.set_prefix(name);
         }
     }
     fn inc(&self) {

@@ -228,3 +228,26 @@ fn cache_dir_for(out_dir: &Path, config: &Path) -> PathBuf {
     }
     build::default_cache_dir(config.parent().unwrap_or(Path::new(".")))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cache_lives_in_cargos_target_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let target = tmp.path().join("target");
+        let out_dir = target.join("debug/build/kiln-runtime-0123abcd/out");
+        std::fs::create_dir_all(&out_dir).unwrap();
+        let config = tmp.path().join("permutations.toml");
+        let expected = |fallback: PathBuf| match std::env::var_os("KILN_CACHE_DIR").filter(|d| !d.is_empty()) {
+            Some(d) => PathBuf::from(d),
+            None => fallback,
+        };
+        // Without cargo's tag: the folder above `build/`.
+        assert_eq!(cache_dir_for(&out_dir, &config), expected(target.join("debug/kiln-cache")));
+        // With it: the target folder itself, shared by every profile.
+        std::fs::write(target.join("CACHEDIR.TAG"), "Signature: 8a477f597d28d172789f06886806bc55").unwrap();
+        assert_eq!(cache_dir_for(&out_dir, &config), expected(target.join("kiln-cache")));
+    }
+}

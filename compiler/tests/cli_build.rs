@@ -45,12 +45,16 @@ fn stdout(o: &Output) -> String {
 fn build_writes_archive_stats_and_emit_dir_then_hits_the_cache() {
     let fx = fixture();
     let d = fx.path();
-    let o = kiln(d, &["build", "--config", "compute.toml", "--emit-dir", "emit", "--stats-json", "stats.json", "-j", "2"]);
+    let o =
+        kiln(d, &["build", "--config", "compute.toml", "--emit-dir", "emit", "--stats-json", "stats.json", "-j", "2"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(d.join("shaders.kpak").is_file());
     assert!(d.join("emit/index.json").is_file());
     let err = stderr(&o);
-    assert!(err.contains("kiln: 4 permutations (0 skipped), 4 distinct, 4 compiled, 0 cache hits, 0 failed in "), "{err}");
+    assert!(
+        err.contains("kiln: 4 permutations (0 skipped), 4 distinct, 4 compiled, 0 cache hits, 0 failed in "),
+        "{err}"
+    );
     // No cargo workspace around the temporary folder: the cache sits next to the config.
     assert!(d.join(".kiln-cache").is_dir());
 
@@ -82,7 +86,8 @@ fn exit_codes() {
     // A shader failure: 1, every failure reported, no archive.
     let usf = d.join("histogram.usf");
     let text = std::fs::read_to_string(&usf).unwrap();
-    std::fs::write(&usf, text.replace("atomicAdd(&local_bins[bin], 1u);", "atomicAdd(&local_bins[bin], 1.0);")).unwrap();
+    std::fs::write(&usf, text.replace("atomicAdd(&local_bins[bin], 1u);", "atomicAdd(&local_bins[bin], 1.0);"))
+        .unwrap();
     let o = kiln(d, &["build", "--config", "compute.toml", "--cache-dir", "c"]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     let err = stderr(&o);
@@ -139,4 +144,47 @@ fn cache_stats_gc_clear() {
     assert_eq!(stdout(&o), format!("removed 4 entries from {c}\n"));
     let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
     assert!(stdout(&o).contains("entries: 0\n"));
+}
+
+#[test]
+fn two_processes_at_once_on_one_cache() {
+    let fx = fixture();
+    let d = fx.path();
+    let spawn = |out: &str, stats: &str| {
+        Command::new(env!("CARGO_BIN_EXE_kiln"))
+            .args([
+                "build",
+                "--config",
+                "lit.toml",
+                "--cache-dir",
+                "shared",
+                "-o",
+                out,
+                "--stats-json",
+                stats,
+                "-j",
+                "2",
+            ])
+            .current_dir(d)
+            .env("CI", "1")
+            .spawn()
+            .unwrap()
+    };
+    let (mut a, mut b) = (spawn("a.kpak", "a.json"), spawn("b.kpak", "b.json"));
+    assert!(a.wait().unwrap().success());
+    assert!(b.wait().unwrap().success());
+    assert_eq!(std::fs::read(d.join("a.kpak")).unwrap(), std::fs::read(d.join("b.kpak")).unwrap());
+    for stats in ["a.json", "b.json"] {
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join(stats)).unwrap()).unwrap();
+        assert_eq!(v["compiled"].as_u64().unwrap() + v["cache_hits"].as_u64().unwrap(), 24);
+    }
+    // The cache holds exactly the 24 entries, none damaged: a third build compiles nothing.
+    let o =
+        kiln(d, &["build", "--config", "lit.toml", "--cache-dir", "shared", "-o", "c.kpak", "--stats-json", "c.json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("corrupted"), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("c.json")).unwrap()).unwrap();
+    assert_eq!((v["compiled"].as_u64(), v["cache_hits"].as_u64()), (Some(0), Some(24)));
+    let o = kiln(d, &["cache", "--cache-dir", "shared", "stats"]);
+    assert!(stdout(&o).contains("entries: 24\n"), "{}", stdout(&o));
 }

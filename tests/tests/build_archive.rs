@@ -40,12 +40,8 @@ fn round_trip_through_archive_and_emit_dir() {
         }
         // Names are canonical: the runtime builds them from dimension values.
         let shader = p.shader();
-        let values: Vec<(String, String)> = shader
-            .dimensions
-            .iter()
-            .zip(p.values())
-            .map(|(d, v)| (d.name.clone(), v.to_string()))
-            .collect();
+        let values: Vec<(String, String)> =
+            shader.dimensions.iter().zip(p.values()).map(|(d, v)| (d.name.clone(), v.to_string())).collect();
         let pairs: Vec<(&str, &str)> = values.iter().map(|(a, b)| (a.as_str(), b.as_str())).collect();
         assert_eq!(archive.canonical_name(&shader.name, &shader.level, &pairs).unwrap(), p.name());
     }
@@ -68,7 +64,9 @@ fn damaged_archives_are_clear_errors() {
     let open = |b: Vec<u8>| Archive::from_vec(b).err().expect("damaged archive accepted");
 
     match open(bytes[..bytes.len() - 1].to_vec()) {
-        ArchiveError::Truncated { expected, actual } => assert_eq!((expected, actual), (bytes.len() as u64, bytes.len() as u64 - 1)),
+        ArchiveError::Truncated { expected, actual } => {
+            assert_eq!((expected, actual), (bytes.len() as u64, bytes.len() as u64 - 1))
+        }
         e => panic!("{e}"),
     }
     let mut flipped = bytes.clone();

@@ -68,8 +68,9 @@ fn one_error_in_many_permutations_is_reported_once_naming_them_all() {
     assert_eq!(report.failures.len(), 2, "one diagnostic per level:\n{text}");
     let es = &report.failures[1];
     assert!(es.contains("┌─ include/fog.ush:"), "{es}");
-    assert!(es.ends_with(
-        "   = in 7 permutations (level `es3_1`, downlevel limits):
+    assert!(
+        es.ends_with(
+            "   = in 7 permutations (level `es3_1`, downlevel limits):
        LitVS@es3_1{USE_FOG=1,DEBUG_VIEW=0}
        LitVS@es3_1{USE_FOG=1,DEBUG_VIEW=1}
        LitPS@es3_1{USE_FOG=1,BLEND=OPAQUE,NUM_LIGHTS=0}
@@ -79,7 +80,9 @@ fn one_error_in_many_permutations_is_reported_once_naming_them_all() {
        LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=2}
 
 "
-    ), "{es}");
+        ),
+        "{es}"
+    );
 }
 
 #[test]
@@ -165,6 +168,36 @@ fn missing_entry_point_names_the_shader_and_its_source() {
 
 "
         ),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn members_of_one_key_are_each_reported_at_their_own_lines() {
+    // Two permutations with the same tokens and different spacing share one compile; the
+    // error is still shown where each one's text is.
+    let fx = tempfile::tempdir().unwrap();
+    std::fs::write(
+        fx.path().join("k.toml"),
+        "[compiler]\ninclude = [\".\"]\n[levels.sm5]\ntargets = [\"wgsl\"]\n[[shader]]\nname = \"S\"\nsource = \"s.usf\"\nentry = \"main\"\nstage = \"compute\"\ndimensions = { MODE = \"bool\" }\n",
+    )
+    .unwrap();
+    std::fs::write(
+        fx.path().join("s.usf"),
+        "#if MODE == 0\nfn f() -> f32 { return 1u; }\n#else\n\n\nfn   f() -> f32 {\n    return 1u;\n}\n#endif\n@compute @workgroup_size(1) fn main() { _ = f(); }\n",
+    )
+    .unwrap();
+    match build::run(&options(&fx.path().join("k.toml"), &fx.path().join("a.kpak"), None)) {
+        Err(build::Error::Failed(r)) => {
+            assert_eq!((r.stats.unique_sources, r.stats.compiled, r.stats.failed), (1, 1, 2));
+            assert_eq!(r.failures.len(), 2, "{:?}", r.failures);
+            assert!(r.failures[0].contains("┌─ s.usf:2:1\n"), "{}", r.failures[0]);
+            assert!(r.failures[0].contains("2 │ fn f() -> f32 { return 1u; }\n"), "{}", r.failures[0]);
+            assert!(r.failures[0].contains("in permutation S@sm5{MODE=0}"), "{}", r.failures[0]);
+            assert!(r.failures[1].contains("┌─ s.usf:6:1\n"), "{}", r.failures[1]);
+            assert!(r.failures[1].contains("7 │ │     return 1u;\n  │ │            -- "), "{}", r.failures[1]);
+            assert!(r.failures[1].contains("in permutation S@sm5{MODE=1}"), "{}", r.failures[1]);
+        }
         other => panic!("{other:?}"),
     }
 }

@@ -17,14 +17,21 @@ fn counts_and_dead_dimensions() {
     assert_eq!(r.stats.failed, 0);
     let dead: Vec<(String, String, String)> =
         r.dead_dimensions.iter().map(|d| (d.shader.clone(), d.level.clone(), d.dimension.clone())).collect();
-    assert_eq!(dead, vec![
-        ("LitVS".to_string(), "sm5".to_string(), "DEBUG_VIEW".to_string()),
-        ("LitVS".to_string(), "es3_1".to_string(), "DEBUG_VIEW".to_string()),
-    ]);
+    assert_eq!(
+        dead,
+        vec![
+            ("LitVS".to_string(), "sm5".to_string(), "DEBUG_VIEW".to_string()),
+            ("LitVS".to_string(), "es3_1".to_string(), "DEBUG_VIEW".to_string()),
+        ]
+    );
     assert!(r.warnings.contains(&"warning: dimension `DEBUG_VIEW` of `LitVS` never changes the shader's text at level `sm5`: its 2 values multiply the permutations for nothing".to_string()), "{:?}", r.warnings);
-    assert_eq!(r.summary().split(" in ").next().unwrap(), "28 permutations (4 skipped), 24 distinct, 24 compiled, 0 cache hits, 0 failed");
+    assert_eq!(
+        r.summary().split(" in ").next().unwrap(),
+        "28 permutations (4 skipped), 24 distinct, 24 compiled, 0 cache hits, 0 failed"
+    );
     // Files read: the config and every source and header.
-    let names: Vec<String> = r.files_read.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    let names: Vec<String> =
+        r.files_read.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
     assert_eq!(names, vec!["common.ush", "fog.ush", "lit.toml", "lit.usf"]);
 }
 
@@ -110,4 +117,56 @@ fn a_failure_does_not_stop_the_others() {
         }
         other => panic!("{other:?}"),
     }
+}
+
+/// Builds a one-shader set written into a temporary folder, on one thread.
+fn build_files(files: &[(&str, &str)], dims: &str) -> build::Report {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, text) in files {
+        std::fs::write(dir.path().join(name), text).unwrap();
+    }
+    std::fs::write(
+        dir.path().join("set.toml"),
+        format!(
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\ntargets = [\"wgsl\"]\n[[shader]]\nname = \"S\"\nsource = \"main.usf\"\nentry = \"main\"\nstage = \"compute\"\ndimensions = {{ {dims} }}\n"
+        ),
+    )
+    .unwrap();
+    let mut opts = options(&dir.path().join("set.toml"), &dir.path().join("a.kpak"), None);
+    opts.jobs = Some(1);
+    build_ok(&opts)
+}
+
+#[test]
+fn permutations_differing_only_in_defines_their_files_never_name_are_preprocessed_once() {
+    // lit.toml: LitVS's DEBUG_VIEW is named nowhere, so half of LitVS is not preprocessed.
+    let fx = fixture();
+    let mut opts = options(&fx.path().join("lit.toml"), &fx.path().join("a.kpak"), None);
+    opts.jobs = Some(1);
+    let r = build_ok(&opts);
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (28, 24, 24));
+
+    // B is named only in a header that A=1 includes: with A=0 it cannot matter.
+    let r = build_files(
+        &[
+            ("main.usf", "#if A\n#include \"b.ush\"\n#endif\n@compute @workgroup_size(1) fn main() {}\n"),
+            ("b.ush", "#if B\nconst X: u32 = 1u;\n#else\nconst X: u32 = 2u;\n#endif\n"),
+        ],
+        "A = \"bool\", B = \"bool\"",
+    );
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (4, 3, 3));
+}
+
+#[test]
+fn token_pasting_turns_reuse_off() {
+    // MODE is named only through `##`: every permutation is preprocessed, and both differ.
+    let r = build_files(
+        &[(
+            "main.usf",
+            "#define CAT(a, b) a##b\n#if CAT(MO, DE)\nconst X: u32 = 1u;\n#else\nconst X: u32 = 2u;\n#endif\n@compute @workgroup_size(1) fn main() {}\n",
+        )],
+        "MODE = \"bool\"",
+    );
+    assert_eq!((r.stats.permutations, r.stats.unique_sources, r.stats.preprocessed), (2, 2, 2));
+    assert!(r.dead_dimensions.is_empty());
 }

@@ -51,7 +51,14 @@ fn failures_are_rendered_for_cargo() {
     assert_eq!(err.code, 1);
     assert!(err.message.starts_with("error: #error no\n  ┌─ histogram.usf:5:1\n"), "{}", err.message);
     assert!(err.message.contains("= in 2 permutations (level `sm5`, default limits):"), "{}", err.message);
-    assert!(err.message.ends_with(&format!("error: 4 of 4 shader permutations failed ({})", fx.path().join("compute.toml").display())), "{}", err.message);
+    assert!(
+        err.message.ends_with(&format!(
+            "error: 4 of 4 shader permutations failed ({})",
+            fx.path().join("compute.toml").display()
+        )),
+        "{}",
+        err.message
+    );
     // Cargo must rerun the script when the broken file is fixed.
     let text = String::from_utf8(lines).unwrap();
     assert!(text.contains(&format!("cargo:rerun-if-changed={}\n", usf.canonicalize().unwrap().display())), "{text}");

@@ -69,8 +69,11 @@ impl Snapshots {
 #[test]
 fn snapshots_match_and_every_artifact_validates() {
     let out_root = Path::new(env!("CARGO_MANIFEST_DIR")).join("out");
-    let mut snapshots =
-        Snapshots { bless: std::env::var_os("KILN_BLESS").is_some(), expected: BTreeMap::new(), mismatches: Vec::new() };
+    let mut snapshots = Snapshots {
+        bless: std::env::var_os("KILN_BLESS").is_some(),
+        expected: BTreeMap::new(),
+        mismatches: Vec::new(),
+    };
     let mut sets: Vec<PathBuf> = std::fs::read_dir(inputs())
         .unwrap()
         .map(|e| e.unwrap().path())
@@ -102,7 +105,8 @@ fn snapshots_match_and_every_artifact_validates() {
             let base = file_name(p.name());
             for t in p.targets() {
                 let ext = t.extension(p.shader().stage);
-                snapshots.check(out_root.join(t.name()).join(&set).join(format!("{base}.{ext}")), p.artifact(t).unwrap());
+                snapshots
+                    .check(out_root.join(t.name()).join(&set).join(format!("{base}.{ext}")), p.artifact(t).unwrap());
             }
             let mut json = serde_json::to_string_pretty(p.reflection()).unwrap();
             json.push('\n');

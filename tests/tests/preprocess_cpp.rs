@@ -62,7 +62,9 @@ fn run_kiln(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> 
     } else {
         preprocess::preprocess_file(&abs, &opts, &cache)
     };
-    result.map(|o| o.text).map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
+    result
+        .map(|o| o.text)
+        .map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
 }
 
 fn args_of(text: &str) -> Vec<String> {
@@ -82,7 +84,11 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             if ta == tb {
                 return None;
             }
-            let i = ta.iter().zip(&tb).position(|(x, y)| x != y).unwrap_or(ta.len().min(tb.len()));
+            let i = ta
+                .iter()
+                .zip(&tb)
+                .position(|(x, y)| x != y)
+                .unwrap_or(ta.len().min(tb.len()));
             let ctx = |t: &[&str]| t[i.saturating_sub(6)..(i + 6).min(t.len())].join(" ");
             Some(format!(
                 "{}: token {i} differs\n   cpp: {}\n  kiln: {}\n--- cpp output\n{a}\n--- kiln output\n{b}",
@@ -92,8 +98,14 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             ))
         }
         (Err(_), Err(_)) => None,
-        (Ok(_), Err(e)) => Some(format!("{}: cpp succeeds, kiln fails:\n{e}", file.display())),
-        (Err(e), Ok(_)) => Some(format!("{}: cpp fails, kiln succeeds; cpp says:\n{e}", file.display())),
+        (Ok(_), Err(e)) => Some(format!(
+            "{}: cpp succeeds, kiln fails:\n{e}",
+            file.display()
+        )),
+        (Err(e), Ok(_)) => Some(format!(
+            "{}: cpp fails, kiln succeeds; cpp says:\n{e}",
+            file.display()
+        )),
     }
 }
 
@@ -116,14 +128,23 @@ fn corpus_matches_cpp() {
         let args = args_of(&text);
         // Every corpus case is valid C preprocessor input.
         if let Err(e) = run_cpp(&cwd, rel, &args) {
-            failures.push(format!("{}: cpp rejects a corpus case:\n{e}", rel.display()));
+            failures.push(format!(
+                "{}: cpp rejects a corpus case:\n{e}",
+                rel.display()
+            ));
             continue;
         }
         if let Some(f) = compare(&cwd, rel, &args) {
             failures.push(f);
         }
     }
-    assert!(failures.is_empty(), "{} of {} cases differ from cpp:\n\n{}", failures.len(), files.len(), failures.join("\n\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {} cases differ from cpp:\n\n{}",
+        failures.len(),
+        files.len(),
+        failures.join("\n\n")
+    );
 }
 
 /// A small deterministic generator (xorshift64*).
@@ -222,7 +243,9 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
             if r.chance(85) {
                 out.push('(');
                 let args = match sigs.get(f) {
-                    Some(&(n, variadic)) if r.chance(90) => n + if variadic { r.below(3) } else { 0 },
+                    Some(&(n, variadic)) if r.chance(90) => {
+                        n + if variadic { r.below(3) } else { 0 }
+                    }
                     _ => r.below(4),
                 };
                 for a in 0..args {
@@ -248,6 +271,52 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
     }
 }
 
+/// A random `#if` expression over constants, macros and operators.
+fn gen_expr(r: &mut Rng, out: &mut String, depth: usize) {
+    let roll = r.below(100);
+    if depth > 3 || roll < 35 {
+        let term = r.pick(&[
+            "0",
+            "1",
+            "2",
+            "7",
+            "0x10",
+            "10u",
+            "3000000000",
+            "9223372036854775807",
+            "'a'",
+            "A",
+            "B",
+            "Z",
+        ]);
+        out.push_str(term);
+    } else if roll < 45 {
+        out.push_str(&format!("defined({})", r.pick(&["A", "F", "Z"])));
+    } else if roll < 55 {
+        out.push_str(r.pick(&["!", "~", "-", "+"]));
+        out.push(' ');
+        gen_expr(r, out, depth + 1);
+    } else if roll < 65 {
+        out.push('(');
+        gen_expr(r, out, depth + 1);
+        out.push_str(" ? ");
+        gen_expr(r, out, depth + 1);
+        out.push_str(" : ");
+        gen_expr(r, out, depth + 1);
+        out.push(')');
+    } else {
+        out.push('(');
+        gen_expr(r, out, depth + 1);
+        let ops = [
+            "+", "-", "*", "/", "%", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^",
+            "&&", "||",
+        ];
+        out.push_str(&format!(" {} ", r.pick(&ops)));
+        gen_expr(r, out, depth + 1);
+        out.push(')');
+    }
+}
+
 fn gen_program(r: &mut Rng) -> String {
     // Stringizing after expansion shows spacing, which the token comparison then checks.
     let mut out = String::from("#define STR(x) #x\n#define XSTR(x) STR(x)\n");
@@ -258,6 +327,11 @@ fn gen_program(r: &mut Rng) -> String {
         } else {
             gen_use(r, &mut out, 0, &sigs);
             out.push('\n');
+            if r.chance(30) {
+                let mut e = String::new();
+                gen_expr(r, &mut e, 0);
+                out.push_str(&format!("#if {e}\nyes\n#else\nno\n#endif\n"));
+            }
             if r.chance(20) {
                 let f = r.pick(&FUN);
                 sigs.remove(f);
@@ -277,8 +351,14 @@ fn random_macro_programs_match_cpp() {
     require_cpp();
     let dir = tempfile::tempdir().expect("temp dir");
     // `KILN_RANDOM_PROGRAMS=N` and `KILN_RANDOM_SEED=S` run a longer or different search.
-    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS").ok().and_then(|v| v.parse().ok()).unwrap_or(400);
-    let seed: u64 = std::env::var("KILN_RANDOM_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0x5eed_1234_abcd_0001);
+    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(400);
+    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0x5eed_1234_abcd_0001);
     let mut r = Rng(seed | 1);
     let mut failures = Vec::new();
     let (mut ok, mut both_fail) = (0, 0);
@@ -293,7 +373,109 @@ fn random_macro_programs_match_cpp() {
             Some(f) => failures.push(format!("program {i}:\n{program}\n{f}")),
         }
     }
-    assert!(failures.is_empty(), "{} random programs differ from cpp:\n\n{}", failures.len(), failures.iter().take(5).cloned().collect::<Vec<_>>().join("\n\n"));
+    assert!(
+        failures.is_empty(),
+        "{} random programs differ from cpp:\n\n{}",
+        failures.len(),
+        failures
+            .iter()
+            .take(5)
+            .cloned()
+            .collect::<Vec<_>>()
+            .join("\n\n")
+    );
     // The generator must mostly make valid programs, or the test proves little.
-    assert!(ok * 2 >= count, "only {ok} of {count} programs valid ({both_fail} rejected by both)");
+    assert!(
+        ok * 2 >= count,
+        "only {ok} of {count} programs valid ({both_fail} rejected by both)"
+    );
+}
+
+/// A random valid `#if` expression: constants, `defined`, every operator (divisors are
+/// never zero), signed and unsigned operands.
+fn gen_const_expr(r: &mut Rng, out: &mut String, depth: usize) {
+    let roll = r.below(100);
+    if depth > 4 || roll < 30 {
+        let consts = [
+            "0",
+            "1",
+            "2",
+            "7",
+            "63",
+            "64",
+            "0x10",
+            "10u",
+            "0u",
+            "3000000000",
+            "9223372036854775807",
+            "0xffffffffffffffff",
+            "'a'",
+            "'\\377'",
+            "N",
+            "UNDEFINED",
+        ];
+        out.push_str(r.pick(&consts));
+    } else if roll < 38 {
+        out.push_str(&format!("defined({})", r.pick(&["N", "UNDEFINED"])));
+    } else if roll < 50 {
+        out.push_str(r.pick(&["!", "~", "-", "+"]));
+        out.push(' ');
+        gen_const_expr(r, out, depth + 1);
+    } else if roll < 60 {
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(" ? ");
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(" : ");
+        gen_const_expr(r, out, depth + 1);
+        out.push(')');
+    } else if roll < 66 {
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(&format!(" {} ", r.pick(&["/", "%"])));
+        out.push_str(r.pick(&["1", "2", "7", "3u", "-3", "N"]));
+        out.push(')');
+    } else {
+        let ops = [
+            "+", "-", "*", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^", "&&", "||",
+        ];
+        out.push('(');
+        gen_const_expr(r, out, depth + 1);
+        out.push_str(&format!(" {} ", r.pick(&ops)));
+        gen_const_expr(r, out, depth + 1);
+        out.push(')');
+    }
+}
+
+#[test]
+fn random_if_expressions_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0x1f1f_2e2e_3d3d_4c4b);
+    let files: usize = std::env::var("KILN_RANDOM_PROGRAMS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .map_or(4, |n: usize| n / 100);
+    let mut r = Rng(seed | 1);
+    let mut failures = Vec::new();
+    for file in 0..files {
+        let mut program = String::from("#define N 5\n");
+        for i in 0..250 {
+            let mut e = String::new();
+            gen_const_expr(&mut r, &mut e, 0);
+            program.push_str(&format!("#if {e}\nt{i}\n#else\nf{i}\n#endif\n"));
+        }
+        let name = PathBuf::from(format!("expr{file}.usf"));
+        std::fs::write(dir.path().join(&name), &program).expect("write");
+        if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+            panic!("cpp must accept every generated expression:\n{e}");
+        }
+        if let Some(f) = compare(dir.path(), &name, &[]) {
+            failures.push(f);
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }

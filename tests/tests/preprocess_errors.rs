@@ -16,7 +16,10 @@ fn run(files: &[(&str, &str)], opts: Options) -> (Result<String, String>, String
             let warnings = preprocess::render(&out.warnings, &cache, false);
             (Ok(out.text), warnings)
         }
-        Err(e) => (Err(preprocess::render(&[e.diagnostic], &cache, false)), String::new()),
+        Err(e) => (
+            Err(preprocess::render(&[e.diagnostic], &cache, false)),
+            String::new(),
+        ),
     }
 }
 
@@ -38,13 +41,20 @@ fn error_of(files: &[(&str, &str)]) -> String {
 #[track_caller]
 fn assert_error(files: &[(&str, &str)], expected: &str) {
     let got = error_of(files);
-    assert_eq!(got.trim_end(), expected.trim_end(), "\n--- got:\n{got}\n--- expected:\n{expected}");
+    assert_eq!(
+        got.trim_end(),
+        expected.trim_end(),
+        "\n--- got:\n{got}\n--- expected:\n{expected}"
+    );
 }
 
 #[test]
 fn error_directive() {
     assert_error(
-        &[("main.usf", "fn f() {}\n#if 1\n#error this target is not supported\n#endif\n")],
+        &[(
+            "main.usf",
+            "fn f() {}\n#if 1\n#error this target is not supported\n#endif\n",
+        )],
         r#"
 error: #error this target is not supported
   ┌─ main.usf:3:1
@@ -173,10 +183,20 @@ error: cannot find include file `nothere.ush`
 #[test]
 fn escaping_include() {
     let dir = tempfile::tempdir().expect("temp dir");
-    write_files(dir.path(), &[("outside.ush", "secret\n"), ("src/main.usf", "#include \"../outside.ush\"\n")]);
+    write_files(
+        dir.path(),
+        &[
+            ("outside.ush", "secret\n"),
+            ("src/main.usf", "#include \"../outside.ush\"\n"),
+        ],
+    );
     let cache = SourceCache::new(dir.path().to_path_buf());
-    let opts = Options { include_roots: vec![dir.path().join("src")], ..Options::default() };
-    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache).expect_err("escapes");
+    let opts = Options {
+        include_roots: vec![dir.path().join("src")],
+        ..Options::default()
+    };
+    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache)
+        .expect_err("escapes");
     let got = preprocess::render(&[err.diagnostic], &cache, false);
     let expected = r#"
 error: #include "../outside.ush" resolves to `outside.ush`, outside the include roots
@@ -193,11 +213,25 @@ error: #include "../outside.ush" resolves to `outside.ush`, outside the include 
 #[test]
 fn symlink_escape_is_refused() {
     let dir = tempfile::tempdir().expect("temp dir");
-    write_files(dir.path(), &[("outside/secret.ush", "secret\n"), ("src/main.usf", "#include <link.ush>\n")]);
-    std::os::unix::fs::symlink(dir.path().join("outside/secret.ush"), dir.path().join("src/link.ush")).expect("symlink");
+    write_files(
+        dir.path(),
+        &[
+            ("outside/secret.ush", "secret\n"),
+            ("src/main.usf", "#include <link.ush>\n"),
+        ],
+    );
+    std::os::unix::fs::symlink(
+        dir.path().join("outside/secret.ush"),
+        dir.path().join("src/link.ush"),
+    )
+    .expect("symlink");
     let cache = SourceCache::new(dir.path().to_path_buf());
-    let opts = Options { include_roots: vec![dir.path().join("src")], ..Options::default() };
-    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache).expect_err("escapes");
+    let opts = Options {
+        include_roots: vec![dir.path().join("src")],
+        ..Options::default()
+    };
+    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache)
+        .expect_err("escapes");
     let got = preprocess::render(&[err.diagnostic], &cache, false);
     let expected = r#"
 error: #include "link.ush" resolves to `outside/secret.ush`, outside the include roots
@@ -373,15 +407,18 @@ fn macro_bomb_is_bounded() {
     }
     src.push_str("L40\n");
     let start = std::time::Instant::now();
-    let opts = Options { max_output_bytes: 1 << 20, ..Options::default() };
+    let opts = Options {
+        max_output_bytes: 1 << 20,
+        ..Options::default()
+    };
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
-error: macro expansion makes more than 1048576 tokens
+error: macro expansion makes more than 262144 tokens
    ┌─ main.usf:42:1
    │
- 3 │ #define L2 L1 L1
-   │            -- in this macro's definition
+ 2 │ #define L1 L0 L0
+   │               -- in this macro's definition
    ·
 42 │ L40
    │ ^^^ while expanding this
@@ -401,15 +438,18 @@ fn argument_bomb_is_bounded() {
     }
     src.push_str(&call);
     src.push('\n');
-    let opts = Options { max_output_bytes: 1 << 20, ..Options::default() };
+    let opts = Options {
+        max_output_bytes: 1 << 20,
+        ..Options::default()
+    };
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
-error: macro expansion makes more than 1048576 tokens
-  ┌─ main.usf:2:43
+error: macro expansion makes more than 262144 tokens
+  ┌─ main.usf:2:51
   │
 2 │ D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(D(1))))))))))))))))))))))))))))))))))))))))
-  │                                           ^ while expanding this
+  │                                                   ^ while expanding this
 "#
     .trim_start();
     assert_eq!(err.trim_end(), expected.trim_end(), "\n{err}");
@@ -424,20 +464,32 @@ fn deep_recursion_is_bounded() {
     src.push_str("M0\n");
     let (result, _) = run(&[("main.usf", &src)], Options::default());
     let err = result.expect_err("too deep");
-    assert!(err.starts_with("error: macro expansion nested deeper than 256 levels"), "{err}");
+    assert!(
+        err.starts_with("error: macro expansion nested deeper than 256 levels"),
+        "{err}"
+    );
 }
 
 #[test]
 fn recursive_include_is_bounded() {
-    let (result, _) = run(&[("main.usf", "#include \"main.usf\"\n")], Options::default());
+    let (result, _) = run(
+        &[("main.usf", "#include \"main.usf\"\n")],
+        Options::default(),
+    );
     let err = result.expect_err("too deep");
-    assert!(err.starts_with("error: #include nested depth 200 exceeds maximum of 200"), "{err}");
+    assert!(
+        err.starts_with("error: #include nested depth 200 exceeds maximum of 200"),
+        "{err}"
+    );
 }
 
 #[test]
 fn warnings_do_not_stop() {
     let (result, warnings) = run(
-        &[("main.usf", "#define A 1\n#define A 2\n#warning check this\nA\n")],
+        &[(
+            "main.usf",
+            "#define A 1\n#define A 2\n#warning check this\nA\n",
+        )],
         Options::default(),
     );
     assert_eq!(preprocess::tokens(&result.expect("no error")), vec!["2"]);

@@ -171,24 +171,33 @@ impl ArchiveWriter {
         self.manifest.blobs.len()
     }
 
-    /// The whole archive as bytes.
-    pub fn to_bytes(&self) -> Vec<u8> {
+    /// The header and the padded manifest; the blob section follows them.
+    fn head(&self) -> (Vec<u8>, Vec<u8>) {
         let mut manifest = serde_json::to_vec(&self.manifest).expect("manifest serializes");
         while manifest.len() % 8 != 0 {
             manifest.push(b' ');
         }
-        let mut body = Vec::with_capacity(manifest.len() + self.blob_data.len());
-        body.extend_from_slice(&manifest);
-        body.extend_from_slice(&self.blob_data);
-        let mut out = Vec::with_capacity(HEADER_LEN + body.len());
-        out.extend_from_slice(&MAGIC);
-        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-        out.extend_from_slice(&0u32.to_le_bytes());
-        out.extend_from_slice(&(manifest.len() as u64).to_le_bytes());
-        out.extend_from_slice(&(self.blob_data.len() as u64).to_le_bytes());
-        out.extend_from_slice(blake3::hash(&body).as_bytes());
-        debug_assert_eq!(out.len(), HEADER_LEN);
-        out.extend_from_slice(&body);
+        let mut checksum = blake3::Hasher::new();
+        checksum.update(&manifest);
+        checksum.update(&self.blob_data);
+        let mut header = Vec::with_capacity(HEADER_LEN);
+        header.extend_from_slice(&MAGIC);
+        header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        header.extend_from_slice(&0u32.to_le_bytes());
+        header.extend_from_slice(&(manifest.len() as u64).to_le_bytes());
+        header.extend_from_slice(&(self.blob_data.len() as u64).to_le_bytes());
+        header.extend_from_slice(checksum.finalize().as_bytes());
+        debug_assert_eq!(header.len(), HEADER_LEN);
+        (header, manifest)
+    }
+
+    /// The whole archive as bytes.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let (header, manifest) = self.head();
+        let mut out = Vec::with_capacity(HEADER_LEN + manifest.len() + self.blob_data.len());
+        out.extend_from_slice(&header);
+        out.extend_from_slice(&manifest);
+        out.extend_from_slice(&self.blob_data);
         out
     }
 
@@ -202,22 +211,25 @@ impl ArchiveWriter {
     /// and rename), not durable across a power loss, like a compiler's outputs. A truncated
     /// file after a crash is reported by [`Archive::open`] and rebuilt.
     pub fn write_unsynced(&self, path: &Path) -> Result<(), ArchiveError> {
-        write_atomic_unsynced(path, &self.to_bytes())
+        // Written in pieces, never copied into one buffer: archives can be large.
+        let (header, manifest) = self.head();
+        write_atomic_impl(path, &[&header, &manifest, &self.blob_data], false)
             .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
     }
 }
 
 /// Writes `bytes` to `path` through a uniquely named temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    write_atomic_impl(path, bytes, true)
+    write_atomic_impl(path, &[bytes], true)
 }
 
 /// [`write_atomic`] without syncing the temporary file before the rename.
 pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    write_atomic_impl(path, bytes, false)
+    write_atomic_impl(path, &[bytes], false)
 }
 
-fn write_atomic_impl(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<()> {
+/// Writes the concatenation of `pieces` through a temporary file and a rename.
+fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
@@ -233,7 +245,9 @@ fn write_atomic_impl(path: &Path, bytes: &[u8], sync: bool) -> std::io::Result<(
     let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
         let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
+        for piece in pieces {
+            f.write_all(piece)?;
+        }
         if sync {
             f.sync_all()?;
         }

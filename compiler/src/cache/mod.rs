@@ -176,7 +176,16 @@ impl Cache {
 
     /// Stores `compiled` under `key` atomically.
     pub fn put(&self, key: &Key, compiled: &Compiled) -> Result<(), Error> {
-        self.write_file(&self.path(key), &encode(key, compiled))
+        let mut scratch = Vec::new();
+        let body = encode_pieces(key, compiled, &mut scratch);
+        let mut h = blake3::Hasher::new();
+        for piece in &body {
+            h.update(piece);
+        }
+        let checksum = h.finalize();
+        let mut pieces: Vec<&[u8]> = vec![MAGIC, checksum.as_bytes()];
+        pieces.extend(body);
+        self.write_pieces(&self.path(key), &pieces)
     }
 
     /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
@@ -219,7 +228,12 @@ impl Cache {
     /// Records that the archive now at `archive` is the output of the build with
     /// `fingerprint` (with its artifact counts), identified by its length, modification
     /// time and header checksum.
-    pub fn stamp_archive(&self, archive: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) -> Result<(), Error> {
+    pub fn stamp_archive(
+        &self,
+        archive: &Path,
+        fingerprint: &blake3::Hash,
+        counts: (usize, usize),
+    ) -> Result<(), Error> {
         let err = |source| Error { path: archive.to_path_buf(), source };
         let id = archive_identity(archive).map_err(err)?;
         let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
@@ -241,6 +255,12 @@ impl Cache {
     }
 
     fn write_file(&self, path: &Path, bytes: &[u8]) -> Result<(), Error> {
+        self.write_pieces(path, &[bytes])
+    }
+
+    /// Writes the concatenation of `pieces` to a temporary file in the cache folder, then
+    /// renames it to `path`.
+    fn write_pieces(&self, path: &Path, pieces: &[&[u8]]) -> Result<(), Error> {
         let err = |source| Error { path: path.to_path_buf(), source };
         let mut tmp = match tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir) {
             Ok(t) => t,
@@ -250,7 +270,12 @@ impl Cache {
                 tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir).map_err(err)?
             }
         };
-        tmp.write_all(bytes).map_err(err)?;
+        let mut out = std::io::BufWriter::with_capacity(64 << 10, tmp.as_file_mut());
+        for piece in pieces {
+            out.write_all(piece).map_err(err)?;
+        }
+        out.flush().map_err(err)?;
+        drop(out);
         tmp.persist(path).map_err(|e| err(e.error))?;
         Ok(())
     }
@@ -354,7 +379,13 @@ fn archive_identity(path: &Path) -> io::Result<String> {
     let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
     let mut header = [0u8; 64];
     f.read_exact(&mut header)?;
-    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()))
+    Ok(format!(
+        "{} {}.{:09} {}",
+        meta.len(),
+        mtime.as_secs(),
+        mtime.subsec_nanos(),
+        blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()
+    ))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.
@@ -393,23 +424,45 @@ pub fn format_size(bytes: u64) -> String {
 // Entry layout: MAGIC, blake3(body) (32 bytes), body.
 // body: key (32), artifact count (u32), per artifact: target name length (u8) + name, length
 // (u64) + bytes; then the reflection as JSON (u64 length + bytes).
-fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
-    let mut body = Vec::new();
-    body.extend_from_slice(&key.0);
-    body.extend_from_slice(&(c.artifacts.len() as u32).to_le_bytes());
+/// The pieces of an entry, in file order (artifacts are borrowed, not copied).
+fn encode_pieces<'a>(key: &'a Key, c: &'a Compiled, scratch: &'a mut Vec<Vec<u8>>) -> Vec<&'a [u8]> {
+    // Small framing pieces live in `scratch`; artifacts are referenced in place.
+    scratch.clear();
+    scratch.push((c.artifacts.len() as u32).to_le_bytes().to_vec());
     for (t, bytes) in &c.artifacts {
-        body.push(t.name().len() as u8);
-        body.extend_from_slice(t.name().as_bytes());
-        body.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
-        body.extend_from_slice(bytes);
+        let mut frame = vec![t.name().len() as u8];
+        frame.extend_from_slice(t.name().as_bytes());
+        frame.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        scratch.push(frame);
     }
     let json = serde_json::to_vec(&c.reflection).expect("reflection serializes");
-    body.extend_from_slice(&(json.len() as u64).to_le_bytes());
-    body.extend_from_slice(&json);
-    let mut out = Vec::with_capacity(40 + body.len());
+    scratch.push((json.len() as u64).to_le_bytes().to_vec());
+    scratch.push(json);
+    let scratch: &'a Vec<Vec<u8>> = scratch;
+    let mut body: Vec<&'a [u8]> = vec![&key.0, &scratch[0]];
+    for (i, (_, bytes)) in c.artifacts.iter().enumerate() {
+        body.push(&scratch[1 + i]);
+        body.push(bytes);
+    }
+    let n = scratch.len();
+    body.push(&scratch[n - 2]);
+    body.push(&scratch[n - 1]);
+    body
+}
+
+/// An entry as one buffer (tests).
+#[cfg(test)]
+fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
+    let mut scratch = Vec::new();
+    let body = encode_pieces(key, c, &mut scratch);
+    let mut h = blake3::Hasher::new();
+    body.iter().for_each(|p| {
+        h.update(p);
+    });
+    let mut out = Vec::new();
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(blake3::hash(&body).as_bytes());
-    out.extend_from_slice(&body);
+    out.extend_from_slice(h.finalize().as_bytes());
+    body.iter().for_each(|p| out.extend_from_slice(p));
     out
 }
 

@@ -47,7 +47,10 @@ fn put_then_get_round_trips() {
         Lookup::Hit(c) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
-    assert_eq!(cache.stats(), Stats { entries: 1, records: 0, bytes: fs::metadata(cache.path(&k)).unwrap().len(), temporaries: 0 });
+    assert_eq!(
+        cache.stats(),
+        Stats { entries: 1, records: 0, bytes: fs::metadata(cache.path(&k)).unwrap().len(), temporaries: 0 }
+    );
 }
 
 #[test]
@@ -194,4 +197,3 @@ fn sizes_parse_and_format() {
     assert_eq!(format_size(100), "100 B");
     assert_eq!(format_size(3 << 19), "1.5 MiB");
 }
-

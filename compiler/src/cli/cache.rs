@@ -52,7 +52,10 @@ pub fn exec(args: Args) -> CliResult {
                 s.bytes
             );
             if s.temporaries > 0 {
-                t += &format!("temporary files: {} (left by interrupted writes; `kiln cache gc` removes them)\n", s.temporaries);
+                t += &format!(
+                    "temporary files: {} (left by interrupted writes; `kiln cache gc` removes them)\n",
+                    s.temporaries
+                );
             }
             t
         }

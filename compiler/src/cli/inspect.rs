@@ -20,8 +20,10 @@ pub struct Args {
 
 /// Opens the archive; a missing, truncated, corrupted or foreign file is exit code 2.
 pub fn exec(args: Args) -> CliResult {
-    let archive = Archive::open(&args.archive)
-        .map_err(|e| Failure::usage(format!("error: {}: {e}", args.archive.display())))?;
+    let archive = Archive::open(&args.archive).map_err(|e| match e {
+        crate::archive::ArchiveError::Io { .. } => Failure::usage(format!("error: {e}")),
+        _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
+    })?;
     let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
     print_stdout(&text)
 }
@@ -49,11 +51,19 @@ fn kind_name(k: &BindingKind) -> String {
         BindingKind::StorageBuffer { read_only, min_size } => {
             format!("storage{}({min_size} B)", if *read_only { ", read" } else { ", read_write" })
         }
-        BindingKind::Sampler { comparison } => if *comparison { "sampler_comparison".into() } else { "sampler".into() },
+        BindingKind::Sampler { comparison } => {
+            if *comparison {
+                "sampler_comparison".into()
+            } else {
+                "sampler".into()
+            }
+        }
         BindingKind::Texture { dim, sample, multisampled } => {
             format!("texture({dim:?}, {sample:?}{})", if *multisampled { ", multisampled" } else { "" })
         }
-        BindingKind::StorageTexture { dim, format, access } => format!("storage_texture({dim:?}, {format}, {access:?})"),
+        BindingKind::StorageTexture { dim, format, access } => {
+            format!("storage_texture({dim:?}, {format}, {access:?})")
+        }
     }
 }
 

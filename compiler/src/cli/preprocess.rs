@@ -31,11 +31,17 @@ pub fn parse_define(d: &str) -> (String, String) {
 
 pub fn exec(args: Args) -> CliResult {
     if !args.file.is_file() {
-        return Err(Failure::usage(format!("error: cannot read `{}`: no such file", args.file.display())));
+        return Err(Failure::usage(format!(
+            "error: cannot read `{}`: no such file",
+            args.file.display()
+        )));
     }
     for dir in &args.include {
         if !dir.is_dir() {
-            return Err(Failure::usage(format!("error: include folder `{}` does not exist", dir.display())));
+            return Err(Failure::usage(format!(
+                "error: include folder `{}` does not exist",
+                dir.display()
+            )));
         }
     }
     let opts = Options {
@@ -52,7 +58,11 @@ pub fn exec(args: Args) -> CliResult {
             }
             print_stdout(&out.text)
         }
-        Err(e) => Err(Failure::shader(preprocess::render(std::slice::from_ref(&e.diagnostic), &cache, args.color))),
+        Err(e) => Err(Failure::shader(preprocess::render(
+            std::slice::from_ref(&e.diagnostic),
+            &cache,
+            args.color,
+        ))),
     }
 }
 
@@ -69,27 +79,44 @@ mod tests {
     }
 
     fn args(file: PathBuf) -> Args {
-        Args { file, define: vec!["N=4".into()], include: Vec::new(), color: false }
+        Args {
+            file,
+            define: vec!["N=4".into()],
+            include: Vec::new(),
+            color: false,
+        }
     }
 
     #[test]
     fn exit_codes() {
         let dir = tempfile::tempdir().expect("temp dir");
         let ok = dir.path().join("ok.usf");
-        std::fs::write(&ok, "#if N == 4
+        std::fs::write(
+            &ok,
+            "#if N == 4
 fn f() {}
 #endif
-").expect("write");
+",
+        )
+        .expect("write");
         assert!(exec(args(ok)).is_ok());
 
         let bad = dir.path().join("bad.usf");
-        std::fs::write(&bad, "#if N == 4
+        std::fs::write(
+            &bad,
+            "#if N == 4
 #error four
 #endif
-").expect("write");
+",
+        )
+        .expect("write");
         let f = exec(args(bad)).expect_err("#error fails");
         assert_eq!(f.code, 1);
-        assert!(f.message.starts_with("error: #error four\n"), "{}", f.message);
+        assert!(
+            f.message.starts_with("error: #error four\n"),
+            "{}",
+            f.message
+        );
         assert!(f.message.contains("bad.usf:2:1"), "{}", f.message);
 
         let f = exec(args(dir.path().join("missing.usf"))).expect_err("no file");

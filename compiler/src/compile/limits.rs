@@ -126,7 +126,10 @@ impl Limits {
             let at = Some((b.group, b.binding));
             if b.group >= self.max_bind_groups {
                 return Err(fail(
-                    format!("binding `{name}` uses bind group {}, beyond the {level} limit of {} bind groups", b.group, self.max_bind_groups),
+                    format!(
+                        "binding `{name}` uses bind group {}, beyond the {level} limit of {} bind groups",
+                        b.group, self.max_bind_groups
+                    ),
                     at,
                     "declared here",
                     format!("max_bind_groups = {} at the {level} limits", self.max_bind_groups),
@@ -134,7 +137,10 @@ impl Limits {
             }
             if b.binding >= self.max_bindings_per_bind_group {
                 return Err(fail(
-                    format!("binding `{name}` uses binding {}, beyond the {level} limit of {} bindings per group", b.binding, self.max_bindings_per_bind_group),
+                    format!(
+                        "binding `{name}` uses binding {}, beyond the {level} limit of {} bindings per group",
+                        b.binding, self.max_bindings_per_bind_group
+                    ),
                     at,
                     "declared here",
                     format!("max_bindings_per_bind_group = {} at the {level} limits", self.max_bindings_per_bind_group),
@@ -158,10 +164,16 @@ impl Limits {
             if let BindingKind::UniformBuffer { min_size } = b.kind {
                 if min_size > self.max_uniform_buffer_binding_size {
                     return Err(fail(
-                        format!("uniform buffer `{name}` is {min_size} bytes, over the {level} limit of {} bytes", self.max_uniform_buffer_binding_size),
+                        format!(
+                            "uniform buffer `{name}` is {min_size} bytes, over the {level} limit of {} bytes",
+                            self.max_uniform_buffer_binding_size
+                        ),
                         at,
                         "declared here",
-                        format!("max_uniform_buffer_binding_size = {} at the {level} limits", self.max_uniform_buffer_binding_size),
+                        format!(
+                            "max_uniform_buffer_binding_size = {} at the {level} limits",
+                            self.max_uniform_buffer_binding_size
+                        ),
                     ));
                 }
             }
@@ -178,7 +190,11 @@ impl Limits {
         }
         if reflection.vertex_inputs.len() as u32 > self.max_vertex_attributes {
             return Err(fail(
-                format!("the vertex shader has {} inputs, over the {level} limit of {}", reflection.vertex_inputs.len(), self.max_vertex_attributes),
+                format!(
+                    "the vertex shader has {} inputs, over the {level} limit of {}",
+                    reflection.vertex_inputs.len(),
+                    self.max_vertex_attributes
+                ),
                 None,
                 "",
                 format!("max_vertex_attributes = {} at the {level} limits", self.max_vertex_attributes),
@@ -186,7 +202,10 @@ impl Limits {
         }
         if let Some(c) = reflection.color_outputs.iter().find(|c| c.location >= self.max_color_attachments) {
             return Err(fail(
-                format!("color output @location({}) is beyond the {level} limit of {} color attachments", c.location, self.max_color_attachments),
+                format!(
+                    "color output @location({}) is beyond the {level} limit of {} color attachments",
+                    c.location, self.max_color_attachments
+                ),
                 None,
                 "",
                 format!("max_color_attachments = {} at the {level} limits", self.max_color_attachments),
@@ -196,7 +215,11 @@ impl Limits {
             for (axis, (&n, &max)) in size.iter().zip(&self.max_compute_workgroup_size).enumerate() {
                 if n > max {
                     return Err(fail(
-                        format!("workgroup size {} is {n} along {}, over the {level} limit of {max}", fmt_size(size), ["x", "y", "z"][axis]),
+                        format!(
+                            "workgroup size {} is {n} along {}, over the {level} limit of {max}",
+                            fmt_size(size),
+                            ["x", "y", "z"][axis]
+                        ),
                         None,
                         "",
                         format!("max_compute_workgroup_size_{} = {max} at the {level} limits", ["x", "y", "z"][axis]),
@@ -206,10 +229,17 @@ impl Limits {
             let total = size.iter().map(|&n| n as u64).product::<u64>();
             if total > self.max_compute_invocations_per_workgroup as u64 {
                 return Err(fail(
-                    format!("workgroup size {} is {total} invocations, over the {level} limit of {}", fmt_size(size), self.max_compute_invocations_per_workgroup),
+                    format!(
+                        "workgroup size {} is {total} invocations, over the {level} limit of {}",
+                        fmt_size(size),
+                        self.max_compute_invocations_per_workgroup
+                    ),
                     None,
                     "",
-                    format!("max_compute_invocations_per_workgroup = {} at the {level} limits", self.max_compute_invocations_per_workgroup),
+                    format!(
+                        "max_compute_invocations_per_workgroup = {} at the {level} limits",
+                        self.max_compute_invocations_per_workgroup
+                    ),
                 ));
             }
             let ep_info = info.get_entry_point(0);
@@ -229,12 +259,18 @@ impl Limits {
                 let name = module.global_variables[h].name.as_deref().unwrap_or("<unnamed>");
                 let mut e = Error::new(
                     ErrorKind::Limit,
-                    format!("workgroup variables take {total} bytes up to `{name}`, over the {level} limit of {} bytes", self.max_compute_workgroup_storage_size),
+                    format!(
+                        "workgroup variables take {total} bytes up to `{name}`, over the {level} limit of {} bytes",
+                        self.max_compute_workgroup_storage_size
+                    ),
                 );
                 if let Some(r) = module.global_variables.get_span(h).to_range() {
                     e.labels.push((r, "the limit is crossed here".into()));
                 }
-                e.notes.push(format!("max_compute_workgroup_storage_size = {} at the {level} limits", self.max_compute_workgroup_storage_size));
+                e.notes.push(format!(
+                    "max_compute_workgroup_storage_size = {} at the {level} limits",
+                    self.max_compute_workgroup_storage_size
+                ));
                 return Err(e);
             }
         }

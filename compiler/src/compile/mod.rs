@@ -174,7 +174,9 @@ pub(crate) fn find_function(source: &str, name: &str) -> Option<Range<usize>> {
             continue;
         }
         let before = source[..i].trim_end();
-        if before.ends_with("fn") && !before[..before.len() - 2].ends_with(|c: char| c.is_ascii_alphanumeric() || c == '_') {
+        if before.ends_with("fn")
+            && !before[..before.len() - 2].ends_with(|c: char| c.is_ascii_alphanumeric() || c == '_')
+        {
             return Some(i..end);
         }
     }
@@ -193,7 +195,8 @@ pub fn compile(source: &str, entry: &str, stage: Stage, options: &Options) -> Re
         naga::back::pipeline_constants::process_overrides(&v.module, &v.info, None, &Default::default()).map_err(
             |e| {
                 let mut err = Error::new(ErrorKind::Validation, format!("cannot resolve overrides: {e}"));
-                err.notes.push("every `override` needs a default value: Kiln compiles ahead of pipeline creation".into());
+                err.notes
+                    .push("every `override` needs a default value: Kiln compiles ahead of pipeline creation".into());
                 err
             },
         )?

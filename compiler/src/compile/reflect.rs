@@ -131,7 +131,10 @@ fn binding_kind(module: &naga::Module, g: &naga::GlobalVariable) -> Option<Bindi
                         naga::ImageClass::Storage { format, access } => Some(BindingKind::StorageTexture {
                             dim,
                             format: format!("{format:?}").to_ascii_lowercase(),
-                            access: match (access.contains(naga::StorageAccess::LOAD), access.contains(naga::StorageAccess::STORE)) {
+                            access: match (
+                                access.contains(naga::StorageAccess::LOAD),
+                                access.contains(naga::StorageAccess::STORE),
+                            ) {
                                 (true, true) => StorageAccess::ReadWrite,
                                 (true, false) => StorageAccess::ReadOnly,
                                 _ => StorageAccess::WriteOnly,

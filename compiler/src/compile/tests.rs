@@ -48,26 +48,35 @@ fn every_target_is_written_for_each_entry_point() {
 #[test]
 fn reflection_lists_only_what_the_entry_point_uses() {
     let vs = compile(TRIANGLE, "main_vs", Stage::Vertex, &Options::default()).unwrap().reflection;
-    assert_eq!(vs.bindings, vec![Binding {
-        group: 0,
-        binding: 0,
-        name: Some("globals".into()),
-        kind: BindingKind::UniformBuffer { min_size: 80 }
-    }]);
-    assert_eq!(vs.vertex_inputs, vec![
-        VertexInput { location: 0, name: Some("position".into()), ty: f32x(3) },
-        VertexInput { location: 2, name: Some("uv".into()), ty: f32x(2) },
-    ]);
+    assert_eq!(
+        vs.bindings,
+        vec![Binding {
+            group: 0,
+            binding: 0,
+            name: Some("globals".into()),
+            kind: BindingKind::UniformBuffer { min_size: 80 }
+        }]
+    );
+    assert_eq!(
+        vs.vertex_inputs,
+        vec![
+            VertexInput { location: 0, name: Some("position".into()), ty: f32x(3) },
+            VertexInput { location: 2, name: Some("uv".into()), ty: f32x(2) },
+        ]
+    );
     assert!(vs.color_outputs.is_empty());
     assert_eq!(vs.workgroup_size, None);
 
     let ps = compile(TRIANGLE, "main_ps", Stage::Fragment, &Options::default()).unwrap().reflection;
     let kinds: Vec<_> = ps.bindings.iter().map(|b| (b.group, b.binding, b.kind.clone())).collect();
-    assert_eq!(kinds, vec![
-        (0, 0, BindingKind::UniformBuffer { min_size: 80 }),
-        (1, 0, BindingKind::Texture { dim: TextureDim::D2, sample: SampleKind::Float, multisampled: false }),
-        (1, 1, BindingKind::Sampler { comparison: false }),
-    ]);
+    assert_eq!(
+        kinds,
+        vec![
+            (0, 0, BindingKind::UniformBuffer { min_size: 80 }),
+            (1, 0, BindingKind::Texture { dim: TextureDim::D2, sample: SampleKind::Float, multisampled: false }),
+            (1, 1, BindingKind::Sampler { comparison: false }),
+        ]
+    );
     assert_eq!(ps.color_outputs, vec![ColorOutput { location: 0, ty: f32x(4) }]);
 }
 
@@ -123,7 +132,8 @@ fn parse_error_has_a_span_in_the_preprocessed_text() {
 
 #[test]
 fn validation_error_has_spans_and_notes() {
-    let src = "@fragment\nfn main_ps() -> @location(0) vec4<f32> {\n    let x: u32 = 1u;\n    return vec4<f32>(x);\n}\n";
+    let src =
+        "@fragment\nfn main_ps() -> @location(0) vec4<f32> {\n    let x: u32 = 1u;\n    return vec4<f32>(x);\n}\n";
     let e = compile(src, "main_ps", Stage::Fragment, &Options::default()).unwrap_err();
     assert!(matches!(e.kind, ErrorKind::Validation | ErrorKind::Parse), "{e:?}");
     assert!(!e.labels.is_empty(), "{e:?}");
@@ -139,7 +149,10 @@ fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> { return po
     let options = Options { targets: vec![Target::Wgsl], limits: Limits::downlevel() };
     let e = compile(src, "vs", Stage::Vertex, &options).unwrap_err();
     assert_eq!(e.kind, ErrorKind::Limit);
-    assert_eq!(e.message, "binding `positions` is a storage buffer in a vertex shader, which the downlevel limits do not allow");
+    assert_eq!(
+        e.message,
+        "binding `positions` is a storage buffer in a vertex shader, which the downlevel limits do not allow"
+    );
     assert_eq!(&src[e.labels[0].0.clone()], "var<storage, read> positions: array<vec4<f32>>;");
     assert!(compile(src, "vs", Stage::Vertex, &Options { limits: Limits::desktop(), ..options }).is_ok());
 }

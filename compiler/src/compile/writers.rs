@@ -47,13 +47,13 @@ pub fn write(
                     entry_point: Some((naga_stage(stage), entry.to_string())),
                     ..msl::PipelineOptions::default()
                 };
-                msl::write_string(module, info, &options, &pipeline).map(|(s, _)| s.into_bytes()).map_err(|e| e.to_string())
+                msl::write_string(module, info, &options, &pipeline)
+                    .map(|(s, _)| s.into_bytes())
+                    .map_err(|e| e.to_string())
             }
             Target::Glsl => {
-                let options = glsl::Options {
-                    version: glsl::Version::new_gles(GLSL_ES_VERSION),
-                    ..glsl::Options::default()
-                };
+                let options =
+                    glsl::Options { version: glsl::Version::new_gles(GLSL_ES_VERSION), ..glsl::Options::default() };
                 let pipeline = glsl::PipelineOptions {
                     shader_stage: naga_stage(stage),
                     entry_point: entry.to_string(),
@@ -67,10 +67,11 @@ pub fn write(
             }
             Target::Hlsl => {
                 let options = hlsl::Options { shader_model: hlsl::ShaderModel::V5_1, ..hlsl::Options::default() };
-                let pipeline =
-                    hlsl::PipelineOptions { entry_point: Some((naga_stage(stage), entry.to_string())) };
+                let pipeline = hlsl::PipelineOptions { entry_point: Some((naga_stage(stage), entry.to_string())) };
                 let mut out = String::new();
-                hlsl::Writer::new(&mut out, &options, &pipeline).write(module, info, None).map_err(|e| e.to_string())?;
+                hlsl::Writer::new(&mut out, &options, &pipeline)
+                    .write(module, info, None)
+                    .map_err(|e| e.to_string())?;
                 Ok(out.into_bytes())
             }
         }
@@ -105,7 +106,9 @@ pub(crate) fn guarded(target: Target, run: impl FnOnce() -> Result<Vec<u8>, Stri
     IN_WRITER.with(|w| w.set(false));
     match result {
         Ok(Ok(bytes)) => Ok(bytes),
-        Ok(Err(message)) => Err(Error::new(ErrorKind::Writer(target), format!("the {target} writer failed: {message}"))),
+        Ok(Err(message)) => {
+            Err(Error::new(ErrorKind::Writer(target), format!("the {target} writer failed: {message}")))
+        }
         Err(panic) => {
             let what = panic
                 .downcast_ref::<String>()

@@ -12,13 +12,19 @@ pub enum Kind {
     Newline,
     LineComment,
     /// `/* ... */`; `terminated` is false when the text ends first.
-    BlockComment { terminated: bool },
+    BlockComment {
+        terminated: bool,
+    },
     Ident,
     Number,
     /// A string literal, with its prefix; `terminated` is false at an unescaped line end.
-    Str { terminated: bool },
+    Str {
+        terminated: bool,
+    },
     /// A character constant; an unterminated one spans the rest of the line (as in cpp).
-    Char { terminated: bool },
+    Char {
+        terminated: bool,
+    },
     Punct,
     /// Any other single character (`@`, `` ` ``, a stray `\`).
     Other,
@@ -43,7 +49,9 @@ fn is_space(b: u8) -> bool {
 /// Lexes one token of `src` starting at `pos` (which must be `< src.len()` unless at the end).
 #[inline]
 pub fn next(src: &[u8], pos: usize) -> (Kind, usize) {
-    let Some(&b) = src.get(pos) else { return (Kind::Eof, 0) };
+    let Some(&b) = src.get(pos) else {
+        return (Kind::Eof, 0);
+    };
     let at = |i: usize| -> u8 { src.get(pos + i).copied().unwrap_or(0) };
     match b {
         b'\n' => (Kind::Newline, 1),
@@ -107,13 +115,12 @@ fn number_len(src: &[u8], pos: usize) -> usize {
     let mut i = pos + 1;
     while i < src.len() {
         let c = src[i];
-        if matches!(c, b'+' | b'-') && matches!(src[i - 1], b'e' | b'E' | b'p' | b'P') {
-            i += 1;
-        } else if is_ident_continue(c) || c == b'.' {
-            i += 1;
-        } else {
+        let signed_exponent =
+            matches!(c, b'+' | b'-') && matches!(src[i - 1], b'e' | b'E' | b'p' | b'P');
+        if !(signed_exponent || is_ident_continue(c) || c == b'.') {
             break;
         }
+        i += 1;
     }
     i - pos
 }
@@ -163,8 +170,9 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
         b'#' if b == b'#' => 2,
         b'%' if matches!(b, b'=' | b'>' | b':') => 2,
         b':' if b == b'>' => 2,
-        b'[' | b']' | b'(' | b')' | b'{' | b'}' | b'.' | b'&' | b'*' | b'+' | b'-' | b'~' | b'!'
-        | b'/' | b'%' | b'<' | b'>' | b'^' | b'|' | b'?' | b':' | b';' | b'=' | b',' | b'#' => 1,
+        b'[' | b']' | b'(' | b')' | b'{' | b'}' | b'.' | b'&' | b'*' | b'+' | b'-' | b'~'
+        | b'!' | b'/' | b'%' | b'<' | b'>' | b'^' | b'|' | b'?' | b':' | b';' | b'=' | b','
+        | b'#' => 1,
         _ => 0,
     }
 }
@@ -172,7 +180,10 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
 /// Index of the next `\n` at or after `from`, or `src.len()`.
 #[inline]
 pub fn memchr_nl(src: &[u8], from: usize) -> usize {
-    match src.get(from..).and_then(|s| s.iter().position(|&c| c == b'\n')) {
+    match src
+        .get(from..)
+        .and_then(|s| s.iter().position(|&c| c == b'\n'))
+    {
         Some(i) => from + i,
         None => src.len(),
     }
@@ -180,7 +191,10 @@ pub fn memchr_nl(src: &[u8], from: usize) -> usize {
 
 #[inline]
 fn memchr_star(src: &[u8], from: usize) -> Option<usize> {
-    src.get(from..)?.iter().position(|&c| c == b'*').map(|i| from + i)
+    src.get(from..)?
+        .iter()
+        .position(|&c| c == b'*')
+        .map(|i| from + i)
 }
 
 /// True if printing `a` immediately followed by `b` would lex differently from the two
@@ -190,7 +204,11 @@ pub fn would_paste(a: &[u8], b: &[u8]) -> bool {
         return false;
     }
     let mut buf = [0u8; 64];
-    let (head, tail) = if a.len() > 32 { (&a[a.len() - 32..], &b[..b.len().min(32)]) } else { (a, &b[..b.len().min(32)]) };
+    let (head, tail) = if a.len() > 32 {
+        (&a[a.len() - 32..], &b[..b.len().min(32)])
+    } else {
+        (a, &b[..b.len().min(32)])
+    };
     // A long token whose tail we cut: only identifiers, numbers and strings get that long,
     // and for them the last 32 bytes decide (except a string's prefix, which is at the head).
     buf[..head.len()].copy_from_slice(head);
@@ -203,7 +221,13 @@ pub fn would_paste(a: &[u8], b: &[u8]) -> bool {
         if matches!(a[0], b'"' | b'\'') || a.ends_with(b"\"") || a.ends_with(b"'") {
             return false;
         }
-        return (is_ident_continue(last) || last == b'.') && (is_ident_continue(first) || first == b'.' || first == b'+' || first == b'-' || first == b'"' || first == b'\'');
+        return (is_ident_continue(last) || last == b'.')
+            && (is_ident_continue(first)
+                || first == b'.'
+                || first == b'+'
+                || first == b'-'
+                || first == b'"'
+                || first == b'\'');
     }
     let (kind, len) = next(joined, 0);
     if len != head.len() {
@@ -255,16 +279,36 @@ mod tests {
                 (Ident, "x"),
             ]
         );
-        assert_eq!(kinds("u8\"a\"L'b'"), vec![(Str { terminated: true }, "u8\"a\""), (Char { terminated: true }, "L'b'")]);
-        assert_eq!(kinds("/* a */b//c\nd"), vec![
-            (BlockComment { terminated: true }, "/* a */"),
-            (Ident, "b"),
-            (LineComment, "//c"),
-            (Newline, "\n"),
-            (Ident, "d"),
-        ]);
-        assert_eq!(kinds("don't x\ny"), vec![(Ident, "don"), (Char { terminated: false }, "'t x"), (Newline, "\n"), (Ident, "y")]);
-        assert_eq!(kinds("/* open"), vec![(BlockComment { terminated: false }, "/* open")]);
+        assert_eq!(
+            kinds("u8\"a\"L'b'"),
+            vec![
+                (Str { terminated: true }, "u8\"a\""),
+                (Char { terminated: true }, "L'b'")
+            ]
+        );
+        assert_eq!(
+            kinds("/* a */b//c\nd"),
+            vec![
+                (BlockComment { terminated: true }, "/* a */"),
+                (Ident, "b"),
+                (LineComment, "//c"),
+                (Newline, "\n"),
+                (Ident, "d"),
+            ]
+        );
+        assert_eq!(
+            kinds("don't x\ny"),
+            vec![
+                (Ident, "don"),
+                (Char { terminated: false }, "'t x"),
+                (Newline, "\n"),
+                (Ident, "y")
+            ]
+        );
+        assert_eq!(
+            kinds("/* open"),
+            vec![(BlockComment { terminated: false }, "/* open")]
+        );
         assert_eq!(kinds("%:%:..."), vec![(Punct, "%:%:"), (Punct, "...")]);
     }
 

@@ -86,13 +86,22 @@ impl SourceMap {
         let (line, column) = f.line_col(span.start);
         let macro_definition = if e.is_macro {
             self.ctxs.get(e.def_ctx as usize).map(|d| {
-                let r = d.source.original_range(e.def_src as usize..(e.def_src + e.def_len) as usize);
+                let r = d
+                    .source
+                    .original_range(e.def_src as usize..(e.def_src + e.def_len) as usize);
                 (d.file, r)
             })
         } else {
             None
         };
-        Some(Origin { file: ctx.file, span, line, column, macro_definition, include_chain: self.chain(e.ctx) })
+        Some(Origin {
+            file: ctx.file,
+            span,
+            line,
+            column,
+            macro_definition,
+            include_chain: self.chain(e.ctx),
+        })
     }
 
     /// The include chain of a context, innermost first.
@@ -100,8 +109,14 @@ impl SourceMap {
         let mut out = Vec::new();
         let mut c = self.ctxs.get(ctx as usize);
         while let Some(x) = c {
-            let Some(p) = self.ctxs.get(x.parent as usize) else { break };
-            out.push((p.file, p.source.original_range(x.site.start as usize..x.site.end as usize)));
+            let Some(p) = self.ctxs.get(x.parent as usize) else {
+                break;
+            };
+            out.push((
+                p.file,
+                p.source
+                    .original_range(x.site.start as usize..x.site.end as usize),
+            ));
             c = Some(p);
         }
         out
@@ -111,11 +126,16 @@ impl SourceMap {
     /// invocation for macro-made text), a secondary "in this macro's definition" where
     /// macro-made, and "included from here" for each `#include` that led there.
     pub fn labels(&self, range: Range<usize>, message: &str) -> Vec<Label<FileId>> {
-        let Some(first) = self.origin(range.start) else { return Vec::new() };
+        let Some(first) = self.origin(range.start) else {
+            return Vec::new();
+        };
         let mut span = first.span.clone();
         if range.end > range.start + 1 {
             if let Some(last) = self.origin(range.end - 1) {
-                if last.file == first.file && last.include_chain == first.include_chain && last.span.end > span.start {
+                if last.file == first.file
+                    && last.include_chain == first.include_chain
+                    && last.span.end > span.start
+                {
                     span = span.start.min(last.span.start)..span.end.max(last.span.end);
                 }
             }

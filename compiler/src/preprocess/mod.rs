@@ -36,11 +36,16 @@ pub struct Options {
     pub include_roots: Vec<PathBuf>,
     /// Path prefixes mapped to folders: `("/Engine", <abs path of shader_src>)`.
     pub virtual_roots: Vec<(String, PathBuf)>,
-    /// Predefined object-like macros, `NAME` → replacement text (like `-D NAME=text`).
+    /// Predefined macros, `NAME` → replacement text (like `-D NAME=text`; `NAME` may carry a
+    /// parameter list, `F(x)`). `__STDC__`, `__STDC_VERSION__` (201112L) and the other macros
+    /// `cpp -undef -std=c11` keeps are always defined.
     pub defines: Vec<(String, String)>,
-    /// Most macro expansions nested inside each other (also bounds `#include` nesting).
+    /// Most macro expansions nested inside each other (`#include` nesting stops at 200, as
+    /// in cpp).
     pub max_expansion_depth: usize,
-    /// Largest output, in bytes; also the budget of tokens macro expansion may make.
+    /// Largest output, in bytes. Macro expansion may make at most a quarter as many tokens,
+    /// and at most a million plus eight per byte of input read, so a macro bomb fails within
+    /// milliseconds, in bounded memory.
     pub max_output_bytes: usize,
 }
 
@@ -51,7 +56,7 @@ impl Default for Options {
             virtual_roots: Vec::new(),
             defines: Vec::new(),
             max_expansion_depth: 256,
-            max_output_bytes: 64 << 20,
+            max_output_bytes: 16 << 20,
         }
     }
 }
@@ -64,7 +69,11 @@ pub struct Error {
 
 impl Error {
     pub(crate) fn new(message: impl Into<String>, labels: Vec<Label<FileId>>) -> Error {
-        Error { diagnostic: Diagnostic::error().with_message(message.into()).with_labels(labels) }
+        Error {
+            diagnostic: Diagnostic::error()
+                .with_message(message.into())
+                .with_labels(labels),
+        }
     }
 }
 
@@ -114,7 +123,10 @@ pub fn tokens(text: &str) -> Vec<&str> {
         let (kind, len) = lexer::next(src, pos);
         match kind {
             lexer::Kind::Eof => return out,
-            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {}
+            lexer::Kind::Space
+            | lexer::Kind::Newline
+            | lexer::Kind::LineComment
+            | lexer::Kind::BlockComment { .. } => {}
             _ => out.push(&text[pos..pos + len]),
         }
         pos += len.max(1);
@@ -136,13 +148,21 @@ pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Resu
         .load(&canonical)
         .map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
     // `__FILE__` spells the main file as it was given, like cpp does.
-    let name = if path.is_relative() { Some(path.to_string_lossy().into_owned()) } else { None };
+    let name = if path.is_relative() {
+        Some(path.to_string_lossy().into_owned())
+    } else {
+        None
+    };
     engine::run_named(id, name, opts, cache)
 }
 
 /// Preprocesses a file already in `cache` (for example one added with
 /// [`SourceCache::add_virtual`]).
-pub fn preprocess_file_id(file: FileId, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
+pub fn preprocess_file_id(
+    file: FileId,
+    opts: &Options,
+    cache: &SourceCache,
+) -> Result<Output, Error> {
     engine::run(file, opts, cache)
 }
 

@@ -60,7 +60,10 @@ pub fn build_ok(options: &Options) -> Report {
 /// Fails (never skips) when a validator is missing, naming the Debian package.
 pub fn require_tool(tool: &str, package: &str) {
     let ok = Command::new(tool).arg("--version").output().map(|o| o.status.success()).unwrap_or(false);
-    assert!(ok, "`{tool}` is required by this test: install the Debian package `{package}` (apt-get install {package})");
+    assert!(
+        ok,
+        "`{tool}` is required by this test: install the Debian package `{package}` (apt-get install {package})"
+    );
 }
 
 /// Checks one artifact: SPIR-V with `spirv-val`, GLSL with `glslangValidator`, WGSL by

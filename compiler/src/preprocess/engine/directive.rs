@@ -1,0 +1,1359 @@
+//! Directives: conditionals (and skipping), `#include`, `#define`/`#undef`, `#pragma`,
+//! `#line`, `#error`/`#warning`.
+
+use super::*;
+
+impl Pp<'_> {
+    // -----------------------------------------------------------------------------------------
+    // Directives
+
+    /// Reads the rest of the directive line as tokens (comments are spaces; a block comment
+    /// may carry the line on). Leaves the frame at the start of the next line.
+    pub(super) fn directive_tokens(&mut self) -> PResult<(Vec<Tok>, u32)> {
+        let Some(frame) = self.frames.last_mut() else {
+            return Ok((Vec::new(), 0));
+        };
+        let source = frame.source.clone();
+        let ctx = frame.ctx;
+        let bytes = source.text().as_bytes();
+        let mut pos = frame.pos;
+        let mut white = false;
+        let mut toks = Vec::new();
+        let end;
+        loop {
+            let (kind, len) = lexer::next(bytes, pos);
+            match kind {
+                Kind::Eof => {
+                    end = pos;
+                    break;
+                }
+                Kind::Newline => {
+                    end = pos;
+                    pos += 1;
+                    break;
+                }
+                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => {
+                    white = true
+                }
+                Kind::BlockComment { terminated: false } => {
+                    return self.err_at(
+                        ctx,
+                        pos as u32..pos as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    );
+                }
+                _ => {
+                    let sym = self.it.intern(&source.text()[pos..pos + len]);
+                    let flags = if white { WHITE } else { 0 };
+                    toks.push(Tok {
+                        sym,
+                        ctx,
+                        src: pos as u32,
+                        len: len as u32,
+                        param: NO_PARAM,
+                        kind: tk_of(kind),
+                        flags,
+                    });
+                    white = false;
+                }
+            }
+            pos += len;
+        }
+        if let Some(f) = self.frames.last_mut() {
+            f.pos = pos;
+            f.bol = true;
+        }
+        Ok((toks, end as u32))
+    }
+
+    /// A directive met while collecting macro arguments: allowed except `#include`.
+    pub(super) fn directive_in_args(&mut self, hash: usize) -> PResult<()> {
+        let saved = self.inv;
+        let r = self.directive(hash);
+        self.inv = saved;
+        r
+    }
+
+    /// Runs the directive whose `#` is at `hash` (the frame is just after the `#`).
+    pub(super) fn directive(&mut self, hash: usize) -> PResult<()> {
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
+        let ctx = frame.ctx;
+        let source = frame.source.clone();
+        let text = source.text();
+        let bytes = text.as_bytes();
+        // The directive name, read in place (include needs the raw text after it).
+        let mut p = frame.pos;
+        loop {
+            let (kind, len) = lexer::next(bytes, p);
+            match kind {
+                Kind::Space | Kind::BlockComment { terminated: true } => p += len,
+                _ => break,
+            }
+        }
+        let (kind, len) = lexer::next(bytes, p);
+        let name = if kind == Kind::Ident {
+            &text[p..p + len]
+        } else {
+            ""
+        };
+        let name_range = p as u32..(p + len) as u32;
+        let hash_range = hash as u32..(hash + 1) as u32;
+        let in_args = !self.stack.is_empty() || self.inv.is_some();
+        let first_directive = frame.guard == GuardState::Start;
+        if let Some(f) = self.frames.last_mut() {
+            if kind == Kind::Ident {
+                f.pos = p + len;
+            }
+            let closed = matches!(f.guard, GuardState::Closed(_));
+            if closed || (first_directive && name != "ifndef") {
+                f.guard = GuardState::No;
+            }
+            if matches!(name, "else" | "elif")
+                && f.conds.len() == 1
+                && matches!(f.guard, GuardState::Inside(_))
+            {
+                f.guard = GuardState::No;
+            }
+        }
+        match name {
+            "define" => {
+                let (toks, _) = self.directive_tokens()?;
+                if toks.is_empty() {
+                    return self.err_at(
+                        ctx,
+                        name_range,
+                        "no macro name given in #define directive",
+                        "expected a macro name",
+                    );
+                }
+                self.parse_define(toks, false)
+            }
+            "undef" => {
+                let (toks, _) = self.directive_tokens()?;
+                let sym = self.directive_name(&toks, "undef", ctx, name_range)?;
+                if toks.len() > 1 {
+                    let l = self.tok_labels(&toks[1], "unexpected");
+                    self.warn("extra tokens at end of #undef directive", l);
+                }
+                if (sym as usize) < self.macro_of.len() {
+                    self.macro_of[sym as usize] = NONE;
+                }
+                Ok(())
+            }
+            "include" | "include_next" | "import" => {
+                if in_args {
+                    return self.err_at(
+                        ctx,
+                        name_range,
+                        "#include inside macro arguments is not supported",
+                        "inside this invocation's arguments",
+                    );
+                }
+                self.include(hash_range.start, p + len)
+            }
+            "if" | "ifdef" | "ifndef" => {
+                let (toks, _) = self.directive_tokens()?;
+                let taken = match name {
+                    "if" => self.eval_if(toks, ctx, name_range.clone())?,
+                    _ => {
+                        let sym = self.directive_name(&toks, name, ctx, name_range.clone())?;
+                        if toks.len() > 1 {
+                            let l = self.tok_labels(&toks[1], "unexpected");
+                            self.warn(format!("extra tokens at end of #{name} directive"), l);
+                        }
+                        let defined = self.macro_idx(sym) != NONE;
+                        if name == "ifndef" && first_directive {
+                            if let Some(f) = self.frames.last_mut() {
+                                f.guard = if f.conds.is_empty() && toks.len() == 1 {
+                                    GuardState::Inside(sym)
+                                } else {
+                                    GuardState::No
+                                };
+                            }
+                        }
+                        if name == "ifdef" {
+                            defined
+                        } else {
+                            !defined
+                        }
+                    }
+                };
+                let nm: &'static str = match name {
+                    "if" => "if",
+                    "ifdef" => "ifdef",
+                    _ => "ifndef",
+                };
+                if let Some(f) = self.frames.last_mut() {
+                    f.conds.push(Cond {
+                        site: hash_range.start..name_range.end,
+                        name: nm,
+                        taken,
+                        else_seen: false,
+                    });
+                }
+                if !taken {
+                    self.skip_group()?;
+                }
+                Ok(())
+            }
+            "elif" | "else" => {
+                let (toks, _) = self.directive_tokens()?;
+                let Some(f) = self.frames.last_mut() else {
+                    return Ok(());
+                };
+                let Some(c) = f.conds.last_mut() else {
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        format!("#{name} without #if"),
+                        "no open conditional",
+                    );
+                };
+                if c.else_seen {
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        format!("#{name} after #else"),
+                        "after the #else of this conditional",
+                    );
+                }
+                if name == "else" {
+                    c.else_seen = true;
+                    if !toks.is_empty() {
+                        let l = self.tok_labels(&toks[0], "unexpected");
+                        self.warn("extra tokens at end of #else directive", l);
+                    }
+                }
+                // We were in a taken group: everything up to #endif is skipped.
+                self.skip_group()
+            }
+            "endif" => {
+                let (toks, _) = self.directive_tokens()?;
+                let Some(f) = self.frames.last_mut() else {
+                    return Ok(());
+                };
+                if f.conds.pop().is_none() {
+                    return self.err_at(
+                        ctx,
+                        hash_range.start..name_range.end,
+                        "#endif without #if",
+                        "no open conditional",
+                    );
+                }
+                if f.conds.is_empty() {
+                    if let GuardState::Inside(sym) = f.guard {
+                        f.guard = GuardState::Closed(sym);
+                    }
+                }
+                if !toks.is_empty() {
+                    let l = self.tok_labels(&toks[0], "unexpected");
+                    self.warn("extra tokens at end of #endif directive", l);
+                }
+                Ok(())
+            }
+            "error" | "warning" => {
+                let start = p + len;
+                let (_, end) = self.directive_tokens()?;
+                let msg = text.get(start..end as usize).unwrap_or("").trim();
+                let msg = collapse_comments(msg);
+                let message = if msg.is_empty() {
+                    format!("#{name}")
+                } else {
+                    format!("#{name} {msg}")
+                };
+                let labels = self.labels_at(ctx, hash_range.start..end, "");
+                if name == "error" {
+                    return Err(Error::new(message, labels));
+                }
+                self.warn(message, labels);
+                Ok(())
+            }
+            "pragma" => self.pragma(p + len, ctx),
+            "line" => {
+                let (toks, _) = self.directive_tokens()?;
+                self.line_directive(toks, ctx, name_range)
+            }
+            "ident" | "sccs" => {
+                let start = p + len;
+                let (_, end) = self.directive_tokens()?;
+                let rest = collapse_comments(text.get(start..end as usize).unwrap_or("").trim());
+                self.emit_line(ctx, hash, &format!("#ident {rest}"))
+            }
+            "assert" | "unassert" => {
+                self.directive_tokens()?;
+                Ok(())
+            }
+            "" => {
+                let (toks, _) = self.directive_tokens()?;
+                match toks.first() {
+                    None => Ok(()),
+                    // GNU line marker: `# 33 "file"`.
+                    Some(t) if t.kind == TK::Number => self.line_directive(toks, ctx, name_range),
+                    Some(t) => {
+                        let s = self.it.str(t.sym).to_string();
+                        self.err_tok(
+                            t,
+                            format!("invalid preprocessing directive #{s}"),
+                            "not a directive",
+                        )
+                    }
+                }
+            }
+            other => {
+                let other = other.to_string();
+                self.err_at(
+                    ctx,
+                    name_range,
+                    format!("invalid preprocessing directive #{other}"),
+                    "unknown directive",
+                )
+            }
+        }
+    }
+
+    /// The macro name of `#undef`/`#ifdef`/`#ifndef`.
+    pub(super) fn directive_name(
+        &self,
+        toks: &[Tok],
+        dir: &str,
+        ctx: u32,
+        at: Range<u32>,
+    ) -> PResult<Sym> {
+        match toks.first() {
+            None => self.err_at(
+                ctx,
+                at,
+                format!("no macro name given in #{dir} directive"),
+                "expected a macro name",
+            ),
+            Some(t) if t.kind == TK::Ident => {
+                if t.sym == self.syms.defined && dir == "undef" {
+                    return self.err_tok(t, "\"defined\" cannot be used as a macro name", "here");
+                }
+                Ok(t.sym)
+            }
+            Some(t) => self.err_tok(t, "macro names must be identifiers", "not an identifier"),
+        }
+    }
+
+    /// Writes a line of its own (`#pragma`, `#ident` pass-through).
+    pub(super) fn emit_line(&mut self, ctx: u32, at: usize, line: &str) -> PResult<()> {
+        if !self.out.is_empty() && !self.out.ends_with('\n') {
+            self.out.push('\n');
+        }
+        let out_at = self.out.len() as u32;
+        self.map.entries.push(Entry {
+            out: out_at,
+            ctx,
+            src: at as u32,
+            end: at as u32 + 1,
+            def_ctx: NONE,
+            def_src: 0,
+            def_len: 0,
+            is_macro: true,
+        });
+        self.out.push_str(line);
+        self.out.push('\n');
+        self.last_tok = 0..0;
+        self.check_output()
+    }
+
+    pub(super) fn pragma(&mut self, start: usize, ctx: u32) -> PResult<()> {
+        let (toks, end) = self.directive_tokens()?;
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
+        let source = frame.source.clone();
+        let file = frame.file;
+        let first = toks
+            .first()
+            .map(|t| self.it.str(t.sym).to_string())
+            .unwrap_or_default();
+        match first.as_str() {
+            "once" => {
+                self.once.insert(file);
+                Ok(())
+            }
+            "push_macro" | "pop_macro" => {
+                // push_macro("NAME")
+                let name = toks.get(2).filter(|t| t.kind == TK::Str).map(|t| {
+                    let s = self.it.str(t.sym);
+                    s.trim_matches('"').to_string()
+                });
+                if let Some(name) = name {
+                    let sym = self.it.intern(&name);
+                    if first == "push_macro" {
+                        let m = self.macro_idx(sym);
+                        self.pushed.entry(sym).or_default().push(m);
+                    } else if let Some(m) = self.pushed.get_mut(&sym).and_then(|v| v.pop()) {
+                        if self.macro_of.len() <= sym as usize {
+                            self.macro_of.resize(sym as usize + 1, NONE);
+                        }
+                        self.macro_of[sym as usize] = m;
+                    }
+                }
+                Ok(())
+            }
+            "GCC" => {
+                let second = toks
+                    .get(1)
+                    .map(|t| self.it.str(t.sym).to_string())
+                    .unwrap_or_default();
+                match second.as_str() {
+                    "error" | "warning" => {
+                        let msg = toks
+                            .get(2)
+                            .map(|t| self.it.str(t.sym).to_string())
+                            .unwrap_or_default();
+                        let labels = self.labels_at(ctx, start as u32..end, "");
+                        if second == "error" {
+                            return Err(Error::new(msg.trim_matches('"').to_string(), labels));
+                        }
+                        self.warn(msg.trim_matches('"').to_string(), labels);
+                        Ok(())
+                    }
+                    "system_header" | "poison" | "dependency" | "push_options" | "pop_options"
+                    | "diagnostic" => Ok(()),
+                    _ => {
+                        let rest = collapse_comments(
+                            source.text().get(start..end as usize).unwrap_or("").trim(),
+                        );
+                        self.emit_line(ctx, start, &format!("#pragma {rest}"))
+                    }
+                }
+            }
+            _ => {
+                let rest =
+                    collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
+                self.emit_line(ctx, start, &format!("#pragma {rest}"))
+            }
+        }
+    }
+
+    pub(super) fn line_directive(
+        &mut self,
+        toks: Vec<Tok>,
+        ctx: u32,
+        at: Range<u32>,
+    ) -> PResult<()> {
+        let line_here = match self.frames.last() {
+            Some(f) => {
+                f.source
+                    .line_col(f.source.original_offset(at.start as usize))
+                    .0 as i64
+            }
+            None => return Ok(()),
+        };
+        let toks = self.expand_line(toks, Some(line_here))?;
+        let Some(n) = toks.first().filter(|t| t.kind == TK::Number) else {
+            return self.err_at(
+                ctx,
+                at,
+                "#line directive requires a simple digit sequence",
+                "here",
+            );
+        };
+        let Ok(value) = self.it.str(n.sym).parse::<i64>() else {
+            return self.err_tok(n, "line number out of range", "here");
+        };
+        let name = toks
+            .get(1)
+            .filter(|t| t.kind == TK::Str)
+            .map(|t| self.it.str(t.sym).to_string());
+        if let Some(f) = self.frames.last_mut() {
+            // The line after the directive gets `value`.
+            f.line_delta = value - (line_here + 1);
+            if let Some(n) = name {
+                f.name = unquote(&n);
+            }
+        }
+        Ok(())
+    }
+
+    /// Macro-expands directive tokens in isolation.
+    pub(super) fn expand_line(&mut self, toks: Vec<Tok>, line: Option<i64>) -> PResult<Vec<Tok>> {
+        let Some(first) = toks.first().copied() else {
+            return Ok(Vec::new());
+        };
+        let saved_line = self.directive_line;
+        self.directive_line = line;
+        let saved_inv = self.inv.take();
+        let depth = self.stack.len();
+        self.push_context(toks, NONE, true, &first)?;
+        let mut out = Vec::new();
+        let r = loop {
+            match self.get_token(false) {
+                Ok(Some(t)) if t.kind == TK::Eof => break Ok(()),
+                Ok(Some(t)) if matches!(t.kind, TK::Placemarker | TK::Padding) => {}
+                Ok(Some(t)) => out.push(t),
+                Ok(None) => break Ok(()),
+                Err(e) => break Err(e),
+            }
+        };
+        self.unwind(depth);
+        self.directive_line = saved_line;
+        self.inv = saved_inv;
+        r.map(|_| out)
+    }
+
+    /// Pops contexts down to `depth`, re-enabling their macros.
+    pub(super) fn unwind(&mut self, depth: usize) {
+        while self.stack.len() > depth {
+            if let Some(c) = self.stack.pop() {
+                if let Some(m) = self.defs.get_mut(c.mac as usize) {
+                    m.disabled = false;
+                }
+            }
+        }
+    }
+
+    /// Evaluates an `#if`/`#elif` line.
+    pub(super) fn eval_if(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<bool> {
+        let line = match self.frames.last() {
+            Some(f) => {
+                f.source
+                    .line_col(f.source.original_offset(at.start as usize))
+                    .0 as i64
+                    + f.line_delta
+            }
+            None => 0,
+        };
+        let Some(first) = toks.first().copied() else {
+            return self.err_at(ctx, at, "#if with no expression", "expected an expression");
+        };
+        let saved_line = self.directive_line;
+        self.directive_line = Some(line);
+        let saved_inv = self.inv.take();
+        let depth = self.stack.len();
+        let r = self.expand_if_tokens(toks, &first);
+        self.unwind(depth);
+        self.directive_line = saved_line;
+        self.inv = saved_inv;
+        let expanded = r?;
+        let mut etoks = Vec::with_capacity(expanded.len());
+        for t in &expanded {
+            let s = self.it.str(t.sym);
+            let kind = match t.kind {
+                TK::Ident => Kind::Ident,
+                TK::Number => Kind::Number,
+                TK::Str => Kind::Str { terminated: true },
+                TK::Char => Kind::Char { terminated: true },
+                TK::Punct => Kind::Punct,
+                _ => Kind::Other,
+            };
+            etoks.push(expr::Token::from_lexed(kind, s, &|_| None));
+        }
+        let result = expr::eval_tokens(&etoks);
+        drop(etoks);
+        match result {
+            Ok(v) => Ok(v.v != 0),
+            Err(e) => {
+                let label = if e.message.contains("division by zero") {
+                    "this divisor is zero"
+                } else {
+                    "here"
+                };
+                match expanded.get(e.at).or(expanded.last()) {
+                    Some(t) => self.err_tok(t, e.message, label),
+                    None => self.err_at(ctx, at, e.message, label),
+                }
+            }
+        }
+    }
+
+    /// Expands `#if` tokens, replacing `defined X` / `defined(X)` before expansion.
+    pub(super) fn expand_if_tokens(&mut self, toks: Vec<Tok>, first: &Tok) -> PResult<Vec<Tok>> {
+        self.push_context(toks, NONE, true, first)?;
+        let mut out = Vec::new();
+        while let Some(t) = self.get_token(false)? {
+            if t.kind == TK::Eof {
+                break;
+            }
+            if matches!(t.kind, TK::Placemarker | TK::Padding) {
+                continue;
+            }
+            if t.kind == TK::Ident
+                && (t.sym == self.syms.has_include || t.sym == self.syms.has_include_next)
+                && t.flags & NO_EXPAND == 0
+            {
+                let found = self.has_include(&t)?;
+                let sym = if found { self.syms.one } else { self.syms.zero };
+                out.push(Tok {
+                    sym,
+                    kind: TK::Number,
+                    ..t
+                });
+                continue;
+            }
+            if t.kind == TK::Ident && t.sym == self.syms.defined {
+                let Some(mut n) = self.next_raw(false)? else {
+                    break;
+                };
+                let paren = n.kind == TK::Punct && n.sym == self.syms.lparen;
+                if paren {
+                    n = self.next_raw(false)?.unwrap_or(Tok::eof());
+                }
+                if n.kind != TK::Ident {
+                    return self.err_tok(
+                        if n.kind == TK::Eof { &t } else { &n },
+                        "operator \"defined\" requires an identifier",
+                        "expected an identifier",
+                    );
+                }
+                if paren {
+                    let close = self.next_raw(false)?.unwrap_or(Tok::eof());
+                    if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
+                        return self.err_tok(
+                            &n,
+                            "missing ')' after \"defined\"",
+                            "expected ')' after this",
+                        );
+                    }
+                }
+                let is = self.macro_idx(n.sym) != NONE;
+                let sym = if is { self.syms.one } else { self.syms.zero };
+                out.push(Tok {
+                    sym,
+                    kind: TK::Number,
+                    ..t
+                });
+                continue;
+            }
+            out.push(t);
+        }
+        Ok(out)
+    }
+
+    /// `__has_include ( "file" )` / `( <file> )` in `#if`: whether the include resolves.
+    pub(super) fn has_include(&mut self, at: &Tok) -> PResult<bool> {
+        let name = self.it.str(at.sym).to_string();
+        let open = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
+            return self.err_tok(
+                at,
+                format!("missing '(' after \"{name}\""),
+                "expected '(' after this",
+            );
+        }
+        let first = self.get_real_token(false)?;
+        let (spelling, angle) = if first.kind == TK::Str {
+            let s = self.it.str(first.sym);
+            (
+                s.get(1..s.len().saturating_sub(1))
+                    .unwrap_or("")
+                    .to_string(),
+                false,
+            )
+        } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
+            let mut s = String::new();
+            loop {
+                let t = self.get_real_token(false)?;
+                if t.kind == TK::Eof {
+                    return self.err_tok(
+                        at,
+                        format!("missing terminating > character in \"{name}\""),
+                        "here",
+                    );
+                }
+                if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
+                    break;
+                }
+                if !s.is_empty() && t.flags & WHITE != 0 {
+                    s.push(' ');
+                }
+                s.push_str(self.it.str(t.sym));
+            }
+            (s, true)
+        } else {
+            return self.err_tok(
+                at,
+                format!("operator \"{name}\" requires a header-name"),
+                "expected \"FILE\" or <FILE> after this",
+            );
+        };
+        let close = self.next_raw(false)?.unwrap_or(Tok::eof());
+        if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
+            return self.err_tok(
+                at,
+                format!("missing ')' after \"{name}\" operand"),
+                "expected ')'",
+            );
+        }
+        Ok(matches!(
+            self.resolve_include(&spelling, angle),
+            Resolved::Found(..)
+        ))
+    }
+
+    /// Skips a group whose condition is false, up to the `#elif`/`#else`/`#endif` that ends
+    /// it, taking an `#elif`/`#else` branch when no earlier branch was taken.
+    pub(super) fn skip_group(&mut self) -> PResult<()> {
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
+        let source = frame.source.clone();
+        let ctx = frame.ctx;
+        let text = source.text();
+        let bytes = text.as_bytes();
+        let mut pos = frame.pos;
+        let mut depth = 0usize;
+        loop {
+            // At a line start: whitespace and comments, then maybe a directive.
+            let mut p = pos;
+            loop {
+                let (kind, len) = lexer::next(bytes, p);
+                match kind {
+                    Kind::Space | Kind::BlockComment { terminated: true } => p += len,
+                    _ => break,
+                }
+            }
+            if p >= bytes.len() {
+                if let Some(f) = self.frames.last_mut() {
+                    f.pos = bytes.len();
+                }
+                return Ok(()); // end_of_file reports the open conditional
+            }
+            let (kind, len) = lexer::next(bytes, p);
+            let is_hash = kind == Kind::Punct && (bytes[p] == b'#' || &bytes[p..p + len] == b"%:");
+            if is_hash {
+                let hash = p;
+                let mut q = p + len;
+                loop {
+                    let (k, l) = lexer::next(bytes, q);
+                    match k {
+                        Kind::Space | Kind::BlockComment { terminated: true } => q += l,
+                        _ => break,
+                    }
+                }
+                let (k, l) = lexer::next(bytes, q);
+                let name = if k == Kind::Ident {
+                    &text[q..q + l]
+                } else {
+                    ""
+                };
+                let name_range = q as u32..(q + l) as u32;
+                match name {
+                    "if" | "ifdef" | "ifndef" => depth += 1,
+                    "endif" if depth > 0 => depth -= 1,
+                    "endif" | "else" | "elif" if depth == 0 => {
+                        if let Some(f) = self.frames.last_mut() {
+                            f.pos = q + l;
+                        }
+                        let (toks, _) = self.directive_tokens()?;
+                        let Some(f) = self.frames.last_mut() else {
+                            return Ok(());
+                        };
+                        if name != "endif"
+                            && f.conds.len() == 1
+                            && matches!(f.guard, GuardState::Inside(_))
+                        {
+                            f.guard = GuardState::No;
+                        }
+                        let Some(c) = f.conds.last_mut() else {
+                            return Ok(());
+                        };
+                        match name {
+                            "endif" => {
+                                f.conds.pop();
+                                if f.conds.is_empty() {
+                                    if let GuardState::Inside(sym) = f.guard {
+                                        f.guard = GuardState::Closed(sym);
+                                    }
+                                }
+                                return Ok(());
+                            }
+                            _ if c.else_seen => {
+                                return self.err_at(
+                                    ctx,
+                                    hash as u32..name_range.end,
+                                    format!("#{name} after #else"),
+                                    "after the #else of this conditional",
+                                );
+                            }
+                            "else" => {
+                                c.else_seen = true;
+                                if !c.taken {
+                                    c.taken = true;
+                                    return Ok(());
+                                }
+                            }
+                            _ => {
+                                // #elif
+                                if !c.taken {
+                                    let v = self.eval_if(toks, ctx, name_range.clone())?;
+                                    if v {
+                                        if let Some(c) =
+                                            self.frames.last_mut().and_then(|f| f.conds.last_mut())
+                                        {
+                                            c.taken = true;
+                                        }
+                                        return Ok(());
+                                    }
+                                }
+                            }
+                        }
+                        pos = self.frames.last().map_or(bytes.len(), |f| f.pos);
+                        continue;
+                    }
+                    _ => {}
+                }
+            }
+            // Skip to the end of this line, honouring comments and literals.
+            pos = skip_line(bytes, p);
+        }
+    }
+
+    pub(super) fn include(&mut self, hash: u32, after_name: usize) -> PResult<()> {
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
+        let ctx = frame.ctx;
+        let source = frame.source.clone();
+        let text = source.text();
+        let bytes = text.as_bytes();
+        let mut p = after_name;
+        while p < bytes.len() && matches!(bytes[p], b' ' | b'\t' | b'\r' | b'\x0b' | b'\x0c') {
+            p += 1;
+        }
+        // Header names are lexed from the raw text; anything else is macro-expanded.
+        let line_end = lexer::memchr_nl(bytes, p);
+        let (spelling, angle, spell_range, rest_at) = match bytes.get(p) {
+            Some(b'<') => match text[p + 1..line_end].find('>') {
+                Some(i) => (
+                    text[p + 1..p + 1 + i].to_string(),
+                    true,
+                    p as u32..(p + i + 2) as u32,
+                    p + i + 2,
+                ),
+                None => {
+                    return self.err_at(
+                        ctx,
+                        p as u32..line_end as u32,
+                        "missing terminating > character",
+                        "this header name is never closed",
+                    )
+                }
+            },
+            Some(b'"') => match text[p + 1..line_end].find('"') {
+                Some(i) => (
+                    text[p + 1..p + 1 + i].to_string(),
+                    false,
+                    p as u32..(p + i + 2) as u32,
+                    p + i + 2,
+                ),
+                None => {
+                    return self.err_at(
+                        ctx,
+                        p as u32..line_end as u32,
+                        "missing terminating \" character",
+                        "this file name is never closed",
+                    )
+                }
+            },
+            _ => {
+                if let Some(f) = self.frames.last_mut() {
+                    f.pos = p;
+                }
+                let (toks, end) = self.directive_tokens()?;
+                if toks.is_empty() {
+                    return self.err_at(
+                        ctx,
+                        hash..end,
+                        "#include expects \"FILENAME\" or <FILENAME>",
+                        "no file name",
+                    );
+                }
+                let range = toks[0].src..end;
+                let line = source.line_col(source.original_offset(hash as usize)).0 as i64;
+                let exp = self.expand_line(toks, Some(line))?;
+                let (s, angle) = self.computed_header(&exp).ok_or(()).or_else(|_| {
+                    self.err_at(
+                        ctx,
+                        range.clone(),
+                        "#include expects \"FILENAME\" or <FILENAME>",
+                        "this does not expand to a file name",
+                    )
+                })?;
+                return self.do_include(&s, angle, ctx, hash, range);
+            }
+        };
+        if let Some(f) = self.frames.last_mut() {
+            f.pos = rest_at;
+        }
+        let (extra, _) = self.directive_tokens()?;
+        if let Some(t) = extra.first() {
+            let l = self.tok_labels(t, "unexpected");
+            self.warn("extra tokens at end of #include directive", l);
+        }
+        self.do_include(&spelling, angle, ctx, hash, spell_range)
+    }
+
+    /// The file name of a macro-expanded `#include` line.
+    pub(super) fn computed_header(&self, toks: &[Tok]) -> Option<(String, bool)> {
+        let first = toks.first()?;
+        if first.kind == TK::Str {
+            let s = self.it.str(first.sym);
+            if s.starts_with('"') && s.len() >= 2 {
+                return Some((s[1..s.len() - 1].to_string(), false));
+            }
+            return None;
+        }
+        if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
+            let mut s = String::new();
+            for (i, t) in toks.iter().enumerate().skip(1) {
+                if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
+                    return Some((s, true));
+                }
+                if i > 1 && t.flags & WHITE != 0 {
+                    s.push(' ');
+                }
+                s.push_str(self.it.str(t.sym));
+            }
+        }
+        None
+    }
+
+    /// Where an include of `spelling` leads from the current file.
+    pub(super) fn resolve_include(&self, spelling: &str, angle: bool) -> Resolved {
+        let includer_name = self
+            .frames
+            .last()
+            .map(|f| f.name.clone())
+            .unwrap_or_default();
+        let mut found = Resolved::NotFound;
+        let is_virtual = self
+            .opts
+            .virtual_roots
+            .iter()
+            .any(|(p, _)| virtual_match(spelling, p).is_some());
+        if !angle && !is_virtual && relative_ok(spelling) {
+            if let Some(dir) = self
+                .frames
+                .last()
+                .and_then(|f| f.source.path.parent())
+                .filter(|d| d.is_dir())
+            {
+                let cand = dir.join(spelling);
+                if cand.is_file() {
+                    found = Resolved::NotFound;
+                    if let Ok(c) = cand.canonicalize() {
+                        found = if self.roots.iter().any(|r| c.starts_with(r)) {
+                            Resolved::Found(c, String::new())
+                        } else {
+                            Resolved::Escapes(c)
+                        };
+                    }
+                    if let Resolved::Found(_, name) = &mut found {
+                        *name = match includer_name.rfind('/') {
+                            Some(i) => format!("{}/{spelling}", &includer_name[..i]),
+                            None => spelling.to_string(),
+                        };
+                    }
+                }
+            }
+        }
+        if matches!(found, Resolved::NotFound) {
+            found = resolve_in_roots(spelling, self.opts);
+        }
+        found
+    }
+
+    pub(super) fn do_include(
+        &mut self,
+        spelling: &str,
+        angle: bool,
+        ctx: u32,
+        hash: u32,
+        range: Range<u32>,
+    ) -> PResult<()> {
+        if spelling.is_empty() {
+            return self.err_at(ctx, range, "empty filename in #include", "no file name");
+        }
+        if self.frames.len() >= 200 {
+            return self.err_at(
+                ctx,
+                range,
+                "#include nested depth 200 exceeds maximum of 200",
+                "this include",
+            );
+        }
+        let found = self.resolve_include(spelling, angle);
+        let (path, cpp_name) = match found {
+            Resolved::Found(p, n) => (p, n),
+            Resolved::Escapes(p) => {
+                let shown = self.cache.display_name(&p);
+                return self.err_at(
+                    ctx,
+                    range,
+                    format!(
+                        "#include \"{spelling}\" resolves to `{shown}`, outside the include roots"
+                    ),
+                    "this include escapes its root",
+                );
+            }
+            Resolved::NotFound => {
+                let mut e = Error::new(
+                    format!("cannot find include file `{spelling}`"),
+                    self.labels_at(ctx, range, "not found"),
+                );
+                let mut searched: Vec<String> = Vec::new();
+                if !angle {
+                    searched.push("the including file's folder".to_string());
+                }
+                for r in &self.opts.include_roots {
+                    searched.push(
+                        self.cache
+                            .display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())),
+                    );
+                }
+                e.diagnostic = e.diagnostic.with_notes(vec![if searched.is_empty() {
+                    "no include roots are configured".to_string()
+                } else {
+                    format!("searched: {}", searched.join(", "))
+                }]);
+                return Err(e);
+            }
+        };
+        let (id, source) = self.cache.load(&path).map_err(|e| {
+            Error::new(
+                format!("cannot read `{}`: {e}", self.cache.display_name(&path)),
+                self.labels_at(ctx, range.clone(), "included here"),
+            )
+        })?;
+        if source.text().len() >= (u32::MAX / 2) as usize {
+            return self.err_at(ctx, range, "included file is too large", "this include");
+        }
+        if self.once.contains(&id) {
+            if !self.files.contains(&id) {
+                self.files.push(id);
+            }
+            return Ok(());
+        }
+        if let Some(&g) = self.guards.get(&id) {
+            if self.macro_idx(g) != NONE {
+                return Ok(());
+            }
+        }
+        let name = if cpp_name.is_empty() {
+            source.name.clone()
+        } else {
+            cpp_name
+        };
+        let site_end = range.end.max(hash);
+        if !self.out.is_empty() && !self.out.ends_with('\n') {
+            self.out.push('\n');
+        }
+        self.push_file(id, source, name, ctx, hash..site_end);
+        Ok(())
+    }
+
+    // -----------------------------------------------------------------------------------------
+    // Definitions
+
+    pub(super) fn parse_define(&mut self, toks: Vec<Tok>, predefined: bool) -> PResult<()> {
+        let name = toks[0];
+        if name.kind != TK::Ident {
+            return self.err_tok(
+                &name,
+                "macro names must be identifiers",
+                "not an identifier",
+            );
+        }
+        if name.sym == self.syms.defined {
+            return self.err_tok(&name, "\"defined\" cannot be used as a macro name", "here");
+        }
+        let mut i = 1;
+        let mut func = false;
+        let mut variadic = false;
+        let mut params: Vec<Sym> = Vec::new();
+        if toks.get(1).is_some_and(|t| {
+            t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0
+        }) {
+            func = true;
+            i = 2;
+            let mut expect_param = true;
+            loop {
+                let Some(t) = toks.get(i).copied() else {
+                    return self.err_tok(
+                        &toks[i - 1],
+                        "missing ')' in macro parameter list",
+                        "expected ')' after this",
+                    );
+                };
+                i += 1;
+                let s = self.it.str(t.sym).to_string();
+                if expect_param {
+                    if t.kind == TK::Ident {
+                        if params.contains(&t.sym) {
+                            return self.err_tok(
+                                &t,
+                                format!("duplicate macro parameter \"{s}\""),
+                                "already a parameter",
+                            );
+                        }
+                        if t.sym == self.syms.va_args {
+                            return self.err_tok(
+                                &t,
+                                "__VA_ARGS__ can not be used as a parameter name",
+                                "here",
+                            );
+                        }
+                        params.push(t.sym);
+                        expect_param = false;
+                        continue;
+                    }
+                    if s == "..." {
+                        variadic = true;
+                        params.push(self.syms.va_args);
+                        let Some(c) = toks.get(i).copied() else {
+                            return self.err_tok(
+                                &t,
+                                "missing ')' in macro parameter list",
+                                "expected ')' after this",
+                            );
+                        };
+                        i += 1;
+                        if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
+                            return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
+                        }
+                        break;
+                    }
+                    if s == ")" && params.is_empty() {
+                        break;
+                    }
+                    return self.err_tok(
+                        &t,
+                        format!("expected parameter name, found \"{s}\""),
+                        "expected a parameter name",
+                    );
+                }
+                match s.as_str() {
+                    "," => expect_param = true,
+                    ")" => break,
+                    "..." => {
+                        // GNU named variadic parameter: `args...`.
+                        variadic = true;
+                        let Some(c) = toks.get(i).copied() else {
+                            return self.err_tok(
+                                &t,
+                                "missing ')' in macro parameter list",
+                                "expected ')' after this",
+                            );
+                        };
+                        i += 1;
+                        if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
+                            return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
+                        }
+                        break;
+                    }
+                    _ => {
+                        return self.err_tok(
+                            &t,
+                            format!("expected ',' or ')', found \"{s}\""),
+                            "expected ',' or ')'",
+                        )
+                    }
+                }
+            }
+        } else if let Some(t) = toks.get(1) {
+            if t.flags & WHITE == 0 && !predefined {
+                let l = self.tok_labels(&name, "here");
+                self.warn("missing whitespace after the macro name", l);
+            }
+        }
+        let named_variadic = variadic && params.last() != Some(&self.syms.va_args);
+        let mut body: Vec<Tok> = Vec::with_capacity(toks.len() - i);
+        let mut j = i;
+        while j < toks.len() {
+            let mut t = toks[j];
+            t.flags |= FROM_DEF;
+            if body.is_empty() {
+                t.flags &= !WHITE;
+            }
+            let s = self.it.str(t.sym);
+            if t.kind == TK::Punct && (s == "##" || s == "%:%:") {
+                if body.is_empty() || j + 1 == toks.len() {
+                    return self.err_tok(
+                        &toks[j],
+                        "'##' cannot appear at either end of a macro expansion",
+                        "here",
+                    );
+                }
+                if let Some(last) = body.last_mut() {
+                    last.flags |= PASTE_LEFT;
+                }
+                j += 1;
+                continue;
+            }
+            if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
+                let next = toks.get(j + 1).copied();
+                if let Some(n) =
+                    next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt)
+                {
+                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
+                    body.push(Tok {
+                        flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
+                        ..n
+                    });
+                    j += 2;
+                    continue;
+                }
+                match next
+                    .filter(|n| n.kind == TK::Ident)
+                    .and_then(|n| params.iter().position(|&p| p == n.sym))
+                {
+                    Some(pi) => {
+                        let n = toks[j + 1];
+                        body.push(Tok {
+                            param: pi as u16,
+                            flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
+                            ..n
+                        });
+                        j += 2;
+                        continue;
+                    }
+                    None => {
+                        return self.err_tok(
+                            &toks[j],
+                            "'#' is not followed by a macro parameter",
+                            "here",
+                        )
+                    }
+                }
+            }
+            if t.kind == TK::Ident {
+                if func {
+                    if let Some(pi) = params.iter().position(|&p| p == t.sym) {
+                        t.param = pi as u16;
+                    }
+                }
+                if t.sym == self.syms.va_args
+                    && (!variadic || named_variadic)
+                    && t.param == NO_PARAM
+                {
+                    let l = self.tok_labels(&toks[j], "here");
+                    self.warn(
+                        "__VA_ARGS__ can only appear in the expansion of a C99 variadic macro",
+                        l,
+                    );
+                }
+            }
+            body.push(t);
+            j += 1;
+        }
+        // GNU `, ## __VA_ARGS__`.
+        if variadic {
+            let va = (params.len() - 1) as u16;
+            for k in 0..body.len().saturating_sub(1) {
+                if body[k].kind == TK::Punct
+                    && body[k].sym == self.syms.comma
+                    && body[k].flags & PASTE_LEFT != 0
+                    && body[k + 1].param == va
+                    && body[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
+                {
+                    body[k].flags |= VA_COMMA;
+                }
+            }
+        }
+        if params.len() >= NO_PARAM as usize {
+            return self.err_tok(&name, "too many macro parameters", "here");
+        }
+        let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
+        let va_opt = variadic
+            && body
+                .iter()
+                .any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
+        let m = Macro {
+            func,
+            variadic,
+            params,
+            body: body.into(),
+            pastes,
+            va_opt,
+            builtin: Builtin::None,
+            ctx: name.ctx,
+            site: name.src..name.src + name.len,
+            disabled: false,
+        };
+        let old = self.macro_idx(name.sym);
+        if old != NONE {
+            let prev = &self.defs[old as usize];
+            if !self.same_definition(prev, &m) {
+                let n = self.it.str(name.sym).to_string();
+                let mut labels = self.tok_labels(&name, "redefined here");
+                if prev.ctx != NONE {
+                    if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
+                        let r = c
+                            .source
+                            .original_range(prev.site.start as usize..prev.site.end as usize);
+                        labels
+                            .push(Label::secondary(c.file, r).with_message("previous definition"));
+                    }
+                }
+                self.warn(format!("\"{n}\" redefined"), labels);
+            }
+        }
+        self.set_macro(name.sym, m);
+        Ok(())
+    }
+
+    pub(super) fn same_definition(&self, a: &Macro, b: &Macro) -> bool {
+        const CMP: u8 = WHITE | PASTE_LEFT | STRINGIFY;
+        a.builtin == b.builtin
+            && a.func == b.func
+            && a.variadic == b.variadic
+            && a.params == b.params
+            && a.body.len() == b.body.len()
+            && a.body
+                .iter()
+                .zip(b.body.iter())
+                .enumerate()
+                .all(|(i, (x, y))| {
+                    x.sym == y.sym
+                        && x.param == y.param
+                        && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
+                })
+    }
+}
+
+/// Skips to the start of the next line from `p`, treating comments and literals as cpp does
+/// in a skipped group (a block comment may run over several lines).
+fn skip_line(bytes: &[u8], mut p: usize) -> usize {
+    while p < bytes.len() {
+        match bytes[p] {
+            b'\n' => return p + 1,
+            b'/' | b'"' | b'\'' | b'L' | b'u' | b'U' => {
+                let (kind, len) = lexer::next(bytes, p);
+                match kind {
+                    Kind::LineComment => return lexer::memchr_nl(bytes, p) + 1,
+                    _ => p += len.max(1),
+                }
+            }
+            _ => p += 1,
+        }
+    }
+    bytes.len()
+}
+
+/// Directive text with comments replaced by single spaces.
+fn collapse_comments(s: &str) -> String {
+    if !s.contains("/*") && !s.contains("//") {
+        return s.to_string();
+    }
+    let b = s.as_bytes();
+    let mut out = String::with_capacity(s.len());
+    let mut p = 0;
+    while p < b.len() {
+        let (kind, len) = lexer::next(b, p);
+        let len = len.max(1).min(b.len() - p);
+        match kind {
+            Kind::LineComment | Kind::BlockComment { .. } => out.push(' '),
+            _ => out.push_str(s.get(p..p + len).unwrap_or("")),
+        }
+        p += len;
+    }
+    out.trim().to_string()
+}
