@@ -154,6 +154,7 @@ impl<'a> MobilePipelines<'a> {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(PipelineError::Wgpu { what: format!("render pipeline `{label}`"), message: e.to_string() });
         }
+        self.cache.count_external_render_pipeline();
         let built = Arc::new(MobilePipeline { label, pipeline, layout });
         self.built.lock().unwrap_or_else(|e| e.into_inner()).insert(key, built.clone());
         Ok(built)
