@@ -164,3 +164,21 @@ fn reflections_blend_captures_with_hq_reflections() {
     assert!(light_sum(&nearest) > light_sum(&none));
     assert!(a < 45.0 && b < 62.0, "reflections changed nothing: {a:.1} / {b:.1} dB");
 }
+
+#[test]
+fn msaa_resolves_at_the_end_of_the_last_scene_color_pass() {
+    let rig = rig(Backend::Vulkan);
+    let mut scene = Scene::bundled();
+    scene.objects.retain(|o| o.name != "GlassStatues");
+    // Without translucent meshes the frame has no Translucency pass: the base pass resolves.
+    let (passes, resolved_in_base) = rig.render_passes(&scene, MobileOptions { translucency: true, ..MobileOptions::forward() }, false);
+    assert!(!passes.iter().any(|p| p.name == "Translucency"));
+    let no_msaa = rig.render(&scene, MobileOptions { msaa: 1, ..MobileOptions::forward() });
+    let p = psnr(&resolved_in_base, &no_msaa);
+    // Anti-aliasing changes edge pixels only.
+    eprintln!("MSAA 4x against no MSAA: {p:.1} dB");
+    assert!(p > 28.0 && p.is_finite(), "MSAA {p:.1} dB against no MSAA");
+    // With glass statues, Translucency continues the multisampled color and resolves it.
+    let (passes, _) = rig.render_passes(&Scene::bundled(), MobileOptions::forward(), false);
+    assert_eq!(passes.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(), ["ShadowDepths", "BasePass", "Translucency", "PostProcessing"]);
+}
