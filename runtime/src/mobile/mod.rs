@@ -184,7 +184,8 @@ impl MobileOptions {
     }
 
     fn check(&self) -> Result<(), PipelineError> {
-        let bad = |m: &str| Err(PipelineError::Wgpu { what: "mobile options".into(), message: m.into() });
+        // Options outside these ranges name no permutation of the archive (or no frame).
+        let bad = |m: &str| Err(PipelineError::Lookup(crate::shaders::LookupError::BadName(format!("mobile options: {m}"))));
         if ![0, 1, 2, 4].contains(&self.max_dynamic_point_lights) {
             return bad("MAX_DYNAMIC_POINT_LIGHTS is 0, 1, 2 or 4");
         }
@@ -509,5 +510,36 @@ fn msaa_samples(adapter: &wgpu::Adapter, options: &MobileOptions) -> u32 {
         options.msaa
     } else {
         1
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_outside_the_permutations_are_errors() {
+        let check = |o: MobileOptions| o.check().map_err(|e| e.to_string());
+        assert_eq!(check(MobileOptions::forward()), Ok(()));
+        assert_eq!(check(MobileOptions::deferred()), Ok(()));
+        assert_eq!(
+            check(MobileOptions { max_dynamic_point_lights: 3, ..MobileOptions::forward() }),
+            Err("cannot name permutation: mobile options: MAX_DYNAMIC_POINT_LIGHTS is 0, 1, 2 or 4".into())
+        );
+        assert_eq!(
+            check(MobileOptions { hdr: false, ..MobileOptions::deferred() }),
+            Err("cannot name permutation: mobile options: mobile deferred shading needs mobile HDR".into())
+        );
+        assert_eq!(check(MobileOptions { cascades: 5, ..MobileOptions::forward() }), Err("cannot name permutation: mobile options: the directional light has 1 to 4 cascades".into()));
+        assert_eq!(check(MobileOptions { msaa: 2, ..MobileOptions::forward() }), Err("cannot name permutation: mobile options: MSAA is 1 or 4 samples".into()));
+    }
+
+    #[test]
+    fn comparable_options_turn_off_what_one_path_lacks() {
+        for path in [ShadingPath::Forward, ShadingPath::Deferred] {
+            let o = MobileOptions::comparable(path);
+            assert_eq!((o.msaa, o.vertex_fog, o.reflections, o.bloom, o.translucency), (1, false, false, false, false));
+            assert!(o.hdr && o.csm && o.sky_light && o.max_dynamic_point_lights == 4);
+        }
     }
 }
