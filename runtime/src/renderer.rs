@@ -80,7 +80,8 @@ pub enum RenderError {
     Wgpu(String),
 }
 
-/// The passes of each frame, built once.
+/// The passes of each frame, built once (one per renderer: variant sizes do not matter).
+#[allow(clippy::large_enum_variant)]
 enum Passes {
     Desktop {
         particles: ParticleSimulationPass,
@@ -92,7 +93,7 @@ enum Passes {
         tonemap: TonemapPass,
     },
     /// Both mobile frames (`crate::mobile`).
-    Mobile(crate::mobile::MobileFrame),
+    Mobile(Box<crate::mobile::MobileFrame>),
 }
 
 /// One rendered frame.
@@ -171,7 +172,7 @@ impl Renderer {
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let options = crate::mobile::MobileOptions::for_pipeline(options.pipeline);
-                    Passes::Mobile(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?)
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?))
                 }
             }
         };
