@@ -259,6 +259,11 @@ impl BasePass {
         }
         let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
         ctx.output(&targets.scene_color.texture, vis);
+        // Forward depth survives the pass only when Translucency needs it, and only a
+        // single-sampled one can be read back.
+        if !deferred && targets.samples == 1 && depth_store == wgpu::StoreOp::Store {
+            ctx.output_named("SceneDepth", &targets.scene_depth.texture, Visualize::Depth);
+        }
         if deferred {
             for g in [&targets.gbuffer_a, &targets.gbuffer_b, &targets.gbuffer_c].into_iter().flatten() {
                 ctx.output_named(g.name, &g.texture, Visualize::Direct);
