@@ -18,6 +18,7 @@ pub mod desktop;
 pub mod frame;
 pub mod gpu;
 pub mod gpu_types;
+pub mod mobile;
 pub mod passes;
 pub mod pipelines;
 pub mod renderer;

@@ -420,7 +420,15 @@ impl PipelineCache {
         Ok(handle)
     }
 
-    fn layout(&self, label: &str, reflections: &[&Reflection]) -> Result<PipelineLayoutInfo, PipelineError> {
+    /// Counts a render pipeline a pass built itself from this cache's modules and layouts
+    /// (the mobile frames, whose stencil and write-mask state `RenderState` does not hold).
+    pub fn count_external_render_pipeline(&self) {
+        self.lock().stats.render_pipelines += 1;
+    }
+
+    /// The pipeline layout of a set of stages, from their reflection (bind group layouts
+    /// shared through the cache).
+    pub fn layout(&self, label: &str, reflections: &[&Reflection]) -> Result<PipelineLayoutInfo, PipelineError> {
         let groups = merge_bindings(label, reflections)?;
         let mut bind_group_layouts = Vec::with_capacity(groups.len());
         for (g, bindings) in groups.iter().enumerate() {

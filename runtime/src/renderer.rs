@@ -12,8 +12,6 @@ use crate::gpu::Gpu;
 use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
 use crate::passes::depth::{DepthPass, DepthView};
 use crate::passes::lighting::LightingPass;
-use crate::passes::mobile_base_pass::{MobileBasePass, MobileBasePassOptions};
-use crate::passes::mobile_deferred_shading::MobileDeferredShadingPass;
 use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
@@ -84,7 +82,8 @@ pub enum RenderError {
     Wgpu(String),
 }
 
-/// The passes of each frame, built once.
+/// The passes of each frame, built once (one per renderer: variant sizes do not matter).
+#[allow(clippy::large_enum_variant)]
 enum Passes {
     /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
     /// before it (the sprites are drawn in its Translucency).
@@ -98,8 +97,8 @@ enum Passes {
         translucency: TranslucencyPass,
         tonemap: TonemapPass,
     },
-    MobileForward { shadows: DepthPass, base: MobileBasePass, translucency: TranslucencyPass, tonemap: TonemapPass },
-    MobileDeferred { shadows: DepthPass, base: MobileBasePass, shading: MobileDeferredShadingPass, translucency: TranslucencyPass, tonemap: TonemapPass },
+    /// Both mobile frames (`crate::mobile`).
+    Mobile(Box<crate::mobile::MobileFrame>),
 }
 
 /// One rendered frame.
@@ -160,6 +159,7 @@ impl Renderer {
             }),
             targets: Targets::new(device, options.width, options.height),
         };
+        let options_size = (options.width, options.height);
         let passes = {
             let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
             match options.pipeline {
@@ -189,19 +189,10 @@ impl Renderer {
                         particles,
                     }
                 }
-                FramePipeline::MobileForward => Passes::MobileForward {
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: MobileBasePass::new(&init, MobileBasePassOptions::forward())?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
-                FramePipeline::MobileDeferred => Passes::MobileDeferred {
-                    shadows: DepthPass::new(&init, DepthView::Sun)?,
-                    base: MobileBasePass::new(&init, MobileBasePassOptions::deferred())?,
-                    shading: MobileDeferredShadingPass::new(&init)?,
-                    translucency: TranslucencyPass::new(&init, TranslucencyShading::Mobile(MobileBasePassOptions::forward()), &[])?,
-                    tonemap: TonemapPass::new(&init)?,
-                },
+                FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
+                    let options = crate::mobile::MobileOptions::for_pipeline(options.pipeline);
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?))
+                }
             }
         };
         let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
@@ -270,24 +261,16 @@ impl Renderer {
                 frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
                 frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
             }
-            Passes::MobileForward { shadows, base, translucency, tonemap } => {
-                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
-                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
-                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
-                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
-            }
-            Passes::MobileDeferred { shadows, base, shading, translucency, tonemap } => {
-                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
-                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
-                frame.pass("MobileDeferredShading", |ctx| shading.record(ctx, t));
-                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
-                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
-            }
+            Passes::Mobile(mobile) => mobile.record(&mut frame, s),
         }
         // The output is always read back, as a capture of a final pseudo-pass.
         let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
         let passes = frame.finish();
-        readback.pass("Output", |ctx| ctx.output(&t.output.texture, crate::frame::Visualize::Direct));
+        let output = match &self.passes {
+            Passes::Mobile(mobile) => mobile.output(),
+            _ => &t.output.texture,
+        };
+        readback.pass("Output", |ctx| ctx.output(output, crate::frame::Visualize::Direct));
         let mut out = readback.finish();
         let image = out.pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i).ok_or(RenderError::NoOutput)?;
         Ok(FrameOutput { image, passes })

@@ -44,11 +44,15 @@ fn builder_accepts_enum_labels_and_any_order() {
         .with("USE_VERTEX_FOG", 1)
         .with("MAX_DYNAMIC_POINT_LIGHTS", 4)
         .with("FULLY_ROUGH", 1)
+        .with("OUTPUT_GAMMA_SPACE", 0)
+        .with("ENABLE_SKY_LIGHT", 1)
+        .with("HQ_REFLECTIONS", 0)
+        .with("DIRECTIONAL_LIGHT_CSM", 1)
         .find()
         .unwrap();
     assert_eq!(
         p.name(),
-        "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=4,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0,MATERIAL_BLEND_MODE=MASKED}"
+        "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=4,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0,DIRECTIONAL_LIGHT_CSM=1,HQ_REFLECTIONS=0,ENABLE_SKY_LIGHT=1,OUTPUT_GAMMA_SPACE=0,MATERIAL_BLEND_MODE=MASKED}"
     );
     // A shader with one level needs no .level().
     assert_eq!(a.shader("BasePassVS").find().unwrap().name(), "BasePassVS@sm5{}");
@@ -65,12 +69,19 @@ fn skipped_permutation_names_the_nearest_and_what_differs() {
         .with("MAX_DYNAMIC_POINT_LIGHTS", 2)
         .with("USE_VERTEX_FOG", 0)
         .with("DEFERRED_SHADING_PATH", 1)
+        .with("DIRECTIONAL_LIGHT_CSM", 0)
+        .with("HQ_REFLECTIONS", 0)
+        .with("ENABLE_SKY_LIGHT", 0)
+        .with("OUTPUT_GAMMA_SPACE", 0)
         .with("MATERIAL_BLEND_MODE", "OPAQUE")
         .find()
         .err()
         .expect("lookup should fail");
     let LookupError::Missing { name, nearest } = &err else { panic!("{err}") };
-    assert_eq!(name, "MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2,USE_VERTEX_FOG=0,DEFERRED_SHADING_PATH=1,MATERIAL_BLEND_MODE=OPAQUE}");
+    assert_eq!(
+        name,
+        "MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2,USE_VERTEX_FOG=0,DEFERRED_SHADING_PATH=1,DIRECTIONAL_LIGHT_CSM=0,HQ_REFLECTIONS=0,ENABLE_SKY_LIGHT=0,OUTPUT_GAMMA_SPACE=0,MATERIAL_BLEND_MODE=OPAQUE}"
+    );
     assert_eq!(nearest[0].differences.len(), 1, "{err}");
     let text = err.to_string();
     assert!(text.starts_with("permutation `MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2"), "{text}");

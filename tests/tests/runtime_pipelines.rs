@@ -41,7 +41,8 @@ fn state_for(vs: &PermutationRef<'_>, fs: Option<&PermutationRef<'_>>) -> Render
     let vertex_layout = if vs.reflection().vertex_inputs.is_empty() { VertexLayout::None } else { VertexLayout::MeshInstanced };
     let mut state = RenderState::mesh();
     state.vertex_layout = vertex_layout;
-    if vertex_layout == VertexLayout::MeshInstanced || fs.is_none() {
+    // Depth-only pipelines, and pixel shaders that write only depth (MobileSceneDepthAuxPS).
+    if vertex_layout == VertexLayout::MeshInstanced || fs.is_none_or(|f| f.reflection().color_outputs.is_empty()) {
         state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, true));
     }
     if let Some(fs) = fs {

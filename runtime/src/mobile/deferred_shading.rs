@@ -1,0 +1,217 @@
+//! MobileDeferredShading: the lighting of the mobile deferred path.
+//!
+//! Steps: `SceneDepthAux` copies the scene depth into a depth texture the lights can read
+//! while the scene depth-stencil stays attached; then one render pass on SceneColor:
+//! `DirectionalLight` (one full-screen draw: the directional light with its CSM, reflections
+//! and the sky light, where the stencil says default lit), and `LocalLights`: per light a
+//! stencil draw of the volume's front faces marks the pixels in front of the volume (depth
+//! fails, the sandbox bit is set), then the light draws the volume's back faces where the
+//! stencil is default lit and unmarked, and clears the mark (RenderLocalLight_StencilMask /
+//! RenderLocalLight of the seed). Point lights draw spheres, spot lights cones.
+
+use wgpu::util::DeviceExt;
+
+use crate::frame::{PassContext, Visualize};
+use crate::pipelines::PipelineError;
+
+use super::light_volumes::{unit_cone, unit_sphere, volume_to_world, VolumeMesh};
+use super::pipeline::{additive, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use super::uniforms::{DeferredLightUniforms, LocalLight};
+use super::{
+    MobileOptions, MobileTargets, SharedResources, DEFERRED_DEPTH_FORMAT, SCENE_COLOR_FORMAT, SCENE_DEPTH_AUX_FORMAT, STENCIL_DEFAULT_LIT, STENCIL_SANDBOX,
+    STENCIL_SHADING_MODEL_MASK,
+};
+
+fn flag(b: bool) -> String {
+    u32::from(b).to_string()
+}
+
+fn stencil_face(compare: wgpu::CompareFunction, fail: wgpu::StencilOperation, depth_fail: wgpu::StencilOperation, pass: wgpu::StencilOperation) -> wgpu::StencilFaceState {
+    wgpu::StencilFaceState { compare, fail_op: fail, depth_fail_op: depth_fail, pass_op: pass }
+}
+
+struct LightDraw {
+    is_spot: bool,
+    stencil: Draw,
+    light: Draw,
+}
+
+pub struct MobileDeferredShading {
+    depth_aux: Draw,
+    directional: Draw,
+    lights: Vec<LightDraw>,
+    sphere: VolumeMesh,
+    cone: VolumeMesh,
+    _buffers: Vec<wgpu::Buffer>,
+    _depth_view: wgpu::TextureView,
+}
+
+impl MobileDeferredShading {
+    pub fn new(pipelines: &MobilePipelines<'_>, options: &MobileOptions, targets: &MobileTargets, shared: &SharedResources, lights: &[LocalLight]) -> Result<MobileDeferredShading, PipelineError> {
+        let device = pipelines.device;
+        let fullscreen = pipelines.permutation("MobileFullscreenVS", &[])?;
+
+        // SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
+        let mut desc = PipelineDesc::new(fullscreen.clone(), Some(pipelines.permutation("MobileSceneDepthAuxPS", &[])?), VertexInput::None);
+        desc.depth_stencil = Some(wgpu::DepthStencilState {
+            format: SCENE_DEPTH_AUX_FORMAT,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: Default::default(),
+            bias: Default::default(),
+        });
+        let depth_view = targets.scene_depth.depth_view();
+        let depth_aux = Draw::new(device, pipelines.get(&desc)?, &[("SceneDepthTexture", wgpu::BindingResource::TextureView(&depth_view))])?;
+
+        let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
+        fn gbuffer(t: &Option<super::Target>) -> wgpu::BindingResource<'_> {
+            wgpu::BindingResource::TextureView(&t.as_ref().expect("deferred targets have a GBuffer").view)
+        }
+        let mut resources = shared.view_resources(targets);
+        resources.push(("GBufferATexture", gbuffer(&targets.gbuffer_a)));
+        resources.push(("GBufferBTexture", gbuffer(&targets.gbuffer_b)));
+        resources.push(("GBufferCTexture", gbuffer(&targets.gbuffer_c)));
+        resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(&aux.view)));
+
+        // The directional light: full screen, default lit pixels only, adds to SceneColor.
+        let csm = shared.cascades > 0;
+        let direct_ps = pipelines.permutation(
+            "MobileDirectLightPS",
+            &[
+                ("DIRECTIONAL_LIGHT_CSM", flag(csm)),
+                ("HQ_REFLECTIONS", flag(options.reflections && options.hq_reflections)),
+                ("ENABLE_SKY_LIGHT", flag(options.sky_light)),
+            ],
+        )?;
+        let only_default_lit = stencil_face(wgpu::CompareFunction::Equal, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Keep);
+        let mut desc = PipelineDesc::new(fullscreen, Some(direct_ps), VertexInput::None);
+        desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
+        desc.depth_stencil = Some(wgpu::DepthStencilState {
+            format: DEFERRED_DEPTH_FORMAT,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: wgpu::StencilState { front: only_default_lit, back: only_default_lit, read_mask: STENCIL_SHADING_MODEL_MASK, write_mask: 0 },
+            bias: Default::default(),
+        });
+        let directional = Draw::new(device, pipelines.get(&desc)?, &resources)?;
+
+        // Local lights: the stencil mask (front faces, depth fail marks) and the light (back
+        // faces behind the surface, unmarked default lit pixels; clears the mark).
+        let volume_vs = pipelines.permutation("MobileDeferredLightVS", &[])?;
+        let mark = stencil_face(wgpu::CompareFunction::Always, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Replace, wgpu::StencilOperation::Keep);
+        let mut desc = PipelineDesc::new(volume_vs.clone(), Some(pipelines.permutation("MobileLightStencilPS", &[])?), VertexInput::Position);
+        desc.cull_mode = Some(wgpu::Face::Back);
+        desc.targets = vec![untouched(SCENE_COLOR_FORMAT)];
+        desc.depth_stencil = Some(wgpu::DepthStencilState {
+            format: DEFERRED_DEPTH_FORMAT,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+            stencil: wgpu::StencilState { front: mark, back: mark, read_mask: 0xff, write_mask: STENCIL_SANDBOX },
+            bias: Default::default(),
+        });
+        let stencil_pipeline = pipelines.get(&desc)?;
+        let lit = stencil_face(wgpu::CompareFunction::Equal, wgpu::StencilOperation::Zero, wgpu::StencilOperation::Zero, wgpu::StencilOperation::Zero);
+        let light_pipeline = |spot: bool| -> Result<_, PipelineError> {
+            let ps = pipelines.permutation("MobileRadialLightPS", &[("IS_SPOT_LIGHT", flag(spot))])?;
+            let mut desc = PipelineDesc::new(volume_vs.clone(), Some(ps), VertexInput::Position);
+            desc.cull_mode = Some(wgpu::Face::Front);
+            desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
+            desc.depth_stencil = Some(wgpu::DepthStencilState {
+                format: DEFERRED_DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::LessEqual),
+                stencil: wgpu::StencilState { front: lit, back: lit, read_mask: STENCIL_SHADING_MODEL_MASK | STENCIL_SANDBOX, write_mask: STENCIL_SANDBOX },
+                bias: Default::default(),
+            });
+            pipelines.get(&desc)
+        };
+        let (point_pipeline, spot_pipeline) = (light_pipeline(false)?, light_pipeline(true)?);
+        let mut buffers = Vec::new();
+        let mut draws = Vec::new();
+        for l in lights {
+            let u = DeferredLightUniforms { volume_to_world: volume_to_world(l), light: l.data };
+            let buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("DeferredLight {}", l.name)),
+                contents: bytemuck::bytes_of(&u),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            let mut r = resources.clone();
+            r.push(("Light", buffer.as_entire_binding()));
+            let light = if l.is_spot { spot_pipeline.clone() } else { point_pipeline.clone() };
+            draws.push(LightDraw { is_spot: l.is_spot, stencil: Draw::new(device, stencil_pipeline.clone(), &r)?, light: Draw::new(device, light, &r)? });
+            buffers.push(buffer);
+        }
+        Ok(MobileDeferredShading {
+            depth_aux,
+            directional,
+            lights: draws,
+            sphere: VolumeMesh::new(device, "LightSphere", unit_sphere()),
+            cone: VolumeMesh::new(device, "LightCone", unit_cone()),
+            _buffers: buffers,
+            _depth_view: depth_view,
+        })
+    }
+
+    /// Reads the GBuffer and the scene depth; adds light to SceneColor.
+    pub fn record(&self, ctx: &mut PassContext<'_>, targets: &MobileTargets) {
+        let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
+        ctx.step("SceneDepthAux", |ctx| {
+            {
+                ctx.render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("SceneDepthAux"),
+                    color_attachments: &[],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &aux.view,
+                        depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
+                        stencil_ops: None,
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                }, |pass| {
+                    self.depth_aux.bind(pass);
+                    pass.draw(0..3, 0..1);
+                });
+            }
+            ctx.output(&aux.texture, Visualize::Depth);
+        });
+        {
+            ctx.render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("MobileDeferredShading"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &targets.scene_color.view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &targets.scene_depth.view,
+                    // Depth is only tested; the stencil dies with the pass.
+                    depth_ops: None,
+                    stencil_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            }, |pass| {
+                pass.push_debug_group("DirectionalLight");
+                self.directional.bind(pass);
+                pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                pass.draw(0..3, 0..1);
+                pass.pop_debug_group();
+                pass.push_debug_group("LocalLights");
+                for l in &self.lights {
+                    let volume = if l.is_spot { &self.cone } else { &self.sphere };
+                    l.stencil.bind(pass);
+                    pass.set_stencil_reference(STENCIL_SANDBOX);
+                    volume.draw(pass);
+                    l.light.bind(pass);
+                    pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                    volume.draw(pass);
+                }
+                pass.pop_debug_group();
+            });
+        }
+        ctx.output(&targets.scene_color.texture, Visualize::Hdr);
+    }
+}

@@ -1,0 +1,94 @@
+//! Shared setup of the mobile frame tests: a device per backend (a render test fails, never
+//! skips, when there is none), the embedded archive, the bundled scene, image comparison.
+
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use kiln_runtime::frame::Image;
+use kiln_runtime::mobile::{self, MobileOptions};
+use kiln_runtime::pipelines::PipelineCache;
+use kiln_runtime::scene::gpu::GpuScene;
+use kiln_runtime::scene::Scene;
+use kiln_runtime::{Backend, Gpu, GpuOptions, ShaderArchive};
+
+pub const WIDTH: u32 = 320;
+pub const HEIGHT: u32 = 180;
+
+pub struct Rig {
+    pub gpu: Gpu,
+    pub cache: PipelineCache,
+}
+
+/// A device on `backend` with the embedded archive. Panics with the package to install when
+/// there is no adapter: a render test must fail, not skip.
+pub fn rig(backend: Backend) -> Rig {
+    let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() })
+        .unwrap_or_else(|e| panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)"));
+    let archive = ShaderArchive::embedded().expect("the embedded archive opens");
+    let cache = PipelineCache::new(&gpu, Arc::new(archive));
+    Rig { gpu, cache }
+}
+
+impl Rig {
+    pub fn render(&self, scene: &Scene, options: MobileOptions) -> Image {
+        self.render_passes(scene, options, false).1
+    }
+
+    pub fn render_passes(&self, scene: &Scene, options: MobileOptions, capture: bool) -> (Vec<kiln_runtime::frame::PassResult>, Image) {
+        let gpu_scene = GpuScene::upload(&self.gpu.device, scene);
+        let (w, h) = match std::env::var("KILN_MOBILE_SIZE").ok().and_then(|s| s.split_once('x').map(|(a, b)| (a.parse().unwrap(), b.parse().unwrap()))) {
+            Some(size) => size,
+            None => (WIDTH, HEIGHT),
+        };
+        let (passes, image) = mobile::render(&self.gpu, &self.cache, scene, &gpu_scene, options, (w, h), capture)
+            .unwrap_or_else(|e| panic!("mobile frame: {e}"));
+        if let Ok(dir) = std::env::var("KILN_MOBILE_DUMP") {
+            let dir = PathBuf::from(dir);
+            std::fs::create_dir_all(&dir).unwrap();
+            let n = std::fs::read_dir(&dir).unwrap().count();
+            std::fs::write(dir.join(format!("{n:03}_frame.png")), image.to_png()).unwrap();
+            for (i, p) in passes.iter().enumerate() {
+                for (name, img) in &p.images {
+                    std::fs::write(dir.join(format!("{n:03}_{i:02}_{name}.png")), img.to_png()).unwrap();
+                }
+            }
+        }
+        (passes, image)
+    }
+}
+
+/// Peak signal-to-noise ratio over RGB, in dB (infinite for identical images).
+pub fn psnr(a: &Image, b: &Image) -> f64 {
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    let mut se = 0.0f64;
+    let mut n = 0.0f64;
+    for (pa, pb) in a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)) {
+        for c in 0..3 {
+            let d = f64::from(pa[c]) - f64::from(pb[c]);
+            se += d * d;
+            n += 1.0;
+        }
+    }
+    let mse = se / n;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        10.0 * (255.0f64 * 255.0 / mse).log10()
+    }
+}
+
+pub fn golden_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("golden")
+}
+
+pub fn read_png(path: &Path) -> Image {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Rgba, "{}", path.display());
+    buf.truncate(info.buffer_size());
+    Image { width: info.width, height: info.height, rgba: buf }
+}
