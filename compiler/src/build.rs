@@ -385,6 +385,9 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     let new_records: Mutex<cache::Records> = Mutex::new(cache::Records::new());
     let reuse = Reuse::default();
     let identifiers = FileIdentifiers::default();
+    // Keys compiled (or found in the cache) as soon as their first permutation is
+    // preprocessed, so that compiling overlaps preprocessing.
+    let early = Early::default();
     let one = |index: usize, p: &Permutation<'_>| -> Result<Pre, Diagnostic<FileId>> {
         let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
         if let Some(dk) = &direct {
@@ -415,6 +418,19 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             new_records.lock().expect("no panics while locked").insert(dk, record.clone());
         }
         reuse.insert(p, &values, &output, &pre, record, &identifiers, &sources);
+        if p.error.is_none() && early.claim(pre.key) {
+            let got = lookup_or_compile(cache, &pre.key, p, &output.text, &options.targets);
+            // A failure is compiled again on the key's representative (its spans are mapped
+            // on that text); only successes are kept.
+            // What is compiled is stored in the cache at once, while the other thread
+            // still works, rather than in a phase of its own at the end.
+            if let (Some(c), Got::Compiled(compiled, _)) = (cache, &got) {
+                early.stored(pre.key, c.put(&pre.key, compiled).err());
+            }
+            if !matches!(got, Got::Failed(..)) {
+                early.done(pre.key, got);
+            }
+        }
         let mut reps = reps.lock().expect("no panics while locked");
         let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
         if replace {
@@ -519,14 +535,13 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     // 4. Compile each distinct key once (or take it from the cache).
     let t_compile = Instant::now();
     progress.stage("compiling", groups.len());
-    enum Got {
-        Hit(Compiled),
-        Compiled(Compiled, Option<String>),
-        Failed(compile::Error, Option<String>),
-    }
     let results: Vec<Got> = groups
         .par_iter()
         .map(|(key, members)| {
+            if let Some(got) = early.take(key) {
+                progress.inc();
+                return got;
+            }
             let p = &kept[members[0]];
             let mut warning = None;
             if let Some(cache) = cache {
@@ -616,7 +631,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
+        let (stored, mut errors) = early.take_stored();
+        errors.extend(
+            fresh.par_iter().filter(|k| !stored.contains(*k)).filter_map(|k| c.put(k, &compiled[k]).err()).collect::<Vec<_>>(),
+        );
         match errors.first() {
             None => Vec::new(),
             Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
@@ -639,6 +657,59 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     written?;
     write_stats(options, &mut report, start)?;
     Ok(report)
+}
+
+/// A key's compiled result: from the cache, compiled now, or failed.
+enum Got {
+    Hit(Compiled),
+    Compiled(Compiled, Option<String>),
+    Failed(compile::Error, Option<String>),
+}
+
+/// The results of keys compiled during preprocessing.
+#[derive(Default)]
+struct Early {
+    map: Mutex<(std::collections::HashSet<Key>, HashMap<Key, Got>)>,
+    /// Keys already stored in the cache, and the errors storing them gave.
+    stored: Mutex<(std::collections::HashSet<Key>, Vec<cache::Error>)>,
+}
+
+impl Early {
+    /// True for the first caller with this key (who then compiles it).
+    fn claim(&self, key: Key) -> bool {
+        self.map.lock().expect("no panics while locked").0.insert(key)
+    }
+    fn done(&self, key: Key, got: Got) {
+        self.map.lock().expect("no panics while locked").1.insert(key, got);
+    }
+    fn take(&self, key: &Key) -> Option<Got> {
+        self.map.lock().expect("no panics while locked").1.remove(key)
+    }
+    fn stored(&self, key: Key, error: Option<cache::Error>) {
+        let mut s = self.stored.lock().expect("no panics while locked");
+        s.0.insert(key);
+        s.1.extend(error);
+    }
+    fn take_stored(&self) -> (std::collections::HashSet<Key>, Vec<cache::Error>) {
+        std::mem::take(&mut *self.stored.lock().expect("no panics while locked"))
+    }
+}
+
+/// A key from the cache, else compiled from `text` (a permutation `p` of that key).
+fn lookup_or_compile(cache: Option<&Cache>, key: &Key, p: &Permutation<'_>, text: &str, targets: &[Target]) -> Got {
+    let mut warning = None;
+    if let Some(cache) = cache {
+        match cache.get(key) {
+            Lookup::Hit(c) => return Got::Hit(c),
+            Lookup::Miss => {}
+            Lookup::Corrupt(why) => warning = Some(format!("warning: {why}")),
+        }
+    }
+    let opts = compile::Options { targets: level_targets(p.level, targets), limits: level_limits(p.level) };
+    match compile::compile(text, &p.shader.entry, p.shader.stage, &opts) {
+        Ok(c) => Got::Compiled(c, warning),
+        Err(e) => Got::Failed(e, warning),
+    }
 }
 
 /// The archive, the loose files of `--emit-dir` and the archive's stamp.
