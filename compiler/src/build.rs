@@ -10,6 +10,12 @@
 //! others, and every failure is reported with its mapped location and permutation name;
 //! the archive is written atomically, and only when nothing failed.
 //!
+//! Compiling overlaps preprocessing: a key is compiled (or looked up in the cache) by the
+//! worker that first preprocesses one of its permutations; the
+//! compile phase then only gathers results (and compiles what failed, on the key's first
+//! permutation, so that spans map on that text). `seconds.compile` runs from the first key
+//! compiled to the last, so it overlaps `seconds.preprocess`.
+//!
 //! Work is skipped where the result is known: a permutation whose preprocessing record
 //! (in the cache) lists files whose contents have not changed is not preprocessed; a
 //! permutation that agrees with an already preprocessed one of its shader and level on
@@ -419,14 +425,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         }
         reuse.insert(p, &values, &output, &pre, record, &identifiers, &sources);
         if p.error.is_none() && early.claim(pre.key) {
+            early.started();
             let got = lookup_or_compile(cache, &pre.key, p, &output.text, &options.targets);
             // A failure is compiled again on the key's representative (its spans are mapped
             // on that text); only successes are kept.
-            // What is compiled is stored in the cache at once, while the other thread
-            // still works, rather than in a phase of its own at the end.
-            if let (Some(c), Got::Compiled(compiled, _)) = (cache, &got) {
-                early.stored(pre.key, c.put(&pre.key, compiled).err());
-            }
             if !matches!(got, Got::Failed(..)) {
                 early.done(pre.key, got);
             }
@@ -445,10 +447,13 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     for (i, p) in kept.iter().enumerate() {
         first_of_group[i] = seen_groups.insert((p.shader.name.as_str(), p.level.name.as_str()));
     }
-    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
-        kept.par_iter().enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
-    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
-        kept.par_iter().enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
+    // One permutation per task: compile times differ widely between shaders.
+    let firsts =
+        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
+    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = firsts.collect();
+    let rest =
+        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
+    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = rest.collect();
     let mut pre: Vec<Option<Result<Pre, Diagnostic<FileId>>>> = (0..kept.len()).map(|_| None).collect();
     for (i, r) in firsts.into_iter().chain(rest) {
         pre[i] = Some(r);
@@ -574,7 +579,9 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             got
         })
         .collect();
-    report.stats.seconds.compile = t_compile.elapsed().as_secs_f64();
+    // Compiling began during preprocessing: from the first key compiled to the last.
+    let first_compile = early.first_start().map_or(t_compile, |t| t.min(t_compile));
+    report.stats.seconds.compile = first_compile.elapsed().as_secs_f64();
     progress.finish();
 
     let mut compiled: HashMap<Key, Compiled> = HashMap::new();
@@ -631,10 +638,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        let (stored, mut errors) = early.take_stored();
-        errors.extend(
-            fresh.par_iter().filter(|k| !stored.contains(*k)).filter_map(|k| c.put(k, &compiled[k]).err()).collect::<Vec<_>>(),
-        );
+        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
         match errors.first() {
             None => Vec::new(),
             Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
@@ -670,8 +674,8 @@ enum Got {
 #[derive(Default)]
 struct Early {
     map: Mutex<(std::collections::HashSet<Key>, HashMap<Key, Got>)>,
-    /// Keys already stored in the cache, and the errors storing them gave.
-    stored: Mutex<(std::collections::HashSet<Key>, Vec<cache::Error>)>,
+    /// When the first key began compiling.
+    start: Mutex<Option<Instant>>,
 }
 
 impl Early {
@@ -685,13 +689,11 @@ impl Early {
     fn take(&self, key: &Key) -> Option<Got> {
         self.map.lock().expect("no panics while locked").1.remove(key)
     }
-    fn stored(&self, key: Key, error: Option<cache::Error>) {
-        let mut s = self.stored.lock().expect("no panics while locked");
-        s.0.insert(key);
-        s.1.extend(error);
+    fn started(&self) {
+        self.start.lock().expect("no panics while locked").get_or_insert_with(Instant::now);
     }
-    fn take_stored(&self) -> (std::collections::HashSet<Key>, Vec<cache::Error>) {
-        std::mem::take(&mut *self.stored.lock().expect("no panics while locked"))
+    fn first_start(&self) -> Option<Instant> {
+        *self.start.lock().expect("no panics while locked")
     }
 }
 

@@ -115,7 +115,10 @@ pub fn token_hash(text: &str) -> blake3::Hash {
         let (kind, len) = lexer::next(src, pos);
         match kind {
             lexer::Kind::Eof => break,
-            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {}
+            lexer::Kind::Space
+            | lexer::Kind::Newline
+            | lexer::Kind::LineComment
+            | lexer::Kind::BlockComment { .. } => {}
             _ => {
                 buf.extend_from_slice(&(len as u32).to_le_bytes());
                 buf.extend_from_slice(&src[pos..pos + len]);
