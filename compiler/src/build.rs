@@ -10,6 +10,12 @@
 //! others, and every failure is reported with its mapped location and permutation name;
 //! the archive is written atomically, and only when nothing failed.
 //!
+//! Compiling overlaps preprocessing: a key is compiled (or looked up in the cache) by the
+//! worker that first preprocesses one of its permutations; the
+//! compile phase then only gathers results (and compiles what failed, on the key's first
+//! permutation, so that spans map on that text). `seconds.compile` runs from the first key
+//! compiled to the last, so it overlaps `seconds.preprocess`.
+//!
 //! Work is skipped where the result is known: a permutation whose preprocessing record
 //! (in the cache) lists files whose contents have not changed is not preprocessed; a
 //! permutation that agrees with an already preprocessed one of its shader and level on
@@ -385,6 +391,9 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     let new_records: Mutex<cache::Records> = Mutex::new(cache::Records::new());
     let reuse = Reuse::default();
     let identifiers = FileIdentifiers::default();
+    // Keys compiled (or found in the cache) as soon as their first permutation is
+    // preprocessed, so that compiling overlaps preprocessing.
+    let early = Early::default();
     let one = |index: usize, p: &Permutation<'_>| -> Result<Pre, Diagnostic<FileId>> {
         let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
         if let Some(dk) = &direct {
@@ -415,6 +424,15 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             new_records.lock().expect("no panics while locked").insert(dk, record.clone());
         }
         reuse.insert(p, &values, &output, &pre, record, &identifiers, &sources);
+        if p.error.is_none() && early.claim(pre.key) {
+            early.started();
+            let got = lookup_or_compile(cache, &pre.key, p, &output.text, &options.targets);
+            // A failure is compiled again on the key's representative (its spans are mapped
+            // on that text); only successes are kept.
+            if !matches!(got, Got::Failed(..)) {
+                early.done(pre.key, got);
+            }
+        }
         let mut reps = reps.lock().expect("no panics while locked");
         let replace = reps.get(&pre.key).is_none_or(|r| r.index > index);
         if replace {
@@ -429,10 +447,13 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     for (i, p) in kept.iter().enumerate() {
         first_of_group[i] = seen_groups.insert((p.shader.name.as_str(), p.level.name.as_str()));
     }
-    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
-        kept.par_iter().enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
-    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> =
-        kept.par_iter().enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p))).collect();
+    // One permutation per task: compile times differ widely between shaders.
+    let firsts =
+        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
+    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = firsts.collect();
+    let rest =
+        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
+    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = rest.collect();
     let mut pre: Vec<Option<Result<Pre, Diagnostic<FileId>>>> = (0..kept.len()).map(|_| None).collect();
     for (i, r) in firsts.into_iter().chain(rest) {
         pre[i] = Some(r);
@@ -519,14 +540,13 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     // 4. Compile each distinct key once (or take it from the cache).
     let t_compile = Instant::now();
     progress.stage("compiling", groups.len());
-    enum Got {
-        Hit(Compiled),
-        Compiled(Compiled, Option<String>),
-        Failed(compile::Error, Option<String>),
-    }
     let results: Vec<Got> = groups
         .par_iter()
         .map(|(key, members)| {
+            if let Some(got) = early.take(key) {
+                progress.inc();
+                return got;
+            }
             let p = &kept[members[0]];
             let mut warning = None;
             if let Some(cache) = cache {
@@ -559,7 +579,9 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             got
         })
         .collect();
-    report.stats.seconds.compile = t_compile.elapsed().as_secs_f64();
+    // Compiling began during preprocessing: from the first key compiled to the last.
+    let first_compile = early.first_start().map_or(t_compile, |t| t.min(t_compile));
+    report.stats.seconds.compile = first_compile.elapsed().as_secs_f64();
     progress.finish();
 
     let mut compiled: HashMap<Key, Compiled> = HashMap::new();
@@ -639,6 +661,57 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     written?;
     write_stats(options, &mut report, start)?;
     Ok(report)
+}
+
+/// A key's compiled result: from the cache, compiled now, or failed.
+enum Got {
+    Hit(Compiled),
+    Compiled(Compiled, Option<String>),
+    Failed(compile::Error, Option<String>),
+}
+
+/// The results of keys compiled during preprocessing.
+#[derive(Default)]
+struct Early {
+    map: Mutex<(std::collections::HashSet<Key>, HashMap<Key, Got>)>,
+    /// When the first key began compiling.
+    start: Mutex<Option<Instant>>,
+}
+
+impl Early {
+    /// True for the first caller with this key (who then compiles it).
+    fn claim(&self, key: Key) -> bool {
+        self.map.lock().expect("no panics while locked").0.insert(key)
+    }
+    fn done(&self, key: Key, got: Got) {
+        self.map.lock().expect("no panics while locked").1.insert(key, got);
+    }
+    fn take(&self, key: &Key) -> Option<Got> {
+        self.map.lock().expect("no panics while locked").1.remove(key)
+    }
+    fn started(&self) {
+        self.start.lock().expect("no panics while locked").get_or_insert_with(Instant::now);
+    }
+    fn first_start(&self) -> Option<Instant> {
+        *self.start.lock().expect("no panics while locked")
+    }
+}
+
+/// A key from the cache, else compiled from `text` (a permutation `p` of that key).
+fn lookup_or_compile(cache: Option<&Cache>, key: &Key, p: &Permutation<'_>, text: &str, targets: &[Target]) -> Got {
+    let mut warning = None;
+    if let Some(cache) = cache {
+        match cache.get(key) {
+            Lookup::Hit(c) => return Got::Hit(c),
+            Lookup::Miss => {}
+            Lookup::Corrupt(why) => warning = Some(format!("warning: {why}")),
+        }
+    }
+    let opts = compile::Options { targets: level_targets(p.level, targets), limits: level_limits(p.level) };
+    match compile::compile(text, &p.shader.entry, p.shader.stage, &opts) {
+        Ok(c) => Got::Compiled(c, warning),
+        Err(e) => Got::Failed(e, warning),
+    }
 }
 
 /// The archive, the loose files of `--emit-dir` and the archive's stamp.
