@@ -78,7 +78,7 @@ fn mobile_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene, options:
 }
 
 fn desktop_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene) -> Timing {
-    let renderer = Renderer::new(gpu, archive.clone(), scene, RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT }).expect("desktop frame");
+    let renderer = Renderer::new(gpu, archive.clone(), scene, RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT, comparison: false }).expect("desktop frame");
     let mut frames = Vec::new();
     for i in 0..=FRAMES {
         let start = Instant::now();

@@ -172,9 +172,9 @@ fn module_bench() {
         for (i, source) in [ModuleSource::Auto, ModuleSource::Wgsl].into_iter().enumerate() {
             let gpu = Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: false }).unwrap();
             // One unmeasured round: the driver's first-use costs are not the warm-up's.
-            black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360 }).unwrap());
+            black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap());
             let t = time(3, || {
-                black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360 }).unwrap());
+                black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap());
             });
             ms[i] = us(t) / 1e3;
         }
@@ -189,7 +189,7 @@ fn frame_bench() {
     println!("frame time at 640x360 on {} (mean of 5 frames, CPU wall clock incl. readback; GPU sum of passes):", gpu.info.name);
     let mut base = None;
     for pipeline in FramePipeline::ALL {
-        let r = Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360 }).unwrap();
+        let r = Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap();
         r.render(false).unwrap();
         let mut gpu_ms = 0.0;
         let wall = time(5, || {

@@ -9,11 +9,7 @@ use wgpu::util::DeviceExt;
 
 use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
-use crate::passes::base_pass::{BasePass, TranslucencyPass, TranslucencyShading};
-use crate::passes::depth::{DepthPass, DepthView};
-use crate::passes::lighting::LightingPass;
 use crate::passes::particles::ParticleSimulationPass;
-use crate::passes::tonemap::TonemapPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
 use crate::scene::gpu::{mobile_local_lights, shadow_view_uniforms, view_uniforms, GpuScene};
@@ -60,11 +56,51 @@ pub struct RendererOptions {
     pub pipeline: FramePipeline,
     pub width: u32,
     pub height: u32,
+    /// Comparison settings: the effects one pipeline has and another lacks are off, so that
+    /// desktop and mobile frames of one scene can be compared like with like. Desktop: part 2
+    /// off (no TAA and jitter, motion blur, eye adaptation, volumetric fog, sprites,
+    /// reflections or animation: [`crate::desktop::part2::Part2Options::off`]), no ambient
+    /// occlusion, bloom, vignette or sky gradient. Mobile: no MSAA, vertex fog, reflections,
+    /// bloom or translucency ([`crate::mobile::MobileOptions::comparable`]). The fire's
+    /// particles are still simulated and drawn.
+    pub comparison: bool,
 }
 
 impl Default for RendererOptions {
     fn default() -> Self {
-        RendererOptions { pipeline: FramePipeline::Desktop, width: 640, height: 360 }
+        RendererOptions { pipeline: FramePipeline::Desktop, width: 640, height: 360, comparison: false }
+    }
+}
+
+impl RendererOptions {
+    /// The desktop frame's options for these renderer options.
+    pub fn desktop(&self) -> crate::desktop::DesktopOptions {
+        let base = crate::desktop::DesktopOptions { width: self.width, height: self.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() };
+        if !self.comparison {
+            return base;
+        }
+        crate::desktop::DesktopOptions {
+            ambient_occlusion: false,
+            bloom: false,
+            vignette: false,
+            sky_gradient: false,
+            part2: crate::desktop::part2::Part2Options::off(),
+            ..base
+        }
+    }
+
+    /// The mobile frame's options for these renderer options (the forward path's for
+    /// the desktop pipeline).
+    pub fn mobile(&self) -> crate::mobile::MobileOptions {
+        let path = match self.pipeline {
+            FramePipeline::MobileDeferred => crate::mobile::ShadingPath::Deferred,
+            FramePipeline::Desktop | FramePipeline::MobileForward => crate::mobile::ShadingPath::Forward,
+        };
+        if self.comparison {
+            crate::mobile::MobileOptions::comparable(path)
+        } else {
+            crate::mobile::MobileOptions::for_pipeline(self.pipeline)
+        }
     }
 }
 
@@ -88,15 +124,6 @@ enum Passes {
     /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
     /// before it (the sprites are drawn in its Translucency).
     DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
-    Desktop {
-        particles: ParticleSimulationPass,
-        prepass: DepthPass,
-        shadows: DepthPass,
-        base: BasePass,
-        lighting: LightingPass,
-        translucency: TranslucencyPass,
-        tonemap: TonemapPass,
-    },
     /// Both mobile frames (`crate::mobile`).
     Mobile(Box<crate::mobile::MobileFrame>),
 }
@@ -171,27 +198,14 @@ impl Renderer {
                         gpu.timestamps,
                         &cache,
                         scene,
-                        crate::desktop::DesktopOptions { width: options.width, height: options.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() },
+                        options.desktop(),
                         Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
                     )?;
                     Passes::DesktopDeferred { particles, frame: Box::new(frame) }
                 }
-                #[allow(unreachable_patterns)]
-                FramePipeline::Desktop => {
-                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
-                    Passes::Desktop {
-                        prepass: DepthPass::new(&init, DepthView::Camera)?,
-                        shadows: DepthPass::new(&init, DepthView::Sun)?,
-                        base: BasePass::new(&init)?,
-                        lighting: LightingPass::new(&init)?,
-                        translucency: TranslucencyPass::new(&init, TranslucencyShading::Desktop, particles.systems())?,
-                        tonemap: TonemapPass::new(&init)?,
-                        particles,
-                    }
-                }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
-                    let options = crate::mobile::MobileOptions::for_pipeline(options.pipeline);
-                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, options, options_size.0, options_size.1)?))
+                    let mobile = options.mobile();
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, mobile, options_size.0, options_size.1)?))
                 }
             }
         };
@@ -249,17 +263,9 @@ impl Renderer {
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
             Passes::DesktopDeferred { particles, frame: desktop } => {
-                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
-                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
-            }
-            Passes::Desktop { particles, prepass, shadows, base, lighting, translucency, tonemap } => {
-                frame.pass("ParticleSimulation", |ctx| particles.record(ctx, &t.preview));
-                frame.pass("PrePass", |ctx| prepass.record(ctx, s, &t.scene_depth));
-                frame.pass("ShadowDepths", |ctx| shadows.record(ctx, s, &t.shadow_depth));
-                frame.pass("BasePass", |ctx| base.record(ctx, s, t));
-                frame.pass("Lighting", |ctx| lighting.record(ctx, t));
-                frame.pass("Translucency", |ctx| translucency.record(ctx, s, t));
-                frame.pass("PostProcessing", |ctx| tonemap.record(ctx, t));
+                // The fire is the first step of the frame's one ParticleSimulation pass.
+                let fire = |ctx: &mut crate::frame::PassContext<'_>| particles.record(ctx, &t.preview);
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view), Some(&fire));
             }
             Passes::Mobile(mobile) => mobile.record(&mut frame, s),
         }

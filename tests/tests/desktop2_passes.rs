@@ -16,7 +16,7 @@ const PART2_IMAGES: &[&str] = &[
     "VolumetricFog_InitializeVolumeAttributes",
     "VolumetricFog_LightScattering",
     "VolumetricFog_FinalIntegration",
-    "ParticleSimulation_PostRenderOpaque",
+    "BasePass_ParticleCollision",
     "Velocity",
     "Lighting_InjectTranslucentVolume",
     "Lighting_FilterTranslucentVolume",

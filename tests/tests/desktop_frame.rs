@@ -86,7 +86,7 @@ fn window_luma(img: &Image, x: f32, y: f32, r: i32) -> f64 {
 fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
     let gpu = gpu();
     let scene = Scene::bundled();
-    let renderer = Renderer::new(&gpu, archive(), &scene, RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H })
+    let renderer = Renderer::new(&gpu, archive(), &scene, RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: false })
         .unwrap_or_else(|e| panic!("renderer: {e}"));
     let out = renderer.render(true).unwrap_or_else(|e| panic!("render: {e}"));
     let dir = tempfile::tempdir().unwrap();
@@ -451,10 +451,13 @@ fn psnr(a: &Image, b: &Image) -> f64 {
 }
 
 /// The desktop frame and the mobile forward frame light the same scene alike once the
-/// effects one of them lacks are off (local lights, fog, translucency, AO, bloom, vignette,
-/// the sky gradient). What still differs: cascaded shadows with 3x3 PCF against the mobile
-/// single shadow map, and GBuffer quantization (35.3 dB measured on lavapipe). Stated bound:
-/// PSNR > 32 dB.
+/// effects one of them lacks are off (local lights, fog, translucency, and the renderer's
+/// comparison settings: part 2, AO, bloom, vignette, the sky gradient; mobile MSAA,
+/// reflections, bloom). What still differs: the BRDF (GGX with Smith visibility against the
+/// mobile approximation and EnvBRDFApprox), the ambient term, cascaded shadows with PCF and
+/// GBuffer quantization: 22.1 dB measured on lavapipe (35.3 dB before the mobile frame's
+/// final lighting). Stated bound: PSNR > 19 dB; the control (the mobile frame without its
+/// sun, 14.1 dB) must fall 3 dB or more below it.
 #[test]
 fn desktop_agrees_with_mobile_forward_with_the_effects_mobile_lacks_turned_off() {
     let mut scene = Scene::bundled();
@@ -463,22 +466,24 @@ fn desktop_agrees_with_mobile_forward_with_the_effects_mobile_lacks_turned_off()
     scene.emitters.clear();
     scene.fog.density = 0.0;
     scene.objects.retain(|o| o.name != "GlassStatues");
-    let options = DesktopOptions {
-        ambient_occlusion: false,
-        bloom: false,
-        vignette: false,
-        sky_gradient: false,
-        part2: kiln_runtime::desktop::part2::Part2Options::off(),
-        ..small()
-    };
-    let desktop = build(&scene, options).frame.render(false).0.unwrap();
+    // The renderer's comparison settings, for both frames.
+    let options = RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: true };
     let gpu = gpu();
-    let mobile = Renderer::new(&gpu, archive(), &scene, RendererOptions { pipeline: FramePipeline::MobileForward, width: W, height: H })
-        .unwrap_or_else(|e| panic!("renderer: {e}"))
-        .render(false)
-        .unwrap_or_else(|e| panic!("render: {e}"))
-        .image;
+    let mobile_frame = |scene: &Scene| {
+        Renderer::new(&gpu, archive(), scene, RendererOptions { pipeline: FramePipeline::MobileForward, ..options.clone() })
+            .unwrap_or_else(|e| panic!("renderer: {e}"))
+            .render(false)
+            .unwrap_or_else(|e| panic!("render: {e}"))
+            .image
+    };
+    let desktop = build(&scene, options.desktop()).frame.render(false).0.unwrap();
+    let mobile = mobile_frame(&scene);
+    let mut dark = scene.clone();
+    dark.sun.enabled = false;
+    let control = psnr(&desktop, &mobile_frame(&dark));
+    eprintln!("control: desktop vs mobile forward without the sun: {control:.1} dB");
     let p = psnr(&desktop, &mobile);
     eprintln!("desktop (effects off) vs mobile forward: {p:.1} dB");
-    assert!(p > 32.0, "PSNR {p:.1} dB");
+    assert!(p > 19.0, "PSNR {p:.1} dB");
+    assert!(control < 16.0, "the control frame should differ: {control:.1} dB");
 }

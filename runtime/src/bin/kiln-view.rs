@@ -50,6 +50,11 @@ struct Args {
     /// Create shader modules from WGSL even where SPIR-V passthrough is available.
     #[arg(long)]
     wgsl: bool,
+    /// Comparison settings: turn off the effects the other pipelines lack (desktop: TAA,
+    /// motion blur, eye adaptation, volumetric fog, reflections, AO, bloom, vignette, sky
+    /// gradient; mobile: MSAA, vertex fog, reflections, bloom, translucency).
+    #[arg(long)]
+    comparison: bool,
     /// Instead of rendering: look every permutation of the archive up (by name and by its
     /// dimension values) and create its shader module on the device.
     #[arg(long)]
@@ -114,7 +119,7 @@ fn run(args: &Args) -> Result<(), Failure> {
     }
     let (width, height) = args.size;
     let scene = Scene::bundled();
-    let renderer = Renderer::new(&gpu, Arc::new(archive), &scene, RendererOptions { pipeline, width, height }).map_err(|e| match e {
+    let renderer = Renderer::new(&gpu, Arc::new(archive), &scene, RendererOptions { pipeline, width, height, comparison: args.comparison }).map_err(|e| match e {
         // A permutation the frame needs is missing from the archive: the archive is wrong.
         kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => Failure::Usage(format!("{l}")),
         e => Failure::Render(e.to_string()),

@@ -38,7 +38,7 @@ pub mod translucent_volume;
 pub mod velocity;
 pub mod volumetric_fog;
 
-use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
+use crate::frame::{FrameRecorder, Image, PassContext, PassResult, Visualize};
 use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::Scene;
 
@@ -286,20 +286,25 @@ impl DesktopFrame {
 
     /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
     /// of `DesktopOptions::output_format` and the frame's size).
-    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
+    ///
+    /// `fire`: the runtime's fire simulation (the systems of [`ParticleInputs`]), recorded
+    /// as the `Fire` step of the frame's one ParticleSimulation pass.
+    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView), fire: Option<&dyn Fn(&mut PassContext<'_>)>) {
         let (s, t) = (&self.buffers, &self.targets);
         let p2 = &self.part2;
         let camera = p2.begin_frame();
         self.write_camera(&camera);
-        p2.particle_simulation(frame);
+        p2.particle_simulation(frame, fire);
         frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
         p2.begin_occlusion_tests(frame);
         p2.build_hzb(frame);
         frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s));
         p2.volumetric_fog(frame);
-        frame.pass("BasePass", |ctx| self.base_pass.record(ctx, s, t));
-        p2.particle_collision(frame);
+        frame.pass("BasePass", |ctx| {
+            self.base_pass.record(ctx, s, t);
+            p2.particle_collision(ctx);
+        });
         p2.velocity(frame);
         if self.options.ambient_occlusion {
             frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
@@ -370,7 +375,7 @@ impl DesktopFrame {
 
     /// Records the frame into its own output target.
     pub fn record(&self, frame: &mut FrameRecorder) {
-        self.record_into(frame, (&self.output.texture, &self.output.view));
+        self.record_into(frame, (&self.output.texture, &self.output.view), None);
     }
 
     /// Renders one frame: the output image and every pass (with images when `capture`).

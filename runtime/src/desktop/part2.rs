@@ -443,10 +443,14 @@ impl Part2 {
     }
 
     /// ParticleSimulation at the start of the frame (emitters without collision).
-    pub fn particle_simulation(&self, frame: &mut FrameRecorder) {
+    /// `fire`: the runtime's fire simulation, recorded first as the `Fire` step.
+    pub fn particle_simulation(&self, frame: &mut FrameRecorder, fire: Option<&dyn Fn(&mut PassContext<'_>)>) {
         let mut s = self.lock();
         let s = &mut *s;
         frame.pass("ParticleSimulation", |ctx| {
+            if let Some(fire) = fire {
+                ctx.step("Fire", fire);
+            }
             s.particles.simulate(&s.queue, ctx.encoder(), false);
             let i = s.particles.current_index(false);
             s.vis.particle_position[i].output(ctx, Some("Position"));
@@ -512,17 +516,17 @@ impl Part2 {
         });
     }
 
-    /// The second ParticleSimulation, after the BasePass: the particles that collide with the
-    /// depth buffer.
-    pub fn particle_collision(&self, frame: &mut FrameRecorder) {
+    /// The particles that collide with the depth buffer, simulated once the BasePass has
+    /// written it (Unreal's PostRenderOpaque).
+    /// Recorded as the `ParticleCollision` step at the end of the BasePass (the frame has
+    /// one ParticleSimulation pass, at its start).
+    pub fn particle_collision(&self, ctx: &mut PassContext<'_>) {
         let mut s = self.lock();
         let s = &mut *s;
-        frame.pass("ParticleSimulation", |ctx| {
-            ctx.step("PostRenderOpaque", |ctx| {
-                s.particles.simulate(&s.queue, ctx.encoder(), true);
-                let i = s.particles.current_index(true);
-                s.vis.spark_position[i].output(ctx, None);
-            });
+        ctx.step("ParticleCollision", |ctx| {
+            s.particles.simulate(&s.queue, ctx.encoder(), true);
+            let i = s.particles.current_index(true);
+            s.vis.spark_position[i].output(ctx, None);
         });
     }
 

@@ -21,13 +21,7 @@
 //!    from the frame function with `frame.pass("Name", |ctx| pass.record(ctx, ...))` in
 //!    frame order.
 
-pub mod base_pass;
-pub mod depth;
-pub mod lighting;
-pub mod mobile_base_pass;
-pub mod mobile_deferred_shading;
 pub mod particles;
-pub mod tonemap;
 
 use std::sync::Arc;
 
