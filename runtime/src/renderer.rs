@@ -118,6 +118,17 @@ pub enum RenderError {
     Wgpu(String),
 }
 
+/// The desktop frame's options on this device. On GL the volumetric fog is off: wgpu 30's GL
+/// backend binds a 3D storage texture one slice at a time (non-layered), so the fog volume's
+/// other slices are never written and applying it darkens the frame to black.
+fn desktop_options(gpu: &Gpu, options: &RendererOptions) -> crate::desktop::DesktopOptions {
+    let mut desktop = options.desktop();
+    if gpu.backend == crate::gpu::Backend::Gl {
+        desktop.part2.volumetric_fog = false;
+    }
+    desktop
+}
+
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
 #[allow(clippy::large_enum_variant)]
 enum Passes {
@@ -198,7 +209,7 @@ impl Renderer {
                         gpu.timestamps,
                         &cache,
                         scene,
-                        options.desktop(),
+                        desktop_options(gpu, &options),
                         Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
                     )?;
                     Passes::DesktopDeferred { particles, frame: Box::new(frame) }
@@ -229,6 +240,17 @@ impl Renderer {
 
     pub fn pipeline_cache(&self) -> &PipelineCache {
         &self.cache
+    }
+
+    /// Whether the frame's shader modules are created from SPIR-V (passthrough) rather than
+    /// from WGSL: the desktop frame uses WGSL unless its options say otherwise (see
+    /// [`crate::desktop::DesktopOptions::spirv_passthrough`]).
+    pub fn uses_spirv_passthrough(&self) -> bool {
+        let passthrough = self.cache.uses_spirv_passthrough();
+        match &self.passes {
+            Passes::DesktopDeferred { frame, .. } => passthrough && frame.options().spirv_passthrough,
+            Passes::Mobile(_) => passthrough,
+        }
     }
 
     pub fn cache_stats(&self) -> CacheStats {

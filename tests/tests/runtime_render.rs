@@ -101,6 +101,8 @@ fn spirv_passthrough_and_wgsl_draw_the_same_frame() {
     let spirv = gpu(Backend::Vulkan, ModuleSource::Auto);
     assert!(spirv.spirv_passthrough, "lavapipe offers PASSTHROUGH_SHADERS");
     let wgsl = gpu(Backend::Vulkan, ModuleSource::Wgsl);
+    // The desktop frame creates its modules from WGSL on both (DesktopOptions::spirv_passthrough
+    // is off: Kiln's SPIR-V crashes lavapipe there), so its frames are identical.
     for pipeline in FramePipeline::ALL {
         let a = render(&spirv, &scene, pipeline, false).image;
         let b = render(&wgsl, &scene, pipeline, false).image;
@@ -299,9 +301,10 @@ fn dump_captures_every_pass_in_frame_order() {
 /// textures (the volumetric fog and the translucency lighting volumes). wgpu-hal 30's GL
 /// backend binds a D3 storage view non-layered (`ImageBinding::array_layer` is `Some(0)` for
 /// every dimension but D2Array and CubeArray, gles/device.rs), so `glBindImageTexture` binds
-/// one slice and the compute shaders' writes to the other slices are lost. The desktop frame
-/// is therefore compared with the renderer's comparison settings (part 2 off), where these
-/// volumes are computed and dumped but not applied to the frame.
+/// one slice and the compute shaders' writes to the other slices are lost (the renderer turns
+/// the volumetric fog off on GL). The desktop frame is therefore compared with the renderer's
+/// comparison settings (part 2 off), where these volumes are computed and dumped but not
+/// applied to the frame.
 const GL_3D_STORAGE_STEPS: &[&str] = &[
     "VolumetricFog_InitializeVolumeAttributes",
     "VolumetricFog_LightScattering",

@@ -148,7 +148,7 @@ fn run(args: &Args) -> Result<(), Failure> {
             width,
             height,
             timestamps: gpu.timestamps,
-            spirv_passthrough: gpu.spirv_passthrough,
+            spirv_passthrough: renderer.uses_spirv_passthrough(),
             permutations: &permutations,
         };
         write_dump(dir, &info, &frame.passes).map_err(|e| Failure::Render(format!("cannot write {}: {e}", dir.display())))?;
@@ -162,7 +162,7 @@ fn run(args: &Args) -> Result<(), Failure> {
         width,
         height,
         stats.render_pipelines + stats.compute_pipelines,
-        if gpu.spirv_passthrough { "SPIR-V passthrough" } else { "WGSL" },
+        if renderer.uses_spirv_passthrough() { "SPIR-V passthrough" } else { "WGSL" },
         args.out.display()
     );
     Ok(())
