@@ -55,7 +55,7 @@ fn builder_accepts_enum_labels_and_any_order() {
         "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=4,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0,DIRECTIONAL_LIGHT_CSM=1,HQ_REFLECTIONS=0,ENABLE_SKY_LIGHT=1,OUTPUT_GAMMA_SPACE=0,MATERIAL_BLEND_MODE=MASKED}"
     );
     // A shader with one level needs no .level().
-    assert_eq!(a.shader("BasePassVS").find().unwrap().name(), "BasePassVS@sm5{}");
+    assert_eq!(a.shader("PostProcessVS").find().unwrap().name(), "PostProcessVS@sm5{}");
 }
 
 #[test]
@@ -97,12 +97,12 @@ fn builder_errors_name_the_unknown_part() {
     let a = embedded();
     let e = a.shader("NoSuchPS").level("sm5").find().err().expect("lookup should fail").to_string();
     assert_eq!(e, "cannot name permutation: no shader named `NoSuchPS` in the archive");
-    let e = a.shader("BasePassPS").level("sm5").with("MATERIAL_BLEND_MODE", "OPAQUE").with("BOGUS", 1).find().err().expect("lookup should fail").to_string();
-    assert_eq!(e, "cannot name permutation: shader `BasePassPS` has no dimension `BOGUS` (its dimensions: MATERIAL_BLEND_MODE)");
-    let e = a.shader("TonemapPS").with("USE_BLOOM", 0).find().err().expect("lookup should fail").to_string();
-    assert_eq!(e, "cannot name permutation: shader `TonemapPS` has several levels (sm5, es3_1); say which with .level()");
-    let e = a.shader("DeferredLightPS").level("sm5").with("LIGHT_TYPE", "POINT").find().err().expect("lookup should fail").to_string();
-    assert!(e.contains("no value given for dimension `USE_SHADOWS`"), "{e}");
+    let e = a.shader("ExponentialHeightFogPS").level("sm5").with("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", 0).with("BOGUS", 1).find().err().expect("lookup should fail").to_string();
+    assert_eq!(e, "cannot name permutation: shader `ExponentialHeightFogPS` has no dimension `BOGUS` (its dimensions: SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING)");
+    let e = a.shader("VisualizeDepthPS").find().err().expect("lookup should fail").to_string();
+    assert_eq!(e, "cannot name permutation: shader `VisualizeDepthPS` has several levels (sm5, es3_1); say which with .level()");
+    let e = a.shader("StandardDeferredLightingPS").level("sm5").with("LIGHT_TYPE", "POINT").find().err().expect("lookup should fail").to_string();
+    assert!(e.contains("no value given for dimension `USE_SHADOW_MASK`"), "{e}");
 }
 
 #[test]

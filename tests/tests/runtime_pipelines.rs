@@ -24,8 +24,6 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
         fs.values()[i]
     };
     let q = match shader.name.as_str() {
-        "BasePassPS" => archive.shader("BasePassVS").level(&shader.level),
-        "DepthOnlyPS" => archive.shader("DepthOnlyVS").level(&shader.level),
         // The desktop frame's mesh pixel shaders (runtime/src/desktop); its other pixel shaders
         // read only the pixel position and pair with any full-screen vertex shader.
         "DepthPassPS" => archive.shader("DepthPassVS").level(&shader.level).with("MATERIAL_MASKED", 1),
@@ -110,21 +108,21 @@ fn pipelines_are_cached_per_permutation_and_state() {
     let archive = Arc::new(ShaderArchive::embedded().unwrap());
     let cache = PipelineCache::new(&gpu, archive);
     let state = RenderState::fullscreen(ColorTarget { format: formats::OUTPUT, blend: Blend::Replace });
-    let a = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &state).unwrap();
-    let b = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &state).unwrap();
+    let a = cache.render("ScreenVS@sm5{}", Some("VisualizeDepthPS@sm5{}"), &state).unwrap();
+    let b = cache.render("ScreenVS@sm5{}", Some("VisualizeDepthPS@sm5{}"), &state).unwrap();
     assert!(Arc::ptr_eq(&a, &b));
     let other = RenderState::fullscreen(ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Additive });
-    let c = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=0}"), &other).unwrap();
+    let c = cache.render("ScreenVS@sm5{}", Some("VisualizeDepthPS@sm5{}"), &other).unwrap();
     assert!(!Arc::ptr_eq(&a, &c));
     let stats = cache.stats();
     assert_eq!((stats.modules, stats.render_pipelines), (2, 2));
-    // Layouts come from reflection: group 1 holds the scene color texture.
+    // Layouts come from reflection: group 1 holds the depth texture the pass draws.
     let names: Vec<_> = a.layout.groups[1].iter().map(|b| b.name.clone().unwrap()).collect();
-    assert_eq!(names, ["SceneColorTexture"]);
-    assert_eq!(a.layout.groups[0][0].visibility, wgpu::ShaderStages::FRAGMENT);
+    assert_eq!(names, ["SourceDepthTexture"]);
+    assert_eq!(a.layout.groups[1][0].visibility, wgpu::ShaderStages::FRAGMENT);
     // Bind groups are built by name; a missing resource is named.
-    let e = a.layout.bind_group(&gpu.device, 1, "tonemap input", &[]).unwrap_err().to_string();
-    assert_eq!(e, "bind group 1 of `ScreenVS@sm5{} + TonemapPS@sm5{USE_BLOOM=0}`: no resource given for binding 0 `SceneColorTexture`");
+    let e = a.layout.bind_group(&gpu.device, 1, "depth input", &[]).unwrap_err().to_string();
+    assert_eq!(e, "bind group 1 of `ScreenVS@sm5{} + VisualizeDepthPS@sm5{}`: no resource given for binding 0 `SourceDepthTexture`");
 }
 
 #[test]
@@ -132,9 +130,9 @@ fn missing_permutation_and_wrong_stage_are_errors() {
     let gpu = gpu(ModuleSource::Auto);
     let cache = PipelineCache::new(&gpu, Arc::new(ShaderArchive::embedded().unwrap()));
     let state = RenderState::fullscreen(ColorTarget { format: formats::OUTPUT, blend: Blend::Replace });
-    let e = cache.render("ScreenVS@sm5{}", Some("TonemapPS@sm5{USE_BLOOM=2}"), &state).unwrap_err().to_string();
-    assert!(e.starts_with("permutation `TonemapPS@sm5{USE_BLOOM=2}` is not in the archive; nearest:"), "{e}");
-    assert!(e.contains("USE_BLOOM: 2 -> 0"), "{e}");
-    let e = cache.render("TonemapPS@sm5{USE_BLOOM=0}", None, &state).unwrap_err().to_string();
-    assert_eq!(e, "permutation `TonemapPS@sm5{USE_BLOOM=0}` is a fragment shader, used as a vertex shader");
+    let e = cache.render("PostProcessVS@sm5{}", Some("ExponentialHeightFogPS@sm5{SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING=2}"), &state).unwrap_err().to_string();
+    assert!(e.starts_with("permutation `ExponentialHeightFogPS@sm5{SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING=2}` is not in the archive; nearest:"), "{e}");
+    assert!(e.contains("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING: 2 -> 0"), "{e}");
+    let e = cache.render("VisualizeDepthPS@sm5{}", None, &state).unwrap_err().to_string();
+    assert_eq!(e, "permutation `VisualizeDepthPS@sm5{}` is a fragment shader, used as a vertex shader");
 }

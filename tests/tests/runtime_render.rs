@@ -279,7 +279,7 @@ fn dump_captures_every_pass_in_frame_order() {
     // The last capture is the output itself.
     assert_eq!(frame.passes.last().unwrap().images.last().unwrap().1, frame.image);
     let dir = tempfile::tempdir().unwrap();
-    let permutations = vec!["DepthOnlyVS@sm5{}".to_string()];
+    let permutations = vec!["DepthPassVS@sm5{MATERIAL_MASKED=0}".to_string()];
     let info = kiln_runtime::frame::DumpInfo {
         pipeline: "desktop",
         backend: "vulkan",
@@ -293,7 +293,7 @@ fn dump_captures_every_pass_in_frame_order() {
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
     assert_eq!(json["passes"][7]["images"][1], "07_BasePass_GBufferA.png");
-    assert_eq!(json["permutations"][0], "DepthOnlyVS@sm5{}");
+    assert_eq!(json["permutations"][0], "DepthPassVS@sm5{MATERIAL_MASKED=0}");
     assert!(dir.path().join("15_PostProcessing_Tonemapper.png").is_file());
 }
 
