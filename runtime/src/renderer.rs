@@ -12,7 +12,7 @@ use crate::gpu::Gpu;
 use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
-use crate::scene::gpu::{mobile_local_lights, shadow_view_uniforms, view_uniforms, GpuScene};
+use crate::scene::gpu::{view_uniforms, GpuScene};
 use crate::scene::Scene;
 use crate::shaders::ShaderArchive;
 
@@ -180,21 +180,6 @@ impl Renderer {
         };
         let shared = SharedResources {
             view: uniform("View uniforms", bytemuck::bytes_of(&view_uniforms(scene, options.width, options.height))),
-            shadow_view: uniform("ShadowDepths view uniforms", bytemuck::bytes_of(&shadow_view_uniforms(scene))),
-            mobile_lights: uniform("MobileLocalLights", bytemuck::bytes_of(&mobile_local_lights(scene))),
-            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("ShadowDepthSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                compare: Some(wgpu::CompareFunction::GreaterEqual),
-                ..Default::default()
-            }),
-            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("LinearClampSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                ..Default::default()
-            }),
             targets: Targets::new(device, options.width, options.height),
         };
         let options_size = (options.width, options.height);

@@ -1,4 +1,6 @@
-//! One module per pass. A pass is a struct built once (pipelines, bind groups, uniform
+//! The renderer's own passes (the fire's ParticleSimulation, recorded as the first step of
+//! the desktop frame's ParticleSimulation pass); the frames themselves are `crate::desktop`
+//! and `crate::mobile`. A pass is a struct built once (pipelines, bind groups, uniform
 //! buffers) and a `record` that says what it reads and writes. Building a pass creates every
 //! pipeline it will use (the warm-up); recording never creates pipelines.
 //!
@@ -17,13 +19,11 @@
 //!    in `ctx.step("Bloom", |ctx| ...)`, and declare what was written with
 //!    `ctx.output(&texture, Visualize::Hdr)` / `ctx.output_named("GBufferA", ...)`: that is
 //!    what `--dump-passes` writes and what the timings cover.
-//! 4. Build it in [`crate::renderer::Renderer::new`] for the frames that use it and call it
-//!    from the frame function with `frame.pass("Name", |ctx| pass.record(ctx, ...))` in
-//!    frame order.
+//! 4. Build it in [`crate::renderer::Renderer::new`] for the frames that use it and record
+//!    it in frame order: its own `frame.pass("Name", |ctx| pass.record(ctx, ...))`, or a
+//!    step of a frame's pass (the fire: `DesktopFrame::record_into`'s `fire`).
 
 pub mod particles;
-
-use std::sync::Arc;
 
 use crate::gpu_types::formats;
 use crate::pipelines::{PipelineCache, PipelineError};
@@ -77,102 +77,37 @@ impl Target {
     }
 }
 
-/// The render targets of a frame, created once per size.
+/// The renderer's own targets, created once per size: the frame's output and a scratch
+/// target for pictures of passes that write buffers (ParticleSimulation). The desktop and
+/// mobile frames own their other targets.
 pub struct Targets {
     pub width: u32,
     pub height: u32,
-    pub scene_depth: Target,
-    pub scene_color: Target,
-    pub gbuffer_a: Target,
-    pub gbuffer_b: Target,
-    pub gbuffer_c: Target,
-    pub shadow_depth: Target,
     pub output: Target,
-    /// Scratch HDR target for pictures of passes that write buffers (ParticleSimulation).
     pub preview: Target,
 }
 
 impl Targets {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Targets {
-        let s = crate::scene::gpu::SHADOW_MAP_SIZE;
         Targets {
             width,
             height,
-            scene_depth: Target::new(device, "SceneDepth", formats::SCENE_DEPTH, width, height),
-            scene_color: Target::new(device, "SceneColor", formats::SCENE_COLOR, width, height),
-            gbuffer_a: Target::new(device, "GBufferA", formats::GBUFFER_A, width, height),
-            gbuffer_b: Target::new(device, "GBufferB", formats::GBUFFER_B, width, height),
-            gbuffer_c: Target::new(device, "GBufferC", formats::GBUFFER_C, width, height),
-            shadow_depth: Target::new(device, "ShadowDepth", formats::SHADOW_DEPTH, s, s),
             output: Target::new(device, "Output", formats::OUTPUT, width, height),
             preview: Target::new(device, "Preview", formats::SCENE_COLOR, width, height),
         }
     }
 }
 
-/// Resources many passes bind: the view uniforms (camera and light), the shadow map and its
-/// comparison sampler, the mobile local lights.
+/// Resources the renderer's passes bind: the view uniforms (camera and light) and the targets.
 pub struct SharedResources {
     pub view: wgpu::Buffer,
-    pub shadow_view: wgpu::Buffer,
-    pub mobile_lights: wgpu::Buffer,
-    pub shadow_sampler: wgpu::Sampler,
-    pub linear_sampler: wgpu::Sampler,
     pub targets: Targets,
 }
 
 impl SharedResources {
-    /// Group-0 resources by their names in `Common.ush` and friends. Bind groups take the
-    /// ones their reflection lists.
+    /// Group-0 resources by their names in `Common.ush`. Bind groups take the ones their
+    /// reflection lists.
     pub fn view_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
-        vec![
-            ("View", self.view.as_entire_binding()),
-            ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&self.targets.shadow_depth.view)),
-            ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&self.shadow_sampler)),
-            ("MobileLocalLights", self.mobile_lights.as_entire_binding()),
-        ]
+        vec![("View", self.view.as_entire_binding())]
     }
-}
-
-/// A pipeline and the bind groups it draws with, per material where it has a material group.
-pub struct MaterialDraw {
-    pub pipeline: Arc<crate::pipelines::RenderPipeline>,
-    pub view_group: Option<wgpu::BindGroup>,
-    pub material_group: Option<wgpu::BindGroup>,
-}
-
-impl MaterialDraw {
-    /// Builds the bind groups: group 0 from `view` resources, group 1 from the material.
-    pub fn new(
-        device: &wgpu::Device,
-        pipeline: Arc<crate::pipelines::RenderPipeline>,
-        view: &[(&str, wgpu::BindingResource<'_>)],
-        material: Option<&wgpu::Buffer>,
-    ) -> Result<MaterialDraw, PipelineError> {
-        let layout = &pipeline.layout;
-        let view_group = if layout.uses_group(0) { Some(layout.bind_group(device, 0, &format!("{} view", layout.label), view)?) } else { None };
-        let material_group = match material {
-            Some(buffer) if layout.uses_group(1) => {
-                Some(layout.bind_group(device, 1, &format!("{} material", layout.label), &[("Material", buffer.as_entire_binding())])?)
-            }
-            _ => None,
-        };
-        Ok(MaterialDraw { pipeline, view_group, material_group })
-    }
-
-    pub fn bind(&self, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&self.pipeline.pipeline);
-        if let Some(g) = &self.view_group {
-            pass.set_bind_group(0, g, &[]);
-        }
-        if let Some(g) = &self.material_group {
-            pass.set_bind_group(1, g, &[]);
-        }
-    }
-}
-
-/// The clear color of SceneColor: the sky, seen where nothing is drawn.
-pub fn sky_clear(scene: &Scene) -> wgpu::Color {
-    let c = scene.sky_color * 1.6;
-    wgpu::Color { r: f64::from(c.x), g: f64::from(c.y), b: f64::from(c.z), a: 0.0 }
 }
