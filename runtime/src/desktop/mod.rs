@@ -130,8 +130,6 @@ pub enum DesktopError {
     Wgpu { what: String, message: String },
     #[error("pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame")]
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
-    #[error("pipeline `{pipeline}`: storage texture format `{format}` is not known to the runtime")]
-    StorageFormat { pipeline: String, format: String },
 }
 
 /// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the

@@ -5,13 +5,11 @@
 //! same reflection, once per (permutations, state) when the frame is built.
 
 use std::collections::HashMap;
-use std::num::NonZeroU64;
 use std::sync::{Arc, Mutex};
 
-use kiln::archive::{BindingKind, SampleKind, StorageAccess, TextureDim};
 use kiln::Stage;
 
-use crate::pipelines::{merge_bindings, storage_format, ErrorScopes, MergedBinding, PipelineCache, PipelineError};
+use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineError};
 
 use super::DesktopError;
 
@@ -174,16 +172,11 @@ impl<'a> Pipelines<'a> {
         Ok(q.find().map_err(PipelineError::from)?.name().to_string())
     }
 
+    /// The pipeline layout from the runtime's cache (one layout rule for every frame; bind
+    /// group layouts shared with the other pipelines).
     fn layout(&self, label: &str, reflections: &[&kiln::archive::Reflection]) -> Result<Layout, DesktopError> {
-        let groups = merge_bindings(label, reflections)?;
-        let mut bind_group_layouts = Vec::with_capacity(groups.len());
-        for (g, bindings) in groups.iter().enumerate() {
-            let entries = bindings.iter().map(|b| layout_entry(label, b)).collect::<Result<Vec<_>, _>>()?;
-            bind_group_layouts.push(self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(&format!("{label} group {g}")), entries: &entries }));
-        }
-        let refs: Vec<Option<&wgpu::BindGroupLayout>> = bind_group_layouts.iter().map(Some).collect();
-        let pipeline_layout = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(label), bind_group_layouts: &refs, immediate_size: 0 });
-        Ok(Layout { label: label.to_string(), groups, bind_group_layouts, pipeline_layout })
+        let info = self.cache.layout(label, reflections)?;
+        Ok(Layout { label: info.label, groups: info.groups, bind_group_layouts: info.bind_group_layouts, pipeline_layout: info.layout })
     }
 
     /// A render pipeline of (vertex permutation, fragment permutation or none, state).
@@ -263,57 +256,6 @@ impl<'a> Pipelines<'a> {
 }
 
 const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
-
-fn view_dimension(dim: TextureDim) -> wgpu::TextureViewDimension {
-    match dim {
-        TextureDim::D1 => wgpu::TextureViewDimension::D1,
-        TextureDim::D2 => wgpu::TextureViewDimension::D2,
-        TextureDim::D2Array => wgpu::TextureViewDimension::D2Array,
-        TextureDim::Cube => wgpu::TextureViewDimension::Cube,
-        TextureDim::CubeArray => wgpu::TextureViewDimension::CubeArray,
-        TextureDim::D3 => wgpu::TextureViewDimension::D3,
-    }
-}
-
-/// The layout entry of a merged binding. A float texture is filterable unless its name ends
-/// in `DepthTexture` (the scene depth, read as unfilterable float: the runtime's rule).
-fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutEntry, DesktopError> {
-    let ty = match &b.kind {
-        BindingKind::UniformBuffer { min_size } => {
-            wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: NonZeroU64::new(*min_size) }
-        }
-        BindingKind::StorageBuffer { read_only, min_size } => wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only: *read_only },
-            has_dynamic_offset: false,
-            min_binding_size: NonZeroU64::new(*min_size),
-        },
-        BindingKind::Sampler { comparison: true } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
-        BindingKind::Sampler { comparison: false } => wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-        BindingKind::Texture { dim, sample, multisampled } => wgpu::BindingType::Texture {
-            sample_type: match sample {
-                SampleKind::Float => {
-                    let depth = b.name.as_deref().is_some_and(|n| n.ends_with("DepthTexture"));
-                    wgpu::TextureSampleType::Float { filterable: !multisampled && !depth }
-                }
-                SampleKind::Depth => wgpu::TextureSampleType::Depth,
-                SampleKind::Sint => wgpu::TextureSampleType::Sint,
-                SampleKind::Uint => wgpu::TextureSampleType::Uint,
-            },
-            view_dimension: view_dimension(*dim),
-            multisampled: *multisampled,
-        },
-        BindingKind::StorageTexture { dim, format, access } => wgpu::BindingType::StorageTexture {
-            access: match access {
-                StorageAccess::ReadOnly => wgpu::StorageTextureAccess::ReadOnly,
-                StorageAccess::WriteOnly => wgpu::StorageTextureAccess::WriteOnly,
-                StorageAccess::ReadWrite => wgpu::StorageTextureAccess::ReadWrite,
-            },
-            format: storage_format(format).ok_or_else(|| DesktopError::StorageFormat { pipeline: label.to_string(), format: format.clone() })?,
-            view_dimension: view_dimension(*dim),
-        },
-    };
-    Ok(wgpu::BindGroupLayoutEntry { binding: b.binding, visibility: b.visibility, ty, count: None })
-}
 
 /// Blend states the desktop passes use beyond replace.
 pub mod blend {
