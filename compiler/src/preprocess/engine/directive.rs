@@ -83,28 +83,14 @@ impl Pp<'_> {
         let ctx = frame.ctx;
         let source = frame.source.clone();
         let text = source.text();
-        let bytes = text.as_bytes();
         // The directive name, read in place (include needs the raw text after it).
-        let mut p = frame.pos;
-        loop {
-            let (kind, len) = lexer::next(bytes, p);
-            match kind {
-                Kind::Space | Kind::BlockComment { terminated: true } => p += len,
-                _ => break,
-            }
-        }
-        let (kind, len) = lexer::next(bytes, p);
-        let name = if kind == Kind::Ident {
-            &text[p..p + len]
-        } else {
-            ""
-        };
+        let (name, p, len) = directive_name(text, frame.pos);
         let name_range = p as u32..(p + len) as u32;
         let hash_range = hash as u32..(hash + 1) as u32;
         let in_args = !self.stack.is_empty() || self.inv.is_some();
         let first_directive = frame.guard == GuardState::Start;
         if let Some(f) = self.frames.last_mut() {
-            if kind == Kind::Ident {
+            if !name.is_empty() {
                 f.pos = p + len;
             }
             let closed = matches!(f.guard, GuardState::Closed(_));
@@ -720,20 +706,7 @@ impl Pp<'_> {
             let is_hash = kind == Kind::Punct && (bytes[p] == b'#' || &bytes[p..p + len] == b"%:");
             if is_hash {
                 let hash = p;
-                let mut q = p + len;
-                loop {
-                    let (k, l) = lexer::next(bytes, q);
-                    match k {
-                        Kind::Space | Kind::BlockComment { terminated: true } => q += l,
-                        _ => break,
-                    }
-                }
-                let (k, l) = lexer::next(bytes, q);
-                let name = if k == Kind::Ident {
-                    &text[q..q + l]
-                } else {
-                    ""
-                };
+                let (name, q, l) = directive_name(text, p + len);
                 let name_range = q as u32..(q + l) as u32;
                 match name {
                     "if" | "ifdef" | "ifndef" => depth += 1,
@@ -1356,4 +1329,20 @@ fn collapse_comments(s: &str) -> String {
         p += len;
     }
     out.trim().to_string()
+}
+
+/// The name of a directive whose `#` ends before `pos`: skips spaces and closed block
+/// comments, then returns (the identifier or "" when there is none, its offset, its length).
+fn directive_name(text: &str, mut pos: usize) -> (&str, usize, usize) {
+    let bytes = text.as_bytes();
+    loop {
+        let (kind, len) = lexer::next(bytes, pos);
+        match kind {
+            Kind::Space | Kind::BlockComment { terminated: true } => pos += len,
+            _ => break,
+        }
+    }
+    let (kind, len) = lexer::next(bytes, pos);
+    let name = if kind == Kind::Ident { &text[pos..pos + len] } else { "" };
+    (name, pos, len)
 }
