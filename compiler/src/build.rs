@@ -630,6 +630,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     }
     drop(reps);
 
+    if let Some(c) = cache {
+        report.warnings.extend(c.warnings());
+    }
+
     // Render failures: identical diagnostics once, naming every permutation they hit.
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
     report.failures = render_failures(failures, &kept, &sources, options.color);
@@ -638,15 +642,10 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        let errors: Vec<cache::Error> = fresh.par_iter().filter_map(|k| c.put(k, &compiled[k]).err()).collect();
-        match errors.first() {
-            None => Vec::new(),
-            Some(e) if errors.len() == 1 => vec![format!("warning: cannot store a cache entry: {e}")],
-            Some(e) => vec![format!(
-                "warning: cannot store {} cache entries: {e} (and {} more)",
-                errors.len(),
-                errors.len() - 1
-            )],
+        let entries: Vec<(Key, &Compiled)> = fresh.iter().map(|k| (*k, &compiled[k])).collect();
+        match c.put_pack(&entries) {
+            Ok(()) => Vec::new(),
+            Err(e) => vec![format!("warning: cannot store {} cache entries: {e}", entries.len())],
         }
     };
     if report.stats.failed > 0 {

@@ -133,9 +133,9 @@ fn cache_stats_gc_clear() {
     assert!(kiln(d, &["build", "--config", "compute.toml", "--cache-dir", c]).status.success());
     let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stdout(&o).contains("entries: 4\n"), "{}", stdout(&o));
+    assert!(stdout(&o).contains("entries: 4 in 1 packs\n"), "{}", stdout(&o));
     let o = kiln(d, &["cache", "--cache-dir", c, "gc", "--max-size", "1"]);
-    assert!(stdout(&o).starts_with("removed 4 entries and 1 preprocessing records ("), "{}", stdout(&o));
+    assert!(stdout(&o).starts_with("removed 1 packs (4 entries) and 1 preprocessing records ("), "{}", stdout(&o));
     assert!(stdout(&o).ends_with("; kept 0 entries (0 B)\n"), "{}", stdout(&o));
     let o = kiln(d, &["cache", "gc", "--max-size", "10Q", "--cache-dir", c]);
     assert_eq!(o.status.code(), Some(2));
@@ -143,7 +143,7 @@ fn cache_stats_gc_clear() {
     let o = kiln(d, &["cache", "--cache-dir", c, "clear"]);
     assert_eq!(stdout(&o), format!("removed 4 entries from {c}\n"));
     let o = kiln(d, &["cache", "--cache-dir", c, "stats"]);
-    assert!(stdout(&o).contains("entries: 0\n"));
+    assert!(stdout(&o).contains("entries: 0 in 0 packs\n"), "{}", stdout(&o));
 }
 
 #[test]
@@ -186,5 +186,5 @@ fn two_processes_at_once_on_one_cache() {
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("c.json")).unwrap()).unwrap();
     assert_eq!((v["compiled"].as_u64(), v["cache_hits"].as_u64()), (Some(0), Some(24)));
     let o = kiln(d, &["cache", "--cache-dir", "shared", "stats"]);
-    assert!(stdout(&o).contains("entries: 24\n"), "{}", stdout(&o));
+    assert!(stdout(&o).contains("entries: 24 in "), "{}", stdout(&o));
 }

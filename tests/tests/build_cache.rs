@@ -15,11 +15,17 @@ use kiln::build;
 const DISTINCT: usize = 24;
 const WITH_FOG: usize = 12;
 
-fn entries(cache: &Path) -> Vec<PathBuf> {
+/// Distinct keys held by the cache's packs.
+fn entries(cache: &Path) -> usize {
+    kiln::cache::Cache::open(cache).unwrap().stats().entries as usize
+}
+
+/// The cache's pack files.
+fn packs(cache: &Path) -> Vec<PathBuf> {
     let mut out: Vec<PathBuf> = std::fs::read_dir(cache)
         .unwrap()
         .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "kce"))
+        .filter(|p| p.extension().is_some_and(|e| e == "kcp"))
         .collect();
     out.sort();
     out
@@ -35,7 +41,8 @@ fn second_build_compiles_nothing() {
     assert_eq!(first.stats.skipped, 4);
     assert_eq!(first.stats.unique_sources, DISTINCT);
     assert_eq!((first.stats.compiled, first.stats.cache_hits), (DISTINCT, 0));
-    assert_eq!(entries(&cache).len(), DISTINCT);
+    assert_eq!(entries(&cache), DISTINCT);
+    assert_eq!(packs(&cache).len(), 1, "one pack per build");
 
     let second = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
     assert_eq!((second.stats.compiled, second.stats.cache_hits), (0, DISTINCT));
@@ -87,7 +94,7 @@ fn two_builds_at_once_on_one_cache_both_succeed() {
     let third = build_ok(&options(&config, &fx.path().join("c.kpak"), Some(&cache)));
     assert_eq!((third.stats.compiled, third.stats.cache_hits), (0, DISTINCT));
     assert!(third.warnings.iter().all(|w| !w.contains("corrupted")), "{:?}", third.warnings);
-    assert_eq!(entries(&cache).len(), DISTINCT);
+    assert_eq!(entries(&cache), DISTINCT);
 }
 
 #[test]
@@ -96,22 +103,25 @@ fn corrupted_entry_is_reported_and_recompiled() {
     let cache = fx.path().join("cache");
     let config = fx.path().join("lit.toml");
     build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
-    let victim = entries(&cache)[3].clone();
-    let mut bytes = std::fs::read(&victim).unwrap();
+    // Flip a byte near the end of the pack: inside its last entry.
+    let pack = packs(&cache).pop().unwrap();
+    let mut bytes = std::fs::read(&pack).unwrap();
     let at = bytes.len() - 10;
     bytes[at] ^= 0x20;
-    std::fs::write(&victim, bytes).unwrap();
+    std::fs::write(&pack, bytes).unwrap();
 
     let r = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
     assert_eq!((r.stats.compiled, r.stats.cache_hits), (1, DISTINCT - 1));
     let warning = r.warnings.iter().find(|w| w.contains("corrupted")).expect("a warning about the entry");
-    assert_eq!(
-        warning,
-        &format!("warning: cache entry {} is corrupted (checksum mismatch); recompiling", victim.display())
+    assert!(
+        warning.starts_with("warning: cache entry ")
+            && warning.ends_with(&format!(" in {} is corrupted (checksum mismatch); recompiling", pack.display())),
+        "{warning}"
     );
     assert_eq!(std::fs::read(fx.path().join("a.kpak")).unwrap(), std::fs::read(fx.path().join("b.kpak")).unwrap());
     let r = build_ok(&options(&config, &fx.path().join("c.kpak"), Some(&cache)));
     assert_eq!(r.stats.compiled, 0, "the recompiled entry was stored again");
+    assert!(r.warnings.iter().all(|w| !w.contains("corrupted")), "{:?}", r.warnings);
 }
 
 #[test]
@@ -120,17 +130,19 @@ fn interrupted_write_leaves_no_entry_and_does_not_disturb_builds() {
     let cache = fx.path().join("cache");
     let config = fx.path().join("lit.toml");
     build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
-    // A writer killed half way leaves only its temporary file: replace one entry by that.
-    let victim = entries(&cache)[0].clone();
-    let bytes = std::fs::read(&victim).unwrap();
-    std::fs::remove_file(&victim).unwrap();
-    std::fs::write(victim.with_file_name(".tmp-killed"), &bytes[..bytes.len() / 2]).unwrap();
-    assert_eq!(kiln::cache::Cache::open(&cache).unwrap().stats().entries as usize, DISTINCT - 1);
+    // A writer killed half way leaves only its temporary file: replace the pack by that.
+    let pack = packs(&cache).pop().unwrap();
+    let bytes = std::fs::read(&pack).unwrap();
+    std::fs::remove_file(&pack).unwrap();
+    std::fs::write(pack.with_file_name(".tmp-killed"), &bytes[..bytes.len() / 2]).unwrap();
+    let stats = kiln::cache::Cache::open(&cache).unwrap().stats();
+    assert_eq!((stats.entries, stats.temporaries), (0, 1));
 
     let r = build_ok(&options(&config, &fx.path().join("b.kpak"), Some(&cache)));
-    assert_eq!((r.stats.compiled, r.stats.cache_hits), (1, DISTINCT - 1));
-    assert!(r.warnings.is_empty() || r.warnings.iter().all(|w| !w.contains("corrupted")));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits), (DISTINCT, 0));
+    assert!(r.warnings.iter().all(|w| !w.contains("corrupted") && !w.contains("damaged")), "{:?}", r.warnings);
     assert_eq!(std::fs::read(fx.path().join("a.kpak")).unwrap(), std::fs::read(fx.path().join("b.kpak")).unwrap());
+    assert_eq!(entries(&cache), DISTINCT);
 }
 
 #[test]

@@ -5,25 +5,43 @@
 //! naga's versions, a fingerprint of Kiln's own sources) and the [`Compiled`] outputs of
 //! that key; gives them back on a later build. It also keeps, per permutation, a
 //! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
-//! archive, a stamp (so an up-to-date archive is not rewritten). Guarantees: an entry is one file written to a temporary file in the cache folder
-//! and renamed into place, so readers (other processes included) see a whole entry or none,
-//! and two builds sharing a cache both succeed; every entry carries a checksum of its
-//! content, so a corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never
-//! trusted; a hit refreshes the entry's modification time, which `gc` uses to evict the
-//! least recently used entries first.
+//! archive, a stamp (so an up-to-date archive is not rewritten).
+//!
+//! Entries are stored in packs, like git's pack files: [`Cache::put_pack`] writes every
+//! entry a build compiled into one `.kcp` file, an index of keys followed by the entries.
+//! One file per build instead of one per key: creating hundreds of small files costs more
+//! kernel time than naga takes to compile some of them. Guarantees: a pack is written to a
+//! temporary file in the cache folder and renamed into place, so readers (other processes
+//! included) see a whole pack or none, and two builds sharing a cache both succeed (each
+//! writes its own pack; a key held by two packs is read from the newest that is intact);
+//! every entry carries a checksum of its content and the index one of its own, so a
+//! corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never trusted; a hit
+//! refreshes its pack's modification time, which `gc` uses to evict the least recently
+//! used packs first.
 
+use std::collections::{HashMap, HashSet};
 use std::fs;
 use std::io::{self, Write};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
 use std::time::SystemTime;
+
+use rayon::prelude::*;
 
 use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
 const MAGIC: &[u8; 8] = b"KILNCE\0\x01";
-const EXTENSION: &str = "kce";
+const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x01";
+const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 const RECORD_EXTENSION: &str = "kpp";
+/// Pack header: magic, entry count (u64), blake3 of the index rows.
+const PACK_HEADER: usize = 8 + 8 + 32;
+/// Index row: key, offset of the entry in the pack (u64), its length (u64).
+const ROW: usize = 32 + 8 + 8;
 
 /// Preprocessing records of one configuration, by the hex key of each permutation's
 /// inputs (see `build`): a later build skips the preprocessor for every permutation whose
@@ -92,19 +110,21 @@ impl std::fmt::Display for Key {
 pub enum Lookup {
     Hit(Compiled),
     Miss,
-    /// The entry exists but does not match its checksum or cannot be decoded: the reason.
-    /// The entry has been removed; the caller recompiles.
+    /// Every copy of the entry fails its checksum or cannot be decoded: the reason. The
+    /// caller recompiles; the new copy, in a newer pack, is the one read from then on.
     Corrupt(String),
 }
 
 /// Counts of [`Cache::stats`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Stats {
-    /// Compiled entries (`.kce`).
+    /// Distinct keys held by the packs.
     pub entries: u64,
+    /// Pack files (`.kcp`).
+    pub packs: u64,
     /// Sets of preprocessing records (`.kpp`, one per configuration and options).
     pub records: u64,
-    /// Bytes of entries and records.
+    /// Bytes of packs and records.
     pub bytes: u64,
     /// Temporary files left by interrupted writes (removed by `gc` and `clear`).
     pub temporaries: u64,
@@ -113,11 +133,14 @@ pub struct Stats {
 /// What [`Cache::gc`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct GcReport {
-    /// Compiled entries removed.
+    /// Keys no longer held by any pack.
     pub removed: u64,
+    /// Packs removed.
+    pub removed_packs: u64,
     /// Preprocessing records removed.
     pub removed_records: u64,
     pub freed: u64,
+    /// Keys still held.
     pub kept: u64,
     pub kept_bytes: u64,
 }
@@ -129,10 +152,57 @@ pub struct Error {
     pub source: io::Error,
 }
 
+/// One pack file, open for positioned reads (not mapped: a file truncated by someone else
+/// must give an error, not a SIGBUS).
+#[derive(Debug)]
+struct Pack {
+    path: PathBuf,
+    file: fs::File,
+    modified: SystemTime,
+    touched: AtomicBool,
+}
+
+impl Pack {
+    /// Refreshes the time gc sorts by, once per process; failing to is harmless.
+    fn touch(&self) {
+        if !self.touched.swap(true, Ordering::Relaxed) {
+            let _ = self.file.set_modified(SystemTime::now());
+        }
+    }
+}
+
+/// Where one copy of an entry lies.
+#[derive(Clone, Debug)]
+struct Location {
+    pack: Arc<Pack>,
+    offset: u64,
+    len: u64,
+}
+
+/// Every pack's index, read once per [`Cache`] (and extended by its own writes).
+#[derive(Debug, Default)]
+struct Index {
+    /// Copies of each key, newest pack first.
+    by_key: HashMap<Key, Vec<Location>>,
+    /// Packs whose index was damaged, now removed: (path, why). Their entries are misses.
+    damaged: Vec<(PathBuf, String)>,
+}
+
+impl Index {
+    fn add(&mut self, pack: Arc<Pack>, rows: Vec<(Key, u64, u64)>) {
+        for (key, offset, len) in rows {
+            let locations = self.by_key.entry(key).or_default();
+            let at = locations.iter().position(|l| l.pack.modified < pack.modified).unwrap_or(locations.len());
+            locations.insert(at, Location { pack: pack.clone(), offset, len });
+        }
+    }
+}
+
 /// A cache folder.
 #[derive(Clone, Debug)]
 pub struct Cache {
     dir: PathBuf,
+    index: Arc<RwLock<Option<Index>>>,
 }
 
 impl Cache {
@@ -140,54 +210,150 @@ impl Cache {
     pub fn open(dir: impl Into<PathBuf>) -> Result<Cache, Error> {
         let dir = dir.into();
         fs::create_dir_all(&dir).map_err(|source| Error { path: dir.clone(), source })?;
-        Ok(Cache { dir })
+        Ok(Cache { dir, index: Arc::default() })
     }
 
     pub fn dir(&self) -> &Path {
         &self.dir
     }
 
-    /// The file of `key`: `DIR/abcdef….kce`. One flat folder: creating fan-out folders
-    /// costs more than ext4's hashed directories save.
-    pub fn path(&self, key: &Key) -> PathBuf {
-        self.dir.join(format!("{}.{EXTENSION}", key.to_hex()))
+    /// Runs `f` on the index, reading every pack's index first if this is the first use.
+    fn with_index<T>(&self, f: impl FnOnce(&Index) -> T) -> T {
+        {
+            let index = self.index.read().expect("no panics while locked");
+            if let Some(index) = index.as_ref() {
+                return f(index);
+            }
+        }
+        let mut index = self.index.write().expect("no panics while locked");
+        f(index.get_or_insert_with(|| self.read_index()))
+    }
+
+    fn read_index(&self) -> Index {
+        let mut index = Index::default();
+        for (path, _) in self.files() {
+            if !Self::is_pack(&path) {
+                continue;
+            }
+            match open_pack(&path) {
+                Ok(Some((pack, rows))) => index.add(Arc::new(pack), rows),
+                Ok(None) => {} // removed meanwhile (gc or clear in another process)
+                Err(why) => {
+                    // Packs appear whole (renamed into place), so this one was damaged
+                    // afterwards: it can serve nothing.
+                    let _ = fs::remove_file(&path);
+                    index.damaged.push((path, why));
+                }
+            }
+        }
+        index
+    }
+
+    /// Warnings about packs whose index is damaged (their entries are recompiled): one
+    /// line each.
+    pub fn warnings(&self) -> Vec<String> {
+        self.with_index(|index| {
+            index
+                .damaged
+                .iter()
+                .map(|(path, why)| {
+                    format!("warning: cache pack {} was damaged ({why}) and is removed; its entries are recompiled", path.display())
+                })
+                .collect()
+        })
+    }
+
+    /// Whether some pack holds `key` (its content is checked by [`Cache::get`]).
+    pub fn contains(&self, key: &Key) -> bool {
+        self.with_index(|index| index.by_key.contains_key(key))
+    }
+
+    /// The newest pack holding `key`.
+    pub fn pack_of(&self, key: &Key) -> Option<PathBuf> {
+        self.with_index(|index| index.by_key.get(key).map(|l| l[0].pack.path.clone()))
     }
 
     pub fn get(&self, key: &Key) -> Lookup {
-        let path = self.path(key);
-        let bytes = match fs::read(&path) {
-            Ok(b) => b,
-            Err(_) => return Lookup::Miss,
-        };
-        match decode(key, &bytes) {
-            Ok(c) => {
-                // Refresh the time gc sorts by; failing to is harmless.
-                if let Ok(f) = fs::File::options().append(true).open(&path) {
-                    let _ = f.set_modified(SystemTime::now());
+        let locations = self.with_index(|index| index.by_key.get(key).cloned().unwrap_or_default());
+        let mut corrupt = None;
+        for l in &locations {
+            let mut bytes = vec![0; l.len as usize];
+            let decoded = match l.pack.file.read_exact_at(&mut bytes, l.offset) {
+                Ok(()) => decode(key, &bytes),
+                Err(_) => Err("entry is truncated".to_string()),
+            };
+            match decoded {
+                Ok(c) => {
+                    l.pack.touch();
+                    return Lookup::Hit(c);
                 }
-                Lookup::Hit(c)
-            }
-            Err(why) => {
-                let _ = fs::remove_file(&path);
-                Lookup::Corrupt(format!("cache entry {} is corrupted ({why}); recompiling", path.display()))
+                Err(why) => {
+                    corrupt.get_or_insert_with(|| {
+                        format!("cache entry {key} in {} is corrupted ({why}); recompiling", l.pack.path.display())
+                    });
+                }
             }
         }
+        corrupt.map_or(Lookup::Miss, Lookup::Corrupt)
     }
 
-    /// Stores `compiled` under `key` atomically.
+    /// Stores one entry (a pack of one).
     pub fn put(&self, key: &Key, compiled: &Compiled) -> Result<(), Error> {
-        let mut scratch = Vec::new();
-        let body = encode_pieces(key, compiled, &mut scratch);
-        let mut h = blake3::Hasher::new();
-        for piece in &body {
-            h.update(piece);
-        }
-        let checksum = h.finalize();
-        let mut pieces: Vec<&[u8]> = vec![MAGIC, checksum.as_bytes()];
-        pieces.extend(body);
-        self.write_pieces(&self.path(key), &pieces)
+        self.put_pack(&[(*key, compiled)])
     }
 
+    /// Stores `entries` as one pack, atomically. Entries are encoded and checksummed in
+    /// parallel (on the current rayon pool), then written in one file.
+    pub fn put_pack(&self, entries: &[(Key, &Compiled)]) -> Result<(), Error> {
+        if entries.is_empty() {
+            return Ok(());
+        }
+        let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
+            .par_iter()
+            .map(|(key, c)| {
+                let frames = frames(c);
+                let body = body_pieces(key, c, &frames);
+                let mut h = blake3::Hasher::new();
+                body.iter().for_each(|p| {
+                    h.update(p);
+                });
+                let len = (MAGIC.len() + 32 + body.iter().map(|p| p.len()).sum::<usize>()) as u64;
+                (frames, h.finalize(), len)
+            })
+            .collect();
+        let mut rows = Vec::with_capacity(entries.len() * ROW);
+        let mut offset = (PACK_HEADER + entries.len() * ROW) as u64;
+        for ((key, _), (_, _, len)) in entries.iter().zip(&encoded) {
+            rows.extend_from_slice(&key.0);
+            rows.extend_from_slice(&offset.to_le_bytes());
+            rows.extend_from_slice(&len.to_le_bytes());
+            offset += len;
+        }
+        let rows_hash = blake3::hash(&rows);
+        let count = (entries.len() as u64).to_le_bytes();
+        // Named by content: two builds writing the same pack rename one over the other.
+        let mut name = blake3::Hasher::new();
+        name.update(rows_hash.as_bytes());
+        for (_, checksum, _) in &encoded {
+            name.update(checksum.as_bytes());
+        }
+        let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
+        let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
+        for ((key, c), (scratch, checksum, _)) in entries.iter().zip(&encoded) {
+            pieces.push(MAGIC);
+            pieces.push(checksum.as_bytes());
+            pieces.extend(body_pieces(key, c, scratch));
+        }
+        self.write_pieces(&path, &pieces)?;
+        // Later lookups through this `Cache` see the new pack.
+        let mut index = self.index.write().expect("no panics while locked");
+        if let Some(index) = index.as_mut() {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
+                index.add(Arc::new(pack), rows);
+            }
+        }
+        Ok(())
+    }
     /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
     pub fn records_path(&self, key: &Key) -> PathBuf {
         self.dir.join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
@@ -243,7 +409,7 @@ impl Cache {
     /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
     /// build with `fingerprint`, and every key of `keys` still has its entry.
     pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
-        if !keys.iter().all(|k| self.path(k).is_file()) {
+        if !self.with_index(|index| keys.iter().all(|k| index.by_key.contains_key(k))) {
             return None;
         }
         let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
@@ -290,8 +456,8 @@ impl Cache {
             .filter_map(|e| Some((e.path().to_path_buf(), e.metadata().ok()?)))
     }
 
-    fn is_entry(path: &Path) -> bool {
-        path.extension().is_some_and(|e| e == EXTENSION)
+    fn is_pack(path: &Path) -> bool {
+        path.extension().is_some_and(|e| e == PACK_EXTENSION)
     }
 
     fn is_record(path: &Path) -> bool {
@@ -302,12 +468,22 @@ impl Cache {
         path.file_name().is_some_and(|n| n.to_string_lossy().starts_with(".tmp-"))
     }
 
+    /// The keys of the pack at `path` (none when it is damaged or gone).
+    fn pack_keys(path: &Path) -> Vec<Key> {
+        match open_pack(path) {
+            Ok(Some((_, rows))) => rows.into_iter().map(|r| r.0).collect(),
+            _ => Vec::new(),
+        }
+    }
+
     pub fn stats(&self) -> Stats {
         let mut s = Stats::default();
+        let mut keys = HashSet::new();
         for (path, meta) in self.files() {
-            if Self::is_entry(&path) {
-                s.entries += 1;
+            if Self::is_pack(&path) {
+                s.packs += 1;
                 s.bytes += meta.len();
+                keys.extend(Self::pack_keys(&path));
             } else if Self::is_record(&path) {
                 s.records += 1;
                 s.bytes += meta.len();
@@ -315,17 +491,19 @@ impl Cache {
                 s.temporaries += 1;
             }
         }
+        s.entries = keys.len() as u64;
         s
     }
 
-    /// Evicts least recently used entries and records until they take at most `max_bytes`;
-    /// removes temporary files older than a minute (left by interrupted writes).
+    /// Evicts the least recently used packs and records until they take at most
+    /// `max_bytes`; removes temporary files older than a minute (left by interrupted
+    /// writes).
     pub fn gc(&self, max_bytes: u64) -> GcReport {
-        let mut entries = Vec::new();
+        let mut files = Vec::new();
         let now = SystemTime::now();
         for (path, meta) in self.files() {
-            if Self::is_entry(&path) || Self::is_record(&path) {
-                entries.push((meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), meta.len(), path));
+            if Self::is_pack(&path) || Self::is_record(&path) {
+                files.push((meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), meta.len(), path));
             } else if Self::is_temporary(&path) {
                 let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
                 if age.as_secs() >= 60 {
@@ -333,42 +511,88 @@ impl Cache {
                 }
             }
         }
-        entries.sort();
-        let mut total: u64 = entries.iter().map(|e| e.1).sum();
+        files.sort();
+        let mut total: u64 = files.iter().map(|e| e.1).sum();
         let mut report = GcReport::default();
-        for (_, len, path) in &entries {
-            if total <= max_bytes {
-                break;
-            }
-            if fs::remove_file(path).is_ok() {
-                total -= len;
-                if Self::is_entry(path) {
-                    report.removed += 1;
-                } else {
-                    report.removed_records += 1;
+        let mut removed_keys = HashSet::new();
+        let mut kept_keys = HashSet::new();
+        for (_, len, path) in &files {
+            let pack = Self::is_pack(path);
+            if total > max_bytes {
+                let keys = if pack { Self::pack_keys(path) } else { Vec::new() };
+                if fs::remove_file(path).is_ok() {
+                    total -= len;
+                    if pack {
+                        report.removed_packs += 1;
+                        removed_keys.extend(keys);
+                    } else {
+                        report.removed_records += 1;
+                    }
+                    report.freed += len;
+                    continue;
                 }
-                report.freed += len;
+            }
+            if pack {
+                kept_keys.extend(Self::pack_keys(path));
             }
         }
-        let total_entries = entries.iter().filter(|e| Self::is_entry(&e.2)).count() as u64;
-        report.kept = total_entries - report.removed;
+        report.removed = removed_keys.difference(&kept_keys).count() as u64;
+        report.kept = kept_keys.len() as u64;
         report.kept_bytes = total;
+        // This `Cache`'s index may name removed packs: read it again on next use.
+        *self.index.write().expect("no panics while locked") = None;
         report
     }
 
-    /// Removes every entry, record, archive stamp and temporary file; returns how many
-    /// entries were removed.
+    /// Removes every pack, record, archive stamp and temporary file; returns how many
+    /// distinct entries were removed.
     pub fn clear(&self) -> Result<u64, Error> {
-        let mut n = 0;
+        let mut keys = HashSet::new();
         for (path, _) in self.files() {
             let stamp = path.extension().is_some_and(|e| e == "stamp");
-            if Self::is_entry(&path) || Self::is_record(&path) || Self::is_temporary(&path) || stamp {
+            if Self::is_pack(&path) || Self::is_record(&path) || Self::is_temporary(&path) || stamp {
+                if Self::is_pack(&path) {
+                    keys.extend(Self::pack_keys(&path));
+                }
                 fs::remove_file(&path).map_err(|source| Error { path: path.clone(), source })?;
-                n += u64::from(Self::is_entry(&path));
             }
         }
-        Ok(n)
+        *self.index.write().expect("no panics while locked") = None;
+        Ok(keys.len() as u64)
     }
+}
+
+/// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,
+/// `Err(why)` when it is not a whole pack of this Kiln.
+fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
+    let file = match fs::File::open(path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e.to_string()),
+    };
+    let meta = file.metadata().map_err(|e| e.to_string())?;
+    let size = meta.len();
+    let mut header = [0u8; PACK_HEADER];
+    file.read_exact_at(&mut header, 0).map_err(|_| "truncated header".to_string())?;
+    if &header[..8] != PACK_MAGIC {
+        return Err("not a cache pack of this kiln".into());
+    }
+    let count = u64::from_le_bytes(header[8..16].try_into().unwrap());
+    let rows_len = count.checked_mul(ROW as u64).filter(|&n| PACK_HEADER as u64 + n <= size).ok_or("truncated index")?;
+    let mut rows = vec![0u8; rows_len as usize];
+    file.read_exact_at(&mut rows, PACK_HEADER as u64).map_err(|_| "truncated index".to_string())?;
+    if blake3::hash(&rows).as_bytes() != &header[16..48] {
+        return Err("index checksum mismatch".into());
+    }
+    let rows = rows
+        .chunks_exact(ROW)
+        .map(|r| {
+            let key = Key(r[..32].try_into().unwrap());
+            (key, u64::from_le_bytes(r[32..40].try_into().unwrap()), u64::from_le_bytes(r[40..48].try_into().unwrap()))
+        })
+        .collect();
+    let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+    Ok(Some((Pack { path: path.to_path_buf(), file, modified, touched: AtomicBool::new(false) }, rows)))
 }
 
 /// Length, modification time and header checksum of an archive file.
@@ -424,37 +648,40 @@ pub fn format_size(bytes: u64) -> String {
 // Entry layout: MAGIC, blake3(body) (32 bytes), body.
 // body: key (32), artifact count (u32), per artifact: target name length (u8) + name, length
 // (u64) + bytes; then the reflection as JSON (u64 length + bytes).
-/// The pieces of an entry, in file order (artifacts are borrowed, not copied).
-fn encode_pieces<'a>(key: &'a Key, c: &'a Compiled, scratch: &'a mut Vec<Vec<u8>>) -> Vec<&'a [u8]> {
-    // Small framing pieces live in `scratch`; artifacts are referenced in place.
-    scratch.clear();
-    scratch.push((c.artifacts.len() as u32).to_le_bytes().to_vec());
+/// The small framing pieces of an entry's body: the artifact count, one frame per artifact
+/// (target name and length), the reflection's length and the reflection.
+fn frames(c: &Compiled) -> Vec<Vec<u8>> {
+    let mut frames = vec![(c.artifacts.len() as u32).to_le_bytes().to_vec()];
     for (t, bytes) in &c.artifacts {
         let mut frame = vec![t.name().len() as u8];
         frame.extend_from_slice(t.name().as_bytes());
         frame.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
-        scratch.push(frame);
+        frames.push(frame);
     }
     let json = serde_json::to_vec(&c.reflection).expect("reflection serializes");
-    scratch.push((json.len() as u64).to_le_bytes().to_vec());
-    scratch.push(json);
-    let scratch: &'a Vec<Vec<u8>> = scratch;
-    let mut body: Vec<&'a [u8]> = vec![&key.0, &scratch[0]];
+    frames.push((json.len() as u64).to_le_bytes().to_vec());
+    frames.push(json);
+    frames
+}
+
+/// The pieces of an entry's body, in file order (artifacts are borrowed, not copied).
+fn body_pieces<'a>(key: &'a Key, c: &'a Compiled, frames: &'a [Vec<u8>]) -> Vec<&'a [u8]> {
+    let mut body: Vec<&'a [u8]> = vec![&key.0, &frames[0]];
     for (i, (_, bytes)) in c.artifacts.iter().enumerate() {
-        body.push(&scratch[1 + i]);
+        body.push(&frames[1 + i]);
         body.push(bytes);
     }
-    let n = scratch.len();
-    body.push(&scratch[n - 2]);
-    body.push(&scratch[n - 1]);
+    let n = frames.len();
+    body.push(&frames[n - 2]);
+    body.push(&frames[n - 1]);
     body
 }
 
 /// An entry as one buffer (tests).
 #[cfg(test)]
 fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
-    let mut scratch = Vec::new();
-    let body = encode_pieces(key, c, &mut scratch);
+    let frames = frames(c);
+    let body = body_pieces(key, c, &frames);
     let mut h = blake3::Hasher::new();
     body.iter().for_each(|p| {
         h.update(p);

@@ -47,46 +47,129 @@ fn put_then_get_round_trips() {
         Lookup::Hit(c) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
+    let pack = cache.pack_of(&k).unwrap();
     assert_eq!(
         cache.stats(),
-        Stats { entries: 1, records: 0, bytes: fs::metadata(cache.path(&k)).unwrap().len(), temporaries: 0 }
+        Stats { entries: 1, packs: 1, records: 0, bytes: fs::metadata(&pack).unwrap().len(), temporaries: 0 }
     );
-}
-
-#[test]
-fn corrupted_entry_is_reported_removed_and_missed_next_time() {
-    let dir = tempfile::tempdir().unwrap();
-    let cache = Cache::open(dir.path()).unwrap();
-    let k = key("a");
-    cache.put(&k, &compiled(1)).unwrap();
-    let path = cache.path(&k);
-    let mut bytes = fs::read(&path).unwrap();
-    let last = bytes.len() - 3;
-    bytes[last] ^= 1;
-    fs::write(&path, bytes).unwrap();
-    match cache.get(&k) {
-        Lookup::Corrupt(why) => assert!(why.contains("checksum mismatch"), "{why}"),
+    // Another `Cache` on the folder reads it from the pack.
+    match Cache::open(dir.path()).unwrap().get(&k) {
+        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
-    assert!(matches!(cache.get(&k), Lookup::Miss));
 }
 
 #[test]
-fn truncated_or_foreign_entries_are_corrupt() {
+fn a_pack_holds_many_entries_in_one_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let keys: Vec<Key> = (0..50).map(|i| key(&i.to_string())).collect();
+    let values: Vec<Compiled> = (0..50).map(|i| compiled(i as u8)).collect();
+    let entries: Vec<(Key, &Compiled)> = keys.iter().copied().zip(&values).collect();
+    cache.put_pack(&entries).unwrap();
+    let files: Vec<_> = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    let fresh = Cache::open(dir.path()).unwrap();
+    for (k, v) in keys.iter().zip(&values) {
+        match fresh.get(k) {
+            Lookup::Hit(c) => assert_eq!(&c, v),
+            other => panic!("{other:?}"),
+        }
+    }
+    assert_eq!(fresh.stats().entries, 50);
+    assert!(matches!(fresh.get(&key("not stored")), Lookup::Miss));
+    // An empty pack is not written.
+    cache.put_pack(&[]).unwrap();
+    assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+}
+
+/// Flips one byte of the file at `path`, `from_end` bytes before its end.
+fn flip(path: &Path, from_end: usize) {
+    let mut bytes = fs::read(path).unwrap();
+    let at = bytes.len() - from_end;
+    bytes[at] ^= 1;
+    fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn corrupted_entry_is_reported_then_served_from_the_newer_copy() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     let (a, b) = (key("a"), key("b"));
-    cache.put(&a, &compiled(1)).unwrap();
-    let bytes = fs::read(cache.path(&a)).unwrap();
-    fs::write(cache.path(&a), &bytes[..bytes.len() / 2]).unwrap();
-    assert!(matches!(cache.get(&a), Lookup::Corrupt(_)));
-    // An entry copied under another key's name is not trusted either.
-    fs::create_dir_all(cache.path(&b).parent().unwrap()).unwrap();
-    fs::write(cache.path(&b), &bytes).unwrap();
+    let (ca, cb) = (compiled(1), compiled(2));
+    cache.put_pack(&[(a, &ca), (b, &cb)]).unwrap();
+    let pack = cache.pack_of(&b).unwrap();
+    // The last bytes belong to b's reflection.
+    flip(&pack, 3);
+    let cache = Cache::open(dir.path()).unwrap();
     match cache.get(&b) {
-        Lookup::Corrupt(why) => assert!(why.contains("another key"), "{why}"),
+        Lookup::Corrupt(why) => assert_eq!(
+            why,
+            format!("cache entry {b} in {} is corrupted (checksum mismatch); recompiling", pack.display())
+        ),
         other => panic!("{other:?}"),
     }
+    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca), "the other entry is intact");
+    // What a build does next: store the recompiled entry. From then on it is a hit, in
+    // this process and the next.
+    cache.put(&b, &cb).unwrap();
+    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == cb));
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&b), Lookup::Hit(c) if c == cb));
+}
+
+#[test]
+fn truncated_or_damaged_packs_are_never_trusted() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let (a, b) = (key("a"), key("b"));
+    let (ca, cb) = (compiled(1), compiled(2));
+    cache.put_pack(&[(a, &ca), (b, &cb)]).unwrap();
+    let pack = cache.pack_of(&a).unwrap();
+    let bytes = fs::read(&pack).unwrap();
+
+    // Truncated after a's entry: a is whole, b is corrupt.
+    fs::write(&pack, &bytes[..bytes.len() - 10]).unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca));
+    match cache.get(&b) {
+        Lookup::Corrupt(why) => assert!(why.contains("(entry is truncated)"), "{why}"),
+        other => panic!("{other:?}"),
+    }
+
+    // A damaged index: the pack is removed with a warning, and its keys are misses.
+    let mut damaged = bytes.clone();
+    damaged[PACK_HEADER + 3] ^= 1;
+    fs::write(&pack, &damaged).unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    assert!(matches!(cache.get(&a), Lookup::Miss));
+    assert_eq!(
+        cache.warnings(),
+        vec![format!(
+            "warning: cache pack {} was damaged (index checksum mismatch) and is removed; its entries are recompiled",
+            pack.display()
+        )]
+    );
+    assert!(!pack.exists());
+
+    // An index row moved to another key's entry: the entry names its own key.
+    let mut swapped = bytes.clone();
+    let rows = PACK_HEADER..PACK_HEADER + 2 * ROW;
+    let (first, second) = (swapped[rows.start..rows.start + 32].to_vec(), swapped[rows.start + ROW..rows.start + ROW + 32].to_vec());
+    swapped[rows.start..rows.start + 32].copy_from_slice(&second);
+    swapped[rows.start + ROW..rows.start + ROW + 32].copy_from_slice(&first);
+    let rows_hash = blake3::hash(&swapped[rows.clone()]);
+    swapped[16..48].copy_from_slice(rows_hash.as_bytes());
+    fs::write(&pack, &swapped).unwrap();
+    match Cache::open(dir.path()).unwrap().get(&a) {
+        Lookup::Corrupt(why) => assert!(why.contains("(the entry belongs to another key)"), "{why}"),
+        other => panic!("{other:?}"),
+    }
+
+    // Not a pack at all.
+    fs::write(&pack, b"KILNCP\0\x02 something else entirely, not forty-eight bytes long").unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    assert!(matches!(cache.get(&a), Lookup::Miss));
+    assert!(cache.warnings()[0].contains("(not a cache pack of this kiln)"), "{:?}", cache.warnings());
 }
 
 #[test]
@@ -94,15 +177,13 @@ fn interrupted_write_leaves_no_entry() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     let k = key("a");
-    // What a process killed in the middle of `put` leaves: a partial temporary file.
-    let folder = cache.path(&k).parent().unwrap().to_path_buf();
-    fs::create_dir_all(&folder).unwrap();
-    let tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(&folder).unwrap();
+    // What a process killed in the middle of `put_pack` leaves: a partial temporary file.
+    let tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(dir.path()).unwrap();
     let full = encode(&k, &compiled(1));
     fs::write(tmp.path(), &full[..full.len() / 2]).unwrap();
     let (_, kept) = tmp.keep().unwrap();
     assert!(matches!(cache.get(&k), Lookup::Miss));
-    assert_eq!(cache.stats(), Stats { entries: 0, records: 0, bytes: 0, temporaries: 1 });
+    assert_eq!(cache.stats(), Stats { temporaries: 1, ..Stats::default() });
     // gc leaves young temporaries alone (a concurrent writer may own them)...
     cache.gc(0);
     assert!(kept.exists());
@@ -116,14 +197,18 @@ fn interrupted_write_leaves_no_entry() {
 #[test]
 fn concurrent_puts_of_one_key_both_succeed() {
     let dir = tempfile::tempdir().unwrap();
-    let cache = Cache::open(dir.path()).unwrap();
     let k = key("a");
     std::thread::scope(|s| {
         for _ in 0..8 {
             s.spawn(|| {
+                let cache = Cache::open(dir.path()).unwrap();
                 for _ in 0..20 {
                     cache.put(&k, &compiled(1)).unwrap();
                     match cache.get(&k) {
+                        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
+                        other => panic!("{other:?}"),
+                    }
+                    match Cache::open(dir.path()).unwrap().get(&k) {
                         Lookup::Hit(c) => assert_eq!(c, compiled(1)),
                         other => panic!("{other:?}"),
                     }
@@ -131,28 +216,30 @@ fn concurrent_puts_of_one_key_both_succeed() {
             });
         }
     });
-    assert_eq!(cache.stats().entries, 1);
-    assert_eq!(cache.stats().temporaries, 0);
+    let stats = Cache::open(dir.path()).unwrap().stats();
+    // Identical packs have one name: each write replaced the last.
+    assert_eq!((stats.entries, stats.packs, stats.temporaries), (1, 1, 0));
 }
 
 #[test]
-fn gc_evicts_least_recently_used_first() {
+fn gc_evicts_least_recently_used_packs_first() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     let keys: Vec<Key> = ["a", "b", "c"].iter().map(|t| key(t)).collect();
     for (i, k) in keys.iter().enumerate() {
         cache.put(k, &compiled(i as u8)).unwrap();
         let t = SystemTime::now() - std::time::Duration::from_secs(100 - i as u64 * 10);
-        fs::File::options().append(true).open(cache.path(k)).unwrap().set_modified(t).unwrap();
+        fs::File::options().append(true).open(cache.pack_of(k).unwrap()).unwrap().set_modified(t).unwrap();
     }
-    // Using "a" makes it the most recently used.
-    assert!(matches!(cache.get(&keys[0]), Lookup::Hit(_)));
-    let one = fs::metadata(cache.path(&keys[0])).unwrap().len();
+    // Using "a" (from a fresh process's view) makes its pack the most recently used.
+    let packs: Vec<PathBuf> = keys.iter().map(|k| cache.pack_of(k).unwrap()).collect();
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&keys[0]), Lookup::Hit(_)));
+    let one = fs::metadata(&packs[0]).unwrap().len();
     let report = cache.gc(one * 2);
-    assert_eq!(report.removed, 1);
-    assert_eq!(report.kept, 2);
-    assert!(!cache.path(&keys[1]).exists(), "b was the least recently used");
-    assert!(cache.path(&keys[0]).exists() && cache.path(&keys[2]).exists());
+    assert_eq!((report.removed, report.removed_packs, report.kept), (1, 1, 2));
+    assert!(!packs[1].exists(), "b was the least recently used");
+    assert!(packs[0].exists() && packs[2].exists());
+    assert!(matches!(cache.get(&keys[1]), Lookup::Miss), "the index is read again after gc");
     assert_eq!(cache.clear().unwrap(), 2);
     assert_eq!(cache.stats(), Stats::default());
 }
@@ -181,7 +268,7 @@ fn records_round_trip_and_damage_is_a_miss() {
     fs::write(&path, bytes).unwrap();
     assert!(cache.get_records(&k).is_empty());
     let report = cache.gc(0);
-    assert_eq!((report.removed, report.removed_records), (0, 1));
+    assert_eq!((report.removed, report.removed_packs, report.removed_records), (0, 0, 1));
 }
 
 #[test]

@@ -44,9 +44,10 @@ pub fn exec(args: Args) -> CliResult {
         Action::Stats => {
             let s = cache.stats();
             let mut t = format!(
-                "cache: {}\nentries: {}\npreprocessing records: {}\nsize: {} ({} bytes)\n",
+                "cache: {}\nentries: {} in {} packs\npreprocessing records: {}\nsize: {} ({} bytes)\n",
                 dir.display(),
                 s.entries,
+                s.packs,
                 s.records,
                 format_size(s.bytes),
                 s.bytes
@@ -62,7 +63,8 @@ pub fn exec(args: Args) -> CliResult {
         Action::Gc { max_size } => {
             let r = cache.gc(max_size);
             format!(
-                "removed {} entries and {} preprocessing records ({}); kept {} entries ({})\n",
+                "removed {} packs ({} entries) and {} preprocessing records ({}); kept {} entries ({})\n",
+                r.removed_packs,
                 r.removed,
                 r.removed_records,
                 format_size(r.freed),
