@@ -118,7 +118,13 @@ fn main() {
     let rounds: usize = args.next().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
     let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
     let config = permute::load(&config_path).unwrap_or_else(|e| panic!("{}", e.render()));
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(jobs).build().unwrap();
+    // The same workers as `kiln build`'s (the preprocessor's stack, so it runs in place).
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs)
+        .stack_size(preprocess::STACK_BYTES)
+        .start_handler(|_| preprocess::big_stack_thread())
+        .build()
+        .unwrap();
 
     // The distinct sources (untimed), as Kiln's dedup sees them.
     let sources = SourceCache::new(config.dir.clone());

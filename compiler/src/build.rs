@@ -338,7 +338,10 @@ pub fn run(options: &Options) -> Result<Report, Error> {
         Err(e) => return Err(Error::Io(format!("error: {e}"))),
     };
     let pool = {
-        let mut b = rayon::ThreadPoolBuilder::new();
+        // Workers with the preprocessor's stack run it in place (no thread per permutation).
+        let mut b = rayon::ThreadPoolBuilder::new()
+            .stack_size(preprocess::STACK_BYTES)
+            .start_handler(|_| preprocess::big_stack_thread());
         if let Some(j) = options.jobs {
             b = b.num_threads(j.max(1));
         }

@@ -26,6 +26,7 @@ use codespan_reporting::diagnostic::Diagnostic;
 /// The diagnostic types of this module's API, re-exported for callers.
 pub use codespan_reporting::diagnostic::{Diagnostic as CodespanDiagnostic, Label, Severity};
 pub use map::{Origin, SourceMap};
+pub use engine::{big_stack_thread, STACK_BYTES};
 pub use source::{FileId, SourceCache, SourceText};
 
 /// How to preprocess.

@@ -304,7 +304,19 @@ pub(crate) fn run(file: FileId, opts: &Options, cache: &SourceCache) -> Result<O
 
 /// Stack for one preprocessing run: nested macro arguments recurse (one level per
 /// `max_expansion_depth`), and a caller's thread (a test's, a rayon worker's) may be small.
-const STACK_BYTES: usize = 256 << 20;
+pub const STACK_BYTES: usize = 256 << 20;
+
+thread_local! {
+    /// Set on threads started with [`STACK_BYTES`] of stack (see [`big_stack_thread`]).
+    static BIG_STACK: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Declares that the calling thread was started with at least [`STACK_BYTES`] of stack
+/// (rayon's `start_handler` of a pool built with that stack size): preprocessing then runs
+/// on it, without starting a thread per file.
+pub fn big_stack_thread() {
+    BIG_STACK.with(|b| b.set(true));
+}
 
 pub(crate) fn run_named(
     file: FileId,
@@ -312,6 +324,11 @@ pub(crate) fn run_named(
     opts: &Options,
     cache: &SourceCache,
 ) -> Result<Output, Error> {
+    let panicked = || Err(Error::new("internal error: the preprocessor panicked", Vec::new()));
+    if BIG_STACK.with(|b| b.get()) {
+        return std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_here(file, name.clone(), opts, cache)))
+            .unwrap_or_else(|_| panicked());
+    }
     // The stack is only reserved address space; pages are touched as deep as the input goes.
     std::thread::scope(|s| {
         let worker = std::thread::Builder::new()
@@ -319,12 +336,7 @@ pub(crate) fn run_named(
             .stack_size(STACK_BYTES)
             .spawn_scoped(s, || run_here(file, name.clone(), opts, cache));
         match worker {
-            Ok(handle) => handle.join().unwrap_or_else(|_| {
-                Err(Error::new(
-                    "internal error: the preprocessor panicked",
-                    Vec::new(),
-                ))
-            }),
+            Ok(handle) => handle.join().unwrap_or_else(|_| panicked()),
             Err(_) => run_here(file, name.clone(), opts, cache),
         }
     })
