@@ -730,6 +730,12 @@ fn write_outputs(
     writer.set_naga_version(compile::NAGA_VERSION);
     let mut index: BTreeMap<String, BTreeMap<&'static str, String>> = BTreeMap::new();
     let mut emitted: HashMap<blake3::Hash, String> = HashMap::new();
+    // Every artifact's hash (for deduplication) on all threads first; blobs are then
+    // borrowed by the writer, not copied.
+    let hashes: HashMap<(Key, Target), blake3::Hash> = compiled
+        .par_iter()
+        .flat_map_iter(|(k, c)| c.artifacts.iter().map(move |(t, bytes)| ((*k, *t), blake3::hash(bytes))))
+        .collect();
     for (i, p) in kept.iter().enumerate() {
         let Ok(pm) = &pre[i] else { continue };
         let c = &compiled[&pm.key];
@@ -749,9 +755,9 @@ fn write_outputs(
         let name = p.name();
         let mut artifacts = Vec::with_capacity(c.artifacts.len());
         for (t, bytes) in &c.artifacts {
-            artifacts.push((*t, writer.add_blob(bytes)));
+            let hash = hashes[&(pm.key, *t)];
+            artifacts.push((*t, writer.add_blob_ref(bytes, hash)));
             if let Some(dir) = &options.emit_dir {
-                let hash = blake3::hash(bytes);
                 let file = match emitted.get(&hash) {
                     Some(f) => f.clone(),
                     None => {

@@ -14,9 +14,10 @@
 //! Blobs are deduplicated by content and aligned to 8 bytes inside the blob section, so a
 //! SPIR-V blob can be read as `u32` words straight from a memory map.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::Write;
+use std::io::{IoSlice, Write};
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -102,16 +103,24 @@ struct Manifest {
 
 /// Collects permutations and artifacts, deduplicating blobs and reflections, then writes
 /// the archive atomically.
+/// Blobs added with [`ArchiveWriter::add_blob_ref`] are borrowed until the archive is
+/// written, not copied.
 #[derive(Default)]
-pub struct ArchiveWriter {
+pub struct ArchiveWriter<'a> {
     manifest: Manifest,
-    blob_data: Vec<u8>,
+    /// The distinct blobs, in blob-section order.
+    blobs: Vec<Cow<'a, [u8]>>,
+    /// Length of the blob section so far (blobs and the padding before each).
+    blob_section_len: u64,
     blob_index: HashMap<blake3::Hash, BlobId>,
     reflection_index: HashMap<Reflection, u32>,
     shader_index: HashMap<(String, String), u32>,
 }
 
-impl ArchiveWriter {
+/// Zero bytes that pad blobs to 8-byte offsets.
+const PADDING: [u8; 8] = [0; 8];
+
+impl<'a> ArchiveWriter<'a> {
     pub fn new() -> Self {
         let mut w = ArchiveWriter::default();
         w.manifest.kiln_version = crate::VERSION.to_string();
@@ -142,12 +151,25 @@ impl ArchiveWriter {
         if let Some(&id) = self.blob_index.get(&hash) {
             return id;
         }
-        while self.blob_data.len() % 8 != 0 {
-            self.blob_data.push(0);
+        self.push_blob(Cow::Owned(bytes.to_vec()), hash)
+    }
+
+    /// [`ArchiveWriter::add_blob`] for a blob whose blake3 `hash` the caller computed (on
+    /// another thread, say), borrowed until the archive is written.
+    pub fn add_blob_ref(&mut self, bytes: &'a [u8], hash: blake3::Hash) -> BlobId {
+        debug_assert_eq!(hash, blake3::hash(bytes));
+        if let Some(&id) = self.blob_index.get(&hash) {
+            return id;
         }
+        self.push_blob(Cow::Borrowed(bytes), hash)
+    }
+
+    fn push_blob(&mut self, bytes: Cow<'a, [u8]>, hash: blake3::Hash) -> BlobId {
+        self.blob_section_len = self.blob_section_len.next_multiple_of(8);
         let id = BlobId(self.manifest.blobs.len() as u32);
-        self.manifest.blobs.push(BlobRecord { offset: self.blob_data.len() as u64, len: bytes.len() as u64 });
-        self.blob_data.extend_from_slice(bytes);
+        self.manifest.blobs.push(BlobRecord { offset: self.blob_section_len, len: bytes.len() as u64 });
+        self.blob_section_len += bytes.len() as u64;
+        self.blobs.push(bytes);
         self.blob_index.insert(hash, id);
         id
     }
@@ -171,21 +193,39 @@ impl ArchiveWriter {
         self.manifest.blobs.len()
     }
 
+    /// The blob section as pieces: each blob after the zero padding that aligns it.
+    fn blob_pieces(&self) -> Vec<&[u8]> {
+        let mut pieces = Vec::with_capacity(self.blobs.len() * 2);
+        let mut at = 0u64;
+        for blob in &self.blobs {
+            let pad = (at.next_multiple_of(8) - at) as usize;
+            if pad > 0 {
+                pieces.push(&PADDING[..pad]);
+            }
+            pieces.push(&blob[..]);
+            at += (pad + blob.len()) as u64;
+        }
+        debug_assert_eq!(at, self.blob_section_len);
+        pieces
+    }
+
     /// The header and the padded manifest; the blob section follows them.
-    fn head(&self) -> (Vec<u8>, Vec<u8>) {
+    fn head(&self, blobs: &[&[u8]]) -> (Vec<u8>, Vec<u8>) {
         let mut manifest = serde_json::to_vec(&self.manifest).expect("manifest serializes");
         while manifest.len() % 8 != 0 {
             manifest.push(b' ');
         }
         let mut checksum = blake3::Hasher::new();
         checksum.update(&manifest);
-        checksum.update(&self.blob_data);
+        for piece in blobs {
+            checksum.update(piece);
+        }
         let mut header = Vec::with_capacity(HEADER_LEN);
         header.extend_from_slice(&MAGIC);
         header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
         header.extend_from_slice(&0u32.to_le_bytes());
         header.extend_from_slice(&(manifest.len() as u64).to_le_bytes());
-        header.extend_from_slice(&(self.blob_data.len() as u64).to_le_bytes());
+        header.extend_from_slice(&self.blob_section_len.to_le_bytes());
         header.extend_from_slice(checksum.finalize().as_bytes());
         debug_assert_eq!(header.len(), HEADER_LEN);
         (header, manifest)
@@ -193,28 +233,35 @@ impl ArchiveWriter {
 
     /// The whole archive as bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let (header, manifest) = self.head();
-        let mut out = Vec::with_capacity(HEADER_LEN + manifest.len() + self.blob_data.len());
+        let blobs = self.blob_pieces();
+        let (header, manifest) = self.head(&blobs);
+        let mut out = Vec::with_capacity(HEADER_LEN + manifest.len() + self.blob_section_len as usize);
         out.extend_from_slice(&header);
         out.extend_from_slice(&manifest);
-        out.extend_from_slice(&self.blob_data);
+        blobs.iter().for_each(|b| out.extend_from_slice(b));
         out
     }
 
     /// Writes the archive to `path` atomically: a temporary file in the same folder, synced,
     /// then renamed over `path`. A reader never sees a half-written archive.
     pub fn write(&self, path: &Path) -> Result<(), ArchiveError> {
-        write_atomic(path, &self.to_bytes()).map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
+        self.write_impl(path, true)
     }
 
     /// [`ArchiveWriter::write`] without the fsync: still atomic for readers (temporary file
     /// and rename), not durable across a power loss, like a compiler's outputs. A truncated
     /// file after a crash is reported by [`Archive::open`] and rebuilt.
     pub fn write_unsynced(&self, path: &Path) -> Result<(), ArchiveError> {
+        self.write_impl(path, false)
+    }
+
+    fn write_impl(&self, path: &Path, sync: bool) -> Result<(), ArchiveError> {
         // Written in pieces, never copied into one buffer: archives can be large.
-        let (header, manifest) = self.head();
-        write_atomic_impl(path, &[&header, &manifest, &self.blob_data], false)
-            .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
+        let blobs = self.blob_pieces();
+        let (header, manifest) = self.head(&blobs);
+        let mut pieces: Vec<&[u8]> = vec![&header, &manifest];
+        pieces.extend(blobs);
+        write_atomic_impl(path, &pieces, sync).map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
     }
 }
 
@@ -245,9 +292,7 @@ fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Resu
     let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
         let mut f = File::create(&tmp)?;
-        for piece in pieces {
-            f.write_all(piece)?;
-        }
+        write_all_vectored(&mut f, pieces)?;
         if sync {
             f.sync_all()?;
         }
@@ -257,6 +302,25 @@ fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Resu
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// Writes every piece in order with as few `writev` calls as the system allows.
+pub(crate) fn write_all_vectored(out: &mut impl Write, pieces: &[&[u8]]) -> std::io::Result<()> {
+    // IOV_MAX is 1024 on Linux.
+    for batch in pieces.chunks(1024) {
+        let mut slices: Vec<IoSlice<'_>> = batch.iter().map(|p| IoSlice::new(p)).collect();
+        let mut rest = &mut slices[..];
+        IoSlice::advance_slices(&mut rest, 0);
+        while !rest.is_empty() {
+            match out.write_vectored(rest) {
+                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+                Ok(n) => IoSlice::advance_slices(&mut rest, n),
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+    }
+    Ok(())
 }
 
 enum Bytes {

@@ -21,7 +21,7 @@
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
-use std::io::{self, Write};
+use std::io;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -436,12 +436,7 @@ impl Cache {
                 tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir).map_err(err)?
             }
         };
-        let mut out = std::io::BufWriter::with_capacity(64 << 10, tmp.as_file_mut());
-        for piece in pieces {
-            out.write_all(piece).map_err(err)?;
-        }
-        out.flush().map_err(err)?;
-        drop(out);
+        crate::archive::write_all_vectored(tmp.as_file_mut(), pieces).map_err(err)?;
         tmp.persist(path).map_err(|e| err(e.error))?;
         Ok(())
     }
