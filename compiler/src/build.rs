@@ -444,23 +444,29 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         Ok(pre)
     };
     // The first permutation of each (shader, level) first, so that the others find what
-    // they may reuse; then all the others.
+    // they may reuse; then all the others. Workers take the next permutation from a shared
+    // counter: in order, one at a time (compile times differ widely between shaders), and
+    // with no barrier between the two halves.
     let mut first_of_group = vec![false; kept.len()];
     let mut seen_groups = std::collections::HashSet::new();
     for (i, p) in kept.iter().enumerate() {
         first_of_group[i] = seen_groups.insert((p.shader.name.as_str(), p.level.name.as_str()));
     }
-    // One permutation per task: compile times differ widely between shaders.
-    let firsts =
-        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
-    let firsts: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = firsts.collect();
-    let rest =
-        kept.par_iter().with_max_len(1).enumerate().filter(|(i, _)| !first_of_group[*i]).map(|(i, p)| (i, one(i, p)));
-    let rest: Vec<(usize, Result<Pre, Diagnostic<FileId>>)> = rest.collect();
-    let mut pre: Vec<Option<Result<Pre, Diagnostic<FileId>>>> = (0..kept.len()).map(|_| None).collect();
-    for (i, r) in firsts.into_iter().chain(rest) {
-        pre[i] = Some(r);
-    }
+    let order: Vec<usize> =
+        (0..kept.len()).filter(|&i| first_of_group[i]).chain((0..kept.len()).filter(|&i| !first_of_group[i])).collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let done: Mutex<Vec<Option<Result<Pre, Diagnostic<FileId>>>>> = Mutex::new((0..kept.len()).map(|_| None).collect());
+    rayon::scope(|s| {
+        for _ in 0..rayon::current_num_threads() {
+            s.spawn(|_| loop {
+                let n = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(&i) = order.get(n) else { break };
+                let r = one(i, &kept[i]);
+                done.lock().expect("no panics while locked")[i] = Some(r);
+            });
+        }
+    });
+    let pre = done.into_inner().expect("no panics while locked");
     let pre: Vec<Result<Pre, Diagnostic<FileId>>> =
         pre.into_iter().map(|r| r.expect("every permutation was preprocessed")).collect();
     let reps = reps.into_inner().expect("no panics while locked");
