@@ -103,7 +103,7 @@ pub fn next(src: &[u8], pos: usize) -> (Kind, usize) {
 }
 
 #[inline]
-fn ident_len(src: &[u8], pos: usize) -> usize {
+pub(crate) fn ident_len(src: &[u8], pos: usize) -> usize {
     let mut i = pos + 1;
     while i < src.len() && is_ident_continue(src[i]) {
         i += 1;

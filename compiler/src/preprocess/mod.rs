@@ -108,24 +108,38 @@ impl Output {
 /// [`Output::token_hash`] of any text.
 pub fn token_hash(text: &str) -> blake3::Hash {
     // One buffer hashed at once: the same bytes as hashing token by token, without the
-    // hasher's per-call overhead on tiny slices.
+    // hasher's per-call overhead on tiny slices. Each token is its length (u32) and bytes.
     let src = text.as_bytes();
     let mut buf = Vec::with_capacity(src.len() + src.len() / 2);
     let mut pos = 0;
-    loop {
-        let (kind, len) = lexer::next(src, pos);
-        match kind {
-            lexer::Kind::Eof => break,
-            lexer::Kind::Space
-            | lexer::Kind::Newline
-            | lexer::Kind::LineComment
-            | lexer::Kind::BlockComment { .. } => {}
-            _ => {
-                buf.extend_from_slice(&(len as u32).to_le_bytes());
-                buf.extend_from_slice(&src[pos..pos + len]);
+    while pos < src.len() {
+        let b = src[pos];
+        // Fast paths for what preprocessed WGSL is mostly made of: single blanks and
+        // identifiers (those that could start a string prefix, `L` `U` `u`, go the long way).
+        let len = match b {
+            b' ' | b'\n' | b'\t' => {
+                pos += 1;
+                continue;
             }
-        }
-        pos += len.max(1);
+            b'a'..=b't' | b'v'..=b'z' | b'A'..=b'K' | b'M'..=b'T' | b'V'..=b'Z' | b'_' => lexer::ident_len(src, pos),
+            _ => match lexer::next(src, pos) {
+                (lexer::Kind::Eof, _) => break,
+                (
+                    lexer::Kind::Space
+                    | lexer::Kind::Newline
+                    | lexer::Kind::LineComment
+                    | lexer::Kind::BlockComment { .. },
+                    len,
+                ) => {
+                    pos += len.max(1);
+                    continue;
+                }
+                (_, len) => len.max(1),
+            },
+        };
+        buf.extend_from_slice(&(len as u32).to_le_bytes());
+        buf.extend_from_slice(&src[pos..pos + len]);
+        pos += len;
     }
     blake3::hash(&buf)
 }

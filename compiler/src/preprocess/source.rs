@@ -9,6 +9,67 @@ use std::sync::{Arc, RwLock};
 
 use codespan_reporting::files::{self, Files};
 
+use super::lexer::{self, Kind};
+
+/// Lengths up to this fit in a token table entry; longer tokens are lexed each time.
+const MAX_PACKED_LEN: usize = (1 << 27) - 1;
+
+/// One entry of a token table: kind code (low 5 bits, 0 = no entry) and length.
+fn pack(kind: Kind, len: usize) -> u32 {
+    let code = match kind {
+        Kind::Space => 1,
+        Kind::Newline => 2,
+        Kind::LineComment => 3,
+        Kind::BlockComment { terminated: true } => 4,
+        Kind::BlockComment { terminated: false } => 5,
+        Kind::Ident => 6,
+        Kind::Number => 7,
+        Kind::Str { terminated: true } => 8,
+        Kind::Str { terminated: false } => 9,
+        Kind::Char { terminated: true } => 10,
+        Kind::Char { terminated: false } => 11,
+        Kind::Punct => 12,
+        Kind::Other => 13,
+        Kind::Eof => return 0,
+    };
+    if len > MAX_PACKED_LEN {
+        return 0;
+    }
+    code | (len as u32) << 5
+}
+
+fn unpack(entry: u32) -> Option<(Kind, usize)> {
+    let kind = match entry & 31 {
+        1 => Kind::Space,
+        2 => Kind::Newline,
+        3 => Kind::LineComment,
+        4 => Kind::BlockComment { terminated: true },
+        5 => Kind::BlockComment { terminated: false },
+        6 => Kind::Ident,
+        7 => Kind::Number,
+        8 => Kind::Str { terminated: true },
+        9 => Kind::Str { terminated: false },
+        10 => Kind::Char { terminated: true },
+        11 => Kind::Char { terminated: false },
+        12 => Kind::Punct,
+        13 => Kind::Other,
+        _ => return None,
+    };
+    Some((kind, (entry >> 5) as usize))
+}
+
+/// The packed token at each token start of one lexing pass over `text`.
+fn token_table(text: &[u8]) -> Box<[u32]> {
+    let mut table = vec![0u32; text.len()];
+    let mut pos = 0;
+    while pos < text.len() {
+        let (kind, len) = lexer::next(text, pos);
+        table[pos] = pack(kind, len);
+        pos += len.max(1);
+    }
+    table.into_boxed_slice()
+}
+
 /// A file known to a [`SourceCache`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct FileId(pub(crate) u32);
@@ -27,9 +88,25 @@ pub struct SourceFile {
     /// `(spliced offset, original offset)` at each point where the two stop moving together.
     splices: Vec<(u32, u32)>,
     line_starts: Vec<usize>,
+    /// The lexer's answer at each token start of one pass over [`SourceFile::text`],
+    /// packed (see [`SourceFile::lex`]); 0 elsewhere. Made on first use: every
+    /// permutation then reads its tokens instead of lexing the file again.
+    tokens: std::sync::OnceLock<Box<[u32]>>,
 }
 
 impl SourceFile {
+    /// `lexer::next(self.text(), pos)`, from the file's token table where `pos` is a
+    /// token start of the pass from the file's beginning (the preprocessor's positions
+    /// almost always are), else lexed now.
+    #[inline]
+    pub(crate) fn lex(&self, pos: usize) -> (Kind, usize) {
+        let table = self.tokens.get_or_init(|| token_table(self.text().as_bytes()));
+        match table.get(pos).and_then(|&t| unpack(t)) {
+            Some(token) => token,
+            None => lexer::next(self.text().as_bytes(), pos),
+        }
+    }
+
     fn new(path: PathBuf, name: String, original: String) -> SourceFile {
         let (spliced, splices) = splice(&original);
         let line_starts = files::line_starts(&original).collect();
@@ -40,6 +117,7 @@ impl SourceFile {
             spliced,
             splices,
             line_starts,
+            tokens: std::sync::OnceLock::new(),
         }
     }
 

@@ -262,3 +262,53 @@ fn macro_errors() {
     );
     assert_eq!(err("/* open\n"), "unterminated comment");
 }
+
+/// The token hash as first written: every token through the general lexer.
+fn token_hash_reference(text: &str) -> blake3::Hash {
+    let src = text.as_bytes();
+    let mut buf = Vec::new();
+    let mut pos = 0;
+    loop {
+        let (kind, len) = lexer::next(src, pos);
+        match kind {
+            lexer::Kind::Eof => break,
+            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {}
+            _ => {
+                buf.extend_from_slice(&(len as u32).to_le_bytes());
+                buf.extend_from_slice(&src[pos..pos + len]);
+            }
+        }
+        pos += len.max(1);
+    }
+    blake3::hash(&buf)
+}
+
+#[test]
+fn token_hash_fast_paths_agree_with_the_lexer() {
+    let fixed = [
+        "",
+        "fn main() -> @location(0) vec4<f32> { return vec4(1.0, 0.5e-3, .5, 0x1p4); }",
+        "a+b a + b a/**/+/* x */b // c\n u8\"s\" L'c' U\"x\" u'y' uvw Lx Ux $id é",
+        "x <<= y >>= z ... ## %:%: <: :> <% %> -> ++ -- && || \t\r\x0b\x0c end",
+        "\"unterminated\n 'c\n /* open",
+        "@ ` \\ \u{7f} \u{e9}t\u{e9} 1.e+5 1..2",
+    ];
+    for text in fixed {
+        assert_eq!(token_hash(text), token_hash_reference(text), "{text:?}");
+    }
+    // Random texts over the bytes that matter to the lexer.
+    let alphabet: Vec<char> = "aLuU8_$ 0.e+-\n\t\r/*\"'\\<>=#%:@`(){}é".chars().collect();
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    for _ in 0..20_000 {
+        let len = (state % 24) as usize;
+        let mut text = String::new();
+        for _ in 0..len {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            text.push(alphabet[(state % alphabet.len() as u64) as usize]);
+        }
+        assert_eq!(token_hash(&text), token_hash_reference(&text), "{text:?}");
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    }
+}

@@ -15,13 +15,12 @@ impl Pp<'_> {
         };
         let source = frame.source.clone();
         let ctx = frame.ctx;
-        let bytes = source.text().as_bytes();
         let mut pos = frame.pos;
         let mut white = false;
         let mut toks = Vec::new();
         let end;
         loop {
-            let (kind, len) = lexer::next(bytes, pos);
+            let (kind, len) = source.lex(pos);
             match kind {
                 Kind::Eof => {
                     end = pos;
@@ -690,7 +689,7 @@ impl Pp<'_> {
             // At a line start: whitespace and comments, then maybe a directive.
             let mut p = pos;
             loop {
-                let (kind, len) = lexer::next(bytes, p);
+                let (kind, len) = source.lex(p);
                 match kind {
                     Kind::Space | Kind::BlockComment { terminated: true } => p += len,
                     _ => break,
@@ -702,7 +701,7 @@ impl Pp<'_> {
                 }
                 return Ok(()); // end_of_file reports the open conditional
             }
-            let (kind, len) = lexer::next(bytes, p);
+            let (kind, len) = source.lex(p);
             let is_hash = kind == Kind::Punct && (bytes[p] == b'#' || &bytes[p..p + len] == b"%:");
             if is_hash {
                 let hash = p;

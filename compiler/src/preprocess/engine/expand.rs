@@ -18,7 +18,7 @@ impl Pp<'_> {
             let source = frame.source.clone();
             let bytes = source.text().as_bytes();
             let pos = frame.pos;
-            let (kind, len) = lexer::next(bytes, pos);
+            let (kind, len) = source.lex(pos);
             match kind {
                 Kind::Eof => return Ok(Tok::eof()),
                 Kind::Newline => {

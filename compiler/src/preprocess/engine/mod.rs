@@ -945,7 +945,7 @@ impl<'a> Pp<'a> {
         let mut last_tok: Option<Range<usize>> = None;
         let mut guard_check = matches!(frame.guard, GuardState::Start | GuardState::Closed(_));
         loop {
-            let (kind, len) = lexer::next(bytes, pos);
+            let (kind, len) = source.lex(pos);
             match kind {
                 Kind::Eof => {
                     self.copy_run(ctx, text, run_start, pos, last_tok)?;
