@@ -43,6 +43,38 @@ fn hzb_top_mip_holds_the_farthest_depth() {
     }
 }
 
+/// The same chain on GL (llvmpipe): every mip is built, not only mip 0. wgpu's GL backend
+/// emulates a one-mip view by narrowing the whole texture's base and max level while it is
+/// sampled, which made GL drop the stores to the next mip when it was built from the HZB
+/// itself: mips 1 and up stayed 0 on GL (the camera looks down at the floor, so every texel
+/// of every mip holds a surface's depth, above 0).
+#[test]
+fn hzb_mips_are_built_on_gl_too() {
+    let gpu = kiln_runtime::Gpu::new(&kiln_runtime::GpuOptions { backend: kiln_runtime::Backend::Gl, ..Default::default() }).unwrap_or_else(|e| panic!("{e}"));
+    let mut scene = Scene::bundled();
+    scene.camera = Camera { position: Vec3::new(0.0, 9.0, 3.0), target: Vec3::new(0.0, 0.0, -0.5), fov_y: 50f32.to_radians(), near: 0.1 };
+    let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
+    r.render(false).unwrap();
+    let part2 = r.desktop_part2().unwrap();
+    let (hzb, mips) = part2.hzb();
+    let (_, _, mip0) = read_f32(&gpu, &hzb, 0);
+    let farthest = mip0.iter().copied().fold(f32::MAX, f32::min);
+    assert!(farthest > 0.0, "mip 0 sees the sky (depth 0); the camera should look at the floor");
+    for level in 1..mips {
+        let (pw, ph, parent) = read_f32(&gpu, &hzb, level - 1);
+        let (cw, ch, child) = read_f32(&gpu, &hzb, level);
+        for y in 0..ch {
+            for x in 0..cw {
+                let p = |dx: u32, dy: u32| parent[((2 * y + dy).min(ph - 1) * pw + (2 * x + dx).min(pw - 1)) as usize];
+                let expected = p(0, 0).min(p(1, 0)).min(p(0, 1)).min(p(1, 1));
+                assert_eq!(child[(y * cw + x) as usize], expected, "GL: mip {level} texel ({x}, {y})");
+            }
+        }
+    }
+    let (_, _, top) = read_f32(&gpu, &hzb, mips - 1);
+    assert_eq!(top[0], farthest, "GL: the top mip is not the farthest depth of mip 0");
+}
+
 /// A crate behind the back wall: its box query fails, it is culled one frame later and
 /// tested in a group; when the camera moves round the wall the group's query passes, the
 /// group is split, and the crate is drawn again.

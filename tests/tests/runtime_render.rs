@@ -313,9 +313,20 @@ const GL_3D_STORAGE_STEPS: &[&str] = &[
     "Lighting_FilterTranslucentVolume",
 ];
 
-/// Captures that differ between the APIs for a reason not yet understood (measured 28.0 and
-/// 33.3 dB on llvmpipe/lavapipe), checked against a lower bound.
-const GL_LOOSE_STEPS: &[(&str, f64)] = &[("Reflections_ScreenSpaceReflections", 25.0), ("ExponentialHeightFog", 30.0)];
+/// Every other capture agrees within this bound. Measured at 320x180 on llvmpipe / lavapipe:
+/// ScreenSpaceReflections 37.3 dB (the lowest; it was 27.9 dB while the GL frame's HZB mips
+/// above 0 stayed empty, see `desktop/hzb.rs`: no ray found a hit), ExponentialHeightFog
+/// 89.4 dB (it was 33.3 dB in 3 runs of 5 when llvmpipe's GL returned the capture of SceneColor
+/// as it was before the fog pass, see `FrameRecorder::new`), DistortionAccum 35.3 dB (a few
+/// pixels at the glass statues' edges), the steps after it 48 to 52 dB, the others 80 dB or
+/// more.
+/// The reflections' remaining difference is the depth precision of GL's reverse-Z: wgpu's GL
+/// backend remaps clip z to [-1, 1] in the vertex shader (`z * 2 - w`, naga's
+/// ADJUST_COORDINATE_SPACE) and GL maps it back to [0, 1], so a device depth of 0.01 comes
+/// back with an error of about 1e-7 (the scene depth of the two APIs differs in its 6th to 7th
+/// significant digit on most pixels); 45 of 57,600 reflection rays cross a surface's depth
+/// on one API and not on the other and hit something else, or nothing.
+const GL_CAPTURE_PSNR: f64 = 35.0;
 
 #[test]
 fn frames_render_on_gl_like_on_vulkan() {
@@ -337,9 +348,8 @@ fn frames_render_on_gl_like_on_vulkan() {
             if desktop && GL_3D_STORAGE_STEPS.contains(&name.as_str()) {
                 continue;
             }
-            let bound = GL_LOOSE_STEPS.iter().find(|(n, _)| desktop && n == name).map_or(35.0, |(_, b)| *b);
             let p = psnr(x, y);
-            if p <= bound {
+            if p <= GL_CAPTURE_PSNR {
                 differ.push(format!("{name}: {p:.1} dB"));
             }
         }

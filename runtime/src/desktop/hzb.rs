@@ -3,6 +3,15 @@
 //! as in the seed's capture), every mip after it halves the one before down to 1x1, each
 //! texel the farthest depth (reverse-Z: the minimum) of the texels it covers. Screen-space
 //! reflections trace against it; its top mip holds the farthest depth of the view.
+//!
+//! Each mip reads its parent from a copy (`HZB parents`), not from the HZB itself: on wgpu's
+//! GL backend a texture view is emulated by setting the texture object's
+//! `TEXTURE_BASE_LEVEL`/`TEXTURE_MAX_LEVEL` when it is bound for sampling (wgpu-hal 30
+//! `gles/queue.rs`, `BindTexture`), so sampling the one-mip view of level L-1 leaves the whole
+//! texture with max level L-1, and GL treats an image unit bound to level L, outside
+//! [base, max], as invalid: its stores are dropped. Every mip above 0 stayed 0 on GL (measured:
+//! mips 2 and 4 read 0 everywhere on llvmpipe's GL, the depth of the view on lavapipe), so the
+//! reflections found no hit there (their GL capture was black, 27.9 dB from Vulkan's).
 
 use std::sync::Arc;
 
@@ -33,6 +42,8 @@ pub fn mip_size(size: [u32; 2], level: u32) -> [u32; 2] {
 
 pub struct Hzb {
     pub texture: wgpu::Texture,
+    /// Mip L-1 of the HZB copied here before mip L is built from it (see the module docs).
+    parents: wgpu::Texture,
     /// All mips, for sampling.
     pub view: wgpu::TextureView,
     pub size: [u32; 2],
@@ -60,7 +71,17 @@ impl Hzb {
             usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
-        let mip_view = |level: u32| {
+        let parents = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("HZB parents"),
+            size: wgpu::Extent3d { width: size[0], height: size[1], depth_or_array_layers: 1 },
+            mip_level_count: mip_count,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: HZB_FORMAT,
+            usage: wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING,
+            view_formats: &[],
+        });
+        let mip_view = |texture: &wgpu::Texture, level: u32| {
             texture.create_view(&wgpu::TextureViewDescriptor {
                 label: Some(&format!("HZB mip {level}")),
                 base_mip_level: level,
@@ -74,7 +95,7 @@ impl Hzb {
             let dst = mip_size(size, level);
             let src = if level == 0 { scene_size } else { mip_size(size, level - 1) };
             let buffer = uniform_buffer(device, &format!("HZB mip {level} params"), &HzbParams { src_size: src, dst_size: dst });
-            let out = mip_view(level);
+            let out = mip_view(&texture, level);
             let bind_group = if level == 0 {
                 first.layout.bind_group(device, 0, "HZB mip 0", &[
                     ("params", buffer.as_entire_binding()),
@@ -82,7 +103,7 @@ impl Hzb {
                     ("out_mip", wgpu::BindingResource::TextureView(&out)),
                 ])?
             } else {
-                let parent = mip_view(level - 1);
+                let parent = mip_view(&parents, level - 1);
                 rest.layout.bind_group(device, 0, &format!("HZB mip {level}"), &[
                     ("params", buffer.as_entire_binding()),
                     ("ParentMipDepthTexture", wgpu::BindingResource::TextureView(&parent)),
@@ -93,13 +114,22 @@ impl Hzb {
             params.push(buffer);
         }
         let view = texture.create_view(&wgpu::TextureViewDescriptor { label: Some("HZB"), ..Default::default() });
-        Ok(Hzb { texture, view, size, mip_count, first, rest, bind_groups, _params: params })
+        Ok(Hzb { texture, parents, view, size, mip_count, first, rest, bind_groups, _params: params })
     }
 
-    /// One dispatch per mip, in order (each reads the one before).
+    /// One dispatch per mip, in order (each reads a copy of the one before).
     pub fn record(&self, encoder: &mut wgpu::CommandEncoder) {
         for (level, bind_group) in self.bind_groups.iter().enumerate() {
             let dst = mip_size(self.size, level as u32);
+            if level > 0 {
+                let parent = level as u32 - 1;
+                let [w, h] = mip_size(self.size, parent);
+                encoder.copy_texture_to_texture(
+                    wgpu::TexelCopyTextureInfo { texture: &self.texture, mip_level: parent, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+                    wgpu::TexelCopyTextureInfo { texture: &self.parents, mip_level: parent, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+                    wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+                );
+            }
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1])), timestamp_writes: None });
             pass.set_pipeline(if level == 0 { &self.first.pipeline } else { &self.rest.pipeline });
             pass.set_bind_group(0, bind_group, &[]);

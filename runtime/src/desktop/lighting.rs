@@ -6,6 +6,13 @@
 //!     them in one `TiledDeferredLightingCS` dispatch instead.
 //!   ShadowedLights, per light: ShadowProjectionOnOpaque (the screen-space shadow mask,
 //!     cleared to 1, projections blended with Min), then StandardDeferredLighting reading it.
+//!   A local light whose ShadowFrustumQuery came back with 0 samples has no shadow to project
+//!     this frame: as in Unreal (a light is sorted among the shadowed ones only while it has a
+//!     visible projected shadow, `CheckForProjectedShadows`), it is drawn with the
+//!     NonShadowedLights, without a shadow mask, and its ShadowProjectionOnOpaque and
+//!     StandardDeferredLighting steps are absent. Its draw shades no pixel then (the query
+//!     proved every surface inside its bounds hidden), but the light is not dropped: the
+//!     query's answer is a frame old, and Unreal does not cull lights on it either.
 
 use std::sync::Arc;
 
@@ -35,6 +42,9 @@ struct ShadowedLight {
     name: String,
     projections: Vec<Projection>,
     light: LightDraw,
+    /// Local lights: the index into the frame's lights, and the same light without a shadow
+    /// mask, drawn with the NonShadowedLights while its shadow is occluded.
+    local: Option<(usize, LightDraw)>,
 }
 
 pub struct Lighting {
@@ -192,7 +202,7 @@ impl Lighting {
             let shadowed_sun = !projections.is_empty();
             let light = light_draw("DIRECTIONAL", shadowed_sun, false, gpu, "DirectionalLight")?;
             if shadowed_sun {
-                shadowed.push(ShadowedLight { name: "DirectionalLight".into(), projections, light });
+                shadowed.push(ShadowedLight { name: "DirectionalLight".into(), projections, light, local: None });
             } else {
                 non_shadowed.insert(0, light);
             }
@@ -207,7 +217,8 @@ impl Lighting {
                 projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?);
             }
             let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
-            shadowed.push(ShadowedLight { name: l.name.clone(), projections, light });
+            let unshadowed = light_draw(light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
+            shadowed.push(ShadowedLight { name: l.name.clone(), projections, light, local: Some((li, unshadowed)) });
         }
         Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path })
     }
@@ -224,12 +235,15 @@ impl Lighting {
         }
     }
 
-    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
+    /// Records the lights. `casts_shadow(light)`: whether local light `light` (an index into
+    /// the frame's lights) projects its shadow this frame (ShadowFrustumQueries).
+    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets, casts_shadow: &dyn Fn(usize) -> bool) {
+        let occluded = |l: &ShadowedLight| occluded_draw(l, casts_shadow).is_some();
         ctx.step("NonShadowedLights", |ctx| {
             {
                 let mut pass = begin(ctx.encoder(), "NonShadowedLights", &[color_attachment(&t.scene_color.view, None)], read_only_depth(&t.scene_depth));
                 pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                for d in &self.non_shadowed {
+                for d in self.non_shadowed.iter().chain(self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow))) {
                     Self::draw_light(&mut pass, scene, d);
                 }
             }
@@ -253,7 +267,7 @@ impl Lighting {
             });
         }
         ctx.step("ShadowedLights", |ctx| {
-            for light in &self.shadowed {
+            for light in self.shadowed.iter().filter(|l| !occluded(l)) {
                 {
                     let mut pass =
                         begin(ctx.encoder(), "ShadowProjectionOnOpaque", &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))], read_only_depth(&t.scene_depth));
@@ -279,6 +293,11 @@ impl Lighting {
     pub fn shadowed_light_names(&self) -> Vec<String> {
         self.shadowed.iter().map(|l| l.name.clone()).collect()
     }
+}
+
+/// A local light whose shadow is occluded this frame: its draw without a shadow mask.
+fn occluded_draw<'l>(light: &'l ShadowedLight, casts_shadow: &dyn Fn(usize) -> bool) -> Option<&'l LightDraw> {
+    light.local.as_ref().and_then(|(i, d)| (!casts_shadow(*i)).then_some(d))
 }
 
 fn light_resources<'r>(b: &'r Build<'_>, light: &'r wgpu::Buffer) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {

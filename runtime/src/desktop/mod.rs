@@ -196,6 +196,9 @@ pub struct DesktopFrame {
     base_view: view::ViewUniforms,
     /// Every object's instance rows: (object, first row, local bounds centre, row).
     object_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
+    /// ShadowFrustumQueries skip the shadow work of lights whose volume is hidden (on by
+    /// default; off renders every shadow, for comparisons).
+    shadow_frustum_culling: std::sync::atomic::AtomicBool,
 }
 
 impl DesktopFrame {
@@ -281,6 +284,7 @@ impl DesktopFrame {
             part2,
             base_view,
             object_rows,
+            shadow_frustum_culling: std::sync::atomic::AtomicBool::new(true),
         })
     }
 
@@ -299,7 +303,9 @@ impl DesktopFrame {
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
         p2.begin_occlusion_tests(frame);
         p2.build_hzb(frame);
-        frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s));
+        // this frame's verdict of the ShadowFrustumQueries (read back a frame or more ago)
+        let casts_shadow = |light: usize| self.casts_shadow(light);
+        frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s, &casts_shadow));
         p2.volumetric_fog(frame);
         frame.pass("BasePass", |ctx| {
             self.base_pass.record(ctx, s, t);
@@ -310,7 +316,7 @@ impl DesktopFrame {
             frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
         }
         frame.pass("Lighting", |ctx| {
-            self.lighting.record(ctx, s, t);
+            self.lighting.record(ctx, s, t, &casts_shadow);
             p2.translucent_volumes(ctx);
         });
         p2.reflections(frame);
@@ -328,6 +334,23 @@ impl DesktopFrame {
             self.post.record(ctx, t, output);
         });
         p2.end_frame();
+    }
+
+    /// Whether local light `light` renders its shadow depths and projection this frame: its
+    /// ShadowFrustumQuery has not come back with 0 samples (or the culling is off).
+    pub fn casts_shadow(&self, light: usize) -> bool {
+        !self.shadow_frustum_culling.load(std::sync::atomic::Ordering::Relaxed) || self.part2.is_light_visible(light)
+    }
+
+    /// Turns the skipping of occluded lights' shadow work on (the default) or off.
+    pub fn set_shadow_frustum_culling(&self, on: bool) {
+        self.shadow_frustum_culling.store(on, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The shadowed local lights whose shadow work the last frame skipped (their
+    /// ShadowFrustumQuery found their volume hidden).
+    pub fn shadow_skipped_lights(&self) -> Vec<String> {
+        self.lights.iter().enumerate().filter(|(i, l)| l.shadow != LocalShadow::None && !self.casts_shadow(*i)).map(|(_, l)| l.name.clone()).collect()
     }
 
     /// How many times the movable lights' cube shadows rendered their cached static depth.

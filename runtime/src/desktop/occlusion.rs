@@ -9,6 +9,11 @@
 //! ShadowFrustumQueries test the local lights' bounds: a sphere for movable lights (their
 //! cube shadow), the shadow frustum for stationary ones. A prop whose box holds the camera is
 //! visible without a query, as in Unreal.
+//!
+//! A light whose ShadowFrustumQuery came back with zero samples (its shadow-casting volume is
+//! hidden behind the depth buffer) casts no shadow that frame: [`ShadowFrustumVisibility`]
+//! holds the decision, with the same latency as the props' (results applied a frame or more
+//! after their query, never waited for; a light without a result yet counts as visible).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -95,7 +100,7 @@ pub struct OcclusionCulling {
     debug_view: wgpu::TextureView,
     bounds: Vec<(Vec3, Vec3)>,
     visibility: Vec<PropVisibility>,
-    light_visible: Vec<bool>,
+    lights: ShadowFrustumVisibility,
     /// Readback slot written by the frame being recorded.
     pending_slot: Option<usize>,
     pub stats: OcclusionStats,
@@ -178,7 +183,7 @@ impl OcclusionCulling {
             debug_view,
             bounds,
             visibility: vec![PropVisibility::Visible; count],
-            light_visible: vec![true; lights],
+            lights: ShadowFrustumVisibility::new(lights),
             pending_slot: None,
             stats: OcclusionStats::default(),
         })
@@ -193,9 +198,10 @@ impl OcclusionCulling {
         self.visibility.get(index).copied()
     }
 
-    /// Whether local light `index` was found visible (its bounds pass the depth test).
+    /// Whether local light `index` was found visible (its bounds pass the depth test), or
+    /// has no result yet: whether its shadow depths and projection run this frame.
     pub fn is_light_visible(&self, index: usize) -> bool {
-        self.light_visible.get(index).copied().unwrap_or(true)
+        self.lights.casts_shadow(index)
     }
 
     /// Moves a prop (its box changed).
@@ -230,6 +236,7 @@ impl OcclusionCulling {
             self.readbacks[i].buffer.unmap();
             let queries = std::mem::take(&mut self.readbacks[i].queries);
             for (q, kind) in queries.iter().enumerate() {
+                // a count that did not come back counts as visible
                 let passed = counts.get(q).copied().unwrap_or(1) > 0;
                 read += 1;
                 match kind {
@@ -245,7 +252,7 @@ impl OcclusionCulling {
                             }
                         }
                     }
-                    QueryKind::Light(l) => self.light_visible[*l] = passed,
+                    QueryKind::Light(l) => self.lights.apply(*l, counts.get(q).copied()),
                 }
             }
             let slot = &mut self.readbacks[i];
@@ -282,7 +289,7 @@ impl OcclusionCulling {
             match *light {
                 LightBounds::Sphere { center, radius } => {
                     if camera.distance(center) <= radius * 1.1 {
-                        self.light_visible[i] = true;
+                        self.lights.camera_inside(i);
                         continue;
                     }
                     let p = OcclusionProxy { unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius)), color_shape: Vec4::new(0.5, 0.45, 0.0, 1.0) };
@@ -367,9 +374,74 @@ impl OcclusionCulling {
     }
 }
 
+/// ShadowFrustumQueries' verdict per local light, as Unreal keeps it: a light's shadow work
+/// (its shadow depths and ShadowProjection) is skipped only while the last result that came
+/// back for it counted zero samples. Before any result, for a result that could not be read,
+/// and while the camera is inside the light's bounds (no query is issued then), the light
+/// counts as visible: a hidden light may cost a frame of shadow work, a visible one never
+/// loses its shadow.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShadowFrustumVisibility {
+    visible: Vec<bool>,
+}
+
+impl ShadowFrustumVisibility {
+    /// `lights` local lights, none with a result yet (all visible).
+    pub fn new(lights: usize) -> ShadowFrustumVisibility {
+        ShadowFrustumVisibility { visible: vec![true; lights] }
+    }
+
+    /// A query result read back for light `index`: its sample count, `None` if unreadable.
+    pub fn apply(&mut self, index: usize, samples: Option<u64>) {
+        if let Some(v) = self.visible.get_mut(index) {
+            *v = samples.is_none_or(|n| n > 0);
+        }
+    }
+
+    /// The camera is inside light `index`'s bounds: visible without a query.
+    pub fn camera_inside(&mut self, index: usize) {
+        if let Some(v) = self.visible.get_mut(index) {
+            *v = true;
+        }
+    }
+
+    /// Whether light `index` renders its shadow depths and projection this frame (a light
+    /// the queries do not know is visible).
+    pub fn casts_shadow(&self, index: usize) -> bool {
+        self.visible.get(index).copied().unwrap_or(true)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shadow_frustum_results_gate_shadows_unknown_counts_as_visible() {
+        let mut v = ShadowFrustumVisibility::new(3);
+        // no result yet: every light casts its shadow (and an index the queries never saw)
+        assert!((0..4).all(|i| v.casts_shadow(i)));
+        // light 1's volume hidden (0 samples), light 0's seen (12 samples), light 2's result
+        // lost (unreadable): only light 1 skips its shadow work
+        v.apply(0, Some(12));
+        v.apply(1, Some(0));
+        v.apply(2, None);
+        assert_eq!((0..3).map(|i| v.casts_shadow(i)).collect::<Vec<_>>(), [true, false, true]);
+        // the skip lasts until a later result says otherwise: results for other lights, or
+        // none at all (frames whose read-back is still in flight), leave it skipped
+        v.apply(0, Some(0));
+        assert!(!v.casts_shadow(1));
+        // one sample is enough to bring it back
+        v.apply(1, Some(1));
+        assert!(v.casts_shadow(1));
+        // the camera walks into a hidden light's sphere: visible without waiting for a query
+        v.apply(2, Some(0));
+        v.camera_inside(2);
+        assert!(v.casts_shadow(2));
+        // out-of-range indices are ignored, not a panic
+        v.apply(7, Some(0));
+        assert!(v.casts_shadow(7));
+    }
 
     #[test]
     fn world_bounds_cover_every_instance() {

@@ -433,6 +433,12 @@ impl Part2 {
         self.lock().occlusion.is_visible(index)
     }
 
+    /// Whether local light `index` (in `frame_lights` order: point lights, then spot lights)
+    /// renders its shadow this frame: its ShadowFrustumQuery has not come back with 0 samples.
+    pub fn is_light_visible(&self, index: usize) -> bool {
+        self.lock().occlusion.is_light_visible(index)
+    }
+
     /// Object `index`'s visibility as the occlusion queries last found it.
     pub fn visibility(&self, index: usize) -> Option<super::occlusion::PropVisibility> {
         self.lock().occlusion.visibility(index)

@@ -3,6 +3,9 @@
 //!     front of a cascade clamped onto its near plane.
 //!   Atlas1: per-object shadows of stationary lights, one tile per (light, movable prop).
 //!   Cubemap_<light>: a movable point light's six faces (6x1), whole scene.
+//! A local light whose ShadowFrustumQuery came back with zero samples renders none of its
+//! shadow views that frame (its `PerObject_<light>` step of Atlas1, its `Cubemap_<light>` step
+//! and the copy of its cached static depth are absent; the cache itself stays valid).
 //! The matrices are also what ShadowProjectionOnOpaque and the translucency read back.
 
 use glam::camera::rh::proj::directx;
@@ -27,6 +30,8 @@ struct ShadowView {
     groups: BindGroups,
     /// Draws into this view (indices into `SceneBuffers::draws`).
     draws: Vec<usize>,
+    /// The local light this view belongs to (`None`: the directional light's cascades).
+    light: Option<usize>,
 }
 
 struct Atlas {
@@ -65,6 +70,8 @@ pub struct ShadowSetup {
 
 pub struct ShadowDepths {
     atlases: Vec<Atlas>,
+    /// The local lights' names (step names of their shadow views).
+    light_names: Vec<String>,
     pub setup: ShadowSetup,
     /// Index of the cascade atlas in `atlases`.
     csm: Option<usize>,
@@ -178,6 +185,7 @@ impl ShadowDepths {
                     viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32],
                     groups: view_groups(&ortho, *m, &format!("Cascade{i}"))?,
                     draws: casters.clone(),
+                    light: None,
                 });
             }
             setup.cascaded = Some(u);
@@ -216,6 +224,7 @@ impl ShadowDepths {
                     viewport: [(k as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
                     groups: view_groups(&perspective, *m, &format!("PerObject{k}"))?,
                     draws: vec![*di],
+                    light: Some(*li),
                 });
             }
             per_object = Some(atlases.len());
@@ -234,6 +243,7 @@ impl ShadowDepths {
                     viewport: [(f as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
                     groups: view_groups(&perspective, *m, &format!("{} face {f}", light.name))?,
                     draws: movable_casters.clone(),
+                    light: Some(li),
                 });
             }
             let cached = shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
@@ -273,7 +283,7 @@ impl ShadowDepths {
                 cache: Some(cache),
             });
         }
-        Ok(ShadowDepths { atlases, setup, csm, per_object, cubes })
+        Ok(ShadowDepths { atlases, light_names: b.lights.iter().map(|l| l.name.clone()).collect(), setup, csm, per_object, cubes })
     }
 
     /// The cascade atlas (a 1x1 cleared map when the directional light casts none).
@@ -301,10 +311,12 @@ impl ShadowDepths {
         }
     }
 
-    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers) {
-        let draw_views = |pass: &mut wgpu::RenderPass<'_>, atlas: &Atlas, draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
+    /// Records every atlas. `casts_shadow(light)`: whether local light `light` renders its
+    /// shadow views this frame (ShadowFrustumQueries); the cascades always render.
+    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, casts_shadow: &dyn Fn(usize) -> bool) {
+        let draw_views = |pass: &mut wgpu::RenderPass<'_>, atlas: &Atlas, keep: &dyn Fn(&ShadowView) -> bool, draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
             pass.set_pipeline(&atlas.pipeline.pipeline);
-            for (i, v) in atlas.views.iter().enumerate() {
+            for (i, v) in atlas.views.iter().enumerate().filter(|(_, v)| keep(v)) {
                 let [x, y, w, h] = v.viewport;
                 pass.set_viewport(x, y, w, h, 0.0, 1.0);
                 v.groups.set_render(pass);
@@ -313,37 +325,47 @@ impl ShadowDepths {
                 }
             }
         };
-        for atlas in &self.atlases {
+        for (index, atlas) in self.atlases.iter().enumerate() {
+            if Some(index) == self.per_object {
+                // one tile per (stationary light, movable prop): one step per light whose
+                // shadow is not occluded, the first clearing the atlas
+                ctx.step(&atlas.step, |ctx| {
+                    let mut lights: Vec<usize> = atlas.views.iter().filter_map(|v| v.light).collect();
+                    lights.dedup();
+                    let mut cleared = false;
+                    for light in lights.into_iter().filter(|l| casts_shadow(*l)) {
+                        let name = self.light_names.get(light).map_or("", String::as_str);
+                        let load = if cleared { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(1.0) };
+                        ctx.step(&format!("PerObject_{name}"), |ctx| {
+                            let mut pass = begin(ctx.encoder(), &format!("PerObject {name}"), &[], depth(&atlas.texture.view, load));
+                            draw_views(&mut pass, atlas, &|v| v.light == Some(light), &|_, v| v.draws.clone());
+                        });
+                        cleared = true;
+                    }
+                    if !cleared {
+                        // every light occluded: the atlas is only cleared
+                        begin(ctx.encoder(), &atlas.step, &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
+                    }
+                    ctx.output(&atlas.texture.texture, Visualize::Depth);
+                });
+                continue;
+            }
+            // a cube shadow whose light is occluded: no step at all (its cache stays valid)
+            if atlas.views.first().and_then(|v| v.light).is_some_and(|l| !casts_shadow(l)) {
+                continue;
+            }
             ctx.step(&atlas.step, |ctx| {
                 let mut load = wgpu::LoadOp::Clear(1.0);
                 if let Some(cache) = &atlas.cache {
                     if !cache.valid.swap(true, std::sync::atomic::Ordering::Relaxed) {
                         // the static casters, rendered once into the cache
-                        let mut pass = begin(
-                            ctx.encoder(),
-                            "CachedShadowDepth",
-                            &[],
-                            Some(wgpu::RenderPassDepthStencilAttachment {
-                                view: &cache.texture.view,
-                                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
-                                stencil_ops: None,
-                            }),
-                        );
-                        draw_views(&mut pass, atlas, &|i, _| cache.static_draws[i].clone());
+                        let mut pass = begin(ctx.encoder(), "CachedShadowDepth", &[], depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)));
+                        draw_views(&mut pass, atlas, &|_| true, &|i, _| cache.static_draws[i].clone());
                         cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                     ctx.step("CopyCachedShadowMap", |ctx| {
                         {
-                            let mut pass = begin(
-                                ctx.encoder(),
-                                "CopyCachedShadowMap",
-                                &[],
-                                Some(wgpu::RenderPassDepthStencilAttachment {
-                                    view: &atlas.texture.view,
-                                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
-                                    stencil_ops: None,
-                                }),
-                            );
+                            let mut pass = begin(ctx.encoder(), "CopyCachedShadowMap", &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
                             pass.set_pipeline(&cache.copy.pipeline);
                             cache.copy_groups.set_render(&mut pass);
                             pass.draw(0..3, 0..1);
@@ -353,22 +375,18 @@ impl ShadowDepths {
                     load = wgpu::LoadOp::Load;
                 }
                 {
-                    let mut pass = begin(
-                        ctx.encoder(),
-                        &atlas.step,
-                        &[],
-                        Some(wgpu::RenderPassDepthStencilAttachment {
-                            view: &atlas.texture.view,
-                            depth_ops: Some(wgpu::Operations { load, store: wgpu::StoreOp::Store }),
-                            stencil_ops: None,
-                        }),
-                    );
-                    draw_views(&mut pass, atlas, &|_, v| v.draws.clone());
+                    let mut pass = begin(ctx.encoder(), &atlas.step, &[], depth(&atlas.texture.view, load));
+                    draw_views(&mut pass, atlas, &|_| true, &|_, v| v.draws.clone());
                 }
                 ctx.output(&atlas.texture.texture, Visualize::Depth);
             });
         }
     }
+}
+
+/// A shadow map as the pass's depth target, stored.
+fn depth(view: &wgpu::TextureView, load: wgpu::LoadOp<f32>) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
+    Some(wgpu::RenderPassDepthStencilAttachment { view, depth_ops: Some(wgpu::Operations { load, store: wgpu::StoreOp::Store }), stencil_ops: None })
 }
 
 fn shadow_texture(device: &wgpu::Device, label: &str, width: u32, height: u32) -> Texture {

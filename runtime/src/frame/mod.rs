@@ -129,6 +129,8 @@ pub struct FrameRecorder {
     captures: Vec<PendingCapture>,
     current_step: Option<String>,
     depth_copy: Option<DepthCopy>,
+    /// Submit and wait before each capture (GL, see [`FrameRecorder::new`]).
+    sync_captures: bool,
 }
 
 impl FrameRecorder {
@@ -151,6 +153,13 @@ impl FrameRecorder {
             captures: Vec::new(),
             current_step: None,
             depth_copy,
+            // Mesa 22.3's llvmpipe behind GL can read a texture for a copy while its rasterizer
+            // threads still run the draws that write it, once the framebuffer has changed: a
+            // capture then comes back with the target as it was before the pass (measured: the
+            // ExponentialHeightFog capture in 3 of 5 runs, the ReflectionEnvironmentAndSky one
+            // too; never with LP_NUM_THREADS=0). Waiting for the device before each copy
+            // finishes those draws; the frame itself is not affected (later passes see them).
+            sync_captures: capture && device.adapter_info().backend == wgpu::Backend::Gl,
         }
     }
 
@@ -323,6 +332,11 @@ impl PassContext<'_> {
             return;
         }
         let r = &mut *self.recorder;
+        if r.sync_captures {
+            let done = std::mem::replace(&mut r.encoder, r.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") }));
+            r.queue.submit([done.finish()]);
+            let _ = r.device.poll(wgpu::PollType::wait_indefinitely());
+        }
         let mut full = r.passes[self.pass].name.clone();
         for part in [r.current_step.as_deref(), name].into_iter().flatten() {
             full.push('_');
