@@ -118,13 +118,15 @@ pub enum RenderError {
     Wgpu(String),
 }
 
-/// The desktop frame's options on this device. On GL the volumetric fog is off: wgpu 30's GL
-/// backend binds a 3D storage texture one slice at a time (non-layered), so the fog volume's
-/// other slices are never written and applying it darkens the frame to black.
+/// The desktop frame's options on this device. On GL the volumetric fog is off and the glass
+/// is shaded per pixel: wgpu 30's GL backend binds a 3D storage texture one slice at a time
+/// (non-layered), so the volumes' other slices are never written (applying the fog darkens
+/// the frame to black).
 fn desktop_options(gpu: &Gpu, options: &RendererOptions) -> crate::desktop::DesktopOptions {
     let mut desktop = options.desktop();
     if gpu.backend == crate::gpu::Backend::Gl {
         desktop.part2.volumetric_fog = false;
+        desktop.part2.translucency_lighting = crate::desktop::part2::TranslucencyLightingMode::SurfaceForwardShading;
     }
     desktop
 }

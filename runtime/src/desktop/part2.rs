@@ -53,20 +53,69 @@ pub struct Part2Options {
     pub reflections: bool,
     /// Extinction of the volumetric fog at the fog height.
     pub fog_density: f32,
+    /// How the translucent surfaces (the glass) are lit: per pixel from the light grid, or
+    /// the diffuse light of the volumes' lights from the translucency lighting volumes.
+    pub translucency_lighting: TranslucencyLightingMode,
+    /// InjectTranslucentVolume shadows the directional light by its cascades (off: the
+    /// volumes receive it as if nothing occluded it).
+    pub translucency_volume_shadows: bool,
+}
+
+/// Unreal's TranslucencyLightingMode for the lit translucent surfaces (the
+/// `TRANSLUCENCY_LIGHTING_MODE` dimension of `DeferredBasePassPS`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TranslucencyLightingMode {
+    /// TLM_SurfacePerPixelLighting: every light per pixel (the local lights of the light grid).
+    SurfaceForwardShading,
+    /// TLM_Surface: the diffuse light of the lights the translucency lighting volumes hold
+    /// (the shadowed directional light and the shadow-casting point lights) from the volumes'
+    /// two cascades, their specular and the other lights per pixel.
+    SurfaceLightingVolume,
+}
+
+impl TranslucencyLightingMode {
+    /// The dimension's value.
+    pub fn label(self) -> &'static str {
+        match self {
+            TranslucencyLightingMode::SurfaceForwardShading => "SURFACE_FORWARD_SHADING",
+            TranslucencyLightingMode::SurfaceLightingVolume => "SURFACE_LIGHTING_VOLUME",
+        }
+    }
 }
 
 impl Part2Options {
     /// Every pass still runs and is dumped, but none changes the frame: no jitter, TAA, motion
-    /// blur, eye adaptation, volumetric fog, sprites or reflections, and nothing moves (for
-    /// comparisons with frames that lack these effects).
+    /// blur, eye adaptation, volumetric fog, sprites or reflections, nothing moves, and the
+    /// glass is forward shaded per pixel (for comparisons with frames that lack these effects).
     pub fn off() -> Part2Options {
-        Part2Options { taa: false, motion_blur: false, eye_adaptation: false, animate: false, volumetric_fog: false, particles: false, reflections: false, ..Part2Options::default() }
+        Part2Options {
+            taa: false,
+            motion_blur: false,
+            eye_adaptation: false,
+            animate: false,
+            volumetric_fog: false,
+            particles: false,
+            reflections: false,
+            translucency_lighting: TranslucencyLightingMode::SurfaceForwardShading,
+            ..Part2Options::default()
+        }
     }
 }
 
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, reflections: true, fog_density: 0.01 }
+        Part2Options {
+            taa: true,
+            motion_blur: true,
+            eye_adaptation: true,
+            animate: true,
+            volumetric_fog: true,
+            particles: true,
+            reflections: true,
+            fog_density: 0.01,
+            translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume,
+            translucency_volume_shadows: true,
+        }
     }
 }
 
@@ -88,6 +137,15 @@ pub struct Part2Targets<'a> {
     /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
     /// haze.
     pub frame_draws_fire: bool,
+}
+
+/// The filtered translucency lighting volumes and their boxes this frame, as the translucent
+/// surfaces bind them (cascade 0 inner, 1 outer).
+pub struct TranslucencyVolumeInputs {
+    /// `TranslucencyLightingVolumeParams`, written every frame by InjectTranslucentVolume.
+    pub params: wgpu::Buffer,
+    pub ambient: [wgpu::Texture; 2],
+    pub directional: [wgpu::Texture; 2],
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -548,7 +606,7 @@ impl Part2 {
         let s = self.lock();
         let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
         ctx.step("InjectTranslucentVolume", |ctx| {
-            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref());
+            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows);
             s.vis.volume_ambient.output(ctx, None);
         });
         ctx.step("FilterTranslucentVolume", |ctx| {
@@ -696,6 +754,14 @@ impl Part2 {
     pub fn hzb(&self) -> (wgpu::Texture, u32) {
         let s = self.lock();
         (s.hzb.texture.clone(), s.hzb.mip_count)
+    }
+
+    /// What the lit translucent surfaces read of the translucency lighting volumes.
+    pub fn translucency_volume(&self) -> TranslucencyVolumeInputs {
+        let s = self.lock();
+        let (a0, d0) = s.volumes.volumes(0);
+        let (a1, d1) = s.volumes.volumes(1);
+        TranslucencyVolumeInputs { params: s.volumes.lookup_buffer().clone(), ambient: [a0.clone(), a1.clone()], directional: [d0.clone(), d1.clone()] }
     }
 
     /// The LightScattering volume written last, for tests.
