@@ -25,7 +25,7 @@ use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
-use super::frame_view::{perm, groups, taa_jitter, target_2d, uniform_buffer, view, CameraState, DirectionalShadow, FrameLights, FrameView, InstancedMesh};
+use super::frame_view::{is_volume, perm, groups, taa_jitter, volume_view, target_2d, uniform_buffer, view, CameraState, DirectionalShadow, FrameLights, FrameView, InstancedMesh};
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
@@ -184,11 +184,11 @@ struct VisualizeParams {
 
 impl Visualization {
     fn new(device: &wgpu::Device, cache: &PipelineCache, label: &str, source: &wgpu::Texture, size: [u32; 2], scale: Vec4, bias: Vec4, slice: u32) -> Result<Visualization, PipelineError> {
-        let volume = source.dimension() == wgpu::TextureDimension::D3;
+        let volume = is_volume(source);
         let pipeline = cache.compute(&perm(cache, "VisualizeTextureCS", &[("VISUALIZE_VOLUME", if volume { "1" } else { "0" })])?)?;
         let image = target_2d(device, label, size, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING);
         let params = uniform_buffer(device, label, &VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] });
-        let src = view(source);
+        let src = if volume { volume_view(source) } else { view(source) };
         let dst = view(&image);
         let group = pipeline.layout.bind_group(device, 0, label, &[
             ("params", params.as_entire_binding()),
@@ -310,7 +310,7 @@ impl Part2 {
             emitters.push(EmitterDesc::smoke(e));
         }
         // the smoke is lit by the large translucency volume cascade
-        let (lit_ambient, lit_dir) = (view(volumes.volumes(1).0), view(volumes.volumes(1).1));
+        let (lit_ambient, lit_dir) = (volume_view(volumes.volumes(1).0), volume_view(volumes.volumes(1).1));
         let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), (&lit_ambient, &lit_dir))?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
@@ -356,7 +356,7 @@ impl Part2 {
         let motion_blur = MotionBlur::new(device, cache, &frame_view, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
 
         let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
-            let s = if source.dimension() == wgpu::TextureDimension::D3 { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
+            let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
             Visualization::new(device, cache, label, source, s, scale, bias, slice)
         };
         let sparks = particles.state_textures(true);

@@ -13,6 +13,7 @@ use crate::frame::{PassContext, Visualize};
 use crate::scene::BlendMode;
 
 use super::light_grid::LightGrid;
+use super::frame_view::volume_view;
 use super::part2::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
@@ -63,7 +64,6 @@ impl Translucency {
             }
         }
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
-            let volume_view = |t: &wgpu::Texture| t.create_view(&wgpu::TextureViewDescriptor::default());
             let (ambient, directional) = (volume.ambient.each_ref().map(volume_view), volume.directional.each_ref().map(volume_view));
             let volume_sampler = b.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("TranslucencyLightingVolumeSampler"),

@@ -15,7 +15,7 @@ use glam::{Mat4, Vec3, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{perm, groups, uniform_buffer, view, volume_3d, DirectionalShadow};
+use super::frame_view::{perm, groups, uniform_buffer, volume, volume_view, DirectionalShadow};
 
 pub const VOLUME_SIZE: u32 = 64;
 pub const VOLUME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -125,10 +125,10 @@ impl TranslucentVolumes {
         let mut cascades = Vec::new();
         for c in 0..2 {
             let names = ["Zero", "A", "B", ""];
-            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| volume_3d(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
-            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| volume_3d(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT));
-            let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(view).collect();
-            let dir_views: Vec<wgpu::TextureView> = dir.iter().map(view).collect();
+            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
+            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT));
+            let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(volume_view).collect();
+            let dir_views: Vec<wgpu::TextureView> = dir.iter().map(volume_view).collect();
             let tex = wgpu::BindingResource::TextureView;
             let mut injections = Vec::new();
             for (k, light) in lights.iter().enumerate() {
