@@ -68,7 +68,7 @@ pub enum TranslucencyLightingMode {
     /// TLM_SurfacePerPixelLighting: every light per pixel (the local lights of the light grid).
     SurfaceForwardShading,
     /// TLM_Surface: the diffuse light of the lights the translucency lighting volumes hold
-    /// (the shadowed directional light and the shadow-casting point lights) from the volumes'
+    /// (the shadowed directional light and the shadow-casting local lights) from the volumes'
     /// two cascades, their specular and the other lights per pixel.
     SurfaceLightingVolume,
 }
@@ -296,9 +296,24 @@ impl Part2 {
         let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor { label: Some("ShadowDepth (part 2)"), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() });
         let scene_color_format = targets.scene_color.format();
 
-        let mut lights = vec![InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity }];
+        // the lights the volumes hold: the directional light where it shines, the local lights
+        // that cast shadows (those ShadowedLights draws)
+        let mut lights = Vec::new();
+        if scene.sun.enabled {
+            lights.push(InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity });
+        }
         for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
             lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+        }
+        for l in scene.spot_lights.iter().filter(|l| l.casts_shadows) {
+            lights.push(InjectedLight::Spot {
+                position: l.position,
+                radius: l.radius,
+                color: l.color * l.intensity,
+                direction: l.direction,
+                inner_angle: l.inner_angle,
+                outer_angle: l.outer_angle,
+            });
         }
         let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
 

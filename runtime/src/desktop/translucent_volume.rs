@@ -2,8 +2,10 @@
 //! two cascaded 64^3 translucency lighting volumes centred on the camera (cascade 0 small and
 //! sharp, cascade 1 large), each a pair of RGBA16F volumes, Ambient (the light arriving at the
 //! cell: SH band 0) and Dir (the luminance-weighted light direction: SH band 1). Each shadowed
-//! light is injected by its own dispatch per cascade, reading the volumes the previous light
-//! wrote and writing the other pair (ping-pong); then a 3x3x3 tent filter writes the volumes
+//! light (the directional light, shadowed here by its cascades, and the shadow-casting point
+//! and spot lights, whose own shadows are not applied here) is injected by its own dispatch
+//! per cascade, reading the volumes the previous light wrote and writing the other pair
+//! (ping-pong); then a 3x3x3 tent filter writes the volumes
 //! translucent surfaces and particles read. The cascades' boxes of the frame are kept in a
 //! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
 //! surfaces that read both cascades.
@@ -31,6 +33,8 @@ struct VolumeParams {
     cascade_view_proj: [Mat4; 3],
     cascade_splits: Vec4,
     cascade_rects: [Vec4; 3],
+    spot_direction: Vec4,
+    spot_angles: Vec4,
 }
 
 /// A light injected into the volumes.
@@ -39,6 +43,8 @@ pub enum InjectedLight {
     /// Direction towards the light, colour * intensity; shadowed by the cascaded shadow map.
     Directional { direction: Vec3, color: Vec3 },
     Point { position: Vec3, radius: f32, color: Vec3 },
+    /// A spot light: `direction` the way the cone points; the cone's half angles in radians.
+    Spot { position: Vec3, radius: f32, color: Vec3, direction: Vec3, inner_angle: f32, outer_angle: f32 },
 }
 
 /// `TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`.
@@ -205,11 +211,25 @@ impl TranslucentVolumes {
                     Some(g) if shadows => (true, g),
                     _ => (false, &injection.unshadowed),
                 };
-                let (position, color) = match *light {
-                    InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0)),
-                    InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0)),
+                let (position, color, spot_direction, spot_angles) = match *light {
+                    InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0), Vec4::ZERO, Vec4::ZERO),
+                    InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0), Vec4::ZERO, Vec4::ZERO),
+                    InjectedLight::Spot { position, radius, color, direction, inner_angle, outer_angle } => {
+                        let (cos_outer, cos_inner) = (outer_angle.cos(), inner_angle.cos());
+                        let cone = direction.normalize().extend(cos_outer);
+                        (position.extend(radius), color.extend(1.0), cone, Vec4::new(1.0 / (cos_inner - cos_outer).max(1e-4), 1.0, 0.0, 0.0))
+                    }
                 };
-                let p = VolumeParams { origin: origin.extend(cell), light_position: position, light_color: color, cascade_view_proj: matrices, cascade_splits: splits, cascade_rects: rects };
+                let p = VolumeParams {
+                    origin: origin.extend(cell),
+                    light_position: position,
+                    light_color: color,
+                    cascade_view_proj: matrices,
+                    cascade_splits: splits,
+                    cascade_rects: rects,
+                    spot_direction,
+                    spot_angles,
+                };
                 queue.write_buffer(&injection.params, 0, bytemuck::bytes_of(&p));
                 pass.set_pipeline(&self.inject[usize::from(shadowed)].pipeline);
                 pass.set_bind_group(0, group, &[]);
