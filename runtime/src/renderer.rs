@@ -118,17 +118,6 @@ pub enum RenderError {
     Wgpu(String),
 }
 
-/// The desktop frame's options on this device. On GL the volumetric fog is off: wgpu 30's GL
-/// backend binds a 3D storage texture one slice at a time (non-layered), so the fog volume's
-/// other slices are never written and applying it darkens the frame to black.
-fn desktop_options(gpu: &Gpu, options: &RendererOptions) -> crate::desktop::DesktopOptions {
-    let mut desktop = options.desktop();
-    if gpu.backend == crate::gpu::Backend::Gl {
-        desktop.part2.volumetric_fog = false;
-    }
-    desktop
-}
-
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
 #[allow(clippy::large_enum_variant)]
 enum Passes {
@@ -194,7 +183,9 @@ impl Renderer {
                         gpu.timestamps,
                         &cache,
                         scene,
-                        desktop_options(gpu, &options),
+                        // the same on every backend: the volumes are 2D array textures, which
+                        // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
+                        options.desktop(),
                         Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
                     )?;
                     Passes::DesktopDeferred { particles, frame: Box::new(frame) }

@@ -297,15 +297,10 @@ fn dump_captures_every_pass_in_frame_order() {
     assert!(dir.path().join("15_PostProcessing_Tonemapper.png").is_file());
 }
 
-/// Captures of the desktop frame that GL cannot match: the steps that write 3D storage
-/// textures (the volumetric fog and the translucency lighting volumes). wgpu-hal 30's GL
-/// backend binds a D3 storage view non-layered (`ImageBinding::array_layer` is `Some(0)` for
-/// every dimension but D2Array and CubeArray, gles/device.rs), so `glBindImageTexture` binds
-/// one slice and the compute shaders' writes to the other slices are lost (the renderer turns
-/// the volumetric fog off on GL). The desktop frame is therefore compared with the renderer's
-/// comparison settings (part 2 off), where these volumes are computed and dumped but not
-/// applied to the frame.
-const GL_3D_STORAGE_STEPS: &[&str] = &[
+/// The steps that write the volumes (2D array storage textures, bound layered on GL too):
+/// compared like every other capture, at the same bound (measured: identical on
+/// llvmpipe/lavapipe, inf dB; as 3D textures GL wrote only their first slice).
+const VOLUME_STEPS: &[&str] = &[
     "VolumetricFog_InitializeVolumeAttributes",
     "VolumetricFog_LightScattering",
     "VolumetricFog_FinalIntegration",
@@ -345,10 +340,10 @@ fn frames_render_on_gl_like_on_vulkan() {
         assert_eq!(sa.iter().map(|s| &s.0).collect::<Vec<_>>(), sb.iter().map(|s| &s.0).collect::<Vec<_>>());
         let mut differ = Vec::new();
         for ((name, x), (_, y)) in sa.iter().zip(&sb) {
-            if desktop && GL_3D_STORAGE_STEPS.contains(&name.as_str()) {
-                continue;
-            }
             let p = psnr(x, y);
+            if desktop && VOLUME_STEPS.contains(&name.as_str()) {
+                eprintln!("{name}: Vulkan vs GL {p:.1} dB");
+            }
             if p <= GL_CAPTURE_PSNR {
                 differ.push(format!("{name}: {p:.1} dB"));
             }

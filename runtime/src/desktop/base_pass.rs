@@ -62,7 +62,11 @@ impl BasePass {
                 }
                 let ps = p.permutation(
                     "DeferredBasePassPS",
-                    &[("MATERIAL_BLEND_MODE", blend.label().into()), ("MATERIAL_SHADINGMODEL", if unlit { "UNLIT" } else { "DEFAULT_LIT" }.into())],
+                    &[
+                        ("MATERIAL_BLEND_MODE", blend.label().into()),
+                        ("MATERIAL_SHADINGMODEL", if unlit { "UNLIT" } else { "DEFAULT_LIT" }.into()),
+                        ("TRANSLUCENCY_LIGHTING_MODE", "SURFACE_FORWARD_SHADING".into()),
+                    ],
                 )?;
                 let pipeline = p.render(
                     &vs,

@@ -227,14 +227,19 @@ pub fn target_2d(device: &wgpu::Device, label: &str, size: [u32; 2], format: wgp
     })
 }
 
-/// A 3D storage volume (froxels, translucency lighting volumes).
-pub fn volume_3d(device: &wgpu::Device, label: &str, size: [u32; 3], format: wgpu::TextureFormat) -> wgpu::Texture {
+/// A storage volume (froxels, translucency lighting volumes) of `size` cells: a 2D array
+/// texture with one layer per z cell (`VolumeTextureCommon.ush`). wgpu-hal 30's GL backend
+/// binds a D3 storage view with one slice only (`ImageBinding::array_layer` is `Some(0)` for
+/// every view dimension but D2Array and CubeArray, so `glBindImageTexture` gets
+/// layered = false) and a compute shader's writes to the other slices are lost; a D2Array
+/// storage view is bound layered, on GL as on Vulkan.
+pub fn volume(device: &wgpu::Device, label: &str, size: [u32; 3], format: wgpu::TextureFormat) -> wgpu::Texture {
     device.create_texture(&wgpu::TextureDescriptor {
         label: Some(label),
         size: wgpu::Extent3d { width: size[0], height: size[1], depth_or_array_layers: size[2] },
         mip_level_count: 1,
         sample_count: 1,
-        dimension: wgpu::TextureDimension::D3,
+        dimension: wgpu::TextureDimension::D2,
         format,
         usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
         view_formats: &[],
@@ -243,6 +248,16 @@ pub fn volume_3d(device: &wgpu::Device, label: &str, size: [u32; 3], format: wgp
 
 pub fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
     texture.create_view(&wgpu::TextureViewDescriptor::default())
+}
+
+/// Whether `texture` is a [`volume`] (more than one layer).
+pub fn is_volume(texture: &wgpu::Texture) -> bool {
+    texture.dimension() == wgpu::TextureDimension::D2 && texture.depth_or_array_layers() > 1
+}
+
+/// A view of every layer of a [`volume`] (D2Array, also for a volume of one layer).
+pub fn volume_view(texture: &wgpu::Texture) -> wgpu::TextureView {
+    texture.create_view(&wgpu::TextureViewDescriptor { dimension: Some(wgpu::TextureViewDimension::D2Array), ..Default::default() })
 }
 
 /// Bilinear, clamped.

@@ -245,7 +245,6 @@ impl DesktopFrame {
         let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
         let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
         let fog = fog::HeightFog::new(&b)?;
-        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref())?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
         let grid = part2::LightGridInputs {
             lights: &lights_buffer,
@@ -256,6 +255,7 @@ impl DesktopFrame {
         };
         let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
         part2.set_options(options.part2);
+        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref(), &part2.translucency_volume())?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
@@ -325,7 +325,7 @@ impl DesktopFrame {
             p2.apply_volumetric_fog(ctx);
         });
         frame.pass("Translucency", |ctx| {
-            self.translucency.record(ctx, s, t);
+            self.translucency.record(ctx, s, t, p2.options().translucency_lighting);
             p2.particle_sprites(ctx);
         });
         p2.distortion(frame);

@@ -25,7 +25,7 @@ use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
-use super::frame_view::{perm, groups, taa_jitter, target_2d, uniform_buffer, view, CameraState, DirectionalShadow, FrameLights, FrameView, InstancedMesh};
+use super::frame_view::{is_volume, perm, groups, taa_jitter, volume_view, target_2d, uniform_buffer, view, CameraState, DirectionalShadow, FrameLights, FrameView, InstancedMesh};
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
@@ -53,20 +53,69 @@ pub struct Part2Options {
     pub reflections: bool,
     /// Extinction of the volumetric fog at the fog height.
     pub fog_density: f32,
+    /// How the translucent surfaces (the glass) are lit: per pixel from the light grid, or
+    /// the diffuse light of the volumes' lights from the translucency lighting volumes.
+    pub translucency_lighting: TranslucencyLightingMode,
+    /// InjectTranslucentVolume shadows the directional light by its cascades (off: the
+    /// volumes receive it as if nothing occluded it).
+    pub translucency_volume_shadows: bool,
+}
+
+/// Unreal's TranslucencyLightingMode for the lit translucent surfaces (the
+/// `TRANSLUCENCY_LIGHTING_MODE` dimension of `DeferredBasePassPS`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TranslucencyLightingMode {
+    /// TLM_SurfacePerPixelLighting: every light per pixel (the local lights of the light grid).
+    SurfaceForwardShading,
+    /// TLM_Surface: the diffuse light of the lights the translucency lighting volumes hold
+    /// (the shadowed directional light and the shadow-casting local lights) from the volumes'
+    /// two cascades, their specular and the other lights per pixel.
+    SurfaceLightingVolume,
+}
+
+impl TranslucencyLightingMode {
+    /// The dimension's value.
+    pub fn label(self) -> &'static str {
+        match self {
+            TranslucencyLightingMode::SurfaceForwardShading => "SURFACE_FORWARD_SHADING",
+            TranslucencyLightingMode::SurfaceLightingVolume => "SURFACE_LIGHTING_VOLUME",
+        }
+    }
 }
 
 impl Part2Options {
     /// Every pass still runs and is dumped, but none changes the frame: no jitter, TAA, motion
-    /// blur, eye adaptation, volumetric fog, sprites or reflections, and nothing moves (for
-    /// comparisons with frames that lack these effects).
+    /// blur, eye adaptation, volumetric fog, sprites or reflections, nothing moves, and the
+    /// glass is forward shaded per pixel (for comparisons with frames that lack these effects).
     pub fn off() -> Part2Options {
-        Part2Options { taa: false, motion_blur: false, eye_adaptation: false, animate: false, volumetric_fog: false, particles: false, reflections: false, ..Part2Options::default() }
+        Part2Options {
+            taa: false,
+            motion_blur: false,
+            eye_adaptation: false,
+            animate: false,
+            volumetric_fog: false,
+            particles: false,
+            reflections: false,
+            translucency_lighting: TranslucencyLightingMode::SurfaceForwardShading,
+            ..Part2Options::default()
+        }
     }
 }
 
 impl Default for Part2Options {
     fn default() -> Self {
-        Part2Options { taa: true, motion_blur: true, eye_adaptation: true, animate: true, volumetric_fog: true, particles: true, reflections: true, fog_density: 0.01 }
+        Part2Options {
+            taa: true,
+            motion_blur: true,
+            eye_adaptation: true,
+            animate: true,
+            volumetric_fog: true,
+            particles: true,
+            reflections: true,
+            fog_density: 0.01,
+            translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume,
+            translucency_volume_shadows: true,
+        }
     }
 }
 
@@ -88,6 +137,15 @@ pub struct Part2Targets<'a> {
     /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
     /// haze.
     pub frame_draws_fire: bool,
+}
+
+/// The filtered translucency lighting volumes and their boxes this frame, as the translucent
+/// surfaces bind them (cascade 0 inner, 1 outer).
+pub struct TranslucencyVolumeInputs {
+    /// `TranslucencyLightingVolumeParams`, written every frame by InjectTranslucentVolume.
+    pub params: wgpu::Buffer,
+    pub ambient: [wgpu::Texture; 2],
+    pub directional: [wgpu::Texture; 2],
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -126,11 +184,11 @@ struct VisualizeParams {
 
 impl Visualization {
     fn new(device: &wgpu::Device, cache: &PipelineCache, label: &str, source: &wgpu::Texture, size: [u32; 2], scale: Vec4, bias: Vec4, slice: u32) -> Result<Visualization, PipelineError> {
-        let volume = source.dimension() == wgpu::TextureDimension::D3;
+        let volume = is_volume(source);
         let pipeline = cache.compute(&perm(cache, "VisualizeTextureCS", &[("VISUALIZE_VOLUME", if volume { "1" } else { "0" })])?)?;
         let image = target_2d(device, label, size, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING);
         let params = uniform_buffer(device, label, &VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] });
-        let src = view(source);
+        let src = if volume { volume_view(source) } else { view(source) };
         let dst = view(&image);
         let group = pipeline.layout.bind_group(device, 0, label, &[
             ("params", params.as_entire_binding()),
@@ -238,9 +296,24 @@ impl Part2 {
         let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor { label: Some("ShadowDepth (part 2)"), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() });
         let scene_color_format = targets.scene_color.format();
 
-        let mut lights = vec![InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity }];
+        // the lights the volumes hold: the directional light where it shines, the local lights
+        // that cast shadows (those ShadowedLights draws)
+        let mut lights = Vec::new();
+        if scene.sun.enabled {
+            lights.push(InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity });
+        }
         for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
             lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+        }
+        for l in scene.spot_lights.iter().filter(|l| l.casts_shadows) {
+            lights.push(InjectedLight::Spot {
+                position: l.position,
+                radius: l.radius,
+                color: l.color * l.intensity,
+                direction: l.direction,
+                inner_angle: l.inner_angle,
+                outer_angle: l.outer_angle,
+            });
         }
         let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
 
@@ -252,7 +325,7 @@ impl Part2 {
             emitters.push(EmitterDesc::smoke(e));
         }
         // the smoke is lit by the large translucency volume cascade
-        let (lit_ambient, lit_dir) = (view(volumes.volumes(1).0), view(volumes.volumes(1).1));
+        let (lit_ambient, lit_dir) = (volume_view(volumes.volumes(1).0), volume_view(volumes.volumes(1).1));
         let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), (&lit_ambient, &lit_dir))?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
@@ -298,7 +371,7 @@ impl Part2 {
         let motion_blur = MotionBlur::new(device, cache, &frame_view, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
 
         let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
-            let s = if source.dimension() == wgpu::TextureDimension::D3 { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
+            let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
             Visualization::new(device, cache, label, source, s, scale, bias, slice)
         };
         let sparks = particles.state_textures(true);
@@ -554,7 +627,7 @@ impl Part2 {
         let s = self.lock();
         let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
         ctx.step("InjectTranslucentVolume", |ctx| {
-            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref());
+            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows);
             s.vis.volume_ambient.output(ctx, None);
         });
         ctx.step("FilterTranslucentVolume", |ctx| {
@@ -702,6 +775,14 @@ impl Part2 {
     pub fn hzb(&self) -> (wgpu::Texture, u32) {
         let s = self.lock();
         (s.hzb.texture.clone(), s.hzb.mip_count)
+    }
+
+    /// What the lit translucent surfaces read of the translucency lighting volumes.
+    pub fn translucency_volume(&self) -> TranslucencyVolumeInputs {
+        let s = self.lock();
+        let (a0, d0) = s.volumes.volumes(0);
+        let (a1, d1) = s.volumes.volumes(1);
+        TranslucencyVolumeInputs { params: s.volumes.lookup_buffer().clone(), ambient: [a0.clone(), a1.clone()], directional: [d0.clone(), d1.clone()] }
     }
 
     /// The LightScattering volume written last, for tests.

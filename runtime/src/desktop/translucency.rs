@@ -1,8 +1,11 @@
-//! Translucency: the glass statues, forward shaded (sky light, the directional light with
-//! its cascaded shadow, and the local lights of the light grid cell each pixel falls in)
-//! into the separate translucency target (premultiplied color, alpha = transmittance),
-//! depth tested against the scene, and the fire's particle sprites added to it; then
-//! composited over SceneColor.
+//! Translucency: the glass statues, forward shaded into the separate translucency target
+//! (premultiplied color, alpha = transmittance), depth tested against the scene, and the
+//! fire's particle sprites added to it; then composited over SceneColor. The glass is lit
+//! by one of two TranslucencyLightingModes (the `TRANSLUCENCY_LIGHTING_MODE` dimension, chosen
+//! per frame by [`Part2Options::translucency_lighting`](super::part2::Part2Options)):
+//! per pixel (sky light, the directional light with its cascaded shadow, the local lights of
+//! the light grid cell each pixel falls in), or with the diffuse light of the volumes' lights
+//! read from the two cascades of the translucency lighting volumes.
 
 use std::sync::Arc;
 
@@ -10,13 +13,16 @@ use crate::frame::{PassContext, Visualize};
 use crate::scene::BlendMode;
 
 use super::light_grid::LightGrid;
+use super::frame_view::volume_view;
+use super::part2::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
 use super::{Build, DesktopError};
 
 pub struct Translucency {
-    surfaces: Option<(Arc<Render>, BindGroups)>,
+    /// The lit translucent surfaces: [forward shaded, lit by the volumes].
+    surfaces: Option<[(Arc<Render>, BindGroups); 2]>,
     /// Particle sprites: pipeline, bind groups, particle count.
     sprites: Vec<(Arc<Render>, BindGroups, u32)>,
     compose: Arc<Render>,
@@ -30,6 +36,7 @@ impl Translucency {
         shadows: &ShadowDepths,
         dummy_shadow: &Texture,
         particles: Option<&super::ParticleInputs<'_>>,
+        volume: &TranslucencyVolumeInputs,
     ) -> Result<Translucency, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
@@ -57,24 +64,14 @@ impl Translucency {
             }
         }
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
-            let pipeline = p.render(
-                &p.permutation("DeferredBasePassVS", &[])?,
-                Some(&p.permutation("DeferredBasePassPS", &[("MATERIAL_BLEND_MODE", "TRANSLUCENT".into()), ("MATERIAL_SHADINGMODEL", "DEFAULT_LIT".into())])?),
-                &RenderDesc {
-                    vertices: Vertices::Mesh,
-                    cull: Some(wgpu::Face::Back),
-                    depth_stencil: Some(wgpu::DepthStencilState {
-                        format: t.scene_depth.format,
-                        depth_write_enabled: Some(false),
-                        depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
-                        stencil: wgpu::StencilState::default(),
-                        bias: wgpu::DepthBiasState::default(),
-                    }),
-                    targets: vec![(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
-                },
-            )?;
+            let (ambient, directional) = (volume.ambient.each_ref().map(volume_view), volume.directional.each_ref().map(volume_view));
+            let volume_sampler = b.device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("TranslucencyLightingVolumeSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                ..Default::default()
+            });
             let csm = shadows.csm_texture().unwrap_or(dummy_shadow);
-            let directional = uniform(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
             let mut resources = b.scene_resources();
             resources.extend([
                 ("LocalLights", b.lights_buffer.as_entire_binding()),
@@ -82,11 +79,17 @@ impl Translucency {
                 ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
                 ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&csm.view)),
                 ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
-                ("DirectionalShadow", directional.as_entire_binding()),
+                ("TranslucencyLightingVolume", volume.params.as_entire_binding()),
+                ("TranslucencyLightingVolumeAmbientInner", wgpu::BindingResource::TextureView(&ambient[0])),
+                ("TranslucencyLightingVolumeDirectionalInner", wgpu::BindingResource::TextureView(&directional[0])),
+                ("TranslucencyLightingVolumeAmbientOuter", wgpu::BindingResource::TextureView(&ambient[1])),
+                ("TranslucencyLightingVolumeDirectionalOuter", wgpu::BindingResource::TextureView(&directional[1])),
+                ("TranslucencyLightingVolumeSampler", wgpu::BindingResource::Sampler(&volume_sampler)),
             ]);
-            let groups = pipeline.layout.bind_groups(b.device, &resources)?;
+            let forward = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceForwardShading, shadows, &resources)?;
+            let volume = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceLightingVolume, shadows, &resources)?;
             drop(resources);
-            Some((pipeline, groups.keeping(directional)))
+            Some([forward, volume])
         } else {
             None
         };
@@ -99,7 +102,47 @@ impl Translucency {
         Ok(Translucency { surfaces, sprites, compose, compose_groups })
     }
 
-    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
+    /// The lit translucent surfaces' pipeline in `mode`, with its bind groups.
+    fn surface_pipeline(
+        b: &Build<'_>,
+        mode: TranslucencyLightingMode,
+        shadows: &ShadowDepths,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<(Arc<Render>, BindGroups), DesktopError> {
+        let (p, t) = (b.pipelines, b.targets);
+        let pipeline = p.render(
+            &p.permutation("DeferredBasePassVS", &[])?,
+            Some(&p.permutation(
+                "DeferredBasePassPS",
+                &[
+                    ("MATERIAL_BLEND_MODE", "TRANSLUCENT".into()),
+                    ("MATERIAL_SHADINGMODEL", "DEFAULT_LIT".into()),
+                    ("TRANSLUCENCY_LIGHTING_MODE", mode.label().into()),
+                ],
+            )?),
+            &RenderDesc {
+                vertices: Vertices::Mesh,
+                cull: Some(wgpu::Face::Back),
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: t.scene_depth.format,
+                    depth_write_enabled: Some(false),
+                    depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+                    stencil: wgpu::StencilState::default(),
+                    bias: wgpu::DepthBiasState::default(),
+                }),
+                targets: vec![(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
+            },
+        )?;
+        let directional = uniform(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
+        let mut resources = resources.to_vec();
+        resources.push(("DirectionalShadow", directional.as_entire_binding()));
+        let groups = pipeline.layout.bind_groups(b.device, &resources)?;
+        drop(resources);
+        Ok((pipeline, groups.keeping(directional)))
+    }
+
+    /// `mode`: how the glass is lit this frame.
+    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets, mode: TranslucencyLightingMode) {
         ctx.step("SeparateTranslucency", |ctx| {
             {
                 let mut pass = begin(
@@ -108,7 +151,8 @@ impl Translucency {
                     &[color_attachment(&t.translucency.view, Some(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a: 1.0 }))],
                     Some(wgpu::RenderPassDepthStencilAttachment { view: &t.scene_depth.attachment, depth_ops: None, stencil_ops: None }),
                 );
-                if let Some((pipeline, groups)) = &self.surfaces {
+                if let Some(surfaces) = &self.surfaces {
+                    let (pipeline, groups) = &surfaces[usize::from(mode == TranslucencyLightingMode::SurfaceLightingVolume)];
                     pass.set_pipeline(&pipeline.pipeline);
                     groups.set_render(&mut pass);
                     for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {

@@ -2,9 +2,13 @@
 //! two cascaded 64^3 translucency lighting volumes centred on the camera (cascade 0 small and
 //! sharp, cascade 1 large), each a pair of RGBA16F volumes, Ambient (the light arriving at the
 //! cell: SH band 0) and Dir (the luminance-weighted light direction: SH band 1). Each shadowed
-//! light is injected by its own dispatch per cascade, reading the volumes the previous light
-//! wrote and writing the other pair (ping-pong); then a 3x3x3 tent filter writes the volumes
-//! translucent surfaces and particles read.
+//! light (the directional light, shadowed here by its cascades, and the shadow-casting point
+//! and spot lights, whose own shadows are not applied here) is injected by its own dispatch
+//! per cascade, reading the volumes the previous light wrote and writing the other pair
+//! (ping-pong); then a 3x3x3 tent filter writes the volumes
+//! translucent surfaces and particles read. The cascades' boxes of the frame are kept in a
+//! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
+//! surfaces that read both cascades.
 
 use std::sync::Arc;
 
@@ -13,7 +17,7 @@ use glam::{Mat4, Vec3, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{perm, groups, uniform_buffer, view, volume_3d, DirectionalShadow};
+use super::frame_view::{perm, groups, uniform_buffer, volume, volume_view, DirectionalShadow};
 
 pub const VOLUME_SIZE: u32 = 64;
 pub const VOLUME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -29,6 +33,8 @@ struct VolumeParams {
     cascade_view_proj: [Mat4; 3],
     cascade_splits: Vec4,
     cascade_rects: [Vec4; 3],
+    spot_direction: Vec4,
+    spot_angles: Vec4,
 }
 
 /// A light injected into the volumes.
@@ -37,14 +43,48 @@ pub enum InjectedLight {
     /// Direction towards the light, colour * intensity; shadowed by the cascaded shadow map.
     Directional { direction: Vec3, color: Vec3 },
     Point { position: Vec3, radius: f32, color: Vec3 },
+    /// A spot light: `direction` the way the cone points; the cone's half angles in radians.
+    Spot { position: Vec3, radius: f32, color: Vec3, direction: Vec3, inner_angle: f32, outer_angle: f32 },
+}
+
+/// `TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct LookupParams {
+    /// Per cascade: minimum corner, w the cell size.
+    pub volume_min: [Vec4; 2],
+    /// Per cascade: 1 / the box's size, w cells per side.
+    pub volume_inv_size: [Vec4; 2],
+}
+
+impl LookupParams {
+    /// The boxes of both cascades around `camera`.
+    pub fn new(camera: Vec3) -> LookupParams {
+        let mut p = LookupParams::default();
+        for c in 0..2 {
+            let (origin, cell) = TranslucentVolumes::cascade_box(camera, c);
+            p.volume_min[c] = origin.extend(cell);
+            p.volume_inv_size[c] = Vec3::splat(1.0 / (cell * VOLUME_SIZE as f32)).extend(VOLUME_SIZE as f32);
+        }
+        p
+    }
+}
+
+/// One light's injection into one cascade.
+struct Injection {
+    params: wgpu::Buffer,
+    /// Through `TranslucentVolumeInjectCS{DYNAMICALLY_SHADOWED=0}`.
+    unshadowed: wgpu::BindGroup,
+    /// Through `{DYNAMICALLY_SHADOWED=1}`: the directional light, shadowed by its cascades.
+    shadowed: Option<wgpu::BindGroup>,
 }
 
 struct Cascade {
     /// [ambient, dir] x [zero, A, B, filtered]
     ambient: [wgpu::Texture; 4],
     dir: [wgpu::Texture; 4],
-    /// one per light: (params, bind group, shadowed)
-    injections: Vec<(wgpu::Buffer, wgpu::BindGroup, bool)>,
+    /// one per light
+    injections: Vec<Injection>,
     filter_group: wgpu::BindGroup,
 }
 
@@ -53,6 +93,8 @@ pub struct TranslucentVolumes {
     inject: [Arc<ComputePipeline>; 2],
     filter: Arc<ComputePipeline>,
     lights: Vec<InjectedLight>,
+    /// This frame's [`LookupParams`], written by [`TranslucentVolumes::record_inject`].
+    lookup: wgpu::Buffer,
 }
 
 /// Which pair light `k` writes: 1 (A) or 2 (B); the first reads the zero pair 0.
@@ -89,14 +131,13 @@ impl TranslucentVolumes {
         let mut cascades = Vec::new();
         for c in 0..2 {
             let names = ["Zero", "A", "B", ""];
-            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| volume_3d(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
-            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| volume_3d(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT));
-            let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(view).collect();
-            let dir_views: Vec<wgpu::TextureView> = dir.iter().map(view).collect();
+            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
+            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT));
+            let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(volume_view).collect();
+            let dir_views: Vec<wgpu::TextureView> = dir.iter().map(volume_view).collect();
             let tex = wgpu::BindingResource::TextureView;
             let mut injections = Vec::new();
             for (k, light) in lights.iter().enumerate() {
-                let shadowed = matches!(light, InjectedLight::Directional { .. });
                 let params = uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
                 let (r, w) = (read_pair(k), written_pair(k));
                 let mut resources = vec![
@@ -106,13 +147,16 @@ impl TranslucentVolumes {
                     ("out_ambient", tex(&ambient_views[w])),
                     ("out_dir", tex(&dir_views[w])),
                 ];
-                if shadowed {
+                let unshadowed = inject[0].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
+                let shadowed = if matches!(light, InjectedLight::Directional { .. }) {
                     resources.push(("view", frame_view.as_entire_binding()));
                     resources.push(("shadow_atlas", tex(shadow_atlas)));
                     resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
-                }
-                let group = inject[usize::from(shadowed)].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
-                injections.push((params, group, shadowed));
+                    Some(inject[1].layout.bind_group(device, 0, "InjectTranslucentVolume (shadowed)", &resources)?)
+                } else {
+                    None
+                };
+                injections.push(Injection { params, unshadowed, shadowed });
             }
             let last = if lights.is_empty() { 0 } else { written_pair(lights.len() - 1) };
             let filter_group = filter.layout.bind_group(device, 0, "FilterTranslucentVolume", &[
@@ -123,7 +167,13 @@ impl TranslucentVolumes {
             ])?;
             cascades.push(Cascade { ambient, dir, injections, filter_group });
         }
-        Ok(TranslucentVolumes { cascades, inject, filter, lights })
+        let lookup = uniform_buffer(device, "TranslucencyLightingVolume", &LookupParams::default());
+        Ok(TranslucentVolumes { cascades, inject, filter, lights, lookup })
+    }
+
+    /// The cascades' boxes this frame ([`LookupParams`]), for the surfaces that read the volumes.
+    pub fn lookup_buffer(&self) -> &wgpu::Buffer {
+        &self.lookup
     }
 
     /// The filtered volumes of a cascade: (Ambient, Dir).
@@ -147,22 +197,41 @@ impl TranslucentVolumes {
     }
 
     /// InjectTranslucentVolume: every light into both cascades, the directional light
-    /// shadowed by `shadow`.
-    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>) {
+    /// shadowed by `shadow` when `shadows` (else unshadowed, as if nothing occluded it).
+    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>, shadows: bool) {
         let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
+        queue.write_buffer(&self.lookup, 0, bytemuck::bytes_of(&LookupParams::new(camera)));
         let n = groups(VOLUME_SIZE, 4);
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("InjectTranslucentVolume cascade {c}")), timestamp_writes: None });
             for (k, light) in self.lights.iter().enumerate() {
-                let (params, group, shadowed) = &cascade.injections[k];
-                let (position, color) = match *light {
-                    InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0)),
-                    InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0)),
+                let injection = &cascade.injections[k];
+                let (shadowed, group) = match &injection.shadowed {
+                    Some(g) if shadows => (true, g),
+                    _ => (false, &injection.unshadowed),
                 };
-                let p = VolumeParams { origin: origin.extend(cell), light_position: position, light_color: color, cascade_view_proj: matrices, cascade_splits: splits, cascade_rects: rects };
-                queue.write_buffer(params, 0, bytemuck::bytes_of(&p));
-                pass.set_pipeline(&self.inject[usize::from(*shadowed)].pipeline);
+                let (position, color, spot_direction, spot_angles) = match *light {
+                    InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0), Vec4::ZERO, Vec4::ZERO),
+                    InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0), Vec4::ZERO, Vec4::ZERO),
+                    InjectedLight::Spot { position, radius, color, direction, inner_angle, outer_angle } => {
+                        let (cos_outer, cos_inner) = (outer_angle.cos(), inner_angle.cos());
+                        let cone = direction.normalize().extend(cos_outer);
+                        (position.extend(radius), color.extend(1.0), cone, Vec4::new(1.0 / (cos_inner - cos_outer).max(1e-4), 1.0, 0.0, 0.0))
+                    }
+                };
+                let p = VolumeParams {
+                    origin: origin.extend(cell),
+                    light_position: position,
+                    light_color: color,
+                    cascade_view_proj: matrices,
+                    cascade_splits: splits,
+                    cascade_rects: rects,
+                    spot_direction,
+                    spot_angles,
+                };
+                queue.write_buffer(&injection.params, 0, bytemuck::bytes_of(&p));
+                pass.set_pipeline(&self.inject[usize::from(shadowed)].pipeline);
                 pass.set_bind_group(0, group, &[]);
                 pass.dispatch_workgroups(n, n, n);
             }
@@ -202,5 +271,20 @@ mod tests {
             assert!(local.cmpge(Vec3::splat(31.0)).all() && local.cmple(Vec3::splat(33.0)).all(), "{local}");
             assert!(((origin / cell) - (origin / cell).round()).abs().max_element() < 1e-3);
         }
+    }
+
+    #[test]
+    fn lookup_maps_each_cascade_box_to_the_unit_cube() {
+        let camera = Vec3::new(-3.0, 3.4, 9.5);
+        let p = LookupParams::new(camera);
+        for c in 0..2 {
+            let (origin, cell) = TranslucentVolumes::cascade_box(camera, c);
+            let far_corner = origin + Vec3::splat(cell * VOLUME_SIZE as f32);
+            let uvw = (far_corner - p.volume_min[c].truncate()) * p.volume_inv_size[c].truncate();
+            assert!((uvw - Vec3::ONE).abs().max_element() < 1e-5, "{uvw}");
+            let at_camera = (camera - p.volume_min[c].truncate()) * p.volume_inv_size[c].truncate();
+            assert!((at_camera - Vec3::splat(0.5)).abs().max_element() <= 1.0 / VOLUME_SIZE as f32, "{at_camera}");
+        }
+        assert_eq!(std::mem::size_of::<LookupParams>(), 64);
     }
 }

@@ -15,7 +15,7 @@ use glam::{Mat4, UVec4, Vec3, Vec4};
 
 use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, groups, linear_sampler, uniform_buffer, view, volume_3d, DirectionalShadow};
+use super::frame_view::{perm, groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow};
 
 pub const TILE_SIZE: u32 = 8;
 pub const DEPTH_SLICES: u32 = 128;
@@ -134,10 +134,10 @@ impl VolumetricFog {
             Some(&perm(cache, "VolumetricFogApplyPS", &[])?),
             &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::PremultipliedAlpha }),
         )?;
-        let vbuffer_a = volume_3d(device, "VBufferA", grid, VOLUME_FORMAT);
-        let vbuffer_b = volume_3d(device, "VBufferB", grid, VOLUME_FORMAT);
-        let light_scattering = [volume_3d(device, "LightScattering0", grid, VOLUME_FORMAT), volume_3d(device, "LightScattering1", grid, VOLUME_FORMAT)];
-        let integrated = volume_3d(device, "IntegratedLightScattering", grid, VOLUME_FORMAT);
+        let vbuffer_a = volume(device, "VBufferA", grid, VOLUME_FORMAT);
+        let vbuffer_b = volume(device, "VBufferB", grid, VOLUME_FORMAT);
+        let light_scattering = [volume(device, "LightScattering0", grid, VOLUME_FORMAT), volume(device, "LightScattering1", grid, VOLUME_FORMAT)];
+        let integrated = volume(device, "IntegratedLightScattering", grid, VOLUME_FORMAT);
         let params = uniform_buffer(device, "VolumetricFog params", &FogParams::default());
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("VolumetricFog shadow sampler"),
@@ -147,9 +147,9 @@ impl VolumetricFog {
             ..Default::default()
         });
         let sampler = linear_sampler(device, "VolumetricFog volume sampler");
-        let (a, b) = (view(&vbuffer_a), view(&vbuffer_b));
-        let ls = [view(&light_scattering[0]), view(&light_scattering[1])];
-        let integrated_view = view(&integrated);
+        let (a, b) = (volume_view(&vbuffer_a), volume_view(&vbuffer_b));
+        let ls = [volume_view(&light_scattering[0]), volume_view(&light_scattering[1])];
+        let integrated_view = volume_view(&integrated);
         let tex = wgpu::BindingResource::TextureView;
         let init_group = init.layout.bind_group(device, 0, "InitializeVolumeAttributes", &[
             ("view", frame_view.as_entire_binding()),
