@@ -647,12 +647,20 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
     report.failures = render_failures(failures, &kept, &sources, options.color);
 
+    // Every artifact's blake3, once, on all threads: the archive deduplicates blobs by it
+    // and the cache's checksums are made of it.
+    let hashes: HashMap<Key, Vec<blake3::Hash>> = compiled
+        .par_iter()
+        .map(|(k, c)| (*k, c.artifacts.iter().map(|(_, bytes)| blake3::hash(bytes)).collect()))
+        .collect();
+
     // 5. Store what was compiled in the cache (on the other thread), while the archive and
     //    the loose files are written.
     let store = || -> Vec<String> {
         let Some(c) = cache else { return Vec::new() };
-        let entries: Vec<(Key, &Compiled)> = fresh.iter().map(|k| (*k, &compiled[k])).collect();
-        match c.put_pack(&entries) {
+        let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
+            fresh.iter().map(|k| (*k, &compiled[k], &hashes[k][..])).collect();
+        match c.put_pack_hashed(&entries) {
             Ok(()) => Vec::new(),
             Err(e) => vec![format!("warning: cannot store {} cache entries: {e}", entries.len())],
         }
@@ -664,7 +672,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         return Err(Error::Failed(Box::new(report)));
     }
     let (written, warnings) =
-        rayon::join(|| write_outputs(options, &kept, &pre, &compiled, stamp.as_ref(), &mut report), store);
+        rayon::join(|| write_outputs(options, &kept, &pre, &compiled, &hashes, stamp.as_ref(), &mut report), store);
     report.warnings.extend(warnings);
     written?;
     write_stats(options, &mut report, start)?;
@@ -728,6 +736,7 @@ fn write_outputs(
     kept: &[Permutation<'_>],
     pre: &[Result<Pre, Diagnostic<FileId>>],
     compiled: &HashMap<Key, Compiled>,
+    hashes: &HashMap<Key, Vec<blake3::Hash>>,
     stamp: Option<&(&Cache, &PathBuf, blake3::Hash)>,
     report: &mut Report,
 ) -> Result<(), Error> {
@@ -736,12 +745,6 @@ fn write_outputs(
     writer.set_naga_version(compile::NAGA_VERSION);
     let mut index: BTreeMap<String, BTreeMap<&'static str, String>> = BTreeMap::new();
     let mut emitted: HashMap<blake3::Hash, String> = HashMap::new();
-    // Every artifact's hash (for deduplication) on all threads first; blobs are then
-    // borrowed by the writer, not copied.
-    let hashes: HashMap<(Key, Target), blake3::Hash> = compiled
-        .par_iter()
-        .flat_map_iter(|(k, c)| c.artifacts.iter().map(move |(t, bytes)| ((*k, *t), blake3::hash(bytes))))
-        .collect();
     for (i, p) in kept.iter().enumerate() {
         let Ok(pm) = &pre[i] else { continue };
         let c = &compiled[&pm.key];
@@ -760,8 +763,8 @@ fn write_outputs(
         let reflection = writer.add_reflection(&c.reflection);
         let name = p.name();
         let mut artifacts = Vec::with_capacity(c.artifacts.len());
-        for (t, bytes) in &c.artifacts {
-            let hash = hashes[&(pm.key, *t)];
+        for ((t, bytes), hash) in c.artifacts.iter().zip(&hashes[&pm.key]) {
+            let hash = *hash;
             artifacts.push((*t, writer.add_blob_ref(bytes, hash)));
             if let Some(dir) = &options.emit_dir {
                 let file = match emitted.get(&hash) {

@@ -209,36 +209,36 @@ impl<'a> ArchiveWriter<'a> {
         pieces
     }
 
-    /// The header and the padded manifest; the blob section follows them.
-    fn head(&self, blobs: &[&[u8]]) -> (Vec<u8>, Vec<u8>) {
+    /// The manifest as JSON, padded to 8 bytes.
+    fn manifest_bytes(&self) -> Vec<u8> {
         let mut manifest = serde_json::to_vec(&self.manifest).expect("manifest serializes");
         while manifest.len() % 8 != 0 {
             manifest.push(b' ');
         }
-        let mut checksum = blake3::Hasher::new();
-        checksum.update(&manifest);
-        for piece in blobs {
-            checksum.update(piece);
-        }
+        manifest
+    }
+
+    /// The header of an archive whose body (manifest, then blobs) has blake3 `checksum`.
+    fn header(&self, manifest_len: usize, checksum: blake3::Hash) -> Vec<u8> {
         let mut header = Vec::with_capacity(HEADER_LEN);
         header.extend_from_slice(&MAGIC);
         header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
         header.extend_from_slice(&0u32.to_le_bytes());
-        header.extend_from_slice(&(manifest.len() as u64).to_le_bytes());
+        header.extend_from_slice(&(manifest_len as u64).to_le_bytes());
         header.extend_from_slice(&self.blob_section_len.to_le_bytes());
-        header.extend_from_slice(checksum.finalize().as_bytes());
+        header.extend_from_slice(checksum.as_bytes());
         debug_assert_eq!(header.len(), HEADER_LEN);
-        (header, manifest)
+        header
     }
 
     /// The whole archive as bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let blobs = self.blob_pieces();
-        let (header, manifest) = self.head(&blobs);
-        let mut out = Vec::with_capacity(HEADER_LEN + manifest.len() + self.blob_section_len as usize);
-        out.extend_from_slice(&header);
-        out.extend_from_slice(&manifest);
-        blobs.iter().for_each(|b| out.extend_from_slice(b));
+        let manifest = self.manifest_bytes();
+        let mut body: Vec<&[u8]> = vec![&manifest];
+        body.extend(self.blob_pieces());
+        let mut out = self.header(manifest.len(), checksum(&body));
+        out.reserve(manifest.len() + self.blob_section_len as usize);
+        body.iter().for_each(|b| out.extend_from_slice(b));
         out
     }
 
@@ -256,13 +256,39 @@ impl<'a> ArchiveWriter<'a> {
     }
 
     fn write_impl(&self, path: &Path, sync: bool) -> Result<(), ArchiveError> {
-        // Written in pieces, never copied into one buffer: archives can be large.
-        let blobs = self.blob_pieces();
-        let (header, manifest) = self.head(&blobs);
-        let mut pieces: Vec<&[u8]> = vec![&header, &manifest];
-        pieces.extend(blobs);
-        write_atomic_impl(path, &pieces, sync).map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
+        // Written in pieces, never copied into one buffer: archives can be large. The body
+        // goes first, after room for the header, while its checksum is computed (on another
+        // thread where there is one); then the header.
+        let manifest = self.manifest_bytes();
+        let mut body: Vec<&[u8]> = vec![&manifest];
+        body.extend(self.blob_pieces());
+        write_atomic_with(path, sync, |f| {
+            use std::io::{Seek, SeekFrom};
+            use std::os::unix::fs::FileExt;
+            f.seek(SeekFrom::Start(HEADER_LEN as u64))?;
+            let (sum, written) = join(|| checksum(&body), || write_all_vectored(f, &body));
+            written?;
+            f.write_all_at(&self.header(manifest.len(), sum), 0)
+        })
+        .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })
     }
+}
+
+/// blake3 of the concatenation of `pieces`.
+fn checksum(pieces: &[&[u8]]) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    for piece in pieces {
+        h.update(piece);
+    }
+    h.finalize()
+}
+
+/// Both closures, in parallel where the compiler's thread pool is built in.
+fn join<A: Send, B: Send>(a: impl FnOnce() -> A + Send, b: impl FnOnce() -> B + Send) -> (A, B) {
+    #[cfg(feature = "compiler")]
+    return rayon::join(a, b);
+    #[cfg(not(feature = "compiler"))]
+    return (a(), b());
 }
 
 /// Writes `bytes` to `path` through a uniquely named temporary file and a rename.
@@ -277,6 +303,16 @@ pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 
 /// Writes the concatenation of `pieces` through a temporary file and a rename.
 fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
+    write_atomic_with(path, sync, |f| write_all_vectored(f, pieces))
+}
+
+/// Creates a uniquely named temporary file beside `path`, lets `write` fill it, syncs it
+/// when asked, then renames it to `path`; on any error the temporary file is removed.
+fn write_atomic_with(
+    path: &Path,
+    sync: bool,
+    write: impl FnOnce(&mut File) -> std::io::Result<()>,
+) -> std::io::Result<()> {
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
@@ -292,7 +328,7 @@ fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Resu
     let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
         let mut f = File::create(&tmp)?;
-        write_all_vectored(&mut f, pieces)?;
+        write(&mut f)?;
         if sync {
             f.sync_all()?;
         }

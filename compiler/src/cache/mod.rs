@@ -33,8 +33,8 @@ use rayon::prelude::*;
 use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
-const MAGIC: &[u8; 8] = b"KILNCE\0\x01";
-const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x01";
+const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
+const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 const RECORD_EXTENSION: &str = "kpp";
@@ -302,28 +302,35 @@ impl Cache {
         self.put_pack(&[(*key, compiled)])
     }
 
-    /// Stores `entries` as one pack, atomically. Entries are encoded and checksummed in
-    /// parallel (on the current rayon pool), then written in one file.
+    /// Stores `entries` as one pack, atomically.
     pub fn put_pack(&self, entries: &[(Key, &Compiled)]) -> Result<(), Error> {
+        let hashes: Vec<Vec<blake3::Hash>> =
+            entries.par_iter().map(|(_, c)| c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect()).collect();
+        let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
+            entries.iter().zip(&hashes).map(|((k, c), h)| (*k, *c, &h[..])).collect();
+        self.put_pack_hashed(&entries)
+    }
+
+    /// [`Cache::put_pack`] with the blake3 of every artifact already known (in the order of
+    /// each entry's artifacts).
+    pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
         if entries.is_empty() {
             return Ok(());
         }
         let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
-            .par_iter()
-            .map(|(key, c)| {
+            .iter()
+            .map(|(key, c, hashes)| {
+                assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
                 let frames = frames(c);
-                let body = body_pieces(key, c, &frames);
-                let mut h = blake3::Hasher::new();
-                body.iter().for_each(|p| {
-                    h.update(p);
-                });
-                let len = (MAGIC.len() + 32 + body.iter().map(|p| p.len()).sum::<usize>()) as u64;
-                (frames, h.finalize(), len)
+                let checksum = entry_checksum(key, &frames, hashes);
+                let len = MAGIC.len() + 32 + 32 + frames.iter().map(Vec::len).sum::<usize>()
+                    + c.artifacts.iter().map(|(_, b)| b.len()).sum::<usize>();
+                (frames, checksum, len as u64)
             })
             .collect();
         let mut rows = Vec::with_capacity(entries.len() * ROW);
         let mut offset = (PACK_HEADER + entries.len() * ROW) as u64;
-        for ((key, _), (_, _, len)) in entries.iter().zip(&encoded) {
+        for ((key, _, _), (_, _, len)) in entries.iter().zip(&encoded) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
             rows.extend_from_slice(&len.to_le_bytes());
@@ -339,10 +346,10 @@ impl Cache {
         }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
-        for ((key, c), (scratch, checksum, _)) in entries.iter().zip(&encoded) {
+        for ((key, c, _), (frames, checksum, _)) in entries.iter().zip(&encoded) {
             pieces.push(MAGIC);
             pieces.push(checksum.as_bytes());
-            pieces.extend(body_pieces(key, c, scratch));
+            pieces.extend(body_pieces(key, c, frames));
         }
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
@@ -354,6 +361,7 @@ impl Cache {
         }
         Ok(())
     }
+
     /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
     pub fn records_path(&self, key: &Key) -> PathBuf {
         self.dir.join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
@@ -672,19 +680,32 @@ fn body_pieces<'a>(key: &'a Key, c: &'a Compiled, frames: &'a [Vec<u8>]) -> Vec<
     body
 }
 
+/// An entry's checksum: blake3 of its body with each artifact replaced by the artifact's
+/// blake3 (`hashes`), so that artifacts are hashed once per build, for the archive and the
+/// cache alike.
+fn entry_checksum(key: &Key, frames: &[Vec<u8>], hashes: &[blake3::Hash]) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    h.update(&key.0);
+    h.update(&frames[0]);
+    for (i, hash) in hashes.iter().enumerate() {
+        h.update(&frames[1 + i]);
+        h.update(hash.as_bytes());
+    }
+    let n = frames.len();
+    h.update(&frames[n - 2]);
+    h.update(&frames[n - 1]);
+    h.finalize()
+}
+
 /// An entry as one buffer (tests).
 #[cfg(test)]
 fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
     let frames = frames(c);
-    let body = body_pieces(key, c, &frames);
-    let mut h = blake3::Hasher::new();
-    body.iter().for_each(|p| {
-        h.update(p);
-    });
+    let hashes: Vec<blake3::Hash> = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
     let mut out = Vec::new();
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(h.finalize().as_bytes());
-    body.iter().for_each(|p| out.extend_from_slice(p));
+    out.extend_from_slice(entry_checksum(key, &frames, &hashes).as_bytes());
+    body_pieces(key, c, &frames).iter().for_each(|p| out.extend_from_slice(p));
     out
 }
 
@@ -693,27 +714,47 @@ fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
         return Err("not a cache entry of this kiln".into());
     }
     let body = &bytes[40..];
-    if blake3::hash(body).as_bytes() != &bytes[8..40] {
-        return Err("checksum mismatch".into());
-    }
+    // Read the body, hashing it as `entry_checksum` does (each artifact by its hash).
+    let mut h = blake3::Hasher::new();
     let mut r = Reader { bytes: body, at: 0 };
-    if r.take(32)? != key.0 {
-        return Err("the entry belongs to another key".into());
-    }
-    let count = u32::from_le_bytes(r.take(4)?.try_into().unwrap());
+    let entry_key = r.take(32)?;
+    h.update(entry_key);
+    let count_bytes = r.take(4)?;
+    h.update(count_bytes);
+    let count = u32::from_le_bytes(count_bytes.try_into().unwrap());
     let mut artifacts = Vec::new();
     for _ in 0..count {
+        let frame = r.at;
         let n = r.take(1)?[0] as usize;
-        let name = std::str::from_utf8(r.take(n)?).map_err(|_| "bad target name")?;
-        let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+        let name = r.take(n)?;
         let len = r.u64()? as usize;
-        artifacts.push((target, r.take(len)?.to_vec()));
+        h.update(&body[frame..r.at]);
+        let artifact = r.take(len)?;
+        h.update(blake3::hash(artifact).as_bytes());
+        artifacts.push((name, artifact));
     }
+    let frame = r.at;
     let len = r.u64()? as usize;
-    let reflection: Reflection = serde_json::from_slice(r.take(len)?).map_err(|e| format!("bad reflection: {e}"))?;
+    let json = r.take(len)?;
+    h.update(&body[frame..r.at]);
     if r.at != body.len() {
         return Err("trailing bytes".into());
     }
+    if h.finalize().as_bytes() != &bytes[8..40] {
+        return Err("checksum mismatch".into());
+    }
+    if entry_key != key.0 {
+        return Err("the entry belongs to another key".into());
+    }
+    let artifacts = artifacts
+        .into_iter()
+        .map(|(name, bytes)| {
+            let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
+            let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+            Ok((target, bytes.to_vec()))
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
     Ok(Compiled { artifacts, reflection })
 }
 

@@ -165,8 +165,8 @@ fn truncated_or_damaged_packs_are_never_trusted() {
         other => panic!("{other:?}"),
     }
 
-    // Not a pack at all.
-    fs::write(&pack, b"KILNCP\0\x02 something else entirely, not forty-eight bytes long").unwrap();
+    // A pack of an older Kiln.
+    fs::write(&pack, b"KILNCP\0\x01 something else entirely, and longer than forty-eight bytes").unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     assert!(matches!(cache.get(&a), Lookup::Miss));
     assert!(cache.warnings()[0].contains("(not a cache pack of this kiln)"), "{:?}", cache.warnings());

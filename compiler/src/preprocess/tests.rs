@@ -297,10 +297,10 @@ fn token_hash_fast_paths_agree_with_the_lexer() {
         assert_eq!(token_hash(text), token_hash_reference(text), "{text:?}");
     }
     // Random texts over the bytes that matter to the lexer.
-    let alphabet: Vec<char> = "aLuU8_$ 0.e+-\n\t\r/*\"'\\<>=#%:@`(){}é".chars().collect();
+    let alphabet: Vec<char> = "aLuU8_$ 0.e+-\n\t\r/*\"'\\<>=#%:@`(){}[];,?~é".chars().collect();
     let mut state = 0x2545_f491_4f6c_dd1du64;
     for _ in 0..20_000 {
-        let len = (state % 24) as usize;
+        let len = (state % 64) as usize;
         let mut text = String::new();
         for _ in 0..len {
             state ^= state << 13;
