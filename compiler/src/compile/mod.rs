@@ -142,6 +142,19 @@ pub fn validate(source: &str, entry: &str, stage: Stage, limits: &Limits) -> Res
     let kept = module.entry_points.swap_remove(index);
     module.entry_points.clear();
     module.entry_points.push(kept);
+    // Drop what the kept entry point does not use (other entry points' globals and helpers)
+    // before validating: the module validated is the module compiled. Writers would
+    // otherwise declare resources the pipeline's layout does not bind, which Mesa's lavapipe
+    // does not survive at pipeline creation; and, as with a shader compiler's dead code, a
+    // helper of a shared header that this permutation never calls cannot fail it (a desktop
+    // helper using a capability the mobile level lacks, say). Compaction only follows
+    // handles, which the front end made consistent; a panic is caught all the same.
+    let compacted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        naga::compact::compact(&mut module, naga::compact::KeepUnused::No);
+    }));
+    if compacted.is_err() {
+        return Err(Error::new(ErrorKind::Validation, "internal error: naga panicked while compacting the module"));
+    }
 
     let mut validator = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), limits.capabilities());
     let info = validator.validate(&module).map_err(|e| {
@@ -158,20 +171,6 @@ pub fn validate(source: &str, entry: &str, stage: Stage, limits: &Limits) -> Res
             notes,
         }
     })?;
-    // Drop what the kept entry point does not use (other entry points' globals and helpers).
-    // Writers would otherwise declare resources the pipeline's layout does not bind, which
-    // Mesa's lavapipe does not survive at pipeline creation. The whole module was validated
-    // first, so errors in unused code are still reported; the compacted module is validated
-    // again because writers need a `ModuleInfo` that matches it.
-    let before = (module.global_variables.len(), module.functions.len(), module.types.len());
-    naga::compact::compact(&mut module, naga::compact::KeepUnused::No);
-    let info = if before == (module.global_variables.len(), module.functions.len(), module.types.len()) {
-        info
-    } else {
-        validator.validate(&module).map_err(|e| {
-            Error::new(ErrorKind::Validation, format!("internal error: the compacted module does not validate: {}", e.as_inner()))
-        })?
-    };
     Ok(Validated { module, info, entry: entry.to_string(), stage })
 }
 

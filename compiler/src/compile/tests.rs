@@ -207,6 +207,26 @@ fn downlevel_has_no_cube_arrays() {
 }
 
 #[test]
+fn only_what_the_entry_point_uses_is_validated() {
+    // A shared header's desktop helper (a cube array texture) next to a mobile entry point
+    // that never calls it: the mobile permutation compiles; the one that calls it does not.
+    let src = r#"
+@group(0) @binding(0) var t: texture_cube_array<f32>;
+@group(0) @binding(1) var s: sampler;
+fn desktop_only() -> vec4<f32> { return textureSample(t, s, vec3<f32>(1.0), 0); }
+@fragment fn mobile_ps() -> @location(0) vec4<f32> { return vec4<f32>(0.5); }
+@fragment fn desktop_ps() -> @location(0) vec4<f32> { return desktop_only(); }
+"#;
+    let options = Options { targets: vec![Target::Wgsl, Target::Glsl], limits: Limits::downlevel() };
+    let out = compile(src, "mobile_ps", Stage::Fragment, &options).unwrap();
+    let wgsl = std::str::from_utf8(&out.artifacts[0].1).unwrap();
+    assert!(!wgsl.contains("desktop_only") && !wgsl.contains("texture_cube_array"), "{wgsl}");
+    let e = compile(src, "desktop_ps", Stage::Fragment, &options).unwrap_err();
+    assert_eq!(e.kind, ErrorKind::Validation);
+    assert!(e.message.contains("capability") || e.notes.iter().any(|n| n.contains("CUBE_ARRAY")), "{e:?}");
+}
+
+#[test]
 fn workgroup_limits() {
     let src = "@compute @workgroup_size(512) fn cs() {}";
     let e = compile(src, "cs", Stage::Compute, &Options::default()).unwrap_err();
