@@ -387,6 +387,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     let text_hashes = FileHashes::default();
     let preprocessed = std::sync::atomic::AtomicUsize::new(0);
     let records_key = cache.map(|_| records_key(config, options));
+    let direct_base = cache.map(|_| direct_base(config));
     let old_records = match (cache, &records_key) {
         (Some(c), Some(k)) => c.get_records(k),
         _ => cache::Records::default(),
@@ -398,7 +399,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     // preprocessed, so that compiling overlaps preprocessing.
     let early = Early::default();
     let one = |index: usize, p: &Permutation<'_>| -> Result<Pre, Diagnostic<FileId>> {
-        let direct = cache.map(|_| direct_key(config, p, &options.targets).to_hex());
+        let direct = direct_base.as_ref().map(|base| direct_key(base, p, &options.targets).to_hex());
         if let Some(dk) = &direct {
             if let Some(record) = old_records.get(dk) {
                 if let Some(pre) = from_record(record, &hashes) {
@@ -878,26 +879,36 @@ fn representative<'a>(
     (pre.key == *key).then_some(std::borrow::Cow::Owned(output))
 }
 
+/// What every permutation's preprocessing record key shares: the configuration's text (its
+/// defines, derived values, roots and sources) and folder, and the versions. Read once per
+/// build.
+fn direct_base(config: &Config) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    let mut field = |bytes: &[u8]| {
+        h.update(&(bytes.len() as u64).to_le_bytes());
+        h.update(bytes);
+    };
+    field(b"kiln direct v2");
+    // Unreadable now (removed during the build): a key no record has.
+    field(&std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec()));
+    field(config.path.as_os_str().as_encoded_bytes());
+    field(config.dir.as_os_str().as_encoded_bytes());
+    let opts = preprocess::Options::default();
+    field(&(opts.max_expansion_depth as u64).to_le_bytes());
+    field(&(opts.max_output_bytes as u64).to_le_bytes());
+    field(crate::compile::NAGA_VERSION.as_bytes());
+    h.finalize()
+}
+
 /// The key of a permutation's preprocessing record: everything preprocessing and the
-/// compile key depend on, except the files' contents (checked against the record).
-fn direct_key(config: &Config, p: &Permutation<'_>, targets: &[Target]) -> Key {
-    let opts = p.preprocess_options(config);
-    let inputs = format!(
-        "kiln direct v1\n{}\n{}\n{:?}\n{:?}\n{}",
-        config.dir.display(),
-        p.shader.source_path.display(),
-        opts,
-        level_targets(p.level, targets),
-        crate::compile::NAGA_VERSION,
-    );
-    Key::new(
-        &blake3::hash(inputs.as_bytes()),
-        &p.shader.entry,
-        p.shader.stage,
-        &p.level.name,
-        &level_limits(p.level),
-        &level_targets(p.level, targets),
-    )
+/// compile key depend on, except the files' contents (checked against the record). Its
+/// defines follow from the configuration's text (in `base`) and its canonical name.
+fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[Target]) -> Key {
+    let mut h = blake3::Hasher::new();
+    h.update(base.as_bytes());
+    h.update(p.name().as_bytes());
+    let targets = level_targets(p.level, targets);
+    Key::new(&h.finalize(), &p.shader.entry, p.shader.stage, &p.level.name, &level_limits(p.level), &targets)
 }
 
 /// The key of a configuration's set of preprocessing records: its path and the options
