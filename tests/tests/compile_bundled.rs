@@ -1,6 +1,7 @@
 //! The bundled permutation set (`permutations.toml` and `shader_src/` at the workspace
-//! root, which the runtime embeds): it builds, and every artifact passes `spirv-val`,
-//! `glslangValidator` and naga. `KILN_BUNDLED_CONFIG` points the test at another set.
+//! root, which the runtime embeds): it builds, and every artifact passes `spirv-val`
+//! (SPIR-V), `glslangValidator` (GLSL, and HLSL through its HLSL front end) and naga (WGSL).
+//! MSL has no compiler here. `KILN_BUNDLED_CONFIG` points the test at another set.
 
 mod build_support;
 
