@@ -935,16 +935,21 @@ fn to_record(pre: &Pre, output: &preprocess::Output, sources: &SourceCache, text
                 (path, hash.unwrap_or_default())
             })
             .collect(),
+        absent: output.absent.clone(),
         warnings: pre.warnings.clone(),
     }
 }
 
-/// The record's result, if every file it lists still has the recorded contents.
+/// The record's result, if every file it lists still has the recorded contents and no file
+/// has appeared where an include looked and found none (it would be found first now).
 fn from_record(r: &cache::Record, hashes: &FileHashes) -> Option<Pre> {
     for (path, hash) in &r.files {
         if hashes.get(path).as_deref() != Some(hash.as_str()) {
             return None;
         }
+    }
+    if r.absent.iter().any(|path| hashes.get(path).is_some()) {
+        return None;
     }
     let hash = |hex: &str| blake3::Hash::from_hex(hex).ok();
     let key = hash(&r.key)?;

@@ -77,6 +77,35 @@ fn editing_a_header_recompiles_exactly_the_permutations_whose_tokens_changed() {
 }
 
 #[test]
+fn a_new_header_that_shadows_an_include_is_picked_up() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let out = fx.path().join("shaders.kpak");
+    build_ok(&options(&config, &out, Some(&cache)));
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!((r.stats.preprocessed, r.stats.compiled), (0, 0), "nothing changed");
+
+    // `#include "common.ush"` in lit.usf looks beside lit.usf before the include root: a
+    // file created there now wins, and every permutation including it is preprocessed again.
+    let common = std::fs::read_to_string(fx.path().join("include/common.ush")).unwrap();
+    let shadow = common.replace("vec3<f32>(0.03, 0.03, 0.04)", "vec3<f32>(0.5, 0.03, 0.04)");
+    assert_ne!(shadow, common);
+    std::fs::write(fx.path().join("common.ush"), shadow).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    // Every permutation includes it: none is served from its record (some share another
+    // permutation's fresh preprocessing, through a dimension that never reaches the text).
+    assert!(r.stats.preprocessed >= DISTINCT, "{:?}", r.stats);
+    assert!(r.stats.compiled > 0, "the keys whose tokens changed are compiled: {:?}", r.stats);
+    let archive = kiln::archive::Archive::open(&out).unwrap();
+    let wgsl = archive
+        .permutations()
+        .filter_map(|p| p.artifact(kiln::archive::Target::Wgsl))
+        .any(|a| String::from_utf8_lossy(a).contains("0.5"));
+    assert!(wgsl, "the shadowing header's ambient reached the archive");
+}
+
+#[test]
 fn two_builds_at_once_on_one_cache_both_succeed() {
     let fx = fixture();
     let cache = fx.path().join("cache");

@@ -57,6 +57,9 @@ pub struct Record {
     pub text_hash: String,
     /// (absolute path, blake3 of the text the preprocessor read).
     pub files: Vec<(PathBuf, String)>,
+    /// Include candidates that were missing: the record holds only while they still are.
+    #[serde(default)]
+    pub absent: Vec<PathBuf>,
     pub warnings: Vec<String>,
 }
 

@@ -255,6 +255,7 @@ fn records_round_trip_and_damage_is_a_miss() {
         token_hash: "t".into(),
         text_hash: "x".into(),
         files: vec![(PathBuf::from("/a/b.ush"), "h".into())],
+        absent: vec![PathBuf::from("/a/c.ush")],
         warnings: vec!["warning: w".into()],
     };
     let records: Records = [("p1".to_string(), r)].into_iter().collect();

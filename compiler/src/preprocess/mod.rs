@@ -94,6 +94,9 @@ pub struct Output {
     pub map: SourceMap,
     /// Every file read (main file first), deduplicated.
     pub files: Vec<FileId>,
+    /// Include candidates tried and found missing (sorted): a file created at one of them
+    /// could change the output, so a cached result is only reused while they stay missing.
+    pub absent: Vec<PathBuf>,
     pub warnings: Vec<Diagnostic<FileId>>,
 }
 

@@ -909,6 +909,9 @@ impl Pp<'_> {
                 .filter(|d| d.is_dir())
             {
                 let cand = dir.join(spelling);
+                if !cand.is_file() {
+                    self.absent.borrow_mut().push(cand.clone());
+                }
                 if cand.is_file() {
                     found = Resolved::NotFound;
                     if let Ok(c) = cand.canonicalize() {
@@ -928,7 +931,7 @@ impl Pp<'_> {
             }
         }
         if matches!(found, Resolved::NotFound) {
-            found = resolve_in_roots(spelling, self.opts);
+            found = resolve_in_roots(spelling, self.opts, &mut self.absent.borrow_mut());
         }
         found
     }

@@ -293,6 +293,8 @@ pub(crate) struct Pp<'a> {
     /// Allowed roots for includes (canonical).
     roots: Vec<PathBuf>,
     base_name: String,
+    /// Include candidates found missing (see [`super::Output::absent`]).
+    absent: std::cell::RefCell<Vec<PathBuf>>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -363,10 +365,14 @@ fn run_here(
     pp.push_file(file, source, name, NONE, 0..0);
     pp.run_main()?;
     pp.map.entries.shrink_to_fit();
+    let mut absent = pp.absent.into_inner();
+    absent.sort();
+    absent.dedup();
     Ok(Output {
         text: pp.out,
         map: pp.map,
         files: pp.files,
+        absent,
         warnings: pp.warnings,
     })
 }
@@ -379,7 +385,7 @@ fn token_budget(opts: &Options) -> usize {
 
 /// Resolves `<spelling>` through the virtual roots, then the include roots.
 pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, String> {
-    match resolve_in_roots(spelling, opts) {
+    match resolve_in_roots(spelling, opts, &mut Vec::new()) {
         Resolved::Found(p, _) => Ok(p),
         Resolved::Escapes(p) => Err(format!(
             "`{spelling}` resolves to `{}`, outside its root",
@@ -428,12 +434,19 @@ fn relative_ok(rel: &str) -> bool {
         .any(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
 }
 
-fn resolve_in_roots(spelling: &str, opts: &Options) -> Resolved {
+/// Resolves `spelling` in the virtual roots, then the include roots in order; every
+/// candidate tried and found missing is pushed on `absent` (a file appearing there later
+/// would change the result).
+fn resolve_in_roots(spelling: &str, opts: &Options, absent: &mut Vec<PathBuf>) -> Resolved {
     for (prefix, dir) in &opts.virtual_roots {
         if let Some(rest) = virtual_match(spelling, prefix) {
             return match contained(&dir.join(rest), dir) {
                 Resolved::Found(p, _) => {
                     Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/')))
+                }
+                Resolved::NotFound => {
+                    absent.push(dir.join(rest));
+                    Resolved::NotFound
                 }
                 other => other,
             };
@@ -450,7 +463,7 @@ fn resolve_in_roots(spelling: &str, opts: &Options) -> Resolved {
                 return Resolved::Found(p, name);
             }
             Resolved::Escapes(p) => escaped = escaped.or(Some(p)),
-            Resolved::NotFound => {}
+            Resolved::NotFound => absent.push(root.join(spelling)),
         }
     }
     match escaped {
@@ -517,6 +530,7 @@ impl<'a> Pp<'a> {
             directive_line: None,
             roots,
             base_name: String::new(),
+            absent: std::cell::RefCell::new(Vec::new()),
         };
         for (name, b) in [
             ("__LINE__", Builtin::Line),
