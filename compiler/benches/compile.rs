@@ -8,7 +8,10 @@
 //!    their level, on the same number of threads;
 //! 2. Kiln cold: `kiln::build::run` with an empty cache (enumerate, preprocess, dedup,
 //!    compile, reflect, cache writes, archive);
-//! 3. Kiln warm: the same build again, nothing changed.
+//! 3. Kiln warm: the same build again, nothing changed;
+//! 4. one header edited: on a copy of the set's folder, a token of one header changed
+//!    (`KILN_BENCH_EDIT=path/in/the/folder`, `shader_src/Private/Desktop/BRDF.ush` by
+//!    default), rebuilt on the warm cache: the time and how many keys were compiled.
 //!
 //! naga alone is timed twice: on the whole module as a naga user would call it, and keeping
 //! only the entry point before validation (the work Kiln asks of naga).
@@ -262,4 +265,52 @@ fn main() {
         cold_cpu.as_secs_f64() / naga_cpu.as_secs_f64()
     );
     println!("warm / cold:       {:.2}%  (goal <= 2%)", 100.0 * w.as_secs_f64() / c.as_secs_f64());
+    one_header_edit(&config_path, jobs);
+}
+
+/// Copies the set's folder, builds it, changes one token of one header, builds again.
+fn one_header_edit(config_path: &std::path::Path, jobs: usize) {
+    let edit = std::env::var("KILN_BENCH_EDIT").unwrap_or_else(|_| "shader_src/Private/Desktop/BRDF.ush".into());
+    let config_path = std::path::absolute(config_path).unwrap();
+    let Some(dir) = config_path.parent() else { return };
+    let copy = tempfile::tempdir().unwrap();
+    for entry in walkdir::WalkDir::new(dir).into_iter().filter_map(Result::ok) {
+        let rel = entry.path().strip_prefix(dir).unwrap();
+        let top = rel.components().next().map(|c| c.as_os_str().to_string_lossy().into_owned()).unwrap_or_default();
+        if top == "target" || top.starts_with('.') {
+            continue;
+        }
+        let to = copy.path().join(rel);
+        if entry.file_type().is_dir() {
+            std::fs::create_dir_all(&to).unwrap();
+        } else if entry.file_type().is_file() {
+            std::fs::copy(entry.path(), &to).unwrap();
+        }
+    }
+    let header = copy.path().join(&edit);
+    let Ok(text) = std::fs::read_to_string(&header) else {
+        println!("one-header edit: {} not found, skipped", header.display());
+        return;
+    };
+    let options = build::Options {
+        config: copy.path().join(config_path.file_name().unwrap()),
+        output: Some(copy.path().join("shaders.kpak")),
+        jobs: Some(jobs),
+        cache: CacheDir::Dir(copy.path().join("cache")),
+        ..build::Options::default()
+    };
+    let cold = build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+    // A new function changes the token stream of every permutation that includes the header.
+    std::fs::write(&header, format!("{text}\nfn kiln_bench_edit() -> f32 {{ return 1.0; }}\n")).unwrap();
+    let t = Instant::now();
+    let edited = build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+    let e = t.elapsed();
+    println!(
+        "one-header edit ({edit}): {:.1} ms, {} of {} keys compiled, {} of {} permutations preprocessed",
+        e.as_secs_f64() * 1e3,
+        edited.stats.compiled,
+        cold.stats.unique_sources,
+        edited.stats.preprocessed,
+        edited.stats.permutations
+    );
 }
