@@ -24,17 +24,9 @@ fn generate(dir: &Path) -> usize {
     for f in 0..FILES {
         let mut s = String::new();
         let guard = format!("FILE_{f}_USH");
-        let _ = writeln!(
-            s,
-            "#ifndef {guard}\n#define {guard}\n// generated include {f}"
-        );
+        let _ = writeln!(s, "#ifndef {guard}\n#define {guard}\n// generated include {f}");
         if f >= 2 {
-            let _ = writeln!(
-                s,
-                "#include \"f{}.ush\"\n#include \"f{}.ush\"",
-                f - 1,
-                f - 2
-            );
+            let _ = writeln!(s, "#include \"f{}.ush\"\n#include \"f{}.ush\"", f - 1, f - 2);
         }
         for m in 0..12 {
             let _ = writeln!(s, "#define K{f}_{m} ({m} + LEVEL * {f})");
@@ -43,46 +35,32 @@ fn generate(dir: &Path) -> usize {
         let _ = writeln!(s, "#define CAT{f}(a, b) a ## b\n#define STR{f}(x) #x");
         for block in 0..30 {
             let _ = writeln!(s, "#if LEVEL >= {} && defined(USE_FOG)", block % 7);
-            let _ = writeln!(
-                s,
-                "#  if K{f}_{} > 20 || (USE_FOG && {block} % 3 == 0)",
-                block % 12
-            );
+            let _ = writeln!(s, "#  if K{f}_{} > 20 || (USE_FOG && {block} % 3 == 0)", block % 12);
             let _ = writeln!(
                 s,
                 "fn f{f}_{block}(p: vec4<f32>, n: vec3<f32>) -> vec4<f32> {{\n    let a = F{f}_{}(p.x, p.y) + F{f}_{}(n.z, 1.0);",
                 block % 12,
                 (block + 5) % 12
             );
-            let _ = writeln!(s, "    var CAT{f}(v, {block}): array<vec4<f32>, 4> = array<vec4<f32>, 4>(p, p * 2.0, p * 3.0, p);");
             let _ = writeln!(
                 s,
-                "    // a comment with words in it, as shaders have /* and nested-looking */ text"
+                "    var CAT{f}(v, {block}): array<vec4<f32>, 4> = array<vec4<f32>, 4>(p, p * 2.0, p * 3.0, p);"
             );
+            let _ = writeln!(s, "    // a comment with words in it, as shaders have /* and nested-looking */ text");
             let _ = writeln!(
                 s,
                 "    let scale = max(dot(n, vec3<f32>(0.3, 0.59, 0.11)), 0.0) * K{f}_{};",
                 (block + 3) % 12
             );
-            let _ = writeln!(
-                s,
-                "    return vec4<f32>(a, scale, 0.5, 1.0) + CAT{f}(v, {block})[0];\n}}"
-            );
-            let _ = writeln!(
-                s,
-                "#  elif K{f}_{} < 0\nfn never{f}_{block}() {{}}\n#  else",
-                block % 12
-            );
+            let _ = writeln!(s, "    return vec4<f32>(a, scale, 0.5, 1.0) + CAT{f}(v, {block})[0];\n}}");
+            let _ = writeln!(s, "#  elif K{f}_{} < 0\nfn never{f}_{block}() {{}}\n#  else", block % 12);
             let _ = writeln!(s, "const label{f}_{block} = STR{f}(skipped or not);\nfn g{f}_{block}(x: f32) -> f32 {{ return x * 0.5 + 1.0; }}");
             let _ = writeln!(s, "#  endif\n#else\nfn low{f}_{block}() {{}}\n#endif");
             let _ = writeln!(
                 s,
                 "@group(0) @binding({block}) var<uniform> u{f}_{block}: vec4<f32>; // plain text line with no macros at all"
             );
-            let _ = writeln!(
-                s,
-                "struct S{f}_{block} {{ a: vec4<f32>, b: vec3<f32>, c: f32, d: array<u32, 8> }}"
-            );
+            let _ = writeln!(s, "struct S{f}_{block} {{ a: vec4<f32>, b: vec3<f32>, c: f32, d: array<u32, 8> }}");
         }
         let _ = writeln!(s, "#endif");
         total += s.len();
@@ -98,10 +76,7 @@ fn generate(dir: &Path) -> usize {
 /// CPU time (user + system) of this process (Kiln preprocesses on a worker thread; child
 /// processes are not counted).
 fn process_cpu() -> Duration {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: clock_gettime writes the timespec we pass and nothing else.
     unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
     Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
@@ -129,10 +104,7 @@ impl Best {
         self.cpu = Some(self.cpu.map_or(cpu, |c| c.min(cpu)));
     }
     fn rates(&self, mb: f64) -> (f64, f64, f64, f64) {
-        let (w, c) = (
-            self.wall.unwrap_or_default().as_secs_f64(),
-            self.cpu.unwrap_or_default().as_secs_f64(),
-        );
+        let (w, c) = (self.wall.unwrap_or_default().as_secs_f64(), self.cpu.unwrap_or_default().as_secs_f64());
         (w * 1e3, mb / w, c * 1e3, mb / c)
     }
 }
@@ -151,10 +123,7 @@ fn main() {
     println!("input: {FILES} include files + main, {mb:.2} MB");
 
     let opts = Options::default();
-    let cpp_ok = Command::new("cpp")
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success());
+    let cpp_ok = Command::new("cpp").arg("--version").output().is_ok_and(|o| o.status.success());
     if !cpp_ok {
         println!("cpp: not installed (apt-get install cpp): Kiln alone");
     }
@@ -165,36 +134,26 @@ fn main() {
     for _ in 0..RUNS {
         let cache = SourceCache::new(dir.path().to_path_buf());
         let (t, c) = (Instant::now(), process_cpu());
-        let out = preprocess::preprocess_file(&main, &opts, &cache)
-            .expect("kiln preprocesses the benchmark");
+        let out = preprocess::preprocess_file(&main, &opts, &cache).expect("kiln preprocesses the benchmark");
         kiln.add(t.elapsed(), process_cpu() - c);
         kiln_out = out.text;
         if cpp_ok {
             let (t, c) = (Instant::now(), children_cpu());
             let out = Command::new("cpp")
-                .args([
-                    "-x",
-                    "c",
-                    "-P",
-                    "-undef",
-                    "-nostdinc",
-                    "-std=c11",
-                    "main.usf",
-                ])
+                .args(["-x", "c", "-P", "-undef", "-nostdinc", "-std=c11", "main.usf"])
                 .current_dir(dir.path())
                 .output()
                 .expect("cpp runs");
             cpp.add(t.elapsed(), children_cpu() - c);
-            assert!(
-                out.status.success(),
-                "cpp failed: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
+            assert!(out.status.success(), "cpp failed: {}", String::from_utf8_lossy(&out.stderr));
             cpp_out = out.stdout;
         }
     }
     let (kw, kwr, kc, kcr) = kiln.rates(mb);
-    println!("kiln: wall {kw:8.2} ms {kwr:7.1} MB/s   cpu {kc:8.2} ms {kcr:7.1} MB/s   (output {:.2} MB)", kiln_out.len() as f64 / 1e6);
+    println!(
+        "kiln: wall {kw:8.2} ms {kwr:7.1} MB/s   cpu {kc:8.2} ms {kcr:7.1} MB/s   (output {:.2} MB)",
+        kiln_out.len() as f64 / 1e6
+    );
     if !cpp_ok {
         return;
     }
@@ -203,13 +162,6 @@ fn main() {
     let cpp_text = String::from_utf8_lossy(&cpp_out);
     let same = preprocess::tokens(&kiln_out) == preprocess::tokens(&cpp_text);
     println!("token streams identical: {same}");
-    println!(
-        "ratio kiln/cpp throughput: wall {:.2}x, cpu {:.2}x",
-        kwr / cwr,
-        kcr / ccr
-    );
-    assert!(
-        same,
-        "the benchmark input must preprocess to the same tokens as cpp"
-    );
+    println!("ratio kiln/cpp throughput: wall {:.2}x, cpu {:.2}x", kwr / cwr, kcr / ccr);
+    assert!(same, "the benchmark input must preprocess to the same tokens as cpp");
 }

@@ -320,10 +320,8 @@ fn write_atomic_with(
     };
     std::fs::create_dir_all(dir)?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.subsec_nanos())
-        .unwrap_or(0);
+    let nanos =
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
     let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
@@ -567,7 +565,10 @@ impl Archive {
         for (dim, _) in values {
             if !record.dimensions.iter().any(|d| d.name == *dim) {
                 let names: Vec<&str> = record.dimensions.iter().map(|d| d.name.as_str()).collect();
-                return Err(format!("shader `{shader}` has no dimension `{dim}` (its dimensions: {})", names.join(", ")));
+                return Err(format!(
+                    "shader `{shader}` has no dimension `{dim}` (its dimensions: {})",
+                    names.join(", ")
+                ));
             }
         }
         let mut parts = Vec::with_capacity(record.dimensions.len());
@@ -700,7 +701,12 @@ fn validate(m: &Manifest, blobs_len: u64) -> Result<(), ArchiveError> {
             return bad(format!("permutation `{}` names shader {} of {}", p.name, p.shader, m.shaders.len()));
         };
         if p.values.len() != shader.dimensions.len() {
-            return bad(format!("permutation `{}` has {} values for {} dimensions", p.name, p.values.len(), shader.dimensions.len()));
+            return bad(format!(
+                "permutation `{}` has {} values for {} dimensions",
+                p.name,
+                p.values.len(),
+                shader.dimensions.len()
+            ));
         }
         if p.reflection as usize >= m.reflections.len() {
             return bad(format!("permutation `{}` names a missing reflection", p.name));
@@ -735,7 +741,12 @@ mod tests {
         let r = w.add_reflection(&Reflection {
             entry: "main_ps".into(),
             stage: Stage::Fragment,
-            bindings: vec![Binding { group: 0, binding: 0, name: Some("u".into()), kind: BindingKind::UniformBuffer { min_size: 16 } }],
+            bindings: vec![Binding {
+                group: 0,
+                binding: 0,
+                name: Some("u".into()),
+                kind: BindingKind::UniformBuffer { min_size: 16 },
+            }],
             vertex_inputs: vec![],
             color_outputs: vec![],
             workgroup_size: None,

@@ -36,15 +36,30 @@ pub struct Binding {
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum BindingKind {
     /// `var<uniform>`; `min_size` is the size of the bound type in bytes.
-    UniformBuffer { min_size: u64 },
+    UniformBuffer {
+        min_size: u64,
+    },
     /// `var<storage, read>` or `var<storage, read_write>`; for a runtime-sized array the
     /// size of the fixed part plus one element.
-    StorageBuffer { read_only: bool, min_size: u64 },
-    Sampler { comparison: bool },
+    StorageBuffer {
+        read_only: bool,
+        min_size: u64,
+    },
+    Sampler {
+        comparison: bool,
+    },
     /// A sampled texture (`texture_2d<f32>`, `texture_depth_2d`, ...).
-    Texture { dim: TextureDim, sample: SampleKind, multisampled: bool },
+    Texture {
+        dim: TextureDim,
+        sample: SampleKind,
+        multisampled: bool,
+    },
     /// A storage texture; `format` is the WGSL texel format name (`rgba16float`).
-    StorageTexture { dim: TextureDim, format: String, access: StorageAccess },
+    StorageTexture {
+        dim: TextureDim,
+        format: String,
+        access: StorageAccess,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -260,7 +260,10 @@ impl Cache {
                 .damaged
                 .iter()
                 .map(|(path, why)| {
-                    format!("warning: cache pack {} was damaged ({why}) and is removed; its entries are recompiled", path.display())
+                    format!(
+                        "warning: cache pack {} was damaged ({why}) and is removed; its entries are recompiled",
+                        path.display()
+                    )
                 })
                 .collect()
         })
@@ -326,7 +329,10 @@ impl Cache {
                 assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
                 let frames = frames(c);
                 let checksum = entry_checksum(key, &frames, hashes);
-                let len = MAGIC.len() + 32 + 32 + frames.iter().map(Vec::len).sum::<usize>()
+                let len = MAGIC.len()
+                    + 32
+                    + 32
+                    + frames.iter().map(Vec::len).sum::<usize>()
                     + c.artifacts.iter().map(|(_, b)| b.len()).sum::<usize>();
                 (frames, checksum, len as u64)
             })
@@ -584,7 +590,8 @@ fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String
         return Err("not a cache pack of this kiln".into());
     }
     let count = u64::from_le_bytes(header[8..16].try_into().unwrap());
-    let rows_len = count.checked_mul(ROW as u64).filter(|&n| PACK_HEADER as u64 + n <= size).ok_or("truncated index")?;
+    let rows_len =
+        count.checked_mul(ROW as u64).filter(|&n| PACK_HEADER as u64 + n <= size).ok_or("truncated index")?;
     let mut rows = vec![0u8; rows_len as usize];
     file.read_exact_at(&mut rows, PACK_HEADER as u64).map_err(|_| "truncated index".to_string())?;
     if blake3::hash(&rows).as_bytes() != &header[16..48] {

@@ -154,7 +154,8 @@ fn truncated_or_damaged_packs_are_never_trusted() {
     // An index row moved to another key's entry: the entry names its own key.
     let mut swapped = bytes.clone();
     let rows = PACK_HEADER..PACK_HEADER + 2 * ROW;
-    let (first, second) = (swapped[rows.start..rows.start + 32].to_vec(), swapped[rows.start + ROW..rows.start + ROW + 32].to_vec());
+    let (first, second) =
+        (swapped[rows.start..rows.start + 32].to_vec(), swapped[rows.start + ROW..rows.start + ROW + 32].to_vec());
     swapped[rows.start..rows.start + 32].copy_from_slice(&second);
     swapped[rows.start + ROW..rows.start + ROW + 32].copy_from_slice(&first);
     let rows_hash = blake3::hash(&swapped[rows.clone()]);

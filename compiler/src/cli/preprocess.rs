@@ -38,17 +38,11 @@ pub fn parse_define(d: &str) -> (String, String) {
 
 pub fn exec(args: Args) -> CliResult {
     if !args.file.is_file() {
-        return Err(Failure::usage(format!(
-            "error: cannot read `{}`: no such file",
-            args.file.display()
-        )));
+        return Err(Failure::usage(format!("error: cannot read `{}`: no such file", args.file.display())));
     }
     for dir in &args.include {
         if !dir.is_dir() {
-            return Err(Failure::usage(format!(
-                "error: include folder `{}` does not exist",
-                dir.display()
-            )));
+            return Err(Failure::usage(format!("error: include folder `{}` does not exist", dir.display())));
         }
     }
     // DESIGN.md: for `kiln preprocess` the roots are the input file's folder and each `-I`
@@ -84,11 +78,7 @@ pub fn exec(args: Args) -> CliResult {
             }
             print_stdout(&out.text)
         }
-        Err(e) => Err(Failure::shader(preprocess::render(
-            std::slice::from_ref(&e.diagnostic),
-            &cache,
-            args.color,
-        ))),
+        Err(e) => Err(Failure::shader(preprocess::render(std::slice::from_ref(&e.diagnostic), &cache, args.color))),
     }
 }
 
@@ -105,14 +95,7 @@ mod tests {
     }
 
     fn args(file: PathBuf) -> Args {
-        Args {
-            file,
-            define: vec!["N=4".into()],
-            include: Vec::new(),
-            config: None,
-            level: None,
-            color: false,
-        }
+        Args { file, define: vec!["N=4".into()], include: Vec::new(), config: None, level: None, color: false }
     }
 
     #[test]
@@ -140,11 +123,7 @@ fn f() {}
         .expect("write");
         let f = exec(args(bad)).expect_err("#error fails");
         assert_eq!(f.code, 1);
-        assert!(
-            f.message.starts_with("error: #error four\n"),
-            "{}",
-            f.message
-        );
+        assert!(f.message.starts_with("error: #error four\n"), "{}", f.message);
         assert!(f.message.contains("bad.usf:2:1"), "{}", f.message);
 
         let f = exec(args(dir.path().join("missing.usf"))).expect_err("no file");

@@ -24,7 +24,9 @@ mod schema;
 
 use std::path::{Path, PathBuf};
 
-pub use analysis::{analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed};
+pub use analysis::{
+    analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed,
+};
 pub use enumerate::{Define, DefineOrigin, Permutation, Permutations, RuleResult};
 pub use error::{ConfigError, Near, NotFound};
 pub use explain::{explain, Explanation};

@@ -39,21 +39,11 @@ pub fn eval(expr: &str, lookup: &dyn Fn(&str) -> Option<i64>) -> Result<i64, Exp
         let text = &expr[range.clone()];
         if *kind == Kind::Ident && text == "defined" {
             let (name, used) = parse_defined(&lexed, i, expr).map_err(|(at, message)| {
-                let r = lexed
-                    .get(at)
-                    .map(|t| t.1.clone())
-                    .unwrap_or(expr.len()..expr.len());
-                ExprError {
-                    offset: r.start,
-                    len: r.len(),
-                    message,
-                }
+                let r = lexed.get(at).map(|t| t.1.clone()).unwrap_or(expr.len()..expr.len());
+                ExprError { offset: r.start, len: r.len(), message }
             })?;
             let v = lookup(name).is_some() as i64;
-            toks.push(Token {
-                kind: TokKind::Num(Value::signed(v)),
-                text: "defined",
-            });
+            toks.push(Token { kind: TokKind::Num(Value::signed(v)), text: "defined" });
             i += used;
             continue;
         }
@@ -65,11 +55,7 @@ pub fn eval(expr: &str, lookup: &dyn Fn(&str) -> Option<i64>) -> Result<i64, Exp
             Some((_, r)) => r.clone(),
             None => expr.len()..expr.len(),
         };
-        ExprError {
-            offset: r.start,
-            len: r.len(),
-            message: e.message,
-        }
+        ExprError { offset: r.start, len: r.len(), message: e.message }
     })
 }
 
@@ -157,11 +143,7 @@ pub enum TokKind {
 
 impl<'a> Token<'a> {
     /// Classifies a lexed token; `lookup` gives identifiers their values.
-    pub fn from_lexed(
-        kind: Kind,
-        text: &'a str,
-        lookup: &dyn Fn(&str) -> Option<i64>,
-    ) -> Token<'a> {
+    pub fn from_lexed(kind: Kind, text: &'a str, lookup: &dyn Fn(&str) -> Option<i64>) -> Token<'a> {
         let kind = match kind {
             Kind::Number => match parse_number(text) {
                 Ok(v) => TokKind::Num(v),
@@ -173,9 +155,7 @@ impl<'a> Token<'a> {
             },
             Kind::Ident => TokKind::Ident(lookup(text).unwrap_or(0)),
             Kind::Punct => TokKind::Punct,
-            _ => TokKind::Invalid(format!(
-                "token \"{text}\" is not valid in preprocessor expressions"
-            )),
+            _ => TokKind::Invalid(format!("token \"{text}\" is not valid in preprocessor expressions")),
         };
         Token { kind, text }
     }
@@ -227,18 +207,12 @@ pub fn parse_number(text: &str) -> Result<Value, String> {
             }
         }
     };
-    if matches!(
-        suffix,
-        "lL" | "Ll" | "uLl" | "ulL" | "ULl" | "UlL" | "lLu" | "Llu" | "lLU" | "LlU"
-    ) {
+    if matches!(suffix, "lL" | "Ll" | "uLl" | "ulL" | "ULl" | "UlL" | "lLu" | "Llu" | "lLU" | "LlU") {
         return Err(format!("invalid suffix \"{suffix}\" on integer constant"));
     }
     let digits = &text[digits_start..end];
     if digits.is_empty() && radix != 8 {
-        return Err(format!(
-            "invalid suffix \"{}\" on integer constant",
-            &text[1..]
-        ));
+        return Err(format!("invalid suffix \"{}\" on integer constant", &text[1..]));
     }
     if radix == 8 && digits.bytes().any(|c| c >= b'8') {
         return Err(format!(
@@ -262,10 +236,7 @@ pub fn parse_number(text: &str) -> Result<Value, String> {
                       // A constant too big for a signed 64-bit value is unsigned (cpp warns, C says so for
                       // hex/octal; cpp treats decimal the same way).
     let unsigned = unsigned_suffix || v > i64::MAX as u64;
-    Ok(Value {
-        v: v as i64,
-        unsigned,
-    })
+    Ok(Value { v: v as i64, unsigned })
 }
 
 /// Value of a character constant as cpp computes it (plain `char` is signed on the host).
@@ -273,11 +244,7 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
     let b = text.as_bytes();
     let (prefix, q) = match b.iter().position(|&c| c == b'\'') {
         Some(q) => (&text[..q], q),
-        None => {
-            return Err(format!(
-                "token \"{text}\" is not valid in preprocessor expressions"
-            ))
-        }
+        None => return Err(format!("token \"{text}\" is not valid in preprocessor expressions")),
     };
     if b.len() < q + 2 || b[b.len() - 1] != b'\'' {
         return Err("missing terminating ' character".into());
@@ -312,9 +279,7 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
                 b'x' => {
                     let mut v: u32 = 0;
                     while i < body.len() && body[i].is_ascii_hexdigit() {
-                        v = v
-                            .wrapping_mul(16)
-                            .wrapping_add((body[i] as char).to_digit(16).unwrap_or(0));
+                        v = v.wrapping_mul(16).wrapping_add((body[i] as char).to_digit(16).unwrap_or(0));
                         i += 1;
                     }
                     v
@@ -324,9 +289,7 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
             chars.push(v);
         } else {
             // A UTF-8 sequence counts as its bytes for a plain char constant.
-            let s = std::str::from_utf8(&body[i..])
-                .ok()
-                .and_then(|s| s.chars().next());
+            let s = std::str::from_utf8(&body[i..]).ok().and_then(|s| s.chars().next());
             match (prefix.is_empty(), s) {
                 (false, Some(ch)) => {
                     chars.push(ch as u32);
@@ -368,16 +331,9 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
 /// Evaluates tokens that are already macro-expanded, with `defined` already replaced.
 pub fn eval_tokens(toks: &[Token<'_>]) -> Result<Value, TokError> {
     if toks.is_empty() {
-        return Err(TokError {
-            at: 0,
-            message: "#if with no expression".into(),
-        });
+        return Err(TokError { at: 0, message: "#if with no expression".into() });
     }
-    let mut p = Parser {
-        toks,
-        pos: 0,
-        depth: 0,
-    };
+    let mut p = Parser { toks, pos: 0, depth: 0 };
     let v = p.comma(true)?;
     if p.pos < toks.len() {
         let t = &toks[p.pos];
@@ -429,19 +385,13 @@ fn binary_prec(op: &str) -> Option<u8> {
 impl Parser<'_, '_> {
     fn peek_punct(&self) -> Option<&str> {
         match self.toks.get(self.pos) {
-            Some(Token {
-                kind: TokKind::Punct,
-                text,
-            }) => Some(text),
+            Some(Token { kind: TokKind::Punct, text }) => Some(text),
             _ => None,
         }
     }
 
     fn err<T>(&self, at: usize, message: impl Into<String>) -> Result<T, TokError> {
-        Err(TokError {
-            at,
-            message: message.into(),
-        })
+        Err(TokError { at, message: message.into() })
     }
 
     fn comma(&mut self, eval: bool) -> Result<Value, TokError> {
@@ -456,10 +406,8 @@ impl Parser<'_, '_> {
     fn ternary(&mut self, eval: bool) -> Result<Value, TokError> {
         self.depth += 1;
         if self.depth > MAX_DEPTH {
-            return self.err(
-                self.pos.min(self.toks.len()),
-                format!("expression nested more than {MAX_DEPTH} levels deep"),
-            );
+            return self
+                .err(self.pos.min(self.toks.len()), format!("expression nested more than {MAX_DEPTH} levels deep"));
         }
         let r = self.ternary_inner(eval);
         self.depth -= 1;
@@ -512,21 +460,11 @@ impl Parser<'_, '_> {
         }
     }
 
-    fn apply(
-        &self,
-        op: &str,
-        at: usize,
-        a: Value,
-        b: Value,
-        eval: bool,
-    ) -> Result<Value, TokError> {
+    fn apply(&self, op: &str, at: usize, a: Value, b: Value, eval: bool) -> Result<Value, TokError> {
         let u = a.unsigned || b.unsigned;
         let bool_v = |x: bool| Value::signed(x as i64);
         Ok(match op {
-            "*" => Value {
-                v: a.v.wrapping_mul(b.v),
-                unsigned: u,
-            },
+            "*" => Value { v: a.v.wrapping_mul(b.v), unsigned: u },
             "/" | "%" => {
                 if b.v == 0 {
                     if !eval {
@@ -544,22 +482,12 @@ impl Parser<'_, '_> {
                 };
                 Value { v, unsigned: u }
             }
-            "+" => Value {
-                v: a.v.wrapping_add(b.v),
-                unsigned: u,
-            },
-            "-" => Value {
-                v: a.v.wrapping_sub(b.v),
-                unsigned: u,
-            },
+            "+" => Value { v: a.v.wrapping_add(b.v), unsigned: u },
+            "-" => Value { v: a.v.wrapping_sub(b.v), unsigned: u },
             "<<" | ">>" => {
                 // cpp: a negative count shifts the other way; the result has the left type.
                 let left = op == "<<";
-                let (left, n) = if !b.unsigned && b.v < 0 {
-                    (!left, b.v.unsigned_abs())
-                } else {
-                    (left, b.v as u64)
-                };
+                let (left, n) = if !b.unsigned && b.v < 0 { (!left, b.v.unsigned_abs()) } else { (left, b.v as u64) };
                 let v = if left {
                     if n >= 64 {
                         0
@@ -581,17 +509,10 @@ impl Parser<'_, '_> {
                 } else {
                     a.v >> n
                 };
-                Value {
-                    v,
-                    unsigned: a.unsigned,
-                }
+                Value { v, unsigned: a.unsigned }
             }
             "<" | ">" | "<=" | ">=" => {
-                let ord = if u {
-                    (a.v as u64).cmp(&(b.v as u64))
-                } else {
-                    a.v.cmp(&b.v)
-                };
+                let ord = if u { (a.v as u64).cmp(&(b.v as u64)) } else { a.v.cmp(&b.v) };
                 use std::cmp::Ordering::*;
                 bool_v(match op {
                     "<" => ord == Less,
@@ -602,36 +523,20 @@ impl Parser<'_, '_> {
             }
             "==" => bool_v(a.v == b.v),
             "!=" => bool_v(a.v != b.v),
-            "&" => Value {
-                v: a.v & b.v,
-                unsigned: u,
-            },
-            "^" => Value {
-                v: a.v ^ b.v,
-                unsigned: u,
-            },
-            "|" => Value {
-                v: a.v | b.v,
-                unsigned: u,
-            },
+            "&" => Value { v: a.v & b.v, unsigned: u },
+            "^" => Value { v: a.v ^ b.v, unsigned: u },
+            "|" => Value { v: a.v | b.v, unsigned: u },
             "&&" => bool_v(a.truth() && b.truth()),
             "||" => bool_v(a.truth() || b.truth()),
-            _ => {
-                return self.err(
-                    at,
-                    format!("token \"{op}\" is not valid in preprocessor expressions"),
-                )
-            }
+            _ => return self.err(at, format!("token \"{op}\" is not valid in preprocessor expressions")),
         })
     }
 
     fn unary(&mut self, eval: bool) -> Result<Value, TokError> {
         self.depth += 1;
         if self.depth > MAX_DEPTH {
-            return self.err(
-                self.pos.min(self.toks.len()),
-                format!("expression nested more than {MAX_DEPTH} levels deep"),
-            );
+            return self
+                .err(self.pos.min(self.toks.len()), format!("expression nested more than {MAX_DEPTH} levels deep"));
         }
         let r = self.unary_inner(eval);
         self.depth -= 1;
@@ -667,14 +572,8 @@ impl Parser<'_, '_> {
                     let v = self.unary(eval)?;
                     Ok(match t.text {
                         "+" => v,
-                        "-" => Value {
-                            v: v.v.wrapping_neg(),
-                            unsigned: v.unsigned,
-                        },
-                        "~" => Value {
-                            v: !v.v,
-                            unsigned: v.unsigned,
-                        },
+                        "-" => Value { v: v.v.wrapping_neg(), unsigned: v.unsigned },
+                        "~" => Value { v: !v.v, unsigned: v.unsigned },
                         _ => Value::signed((!v.truth()) as i64),
                     })
                 }
@@ -686,10 +585,7 @@ impl Parser<'_, '_> {
                     }
                 }
                 ")" => self.err(at, "missing expression between '(' and ')'"),
-                other => self.err(
-                    at,
-                    format!("token \"{other}\" is not valid in preprocessor expressions"),
-                ),
+                other => self.err(at, format!("token \"{other}\" is not valid in preprocessor expressions")),
             },
         }
     }
@@ -754,10 +650,7 @@ mod tests {
         assert_eq!(ev("defined A + defined(B) + defined C"), Ok(2));
         assert_eq!(ev("UNKNOWN + 1"), Ok(1));
         assert_eq!(ev("defined(A) && A > 2"), Ok(1));
-        assert_eq!(
-            identifiers("defined(A) && B_1 > A || !defined C"),
-            vec!["A", "B_1", "C"]
-        );
+        assert_eq!(identifiers("defined(A) && B_1 > A || !defined C"), vec!["A", "B_1", "C"]);
     }
 
     #[test]
@@ -785,29 +678,17 @@ mod tests {
             ("1 : 2", "':' without preceding '?'@2+1"),
             ("defined", "operator \"defined\" requires an identifier@7+0"),
             ("defined(A", "missing ')' after \"defined\"@9+0"),
-            (
-                "\"s\"",
-                "token \"\"s\"\" is not valid in preprocessor expressions@0+3",
-            ),
-            (
-                "1 = 2",
-                "token \"=\" is not valid in preprocessor expressions@2+1",
-            ),
+            ("\"s\"", "token \"\"s\"\" is not valid in preprocessor expressions@0+3"),
+            ("1 = 2", "token \"=\" is not valid in preprocessor expressions@2+1"),
             ("12abc", "invalid suffix \"abc\" on integer constant@0+5"),
             ("09", "invalid digit \"9\" in octal constant@0+2"),
         ];
         let deep = format!("{}1{}", "(".repeat(100_000), ")".repeat(100_000));
-        assert!(ev(&deep)
-            .unwrap_err()
-            .starts_with("expression nested more than 1000 levels deep"));
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
         let deep = format!("{}1", "- ".repeat(100_000));
-        assert!(ev(&deep)
-            .unwrap_err()
-            .starts_with("expression nested more than 1000 levels deep"));
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
         let deep = "1 ? ".repeat(100_000) + "1";
-        assert!(ev(&deep)
-            .unwrap_err()
-            .starts_with("expression nested more than 1000 levels deep"));
+        assert!(ev(&deep).unwrap_err().starts_with("expression nested more than 1000 levels deep"));
         for (s, want) in cases {
             assert_eq!(ev(s).unwrap_err(), *want, "{s}");
         }

@@ -115,8 +115,7 @@ fn number_len(src: &[u8], pos: usize) -> usize {
     let mut i = pos + 1;
     while i < src.len() {
         let c = src[i];
-        let signed_exponent =
-            matches!(c, b'+' | b'-') && matches!(src[i - 1], b'e' | b'E' | b'p' | b'P');
+        let signed_exponent = matches!(c, b'+' | b'-') && matches!(src[i - 1], b'e' | b'E' | b'p' | b'P');
         if !(signed_exponent || is_ident_continue(c) || c == b'.') {
             break;
         }
@@ -170,9 +169,8 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
         b'#' if b == b'#' => 2,
         b'%' if matches!(b, b'=' | b'>' | b':') => 2,
         b':' if b == b'>' => 2,
-        b'[' | b']' | b'(' | b')' | b'{' | b'}' | b'.' | b'&' | b'*' | b'+' | b'-' | b'~'
-        | b'!' | b'/' | b'%' | b'<' | b'>' | b'^' | b'|' | b'?' | b':' | b';' | b'=' | b','
-        | b'#' => 1,
+        b'[' | b']' | b'(' | b')' | b'{' | b'}' | b'.' | b'&' | b'*' | b'+' | b'-' | b'~' | b'!' | b'/' | b'%'
+        | b'<' | b'>' | b'^' | b'|' | b'?' | b':' | b';' | b'=' | b',' | b'#' => 1,
         _ => 0,
     }
 }
@@ -180,10 +178,7 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
 /// Index of the next `\n` at or after `from`, or `src.len()`.
 #[inline]
 pub fn memchr_nl(src: &[u8], from: usize) -> usize {
-    match src
-        .get(from..)
-        .and_then(|s| s.iter().position(|&c| c == b'\n'))
-    {
+    match src.get(from..).and_then(|s| s.iter().position(|&c| c == b'\n')) {
         Some(i) => from + i,
         None => src.len(),
     }
@@ -191,10 +186,7 @@ pub fn memchr_nl(src: &[u8], from: usize) -> usize {
 
 #[inline]
 fn memchr_star(src: &[u8], from: usize) -> Option<usize> {
-    src.get(from..)?
-        .iter()
-        .position(|&c| c == b'*')
-        .map(|i| from + i)
+    src.get(from..)?.iter().position(|&c| c == b'*').map(|i| from + i)
 }
 
 /// True if printing `a` immediately followed by `b` would lex differently from the two
@@ -204,11 +196,8 @@ pub fn would_paste(a: &[u8], b: &[u8]) -> bool {
         return false;
     }
     let mut buf = [0u8; 64];
-    let (head, tail) = if a.len() > 32 {
-        (&a[a.len() - 32..], &b[..b.len().min(32)])
-    } else {
-        (a, &b[..b.len().min(32)])
-    };
+    let (head, tail) =
+        if a.len() > 32 { (&a[a.len() - 32..], &b[..b.len().min(32)]) } else { (a, &b[..b.len().min(32)]) };
     // A long token whose tail we cut: only identifiers, numbers and strings get that long,
     // and for them the last 32 bytes decide (except a string's prefix, which is at the head).
     buf[..head.len()].copy_from_slice(head);
@@ -281,10 +270,7 @@ mod tests {
         );
         assert_eq!(
             kinds("u8\"a\"L'b'"),
-            vec![
-                (Str { terminated: true }, "u8\"a\""),
-                (Char { terminated: true }, "L'b'")
-            ]
+            vec![(Str { terminated: true }, "u8\"a\""), (Char { terminated: true }, "L'b'")]
         );
         assert_eq!(
             kinds("/* a */b//c\nd"),
@@ -298,17 +284,9 @@ mod tests {
         );
         assert_eq!(
             kinds("don't x\ny"),
-            vec![
-                (Ident, "don"),
-                (Char { terminated: false }, "'t x"),
-                (Newline, "\n"),
-                (Ident, "y")
-            ]
+            vec![(Ident, "don"), (Char { terminated: false }, "'t x"), (Newline, "\n"), (Ident, "y")]
         );
-        assert_eq!(
-            kinds("/* open"),
-            vec![(BlockComment { terminated: false }, "/* open")]
-        );
+        assert_eq!(kinds("/* open"), vec![(BlockComment { terminated: false }, "/* open")]);
         assert_eq!(kinds("%:%:..."), vec![(Punct, "%:%:"), (Punct, "...")]);
     }
 

@@ -86,22 +86,13 @@ impl SourceMap {
         let (line, column) = f.line_col(span.start);
         let macro_definition = if e.is_macro {
             self.ctxs.get(e.def_ctx as usize).map(|d| {
-                let r = d
-                    .source
-                    .original_range(e.def_src as usize..(e.def_src + e.def_len) as usize);
+                let r = d.source.original_range(e.def_src as usize..(e.def_src + e.def_len) as usize);
                 (d.file, r)
             })
         } else {
             None
         };
-        Some(Origin {
-            file: ctx.file,
-            span,
-            line,
-            column,
-            macro_definition,
-            include_chain: self.chain(e.ctx),
-        })
+        Some(Origin { file: ctx.file, span, line, column, macro_definition, include_chain: self.chain(e.ctx) })
     }
 
     /// The include chain of a context, innermost first.
@@ -112,11 +103,7 @@ impl SourceMap {
             let Some(p) = self.ctxs.get(x.parent as usize) else {
                 break;
             };
-            out.push((
-                p.file,
-                p.source
-                    .original_range(x.site.start as usize..x.site.end as usize),
-            ));
+            out.push((p.file, p.source.original_range(x.site.start as usize..x.site.end as usize)));
             c = Some(p);
         }
         out
@@ -132,10 +119,7 @@ impl SourceMap {
         let mut span = first.span.clone();
         if range.end > range.start + 1 {
             if let Some(last) = self.origin(range.end - 1) {
-                if last.file == first.file
-                    && last.include_chain == first.include_chain
-                    && last.span.end > span.start
-                {
+                if last.file == first.file && last.include_chain == first.include_chain && last.span.end > span.start {
                     span = span.start.min(last.span.start)..span.end.max(last.span.end);
                 }
             }

@@ -25,8 +25,8 @@ use codespan_reporting::diagnostic::Diagnostic;
 
 /// The diagnostic types of this module's API, re-exported for callers.
 pub use codespan_reporting::diagnostic::{Diagnostic as CodespanDiagnostic, Label, Severity};
-pub use map::{Origin, SourceMap};
 pub use engine::{big_stack_thread, STACK_BYTES};
+pub use map::{Origin, SourceMap};
 pub use source::{FileId, SourceCache, SourceText};
 
 /// How to preprocess.
@@ -70,11 +70,7 @@ pub struct Error {
 
 impl Error {
     pub(crate) fn new(message: impl Into<String>, labels: Vec<Label<FileId>>) -> Error {
-        Error {
-            diagnostic: Diagnostic::error()
-                .with_message(message.into())
-                .with_labels(labels),
-        }
+        Error { diagnostic: Diagnostic::error().with_message(message.into()).with_labels(labels) }
     }
 }
 
@@ -165,10 +161,8 @@ pub fn tokens(text: &str) -> Vec<&str> {
         let (kind, len) = lexer::next(src, pos);
         match kind {
             lexer::Kind::Eof => return out,
-            lexer::Kind::Space
-            | lexer::Kind::Newline
-            | lexer::Kind::LineComment
-            | lexer::Kind::BlockComment { .. } => {}
+            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {
+            }
             _ => out.push(&text[pos..pos + len]),
         }
         pos += len.max(1);
@@ -183,28 +177,18 @@ pub fn resolve_source(spelling: &str, opts: &Options) -> Result<PathBuf, Error> 
 
 /// Preprocesses the file at `path` (read through `cache`).
 pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
-    let canonical = path
-        .canonicalize()
-        .map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
-    let (id, _) = cache
-        .load(&canonical)
-        .map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
+    let canonical =
+        path.canonicalize().map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
+    let (id, _) =
+        cache.load(&canonical).map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
     // `__FILE__` spells the main file as it was given, like cpp does.
-    let name = if path.is_relative() {
-        Some(path.to_string_lossy().into_owned())
-    } else {
-        None
-    };
+    let name = if path.is_relative() { Some(path.to_string_lossy().into_owned()) } else { None };
     engine::run_named(id, name, opts, cache)
 }
 
 /// Preprocesses a file already in `cache` (for example one added with
 /// [`SourceCache::add_virtual`]).
-pub fn preprocess_file_id(
-    file: FileId,
-    opts: &Options,
-    cache: &SourceCache,
-) -> Result<Output, Error> {
+pub fn preprocess_file_id(file: FileId, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
     engine::run(file, opts, cache)
 }
 

@@ -110,15 +110,7 @@ impl SourceFile {
     fn new(path: PathBuf, name: String, original: String) -> SourceFile {
         let (spliced, splices) = splice(&original);
         let line_starts = files::line_starts(&original).collect();
-        SourceFile {
-            path,
-            name,
-            original,
-            spliced,
-            splices,
-            line_starts,
-            tokens: std::sync::OnceLock::new(),
-        }
+        SourceFile { path, name, original, spliced, splices, line_starts, tokens: std::sync::OnceLock::new() }
     }
 
     /// The text the lexer works on.
@@ -150,9 +142,7 @@ impl SourceFile {
             return start..start;
         }
         // The end is just after the last byte: map the last byte and step past its character.
-        let mut end = (self.original_offset(r.end - 1) + 1)
-            .min(text.len())
-            .max(start);
+        let mut end = (self.original_offset(r.end - 1) + 1).min(text.len()).max(start);
         while !text.is_char_boundary(end) {
             end += 1;
         }
@@ -161,16 +151,10 @@ impl SourceFile {
 
     /// 1-based line and column (in characters) of an original byte offset.
     pub fn line_col(&self, at: usize) -> (usize, usize) {
-        let line = self
-            .line_starts
-            .partition_point(|&s| s <= at)
-            .saturating_sub(1);
+        let line = self.line_starts.partition_point(|&s| s <= at).saturating_sub(1);
         let start = self.line_starts[line];
         let at = at.min(self.original.len());
-        let col = self
-            .original
-            .get(start..at)
-            .map_or(at - start, |s| s.chars().count());
+        let col = self.original.get(start..at).map_or(at - start, |s| s.chars().count());
         (line + 1, col + 1)
     }
 }
@@ -234,8 +218,7 @@ fn splice(text: &str) -> (Option<String>, Vec<(u32, u32)>) {
         return (None, Vec::new());
     }
     // Only whole sequences were removed or replaced, so the result stays UTF-8.
-    let s = String::from_utf8(out)
-        .unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+    let s = String::from_utf8(out).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
     (Some(s), map)
 }
 
@@ -264,19 +247,14 @@ pub struct SourceCache {
 
 impl std::fmt::Debug for SourceCache {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SourceCache")
-            .field("display_base", &self.display_base)
-            .finish_non_exhaustive()
+        f.debug_struct("SourceCache").field("display_base", &self.display_base).finish_non_exhaustive()
     }
 }
 
 impl SourceCache {
     pub fn new(display_base: PathBuf) -> Self {
         let display_base = display_base.canonicalize().unwrap_or(display_base);
-        SourceCache {
-            display_base,
-            inner: RwLock::new(Inner::default()),
-        }
+        SourceCache { display_base, inner: RwLock::new(Inner::default()) }
     }
 
     /// The canonical path of a file (an in-memory file: its name).
@@ -291,8 +269,7 @@ impl SourceCache {
 
     /// 1-based (line, column) of a byte offset in a file's original text.
     pub fn location(&self, id: FileId, offset: usize) -> (usize, usize) {
-        self.get(id)
-            .map_or((0, 0), |f| f.line_col(offset.min(f.original.len())))
+        self.get(id).map_or((0, 0), |f| f.line_col(offset.min(f.original.len())))
     }
 
     /// Adds an in-memory file (tests, generated sources). Each call makes a new file.
@@ -331,13 +308,8 @@ impl SourceCache {
             return Ok((id, inner.files[id.0 as usize].clone()));
         }
         let bytes = std::fs::read(canonical)?;
-        let text = String::from_utf8(bytes)
-            .unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
-        let file = Arc::new(SourceFile::new(
-            canonical.to_path_buf(),
-            self.display_name(canonical),
-            text,
-        ));
+        let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
+        let file = Arc::new(SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text));
         let id = FileId(inner.files.len() as u32);
         inner.files.push(file.clone());
         inner.by_path.insert(canonical.to_path_buf(), id);
@@ -346,11 +318,7 @@ impl SourceCache {
 
     /// How many files were read from disk or added (tests check "read once").
     pub fn len(&self) -> usize {
-        self.inner
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .files
-            .len()
+        self.inner.read().unwrap_or_else(|e| e.into_inner()).files.len()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -374,22 +342,16 @@ impl<'a> Files<'a> for SourceCache {
     type Source = SourceText;
 
     fn name(&'a self, id: FileId) -> Result<String, files::Error> {
-        self.get(id)
-            .map(|f| f.name.clone())
-            .ok_or(files::Error::FileMissing)
+        self.get(id).map(|f| f.name.clone()).ok_or(files::Error::FileMissing)
     }
 
     fn source(&'a self, id: FileId) -> Result<SourceText, files::Error> {
-        self.get(id)
-            .map(SourceText)
-            .ok_or(files::Error::FileMissing)
+        self.get(id).map(SourceText).ok_or(files::Error::FileMissing)
     }
 
     fn line_index(&'a self, id: FileId, byte_index: usize) -> Result<usize, files::Error> {
         let f = self.get(id).ok_or(files::Error::FileMissing)?;
-        Ok(f.line_starts
-            .partition_point(|&s| s <= byte_index)
-            .saturating_sub(1))
+        Ok(f.line_starts.partition_point(|&s| s <= byte_index).saturating_sub(1))
     }
 
     fn line_range(&'a self, id: FileId, line_index: usize) -> Result<Range<usize>, files::Error> {
@@ -397,15 +359,8 @@ impl<'a> Files<'a> for SourceCache {
         let start = *f
             .line_starts
             .get(line_index)
-            .ok_or(files::Error::LineTooLarge {
-                given: line_index,
-                max: f.line_starts.len() - 1,
-            })?;
-        let end = f
-            .line_starts
-            .get(line_index + 1)
-            .copied()
-            .unwrap_or(f.original.len());
+            .ok_or(files::Error::LineTooLarge { given: line_index, max: f.line_starts.len() - 1 })?;
+        let end = f.line_starts.get(line_index + 1).copied().unwrap_or(f.original.len());
         Ok(start..end)
     }
 }

@@ -53,19 +53,10 @@ fn define_function_like() {
         ("#define F(x, y) x y\nF((a, b), c)", "( a , b ) c"),
         ("#define F() z\nF() F( )", "z z"),
         ("#define F(x) [x]\nF()", "[ ]"),
-        (
-            "#define F(x) #x\nF(a  \"b\\n\"  'c')",
-            r#""a \"b\\n\" 'c'""#,
-        ),
-        (
-            "#define F(a, b) a ## b\nF(x, y) F(, y) F(x, ) F(,)",
-            "xy y x",
-        ),
+        ("#define F(x) #x\nF(a  \"b\\n\"  'c')", r#""a \"b\\n\" 'c'""#),
+        ("#define F(a, b) a ## b\nF(x, y) F(, y) F(x, ) F(,)", "xy y x"),
         ("#define F(...) <__VA_ARGS__>\nF() F(1, 2)", "< > < 1 , 2 >"),
-        (
-            "#define F(a, ...) a __VA_OPT__(+) __VA_ARGS__\nF(1) F(1, 2)",
-            "1 1 + 2",
-        ),
+        ("#define F(a, ...) a __VA_OPT__(+) __VA_ARGS__\nF(1) F(1, 2)", "1 1 + 2"),
         ("#define F(x) x F(x)\nF(1)", "1 F ( 1 )"),
         ("#define F(x, y) x y\nF(\n1\n,\n)", "1"),
     ]);
@@ -90,14 +81,8 @@ fn conditionals() {
         ("#if 0\na\n#elif 2 > 1\nb\n#elif 1\nc\n#endif", "b"),
         ("#define X\n#ifdef X\na\n#endif\n#ifndef X\nb\n#endif", "a"),
         ("#if defined X || defined(Y)\na\n#else\nb\n#endif", "b"),
-        (
-            "#define V 3\n#if V * 2 == 6 && V << 1 == 6\nok\n#endif",
-            "ok",
-        ),
-        (
-            "#if 0\n#if 1\nnested\n#endif\n#bogus\n#else\nouter\n#endif",
-            "outer",
-        ),
+        ("#define V 3\n#if V * 2 == 6 && V << 1 == 6\nok\n#endif", "ok"),
+        ("#if 0\n#if 1\nnested\n#endif\n#bogus\n#else\nouter\n#endif", "outer"),
         ("#if 1\n#elif 1 / 0\n#endif\nok", "ok"),
         ("#if 0\n#elif 0\n#else\nlast\n#endif", "last"),
         ("#if 0\n'unterminated\n\"also\n#endif\nok", "ok"),
@@ -112,14 +97,8 @@ fn conditionals() {
     assert_eq!(err("#if 0\n#else\n#else\n#endif\n"), "#else after #else");
     assert_eq!(err("#if 1 / 0\n#endif\n"), "division by zero in #if");
     assert_eq!(err("#if\n#endif\n"), "#if with no expression");
-    assert_eq!(
-        err("#ifdef\n#endif\n"),
-        "no macro name given in #ifdef directive"
-    );
-    assert_eq!(
-        err("#if defined\n#endif\n"),
-        "operator \"defined\" requires an identifier"
-    );
+    assert_eq!(err("#ifdef\n#endif\n"), "no macro name given in #ifdef directive");
+    assert_eq!(err("#if defined\n#endif\n"), "operator \"defined\" requires an identifier");
 }
 
 #[test]
@@ -143,23 +122,14 @@ fn include_and_once() {
     let out = preprocess_file(&dir.path().join("main.usf"), &opts, &cache).expect("preprocesses");
     assert_eq!(tokens(&out.text).join(" "), "A B_BODY C end");
     let names: Vec<String> = out.files.iter().map(|&f| cache.name(f)).collect();
-    assert_eq!(
-        names,
-        ["main.usf", "a.ush", "roots/lib/b.ush", "engine/c.ush"]
-    );
+    assert_eq!(names, ["main.usf", "a.ush", "roots/lib/b.ush", "engine/c.ush"]);
     assert_eq!(
         resolve_source("/Engine/c.ush", &opts).expect("resolves"),
-        dir.path()
-            .join("engine/c.ush")
-            .canonicalize()
-            .expect("exists")
+        dir.path().join("engine/c.ush").canonicalize().expect("exists")
     );
     assert_eq!(
         resolve_source("lib/b.ush", &opts).expect("resolves"),
-        dir.path()
-            .join("roots/lib/b.ush")
-            .canonicalize()
-            .expect("exists")
+        dir.path().join("roots/lib/b.ush").canonicalize().expect("exists")
     );
     assert!(resolve_source("missing.ush", &opts).is_err());
     assert!(resolve_source("../main.usf", &opts).is_err());
@@ -182,19 +152,13 @@ fn pragma_and_line() {
         ("#pragma unroll\nx", "# pragma unroll x"),
         ("_Pragma(\"omp parallel\") x", "# pragma omp parallel x"),
         ("#line 10\n__LINE__", "10"),
-        (
-            "#line 20 \"other.usf\"\n__LINE__ __FILE__",
-            "20 \"other.usf\"",
-        ),
+        ("#line 20 \"other.usf\"\n__LINE__ __FILE__", "20 \"other.usf\""),
         ("# 5 \"marker.usf\"\n__LINE__", "5"),
         ("#\nx", "x"),
         ("\u{feff}#define B 1\nB", "1"),
         ("a\r\n#define C 2\r\nC\r\n", "a 2"),
     ]);
-    assert_eq!(
-        err("#nonsense\n"),
-        "invalid preprocessing directive #nonsense"
-    );
+    assert_eq!(err("#nonsense\n"), "invalid preprocessing directive #nonsense");
 }
 
 #[test]
@@ -206,10 +170,7 @@ fn builtins_and_predefined() {
         ("__COUNTER__ __COUNTER__", "0 1"),
         ("#define L __LINE__\n\nL", "3"),
     ]);
-    let opts = Options {
-        defines: vec![("N".into(), "4".into()), ("F(x)".into(), "x*N".into())],
-        ..Options::default()
-    };
+    let opts = Options { defines: vec![("N".into(), "4".into()), ("F(x)".into(), "x*N".into())], ..Options::default() };
     let out = run_with("N F(2)", &opts).expect("ok");
     assert_eq!(tokens(&out.text).join(" "), "4 2 * 4");
 }
@@ -234,28 +195,13 @@ fn pastes_never_merge_by_accident() {
 
 #[test]
 fn macro_errors() {
-    assert_eq!(
-        err("#define F(x) x\nF(1, 2)\n"),
-        "macro \"F\" passed 2 arguments, but takes just 1"
-    );
-    assert_eq!(
-        err("#define F(x, y) x\nF(1)\n"),
-        "macro \"F\" requires 2 arguments, but only 1 given"
-    );
-    assert_eq!(
-        err("#define F(x) x\nF(1\n"),
-        "unterminated argument list invoking macro \"F\""
-    );
-    assert_eq!(
-        err("#define F(x, x) x\n"),
-        "duplicate macro parameter \"x\""
-    );
+    assert_eq!(err("#define F(x) x\nF(1, 2)\n"), "macro \"F\" passed 2 arguments, but takes just 1");
+    assert_eq!(err("#define F(x, y) x\nF(1)\n"), "macro \"F\" requires 2 arguments, but only 1 given");
+    assert_eq!(err("#define F(x) x\nF(1\n"), "unterminated argument list invoking macro \"F\"");
+    assert_eq!(err("#define F(x, x) x\n"), "duplicate macro parameter \"x\"");
     assert_eq!(err("#define F(x x\n"), "expected ',' or ')', found \"x\"");
     assert_eq!(err("#define F(x\n"), "missing ')' in macro parameter list");
-    assert_eq!(
-        err("#define defined 1\n"),
-        "\"defined\" cannot be used as a macro name"
-    );
+    assert_eq!(err("#define defined 1\n"), "\"defined\" cannot be used as a macro name");
     assert_eq!(
         err("#define C(a, b) a ## b\nC(+, /)\n"),
         "pasting \"+\" and \"/\" does not give a valid preprocessing token"
@@ -272,7 +218,8 @@ fn token_hash_reference(text: &str) -> blake3::Hash {
         let (kind, len) = lexer::next(src, pos);
         match kind {
             lexer::Kind::Eof => break,
-            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {}
+            lexer::Kind::Space | lexer::Kind::Newline | lexer::Kind::LineComment | lexer::Kind::BlockComment { .. } => {
+            }
             _ => {
                 buf.extend_from_slice(&(len as u32).to_le_bytes());
                 buf.extend_from_slice(&src[pos..pos + len]);

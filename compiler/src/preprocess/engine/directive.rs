@@ -31,9 +31,7 @@ impl Pp<'_> {
                     pos += 1;
                     break;
                 }
-                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => {
-                    white = true
-                }
+                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => white = true,
                 Kind::BlockComment { terminated: false } => {
                     return self.err_at(
                         ctx,
@@ -96,10 +94,7 @@ impl Pp<'_> {
             if closed || (first_directive && name != "ifndef") {
                 f.guard = GuardState::No;
             }
-            if matches!(name, "else" | "elif")
-                && f.conds.len() == 1
-                && matches!(f.guard, GuardState::Inside(_))
-            {
+            if matches!(name, "else" | "elif") && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
                 f.guard = GuardState::No;
             }
         }
@@ -172,12 +167,7 @@ impl Pp<'_> {
                     _ => "ifndef",
                 };
                 if let Some(f) = self.frames.last_mut() {
-                    f.conds.push(Cond {
-                        site: hash_range.start..name_range.end,
-                        name: nm,
-                        taken,
-                        else_seen: false,
-                    });
+                    f.conds.push(Cond { site: hash_range.start..name_range.end, name: nm, taken, else_seen: false });
                 }
                 if !taken {
                     self.skip_group()?;
@@ -244,11 +234,7 @@ impl Pp<'_> {
                 let (_, end) = self.directive_tokens()?;
                 let msg = text.get(start..end as usize).unwrap_or("").trim();
                 let msg = collapse_comments(msg);
-                let message = if msg.is_empty() {
-                    format!("#{name}")
-                } else {
-                    format!("#{name} {msg}")
-                };
+                let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
                 let labels = self.labels_at(ctx, hash_range.start..end, "");
                 if name == "error" {
                     return Err(Error::new(message, labels));
@@ -279,41 +265,21 @@ impl Pp<'_> {
                     Some(t) if t.kind == TK::Number => self.line_directive(toks, ctx, name_range),
                     Some(t) => {
                         let s = self.it.str(t.sym).to_string();
-                        self.err_tok(
-                            t,
-                            format!("invalid preprocessing directive #{s}"),
-                            "not a directive",
-                        )
+                        self.err_tok(t, format!("invalid preprocessing directive #{s}"), "not a directive")
                     }
                 }
             }
             other => {
                 let other = other.to_string();
-                self.err_at(
-                    ctx,
-                    name_range,
-                    format!("invalid preprocessing directive #{other}"),
-                    "unknown directive",
-                )
+                self.err_at(ctx, name_range, format!("invalid preprocessing directive #{other}"), "unknown directive")
             }
         }
     }
 
     /// The macro name of `#undef`/`#ifdef`/`#ifndef`.
-    pub(super) fn directive_name(
-        &self,
-        toks: &[Tok],
-        dir: &str,
-        ctx: u32,
-        at: Range<u32>,
-    ) -> PResult<Sym> {
+    pub(super) fn directive_name(&self, toks: &[Tok], dir: &str, ctx: u32, at: Range<u32>) -> PResult<Sym> {
         match toks.first() {
-            None => self.err_at(
-                ctx,
-                at,
-                format!("no macro name given in #{dir} directive"),
-                "expected a macro name",
-            ),
+            None => self.err_at(ctx, at, format!("no macro name given in #{dir} directive"), "expected a macro name"),
             Some(t) if t.kind == TK::Ident => {
                 if t.sym == self.syms.defined && dir == "undef" {
                     return self.err_tok(t, "\"defined\" cannot be used as a macro name", "here");
@@ -353,10 +319,7 @@ impl Pp<'_> {
         };
         let source = frame.source.clone();
         let file = frame.file;
-        let first = toks
-            .first()
-            .map(|t| self.it.str(t.sym).to_string())
-            .unwrap_or_default();
+        let first = toks.first().map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
         match first.as_str() {
             "once" => {
                 self.once.insert(file);
@@ -383,16 +346,10 @@ impl Pp<'_> {
                 Ok(())
             }
             "GCC" => {
-                let second = toks
-                    .get(1)
-                    .map(|t| self.it.str(t.sym).to_string())
-                    .unwrap_or_default();
+                let second = toks.get(1).map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
                 match second.as_str() {
                     "error" | "warning" => {
-                        let msg = toks
-                            .get(2)
-                            .map(|t| self.it.str(t.sym).to_string())
-                            .unwrap_or_default();
+                        let msg = toks.get(2).map(|t| self.it.str(t.sym).to_string()).unwrap_or_default();
                         let labels = self.labels_at(ctx, start as u32..end, "");
                         if second == "error" {
                             return Err(Error::new(msg.trim_matches('"').to_string(), labels));
@@ -400,54 +357,33 @@ impl Pp<'_> {
                         self.warn(msg.trim_matches('"').to_string(), labels);
                         Ok(())
                     }
-                    "system_header" | "poison" | "dependency" | "push_options" | "pop_options"
-                    | "diagnostic" => Ok(()),
+                    "system_header" | "poison" | "dependency" | "push_options" | "pop_options" | "diagnostic" => Ok(()),
                     _ => {
-                        let rest = collapse_comments(
-                            source.text().get(start..end as usize).unwrap_or("").trim(),
-                        );
+                        let rest = collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
                         self.emit_line(ctx, start, &format!("#pragma {rest}"))
                     }
                 }
             }
             _ => {
-                let rest =
-                    collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
+                let rest = collapse_comments(source.text().get(start..end as usize).unwrap_or("").trim());
                 self.emit_line(ctx, start, &format!("#pragma {rest}"))
             }
         }
     }
 
-    pub(super) fn line_directive(
-        &mut self,
-        toks: Vec<Tok>,
-        ctx: u32,
-        at: Range<u32>,
-    ) -> PResult<()> {
+    pub(super) fn line_directive(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<()> {
         let line_here = match self.frames.last() {
-            Some(f) => {
-                f.source
-                    .line_col(f.source.original_offset(at.start as usize))
-                    .0 as i64
-            }
+            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64,
             None => return Ok(()),
         };
         let toks = self.expand_line(toks, Some(line_here))?;
         let Some(n) = toks.first().filter(|t| t.kind == TK::Number) else {
-            return self.err_at(
-                ctx,
-                at,
-                "#line directive requires a simple digit sequence",
-                "here",
-            );
+            return self.err_at(ctx, at, "#line directive requires a simple digit sequence", "here");
         };
         let Ok(value) = self.it.str(n.sym).parse::<i64>() else {
             return self.err_tok(n, "line number out of range", "here");
         };
-        let name = toks
-            .get(1)
-            .filter(|t| t.kind == TK::Str)
-            .map(|t| self.it.str(t.sym).to_string());
+        let name = toks.get(1).filter(|t| t.kind == TK::Str).map(|t| self.it.str(t.sym).to_string());
         if let Some(f) = self.frames.last_mut() {
             // The line after the directive gets `value`.
             f.line_delta = value - (line_here + 1);
@@ -498,12 +434,7 @@ impl Pp<'_> {
     /// Evaluates an `#if`/`#elif` line.
     pub(super) fn eval_if(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<bool> {
         let line = match self.frames.last() {
-            Some(f) => {
-                f.source
-                    .line_col(f.source.original_offset(at.start as usize))
-                    .0 as i64
-                    + f.line_delta
-            }
+            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64 + f.line_delta,
             None => 0,
         };
         let Some(first) = toks.first().copied() else {
@@ -536,11 +467,7 @@ impl Pp<'_> {
         match result {
             Ok(v) => Ok(v.v != 0),
             Err(e) => {
-                let label = if e.message.contains("division by zero") {
-                    "this divisor is zero"
-                } else {
-                    "here"
-                };
+                let label = if e.message.contains("division by zero") { "this divisor is zero" } else { "here" };
                 match expanded.get(e.at).or(expanded.last()) {
                     Some(t) => self.err_tok(t, e.message, label),
                     None => self.err_at(ctx, at, e.message, label),
@@ -566,11 +493,7 @@ impl Pp<'_> {
             {
                 let found = self.has_include(&t)?;
                 let sym = if found { self.syms.one } else { self.syms.zero };
-                out.push(Tok {
-                    sym,
-                    kind: TK::Number,
-                    ..t
-                });
+                out.push(Tok { sym, kind: TK::Number, ..t });
                 continue;
             }
             if t.kind == TK::Ident && t.sym == self.syms.defined {
@@ -591,20 +514,12 @@ impl Pp<'_> {
                 if paren {
                     let close = self.next_raw(false)?.unwrap_or(Tok::eof());
                     if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-                        return self.err_tok(
-                            &n,
-                            "missing ')' after \"defined\"",
-                            "expected ')' after this",
-                        );
+                        return self.err_tok(&n, "missing ')' after \"defined\"", "expected ')' after this");
                     }
                 }
                 let is = self.macro_idx(n.sym) != NONE;
                 let sym = if is { self.syms.one } else { self.syms.zero };
-                out.push(Tok {
-                    sym,
-                    kind: TK::Number,
-                    ..t
-                });
+                out.push(Tok { sym, kind: TK::Number, ..t });
                 continue;
             }
             out.push(t);
@@ -617,31 +532,18 @@ impl Pp<'_> {
         let name = self.it.str(at.sym).to_string();
         let open = self.next_raw(false)?.unwrap_or(Tok::eof());
         if !(open.kind == TK::Punct && open.sym == self.syms.lparen) {
-            return self.err_tok(
-                at,
-                format!("missing '(' after \"{name}\""),
-                "expected '(' after this",
-            );
+            return self.err_tok(at, format!("missing '(' after \"{name}\""), "expected '(' after this");
         }
         let first = self.get_real_token(false)?;
         let (spelling, angle) = if first.kind == TK::Str {
             let s = self.it.str(first.sym);
-            (
-                s.get(1..s.len().saturating_sub(1))
-                    .unwrap_or("")
-                    .to_string(),
-                false,
-            )
+            (s.get(1..s.len().saturating_sub(1)).unwrap_or("").to_string(), false)
         } else if first.kind == TK::Punct && self.it.str(first.sym) == "<" {
             let mut s = String::new();
             loop {
                 let t = self.get_real_token(false)?;
                 if t.kind == TK::Eof {
-                    return self.err_tok(
-                        at,
-                        format!("missing terminating > character in \"{name}\""),
-                        "here",
-                    );
+                    return self.err_tok(at, format!("missing terminating > character in \"{name}\""), "here");
                 }
                 if t.kind == TK::Punct && self.it.str(t.sym) == ">" {
                     break;
@@ -661,16 +563,9 @@ impl Pp<'_> {
         };
         let close = self.next_raw(false)?.unwrap_or(Tok::eof());
         if !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-            return self.err_tok(
-                at,
-                format!("missing ')' after \"{name}\" operand"),
-                "expected ')'",
-            );
+            return self.err_tok(at, format!("missing ')' after \"{name}\" operand"), "expected ')'");
         }
-        Ok(matches!(
-            self.resolve_include(&spelling, angle),
-            Resolved::Found(..)
-        ))
+        Ok(matches!(self.resolve_include(&spelling, angle), Resolved::Found(..)))
     }
 
     /// Skips a group whose condition is false, up to the `#elif`/`#else`/`#endif` that ends
@@ -718,10 +613,7 @@ impl Pp<'_> {
                         let Some(f) = self.frames.last_mut() else {
                             return Ok(());
                         };
-                        if name != "endif"
-                            && f.conds.len() == 1
-                            && matches!(f.guard, GuardState::Inside(_))
-                        {
+                        if name != "endif" && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
                             f.guard = GuardState::No;
                         }
                         let Some(c) = f.conds.last_mut() else {
@@ -757,9 +649,7 @@ impl Pp<'_> {
                                 if !c.taken {
                                     let v = self.eval_if(toks, ctx, name_range.clone())?;
                                     if v {
-                                        if let Some(c) =
-                                            self.frames.last_mut().and_then(|f| f.conds.last_mut())
-                                        {
+                                        if let Some(c) = self.frames.last_mut().and_then(|f| f.conds.last_mut()) {
                                             c.taken = true;
                                         }
                                         return Ok(());
@@ -794,12 +684,7 @@ impl Pp<'_> {
         let line_end = lexer::memchr_nl(bytes, p);
         let (spelling, angle, spell_range, rest_at) = match bytes.get(p) {
             Some(b'<') => match text[p + 1..line_end].find('>') {
-                Some(i) => (
-                    text[p + 1..p + 1 + i].to_string(),
-                    true,
-                    p as u32..(p + i + 2) as u32,
-                    p + i + 2,
-                ),
+                Some(i) => (text[p + 1..p + 1 + i].to_string(), true, p as u32..(p + i + 2) as u32, p + i + 2),
                 None => {
                     return self.err_at(
                         ctx,
@@ -810,12 +695,7 @@ impl Pp<'_> {
                 }
             },
             Some(b'"') => match text[p + 1..line_end].find('"') {
-                Some(i) => (
-                    text[p + 1..p + 1 + i].to_string(),
-                    false,
-                    p as u32..(p + i + 2) as u32,
-                    p + i + 2,
-                ),
+                Some(i) => (text[p + 1..p + 1 + i].to_string(), false, p as u32..(p + i + 2) as u32, p + i + 2),
                 None => {
                     return self.err_at(
                         ctx,
@@ -831,12 +711,7 @@ impl Pp<'_> {
                 }
                 let (toks, end) = self.directive_tokens()?;
                 if toks.is_empty() {
-                    return self.err_at(
-                        ctx,
-                        hash..end,
-                        "#include expects \"FILENAME\" or <FILENAME>",
-                        "no file name",
-                    );
+                    return self.err_at(ctx, hash..end, "#include expects \"FILENAME\" or <FILENAME>", "no file name");
                 }
                 let range = toks[0].src..end;
                 let line = source.line_col(source.original_offset(hash as usize)).0 as i64;
@@ -890,24 +765,11 @@ impl Pp<'_> {
 
     /// Where an include of `spelling` leads from the current file.
     pub(super) fn resolve_include(&self, spelling: &str, angle: bool) -> Resolved {
-        let includer_name = self
-            .frames
-            .last()
-            .map(|f| f.name.clone())
-            .unwrap_or_default();
+        let includer_name = self.frames.last().map(|f| f.name.clone()).unwrap_or_default();
         let mut found = Resolved::NotFound;
-        let is_virtual = self
-            .opts
-            .virtual_roots
-            .iter()
-            .any(|(p, _)| virtual_match(spelling, p).is_some());
+        let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
         if !angle && !is_virtual && relative_ok(spelling) {
-            if let Some(dir) = self
-                .frames
-                .last()
-                .and_then(|f| f.source.path.parent())
-                .filter(|d| d.is_dir())
-            {
+            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()).filter(|d| d.is_dir()) {
                 let cand = dir.join(spelling);
                 if !cand.is_file() {
                     self.absent.borrow_mut().push(cand.clone());
@@ -948,12 +810,7 @@ impl Pp<'_> {
             return self.err_at(ctx, range, "empty filename in #include", "no file name");
         }
         if self.frames.len() >= 200 {
-            return self.err_at(
-                ctx,
-                range,
-                "#include nested depth 200 exceeds maximum of 200",
-                "this include",
-            );
+            return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
         }
         let found = self.resolve_include(spelling, angle);
         let (path, cpp_name) = match found {
@@ -963,9 +820,7 @@ impl Pp<'_> {
                 return self.err_at(
                     ctx,
                     range,
-                    format!(
-                        "#include \"{spelling}\" resolves to `{shown}`, outside the include roots"
-                    ),
+                    format!("#include \"{spelling}\" resolves to `{shown}`, outside the include roots"),
                     "this include escapes its root",
                 );
             }
@@ -979,10 +834,7 @@ impl Pp<'_> {
                     searched.push("the including file's folder".to_string());
                 }
                 for r in &self.opts.include_roots {
-                    searched.push(
-                        self.cache
-                            .display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())),
-                    );
+                    searched.push(self.cache.display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())));
                 }
                 e.diagnostic = e.diagnostic.with_notes(vec![if searched.is_empty() {
                     "no include roots are configured".to_string()
@@ -1012,11 +864,7 @@ impl Pp<'_> {
                 return Ok(());
             }
         }
-        let name = if cpp_name.is_empty() {
-            source.name.clone()
-        } else {
-            cpp_name
-        };
+        let name = if cpp_name.is_empty() { source.name.clone() } else { cpp_name };
         let site_end = range.end.max(hash);
         if !self.out.is_empty() && !self.out.ends_with('\n') {
             self.out.push('\n');
@@ -1031,11 +879,7 @@ impl Pp<'_> {
     pub(super) fn parse_define(&mut self, toks: Vec<Tok>, predefined: bool) -> PResult<()> {
         let name = toks[0];
         if name.kind != TK::Ident {
-            return self.err_tok(
-                &name,
-                "macro names must be identifiers",
-                "not an identifier",
-            );
+            return self.err_tok(&name, "macro names must be identifiers", "not an identifier");
         }
         if name.sym == self.syms.defined {
             return self.err_tok(&name, "\"defined\" cannot be used as a macro name", "here");
@@ -1044,9 +888,7 @@ impl Pp<'_> {
         let mut func = false;
         let mut variadic = false;
         let mut params: Vec<Sym> = Vec::new();
-        if toks.get(1).is_some_and(|t| {
-            t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0
-        }) {
+        if toks.get(1).is_some_and(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
             func = true;
             i = 2;
             let mut expect_param = true;
@@ -1070,11 +912,7 @@ impl Pp<'_> {
                             );
                         }
                         if t.sym == self.syms.va_args {
-                            return self.err_tok(
-                                &t,
-                                "__VA_ARGS__ can not be used as a parameter name",
-                                "here",
-                            );
+                            return self.err_tok(&t, "__VA_ARGS__ can not be used as a parameter name", "here");
                         }
                         params.push(t.sym);
                         expect_param = false;
@@ -1084,11 +922,7 @@ impl Pp<'_> {
                         variadic = true;
                         params.push(self.syms.va_args);
                         let Some(c) = toks.get(i).copied() else {
-                            return self.err_tok(
-                                &t,
-                                "missing ')' in macro parameter list",
-                                "expected ')' after this",
-                            );
+                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
                         };
                         i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
@@ -1112,11 +946,7 @@ impl Pp<'_> {
                         // GNU named variadic parameter: `args...`.
                         variadic = true;
                         let Some(c) = toks.get(i).copied() else {
-                            return self.err_tok(
-                                &t,
-                                "missing ')' in macro parameter list",
-                                "expected ')' after this",
-                            );
+                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
                         };
                         i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
@@ -1124,13 +954,7 @@ impl Pp<'_> {
                         }
                         break;
                     }
-                    _ => {
-                        return self.err_tok(
-                            &t,
-                            format!("expected ',' or ')', found \"{s}\""),
-                            "expected ',' or ')'",
-                        )
-                    }
+                    _ => return self.err_tok(&t, format!("expected ',' or ')', found \"{s}\""), "expected ',' or ')'"),
                 }
             }
         } else if let Some(t) = toks.get(1) {
@@ -1151,11 +975,7 @@ impl Pp<'_> {
             let s = self.it.str(t.sym);
             if t.kind == TK::Punct && (s == "##" || s == "%:%:") {
                 if body.is_empty() || j + 1 == toks.len() {
-                    return self.err_tok(
-                        &toks[j],
-                        "'##' cannot appear at either end of a macro expansion",
-                        "here",
-                    );
+                    return self.err_tok(&toks[j], "'##' cannot appear at either end of a macro expansion", "here");
                 }
                 if let Some(last) = body.last_mut() {
                     last.flags |= PASTE_LEFT;
@@ -1165,38 +985,20 @@ impl Pp<'_> {
             }
             if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
                 let next = toks.get(j + 1).copied();
-                if let Some(n) =
-                    next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt)
-                {
+                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
                     // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
-                    body.push(Tok {
-                        flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
-                        ..n
-                    });
+                    body.push(Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
                     j += 2;
                     continue;
                 }
-                match next
-                    .filter(|n| n.kind == TK::Ident)
-                    .and_then(|n| params.iter().position(|&p| p == n.sym))
-                {
+                match next.filter(|n| n.kind == TK::Ident).and_then(|n| params.iter().position(|&p| p == n.sym)) {
                     Some(pi) => {
                         let n = toks[j + 1];
-                        body.push(Tok {
-                            param: pi as u16,
-                            flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF,
-                            ..n
-                        });
+                        body.push(Tok { param: pi as u16, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
                         j += 2;
                         continue;
                     }
-                    None => {
-                        return self.err_tok(
-                            &toks[j],
-                            "'#' is not followed by a macro parameter",
-                            "here",
-                        )
-                    }
+                    None => return self.err_tok(&toks[j], "'#' is not followed by a macro parameter", "here"),
                 }
             }
             if t.kind == TK::Ident {
@@ -1205,15 +1007,9 @@ impl Pp<'_> {
                         t.param = pi as u16;
                     }
                 }
-                if t.sym == self.syms.va_args
-                    && (!variadic || named_variadic)
-                    && t.param == NO_PARAM
-                {
+                if t.sym == self.syms.va_args && (!variadic || named_variadic) && t.param == NO_PARAM {
                     let l = self.tok_labels(&toks[j], "here");
-                    self.warn(
-                        "__VA_ARGS__ can only appear in the expansion of a C99 variadic macro",
-                        l,
-                    );
+                    self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
                 }
             }
             body.push(t);
@@ -1237,10 +1033,7 @@ impl Pp<'_> {
             return self.err_tok(&name, "too many macro parameters", "here");
         }
         let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
-        let va_opt = variadic
-            && body
-                .iter()
-                .any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
+        let va_opt = variadic && body.iter().any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
         let m = Macro {
             func,
             variadic,
@@ -1261,11 +1054,8 @@ impl Pp<'_> {
                 let mut labels = self.tok_labels(&name, "redefined here");
                 if prev.ctx != NONE {
                     if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
-                        let r = c
-                            .source
-                            .original_range(prev.site.start as usize..prev.site.end as usize);
-                        labels
-                            .push(Label::secondary(c.file, r).with_message("previous definition"));
+                        let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
+                        labels.push(Label::secondary(c.file, r).with_message("previous definition"));
                     }
                 }
                 self.warn(format!("\"{n}\" redefined"), labels);
@@ -1282,15 +1072,9 @@ impl Pp<'_> {
             && a.variadic == b.variadic
             && a.params == b.params
             && a.body.len() == b.body.len()
-            && a.body
-                .iter()
-                .zip(b.body.iter())
-                .enumerate()
-                .all(|(i, (x, y))| {
-                    x.sym == y.sym
-                        && x.param == y.param
-                        && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
-                })
+            && a.body.iter().zip(b.body.iter()).enumerate().all(|(i, (x, y))| {
+                x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
+            })
     }
 }
 

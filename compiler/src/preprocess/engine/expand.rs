@@ -39,9 +39,7 @@ impl Pp<'_> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct
-                    if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") =>
-                {
+                Kind::Punct if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") => {
                     frame.pos += len;
                     frame.bol = false;
                     self.directive_in_args(pos)?;
@@ -104,11 +102,7 @@ impl Pp<'_> {
                 }
                 if self.directive_line.is_none() {
                     // cpp's `avoid_paste` padding at the end of every expansion.
-                    return Ok(Some(Tok {
-                        kind: TK::Padding,
-                        flags: NULL_SOURCE,
-                        ..Tok::eof()
-                    }));
+                    return Ok(Some(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() }));
                 }
                 continue;
             }
@@ -123,10 +117,7 @@ impl Pp<'_> {
     pub(super) fn peek_lparen(&self) -> bool {
         for c in self.stack.iter().rev() {
             let rest = c.toks.get(c.pos..).unwrap_or(&[]);
-            if let Some(t) = rest
-                .iter()
-                .find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker))
-            {
+            if let Some(t) = rest.iter().find(|t| !matches!(t.kind, TK::Padding | TK::Placemarker)) {
                 return t.kind == TK::Punct && t.sym == self.syms.lparen;
             }
             if c.barrier {
@@ -162,12 +153,7 @@ impl Pp<'_> {
             }
             if self.directive_line.is_none() {
                 // cpp's padding whose source is the macro name.
-                return Ok(Some(Tok {
-                    kind: TK::Padding,
-                    flags: t.flags & WHITE,
-                    param: NO_PARAM,
-                    ..t
-                }));
+                return Ok(Some(Tok { kind: TK::Padding, flags: t.flags & WHITE, param: NO_PARAM, ..t }));
             }
         }
     }
@@ -190,9 +176,7 @@ impl Pp<'_> {
     /// more than the output limit allows. A macro bomb in a small file stops within
     /// milliseconds; a large real input is never cut short.
     pub(super) fn token_limit(&self) -> usize {
-        (1usize << 20)
-            .saturating_add(self.input_bytes.saturating_mul(8))
-            .min(token_budget(self.opts))
+        (1usize << 20).saturating_add(self.input_bytes.saturating_mul(8)).min(token_budget(self.opts))
     }
 
     /// Counts `n` tokens made by expansion against [`Pp::token_limit`].
@@ -200,11 +184,7 @@ impl Pp<'_> {
         self.made += n;
         if self.made > self.token_limit() {
             let limit = self.token_limit();
-            return self.err_tok(
-                at,
-                format!("macro expansion makes more than {limit} tokens"),
-                "while expanding this",
-            );
+            return self.err_tok(at, format!("macro expansion makes more than {limit} tokens"), "while expanding this");
         }
         Ok(())
     }
@@ -221,20 +201,11 @@ impl Pp<'_> {
         }
     }
 
-    pub(super) fn push_context(
-        &mut self,
-        toks: Vec<Tok>,
-        mac: u32,
-        barrier: bool,
-        at: &Tok,
-    ) -> PResult<()> {
+    pub(super) fn push_context(&mut self, toks: Vec<Tok>, mac: u32, barrier: bool, at: &Tok) -> PResult<()> {
         if self.stack.len() >= self.opts.max_expansion_depth {
             return self.err_tok(
                 at,
-                format!(
-                    "macro expansion nested deeper than {} levels",
-                    self.opts.max_expansion_depth
-                ),
+                format!("macro expansion nested deeper than {} levels", self.opts.max_expansion_depth),
                 "while expanding this",
             );
         }
@@ -242,12 +213,7 @@ impl Pp<'_> {
         if let Some(m) = self.defs.get_mut(mac as usize) {
             m.disabled = true;
         }
-        self.stack.push(Context {
-            toks,
-            pos: 0,
-            mac,
-            barrier,
-        });
+        self.stack.push(Context { toks, pos: 0, mac, barrier });
         Ok(())
     }
 
@@ -291,20 +257,14 @@ impl Pp<'_> {
             } else if !(nparams == 1 && args.is_empty()) {
                 let labels = self.invocation_labels(&name, "this invocation");
                 return Err(Error::new(
-                    format!(
-                        "macro \"{name_str}\" requires {nparams} arguments, but only {} given",
-                        args.len()
-                    ),
+                    format!("macro \"{name_str}\" requires {nparams} arguments, but only {} given", args.len()),
                     labels,
                 ));
             }
         } else if args.len() > nparams && !(nparams == 0 && args.len() == 1 && args[0].is_empty()) {
             let labels = self.invocation_labels(&name, "this invocation");
             return Err(Error::new(
-                format!(
-                    "macro \"{name_str}\" passed {} arguments, but takes just {nparams}",
-                    args.len()
-                ),
+                format!("macro \"{name_str}\" passed {} arguments, but takes just {nparams}", args.len()),
                 labels,
             ));
         }
@@ -315,9 +275,7 @@ impl Pp<'_> {
         let mut body = self.defs[m as usize].body.clone();
         let mut expanded: Vec<Option<Vec<Tok>>> = vec![None; args.len()];
         if self.defs[m as usize].va_opt {
-            body = self
-                .resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?
-                .into();
+            body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
         }
         let mut toks = self.substitute_args(m, &name, &body, &args, &mut expanded, absent_va)?;
         if toks.iter().all(|t| t.kind == TK::Placemarker) {
@@ -346,11 +304,7 @@ impl Pp<'_> {
                     }
                     depth -= 1;
                 }
-                TK::Punct
-                    if t.sym == self.syms.comma
-                        && depth == 0
-                        && !(variadic && args.len() >= nparams) =>
-                {
+                TK::Punct if t.sym == self.syms.comma && depth == 0 && !(variadic && args.len() >= nparams) => {
                     args.push(Vec::new());
                     continue;
                 }
@@ -375,16 +329,10 @@ impl Pp<'_> {
         }
         // Like cpp's padding, placemarkers at either end of an argument do not count.
         for a in &mut args {
-            while a
-                .last()
-                .is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding))
-            {
+            while a.last().is_some_and(|t| matches!(t.kind, TK::Placemarker | TK::Padding)) {
                 a.pop();
             }
-            let lead = a
-                .iter()
-                .take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding))
-                .count();
+            let lead = a.iter().take_while(|t| matches!(t.kind, TK::Placemarker | TK::Padding)).count();
             if lead > 0 {
                 a.drain(..lead);
             }
@@ -407,9 +355,7 @@ impl Pp<'_> {
     /// Fully macro-expands an argument in isolation.
     pub(super) fn expand_arg(&mut self, arg: &[Tok], at: &Tok) -> PResult<Vec<Tok>> {
         // Nothing to expand: no identifiers (the common case of numbers and punctuation).
-        if !arg.iter().any(|t| {
-            t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE
-        }) {
+        if !arg.iter().any(|t| t.kind == TK::Ident && t.flags & NO_EXPAND == 0 && self.macro_idx(t.sym) != NONE) {
             self.spend(arg.len(), at)?;
             return Ok(arg.to_vec());
         }
@@ -473,25 +419,15 @@ impl Pp<'_> {
                 if absent_va && va_paste == 0 {
                     // Dropped with its comma.
                 } else if arg.is_empty() {
-                    out.push(Tok {
-                        flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste,
-                        ..b
-                    });
+                    out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
                 } else {
-                    out.push(Tok {
-                        flags: b.flags & !(PASTE_LEFT | VA_COMMA),
-                        ..b
-                    });
+                    out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
                     out.extend(arg);
                     if let Some(t) = out.last_mut() {
                         t.flags |= va_paste;
                     }
                     if va_paste == 0 && self.directive_line.is_none() {
-                        out.push(Tok {
-                            kind: TK::Padding,
-                            flags: NULL_SOURCE,
-                            ..Tok::eof()
-                        });
+                        out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
                     }
                 }
                 i += 2;
@@ -530,12 +466,7 @@ impl Pp<'_> {
             // follows.
             let pad = self.directive_line.is_none();
             if pad && i > 0 && !prev_pastes {
-                out.push(Tok {
-                    kind: TK::Padding,
-                    flags: b.flags & WHITE,
-                    param: NO_PARAM,
-                    ..b
-                });
+                out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
             }
             if toks.is_empty() {
                 if raw {
@@ -555,11 +486,7 @@ impl Pp<'_> {
                 }
             }
             if pad && b.flags & PASTE_LEFT == 0 {
-                out.push(Tok {
-                    kind: TK::Padding,
-                    flags: NULL_SOURCE,
-                    ..Tok::eof()
-                });
+                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
             }
             i += 1;
         }
@@ -587,17 +514,15 @@ impl Pp<'_> {
         name: &Tok,
     ) -> PResult<Vec<Tok>> {
         self.expanded_arg(va, args, expanded, name)?;
-        let present = expanded.get(va).and_then(|e| e.as_ref()).is_some_and(|e| {
-            e.iter()
-                .any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding))
-        });
+        let present = expanded
+            .get(va)
+            .and_then(|e| e.as_ref())
+            .is_some_and(|e| e.iter().any(|t| !matches!(t.kind, TK::Placemarker | TK::Padding)));
         let mut out = Vec::with_capacity(body.len());
         let mut i = 0;
         while i < body.len() {
             let t = body[i];
-            let opens = body
-                .get(i + 1)
-                .is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
+            let opens = body.get(i + 1).is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
             if !(t.kind == TK::Ident && t.sym == self.syms.va_opt && t.param == NO_PARAM && opens) {
                 out.push(t);
                 i += 1;
@@ -618,20 +543,13 @@ impl Pp<'_> {
                 j += 1;
             }
             if j >= body.len() {
-                return self.err_tok(
-                    &t,
-                    "unterminated __VA_OPT__",
-                    "this __VA_OPT__ is never closed",
-                );
+                return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
             }
             let close_paste = body[j].flags & PASTE_LEFT;
             let inner = &body[i + 2..j];
             if t.flags & STRINGIFY != 0 {
-                let toks = if present {
-                    self.substitute_args(NONE, name, inner, args, expanded, false)?
-                } else {
-                    Vec::new()
-                };
+                let toks =
+                    if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
                 let text = self.stringify(&toks);
                 let sym = self.it.intern(&text);
                 out.push(Tok {
@@ -649,12 +567,7 @@ impl Pp<'_> {
                     last.flags |= close_paste;
                 }
             } else {
-                out.push(Tok {
-                    kind: TK::Placemarker,
-                    param: NO_PARAM,
-                    flags: (t.flags & WHITE) | close_paste,
-                    ..t
-                });
+                out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: (t.flags & WHITE) | close_paste, ..t });
             }
             i = j + 1;
         }
@@ -700,32 +613,16 @@ impl Pp<'_> {
     pub(super) fn paste(&mut self, lhs: Tok, rhs: Tok, name: &Tok) -> PResult<Tok> {
         let keep = (lhs.flags & WHITE) | (rhs.flags & PASTE_LEFT);
         if rhs.kind == TK::Placemarker {
-            return Ok(Tok {
-                flags: (lhs.flags & !PASTE_LEFT) | keep,
-                ..lhs
-            });
+            return Ok(Tok { flags: (lhs.flags & !PASTE_LEFT) | keep, ..lhs });
         }
         if lhs.kind == TK::Placemarker {
-            return Ok(Tok {
-                flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep,
-                ..rhs
-            });
+            return Ok(Tok { flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep, ..rhs });
         }
         let joined = format!("{}{}", self.it.str(lhs.sym), self.it.str(rhs.sym));
         let (kind, len) = lexer::next(joined.as_bytes(), 0);
         let valid = len == joined.len()
-            && !matches!(
-                kind,
-                Kind::Space
-                    | Kind::Newline
-                    | Kind::LineComment
-                    | Kind::BlockComment { .. }
-                    | Kind::Eof
-            )
-            && !matches!(
-                kind,
-                Kind::Str { terminated: false } | Kind::Char { terminated: false }
-            );
+            && !matches!(kind, Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { .. } | Kind::Eof)
+            && !matches!(kind, Kind::Str { terminated: false } | Kind::Char { terminated: false });
         if !valid {
             let msg = format!(
                 "pasting \"{}\" and \"{}\" does not give a valid preprocessing token",
@@ -736,10 +633,7 @@ impl Pp<'_> {
         }
         let sym = self.it.intern(&joined);
         let mut flags = keep | FROM_DEF;
-        if lhs.flags & FROM_DEF == 0
-            && rhs.flags & FROM_DEF == 0
-            && lhs.ctx == rhs.ctx
-            && lhs.src + lhs.len == rhs.src
+        if lhs.flags & FROM_DEF == 0 && rhs.flags & FROM_DEF == 0 && lhs.ctx == rhs.ctx && lhs.src + lhs.len == rhs.src
         {
             flags &= !FROM_DEF;
         }
@@ -748,11 +642,7 @@ impl Pp<'_> {
             sym,
             kind: tk_of(kind),
             flags,
-            len: if flags & FROM_DEF == 0 {
-                joined.len() as u32
-            } else {
-                lhs.len
-            },
+            len: if flags & FROM_DEF == 0 { joined.len() as u32 } else { lhs.len },
             param: NO_PARAM,
             ..lhs
         })
@@ -767,11 +657,7 @@ impl Pp<'_> {
         let mut source: Option<bool> = None;
         for t in arg {
             if t.kind == TK::Padding {
-                let tsrc = if t.flags & NULL_SOURCE != 0 {
-                    None
-                } else {
-                    Some(t.flags & WHITE != 0)
-                };
+                let tsrc = if t.flags & NULL_SOURCE != 0 { None } else { Some(t.flags & WHITE != 0) };
                 if source.is_none() || (source == Some(false) && tsrc.is_none()) {
                     source = tsrc;
                 }
@@ -852,22 +738,13 @@ impl Pp<'_> {
             }
             Builtin::None => return Ok(false),
         };
-        let kind = if matches!(
-            b,
-            Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time
-        ) {
+        let kind = if matches!(b, Builtin::File | Builtin::BaseFile | Builtin::Date | Builtin::Time) {
             TK::Str
         } else {
             TK::Number
         };
         let sym = self.it.intern(&text);
-        let t = Tok {
-            sym,
-            kind,
-            flags: (name.flags & WHITE) | FROM_DEF,
-            param: NO_PARAM,
-            ..name
-        };
+        let t = Tok { sym, kind, flags: (name.flags & WHITE) | FROM_DEF, param: NO_PARAM, ..name };
         self.push_context(vec![t], NONE, false, &name)?;
         Ok(true)
     }
@@ -885,11 +762,7 @@ impl Pp<'_> {
         let s = self.get_real_token(true)?;
         let close = self.get_real_token(true)?;
         if s.kind != TK::Str || !(close.kind == TK::Punct && close.sym == self.syms.rparen) {
-            return self.err_tok(
-                &name,
-                "_Pragma takes a parenthesized string literal",
-                "here",
-            );
+            return self.err_tok(&name, "_Pragma takes a parenthesized string literal", "here");
         }
         let lit = self.it.str(s.sym).to_string();
         let start = lit.find('"').map_or(0, |i| i + 1);
@@ -900,27 +773,11 @@ impl Pp<'_> {
                 let id = f.file;
                 self.once.insert(id);
             }
-            return self
-                .push_context(
-                    vec![Tok {
-                        kind: TK::Placemarker,
-                        ..name
-                    }],
-                    NONE,
-                    false,
-                    &name,
-                )
-                .map(|_| true);
+            return self.push_context(vec![Tok { kind: TK::Placemarker, ..name }], NONE, false, &name).map(|_| true);
         }
         let line = format!("\n#pragma {body}\n");
         let sym = self.it.intern(&line);
-        let t = Tok {
-            sym,
-            kind: TK::Other,
-            flags: FROM_DEF,
-            param: NO_PARAM,
-            ..name
-        };
+        let t = Tok { sym, kind: TK::Other, flags: FROM_DEF, param: NO_PARAM, ..name };
         self.push_context(vec![t], NONE, false, &name)?;
         Ok(true)
     }
@@ -928,14 +785,9 @@ impl Pp<'_> {
 
 /// `__DATE__` and `__TIME__` of now (UTC, or `SOURCE_DATE_EPOCH` like GCC).
 fn date_time() -> (String, String) {
-    let secs = std::env::var("SOURCE_DATE_EPOCH")
-        .ok()
-        .and_then(|v| v.parse::<i64>().ok())
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_secs() as i64)
-        });
+    let secs = std::env::var("SOURCE_DATE_EPOCH").ok().and_then(|v| v.parse::<i64>().ok()).unwrap_or_else(|| {
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64)
+    });
     let days = secs.div_euclid(86_400);
     let rem = secs.rem_euclid(86_400);
     // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
@@ -948,9 +800,7 @@ fn date_time() -> (String, String) {
     let day = doy - (153 * mp + 2) / 5 + 1;
     let month = if mp < 10 { mp + 3 } else { mp - 9 };
     let year = yoe + era * 400 + i64::from(month <= 2);
-    const MONTHS: [&str; 12] = [
-        "Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec",
-    ];
+    const MONTHS: [&str; 12] = ["Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec"];
     let date = format!("{} {day:2} {year}", MONTHS[(month - 1) as usize]);
     let time = format!("{:02}:{:02}:{:02}", rem / 3600, rem % 3600 / 60, rem % 60);
     (date, time)

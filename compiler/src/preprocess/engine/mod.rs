@@ -137,15 +137,7 @@ struct Tok {
 
 impl Tok {
     fn eof() -> Tok {
-        Tok {
-            sym: 0,
-            ctx: NONE,
-            src: 0,
-            len: 0,
-            param: NO_PARAM,
-            kind: TK::Eof,
-            flags: 0,
-        }
+        Tok { sym: 0, ctx: NONE, src: 0, len: 0, param: NO_PARAM, kind: TK::Eof, flags: 0 }
     }
 }
 
@@ -344,20 +336,12 @@ pub(crate) fn run_named(
     })
 }
 
-fn run_here(
-    file: FileId,
-    name: Option<String>,
-    opts: &Options,
-    cache: &SourceCache,
-) -> Result<Output, Error> {
+fn run_here(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
     let Some(source) = cache.get(file) else {
         return Err(Error::new("unknown file id", Vec::new()));
     };
     if source.text().len() >= (u32::MAX / 2) as usize {
-        return Err(Error::new(
-            format!("`{}` is too large to preprocess", source.name),
-            Vec::new(),
-        ));
+        return Err(Error::new(format!("`{}` is too large to preprocess", source.name), Vec::new()));
     }
     let mut pp = Pp::new(opts, cache, &source)?;
     let name = name.unwrap_or_else(|| source.name.clone());
@@ -368,13 +352,7 @@ fn run_here(
     let mut absent = pp.absent.into_inner();
     absent.sort();
     absent.dedup();
-    Ok(Output {
-        text: pp.out,
-        map: pp.map,
-        files: pp.files,
-        absent,
-        warnings: pp.warnings,
-    })
+    Ok(Output { text: pp.out, map: pp.map, files: pp.files, absent, warnings: pp.warnings })
 }
 
 /// Tokens macro expansion may make in one run: a quarter of the output limit (a token
@@ -387,10 +365,7 @@ fn token_budget(opts: &Options) -> usize {
 pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, String> {
     match resolve_in_roots(spelling, opts, &mut Vec::new()) {
         Resolved::Found(p, _) => Ok(p),
-        Resolved::Escapes(p) => Err(format!(
-            "`{spelling}` resolves to `{}`, outside its root",
-            p.display()
-        )),
+        Resolved::Escapes(p) => Err(format!("`{spelling}` resolves to `{}`, outside its root", p.display())),
         Resolved::NotFound => Err(format!("cannot find `{spelling}` in the include roots")),
     }
 }
@@ -429,9 +404,7 @@ fn virtual_match<'s>(spelling: &'s str, prefix: &str) -> Option<&'s str> {
 }
 
 fn relative_ok(rel: &str) -> bool {
-    !Path::new(rel)
-        .components()
-        .any(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
+    !Path::new(rel).components().any(|c| matches!(c, Component::Prefix(_) | Component::RootDir))
 }
 
 /// Resolves `spelling` in the virtual roots, then the include roots in order; every
@@ -441,9 +414,7 @@ fn resolve_in_roots(spelling: &str, opts: &Options, absent: &mut Vec<PathBuf>) -
     for (prefix, dir) in &opts.virtual_roots {
         if let Some(rest) = virtual_match(spelling, prefix) {
             return match contained(&dir.join(rest), dir) {
-                Resolved::Found(p, _) => {
-                    Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/')))
-                }
+                Resolved::Found(p, _) => Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/'))),
                 Resolved::NotFound => {
                     absent.push(dir.join(rest));
                     Resolved::NotFound
@@ -490,11 +461,7 @@ impl<'a> Pp<'a> {
             zero: it.intern("0"),
         };
         let mut roots: Vec<PathBuf> = Vec::new();
-        let main_dir = main
-            .path
-            .parent()
-            .filter(|p| p.is_dir())
-            .map(|p| p.to_path_buf());
+        let main_dir = main.path.parent().filter(|p| p.is_dir()).map(|p| p.to_path_buf());
         if let Some(d) = &main_dir {
             roots.push(d.clone());
         }
@@ -602,12 +569,7 @@ impl<'a> Pp<'a> {
         let toks = self.lex_string(&line);
         let toks = match toks {
             Some(t) => t,
-            None => {
-                return Err(Error::new(
-                    format!("invalid definition `{name}={value}`"),
-                    Vec::new(),
-                ))
-            }
+            None => return Err(Error::new(format!("invalid definition `{name}={value}`"), Vec::new())),
         };
         // `NAME(x)` must keep `(` attached to the name.
         self.parse_define(toks, true)
@@ -623,13 +585,10 @@ impl<'a> Pp<'a> {
             let (kind, len) = lexer::next(b, pos);
             match kind {
                 Kind::Eof => return Some(out),
-                Kind::Space
-                | Kind::Newline
-                | Kind::LineComment
-                | Kind::BlockComment { terminated: true } => white = true,
-                Kind::BlockComment { terminated: false } | Kind::Str { terminated: false } => {
-                    return None
+                Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { terminated: true } => {
+                    white = true
                 }
+                Kind::BlockComment { terminated: false } | Kind::Str { terminated: false } => return None,
                 _ => {
                     let sym = self.it.intern(&s[pos..pos + len]);
                     let flags = if white { WHITE } else { 0 } | FROM_DEF;
@@ -656,9 +615,7 @@ impl<'a> Pp<'a> {
         let Some(c) = self.map.ctxs.get(ctx as usize) else {
             return Vec::new();
         };
-        let r = c
-            .source
-            .original_range(range.start as usize..range.end as usize);
+        let r = c.source.original_range(range.start as usize..range.end as usize);
         let mut labels = vec![Label::primary(c.file, r).with_message(message)];
         for (f, r) in self.map.chain(ctx) {
             labels.push(Label::secondary(f, r).with_message("included from here"));
@@ -677,13 +634,8 @@ impl<'a> Pp<'a> {
             None => self.frame_labels(message),
         };
         if let Some(c) = self.map.ctxs.get(t.ctx as usize) {
-            let r = c
-                .source
-                .original_range(t.src as usize..(t.src + t.len) as usize);
-            labels.insert(
-                1.min(labels.len()),
-                Label::secondary(c.file, r).with_message("in this macro's definition"),
-            );
+            let r = c.source.original_range(t.src as usize..(t.src + t.len) as usize);
+            labels.insert(1.min(labels.len()), Label::secondary(c.file, r).with_message("in this macro's definition"));
         }
         labels
     }
@@ -692,9 +644,7 @@ impl<'a> Pp<'a> {
     /// read from the file when the name is text of the file.
     fn invocation_labels(&self, name: &Tok, message: &str) -> Vec<Label<FileId>> {
         match self.inv {
-            Some((ctx, _, end))
-                if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src =>
-            {
+            Some((ctx, _, end)) if name.flags & FROM_DEF == 0 && name.ctx == ctx && end > name.src => {
                 self.labels_at(ctx, name.src..end, message)
             }
             _ => self.tok_labels(name, message),
@@ -716,52 +666,26 @@ impl<'a> Pp<'a> {
         Err(Error::new(message, self.tok_labels(t, label)))
     }
 
-    fn err_at<T>(
-        &self,
-        ctx: u32,
-        range: Range<u32>,
-        message: impl Into<String>,
-        label: &str,
-    ) -> PResult<T> {
+    fn err_at<T>(&self, ctx: u32, range: Range<u32>, message: impl Into<String>, label: &str) -> PResult<T> {
         Err(Error::new(message, self.labels_at(ctx, range, label)))
     }
 
     fn warn(&mut self, message: impl Into<String>, labels: Vec<Label<FileId>>) {
-        self.warnings.push(
-            Diagnostic::warning()
-                .with_message(message.into())
-                .with_labels(labels),
-        );
+        self.warnings.push(Diagnostic::warning().with_message(message.into()).with_labels(labels));
     }
 
     // -----------------------------------------------------------------------------------------
     // Files
 
-    fn push_file(
-        &mut self,
-        file: FileId,
-        source: Arc<SourceFile>,
-        name: String,
-        parent: u32,
-        site: Range<u32>,
-    ) {
+    fn push_file(&mut self, file: FileId, source: Arc<SourceFile>, name: String, parent: u32, site: Range<u32>) {
         let ctx = self.map.ctxs.len() as u32;
         self.input_bytes += source.text().len();
-        self.map.ctxs.push(IncludeCtx {
-            file,
-            source: source.clone(),
-            parent,
-            site,
-        });
+        self.map.ctxs.push(IncludeCtx { file, source: source.clone(), parent, site });
         if !self.files.contains(&file) {
             self.files.push(file);
         }
         // A UTF-8 byte order mark is not text (cpp skips it too).
-        let pos = if source.text().starts_with('\u{feff}') {
-            3
-        } else {
-            0
-        };
+        let pos = if source.text().starts_with('\u{feff}') { 3 } else { 0 };
         self.frames.push(Frame {
             source,
             file,
@@ -789,12 +713,7 @@ impl<'a> Pp<'a> {
         };
         if let Some(c) = frame.conds.last() {
             let (ctx, site, name) = (frame.ctx, c.site.clone(), c.name);
-            return self.err_at(
-                ctx,
-                site,
-                format!("unterminated #{name}"),
-                "this conditional is never closed",
-            );
+            return self.err_at(ctx, site, format!("unterminated #{name}"), "this conditional is never closed");
         }
         if let GuardState::Closed(sym) = frame.guard {
             self.guards.insert(frame.file, sym);
@@ -812,10 +731,7 @@ impl<'a> Pp<'a> {
     fn check_output(&self) -> PResult<()> {
         if self.out.len() > self.opts.max_output_bytes {
             return Err(Error::new(
-                format!(
-                    "output exceeds the limit of {} bytes",
-                    self.opts.max_output_bytes
-                ),
+                format!("output exceeds the limit of {} bytes", self.opts.max_output_bytes),
                 self.inv.map_or_else(
                     || self.frame_labels("while preprocessing this"),
                     |(c, s, e)| self.labels_at(c, s..e, "while expanding this"),
@@ -844,10 +760,7 @@ impl<'a> Pp<'a> {
             if !matches!(first, b' ' | b'\t' | b'\n' | b'\r') {
                 let (_, len) = lexer::next(bytes, start);
                 let len = len.min(end - start).max(1);
-                if lexer::would_paste(
-                    self.out[self.last_tok.clone()].as_bytes(),
-                    &bytes[start..start + len],
-                ) {
+                if lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]) {
                     self.out.push(' ');
                 }
             }
@@ -864,25 +777,12 @@ impl<'a> Pp<'a> {
 
     fn push_copy_entry(&mut self, ctx: u32, src: u32, end: u32, out: u32) {
         if let Some(last) = self.map.entries.last_mut() {
-            if !last.is_macro
-                && last.ctx == ctx
-                && last.end == src
-                && last.out + (last.end - last.src) == out
-            {
+            if !last.is_macro && last.ctx == ctx && last.end == src && last.out + (last.end - last.src) == out {
                 last.end = end;
                 return;
             }
         }
-        self.map.entries.push(Entry {
-            out,
-            ctx,
-            src,
-            end,
-            def_ctx: NONE,
-            def_src: 0,
-            def_len: 0,
-            is_macro: false,
-        });
+        self.map.entries.push(Entry { out, ctx, src, end, def_ctx: NONE, def_src: 0, def_len: 0, is_macro: false });
     }
 
     fn emit_space(&mut self) {
@@ -905,8 +805,7 @@ impl<'a> Pp<'a> {
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
         let space = (t.flags & WHITE != 0)
-            || (adjacent
-                && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes()));
+            || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes()));
         if space && !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
             self.out.push(' ');
         }
@@ -915,24 +814,11 @@ impl<'a> Pp<'a> {
             self.push_copy_entry(t.ctx, t.src, t.src + t.len, out_at);
         } else {
             let (ctx, src, end) = self.inv.unwrap_or((NONE, 0, 0));
-            let e = Entry {
-                out: out_at,
-                ctx,
-                src,
-                end,
-                def_ctx: t.ctx,
-                def_src: t.src,
-                def_len: t.len,
-                is_macro: true,
-            };
+            let e =
+                Entry { out: out_at, ctx, src, end, def_ctx: t.ctx, def_src: t.src, def_len: t.len, is_macro: true };
             // Runs of tokens with one origin (a repeated expansion) share an entry.
             let key = |e: &Entry| (e.ctx, e.src, e.end, e.def_ctx, e.def_src, e.def_len);
-            if !self
-                .map
-                .entries
-                .last()
-                .is_some_and(|l| l.is_macro && key(l) == key(&e))
-            {
+            if !self.map.entries.last().is_some_and(|l| l.is_macro && key(l) == key(&e)) {
                 self.map.entries.push(e);
             }
         }
@@ -988,10 +874,7 @@ impl<'a> Pp<'a> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct
-                    if bol
-                        && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) =>
-                {
+                Kind::Punct if bol && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) => {
                     self.copy_run(ctx, text, run_start, pos, last_tok)?;
                     if let Some(f) = self.frames.last_mut() {
                         f.pos = pos + len;
@@ -1008,10 +891,7 @@ impl<'a> Pp<'a> {
                     }
                     bol = false;
                     match kind {
-                        Kind::Ident
-                            if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63))
-                                != 0 =>
-                        {
+                        Kind::Ident if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63)) != 0 => {
                             let name = &text[pos..pos + len];
                             if let Some(sym) = self.it.get(name) {
                                 let m = self.macro_idx(sym);
@@ -1114,10 +994,7 @@ fn quote(s: &str) -> String {
 }
 
 fn unquote(s: &str) -> String {
-    let inner = s
-        .strip_prefix('"')
-        .and_then(|s| s.strip_suffix('"'))
-        .unwrap_or(s);
+    let inner = s.strip_prefix('"').and_then(|s| s.strip_suffix('"')).unwrap_or(s);
     inner.replace("\\\"", "\"").replace("\\\\", "\\")
 }
 
