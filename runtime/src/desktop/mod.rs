@@ -180,7 +180,12 @@ pub struct DesktopFrame {
     _lights_buffer: wgpu::Buffer,
     _view_buffer: wgpu::Buffer,
     _samplers: resources::Samplers,
-    view: FrameView,
+    /// This frame's view (the camera part 2 renders with, unjittered), refreshed as every
+    /// frame begins: everything camera-dependent is computed from it per frame.
+    view: std::sync::Mutex<FrameView>,
+    /// The fire sprites' view uniforms (`FViewUniforms` of the runtime's particle pass) as
+    /// built, and their buffer, patched every frame with the camera.
+    particle_view: Option<(wgpu::Buffer, crate::gpu_types::ViewUniforms)>,
     lights: Vec<FrameLight>,
     prepass: prepass::PrePass,
     light_grid: light_grid::LightGrid,
@@ -258,6 +263,7 @@ impl DesktopFrame {
         let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref(), &part2.translucency_volume())?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
+        let particle_view = particles.as_ref().map(|p| (p.view.clone(), crate::scene::gpu::view_uniforms(scene, w, h)));
         Ok(DesktopFrame {
             device: device.clone(),
             queue: queue.clone(),
@@ -270,7 +276,8 @@ impl DesktopFrame {
             _lights_buffer: lights_buffer,
             _view_buffer: view_buffer,
             _samplers: samplers,
-            view,
+            view: std::sync::Mutex::new(view),
+            particle_view,
             lights,
             prepass,
             light_grid,
@@ -298,6 +305,7 @@ impl DesktopFrame {
         let p2 = &self.part2;
         let camera = p2.begin_frame();
         self.write_camera(&camera);
+        self.follow_camera(&FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1)));
         p2.particle_simulation(frame, fire);
         frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
@@ -396,6 +404,27 @@ impl DesktopFrame {
         }
     }
 
+    /// What the passes built with the first camera computed from it, recomputed for this
+    /// frame's `view`: the cascades of the directional light (their depth matrices, the
+    /// projections Lighting, the translucency and part 2's fog and volumes read), each local
+    /// light's depth bounds and whether the camera is inside its volume, the fire sprites'
+    /// view. (The View uniforms, the light grid's and every part 2 pass's camera are written
+    /// by [`DesktopFrame::write_camera`] and [`part2::Part2::begin_frame`].)
+    fn follow_camera(&self, view: &FrameView) {
+        let cascaded = self.shadows.update_cascades(&self.queue, view);
+        self.lighting.update(&self.queue, view, cascaded.as_ref());
+        self.translucency.update(&self.queue, cascaded.as_ref());
+        self.part2.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
+        if let Some((buffer, base)) = &self.particle_view {
+            let mut u = *base;
+            u.view_proj = view.view_proj;
+            u.inv_view_proj = view.view_proj.inverse();
+            u.camera_position = view.position.extend(u.camera_position.w);
+            self.queue.write_buffer(buffer, 0, bytemuck::bytes_of(&u));
+        }
+        *self.view.lock().unwrap_or_else(|e| e.into_inner()) = *view;
+    }
+
     /// Records the frame into its own output target.
     pub fn record(&self, frame: &mut FrameRecorder) {
         self.record_into(frame, (&self.output.texture, &self.output.view), None);
@@ -416,8 +445,9 @@ impl DesktopFrame {
         &self.options
     }
 
-    pub fn view(&self) -> &FrameView {
-        &self.view
+    /// The view of the frame rendered last (before the first frame: of the scene's camera).
+    pub fn view(&self) -> FrameView {
+        *self.view.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// The scene's local lights as the light grid indexes them.
@@ -458,7 +488,7 @@ impl DesktopFrame {
             words
         };
         let cells = read(&self.light_grid.num_culled_lights);
-        let counts = cells.chunks_exact(2).take(self.view.grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
+        let counts = cells.chunks_exact(2).take(self.view().grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
         (counts, read(&self.light_grid.culled_light_data))
     }
 }
@@ -481,11 +511,7 @@ fn desktop_part2(
 ) -> Result<part2::Part2, DesktopError> {
     let meshes: Vec<part2::MeshRef<'_>> = buffers.meshes.iter().map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count }).collect();
     let shadow = match (shadows.csm_texture(), &shadows.setup.cascaded) {
-        (Some(_), Some(c)) => Some(frame_view::DirectionalShadow {
-            cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],
-            splits: CASCADE_SPLITS,
-            rects: [c.atlas_rects[0], c.atlas_rects[1], c.atlas_rects[2]],
-        }),
+        (Some(_), Some(c)) => Some(directional_shadow(c)),
         _ => None,
     };
     let shadow_depth = shadows.csm_texture().map_or(&dummy_shadow.texture, |t| &t.texture);
@@ -503,6 +529,15 @@ fn desktop_part2(
         frame_draws_fire,
     };
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
+}
+
+/// The cascades as part 2 (the volumetric fog, the translucency volumes) reads them.
+fn directional_shadow(c: &view::ShadowProjectionUniforms) -> frame_view::DirectionalShadow {
+    frame_view::DirectionalShadow {
+        cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],
+        splits: CASCADE_SPLITS,
+        rects: [c.atlas_rects[0], c.atlas_rects[1], c.atlas_rects[2]],
+    }
 }
 
 /// The objects' instance rows, rewritten every frame (movable props move, culled props hide).

@@ -171,7 +171,8 @@ struct Visualization {
     pipeline: Arc<ComputePipeline>,
     group: wgpu::BindGroup,
     image: wgpu::Texture,
-    _params: wgpu::Buffer,
+    params: wgpu::Buffer,
+    values: VisualizeParams,
 }
 
 #[repr(C)]
@@ -195,7 +196,13 @@ impl Visualization {
             ("SourceDepthTexture", wgpu::BindingResource::TextureView(&src)),
             ("out_image", wgpu::BindingResource::TextureView(&dst)),
         ])?;
-        Ok(Visualization { pipeline, group, image, _params: params })
+        Ok(Visualization { pipeline, group, image, params, values: VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] } })
+    }
+
+    /// Shows slice `slice` of a volume from now on.
+    fn set_slice(&self, queue: &wgpu::Queue, slice: u32) {
+        let values = VisualizeParams { slice: [slice, 0, 0, 0], ..self.values };
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&values));
     }
 
     /// Draws the image and declares it as the current pass or step's output `name`.
@@ -379,9 +386,9 @@ impl Part2 {
         let pos_scale = Vec4::new(0.1, 0.25, 0.1, 0.0);
         let pos_bias = Vec4::new(0.0, 0.0, 0.5, 0.0);
         let vel_scale = Vec4::new(0.5, 0.3, 0.5, 0.0);
-        // the dumps show the large cascade's slice through the middle of the room (z = 0)
-        let (origin, cell) = TranslucentVolumes::cascade_box(scene.camera.position, 1);
-        let volume_slice = ((-origin.z / cell) as u32).min(super::translucent_volume::VOLUME_SIZE - 1);
+        // the dumps show the large cascade's slice through the middle of the room (z = 0),
+        // chosen again every frame as the cascade follows the camera
+        let volume_slice = room_slice(scene.camera.position);
         let vis = Visualizations {
             particle_position: [v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?, v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?],
             particle_velocity: [v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?, v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?],
@@ -446,16 +453,32 @@ impl Part2 {
         self.lock().options = options;
     }
 
-    /// Moves the camera (from the next frame on).
+    /// Moves the camera (from the next frame on). Everything that depends on the camera
+    /// (light volumes' depth bounds, the cascades, the translucency volumes' boxes, the
+    /// light grid) follows it from that frame on.
     pub fn set_camera(&self, camera: Camera) {
         self.lock().camera = camera;
     }
 
-    /// Forgets the temporal histories (TAA, fog, eye adaptation stay valid).
+    /// The camera the next frame (or the frame being recorded) renders with, unjittered.
+    pub fn camera(&self) -> Camera {
+        self.lock().camera.clone()
+    }
+
+    /// The directional light's cascades this frame, refitted to the camera (the fog and the
+    /// translucency volumes read them); `None` without cascades.
+    pub fn set_directional_shadow(&self, shadow: Option<DirectionalShadow>) {
+        self.lock().shadow = shadow;
+    }
+
+    /// A camera cut: forgets the temporal histories (TAA, fog; the eye adaptation stays
+    /// valid) and the occlusion queries' results, which the old camera's depth decided
+    /// (every prop and light counts as visible until the new camera's queries come back).
     pub fn reset_history(&self) {
         let mut s = self.lock();
         s.taa.reset_history();
         s.fog.reset_history();
+        s.occlusion.camera_cut();
         s.previous = None;
     }
 
@@ -626,6 +649,9 @@ impl Part2 {
     pub fn translucent_volumes(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
         let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
+        let slice = room_slice(camera);
+        s.vis.volume_ambient.set_slice(&s.queue, slice);
+        s.vis.volume_filtered.set_slice(&s.queue, slice);
         ctx.step("InjectTranslucentVolume", |ctx| {
             s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows);
             s.vis.volume_ambient.output(ctx, None);
@@ -790,6 +816,13 @@ impl Part2 {
         let s = self.lock();
         s.fog.current_light_scattering().clone()
     }
+}
+
+/// The large translucency volume cascade's slice through z = 0 (the middle of the room) for
+/// a camera at `camera`.
+fn room_slice(camera: Vec3) -> u32 {
+    let (origin, cell) = TranslucentVolumes::cascade_box(camera, 1);
+    ((-origin.z / cell).max(0.0) as u32).min(super::translucent_volume::VOLUME_SIZE - 1)
 }
 
 fn object_transforms(s: &State, index: usize) -> Vec<Mat4> {
