@@ -258,7 +258,7 @@ impl DesktopFrame {
             size: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_size,
             z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
         };
-        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
+        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, &lights, grid, particles.is_some(), w, h)?;
         part2.set_options(options.part2);
         let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref(), &part2.translucency_volume())?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
@@ -304,8 +304,9 @@ impl DesktopFrame {
         let (s, t) = (&self.buffers, &self.targets);
         let p2 = &self.part2;
         let camera = p2.begin_frame();
-        self.write_camera(&camera);
-        self.follow_camera(&FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1)));
+        let view = FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1));
+        self.write_camera(&camera, &view);
+        self.follow_camera(&view);
         p2.particle_simulation(frame, fire);
         frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
@@ -325,7 +326,7 @@ impl DesktopFrame {
         }
         frame.pass("Lighting", |ctx| {
             self.lighting.record(ctx, s, t, &casts_shadow);
-            p2.translucent_volumes(ctx);
+            p2.translucent_volumes(ctx, &casts_shadow);
         });
         p2.reflections(frame);
         frame.pass("ExponentialHeightFog", |ctx| {
@@ -378,13 +379,15 @@ impl DesktopFrame {
 
     /// This frame's camera (jittered for TAA) into the View uniforms, and the movable props'
     /// transforms into their instance rows.
-    fn write_camera(&self, camera: &part2::FrameCamera) {
+    /// `view`: the same camera unjittered (its near plane places the light grid's slices).
+    fn write_camera(&self, camera: &part2::FrameCamera, view: &FrameView) {
         let mut v = self.base_view;
         v.view_proj = camera.view_proj;
         v.inv_view_proj = camera.inv_view_proj;
         v.view = camera.view;
         v.proj = camera.proj;
-        v.camera_position = camera.position.extend(v.camera_position.w);
+        v.camera_position = camera.position.extend(view.near);
+        v.light_grid_z_params = view.grid_z_params.extend(0.0);
         self.queue.write_buffer(&self._view_buffer, 0, bytemuck::bytes_of(&v));
         // every object's rows: movable props move, props that occlusion culling found hidden
         // get empty transforms (nothing rasterised) until a query finds them visible again
@@ -504,6 +507,7 @@ fn desktop_part2(
     targets: &resources::Targets,
     shadows: &shadow_depths::ShadowDepths,
     dummy_shadow: &resources::Texture,
+    lights: &[FrameLight],
     light_grid: part2::LightGridInputs<'_>,
     frame_draws_fire: bool,
     w: u32,
@@ -515,6 +519,7 @@ fn desktop_part2(
         _ => None,
     };
     let shadow_depth = shadows.csm_texture().map_or(&dummy_shadow.texture, |t| &t.texture);
+    let local_shadows = translucent_volume_shadows(shadows, lights);
     let part2_targets = part2::Part2Targets {
         size: [w, h],
         scene_depth: &targets.scene_depth.texture,
@@ -526,9 +531,43 @@ fn desktop_part2(
         // the cascades are stored with standard depth (lit where receiver <= stored)
         shadow_compare: wgpu::CompareFunction::LessEqual,
         light_grid,
+        local_shadows,
         frame_draws_fire,
     };
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
+}
+
+/// Each local light's own shadow as InjectTranslucentVolume reads it (by frame light index):
+/// a movable point light's cube, a stationary light's per-object tiles (at most six, the
+/// matrices a `ShadowProjectionUniforms` holds; `params.w` says how many). A light without
+/// tiles (no movable prop in its reach) has no shadow to read.
+fn translucent_volume_shadows<'a>(shadows: &'a shadow_depths::ShadowDepths, lights: &[FrameLight]) -> Vec<Option<translucent_volume::LocalLightShadow<'a>>> {
+    use translucent_volume::{LocalLightShadow, LocalShadowProjection};
+    lights
+        .iter()
+        .enumerate()
+        .map(|(li, l)| match l.shadow {
+            LocalShadow::None => None,
+            LocalShadow::Cube => shadows.setup.cubes.iter().find(|(i, _, _)| *i == li).map(|(_, cube, u)| LocalLightShadow {
+                light: li,
+                kind: LocalShadowProjection::OnePassPointLight,
+                atlas: &shadows.cube_texture(*cube).view,
+                projection: *u,
+            }),
+            LocalShadow::PerObject => {
+                let atlas = shadows.per_object_texture()?;
+                let tiles: Vec<&view::ShadowProjectionUniforms> = shadows.setup.per_object.iter().filter(|(i, _)| *i == li).map(|(_, u)| u).take(6).collect();
+                let first = tiles.first()?;
+                let mut projection = view::ShadowProjectionUniforms { light_position: first.light_position, params: first.params, ..Default::default() };
+                for (k, t) in tiles.iter().enumerate() {
+                    projection.world_to_shadow[k] = t.world_to_shadow[0];
+                    projection.atlas_rects[k] = t.atlas_rects[0];
+                }
+                projection.params.w = tiles.len() as f32;
+                Some(LocalLightShadow { light: li, kind: LocalShadowProjection::PerObject, atlas: &atlas.view, projection })
+            }
+        })
+        .collect()
 }
 
 /// The cascades as part 2 (the volumetric fog, the translucency volumes) reads them.

@@ -32,7 +32,7 @@ use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
 use super::particles::{CollisionInputs, EmitterDesc, Particles, TIME_STEP};
 use super::reflections::{CaptureDesc, ReflectionInputs, Reflections};
 use super::taa::TemporalAA;
-use super::translucent_volume::{InjectedLight, TranslucentVolumes};
+use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolumes};
 use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
@@ -56,8 +56,9 @@ pub struct Part2Options {
     /// How the translucent surfaces (the glass) are lit: per pixel from the light grid, or
     /// the diffuse light of the volumes' lights from the translucency lighting volumes.
     pub translucency_lighting: TranslucencyLightingMode,
-    /// InjectTranslucentVolume shadows the directional light by its cascades (off: the
-    /// volumes receive it as if nothing occluded it).
+    /// InjectTranslucentVolume shadows each light by its own shadow: the directional light
+    /// by its cascades, the shadow-casting local lights by their cube or per-object shadows
+    /// (off: the volumes receive every light as if nothing occluded it).
     pub translucency_volume_shadows: bool,
 }
 
@@ -133,6 +134,9 @@ pub struct Part2Targets<'a> {
     pub shadow_compare: wgpu::CompareFunction,
     /// ComputeLightGrid's lists: the local lights the volumetric fog scatters.
     pub light_grid: LightGridInputs<'a>,
+    /// Per local light (point lights, then spot lights, as `frame_lights` orders them): its own
+    /// shadow, where it casts one that InjectTranslucentVolume can read.
+    pub local_shadows: Vec<Option<LocalLightShadow<'a>>>,
     /// The frame draws the scene emitters' fire sprites itself (the runtime's
     /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
     /// haze.
@@ -305,14 +309,20 @@ impl Part2 {
 
         // the lights the volumes hold: the directional light where it shines, the local lights
         // that cast shadows (those ShadowedLights draws)
+        // (with their own shadows: none for the directional light, which reads the cascades)
         let mut lights = Vec::new();
+        let mut light_shadows = Vec::new();
+        let local_shadow = |index: usize| targets.local_shadows.get(index).cloned().flatten();
         if scene.sun.enabled {
             lights.push(InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity });
+            light_shadows.push(None);
         }
-        for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
+        for (i, l) in scene.point_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
             lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+            light_shadows.push(local_shadow(i));
         }
-        for l in scene.spot_lights.iter().filter(|l| l.casts_shadows) {
+        for (i, l) in scene.spot_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
+            light_shadows.push(local_shadow(scene.point_lights.len() + i));
             lights.push(InjectedLight::Spot {
                 position: l.position,
                 radius: l.radius,
@@ -322,7 +332,7 @@ impl Part2 {
                 outer_angle: l.outer_angle,
             });
         }
-        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
+        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
 
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
@@ -646,14 +656,23 @@ impl Part2 {
     }
 
     /// InjectTranslucentVolume and FilterTranslucentVolume: steps of the Lighting pass.
-    pub fn translucent_volumes(&self, ctx: &mut PassContext<'_>) {
+    /// `casts_shadow(light)`: whether local light `light` rendered its shadow depths this
+    /// frame (ShadowFrustumQueries); a light that did not is injected unshadowed.
+    pub fn translucent_volumes(&self, ctx: &mut PassContext<'_>, casts_shadow: &dyn Fn(usize) -> bool) {
+        // asked before locking: the frame's answer may come from this part's own queries
+        let local_lights = {
+            let s = self.lock();
+            s.scene.point_lights.len() + s.scene.spot_lights.len()
+        };
+        let rendered: Vec<bool> = (0..local_lights).map(casts_shadow).collect();
+        let casts_shadow = |light: usize| rendered.get(light).copied().unwrap_or(true);
         let s = self.lock();
         let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
         let slice = room_slice(camera);
         s.vis.volume_ambient.set_slice(&s.queue, slice);
         s.vis.volume_filtered.set_slice(&s.queue, slice);
         ctx.step("InjectTranslucentVolume", |ctx| {
-            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows);
+            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows, &casts_shadow);
             s.vis.volume_ambient.output(ctx, None);
         });
         ctx.step("FilterTranslucentVolume", |ctx| {
