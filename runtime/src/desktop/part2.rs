@@ -29,7 +29,7 @@ use super::frame_view::{is_volume, perm, groups, taa_jitter, volume_view, target
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
-use super::particles::{CollisionInputs, EmitterDesc, Particles, TIME_STEP};
+use super::particles::{CollisionInputs, EmitterDesc, LightingVolume, Particles, TIME_STEP};
 use super::reflections::{CaptureDesc, ReflectionInputs, Reflections};
 use super::taa::TemporalAA;
 use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolumes};
@@ -341,9 +341,11 @@ impl Part2 {
             emitters.push(EmitterDesc::sparks(e));
             emitters.push(EmitterDesc::smoke(e));
         }
-        // the smoke is lit by the large translucency volume cascade
-        let (lit_ambient, lit_dir) = (volume_view(volumes.volumes(1).0), volume_view(volumes.volumes(1).1));
-        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), (&lit_ambient, &lit_dir))?;
+        // the smoke is lit by both translucency volume cascades, blended as the glass reads them
+        let ambient = [volume_view(volumes.volumes(0).0), volume_view(volumes.volumes(1).0)];
+        let directional = [volume_view(volumes.volumes(0).1), volume_view(volumes.volumes(1).1)];
+        let lit = LightingVolume { params: volumes.lookup_buffer(), ambient: [&ambient[0], &ambient[1]], directional: [&directional[0], &directional[1]] };
+        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), &lit)?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
@@ -717,9 +719,6 @@ impl Part2 {
     /// The particle sprites over SceneColor: a step of Translucency.
     pub fn particle_sprites(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
-        let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
-        let (origin, cell) = TranslucentVolumes::cascade_box(camera, 1);
-        s.particles.update_sprites(&s.queue, origin.extend(cell));
         ctx.step("ParticleSprites", |ctx| {
             {
                 let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
