@@ -411,13 +411,14 @@ impl DesktopFrame {
     /// frame's `view`: the cascades of the directional light (their depth matrices, the
     /// projections Lighting, the translucency and part 2's fog and volumes read), each local
     /// light's depth bounds and whether the camera is inside its volume, the fire sprites'
-    /// view. (The View uniforms, the light grid's and every part 2 pass's camera are written
+    /// view, the light grid's depth slicing as the volumetric fog reads it. (The View uniforms, the light grid's and every part 2 pass's camera are written
     /// by [`DesktopFrame::write_camera`] and [`part2::Part2::begin_frame`].)
     fn follow_camera(&self, view: &FrameView) {
         let cascaded = self.shadows.update_cascades(&self.queue, view);
         self.lighting.update(&self.queue, view, cascaded.as_ref());
         self.translucency.update(&self.queue, cascaded.as_ref());
         self.part2.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
+        self.part2.set_light_grid_z_params(view.grid_z_params.extend(0.0));
         if let Some((buffer, base)) = &self.particle_view {
             let mut u = *base;
             u.view_proj = view.view_proj;

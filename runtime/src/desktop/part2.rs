@@ -477,6 +477,12 @@ impl Part2 {
         self.lock().camera.clone()
     }
 
+    /// The light grid's depth slicing this frame (ComputeLightGrid's, from the camera's near
+    /// plane), which the volumetric fog reads the grid with.
+    pub fn set_light_grid_z_params(&self, z_params: Vec4) {
+        self.lock().fog.set_light_grid_z_params(z_params);
+    }
+
     /// The directional light's cascades this frame, refitted to the camera (the fog and the
     /// translucency volumes read them); `None` without cascades.
     pub fn set_directional_shadow(&self, shadow: Option<DirectionalShadow>) {
