@@ -393,10 +393,29 @@ impl PipelineCache {
 
     /// A compute pipeline for a compute permutation, created on first use.
     pub fn compute(&self, name: &str) -> Result<Arc<ComputePipeline>, PipelineError> {
-        if let Some(p) = self.lock().compute.get(name) {
+        self.compute_from(name, self.passthrough)
+    }
+
+    /// A compute pipeline whose module is always created from the permutation's WGSL
+    /// artifact (wgpu compiles it), even where the device takes SPIR-V passthrough: for the
+    /// permutations whose Kiln SPIR-V lavapipe cannot compile (see `TranslucentVolumes`).
+    pub fn compute_from_wgsl(&self, name: &str) -> Result<Arc<ComputePipeline>, PipelineError> {
+        self.compute_from(name, false)
+    }
+
+    fn compute_from(&self, name: &str, passthrough: bool) -> Result<Arc<ComputePipeline>, PipelineError> {
+        let key = if passthrough == self.passthrough { name.to_string() } else { format!("{name} (WGSL)") };
+        if let Some(p) = self.lock().compute.get(&key) {
             return Ok(p.clone());
         }
         let (module, reflection) = self.module(name, Stage::Compute)?;
+        let module = if passthrough == self.passthrough {
+            module
+        } else {
+            let perm = self.archive.get(name)?;
+            let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+            create_module(&self.device, false, name, None, perm.artifact(Target::Wgsl), &reflection, &targets)?
+        };
         let layout = self.layout(name, &[&reflection])?;
         let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
@@ -416,7 +435,7 @@ impl PipelineCache {
         });
         let mut inner = self.lock();
         inner.stats.compute_pipelines += 1;
-        inner.compute.insert(name.to_string(), handle.clone());
+        inner.compute.insert(key, handle.clone());
         Ok(handle)
     }
 

@@ -1,7 +1,8 @@
 //! Lighting: direct light into SceneColor, as Unreal's deferred renderer does it.
 //!   NonShadowedLights: each unshadowed local light drawn as a sphere around its attenuation
 //!     radius (front faces with the depth test, or back faces when the camera is inside),
-//!     pixels outside the sphere's depth range rejected (the seeds' depth bounds test),
+//!     pixels outside the sphere's depth range rejected (the seeds' depth bounds test); both
+//!     the inside test and the depth range are the frame's camera's ([`Lighting::update`]),
 //!     stencil limited to lit pixels. Above `DesktopOptions::tiled_threshold` lights, all of
 //!     them in one `TiledDeferredLightingCS` dispatch instead.
 //!   ShadowedLights, per light: ShadowProjectionOnOpaque (the screen-space shadow mask,
@@ -14,6 +15,7 @@
 //!     proved every surface inside its bounds hidden), but the light is not dropped: the
 //!     query's answer is a frame old, and Unreal does not cull lights on it either.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use glam::{UVec4, Vec3, Vec4};
@@ -23,19 +25,53 @@ use crate::frame::{PassContext, Visualize};
 use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, read_only_depth, stencil_lit_only, uniform, FrameLight, LocalShadow, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
-use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, TiledLightingUniforms};
+use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
 use super::{Build, DesktopError, LightingPath};
 
-/// A light draw: pipeline, bind groups, and whether it is a sphere or the full screen.
+/// A light draw: its pipelines with their bind groups, and whether it is a sphere or the
+/// full screen.
 struct LightDraw {
-    pipeline: Arc<Render>,
-    groups: BindGroups,
+    /// A local light: [camera outside the light volume, camera inside it]; the directional
+    /// light: one, full screen.
+    variants: Vec<(Arc<Render>, BindGroups)>,
     radial: bool,
+    /// A local light's volume, which the camera of each frame is tested against.
+    volume: Option<LightVolume>,
+    /// Whether this frame's camera is inside the light volume (selects the variant).
+    inside: AtomicBool,
+}
+
+/// A local light's sphere and its `DeferredLight` buffer, whose depth bounds depend on the
+/// camera and are written every frame.
+struct LightVolume {
+    gpu: LocalLightGpu,
+    buffer: wgpu::Buffer,
+}
+
+impl LightDraw {
+    /// This frame's camera: the variant (inside or outside the volume) and the depth bounds.
+    fn update(&self, queue: &wgpu::Queue, view: &FrameView) {
+        let Some(v) = &self.volume else { return };
+        let (center, radius) = (v.gpu.position_radius.truncate(), v.gpu.position_radius.w);
+        self.inside.store(camera_inside(view, center, radius), Ordering::Relaxed);
+        queue.write_buffer(&v.buffer, 0, bytemuck::bytes_of(&DeferredLightUniforms { light: v.gpu, depth_bounds: depth_bounds(view, center, radius) }));
+    }
+
+    fn variant(&self) -> &(Arc<Render>, BindGroups) {
+        let i = usize::from(self.inside.load(Ordering::Relaxed)).min(self.variants.len() - 1);
+        &self.variants[i]
+    }
 }
 
 struct Projection {
     pipeline: Arc<Render>,
     groups: BindGroups,
+}
+
+/// Whether the camera is inside a light's sphere: the sphere mesh encloses the unit sphere,
+/// so within its radius (plus the near plane) the front faces may be clipped away.
+fn camera_inside(view: &FrameView, center: Vec3, radius: f32) -> bool {
+    view.position.distance(center) < radius * 1.03 + view.near * 2.0
 }
 
 struct ShadowedLight {
@@ -53,6 +89,8 @@ pub struct Lighting {
     shadowed: Vec<ShadowedLight>,
     /// Whether the tiled path runs this frame.
     pub tiled_path: bool,
+    /// The directional light's `ShadowProjection` buffer (its cascades follow the camera).
+    cascaded_projection: Option<wgpu::Buffer>,
 }
 
 /// Light type label of `StandardDeferredLightingPS`.
@@ -100,21 +138,26 @@ impl Lighting {
             values.push(("INVERSE_SQUARED_FALLOFF", u32::from(radial && inverse_squared).to_string()));
             let ps = p.permutation("StandardDeferredLightingPS", &values)?;
             let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
-            // The sphere mesh encloses the unit sphere; the camera is inside the volume when
-            // it is within that radius (plus the near plane).
-            let inside = radial && b.view.position.distance(center) < radius * 1.03 + b.view.near * 2.0;
-            let desc = if !radial {
-                RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
-            } else if inside {
-                RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Front), depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
+            // a local light: both ways of drawing its sphere, chosen every frame by where the
+            // camera is (front faces depth tested from outside, back faces from inside)
+            let descs = if !radial {
+                vec![RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }]
             } else {
-                RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Back), depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }
+                vec![
+                    RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Back), depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] },
+                    RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Front), depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] },
+                ]
             };
-            let pipeline = p.render(&vs, Some(&ps), &desc)?;
             let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
             let buffer = uniform(device, &format!("DeferredLight {label}"), &DeferredLightUniforms { light: gpu, depth_bounds: bounds });
-            let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer);
-            Ok(LightDraw { pipeline, groups, radial })
+            let mut variants = Vec::new();
+            for desc in &descs {
+                let pipeline = p.render(&vs, Some(&ps), desc)?;
+                let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer.clone());
+                variants.push((pipeline, groups));
+            }
+            let inside = AtomicBool::new(radial && camera_inside(b.view, center, radius));
+            Ok(LightDraw { variants, radial, volume: radial.then_some(LightVolume { gpu, buffer }), inside })
         };
 
         let unshadowed: Vec<&FrameLight> = b.lights.iter().filter(|l| l.shadow == LocalShadow::None).collect();
@@ -165,7 +208,7 @@ impl Lighting {
         let mut shadowed = Vec::new();
         let quality = b.options.shadow_quality.clamp(1, 3).to_string();
         let vs = p.permutation("PostProcessVS", &[])?;
-        let projection = |kind: &str, texture: &Texture, u: &super::view::ShadowProjectionUniforms, label: &str| -> Result<Projection, DesktopError> {
+        let projection = |kind: &str, texture: &Texture, u: &super::view::ShadowProjectionUniforms, label: &str| -> Result<(Projection, wgpu::Buffer), DesktopError> {
             let ps = p.permutation("ShadowProjectionPS", &[("SHADOW_PROJECTION_TYPE", kind.to_string()), ("SHADOW_QUALITY", quality.clone())])?;
             let pipeline = p.render(
                 &vs,
@@ -184,9 +227,10 @@ impl Lighting {
                     ("ShadowProjection", buffer.as_entire_binding()),
                 ],
             )?
-            .keeping(buffer);
-            Ok(Projection { pipeline, groups })
+            .keeping(buffer.clone());
+            Ok((Projection { pipeline, groups }, buffer))
         };
+        let mut cascaded_projection = None;
         let sun = &b.scene.sun;
         if sun.enabled {
             let gpu = LocalLightGpu {
@@ -197,7 +241,9 @@ impl Lighting {
             };
             let mut projections = Vec::new();
             if let (Some(u), Some(texture)) = (&shadows.setup.cascaded, shadows.csm_texture()) {
-                projections.push(projection("CASCADED", texture, u, "DirectionalLight")?);
+                let (projection, buffer) = projection("CASCADED", texture, u, "DirectionalLight")?;
+                projections.push(projection);
+                cascaded_projection = Some(buffer);
             }
             let shadowed_sun = !projections.is_empty();
             let light = light_draw("DIRECTIONAL", shadowed_sun, false, gpu, "DirectionalLight")?;
@@ -211,21 +257,34 @@ impl Lighting {
             let mut projections = Vec::new();
             for (_, u) in shadows.setup.per_object.iter().filter(|(i, _)| *i == li) {
                 let texture = shadows.per_object_texture().unwrap_or(dummy_shadow);
-                projections.push(projection("PER_OBJECT", texture, u, &l.name)?);
+                projections.push(projection("PER_OBJECT", texture, u, &l.name)?.0);
             }
             for (_, cube, u) in shadows.setup.cubes.iter().filter(|(i, _, _)| *i == li) {
-                projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?);
+                projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?.0);
             }
             let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
             let unshadowed = light_draw(light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
             shadowed.push(ShadowedLight { name: l.name.clone(), projections, light, local: Some((li, unshadowed)) });
         }
-        Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path })
+        Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path, cascaded_projection })
+    }
+
+    /// What depends on the camera, for this frame's `view`: each local light's depth bounds
+    /// and whether the camera is inside its volume, and the directional light's cascades
+    /// (`cascaded`, as ShadowDepths refitted them).
+    pub fn update(&self, queue: &wgpu::Queue, view: &FrameView, cascaded: Option<&ShadowProjectionUniforms>) {
+        for d in self.non_shadowed.iter().chain(self.shadowed.iter().flat_map(|l| std::iter::once(&l.light).chain(l.local.as_ref().map(|(_, d)| d)))) {
+            d.update(queue, view);
+        }
+        if let (Some(buffer), Some(u)) = (&self.cascaded_projection, cascaded) {
+            queue.write_buffer(buffer, 0, bytemuck::bytes_of(u));
+        }
     }
 
     fn draw_light(pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
-        pass.set_pipeline(&d.pipeline.pipeline);
-        d.groups.set_render(pass);
+        let (pipeline, groups) = d.variant();
+        pass.set_pipeline(&pipeline.pipeline);
+        groups.set_render(pass);
         if d.radial {
             pass.set_vertex_buffer(0, scene.sphere.vertices.slice(..));
             pass.set_index_buffer(scene.sphere.indices.slice(..), wgpu::IndexFormat::Uint32);

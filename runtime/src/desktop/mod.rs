@@ -180,7 +180,12 @@ pub struct DesktopFrame {
     _lights_buffer: wgpu::Buffer,
     _view_buffer: wgpu::Buffer,
     _samplers: resources::Samplers,
-    view: FrameView,
+    /// This frame's view (the camera part 2 renders with, unjittered), refreshed as every
+    /// frame begins: everything camera-dependent is computed from it per frame.
+    view: std::sync::Mutex<FrameView>,
+    /// The fire sprites' view uniforms (`FViewUniforms` of the runtime's particle pass) as
+    /// built, and their buffer, patched every frame with the camera.
+    particle_view: Option<(wgpu::Buffer, crate::gpu_types::ViewUniforms)>,
     lights: Vec<FrameLight>,
     prepass: prepass::PrePass,
     light_grid: light_grid::LightGrid,
@@ -253,11 +258,12 @@ impl DesktopFrame {
             size: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_size,
             z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
         };
-        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, grid, particles.is_some(), w, h)?;
+        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, &lights, grid, particles.is_some(), w, h)?;
         part2.set_options(options.part2);
         let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref(), &part2.translucency_volume())?;
         let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
+        let particle_view = particles.as_ref().map(|p| (p.view.clone(), crate::scene::gpu::view_uniforms(scene, w, h)));
         Ok(DesktopFrame {
             device: device.clone(),
             queue: queue.clone(),
@@ -270,7 +276,8 @@ impl DesktopFrame {
             _lights_buffer: lights_buffer,
             _view_buffer: view_buffer,
             _samplers: samplers,
-            view,
+            view: std::sync::Mutex::new(view),
+            particle_view,
             lights,
             prepass,
             light_grid,
@@ -297,7 +304,9 @@ impl DesktopFrame {
         let (s, t) = (&self.buffers, &self.targets);
         let p2 = &self.part2;
         let camera = p2.begin_frame();
-        self.write_camera(&camera);
+        let view = FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1));
+        self.write_camera(&camera, &view);
+        self.follow_camera(&view);
         p2.particle_simulation(frame, fire);
         frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
@@ -317,7 +326,7 @@ impl DesktopFrame {
         }
         frame.pass("Lighting", |ctx| {
             self.lighting.record(ctx, s, t, &casts_shadow);
-            p2.translucent_volumes(ctx);
+            p2.translucent_volumes(ctx, &casts_shadow);
         });
         p2.reflections(frame);
         frame.pass("ExponentialHeightFog", |ctx| {
@@ -370,13 +379,15 @@ impl DesktopFrame {
 
     /// This frame's camera (jittered for TAA) into the View uniforms, and the movable props'
     /// transforms into their instance rows.
-    fn write_camera(&self, camera: &part2::FrameCamera) {
+    /// `view`: the same camera unjittered (its near plane places the light grid's slices).
+    fn write_camera(&self, camera: &part2::FrameCamera, view: &FrameView) {
         let mut v = self.base_view;
         v.view_proj = camera.view_proj;
         v.inv_view_proj = camera.inv_view_proj;
         v.view = camera.view;
         v.proj = camera.proj;
-        v.camera_position = camera.position.extend(v.camera_position.w);
+        v.camera_position = camera.position.extend(view.near);
+        v.light_grid_z_params = view.grid_z_params.extend(0.0);
         self.queue.write_buffer(&self._view_buffer, 0, bytemuck::bytes_of(&v));
         // every object's rows: movable props move, props that occlusion culling found hidden
         // get empty transforms (nothing rasterised) until a query finds them visible again
@@ -394,6 +405,28 @@ impl DesktopFrame {
                 self.queue.write_buffer(&self.buffers.instances, offset, bytemuck::bytes_of(&row));
             }
         }
+    }
+
+    /// What the passes built with the first camera computed from it, recomputed for this
+    /// frame's `view`: the cascades of the directional light (their depth matrices, the
+    /// projections Lighting, the translucency and part 2's fog and volumes read), each local
+    /// light's depth bounds and whether the camera is inside its volume, the fire sprites'
+    /// view, the light grid's depth slicing as the volumetric fog reads it. (The View uniforms, the light grid's and every part 2 pass's camera are written
+    /// by [`DesktopFrame::write_camera`] and [`part2::Part2::begin_frame`].)
+    fn follow_camera(&self, view: &FrameView) {
+        let cascaded = self.shadows.update_cascades(&self.queue, view);
+        self.lighting.update(&self.queue, view, cascaded.as_ref());
+        self.translucency.update(&self.queue, cascaded.as_ref());
+        self.part2.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
+        self.part2.set_light_grid_z_params(view.grid_z_params.extend(0.0));
+        if let Some((buffer, base)) = &self.particle_view {
+            let mut u = *base;
+            u.view_proj = view.view_proj;
+            u.inv_view_proj = view.view_proj.inverse();
+            u.camera_position = view.position.extend(u.camera_position.w);
+            self.queue.write_buffer(buffer, 0, bytemuck::bytes_of(&u));
+        }
+        *self.view.lock().unwrap_or_else(|e| e.into_inner()) = *view;
     }
 
     /// Records the frame into its own output target.
@@ -416,8 +449,9 @@ impl DesktopFrame {
         &self.options
     }
 
-    pub fn view(&self) -> &FrameView {
-        &self.view
+    /// The view of the frame rendered last (before the first frame: of the scene's camera).
+    pub fn view(&self) -> FrameView {
+        *self.view.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// The scene's local lights as the light grid indexes them.
@@ -458,7 +492,7 @@ impl DesktopFrame {
             words
         };
         let cells = read(&self.light_grid.num_culled_lights);
-        let counts = cells.chunks_exact(2).take(self.view.grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
+        let counts = cells.chunks_exact(2).take(self.view().grid_cells() as usize).map(|c| [c[0], c[1]]).collect();
         (counts, read(&self.light_grid.culled_light_data))
     }
 }
@@ -474,6 +508,7 @@ fn desktop_part2(
     targets: &resources::Targets,
     shadows: &shadow_depths::ShadowDepths,
     dummy_shadow: &resources::Texture,
+    lights: &[FrameLight],
     light_grid: part2::LightGridInputs<'_>,
     frame_draws_fire: bool,
     w: u32,
@@ -481,14 +516,11 @@ fn desktop_part2(
 ) -> Result<part2::Part2, DesktopError> {
     let meshes: Vec<part2::MeshRef<'_>> = buffers.meshes.iter().map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count }).collect();
     let shadow = match (shadows.csm_texture(), &shadows.setup.cascaded) {
-        (Some(_), Some(c)) => Some(frame_view::DirectionalShadow {
-            cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],
-            splits: CASCADE_SPLITS,
-            rects: [c.atlas_rects[0], c.atlas_rects[1], c.atlas_rects[2]],
-        }),
+        (Some(_), Some(c)) => Some(directional_shadow(c)),
         _ => None,
     };
     let shadow_depth = shadows.csm_texture().map_or(&dummy_shadow.texture, |t| &t.texture);
+    let local_shadows = translucent_volume_shadows(shadows, lights);
     let part2_targets = part2::Part2Targets {
         size: [w, h],
         scene_depth: &targets.scene_depth.texture,
@@ -500,9 +532,52 @@ fn desktop_part2(
         // the cascades are stored with standard depth (lit where receiver <= stored)
         shadow_compare: wgpu::CompareFunction::LessEqual,
         light_grid,
+        local_shadows,
         frame_draws_fire,
     };
     Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
+}
+
+/// Each local light's own shadow as InjectTranslucentVolume reads it (by frame light index):
+/// a movable point light's cube, a stationary light's per-object tiles (at most six, the
+/// matrices a `ShadowProjectionUniforms` holds; `params.w` says how many). A light without
+/// tiles (no movable prop in its reach) has no shadow to read.
+fn translucent_volume_shadows<'a>(shadows: &'a shadow_depths::ShadowDepths, lights: &[FrameLight]) -> Vec<Option<translucent_volume::LocalLightShadow<'a>>> {
+    use translucent_volume::{LocalLightShadow, LocalShadowProjection};
+    lights
+        .iter()
+        .enumerate()
+        .map(|(li, l)| match l.shadow {
+            LocalShadow::None => None,
+            LocalShadow::Cube => shadows.setup.cubes.iter().find(|(i, _, _)| *i == li).map(|(_, cube, u)| LocalLightShadow {
+                light: li,
+                kind: LocalShadowProjection::OnePassPointLight,
+                atlas: &shadows.cube_texture(*cube).view,
+                projection: *u,
+            }),
+            LocalShadow::PerObject => {
+                let atlas = shadows.per_object_texture()?;
+                let tiles: Vec<&view::ShadowProjectionUniforms> = shadows.setup.per_object.iter().filter(|(i, _)| *i == li).map(|(_, u)| u).take(6).collect();
+                let first = tiles.first()?;
+                let mut projection = view::ShadowProjectionUniforms { light_position: first.light_position, params: first.params, ..Default::default() };
+                for (k, t) in tiles.iter().enumerate() {
+                    projection.world_to_shadow[k] = t.world_to_shadow[0];
+                    projection.atlas_rects[k] = t.atlas_rects[0];
+                }
+                projection.params.w = tiles.len() as f32;
+                Some(LocalLightShadow { light: li, kind: LocalShadowProjection::PerObject, atlas: &atlas.view, projection })
+            }
+        })
+        .collect()
+}
+
+/// The cascades as part 2 (the volumetric fog, the translucency volumes) reads them.
+fn directional_shadow(c: &view::ShadowProjectionUniforms) -> frame_view::DirectionalShadow {
+    frame_view::DirectionalShadow {
+        cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],
+        splits: CASCADE_SPLITS,
+        rects: [c.atlas_rects[0], c.atlas_rects[1], c.atlas_rects[2]],
+    }
 }
 
 /// The objects' instance rows, rewritten every frame (movable props move, culled props hide).

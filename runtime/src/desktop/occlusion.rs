@@ -204,6 +204,18 @@ impl OcclusionCulling {
         self.lights.casts_shadow(index)
     }
 
+    /// A camera cut: the results of queries issued from the old camera no longer say what
+    /// the new one sees. Every prop and light counts as visible again, and the results
+    /// still in flight are dropped when they come back (Unreal ignores the existing queries
+    /// of a view on a camera cut); the next frame's queries decide again.
+    pub fn camera_cut(&mut self) {
+        self.visibility.iter_mut().for_each(|v| *v = PropVisibility::Visible);
+        self.lights = ShadowFrustumVisibility::new(self.lights.visible.len());
+        for slot in &mut self.readbacks {
+            slot.queries.clear();
+        }
+    }
+
     /// Moves a prop (its box changed).
     pub fn set_bounds(&mut self, index: usize, bounds: (Vec3, Vec3)) {
         if let Some(b) = self.bounds.get_mut(index) {

@@ -29,10 +29,10 @@ use super::frame_view::{is_volume, perm, groups, taa_jitter, volume_view, target
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
-use super::particles::{CollisionInputs, EmitterDesc, Particles, TIME_STEP};
+use super::particles::{CollisionInputs, EmitterDesc, LightingVolume, Particles, TIME_STEP};
 use super::reflections::{CaptureDesc, ReflectionInputs, Reflections};
 use super::taa::TemporalAA;
-use super::translucent_volume::{InjectedLight, TranslucentVolumes};
+use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolumes};
 use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
@@ -56,8 +56,9 @@ pub struct Part2Options {
     /// How the translucent surfaces (the glass) are lit: per pixel from the light grid, or
     /// the diffuse light of the volumes' lights from the translucency lighting volumes.
     pub translucency_lighting: TranslucencyLightingMode,
-    /// InjectTranslucentVolume shadows the directional light by its cascades (off: the
-    /// volumes receive it as if nothing occluded it).
+    /// InjectTranslucentVolume shadows each light by its own shadow: the directional light
+    /// by its cascades, the shadow-casting local lights by their cube or per-object shadows
+    /// (off: the volumes receive every light as if nothing occluded it).
     pub translucency_volume_shadows: bool,
 }
 
@@ -133,6 +134,9 @@ pub struct Part2Targets<'a> {
     pub shadow_compare: wgpu::CompareFunction,
     /// ComputeLightGrid's lists: the local lights the volumetric fog scatters.
     pub light_grid: LightGridInputs<'a>,
+    /// Per local light (point lights, then spot lights, as `frame_lights` orders them): its own
+    /// shadow, where it casts one that InjectTranslucentVolume can read.
+    pub local_shadows: Vec<Option<LocalLightShadow<'a>>>,
     /// The frame draws the scene emitters' fire sprites itself (the runtime's
     /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
     /// haze.
@@ -171,7 +175,8 @@ struct Visualization {
     pipeline: Arc<ComputePipeline>,
     group: wgpu::BindGroup,
     image: wgpu::Texture,
-    _params: wgpu::Buffer,
+    params: wgpu::Buffer,
+    values: VisualizeParams,
 }
 
 #[repr(C)]
@@ -195,7 +200,13 @@ impl Visualization {
             ("SourceDepthTexture", wgpu::BindingResource::TextureView(&src)),
             ("out_image", wgpu::BindingResource::TextureView(&dst)),
         ])?;
-        Ok(Visualization { pipeline, group, image, _params: params })
+        Ok(Visualization { pipeline, group, image, params, values: VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] } })
+    }
+
+    /// Shows slice `slice` of a volume from now on.
+    fn set_slice(&self, queue: &wgpu::Queue, slice: u32) {
+        let values = VisualizeParams { slice: [slice, 0, 0, 0], ..self.values };
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&values));
     }
 
     /// Draws the image and declares it as the current pass or step's output `name`.
@@ -298,14 +309,20 @@ impl Part2 {
 
         // the lights the volumes hold: the directional light where it shines, the local lights
         // that cast shadows (those ShadowedLights draws)
+        // (with their own shadows: none for the directional light, which reads the cascades)
         let mut lights = Vec::new();
+        let mut light_shadows = Vec::new();
+        let local_shadow = |index: usize| targets.local_shadows.get(index).cloned().flatten();
         if scene.sun.enabled {
             lights.push(InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity });
+            light_shadows.push(None);
         }
-        for l in scene.point_lights.iter().filter(|l| l.casts_shadows) {
+        for (i, l) in scene.point_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
             lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+            light_shadows.push(local_shadow(i));
         }
-        for l in scene.spot_lights.iter().filter(|l| l.casts_shadows) {
+        for (i, l) in scene.spot_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
+            light_shadows.push(local_shadow(scene.point_lights.len() + i));
             lights.push(InjectedLight::Spot {
                 position: l.position,
                 radius: l.radius,
@@ -315,7 +332,7 @@ impl Part2 {
                 outer_angle: l.outer_angle,
             });
         }
-        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights)?;
+        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
 
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
@@ -324,9 +341,11 @@ impl Part2 {
             emitters.push(EmitterDesc::sparks(e));
             emitters.push(EmitterDesc::smoke(e));
         }
-        // the smoke is lit by the large translucency volume cascade
-        let (lit_ambient, lit_dir) = (volume_view(volumes.volumes(1).0), volume_view(volumes.volumes(1).1));
-        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), (&lit_ambient, &lit_dir))?;
+        // the smoke is lit by both translucency volume cascades, blended as the glass reads them
+        let ambient = [volume_view(volumes.volumes(0).0), volume_view(volumes.volumes(1).0)];
+        let directional = [volume_view(volumes.volumes(0).1), volume_view(volumes.volumes(1).1)];
+        let lit = LightingVolume { params: volumes.lookup_buffer(), ambient: [&ambient[0], &ambient[1]], directional: [&directional[0], &directional[1]] };
+        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), &lit)?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
@@ -379,9 +398,9 @@ impl Part2 {
         let pos_scale = Vec4::new(0.1, 0.25, 0.1, 0.0);
         let pos_bias = Vec4::new(0.0, 0.0, 0.5, 0.0);
         let vel_scale = Vec4::new(0.5, 0.3, 0.5, 0.0);
-        // the dumps show the large cascade's slice through the middle of the room (z = 0)
-        let (origin, cell) = TranslucentVolumes::cascade_box(scene.camera.position, 1);
-        let volume_slice = ((-origin.z / cell) as u32).min(super::translucent_volume::VOLUME_SIZE - 1);
+        // the dumps show the large cascade's slice through the middle of the room (z = 0),
+        // chosen again every frame as the cascade follows the camera
+        let volume_slice = room_slice(scene.camera.position);
         let vis = Visualizations {
             particle_position: [v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?, v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?],
             particle_velocity: [v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?, v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?],
@@ -446,16 +465,38 @@ impl Part2 {
         self.lock().options = options;
     }
 
-    /// Moves the camera (from the next frame on).
+    /// Moves the camera (from the next frame on). Everything that depends on the camera
+    /// (light volumes' depth bounds, the cascades, the translucency volumes' boxes, the
+    /// light grid) follows it from that frame on.
     pub fn set_camera(&self, camera: Camera) {
         self.lock().camera = camera;
     }
 
-    /// Forgets the temporal histories (TAA, fog, eye adaptation stay valid).
+    /// The camera the next frame (or the frame being recorded) renders with, unjittered.
+    pub fn camera(&self) -> Camera {
+        self.lock().camera.clone()
+    }
+
+    /// The light grid's depth slicing this frame (ComputeLightGrid's, from the camera's near
+    /// plane), which the volumetric fog reads the grid with.
+    pub fn set_light_grid_z_params(&self, z_params: Vec4) {
+        self.lock().fog.set_light_grid_z_params(z_params);
+    }
+
+    /// The directional light's cascades this frame, refitted to the camera (the fog and the
+    /// translucency volumes read them); `None` without cascades.
+    pub fn set_directional_shadow(&self, shadow: Option<DirectionalShadow>) {
+        self.lock().shadow = shadow;
+    }
+
+    /// A camera cut: forgets the temporal histories (TAA, fog; the eye adaptation stays
+    /// valid) and the occlusion queries' results, which the old camera's depth decided
+    /// (every prop and light counts as visible until the new camera's queries come back).
     pub fn reset_history(&self) {
         let mut s = self.lock();
         s.taa.reset_history();
         s.fog.reset_history();
+        s.occlusion.camera_cut();
         s.previous = None;
     }
 
@@ -623,11 +664,23 @@ impl Part2 {
     }
 
     /// InjectTranslucentVolume and FilterTranslucentVolume: steps of the Lighting pass.
-    pub fn translucent_volumes(&self, ctx: &mut PassContext<'_>) {
+    /// `casts_shadow(light)`: whether local light `light` rendered its shadow depths this
+    /// frame (ShadowFrustumQueries); a light that did not is injected unshadowed.
+    pub fn translucent_volumes(&self, ctx: &mut PassContext<'_>, casts_shadow: &dyn Fn(usize) -> bool) {
+        // asked before locking: the frame's answer may come from this part's own queries
+        let local_lights = {
+            let s = self.lock();
+            s.scene.point_lights.len() + s.scene.spot_lights.len()
+        };
+        let rendered: Vec<bool> = (0..local_lights).map(casts_shadow).collect();
+        let casts_shadow = |light: usize| rendered.get(light).copied().unwrap_or(true);
         let s = self.lock();
         let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
+        let slice = room_slice(camera);
+        s.vis.volume_ambient.set_slice(&s.queue, slice);
+        s.vis.volume_filtered.set_slice(&s.queue, slice);
         ctx.step("InjectTranslucentVolume", |ctx| {
-            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows);
+            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows, &casts_shadow);
             s.vis.volume_ambient.output(ctx, None);
         });
         ctx.step("FilterTranslucentVolume", |ctx| {
@@ -672,9 +725,6 @@ impl Part2 {
     /// The particle sprites over SceneColor: a step of Translucency.
     pub fn particle_sprites(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
-        let camera = s.current.map(|c| c.position).unwrap_or(s.camera.position);
-        let (origin, cell) = TranslucentVolumes::cascade_box(camera, 1);
-        s.particles.update_sprites(&s.queue, origin.extend(cell));
         ctx.step("ParticleSprites", |ctx| {
             {
                 let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -790,6 +840,13 @@ impl Part2 {
         let s = self.lock();
         s.fog.current_light_scattering().clone()
     }
+}
+
+/// The large translucency volume cascade's slice through z = 0 (the middle of the room) for
+/// a camera at `camera`.
+fn room_slice(camera: Vec3) -> u32 {
+    let (origin, cell) = TranslucentVolumes::cascade_box(camera, 1);
+    ((-origin.z / cell).max(0.0) as u32).min(super::translucent_volume::VOLUME_SIZE - 1)
 }
 
 fn object_transforms(s: &State, index: usize) -> Vec<Mat4> {

@@ -44,7 +44,6 @@ struct SpriteParams {
     size: Vec4,
     counts: UVec4,
     lighting: Vec4,
-    volume_origin: Vec4,
 }
 
 /// What an emitter simulates and draws.
@@ -156,7 +155,8 @@ struct Emitter {
     desc: EmitterDesc,
     seed: u32,
     sim_params: wgpu::Buffer,
-    sprite_params: wgpu::Buffer,
+    /// The sprites' `SpriteParams` (constant; kept with the bind groups that read it).
+    _sprite_params: wgpu::Buffer,
     positions: [wgpu::Texture; 2],
     velocities: [wgpu::Texture; 2],
     /// simulate[i] reads state i and writes state 1 - i.
@@ -185,6 +185,15 @@ pub struct Particles {
     empty: ([wgpu::Texture; 2], [wgpu::Texture; 2]),
 }
 
+/// The translucency lighting volumes as the lit sprites read them: both cascades (0 inner,
+/// 1 outer) of Ambient and Dir, and their boxes this frame (`TranslucencyLightingVolumeParams`,
+/// written every frame by InjectTranslucentVolume).
+pub struct LightingVolume<'a> {
+    pub params: &'a wgpu::Buffer,
+    pub ambient: [&'a wgpu::TextureView; 2],
+    pub directional: [&'a wgpu::TextureView; 2],
+}
+
 impl Particles {
     /// `target`: the colour and depth formats of the pass the sprites are drawn in.
     pub fn new(
@@ -194,7 +203,7 @@ impl Particles {
         descs: Vec<EmitterDesc>,
         collision: &CollisionInputs<'_>,
         target: (wgpu::TextureFormat, wgpu::TextureFormat),
-        lighting_volume: (&wgpu::TextureView, &wgpu::TextureView),
+        lighting_volume: &LightingVolume<'_>,
     ) -> Result<Particles, PipelineError> {
         let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
         let distortion_layout = cache.render(&perm(cache, "GPUSpriteVS", &[])?, Some(&perm(cache, "GPUSpriteDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
@@ -222,7 +231,7 @@ impl Particles {
             let positions = [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
             let velocities = [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
             let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
-            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc, Vec4::ZERO));
+            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
             let pos_views = [view(&positions[0]), view(&positions[1])];
             let vel_views = [view(&velocities[0]), view(&velocities[1])];
             let make_sim = |i: usize| {
@@ -248,8 +257,11 @@ impl Particles {
                     ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
                 ];
                 if lit {
-                    resources.push(("translucency_ambient", wgpu::BindingResource::TextureView(lighting_volume.0)));
-                    resources.push(("translucency_dir", wgpu::BindingResource::TextureView(lighting_volume.1)));
+                    resources.push(("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])));
+                    resources.push(("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])));
+                    resources.push(("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])));
+                    resources.push(("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])));
+                    resources.push(("translucency_volume", lighting_volume.params.as_entire_binding()));
                     resources.push(("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)));
                 }
                 pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
@@ -261,7 +273,7 @@ impl Particles {
                 desc,
                 seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
                 sim_params,
-                sprite_params,
+                _sprite_params: sprite_params,
                 positions,
                 velocities,
                 simulate,
@@ -376,23 +388,15 @@ impl Particles {
             pass.draw(0..6, 0..e.desc.max_particles);
         }
     }
-
-    /// This frame's translucency volume box (it follows the camera): min corner, cell size.
-    pub fn update_sprites(&self, queue: &wgpu::Queue, volume_origin: Vec4) {
-        for e in &self.emitters {
-            queue.write_buffer(&e.sprite_params, 0, bytemuck::bytes_of(&sprite_params(&e.desc, volume_origin)));
-        }
-    }
 }
 
-fn sprite_params(d: &EmitterDesc, volume_origin: Vec4) -> SpriteParams {
+fn sprite_params(d: &EmitterDesc) -> SpriteParams {
     SpriteParams {
         color_birth: d.color_birth,
         color_death: d.color_death,
         size: Vec4::new(d.size.0, d.size.1, d.stretch, d.distortion * 0.02),
         counts: UVec4::new(STATE_WIDTH, d.max_particles, 0, 0),
         lighting: Vec4::new(if d.lit { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0),
-        volume_origin,
     }
 }
 

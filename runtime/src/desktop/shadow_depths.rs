@@ -77,6 +77,10 @@ pub struct ShadowDepths {
     csm: Option<usize>,
     per_object: Option<usize>,
     cubes: Vec<usize>,
+    /// The cascades' `ShadowDepthPass` buffers, refitted to the camera every frame.
+    cascade_buffers: Vec<wgpu::Buffer>,
+    sun_direction: Vec3,
+    shadow_map_size: u32,
 }
 
 fn up_for(dir: Vec3) -> Vec3 {
@@ -111,6 +115,25 @@ pub fn cascade_matrices(view: &FrameView, light_direction: Vec3) -> [Mat4; CASCA
         near = *far;
     }
     out
+}
+
+/// The cascaded shadow's projection uniforms for `view` (and the cascades' matrices): what
+/// ShadowProjectionOnOpaque, the forward-lit translucency and part 2 read. `size`: one
+/// cascade's side in texels.
+pub fn cascaded_uniforms(view: &FrameView, light_direction: Vec3, size: u32) -> (ShadowProjectionUniforms, [Mat4; CASCADES]) {
+    let matrices = cascade_matrices(view, light_direction);
+    let mut u = ShadowProjectionUniforms {
+        cascade_far_depths: Vec4::new(CASCADE_SPLITS[0], CASCADE_SPLITS[1], CASCADE_SPLITS[2], CASCADES as f32),
+        params: Vec4::new(0.0005, 2.0, 0.0, 0.0),
+        ..Default::default()
+    };
+    for (i, m) in matrices.iter().enumerate() {
+        // World size of one shadow texel of this cascade (its box is 2r wide).
+        u.light_position[i] = 2.0 / m.row(0).truncate().length() / size as f32;
+        u.world_to_shadow[i] = *m;
+        u.atlas_rects[i] = Vec4::new(i as f32 / CASCADES as f32, 0.0, 1.0 / CASCADES as f32, 1.0);
+    }
+    (u, matrices)
 }
 
 /// The six face projections of a point light (+x, -x, +y, -y, +z, -z).
@@ -168,25 +191,15 @@ impl ShadowDepths {
         let mut setup = ShadowSetup::default();
         let (mut csm, mut per_object, mut cubes) = (None, None, Vec::new());
 
+        let mut cascade_buffers = Vec::new();
         if b.scene.sun.enabled && b.scene.sun.casts_shadows {
-            let matrices = cascade_matrices(b.view, b.scene.sun.direction);
-            let mut u = ShadowProjectionUniforms {
-                cascade_far_depths: Vec4::new(CASCADE_SPLITS[0], CASCADE_SPLITS[1], CASCADE_SPLITS[2], CASCADES as f32),
-                params: Vec4::new(0.0005, 2.0, 0.0, 0.0),
-                ..Default::default()
-            };
+            let (u, matrices) = cascaded_uniforms(b.view, b.scene.sun.direction, size);
             let mut views = Vec::new();
             for (i, m) in matrices.iter().enumerate() {
-                // World size of one shadow texel of this cascade (its box is 2r wide).
-                u.light_position[i] = 2.0 / m.row(0).truncate().length() / size as f32;
-                u.world_to_shadow[i] = *m;
-                u.atlas_rects[i] = Vec4::new(i as f32 / CASCADES as f32, 0.0, 1.0 / CASCADES as f32, 1.0);
-                views.push(ShadowView {
-                    viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32],
-                    groups: view_groups(&ortho, *m, &format!("Cascade{i}"))?,
-                    draws: casters.clone(),
-                    light: None,
-                });
+                let buffer = uniform(device, &format!("Cascade{i}"), &ShadowDepthPassUniforms { view_proj: *m });
+                cascade_buffers.push(buffer.clone());
+                let groups = ortho.layout.bind_groups(device, &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())])?.keeping(buffer);
+                views.push(ShadowView { viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32], groups, draws: casters.clone(), light: None });
             }
             setup.cascaded = Some(u);
             csm = Some(atlases.len());
@@ -283,7 +296,29 @@ impl ShadowDepths {
                 cache: Some(cache),
             });
         }
-        Ok(ShadowDepths { atlases, light_names: b.lights.iter().map(|l| l.name.clone()).collect(), setup, csm, per_object, cubes })
+        Ok(ShadowDepths {
+            atlases,
+            light_names: b.lights.iter().map(|l| l.name.clone()).collect(),
+            setup,
+            csm,
+            per_object,
+            cubes,
+            cascade_buffers,
+            sun_direction: b.scene.sun.direction,
+            shadow_map_size: size,
+        })
+    }
+
+    /// Refits the cascades to this frame's camera: rewrites their `ShadowDepthPass`
+    /// matrices and returns the projection uniforms the readers of the cascades bind this
+    /// frame (`None` without cascades). The local lights' shadows do not depend on the camera.
+    pub fn update_cascades(&self, queue: &wgpu::Queue, view: &FrameView) -> Option<ShadowProjectionUniforms> {
+        self.csm?;
+        let (u, matrices) = cascaded_uniforms(view, self.sun_direction, self.shadow_map_size);
+        for (buffer, m) in self.cascade_buffers.iter().zip(matrices) {
+            queue.write_buffer(buffer, 0, bytemuck::bytes_of(&ShadowDepthPassUniforms { view_proj: m }));
+        }
+        Some(u)
     }
 
     /// The cascade atlas (a 1x1 cleared map when the directional light casts none).

@@ -27,6 +27,8 @@ pub struct Translucency {
     sprites: Vec<(Arc<Render>, BindGroups, u32)>,
     compose: Arc<Render>,
     compose_groups: BindGroups,
+    /// The surfaces' `DirectionalShadow` buffers (the cascades follow the camera).
+    directional_shadow: Vec<wgpu::Buffer>,
 }
 
 impl Translucency {
@@ -63,6 +65,7 @@ impl Translucency {
                 sprites.push((pipeline, groups, count));
             }
         }
+        let mut directional_shadow = Vec::new();
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
             let (ambient, directional) = (volume.ambient.each_ref().map(volume_view), volume.directional.each_ref().map(volume_view));
             let volume_sampler = b.device.create_sampler(&wgpu::SamplerDescriptor {
@@ -86,9 +89,10 @@ impl Translucency {
                 ("TranslucencyLightingVolumeDirectionalOuter", wgpu::BindingResource::TextureView(&directional[1])),
                 ("TranslucencyLightingVolumeSampler", wgpu::BindingResource::Sampler(&volume_sampler)),
             ]);
-            let forward = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceForwardShading, shadows, &resources)?;
-            let volume = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceLightingVolume, shadows, &resources)?;
+            let (forward, a) = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceForwardShading, shadows, &resources)?;
+            let (volume, b) = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceLightingVolume, shadows, &resources)?;
             drop(resources);
+            directional_shadow = vec![a, b];
             Some([forward, volume])
         } else {
             None
@@ -99,7 +103,16 @@ impl Translucency {
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;
         let compose_groups = compose.layout.bind_groups(b.device, &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))])?;
-        Ok(Translucency { surfaces, sprites, compose, compose_groups })
+        Ok(Translucency { surfaces, sprites, compose, compose_groups, directional_shadow })
+    }
+
+    /// This frame's cascades of the directional light (they follow the camera).
+    pub fn update(&self, queue: &wgpu::Queue, cascaded: Option<&super::view::ShadowProjectionUniforms>) {
+        if let Some(u) = cascaded {
+            for buffer in &self.directional_shadow {
+                queue.write_buffer(buffer, 0, bytemuck::bytes_of(u));
+            }
+        }
     }
 
     /// The lit translucent surfaces' pipeline in `mode`, with its bind groups.
@@ -108,7 +121,7 @@ impl Translucency {
         mode: TranslucencyLightingMode,
         shadows: &ShadowDepths,
         resources: &[(&str, wgpu::BindingResource<'_>)],
-    ) -> Result<(Arc<Render>, BindGroups), DesktopError> {
+    ) -> Result<((Arc<Render>, BindGroups), wgpu::Buffer), DesktopError> {
         let (p, t) = (b.pipelines, b.targets);
         let pipeline = p.render(
             &p.permutation("DeferredBasePassVS", &[])?,
@@ -138,7 +151,7 @@ impl Translucency {
         resources.push(("DirectionalShadow", directional.as_entire_binding()));
         let groups = pipeline.layout.bind_groups(b.device, &resources)?;
         drop(resources);
-        Ok((pipeline, groups.keeping(directional)))
+        Ok(((pipeline, groups.keeping(directional.clone())), directional))
     }
 
     /// `mode`: how the glass is lit this frame.

@@ -2,10 +2,13 @@
 //! two cascaded 64^3 translucency lighting volumes centred on the camera (cascade 0 small and
 //! sharp, cascade 1 large), each a pair of RGBA16F volumes, Ambient (the light arriving at the
 //! cell: SH band 0) and Dir (the luminance-weighted light direction: SH band 1). Each shadowed
-//! light (the directional light, shadowed here by its cascades, and the shadow-casting point
-//! and spot lights, whose own shadows are not applied here) is injected by its own dispatch
-//! per cascade, reading the volumes the previous light wrote and writing the other pair
-//! (ping-pong); then a 3x3x3 tent filter writes the volumes
+//! light is injected with its own shadow (the directional light with its cascades, a movable
+//! point light with its cube shadow, a stationary point or spot light with its per-object
+//! shadow tiles: `TranslucentVolumeInjectCS{DYNAMICALLY_SHADOWED=1, SHADOW_PROJECTION_TYPE}`,
+//! looking them up as ShadowProjectionOnOpaque does) by its own dispatch per cascade, reading
+//! the volumes the previous light wrote and writing the other pair (ping-pong); a local light
+//! whose shadow work ShadowFrustumQueries skipped this frame, or one without shadow tiles, is
+//! injected unshadowed. Then a 3x3x3 tent filter writes the volumes
 //! translucent surfaces and particles read. The cascades' boxes of the frame are kept in a
 //! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
 //! surfaces that read both cascades.
@@ -18,6 +21,7 @@ use glam::{Mat4, Vec3, Vec4};
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
 use super::frame_view::{perm, groups, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::view::ShadowProjectionUniforms;
 
 pub const VOLUME_SIZE: u32 = 64;
 pub const VOLUME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -45,6 +49,37 @@ pub enum InjectedLight {
     Point { position: Vec3, radius: f32, color: Vec3 },
     /// A spot light: `direction` the way the cone points; the cone's half angles in radians.
     Spot { position: Vec3, radius: f32, color: Vec3, direction: Vec3, inner_angle: f32, outer_angle: f32 },
+}
+
+/// How a local light's own shadow is projected (`SHADOW_PROJECTION_TYPE`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LocalShadowProjection {
+    /// A stationary light's per-object shadow tiles: `projection.params.w` of them, matrix and
+    /// atlas rect `k` each.
+    PerObject,
+    /// A movable point light's cube shadow: six faces, side by side.
+    OnePassPointLight,
+}
+
+impl LocalShadowProjection {
+    fn label(self) -> &'static str {
+        match self {
+            LocalShadowProjection::PerObject => "PER_OBJECT",
+            LocalShadowProjection::OnePassPointLight => "ONE_PASS_POINT_LIGHT",
+        }
+    }
+}
+
+/// A shadow-casting local light's shadow as InjectTranslucentVolume reads it: the shadow
+/// depths ShadowDepths renders and the projection ShadowProjectionOnOpaque binds.
+#[derive(Clone, Debug)]
+pub struct LocalLightShadow<'a> {
+    /// The light's index among the frame's local lights (point lights, then spot lights):
+    /// what the ShadowFrustumQueries decide on.
+    pub light: usize,
+    pub kind: LocalShadowProjection,
+    pub atlas: &'a wgpu::TextureView,
+    pub projection: ShadowProjectionUniforms,
 }
 
 /// `TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`.
@@ -75,9 +110,16 @@ struct Injection {
     params: wgpu::Buffer,
     /// Through `TranslucentVolumeInjectCS{DYNAMICALLY_SHADOWED=0}`.
     unshadowed: wgpu::BindGroup,
-    /// Through `{DYNAMICALLY_SHADOWED=1}`: the directional light, shadowed by its cascades.
-    shadowed: Option<wgpu::BindGroup>,
+    /// Through `{DYNAMICALLY_SHADOWED=1}`: the index of the pipeline (in
+    /// `TranslucentVolumes::inject`) and its bind group with the light's shadow.
+    shadowed: Option<(usize, wgpu::BindGroup)>,
 }
+
+/// Pipelines of `TranslucentVolumes::inject`: unshadowed, then shadowed by projection type.
+const INJECT_UNSHADOWED: usize = 0;
+const INJECT_CASCADED: usize = 1;
+const INJECT_PER_OBJECT: usize = 2;
+const INJECT_POINT: usize = 3;
 
 struct Cascade {
     /// [ambient, dir] x [zero, A, B, filtered]
@@ -90,9 +132,13 @@ struct Cascade {
 
 pub struct TranslucentVolumes {
     cascades: Vec<Cascade>,
-    inject: [Arc<ComputePipeline>; 2],
+    inject: [Arc<ComputePipeline>; 4],
     filter: Arc<ComputePipeline>,
     lights: Vec<InjectedLight>,
+    /// Per light: the frame's local light index whose ShadowFrustumQuery gates its shadow.
+    gates: Vec<Option<usize>>,
+    /// The local lights' `ShadowProjection` buffers (kept alive with the bind groups).
+    _projections: Vec<wgpu::Buffer>,
     /// This frame's [`LookupParams`], written by [`TranslucentVolumes::record_inject`].
     lookup: wgpu::Buffer,
 }
@@ -108,6 +154,9 @@ fn read_pair(k: usize) -> usize {
 
 impl TranslucentVolumes {
     /// The lights are fixed when the volumes are built (one bind group per light and cascade).
+    /// `shadows[k]`: light `k`'s own shadow where it is a local light with one (the directional
+    /// light is shadowed by `shadow_atlas`, its cascades).
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         device: &wgpu::Device,
         cache: &PipelineCache,
@@ -115,10 +164,23 @@ impl TranslucentVolumes {
         shadow_atlas: &wgpu::TextureView,
         shadow_compare: wgpu::CompareFunction,
         lights: Vec<InjectedLight>,
+        shadows: &[Option<LocalLightShadow<'_>>],
     ) -> Result<TranslucentVolumes, PipelineError> {
-        let unshadowed = cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "0")])?)?;
-        let shadowed = cache.compute(&perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", "1")])?)?;
-        let inject = [unshadowed, shadowed];
+        let name = |shadowed: &str, kind: &str| perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", shadowed), ("SHADOW_PROJECTION_TYPE", kind)]);
+        // The local lights' shadowed permutations from their WGSL: lavapipe crashes (SIGBUS
+        // in pipeline creation) on Kiln's SPIR-V of both, even reduced to one
+        // textureSampleCompareLevel of the shadow atlas, while the same WGSL compiled by wgpu
+        // runs; the cascaded one's SPIR-V is fine.
+        let inject = [
+            cache.compute(&name("0", "CASCADED")?)?,
+            cache.compute(&name("1", "CASCADED")?)?,
+            cache.compute_from_wgsl(&name("1", "PER_OBJECT")?)?,
+            cache.compute_from_wgsl(&name("1", "ONE_PASS_POINT_LIGHT")?)?,
+        ];
+        let local_shadow = |k: usize| shadows.get(k).and_then(Option::as_ref);
+        let projections: Vec<Option<wgpu::Buffer>> =
+            (0..lights.len()).map(|k| local_shadow(k).map(|s| uniform_buffer(device, &format!("InjectTranslucentVolume shadow {}", s.kind.label()), &s.projection))).collect();
+        let gates = (0..lights.len()).map(|k| local_shadow(k).map(|s| s.light)).collect();
         let filter = cache.compute(&perm(cache, "TranslucentVolumeFilterCS", &[])?)?;
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("TranslucentVolume shadow sampler"),
@@ -147,14 +209,25 @@ impl TranslucentVolumes {
                     ("out_ambient", tex(&ambient_views[w])),
                     ("out_dir", tex(&dir_views[w])),
                 ];
-                let unshadowed = inject[0].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
-                let shadowed = if matches!(light, InjectedLight::Directional { .. }) {
-                    resources.push(("view", frame_view.as_entire_binding()));
-                    resources.push(("shadow_atlas", tex(shadow_atlas)));
-                    resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
-                    Some(inject[1].layout.bind_group(device, 0, "InjectTranslucentVolume (shadowed)", &resources)?)
-                } else {
-                    None
+                let unshadowed = inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
+                let shadowed = match (light, local_shadow(k), &projections[k]) {
+                    (InjectedLight::Directional { .. }, _, _) => {
+                        resources.push(("view", frame_view.as_entire_binding()));
+                        resources.push(("shadow_atlas", tex(shadow_atlas)));
+                        resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
+                        Some((INJECT_CASCADED, inject[INJECT_CASCADED].layout.bind_group(device, 0, "InjectTranslucentVolume (cascaded shadow)", &resources)?))
+                    }
+                    (_, Some(s), Some(projection)) => {
+                        let pipeline = match s.kind {
+                            LocalShadowProjection::PerObject => INJECT_PER_OBJECT,
+                            LocalShadowProjection::OnePassPointLight => INJECT_POINT,
+                        };
+                        resources.push(("shadow_atlas", tex(s.atlas)));
+                        resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
+                        resources.push(("ShadowProjection", projection.as_entire_binding()));
+                        Some((pipeline, inject[pipeline].layout.bind_group(device, 0, &format!("InjectTranslucentVolume ({} shadow)", s.kind.label()), &resources)?))
+                    }
+                    _ => None,
                 };
                 injections.push(Injection { params, unshadowed, shadowed });
             }
@@ -168,7 +241,7 @@ impl TranslucentVolumes {
             cascades.push(Cascade { ambient, dir, injections, filter_group });
         }
         let lookup = uniform_buffer(device, "TranslucencyLightingVolume", &LookupParams::default());
-        Ok(TranslucentVolumes { cascades, inject, filter, lights, lookup })
+        Ok(TranslucentVolumes { cascades, inject, filter, lights, gates, _projections: projections.into_iter().flatten().collect(), lookup })
     }
 
     /// The cascades' boxes this frame ([`LookupParams`]), for the surfaces that read the volumes.
@@ -196,9 +269,11 @@ impl TranslucentVolumes {
         (origin, cell)
     }
 
-    /// InjectTranslucentVolume: every light into both cascades, the directional light
-    /// shadowed by `shadow` when `shadows` (else unshadowed, as if nothing occluded it).
-    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>, shadows: bool) {
+    /// InjectTranslucentVolume: every light into both cascades, each shadowed by its own
+    /// shadow when `shadows` (else unshadowed, as if nothing occluded it): the directional
+    /// light by `shadow` (this frame's cascades), a local light by its shadow depths where
+    /// `casts_shadow(local light index)` says they were rendered this frame.
+    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>, shadows: bool, casts_shadow: &dyn Fn(usize) -> bool) {
         let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
         queue.write_buffer(&self.lookup, 0, bytemuck::bytes_of(&LookupParams::new(camera)));
         let n = groups(VOLUME_SIZE, 4);
@@ -207,9 +282,10 @@ impl TranslucentVolumes {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("InjectTranslucentVolume cascade {c}")), timestamp_writes: None });
             for (k, light) in self.lights.iter().enumerate() {
                 let injection = &cascade.injections[k];
-                let (shadowed, group) = match &injection.shadowed {
-                    Some(g) if shadows => (true, g),
-                    _ => (false, &injection.unshadowed),
+                let rendered = self.gates[k].is_none_or(|l| casts_shadow(l));
+                let (pipeline, group) = match &injection.shadowed {
+                    Some((pipeline, g)) if shadows && rendered => (*pipeline, g),
+                    _ => (INJECT_UNSHADOWED, &injection.unshadowed),
                 };
                 let (position, color, spot_direction, spot_angles) = match *light {
                     InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0), Vec4::ZERO, Vec4::ZERO),
@@ -231,7 +307,7 @@ impl TranslucentVolumes {
                     spot_angles,
                 };
                 queue.write_buffer(&injection.params, 0, bytemuck::bytes_of(&p));
-                pass.set_pipeline(&self.inject[usize::from(shadowed)].pipeline);
+                pass.set_pipeline(&self.inject[pipeline].pipeline);
                 pass.set_bind_group(0, group, &[]);
                 pass.dispatch_workgroups(n, n, n);
             }

@@ -5,7 +5,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
-use crate::scene::Scene;
+use crate::scene::{Camera, Scene};
 
 /// Light grid tile size in pixels (Unreal's 64x64 px tiles).
 pub const LIGHT_GRID_TILE: u32 = 64;
@@ -139,21 +139,28 @@ pub struct FrameView {
 }
 
 impl FrameView {
+    /// The view of the scene's own camera.
     pub fn new(scene: &Scene, width: u32, height: u32) -> FrameView {
+        FrameView::from_camera(&scene.camera, width, height)
+    }
+
+    /// The view of `camera` (unjittered): what the frame computes every frame from the
+    /// camera it renders with, so that nothing camera-dependent outlives a camera move.
+    pub fn from_camera(camera: &Camera, width: u32, height: u32) -> FrameView {
         let aspect = width as f32 / height as f32;
-        let view = scene.camera.view();
-        let proj = scene.camera.projection(aspect);
+        let view = camera.view();
+        let proj = camera.projection(aspect);
         let grid = [width.div_ceil(LIGHT_GRID_TILE), height.div_ceil(LIGHT_GRID_TILE), LIGHT_GRID_SLICES];
         FrameView {
             width,
             height,
-            position: scene.camera.position,
-            near: scene.camera.near,
+            position: camera.position,
+            near: camera.near,
             view,
             proj,
             view_proj: proj * view,
             grid,
-            grid_z_params: light_grid_z_params(scene.camera.near, LIGHT_GRID_FAR, LIGHT_GRID_SLICES),
+            grid_z_params: light_grid_z_params(camera.near, LIGHT_GRID_FAR, LIGHT_GRID_SLICES),
         }
     }
 

@@ -235,6 +235,11 @@ impl VolumetricFog {
         self.current
     }
 
+    /// The light grid's depth slicing this frame (it follows the camera's near plane).
+    pub fn set_light_grid_z_params(&mut self, z_params: Vec4) {
+        self.light_grid.1 = z_params;
+    }
+
     /// InitializeVolumeAttributes (and this frame's parameters).
     pub fn record_initialize(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings) {
         let (cascades, splits, rects) = DirectionalShadow::uniforms(settings.shadow.as_ref());
