@@ -78,7 +78,13 @@ fn mobile_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene, options:
 }
 
 fn desktop_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene) -> Timing {
-    let renderer = Renderer::new(gpu, archive.clone(), scene, RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT, comparison: false }).expect("desktop frame");
+    let renderer = Renderer::new(
+        gpu,
+        archive.clone(),
+        scene,
+        RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT, comparison: false },
+    )
+    .expect("desktop frame");
     let mut frames = Vec::new();
     for i in 0..=FRAMES {
         let start = Instant::now();
@@ -106,20 +112,37 @@ fn main() {
     };
     let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() }).unwrap_or_else(|e| panic!("{e}"));
     let archive = Arc::new(ShaderArchive::embedded().expect("embedded archive"));
-    println!("mobile frames at {WIDTH}x{HEIGHT} on {} ({backend}), mean of {FRAMES} frames after one warm-up", gpu.info.name);
-    println!("{:>6} | {:>27} | {:>27} | {:>27} | deferred/forward", "lights", "mobile forward", "mobile deferred", "desktop");
+    println!(
+        "mobile frames at {WIDTH}x{HEIGHT} on {} ({backend}), mean of {FRAMES} frames after one warm-up",
+        gpu.info.name
+    );
+    println!(
+        "{:>6} | {:>27} | {:>27} | {:>27} | deferred/forward",
+        "lights", "mobile forward", "mobile deferred", "desktop"
+    );
     let mut rows = Vec::new();
     for n in LIGHT_COUNTS {
         let scene = scene_with_lights(n);
         let forward = mobile_frame(&gpu, &archive, &scene, MobileOptions::forward());
         let deferred = mobile_frame(&gpu, &archive, &scene, MobileOptions::deferred());
         let desktop = desktop_frame(&gpu, &archive, &scene);
-        println!("{n:>6} | {} | {} | {} | {:.2}", fmt(&forward), fmt(&deferred), fmt(&desktop), deferred.wall_ms / forward.wall_ms);
+        println!(
+            "{n:>6} | {} | {} | {} | {:.2}",
+            fmt(&forward),
+            fmt(&deferred),
+            fmt(&desktop),
+            deferred.wall_ms / forward.wall_ms
+        );
         rows.push((n, forward, deferred, desktop));
     }
     let base = &rows[0];
     println!("growth of the wall time against 0 local lights (forward shades at most 4):");
     for (n, f, d, k) in &rows[1..] {
-        println!("{n:>6} | forward x{:.2} | deferred x{:.2} | desktop x{:.2}", f.wall_ms / base.1.wall_ms, d.wall_ms / base.2.wall_ms, k.wall_ms / base.3.wall_ms);
+        println!(
+            "{n:>6} | forward x{:.2} | deferred x{:.2} | desktop x{:.2}",
+            f.wall_ms / base.1.wall_ms,
+            d.wall_ms / base.2.wall_ms,
+            k.wall_ms / base.3.wall_ms
+        );
     }
 }

@@ -73,11 +73,18 @@ fn archive_bench() {
     println!("archive: {} bytes, {} permutations, {} blobs", bytes.len(), names.len(), archive.archive().blob_count());
     println!("  open (embedded, verify checksum + parse manifest): {:8.1} us", us(open_static));
     println!("  open (mmap file):                                  {:8.1} us", us(open_mmap));
-    println!("  1,000 lookups by name (hash map):                  {:8.1} us  ({:.0} ns each)", us(lookups), us(lookups));
+    println!(
+        "  1,000 lookups by name (hash map):                  {:8.1} us  ({:.0} ns each)",
+        us(lookups),
+        us(lookups)
+    );
     println!("  1,000 lookups by builder (canonical name + hash):  {:8.1} us", us(builder));
     println!("  1,000 lookups by linear scan (baseline):           {:8.1} us", us(scans));
     println!("  open + 1,000 lookups:                              {:8.1} us", us(open_static + lookups));
-    println!("  ratio linear scan / hash lookup:                   {:8.1}x", scans.as_secs_f64() / lookups.as_secs_f64());
+    println!(
+        "  ratio linear scan / hash lookup:                   {:8.1}x",
+        scans.as_secs_f64() / lookups.as_secs_f64()
+    );
     let _ = std::fs::remove_dir_all(&dir);
 
     // Lookups stay flat as archives grow: a synthetic archive of 16,384 permutations
@@ -89,7 +96,10 @@ fn archive_bench() {
         level: "sm5".into(),
         entry: "main_ps".into(),
         stage: kiln::Stage::Fragment,
-        dimensions: dims.iter().map(|d| kiln::archive::DimensionRecord { name: d.to_string(), labels: vec![] }).collect(),
+        dimensions: dims
+            .iter()
+            .map(|d| kiln::archive::DimensionRecord { name: d.to_string(), labels: vec![] })
+            .collect(),
     });
     let reflection = w.add_reflection(&kiln::archive::Reflection {
         entry: "main_ps".into(),
@@ -102,7 +112,10 @@ fn archive_bench() {
     let mut big_names = Vec::new();
     for i in 0..16384i64 {
         let values = [i / 2048, (i / 256) % 8, (i / 128) % 2, i % 128];
-        let name = format!("SyntheticPS@sm5{{{}}}", dims.iter().zip(values).map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(","));
+        let name = format!(
+            "SyntheticPS@sm5{{{}}}",
+            dims.iter().zip(values).map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
+        );
         let blob = w.add_blob(name.as_bytes());
         w.add_permutation(kiln::archive::PermutationRecord {
             name: name.clone(),
@@ -131,24 +144,50 @@ fn archive_bench() {
     });
     println!("synthetic archive: {} bytes, {} permutations", big_bytes.len(), big_names.len());
     println!("  open:                                              {:8.1} us", us(big_open));
-    println!("  1,000 lookups by name (hash map):                  {:8.1} us  ({:.0} ns each)", us(big_lookups), us(big_lookups));
+    println!(
+        "  1,000 lookups by name (hash map):                  {:8.1} us  ({:.0} ns each)",
+        us(big_lookups),
+        us(big_lookups)
+    );
     println!("  1,000 lookups by linear scan (baseline):           {:8.1} us", us(big_scans));
-    println!("  ratio linear scan / hash lookup:                   {:8.1}x", big_scans.as_secs_f64() / big_lookups.as_secs_f64());
-    println!("  hash lookup, 16,384 vs {} permutations:            {:8.2}x", names.len(), big_lookups.as_secs_f64() / lookups.as_secs_f64());
+    println!(
+        "  ratio linear scan / hash lookup:                   {:8.1}x",
+        big_scans.as_secs_f64() / big_lookups.as_secs_f64()
+    );
+    println!(
+        "  hash lookup, 16,384 vs {} permutations:            {:8.2}x",
+        names.len(),
+        big_lookups.as_secs_f64() / lookups.as_secs_f64()
+    );
 }
 
 fn module_bench() {
-    let gpu = match Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: ModuleSource::Auto, timestamps: false }) {
+    let gpu = match Gpu::new(&GpuOptions {
+        backend: Backend::Vulkan,
+        module_source: ModuleSource::Auto,
+        timestamps: false,
+    }) {
         Ok(g) => g,
         Err(e) => panic!("the module benchmark needs a Vulkan adapter: {e}"),
     };
     assert!(gpu.spirv_passthrough, "{} does not offer PASSTHROUGH_SHADERS", gpu.info.name);
     let archive = ShaderArchive::embedded().unwrap();
-    let perms: Vec<_> = archive.permutations().filter(|p| p.artifact(Target::Spirv).is_some() && p.artifact(Target::Wgsl).is_some()).collect();
+    let perms: Vec<_> = archive
+        .permutations()
+        .filter(|p| p.artifact(Target::Spirv).is_some() && p.artifact(Target::Wgsl).is_some())
+        .collect();
     let create_all = |passthrough: bool| {
         for p in &perms {
-            let m = create_module(&gpu.device, passthrough, p.name(), p.artifact(Target::Spirv), p.artifact(Target::Wgsl), p.reflection(), "")
-                .unwrap();
+            let m = create_module(
+                &gpu.device,
+                passthrough,
+                p.name(),
+                p.artifact(Target::Spirv),
+                p.artifact(Target::Wgsl),
+                p.reflection(),
+                "",
+            )
+            .unwrap();
             black_box(m);
         }
     };
@@ -170,15 +209,38 @@ fn module_bench() {
     for pipeline in FramePipeline::ALL {
         let mut ms = [0.0; 2];
         for (i, source) in [ModuleSource::Auto, ModuleSource::Wgsl].into_iter().enumerate() {
-            let gpu = Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: false }).unwrap();
+            let gpu =
+                Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: false }).unwrap();
             // One unmeasured round: the driver's first-use costs are not the warm-up's.
-            black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap());
+            black_box(
+                Renderer::new(
+                    &gpu,
+                    archive.clone(),
+                    &scene,
+                    RendererOptions { pipeline, width: 640, height: 360, comparison: false },
+                )
+                .unwrap(),
+            );
             let t = time(3, || {
-                black_box(Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap());
+                black_box(
+                    Renderer::new(
+                        &gpu,
+                        archive.clone(),
+                        &scene,
+                        RendererOptions { pipeline, width: 640, height: 360, comparison: false },
+                    )
+                    .unwrap(),
+                );
             });
             ms[i] = us(t) / 1e3;
         }
-        println!("  {:16} SPIR-V {:8.1} ms, WGSL {:8.1} ms, ratio {:.2}x", pipeline.name(), ms[0], ms[1], ms[1] / ms[0]);
+        println!(
+            "  {:16} SPIR-V {:8.1} ms, WGSL {:8.1} ms, ratio {:.2}x",
+            pipeline.name(),
+            ms[0],
+            ms[1],
+            ms[1] / ms[0]
+        );
     }
 }
 
@@ -186,10 +248,19 @@ fn frame_bench() {
     let gpu = Gpu::new(&GpuOptions::default()).unwrap();
     let archive = Arc::new(ShaderArchive::embedded().unwrap());
     let scene = Scene::bundled();
-    println!("frame time at 640x360 on {} (mean of 5 frames, CPU wall clock incl. readback; GPU sum of passes):", gpu.info.name);
+    println!(
+        "frame time at 640x360 on {} (mean of 5 frames, CPU wall clock incl. readback; GPU sum of passes):",
+        gpu.info.name
+    );
     let mut base = None;
     for pipeline in FramePipeline::ALL {
-        let r = Renderer::new(&gpu, archive.clone(), &scene, RendererOptions { pipeline, width: 640, height: 360, comparison: false }).unwrap();
+        let r = Renderer::new(
+            &gpu,
+            archive.clone(),
+            &scene,
+            RendererOptions { pipeline, width: 640, height: 360, comparison: false },
+        )
+        .unwrap();
         r.render(false).unwrap();
         let mut gpu_ms = 0.0;
         let wall = time(5, || {
@@ -198,7 +269,13 @@ fn frame_bench() {
         });
         let wall_ms = us(wall) / 1e3;
         let base_ms = *base.get_or_insert(wall_ms);
-        println!("  {:16} {:8.1} ms wall, {:8.1} ms GPU, {:.2}x desktop", pipeline.name(), wall_ms, gpu_ms / 5.0, wall_ms / base_ms);
+        println!(
+            "  {:16} {:8.1} ms wall, {:8.1} ms GPU, {:.2}x desktop",
+            pipeline.name(),
+            wall_ms,
+            gpu_ms / 5.0,
+            wall_ms / base_ms
+        );
     }
 }
 

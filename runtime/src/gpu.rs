@@ -168,7 +168,17 @@ impl Gpu {
         }));
         let depth_copies =
             adapter.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES);
-        Ok(Gpu { instance, adapter, device, queue, backend, info, spirv_passthrough: passthrough, timestamps, depth_copies })
+        Ok(Gpu {
+            instance,
+            adapter,
+            device,
+            queue,
+            backend,
+            info,
+            spirv_passthrough: passthrough,
+            timestamps,
+            depth_copies,
+        })
     }
 
     /// Waits until the GPU has finished everything submitted.

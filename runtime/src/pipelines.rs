@@ -65,8 +65,16 @@ impl Blend {
         match self {
             Blend::Replace => None,
             Blend::Additive => Some(wgpu::BlendState {
-                color: wgpu::BlendComponent { src_factor: wgpu::BlendFactor::One, dst_factor: wgpu::BlendFactor::One, operation: wgpu::BlendOperation::Add },
-                alpha: wgpu::BlendComponent { src_factor: wgpu::BlendFactor::Zero, dst_factor: wgpu::BlendFactor::One, operation: wgpu::BlendOperation::Add },
+                color: wgpu::BlendComponent {
+                    src_factor: wgpu::BlendFactor::One,
+                    dst_factor: wgpu::BlendFactor::One,
+                    operation: wgpu::BlendOperation::Add,
+                },
+                alpha: wgpu::BlendComponent {
+                    src_factor: wgpu::BlendFactor::Zero,
+                    dst_factor: wgpu::BlendFactor::One,
+                    operation: wgpu::BlendOperation::Add,
+                },
             }),
             Blend::PremultipliedAlpha => Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
         }
@@ -198,13 +206,19 @@ impl PipelineLayoutInfo {
         for b in bindings {
             let name = b.name.clone().unwrap_or_default();
             let resource = resources.iter().find(|(n, _)| *n == name).map(|(_, r)| r.clone()).ok_or_else(|| {
-                PipelineError::MissingResource { label: self.label.clone(), group, binding: b.binding, name: name.clone() }
+                PipelineError::MissingResource {
+                    label: self.label.clone(),
+                    group,
+                    binding: b.binding,
+                    name: name.clone(),
+                }
             })?;
             entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
         }
         let layout = &self.bind_group_layouts[group as usize];
         let scope = ErrorScopes::push(device);
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries });
+        let bind_group =
+            device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries });
         check_scope(scope, || format!("bind group `{label}`"))?;
         Ok(bind_group)
     }
@@ -271,7 +285,12 @@ pub struct PipelineCache {
 
 impl PipelineCache {
     pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>) -> PipelineCache {
-        PipelineCache { archive, device: gpu.device.clone(), passthrough: gpu.spirv_passthrough, inner: Mutex::default() }
+        PipelineCache {
+            archive,
+            device: gpu.device.clone(),
+            passthrough: gpu.spirv_passthrough,
+            inner: Mutex::default(),
+        }
     }
 
     pub fn archive(&self) -> &ShaderArchive {
@@ -304,7 +323,8 @@ impl PipelineCache {
         if reflection.stage != stage {
             return Err(PipelineError::WrongStage { name: name.to_string(), found: reflection.stage, wanted: stage });
         }
-        let target = if self.passthrough && perm.blob_id(Target::Spirv).is_some() { Target::Spirv } else { Target::Wgsl };
+        let target =
+            if self.passthrough && perm.blob_id(Target::Spirv).is_some() { Target::Spirv } else { Target::Wgsl };
         let key = perm.blob_id(target).map(|blob| (target, blob));
         {
             let mut inner = self.lock();
@@ -314,7 +334,15 @@ impl PipelineCache {
             }
         }
         let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-        let module = create_module(&self.device, self.passthrough, name, perm.artifact(Target::Spirv), perm.artifact(Target::Wgsl), &reflection, &targets)?;
+        let module = create_module(
+            &self.device,
+            self.passthrough,
+            name,
+            perm.artifact(Target::Spirv),
+            perm.artifact(Target::Wgsl),
+            &reflection,
+            &targets,
+        )?;
         let mut inner = self.lock();
         inner.stats.modules += 1;
         if let Some(k) = key {
@@ -325,8 +353,14 @@ impl PipelineCache {
 
     /// A render pipeline for (vertex permutation, fragment permutation, state), created on
     /// first use. `fragment` is `None` for depth-only pipelines.
-    pub fn render(&self, vertex: &str, fragment: Option<&str>, state: &RenderState) -> Result<Arc<RenderPipeline>, PipelineError> {
-        let key = RenderKey { vertex: vertex.to_string(), fragment: fragment.map(str::to_string), state: state.clone() };
+    pub fn render(
+        &self,
+        vertex: &str,
+        fragment: Option<&str>,
+        state: &RenderState,
+    ) -> Result<Arc<RenderPipeline>, PipelineError> {
+        let key =
+            RenderKey { vertex: vertex.to_string(), fragment: fragment.map(str::to_string), state: state.clone() };
         if let Some(p) = self.lock().render.get(&key) {
             return Ok(p.clone());
         }
@@ -348,7 +382,13 @@ impl PipelineCache {
         let targets: Vec<Option<wgpu::ColorTargetState>> = state
             .color_targets
             .iter()
-            .map(|t| Some(wgpu::ColorTargetState { format: t.format, blend: t.blend.state(), write_mask: wgpu::ColorWrites::ALL }))
+            .map(|t| {
+                Some(wgpu::ColorTargetState {
+                    format: t.format,
+                    blend: t.blend.state(),
+                    write_mask: wgpu::ColorWrites::ALL,
+                })
+            })
             .collect();
         let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -371,7 +411,11 @@ impl PipelineCache {
                 depth_write_enabled: Some(d.write),
                 depth_compare: Some(d.compare),
                 stencil: state.stencil.clone(),
-                bias: wgpu::DepthBiasState { constant: d.bias, slope_scale: f32::from_bits(d.slope_scale_bits), clamp: 0.0 },
+                bias: wgpu::DepthBiasState {
+                    constant: d.bias,
+                    slope_scale: f32::from_bits(d.slope_scale_bits),
+                    clamp: 0.0,
+                },
             }),
             multisample: wgpu::MultisampleState { count: state.sample_count, ..Default::default() },
             fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
@@ -384,7 +428,12 @@ impl PipelineCache {
             cache: None,
         });
         check_scope(scope, || format!("render pipeline `{label}`"))?;
-        let handle = Arc::new(RenderPipeline { pipeline, layout, vertex: vertex.to_string(), fragment: fragment.map(str::to_string) });
+        let handle = Arc::new(RenderPipeline {
+            pipeline,
+            layout,
+            vertex: vertex.to_string(),
+            fragment: fragment.map(str::to_string),
+        });
         let mut inner = self.lock();
         inner.stats.render_pipelines += 1;
         inner.render.insert(key, handle.clone());
@@ -451,10 +500,7 @@ impl PipelineCache {
         let groups = merge_bindings(label, reflections)?;
         let mut bind_group_layouts = Vec::with_capacity(groups.len());
         for (g, bindings) in groups.iter().enumerate() {
-            let entries = bindings
-                .iter()
-                .map(|b| layout_entry(label, b))
-                .collect::<Result<Vec<_>, _>>()?;
+            let entries = bindings.iter().map(|b| layout_entry(label, b)).collect::<Result<Vec<_>, _>>()?;
             let mut inner = self.lock();
             let layout = match inner.layouts.get(&entries) {
                 Some(l) => l.clone(),
@@ -521,7 +567,10 @@ pub fn create_module(
     };
     let text = std::str::from_utf8(bytes).map_err(|e| bad(format!("WGSL artifact is not UTF-8: {e}")))?;
     let scope = ErrorScopes::push(device);
-    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some(name), source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(text)) });
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(name),
+        source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(text)),
+    });
     check_scope(scope, || format!("WGSL module `{name}`"))?;
     Ok(module)
 }
@@ -557,7 +606,11 @@ impl ErrorScopes {
 
     /// The first error caught, with its sources.
     pub fn pop(self) -> Option<String> {
-        let errors = [pollster::block_on(self.memory.pop()), pollster::block_on(self.internal.pop()), pollster::block_on(self.validation.pop())];
+        let errors = [
+            pollster::block_on(self.memory.pop()),
+            pollster::block_on(self.internal.pop()),
+            pollster::block_on(self.validation.pop()),
+        ];
         errors.into_iter().flatten().next().map(|e| error_chain(&e))
     }
 }
@@ -617,7 +670,12 @@ pub fn merge_bindings(label: &str, reflections: &[&Reflection]) -> Result<Vec<Ve
                         existing.name = name.clone();
                     }
                 }
-                None => groups[g].push(MergedBinding { binding: *binding, name: name.clone(), kind: kind.clone(), visibility: stage_bits(r.stage) }),
+                None => groups[g].push(MergedBinding {
+                    binding: *binding,
+                    name: name.clone(),
+                    kind: kind.clone(),
+                    visibility: stage_bits(r.stage),
+                }),
             }
         }
     }
@@ -711,7 +769,8 @@ fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutE
     Ok(wgpu::BindGroupLayoutEntry { binding: b.binding, visibility: b.visibility, ty, count: None })
 }
 
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
 const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
     wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
 
@@ -758,7 +817,14 @@ mod tests {
     }
 
     fn reflection(stage: Stage, bindings: Vec<Binding>) -> Reflection {
-        Reflection { entry: "main".into(), stage, bindings, vertex_inputs: vec![], color_outputs: vec![], workgroup_size: None }
+        Reflection {
+            entry: "main".into(),
+            stage,
+            bindings,
+            vertex_inputs: vec![],
+            color_outputs: vec![],
+            workgroup_size: None,
+        }
     }
 
     #[test]
@@ -798,7 +864,8 @@ mod tests {
     #[test]
     fn layout_entries_follow_reflection() {
         let entry = |name: &str, kind: BindingKind| {
-            let b = MergedBinding { binding: 3, name: Some(name.into()), kind, visibility: wgpu::ShaderStages::FRAGMENT };
+            let b =
+                MergedBinding { binding: 3, name: Some(name.into()), kind, visibility: wgpu::ShaderStages::FRAGMENT };
             layout_entry("p", &b).unwrap().ty
         };
         let tex = |sample| BindingKind::Texture { dim: TextureDim::D2, sample, multisampled: false };
@@ -836,7 +903,14 @@ mod tests {
             }
         );
         assert_eq!(
-            entry("Out", BindingKind::StorageTexture { dim: TextureDim::D2, format: "rgba16float".into(), access: StorageAccess::WriteOnly }),
+            entry(
+                "Out",
+                BindingKind::StorageTexture {
+                    dim: TextureDim::D2,
+                    format: "rgba16float".into(),
+                    access: StorageAccess::WriteOnly
+                }
+            ),
             wgpu::BindingType::StorageTexture {
                 access: wgpu::StorageTextureAccess::WriteOnly,
                 format: wgpu::TextureFormat::Rgba16Float,
@@ -846,15 +920,26 @@ mod tests {
         let b = MergedBinding {
             binding: 0,
             name: None,
-            kind: BindingKind::StorageTexture { dim: TextureDim::D2, format: "bgra4".into(), access: StorageAccess::ReadOnly },
+            kind: BindingKind::StorageTexture {
+                dim: TextureDim::D2,
+                format: "bgra4".into(),
+                access: StorageAccess::ReadOnly,
+            },
             visibility: wgpu::ShaderStages::COMPUTE,
         };
-        assert_eq!(layout_entry("Pipe", &b).unwrap_err().to_string(), "pipeline `Pipe`: storage texture format `bgra4` is not known to the runtime");
+        assert_eq!(
+            layout_entry("Pipe", &b).unwrap_err().to_string(),
+            "pipeline `Pipe`: storage texture format `bgra4` is not known to the runtime"
+        );
     }
 
     #[test]
     fn vertex_inputs_must_be_in_the_mesh_layout() {
-        let input = |location, components| VertexInput { location, name: None, ty: NumericType { scalar: ScalarKind::Float, width: 4, components } };
+        let input = |location, components| VertexInput {
+            location,
+            name: None,
+            ty: NumericType { scalar: ScalarKind::Float, width: 4, components },
+        };
         let mut vs = reflection(Stage::Vertex, vec![]);
         vs.vertex_inputs = vec![input(0, 3), input(2, 2), input(6, 4)];
         assert_eq!(vertex_buffers("p", VertexLayout::MeshInstanced, &vs).unwrap().len(), 2);
@@ -874,6 +959,9 @@ mod tests {
         assert_eq!(spirv_words(&ok[..19]).unwrap_err(), "SPIR-V artifact is 19 bytes, not a whole module");
         let mut bad = ok.clone();
         bad[0] = 0;
-        assert_eq!(spirv_words(&bad).unwrap_err(), "SPIR-V artifact starts with 0x07230200, not the SPIR-V magic number");
+        assert_eq!(
+            spirv_words(&bad).unwrap_err(),
+            "SPIR-V artifact starts with 0x07230200, not the SPIR-V magic number"
+        );
     }
 }

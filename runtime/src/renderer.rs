@@ -28,7 +28,8 @@ pub enum FramePipeline {
 }
 
 impl FramePipeline {
-    pub const ALL: [FramePipeline; 3] = [FramePipeline::Desktop, FramePipeline::MobileForward, FramePipeline::MobileDeferred];
+    pub const ALL: [FramePipeline; 3] =
+        [FramePipeline::Desktop, FramePipeline::MobileForward, FramePipeline::MobileDeferred];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -75,7 +76,12 @@ impl Default for RendererOptions {
 impl RendererOptions {
     /// The desktop frame's options for these renderer options.
     pub fn desktop(&self) -> crate::desktop::DesktopOptions {
-        let base = crate::desktop::DesktopOptions { width: self.width, height: self.height, output_format: crate::gpu_types::formats::OUTPUT, ..Default::default() };
+        let base = crate::desktop::DesktopOptions {
+            width: self.width,
+            height: self.height,
+            output_format: crate::gpu_types::formats::OUTPUT,
+            ..Default::default()
+        };
         if !self.comparison {
             return base;
         }
@@ -152,7 +158,12 @@ impl Renderer {
     /// Uploads the scene, creates the targets and builds every pass of the frame; this
     /// creates every pipeline the frame uses (the warm-up), so [`Renderer::render`] creates
     /// none.
-    pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>, scene: &Scene, options: RendererOptions) -> Result<Renderer, RenderError> {
+    pub fn new(
+        gpu: &Gpu,
+        archive: Arc<ShaderArchive>,
+        scene: &Scene,
+        options: RendererOptions,
+    ) -> Result<Renderer, RenderError> {
         let max = gpu.device.limits().max_texture_dimension_2d;
         if options.width == 0 || options.height == 0 || options.width > max || options.height > max {
             return Err(RenderError::Size { width: options.width, height: options.height, max });
@@ -173,7 +184,14 @@ impl Renderer {
         };
         let options_size = (options.width, options.height);
         let passes = {
-            let init = PassInit { device, cache: &cache, scene, gpu_scene: &gpu_scene, level: options.pipeline.level(), shared: &shared };
+            let init = PassInit {
+                device,
+                cache: &cache,
+                scene,
+                gpu_scene: &gpu_scene,
+                level: options.pipeline.level(),
+                shared: &shared,
+            };
             match options.pipeline {
                 FramePipeline::Desktop => {
                     let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
@@ -192,11 +210,20 @@ impl Renderer {
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let mobile = options.mobile();
-                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(gpu, &cache, scene, &gpu_scene, mobile, options_size.0, options_size.1)?))
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(
+                        gpu,
+                        &cache,
+                        scene,
+                        &gpu_scene,
+                        mobile,
+                        options_size.0,
+                        options_size.1,
+                    )?))
                 }
             }
         };
-        let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        let depth_copy =
+            if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
         Ok(Renderer {
             device: device.clone(),
             queue: gpu.queue.clone(),
@@ -257,7 +284,8 @@ impl Renderer {
     }
 
     fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
+        let mut frame =
+            FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
             Passes::DesktopDeferred { particles, frame: desktop } => {

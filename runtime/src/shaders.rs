@@ -129,7 +129,9 @@ impl<'a> PermutationQuery<'a> {
                     .collect();
                 match levels.as_slice() {
                     [one] => one.to_string(),
-                    [] => return Err(LookupError::BadName(format!("no shader named `{}` in the archive", self.shader))),
+                    [] => {
+                        return Err(LookupError::BadName(format!("no shader named `{}` in the archive", self.shader)))
+                    }
                     many => {
                         return Err(LookupError::BadName(format!(
                             "shader `{}` has several levels ({}); say which with .level()",

@@ -15,11 +15,15 @@ fn stderr(o: &Output) -> String {
 #[test]
 fn renders_and_dumps_every_pass() {
     let dir = tempfile::tempdir().unwrap();
-    let o = kiln_view(&["--pipeline", "mobile-deferred", "--size", "160x90", "--out", "f.png", "--dump-passes", "dump"], dir.path());
+    let o = kiln_view(
+        &["--pipeline", "mobile-deferred", "--size", "160x90", "--out", "f.png", "--dump-passes", "dump"],
+        dir.path(),
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     let png = std::fs::read(dir.path().join("f.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
-    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
     let names: Vec<&str> = json["passes"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["ShadowDepths", "BasePass", "MobileDeferredShading", "Translucency", "PostProcessing"]);
     assert_eq!(json["pipeline"], "mobile-deferred");
@@ -43,11 +47,15 @@ fn gl_backend_dumps_depth_too() {
     let dir = tempfile::tempdir().unwrap();
     // Mobile deferred copies its depth into SceneDepthAux (a depth target the GL device
     // cannot copy to a buffer); the forward frame's MSAA depth is never stored, as in the seed.
-    let o = kiln_view(&["--backend", "gl", "--pipeline", "mobile-deferred", "--size", "160x90", "--dump-passes", "dump"], dir.path());
+    let o = kiln_view(
+        &["--backend", "gl", "--pipeline", "mobile-deferred", "--size", "160x90", "--dump-passes", "dump"],
+        dir.path(),
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(dir.path().join("dump/00_ShadowDepths.png").is_file());
     assert!(dir.path().join("dump/02_MobileDeferredShading_SceneDepthAux.png").is_file());
-    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
     assert_eq!(json["backend"], "gl");
 }
 
@@ -58,7 +66,11 @@ fn truncated_archive_is_a_usage_error() {
     std::fs::write(dir.path().join("cut.kpak"), &bytes[..bytes.len() / 2]).unwrap();
     let o = kiln_view(&["--shaders", "cut.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    let expected = format!("error: archive is truncated: the header announces {} bytes, the file has {}", bytes.len(), bytes.len() / 2);
+    let expected = format!(
+        "error: archive is truncated: the header announces {} bytes, the file has {}",
+        bytes.len(),
+        bytes.len() / 2
+    );
     assert_eq!(stderr(&o), expected);
     assert!(!dir.path().join("frame.png").exists());
 }
@@ -80,7 +92,8 @@ fn verify_looks_every_permutation_up_and_creates_its_module() {
     assert!(o.status.success(), "{}", stderr(&o));
     let archive = kiln_runtime::ShaderArchive::embedded().unwrap();
     let count = archive.permutations().count();
-    let distinct: std::collections::HashSet<_> = archive.permutations().map(|p| p.blob_id(kiln::archive::Target::Spirv).unwrap()).collect();
+    let distinct: std::collections::HashSet<_> =
+        archive.permutations().map(|p| p.blob_id(kiln::archive::Target::Spirv).unwrap()).collect();
     let out = String::from_utf8_lossy(&o.stdout);
     let expected = format!("{count} permutations looked up by name and by dimension values; {} distinct modules created from SPIR-V passthrough on ", distinct.len());
     assert!(out.starts_with(&expected), "{out}");

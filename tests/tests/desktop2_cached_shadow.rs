@@ -23,10 +23,16 @@ fn cached_cube_shadow_is_not_redrawn_while_the_light_is_still() {
     for _ in 0..3 {
         last = Some(r.render(true).unwrap());
     }
-    assert_eq!(frame.cached_shadow_rebuilds(), 1, "the cached static depth was rendered again while the light stood still");
+    assert_eq!(
+        frame.cached_shadow_rebuilds(),
+        1,
+        "the cached static depth was rendered again while the light stood still"
+    );
 
     let images: Vec<_> = last.unwrap().passes.into_iter().flat_map(|p| p.images).collect();
-    let find = |name: &str| images.iter().find(|(n, _)| n == name).map(|(_, i)| i.clone()).unwrap_or_else(|| panic!("no image {name}"));
+    let find = |name: &str| {
+        images.iter().find(|(n, _)| n == name).map(|(_, i)| i.clone()).unwrap_or_else(|| panic!("no image {name}"))
+    };
     let cached = find("ShadowDepths_CopyCachedShadowMap");
     let full = find("ShadowDepths_Cubemap_FireLight");
     let dir = dump_dir("desktop2_cached_shadow");

@@ -25,7 +25,12 @@ const AFTER: usize = 3;
 /// radius 8), looking down the room; the bundled camera (C1) is outside both (7.2 m, 12.8 m).
 /// Its near plane differs too (0.15 m, C1's 0.1 m: the light grid's depth slices follow it).
 fn c2() -> Camera {
-    Camera { position: Vec3::new(1.0, 2.5, 4.5), target: Vec3::new(-2.0, 1.0, -4.0), fov_y: 60f32.to_radians(), near: 0.15 }
+    Camera {
+        position: Vec3::new(1.0, 2.5, 4.5),
+        target: Vec3::new(-2.0, 1.0, -4.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.15,
+    }
 }
 
 /// The bundled scene without particle emitters: the fire's particles are simulated from the
@@ -70,7 +75,11 @@ fn a_moved_camera_renders_what_a_renderer_built_there_renders() {
         after_move = Some(render(&moved));
     }
     let (at_c1, after_move) = (at_c1.unwrap(), after_move.unwrap());
-    assert_eq!(moved.desktop_frame().unwrap().view().position, c2().position, "the frame's view did not follow the camera");
+    assert_eq!(
+        moved.desktop_frame().unwrap().view().position,
+        c2().position,
+        "the frame's view did not follow the camera"
+    );
 
     // B: built at C2, the same frames with the same reset (TAA jitter, animation time and
     // occlusion query latency are per frame count, so both last frames have the same state)
@@ -106,5 +115,8 @@ fn a_moved_camera_renders_what_a_renderer_built_there_renders() {
     // pedestal go dark). Without the occlusion reset alone: mean 0.42, max 38 (props hidden
     // from C1 missing in the first frame at C2, carried on by TAA's history). The bounds
     // allow rounding steps only.
-    assert!(mean < 0.05 && max <= 4, "the moved camera renders another image than a renderer built at C2: mean {mean}, max {max}");
+    assert!(
+        mean < 0.05 && max <= 4,
+        "the moved camera renders another image than a renderer built at C2: mean {mean}, max {max}"
+    );
 }

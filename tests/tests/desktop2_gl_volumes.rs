@@ -19,15 +19,21 @@ const W: u32 = 320;
 const H: u32 = 180;
 
 fn device(backend: Backend) -> Gpu {
-    Gpu::new(&GpuOptions { backend, module_source: ModuleSource::Auto, timestamps: false }).unwrap_or_else(|e| panic!("this test needs a {backend} adapter: {e}"))
+    Gpu::new(&GpuOptions { backend, module_source: ModuleSource::Auto, timestamps: false })
+        .unwrap_or_else(|e| panic!("this test needs a {backend} adapter: {e}"))
 }
 
 /// One still frame (nothing moves, no TAA, motion blur, eye adaptation or reflections) with
 /// the volumetric fog applied (`fog`), the glass lit by the volumes and the sprites (the
 /// smoke lit by the volumes).
 fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
-    let r = Renderer::new(gpu, Arc::new(ShaderArchive::embedded().unwrap()), &Scene::bundled(), RendererOptions { width: W, height: H, ..Default::default() })
-        .unwrap_or_else(|e| panic!("{e}"));
+    let r = Renderer::new(
+        gpu,
+        Arc::new(ShaderArchive::embedded().unwrap()),
+        &Scene::bundled(),
+        RendererOptions { width: W, height: H, ..Default::default() },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
     r.desktop_part2().expect("the desktop frame's part 2").set_options(Part2Options {
         taa: false,
         motion_blur: false,
@@ -46,7 +52,13 @@ fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
 fn psnr(a: &Image, b: &Image) -> f64 {
     assert_eq!((a.width, a.height), (b.width, b.height));
     let n = (a.width * a.height * 3) as f64;
-    let mse = a.rgba.chunks(4).zip(b.rgba.chunks(4)).map(|(p, q)| (0..3).map(|i| (f64::from(p[i]) - f64::from(q[i])).powi(2)).sum::<f64>()).sum::<f64>() / n;
+    let mse = a
+        .rgba
+        .chunks(4)
+        .zip(b.rgba.chunks(4))
+        .map(|(p, q)| (0..3).map(|i| (f64::from(p[i]) - f64::from(q[i])).powi(2)).sum::<f64>())
+        .sum::<f64>()
+        / n;
     if mse == 0.0 {
         f64::INFINITY
     } else {

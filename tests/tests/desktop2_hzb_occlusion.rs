@@ -15,7 +15,12 @@ fn hzb_top_mip_holds_the_farthest_depth() {
     let gpu = gpu();
     let mut scene = Scene::bundled();
     // look down into the room: no sky, so the farthest depth is a surface's, not 0
-    scene.camera = Camera { position: Vec3::new(0.0, 9.0, 3.0), target: Vec3::new(0.0, 0.0, -0.5), fov_y: 50f32.to_radians(), near: 0.1 };
+    scene.camera = Camera {
+        position: Vec3::new(0.0, 9.0, 3.0),
+        target: Vec3::new(0.0, 0.0, -0.5),
+        fov_y: 50f32.to_radians(),
+        near: 0.1,
+    };
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
     r.render(false).unwrap();
     let part2 = r.desktop_part2().expect("the desktop frame has part 2");
@@ -26,7 +31,11 @@ fn hzb_top_mip_holds_the_farthest_depth() {
     assert!(nearest > farthest * 1.5, "the view has little depth range: {farthest}..{nearest}");
 
     let (hzb, mips) = part2.hzb();
-    assert_eq!((hzb.width(), hzb.height()), (128, 64), "mip 0 is half of 256x128, the view rounded up to powers of two");
+    assert_eq!(
+        (hzb.width(), hzb.height()),
+        (128, 64),
+        "mip 0 is half of 256x128, the view rounded up to powers of two"
+    );
     let (tw, th, top) = read_f32(&gpu, &hzb, mips - 1);
     assert_eq!((tw, th), (1, 1));
     assert_eq!(top[0], farthest, "top mip {} but the farthest depth of the view is {farthest}", top[0]);
@@ -50,9 +59,16 @@ fn hzb_top_mip_holds_the_farthest_depth() {
 /// of every mip holds a surface's depth, above 0).
 #[test]
 fn hzb_mips_are_built_on_gl_too() {
-    let gpu = kiln_runtime::Gpu::new(&kiln_runtime::GpuOptions { backend: kiln_runtime::Backend::Gl, ..Default::default() }).unwrap_or_else(|e| panic!("{e}"));
+    let gpu =
+        kiln_runtime::Gpu::new(&kiln_runtime::GpuOptions { backend: kiln_runtime::Backend::Gl, ..Default::default() })
+            .unwrap_or_else(|e| panic!("{e}"));
     let mut scene = Scene::bundled();
-    scene.camera = Camera { position: Vec3::new(0.0, 9.0, 3.0), target: Vec3::new(0.0, 0.0, -0.5), fov_y: 50f32.to_radians(), near: 0.1 };
+    scene.camera = Camera {
+        position: Vec3::new(0.0, 9.0, 3.0),
+        target: Vec3::new(0.0, 0.0, -0.5),
+        fov_y: 50f32.to_radians(),
+        near: 0.1,
+    };
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
     r.render(false).unwrap();
     let part2 = r.desktop_part2().unwrap();
@@ -100,7 +116,11 @@ fn prop_behind_the_wall_is_culled_after_the_query_latency_and_reappears() {
     r.render(false).unwrap();
     assert!(part2.is_visible(crate_index), "culled before any query result came back");
     r.render(false).unwrap();
-    assert_eq!(part2.visibility(crate_index), Some(PropVisibility::Occluded), "the crate behind the wall is not culled one frame after its query");
+    assert_eq!(
+        part2.visibility(crate_index),
+        Some(PropVisibility::Occluded),
+        "the crate behind the wall is not culled one frame after its query"
+    );
     let chairs = scene.objects.iter().position(|o| o.name == "Chairs").unwrap();
     assert!(part2.is_visible(chairs), "the chairs in plain view were culled");
     r.render(false).unwrap();
@@ -109,7 +129,12 @@ fn prop_behind_the_wall_is_culled_after_the_query_latency_and_reappears() {
     assert!(stats.light_queries >= 1, "no ShadowFrustumQueries: {stats:?}");
 
     // the camera walks round the wall: the crate's group query passes a frame later
-    let behind = Camera { position: Vec3::new(0.0, 2.0, -13.0), target: Vec3::new(0.0, 0.5, -8.0), fov_y: 60f32.to_radians(), near: 0.1 };
+    let behind = Camera {
+        position: Vec3::new(0.0, 2.0, -13.0),
+        target: Vec3::new(0.0, 0.5, -8.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+    };
     part2.set_camera(behind);
     let culled = r.render(false).unwrap();
     r.render(false).unwrap();

@@ -53,12 +53,20 @@ fn every_part2_pass_is_dumped_in_frame_order_with_a_non_trivial_image() {
     let mut previous = 0;
     for wanted in PART2_IMAGES {
         let Some(index) = names.iter().position(|(n, _)| n == wanted) else {
-            panic!("no image `{wanted}`; the frame dumped: {:?}", names.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>());
+            panic!(
+                "no image `{wanted}`; the frame dumped: {:?}",
+                names.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>()
+            );
         };
         assert!(index >= previous, "`{wanted}` is out of frame order");
         previous = index;
         let image = &names[index].1;
-        assert!(image.distinct_colors() > 1 && luma_stddev(image) > 0.5, "`{wanted}` is a flat image ({} colours, luma stddev {:.2})", image.distinct_colors(), luma_stddev(image));
+        assert!(
+            image.distinct_colors() > 1 && luma_stddev(image) > 0.5,
+            "`{wanted}` is a flat image ({} colours, luma stddev {:.2})",
+            image.distinct_colors(),
+            luma_stddev(image)
+        );
     }
     for p in &frame.passes {
         if gpu.timestamps {

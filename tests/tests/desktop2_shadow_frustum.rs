@@ -49,7 +49,8 @@ fn images(frame: &FrameOutput) -> Vec<String> {
 
 /// The shadow steps and images of one light present in a frame.
 fn shadow_work(frame: &FrameOutput, light: &str) -> Vec<String> {
-    let mut found: Vec<String> = steps(frame).into_iter().chain(images(frame)).filter(|n| n.ends_with(&format!("_{light}"))).collect();
+    let mut found: Vec<String> =
+        steps(frame).into_iter().chain(images(frame)).filter(|n| n.ends_with(&format!("_{light}"))).collect();
     found.sort();
     found.dedup();
     found
@@ -66,7 +67,11 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, comparison: true, ..Default::default() });
     let frame = r.desktop_frame().expect("the desktop frame");
     let part2 = r.desktop_part2().unwrap();
-    let lamp_work = ["Lighting_ShadowedLights_ShadowProjectionOnOpaque_HiddenLamp", "Lighting_ShadowedLights_StandardDeferredLighting_HiddenLamp", "ShadowDepths_PerObject_HiddenLamp"];
+    let lamp_work = [
+        "Lighting_ShadowedLights_ShadowProjectionOnOpaque_HiddenLamp",
+        "Lighting_ShadowedLights_StandardDeferredLighting_HiddenLamp",
+        "ShadowDepths_PerObject_HiddenLamp",
+    ];
     let fire_work = [
         "Lighting_ShadowedLights_ShadowProjectionOnOpaque_HiddenFire",
         "Lighting_ShadowedLights_StandardDeferredLighting_HiddenFire",
@@ -78,16 +83,31 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     assert_eq!(shadow_work(&first, HIDDEN_LAMP), lamp_work, "before any query result");
     assert_eq!(shadow_work(&first, HIDDEN_FIRE), fire_work, "before any query result");
     assert!(frame.shadow_skipped_lights().is_empty());
-    assert!(part2.occlusion_stats().light_queries >= 5, "not every local light is queried: {:?}", part2.occlusion_stats());
+    assert!(
+        part2.occlusion_stats().light_queries >= 5,
+        "not every local light is queried: {:?}",
+        part2.occlusion_stats()
+    );
 
     // frame 2 reads frame 1's results without waiting: both hidden volumes counted 0 samples,
     // their shadow depths and projections are gone; the lights in the room keep theirs
     let hidden = r.render(true).unwrap();
     assert_eq!(frame.shadow_skipped_lights(), [HIDDEN_LAMP, HIDDEN_FIRE]);
-    assert_eq!(shadow_work(&hidden, HIDDEN_LAMP), Vec::<String>::new(), "the stationary light's shadow work was not skipped");
-    assert_eq!(shadow_work(&hidden, HIDDEN_FIRE), Vec::<String>::new(), "the movable light's shadow work was not skipped");
+    assert_eq!(
+        shadow_work(&hidden, HIDDEN_LAMP),
+        Vec::<String>::new(),
+        "the stationary light's shadow work was not skipped"
+    );
+    assert_eq!(
+        shadow_work(&hidden, HIDDEN_FIRE),
+        Vec::<String>::new(),
+        "the movable light's shadow work was not skipped"
+    );
     for light in ["CeilingLampA", "CeilingLampB", "FireLight"] {
-        assert!(images(&hidden).contains(&format!("Lighting_ShadowedLights_ShadowProjectionOnOpaque_{light}")), "{light} lost its shadow");
+        assert!(
+            images(&hidden).contains(&format!("Lighting_ShadowedLights_ShadowProjectionOnOpaque_{light}")),
+            "{light} lost its shadow"
+        );
     }
     assert!(steps(&hidden).contains(&"ShadowDepths_Cubemap_FireLight".to_string()));
     // the atlas of per-object shadows is still cleared and dumped (it has no other light)
@@ -101,20 +121,33 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     let skipped = r.render(false).unwrap();
     frame.set_shadow_frustum_culling(false);
     let rendered = r.render(true).unwrap();
-    assert_eq!(shadow_work(&rendered, HIDDEN_FIRE), fire_work, "the culling switch does not bring the shadow work back");
+    assert_eq!(
+        shadow_work(&rendered, HIDDEN_FIRE),
+        fire_work,
+        "the culling switch does not bring the shadow work back"
+    );
     frame.set_shadow_frustum_culling(true);
     let skipped_again = r.render(false).unwrap();
     let dir = dump_dir("desktop2_shadow_frustum");
     save(&dir, "skipped", &skipped.image);
     save(&dir, "rendered", &rendered.image);
-    let (noise, diff) = (max_channel_diff(&skipped.image, &skipped_again.image), max_channel_diff(&skipped.image, &rendered.image));
-    eprintln!("max channel difference: skipped vs skipped {noise}, skipped vs rendered {diff}; mean {:.4}", mean_abs_diff(&skipped.image, &rendered.image));
+    let (noise, diff) =
+        (max_channel_diff(&skipped.image, &skipped_again.image), max_channel_diff(&skipped.image, &rendered.image));
+    eprintln!(
+        "max channel difference: skipped vs skipped {noise}, skipped vs rendered {diff}; mean {:.4}",
+        mean_abs_diff(&skipped.image, &rendered.image)
+    );
     assert!(noise <= 1, "two frames with the same settings differ by {noise}");
     assert!(diff <= 1, "skipping the hidden lights' shadows changed the image by up to {diff}");
 
     // the camera walks round the wall: the stale verdict holds for one more frame (that
     // frame's queries pass), then the shadow work is back
-    part2.set_camera(Camera { position: Vec3::new(0.0, 2.0, -14.5), target: Vec3::new(0.0, 1.2, -9.0), fov_y: 60f32.to_radians(), near: 0.1 });
+    part2.set_camera(Camera {
+        position: Vec3::new(0.0, 2.0, -14.5),
+        target: Vec3::new(0.0, 1.2, -9.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+    });
     let stale = r.render(true).unwrap();
     assert_eq!(shadow_work(&stale, HIDDEN_FIRE), Vec::<String>::new(), "the query result came back without latency");
     let back = r.render(true).unwrap();

@@ -24,7 +24,12 @@ const FRAMES: usize = 45;
 /// column is 1.5 m and 2.5 m away along x and z, inside the box's middle two thirds, where
 /// only the inner cascade is read).
 fn camera() -> Camera {
-    Camera { position: Vec3::new(3.5, 2.0, -0.5), target: Vec3::new(5.0, 1.5, -3.0), fov_y: 60f32.to_radians(), near: 0.1 }
+    Camera {
+        position: Vec3::new(3.5, 2.0, -0.5),
+        target: Vec3::new(5.0, 1.5, -3.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+    }
 }
 
 /// The outer cascade's grid corner nearest the smoke column at 1.6 m (the cascades' boxes are
@@ -39,7 +44,15 @@ fn scene(with_light: bool) -> Scene {
     scene.camera = camera();
     if with_light {
         // shadow-casting, so the volumes hold it; it reaches no opaque surface
-        scene.point_lights.push(PointLight { name: "SmokeLight".into(), position: light_position(), color: Vec3::ONE, intensity: 40.0, radius: 0.4, mobility: Mobility::Movable, casts_shadows: true });
+        scene.point_lights.push(PointLight {
+            name: "SmokeLight".into(),
+            position: light_position(),
+            color: Vec3::ONE,
+            intensity: 40.0,
+            radius: 0.4,
+            mobility: Mobility::Movable,
+            casts_shadows: true,
+        });
     }
     scene
 }
@@ -49,12 +62,25 @@ fn smoke_frame(with_light: bool) -> Image {
     let gpu = gpu();
     let r = renderer(&gpu, &scene(with_light), RendererOptions { width: W, height: H, ..Default::default() });
     // still frames, nothing that adds the light elsewhere (the volumetric fog scatters it too)
-    r.desktop_part2().unwrap().set_options(Part2Options { taa: false, motion_blur: false, eye_adaptation: false, animate: false, volumetric_fog: false, ..Part2Options::default() });
+    r.desktop_part2().unwrap().set_options(Part2Options {
+        taa: false,
+        motion_blur: false,
+        eye_adaptation: false,
+        animate: false,
+        volumetric_fog: false,
+        ..Part2Options::default()
+    });
     for _ in 1..FRAMES {
         r.render(false).unwrap_or_else(|e| panic!("{e}"));
     }
     let frame = r.render(true).unwrap_or_else(|e| panic!("{e}"));
-    frame.passes.into_iter().flat_map(|p| p.images).find(|(n, _)| n == "Translucency_ParticleSprites").map(|(_, i)| i).expect("no ParticleSprites image")
+    frame
+        .passes
+        .into_iter()
+        .flat_map(|p| p.images)
+        .find(|(n, _)| n == "Translucency_ParticleSprites")
+        .map(|(_, i)| i)
+        .expect("no ParticleSprites image")
 }
 
 /// Luma gained per pixel, summed over the image.

@@ -39,7 +39,15 @@ fn downsample(image: &Image) -> Vec<f64> {
 /// depends on how many frames ran) and no volumetric fog (its jittered froxels converge over
 /// frames too), so only the geometry's edges differ between the renders compared.
 fn still(taa: bool) -> Part2Options {
-    Part2Options { taa, motion_blur: false, eye_adaptation: false, animate: false, volumetric_fog: false, particles: false, ..Part2Options::default() }
+    Part2Options {
+        taa,
+        motion_blur: false,
+        eye_adaptation: false,
+        animate: false,
+        volumetric_fog: false,
+        particles: false,
+        ..Part2Options::default()
+    }
 }
 
 /// TAA's jittered frames accumulated over 16 frames come closer to a 4x4 supersampled
@@ -73,7 +81,8 @@ fn taa_reduces_edge_aliasing_against_a_supersampled_reference() {
     for y in 1..H - 1 {
         for x in 1..W - 1 {
             let i = (y * W + x) as usize;
-            let g = (reference[i + 1] - reference[i - 1]).abs() + (reference[i + W as usize] - reference[i - W as usize]).abs();
+            let g = (reference[i + 1] - reference[i - 1]).abs()
+                + (reference[i + W as usize] - reference[i - W as usize]).abs();
             if g > 6.0 {
                 edges.push(i);
             }
@@ -86,7 +95,10 @@ fn taa_reduces_edge_aliasing_against_a_supersampled_reference() {
     };
     let (e_aliased, e_resolved) = (error(&aliased), error(&resolved));
     eprintln!("edge error against the 4x4 supersampled reference: no TAA {e_aliased:.2}, TAA {e_resolved:.2} (ratio {:.2}) over {} edge pixels", e_resolved / e_aliased, edges.len());
-    assert!(e_resolved < 0.85 * e_aliased, "TAA does not reduce edge aliasing: error {e_resolved:.2} with TAA, {e_aliased:.2} without");
+    assert!(
+        e_resolved < 0.85 * e_aliased,
+        "TAA does not reduce edge aliasing: error {e_resolved:.2} with TAA, {e_aliased:.2} without"
+    );
 }
 
 /// The directional light's shadow carves shafts into the volumetric fog: the in-scattered
@@ -98,13 +110,23 @@ fn volumetric_fog_shows_the_directional_lights_shafts() {
         let mut scene = Scene::bundled();
         scene.sun.casts_shadows = shadows;
         let r = renderer(&gpu, &scene, RendererOptions { width: W * 2, height: H * 2, ..Default::default() });
-        r.desktop_part2().unwrap().set_options(Part2Options { animate: false, fog_density: 0.03, ..Part2Options::default() });
+        r.desktop_part2().unwrap().set_options(Part2Options {
+            animate: false,
+            fog_density: 0.03,
+            ..Part2Options::default()
+        });
         let mut frame = None;
         for _ in 0..3 {
             frame = Some(r.render(true).unwrap());
         }
         let frame = frame.unwrap();
-        frame.passes.iter().flat_map(|p| p.images.iter()).find(|(n, _)| n == "VolumetricFog_LightScattering").map(|(_, i)| i.clone()).expect("no LightScattering image")
+        frame
+            .passes
+            .iter()
+            .flat_map(|p| p.images.iter())
+            .find(|(n, _)| n == "VolumetricFog_LightScattering")
+            .map(|(_, i)| i.clone())
+            .expect("no LightScattering image")
     };
     let shadowed = scattering(true);
     let unshadowed = scattering(false);
@@ -113,7 +135,14 @@ fn volumetric_fog_shows_the_directional_lights_shafts() {
     save(&dir, "unshadowed", &unshadowed);
     let mean = |i: &Image| luma(i).iter().sum::<f64>() / (i.width * i.height) as f64;
     let (s_dev, u_dev) = (luma_stddev(&shadowed), luma_stddev(&unshadowed));
-    eprintln!("LightScattering slice: luma stddev {s_dev:.2} with the sun's shadow, {u_dev:.2} without; mean {:.2} / {:.2}", mean(&shadowed), mean(&unshadowed));
+    eprintln!(
+        "LightScattering slice: luma stddev {s_dev:.2} with the sun's shadow, {u_dev:.2} without; mean {:.2} / {:.2}",
+        mean(&shadowed),
+        mean(&unshadowed)
+    );
     assert!(mean(&shadowed) < mean(&unshadowed), "the shadow does not darken the fog");
-    assert!(s_dev > 1.3 * u_dev, "no light shafts: the shadowed fog varies as little as the unshadowed (stddev {s_dev:.2} vs {u_dev:.2})");
+    assert!(
+        s_dev > 1.3 * u_dev,
+        "no light shafts: the shadowed fog varies as little as the unshadowed (stddev {s_dev:.2} vs {u_dev:.2})"
+    );
 }

@@ -64,14 +64,21 @@ fn glass_mask(image: &Image) -> Vec<bool> {
 
 /// Mean luma of `image` over the pixels where `mask` holds.
 fn masked_mean(image: &Image, mask: &[bool]) -> f64 {
-    let (sum, n) = image.rgba.chunks(4).zip(mask).filter(|(_, m)| **m).fold((0.0, 0usize), |(s, n), (p, _)| (s + luma(p), n + 1));
+    let (sum, n) =
+        image.rgba.chunks(4).zip(mask).filter(|(_, m)| **m).fold((0.0, 0usize), |(s, n), (p, _)| (s + luma(p), n + 1));
     assert!(n > 0, "empty mask");
     sum / n as f64
 }
 
 /// Mean absolute luma difference over the pixels where `mask` holds.
 fn masked_diff(a: &Image, b: &Image, mask: &[bool]) -> f64 {
-    let (sum, n) = a.rgba.chunks(4).zip(b.rgba.chunks(4)).zip(mask).filter(|(_, m)| **m).fold((0.0, 0usize), |(s, n), ((p, q), _)| (s + (luma(p) - luma(q)).abs(), n + 1));
+    let (sum, n) = a
+        .rgba
+        .chunks(4)
+        .zip(b.rgba.chunks(4))
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .fold((0.0, 0usize), |(s, n), ((p, q), _)| (s + (luma(p) - luma(q)).abs(), n + 1));
     assert!(n > 0, "empty mask");
     sum / n as f64
 }
@@ -97,7 +104,11 @@ fn glass_lit_by_the_volumes_changes_with_the_volumes_lighting() {
     let forward_unshadowed = captures(&scene, options(TranslucencyLightingMode::SurfaceForwardShading, false));
     let glass = |c: &[(String, Image)]| named(c, "Translucency_SeparateTranslucency");
     let opaque = |c: &[(String, Image)]| named(c, "ExponentialHeightFog");
-    for (name, c) in [("volume_shadowed", &volume_shadowed), ("volume_unshadowed", &volume_unshadowed), ("forward", &forward_shadowed)] {
+    for (name, c) in [
+        ("volume_shadowed", &volume_shadowed),
+        ("volume_unshadowed", &volume_unshadowed),
+        ("forward", &forward_shadowed),
+    ] {
         save(&dir, &format!("{name}_glass"), &glass(c));
         save(&dir, &format!("{name}_output"), &named(c, "Translucency_ComposeSeparateTranslucency"));
     }
@@ -128,7 +139,11 @@ fn statue_masks(scene: &Scene, glass: &[bool]) -> [Vec<bool>; 2] {
         .map(|m| {
             let mut b = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
             for i in 0..8 {
-                let corner = Vec3::new(if i & 1 == 0 { lo.x } else { hi.x }, if i & 2 == 0 { lo.y } else { hi.y }, if i & 4 == 0 { lo.z } else { hi.z });
+                let corner = Vec3::new(
+                    if i & 1 == 0 { lo.x } else { hi.x },
+                    if i & 2 == 0 { lo.y } else { hi.y },
+                    if i & 4 == 0 { lo.z } else { hi.z },
+                );
                 let clip = view_proj * m.transform_point3(corner).extend(1.0);
                 let (x, y) = ((clip.x / clip.w * 0.5 + 0.5) * W as f32, (0.5 - clip.y / clip.w * 0.5) * H as f32);
                 b = (b.0.min(x), b.1.min(y), b.2.max(x), b.3.max(y));
@@ -140,7 +155,8 @@ fn statue_masks(scene: &Scene, glass: &[bool]) -> [Vec<bool>; 2] {
         let (x, y) = ((i as u32 % W) as f32 + 0.5, (i as u32 / W) as f32 + 0.5);
         x >= b.0 && x <= b.2 && y >= b.1 && y <= b.3
     };
-    let mask = |k: usize| (0..glass.len()).map(|i| glass[i] && inside(&boxes[k], i) && !inside(&boxes[1 - k], i)).collect();
+    let mask =
+        |k: usize| (0..glass.len()).map(|i| glass[i] && inside(&boxes[k], i) && !inside(&boxes[1 - k], i)).collect();
     [mask(0), mask(1)]
 }
 
@@ -178,8 +194,14 @@ fn a_light_occluded_in_the_volumes_darkens_the_glass_in_its_shadow() {
         casts_shadow: true,
     });
     let dir = dump_dir("desktop2_translucency_volume_canopy");
-    let shadowed = named(&captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, true)), "Translucency_SeparateTranslucency");
-    let unshadowed = named(&captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, false)), "Translucency_SeparateTranslucency");
+    let shadowed = named(
+        &captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, true)),
+        "Translucency_SeparateTranslucency",
+    );
+    let unshadowed = named(
+        &captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, false)),
+        "Translucency_SeparateTranslucency",
+    );
     save(&dir, "shadowed", &shadowed);
     save(&dir, "unshadowed", &unshadowed);
     let [open, under] = statue_masks(&scene, &glass_mask(&unshadowed));
@@ -242,6 +264,15 @@ fn shadowed_spot_light_lights_the_glass_through_the_volumes_inside_its_cone() {
     let gain = through_volumes[1] - without[1];
     let per_pixel_gain = per_pixel[1] - without[1];
     assert!(gain > 4.5, "the spot does not light the glass through the volumes (+{gain:.1})");
-    assert!((0.5..2.0).contains(&(gain / per_pixel_gain)), "the volumes light the glass {:.2} times as much as per-pixel shading", gain / per_pixel_gain);
-    assert!((through_volumes[0] - without[0]).abs() < 1.0, "the statue outside the cone changed ({:.1} -> {:.1})", without[0], through_volumes[0]);
+    assert!(
+        (0.5..2.0).contains(&(gain / per_pixel_gain)),
+        "the volumes light the glass {:.2} times as much as per-pixel shading",
+        gain / per_pixel_gain
+    );
+    assert!(
+        (through_volumes[0] - without[0]).abs() < 1.0,
+        "the statue outside the cone changed ({:.1} -> {:.1})",
+        without[0],
+        through_volumes[0]
+    );
 }

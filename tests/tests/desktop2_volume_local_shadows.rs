@@ -32,7 +32,15 @@ fn scene(mobility: Mobility) -> Scene {
     scene.emitters.clear();
     scene.spot_lights.clear();
     scene.sun.enabled = false;
-    scene.point_lights = vec![PointLight { name: "SlabLight".into(), position: LIGHT, color: Vec3::ONE, intensity: 10.0, radius: 8.0, mobility, casts_shadows: true }];
+    scene.point_lights = vec![PointLight {
+        name: "SlabLight".into(),
+        position: LIGHT,
+        color: Vec3::ONE,
+        intensity: 10.0,
+        radius: 8.0,
+        mobility,
+        casts_shadows: true,
+    }];
     let mut slab = Mesh::new("Slab");
     slab.add_box(Vec3::new(-1.0, -0.05, -1.0), Vec3::new(1.0, 0.05, 1.0), 1.0);
     scene.meshes.push(slab);
@@ -45,7 +53,12 @@ fn scene(mobility: Mobility) -> Scene {
         mobility: Mobility::Movable,
         casts_shadow: true,
     });
-    scene.camera = Camera { position: Vec3::new(0.0, 2.5, 3.5), target: Vec3::new(0.0, 2.0, 0.0), fov_y: 60f32.to_radians(), near: 0.1 };
+    scene.camera = Camera {
+        position: Vec3::new(0.0, 2.5, 3.5),
+        target: Vec3::new(0.0, 2.0, 0.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+    };
     scene
 }
 
@@ -53,11 +66,25 @@ fn scene(mobility: Mobility) -> Scene {
 fn read_layer(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture, layer: u32) -> Vec<[f32; 4]> {
     let (w, h) = (texture.width(), texture.height());
     let row = (w * 8).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some("volume readback"), size: u64::from(row * h), usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("volume readback") });
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("volume readback"),
+        size: u64::from(row * h),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder =
+        gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("volume readback") });
     encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo { texture, mip_level: 0, origin: wgpu::Origin3d { x: 0, y: 0, z: layer }, aspect: wgpu::TextureAspect::All },
-        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) } },
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d { x: 0, y: 0, z: layer },
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) },
+        },
         wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
     );
     gpu.queue.submit([encoder.finish()]);
@@ -88,13 +115,20 @@ fn injected(mobility: Mobility, shadows: bool) -> [f32; 2] {
     let scene = scene(mobility);
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
     let part2 = r.desktop_part2().unwrap();
-    part2.set_options(Part2Options { translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume, translucency_volume_shadows: shadows, ..Part2Options::off() });
+    part2.set_options(Part2Options {
+        translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume,
+        translucency_volume_shadows: shadows,
+        ..Part2Options::off()
+    });
     r.render(false).unwrap_or_else(|e| panic!("{e}"));
     let ambient = part2.translucency_volume().ambient[0].clone();
     let (origin, cell) = TranslucentVolumes::cascade_box(scene.camera.position, 0);
     [BEHIND_SLAB, BESIDE].map(|p| {
         let c = ((p - origin) / cell).floor();
-        assert!(c.cmpge(Vec3::ZERO).all() && c.cmplt(Vec3::splat(VOLUME_SIZE as f32)).all(), "{p} is outside the fine cascade");
+        assert!(
+            c.cmpge(Vec3::ZERO).all() && c.cmplt(Vec3::splat(VOLUME_SIZE as f32)).all(),
+            "{p} is outside the fine cascade"
+        );
         let texel = read_layer(&gpu, &ambient, c.z as u32)[(c.y as u32 * VOLUME_SIZE + c.x as u32) as usize];
         0.299 * texel[0] + 0.587 * texel[1] + 0.114 * texel[2]
     })
@@ -107,13 +141,25 @@ fn injected(mobility: Mobility, shadows: bool) -> [f32; 2] {
 /// behind it and at most 5% beside the light.
 #[test]
 fn a_slab_between_a_local_light_and_the_volume_darkens_the_light_injected_behind_it() {
-    for (kind, mobility) in [("movable (cube shadow)", Mobility::Movable), ("stationary (per-object shadow)", Mobility::Stationary)] {
+    for (kind, mobility) in
+        [("movable (cube shadow)", Mobility::Movable), ("stationary (per-object shadow)", Mobility::Stationary)]
+    {
         let shadowed = injected(mobility, true);
         let unshadowed = injected(mobility, false);
         let ratio = [shadowed[0] / unshadowed[0], shadowed[1] / unshadowed[1]];
-        eprintln!("{kind}: shadowed {shadowed:?}, unshadowed {unshadowed:?}; behind the slab {:.3}, beside the light {:.3}", ratio[0], ratio[1]);
-        assert!(unshadowed[0] > 0.01 && unshadowed[1] > 0.01, "{kind}: the light does not reach the probes ({unshadowed:?})");
+        eprintln!(
+            "{kind}: shadowed {shadowed:?}, unshadowed {unshadowed:?}; behind the slab {:.3}, beside the light {:.3}",
+            ratio[0], ratio[1]
+        );
+        assert!(
+            unshadowed[0] > 0.01 && unshadowed[1] > 0.01,
+            "{kind}: the light does not reach the probes ({unshadowed:?})"
+        );
         assert!(ratio[0] < 0.5, "{kind}: the slab does not darken the light injected behind it ({:.3})", ratio[0]);
-        assert!(ratio[1] > 0.95, "{kind}: the light beside it, which the slab does not hide, is darkened ({:.3})", ratio[1]);
+        assert!(
+            ratio[1] > 0.95,
+            "{kind}: the light beside it, which the slab does not hide, is darkened ({:.3})",
+            ratio[1]
+        );
     }
 }

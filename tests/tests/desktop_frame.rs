@@ -16,8 +16,17 @@ const W: u32 = 320;
 const H: u32 = 180;
 
 /// The passes of the desktop frame (part 1), in the seeds' order.
-const PASSES: [&str; 9] =
-    ["PrePass", "ComputeLightGrid", "ShadowDepths", "BasePass", "AmbientOcclusion", "Lighting", "ExponentialHeightFog", "Translucency", "PostProcessing"];
+const PASSES: [&str; 9] = [
+    "PrePass",
+    "ComputeLightGrid",
+    "ShadowDepths",
+    "BasePass",
+    "AmbientOcclusion",
+    "Lighting",
+    "ExponentialHeightFog",
+    "Translucency",
+    "PostProcessing",
+];
 
 fn gpu() -> Gpu {
     Gpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"))
@@ -36,7 +45,8 @@ struct Frame {
 fn build(scene: &Scene, options: DesktopOptions) -> Frame {
     let gpu = gpu();
     let cache = PipelineCache::new(&gpu, archive());
-    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options, None).unwrap_or_else(|e| panic!("desktop frame: {e}"));
+    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options, None)
+        .unwrap_or_else(|e| panic!("desktop frame: {e}"));
     Frame { _gpu: gpu, _cache: cache, frame }
 }
 
@@ -86,8 +96,13 @@ fn window_luma(img: &Image, x: f32, y: f32, r: i32) -> f64 {
 fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
     let gpu = gpu();
     let scene = Scene::bundled();
-    let renderer = Renderer::new(&gpu, archive(), &scene, RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: false })
-        .unwrap_or_else(|e| panic!("renderer: {e}"));
+    let renderer = Renderer::new(
+        &gpu,
+        archive(),
+        &scene,
+        RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: false },
+    )
+    .unwrap_or_else(|e| panic!("renderer: {e}"));
     let out = renderer.render(true).unwrap_or_else(|e| panic!("render: {e}"));
     let dir = tempfile::tempdir().unwrap();
     let permutations = renderer.pipeline_cache().permutations_used();
@@ -105,13 +120,17 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
     assert!(!renderer.uses_spirv_passthrough());
     write_dump(dir.path(), &info, &out.passes).unwrap();
 
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("passes.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("passes.json")).unwrap()).unwrap();
     let passes = json["passes"].as_array().unwrap();
     let names: Vec<&str> = passes.iter().map(|p| p["name"].as_str().unwrap()).collect();
     // Every pass of the frame, in the seeds' order (later issues may add passes between).
     let mut at = 0;
     for want in PASSES {
-        let found = names[at..].iter().position(|n| *n == want).unwrap_or_else(|| panic!("`{want}` missing or out of order in {names:?}"));
+        let found = names[at..]
+            .iter()
+            .position(|n| *n == want)
+            .unwrap_or_else(|| panic!("`{want}` missing or out of order in {names:?}"));
         at += found + 1;
     }
     for p in passes {
@@ -135,7 +154,18 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
     assert!(names.iter().filter(|n| PASSES.contains(n)).count() == PASSES.len());
     // The frame's permutations are the sm5 ones of the desktop shaders.
     let used: Vec<&str> = json["permutations"].as_array().unwrap().iter().map(|p| p.as_str().unwrap()).collect();
-    for shader in ["DepthPassVS", "LightGridInjectionCS", "LightGridCompactCS", "ShadowDepthVS", "DeferredBasePassPS", "AmbientOcclusionPS", "ShadowProjectionPS", "StandardDeferredLightingPS", "ExponentialHeightFogPS", "TonemapperPS"] {
+    for shader in [
+        "DepthPassVS",
+        "LightGridInjectionCS",
+        "LightGridCompactCS",
+        "ShadowDepthVS",
+        "DeferredBasePassPS",
+        "AmbientOcclusionPS",
+        "ShadowProjectionPS",
+        "StandardDeferredLightingPS",
+        "ExponentialHeightFogPS",
+        "TonemapperPS",
+    ] {
         assert!(used.iter().any(|p| p.starts_with(&format!("{shader}@sm5"))), "{shader} not among {used:?}");
     }
 }
@@ -147,7 +177,9 @@ struct Png {
 }
 
 fn read_png(path: &Path) -> Png {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))));
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())),
+    ));
     let mut reader = decoder.read_info().unwrap();
     let mut buf = vec![0; reader.output_buffer_size().unwrap()];
     let info = reader.next_frame(&mut buf).unwrap();
@@ -239,7 +271,12 @@ fn light_grid_holds_exactly_the_cells_each_light_sphere_touches() {
                     }
                     checked += 1;
                     let touches = d2 <= r2;
-                    assert_eq!(listed.contains(&(i as u32)), touches, "cell ({x},{y},{z}) light {} ({i}): listed {listed:?}", l.name);
+                    assert_eq!(
+                        listed.contains(&(i as u32)),
+                        touches,
+                        "cell ({x},{y},{z}) light {} ({i}): listed {listed:?}",
+                        l.name
+                    );
                     if touches && i == probe {
                         probe_cells += 1;
                     }
@@ -270,7 +307,11 @@ fn directional_light_off_removes_its_shadow_mask() {
     let off = build(&scene, small());
     assert!(!off.frame.shadowed_lights().iter().any(|n| n == "DirectionalLight"), "{:?}", off.frame.shadowed_lights());
     let (unlit, images) = render(&off);
-    assert!(!images.iter().any(|(n, _)| n.contains("DirectionalLight")), "{:?}", images.iter().map(|(n, _)| n).collect::<Vec<_>>());
+    assert!(
+        !images.iter().any(|(n, _)| n.contains("DirectionalLight")),
+        "{:?}",
+        images.iter().map(|(n, _)| n).collect::<Vec<_>>()
+    );
     // And the sunlit patch of floor gets darker.
     let total = |img: &Image| img.mean_luma(0, 0, img.width, img.height);
     assert!(total(&lit) > total(&unlit) + 5.0, "{} vs {}", total(&lit), total(&unlit));
@@ -313,7 +354,14 @@ fn metallic_rough_and_dielectric_smooth_differ_as_the_brdf_says() {
     let ground = Material::opaque("Ground", Vec3::splat(0.2), 0.0, 1.0);
     assert_eq!(smooth.blend, BlendMode::Opaque);
     scene.materials = vec![smooth, rough, ground];
-    let object = |name: &str, mesh, material, at: Mat4| Object { name: name.into(), mesh, material, instances: vec![at], mobility: Mobility::Static, casts_shadow: true };
+    let object = |name: &str, mesh, material, at: Mat4| Object {
+        name: name.into(),
+        mesh,
+        material,
+        instances: vec![at],
+        mobility: Mobility::Static,
+        casts_shadow: true,
+    };
     scene.objects = vec![
         object("Smooth", 0, 0, Mat4::from_translation(Vec3::new(-1.3, 1.0, 0.0))),
         object("Rough", 0, 1, Mat4::from_translation(Vec3::new(1.3, 1.0, 0.0))),
@@ -368,7 +416,10 @@ fn metallic_rough_and_dielectric_smooth_differ_as_the_brdf_says() {
     // Smooth dielectric: a sharp highlight far above its diffuse body, and white.
     assert!(s_peak > 3.0 * s_median, "smooth: peak {s_peak:.3}, median {s_median:.3}");
     let [r, g, b] = s_peak_rgb;
-    assert!((r - b).abs() < 0.12 * r.max(b) && (r - g).abs() < 0.12 * r.max(g), "smooth highlight not white: {s_peak_rgb:?}");
+    assert!(
+        (r - b).abs() < 0.12 * r.max(b) && (r - g).abs() < 0.12 * r.max(g),
+        "smooth highlight not white: {s_peak_rgb:?}"
+    );
     // Rough metal: a broad lobe (peak close to its median), tinted like the base color.
     assert!(r_peak < 3.0 * r_median, "rough: peak {r_peak:.3}, median {r_median:.3}");
     assert!(r_rgb[0] > 1.5 * r_rgb[2], "rough metal not tinted: {r_rgb:?}");
@@ -472,11 +523,16 @@ fn desktop_agrees_with_mobile_forward_with_the_effects_mobile_lacks_turned_off()
     let options = RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: true };
     let gpu = gpu();
     let mobile_frame = |scene: &Scene| {
-        Renderer::new(&gpu, archive(), scene, RendererOptions { pipeline: FramePipeline::MobileForward, ..options.clone() })
-            .unwrap_or_else(|e| panic!("renderer: {e}"))
-            .render(false)
-            .unwrap_or_else(|e| panic!("render: {e}"))
-            .image
+        Renderer::new(
+            &gpu,
+            archive(),
+            scene,
+            RendererOptions { pipeline: FramePipeline::MobileForward, ..options.clone() },
+        )
+        .unwrap_or_else(|e| panic!("renderer: {e}"))
+        .render(false)
+        .unwrap_or_else(|e| panic!("render: {e}"))
+        .image
     };
     let desktop = build(&scene, options.desktop()).frame.render(false).0.unwrap();
     let mobile = mobile_frame(&scene);

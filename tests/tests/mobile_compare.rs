@@ -33,7 +33,10 @@ fn forward_and_deferred_agree_with_four_local_lights() {
     let scene = comparable_scene();
     let forward = rig.render(&scene, MobileOptions::comparable(ShadingPath::Forward));
     let deferred = rig.render(&scene, MobileOptions::comparable(ShadingPath::Deferred));
-    let unlit = rig.render(&scene, MobileOptions { local_light_limit: Some(0), ..MobileOptions::comparable(ShadingPath::Deferred) });
+    let unlit = rig.render(
+        &scene,
+        MobileOptions { local_light_limit: Some(0), ..MobileOptions::comparable(ShadingPath::Deferred) },
+    );
     let (same, control) = (psnr(&forward, &deferred), psnr(&forward, &unlit));
     eprintln!("forward/deferred {same:.1} dB; forward/deferred without local lights {control:.1} dB");
     assert!(same > FORWARD_DEFERRED_PSNR, "forward/deferred PSNR {same:.1} dB");
@@ -42,8 +45,13 @@ fn forward_and_deferred_agree_with_four_local_lights() {
 
 fn desktop(rig: &Rig, scene: &Scene) -> kiln_runtime::frame::Image {
     let archive = Arc::new(ShaderArchive::embedded().unwrap());
-    let renderer = Renderer::new(&rig.gpu, archive, scene, RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT, comparison: true })
-        .unwrap_or_else(|e| panic!("desktop frame: {e}"));
+    let renderer = Renderer::new(
+        &rig.gpu,
+        archive,
+        scene,
+        RendererOptions { pipeline: FramePipeline::Desktop, width: WIDTH, height: HEIGHT, comparison: true },
+    )
+    .unwrap_or_else(|e| panic!("desktop frame: {e}"));
     renderer.render(false).unwrap_or_else(|e| panic!("desktop frame: {e}")).image
 }
 

@@ -50,7 +50,10 @@ fn a_fully_rough_material_shows_no_specular_highlight() {
         let highlight = (0..n).filter(|&i| luma(&glossy, i) > luma(&rough, i) + 25.0).count();
         // Fully rough removes light and never adds it.
         let brighter = (0..n).filter(|&i| luma(&rough, i) > luma(&glossy, i) + 2.0).count();
-        eprintln!("{}: {changed} pixels changed, {highlight} highlight pixels gone when fully rough, {brighter} brighter", path.name());
+        eprintln!(
+            "{}: {changed} pixels changed, {highlight} highlight pixels gone when fully rough, {brighter} brighter",
+            path.name()
+        );
         assert!(highlight >= 5, "{}: no specular highlight to remove", path.name());
         assert_eq!(brighter, 0, "{}: FULLY_ROUGH made pixels brighter", path.name());
     }
@@ -63,7 +66,8 @@ fn max_dynamic_point_lights_zero_drops_the_local_lights_in_forward() {
     let mut no_lights = scene.clone();
     no_lights.point_lights.clear();
     no_lights.spot_lights.clear();
-    let options = |max| MobileOptions { max_dynamic_point_lights: max, ..MobileOptions::comparable(ShadingPath::Forward) };
+    let options =
+        |max| MobileOptions { max_dynamic_point_lights: max, ..MobileOptions::comparable(ShadingPath::Forward) };
     let four = rig.render(&scene, options(4));
     let zero = rig.render(&scene, options(0));
     let unlit = rig.render(&no_lights, options(4));
@@ -125,7 +129,12 @@ fn spot_shadows_come_from_the_shared_atlas() {
         let n = (with_shadow.width * with_shadow.height) as usize;
         let darker = (0..n).filter(|&i| luma(&with_shadow, i) + 8.0 < luma(&without, i)).count();
         let brighter = (0..n).filter(|&i| luma(&with_shadow, i) > luma(&without, i) + 2.0).count();
-        eprintln!("{}: spot shadow darkens {darker} pixels, brightens {brighter}; atlas {}x{}", path.name(), atlas.width, atlas.height);
+        eprintln!(
+            "{}: spot shadow darkens {darker} pixels, brightens {brighter}; atlas {}x{}",
+            path.name(),
+            atlas.width,
+            atlas.height
+        );
         assert!(darker > 50, "{}: the spot light casts no shadow", path.name());
         assert_eq!(brighter, 0, "{}: a shadow added light", path.name());
         assert!(light_sum(&with_shadow) < light_sum(&without));
@@ -171,7 +180,8 @@ fn msaa_resolves_at_the_end_of_the_last_scene_color_pass() {
     let mut scene = Scene::bundled();
     scene.objects.retain(|o| o.name != "GlassStatues");
     // Without translucent meshes the frame has no Translucency pass: the base pass resolves.
-    let (passes, resolved_in_base) = rig.render_passes(&scene, MobileOptions { translucency: true, ..MobileOptions::forward() }, false);
+    let (passes, resolved_in_base) =
+        rig.render_passes(&scene, MobileOptions { translucency: true, ..MobileOptions::forward() }, false);
     assert!(!passes.iter().any(|p| p.name == "Translucency"));
     let no_msaa = rig.render(&scene, MobileOptions { msaa: 1, ..MobileOptions::forward() });
     let p = psnr(&resolved_in_base, &no_msaa);
@@ -180,5 +190,8 @@ fn msaa_resolves_at_the_end_of_the_last_scene_color_pass() {
     assert!(p > 28.0 && p.is_finite(), "MSAA {p:.1} dB against no MSAA");
     // With glass statues, Translucency continues the multisampled color and resolves it.
     let (passes, _) = rig.render_passes(&Scene::bundled(), MobileOptions::forward(), false);
-    assert_eq!(passes.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(), ["ShadowDepths", "BasePass", "Translucency", "PostProcessing"]);
+    assert_eq!(
+        passes.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(),
+        ["ShadowDepths", "BasePass", "Translucency", "PostProcessing"]
+    );
 }

@@ -29,7 +29,10 @@ fn check(name: &str, options: MobileOptions) {
     if p <= TOLERANCE_PSNR {
         let out = std::env::temp_dir().join(format!("{name}.actual.png"));
         let _ = std::fs::write(&out, image.to_png());
-        panic!("{name}: PSNR {p:.1} dB against the reference (tolerance {TOLERANCE_PSNR} dB); this frame is in {}", out.display());
+        panic!(
+            "{name}: PSNR {p:.1} dB against the reference (tolerance {TOLERANCE_PSNR} dB); this frame is in {}",
+            out.display()
+        );
     }
 }
 

@@ -34,7 +34,13 @@ fn mobile_pixel_shaders_stay_within_16_samplers_and_4_targets() {
         let textures = r.bindings.iter().filter(|b| matches!(b.kind, BindingKind::Texture { .. })).count();
         assert!(samplers <= 16 && textures <= 16, "{}: {samplers} samplers, {textures} textures", p.name());
         assert!(r.color_outputs.len() <= 4, "{}: {} color outputs", p.name(), r.color_outputs.len());
-        assert!(!r.bindings.iter().any(|b| matches!(b.kind, BindingKind::StorageBuffer { .. } | BindingKind::StorageTexture { .. })), "{}: storage resources", p.name());
+        assert!(
+            !r.bindings
+                .iter()
+                .any(|b| matches!(b.kind, BindingKind::StorageBuffer { .. } | BindingKind::StorageTexture { .. })),
+            "{}: storage resources",
+            p.name()
+        );
         checked += 1;
     }
     assert!(checked > 400, "{checked} mobile permutations");

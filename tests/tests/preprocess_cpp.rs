@@ -28,13 +28,7 @@ fn require_cpp() {
 
 /// Runs cpp from `cwd` on `file` (relative to `cwd`). Ok(stdout) or Err(stderr).
 fn run_cpp(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> {
-    let out = Command::new("cpp")
-        .args(CPP_ARGS)
-        .args(args)
-        .arg(file)
-        .current_dir(cwd)
-        .output()
-        .expect("cpp runs");
+    let out = Command::new("cpp").args(CPP_ARGS).args(args).arg(file).current_dir(cwd).output().expect("cpp runs");
     if out.status.success() {
         Ok(String::from_utf8_lossy(&out.stdout).into_owned())
     } else {
@@ -62,9 +56,7 @@ fn run_kiln(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> 
     } else {
         preprocess::preprocess_file(&abs, &opts, &cache)
     };
-    result
-        .map(|o| o.text)
-        .map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
+    result.map(|o| o.text).map_err(|e| preprocess::render(&[e.diagnostic], &cache, false))
 }
 
 fn args_of(text: &str) -> Vec<String> {
@@ -84,11 +76,7 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             if ta == tb {
                 return None;
             }
-            let i = ta
-                .iter()
-                .zip(&tb)
-                .position(|(x, y)| x != y)
-                .unwrap_or(ta.len().min(tb.len()));
+            let i = ta.iter().zip(&tb).position(|(x, y)| x != y).unwrap_or(ta.len().min(tb.len()));
             let ctx = |t: &[&str]| t[i.saturating_sub(6)..(i + 6).min(t.len())].join(" ");
             Some(format!(
                 "{}: token {i} differs\n   cpp: {}\n  kiln: {}\n--- cpp output\n{a}\n--- kiln output\n{b}",
@@ -98,14 +86,8 @@ fn compare(cwd: &Path, file: &Path, args: &[String]) -> Option<String> {
             ))
         }
         (Err(_), Err(_)) => None,
-        (Ok(_), Err(e)) => Some(format!(
-            "{}: cpp succeeds, kiln fails:\n{e}",
-            file.display()
-        )),
-        (Err(e), Ok(_)) => Some(format!(
-            "{}: cpp fails, kiln succeeds; cpp says:\n{e}",
-            file.display()
-        )),
+        (Ok(_), Err(e)) => Some(format!("{}: cpp succeeds, kiln fails:\n{e}", file.display())),
+        (Err(e), Ok(_)) => Some(format!("{}: cpp fails, kiln succeeds; cpp says:\n{e}", file.display())),
     }
 }
 
@@ -128,10 +110,7 @@ fn corpus_matches_cpp() {
         let args = args_of(&text);
         // Every corpus case is valid C preprocessor input.
         if let Err(e) = run_cpp(&cwd, rel, &args) {
-            failures.push(format!(
-                "{}: cpp rejects a corpus case:\n{e}",
-                rel.display()
-            ));
+            failures.push(format!("{}: cpp rejects a corpus case:\n{e}", rel.display()));
             continue;
         }
         if let Some(f) = compare(&cwd, rel, &args) {
@@ -243,9 +222,7 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
             if r.chance(85) {
                 out.push('(');
                 let args = match sigs.get(f) {
-                    Some(&(n, variadic)) if r.chance(90) => {
-                        n + if variadic { r.below(3) } else { 0 }
-                    }
+                    Some(&(n, variadic)) if r.chance(90) => n + if variadic { r.below(3) } else { 0 },
                     _ => r.below(4),
                 };
                 for a in 0..args {
@@ -275,20 +252,8 @@ fn gen_use(r: &mut Rng, out: &mut String, depth: usize, sigs: &Sigs) {
 fn gen_expr(r: &mut Rng, out: &mut String, depth: usize) {
     let roll = r.below(100);
     if depth > 3 || roll < 35 {
-        let term = r.pick(&[
-            "0",
-            "1",
-            "2",
-            "7",
-            "0x10",
-            "10u",
-            "3000000000",
-            "9223372036854775807",
-            "'a'",
-            "A",
-            "B",
-            "Z",
-        ]);
+        let term =
+            r.pick(&["0", "1", "2", "7", "0x10", "10u", "3000000000", "9223372036854775807", "'a'", "A", "B", "Z"]);
         out.push_str(term);
     } else if roll < 45 {
         out.push_str(&format!("defined({})", r.pick(&["A", "F", "Z"])));
@@ -307,10 +272,7 @@ fn gen_expr(r: &mut Rng, out: &mut String, depth: usize) {
     } else {
         out.push('(');
         gen_expr(r, out, depth + 1);
-        let ops = [
-            "+", "-", "*", "/", "%", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^",
-            "&&", "||",
-        ];
+        let ops = ["+", "-", "*", "/", "%", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^", "&&", "||"];
         out.push_str(&format!(" {} ", r.pick(&ops)));
         gen_expr(r, out, depth + 1);
         out.push(')');
@@ -351,14 +313,9 @@ fn random_macro_programs_match_cpp() {
     require_cpp();
     let dir = tempfile::tempdir().expect("temp dir");
     // `KILN_RANDOM_PROGRAMS=N` and `KILN_RANDOM_SEED=S` run a longer or different search.
-    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(400);
-    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0x5eed_1234_abcd_0001);
+    let count: usize = std::env::var("KILN_RANDOM_PROGRAMS").ok().and_then(|v| v.parse().ok()).unwrap_or(400);
+    let seed: u64 =
+        std::env::var("KILN_RANDOM_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0x5eed_1234_abcd_0001);
     let mut r = Rng(seed | 1);
     let mut failures = Vec::new();
     let (mut ok, mut both_fail) = (0, 0);
@@ -377,18 +334,10 @@ fn random_macro_programs_match_cpp() {
         failures.is_empty(),
         "{} random programs differ from cpp:\n\n{}",
         failures.len(),
-        failures
-            .iter()
-            .take(5)
-            .cloned()
-            .collect::<Vec<_>>()
-            .join("\n\n")
+        failures.iter().take(5).cloned().collect::<Vec<_>>().join("\n\n")
     );
     // The generator must mostly make valid programs, or the test proves little.
-    assert!(
-        ok * 2 >= count,
-        "only {ok} of {count} programs valid ({both_fail} rejected by both)"
-    );
+    assert!(ok * 2 >= count, "only {ok} of {count} programs valid ({both_fail} rejected by both)");
 }
 
 /// A random valid `#if` expression: constants, `defined`, every operator (divisors are
@@ -436,9 +385,7 @@ fn gen_const_expr(r: &mut Rng, out: &mut String, depth: usize) {
         out.push_str(r.pick(&["1", "2", "7", "3u", "-3", "N"]));
         out.push(')');
     } else {
-        let ops = [
-            "+", "-", "*", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^", "&&", "||",
-        ];
+        let ops = ["+", "-", "*", "<<", ">>", "<", ">", "<=", ">=", "==", "!=", "&", "|", "^", "&&", "||"];
         out.push('(');
         gen_const_expr(r, out, depth + 1);
         out.push_str(&format!(" {} ", r.pick(&ops)));
@@ -451,14 +398,10 @@ fn gen_const_expr(r: &mut Rng, out: &mut String, depth: usize) {
 fn random_if_expressions_match_cpp() {
     require_cpp();
     let dir = tempfile::tempdir().expect("temp dir");
-    let seed: u64 = std::env::var("KILN_RANDOM_SEED")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0x1f1f_2e2e_3d3d_4c4b);
-    let files: usize = std::env::var("KILN_RANDOM_PROGRAMS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .map_or(4, |n: usize| n / 100);
+    let seed: u64 =
+        std::env::var("KILN_RANDOM_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0x1f1f_2e2e_3d3d_4c4b);
+    let files: usize =
+        std::env::var("KILN_RANDOM_PROGRAMS").ok().and_then(|v| v.parse().ok()).map_or(4, |n: usize| n / 100);
     let mut r = Rng(seed | 1);
     let mut failures = Vec::new();
     for file in 0..files {

@@ -16,10 +16,7 @@ fn run(files: &[(&str, &str)], opts: Options) -> (Result<String, String>, String
             let warnings = preprocess::render(&out.warnings, &cache, false);
             (Ok(out.text), warnings)
         }
-        Err(e) => (
-            Err(preprocess::render(&[e.diagnostic], &cache, false)),
-            String::new(),
-        ),
+        Err(e) => (Err(preprocess::render(&[e.diagnostic], &cache, false)), String::new()),
     }
 }
 
@@ -41,20 +38,13 @@ fn error_of(files: &[(&str, &str)]) -> String {
 #[track_caller]
 fn assert_error(files: &[(&str, &str)], expected: &str) {
     let got = error_of(files);
-    assert_eq!(
-        got.trim_end(),
-        expected.trim_end(),
-        "\n--- got:\n{got}\n--- expected:\n{expected}"
-    );
+    assert_eq!(got.trim_end(), expected.trim_end(), "\n--- got:\n{got}\n--- expected:\n{expected}");
 }
 
 #[test]
 fn error_directive() {
     assert_error(
-        &[(
-            "main.usf",
-            "fn f() {}\n#if 1\n#error this target is not supported\n#endif\n",
-        )],
+        &[("main.usf", "fn f() {}\n#if 1\n#error this target is not supported\n#endif\n")],
         r#"
 error: #error this target is not supported
   ┌─ main.usf:3:1
@@ -183,20 +173,10 @@ error: cannot find include file `nothere.ush`
 #[test]
 fn escaping_include() {
     let dir = tempfile::tempdir().expect("temp dir");
-    write_files(
-        dir.path(),
-        &[
-            ("outside.ush", "secret\n"),
-            ("src/main.usf", "#include \"../outside.ush\"\n"),
-        ],
-    );
+    write_files(dir.path(), &[("outside.ush", "secret\n"), ("src/main.usf", "#include \"../outside.ush\"\n")]);
     let cache = SourceCache::new(dir.path().to_path_buf());
-    let opts = Options {
-        include_roots: vec![dir.path().join("src")],
-        ..Options::default()
-    };
-    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache)
-        .expect_err("escapes");
+    let opts = Options { include_roots: vec![dir.path().join("src")], ..Options::default() };
+    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache).expect_err("escapes");
     let got = preprocess::render(&[err.diagnostic], &cache, false);
     let expected = r#"
 error: #include "../outside.ush" resolves to `outside.ush`, outside the include roots
@@ -213,25 +193,12 @@ error: #include "../outside.ush" resolves to `outside.ush`, outside the include 
 #[test]
 fn symlink_escape_is_refused() {
     let dir = tempfile::tempdir().expect("temp dir");
-    write_files(
-        dir.path(),
-        &[
-            ("outside/secret.ush", "secret\n"),
-            ("src/main.usf", "#include <link.ush>\n"),
-        ],
-    );
-    std::os::unix::fs::symlink(
-        dir.path().join("outside/secret.ush"),
-        dir.path().join("src/link.ush"),
-    )
-    .expect("symlink");
+    write_files(dir.path(), &[("outside/secret.ush", "secret\n"), ("src/main.usf", "#include <link.ush>\n")]);
+    std::os::unix::fs::symlink(dir.path().join("outside/secret.ush"), dir.path().join("src/link.ush"))
+        .expect("symlink");
     let cache = SourceCache::new(dir.path().to_path_buf());
-    let opts = Options {
-        include_roots: vec![dir.path().join("src")],
-        ..Options::default()
-    };
-    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache)
-        .expect_err("escapes");
+    let opts = Options { include_roots: vec![dir.path().join("src")], ..Options::default() };
+    let err = preprocess::preprocess_file(&dir.path().join("src/main.usf"), &opts, &cache).expect_err("escapes");
     let got = preprocess::render(&[err.diagnostic], &cache, false);
     let expected = r#"
 error: #include "link.ush" resolves to `outside/secret.ush`, outside the include roots
@@ -407,10 +374,7 @@ fn macro_bomb_is_bounded() {
     }
     src.push_str("L40\n");
     let start = std::time::Instant::now();
-    let opts = Options {
-        max_output_bytes: 1 << 20,
-        ..Options::default()
-    };
+    let opts = Options { max_output_bytes: 1 << 20, ..Options::default() };
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
@@ -438,10 +402,7 @@ fn argument_bomb_is_bounded() {
     }
     src.push_str(&call);
     src.push('\n');
-    let opts = Options {
-        max_output_bytes: 1 << 20,
-        ..Options::default()
-    };
+    let opts = Options { max_output_bytes: 1 << 20, ..Options::default() };
     let (result, _) = run(&[("main.usf", &src)], opts);
     let err = result.expect_err("the bomb must fail");
     let expected = r#"
@@ -464,34 +425,20 @@ fn deep_recursion_is_bounded() {
     src.push_str("M0\n");
     let (result, _) = run(&[("main.usf", &src)], Options::default());
     let err = result.expect_err("too deep");
-    assert!(
-        err.starts_with("error: macro expansion nested deeper than 256 levels"),
-        "{err}"
-    );
+    assert!(err.starts_with("error: macro expansion nested deeper than 256 levels"), "{err}");
 }
 
 #[test]
 fn recursive_include_is_bounded() {
-    let (result, _) = run(
-        &[("main.usf", "#include \"main.usf\"\n")],
-        Options::default(),
-    );
+    let (result, _) = run(&[("main.usf", "#include \"main.usf\"\n")], Options::default());
     let err = result.expect_err("too deep");
-    assert!(
-        err.starts_with("error: #include nested depth 200 exceeds maximum of 200"),
-        "{err}"
-    );
+    assert!(err.starts_with("error: #include nested depth 200 exceeds maximum of 200"), "{err}");
 }
 
 #[test]
 fn warnings_do_not_stop() {
-    let (result, warnings) = run(
-        &[(
-            "main.usf",
-            "#define A 1\n#define A 2\n#warning check this\nA\n",
-        )],
-        Options::default(),
-    );
+    let (result, warnings) =
+        run(&[("main.usf", "#define A 1\n#define A 2\n#warning check this\nA\n")], Options::default());
     assert_eq!(preprocess::tokens(&result.expect("no error")), vec!["2"]);
     let expected = r#"
 warning: "A" redefined

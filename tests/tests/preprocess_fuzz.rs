@@ -75,11 +75,7 @@ const PIECES: [&str; 48] = [
 fn check(text: &str, what: &str) {
     let cache = SourceCache::new(std::env::temp_dir());
     let id = cache.add_virtual("fuzz.usf", text);
-    let opts = Options {
-        max_output_bytes: 1 << 18,
-        max_expansion_depth: 64,
-        ..Options::default()
-    };
+    let opts = Options { max_output_bytes: 1 << 18, max_expansion_depth: 64, ..Options::default() };
     let result = catch_unwind(AssertUnwindSafe(|| {
         match preprocess::preprocess_file_id(id, &opts, &cache) {
             Ok(out) => {
@@ -103,14 +99,8 @@ fn check(text: &str, what: &str) {
 #[test]
 fn random_pieces_never_panic() {
     // `KILN_FUZZ_ITERS=N` runs a longer search.
-    let iters: usize = std::env::var("KILN_FUZZ_ITERS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3000);
-    let seed: u64 = std::env::var("KILN_FUZZ_SEED")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0xfeed_beef_1234_5679);
+    let iters: usize = std::env::var("KILN_FUZZ_ITERS").ok().and_then(|v| v.parse().ok()).unwrap_or(3000);
+    let seed: u64 = std::env::var("KILN_FUZZ_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(0xfeed_beef_1234_5679);
     let mut r = Rng(seed | 1);
     for i in 0..iters {
         let n = 1 + r.below(60);
@@ -181,22 +171,12 @@ fn mutated_corpus_never_panics() {
 #[test]
 fn deep_nesting_is_an_error_not_a_stack_overflow() {
     // Test threads have small stacks: these must fail cleanly well before that matters.
-    let args = format!(
-        "#define f(x) x\n{}1{}\n",
-        "f(".repeat(5000),
-        ")".repeat(5000)
-    );
-    let parens = format!(
-        "#if {}1{}\n#endif\n",
-        "(".repeat(50_000),
-        ")".repeat(50_000)
-    );
+    let args = format!("#define f(x) x\n{}1{}\n", "f(".repeat(5000), ")".repeat(5000));
+    let parens = format!("#if {}1{}\n#endif\n", "(".repeat(50_000), ")".repeat(50_000));
     let includes_text = "#include \"fuzz.usf\"\n";
-    for (what, text) in [
-        ("nested arguments", args.as_str()),
-        ("nested parentheses", parens.as_str()),
-        ("self include", includes_text),
-    ] {
+    for (what, text) in
+        [("nested arguments", args.as_str()), ("nested parentheses", parens.as_str()), ("self include", includes_text)]
+    {
         let cache = SourceCache::new(std::env::temp_dir());
         let id = cache.add_virtual("fuzz.usf", text);
         let r = preprocess::preprocess_file_id(id, &Options::default(), &cache);

@@ -34,8 +34,7 @@ fn three_includes_and_two_macro_levels() {
     write_files(dir.path(), &FILES);
     let cache = SourceCache::new(dir.path().to_path_buf());
     let out =
-        preprocess::preprocess_file(&dir.path().join("main.usf"), &Options::default(), &cache)
-            .expect("preprocesses");
+        preprocess::preprocess_file(&dir.path().join("main.usf"), &Options::default(), &cache).expect("preprocesses");
     assert_eq!(
         preprocess::tokens(&out.text),
         preprocess::tokens("fn f() -> f32 { return (1.0 * 2.0) + bad_ident; }\nfn main_fn() {}")
@@ -46,19 +45,9 @@ fn three_includes_and_two_macro_levels() {
     let o = out.map.origin(at).expect("mapped");
     assert_eq!(place(&cache, &o), ("inc/deeper/c.ush".into(), 3, 17));
     assert_eq!(o.macro_definition, None);
-    let chain: Vec<(String, usize)> = o
-        .include_chain
-        .iter()
-        .map(|(f, r)| (cache.name(*f), cache.location(*f, r.start).0))
-        .collect();
-    assert_eq!(
-        chain,
-        vec![
-            ("inc/b.ush".into(), 3),
-            ("a.ush".into(), 1),
-            ("main.usf".into(), 2)
-        ]
-    );
+    let chain: Vec<(String, usize)> =
+        o.include_chain.iter().map(|(f, r)| (cache.name(*f), cache.location(*f, r.start).0)).collect();
+    assert_eq!(chain, vec![("inc/b.ush".into(), 3), ("a.ush".into(), 1), ("main.usf".into(), 2)]);
 
     // Made by OUTER: the invocation, with OUTER's definition as the note.
     let at = out.text.find("bad_ident").expect("in output");
@@ -92,13 +81,8 @@ fn three_includes_and_two_macro_levels() {
 
     // The labels the compile stage puts on a naga error, rendered.
     let at = out.text.find("bad_ident").expect("in output");
-    let labels = out.map.labels(
-        at..at + "bad_ident".len(),
-        "no definition in scope for identifier: `bad_ident`",
-    );
-    let d = Diagnostic::error()
-        .with_message("invalid expression")
-        .with_labels(labels);
+    let labels = out.map.labels(at..at + "bad_ident".len(), "no definition in scope for identifier: `bad_ident`");
+    let d = Diagnostic::error().with_message("invalid expression").with_labels(labels);
     let rendered = preprocess::render(&[d], &cache, false);
     let expected = r#"
 error: invalid expression
@@ -133,18 +117,13 @@ fn columns_through_line_splices_and_every_byte_is_mapped() {
     let cache = SourceCache::new(std::env::temp_dir());
     let text = "#define A \\\n  one\nlet x = A;\nlet y = 1 + \\\n  22;\n";
     let id = cache.add_virtual("splice.usf", text);
-    let out =
-        preprocess::preprocess_file_id(id, &Options::default(), &cache).expect("preprocesses");
+    let out = preprocess::preprocess_file_id(id, &Options::default(), &cache).expect("preprocesses");
     let at = out.text.find("22").expect("in output");
     let o = out.map.origin(at).expect("mapped");
     assert_eq!((o.line, o.column), (5, 3));
     assert_eq!(&text[o.span.clone()], "2");
     for i in 0..out.text.len() {
-        assert!(
-            out.map.origin(i).is_some(),
-            "byte {i} of {:?} has no origin",
-            out.text
-        );
+        assert!(out.map.origin(i).is_some(), "byte {i} of {:?} has no origin", out.text);
     }
     // The source map is runs, not bytes.
     assert!(out.map.len() < 8, "{} entries", out.map.len());
@@ -160,10 +139,7 @@ fn files_are_read_once_per_cache_across_threads() {
         for i in 0..4 {
             let (cache, main) = (&cache, &main);
             s.spawn(move || {
-                let opts = Options {
-                    defines: vec![("PERM".into(), i.to_string())],
-                    ..Options::default()
-                };
+                let opts = Options { defines: vec![("PERM".into(), i.to_string())], ..Options::default() };
                 let out = preprocess::preprocess_file(main, &opts, cache).expect("preprocesses");
                 assert_eq!(out.files.len(), 4);
                 assert_eq!(cache.name(out.files[0]), "main.usf");
@@ -173,8 +149,7 @@ fn files_are_read_once_per_cache_across_threads() {
     assert_eq!(cache.len(), 4, "each of the 4 files read once");
     // Changing a file on disk does not matter any more: its text comes from the cache.
     std::fs::write(dir.path().join("inc/deeper/c.ush"), "changed\n").expect("write");
-    let out =
-        preprocess::preprocess_file(&main, &Options::default(), &cache).expect("from the cache");
+    let out = preprocess::preprocess_file(&main, &Options::default(), &cache).expect("from the cache");
     assert!(out.text.contains("bad_ident") && !out.text.contains("changed"));
     assert_eq!(cache.len(), 4);
 }
@@ -183,17 +158,10 @@ fn files_are_read_once_per_cache_across_threads() {
 fn token_hash_ignores_spacing_and_comments() {
     let cache = SourceCache::new(std::env::temp_dir());
     let a = cache.add_virtual("a.usf", "#define N 4\nfn f() -> u32 { return N; }\n");
-    let b = cache.add_virtual(
-        "b.usf",
-        "fn  f ( ) ->u32{\n  // four\n  return /* n */ 4 ;\n}",
-    );
+    let b = cache.add_virtual("b.usf", "fn  f ( ) ->u32{\n  // four\n  return /* n */ 4 ;\n}");
     let c = cache.add_virtual("c.usf", "fn f() -> u32 { return 5; }\n");
     let opts = Options::default();
-    let h = |id| {
-        preprocess::preprocess_file_id(id, &opts, &cache)
-            .expect("ok")
-            .token_hash()
-    };
+    let h = |id| preprocess::preprocess_file_id(id, &opts, &cache).expect("ok").token_hash();
     assert_eq!(h(a), h(b));
     assert_ne!(h(a), h(c));
 }

@@ -87,7 +87,8 @@ fn skipped_permutation_names_the_nearest_and_what_differs() {
     assert!(text.starts_with("permutation `MobileBasePassPS@es3_1{FULLY_ROUGH=0,MAX_DYNAMIC_POINT_LIGHTS=2"), "{text}");
     assert!(text.contains("; nearest:\n  MobileBasePassPS@es3_1{"), "{text}");
     assert!(
-        text.contains("(differs in MAX_DYNAMIC_POINT_LIGHTS: 2 -> 0)") || text.contains("(differs in DEFERRED_SHADING_PATH: 1 -> 0)"),
+        text.contains("(differs in MAX_DYNAMIC_POINT_LIGHTS: 2 -> 0)")
+            || text.contains("(differs in DEFERRED_SHADING_PATH: 1 -> 0)"),
         "{text}"
     );
 }
@@ -97,11 +98,29 @@ fn builder_errors_name_the_unknown_part() {
     let a = embedded();
     let e = a.shader("NoSuchPS").level("sm5").find().err().expect("lookup should fail").to_string();
     assert_eq!(e, "cannot name permutation: no shader named `NoSuchPS` in the archive");
-    let e = a.shader("ExponentialHeightFogPS").level("sm5").with("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", 0).with("BOGUS", 1).find().err().expect("lookup should fail").to_string();
+    let e = a
+        .shader("ExponentialHeightFogPS")
+        .level("sm5")
+        .with("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", 0)
+        .with("BOGUS", 1)
+        .find()
+        .err()
+        .expect("lookup should fail")
+        .to_string();
     assert_eq!(e, "cannot name permutation: shader `ExponentialHeightFogPS` has no dimension `BOGUS` (its dimensions: SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING)");
     let e = a.shader("VisualizeDepthPS").find().err().expect("lookup should fail").to_string();
-    assert_eq!(e, "cannot name permutation: shader `VisualizeDepthPS` has several levels (sm5, es3_1); say which with .level()");
-    let e = a.shader("StandardDeferredLightingPS").level("sm5").with("LIGHT_TYPE", "POINT").find().err().expect("lookup should fail").to_string();
+    assert_eq!(
+        e,
+        "cannot name permutation: shader `VisualizeDepthPS` has several levels (sm5, es3_1); say which with .level()"
+    );
+    let e = a
+        .shader("StandardDeferredLightingPS")
+        .level("sm5")
+        .with("LIGHT_TYPE", "POINT")
+        .find()
+        .err()
+        .expect("lookup should fail")
+        .to_string();
     assert!(e.contains("no value given for dimension `USE_SHADOW_MASK`"), "{e}");
 }
 

@@ -29,11 +29,16 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
         "DepthPassPS" => archive.shader("DepthPassVS").level(&shader.level).with("MATERIAL_MASKED", 1),
         "DeferredBasePassPS" => archive.shader("DeferredBasePassVS").level(&shader.level),
         "ParticleSpritePS" => archive.shader("ParticleSpriteVS").level(&shader.level),
-        "MobileBasePassPS" => archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG")),
+        "MobileBasePassPS" => {
+            archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG"))
+        }
         "GPUSpritePS" | "GPUSpriteDistortionPS" => archive.shader("GPUSpriteVS").level(&shader.level),
         "StandardDeferredLightingPS" => {
             // LIGHT_TYPE_DIRECTIONAL is 0; the other lights draw light volumes.
-            archive.shader("DeferredLightVS").level(&shader.level).with("RADIAL_LIGHT", u32::from(value("LIGHT_TYPE") != 0))
+            archive
+                .shader("DeferredLightVS")
+                .level(&shader.level)
+                .with("RADIAL_LIGHT", u32::from(value("LIGHT_TYPE") != 0))
         }
         "MobileRadialLightPS" => archive.shader("MobileDeferredLightVS").level(&shader.level),
         name => {
@@ -42,7 +47,9 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
             let own = name.strip_suffix("PS").map(|stem| format!("{stem}VS"));
             match own.filter(|vs| archive.shader(vs).level(&shader.level).find().is_ok()) {
                 Some(vs) => return archive.shader(&vs).level(&shader.level).find().unwrap().name().to_string(),
-                None if shader.level == "es3_1" && name.starts_with("Mobile") => archive.shader("MobileFullscreenVS").level(&shader.level),
+                None if shader.level == "es3_1" && name.starts_with("Mobile") => {
+                    archive.shader("MobileFullscreenVS").level(&shader.level)
+                }
                 None => archive.shader("ScreenVS").level(&shader.level),
             }
         }
@@ -51,7 +58,8 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
 }
 
 fn state_for(vs: &PermutationRef<'_>, fs: Option<&PermutationRef<'_>>) -> RenderState {
-    let vertex_layout = if vs.reflection().vertex_inputs.is_empty() { VertexLayout::None } else { VertexLayout::MeshInstanced };
+    let vertex_layout =
+        if vs.reflection().vertex_inputs.is_empty() { VertexLayout::None } else { VertexLayout::MeshInstanced };
     let mut state = RenderState::mesh();
     state.vertex_layout = vertex_layout;
     // Depth-only pipelines, and pixel shaders that write only depth (MobileSceneDepthAuxPS).
@@ -89,7 +97,9 @@ fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&Permutati
             Stage::Fragment => {
                 let vs_name = partner(&archive, &p);
                 let vs = archive.get(&vs_name).unwrap();
-                cache.render(&vs_name, Some(p.name()), &state_for(&vs, Some(&p))).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
+                cache
+                    .render(&vs_name, Some(p.name()), &state_for(&vs, Some(&p)))
+                    .unwrap_or_else(|e| panic!("{}: {e}", p.name()));
             }
             Stage::Vertex => {
                 cache.render(p.name(), None, &state_for(&p, None)).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
@@ -101,9 +111,11 @@ fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&Permutati
         created += 1;
     }
     let stats = cache.stats();
-    let target = if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
+    let target =
+        if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
     let used: std::collections::HashSet<String> = cache.permutations_used().into_iter().collect();
-    let blobs: std::collections::HashSet<_> = archive.permutations().filter(|p| used.contains(p.name())).map(|p| p.blob_id(target).unwrap()).collect();
+    let blobs: std::collections::HashSet<_> =
+        archive.permutations().filter(|p| used.contains(p.name())).map(|p| p.blob_id(target).unwrap()).collect();
     assert_eq!(stats.modules, blobs.len(), "one module per distinct artifact");
     assert!(archive.permutations().filter(|p| wanted(p)).all(|p| used.contains(p.name())));
     (created, cache.uses_spirv_passthrough())
@@ -160,7 +172,14 @@ fn missing_permutation_and_wrong_stage_are_errors() {
     let gpu = gpu(ModuleSource::Auto);
     let cache = PipelineCache::new(&gpu, Arc::new(ShaderArchive::embedded().unwrap()));
     let state = RenderState::fullscreen(ColorTarget { format: formats::OUTPUT, blend: Blend::Replace });
-    let e = cache.render("PostProcessVS@sm5{}", Some("ExponentialHeightFogPS@sm5{SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING=2}"), &state).unwrap_err().to_string();
+    let e = cache
+        .render(
+            "PostProcessVS@sm5{}",
+            Some("ExponentialHeightFogPS@sm5{SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING=2}"),
+            &state,
+        )
+        .unwrap_err()
+        .to_string();
     assert!(e.starts_with("permutation `ExponentialHeightFogPS@sm5{SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING=2}` is not in the archive; nearest:"), "{e}");
     assert!(e.contains("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING: 2 -> 0"), "{e}");
     let e = cache.render("VisualizeDepthPS@sm5{}", None, &state).unwrap_err().to_string();

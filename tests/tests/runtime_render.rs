@@ -22,7 +22,12 @@ fn render(gpu: &Gpu, scene: &Scene, pipeline: FramePipeline, capture: bool) -> k
     render_with(gpu, scene, RendererOptions { pipeline, width: W, height: H, comparison: false }, capture)
 }
 
-fn render_with(gpu: &Gpu, scene: &Scene, options: RendererOptions, capture: bool) -> kiln_runtime::renderer::FrameOutput {
+fn render_with(
+    gpu: &Gpu,
+    scene: &Scene,
+    options: RendererOptions,
+    capture: bool,
+) -> kiln_runtime::renderer::FrameOutput {
     let archive = Arc::new(ShaderArchive::embedded().unwrap());
     let renderer = Renderer::new(gpu, archive, scene, options).unwrap();
     let before = renderer.cache_stats();
@@ -88,7 +93,8 @@ fn turning_the_sun_off_darkens_only_the_lit_floor() {
         let on = render(&gpu, &scene, pipeline, false).image;
         let off = render(&gpu, &dark, pipeline, false).image;
         let (lit_on, lit_off) = (luma_at(&on, pixel(&scene, LIT_FLOOR)), luma_at(&off, pixel(&scene, LIT_FLOOR)));
-        let (sh_on, sh_off) = (luma_at(&on, pixel(&scene, SHADOWED_FLOOR)), luma_at(&off, pixel(&scene, SHADOWED_FLOOR)));
+        let (sh_on, sh_off) =
+            (luma_at(&on, pixel(&scene, SHADOWED_FLOOR)), luma_at(&off, pixel(&scene, SHADOWED_FLOOR)));
         eprintln!("{pipeline:?}: lit floor {lit_on:.1} -> {lit_off:.1}, shadowed {sh_on:.1} -> {sh_off:.1}");
         assert!(lit_on - lit_off > 20.0, "{pipeline:?}: lit floor {lit_on:.1} -> {lit_off:.1}");
         assert!((sh_on - sh_off).abs() < 6.0, "{pipeline:?}: shadowed floor {sh_on:.1} -> {sh_off:.1}");
@@ -131,7 +137,8 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
     let desktop = render_with(&gpu, &scene, comparison.clone(), false).image;
     let mut dark = scene.clone();
     dark.sun.enabled = false;
-    let control = render_with(&gpu, &dark, RendererOptions { pipeline: FramePipeline::MobileForward, ..comparison }, false).image;
+    let control =
+        render_with(&gpu, &dark, RendererOptions { pipeline: FramePipeline::MobileForward, ..comparison }, false).image;
     // The mobile frames with the effects desktop lacks off too (MSAA, reflections, bloom).
     let mobile = |path| {
         let archive = Arc::new(ShaderArchive::embedded().unwrap());
@@ -291,7 +298,8 @@ fn dump_captures_every_pass_in_frame_order() {
         permutations: &permutations,
     };
     kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
-    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
     assert_eq!(json["passes"][7]["images"][1], "07_BasePass_GBufferA.png");
     assert_eq!(json["permutations"][0], "DepthPassVS@sm5{MATERIAL_MASKED=0}");
     assert!(dir.path().join("15_PostProcessing_Tonemapper.png").is_file());
@@ -335,7 +343,9 @@ fn frames_render_on_gl_like_on_vulkan() {
         let a = render_with(&vk, &scene, options.clone(), true);
         let b = render_with(&gl, &scene, options, true);
         // Every capture, depth included, comes back on both and matches.
-        let shots = |f: &kiln_runtime::renderer::FrameOutput| f.passes.iter().flat_map(|p| p.images.clone()).collect::<Vec<_>>();
+        let shots = |f: &kiln_runtime::renderer::FrameOutput| {
+            f.passes.iter().flat_map(|p| p.images.clone()).collect::<Vec<_>>()
+        };
         let (sa, sb) = (shots(&a), shots(&b));
         assert_eq!(sa.iter().map(|s| &s.0).collect::<Vec<_>>(), sb.iter().map(|s| &s.0).collect::<Vec<_>>());
         let mut differ = Vec::new();

@@ -113,15 +113,24 @@ fn run(args: &Args) -> Result<(), Failure> {
         BackendArg::Gl => Backend::Gl,
     };
     let module_source = if args.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
-    let gpu = Gpu::new(&GpuOptions { backend, module_source, timestamps: true }).map_err(|e| Failure::Render(e.to_string()))?;
+    let gpu = Gpu::new(&GpuOptions { backend, module_source, timestamps: true })
+        .map_err(|e| Failure::Render(e.to_string()))?;
     if args.verify {
         return verify(&gpu, archive);
     }
     let (width, height) = args.size;
     let scene = Scene::bundled();
-    let renderer = Renderer::new(&gpu, Arc::new(archive), &scene, RendererOptions { pipeline, width, height, comparison: args.comparison }).map_err(|e| match e {
+    let renderer = Renderer::new(
+        &gpu,
+        Arc::new(archive),
+        &scene,
+        RendererOptions { pipeline, width, height, comparison: args.comparison },
+    )
+    .map_err(|e| match e {
         // A permutation the frame needs is missing from the archive: the archive is wrong.
-        kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => Failure::Usage(format!("{l}")),
+        kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
+            Failure::Usage(format!("{l}"))
+        }
         e => Failure::Render(e.to_string()),
     })?;
     let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
@@ -151,7 +160,8 @@ fn run(args: &Args) -> Result<(), Failure> {
             spirv_passthrough: renderer.uses_spirv_passthrough(),
             permutations: &permutations,
         };
-        write_dump(dir, &info, &frame.passes).map_err(|e| Failure::Render(format!("cannot write {}: {e}", dir.display())))?;
+        write_dump(dir, &info, &frame.passes)
+            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", dir.display())))?;
     }
     let stats = renderer.cache_stats();
     eprintln!(

@@ -47,7 +47,12 @@ impl AmbientOcclusion {
         let half_uniforms = uniform(b.device, "AmbientOcclusion half", &params(hw, hh));
         let full_uniforms = uniform(b.device, "AmbientOcclusion full", &params(t.width, t.height));
         let quality = b.options.ao_quality.min(2).to_string();
-        let step = |name: &'static str, ps: String, blend: Option<wgpu::BlendState>, format, resources: &[(&str, wgpu::BindingResource<'_>)]| -> Result<Step, DesktopError> {
+        let step = |name: &'static str,
+                    ps: String,
+                    blend: Option<wgpu::BlendState>,
+                    format,
+                    resources: &[(&str, wgpu::BindingResource<'_>)]|
+         -> Result<Step, DesktopError> {
             let pipeline = p.render(&vs, Some(&ps), &RenderDesc::fullscreen(format, blend))?;
             let groups = pipeline.layout.bind_groups(b.device, resources)?;
             Ok(Step { name, pipeline, groups })
@@ -55,14 +60,30 @@ impl AmbientOcclusion {
         let ao_ps = |setup: bool, upsample: bool| {
             p.permutation(
                 "AmbientOcclusionPS",
-                &[("USE_AO_SETUP_AS_INPUT", u32::from(setup).to_string()), ("USE_UPSAMPLE", u32::from(upsample).to_string()), ("SHADER_QUALITY", quality.clone())],
+                &[
+                    ("USE_AO_SETUP_AS_INPUT", u32::from(setup).to_string()),
+                    ("USE_UPSAMPLE", u32::from(upsample).to_string()),
+                    ("SHADER_QUALITY", quality.clone()),
+                ],
             )
         };
         let mut ao = AmbientOcclusion {
-            setup: step("Setup", p.permutation("AmbientOcclusionSetupPS", &[])?, None, formats::AO_SETUP, &ao_resources(b, &half_uniforms))?,
+            setup: step(
+                "Setup",
+                p.permutation("AmbientOcclusionSetupPS", &[])?,
+                None,
+                formats::AO_SETUP,
+                &ao_resources(b, &half_uniforms),
+            )?,
             half: step("HalfResolution", ao_ps(true, false)?, None, formats::AO, &ao_resources(b, &half_uniforms))?,
             full: step("FullResolution", ao_ps(false, true)?, None, formats::AO, &ao_resources(b, &full_uniforms))?,
-            apply: step("ApplyToSceneColor", p.permutation("AmbientOcclusionApplyPS", &[])?, Some(blend::MULTIPLY), formats::SCENE_COLOR, &ao_resources(b, &full_uniforms))?,
+            apply: step(
+                "ApplyToSceneColor",
+                p.permutation("AmbientOcclusionApplyPS", &[])?,
+                Some(blend::MULTIPLY),
+                formats::SCENE_COLOR,
+                &ao_resources(b, &full_uniforms),
+            )?,
         };
         ao.half.groups.keep.push(half_uniforms);
         ao.full.groups.keep.push(full_uniforms);
@@ -71,7 +92,8 @@ impl AmbientOcclusion {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         let draw = |ctx: &mut PassContext<'_>, step: &Step, target: &wgpu::TextureView, clear: bool| {
-            let mut pass = begin(ctx.encoder(), step.name, &[color_attachment(target, clear.then_some(wgpu::Color::WHITE))], None);
+            let mut pass =
+                begin(ctx.encoder(), step.name, &[color_attachment(target, clear.then_some(wgpu::Color::WHITE))], None);
             pass.set_pipeline(&step.pipeline.pipeline);
             step.groups.set_render(&mut pass);
             pass.draw(0..3, 0..1);

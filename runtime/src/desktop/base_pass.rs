@@ -29,7 +29,12 @@ pub struct BasePass {
 }
 
 fn gbuffer_targets() -> Vec<(wgpu::TextureFormat, Option<wgpu::BlendState>)> {
-    vec![(formats::SCENE_COLOR, None), (formats::GBUFFER_A, None), (formats::GBUFFER_B, None), (formats::GBUFFER_C, None)]
+    vec![
+        (formats::SCENE_COLOR, None),
+        (formats::GBUFFER_A, None),
+        (formats::GBUFFER_B, None),
+        (formats::GBUFFER_C, None),
+    ]
 }
 
 impl BasePass {
@@ -37,12 +42,22 @@ impl BasePass {
         let p = b.pipelines;
         let depth = |mark: bool, compare: wgpu::CompareFunction| {
             let op = if mark { wgpu::StencilOperation::Replace } else { wgpu::StencilOperation::Keep };
-            let face = wgpu::StencilFaceState { compare: wgpu::CompareFunction::Always, fail_op: wgpu::StencilOperation::Keep, depth_fail_op: wgpu::StencilOperation::Keep, pass_op: op };
+            let face = wgpu::StencilFaceState {
+                compare: wgpu::CompareFunction::Always,
+                fail_op: wgpu::StencilOperation::Keep,
+                depth_fail_op: wgpu::StencilOperation::Keep,
+                pass_op: op,
+            };
             Some(wgpu::DepthStencilState {
                 format: b.targets.scene_depth.format,
                 depth_write_enabled: Some(false),
                 depth_compare: Some(compare),
-                stencil: wgpu::StencilState { front: face, back: face, read_mask: STENCIL_LIT, write_mask: if mark { STENCIL_LIT } else { 0 } },
+                stencil: wgpu::StencilState {
+                    front: face,
+                    back: face,
+                    read_mask: STENCIL_LIT,
+                    write_mask: if mark { STENCIL_LIT } else { 0 },
+                },
                 bias: wgpu::DepthBiasState::default(),
             })
         };
@@ -50,7 +65,12 @@ impl BasePass {
         let sky = p.render(
             &p.permutation("PostProcessVS", &[])?,
             Some(&p.permutation("SkyPassPS", &[])?),
-            &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual), targets: gbuffer_targets() },
+            &RenderDesc {
+                vertices: Vertices::None,
+                cull: None,
+                depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual),
+                targets: gbuffer_targets(),
+            },
         )?;
         let sky_groups = sky.layout.bind_groups(b.device, &resources)?;
         let vs = p.permutation("DeferredBasePassVS", &[])?;

@@ -12,7 +12,7 @@ use glam::{Mat4, Vec4};
 
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
+use super::frame_view::{color_pass, linear_sampler, perm, target_2d, uniform_buffer, view, InstancedMesh};
 use super::particles::Particles;
 
 pub const DISTORTION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
@@ -52,23 +52,54 @@ impl Distortion {
             .with_cull(None)
             .with_targets(&[ColorTarget { format: DISTORTION_FORMAT, blend: Blend::Additive }])
             .with_depth(DepthState::reverse_z(depth_format, false));
-        let accumulate = cache.render(&perm(cache, "DistortAccumulateVS", &[])?, Some(&perm(cache, "DistortAccumulatePS", &[])?), &accumulate_state)?;
-        let apply = cache.render(&perm(cache, "DistortApplyScreenVS", &[])?, Some(&perm(cache, "DistortApplyScreenPS", &[])?), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }))?;
-        let offsets = target_2d(device, "Distortion", size, DISTORTION_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
+        let accumulate = cache.render(
+            &perm(cache, "DistortAccumulateVS", &[])?,
+            Some(&perm(cache, "DistortAccumulatePS", &[])?),
+            &accumulate_state,
+        )?;
+        let apply = cache.render(
+            &perm(cache, "DistortApplyScreenVS", &[])?,
+            Some(&perm(cache, "DistortApplyScreenPS", &[])?),
+            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }),
+        )?;
+        let offsets = target_2d(
+            device,
+            "Distortion",
+            size,
+            DISTORTION_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let offsets_view = view(&offsets);
-        let scene_color_copy = target_2d(device, "SceneColor copy", size, scene_color_format, wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING);
+        let scene_color_copy = target_2d(
+            device,
+            "SceneColor copy",
+            size,
+            scene_color_format,
+            wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let copy_view = view(&scene_color_copy);
-        let material = uniform_buffer(device, "Distortion glass", &DistortionMaterial { refraction: Vec4::new(GLASS_REFRACTION, 0.0, 0.0, 0.0) });
-        let accumulate_group = accumulate.layout.bind_group(device, 0, "DistortionAccum", &[
-            ("view", frame_view.as_entire_binding()),
-            ("material", material.as_entire_binding()),
-        ])?;
+        let material = uniform_buffer(
+            device,
+            "Distortion glass",
+            &DistortionMaterial { refraction: Vec4::new(GLASS_REFRACTION, 0.0, 0.0, 0.0) },
+        );
+        let accumulate_group = accumulate.layout.bind_group(
+            device,
+            0,
+            "DistortionAccum",
+            &[("view", frame_view.as_entire_binding()), ("material", material.as_entire_binding())],
+        )?;
         let sampler = linear_sampler(device, "Distortion sampler");
-        let apply_group = apply.layout.bind_group(device, 0, "DistortionApply", &[
-            ("scene_color_copy", wgpu::BindingResource::TextureView(&copy_view)),
-            ("distortion", wgpu::BindingResource::TextureView(&offsets_view)),
-            ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
-        ])?;
+        let apply_group = apply.layout.bind_group(
+            device,
+            0,
+            "DistortionApply",
+            &[
+                ("scene_color_copy", wgpu::BindingResource::TextureView(&copy_view)),
+                ("distortion", wgpu::BindingResource::TextureView(&offsets_view)),
+                ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+            ],
+        )?;
         Ok(Distortion {
             offsets,
             offsets_view,
@@ -84,7 +115,14 @@ impl Distortion {
 
     /// DistortionAccum: the offsets of the glass and the heat haze.
     /// `transforms[i]`: this frame's instances of refracting mesh `i`.
-    pub fn record_accumulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[Vec<Mat4>], particles: Option<&Particles>) {
+    pub fn record_accumulate(
+        &mut self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        scene_depth: &wgpu::TextureView,
+        transforms: &[Vec<Mat4>],
+        particles: Option<&Particles>,
+    ) {
         for (m, t) in self.meshes.iter_mut().zip(transforms) {
             m.set_transforms(queue, t);
         }
@@ -94,7 +132,10 @@ impl Distortion {
                 view: &self.offsets_view,
                 depth_slice: None,
                 resolve_target: None,
-                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
             })],
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: scene_depth,
@@ -116,8 +157,17 @@ impl Distortion {
     }
 
     /// DistortionApply: copies SceneColor, then refracts it where offsets were accumulated.
-    pub fn record_apply(&self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::Texture, scene_color_view: &wgpu::TextureView) {
-        encoder.copy_texture_to_texture(scene_color.as_image_copy(), self.scene_color_copy.as_image_copy(), scene_color.size());
+    pub fn record_apply(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scene_color: &wgpu::Texture,
+        scene_color_view: &wgpu::TextureView,
+    ) {
+        encoder.copy_texture_to_texture(
+            scene_color.as_image_copy(),
+            self.scene_color_copy.as_image_copy(),
+            scene_color.size(),
+        );
         let mut pass = color_pass(encoder, "DistortionApply", scene_color_view, wgpu::LoadOp::Load);
         pass.set_pipeline(&self.apply.pipeline);
         pass.set_bind_group(0, &self.apply_group, &[]);

@@ -13,7 +13,7 @@ use glam::{UVec4, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{perm, groups, target_2d, uniform_buffer, view};
+use super::frame_view::{groups, perm, target_2d, uniform_buffer, view};
 
 pub const BINS: usize = 64;
 pub const MIN_LOG2_LUMINANCE: f32 = -10.0;
@@ -61,7 +61,15 @@ pub struct EyeAdaptationSettings {
 
 impl Default for EyeAdaptationSettings {
     fn default() -> Self {
-        EyeAdaptationSettings { low_percent: 0.1, high_percent: 0.9, min_exposure: 0.25, max_exposure: 4.0, speed_up: 3.0, speed_down: 1.0, compensation: 1.0 }
+        EyeAdaptationSettings {
+            low_percent: 0.1,
+            high_percent: 0.9,
+            min_exposure: 0.25,
+            max_exposure: 4.0,
+            speed_up: 3.0,
+            speed_down: 1.0,
+            compensation: 1.0,
+        }
     }
 }
 
@@ -84,7 +92,12 @@ pub struct EyeAdaptation {
 
 impl EyeAdaptation {
     /// `inputs`: the textures the histogram may measure (one bind group each).
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, inputs: &[&wgpu::TextureView], size: [u32; 2]) -> Result<EyeAdaptation, PipelineError> {
+    pub fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        inputs: &[&wgpu::TextureView],
+        size: [u32; 2],
+    ) -> Result<EyeAdaptation, PipelineError> {
         let histogram_pipeline = cache.compute(&perm(cache, "PostProcessHistogramCS", &[])?)?;
         let adapt_pipeline = cache.compute(&perm(cache, "PostProcessEyeAdaptationCS", &[])?)?;
         let debug_pipeline = cache.compute(&perm(cache, "PostProcessHistogramDebugCS", &[])?)?;
@@ -96,37 +109,70 @@ impl EyeAdaptation {
         });
         // the eye starts adapted to exposure 1 and moves from there at the adaptation speed,
         // frame after frame (one frame changes the exposure by a few percent)
-        let result = wgpu::util::DeviceExt::create_buffer_init(device, &wgpu::util::BufferInitDescriptor {
-            label: Some("EyeAdaptation"),
-            contents: bytemuck::bytes_of(&EyeAdaptationResult { exposure: 1.0, average_luminance: 0.18, target_exposure: 1.0, pad: 0.0 }),
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
-        });
-        let debug = target_2d(device, "PostProcessHistogram image", DEBUG_SIZE, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING);
-        let histogram_params = uniform_buffer(device, "PostProcessHistogram params", &HistogramParams {
-            log_range: Vec4::new(MIN_LOG2_LUMINANCE, MAX_LOG2_LUMINANCE, 0.0, 0.0),
-            size: UVec4::new(size[0], size[1], 0, 0),
-        });
+        let result = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("EyeAdaptation"),
+                contents: bytemuck::bytes_of(&EyeAdaptationResult {
+                    exposure: 1.0,
+                    average_luminance: 0.18,
+                    target_exposure: 1.0,
+                    pad: 0.0,
+                }),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            },
+        );
+        let debug = target_2d(
+            device,
+            "PostProcessHistogram image",
+            DEBUG_SIZE,
+            wgpu::TextureFormat::Rgba8Unorm,
+            wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
+        let histogram_params = uniform_buffer(
+            device,
+            "PostProcessHistogram params",
+            &HistogramParams {
+                log_range: Vec4::new(MIN_LOG2_LUMINANCE, MAX_LOG2_LUMINANCE, 0.0, 0.0),
+                size: UVec4::new(size[0], size[1], 0, 0),
+            },
+        );
         let adapt_params = uniform_buffer(device, "EyeAdaptation params", &EyeAdaptationParams::default());
         let histogram_groups = inputs
             .iter()
             .map(|input| {
-                histogram_pipeline.layout.bind_group(device, 0, "PostProcessHistogram", &[
-                    ("params", histogram_params.as_entire_binding()),
-                    ("histogram", histogram.as_entire_binding()),
-                    ("scene_color", wgpu::BindingResource::TextureView(input)),
-                ])
+                histogram_pipeline.layout.bind_group(
+                    device,
+                    0,
+                    "PostProcessHistogram",
+                    &[
+                        ("params", histogram_params.as_entire_binding()),
+                        ("histogram", histogram.as_entire_binding()),
+                        ("scene_color", wgpu::BindingResource::TextureView(input)),
+                    ],
+                )
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let adapt_group = adapt_pipeline.layout.bind_group(device, 0, "PostProcessEyeAdaptation", &[
-            ("params", adapt_params.as_entire_binding()),
-            ("histogram", histogram.as_entire_binding()),
-            ("eye", result.as_entire_binding()),
-        ])?;
+        let adapt_group = adapt_pipeline.layout.bind_group(
+            device,
+            0,
+            "PostProcessEyeAdaptation",
+            &[
+                ("params", adapt_params.as_entire_binding()),
+                ("histogram", histogram.as_entire_binding()),
+                ("eye", result.as_entire_binding()),
+            ],
+        )?;
         let debug_view = view(&debug);
-        let debug_group = debug_pipeline.layout.bind_group(device, 0, "PostProcessHistogram image", &[
-            ("histogram", histogram.as_entire_binding()),
-            ("debug_image", wgpu::BindingResource::TextureView(&debug_view)),
-        ])?;
+        let debug_group = debug_pipeline.layout.bind_group(
+            device,
+            0,
+            "PostProcessHistogram image",
+            &[
+                ("histogram", histogram.as_entire_binding()),
+                ("debug_image", wgpu::BindingResource::TextureView(&debug_view)),
+            ],
+        )?;
         Ok(EyeAdaptation {
             histogram,
             result,
@@ -156,7 +202,10 @@ impl EyeAdaptation {
         };
         queue.write_buffer(&self.adapt_params, 0, bytemuck::bytes_of(&params));
         encoder.clear_buffer(&self.histogram, 0, None);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("PostProcessHistogram"), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("PostProcessHistogram"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.histogram_pipeline.pipeline);
         pass.set_bind_group(0, &self.histogram_groups[input], &[]);
         pass.dispatch_workgroups(groups(self.size[0], 16), groups(self.size[1], 16), 1);
@@ -172,7 +221,16 @@ impl EyeAdaptation {
     /// Sets the exposure to `exposure` without measuring (eye adaptation off); adaptation
     /// resumes from it.
     pub fn set_fixed(&mut self, queue: &wgpu::Queue, exposure: f32) {
-        queue.write_buffer(&self.result, 0, bytemuck::bytes_of(&EyeAdaptationResult { exposure, average_luminance: 0.0, target_exposure: exposure, pad: 0.0 }));
+        queue.write_buffer(
+            &self.result,
+            0,
+            bytemuck::bytes_of(&EyeAdaptationResult {
+                exposure,
+                average_luminance: 0.0,
+                target_exposure: exposure,
+                pad: 0.0,
+            }),
+        );
     }
 
     /// Copies the adapted exposure (one f32) into `buffer` at `offset` (a uniform the

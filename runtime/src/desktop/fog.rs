@@ -20,19 +20,26 @@ impl HeightFog {
         let p = b.pipelines;
         let pipeline = p.render(
             &p.permutation("PostProcessVS", &[])?,
-            Some(&p.permutation("ExponentialHeightFogPS", &[("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", u32::from(b.scene.sun.enabled).to_string())])?),
+            Some(&p.permutation(
+                "ExponentialHeightFogPS",
+                &[("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", u32::from(b.scene.sun.enabled).to_string())],
+            )?),
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;
         let groups = pipeline.layout.bind_groups(
             b.device,
-            &[("View", b.view_buffer.as_entire_binding()), ("SceneDepthTexture", wgpu::BindingResource::TextureView(&b.targets.scene_depth.depth_view))],
+            &[
+                ("View", b.view_buffer.as_entire_binding()),
+                ("SceneDepthTexture", wgpu::BindingResource::TextureView(&b.targets.scene_depth.depth_view)),
+            ],
         )?;
         Ok(HeightFog { pipeline, groups })
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         {
-            let mut pass = begin(ctx.encoder(), "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
+            let mut pass =
+                begin(ctx.encoder(), "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
             pass.set_pipeline(&self.pipeline.pipeline);
             self.groups.set_render(&mut pass);
             pass.draw(0..3, 0..1);

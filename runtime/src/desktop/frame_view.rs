@@ -103,7 +103,16 @@ pub struct FrameLights {
 impl FrameView {
     /// The view of this frame (`current`) and the previous one (`previous`: the same camera
     /// on the first frame).
-    pub fn new(current: &CameraState, previous: &CameraState, width: u32, height: u32, frame: u64, time: f32, delta_time: f32, lights: &FrameLights) -> FrameView {
+    pub fn new(
+        current: &CameraState,
+        previous: &CameraState,
+        width: u32,
+        height: u32,
+        frame: u64,
+        time: f32,
+        delta_time: f32,
+        lights: &FrameLights,
+    ) -> FrameView {
         let view_proj = current.jittered_proj() * current.view;
         let prev_view_proj = previous.unjittered_view_proj();
         let clip_to_prev_clip = prev_view_proj * current.unjittered_view_proj().inverse();
@@ -166,14 +175,26 @@ pub struct InstancedMesh {
 pub const MAX_MESH_INSTANCES: usize = 2;
 
 impl InstancedMesh {
-    pub fn new(device: &wgpu::Device, label: &str, vertices: &wgpu::Buffer, indices: &wgpu::Buffer, index_count: u32) -> InstancedMesh {
+    pub fn new(
+        device: &wgpu::Device,
+        label: &str,
+        vertices: &wgpu::Buffer,
+        indices: &wgpu::Buffer,
+        index_count: u32,
+    ) -> InstancedMesh {
         let instances = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(&format!("{label} instances")),
             size: (MAX_MESH_INSTANCES * 64) as u64,
             usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        InstancedMesh { vertices: vertices.clone(), indices: indices.clone(), index_count, instances, instance_count: 0 }
+        InstancedMesh {
+            vertices: vertices.clone(),
+            indices: indices.clone(),
+            index_count,
+            instances,
+            instance_count: 0,
+        }
     }
 
     /// This frame's transforms (at most [`MAX_MESH_INSTANCES`]).
@@ -214,7 +235,13 @@ pub fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> 
 }
 
 /// A 2D render or storage target with one mip.
-pub fn target_2d(device: &wgpu::Device, label: &str, size: [u32; 2], format: wgpu::TextureFormat, usage: wgpu::TextureUsages) -> wgpu::Texture {
+pub fn target_2d(
+    device: &wgpu::Device,
+    label: &str,
+    size: [u32; 2],
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
     device.create_texture(&wgpu::TextureDescriptor {
         label: Some(label),
         size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
@@ -241,7 +268,9 @@ pub fn volume(device: &wgpu::Device, label: &str, size: [u32; 3], format: wgpu::
         sample_count: 1,
         dimension: wgpu::TextureDimension::D2,
         format,
-        usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+        usage: wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
         view_formats: &[],
     })
 }
@@ -257,7 +286,10 @@ pub fn is_volume(texture: &wgpu::Texture) -> bool {
 
 /// A view of every layer of a [`volume`] (D2Array, also for a volume of one layer).
 pub fn volume_view(texture: &wgpu::Texture) -> wgpu::TextureView {
-    texture.create_view(&wgpu::TextureViewDescriptor { dimension: Some(wgpu::TextureViewDimension::D2Array), ..Default::default() })
+    texture.create_view(&wgpu::TextureViewDescriptor {
+        dimension: Some(wgpu::TextureViewDimension::D2Array),
+        ..Default::default()
+    })
 }
 
 /// Bilinear, clamped.
@@ -280,7 +312,12 @@ pub fn groups(n: u32, workgroup: u32) -> u32 {
 }
 
 /// A render pass over one colour target (no depth).
-pub fn color_pass<'e>(encoder: &'e mut wgpu::CommandEncoder, label: &str, target: &wgpu::TextureView, load: wgpu::LoadOp<wgpu::Color>) -> wgpu::RenderPass<'e> {
+pub fn color_pass<'e>(
+    encoder: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    target: &wgpu::TextureView,
+    load: wgpu::LoadOp<wgpu::Color>,
+) -> wgpu::RenderPass<'e> {
     encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
         color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -310,7 +347,11 @@ mod tests {
         let base2: Vec<f32> = (1..=4).map(|i| halton(i, 2)).collect();
         assert_eq!(base2, vec![0.5, 0.25, 0.75, 0.125]);
         let base3: Vec<f32> = (1..=3).map(|i| halton(i, 3)).collect();
-        assert!((base3[0] - 1.0 / 3.0).abs() < 1e-6 && (base3[1] - 2.0 / 3.0).abs() < 1e-6 && (base3[2] - 1.0 / 9.0).abs() < 1e-6);
+        assert!(
+            (base3[0] - 1.0 / 3.0).abs() < 1e-6
+                && (base3[1] - 2.0 / 3.0).abs() < 1e-6
+                && (base3[2] - 1.0 / 9.0).abs() < 1e-6
+        );
     }
 
     #[test]
@@ -332,7 +373,13 @@ mod tests {
         let view = glam::camera::rh::view::look_at_mat4(Vec3::new(1.0, 2.0, 5.0), Vec3::ZERO, Vec3::Y);
         let proj = glam::camera::rh::proj::directx::perspective_infinite_reverse(1.0, 1.5, 0.1);
         let cam = CameraState::new(view, proj, 0.1, Vec2::new(0.001, 0.002));
-        let lights = FrameLights { sun_direction: Vec3::Y, sun_color: Vec3::ONE, sun_enabled: true, sky_color: Vec3::ONE, sky_intensity: 1.0 };
+        let lights = FrameLights {
+            sun_direction: Vec3::Y,
+            sun_color: Vec3::ONE,
+            sun_enabled: true,
+            sky_color: Vec3::ONE,
+            sky_intensity: 1.0,
+        };
         let v = FrameView::new(&cam, &cam, 300, 200, 3, 0.0, 1.0 / 30.0, &lights);
         let clip = Vec4::new(0.25, -0.5, 0.01, 1.0);
         let prev = v.clip_to_prev_clip * clip;

@@ -19,7 +19,7 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{perm, groups, uniform_buffer};
+use super::frame_view::{groups, perm, uniform_buffer};
 
 pub const HZB_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
 
@@ -56,7 +56,12 @@ pub struct Hzb {
 
 impl Hzb {
     /// The chain for a scene depth of `scene_size`, reading `scene_depth` (a depth-aspect view).
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, scene_depth: &wgpu::TextureView, scene_size: [u32; 2]) -> Result<Hzb, PipelineError> {
+    pub fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        scene_depth: &wgpu::TextureView,
+        scene_size: [u32; 2],
+    ) -> Result<Hzb, PipelineError> {
         let first = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "1")])?)?;
         let rest = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "0")])?)?;
         let size = hzb_size(scene_size);
@@ -68,7 +73,9 @@ impl Hzb {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: HZB_FORMAT,
-            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
         let parents = device.create_texture(&wgpu::TextureDescriptor {
@@ -94,21 +101,32 @@ impl Hzb {
         for level in 0..mip_count {
             let dst = mip_size(size, level);
             let src = if level == 0 { scene_size } else { mip_size(size, level - 1) };
-            let buffer = uniform_buffer(device, &format!("HZB mip {level} params"), &HzbParams { src_size: src, dst_size: dst });
+            let buffer =
+                uniform_buffer(device, &format!("HZB mip {level} params"), &HzbParams { src_size: src, dst_size: dst });
             let out = mip_view(&texture, level);
             let bind_group = if level == 0 {
-                first.layout.bind_group(device, 0, "HZB mip 0", &[
-                    ("params", buffer.as_entire_binding()),
-                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
-                    ("out_mip", wgpu::BindingResource::TextureView(&out)),
-                ])?
+                first.layout.bind_group(
+                    device,
+                    0,
+                    "HZB mip 0",
+                    &[
+                        ("params", buffer.as_entire_binding()),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
+                        ("out_mip", wgpu::BindingResource::TextureView(&out)),
+                    ],
+                )?
             } else {
                 let parent = mip_view(&parents, level - 1);
-                rest.layout.bind_group(device, 0, &format!("HZB mip {level}"), &[
-                    ("params", buffer.as_entire_binding()),
-                    ("ParentMipDepthTexture", wgpu::BindingResource::TextureView(&parent)),
-                    ("out_mip", wgpu::BindingResource::TextureView(&out)),
-                ])?
+                rest.layout.bind_group(
+                    device,
+                    0,
+                    &format!("HZB mip {level}"),
+                    &[
+                        ("params", buffer.as_entire_binding()),
+                        ("ParentMipDepthTexture", wgpu::BindingResource::TextureView(&parent)),
+                        ("out_mip", wgpu::BindingResource::TextureView(&out)),
+                    ],
+                )?
             };
             bind_groups.push(bind_group);
             params.push(buffer);
@@ -125,12 +143,25 @@ impl Hzb {
                 let parent = level as u32 - 1;
                 let [w, h] = mip_size(self.size, parent);
                 encoder.copy_texture_to_texture(
-                    wgpu::TexelCopyTextureInfo { texture: &self.texture, mip_level: parent, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
-                    wgpu::TexelCopyTextureInfo { texture: &self.parents, mip_level: parent, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+                    wgpu::TexelCopyTextureInfo {
+                        texture: &self.texture,
+                        mip_level: parent,
+                        origin: wgpu::Origin3d::ZERO,
+                        aspect: wgpu::TextureAspect::All,
+                    },
+                    wgpu::TexelCopyTextureInfo {
+                        texture: &self.parents,
+                        mip_level: parent,
+                        origin: wgpu::Origin3d::ZERO,
+                        aspect: wgpu::TextureAspect::All,
+                    },
                     wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
                 );
             }
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1])), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1])),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(if level == 0 { &self.first.pipeline } else { &self.rest.pipeline });
             pass.set_bind_group(0, bind_group, &[]);
             pass.dispatch_workgroups(groups(dst[0], 8), groups(dst[1], 8), 1);

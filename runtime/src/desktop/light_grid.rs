@@ -36,7 +36,12 @@ impl LightGrid {
         let cells = u64::from(b.view.grid_cells());
         let capacity = cells * u64::from(LINKS_PER_CELL.min(b.lights.len().max(1) as u32));
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size: size.max(16), usage, mapped_at_creation: false })
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(16),
+                usage,
+                mapped_at_creation: false,
+            })
         };
         let rw = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC;
         let start_offsets = buffer("StartOffsetGrid", cells * 4, rw);
@@ -79,7 +84,9 @@ impl LightGrid {
 
     fn dispatch(&self, ctx: &mut PassContext<'_>, label: &str, pipeline: &Compute, groups: &BindGroups) {
         let [wx, wy, wz] = pipeline.workgroup_size;
-        let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+        let mut pass = ctx
+            .encoder()
+            .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
         pass.set_pipeline(&pipeline.pipeline);
         groups.set_compute(&mut pass);
         pass.dispatch_workgroups(self.grid[0].div_ceil(wx), self.grid[1].div_ceil(wy), self.grid[2].div_ceil(wz));
@@ -97,7 +104,12 @@ impl LightGrid {
             self.dispatch(ctx, "Compact", &self.compact, &self.compact_groups);
         });
         {
-            let mut pass = begin(ctx.encoder(), "VisualizeLightGrid", &[color_attachment(&targets.light_grid_visualize.view, Some(wgpu::Color::BLACK))], None);
+            let mut pass = begin(
+                ctx.encoder(),
+                "VisualizeLightGrid",
+                &[color_attachment(&targets.light_grid_visualize.view, Some(wgpu::Color::BLACK))],
+                None,
+            );
             pass.set_pipeline(&self.visualize.pipeline);
             self.visualize_groups.set_render(&mut pass);
             pass.draw(0..3, 0..1);

@@ -23,7 +23,10 @@ use glam::{UVec4, Vec3, Vec4};
 use crate::frame::{PassContext, Visualize};
 
 use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
-use super::resources::{begin, color_attachment, formats, read_only_depth, stencil_lit_only, uniform, FrameLight, LocalShadow, SceneBuffers, Targets, Texture};
+use super::resources::{
+    begin, color_attachment, formats, read_only_depth, stencil_lit_only, uniform, FrameLight, LocalShadow,
+    SceneBuffers, Targets, Texture,
+};
 use super::shadow_depths::ShadowDepths;
 use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
 use super::{Build, DesktopError, LightingPath};
@@ -54,7 +57,14 @@ impl LightDraw {
         let Some(v) = &self.volume else { return };
         let (center, radius) = (v.gpu.position_radius.truncate(), v.gpu.position_radius.w);
         self.inside.store(camera_inside(view, center, radius), Ordering::Relaxed);
-        queue.write_buffer(&v.buffer, 0, bytemuck::bytes_of(&DeferredLightUniforms { light: v.gpu, depth_bounds: depth_bounds(view, center, radius) }));
+        queue.write_buffer(
+            &v.buffer,
+            0,
+            bytemuck::bytes_of(&DeferredLightUniforms {
+                light: v.gpu,
+                depth_bounds: depth_bounds(view, center, radius),
+            }),
+        );
     }
 
     fn variant(&self) -> &(Arc<Render>, BindGroups) {
@@ -114,7 +124,12 @@ fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
 }
 
 impl Lighting {
-    pub fn new(b: &Build<'_>, shadows: &ShadowDepths, dummy_shadow: &Texture, grid: &super::light_grid::LightGrid) -> Result<Lighting, DesktopError> {
+    pub fn new(
+        b: &Build<'_>,
+        shadows: &ShadowDepths,
+        dummy_shadow: &Texture,
+        grid: &super::light_grid::LightGrid,
+    ) -> Result<Lighting, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let device = b.device;
@@ -131,25 +146,50 @@ impl Lighting {
             })
         };
         // One pipeline per (light permutation, inside-the-volume or not).
-        let light_draw = |light_type: &str, shadowed: bool, inverse_squared: bool, gpu: LocalLightGpu, label: &str| -> Result<LightDraw, DesktopError> {
+        let light_draw = |light_type: &str,
+                          shadowed: bool,
+                          inverse_squared: bool,
+                          gpu: LocalLightGpu,
+                          label: &str|
+         -> Result<LightDraw, DesktopError> {
             let radial = light_type != "DIRECTIONAL";
             let vs = p.permutation("DeferredLightVS", &[("RADIAL_LIGHT", u32::from(radial).to_string())])?;
-            let mut values = vec![("LIGHT_TYPE", light_type.to_string()), ("USE_SHADOW_MASK", u32::from(shadowed).to_string())];
+            let mut values =
+                vec![("LIGHT_TYPE", light_type.to_string()), ("USE_SHADOW_MASK", u32::from(shadowed).to_string())];
             values.push(("INVERSE_SQUARED_FALLOFF", u32::from(radial && inverse_squared).to_string()));
             let ps = p.permutation("StandardDeferredLightingPS", &values)?;
             let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
             // a local light: both ways of drawing its sphere, chosen every frame by where the
             // camera is (front faces depth tested from outside, back faces from inside)
             let descs = if !radial {
-                vec![RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] }]
+                vec![RenderDesc {
+                    vertices: Vertices::None,
+                    cull: None,
+                    depth_stencil: read_only(wgpu::CompareFunction::Always),
+                    targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
+                }]
             } else {
                 vec![
-                    RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Back), depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] },
-                    RenderDesc { vertices: Vertices::Mesh, cull: Some(wgpu::Face::Front), depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))] },
+                    RenderDesc {
+                        vertices: Vertices::Mesh,
+                        cull: Some(wgpu::Face::Back),
+                        depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual),
+                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
+                    },
+                    RenderDesc {
+                        vertices: Vertices::Mesh,
+                        cull: Some(wgpu::Face::Front),
+                        depth_stencil: read_only(wgpu::CompareFunction::Always),
+                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
+                    },
                 ]
             };
             let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
-            let buffer = uniform(device, &format!("DeferredLight {label}"), &DeferredLightUniforms { light: gpu, depth_bounds: bounds });
+            let buffer = uniform(
+                device,
+                &format!("DeferredLight {label}"),
+                &DeferredLightUniforms { light: gpu, depth_bounds: bounds },
+            );
             let mut variants = Vec::new();
             for desc in &descs {
                 let pipeline = p.render(&vs, Some(&ps), desc)?;
@@ -174,30 +214,37 @@ impl Lighting {
             let use_grid = b.options.tiled_uses_light_grid;
             let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
             let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
-            let params = uniform(device, "TiledLighting", &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) });
+            let params = uniform(
+                device,
+                "TiledLighting",
+                &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) },
+            );
             let cs = p.compute(&p.permutation(
                 "TiledDeferredLightingCS",
                 &[("USE_LIGHT_GRID", u32::from(use_grid).to_string()), ("VISUALIZE_LIGHT_CULLING", "0".into())],
             )?)?;
-            let lights_binding = if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
-            let groups = cs.layout.bind_groups(
-                device,
-                &[
-                    ("View", b.view_buffer.as_entire_binding()),
-                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
-                    ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
-                    ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
-                    ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
-                    ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
-                    ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
-                    ("LocalLights", lights_binding),
-                    ("TiledLighting", params.as_entire_binding()),
-                    ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
-                    ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
-                ],
-            )?
-            .keeping(lights)
-            .keeping(params);
+            let lights_binding =
+                if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
+            let groups = cs
+                .layout
+                .bind_groups(
+                    device,
+                    &[
+                        ("View", b.view_buffer.as_entire_binding()),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                        ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                        ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
+                        ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
+                        ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
+                        ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
+                        ("LocalLights", lights_binding),
+                        ("TiledLighting", params.as_entire_binding()),
+                        ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
+                        ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
+                    ],
+                )?
+                .keeping(lights)
+                .keeping(params);
             tiled = Some((cs, groups));
         } else {
             for l in &unshadowed {
@@ -208,26 +255,40 @@ impl Lighting {
         let mut shadowed = Vec::new();
         let quality = b.options.shadow_quality.clamp(1, 3).to_string();
         let vs = p.permutation("PostProcessVS", &[])?;
-        let projection = |kind: &str, texture: &Texture, u: &super::view::ShadowProjectionUniforms, label: &str| -> Result<(Projection, wgpu::Buffer), DesktopError> {
-            let ps = p.permutation("ShadowProjectionPS", &[("SHADOW_PROJECTION_TYPE", kind.to_string()), ("SHADOW_QUALITY", quality.clone())])?;
+        let projection = |kind: &str,
+                          texture: &Texture,
+                          u: &super::view::ShadowProjectionUniforms,
+                          label: &str|
+         -> Result<(Projection, wgpu::Buffer), DesktopError> {
+            let ps = p.permutation(
+                "ShadowProjectionPS",
+                &[("SHADOW_PROJECTION_TYPE", kind.to_string()), ("SHADOW_QUALITY", quality.clone())],
+            )?;
             let pipeline = p.render(
                 &vs,
                 Some(&ps),
-                &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))] },
+                &RenderDesc {
+                    vertices: Vertices::None,
+                    cull: None,
+                    depth_stencil: read_only(wgpu::CompareFunction::Always),
+                    targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))],
+                },
             )?;
             let buffer = uniform(device, &format!("ShadowProjection {label}"), u);
-            let groups = pipeline.layout.bind_groups(
-                device,
-                &[
-                    ("View", b.view_buffer.as_entire_binding()),
-                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
-                    ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
-                    ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
-                    ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
-                    ("ShadowProjection", buffer.as_entire_binding()),
-                ],
-            )?
-            .keeping(buffer.clone());
+            let groups = pipeline
+                .layout
+                .bind_groups(
+                    device,
+                    &[
+                        ("View", b.view_buffer.as_entire_binding()),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                        ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                        ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
+                        ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
+                        ("ShadowProjection", buffer.as_entire_binding()),
+                    ],
+                )?
+                .keeping(buffer.clone());
             Ok((Projection { pipeline, groups }, buffer))
         };
         let mut cascaded_projection = None;
@@ -263,7 +324,8 @@ impl Lighting {
                 projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?.0);
             }
             let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
-            let unshadowed = light_draw(light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
+            let unshadowed =
+                light_draw(light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
             shadowed.push(ShadowedLight { name: l.name.clone(), projections, light, local: Some((li, unshadowed)) });
         }
         Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path, cascaded_projection })
@@ -273,7 +335,11 @@ impl Lighting {
     /// and whether the camera is inside its volume, and the directional light's cascades
     /// (`cascaded`, as ShadowDepths refitted them).
     pub fn update(&self, queue: &wgpu::Queue, view: &FrameView, cascaded: Option<&ShadowProjectionUniforms>) {
-        for d in self.non_shadowed.iter().chain(self.shadowed.iter().flat_map(|l| std::iter::once(&l.light).chain(l.local.as_ref().map(|(_, d)| d)))) {
+        for d in self
+            .non_shadowed
+            .iter()
+            .chain(self.shadowed.iter().flat_map(|l| std::iter::once(&l.light).chain(l.local.as_ref().map(|(_, d)| d))))
+        {
             d.update(queue, view);
         }
         if let (Some(buffer), Some(u)) = (&self.cascaded_projection, cascaded) {
@@ -296,13 +362,26 @@ impl Lighting {
 
     /// Records the lights. `casts_shadow(light)`: whether local light `light` (an index into
     /// the frame's lights) projects its shadow this frame (ShadowFrustumQueries).
-    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets, casts_shadow: &dyn Fn(usize) -> bool) {
+    pub fn record(
+        &self,
+        ctx: &mut PassContext<'_>,
+        scene: &SceneBuffers,
+        t: &Targets,
+        casts_shadow: &dyn Fn(usize) -> bool,
+    ) {
         let occluded = |l: &ShadowedLight| occluded_draw(l, casts_shadow).is_some();
         ctx.step("NonShadowedLights", |ctx| {
             {
-                let mut pass = begin(ctx.encoder(), "NonShadowedLights", &[color_attachment(&t.scene_color.view, None)], read_only_depth(&t.scene_depth));
+                let mut pass = begin(
+                    ctx.encoder(),
+                    "NonShadowedLights",
+                    &[color_attachment(&t.scene_color.view, None)],
+                    read_only_depth(&t.scene_depth),
+                );
                 pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                for d in self.non_shadowed.iter().chain(self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow))) {
+                for d in
+                    self.non_shadowed.iter().chain(self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow)))
+                {
                     Self::draw_light(&mut pass, scene, d);
                 }
             }
@@ -311,7 +390,10 @@ impl Lighting {
         if let Some((cs, groups)) = &self.tiled {
             ctx.step("TiledDeferredLighting", |ctx| {
                 {
-                    let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("TiledDeferredLighting"), timestamp_writes: None });
+                    let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("TiledDeferredLighting"),
+                        timestamp_writes: None,
+                    });
                     pass.set_pipeline(&cs.pipeline);
                     groups.set_compute(&mut pass);
                     let [wx, wy, _] = cs.workgroup_size;
@@ -328,8 +410,12 @@ impl Lighting {
         ctx.step("ShadowedLights", |ctx| {
             for light in self.shadowed.iter().filter(|l| !occluded(l)) {
                 {
-                    let mut pass =
-                        begin(ctx.encoder(), "ShadowProjectionOnOpaque", &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))], read_only_depth(&t.scene_depth));
+                    let mut pass = begin(
+                        ctx.encoder(),
+                        "ShadowProjectionOnOpaque",
+                        &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))],
+                        read_only_depth(&t.scene_depth),
+                    );
                     pass.set_stencil_reference(super::resources::STENCIL_LIT);
                     for p in &light.projections {
                         pass.set_pipeline(&p.pipeline.pipeline);
@@ -337,13 +423,26 @@ impl Lighting {
                         pass.draw(0..3, 0..1);
                     }
                 }
-                ctx.output_named(&format!("ShadowProjectionOnOpaque_{}", light.name), &t.shadow_mask.texture, Visualize::Direct);
+                ctx.output_named(
+                    &format!("ShadowProjectionOnOpaque_{}", light.name),
+                    &t.shadow_mask.texture,
+                    Visualize::Direct,
+                );
                 {
-                    let mut pass = begin(ctx.encoder(), "StandardDeferredLighting", &[color_attachment(&t.scene_color.view, None)], read_only_depth(&t.scene_depth));
+                    let mut pass = begin(
+                        ctx.encoder(),
+                        "StandardDeferredLighting",
+                        &[color_attachment(&t.scene_color.view, None)],
+                        read_only_depth(&t.scene_depth),
+                    );
                     pass.set_stencil_reference(super::resources::STENCIL_LIT);
                     Self::draw_light(&mut pass, scene, &light.light);
                 }
-                ctx.output_named(&format!("StandardDeferredLighting_{}", light.name), &t.scene_color.texture, Visualize::Hdr);
+                ctx.output_named(
+                    &format!("StandardDeferredLighting_{}", light.name),
+                    &t.scene_color.texture,
+                    Visualize::Hdr,
+                );
             }
         });
     }

@@ -128,7 +128,9 @@ pub enum DesktopError {
     Pipeline(#[from] PipelineError),
     #[error("{what}: wgpu rejected it: {message}")]
     Wgpu { what: String, message: String },
-    #[error("pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame")]
+    #[error(
+        "pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame"
+    )]
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
 }
 
@@ -223,7 +225,11 @@ impl DesktopFrame {
         let lights = frame_lights(scene);
         let gpu_lights: Vec<view::LocalLightGpu> = lights.iter().map(|l| l.gpu).collect();
         let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
-        let view_buffer = resources::uniform(device, "View", &view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)));
+        let view_buffer = resources::uniform(
+            device,
+            "View",
+            &view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)),
+        );
         let buffers = resources::SceneBuffers::upload(device, scene);
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
@@ -255,13 +261,39 @@ impl DesktopFrame {
             lights: &lights_buffer,
             num_culled_lights: &light_grid.num_culled_lights,
             culled_light_data: &light_grid.culled_light_data,
-            size: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_size,
-            z_params: view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)).light_grid_z_params,
+            size: view
+                .uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient))
+                .light_grid_size,
+            z_params: view
+                .uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient))
+                .light_grid_z_params,
         };
-        let part2 = desktop_part2(device, queue, cache, scene, &buffers, &targets, &shadows, &dummy_shadow, &lights, grid, particles.is_some(), w, h)?;
+        let part2 = desktop_part2(
+            device,
+            queue,
+            cache,
+            scene,
+            &buffers,
+            &targets,
+            &shadows,
+            &dummy_shadow,
+            &lights,
+            grid,
+            particles.is_some(),
+            w,
+            h,
+        )?;
         part2.set_options(options.part2);
-        let translucency = translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, particles.as_ref(), &part2.translucency_volume())?;
-        let base_view = view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
+        let translucency = translucency::Translucency::new(
+            &b,
+            &light_grid,
+            &shadows,
+            &dummy_shadow,
+            particles.as_ref(),
+            &part2.translucency_volume(),
+        )?;
+        let base_view =
+            view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
         let particle_view = particles.as_ref().map(|p| (p.view.clone(), crate::scene::gpu::view_uniforms(scene, w, h)));
         Ok(DesktopFrame {
@@ -300,7 +332,12 @@ impl DesktopFrame {
     ///
     /// `fire`: the runtime's fire simulation (the systems of [`ParticleInputs`]), recorded
     /// as the `Fire` step of the frame's one ParticleSimulation pass.
-    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView), fire: Option<&dyn Fn(&mut PassContext<'_>)>) {
+    pub fn record_into(
+        &self,
+        frame: &mut FrameRecorder,
+        output: (&wgpu::Texture, &wgpu::TextureView),
+        fire: Option<&dyn Fn(&mut PassContext<'_>)>,
+    ) {
         let (s, t) = (&self.buffers, &self.targets);
         let p2 = &self.part2;
         let camera = p2.begin_frame();
@@ -359,7 +396,12 @@ impl DesktopFrame {
     /// The shadowed local lights whose shadow work the last frame skipped (their
     /// ShadowFrustumQuery found their volume hidden).
     pub fn shadow_skipped_lights(&self) -> Vec<String> {
-        self.lights.iter().enumerate().filter(|(i, l)| l.shadow != LocalShadow::None && !self.casts_shadow(*i)).map(|(_, l)| l.name.clone()).collect()
+        self.lights
+            .iter()
+            .enumerate()
+            .filter(|(i, l)| l.shadow != LocalShadow::None && !self.casts_shadow(*i))
+            .map(|(_, l)| l.name.clone())
+            .collect()
     }
 
     /// How many times the movable lights' cube shadows rendered their cached static depth.
@@ -397,7 +439,11 @@ impl DesktopFrame {
                 let m = if visible { m } else { glam::Mat4::ZERO };
                 let row = view::InstanceGpu {
                     local_to_world: m,
-                    normal_to_world: if visible { glam::Mat4::from_mat3(glam::Mat3::from_mat4(m).inverse().transpose()) } else { glam::Mat4::ZERO },
+                    normal_to_world: if visible {
+                        glam::Mat4::from_mat3(glam::Mat3::from_mat4(m).inverse().transpose())
+                    } else {
+                        glam::Mat4::ZERO
+                    },
                     material: template.material,
                     bounds: m.transform_point3(*local_center).extend(template.bounds.w),
                 };
@@ -480,7 +526,9 @@ impl DesktopFrame {
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("light grid readback") });
+            let mut encoder = self
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("light grid readback") });
             encoder.copy_buffer_to_buffer(src, 0, &staging, 0, size);
             self.queue.submit([encoder.finish()]);
             staging.slice(..).map_async(wgpu::MapMode::Read, |_| {});
@@ -514,7 +562,11 @@ fn desktop_part2(
     w: u32,
     h: u32,
 ) -> Result<part2::Part2, DesktopError> {
-    let meshes: Vec<part2::MeshRef<'_>> = buffers.meshes.iter().map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count }).collect();
+    let meshes: Vec<part2::MeshRef<'_>> = buffers
+        .meshes
+        .iter()
+        .map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count })
+        .collect();
     let shadow = match (shadows.csm_texture(), &shadows.setup.cascaded) {
         (Some(_), Some(c)) => Some(directional_shadow(c)),
         _ => None,
@@ -542,30 +594,45 @@ fn desktop_part2(
 /// a movable point light's cube, a stationary light's per-object tiles (at most six, the
 /// matrices a `ShadowProjectionUniforms` holds; `params.w` says how many). A light without
 /// tiles (no movable prop in its reach) has no shadow to read.
-fn translucent_volume_shadows<'a>(shadows: &'a shadow_depths::ShadowDepths, lights: &[FrameLight]) -> Vec<Option<translucent_volume::LocalLightShadow<'a>>> {
+fn translucent_volume_shadows<'a>(
+    shadows: &'a shadow_depths::ShadowDepths,
+    lights: &[FrameLight],
+) -> Vec<Option<translucent_volume::LocalLightShadow<'a>>> {
     use translucent_volume::{LocalLightShadow, LocalShadowProjection};
     lights
         .iter()
         .enumerate()
         .map(|(li, l)| match l.shadow {
             LocalShadow::None => None,
-            LocalShadow::Cube => shadows.setup.cubes.iter().find(|(i, _, _)| *i == li).map(|(_, cube, u)| LocalLightShadow {
-                light: li,
-                kind: LocalShadowProjection::OnePassPointLight,
-                atlas: &shadows.cube_texture(*cube).view,
-                projection: *u,
-            }),
+            LocalShadow::Cube => {
+                shadows.setup.cubes.iter().find(|(i, _, _)| *i == li).map(|(_, cube, u)| LocalLightShadow {
+                    light: li,
+                    kind: LocalShadowProjection::OnePassPointLight,
+                    atlas: &shadows.cube_texture(*cube).view,
+                    projection: *u,
+                })
+            }
             LocalShadow::PerObject => {
                 let atlas = shadows.per_object_texture()?;
-                let tiles: Vec<&view::ShadowProjectionUniforms> = shadows.setup.per_object.iter().filter(|(i, _)| *i == li).map(|(_, u)| u).take(6).collect();
+                let tiles: Vec<&view::ShadowProjectionUniforms> =
+                    shadows.setup.per_object.iter().filter(|(i, _)| *i == li).map(|(_, u)| u).take(6).collect();
                 let first = tiles.first()?;
-                let mut projection = view::ShadowProjectionUniforms { light_position: first.light_position, params: first.params, ..Default::default() };
+                let mut projection = view::ShadowProjectionUniforms {
+                    light_position: first.light_position,
+                    params: first.params,
+                    ..Default::default()
+                };
                 for (k, t) in tiles.iter().enumerate() {
                     projection.world_to_shadow[k] = t.world_to_shadow[0];
                     projection.atlas_rects[k] = t.atlas_rects[0];
                 }
                 projection.params.w = tiles.len() as f32;
-                Some(LocalLightShadow { light: li, kind: LocalShadowProjection::PerObject, atlas: &atlas.view, projection })
+                Some(LocalLightShadow {
+                    light: li,
+                    kind: LocalShadowProjection::PerObject,
+                    atlas: &atlas.view,
+                    projection,
+                })
             }
         })
         .collect()

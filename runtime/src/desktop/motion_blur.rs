@@ -10,7 +10,7 @@ use glam::Vec4;
 
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, color_pass, linear_sampler, uniform_buffer};
+use super::frame_view::{color_pass, linear_sampler, perm, uniform_buffer};
 
 /// Fraction of the frame the shutter is open (Unreal's default 0.5).
 pub const SHUTTER: f32 = 0.5;
@@ -43,21 +43,34 @@ impl MotionBlur {
         eye_adaptation: &wgpu::Buffer,
         output_format: wgpu::TextureFormat,
     ) -> Result<MotionBlur, PipelineError> {
-        let pipeline = cache.render(&perm(cache, "MotionBlurVS", &[])?, Some(&perm(cache, "MotionBlurPS", &[])?), &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }))?;
-        let params = uniform_buffer(device, "MotionBlur params", &MotionBlurParams { shutter: Vec4::new(SHUTTER, MAX_LENGTH, SAMPLES, 0.0) });
+        let pipeline = cache.render(
+            &perm(cache, "MotionBlurVS", &[])?,
+            Some(&perm(cache, "MotionBlurPS", &[])?),
+            &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }),
+        )?;
+        let params = uniform_buffer(
+            device,
+            "MotionBlur params",
+            &MotionBlurParams { shutter: Vec4::new(SHUTTER, MAX_LENGTH, SAMPLES, 0.0) },
+        );
         let sampler = linear_sampler(device, "MotionBlur sampler");
         let groups = inputs
             .iter()
             .map(|input| {
-                pipeline.layout.bind_group(device, 0, "MotionBlur", &[
-                    ("view", frame_view.as_entire_binding()),
-                    ("blur", params.as_entire_binding()),
-                    ("scene_color", wgpu::BindingResource::TextureView(input)),
-                    ("velocity", wgpu::BindingResource::TextureView(velocity)),
-                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
-                    ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
-                    ("eye_adaptation", eye_adaptation.as_entire_binding()),
-                ])
+                pipeline.layout.bind_group(
+                    device,
+                    0,
+                    "MotionBlur",
+                    &[
+                        ("view", frame_view.as_entire_binding()),
+                        ("blur", params.as_entire_binding()),
+                        ("scene_color", wgpu::BindingResource::TextureView(input)),
+                        ("velocity", wgpu::BindingResource::TextureView(velocity)),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
+                        ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+                        ("eye_adaptation", eye_adaptation.as_entire_binding()),
+                    ],
+                )
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(MotionBlur { pipeline, groups, params })
@@ -65,9 +78,20 @@ impl MotionBlur {
 
     /// Blurs input `input` (an index into the inputs given to `new`) into `output`, with the
     /// shutter open (`blur`) or closed (exposure only).
-    pub fn record(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, input: usize, output: &wgpu::TextureView, blur: bool) {
+    pub fn record(
+        &self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        input: usize,
+        output: &wgpu::TextureView,
+        blur: bool,
+    ) {
         let shutter = if blur { SHUTTER } else { 0.0 };
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&MotionBlurParams { shutter: Vec4::new(shutter, MAX_LENGTH, SAMPLES, 0.0) }));
+        queue.write_buffer(
+            &self.params,
+            0,
+            bytemuck::bytes_of(&MotionBlurParams { shutter: Vec4::new(shutter, MAX_LENGTH, SAMPLES, 0.0) }),
+        );
         let mut pass = color_pass(encoder, "MotionBlur", output, wgpu::LoadOp::Clear(wgpu::Color::BLACK));
         pass.set_pipeline(&self.pipeline.pipeline);
         pass.set_bind_group(0, &self.groups[input], &[]);

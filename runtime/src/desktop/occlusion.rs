@@ -129,16 +129,36 @@ fn box_proxy((lo, hi): (Vec3, Vec3), color: Vec3) -> OcclusionProxy {
     // a little larger than the prop, as Unreal's bounds are
     let center = (lo + hi) * 0.5;
     let half = (hi - lo) * 0.5 + Vec3::splat(0.02);
-    OcclusionProxy { unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(half), color_shape: color.extend(0.0) }
+    OcclusionProxy {
+        unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(half),
+        color_shape: color.extend(0.0),
+    }
 }
 
 impl OcclusionCulling {
     /// `bounds`: each prop's world-space box (a prop is an object of the scene, by index).
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], depth_format: wgpu::TextureFormat, bounds: Vec<(Vec3, Vec3)>, lights: usize) -> Result<OcclusionCulling, PipelineError> {
-        let state = RenderState::fullscreen(ColorTarget { format: wgpu::TextureFormat::Rgba8Unorm, blend: Blend::Additive })
-            .with_depth(DepthState::reverse_z(depth_format, false));
-        let pipeline = cache.render(&perm(cache, "OcclusionQueryVS", &[])?, Some(&perm(cache, "OcclusionQueryPS", &[])?), &state)?;
-        let query_set = device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("occlusion queries"), ty: wgpu::QueryType::Occlusion, count: MAX_QUERIES });
+    pub fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        frame_view: &wgpu::Buffer,
+        size: [u32; 2],
+        depth_format: wgpu::TextureFormat,
+        bounds: Vec<(Vec3, Vec3)>,
+        lights: usize,
+    ) -> Result<OcclusionCulling, PipelineError> {
+        let state =
+            RenderState::fullscreen(ColorTarget { format: wgpu::TextureFormat::Rgba8Unorm, blend: Blend::Additive })
+                .with_depth(DepthState::reverse_z(depth_format, false));
+        let pipeline = cache.render(
+            &perm(cache, "OcclusionQueryVS", &[])?,
+            Some(&perm(cache, "OcclusionQueryPS", &[])?),
+            &state,
+        )?;
+        let query_set = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("occlusion queries"),
+            ty: wgpu::QueryType::Occlusion,
+            count: MAX_QUERIES,
+        });
         let resolve = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("occlusion resolve"),
             size: u64::from(MAX_QUERIES) * 8,
@@ -165,11 +185,19 @@ impl OcclusionCulling {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let bind_group = pipeline.layout.bind_group(device, 0, "BeginOcclusionTests", &[
-            ("view", frame_view.as_entire_binding()),
-            ("proxies", proxies.as_entire_binding()),
-        ])?;
-        let debug = target_2d(device, "BeginOcclusionTests", size, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
+        let bind_group = pipeline.layout.bind_group(
+            device,
+            0,
+            "BeginOcclusionTests",
+            &[("view", frame_view.as_entire_binding()), ("proxies", proxies.as_entire_binding())],
+        )?;
+        let debug = target_2d(
+            device,
+            "BeginOcclusionTests",
+            size,
+            wgpu::TextureFormat::Rgba8Unorm,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let debug_view = view(&debug);
         let count = bounds.len();
         Ok(OcclusionCulling {
@@ -277,7 +305,15 @@ impl OcclusionCulling {
 
     /// Records this frame's queries. `camera`: the camera position (props around it are
     /// visible without a query); `lights`: ShadowFrustumQueries bounds.
-    pub fn record(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, camera: Vec3, lights: &[LightBounds]) {
+    pub fn record(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        scene_depth: &wgpu::TextureView,
+        camera: Vec3,
+        lights: &[LightBounds],
+    ) {
         // frames are submitted in order: the queries of the last frame recorded are on the
         // GPU now, and their read-back may be mapped
         self.frame_submitted();
@@ -290,13 +326,14 @@ impl OcclusionCulling {
         let mut proxies: Vec<OcclusionProxy> = Vec::new();
         // (query kind, first proxy, proxy count, vertices per proxy)
         let mut queries: Vec<(QueryKind, u32, u32, u32)> = Vec::new();
-        let mut push = |kind: QueryKind, list: Vec<OcclusionProxy>, vertices: u32, proxies: &mut Vec<OcclusionProxy>| {
-            if proxies.len() + list.len() > MAX_PROXIES || queries.len() >= MAX_QUERIES as usize {
-                return;
-            }
-            queries.push((kind, proxies.len() as u32, list.len() as u32, vertices));
-            proxies.extend(list);
-        };
+        let mut push =
+            |kind: QueryKind, list: Vec<OcclusionProxy>, vertices: u32, proxies: &mut Vec<OcclusionProxy>| {
+                if proxies.len() + list.len() > MAX_PROXIES || queries.len() >= MAX_QUERIES as usize {
+                    return;
+                }
+                queries.push((kind, proxies.len() as u32, list.len() as u32, vertices));
+                proxies.extend(list);
+            };
         for (i, light) in lights.iter().enumerate() {
             match *light {
                 LightBounds::Sphere { center, radius } => {
@@ -304,18 +341,27 @@ impl OcclusionCulling {
                         self.lights.camera_inside(i);
                         continue;
                     }
-                    let p = OcclusionProxy { unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius)), color_shape: Vec4::new(0.5, 0.45, 0.0, 1.0) };
+                    let p = OcclusionProxy {
+                        unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius)),
+                        color_shape: Vec4::new(0.5, 0.45, 0.0, 1.0),
+                    };
                     push(QueryKind::Light(i), vec![p], SPHERE_VERTICES, &mut proxies);
                 }
                 LightBounds::Frustum { view_proj } => {
                     // the unit cube in the light's clip space, z in [0, 1]
-                    let clip_cube = Mat4::from_translation(Vec3::new(0.0, 0.0, 0.5)) * Mat4::from_scale(Vec3::new(1.0, 1.0, 0.5));
-                    let p = OcclusionProxy { unit_to_world: view_proj.inverse() * clip_cube, color_shape: Vec4::new(0.45, 0.4, 0.0, 0.0) };
+                    let clip_cube =
+                        Mat4::from_translation(Vec3::new(0.0, 0.0, 0.5)) * Mat4::from_scale(Vec3::new(1.0, 1.0, 0.5));
+                    let p = OcclusionProxy {
+                        unit_to_world: view_proj.inverse() * clip_cube,
+                        color_shape: Vec4::new(0.45, 0.4, 0.0, 0.0),
+                    };
                     push(QueryKind::Light(i), vec![p], CUBE_VERTICES, &mut proxies);
                 }
             }
         }
-        let contains = |(lo, hi): (Vec3, Vec3)| camera.cmpge(lo - Vec3::splat(0.2)).all() && camera.cmple(hi + Vec3::splat(0.2)).all();
+        let contains = |(lo, hi): (Vec3, Vec3)| {
+            camera.cmpge(lo - Vec3::splat(0.2)).all() && camera.cmple(hi + Vec3::splat(0.2)).all()
+        };
         let mut occluded = Vec::new();
         for (p, &bounds) in self.bounds.iter().enumerate() {
             if contains(bounds) {
@@ -323,7 +369,12 @@ impl OcclusionCulling {
                 continue;
             }
             match self.visibility[p] {
-                PropVisibility::Visible => push(QueryKind::Individual(p), vec![box_proxy(bounds, Vec3::new(0.0, 0.6, 0.1))], CUBE_VERTICES, &mut proxies),
+                PropVisibility::Visible => push(
+                    QueryKind::Individual(p),
+                    vec![box_proxy(bounds, Vec3::new(0.0, 0.6, 0.1))],
+                    CUBE_VERTICES,
+                    &mut proxies,
+                ),
                 PropVisibility::Occluded => occluded.push(p),
             }
         }
@@ -344,7 +395,10 @@ impl OcclusionCulling {
                     view: &self.debug_view,
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: scene_depth,
@@ -458,7 +512,10 @@ mod tests {
     #[test]
     fn world_bounds_cover_every_instance() {
         let local = (Vec3::splat(-1.0), Vec3::splat(1.0));
-        let (lo, hi) = world_bounds(local, &[Mat4::from_translation(Vec3::new(5.0, 0.0, 0.0)), Mat4::from_translation(Vec3::new(-5.0, 1.0, 0.0))]);
+        let (lo, hi) = world_bounds(
+            local,
+            &[Mat4::from_translation(Vec3::new(5.0, 0.0, 0.0)), Mat4::from_translation(Vec3::new(-5.0, 1.0, 0.0))],
+        );
         assert_eq!(lo, Vec3::new(-6.0, -1.0, -1.0));
         assert_eq!(hi, Vec3::new(6.0, 2.0, 1.0));
     }

@@ -25,7 +25,10 @@ use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
-use super::frame_view::{is_volume, perm, groups, taa_jitter, volume_view, target_2d, uniform_buffer, view, CameraState, DirectionalShadow, FrameLights, FrameView, InstancedMesh};
+use super::frame_view::{
+    groups, is_volume, perm, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
+    FrameLights, FrameView, InstancedMesh,
+};
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
@@ -188,19 +191,49 @@ struct VisualizeParams {
 }
 
 impl Visualization {
-    fn new(device: &wgpu::Device, cache: &PipelineCache, label: &str, source: &wgpu::Texture, size: [u32; 2], scale: Vec4, bias: Vec4, slice: u32) -> Result<Visualization, PipelineError> {
+    fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        label: &str,
+        source: &wgpu::Texture,
+        size: [u32; 2],
+        scale: Vec4,
+        bias: Vec4,
+        slice: u32,
+    ) -> Result<Visualization, PipelineError> {
         let volume = is_volume(source);
-        let pipeline = cache.compute(&perm(cache, "VisualizeTextureCS", &[("VISUALIZE_VOLUME", if volume { "1" } else { "0" })])?)?;
-        let image = target_2d(device, label, size, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING);
+        let pipeline = cache.compute(&perm(
+            cache,
+            "VisualizeTextureCS",
+            &[("VISUALIZE_VOLUME", if volume { "1" } else { "0" })],
+        )?)?;
+        let image = target_2d(
+            device,
+            label,
+            size,
+            wgpu::TextureFormat::Rgba8Unorm,
+            wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let params = uniform_buffer(device, label, &VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] });
         let src = if volume { volume_view(source) } else { view(source) };
         let dst = view(&image);
-        let group = pipeline.layout.bind_group(device, 0, label, &[
-            ("params", params.as_entire_binding()),
-            ("SourceDepthTexture", wgpu::BindingResource::TextureView(&src)),
-            ("out_image", wgpu::BindingResource::TextureView(&dst)),
-        ])?;
-        Ok(Visualization { pipeline, group, image, params, values: VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] } })
+        let group = pipeline.layout.bind_group(
+            device,
+            0,
+            label,
+            &[
+                ("params", params.as_entire_binding()),
+                ("SourceDepthTexture", wgpu::BindingResource::TextureView(&src)),
+                ("out_image", wgpu::BindingResource::TextureView(&dst)),
+            ],
+        )?;
+        Ok(Visualization {
+            pipeline,
+            group,
+            image,
+            params,
+            values: VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] },
+        })
     }
 
     /// Shows slice `slice` of a volume from now on.
@@ -212,7 +245,10 @@ impl Visualization {
     /// Draws the image and declares it as the current pass or step's output `name`.
     fn output(&self, ctx: &mut PassContext<'_>, name: Option<&str>) {
         {
-            let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("VisualizeTexture"), timestamp_writes: None });
+            let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("VisualizeTexture"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(&self.pipeline.pipeline);
             pass.set_bind_group(0, &self.group, &[]);
             pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
@@ -301,10 +337,18 @@ impl Part2 {
         let size = targets.size;
         let frame_view = uniform_buffer(device, "FrameView", &FrameView::default());
         let depth_format = targets.scene_depth.format();
-        let depth_view = targets.scene_depth.create_view(&wgpu::TextureViewDescriptor { label: Some("SceneDepth (part 2)"), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() });
+        let depth_view = targets.scene_depth.create_view(&wgpu::TextureViewDescriptor {
+            label: Some("SceneDepth (part 2)"),
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        });
         let color_view = view(targets.scene_color);
         let (a, b, c) = (view(targets.gbuffer_a), view(targets.gbuffer_b), view(targets.gbuffer_c));
-        let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor { label: Some("ShadowDepth (part 2)"), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() });
+        let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor {
+            label: Some("ShadowDepth (part 2)"),
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        });
         let scene_color_format = targets.scene_color.format();
 
         // the lights the volumes hold: the directional light where it shines, the local lights
@@ -314,7 +358,10 @@ impl Part2 {
         let mut light_shadows = Vec::new();
         let local_shadow = |index: usize| targets.local_shadows.get(index).cloned().flatten();
         if scene.sun.enabled {
-            lights.push(InjectedLight::Directional { direction: -scene.sun.direction, color: scene.sun.color * scene.sun.intensity });
+            lights.push(InjectedLight::Directional {
+                direction: -scene.sun.direction,
+                color: scene.sun.color * scene.sun.intensity,
+            });
             light_shadows.push(None);
         }
         for (i, l) in scene.point_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
@@ -332,7 +379,15 @@ impl Part2 {
                 outer_angle: l.outer_angle,
             });
         }
-        let volumes = TranslucentVolumes::new(device, cache, &frame_view, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
+        let volumes = TranslucentVolumes::new(
+            device,
+            cache,
+            &frame_view,
+            &shadow_view,
+            targets.shadow_compare,
+            lights,
+            &light_shadows,
+        )?;
 
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
@@ -344,25 +399,62 @@ impl Part2 {
         // the smoke is lit by both translucency volume cascades, blended as the glass reads them
         let ambient = [volume_view(volumes.volumes(0).0), volume_view(volumes.volumes(1).0)];
         let directional = [volume_view(volumes.volumes(0).1), volume_view(volumes.volumes(1).1)];
-        let lit = LightingVolume { params: volumes.lookup_buffer(), ambient: [&ambient[0], &ambient[1]], directional: [&directional[0], &directional[1]] };
-        let particles = Particles::new(device, cache, &frame_view, emitters, &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a }, (scene_color_format, depth_format), &lit)?;
+        let lit = LightingVolume {
+            params: volumes.lookup_buffer(),
+            ambient: [&ambient[0], &ambient[1]],
+            directional: [&directional[0], &directional[1]],
+        };
+        let particles = Particles::new(
+            device,
+            cache,
+            &frame_view,
+            emitters,
+            &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a },
+            (scene_color_format, depth_format),
+            &lit,
+        )?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
-        let bounds: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
-        let occlusion = OcclusionCulling::new(device, cache, &frame_view, size, depth_format, bounds, scene.point_lights.len() + scene.spot_lights.len())?;
+        let bounds: Vec<(Vec3, Vec3)> =
+            scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
+        let occlusion = OcclusionCulling::new(
+            device,
+            cache,
+            &frame_view,
+            size,
+            depth_format,
+            bounds,
+            scene.point_lights.len() + scene.spot_lights.len(),
+        )?;
 
         let hzb = Hzb::new(device, cache, &depth_view, size)?;
 
-        let fog = VolumetricFog::new(device, cache, &frame_view, size, &depth_view, &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare }, &targets.light_grid, scene_color_format)?;
+        let fog = VolumetricFog::new(
+            device,
+            cache,
+            &frame_view,
+            size,
+            &depth_view,
+            &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare },
+            &targets.light_grid,
+            scene_color_format,
+        )?;
 
-        let movable: Vec<usize> = scene.objects.iter().enumerate().filter(|(_, o)| o.mobility == Mobility::Movable).map(|(i, _)| i).collect();
+        let movable: Vec<usize> =
+            scene.objects.iter().enumerate().filter(|(_, o)| o.mobility == Mobility::Movable).map(|(i, _)| i).collect();
         let instanced = |i: usize, label: &str| {
             let o = &scene.objects[i];
             let m = &meshes[o.mesh];
             InstancedMesh::new(device, &format!("{label} {}", o.name), m.vertices, m.indices, m.index_count)
         };
-        let velocity = Velocity::new(device, cache, &frame_view, size, depth_format, movable.iter().map(|&i| instanced(i, "Velocity")).collect())?;
-
+        let velocity = Velocity::new(
+            device,
+            cache,
+            &frame_view,
+            size,
+            depth_format,
+            movable.iter().map(|&i| instanced(i, "Velocity")).collect(),
+        )?;
 
         let hzb_view = view(&hzb.texture);
         let reflections = Reflections::new(
@@ -370,7 +462,16 @@ impl Part2 {
             cache,
             &frame_view,
             size,
-            &ReflectionInputs { scene_color: &color_view, scene_depth: &depth_view, gbuffer_a: &a, gbuffer_b: &b, gbuffer_c: &c, hzb: &hzb_view, hzb_size: hzb.size, hzb_mips: hzb.mip_count },
+            &ReflectionInputs {
+                scene_color: &color_view,
+                scene_depth: &depth_view,
+                gbuffer_a: &a,
+                gbuffer_b: &b,
+                gbuffer_c: &c,
+                hzb: &hzb_view,
+                hzb_size: hzb.size,
+                hzb_mips: hzb.mip_count,
+            },
             &CaptureDesc { position: Vec3::new(0.0, 1.8, 0.0), radius: 9.0, room_color: Vec3::new(0.3, 0.28, 0.25) },
             scene_color_format,
         )?;
@@ -382,12 +483,29 @@ impl Part2 {
             .filter(|(_, o)| scene.materials[o.material].blend == crate::scene::BlendMode::Translucent)
             .map(|(i, _)| i)
             .collect();
-        let distortion = Distortion::new(device, cache, &frame_view, size, scene_color_format, depth_format, refracting.iter().map(|&i| instanced(i, "Distortion")).collect())?;
+        let distortion = Distortion::new(
+            device,
+            cache,
+            &frame_view,
+            size,
+            scene_color_format,
+            depth_format,
+            refracting.iter().map(|&i| instanced(i, "Distortion")).collect(),
+        )?;
 
         let taa = TemporalAA::new(device, cache, &frame_view, size, &color_view, &velocity.view, &depth_view)?;
         let [h0, h1] = taa.history_views();
         let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
-        let motion_blur = MotionBlur::new(device, cache, &frame_view, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
+        let motion_blur = MotionBlur::new(
+            device,
+            cache,
+            &frame_view,
+            &[h0, h1],
+            &velocity.view,
+            &depth_view,
+            &eye.result,
+            scene_color_format,
+        )?;
 
         let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
             let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
@@ -402,18 +520,45 @@ impl Part2 {
         // chosen again every frame as the cascade follows the camera
         let volume_slice = room_slice(scene.camera.position);
         let vis = Visualizations {
-            particle_position: [v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?, v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?],
-            particle_velocity: [v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?, v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?],
-            spark_position: [v("SparkStatePosition", &sparks.0[0], pos_scale, pos_bias, 0)?, v("SparkStatePosition", &sparks.0[1], pos_scale, pos_bias, 0)?],
+            particle_position: [
+                v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?,
+                v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?,
+            ],
+            particle_velocity: [
+                v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?,
+                v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?,
+            ],
+            spark_position: [
+                v("SparkStatePosition", &sparks.0[0], pos_scale, pos_bias, 0)?,
+                v("SparkStatePosition", &sparks.0[1], pos_scale, pos_bias, 0)?,
+            ],
             velocity: v("Velocity", &velocity.texture, Vec4::new(40.0, 40.0, 0.0, 0.0), Vec4::ZERO, 0)?,
             vbuffer_a: v("VBufferA", &fog.vbuffer_a, Vec4::splat(10.0), Vec4::ZERO, FOG_SLICE)?,
             light_scattering: [
                 v("LightScattering", &fog.light_scattering[0], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
                 v("LightScattering", &fog.light_scattering[1], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
             ],
-            integrated: v("IntegratedLightScattering", &fog.integrated, Vec4::new(2.0, 2.0, 2.0, 0.0), Vec4::ZERO, super::volumetric_fog::DEPTH_SLICES - 1)?,
-            volume_ambient: v("TranslucentVolume1", volumes.injected(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
-            volume_filtered: v("TranslucentVolume1", volumes.volumes(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
+            integrated: v(
+                "IntegratedLightScattering",
+                &fog.integrated,
+                Vec4::new(2.0, 2.0, 2.0, 0.0),
+                Vec4::ZERO,
+                super::volumetric_fog::DEPTH_SLICES - 1,
+            )?,
+            volume_ambient: v(
+                "TranslucentVolume1",
+                volumes.injected(1).0,
+                Vec4::splat(0.25),
+                Vec4::ZERO,
+                volume_slice,
+            )?,
+            volume_filtered: v(
+                "TranslucentVolume1",
+                volumes.volumes(1).0,
+                Vec4::splat(0.25),
+                Vec4::ZERO,
+                volume_slice,
+            )?,
             distortion: v("Distortion", &distortion.offsets, Vec4::new(25.0, 25.0, 0.0, 0.0), Vec4::ZERO, 0)?,
         };
 
@@ -528,7 +673,14 @@ impl Part2 {
         s.queue.write_buffer(&s.frame_view, 0, bytemuck::bytes_of(&fv));
         s.current = Some(current);
         let proj_j = current.jittered_proj();
-        FrameCamera { view, proj: proj_j, view_proj: fv.view_proj, inv_view_proj: fv.inv_view_proj, position: current.position, jitter }
+        FrameCamera {
+            view,
+            proj: proj_j,
+            view_proj: fv.view_proj,
+            inv_view_proj: fv.inv_view_proj,
+            position: current.position,
+            jitter,
+        }
     }
 
     /// Object `index`'s instance transforms this frame (movable props animated).
@@ -591,7 +743,8 @@ impl Part2 {
             });
         }
         for l in &s.scene.spot_lights {
-            let view = look_to_mat4(l.position, l.direction, if l.direction.y.abs() > 0.99 { Vec3::Z } else { Vec3::Y });
+            let view =
+                look_to_mat4(l.position, l.direction, if l.direction.y.abs() > 0.99 { Vec3::Z } else { Vec3::Y });
             let proj = directx::perspective(l.outer_angle * 2.0, 1.0, 0.1, l.radius);
             lights.push(LightBounds::Frustum { view_proj: proj * view });
         }
@@ -656,7 +809,11 @@ impl Part2 {
         let s = &mut *s;
         // the previous frame's transforms: where the props were one time step ago (on the
         // first frame too: they were already moving)
-        let transforms: Vec<(Vec<Mat4>, Vec<Mat4>)> = s.movable.iter().map(|&o| (object_transforms(s, o), object_transforms_at(s, o, s.time - TIME_STEP))).collect();
+        let transforms: Vec<(Vec<Mat4>, Vec<Mat4>)> = s
+            .movable
+            .iter()
+            .map(|&o| (object_transforms(s, o), object_transforms_at(s, o, s.time - TIME_STEP)))
+            .collect();
         frame.pass("Velocity", |ctx| {
             s.velocity.record(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms);
             s.vis.velocity.output(ctx, None);
@@ -680,7 +837,14 @@ impl Part2 {
         s.vis.volume_ambient.set_slice(&s.queue, slice);
         s.vis.volume_filtered.set_slice(&s.queue, slice);
         ctx.step("InjectTranslucentVolume", |ctx| {
-            s.volumes.record_inject(&s.queue, ctx.encoder(), camera, s.shadow.as_ref(), s.options.translucency_volume_shadows, &casts_shadow);
+            s.volumes.record_inject(
+                &s.queue,
+                ctx.encoder(),
+                camera,
+                s.shadow.as_ref(),
+                s.options.translucency_volume_shadows,
+                &casts_shadow,
+            );
             s.vis.volume_ambient.output(ctx, None);
         });
         ctx.step("FilterTranslucentVolume", |ctx| {
@@ -760,7 +924,13 @@ impl Part2 {
         frame.pass("Distortion", |ctx| {
             ctx.step("DistortionAccum", |ctx| {
                 let particles = s.options.particles.then_some(&s.particles);
-                s.distortion.record_accumulate(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms, particles);
+                s.distortion.record_accumulate(
+                    &s.queue,
+                    ctx.encoder(),
+                    &s.scene_depth_attachment,
+                    &transforms,
+                    particles,
+                );
                 s.vis.distortion.output(ctx, None);
             });
             ctx.step("DistortionApply", |ctx| {
@@ -832,7 +1002,11 @@ impl Part2 {
         let s = self.lock();
         let (a0, d0) = s.volumes.volumes(0);
         let (a1, d1) = s.volumes.volumes(1);
-        TranslucencyVolumeInputs { params: s.volumes.lookup_buffer().clone(), ambient: [a0.clone(), a1.clone()], directional: [d0.clone(), d1.clone()] }
+        TranslucencyVolumeInputs {
+            params: s.volumes.lookup_buffer().clone(),
+            ambient: [a0.clone(), a1.clone()],
+            directional: [d0.clone(), d1.clone()],
+        }
     }
 
     /// The LightScattering volume written last, for tests.
@@ -888,4 +1062,3 @@ fn fog_settings(s: &State) -> FogSettings {
         shadow: if s.scene.sun.casts_shadows { s.shadow } else { None },
     }
 }
-

@@ -12,10 +12,12 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout};
+use crate::pipelines::{
+    Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout,
+};
 use crate::scene::ParticleEmitter;
 
-use super::frame_view::{perm, groups, uniform_buffer, view};
+use super::frame_view::{groups, perm, uniform_buffer, view};
 
 pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -206,8 +208,16 @@ impl Particles {
         lighting_volume: &LightingVolume<'_>,
     ) -> Result<Particles, PipelineError> {
         let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
-        let distortion_layout = cache.render(&perm(cache, "GPUSpriteVS", &[])?, Some(&perm(cache, "GPUSpriteDistortionPS", &[])?), &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)))?;
-        let sprite_pipeline_layout = cache.render(&perm(cache, "GPUSpriteVS", &[])?, Some(&perm(cache, "GPUSpritePS", &[])?), &sprite_state(target.0, Some(target.1)))?;
+        let distortion_layout = cache.render(
+            &perm(cache, "GPUSpriteVS", &[])?,
+            Some(&perm(cache, "GPUSpriteDistortionPS", &[])?),
+            &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)),
+        )?;
+        let sprite_pipeline_layout = cache.render(
+            &perm(cache, "GPUSpriteVS", &[])?,
+            Some(&perm(cache, "GPUSpritePS", &[])?),
+            &sprite_state(target.0, Some(target.1)),
+        )?;
         let simulation = [
             cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "0")])?)?,
             cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "1")])?)?,
@@ -224,12 +234,16 @@ impl Particles {
                     sample_count: 1,
                     dimension: wgpu::TextureDimension::D2,
                     format,
-                    usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+                    usage: wgpu::TextureUsages::STORAGE_BINDING
+                        | wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_SRC,
                     view_formats: &[],
                 })
             };
-            let positions = [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
-            let velocities = [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
+            let positions =
+                [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
+            let velocities =
+                [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
             let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
             let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
             let pos_views = [view(&positions[0]), view(&positions[1])];
@@ -257,16 +271,29 @@ impl Particles {
                     ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
                 ];
                 if lit {
-                    resources.push(("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])));
-                    resources.push(("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])));
-                    resources.push(("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])));
-                    resources.push(("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])));
+                    resources.push((
+                        "translucency_ambient_inner",
+                        wgpu::BindingResource::TextureView(lighting_volume.ambient[0]),
+                    ));
+                    resources.push((
+                        "translucency_dir_inner",
+                        wgpu::BindingResource::TextureView(lighting_volume.directional[0]),
+                    ));
+                    resources.push((
+                        "translucency_ambient_outer",
+                        wgpu::BindingResource::TextureView(lighting_volume.ambient[1]),
+                    ));
+                    resources.push((
+                        "translucency_dir_outer",
+                        wgpu::BindingResource::TextureView(lighting_volume.directional[1]),
+                    ));
                     resources.push(("translucency_volume", lighting_volume.params.as_entire_binding()));
                     resources.push(("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)));
                 }
                 pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
             };
-            let sprites = [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
+            let sprites =
+                [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
             let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
             let simulate = [make_sim(0)?, make_sim(1)?];
             emitters.push(Emitter {
@@ -290,15 +317,30 @@ impl Particles {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format,
-                usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+                usage: wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
                 view_formats: &[],
             })
         };
         let empty = (
-            [empty_state("NoParticles position", POSITION_FORMAT), empty_state("NoParticles position", POSITION_FORMAT)],
-            [empty_state("NoParticles velocity", VELOCITY_FORMAT), empty_state("NoParticles velocity", VELOCITY_FORMAT)],
+            [
+                empty_state("NoParticles position", POSITION_FORMAT),
+                empty_state("NoParticles position", POSITION_FORMAT),
+            ],
+            [
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+            ],
         );
-        Ok(Particles { emitters, frame: 0, simulation, sprite_pipeline: sprite_pipeline_layout, distortion_pipeline: distortion_layout, empty })
+        Ok(Particles {
+            emitters,
+            frame: 0,
+            simulation,
+            sprite_pipeline: sprite_pipeline_layout,
+            distortion_pipeline: distortion_layout,
+            empty,
+        })
     }
 
     /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
@@ -319,7 +361,10 @@ impl Particles {
             };
             queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
             let pipeline = &self.simulation[usize::from(colliding)];
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("ParticleSimulation {}", d.name)), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&format!("ParticleSimulation {}", d.name)),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(&pipeline.pipeline);
             pass.set_bind_group(0, &e.simulate[e.current], &[]);
             pass.dispatch_workgroups(groups(STATE_WIDTH, 8), groups(rows, 8), 1);

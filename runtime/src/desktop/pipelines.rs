@@ -24,7 +24,12 @@ pub struct Layout {
 impl Layout {
     /// A bind group for `group` from `(name in the shader, resource)` pairs. Resources the
     /// permutation does not use are left out; a binding it uses without a resource is an error.
-    pub fn bind_group(&self, device: &wgpu::Device, group: u32, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<Option<wgpu::BindGroup>, DesktopError> {
+    pub fn bind_group(
+        &self,
+        device: &wgpu::Device,
+        group: u32,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<Option<wgpu::BindGroup>, DesktopError> {
         let Some(bindings) = self.groups.get(group as usize) else { return Ok(None) };
         if bindings.is_empty() {
             return Ok(None);
@@ -32,11 +37,14 @@ impl Layout {
         let mut entries = Vec::with_capacity(bindings.len());
         for b in bindings {
             let name = b.name.clone().unwrap_or_default();
-            let resource = resources
-                .iter()
-                .find(|(n, _)| *n == name)
-                .map(|(_, r)| r.clone())
-                .ok_or_else(|| DesktopError::MissingResource { pipeline: self.label.clone(), group, binding: b.binding, name: name.clone() })?;
+            let resource = resources.iter().find(|(n, _)| *n == name).map(|(_, r)| r.clone()).ok_or_else(|| {
+                DesktopError::MissingResource {
+                    pipeline: self.label.clone(),
+                    group,
+                    binding: b.binding,
+                    name: name.clone(),
+                }
+            })?;
             entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
         }
         let scope = ErrorScopes::push(device);
@@ -52,7 +60,11 @@ impl Layout {
     }
 
     /// Bind groups for every group the pipeline uses, from one resource list.
-    pub fn bind_groups(&self, device: &wgpu::Device, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<BindGroups, DesktopError> {
+    pub fn bind_groups(
+        &self,
+        device: &wgpu::Device,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<BindGroups, DesktopError> {
         let mut groups = Vec::new();
         for g in 0..self.groups.len() as u32 {
             groups.push(self.bind_group(device, g, resources)?);
@@ -143,14 +155,30 @@ pub struct Pipelines<'a> {
 }
 
 impl<'a> Pipelines<'a> {
-    pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device, level: &'a str, spirv_passthrough: bool) -> Pipelines<'a> {
-        Pipelines { cache, device, level, spirv_passthrough, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
+    pub fn new(
+        cache: &'a PipelineCache,
+        device: &'a wgpu::Device,
+        level: &'a str,
+        spirv_passthrough: bool,
+    ) -> Pipelines<'a> {
+        Pipelines {
+            cache,
+            device,
+            level,
+            spirv_passthrough,
+            render: Mutex::new(Vec::new()),
+            compute: Mutex::new(HashMap::new()),
+        }
     }
 
     /// A permutation's module and reflection: through the runtime's cache (SPIR-V
     /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
     /// WGSL artifact, which wgpu compiles with its own bounds checks.
-    fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
+    fn module(
+        &self,
+        name: &str,
+        stage: Stage,
+    ) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
         // Through the cache either way, so the permutation counts as used (passes.json) and
         // its stage is checked.
         let (module, reflection) = self.cache.module(name, stage)?;
@@ -159,7 +187,15 @@ impl<'a> Pipelines<'a> {
         }
         let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
         let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-        let module = crate::pipelines::create_module(self.device, false, name, None, perm.artifact(kiln::archive::Target::Wgsl), &reflection, &targets)?;
+        let module = crate::pipelines::create_module(
+            self.device,
+            false,
+            name,
+            None,
+            perm.artifact(kiln::archive::Target::Wgsl),
+            &reflection,
+            &targets,
+        )?;
         Ok((module, reflection))
     }
 
@@ -176,14 +212,21 @@ impl<'a> Pipelines<'a> {
     /// group layouts shared with the other pipelines).
     fn layout(&self, label: &str, reflections: &[&kiln::archive::Reflection]) -> Result<Layout, DesktopError> {
         let info = self.cache.layout(label, reflections)?;
-        Ok(Layout { label: info.label, groups: info.groups, bind_group_layouts: info.bind_group_layouts, pipeline_layout: info.layout })
+        Ok(Layout {
+            label: info.label,
+            groups: info.groups,
+            bind_group_layouts: info.bind_group_layouts,
+            pipeline_layout: info.layout,
+        })
     }
 
     /// A render pipeline of (vertex permutation, fragment permutation or none, state).
     pub fn render(&self, vertex: &str, fragment: Option<&str>, desc: &RenderDesc) -> Result<Arc<Render>, DesktopError> {
         {
             let cached = self.render.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some((_, _, _, r)) = cached.iter().find(|(v, f, d, _)| v == vertex && f.as_deref() == fragment && d == desc) {
+            if let Some((_, _, _, r)) =
+                cached.iter().find(|(v, f, d, _)| v == vertex && f.as_deref() == fragment && d == desc)
+            {
                 return Ok(r.clone());
             }
         }
@@ -209,17 +252,37 @@ impl<'a> Pipelines<'a> {
                 attributes: &MESH_ATTRIBUTES,
             })],
         };
-        let targets: Vec<Option<wgpu::ColorTargetState>> =
-            desc.targets.iter().map(|(format, blend)| Some(wgpu::ColorTargetState { format: *format, blend: *blend, write_mask: wgpu::ColorWrites::ALL })).collect();
+        let targets: Vec<Option<wgpu::ColorTargetState>> = desc
+            .targets
+            .iter()
+            .map(|(format, blend)| {
+                Some(wgpu::ColorTargetState { format: *format, blend: *blend, write_mask: wgpu::ColorWrites::ALL })
+            })
+            .collect();
         let scope = ErrorScopes::push(self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some(&label),
             layout: Some(&layout.pipeline_layout),
-            vertex: wgpu::VertexState { module: &vs, entry_point: Some(&vs_reflection.entry), compilation_options: Default::default(), buffers: &buffers },
-            primitive: wgpu::PrimitiveState { topology: wgpu::PrimitiveTopology::TriangleList, cull_mode: desc.cull, front_face: wgpu::FrontFace::Ccw, ..Default::default() },
+            vertex: wgpu::VertexState {
+                module: &vs,
+                entry_point: Some(&vs_reflection.entry),
+                compilation_options: Default::default(),
+                buffers: &buffers,
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleList,
+                cull_mode: desc.cull,
+                front_face: wgpu::FrontFace::Ccw,
+                ..Default::default()
+            },
             depth_stencil: desc.depth_stencil.clone(),
             multisample: wgpu::MultisampleState::default(),
-            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState { module, entry_point: Some(&r.entry), compilation_options: Default::default(), targets: &targets }),
+            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
+                module,
+                entry_point: Some(&r.entry),
+                compilation_options: Default::default(),
+                targets: &targets,
+            }),
             multiview_mask: None,
             cache: None,
         });
@@ -227,7 +290,12 @@ impl<'a> Pipelines<'a> {
             return Err(DesktopError::Wgpu { what: format!("render pipeline `{label}`"), message });
         }
         let handle = Arc::new(Render { pipeline, layout });
-        self.render.lock().unwrap_or_else(|e| e.into_inner()).push((vertex.to_string(), fragment.map(str::to_string), desc.clone(), handle.clone()));
+        self.render.lock().unwrap_or_else(|e| e.into_inner()).push((
+            vertex.to_string(),
+            fragment.map(str::to_string),
+            desc.clone(),
+            handle.clone(),
+        ));
         Ok(handle)
     }
 
@@ -249,13 +317,15 @@ impl<'a> Pipelines<'a> {
         if let Some(message) = scope.pop() {
             return Err(DesktopError::Wgpu { what: format!("compute pipeline `{name}`"), message });
         }
-        let handle = Arc::new(Compute { pipeline, layout, workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]) });
+        let handle =
+            Arc::new(Compute { pipeline, layout, workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]) });
         self.compute.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), handle.clone());
         Ok(handle)
     }
 }
 
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
 
 /// Blend states the desktop passes use beyond replace.
 pub mod blend {
@@ -266,15 +336,22 @@ pub mod blend {
     }
 
     /// dst + src: lights accumulating into SceneColor, bloom levels.
-    pub const ADDITIVE: BlendState = BlendState { color: component(F::One, F::One, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    pub const ADDITIVE: BlendState =
+        BlendState { color: component(F::One, F::One, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
     /// min(dst, src): several shadow projections of one light into the shadow mask.
-    pub const MIN: BlendState = BlendState { color: component(F::One, F::One, Op::Min), alpha: component(F::One, F::One, Op::Min) };
+    pub const MIN: BlendState =
+        BlendState { color: component(F::One, F::One, Op::Min), alpha: component(F::One, F::One, Op::Min) };
     /// dst * src: ambient occlusion applied to SceneColor.
-    pub const MULTIPLY: BlendState = BlendState { color: component(F::Zero, F::Src, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    pub const MULTIPLY: BlendState =
+        BlendState { color: component(F::Zero, F::Src, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
     /// dst * src.a + src.rgb: height fog (inscattering, transmittance) and the separate
     /// translucency composite (premultiplied color, transmittance).
-    pub const TRANSMITTANCE: BlendState = BlendState { color: component(F::One, F::SrcAlpha, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
+    pub const TRANSMITTANCE: BlendState =
+        BlendState { color: component(F::One, F::SrcAlpha, Op::Add), alpha: component(F::Zero, F::One, Op::Add) };
     /// Premultiplied "over" for color; alpha keeps the transmittance of what lies behind:
     /// a = dst.a * (1 - src.a). Translucent surfaces into the separate translucency target.
-    pub const TRANSLUCENT: BlendState = BlendState { color: component(F::One, F::OneMinusSrcAlpha, Op::Add), alpha: component(F::Zero, F::OneMinusSrcAlpha, Op::Add) };
+    pub const TRANSLUCENT: BlendState = BlendState {
+        color: component(F::One, F::OneMinusSrcAlpha, Op::Add),
+        alpha: component(F::Zero, F::OneMinusSrcAlpha, Op::Add),
+    };
 }

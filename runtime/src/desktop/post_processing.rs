@@ -40,14 +40,33 @@ impl PostProcessing {
         let up_ps = p.permutation("BloomUpsamplePS", &[])?;
         let texel = |tex: &wgpu::Texture| Vec4::new(1.0 / tex.width() as f32, 1.0 / tex.height() as f32, 0.0, 0.0);
         let mut bloom = Vec::new();
-        let mut add = |ps: &str, source: &wgpu::TextureView, source_tex: &wgpu::Texture, target: usize, blend: Option<wgpu::BlendState>, intensity: f32| -> Result<(), DesktopError> {
+        let mut add = |ps: &str,
+                       source: &wgpu::TextureView,
+                       source_tex: &wgpu::Texture,
+                       target: usize,
+                       blend: Option<wgpu::BlendState>,
+                       intensity: f32|
+         -> Result<(), DesktopError> {
             let pipeline = p.render(&vs, Some(ps), &RenderDesc::fullscreen(formats::BLOOM, blend))?;
-            let u = uniform(b.device, "Bloom", &BloomUniforms { params: Vec4::new(BLOOM[0], BLOOM[1], intensity, 0.0), source_texel: texel(source_tex) });
-            let groups = pipeline.layout.bind_groups(
+            let u = uniform(
                 b.device,
-                &[("SourceTexture", wgpu::BindingResource::TextureView(source)), ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)), ("Bloom", u.as_entire_binding())],
-            )?
-            .keeping(u);
+                "Bloom",
+                &BloomUniforms {
+                    params: Vec4::new(BLOOM[0], BLOOM[1], intensity, 0.0),
+                    source_texel: texel(source_tex),
+                },
+            );
+            let groups = pipeline
+                .layout
+                .bind_groups(
+                    b.device,
+                    &[
+                        ("SourceTexture", wgpu::BindingResource::TextureView(source)),
+                        ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)),
+                        ("Bloom", u.as_entire_binding()),
+                    ],
+                )?
+                .keeping(u);
             bloom.push(Draw { pipeline, groups, target: Some(target), clear: blend.is_none() });
             Ok(())
         };
@@ -70,22 +89,30 @@ impl PostProcessing {
             )?),
             &RenderDesc::fullscreen(output_format, None),
         )?;
-        let u = uniform(b.device, "Tonemap", &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) });
-        let groups = pipeline.layout.bind_groups(
-            b.device,
-            &[
-                ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
-                ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)),
-                ("Tonemap", u.as_entire_binding()),
-                ("BloomTexture", wgpu::BindingResource::TextureView(&t.bloom[0].view)),
-            ],
-        )?
-        .keeping(u);
-        Ok(PostProcessing { bloom, tonemap_uses_bloom: b.options.bloom, tonemap: Draw { pipeline, groups, target: None, clear: true } })
+        let u =
+            uniform(b.device, "Tonemap", &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) });
+        let groups = pipeline
+            .layout
+            .bind_groups(
+                b.device,
+                &[
+                    ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
+                    ("LinearSampler", wgpu::BindingResource::Sampler(&b.samplers.linear)),
+                    ("Tonemap", u.as_entire_binding()),
+                    ("BloomTexture", wgpu::BindingResource::TextureView(&t.bloom[0].view)),
+                ],
+            )?
+            .keeping(u);
+        Ok(PostProcessing {
+            bloom,
+            tonemap_uses_bloom: b.options.bloom,
+            tonemap: Draw { pipeline, groups, target: None, clear: true },
+        })
     }
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
-        let mut pass = begin(ctx.encoder(), "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
+        let mut pass =
+            begin(ctx.encoder(), "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
         pass.set_pipeline(&d.pipeline.pipeline);
         d.groups.set_render(&mut pass);
         pass.draw(0..3, 0..1);
@@ -94,11 +121,11 @@ impl PostProcessing {
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets, output: (&wgpu::Texture, &wgpu::TextureView)) {
         if self.tonemap_uses_bloom {
             ctx.step("Bloom", |ctx| {
-            for d in &self.bloom {
-                let target = d.target.unwrap_or(0);
-                Self::run(ctx, d, &t.bloom[target].view);
-            }
-            ctx.output(&t.bloom[0].texture, Visualize::Hdr);
+                for d in &self.bloom {
+                    let target = d.target.unwrap_or(0);
+                    Self::run(ctx, d, &t.bloom[target].view);
+                }
+                ctx.output(&t.bloom[0].texture, Visualize::Hdr);
             });
         }
         ctx.step("Tonemapper", |ctx| {

@@ -61,9 +61,10 @@ impl PrePass {
                     stencil_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0), store: wgpu::StoreOp::Store }),
                 }),
             );
-            for (blend, pipeline, groups) in
-                [(BlendMode::Opaque, &self.opaque, &self.opaque_groups), (BlendMode::Masked, &self.masked, &self.masked_groups)]
-            {
+            for (blend, pipeline, groups) in [
+                (BlendMode::Opaque, &self.opaque, &self.opaque_groups),
+                (BlendMode::Masked, &self.masked, &self.masked_groups),
+            ] {
                 pass.set_pipeline(&pipeline.pipeline);
                 groups.set_render(&mut pass);
                 for draw in scene.draws.iter().filter(|d| d.blend == blend) {

@@ -12,9 +12,11 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec4};
 
-use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{
+    Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
+};
 
-use super::frame_view::{perm, color_pass, groups, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, groups, linear_sampler, perm, target_2d, uniform_buffer, view};
 
 pub const SSR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 pub const CAPTURE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -82,10 +84,24 @@ impl Reflections {
         capture: &CaptureDesc,
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<Reflections, PipelineError> {
-        let ssr_pipeline = cache.render(&perm(cache, "ScreenSpaceReflectionsVS", &[])?, Some(&perm(cache, "ScreenSpaceReflectionsPS", &[("SSR_QUALITY", "1")])?), &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }))?;
-        let environment = cache.render(&perm(cache, "ReflectionEnvironmentVS", &[])?, Some(&perm(cache, "ReflectionEnvironmentPS", &[])?), &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }))?;
+        let ssr_pipeline = cache.render(
+            &perm(cache, "ScreenSpaceReflectionsVS", &[])?,
+            Some(&perm(cache, "ScreenSpaceReflectionsPS", &[("SSR_QUALITY", "1")])?),
+            &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }),
+        )?;
+        let environment = cache.render(
+            &perm(cache, "ReflectionEnvironmentVS", &[])?,
+            Some(&perm(cache, "ReflectionEnvironmentPS", &[])?),
+            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }),
+        )?;
         let filter = cache.compute(&perm(cache, "ReflectionCaptureFilterCS", &[])?)?;
-        let ssr = target_2d(device, "ScreenSpaceReflections", size, SSR_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
+        let ssr = target_2d(
+            device,
+            "ScreenSpaceReflections",
+            size,
+            SSR_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let ssr_view = view(&ssr);
         let capture_texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("ReflectionCapture"),
@@ -94,29 +110,45 @@ impl Reflections {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: CAPTURE_FORMAT,
-            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
         let sampler = linear_sampler(device, "Reflections sampler");
-        let ssr_params = uniform_buffer(device, "SSR params", &SsrParams {
-            trace: Vec4::new(SSR_MAX_ROUGHNESS, inputs.hzb_mips as f32, 0.3, 12.0),
-            hzb_size: Vec4::new(inputs.hzb_size[0] as f32, inputs.hzb_size[1] as f32, 0.0, 0.0),
-        });
+        let ssr_params = uniform_buffer(
+            device,
+            "SSR params",
+            &SsrParams {
+                trace: Vec4::new(SSR_MAX_ROUGHNESS, inputs.hzb_mips as f32, 0.3, 12.0),
+                hzb_size: Vec4::new(inputs.hzb_size[0] as f32, inputs.hzb_size[1] as f32, 0.0, 0.0),
+            },
+        );
         let tex = wgpu::BindingResource::TextureView;
-        let ssr_group = ssr_pipeline.layout.bind_group(device, 0, "ScreenSpaceReflections", &[
-            ("view", frame_view.as_entire_binding()),
-            ("ssr", ssr_params.as_entire_binding()),
-            ("scene_color", tex(inputs.scene_color)),
-            ("SceneDepthTexture", tex(inputs.scene_depth)),
-            ("gbuffer_a", tex(inputs.gbuffer_a)),
-            ("gbuffer_b", tex(inputs.gbuffer_b)),
-            ("HZBDepthTexture", tex(inputs.hzb)),
-            ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
-        ])?;
+        let ssr_group = ssr_pipeline.layout.bind_group(
+            device,
+            0,
+            "ScreenSpaceReflections",
+            &[
+                ("view", frame_view.as_entire_binding()),
+                ("ssr", ssr_params.as_entire_binding()),
+                ("scene_color", tex(inputs.scene_color)),
+                ("SceneDepthTexture", tex(inputs.scene_depth)),
+                ("gbuffer_a", tex(inputs.gbuffer_a)),
+                ("gbuffer_b", tex(inputs.gbuffer_b)),
+                ("HZBDepthTexture", tex(inputs.hzb)),
+                ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+            ],
+        )?;
         let mut buffers = vec![ssr_params];
         let capture_params = |mip: u32| ReflectionParams {
             capture: capture.position.extend(capture.radius),
-            mips: Vec4::new(CAPTURE_MIPS as f32, mip as f32, mip as f32 / (CAPTURE_MIPS - 1) as f32, (CAPTURE_SIZE >> mip).max(1) as f32),
+            mips: Vec4::new(
+                CAPTURE_MIPS as f32,
+                mip as f32,
+                mip as f32 / (CAPTURE_MIPS - 1) as f32,
+                (CAPTURE_SIZE >> mip).max(1) as f32,
+            ),
             room: capture.room_color.extend(0.0),
         };
         let mut filter_groups = Vec::new();
@@ -129,11 +161,16 @@ impl Reflections {
                 mip_level_count: Some(1),
                 ..Default::default()
             });
-            let group = filter.layout.bind_group(device, 0, "ReflectionCaptureFilter", &[
-                ("view", frame_view.as_entire_binding()),
-                ("reflection", params.as_entire_binding()),
-                ("capture_face", wgpu::BindingResource::TextureView(&face_view)),
-            ])?;
+            let group = filter.layout.bind_group(
+                device,
+                0,
+                "ReflectionCaptureFilter",
+                &[
+                    ("view", frame_view.as_entire_binding()),
+                    ("reflection", params.as_entire_binding()),
+                    ("capture_face", wgpu::BindingResource::TextureView(&face_view)),
+                ],
+            )?;
             filter_groups.push((group, (CAPTURE_SIZE >> mip).max(1)));
             buffers.push(params);
         }
@@ -143,17 +180,22 @@ impl Reflections {
             dimension: Some(wgpu::TextureViewDimension::Cube),
             ..Default::default()
         });
-        let environment_group = environment.layout.bind_group(device, 0, "ReflectionEnvironmentAndSky", &[
-            ("view", frame_view.as_entire_binding()),
-            ("reflection", env_params.as_entire_binding()),
-            ("SceneDepthTexture", tex(inputs.scene_depth)),
-            ("gbuffer_a", tex(inputs.gbuffer_a)),
-            ("gbuffer_b", tex(inputs.gbuffer_b)),
-            ("gbuffer_c", tex(inputs.gbuffer_c)),
-            ("ssr", tex(&ssr_view)),
-            ("capture_cube", tex(&cube)),
-            ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
-        ])?;
+        let environment_group = environment.layout.bind_group(
+            device,
+            0,
+            "ReflectionEnvironmentAndSky",
+            &[
+                ("view", frame_view.as_entire_binding()),
+                ("reflection", env_params.as_entire_binding()),
+                ("SceneDepthTexture", tex(inputs.scene_depth)),
+                ("gbuffer_a", tex(inputs.gbuffer_a)),
+                ("gbuffer_b", tex(inputs.gbuffer_b)),
+                ("gbuffer_c", tex(inputs.gbuffer_c)),
+                ("ssr", tex(&ssr_view)),
+                ("capture_cube", tex(&cube)),
+                ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+            ],
+        )?;
         buffers.push(env_params);
         Ok(Reflections {
             ssr,
@@ -175,7 +217,10 @@ impl Reflections {
         if self.captured {
             return;
         }
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ReflectionCaptureFilter"), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("ReflectionCaptureFilter"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.filter.pipeline);
         for (group, size) in &self.filter_groups {
             pass.set_bind_group(0, group, &[]);
@@ -186,7 +231,12 @@ impl Reflections {
 
     /// ScreenSpaceReflections into the SSR target.
     pub fn record_ssr(&self, encoder: &mut wgpu::CommandEncoder) {
-        let mut pass = color_pass(encoder, "ScreenSpaceReflections", &self.ssr_view, wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT));
+        let mut pass = color_pass(
+            encoder,
+            "ScreenSpaceReflections",
+            &self.ssr_view,
+            wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+        );
         pass.set_pipeline(&self.ssr_pipeline.pipeline);
         pass.set_bind_group(0, &self.ssr_group, &[]);
         pass.draw(0..3, 0..1);

@@ -112,11 +112,19 @@ impl SceneBuffers {
         }
         let materials: Vec<MaterialGpu> = scene.materials.iter().map(material_gpu).collect();
         let storage = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage: wgpu::BufferUsages::STORAGE })
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
         };
         // movable props' rows are rewritten every frame (part 2 moves them)
         let storage_copy_dst = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST })
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
         };
         let mut sphere = Mesh::new("LightSphere");
         // 16 rings x 24 segments; vertices on a sphere of radius 1/cos(pi/16) so the faces
@@ -227,7 +235,12 @@ pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
                 position_radius: l.position.extend(l.radius),
                 color_falloff: (l.color * l.intensity).extend(0.0),
                 direction_type: l.direction.normalize().extend(2.0),
-                spot_angles: Vec4::new(cos_outer, 1.0 / (cos_inner - cos_outer).max(1e-4), shadowed_flag(l.casts_shadows), 0.0),
+                spot_angles: Vec4::new(
+                    cos_outer,
+                    1.0 / (cos_inner - cos_outer).max(1e-4),
+                    shadowed_flag(l.casts_shadows),
+                    0.0,
+                ),
             },
             shadow: shadow(l.casts_shadows, l.mobility),
             spot: true,
@@ -244,7 +257,14 @@ pub struct Texture {
 }
 
 impl Texture {
-    pub fn new(device: &wgpu::Device, label: &str, format: wgpu::TextureFormat, width: u32, height: u32, usage: wgpu::TextureUsages) -> Texture {
+    pub fn new(
+        device: &wgpu::Device,
+        label: &str,
+        format: wgpu::TextureFormat,
+        width: u32,
+        height: u32,
+        usage: wgpu::TextureUsages,
+    ) -> Texture {
         let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some(label),
             size: wgpu::Extent3d { width: width.max(1), height: height.max(1), depth_or_array_layers: 1 },
@@ -261,7 +281,9 @@ impl Texture {
 
     /// A render target that later passes sample and `--dump-passes` copies.
     pub fn target(device: &wgpu::Device, label: &str, format: wgpu::TextureFormat, width: u32, height: u32) -> Texture {
-        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC;
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC;
         Texture::new(device, label, format, width, height, usage)
     }
 }
@@ -283,7 +305,8 @@ impl SceneDepth {
         // Depth32FloatStencil8 can be copied out for --dump-passes; Depth24PlusStencil8 is
         // the fallback every device has (its capture is drawn, as on GL).
         let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
-        let format = if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
+        let format =
+            if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
         if d32s8 {
             usage |= wgpu::TextureUsages::COPY_SRC;
@@ -297,7 +320,6 @@ impl SceneDepth {
         let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
         SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment }
     }
-
 }
 
 /// The frame's full and reduced resolution targets.
@@ -333,7 +355,10 @@ impl Targets {
             formats::SCENE_COLOR,
             width,
             height,
-            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::COPY_DST,
+            wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::COPY_DST,
         );
         Targets {
             width,
@@ -357,7 +382,9 @@ impl Targets {
             ao_half: t("AmbientOcclusionHalf", formats::AO, hw, hh),
             ao_full: t("AmbientOcclusion", formats::AO, width, height),
             translucency: t("SeparateTranslucency", formats::TRANSLUCENCY, width, height),
-            bloom: (1..=BLOOM_LEVELS).map(|i| t(&format!("Bloom{i}"), formats::BLOOM, (width >> i).max(1), (height >> i).max(1))).collect(),
+            bloom: (1..=BLOOM_LEVELS)
+                .map(|i| t(&format!("Bloom{i}"), formats::BLOOM, (width >> i).max(1), (height >> i).max(1)))
+                .collect(),
         }
     }
 }
@@ -386,10 +413,20 @@ impl Samplers {
         let mut texels = Vec::with_capacity(64);
         for k in order {
             let a = k as f32 / 16.0 * std::f32::consts::TAU;
-            texels.extend_from_slice(&[((a.cos() * 0.5 + 0.5) * 255.0) as u8, ((a.sin() * 0.5 + 0.5) * 255.0) as u8, 128, 255]);
+            texels.extend_from_slice(&[
+                ((a.cos() * 0.5 + 0.5) * 255.0) as u8,
+                ((a.sin() * 0.5 + 0.5) * 255.0) as u8,
+                128,
+                255,
+            ]);
         }
         queue.write_texture(
-            wgpu::TexelCopyTextureInfo { texture: &random_normals.texture, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+            wgpu::TexelCopyTextureInfo {
+                texture: &random_normals.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
             &texels,
             wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(16), rows_per_image: Some(4) },
             wgpu::Extent3d { width: 4, height: 4, depth_or_array_layers: 1 },
@@ -423,7 +460,12 @@ pub fn uniform<T: bytemuck::Pod>(device: &wgpu::Device, label: &str, value: &T) 
 }
 
 /// A storage buffer holding a slice (at least one element, so empty lists bind).
-pub fn storage<T: bytemuck::Pod + Default>(device: &wgpu::Device, label: &str, values: &[T], extra: wgpu::BufferUsages) -> wgpu::Buffer {
+pub fn storage<T: bytemuck::Pod + Default>(
+    device: &wgpu::Device,
+    label: &str,
+    values: &[T],
+    extra: wgpu::BufferUsages,
+) -> wgpu::Buffer {
     let one = [T::default()];
     let values = if values.is_empty() { &one[..] } else { values };
     device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -434,12 +476,18 @@ pub fn storage<T: bytemuck::Pod + Default>(device: &wgpu::Device, label: &str, v
 }
 
 /// Color attachment helper.
-pub fn color_attachment(view: &wgpu::TextureView, clear: Option<wgpu::Color>) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+pub fn color_attachment(
+    view: &wgpu::TextureView,
+    clear: Option<wgpu::Color>,
+) -> Option<wgpu::RenderPassColorAttachment<'_>> {
     Some(wgpu::RenderPassColorAttachment {
         view,
         depth_slice: None,
         resolve_target: None,
-        ops: wgpu::Operations { load: clear.map_or(wgpu::LoadOp::Load, wgpu::LoadOp::Clear), store: wgpu::StoreOp::Store },
+        ops: wgpu::Operations {
+            load: clear.map_or(wgpu::LoadOp::Load, wgpu::LoadOp::Clear),
+            store: wgpu::StoreOp::Store,
+        },
     })
 }
 

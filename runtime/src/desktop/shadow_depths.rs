@@ -120,7 +120,11 @@ pub fn cascade_matrices(view: &FrameView, light_direction: Vec3) -> [Mat4; CASCA
 /// The cascaded shadow's projection uniforms for `view` (and the cascades' matrices): what
 /// ShadowProjectionOnOpaque, the forward-lit translucency and part 2 read. `size`: one
 /// cascade's side in texels.
-pub fn cascaded_uniforms(view: &FrameView, light_direction: Vec3, size: u32) -> (ShadowProjectionUniforms, [Mat4; CASCADES]) {
+pub fn cascaded_uniforms(
+    view: &FrameView,
+    light_direction: Vec3,
+    size: u32,
+) -> (ShadowProjectionUniforms, [Mat4; CASCADES]) {
     let matrices = cascade_matrices(view, light_direction);
     let mut u = ShadowProjectionUniforms {
         cascade_far_depths: Vec4::new(CASCADE_SPLITS[0], CASCADE_SPLITS[1], CASCADE_SPLITS[2], CASCADES as f32),
@@ -138,7 +142,14 @@ pub fn cascaded_uniforms(view: &FrameView, light_direction: Vec3, size: u32) -> 
 
 /// The six face projections of a point light (+x, -x, +y, -y, +z, -z).
 pub fn cube_face_matrices(position: Vec3, radius: f32) -> [Mat4; 6] {
-    let faces = [(Vec3::X, Vec3::NEG_Y), (Vec3::NEG_X, Vec3::NEG_Y), (Vec3::Y, Vec3::Z), (Vec3::NEG_Y, Vec3::NEG_Z), (Vec3::Z, Vec3::NEG_Y), (Vec3::NEG_Z, Vec3::NEG_Y)];
+    let faces = [
+        (Vec3::X, Vec3::NEG_Y),
+        (Vec3::NEG_X, Vec3::NEG_Y),
+        (Vec3::Y, Vec3::Z),
+        (Vec3::NEG_Y, Vec3::NEG_Z),
+        (Vec3::Z, Vec3::NEG_Y),
+        (Vec3::NEG_Z, Vec3::NEG_Y),
+    ];
     let proj = directx::perspective(std::f32::consts::FRAC_PI_2, 1.0, 0.05, radius.max(0.1));
     faces.map(|(dir, up)| proj * look_to_mat4(position, dir, up))
 }
@@ -160,7 +171,8 @@ impl ShadowDepths {
         let device = b.device;
         let p = b.pipelines;
         let desc = |perspective: bool| -> Result<Arc<Render>, DesktopError> {
-            let name = p.permutation("ShadowDepthVS", &[("PERSPECTIVE_CORRECT_DEPTH", u32::from(perspective).to_string())])?;
+            let name =
+                p.permutation("ShadowDepthVS", &[("PERSPECTIVE_CORRECT_DEPTH", u32::from(perspective).to_string())])?;
             p.render(
                 &name,
                 None,
@@ -180,11 +192,21 @@ impl ShadowDepths {
         };
         let ortho = desc(false)?;
         let perspective = desc(true)?;
-        let casters: Vec<usize> = b.buffers.draws.iter().enumerate().filter(|(_, d)| d.casts_shadow).map(|(i, _)| i).collect();
+        let casters: Vec<usize> =
+            b.buffers.draws.iter().enumerate().filter(|(_, d)| d.casts_shadow).map(|(i, _)| i).collect();
         let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
         let view_groups = |pipeline: &Render, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
             let buffer = uniform(device, label, &ShadowDepthPassUniforms { view_proj: m });
-            Ok(pipeline.layout.bind_groups(device, &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())])?.keeping(buffer))
+            Ok(pipeline
+                .layout
+                .bind_groups(
+                    device,
+                    &[
+                        ("ShadowDepthPass", buffer.as_entire_binding()),
+                        ("Instances", b.buffers.instances.as_entire_binding()),
+                    ],
+                )?
+                .keeping(buffer))
         };
         let size = b.options.shadow_map_size;
         let mut atlases = Vec::new();
@@ -198,8 +220,22 @@ impl ShadowDepths {
             for (i, m) in matrices.iter().enumerate() {
                 let buffer = uniform(device, &format!("Cascade{i}"), &ShadowDepthPassUniforms { view_proj: *m });
                 cascade_buffers.push(buffer.clone());
-                let groups = ortho.layout.bind_groups(device, &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())])?.keeping(buffer);
-                views.push(ShadowView { viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32], groups, draws: casters.clone(), light: None });
+                let groups = ortho
+                    .layout
+                    .bind_groups(
+                        device,
+                        &[
+                            ("ShadowDepthPass", buffer.as_entire_binding()),
+                            ("Instances", b.buffers.instances.as_entire_binding()),
+                        ],
+                    )?
+                    .keeping(buffer);
+                views.push(ShadowView {
+                    viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32],
+                    groups,
+                    draws: casters.clone(),
+                    light: None,
+                });
             }
             setup.cascaded = Some(u);
             csm = Some(atlases.len());
@@ -229,7 +265,11 @@ impl ShadowDepths {
             let n = tiles.len() as u32;
             let mut views = Vec::new();
             for (k, (li, di, m)) in tiles.iter().enumerate() {
-                let mut u = ShadowProjectionUniforms { light_position: b.lights[*li].position().extend(1.0), params: Vec4::new(0.0003, 0.02, 0.0, 0.0), ..Default::default() };
+                let mut u = ShadowProjectionUniforms {
+                    light_position: b.lights[*li].position().extend(1.0),
+                    params: Vec4::new(0.0003, 0.02, 0.0, 0.0),
+                    ..Default::default()
+                };
                 u.world_to_shadow[0] = *m;
                 u.atlas_rects[0] = Vec4::new(k as f32 / n as f32, 0.0, 1.0 / n as f32, 1.0);
                 setup.per_object.push((*li, u));
@@ -241,14 +281,25 @@ impl ShadowDepths {
                 });
             }
             per_object = Some(atlases.len());
-            atlases.push(Atlas { step: "Atlas1".into(), texture: shadow_texture(device, "ShadowDepthAtlas1", tile * n, tile), pipeline: perspective.clone(), views, cache: None });
+            atlases.push(Atlas {
+                step: "Atlas1".into(),
+                texture: shadow_texture(device, "ShadowDepthAtlas1", tile * n, tile),
+                pipeline: perspective.clone(),
+                views,
+                cache: None,
+            });
         }
 
         for (li, light) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow == LocalShadow::Cube) {
             let matrices = cube_face_matrices(light.position(), light.radius());
-            let mut u = ShadowProjectionUniforms { light_position: light.position().extend(1.0), params: Vec4::new(0.0002, 0.03, 0.0, 0.0), ..Default::default() };
+            let mut u = ShadowProjectionUniforms {
+                light_position: light.position().extend(1.0),
+                params: Vec4::new(0.0002, 0.03, 0.0, 0.0),
+                ..Default::default()
+            };
             let mut views = Vec::new();
-            let (movable_casters, static_casters): (Vec<usize>, Vec<usize>) = casters.iter().partition(|&&d| b.buffers.draws[d].movable);
+            let (movable_casters, static_casters): (Vec<usize>, Vec<usize>) =
+                casters.iter().partition(|&&d| b.buffers.draws[d].movable);
             for (f, m) in matrices.iter().enumerate() {
                 u.world_to_shadow[f] = *m;
                 u.atlas_rects[f] = Vec4::new(f as f32 / 6.0, 0.0, 1.0 / 6.0, 1.0);
@@ -276,7 +327,10 @@ impl ShadowDepths {
                     targets: Vec::new(),
                 },
             )?;
-            let copy_groups = copy.layout.bind_groups(device, &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))])?;
+            let copy_groups = copy.layout.bind_groups(
+                device,
+                &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))],
+            )?;
             let cache = CubeCache {
                 texture: cached,
                 copy,
@@ -287,10 +341,20 @@ impl ShadowDepths {
             };
             setup.cubes.push((li, cubes.len(), u));
             cubes.push(atlases.len());
-            let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::COPY_DST;
+            let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::COPY_DST;
             atlases.push(Atlas {
                 step: format!("Cubemap_{}", light.name),
-                texture: Texture::new(device, &format!("ShadowDepthCube {}", light.name), formats::SHADOW_DEPTH, tile * 6, tile, usage),
+                texture: Texture::new(
+                    device,
+                    &format!("ShadowDepthCube {}", light.name),
+                    formats::SHADOW_DEPTH,
+                    tile * 6,
+                    tile,
+                    usage,
+                ),
                 pipeline: perspective.clone(),
                 views,
                 cache: Some(cache),
@@ -336,7 +400,11 @@ impl ShadowDepths {
 
     /// How many times the cube shadows' cached static depth was rendered (all cubes).
     pub fn cached_shadow_rebuilds(&self) -> u32 {
-        self.atlases.iter().filter_map(|a| a.cache.as_ref()).map(|c| c.rebuilds.load(std::sync::atomic::Ordering::Relaxed)).sum()
+        self.atlases
+            .iter()
+            .filter_map(|a| a.cache.as_ref())
+            .map(|c| c.rebuilds.load(std::sync::atomic::Ordering::Relaxed))
+            .sum()
     }
 
     /// The movable lights moved: their cached static depth is rendered again next frame.
@@ -349,7 +417,10 @@ impl ShadowDepths {
     /// Records every atlas. `casts_shadow(light)`: whether local light `light` renders its
     /// shadow views this frame (ShadowFrustumQueries); the cascades always render.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, casts_shadow: &dyn Fn(usize) -> bool) {
-        let draw_views = |pass: &mut wgpu::RenderPass<'_>, atlas: &Atlas, keep: &dyn Fn(&ShadowView) -> bool, draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
+        let draw_views = |pass: &mut wgpu::RenderPass<'_>,
+                          atlas: &Atlas,
+                          keep: &dyn Fn(&ShadowView) -> bool,
+                          draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
             pass.set_pipeline(&atlas.pipeline.pipeline);
             for (i, v) in atlas.views.iter().enumerate().filter(|(_, v)| keep(v)) {
                 let [x, y, w, h] = v.viewport;
@@ -372,7 +443,12 @@ impl ShadowDepths {
                         let name = self.light_names.get(light).map_or("", String::as_str);
                         let load = if cleared { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(1.0) };
                         ctx.step(&format!("PerObject_{name}"), |ctx| {
-                            let mut pass = begin(ctx.encoder(), &format!("PerObject {name}"), &[], depth(&atlas.texture.view, load));
+                            let mut pass = begin(
+                                ctx.encoder(),
+                                &format!("PerObject {name}"),
+                                &[],
+                                depth(&atlas.texture.view, load),
+                            );
                             draw_views(&mut pass, atlas, &|v| v.light == Some(light), &|_, v| v.draws.clone());
                         });
                         cleared = true;
@@ -394,13 +470,23 @@ impl ShadowDepths {
                 if let Some(cache) = &atlas.cache {
                     if !cache.valid.swap(true, std::sync::atomic::Ordering::Relaxed) {
                         // the static casters, rendered once into the cache
-                        let mut pass = begin(ctx.encoder(), "CachedShadowDepth", &[], depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)));
+                        let mut pass = begin(
+                            ctx.encoder(),
+                            "CachedShadowDepth",
+                            &[],
+                            depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)),
+                        );
                         draw_views(&mut pass, atlas, &|_| true, &|i, _| cache.static_draws[i].clone());
                         cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                     ctx.step("CopyCachedShadowMap", |ctx| {
                         {
-                            let mut pass = begin(ctx.encoder(), "CopyCachedShadowMap", &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
+                            let mut pass = begin(
+                                ctx.encoder(),
+                                "CopyCachedShadowMap",
+                                &[],
+                                depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)),
+                            );
                             pass.set_pipeline(&cache.copy.pipeline);
                             cache.copy_groups.set_render(&mut pass);
                             pass.draw(0..3, 0..1);
@@ -421,7 +507,11 @@ impl ShadowDepths {
 
 /// A shadow map as the pass's depth target, stored.
 fn depth(view: &wgpu::TextureView, load: wgpu::LoadOp<f32>) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
-    Some(wgpu::RenderPassDepthStencilAttachment { view, depth_ops: Some(wgpu::Operations { load, store: wgpu::StoreOp::Store }), stencil_ops: None })
+    Some(wgpu::RenderPassDepthStencilAttachment {
+        view,
+        depth_ops: Some(wgpu::Operations { load, store: wgpu::StoreOp::Store }),
+        stencil_ops: None,
+    })
 }
 
 fn shadow_texture(device: &wgpu::Device, label: &str, width: u32, height: u32) -> Texture {
@@ -431,7 +521,8 @@ fn shadow_texture(device: &wgpu::Device, label: &str, width: u32, height: u32) -
 /// A 1x1 shadow map cleared to "unshadowed" for bindings without a real one.
 pub fn dummy_shadow_texture(device: &wgpu::Device, queue: &wgpu::Queue) -> Texture {
     let t = shadow_texture(device, "NoShadowDepth", 1, 1);
-    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clear NoShadowDepth") });
+    let mut encoder =
+        device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clear NoShadowDepth") });
     begin(
         &mut encoder,
         "clear NoShadowDepth",

@@ -11,7 +11,7 @@ use glam::Vec4;
 
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, color_pass, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, linear_sampler, perm, target_2d, uniform_buffer, view};
 
 pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weight of the current frame in the history (Unreal: 0.04 at 8 samples; a larger weight
@@ -45,22 +45,37 @@ impl TemporalAA {
         velocity: &wgpu::TextureView,
         scene_depth: &wgpu::TextureView,
     ) -> Result<TemporalAA, PipelineError> {
-        let pipeline = cache.render(&perm(cache, "TemporalAAVS", &[])?, Some(&perm(cache, "TemporalAAPS", &[])?), &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }))?;
-        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::COPY_DST;
-        let history = [target_2d(device, "TemporalAAHistory0", size, HISTORY_FORMAT, usage), target_2d(device, "TemporalAAHistory1", size, HISTORY_FORMAT, usage)];
+        let pipeline = cache.render(
+            &perm(cache, "TemporalAAVS", &[])?,
+            Some(&perm(cache, "TemporalAAPS", &[])?),
+            &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }),
+        )?;
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC
+            | wgpu::TextureUsages::COPY_DST;
+        let history = [
+            target_2d(device, "TemporalAAHistory0", size, HISTORY_FORMAT, usage),
+            target_2d(device, "TemporalAAHistory1", size, HISTORY_FORMAT, usage),
+        ];
         let history_views = [view(&history[0]), view(&history[1])];
         let params = uniform_buffer(device, "TemporalAA params", &TaaParams::default());
         let sampler = linear_sampler(device, "TemporalAA sampler");
         let group = |i: usize| {
-            pipeline.layout.bind_group(device, 0, "TemporalAA", &[
-                ("view", frame_view.as_entire_binding()),
-                ("taa", params.as_entire_binding()),
-                ("scene_color", wgpu::BindingResource::TextureView(scene_color)),
-                ("history", wgpu::BindingResource::TextureView(&history_views[1 - i])),
-                ("velocity", wgpu::BindingResource::TextureView(velocity)),
-                ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
-                ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
-            ])
+            pipeline.layout.bind_group(
+                device,
+                0,
+                "TemporalAA",
+                &[
+                    ("view", frame_view.as_entire_binding()),
+                    ("taa", params.as_entire_binding()),
+                    ("scene_color", wgpu::BindingResource::TextureView(scene_color)),
+                    ("history", wgpu::BindingResource::TextureView(&history_views[1 - i])),
+                    ("velocity", wgpu::BindingResource::TextureView(velocity)),
+                    ("SceneDepthTexture", wgpu::BindingResource::TextureView(scene_depth)),
+                    ("linear_sampler", wgpu::BindingResource::Sampler(&sampler)),
+                ],
+            )
         };
         let groups = [group(0)?, group(1)?];
         Ok(TemporalAA { history, history_views, pipeline, params, groups, current: 1, history_valid: false })
@@ -74,7 +89,8 @@ impl TemporalAA {
     /// anti-aliased SceneColor).
     pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder) -> &wgpu::TextureView {
         let out = 1 - self.current;
-        let params = TaaParams { blend: Vec4::new(CURRENT_WEIGHT, if self.history_valid { 1.0 } else { 0.0 }, 0.0, 0.0) };
+        let params =
+            TaaParams { blend: Vec4::new(CURRENT_WEIGHT, if self.history_valid { 1.0 } else { 0.0 }, 0.0, 0.0) };
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let mut pass = color_pass(encoder, "TAA", &self.history_views[out], wgpu::LoadOp::Clear(wgpu::Color::BLACK));
         pass.set_pipeline(&self.pipeline.pipeline);
@@ -90,7 +106,11 @@ impl TemporalAA {
     /// read it from there); the history becomes invalid.
     pub fn bypass(&mut self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::Texture) {
         let out = 1 - self.current;
-        encoder.copy_texture_to_texture(scene_color.as_image_copy(), self.history[out].as_image_copy(), scene_color.size());
+        encoder.copy_texture_to_texture(
+            scene_color.as_image_copy(),
+            self.history[out].as_image_copy(),
+            scene_color.size(),
+        );
         self.current = out;
         self.history_valid = false;
     }

@@ -12,8 +12,8 @@ use std::sync::Arc;
 use crate::frame::{PassContext, Visualize};
 use crate::scene::BlendMode;
 
-use super::light_grid::LightGrid;
 use super::frame_view::volume_view;
+use super::light_grid::LightGrid;
 use super::part2::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
@@ -55,19 +55,29 @@ impl Translucency {
                 let pipeline = p.render(
                     &p.permutation("ParticleSpriteVS", &[])?,
                     Some(&p.permutation("ParticleSpritePS", &[])?),
-                    &RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: depth_test.clone(), targets: vec![(formats::TRANSLUCENCY, Some(blend::ADDITIVE))] },
+                    &RenderDesc {
+                        vertices: Vertices::None,
+                        cull: None,
+                        depth_stencil: depth_test.clone(),
+                        targets: vec![(formats::TRANSLUCENCY, Some(blend::ADDITIVE))],
+                    },
                 )?;
                 let (uniforms, buffer, count) = system.sprite_buffers();
                 let groups = pipeline.layout.bind_groups(
                     b.device,
-                    &[("View", inputs.view.as_entire_binding()), ("Emitter", uniforms.as_entire_binding()), ("Particles", buffer.as_entire_binding())],
+                    &[
+                        ("View", inputs.view.as_entire_binding()),
+                        ("Emitter", uniforms.as_entire_binding()),
+                        ("Particles", buffer.as_entire_binding()),
+                    ],
                 )?;
                 sprites.push((pipeline, groups, count));
             }
         }
         let mut directional_shadow = Vec::new();
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
-            let (ambient, directional) = (volume.ambient.each_ref().map(volume_view), volume.directional.each_ref().map(volume_view));
+            let (ambient, directional) =
+                (volume.ambient.each_ref().map(volume_view), volume.directional.each_ref().map(volume_view));
             let volume_sampler = b.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("TranslucencyLightingVolumeSampler"),
                 mag_filter: wgpu::FilterMode::Linear,
@@ -89,8 +99,10 @@ impl Translucency {
                 ("TranslucencyLightingVolumeDirectionalOuter", wgpu::BindingResource::TextureView(&directional[1])),
                 ("TranslucencyLightingVolumeSampler", wgpu::BindingResource::Sampler(&volume_sampler)),
             ]);
-            let (forward, a) = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceForwardShading, shadows, &resources)?;
-            let (volume, b) = Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceLightingVolume, shadows, &resources)?;
+            let (forward, a) =
+                Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceForwardShading, shadows, &resources)?;
+            let (volume, b) =
+                Self::surface_pipeline(b, TranslucencyLightingMode::SurfaceLightingVolume, shadows, &resources)?;
             drop(resources);
             directional_shadow = vec![a, b];
             Some([forward, volume])
@@ -102,7 +114,10 @@ impl Translucency {
             Some(&p.permutation("ComposeSeparateTranslucencyPS", &[])?),
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;
-        let compose_groups = compose.layout.bind_groups(b.device, &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))])?;
+        let compose_groups = compose.layout.bind_groups(
+            b.device,
+            &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))],
+        )?;
         Ok(Translucency { surfaces, sprites, compose, compose_groups, directional_shadow })
     }
 
@@ -162,10 +177,15 @@ impl Translucency {
                     ctx.encoder(),
                     "SeparateTranslucency",
                     &[color_attachment(&t.translucency.view, Some(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a: 1.0 }))],
-                    Some(wgpu::RenderPassDepthStencilAttachment { view: &t.scene_depth.attachment, depth_ops: None, stencil_ops: None }),
+                    Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &t.scene_depth.attachment,
+                        depth_ops: None,
+                        stencil_ops: None,
+                    }),
                 );
                 if let Some(surfaces) = &self.surfaces {
-                    let (pipeline, groups) = &surfaces[usize::from(mode == TranslucencyLightingMode::SurfaceLightingVolume)];
+                    let (pipeline, groups) =
+                        &surfaces[usize::from(mode == TranslucencyLightingMode::SurfaceLightingVolume)];
                     pass.set_pipeline(&pipeline.pipeline);
                     groups.set_render(&mut pass);
                     for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
@@ -183,7 +203,12 @@ impl Translucency {
         });
         ctx.step("ComposeSeparateTranslucency", |ctx| {
             {
-                let mut pass = begin(ctx.encoder(), "ComposeSeparateTranslucency", &[color_attachment(&t.scene_color.view, None)], None);
+                let mut pass = begin(
+                    ctx.encoder(),
+                    "ComposeSeparateTranslucency",
+                    &[color_attachment(&t.scene_color.view, None)],
+                    None,
+                );
                 pass.set_pipeline(&self.compose.pipeline);
                 self.compose_groups.set_render(&mut pass);
                 pass.draw(0..3, 0..1);

@@ -20,7 +20,7 @@ use glam::{Mat4, Vec3, Vec4};
 
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{perm, groups, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{groups, perm, uniform_buffer, volume, volume_view, DirectionalShadow};
 use super::view::ShadowProjectionUniforms;
 
 pub const VOLUME_SIZE: u32 = 64;
@@ -45,10 +45,24 @@ struct VolumeParams {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum InjectedLight {
     /// Direction towards the light, colour * intensity; shadowed by the cascaded shadow map.
-    Directional { direction: Vec3, color: Vec3 },
-    Point { position: Vec3, radius: f32, color: Vec3 },
+    Directional {
+        direction: Vec3,
+        color: Vec3,
+    },
+    Point {
+        position: Vec3,
+        radius: f32,
+        color: Vec3,
+    },
     /// A spot light: `direction` the way the cone points; the cone's half angles in radians.
-    Spot { position: Vec3, radius: f32, color: Vec3, direction: Vec3, inner_angle: f32, outer_angle: f32 },
+    Spot {
+        position: Vec3,
+        radius: f32,
+        color: Vec3,
+        direction: Vec3,
+        inner_angle: f32,
+        outer_angle: f32,
+    },
 }
 
 /// How a local light's own shadow is projected (`SHADOW_PROJECTION_TYPE`).
@@ -149,7 +163,11 @@ fn written_pair(k: usize) -> usize {
 }
 
 fn read_pair(k: usize) -> usize {
-    if k == 0 { 0 } else { written_pair(k - 1) }
+    if k == 0 {
+        0
+    } else {
+        written_pair(k - 1)
+    }
 }
 
 impl TranslucentVolumes {
@@ -166,7 +184,13 @@ impl TranslucentVolumes {
         lights: Vec<InjectedLight>,
         shadows: &[Option<LocalLightShadow<'_>>],
     ) -> Result<TranslucentVolumes, PipelineError> {
-        let name = |shadowed: &str, kind: &str| perm(cache, "TranslucentVolumeInjectCS", &[("DYNAMICALLY_SHADOWED", shadowed), ("SHADOW_PROJECTION_TYPE", kind)]);
+        let name = |shadowed: &str, kind: &str| {
+            perm(
+                cache,
+                "TranslucentVolumeInjectCS",
+                &[("DYNAMICALLY_SHADOWED", shadowed), ("SHADOW_PROJECTION_TYPE", kind)],
+            )
+        };
         // The local lights' shadowed permutations from their WGSL: lavapipe crashes (SIGBUS
         // in pipeline creation) on Kiln's SPIR-V of both, even reduced to one
         // textureSampleCompareLevel of the shadow atlas, while the same WGSL compiled by wgpu
@@ -178,8 +202,13 @@ impl TranslucentVolumes {
             cache.compute_from_wgsl(&name("1", "ONE_PASS_POINT_LIGHT")?)?,
         ];
         let local_shadow = |k: usize| shadows.get(k).and_then(Option::as_ref);
-        let projections: Vec<Option<wgpu::Buffer>> =
-            (0..lights.len()).map(|k| local_shadow(k).map(|s| uniform_buffer(device, &format!("InjectTranslucentVolume shadow {}", s.kind.label()), &s.projection))).collect();
+        let projections: Vec<Option<wgpu::Buffer>> = (0..lights.len())
+            .map(|k| {
+                local_shadow(k).map(|s| {
+                    uniform_buffer(device, &format!("InjectTranslucentVolume shadow {}", s.kind.label()), &s.projection)
+                })
+            })
+            .collect();
         let gates = (0..lights.len()).map(|k| local_shadow(k).map(|s| s.light)).collect();
         let filter = cache.compute(&perm(cache, "TranslucentVolumeFilterCS", &[])?)?;
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
@@ -193,14 +222,19 @@ impl TranslucentVolumes {
         let mut cascades = Vec::new();
         for c in 0..2 {
             let names = ["Zero", "A", "B", ""];
-            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
-            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT));
+            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| {
+                volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT)
+            });
+            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| {
+                volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT)
+            });
             let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(volume_view).collect();
             let dir_views: Vec<wgpu::TextureView> = dir.iter().map(volume_view).collect();
             let tex = wgpu::BindingResource::TextureView;
             let mut injections = Vec::new();
             for (k, light) in lights.iter().enumerate() {
-                let params = uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
+                let params =
+                    uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
                 let (r, w) = (read_pair(k), written_pair(k));
                 let mut resources = vec![
                     ("volume", params.as_entire_binding()),
@@ -209,13 +243,22 @@ impl TranslucentVolumes {
                     ("out_ambient", tex(&ambient_views[w])),
                     ("out_dir", tex(&dir_views[w])),
                 ];
-                let unshadowed = inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
+                let unshadowed =
+                    inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
                 let shadowed = match (light, local_shadow(k), &projections[k]) {
                     (InjectedLight::Directional { .. }, _, _) => {
                         resources.push(("view", frame_view.as_entire_binding()));
                         resources.push(("shadow_atlas", tex(shadow_atlas)));
                         resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
-                        Some((INJECT_CASCADED, inject[INJECT_CASCADED].layout.bind_group(device, 0, "InjectTranslucentVolume (cascaded shadow)", &resources)?))
+                        Some((
+                            INJECT_CASCADED,
+                            inject[INJECT_CASCADED].layout.bind_group(
+                                device,
+                                0,
+                                "InjectTranslucentVolume (cascaded shadow)",
+                                &resources,
+                            )?,
+                        ))
                     }
                     (_, Some(s), Some(projection)) => {
                         let pipeline = match s.kind {
@@ -225,23 +268,44 @@ impl TranslucentVolumes {
                         resources.push(("shadow_atlas", tex(s.atlas)));
                         resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
                         resources.push(("ShadowProjection", projection.as_entire_binding()));
-                        Some((pipeline, inject[pipeline].layout.bind_group(device, 0, &format!("InjectTranslucentVolume ({} shadow)", s.kind.label()), &resources)?))
+                        Some((
+                            pipeline,
+                            inject[pipeline].layout.bind_group(
+                                device,
+                                0,
+                                &format!("InjectTranslucentVolume ({} shadow)", s.kind.label()),
+                                &resources,
+                            )?,
+                        ))
                     }
                     _ => None,
                 };
                 injections.push(Injection { params, unshadowed, shadowed });
             }
             let last = if lights.is_empty() { 0 } else { written_pair(lights.len() - 1) };
-            let filter_group = filter.layout.bind_group(device, 0, "FilterTranslucentVolume", &[
-                ("in_ambient", tex(&ambient_views[last])),
-                ("in_dir", tex(&dir_views[last])),
-                ("out_ambient", tex(&ambient_views[3])),
-                ("out_dir", tex(&dir_views[3])),
-            ])?;
+            let filter_group = filter.layout.bind_group(
+                device,
+                0,
+                "FilterTranslucentVolume",
+                &[
+                    ("in_ambient", tex(&ambient_views[last])),
+                    ("in_dir", tex(&dir_views[last])),
+                    ("out_ambient", tex(&ambient_views[3])),
+                    ("out_dir", tex(&dir_views[3])),
+                ],
+            )?;
             cascades.push(Cascade { ambient, dir, injections, filter_group });
         }
         let lookup = uniform_buffer(device, "TranslucencyLightingVolume", &LookupParams::default());
-        Ok(TranslucentVolumes { cascades, inject, filter, lights, gates, _projections: projections.into_iter().flatten().collect(), lookup })
+        Ok(TranslucentVolumes {
+            cascades,
+            inject,
+            filter,
+            lights,
+            gates,
+            _projections: projections.into_iter().flatten().collect(),
+            lookup,
+        })
     }
 
     /// The cascades' boxes this frame ([`LookupParams`]), for the surfaces that read the volumes.
@@ -273,13 +337,24 @@ impl TranslucentVolumes {
     /// shadow when `shadows` (else unshadowed, as if nothing occluded it): the directional
     /// light by `shadow` (this frame's cascades), a local light by its shadow depths where
     /// `casts_shadow(local light index)` says they were rendered this frame.
-    pub fn record_inject(&self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, camera: Vec3, shadow: Option<&DirectionalShadow>, shadows: bool, casts_shadow: &dyn Fn(usize) -> bool) {
+    pub fn record_inject(
+        &self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        camera: Vec3,
+        shadow: Option<&DirectionalShadow>,
+        shadows: bool,
+        casts_shadow: &dyn Fn(usize) -> bool,
+    ) {
         let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
         queue.write_buffer(&self.lookup, 0, bytemuck::bytes_of(&LookupParams::new(camera)));
         let n = groups(VOLUME_SIZE, 4);
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&format!("InjectTranslucentVolume cascade {c}")), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&format!("InjectTranslucentVolume cascade {c}")),
+                timestamp_writes: None,
+            });
             for (k, light) in self.lights.iter().enumerate() {
                 let injection = &cascade.injections[k];
                 let rendered = self.gates[k].is_none_or(|l| casts_shadow(l));
@@ -288,12 +363,21 @@ impl TranslucentVolumes {
                     _ => (INJECT_UNSHADOWED, &injection.unshadowed),
                 };
                 let (position, color, spot_direction, spot_angles) = match *light {
-                    InjectedLight::Directional { direction, color } => (direction.normalize().extend(0.0), color.extend(0.0), Vec4::ZERO, Vec4::ZERO),
-                    InjectedLight::Point { position, radius, color } => (position.extend(radius), color.extend(1.0), Vec4::ZERO, Vec4::ZERO),
+                    InjectedLight::Directional { direction, color } => {
+                        (direction.normalize().extend(0.0), color.extend(0.0), Vec4::ZERO, Vec4::ZERO)
+                    }
+                    InjectedLight::Point { position, radius, color } => {
+                        (position.extend(radius), color.extend(1.0), Vec4::ZERO, Vec4::ZERO)
+                    }
                     InjectedLight::Spot { position, radius, color, direction, inner_angle, outer_angle } => {
                         let (cos_outer, cos_inner) = (outer_angle.cos(), inner_angle.cos());
                         let cone = direction.normalize().extend(cos_outer);
-                        (position.extend(radius), color.extend(1.0), cone, Vec4::new(1.0 / (cos_inner - cos_outer).max(1e-4), 1.0, 0.0, 0.0))
+                        (
+                            position.extend(radius),
+                            color.extend(1.0),
+                            cone,
+                            Vec4::new(1.0 / (cos_inner - cos_outer).max(1e-4), 1.0, 0.0, 0.0),
+                        )
                     }
                 };
                 let p = VolumeParams {
@@ -317,7 +401,10 @@ impl TranslucentVolumes {
     /// FilterTranslucentVolume: both cascades.
     pub fn record_filter(&self, encoder: &mut wgpu::CommandEncoder) {
         let n = groups(VOLUME_SIZE, 4);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("FilterTranslucentVolume"), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("FilterTranslucentVolume"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.filter.pipeline);
         for cascade in &self.cascades {
             pass.set_bind_group(0, &cascade.filter_group, &[]);

@@ -37,19 +37,35 @@ pub struct Velocity {
 
 impl Velocity {
     /// `movable`: the meshes that move, each with its own instance buffer.
-    pub fn new(device: &wgpu::Device, cache: &PipelineCache, frame_view: &wgpu::Buffer, size: [u32; 2], depth_format: wgpu::TextureFormat, movable: Vec<InstancedMesh>) -> Result<Velocity, PipelineError> {
+    pub fn new(
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        frame_view: &wgpu::Buffer,
+        size: [u32; 2],
+        depth_format: wgpu::TextureFormat,
+        movable: Vec<InstancedMesh>,
+    ) -> Result<Velocity, PipelineError> {
         let state = RenderState::mesh()
             .with_targets(&[ColorTarget { format: VELOCITY_FORMAT, blend: Blend::Replace }])
             .with_depth(DepthState::reverse_z(depth_format, false));
-        let pipeline = cache.render(&perm(cache, "VelocityVS", &[])?, Some(&perm(cache, "VelocityPS", &[])?), &state)?;
-        let texture = target_2d(device, "Velocity", size, VELOCITY_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING);
+        let pipeline =
+            cache.render(&perm(cache, "VelocityVS", &[])?, Some(&perm(cache, "VelocityPS", &[])?), &state)?;
+        let texture = target_2d(
+            device,
+            "Velocity",
+            size,
+            VELOCITY_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
         let mut meshes = Vec::new();
         for mesh in movable {
             let previous = uniform_buffer(device, "Velocity previous transforms", &PreviousTransforms::default());
-            let bind_group = pipeline.layout.bind_group(device, 0, "Velocity", &[
-                ("view", frame_view.as_entire_binding()),
-                ("previous", previous.as_entire_binding()),
-            ])?;
+            let bind_group = pipeline.layout.bind_group(
+                device,
+                0,
+                "Velocity",
+                &[("view", frame_view.as_entire_binding()), ("previous", previous.as_entire_binding())],
+            )?;
             meshes.push(MovableMesh { mesh, previous, bind_group });
         }
         Ok(Velocity { view: view(&texture), texture, pipeline, meshes })
@@ -57,7 +73,13 @@ impl Velocity {
 
     /// Draws the movable meshes: `transforms[i]` holds mesh `i`'s instances this frame and in
     /// the previous frame, as the other passes drew them.
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, scene_depth: &wgpu::TextureView, transforms: &[(Vec<Mat4>, Vec<Mat4>)]) {
+    pub fn record(
+        &mut self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        scene_depth: &wgpu::TextureView,
+        transforms: &[(Vec<Mat4>, Vec<Mat4>)],
+    ) {
         for (m, (current, previous)) in self.meshes.iter_mut().zip(transforms) {
             m.mesh.set_transforms(queue, current);
             let mut uniforms = PreviousTransforms::default();
@@ -72,7 +94,10 @@ impl Velocity {
                 view: &self.view,
                 depth_slice: None,
                 resolve_target: None,
-                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
             })],
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: scene_depth,

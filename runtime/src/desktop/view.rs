@@ -196,8 +196,14 @@ impl FrameView {
         let ndc_max = glam::Vec2::new(px_max.x / w * 2.0 - 1.0, 1.0 - px_min.y / h * 2.0);
         let near_depth = if z == 0 { self.near } else { self.slice_depth(z as f32) };
         let far_depth = self.slice_depth(z as f32 + 1.0);
-        let corner = |ndc: glam::Vec2, d: f32| glam::Vec2::new(ndc.x * d / self.proj.x_axis.x, ndc.y * d / self.proj.y_axis.y);
-        let pts = [corner(ndc_min, near_depth), corner(ndc_max, near_depth), corner(ndc_min, far_depth), corner(ndc_max, far_depth)];
+        let corner =
+            |ndc: glam::Vec2, d: f32| glam::Vec2::new(ndc.x * d / self.proj.x_axis.x, ndc.y * d / self.proj.y_axis.y);
+        let pts = [
+            corner(ndc_min, near_depth),
+            corner(ndc_max, near_depth),
+            corner(ndc_min, far_depth),
+            corner(ndc_max, far_depth),
+        ];
         let lo = pts.iter().fold(glam::Vec2::splat(f32::MAX), |a, p| a.min(*p));
         let hi = pts.iter().fold(glam::Vec2::splat(f32::MIN), |a, p| a.max(*p));
         (lo.extend(-far_depth), hi.extend(-near_depth))
@@ -216,7 +222,12 @@ impl FrameView {
             view: self.view,
             proj: self.proj,
             camera_position: self.position.extend(self.near),
-            viewport_size: Vec4::new(self.width as f32, self.height as f32, 1.0 / self.width as f32, 1.0 / self.height as f32),
+            viewport_size: Vec4::new(
+                self.width as f32,
+                self.height as f32,
+                1.0 / self.width as f32,
+                1.0 / self.height as f32,
+            ),
             light_grid_size: UVec4::new(self.grid[0], self.grid[1], self.grid[2], LIGHT_GRID_TILE),
             light_grid_z_params: self.grid_z_params.extend(0.0),
             directional_light_direction: to_sun.extend(if sun.enabled { 1.0 } else { 0.0 }),

@@ -13,9 +13,11 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
-use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{
+    Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
+};
 
-use super::frame_view::{perm, groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{groups, linear_sampler, perm, uniform_buffer, volume, volume_view, DirectionalShadow};
 
 pub const TILE_SIZE: u32 = 8;
 pub const DEPTH_SLICES: u32 = 128;
@@ -110,7 +112,6 @@ pub struct VolumetricFog {
     frame: u32,
 }
 
-
 impl VolumetricFog {
     pub fn new(
         device: &wgpu::Device,
@@ -136,7 +137,10 @@ impl VolumetricFog {
         )?;
         let vbuffer_a = volume(device, "VBufferA", grid, VOLUME_FORMAT);
         let vbuffer_b = volume(device, "VBufferB", grid, VOLUME_FORMAT);
-        let light_scattering = [volume(device, "LightScattering0", grid, VOLUME_FORMAT), volume(device, "LightScattering1", grid, VOLUME_FORMAT)];
+        let light_scattering = [
+            volume(device, "LightScattering0", grid, VOLUME_FORMAT),
+            volume(device, "LightScattering1", grid, VOLUME_FORMAT),
+        ];
         let integrated = volume(device, "IntegratedLightScattering", grid, VOLUME_FORMAT);
         let params = uniform_buffer(device, "VolumetricFog params", &FogParams::default());
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
@@ -151,12 +155,17 @@ impl VolumetricFog {
         let ls = [volume_view(&light_scattering[0]), volume_view(&light_scattering[1])];
         let integrated_view = volume_view(&integrated);
         let tex = wgpu::BindingResource::TextureView;
-        let init_group = init.layout.bind_group(device, 0, "InitializeVolumeAttributes", &[
-            ("view", frame_view.as_entire_binding()),
-            ("fog", params.as_entire_binding()),
-            ("vbuffer_a", tex(&a)),
-            ("vbuffer_b", tex(&b)),
-        ])?;
+        let init_group = init.layout.bind_group(
+            device,
+            0,
+            "InitializeVolumeAttributes",
+            &[
+                ("view", frame_view.as_entire_binding()),
+                ("fog", params.as_entire_binding()),
+                ("vbuffer_a", tex(&a)),
+                ("vbuffer_b", tex(&b)),
+            ],
+        )?;
         let scatter_group = |history: Option<usize>, out: usize| {
             let mut r = vec![
                 ("view", frame_view.as_entire_binding()),
@@ -182,21 +191,31 @@ impl VolumetricFog {
         };
         let scattering_groups = [scatter_group(None, 0)?, scatter_group(Some(1), 0)?, scatter_group(Some(0), 1)?];
         let integration_group = |i: usize| {
-            integration.layout.bind_group(device, 0, "FinalIntegration", &[
-                ("view", frame_view.as_entire_binding()),
-                ("fog", params.as_entire_binding()),
-                ("light_scattering", tex(&ls[i])),
-                ("integrated", tex(&integrated_view)),
-            ])
+            integration.layout.bind_group(
+                device,
+                0,
+                "FinalIntegration",
+                &[
+                    ("view", frame_view.as_entire_binding()),
+                    ("fog", params.as_entire_binding()),
+                    ("light_scattering", tex(&ls[i])),
+                    ("integrated", tex(&integrated_view)),
+                ],
+            )
         };
         let integration_groups = [integration_group(0)?, integration_group(1)?];
-        let apply_group = apply.layout.bind_group(device, 0, "VolumetricFog apply", &[
-            ("view", frame_view.as_entire_binding()),
-            ("fog", params.as_entire_binding()),
-            ("integrated_volume", tex(&integrated_view)),
-            ("volume_sampler", wgpu::BindingResource::Sampler(&sampler)),
-            ("SceneDepthTexture", tex(scene_depth)),
-        ])?;
+        let apply_group = apply.layout.bind_group(
+            device,
+            0,
+            "VolumetricFog apply",
+            &[
+                ("view", frame_view.as_entire_binding()),
+                ("fog", params.as_entire_binding()),
+                ("integrated_volume", tex(&integrated_view)),
+                ("volume_sampler", wgpu::BindingResource::Sampler(&sampler)),
+                ("SceneDepthTexture", tex(scene_depth)),
+            ],
+        )?;
         Ok(VolumetricFog {
             grid,
             vbuffer_a,
@@ -241,13 +260,28 @@ impl VolumetricFog {
     }
 
     /// InitializeVolumeAttributes (and this frame's parameters).
-    pub fn record_initialize(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, settings: &FogSettings) {
+    pub fn record_initialize(
+        &mut self,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        settings: &FogSettings,
+    ) {
         let (cascades, splits, rects) = DirectionalShadow::uniforms(settings.shadow.as_ref());
         let use_history = self.history_valid;
         let params = FogParams {
             grid_size: UVec4::new(self.grid[0], self.grid[1], self.grid[2], self.frame),
-            depth_range: Vec4::new(settings.near, settings.far, TILE_SIZE as f32, if use_history { HISTORY_WEIGHT } else { 0.0 }),
-            height_fog: Vec4::new(settings.density, settings.height_falloff, settings.fog_height, settings.start_distance),
+            depth_range: Vec4::new(
+                settings.near,
+                settings.far,
+                TILE_SIZE as f32,
+                if use_history { HISTORY_WEIGHT } else { 0.0 },
+            ),
+            height_fog: Vec4::new(
+                settings.density,
+                settings.height_falloff,
+                settings.fog_height,
+                settings.start_distance,
+            ),
             albedo: settings.albedo.extend(1.0),
             emissive: settings.emissive.extend(settings.anisotropy),
             intensities: Vec4::new(settings.sun_intensity, settings.sky_intensity, settings.local_intensity, 0.0),
@@ -261,7 +295,10 @@ impl VolumetricFog {
         self.frame = self.frame.wrapping_add(1);
         let [gx, gy, gz] = self.grid;
 
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("InitializeVolumeAttributes"), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("InitializeVolumeAttributes"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.init.pipeline);
         pass.set_bind_group(0, &self.init_group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
@@ -274,8 +311,15 @@ impl VolumetricFog {
         let use_history = self.use_history;
         // this frame writes `out`; the history is the other volume
         let out = if use_history { 1 - self.current } else { 0 };
-        let (pipeline, group) = if use_history { (&self.scattering[1], &self.scattering_groups[1 + out]) } else { (&self.scattering[0], &self.scattering_groups[0]) };
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("LightScattering"), timestamp_writes: None });
+        let (pipeline, group) = if use_history {
+            (&self.scattering[1], &self.scattering_groups[1 + out])
+        } else {
+            (&self.scattering[0], &self.scattering_groups[0])
+        };
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("LightScattering"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&pipeline.pipeline);
         pass.set_bind_group(0, group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
@@ -288,7 +332,10 @@ impl VolumetricFog {
     pub fn record_final_integration(&mut self, encoder: &mut wgpu::CommandEncoder) {
         let [gx, gy, _] = self.grid;
         let out = self.current;
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("FinalIntegration"), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("FinalIntegration"),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(&self.integration.pipeline);
         pass.set_bind_group(0, &self.integration_groups[out], &[]);
         pass.dispatch_workgroups(groups(gx, 8), groups(gy, 8), 1);

@@ -89,7 +89,12 @@ fn texel(format: wgpu::TextureFormat, b: &[u8]) -> Option<[f32; 4]> {
         F::R8Unorm => [f32::from(b[0]) / 255.0, 0.0, 0.0, 1.0],
         F::Rgb10a2Unorm => {
             let v = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-            [(v & 1023) as f32 / 1023.0, ((v >> 10) & 1023) as f32 / 1023.0, ((v >> 20) & 1023) as f32 / 1023.0, (v >> 30) as f32 / 3.0]
+            [
+                (v & 1023) as f32 / 1023.0,
+                ((v >> 10) & 1023) as f32 / 1023.0,
+                ((v >> 20) & 1023) as f32 / 1023.0,
+                (v >> 30) as f32 / 3.0,
+            ]
         }
         F::Rgba16Float => [f16_at(0), f16_at(2), f16_at(4), f16_at(6)],
         F::Rg16Float => [f16_at(0), f16_at(2), 0.0, 1.0],
@@ -111,7 +116,9 @@ pub(super) fn decode(
     format: wgpu::TextureFormat,
     visualize: Visualize,
 ) -> Option<Image> {
-    let bpp = format.block_copy_size(Some(wgpu::TextureAspect::All)).or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly)))? as usize;
+    let bpp = format
+        .block_copy_size(Some(wgpu::TextureAspect::All))
+        .or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly)))? as usize;
     // Depth packed into rgba8unorm by `VisualizeDepthPS`: the bytes are the float's bits.
     let packed_depth = visualize == Visualize::Depth && format == wgpu::TextureFormat::Rgba8Unorm;
     let mut texels = Vec::with_capacity((width * height) as usize);
@@ -119,7 +126,11 @@ pub(super) fn decode(
         let row = &bytes[y * padded_row as usize..];
         for x in 0..width as usize {
             let b = &row[x * bpp..x * bpp + bpp];
-            texels.push(if packed_depth { [f32::from_le_bytes([b[0], b[1], b[2], b[3]]), 0.0, 0.0, 1.0] } else { texel(format, b)? });
+            texels.push(if packed_depth {
+                [f32::from_le_bytes([b[0], b[1], b[2], b[3]]), 0.0, 0.0, 1.0]
+            } else {
+                texel(format, b)?
+            });
         }
     }
     let rgba = match visualize {
@@ -176,7 +187,14 @@ mod half_float {
     mod tests {
         #[test]
         fn known_halves() {
-            for (h, f) in [(0x3c00u16, 1.0f32), (0xc000, -2.0), (0x3800, 0.5), (0x0000, 0.0), (0x7bff, 65504.0), (0x0001, 5.960_464_5e-8)] {
+            for (h, f) in [
+                (0x3c00u16, 1.0f32),
+                (0xc000, -2.0),
+                (0x3800, 0.5),
+                (0x0000, 0.0),
+                (0x7bff, 65504.0),
+                (0x0001, 5.960_464_5e-8),
+            ] {
                 assert_eq!(super::f16_to_f32(h), f, "{h:#06x}");
             }
         }

@@ -74,7 +74,12 @@ impl DepthCopy {
     }
 
     /// Records the copy; returns the texture holding the depth bits.
-    fn record(&self, device: &wgpu::Device, encoder: &mut wgpu::CommandEncoder, depth: &wgpu::Texture) -> Option<wgpu::Texture> {
+    fn record(
+        &self,
+        device: &wgpu::Device,
+        encoder: &mut wgpu::CommandEncoder,
+        depth: &wgpu::Texture,
+    ) -> Option<wgpu::Texture> {
         let target = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("depth capture"),
             size: depth.size(),
@@ -85,12 +90,22 @@ impl DepthCopy {
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
-        let aspect = if depth.format().has_stencil_aspect() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
-        let source = depth.create_view(&wgpu::TextureViewDescriptor { label: Some("depth capture source"), aspect, ..Default::default() });
+        let aspect =
+            if depth.format().has_stencil_aspect() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
+        let source = depth.create_view(&wgpu::TextureViewDescriptor {
+            label: Some("depth capture source"),
+            aspect,
+            ..Default::default()
+        });
         let group = self
             .pipeline
             .layout
-            .bind_group(device, 1, "depth capture", &[("SourceDepthTexture", wgpu::BindingResource::TextureView(&source))])
+            .bind_group(
+                device,
+                1,
+                "depth capture",
+                &[("SourceDepthTexture", wgpu::BindingResource::TextureView(&source))],
+            )
             .ok()?;
         let view = target.create_view(&wgpu::TextureViewDescriptor::default());
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -137,10 +152,20 @@ impl FrameRecorder {
     /// `timestamps`: the device has `TIMESTAMP_QUERY_INSIDE_ENCODERS`. `capture`: copy
     /// every pass output for dumping. `depth_copy`: how to capture depth where the device
     /// cannot copy depth textures to buffers.
-    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, timestamps: bool, capture: bool, depth_copy: Option<DepthCopy>) -> FrameRecorder {
+    pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        timestamps: bool,
+        capture: bool,
+        depth_copy: Option<DepthCopy>,
+    ) -> FrameRecorder {
         let encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let queries = timestamps.then(|| {
-            device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("pass timestamps"), ty: wgpu::QueryType::Timestamp, count: MAX_QUERIES })
+            device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: MAX_QUERIES,
+            })
         });
         FrameRecorder {
             device: device.clone(),
@@ -286,7 +311,11 @@ impl PassContext<'_> {
     /// an encoder into several Vulkan command buffers, and an encoder-level group spanning a
     /// render pass is unbalanced per command buffer (gfx-rs/wgpu#3733), which crashes
     /// lavapipe.
-    pub fn render_pass<R>(&mut self, desc: &wgpu::RenderPassDescriptor<'_>, record: impl FnOnce(&mut wgpu::RenderPass<'_>) -> R) -> R {
+    pub fn render_pass<R>(
+        &mut self,
+        desc: &wgpu::RenderPassDescriptor<'_>,
+        record: impl FnOnce(&mut wgpu::RenderPass<'_>) -> R,
+    ) -> R {
         let name = self.debug_name();
         let mut pass = self.recorder.encoder.begin_render_pass(desc);
         pass.push_debug_group(&name);
@@ -298,7 +327,10 @@ impl PassContext<'_> {
     /// Begins a compute pass inside a debug group named after the pass (and step).
     pub fn compute_pass<R>(&mut self, label: &str, record: impl FnOnce(&mut wgpu::ComputePass<'_>) -> R) -> R {
         let name = self.debug_name();
-        let mut pass = self.recorder.encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+        let mut pass = self
+            .recorder
+            .encoder
+            .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
         pass.push_debug_group(&name);
         let result = record(&mut pass);
         pass.pop_debug_group();
@@ -333,7 +365,10 @@ impl PassContext<'_> {
         }
         let r = &mut *self.recorder;
         if r.sync_captures {
-            let done = std::mem::replace(&mut r.encoder, r.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") }));
+            let done = std::mem::replace(
+                &mut r.encoder,
+                r.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") }),
+            );
             r.queue.submit([done.finish()]);
             let _ = r.device.poll(wgpu::PollType::wait_indefinitely());
         }
@@ -354,27 +389,45 @@ impl PassContext<'_> {
             _ => texture,
         };
         let format = texture.format();
-        let Some(bytes_per_texel) = format.block_copy_size(Some(wgpu::TextureAspect::All)).or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly))) else {
+        let Some(bytes_per_texel) = format
+            .block_copy_size(Some(wgpu::TextureAspect::All))
+            .or_else(|| format.block_copy_size(Some(wgpu::TextureAspect::DepthOnly)))
+        else {
             return;
         };
         let (width, height) = (texture.width(), texture.height());
-        let padded_row = (width * bytes_per_texel).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let padded_row =
+            (width * bytes_per_texel).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let buffer = r.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(&format!("capture {full}")),
             size: u64::from(padded_row) * u64::from(height),
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let aspect = if format.is_depth_stencil_format() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
+        let aspect =
+            if format.is_depth_stencil_format() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
         r.encoder.copy_texture_to_buffer(
             wgpu::TexelCopyTextureInfo { texture, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect },
             wgpu::TexelCopyBufferInfo {
                 buffer: &buffer,
-                layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(padded_row), rows_per_image: Some(height) },
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded_row),
+                    rows_per_image: Some(height),
+                },
             },
             wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
         );
-        r.captures.push(PendingCapture { pass: self.pass, name: full, buffer, width, height, padded_row, format, visualize });
+        r.captures.push(PendingCapture {
+            pass: self.pass,
+            name: full,
+            buffer,
+            width,
+            height,
+            padded_row,
+            format,
+            visualize,
+        });
     }
 }
 

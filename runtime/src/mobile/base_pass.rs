@@ -17,8 +17,9 @@ use crate::scene::BlendMode;
 use super::pipeline::{replace, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::uniforms::DepthPassUniforms;
 use super::{
-    MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT, GBUFFER_A_FORMAT, GBUFFER_B_FORMAT,
-    GBUFFER_C_FORMAT, LDR_COLOR_FORMAT, SCENE_COLOR_FORMAT, STENCIL_DEFAULT_LIT, STENCIL_SHADING_MODEL_MASK,
+    MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT,
+    GBUFFER_A_FORMAT, GBUFFER_B_FORMAT, GBUFFER_C_FORMAT, LDR_COLOR_FORMAT, SCENE_COLOR_FORMAT, STENCIL_DEFAULT_LIT,
+    STENCIL_SHADING_MODEL_MASK,
 };
 
 fn flag(b: bool) -> String {
@@ -90,7 +91,13 @@ pub struct PrePass {
 }
 
 impl PrePass {
-    pub fn new(pipelines: &MobilePipelines<'_>, scene: &GpuScene, options: &MobileOptions, targets: &MobileTargets, shared: &SharedResources) -> Result<PrePass, PipelineError> {
+    pub fn new(
+        pipelines: &MobilePipelines<'_>,
+        scene: &GpuScene,
+        options: &MobileOptions,
+        targets: &MobileTargets,
+        shared: &SharedResources,
+    ) -> Result<PrePass, PipelineError> {
         let vs = pipelines.permutation("MobilePrePassVS", &[])?;
         let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
         desc.cull_mode = Some(wgpu::Face::Back);
@@ -110,30 +117,43 @@ impl PrePass {
             usage: wgpu::BufferUsages::UNIFORM,
         });
         let draw = Draw::new(pipelines.device, pipeline, &[("Pass", buffer.as_entire_binding())])?;
-        let objects = scene.objects.iter().enumerate().filter(|(_, o)| scene.material(o).blend == BlendMode::Opaque).map(|(i, _)| i).collect();
+        let objects = scene
+            .objects
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| scene.material(o).blend == BlendMode::Opaque)
+            .map(|(i, _)| i)
+            .collect();
         Ok(PrePass { draw, objects, _uniforms: buffer })
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets) {
         let stencil = targets.scene_depth.texture.format().has_stencil_aspect();
         {
-            ctx.render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("PrePass"),
-                color_attachments: &[],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.scene_depth.view,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
-                    stencil_ops: stencil.then_some(wgpu::Operations { load: wgpu::LoadOp::Clear(0), store: wgpu::StoreOp::Store }),
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            }, |pass| {
-                self.draw.bind(pass);
-                for &i in &self.objects {
-                    scene.draw(pass, &scene.objects[i]);
-                }
-            });
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("PrePass"),
+                    color_attachments: &[],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        depth_ops: Some(wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(0.0),
+                            store: wgpu::StoreOp::Store,
+                        }),
+                        stencil_ops: stencil
+                            .then_some(wgpu::Operations { load: wgpu::LoadOp::Clear(0), store: wgpu::StoreOp::Store }),
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| {
+                    self.draw.bind(pass);
+                    for &i in &self.objects {
+                        scene.draw(pass, &scene.objects[i]);
+                    }
+                },
+            );
         }
         if targets.samples == 1 && !stencil {
             ctx.output(&targets.scene_depth.texture, Visualize::Depth);
@@ -156,12 +176,23 @@ pub struct BasePass {
 }
 
 impl BasePass {
-    pub fn new(pipelines: &MobilePipelines<'_>, scene: &GpuScene, options: &MobileOptions, targets: &MobileTargets, shared: &SharedResources) -> Result<BasePass, PipelineError> {
+    pub fn new(
+        pipelines: &MobilePipelines<'_>,
+        scene: &GpuScene,
+        options: &MobileOptions,
+        targets: &MobileTargets,
+        shared: &SharedResources,
+    ) -> Result<BasePass, PipelineError> {
         let forward = options.path == ShadingPath::Forward;
         let formats = base_pass_formats(options);
         let csm = shared.cascades > 0;
         let vs = base_pass_vs(pipelines, forward && options.vertex_fog)?;
-        let deferred_stencil = wgpu::StencilFaceState { compare: wgpu::CompareFunction::Always, fail_op: wgpu::StencilOperation::Keep, depth_fail_op: wgpu::StencilOperation::Keep, pass_op: wgpu::StencilOperation::Replace };
+        let deferred_stencil = wgpu::StencilFaceState {
+            compare: wgpu::CompareFunction::Always,
+            fail_op: wgpu::StencilOperation::Keep,
+            depth_fail_op: wgpu::StencilOperation::Keep,
+            pass_op: wgpu::StencilOperation::Replace,
+        };
         let depth_stencil = |write: bool, stencil_write: bool| wgpu::DepthStencilState {
             format: depth_format(options),
             depth_write_enabled: Some(write),
@@ -169,7 +200,12 @@ impl BasePass {
             stencil: if forward || !stencil_write {
                 wgpu::StencilState::default()
             } else {
-                wgpu::StencilState { front: deferred_stencil, back: deferred_stencil, read_mask: 0xff, write_mask: STENCIL_SHADING_MODEL_MASK }
+                wgpu::StencilState {
+                    front: deferred_stencil,
+                    back: deferred_stencil,
+                    read_mask: 0xff,
+                    write_mask: STENCIL_SHADING_MODEL_MASK,
+                }
             },
             bias: Default::default(),
         };
@@ -190,13 +226,18 @@ impl BasePass {
             let mut resources = view.clone();
             resources.push(("Material", scene.materials[object.material].uniforms.as_entire_binding()));
             let draw = Draw::new(pipelines.device, pipeline.clone(), &resources)?;
-            objects.push(ObjectDraw { object: i, draw, stencil_ref: if material.unlit { 0 } else { STENCIL_DEFAULT_LIT } });
+            objects.push(ObjectDraw {
+                object: i,
+                draw,
+                stencil_ref: if material.unlit { 0 } else { STENCIL_DEFAULT_LIT },
+            });
         }
         let sky_vs = pipelines.permutation("MobileSkyVS", &[])?;
         let sky_ps = pipelines.permutation("MobileSkyPS", &[("OUTPUT_GAMMA_SPACE", flag(!options.hdr))])?;
         let mut desc = PipelineDesc::new(sky_vs, Some(sky_ps), VertexInput::None);
         desc.depth_stencil = Some(depth_stencil(false, false));
-        desc.targets = formats.iter().enumerate().map(|(i, f)| if i == 0 { replace(*f) } else { untouched(*f) }).collect();
+        desc.targets =
+            formats.iter().enumerate().map(|(i, f)| if i == 0 { replace(*f) } else { untouched(*f) }).collect();
         desc.sample_count = targets.samples;
         let sky_pipeline = pipelines.get(&desc)?;
         let sky = Draw::new(pipelines.device, sky_pipeline, &view)?;
@@ -207,10 +248,21 @@ impl BasePass {
     /// is already there. `keep_for_translucency`: the multisampled color and the depth are
     /// stored for the Translucency pass; otherwise the MSAA color resolves here and nothing
     /// multisampled is stored.
-    pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets, prepass: bool, keep_for_translucency: bool) {
+    pub fn record(
+        &self,
+        ctx: &mut PassContext<'_>,
+        scene: &GpuScene,
+        targets: &MobileTargets,
+        prepass: bool,
+        keep_for_translucency: bool,
+    ) {
         let clear = wgpu::Color::BLACK;
         let deferred = self.path == ShadingPath::Deferred;
-        let color_store = if targets.scene_color_msaa.is_some() && !keep_for_translucency { wgpu::StoreOp::Discard } else { wgpu::StoreOp::Store };
+        let color_store = if targets.scene_color_msaa.is_some() && !keep_for_translucency {
+            wgpu::StoreOp::Discard
+        } else {
+            wgpu::StoreOp::Store
+        };
         let mut colors = vec![Some(wgpu::RenderPassColorAttachment {
             view: &targets.color_attachment().view,
             depth_slice: None,
@@ -224,38 +276,44 @@ impl BasePass {
                     view: &g.view,
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                        store: wgpu::StoreOp::Store,
+                    },
                 }));
             }
         }
         let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
         let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
         {
-            ctx.render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("BasePass"),
-                color_attachments: &colors,
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.scene_depth.view,
-                    depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
-                    stencil_ops: deferred.then_some(wgpu::Operations {
-                        load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
-                        store: wgpu::StoreOp::Store,
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("BasePass"),
+                    color_attachments: &colors,
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
+                        stencil_ops: deferred.then_some(wgpu::Operations {
+                            load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
+                            store: wgpu::StoreOp::Store,
+                        }),
                     }),
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            }, |pass| {
-                for o in &self.objects {
-                    o.draw.bind(pass);
-                    if deferred {
-                        pass.set_stencil_reference(o.stencil_ref);
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| {
+                    for o in &self.objects {
+                        o.draw.bind(pass);
+                        if deferred {
+                            pass.set_stencil_reference(o.stencil_ref);
+                        }
+                        scene.draw(pass, &scene.objects[o.object]);
                     }
-                    scene.draw(pass, &scene.objects[o.object]);
-                }
-                self.sky.bind(pass);
-                pass.draw(0..3, 0..1);
-            });
+                    self.sky.bind(pass);
+                    pass.draw(0..3, 0..1);
+                },
+            );
         }
         let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
         ctx.output(&targets.scene_color.texture, vis);

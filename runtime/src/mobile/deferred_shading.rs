@@ -18,15 +18,20 @@ use super::light_volumes::{unit_cone, unit_sphere, volume_to_world, VolumeMesh};
 use super::pipeline::{additive, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::uniforms::{DeferredLightUniforms, LocalLight};
 use super::{
-    MobileOptions, MobileTargets, SharedResources, DEFERRED_DEPTH_FORMAT, SCENE_COLOR_FORMAT, SCENE_DEPTH_AUX_FORMAT, STENCIL_DEFAULT_LIT, STENCIL_SANDBOX,
-    STENCIL_SHADING_MODEL_MASK,
+    MobileOptions, MobileTargets, SharedResources, DEFERRED_DEPTH_FORMAT, SCENE_COLOR_FORMAT, SCENE_DEPTH_AUX_FORMAT,
+    STENCIL_DEFAULT_LIT, STENCIL_SANDBOX, STENCIL_SHADING_MODEL_MASK,
 };
 
 fn flag(b: bool) -> String {
     u32::from(b).to_string()
 }
 
-fn stencil_face(compare: wgpu::CompareFunction, fail: wgpu::StencilOperation, depth_fail: wgpu::StencilOperation, pass: wgpu::StencilOperation) -> wgpu::StencilFaceState {
+fn stencil_face(
+    compare: wgpu::CompareFunction,
+    fail: wgpu::StencilOperation,
+    depth_fail: wgpu::StencilOperation,
+    pass: wgpu::StencilOperation,
+) -> wgpu::StencilFaceState {
     wgpu::StencilFaceState { compare, fail_op: fail, depth_fail_op: depth_fail, pass_op: pass }
 }
 
@@ -47,12 +52,22 @@ pub struct MobileDeferredShading {
 }
 
 impl MobileDeferredShading {
-    pub fn new(pipelines: &MobilePipelines<'_>, options: &MobileOptions, targets: &MobileTargets, shared: &SharedResources, lights: &[LocalLight]) -> Result<MobileDeferredShading, PipelineError> {
+    pub fn new(
+        pipelines: &MobilePipelines<'_>,
+        options: &MobileOptions,
+        targets: &MobileTargets,
+        shared: &SharedResources,
+        lights: &[LocalLight],
+    ) -> Result<MobileDeferredShading, PipelineError> {
         let device = pipelines.device;
         let fullscreen = pipelines.permutation("MobileFullscreenVS", &[])?;
 
         // SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
-        let mut desc = PipelineDesc::new(fullscreen.clone(), Some(pipelines.permutation("MobileSceneDepthAuxPS", &[])?), VertexInput::None);
+        let mut desc = PipelineDesc::new(
+            fullscreen.clone(),
+            Some(pipelines.permutation("MobileSceneDepthAuxPS", &[])?),
+            VertexInput::None,
+        );
         desc.depth_stencil = Some(wgpu::DepthStencilState {
             format: SCENE_DEPTH_AUX_FORMAT,
             depth_write_enabled: Some(true),
@@ -61,7 +76,11 @@ impl MobileDeferredShading {
             bias: Default::default(),
         });
         let depth_view = targets.scene_depth.depth_view();
-        let depth_aux = Draw::new(device, pipelines.get(&desc)?, &[("SceneDepthTexture", wgpu::BindingResource::TextureView(&depth_view))])?;
+        let depth_aux = Draw::new(
+            device,
+            pipelines.get(&desc)?,
+            &[("SceneDepthTexture", wgpu::BindingResource::TextureView(&depth_view))],
+        )?;
 
         let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
         fn gbuffer(t: &Option<super::Target>) -> wgpu::BindingResource<'_> {
@@ -83,14 +102,24 @@ impl MobileDeferredShading {
                 ("ENABLE_SKY_LIGHT", flag(options.sky_light)),
             ],
         )?;
-        let only_default_lit = stencil_face(wgpu::CompareFunction::Equal, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Keep);
+        let only_default_lit = stencil_face(
+            wgpu::CompareFunction::Equal,
+            wgpu::StencilOperation::Keep,
+            wgpu::StencilOperation::Keep,
+            wgpu::StencilOperation::Keep,
+        );
         let mut desc = PipelineDesc::new(fullscreen, Some(direct_ps), VertexInput::None);
         desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
         desc.depth_stencil = Some(wgpu::DepthStencilState {
             format: DEFERRED_DEPTH_FORMAT,
             depth_write_enabled: Some(false),
             depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: wgpu::StencilState { front: only_default_lit, back: only_default_lit, read_mask: STENCIL_SHADING_MODEL_MASK, write_mask: 0 },
+            stencil: wgpu::StencilState {
+                front: only_default_lit,
+                back: only_default_lit,
+                read_mask: STENCIL_SHADING_MODEL_MASK,
+                write_mask: 0,
+            },
             bias: Default::default(),
         });
         let directional = Draw::new(device, pipelines.get(&desc)?, &resources)?;
@@ -98,8 +127,17 @@ impl MobileDeferredShading {
         // Local lights: the stencil mask (front faces, depth fail marks) and the light (back
         // faces behind the surface, unmarked default lit pixels; clears the mark).
         let volume_vs = pipelines.permutation("MobileDeferredLightVS", &[])?;
-        let mark = stencil_face(wgpu::CompareFunction::Always, wgpu::StencilOperation::Keep, wgpu::StencilOperation::Replace, wgpu::StencilOperation::Keep);
-        let mut desc = PipelineDesc::new(volume_vs.clone(), Some(pipelines.permutation("MobileLightStencilPS", &[])?), VertexInput::Position);
+        let mark = stencil_face(
+            wgpu::CompareFunction::Always,
+            wgpu::StencilOperation::Keep,
+            wgpu::StencilOperation::Replace,
+            wgpu::StencilOperation::Keep,
+        );
+        let mut desc = PipelineDesc::new(
+            volume_vs.clone(),
+            Some(pipelines.permutation("MobileLightStencilPS", &[])?),
+            VertexInput::Position,
+        );
         desc.cull_mode = Some(wgpu::Face::Back);
         desc.targets = vec![untouched(SCENE_COLOR_FORMAT)];
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -110,7 +148,12 @@ impl MobileDeferredShading {
             bias: Default::default(),
         });
         let stencil_pipeline = pipelines.get(&desc)?;
-        let lit = stencil_face(wgpu::CompareFunction::Equal, wgpu::StencilOperation::Zero, wgpu::StencilOperation::Zero, wgpu::StencilOperation::Zero);
+        let lit = stencil_face(
+            wgpu::CompareFunction::Equal,
+            wgpu::StencilOperation::Zero,
+            wgpu::StencilOperation::Zero,
+            wgpu::StencilOperation::Zero,
+        );
         let light_pipeline = |spot: bool| -> Result<_, PipelineError> {
             let ps = pipelines.permutation("MobileRadialLightPS", &[("IS_SPOT_LIGHT", flag(spot))])?;
             let mut desc = PipelineDesc::new(volume_vs.clone(), Some(ps), VertexInput::Position);
@@ -120,7 +163,12 @@ impl MobileDeferredShading {
                 format: DEFERRED_DEPTH_FORMAT,
                 depth_write_enabled: Some(false),
                 depth_compare: Some(wgpu::CompareFunction::LessEqual),
-                stencil: wgpu::StencilState { front: lit, back: lit, read_mask: STENCIL_SHADING_MODEL_MASK | STENCIL_SANDBOX, write_mask: STENCIL_SANDBOX },
+                stencil: wgpu::StencilState {
+                    front: lit,
+                    back: lit,
+                    read_mask: STENCIL_SHADING_MODEL_MASK | STENCIL_SANDBOX,
+                    write_mask: STENCIL_SANDBOX,
+                },
                 bias: Default::default(),
             });
             pipelines.get(&desc)
@@ -138,7 +186,11 @@ impl MobileDeferredShading {
             let mut r = resources.clone();
             r.push(("Light", buffer.as_entire_binding()));
             let light = if l.is_spot { spot_pipeline.clone() } else { point_pipeline.clone() };
-            draws.push(LightDraw { is_spot: l.is_spot, stencil: Draw::new(device, stencil_pipeline.clone(), &r)?, light: Draw::new(device, light, &r)? });
+            draws.push(LightDraw {
+                is_spot: l.is_spot,
+                stencil: Draw::new(device, stencil_pipeline.clone(), &r)?,
+                light: Draw::new(device, light, &r)?,
+            });
             buffers.push(buffer);
         }
         Ok(MobileDeferredShading {
@@ -157,60 +209,69 @@ impl MobileDeferredShading {
         let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
         ctx.step("SceneDepthAux", |ctx| {
             {
-                ctx.render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("SceneDepthAux"),
-                    color_attachments: &[],
-                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                        view: &aux.view,
-                        depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
-                        stencil_ops: None,
-                    }),
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                }, |pass| {
-                    self.depth_aux.bind(pass);
-                    pass.draw(0..3, 0..1);
-                });
+                ctx.render_pass(
+                    &wgpu::RenderPassDescriptor {
+                        label: Some("SceneDepthAux"),
+                        color_attachments: &[],
+                        depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                            view: &aux.view,
+                            depth_ops: Some(wgpu::Operations {
+                                load: wgpu::LoadOp::Clear(0.0),
+                                store: wgpu::StoreOp::Store,
+                            }),
+                            stencil_ops: None,
+                        }),
+                        timestamp_writes: None,
+                        occlusion_query_set: None,
+                        multiview_mask: None,
+                    },
+                    |pass| {
+                        self.depth_aux.bind(pass);
+                        pass.draw(0..3, 0..1);
+                    },
+                );
             }
             ctx.output(&aux.texture, Visualize::Depth);
         });
         {
-            ctx.render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("MobileDeferredShading"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &targets.scene_color.view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.scene_depth.view,
-                    // Depth is only tested; the stencil dies with the pass.
-                    depth_ops: None,
-                    stencil_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            }, |pass| {
-                pass.push_debug_group("DirectionalLight");
-                self.directional.bind(pass);
-                pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-                pass.draw(0..3, 0..1);
-                pass.pop_debug_group();
-                pass.push_debug_group("LocalLights");
-                for l in &self.lights {
-                    let volume = if l.is_spot { &self.cone } else { &self.sphere };
-                    l.stencil.bind(pass);
-                    pass.set_stencil_reference(STENCIL_SANDBOX);
-                    volume.draw(pass);
-                    l.light.bind(pass);
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("MobileDeferredShading"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: &targets.scene_color.view,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
+                    })],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        // Depth is only tested; the stencil dies with the pass.
+                        depth_ops: None,
+                        stencil_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| {
+                    pass.push_debug_group("DirectionalLight");
+                    self.directional.bind(pass);
                     pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-                    volume.draw(pass);
-                }
-                pass.pop_debug_group();
-            });
+                    pass.draw(0..3, 0..1);
+                    pass.pop_debug_group();
+                    pass.push_debug_group("LocalLights");
+                    for l in &self.lights {
+                        let volume = if l.is_spot { &self.cone } else { &self.sphere };
+                        l.stencil.bind(pass);
+                        pass.set_stencil_reference(STENCIL_SANDBOX);
+                        volume.draw(pass);
+                        l.light.bind(pass);
+                        pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                        volume.draw(pass);
+                    }
+                    pass.pop_debug_group();
+                },
+            );
         }
         ctx.output(&targets.scene_color.texture, Visualize::Hdr);
     }

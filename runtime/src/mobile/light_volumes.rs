@@ -73,8 +73,16 @@ pub struct VolumeMesh {
 impl VolumeMesh {
     pub fn new(device: &wgpu::Device, name: &str, (positions, indices): (Vec<[f32; 3]>, Vec<u32>)) -> VolumeMesh {
         VolumeMesh {
-            vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(name), contents: bytemuck::cast_slice(&positions), usage: wgpu::BufferUsages::VERTEX }),
-            indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(name), contents: bytemuck::cast_slice(&indices), usage: wgpu::BufferUsages::INDEX }),
+            vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(name),
+                contents: bytemuck::cast_slice(&positions),
+                usage: wgpu::BufferUsages::VERTEX,
+            }),
+            indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(name),
+                contents: bytemuck::cast_slice(&indices),
+                usage: wgpu::BufferUsages::INDEX,
+            }),
             index_count: indices.len() as u32,
         }
     }

@@ -185,7 +185,8 @@ impl MobileOptions {
 
     fn check(&self) -> Result<(), PipelineError> {
         // Options outside these ranges name no permutation of the archive (or no frame).
-        let bad = |m: &str| Err(PipelineError::Lookup(crate::shaders::LookupError::BadName(format!("mobile options: {m}"))));
+        let bad =
+            |m: &str| Err(PipelineError::Lookup(crate::shaders::LookupError::BadName(format!("mobile options: {m}"))));
         if ![0, 1, 2, 4].contains(&self.max_dynamic_point_lights) {
             return bad("MAX_DYNAMIC_POINT_LIGHTS is 0, 1, 2 or 4");
         }
@@ -210,7 +211,13 @@ pub struct Target {
 }
 
 impl Target {
-    pub fn new(device: &wgpu::Device, name: &'static str, format: wgpu::TextureFormat, size: (u32, u32), samples: u32) -> Target {
+    pub fn new(
+        device: &wgpu::Device,
+        name: &'static str,
+        format: wgpu::TextureFormat,
+        size: (u32, u32),
+        samples: u32,
+    ) -> Target {
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
         if samples == 1 {
             usage |= wgpu::TextureUsages::TEXTURE_BINDING;
@@ -235,7 +242,11 @@ impl Target {
 
     /// The depth aspect alone (to sample a depth-stencil texture).
     pub fn depth_view(&self) -> wgpu::TextureView {
-        self.texture.create_view(&wgpu::TextureViewDescriptor { label: Some(self.name), aspect: wgpu::TextureAspect::DepthOnly, ..Default::default() })
+        self.texture.create_view(&wgpu::TextureViewDescriptor {
+            label: Some(self.name),
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        })
     }
 }
 
@@ -259,7 +270,14 @@ pub struct MobileTargets {
 }
 
 impl MobileTargets {
-    fn new(device: &wgpu::Device, options: &MobileOptions, samples: u32, width: u32, height: u32, shadows: &ShadowLayout) -> MobileTargets {
+    fn new(
+        device: &wgpu::Device,
+        options: &MobileOptions,
+        samples: u32,
+        width: u32,
+        height: u32,
+        shadows: &ShadowLayout,
+    ) -> MobileTargets {
         let size = (width, height);
         let deferred = options.path == ShadingPath::Deferred;
         let color_format = if options.hdr { SCENE_COLOR_FORMAT } else { LDR_COLOR_FORMAT };
@@ -269,7 +287,13 @@ impl MobileTargets {
             width,
             height,
             samples,
-            shadow_atlas: Target::new(device, "ShadowAtlas", SHADOW_ATLAS_FORMAT, (shadows.atlas_width, shadows.atlas_height), 1),
+            shadow_atlas: Target::new(
+                device,
+                "ShadowAtlas",
+                SHADOW_ATLAS_FORMAT,
+                (shadows.atlas_width, shadows.atlas_height),
+                1,
+            ),
             scene_color_msaa: (samples > 1).then(|| Target::new(device, "SceneColorMSAA", color_format, size, samples)),
             scene_depth: Target::new(device, "SceneDepth", depth_format, size, samples),
             scene_color: Target::new(device, "SceneColor", color_format, size, 1),
@@ -341,7 +365,15 @@ pub struct MobileFrame {
 
 impl MobileFrame {
     /// Builds every target, buffer and pipeline the frame uses.
-    pub fn new(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, options: MobileOptions, width: u32, height: u32) -> Result<MobileFrame, PipelineError> {
+    pub fn new(
+        gpu: &Gpu,
+        cache: &PipelineCache,
+        scene: &Scene,
+        gpu_scene: &GpuScene,
+        options: MobileOptions,
+        width: u32,
+        height: u32,
+    ) -> Result<MobileFrame, PipelineError> {
         options.check()?;
         let device = &gpu.device;
         let samples = if options.path == ShadingPath::Forward { msaa_samples(&gpu.adapter, &options) } else { 1 };
@@ -351,7 +383,8 @@ impl MobileFrame {
         if let Some(limit) = options.local_light_limit {
             local_lights.truncate(limit);
         }
-        let forward_lights = uniforms::forward_lights(&local_lights, scene.camera.position, options.max_dynamic_point_lights as usize);
+        let forward_lights =
+            uniforms::forward_lights(&local_lights, scene.camera.position, options.max_dynamic_point_lights as usize);
         let captures = sky::Captures::new(device, &gpu.queue, scene);
         let view = uniforms::view_uniforms(scene, &options, width, height, &shadow_layout, &forward_lights, &captures);
         let shared = SharedResources {
@@ -379,15 +412,27 @@ impl MobileFrame {
         };
         let pipelines = MobilePipelines::new(cache, device);
         let shadow_depths = shadows::ShadowDepths::new(&pipelines, gpu_scene, &shadow_layout)?;
-        let prepass = if options.full_prepass { Some(base_pass::PrePass::new(&pipelines, gpu_scene, &options, &targets, &shared)?) } else { None };
+        let prepass = if options.full_prepass {
+            Some(base_pass::PrePass::new(&pipelines, gpu_scene, &options, &targets, &shared)?)
+        } else {
+            None
+        };
         let base_pass = base_pass::BasePass::new(&pipelines, gpu_scene, &options, &targets, &shared)?;
         let deferred_shading = if options.path == ShadingPath::Deferred {
             Some(deferred_shading::MobileDeferredShading::new(&pipelines, &options, &targets, &shared, &local_lights)?)
         } else {
             None
         };
-        let translucency = if options.translucency { translucency::Translucency::new(&pipelines, gpu_scene, scene, &options, &targets, &shared)? } else { None };
-        let post_processing = if options.hdr { Some(post_processing::PostProcessing::new(&pipelines, &options, &targets, &shared)?) } else { None };
+        let translucency = if options.translucency {
+            translucency::Translucency::new(&pipelines, gpu_scene, scene, &options, &targets, &shared)?
+        } else {
+            None
+        };
+        let post_processing = if options.hdr {
+            Some(post_processing::PostProcessing::new(&pipelines, &options, &targets, &shared)?)
+        } else {
+            None
+        };
         let pipelines_built = pipelines.count();
         Ok(MobileFrame {
             options,
@@ -418,7 +463,9 @@ impl MobileFrame {
         if let Some(prepass) = &self.prepass {
             recorder.pass("PrePass", |ctx| prepass.record(ctx, scene, t));
         }
-        recorder.pass("BasePass", |ctx| self.base_pass.record(ctx, scene, t, self.prepass.is_some(), self.translucency.is_some()));
+        recorder.pass("BasePass", |ctx| {
+            self.base_pass.record(ctx, scene, t, self.prepass.is_some(), self.translucency.is_some())
+        });
         if let Some(d) = &self.deferred_shading {
             recorder.pass("MobileDeferredShading", |ctx| d.record(ctx, t));
         }
@@ -462,8 +509,20 @@ pub fn read_rgba8(device: &wgpu::Device, queue: &wgpu::Queue, texture: &wgpu::Te
     });
     let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("mobile readback") });
     encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo { texture, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
-        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(padded), rows_per_image: Some(height) } },
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(height),
+            },
+        },
         wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
     );
     queue.submit([encoder.finish()]);
@@ -485,7 +544,15 @@ pub fn read_rgba8(device: &wgpu::Device, queue: &wgpu::Queue, texture: &wgpu::Te
 
 /// Builds a frame, records it once and returns every pass (with its images when `capture`)
 /// and the final image.
-pub fn render(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, gpu_scene: &GpuScene, options: MobileOptions, size: (u32, u32), capture: bool) -> Result<(Vec<PassResult>, Image), PipelineError> {
+pub fn render(
+    gpu: &Gpu,
+    cache: &PipelineCache,
+    scene: &Scene,
+    gpu_scene: &GpuScene,
+    options: MobileOptions,
+    size: (u32, u32),
+    capture: bool,
+) -> Result<(Vec<PassResult>, Image), PipelineError> {
     let frame = MobileFrame::new(gpu, cache, scene, gpu_scene, options, size.0, size.1)?;
     let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
     let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
@@ -530,8 +597,14 @@ mod tests {
             check(MobileOptions { hdr: false, ..MobileOptions::deferred() }),
             Err("cannot name permutation: mobile options: mobile deferred shading needs mobile HDR".into())
         );
-        assert_eq!(check(MobileOptions { cascades: 5, ..MobileOptions::forward() }), Err("cannot name permutation: mobile options: the directional light has 1 to 4 cascades".into()));
-        assert_eq!(check(MobileOptions { msaa: 2, ..MobileOptions::forward() }), Err("cannot name permutation: mobile options: MSAA is 1 or 4 samples".into()));
+        assert_eq!(
+            check(MobileOptions { cascades: 5, ..MobileOptions::forward() }),
+            Err("cannot name permutation: mobile options: the directional light has 1 to 4 cascades".into())
+        );
+        assert_eq!(
+            check(MobileOptions { msaa: 2, ..MobileOptions::forward() }),
+            Err("cannot name permutation: mobile options: MSAA is 1 or 4 samples".into())
+        );
     }
 
     #[test]

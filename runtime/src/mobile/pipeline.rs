@@ -41,7 +41,15 @@ pub struct PipelineDesc {
 
 impl PipelineDesc {
     pub fn new(vertex: String, fragment: Option<String>, vertex_input: VertexInput) -> PipelineDesc {
-        PipelineDesc { vertex, fragment, vertex_input, cull_mode: None, depth_stencil: None, targets: Vec::new(), sample_count: 1 }
+        PipelineDesc {
+            vertex,
+            fragment,
+            vertex_input,
+            cull_mode: None,
+            depth_stencil: None,
+            targets: Vec::new(),
+            sample_count: 1,
+        }
     }
 
     fn key(&self) -> String {
@@ -59,7 +67,11 @@ pub struct MobilePipeline {
 
 impl MobilePipeline {
     /// The bind groups of every group the pipeline uses, each from the named resources.
-    pub fn bind_groups(&self, device: &wgpu::Device, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<Vec<Option<wgpu::BindGroup>>, PipelineError> {
+    pub fn bind_groups(
+        &self,
+        device: &wgpu::Device,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<Vec<Option<wgpu::BindGroup>>, PipelineError> {
         (0..self.layout.groups.len() as u32)
             .map(|g| {
                 if self.layout.uses_group(g) {
@@ -79,18 +91,32 @@ pub struct MobilePipelines<'a> {
     built: Mutex<HashMap<String, Arc<MobilePipeline>>>,
 }
 
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] = wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
-const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] = wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
+const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
+    wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
 const POSITION_ATTRIBUTES: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Float32x3];
 
 fn vertex_buffers(input: VertexInput) -> Vec<Option<wgpu::VertexBufferLayout<'static>>> {
     match input {
         VertexInput::None => Vec::new(),
         VertexInput::MeshInstanced => vec![
-            Some(wgpu::VertexBufferLayout { array_stride: std::mem::size_of::<MeshVertex>() as u64, step_mode: wgpu::VertexStepMode::Vertex, attributes: &MESH_ATTRIBUTES }),
-            Some(wgpu::VertexBufferLayout { array_stride: std::mem::size_of::<InstanceData>() as u64, step_mode: wgpu::VertexStepMode::Instance, attributes: &INSTANCE_ATTRIBUTES }),
+            Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<MeshVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &MESH_ATTRIBUTES,
+            }),
+            Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<InstanceData>() as u64,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes: &INSTANCE_ATTRIBUTES,
+            }),
         ],
-        VertexInput::Position => vec![Some(wgpu::VertexBufferLayout { array_stride: 12, step_mode: wgpu::VertexStepMode::Vertex, attributes: &POSITION_ATTRIBUTES })],
+        VertexInput::Position => vec![Some(wgpu::VertexBufferLayout {
+            array_stride: 12,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &POSITION_ATTRIBUTES,
+        })],
     }
 }
 
@@ -133,7 +159,12 @@ impl<'a> MobilePipelines<'a> {
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some(&label),
             layout: Some(&layout.layout),
-            vertex: wgpu::VertexState { module: &vs, entry_point: Some(&vs_reflection.entry), compilation_options: Default::default(), buffers: &buffers },
+            vertex: wgpu::VertexState {
+                module: &vs,
+                entry_point: Some(&vs_reflection.entry),
+                compilation_options: Default::default(),
+                buffers: &buffers,
+            },
             primitive: wgpu::PrimitiveState {
                 topology: wgpu::PrimitiveTopology::TriangleList,
                 cull_mode: desc.cull_mode,
@@ -173,7 +204,11 @@ pub struct Draw {
 }
 
 impl Draw {
-    pub fn new(device: &wgpu::Device, pipeline: Arc<MobilePipeline>, resources: &[(&str, wgpu::BindingResource<'_>)]) -> Result<Draw, PipelineError> {
+    pub fn new(
+        device: &wgpu::Device,
+        pipeline: Arc<MobilePipeline>,
+        resources: &[(&str, wgpu::BindingResource<'_>)],
+    ) -> Result<Draw, PipelineError> {
         let groups = pipeline.bind_groups(device, resources)?;
         Ok(Draw { pipeline, groups })
     }
@@ -200,11 +235,23 @@ pub fn untouched(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> 
 
 /// Lights accumulating into SceneColor: `dst + src`, rgb only (CW_RGB, BF_One, BF_One).
 pub fn additive(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
-    let add = wgpu::BlendComponent { src_factor: wgpu::BlendFactor::One, dst_factor: wgpu::BlendFactor::One, operation: wgpu::BlendOperation::Add };
-    Some(wgpu::ColorTargetState { format, blend: Some(wgpu::BlendState { color: add, alpha: add }), write_mask: wgpu::ColorWrites::COLOR })
+    let add = wgpu::BlendComponent {
+        src_factor: wgpu::BlendFactor::One,
+        dst_factor: wgpu::BlendFactor::One,
+        operation: wgpu::BlendOperation::Add,
+    };
+    Some(wgpu::ColorTargetState {
+        format,
+        blend: Some(wgpu::BlendState { color: add, alpha: add }),
+        write_mask: wgpu::ColorWrites::COLOR,
+    })
 }
 
 /// Premultiplied translucency: `dst * (1 - src.a) + src`.
 pub fn premultiplied(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
-    Some(wgpu::ColorTargetState { format, blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING), write_mask: wgpu::ColorWrites::COLOR })
+    Some(wgpu::ColorTargetState {
+        format,
+        blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+        write_mask: wgpu::ColorWrites::COLOR,
+    })
 }

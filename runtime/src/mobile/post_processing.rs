@@ -51,7 +51,12 @@ fn level_size(width: u32, height: u32, level: usize) -> (u32, u32) {
 }
 
 impl PostProcessing {
-    pub fn new(pipelines: &MobilePipelines<'_>, options: &MobileOptions, targets: &MobileTargets, shared: &SharedResources) -> Result<PostProcessing, PipelineError> {
+    pub fn new(
+        pipelines: &MobilePipelines<'_>,
+        options: &MobileOptions,
+        targets: &MobileTargets,
+        shared: &SharedResources,
+    ) -> Result<PostProcessing, PipelineError> {
         let device = pipelines.device;
         let vs = pipelines.permutation("MobileFullscreenVS", &[])?;
         let fullscreen = |ps: &str, format| -> Result<_, PipelineError> {
@@ -65,7 +70,11 @@ impl PostProcessing {
         let mut buffers = Vec::new();
         let sampler = wgpu::BindingResource::Sampler(&shared.linear_sampler);
         let uniform = |label: &str, u: BloomUniforms| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytemuck::bytes_of(&u), usage: wgpu::BufferUsages::UNIFORM })
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::bytes_of(&u),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
         };
         const NAMES: [&str; 4] = ["BloomHalf", "BloomQuarter", "BloomEighth", "BloomSixteenth"];
         const UP_NAMES: [&str; 3] = ["BloomUpEighth", "BloomUpQuarter", "BloomUpHalf"];
@@ -75,18 +84,39 @@ impl PostProcessing {
                 bloom_targets.push(Target::new(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
             }
             for (i, name) in UP_NAMES.iter().enumerate() {
-                bloom_targets.push(Target::new(device, name, SCENE_COLOR_FORMAT, level_size(w, h, BLOOM_LEVELS - 2 - i), 1));
+                bloom_targets.push(Target::new(
+                    device,
+                    name,
+                    SCENE_COLOR_FORMAT,
+                    level_size(w, h, BLOOM_LEVELS - 2 - i),
+                    1,
+                ));
             }
             let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
-            plan.push(BloomStep { name: "BloomSetup".into(), shader: "MobileBloomSetupPS", input: SCENE_COLOR_INPUT, additive: None, output: 0, uniforms: BloomUniforms { texel: texel((w, h)), params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) } });
+            plan.push(BloomStep {
+                name: "BloomSetup".into(),
+                shader: "MobileBloomSetupPS",
+                input: SCENE_COLOR_INPUT,
+                additive: None,
+                output: 0,
+                uniforms: BloomUniforms { texel: texel((w, h)), params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) },
+            });
             for level in 1..BLOOM_LEVELS {
                 let src = level_size(w, h, level - 1);
-                plan.push(BloomStep { name: format!("BloomDown{level}"), shader: "MobileBloomDownPS", input: level - 1, additive: None, output: level, uniforms: BloomUniforms { texel: texel(src), params: Vec4::ZERO } });
+                plan.push(BloomStep {
+                    name: format!("BloomDown{level}"),
+                    shader: "MobileBloomDownPS",
+                    input: level - 1,
+                    additive: None,
+                    output: level,
+                    uniforms: BloomUniforms { texel: texel(src), params: Vec4::ZERO },
+                });
             }
             for i in 0..BLOOM_LEVELS - 1 {
                 let input = if i == 0 { BLOOM_LEVELS - 1 } else { BLOOM_LEVELS + i - 1 };
                 let fine = BLOOM_LEVELS - 2 - i;
-                let coarse = if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
+                let coarse =
+                    if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
                 plan.push(BloomStep {
                     name: format!("BloomUp{}", i + 1),
                     shader: "MobileBloomUpPS",
@@ -98,11 +128,21 @@ impl PostProcessing {
             }
         }
         let scene_color = wgpu::BindingResource::TextureView(&targets.scene_color.view);
-        let view_of = |i: usize| if i == SCENE_COLOR_INPUT { scene_color.clone() } else { wgpu::BindingResource::TextureView(&bloom_targets[i].view) };
+        let view_of = |i: usize| {
+            if i == SCENE_COLOR_INPUT {
+                scene_color.clone()
+            } else {
+                wgpu::BindingResource::TextureView(&bloom_targets[i].view)
+            }
+        };
         for step in plan {
             let b = uniform(&step.name, step.uniforms);
             let pipeline = fullscreen(step.shader, SCENE_COLOR_FORMAT)?;
-            let mut r = vec![("Input", view_of(step.input)), ("InputSampler", sampler.clone()), ("Bloom", b.as_entire_binding())];
+            let mut r = vec![
+                ("Input", view_of(step.input)),
+                ("InputSampler", sampler.clone()),
+                ("Bloom", b.as_entire_binding()),
+            ];
             if let Some(a) = step.additive {
                 r.push(("Additive", view_of(a)));
             }
@@ -110,34 +150,50 @@ impl PostProcessing {
             buffers.push(b);
         }
         let bloom_result = if options.bloom { view_of(bloom_targets.len() - 1) } else { scene_color.clone() };
-        let tonemap_params = TonemapUniforms { params: Vec4::new(1.0, BLOOM_INTENSITY, if options.bloom { 1.0 } else { 0.0 }, 0.0) };
-        let tb = device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some("Tonemap"), contents: bytemuck::bytes_of(&tonemap_params), usage: wgpu::BufferUsages::UNIFORM });
+        let tonemap_params =
+            TonemapUniforms { params: Vec4::new(1.0, BLOOM_INTENSITY, if options.bloom { 1.0 } else { 0.0 }, 0.0) };
+        let tb = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("Tonemap"),
+            contents: bytemuck::bytes_of(&tonemap_params),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
         let tonemap = Draw::new(
             device,
             fullscreen("MobileTonemapPS", OUTPUT_FORMAT)?,
-            &[("SceneColor", scene_color.clone()), ("BloomTexture", bloom_result), ("LinearSampler", sampler.clone()), ("Tonemap", tb.as_entire_binding())],
+            &[
+                ("SceneColor", scene_color.clone()),
+                ("BloomTexture", bloom_result),
+                ("LinearSampler", sampler.clone()),
+                ("Tonemap", tb.as_entire_binding()),
+            ],
         )?;
         buffers.push(tb);
         Ok(PostProcessing { targets: bloom_targets, steps, tonemap, _buffers: buffers })
     }
 
     fn fullscreen_pass(ctx: &mut PassContext<'_>, label: &str, target: &Target, draw: &Draw) {
-        ctx.render_pass(&wgpu::RenderPassDescriptor {
-            label: Some(label),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: &target.view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        }, |pass| {
-            draw.bind(pass);
-            pass.draw(0..3, 0..1);
-        });
+        ctx.render_pass(
+            &wgpu::RenderPassDescriptor {
+                label: Some(label),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &target.view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            },
+            |pass| {
+                draw.bind(pass);
+                pass.draw(0..3, 0..1);
+            },
+        );
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, targets: &MobileTargets) {

@@ -53,21 +53,35 @@ pub struct ShadowLayout {
 
 impl ShadowLayout {
     pub fn new(scene: &Scene, options: &MobileOptions, aspect: f32) -> ShadowLayout {
-        let num_cascades = if options.csm && scene.sun.enabled && scene.sun.casts_shadows { options.cascades.clamp(1, MAX_CASCADES as u32) } else { 0 };
+        let num_cascades = if options.csm && scene.sun.enabled && scene.sun.casts_shadows {
+            options.cascades.clamp(1, MAX_CASCADES as u32)
+        } else {
+            0
+        };
         let cascade_rows = num_cascades.div_ceil(2);
         let spot_indices: Vec<usize> = if options.spot_shadows {
-            scene.spot_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows).map(|(i, _)| i).take(MAX_SPOT_SHADOWS).collect()
+            scene
+                .spot_lights
+                .iter()
+                .enumerate()
+                .filter(|(_, l)| l.casts_shadows)
+                .map(|(i, _)| i)
+                .take(MAX_SPOT_SHADOWS)
+                .collect()
         } else {
             Vec::new()
         };
         let atlas_width = 2 * CASCADE_TILE;
-        let atlas_height = (cascade_rows * CASCADE_TILE + if spot_indices.is_empty() { 0 } else { SPOT_TILE }).max(SPOT_TILE);
+        let atlas_height =
+            (cascade_rows * CASCADE_TILE + if spot_indices.is_empty() { 0 } else { SPOT_TILE }).max(SPOT_TILE);
         let size = (atlas_width as f32, atlas_height as f32);
         let splits = cascade_splits(scene.camera.near, options.shadow_distance, num_cascades as usize);
         let cascades = (0..num_cascades as usize)
             .map(|i| {
-                let viewport = [(i as u32 % 2) * CASCADE_TILE, (i as u32 / 2) * CASCADE_TILE, CASCADE_TILE, CASCADE_TILE];
-                let (view_proj, radius) = cascade_view_proj(&scene.camera, aspect, splits[i], splits[i + 1], scene.sun.direction);
+                let viewport =
+                    [(i as u32 % 2) * CASCADE_TILE, (i as u32 / 2) * CASCADE_TILE, CASCADE_TILE, CASCADE_TILE];
+                let (view_proj, radius) =
+                    cascade_view_proj(&scene.camera, aspect, splits[i], splits[i + 1], scene.sun.direction);
                 ShadowTile {
                     viewport,
                     view_proj,
@@ -89,7 +103,16 @@ impl ShadowLayout {
                 // Reverse-Z perspective: the far plane (the light's radius) maps to 0.
                 let proj = perspective(2.0 * l.outer_angle.min(1.5), 1.0, l.radius, 0.05);
                 let view_proj = proj * view;
-                (i, ShadowTile { viewport, view_proj, atlas_matrix: tile_matrix(viewport, size) * view_proj, far: l.radius, normal_offset: 0.02 })
+                (
+                    i,
+                    ShadowTile {
+                        viewport,
+                        view_proj,
+                        atlas_matrix: tile_matrix(viewport, size) * view_proj,
+                        far: l.radius,
+                        normal_offset: 0.02,
+                    },
+                )
             })
             .collect();
         ShadowLayout { atlas_width, atlas_height, cascades, spots }
@@ -151,7 +174,12 @@ fn tile_matrix(viewport: [u32; 4], size: (f32, f32)) -> Mat4 {
     let sy = viewport[3] as f32 / size.1;
     let ox = viewport[0] as f32 / size.0;
     let oy = viewport[1] as f32 / size.1;
-    Mat4::from_cols(Vec4::new(0.5 * sx, 0.0, 0.0, 0.0), Vec4::new(0.0, -0.5 * sy, 0.0, 0.0), Vec4::new(0.0, 0.0, 1.0, 0.0), Vec4::new(0.5 * sx + ox, 0.5 * sy + oy, 0.0, 1.0))
+    Mat4::from_cols(
+        Vec4::new(0.5 * sx, 0.0, 0.0, 0.0),
+        Vec4::new(0.0, -0.5 * sy, 0.0, 0.0),
+        Vec4::new(0.0, 0.0, 1.0, 0.0),
+        Vec4::new(0.5 * sx + ox, 0.5 * sy + oy, 0.0, 1.0),
+    )
 }
 
 /// The ShadowDepths pass: every shadow-casting opaque or masked mesh into every tile.
@@ -163,7 +191,11 @@ pub struct ShadowDepths {
 }
 
 impl ShadowDepths {
-    pub fn new(pipelines: &MobilePipelines<'_>, scene: &GpuScene, layout: &ShadowLayout) -> Result<ShadowDepths, PipelineError> {
+    pub fn new(
+        pipelines: &MobilePipelines<'_>,
+        scene: &GpuScene,
+        layout: &ShadowLayout,
+    ) -> Result<ShadowDepths, PipelineError> {
         let vs = pipelines.permutation("MobileShadowDepthVS", &[])?;
         let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -178,13 +210,17 @@ impl ShadowDepths {
         let mut tiles = Vec::new();
         let mut uniforms = Vec::new();
         for (i, tile) in layout.tiles().enumerate() {
-            let u = DepthPassUniforms { view_proj: tile.view_proj, params: Vec4::new(tile.normal_offset, 0.0, 0.0, 0.0) };
+            let u =
+                DepthPassUniforms { view_proj: tile.view_proj, params: Vec4::new(tile.normal_offset, 0.0, 0.0, 0.0) };
             let buffer = pipelines.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(&format!("ShadowDepths tile {i}")),
                 contents: bytemuck::bytes_of(&u),
                 usage: wgpu::BufferUsages::UNIFORM,
             });
-            tiles.push((tile.viewport, Draw::new(pipelines.device, pipeline.clone(), &[("Pass", buffer.as_entire_binding())])?));
+            tiles.push((
+                tile.viewport,
+                Draw::new(pipelines.device, pipeline.clone(), &[("Pass", buffer.as_entire_binding())])?,
+            ));
             uniforms.push(buffer);
         }
         let casters = scene
@@ -200,26 +236,39 @@ impl ShadowDepths {
     /// Writes (clears) the atlas.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, atlas: &Target) {
         {
-            ctx.render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("ShadowDepths"),
-                color_attachments: &[],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &atlas.view,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            }, |pass| {
-                for (viewport, draw) in &self.tiles {
-                    pass.set_viewport(viewport[0] as f32, viewport[1] as f32, viewport[2] as f32, viewport[3] as f32, 0.0, 1.0);
-                    draw.bind(pass);
-                    for &i in &self.casters {
-                        scene.draw(pass, &scene.objects[i]);
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("ShadowDepths"),
+                    color_attachments: &[],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &atlas.view,
+                        depth_ops: Some(wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(0.0),
+                            store: wgpu::StoreOp::Store,
+                        }),
+                        stencil_ops: None,
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| {
+                    for (viewport, draw) in &self.tiles {
+                        pass.set_viewport(
+                            viewport[0] as f32,
+                            viewport[1] as f32,
+                            viewport[2] as f32,
+                            viewport[3] as f32,
+                            0.0,
+                            1.0,
+                        );
+                        draw.bind(pass);
+                        for &i in &self.casters {
+                            scene.draw(pass, &scene.objects[i]);
+                        }
                     }
-                }
-            });
+                },
+            );
         }
         ctx.output(&atlas.texture, Visualize::Depth);
     }

@@ -20,7 +20,11 @@ pub fn procedural_sky(dir: Vec3, sun_dir: Vec3, sun_color: Vec3) -> Vec3 {
     let horizon = Vec3::new(0.75, 0.82, 0.95);
     let ground = Vec3::new(0.22, 0.2, 0.18);
     let y = dir.y;
-    let mut c = if y >= 0.0 { horizon.lerp(zenith, y.clamp(0.0, 1.0).powf(0.5)) } else { horizon.lerp(ground, (-y * 4.0).clamp(0.0, 1.0)) };
+    let mut c = if y >= 0.0 {
+        horizon.lerp(zenith, y.clamp(0.0, 1.0).powf(0.5))
+    } else {
+        horizon.lerp(ground, (-y * 4.0).clamp(0.0, 1.0))
+    };
     let sun = dir.dot(sun_dir).max(0.0);
     c += sun_color * (sun.powf(800.0) * 8.0 + sun.powf(12.0) * 0.15);
     c
@@ -87,7 +91,8 @@ impl Captures {
     pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, scene: &Scene) -> Captures {
         let sun_dir = -scene.sun.direction.normalize();
         let sun_color = if scene.sun.enabled { scene.sun.color * scene.sun.intensity } else { Vec3::ZERO };
-        let positions = [Vec4::new(-4.0, 2.0, -3.0, 10.0), Vec4::new(0.0, 2.0, 2.0, 10.0), Vec4::new(5.0, 2.0, -2.0, 10.0)];
+        let positions =
+            [Vec4::new(-4.0, 2.0, -3.0, 10.0), Vec4::new(0.0, 2.0, 2.0, 10.0), Vec4::new(5.0, 2.0, -2.0, 10.0)];
         let mips = CAPTURE_SIZE.ilog2() + 1;
         let mut textures = Vec::new();
         let mut views = Vec::new();
@@ -105,7 +110,13 @@ impl Captures {
             });
             for face in 0..6 {
                 let mut level: Vec<Vec3> = (0..CAPTURE_SIZE * CAPTURE_SIZE)
-                    .map(|t| procedural_sky(cube_direction(face, t % CAPTURE_SIZE, t / CAPTURE_SIZE, CAPTURE_SIZE), sun_dir, sun_color) * tint)
+                    .map(|t| {
+                        procedural_sky(
+                            cube_direction(face, t % CAPTURE_SIZE, t / CAPTURE_SIZE, CAPTURE_SIZE),
+                            sun_dir,
+                            sun_color,
+                        ) * tint
+                    })
                     .collect();
                 let mut size = CAPTURE_SIZE;
                 for mip in 0..mips {
@@ -115,9 +126,18 @@ impl Captures {
                         .flat_map(|v| f32_to_f16(v).to_le_bytes())
                         .collect();
                     queue.write_texture(
-                        wgpu::TexelCopyTextureInfo { texture: &texture, mip_level: mip, origin: wgpu::Origin3d { x: 0, y: 0, z: face }, aspect: wgpu::TextureAspect::All },
+                        wgpu::TexelCopyTextureInfo {
+                            texture: &texture,
+                            mip_level: mip,
+                            origin: wgpu::Origin3d { x: 0, y: 0, z: face },
+                            aspect: wgpu::TextureAspect::All,
+                        },
                         &bytes,
-                        wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(size * 8), rows_per_image: Some(size) },
+                        wgpu::TexelCopyBufferLayout {
+                            offset: 0,
+                            bytes_per_row: Some(size * 8),
+                            rows_per_image: Some(size),
+                        },
                         wgpu::Extent3d { width: size, height: size, depth_or_array_layers: 1 },
                     );
                     if size > 1 {

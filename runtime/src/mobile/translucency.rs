@@ -41,7 +41,11 @@ impl Translucency {
                 continue;
             }
             // Sort by the nearest instance's distance, drawn far to near.
-            let distance = scene.objects[i].instances.iter().map(|m| m.w_axis.truncate().distance(camera)).fold(f32::MAX, f32::min);
+            let distance = scene.objects[i]
+                .instances
+                .iter()
+                .map(|m| m.w_axis.truncate().distance(camera))
+                .fold(f32::MAX, f32::min);
             items.push((distance, i));
         }
         if items.is_empty() {
@@ -63,7 +67,11 @@ impl Translucency {
                 stencil: Default::default(),
                 bias: Default::default(),
             });
-            desc.targets = formats.iter().enumerate().map(|(k, f)| if k == 0 { premultiplied(*f) } else { untouched(*f) }).collect();
+            desc.targets = formats
+                .iter()
+                .enumerate()
+                .map(|(k, f)| if k == 0 { premultiplied(*f) } else { untouched(*f) })
+                .collect();
             desc.sample_count = targets.samples;
             let mut resources = view.clone();
             resources.push(("Material", gpu_scene.materials[object.material].uniforms.as_entire_binding()));
@@ -76,29 +84,36 @@ impl Translucency {
         let msaa = targets.scene_color_msaa.is_some();
         let stencil = self.path == ShadingPath::Deferred;
         {
-            ctx.render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("Translucency"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &targets.color_attachment().view,
-                    depth_slice: None,
-                    // MSAA: resolved at the end of the pass; the samples are not kept.
-                    resolve_target: msaa.then_some(&targets.scene_color.view),
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: if msaa { wgpu::StoreOp::Discard } else { wgpu::StoreOp::Store } },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.scene_depth.view,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
-                    stencil_ops: stencil.then_some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            }, |pass| {
-                for (i, draw) in &self.draws {
-                    draw.bind(pass);
-                    scene.draw(pass, &scene.objects[*i]);
-                }
-            });
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("Translucency"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: &targets.color_attachment().view,
+                        depth_slice: None,
+                        // MSAA: resolved at the end of the pass; the samples are not kept.
+                        resolve_target: msaa.then_some(&targets.scene_color.view),
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Load,
+                            store: if msaa { wgpu::StoreOp::Discard } else { wgpu::StoreOp::Store },
+                        },
+                    })],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
+                        stencil_ops: stencil
+                            .then_some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| {
+                    for (i, draw) in &self.draws {
+                        draw.bind(pass);
+                        scene.draw(pass, &scene.objects[*i]);
+                    }
+                },
+            );
         }
         ctx.output(&targets.scene_color.texture, if self.hdr { Visualize::Hdr } else { Visualize::Direct });
     }

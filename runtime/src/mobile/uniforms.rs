@@ -201,7 +201,8 @@ pub fn view_uniforms(
     u.sky_color = Vec4::new(1.0, 1.0, 1.0, captures.max_mip() as f32);
     if options.vertex_fog {
         u.fog_color = scene.fog.color.extend(scene.fog.density);
-        u.fog_params = Vec4::new(scene.fog.height_falloff, scene.fog.base_height, scene.fog.start_distance, scene.fog.max_opacity);
+        u.fog_params =
+            Vec4::new(scene.fog.height_falloff, scene.fog.base_height, scene.fog.start_distance, scene.fog.max_opacity);
     }
     for (i, l) in forward_lights.iter().take(MAX_LOCAL_LIGHTS).enumerate() {
         u.local_lights[i] = l.data;
@@ -223,7 +224,10 @@ mod tests {
     fn sizes_match_the_wgsl_structs() {
         assert_eq!(std::mem::size_of::<LocalLightData>(), 128);
         // 2 mat4, 6 vec4, 4 mat4, 1 vec4, 4 vec4 (SH), 4 vec4, 4 lights, 6 vec4
-        assert_eq!(std::mem::size_of::<MobileViewUniforms>(), 2 * 64 + 6 * 16 + 4 * 64 + 16 + 4 * 16 + 4 * 16 + 4 * 128 + 6 * 16);
+        assert_eq!(
+            std::mem::size_of::<MobileViewUniforms>(),
+            2 * 64 + 6 * 16 + 4 * 64 + 16 + 4 * 16 + 4 * 16 + 4 * 128 + 6 * 16
+        );
         assert_eq!(std::mem::size_of::<DepthPassUniforms>(), 80);
         assert_eq!(std::mem::size_of::<DeferredLightUniforms>(), 192);
     }

@@ -61,7 +61,13 @@ pub struct Target {
 }
 
 impl Target {
-    pub fn new(device: &wgpu::Device, name: &'static str, format: wgpu::TextureFormat, width: u32, height: u32) -> Target {
+    pub fn new(
+        device: &wgpu::Device,
+        name: &'static str,
+        format: wgpu::TextureFormat,
+        width: u32,
+        height: u32,
+    ) -> Target {
         let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some(name),
             size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
@@ -69,7 +75,9 @@ impl Target {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
         let view = texture.create_view(&wgpu::TextureViewDescriptor { label: Some(name), ..Default::default() });

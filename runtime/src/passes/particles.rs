@@ -10,7 +10,9 @@ use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
 use crate::gpu_types::{formats, EmitterUniforms, Particle};
-use crate::pipelines::{Blend, ColorTarget, ComputePipeline, DepthState, PipelineError, RenderPipeline, RenderState, VertexLayout};
+use crate::pipelines::{
+    Blend, ColorTarget, ComputePipeline, DepthState, PipelineError, RenderPipeline, RenderState, VertexLayout,
+};
 use crate::scene::ParticleEmitter;
 
 use super::{PassInit, Target};
@@ -52,7 +54,11 @@ impl ParticleSystem {
         });
         // Every particle starts dead (age past lifetime): the first step spawns them all,
         // with respawn times spread by their random lifetimes.
-        let dead = vec![Particle { position_age: e.position.extend(1.0), velocity_lifetime: Vec4::new(0.0, 0.0, 0.0, 0.0) }; count as usize];
+        let dead =
+            vec![
+                Particle { position_age: e.position.extend(1.0), velocity_lifetime: Vec4::new(0.0, 0.0, 0.0, 0.0) };
+                count as usize
+            ];
         let particles = init.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(&format!("{} particles", e.name)),
             contents: bytemuck::cast_slice(&dead),
@@ -65,7 +71,16 @@ impl ParticleSystem {
             &format!("{} simulation", e.name),
             &[("Emitter", uniforms.as_entire_binding()), ("Particles", particles.as_entire_binding())],
         )?;
-        let system = ParticleSystem { queue: queue.clone(), emitter, uniforms, particles, simulation, simulation_group, count, frame: Cell::new(0) };
+        let system = ParticleSystem {
+            queue: queue.clone(),
+            emitter,
+            uniforms,
+            particles,
+            simulation,
+            simulation_group,
+            count,
+            frame: Cell::new(0),
+        };
         // Prewarm: the particles all spawn on the first step and die at their random
         // lifetimes, which spreads their ages out. One submit per step: each step has its
         // own frame index in the uniform block.
@@ -73,9 +88,13 @@ impl ParticleSystem {
             let mut u = system.emitter;
             u.counts.y = u32::MAX - PREWARM_STEPS + step;
             system.queue.write_buffer(&system.uniforms, 0, bytemuck::bytes_of(&u));
-            let mut encoder = init.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
+            let mut encoder =
+                init.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
             {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("particle prewarm"), timestamp_writes: None });
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("particle prewarm"),
+                    timestamp_writes: None,
+                });
                 system.dispatch(&mut pass);
             }
             system.queue.submit([encoder.finish()]);
@@ -119,16 +138,19 @@ pub struct ParticleSprites {
 
 impl ParticleSprites {
     /// `depth_test`: against SceneDepth (in the frame) or none (the pass's preview image).
-    pub fn new(init: &PassInit<'_>, system: &ParticleSystem, depth_test: bool) -> Result<ParticleSprites, PipelineError> {
+    pub fn new(
+        init: &PassInit<'_>,
+        system: &ParticleSystem,
+        depth_test: bool,
+    ) -> Result<ParticleSprites, PipelineError> {
         let vs = init.permutation("ParticleSpriteVS", &[])?;
         let ps = init.permutation("ParticleSpritePS", &[])?;
         let mut state = RenderState::mesh();
         if depth_test {
             state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
         }
-        let mut state = state
-            .with_targets(&[ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Additive }])
-            .with_cull(None);
+        let mut state =
+            state.with_targets(&[ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Additive }]).with_cull(None);
         state.vertex_layout = VertexLayout::None;
         let pipeline = init.cache.render(&vs, Some(&ps), &state)?;
         let layout = &pipeline.layout;
@@ -138,7 +160,10 @@ impl ParticleSprites {
                 init.device,
                 1,
                 "particle sprites",
-                &[("Emitter", system.uniforms.as_entire_binding()), ("Particles", system.particles.as_entire_binding())],
+                &[
+                    ("Emitter", system.uniforms.as_entire_binding()),
+                    ("Particles", system.particles.as_entire_binding()),
+                ],
             )?,
         ];
         Ok(ParticleSprites { pipeline, groups, count: system.count })
@@ -192,7 +217,10 @@ impl ParticleSimulationPass {
                     view: &preview.view,
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
                 })],
                 depth_stencil_attachment: None,
                 timestamp_writes: None,

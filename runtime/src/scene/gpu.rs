@@ -128,7 +128,12 @@ pub fn view_uniforms(scene: &Scene, width: u32, height: u32) -> ViewUniforms {
         directional_light_color: (sun.color * sun.intensity).extend(if sun.enabled { 1.0 } else { 0.0 }),
         sky_color: scene.sky_color.extend(1.0),
         fog_color: scene.fog.color.extend(scene.fog.density),
-        fog_params: Vec4::new(scene.fog.height_falloff, scene.fog.base_height, scene.fog.start_distance, scene.fog.max_opacity),
+        fog_params: Vec4::new(
+            scene.fog.height_falloff,
+            scene.fog.base_height,
+            scene.fog.start_distance,
+            scene.fog.max_opacity,
+        ),
         shadow_params: Vec4::new(0.0015, 1.0 / SHADOW_MAP_SIZE as f32, 1.0, 0.0),
         post_params: Vec4::new(scene.exposure, 0.0, 0.0, 0.0),
     }

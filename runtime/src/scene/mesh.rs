@@ -67,7 +67,15 @@ impl Mesh {
 
     /// A UV sphere; `noise` displaces the radius by up to that fraction (a rock), with
     /// normals recomputed from the displaced surface.
-    pub fn add_sphere(&mut self, center: Vec3, radius: f32, rings: u32, segments: u32, noise: f32, seed: u32) -> &mut Mesh {
+    pub fn add_sphere(
+        &mut self,
+        center: Vec3,
+        radius: f32,
+        rings: u32,
+        segments: u32,
+        noise: f32,
+        seed: u32,
+    ) -> &mut Mesh {
         let base = self.vertices.len() as u32;
         let mut positions = Vec::new();
         for r in 0..=rings {
@@ -139,7 +147,10 @@ impl Mesh {
 }
 
 fn hash(x: i32, y: i32, z: i32, seed: u32) -> f32 {
-    let mut h = (x as u32).wrapping_mul(0x8da6_b343) ^ (y as u32).wrapping_mul(0xd816_3841) ^ (z as u32).wrapping_mul(0xcb1a_b31f) ^ seed.wrapping_mul(0x9e37_79b9);
+    let mut h = (x as u32).wrapping_mul(0x8da6_b343)
+        ^ (y as u32).wrapping_mul(0xd816_3841)
+        ^ (z as u32).wrapping_mul(0xcb1a_b31f)
+        ^ seed.wrapping_mul(0x9e37_79b9);
     h ^= h >> 13;
     h = h.wrapping_mul(0x5bd1_e995);
     h ^= h >> 15;

@@ -234,11 +234,20 @@ impl Scene {
         };
 
         let mut floor = Mesh::new("Floor");
-        floor.add_quad(Vec3::new(-ROOM_X, 0.0, ROOM_Z), Vec3::X * 2.0 * ROOM_X, Vec3::NEG_Z * 2.0 * ROOM_Z, glam::Vec2::new(2.0 * ROOM_X, 2.0 * ROOM_Z) * 0.25);
+        floor.add_quad(
+            Vec3::new(-ROOM_X, 0.0, ROOM_Z),
+            Vec3::X * 2.0 * ROOM_X,
+            Vec3::NEG_Z * 2.0 * ROOM_Z,
+            glam::Vec2::new(2.0 * ROOM_X, 2.0 * ROOM_Z) * 0.25,
+        );
         let floor = add_mesh(floor);
 
         let mut walls = Mesh::new("Walls");
-        walls.add_box(Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z - WALL), Vec3::new(ROOM_X + WALL, WALL_HEIGHT, -ROOM_Z), 0.5);
+        walls.add_box(
+            Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z - WALL),
+            Vec3::new(ROOM_X + WALL, WALL_HEIGHT, -ROOM_Z),
+            0.5,
+        );
         walls.add_box(Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z), Vec3::new(-ROOM_X, WALL_HEIGHT, ROOM_Z), 0.5);
         let walls = add_mesh(walls);
 
@@ -269,9 +278,12 @@ impl Scene {
         statue.add_sphere(Vec3::new(0.0, 2.35, 0.0), 0.3, 10, 14, 0.0, 0);
         let statue = add_mesh(statue);
 
-        let floor_mat = Material { pattern: Pattern::Checker, ..Material::opaque("Floor", Vec3::new(0.55, 0.5, 0.45), 0.0, 0.7) };
-        let wall_mat = Material { fully_rough: true, ..Material::opaque("Plaster", Vec3::new(0.7, 0.68, 0.62), 0.0, 0.95) };
-        let rock_mat = Material { fully_rough: true, ..Material::opaque("Rock", Vec3::new(0.25, 0.23, 0.21), 0.0, 0.9) };
+        let floor_mat =
+            Material { pattern: Pattern::Checker, ..Material::opaque("Floor", Vec3::new(0.55, 0.5, 0.45), 0.0, 0.7) };
+        let wall_mat =
+            Material { fully_rough: true, ..Material::opaque("Plaster", Vec3::new(0.7, 0.68, 0.62), 0.0, 0.95) };
+        let rock_mat =
+            Material { fully_rough: true, ..Material::opaque("Rock", Vec3::new(0.25, 0.23, 0.21), 0.0, 0.9) };
         let wood_mat = Material {
             blend: BlendMode::Masked,
             pattern: Pattern::Slats,
@@ -287,7 +299,9 @@ impl Scene {
         let materials = vec![floor_mat, wall_mat, rock_mat, wood_mat, bronze_mat, glass_mat];
         let mat = |name: &str| materials.iter().position(|m| m.name == name).unwrap();
 
-        let at = |x: f32, z: f32, yaw_deg: f32| Mat4::from_rotation_translation(Quat::from_rotation_y(yaw_deg.to_radians()), Vec3::new(x, 0.0, z));
+        let at = |x: f32, z: f32, yaw_deg: f32| {
+            Mat4::from_rotation_translation(Quat::from_rotation_y(yaw_deg.to_radians()), Vec3::new(x, 0.0, z))
+        };
         let object = |name: &str, mesh: usize, material: usize, instances: Vec<Mat4>, mobility: Mobility| Object {
             name: name.to_string(),
             mesh,
@@ -304,12 +318,28 @@ impl Scene {
                 "Rock",
                 rock,
                 mat("Rock"),
-                vec![Mat4::from_scale_rotation_translation(Vec3::splat(1.0), Quat::from_rotation_y(0.6), Vec3::new(1.5, 0.55, 1.0))],
+                vec![Mat4::from_scale_rotation_translation(
+                    Vec3::splat(1.0),
+                    Quat::from_rotation_y(0.6),
+                    Vec3::new(1.5, 0.55, 1.0),
+                )],
                 Mobility::Movable,
             ),
-            object("Chairs", chair, mat("ChairWood"), vec![at(-3.5, -1.5, 20.0), at(-1.8, -2.2, -15.0)], Mobility::Static),
+            object(
+                "Chairs",
+                chair,
+                mat("ChairWood"),
+                vec![at(-3.5, -1.5, 20.0), at(-1.8, -2.2, -15.0)],
+                Mobility::Static,
+            ),
             object("Statues", statue, mat("Bronze"), vec![at(-5.5, -4.2, 0.0), at(3.5, -4.2, 30.0)], Mobility::Static),
-            object("GlassStatues", statue, mat("Glass"), vec![at(-1.0, -4.2, 10.0), at(0.5, 2.5, -20.0)], Mobility::Static),
+            object(
+                "GlassStatues",
+                statue,
+                mat("Glass"),
+                vec![at(-1.0, -4.2, 10.0), at(0.5, 2.5, -20.0)],
+                Mobility::Static,
+            ),
         ];
 
         Scene {
@@ -446,7 +476,9 @@ mod tests {
     fn shadow_projection_keeps_the_room_inside_and_reverse_z() {
         let s = Scene::bundled();
         let m = s.sun_shadow_view_proj();
-        for corner in [Vec3::new(-ROOM_X, 0.0, -ROOM_Z), Vec3::new(ROOM_X, WALL_HEIGHT, ROOM_Z), Vec3::new(ROOM_X, 0.0, -ROOM_Z)] {
+        for corner in
+            [Vec3::new(-ROOM_X, 0.0, -ROOM_Z), Vec3::new(ROOM_X, WALL_HEIGHT, ROOM_Z), Vec3::new(ROOM_X, 0.0, -ROOM_Z)]
+        {
             let p = m.project_point3(corner);
             assert!(p.x.abs() <= 1.0 && p.y.abs() <= 1.0 && (0.0..=1.0).contains(&p.z), "{corner} -> {p}");
         }

@@ -109,7 +109,8 @@ pub fn check_artifact(target: Target, stage: Stage, entry: &str, bytes: &[u8], s
             let text = std::str::from_utf8(bytes).map_err(|e| e.to_string())?;
             let lines: Vec<&str> = text.lines().collect();
             let log = String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
-            let errors: Vec<&str> = log.lines().filter(|l| l.starts_with("ERROR: ") && !l.contains("compilation errors")).collect();
+            let errors: Vec<&str> =
+                log.lines().filter(|l| l.starts_with("ERROR: ") && !l.contains("compilation errors")).collect();
             let only_zero_array_casts = !errors.is_empty()
                 && errors.iter().all(|e| {
                     let line: Option<usize> = e.split(':').nth(2).and_then(|n| n.trim().parse().ok());

@@ -55,13 +55,22 @@ pub fn save(dir: &Option<PathBuf>, name: &str, image: &Image) {
 /// Mean absolute difference of two images' RGB, in 0..255.
 pub fn mean_abs_diff(a: &Image, b: &Image) -> f64 {
     assert_eq!((a.width, a.height), (b.width, b.height));
-    let sum: u64 = a.rgba.chunks(4).zip(b.rgba.chunks(4)).map(|(p, q)| (0..3).map(|i| u64::from(p[i].abs_diff(q[i]))).sum::<u64>()).sum();
+    let sum: u64 = a
+        .rgba
+        .chunks(4)
+        .zip(b.rgba.chunks(4))
+        .map(|(p, q)| (0..3).map(|i| u64::from(p[i].abs_diff(q[i]))).sum::<u64>())
+        .sum();
     sum as f64 / (a.width * a.height * 3) as f64
 }
 
 /// Standard deviation of an image's luma.
 pub fn luma_stddev(image: &Image) -> f64 {
-    let lumas: Vec<f64> = image.rgba.chunks(4).map(|p| 0.299 * f64::from(p[0]) + 0.587 * f64::from(p[1]) + 0.114 * f64::from(p[2])).collect();
+    let lumas: Vec<f64> = image
+        .rgba
+        .chunks(4)
+        .map(|p| 0.299 * f64::from(p[0]) + 0.587 * f64::from(p[1]) + 0.114 * f64::from(p[2]))
+        .collect();
     let mean = lumas.iter().sum::<f64>() / lumas.len() as f64;
     (lumas.iter().map(|l| (l - mean) * (l - mean)).sum::<f64>() / lumas.len() as f64).sqrt()
 }
@@ -77,11 +86,19 @@ pub fn read_f32(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture, level: u32) ->
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
-    let aspect = if texture.format().is_depth_stencil_format() { wgpu::TextureAspect::DepthOnly } else { wgpu::TextureAspect::All };
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    let aspect = if texture.format().is_depth_stencil_format() {
+        wgpu::TextureAspect::DepthOnly
+    } else {
+        wgpu::TextureAspect::All
+    };
+    let mut encoder =
+        gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
     encoder.copy_texture_to_buffer(
         wgpu::TexelCopyTextureInfo { texture, mip_level: level, origin: wgpu::Origin3d::ZERO, aspect },
-        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) } },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) },
+        },
         wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
     );
     gpu.queue.submit([encoder.finish()]);
@@ -101,8 +118,14 @@ pub fn read_f32(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture, level: u32) ->
 /// Reads a buffer's first `n` f32 values.
 pub fn read_buffer_f32(gpu: &kiln_runtime::Gpu, src: &wgpu::Buffer, n: usize) -> Vec<f32> {
     let size = (n * 4) as u64;
-    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some("test readback"), size, usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("test readback"),
+        size,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder =
+        gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
     encoder.copy_buffer_to_buffer(src, 0, &buffer, 0, size);
     gpu.queue.submit([encoder.finish()]);
     buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
@@ -115,11 +138,20 @@ pub fn read_buffer_f32(gpu: &kiln_runtime::Gpu, src: &wgpu::Buffer, n: usize) ->
 pub fn read_rg16f(gpu: &kiln_runtime::Gpu, texture: &wgpu::Texture) -> (u32, u32, Vec<[f32; 2]>) {
     let (w, h) = (texture.width(), texture.height());
     let row = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor { label: Some("test readback"), size: u64::from(row * h), usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("test readback"),
+        size: u64::from(row * h),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder =
+        gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("test readback") });
     encoder.copy_texture_to_buffer(
         texture.as_image_copy(),
-        wgpu::TexelCopyBufferInfo { buffer: &buffer, layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) } },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row), rows_per_image: Some(h) },
+        },
         texture.size(),
     );
     gpu.queue.submit([encoder.finish()]);

@@ -24,8 +24,9 @@ pub struct Rig {
 /// A device on `backend` with the embedded archive. Panics with the package to install when
 /// there is no adapter: a render test must fail, not skip.
 pub fn rig(backend: Backend) -> Rig {
-    let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() })
-        .unwrap_or_else(|e| panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)"));
+    let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() }).unwrap_or_else(|e| {
+        panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)")
+    });
     let archive = ShaderArchive::embedded().expect("the embedded archive opens");
     let cache = PipelineCache::new(&gpu, Arc::new(archive));
     Rig { gpu, cache }
@@ -36,9 +37,17 @@ impl Rig {
         self.render_passes(scene, options, false).1
     }
 
-    pub fn render_passes(&self, scene: &Scene, options: MobileOptions, capture: bool) -> (Vec<kiln_runtime::frame::PassResult>, Image) {
+    pub fn render_passes(
+        &self,
+        scene: &Scene,
+        options: MobileOptions,
+        capture: bool,
+    ) -> (Vec<kiln_runtime::frame::PassResult>, Image) {
         let gpu_scene = GpuScene::upload(&self.gpu.device, scene);
-        let (w, h) = match std::env::var("KILN_MOBILE_SIZE").ok().and_then(|s| s.split_once('x').map(|(a, b)| (a.parse().unwrap(), b.parse().unwrap()))) {
+        let (w, h) = match std::env::var("KILN_MOBILE_SIZE")
+            .ok()
+            .and_then(|s| s.split_once('x').map(|(a, b)| (a.parse().unwrap(), b.parse().unwrap())))
+        {
             Some(size) => size,
             None => (WIDTH, HEIGHT),
         };
@@ -84,7 +93,9 @@ pub fn golden_dir() -> PathBuf {
 }
 
 pub fn read_png(path: &Path) -> Image {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))));
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())),
+    ));
     let mut reader = decoder.read_info().unwrap();
     let mut buf = vec![0; reader.output_buffer_size().unwrap()];
     let info = reader.next_frame(&mut buf).unwrap();
