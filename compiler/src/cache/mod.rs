@@ -55,6 +55,9 @@ pub struct Record {
     pub key: String,
     pub token_hash: String,
     pub text_hash: String,
+    /// Length of the preprocessed text: the build's estimate of the key's compile cost.
+    #[serde(default)]
+    pub text_len: u64,
     /// (absolute path, blake3 of the text the preprocessor read).
     pub files: Vec<(PathBuf, String)>,
     /// Include candidates that were missing: the record holds only while they still are.
