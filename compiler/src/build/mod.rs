@@ -38,6 +38,7 @@ mod assemble;
 mod compile;
 mod plan;
 mod preprocess;
+mod records;
 mod report;
 mod store;
 

@@ -15,30 +15,20 @@ use std::sync::{Arc, Mutex};
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::plan::{level_limits, level_targets, Plan};
+use super::records::{self, Interner, Records, Row};
 use super::report::Progress;
 use super::store::Store;
 use super::Options;
-use crate::cache::{self, Key};
+use crate::cache::Key;
 use crate::compile::Limits;
 use crate::permute::{Config, Permutation};
 use crate::preprocess::{self, FileId, SourceCache};
 
-/// One kept permutation after preprocessing (or after its preprocessing record matched).
-#[derive(Clone)]
-pub(super) struct Pre {
-    pub key: Key,
-    pub text_hash: blake3::Hash,
-    pub token_hash: blake3::Hash,
-    /// Length of the preprocessed text (the key's estimated compile cost).
-    pub text_len: u64,
-    /// Every file it read (absolute), shared by the permutations that read the same list.
-    pub files: Arc<[PathBuf]>,
-    /// Its preprocessor warnings, rendered without colour.
-    pub warnings: Vec<String>,
-}
+/// One kept permutation's preprocessing result, shared by the permutations that reuse it.
+pub(super) type Pre = Arc<Row>;
 
-/// One kept permutation's result.
-pub(super) type PreResult = Result<Pre, Diagnostic<FileId>>;
+/// One kept permutation's result (the diagnostic boxed: most permutations succeed).
+pub(super) type PreResult = Result<Pre, Box<Diagnostic<FileId>>>;
 
 /// Each kept permutation's result, in [`Plan::kept`] order.
 pub(super) type Preprocessed = Vec<PreResult>;
@@ -52,8 +42,8 @@ pub(super) struct Preprocessor<'p> {
     reuse: Reuse,
     identifiers: FileIdentifiers,
     records: Option<RecordSet>,
-    /// Interned lists of files read (many permutations read the same list).
-    file_lists: Mutex<HashSet<Arc<[PathBuf]>>>,
+    /// Interned lists (many permutations read the same files).
+    interner: Mutex<Interner>,
     preprocessed: AtomicUsize,
 }
 
@@ -61,8 +51,8 @@ pub(super) struct Preprocessor<'p> {
 struct RecordSet {
     key: Key,
     base: blake3::Hash,
-    old: cache::Records,
-    new: Mutex<cache::Records>,
+    old: Records,
+    new: Mutex<Records>,
 }
 
 impl<'p> Preprocessor<'p> {
@@ -70,10 +60,10 @@ impl<'p> Preprocessor<'p> {
         let records = store.enabled().then(|| {
             let key = records_key(plan.config, plan.options);
             RecordSet {
-                old: store.records(&key),
+                old: store.records(&key).and_then(|b| records::decode(&b)).unwrap_or_default(),
                 key,
                 base: direct_base(plan.config),
-                new: Mutex::new(cache::Records::new()),
+                new: Mutex::new(Records::new()),
             }
         });
         Preprocessor {
@@ -84,7 +74,7 @@ impl<'p> Preprocessor<'p> {
             reuse: Reuse::default(),
             identifiers: FileIdentifiers::default(),
             records,
-            file_lists: Mutex::default(),
+            interner: Mutex::default(),
             preprocessed: AtomicUsize::new(0),
         }
     }
@@ -139,7 +129,7 @@ impl<'p> Preprocessor<'p> {
         if let Some(r) = &self.records {
             let new = r.new.lock().expect("no panics while locked");
             if *new != r.old {
-                store.put_records(&r.key, &new);
+                store.put_records(&r.key, &records::encode(&new));
             }
         }
     }
@@ -149,43 +139,42 @@ impl<'p> Preprocessor<'p> {
         p: &Permutation<'_>,
         fresh: &(impl Fn(&Permutation<'_>, &Pre, &preprocess::Output) + Sync),
     ) -> PreResult {
-        let direct = self.records.as_ref().map(|r| (r, direct_key(&r.base, p, &self.plan.options.targets).to_hex()));
+        let direct = self.records.as_ref().map(|r| (r, direct_key(&r.base, p, &self.plan.options.targets)));
+        let remember = |pre: &Pre| {
+            if let Some((records, dk)) = &direct {
+                records.new.lock().expect("no panics while locked").insert(*dk, pre.clone());
+            }
+        };
         if let Some((records, dk)) = &direct {
-            if let Some(record) = records.old.get(dk) {
-                if let Some(pre) = self.recorded(record) {
-                    records.new.lock().expect("no panics while locked").insert(dk.clone(), record.clone());
-                    return Ok(pre);
-                }
+            if let Some(row) = records.old.get(dk).filter(|row| self.still_holds(row)) {
+                remember(row);
+                return Ok(row.clone());
             }
         }
         let values = define_values(p);
         if p.error.is_none() {
-            if let Some((pre, record)) = self.reuse.find(p, &values) {
-                if let (Some((records, dk)), Some(record)) = (direct, record) {
-                    records.new.lock().expect("no panics while locked").insert(dk, record);
-                }
+            if let Some(pre) = self.reuse.find(p, &values) {
+                remember(&pre);
                 return Ok(pre);
             }
         }
         self.preprocessed.fetch_add(1, Ordering::Relaxed);
         let (pre, output) = self.preprocess(p)?;
-        let record = direct.as_ref().map(|_| self.to_record(&pre, &output));
-        if let (Some((records, dk)), Some(record)) = (direct, &record) {
-            records.new.lock().expect("no panics while locked").insert(dk, record.clone());
-        }
-        self.reuse.insert(p, &values, &output, &pre, record, &self.identifiers, &self.sources);
+        remember(&pre);
+        self.reuse.insert(p, &values, &output, &pre, &self.identifiers, &self.sources);
         fresh(p, &pre, &output);
         Ok(pre)
     }
 
     /// Preprocesses `p` (no record, no reuse): its result and its output.
-    pub fn preprocess(&self, p: &Permutation<'_>) -> Result<(Pre, preprocess::Output), Diagnostic<FileId>> {
+    pub fn preprocess(&self, p: &Permutation<'_>) -> Result<(Pre, preprocess::Output), Box<Diagnostic<FileId>>> {
+        use codespan_reporting::files::Files;
         if let Some(message) = &p.error {
-            return Err(Diagnostic::error().with_message(message.clone()));
+            return Err(Box::new(Diagnostic::error().with_message(message.clone())));
         }
         let opts = p.preprocess_options(self.plan.config);
-        let output =
-            preprocess::preprocess_file(&p.shader.source_path, &opts, &self.sources).map_err(|e| e.diagnostic)?;
+        let output = preprocess::preprocess_file(&p.shader.source_path, &opts, &self.sources)
+            .map_err(|e| Box::new(e.diagnostic))?;
         let token_hash = output.token_hash();
         let key = Key::new(
             &token_hash,
@@ -195,76 +184,39 @@ impl<'p> Preprocessor<'p> {
             &level_limits(p.level),
             &level_targets(p.level, &self.plan.options.targets),
         );
-        let pre = Pre {
+        let files: Vec<(PathBuf, [u8; 32])> = output
+            .files
+            .iter()
+            .map(|&f| {
+                let path = self.sources.path(f);
+                let hash = self.text_hashes.get_or_insert_with(&path, || {
+                    self.sources.source(f).ok().map(|t| *blake3::hash(t.as_ref().as_bytes()).as_bytes())
+                });
+                (path, hash.unwrap_or_default())
+            })
+            .collect();
+        let warnings: Vec<String> =
+            output.warnings.iter().map(|w| preprocess::render(std::slice::from_ref(w), &self.sources, false)).collect();
+        let mut interner = self.interner.lock().expect("no panics while locked");
+        let row = Row {
             key,
-            text_hash: blake3::hash(output.text.as_bytes()),
             token_hash,
+            text_hash: blake3::hash(output.text.as_bytes()),
             text_len: output.text.len() as u64,
-            files: self.intern(output.files.iter().map(|f| self.sources.path(*f)).collect()),
-            warnings: output
-                .warnings
-                .iter()
-                .map(|w| preprocess::render(std::slice::from_ref(w), &self.sources, false))
-                .collect(),
+            files: interner.files(files),
+            absent: interner.absent(output.absent.clone()),
+            warnings: interner.warnings(warnings),
         };
-        Ok((pre, output))
+        drop(interner);
+        Ok((Arc::new(row), output))
     }
 
-    fn intern(&self, files: Vec<PathBuf>) -> Arc<[PathBuf]> {
-        let mut lists = self.file_lists.lock().expect("no panics while locked");
-        if let Some(l) = lists.get(&files[..]) {
-            return l.clone();
-        }
-        let l: Arc<[PathBuf]> = files.into();
-        lists.insert(l.clone());
-        l
-    }
-
-    fn to_record(&self, pre: &Pre, output: &preprocess::Output) -> cache::Record {
-        use codespan_reporting::files::Files;
-        cache::Record {
-            key: pre.key.to_hex(),
-            token_hash: pre.token_hash.to_hex().to_string(),
-            text_hash: pre.text_hash.to_hex().to_string(),
-            text_len: pre.text_len,
-            files: output
-                .files
-                .iter()
-                .map(|&f| {
-                    let path = self.sources.path(f);
-                    let hash = self.text_hashes.get_or_insert_with(&path, || {
-                        self.sources.source(f).ok().map(|t| blake3::hash(t.as_ref().as_bytes()).to_hex().to_string())
-                    });
-                    (path, hash.unwrap_or_default())
-                })
-                .collect(),
-            absent: output.absent.clone(),
-            warnings: pre.warnings.clone(),
-        }
-    }
-
-    /// The record's result, if every file it lists still has the recorded contents and no
-    /// file has appeared where an include looked and found none (it would be found first
-    /// now).
-    fn recorded(&self, r: &cache::Record) -> Option<Pre> {
-        for (path, hash) in &r.files {
-            if self.hashes.get(path).as_deref() != Some(hash.as_str()) {
-                return None;
-            }
-        }
-        if r.absent.iter().any(|path| self.hashes.get(path).is_some()) {
-            return None;
-        }
-        let hash = |hex: &str| blake3::Hash::from_hex(hex).ok();
-        let key = hash(&r.key)?;
-        Some(Pre {
-            key: Key(*key.as_bytes()),
-            text_hash: hash(&r.text_hash)?,
-            token_hash: hash(&r.token_hash)?,
-            text_len: r.text_len,
-            files: self.intern(r.files.iter().map(|(p, _)| p.clone()).collect()),
-            warnings: r.warnings.clone(),
-        })
+    /// Whether a record still holds: every file it lists still has the recorded contents
+    /// and no file has appeared where an include looked and found none (it would be found
+    /// first now).
+    fn still_holds(&self, r: &Row) -> bool {
+        r.files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
+            && !r.absent.iter().any(|path| self.hashes.get(path).is_some())
     }
 }
 
@@ -300,7 +252,7 @@ impl FileIdentifiers {
 }
 
 /// (shader, level) → [(define names that mattered, values of those names → result)].
-type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Vec<i64>, (Pre, Option<cache::Record>)>)>>;
+type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Vec<i64>, Pre>)>>;
 
 /// Results reused between permutations of one shader at one level. The preprocessor's
 /// output depends only on the texts of the files it reads and on the values of the macros
@@ -318,7 +270,7 @@ fn define_values(p: &Permutation<'_>) -> HashMap<String, i64> {
 }
 
 impl Reuse {
-    fn find(&self, p: &Permutation<'_>, values: &HashMap<String, i64>) -> Option<(Pre, Option<cache::Record>)> {
+    fn find(&self, p: &Permutation<'_>, values: &HashMap<String, i64>) -> Option<Pre> {
         let groups = self.groups.lock().expect("no panics while locked");
         let sets = groups.get(&(p.shader.name.clone(), p.level.name.clone()))?;
         for (names, results) in sets {
@@ -330,14 +282,12 @@ impl Reuse {
         None
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn insert(
         &self,
         p: &Permutation<'_>,
         values: &HashMap<String, i64>,
         output: &preprocess::Output,
         pre: &Pre,
-        record: Option<cache::Record>,
         identifiers: &FileIdentifiers,
         sources: &SourceCache,
     ) {
@@ -361,34 +311,34 @@ impl Reuse {
                 sets.len() - 1
             }
         };
-        sets[i].1.entry(signature).or_insert_with(|| (pre.clone(), record));
+        sets[i].1.entry(signature).or_insert_with(|| pre.clone());
     }
 }
 
 /// blake3 of files' texts, each read once per build (for checking preprocessing records).
 #[derive(Default)]
 struct FileHashes {
-    map: Mutex<HashMap<PathBuf, Option<String>>>,
+    map: Mutex<HashMap<PathBuf, Option<[u8; 32]>>>,
 }
 
 impl FileHashes {
     /// The hash of the file's text as it is on disk now.
-    fn get(&self, path: &Path) -> Option<String> {
+    fn get(&self, path: &Path) -> Option<[u8; 32]> {
         self.get_or_insert_with(path, || {
             std::fs::read(path).ok().map(|bytes| {
                 let text =
                     String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
-                blake3::hash(text.as_bytes()).to_hex().to_string()
+                *blake3::hash(text.as_bytes()).as_bytes()
             })
         })
     }
 
-    fn get_or_insert_with(&self, path: &Path, f: impl FnOnce() -> Option<String>) -> Option<String> {
+    fn get_or_insert_with(&self, path: &Path, f: impl FnOnce() -> Option<[u8; 32]>) -> Option<[u8; 32]> {
         if let Some(h) = self.map.lock().expect("no panics while locked").get(path) {
-            return h.clone();
+            return *h;
         }
         let h = f();
-        self.map.lock().expect("no panics while locked").insert(path.to_path_buf(), h.clone());
+        self.map.lock().expect("no panics while locked").insert(path.to_path_buf(), h);
         h
     }
 }
@@ -426,8 +376,8 @@ fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archiv
 }
 
 /// The key of a configuration's set of preprocessing records: its path and the options
-/// that choose its permutations. (v2: records carry the text's length.)
+/// that choose its permutations. (v3: the binary encoding of [`records`].)
 fn records_key(config: &Config, options: &Options) -> Key {
-    let inputs = format!("kiln records v2\n{}\n{:?}\n{:?}", config.path.display(), options.levels, options.targets);
+    let inputs = format!("kiln records v3\n{}\n{:?}\n{:?}", config.path.display(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }

@@ -116,7 +116,7 @@ impl<'o> Builder<'o> {
         report.stats.preprocessed = preprocessor.count();
         report.stats.seconds.preprocess = t.elapsed().as_secs_f64();
         let mut seen = HashSet::new();
-        for w in pre.iter().flatten().flat_map(|p| &p.warnings) {
+        for w in pre.iter().flatten().flat_map(|p| p.warnings.iter()) {
             if seen.insert(w) {
                 report.warnings.push(w.clone());
             }
@@ -127,12 +127,12 @@ impl<'o> Builder<'o> {
         for (i, r) in pre.iter().enumerate() {
             match r {
                 Ok(p) => {
-                    if lists.insert(std::sync::Arc::as_ptr(&p.files)) {
-                        files.extend(p.files.iter().cloned());
+                    if lists.insert(std::sync::Arc::as_ptr(&p.files) as *const u8) {
+                        files.extend(p.files.iter().map(|(path, _)| path.clone()));
                     }
                 }
                 Err(d) => {
-                    self.failures.push((d.clone(), vec![i]));
+                    self.failures.push(((**d).clone(), vec![i]));
                     // A failed permutation still read files: the failing header among them.
                     for l in &d.labels {
                         files.insert(preprocessor.sources.path(l.file_id));

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use super::{CacheDir, Error, Options};
-use crate::cache::{self, Cache, Key, Lookup};
+use crate::cache::{Cache, Key, Lookup};
 use crate::compile::Compiled;
 use crate::permute::Config;
 
@@ -102,15 +102,15 @@ impl Store {
         warnings
     }
 
-    /// The preprocessing records stored under `key` (empty without a cache).
-    pub fn records(&self, key: &Key) -> cache::Records {
-        self.cache.as_ref().map(|c| c.get_records(key)).unwrap_or_default()
+    /// The encoded preprocessing records stored under `key` (none without a cache).
+    pub fn records(&self, key: &Key) -> Option<Vec<u8>> {
+        self.cache.as_ref()?.get_records_bytes(key)
     }
 
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
-    pub fn put_records(&self, key: &Key, records: &cache::Records) {
+    pub fn put_records(&self, key: &Key, records: &[u8]) {
         if let Some(c) = &self.cache {
-            let _ = c.put_records(key, records);
+            let _ = c.put_records_bytes(key, records);
         }
     }
 

@@ -255,7 +255,6 @@ fn records_round_trip_and_damage_is_a_miss() {
         key: key("a").to_hex(),
         token_hash: "t".into(),
         text_hash: "x".into(),
-        text_len: 12,
         files: vec![(PathBuf::from("/a/b.ush"), "h".into())],
         absent: vec![PathBuf::from("/a/c.ush")],
         warnings: vec!["warning: w".into()],
