@@ -31,7 +31,7 @@ use std::time::Instant;
 use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use rayon::prelude::*;
 
-use crate::archive::{self, ArchiveWriter, DimensionRecord, PermutationRecord, ShaderRecord, Target};
+use crate::archive::{self, BlobKey, DimensionRecord, NewPermutation, ShaderRecord, StreamingWriter, Target};
 use crate::cache::{self, Cache, Key, Lookup};
 use crate::compile::{self, Compiled, Limits};
 use crate::permute::{self, Config, Permutation};
@@ -742,14 +742,21 @@ fn write_outputs(
     report: &mut Report,
 ) -> Result<(), Error> {
     // 5. The archive and the loose files.
-    let mut writer = ArchiveWriter::new();
-    writer.set_naga_version(compile::NAGA_VERSION);
+    let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
+    let writer = match &options.output {
+        Some(out) => Some(StreamingWriter::new(out).map_err(archive_error)?),
+        None => None,
+    };
+    if let Some(w) = &writer {
+        w.set_naga_version(compile::NAGA_VERSION);
+    }
     let mut index: BTreeMap<String, BTreeMap<&'static str, String>> = BTreeMap::new();
     let mut emitted: HashMap<blake3::Hash, String> = HashMap::new();
+    let mut distinct: std::collections::HashSet<blake3::Hash> = std::collections::HashSet::new();
     for (i, p) in kept.iter().enumerate() {
         let Ok(pm) = &pre[i] else { continue };
         let c = &compiled[&pm.key];
-        let shader = writer.add_shader(ShaderRecord {
+        let shader = ShaderRecord {
             name: p.shader.name.clone(),
             level: p.level.name.clone(),
             entry: p.shader.entry.clone(),
@@ -760,13 +767,17 @@ fn write_outputs(
                 .iter()
                 .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
                 .collect(),
-        });
-        let reflection = writer.add_reflection(&c.reflection);
+        };
         let name = p.name();
         let mut artifacts = Vec::with_capacity(c.artifacts.len());
         for ((t, bytes), hash) in c.artifacts.iter().zip(&hashes[&pm.key]) {
             let hash = *hash;
-            artifacts.push((*t, writer.add_blob_ref(bytes, hash)));
+            distinct.insert(hash);
+            if let Some(w) = &writer {
+                artifacts.push((*t, w.add_blob_hashed(bytes, hash).map_err(archive_error)?));
+            } else {
+                artifacts.push((*t, BlobKey::from_hash(hash)));
+            }
             if let Some(dir) = &options.emit_dir {
                 let file = match emitted.get(&hash) {
                     Some(f) => f.clone(),
@@ -782,17 +793,26 @@ fn write_outputs(
             }
         }
         report.stats.permutation_artifacts += artifacts.len();
-        writer.add_permutation(PermutationRecord { name, shader, values: p.values.clone(), reflection, artifacts });
+        if let Some(w) = &writer {
+            w.add_permutation(NewPermutation {
+                name,
+                shader: &shader,
+                values: p.values.clone(),
+                reflection: &c.reflection,
+                artifacts,
+            })
+            .map_err(archive_error)?;
+        }
     }
-    report.stats.artifacts = writer.blob_count();
+    report.stats.artifacts = distinct.len();
     if let Some(dir) = &options.emit_dir {
         let json = serde_json::to_vec_pretty(&index).expect("index serializes");
         let path = dir.join("index.json");
         archive::write_atomic_unsynced(&path, &json)
             .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
     }
-    if let Some(out) = &options.output {
-        writer.write_unsynced(out).map_err(|e| Error::Io(format!("error: {e}")))?;
+    if let (Some(out), Some(w)) = (&options.output, writer) {
+        w.finish_unsynced().map_err(archive_error)?;
         report.archive = Some(out.clone());
         if let Some((c, out, fingerprint)) = stamp {
             // Failing to stamp only costs a full warm build next time.
