@@ -1,45 +1,112 @@
 //! Assemble: the archive, the loose files of `--emit-dir` and the archive's stamp.
 //!
-//! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, in any order;
-//! [`Assembler::finish`] writes the permutations in enumeration order, so the bytes depend
-//! only on the set (not on `-j`, the cache state or shards). Nothing is kept when the build
-//! writes neither an archive nor loose files (a check or a shard).
+//! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, from any worker
+//! and in any order: their bytes go at once to the archive's spool (a
+//! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
+//! reflection (interned) and the hashes of its blobs. [`Assembler::finish`] then adds the
+//! permutations, whose records are the manifest: the only thing that grows with the set.
+//! The writer orders everything by content and name, so the bytes depend only on the set
+//! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
+//! an archive nor loose files (a check or a shard).
 
-use std::collections::{BTreeMap, HashMap};
-use std::sync::Mutex;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
 
 use super::plan::{Keys, Plan};
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
-use crate::archive::{self, ArchiveWriter, DimensionRecord, PermutationRecord, ShaderRecord, Stage};
+use crate::archive::{
+    self, BlobKey, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target,
+};
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
+/// What stays of a key once its artifacts are written.
+struct Produced {
+    reflection: Arc<Reflection>,
+    /// Each artifact's target and blake3.
+    artifacts: Vec<(Target, blake3::Hash)>,
+}
+
 pub(super) struct Assembler<'p> {
     plan: &'p Plan<'p>,
-    /// Each key's artifacts with their blake3, until the archive is written.
-    keys: Mutex<HashMap<Key, (Compiled, Vec<blake3::Hash>)>>,
+    /// The archive's writer, with `-o`.
+    writer: Option<StreamingWriter>,
+    keys: Mutex<HashMap<Key, Produced>>,
+    reflections: Mutex<HashSet<Arc<Reflection>>>,
+    /// Loose files written (`--emit-dir`): blake3 → file name.
+    emitted: Mutex<HashMap<blake3::Hash, String>>,
+    /// The first artifact that could not be written.
+    error: Mutex<Option<String>>,
 }
 
 /// What [`Assembler::finish`] wrote: distinct blobs and (permutation, target) pairs.
 pub(super) struct Written {
     pub artifacts: usize,
     pub permutation_artifacts: usize,
-    pub archive: Option<std::path::PathBuf>,
+    pub archive: Option<PathBuf>,
 }
 
 impl<'p> Assembler<'p> {
-    pub fn new(plan: &'p Plan<'p>) -> Assembler<'p> {
-        Assembler { plan, keys: Mutex::default() }
+    pub fn new(plan: &'p Plan<'p>) -> Result<Assembler<'p>, Error> {
+        let writer = match &plan.options.output {
+            Some(out) => Some(StreamingWriter::new(out).map_err(|e| Error::Io(format!("error: {e}")))?),
+            None => None,
+        };
+        if let Some(w) = &writer {
+            w.set_naga_version(compile::NAGA_VERSION);
+        }
+        Ok(Assembler {
+            plan,
+            writer,
+            keys: Mutex::default(),
+            reflections: Mutex::default(),
+            emitted: Mutex::default(),
+            error: Mutex::default(),
+        })
     }
 
-    /// A key's artifacts, with the blake3 of each.
-    pub fn add(&self, key: &Key, _stage: Stage, c: &Compiled, hashes: &[blake3::Hash]) {
+    /// A key's artifacts, with the blake3 of each: written now, then only their hashes kept.
+    pub fn add(&self, key: &Key, stage: Stage, c: &Compiled, hashes: &[blake3::Hash]) {
         if !self.plan.assembles() {
             return;
         }
-        self.keys.lock().expect("no panics while locked").insert(*key, (c.clone(), hashes.to_vec()));
+        for ((t, bytes), hash) in c.artifacts.iter().zip(hashes) {
+            if let Err(e) = self.write_artifact(*t, stage, bytes, *hash) {
+                self.error.lock().expect("no panics while locked").get_or_insert(e);
+            }
+        }
+        let reflection = {
+            let mut set = self.reflections.lock().expect("no panics while locked");
+            match set.get(&c.reflection) {
+                Some(r) => r.clone(),
+                None => {
+                    let r = Arc::new(c.reflection.clone());
+                    set.insert(r.clone());
+                    r
+                }
+            }
+        };
+        let artifacts = c.artifacts.iter().zip(hashes).map(|((t, _), h)| (*t, *h)).collect();
+        self.keys.lock().expect("no panics while locked").insert(*key, Produced { reflection, artifacts });
+    }
+
+    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<(), String> {
+        if let Some(w) = &self.writer {
+            w.add_blob_hashed(bytes, hash).map_err(|e| format!("error: {e}"))?;
+        }
+        if let Some(dir) = &self.plan.options.emit_dir {
+            if self.emitted.lock().expect("no panics while locked").contains_key(&hash) {
+                return Ok(());
+            }
+            let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(stage));
+            archive::write_atomic_unsynced(&dir.join(&f), bytes)
+                .map_err(|e| format!("error: cannot write {}: {e}", dir.join(&f).display()))?;
+            self.emitted.lock().expect("no panics while locked").insert(hash, f);
+        }
+        Ok(())
     }
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
@@ -72,22 +139,40 @@ impl<'p> Assembler<'p> {
         store.fresh_archive(out, &self.fingerprint(pre), &keys)
     }
 
-    /// Writes the archive and the loose files, then stamps the archive.
-    pub fn finish(&self, pre: &Preprocessed, store: &Store) -> Result<Written, Error> {
+    /// Adds every permutation (the manifest) and writes the archive, the loose files'
+    /// index, and the archive's stamp.
+    pub fn finish(self, pre: &Preprocessed, store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
         let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
         if !self.plan.assembles() {
             return Ok(written);
         }
-        let keys = self.keys.lock().expect("no panics while locked");
-        let mut writer = ArchiveWriter::new();
-        writer.set_naga_version(compile::NAGA_VERSION);
-        let mut index: BTreeMap<String, BTreeMap<&'static str, String>> = BTreeMap::new();
-        let mut emitted: HashMap<blake3::Hash, String> = HashMap::new();
+        if let Some(e) = self.error.lock().expect("no panics while locked").take() {
+            return Err(Error::Io(e));
+        }
+        let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
+        let fingerprint = self.fingerprint(pre);
+        let keys = self.keys.into_inner().expect("no panics while locked");
+        let emitted = self.emitted.into_inner().expect("no panics while locked");
+        let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
+        let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
+        let mut distinct: HashSet<blake3::Hash> = HashSet::new();
         for (p, pm) in self.plan.kept.iter().zip(pre) {
             let Ok(pm) = pm else { continue };
-            let (c, hashes) = &keys[&pm.key];
-            let shader = writer.add_shader(ShaderRecord {
+            let produced = &keys[&pm.key];
+            let name = p.name();
+            if options.emit_dir.is_some() {
+                let files = index.entry(name.clone()).or_default();
+                for (t, hash) in &produced.artifacts {
+                    files.insert(t.name(), emitted[hash].as_str());
+                }
+            }
+            written.permutation_artifacts += produced.artifacts.len();
+            if self.writer.is_none() {
+                distinct.extend(produced.artifacts.iter().map(|a| a.1));
+            }
+            let Some(w) = &self.writer else { continue };
+            let shader = shaders.entry((&p.shader.name, &p.level.name)).or_insert_with(|| ShaderRecord {
                 name: p.shader.name.clone(),
                 level: p.level.name.clone(),
                 entry: p.shader.entry.clone(),
@@ -99,42 +184,29 @@ impl<'p> Assembler<'p> {
                     .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
                     .collect(),
             });
-            let reflection = writer.add_reflection(&c.reflection);
-            let name = p.name();
-            let mut artifacts = Vec::with_capacity(c.artifacts.len());
-            for ((t, bytes), hash) in c.artifacts.iter().zip(hashes) {
-                let hash = *hash;
-                artifacts.push((*t, writer.add_blob_ref(bytes, hash)));
-                if let Some(dir) = &options.emit_dir {
-                    let file = match emitted.get(&hash) {
-                        Some(f) => f.clone(),
-                        None => {
-                            let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(p.shader.stage));
-                            archive::write_atomic_unsynced(&dir.join(&f), bytes).map_err(|e| {
-                                Error::Io(format!("error: cannot write {}: {e}", dir.join(&f).display()))
-                            })?;
-                            emitted.insert(hash, f.clone());
-                            f
-                        }
-                    };
-                    index.entry(name.clone()).or_default().insert(t.name(), file);
-                }
-            }
-            written.permutation_artifacts += artifacts.len();
-            writer.add_permutation(PermutationRecord { name, shader, values: p.values.clone(), reflection, artifacts });
+            w.add_permutation(NewPermutation {
+                name,
+                shader,
+                values: p.values.clone(),
+                reflection: &produced.reflection,
+                artifacts: produced.artifacts.iter().map(|(t, h)| (*t, BlobKey::from_hash(*h))).collect(),
+            })
+            .map_err(archive_error)?;
         }
-        written.artifacts = writer.blob_count();
+        drop(keys);
+        written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
             let json = serde_json::to_vec_pretty(&index).expect("index serializes");
             let path = dir.join("index.json");
             archive::write_atomic_unsynced(&path, &json)
                 .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
         }
-        if let Some(out) = &options.output {
-            writer.write_unsynced(out).map_err(|e| Error::Io(format!("error: {e}")))?;
+        if let (Some(out), Some(w)) = (&options.output, self.writer) {
+            let summary = w.finish_unsynced().map_err(archive_error)?;
+            written.artifacts = summary.blobs;
             written.archive = Some(out.clone());
             if options.emit_dir.is_none() {
-                store.stamp_archive(out, &self.fingerprint(pre), (written.artifacts, written.permutation_artifacts));
+                store.stamp_archive(out, &fingerprint, (written.artifacts, written.permutation_artifacts));
             }
         }
         Ok(written)

@@ -142,7 +142,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let plan = plan::Plan::new(config, options);
     report.planned(&plan);
 
-    let assembler = assemble::Assembler::new(&plan);
+    let assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
