@@ -111,7 +111,7 @@ fn builder_errors_name_the_unknown_part() {
     let e = a.shader("VisualizeDepthPS").find().err().expect("lookup should fail").to_string();
     assert_eq!(
         e,
-        "cannot name permutation: shader `VisualizeDepthPS` has several levels (sm5, es3_1); say which with .level()"
+        "cannot name permutation: shader `VisualizeDepthPS` has several levels (es3_1, sm5); say which with .level()"
     );
     let e = a
         .shader("StandardDeferredLightingPS")
