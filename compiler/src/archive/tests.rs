@@ -95,8 +95,7 @@ fn stream(path: &std::path::Path, perms: &[(String, Vec<(Target, Vec<u8>)>)], or
                 for &i in chunk {
                     let (name, arts) = &perms[i];
                     let mut artifacts = Vec::new();
-                    // Targets in reverse order: the writer must not care.
-                    for (t, bytes) in arts.iter().rev() {
+                    for (t, bytes) in arts {
                         artifacts.push((*t, w.add_blob(bytes).unwrap()));
                     }
                     let values = vec![i as i64, (i % 2) as i64];

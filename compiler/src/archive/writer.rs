@@ -123,9 +123,10 @@ impl Entries {
                 i
             }
         };
-        let mut artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
-        artifacts.sort_by_key(|(t, _)| *t);
-        if artifacts.windows(2).any(|w| w[0].0 == w[1].0) {
+        // The caller's order of targets is kept: it is part of the permutation (the order of
+        // the level's targets), not an order of arrival.
+        let artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
+        if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
             return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
         }
         self.permutations.push(Pending { name: p.name, shader, values: p.values, reflection, artifacts });
