@@ -111,19 +111,19 @@ impl<'p> Assembler<'p> {
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
     /// record and key, in order, and the versions.
-    fn fingerprint(&self, pre: &Preprocessed) -> blake3::Hash {
+    fn fingerprint(&self, keys: &[Option<Key>]) -> blake3::Hash {
         let mut h = blake3::Hasher::new();
         h.update(b"kiln build fingerprint v1\0");
         h.update(crate::VERSION.as_bytes());
         h.update(b"\0");
         h.update(compile::NAGA_VERSION.as_bytes());
-        for (p, r) in self.plan.kept.iter().zip(pre) {
-            let Ok(r) = r else { continue };
+        for (p, key) in self.plan.kept.iter().zip(keys) {
+            let Some(key) = key else { continue };
             let dims: Vec<(&str, &[String])> =
                 p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
             let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
             h.update(line.as_bytes());
-            h.update(&r.key.0);
+            h.update(&key.0);
         }
         h.finalize()
     }
@@ -136,12 +136,13 @@ impl<'p> Assembler<'p> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
         let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
-        store.fresh_archive(out, &self.fingerprint(pre), &keys)
+        store.fresh_archive(out, &self.fingerprint(&per_permutation(pre)), &keys)
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
     /// index, and the archive's stamp.
-    pub fn finish(self, pre: &Preprocessed, store: &Store) -> Result<Written, Error> {
+    /// `keys` is each kept permutation's key (`None` where preprocessing failed).
+    pub fn finish(self, pre: &[Option<Key>], store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
         let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
         if !self.plan.assembles() {
@@ -157,9 +158,9 @@ impl<'p> Assembler<'p> {
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
-        for (p, pm) in self.plan.kept.iter().zip(pre) {
-            let Ok(pm) = pm else { continue };
-            let produced = &keys[&pm.key];
+        for (p, key) in self.plan.kept.iter().zip(pre) {
+            let Some(key) = key else { continue };
+            let produced = &keys[key];
             let name = p.name();
             if options.emit_dir.is_some() {
                 let files = index.entry(name.clone()).or_default();
@@ -211,4 +212,10 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
+}
+
+/// Each kept permutation's key (`None` where preprocessing failed): all that assembling
+/// needs of the preprocessing results.
+pub(super) fn per_permutation(pre: &Preprocessed) -> Vec<Option<Key>> {
+    pre.iter().map(|r| r.as_ref().ok().map(|r| r.key)).collect()
 }

@@ -34,7 +34,8 @@ pub(super) enum Outcome {
     Hit,
     /// Compiled now; the warning when its cache entry was corrupted.
     Compiled(Option<String>),
-    Failed(compile::Error, Option<String>),
+    /// The error (boxed: outcomes are kept per key) and the corrupted entry's warning.
+    Failed(Box<(compile::Error, Option<String>)>),
     /// Another shard's.
     Elsewhere,
 }
@@ -124,7 +125,7 @@ impl<'a> Compiler<'a> {
                 labels: Vec::new(),
                 notes: vec!["run the build again".into()],
             };
-            return Outcome::Failed(e, warning);
+            return Outcome::Failed(Box::new((e, warning)));
         };
         self.compile(key, p, &text.text, warning)
     }
@@ -147,7 +148,7 @@ impl<'a> Compiler<'a> {
                 self.deliver(key, p, c, true);
                 Outcome::Compiled(warning)
             }
-            Err(e) => Outcome::Failed(e, warning),
+            Err(e) => Outcome::Failed(Box::new((e, warning))),
         }
     }
 

@@ -144,7 +144,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
 
     let assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
-    let preprocessor = preprocess::Preprocessor::new(&plan, store);
+    let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |p, pre, output| compiler.early(p, pre, output));
     preprocessor.save_records(store);
@@ -162,6 +162,9 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     if report.failed() {
         return Err(Error::Failed(Box::new(report.finish()?)));
     }
+    // Only the manifest is left to write: keep each permutation's key, drop the rest.
+    let pre = assemble::per_permutation(&pre);
+    drop((keys, compiler, preprocessor));
     report.assembled(assembler.finish(&pre, store)?);
     report.finish()
 }

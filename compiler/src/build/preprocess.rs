@@ -125,13 +125,18 @@ impl<'p> Preprocessor<'p> {
 
     /// Stores this build's preprocessing records where they changed. Failing to only costs
     /// preprocessing next time.
-    pub fn save_records(&self, store: &Store) {
+    ///
+    /// Then lets go of what only preprocessing needed (the records, what may be reused):
+    /// later stages only preprocess a key's first permutation again, for its text.
+    pub fn save_records(&mut self, store: &Store) {
         if let Some(r) = &self.records {
             let new = r.new.lock().expect("no panics while locked");
             if *new != r.old {
                 store.put_records(&r.key, &records::encode(&new));
             }
         }
+        self.records = None;
+        self.reuse = Reuse::default();
     }
 
     fn one(
@@ -252,7 +257,19 @@ impl FileIdentifiers {
 }
 
 /// (shader, level) → [(define names that mattered, values of those names → result)].
-type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Vec<i64>, Pre>)>>;
+type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Signature, Pre>)>>;
+
+/// The values of the defines that mattered, hashed (16 bytes per entry, whatever their
+/// number: these maps hold an entry per distinct preprocessing result).
+type Signature = [u8; 16];
+
+fn signature(values: impl Iterator<Item = i64>) -> Signature {
+    let mut h = blake3::Hasher::new();
+    for v in values {
+        h.update(&v.to_le_bytes());
+    }
+    h.finalize().as_bytes()[..16].try_into().expect("16 of 32 bytes")
+}
 
 /// Results reused between permutations of one shader at one level. The preprocessor's
 /// output depends only on the texts of the files it reads and on the values of the macros
@@ -274,8 +291,10 @@ impl Reuse {
         let groups = self.groups.lock().expect("no panics while locked");
         let sets = groups.get(&(p.shader.name.clone(), p.level.name.clone()))?;
         for (names, results) in sets {
-            let signature: Option<Vec<i64>> = names.iter().map(|n| values.get(n).copied()).collect();
-            if let Some(hit) = signature.and_then(|sig| results.get(&sig)) {
+            let Some(vals) = names.iter().map(|n| values.get(n).copied()).collect::<Option<Vec<i64>>>() else {
+                continue;
+            };
+            if let Some(hit) = results.get(&signature(vals.into_iter())) {
                 return Some(hit.clone());
             }
         }
@@ -301,7 +320,7 @@ impl Reuse {
         }
         let mut names: Vec<String> = used.into_iter().collect();
         names.sort();
-        let signature: Vec<i64> = names.iter().map(|n| values[n]).collect();
+        let signature = signature(names.iter().map(|n| values[n]));
         let mut groups = self.groups.lock().expect("no panics while locked");
         let sets = groups.entry((p.shader.name.clone(), p.level.name.clone())).or_default();
         let i = match sets.iter().position(|(n, _)| *n == names) {

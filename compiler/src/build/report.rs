@@ -192,7 +192,8 @@ impl<'o> Builder<'o> {
                     stats.compiled += 1;
                     self.report.warnings.extend(w);
                 }
-                Outcome::Failed(e, w) => {
+                Outcome::Failed(failed) => {
+                    let (e, w) = *failed;
                     stats.compiled += 1;
                     self.report.warnings.extend(w);
                     self.failures.extend(compile::failures(plan, preprocessor, pre, key, members, &e));
