@@ -422,3 +422,29 @@ fn random_if_expressions_match_cpp() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }
+
+/// Replacement lists longer than Kiln keeps as tokens at their `#define` (4096) are read
+/// again from the source on first use: parameters, `#`, `##`, `__VA_OPT__`, a comment and a
+/// line splice inside, an identical redefinition, and `#undef` of one never used.
+#[test]
+fn long_definitions_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut program = String::from("#define STR(x) #x\n#define XSTR(x) STR(x)\n");
+    let func: String = (0..800).map(|i| format!(" a{i} + b ## {i} #a __VA_OPT__(, __VA_ARGS__) /* c */")).collect();
+    program.push_str(&format!("#define L1(a, b, ...){func}\n"));
+    program.push_str(&format!("#define L1(a, b, ...){func}\n"));
+    program.push_str("L1(p, q) L1(p, q, r, s)\nXSTR((L1(x, y, z)))\n");
+    let obj: String = (0..3000).map(|i| format!(" y{i} z ## {i}")).collect();
+    program.push_str(&format!("#define L2{obj} \\\n tail\nL2 L2\n"));
+    let unused: String = (0..5000).map(|i| format!(" u{i}")).collect();
+    program.push_str(&format!("#define L3{unused}\n#undef L3\nL3\n"));
+    let name = PathBuf::from("long.usf");
+    std::fs::write(dir.path().join(&name), &program).expect("write");
+    if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+        panic!("cpp must accept the program:\n{e}");
+    }
+    if let Some(f) = compare(dir.path(), &name, &[]) {
+        panic!("{}", &f[..f.len().min(4000)]);
+    }
+}

@@ -11,6 +11,10 @@ use codespan_reporting::files::{self, Files};
 
 use super::lexer::{self, Kind};
 
+/// Files larger than this get no token table (it takes four bytes per byte of text): they
+/// are lexed as they are read, so a huge input costs little more memory than its text.
+const MAX_TABLE_TEXT: usize = 16 << 20;
+
 /// Lengths up to this fit in a token table entry; longer tokens are lexed each time.
 const MAX_PACKED_LEN: usize = (1 << 27) - 1;
 
@@ -100,6 +104,9 @@ impl SourceFile {
     /// almost always are), else lexed now.
     #[inline]
     pub(crate) fn lex(&self, pos: usize) -> (Kind, usize) {
+        if self.text().len() > MAX_TABLE_TEXT {
+            return lexer::next(self.text().as_bytes(), pos);
+        }
         let table = self.tokens.get_or_init(|| token_table(self.text().as_bytes()));
         match table.get(pos).and_then(|&t| unpack(t)) {
             Some(token) => token,
@@ -147,6 +154,12 @@ impl SourceFile {
             end += 1;
         }
         start..end
+    }
+
+    /// 1-based line of an original byte offset: a binary search, never a scan of the line
+    /// (`__LINE__` asks for it once per use).
+    pub fn line(&self, at: usize) -> usize {
+        self.line_starts.partition_point(|&s| s <= at).max(1)
     }
 
     /// 1-based line and column (in characters) of an original byte offset.

@@ -27,6 +27,7 @@ use super::lexer::{self, Kind};
 use super::map::{Entry, IncludeCtx, SourceMap, NONE};
 use super::source::{FileId, SourceCache, SourceFile};
 use super::{Error, Options, Output};
+use directive::DefReader;
 
 // ---------------------------------------------------------------------------------------------
 // Interning
@@ -62,6 +63,9 @@ impl Hasher for FxHasher {
 type FxBuild = BuildHasherDefault<FxHasher>;
 
 type Sym = u32;
+
+/// The symbol of a word that was never interned (see [`Pp::line_token`]).
+const NO_SYM: Sym = Sym::MAX;
 
 #[derive(Default)]
 struct Interner {
@@ -173,6 +177,8 @@ struct Macro {
     variadic: bool,
     params: Vec<Sym>,
     body: Arc<[Tok]>,
+    /// A long body not kept as tokens: it is read again from its source on first use.
+    lazy: Option<LazyBody>,
     /// The body has `##` (else expansion is a plain copy).
     pastes: bool,
     /// The body has `__VA_OPT__`.
@@ -183,6 +189,19 @@ struct Macro {
     site: Range<u32>,
     disabled: bool,
 }
+
+/// Where to read a long replacement list again (see [`Pp::body_of`]): the include context
+/// and spliced offset of its first token, and how many tokens it has.
+#[derive(Clone, Copy, Debug)]
+struct LazyBody {
+    ctx: u32,
+    start: u32,
+    len: usize,
+}
+
+/// Replacement lists longer than this many tokens are not kept as tokens until the macro is
+/// first expanded: a huge `#define` that is never used costs no more than its text.
+const LAZY_BODY_TOKENS: usize = 4096;
 
 struct Context {
     toks: Vec<Tok>,
@@ -519,6 +538,7 @@ impl<'a> Pp<'a> {
                     variadic: false,
                     params: Vec::new(),
                     body: Arc::from(Vec::new()),
+                    lazy: None,
                     pastes: false,
                     va_opt: false,
                     builtin: b,
@@ -572,7 +592,7 @@ impl<'a> Pp<'a> {
             None => return Err(Error::new(format!("invalid definition `{name}={value}`"), Vec::new())),
         };
         // `NAME(x)` must keep `(` attached to the name.
-        self.parse_define(toks, true)
+        self.parse_define(&mut DefReader::list(toks), true)
     }
 
     /// Tokens of a string with no location (predefined macros).
