@@ -448,3 +448,36 @@ fn long_definitions_match_cpp() {
         panic!("{}", &f[..f.len().min(4000)]);
     }
 }
+
+/// Small programs where Kiln once differed from cpp (issue 16): `##` at a line start is text,
+/// not a directive (also in a skipped group, and `%:%:`); a lone CR ends a line as `\n` does
+/// (and CRLF), in text, directives, splices, comments and `__LINE__`.
+#[test]
+fn line_starts_and_line_endings_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let cases: [(&str, &str); 10] = [
+        ("hash_hash", "a\n## b\n  ## c\n%:%: d\n#define X 1\nX ## X\n"),
+        ("hash_hash_skipped", "#if 0\n##if 1\n#endif\nok\n#if 0\n## else\nno\n#endif\n"),
+        ("hash_hash_args", "#define F(x) [x]\nF(\n## y\n)\n"),
+        ("cr", "a\r##b\rc\r#define X 1\rX __LINE__\r"),
+        ("crlf", "a\r\n#define X 2\r\nX __LINE__\r\n#if X == 2\r\nyes\r\n#endif\r\n"),
+        ("mixed", "a\r\n\rb\n\r\n#define Y __LINE__\rY\r\n__LINE__\n"),
+        ("cr_splice", "#define Z 1 + \\\r 2\rZ __LINE__\r"),
+        ("cr_comment", "a // comment\rb /* multi\r line */ c\r__LINE__\r"),
+        ("cr_skipped", "#if 0\rno\r#else\ryes __LINE__\r#endif\r"),
+        ("cr_args", "#define F(x, y) x y\rF(1,\r2)\r__LINE__\r"),
+    ];
+    let mut failures = Vec::new();
+    for (name, text) in cases {
+        let file = PathBuf::from(format!("{name}.usf"));
+        std::fs::write(dir.path().join(&file), text).expect("write");
+        if let Err(e) = run_cpp(dir.path(), &file, &[]) {
+            panic!("cpp must accept {name}:\n{e}");
+        }
+        if let Some(f) = compare(dir.path(), &file, &[]) {
+            failures.push(f);
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n\n"));
+}

@@ -458,3 +458,66 @@ warning: #warning check this
     .trim_start();
     assert_eq!(warnings.trim_end(), expected.trim_end(), "\n{warnings}");
 }
+
+#[test]
+fn issue16_cpp_differences_are_located_errors() {
+    // An unterminated comment in a skipped group is that, not only an unterminated #if.
+    assert_error(
+        &[("main.usf", "#if 0\nskipped\n  /* open\n#endif\n")],
+        r#"
+error: unterminated comment
+  ┌─ main.usf:3:3
+  │
+3 │   /* open
+  │   ^^ this comment is never closed
+"#
+        .trim_start(),
+    );
+    // Nested __VA_OPT__ is an error at its definition, as in cpp.
+    assert_error(
+        &[("main.usf", "#define F(...) a __VA_OPT__(b __VA_OPT__(c) d) e\n")],
+        r#"
+error: __VA_OPT__ may not appear in a __VA_OPT__
+  ┌─ main.usf:1:31
+  │
+1 │ #define F(...) a __VA_OPT__(b __VA_OPT__(c) d) e
+  │                               ^^^^^^^^^^ nested here
+"#
+        .trim_start(),
+    );
+    assert_error(
+        &[("main.usf", "#define F(...) __VA_OPT__(a\n")],
+        r#"
+error: unterminated __VA_OPT__
+  ┌─ main.usf:1:16
+  │
+1 │ #define F(...) __VA_OPT__(a
+  │                ^^^^^^^^^^ this __VA_OPT__ is never closed
+"#
+        .trim_start(),
+    );
+    // Including a directory says so.
+    assert_error(
+        &[("main.usf", "#include \"sub\"\n"), ("sub/a.ush", "")],
+        r#"
+error: #include "sub" names `sub`, which is a directory, not a file
+  ┌─ main.usf:1:10
+  │
+1 │ #include "sub"
+  │          ^^^^^ not a file
+"#
+        .trim_start(),
+    );
+    // A lone CR ends a line: errors after CR-only lines name the right line.
+    assert_error(
+        &[("main.usf", "a\rb\r\n#error here\r")],
+        r#"
+error: #error here
+  ┌─ main.usf:3:1
+  │
+3 │ #error here
+  │ ^^^^^^^^^^^
+"#
+        .trim_start(),
+    );
+}

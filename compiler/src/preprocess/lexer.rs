@@ -175,6 +175,13 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
     }
 }
 
+/// Whether a punctuator's text opens a directive at a line start: `#` or `%:`, never `##` or
+/// `%:%:` (cpp passes a line starting with `##` through as text).
+#[inline]
+pub fn is_directive_hash(punct: &[u8]) -> bool {
+    punct == b"#" || punct == b"%:"
+}
+
 /// Index of the next `\n` at or after `from`, or `src.len()`.
 #[inline]
 pub fn memchr_nl(src: &[u8], from: usize) -> usize {

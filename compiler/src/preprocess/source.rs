@@ -116,7 +116,7 @@ impl SourceFile {
 
     fn new(path: PathBuf, name: String, original: String) -> SourceFile {
         let (spliced, splices) = splice(&original);
-        let line_starts = files::line_starts(&original).collect();
+        let line_starts = line_starts(original.as_bytes());
         SourceFile { path, name, original, spliced, splices, line_starts, tokens: std::sync::OnceLock::new() }
     }
 
@@ -172,18 +172,53 @@ impl SourceFile {
     }
 }
 
-/// Phases 1 and 2: trigraphs (cpp -std=c11 replaces them) and backslash-newline splices
-/// (GNU: whitespace between the backslash and the newline is allowed).
+/// Offsets where lines start: after each `\n`, and after each `\r` not followed by `\n` (a
+/// lone CR ends a line, as in cpp).
+fn line_starts(text: &[u8]) -> Vec<usize> {
+    let mut starts = vec![0];
+    for (i, &c) in text.iter().enumerate() {
+        if c == b'\n' || (c == b'\r' && text.get(i + 1) != Some(&b'\n')) {
+            starts.push(i + 1);
+        }
+    }
+    starts
+}
+
+/// A lone `\r` (old Mac line ending): a newline to cpp, a `\n` here. The replacement keeps
+/// every offset, so no map entry is needed. `\r\n` stays (the `\r` lexes as a space).
+fn lone_cr_to_lf(text: &[u8]) -> Option<Vec<u8>> {
+    let lone = |i: usize| text[i] == b'\r' && text.get(i + 1) != Some(&b'\n');
+    let first = (0..text.len()).find(|&i| lone(i))?;
+    let mut out = text.to_vec();
+    for i in first..text.len() {
+        if lone(i) {
+            out[i] = b'\n';
+        }
+    }
+    Some(out)
+}
+
+/// Phases 1 and 2: line endings (a lone CR is a newline), trigraphs (cpp -std=c11 replaces
+/// them) and backslash-newline splices (GNU: whitespace between the backslash and the newline
+/// is allowed).
 fn splice(text: &str) -> (Option<String>, Vec<(u32, u32)>) {
-    let b = text.as_bytes();
+    let normalized = lone_cr_to_lf(text.as_bytes());
+    let b = normalized.as_deref().unwrap_or(text.as_bytes());
     let has_work = b.windows(2).any(|w| w == b"??") || b.contains(&b'\\');
     if !has_work {
-        return (None, Vec::new());
+        // Only lone CRs were replaced (an ASCII byte for an ASCII byte: still UTF-8).
+        return match normalized {
+            Some(n) => (
+                Some(String::from_utf8(n).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned())),
+                Vec::new(),
+            ),
+            None => (None, Vec::new()),
+        };
     }
     let mut out: Vec<u8> = Vec::with_capacity(b.len());
     let mut map = Vec::new();
     let mut i = 0;
-    let mut changed = false;
+    let mut changed = normalized.is_some();
     while i < b.len() {
         let c = b[i];
         if c == b'?' && i + 2 < b.len() && b[i + 1] == b'?' {

@@ -151,7 +151,7 @@ impl Pp<'_> {
                 self.define_directive()
             }
             "undef" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(2)?;
                 let sym = self.directive_name(&toks, "undef", ctx, name_range)?;
                 if toks.len() > 1 {
                     let l = self.tok_labels(&toks[1], "unexpected");
@@ -174,7 +174,7 @@ impl Pp<'_> {
                 self.include(hash_range.start, p + len)
             }
             "if" | "ifdef" | "ifndef" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = if name == "if" { self.directive_tokens()? } else { self.directive_rest(2)? };
                 let taken = match name {
                     "if" => self.eval_if(toks, ctx, name_range.clone())?,
                     _ => {
@@ -214,7 +214,7 @@ impl Pp<'_> {
                 Ok(())
             }
             "elif" | "else" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(1)?;
                 let Some(f) = self.frames.last_mut() else {
                     return Ok(());
                 };
@@ -245,7 +245,7 @@ impl Pp<'_> {
                 self.skip_group()
             }
             "endif" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(1)?;
                 let Some(f) = self.frames.last_mut() else {
                     return Ok(());
                 };
@@ -270,7 +270,7 @@ impl Pp<'_> {
             }
             "error" | "warning" => {
                 let start = p + len;
-                let (_, end) = self.directive_tokens()?;
+                let (_, end) = self.directive_rest(0)?;
                 let msg = text.get(start..end as usize).unwrap_or("").trim();
                 let msg = collapse_comments(msg);
                 let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
@@ -288,12 +288,12 @@ impl Pp<'_> {
             }
             "ident" | "sccs" => {
                 let start = p + len;
-                let (_, end) = self.directive_tokens()?;
+                let (_, end) = self.directive_rest(0)?;
                 let rest = collapse_comments(text.get(start..end as usize).unwrap_or("").trim());
                 self.emit_line(ctx, hash, &format!("#ident {rest}"))
             }
             "assert" | "unassert" => {
-                self.directive_tokens()?;
+                self.directive_rest(0)?;
                 Ok(())
             }
             "" => {
@@ -352,7 +352,7 @@ impl Pp<'_> {
     }
 
     pub(super) fn pragma(&mut self, start: usize, ctx: u32) -> PResult<()> {
-        let (toks, end) = self.directive_tokens()?;
+        let (toks, end) = self.directive_rest(3)?;
         let Some(frame) = self.frames.last() else {
             return Ok(());
         };
@@ -636,7 +636,7 @@ impl Pp<'_> {
                 return Ok(()); // end_of_file reports the open conditional
             }
             let (kind, len) = source.lex(p);
-            let is_hash = kind == Kind::Punct && (bytes[p] == b'#' || &bytes[p..p + len] == b"%:");
+            let is_hash = kind == Kind::Punct && lexer::is_directive_hash(&bytes[p..p + len]);
             if is_hash {
                 let hash = p;
                 let (name, q, l) = directive_name(text, p + len);
@@ -703,7 +703,18 @@ impl Pp<'_> {
                 }
             }
             // Skip to the end of this line, honouring comments and literals.
-            pos = skip_line(bytes, p);
+            pos = match skip_line(bytes, p) {
+                Ok(next) => next,
+                // cpp reports it too (and then the open conditional).
+                Err(at) => {
+                    return self.err_at(
+                        ctx,
+                        at as u32..at as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    )
+                }
+            };
         }
     }
 
@@ -769,7 +780,7 @@ impl Pp<'_> {
         if let Some(f) = self.frames.last_mut() {
             f.pos = rest_at;
         }
-        let (extra, _) = self.directive_tokens()?;
+        let (extra, _) = self.directive_rest(1)?;
         if let Some(t) = extra.first() {
             let l = self.tok_labels(t, "unexpected");
             self.warn("extra tokens at end of #include directive", l);
@@ -800,6 +811,19 @@ impl Pp<'_> {
             }
         }
         None
+    }
+
+    /// The first place an include of `spelling` looked that holds something other than a
+    /// regular file (a directory, a FIFO...), and what it is: said instead of "cannot find".
+    pub(super) fn non_file_candidate(&self, spelling: &str, angle: bool) -> Option<(PathBuf, &'static str)> {
+        let mut dirs: Vec<PathBuf> = Vec::new();
+        let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
+        if !angle && !is_virtual {
+            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()) {
+                dirs.push(dir.to_path_buf());
+            }
+        }
+        non_file_in(spelling, self.opts, &dirs)
     }
 
     /// Where an include of `spelling` leads from the current file.
@@ -864,6 +888,15 @@ impl Pp<'_> {
                 );
             }
             Resolved::NotFound => {
+                if let Some((path, what)) = self.non_file_candidate(spelling, angle) {
+                    let shown = self.cache.display_name(&path);
+                    return self.err_at(
+                        ctx,
+                        range,
+                        format!("#include \"{spelling}\" names `{shown}`, which is {what}, not a file"),
+                        "not a file",
+                    );
+                }
                 let mut e = Error::new(
                     format!("cannot find include file `{spelling}`"),
                     self.labels_at(ctx, range, "not found"),
@@ -1281,22 +1314,24 @@ impl Pp<'_> {
 }
 
 /// Skips to the start of the next line from `p`, treating comments and literals as cpp does
-/// in a skipped group (a block comment may run over several lines).
-fn skip_line(bytes: &[u8], mut p: usize) -> usize {
+/// in a skipped group (a block comment may run over several lines). `Err(at)`: a block
+/// comment at `at` is never closed.
+fn skip_line(bytes: &[u8], mut p: usize) -> Result<usize, usize> {
     while p < bytes.len() {
         match bytes[p] {
-            b'\n' => return p + 1,
+            b'\n' => return Ok(p + 1),
             b'/' | b'"' | b'\'' | b'L' | b'u' | b'U' => {
                 let (kind, len) = lexer::next(bytes, p);
                 match kind {
-                    Kind::LineComment => return lexer::memchr_nl(bytes, p) + 1,
+                    Kind::LineComment => return Ok(lexer::memchr_nl(bytes, p) + 1),
+                    Kind::BlockComment { terminated: false } => return Err(p),
                     _ => p += len.max(1),
                 }
             }
             _ => p += 1,
         }
     }
-    bytes.len()
+    Ok(bytes.len())
 }
 
 /// Directive text with comments replaced by single spaces.

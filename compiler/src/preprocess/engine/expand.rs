@@ -39,7 +39,7 @@ impl Pp<'_> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") => {
+                Kind::Punct if frame.bol && lexer::is_directive_hash(&bytes[pos..pos + len]) => {
                     frame.pos += len;
                     frame.bol = false;
                     self.directive_in_args(pos)?;

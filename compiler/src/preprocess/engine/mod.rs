@@ -385,8 +385,36 @@ pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, S
     match resolve_in_roots(spelling, opts, &mut Vec::new()) {
         Resolved::Found(p, _) => Ok(p),
         Resolved::Escapes(p) => Err(format!("`{spelling}` resolves to `{}`, outside its root", p.display())),
-        Resolved::NotFound => Err(format!("cannot find `{spelling}` in the include roots")),
+        Resolved::NotFound => match non_file_in(spelling, opts, &[]) {
+            Some((p, what)) => Err(format!("`{spelling}` names `{}`, which is {what}, not a file", p.display())),
+            None => Err(format!("cannot find `{spelling}` in the include roots")),
+        },
     }
+}
+
+/// The first candidate for `spelling` (in `dirs`, then through the virtual roots or in the
+/// include roots, as [`resolve_in_roots`] looks) that exists but is not a regular file, and
+/// what it is.
+fn non_file_in(spelling: &str, opts: &Options, dirs: &[PathBuf]) -> Option<(PathBuf, &'static str)> {
+    if !relative_ok(spelling) && !opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some()) {
+        return None;
+    }
+    let mut candidates: Vec<PathBuf> = dirs.iter().map(|d| d.join(spelling)).collect();
+    match opts.virtual_roots.iter().find_map(|(p, d)| virtual_match(spelling, p).map(|rest| d.join(rest))) {
+        Some(c) => candidates.push(c),
+        None => candidates.extend(opts.include_roots.iter().map(|r| r.join(spelling))),
+    }
+    candidates.into_iter().find_map(|c| {
+        let meta = std::fs::metadata(&c).ok()?;
+        let what = if meta.is_dir() {
+            "a directory"
+        } else if meta.is_file() {
+            return None;
+        } else {
+            "a device, FIFO or socket"
+        };
+        Some((c.canonicalize().unwrap_or(c), what))
+    })
 }
 
 enum Resolved {
@@ -894,7 +922,7 @@ impl<'a> Pp<'a> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct if bol && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) => {
+                Kind::Punct if bol && lexer::is_directive_hash(&bytes[pos..pos + len]) => {
                     self.copy_run(ctx, text, run_start, pos, last_tok)?;
                     if let Some(f) = self.frames.last_mut() {
                         f.pos = pos + len;
@@ -970,7 +998,7 @@ impl<'a> Pp<'a> {
             match kind {
                 Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => {}
                 Kind::Newline => bol = true,
-                Kind::Punct => return !(bol && bytes[pos] == b'#') && bytes[pos] == b'(',
+                Kind::Punct => return !(bol && lexer::is_directive_hash(&bytes[pos..pos + len])) && bytes[pos] == b'(',
                 _ => return false,
             }
             pos += len;
