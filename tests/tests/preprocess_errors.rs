@@ -521,3 +521,40 @@ error: #error here
         .trim_start(),
     );
 }
+
+/// A source that is not UTF-8 is an error at its first bad byte (file, line, column), main
+/// file or included, never replaced silently.
+#[test]
+fn invalid_utf8_is_located() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    std::fs::write(dir.path().join("main.usf"), b"fn f() {}\n#include \"bad.ush\"\n").expect("write");
+    std::fs::write(dir.path().join("bad.ush"), b"// ok\nlet x = 1; // caf\xe9 \xff\n").expect("write");
+    let cache = SourceCache::new(dir.path().to_path_buf());
+    let render = |path: &str| {
+        let e = preprocess::preprocess_file(&dir.path().join(path), &Options::default(), &cache).expect_err(path);
+        preprocess::render(&[e.diagnostic], &cache, false)
+    };
+    let expected_bad = r#"
+error: `bad.ush` is not UTF-8 text
+  ┌─ bad.ush:2:18
+  │
+2 │ let x = 1; // caf� �
+  │                  ^ byte 0xe9
+"#
+    .trim_start();
+    let got = render("main.usf");
+    let expected_main = format!(
+        "{}{}",
+        expected_bad,
+        r#"  │
+  ┌─ main.usf:2:10
+  │
+2 │ #include "bad.ush"
+  │          --------- included here
+"#
+    );
+    assert_eq!(got.trim_end(), expected_main.trim_end(), "\n{got}");
+    // Asked for again (from the cache), and as the main file.
+    let got = render("bad.ush");
+    assert_eq!(got.trim_end(), expected_bad.trim_end(), "\n{got}");
+}

@@ -7,6 +7,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
+use codespan_reporting::diagnostic::Label;
 use codespan_reporting::files::{self, Files};
 
 use super::lexer::{self, Kind};
@@ -92,6 +93,9 @@ pub struct SourceFile {
     /// `(spliced offset, original offset)` at each point where the two stop moving together.
     splices: Vec<(u32, u32)>,
     line_starts: Vec<usize>,
+    /// The first byte that is not UTF-8 (its offset and value); `original` then holds the
+    /// text with U+FFFD in its place (at the same offset), for showing the error.
+    pub(crate) bad_utf8: Option<(usize, u8)>,
     /// The lexer's answer at each token start of one pass over [`SourceFile::text`],
     /// packed (see [`SourceFile::lex`]); 0 elsewhere. Made on first use: every
     /// permutation then reads its tokens instead of lexing the file again.
@@ -117,7 +121,16 @@ impl SourceFile {
     fn new(path: PathBuf, name: String, original: String) -> SourceFile {
         let (spliced, splices) = splice(&original);
         let line_starts = line_starts(original.as_bytes());
-        SourceFile { path, name, original, spliced, splices, line_starts, tokens: std::sync::OnceLock::new() }
+        SourceFile {
+            path,
+            name,
+            original,
+            spliced,
+            splices,
+            line_starts,
+            bad_utf8: None,
+            tokens: std::sync::OnceLock::new(),
+        }
     }
 
     /// The text the lexer works on.
@@ -279,6 +292,32 @@ fn splice_end(b: &[u8], from: usize) -> Option<usize> {
     (j < b.len() && b[j] == b'\n').then_some(j + 1)
 }
 
+/// Why [`SourceCache::load`] gave no text.
+#[derive(Debug)]
+pub(crate) enum LoadError {
+    Io(std::io::Error),
+    /// The file is in the cache (for showing the error), with U+FFFD at `offset`.
+    NotUtf8 {
+        file: FileId,
+        offset: usize,
+        byte: u8,
+    },
+}
+
+impl LoadError {
+    /// The located error, with `labels` (an include chain) after the primary label.
+    pub(crate) fn into_error(self, shown: &str, mut labels: Vec<Label<FileId>>) -> super::Error {
+        match self {
+            LoadError::Io(e) => super::Error::new(format!("cannot read `{shown}`: {e}"), labels),
+            LoadError::NotUtf8 { file, offset, byte } => {
+                // U+FFFD stands for the byte: three bytes of the shown text.
+                labels.insert(0, Label::primary(file, offset..offset + 3).with_message(format!("byte 0x{byte:02x}")));
+                super::Error::new(format!("`{shown}` is not UTF-8 text"), labels)
+            }
+        }
+    }
+}
+
 #[derive(Default)]
 struct Inner {
     files: Vec<Arc<SourceFile>>,
@@ -342,26 +381,40 @@ impl SourceCache {
         }
     }
 
-    /// Loads a file by its canonical path, reading it only the first time.
-    pub(crate) fn load(&self, canonical: &Path) -> std::io::Result<(FileId, Arc<SourceFile>)> {
+    /// Loads a file by its canonical path, reading it only the first time. A file that is
+    /// not UTF-8 is an error (every time it is asked for) that points at its first bad byte.
+    pub(crate) fn load(&self, canonical: &Path) -> Result<(FileId, Arc<SourceFile>), LoadError> {
+        let found = |id: FileId, file: &Arc<SourceFile>| match file.bad_utf8 {
+            Some((offset, byte)) => Err(LoadError::NotUtf8 { file: id, offset, byte }),
+            None => Ok((id, file.clone())),
+        };
         {
             let inner = self.inner.read().unwrap_or_else(|e| e.into_inner());
             if let Some(&id) = inner.by_path.get(canonical) {
-                return Ok((id, inner.files[id.0 as usize].clone()));
+                return found(id, &inner.files[id.0 as usize]);
             }
         }
         // Read under the write lock: two threads wanting the same new file read it once.
         let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
         if let Some(&id) = inner.by_path.get(canonical) {
-            return Ok((id, inner.files[id.0 as usize].clone()));
+            return found(id, &inner.files[id.0 as usize]);
         }
-        let bytes = std::fs::read(canonical)?;
-        let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
-        let file = Arc::new(SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text));
+        let bytes = std::fs::read(canonical).map_err(LoadError::Io)?;
+        let (text, bad) = match String::from_utf8(bytes) {
+            Ok(text) => (text, None),
+            Err(e) => {
+                let offset = e.utf8_error().valid_up_to();
+                let byte = e.as_bytes()[offset];
+                (String::from_utf8_lossy(e.as_bytes()).into_owned(), Some((offset, byte)))
+            }
+        };
+        let mut file = SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text);
+        file.bad_utf8 = bad;
+        let file = Arc::new(file);
         let id = FileId(inner.files.len() as u32);
         inner.files.push(file.clone());
         inner.by_path.insert(canonical.to_path_buf(), id);
-        Ok((id, file))
+        found(id, &file)
     }
 
     /// How many files were read from disk or added (tests check "read once").

@@ -917,10 +917,14 @@ impl Pp<'_> {
             }
         };
         let (id, source) = self.cache.load(&path).map_err(|e| {
-            Error::new(
-                format!("cannot read `{}`: {e}", self.cache.display_name(&path)),
-                self.labels_at(ctx, range.clone(), "included here"),
-            )
+            let mut labels = self.labels_at(ctx, range.clone(), "included here");
+            if matches!(e, LoadError::NotUtf8 { .. }) {
+                // The bad byte is the primary label; the include line is where it came from.
+                if let Some(first) = labels.first_mut() {
+                    first.style = codespan_reporting::diagnostic::LabelStyle::Secondary;
+                }
+            }
+            e.into_error(&self.cache.display_name(&path), labels)
         })?;
         if source.text().len() >= (u32::MAX / 2) as usize {
             return self.err_at(ctx, range, "included file is too large", "this include");

@@ -25,7 +25,7 @@ use codespan_reporting::diagnostic::{Diagnostic, Label};
 use super::expr;
 use super::lexer::{self, Kind};
 use super::map::{Entry, IncludeCtx, SourceMap, NONE};
-use super::source::{FileId, SourceCache, SourceFile};
+use super::source::{FileId, LoadError, SourceCache, SourceFile};
 use super::{Error, Options, Output};
 use directive::DefReader;
 
