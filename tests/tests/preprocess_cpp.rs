@@ -481,3 +481,78 @@ fn line_starts_and_line_endings_match_cpp() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }
+
+/// Every punctuator the lexer knows (with digraphs), a few other tokens, and WGSL's `@`.
+const SPACING_TOKENS: [&str; 62] = [
+    "%:%:", "...", "<<=", ">>=", "->", "--", "-=", "++", "+=", "<<", "<=", "<:", "<%", ">>", ">=", "==", "!=", "*=",
+    "/=", "^=", "&&", "&=", "||", "|=", "##", "%=", "%>", "%:", ":>", "[", "]", "(", ")", "{", "}", ".", "&", "*", "+",
+    "-", "~", "!", "/", "%", "<", ">", "^", "|", "?", ":", ";", "=", ",", "#", "@", "x", "L", "u8", "1", ".5", "\"s\"",
+    "'c'",
+];
+
+/// Token spacing (issue 14): `kiln preprocess` keeps apart every pair of tokens that cpp
+/// keeps apart where they meet at a macro expansion's edge (`#define DOT() .` then
+/// `DOT()DOT()DOT()` is `. . .`, Wave's t_9_003). Every pair of tokens above, each made by a
+/// macro (`I(a)I(b)`), a macro then text (`I(a)b`), text then a macro (`a I(b)` where `a`
+/// cannot merge with the name), and three in a row; the token streams must agree.
+#[test]
+fn token_spacing_matches_cpp_for_every_pair() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    // `,` `(` `)` cannot be a macro argument alone: they come from object-like macros.
+    let made = |t: &str| match t {
+        "," => "COMMA".to_string(),
+        "(" => "LP".to_string(),
+        ")" => "RP".to_string(),
+        _ => format!("I({t})"),
+    };
+    let mut program = String::from("#define I(x) x\n#define COMMA ,\n#define LP (\n#define RP )\n#define DOT() .\n");
+    program.push_str("DOT()DOT()DOT()\n");
+    for a in SPACING_TOKENS {
+        for b in SPACING_TOKENS {
+            program.push_str(&format!("{}{}\n", made(a), made(b)));
+            program.push_str(&format!("{}{}{}\n", made(a), made(b), made(a)));
+            // After a macro, text: `b` itself (a `#` at a line start is no longer at one).
+            program.push_str(&format!("{}{b}\n", made(a)));
+            let word_like = a.as_bytes()[a.len() - 1].is_ascii_alphanumeric() || a.ends_with(['"', '\'']);
+            if !word_like && !matches!(a, "#" | "%:" | "##" | "%:%:") {
+                program.push_str(&format!("{a}{}\n", made(b)));
+            }
+        }
+    }
+    let name = PathBuf::from("spacing.usf");
+    std::fs::write(dir.path().join(&name), &program).expect("write");
+    if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+        panic!("cpp must accept the program:\n{}", &e[..e.len().min(3000)]);
+    }
+    let cpp = run_cpp(dir.path(), &name, &[]).expect("cpp");
+    let kiln = run_kiln(dir.path(), &name, &[]).expect("kiln preprocesses it");
+    // Line by line (`-P` may join or drop blank lines, so compare the lines with tokens).
+    let lines = |s: &str| -> Vec<Vec<String>> {
+        s.lines()
+            .map(|l| preprocess::tokens(l).into_iter().map(str::to_string).collect::<Vec<_>>())
+            .filter(|t| !t.is_empty())
+            .collect()
+    };
+    let (a, b) = (lines(&cpp), lines(&kiln));
+    let source: Vec<&str> = program.lines().skip(5).collect();
+    let mut failures = Vec::new();
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        if x != y {
+            failures.push(format!(
+                "{}\n   cpp: {}\n  kiln: {}",
+                source.get(i).unwrap_or(&"?"),
+                x.join(" "),
+                y.join(" ")
+            ));
+        }
+    }
+    assert_eq!(a.len(), b.len(), "line counts differ");
+    assert!(
+        failures.is_empty(),
+        "{} of {} lines differ:\n{}",
+        failures.len(),
+        a.len(),
+        failures[..failures.len().min(30)].join("\n")
+    );
+}

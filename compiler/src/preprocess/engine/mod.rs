@@ -297,6 +297,9 @@ pub(crate) struct Pp<'a> {
     counter: i64,
     /// Output range of the last token written (for paste avoidance).
     last_tok: Range<usize>,
+    /// A padding token (a macro expansion's edge) came since the last token written: the
+    /// next one is kept apart by cpp's rule too ([`lexer::cpp_avoid_paste`]).
+    after_padding: bool,
     /// The top-level macro invocation being expanded: context, spliced range.
     inv: Option<(u32, u32, u32)>,
     /// Line `__LINE__` gives inside a directive.
@@ -540,6 +543,7 @@ impl<'a> Pp<'a> {
             input_bytes: 0,
             counter: 0,
             last_tok: 0..0,
+            after_padding: false,
             inv: None,
             directive_line: None,
             roots,
@@ -808,7 +812,9 @@ impl<'a> Pp<'a> {
             if !matches!(first, b' ' | b'\t' | b'\n' | b'\r') {
                 let (_, len) = lexer::next(bytes, start);
                 let len = len.min(end - start).max(1);
-                if lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]) {
+                // Text after an expansion: cpp has a padding here, so its rule applies.
+                let (last, first) = (self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]);
+                if lexer::would_paste(last, first) || lexer::cpp_avoid_paste(last, first) {
                     self.out.push(' ');
                 }
             }
@@ -816,6 +822,7 @@ impl<'a> Pp<'a> {
         let out_at = self.out.len();
         self.push_copy_entry(ctx, start as u32, end as u32, out_at as u32);
         self.out.push_str(&text[start..end]);
+        self.after_padding = false;
         self.last_tok = match last_tok {
             Some(r) if r.end == end => (out_at + r.start - start)..(out_at + r.end - start),
             _ => 0..0,
@@ -845,6 +852,7 @@ impl<'a> Pp<'a> {
             if t.flags & (WHITE | NULL_SOURCE) == WHITE {
                 self.emit_space();
             }
+            self.after_padding = true;
             return Ok(());
         }
         if t.kind == TK::Placemarker || t.kind == TK::Eof {
@@ -853,7 +861,12 @@ impl<'a> Pp<'a> {
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
         let space = (t.flags & WHITE != 0)
-            || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes()));
+            || (adjacent && {
+                let last = self.out[self.last_tok.clone()].as_bytes();
+                lexer::would_paste(last, text.as_bytes())
+                    || (self.after_padding && lexer::cpp_avoid_paste(last, text.as_bytes()))
+            });
+        self.after_padding = false;
         if space && !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
             self.out.push(' ');
         }
