@@ -148,6 +148,35 @@ fn cost_is_linear_in_the_input() {
         |r| r.as_ref().is_ok_and(|&len| len > 0),
     );
 
+    // A body naming a long argument many times: the list was built whole before the token
+    // budget saw it (2 GB for a 40 kB input), and each `#x` stringified it again.
+    for (what, make) in [
+        (
+            "a parameter named many times",
+            (|n: usize| format!("#define S(x) {}\nS({})\n", "x ".repeat(n), "a ".repeat(n))) as fn(usize) -> String,
+        ),
+        ("a parameter stringified many times", |n| {
+            format!("#define S(x) {}\nS({})\n", "#x ".repeat(n), "a ".repeat(n))
+        }),
+        ("__VA_OPT__ stringified many times", |n| {
+            format!("#define S(...) {}\nS({})\n", "#__VA_OPT__(__VA_ARGS__) ".repeat(n), "a ".repeat(n))
+        }),
+    ] {
+        for n in [2_500, 10_000] {
+            let r = run(what, make(n));
+            eprintln!(
+                "{what} ({n}): peak {} bytes, {:?}",
+                r.peak,
+                r.result.as_ref().map_err(|e| &e[..e.len().min(60)])
+            );
+            // n² is near or over the output budget: a clean error or the output, in bounded memory.
+            if let Err(e) = &r.result {
+                assert!(e.starts_with("macro expansion makes more than") || e.starts_with("output exceeds"), "{e}");
+            }
+            assert!(r.peak < 256 << 20, "{what} ({n}): {} bytes", r.peak);
+        }
+    }
+
     // A long definition never used costs about its text (it took 36 times its size).
     for n in [1_000_000usize, 4_000_000] {
         let text = format!("#define BIG {}\nx\n", "a ".repeat(n));

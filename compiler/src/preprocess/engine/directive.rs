@@ -963,15 +963,7 @@ impl Pp<'_> {
                 *at += 1;
                 Ok(t)
             }
-            DefSource::Line { source, ctx, pos, intern } => {
-                let (source, ctx, intern) = (source.clone(), *ctx, *intern);
-                let mut p = *pos;
-                let t = self.line_token(&source, ctx, &mut p, intern);
-                if let DefSource::Line { pos, .. } = &mut r.src {
-                    *pos = p;
-                }
-                t
-            }
+            DefSource::Line { source, ctx, pos, intern } => self.line_token(source, *ctx, pos, *intern),
         }
     }
 

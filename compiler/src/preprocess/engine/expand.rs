@@ -189,6 +189,21 @@ impl Pp<'_> {
         Ok(())
     }
 
+    /// Counts `n` bytes of text made by `#` and `##` against the output limit: a body that
+    /// stringifies or pastes long arguments many times stops there, not after the work.
+    pub(super) fn spend_bytes(&mut self, n: usize, at: &Tok) -> PResult<()> {
+        self.made_bytes = self.made_bytes.saturating_add(n);
+        if self.made_bytes > self.opts.max_output_bytes {
+            let limit = self.opts.max_output_bytes;
+            return self.err_tok(
+                at,
+                format!("macro expansion makes more than {limit} bytes of stringified or pasted text"),
+                "while expanding this",
+            );
+        }
+        Ok(())
+    }
+
     /// An empty token vector, reusing the storage of finished contexts.
     pub(super) fn take_vec(&mut self) -> Vec<Tok> {
         self.pool.pop().unwrap_or_default()
@@ -410,8 +425,20 @@ impl Pp<'_> {
     ) -> PResult<Vec<Tok>> {
         let mut out: Vec<Tok> = self.take_vec();
         out.reserve(body.len() + args.iter().map(Vec::len).sum::<usize>());
+        // `#x` of each parameter, made once however often the body names it.
+        let mut strung: Vec<Option<Sym>> = Vec::new();
         let mut i = 0;
         while i < body.len() {
+            // A body naming a long argument many times could make a huge list before the
+            // budget sees it (checked here, as it grows).
+            if self.made + out.len() > self.token_limit() {
+                let limit = self.token_limit();
+                return self.err_tok(
+                    name,
+                    format!("macro expansion makes more than {limit} tokens"),
+                    "while expanding this",
+                );
+            }
             let b = body[i];
             let prev_pastes = i > 0 && body[i - 1].flags & PASTE_LEFT != 0;
             if b.flags & VA_COMMA != 0 {
@@ -445,8 +472,19 @@ impl Pp<'_> {
             }
             let pi = b.param as usize;
             if b.flags & STRINGIFY != 0 {
-                let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
-                let sym = self.it.intern(&s);
+                if strung.len() <= pi {
+                    strung.resize(pi + 1, None);
+                }
+                let sym = match strung[pi] {
+                    Some(sym) => sym,
+                    None => {
+                        let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
+                        self.spend_bytes(s.len(), name)?;
+                        let sym = self.it.intern(&s);
+                        strung[pi] = Some(sym);
+                        sym
+                    }
+                };
                 out.push(Tok {
                     sym,
                     kind: TK::Str,
@@ -556,6 +594,7 @@ impl Pp<'_> {
                 let toks =
                     if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
                 let text = self.stringify(&toks);
+                self.spend_bytes(text.len(), name)?;
                 let sym = self.it.intern(&text);
                 out.push(Tok {
                     sym,
@@ -645,6 +684,7 @@ impl Pp<'_> {
             acc.push_str(self.it.str(rhs.sym));
             return Ok(false);
         }
+        self.spend_bytes(self.it.str(rhs.sym).len(), name)?;
         let right = self.it.str(rhs.sym);
         let kind = match continues(lhs.kind, acc.as_bytes(), right.as_bytes()) {
             Some(kind) => kind,
@@ -671,7 +711,6 @@ impl Pp<'_> {
         {
             flags &= !FROM_DEF;
         }
-        let _ = name;
         lhs.kind = kind;
         lhs.flags = flags;
         lhs.param = NO_PARAM;

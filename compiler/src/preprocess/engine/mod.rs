@@ -292,6 +292,8 @@ pub(crate) struct Pp<'a> {
     /// Tokens macro expansion may still make.
     /// Tokens macro expansion made so far (see [`Pp::spend`]).
     made: usize,
+    /// Bytes of text `#` and `##` made so far (see [`Pp::spend_bytes`]).
+    made_bytes: usize,
     /// Bytes of source read so far.
     input_bytes: usize,
     counter: i64,
@@ -540,6 +542,7 @@ impl<'a> Pp<'a> {
             once: HashSet::new(),
             guards: HashMap::default(),
             made: 0,
+            made_bytes: 0,
             input_bytes: 0,
             counter: 0,
             last_tok: 0..0,
