@@ -293,3 +293,12 @@ fn va_opt_is_checked_at_its_definition() {
     assert_eq!(err("#define F(...) #__VA_OPT__(#__VA_OPT__(x))\n"), "__VA_OPT__ may not appear in a __VA_OPT__");
     assert_eq!(pp("#define F(...) a __VA_OPT__((b)(c)) d\nF() F(1)"), "a d a ( b ) ( c ) d");
 }
+
+#[test]
+fn warnings_are_capped() {
+    // One warning per line for 1,500 lines: the first thousand kept, the rest counted.
+    let out = run_with(&"'\n".repeat(1500), &Options::default()).expect("warnings only");
+    assert_eq!(out.warnings.len(), 1001);
+    assert_eq!(out.warnings[0].message, "missing terminating ' character");
+    assert_eq!(out.warnings[1000].message, "500 more warnings not shown");
+}

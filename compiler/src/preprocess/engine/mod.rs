@@ -199,6 +199,9 @@ struct LazyBody {
     len: usize,
 }
 
+/// Warnings kept per run; the rest are counted in one last warning.
+const MAX_WARNINGS: usize = 1000;
+
 /// Replacement lists longer than this many tokens are not kept as tokens until the macro is
 /// first expanded: a huge `#define` that is never used costs no more than its text.
 const LAZY_BODY_TOKENS: usize = 4096;
@@ -286,6 +289,8 @@ pub(crate) struct Pp<'a> {
     out: String,
     map: SourceMap,
     warnings: Vec<Diagnostic<FileId>>,
+    /// Warnings past [`MAX_WARNINGS`], counted only.
+    warnings_dropped: usize,
     files: Vec<FileId>,
     once: HashSet<FileId>,
     guards: HashMap<FileId, Sym, FxBuild>,
@@ -373,6 +378,10 @@ fn run_here(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCa
     pp.push_file(file, source, name, NONE, 0..0);
     pp.run_main()?;
     pp.map.entries.shrink_to_fit();
+    if pp.warnings_dropped > 0 {
+        let n = pp.warnings_dropped;
+        pp.warnings.push(Diagnostic::warning().with_message(format!("{n} more warnings not shown")));
+    }
     let mut absent = pp.absent.into_inner();
     absent.sort();
     absent.dedup();
@@ -538,6 +547,7 @@ impl<'a> Pp<'a> {
             out: String::with_capacity(main.text().len() + main.text().len() / 4),
             map: SourceMap::default(),
             warnings: Vec::new(),
+            warnings_dropped: 0,
             files: Vec::new(),
             once: HashSet::new(),
             guards: HashMap::default(),
@@ -726,6 +736,11 @@ impl<'a> Pp<'a> {
     }
 
     fn warn(&mut self, message: impl Into<String>, labels: Vec<Label<FileId>>) {
+        if self.warnings.len() >= MAX_WARNINGS {
+            // A million bad lines would otherwise keep a million diagnostics.
+            self.warnings_dropped += 1;
+            return;
+        }
         self.warnings.push(Diagnostic::warning().with_message(message.into()).with_labels(labels));
     }
 
