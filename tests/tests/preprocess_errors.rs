@@ -558,3 +558,22 @@ error: `bad.ush` is not UTF-8 text
     let got = render("bad.ush");
     assert_eq!(got.trim_end(), expected_bad.trim_end(), "\n{got}");
 }
+
+/// A source that is a FIFO (or a device) is refused at once, never read (it would block):
+/// as the main file, and as an include.
+#[test]
+fn non_regular_files_are_refused() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let fifo = dir.path().join("pipe.ush");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status().expect("mkfifo runs");
+    assert!(made.success());
+    std::fs::write(dir.path().join("main.usf"), "#include \"pipe.ush\"\n").expect("write");
+    let cache = SourceCache::new(dir.path().to_path_buf());
+    let e = preprocess::preprocess_file(&fifo, &Options::default(), &cache).expect_err("a FIFO");
+    assert!(e.to_string().ends_with("is not a regular file (a device, FIFO or socket)"), "{e}");
+    let e = preprocess::preprocess_file(&dir.path().join("main.usf"), &Options::default(), &cache).expect_err("a FIFO");
+    let r = preprocess::render(&[e.diagnostic], &cache, false);
+    assert!(r.starts_with("error: #include \"pipe.ush\" names `pipe.ush`, which is a device, FIFO or socket"), "{r}");
+    let e = preprocess::preprocess_file(Path::new("/dev/zero"), &Options::default(), &cache).expect_err("a device");
+    assert!(e.to_string().ends_with("is not a regular file (a device, FIFO or socket)"), "{e}");
+}

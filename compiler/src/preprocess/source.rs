@@ -12,6 +12,9 @@ use codespan_reporting::files::{self, Files};
 
 use super::lexer::{self, Kind};
 
+/// Largest source file (offsets are 32-bit, with room for splicing).
+const MAX_FILE_BYTES: u64 = (u32::MAX / 2) as u64;
+
 /// Files larger than this get no token table (it takes four bytes per byte of text): they
 /// are lexed as they are read, so a huge input costs little more memory than its text.
 const MAX_TABLE_TEXT: usize = 16 << 20;
@@ -398,6 +401,19 @@ impl SourceCache {
         let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
         if let Some(&id) = inner.by_path.get(canonical) {
             return found(id, &inner.files[id.0 as usize]);
+        }
+        // Only regular files: a FIFO or a device would block or never end.
+        let meta = std::fs::metadata(canonical).map_err(LoadError::Io)?;
+        if !meta.is_file() {
+            let what =
+                if meta.is_dir() { "is a directory" } else { "is not a regular file (a device, FIFO or socket)" };
+            return Err(LoadError::Io(std::io::Error::other(what)));
+        }
+        if meta.len() >= MAX_FILE_BYTES {
+            return Err(LoadError::Io(std::io::Error::other(format!(
+                "{} bytes is over the limit of {MAX_FILE_BYTES} bytes for a source file",
+                meta.len()
+            ))));
         }
         let bytes = std::fs::read(canonical).map_err(LoadError::Io)?;
         let (text, bad) = match String::from_utf8(bytes) {
