@@ -50,7 +50,7 @@ pub struct Options {
     pub max_expansion_depth: usize,
     /// Largest output, in bytes. Macro expansion may make at most a quarter as many tokens,
     /// and at most a million plus eight per byte of input read, so a macro bomb fails within
-    /// milliseconds, in bounded memory.
+    /// milliseconds, in bounded memory; text made by `#` and `##` counts against it too.
     pub max_output_bytes: usize,
 }
 

@@ -292,6 +292,10 @@ fn va_opt_is_checked_at_its_definition() {
     assert_eq!(err("#define F(...) a __VA_OPT__ b\n"), "__VA_OPT__ must be followed by an open parenthesis");
     assert_eq!(err("#define F(...) #__VA_OPT__(#__VA_OPT__(x))\n"), "__VA_OPT__ may not appear in a __VA_OPT__");
     assert_eq!(pp("#define F(...) a __VA_OPT__((b)(c)) d\nF() F(1)"), "a d a ( b ) ( c ) d");
+    // Outside a variadic macro it is a name, with cpp's warning.
+    let out = run_with("#define A a __VA_OPT__(b)\nA\n", &Options::default()).expect("a warning only");
+    assert_eq!(tokens(&out.text).join(" "), "a __VA_OPT__ ( b )");
+    assert_eq!(out.warnings[0].message, "__VA_OPT__ can only appear in the expansion of a C++20 variadic macro");
 }
 
 #[test]

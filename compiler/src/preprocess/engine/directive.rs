@@ -1201,6 +1201,11 @@ impl Pp<'_> {
                     let l = self.tok_labels(&site, "here");
                     self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
                 }
+                if warn && t.sym == self.syms.va_opt && !variadic && t.param == NO_PARAM {
+                    // cpp's warning; the name stays a plain identifier.
+                    let l = self.tok_labels(&site, "here");
+                    self.warn("__VA_OPT__ can only appear in the expansion of a C++20 variadic macro", l);
+                }
             }
             if va_opt_name {
                 if open_va_opt.is_some() {
