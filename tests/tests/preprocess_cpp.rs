@@ -422,3 +422,137 @@ fn random_if_expressions_match_cpp() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }
+
+/// Replacement lists longer than Kiln keeps as tokens at their `#define` (4096) are read
+/// again from the source on first use: parameters, `#`, `##`, `__VA_OPT__`, a comment and a
+/// line splice inside, an identical redefinition, and `#undef` of one never used.
+#[test]
+fn long_definitions_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut program = String::from("#define STR(x) #x\n#define XSTR(x) STR(x)\n");
+    let func: String = (0..800).map(|i| format!(" a{i} + b ## {i} #a __VA_OPT__(, __VA_ARGS__) /* c */")).collect();
+    program.push_str(&format!("#define L1(a, b, ...){func}\n"));
+    program.push_str(&format!("#define L1(a, b, ...){func}\n"));
+    program.push_str("L1(p, q) L1(p, q, r, s)\nXSTR((L1(x, y, z)))\n");
+    let obj: String = (0..3000).map(|i| format!(" y{i} z ## {i}")).collect();
+    program.push_str(&format!("#define L2{obj} \\\n tail\nL2 L2\n"));
+    let unused: String = (0..5000).map(|i| format!(" u{i}")).collect();
+    program.push_str(&format!("#define L3{unused}\n#undef L3\nL3\n"));
+    let name = PathBuf::from("long.usf");
+    std::fs::write(dir.path().join(&name), &program).expect("write");
+    if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+        panic!("cpp must accept the program:\n{e}");
+    }
+    if let Some(f) = compare(dir.path(), &name, &[]) {
+        panic!("{}", &f[..f.len().min(4000)]);
+    }
+}
+
+/// Small programs where Kiln once differed from cpp (issue 16): `##` at a line start is text,
+/// not a directive (also in a skipped group, and `%:%:`); a lone CR ends a line as `\n` does
+/// (and CRLF), in text, directives, splices, comments and `__LINE__`.
+#[test]
+fn line_starts_and_line_endings_match_cpp() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let cases: [(&str, &str); 10] = [
+        ("hash_hash", "a\n## b\n  ## c\n%:%: d\n#define X 1\nX ## X\n"),
+        ("hash_hash_skipped", "#if 0\n##if 1\n#endif\nok\n#if 0\n## else\nno\n#endif\n"),
+        ("hash_hash_args", "#define F(x) [x]\nF(\n## y\n)\n"),
+        ("cr", "a\r##b\rc\r#define X 1\rX __LINE__\r"),
+        ("crlf", "a\r\n#define X 2\r\nX __LINE__\r\n#if X == 2\r\nyes\r\n#endif\r\n"),
+        ("mixed", "a\r\n\rb\n\r\n#define Y __LINE__\rY\r\n__LINE__\n"),
+        ("cr_splice", "#define Z 1 + \\\r 2\rZ __LINE__\r"),
+        ("cr_comment", "a // comment\rb /* multi\r line */ c\r__LINE__\r"),
+        ("cr_skipped", "#if 0\rno\r#else\ryes __LINE__\r#endif\r"),
+        ("cr_args", "#define F(x, y) x y\rF(1,\r2)\r__LINE__\r"),
+    ];
+    let mut failures = Vec::new();
+    for (name, text) in cases {
+        let file = PathBuf::from(format!("{name}.usf"));
+        std::fs::write(dir.path().join(&file), text).expect("write");
+        if let Err(e) = run_cpp(dir.path(), &file, &[]) {
+            panic!("cpp must accept {name}:\n{e}");
+        }
+        if let Some(f) = compare(dir.path(), &file, &[]) {
+            failures.push(f);
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n\n"));
+}
+
+/// Every punctuator the lexer knows (with digraphs), a few other tokens, and WGSL's `@`.
+const SPACING_TOKENS: [&str; 62] = [
+    "%:%:", "...", "<<=", ">>=", "->", "--", "-=", "++", "+=", "<<", "<=", "<:", "<%", ">>", ">=", "==", "!=", "*=",
+    "/=", "^=", "&&", "&=", "||", "|=", "##", "%=", "%>", "%:", ":>", "[", "]", "(", ")", "{", "}", ".", "&", "*", "+",
+    "-", "~", "!", "/", "%", "<", ">", "^", "|", "?", ":", ";", "=", ",", "#", "@", "x", "L", "u8", "1", ".5", "\"s\"",
+    "'c'",
+];
+
+/// Token spacing (issue 14): `kiln preprocess` keeps apart every pair of tokens that cpp
+/// keeps apart where they meet at a macro expansion's edge (`#define DOT() .` then
+/// `DOT()DOT()DOT()` is `. . .`, Wave's t_9_003). Every pair of tokens above, each made by a
+/// macro (`I(a)I(b)`), a macro then text (`I(a)b`), text then a macro (`a I(b)` where `a`
+/// cannot merge with the name), and three in a row; the token streams must agree.
+#[test]
+fn token_spacing_matches_cpp_for_every_pair() {
+    require_cpp();
+    let dir = tempfile::tempdir().expect("temp dir");
+    // `,` `(` `)` cannot be a macro argument alone: they come from object-like macros.
+    let made = |t: &str| match t {
+        "," => "COMMA".to_string(),
+        "(" => "LP".to_string(),
+        ")" => "RP".to_string(),
+        _ => format!("I({t})"),
+    };
+    let mut program = String::from("#define I(x) x\n#define COMMA ,\n#define LP (\n#define RP )\n#define DOT() .\n");
+    program.push_str("DOT()DOT()DOT()\n");
+    for a in SPACING_TOKENS {
+        for b in SPACING_TOKENS {
+            program.push_str(&format!("{}{}\n", made(a), made(b)));
+            program.push_str(&format!("{}{}{}\n", made(a), made(b), made(a)));
+            // After a macro, text: `b` itself (a `#` at a line start is no longer at one).
+            program.push_str(&format!("{}{b}\n", made(a)));
+            let word_like = a.as_bytes()[a.len() - 1].is_ascii_alphanumeric() || a.ends_with(['"', '\'']);
+            if !word_like && !matches!(a, "#" | "%:" | "##" | "%:%:") {
+                program.push_str(&format!("{a}{}\n", made(b)));
+            }
+        }
+    }
+    let name = PathBuf::from("spacing.usf");
+    std::fs::write(dir.path().join(&name), &program).expect("write");
+    if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+        panic!("cpp must accept the program:\n{}", &e[..e.len().min(3000)]);
+    }
+    let cpp = run_cpp(dir.path(), &name, &[]).expect("cpp");
+    let kiln = run_kiln(dir.path(), &name, &[]).expect("kiln preprocesses it");
+    // Line by line (`-P` may join or drop blank lines, so compare the lines with tokens).
+    let lines = |s: &str| -> Vec<Vec<String>> {
+        s.lines()
+            .map(|l| preprocess::tokens(l).into_iter().map(str::to_string).collect::<Vec<_>>())
+            .filter(|t| !t.is_empty())
+            .collect()
+    };
+    let (a, b) = (lines(&cpp), lines(&kiln));
+    let source: Vec<&str> = program.lines().skip(5).collect();
+    let mut failures = Vec::new();
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        if x != y {
+            failures.push(format!(
+                "{}\n   cpp: {}\n  kiln: {}",
+                source.get(i).unwrap_or(&"?"),
+                x.join(" "),
+                y.join(" ")
+            ));
+        }
+    }
+    assert_eq!(a.len(), b.len(), "line counts differ");
+    assert!(
+        failures.is_empty(),
+        "{} of {} lines differ:\n{}",
+        failures.len(),
+        a.len(),
+        failures[..failures.len().min(30)].join("\n")
+    );
+}

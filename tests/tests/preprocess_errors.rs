@@ -458,3 +458,122 @@ warning: #warning check this
     .trim_start();
     assert_eq!(warnings.trim_end(), expected.trim_end(), "\n{warnings}");
 }
+
+#[test]
+fn issue16_cpp_differences_are_located_errors() {
+    // An unterminated comment in a skipped group is that, not only an unterminated #if.
+    assert_error(
+        &[("main.usf", "#if 0\nskipped\n  /* open\n#endif\n")],
+        r#"
+error: unterminated comment
+  ┌─ main.usf:3:3
+  │
+3 │   /* open
+  │   ^^ this comment is never closed
+"#
+        .trim_start(),
+    );
+    // Nested __VA_OPT__ is an error at its definition, as in cpp.
+    assert_error(
+        &[("main.usf", "#define F(...) a __VA_OPT__(b __VA_OPT__(c) d) e\n")],
+        r#"
+error: __VA_OPT__ may not appear in a __VA_OPT__
+  ┌─ main.usf:1:31
+  │
+1 │ #define F(...) a __VA_OPT__(b __VA_OPT__(c) d) e
+  │                               ^^^^^^^^^^ nested here
+"#
+        .trim_start(),
+    );
+    assert_error(
+        &[("main.usf", "#define F(...) __VA_OPT__(a\n")],
+        r#"
+error: unterminated __VA_OPT__
+  ┌─ main.usf:1:16
+  │
+1 │ #define F(...) __VA_OPT__(a
+  │                ^^^^^^^^^^ this __VA_OPT__ is never closed
+"#
+        .trim_start(),
+    );
+    // Including a directory says so.
+    assert_error(
+        &[("main.usf", "#include \"sub\"\n"), ("sub/a.ush", "")],
+        r#"
+error: #include "sub" names `sub`, which is a directory, not a file
+  ┌─ main.usf:1:10
+  │
+1 │ #include "sub"
+  │          ^^^^^ not a file
+"#
+        .trim_start(),
+    );
+    // A lone CR ends a line: errors after CR-only lines name the right line.
+    assert_error(
+        &[("main.usf", "a\rb\r\n#error here\r")],
+        r#"
+error: #error here
+  ┌─ main.usf:3:1
+  │
+3 │ #error here
+  │ ^^^^^^^^^^^
+"#
+        .trim_start(),
+    );
+}
+
+/// A source that is not UTF-8 is an error at its first bad byte (file, line, column), main
+/// file or included, never replaced silently.
+#[test]
+fn invalid_utf8_is_located() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    std::fs::write(dir.path().join("main.usf"), b"fn f() {}\n#include \"bad.ush\"\n").expect("write");
+    std::fs::write(dir.path().join("bad.ush"), b"// ok\nlet x = 1; // caf\xe9 \xff\n").expect("write");
+    let cache = SourceCache::new(dir.path().to_path_buf());
+    let render = |path: &str| {
+        let e = preprocess::preprocess_file(&dir.path().join(path), &Options::default(), &cache).expect_err(path);
+        preprocess::render(&[e.diagnostic], &cache, false)
+    };
+    let expected_bad = r#"
+error: `bad.ush` is not UTF-8 text
+  ┌─ bad.ush:2:18
+  │
+2 │ let x = 1; // caf� �
+  │                  ^ byte 0xe9
+"#
+    .trim_start();
+    let got = render("main.usf");
+    let expected_main = format!(
+        "{}{}",
+        expected_bad,
+        r#"  │
+  ┌─ main.usf:2:10
+  │
+2 │ #include "bad.ush"
+  │          --------- included here
+"#
+    );
+    assert_eq!(got.trim_end(), expected_main.trim_end(), "\n{got}");
+    // Asked for again (from the cache), and as the main file.
+    let got = render("bad.ush");
+    assert_eq!(got.trim_end(), expected_bad.trim_end(), "\n{got}");
+}
+
+/// A source that is a FIFO (or a device) is refused at once, never read (it would block):
+/// as the main file, and as an include.
+#[test]
+fn non_regular_files_are_refused() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let fifo = dir.path().join("pipe.ush");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status().expect("mkfifo runs");
+    assert!(made.success());
+    std::fs::write(dir.path().join("main.usf"), "#include \"pipe.ush\"\n").expect("write");
+    let cache = SourceCache::new(dir.path().to_path_buf());
+    let e = preprocess::preprocess_file(&fifo, &Options::default(), &cache).expect_err("a FIFO");
+    assert!(e.to_string().ends_with("is not a regular file (a device, FIFO or socket)"), "{e}");
+    let e = preprocess::preprocess_file(&dir.path().join("main.usf"), &Options::default(), &cache).expect_err("a FIFO");
+    let r = preprocess::render(&[e.diagnostic], &cache, false);
+    assert!(r.starts_with("error: #include \"pipe.ush\" names `pipe.ush`, which is a device, FIFO or socket"), "{r}");
+    let e = preprocess::preprocess_file(Path::new("/dev/zero"), &Options::default(), &cache).expect_err("a device");
+    assert!(e.to_string().ends_with("is not a regular file (a device, FIFO or socket)"), "{e}");
+}

@@ -1,8 +1,15 @@
 //! Garbage in, diagnostics out: random and mutated inputs must give an output or an error,
 //! never a panic or a hang.
+//!
+//! The hostile classes of issue 16 have their own loop (`hostile_classes_never_panic_or_hang`):
+//! CR and CRLF line endings, bytes that are not UTF-8, `##` at a line start, nested
+//! `__VA_OPT__`, huge lines, calls with many arguments, long definitions. Each case runs on
+//! its own thread under a time guard, and every error must point at the source.
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::Duration;
 
 use kiln::preprocess::{self, Options, SourceCache};
 
@@ -21,7 +28,17 @@ impl Rng {
 }
 
 /// Pieces that make preprocessor-shaped garbage.
-const PIECES: [&str; 48] = [
+const PIECES: [&str; 58] = [
+    "\r",
+    "\r\n",
+    "\n##",
+    "\n%:%:",
+    "__VA_OPT__(",
+    "#define V(...) ",
+    "V(",
+    "\\\r",
+    "#if 0\n",
+    "#include \"sub\"\n",
     "#",
     "#define ",
     "#undef ",
@@ -88,6 +105,8 @@ fn check(text: &str, what: &str) {
                 assert!(r.starts_with("error"), "{r}");
                 // A panic inside the preprocessor's worker thread comes back as this error.
                 assert!(!r.contains("internal error"), "{r}");
+                // Every error points at the source.
+                assert!(r.contains("┌─ fuzz.usf:"), "an error without a location:\n{r}\non {text:?}");
             }
         }
     }));
@@ -182,5 +201,138 @@ fn deep_nesting_is_an_error_not_a_stack_overflow() {
         let r = preprocess::preprocess_file_id(id, &Options::default(), &cache);
         let e = r.expect_err(what);
         assert!(!e.to_string().contains("internal error"), "{what}: {e}");
+    }
+}
+
+/// A case that takes longer than this hangs (linear work on these inputs takes well under a
+/// second in a debug build).
+const GUARD: Duration = Duration::from_secs(30);
+
+/// Preprocesses `bytes` as a file on disk (so bytes that are not UTF-8 reach the reader) on
+/// its own thread: it must answer within [`GUARD`], without a panic, and an error must be
+/// located (a `┌─ file:line:column` in its rendering).
+fn check_file(dir: &Path, bytes: Vec<u8>, what: &str) {
+    let path = dir.join("fuzz.usf");
+    std::fs::write(&path, &bytes).expect("write");
+    let (tx, rx) = mpsc::channel();
+    let root = dir.to_path_buf();
+    std::thread::spawn(move || {
+        let cache = SourceCache::new(root.clone());
+        let opts = Options { max_output_bytes: 1 << 20, include_roots: vec![root], ..Options::default() };
+        let r = catch_unwind(AssertUnwindSafe(|| match preprocess::preprocess_file(&path, &opts, &cache) {
+            Ok(out) => {
+                let _ = out.map.origin(out.text.len() / 2);
+                Ok(preprocess::render(&out.warnings, &cache, false))
+            }
+            Err(e) => Err(preprocess::render(&[e.diagnostic], &cache, false)),
+        }));
+        let _ = tx.send(r);
+    });
+    let shown = || {
+        let s = String::from_utf8_lossy(&bytes);
+        if s.len() > 400 {
+            format!("{:?}... ({} bytes)", &s[..s.floor_char_boundary(400)], bytes.len())
+        } else {
+            format!("{s:?}")
+        }
+    };
+    match rx.recv_timeout(GUARD) {
+        Err(_) => panic!("{what}: no answer within {GUARD:?} (a hang) on\n{}", shown()),
+        Ok(Err(_)) => panic!("{what}: the preprocessor panicked on\n{}", shown()),
+        Ok(Ok(Ok(_))) => {}
+        Ok(Ok(Err(r))) => {
+            assert!(r.starts_with("error"), "{what}: {r}");
+            assert!(!r.contains("internal error"), "{what}: {r}\non\n{}", shown());
+            assert!(
+                r.contains("┌─ fuzz.usf:") || r.contains("┌─ sub"),
+                "{what}: an error without a location:\n{r}\non\n{}",
+                shown()
+            );
+        }
+    }
+}
+
+/// Pieces of the hostile classes, as bytes.
+const HOSTILE: [&[u8]; 30] = [
+    b"\r",
+    b"\r\n",
+    b"\n",
+    b"\n##",
+    b"##",
+    b"%:%:",
+    b"\xff",
+    b"\xe9",
+    b"\xc3",
+    b"\xf0\x9f",
+    b"\xc3\xa9",
+    b"#define F(...) ",
+    b"#define G(x, y) ",
+    b"__VA_OPT__(",
+    b"__VA_OPT__",
+    b"__VA_ARGS__",
+    b"F(",
+    b"G(",
+    b")",
+    b",",
+    b"#",
+    b" ## ",
+    b"/*",
+    b"*/",
+    b"\\",
+    b"#if 0\n",
+    b"#endif\n",
+    b"__LINE__",
+    b"x",
+    b"\"",
+];
+
+#[test]
+fn hostile_classes_never_panic_or_hang() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    std::fs::create_dir_all(dir.path().join("sub")).expect("mkdir");
+    let iters: usize = std::env::var("KILN_FUZZ_ITERS").ok().and_then(|v| v.parse().ok()).unwrap_or(600);
+    let mut r = Rng(0x0bad_5eed_1616_0001);
+    for i in 0..iters {
+        let mut b = Vec::new();
+        for _ in 0..1 + r.below(40) {
+            b.extend_from_slice(HOSTILE[r.below(HOSTILE.len())]);
+        }
+        check_file(dir.path(), b, &format!("hostile pieces {i}"));
+    }
+    // Big instances of each class, a few sizes each: huge lines, many arguments, long
+    // definitions (used and not), long ## chains, CR-only files, bad bytes deep in a file.
+    let big = |n: usize| -> Vec<(String, Vec<u8>)> {
+        vec![
+            ("__LINE__ on one line".into(), "__LINE__ ".repeat(n).into_bytes()),
+            ("many arguments".into(), format!("#define G(x, y) x\nG({})\n", "a,".repeat(n)).into_bytes()),
+            ("many arguments, unterminated".into(), format!("#define G(x, y) x\nG({}", "(a),".repeat(n)).into_bytes()),
+            (
+                "variadic, many arguments".into(),
+                format!("#define F(...) __VA_OPT__(<__VA_ARGS__>)\nF({})\n", "a,".repeat(n)).into_bytes(),
+            ),
+            ("a long definition".into(), format!("#define L {}\nL L\n", "t + ".repeat(n)).into_bytes()),
+            ("a long unused definition".into(), format!("#define L(x) {} x\n", "#x ## y".repeat(n)).into_bytes()),
+            ("a long ## chain".into(), format!("#define P {}\nP\n", "a ## ".repeat(n) + "b").into_bytes()),
+            ("CR-only lines".into(), "#define X 1\rX __LINE__\r##\r".repeat(n / 8 + 1).into_bytes()),
+            (
+                "nested __VA_OPT__".into(),
+                format!("#define F(...) {}\n", "__VA_OPT__(".repeat(n / 100 + 2)).into_bytes(),
+            ),
+            ("a huge line of punctuation".into(), "+-*/%<>=!&|^~?:;.,#".repeat(n / 4).into_bytes()),
+            ("bad bytes at the end".into(), {
+                let mut v = "x\n".repeat(n).into_bytes();
+                v.extend_from_slice(b"caf\xe9\n");
+                v
+            }),
+            (
+                "unterminated comment skipped".into(),
+                format!("#if 0\n{}/* open\n#endif\n", "x\r".repeat(n)).into_bytes(),
+            ),
+        ]
+    };
+    for n in [1_000, 40_000] {
+        for (what, bytes) in big(n) {
+            check_file(dir.path(), bytes, &format!("{what} ({n})"));
+        }
     }
 }

@@ -175,6 +175,13 @@ pub fn punct_len(src: &[u8], pos: usize) -> usize {
     }
 }
 
+/// Whether a punctuator's text opens a directive at a line start: `#` or `%:`, never `##` or
+/// `%:%:` (cpp passes a line starting with `##` through as text).
+#[inline]
+pub fn is_directive_hash(punct: &[u8]) -> bool {
+    punct == b"#" || punct == b"%:"
+}
+
 /// Index of the next `\n` at or after `from`, or `src.len()`.
 #[inline]
 pub fn memchr_nl(src: &[u8], from: usize) -> usize {
@@ -225,6 +232,50 @@ pub fn would_paste(a: &[u8], b: &[u8]) -> bool {
     // `u8` + `"x"` is fine for the lexer above only because we lexed `u8` first; check the
     // string prefixes explicitly the way cpp does (a name followed by a literal).
     matches!(kind, Kind::Ident) && matches!(b[0], b'"' | b'\'')
+}
+
+/// GNU cpp's `cpp_avoid_paste`: whether cpp prints a space between `a` and `b` where they meet
+/// across a macro expansion's edge. Its rule is by pairs and errs towards a space, so it also
+/// keeps apart tokens that only a third one would merge (`.` `.` `.` is not `...`).
+pub fn cpp_avoid_paste(a: &[u8], b: &[u8]) -> bool {
+    if a.is_empty() || b.is_empty() {
+        return false;
+    }
+    let (ka, la) = next(a, 0);
+    let (kb, _) = next(b, 0);
+    // The first character of `b` when it is a punctuator (cpp's `c`).
+    let c = if kb == Kind::Punct { b[0] } else { 0 };
+    if ka == Kind::Punct && la == a.len() {
+        if c == b'='
+            && matches!(
+                a,
+                b"=" | b"!" | b">" | b"<" | b"+" | b"-" | b"*" | b"/" | b"%" | b"&" | b"|" | b"^" | b">>" | b"<<"
+            )
+        {
+            return true;
+        }
+        return match a {
+            b">" => c == b'>',
+            b"<" => matches!(c, b'<' | b'%' | b':'),
+            b"+" => c == b'+',
+            b"-" => matches!(c, b'-' | b'>'),
+            b"/" => matches!(c, b'/' | b'*'),
+            b"%" => matches!(c, b':' | b'%'),
+            b"&" => c == b'&',
+            b"|" => c == b'|',
+            b":" => matches!(c, b':' | b'>'),
+            b"->" => c == b'*',
+            b"." => matches!(c, b'.' | b'%') || kb == Kind::Number,
+            b"#" | b"%:" => matches!(c, b'#' | b'%'),
+            _ => false,
+        };
+    }
+    match ka {
+        Kind::Ident => matches!(kb, Kind::Ident | Kind::Char { .. } | Kind::Str { .. }),
+        Kind::Number => matches!(kb, Kind::Number | Kind::Ident | Kind::Char { .. }) || matches!(c, b'.' | b'+' | b'-'),
+        Kind::Other => a[0] == b'\\' && kb == Kind::Ident,
+        _ => false,
+    }
 }
 
 #[cfg(test)]
@@ -302,5 +353,19 @@ mod tests {
         assert!(!would_paste(b"(", b"a"));
         assert!(!would_paste(b"a", b"("));
         assert!(!would_paste(b"+", b"-"));
+    }
+
+    #[test]
+    fn avoid_paste_like_cpp() {
+        assert!(cpp_avoid_paste(b".", b"."));
+        assert!(cpp_avoid_paste(b".", b"5"));
+        assert!(cpp_avoid_paste(b"%:", b"%:"));
+        assert!(cpp_avoid_paste(b"<<", b"="));
+        assert!(cpp_avoid_paste(b"1", b"+"));
+        assert!(cpp_avoid_paste(b"x", b"'c'"));
+        assert!(!cpp_avoid_paste(b"(", b"("));
+        assert!(!cpp_avoid_paste(b"+", b"-"));
+        assert!(!cpp_avoid_paste(b"==", b"="));
+        assert!(!cpp_avoid_paste(b"x", b"("));
     }
 }

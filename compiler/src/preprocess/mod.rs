@@ -8,7 +8,11 @@
 //! macros, `#`/`##`, `__VA_ARGS__`, `defined`, 64-bit `#if` arithmetic, `__LINE__`/`__FILE__`);
 //! WGSL punctuation passes through untouched; an include never leaves its root; each file is
 //! read once per [`SourceCache`]; every error is one located codespan diagnostic with its
-//! include chain; expansion depth and output size are bounded, and no input panics.
+//! include chain; expansion depth and output size are bounded, and no input panics. A source
+//! must be UTF-8 (its first other byte is a located error, never replaced); a lone CR ends a
+//! line as in cpp. Time and memory are linear in the input: no per-token work rescans a
+//! line, an argument list or a definition, and a definition too long to keep as tokens is
+//! read again from its text when first used.
 
 mod engine;
 pub mod expr;
@@ -46,7 +50,7 @@ pub struct Options {
     pub max_expansion_depth: usize,
     /// Largest output, in bytes. Macro expansion may make at most a quarter as many tokens,
     /// and at most a million plus eight per byte of input read, so a macro bomb fails within
-    /// milliseconds, in bounded memory.
+    /// milliseconds, in bounded memory; text made by `#` and `##` counts against it too.
     pub max_output_bytes: usize,
 }
 
@@ -179,8 +183,13 @@ pub fn resolve_source(spelling: &str, opts: &Options) -> Result<PathBuf, Error> 
 pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
     let canonical =
         path.canonicalize().map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
-    let (id, _) =
-        cache.load(&canonical).map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
+    let (id, _) = cache.load(&canonical).map_err(|e| {
+        let shown = match e {
+            source::LoadError::NotUtf8 { .. } => cache.display_name(&canonical),
+            source::LoadError::Io(_) => path.display().to_string(),
+        };
+        e.into_error(&shown, Vec::new())
+    })?;
     // `__FILE__` spells the main file as it was given, like cpp does.
     let name = if path.is_relative() { Some(path.to_string_lossy().into_owned()) } else { None };
     engine::run_named(id, name, opts, cache)

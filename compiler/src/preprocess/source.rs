@@ -7,9 +7,17 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
+use codespan_reporting::diagnostic::Label;
 use codespan_reporting::files::{self, Files};
 
 use super::lexer::{self, Kind};
+
+/// Largest source file (offsets are 32-bit, with room for splicing).
+const MAX_FILE_BYTES: u64 = (u32::MAX / 2) as u64;
+
+/// Files larger than this get no token table (it takes four bytes per byte of text): they
+/// are lexed as they are read, so a huge input costs little more memory than its text.
+const MAX_TABLE_TEXT: usize = 16 << 20;
 
 /// Lengths up to this fit in a token table entry; longer tokens are lexed each time.
 const MAX_PACKED_LEN: usize = (1 << 27) - 1;
@@ -88,6 +96,9 @@ pub struct SourceFile {
     /// `(spliced offset, original offset)` at each point where the two stop moving together.
     splices: Vec<(u32, u32)>,
     line_starts: Vec<usize>,
+    /// The first byte that is not UTF-8 (its offset and value); `original` then holds the
+    /// text with U+FFFD in its place (at the same offset), for showing the error.
+    pub(crate) bad_utf8: Option<(usize, u8)>,
     /// The lexer's answer at each token start of one pass over [`SourceFile::text`],
     /// packed (see [`SourceFile::lex`]); 0 elsewhere. Made on first use: every
     /// permutation then reads its tokens instead of lexing the file again.
@@ -100,6 +111,9 @@ impl SourceFile {
     /// almost always are), else lexed now.
     #[inline]
     pub(crate) fn lex(&self, pos: usize) -> (Kind, usize) {
+        if self.text().len() > MAX_TABLE_TEXT {
+            return lexer::next(self.text().as_bytes(), pos);
+        }
         let table = self.tokens.get_or_init(|| token_table(self.text().as_bytes()));
         match table.get(pos).and_then(|&t| unpack(t)) {
             Some(token) => token,
@@ -109,8 +123,17 @@ impl SourceFile {
 
     fn new(path: PathBuf, name: String, original: String) -> SourceFile {
         let (spliced, splices) = splice(&original);
-        let line_starts = files::line_starts(&original).collect();
-        SourceFile { path, name, original, spliced, splices, line_starts, tokens: std::sync::OnceLock::new() }
+        let line_starts = line_starts(original.as_bytes());
+        SourceFile {
+            path,
+            name,
+            original,
+            spliced,
+            splices,
+            line_starts,
+            bad_utf8: None,
+            tokens: std::sync::OnceLock::new(),
+        }
     }
 
     /// The text the lexer works on.
@@ -149,6 +172,12 @@ impl SourceFile {
         start..end
     }
 
+    /// 1-based line of an original byte offset: a binary search, never a scan of the line
+    /// (`__LINE__` asks for it once per use).
+    pub fn line(&self, at: usize) -> usize {
+        self.line_starts.partition_point(|&s| s <= at).max(1)
+    }
+
     /// 1-based line and column (in characters) of an original byte offset.
     pub fn line_col(&self, at: usize) -> (usize, usize) {
         let line = self.line_starts.partition_point(|&s| s <= at).saturating_sub(1);
@@ -159,18 +188,53 @@ impl SourceFile {
     }
 }
 
-/// Phases 1 and 2: trigraphs (cpp -std=c11 replaces them) and backslash-newline splices
-/// (GNU: whitespace between the backslash and the newline is allowed).
+/// Offsets where lines start: after each `\n`, and after each `\r` not followed by `\n` (a
+/// lone CR ends a line, as in cpp).
+fn line_starts(text: &[u8]) -> Vec<usize> {
+    let mut starts = vec![0];
+    for (i, &c) in text.iter().enumerate() {
+        if c == b'\n' || (c == b'\r' && text.get(i + 1) != Some(&b'\n')) {
+            starts.push(i + 1);
+        }
+    }
+    starts
+}
+
+/// A lone `\r` (old Mac line ending): a newline to cpp, a `\n` here. The replacement keeps
+/// every offset, so no map entry is needed. `\r\n` stays (the `\r` lexes as a space).
+fn lone_cr_to_lf(text: &[u8]) -> Option<Vec<u8>> {
+    let lone = |i: usize| text[i] == b'\r' && text.get(i + 1) != Some(&b'\n');
+    let first = (0..text.len()).find(|&i| lone(i))?;
+    let mut out = text.to_vec();
+    for i in first..text.len() {
+        if lone(i) {
+            out[i] = b'\n';
+        }
+    }
+    Some(out)
+}
+
+/// Phases 1 and 2: line endings (a lone CR is a newline), trigraphs (cpp -std=c11 replaces
+/// them) and backslash-newline splices (GNU: whitespace between the backslash and the newline
+/// is allowed).
 fn splice(text: &str) -> (Option<String>, Vec<(u32, u32)>) {
-    let b = text.as_bytes();
+    let normalized = lone_cr_to_lf(text.as_bytes());
+    let b = normalized.as_deref().unwrap_or(text.as_bytes());
     let has_work = b.windows(2).any(|w| w == b"??") || b.contains(&b'\\');
     if !has_work {
-        return (None, Vec::new());
+        // Only lone CRs were replaced (an ASCII byte for an ASCII byte: still UTF-8).
+        return match normalized {
+            Some(n) => (
+                Some(String::from_utf8(n).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned())),
+                Vec::new(),
+            ),
+            None => (None, Vec::new()),
+        };
     }
     let mut out: Vec<u8> = Vec::with_capacity(b.len());
     let mut map = Vec::new();
     let mut i = 0;
-    let mut changed = false;
+    let mut changed = normalized.is_some();
     while i < b.len() {
         let c = b[i];
         if c == b'?' && i + 2 < b.len() && b[i + 1] == b'?' {
@@ -229,6 +293,32 @@ fn splice_end(b: &[u8], from: usize) -> Option<usize> {
         j += 1;
     }
     (j < b.len() && b[j] == b'\n').then_some(j + 1)
+}
+
+/// Why [`SourceCache::load`] gave no text.
+#[derive(Debug)]
+pub(crate) enum LoadError {
+    Io(std::io::Error),
+    /// The file is in the cache (for showing the error), with U+FFFD at `offset`.
+    NotUtf8 {
+        file: FileId,
+        offset: usize,
+        byte: u8,
+    },
+}
+
+impl LoadError {
+    /// The located error, with `labels` (an include chain) after the primary label.
+    pub(crate) fn into_error(self, shown: &str, mut labels: Vec<Label<FileId>>) -> super::Error {
+        match self {
+            LoadError::Io(e) => super::Error::new(format!("cannot read `{shown}`: {e}"), labels),
+            LoadError::NotUtf8 { file, offset, byte } => {
+                // U+FFFD stands for the byte: three bytes of the shown text.
+                labels.insert(0, Label::primary(file, offset..offset + 3).with_message(format!("byte 0x{byte:02x}")));
+                super::Error::new(format!("`{shown}` is not UTF-8 text"), labels)
+            }
+        }
+    }
 }
 
 #[derive(Default)]
@@ -294,26 +384,53 @@ impl SourceCache {
         }
     }
 
-    /// Loads a file by its canonical path, reading it only the first time.
-    pub(crate) fn load(&self, canonical: &Path) -> std::io::Result<(FileId, Arc<SourceFile>)> {
+    /// Loads a file by its canonical path, reading it only the first time. A file that is
+    /// not UTF-8 is an error (every time it is asked for) that points at its first bad byte.
+    pub(crate) fn load(&self, canonical: &Path) -> Result<(FileId, Arc<SourceFile>), LoadError> {
+        let found = |id: FileId, file: &Arc<SourceFile>| match file.bad_utf8 {
+            Some((offset, byte)) => Err(LoadError::NotUtf8 { file: id, offset, byte }),
+            None => Ok((id, file.clone())),
+        };
         {
             let inner = self.inner.read().unwrap_or_else(|e| e.into_inner());
             if let Some(&id) = inner.by_path.get(canonical) {
-                return Ok((id, inner.files[id.0 as usize].clone()));
+                return found(id, &inner.files[id.0 as usize]);
             }
         }
         // Read under the write lock: two threads wanting the same new file read it once.
         let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
         if let Some(&id) = inner.by_path.get(canonical) {
-            return Ok((id, inner.files[id.0 as usize].clone()));
+            return found(id, &inner.files[id.0 as usize]);
         }
-        let bytes = std::fs::read(canonical)?;
-        let text = String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
-        let file = Arc::new(SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text));
+        // Only regular files: a FIFO or a device would block or never end.
+        let meta = std::fs::metadata(canonical).map_err(LoadError::Io)?;
+        if !meta.is_file() {
+            let what =
+                if meta.is_dir() { "is a directory" } else { "is not a regular file (a device, FIFO or socket)" };
+            return Err(LoadError::Io(std::io::Error::other(what)));
+        }
+        if meta.len() >= MAX_FILE_BYTES {
+            return Err(LoadError::Io(std::io::Error::other(format!(
+                "{} bytes is over the limit of {MAX_FILE_BYTES} bytes for a source file",
+                meta.len()
+            ))));
+        }
+        let bytes = std::fs::read(canonical).map_err(LoadError::Io)?;
+        let (text, bad) = match String::from_utf8(bytes) {
+            Ok(text) => (text, None),
+            Err(e) => {
+                let offset = e.utf8_error().valid_up_to();
+                let byte = e.as_bytes()[offset];
+                (String::from_utf8_lossy(e.as_bytes()).into_owned(), Some((offset, byte)))
+            }
+        };
+        let mut file = SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text);
+        file.bad_utf8 = bad;
+        let file = Arc::new(file);
         let id = FileId(inner.files.len() as u32);
         inner.files.push(file.clone());
         inner.by_path.insert(canonical.to_path_buf(), id);
-        Ok((id, file))
+        found(id, &file)
     }
 
     /// How many files were read from disk or added (tests check "read once").

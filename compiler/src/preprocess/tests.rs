@@ -259,3 +259,50 @@ fn token_hash_fast_paths_agree_with_the_lexer() {
         state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
     }
 }
+
+#[test]
+fn long_definitions_are_read_when_used() {
+    // Past 4096 tokens a body is kept as its place in the source (read on first use).
+    let body: String = (0..5000).map(|i| format!(" t{i}")).collect();
+    let src = format!("#define L(x){body} x\nL(end)\n");
+    let out = pp(&src);
+    assert!(out.starts_with("t0 t1 t2 "), "{}", &out[..40]);
+    assert!(out.ends_with("t4998 t4999 end"), "{}", &out[out.len() - 40..]);
+    // An identical redefinition is quiet, a different one warns.
+    let same = run_with(&format!("#define L{body}\n#define L{body}\n"), &Options::default()).expect("ok");
+    assert!(same.warnings.is_empty());
+    let other = run_with(&format!("#define L{body}\n#define L{body} more\n"), &Options::default()).expect("ok");
+    assert_eq!(other.warnings.len(), 1);
+    assert_eq!(other.warnings[0].message, "\"L\" redefined");
+    // Errors of a long body are found at its definition, used or not.
+    let e = err(&format!("#define L(...){body} __VA_OPT__(a __VA_OPT__(b))\n"));
+    assert_eq!(e, "__VA_OPT__ may not appear in a __VA_OPT__");
+    let e = err(&format!("#define L{body} ##\n"));
+    assert_eq!(e, "'##' cannot appear at either end of a macro expansion");
+    // A used body larger than the expansion budget is an error before it is read.
+    let opts = Options { max_output_bytes: 4096, ..Options::default() };
+    let e = run_with(&format!("#define L{body}\nL\n"), &opts).expect_err("over budget");
+    assert!(e.to_string().starts_with("macro expansion makes more than"), "{e}");
+}
+
+#[test]
+fn va_opt_is_checked_at_its_definition() {
+    assert_eq!(err("#define F(...) a __VA_OPT__(b __VA_OPT__(c) d) e\n"), "__VA_OPT__ may not appear in a __VA_OPT__");
+    assert_eq!(err("#define F(...) a __VA_OPT__(b\n"), "unterminated __VA_OPT__");
+    assert_eq!(err("#define F(...) a __VA_OPT__ b\n"), "__VA_OPT__ must be followed by an open parenthesis");
+    assert_eq!(err("#define F(...) #__VA_OPT__(#__VA_OPT__(x))\n"), "__VA_OPT__ may not appear in a __VA_OPT__");
+    assert_eq!(pp("#define F(...) a __VA_OPT__((b)(c)) d\nF() F(1)"), "a d a ( b ) ( c ) d");
+    // Outside a variadic macro it is a name, with cpp's warning.
+    let out = run_with("#define A a __VA_OPT__(b)\nA\n", &Options::default()).expect("a warning only");
+    assert_eq!(tokens(&out.text).join(" "), "a __VA_OPT__ ( b )");
+    assert_eq!(out.warnings[0].message, "__VA_OPT__ can only appear in the expansion of a C++20 variadic macro");
+}
+
+#[test]
+fn warnings_are_capped() {
+    // One warning per line for 1,500 lines: the first thousand kept, the rest counted.
+    let out = run_with(&"'\n".repeat(1500), &Options::default()).expect("warnings only");
+    assert_eq!(out.warnings.len(), 1001);
+    assert_eq!(out.warnings[0].message, "missing terminating ' character");
+    assert_eq!(out.warnings[1000].message, "500 more warnings not shown");
+}

@@ -10,58 +10,94 @@ impl Pp<'_> {
     /// Reads the rest of the directive line as tokens (comments are spaces; a block comment
     /// may carry the line on). Leaves the frame at the start of the next line.
     pub(super) fn directive_tokens(&mut self) -> PResult<(Vec<Tok>, u32)> {
+        self.directive_rest(usize::MAX)
+    }
+
+    /// [`Pp::directive_tokens`] keeping only the first `keep` tokens: the rest of the line is
+    /// lexed (an unterminated comment is still an error) but neither interned nor stored, so
+    /// a huge `#error` or `#pragma` line costs no memory. A kept line over the token budget
+    /// is an error.
+    pub(super) fn directive_rest(&mut self, keep: usize) -> PResult<(Vec<Tok>, u32)> {
         let Some(frame) = self.frames.last_mut() else {
             return Ok((Vec::new(), 0));
         };
         let source = frame.source.clone();
         let ctx = frame.ctx;
         let mut pos = frame.pos;
-        let mut white = false;
         let mut toks = Vec::new();
-        let end;
-        loop {
-            let (kind, len) = source.lex(pos);
-            match kind {
-                Kind::Eof => {
-                    end = pos;
-                    break;
-                }
-                Kind::Newline => {
-                    end = pos;
-                    pos += 1;
-                    break;
-                }
-                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => white = true,
-                Kind::BlockComment { terminated: false } => {
-                    return self.err_at(
-                        ctx,
-                        pos as u32..pos as u32 + 2,
-                        "unterminated comment",
-                        "this comment is never closed",
+        let limit = self.token_limit();
+        while let Some(t) = self.line_token(&source, ctx, &mut pos, toks.len() < keep)? {
+            if toks.len() < keep {
+                if toks.len() >= limit {
+                    return self.err_tok(
+                        &t,
+                        format!("directive line has more than {limit} tokens"),
+                        "this directive is too long",
                     );
                 }
-                _ => {
-                    let sym = self.it.intern(&source.text()[pos..pos + len]);
-                    let flags = if white { WHITE } else { 0 };
-                    toks.push(Tok {
-                        sym,
-                        ctx,
-                        src: pos as u32,
-                        len: len as u32,
-                        param: NO_PARAM,
-                        kind: tk_of(kind),
-                        flags,
-                    });
-                    white = false;
-                }
+                toks.push(t);
             }
-            pos += len;
+        }
+        let end = pos;
+        if source.text().as_bytes().get(pos) == Some(&b'\n') {
+            pos += 1;
         }
         if let Some(f) = self.frames.last_mut() {
             f.pos = pos;
             f.bol = true;
         }
         Ok((toks, end as u32))
+    }
+
+    /// The next token of a directive line from `*pos` (whitespace and comments skipped; a
+    /// block comment may carry the line on). `None` at the line's `\n` or the end of the
+    /// text, with `*pos` left there. Identifiers and other words are interned only when
+    /// `intern` (else looked up: a word never interned is no parameter or macro name);
+    /// punctuators always are (there are few).
+    pub(super) fn line_token(
+        &mut self,
+        source: &SourceFile,
+        ctx: u32,
+        pos: &mut usize,
+        intern: bool,
+    ) -> PResult<Option<Tok>> {
+        let mut white = false;
+        loop {
+            let at = *pos;
+            let (kind, len) = source.lex(at);
+            match kind {
+                Kind::Eof | Kind::Newline => return Ok(None),
+                Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => white = true,
+                Kind::BlockComment { terminated: false } => {
+                    return self.err_at(
+                        ctx,
+                        at as u32..at as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    );
+                }
+                _ => {
+                    let text = &source.text()[at..at + len];
+                    let sym = if intern || kind == Kind::Punct {
+                        self.it.intern(text)
+                    } else {
+                        self.it.get(text).unwrap_or(NO_SYM)
+                    };
+                    *pos = at + len;
+                    let flags = if white { WHITE } else { 0 };
+                    return Ok(Some(Tok {
+                        sym,
+                        ctx,
+                        src: at as u32,
+                        len: len as u32,
+                        param: NO_PARAM,
+                        kind: tk_of(kind),
+                        flags,
+                    }));
+                }
+            }
+            *pos = at + len;
+        }
     }
 
     /// A directive met while collecting macro arguments: allowed except `#include`.
@@ -100,8 +136,11 @@ impl Pp<'_> {
         }
         match name {
             "define" => {
-                let (toks, _) = self.directive_tokens()?;
-                if toks.is_empty() {
+                let Some(f) = self.frames.last() else {
+                    return Ok(());
+                };
+                let mut p = f.pos;
+                if self.line_token(&source, ctx, &mut p, false)?.is_none() {
                     return self.err_at(
                         ctx,
                         name_range,
@@ -109,10 +148,10 @@ impl Pp<'_> {
                         "expected a macro name",
                     );
                 }
-                self.parse_define(toks, false)
+                self.define_directive()
             }
             "undef" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(2)?;
                 let sym = self.directive_name(&toks, "undef", ctx, name_range)?;
                 if toks.len() > 1 {
                     let l = self.tok_labels(&toks[1], "unexpected");
@@ -135,7 +174,7 @@ impl Pp<'_> {
                 self.include(hash_range.start, p + len)
             }
             "if" | "ifdef" | "ifndef" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = if name == "if" { self.directive_tokens()? } else { self.directive_rest(2)? };
                 let taken = match name {
                     "if" => self.eval_if(toks, ctx, name_range.clone())?,
                     _ => {
@@ -175,7 +214,7 @@ impl Pp<'_> {
                 Ok(())
             }
             "elif" | "else" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(1)?;
                 let Some(f) = self.frames.last_mut() else {
                     return Ok(());
                 };
@@ -206,7 +245,7 @@ impl Pp<'_> {
                 self.skip_group()
             }
             "endif" => {
-                let (toks, _) = self.directive_tokens()?;
+                let (toks, _) = self.directive_rest(1)?;
                 let Some(f) = self.frames.last_mut() else {
                     return Ok(());
                 };
@@ -231,7 +270,7 @@ impl Pp<'_> {
             }
             "error" | "warning" => {
                 let start = p + len;
-                let (_, end) = self.directive_tokens()?;
+                let (_, end) = self.directive_rest(0)?;
                 let msg = text.get(start..end as usize).unwrap_or("").trim();
                 let msg = collapse_comments(msg);
                 let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
@@ -249,12 +288,12 @@ impl Pp<'_> {
             }
             "ident" | "sccs" => {
                 let start = p + len;
-                let (_, end) = self.directive_tokens()?;
+                let (_, end) = self.directive_rest(0)?;
                 let rest = collapse_comments(text.get(start..end as usize).unwrap_or("").trim());
                 self.emit_line(ctx, hash, &format!("#ident {rest}"))
             }
             "assert" | "unassert" => {
-                self.directive_tokens()?;
+                self.directive_rest(0)?;
                 Ok(())
             }
             "" => {
@@ -313,7 +352,7 @@ impl Pp<'_> {
     }
 
     pub(super) fn pragma(&mut self, start: usize, ctx: u32) -> PResult<()> {
-        let (toks, end) = self.directive_tokens()?;
+        let (toks, end) = self.directive_rest(3)?;
         let Some(frame) = self.frames.last() else {
             return Ok(());
         };
@@ -373,7 +412,7 @@ impl Pp<'_> {
 
     pub(super) fn line_directive(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<()> {
         let line_here = match self.frames.last() {
-            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64,
+            Some(f) => f.source.line(f.source.original_offset(at.start as usize)) as i64,
             None => return Ok(()),
         };
         let toks = self.expand_line(toks, Some(line_here))?;
@@ -434,7 +473,7 @@ impl Pp<'_> {
     /// Evaluates an `#if`/`#elif` line.
     pub(super) fn eval_if(&mut self, toks: Vec<Tok>, ctx: u32, at: Range<u32>) -> PResult<bool> {
         let line = match self.frames.last() {
-            Some(f) => f.source.line_col(f.source.original_offset(at.start as usize)).0 as i64 + f.line_delta,
+            Some(f) => f.source.line(f.source.original_offset(at.start as usize)) as i64 + f.line_delta,
             None => 0,
         };
         let Some(first) = toks.first().copied() else {
@@ -597,7 +636,7 @@ impl Pp<'_> {
                 return Ok(()); // end_of_file reports the open conditional
             }
             let (kind, len) = source.lex(p);
-            let is_hash = kind == Kind::Punct && (bytes[p] == b'#' || &bytes[p..p + len] == b"%:");
+            let is_hash = kind == Kind::Punct && lexer::is_directive_hash(&bytes[p..p + len]);
             if is_hash {
                 let hash = p;
                 let (name, q, l) = directive_name(text, p + len);
@@ -664,7 +703,18 @@ impl Pp<'_> {
                 }
             }
             // Skip to the end of this line, honouring comments and literals.
-            pos = skip_line(bytes, p);
+            pos = match skip_line(bytes, p) {
+                Ok(next) => next,
+                // cpp reports it too (and then the open conditional).
+                Err(at) => {
+                    return self.err_at(
+                        ctx,
+                        at as u32..at as u32 + 2,
+                        "unterminated comment",
+                        "this comment is never closed",
+                    )
+                }
+            };
         }
     }
 
@@ -714,7 +764,7 @@ impl Pp<'_> {
                     return self.err_at(ctx, hash..end, "#include expects \"FILENAME\" or <FILENAME>", "no file name");
                 }
                 let range = toks[0].src..end;
-                let line = source.line_col(source.original_offset(hash as usize)).0 as i64;
+                let line = source.line(source.original_offset(hash as usize)) as i64;
                 let exp = self.expand_line(toks, Some(line))?;
                 let (s, angle) = self.computed_header(&exp).ok_or(()).or_else(|_| {
                     self.err_at(
@@ -730,7 +780,7 @@ impl Pp<'_> {
         if let Some(f) = self.frames.last_mut() {
             f.pos = rest_at;
         }
-        let (extra, _) = self.directive_tokens()?;
+        let (extra, _) = self.directive_rest(1)?;
         if let Some(t) = extra.first() {
             let l = self.tok_labels(t, "unexpected");
             self.warn("extra tokens at end of #include directive", l);
@@ -761,6 +811,19 @@ impl Pp<'_> {
             }
         }
         None
+    }
+
+    /// The first place an include of `spelling` looked that holds something other than a
+    /// regular file (a directory, a FIFO...), and what it is: said instead of "cannot find".
+    pub(super) fn non_file_candidate(&self, spelling: &str, angle: bool) -> Option<(PathBuf, &'static str)> {
+        let mut dirs: Vec<PathBuf> = Vec::new();
+        let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
+        if !angle && !is_virtual {
+            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()) {
+                dirs.push(dir.to_path_buf());
+            }
+        }
+        non_file_in(spelling, self.opts, &dirs)
     }
 
     /// Where an include of `spelling` leads from the current file.
@@ -825,6 +888,15 @@ impl Pp<'_> {
                 );
             }
             Resolved::NotFound => {
+                if let Some((path, what)) = self.non_file_candidate(spelling, angle) {
+                    let shown = self.cache.display_name(&path);
+                    return self.err_at(
+                        ctx,
+                        range,
+                        format!("#include \"{spelling}\" names `{shown}`, which is {what}, not a file"),
+                        "not a file",
+                    );
+                }
                 let mut e = Error::new(
                     format!("cannot find include file `{spelling}`"),
                     self.labels_at(ctx, range, "not found"),
@@ -845,10 +917,14 @@ impl Pp<'_> {
             }
         };
         let (id, source) = self.cache.load(&path).map_err(|e| {
-            Error::new(
-                format!("cannot read `{}`: {e}", self.cache.display_name(&path)),
-                self.labels_at(ctx, range.clone(), "included here"),
-            )
+            let mut labels = self.labels_at(ctx, range.clone(), "included here");
+            if matches!(e, LoadError::NotUtf8 { .. }) {
+                // The bad byte is the primary label; the include line is where it came from.
+                if let Some(first) = labels.first_mut() {
+                    first.style = codespan_reporting::diagnostic::LabelStyle::Secondary;
+                }
+            }
+            e.into_error(&self.cache.display_name(&path), labels)
         })?;
         if source.text().len() >= (u32::MAX / 2) as usize {
             return self.err_at(ctx, range, "included file is too large", "this include");
@@ -876,35 +952,89 @@ impl Pp<'_> {
     // -----------------------------------------------------------------------------------------
     // Definitions
 
-    pub(super) fn parse_define(&mut self, toks: Vec<Tok>, predefined: bool) -> PResult<()> {
-        let name = toks[0];
+    /// The next token of a definition.
+    fn def_next(&mut self, r: &mut DefReader) -> PResult<Option<Tok>> {
+        if let Some(t) = r.peeked.take() {
+            return Ok(t);
+        }
+        match &mut r.src {
+            DefSource::List { toks, at } => {
+                let t = toks.get(*at).copied();
+                *at += 1;
+                Ok(t)
+            }
+            DefSource::Line { source, ctx, pos, intern } => self.line_token(source, *ctx, pos, *intern),
+        }
+    }
+
+    /// The token [`Pp::def_next`] gives next, left in place.
+    fn def_peek(&mut self, r: &mut DefReader) -> PResult<Option<Tok>> {
+        if r.peeked.is_none() {
+            let t = self.def_next(r)?;
+            r.peeked = Some(t);
+        }
+        Ok(r.peeked.flatten())
+    }
+
+    /// `#define` with its tokens read from the current directive line; the frame is left at
+    /// the next line.
+    pub(super) fn define_directive(&mut self) -> PResult<()> {
+        let Some(frame) = self.frames.last() else {
+            return Ok(());
+        };
+        let mut r = DefReader {
+            src: DefSource::Line { source: frame.source.clone(), ctx: frame.ctx, pos: frame.pos, intern: true },
+            peeked: None,
+        };
+        self.parse_define(&mut r, false)?;
+        // Past the replacement list (read to its end) and the newline.
+        if let DefSource::Line { pos, .. } = r.src {
+            if let Some(f) = self.frames.last_mut() {
+                f.pos = pos;
+            }
+        }
+        self.directive_rest(0)?;
+        Ok(())
+    }
+
+    pub(super) fn parse_define(&mut self, r: &mut DefReader, predefined: bool) -> PResult<()> {
+        let Some(name) = self.def_next(r)? else {
+            return match self.frames.last() {
+                Some(f) if !predefined => {
+                    let p = f.pos as u32;
+                    let ctx = f.ctx;
+                    self.err_at(ctx, p..p, "no macro name given in #define directive", "expected a macro name")
+                }
+                _ => Err(Error::new("no macro name given in #define directive", Vec::new())),
+            };
+        };
         if name.kind != TK::Ident {
             return self.err_tok(&name, "macro names must be identifiers", "not an identifier");
         }
         if name.sym == self.syms.defined {
             return self.err_tok(&name, "\"defined\" cannot be used as a macro name", "here");
         }
-        let mut i = 1;
         let mut func = false;
         let mut variadic = false;
         let mut params: Vec<Sym> = Vec::new();
-        if toks.get(1).is_some_and(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
+        // Parameter numbers by name, for duplicate checks and the body: a linear search per
+        // token made a macro with many parameters quadratic.
+        let mut index: HashMap<Sym, u16, FxBuild> = HashMap::default();
+        let first = self.def_peek(r)?;
+        if first.is_some_and(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
+            self.def_next(r)?;
             func = true;
-            i = 2;
+            let mut prev = first.unwrap_or(name);
             let mut expect_param = true;
             loop {
-                let Some(t) = toks.get(i).copied() else {
-                    return self.err_tok(
-                        &toks[i - 1],
-                        "missing ')' in macro parameter list",
-                        "expected ')' after this",
-                    );
+                let Some(t) = self.def_next(r)? else {
+                    return self.err_tok(&prev, "missing ')' in macro parameter list", "expected ')' after this");
                 };
-                i += 1;
+                prev = t;
                 let s = self.it.str(t.sym).to_string();
                 if expect_param {
                     if t.kind == TK::Ident {
-                        if params.contains(&t.sym) {
+                        if index.contains_key(&t.sym) {
                             return self.err_tok(
                                 &t,
                                 format!("duplicate macro parameter \"{s}\""),
@@ -914,17 +1044,21 @@ impl Pp<'_> {
                         if t.sym == self.syms.va_args {
                             return self.err_tok(&t, "__VA_ARGS__ can not be used as a parameter name", "here");
                         }
+                        if params.len() + 1 >= NO_PARAM as usize {
+                            return self.err_tok(&t, "too many macro parameters", "here");
+                        }
+                        index.insert(t.sym, params.len() as u16);
                         params.push(t.sym);
                         expect_param = false;
                         continue;
                     }
                     if s == "..." {
                         variadic = true;
+                        index.insert(self.syms.va_args, params.len() as u16);
                         params.push(self.syms.va_args);
-                        let Some(c) = toks.get(i).copied() else {
+                        let Some(c) = self.def_next(r)? else {
                             return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
                         };
-                        i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
                             return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
                         }
@@ -945,10 +1079,9 @@ impl Pp<'_> {
                     "..." => {
                         // GNU named variadic parameter: `args...`.
                         variadic = true;
-                        let Some(c) = toks.get(i).copied() else {
+                        let Some(c) = self.def_next(r)? else {
                             return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
                         };
-                        i += 1;
                         if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
                             return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
                         }
@@ -957,144 +1090,249 @@ impl Pp<'_> {
                     _ => return self.err_tok(&t, format!("expected ',' or ')', found \"{s}\""), "expected ',' or ')'"),
                 }
             }
-        } else if let Some(t) = toks.get(1) {
+        } else if let Some(t) = first {
             if t.flags & WHITE == 0 && !predefined {
                 let l = self.tok_labels(&name, "here");
                 self.warn("missing whitespace after the macro name", l);
             }
         }
-        let named_variadic = variadic && params.last() != Some(&self.syms.va_args);
-        let mut body: Vec<Tok> = Vec::with_capacity(toks.len() - i);
-        let mut j = i;
-        while j < toks.len() {
-            let mut t = toks[j];
-            t.flags |= FROM_DEF;
-            if body.is_empty() {
-                t.flags &= !WHITE;
-            }
-            let s = self.it.str(t.sym);
-            if t.kind == TK::Punct && (s == "##" || s == "%:%:") {
-                if body.is_empty() || j + 1 == toks.len() {
-                    return self.err_tok(&toks[j], "'##' cannot appear at either end of a macro expansion", "here");
-                }
-                if let Some(last) = body.last_mut() {
-                    last.flags |= PASTE_LEFT;
-                }
-                j += 1;
-                continue;
-            }
-            if func && t.kind == TK::Punct && (s == "#" || s == "%:") {
-                let next = toks.get(j + 1).copied();
-                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
-                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
-                    body.push(Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
-                    j += 2;
-                    continue;
-                }
-                match next.filter(|n| n.kind == TK::Ident).and_then(|n| params.iter().position(|&p| p == n.sym)) {
-                    Some(pi) => {
-                        let n = toks[j + 1];
-                        body.push(Tok { param: pi as u16, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n });
-                        j += 2;
-                        continue;
-                    }
-                    None => return self.err_tok(&toks[j], "'#' is not followed by a macro parameter", "here"),
-                }
-            }
-            if t.kind == TK::Ident {
-                if func {
-                    if let Some(pi) = params.iter().position(|&p| p == t.sym) {
-                        t.param = pi as u16;
-                    }
-                }
-                if t.sym == self.syms.va_args && (!variadic || named_variadic) && t.param == NO_PARAM {
-                    let l = self.tok_labels(&toks[j], "here");
-                    self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
-                }
-            }
-            body.push(t);
-            j += 1;
-        }
-        // GNU `, ## __VA_ARGS__`.
-        if variadic {
-            let va = (params.len() - 1) as u16;
-            for k in 0..body.len().saturating_sub(1) {
-                if body[k].kind == TK::Punct
-                    && body[k].sym == self.syms.comma
-                    && body[k].flags & PASTE_LEFT != 0
-                    && body[k + 1].param == va
-                    && body[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
-                {
-                    body[k].flags |= VA_COMMA;
-                }
-            }
-        }
-        if params.len() >= NO_PARAM as usize {
-            return self.err_tok(&name, "too many macro parameters", "here");
-        }
-        let pastes = body.iter().any(|t| t.flags & (PASTE_LEFT | VA_COMMA) != 0);
-        let va_opt = variadic && body.iter().any(|t| t.kind == TK::Ident && t.sym == self.syms.va_opt);
+        let shape = Shape { func, variadic, params: &params, index: &index };
+        let keep = if predefined { usize::MAX } else { LAZY_BODY_TOKENS };
+        let body = self.read_body(r, &shape, keep, true)?;
+        let lazy = match (&body.toks, body.start) {
+            (None, Some(start)) => Some(LazyBody { ctx: name.ctx, start, len: body.len }),
+            _ => None,
+        };
         let m = Macro {
             func,
             variadic,
             params,
-            body: body.into(),
-            pastes,
-            va_opt,
+            body: body.toks.unwrap_or_default().into(),
+            lazy,
+            pastes: body.pastes,
+            va_opt: body.va_opt,
             builtin: Builtin::None,
             ctx: name.ctx,
             site: name.src..name.src + name.len,
             disabled: false,
         };
         let old = self.macro_idx(name.sym);
-        if old != NONE {
+        let new = self.set_macro(name.sym, m);
+        if old != NONE && !self.same_definition(old, new)? {
             let prev = &self.defs[old as usize];
-            if !self.same_definition(prev, &m) {
-                let n = self.it.str(name.sym).to_string();
-                let mut labels = self.tok_labels(&name, "redefined here");
-                if prev.ctx != NONE {
-                    if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
-                        let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
-                        labels.push(Label::secondary(c.file, r).with_message("previous definition"));
-                    }
+            let n = self.it.str(name.sym).to_string();
+            let mut labels = self.tok_labels(&name, "redefined here");
+            if prev.ctx != NONE {
+                if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
+                    let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
+                    labels.push(Label::secondary(c.file, r).with_message("previous definition"));
                 }
-                self.warn(format!("\"{n}\" redefined"), labels);
             }
+            self.warn(format!("\"{n}\" redefined"), labels);
         }
-        self.set_macro(name.sym, m);
         Ok(())
     }
 
-    pub(super) fn same_definition(&self, a: &Macro, b: &Macro) -> bool {
+    /// Reads a replacement list from `r`: `#` and `##` made flags, parameters numbered,
+    /// `__VA_OPT__` checked (cpp's errors: nested, without `(`, unterminated). Keeps at most
+    /// `keep` tokens; past that it only checks and counts, and the list is read again from
+    /// its source when first expanded ([`Pp::body_of`]). `warn`: report warnings (the first
+    /// reading does, a re-reading does not).
+    fn read_body(&mut self, r: &mut DefReader, shape: &Shape, keep: usize, warn: bool) -> PResult<Body> {
+        let Shape { func, variadic, params, index } = *shape;
+        let named_variadic = variadic && params.last() != Some(&self.syms.va_args);
+        let param_of = |sym: Sym| index.get(&sym).copied();
+        let mut body: Option<Vec<Tok>> = Some(Vec::new());
+        let mut len = 0usize;
+        let mut start = None;
+        let (mut pastes, mut va_opt) = (false, false);
+        // The `__VA_OPT__` being read and the depth of parentheses inside it.
+        let mut open_va_opt: Option<(Tok, usize)> = None;
+        while let Some(mut t) = self.def_next(r)? {
+            if start.is_none() {
+                start = Some(t.src);
+            }
+            // Where errors point: the token as it is in the file.
+            let mut site = t;
+            t.flags |= FROM_DEF;
+            if len == 0 {
+                t.flags &= !WHITE;
+            }
+            let s = self.it.str(t.sym);
+            let is_paste = t.kind == TK::Punct && (s == "##" || s == "%:%:");
+            let is_hash = t.kind == TK::Punct && (s == "#" || s == "%:");
+            if is_paste {
+                if len == 0 || self.def_peek(r)?.is_none() {
+                    return self.err_tok(&site, "'##' cannot appear at either end of a macro expansion", "here");
+                }
+                if let Some(last) = body.as_mut().and_then(|b| b.last_mut()) {
+                    last.flags |= PASTE_LEFT;
+                }
+                pastes = true;
+                continue;
+            }
+            let mut va_opt_name = variadic && t.kind == TK::Ident && t.sym == self.syms.va_opt;
+            if func && is_hash {
+                let next = self.def_peek(r)?;
+                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
+                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
+                    self.def_next(r)?;
+                    site = n;
+                    t = Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
+                    va_opt_name = true;
+                } else {
+                    match next.filter(|n| n.kind == TK::Ident).and_then(|n| param_of(n.sym)) {
+                        Some(pi) => {
+                            let Some(n) = self.def_next(r)? else {
+                                return self.err_tok(&site, "'#' is not followed by a macro parameter", "here");
+                            };
+                            t = Tok { param: pi, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
+                        }
+                        None => return self.err_tok(&site, "'#' is not followed by a macro parameter", "here"),
+                    }
+                }
+            } else if t.kind == TK::Ident {
+                if func {
+                    if let Some(pi) = param_of(t.sym) {
+                        t.param = pi;
+                    }
+                }
+                if warn && t.sym == self.syms.va_args && (!variadic || named_variadic) && t.param == NO_PARAM {
+                    let l = self.tok_labels(&site, "here");
+                    self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
+                }
+                if warn && t.sym == self.syms.va_opt && !variadic && t.param == NO_PARAM {
+                    // cpp's warning; the name stays a plain identifier.
+                    let l = self.tok_labels(&site, "here");
+                    self.warn("__VA_OPT__ can only appear in the expansion of a C++20 variadic macro", l);
+                }
+            }
+            if va_opt_name {
+                if open_va_opt.is_some() {
+                    return self.err_tok(&site, "__VA_OPT__ may not appear in a __VA_OPT__", "nested here");
+                }
+                let opens = self.def_peek(r)?.is_some_and(|n| n.kind == TK::Punct && n.sym == self.syms.lparen);
+                if !opens {
+                    return self.err_tok(&site, "__VA_OPT__ must be followed by an open parenthesis", "here");
+                }
+                open_va_opt = Some((site, 0));
+                va_opt = true;
+            } else if let Some((_, depth)) = open_va_opt.as_mut() {
+                if t.kind == TK::Punct && t.sym == self.syms.lparen {
+                    *depth += 1;
+                } else if t.kind == TK::Punct && t.sym == self.syms.rparen {
+                    *depth -= 1;
+                    if *depth == 0 {
+                        open_va_opt = None;
+                    }
+                }
+            }
+            len += 1;
+            if let Some(b) = body.as_mut() {
+                if b.len() < keep {
+                    b.push(t);
+                } else {
+                    // From here only checked: the rest of the words need not be interned.
+                    body = None;
+                    if let DefSource::Line { intern, .. } = &mut r.src {
+                        *intern = false;
+                    }
+                }
+            }
+        }
+        if let Some((t, _)) = open_va_opt {
+            return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
+        }
+        // GNU `, ## __VA_ARGS__`.
+        if let (true, Some(b)) = (variadic, body.as_mut()) {
+            let va = (params.len() - 1) as u16;
+            for k in 0..b.len().saturating_sub(1) {
+                if b[k].kind == TK::Punct
+                    && b[k].sym == self.syms.comma
+                    && b[k].flags & PASTE_LEFT != 0
+                    && b[k + 1].param == va
+                    && b[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
+                {
+                    b[k].flags |= VA_COMMA;
+                }
+            }
+        }
+        Ok(Body { toks: body, len, start, pastes, va_opt })
+    }
+
+    /// The replacement list of macro `m`, read again from its source first if it was too long
+    /// to keep ([`LazyBody`]). A list that would exceed the expansion budget is an error
+    /// before it is read.
+    pub(super) fn body_of(&mut self, m: u32, at: &Tok) -> PResult<Arc<[Tok]>> {
+        let mac = &self.defs[m as usize];
+        let Some(lazy) = mac.lazy else {
+            return Ok(mac.body.clone());
+        };
+        if self.made.saturating_add(lazy.len) > self.token_limit() {
+            let limit = self.token_limit();
+            return self.err_tok(at, format!("macro expansion makes more than {limit} tokens"), "while expanding this");
+        }
+        let Some(source) = self.map.ctxs.get(lazy.ctx as usize).map(|c| c.source.clone()) else {
+            return Ok(mac.body.clone());
+        };
+        let params = mac.params.clone();
+        let (func, variadic) = (mac.func, mac.variadic);
+        let index: HashMap<Sym, u16, FxBuild> = params.iter().enumerate().map(|(i, &p)| (p, i as u16)).collect();
+        let mut r = DefReader {
+            src: DefSource::Line { source, ctx: lazy.ctx, pos: lazy.start as usize, intern: true },
+            peeked: None,
+        };
+        let shape = Shape { func, variadic, params: &params, index: &index };
+        let body = self.read_body(&mut r, &shape, usize::MAX, false)?;
+        let toks: Arc<[Tok]> = body.toks.unwrap_or_default().into();
+        let mac = &mut self.defs[m as usize];
+        mac.body = toks.clone();
+        mac.lazy = None;
+        Ok(toks)
+    }
+
+    /// Whether definitions `a` and `b` are the same (cpp's rule: same parameters, same
+    /// tokens with the same whitespace between them). Long bodies are read for it.
+    pub(super) fn same_definition(&mut self, a: u32, b: u32) -> PResult<bool> {
         const CMP: u8 = WHITE | PASTE_LEFT | STRINGIFY;
-        a.builtin == b.builtin
-            && a.func == b.func
-            && a.variadic == b.variadic
-            && a.params == b.params
-            && a.body.len() == b.body.len()
-            && a.body.iter().zip(b.body.iter()).enumerate().all(|(i, (x, y))| {
-                x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))
-            })
+        let (x, y) = (&self.defs[a as usize], &self.defs[b as usize]);
+        let len = |m: &Macro| m.lazy.map_or(m.body.len(), |l| l.len);
+        if x.builtin != y.builtin
+            || x.func != y.func
+            || x.variadic != y.variadic
+            || x.params != y.params
+            || len(x) != len(y)
+        {
+            return Ok(false);
+        }
+        let at = Tok { ctx: y.ctx, src: y.site.start, len: y.site.end - y.site.start, ..Tok::eof() };
+        let (x, y) = (self.body_of(a, &at)?, self.body_of(b, &at)?);
+        Ok(x.iter()
+            .zip(y.iter())
+            .enumerate()
+            .all(|(i, (x, y))| x.sym == y.sym && x.param == y.param && (i == 0 || (x.flags & CMP) == (y.flags & CMP))))
     }
 }
 
 /// Skips to the start of the next line from `p`, treating comments and literals as cpp does
-/// in a skipped group (a block comment may run over several lines).
-fn skip_line(bytes: &[u8], mut p: usize) -> usize {
+/// in a skipped group (a block comment may run over several lines). `Err(at)`: a block
+/// comment at `at` is never closed.
+fn skip_line(bytes: &[u8], mut p: usize) -> Result<usize, usize> {
     while p < bytes.len() {
         match bytes[p] {
-            b'\n' => return p + 1,
+            b'\n' => return Ok(p + 1),
             b'/' | b'"' | b'\'' | b'L' | b'u' | b'U' => {
                 let (kind, len) = lexer::next(bytes, p);
                 match kind {
-                    Kind::LineComment => return lexer::memchr_nl(bytes, p) + 1,
+                    Kind::LineComment => return Ok(lexer::memchr_nl(bytes, p) + 1),
+                    Kind::BlockComment { terminated: false } => return Err(p),
                     _ => p += len.max(1),
                 }
             }
             _ => p += 1,
         }
     }
-    bytes.len()
+    Ok(bytes.len())
 }
 
 /// Directive text with comments replaced by single spaces.
@@ -1131,4 +1369,44 @@ fn directive_name(text: &str, mut pos: usize) -> (&str, usize, usize) {
     let (kind, len) = lexer::next(bytes, pos);
     let name = if kind == Kind::Ident { &text[pos..pos + len] } else { "" };
     (name, pos, len)
+}
+
+/// Where [`Pp::parse_define`] reads tokens, with one token of lookahead.
+pub(super) struct DefReader {
+    src: DefSource,
+    /// `Some(t)`: the next token (`Some(None)`: the end) was already read.
+    peeked: Option<Option<Tok>>,
+}
+
+impl DefReader {
+    pub(super) fn list(toks: Vec<Tok>) -> DefReader {
+        DefReader { src: DefSource::List { toks, at: 0 }, peeked: None }
+    }
+}
+
+enum DefSource {
+    /// Tokens already lexed (predefined macros, `-D`).
+    List { toks: Vec<Tok>, at: usize },
+    /// A directive line, lexed as it is read.
+    Line { source: Arc<SourceFile>, ctx: u32, pos: usize, intern: bool },
+}
+
+/// A macro's parameters, as [`Pp::read_body`] needs them.
+#[derive(Clone, Copy)]
+struct Shape<'p> {
+    func: bool,
+    variadic: bool,
+    params: &'p [Sym],
+    index: &'p HashMap<Sym, u16, FxBuild>,
+}
+
+/// What [`Pp::read_body`] read.
+struct Body {
+    /// The tokens, `None` when there were more than it keeps.
+    toks: Option<Vec<Tok>>,
+    len: usize,
+    /// Spliced offset of the first token.
+    start: Option<u32>,
+    pastes: bool,
+    va_opt: bool,
 }

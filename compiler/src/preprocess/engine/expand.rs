@@ -39,7 +39,7 @@ impl Pp<'_> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct if frame.bol && (bytes[pos] == b'#' || &bytes[pos..pos + len] == b"%:") => {
+                Kind::Punct if frame.bol && lexer::is_directive_hash(&bytes[pos..pos + len]) => {
                     frame.pos += len;
                     frame.bol = false;
                     self.directive_in_args(pos)?;
@@ -189,6 +189,21 @@ impl Pp<'_> {
         Ok(())
     }
 
+    /// Counts `n` bytes of text made by `#` and `##` against the output limit: a body that
+    /// stringifies or pastes long arguments many times stops there, not after the work.
+    pub(super) fn spend_bytes(&mut self, n: usize, at: &Tok) -> PResult<()> {
+        self.made_bytes = self.made_bytes.saturating_add(n);
+        if self.made_bytes > self.opts.max_output_bytes {
+            let limit = self.opts.max_output_bytes;
+            return self.err_tok(
+                at,
+                format!("macro expansion makes more than {limit} bytes of stringified or pasted text"),
+                "while expanding this",
+            );
+        }
+        Ok(())
+    }
+
     /// An empty token vector, reusing the storage of finished contexts.
     pub(super) fn take_vec(&mut self) -> Vec<Tok> {
         self.pool.pop().unwrap_or_default()
@@ -225,7 +240,8 @@ impl Pp<'_> {
             return self.builtin(name, mac.builtin);
         }
         if !mac.func {
-            let body = mac.body.clone();
+            let body = self.body_of(m, &name)?;
+            let mac = &self.defs[m as usize];
             let toks = if mac.pastes {
                 self.substitute(m, &name, &body, &[], &mut [])?
             } else {
@@ -272,7 +288,7 @@ impl Pp<'_> {
             args.clear();
         }
         let absent_va = variadic && args.len() < nparams;
-        let mut body = self.defs[m as usize].body.clone();
+        let mut body = self.body_of(m, &name)?;
         let mut expanded: Vec<Option<Vec<Tok>>> = vec![None; args.len()];
         if self.defs[m as usize].va_opt {
             body = self.resolve_va_opt(&body, nparams - 1, &args, &mut expanded, &name)?.into();
@@ -290,6 +306,9 @@ impl Pp<'_> {
         let nparams = self.defs[m as usize].params.len();
         let variadic = self.defs[m as usize].variadic;
         let mut args: Vec<Vec<Tok>> = vec![Vec::new()];
+        // Tokens collected so far, kept as a running count: summing the arguments at each
+        // token made a call with many arguments quadratic.
+        let mut collected = 0usize;
         let mut depth = 0usize;
         loop {
             let Some(mut t) = self.next_raw(true)? else {
@@ -319,7 +338,8 @@ impl Pp<'_> {
             if let Some(a) = args.last_mut() {
                 a.push(t);
             }
-            if self.made + args.iter().map(Vec::len).sum::<usize>() > self.token_limit() {
+            collected += 1;
+            if self.made + collected > self.token_limit() {
                 return self.err_tok(
                     name,
                     "macro arguments exceed the expansion budget",
@@ -405,8 +425,20 @@ impl Pp<'_> {
     ) -> PResult<Vec<Tok>> {
         let mut out: Vec<Tok> = self.take_vec();
         out.reserve(body.len() + args.iter().map(Vec::len).sum::<usize>());
+        // `#x` of each parameter, made once however often the body names it.
+        let mut strung: Vec<Option<Sym>> = Vec::new();
         let mut i = 0;
         while i < body.len() {
+            // A body naming a long argument many times could make a huge list before the
+            // budget sees it (checked here, as it grows).
+            if self.made + out.len() > self.token_limit() {
+                let limit = self.token_limit();
+                return self.err_tok(
+                    name,
+                    format!("macro expansion makes more than {limit} tokens"),
+                    "while expanding this",
+                );
+            }
             let b = body[i];
             let prev_pastes = i > 0 && body[i - 1].flags & PASTE_LEFT != 0;
             if b.flags & VA_COMMA != 0 {
@@ -440,8 +472,19 @@ impl Pp<'_> {
             }
             let pi = b.param as usize;
             if b.flags & STRINGIFY != 0 {
-                let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
-                let sym = self.it.intern(&s);
+                if strung.len() <= pi {
+                    strung.resize(pi + 1, None);
+                }
+                let sym = match strung[pi] {
+                    Some(sym) => sym,
+                    None => {
+                        let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
+                        self.spend_bytes(s.len(), name)?;
+                        let sym = self.it.intern(&s);
+                        strung[pi] = Some(sym);
+                        sym
+                    }
+                };
                 out.push(Tok {
                     sym,
                     kind: TK::Str,
@@ -551,6 +594,7 @@ impl Pp<'_> {
                 let toks =
                     if present { self.substitute_args(NONE, name, inner, args, expanded, false)? } else { Vec::new() };
                 let text = self.stringify(&toks);
+                self.spend_bytes(text.len(), name)?;
                 let sym = self.it.intern(&text);
                 out.push(Tok {
                     sym,
@@ -594,58 +638,86 @@ impl Pp<'_> {
     }
 
     /// Applies every `##` (tokens flagged `PASTE_LEFT` join the next one).
+    ///
+    /// A chain `a ## b ## c ...` grows one spelling in place and interns only its result,
+    /// and each step checks only the text it appends where it can (an identifier or number
+    /// taking more identifier characters), so a chain of n pastes costs O(its length), not
+    /// O(n²) time and memory.
     pub(super) fn paste_all(&mut self, toks: Vec<Tok>, name: &Tok) -> PResult<Vec<Tok>> {
         let mut out: Vec<Tok> = Vec::with_capacity(toks.len());
         let mut iter = toks.into_iter();
+        let mut acc = String::new();
         while let Some(mut lhs) = iter.next() {
+            if lhs.flags & PASTE_LEFT == 0 {
+                out.push(lhs);
+                continue;
+            }
+            acc.clear();
+            acc.push_str(self.it.str(lhs.sym));
+            let mut changed = false;
             while lhs.flags & PASTE_LEFT != 0 {
                 let Some(rhs) = iter.next() else {
                     lhs.flags &= !PASTE_LEFT;
                     break;
                 };
-                lhs = self.paste(lhs, rhs, name)?;
+                changed |= self.paste(&mut lhs, &mut acc, rhs, name)?;
+            }
+            if changed {
+                lhs.sym = self.it.intern(&acc);
             }
             out.push(lhs);
         }
         Ok(out)
     }
 
-    pub(super) fn paste(&mut self, lhs: Tok, rhs: Tok, name: &Tok) -> PResult<Tok> {
+    /// One `##` step: `lhs` (spelled `acc`) joins `rhs`. True when the spelling changed
+    /// (the caller interns it at the end of the chain).
+    pub(super) fn paste(&mut self, lhs: &mut Tok, acc: &mut String, rhs: Tok, name: &Tok) -> PResult<bool> {
         let keep = (lhs.flags & WHITE) | (rhs.flags & PASTE_LEFT);
         if rhs.kind == TK::Placemarker {
-            return Ok(Tok { flags: (lhs.flags & !PASTE_LEFT) | keep, ..lhs });
+            lhs.flags = (lhs.flags & !PASTE_LEFT) | keep;
+            return Ok(false);
         }
         if lhs.kind == TK::Placemarker {
-            return Ok(Tok { flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep, ..rhs });
+            *lhs = Tok { flags: (rhs.flags & !(PASTE_LEFT | WHITE)) | keep, ..rhs };
+            acc.clear();
+            acc.push_str(self.it.str(rhs.sym));
+            return Ok(false);
         }
-        let joined = format!("{}{}", self.it.str(lhs.sym), self.it.str(rhs.sym));
-        let (kind, len) = lexer::next(joined.as_bytes(), 0);
-        let valid = len == joined.len()
-            && !matches!(kind, Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { .. } | Kind::Eof)
-            && !matches!(kind, Kind::Str { terminated: false } | Kind::Char { terminated: false });
-        if !valid {
-            let msg = format!(
-                "pasting \"{}\" and \"{}\" does not give a valid preprocessing token",
-                self.it.str(lhs.sym),
-                self.it.str(rhs.sym)
-            );
-            return self.err_tok(&lhs, msg, "in this expansion");
-        }
-        let sym = self.it.intern(&joined);
+        self.spend_bytes(self.it.str(rhs.sym).len(), name)?;
+        let right = self.it.str(rhs.sym);
+        let kind = match continues(lhs.kind, acc.as_bytes(), right.as_bytes()) {
+            Some(kind) => kind,
+            None => {
+                let joined = format!("{acc}{right}");
+                let (kind, len) = lexer::next(joined.as_bytes(), 0);
+                let valid = len == joined.len()
+                    && !matches!(
+                        kind,
+                        Kind::Space | Kind::Newline | Kind::LineComment | Kind::BlockComment { .. } | Kind::Eof
+                    )
+                    && !matches!(kind, Kind::Str { terminated: false } | Kind::Char { terminated: false });
+                if !valid {
+                    let msg = format!("pasting \"{acc}\" and \"{right}\" does not give a valid preprocessing token");
+                    let at = *lhs;
+                    return self.err_tok(&at, msg, "in this expansion");
+                }
+                tk_of(kind)
+            }
+        };
+        acc.push_str(right);
         let mut flags = keep | FROM_DEF;
         if lhs.flags & FROM_DEF == 0 && rhs.flags & FROM_DEF == 0 && lhs.ctx == rhs.ctx && lhs.src + lhs.len == rhs.src
         {
             flags &= !FROM_DEF;
         }
-        let _ = name;
-        Ok(Tok {
-            sym,
-            kind: tk_of(kind),
-            flags,
-            len: if flags & FROM_DEF == 0 { joined.len() as u32 } else { lhs.len },
-            param: NO_PARAM,
-            ..lhs
-        })
+        lhs.kind = kind;
+        lhs.flags = flags;
+        lhs.param = NO_PARAM;
+        if flags & FROM_DEF == 0 {
+            lhs.len = acc.len() as u32;
+        }
+        Ok(true)
     }
 
     /// `#x`: the spelling of the argument, spaces normalized, `"` and `\` escaped in literals.
@@ -706,7 +778,7 @@ impl Pp<'_> {
         };
         let delta = self.frames.last().map_or(0, |f| f.line_delta);
         match self.map.ctxs.get(ctx as usize) {
-            Some(c) => c.source.line_col(c.source.original_offset(src as usize)).0 as i64 + delta,
+            Some(c) => c.source.line(c.source.original_offset(src as usize)) as i64 + delta,
             None => 0,
         }
     }
@@ -780,6 +852,27 @@ impl Pp<'_> {
         let t = Tok { sym, kind: TK::Other, flags: FROM_DEF, param: NO_PARAM, ..name };
         self.push_context(vec![t], NONE, false, &name)?;
         Ok(true)
+    }
+}
+
+/// The kind of `left` followed by `right` when that is plainly one token of `left`'s kind
+/// (an identifier or pp-number taking more of its characters), checked on `right` alone;
+/// `None`: lex the whole.
+fn continues(kind: TK, left: &[u8], right: &[u8]) -> Option<TK> {
+    match kind {
+        TK::Ident if !right.is_empty() && right.iter().all(|&c| lexer::is_ident_continue(c)) => Some(TK::Ident),
+        TK::Number if !right.is_empty() => {
+            let mut prev = *left.last()?;
+            for &c in right {
+                let sign = matches!(c, b'+' | b'-') && matches!(prev, b'e' | b'E' | b'p' | b'P');
+                if !(sign || lexer::is_ident_continue(c) || c == b'.') {
+                    return None;
+                }
+                prev = c;
+            }
+            Some(TK::Number)
+        }
+        _ => None,
     }
 }
 

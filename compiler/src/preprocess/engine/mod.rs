@@ -25,8 +25,9 @@ use codespan_reporting::diagnostic::{Diagnostic, Label};
 use super::expr;
 use super::lexer::{self, Kind};
 use super::map::{Entry, IncludeCtx, SourceMap, NONE};
-use super::source::{FileId, SourceCache, SourceFile};
+use super::source::{FileId, LoadError, SourceCache, SourceFile};
 use super::{Error, Options, Output};
+use directive::DefReader;
 
 // ---------------------------------------------------------------------------------------------
 // Interning
@@ -62,6 +63,9 @@ impl Hasher for FxHasher {
 type FxBuild = BuildHasherDefault<FxHasher>;
 
 type Sym = u32;
+
+/// The symbol of a word that was never interned (see [`Pp::line_token`]).
+const NO_SYM: Sym = Sym::MAX;
 
 #[derive(Default)]
 struct Interner {
@@ -173,6 +177,8 @@ struct Macro {
     variadic: bool,
     params: Vec<Sym>,
     body: Arc<[Tok]>,
+    /// A long body not kept as tokens: it is read again from its source on first use.
+    lazy: Option<LazyBody>,
     /// The body has `##` (else expansion is a plain copy).
     pastes: bool,
     /// The body has `__VA_OPT__`.
@@ -183,6 +189,22 @@ struct Macro {
     site: Range<u32>,
     disabled: bool,
 }
+
+/// Where to read a long replacement list again (see [`Pp::body_of`]): the include context
+/// and spliced offset of its first token, and how many tokens it has.
+#[derive(Clone, Copy, Debug)]
+struct LazyBody {
+    ctx: u32,
+    start: u32,
+    len: usize,
+}
+
+/// Warnings kept per run; the rest are counted in one last warning.
+const MAX_WARNINGS: usize = 1000;
+
+/// Replacement lists longer than this many tokens are not kept as tokens until the macro is
+/// first expanded: a huge `#define` that is never used costs no more than its text.
+const LAZY_BODY_TOKENS: usize = 4096;
 
 struct Context {
     toks: Vec<Tok>,
@@ -267,17 +289,24 @@ pub(crate) struct Pp<'a> {
     out: String,
     map: SourceMap,
     warnings: Vec<Diagnostic<FileId>>,
+    /// Warnings past [`MAX_WARNINGS`], counted only.
+    warnings_dropped: usize,
     files: Vec<FileId>,
     once: HashSet<FileId>,
     guards: HashMap<FileId, Sym, FxBuild>,
     /// Tokens macro expansion may still make.
     /// Tokens macro expansion made so far (see [`Pp::spend`]).
     made: usize,
+    /// Bytes of text `#` and `##` made so far (see [`Pp::spend_bytes`]).
+    made_bytes: usize,
     /// Bytes of source read so far.
     input_bytes: usize,
     counter: i64,
     /// Output range of the last token written (for paste avoidance).
     last_tok: Range<usize>,
+    /// A padding token (a macro expansion's edge) came since the last token written: the
+    /// next one is kept apart by cpp's rule too ([`lexer::cpp_avoid_paste`]).
+    after_padding: bool,
     /// The top-level macro invocation being expanded: context, spliced range.
     inv: Option<(u32, u32, u32)>,
     /// Line `__LINE__` gives inside a directive.
@@ -349,6 +378,10 @@ fn run_here(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCa
     pp.push_file(file, source, name, NONE, 0..0);
     pp.run_main()?;
     pp.map.entries.shrink_to_fit();
+    if pp.warnings_dropped > 0 {
+        let n = pp.warnings_dropped;
+        pp.warnings.push(Diagnostic::warning().with_message(format!("{n} more warnings not shown")));
+    }
     let mut absent = pp.absent.into_inner();
     absent.sort();
     absent.dedup();
@@ -366,8 +399,36 @@ pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, S
     match resolve_in_roots(spelling, opts, &mut Vec::new()) {
         Resolved::Found(p, _) => Ok(p),
         Resolved::Escapes(p) => Err(format!("`{spelling}` resolves to `{}`, outside its root", p.display())),
-        Resolved::NotFound => Err(format!("cannot find `{spelling}` in the include roots")),
+        Resolved::NotFound => match non_file_in(spelling, opts, &[]) {
+            Some((p, what)) => Err(format!("`{spelling}` names `{}`, which is {what}, not a file", p.display())),
+            None => Err(format!("cannot find `{spelling}` in the include roots")),
+        },
     }
+}
+
+/// The first candidate for `spelling` (in `dirs`, then through the virtual roots or in the
+/// include roots, as [`resolve_in_roots`] looks) that exists but is not a regular file, and
+/// what it is.
+fn non_file_in(spelling: &str, opts: &Options, dirs: &[PathBuf]) -> Option<(PathBuf, &'static str)> {
+    if !relative_ok(spelling) && !opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some()) {
+        return None;
+    }
+    let mut candidates: Vec<PathBuf> = dirs.iter().map(|d| d.join(spelling)).collect();
+    match opts.virtual_roots.iter().find_map(|(p, d)| virtual_match(spelling, p).map(|rest| d.join(rest))) {
+        Some(c) => candidates.push(c),
+        None => candidates.extend(opts.include_roots.iter().map(|r| r.join(spelling))),
+    }
+    candidates.into_iter().find_map(|c| {
+        let meta = std::fs::metadata(&c).ok()?;
+        let what = if meta.is_dir() {
+            "a directory"
+        } else if meta.is_file() {
+            return None;
+        } else {
+            "a device, FIFO or socket"
+        };
+        Some((c.canonicalize().unwrap_or(c), what))
+    })
 }
 
 enum Resolved {
@@ -486,13 +547,16 @@ impl<'a> Pp<'a> {
             out: String::with_capacity(main.text().len() + main.text().len() / 4),
             map: SourceMap::default(),
             warnings: Vec::new(),
+            warnings_dropped: 0,
             files: Vec::new(),
             once: HashSet::new(),
             guards: HashMap::default(),
             made: 0,
+            made_bytes: 0,
             input_bytes: 0,
             counter: 0,
             last_tok: 0..0,
+            after_padding: false,
             inv: None,
             directive_line: None,
             roots,
@@ -519,6 +583,7 @@ impl<'a> Pp<'a> {
                     variadic: false,
                     params: Vec::new(),
                     body: Arc::from(Vec::new()),
+                    lazy: None,
                     pastes: false,
                     va_opt: false,
                     builtin: b,
@@ -572,7 +637,7 @@ impl<'a> Pp<'a> {
             None => return Err(Error::new(format!("invalid definition `{name}={value}`"), Vec::new())),
         };
         // `NAME(x)` must keep `(` attached to the name.
-        self.parse_define(toks, true)
+        self.parse_define(&mut DefReader::list(toks), true)
     }
 
     /// Tokens of a string with no location (predefined macros).
@@ -671,6 +736,11 @@ impl<'a> Pp<'a> {
     }
 
     fn warn(&mut self, message: impl Into<String>, labels: Vec<Label<FileId>>) {
+        if self.warnings.len() >= MAX_WARNINGS {
+            // A million bad lines would otherwise keep a million diagnostics.
+            self.warnings_dropped += 1;
+            return;
+        }
         self.warnings.push(Diagnostic::warning().with_message(message.into()).with_labels(labels));
     }
 
@@ -760,7 +830,9 @@ impl<'a> Pp<'a> {
             if !matches!(first, b' ' | b'\t' | b'\n' | b'\r') {
                 let (_, len) = lexer::next(bytes, start);
                 let len = len.min(end - start).max(1);
-                if lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]) {
+                // Text after an expansion: cpp has a padding here, so its rule applies.
+                let (last, first) = (self.out[self.last_tok.clone()].as_bytes(), &bytes[start..start + len]);
+                if lexer::would_paste(last, first) || lexer::cpp_avoid_paste(last, first) {
                     self.out.push(' ');
                 }
             }
@@ -768,6 +840,7 @@ impl<'a> Pp<'a> {
         let out_at = self.out.len();
         self.push_copy_entry(ctx, start as u32, end as u32, out_at as u32);
         self.out.push_str(&text[start..end]);
+        self.after_padding = false;
         self.last_tok = match last_tok {
             Some(r) if r.end == end => (out_at + r.start - start)..(out_at + r.end - start),
             _ => 0..0,
@@ -797,6 +870,7 @@ impl<'a> Pp<'a> {
             if t.flags & (WHITE | NULL_SOURCE) == WHITE {
                 self.emit_space();
             }
+            self.after_padding = true;
             return Ok(());
         }
         if t.kind == TK::Placemarker || t.kind == TK::Eof {
@@ -805,7 +879,12 @@ impl<'a> Pp<'a> {
         let text: &str = self.it.strs.get(t.sym as usize).map_or("", |s| s);
         let adjacent = self.last_tok.end == self.out.len() && !self.last_tok.is_empty();
         let space = (t.flags & WHITE != 0)
-            || (adjacent && lexer::would_paste(self.out[self.last_tok.clone()].as_bytes(), text.as_bytes()));
+            || (adjacent && {
+                let last = self.out[self.last_tok.clone()].as_bytes();
+                lexer::would_paste(last, text.as_bytes())
+                    || (self.after_padding && lexer::cpp_avoid_paste(last, text.as_bytes()))
+            });
+        self.after_padding = false;
         if space && !self.out.is_empty() && !self.out.ends_with([' ', '\n', '\t']) {
             self.out.push(' ');
         }
@@ -874,7 +953,7 @@ impl<'a> Pp<'a> {
                         "this comment is never closed",
                     );
                 }
-                Kind::Punct if bol && (bytes[pos] == b'#' || (len == 2 && &bytes[pos..pos + 2] == b"%:")) => {
+                Kind::Punct if bol && lexer::is_directive_hash(&bytes[pos..pos + len]) => {
                     self.copy_run(ctx, text, run_start, pos, last_tok)?;
                     if let Some(f) = self.frames.last_mut() {
                         f.pos = pos + len;
@@ -950,7 +1029,7 @@ impl<'a> Pp<'a> {
             match kind {
                 Kind::Space | Kind::LineComment | Kind::BlockComment { terminated: true } => {}
                 Kind::Newline => bol = true,
-                Kind::Punct => return !(bol && bytes[pos] == b'#') && bytes[pos] == b'(',
+                Kind::Punct => return !(bol && lexer::is_directive_hash(&bytes[pos..pos + len])) && bytes[pos] == b'(',
                 _ => return false,
             }
             pos += len;
