@@ -577,3 +577,14 @@ fn non_regular_files_are_refused() {
     let e = preprocess::preprocess_file(Path::new("/dev/zero"), &Options::default(), &cache).expect_err("a device");
     assert!(e.to_string().ends_with("is not a regular file (a device, FIFO or socket)"), "{e}");
 }
+
+/// An error on a very long line shows the line cut around its label, at its real column.
+#[test]
+fn long_lines_are_cut_in_diagnostics() {
+    let text = format!("#define F(x) x\n{} F(1 {}\n", "a ".repeat(1000), "b ".repeat(1000));
+    let got = error_of(&[("main.usf", &text)]);
+    assert!(got.starts_with("error: unterminated argument list invoking macro \"F\"\n  ┌─ main.usf:2:2002\n"), "{got}");
+    assert!(got.contains("2 │ … a a a a"), "{got}");
+    assert!(got.contains("F(1 b b b"), "{got}");
+    assert!(got.lines().all(|l| l.chars().count() < 200), "{got}");
+}

@@ -202,11 +202,23 @@ pub fn preprocess_file_id(file: FileId, opts: &Options, cache: &SourceCache) -> 
 }
 
 /// Renders diagnostics as text the way rustc does (codespan), optionally with ANSI colour.
+///
+/// A source line longer than [`MAX_SHOWN_LINE`] bytes is shown cut to the parts around its
+/// labels (`…` for the rest): a diagnostic on a 50 MB line is a few lines, not 50 MB.
 pub fn render(diagnostics: &[Diagnostic<FileId>], cache: &SourceCache, color: bool) -> String {
     use codespan_reporting::term;
     let config = term::Config::default();
     let mut out = String::new();
     for d in diagnostics {
+        if let Some((files, clipped)) = clip_long_lines(d, cache) {
+            match term::emit_into_string(&config, &files, &clipped) {
+                Ok(s) => out.push_str(&s),
+                Err(e) => {
+                    out.push_str(&format!("{}: {}\n(cannot show the source: {e})\n", severity_name(d), d.message))
+                }
+            }
+            continue;
+        }
         if color {
             let mut buf = term::termcolor::Ansi::new(Vec::new());
             let _ = term::emit_to_write_style(&mut buf, &config, cache, d);
@@ -222,6 +234,191 @@ pub fn render(diagnostics: &[Diagnostic<FileId>], cache: &SourceCache, color: bo
         }
     }
     out
+}
+
+/// Source lines longer than this are shown cut around their labels.
+pub const MAX_SHOWN_LINE: usize = 512;
+
+/// Bytes of context kept on each side of a label on a cut line.
+const SHOWN_CONTEXT: usize = 60;
+
+/// When a label of `d` sits on a line longer than [`MAX_SHOWN_LINE`]: the files of its labels
+/// with such lines cut to windows around the labels, and `d` with its labels moved to match.
+fn clip_long_lines<'c>(
+    d: &Diagnostic<FileId>,
+    cache: &'c SourceCache,
+) -> Option<(ClippedFiles<'c>, Diagnostic<usize>)> {
+    use codespan_reporting::files::Files;
+    let line_of = |file: FileId, at: usize| -> Option<std::ops::Range<usize>> {
+        let i = cache.line_index(file, at).ok()?;
+        cache.line_range(file, i).ok()
+    };
+    let long = d.labels.iter().any(|l| line_of(l.file_id, l.range.start).is_some_and(|r| r.len() > MAX_SHOWN_LINE));
+    if !long {
+        return None;
+    }
+    let mut files = ClippedFiles { cache, files: Vec::new() };
+    // Each file of the labels and its index in `files`.
+    let mut ids: Vec<(FileId, usize)> = Vec::new();
+    let mut labels = Vec::new();
+    for l in &d.labels {
+        if !ids.iter().any(|(f, ..)| *f == l.file_id) {
+            let text = cache.get(l.file_id)?.original.clone();
+            // Windows to keep on each long line that has a label of this file.
+            let mut keep: Vec<(usize, usize)> = Vec::new();
+            for m in d.labels.iter().filter(|m| m.file_id == l.file_id) {
+                let line = line_of(m.file_id, m.range.start)?;
+                if line.len() > MAX_SHOWN_LINE {
+                    let start = m.range.start.saturating_sub(SHOWN_CONTEXT).max(line.start);
+                    let end = (m.range.end.min(m.range.start + MAX_SHOWN_LINE) + SHOWN_CONTEXT).min(line.end);
+                    keep.push((floor_boundary(&text, start), ceil_boundary(&text, end)));
+                    keep.push((line.start, line.start));
+                    keep.push((line.end, line.end));
+                }
+            }
+            keep.sort_unstable();
+            // Cut: the text between windows of one long line becomes `…`. `moves` maps an old
+            // offset to a new one: (old start, old end, new start) of each kept piece.
+            let mut new = String::new();
+            let mut moves = Vec::new();
+            let mut at = 0;
+            let mut merged: Vec<(usize, usize)> = Vec::new();
+            for (a, b) in keep {
+                match merged.last_mut() {
+                    Some(last) if a <= last.1 => last.1 = last.1.max(b),
+                    _ => merged.push((a, b)),
+                }
+            }
+            for (a, b) in merged {
+                if a > at {
+                    // A gap within one line (up to its line ending) is cut.
+                    let gap = &text[at..a];
+                    let body = gap.trim_end_matches(['\r', '\n']);
+                    if !body.is_empty() && !body.contains(['\n', '\r']) {
+                        new.push('…');
+                        new.push_str(&gap[body.len()..]);
+                    } else {
+                        moves.push((at, a, new.len()));
+                        new.push_str(gap);
+                    }
+                }
+                moves.push((a, b, new.len()));
+                new.push_str(&text[a..b]);
+                at = b;
+            }
+            moves.push((at, text.len(), new.len()));
+            new.push_str(&text[at..]);
+            let id = files.files.len();
+            let starts = line_starts_of(&new);
+            files.files.push(ClippedFile { file: l.file_id, text: new, line_starts: starts, moves });
+            ids.push((l.file_id, id));
+        }
+        let &(_, id) = ids.iter().find(|(f, _)| *f == l.file_id)?;
+        let moves = &files.files[id].moves;
+        let map = |o: usize| moves.iter().find(|(a, b, _)| (*a..=*b).contains(&o)).map_or(0, |(a, _, n)| n + (o - a));
+        let start = map(l.range.start);
+        let end = map(l.range.end.min(l.range.start + MAX_SHOWN_LINE)).max(start);
+        labels.push(Label { style: l.style, file_id: id, range: start..end, message: l.message.clone() });
+    }
+    let clipped = Diagnostic {
+        severity: d.severity,
+        code: d.code.clone(),
+        message: d.message.clone(),
+        labels,
+        notes: d.notes.clone(),
+    };
+    Some((files, clipped))
+}
+
+/// Files with long lines cut (see [`clip_long_lines`]); columns are those of the original
+/// text.
+struct ClippedFiles<'c> {
+    cache: &'c SourceCache,
+    files: Vec<ClippedFile>,
+}
+
+struct ClippedFile {
+    file: FileId,
+    text: String,
+    line_starts: Vec<usize>,
+    /// (original start, original end, cut start) of each piece kept.
+    moves: Vec<(usize, usize, usize)>,
+}
+
+/// Line starts as [`SourceCache`] counts them (a lone CR ends a line too).
+fn line_starts_of(text: &str) -> Vec<usize> {
+    let b = text.as_bytes();
+    let mut starts = vec![0];
+    for (i, &c) in b.iter().enumerate() {
+        if c == b'\n' || (c == b'\r' && b.get(i + 1) != Some(&b'\n')) {
+            starts.push(i + 1);
+        }
+    }
+    starts
+}
+
+impl<'a> codespan_reporting::files::Files<'a> for ClippedFiles<'_> {
+    type FileId = usize;
+    type Name = String;
+    type Source = &'a str;
+
+    fn name(&'a self, id: usize) -> Result<String, codespan_reporting::files::Error> {
+        let f = self.files.get(id).ok_or(codespan_reporting::files::Error::FileMissing)?;
+        Ok(self.cache.name(f.file))
+    }
+
+    fn source(&'a self, id: usize) -> Result<&'a str, codespan_reporting::files::Error> {
+        Ok(&self.files.get(id).ok_or(codespan_reporting::files::Error::FileMissing)?.text)
+    }
+
+    fn line_index(&'a self, id: usize, byte_index: usize) -> Result<usize, codespan_reporting::files::Error> {
+        let f = self.files.get(id).ok_or(codespan_reporting::files::Error::FileMissing)?;
+        Ok(f.line_starts.partition_point(|&s| s <= byte_index).saturating_sub(1))
+    }
+
+    fn line_range(
+        &'a self,
+        id: usize,
+        line_index: usize,
+    ) -> Result<std::ops::Range<usize>, codespan_reporting::files::Error> {
+        let f = self.files.get(id).ok_or(codespan_reporting::files::Error::FileMissing)?;
+        let start = *f.line_starts.get(line_index).ok_or(codespan_reporting::files::Error::LineTooLarge {
+            given: line_index,
+            max: f.line_starts.len() - 1,
+        })?;
+        let end = f.line_starts.get(line_index + 1).copied().unwrap_or(f.text.len());
+        Ok(start..end)
+    }
+
+    /// The column in the original text (the cut text's would be wrong).
+    fn column_number(
+        &'a self,
+        id: usize,
+        _line_index: usize,
+        byte_index: usize,
+    ) -> Result<usize, codespan_reporting::files::Error> {
+        let f = self.files.get(id).ok_or(codespan_reporting::files::Error::FileMissing)?;
+        let original = f
+            .moves
+            .iter()
+            .find(|&&(a, b, n)| (n..=n + (b - a)).contains(&byte_index))
+            .map_or(byte_index, |&(a, _, n)| a + (byte_index - n));
+        Ok(self.cache.location(f.file, original).1)
+    }
+}
+
+fn floor_boundary(s: &str, mut i: usize) -> usize {
+    while !s.is_char_boundary(i) {
+        i -= 1;
+    }
+    i
+}
+
+fn ceil_boundary(s: &str, mut i: usize) -> usize {
+    while !s.is_char_boundary(i) {
+        i += 1;
+    }
+    i
 }
 
 fn severity_name(d: &Diagnostic<FileId>) -> &'static str {

@@ -206,9 +206,9 @@ fn lone_cr_to_lf(text: &[u8]) -> Option<Vec<u8>> {
     let lone = |i: usize| text[i] == b'\r' && text.get(i + 1) != Some(&b'\n');
     let first = (0..text.len()).find(|&i| lone(i))?;
     let mut out = text.to_vec();
-    for i in first..text.len() {
+    for (i, c) in out.iter_mut().enumerate().skip(first) {
         if lone(i) {
-            out[i] = b'\n';
+            *c = b'\n';
         }
     }
     Some(out)

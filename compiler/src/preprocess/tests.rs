@@ -306,3 +306,17 @@ fn warnings_are_capped() {
     assert_eq!(out.warnings[0].message, "missing terminating ' character");
     assert_eq!(out.warnings[1000].message, "500 more warnings not shown");
 }
+
+#[test]
+fn long_lines_are_shown_cut() {
+    let cache = SourceCache::new(std::env::temp_dir());
+    let long = "a ".repeat(5000);
+    let src = format!("#define BIG {long}\n#define BIG {long}b\nx\n");
+    let id = cache.add_virtual("t.usf", &src);
+    let out = preprocess_file_id(id, &Options::default(), &cache).expect("a warning only");
+    let r = render(&out.warnings, &cache, false);
+    assert!(r.lines().all(|l| l.chars().count() < 3 * MAX_SHOWN_LINE), "{r}");
+    assert!(r.contains("2 │ #define BIG a a a"), "{r}");
+    assert!(r.contains("a a…\n"), "{r}");
+    assert!(r.contains("^^^ redefined here"), "{r}");
+}

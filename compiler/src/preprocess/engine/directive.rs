@@ -1272,6 +1272,15 @@ impl Pp<'_> {
             let limit = self.token_limit();
             return self.err_tok(at, format!("macro expansion makes more than {limit} tokens"), "while expanding this");
         }
+        self.read_lazy(m)
+    }
+
+    /// The replacement list of macro `m`, read again from its source if it was not kept.
+    fn read_lazy(&mut self, m: u32) -> PResult<Arc<[Tok]>> {
+        let mac = &self.defs[m as usize];
+        let Some(lazy) = mac.lazy else {
+            return Ok(mac.body.clone());
+        };
         let Some(source) = self.map.ctxs.get(lazy.ctx as usize).map(|c| c.source.clone()) else {
             return Ok(mac.body.clone());
         };
@@ -1291,6 +1300,33 @@ impl Pp<'_> {
         Ok(toks)
     }
 
+    /// Whether two long replacement lists have the same tokens with the same whitespace
+    /// between them, read from their text side by side.
+    fn same_text_tokens(&mut self, p: LazyBody, q: LazyBody) -> PResult<bool> {
+        let source = |c: u32| self.map.ctxs.get(c as usize).map(|c| c.source.clone());
+        let (Some(sp), Some(sq)) = (source(p.ctx), source(q.ctx)) else {
+            return Ok(false);
+        };
+        let (mut i, mut j) = (p.start as usize, q.start as usize);
+        let mut first = true;
+        loop {
+            let x = self.line_token(&sp, p.ctx, &mut i, false)?;
+            let y = self.line_token(&sq, q.ctx, &mut j, false)?;
+            match (x, y) {
+                (None, None) => return Ok(true),
+                (Some(x), Some(y)) => {
+                    let (a, b) = (&sp.text().as_bytes()[x.src as usize..], &sq.text().as_bytes()[y.src as usize..]);
+                    let same = x.len == y.len && a[..x.len as usize] == b[..y.len as usize];
+                    if !same || (!first && (x.flags & WHITE) != (y.flags & WHITE)) {
+                        return Ok(false);
+                    }
+                    first = false;
+                }
+                _ => return Ok(false),
+            }
+        }
+    }
+
     /// Whether definitions `a` and `b` are the same (cpp's rule: same parameters, same
     /// tokens with the same whitespace between them). Long bodies are read for it.
     pub(super) fn same_definition(&mut self, a: u32, b: u32) -> PResult<bool> {
@@ -1305,8 +1341,11 @@ impl Pp<'_> {
         {
             return Ok(false);
         }
-        let at = Tok { ctx: y.ctx, src: y.site.start, len: y.site.end - y.site.start, ..Tok::eof() };
-        let (x, y) = (self.body_of(a, &at)?, self.body_of(b, &at)?);
+        if let (Some(p), Some(q)) = (x.lazy, y.lazy) {
+            // Two long bodies (a header read twice): compared as text, never made tokens.
+            return self.same_text_tokens(p, q);
+        }
+        let (x, y) = (self.read_lazy(a)?, self.read_lazy(b)?);
         Ok(x.iter()
             .zip(y.iter())
             .enumerate()
