@@ -12,6 +12,7 @@
 //! `seconds.preprocess`.
 
 use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -40,38 +41,73 @@ pub(super) enum Outcome {
     Elsewhere,
 }
 
+/// [`Compiler::early`]'s marks.
+const EARLY_HIT: u8 = 1;
+const EARLY_COMPILED: u8 = 2;
+
 pub(super) struct Compiler<'a> {
     plan: &'a Plan<'a>,
     store: &'a Store,
     assembler: &'a Assembler<'a>,
     progress: &'a Progress,
-    /// Keys claimed during preprocessing, and the outcomes of those that succeeded.
-    early: Mutex<(HashSet<Key>, HashMap<Key, Outcome>)>,
+    /// Keys claimed during preprocessing, by their first 8 bytes (a collision only moves
+    /// a key's compile to the compile stage).
+    claimed: Mutex<HashSet<u64>>,
+    /// Per kept permutation: whether it produced its key during preprocessing
+    /// ([`EARLY_HIT`], [`EARLY_COMPILED`]); one byte each, not a map entry per key.
+    early: Vec<AtomicU8>,
+    /// The warnings of keys produced early (a corrupted cache entry: rare).
+    early_warnings: Mutex<HashMap<Key, String>>,
     /// When the first key began compiling.
     start: Mutex<Option<Instant>>,
 }
 
 impl<'a> Compiler<'a> {
     pub fn new(plan: &'a Plan<'a>, store: &'a Store, assembler: &'a Assembler<'a>, progress: &'a Progress) -> Self {
-        Compiler { plan, store, assembler, progress, early: Mutex::default(), start: Mutex::default() }
+        Compiler {
+            plan,
+            store,
+            assembler,
+            progress,
+            claimed: Mutex::default(),
+            early: (0..plan.kept.len()).map(|_| AtomicU8::new(0)).collect(),
+            early_warnings: Mutex::default(),
+            start: Mutex::default(),
+        }
     }
 
     /// During preprocessing: compiles `pre`'s key from `output` if `p` is the first of its
     /// permutations preprocessed (and, with `--shard`, nothing yet: a shard knows its share
     /// only once every key is known).
-    pub fn early(&self, p: &Permutation<'_>, pre: &Pre, output: &preprocess::Output) {
+    pub fn early(&self, index: usize, p: &Permutation<'_>, pre: &Pre, output: &preprocess::Output) {
         if self.plan.options.shard.is_some() || p.error.is_some() {
             return;
         }
-        if !self.early.lock().expect("no panics while locked").0.insert(pre.key) {
+        let short = u64::from_le_bytes(pre.key.0[..8].try_into().expect("8 of 32 bytes"));
+        if !self.claimed.lock().expect("no panics while locked").insert(short) {
             return;
         }
         self.started();
-        let outcome = self.produce(&pre.key, p, &output.text);
         // A failure is compiled again on the key's first permutation; only successes are kept.
-        if !matches!(outcome, Outcome::Failed(..)) {
-            self.early.lock().expect("no panics while locked").1.insert(pre.key, outcome);
+        match self.produce(&pre.key, p, &output.text) {
+            Outcome::Hit => self.early[index].store(EARLY_HIT, Ordering::Relaxed),
+            Outcome::Compiled(warning) => {
+                if let Some(w) = warning {
+                    self.early_warnings.lock().expect("no panics while locked").insert(pre.key, w);
+                }
+                self.early[index].store(EARLY_COMPILED, Ordering::Relaxed);
+            }
+            Outcome::Failed(_) | Outcome::Elsewhere => {}
         }
+    }
+
+    /// The outcome of a key one of whose `members` produced it during preprocessing.
+    fn early_outcome(&self, key: &Key, members: &[usize]) -> Option<Outcome> {
+        let produced = members.iter().map(|&m| self.early[m].load(Ordering::Relaxed)).find(|&e| e != 0)?;
+        Some(match produced {
+            EARLY_HIT => Outcome::Hit,
+            _ => Outcome::Compiled(self.early_warnings.lock().expect("no panics while locked").remove(key)),
+        })
     }
 
     fn started(&self) {
@@ -103,7 +139,7 @@ impl<'a> Compiler<'a> {
     }
 
     fn key(&self, key: &Key, members: &[usize], wanted: bool, preprocessor: &Preprocessor<'_>) -> Outcome {
-        if let Some(outcome) = self.early.lock().expect("no panics while locked").1.remove(key) {
+        if let Some(outcome) = self.early_outcome(key, members) {
             return outcome;
         }
         if !wanted {

@@ -146,7 +146,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, |p, pre, output| compiler.early(p, pre, output));
+    let pre = preprocessor.run(&progress, |i, p, pre, output| compiler.early(i, p, pre, output));
     preprocessor.save_records(store);
     report.preprocessed(&plan, &preprocessor, &pre, t);
     let keys = plan.group(&pre);

@@ -84,12 +84,13 @@ impl<'p> Preprocessor<'p> {
         self.preprocessed.load(Ordering::Relaxed)
     }
 
-    /// Every kept permutation's result. `fresh` sees each output made by the preprocessor,
+    /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
+    /// (with its permutation's index),
     /// on the worker that made it, before it is dropped.
     pub fn run(
         &self,
         progress: &Progress,
-        fresh: impl Fn(&Permutation<'_>, &Pre, &preprocess::Output) + Sync,
+        fresh: impl Fn(usize, &Permutation<'_>, &Pre, &preprocess::Output) + Sync,
     ) -> Preprocessed {
         let kept = &self.plan.kept;
         progress.stage("preprocessing", kept.len());
@@ -113,7 +114,7 @@ impl<'p> Preprocessor<'p> {
                 s.spawn(|_| loop {
                     let n = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&i) = order.get(n) else { break };
-                    let r = self.one(&kept[i], &fresh);
+                    let r = self.one(i, &kept[i], &fresh);
                     progress.inc();
                     done.lock().expect("no panics while locked")[i] = Some(r);
                 });
@@ -141,8 +142,9 @@ impl<'p> Preprocessor<'p> {
 
     fn one(
         &self,
+        index: usize,
         p: &Permutation<'_>,
-        fresh: &(impl Fn(&Permutation<'_>, &Pre, &preprocess::Output) + Sync),
+        fresh: &(impl Fn(usize, &Permutation<'_>, &Pre, &preprocess::Output) + Sync),
     ) -> PreResult {
         let direct = self.records.as_ref().map(|r| (r, direct_key(&r.base, p, &self.plan.options.targets)));
         let remember = |pre: &Pre| {
@@ -167,7 +169,7 @@ impl<'p> Preprocessor<'p> {
         let (pre, output) = self.preprocess(p)?;
         remember(&pre);
         self.reuse.insert(p, &values, &output, &pre, &self.identifiers, &self.sources);
-        fresh(p, &pre, &output);
+        fresh(index, p, &pre, &output);
         Ok(pre)
     }
 
