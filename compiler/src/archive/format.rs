@@ -48,7 +48,19 @@
 //! permutation, not its neighbours. So Kiln trains one dictionary per target (WGSL, SPIR-V,
 //! MSL, GLSL and HLSL share little with each other) at build time on a deterministic sample
 //! of that target's artifacts, and compresses at level [`COMPRESSION_LEVEL`].
-//! `cargo bench -p kiln --bench archive` measures the chosen scheme on generated sets.
+//!
+//! The chosen scheme, measured by `cargo bench -p kiln --bench archive` (release build, this
+//! shared 2-core machine, medians):
+//!
+//! | archive                                  | format 1 | format 2 | ratio | open    | lookup + decompress (first use) |
+//! | ---------------------------------------- | -------- | -------- | ----- | ------- | ------------------------------- |
+//! | bundled set, 625 permutations            | 28.74 MB | 2.46 MB  | 0.085 | 0.73 ms | 2.6 µs (7.6 µs)                 |
+//! | generated set, 1,024 permutations        | 10.44 MB | 1.19 MB  | 0.114 | 0.71 ms | 1.1 µs (3.4 µs)                 |
+//! | generated, 1,024 x 1 MiB incompressible  | 1.07 GB  | 1.07 GB  | 1.000 | 0.36 ms | 0.4 µs (155 µs)                 |
+//!
+//! Of the bundled set's 2.46 MB, blobs take 1.73 MB, dictionaries 0.31 MB, and the manifest
+//! and blob table the rest; opening is mostly parsing the manifest's JSON, so it grows with
+//! the number of permutations, not with the archive's size.
 
 use std::fs::File;
 use std::io::{IoSlice, Write};
