@@ -66,8 +66,11 @@ fn artifact_text(i: usize, target: &str) -> String {
     s
 }
 
+/// A permutation's name and its artifacts.
+type Artifacts = (String, Vec<(Target, Vec<u8>)>);
+
 /// 96 permutations whose artifacts are big enough to train dictionaries.
-fn big_permutations() -> Vec<(String, Vec<(Target, Vec<u8>)>)> {
+fn big_permutations() -> Vec<Artifacts> {
     (0..96)
         .map(|i| {
             let name = format!("Lit@sm5{{FULLY_ROUGH={},MODE={}}}", i, ["OPAQUE", "MASKED"][i % 2]);
@@ -82,7 +85,7 @@ fn big_permutations() -> Vec<(String, Vec<(Target, Vec<u8>)>)> {
 
 /// Writes `perms` through a streaming writer, adding blobs and permutations in the order of
 /// `order` (indices into `perms`), from `threads` threads.
-fn stream(path: &std::path::Path, perms: &[(String, Vec<(Target, Vec<u8>)>)], order: &[usize], threads: usize) {
+fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads: usize) {
     let w = StreamingWriter::new(path).unwrap();
     w.set_naga_version("30.0.1");
     let sh = shader();

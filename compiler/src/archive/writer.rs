@@ -153,13 +153,15 @@ impl Spool<'_> {
     }
 }
 
+/// blake3 of each spooled blob → (offset, length) in the spool; the next free offset.
+type SpoolIndex = (HashMap<blake3::Hash, (u64, u64)>, u64);
+
 /// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
 /// documentation. `Send + Sync`: share it by reference across a thread pool.
 pub struct StreamingWriter {
     output: PathBuf,
     entries: Mutex<Entries>,
-    /// blake3 → (offset, length) in the spool; the next free offset.
-    blobs: Mutex<(HashMap<blake3::Hash, (u64, u64)>, u64)>,
+    blobs: Mutex<SpoolIndex>,
     spool: File,
     failed: AtomicBool,
 }
