@@ -450,3 +450,36 @@ fn resealed_random_damage_never_panics() {
     }
     assert!(opened > 0 && failed > 0, "the loop reached both outcomes: {opened} opened, {failed} refused");
 }
+
+#[test]
+fn artifacts_are_read_and_checked_from_many_threads_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Damage the msl blob of permutation 0 (its neighbours stay intact).
+    let a = Archive::from_vec(bytes.clone()).unwrap();
+    let id = a.get(&perms[0].0).unwrap().blob_id(Target::Msl).unwrap();
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let e = Entry::decode(&bytes[table_start + id.0 as usize * ENTRY_LEN..][..ENTRY_LEN]);
+    bytes[HEADER_LEN + (e.offset + e.stored_len / 2) as usize] ^= 0x10;
+    let a = Archive::from_vec(bytes).unwrap();
+    std::thread::scope(|scope| {
+        for _ in 0..8 {
+            scope.spawn(|| {
+                for (name, arts) in &perms {
+                    let p = a.get(name).unwrap();
+                    for (t, want) in arts {
+                        match p.artifact(*t) {
+                            Ok(got) => assert_eq!(&got.unwrap()[..], &want[..], "{name} {t}"),
+                            Err(e) => assert!(p.blob_id(*t) == Some(id), "{name} {t}: {e}"),
+                        }
+                    }
+                }
+            });
+        }
+    });
+    assert!(a.get(&perms[0].0).unwrap().artifact(Target::Msl).is_err());
+}
