@@ -13,7 +13,9 @@
 //! ratio), the time to write the archive, the median open time (memory map, header and
 //! manifest checked and parsed), and the median of one lookup by name plus decompression of
 //! one artifact, first use (checksum checked) and later uses. Goals (issue 12): at most 1/8 of
-//! format 1, open at most 1 ms, lookup + decompression at most 100 µs median.
+//! format 1, open at most 1 ms, lookup + decompression at most 100 µs median. For the two
+//! real sets it also compares the two schemes issue 12 names (per-target dictionaries and
+//! compressed groups of similar artifacts): sizes and what one lookup costs.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -135,6 +137,92 @@ fn measure(label: &str, path: &Path) {
     println!("  lookup + decompress, again:     {:10.1} us median  (goal <= 100)", us(median(again)));
 }
 
+/// The two schemes issue 12 names, measured on this archive's artifacts: per-target
+/// dictionaries (each artifact its own frame) and compressed groups of similar artifacts
+/// (one shader and target, cut at a size). Sizes exclude the manifest; "one lookup" is the
+/// median time to decompress what a lookup needs (its frame, or its whole group).
+fn compare_schemes(path: &Path) {
+    use std::collections::{BTreeMap, HashSet};
+    let a = Archive::open(path).unwrap();
+    let mut perms: Vec<_> = a.permutations().collect();
+    perms.sort_by(|x, y| x.name().cmp(y.name()));
+    let mut seen = HashSet::new();
+    let mut blobs: Vec<(Target, u32, Vec<u8>)> = Vec::new();
+    for p in &perms {
+        for t in p.targets() {
+            let id = p.blob_id(t).unwrap();
+            if seen.insert(id) {
+                blobs.push((t, p.record().shader, a.blob(id).unwrap().into_owned()));
+            }
+        }
+    }
+    let raw: usize = blobs.iter().map(|b| b.2.len()).sum();
+    println!("  schemes ({} distinct artifacts, {:.2} MB raw; sizes without manifest):", blobs.len(), mb(raw as u64));
+    let plain: usize = blobs.iter().map(|b| zstd::bulk::compress(&b.2, 3).unwrap().len()).sum();
+    println!(
+        "    zstd -3 per artifact, no dictionary:   {:7.3} MB {:5.1}x",
+        mb(plain as u64),
+        raw as f64 / plain as f64
+    );
+    for dsize in [64usize << 10, 128 << 10] {
+        let (mut total, mut times) = (0usize, Vec::new());
+        for t in Target::ALL {
+            let samples: Vec<&[u8]> = blobs.iter().filter(|b| b.0 == t).map(|b| &b.2[..]).collect();
+            if samples.len() < 8 {
+                continue;
+            }
+            let dict =
+                zstd::dict::from_samples(&samples, dsize.min(samples.iter().map(|s| s.len()).sum::<usize>() / 16))
+                    .unwrap();
+            total += dict.len();
+            let mut comp = zstd::bulk::Compressor::with_dictionary(3, &dict).unwrap();
+            let mut dec = zstd::bulk::Decompressor::with_dictionary(&dict).unwrap();
+            for s in &samples {
+                let c = comp.compress(s).unwrap();
+                total += c.len();
+                let t0 = Instant::now();
+                std::hint::black_box(dec.decompress(&c, s.len()).unwrap());
+                times.push(t0.elapsed());
+            }
+        }
+        println!(
+            "    per-target dictionary {:3} KiB, -3:    {:7.3} MB {:5.1}x  one lookup {:7.1} us",
+            dsize >> 10,
+            mb(total as u64),
+            raw as f64 / total as f64,
+            us(median(times))
+        );
+    }
+    for cap in [64usize << 10, 256 << 10, 1 << 20] {
+        let mut groups: BTreeMap<(u32, Target), Vec<Vec<&[u8]>>> = BTreeMap::new();
+        for b in &blobs {
+            let g = groups.entry((b.1, b.0)).or_default();
+            let full = g.last().is_none_or(|last| last.iter().map(|x| x.len()).sum::<usize>() + b.2.len() > cap);
+            if full {
+                g.push(Vec::new());
+            }
+            g.last_mut().unwrap().push(&b.2);
+        }
+        let (mut total, mut times) = (0usize, Vec::new());
+        for chunk in groups.values().flatten() {
+            let cat = chunk.concat();
+            let c = zstd::bulk::compress(&cat, 3).unwrap();
+            total += c.len();
+            let t0 = Instant::now();
+            std::hint::black_box(zstd::bulk::decompress(&c, cat.len()).unwrap());
+            let d = t0.elapsed();
+            times.extend(std::iter::repeat_n(d, chunk.len()));
+        }
+        println!(
+            "    groups of <= {:4} KiB, -3:            {:7.3} MB {:5.1}x  one lookup {:7.1} us",
+            cap >> 10,
+            mb(total as u64),
+            raw as f64 / total as f64,
+            us(median(times))
+        );
+    }
+}
+
 /// An archive of `count` permutations, each with one incompressible blob of `blob` bytes.
 fn big_archive(path: &Path, count: usize, blob: usize) -> f64 {
     let mut w = ArchiveWriter::new();
@@ -182,12 +270,14 @@ fn main() {
     let secs = build_archive(&config, &out, &cache);
     println!("(build of {} with its cache: {secs:.2} s)", config.display());
     measure(&format!("set {}", config.display()), &out);
+    compare_schemes(&out);
 
     let gen = generate_set(scratch.path());
     let out = scratch.path().join("generated.kpak");
     let secs = build_archive(&gen, &out, &cache);
     println!("(build of the generated set: {secs:.2} s)");
     measure("generated set", &out);
+    compare_schemes(&out);
     // Writing alone (dictionary training and compression), from the cache.
     std::fs::remove_file(&out).unwrap();
     let secs = build_archive(&gen, &out, &cache);

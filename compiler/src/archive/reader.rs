@@ -359,7 +359,7 @@ impl Archive {
                         Some(dd) => dctx.decompress_using_ddict(&mut out, stored, dd),
                         None => dctx.decompress(&mut out, stored),
                     }
-                    .map_err(|code| zstd::zstd_safe::get_error_name(code))
+                    .map_err(zstd::zstd_safe::get_error_name)
                 });
                 match result {
                     Ok(n) if n as u64 == e.raw_len => Cow::Owned(out),

@@ -66,8 +66,11 @@ fn artifact_text(i: usize, target: &str) -> String {
     s
 }
 
+/// A permutation's name and its artifacts.
+type Artifacts = (String, Vec<(Target, Vec<u8>)>);
+
 /// 96 permutations whose artifacts are big enough to train dictionaries.
-fn big_permutations() -> Vec<(String, Vec<(Target, Vec<u8>)>)> {
+fn big_permutations() -> Vec<Artifacts> {
     (0..96)
         .map(|i| {
             let name = format!("Lit@sm5{{FULLY_ROUGH={},MODE={}}}", i, ["OPAQUE", "MASKED"][i % 2]);
@@ -82,7 +85,7 @@ fn big_permutations() -> Vec<(String, Vec<(Target, Vec<u8>)>)> {
 
 /// Writes `perms` through a streaming writer, adding blobs and permutations in the order of
 /// `order` (indices into `perms`), from `threads` threads.
-fn stream(path: &std::path::Path, perms: &[(String, Vec<(Target, Vec<u8>)>)], order: &[usize], threads: usize) {
+fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads: usize) {
     let w = StreamingWriter::new(path).unwrap();
     w.set_naga_version("30.0.1");
     let sh = shader();
@@ -299,6 +302,11 @@ fn reseal(bytes: &mut [u8]) {
     let count = a_blob_count(bytes);
     let table_start = bytes.len() - count * ENTRY_LEN;
     let manifest_start = table_start - manifest_len.next_multiple_of(8);
+    reseal_at(bytes, manifest_start, manifest_len, table_start);
+}
+
+/// [`reseal`] with the sections where they were before the header's lengths were edited.
+fn reseal_at(bytes: &mut [u8], manifest_start: usize, manifest_len: usize, table_start: usize) {
     let sum =
         header_checksum(&bytes[..96], &bytes[manifest_start..manifest_start + manifest_len], &bytes[table_start..]);
     bytes[96..128].copy_from_slice(sum.as_bytes());
@@ -385,4 +393,93 @@ fn directories_and_fifos_are_refused_without_blocking() {
     assert!(msg.contains("it is a FIFO, not a regular file"), "{msg}");
     let msg = Archive::open(std::path::Path::new("/dev/null")).err().unwrap().to_string();
     assert!(msg.contains("character device"), "{msg}");
+}
+
+/// A bounded fuzz loop over the reader with a valid checksum: random bytes of the header's
+/// lengths, the manifest and the blob table changed, the checksum recomputed, as a hostile
+/// tool would. Opening, reading every artifact and every lookup must give errors, never
+/// panic or allocate without bound.
+#[test]
+fn resealed_random_damage_never_panics() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms: Vec<_> = big_permutations().into_iter().take(16).collect();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let bytes = std::fs::read(&path).unwrap();
+    let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let manifest_start = table_start - manifest_len.next_multiple_of(8);
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let (mut opened, mut failed) = (0, 0);
+    for round in 0..3000 {
+        let mut b = bytes.clone();
+        for _ in 0..1 + next() % 4 {
+            let at = match next() % 3 {
+                0 => 16 + (next() % 32) as usize,
+                1 => manifest_start + (next() % manifest_len as u64) as usize,
+                _ => table_start + (next() % (bytes.len() - table_start) as u64) as usize,
+            };
+            b[at] = match next() % 4 {
+                0 => b[at] ^ (1 << (next() % 8)),
+                1 => 0xff,
+                2 => 0,
+                _ => next() as u8,
+            };
+        }
+        reseal_at(&mut b, manifest_start, manifest_len, table_start);
+        match Archive::from_vec(b) {
+            Err(_) => failed += 1,
+            Ok(a) => {
+                opened += 1;
+                let _ = a.verify_all();
+                for p in a.permutations() {
+                    let _ = a.lookup(p.name());
+                    let _ = p.shader();
+                    let _ = p.reflection();
+                }
+                let _ = a.lookup(&format!("Lit@sm5{{FULLY_ROUGH={round}}}"));
+            }
+        }
+    }
+    assert!(opened > 0 && failed > 0, "the loop reached both outcomes: {opened} opened, {failed} refused");
+}
+
+#[test]
+fn artifacts_are_read_and_checked_from_many_threads_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Damage the msl blob of permutation 0 (its neighbours stay intact).
+    let a = Archive::from_vec(bytes.clone()).unwrap();
+    let id = a.get(&perms[0].0).unwrap().blob_id(Target::Msl).unwrap();
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let e = Entry::decode(&bytes[table_start + id.0 as usize * ENTRY_LEN..][..ENTRY_LEN]);
+    bytes[HEADER_LEN + (e.offset + e.stored_len / 2) as usize] ^= 0x10;
+    let a = Archive::from_vec(bytes).unwrap();
+    std::thread::scope(|scope| {
+        for _ in 0..8 {
+            scope.spawn(|| {
+                for (name, arts) in &perms {
+                    let p = a.get(name).unwrap();
+                    for (t, want) in arts {
+                        match p.artifact(*t) {
+                            Ok(got) => assert_eq!(&got.unwrap()[..], &want[..], "{name} {t}"),
+                            Err(e) => assert!(p.blob_id(*t) == Some(id), "{name} {t}: {e}"),
+                        }
+                    }
+                }
+            });
+        }
+    });
+    assert!(a.get(&perms[0].0).unwrap().artifact(Target::Msl).is_err());
 }

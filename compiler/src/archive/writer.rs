@@ -153,27 +153,37 @@ impl Spool<'_> {
     }
 }
 
+/// blake3 of each spooled blob → (offset, length) in the spool; the next free offset.
+type SpoolIndex = (HashMap<blake3::Hash, (u64, u64)>, u64);
+
 /// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
 /// documentation. `Send + Sync`: share it by reference across a thread pool.
 pub struct StreamingWriter {
     output: PathBuf,
     entries: Mutex<Entries>,
-    /// blake3 → (offset, length) in the spool; the next free offset.
-    blobs: Mutex<(HashMap<blake3::Hash, (u64, u64)>, u64)>,
+    blobs: Mutex<SpoolIndex>,
     spool: File,
     failed: AtomicBool,
 }
 
 impl StreamingWriter {
     /// A writer of the archive at `output`. Its spool is created (and at once unlinked) in
-    /// `output`'s folder, which is created if missing.
+    /// `output`'s folder, which is created if missing; where that fails (a read-only folder,
+    /// `/dev` for `-o /dev/null`), in the system's temporary folder.
     pub fn new(output: &Path) -> Result<StreamingWriter, ArchiveError> {
         let err = |source| ArchiveError::Write { path: output.to_path_buf(), source };
-        let spool_path = sibling_name(output, "spool").map_err(err)?;
-        let spool =
-            std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&spool_path).map_err(err)?;
-        // The open handle keeps the data; nothing is left behind whatever happens next.
-        std::fs::remove_file(&spool_path).map_err(err)?;
+        let create = |beside: &Path| -> std::io::Result<File> {
+            let spool_path = sibling_name(beside, "spool")?;
+            let spool = std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&spool_path)?;
+            // The open handle keeps the data; nothing is left behind whatever happens next.
+            std::fs::remove_file(&spool_path)?;
+            Ok(spool)
+        };
+        let regular_or_new = std::fs::metadata(output).map_or(true, |m| m.is_file());
+        let spool = match regular_or_new.then(|| create(output)) {
+            Some(Ok(f)) => f,
+            _ => create(&std::env::temp_dir().join("kiln-archive")).map_err(err)?,
+        };
         let entries = Entries { naga_version: String::new(), ..Default::default() };
         Ok(StreamingWriter {
             output: output.to_path_buf(),
