@@ -113,6 +113,9 @@ pub struct Stats {
     /// Permutations preprocessed by this build (the others matched their cached
     /// preprocessing record: same defines, same file contents).
     pub preprocessed: usize,
+    /// Compiled keys whose compacted module equalled an earlier key's: their writers did not
+    /// run, the artifacts were that key's (see [`compile::SharedWriters`]).
+    pub shared_modules: usize,
     pub seconds: Seconds,
 }
 
@@ -398,6 +401,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     // Keys compiled (or found in the cache) as soon as their first permutation is
     // preprocessed, so that compiling overlaps preprocessing.
     let early = Early::default();
+    let shared = shared_writers();
     let one = |index: usize, p: &Permutation<'_>| -> Result<Pre, Diagnostic<FileId>> {
         let direct = direct_base.as_ref().map(|base| direct_key(base, p, &options.targets).to_hex());
         if let Some(dk) = &direct {
@@ -430,7 +434,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         reuse.insert(p, &values, &output, &pre, record, &identifiers, &sources);
         if p.error.is_none() && early.claim(pre.key) {
             early.started();
-            let got = lookup_or_compile(cache, &pre.key, p, &output.text, &options.targets);
+            let got = lookup_or_compile(cache, &pre.key, p, &output.text, &options.targets, &shared);
             // A failure is compiled again on the key's representative (its spans are mapped
             // on that text); only successes are kept.
             if !matches!(got, Got::Failed(..)) {
@@ -581,7 +585,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
             };
             let opts =
                 compile::Options { targets: level_targets(p.level, &options.targets), limits: level_limits(p.level) };
-            let got = match compile::compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
+            let got = match shared.compile(&rep.text, &p.shader.entry, p.shader.stage, &opts) {
                 Ok(c) => Got::Compiled(c, warning),
                 Err(e) => Got::Failed(e, warning),
             };
@@ -592,6 +596,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     // Compiling began during preprocessing: from the first key compiled to the last.
     let first_compile = early.first_start().map_or(t_compile, |t| t.min(t_compile));
     report.stats.seconds.compile = first_compile.elapsed().as_secs_f64();
+    report.stats.shared_modules = shared.shared();
     progress.finish();
 
     let mut compiled: HashMap<Key, Compiled> = HashMap::new();
@@ -715,7 +720,14 @@ impl Early {
 }
 
 /// A key from the cache, else compiled from `text` (a permutation `p` of that key).
-fn lookup_or_compile(cache: Option<&Cache>, key: &Key, p: &Permutation<'_>, text: &str, targets: &[Target]) -> Got {
+fn lookup_or_compile(
+    cache: Option<&Cache>,
+    key: &Key,
+    p: &Permutation<'_>,
+    text: &str,
+    targets: &[Target],
+    shared: &compile::SharedWriters,
+) -> Got {
     let mut warning = None;
     if let Some(cache) = cache {
         match cache.get(key) {
@@ -725,9 +737,20 @@ fn lookup_or_compile(cache: Option<&Cache>, key: &Key, p: &Permutation<'_>, text
         }
     }
     let opts = compile::Options { targets: level_targets(p.level, targets), limits: level_limits(p.level) };
-    match compile::compile(text, &p.shader.entry, p.shader.stage, &opts) {
+    match shared.compile(text, &p.shader.entry, p.shader.stage, &opts) {
         Ok(c) => Got::Compiled(c, warning),
         Err(e) => Got::Failed(e, warning),
+    }
+}
+
+/// The writers' outputs shared between keys with one compacted module. `KILN_SHARED_MODULES=0`
+/// turns the sharing off (every key runs its own writers: the same artifacts, more time).
+fn shared_writers() -> compile::SharedWriters {
+    let off = std::env::var_os("KILN_SHARED_MODULES").is_some_and(|v| v == "0");
+    if off {
+        compile::SharedWriters::disabled()
+    } else {
+        compile::SharedWriters::new()
     }
 }
 

@@ -1,0 +1,232 @@
+//! Second-level deduplication: the writers run once per distinct compacted module.
+//!
+//! Two permutations whose token streams differ (so whose cache keys differ) can still
+//! compact to the same module for their entry point: a dimension that only changes a helper
+//! the entry point never calls, as Unreal's shared headers are full of. [`module_hash`] is a
+//! structural hash of the compacted, validated module (naga's IR as its `Debug` form gives
+//! it, every field but the source spans, which no writer without debug info reads) together
+//! with the entry point, the stage, the targets and the level's limits (which decide the
+//! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
+//! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
+//! thread: the first key with a module runs the writers, every later one takes a copy of
+//! its artifacts. naga's writers are deterministic functions of the module, its info and
+//! their options, so the artifacts are byte-identical to those the key would have written
+//! itself, whatever the order the keys are compiled in.
+//!
+//! The cache key stays the token hash: this map lives for one build and changes no key.
+
+use std::collections::HashMap;
+use std::fmt::{self, Write as _};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use super::{Compiled, Error, Options, Validated};
+use crate::archive::Target;
+
+/// The artifacts of one compacted module, or the writer's error.
+type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
+
+/// The writers' outputs by compacted module, for one build.
+#[derive(Default)]
+pub struct SharedWriters {
+    map: Mutex<HashMap<blake3::Hash, Arc<OnceLock<Written>>>>,
+    shared: AtomicUsize,
+    /// Every compile runs its own writers (to check that sharing changes no byte).
+    disabled: bool,
+}
+
+impl SharedWriters {
+    pub fn new() -> Self {
+        SharedWriters::default()
+    }
+
+    /// Shares nothing: [`SharedWriters::compile`] is [`super::compile`].
+    pub fn disabled() -> Self {
+        SharedWriters { disabled: true, ..SharedWriters::default() }
+    }
+
+    /// [`super::compile`], running the writers only for a module no earlier call had.
+    pub fn compile(
+        &self,
+        source: &str,
+        entry: &str,
+        stage: crate::Stage,
+        options: &Options,
+    ) -> Result<Compiled, Error> {
+        if self.disabled {
+            return super::compile(source, entry, stage, options);
+        }
+        let v = super::validate(source, entry, stage, &options.limits)?;
+        let reflection = super::checked_reflection(&v, options)?;
+        let hash = module_hash(&v, options);
+        let cell = self.map.lock().expect("no panics while locked").entry(hash).or_default().clone();
+        let mut ran = false;
+        let written = cell.get_or_init(|| {
+            ran = true;
+            super::write_all(&v, options)
+        });
+        if !ran {
+            self.shared.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(Compiled { artifacts: written.clone()?, reflection })
+    }
+
+    /// How many compiles took their artifacts from an earlier one's module.
+    pub fn shared(&self) -> usize {
+        self.shared.load(Ordering::Relaxed)
+    }
+}
+
+/// The structural hash of a compacted, validated module and of what its writers are given.
+/// Equal hashes mean equal artifacts for every target of `options`.
+pub fn module_hash(v: &Validated, options: &Options) -> blake3::Hash {
+    let mut h = SpanlessHasher { hasher: blake3::Hasher::new(), matched: 0, skipping: false };
+    let mut field = |bytes: &[u8]| {
+        h.hasher.update(&(bytes.len() as u64).to_le_bytes());
+        h.hasher.update(bytes);
+    };
+    field(b"kiln module v1");
+    field(v.entry.as_bytes());
+    field(v.stage.name().as_bytes());
+    for t in &options.targets {
+        field(t.name().as_bytes());
+    }
+    field(format!("{:?}", options.limits).as_bytes());
+    field(super::NAGA_VERSION.as_bytes());
+    let _ = write!(h, "{:?}", v.module);
+    h.finish()
+}
+
+/// A blake3 hasher fed with `Debug` text, leaving out every `span_info: [...]` (the source
+/// spans of a [`naga::Block`]: where each statement came from, which differs between
+/// permutations whose texts differ above or around the same code).
+struct SpanlessHasher {
+    hasher: blake3::Hasher,
+    /// How many bytes of [`SPANS`] the text seen last ends with (held back, not hashed yet).
+    matched: usize,
+    /// Inside a span list: everything up to its `]` is left out.
+    skipping: bool,
+}
+
+/// What opens a block's span list. Its first byte occurs nowhere else in it, so a partial
+/// match that fails can be hashed as it is and the failing byte tried as a new start.
+/// Identifiers in `Debug` text are quoted and cannot hold `:` or a space, so no name matches.
+const SPANS: &[u8] = b"span_info: [";
+
+impl SpanlessHasher {
+    fn finish(mut self) -> blake3::Hash {
+        self.hasher.update(&SPANS[..self.matched]);
+        self.hasher.finalize()
+    }
+}
+
+impl fmt::Write for SpanlessHasher {
+    fn write_str(&mut self, s: &str) -> fmt::Result {
+        let bytes = s.as_bytes();
+        let mut i = 0;
+        while i < bytes.len() {
+            if self.skipping {
+                match bytes[i..].iter().position(|&b| b == b']') {
+                    Some(n) => {
+                        self.skipping = false;
+                        i += n + 1;
+                    }
+                    None => return Ok(()),
+                }
+                continue;
+            }
+            if self.matched == 0 {
+                // Hash up to the next possible start of a span list.
+                match bytes[i..].iter().position(|&b| b == SPANS[0]) {
+                    Some(n) => {
+                        self.hasher.update(&bytes[i..i + n]);
+                        i += n + 1;
+                        self.matched = 1;
+                    }
+                    None => {
+                        self.hasher.update(&bytes[i..]);
+                        return Ok(());
+                    }
+                }
+            } else if bytes[i] == SPANS[self.matched] {
+                self.matched += 1;
+                i += 1;
+            } else {
+                self.hasher.update(&SPANS[..self.matched]);
+                self.matched = 0;
+                continue;
+            }
+            if self.matched == SPANS.len() {
+                self.matched = 0;
+                self.skipping = true;
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spanless(chunks: &[&str]) -> blake3::Hash {
+        let mut h = SpanlessHasher { hasher: blake3::Hasher::new(), matched: 0, skipping: false };
+        for c in chunks {
+            h.write_str(c).unwrap();
+        }
+        h.finish()
+    }
+
+    #[test]
+    fn span_lists_are_left_out_wherever_the_text_is_cut() {
+        let with = "Block { body: [Return { value: None }], span_info: [Span { start: 4, end: 9 }] } s sp";
+        let other = "Block { body: [Return { value: None }], span_info: [Span { start: 40, end: 90 }] } s sp";
+        let without = "Block { body: [Return { value: None }], span_info: [] } s sp";
+        let expected = spanless(&[without]);
+        assert_eq!(spanless(&[with]), expected);
+        assert_eq!(spanless(&[other]), expected);
+        for cut in 0..with.len() {
+            assert_eq!(spanless(&[&with[..cut], &with[cut..]]), expected, "cut at {cut}");
+        }
+        let one_by_one: Vec<&str> = (0..with.len()).map(|i| &with[i..i + 1]).collect();
+        assert_eq!(spanless(&one_by_one), expected);
+        // Everything else counts, partial matches included.
+        assert_ne!(spanless(&["span_info: x"]), spanless(&["span_info: y"]));
+        assert_ne!(spanless(&["spa"]), spanless(&[""]));
+        assert_ne!(spanless(&["sspan_info: [1] a"]), spanless(&["span_info: [1] a"]));
+        assert_eq!(spanless(&["sspan_info: [1] a"]), spanless(&["s", "span_info: [2] a"]));
+    }
+}
+
+#[cfg(test)]
+mod module_tests {
+    use super::super::{validate, Options};
+    use super::*;
+
+    const SOURCE: &str = "
+fn used(x: f32) -> f32 { return x * 2.0; }
+fn unused(x: f32) -> f32 { return HELPER; }
+@fragment fn main_ps(@location(0) v: f32) -> @location(0) vec4<f32> { return vec4<f32>(used(v) + ENTRY); }
+@compute @workgroup_size(1) fn main_cs() {}
+";
+
+    fn hash(used: &str, unused: &str, spacing: &str) -> blake3::Hash {
+        let text =
+            SOURCE.replace("ENTRY", used).replace("HELPER", unused).replace("fn used", &format!("{spacing}fn used"));
+        let options = Options::default();
+        let v = validate(&text, "main_ps", crate::Stage::Fragment, &options.limits).unwrap();
+        module_hash(&v, &options)
+    }
+
+    #[test]
+    fn the_module_hash_sees_what_the_entry_point_reaches_and_nothing_else() {
+        let base = hash("1.0", "x", "");
+        assert_eq!(hash("1.0", "x + 1.0", ""), base, "an uncalled helper changed");
+        assert_eq!(hash("1.0", "x", "\n\n   // moved\n"), base, "only the spans moved");
+        assert_ne!(hash("2.0", "x", ""), base, "the entry point's code changed");
+        let options = Options { targets: vec![crate::Target::Spirv], ..Options::default() };
+        let text = SOURCE.replace("ENTRY", "1.0").replace("HELPER", "x");
+        let v = validate(&text, "main_ps", crate::Stage::Fragment, &options.limits).unwrap();
+        assert_ne!(module_hash(&v, &options), base, "other targets");
+    }
+}
