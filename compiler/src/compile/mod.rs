@@ -12,6 +12,7 @@
 mod limits;
 mod reflect;
 mod shared;
+mod structural;
 mod writers;
 
 use std::ops::Range;

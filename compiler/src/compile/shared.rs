@@ -3,8 +3,8 @@
 //! Two permutations whose token streams differ (so whose cache keys differ) can still
 //! compact to the same module for their entry point: a dimension that only changes a helper
 //! the entry point never calls, as Unreal's shared headers are full of. [`module_hash`] is a
-//! structural hash of the compacted, validated module (naga's IR as its `Debug` form gives
-//! it, every field but the source spans, which no writer without debug info reads) together
+//! structural hash of the compacted, validated module (naga's IR as it serializes: every
+//! field but the source spans, which no writer without debug info reads) together
 //! with the entry point, the stage, the targets and the level's limits (which decide the
 //! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
 //! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
@@ -16,7 +16,6 @@
 //! The cache key stays the token hash: this map lives for one build and changes no key.
 
 use std::collections::HashMap;
-use std::fmt::{self, Write as _};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -80,10 +79,10 @@ impl SharedWriters {
 /// The structural hash of a compacted, validated module and of what its writers are given.
 /// Equal hashes mean equal artifacts for every target of `options`.
 pub fn module_hash(v: &Validated, options: &Options) -> blake3::Hash {
-    let mut h = SpanlessHasher { hasher: blake3::Hasher::new(), matched: 0, skipping: false };
+    let mut prefix = Vec::new();
     let mut field = |bytes: &[u8]| {
-        h.hasher.update(&(bytes.len() as u64).to_le_bytes());
-        h.hasher.update(bytes);
+        prefix.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        prefix.extend_from_slice(bytes);
     };
     field(b"kiln module v1");
     field(v.entry.as_bytes());
@@ -93,109 +92,7 @@ pub fn module_hash(v: &Validated, options: &Options) -> blake3::Hash {
     }
     field(format!("{:?}", options.limits).as_bytes());
     field(super::NAGA_VERSION.as_bytes());
-    let _ = write!(h, "{:?}", v.module);
-    h.finish()
-}
-
-/// A blake3 hasher fed with `Debug` text, leaving out every `span_info: [...]` (the source
-/// spans of a [`naga::Block`]: where each statement came from, which differs between
-/// permutations whose texts differ above or around the same code).
-struct SpanlessHasher {
-    hasher: blake3::Hasher,
-    /// How many bytes of [`SPANS`] the text seen last ends with (held back, not hashed yet).
-    matched: usize,
-    /// Inside a span list: everything up to its `]` is left out.
-    skipping: bool,
-}
-
-/// What opens a block's span list. Its first byte occurs nowhere else in it, so a partial
-/// match that fails can be hashed as it is and the failing byte tried as a new start.
-/// Identifiers in `Debug` text are quoted and cannot hold `:` or a space, so no name matches.
-const SPANS: &[u8] = b"span_info: [";
-
-impl SpanlessHasher {
-    fn finish(mut self) -> blake3::Hash {
-        self.hasher.update(&SPANS[..self.matched]);
-        self.hasher.finalize()
-    }
-}
-
-impl fmt::Write for SpanlessHasher {
-    fn write_str(&mut self, s: &str) -> fmt::Result {
-        let bytes = s.as_bytes();
-        let mut i = 0;
-        while i < bytes.len() {
-            if self.skipping {
-                match bytes[i..].iter().position(|&b| b == b']') {
-                    Some(n) => {
-                        self.skipping = false;
-                        i += n + 1;
-                    }
-                    None => return Ok(()),
-                }
-                continue;
-            }
-            if self.matched == 0 {
-                // Hash up to the next possible start of a span list.
-                match bytes[i..].iter().position(|&b| b == SPANS[0]) {
-                    Some(n) => {
-                        self.hasher.update(&bytes[i..i + n]);
-                        i += n + 1;
-                        self.matched = 1;
-                    }
-                    None => {
-                        self.hasher.update(&bytes[i..]);
-                        return Ok(());
-                    }
-                }
-            } else if bytes[i] == SPANS[self.matched] {
-                self.matched += 1;
-                i += 1;
-            } else {
-                self.hasher.update(&SPANS[..self.matched]);
-                self.matched = 0;
-                continue;
-            }
-            if self.matched == SPANS.len() {
-                self.matched = 0;
-                self.skipping = true;
-            }
-        }
-        Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn spanless(chunks: &[&str]) -> blake3::Hash {
-        let mut h = SpanlessHasher { hasher: blake3::Hasher::new(), matched: 0, skipping: false };
-        for c in chunks {
-            h.write_str(c).unwrap();
-        }
-        h.finish()
-    }
-
-    #[test]
-    fn span_lists_are_left_out_wherever_the_text_is_cut() {
-        let with = "Block { body: [Return { value: None }], span_info: [Span { start: 4, end: 9 }] } s sp";
-        let other = "Block { body: [Return { value: None }], span_info: [Span { start: 40, end: 90 }] } s sp";
-        let without = "Block { body: [Return { value: None }], span_info: [] } s sp";
-        let expected = spanless(&[without]);
-        assert_eq!(spanless(&[with]), expected);
-        assert_eq!(spanless(&[other]), expected);
-        for cut in 0..with.len() {
-            assert_eq!(spanless(&[&with[..cut], &with[cut..]]), expected, "cut at {cut}");
-        }
-        let one_by_one: Vec<&str> = (0..with.len()).map(|i| &with[i..i + 1]).collect();
-        assert_eq!(spanless(&one_by_one), expected);
-        // Everything else counts, partial matches included.
-        assert_ne!(spanless(&["span_info: x"]), spanless(&["span_info: y"]));
-        assert_ne!(spanless(&["spa"]), spanless(&[""]));
-        assert_ne!(spanless(&["sspan_info: [1] a"]), spanless(&["span_info: [1] a"]));
-        assert_eq!(spanless(&["sspan_info: [1] a"]), spanless(&["s", "span_info: [2] a"]));
-    }
+    super::structural::hash(&prefix, &v.module)
 }
 
 #[cfg(test)]
