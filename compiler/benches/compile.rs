@@ -25,6 +25,9 @@
 //! change helpers the entry point never calls (where the writers run once per compacted
 //! module: its hit rate is printed). `KILN_BENCH_SHAPES=all` adds a 10,240-permutation set.
 //! The last lines are one table of every set's ratios.
+//!
+//! For profilers (callgrind, perf): `KILN_BENCH_ONLY=naga` runs naga alone once on CONFIG's
+//! distinct sources and exits; `KILN_BENCH_ONLY=kiln` runs one cold build without a cache.
 
 mod shapes;
 
@@ -139,6 +142,30 @@ fn main() {
     let rounds: usize = args.next().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
     let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
     let bundled = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../permutations.toml"));
+    if let Ok(only) = std::env::var("KILN_BENCH_ONLY") {
+        let config_path = given.unwrap_or(bundled);
+        let config = permute::load(&config_path).unwrap_or_else(|e| panic!("{}", e.render()));
+        let (distinct, _) = distinct_sources(&config);
+        let (_, wall, cpu) = timed(|| match only.as_str() {
+            "naga" => {
+                let out: usize = pool(jobs).install(|| distinct.par_iter().map(|s| naga_alone(s, false)).sum());
+                std::hint::black_box(out);
+            }
+            _ => {
+                let tmp = tempfile::tempdir().unwrap();
+                let options = build::Options {
+                    config: config_path.clone(),
+                    output: Some(tmp.path().join("shaders.kpak")),
+                    jobs: Some(jobs),
+                    cache: CacheDir::Disabled,
+                    ..build::Options::default()
+                };
+                build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+            }
+        });
+        println!("{only}: {:.1} ms wall, {:.1} ms CPU", wall.as_secs_f64() * 1e3, cpu.as_secs_f64() * 1e3);
+        return;
+    }
     let mut rows = vec![full(given.as_deref().unwrap_or(&bundled), rounds, jobs)];
     if given.is_none() {
         let tmp = tempfile::tempdir().unwrap();
