@@ -126,7 +126,7 @@ fn archive_bench() {
         });
         big_names.push(name);
     }
-    let big_bytes = w.to_bytes();
+    let big_bytes = w.to_bytes().unwrap();
     let big_open = time(5, || {
         black_box(ShaderArchive::from_vec(big_bytes.clone()).unwrap());
     });
@@ -174,16 +174,17 @@ fn module_bench() {
     let archive = ShaderArchive::embedded().unwrap();
     let perms: Vec<_> = archive
         .permutations()
-        .filter(|p| p.artifact(Target::Spirv).is_some() && p.artifact(Target::Wgsl).is_some())
+        .filter(|p| p.blob_id(Target::Spirv).is_some() && p.blob_id(Target::Wgsl).is_some())
         .collect();
     let create_all = |passthrough: bool| {
         for p in &perms {
+            let (spirv, wgsl) = (p.artifact(Target::Spirv).unwrap(), p.artifact(Target::Wgsl).unwrap());
             let m = create_module(
                 &gpu.device,
                 passthrough,
                 p.name(),
-                p.artifact(Target::Spirv),
-                p.artifact(Target::Wgsl),
+                spirv.as_deref(),
+                wgsl.as_deref(),
                 p.reflection(),
                 "",
             )

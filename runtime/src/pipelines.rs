@@ -334,12 +334,14 @@ impl PipelineCache {
             }
         }
         let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+        let spirv = if self.passthrough { artifact(&perm, Target::Spirv)? } else { None };
+        let wgsl = artifact(&perm, Target::Wgsl)?;
         let module = create_module(
             &self.device,
             self.passthrough,
             name,
-            perm.artifact(Target::Spirv),
-            perm.artifact(Target::Wgsl),
+            spirv.as_deref(),
+            wgsl.as_deref(),
             &reflection,
             &targets,
         )?;
@@ -463,7 +465,8 @@ impl PipelineCache {
         } else {
             let perm = self.archive.get(name)?;
             let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-            create_module(&self.device, false, name, None, perm.artifact(Target::Wgsl), &reflection, &targets)?
+            let wgsl = artifact(&perm, Target::Wgsl)?;
+            create_module(&self.device, false, name, None, wgsl.as_deref(), &reflection, &targets)?
         };
         let layout = self.layout(name, &[&reflection])?;
         let scope = ErrorScopes::push(&self.device);
@@ -530,6 +533,16 @@ impl PipelineCache {
 
 /// Creates a module from an archive's artifacts, bypassing the cache (the benchmark compares
 /// the two paths with this).
+/// A permutation's artifact for `target`, read (decompressed, checked on first use) from the
+/// archive; a corrupted blob is an error naming the permutation.
+pub(crate) fn artifact<'a>(
+    perm: &kiln::archive::PermutationRef<'a>,
+    target: Target,
+) -> Result<Option<Cow<'a, [u8]>>, PipelineError> {
+    perm.artifact(target)
+        .map_err(|e| PipelineError::BadArtifact { name: perm.name().to_string(), message: e.to_string() })
+}
+
 pub fn create_module(
     device: &wgpu::Device,
     passthrough: bool,

@@ -14,7 +14,7 @@ fn pack_interpolants_makes_vertex_fog_cost_no_varying() {
     let a = ShaderArchive::embedded().unwrap();
     let vs = |fog: u32| {
         let p = a.shader("MobileBasePassVS").level("es3_1").with("USE_VERTEX_FOG", fog).find().unwrap();
-        let text = std::str::from_utf8(p.artifact(Target::Wgsl).unwrap()).unwrap().to_string();
+        let text = std::str::from_utf8(&p.artifact(Target::Wgsl).unwrap().unwrap()).unwrap().to_string();
         // Vertex inputs are locations too: count the output struct's only.
         let out = &text[text.find("struct MobileBasePassInterpolants").expect("the interpolant struct")..];
         varyings(&out[..out.find('}').unwrap()])

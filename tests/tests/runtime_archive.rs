@@ -111,7 +111,7 @@ fn builder_errors_name_the_unknown_part() {
     let e = a.shader("VisualizeDepthPS").find().err().expect("lookup should fail").to_string();
     assert_eq!(
         e,
-        "cannot name permutation: shader `VisualizeDepthPS` has several levels (sm5, es3_1); say which with .level()"
+        "cannot name permutation: shader `VisualizeDepthPS` has several levels (es3_1, sm5); say which with .level()"
     );
     let e = a
         .shader("StandardDeferredLightingPS")
@@ -149,4 +149,35 @@ fn opening_a_file_maps_the_same_archive() {
     std::fs::write(&path, kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
     let a = ShaderArchive::open(&path).unwrap();
     assert_eq!(a.permutations().count(), embedded().permutations().count());
+}
+
+#[test]
+fn a_corrupted_blob_is_an_error_naming_the_permutation_when_used() {
+    let bytes = kiln_runtime::EMBEDDED_ARCHIVE.to_vec();
+    let archive = embedded();
+    let p = archive.permutations().find(|p| p.blob_id(kiln::archive::Target::Wgsl).is_some()).unwrap();
+    let (name, id) = (p.name().to_string(), p.blob_id(kiln::archive::Target::Wgsl).unwrap());
+    // The blob table closes the file, 64 bytes per blob: offset and stored length first.
+    let count = u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize;
+    let at = bytes.len() - count * 64 + id.0 as usize * 64;
+    let offset = u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap()) as usize;
+    let len = u64::from_le_bytes(bytes[at + 8..at + 16].try_into().unwrap()) as usize;
+    let mut damaged = bytes.clone();
+    damaged[kiln::archive::HEADER_LEN + offset + len / 2] ^= 0x04;
+    let a = ShaderArchive::from_vec(damaged).expect("opening checks header and manifest only");
+    let e = a.get(&name).unwrap().artifact(kiln::archive::Target::Wgsl).unwrap_err().to_string();
+    assert!(e.contains(&format!("the wgsl artifact of permutation `{name}`")), "{e}");
+    // The intact archive reads the same permutation.
+    assert!(archive.get(&name).unwrap().artifact(kiln::archive::Target::Wgsl).unwrap().is_some());
+}
+
+#[test]
+fn directories_and_fifos_are_refused_without_blocking() {
+    let dir = tempfile::tempdir().unwrap();
+    let e = ShaderArchive::open(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("it is a directory, not a regular file"), "{e}");
+    let fifo = dir.path().join("shaders.kpak");
+    assert!(std::process::Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let e = ShaderArchive::open(&fifo).unwrap_err().to_string();
+    assert!(e.contains("it is a FIFO, not a regular file"), "{e}");
 }

@@ -1,27 +1,38 @@
 //! The archive: one file holding every permutation of a build.
 //!
 //! Takes the artifacts and reflection the compile stage produced; gives a file with a header
-//! (magic, format version, checksum), a manifest (permutations, their targets, reflection)
-//! and deduplicated blobs. Guarantees: the writer is atomic (temp file, then rename); the
-//! reader never panics on bad bytes, checks the checksum before trusting anything, does not
-//! parse blobs until asked, and finds a permutation by name with one hash-map lookup.
+//! (magic, format version, checksum of header and manifest), a manifest (permutations, their
+//! targets, reflection), per-target zstd dictionaries and deduplicated, compressed blobs,
+//! each with its own checksum. Guarantees: the writer streams (blob bytes spool to disk as
+//! they come, from any thread) and is deterministic (the bytes depend on the set of
+//! permutations and blobs, not on the order they came in) and atomic (temp file, then
+//! rename); the reader never panics on bad bytes, checks header and manifest at open
+//! (O(manifest)), checks each blob the first time it is used, and finds a permutation by
+//! name with one hash-map lookup.
 //!
 //! This module builds without the `compiler` feature: the runtime reads archives through
 //! these very types, with no naga in its dependency tree.
 
 mod format;
+mod reader;
 mod reflect;
+mod writer;
+
+#[cfg(test)]
+mod tests;
 
 #[cfg(feature = "compiler")]
 pub(crate) use format::write_all_vectored;
 pub use format::{
-    write_atomic, write_atomic_unsynced, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord, Lookup, Near,
-    PermutationRecord, PermutationRef, ShaderRecord, FORMAT_VERSION, MAGIC,
+    write_atomic, write_atomic_unsynced, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
+    COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
 };
+pub use reader::{Archive, BlobInfo, Lookup, Near, PermutationRef};
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,
 };
+pub use writer::{ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter};
 
 use serde::{Deserialize, Serialize};
 

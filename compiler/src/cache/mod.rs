@@ -379,26 +379,33 @@ impl Cache {
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
     pub fn get_records(&self, key: &Key) -> Records {
-        let path = self.records_path(key);
-        let Ok(bytes) = fs::read(&path) else { return Records::default() };
-        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
-            return Records::default();
-        }
-        let records = serde_json::from_slice(&bytes[40..]).unwrap_or_default();
-        if let Ok(f) = fs::File::options().append(true).open(&path) {
-            let _ = f.set_modified(SystemTime::now());
-        }
-        records
+        self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
     }
 
     /// Replaces the records stored under `key`, atomically.
     pub fn put_records(&self, key: &Key, records: &Records) -> Result<(), Error> {
-        let body = serde_json::to_vec(records).expect("records serialize");
-        let mut bytes = Vec::with_capacity(40 + body.len());
-        bytes.extend_from_slice(RECORD_MAGIC);
-        bytes.extend_from_slice(blake3::hash(&body).as_bytes());
-        bytes.extend_from_slice(&body);
-        self.write_file(&self.records_path(key), &bytes)
+        self.put_records_bytes(key, &serde_json::to_vec(records).expect("records serialize"))
+    }
+
+    /// The body of the records file under `key`, in whatever encoding its writer chose;
+    /// `None` when missing or damaged (its checksum is checked).
+    pub fn get_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        let path = self.records_path(key);
+        let mut bytes = fs::read(&path).ok()?;
+        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+            return None;
+        }
+        if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        bytes.drain(..40);
+        Some(bytes)
+    }
+
+    /// Replaces the records file under `key` with `body` (checksummed), atomically.
+    pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
+        let sum = blake3::hash(body);
+        self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }
 
     /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.
@@ -410,7 +417,7 @@ impl Cache {
 
     /// Records that the archive now at `archive` is the output of the build with
     /// `fingerprint` (with its artifact counts), identified by its length, modification
-    /// time and header checksum.
+    /// time and the blake3 of its whole content.
     pub fn stamp_archive(
         &self,
         archive: &Path,
@@ -608,21 +615,22 @@ fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String
     Ok(Some((Pack { path: path.to_path_buf(), file, modified, touched: AtomicBool::new(false) }, rows)))
 }
 
-/// Length, modification time and header checksum of an archive file.
+/// Length, modification time and blake3 of the whole content of an archive file: an
+/// archive damaged in place, even with its length and modification time kept, no longer
+/// matches its stamp. Hashing costs about a millisecond per few MB (archives are
+/// compressed), far less than the warm build it saves. A path that is not a regular file has
+/// no identity (and is not opened: a FIFO would block).
 fn archive_identity(path: &Path) -> io::Result<String> {
-    use std::io::Read;
+    let meta = fs::metadata(path)?;
+    if !meta.is_file() {
+        return Err(io::Error::other("not a regular file"));
+    }
     let mut f = fs::File::open(path)?;
     let meta = f.metadata()?;
     let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
-    let mut header = [0u8; 64];
-    f.read_exact(&mut header)?;
-    Ok(format!(
-        "{} {}.{:09} {}",
-        meta.len(),
-        mtime.as_secs(),
-        mtime.subsec_nanos(),
-        blake3::Hash::from_bytes(header[32..64].try_into().unwrap()).to_hex()
-    ))
+    let mut hasher = blake3::Hasher::new();
+    hasher.update_reader(&mut f)?;
+    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), hasher.finalize().to_hex()))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.

@@ -1,11 +1,13 @@
-//! `kiln inspect`.
+//! `kiln inspect`: an archive's summary, its permutation list, one artifact's bytes or one
+//! permutation's reflection.
 
-use std::collections::BTreeMap;
-use std::fmt::Write;
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashSet};
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
 
 use super::{print_stdout, CliResult, Failure};
-use crate::archive::{Archive, BindingKind, Target};
+use crate::archive::{Archive, BindingKind, Lookup, NumericType, PermutationRef, Reflection, ScalarKind, Target};
 use crate::cache::format_size;
 
 /// Arguments of `kiln inspect`.
@@ -13,34 +15,170 @@ use crate::cache::format_size;
 pub struct Args {
     /// The archive (`shaders.kpak`).
     pub archive: PathBuf,
-    /// Print the summary as JSON.
-    #[arg(long)]
+    /// A permutation's canonical name (`Shader@level{DIM=value,...}`; an enum's value by name
+    /// or index): print its artifact (`--target`) or its reflection (`--reflection`).
+    pub permutation: Option<String>,
+    /// Print as JSON (the summary, or with `--reflection` the reflection).
+    #[arg(long, conflicts_with_all = ["list", "target"])]
     pub json: bool,
+    /// Print every permutation's canonical name, one per line.
+    #[arg(long, conflicts_with_all = ["permutation", "json"])]
+    pub list: bool,
+    /// The target whose artifact to print: wgsl, spirv, msl, glsl or hlsl.
+    #[arg(long, short = 't', requires = "permutation", conflicts_with = "reflection")]
+    pub target: Option<String>,
+    /// Write the artifact to FILE instead of stdout.
+    #[arg(long, short = 'o', requires = "target")]
+    pub output: Option<PathBuf>,
+    /// Print the permutation's bind groups, vertex inputs, outputs and workgroup size.
+    #[arg(long, requires = "permutation")]
+    pub reflection: bool,
 }
 
-/// Opens the archive; a missing, truncated, corrupted or foreign file is exit code 2.
+/// Opens the archive; a missing, truncated, corrupted or foreign file, an unknown name or
+/// target and a corrupted blob are exit code 2.
 pub fn exec(args: Args) -> CliResult {
     let archive = Archive::open(&args.archive).map_err(|e| match e {
-        crate::archive::ArchiveError::Io { .. } => Failure::usage(format!("error: {e}")),
+        crate::archive::ArchiveError::Io { .. } | crate::archive::ArchiveError::NotAFile { .. } => {
+            Failure::usage(format!("error: {e}"))
+        }
         _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
     })?;
-    let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
-    print_stdout(&text)
+    if args.list {
+        let mut s = String::new();
+        for p in archive.permutations() {
+            s.push_str(p.name());
+            s.push('\n');
+        }
+        return print_stdout(&s);
+    }
+    let Some(name) = &args.permutation else {
+        let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
+        return print_stdout(&text);
+    };
+    let p = find(&archive, name)?;
+    if let Some(t) = &args.target {
+        return artifact(&p, t, args.output.as_deref());
+    }
+    if args.reflection {
+        let text = if args.json {
+            let mut s = serde_json::to_string_pretty(p.reflection()).expect("json");
+            s.push('\n');
+            s
+        } else {
+            reflection_text(&p)
+        };
+        return print_stdout(&text);
+    }
+    Err(Failure::usage(format!("error: say what to show of `{}`: --target T (its artifact) or --reflection", p.name())))
 }
 
-fn target_sizes(a: &Archive) -> BTreeMap<Target, (usize, u64)> {
-    // (permutations with the target, bytes of the distinct blobs of the target)
-    let mut seen = std::collections::HashSet::new();
-    let mut out: BTreeMap<Target, (usize, u64)> = BTreeMap::new();
+/// The permutation `name` names: its canonical name, or the same with enum values given by
+/// index. An unknown name lists the nearest.
+fn find<'a>(archive: &'a Archive, name: &str) -> Result<PermutationRef<'a>, Failure> {
+    if let Some(p) = archive.get(name) {
+        return Ok(p);
+    }
+    if let Some(canonical) = canonical_form(archive, name) {
+        if let Some(p) = archive.get(&canonical) {
+            return Ok(p);
+        }
+    }
+    let near = match archive.lookup(name) {
+        Lookup::Found(p) => return Ok(p),
+        Lookup::Missing(near) => near,
+    };
+    let mut msg = format!("error: permutation `{name}` is not in the archive");
+    if near.is_empty() {
+        msg.push_str(" (the archive holds no permutations)");
+    } else {
+        msg.push_str("; nearest:");
+        for n in near {
+            let _ = write!(msg, "\n  {}", n.name);
+            if !n.differences.is_empty() {
+                let _ = write!(msg, "  (differs in {})", n.differences.join(", "));
+            }
+        }
+    }
+    Err(Failure::usage(msg))
+}
+
+/// `Shader@level{A=1,B=0}` rewritten through the archive's dimension records (enum indices
+/// to labels, any order of dimensions); `None` when it does not parse that far.
+fn canonical_form(archive: &Archive, name: &str) -> Option<String> {
+    let (head, rest) = name.split_once('{')?;
+    let (shader, level) = head.split_once('@')?;
+    let body = rest.strip_suffix('}')?;
+    let values: Vec<(&str, &str)> = body
+        .split(',')
+        .filter(|kv| !kv.trim().is_empty())
+        .map(|kv| kv.split_once('=').map(|(k, v)| (k.trim(), v.trim())))
+        .collect::<Option<_>>()?;
+    archive.canonical_name(shader.trim(), level.trim(), &values).ok()
+}
+
+/// Writes one artifact's bytes to stdout or `output`.
+fn artifact(p: &PermutationRef<'_>, target: &str, output: Option<&Path>) -> CliResult {
+    let targets = || p.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+    let t = Target::from_name(target).ok_or_else(|| {
+        Failure::usage(format!("error: unknown target `{target}` (targets: wgsl, spirv, msl, glsl, hlsl)"))
+    })?;
+    let bytes = p
+        .artifact(t)
+        .map_err(|e| Failure::usage(format!("error: {e}")))?
+        .ok_or_else(|| Failure::usage(format!("error: `{}` has no {t} artifact (it has: {})", p.name(), targets())))?;
+    match output {
+        None => {
+            let mut out = std::io::stdout().lock();
+            match out.write_all(&bytes).and_then(|_| out.flush()) {
+                Ok(()) => Ok(()),
+                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+                Err(e) => Err(Failure::usage(format!("error: cannot write to stdout: {e}"))),
+            }
+        }
+        Some(path) => write_output(path, &bytes)
+            .map_err(|e| Failure::usage(format!("error: cannot write {}: {e}", path.display()))),
+    }
+}
+
+/// A regular file (or a new one) is replaced atomically; a device or FIFO (`-o /dev/null`)
+/// is written through, never renamed over; a directory is refused.
+fn write_output(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_dir() => Err(std::io::Error::other("it is a directory")),
+        Ok(m) if !m.is_file() => std::fs::OpenOptions::new().write(true).open(path)?.write_all(bytes),
+        _ => crate::archive::write_atomic_unsynced(path, bytes),
+    }
+}
+
+/// Per target: (permutations, distinct blobs, raw bytes, stored bytes, dictionary bytes).
+#[derive(Default)]
+struct TargetSizes {
+    permutations: usize,
+    blobs: usize,
+    raw: u64,
+    stored: u64,
+    dictionary: u64,
+}
+
+fn target_sizes(a: &Archive) -> BTreeMap<Target, TargetSizes> {
+    let mut seen = HashSet::new();
+    let mut out: BTreeMap<Target, TargetSizes> = BTreeMap::new();
     for p in a.permutations() {
         for t in p.targets() {
             let e = out.entry(t).or_default();
-            e.0 += 1;
-            let id = p.blob_id(t).expect("listed target");
+            e.permutations += 1;
+            let Some(id) = p.blob_id(t) else { continue };
             if seen.insert(id) {
-                e.1 += a.blob(id).len() as u64;
+                let info = a.blob_info(id).expect("ids of records were checked at open");
+                e.blobs += 1;
+                e.raw += info.raw_len;
+                e.stored += info.stored_len;
             }
         }
+    }
+    for (t, len) in a.dictionaries() {
+        out.entry(t).or_default().dictionary += len;
     }
     out
 }
@@ -67,7 +205,67 @@ fn kind_name(k: &BindingKind) -> String {
     }
 }
 
-fn text(a: &Archive, path: &std::path::Path) -> String {
+/// `f32`, `vec3<u32>`: a numeric type as WGSL spells it.
+fn numeric(t: &NumericType) -> String {
+    let bits = u32::from(t.width) * 8;
+    let scalar = match t.scalar {
+        ScalarKind::Float => format!("f{bits}"),
+        ScalarKind::Sint => format!("i{bits}"),
+        ScalarKind::Uint => format!("u{bits}"),
+        ScalarKind::Bool => "bool".to_string(),
+    };
+    if t.components <= 1 {
+        scalar
+    } else {
+        format!("vec{}<{scalar}>", t.components)
+    }
+}
+
+fn bindings_text(s: &mut String, r: &Reflection, indent: &str) {
+    for b in &r.bindings {
+        let _ = writeln!(
+            s,
+            "{indent}@group({}) @binding({}) {}: {}",
+            b.group,
+            b.binding,
+            b.name.as_deref().unwrap_or("_"),
+            kind_name(&b.kind)
+        );
+    }
+}
+
+/// The reflection of one permutation, every field of it.
+fn reflection_text(p: &PermutationRef<'_>) -> String {
+    let r = p.reflection();
+    let sh = p.shader();
+    let mut s = String::new();
+    let _ = writeln!(s, "permutation: {}", p.name());
+    let _ = writeln!(s, "entry: {} `{}`", sh.stage, r.entry);
+    if r.bindings.is_empty() {
+        let _ = writeln!(s, "bind groups: none");
+    } else {
+        let _ = writeln!(s, "bind groups:");
+        bindings_text(&mut s, r, "  ");
+    }
+    if !r.vertex_inputs.is_empty() {
+        let _ = writeln!(s, "vertex inputs:");
+        for v in &r.vertex_inputs {
+            let _ = writeln!(s, "  @location({}) {}: {}", v.location, v.name.as_deref().unwrap_or("_"), numeric(&v.ty));
+        }
+    }
+    if !r.color_outputs.is_empty() {
+        let _ = writeln!(s, "color outputs:");
+        for o in &r.color_outputs {
+            let _ = writeln!(s, "  @location({}): {}", o.location, numeric(&o.ty));
+        }
+    }
+    if let Some([x, y, z]) = r.workgroup_size {
+        let _ = writeln!(s, "workgroup size: ({x}, {y}, {z})");
+    }
+    s
+}
+
+fn text(a: &Archive, path: &Path) -> String {
     let mut s = String::new();
     let perms = a.permutations().count();
     let _ = writeln!(s, "archive: {} ({})", path.display(), format_size(a.len() as u64));
@@ -75,12 +273,26 @@ fn text(a: &Archive, path: &std::path::Path) -> String {
     let _ = writeln!(s, "kiln: {}  naga: {}", a.kiln_version(), a.naga_version());
     let _ = writeln!(s, "permutations: {perms}  blobs: {}  reflections: {}", a.blob_count(), a.reflections().len());
     let _ = writeln!(s, "targets:");
-    for (t, (n, bytes)) in target_sizes(a) {
-        let _ = writeln!(s, "  {:<6} {n} permutations, {} distinct", t.name(), format_size(bytes));
+    for (t, z) in target_sizes(a) {
+        let dict =
+            if z.dictionary > 0 { format!(" + {} dictionary", format_size(z.dictionary)) } else { String::new() };
+        let ratio = if z.stored + z.dictionary > 0 { z.raw as f64 / (z.stored + z.dictionary) as f64 } else { 1.0 };
+        let _ = writeln!(
+            s,
+            "  {:<6} {} permutations, {} distinct: {} raw, {} compressed{dict} ({ratio:.1}x)",
+            t.name(),
+            z.permutations,
+            z.blobs,
+            format_size(z.raw),
+            format_size(z.stored),
+        );
     }
     let _ = writeln!(s, "shaders:");
-    for (i, sh) in a.shaders().iter().enumerate() {
-        let ps: Vec<_> = a.permutations().filter(|p| p.record().shader as usize == i).collect();
+    let mut by_shader: Vec<Vec<PermutationRef<'_>>> = vec![Vec::new(); a.shaders().len()];
+    for p in a.permutations() {
+        by_shader[p.record().shader as usize].push(p);
+    }
+    for (sh, ps) in a.shaders().iter().zip(&by_shader) {
         let dims: Vec<&str> = sh.dimensions.iter().map(|d| d.name.as_str()).collect();
         let _ = writeln!(
             s,
@@ -94,16 +306,7 @@ fn text(a: &Archive, path: &std::path::Path) -> String {
         );
         if let Some(p) = ps.first() {
             let r = p.reflection();
-            for b in &r.bindings {
-                let _ = writeln!(
-                    s,
-                    "      @group({}) @binding({}) {}: {}",
-                    b.group,
-                    b.binding,
-                    b.name.as_deref().unwrap_or("_"),
-                    kind_name(&b.kind)
-                );
-            }
+            bindings_text(&mut s, r, "      ");
             if !r.vertex_inputs.is_empty() {
                 let locs: Vec<String> = r.vertex_inputs.iter().map(|v| v.location.to_string()).collect();
                 let _ = writeln!(s, "      vertex inputs at locations {}", locs.join(", "));
@@ -131,14 +334,34 @@ fn text(a: &Archive, path: &std::path::Path) -> String {
 fn json(a: &Archive) -> String {
     let targets: serde_json::Map<String, serde_json::Value> = target_sizes(a)
         .into_iter()
-        .map(|(t, (n, bytes))| (t.name().to_string(), serde_json::json!({ "permutations": n, "bytes": bytes })))
+        .map(|(t, z)| {
+            let v = serde_json::json!({
+                "permutations": z.permutations,
+                "blobs": z.blobs,
+                "bytes": z.raw,
+                "raw_bytes": z.raw,
+                "compressed_bytes": z.stored,
+                "dictionary_bytes": z.dictionary,
+            });
+            (t.name().to_string(), v)
+        })
         .collect();
     let permutations: Vec<serde_json::Value> = a
         .permutations()
         .map(|p| {
             let sizes: serde_json::Map<String, serde_json::Value> = p
                 .targets()
-                .map(|t| (t.name().to_string(), serde_json::json!(p.artifact(t).map_or(0, |b| b.len()))))
+                .filter_map(|t| {
+                    let info = a.blob_info(p.blob_id(t)?)?;
+                    Some((t.name().to_string(), serde_json::json!(info.raw_len)))
+                })
+                .collect();
+            let compressed: serde_json::Map<String, serde_json::Value> = p
+                .targets()
+                .filter_map(|t| {
+                    let info = a.blob_info(p.blob_id(t)?)?;
+                    Some((t.name().to_string(), serde_json::json!(info.stored_len)))
+                })
                 .collect();
             serde_json::json!({
                 "name": p.name(),
@@ -146,6 +369,7 @@ fn json(a: &Archive) -> String {
                 "level": p.shader().level,
                 "values": p.values(),
                 "artifacts": sizes,
+                "compressed": compressed,
                 "reflection": p.reflection(),
             })
         })

@@ -25,16 +25,28 @@ use crate::archive::Target;
 /// The artifacts of one compacted module, or the writer's error.
 type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
 
-/// The writers' outputs by compacted module, for one build.
-#[derive(Default)]
+/// The writers' outputs by compacted module, for one build. Memory stays bounded: once the
+/// artifacts kept reach [`SharedWriters::BUDGET`] bytes, a new module's are no longer kept (a
+/// later key with that module runs the writers itself, to the same bytes).
 pub struct SharedWriters {
     map: Mutex<HashMap<blake3::Hash, Arc<OnceLock<Written>>>>,
     shared: AtomicUsize,
+    /// Bytes of artifacts held in `map`.
+    kept: AtomicUsize,
     /// Every compile runs its own writers (to check that sharing changes no byte).
     disabled: bool,
 }
 
+impl Default for SharedWriters {
+    fn default() -> Self {
+        SharedWriters { map: Mutex::default(), shared: AtomicUsize::new(0), kept: AtomicUsize::new(0), disabled: false }
+    }
+}
+
 impl SharedWriters {
+    /// The most bytes of artifacts kept for sharing.
+    pub const BUDGET: usize = 256 << 20;
+
     pub fn new() -> Self {
         SharedWriters::default()
     }
@@ -66,6 +78,13 @@ impl SharedWriters {
         });
         if !ran {
             self.shared.fetch_add(1, Ordering::Relaxed);
+        } else if let Ok(artifacts) = written {
+            let bytes: usize = artifacts.iter().map(|(_, b)| b.len()).sum();
+            if self.kept.fetch_add(bytes, Ordering::Relaxed) + bytes > Self::BUDGET {
+                // Over budget: forget this module (callers already waiting on it still get it).
+                self.kept.fetch_sub(bytes, Ordering::Relaxed);
+                self.map.lock().expect("no panics while locked").remove(&hash);
+            }
         }
         Ok(Compiled { artifacts: written.clone()?, reflection })
     }

@@ -192,7 +192,7 @@ impl<'a> Pipelines<'a> {
             false,
             name,
             None,
-            perm.artifact(kiln::archive::Target::Wgsl),
+            crate::pipelines::artifact(&perm, kiln::archive::Target::Wgsl)?.as_deref(),
             &reflection,
             &targets,
         )?;

@@ -167,7 +167,9 @@ pub fn validate_archive(path: &Path) -> usize {
                 continue;
             }
             let shader = p.shader();
-            if let Err(e) = check_artifact(t, shader.stage, &shader.entry, p.artifact(t).unwrap(), scratch.path()) {
+            if let Err(e) =
+                check_artifact(t, shader.stage, &shader.entry, &p.artifact(t).unwrap().unwrap(), scratch.path())
+            {
                 problems.push(format!("{} ({t}): {e}", p.name()));
             }
         }

@@ -1,0 +1,598 @@
+//! Reading an archive: open (header and manifest checked, O(manifest)), lookups by name,
+//! and blobs checked and decompressed on first use.
+
+use std::borrow::Cow;
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::fs::File;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::OnceLock;
+
+use zstd::zstd_safe::{DCtx, DDict};
+
+use super::format::{
+    header_checksum, ArchiveError, BlobId, DimensionRecord, Entry, Manifest, PermutationRecord, Sections, ShaderRecord,
+    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
+    NO_DICTIONARY,
+};
+use super::{Reflection, Target};
+
+enum Bytes {
+    Static(&'static [u8]),
+    Owned(Vec<u8>),
+    Mapped(memmap2::Mmap),
+}
+
+impl Bytes {
+    fn as_slice(&self) -> &[u8] {
+        match self {
+            Bytes::Static(b) => b,
+            Bytes::Owned(v) => v,
+            Bytes::Mapped(m) => m,
+        }
+    }
+}
+
+/// A loaded archive. The header and manifest are checked and parsed at open; blobs stay
+/// where they are (in the memory map or the embedded bytes) until an artifact is asked for,
+/// and are checked then, once each. `Send + Sync`.
+pub struct Archive {
+    bytes: Bytes,
+    manifest: Manifest,
+    blobs_start: usize,
+    dictionaries_start: usize,
+    table_start: usize,
+    blob_count: usize,
+    /// Whether each blob has passed its checksum.
+    verified: Box<[AtomicBool]>,
+    /// Each dictionary, loaded (and checked) on first use.
+    ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
+    by_name: HashMap<String, u32>,
+    by_shader: HashMap<(String, String), u32>,
+}
+
+/// Sizes of one blob.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlobInfo {
+    /// Bytes of the artifact.
+    pub raw_len: u64,
+    /// Bytes it takes in the archive.
+    pub stored_len: u64,
+    /// Whether it is zstd-compressed.
+    pub compressed: bool,
+    /// Whether it was compressed with its target's dictionary.
+    pub dictionary: bool,
+}
+
+/// A permutation found in an archive.
+#[derive(Clone, Copy)]
+pub struct PermutationRef<'a> {
+    archive: &'a Archive,
+    record: &'a PermutationRecord,
+}
+
+impl<'a> PermutationRef<'a> {
+    pub fn name(&self) -> &'a str {
+        &self.record.name
+    }
+    pub fn shader(&self) -> &'a ShaderRecord {
+        &self.archive.manifest.shaders[self.record.shader as usize]
+    }
+    pub fn values(&self) -> &'a [i64] {
+        &self.record.values
+    }
+    pub fn reflection(&self) -> &'a Reflection {
+        &self.archive.manifest.reflections[self.record.reflection as usize]
+    }
+    pub fn targets(&self) -> impl Iterator<Item = Target> + 'a {
+        self.record.artifacts.iter().map(|(t, _)| *t)
+    }
+    pub fn blob_id(&self, target: Target) -> Option<BlobId> {
+        self.record.artifacts.iter().find(|(t, _)| *t == target).map(|(_, b)| *b)
+    }
+    /// The artifact for `target` (`None` when the permutation has none), decompressed, and
+    /// checked against its checksum the first time it is read. A corrupted blob is an error
+    /// naming this permutation and the target.
+    pub fn artifact(&self, target: Target) -> Result<Option<Cow<'a, [u8]>>, ArchiveError> {
+        let Some(id) = self.blob_id(target) else { return Ok(None) };
+        self.archive.blob(id).map(Some).map_err(|message| ArchiveError::Blob {
+            permutation: self.record.name.clone(),
+            target,
+            message,
+        })
+    }
+    pub fn record(&self) -> &'a PermutationRecord {
+        self.record
+    }
+}
+
+/// A near miss for a name that is not in the archive.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Near {
+    pub name: String,
+    /// `DIM: wanted -> available` for each dimension that differs.
+    pub differences: Vec<String>,
+}
+
+/// The answer to a lookup by name.
+pub enum Lookup<'a> {
+    Found(PermutationRef<'a>),
+    /// Not there; the closest permutations, best first.
+    Missing(Vec<Near>),
+}
+
+thread_local! {
+    /// One decompression context per thread, shared by every archive.
+    static DCTX: RefCell<Option<DCtx<'static>>> = const { RefCell::new(None) };
+}
+
+/// What a path that is not a regular file is, for the error message.
+fn file_kind(meta: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = meta.file_type();
+    if t.is_dir() {
+        "directory"
+    } else if t.is_fifo() {
+        "FIFO"
+    } else if t.is_socket() {
+        "socket"
+    } else if t.is_char_device() {
+        "character device"
+    } else if t.is_block_device() {
+        "block device"
+    } else {
+        "special file"
+    }
+}
+
+impl Archive {
+    /// Memory-maps an archive file and checks its header and manifest. A path that is not a
+    /// regular file (a directory, a FIFO, a device) is an error, found without blocking.
+    pub fn open(path: &Path) -> Result<Archive, ArchiveError> {
+        let io = |source| ArchiveError::Io { path: path.to_path_buf(), source };
+        let not_file =
+            |meta: &std::fs::Metadata| ArchiveError::NotAFile { path: path.to_path_buf(), kind: file_kind(meta) };
+        let meta = std::fs::metadata(path).map_err(io)?;
+        if !meta.is_file() {
+            return Err(not_file(&meta));
+        }
+        let mut options = std::fs::OpenOptions::new();
+        options.read(true);
+        #[cfg(target_os = "linux")]
+        {
+            // O_NONBLOCK: were the path swapped for a FIFO after the check above, opening it
+            // still does not wait for a writer.
+            use std::os::unix::fs::OpenOptionsExt;
+            options.custom_flags(0o4000);
+        }
+        let file: File = options.open(path).map_err(io)?;
+        let meta = file.metadata().map_err(io)?;
+        if !meta.is_file() {
+            return Err(not_file(&meta));
+        }
+        if meta.len() == 0 {
+            return Err(ArchiveError::TooShort { len: 0 });
+        }
+        // SAFETY: the map is read-only and private to this process. Archives are replaced by
+        // rename, never rewritten in place, so the mapped file does not change under us.
+        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+        Archive::from_source(Bytes::Mapped(map))
+    }
+
+    /// An archive embedded with `include_bytes!`.
+    pub fn from_static(bytes: &'static [u8]) -> Result<Archive, ArchiveError> {
+        Archive::from_source(Bytes::Static(bytes))
+    }
+
+    pub fn from_vec(bytes: Vec<u8>) -> Result<Archive, ArchiveError> {
+        Archive::from_source(Bytes::Owned(bytes))
+    }
+
+    fn from_source(bytes: Bytes) -> Result<Archive, ArchiveError> {
+        let data = bytes.as_slice();
+        if data.len() >= 12 && data[0..8] == MAGIC {
+            // The version first: an archive of another version may have another header size.
+            let version = u32::from_le_bytes(data[8..12].try_into().unwrap());
+            if version != FORMAT_VERSION {
+                return Err(ArchiveError::Version { found: version });
+            }
+        }
+        if data.len() < HEADER_LEN {
+            return Err(ArchiveError::TooShort { len: data.len() });
+        }
+        let magic: [u8; 8] = data[0..8].try_into().unwrap();
+        if magic != MAGIC {
+            return Err(ArchiveError::BadMagic { found: magic });
+        }
+        let u32_at = |o: usize| u32::from_le_bytes(data[o..o + 4].try_into().unwrap());
+        let u64_at = |o: usize| u64::from_le_bytes(data[o..o + 8].try_into().unwrap());
+        let flags = u32_at(12);
+        if flags != 0 {
+            return Err(ArchiveError::Manifest(format!("unknown header flags {flags:#x}")));
+        }
+        if data[48..96].iter().any(|&b| b != 0) {
+            return Err(ArchiveError::Manifest("reserved header bytes are not zero".into()));
+        }
+        let sections = Sections {
+            blobs_len: u64_at(16),
+            dictionaries_len: u64_at(24),
+            manifest_len: u64_at(32),
+            blob_count: u64_at(40),
+        };
+        let layout = sections.layout().ok_or_else(|| ArchiveError::Manifest("section lengths overflow".into()))?;
+        let actual = data.len() as u64;
+        if layout.end != actual {
+            return Err(ArchiveError::Truncated { expected: layout.end, actual });
+        }
+        // The padding between sections is covered by no checksum: it must be zero.
+        let pads = [
+            (layout.blobs + sections.blobs_len, layout.dictionaries),
+            (layout.dictionaries + sections.dictionaries_len, layout.manifest),
+            (layout.manifest + sections.manifest_len, layout.table),
+        ];
+        if pads.iter().any(|&(from, to)| data[from as usize..to as usize].iter().any(|&b| b != 0)) {
+            return Err(ArchiveError::Manifest("padding between sections is not zero".into()));
+        }
+        let manifest_bytes = &data[layout.manifest as usize..(layout.manifest + sections.manifest_len) as usize];
+        let table = &data[layout.table as usize..];
+        let expected: [u8; 32] = data[96..128].try_into().unwrap();
+        let computed = header_checksum(&data[..96], manifest_bytes, table);
+        if computed.as_bytes() != &expected {
+            return Err(ArchiveError::Checksum {
+                expected: blake3::Hash::from_bytes(expected).to_hex().to_string(),
+                actual: computed.to_hex().to_string(),
+            });
+        }
+        let manifest: Manifest =
+            serde_json::from_slice(manifest_bytes).map_err(|e| ArchiveError::Manifest(e.to_string()))?;
+        validate(&manifest, table, &sections)?;
+        let by_name = manifest.permutations.iter().enumerate().map(|(i, p)| (p.name.clone(), i as u32)).collect();
+        let by_shader =
+            manifest.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
+        let blob_count = sections.blob_count as usize;
+        Ok(Archive {
+            verified: (0..blob_count).map(|_| AtomicBool::new(false)).collect(),
+            ddicts: (0..manifest.dictionaries.len()).map(|_| OnceLock::new()).collect(),
+            bytes,
+            manifest,
+            blobs_start: layout.blobs as usize,
+            dictionaries_start: layout.dictionaries as usize,
+            table_start: layout.table as usize,
+            blob_count,
+            by_name,
+            by_shader,
+        })
+    }
+
+    pub fn kiln_version(&self) -> &str {
+        &self.manifest.kiln_version
+    }
+    pub fn naga_version(&self) -> &str {
+        &self.manifest.naga_version
+    }
+    /// Size of the whole archive in bytes.
+    pub fn len(&self) -> usize {
+        self.bytes.as_slice().len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.manifest.permutations.is_empty()
+    }
+    pub fn shaders(&self) -> &[ShaderRecord] {
+        &self.manifest.shaders
+    }
+    pub fn blob_count(&self) -> usize {
+        self.blob_count
+    }
+    pub fn reflections(&self) -> &[Reflection] {
+        &self.manifest.reflections
+    }
+
+    pub fn permutations(&self) -> impl Iterator<Item = PermutationRef<'_>> {
+        self.manifest.permutations.iter().map(move |record| PermutationRef { archive: self, record })
+    }
+
+    /// The table entry of a blob; ids come from this archive's records, checked at open.
+    fn entry(&self, id: BlobId) -> Option<Entry> {
+        let i = id.0 as usize;
+        if i >= self.blob_count {
+            return None;
+        }
+        let at = self.table_start + i * ENTRY_LEN;
+        Some(Entry::decode(&self.bytes.as_slice()[at..at + ENTRY_LEN]))
+    }
+
+    /// Sizes of a blob, from the table (nothing is decompressed).
+    pub fn blob_info(&self, id: BlobId) -> Option<BlobInfo> {
+        self.entry(id).map(|e| BlobInfo {
+            raw_len: e.raw_len,
+            stored_len: e.stored_len,
+            compressed: e.codec != CODEC_STORED,
+            dictionary: e.codec == CODEC_ZSTD_DICT,
+        })
+    }
+
+    /// Each target's dictionary and its size in bytes.
+    pub fn dictionaries(&self) -> impl Iterator<Item = (Target, u64)> + '_ {
+        self.manifest.dictionaries.iter().map(|d| (d.target, d.len))
+    }
+
+    /// The dictionary `index`, checked against its checksum and loaded on first use.
+    fn ddict(&self, index: usize) -> Result<&DDict<'static>, String> {
+        let cell = self.ddicts.get(index).ok_or_else(|| format!("dictionary {index} does not exist"))?;
+        let loaded = cell.get_or_init(|| {
+            let d = &self.manifest.dictionaries[index];
+            let start = self.dictionaries_start + d.offset as usize;
+            let bytes = &self.bytes.as_slice()[start..start + d.len as usize];
+            if blake3::hash(bytes).to_hex().as_str() != d.blake3 {
+                return Err(format!("the {} dictionary fails its checksum", d.target));
+            }
+            DDict::try_create(bytes).ok_or_else(|| format!("the {} dictionary cannot be loaded", d.target))
+        });
+        loaded.as_ref().map_err(|e| e.clone())
+    }
+
+    /// The blob's bytes, decompressed; checked against its checksum the first time. The
+    /// error says what is wrong (callers add the permutation's name:
+    /// [`PermutationRef::artifact`]).
+    pub fn blob(&self, id: BlobId) -> Result<Cow<'_, [u8]>, String> {
+        let e = self.entry(id).ok_or_else(|| format!("blob {} does not exist", id.0))?;
+        let start = self.blobs_start + e.offset as usize;
+        let stored = &self.bytes.as_slice()[start..start + e.stored_len as usize];
+        let bytes: Cow<'_, [u8]> = match e.codec {
+            CODEC_STORED => Cow::Borrowed(stored),
+            _ => {
+                let ddict = match e.codec {
+                    CODEC_ZSTD_DICT => Some(self.ddict(e.dictionary as usize)?),
+                    _ => None,
+                };
+                let mut out = Vec::new();
+                out.try_reserve_exact(e.raw_len as usize)
+                    .map_err(|_| format!("cannot allocate {} bytes to decompress it", e.raw_len))?;
+                let result = DCTX.with(|cell| {
+                    let mut slot = cell.borrow_mut();
+                    let dctx = match &mut *slot {
+                        Some(d) => d,
+                        None => slot.insert(DCtx::try_create().ok_or("cannot create a zstd context")?),
+                    };
+                    match ddict {
+                        Some(dd) => dctx.decompress_using_ddict(&mut out, stored, dd),
+                        None => dctx.decompress(&mut out, stored),
+                    }
+                    .map_err(|code| zstd::zstd_safe::get_error_name(code))
+                });
+                match result {
+                    Ok(n) if n as u64 == e.raw_len => Cow::Owned(out),
+                    Ok(n) => return Err(format!("it decompresses to {n} bytes, not the {} announced", e.raw_len)),
+                    Err(why) => return Err(format!("it does not decompress: {why}")),
+                }
+            }
+        };
+        let flag = &self.verified[id.0 as usize];
+        if !flag.load(Ordering::Acquire) {
+            if blake3::hash(&bytes).as_bytes() != &e.hash {
+                return Err("its checksum does not match its bytes".into());
+            }
+            flag.store(true, Ordering::Release);
+        }
+        Ok(bytes)
+    }
+
+    /// Checks every blob (decompressing each once); the first failure is returned, named
+    /// by a permutation that uses it.
+    pub fn verify_all(&self) -> Result<(), ArchiveError> {
+        for p in self.permutations() {
+            for t in p.targets() {
+                p.artifact(t)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// O(1) lookup by canonical name.
+    pub fn get(&self, name: &str) -> Option<PermutationRef<'_>> {
+        let i = *self.by_name.get(name)?;
+        Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
+    }
+
+    /// The (shader, level) record, if the archive has that pair.
+    pub fn shader(&self, shader: &str, level: &str) -> Option<&ShaderRecord> {
+        self.by_shader.get(&(shader.to_string(), level.to_string())).map(|&i| &self.manifest.shaders[i as usize])
+    }
+
+    /// Builds the canonical name of (shader, level, values) from the shader's dimension
+    /// order. Values may be given in any order; every dimension must be given, by value or
+    /// (for an enum) by label. Returns an error message naming what is wrong.
+    pub fn canonical_name(&self, shader: &str, level: &str, values: &[(&str, &str)]) -> Result<String, String> {
+        let record = self.shader(shader, level).ok_or_else(|| {
+            let levels: Vec<&str> =
+                self.manifest.shaders.iter().filter(|s| s.name == shader).map(|s| s.level.as_str()).collect();
+            if levels.is_empty() {
+                format!("no shader named `{shader}` in the archive")
+            } else {
+                format!("shader `{shader}` has no level `{level}` in the archive (it has: {})", levels.join(", "))
+            }
+        })?;
+        for (dim, _) in values {
+            if !record.dimensions.iter().any(|d| d.name == *dim) {
+                let names: Vec<&str> = record.dimensions.iter().map(|d| d.name.as_str()).collect();
+                return Err(format!(
+                    "shader `{shader}` has no dimension `{dim}` (its dimensions: {})",
+                    names.join(", ")
+                ));
+            }
+        }
+        let mut parts = Vec::with_capacity(record.dimensions.len());
+        for d in &record.dimensions {
+            let value = values
+                .iter()
+                .rev()
+                .find(|(n, _)| *n == d.name)
+                .map(|(_, v)| *v)
+                .ok_or_else(|| format!("no value given for dimension `{}` of `{shader}`", d.name))?;
+            parts.push(format!("{}={}", d.name, display_value(d, value)));
+        }
+        Ok(format!("{shader}@{level}{{{}}}", parts.join(",")))
+    }
+
+    /// Lookup by name with near misses: for a name that is not in the archive, the closest
+    /// permutations of the same shader (fewest differing dimensions), with the differences.
+    pub fn lookup(&self, name: &str) -> Lookup<'_> {
+        if let Some(p) = self.get(name) {
+            return Lookup::Found(p);
+        }
+        Lookup::Missing(self.nearest(name, 5))
+    }
+
+    /// The `limit` permutations closest to `name`.
+    pub fn nearest(&self, name: &str, limit: usize) -> Vec<Near> {
+        let wanted = parse_name(name);
+        let mut scored: Vec<(usize, Near)> = Vec::new();
+        for p in &self.manifest.permutations {
+            let have = parse_name(&p.name);
+            let mut diffs = Vec::new();
+            let mut score = 0usize;
+            if have.shader != wanted.shader {
+                score += 100 + edit_distance(&have.shader, &wanted.shader);
+                diffs.push(format!("shader: {} -> {}", wanted.shader, have.shader));
+            }
+            if have.level != wanted.level {
+                score += 10;
+                diffs.push(format!("level: {} -> {}", wanted.level, have.level));
+            }
+            for (k, v) in &have.dims {
+                match wanted.dims.iter().find(|(wk, _)| wk == k) {
+                    Some((_, wv)) if wv == v => {}
+                    Some((_, wv)) => {
+                        score += 1;
+                        diffs.push(format!("{k}: {wv} -> {v}"));
+                    }
+                    None => {
+                        score += 1;
+                        diffs.push(format!("{k}: (missing) -> {v}"));
+                    }
+                }
+            }
+            for (k, wv) in &wanted.dims {
+                if !have.dims.iter().any(|(hk, _)| hk == k) {
+                    score += 1;
+                    diffs.push(format!("{k}: {wv} -> (no such dimension)"));
+                }
+            }
+            scored.push((score, Near { name: p.name.clone(), differences: diffs }));
+        }
+        scored.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| a.1.name.cmp(&b.1.name)));
+        scored.into_iter().take(limit).map(|(_, n)| n).collect()
+    }
+}
+
+fn display_value(d: &DimensionRecord, value: &str) -> String {
+    if d.labels.is_empty() {
+        return value.to_string();
+    }
+    if d.labels.iter().any(|l| l == value) {
+        return value.to_string();
+    }
+    match value.parse::<usize>() {
+        Ok(i) if i < d.labels.len() => d.labels[i].clone(),
+        _ => value.to_string(),
+    }
+}
+
+struct ParsedName {
+    shader: String,
+    level: String,
+    dims: Vec<(String, String)>,
+}
+
+fn parse_name(name: &str) -> ParsedName {
+    let (head, rest) = match name.find('{') {
+        Some(i) => (&name[..i], name[i + 1..].trim_end_matches('}')),
+        None => (name, ""),
+    };
+    let (shader, level) = match head.split_once('@') {
+        Some((s, l)) => (s, l),
+        None => (head, ""),
+    };
+    let dims = rest
+        .split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(|kv| match kv.split_once('=') {
+            Some((k, v)) => (k.trim().to_string(), v.trim().to_string()),
+            None => (kv.trim().to_string(), String::new()),
+        })
+        .collect();
+    ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims }
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
+}
+
+/// Checks every index and range in the manifest and the blob table, so later accessors
+/// cannot go out of bounds or allocate what the archive announces without bound.
+fn validate(m: &Manifest, table: &[u8], sections: &Sections) -> Result<(), ArchiveError> {
+    let bad = |msg: String| Err(ArchiveError::Manifest(msg));
+    for (i, d) in m.dictionaries.iter().enumerate() {
+        match d.offset.checked_add(d.len) {
+            Some(end) if end <= sections.dictionaries_len => {}
+            _ => return bad(format!("dictionary {i} lies outside the dictionary section")),
+        }
+    }
+    if m.dictionaries.len() > NO_DICTIONARY as usize {
+        return bad(format!("{} dictionaries", m.dictionaries.len()));
+    }
+    for (i, bytes) in table.chunks_exact(ENTRY_LEN).enumerate() {
+        let e = Entry::decode(bytes);
+        if !Entry::reserved_zero(bytes) {
+            return bad(format!("blob {i} has non-zero reserved bytes"));
+        }
+        match e.offset.checked_add(e.stored_len) {
+            Some(end) if end <= sections.blobs_len => {}
+            _ => return bad(format!("blob {i} lies outside the blob section")),
+        }
+        if e.raw_len > MAX_ARTIFACT_LEN {
+            return bad(format!("blob {i} announces {} bytes, more than the {MAX_ARTIFACT_LEN} allowed", e.raw_len));
+        }
+        match e.codec {
+            CODEC_STORED if e.stored_len == e.raw_len && e.dictionary == NO_DICTIONARY => {}
+            CODEC_ZSTD if e.dictionary == NO_DICTIONARY => {}
+            CODEC_ZSTD_DICT if (e.dictionary as usize) < m.dictionaries.len() => {}
+            c => return bad(format!("blob {i} has codec {c} with dictionary {}", e.dictionary)),
+        }
+    }
+    for (i, p) in m.permutations.iter().enumerate() {
+        if i > 0 && m.permutations[i - 1].name >= p.name {
+            return bad(format!("permutation `{}` is out of order or repeated", p.name));
+        }
+        let Some(shader) = m.shaders.get(p.shader as usize) else {
+            return bad(format!("permutation `{}` names shader {} of {}", p.name, p.shader, m.shaders.len()));
+        };
+        if p.values.len() != shader.dimensions.len() {
+            return bad(format!(
+                "permutation `{}` has {} values for {} dimensions",
+                p.name,
+                p.values.len(),
+                shader.dimensions.len()
+            ));
+        }
+        if p.reflection as usize >= m.reflections.len() {
+            return bad(format!("permutation `{}` names a missing reflection", p.name));
+        }
+        for (t, blob) in &p.artifacts {
+            if blob.0 as u64 >= sections.blob_count {
+                return bad(format!("permutation `{}` names a missing {t} blob", p.name));
+            }
+        }
+    }
+    Ok(())
+}

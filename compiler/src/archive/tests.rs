@@ -1,0 +1,388 @@
+//! Unit tests of the archive format: round trips, determinism, damage of every kind.
+
+use super::format::{header_checksum, Entry, ENTRY_LEN, HEADER_LEN};
+use super::*;
+
+fn shader() -> ShaderRecord {
+    ShaderRecord {
+        name: "Lit".into(),
+        level: "sm5".into(),
+        entry: "main_ps".into(),
+        stage: Stage::Fragment,
+        dimensions: vec![
+            DimensionRecord { name: "FULLY_ROUGH".into(), labels: vec![] },
+            DimensionRecord { name: "MODE".into(), labels: vec!["OPAQUE".into(), "MASKED".into()] },
+        ],
+    }
+}
+
+fn reflection() -> Reflection {
+    Reflection {
+        entry: "main_ps".into(),
+        stage: Stage::Fragment,
+        bindings: vec![Binding {
+            group: 0,
+            binding: 0,
+            name: Some("u".into()),
+            kind: BindingKind::UniformBuffer { min_size: 16 },
+        }],
+        vertex_inputs: vec![],
+        color_outputs: vec![],
+        workgroup_size: None,
+    }
+}
+
+fn sample() -> Vec<u8> {
+    let mut w = ArchiveWriter::new();
+    w.set_naga_version("30.0.1");
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    for rough in 0..2 {
+        for mode in 0..2 {
+            let wgsl = w.add_blob(format!("// wgsl {rough}").as_bytes());
+            let spv = w.add_blob(&[3, 2, 0x23, 7, rough as u8]);
+            let label = ["OPAQUE", "MASKED"][mode];
+            w.add_permutation(PermutationRecord {
+                name: format!("Lit@sm5{{FULLY_ROUGH={rough},MODE={label}}}"),
+                shader: s,
+                values: vec![rough, mode as i64],
+                reflection: r,
+                artifacts: vec![(Target::Wgsl, wgsl), (Target::Spirv, spv)],
+            });
+        }
+    }
+    w.to_bytes().unwrap()
+}
+
+/// A WGSL-like text that differs a little with `i`, as permutations of one shader do.
+fn artifact_text(i: usize, target: &str) -> String {
+    let mut s = format!("// {target} permutation {i}\n");
+    for f in 0..40 {
+        s.push_str(&format!(
+            "fn light_{f}(n: vec3<f32>, l: vec3<f32>) -> f32 {{\n    let k = {}.0 * dot(n, l);\n    return max(k, 0.0);\n}}\n",
+            (f * 7 + i) % 13
+        ));
+    }
+    s
+}
+
+/// 96 permutations whose artifacts are big enough to train dictionaries.
+fn big_permutations() -> Vec<(String, Vec<(Target, Vec<u8>)>)> {
+    (0..96)
+        .map(|i| {
+            let name = format!("Lit@sm5{{FULLY_ROUGH={},MODE={}}}", i, ["OPAQUE", "MASKED"][i % 2]);
+            let arts = vec![
+                (Target::Wgsl, artifact_text(i, "wgsl").into_bytes()),
+                (Target::Msl, artifact_text(i / 2, "msl").into_bytes()),
+            ];
+            (name, arts)
+        })
+        .collect()
+}
+
+/// Writes `perms` through a streaming writer, adding blobs and permutations in the order of
+/// `order` (indices into `perms`), from `threads` threads.
+fn stream(path: &std::path::Path, perms: &[(String, Vec<(Target, Vec<u8>)>)], order: &[usize], threads: usize) {
+    let w = StreamingWriter::new(path).unwrap();
+    w.set_naga_version("30.0.1");
+    let sh = shader();
+    let refl = reflection();
+    let chunks: Vec<&[usize]> = order.chunks(order.len().div_ceil(threads)).collect();
+    std::thread::scope(|scope| {
+        for chunk in chunks {
+            let (w, sh, refl) = (&w, &sh, &refl);
+            scope.spawn(move || {
+                for &i in chunk {
+                    let (name, arts) = &perms[i];
+                    let mut artifacts = Vec::new();
+                    for (t, bytes) in arts {
+                        artifacts.push((*t, w.add_blob(bytes).unwrap()));
+                    }
+                    let values = vec![i as i64, (i % 2) as i64];
+                    let p = NewPermutation { name: name.clone(), shader: sh, values, reflection: refl, artifacts };
+                    w.add_permutation(p).unwrap();
+                }
+            });
+        }
+    });
+    w.finish().unwrap();
+}
+
+#[test]
+fn round_trip_dedups_blobs_and_finds_by_name() {
+    let a = Archive::from_vec(sample()).unwrap();
+    assert_eq!(a.permutations().count(), 4);
+    assert_eq!(a.blob_count(), 4, "two wgsl blobs and two spir-v blobs, each shared by two permutations");
+    let p = a.get("Lit@sm5{FULLY_ROUGH=1,MODE=MASKED}").unwrap();
+    assert_eq!(&p.artifact(Target::Wgsl).unwrap().unwrap()[..], b"// wgsl 1");
+    assert_eq!(&p.artifact(Target::Spirv).unwrap().unwrap()[..], &[3, 2, 0x23, 7, 1]);
+    assert!(p.artifact(Target::Msl).unwrap().is_none());
+    assert_eq!(p.reflection().bindings.len(), 1);
+    assert_eq!(a.naga_version(), "30.0.1");
+    let names: Vec<&str> = a.permutations().map(|p| p.name()).collect();
+    let mut sorted = names.clone();
+    sorted.sort();
+    assert_eq!(names, sorted, "permutations are stored sorted by name");
+}
+
+#[test]
+fn canonical_name_accepts_labels_indices_and_any_order() {
+    let a = Archive::from_vec(sample()).unwrap();
+    let n = a.canonical_name("Lit", "sm5", &[("MODE", "1"), ("FULLY_ROUGH", "0")]).unwrap();
+    assert_eq!(n, "Lit@sm5{FULLY_ROUGH=0,MODE=MASKED}");
+    assert!(a.get(&n).is_some());
+    let e = a.canonical_name("Lit", "sm5", &[("MODE", "1")]).unwrap_err();
+    assert!(e.contains("FULLY_ROUGH"), "{e}");
+    let e = a.canonical_name("Lit", "es3_1", &[]).unwrap_err();
+    assert!(e.contains("has no level `es3_1`"), "{e}");
+}
+
+#[test]
+fn missing_name_lists_nearest_with_differences() {
+    let a = Archive::from_vec(sample()).unwrap();
+    match a.lookup("Lit@sm5{FULLY_ROUGH=2,MODE=MASKED}") {
+        Lookup::Found(_) => panic!("found a name that is not there"),
+        Lookup::Missing(near) => {
+            assert_eq!(near[0].differences, vec!["FULLY_ROUGH: 2 -> 0".to_string()]);
+            assert!(near[0].name.contains("MODE=MASKED"));
+        }
+    }
+}
+
+#[test]
+fn dictionaries_are_trained_and_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let a = Archive::open(&path).unwrap();
+    let dicts: Vec<Target> = a.dictionaries().map(|(t, _)| t).collect();
+    assert_eq!(dicts, vec![Target::Wgsl, Target::Msl], "one dictionary per target");
+    let raw: usize = perms.iter().flat_map(|(_, a)| a.iter().map(|(_, b)| b.len())).sum();
+    assert!((a.len() as f64) < raw as f64 / 8.0, "{} bytes for {raw} raw", a.len());
+    for (name, arts) in &perms {
+        let p = a.get(name).unwrap();
+        for (t, bytes) in arts {
+            assert_eq!(&p.artifact(*t).unwrap().unwrap()[..], &bytes[..], "{name} {t}");
+            let info = a.blob_info(p.blob_id(*t).unwrap()).unwrap();
+            assert!(info.dictionary && info.stored_len < info.raw_len, "{name} {t}: {info:?}");
+        }
+    }
+}
+
+#[test]
+fn bytes_depend_on_the_set_not_on_order_or_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let forward: Vec<usize> = (0..perms.len()).collect();
+    let mut shuffled: Vec<usize> = (0..perms.len()).rev().collect();
+    shuffled.rotate_left(37);
+    stream(&dir.path().join("a.kpak"), &perms, &forward, 1);
+    stream(&dir.path().join("b.kpak"), &perms, &shuffled, 4);
+    let a = std::fs::read(dir.path().join("a.kpak")).unwrap();
+    let b = std::fs::read(dir.path().join("b.kpak")).unwrap();
+    assert!(a == b, "two insertion orders gave different archives");
+    // The in-memory writer gives the same bytes too.
+    let mut w = ArchiveWriter::new();
+    w.set_naga_version("30.0.1");
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    for (i, (name, arts)) in perms.iter().enumerate() {
+        let artifacts = arts.iter().map(|(t, bytes)| (*t, w.add_blob(bytes))).collect();
+        let values = vec![i as i64, (i % 2) as i64];
+        w.add_permutation(PermutationRecord { name: name.clone(), shader: s, values, reflection: r, artifacts });
+    }
+    assert!(w.to_bytes().unwrap() == a, "ArchiveWriter and StreamingWriter disagree");
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(leftovers.len(), 2, "no spool or temporary file left behind: {leftovers:?}");
+}
+
+#[test]
+fn writer_rejects_inconsistent_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let w = StreamingWriter::new(&dir.path().join("x.kpak")).unwrap();
+    let key = BlobKey::of(b"never added");
+    let (sh, refl) = (shader(), reflection());
+    let p = NewPermutation {
+        name: "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".into(),
+        shader: &sh,
+        values: vec![0, 0],
+        reflection: &refl,
+        artifacts: vec![(Target::Wgsl, key)],
+    };
+    w.add_permutation(p.clone()).unwrap();
+    let msg = w.finish().unwrap_err().to_string();
+    assert!(msg.contains("names a wgsl blob that was never added"), "{msg}");
+    let w = StreamingWriter::new(&dir.path().join("x.kpak")).unwrap();
+    w.add_blob(b"never added").unwrap();
+    w.add_permutation(p.clone()).unwrap();
+    w.add_permutation(p).unwrap();
+    let msg = w.finish().unwrap_err().to_string();
+    assert!(msg.contains("was added twice"), "{msg}");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "nothing written, nothing left");
+}
+
+#[test]
+fn truncation_is_an_error_at_every_length() {
+    let bytes = sample();
+    for len in [0, 1, 8, 11, 12, 63, 64, 65, HEADER_LEN - 1, HEADER_LEN, bytes.len() / 2, bytes.len() - 1] {
+        let err = Archive::from_vec(bytes[..len].to_vec()).err().expect("truncated archive accepted");
+        let msg = err.to_string();
+        assert!(msg.contains("truncated") || msg.contains("shorter than"), "{len}: {msg}");
+    }
+}
+
+/// Every flipped byte is found: at open (header, manifest, table, padding) or when the blob
+/// or dictionary it lies in is first used, as an error naming a permutation.
+#[test]
+fn every_flipped_byte_is_detected() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms: Vec<_> = big_permutations().into_iter().take(24).collect();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let bytes = std::fs::read(&path).unwrap();
+    assert!(Archive::from_vec(bytes.clone()).unwrap().dictionaries().count() > 0);
+    for i in 0..bytes.len() {
+        let mut b = bytes.clone();
+        b[i] ^= 0x40;
+        match Archive::from_vec(b) {
+            Err(_) => {}
+            Ok(a) => {
+                let err = a.verify_all().expect_err(&format!("flipping byte {i} went unnoticed"));
+                let msg = err.to_string();
+                assert!(msg.contains("artifact of permutation `Lit@sm5{"), "byte {i}: {msg}");
+            }
+        }
+    }
+}
+
+#[test]
+fn corrupted_blob_names_the_permutation_and_target() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&path, &perms, &order, 1);
+    let a = Archive::open(&path).unwrap();
+    let p = a.get(&perms[5].0).unwrap();
+    let id = p.blob_id(Target::Msl).unwrap();
+    let info = a.blob_info(id).unwrap();
+    drop(a);
+    // Find the blob's offset from the table and flip a byte in the middle of it; the header
+    // and manifest checksum stays valid (it does not cover blobs).
+    let mut bytes = std::fs::read(&path).unwrap();
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let e = Entry::decode(&bytes[table_start + id.0 as usize * ENTRY_LEN..][..ENTRY_LEN]);
+    assert_eq!(e.stored_len, info.stored_len);
+    bytes[HEADER_LEN + (e.offset + e.stored_len / 2) as usize] ^= 0x01;
+    let a = Archive::from_vec(bytes).unwrap();
+    let sharing: Vec<&str> =
+        a.permutations().filter(|q| q.blob_id(Target::Msl) == Some(id)).map(|q| q.name()).collect();
+    for name in &sharing {
+        let msg = a.get(name).unwrap().artifact(Target::Msl).unwrap_err().to_string();
+        assert!(msg.contains(&format!("the msl artifact of permutation `{name}`")), "{msg}");
+    }
+    // Its other artifacts and its neighbours are intact.
+    assert!(a.get(&perms[5].0).unwrap().artifact(Target::Wgsl).is_ok());
+    assert!(a.get(&perms[10].0).unwrap().artifact(Target::Msl).is_ok());
+}
+
+fn a_blob_count(bytes: &[u8]) -> usize {
+    u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize
+}
+
+/// Rewrites the header checksum after an edit, as a hostile tool would.
+fn reseal(bytes: &mut [u8]) {
+    let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
+    let count = a_blob_count(bytes);
+    let table_start = bytes.len() - count * ENTRY_LEN;
+    let manifest_start = table_start - manifest_len.next_multiple_of(8);
+    let sum =
+        header_checksum(&bytes[..96], &bytes[manifest_start..manifest_start + manifest_len], &bytes[table_start..]);
+    bytes[96..128].copy_from_slice(sum.as_bytes());
+}
+
+#[test]
+fn hostile_table_entries_with_a_valid_checksum_are_errors() {
+    let bytes = sample();
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let edits: [(usize, &[u8], &str); 4] = [
+        (16, &(1u64 << 40).to_le_bytes(), "announces"),
+        (0, &(1u64 << 50).to_le_bytes(), "outside the blob section"),
+        (24, &[9], "codec 9"),
+        (25, &[3], "codec"),
+    ];
+    for (at, patch, wanted) in edits {
+        let mut b = bytes.clone();
+        b[table_start + at..table_start + at + patch.len()].copy_from_slice(patch);
+        reseal(&mut b);
+        let msg = Archive::from_vec(b).err().expect("hostile entry accepted").to_string();
+        assert!(msg.contains(wanted), "{wanted}: {msg}");
+    }
+    // Sealed as is, the archive opens: the edits above were what was refused.
+    let mut b = bytes.clone();
+    reseal(&mut b);
+    assert!(Archive::from_vec(b).is_ok());
+}
+
+#[test]
+fn older_and_newer_format_versions_are_named() {
+    // A format 1 archive: the same magic, version 1, a 64-byte header.
+    let mut v1 = MAGIC.to_vec();
+    v1.extend_from_slice(&1u32.to_le_bytes());
+    v1.resize(64 + 16, 0);
+    let msg = Archive::from_vec(v1).err().unwrap().to_string();
+    assert!(msg.contains("archive format version 1 is not supported"), "{msg}");
+    assert!(msg.contains("rebuild"), "{msg}");
+    let mut bytes = sample();
+    bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+    let msg = Archive::from_vec(bytes).err().unwrap().to_string();
+    assert!(msg.contains("format version 7 is not supported"), "{msg}");
+}
+
+#[test]
+fn atomic_write_then_mmap_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sub/shaders.kpak");
+    let mut w = ArchiveWriter::new();
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    let b = w.add_blob(b"x");
+    let name = "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".to_string();
+    w.add_permutation(PermutationRecord {
+        name,
+        shader: s,
+        values: vec![0, 0],
+        reflection: r,
+        artifacts: vec![(Target::Wgsl, b)],
+    });
+    w.write(&path).unwrap();
+    let a = Archive::open(&path).unwrap();
+    assert_eq!(&a.blob(BlobId(0)).unwrap()[..], b"x");
+    let leftovers: Vec<_> = std::fs::read_dir(path.parent().unwrap()).unwrap().collect();
+    assert_eq!(leftovers.len(), 1, "no temporary file left behind");
+}
+
+#[test]
+fn empty_archive_round_trips() {
+    let a = Archive::from_vec(ArchiveWriter::new().to_bytes().unwrap()).unwrap();
+    assert_eq!(a.permutations().count(), 0);
+    assert_eq!(a.blob_count(), 0);
+}
+
+#[test]
+fn directories_and_fifos_are_refused_without_blocking() {
+    let dir = tempfile::tempdir().unwrap();
+    let msg = Archive::open(dir.path()).err().unwrap().to_string();
+    assert!(msg.contains("it is a directory, not a regular file"), "{msg}");
+    let fifo = dir.path().join("fifo");
+    let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    let msg = Archive::open(&fifo).err().unwrap().to_string();
+    assert!(msg.contains("it is a FIFO, not a regular file"), "{msg}");
+    let msg = Archive::open(std::path::Path::new("/dev/null")).err().unwrap().to_string();
+    assert!(msg.contains("character device"), "{msg}");
+}

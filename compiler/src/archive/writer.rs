@@ -1,0 +1,632 @@
+//! The writers of format 2.
+//!
+//! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
+//! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
+//! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
+//! and memory holds only hashes, offsets and the manifest. [`StreamingWriter::finish`] sorts
+//! the permutations by canonical name, orders blobs by first use in that order, trains one
+//! dictionary per target on a deterministic sample, compresses, and writes the archive
+//! through a temporary file and a rename. The bytes of the archive therefore depend only on
+//! the set of permutations and blobs, never on the order they were added in or on the
+//! number of threads.
+//!
+//! [`ArchiveWriter`] is the same assembly over an in-memory spool, with index-based handles,
+//! for tests, benches and small tools.
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+
+use super::format::{
+    header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
+    PermutationRecord, Sections, ShaderRecord, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
+    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, NO_DICTIONARY,
+};
+use super::{Reflection, Target};
+
+/// The content hash of a blob given to a writer: what a permutation names its artifacts by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct BlobKey(blake3::Hash);
+
+impl BlobKey {
+    /// The key of `bytes` (their blake3).
+    pub fn of(bytes: &[u8]) -> BlobKey {
+        BlobKey(blake3::hash(bytes))
+    }
+    /// The key of bytes whose blake3 the caller computed already.
+    pub fn from_hash(hash: blake3::Hash) -> BlobKey {
+        BlobKey(hash)
+    }
+    pub fn hash(&self) -> blake3::Hash {
+        self.0
+    }
+}
+
+/// A permutation given to [`StreamingWriter::add_permutation`].
+#[derive(Clone, Debug)]
+pub struct NewPermutation<'a> {
+    /// Canonical name, `Shader@level{DIM=value,...}`; unique in the archive.
+    pub name: String,
+    /// Its (shader, level) record; every permutation of a pair must give an equal record.
+    pub shader: &'a ShaderRecord,
+    /// One value per dimension of the shader, in declared order.
+    pub values: Vec<i64>,
+    pub reflection: &'a Reflection,
+    /// At most one blob per target, each added with [`StreamingWriter::add_blob`].
+    pub artifacts: Vec<(Target, BlobKey)>,
+}
+
+/// What [`StreamingWriter::finish`] wrote.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ArchiveSummary {
+    pub permutations: usize,
+    /// Distinct blobs in the archive.
+    pub blobs: usize,
+    /// Their bytes before compression.
+    pub raw_bytes: u64,
+    /// Their bytes as stored (compressed).
+    pub stored_bytes: u64,
+    /// Bytes of the trained dictionaries.
+    pub dictionary_bytes: u64,
+    /// Size of the archive file.
+    pub file_bytes: u64,
+}
+
+struct Pending {
+    name: String,
+    shader: u32,
+    values: Vec<i64>,
+    reflection: u32,
+    artifacts: Vec<(Target, blake3::Hash)>,
+}
+
+/// The manifest side of a writer: interned shaders and reflections, pending permutations.
+#[derive(Default)]
+struct Entries {
+    naga_version: String,
+    shaders: Vec<ShaderRecord>,
+    shader_index: HashMap<(String, String), u32>,
+    reflections: Vec<Reflection>,
+    reflection_index: HashMap<Reflection, u32>,
+    permutations: Vec<Pending>,
+}
+
+impl Entries {
+    fn add(&mut self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
+        let key = (p.shader.name.clone(), p.shader.level.clone());
+        let shader = match self.shader_index.get(&key) {
+            Some(&i) if self.shaders[i as usize] == *p.shader => i,
+            Some(_) => {
+                return Err(ArchiveError::Input(format!(
+                    "permutation `{}` gives shader `{}@{}` a record that differs from an earlier permutation's",
+                    p.name, key.0, key.1
+                )))
+            }
+            None => {
+                let i = self.shaders.len() as u32;
+                self.shaders.push(p.shader.clone());
+                self.shader_index.insert(key, i);
+                i
+            }
+        };
+        let reflection = match self.reflection_index.get(p.reflection) {
+            Some(&i) => i,
+            None => {
+                let i = self.reflections.len() as u32;
+                self.reflections.push(p.reflection.clone());
+                self.reflection_index.insert(p.reflection.clone(), i);
+                i
+            }
+        };
+        // The caller's order of targets is kept: it is part of the permutation (the order of
+        // the level's targets), not an order of arrival.
+        let artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
+        if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
+            return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
+        }
+        self.permutations.push(Pending { name: p.name, shader, values: p.values, reflection, artifacts });
+        Ok(())
+    }
+}
+
+/// Where blob bytes wait until the archive is assembled.
+enum Spool<'a> {
+    Memory(&'a [u8]),
+    File(&'a File),
+}
+
+impl Spool<'_> {
+    fn read(&self, offset: u64, len: u64) -> std::io::Result<Cow<'_, [u8]>> {
+        match self {
+            Spool::Memory(m) => Ok(Cow::Borrowed(&m[offset as usize..(offset + len) as usize])),
+            Spool::File(f) => {
+                let mut buf = vec![0u8; len as usize];
+                f.read_exact_at(&mut buf, offset)?;
+                Ok(Cow::Owned(buf))
+            }
+        }
+    }
+}
+
+/// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
+/// documentation. `Send + Sync`: share it by reference across a thread pool.
+pub struct StreamingWriter {
+    output: PathBuf,
+    entries: Mutex<Entries>,
+    /// blake3 → (offset, length) in the spool; the next free offset.
+    blobs: Mutex<(HashMap<blake3::Hash, (u64, u64)>, u64)>,
+    spool: File,
+    failed: AtomicBool,
+}
+
+impl StreamingWriter {
+    /// A writer of the archive at `output`. Its spool is created (and at once unlinked) in
+    /// `output`'s folder, which is created if missing.
+    pub fn new(output: &Path) -> Result<StreamingWriter, ArchiveError> {
+        let err = |source| ArchiveError::Write { path: output.to_path_buf(), source };
+        let spool_path = sibling_name(output, "spool").map_err(err)?;
+        let spool =
+            std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&spool_path).map_err(err)?;
+        // The open handle keeps the data; nothing is left behind whatever happens next.
+        std::fs::remove_file(&spool_path).map_err(err)?;
+        let entries = Entries { naga_version: String::new(), ..Default::default() };
+        Ok(StreamingWriter {
+            output: output.to_path_buf(),
+            entries: Mutex::new(entries),
+            blobs: Mutex::new((HashMap::new(), 0)),
+            spool,
+            failed: AtomicBool::new(false),
+        })
+    }
+
+    /// The archive's path.
+    pub fn output(&self) -> &Path {
+        &self.output
+    }
+
+    /// Records the naga version the artifacts were produced with (shown by `kiln inspect`).
+    pub fn set_naga_version(&self, version: &str) {
+        lock(&self.entries).naga_version = version.to_string();
+    }
+
+    /// Adds a blob (an artifact's bytes); adding the same bytes again is free.
+    pub fn add_blob(&self, bytes: &[u8]) -> Result<BlobKey, ArchiveError> {
+        self.add_blob_hashed(bytes, blake3::hash(bytes))
+    }
+
+    /// [`StreamingWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
+    pub fn add_blob_hashed(&self, bytes: &[u8], hash: blake3::Hash) -> Result<BlobKey, ArchiveError> {
+        debug_assert_eq!(hash, blake3::hash(bytes));
+        let offset = {
+            let mut blobs = lock(&self.blobs);
+            if blobs.0.contains_key(&hash) {
+                return Ok(BlobKey(hash));
+            }
+            let offset = blobs.1;
+            blobs.1 += bytes.len() as u64;
+            blobs.0.insert(hash, (offset, bytes.len() as u64));
+            offset
+        };
+        // Written outside the lock: threads spool their blobs in parallel.
+        if let Err(source) = self.spool.write_all_at(bytes, offset) {
+            self.failed.store(true, Ordering::Relaxed);
+            return Err(ArchiveError::Write { path: self.output.clone(), source });
+        }
+        Ok(BlobKey(hash))
+    }
+
+    /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
+    pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
+        lock(&self.entries).add(p)
+    }
+
+    /// Number of distinct blobs added so far.
+    pub fn blob_count(&self) -> usize {
+        lock(&self.blobs).0.len()
+    }
+
+    /// Assembles the archive and writes it atomically (temporary file, fsync, rename).
+    pub fn finish(self) -> Result<ArchiveSummary, ArchiveError> {
+        self.finish_impl(true)
+    }
+
+    /// [`StreamingWriter::finish`] without the fsync: still atomic for readers, not durable
+    /// across a power loss, like a compiler's outputs.
+    pub fn finish_unsynced(self) -> Result<ArchiveSummary, ArchiveError> {
+        self.finish_impl(false)
+    }
+
+    fn finish_impl(self, sync: bool) -> Result<ArchiveSummary, ArchiveError> {
+        let err = |source| ArchiveError::Write { path: self.output.clone(), source };
+        if self.failed.load(Ordering::Relaxed) {
+            return Err(err(std::io::Error::other("a blob could not be spooled")));
+        }
+        let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
+        let (index, _) = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
+        let plan = plan(entries, &index)?;
+        let spool = Spool::File(&self.spool);
+        let mut summary = ArchiveSummary::default();
+        write_atomic_with(&self.output, sync, |f| {
+            summary = write_archive(&plan, &spool, f)?;
+            Ok(())
+        })
+        .map_err(err)?;
+        Ok(summary)
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic elsewhere while holding the lock leaves plain data behind: still usable.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Collects permutations and artifacts in memory, with index-based handles, and writes the
+/// same archive a [`StreamingWriter`] would.
+#[derive(Default)]
+pub struct ArchiveWriter {
+    entries: Entries,
+    /// Local handles of `add_shader` and `add_reflection`.
+    shaders: Vec<ShaderRecord>,
+    shader_handles: HashMap<(String, String), u32>,
+    reflections: Vec<Reflection>,
+    reflection_handles: HashMap<Reflection, u32>,
+    /// blake3 of each `BlobId`, and where its bytes lie in `spool`.
+    blob_hashes: Vec<blake3::Hash>,
+    index: HashMap<blake3::Hash, (u64, u64)>,
+    handle_of: HashMap<blake3::Hash, BlobId>,
+    spool: Vec<u8>,
+    /// The first inconsistency found by `add_permutation`, reported when writing.
+    error: Option<String>,
+}
+
+impl ArchiveWriter {
+    pub fn new() -> Self {
+        ArchiveWriter::default()
+    }
+
+    /// Records the naga version the artifacts were produced with (shown by `kiln inspect`).
+    pub fn set_naga_version(&mut self, version: &str) {
+        self.entries.naga_version = version.to_string();
+    }
+
+    /// Adds a (shader, level) record; returns its handle. Adding the same pair twice returns
+    /// the first handle. Shaders no permutation uses are left out of the archive.
+    pub fn add_shader(&mut self, record: ShaderRecord) -> u32 {
+        let key = (record.name.clone(), record.level.clone());
+        if let Some(&i) = self.shader_handles.get(&key) {
+            return i;
+        }
+        let i = self.shaders.len() as u32;
+        self.shaders.push(record);
+        self.shader_handles.insert(key, i);
+        i
+    }
+
+    /// Adds a blob, returning the handle of an identical blob already added where there is one.
+    pub fn add_blob(&mut self, bytes: &[u8]) -> BlobId {
+        self.add_blob_hashed(bytes, blake3::hash(bytes))
+    }
+
+    /// [`ArchiveWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
+    pub fn add_blob_hashed(&mut self, bytes: &[u8], hash: blake3::Hash) -> BlobId {
+        debug_assert_eq!(hash, blake3::hash(bytes));
+        if let Some(&id) = self.handle_of.get(&hash) {
+            return id;
+        }
+        let id = BlobId(self.blob_hashes.len() as u32);
+        self.index.insert(hash, (self.spool.len() as u64, bytes.len() as u64));
+        self.spool.extend_from_slice(bytes);
+        self.blob_hashes.push(hash);
+        self.handle_of.insert(hash, id);
+        id
+    }
+
+    pub fn add_reflection(&mut self, reflection: &Reflection) -> u32 {
+        if let Some(&i) = self.reflection_handles.get(reflection) {
+            return i;
+        }
+        let i = self.reflections.len() as u32;
+        self.reflections.push(reflection.clone());
+        self.reflection_handles.insert(reflection.clone(), i);
+        i
+    }
+
+    /// Adds a permutation whose `shader`, `reflection` and blob ids are handles this writer
+    /// gave. A bad handle is reported when the archive is written.
+    pub fn add_permutation(&mut self, record: PermutationRecord) {
+        let shader = self.shaders.get(record.shader as usize);
+        let reflection = self.reflections.get(record.reflection as usize);
+        let artifacts: Option<Vec<(Target, BlobKey)>> = record
+            .artifacts
+            .iter()
+            .map(|(t, id)| self.blob_hashes.get(id.0 as usize).map(|h| (*t, BlobKey(*h))))
+            .collect();
+        let (Some(shader), Some(reflection), Some(artifacts)) = (shader, reflection, artifacts) else {
+            self.error.get_or_insert_with(|| format!("permutation `{}` names a handle of no writer", record.name));
+            return;
+        };
+        let p = NewPermutation { name: record.name, shader, values: record.values, reflection, artifacts };
+        if let Err(e) = self.entries.add(p) {
+            self.error.get_or_insert_with(|| e.to_string());
+        }
+    }
+
+    /// Number of distinct blobs so far.
+    pub fn blob_count(&self) -> usize {
+        self.blob_hashes.len()
+    }
+
+    fn plan(&self) -> Result<Plan, ArchiveError> {
+        if let Some(e) = &self.error {
+            return Err(ArchiveError::Input(e.clone()));
+        }
+        let entries = Entries {
+            naga_version: self.entries.naga_version.clone(),
+            shaders: self.entries.shaders.clone(),
+            shader_index: HashMap::new(),
+            reflections: self.entries.reflections.clone(),
+            reflection_index: HashMap::new(),
+            permutations: self
+                .entries
+                .permutations
+                .iter()
+                .map(|p| Pending {
+                    name: p.name.clone(),
+                    shader: p.shader,
+                    values: p.values.clone(),
+                    reflection: p.reflection,
+                    artifacts: p.artifacts.clone(),
+                })
+                .collect(),
+        };
+        plan(entries, &self.index)
+    }
+
+    /// The whole archive as bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, ArchiveError> {
+        let plan = self.plan()?;
+        let mut out = Cursor::new(Vec::new());
+        write_archive(&plan, &Spool::Memory(&self.spool), &mut out)
+            .map_err(|source| ArchiveError::Write { path: PathBuf::from("<memory>"), source })?;
+        Ok(out.into_inner())
+    }
+
+    /// Writes the archive to `path` atomically: a temporary file in the same folder, synced,
+    /// then renamed over `path`. A reader never sees a half-written archive.
+    pub fn write(&self, path: &Path) -> Result<ArchiveSummary, ArchiveError> {
+        self.write_impl(path, true)
+    }
+
+    /// [`ArchiveWriter::write`] without the fsync.
+    pub fn write_unsynced(&self, path: &Path) -> Result<ArchiveSummary, ArchiveError> {
+        self.write_impl(path, false)
+    }
+
+    fn write_impl(&self, path: &Path, sync: bool) -> Result<ArchiveSummary, ArchiveError> {
+        let plan = self.plan()?;
+        let mut summary = ArchiveSummary::default();
+        write_atomic_with(path, sync, |f| {
+            summary = write_archive(&plan, &Spool::Memory(&self.spool), f)?;
+            Ok(())
+        })
+        .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })?;
+        Ok(summary)
+    }
+}
+
+/// A blob of the archive, in archive order.
+struct PlannedBlob {
+    target: Target,
+    hash: blake3::Hash,
+    spool_offset: u64,
+    len: u64,
+}
+
+/// What the archive will hold, in its final order; only the blob bytes are still elsewhere.
+struct Plan {
+    manifest: Manifest,
+    blobs: Vec<PlannedBlob>,
+}
+
+/// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
+/// the result depends on the set added, not on the order of adding.
+fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<Plan, ArchiveError> {
+    let Entries { naga_version, shaders, reflections, mut permutations, .. } = entries;
+    permutations.sort_by(|a, b| a.name.cmp(&b.name));
+    if let Some(w) = permutations.windows(2).find(|w| w[0].name == w[1].name) {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", w[0].name)));
+    }
+    let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
+    let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
+    let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
+    let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
+    let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
+    let mut blob_ids: HashMap<blake3::Hash, u32> = HashMap::new();
+    let mut blobs = Vec::new();
+    for p in permutations {
+        let shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
+            manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
+            manifest.shaders.len() as u32 - 1
+        });
+        let reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
+            manifest.reflections.push(reflections[p.reflection as usize].take().expect("taken once"));
+            manifest.reflections.len() as u32 - 1
+        });
+        let mut artifacts = Vec::with_capacity(p.artifacts.len());
+        for (target, hash) in p.artifacts {
+            let id = match blob_ids.get(&hash) {
+                Some(&id) => id,
+                None => {
+                    let Some(&(spool_offset, len)) = index.get(&hash) else {
+                        return Err(ArchiveError::Input(format!(
+                            "permutation `{}` names a {target} blob that was never added",
+                            p.name
+                        )));
+                    };
+                    let id = blobs.len() as u32;
+                    blobs.push(PlannedBlob { target, hash, spool_offset, len });
+                    blob_ids.insert(hash, id);
+                    id
+                }
+            };
+            artifacts.push((target, BlobId(id)));
+        }
+        manifest.permutations.push(PermutationRecord { name: p.name, shader, values: p.values, reflection, artifacts });
+    }
+    Ok(Plan { manifest, blobs })
+}
+
+/// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
+/// where it is built in, else in order on this thread.
+fn par_map<T: Sync, U: Send, S>(
+    items: &[T],
+    init: impl Fn() -> S + Sync + Send,
+    f: impl Fn(&mut S, &T) -> U + Sync + Send,
+) -> Vec<U> {
+    #[cfg(feature = "compiler")]
+    {
+        use rayon::prelude::*;
+        items.par_iter().map_init(init, f).collect()
+    }
+    #[cfg(not(feature = "compiler"))]
+    {
+        let mut state = init();
+        items.iter().map(|t| f(&mut state, t)).collect()
+    }
+}
+
+/// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
+/// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from.
+fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+    let of_target: Vec<&PlannedBlob> = plan.blobs.iter().filter(|b| b.target == target).collect();
+    let total: u64 = of_target.iter().map(|b| b.len).sum();
+    let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
+    let mut samples = Vec::new();
+    let mut sampled = 0usize;
+    for b in of_target.iter().step_by(stride) {
+        samples.push(spool.read(b.spool_offset, b.len)?);
+        sampled += b.len as usize;
+    }
+    // A dictionary pays for itself only over many artifacts of a kind.
+    let capacity = (sampled / 16).min(DICTIONARY_SIZE);
+    if samples.len() < 8 || capacity < 1024 {
+        return Ok(None);
+    }
+    Ok(zstd::dict::from_samples(&samples, capacity).ok().filter(|d| !d.is_empty()))
+}
+
+/// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
+fn write_archive<W: Write + Seek>(plan: &Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
+    let mut out = BufWriter::with_capacity(1 << 20, out);
+    out.seek(SeekFrom::Start(0))?;
+    out.write_all(&[0u8; HEADER_LEN])?;
+
+    // Dictionaries, trained per target in parallel.
+    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
+    let trained = par_map(&targets, || (), |_, t| train(plan, *t, spool));
+    let mut dictionaries: Vec<(Target, Vec<u8>)> = Vec::new();
+    for (t, d) in targets.iter().zip(trained) {
+        if let Some(d) = d? {
+            dictionaries.push((*t, d));
+        }
+    }
+    let cdicts: Vec<Option<zstd::zstd_safe::CDict<'static>>> =
+        dictionaries.iter().map(|(_, d)| zstd::zstd_safe::CDict::try_create(d, COMPRESSION_LEVEL)).collect();
+    let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
+
+    // The blob section, compressed in batches so memory holds one batch at a time.
+    let mut summary = ArchiveSummary { permutations: plan.manifest.permutations.len(), ..Default::default() };
+    let mut table = Vec::with_capacity(plan.blobs.len() * super::format::ENTRY_LEN);
+    let mut offset = 0u64;
+    let mut start = 0;
+    while start < plan.blobs.len() {
+        let mut end = start;
+        let mut batch_bytes = 0u64;
+        while end < plan.blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
+            batch_bytes += plan.blobs[end].len;
+            end += 1;
+        }
+        let batch = &plan.blobs[start..end];
+        let stored = par_map(batch, zstd::zstd_safe::CCtx::create, |cctx, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
+            let raw = spool.read(b.spool_offset, b.len)?;
+            let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
+            let mut dst = Vec::with_capacity(zstd::zstd_safe::compress_bound(raw.len()));
+            let (codec, index, ok) = match dict {
+                Some((i, cdict)) => {
+                    (CODEC_ZSTD_DICT, i as u8, cctx.compress_using_cdict(&mut dst, &raw, cdict).is_ok())
+                }
+                None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(&mut dst, &raw, COMPRESSION_LEVEL).is_ok()),
+            };
+            if ok && dst.len() < raw.len() {
+                Ok((codec, index, dst))
+            } else {
+                Ok((CODEC_STORED, NO_DICTIONARY, raw.into_owned()))
+            }
+        });
+        for (b, s) in batch.iter().zip(stored) {
+            let (codec, dictionary, bytes) = s?;
+            out.write_all(&bytes)?;
+            let entry = Entry {
+                offset,
+                stored_len: bytes.len() as u64,
+                raw_len: b.len,
+                codec,
+                dictionary,
+                hash: *b.hash.as_bytes(),
+            };
+            table.extend_from_slice(&entry.encode());
+            offset += bytes.len() as u64;
+            summary.raw_bytes += b.len;
+        }
+        start = end;
+    }
+    summary.blobs = plan.blobs.len();
+    summary.stored_bytes = offset;
+    let blobs_len = offset;
+    pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
+
+    let mut manifest = plan.manifest.clone();
+    let mut dict_offset = 0u64;
+    for (t, d) in &dictionaries {
+        out.write_all(d)?;
+        manifest.dictionaries.push(DictionaryRecord {
+            target: *t,
+            offset: dict_offset,
+            len: d.len() as u64,
+            blake3: blake3::hash(d).to_hex().to_string(),
+        });
+        dict_offset += d.len() as u64;
+    }
+    summary.dictionary_bytes = dict_offset;
+    let manifest_bytes = serde_json::to_vec(&manifest).map_err(std::io::Error::other)?;
+    let sections = Sections {
+        blobs_len,
+        dictionaries_len: dict_offset,
+        manifest_len: manifest_bytes.len() as u64,
+        blob_count: plan.blobs.len() as u64,
+    };
+    let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
+    pad8(&mut out, layout.dictionaries + dict_offset)?;
+    out.write_all(&manifest_bytes)?;
+    pad8(&mut out, layout.manifest + manifest_bytes.len() as u64)?;
+    out.write_all(&table)?;
+    let fields = sections.header_fields();
+    let sum = header_checksum(&fields, &manifest_bytes, &table);
+    out.seek(SeekFrom::Start(0))?;
+    out.write_all(&fields)?;
+    out.write_all(sum.as_bytes())?;
+    out.flush()?;
+    summary.file_bytes = layout.end;
+    Ok(summary)
+}
+
+/// Zero bytes from `at` to the next multiple of 8.
+fn pad8(out: &mut impl Write, at: u64) -> std::io::Result<()> {
+    let pad = (at.next_multiple_of(8) - at) as usize;
+    out.write_all(&[0u8; 8][..pad])
+}

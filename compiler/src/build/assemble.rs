@@ -1,0 +1,221 @@
+//! Assemble: the archive, the loose files of `--emit-dir` and the archive's stamp.
+//!
+//! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, from any worker
+//! and in any order: their bytes go at once to the archive's spool (a
+//! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
+//! reflection (interned) and the hashes of its blobs. [`Assembler::finish`] then adds the
+//! permutations, whose records are the manifest: the only thing that grows with the set.
+//! The writer orders everything by content and name, so the bytes depend only on the set
+//! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
+//! an archive nor loose files (a check or a shard).
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use super::plan::{Keys, Plan};
+use super::preprocess::Preprocessed;
+use super::store::Store;
+use super::Error;
+use crate::archive::{
+    self, BlobKey, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target,
+};
+use crate::cache::Key;
+use crate::compile::{self, Compiled};
+
+/// What stays of a key once its artifacts are written.
+struct Produced {
+    reflection: Arc<Reflection>,
+    /// Each artifact's target and blake3.
+    artifacts: Vec<(Target, blake3::Hash)>,
+}
+
+pub(super) struct Assembler<'p> {
+    plan: &'p Plan<'p>,
+    /// The archive's writer, with `-o`.
+    writer: Option<StreamingWriter>,
+    keys: Mutex<HashMap<Key, Produced>>,
+    reflections: Mutex<HashSet<Arc<Reflection>>>,
+    /// Loose files written (`--emit-dir`): blake3 → file name.
+    emitted: Mutex<HashMap<blake3::Hash, String>>,
+    /// The first artifact that could not be written.
+    error: Mutex<Option<String>>,
+}
+
+/// What [`Assembler::finish`] wrote: distinct blobs and (permutation, target) pairs.
+pub(super) struct Written {
+    pub artifacts: usize,
+    pub permutation_artifacts: usize,
+    pub archive: Option<PathBuf>,
+}
+
+impl<'p> Assembler<'p> {
+    pub fn new(plan: &'p Plan<'p>) -> Result<Assembler<'p>, Error> {
+        let writer = match &plan.options.output {
+            Some(out) => Some(StreamingWriter::new(out).map_err(|e| Error::Io(format!("error: {e}")))?),
+            None => None,
+        };
+        if let Some(w) = &writer {
+            w.set_naga_version(compile::NAGA_VERSION);
+        }
+        Ok(Assembler {
+            plan,
+            writer,
+            keys: Mutex::default(),
+            reflections: Mutex::default(),
+            emitted: Mutex::default(),
+            error: Mutex::default(),
+        })
+    }
+
+    /// A key's artifacts, with the blake3 of each: written now, then only their hashes kept.
+    pub fn add(&self, key: &Key, stage: Stage, c: &Compiled, hashes: &[blake3::Hash]) {
+        if !self.plan.assembles() {
+            return;
+        }
+        for ((t, bytes), hash) in c.artifacts.iter().zip(hashes) {
+            if let Err(e) = self.write_artifact(*t, stage, bytes, *hash) {
+                self.error.lock().expect("no panics while locked").get_or_insert(e);
+            }
+        }
+        let reflection = {
+            let mut set = self.reflections.lock().expect("no panics while locked");
+            match set.get(&c.reflection) {
+                Some(r) => r.clone(),
+                None => {
+                    let r = Arc::new(c.reflection.clone());
+                    set.insert(r.clone());
+                    r
+                }
+            }
+        };
+        let artifacts = c.artifacts.iter().zip(hashes).map(|((t, _), h)| (*t, *h)).collect();
+        self.keys.lock().expect("no panics while locked").insert(*key, Produced { reflection, artifacts });
+    }
+
+    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<(), String> {
+        if let Some(w) = &self.writer {
+            w.add_blob_hashed(bytes, hash).map_err(|e| format!("error: {e}"))?;
+        }
+        if let Some(dir) = &self.plan.options.emit_dir {
+            if self.emitted.lock().expect("no panics while locked").contains_key(&hash) {
+                return Ok(());
+            }
+            let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(stage));
+            archive::write_atomic_unsynced(&dir.join(&f), bytes)
+                .map_err(|e| format!("error: cannot write {}: {e}", dir.join(&f).display()))?;
+            self.emitted.lock().expect("no panics while locked").insert(hash, f);
+        }
+        Ok(())
+    }
+
+    /// Everything the archive's content depends on: each kept permutation's name, shader
+    /// record and key, in order, and the versions.
+    fn fingerprint(&self, keys: &[Option<Key>]) -> blake3::Hash {
+        let mut h = blake3::Hasher::new();
+        h.update(b"kiln build fingerprint v1\0");
+        h.update(crate::VERSION.as_bytes());
+        h.update(b"\0");
+        h.update(compile::NAGA_VERSION.as_bytes());
+        for (p, key) in self.plan.kept.iter().zip(keys) {
+            let Some(key) = key else { continue };
+            let dims: Vec<(&str, &[String])> =
+                p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+            let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
+            h.update(line.as_bytes());
+            h.update(&key.0);
+        }
+        h.finalize()
+    }
+
+    /// The artifact counts of the archive when it is already the output of this build:
+    /// every permutation has the key it had when the archive was written, and the archive
+    /// is the file that build wrote (like cargo's freshness check). Only with a cache (the
+    /// stamp lives there), nothing failed, and no `--emit-dir`.
+    pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
+        let options = self.plan.options;
+        let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
+        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
+        store.fresh_archive(out, &self.fingerprint(&per_permutation(pre)), &keys)
+    }
+
+    /// Adds every permutation (the manifest) and writes the archive, the loose files'
+    /// index, and the archive's stamp.
+    /// `keys` is each kept permutation's key (`None` where preprocessing failed).
+    pub fn finish(self, pre: &[Option<Key>], store: &Store) -> Result<Written, Error> {
+        let options = self.plan.options;
+        let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
+        if !self.plan.assembles() {
+            return Ok(written);
+        }
+        if let Some(e) = self.error.lock().expect("no panics while locked").take() {
+            return Err(Error::Io(e));
+        }
+        let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
+        let fingerprint = self.fingerprint(pre);
+        let keys = self.keys.into_inner().expect("no panics while locked");
+        let emitted = self.emitted.into_inner().expect("no panics while locked");
+        let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
+        let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
+        let mut distinct: HashSet<blake3::Hash> = HashSet::new();
+        for (p, key) in self.plan.kept.iter().zip(pre) {
+            let Some(key) = key else { continue };
+            let produced = &keys[key];
+            let name = p.name();
+            if options.emit_dir.is_some() {
+                let files = index.entry(name.clone()).or_default();
+                for (t, hash) in &produced.artifacts {
+                    files.insert(t.name(), emitted[hash].as_str());
+                }
+            }
+            written.permutation_artifacts += produced.artifacts.len();
+            if self.writer.is_none() {
+                distinct.extend(produced.artifacts.iter().map(|a| a.1));
+            }
+            let Some(w) = &self.writer else { continue };
+            let shader = shaders.entry((&p.shader.name, &p.level.name)).or_insert_with(|| ShaderRecord {
+                name: p.shader.name.clone(),
+                level: p.level.name.clone(),
+                entry: p.shader.entry.clone(),
+                stage: p.shader.stage,
+                dimensions: p
+                    .shader
+                    .dimensions
+                    .iter()
+                    .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
+                    .collect(),
+            });
+            w.add_permutation(NewPermutation {
+                name,
+                shader,
+                values: p.values.clone(),
+                reflection: &produced.reflection,
+                artifacts: produced.artifacts.iter().map(|(t, h)| (*t, BlobKey::from_hash(*h))).collect(),
+            })
+            .map_err(archive_error)?;
+        }
+        drop(keys);
+        written.artifacts = distinct.len();
+        if let Some(dir) = &options.emit_dir {
+            let json = serde_json::to_vec_pretty(&index).expect("index serializes");
+            let path = dir.join("index.json");
+            archive::write_atomic_unsynced(&path, &json)
+                .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        }
+        if let (Some(out), Some(w)) = (&options.output, self.writer) {
+            let summary = w.finish_unsynced().map_err(archive_error)?;
+            written.artifacts = summary.blobs;
+            written.archive = Some(out.clone());
+            if options.emit_dir.is_none() {
+                store.stamp_archive(out, &fingerprint, (written.artifacts, written.permutation_artifacts));
+            }
+        }
+        Ok(written)
+    }
+}
+
+/// Each kept permutation's key (`None` where preprocessing failed): all that assembling
+/// needs of the preprocessing results.
+pub(super) fn per_permutation(pre: &Preprocessed) -> Vec<Option<Key>> {
+    pre.iter().map(|r| r.as_ref().ok().map(|r| r.key)).collect()
+}

@@ -1,0 +1,244 @@
+//! `kiln inspect` as a user runs it: the summary with raw and compressed sizes, `--list`,
+//! one artifact's bytes (checked by `spirv-val` and `glslangValidator`), one permutation's
+//! reflection, unknown names, damaged and foreign files, and paths that are not files.
+
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn kiln(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kiln"))
+        .args(args)
+        .current_dir(dir)
+        .env_remove("KILN_CACHE_DIR")
+        .env_remove("CARGO_TARGET_DIR")
+        .env("CI", "1")
+        .output()
+        .unwrap()
+}
+
+/// Runs `kiln` and fails the test if it has not exited within a minute: a guard against a
+/// hang (a FIFO opened for reading waits for a writer forever), not a measure of speed.
+fn kiln_no_hang(dir: &Path, args: &[&str]) -> Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_kiln"))
+        .args(args)
+        .current_dir(dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > Duration::from_secs(60) {
+            let _ = child.kill();
+            panic!("kiln {args:?} blocked");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+fn copy(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// A copy of `tests/in` with `lit.toml` built into `shaders.kpak`.
+fn built() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    copy(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/in"), dir.path());
+    let o = kiln(dir.path(), &["build", "--config", "lit.toml", "--no-cache"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    dir
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// Fails (never skips) when a validator is missing, naming the Debian package.
+fn require_tool(tool: &str, package: &str) {
+    let ok = Command::new(tool).arg("--version").output().map(|o| o.status.success()).unwrap_or(false);
+    assert!(ok, "`{tool}` is required by this test: install the Debian package `{package}`");
+}
+
+#[test]
+fn list_prints_every_permutation_of_the_build() {
+    let fx = built();
+    let d = fx.path();
+    let o = kiln(d, &["inspect", "shaders.kpak", "--list"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let listed: Vec<String> = stdout(&o).lines().map(str::to_string).collect();
+    let o = kiln(d, &["list", "--config", "lit.toml", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let mut expected: Vec<String> = v["permutations"]
+        .as_array()
+        .expect("kiln list --json gives a list")
+        .iter()
+        .filter(|p| p["kept"].as_bool() == Some(true))
+        .map(|p| p["name"].as_str().unwrap().to_string())
+        .collect();
+    expected.sort();
+    assert_eq!(listed, expected);
+    assert!(listed.iter().any(|n| n == "LitPS@es3_1{USE_FOG=1,BLEND=MASKED,NUM_LIGHTS=2}"));
+}
+
+#[test]
+fn extracted_spirv_and_glsl_pass_the_reference_validators() {
+    require_tool("spirv-val", "spirv-tools");
+    require_tool("glslangValidator", "glslang-tools");
+    let fx = built();
+    let d = fx.path();
+    let name = "LitPS@es3_1{USE_FOG=1,BLEND=MASKED,NUM_LIGHTS=2}";
+    let o = kiln(d, &["inspect", "shaders.kpak", name, "--target", "spirv", "-o", "ps.spv"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v = Command::new("spirv-val").args(["--target-env", "vulkan1.0", "ps.spv"]).current_dir(d).output().unwrap();
+    assert!(v.status.success(), "{}{}", stdout(&v), stderr(&v));
+    // To stdout: the same bytes.
+    let o = kiln(d, &["inspect", "shaders.kpak", name, "--target", "spirv"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(o.stdout, std::fs::read(d.join("ps.spv")).unwrap());
+    assert_eq!(&o.stdout[..4], &0x0723_0203u32.to_le_bytes());
+
+    // Enum values by index name the same permutation, dimensions in any order.
+    let by_index = "LitPS@es3_1{NUM_LIGHTS=2,BLEND=1,USE_FOG=1}";
+    for (target, file) in [("glsl", "ps.frag"), ("glsl", "ps2.frag")] {
+        let n = if file == "ps.frag" { name } else { by_index };
+        let o = kiln(d, &["inspect", "shaders.kpak", n, "--target", target, "-o", file]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let v = Command::new("glslangValidator").arg(file).current_dir(d).output().unwrap();
+        assert!(v.status.success(), "{}{}", stdout(&v), stderr(&v));
+    }
+    assert_eq!(std::fs::read(d.join("ps.frag")).unwrap(), std::fs::read(d.join("ps2.frag")).unwrap());
+    let vs = "LitVS@es3_1{USE_FOG=0,DEBUG_VIEW=0}";
+    let o = kiln(d, &["inspect", "shaders.kpak", vs, "--target", "glsl", "-o", "vs.vert"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v = Command::new("glslangValidator").arg("vs.vert").current_dir(d).output().unwrap();
+    assert!(v.status.success(), "{}{}", stdout(&v), stderr(&v));
+
+    // -o /dev/null is written through, never renamed over.
+    let o = kiln(d, &["inspect", "shaders.kpak", name, "--target", "wgsl", "-o", "/dev/null"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::os::unix::fs::FileTypeExt::is_char_device(&std::fs::metadata("/dev/null").unwrap().file_type()));
+
+    // A target the permutation lacks, and an unknown target.
+    let o = kiln(d, &["inspect", "shaders.kpak", name, "--target", "hlsl"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("has no hlsl artifact (it has: glsl, spirv, msl, wgsl)"), "{}", stderr(&o));
+    let o = kiln(d, &["inspect", "shaders.kpak", name, "--target", "dxil"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("unknown target `dxil`"), "{}", stderr(&o));
+}
+
+#[test]
+fn reflection_shows_bindings_inputs_outputs_and_workgroup_size() {
+    let fx = built();
+    let d = fx.path();
+    let o = kiln(d, &["inspect", "shaders.kpak", "LitVS@sm5{USE_FOG=1,DEBUG_VIEW=0}", "--reflection"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("permutation: LitVS@sm5{USE_FOG=1,DEBUG_VIEW=0}"), "{out}");
+    assert!(out.contains("entry: vertex `main_vs`"), "{out}");
+    assert!(out.contains("bind groups:\n  @group("), "{out}");
+    assert!(out.contains("vertex inputs:\n  @location(0) "), "{out}");
+    let o = kiln(d, &["inspect", "shaders.kpak", "LitPS@sm5{USE_FOG=0,BLEND=OPAQUE,NUM_LIGHTS=0}", "--reflection"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("color outputs:\n  @location(0): vec4<f32>"), "{}", stdout(&o));
+    let o = kiln(
+        d,
+        &["inspect", "shaders.kpak", "LitPS@sm5{USE_FOG=0,BLEND=OPAQUE,NUM_LIGHTS=0}", "--reflection", "--json"],
+    );
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["entry"], "main_ps");
+
+    let o = kiln(d, &["build", "--config", "compute.toml", "--no-cache", "-o", "compute.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = kiln(d, &["inspect", "compute.kpak", "--list"]);
+    let first = stdout(&o).lines().next().unwrap().to_string();
+    let o = kiln(d, &["inspect", "compute.kpak", &first, "--reflection"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("workgroup size: (64, 1, 1)"), "{}", stdout(&o));
+    assert!(stdout(&o).contains("histogram: storage, read_write(256 B)"), "{}", stdout(&o));
+}
+
+#[test]
+fn unknown_name_is_exit_2_with_the_nearest_names() {
+    let fx = built();
+    let d = fx.path();
+    let o =
+        kiln(d, &["inspect", "shaders.kpak", "LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=0}", "-t", "wgsl"]);
+    assert_eq!(o.status.code(), Some(2));
+    let err = stderr(&o);
+    assert!(err.starts_with("error: permutation `LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=0}` is not in the archive; nearest:"), "{err}");
+    assert!(
+        err.contains("LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=2}  (differs in NUM_LIGHTS: 0 -> 2)"),
+        "{err}"
+    );
+    assert!(o.stdout.is_empty());
+    // A name but nothing to show.
+    let o = kiln(d, &["inspect", "shaders.kpak", "LitVS@sm5{USE_FOG=1,DEBUG_VIEW=0}"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("--target T (its artifact) or --reflection"), "{}", stderr(&o));
+}
+
+#[test]
+fn summary_shows_raw_and_compressed_sizes_per_target() {
+    let fx = built();
+    let d = fx.path();
+    let o = kiln(d, &["inspect", "shaders.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(out.contains("format version: 2"), "{out}");
+    for t in ["wgsl", "spirv", "msl", "glsl", "hlsl"] {
+        let line = out.lines().find(|l| l.trim_start().starts_with(t)).unwrap_or_else(|| panic!("{t}: {out}"));
+        assert!(line.contains(" raw, ") && line.contains(" compressed"), "{line}");
+    }
+    let o = kiln(d, &["inspect", "shaders.kpak", "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["format_version"], 2);
+    for (t, s) in v["targets"].as_object().unwrap() {
+        let (raw, compressed) = (s["raw_bytes"].as_u64().unwrap(), s["compressed_bytes"].as_u64().unwrap());
+        assert!(compressed > 0 && compressed < raw, "{t}: {compressed} of {raw}");
+    }
+}
+
+#[test]
+fn fifos_directories_and_old_versions_are_clear_errors() {
+    let fx = built();
+    let d = fx.path();
+    let o = kiln_no_hang(d, &["inspect", "."]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("cannot read archive .: it is a directory, not a regular file"), "{}", stderr(&o));
+    let fifo = d.join("pipe.kpak");
+    let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    for args in [&["inspect", "pipe.kpak"][..], &["inspect", "pipe.kpak", "--list"]] {
+        let o = kiln_no_hang(d, args);
+        assert_eq!(o.status.code(), Some(2));
+        assert!(stderr(&o).contains("it is a FIFO, not a regular file"), "{}", stderr(&o));
+    }
+    // A format 1 archive (the same magic, version 1).
+    let mut bytes = std::fs::read(d.join("shaders.kpak")).unwrap();
+    bytes[8..12].copy_from_slice(&1u32.to_le_bytes());
+    std::fs::write(d.join("old.kpak"), bytes).unwrap();
+    let o = kiln(d, &["inspect", "old.kpak"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 2); rebuild"),
+        "{}",
+        stderr(&o)
+    );
+}
