@@ -8,6 +8,8 @@
 //! writer runs; a writer that panics (naga's writers do on some input) is caught and turned
 //! into an [`Error`] like any other. Errors carry byte spans into the preprocessed text;
 //! the build maps them back onto the original files through the preprocessor's source map.
+//! [`SharedWriters`] runs the writers once per distinct compacted module of a build (keys
+//! whose texts differ only in code the entry point never reaches), by [`module_hash`].
 
 mod limits;
 mod reflect;
