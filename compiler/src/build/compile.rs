@@ -6,7 +6,8 @@
 //! whose permutations were all served by preprocessing records). A key's artifacts go to
 //! the store and the assembler as soon as they exist and are dropped there; what stays is
 //! its small [`Outcome`]. A failure is compiled again on the key's first permutation, so
-//! that its spans map on that text.
+//! that its spans map on that text. Keys whose compacted modules are equal share one run of
+//! the writers ([`compile::SharedWriters`]).
 //!
 //! `seconds.compile` runs from the first key compiled to the last, so it overlaps
 //! `seconds.preprocess`.
@@ -60,6 +61,8 @@ pub(super) struct Compiler<'a> {
     early_warnings: Mutex<HashMap<Key, String>>,
     /// When the first key began compiling.
     start: Mutex<Option<Instant>>,
+    /// The writers' outputs of the compacted modules compiled so far.
+    shared: compile::SharedWriters,
 }
 
 impl<'a> Compiler<'a> {
@@ -73,7 +76,13 @@ impl<'a> Compiler<'a> {
             early: (0..plan.kept.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
+            shared: shared_writers(),
         }
+    }
+
+    /// How many keys took their artifacts from another key's compacted module.
+    pub fn shared_modules(&self) -> usize {
+        self.shared.shared()
     }
 
     /// During preprocessing: compiles `pre`'s key from `output` if `p` is the first of its
@@ -179,7 +188,7 @@ impl<'a> Compiler<'a> {
 
     fn compile(&self, key: &Key, p: &Permutation<'_>, text: &str, warning: Option<String>) -> Outcome {
         let opts = compile::Options { targets: self.plan.targets(p), limits: level_limits(p.level) };
-        match compile::compile(text, &p.shader.entry, p.shader.stage, &opts) {
+        match self.shared.compile(text, &p.shader.entry, p.shader.stage, &opts) {
             Ok(c) => {
                 self.deliver(key, p, c, true);
                 Outcome::Compiled(warning)
@@ -197,6 +206,17 @@ impl<'a> Compiler<'a> {
         if fresh {
             self.store.put(*key, c, hashes);
         }
+    }
+}
+
+/// The writers' outputs shared between keys with one compacted module. `KILN_SHARED_MODULES=0`
+/// turns the sharing off (every key runs its own writers: the same artifacts, more time).
+fn shared_writers() -> compile::SharedWriters {
+    let off = std::env::var_os("KILN_SHARED_MODULES").is_some_and(|v| v == "0");
+    if off {
+        compile::SharedWriters::disabled()
+    } else {
+        compile::SharedWriters::new()
     }
 }
 

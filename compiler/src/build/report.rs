@@ -41,6 +41,9 @@ pub struct Stats {
     /// Permutations preprocessed by this build (the others matched their cached
     /// preprocessing record: same defines, same file contents).
     pub preprocessed: usize,
+    /// Compiled keys whose compacted module equalled an earlier key's: their writers did not
+    /// run, the artifacts were that key's (see [`crate::compile::SharedWriters`]).
+    pub shared_modules: usize,
     pub seconds: Seconds,
 }
 
@@ -184,6 +187,7 @@ impl<'o> Builder<'o> {
     ) {
         let stats = &mut self.report.stats;
         stats.seconds.compile = compiler.first_start().map_or(0.0, |t| t.elapsed().as_secs_f64());
+        stats.shared_modules = compiler.shared_modules();
         for ((key, members), outcome) in keys.groups.iter().zip(outcomes) {
             match outcome {
                 Outcome::Hit => stats.cache_hits += 1,

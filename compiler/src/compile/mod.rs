@@ -8,15 +8,20 @@
 //! writer runs; a writer that panics (naga's writers do on some input) is caught and turned
 //! into an [`Error`] like any other. Errors carry byte spans into the preprocessed text;
 //! the build maps them back onto the original files through the preprocessor's source map.
+//! [`SharedWriters`] runs the writers once per distinct compacted module of a build (keys
+//! whose texts differ only in code the entry point never reaches), by [`module_hash`].
 
 mod limits;
 mod reflect;
+mod shared;
+mod structural;
 mod writers;
 
 use std::ops::Range;
 
 pub use limits::Limits;
 pub use reflect::reflect;
+pub use shared::{module_hash, SharedWriters};
 
 use crate::archive::{Reflection, Stage, Target};
 
@@ -31,6 +36,19 @@ pub struct Options {
     pub targets: Vec<Target>,
     /// Resource limits the entry point must fit in.
     pub limits: Limits,
+}
+
+impl Options {
+    /// How `level` compiles: its targets (those of `filter` only, unless it is empty) and limits.
+    pub fn for_level(level: &crate::permute::Level, filter: &[Target]) -> Options {
+        Options {
+            targets: level.targets.iter().copied().filter(|t| filter.is_empty() || filter.contains(t)).collect(),
+            limits: match level.limits {
+                crate::permute::Limits::Default => Limits::desktop(),
+                crate::permute::Limits::Downlevel => Limits::downlevel(),
+            },
+        }
+    }
 }
 
 impl Default for Options {
@@ -197,11 +215,24 @@ pub(crate) fn find_function(source: &str, name: &str) -> Option<Range<usize>> {
 }
 
 /// Compiles one preprocessed source: parse, validate, check the limits, reflect, then one
-/// writer per target.
+/// writer per target. [`SharedWriters::compile`] does the same, running the writers once per
+/// distinct compacted module of a build.
 pub fn compile(source: &str, entry: &str, stage: Stage, options: &Options) -> Result<Compiled, Error> {
     let v = validate(source, entry, stage, &options.limits)?;
+    let reflection = checked_reflection(&v, options)?;
+    let artifacts = write_all(&v, options)?;
+    Ok(Compiled { artifacts, reflection })
+}
+
+/// The entry point's reflection, once the module is checked against the level's limits.
+fn checked_reflection(v: &Validated, options: &Options) -> Result<Reflection, Error> {
     let reflection = reflect(&v.module, &v.info);
     options.limits.check(&v.module, &v.info, &reflection)?;
+    Ok(reflection)
+}
+
+/// Every target's writer on a validated module (overrides resolved to their defaults first).
+fn write_all(v: &Validated, options: &Options) -> Result<Vec<(Target, Vec<u8>)>, Error> {
     let (module, info) = if v.module.overrides.is_empty() {
         (std::borrow::Cow::Borrowed(&v.module), std::borrow::Cow::Borrowed(&v.info))
     } else {
@@ -216,10 +247,10 @@ pub fn compile(source: &str, entry: &str, stage: Stage, options: &Options) -> Re
     };
     let mut artifacts = Vec::with_capacity(options.targets.len());
     for &target in &options.targets {
-        let bytes = writers::write(target, &module, &info, entry, stage)?;
+        let bytes = writers::write(target, &module, &info, &v.entry, v.stage)?;
         artifacts.push((target, bytes));
     }
-    Ok(Compiled { artifacts, reflection })
+    Ok(artifacts)
 }
 
 #[cfg(test)]

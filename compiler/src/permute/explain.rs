@@ -24,6 +24,10 @@ pub struct Explanation {
     /// The kept permutations of the same shader and level with the same token stream, in
     /// enumeration order (itself included when kept).
     pub group: Vec<String>,
+    /// The kept permutations of the same shader and level whose compacted module is this
+    /// one's (the build runs the writers once for all of them), in enumeration order, itself
+    /// included; `Err` with the reason when its module could not be made.
+    pub module_group: Result<Vec<String>, String>,
     /// The preprocessing error, if it failed.
     pub error: Option<Diagnostic<FileId>>,
     /// All of the above as the text `kiln explain` prints.
@@ -50,6 +54,12 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
             group = level.group(hash).map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values)).collect();
         }
     }
+
+    let module_group = match hash {
+        Some(_) if p.is_kept() && p.error.is_none() => module_group(config, cache, &p),
+        Some(_) => Err("not built".to_string()),
+        None => Err("preprocessing failed".to_string()),
+    };
 
     let mut t = String::new();
     let s = p.shader;
@@ -131,5 +141,85 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
         }
     }
 
-    Ok(Explanation { name, kept: p.skipped_by.is_none(), defines, rules, files, hash, group, error, text: t })
+    match &module_group {
+        Ok(members) if members.len() > group.len() => {
+            let _ = writeln!(
+                t,
+                "compacted module: {} kept permutation(s) of {}@{} compact to this one's module (their token streams differ \
+                 only in code the entry point never reaches); the writers run once for all of them:",
+                members.len(),
+                s.name,
+                l.name
+            );
+            for g in members {
+                let _ = writeln!(t, "  {g}{}", if *g == name { "  (this one)" } else { "" });
+            }
+        }
+        Ok(_) => {
+            let _ = writeln!(t, "compacted module: shared with no permutation of another token stream");
+        }
+        Err(why) => {
+            let _ = writeln!(t, "compacted module: (none: {why})");
+        }
+    }
+
+    Ok(Explanation {
+        name,
+        kept: p.skipped_by.is_none(),
+        defines,
+        rules,
+        files,
+        hash,
+        group,
+        module_group,
+        error,
+        text: t,
+    })
+}
+
+/// The kept permutations of `p`'s shader and level whose compacted module equals `p`'s
+/// ([`crate::compile::module_hash`]): each distinct token stream is parsed and validated once.
+fn module_group(config: &Config, cache: &SourceCache, p: &super::Permutation<'_>) -> Result<Vec<String>, String> {
+    use rayon::prelude::*;
+    use std::collections::HashMap;
+
+    let options = crate::compile::Options::for_level(p.level, &[]);
+    let same = |q: &super::Permutation<'_>| std::ptr::eq(q.shader, p.shader) && std::ptr::eq(q.level, p.level);
+    let kept: Vec<super::Permutation<'_>> = config
+        .permutations_where(|s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level))
+        .filter(|q| same(q) && q.is_kept() && q.error.is_none())
+        .collect();
+    let outputs: Vec<Option<preprocess::Output>> = kept
+        .par_iter()
+        .map(|q| preprocess::preprocess_file(&q.shader.source_path, &q.preprocess_options(config), cache).ok())
+        .collect();
+    let mut texts: HashMap<blake3::Hash, &str> = HashMap::new();
+    let hashes: Vec<Option<blake3::Hash>> = outputs
+        .iter()
+        .map(|o| {
+            let o = o.as_ref()?;
+            let h = o.token_hash();
+            texts.entry(h).or_insert(&o.text);
+            Some(h)
+        })
+        .collect();
+    let modules: HashMap<blake3::Hash, Result<blake3::Hash, String>> = texts
+        .into_par_iter()
+        .map(|(h, text)| {
+            let module = crate::compile::validate(text, &p.shader.entry, p.shader.stage, &options.limits)
+                .map(|v| crate::compile::module_hash(&v, &options))
+                .map_err(|e| format!("it does not compile: {e}"));
+            (h, module)
+        })
+        .collect();
+    let name = p.name();
+    let index = kept.iter().position(|q| q.name() == name).ok_or("not built")?;
+    let own = hashes[index].ok_or("preprocessing failed")?;
+    let own = modules[&own].clone()?;
+    Ok(kept
+        .iter()
+        .zip(&hashes)
+        .filter(|(_, h)| h.is_some_and(|h| modules[&h].as_ref().is_ok_and(|m| *m == own)))
+        .map(|(q, _)| q.name())
+        .collect())
 }

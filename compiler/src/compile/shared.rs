@@ -1,0 +1,148 @@
+//! Second-level deduplication: the writers run once per distinct compacted module.
+//!
+//! Two permutations whose token streams differ (so whose cache keys differ) can still
+//! compact to the same module for their entry point: a dimension that only changes a helper
+//! the entry point never calls, as Unreal's shared headers are full of. [`module_hash`] is a
+//! structural hash of the compacted, validated module (naga's IR as it serializes: every
+//! field but the source spans, which no writer without debug info reads) together
+//! with the entry point, the stage, the targets and the level's limits (which decide the
+//! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
+//! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
+//! thread: the first key with a module runs the writers, every later one takes a copy of
+//! its artifacts. naga's writers are deterministic functions of the module, its info and
+//! their options, so the artifacts are byte-identical to those the key would have written
+//! itself, whatever the order the keys are compiled in.
+//!
+//! The cache key stays the token hash: this map lives for one build and changes no key.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use super::{Compiled, Error, Options, Validated};
+use crate::archive::Target;
+
+/// The artifacts of one compacted module, or the writer's error.
+type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
+
+/// The writers' outputs by compacted module, for one build. Memory stays bounded: once the
+/// artifacts kept reach [`SharedWriters::BUDGET`] bytes, a new module's are no longer kept (a
+/// later key with that module runs the writers itself, to the same bytes).
+pub struct SharedWriters {
+    map: Mutex<HashMap<blake3::Hash, Arc<OnceLock<Written>>>>,
+    shared: AtomicUsize,
+    /// Bytes of artifacts held in `map`.
+    kept: AtomicUsize,
+    /// Every compile runs its own writers (to check that sharing changes no byte).
+    disabled: bool,
+}
+
+impl Default for SharedWriters {
+    fn default() -> Self {
+        SharedWriters { map: Mutex::default(), shared: AtomicUsize::new(0), kept: AtomicUsize::new(0), disabled: false }
+    }
+}
+
+impl SharedWriters {
+    /// The most bytes of artifacts kept for sharing.
+    pub const BUDGET: usize = 256 << 20;
+
+    pub fn new() -> Self {
+        SharedWriters::default()
+    }
+
+    /// Shares nothing: [`SharedWriters::compile`] is [`super::compile`].
+    pub fn disabled() -> Self {
+        SharedWriters { disabled: true, ..SharedWriters::default() }
+    }
+
+    /// [`super::compile`], running the writers only for a module no earlier call had.
+    pub fn compile(
+        &self,
+        source: &str,
+        entry: &str,
+        stage: crate::Stage,
+        options: &Options,
+    ) -> Result<Compiled, Error> {
+        if self.disabled {
+            return super::compile(source, entry, stage, options);
+        }
+        let v = super::validate(source, entry, stage, &options.limits)?;
+        let reflection = super::checked_reflection(&v, options)?;
+        let hash = module_hash(&v, options);
+        let cell = self.map.lock().expect("no panics while locked").entry(hash).or_default().clone();
+        let mut ran = false;
+        let written = cell.get_or_init(|| {
+            ran = true;
+            super::write_all(&v, options)
+        });
+        if !ran {
+            self.shared.fetch_add(1, Ordering::Relaxed);
+        } else if let Ok(artifacts) = written {
+            let bytes: usize = artifacts.iter().map(|(_, b)| b.len()).sum();
+            if self.kept.fetch_add(bytes, Ordering::Relaxed) + bytes > Self::BUDGET {
+                // Over budget: forget this module (callers already waiting on it still get it).
+                self.kept.fetch_sub(bytes, Ordering::Relaxed);
+                self.map.lock().expect("no panics while locked").remove(&hash);
+            }
+        }
+        Ok(Compiled { artifacts: written.clone()?, reflection })
+    }
+
+    /// How many compiles took their artifacts from an earlier one's module.
+    pub fn shared(&self) -> usize {
+        self.shared.load(Ordering::Relaxed)
+    }
+}
+
+/// The structural hash of a compacted, validated module and of what its writers are given.
+/// Equal hashes mean equal artifacts for every target of `options`.
+pub fn module_hash(v: &Validated, options: &Options) -> blake3::Hash {
+    let mut prefix = Vec::new();
+    let mut field = |bytes: &[u8]| {
+        prefix.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        prefix.extend_from_slice(bytes);
+    };
+    field(b"kiln module v1");
+    field(v.entry.as_bytes());
+    field(v.stage.name().as_bytes());
+    for t in &options.targets {
+        field(t.name().as_bytes());
+    }
+    field(format!("{:?}", options.limits).as_bytes());
+    field(super::NAGA_VERSION.as_bytes());
+    super::structural::hash(&prefix, &v.module)
+}
+
+#[cfg(test)]
+mod module_tests {
+    use super::super::{validate, Options};
+    use super::*;
+
+    const SOURCE: &str = "
+fn used(x: f32) -> f32 { return x * 2.0; }
+fn unused(x: f32) -> f32 { return HELPER; }
+@fragment fn main_ps(@location(0) v: f32) -> @location(0) vec4<f32> { return vec4<f32>(used(v) + ENTRY); }
+@compute @workgroup_size(1) fn main_cs() {}
+";
+
+    fn hash(used: &str, unused: &str, spacing: &str) -> blake3::Hash {
+        let text =
+            SOURCE.replace("ENTRY", used).replace("HELPER", unused).replace("fn used", &format!("{spacing}fn used"));
+        let options = Options::default();
+        let v = validate(&text, "main_ps", crate::Stage::Fragment, &options.limits).unwrap();
+        module_hash(&v, &options)
+    }
+
+    #[test]
+    fn the_module_hash_sees_what_the_entry_point_reaches_and_nothing_else() {
+        let base = hash("1.0", "x", "");
+        assert_eq!(hash("1.0", "x + 1.0", ""), base, "an uncalled helper changed");
+        assert_eq!(hash("1.0", "x", "\n\n   // moved\n"), base, "only the spans moved");
+        assert_ne!(hash("2.0", "x", ""), base, "the entry point's code changed");
+        let options = Options { targets: vec![crate::Target::Spirv], ..Options::default() };
+        let text = SOURCE.replace("ENTRY", "1.0").replace("HELPER", "x");
+        let v = validate(&text, "main_ps", crate::Stage::Fragment, &options.limits).unwrap();
+        assert_ne!(module_hash(&v, &options), base, "other targets");
+    }
+}
