@@ -32,6 +32,7 @@ use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use rayon::prelude::*;
 
 use crate::archive::{self, ArchiveWriter, DimensionRecord, PermutationRecord, ShaderRecord, Target};
+pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 use crate::cache::{self, Cache, Key, Lookup};
 use crate::compile::{self, Compiled, Limits};
 use crate::permute::{self, Config, Permutation};
@@ -54,6 +55,11 @@ pub struct Options {
     pub jobs: Option<usize>,
     /// Where the cache lives: [`CacheDir::Auto`] finds cargo's target folder.
     pub cache: CacheDir,
+    /// The shared remote cache layered under the local one ([`RemoteCache::Auto`]:
+    /// `KILN_REMOTE_CACHE`). None without a local cache.
+    pub remote_cache: RemoteCache,
+    /// `None`: `KILN_REMOTE_CACHE_MODE`, else read-write.
+    pub remote_cache_mode: Option<RemoteMode>,
     /// Write the counts as JSON here.
     pub stats_json: Option<PathBuf>,
     /// Show a progress bar (only honoured when stderr is a terminal and `CI` is unset).
@@ -72,6 +78,8 @@ impl Default for Options {
             targets: Vec::new(),
             jobs: None,
             cache: CacheDir::Auto,
+            remote_cache: RemoteCache::Auto,
+            remote_cache_mode: None,
             stats_json: None,
             progress: false,
             color: false,
@@ -113,6 +121,12 @@ pub struct Stats {
     /// Permutations preprocessed by this build (the others matched their cached
     /// preprocessing record: same defines, same file contents).
     pub preprocessed: usize,
+    /// Distinct keys served by the remote cache (counted in `cache_hits` too).
+    pub remote_hits: u64,
+    /// Entries this build stored to the remote cache.
+    pub remote_writes: u64,
+    /// Failed remote operations (the first one turns the remote off for the build).
+    pub remote_errors: u64,
     pub seconds: Seconds,
 }
 
@@ -333,10 +347,7 @@ pub fn run(options: &Options) -> Result<Report, Error> {
             )));
         }
     }
-    let cache = match open_cache(options, &config) {
-        Ok(c) => c,
-        Err(e) => return Err(Error::Io(format!("error: {e}"))),
-    };
+    let cache = open_cache(options, &config)?;
     let pool = {
         // Workers with the preprocessor's stack run it in place (no thread per permutation).
         let mut b = rayon::ThreadPoolBuilder::new()
@@ -661,14 +672,17 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         let Some(c) = cache else { return Vec::new() };
         let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
             fresh.iter().map(|k| (*k, &compiled[k], &hashes[k][..])).collect();
-        match c.put_pack_hashed(&entries) {
+        let mut warnings = match c.put_pack_hashed(&entries) {
             Ok(()) => Vec::new(),
             Err(e) => vec![format!("warning: cannot store {} cache entries: {e}", entries.len())],
-        }
+        };
+        warnings.extend(c.remote().and_then(|r| r.take_warning()));
+        warnings
     };
     if report.stats.failed > 0 {
         let warnings = store();
         report.warnings.extend(warnings);
+        remote_stats(cache, &mut report.stats);
         write_stats(options, &mut report, start)?;
         return Err(Error::Failed(Box::new(report)));
     }
@@ -676,8 +690,17 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
         rayon::join(|| write_outputs(options, &kept, &pre, &compiled, &hashes, stamp.as_ref(), &mut report), store);
     report.warnings.extend(warnings);
     written?;
+    remote_stats(cache, &mut report.stats);
     write_stats(options, &mut report, start)?;
     Ok(report)
+}
+
+/// The remote cache's counts, into `stats`.
+fn remote_stats(cache: Option<&Cache>, stats: &mut Stats) {
+    if let Some(r) = cache.and_then(Cache::remote) {
+        let s = r.stats();
+        (stats.remote_hits, stats.remote_writes, stats.remote_errors) = (s.hits, s.writes, s.errors);
+    }
 }
 
 /// A key's compiled result: from the cache, compiled now, or failed.
@@ -1088,14 +1111,22 @@ fn dead_dimensions(kept: &[Permutation<'_>], pre: &[Result<Pre, Diagnostic<FileI
     out
 }
 
-/// The cache folder for `options` (see [`CacheDir::Auto`]), opened; `None` without a cache.
-fn open_cache(options: &Options, config: &Config) -> Result<Option<Cache>, cache::Error> {
+/// The cache folder for `options` (see [`CacheDir::Auto`]), opened, with the remote cache
+/// under it; `None` without a cache.
+fn open_cache(options: &Options, config: &Config) -> Result<Option<Cache>, Error> {
     let dir = match &options.cache {
         CacheDir::Disabled => return Ok(None),
         CacheDir::Dir(d) => d.clone(),
         CacheDir::Auto => default_cache_dir(&config.dir),
     };
-    Cache::open(dir).map(Some)
+    let cache = Cache::open(dir).map_err(|e| Error::Io(format!("error: {e}")))?;
+    let remote = cache::remote::Options::resolve(&options.remote_cache, options.remote_cache_mode)
+        .and_then(|o| o.map(|o| cache::Remote::open(&o)).transpose())
+        .map_err(|e| Error::Config(format!("error: {e}")))?;
+    Ok(Some(match remote {
+        Some(r) => cache.with_remote(r),
+        None => cache,
+    }))
 }
 
 /// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the
