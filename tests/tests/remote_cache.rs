@@ -25,6 +25,34 @@ const TOKEN: &str = "s3cret-t0ken";
 /// build holds it for reading (the variables are read by every build of the process).
 static ENV: RwLock<()> = RwLock::new(());
 
+/// The environment to oneself: every `KILN_REMOTE_CACHE_*` variable set through it is
+/// removed on drop, a failing test included.
+struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
+
+const VARIABLES: [&str; 4] =
+    ["KILN_REMOTE_CACHE", "KILN_REMOTE_CACHE_MODE", "KILN_REMOTE_CACHE_TOKEN", "KILN_REMOTE_CACHE_TIMEOUT_MS"];
+
+impl Env {
+    fn lock() -> Env {
+        Env(ENV.write().unwrap_or_else(|e| e.into_inner()))
+    }
+    fn set(&self, name: &str, value: &str) {
+        assert!(VARIABLES.contains(&name));
+        std::env::set_var(name, value);
+    }
+    fn remove(&self, name: &str) {
+        std::env::remove_var(name);
+    }
+}
+
+impl Drop for Env {
+    fn drop(&mut self) {
+        for v in VARIABLES {
+            std::env::remove_var(v);
+        }
+    }
+}
+
 /// nginx is in /usr/sbin, which a user's PATH may lack.
 fn nginx() -> &'static str {
     if Path::new("/usr/sbin/nginx").exists() {
@@ -196,6 +224,11 @@ http {{
         keys
     }
 
+    /// The keys holding compiled entries (the others hold preprocessing records).
+    fn entries(&self) -> Vec<String> {
+        self.keys().into_iter().filter(|k| self.get(k).starts_with(b"KILNCE")).collect()
+    }
+
     fn get(&self, key: &str) -> Vec<u8> {
         match self.kind {
             Kind::Redis => redis::cmd("GET").arg(format!("kiln:{key}")).query(&mut self.redis()).unwrap(),
@@ -291,7 +324,8 @@ fn hits_from_a_second_machine(kind: Kind) {
     let r = ci.build(&url);
     assert_eq!((r.stats.compiled, r.stats.remote_hits, r.stats.remote_writes), (DISTINCT, 0, DISTINCT as u64));
     assert_eq!(r.stats.remote_errors, 0);
-    assert_eq!(server.keys().len(), DISTINCT);
+    assert_eq!(server.entries().len(), DISTINCT);
+    assert_eq!(server.keys().len(), DISTINCT + 1, "and one set of preprocessing records");
 
     // Another machine, fresh local cache: compiles nothing, same bytes.
     let other = Machine::new();
@@ -300,6 +334,14 @@ fn hits_from_a_second_machine(kind: Kind) {
     assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
     assert_eq!(other.bytes(), ci.bytes());
     assert_eq!(other.bytes(), reference(), "the remote changes no byte of the archive");
+
+    // A machine whose checkout has the same path (CI runners, the pods of one job) also
+    // finds the preprocessing records there: it preprocesses nothing either.
+    std::fs::remove_dir_all(ci.dir.path().join("cache")).unwrap();
+    std::fs::remove_file(ci.archive()).unwrap();
+    let r = ci.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.preprocessed, r.stats.remote_hits), (0, 0, DISTINCT as u64));
+    assert_eq!(ci.bytes(), other.bytes());
 
     // The remote hits were filled into that machine's local cache: without the remote,
     // it still compiles nothing.
@@ -416,8 +458,8 @@ fn a_server_that_never_answers_times_out_once() {
             keep.lock().unwrap().push(c);
         }
     });
-    let _env = ENV.write().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("KILN_REMOTE_CACHE_TIMEOUT_MS", "300");
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE_TIMEOUT_MS", "300");
     for url in [format!("redis://127.0.0.1:{port}"), format!("http://127.0.0.1:{port}/kiln")] {
         let m = Machine::new();
         let r = build_ok(&m.options(RemoteCache::Url(url.clone()), None));
@@ -428,7 +470,7 @@ fn a_server_that_never_answers_times_out_once() {
         // The store is off after the first timeout: only the two workers' first waits fail.
         assert!((1..=2).contains(&r.stats.remote_errors), "{:?}", r.stats);
     }
-    std::env::remove_var("KILN_REMOTE_CACHE_TIMEOUT_MS");
+    drop(env);
     assert!(!held.lock().unwrap().is_empty(), "kiln connected");
 }
 
@@ -436,7 +478,7 @@ fn corrupted_entry(kind: Kind) {
     let server = Server::start(kind);
     let url = server.url();
     Machine::new().build(&url);
-    let keys = server.keys();
+    let keys = server.entries();
     assert_eq!(keys.len(), DISTINCT);
     // One entry truncated, one with a flipped byte in the middle.
     let (truncated, flipped) = (&keys[3], &keys[11]);
@@ -490,7 +532,7 @@ fn two_writers(kind: Kind) {
     }
     assert_eq!(a.bytes(), b.bytes());
     // Consistent: one value per key, each one whole (a fresh machine uses them all).
-    assert_eq!(server.keys().len(), DISTINCT);
+    assert_eq!(server.entries().len(), DISTINCT);
     let c = Machine::new();
     let r = c.build(&url);
     assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
@@ -521,10 +563,10 @@ fn shown(options: &build::Options, result: &Result<Report, build::Error>) -> Str
 
 fn token_never_shown(kind: Kind) {
     let server = Server::start_with(kind, Some(TOKEN));
-    let _env = ENV.write().unwrap_or_else(|e| e.into_inner());
+    let env = Env::lock();
 
     // The right token (bearer / redis AUTH): the remote works.
-    std::env::set_var("KILN_REMOTE_CACHE_TOKEN", TOKEN);
+    env.set("KILN_REMOTE_CACHE_TOKEN", TOKEN);
     let m = Machine::new();
     let o = m.options(RemoteCache::Url(server.url()), None);
     let result = build::run(&o);
@@ -535,7 +577,7 @@ fn token_never_shown(kind: Kind) {
 
     // `user:password` (HTTP basic auth; redis ACL user and password).
     if kind == Kind::Http {
-        std::env::set_var("KILN_REMOTE_CACHE_TOKEN", format!("ci:{TOKEN}"));
+        env.set("KILN_REMOTE_CACHE_TOKEN", &format!("ci:{TOKEN}"));
         let m = Machine::new();
         let o = m.options(RemoteCache::Url(server.url()), None);
         let result = build::run(&o);
@@ -551,8 +593,8 @@ fn token_never_shown(kind: Kind) {
         [(Some(wrong.to_string()), server.url()), (None, server.url().replacen("://", &format!("://ci:{wrong}@"), 1))];
     for (token, url) in cases {
         match &token {
-            Some(t) => std::env::set_var("KILN_REMOTE_CACHE_TOKEN", t),
-            None => std::env::remove_var("KILN_REMOTE_CACHE_TOKEN"),
+            Some(t) => env.set("KILN_REMOTE_CACHE_TOKEN", t),
+            None => env.remove("KILN_REMOTE_CACHE_TOKEN"),
         }
         let m = Machine::new();
         let o = m.options(RemoteCache::Url(url), None);
@@ -565,7 +607,7 @@ fn token_never_shown(kind: Kind) {
         assert!(warnings[0].contains(&server.url()), "{}", warnings[0]);
         assert!(!text.contains(wrong) && !text.contains(TOKEN), "{text}");
     }
-    std::env::remove_var("KILN_REMOTE_CACHE_TOKEN");
+    env.remove("KILN_REMOTE_CACHE_TOKEN");
 }
 
 #[test]
@@ -583,18 +625,18 @@ fn http_token_is_never_shown() {
 #[test]
 fn the_environment_chooses_the_remote() {
     let server = Server::start(Kind::Redis);
-    let _env = ENV.write().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("KILN_REMOTE_CACHE", server.url());
-    std::env::set_var("KILN_REMOTE_CACHE_MODE", "read");
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE", &server.url());
+    env.set("KILN_REMOTE_CACHE_MODE", "read");
     let m = Machine::new();
     let r = build_ok(&m.options(RemoteCache::Auto, None));
     assert_eq!((r.stats.compiled, r.stats.remote_writes), (DISTINCT, 0));
-    std::env::remove_var("KILN_REMOTE_CACHE_MODE");
+    env.remove("KILN_REMOTE_CACHE_MODE");
     let r = build_ok(&Machine::new().options(RemoteCache::Auto, None));
     assert_eq!(r.stats.remote_writes, DISTINCT as u64);
-    std::env::set_var("KILN_REMOTE_CACHE", "memcached://user:hunter2@host");
+    env.set("KILN_REMOTE_CACHE", "memcached://user:hunter2@host");
     let e = build::run(&Machine::new().options(RemoteCache::Auto, None)).unwrap_err();
-    std::env::remove_var("KILN_REMOTE_CACHE");
+    drop(env);
     assert_eq!(e.exit_code(), 2);
     let text = e.to_string();
     assert!(text.contains("memcached://host") && !text.contains("hunter2"), "{text}");

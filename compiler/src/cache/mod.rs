@@ -463,17 +463,26 @@ impl Cache {
 
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
+    ///
+    /// Without a local copy, the remote cache's (stored by a machine whose checkout has the
+    /// same path, as CI runners and the pods of one job have) is used and kept locally.
+    /// Records name absolute paths and every file's blake3: elsewhere they simply do not
+    /// match, and the permutations are preprocessed.
     pub fn get_records(&self, key: &Key) -> Records {
         let path = self.records_path(key);
-        let Ok(bytes) = fs::read(&path) else { return Records::default() };
-        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
-            return Records::default();
+        if let Some(records) = fs::read(&path).ok().and_then(|b| parse_records(&b)) {
+            if let Ok(f) = fs::File::options().append(true).open(&path) {
+                let _ = f.set_modified(SystemTime::now());
+            }
+            return records;
         }
-        let records = serde_json::from_slice(&bytes[40..]).unwrap_or_default();
-        if let Ok(f) = fs::File::options().append(true).open(&path) {
-            let _ = f.set_modified(SystemTime::now());
+        if let Some(bytes) = self.remote().and_then(|r| r.get(key)) {
+            if let Some(records) = parse_records(&bytes) {
+                let _ = self.write_file(&path, &bytes);
+                return records;
+            }
         }
-        records
+        Records::default()
     }
 
     /// Replaces the records stored under `key`, atomically.
@@ -483,6 +492,9 @@ impl Cache {
         bytes.extend_from_slice(RECORD_MAGIC);
         bytes.extend_from_slice(blake3::hash(&body).as_bytes());
         bytes.extend_from_slice(&body);
+        if let Some(remote) = self.remote() {
+            remote.store(key, &bytes);
+        }
         self.write_file(&self.records_path(key), &bytes)
     }
 
@@ -657,6 +669,14 @@ impl Cache {
         *self.index.write().expect("no panics while locked") = None;
         Ok(keys.len() as u64)
     }
+}
+
+/// A set of preprocessing records, if `bytes` is a whole one.
+fn parse_records(bytes: &[u8]) -> Option<Records> {
+    if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+        return None;
+    }
+    serde_json::from_slice(&bytes[40..]).ok()
 }
 
 /// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,

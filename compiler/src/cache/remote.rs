@@ -4,7 +4,8 @@
 //! credentials from the environment; gives byte values by [`Key`]. The values are the local
 //! cache's entry encoding (magic, checksum, body), so the [`super::Cache`] that layers this
 //! store checks every value it reads exactly as it checks its own packs: a corrupted or
-//! truncated remote entry is a miss, recompiled and overwritten.
+//! truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
+//! records (checksummed too) are shared the same way, under their own keys.
 //!
 //! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
@@ -270,19 +271,27 @@ impl Remote {
         }
     }
 
-    /// Stores `value` under `key` (in read-write mode, while the store is on).
+    /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
     pub fn put(&self, key: &Key, value: &[u8]) {
+        if self.store(key, value) {
+            self.writes.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// [`Remote::put`] of a value that is not a compiled entry (not counted in the stats).
+    pub(crate) fn store(&self, key: &Key, value: &[u8]) -> bool {
         if !self.writes() {
-            return;
+            return false;
         }
         match self.retry(|| match &self.store {
             Store::Redis(r) => r.put(key, value),
             Store::Http(h) => h.put(key, value),
         }) {
-            Ok(()) => {
-                self.writes.fetch_add(1, Ordering::Relaxed);
+            Ok(()) => true,
+            Err(f) => {
+                self.fail("writing to", f);
+                false
             }
-            Err(f) => self.fail("writing to", f),
         }
     }
 

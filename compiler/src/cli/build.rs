@@ -33,8 +33,8 @@ pub struct Args {
     /// else .kiln-cache next to the config).
     #[arg(long, value_name = "DIR")]
     pub cache_dir: Option<PathBuf>,
-    /// Compile everything; neither read nor write the cache.
-    #[arg(long, conflicts_with = "cache_dir")]
+    /// Compile everything; neither read nor write the cache (local or remote).
+    #[arg(long, conflicts_with_all = ["cache_dir", "remote_cache"])]
     pub no_cache: bool,
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
