@@ -287,9 +287,10 @@ impl Cache {
     }
 
     /// Warnings about packs whose index is damaged (their entries are recompiled): one
-    /// line each.
+    /// line each; and the remote cache's one warning, if it failed (given once: ask again
+    /// after the last write).
     pub fn warnings(&self) -> Vec<String> {
-        self.with_index(|index| {
+        let mut warnings: Vec<String> = self.with_index(|index| {
             index
                 .damaged
                 .iter()
@@ -300,7 +301,9 @@ impl Cache {
                     )
                 })
                 .collect()
-        })
+        });
+        warnings.extend(self.remote().and_then(Remote::take_warning));
+        warnings
     }
 
     /// Whether some pack holds `key` (its content is checked by [`Cache::get`]).
