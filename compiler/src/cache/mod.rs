@@ -227,8 +227,14 @@ pub struct Cache {
 #[derive(Debug)]
 struct Layer {
     remote: Remote,
-    /// Checked remote entries (their encoded bytes) to write into the next local pack.
-    fills: Mutex<(Vec<(Key, Vec<u8>)>, usize)>,
+    fills: Mutex<Fills>,
+}
+
+/// Checked remote entries (their encoded bytes) to write into the next local pack.
+#[derive(Debug, Default)]
+struct Fills {
+    entries: Vec<(Key, Vec<u8>)>,
+    bytes: usize,
 }
 
 impl Cache {
@@ -330,9 +336,9 @@ impl Cache {
                 layer.remote.count_hit();
                 let full = {
                     let mut fills = layer.fills.lock().expect("no panics while locked");
-                    fills.1 += bytes.len();
-                    fills.0.push((*key, bytes));
-                    fills.1 >= FILL_BYTES
+                    fills.bytes += bytes.len();
+                    fills.entries.push((*key, bytes));
+                    fills.bytes >= FILL_BYTES
                 };
                 if full {
                     // Failing to fill only costs a remote lookup next time.
@@ -390,7 +396,7 @@ impl Cache {
     /// yet filled in, and each of `entries` is stored to the remote (in read-write mode).
     pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
         let fills = match &self.remote {
-            Some(layer) => std::mem::take(&mut *layer.fills.lock().expect("no panics while locked")).0,
+            Some(layer) => std::mem::take(&mut *layer.fills.lock().expect("no panics while locked")).entries,
             None => Vec::new(),
         };
         let local = self.write_pack(entries, &fills);
