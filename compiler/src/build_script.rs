@@ -11,11 +11,13 @@
 //! [`Build::run`] calls the same [`crate::build::run`] as `kiln build`. It prints
 //! `cargo:rerun-if-changed` for the config and every file any permutation read, turns
 //! warnings into `cargo:warning=` lines, keeps its cache under cargo's target folder (found
-//! from `OUT_DIR`), and on failure renders every failure with its mapped location.
+//! from `OUT_DIR`), uses the remote cache of `KILN_REMOTE_CACHE` (or
+//! [`Build::remote_cache`]) under it, and on failure renders every failure with its mapped
+//! location.
 
 use std::path::{Path, PathBuf};
 
-use crate::build::{self, CacheDir, Report};
+use crate::build::{self, CacheDir, RemoteCache, RemoteMode, Report};
 use crate::Target;
 
 /// A build of a permutation set, configured like `cc::Build`.
@@ -27,6 +29,8 @@ pub struct Build {
     levels: Vec<String>,
     targets: Vec<Target>,
     cache: Option<CacheDir>,
+    remote_cache: RemoteCache,
+    remote_cache_mode: Option<RemoteMode>,
     jobs: Option<usize>,
     cargo_output: bool,
 }
@@ -75,6 +79,8 @@ impl Build {
             levels: Vec::new(),
             targets: Vec::new(),
             cache: None,
+            remote_cache: RemoteCache::Auto,
+            remote_cache_mode: None,
             jobs: None,
             cargo_output: true,
         }
@@ -122,6 +128,21 @@ impl Build {
         self
     }
 
+    /// Layers this shared cache (`redis://host:port[/db]` or `http(s)://host[:port]/prefix`)
+    /// under the local one, instead of `KILN_REMOTE_CACHE`'s. Credentials come from
+    /// `KILN_REMOTE_CACHE_TOKEN`.
+    pub fn remote_cache(mut self, url: impl Into<String>) -> Build {
+        self.remote_cache = RemoteCache::Url(url.into());
+        self
+    }
+
+    /// Only reads the remote cache (a developer's machine, when CI fills it); by default
+    /// `KILN_REMOTE_CACHE_MODE`, else read-write.
+    pub fn remote_cache_mode(mut self, mode: RemoteMode) -> Build {
+        self.remote_cache_mode = Some(mode);
+        self
+    }
+
     /// Worker threads (one per core by default).
     pub fn jobs(mut self, jobs: usize) -> Build {
         self.jobs = Some(jobs);
@@ -161,6 +182,8 @@ impl Build {
             targets: self.targets.clone(),
             jobs: self.jobs,
             cache,
+            remote_cache: self.remote_cache.clone(),
+            remote_cache_mode: self.remote_cache_mode,
             stats_json: None,
             progress: false,
             color: false,

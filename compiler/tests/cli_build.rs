@@ -10,6 +10,9 @@ fn kiln(dir: &Path, args: &[&str]) -> Output {
         .current_dir(dir)
         .env_remove("KILN_CACHE_DIR")
         .env_remove("CARGO_TARGET_DIR")
+        .env_remove("KILN_REMOTE_CACHE")
+        .env_remove("KILN_REMOTE_CACHE_MODE")
+        .env_remove("KILN_REMOTE_CACHE_TOKEN")
         .env("CI", "1")
         .output()
         .unwrap()
@@ -337,4 +340,46 @@ fn bad_shard_specs_are_usage_errors() {
         assert!(stderr(&o).contains(says), "{args:?} {env:?}: {}", stderr(&o));
         assert!(!d.join("shaders.kpak").exists());
     }
+}
+
+/// A remote cache that is down: one warning naming it without credentials, and the build
+/// succeeds; a bad URL or mode is a usage error (exit 2) that hides credentials too.
+#[test]
+fn remote_cache_down_is_one_warning_and_credentials_are_never_printed() {
+    let fx = fixture();
+    let d = fx.path();
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    for url in [format!("redis://:hunter2@127.0.0.1:{port}/1"), format!("http://ci:hunter2@127.0.0.1:{port}/kiln")] {
+        let _ = std::fs::remove_dir_all(d.join(".kiln-cache"));
+        let o = Command::new(env!("CARGO_BIN_EXE_kiln"))
+            .args(["build", "--config", "compute.toml", "--stats-json", "stats.json", "--remote-cache", &url])
+            .current_dir(d)
+            .env_remove("KILN_CACHE_DIR")
+            .env("KILN_REMOTE_CACHE_TOKEN", "t0ken-xyz")
+            .env("KILN_REMOTE_CACHE_TIMEOUT_MS", "500")
+            .env("CI", "1")
+            .output()
+            .unwrap();
+        let (err, out) = (stderr(&o), stdout(&o));
+        assert!(o.status.success(), "{err}");
+        let warnings: Vec<&str> = err.lines().filter(|l| l.contains("remote cache")).collect();
+        assert_eq!(warnings.len(), 1, "{err}");
+        let shown = url.replace("ci:hunter2@", "").replace(":hunter2@", "");
+        assert!(warnings[0].starts_with("warning: remote cache ") && warnings[0].contains(&shown), "{err}");
+        for secret in ["hunter2", "t0ken-xyz"] {
+            assert!(!err.contains(secret) && !out.contains(secret), "{err}{out}");
+        }
+        let stats: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+        assert_eq!((stats["remote_hits"].as_u64(), stats["compiled"].as_u64()), (Some(0), Some(4)), "{stats}");
+        assert!(stats["remote_errors"].as_u64().unwrap() >= 1, "{stats}");
+    }
+    let o = kiln(d, &["build", "--config", "compute.toml", "--remote-cache", "ftp://u:hunter2@host/x"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("ftp://host/x") && !stderr(&o).contains("hunter2"), "{}", stderr(&o));
+    let o = kiln(
+        d,
+        &["build", "--config", "compute.toml", "--remote-cache", "redis://h:1", "--remote-cache-mode", "write"],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("read or read-write"), "{}", stderr(&o));
 }

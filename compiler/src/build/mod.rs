@@ -45,6 +45,7 @@ mod store;
 pub use compile::map_error;
 pub use plan::Shard;
 pub use report::{DeadDimension, Report, Seconds, Stats};
+pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 pub use store::default_cache_dir;
 
 /// What to build and where.
@@ -64,6 +65,11 @@ pub struct Options {
     pub jobs: Option<usize>,
     /// Where the cache lives: [`CacheDir::Auto`] finds cargo's target folder.
     pub cache: CacheDir,
+    /// The shared remote cache layered under the local one ([`RemoteCache::Auto`]:
+    /// `KILN_REMOTE_CACHE`). None without a local cache.
+    pub remote_cache: RemoteCache,
+    /// `None`: `KILN_REMOTE_CACHE_MODE`, else read-write.
+    pub remote_cache_mode: Option<RemoteMode>,
     /// Write the counts as JSON here.
     pub stats_json: Option<PathBuf>,
     /// Show a progress bar (only honoured when stderr is a terminal and `CI` is unset).
@@ -84,6 +90,8 @@ impl Default for Options {
             targets: Vec::new(),
             jobs: None,
             cache: CacheDir::Auto,
+            remote_cache: RemoteCache::Auto,
+            remote_cache_mode: None,
             stats_json: None,
             progress: false,
             color: false,
@@ -159,6 +167,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let outcomes = compiler.run(&keys, &preprocessor);
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     report.warnings(store.finish());
+    report.remote(store.remote_stats());
     if report.failed() {
         return Err(Error::Failed(Box::new(report.finish()?)));
     }

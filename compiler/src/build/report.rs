@@ -44,6 +44,12 @@ pub struct Stats {
     /// Compiled keys whose compacted module equalled an earlier key's: their writers did not
     /// run, the artifacts were that key's (see [`crate::compile::SharedWriters`]).
     pub shared_modules: usize,
+    /// Distinct keys served by the remote cache (counted in `cache_hits` too).
+    pub remote_hits: u64,
+    /// Entries this build stored to the remote cache.
+    pub remote_writes: u64,
+    /// Failed remote operations (the first one turns the remote off for the build).
+    pub remote_errors: u64,
     pub seconds: Seconds,
 }
 
@@ -207,6 +213,12 @@ impl<'o> Builder<'o> {
         let failures = std::mem::take(&mut self.failures);
         self.report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
         self.report.failures = render_failures(failures, &plan.kept, &preprocessor.sources, self.options.color);
+    }
+
+    /// The remote cache's counts.
+    pub fn remote(&mut self, remote: crate::cache::remote::Stats) {
+        let stats = &mut self.report.stats;
+        (stats.remote_hits, stats.remote_writes, stats.remote_errors) = (remote.hits, remote.writes, remote.errors);
     }
 
     pub fn warnings(&mut self, warnings: Vec<String>) {

@@ -35,6 +35,18 @@ struct Pending {
     bytes: usize,
 }
 
+/// The cache folder `dir`, opened, with the remote cache of `options` under it.
+fn open_with_remote(dir: PathBuf, options: &Options) -> Result<Cache, Error> {
+    let cache = Cache::open(dir).map_err(|e| Error::Io(format!("error: {e}")))?;
+    let remote = crate::cache::remote::Options::resolve(&options.remote_cache, options.remote_cache_mode)
+        .and_then(|o| o.map(|o| crate::cache::Remote::open(&o)).transpose())
+        .map_err(|e| Error::Config(format!("error: {e}")))?;
+    Ok(match remote {
+        Some(r) => cache.with_remote(r),
+        None => cache,
+    })
+}
+
 impl Store {
     pub fn open(options: &Options, config: &Config) -> Result<Store, Error> {
         let dir = match &options.cache {
@@ -44,9 +56,14 @@ impl Store {
         };
         let cache = match dir {
             None => None,
-            Some(dir) => Some(Cache::open(dir).map_err(|e| Error::Io(format!("error: {e}")))?),
+            Some(dir) => Some(open_with_remote(dir, options)?),
         };
         Ok(Store { cache, pending: Mutex::default(), failed: Mutex::default() })
+    }
+
+    /// The remote cache's counts (zero without one).
+    pub fn remote_stats(&self) -> crate::cache::remote::Stats {
+        self.cache.as_ref().and_then(Cache::remote).map(|r| r.stats()).unwrap_or_default()
     }
 
     /// Whether there is a cache.

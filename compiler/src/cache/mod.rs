@@ -18,6 +18,13 @@
 //! corrupted entry is reported ([`Lookup::Corrupt`]) and recompiled, never trusted; a hit
 //! refreshes its pack's modification time, which `gc` uses to evict the least recently
 //! used packs first.
+//!
+//! A [`remote::Remote`] may be layered under the local folder ([`Cache::with_remote`]), as
+//! Unreal layers its shared DDC under the local one: a lookup tries the local packs, then
+//! the remote; a remote entry is checked like a local one (its bytes are the same entry
+//! encoding) and then filled into the local cache; every entry a build stores goes to the
+//! local cache and, in read-write mode, to the remote. A remote that fails is one warning
+//! and the build goes on with the local cache only.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
@@ -25,13 +32,17 @@ use std::io;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::SystemTime;
 
 use rayon::prelude::*;
 
 use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
+
+pub mod remote;
+
+pub use remote::Remote;
 
 const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
@@ -42,6 +53,9 @@ const RECORD_EXTENSION: &str = "kpp";
 const PACK_HEADER: usize = 8 + 8 + 32;
 /// Index row: key, offset of the entry in the pack (u64), its length (u64).
 const ROW: usize = 32 + 8 + 8;
+/// Remote hits waiting to be filled into the local cache are written as a pack once they
+/// hold this many bytes (and at the next [`Cache::put_pack`] in any case).
+const FILL_BYTES: usize = 32 << 20;
 
 /// Preprocessing records of one configuration, by the hex key of each permutation's
 /// inputs (see `build`): a later build skips the preprocessor for every permutation whose
@@ -201,11 +215,26 @@ impl Index {
     }
 }
 
-/// A cache folder.
+/// A cache folder, and the remote cache layered under it, if any.
 #[derive(Clone, Debug)]
 pub struct Cache {
     dir: PathBuf,
     index: Arc<RwLock<Option<Index>>>,
+    remote: Option<Arc<Layer>>,
+}
+
+/// The remote cache under a local one, and its hits not yet in the local cache.
+#[derive(Debug)]
+struct Layer {
+    remote: Remote,
+    fills: Mutex<Fills>,
+}
+
+/// Checked remote entries (their encoded bytes) to write into the next local pack.
+#[derive(Debug, Default)]
+struct Fills {
+    entries: Vec<(Key, Vec<u8>)>,
+    bytes: usize,
 }
 
 impl Cache {
@@ -213,7 +242,18 @@ impl Cache {
     pub fn open(dir: impl Into<PathBuf>) -> Result<Cache, Error> {
         let dir = dir.into();
         fs::create_dir_all(&dir).map_err(|source| Error { path: dir.clone(), source })?;
-        Ok(Cache { dir, index: Arc::default() })
+        Ok(Cache { dir, index: Arc::default(), remote: None })
+    }
+
+    /// This cache with `remote` layered under it.
+    pub fn with_remote(mut self, remote: Remote) -> Cache {
+        self.remote = Some(Arc::new(Layer { remote, fills: Mutex::default() }));
+        self
+    }
+
+    /// The remote cache under this one.
+    pub fn remote(&self) -> Option<&Remote> {
+        self.remote.as_ref().map(|l| &l.remote)
     }
 
     pub fn dir(&self) -> &Path {
@@ -253,9 +293,10 @@ impl Cache {
     }
 
     /// Warnings about packs whose index is damaged (their entries are recompiled): one
-    /// line each.
+    /// line each; and the remote cache's one warning, if it failed (given once: ask again
+    /// after the last write).
     pub fn warnings(&self) -> Vec<String> {
-        self.with_index(|index| {
+        let mut warnings: Vec<String> = self.with_index(|index| {
             index
                 .damaged
                 .iter()
@@ -266,7 +307,9 @@ impl Cache {
                     )
                 })
                 .collect()
-        })
+        });
+        warnings.extend(self.remote().and_then(Remote::take_warning));
+        warnings
     }
 
     /// Whether some pack holds `key` (its content is checked by [`Cache::get`]).
@@ -279,7 +322,38 @@ impl Cache {
         self.with_index(|index| index.by_key.get(key).map(|l| l[0].pack.path.clone()))
     }
 
+    /// The entry of `key`: from a local pack, else from the remote cache (checked, then
+    /// queued to be filled into the local cache).
     pub fn get(&self, key: &Key) -> Lookup {
+        let local = self.get_local(key);
+        let Some(layer) = &self.remote else { return local };
+        if matches!(local, Lookup::Hit(_)) {
+            return local;
+        }
+        let Some(bytes) = layer.remote.get(key) else { return local };
+        match decode(key, &bytes) {
+            Ok(c) => {
+                layer.remote.count_hit();
+                let full = {
+                    let mut fills = layer.fills.lock().expect("no panics while locked");
+                    fills.bytes += bytes.len();
+                    fills.entries.push((*key, bytes));
+                    fills.bytes >= FILL_BYTES
+                };
+                if full {
+                    // Failing to fill only costs a remote lookup next time.
+                    let _ = self.put_pack_hashed(&[]);
+                }
+                Lookup::Hit(c)
+            }
+            Err(why) => Lookup::Corrupt(format!(
+                "remote cache entry {key} at {} is corrupted ({why}); recompiling",
+                layer.remote.url()
+            )),
+        }
+    }
+
+    fn get_local(&self, key: &Key) -> Lookup {
         let locations = self.with_index(|index| index.by_key.get(key).cloned().unwrap_or_default());
         let mut corrupt = None;
         for l in &locations {
@@ -318,9 +392,23 @@ impl Cache {
     }
 
     /// [`Cache::put_pack`] with the blake3 of every artifact already known (in the order of
-    /// each entry's artifacts).
+    /// each entry's artifacts). With a remote cache, the pack also holds the remote hits not
+    /// yet filled in, and each of `entries` is stored to the remote (in read-write mode).
     pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
-        if entries.is_empty() {
+        let fills = match &self.remote {
+            Some(layer) => std::mem::take(&mut *layer.fills.lock().expect("no panics while locked")).entries,
+            None => Vec::new(),
+        };
+        let local = self.write_pack(entries, &fills);
+        if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
+            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &encode_hashed(key, c, hashes)));
+        }
+        local
+    }
+
+    /// Writes `entries` and the already encoded (and checked) `raw` entries as one pack.
+    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])], raw: &[(Key, Vec<u8>)]) -> Result<(), Error> {
+        if entries.is_empty() && raw.is_empty() {
             return Ok(());
         }
         let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
@@ -337,21 +425,26 @@ impl Cache {
                 (frames, checksum, len as u64)
             })
             .collect();
-        let mut rows = Vec::with_capacity(entries.len() * ROW);
-        let mut offset = (PACK_HEADER + entries.len() * ROW) as u64;
-        for ((key, _, _), (_, _, len)) in entries.iter().zip(&encoded) {
+        let count = entries.len() + raw.len();
+        let mut rows = Vec::with_capacity(count * ROW);
+        let mut offset = (PACK_HEADER + count * ROW) as u64;
+        let lens = encoded.iter().map(|e| e.2).chain(raw.iter().map(|(_, bytes)| bytes.len() as u64));
+        for (key, len) in entries.iter().map(|e| e.0).chain(raw.iter().map(|r| r.0)).zip(lens) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
             rows.extend_from_slice(&len.to_le_bytes());
             offset += len;
         }
         let rows_hash = blake3::hash(&rows);
-        let count = (entries.len() as u64).to_le_bytes();
+        let count = (count as u64).to_le_bytes();
         // Named by content: two builds writing the same pack rename one over the other.
         let mut name = blake3::Hasher::new();
         name.update(rows_hash.as_bytes());
         for (_, checksum, _) in &encoded {
             name.update(checksum.as_bytes());
+        }
+        for (_, bytes) in raw {
+            name.update(&bytes[8..40]);
         }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
@@ -360,6 +453,7 @@ impl Cache {
             pieces.push(checksum.as_bytes());
             pieces.extend(body_pieces(key, c, frames));
         }
+        pieces.extend(raw.iter().map(|(_, bytes)| &bytes[..]));
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
@@ -378,6 +472,11 @@ impl Cache {
 
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
+    ///
+    /// Without a local copy, the remote cache's (stored by a machine whose checkout has the
+    /// same path, as CI runners and the pods of one job have) is used and kept locally.
+    /// Records name absolute paths and every file's blake3: elsewhere they simply do not
+    /// match, and the permutations are preprocessed.
     pub fn get_records(&self, key: &Key) -> Records {
         self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
     }
@@ -388,23 +487,33 @@ impl Cache {
     }
 
     /// The body of the records file under `key`, in whatever encoding its writer chose;
-    /// `None` when missing or damaged (its checksum is checked).
+    /// `None` when missing or damaged (its checksum is checked). Without a local copy, the
+    /// remote cache's is used and kept locally.
     pub fn get_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
         let path = self.records_path(key);
-        let mut bytes = fs::read(&path).ok()?;
-        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
-            return None;
+        if let Some(body) = fs::read(&path).ok().and_then(records_body) {
+            if let Ok(f) = fs::File::options().append(true).open(&path) {
+                let _ = f.set_modified(SystemTime::now());
+            }
+            return Some(body);
         }
-        if let Ok(f) = fs::File::options().append(true).open(&path) {
-            let _ = f.set_modified(SystemTime::now());
-        }
-        bytes.drain(..40);
-        Some(bytes)
+        let bytes = self.remote().and_then(|r| r.get(key))?;
+        let body = records_body(bytes.clone())?;
+        let _ = self.write_file(&path, &bytes);
+        Some(body)
     }
 
-    /// Replaces the records file under `key` with `body` (checksummed), atomically.
+    /// Replaces the records file under `key` with `body` (checksummed), atomically, and
+    /// stores it in the remote cache too.
     pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
         let sum = blake3::hash(body);
+        if let Some(remote) = self.remote() {
+            let mut bytes = Vec::with_capacity(40 + body.len());
+            bytes.extend_from_slice(RECORD_MAGIC);
+            bytes.extend_from_slice(sum.as_bytes());
+            bytes.extend_from_slice(body);
+            remote.store(key, &bytes);
+        }
         self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }
 
@@ -581,6 +690,16 @@ impl Cache {
     }
 }
 
+/// A set of preprocessing records, if `bytes` is a whole one.
+/// The body of a records file (magic, blake3 of the body, body), when whole.
+fn records_body(mut bytes: Vec<u8>) -> Option<Vec<u8>> {
+    if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+        return None;
+    }
+    bytes.drain(..40);
+    Some(bytes)
+}
+
 /// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,
 /// `Err(why)` when it is not a whole pack of this Kiln.
 fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
@@ -718,12 +837,18 @@ fn entry_checksum(key: &Key, frames: &[Vec<u8>], hashes: &[blake3::Hash]) -> bla
 /// An entry as one buffer (tests).
 #[cfg(test)]
 fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
-    let frames = frames(c);
     let hashes: Vec<blake3::Hash> = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
-    let mut out = Vec::new();
+    encode_hashed(key, c, &hashes)
+}
+
+/// An entry as one buffer (what the remote cache stores), with its artifacts' blake3.
+fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
+    let frames = frames(c);
+    let pieces = body_pieces(key, c, &frames);
+    let mut out = Vec::with_capacity(MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(entry_checksum(key, &frames, &hashes).as_bytes());
-    body_pieces(key, c, &frames).iter().for_each(|p| out.extend_from_slice(p));
+    out.extend_from_slice(entry_checksum(key, &frames, hashes).as_bytes());
+    pieces.iter().for_each(|p| out.extend_from_slice(p));
     out
 }
 

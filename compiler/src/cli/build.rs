@@ -4,7 +4,7 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use super::{CliResult, Failure};
-use crate::build::{self, CacheDir, Shard};
+use crate::build::{self, CacheDir, RemoteCache, RemoteMode, Shard};
 use crate::Target;
 
 /// Arguments of `kiln build`.
@@ -33,8 +33,8 @@ pub struct Args {
     /// else .kiln-cache next to the config).
     #[arg(long, value_name = "DIR")]
     pub cache_dir: Option<PathBuf>,
-    /// Compile everything; neither read nor write the cache.
-    #[arg(long, conflicts_with = "cache_dir")]
+    /// Compile everything; neither read nor write the cache (local or remote).
+    #[arg(long, conflicts_with_all = ["cache_dir", "remote_cache"])]
     pub no_cache: bool,
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
@@ -47,6 +47,15 @@ pub struct Args {
     /// Compile shard JOB_COMPLETION_INDEX of N (a Kubernetes Indexed Job's index).
     #[arg(long, value_name = "N")]
     pub shards: Option<usize>,
+    /// A shared cache under the local one: redis://host:port[/db] or
+    /// http(s)://host[:port]/prefix (default: KILN_REMOTE_CACHE). Credentials come from
+    /// KILN_REMOTE_CACHE_TOKEN (HTTP bearer, or basic auth as user:password; redis AUTH).
+    #[arg(long, value_name = "URL")]
+    pub remote_cache: Option<String>,
+    /// read, or read-write to also store what this build compiles (default:
+    /// KILN_REMOTE_CACHE_MODE, else read-write).
+    #[arg(long, value_name = "M", value_parser = RemoteMode::parse)]
+    pub remote_cache_mode: Option<RemoteMode>,
 }
 
 pub fn parse_target(s: &str) -> Result<Target, String> {
@@ -94,6 +103,11 @@ pub fn exec(args: Args) -> CliResult {
             (false, Some(d)) => CacheDir::Dir(d),
             (false, None) => CacheDir::Auto,
         },
+        remote_cache: match args.remote_cache {
+            Some(url) => RemoteCache::Url(url),
+            None => RemoteCache::Auto,
+        },
+        remote_cache_mode: args.remote_cache_mode,
         stats_json: args.stats_json,
         progress: true,
         color,

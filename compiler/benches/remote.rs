@@ -1,0 +1,249 @@
+//! A fresh local cache with a warm remote cache, against a cold build, in one run.
+//!
+//! `cargo bench -p kiln --bench remote [-- CONFIG]`: CONFIG defaults to a generated set of
+//! about 1,000 permutations (`KILN_BENCH_PERMUTATIONS` sets the size): the bundled
+//! renderer's `permutations.toml` and `shader_src/`, each shader given a `MATERIAL`
+//! dimension whose value reaches the shader's text (the way materials multiply Unreal's
+//! permutations), so every material is one more real compile. `KILN_BENCH_JOBS` sets the
+//! threads (2 by default).
+//!
+//! For each backend whose server is installed (`redis-server`, `nginx`), started here on a
+//! free loopback port:
+//! 1. cold: an empty local cache and no remote (the baseline);
+//! 2. cold + remote writes: an empty local cache and an empty remote (what CI pays to fill
+//!    it);
+//! 3. fresh local + warm remote: an empty local cache, the remote that (2) filled: the hit
+//!    rate (goal >= 99%) and the time as a share of cold (goal <= 5%). With the generated
+//!    set, twice: at the same checkout path (CI runners, the pods of one job: the
+//!    preprocessing records come from the remote too) and at another path (a developer's
+//!    machine: every permutation is preprocessed, every compile comes from the remote).
+//!
+//! Each line gives wall time and the process's CPU time (user + system, all threads):
+//! these 2 cores are shared, CPU time is the steadier figure.
+
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use kiln::build::{self, CacheDir, RemoteCache};
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), dest).unwrap();
+        }
+    }
+}
+
+fn add_material_line(dir: &Path) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let path = e.unwrap().path();
+        if path.is_dir() {
+            add_material_line(&path);
+        } else if path.extension().is_some_and(|e| e == "usf") {
+            let mut text = std::fs::read_to_string(&path).unwrap();
+            text.push_str("\n#ifdef MATERIAL\nconst kiln_bench_material: u32 = MATERIAL;\n#endif\n");
+            std::fs::write(&path, text).unwrap();
+        }
+    }
+}
+
+/// The bundled set with a MATERIAL dimension on every shader, about `target` permutations.
+fn generate(root: &Path, dir: &Path, target: usize) -> PathBuf {
+    copy_dir(&root.join("shader_src"), &dir.join("shader_src"));
+    add_material_line(&dir.join("shader_src"));
+    let base = count(&root.join("permutations.toml"));
+    let materials = target.div_ceil(base).max(1);
+    let mut config: toml::Table =
+        std::fs::read_to_string(root.join("permutations.toml")).unwrap().parse().expect("permutations.toml parses");
+    for shader in config["shader"].as_array_mut().expect("[[shader]]") {
+        let shader = shader.as_table_mut().unwrap();
+        let dims = shader.entry("dimensions").or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        let values = (0..materials as i64).map(toml::Value::Integer).collect();
+        dims.as_table_mut().unwrap().insert("MATERIAL".into(), toml::Value::Array(values));
+    }
+    let path = dir.join("permutations.toml");
+    std::fs::write(&path, toml::to_string(&config).unwrap()).unwrap();
+    path
+}
+
+/// Kept permutations of a config.
+fn count(config: &Path) -> usize {
+    let c = kiln::permute::load(config).unwrap_or_else(|e| panic!("{}", e.render()));
+    c.permutations_where(|_, _| true).filter(|p| p.is_kept()).count()
+}
+
+/// nginx is in /usr/sbin, which a user's PATH may lack.
+fn nginx() -> &'static str {
+    if Path::new("/usr/sbin/nginx").exists() {
+        "/usr/sbin/nginx"
+    } else {
+        "nginx"
+    }
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// A server process, killed on drop.
+struct Server {
+    child: Child,
+    url: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn installed(binary: &str, arg: &str) -> bool {
+    Command::new(binary).arg(arg).output().map(|o| o.status.success()).unwrap_or(false)
+}
+
+fn start(kind: &str) -> Option<Server> {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let (child, url) = match kind {
+        "redis" => {
+            if !installed("redis-server", "--version") {
+                return None;
+            }
+            let child = Command::new("redis-server")
+                .args(["--port", &port.to_string(), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"])
+                .arg("--dir")
+                .arg(dir.path())
+                .stdout(Stdio::null())
+                .spawn()
+                .unwrap();
+            (child, format!("redis://127.0.0.1:{port}"))
+        }
+        _ => {
+            if !installed(nginx(), "-v") {
+                return None;
+            }
+            let p = dir.path();
+            std::fs::create_dir_all(p.join("data/kiln")).unwrap();
+            std::fs::create_dir_all(p.join("logs")).unwrap();
+            let user = if unsafe { libc::geteuid() } == 0 { "user root;" } else { "" };
+            let conf = format!(
+                "{user} daemon off; worker_processes 2; pid {p}/nginx.pid; error_log {p}/error.log;
+                 events {{ worker_connections 256; }}
+                 http {{ access_log off; client_body_temp_path {p}/body; client_max_body_size 0;
+                   server {{ listen 127.0.0.1:{port}; root {p}/data;
+                     location /kiln/ {{ dav_methods PUT; create_full_put_path on; }} }} }}",
+                p = p.display()
+            );
+            std::fs::write(p.join("nginx.conf"), conf).unwrap();
+            let child = Command::new(nginx())
+                .arg("-p")
+                .arg(p)
+                .arg("-c")
+                .arg(p.join("nginx.conf"))
+                .arg("-e")
+                .arg(p.join("error.log"))
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap();
+            (child, format!("http://127.0.0.1:{port}/kiln"))
+        }
+    };
+    let t = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(t.elapsed() < Duration::from_secs(20), "{kind} did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Some(Server { child, url, _dir: dir })
+}
+
+fn cpu_seconds() -> f64 {
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
+    t(u.ru_utime) + t(u.ru_stime)
+}
+
+/// One build with an empty local cache; (wall seconds, CPU seconds, stats).
+fn run(config: &Path, remote: RemoteCache, jobs: usize) -> (f64, f64, build::Stats) {
+    let tmp = tempfile::tempdir().unwrap();
+    let options = build::Options {
+        config: config.to_path_buf(),
+        output: Some(tmp.path().join("shaders.kpak")),
+        cache: CacheDir::Dir(tmp.path().join("cache")),
+        remote_cache: remote,
+        jobs: Some(jobs),
+        ..build::Options::default()
+    };
+    let (t, cpu) = (Instant::now(), cpu_seconds());
+    let report = match build::run(&options) {
+        Ok(r) => r,
+        Err(build::Error::Failed(r)) => panic!("the build failed:\n{}", r.failures.join("\n")),
+        Err(e) => panic!("the build failed: {e}"),
+    };
+    let (seconds, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu);
+    for w in report.warnings.iter().filter(|w| w.contains("remote cache")) {
+        eprintln!("{w}");
+    }
+    (seconds, cpu, report.stats)
+}
+
+fn main() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf();
+    let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
+    let (generated, elsewhere) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (config, other_path) = match std::env::args().skip(1).find(|a| !a.starts_with('-')) {
+        Some(c) => (PathBuf::from(c), None),
+        None => {
+            let n = std::env::var("KILN_BENCH_PERMUTATIONS").ok().and_then(|n| n.parse().ok()).unwrap_or(1000);
+            (generate(&root, generated.path(), n), Some(generate(&root, elsewhere.path(), n)))
+        }
+    };
+    println!("remote cache bench: {} ({} permutations, {jobs} threads)", config.display(), count(&config));
+
+    let (cold, cold_cpu, stats) = run(&config, RemoteCache::Disabled, jobs);
+    println!(
+        "cold, no remote:                  {cold:6.2} s, CPU {cold_cpu:6.2} s  ({} distinct, {} compiled)",
+        stats.unique_sources, stats.compiled
+    );
+    let mut any = false;
+    for kind in ["redis", "http"] {
+        let Some(server) = start(kind) else {
+            let package = if kind == "redis" { "redis-server" } else { "nginx-light" };
+            println!("{kind}: not installed (Debian package {package}), skipped");
+            continue;
+        };
+        any = true;
+        let remote = || RemoteCache::Url(server.url.clone());
+        let (fill, fill_cpu, s) = run(&config, remote(), jobs);
+        println!(
+            "{kind:5} cold + remote writes:       {fill:6.2} s, CPU {fill_cpu:6.2} s  ({:.2} x cold CPU; {} writes, {} errors)",
+            fill_cpu / cold_cpu,
+            s.remote_writes,
+            s.remote_errors
+        );
+        let mut warm_runs = vec![("same path", config.clone())];
+        warm_runs.extend(other_path.clone().map(|p| ("other path", p)));
+        for (place, config) in warm_runs {
+            let (warm, warm_cpu, s) = run(&config, remote(), jobs);
+            let hit_rate = s.remote_hits as f64 / s.unique_sources.max(1) as f64;
+            println!(
+                "{kind:5} fresh local, {place:10}:    {warm:6.2} s, CPU {warm_cpu:6.2} s  ({:.1}% of cold wall, {:.1}% of cold CPU, goal <= 5%; hit rate {:.1}%, goal >= 99%; {} compiled, {} preprocessed)",
+                100.0 * warm / cold,
+                100.0 * warm_cpu / cold_cpu,
+                100.0 * hit_rate,
+                s.compiled,
+                s.preprocessed
+            );
+        }
+    }
+    assert!(any, "no server installed: apt-get install redis-server nginx-light");
+}

@@ -1,0 +1,575 @@
+//! The shared remote cache, layered under the local one (like Unreal's local and shared DDC).
+//!
+//! Takes a URL (`redis://host:port[/db]` or `http(s)://host[:port]/prefix`), a [`Mode`] and
+//! credentials from the environment; gives byte values by [`Key`]. The values are the local
+//! cache's entry encoding (magic, checksum, body), so the [`super::Cache`] that layers this
+//! store checks every value it reads exactly as it checks its own packs: a corrupted or
+//! truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
+//! records (checksummed too) are shared the same way, under their own keys.
+//!
+//! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
+//! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
+//! serves it); a 404 is a miss. Redis stores each value under `kiln:<key>`.
+//!
+//! Guarantees: every connect, read and write is bounded by a timeout (3 s, or
+//! `KILN_REMOTE_CACHE_TIMEOUT_MS`); the first failure (server down, slow, connection
+//! dropped, refused credentials) turns the store off for the rest of the build and leaves
+//! exactly one warning; credentials (`KILN_REMOTE_CACHE_TOKEN`, or those in the URL) never
+//! appear in a message: URLs are shown through [`redact`].
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use super::Key;
+
+/// The default bound of each connect, read and write.
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
+/// The largest value read back (a guard against a server answering with something else).
+const MAX_VALUE: u64 = 1 << 30;
+
+/// Whether a build writes what it compiles to the remote cache.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Mode {
+    /// Look up only: a developer's machine, when CI fills the cache.
+    Read,
+    /// Look up, and store every entry this build compiled.
+    #[default]
+    ReadWrite,
+}
+
+impl Mode {
+    pub fn parse(text: &str) -> Result<Mode, String> {
+        match text {
+            "read" => Ok(Mode::Read),
+            "read-write" => Ok(Mode::ReadWrite),
+            other => Err(format!("unknown remote cache mode `{other}` (expected read or read-write)")),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Read => "read",
+            Mode::ReadWrite => "read-write",
+        }
+    }
+}
+
+/// Which remote cache a build uses.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub enum RemoteCache {
+    /// `KILN_REMOTE_CACHE` when it is set and not empty, else none.
+    #[default]
+    Auto,
+    /// This URL.
+    Url(String),
+    /// None, whatever the environment says.
+    Disabled,
+}
+
+impl std::fmt::Debug for RemoteCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RemoteCache::Auto => f.write_str("Auto"),
+            RemoteCache::Url(url) => f.debug_tuple("Url").field(&redact(url)).finish(),
+            RemoteCache::Disabled => f.write_str("Disabled"),
+        }
+    }
+}
+
+/// A resolved remote cache: where, how, and with which credentials.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Options {
+    pub url: String,
+    pub mode: Mode,
+    /// `KILN_REMOTE_CACHE_TOKEN`: HTTP `Bearer <token>`, or basic auth when it is
+    /// `user:password`; redis `AUTH` when the URL holds no password.
+    pub token: Option<String>,
+    /// Bound of each connect, read and write (`KILN_REMOTE_CACHE_TIMEOUT_MS`).
+    pub timeout: Duration,
+}
+
+impl std::fmt::Debug for Options {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Options")
+            .field("url", &redact(&self.url))
+            .field("mode", &self.mode)
+            .field("token", &self.token.as_ref().map(|_| "***"))
+            .field("timeout", &self.timeout)
+            .finish()
+    }
+}
+
+impl Options {
+    /// The remote cache `which` names, with `mode` (else `KILN_REMOTE_CACHE_MODE`, else
+    /// read-write) and the token and timeout of the environment; `None` when there is none.
+    pub fn resolve(which: &RemoteCache, mode: Option<Mode>) -> Result<Option<Options>, Error> {
+        let url = match which {
+            RemoteCache::Disabled => return Ok(None),
+            RemoteCache::Url(u) => u.clone(),
+            RemoteCache::Auto => match std::env::var("KILN_REMOTE_CACHE") {
+                Ok(u) if !u.trim().is_empty() => u,
+                _ => return Ok(None),
+            },
+        };
+        let mode = match mode {
+            Some(m) => m,
+            None => match std::env::var("KILN_REMOTE_CACHE_MODE") {
+                Ok(m) if !m.is_empty() => {
+                    Mode::parse(&m).map_err(|why| Error::Env { name: "KILN_REMOTE_CACHE_MODE", why })?
+                }
+                _ => Mode::ReadWrite,
+            },
+        };
+        let token = std::env::var("KILN_REMOTE_CACHE_TOKEN").ok().filter(|t| !t.is_empty());
+        let timeout = match std::env::var("KILN_REMOTE_CACHE_TIMEOUT_MS") {
+            Ok(ms) if !ms.is_empty() => match ms.trim().parse::<u64>() {
+                Ok(ms) if ms > 0 => Duration::from_millis(ms),
+                _ => {
+                    return Err(Error::Env {
+                        name: "KILN_REMOTE_CACHE_TIMEOUT_MS",
+                        why: format!("`{ms}` is not a positive number of milliseconds"),
+                    })
+                }
+            },
+            _ => DEFAULT_TIMEOUT,
+        };
+        Ok(Some(Options { url: url.trim().to_string(), mode, token, timeout }))
+    }
+}
+
+/// A remote cache that cannot be used as configured.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("invalid remote cache URL `{url}`: {why}")]
+    Url { url: String, why: String },
+    #[error("invalid {name}: {why}")]
+    Env { name: &'static str, why: String },
+}
+
+/// The counts of `--stats-json`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Stats {
+    /// Entries served by the remote cache (checked, then copied into the local cache).
+    pub hits: u64,
+    /// Entries stored to it.
+    pub writes: u64,
+    /// Failed operations (after the first one the store is off: usually 0 or 1).
+    pub errors: u64,
+}
+
+/// `scheme://host[:port]/path` of `url`, without user, password, query or fragment: the
+/// only form of a remote cache URL that Kiln prints.
+pub fn redact(url: &str) -> String {
+    let Some(at) = url.find("://") else { return "<remote cache URL>".into() };
+    let (scheme, rest) = (&url[..at], &url[at + 3..]);
+    let authority_end = rest.find(['/', '?', '#']).unwrap_or(rest.len());
+    let host = rest[..authority_end].rsplit_once('@').map_or(&rest[..authority_end], |(_, h)| h);
+    let path = rest[authority_end..].split(['?', '#']).next().unwrap_or("");
+    format!("{scheme}://{host}{path}")
+}
+
+/// One failed operation.
+#[derive(Debug)]
+struct Fault {
+    message: String,
+    /// A timeout is not retried (it would double the wait).
+    timed_out: bool,
+}
+
+/// The remote cache of one build.
+pub struct Remote {
+    store: Store,
+    /// The redacted URL, for messages.
+    shown: String,
+    mode: Mode,
+    /// Strings never to print (token, password, the raw URL).
+    secrets: Vec<String>,
+    off: AtomicBool,
+    warning: Mutex<Option<String>>,
+    hits: AtomicU64,
+    writes: AtomicU64,
+    errors: AtomicU64,
+}
+
+impl std::fmt::Debug for Remote {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Remote").field("url", &self.shown).field("mode", &self.mode).finish_non_exhaustive()
+    }
+}
+
+enum Store {
+    Redis(RedisStore),
+    Http(HttpStore),
+}
+
+impl Remote {
+    /// Parses the URL and prepares the client; connects on first use.
+    pub fn open(options: &Options) -> Result<Remote, Error> {
+        let shown = redact(&options.url);
+        let bad = |why: String| Error::Url { url: shown.clone(), why };
+        let scheme = options.url.split_once("://").map(|(s, _)| s.to_ascii_lowercase());
+        let mut secrets: Vec<String> = options.token.iter().cloned().collect();
+        if options.url != shown {
+            secrets.push(options.url.clone());
+        }
+        let store = match scheme.as_deref() {
+            Some("redis") => {
+                let (store, password) = RedisStore::new(options).map_err(|e| bad(scrub(&e, &secrets)))?;
+                secrets.extend(password);
+                Store::Redis(store)
+            }
+            Some("http") | Some("https") => {
+                let (store, password) = HttpStore::new(options).map_err(bad)?;
+                secrets.extend(password);
+                Store::Http(store)
+            }
+            _ => return Err(bad("expected redis://host:port[/db] or http(s)://host[:port]/prefix".into())),
+        };
+        secrets.retain(|s| !s.is_empty());
+        Ok(Remote {
+            store,
+            shown,
+            mode: options.mode,
+            secrets,
+            off: AtomicBool::new(false),
+            warning: Mutex::new(None),
+            hits: AtomicU64::new(0),
+            writes: AtomicU64::new(0),
+            errors: AtomicU64::new(0),
+        })
+    }
+
+    /// The URL as Kiln prints it (see [`redact`]).
+    pub fn url(&self) -> &str {
+        &self.shown
+    }
+
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    /// Whether entries compiled by this build go to the remote.
+    pub fn writes(&self) -> bool {
+        self.mode == Mode::ReadWrite && !self.off.load(Ordering::Relaxed)
+    }
+
+    /// The value stored under `key`; `None` for a miss, and once the store is off.
+    pub fn get(&self, key: &Key) -> Option<Vec<u8>> {
+        if self.off.load(Ordering::Relaxed) {
+            return None;
+        }
+        match self.retry(|| match &self.store {
+            Store::Redis(r) => r.get(key),
+            Store::Http(h) => h.get(key),
+        }) {
+            Ok(v) => v,
+            Err(f) => {
+                self.fail("reading from", f);
+                None
+            }
+        }
+    }
+
+    /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
+    pub fn put(&self, key: &Key, value: &[u8]) {
+        if self.store(key, value) {
+            self.writes.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// [`Remote::put`] of a value that is not a compiled entry (not counted in the stats).
+    pub(crate) fn store(&self, key: &Key, value: &[u8]) -> bool {
+        if !self.writes() {
+            return false;
+        }
+        match self.retry(|| match &self.store {
+            Store::Redis(r) => r.put(key, value),
+            Store::Http(h) => h.put(key, value),
+        }) {
+            Ok(()) => true,
+            Err(f) => {
+                self.fail("writing to", f);
+                false
+            }
+        }
+    }
+
+    /// Counts a value that passed its checks.
+    pub(crate) fn count_hit(&self) {
+        self.hits.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn stats(&self) -> Stats {
+        Stats {
+            hits: self.hits.load(Ordering::Relaxed),
+            writes: self.writes.load(Ordering::Relaxed),
+            errors: self.errors.load(Ordering::Relaxed),
+        }
+    }
+
+    /// The one warning about the store failing, the first time it is asked for.
+    pub fn take_warning(&self) -> Option<String> {
+        self.warning.lock().expect("no panics while locked").take()
+    }
+
+    /// `op` again once when it failed on something other than a timeout: a pooled
+    /// connection the server closed while idle fails once, then a new one works.
+    fn retry<T>(&self, op: impl Fn() -> Result<T, Fault>) -> Result<T, Fault> {
+        match op() {
+            Err(f) if !f.timed_out && !self.off.load(Ordering::Relaxed) => op(),
+            r => r,
+        }
+    }
+
+    fn fail(&self, doing: &str, fault: Fault) {
+        self.errors.fetch_add(1, Ordering::Relaxed);
+        if !self.off.swap(true, Ordering::Relaxed) {
+            let message = format!(
+                "warning: remote cache {}: {doing} it failed ({}); this build goes on with the local cache only",
+                self.shown,
+                scrub(&fault.message, &self.secrets)
+            );
+            *self.warning.lock().expect("no panics while locked") = Some(message);
+        }
+    }
+}
+
+/// `text` with every secret replaced by `***`.
+fn scrub(text: &str, secrets: &[String]) -> String {
+    let mut out = text.to_string();
+    for s in secrets.iter().filter(|s| !s.is_empty()) {
+        out = out.replace(s.as_str(), "***");
+    }
+    out
+}
+
+/// Redis through the `redis` crate's sync connections, a few kept open for the workers.
+struct RedisStore {
+    client: redis::Client,
+    idle: Mutex<Vec<redis::Connection>>,
+    timeout: Duration,
+}
+
+impl RedisStore {
+    /// The store and the password it uses (a secret).
+    fn new(options: &Options) -> Result<(RedisStore, Option<String>), String> {
+        use redis::IntoConnectionInfo;
+        let mut info = options.url.as_str().into_connection_info().map_err(|e| e.to_string())?;
+        if info.redis_settings().password().is_none() {
+            if let Some(token) = &options.token {
+                let settings = info.redis_settings().clone();
+                let settings = match token.split_once(':') {
+                    Some((user, password)) => settings.set_username(user).set_password(password),
+                    None => settings.set_password(token),
+                };
+                info = info.set_redis_settings(settings);
+            }
+        }
+        let password = info.redis_settings().password().map(str::to_string);
+        let client = redis::Client::open(info).map_err(|e| e.to_string())?;
+        Ok((RedisStore { client, idle: Mutex::default(), timeout: options.timeout }, password))
+    }
+
+    fn with_connection<T>(&self, f: impl FnOnce(&mut redis::Connection) -> redis::RedisResult<T>) -> Result<T, Fault> {
+        let fault = |e: redis::RedisError| Fault { timed_out: e.is_timeout(), message: e.to_string() };
+        let idle = self.idle.lock().expect("no panics while locked").pop();
+        let mut connection = match idle {
+            Some(c) => c,
+            None => {
+                let c = self.client.get_connection_with_timeout(self.timeout).map_err(fault)?;
+                c.set_read_timeout(Some(self.timeout)).map_err(fault)?;
+                c.set_write_timeout(Some(self.timeout)).map_err(fault)?;
+                c
+            }
+        };
+        let result = f(&mut connection).map_err(fault)?;
+        self.idle.lock().expect("no panics while locked").push(connection);
+        Ok(result)
+    }
+
+    fn name(key: &Key) -> String {
+        format!("kiln:{key}")
+    }
+
+    fn get(&self, key: &Key) -> Result<Option<Vec<u8>>, Fault> {
+        self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))
+    }
+
+    fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
+        self.with_connection(|c| redis::cmd("SET").arg(Self::name(key)).arg(value).query(c))
+    }
+}
+
+/// GET and PUT of `<prefix>/<key>` through `ureq` (keep-alive connections, pooled).
+struct HttpStore {
+    agent: ureq::Agent,
+    /// The URL without credentials, without a trailing slash.
+    prefix: String,
+    authorization: Option<String>,
+}
+
+impl HttpStore {
+    /// The store and the password it uses (a secret).
+    fn new(options: &Options) -> Result<(HttpStore, Option<String>), String> {
+        let url = options.url.as_str();
+        let (scheme, rest) = url.split_once("://").expect("checked by the caller");
+        if scheme.eq_ignore_ascii_case("https") && !cfg!(feature = "https") {
+            return Err("this kiln was built without https support (cargo feature `https`)".into());
+        }
+        let authority_end = rest.find(['/', '?', '#']).unwrap_or(rest.len());
+        let (userinfo, host) = match rest[..authority_end].rsplit_once('@') {
+            Some((u, h)) => (Some(u), h),
+            None => (None, &rest[..authority_end]),
+        };
+        if host.is_empty() {
+            return Err("no host".into());
+        }
+        if rest[authority_end..].contains(['?', '#']) {
+            return Err("a query or fragment has no meaning here".into());
+        }
+        let path = rest[authority_end..].trim_end_matches('/');
+        let prefix = format!("{scheme}://{host}{path}");
+        // Credentials in the URL win over the token; `user:password` is basic auth.
+        let credentials = userinfo.map(str::to_string).or_else(|| options.token.clone());
+        let (authorization, password) = match credentials {
+            None => (None, None),
+            Some(c) => match c.split_once(':') {
+                Some((_, password)) => {
+                    use base64::Engine;
+                    let encoded = base64::engine::general_purpose::STANDARD.encode(c.as_bytes());
+                    (Some(format!("Basic {encoded}")), Some(password.to_string()))
+                }
+                None => (Some(format!("Bearer {c}")), Some(c.clone())),
+            },
+        };
+        let config = ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .timeout_connect(Some(options.timeout))
+            .timeout_resolve(Some(options.timeout))
+            .timeout_per_read(Some(options.timeout))
+            .timeout_per_write(Some(options.timeout))
+            .timeout_per_call(Some(options.timeout * 20))
+            .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")))
+            .build();
+        Ok((HttpStore { agent: config.into(), prefix, authorization }, password))
+    }
+
+    fn url(&self, key: &Key) -> String {
+        format!("{}/{key}", self.prefix)
+    }
+
+    fn fault(e: ureq::Error) -> Fault {
+        let timed_out = match &e {
+            ureq::Error::Timeout(_) => true,
+            ureq::Error::Io(io) => matches!(io.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock),
+            _ => false,
+        };
+        Fault { message: e.to_string(), timed_out }
+    }
+
+    fn status(doing: &str, status: ureq::http::StatusCode) -> Fault {
+        Fault { message: format!("{doing} answered {status}"), timed_out: false }
+    }
+
+    fn get(&self, key: &Key) -> Result<Option<Vec<u8>>, Fault> {
+        let mut request = self.agent.get(self.url(key));
+        if let Some(a) = &self.authorization {
+            request = request.header("Authorization", a);
+        }
+        let mut response = request.call().map_err(Self::fault)?;
+        match response.status().as_u16() {
+            200 => response.body_mut().with_config().limit(MAX_VALUE).read_to_vec().map(Some).map_err(Self::fault),
+            404 => Ok(None),
+            _ => Err(Self::status("GET", response.status())),
+        }
+    }
+
+    fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
+        let mut request = self.agent.put(self.url(key));
+        if let Some(a) = &self.authorization {
+            request = request.header("Authorization", a);
+        }
+        let response = request.send(value).map_err(Self::fault)?;
+        if response.status().is_success() {
+            Ok(())
+        } else {
+            Err(Self::status("PUT", response.status()))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn redact_drops_credentials_query_and_fragment() {
+        assert_eq!(redact("redis://:s3cret@127.0.0.1:6379/2"), "redis://127.0.0.1:6379/2");
+        assert_eq!(redact("redis://user:s3cret@cache:6379"), "redis://cache:6379");
+        assert_eq!(redact("https://ci:pa@ss@cache.example/kiln?sig=abc#x"), "https://cache.example/kiln");
+        assert_eq!(redact("http://host:8080/prefix/"), "http://host:8080/prefix/");
+        assert_eq!(redact("not a url with s3cret"), "<remote cache URL>");
+    }
+
+    #[test]
+    fn mode_parses_its_two_names() {
+        assert_eq!(Mode::parse("read"), Ok(Mode::Read));
+        assert_eq!(Mode::parse("read-write"), Ok(Mode::ReadWrite));
+        assert!(Mode::parse("write").unwrap_err().contains("read or read-write"));
+    }
+
+    fn options(url: &str, token: Option<&str>) -> Options {
+        Options {
+            url: url.into(),
+            mode: Mode::ReadWrite,
+            token: token.map(String::from),
+            timeout: Duration::from_millis(200),
+        }
+    }
+
+    #[test]
+    fn bad_urls_are_errors_that_hide_credentials() {
+        let e = Remote::open(&options("ftp://user:s3cret@host/x", None)).unwrap_err().to_string();
+        assert!(e.contains("ftp://host/x") && !e.contains("s3cret"), "{e}");
+        let e = Remote::open(&options("http://user:s3cret@", None)).unwrap_err().to_string();
+        assert!(e.contains("no host") && !e.contains("s3cret"), "{e}");
+        let e = Remote::open(&options("redis://:s3cret@host:notaport", None)).unwrap_err().to_string();
+        assert!(!e.contains("s3cret"), "{e}");
+    }
+
+    #[test]
+    fn http_credentials_come_from_the_url_or_the_token() {
+        let bearer = HttpStore::new(&options("http://h/p/", Some("t0ken"))).unwrap();
+        assert_eq!(bearer.0.authorization.as_deref(), Some("Bearer t0ken"));
+        assert_eq!(bearer.0.prefix, "http://h/p");
+        let basic = HttpStore::new(&options("http://h/p", Some("ci:pw"))).unwrap();
+        assert_eq!(basic.0.authorization.as_deref(), Some("Basic Y2k6cHc="));
+        let url = HttpStore::new(&options("http://ci:pw@h:81/p", Some("ignored"))).unwrap();
+        assert_eq!((url.0.authorization.as_deref(), url.0.prefix.as_str()), (Some("Basic Y2k6cHc="), "http://h:81/p"));
+        assert_eq!(url.1.as_deref(), Some("pw"));
+    }
+
+    #[test]
+    fn a_server_that_is_down_is_one_warning_without_secrets() {
+        // A port that was free a moment ago: connection refused.
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        for url in [format!("redis://:s3cret@127.0.0.1:{port}"), format!("http://u:s3cret@127.0.0.1:{port}/kiln")] {
+            let remote = Remote::open(&options(&url, None)).unwrap();
+            let key = Key([7; 32]);
+            assert_eq!(remote.get(&key), None);
+            assert_eq!(remote.get(&key), None);
+            remote.put(&key, b"value");
+            let warning = remote.take_warning().expect("one warning");
+            assert!(warning.contains(&format!("127.0.0.1:{port}")) && !warning.contains("s3cret"), "{warning}");
+            assert_eq!(remote.take_warning(), None, "only one");
+            assert_eq!(remote.stats(), Stats { hits: 0, writes: 0, errors: 1 });
+        }
+    }
+
+    #[test]
+    fn debug_output_hides_the_token() {
+        let text = format!("{:?}", options("redis://:pw@h:1", Some("t0ken")));
+        assert!(!text.contains("t0ken") && !text.contains("pw"), "{text}");
+    }
+}

@@ -1,0 +1,643 @@
+//! The shared remote cache, against real servers started here on free loopback ports:
+//! `redis-server` and `nginx` with WebDAV (`dav_methods PUT`). Each scenario runs on both.
+//!
+//! Builds are of `tests/in/lit.toml` (24 distinct keys), each "machine" with its own local
+//! cache folder. Servers are stopped by a drop guard. A missing server binary fails the
+//! test, naming its Debian package.
+
+mod build_support;
+
+use std::io::{Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+use build_support::*;
+use kiln::build::{self, RemoteCache, RemoteMode, Report};
+
+const DISTINCT: usize = 24;
+const TOKEN: &str = "s3cret-t0ken";
+
+/// Tests that set `KILN_REMOTE_CACHE_*` variables hold this for writing; every other
+/// build holds it for reading (the variables are read by every build of the process).
+static ENV: RwLock<()> = RwLock::new(());
+
+/// The environment to oneself: every `KILN_REMOTE_CACHE_*` variable set through it is
+/// removed on drop, a failing test included.
+struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
+
+const VARIABLES: [&str; 4] =
+    ["KILN_REMOTE_CACHE", "KILN_REMOTE_CACHE_MODE", "KILN_REMOTE_CACHE_TOKEN", "KILN_REMOTE_CACHE_TIMEOUT_MS"];
+
+impl Env {
+    fn lock() -> Env {
+        Env(ENV.write().unwrap_or_else(|e| e.into_inner()))
+    }
+    fn set(&self, name: &str, value: &str) {
+        assert!(VARIABLES.contains(&name));
+        std::env::set_var(name, value);
+    }
+    fn remove(&self, name: &str) {
+        std::env::remove_var(name);
+    }
+}
+
+impl Drop for Env {
+    fn drop(&mut self) {
+        for v in VARIABLES {
+            std::env::remove_var(v);
+        }
+    }
+}
+
+/// nginx is in /usr/sbin, which a user's PATH may lack.
+fn nginx() -> &'static str {
+    if Path::new("/usr/sbin/nginx").exists() {
+        "/usr/sbin/nginx"
+    } else {
+        "nginx"
+    }
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+fn wait_for_port(port: u16, server: &mut Child, log: &Path) {
+    let start = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        if let Ok(Some(status)) = server.try_wait() {
+            panic!("the server exited ({status}): {}", std::fs::read_to_string(log).unwrap_or_default());
+        }
+        assert!(start.elapsed() < Duration::from_secs(20), "the server did not listen on {port}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Kind {
+    Redis,
+    Http,
+}
+
+/// A server process, killed and reaped on drop.
+struct Server {
+    kind: Kind,
+    child: Child,
+    port: u16,
+    /// The server's folder (nginx's prefix and data, redis's working folder).
+    dir: tempfile::TempDir,
+    password: Option<String>,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Server {
+    fn start(kind: Kind) -> Server {
+        Self::start_with(kind, None)
+    }
+
+    /// A server that requires `password` (redis `requirepass`; nginx: `Bearer <password>`
+    /// or basic auth `ci:<password>`).
+    fn start_with(kind: Kind, password: Option<&str>) -> Server {
+        let dir = tempfile::tempdir().unwrap();
+        let port = free_port();
+        let log = dir.path().join("server.log");
+        let mut child = match kind {
+            Kind::Redis => {
+                require_server("redis-server", &["--version"], "redis-server");
+                let mut c = Command::new("redis-server");
+                c.args(["--port", &port.to_string(), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"])
+                    .arg("--dir")
+                    .arg(dir.path())
+                    .arg("--logfile")
+                    .arg(&log);
+                if let Some(p) = password {
+                    c.args(["--requirepass", p]);
+                }
+                c.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap()
+            }
+            Kind::Http => {
+                require_server(nginx(), &["-v"], "nginx-light");
+                let prefix = dir.path();
+                std::fs::create_dir_all(prefix.join("data/kiln")).unwrap();
+                std::fs::create_dir_all(prefix.join("logs")).unwrap();
+                let auth = match password {
+                    None => String::new(),
+                    Some(p) => {
+                        use base64::Engine;
+                        let basic = base64::engine::general_purpose::STANDARD.encode(format!("ci:{p}"));
+                        format!(
+                            "map $http_authorization $kiln_ok {{ default 0; \"Bearer {p}\" 1; \"Basic {basic}\" 1; }}"
+                        )
+                    }
+                };
+                let check = if password.is_some() { "if ($kiln_ok = 0) { return 401; }" } else { "" };
+                // As root, nginx's workers would run as nobody, unable to write our folders.
+                let user = if unsafe { libc::geteuid() } == 0 { "user root;" } else { "" };
+                let config = format!(
+                    "{user}
+daemon off;
+worker_processes 1;
+pid {prefix}/nginx.pid;
+error_log {log} warn;
+events {{ worker_connections 128; }}
+http {{
+    access_log off;
+    client_body_temp_path {prefix}/body;
+    client_max_body_size 0;
+    {auth}
+    server {{
+        listen 127.0.0.1:{port};
+        root {prefix}/data;
+        location /kiln/ {{
+            {check}
+            dav_methods PUT DELETE;
+            create_full_put_path on;
+            dav_access user:rw group:r all:r;
+        }}
+    }}
+}}
+",
+                    prefix = prefix.display(),
+                    log = log.display(),
+                );
+                std::fs::write(prefix.join("nginx.conf"), config).unwrap();
+                Command::new(nginx())
+                    .arg("-p")
+                    .arg(prefix)
+                    .arg("-c")
+                    .arg(prefix.join("nginx.conf"))
+                    .arg("-e")
+                    .arg(&log)
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::null())
+                    .spawn()
+                    .unwrap()
+            }
+        };
+        wait_for_port(port, &mut child, &log);
+        Server { kind, child, port, dir, password: password.map(String::from) }
+    }
+
+    fn url(&self) -> String {
+        self.url_at(self.port)
+    }
+
+    /// This server's URL with another port (a proxy in front of it).
+    fn url_at(&self, port: u16) -> String {
+        match self.kind {
+            Kind::Redis => format!("redis://127.0.0.1:{port}/0"),
+            Kind::Http => format!("http://127.0.0.1:{port}/kiln"),
+        }
+    }
+
+    fn redis(&self) -> redis::Connection {
+        let mut url = format!("redis://127.0.0.1:{}/0", self.port);
+        if let Some(p) = &self.password {
+            url = format!("redis://:{p}@127.0.0.1:{}/0", self.port);
+        }
+        redis::Client::open(url).unwrap().get_connection().unwrap()
+    }
+
+    /// Every key the server holds, sorted.
+    fn keys(&self) -> Vec<String> {
+        let mut keys: Vec<String> = match self.kind {
+            Kind::Redis => {
+                let keys: Vec<String> = redis::cmd("KEYS").arg("kiln:*").query(&mut self.redis()).unwrap();
+                keys.into_iter().map(|k| k.trim_start_matches("kiln:").to_string()).collect()
+            }
+            Kind::Http => std::fs::read_dir(self.dir.path().join("data/kiln"))
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect(),
+        };
+        keys.sort();
+        keys
+    }
+
+    /// The keys holding compiled entries (the others hold preprocessing records).
+    fn entries(&self) -> Vec<String> {
+        self.keys().into_iter().filter(|k| self.get(k).starts_with(b"KILNCE")).collect()
+    }
+
+    fn get(&self, key: &str) -> Vec<u8> {
+        match self.kind {
+            Kind::Redis => redis::cmd("GET").arg(format!("kiln:{key}")).query(&mut self.redis()).unwrap(),
+            Kind::Http => std::fs::read(self.dir.path().join("data/kiln").join(key)).unwrap(),
+        }
+    }
+
+    /// Overwrites a value through the server's own protocol (SET, HTTP PUT).
+    fn set(&self, key: &str, value: &[u8]) {
+        match self.kind {
+            Kind::Redis => {
+                let () = redis::cmd("SET").arg(format!("kiln:{key}")).arg(value).query(&mut self.redis()).unwrap();
+            }
+            Kind::Http => {
+                let status = ureq::put(format!("{}/{key}", self.url())).send(value).unwrap().status();
+                assert!(status.is_success(), "PUT answered {status}");
+            }
+        }
+    }
+
+    fn is_running(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+}
+
+/// Fails (never skips) when a server binary is missing, naming the Debian package.
+fn require_server(binary: &str, version_arg: &[&str], package: &str) {
+    let ok = Command::new(binary).args(version_arg).output().map(|o| o.status.success()).unwrap_or(false);
+    assert!(
+        ok,
+        "`{binary}` is required by this test: install the Debian package `{package}` (apt-get install {package})"
+    );
+}
+
+/// A "machine": its own copy of the inputs and its own local cache.
+struct Machine {
+    dir: tempfile::TempDir,
+}
+
+impl Machine {
+    fn new() -> Machine {
+        Machine { dir: fixture() }
+    }
+
+    fn archive(&self) -> PathBuf {
+        self.dir.path().join("shaders.kpak")
+    }
+
+    fn options(&self, remote: RemoteCache, mode: Option<RemoteMode>) -> build::Options {
+        let mut o = options(&self.dir.path().join("lit.toml"), &self.archive(), Some(&self.dir.path().join("cache")));
+        o.remote_cache = remote;
+        o.remote_cache_mode = mode;
+        o
+    }
+
+    fn build(&self, url: &str) -> Report {
+        self.build_with(RemoteCache::Url(url.into()), None)
+    }
+
+    fn build_with(&self, remote: RemoteCache, mode: Option<RemoteMode>) -> Report {
+        let _env = ENV.read().unwrap_or_else(|e| e.into_inner());
+        build_ok(&self.options(remote, mode))
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        std::fs::read(self.archive()).unwrap()
+    }
+}
+
+/// The archive of a build without any remote cache.
+fn reference() -> Vec<u8> {
+    let m = Machine::new();
+    m.build_with(RemoteCache::Disabled, None);
+    m.bytes()
+}
+
+fn remote_warnings(report: &Report) -> Vec<&String> {
+    report.warnings.iter().filter(|w| w.contains("remote cache")).collect()
+}
+
+fn hits_from_a_second_machine(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+
+    // A developer's machine in read mode finds nothing and stores nothing.
+    let dev = Machine::new();
+    let r = dev.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
+    assert_eq!((r.stats.compiled, r.stats.remote_hits, r.stats.remote_writes), (DISTINCT, 0, 0));
+    assert!(server.keys().is_empty(), "read mode wrote {:?}", server.keys());
+
+    // CI compiles everything and fills the remote.
+    let ci = Machine::new();
+    let r = ci.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits, r.stats.remote_writes), (DISTINCT, 0, DISTINCT as u64));
+    assert_eq!(r.stats.remote_errors, 0);
+    assert_eq!(server.entries().len(), DISTINCT);
+    assert_eq!(server.keys().len(), DISTINCT + 1, "and one set of preprocessing records");
+
+    // Another machine, fresh local cache: compiles nothing, same bytes.
+    let other = Machine::new();
+    let r = other.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
+    assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits), (0, DISTINCT, DISTINCT as u64));
+    assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
+    assert_eq!(other.bytes(), ci.bytes());
+    assert_eq!(other.bytes(), reference(), "the remote changes no byte of the archive");
+
+    // A machine whose checkout has the same path (CI runners, the pods of one job) also
+    // finds the preprocessing records there: it preprocesses nothing either.
+    std::fs::remove_dir_all(ci.dir.path().join("cache")).unwrap();
+    std::fs::remove_file(ci.archive()).unwrap();
+    let r = ci.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.preprocessed, r.stats.remote_hits), (0, 0, DISTINCT as u64));
+    assert_eq!(ci.bytes(), other.bytes());
+
+    // The remote hits were filled into that machine's local cache: without the remote,
+    // it still compiles nothing.
+    std::fs::remove_file(other.archive()).unwrap();
+    let r = other.build_with(RemoteCache::Disabled, None);
+    assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits), (0, DISTINCT, 0));
+    assert_eq!(other.bytes(), ci.bytes());
+}
+
+#[test]
+fn redis_serves_a_second_machine() {
+    hits_from_a_second_machine(Kind::Redis);
+}
+
+#[test]
+fn http_serves_a_second_machine() {
+    hits_from_a_second_machine(Kind::Http);
+}
+
+/// A TCP proxy in front of `server` that, when a client sends `trigger` (the first
+/// remote write), kills the server and drops every connection: a server dying mid-build,
+/// at a deterministic point.
+fn killing_proxy(server: Arc<Mutex<Server>>, trigger: &'static [u8]) -> (u16, Arc<AtomicBool>) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let upstream = server.lock().unwrap().port;
+    let killed = Arc::new(AtomicBool::new(false));
+    let flag = killed.clone();
+    std::thread::spawn(move || {
+        for client in listener.incoming() {
+            let Ok(client) = client else { continue };
+            if flag.load(Ordering::SeqCst) {
+                continue; // dropped: the server is gone
+            }
+            let Ok(up) = TcpStream::connect(("127.0.0.1", upstream)) else { continue };
+            let (server, flag) = (server.clone(), flag.clone());
+            let (mut c_read, mut u_write) = (client.try_clone().unwrap(), up.try_clone().unwrap());
+            let (mut u_read, mut c_write) = (up, client);
+            std::thread::spawn(move || {
+                let mut buf = vec![0u8; 64 << 10];
+                let mut tail: Vec<u8> = Vec::new();
+                loop {
+                    let n = match c_read.read(&mut buf) {
+                        Ok(0) | Err(_) => break,
+                        Ok(n) => n,
+                    };
+                    tail.extend_from_slice(&buf[..n]);
+                    if tail.windows(trigger.len()).any(|w| w == trigger) || flag.load(Ordering::SeqCst) {
+                        if !flag.swap(true, Ordering::SeqCst) {
+                            let mut s = server.lock().unwrap();
+                            let _ = s.child.kill();
+                            let _ = s.child.wait();
+                        }
+                        break;
+                    }
+                    let keep = tail.len().saturating_sub(trigger.len());
+                    tail.drain(..keep);
+                    if u_write.write_all(&buf[..n]).is_err() {
+                        break;
+                    }
+                }
+                let _ = c_read.shutdown(std::net::Shutdown::Both);
+                let _ = u_write.shutdown(std::net::Shutdown::Both);
+            });
+            std::thread::spawn(move || {
+                let _ = std::io::copy(&mut u_read, &mut c_write);
+                let _ = c_write.shutdown(std::net::Shutdown::Both);
+            });
+        }
+    });
+    (port, killed)
+}
+
+fn server_killed_mid_build(kind: Kind) {
+    let server = Arc::new(Mutex::new(Server::start(kind)));
+    let trigger: &'static [u8] = match kind {
+        Kind::Redis => b"\r\nSET\r\n",
+        Kind::Http => b"PUT /kiln/",
+    };
+    let (port, killed) = killing_proxy(server.clone(), trigger);
+    let url = server.lock().unwrap().url_at(port);
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert!(killed.load(Ordering::SeqCst), "the build wrote to the remote");
+    assert!(!server.lock().unwrap().is_running());
+    assert_eq!(r.stats.compiled, DISTINCT);
+    assert!(r.stats.remote_errors >= 1);
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "one warning: {:?}", r.warnings);
+    assert!(warnings[0].contains(&url) && warnings[0].contains("local cache only"), "{}", warnings[0]);
+    assert_eq!(m.bytes(), reference());
+}
+
+#[test]
+fn redis_killed_mid_build() {
+    server_killed_mid_build(Kind::Redis);
+}
+
+#[test]
+fn http_killed_mid_build() {
+    server_killed_mid_build(Kind::Http);
+}
+
+/// A port that accepts connections and never answers: the timeout bounds the wait, one
+/// warning, the build goes on.
+#[test]
+fn a_server_that_never_answers_times_out_once() {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let held = Arc::new(Mutex::new(Vec::new()));
+    let keep = held.clone();
+    std::thread::spawn(move || {
+        for c in listener.incoming().flatten() {
+            keep.lock().unwrap().push(c);
+        }
+    });
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE_TIMEOUT_MS", "300");
+    for url in [format!("redis://127.0.0.1:{port}"), format!("http://127.0.0.1:{port}/kiln")] {
+        let m = Machine::new();
+        let r = build_ok(&m.options(RemoteCache::Url(url.clone()), None));
+        assert_eq!(r.stats.compiled, DISTINCT);
+        let warnings = remote_warnings(&r);
+        assert_eq!(warnings.len(), 1, "{:?}", r.warnings);
+        assert!(warnings[0].contains(&url), "{}", warnings[0]);
+        // The store is off after the first timeout: only the two workers' first waits fail.
+        assert!((1..=2).contains(&r.stats.remote_errors), "{:?}", r.stats);
+    }
+    drop(env);
+    assert!(!held.lock().unwrap().is_empty(), "kiln connected");
+}
+
+fn corrupted_entry(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+    Machine::new().build(&url);
+    let keys = server.entries();
+    assert_eq!(keys.len(), DISTINCT);
+    // One entry truncated, one with a flipped byte in the middle.
+    let (truncated, flipped) = (&keys[3], &keys[11]);
+    let value = server.get(truncated);
+    server.set(truncated, &value[..value.len() / 2]);
+    let mut value = server.get(flipped);
+    let middle = value.len() / 2;
+    value[middle] ^= 0x40;
+    server.set(flipped, &value);
+
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (2, DISTINCT as u64 - 2));
+    assert_eq!(r.stats.remote_writes, 2, "the two recompiled entries overwrite the bad ones");
+    let corrupt: Vec<&String> = r.warnings.iter().filter(|w| w.contains("corrupted")).collect();
+    assert_eq!(corrupt.len(), 2, "{:?}", r.warnings);
+    assert!(
+        corrupt.iter().any(|w| w.contains(truncated.as_str())) && corrupt.iter().any(|w| w.contains(flipped.as_str()))
+    );
+    assert_eq!(m.bytes(), reference());
+
+    // Overwritten: a third machine gets every entry from the remote.
+    let third = Machine::new();
+    let r = third.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    assert_eq!(third.bytes(), m.bytes());
+}
+
+#[test]
+fn redis_corrupted_entry_is_recompiled_and_overwritten() {
+    corrupted_entry(Kind::Redis);
+}
+
+#[test]
+fn http_corrupted_entry_is_recompiled_and_overwritten() {
+    corrupted_entry(Kind::Http);
+}
+
+fn two_writers(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+    let (a, b) = (Machine::new(), Machine::new());
+    let (ra, rb) = std::thread::scope(|s| {
+        let ta = s.spawn(|| a.build(&url));
+        let tb = s.spawn(|| b.build(&url));
+        (ta.join().unwrap(), tb.join().unwrap())
+    });
+    for r in [&ra, &rb] {
+        assert!(remote_warnings(r).is_empty(), "{:?}", r.warnings);
+        assert_eq!(r.stats.compiled as u64 + r.stats.remote_hits, DISTINCT as u64);
+    }
+    assert_eq!(a.bytes(), b.bytes());
+    // Consistent: one value per key, each one whole (a fresh machine uses them all).
+    assert_eq!(server.entries().len(), DISTINCT);
+    let c = Machine::new();
+    let r = c.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    assert!(r.warnings.iter().all(|w| !w.contains("corrupted")), "{:?}", r.warnings);
+    assert_eq!(c.bytes(), a.bytes());
+}
+
+#[test]
+fn redis_two_writers_at_once() {
+    two_writers(Kind::Redis);
+}
+
+#[test]
+fn http_two_writers_at_once() {
+    two_writers(Kind::Http);
+}
+
+/// Everything a build shows: what `kiln build` prints (warnings, summary, failures) and
+/// the report's and options' debug forms.
+fn shown(options: &build::Options, result: &Result<Report, build::Error>) -> String {
+    let mut text = format!("{options:?}\n{result:?}\n");
+    if let Ok(r) = result {
+        text.push_str(&r.warnings.join("\n"));
+        text.push_str(&r.summary());
+    }
+    text
+}
+
+fn token_never_shown(kind: Kind) {
+    let server = Server::start_with(kind, Some(TOKEN));
+    let env = Env::lock();
+
+    // The right token (bearer / redis AUTH): the remote works.
+    env.set("KILN_REMOTE_CACHE_TOKEN", TOKEN);
+    let m = Machine::new();
+    let o = m.options(RemoteCache::Url(server.url()), None);
+    let result = build::run(&o);
+    let text = shown(&o, &result);
+    let r = result.unwrap();
+    assert_eq!((r.stats.remote_writes, r.stats.remote_errors), (DISTINCT as u64, 0), "{text}");
+    assert!(!text.contains(TOKEN), "{text}");
+
+    // `user:password` (HTTP basic auth; redis ACL user and password).
+    if kind == Kind::Http {
+        env.set("KILN_REMOTE_CACHE_TOKEN", &format!("ci:{TOKEN}"));
+        let m = Machine::new();
+        let o = m.options(RemoteCache::Url(server.url()), None);
+        let result = build::run(&o);
+        let text = shown(&o, &result);
+        assert_eq!(result.unwrap().stats.remote_hits, DISTINCT as u64, "{text}");
+        assert!(!text.contains(TOKEN), "{text}");
+    }
+
+    // A wrong token, and a wrong password in the URL: one warning each, naming the server
+    // without the secret; the build succeeds.
+    let wrong = "wr0ng-pa55word";
+    let cases =
+        [(Some(wrong.to_string()), server.url()), (None, server.url().replacen("://", &format!("://ci:{wrong}@"), 1))];
+    for (token, url) in cases {
+        match &token {
+            Some(t) => env.set("KILN_REMOTE_CACHE_TOKEN", t),
+            None => env.remove("KILN_REMOTE_CACHE_TOKEN"),
+        }
+        let m = Machine::new();
+        let o = m.options(RemoteCache::Url(url), None);
+        let result = build::run(&o);
+        let text = shown(&o, &result);
+        let r = result.unwrap();
+        assert_eq!(r.stats.compiled, DISTINCT);
+        let warnings = remote_warnings(&r);
+        assert_eq!(warnings.len(), 1, "{text}");
+        assert!(warnings[0].contains(&server.url()), "{}", warnings[0]);
+        assert!(!text.contains(wrong) && !text.contains(TOKEN), "{text}");
+    }
+    env.remove("KILN_REMOTE_CACHE_TOKEN");
+}
+
+#[test]
+fn redis_token_is_never_shown() {
+    token_never_shown(Kind::Redis);
+}
+
+#[test]
+fn http_token_is_never_shown() {
+    token_never_shown(Kind::Http);
+}
+
+/// `KILN_REMOTE_CACHE` and `KILN_REMOTE_CACHE_MODE` choose the remote when the options
+/// leave it to the environment; a bad URL is a configuration error that hides credentials.
+#[test]
+fn the_environment_chooses_the_remote() {
+    let server = Server::start(Kind::Redis);
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE", &server.url());
+    env.set("KILN_REMOTE_CACHE_MODE", "read");
+    let m = Machine::new();
+    let r = build_ok(&m.options(RemoteCache::Auto, None));
+    assert_eq!((r.stats.compiled, r.stats.remote_writes), (DISTINCT, 0));
+    env.remove("KILN_REMOTE_CACHE_MODE");
+    let r = build_ok(&Machine::new().options(RemoteCache::Auto, None));
+    assert_eq!(r.stats.remote_writes, DISTINCT as u64);
+    env.set("KILN_REMOTE_CACHE", "memcached://user:hunter2@host");
+    let e = build::run(&Machine::new().options(RemoteCache::Auto, None)).unwrap_err();
+    drop(env);
+    assert_eq!(e.exit_code(), 2);
+    let text = e.to_string();
+    assert!(text.contains("memcached://host") && !text.contains("hunter2"), "{text}");
+}
