@@ -333,9 +333,11 @@ pub fn run(options: &Options) -> Result<Report, Error> {
             )));
         }
     }
-    let cache = match open_cache(options, &config) {
-        Ok(c) => c,
-        Err(e) => return Err(Error::Io(format!("error: {e}"))),
+    check_outputs(options, &config)?;
+    // A cache folder that cannot be made costs only speed, like an unwritable one.
+    let (cache, cache_warning) = match open_cache(options, &config) {
+        Ok(c) => (c, None),
+        Err(e) => (None, Some(format!("warning: {e}; building without a cache"))),
     };
     let pool = {
         // Workers with the preprocessor's stack run it in place (no thread per permutation).
@@ -347,7 +349,80 @@ pub fn run(options: &Options) -> Result<Report, Error> {
         }
         b.build().map_err(|e| Error::Io(format!("error: cannot start worker threads: {e}")))?
     };
-    pool.install(|| run_in_pool(options, &config, cache.as_ref(), start))
+    let mut result = pool.install(|| run_in_pool(options, &config, cache.as_ref(), start));
+    if let Some(w) = cache_warning {
+        match &mut result {
+            Ok(report) => report.warnings.insert(0, w),
+            Err(Error::Failed(report)) => report.warnings.insert(0, w),
+            Err(Error::Config(m) | Error::Io(m)) => *m = format!("{w}\n{m}"),
+        }
+    }
+    result
+}
+
+/// The files this build writes: (what, path).
+fn output_files(options: &Options) -> Vec<(&'static str, PathBuf)> {
+    let mut out = Vec::new();
+    if let Some(o) = &options.output {
+        out.push(("the archive (-o)", o.clone()));
+    }
+    if let Some(s) = &options.stats_json {
+        out.push(("--stats-json", s.clone()));
+    }
+    if let Some(d) = &options.emit_dir {
+        out.push(("the --emit-dir index", d.join("index.json")));
+    }
+    out
+}
+
+/// Refuses, before any work, outputs that cannot be written (a directory, a socket) and
+/// outputs that name the configuration or a shader's source: the build would overwrite its
+/// own input.
+fn check_outputs(options: &Options, config: &Config) -> Result<(), Error> {
+    if let Some(d) = &options.emit_dir {
+        if d.exists() && !d.is_dir() {
+            return Err(Error::Io(format!("error: --emit-dir {} is not a folder", d.display())));
+        }
+    }
+    let outputs = output_files(options);
+    for (_, path) in &outputs {
+        crate::output::check_target(path)
+            .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+    }
+    let mut inputs = vec![("the configuration", config.path.clone())];
+    inputs.extend(config.shaders.iter().map(|s| ("a shader source", s.source_path.clone())));
+    check_aliases(&outputs, inputs.iter().map(|(w, p)| (*w, p.as_path())))?;
+    for (i, (what, a)) in outputs.iter().enumerate() {
+        let regular = std::fs::metadata(a).is_ok_and(|m| m.is_file());
+        if let Some((other, b)) = outputs[i + 1..].iter().find(|(_, b)| regular && crate::output::same_file(a, b)) {
+            return Err(Error::Config(format!(
+                "error: {what} {} and {other} {} are the same file",
+                a.display(),
+                b.display()
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// An error naming both paths when an output is one of `inputs` (the same file, through
+/// links and relative paths).
+fn check_aliases<'a>(
+    outputs: &[(&'static str, PathBuf)],
+    inputs: impl IntoIterator<Item = (&'a str, &'a Path)>,
+) -> Result<(), Error> {
+    for (input_kind, input) in inputs {
+        for (what, out) in outputs {
+            if crate::output::same_file(out, input) {
+                return Err(Error::Config(format!(
+                    "error: {what} {} is {input_kind} {}: writing it would destroy the input",
+                    out.display(),
+                    input.display()
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Target> {
@@ -505,6 +580,7 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     }
     files.retain(|f| !f.as_os_str().is_empty());
     report.files_read = files.into_iter().collect();
+    check_aliases(&output_files(options), report.files_read.iter().map(|p| ("a file the build reads", p.as_path())))?;
 
     // 3. Group by key, in order of first appearance.
     let mut groups: Vec<(Key, Vec<usize>)> = Vec::new();

@@ -10,9 +10,11 @@
 //! - [`cache`]: the content-addressed artifact store;
 //! - [`archive`]: the packed file the runtime loads (the only module built without the
 //!   `compiler` feature, so the runtime reads archives with the same types and no naga);
-//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares.
+//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares;
+//! - [`output`]: how every output file is written (atomically, never over a device or an input).
 
 pub mod archive;
+pub mod output;
 
 #[cfg(feature = "compiler")]
 pub mod build;

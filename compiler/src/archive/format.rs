@@ -243,7 +243,9 @@ impl<'a> ArchiveWriter<'a> {
     }
 
     /// Writes the archive to `path` atomically: a temporary file in the same folder, synced,
-    /// then renamed over `path`. A reader never sees a half-written archive.
+    /// then renamed over `path`. A reader never sees a half-written archive. A device or a
+    /// FIFO at `path` is written through; a directory or a socket is refused
+    /// ([`crate::output`]).
     pub fn write(&self, path: &Path) -> Result<(), ArchiveError> {
         self.write_impl(path, true)
     }
@@ -262,9 +264,14 @@ impl<'a> ArchiveWriter<'a> {
         let manifest = self.manifest_bytes();
         let mut body: Vec<&[u8]> = vec![&manifest];
         body.extend(self.blob_pieces());
-        write_atomic_with(path, sync, |f| {
+        crate::output::write_with(path, sync, |f, sink| {
             use std::io::{Seek, SeekFrom};
             use std::os::unix::fs::FileExt;
+            if sink == crate::output::Sink::Stream {
+                // A device or a FIFO: in order, the header first.
+                f.write_all(&self.header(manifest.len(), checksum(&body)))?;
+                return write_all_vectored(f, &body);
+            }
             f.seek(SeekFrom::Start(HEADER_LEN as u64))?;
             let (sum, written) = join(|| checksum(&body), || write_all_vectored(f, &body));
             written?;
@@ -291,7 +298,8 @@ fn join<A: Send, B: Send>(a: impl FnOnce() -> A + Send, b: impl FnOnce() -> B + 
     return (a(), b());
 }
 
-/// Writes `bytes` to `path` through a uniquely named temporary file and a rename.
+/// Writes `bytes` to `path` as [`crate::output::write_with`] does (atomically; a device or a
+/// FIFO written through; never renamed over anything else), synced.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomic_impl(path, &[bytes], true)
 }
@@ -301,41 +309,9 @@ pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomic_impl(path, &[bytes], false)
 }
 
-/// Writes the concatenation of `pieces` through a temporary file and a rename.
-fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
-    write_atomic_with(path, sync, |f| write_all_vectored(f, pieces))
-}
-
-/// Creates a uniquely named temporary file beside `path`, lets `write` fill it, syncs it
-/// when asked, then renames it to `path`; on any error the temporary file is removed.
-fn write_atomic_with(
-    path: &Path,
-    sync: bool,
-    write: impl FnOnce(&mut File) -> std::io::Result<()>,
-) -> std::io::Result<()> {
-    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    std::fs::create_dir_all(dir)?;
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let nanos =
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
-    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
-    let result = (|| {
-        let mut f = File::create(&tmp)?;
-        write(&mut f)?;
-        if sync {
-            f.sync_all()?;
-        }
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+/// Writes the concatenation of `pieces` (see [`write_atomic`]).
+pub(crate) fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
+    crate::output::write_with(path, sync, |f, _| write_all_vectored(f, pieces))
 }
 
 /// Writes every piece in order with as few `writev` calls as the system allows.

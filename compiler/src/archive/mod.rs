@@ -13,7 +13,8 @@ mod format;
 mod reflect;
 
 #[cfg(feature = "compiler")]
-pub(crate) use format::write_all_vectored;
+#[cfg(feature = "compiler")]
+pub(crate) use format::write_atomic_impl;
 pub use format::{
     write_atomic, write_atomic_unsynced, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord, Lookup, Near,
     PermutationRecord, PermutationRef, ShaderRecord, FORMAT_VERSION, MAGIC,
