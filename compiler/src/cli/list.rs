@@ -236,8 +236,10 @@ fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analys
         Some(a) if a.failed.is_empty() => a.levels.iter().map(|l| l.distinct).sum::<usize>().to_string(),
         _ => "-".to_string(),
     };
-    let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6);
-    let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5);
+    // Aligned up to 64 columns; a longer name runs past its column (a format width must fit
+    // in a u16).
+    let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6).min(64);
+    let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5).min(64);
     writeln!(out)?;
     writeln!(out, "{:<ws$}  {:<wl$}  {:>8}  {:>8}  {:>8}", "shader", "level", "kept", "skipped", "distinct")?;
     for c in counts {

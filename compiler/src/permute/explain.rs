@@ -33,6 +33,9 @@ pub struct Explanation {
 /// Explains the permutation `name`: its defines and their origins, the skip rules, the files it
 /// reads, its token hash and its deduplication group. Preprocesses every kept permutation of
 /// its shader and level (for the group).
+/// The widest a column is padded to.
+const MAX_COLUMN: usize = 64;
+
 pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Explanation, NotFound> {
     let p = config.find(name)?;
     let name = p.name();
@@ -72,8 +75,10 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     }
 
     let _ = writeln!(t, "\ndefines:");
-    let wn = defines.iter().map(|d| d.name.len()).max().unwrap_or(0);
-    let wv = defines.iter().map(|d| d.value.to_string().len()).max().unwrap_or(0);
+    // Columns are aligned up to a width; a longer name runs past its column (a format width
+    // must fit in a u16).
+    let wn = defines.iter().map(|d| d.name.len()).max().unwrap_or(0).min(MAX_COLUMN);
+    let wv = defines.iter().map(|d| d.value.to_string().len()).max().unwrap_or(0).min(MAX_COLUMN);
     if defines.is_empty() {
         let _ = writeln!(t, "  (none)");
     }
