@@ -60,6 +60,9 @@ pub struct Options {
     pub progress: bool,
     /// Colour in rendered diagnostics.
     pub color: bool,
+    /// The most permutations one shader may have at one level (`--max-permutations`); `None`
+    /// takes `[compiler] max_permutations`, else [`permute::DEFAULT_MAX_PERMUTATIONS`].
+    pub max_permutations: Option<u64>,
 }
 
 impl Default for Options {
@@ -75,6 +78,7 @@ impl Default for Options {
             stats_json: None,
             progress: false,
             color: false,
+            max_permutations: None,
         }
     }
 }
@@ -334,6 +338,8 @@ pub fn run(options: &Options) -> Result<Report, Error> {
         }
     }
     check_outputs(options, &config)?;
+    let max = config.max_permutations(options.max_permutations);
+    config.check_space(|_, level| selected(options, level), max, false).map_err(|e| Error::Config(e.render()))?;
     // A cache folder that cannot be made costs only speed, like an unwritable one.
     let (cache, cache_warning) = match open_cache(options, &config) {
         Ok(c) => (c, None),
@@ -425,6 +431,11 @@ fn check_aliases<'a>(
     Ok(())
 }
 
+/// Whether `level` is one the build is asked for.
+fn selected(options: &Options, level: &permute::Level) -> bool {
+    options.levels.is_empty() || options.levels.contains(&level.name)
+}
+
 fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Target> {
     level.targets.iter().copied().filter(|t| filter.is_empty() || filter.contains(t)).collect()
 }
@@ -440,16 +451,24 @@ fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start:
     let mut report = Report::default();
     let progress = Progress::new(options.progress);
 
-    // 1. Enumerate.
+    // 1. Enumerate (pruned: a skip rule decided on the first dimensions skips their subtree).
+    //    A rule or derived define that cannot be evaluated is a configuration error.
     let mut kept: Vec<Permutation<'_>> = Vec::new();
-    for p in config.permutations_where(|_, level| options.levels.is_empty() || options.levels.contains(&level.name)) {
-        if p.is_kept() {
-            kept.push(p);
-        } else {
-            report.stats.skipped += 1;
+    let mut stream = config.kept_where(|_, level| selected(options, level));
+    for p in &mut stream {
+        if let Some(e) = config.evaluation_error(&p) {
+            return Err(Error::Config(e.render()));
         }
+        kept.push(p);
     }
+    report.stats.skipped = usize::try_from(stream.skipped()).unwrap_or(usize::MAX);
     report.stats.permutations = kept.len();
+    if kept.is_empty() && stream.skipped() > 0 {
+        report.warnings.push(format!(
+            "warning: skip rules skip every one of the {} permutations: nothing is compiled",
+            stream.skipped()
+        ));
+    }
 
     // 2. Preprocess, keeping one output per key. A permutation whose preprocessing record
     //    is in the cache and whose files all still have the recorded contents is not

@@ -39,6 +39,11 @@ pub struct Args {
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
     pub stats_json: Option<PathBuf>,
+    /// The most permutations one shader may have at one level (default: `[compiler]
+    /// max_permutations`, else 16777216 = 2^24). Skip rules that bring the kept ones under it
+    /// make a larger space acceptable.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_permutations: Option<u64>,
 }
 
 pub fn parse_target(s: &str) -> Result<Target, String> {
@@ -65,6 +70,7 @@ pub fn exec(args: Args) -> CliResult {
         stats_json: args.stats_json,
         progress: true,
         color,
+        max_permutations: args.max_permutations,
     };
     match build::run(&options) {
         Ok(report) => {
