@@ -164,7 +164,7 @@ impl Build {
             stats_json: None,
             progress: false,
             color: false,
-            max_permutations: None,
+            ..build::Options::default()
         };
         if self.cargo_output {
             let _ = writeln!(out, "cargo:rerun-if-changed={}", self.config.display());

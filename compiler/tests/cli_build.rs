@@ -188,3 +188,153 @@ fn two_processes_at_once_on_one_cache() {
     let o = kiln(d, &["cache", "--cache-dir", "shared", "stats"]);
     assert!(stdout(&o).contains("entries: 24 in "), "{}", stdout(&o));
 }
+
+#[path = "support/scale_set.rs"]
+mod scale_set;
+
+/// `kiln build` in `dir` with these arguments and environment; its stats JSON.
+fn build_stats(dir: &Path, args: &[&str], env: &[(&str, &str)], stats: &str) -> serde_json::Value {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
+    cmd.arg("build")
+        .args(args)
+        .args(["--stats-json", stats])
+        .current_dir(dir)
+        .env_remove("KILN_CACHE_DIR")
+        .env_remove("CARGO_TARGET_DIR")
+        .env_remove("KILN_SHARD")
+        .env_remove("JOB_COMPLETION_INDEX")
+        .env("CI", "1");
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "kiln build {args:?} {env:?}: {}", stderr(&o));
+    serde_json::from_slice(&std::fs::read(dir.join(stats)).unwrap()).unwrap()
+}
+
+fn count(stats: &serde_json::Value, field: &str) -> u64 {
+    stats[field].as_u64().unwrap_or_else(|| panic!("no `{field}` in {stats}"))
+}
+
+#[test]
+fn archive_is_byte_identical_whatever_jobs_cache_state_and_shards() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let (config, permutations) = scale_set::write(&d.join("set"), 6 * scale_set::PER_MATERIAL);
+    let config = config.to_str().unwrap();
+    let build = |out: &str, cache: &str, extra: &[&str], env: &[(&str, &str)]| {
+        let mut args = vec!["--config", config, "-o", out, "--cache-dir", cache];
+        args.extend_from_slice(extra);
+        build_stats(d, &args, env, &format!("{out}.json"))
+    };
+
+    // Cold, one thread: the reference.
+    let reference = build("j1.kpak", "c1", &["-j", "1"], &[]);
+    assert_eq!(count(&reference, "permutations"), permutations as u64);
+    let distinct = count(&reference, "unique_sources");
+    assert_eq!(count(&reference, "compiled"), distinct);
+    assert!(distinct < permutations as u64, "vertex shaders share keys between materials");
+    let bytes = std::fs::read(d.join("j1.kpak")).unwrap();
+    let same = |out: &str| {
+        let other = std::fs::read(d.join(out)).unwrap();
+        assert!(other == bytes, "{out} differs from the one-thread cold build");
+    };
+
+    // Cold on four threads.
+    build("j4.kpak", "c2", &["-j", "4"], &[]);
+    same("j4.kpak");
+
+    // Warm: everything from the cache.
+    let warm = build("warm.kpak", "c1", &["-j", "2"], &[]);
+    assert_eq!((count(&warm, "compiled"), count(&warm, "cache_hits")), (0, distinct));
+    same("warm.kpak");
+
+    // Partly warm: the cache holds one level's keys.
+    build("es.kpak", "c3", &["--level", "es3_1"], &[]);
+    let partly = build("partly.kpak", "c3", &["-j", "3"], &[]);
+    assert!(count(&partly, "compiled") > 0 && count(&partly, "cache_hits") > 0, "{partly}");
+    assert_eq!(count(&partly, "compiled") + count(&partly, "cache_hits"), distinct);
+    same("partly.kpak");
+
+    // Three shard processes at once on one cache, then the assembly.
+    let shards: Vec<_> = (0..3)
+        .map(|i| {
+            let spec = format!("{i}/3");
+            let stats = format!("shard{i}.json");
+            let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
+            cmd.args(["build", "--config", config, "--cache-dir", "c4", "--shard", &spec, "--stats-json", &stats])
+                .current_dir(d)
+                .env_remove("KILN_CACHE_DIR")
+                .env_remove("KILN_SHARD")
+                .env("CI", "1");
+            (cmd.spawn().unwrap(), stats)
+        })
+        .collect();
+    let mut shard_compiled = 0;
+    for (mut child, stats) in shards {
+        assert!(child.wait().unwrap().success(), "a shard failed");
+        let s: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join(&stats)).unwrap()).unwrap();
+        assert_eq!(count(&s, "compiled") + count(&s, "other_shards"), distinct, "{s}");
+        assert!(count(&s, "compiled") > 0, "every shard has a share: {s}");
+        shard_compiled += count(&s, "compiled");
+    }
+    assert_eq!(shard_compiled, distinct, "each key compiled by one shard");
+    assert!(!d.join("shaders.kpak").exists(), "a shard writes no archive unless -o is given");
+    let assembly = build("sharded.kpak", "c4", &[], &[]);
+    assert_eq!((count(&assembly, "compiled"), count(&assembly, "cache_hits")), (0, distinct));
+    same("sharded.kpak");
+
+    // Two shards chosen by the environment: KILN_SHARD, and --shards with a Kubernetes
+    // Indexed Job's JOB_COMPLETION_INDEX; the assembly compiles what no shard produced.
+    let a = build_stats(d, &["--config", config, "--cache-dir", "c5"], &[("KILN_SHARD", "0/2")], "e0.json");
+    let b = build_stats(
+        d,
+        &["--config", config, "--cache-dir", "c5", "--shards", "2"],
+        &[("JOB_COMPLETION_INDEX", "1")],
+        "e1.json",
+    );
+    assert_eq!(count(&a, "compiled") + count(&b, "compiled"), distinct);
+    let assembly = build("env.kpak", "c5", &[], &[]);
+    assert_eq!(count(&assembly, "compiled"), 0);
+    same("env.kpak");
+
+    // A lost shard: the assembly compiles its share, and only that.
+    build_stats(d, &["--config", config, "--cache-dir", "c6", "--shard", "0/2"], &[], "l0.json");
+    let assembly = build("lost.kpak", "c6", &[], &[]);
+    assert_eq!(count(&assembly, "compiled"), count(&b, "compiled"));
+    same("lost.kpak");
+}
+
+#[test]
+fn bad_shard_specs_are_usage_errors() {
+    let fx = fixture();
+    let d = fx.path();
+    let run = |args: &[&str], env: &[(&str, &str)]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
+        cmd.args(["build", "--config", "compute.toml"])
+            .args(args)
+            .current_dir(d)
+            .env_remove("KILN_SHARD")
+            .env_remove("JOB_COMPLETION_INDEX")
+            .env("CI", "1");
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        cmd.output().unwrap()
+    };
+    for (args, env, says) in [
+        (&["--shard", "4/4"][..], &[][..], "invalid shard `4/4`"),
+        (&["--shard", "x"][..], &[][..], "invalid shard `x`"),
+        (&["--shard", "1/0"][..], &[][..], "invalid shard `1/0`"),
+        (&[][..], &[("KILN_SHARD", "2of3")][..], "KILN_SHARD: invalid shard `2of3`"),
+        (&["--shards", "3"][..], &[][..], "needs JOB_COMPLETION_INDEX"),
+        (&["--shards", "3"][..], &[("JOB_COMPLETION_INDEX", "3")][..], "JOB_COMPLETION_INDEX 3 with --shards 3"),
+        (&["--shards", "3"][..], &[("JOB_COMPLETION_INDEX", "x")][..], "invalid JOB_COMPLETION_INDEX `x`"),
+        (&["--shard", "0/2", "--no-cache"][..], &[][..], "--shard needs a cache"),
+    ] {
+        let o = run(args, env);
+        assert_eq!(o.status.code(), Some(2), "{args:?} {env:?}: {}", stderr(&o));
+        assert!(stderr(&o).contains(says), "{args:?} {env:?}: {}", stderr(&o));
+        assert!(!d.join("shaders.kpak").exists());
+    }
+}

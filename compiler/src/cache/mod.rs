@@ -397,26 +397,33 @@ impl Cache {
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
     pub fn get_records(&self, key: &Key) -> Records {
-        let path = self.records_path(key);
-        let Ok(bytes) = fs::read(&path) else { return Records::default() };
-        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
-            return Records::default();
-        }
-        let records = serde_json::from_slice(&bytes[40..]).unwrap_or_default();
-        if let Ok(f) = fs::File::options().append(true).open(&path) {
-            let _ = f.set_modified(SystemTime::now());
-        }
-        records
+        self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
     }
 
     /// Replaces the records stored under `key`, atomically.
     pub fn put_records(&self, key: &Key, records: &Records) -> Result<(), Error> {
-        let body = serde_json::to_vec(records).expect("records serialize");
-        let mut bytes = Vec::with_capacity(40 + body.len());
-        bytes.extend_from_slice(RECORD_MAGIC);
-        bytes.extend_from_slice(blake3::hash(&body).as_bytes());
-        bytes.extend_from_slice(&body);
-        self.write_file(&self.records_path(key), &bytes)
+        self.put_records_bytes(key, &serde_json::to_vec(records).expect("records serialize"))
+    }
+
+    /// The body of the records file under `key`, in whatever encoding its writer chose;
+    /// `None` when missing or damaged (its checksum is checked).
+    pub fn get_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        let path = self.records_path(key);
+        let mut bytes = fs::read(&path).ok()?;
+        if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+            return None;
+        }
+        if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        bytes.drain(..40);
+        Some(bytes)
+    }
+
+    /// Replaces the records file under `key` with `body` (checksummed), atomically.
+    pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
+        let sum = blake3::hash(body);
+        self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }
 
     /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.

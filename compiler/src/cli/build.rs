@@ -4,7 +4,7 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use super::{CliResult, Failure};
-use crate::build::{self, CacheDir};
+use crate::build::{self, CacheDir, Shard};
 use crate::Target;
 
 /// Arguments of `kiln build`.
@@ -13,9 +13,9 @@ pub struct Args {
     /// The permutation set.
     #[arg(long, default_value = "permutations.toml")]
     pub config: PathBuf,
-    /// The archive to write.
-    #[arg(short, long, default_value = "shaders.kpak")]
-    pub output: PathBuf,
+    /// The archive to write [default: shaders.kpak; none for a shard unless given].
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
     /// Also write each distinct artifact once as DIR/<hash>.<ext>, and DIR/index.json
     /// mapping every permutation and target to its file.
     #[arg(long, value_name = "DIR")]
@@ -44,6 +44,14 @@ pub struct Args {
     /// make a larger space acceptable.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     pub max_permutations: Option<u64>,
+    /// Compile only shard I of N (0-based): a cost-balanced share of the distinct keys,
+    /// into the cache; no archive unless -o is given. A plain build afterwards assembles
+    /// the archive from the cache. Also KILN_SHARD=I/N.
+    #[arg(long, value_name = "I/N", conflicts_with = "shards")]
+    pub shard: Option<String>,
+    /// Compile shard JOB_COMPLETION_INDEX of N (a Kubernetes Indexed Job's index).
+    #[arg(long, value_name = "N")]
+    pub shards: Option<usize>,
 }
 
 pub fn parse_target(s: &str) -> Result<Target, String> {
@@ -53,11 +61,35 @@ pub fn parse_target(s: &str) -> Result<Target, String> {
     })
 }
 
+/// The shard of `--shard`, `--shards` with `JOB_COMPLETION_INDEX`, or `KILN_SHARD`.
+fn shard(args: &Args) -> Result<Option<Shard>, String> {
+    if let Some(s) = &args.shard {
+        return Shard::parse(s).map(Some);
+    }
+    if let Some(n) = args.shards {
+        let index = std::env::var("JOB_COMPLETION_INDEX").ok();
+        return Shard::from_completion_index(n, index.as_deref()).map(Some);
+    }
+    match std::env::var("KILN_SHARD") {
+        Ok(s) if !s.trim().is_empty() => Shard::parse(&s).map(Some).map_err(|e| format!("KILN_SHARD: {e}")),
+        _ => Ok(None),
+    }
+}
+
 pub fn exec(args: Args) -> CliResult {
     let color = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
+    let shard = shard(&args).map_err(|e| Failure::usage(format!("error: {e}")))?;
+    let output = match (&args.output, shard) {
+        (Some(o), _) => Some(o.clone()),
+        (None, None) => Some(PathBuf::from("shaders.kpak")),
+        (None, Some(_)) => None,
+    };
+    if shard.is_some() && args.no_cache {
+        return Err(Failure::usage("error: --shard needs a cache (it stores its share there): drop --no-cache"));
+    }
     let options = build::Options {
         config: args.config,
-        output: Some(args.output),
+        output,
         emit_dir: args.emit_dir,
         levels: args.levels,
         targets: args.targets,
@@ -71,6 +103,7 @@ pub fn exec(args: Args) -> CliResult {
         progress: true,
         color,
         max_permutations: args.max_permutations,
+        shard,
     };
     match build::run(&options) {
         Ok(report) => {

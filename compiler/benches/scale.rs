@@ -1,0 +1,220 @@
+//! Builds at scale, in one run: `cargo bench -p kiln --bench scale`.
+//!
+//! On generated `scale`-style sets (compiler/tests/support/scale_set.rs: materials multiply
+//! the domain; three shaders, two levels), `kiln build` runs as a child process (so its
+//! peak memory is its own: `wait4`'s max RSS) and prints:
+//!
+//! 1. for 1k, 10k and 100k permutations: a cold build's wall time, time per distinct
+//!    compile, peak memory and archive size, then the growth of peak memory from 10k to
+//!    100k (goals: 10k at most 256 MiB; growth at most 1.2x);
+//! 2. four shards (`--shard I/4`, one after the other, each as if on its own machine)
+//!    sharing one cache, then a plain build assembling from it, against one process: the
+//!    assembly's compile count (0), whether the archives are byte-identical, and the
+//!    scaling efficiency `T(one process) / (4 x (slowest shard + assembly))`.
+//!
+//! Environment: `KILN_SCALE_SIZES=1000,10000` replaces the sizes (`KILN_SCALE_QUICK=1`
+//! skips the 100k point); `KILN_SCALE_SHARD_SIZE` (default 10000) the sharded set;
+//! `KILN_SCALE_JOBS` the threads of each build (default 2). `-- generate DIR N` only
+//! writes a set of about N permutations into DIR.
+
+#[path = "../tests/support/scale_set.rs"]
+mod scale_set;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+/// One `kiln build` child: wall time, peak RSS (bytes), its stats.
+struct Run {
+    wall: Duration,
+    max_rss: u64,
+    stats: serde_json::Value,
+}
+
+impl Run {
+    fn count(&self, field: &str) -> u64 {
+        self.stats[field].as_u64().unwrap_or(0)
+    }
+}
+
+fn kiln(args: &[&str], stats: &Path) -> Run {
+    let start = Instant::now();
+    let child = Command::new(env!("CARGO_BIN_EXE_kiln"))
+        .args(args)
+        .arg("--stats-json")
+        .arg(stats)
+        .env("CI", "1")
+        .env_remove("KILN_SHARD")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("kiln starts");
+    let pid = child.id() as libc::pid_t;
+    let mut status = 0;
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // wait4 reaps the child and gives its own resource usage (ru_maxrss in KiB on Linux).
+    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+    let wall = start.elapsed();
+    assert_eq!(r, pid, "wait4: {}", std::io::Error::last_os_error());
+    let mut child = child;
+    let mut err = String::new();
+    if let Some(mut e) = child.stderr.take() {
+        use std::io::Read;
+        let _ = e.read_to_string(&mut err);
+    }
+    assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "kiln {args:?} failed:\n{err}");
+    let stats = serde_json::from_slice(&std::fs::read(stats).expect("stats written")).expect("stats are JSON");
+    Run { wall, max_rss: usage.ru_maxrss as u64 * 1024, stats }
+}
+
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / (1024.0 * 1024.0)
+}
+
+fn sizes() -> Vec<usize> {
+    if let Ok(s) = std::env::var("KILN_SCALE_SIZES") {
+        return s.split(',').filter_map(|n| n.trim().parse().ok()).collect();
+    }
+    if std::env::var_os("KILN_SCALE_QUICK").is_some() {
+        return vec![1_000, 10_000];
+    }
+    vec![1_000, 10_000, 100_000]
+}
+
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+/// A cold build of a set of about `n` permutations in `dir`.
+fn cold(dir: &Path, n: usize, jobs: &str) -> (Run, PathBuf, usize) {
+    let (config, count) = scale_set::write(&dir.join("set"), n);
+    let out = dir.join("one.kpak");
+    let run = kiln(
+        &[
+            "build",
+            "--config",
+            config.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--cache-dir",
+            dir.join("cache-one").to_str().unwrap(),
+            "-j",
+            jobs,
+        ],
+        &dir.join("one.json"),
+    );
+    (run, out, count)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--bench").collect();
+    if args.first().map(String::as_str) == Some("generate") {
+        let dir = PathBuf::from(args.get(1).expect("generate DIR N"));
+        let n: usize = args.get(2).and_then(|n| n.parse().ok()).expect("generate DIR N");
+        let (config, count) = scale_set::write(&dir, n);
+        println!("{} ({count} permutations)", config.display());
+        return;
+    }
+    let jobs = env_usize("KILN_SCALE_JOBS", 2).to_string();
+    println!("kiln build, cold, -j {jobs}, as a child process (peak memory: wait4 max RSS)");
+    println!(
+        "{:>12} {:>9} {:>9} {:>10} {:>16} {:>12} {:>12}",
+        "permutations", "distinct", "compiled", "wall s", "ms/distinct", "peak MiB", "archive MiB"
+    );
+    let mut peaks = Vec::new();
+    for n in sizes() {
+        let tmp = tempfile::tempdir().expect("temp dir");
+        let (run, out, count) = cold(tmp.path(), n, &jobs);
+        let compiled = run.count("compiled");
+        assert_eq!(run.count("permutations") as usize, count, "kept permutations");
+        let archive = std::fs::metadata(&out).map(|m| m.len()).unwrap_or(0);
+        println!(
+            "{:>12} {:>9} {:>9} {:>10.1} {:>16.2} {:>12.1} {:>12.1}",
+            count,
+            run.count("unique_sources"),
+            compiled,
+            run.wall.as_secs_f64(),
+            run.wall.as_secs_f64() * 1000.0 / compiled.max(1) as f64,
+            mib(run.max_rss),
+            mib(archive)
+        );
+        peaks.push((count, run.max_rss));
+    }
+    let at = |lo: usize, hi: usize| peaks.iter().find(|(c, _)| (lo..hi).contains(c)).map(|p| p.1);
+    if let Some(p10k) = at(9_000, 11_000) {
+        println!("peak at 10k: {:.1} MiB (goal <= 256 MiB)", mib(p10k));
+        if let Some(p100k) = at(90_000, 110_000) {
+            println!("peak growth 10k -> 100k: {:.2}x (goal <= 1.2x)", p100k as f64 / p10k as f64);
+        }
+    }
+
+    // Four shards sharing one cache, then the assembly, against one process.
+    let n = env_usize("KILN_SCALE_SHARD_SIZE", 10_000);
+    let shards = 4;
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let dir = tmp.path();
+    let (one, one_out, count) = cold(dir, n, &jobs);
+    let config = dir.join("set/permutations.toml");
+    let cache = dir.join("cache-shared");
+    let mut slowest = Duration::ZERO;
+    let mut shard_compiled = 0;
+    for i in 0..shards {
+        let spec = format!("{i}/{shards}");
+        let run = kiln(
+            &[
+                "build",
+                "--config",
+                config.to_str().unwrap(),
+                "--cache-dir",
+                cache.to_str().unwrap(),
+                "--shard",
+                &spec,
+                "-j",
+                &jobs,
+            ],
+            &dir.join(format!("shard{i}.json")),
+        );
+        println!(
+            "shard {spec}: {} compiled, {} left to other shards, {:.1} s, peak {:.1} MiB",
+            run.count("compiled"),
+            run.count("other_shards"),
+            run.wall.as_secs_f64(),
+            mib(run.max_rss)
+        );
+        shard_compiled += run.count("compiled");
+        slowest = slowest.max(run.wall);
+    }
+    let out = dir.join("assembled.kpak");
+    let assembly = kiln(
+        &[
+            "build",
+            "--config",
+            config.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--cache-dir",
+            cache.to_str().unwrap(),
+            "-j",
+            &jobs,
+        ],
+        &dir.join("assembly.json"),
+    );
+    let identical = std::fs::read(&one_out).ok() == std::fs::read(&out).ok();
+    let sharded = slowest + assembly.wall;
+    println!(
+        "{count} permutations: one process {:.1} s ({} compiled); {shards} shards {} compiled, slowest {:.1} s; \
+         assembly {:.1} s ({} compiled, {} cache hits, peak {:.1} MiB); archives byte-identical: {}",
+        one.wall.as_secs_f64(),
+        one.count("compiled"),
+        shard_compiled,
+        slowest.as_secs_f64(),
+        assembly.wall.as_secs_f64(),
+        assembly.count("compiled"),
+        assembly.count("cache_hits"),
+        mib(assembly.max_rss),
+        if identical { "yes" } else { "NO" }
+    );
+    println!(
+        "scaling efficiency on {shards} machines: {:.0}% (one process / ({shards} x (slowest shard + assembly)))",
+        100.0 * one.wall.as_secs_f64() / (shards as f64 * sharded.as_secs_f64())
+    );
+}

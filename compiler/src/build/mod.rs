@@ -1,0 +1,187 @@
+//! The build: a permutation set in, an archive (and optionally loose files) out.
+//!
+//! Takes [`Options`] (the `permutations.toml`, where to write, filters, cache, threads,
+//! shard); gives a [`Report`] with the counts of DESIGN.md's `--stats-json`, every file the
+//! build read (for `cargo:rerun-if-changed`), the rendered warnings and failures. `kiln
+//! build` and [`crate::Build`] both call [`run`].
+//!
+//! The stages, one file each, in the order data flows:
+//!
+//! - [`plan`]: load the configuration, enumerate and keep permutations, choose a shard's
+//!   share of the distinct keys;
+//! - [`preprocess`]: each kept permutation's cache key (from the preprocessor's token hash,
+//!   one shared [`crate::preprocess::SourceCache`]), or its preprocessing record's when its
+//!   files have not changed, or an earlier permutation's when it agrees on every define
+//!   that permutation's files name;
+//! - [`compile`]: each distinct key once, from the cache where it holds it, else with naga;
+//!   a key is compiled by the worker that first preprocesses one of its permutations, so
+//!   compiling overlaps preprocessing;
+//! - [`store`]: the one place that talks to the cache: lookups, and the packs that the
+//!   compiled entries stream into;
+//! - [`assemble`]: the archive and the loose files of `--emit-dir`, fed each key's
+//!   artifacts as they are produced;
+//! - [`report`]: counts, warnings, dead dimensions, failures rendered with their mapped
+//!   locations and permutation names.
+//!
+//! Guarantees: a failing permutation never stops the others, and every failure is reported;
+//! the archive is written atomically, only when nothing failed, and its bytes depend only on
+//! the configuration and sources (not on `-j`, the cache state or shards); an archive that
+//! is, byte for byte, the output of a build with the same keys is not written again.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use crate::archive::Target;
+use crate::permute::Config;
+
+mod assemble;
+mod compile;
+mod outputs;
+mod plan;
+mod preprocess;
+mod records;
+mod report;
+mod store;
+
+pub use compile::map_error;
+pub use plan::Shard;
+pub use report::{DeadDimension, Report, Seconds, Stats};
+pub use store::default_cache_dir;
+
+/// What to build and where.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// The `permutations.toml`.
+    pub config: PathBuf,
+    /// The archive to write; `None` writes none (a check-only build, or a shard's).
+    pub output: Option<PathBuf>,
+    /// Write each distinct artifact once as `DIR/<hash>.<ext>`, plus `DIR/index.json`.
+    pub emit_dir: Option<PathBuf>,
+    /// Build only these levels (all when empty).
+    pub levels: Vec<String>,
+    /// Write only these targets (each level's own when empty).
+    pub targets: Vec<Target>,
+    /// Worker threads; `None` uses one per core.
+    pub jobs: Option<usize>,
+    /// Where the cache lives: [`CacheDir::Auto`] finds cargo's target folder.
+    pub cache: CacheDir,
+    /// Write the counts as JSON here.
+    pub stats_json: Option<PathBuf>,
+    /// Show a progress bar (only honoured when stderr is a terminal and `CI` is unset).
+    pub progress: bool,
+    /// Colour in rendered diagnostics.
+    pub color: bool,
+    /// Compile only this shard's share of the distinct keys into the cache.
+    pub shard: Option<Shard>,
+    /// The most permutations one shader may have at one level (`--max-permutations`); `None`
+    /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
+    pub max_permutations: Option<u64>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            config: PathBuf::from("permutations.toml"),
+            output: Some(PathBuf::from("shaders.kpak")),
+            emit_dir: None,
+            levels: Vec::new(),
+            targets: Vec::new(),
+            jobs: None,
+            cache: CacheDir::Auto,
+            stats_json: None,
+            progress: false,
+            color: false,
+            shard: None,
+            max_permutations: None,
+        }
+    }
+}
+
+/// Where the cache lives.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CacheDir {
+    /// `KILN_CACHE_DIR`, else `CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` of the
+    /// cargo workspace holding the config, else `.kiln-cache` next to the config.
+    Auto,
+    /// This folder.
+    Dir(PathBuf),
+    /// No cache: compile everything.
+    Disabled,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The configuration or a command-line choice is wrong (exit code 2). Rendered.
+    #[error("{0}")]
+    Config(String),
+    /// Something outside the shaders failed: a file could not be written (exit code 2).
+    #[error("{0}")]
+    Io(String),
+    /// At least one permutation failed (exit code 1); the report has the failures.
+    #[error("{} permutation(s) failed", .0.stats.failed)]
+    Failed(Box<Report>),
+}
+
+impl Error {
+    /// The exit code of DESIGN.md: 1 for shader failures, 2 for the rest.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            Error::Failed(_) => 1,
+            _ => 2,
+        }
+    }
+}
+
+/// Runs a build.
+pub fn run(options: &Options) -> Result<Report, Error> {
+    let start = Instant::now();
+    let config = plan::load(options)?;
+    let store = store::Store::open(options, &config)?;
+    worker_pool(options.jobs)?.install(|| stages(options, &config, &store, start))
+}
+
+/// The stages, in order; every stage's state lives in its own type.
+fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
+    let mut report = report::Builder::new(options, start);
+    let progress = report::Progress::new(options.progress);
+    let plan = plan::Plan::new(config, options)?;
+    report.planned(&plan);
+
+    let assembler = assemble::Assembler::new(&plan);
+    let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
+    let preprocessor = preprocess::Preprocessor::new(&plan, store);
+    let t = Instant::now();
+    let pre = preprocessor.run(&progress, |p, pre, output| compiler.early(p, pre, output));
+    preprocessor.save_records(store);
+    report.preprocessed(&plan, &preprocessor, &pre, t);
+    outputs::check_aliases(
+        &outputs::output_files(options),
+        report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
+    )?;
+    let keys = plan.group(&pre);
+    report.grouped(&plan, &pre, &keys);
+
+    if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
+        progress.finish();
+        return report.up_to_date(keys.len(), counts);
+    }
+    let outcomes = compiler.run(&keys, &preprocessor);
+    report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
+    report.warnings(store.finish());
+    if report.failed() {
+        return Err(Error::Failed(Box::new(report.finish()?)));
+    }
+    report.assembled(assembler.finish(&pre, store)?);
+    report.finish()
+}
+
+/// Workers with the preprocessor's stack run it in place (no thread per permutation).
+fn worker_pool(jobs: Option<usize>) -> Result<rayon::ThreadPool, Error> {
+    let mut b = rayon::ThreadPoolBuilder::new()
+        .stack_size(crate::preprocess::STACK_BYTES)
+        .start_handler(|_| crate::preprocess::big_stack_thread());
+    if let Some(j) = jobs {
+        b = b.num_threads(j.max(1));
+    }
+    b.build().map_err(|e| Error::Io(format!("error: cannot start worker threads: {e}")))
+}

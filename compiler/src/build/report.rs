@@ -1,0 +1,366 @@
+//! Report: the counts of `--stats-json`, the files read, warnings, dead dimensions, and
+//! failures rendered once per distinct diagnostic with the permutations they hit.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use codespan_reporting::diagnostic::Diagnostic;
+
+use super::assemble::Written;
+use super::compile::{self, Compiler, Outcome};
+use super::plan::{Keys, Plan};
+use super::preprocess::{Preprocessed, Preprocessor};
+use super::{Error, Options};
+use crate::archive;
+use crate::permute::{self, Permutation};
+use crate::preprocess::{self, FileId, SourceCache};
+
+/// The counts of `--stats-json` (DESIGN.md, "Command line").
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Stats {
+    /// Kept permutations.
+    pub permutations: usize,
+    /// Permutations dropped by skip rules.
+    pub skipped: usize,
+    /// Distinct cache keys among the kept permutations that preprocessed.
+    pub unique_sources: usize,
+    /// Distinct keys this build compiled (one naga parse and validation each).
+    pub compiled: usize,
+    /// Distinct keys served from the cache.
+    pub cache_hits: usize,
+    /// Distinct keys left to the other shards (`--shard`).
+    pub other_shards: usize,
+    /// Distinct blobs in the archive (identical outputs are stored once).
+    pub artifacts: usize,
+    /// (permutation, target) pairs in the archive.
+    pub permutation_artifacts: usize,
+    /// Permutations that failed to preprocess or compile.
+    pub failed: usize,
+    /// Permutations preprocessed by this build (the others matched their cached
+    /// preprocessing record: same defines, same file contents).
+    pub preprocessed: usize,
+    pub seconds: Seconds,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Seconds {
+    pub total: f64,
+    pub preprocess: f64,
+    pub compile: f64,
+}
+
+/// A dimension that never changes its shader's text at a level.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DeadDimension {
+    pub shader: String,
+    pub level: String,
+    pub dimension: String,
+    /// How many values it takes: the factor of build work it multiplies for nothing.
+    pub values: usize,
+}
+
+/// What a build did.
+#[derive(Debug, Default)]
+pub struct Report {
+    pub stats: Stats,
+    /// The config and every file any permutation read (absolute, sorted, deduplicated).
+    pub files_read: Vec<PathBuf>,
+    /// Rendered warnings (preprocessor warnings, corrupted cache entries, dead dimensions).
+    pub warnings: Vec<String>,
+    /// Rendered failures, one per distinct diagnostic, each naming its permutations.
+    pub failures: Vec<String>,
+    pub dead_dimensions: Vec<DeadDimension>,
+    /// The archive written, if any.
+    pub archive: Option<PathBuf>,
+}
+
+impl Report {
+    /// The summary line: kept, skipped, distinct, compiled, cache hits, failed, time.
+    pub fn summary(&self) -> String {
+        let s = &self.stats;
+        let shard = match s.other_shards {
+            0 => String::new(),
+            n => format!(", {n} left to other shards"),
+        };
+        format!(
+            "{} permutations ({} skipped), {} distinct, {} compiled, {} cache hits{shard}, {} failed in {:.2}s",
+            s.permutations, s.skipped, s.unique_sources, s.compiled, s.cache_hits, s.failed, s.seconds.total
+        )
+    }
+}
+
+/// The report as the stages fill it in.
+pub(super) struct Builder<'o> {
+    options: &'o Options,
+    start: Instant,
+    report: Report,
+    /// Diagnostics not yet rendered, each with the permutations it hit.
+    failures: Vec<(Diagnostic<FileId>, Vec<usize>)>,
+}
+
+impl<'o> Builder<'o> {
+    pub fn new(options: &'o Options, start: Instant) -> Self {
+        Builder { options, start, report: Report::default(), failures: Vec::new() }
+    }
+
+    pub fn planned(&mut self, plan: &Plan<'_>) {
+        self.report.stats.permutations = plan.kept.len();
+        self.report.stats.skipped = usize::try_from(plan.skipped).unwrap_or(usize::MAX);
+        if plan.kept.is_empty() && plan.skipped > 0 {
+            self.report.warnings.push(format!(
+                "warning: skip rules skip every one of the {} permutations: nothing is compiled",
+                plan.skipped
+            ));
+        }
+    }
+
+    /// Every file the build read so far (after [`Builder::preprocessed`]).
+    pub fn files_read(&self) -> &[std::path::PathBuf] {
+        &self.report.files_read
+    }
+
+    /// Counts, warnings (each distinct one once), preprocessing failures, files read.
+    pub fn preprocessed(&mut self, plan: &Plan<'_>, preprocessor: &Preprocessor<'_>, pre: &Preprocessed, t: Instant) {
+        let report = &mut self.report;
+        report.stats.preprocessed = preprocessor.count();
+        report.stats.seconds.preprocess = t.elapsed().as_secs_f64();
+        let mut seen = HashSet::new();
+        for w in pre.iter().flatten().flat_map(|p| p.warnings.iter()) {
+            if seen.insert(w) {
+                report.warnings.push(w.clone());
+            }
+        }
+        let mut files = BTreeSet::new();
+        files.insert(plan.config.path.clone());
+        let mut lists = HashSet::new();
+        for (i, r) in pre.iter().enumerate() {
+            match r {
+                Ok(p) => {
+                    if lists.insert(std::sync::Arc::as_ptr(&p.files) as *const u8) {
+                        files.extend(p.files.iter().map(|(path, _)| path.clone()));
+                    }
+                }
+                Err(d) => {
+                    self.failures.push(((**d).clone(), vec![i]));
+                    // A failed permutation still read files: the failing header among them.
+                    for l in &d.labels {
+                        files.insert(preprocessor.sources.path(l.file_id));
+                    }
+                }
+            }
+        }
+        files.retain(|f| !f.as_os_str().is_empty());
+        report.files_read = files.into_iter().collect();
+    }
+
+    /// The distinct keys, and the dimensions that never change a shader's text.
+    pub fn grouped(&mut self, plan: &Plan<'_>, pre: &Preprocessed, keys: &Keys) {
+        let report = &mut self.report;
+        report.stats.unique_sources = keys.len();
+        report.dead_dimensions = dead_dimensions(&plan.kept, pre);
+        for d in &report.dead_dimensions {
+            report.warnings.push(format!(
+                "warning: dimension `{}` of `{}` never changes the shader's text at level `{}`: its {} values multiply the permutations for nothing",
+                d.dimension, d.shader, d.level, d.values
+            ));
+        }
+    }
+
+    /// Whether some permutation failed so far.
+    pub fn failed(&self) -> bool {
+        !self.failures.is_empty() || self.report.stats.failed > 0
+    }
+
+    /// The archive is already the output of this build: every key counts as a hit.
+    pub fn up_to_date(mut self, keys: usize, counts: (usize, usize)) -> Result<Report, Error> {
+        self.report.stats.cache_hits = keys;
+        self.report.stats.artifacts = counts.0;
+        self.report.stats.permutation_artifacts = counts.1;
+        self.report.archive = self.options.output.clone();
+        self.finish()
+    }
+
+    /// Counts the keys' outcomes, maps compile failures onto each permutation's text and
+    /// renders every failure.
+    pub fn compiled(
+        &mut self,
+        plan: &Plan<'_>,
+        preprocessor: &Preprocessor<'_>,
+        compiler: &Compiler<'_>,
+        keys: &Keys,
+        outcomes: Vec<Outcome>,
+        pre: &Preprocessed,
+    ) {
+        let stats = &mut self.report.stats;
+        stats.seconds.compile = compiler.first_start().map_or(0.0, |t| t.elapsed().as_secs_f64());
+        for ((key, members), outcome) in keys.groups.iter().zip(outcomes) {
+            match outcome {
+                Outcome::Hit => stats.cache_hits += 1,
+                Outcome::Elsewhere => stats.other_shards += 1,
+                Outcome::Compiled(w) => {
+                    stats.compiled += 1;
+                    self.report.warnings.extend(w);
+                }
+                Outcome::Failed(e, w) => {
+                    stats.compiled += 1;
+                    self.report.warnings.extend(w);
+                    self.failures.extend(compile::failures(plan, preprocessor, pre, key, members, &e));
+                }
+            }
+        }
+        let failures = std::mem::take(&mut self.failures);
+        self.report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
+        self.report.failures = render_failures(failures, &plan.kept, &preprocessor.sources, self.options.color);
+    }
+
+    pub fn warnings(&mut self, warnings: Vec<String>) {
+        self.report.warnings.extend(warnings);
+    }
+
+    pub fn assembled(&mut self, written: Written) {
+        self.report.stats.artifacts = written.artifacts;
+        self.report.stats.permutation_artifacts = written.permutation_artifacts;
+        self.report.archive = written.archive;
+    }
+
+    /// The total time, and `--stats-json` written.
+    pub fn finish(mut self) -> Result<Report, Error> {
+        self.report.stats.seconds.total = self.start.elapsed().as_secs_f64();
+        if let Some(path) = &self.options.stats_json {
+            let json = serde_json::to_vec_pretty(&self.report.stats).expect("stats serialize");
+            archive::write_atomic_unsynced(path, &json)
+                .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+        }
+        Ok(self.report)
+    }
+}
+
+fn render_failures(
+    failures: Vec<(Diagnostic<FileId>, Vec<usize>)>,
+    kept: &[Permutation<'_>],
+    sources: &SourceCache,
+    color: bool,
+) -> Vec<String> {
+    // Group by level and the diagnostic as rendered without colour and without the
+    // permutation note.
+    let mut order: Vec<(String, String)> = Vec::new();
+    let mut groups: HashMap<(String, String), (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
+    for (d, members) in failures {
+        let text = preprocess::render(std::slice::from_ref(&d), sources, false);
+        let key = (kept[members[0]].level.name.clone(), text);
+        match groups.get_mut(&key) {
+            Some(g) => g.1.extend(members),
+            None => {
+                order.push(key.clone());
+                groups.insert(key, (d, members));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for key in order {
+        let (mut d, mut members) = groups.remove(&key).expect("grouped above");
+        members.sort_unstable();
+        let p = &kept[members[0]];
+        let limits = match p.level.limits {
+            permute::Limits::Default => "default",
+            permute::Limits::Downlevel => "downlevel",
+        };
+        let note = if members.len() == 1 {
+            format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
+        } else {
+            let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
+            format!(
+                "in {} permutations (level `{}`, {limits} limits):\n{}",
+                names.len(),
+                p.level.name,
+                names.join("\n")
+            )
+        };
+        d.notes.push(note);
+        out.push(preprocess::render(std::slice::from_ref(&d), sources, color));
+    }
+    out
+}
+
+/// Dimensions whose value never changes the token stream: in every set of kept permutations
+/// that differ only in that dimension, all have one token hash.
+fn dead_dimensions(kept: &[Permutation<'_>], pre: &Preprocessed) -> Vec<DeadDimension> {
+    let mut by_shader: BTreeMap<(usize, &str, &str), Vec<usize>> = BTreeMap::new();
+    let mut first: HashMap<(&str, &str), usize> = HashMap::new();
+    for (i, p) in kept.iter().enumerate() {
+        let n = first.len();
+        let order = *first.entry((&p.shader.name, &p.level.name)).or_insert(n);
+        by_shader.entry((order, &p.shader.name, &p.level.name)).or_default().push(i);
+    }
+    let mut out = Vec::new();
+    for ((_, shader, level), members) in by_shader {
+        let dims = &kept[members[0]].shader.dimensions;
+        for (d, dim) in dims.iter().enumerate() {
+            if dim.values.len() < 2 {
+                continue;
+            }
+            let mut rows: HashMap<Vec<i64>, Vec<blake3::Hash>> = HashMap::new();
+            let mut complete = true;
+            for &m in &members {
+                let Ok(pm) = &pre[m] else {
+                    complete = false;
+                    break;
+                };
+                let mut rest = kept[m].values.clone();
+                rest.remove(d);
+                rows.entry(rest).or_default().push(pm.token_hash);
+            }
+            let varies = rows.values().any(|hs| hs.len() > 1);
+            let dead = complete && varies && rows.values().all(|hs| hs.iter().all(|h| *h == hs[0]));
+            if dead {
+                out.push(DeadDimension {
+                    shader: shader.to_string(),
+                    level: level.to_string(),
+                    dimension: dim.name.clone(),
+                    values: dim.values.len(),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// A progress bar on a terminal; nothing in CI or when stderr is redirected.
+pub(super) struct Progress {
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Progress {
+    pub fn new(wanted: bool) -> Progress {
+        let show = wanted && std::io::stderr().is_terminal() && std::env::var_os("CI").is_none();
+        let bar = show.then(|| {
+            let bar = indicatif::ProgressBar::new(0);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("{prefix:>13} [{bar:30}] {pos}/{len} {elapsed}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            bar
+        });
+        Progress { bar }
+    }
+    pub fn stage(&self, name: &'static str, len: usize) {
+        if let Some(b) = &self.bar {
+            b.set_length(len as u64);
+            b.set_position(0);
+            b.set_prefix(name);
+        }
+    }
+    pub fn inc(&self) {
+        if let Some(b) = &self.bar {
+            b.inc(1);
+        }
+    }
+    pub fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_and_clear();
+        }
+    }
+}

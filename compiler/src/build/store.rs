@@ -1,0 +1,160 @@
+//! Store: the build's one door to the cache. Lookups of compiled keys, the compiled entries
+//! streamed into packs (one pack per [`PACK_BYTES`] of artifacts, written as the build
+//! goes, so that no pack holds the whole build in memory), preprocessing records and the
+//! archive's up-to-date stamp.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use super::{CacheDir, Error, Options};
+use crate::cache::{Cache, Key, Lookup};
+use crate::compile::Compiled;
+use crate::permute::Config;
+
+/// Artifact bytes gathered before a pack is written.
+const PACK_BYTES: usize = 16 << 20;
+
+/// A key looked up in the cache.
+pub(super) enum Fetched {
+    Hit(Compiled),
+    /// Not there (or not usable): the warning when the entry was corrupted.
+    Miss(Option<String>),
+}
+
+/// The cache of a build (or none, with `--no-cache`).
+pub(super) struct Store {
+    cache: Option<Cache>,
+    pending: Mutex<Pending>,
+    /// Packs that could not be written: (entries, why).
+    failed: Mutex<Vec<(usize, String)>>,
+    /// Why there is no cache, when one was asked for but its folder cannot be made.
+    unavailable: Option<String>,
+}
+
+#[derive(Default)]
+struct Pending {
+    entries: Vec<(Key, Compiled, Vec<blake3::Hash>)>,
+    bytes: usize,
+}
+
+impl Store {
+    pub fn open(options: &Options, config: &Config) -> Result<Store, Error> {
+        let dir = match &options.cache {
+            CacheDir::Disabled => None,
+            CacheDir::Dir(d) => Some(d.clone()),
+            CacheDir::Auto => Some(default_cache_dir(&config.dir)),
+        };
+        // A cache folder that cannot be made costs only speed, like an unwritable one.
+        let (cache, unavailable) = match dir.map(Cache::open) {
+            None => (None, None),
+            Some(Ok(c)) => (Some(c), None),
+            Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),
+        };
+        Ok(Store { cache, pending: Mutex::default(), failed: Mutex::default(), unavailable })
+    }
+
+    /// Whether there is a cache.
+    pub fn enabled(&self) -> bool {
+        self.cache.is_some()
+    }
+
+    pub fn get(&self, key: &Key) -> Fetched {
+        match self.cache.as_ref().map(|c| c.get(key)) {
+            Some(Lookup::Hit(c)) => Fetched::Hit(c),
+            Some(Lookup::Corrupt(why)) => Fetched::Miss(Some(format!("warning: {why}"))),
+            Some(Lookup::Miss) | None => Fetched::Miss(None),
+        }
+    }
+
+    /// Stores a compiled key (with the blake3 of each artifact); written with the next pack.
+    pub fn put(&self, key: Key, compiled: Compiled, hashes: Vec<blake3::Hash>) {
+        if self.cache.is_none() {
+            return;
+        }
+        let full = {
+            let mut p = self.pending.lock().expect("no panics while locked");
+            p.bytes += compiled.artifacts.iter().map(|(_, b)| b.len()).sum::<usize>();
+            p.entries.push((key, compiled, hashes));
+            if p.bytes >= PACK_BYTES {
+                Some(std::mem::take(&mut *p))
+            } else {
+                None
+            }
+        };
+        if let Some(p) = full {
+            self.write(p);
+        }
+    }
+
+    fn write(&self, pending: Pending) {
+        let Some(c) = &self.cache else { return };
+        let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
+            pending.entries.iter().map(|(k, c, h)| (*k, c, &h[..])).collect();
+        if let Err(e) = c.put_pack_hashed(&entries) {
+            self.failed.lock().expect("no panics while locked").push((entries.len(), e.to_string()));
+        }
+    }
+
+    /// Writes what is pending; gives the cache's warnings (damaged packs, packs not written).
+    pub fn finish(&self) -> Vec<String> {
+        let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
+        self.write(pending);
+        let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
+        warnings.extend(self.unavailable.clone());
+        for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {
+            warnings.push(format!("warning: cannot store {n} cache entries: {why}"));
+        }
+        warnings
+    }
+
+    /// The encoded preprocessing records stored under `key` (none without a cache).
+    pub fn records(&self, key: &Key) -> Option<Vec<u8>> {
+        self.cache.as_ref()?.get_records_bytes(key)
+    }
+
+    /// Replaces the records under `key`; failing to only costs preprocessing next time.
+    pub fn put_records(&self, key: &Key, records: &[u8]) {
+        if let Some(c) = &self.cache {
+            let _ = c.put_records_bytes(key, records);
+        }
+    }
+
+    /// The artifact counts of the archive at `out` if it is the output of the build with
+    /// `fingerprint` and the cache still holds every key.
+    pub fn fresh_archive(&self, out: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
+        self.cache.as_ref()?.fresh_archive(out, fingerprint, keys)
+    }
+
+    /// Records that `out` is the output of the build with `fingerprint`. Failing to only
+    /// costs a full warm build next time.
+    pub fn stamp_archive(&self, out: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) {
+        if let Some(c) = &self.cache {
+            let _ = c.stamp_archive(out, fingerprint, counts);
+        }
+    }
+}
+
+/// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the
+/// cargo workspace around `config_dir`, else `config_dir/.kiln-cache`.
+pub fn default_cache_dir(config_dir: &Path) -> PathBuf {
+    if let Some(d) = std::env::var_os("KILN_CACHE_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d);
+    }
+    if let Some(d) = std::env::var_os("CARGO_TARGET_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d).join("kiln-cache");
+    }
+    let mut package = None;
+    for dir in config_dir.ancestors() {
+        let manifest = dir.join("Cargo.toml");
+        if let Ok(text) = std::fs::read_to_string(&manifest) {
+            if text.contains("[workspace]") {
+                return dir.join("target").join("kiln-cache");
+            }
+            package.get_or_insert_with(|| dir.to_path_buf());
+        }
+    }
+    match package {
+        Some(dir) => dir.join("target").join("kiln-cache"),
+        None => config_dir.join(".kiln-cache"),
+    }
+}
