@@ -331,7 +331,7 @@ pub const DEFAULT_MAX_PERMUTATIONS: u64 = 1 << 24;
 
 /// Rule evaluations [`Config::check_space`] may spend counting what a space over the limit
 /// keeps before it gives up (a few seconds at most).
-const COUNT_BUDGET: u64 = 1 << 22;
+const COUNT_BUDGET: u64 = 1 << 20;
 
 /// Rule evaluations [`Kept`] spends, on entering a (shader, level), looking for a space its
 /// rules skip entirely.
@@ -345,21 +345,50 @@ struct Pruner<'c> {
     base: Vec<Define>,
     /// The dimension bound at each depth.
     order: Vec<usize>,
-    /// The rules decided once `depth` dimensions are bound, for depth 0..=order.len().
-    rules_at: Vec<Vec<usize>>,
+    /// The conditions decided once `depth` dimensions are bound, for depth 0..=order.len():
+    /// each a rule, or one operand of a rule's top-level `||` (which skips alone).
+    rules_at: Vec<Vec<String>>,
+}
+
+/// The operands of the top-level `||` of an `#if` expression (the expression itself when it
+/// has none, or has a top-level `?:`, which binds looser than `||`). Each operand that is
+/// nonzero makes the whole expression 1.
+fn disjuncts(expr: &str) -> Vec<String> {
+    let tokens = crate::preprocess::tokens(expr);
+    let mut depth = 0i32;
+    let mut parts: Vec<Vec<&str>> = vec![Vec::new()];
+    for t in &tokens {
+        match *t {
+            "(" => depth += 1,
+            ")" => depth -= 1,
+            "?" | ":" if depth == 0 => return vec![expr.to_string()],
+            "||" if depth == 0 => {
+                parts.push(Vec::new());
+                continue;
+            }
+            _ => {}
+        }
+        parts.last_mut().expect("one part at least").push(t);
+    }
+    if parts.len() < 2 || parts.iter().any(Vec::is_empty) {
+        return vec![expr.to_string()];
+    }
+    parts.into_iter().map(|p| p.join(" ")).collect()
 }
 
 impl<'c> Pruner<'c> {
     fn new(shader: &'c Shader, level: &'c Level, order: Vec<usize>) -> Self {
         let mut rules_at = vec![Vec::new(); order.len() + 1];
-        for (i, rule) in shader.skip.iter().enumerate() {
-            let depth = expr::identifiers(&rule.when)
-                .iter()
-                .filter_map(|id| shader.dimensions.iter().position(|d| &d.name == id))
-                .map(|dim| order.iter().position(|&o| o == dim).map_or(order.len(), |at| at + 1))
-                .max()
-                .unwrap_or(0);
-            rules_at[depth].push(i);
+        for rule in &shader.skip {
+            for condition in disjuncts(&rule.when) {
+                let depth = expr::identifiers(&condition)
+                    .iter()
+                    .filter_map(|id| shader.dimensions.iter().position(|d| &d.name == id))
+                    .map(|dim| order.iter().position(|&o| o == dim).map_or(order.len(), |at| at + 1))
+                    .max()
+                    .unwrap_or(0);
+                rules_at[depth].push(condition);
+            }
         }
         Pruner { shader, base: base_defines(shader, level), order, rules_at }
     }
@@ -377,7 +406,7 @@ impl<'c> Pruner<'c> {
             let d = &self.shader.dimensions[dim];
             scope.names.push((d.name.as_str(), d.values[od[k]]));
         }
-        rules.iter().any(|&r| matches!(scope.eval(&self.shader.skip[r].when), Ok(v) if v != 0))
+        rules.iter().any(|c| matches!(scope.eval(c), Ok(v) if v != 0))
     }
 }
 
@@ -560,6 +589,20 @@ fn count_kept(shader: &Shader, level: &Level, budget: u64) -> Option<u128> {
             return Some(kept);
         }
         kept = kept.saturating_add(free);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::disjuncts;
+
+    #[test]
+    fn top_level_or_splits_into_conditions() {
+        assert_eq!(disjuncts("A || B && (C || D)"), ["A", "B && ( C || D )"]);
+        assert_eq!(disjuncts("A && B"), ["A && B"]);
+        assert_eq!(disjuncts("A || B ? 1 : 0"), ["A || B ? 1 : 0"]);
+        assert_eq!(disjuncts("(A || B)"), ["(A || B)"]);
+        assert_eq!(disjuncts("A || "), ["A || "]);
     }
 }
 
