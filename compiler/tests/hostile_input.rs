@@ -305,6 +305,13 @@ fn huge_spaces_are_located_errors_and_skipped_spaces_end_at_once() {
             assert!(err.contains("over the limit of 16777216") && err.contains("p.toml:11:"), "{err}");
         }
     }
+    // `explain` in a space over the limit: one permutation, no dedup group over 2^64 of them.
+    let name = format!("S@sm5{{{}}}", (0..64).map(|i| format!("B{i}=0")).collect::<Vec<_>>().join(","));
+    let o = kiln(d, &["explain", &name, "--config", "p.toml"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    assert!(stdout(&o).contains("dedup group: not computed"), "{}", stdout(&o));
+    let o = kiln(d, &["explain", "S@sm5{B0=7}", "--config", "p.toml"]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
     // Every permutation skipped, by a rule on the first dimension, on none, or on the last.
     for rule in ["B0 || !B0", "1", "B63 == 0 || B63 == 1"] {
         write_config(d, &format!("{}skip = [{{ when = \"{rule}\", why = \"none wanted\" }}]\n", bools(64)));

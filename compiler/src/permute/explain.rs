@@ -36,6 +36,9 @@ pub struct Explanation {
 /// The widest a column is padded to.
 const MAX_COLUMN: usize = 64;
 
+/// The most kept permutations of a shader at a level whose dedup group is computed.
+const GROUP_LIMIT: u128 = 100_000;
+
 pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Explanation, NotFound> {
     let p = config.find(name)?;
     let name = p.name();
@@ -47,7 +50,11 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
             Err(e) => (Vec::new(), None, Some(e.diagnostic)),
         };
     let mut group = Vec::new();
-    if let Some(hash) = hash {
+    // The group preprocesses every kept permutation of the shader at the level: only when
+    // there are few enough (counted over the dimensions the skip rules name).
+    let kept = super::enumerate::count_kept(p.shader, p.level, 1 << 16);
+    let grouped = kept.is_some_and(|k| k <= GROUP_LIMIT);
+    if let (Some(hash), true) = (hash, grouped) {
         let analysis = analyze(config, cache, |s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level));
         if let Some(level) = analysis.levels.first() {
             group = level.group(hash).map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values)).collect();
@@ -112,7 +119,13 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
         Some(h) => {
             let _ = writeln!(t, "\ntoken hash: {}", h.to_hex());
             let others = group.iter().filter(|g| **g != name).count();
-            if others == 0 {
+            if !grouped {
+                let _ = writeln!(
+                    t,
+                    "dedup group: not computed ({}@{} keeps more than {GROUP_LIMIT} permutations)",
+                    s.name, l.name
+                );
+            } else if others == 0 {
                 let _ = writeln!(
                     t,
                     "dedup group: no other kept permutation of {}@{} has this token stream",
