@@ -12,7 +12,7 @@
 //!   means "discard"); a FIFO with no reader is an error, not a hang;
 //! - a directory, a socket or a block device is refused with a clear error;
 //! - temporary files left beside the target by a process that died (`kill -9`, a power
-//!   loss) are removed by the next write into that folder ([`remove_stale_temporaries`]).
+//!   loss) are removed by the next write of that target ([`remove_stale_temporaries`]).
 //!
 //! [`same_file`] tells whether two paths name one file, for refusing an output that would
 //! overwrite an input.
@@ -140,8 +140,8 @@ fn write_atomic(path: &Path, sync: bool, fill: impl FnOnce(&mut File, Sink) -> i
         _ => Path::new("."),
     };
     fs::create_dir_all(dir)?;
-    remove_stale_temporaries_once(dir);
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    remove_stale_temporaries_once(dir, &name);
     let nanos =
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
     let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -165,6 +165,11 @@ fn write_atomic(path: &Path, sync: bool, fill: impl FnOnce(&mut File, Sink) -> i
 
 /// The pid in a temporary file name of [`write_with`] (`.<name>.<pid>.<nanos>.<n>.tmp`).
 pub fn temporary_owner(file_name: &str) -> Option<u32> {
+    temporary_parts(file_name).map(|(_, pid)| pid)
+}
+
+/// (`<name>`, `<pid>`) of a temporary file name of [`write_with`].
+pub fn temporary_parts(file_name: &str) -> Option<(&str, u32)> {
     let rest = file_name.strip_prefix('.')?.strip_suffix(".tmp")?;
     let mut fields = rest.rsplitn(4, '.');
     let (n, nanos, pid, name) = (fields.next()?, fields.next()?, fields.next()?, fields.next()?);
@@ -172,7 +177,7 @@ pub fn temporary_owner(file_name: &str) -> Option<u32> {
     if name.is_empty() || !digits(n) || !digits(nanos) || !digits(pid) {
         return None;
     }
-    pid.parse().ok()
+    Some((name, pid.parse().ok()?))
 }
 
 /// Whether the temporary file at `path` (named as [`temporary_owner`] reads) was left by a
@@ -199,29 +204,33 @@ pub fn is_stale_temporary(path: &Path) -> bool {
     unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) == 0 }
 }
 
-/// Removes the temporary files of [`write_with`] in `dir` whose writer died; returns how many.
-pub fn remove_stale_temporaries(dir: &Path) -> usize {
+/// Removes the temporary files of [`write_with`] in `dir` whose writer died, for the files
+/// `of` accepts (by name: `out.kpak` for `.out.kpak.<pid>.<nanos>.<n>.tmp`); returns how many.
+/// Nothing else in the folder is touched.
+pub fn remove_stale_temporaries(dir: &Path, of: &dyn Fn(&str) -> bool) -> usize {
     let Ok(entries) = fs::read_dir(dir) else { return 0 };
     let mut removed = 0;
     for e in entries.flatten() {
         let path = e.path();
-        if is_stale_temporary(&path) && fs::remove_file(&path).is_ok() {
+        let ours = path.file_name().and_then(|n| n.to_str()).and_then(temporary_parts).is_some_and(|(n, _)| of(n));
+        if ours && is_stale_temporary(&path) && fs::remove_file(&path).is_ok() {
             removed += 1;
         }
     }
     removed
 }
 
-/// [`remove_stale_temporaries`] the first time this process writes into `dir`.
-fn remove_stale_temporaries_once(dir: &Path) {
-    static DONE: Mutex<Option<HashSet<PathBuf>>> = Mutex::new(None);
-    let key = fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+/// [`remove_stale_temporaries`] of the file `name` the first time this process writes it
+/// into `dir`.
+fn remove_stale_temporaries_once(dir: &Path, name: &str) {
+    static DONE: Mutex<Option<HashSet<(PathBuf, String)>>> = Mutex::new(None);
+    let key = (fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf()), name.to_string());
     let first = match DONE.lock() {
         Ok(mut done) => done.get_or_insert_with(HashSet::new).insert(key),
         Err(_) => false,
     };
     if first {
-        remove_stale_temporaries(dir);
+        remove_stale_temporaries(dir, &|n| n == name);
     }
 }
 
@@ -291,8 +300,10 @@ mod tests {
         child.wait().unwrap();
         let dead_real = dir.path().join(format!(".out.kpak.{pid}.1.0.tmp"));
         fs::write(&dead_real, b"x").unwrap();
-        assert_eq!(remove_stale_temporaries(dir.path()), 1);
-        assert!(!dead_real.exists());
+        let other = dir.path().join(format!(".other.bin.{pid}.1.0.tmp"));
+        fs::write(&other, b"x").unwrap();
+        assert_eq!(remove_stale_temporaries(dir.path(), &|n| n == "out.kpak"), 1);
+        assert!(!dead_real.exists() && other.exists(), "only the temporaries of out.kpak");
         assert!(dead.exists() && alive.exists() && user.exists());
     }
 }

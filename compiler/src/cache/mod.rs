@@ -226,7 +226,7 @@ impl Cache {
             // A read-only cache still serves hits: failing to tag it is harmless.
             let _ = crate::output::write(&tag, TAG.as_bytes(), false);
         }
-        crate::output::remove_stale_temporaries(&dir);
+        crate::output::remove_stale_temporaries(&dir, &Self::is_cache_file_name);
         Ok(Cache { dir, index: Arc::default() })
     }
 
@@ -495,16 +495,18 @@ impl Cache {
     /// A temporary file of a write into the cache (named by [`crate::output`] after a cache
     /// file).
     fn is_temporary(path: &Path) -> bool {
-        let Some(name) = path.file_name().and_then(|n| n.to_str()) else { return false };
-        if crate::output::temporary_owner(name).is_none() {
-            return false;
-        }
-        let inner = &name[1..];
-        let stem_len = inner.find('.').unwrap_or(0);
-        let ext = &inner[stem_len..];
-        (stem_len == 32 || stem_len == 64)
-            && inner[..stem_len].bytes().all(|b| b.is_ascii_hexdigit())
-            && [".kcp.", ".kpp.", ".stamp."].iter().any(|e| ext.starts_with(e))
+        path.file_name()
+            .and_then(|n| n.to_str())
+            .and_then(crate::output::temporary_parts)
+            .is_some_and(|(name, _)| Self::is_cache_file_name(name))
+    }
+
+    /// `<32 or 64 hex digits>.kcp`, `.kpp` or `.stamp`: how the cache names its files.
+    fn is_cache_file_name(name: &str) -> bool {
+        let Some((stem, ext)) = name.split_once('.') else { return false };
+        (stem.len() == 32 || stem.len() == 64)
+            && stem.bytes().all(|b| b.is_ascii_hexdigit())
+            && [PACK_EXTENSION, RECORD_EXTENSION, "stamp"].contains(&ext)
     }
 
     /// Whether the file at `path` is one Kiln wrote into a cache: a pack or a record with its
