@@ -321,6 +321,10 @@ fn huge_spaces_are_located_errors_and_skipped_spaces_end_at_once() {
         let o = kiln(d, &["list", "--config", "p.toml"]);
         assert_eq!(code(&o), 0, "{rule}: {}", stderr(&o));
         assert!(stdout(&o).contains("18446744073709551616"), "{}", stdout(&o));
+        let o = kiln(d, &["list", "--config", "p.toml", "--json"]);
+        assert_eq!(code(&o), 0, "{rule}: {}", stderr(&o));
+        let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+        assert_eq!(v["totals"]["skipped"].as_f64(), Some(18446744073709551616.0));
     }
     // A space over the limit that a rule on its first dimensions brings under it.
     write_config(d, &format!("{}skip = [{{ when = \"B0 || B1 || B2 || B3 || B4 || B5 || B6 || B7 || B8 || B9 || B10 || B11 || B12 || B13 || B14 || B15 || B16 || B17 || B18 || B19 || B20 || B21 || B22 || B23 || B24 || B25 || B26 || B27 || B28 || B29\", why = \"few\" }}]\n", bools(32)));

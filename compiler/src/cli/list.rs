@@ -152,7 +152,7 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                         .and_then(|a| a.find(&c.shader, &c.level))
                         .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
                         .map(|l| l.distinct);
-                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": c.skipped, "distinct": distinct })
+                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": json_count(c.skipped), "distinct": distinct })
                 })
                 .collect();
             let kept: usize = counts.iter().map(|c| c.kept).sum();
@@ -168,7 +168,11 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                 .collect();
             let failed: Vec<&str> = analysis.iter().flat_map(|a| a.failed.iter().map(|f| f.name.as_str())).collect();
             writeln!(out, "  \"counts\": {},", serde_json::to_string(&count_json).map_err(io::Error::other)?)?;
-            writeln!(out, "  \"totals\": {},", json!({ "kept": kept, "skipped": skipped, "distinct": distinct }))?;
+            writeln!(
+                out,
+                "  \"totals\": {},",
+                json!({ "kept": kept, "skipped": json_count(skipped), "distinct": distinct })
+            )?;
             writeln!(out, "  \"dead_dimensions\": {},", json!(dead))?;
             writeln!(out, "  \"failed\": {}", json!(failed))?;
             writeln!(out, "}}")?;
@@ -190,6 +194,12 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
     })());
     let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
     result
+}
+
+/// A count as a JSON number: exact up to 2^64 - 1, a float above (64 bool dimensions
+/// skipped whole are 2^64 permutations).
+fn json_count(n: u128) -> serde_json::Value {
+    u64::try_from(n).map_or_else(|_| json!(n as f64), |n| json!(n))
 }
 
 /// Calls `f` on every permutation to list (the kept ones, pruned; with `all`, every one) of
