@@ -349,7 +349,15 @@ fn the_limit_is_set_on_the_command_line_or_in_the_file() {
     assert_eq!(code(&o), 2, "{}", stderr(&o));
     let o = kiln(d, &["list", "--config", "p.toml", "--no-analysis", "--max-permutations", "5000"]);
     assert_eq!(code(&o), 0, "{}", stderr(&o));
+    // The limit counts every shader at every level: two levels of 4096 are over 5000.
     let text = std::fs::read_to_string(d.join("p.toml")).unwrap();
+    let two = text.replace("[[shader]]", "[levels.es3_1]\ntargets = [\"glsl\"]\n\n[[shader]]");
+    std::fs::write(d.join("p.toml"), &two).unwrap();
+    let o = kiln(d, &["list", "--config", "p.toml", "--no-analysis", "--max-permutations", "5000"]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("the permutation set has more than 5000 permutations"), "{}", stderr(&o));
+    let o = kiln(d, &["list", "--config", "p.toml", "--no-analysis", "--max-permutations", "5000", "--level", "sm5"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
     std::fs::write(d.join("p.toml"), text.replace("max_permutations = 1000", "max_permutations = -1")).unwrap();
     let o = kiln(d, &["list", "--config", "p.toml"]);
     assert_eq!(code(&o), 2, "{}", stderr(&o));

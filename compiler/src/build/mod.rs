@@ -73,7 +73,7 @@ pub struct Options {
     pub color: bool,
     /// Compile only this shard's share of the distinct keys into the cache.
     pub shard: Option<Shard>,
-    /// The most permutations one shader may have at one level (`--max-permutations`); `None`
+    /// The most permutations, of one shader at one level or of all together (`--max-permutations`); `None`
     /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
     pub max_permutations: Option<u64>,
 }

@@ -39,7 +39,7 @@ pub struct Args {
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
     pub stats_json: Option<PathBuf>,
-    /// The most permutations one shader may have at one level (default: `[compiler]
+    /// The most permutations, of one shader at one level or of all together (default: `[compiler]
     /// max_permutations`, else 16777216 = 2^24). Skip rules that bring the kept ones under it
     /// make a larger space acceptable.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]

@@ -30,7 +30,7 @@ pub struct Args {
     /// Do not preprocess: no distinct counts and no dead dimensions, but much faster.
     #[arg(long)]
     pub no_analysis: bool,
-    /// The most permutations one shader may have at one level (default: `[compiler]
+    /// The most permutations, of one shader at one level or of all together (default: `[compiler]
     /// max_permutations`, else 16777216 = 2^24); with `--all`, skipped ones count too.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     pub max_permutations: Option<u64>,

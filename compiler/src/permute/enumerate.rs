@@ -326,7 +326,7 @@ impl<'c> Iterator for Permutations<'c> {
 }
 
 /// The default of `[compiler] max_permutations` and `--max-permutations`: 2^24 permutations
-/// of one shader at one level.
+/// of one shader at one level, or of all together.
 pub const DEFAULT_MAX_PERMUTATIONS: u64 = 1 << 24;
 
 /// Rule evaluations [`Config::check_space`] may spend counting what a space over the limit
@@ -632,47 +632,65 @@ impl Config {
         Kept::new(self, filter)
     }
 
-    /// The limit on one shader's permutations at one level: `cli` (`--max-permutations`), else
+    /// The limit on the permutations built or listed: `cli` (`--max-permutations`), else
     /// `[compiler] max_permutations`, else [`DEFAULT_MAX_PERMUTATIONS`].
     pub fn max_permutations(&self, cli: Option<u64>) -> u64 {
         cli.or(self.max_permutations).unwrap_or(DEFAULT_MAX_PERMUTATIONS)
     }
 
     /// Checks that no (shader, level) `filter` accepts has more than `max` permutations (kept
-    /// ones only, unless `all`: then every one, kept or skipped). A space over `max` is
-    /// accepted when its skip rules are shown (in bounded time) to keep at most `max`. The
-    /// error is located at the shader's dimensions.
+    /// ones only, unless `all`: then every one, kept or skipped), nor all of them together. A
+    /// space over `max` is accepted when its skip rules are shown (in bounded time) to keep at
+    /// most `max`. The error is located at the dimensions of the shader that goes over.
     pub fn check_space(
         &self,
         filter: impl Fn(&Shader, &Level) -> bool,
         max: u64,
         all: bool,
     ) -> Result<(), ConfigError> {
+        let max = max as u128;
+        let mut total = 0u128;
         for (shader, level) in groups(self, filter) {
             let nominal = nominal(shader);
-            if nominal <= max as u128 {
-                continue;
-            }
-            let kept = if all { None } else { count_kept(shader, level, COUNT_BUDGET) };
-            if kept.is_some_and(|k| k <= max as u128) {
-                continue;
-            }
-            let mut message = format!(
-                "shader `{}` has {} permutations at level `{}`, over the limit of {max}",
-                shader.name,
-                describe_count(nominal),
-                level.name
-            );
-            let note = match kept {
-                Some(k) => format!("its skip rules keep {} of them", describe_count(k)),
-                None if all => "`--all` lists every one of them, skipped or not".to_string(),
-                None => "its skip rules could not be shown to keep fewer (a rule prunes as soon as the \
-                         dimensions it names are chosen)"
-                    .to_string(),
+            // Counted only when the nominal size would go over (per shader or in all).
+            let over = nominal > max || total.saturating_add(nominal) > max;
+            let kept = match (over, all) {
+                (false, _) => Some(nominal),
+                (true, true) => None,
+                (true, false) => count_kept(shader, level, COUNT_BUDGET),
             };
-            message.push_str(&format!(": {note}"));
+            let (message, note) = match kept {
+                Some(k) if k <= max && total.saturating_add(k) <= max => {
+                    total += k;
+                    continue;
+                }
+                Some(k) if k <= max => (
+                    format!(
+                        "the permutation set has more than {max} permutations: shader `{}` at level `{}` adds {}                          to the {total} before it",
+                        shader.name,
+                        level.name,
+                        describe_count(k)
+                    ),
+                    "the limit counts every shader at every level built".to_string(),
+                ),
+                _ => (
+                    format!(
+                        "shader `{}` has {} permutations at level `{}`, over the limit of {max}",
+                        shader.name,
+                        describe_count(nominal),
+                        level.name
+                    ),
+                    match kept {
+                        Some(k) => format!("its skip rules keep {} of them", describe_count(k)),
+                        None if all => "`--all` lists every one of them, skipped or not".to_string(),
+                        None => "its skip rules could not be shown to keep fewer (a rule prunes as soon as the \
+                                 dimensions it names are chosen)"
+                            .to_string(),
+                    },
+                ),
+            };
             let d = codespan_reporting::diagnostic::Diagnostic::error()
-                .with_message(message)
+                .with_message(format!("{message}: {note}"))
                 .with_labels(vec![codespan_reporting::diagnostic::Label::primary((), shader.spans.dimensions.clone())
                     .with_message(format!("{} dimensions", shader.dimensions.len()))])
                 .with_notes(vec![

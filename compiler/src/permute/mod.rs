@@ -54,8 +54,8 @@ pub struct Config {
     pub shaders: Vec<Shader>,
     /// Rendered warnings about the file (an expression using an identifier nothing defines).
     pub warnings: Vec<String>,
-    /// `[compiler] max_permutations`: the most permutations one shader may have at one level
-    /// (see [`DEFAULT_MAX_PERMUTATIONS`]).
+    /// `[compiler] max_permutations`: the most permutations of one shader at one level, or of
+    /// all together (see [`DEFAULT_MAX_PERMUTATIONS`]).
     pub max_permutations: Option<u64>,
     /// (name in messages, text) of the file, for errors found after loading.
     pub source: std::sync::Arc<(String, String)>,
