@@ -229,6 +229,10 @@ fn outputs_naming_an_input_are_refused_and_the_input_kept() {
         let err = stderr(&o);
         assert!(err.contains("would destroy the input") && err.contains(input), "{args:?}: {err}");
     }
+    // Two outputs on one file.
+    let o = build(d, &["-o", "out.kpak", "--stats-json", "./out.kpak"]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(stderr(&o).contains("are the same file"), "{}", stderr(&o));
     let after: Vec<Vec<u8>> =
         ["p.toml", "s.usf", "inc.ush"].iter().map(|f| std::fs::read(d.join(f)).unwrap()).collect();
     assert_eq!(before, after);

@@ -40,8 +40,11 @@ pub(super) fn check_outputs(options: &Options, config: &Config) -> Result<(), Er
     inputs.extend(config.shaders.iter().map(|s| ("a shader source", s.source_path.clone())));
     check_aliases(&outputs, inputs.iter().map(|(w, p)| (*w, p.as_path())))?;
     for (i, (what, a)) in outputs.iter().enumerate() {
-        let regular = std::fs::metadata(a).is_ok_and(|m| m.is_file());
-        if let Some((other, b)) = outputs[i + 1..].iter().find(|(_, b)| regular && crate::output::same_file(a, b)) {
+        // Two outputs on one device are fine (`-o /dev/null --stats-json /dev/null`); on one
+        // file, existing or not, the second would replace the first.
+        let device = std::fs::metadata(a).is_ok_and(|m| !m.is_file());
+        let same = |b: &Path| crate::output::same_file(a, b) || lexical(a) == lexical(b);
+        if let Some((other, b)) = outputs[i + 1..].iter().find(|(_, b)| !device && same(b)) {
             return Err(Error::Config(format!(
                 "error: {what} {} and {other} {} are the same file",
                 a.display(),
@@ -70,4 +73,20 @@ pub(super) fn check_aliases<'a>(
         }
     }
     Ok(())
+}
+
+/// `path` made absolute with `.` and `..` resolved by name (links are not followed).
+fn lexical(path: &Path) -> PathBuf {
+    let abs = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let mut out = PathBuf::new();
+    for c in abs.components() {
+        match c {
+            std::path::Component::ParentDir => {
+                out.pop();
+            }
+            std::path::Component::CurDir => {}
+            c => out.push(c),
+        }
+    }
+    out
 }
