@@ -215,16 +215,17 @@ pub struct Cache {
 }
 
 impl Cache {
-    /// Opens (creating it if needed) the cache at `dir`, marks it as Kiln's (a `CACHEDIR.TAG`
-    /// of the Cache Directory Tagging spec that names Kiln, so backup tools skip it) and
-    /// removes the temporary files of writers that died.
+    /// Opens (creating it if needed) the cache at `dir`, marks a new or empty one as Kiln's (a
+    /// `CACHEDIR.TAG` of the Cache Directory Tagging spec that names Kiln, so backup tools skip
+    /// it; a folder that already holds other files is never tagged) and removes the temporary
+    /// files of writers that died.
     pub fn open(dir: impl Into<PathBuf>) -> Result<Cache, Error> {
         let dir = dir.into();
         fs::create_dir_all(&dir).map_err(|source| Error { path: dir.clone(), source })?;
-        let tag = dir.join(TAG_NAME);
-        if !tag.exists() {
+        let empty = fs::read_dir(&dir).is_ok_and(|mut entries| entries.next().is_none());
+        if empty {
             // A read-only cache still serves hits: failing to tag it is harmless.
-            let _ = crate::output::write(&tag, TAG.as_bytes(), false);
+            let _ = crate::output::write(&dir.join(TAG_NAME), TAG.as_bytes(), false);
         }
         crate::output::remove_stale_temporaries(&dir, &Self::is_cache_file_name);
         Ok(Cache { dir, index: Arc::default() })

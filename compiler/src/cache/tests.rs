@@ -312,11 +312,17 @@ fn only_kilns_own_files_are_cleared_or_evicted() {
         (".tmp-user", b"x"),
         ("old.kcp", b"KILNCP\0\x02"),
     ];
+    assert!(Cache::open(dir.path()).is_ok());
+    assert!(dir.path().join("CACHEDIR.TAG").is_file(), "a new cache is tagged");
     for (name, bytes) in &foreign {
         fs::write(dir.path().join(name), bytes).unwrap();
     }
     let cache = Cache::open(dir.path()).unwrap();
-    assert!(dir.path().join("CACHEDIR.TAG").is_file());
+    // A folder holding other files is never tagged (it may be somebody's home).
+    let home = tempfile::tempdir().unwrap();
+    fs::write(home.path().join("thesis.txt"), "mine").unwrap();
+    Cache::open(home.path()).unwrap();
+    assert!(!home.path().join("CACHEDIR.TAG").exists());
     cache.put(&key("a"), &compiled(1)).unwrap();
     let k = key("r");
     cache.put_records(&k, &Records::new()).unwrap();
