@@ -595,17 +595,24 @@ fn config_loader_fuzz_never_panics() {
     let d = fx.path();
     let path = d.join("p.toml");
     assert!(kiln::permute::load_str(SEED_CONFIG, &path).is_ok());
+    // The bundled set too, loaded where it lies (its sources resolve there).
+    let bundled_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../permutations.toml");
+    let bundled = std::fs::read_to_string(&bundled_path).unwrap();
+    assert!(kiln::permute::load_str(&bundled, &bundled_path).is_ok());
     let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
     let start = Instant::now();
     let mut loaded = 0;
+    let mut tried = 0;
     // Bounded by count and by time (a few seconds at most on a slow machine).
     for i in 0..3000 {
         if start.elapsed() > Duration::from_secs(5) {
             break;
         }
-        let text = mutate(&mut rng, SEED_CONFIG);
+        tried += 1;
+        let (seed, at) = if i % 4 == 3 { (bundled.as_str(), &bundled_path) } else { (SEED_CONFIG, &path) };
+        let text = mutate(&mut rng, seed);
         let r = std::panic::catch_unwind(|| {
-            let Ok(config) = kiln::permute::load_str(&text, &path) else { return false };
+            let Ok(config) = kiln::permute::load_str(&text, at) else { return false };
             if config.check_space(|_, _| true, 4096, false).is_ok() {
                 for p in config.kept_where(|_, _| true).take(5000) {
                     let _ = config.evaluation_error(&p).map(|e| e.render());
@@ -619,11 +626,12 @@ fn config_loader_fuzz_never_panics() {
             Ok(ok) => loaded += ok as usize,
             Err(_) => panic!("the loader panicked on mutation {i}:\n{text}"),
         }
-        // Every 100th through the command line too: exit 0, 1 or 2 only.
+        // Every 100th (of the small set) through the command line too: exit 0, 1 or 2 only.
         if i % 100 == 0 {
             std::fs::write(&path, &text).unwrap();
             kiln(d, &["list", "--config", "p.toml", "--no-analysis", "--max-permutations", "4096"]);
         }
     }
+    eprintln!("{tried} mutations, {loaded} of them loaded");
     assert!(loaded > 0, "some mutations still load");
 }
