@@ -8,11 +8,13 @@
 //! - [`permute`]: the configuration schema, enumeration, skip rules and derived defines;
 //! - [`compile`]: naga parse, validation per level, one writer per target, reflection;
 //! - [`cache`]: the content-addressed artifact store;
-//! - [`archive`]: the packed file the runtime loads (the only module built without the
-//!   `compiler` feature, so the runtime reads archives with the same types and no naga);
-//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares.
+//! - [`archive`]: the packed file the runtime loads (built without the `compiler` feature,
+//!   with [`output`], so the runtime reads archives with the same types and no naga);
+//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares;
+//! - [`output`]: how every output file is written (atomically, never over a device or an input).
 
 pub mod archive;
+pub mod output;
 
 #[cfg(feature = "compiler")]
 pub mod build;

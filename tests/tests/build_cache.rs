@@ -159,11 +159,14 @@ fn interrupted_write_leaves_no_entry_and_does_not_disturb_builds() {
     let cache = fx.path().join("cache");
     let config = fx.path().join("lit.toml");
     build_ok(&options(&config, &fx.path().join("a.kpak"), Some(&cache)));
-    // A writer killed half way leaves only its temporary file: replace the pack by that.
+    // A writer killed half way leaves only its temporary file: replace the pack by that
+    // (named as a live writer's, this process's: a dead one's is removed on open).
     let pack = packs(&cache).pop().unwrap();
     let bytes = std::fs::read(&pack).unwrap();
     std::fs::remove_file(&pack).unwrap();
-    std::fs::write(pack.with_file_name(".tmp-killed"), &bytes[..bytes.len() / 2]).unwrap();
+    let name = pack.file_name().unwrap().to_str().unwrap();
+    let tmp = pack.with_file_name(format!(".{name}.{}.1.0.tmp", std::process::id()));
+    std::fs::write(&tmp, &bytes[..bytes.len() / 2]).unwrap();
     let stats = kiln::cache::Cache::open(&cache).unwrap().stats();
     assert_eq!((stats.entries, stats.temporaries), (0, 1));
 

@@ -281,7 +281,8 @@ pub(crate) fn header_checksum(fields: &[u8], manifest: &[u8], table: &[u8]) -> b
     h.finalize()
 }
 
-/// Writes `bytes` to `path` through a uniquely named temporary file and a rename.
+/// Writes `bytes` to `path` as [`crate::output::write_with`] does (atomically; a device or a
+/// FIFO written through; never renamed over anything else), synced.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomic_impl(path, &[bytes], true)
 }
@@ -291,9 +292,9 @@ pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomic_impl(path, &[bytes], false)
 }
 
-/// Writes the concatenation of `pieces` through a temporary file and a rename.
-fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
-    write_atomic_with(path, sync, |f| write_all_vectored(f, pieces))
+/// Writes the concatenation of `pieces` (see [`write_atomic`]).
+pub(crate) fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
+    crate::output::write_with(path, sync, |f, _| write_all_vectored(f, pieces))
 }
 
 /// A file name beside `path` that no other writer uses: `.NAME.PID.NANOS.N.SUFFIX`.
@@ -311,26 +312,27 @@ pub(crate) fn sibling_name(path: &Path, suffix: &str) -> std::io::Result<PathBuf
     Ok(dir.join(format!(".{name}.{}.{nanos}.{n}.{suffix}", std::process::id())))
 }
 
-/// Creates a uniquely named temporary file beside `path`, lets `write` fill it, syncs it
-/// when asked, then renames it to `path`; on any error the temporary file is removed.
+/// Lets `write` fill `path` as [`crate::output::write_with`] does: a regular file through a
+/// temporary file beside it and a rename (removed on any error); a device or a FIFO, which
+/// cannot seek, through an unlinked temporary file in the system's temporary folder, copied
+/// to it in order; a directory or a socket refused.
 pub(crate) fn write_atomic_with(
     path: &Path,
     sync: bool,
     write: impl FnOnce(&mut File) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
-    let tmp = sibling_name(path, "tmp")?;
-    let result = (|| {
-        let mut f = File::create(&tmp)?;
-        write(&mut f)?;
-        if sync {
-            f.sync_all()?;
+    crate::output::write_with(path, sync, |f, sink| match sink {
+        crate::output::Sink::Temporary => write(f),
+        crate::output::Sink::Stream => {
+            use std::io::{Seek, SeekFrom};
+            let tmp = sibling_name(&std::env::temp_dir().join("kiln-output"), "tmp")?;
+            let mut t = File::options().read(true).write(true).create_new(true).open(&tmp)?;
+            let _ = std::fs::remove_file(&tmp);
+            write(&mut t)?;
+            t.seek(SeekFrom::Start(0))?;
+            std::io::copy(&mut t, f).map(|_| ())
         }
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    })
 }
 
 /// Writes every piece in order with as few `writev` calls as the system allows.

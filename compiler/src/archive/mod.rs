@@ -22,7 +22,7 @@ mod writer;
 mod tests;
 
 #[cfg(feature = "compiler")]
-pub(crate) use format::write_all_vectored;
+pub(crate) use format::write_atomic_impl;
 pub use format::{
     write_atomic, write_atomic_unsynced, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
     COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,

@@ -36,6 +36,7 @@ use crate::permute::Config;
 
 mod assemble;
 mod compile;
+mod outputs;
 mod plan;
 mod preprocess;
 mod records;
@@ -78,6 +79,9 @@ pub struct Options {
     pub color: bool,
     /// Compile only this shard's share of the distinct keys into the cache.
     pub shard: Option<Shard>,
+    /// The most permutations, of one shader at one level or of all together (`--max-permutations`); `None`
+    /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
+    pub max_permutations: Option<u64>,
 }
 
 impl Default for Options {
@@ -96,6 +100,7 @@ impl Default for Options {
             progress: false,
             color: false,
             shard: None,
+            max_permutations: None,
         }
     }
 }
@@ -147,7 +152,7 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
     let progress = report::Progress::new(options.progress);
-    let plan = plan::Plan::new(config, options);
+    let plan = plan::Plan::new(config, options)?;
     report.planned(&plan);
 
     let assembler = assemble::Assembler::new(&plan)?;
@@ -157,6 +162,10 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let pre = preprocessor.run(&progress, |i, p, pre, output| compiler.early(i, p, pre, output));
     preprocessor.save_records(store);
     report.preprocessed(&plan, &preprocessor, &pre, t);
+    outputs::check_aliases(
+        &outputs::output_files(options),
+        report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
+    )?;
     let keys = plan.group(&pre);
     report.grouped(&plan, &pre, &keys);
 

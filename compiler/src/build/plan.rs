@@ -64,7 +64,15 @@ pub(super) fn load(options: &Options) -> Result<Config, Error> {
             )));
         }
     }
+    super::outputs::check_outputs(options, &config)?;
+    let max = config.max_permutations(options.max_permutations);
+    config.check_space(|_, level| selected(options, level), max, false).map_err(|e| Error::Config(e.render()))?;
     Ok(config)
+}
+
+/// Whether `level` is one the build is asked for.
+fn selected(options: &Options, level: &permute::Level) -> bool {
+    options.levels.is_empty() || options.levels.contains(&level.name)
 }
 
 /// The permutations to build.
@@ -73,23 +81,23 @@ pub(super) struct Plan<'c> {
     pub options: &'c Options,
     /// Kept permutations, in enumeration order (the archive's order).
     pub kept: Vec<Permutation<'c>>,
-    /// Permutations dropped by skip rules.
-    pub skipped: usize,
+    /// Permutations dropped by skip rules (saturating).
+    pub skipped: u128,
 }
 
 impl<'c> Plan<'c> {
-    pub fn new(config: &'c Config, options: &'c Options) -> Plan<'c> {
+    /// Enumerates, pruned: a skip rule decided on the first dimensions skips their subtree.
+    /// A skip rule or derived define that cannot be evaluated is a configuration error.
+    pub fn new(config: &'c Config, options: &'c Options) -> Result<Plan<'c>, Error> {
         let mut kept = Vec::new();
-        let mut skipped = 0;
-        for p in config.permutations_where(|_, level| options.levels.is_empty() || options.levels.contains(&level.name))
-        {
-            if p.is_kept() {
-                kept.push(p);
-            } else {
-                skipped += 1;
+        let mut stream = config.kept_where(|_, level| selected(options, level));
+        for p in &mut stream {
+            if let Some(e) = config.evaluation_error(&p) {
+                return Err(Error::Config(e.render()));
             }
+            kept.push(p);
         }
-        Plan { config, options, kept, skipped }
+        Ok(Plan { config, options, kept, skipped: stream.skipped() })
     }
 
     /// The targets written for `p`: its level's, filtered by `--target`.

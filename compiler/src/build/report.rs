@@ -116,7 +116,18 @@ impl<'o> Builder<'o> {
 
     pub fn planned(&mut self, plan: &Plan<'_>) {
         self.report.stats.permutations = plan.kept.len();
-        self.report.stats.skipped = plan.skipped;
+        self.report.stats.skipped = usize::try_from(plan.skipped).unwrap_or(usize::MAX);
+        if plan.kept.is_empty() && plan.skipped > 0 {
+            self.report.warnings.push(format!(
+                "warning: skip rules skip every one of the {} permutations: nothing is compiled",
+                plan.skipped
+            ));
+        }
+    }
+
+    /// Every file the build read so far (after [`Builder::preprocessed`]).
+    pub fn files_read(&self) -> &[std::path::PathBuf] {
+        &self.report.files_read
     }
 
     /// Counts, warnings (each distinct one once), preprocessing failures, files read.

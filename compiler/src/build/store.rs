@@ -27,6 +27,8 @@ pub(super) struct Store {
     pending: Mutex<Pending>,
     /// Packs that could not be written: (entries, why).
     failed: Mutex<Vec<(usize, String)>>,
+    /// Why there is no cache, when one was asked for but its folder cannot be made.
+    unavailable: Option<String>,
 }
 
 #[derive(Default)]
@@ -35,9 +37,8 @@ struct Pending {
     bytes: usize,
 }
 
-/// The cache folder `dir`, opened, with the remote cache of `options` under it.
-fn open_with_remote(dir: PathBuf, options: &Options) -> Result<Cache, Error> {
-    let cache = Cache::open(dir).map_err(|e| Error::Io(format!("error: {e}")))?;
+/// `cache` with the remote cache of `options` under it.
+fn with_remote(cache: Cache, options: &Options) -> Result<Cache, Error> {
     let remote = crate::cache::remote::Options::resolve(&options.remote_cache, options.remote_cache_mode)
         .and_then(|o| o.map(|o| crate::cache::Remote::open(&o)).transpose())
         .map_err(|e| Error::Config(format!("error: {e}")))?;
@@ -54,11 +55,13 @@ impl Store {
             CacheDir::Dir(d) => Some(d.clone()),
             CacheDir::Auto => Some(default_cache_dir(&config.dir)),
         };
-        let cache = match dir {
-            None => None,
-            Some(dir) => Some(open_with_remote(dir, options)?),
+        // A cache folder that cannot be made costs only speed, like an unwritable one.
+        let (cache, unavailable) = match dir.map(Cache::open) {
+            None => (None, None),
+            Some(Ok(c)) => (Some(with_remote(c, options)?), None),
+            Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),
         };
-        Ok(Store { cache, pending: Mutex::default(), failed: Mutex::default() })
+        Ok(Store { cache, pending: Mutex::default(), failed: Mutex::default(), unavailable })
     }
 
     /// The remote cache's counts (zero without one).
@@ -113,6 +116,7 @@ impl Store {
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
         self.write(pending);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
+        warnings.extend(self.unavailable.clone());
         for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {
             warnings.push(format!("warning: cannot store {n} cache entries: {why}"));
         }

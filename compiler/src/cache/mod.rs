@@ -56,6 +56,11 @@ const ROW: usize = 32 + 8 + 8;
 /// Remote hits waiting to be filled into the local cache are written as a pack once they
 /// hold this many bytes (and at the next [`Cache::put_pack`] in any case).
 const FILL_BYTES: usize = 32 << 20;
+/// The cache folder's tag (<https://bford.info/cachedir/>), written by [`Cache::open`].
+const TAG_NAME: &str = "CACHEDIR.TAG";
+const TAG: &str = "Signature: 8a477f597d28d172789f06886806bc55\n\
+# This file is a cache directory tag created by kiln (the shader compiler's artifact cache).\n\
+# For information about cache directory tags see https://bford.info/cachedir/\n";
 
 /// Preprocessing records of one configuration, by the hex key of each permutation's
 /// inputs (see `build`): a later build skips the preprocessor for every permutation whose
@@ -201,8 +206,9 @@ struct Location {
 struct Index {
     /// Copies of each key, newest pack first.
     by_key: HashMap<Key, Vec<Location>>,
-    /// Packs whose index was damaged, now removed: (path, why). Their entries are misses.
-    damaged: Vec<(PathBuf, String)>,
+    /// Packs whose index was damaged: (path, why, whether it was removed: not when Kiln did
+    /// not write it). Their entries are misses.
+    damaged: Vec<(PathBuf, String, bool)>,
 }
 
 impl Index {
@@ -238,10 +244,19 @@ struct Fills {
 }
 
 impl Cache {
-    /// Opens (creating it if needed) the cache at `dir`.
+    /// Opens (creating it if needed) the cache at `dir`, marks a new or empty one as Kiln's (a
+    /// `CACHEDIR.TAG` of the Cache Directory Tagging spec that names Kiln, so backup tools skip
+    /// it; a folder that already holds other files is never tagged) and removes the temporary
+    /// files of writers that died.
     pub fn open(dir: impl Into<PathBuf>) -> Result<Cache, Error> {
         let dir = dir.into();
         fs::create_dir_all(&dir).map_err(|source| Error { path: dir.clone(), source })?;
+        let empty = fs::read_dir(&dir).is_ok_and(|mut entries| entries.next().is_none());
+        if empty {
+            // A read-only cache still serves hits: failing to tag it is harmless.
+            let _ = crate::output::write(&dir.join(TAG_NAME), TAG.as_bytes(), false);
+        }
+        crate::output::remove_stale_temporaries(&dir, &Self::is_cache_file_name);
         Ok(Cache { dir, index: Arc::default(), remote: None })
     }
 
@@ -282,10 +297,10 @@ impl Cache {
                 Ok(Some((pack, rows))) => index.add(Arc::new(pack), rows),
                 Ok(None) => {} // removed meanwhile (gc or clear in another process)
                 Err(why) => {
-                    // Packs appear whole (renamed into place), so this one was damaged
-                    // afterwards: it can serve nothing.
-                    let _ = fs::remove_file(&path);
-                    index.damaged.push((path, why));
+                    // Packs appear whole (renamed into place), so one of ours was damaged
+                    // afterwards: it can serve nothing. A file Kiln did not write is left alone.
+                    let removed = Self::is_own(&path) && fs::remove_file(&path).is_ok();
+                    index.damaged.push((path, why, removed));
                 }
             }
         }
@@ -300,11 +315,15 @@ impl Cache {
             index
                 .damaged
                 .iter()
-                .map(|(path, why)| {
-                    format!(
-                        "warning: cache pack {} was damaged ({why}) and is removed; its entries are recompiled",
-                        path.display()
-                    )
+                .map(|(path, why, removed)| {
+                    if *removed {
+                        format!(
+                            "warning: cache pack {} was damaged ({why}) and is removed; its entries are recompiled",
+                            path.display()
+                        )
+                    } else {
+                        format!("warning: cache file {} is ignored ({why}); Kiln did not write it", path.display())
+                    }
                 })
                 .collect()
         });
@@ -558,20 +577,11 @@ impl Cache {
     }
 
     /// Writes the concatenation of `pieces` to a temporary file in the cache folder, then
-    /// renames it to `path`.
+    /// renames it to `path` ([`crate::output`]: the folder is made again if it was removed
+    /// under us, and whatever is not a regular file at `path` is never renamed over).
     fn write_pieces(&self, path: &Path, pieces: &[&[u8]]) -> Result<(), Error> {
-        let err = |source| Error { path: path.to_path_buf(), source };
-        let mut tmp = match tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir) {
-            Ok(t) => t,
-            Err(_) => {
-                // The folder was removed under us (`kiln cache clear` by hand): make it again.
-                fs::create_dir_all(&self.dir).map_err(err)?;
-                tempfile::Builder::new().prefix(".tmp-").tempfile_in(&self.dir).map_err(err)?
-            }
-        };
-        crate::archive::write_all_vectored(tmp.as_file_mut(), pieces).map_err(err)?;
-        tmp.persist(path).map_err(|e| err(e.error))?;
-        Ok(())
+        crate::archive::write_atomic_impl(path, pieces, false)
+            .map_err(|source| Error { path: path.to_path_buf(), source })
     }
 
     fn files(&self) -> impl Iterator<Item = (PathBuf, fs::Metadata)> {
@@ -592,8 +602,48 @@ impl Cache {
         path.extension().is_some_and(|e| e == RECORD_EXTENSION)
     }
 
+    /// A temporary file of a write into the cache (named by [`crate::output`] after a cache
+    /// file).
     fn is_temporary(path: &Path) -> bool {
-        path.file_name().is_some_and(|n| n.to_string_lossy().starts_with(".tmp-"))
+        path.file_name()
+            .and_then(|n| n.to_str())
+            .and_then(crate::output::temporary_parts)
+            .is_some_and(|(name, _)| Self::is_cache_file_name(name))
+    }
+
+    /// `<32 or 64 hex digits>.kcp`, `.kpp` or `.stamp`: how the cache names its files.
+    fn is_cache_file_name(name: &str) -> bool {
+        let Some((stem, ext)) = name.split_once('.') else { return false };
+        (stem.len() == 32 || stem.len() == 64)
+            && stem.bytes().all(|b| b.is_ascii_hexdigit())
+            && [PACK_EXTENSION, RECORD_EXTENSION, "stamp"].contains(&ext)
+    }
+
+    /// Whether the file at `path` is one Kiln wrote into a cache: a pack or a record with its
+    /// magic bytes, a stamp in its format, a temporary file named after one of those. Only
+    /// these are ever counted, evicted or cleared; anything else in the folder is left alone.
+    fn is_own(path: &Path) -> bool {
+        use std::io::Read;
+        if Self::is_temporary(path) {
+            return true;
+        }
+        let Some(name) = path.file_name().and_then(|n| n.to_str()) else { return false };
+        let Some((stem, ext)) = name.split_once('.') else { return false };
+        if !(stem.len() == 32 || stem.len() == 64) || !stem.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return false;
+        }
+        let mut head = [0u8; 65];
+        let n = match fs::File::open(path).and_then(|mut f| f.read(&mut head)) {
+            Ok(n) => n,
+            Err(_) => return false,
+        };
+        let head = &head[..n];
+        match ext {
+            PACK_EXTENSION => head.starts_with(PACK_MAGIC),
+            RECORD_EXTENSION => head.starts_with(RECORD_MAGIC),
+            "stamp" => n == 65 && head[..64].iter().all(u8::is_ascii_hexdigit) && head[64] == b'\n',
+            _ => false,
+        }
     }
 
     /// The keys of the pack at `path` (none when it is damaged or gone).
@@ -607,7 +657,7 @@ impl Cache {
     pub fn stats(&self) -> Stats {
         let mut s = Stats::default();
         let mut keys = HashSet::new();
-        for (path, meta) in self.files() {
+        for (path, meta) in self.files().filter(|(p, _)| Self::is_own(p)) {
             if Self::is_pack(&path) {
                 s.packs += 1;
                 s.bytes += meta.len();
@@ -629,14 +679,14 @@ impl Cache {
     pub fn gc(&self, max_bytes: u64) -> GcReport {
         let mut files = Vec::new();
         let now = SystemTime::now();
-        for (path, meta) in self.files() {
-            if Self::is_pack(&path) || Self::is_record(&path) {
-                files.push((meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), meta.len(), path));
-            } else if Self::is_temporary(&path) {
+        for (path, meta) in self.files().filter(|(p, _)| Self::is_own(p)) {
+            if Self::is_temporary(&path) {
                 let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
-                if age.as_secs() >= 60 {
+                if age.as_secs() >= 60 || crate::output::is_stale_temporary(&path) {
                     let _ = fs::remove_file(&path);
                 }
+            } else if Self::is_pack(&path) || Self::is_record(&path) {
+                files.push((meta.modified().unwrap_or(SystemTime::UNIX_EPOCH), meta.len(), path));
             }
         }
         files.sort();
@@ -672,17 +722,19 @@ impl Cache {
         report
     }
 
-    /// Removes every pack, record, archive stamp and temporary file; returns how many
-    /// distinct entries were removed.
+    /// Removes every pack, record, archive stamp and temporary file Kiln wrote (checked by
+    /// name and header, see `is_own`: nothing else in the folder is touched); returns how
+    /// many distinct entries were removed.
     pub fn clear(&self) -> Result<u64, Error> {
         let mut keys = HashSet::new();
-        for (path, _) in self.files() {
-            let stamp = path.extension().is_some_and(|e| e == "stamp");
-            if Self::is_pack(&path) || Self::is_record(&path) || Self::is_temporary(&path) || stamp {
-                if Self::is_pack(&path) {
-                    keys.extend(Self::pack_keys(&path));
-                }
-                fs::remove_file(&path).map_err(|source| Error { path: path.clone(), source })?;
+        for (path, _) in self.files().filter(|(p, _)| Self::is_own(p)) {
+            if Self::is_pack(&path) {
+                keys.extend(Self::pack_keys(&path));
+            }
+            match fs::remove_file(&path) {
+                Ok(()) => {}
+                Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+                Err(source) => return Err(Error { path: path.clone(), source }),
             }
         }
         *self.index.write().expect("no panics while locked") = None;
@@ -740,12 +792,16 @@ fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String
 /// compressed), far less than the warm build it saves. A path that is not a regular file has
 /// no identity (and is not opened: a FIFO would block).
 fn archive_identity(path: &Path) -> io::Result<String> {
-    let meta = fs::metadata(path)?;
+    use std::os::unix::fs::OpenOptionsExt;
+    // Only a regular file has an identity (opening a FIFO to read it would block).
+    if !fs::metadata(path)?.is_file() {
+        return Err(io::Error::other("not a regular file"));
+    }
+    let mut f = fs::File::options().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
+    let meta = f.metadata()?;
     if !meta.is_file() {
         return Err(io::Error::other("not a regular file"));
     }
-    let mut f = fs::File::open(path)?;
-    let meta = f.metadata()?;
     let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
     let mut hasher = blake3::Hasher::new();
     hasher.update_reader(&mut f)?;

@@ -67,7 +67,8 @@ fn a_pack_holds_many_entries_in_one_file() {
     let values: Vec<Compiled> = (0..50).map(|i| compiled(i as u8)).collect();
     let entries: Vec<(Key, &Compiled)> = keys.iter().copied().zip(&values).collect();
     cache.put_pack(&entries).unwrap();
-    let files: Vec<_> = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).collect();
+    let files: Vec<_> =
+        fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).filter(|p| !p.ends_with("CACHEDIR.TAG")).collect();
     assert_eq!(files.len(), 1, "{files:?}");
     let fresh = Cache::open(dir.path()).unwrap();
     for (k, v) in keys.iter().zip(&values) {
@@ -80,7 +81,7 @@ fn a_pack_holds_many_entries_in_one_file() {
     assert!(matches!(fresh.get(&key("not stored")), Lookup::Miss));
     // An empty pack is not written.
     cache.put_pack(&[]).unwrap();
-    assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 2, "the pack and CACHEDIR.TAG");
 }
 
 /// Flips one byte of the file at `path`, `from_end` bytes before its end.
@@ -178,11 +179,11 @@ fn interrupted_write_leaves_no_entry() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     let k = key("a");
-    // What a process killed in the middle of `put_pack` leaves: a partial temporary file.
-    let tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(dir.path()).unwrap();
+    // What a process killed in the middle of `put_pack` leaves: a partial temporary file
+    // (here one of this running process, so it is not stale yet).
+    let kept = dir.path().join(format!(".{}.kcp.{}.1.0.tmp", "ab".repeat(16), std::process::id()));
     let full = encode(&k, &compiled(1));
-    fs::write(tmp.path(), &full[..full.len() / 2]).unwrap();
-    let (_, kept) = tmp.keep().unwrap();
+    fs::write(&kept, &full[..full.len() / 2]).unwrap();
     assert!(matches!(cache.get(&k), Lookup::Miss));
     assert_eq!(cache.stats(), Stats { temporaries: 1, ..Stats::default() });
     // gc leaves young temporaries alone (a concurrent writer may own them)...
@@ -285,4 +286,56 @@ fn sizes_parse_and_format() {
     assert_eq!(parse_size("M"), Err("invalid size `M`: expected a number like 10M or 1G".to_string()));
     assert_eq!(format_size(100), "100 B");
     assert_eq!(format_size(3 << 19), "1.5 MiB");
+}
+
+#[test]
+fn temporaries_of_dead_writers_are_removed_on_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = std::process::Command::new("true").spawn().unwrap();
+    let pid = child.id();
+    child.wait().unwrap();
+    let stale = dir.path().join(format!(".{}.kcp.{pid}.1.0.tmp", "cd".repeat(16)));
+    fs::write(&stale, b"KILNCP").unwrap();
+    Cache::open(dir.path()).unwrap();
+    assert!(!stale.exists());
+}
+
+#[test]
+fn only_kilns_own_files_are_cleared_or_evicted() {
+    let dir = tempfile::tempdir().unwrap();
+    // Files a user keeps beside the cache, with the names Kiln uses but not its contents.
+    let foreign = [
+        ("notes.stamp", &b"mine"[..]),
+        ("0123456789abcdef0123456789abcdef.kcp", b"not a pack of kiln at all, just some user bytes here"),
+        ("0123456789abcdef0123456789abcdef.stamp", b"my own stamp"),
+        (&format!("{}.kpp", "e".repeat(64)), b"{}"),
+        (".tmp-user", b"x"),
+        ("old.kcp", b"KILNCP\0\x02"),
+    ];
+    assert!(Cache::open(dir.path()).is_ok());
+    assert!(dir.path().join("CACHEDIR.TAG").is_file(), "a new cache is tagged");
+    for (name, bytes) in &foreign {
+        fs::write(dir.path().join(name), bytes).unwrap();
+    }
+    let cache = Cache::open(dir.path()).unwrap();
+    // A folder holding other files is never tagged (it may be somebody's home).
+    let home = tempfile::tempdir().unwrap();
+    fs::write(home.path().join("thesis.txt"), "mine").unwrap();
+    Cache::open(home.path()).unwrap();
+    assert!(!home.path().join("CACHEDIR.TAG").exists());
+    cache.put(&key("a"), &compiled(1)).unwrap();
+    let k = key("r");
+    cache.put_records(&k, &Records::new()).unwrap();
+    assert_eq!(cache.stats().packs, 1);
+    cache.gc(0);
+    assert_eq!(cache.clear().unwrap(), 0);
+    cache.put(&key("a"), &compiled(1)).unwrap();
+    assert_eq!(cache.clear().unwrap(), 1);
+    for (name, bytes) in &foreign {
+        assert_eq!(fs::read(dir.path().join(name)).unwrap(), *bytes, "{name} is left alone");
+    }
+    assert!(cache.pack_of(&key("a")).is_none());
+    assert!(!cache.records_path(&k).exists());
+    // The damaged-looking foreign pack is reported, not removed.
+    assert!(dir.path().join("0123456789abcdef0123456789abcdef.kcp").exists());
 }

@@ -39,6 +39,11 @@ pub struct Args {
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
     pub stats_json: Option<PathBuf>,
+    /// The most permutations, of one shader at one level or of all together (default: `[compiler]
+    /// max_permutations`, else 16777216 = 2^24). Skip rules that bring the kept ones under it
+    /// make a larger space acceptable.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_permutations: Option<u64>,
     /// Compile only shard I of N (0-based): a cost-balanced share of the distinct keys,
     /// into the cache; no archive unless -o is given. A plain build afterwards assembles
     /// the archive from the cache. Also KILN_SHARD=I/N.
@@ -111,6 +116,7 @@ pub fn exec(args: Args) -> CliResult {
         stats_json: args.stats_json,
         progress: true,
         color,
+        max_permutations: args.max_permutations,
         shard,
     };
     match build::run(&options) {

@@ -30,7 +30,15 @@ pub struct Args {
     /// Do not preprocess: no distinct counts and no dead dimensions, but much faster.
     #[arg(long)]
     pub no_analysis: bool,
+    /// The most permutations, of one shader at one level or of all together (default: `[compiler]
+    /// max_permutations`, else 16777216 = 2^24); with `--all`, skipped ones count too.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_permutations: Option<u64>,
 }
+
+/// The most kept permutations the analysis preprocesses; above it the listing streams
+/// alone (in bounded memory) and says so.
+const ANALYSIS_LIMIT: usize = 100_000;
 
 /// Loads a permutation set, rendering a bad one as exit code 2.
 /// Its warnings go to `err`.
@@ -56,7 +64,8 @@ struct Count {
     shader: String,
     level: String,
     kept: usize,
-    skipped: usize,
+    /// Up to 2^128: 64 bool dimensions skipped whole are 2^64.
+    skipped: u128,
 }
 
 pub fn exec(args: Args) -> CliResult {
@@ -97,22 +106,11 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
         shader.as_deref().is_none_or(|n| n == s.name) && level.as_deref().is_none_or(|n| n == l.name)
     };
 
+    let max = config.max_permutations(args.max_permutations);
+    config.check_space(&filter, max, args.all).map_err(|e| Failure::usage(e.render_with(color)))?;
+
     let mut counts: Vec<Count> = Vec::new();
     let mut errors: Vec<String> = Vec::new();
-    let mut tally = |p: &Permutation<'_>, counts: &mut Vec<Count>| {
-        if !matches!(counts.last(), Some(c) if c.shader == p.shader.name && c.level == p.level.name) {
-            counts.push(Count { shader: p.shader.name.clone(), level: p.level.name.clone(), ..Count::default() });
-        }
-        let c = counts.last_mut().expect("pushed above");
-        if p.is_kept() {
-            c.kept += 1;
-        } else {
-            c.skipped += 1;
-        }
-        if let Some(e) = &p.error {
-            errors.push(format!("warning: {}: {e}", p.name()));
-        }
-    };
 
     // The names stream out first; the analysis (which preprocesses) comes after.
     let cache = SourceCache::new(config.dir.clone());
@@ -123,11 +121,7 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
             writeln!(out, "  \"config\": {},", json!(config.path.display().to_string()))?;
             write!(out, "  \"permutations\": [")?;
             let mut first = true;
-            for p in config.permutations_where(&filter) {
-                tally(&p, &mut counts);
-                if !(args.all || p.is_kept()) {
-                    continue;
-                }
+            for_each_listed(&config, &filter, args.all, &mut counts, &mut errors, &mut |p| {
                 let values: serde_json::Map<String, serde_json::Value> = p
                     .shader
                     .dimensions
@@ -144,9 +138,10 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                 });
                 write!(out, "{}\n    {obj}", if first { "" } else { "," })?;
                 first = false;
-            }
+                Ok(())
+            })?;
             writeln!(out, "\n  ],")?;
-            if !args.no_analysis {
+            if analyze(args, &counts, err) {
                 analysis = Some(permute::analyze(&config, &cache, &filter));
             }
             let count_json: Vec<serde_json::Value> = counts
@@ -157,11 +152,11 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                         .and_then(|a| a.find(&c.shader, &c.level))
                         .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
                         .map(|l| l.distinct);
-                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": c.skipped, "distinct": distinct })
+                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": json_count(c.skipped), "distinct": distinct })
                 })
                 .collect();
             let kept: usize = counts.iter().map(|c| c.kept).sum();
-            let skipped: usize = counts.iter().map(|c| c.skipped).sum();
+            let skipped: u128 = counts.iter().map(|c| c.skipped).fold(0, u128::saturating_add);
             let distinct = analysis
                 .as_ref()
                 .filter(|a| a.failed.is_empty())
@@ -173,32 +168,98 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
                 .collect();
             let failed: Vec<&str> = analysis.iter().flat_map(|a| a.failed.iter().map(|f| f.name.as_str())).collect();
             writeln!(out, "  \"counts\": {},", serde_json::to_string(&count_json).map_err(io::Error::other)?)?;
-            writeln!(out, "  \"totals\": {},", json!({ "kept": kept, "skipped": skipped, "distinct": distinct }))?;
+            writeln!(
+                out,
+                "  \"totals\": {},",
+                json!({ "kept": kept, "skipped": json_count(skipped), "distinct": distinct })
+            )?;
             writeln!(out, "  \"dead_dimensions\": {},", json!(dead))?;
             writeln!(out, "  \"failed\": {}", json!(failed))?;
             writeln!(out, "}}")?;
             return Ok(());
         }
 
-        for p in config.permutations_where(&filter) {
-            tally(&p, &mut counts);
-            match p.skipped_by {
-                None => writeln!(out, "{}", p.name())?,
-                Some(i) if args.all => {
-                    let rule = &p.shader.skip[i];
-                    writeln!(out, "{}  skipped by rule {}: {} (when {})", p.name(), i + 1, rule.why, rule.when)?
-                }
-                Some(_) => {}
+        for_each_listed(&config, &filter, args.all, &mut counts, &mut errors, &mut |p| match p.skipped_by {
+            None => writeln!(out, "{}", p.name()),
+            Some(i) => {
+                let rule = &p.shader.skip[i];
+                writeln!(out, "{}  skipped by rule {}: {} (when {})", p.name(), i + 1, rule.why, rule.when)
             }
-        }
+        })?;
         out.flush()?;
-        if !args.no_analysis {
+        if analyze(args, &counts, err) {
             analysis = Some(permute::analyze(&config, &cache, &filter));
         }
         write_summary(out, &counts, analysis.as_ref())
     })());
     let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
     result
+}
+
+/// A count as a JSON number: exact up to 2^64 - 1, a float above (64 bool dimensions
+/// skipped whole are 2^64 permutations).
+fn json_count(n: u128) -> serde_json::Value {
+    u64::try_from(n).map_or_else(|_| json!(n as f64), |n| json!(n))
+}
+
+/// Calls `f` on every permutation to list (the kept ones, pruned; with `all`, every one) of
+/// each (shader, level) `filter` accepts, counting them per (shader, level) into `counts`.
+fn for_each_listed(
+    config: &Config,
+    filter: &dyn Fn(&permute::Shader, &permute::Level) -> bool,
+    all: bool,
+    counts: &mut Vec<Count>,
+    errors: &mut Vec<String>,
+    f: &mut dyn FnMut(&Permutation<'_>) -> io::Result<()>,
+) -> io::Result<()> {
+    for (shader, level) in config.groups_where(filter) {
+        let same = |s: &permute::Shader, l: &permute::Level| std::ptr::eq(s, shader) && std::ptr::eq(l, level);
+        let mut c = Count { shader: shader.name.clone(), level: level.name.clone(), ..Count::default() };
+        let mut each = |p: &Permutation<'_>, c: &mut Count| {
+            if let Some(e) = &p.error {
+                if p.is_kept() {
+                    errors.push(format!("warning: {}: {e}", p.name()));
+                }
+            }
+            if p.is_kept() {
+                c.kept += 1;
+            } else {
+                c.skipped += 1;
+            }
+            f(p)
+        };
+        if all {
+            for p in config.permutations_where(same) {
+                each(&p, &mut c)?;
+            }
+        } else {
+            let mut kept = config.kept_where(same);
+            for p in &mut kept {
+                each(&p, &mut c)?;
+            }
+            c.skipped = kept.skipped();
+        }
+        counts.push(c);
+    }
+    Ok(())
+}
+
+/// Whether to run the analysis (which preprocesses every kept permutation); a note on `err`
+/// when there are too many.
+fn analyze(args: &Args, counts: &[Count], err: &mut dyn Write) -> bool {
+    let kept: usize = counts.iter().map(|c| c.kept).sum();
+    if args.no_analysis {
+        return false;
+    }
+    if kept > ANALYSIS_LIMIT {
+        let _ = writeln!(
+            err,
+            "note: {kept} kept permutations: the analysis (distinct sources, dead dimensions) runs up to {ANALYSIS_LIMIT}; \
+             use --shader or --level to analyse part of the set"
+        );
+        return false;
+    }
+    true
 }
 
 fn write_warnings(
@@ -231,13 +292,15 @@ fn write_summary(out: &mut dyn Write, counts: &[Count], analysis: Option<&Analys
         }
     };
     let total_kept: usize = counts.iter().map(|c| c.kept).sum();
-    let total_skipped: usize = counts.iter().map(|c| c.skipped).sum();
+    let total_skipped: u128 = counts.iter().map(|c| c.skipped).fold(0, u128::saturating_add);
     let total_distinct = match analysis {
         Some(a) if a.failed.is_empty() => a.levels.iter().map(|l| l.distinct).sum::<usize>().to_string(),
         _ => "-".to_string(),
     };
-    let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6);
-    let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5);
+    // Aligned up to 64 columns; a longer name runs past its column (a format width must fit
+    // in a u16).
+    let ws = counts.iter().map(|c| c.shader.len()).chain([6]).max().unwrap_or(6).min(64);
+    let wl = counts.iter().map(|c| c.level.len()).chain([5]).max().unwrap_or(5).min(64);
     writeln!(out)?;
     writeln!(out, "{:<ws$}  {:<wl$}  {:>8}  {:>8}  {:>8}", "shader", "level", "kept", "skipped", "distinct")?;
     for c in counts {

@@ -90,13 +90,10 @@ pub fn analyze(config: &Config, cache: &SourceCache, filter: impl Fn(&Shader, &L
     // so that many small shaders preprocess in parallel as well as one big one.
     let mut pairs: Vec<(&Shader, &Level)> = Vec::new();
     let mut kept: Vec<(usize, Permutation<'_>)> = Vec::new();
-    for p in config.permutations_where(&filter) {
-        if !matches!(pairs.last(), Some((s, l)) if std::ptr::eq(*s, p.shader) && std::ptr::eq(*l, p.level)) {
-            pairs.push((p.shader, p.level));
-        }
-        if p.is_kept() {
-            kept.push((pairs.len() - 1, p));
-        }
+    for (shader, level) in config.groups_where(&filter) {
+        pairs.push((shader, level));
+        let same = |s: &Shader, l: &Level| std::ptr::eq(s, shader) && std::ptr::eq(l, level);
+        kept.extend(config.kept_where(same).map(|p| (pairs.len() - 1, p)));
     }
     let results: Vec<Result<blake3::Hash, preprocess::Error>> = kept
         .par_iter()

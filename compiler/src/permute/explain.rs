@@ -37,6 +37,12 @@ pub struct Explanation {
 /// Explains the permutation `name`: its defines and their origins, the skip rules, the files it
 /// reads, its token hash and its deduplication group. Preprocesses every kept permutation of
 /// its shader and level (for the group).
+/// The widest a column is padded to.
+const MAX_COLUMN: usize = 64;
+
+/// The most kept permutations of a shader at a level whose dedup group is computed.
+const GROUP_LIMIT: u128 = 100_000;
+
 pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Explanation, NotFound> {
     let p = config.find(name)?;
     let name = p.name();
@@ -48,7 +54,11 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
             Err(e) => (Vec::new(), None, Some(e.diagnostic)),
         };
     let mut group = Vec::new();
-    if let Some(hash) = hash {
+    // The group preprocesses every kept permutation of the shader at the level: only when
+    // there are few enough (counted over the dimensions the skip rules name).
+    let kept = super::enumerate::count_kept(p.shader, p.level, 1 << 16);
+    let grouped = kept.is_some_and(|k| k <= GROUP_LIMIT);
+    if let (Some(hash), true) = (hash, grouped) {
         let analysis = analyze(config, cache, |s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level));
         if let Some(level) = analysis.levels.first() {
             group = level.group(hash).map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values)).collect();
@@ -82,8 +92,10 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     }
 
     let _ = writeln!(t, "\ndefines:");
-    let wn = defines.iter().map(|d| d.name.len()).max().unwrap_or(0);
-    let wv = defines.iter().map(|d| d.value.to_string().len()).max().unwrap_or(0);
+    // Columns are aligned up to a width; a longer name runs past its column (a format width
+    // must fit in a u16).
+    let wn = defines.iter().map(|d| d.name.len()).max().unwrap_or(0).min(MAX_COLUMN);
+    let wv = defines.iter().map(|d| d.value.to_string().len()).max().unwrap_or(0).min(MAX_COLUMN);
     if defines.is_empty() {
         let _ = writeln!(t, "  (none)");
     }
@@ -117,7 +129,13 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
         Some(h) => {
             let _ = writeln!(t, "\ntoken hash: {}", h.to_hex());
             let others = group.iter().filter(|g| **g != name).count();
-            if others == 0 {
+            if !grouped {
+                let _ = writeln!(
+                    t,
+                    "dedup group: not computed ({}@{} keeps more than {GROUP_LIMIT} permutations)",
+                    s.name, l.name
+                );
+            } else if others == 0 {
                 let _ = writeln!(
                     t,
                     "dedup group: no other kept permutation of {}@{} has this token stream",

@@ -27,7 +27,9 @@ use std::path::{Path, PathBuf};
 pub use analysis::{
     analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed,
 };
-pub use enumerate::{Define, DefineOrigin, Permutation, Permutations, RuleResult};
+pub use enumerate::{
+    nominal, Define, DefineOrigin, Kept, Permutation, Permutations, RuleResult, DEFAULT_MAX_PERMUTATIONS,
+};
 pub use error::{ConfigError, Near, NotFound};
 pub use explain::{explain, Explanation};
 pub use schema::MAX_DIMENSION_VALUES;
@@ -52,6 +54,11 @@ pub struct Config {
     pub shaders: Vec<Shader>,
     /// Rendered warnings about the file (an expression using an identifier nothing defines).
     pub warnings: Vec<String>,
+    /// `[compiler] max_permutations`: the most permutations of one shader at one level, or of
+    /// all together (see [`DEFAULT_MAX_PERMUTATIONS`]).
+    pub max_permutations: Option<u64>,
+    /// (name in messages, text) of the file, for errors found after loading.
+    pub source: std::sync::Arc<(String, String)>,
 }
 
 /// A feature level: the defines it sets, the targets it compiles to, the limits it validates against.
@@ -102,6 +109,18 @@ pub struct Shader {
     /// (name, `#if` expression), in order: each sees the ones before it.
     pub derived: Vec<(String, String)>,
     pub skip: Vec<SkipRule>,
+    /// Where its parts are in the toml file.
+    pub spans: ShaderSpans,
+}
+
+/// Byte ranges of a shader's parts in the toml text, for errors found after loading.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct ShaderSpans {
+    pub name: std::ops::Range<usize>,
+    /// From the first dimension's name to the last one's domain (the name without dimensions).
+    pub dimensions: std::ops::Range<usize>,
+    /// Each derived define's expression.
+    pub derived: Vec<std::ops::Range<usize>>,
 }
 
 /// A dimension and its domain.
@@ -151,12 +170,14 @@ pub struct SkipRule {
     pub when: String,
     /// The reason, shown by `kiln list --all` and `kiln explain`.
     pub why: String,
+    /// Where `when` is in the toml text.
+    pub span: std::ops::Range<usize>,
 }
 
 /// Reads and checks a `permutations.toml`. File names in diagnostics are `path` as given.
 pub fn load(path: &Path) -> Result<Config, ConfigError> {
     let display = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| {
+    let text = read_regular_file(path).map_err(|e| {
         ConfigError::new(
             display.clone(),
             String::new(),
@@ -165,6 +186,36 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
         )
     })?;
     load_str(&text, path)
+}
+
+/// The text of the regular file at `path`. Anything else (a directory, a FIFO, a device) is
+/// an error, without blocking: the file is opened non-blocking and checked once open.
+fn read_regular_file(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
+    let kind = |t: std::fs::FileType| {
+        if t.is_dir() {
+            "it is a directory"
+        } else if t.is_fifo() {
+            "it is a FIFO, not a regular file"
+        } else if t.is_char_device() || t.is_block_device() {
+            "it is a device, not a regular file"
+        } else {
+            "it is not a regular file"
+        }
+    };
+    let meta = std::fs::metadata(path)?;
+    if !meta.is_file() {
+        return Err(std::io::Error::other(kind(meta.file_type())));
+    }
+    let mut f = std::fs::File::options().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
+    let meta = f.metadata()?;
+    if !meta.is_file() {
+        return Err(std::io::Error::other(kind(meta.file_type())));
+    }
+    let mut text = String::new();
+    f.read_to_string(&mut text)?;
+    Ok(text)
 }
 
 /// Checks the text of a `permutations.toml` located at `path` (which relative paths in it start
@@ -210,21 +261,20 @@ impl Config {
     }
 
     /// The number of permutations of each shader at each level: (shader, level, kept, skipped).
+    /// Pruned like [`Config::kept_where`]: only kept permutations are visited one by one.
     pub fn counts(&self) -> Vec<Count> {
-        let mut out: Vec<Count> = Vec::new();
-        for p in self.permutations() {
-            let same = matches!(out.last(), Some(c) if c.shader == p.shader.name && c.level == p.level.name);
-            if !same {
-                out.push(Count { shader: p.shader.name.clone(), level: p.level.name.clone(), kept: 0, skipped: 0 });
-            }
-            let c = out.last_mut().expect("pushed above");
-            if p.is_kept() {
-                c.kept += 1;
-            } else {
-                c.skipped += 1;
-            }
-        }
-        out
+        self.groups_where(|_, _| true)
+            .map(|(shader, level)| {
+                let mut kept = self.kept_where(|s, l| std::ptr::eq(s, shader) && std::ptr::eq(l, level));
+                let n = kept.by_ref().count();
+                Count {
+                    shader: shader.name.clone(),
+                    level: level.name.clone(),
+                    kept: n,
+                    skipped: usize::try_from(kept.skipped()).unwrap_or(usize::MAX),
+                }
+            })
+            .collect()
     }
 }
 

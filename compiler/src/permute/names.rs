@@ -38,6 +38,9 @@ pub(super) fn parse_name(name: &str) -> Result<ParsedName, String> {
     Ok(ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims: parsed })
 }
 
+/// The most kept permutations [`nearest`] compares with the name asked for.
+const NEAREST_BUDGET: usize = 1 << 18;
+
 pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>, NotFound> {
     let not_found = |reason: String, wanted: Option<&ParsedName>| NotFound {
         name: name.to_string(),
@@ -93,11 +96,11 @@ pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>
 
 /// The `limit` kept permutations closest to `wanted`: same shader first (then by edit
 /// distance of the shader name), same level, fewest differing dimensions; ties in
-/// enumeration order.
+/// enumeration order. Looks at the first [`NEAREST_BUDGET`] kept permutations only.
 pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec<Near> {
     let mut best: Vec<(usize, usize, Near)> = Vec::new();
     let mut worst = usize::MAX;
-    for (order, p) in config.permutations().filter(Permutation::is_kept).enumerate() {
+    for (order, p) in config.kept_where(|_, _| true).take(NEAREST_BUDGET).enumerate() {
         let mut score = 0;
         if p.shader.name != wanted.shader {
             score += 1000 + 10 * edit_distance(&p.shader.name, &wanted.shader);

@@ -42,6 +42,7 @@ struct RawCompiler {
     include: Vec<Spanned<String>>,
     #[serde(default, rename = "virtual")]
     virtual_roots: IndexMap<Spanned<String>, Spanned<String>>,
+    max_permutations: Option<Spanned<i64>>,
 }
 
 #[derive(Deserialize)]
@@ -292,6 +293,39 @@ impl Checker {
     }
 }
 
+/// Names the preprocessor gives a meaning of its own: a define with one of them would not
+/// reach the shader as written (`defined` is an operator, `__LINE__` is replaced, ...).
+const RESERVED: &[&str] = &[
+    "defined",
+    "__VA_ARGS__",
+    "__VA_OPT__",
+    "__LINE__",
+    "__FILE__",
+    "__COUNTER__",
+    "__INCLUDE_LEVEL__",
+    "__BASE_FILE__",
+    "__DATE__",
+    "__TIME__",
+    "__STDC__",
+    "__STDC_VERSION__",
+    "__STDC_HOSTED__",
+    "__has_include",
+    "__has_include_next",
+    "_Pragma",
+];
+
+impl Checker {
+    /// A located error when `name` (a define, dimension or derived define) is reserved.
+    fn reserved(&mut self, name: &Spanned<String>, what: &str) {
+        let n = name.get_ref();
+        if RESERVED.contains(&n.as_str()) {
+            self.error(name.span(), format!("{what} `{n}` is a name the preprocessor reserves"), "reserved name")
+                .notes
+                .push("`defined`, `__VA_ARGS__`, `__LINE__`, `__FILE__` and the like cannot be defines".into());
+        }
+    }
+}
+
 fn is_ident(s: &str) -> bool {
     let mut b = s.bytes();
     matches!(b.next(), Some(c) if c.is_ascii_alphabetic() || c == b'_')
@@ -346,7 +380,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         Err(e) => {
             let message = e.message().trim_end().to_string();
             let mut d = Diagnostic::error().with_message(message.clone());
-            if let Some(span) = e.span() {
+            if let Some(span) = e.span().or_else(|| deepest_line(text)) {
                 d = d.with_labels(vec![Label::primary((), span).with_message(label_for(&message))]);
             }
             return Err(fail(vec![d]));
@@ -386,6 +420,15 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         }
         virtual_roots.push((name.get_ref().clone(), p.canonicalize().unwrap_or(p)));
     }
+    let mut max_permutations = None;
+    if let Some(m) = &raw.compiler.max_permutations {
+        match u64::try_from(*m.get_ref()) {
+            Ok(v) if v > 0 => max_permutations = Some(v),
+            _ => {
+                c.error(m.span(), "`max_permutations` must be a positive number", "expected a number above 0");
+            }
+        }
+    }
     // Sources resolve through the roots: with a bad root, their errors would only be noise.
     let roots_ok = c.diagnostics.is_empty();
 
@@ -404,9 +447,22 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             if !is_ident(k.get_ref()) {
                 c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
             }
+            c.reserved(k, "define");
             defines.push((k.get_ref().clone(), v.get_ref().0));
         }
         let targets = match &raw_level.targets {
+            Some(ts) if ts.is_empty() => {
+                c.error(
+                    level_targets_span(text, name.span()),
+                    format!("level `{}` has no targets", name.get_ref()),
+                    "an empty list",
+                )
+                .notes
+                .push(
+                    "list at least one of wgsl, spirv, msl, glsl, hlsl, or leave `targets` out for all of them".into(),
+                );
+                Vec::new()
+            }
             Some(ts) => {
                 let mut out: Vec<Target> = Vec::new();
                 for t in ts {
@@ -499,6 +555,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             if !is_ident(k.get_ref()) {
                 c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
             }
+            c.reserved(k, "define");
             defines.push((k.get_ref().clone(), v.get_ref().0));
             shader_scope.insert(k.get_ref().clone(), (k.span(), "shader define"));
         }
@@ -540,6 +597,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             if !is_ident(dname) {
                 c.error(k.span(), format!("`{dname}` is not a valid dimension name"), "expected an identifier");
             }
+            c.reserved(k, "dimension");
             clash(&mut c, "dimension", k, &shader_scope, dname);
             shader_scope.insert(dname.clone(), (k.span(), "dimension"));
             let dim = match v.get_ref() {
@@ -566,11 +624,13 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         // derived
         let derived_names: Vec<&str> = s.derived.keys().map(|k| k.get_ref().as_str()).collect();
         let mut derived = Vec::new();
+        let mut derived_spans = Vec::new();
         for (i, (k, expr)) in s.derived.iter().enumerate() {
             let dname = k.get_ref();
             if !is_ident(dname) {
                 c.error(k.span(), format!("`{dname}` is not a valid define name"), "expected an identifier");
             }
+            c.reserved(k, "derived define");
             clash(&mut c, "derived define", k, &shader_scope, dname);
             shader_scope.insert(dname.clone(), (k.span(), "derived define"));
             if check_expression(&mut c, text, expr) {
@@ -581,6 +641,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                 c.unknown_identifiers(text, expr, &known, &format!("derived define `{dname}`"));
             }
             derived.push((dname.clone(), expr.get_ref().clone()));
+            derived_spans.push(expr.span());
         }
 
         // skip
@@ -613,7 +674,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                     "expected a sentence saying why these permutations are not needed",
                 );
             }
-            skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone() });
+            skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone(), span: r.when.span() });
         }
 
         // source
@@ -647,6 +708,14 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             dimensions,
             derived,
             skip,
+            spans: super::ShaderSpans {
+                name: s.name.span(),
+                dimensions: match (s.dimensions.first(), s.dimensions.last()) {
+                    (Some((first, _)), Some((_, last))) => first.span().start..last.span().end,
+                    _ => s.name.span(),
+                },
+                derived: derived_spans,
+            },
         });
     }
 
@@ -662,7 +731,48 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         .into_iter()
         .map(|w| ConfigError::new(display.to_string(), text.to_string(), vec![w]).render())
         .collect();
-    Ok(Config { path, dir, include_roots, virtual_roots, levels, shaders, warnings })
+    Ok(Config {
+        path,
+        dir,
+        include_roots,
+        virtual_roots,
+        levels,
+        shaders,
+        warnings,
+        max_permutations,
+        source: std::sync::Arc::new((display.to_string(), text.to_string())),
+    })
+}
+
+/// The span of the first line that nests deepest (dotted key parts, brackets, braces): where
+/// a "recursion limit" error, which toml gives without a span, comes from. Clipped to 80 bytes.
+fn deepest_line(text: &str) -> Option<Range<usize>> {
+    let mut best: Option<(usize, Range<usize>)> = None;
+    let mut start = 0;
+    for line in text.split_inclusive('\n') {
+        let depth = line.bytes().filter(|b| matches!(b, b'.' | b'[' | b'{')).count();
+        if depth > 0 && best.as_ref().is_none_or(|(d, _)| depth > *d) {
+            let trimmed = line.trim_end().len();
+            best = Some((depth, start..start + trimmed.clamp(1, 80)));
+        }
+        start += line.len();
+    }
+    best.map(|(_, span)| span)
+}
+
+/// The span of `targets = ...` in the level table whose name is at `name` (the name itself
+/// when it is not found).
+fn level_targets_span(text: &str, name: Range<usize>) -> Range<usize> {
+    let from = name.end.min(text.len());
+    let rest = text.get(from..).unwrap_or("");
+    let end = rest.find("\n[").map_or(rest.len(), |i| i + 1);
+    match find_word(&rest[..end], "targets") {
+        Some(at) => {
+            let line_end = rest[at..end].find('\n').map_or(end, |i| at + i);
+            from + at..from + line_end
+        }
+        None => name,
+    }
 }
 
 /// The label under a serde/toml error, from its message.
