@@ -66,6 +66,8 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     }
 
     let module_group = match hash {
+        // Like the dedup group, it preprocesses every kept permutation of the shader.
+        Some(_) if !grouped => Err(format!("not computed: over {GROUP_LIMIT} kept permutations")),
         Some(_) if p.is_kept() && p.error.is_none() => module_group(config, cache, &p),
         Some(_) => Err("not built".to_string()),
         None => Err("preprocessing failed".to_string()),
