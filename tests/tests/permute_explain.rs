@@ -63,6 +63,7 @@ dedup group: 4 kept permutation(s) of Tonemap@es3_1 have this token stream and c
   Tonemap@es3_1{{BLEND_MODE=OPAQUE,DEBUG_VIEW=1,GRAIN=0}}  (this one)
   Tonemap@es3_1{{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=0,GRAIN=0}}
   Tonemap@es3_1{{BLEND_MODE=TRANSLUCENT,DEBUG_VIEW=1,GRAIN=0}}
+compacted module: shared with no permutation of another token stream
 ",
             hash.to_hex()
         )
@@ -116,7 +117,7 @@ fn explain_a_skipped_permutation_with_derived_defines() {
     assert_eq!(e.group, twins);
     assert!(
         e.text.ends_with(&format!(
-            "dedup group: 2 kept permutation(s) of MobileBasePassPS@es3_1 have this token stream and compile once:\n  {}\n  {}\n",
+            "dedup group: 2 kept permutation(s) of MobileBasePassPS@es3_1 have this token stream and compile once:\n  {}\n  {}\ncompacted module: (none: not built)\n",
             twins[0], twins[1]
         )),
         "{}",
@@ -134,7 +135,7 @@ fn explain_a_skipped_permutation_with_derived_defines() {
     assert!(
         forward
             .text
-            .ends_with("dedup group: no other kept permutation of MobileBasePassPS@es3_1 has this token stream\n"),
+            .ends_with("dedup group: no other kept permutation of MobileBasePassPS@es3_1 has this token stream\ncompacted module: shared with no permutation of another token stream\n"),
         "{}",
         forward.text
     );
