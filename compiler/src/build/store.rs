@@ -24,6 +24,8 @@ pub(super) enum Fetched {
 /// The cache of a build (or none, with `--no-cache`).
 pub(super) struct Store {
     cache: Option<Cache>,
+    /// Artifact bytes gathered before a pack is written ([`PACK_BYTES`]).
+    pack_bytes: usize,
     pending: Mutex<Pending>,
     /// Packs that could not be written: (entries, why).
     failed: Mutex<Vec<(usize, String)>>,
@@ -61,7 +63,7 @@ impl Store {
             Some(Ok(c)) => (Some(with_remote(c, options)?), None),
             Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),
         };
-        Ok(Store { cache, pending: Mutex::default(), failed: Mutex::default(), unavailable })
+        Ok(Store { cache, pack_bytes: PACK_BYTES, pending: Mutex::default(), failed: Mutex::default(), unavailable })
     }
 
     /// The remote cache's counts (zero without one).
@@ -91,7 +93,7 @@ impl Store {
             let mut p = self.pending.lock().expect("no panics while locked");
             p.bytes += compiled.artifacts.iter().map(|(_, b)| b.len()).sum::<usize>();
             p.entries.push((key, compiled, hashes));
-            if p.bytes >= PACK_BYTES {
+            if p.bytes >= self.pack_bytes {
                 Some(std::mem::take(&mut *p))
             } else {
                 None
@@ -172,5 +174,57 @@ pub fn default_cache_dir(config_dir: &Path) -> PathBuf {
     match package {
         Some(dir) => dir.join("target").join("kiln-cache"),
         None => config_dir.join(".kiln-cache"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::archive::{Reflection, Stage, Target};
+
+    fn compiled(tag: u8, len: usize) -> Compiled {
+        let reflection = Reflection {
+            entry: "main".into(),
+            stage: Stage::Fragment,
+            bindings: vec![],
+            vertex_inputs: vec![],
+            color_outputs: vec![],
+            workgroup_size: None,
+        };
+        Compiled { artifacts: vec![(Target::Wgsl, vec![tag; len])], reflection }
+    }
+
+    #[test]
+    fn packs_are_written_as_the_build_goes() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store {
+            cache: Some(Cache::open(dir.path()).unwrap()),
+            pack_bytes: 1000,
+            pending: Mutex::default(),
+            failed: Mutex::default(),
+            unavailable: None,
+        };
+        let key = |i: u8| Key([i; 32]);
+        let packs = || {
+            std::fs::read_dir(dir.path())
+                .unwrap()
+                .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "kcp"))
+                .count()
+        };
+        for i in 0..5u8 {
+            let c = compiled(i, 400);
+            let hashes = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
+            store.put(key(i), c, hashes);
+        }
+        // 400 bytes each, a pack per 1000 bytes: the first three make a pack; two are pending.
+        assert_eq!(packs(), 1, "one pack once 1000 bytes were pending");
+        assert!(store.finish().is_empty());
+        assert_eq!(packs(), 2, "the rest at the end");
+        for i in 0..5u8 {
+            match store.get(&key(i)) {
+                Fetched::Hit(c) => assert_eq!(c, compiled(i, 400)),
+                Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
+            }
+        }
     }
 }
