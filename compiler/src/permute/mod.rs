@@ -112,6 +112,8 @@ pub struct Dimension {
     pub values: Vec<i64>,
     /// An enum's names (`values[i]` is `i`), else empty.
     pub labels: Vec<String>,
+    /// Written `"bool"` (values 0 and 1), rather than as a list or range.
+    pub is_bool: bool,
 }
 
 impl Dimension {

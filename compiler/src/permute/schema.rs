@@ -115,7 +115,8 @@ impl<'de> Deserialize<'de> for DefineValue {
 /// The value of one entry of `dimensions`, checked as it is read so that an error points at
 /// the value itself.
 enum DimensionKind {
-    Values(Vec<i64>),
+    /// The values, and whether they were written `"bool"`.
+    Values(Vec<i64>, bool),
     Enum(Vec<String>),
 }
 
@@ -132,7 +133,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
             }
             fn visit_str<E: de::Error>(self, v: &str) -> Result<DimensionKind, E> {
                 if v == "bool" {
-                    Ok(DimensionKind::Values(vec![0, 1]))
+                    Ok(DimensionKind::Values(vec![0, 1], true))
                 } else {
                     Err(E::custom(format!("unknown dimension kind `{v}`, expected \"bool\", a list of integers, {{ range = [lo, hi] }} or {{ enum = [...] }}")))
                 }
@@ -148,7 +149,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
                 if values.is_empty() {
                     return Err(de::Error::custom("empty dimension: a dimension needs at least one value"));
                 }
-                Ok(DimensionKind::Values(values))
+                Ok(DimensionKind::Values(values, false))
             }
             fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<DimensionKind, A::Error> {
                 let Some(key) = map.next_key::<String>()? else {
@@ -170,7 +171,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
                                 "range of {count} values: a dimension may have at most {MAX_DIMENSION_VALUES}"
                             )));
                         }
-                        DimensionKind::Values((lo..=hi).collect())
+                        DimensionKind::Values((lo..=hi).collect(), false)
                     }
                     "enum" => {
                         let EnumNames(names) = map.next_value()?;
@@ -543,8 +544,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             clash(&mut c, "dimension", k, &shader_scope, dname);
             shader_scope.insert(dname.clone(), (k.span(), "dimension"));
             let dim = match v.get_ref() {
-                DimensionKind::Values(values) => {
-                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new() }
+                DimensionKind::Values(values, is_bool) => {
+                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new(), is_bool: *is_bool }
                 }
                 DimensionKind::Enum(labels) => {
                     for label in labels {
@@ -557,6 +558,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                         name: dname.clone(),
                         values: (0..labels.len() as i64).collect(),
                         labels: labels.clone(),
+                        is_bool: false,
                     }
                 }
             };
