@@ -31,6 +31,8 @@ pub mod compile;
 pub mod permute;
 #[cfg(feature = "compiler")]
 pub mod preprocess;
+#[cfg(feature = "compiler")]
+pub mod watch;
 
 pub use archive::{Stage, Target};
 #[cfg(feature = "compiler")]
