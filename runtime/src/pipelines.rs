@@ -272,6 +272,9 @@ struct CacheInner {
     layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
     render: HashMap<RenderKey, Arc<RenderPipeline>>,
     compute: HashMap<String, Arc<ComputePipeline>>,
+    /// Pipelines a pass builds itself ([`PipelineCache::external`]), with the permutations
+    /// each uses.
+    external: HashMap<String, (Vec<String>, Arc<dyn std::any::Any + Send + Sync>)>,
     stats: CacheStats,
 }
 
@@ -295,6 +298,46 @@ impl PipelineCache {
 
     pub fn archive(&self) -> &ShaderArchive {
         &self.archive
+    }
+
+    /// Hot reload: a cache on `archive` holding this cache's layouts, modules and pipelines,
+    /// except those of the `changed` permutations (and of permutations `archive` lacks), which
+    /// are created again on first use. Its counters go on from this cache's.
+    pub fn carry_over(
+        &self,
+        archive: Arc<ShaderArchive>,
+        changed: &std::collections::HashSet<String>,
+    ) -> PipelineCache {
+        let old = self.lock();
+        let keep = |name: &str| !changed.contains(name) && archive.archive().get(name).is_some();
+        let mut inner = CacheInner { layouts: old.layouts.clone(), stats: old.stats, ..CacheInner::default() };
+        for name in old.used.iter().filter(|n| keep(n)) {
+            inner.used.insert(name.clone());
+            let (Some(o), Some(n)) = (self.archive.archive().get(name), archive.archive().get(name)) else { continue };
+            for target in [Target::Spirv, Target::Wgsl] {
+                if let (Some(ob), Some(nb)) = (o.blob_id(target), n.blob_id(target)) {
+                    if let Some(m) = old.modules.get(&(target, ob)) {
+                        inner.modules.insert((target, nb), m.clone());
+                    }
+                }
+            }
+        }
+        for (k, p) in &old.render {
+            if keep(&k.vertex) && k.fragment.as_deref().is_none_or(keep) {
+                inner.render.insert(k.clone(), p.clone());
+            }
+        }
+        for (k, p) in &old.compute {
+            if keep(&p.compute) {
+                inner.compute.insert(k.clone(), p.clone());
+            }
+        }
+        for (k, (names, p)) in &old.external {
+            if names.iter().all(|n| keep(n)) {
+                inner.external.insert(k.clone(), (names.clone(), p.clone()));
+            }
+        }
+        PipelineCache { archive, device: self.device.clone(), passthrough: self.passthrough, inner: Mutex::new(inner) }
     }
 
     /// Whether modules come from SPIR-V passthrough.
@@ -486,6 +529,24 @@ impl PipelineCache {
         inner.stats.compute_pipelines += 1;
         inner.compute.insert(key, handle.clone());
         Ok(handle)
+    }
+
+    /// A pipeline (or anything else made from permutations) that a pass builds itself, kept
+    /// under `key` with the `permutations` it uses: created by `create` on first use, then
+    /// shared, and carried over by hot reload unless one of its permutations changed.
+    pub fn external<T: std::any::Any + Send + Sync>(
+        &self,
+        key: &str,
+        permutations: &[&str],
+        create: impl FnOnce() -> Result<T, PipelineError>,
+    ) -> Result<Arc<T>, PipelineError> {
+        if let Some(found) = self.lock().external.get(key).and_then(|(_, p)| p.clone().downcast::<T>().ok()) {
+            return Ok(found);
+        }
+        let made = Arc::new(create()?);
+        let names = permutations.iter().map(|n| n.to_string()).collect();
+        self.lock().external.insert(key.to_string(), (names, made.clone()));
+        Ok(made)
     }
 
     /// Counts a render pipeline a pass built itself from this cache's modules and layouts

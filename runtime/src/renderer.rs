@@ -164,12 +164,34 @@ impl Renderer {
         scene: &Scene,
         options: RendererOptions,
     ) -> Result<Renderer, RenderError> {
+        Renderer::with_cache(gpu, PipelineCache::new(gpu, archive), scene, options)
+    }
+
+    /// Hot reload: a renderer of the same frame on `archive`, built between frames, that
+    /// creates again only the modules and pipelines of the `changed` permutations (see
+    /// [`PipelineCache::carry_over`]); every other pipeline is this renderer's. On an error
+    /// this renderer is untouched, so the caller keeps the last good pipelines.
+    pub fn reload(
+        &self,
+        gpu: &Gpu,
+        archive: Arc<ShaderArchive>,
+        scene: &Scene,
+        changed: &std::collections::HashSet<String>,
+    ) -> Result<Renderer, RenderError> {
+        Renderer::with_cache(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone())
+    }
+
+    fn with_cache(
+        gpu: &Gpu,
+        cache: PipelineCache,
+        scene: &Scene,
+        options: RendererOptions,
+    ) -> Result<Renderer, RenderError> {
         let max = gpu.device.limits().max_texture_dimension_2d;
         if options.width == 0 || options.height == 0 || options.width > max || options.height > max {
             return Err(RenderError::Size { width: options.width, height: options.height, max });
         }
         let device = &gpu.device;
-        let cache = PipelineCache::new(gpu, archive);
         let gpu_scene = GpuScene::upload(device, scene);
         let uniform = |label: &str, bytes: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {

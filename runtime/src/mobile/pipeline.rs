@@ -140,6 +140,13 @@ impl<'a> MobilePipelines<'a> {
         if let Some(p) = self.built.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
             return Ok(p.clone());
         }
+        let permutations: Vec<&str> = std::iter::once(desc.vertex.as_str()).chain(desc.fragment.as_deref()).collect();
+        let built = self.cache.external(&key, &permutations, || self.create(desc))?;
+        self.built.lock().unwrap_or_else(|e| e.into_inner()).insert(key, built.clone());
+        Ok(built)
+    }
+
+    fn create(&self, desc: &PipelineDesc) -> Result<MobilePipeline, PipelineError> {
         let label = match &desc.fragment {
             Some(f) => format!("{} + {f}", desc.vertex),
             None => desc.vertex.clone(),
@@ -186,9 +193,7 @@ impl<'a> MobilePipelines<'a> {
             return Err(PipelineError::Wgpu { what: format!("render pipeline `{label}`"), message: e.to_string() });
         }
         self.cache.count_external_render_pipeline();
-        let built = Arc::new(MobilePipeline { label, pipeline, layout });
-        self.built.lock().unwrap_or_else(|e| e.into_inner()).insert(key, built.clone());
-        Ok(built)
+        Ok(MobilePipeline { label, pipeline, layout })
     }
 
     /// How many distinct pipelines were built.
