@@ -53,7 +53,9 @@ fn lines(pipe: impl std::io::Read + Send + 'static) -> mpsc::Receiver<String> {
 fn next_line(rx: &mpsc::Receiver<String>, errors: &mpsc::Receiver<String>) -> String {
     match rx.recv_timeout(Duration::from_secs(300)) {
         Ok(l) => l,
-        Err(e) => panic!("kiln-view printed no line ({e}); stderr:\n{}", errors.try_iter().collect::<Vec<_>>().join("\n")),
+        Err(e) => {
+            panic!("kiln-view printed no line ({e}); stderr:\n{}", errors.try_iter().collect::<Vec<_>>().join("\n"))
+        }
     }
 }
 
