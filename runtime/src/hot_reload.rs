@@ -62,24 +62,20 @@ pub enum Event {
 pub struct HotReload {
     watch: kiln::watch::Watch,
     archive_path: PathBuf,
-    /// The folder holding the archive, removed on drop.
-    folder: PathBuf,
+    /// The private folder (mode 0700) holding the archive, removed on drop.
+    _folder: tempfile::TempDir,
     current: Arc<ShaderArchive>,
-}
-
-impl Drop for HotReload {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.folder);
-    }
 }
 
 impl HotReload {
     /// Builds `config` (only `levels`, all when empty; SPIR-V and WGSL, the targets the
     /// runtime loads) with the cache of `kiln build`, and starts watching.
     pub fn start(config: &Path, levels: &[&str]) -> Result<HotReload, HotReloadError> {
-        let folder = std::env::temp_dir().join(format!("kiln-hot-reload-{}", std::process::id()));
-        std::fs::create_dir_all(&folder).map_err(|source| HotReloadError::Io { path: folder.clone(), source })?;
-        let archive_path = folder.join("shaders.kpak");
+        let folder = tempfile::Builder::new()
+            .prefix("kiln-hot-reload-")
+            .tempdir()
+            .map_err(|source| HotReloadError::Io { path: std::env::temp_dir(), source })?;
+        let archive_path = folder.path().join("shaders.kpak");
         let options = build::Options {
             config: config.to_path_buf(),
             output: Some(archive_path.clone()),
@@ -92,17 +88,10 @@ impl HotReload {
         };
         let (watch, first) = kiln::watch::Watch::start(options)?;
         if let Err(e) = first.result {
-            let _ = std::fs::remove_dir_all(&folder);
             return Err(HotReloadError::Build(failure_text(&e)));
         }
-        let current = match ShaderArchive::open(&archive_path) {
-            Ok(a) => Arc::new(a),
-            Err(source) => {
-                let _ = std::fs::remove_dir_all(&folder);
-                return Err(HotReloadError::Archive { path: archive_path, source });
-            }
-        };
-        Ok(HotReload { watch, archive_path, folder, current })
+        let current = Arc::new(open(&archive_path)?);
+        Ok(HotReload { watch, archive_path, _folder: folder, current })
     }
 
     /// The archive of the last build the caller accepted.
@@ -125,8 +114,7 @@ impl HotReload {
             Ok(r) => r,
             Err(e) => return Ok(Some(Event::Failed { diagnostics: failure_text(&e), files, seen: outcome.seen })),
         };
-        let archive = ShaderArchive::open(&self.archive_path)
-            .map_err(|source| HotReloadError::Archive { path: self.archive_path.clone(), source })?;
+        let archive = open(&self.archive_path)?;
         let changed = changed_permutations(self.current.archive(), archive.archive());
         Ok(Some(Event::Reloaded(Reload {
             archive: Arc::new(archive),
@@ -142,6 +130,16 @@ impl HotReload {
     pub fn accept(&mut self, archive: Arc<ShaderArchive>) {
         self.current = archive;
     }
+}
+
+/// Opens an archive this process's Kiln build just wrote, trusted for SPIR-V passthrough.
+fn open(path: &Path) -> Result<ShaderArchive, HotReloadError> {
+    let archive =
+        ShaderArchive::open(path).map_err(|source| HotReloadError::Archive { path: path.to_path_buf(), source })?;
+    // SAFETY: Kiln's compiler in this very process wrote the archive from the sources into a
+    // folder only this user can write (a private temporary folder), as `runtime/build.rs`
+    // writes the embedded one: it is Kiln's own, unaltered output.
+    Ok(unsafe { archive.assume_trusted() })
 }
 
 /// The rendered failures of a build, or its error.

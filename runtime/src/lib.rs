@@ -27,6 +27,7 @@ pub mod pipelines;
 pub mod renderer;
 pub mod scene;
 pub mod shaders;
+pub mod spirv;
 
 pub use gpu::{Backend, Gpu, GpuError, GpuOptions, ModuleSource};
 pub use renderer::{FramePipeline, RenderError, Renderer, RendererOptions};

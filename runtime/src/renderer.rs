@@ -268,14 +268,9 @@ impl Renderer {
     }
 
     /// Whether the frame's shader modules are created from SPIR-V (passthrough) rather than
-    /// from WGSL: the desktop frame uses WGSL unless its options say otherwise (see
-    /// [`crate::desktop::DesktopOptions::spirv_passthrough`]).
+    /// from WGSL: on Vulkan with a trusted archive, for every frame.
     pub fn uses_spirv_passthrough(&self) -> bool {
-        let passthrough = self.cache.uses_spirv_passthrough();
-        match &self.passes {
-            Passes::DesktopDeferred { frame, .. } => passthrough && frame.options().spirv_passthrough,
-            Passes::Mobile(_) => passthrough,
-        }
+        self.cache.uses_spirv_passthrough()
     }
 
     pub fn cache_stats(&self) -> CacheStats {

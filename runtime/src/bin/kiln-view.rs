@@ -50,6 +50,11 @@ struct Args {
     /// Create shader modules from WGSL even where SPIR-V passthrough is available.
     #[arg(long)]
     wgsl: bool,
+    /// Pass the SPIR-V of the `--shaders` archive to the driver unchanged (after a structural
+    /// check), as for the embedded archive. Only for archives Kiln built that nobody altered:
+    /// without it, modules of a file archive come from WGSL, which wgpu validates.
+    #[arg(long, requires = "shaders")]
+    trust_shaders: bool,
     /// Comparison settings: turn off the effects the other pipelines lack (desktop: TAA,
     /// motion blur, eye adaptation, volumetric fog, reflections, AO, bloom, vignette, sky
     /// gradient; mobile: MSAA, vertex fog, reflections, bloom, translucency).
@@ -254,7 +259,15 @@ fn run(args: &Args) -> Result<(), Failure> {
         return watch::run(args, config);
     }
     let archive = match &args.shaders {
-        Some(path) => ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?,
+        Some(path) => {
+            let archive = ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?;
+            if args.trust_shaders {
+                // SAFETY: the user states the archive is Kiln's own, unaltered (`--trust-shaders`).
+                unsafe { archive.assume_trusted() }
+            } else {
+                archive
+            }
+        }
         None => ShaderArchive::embedded().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
     };
     let (pipeline, backend) = (args.frame_pipeline(), args.backend());
@@ -345,7 +358,7 @@ fn verify(gpu: &Gpu, archive: ShaderArchive) -> Result<(), Failure> {
             failures.push(format!("{}: {e}", p.name()));
         }
     }
-    let source = if gpu.spirv_passthrough { "SPIR-V passthrough" } else { "WGSL" };
+    let source = if cache.uses_spirv_passthrough() { "SPIR-V passthrough" } else { "WGSL" };
     println!(
         "{count} permutations looked up by name and by dimension values; {} distinct modules created from {source} on {}",
         cache.stats().modules,

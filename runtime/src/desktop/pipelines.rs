@@ -149,54 +149,13 @@ pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
     pub device: &'a wgpu::Device,
     pub level: &'a str,
-    spirv_passthrough: bool,
     render: Mutex<Vec<RenderEntry>>,
     compute: Mutex<HashMap<String, Arc<Compute>>>,
 }
 
 impl<'a> Pipelines<'a> {
-    pub fn new(
-        cache: &'a PipelineCache,
-        device: &'a wgpu::Device,
-        level: &'a str,
-        spirv_passthrough: bool,
-    ) -> Pipelines<'a> {
-        Pipelines {
-            cache,
-            device,
-            level,
-            spirv_passthrough,
-            render: Mutex::new(Vec::new()),
-            compute: Mutex::new(HashMap::new()),
-        }
-    }
-
-    /// A permutation's module and reflection: through the runtime's cache (SPIR-V
-    /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
-    /// WGSL artifact, which wgpu compiles with its own bounds checks.
-    fn module(
-        &self,
-        name: &str,
-        stage: Stage,
-    ) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
-        // Through the cache either way, so the permutation counts as used (passes.json) and
-        // its stage is checked.
-        let (module, reflection) = self.cache.module(name, stage)?;
-        if self.spirv_passthrough {
-            return Ok((module, reflection));
-        }
-        let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
-        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-        let module = crate::pipelines::create_module(
-            self.device,
-            false,
-            name,
-            None,
-            perm.artifact(kiln::archive::Target::Wgsl),
-            &reflection,
-            &targets,
-        )?;
-        Ok((module, reflection))
+    pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device, level: &'a str) -> Pipelines<'a> {
+        Pipelines { cache, device, level, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
     }
 
     /// The canonical name of `shader` at the frame's level with these dimension values.
@@ -210,14 +169,19 @@ impl<'a> Pipelines<'a> {
 
     /// The pipeline layout from the runtime's cache (one layout rule for every frame; bind
     /// group layouts shared with the other pipelines).
-    fn layout(&self, label: &str, reflections: &[&kiln::archive::Reflection]) -> Result<Layout, DesktopError> {
+    fn layout(
+        &self,
+        label: &str,
+        reflections: &[&kiln::archive::Reflection],
+    ) -> Result<(Layout, crate::spirv::VulkanBindings), DesktopError> {
         let info = self.cache.layout(label, reflections)?;
-        Ok(Layout {
+        let layout = Layout {
             label: info.label,
             groups: info.groups,
             bind_group_layouts: info.bind_group_layouts,
             pipeline_layout: info.layout,
-        })
+        };
+        Ok((layout, info.vulkan_bindings))
     }
 
     /// A render pipeline of (vertex permutation, fragment permutation or none, state).
@@ -234,16 +198,19 @@ impl<'a> Pipelines<'a> {
             Some(f) => format!("{vertex} + {f}"),
             None => vertex.to_string(),
         };
-        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
-        let fs = match fragment {
-            Some(f) => Some(self.module(f, Stage::Fragment)?),
+        let vs_reflection = self.cache.reflection(vertex, Stage::Vertex)?;
+        let fs_reflection = match fragment {
+            Some(f) => Some(self.cache.reflection(f, Stage::Fragment)?),
             None => None,
         };
         let mut reflections = vec![&vs_reflection];
-        if let Some((_, r)) = &fs {
-            reflections.push(r);
-        }
-        let layout = self.layout(&label, &reflections)?;
+        reflections.extend(fs_reflection.as_ref());
+        let (layout, numbering) = self.layout(&label, &reflections)?;
+        let vs = self.cache.stage_module(vertex, &vs_reflection, &numbering)?;
+        let fs = match (fragment, fs_reflection) {
+            (Some(f), Some(r)) => Some((self.cache.stage_module(f, &r, &numbering)?, r)),
+            _ => None,
+        };
         let buffers: Vec<Option<wgpu::VertexBufferLayout<'static>>> = match desc.vertices {
             Vertices::None => Vec::new(),
             Vertices::Mesh => vec![Some(wgpu::VertexBufferLayout {
@@ -303,8 +270,9 @@ impl<'a> Pipelines<'a> {
         if let Some(c) = self.compute.lock().unwrap_or_else(|e| e.into_inner()).get(name) {
             return Ok(c.clone());
         }
-        let (module, reflection) = self.module(name, Stage::Compute)?;
-        let layout = self.layout(name, &[&reflection])?;
+        let reflection = self.cache.reflection(name, Stage::Compute)?;
+        let (layout, numbering) = self.layout(name, &[&reflection])?;
+        let module = self.cache.stage_module(name, &reflection, &numbering)?;
         let scope = ErrorScopes::push(self.device);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(name),

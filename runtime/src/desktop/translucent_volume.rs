@@ -191,15 +191,11 @@ impl TranslucentVolumes {
                 &[("DYNAMICALLY_SHADOWED", shadowed), ("SHADOW_PROJECTION_TYPE", kind)],
             )
         };
-        // The local lights' shadowed permutations from their WGSL: lavapipe crashes (SIGBUS
-        // in pipeline creation) on Kiln's SPIR-V of both, even reduced to one
-        // textureSampleCompareLevel of the shadow atlas, while the same WGSL compiled by wgpu
-        // runs; the cascaded one's SPIR-V is fine.
         let inject = [
             cache.compute(&name("0", "CASCADED")?)?,
             cache.compute(&name("1", "CASCADED")?)?,
-            cache.compute_from_wgsl(&name("1", "PER_OBJECT")?)?,
-            cache.compute_from_wgsl(&name("1", "ONE_PASS_POINT_LIGHT")?)?,
+            cache.compute(&name("1", "PER_OBJECT")?)?,
+            cache.compute(&name("1", "ONE_PASS_POINT_LIGHT")?)?,
         ];
         let local_shadow = |k: usize| shadows.get(k).and_then(Option::as_ref);
         let projections: Vec<Option<wgpu::Buffer>> = (0..lights.len())

@@ -151,16 +151,19 @@ impl<'a> MobilePipelines<'a> {
             Some(f) => format!("{} + {f}", desc.vertex),
             None => desc.vertex.clone(),
         };
-        let (vs, vs_reflection) = self.cache.module(&desc.vertex, Stage::Vertex)?;
-        let fs = match &desc.fragment {
-            Some(f) => Some(self.cache.module(f, Stage::Fragment)?),
+        let vs_reflection = self.cache.reflection(&desc.vertex, Stage::Vertex)?;
+        let fs_reflection = match &desc.fragment {
+            Some(f) => Some(self.cache.reflection(f, Stage::Fragment)?),
             None => None,
         };
         let mut reflections = vec![&vs_reflection];
-        if let Some((_, r)) = &fs {
-            reflections.push(r);
-        }
+        reflections.extend(fs_reflection.as_ref());
         let layout = self.cache.layout(&label, &reflections)?;
+        let vs = self.cache.stage_module(&desc.vertex, &vs_reflection, &layout.vulkan_bindings)?;
+        let fs = match (&desc.fragment, fs_reflection) {
+            (Some(f), Some(r)) => Some((self.cache.stage_module(f, &r, &layout.vulkan_bindings)?, r)),
+            _ => None,
+        };
         let buffers = vertex_buffers(desc.vertex_input);
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
