@@ -73,7 +73,10 @@ pub fn generate(config: &Config) -> Result<String, Error> {
     for (ident, level) in &level_idents {
         writeln!(out, "            Level::{ident} => {:?},", level.name).unwrap();
     }
-    out.push_str("        }\n    }\n}\n\n");
+    out.push_str("        }\n    }\n\n    /// The level named `name` in `permutations.toml`.\n");
+    out.push_str("    pub fn from_name(name: &str) -> ::core::option::Option<Level> {\n");
+    out.push_str("        Level::ALL.into_iter().find(|l| l.name() == name)\n    }\n}\n\n");
+    out.push_str(TRAIT);
     out.push_str(HELPERS);
 
     // Shaders.
@@ -110,6 +113,24 @@ const PREAMBLE_DOC: &str = r#"//
 // formatting a string. The id is a 128-bit FNV-1a hash of the shader's name, a 0 byte, the
 // level's name, a 0 byte, then each dimension's value (an enum's index, a bool's 0 or 1) as 8
 // little-endian bytes, in declared order.
+
+"#;
+
+/// What every shader's `Key` offers, for code generic over shaders.
+const TRAIT: &str = r#"/// What every shader's `Key` offers (its inherent methods of the same names), for code
+/// generic over shaders.
+pub trait PermutationKey: ::core::marker::Copy + ::core::fmt::Debug {
+    /// The shader's name.
+    const SHADER: &'static str;
+    /// See each `Key::canonical_name`.
+    fn canonical_name(&self, level: Level) -> ::core::option::Option<::std::string::String>;
+    /// See each `Key::skip_reason`.
+    fn skip_reason(&self, level: Level) -> ::core::option::Option<&'static str>;
+    /// See each `Key::permutation_id`.
+    fn permutation_id(&self, level: Level) -> ::core::option::Option<u128>;
+    /// See each `Key::exists`.
+    fn exists(&self, level: Level) -> bool;
+}
 
 "#;
 
@@ -506,7 +527,12 @@ fn shader_mod(
     out.push_str(
         "            for v in self.values() {\n                h = super::__kiln::id_value(h, v);\n            }\n",
     );
-    writeln!(out, "            {OPT}::Some(h)\n        }}\n    }}\n}}\n").unwrap();
+    writeln!(out, "            {OPT}::Some(h)\n        }}\n    }}\n").unwrap();
+    out.push_str("    impl super::PermutationKey for Key {\n        const SHADER: &'static str = NAME;\n");
+    writeln!(out, "        fn canonical_name(&self, level: super::Level) -> {OPT}<::std::string::String> {{\n            Key::canonical_name(self, level)\n        }}").unwrap();
+    writeln!(out, "        fn skip_reason(&self, level: super::Level) -> {OPT}<&'static str> {{\n            Key::skip_reason(self, level)\n        }}").unwrap();
+    writeln!(out, "        fn permutation_id(&self, level: super::Level) -> {OPT}<u128> {{\n            Key::permutation_id(self, level)\n        }}").unwrap();
+    out.push_str("        fn exists(&self, level: super::Level) -> bool {\n            Key::exists(self, level)\n        }\n    }\n}\n\n");
     let _ = config;
     Ok(())
 }

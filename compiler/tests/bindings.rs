@@ -89,6 +89,11 @@ fn main() {
     assert_eq!((d.r#match, d.r#fn), (7, r#type::Fn::A));
     assert_eq!(r#type::Fn::LoopB.name(), "LOOP_B");
     assert_eq!(forward_ps::Key::default().quality, -2);
+    // Generic code over keys.
+    fn name_of<K: PermutationKey>(k: K) -> Option<String> { k.canonical_name(Level::from_name("sm5").unwrap()) }
+    assert_eq!(name_of(k), k.canonical_name(Level::Sm5));
+    assert_eq!(<r#type::Key as PermutationKey>::SHADER, "Type");
+    assert_eq!(Level::from_name("es3_1"), Some(Level::Es31));
     for (i, k) in forward_ps::Key::all().enumerate() {
         assert_eq!(k.ordinal(), Some(i as u64));
     }

@@ -21,6 +21,7 @@ pub mod gpu;
 pub mod gpu_types;
 #[cfg(feature = "hot-reload")]
 pub mod hot_reload;
+pub mod keys;
 pub mod mobile;
 pub mod passes;
 pub mod pipelines;
