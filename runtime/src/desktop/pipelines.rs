@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex};
 
 use kiln::Stage;
 
-use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineError};
+use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache};
 
 use super::DesktopError;
 
@@ -158,13 +158,9 @@ impl<'a> Pipelines<'a> {
         Pipelines { cache, device, level, render: Mutex::new(Vec::new()), compute: Mutex::new(HashMap::new()) }
     }
 
-    /// The canonical name of `shader` at the frame's level with these dimension values.
-    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, DesktopError> {
-        let mut q = self.cache.archive().shader(shader).level(self.level);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find().map_err(PipelineError::from)?.name().to_string())
+    /// The frame's level, for typed permutation keys ([`crate::keys`]).
+    pub fn key_level(&self) -> Result<crate::keys::Level, crate::shaders::LookupError> {
+        crate::keys::level(self.level)
     }
 
     /// The pipeline layout from the runtime's cache (one layout rule for every frame; bind
