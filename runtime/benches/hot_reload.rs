@@ -7,7 +7,9 @@
 //! shared header. Each edit changes a constant to a value not seen before, so every rebuild
 //! compiles; the time runs from the write of the file to the new frame read back, split into
 //! Kiln's rebuild (including the watcher's settle time), the swap (`Renderer::reload`) and the
-//! frame. `cargo bench -p kiln-runtime --features hot-reload --bench hot_reload` (lavapipe
+//! frame. This process's CPU time over the same span (user + system, every thread: Kiln's
+//! workers and lavapipe's) is printed too: on a shared, loaded machine it says what the reload
+//! costs better than the wall clock. `cargo bench -p kiln-runtime --features hot-reload --bench hot_reload` (lavapipe
 //! suffices; `KILN_BENCH_BACKEND=gl` runs on llvmpipe's GL).
 
 use std::path::Path;
@@ -37,8 +39,18 @@ fn save(path: &Path, text: &str) {
     std::fs::rename(&tmp, path).unwrap();
 }
 
+/// CPU time of this process so far (user + system, all threads).
+fn cpu_time() -> Duration {
+    // SAFETY: getrusage writes the struct it is given; a zeroed rusage is a valid value.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) };
+    let tv = |t: libc::timeval| Duration::from_secs(t.tv_sec as u64) + Duration::from_micros(t.tv_usec as u64);
+    tv(usage.ru_utime) + tv(usage.ru_stime)
+}
+
 struct Timing {
     total: Duration,
+    cpu: Duration,
     build: Duration,
     swap: Duration,
     frame: Duration,
@@ -48,7 +60,7 @@ struct Timing {
 
 /// Saves `text` to `path`, waits for the reload, swaps and renders.
 fn edit(hot: &mut HotReload, renderer: &mut Renderer, gpu: &Gpu, scene: &Scene, path: &Path, text: &str) -> Timing {
-    let start = Instant::now();
+    let (start, cpu) = (Instant::now(), cpu_time());
     save(path, text);
     let reload = loop {
         match hot.poll(Duration::from_secs(60)).expect("watch") {
@@ -65,6 +77,7 @@ fn edit(hot: &mut HotReload, renderer: &mut Renderer, gpu: &Gpu, scene: &Scene, 
     let end = Instant::now();
     Timing {
         total: end - start,
+        cpu: cpu_time() - cpu,
         build: built - start,
         swap: swapped - built,
         frame: end - swapped,
@@ -81,12 +94,13 @@ fn median(mut v: Vec<Duration>) -> f64 {
 fn report(what: &str, t: &[Timing]) -> f64 {
     let total = median(t.iter().map(|t| t.total).collect());
     println!(
-        "  {what:<34} {:>4} permutations rebuilt ({} compiled): edit to frame {total:>7.1} ms (build {:.1}, swap {:.1}, frame {:.1}; median of {})",
+        "  {what:<34} {:>4} permutations rebuilt ({} compiled): edit to frame {total:>7.1} ms (build {:.1}, swap {:.1}, frame {:.1}), CPU {:.1} ms; median of {}",
         t[0].rebuilt,
         t[0].compiled,
         median(t.iter().map(|t| t.build).collect()),
         median(t.iter().map(|t| t.swap).collect()),
         median(t.iter().map(|t| t.frame).collect()),
+        median(t.iter().map(|t| t.cpu).collect()),
         t.len()
     );
     total
@@ -125,16 +139,17 @@ fn main() {
     let options = RendererOptions { pipeline, width: 640, height: 360, comparison: false };
     let mut renderer = Renderer::new(&gpu, hot.archive(), &scene, options).expect("renderer");
     renderer.render(false).expect("frame");
-    let steady = Instant::now();
+    let (steady, steady_cpu) = (Instant::now(), cpu_time());
     for _ in 0..3 {
         renderer.render(false).expect("frame");
     }
-    let steady = steady.elapsed() / 3;
+    let (steady, steady_cpu) = (steady.elapsed() / 3, (cpu_time() - steady_cpu) / 3);
     println!(
-        "hot reload of the mobile forward frame at 640x360 on {} ({backend}); first build of es3_1 {:.1} s, a frame {:.1} ms",
+        "hot reload of the mobile forward frame at 640x360 on {} ({backend}); first build of es3_1 {:.1} s, a frame {:.1} ms (CPU {:.1} ms)",
         gpu.info.name,
         cold.as_secs_f64(),
-        steady.as_secs_f64() * 1000.0
+        steady.as_secs_f64() * 1000.0,
+        steady_cpu.as_secs_f64() * 1000.0
     );
 
     let mut one = Vec::new();
