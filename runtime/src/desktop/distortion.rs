@@ -50,7 +50,7 @@ impl Distortion {
     ) -> Result<Distortion, PipelineError> {
         let accumulate_state = RenderState::mesh()
             .with_cull(None)
-            .with_targets(&[ColorTarget { format: DISTORTION_FORMAT, blend: Blend::Additive }])
+            .with_targets(&[ColorTarget::new(DISTORTION_FORMAT, Blend::Additive)])
             .with_depth(DepthState::reverse_z(depth_format, false));
         let accumulate = cache.render(
             &perm(cache, "DistortAccumulateVS", &[])?,
@@ -60,7 +60,7 @@ impl Distortion {
         let apply = cache.render(
             &perm(cache, "DistortApplyScreenVS", &[])?,
             Some(&perm(cache, "DistortApplyScreenPS", &[])?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Replace)),
         )?;
         let offsets = target_2d(
             device,

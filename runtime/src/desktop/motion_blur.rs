@@ -46,7 +46,7 @@ impl MotionBlur {
         let pipeline = cache.render(
             &perm(cache, "MotionBlurVS", &[])?,
             Some(&perm(cache, "MotionBlurPS", &[])?),
-            &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(output_format, Blend::Replace)),
         )?;
         let params = uniform_buffer(
             device,

@@ -87,12 +87,12 @@ impl Reflections {
         let ssr_pipeline = cache.render(
             &perm(cache, "ScreenSpaceReflectionsVS", &[])?,
             Some(&perm(cache, "ScreenSpaceReflectionsPS", &[("SSR_QUALITY", "1")])?),
-            &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(SSR_FORMAT, Blend::Replace)),
         )?;
         let environment = cache.render(
             &perm(cache, "ReflectionEnvironmentVS", &[])?,
             Some(&perm(cache, "ReflectionEnvironmentPS", &[])?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Additive)),
         )?;
         let filter = cache.compute(&perm(cache, "ReflectionCaptureFilterCS", &[])?)?;
         let ssr = target_2d(

@@ -48,7 +48,7 @@ impl TemporalAA {
         let pipeline = cache.render(
             &perm(cache, "TemporalAAVS", &[])?,
             Some(&perm(cache, "TemporalAAPS", &[])?),
-            &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(HISTORY_FORMAT, Blend::Replace)),
         )?;
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
             | wgpu::TextureUsages::TEXTURE_BINDING

@@ -133,7 +133,7 @@ impl VolumetricFog {
         let apply = cache.render(
             &perm(cache, "VolumetricFogApplyVS", &[])?,
             Some(&perm(cache, "VolumetricFogApplyPS", &[])?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::PremultipliedAlpha }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::PremultipliedAlpha)),
         )?;
         let vbuffer_a = volume(device, "VBufferA", grid, VOLUME_FORMAT);
         let vbuffer_b = volume(device, "VBufferB", grid, VOLUME_FORMAT);

@@ -69,7 +69,7 @@ impl DepthCopy {
         let archive = cache.archive();
         let vs = archive.shader("ScreenVS").level(level).find()?.name().to_string();
         let ps = archive.shader("VisualizeDepthPS").level(level).find()?.name().to_string();
-        let state = RenderState::fullscreen(ColorTarget { format: DepthCopy::FORMAT, blend: Blend::Replace });
+        let state = RenderState::fullscreen(ColorTarget::new(DepthCopy::FORMAT, Blend::Replace));
         Ok(DepthCopy { pipeline: cache.render(&vs, Some(&ps), &state)? })
     }
 

@@ -8,6 +8,7 @@ use std::sync::{Arc, OnceLock};
 
 use kiln_runtime::frame::Image;
 use kiln_runtime::scene::Scene;
+use kiln_runtime::validation::CheckedGpu;
 use kiln_runtime::{Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
 
 /// The root `permutations.toml`'s `sm5` permutations, compiled with Kiln into a temp dir.
@@ -31,8 +32,8 @@ pub fn archive() -> Arc<ShaderArchive> {
 
 /// A Vulkan device (lavapipe on machines without a GPU): a missing adapter fails the test
 /// with the runtime's message, which names `mesa-vulkan-drivers`.
-pub fn gpu() -> Gpu {
-    Gpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+pub fn gpu() -> CheckedGpu {
+    CheckedGpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"))
 }
 
 pub fn renderer(gpu: &Gpu, scene: &Scene, options: RendererOptions) -> Renderer {
