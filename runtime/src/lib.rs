@@ -29,6 +29,7 @@ pub mod renderer;
 pub mod scene;
 pub mod shaders;
 pub mod spirv;
+pub mod validation;
 
 pub use gpu::{Backend, Gpu, GpuError, GpuOptions, ModuleSource};
 pub use renderer::{FramePipeline, RenderError, Renderer, RendererOptions};

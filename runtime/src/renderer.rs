@@ -122,6 +122,8 @@ pub enum RenderError {
     NoOutput,
     #[error("rendering the frame failed: {0}")]
     Wgpu(String),
+    #[error("the device was lost: {0}")]
+    DeviceLost(String),
 }
 
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
@@ -144,6 +146,7 @@ pub struct FrameOutput {
 
 pub struct Renderer {
     device: wgpu::Device,
+    lost: crate::gpu::DeviceLost,
     queue: wgpu::Queue,
     timestamps: bool,
     options: RendererOptions,
@@ -181,7 +184,9 @@ impl Renderer {
         Renderer::with_cache(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone())
     }
 
-    fn with_cache(
+    /// As [`Renderer::new`], with pipelines from `cache` (one made with
+    /// [`PipelineCache::with_disk_cache`], say).
+    pub fn with_cache(
         gpu: &Gpu,
         cache: PipelineCache,
         scene: &Scene,
@@ -248,6 +253,7 @@ impl Renderer {
             if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
         Ok(Renderer {
             device: device.clone(),
+            lost: gpu.lost.clone(),
             queue: gpu.queue.clone(),
             timestamps: gpu.timestamps,
             options,
@@ -292,10 +298,16 @@ impl Renderer {
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        if let Some(reason) = self.lost.reason() {
+            return Err(RenderError::DeviceLost(reason));
+        }
         let scopes = crate::pipelines::ErrorScopes::push(&self.device);
         let result = self.record_and_submit(capture);
         if let Some(message) = scopes.pop() {
             return Err(RenderError::Wgpu(message));
+        }
+        if let Some(reason) = self.lost.reason() {
+            return Err(RenderError::DeviceLost(reason));
         }
         result
     }

@@ -13,9 +13,14 @@ use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, ModuleSource, Render
 const W: u32 = 320;
 const H: u32 = 180;
 
-fn gpu(backend: Backend, module_source: ModuleSource) -> Gpu {
-    Gpu::new(&GpuOptions { backend, module_source, timestamps: true })
-        .unwrap_or_else(|e| panic!("render tests need a {backend} adapter: {e}"))
+fn gpu(backend: Backend, module_source: ModuleSource) -> kiln_runtime::validation::CheckedGpu {
+    kiln_runtime::validation::CheckedGpu::new(&GpuOptions {
+        backend,
+        module_source,
+        timestamps: true,
+        validation: true,
+    })
+    .unwrap_or_else(|e| panic!("render tests need a {backend} adapter: {e}"))
 }
 
 fn render(gpu: &Gpu, scene: &Scene, pipeline: FramePipeline, capture: bool) -> kiln_runtime::renderer::FrameOutput {

@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use clap::{Parser, ValueEnum};
 use kiln_runtime::frame::{write_dump, DumpInfo};
+use kiln_runtime::pipelines::PipelineCache;
 use kiln_runtime::scene::Scene;
 use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
 
@@ -60,6 +61,22 @@ struct Args {
     /// gradient; mobile: MSAA, vertex fog, reflections, bloom, translucency).
     #[arg(long)]
     comparison: bool,
+    /// Render the frame this many times in a row (the image written is the last).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    frames: u32,
+    /// Folder of the driver's pipeline cache (one file per adapter and driver, where the
+    /// backend has one). Default: `$KILN_PIPELINE_CACHE`, else `$XDG_CACHE_HOME/kiln/pipelines`,
+    /// else `~/.cache/kiln/pipelines`.
+    #[arg(long, value_name = "DIR", conflicts_with = "no_pipeline_cache")]
+    pipeline_cache: Option<PathBuf>,
+    /// Render with the API's validation on (the Khronos validation layer on Vulkan: Debian
+    /// package `vulkan-validationlayers`; debug output on GL) and fail (exit 1) with the
+    /// messages if it reports any.
+    #[arg(long)]
+    validation: bool,
+    /// Neither read nor write the driver's pipeline cache.
+    #[arg(long)]
+    no_pipeline_cache: bool,
     /// Instead of rendering: look every permutation of the archive up (by name and by its
     /// dimension values) and create its shader module on the device.
     #[arg(long)]
@@ -92,7 +109,7 @@ impl Args {
 
     fn gpu(&self) -> Result<Gpu, Failure> {
         let module_source = if self.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
-        Gpu::new(&GpuOptions { backend: self.backend(), module_source, timestamps: true })
+        Gpu::new(&GpuOptions { backend: self.backend(), module_source, timestamps: true, validation: self.validation })
             .map_err(|e| Failure::Render(e.to_string()))
     }
 }
@@ -217,6 +234,20 @@ mod watch {
     }
 }
 
+/// Where the driver's pipeline cache lives, if anywhere.
+fn pipeline_cache_dir(args: &Args) -> Option<PathBuf> {
+    if args.no_pipeline_cache {
+        return None;
+    }
+    if let Some(dir) = &args.pipeline_cache {
+        return Some(dir.clone());
+    }
+    let env = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from);
+    env("KILN_PIPELINE_CACHE")
+        .or_else(|| env("XDG_CACHE_HOME").map(|d| d.join("kiln/pipelines")))
+        .or_else(|| env("HOME").map(|d| d.join(".cache/kiln/pipelines")))
+}
+
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))?;
     let w: u32 = w.trim().parse().map_err(|_| format!("`{w}` is not a width"))?;
@@ -277,9 +308,20 @@ fn run(args: &Args) -> Result<(), Failure> {
     }
     let (width, height) = args.size;
     let scene = Scene::bundled();
-    let renderer = Renderer::new(
+    let archive = Arc::new(archive);
+    let cache = match pipeline_cache_dir(args) {
+        Some(dir) => {
+            let (cache, warning) = PipelineCache::with_disk_cache(&gpu, archive, &dir);
+            if let Some(w) = warning {
+                eprintln!("warning: {w}");
+            }
+            cache
+        }
+        None => PipelineCache::new(&gpu, archive),
+    };
+    let renderer = Renderer::with_cache(
         &gpu,
-        Arc::new(archive),
+        cache,
         &scene,
         RendererOptions { pipeline, width, height, comparison: args.comparison },
     )
@@ -292,6 +334,24 @@ fn run(args: &Args) -> Result<(), Failure> {
     })?;
     let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
     let mut frame = render(false)?;
+    for _ in 1..args.frames {
+        frame = render(false)?;
+    }
+    if let Err(e) = renderer.pipeline_cache().save() {
+        eprintln!("warning: cannot write the pipeline cache: {e}");
+    }
+    if args.validation {
+        gpu.wait();
+        let messages = kiln_runtime::validation::take();
+        if !messages.is_empty() {
+            return Err(Failure::Render(format!(
+                "{} validation message(s) over {} frame(s):\n{}",
+                messages.len(),
+                args.frames,
+                messages.join("\n")
+            )));
+        }
+    }
     if args.dump_passes.is_some() {
         // Captures copy every pass's output inside the frame; the GPU times come from the
         // frame without them.

@@ -51,7 +51,7 @@ impl Distortion {
     ) -> Result<Distortion, PipelineError> {
         let accumulate_state = RenderState::mesh()
             .with_cull(None)
-            .with_targets(&[ColorTarget { format: DISTORTION_FORMAT, blend: Blend::Additive }])
+            .with_targets(&[ColorTarget::new(DISTORTION_FORMAT, Blend::Additive)])
             .with_depth(DepthState::reverse_z(depth_format, false));
         let accumulate = cache.render(
             &keys::name(keys::distort_accumulate_vs::Key {}, keys::Level::Sm5)?,
@@ -61,7 +61,7 @@ impl Distortion {
         let apply = cache.render(
             &keys::name(keys::distort_apply_screen_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::distort_apply_screen_ps::Key {}, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Replace)),
         )?;
         let offsets = target_2d(
             device,

@@ -231,7 +231,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, device, "sm5");
+        let pipelines = pipelines::Pipelines::new(cache, "sm5");
         let b = Build {
             device,
             pipelines: &pipelines,

@@ -47,7 +47,7 @@ impl MotionBlur {
         let pipeline = cache.render(
             &keys::name(keys::motion_blur_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::motion_blur_ps::Key {}, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: output_format, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(output_format, Blend::Replace)),
         )?;
         let params = uniform_buffer(
             device,

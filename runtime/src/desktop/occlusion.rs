@@ -147,9 +147,8 @@ impl OcclusionCulling {
         bounds: Vec<(Vec3, Vec3)>,
         lights: usize,
     ) -> Result<OcclusionCulling, PipelineError> {
-        let state =
-            RenderState::fullscreen(ColorTarget { format: wgpu::TextureFormat::Rgba8Unorm, blend: Blend::Additive })
-                .with_depth(DepthState::reverse_z(depth_format, false));
+        let state = RenderState::fullscreen(ColorTarget::new(wgpu::TextureFormat::Rgba8Unorm, Blend::Additive))
+            .with_depth(DepthState::reverse_z(depth_format, false));
         let pipeline = cache.render(
             &keys::name(keys::occlusion_query_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::occlusion_query_ps::Key {}, keys::Level::Sm5)?),

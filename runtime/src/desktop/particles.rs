@@ -429,7 +429,7 @@ impl Particles {
     /// The fixed-function state of the heat haze: additive offsets.
     pub fn distortion_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
         let mut state = sprite_state(format, depth);
-        state.color_targets[0].blend = Blend::Additive;
+        state.color_targets[0].blend = Blend::Additive.state();
         state
     }
 
@@ -453,7 +453,7 @@ fn sprite_params(d: &EmitterDesc) -> SpriteParams {
 }
 
 fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
-    let mut state = RenderState::fullscreen(ColorTarget { format, blend: Blend::PremultipliedAlpha });
+    let mut state = RenderState::fullscreen(ColorTarget::new(format, Blend::PremultipliedAlpha));
     state.vertex_layout = VertexLayout::None;
     if let Some(depth) = depth {
         state = state.with_depth(DepthState::reverse_z(depth, false));

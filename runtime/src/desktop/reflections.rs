@@ -88,12 +88,12 @@ impl Reflections {
         let ssr_pipeline = cache.render(
             &keys::name(keys::screen_space_reflections_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::screen_space_reflections_ps::Key { ssr_quality: 1 }, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: SSR_FORMAT, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(SSR_FORMAT, Blend::Replace)),
         )?;
         let environment = cache.render(
             &keys::name(keys::reflection_environment_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::reflection_environment_ps::Key {}, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::Additive }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Additive)),
         )?;
         let filter = cache.compute(&keys::name(keys::reflection_capture_filter_cs::Key {}, keys::Level::Sm5)?)?;
         let ssr = target_2d(

@@ -49,7 +49,7 @@ impl TemporalAA {
         let pipeline = cache.render(
             &keys::name(keys::temporal_aavs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::temporal_aaps::Key {}, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: HISTORY_FORMAT, blend: Blend::Replace }),
+            &RenderState::fullscreen(ColorTarget::new(HISTORY_FORMAT, Blend::Replace)),
         )?;
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
             | wgpu::TextureUsages::TEXTURE_BINDING

@@ -47,7 +47,7 @@ impl Velocity {
         movable: Vec<InstancedMesh>,
     ) -> Result<Velocity, PipelineError> {
         let state = RenderState::mesh()
-            .with_targets(&[ColorTarget { format: VELOCITY_FORMAT, blend: Blend::Replace }])
+            .with_targets(&[ColorTarget::new(VELOCITY_FORMAT, Blend::Replace)])
             .with_depth(DepthState::reverse_z(depth_format, false));
         let pipeline = cache.render(
             &keys::name(keys::velocity_vs::Key {}, keys::Level::Sm5)?,

@@ -141,7 +141,7 @@ impl VolumetricFog {
         let apply = cache.render(
             &keys::name(keys::volumetric_fog_apply_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::volumetric_fog_apply_ps::Key {}, keys::Level::Sm5)?),
-            &RenderState::fullscreen(ColorTarget { format: scene_color_format, blend: Blend::PremultipliedAlpha }),
+            &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::PremultipliedAlpha)),
         )?;
         let vbuffer_a = volume(device, "VBufferA", grid, VOLUME_FORMAT);
         let vbuffer_b = volume(device, "VBufferB", grid, VOLUME_FORMAT);

@@ -69,7 +69,7 @@ impl DepthCopy {
         let level = crate::keys::level(level)?;
         let vs = crate::keys::name(crate::keys::screen_vs::Key {}, level)?;
         let ps = crate::keys::name(crate::keys::visualize_depth_ps::Key {}, level)?;
-        let state = RenderState::fullscreen(ColorTarget { format: DepthCopy::FORMAT, blend: Blend::Replace });
+        let state = RenderState::fullscreen(ColorTarget::new(DepthCopy::FORMAT, Blend::Replace));
         Ok(DepthCopy { pipeline: cache.render(&vs, Some(&ps), &state)? })
     }
 

@@ -152,8 +152,7 @@ impl ParticleSprites {
         if depth_test {
             state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
         }
-        let mut state =
-            state.with_targets(&[ColorTarget { format: formats::SCENE_COLOR, blend: Blend::Additive }]).with_cull(None);
+        let mut state = state.with_targets(&[ColorTarget::new(formats::SCENE_COLOR, Blend::Additive)]).with_cull(None);
         state.vertex_layout = VertexLayout::None;
         let pipeline = init.cache.render(&vs, Some(&ps), &state)?;
         let layout = &pipeline.layout;
