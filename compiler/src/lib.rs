@@ -10,12 +10,15 @@
 //! - [`cache`]: the content-addressed artifact store;
 //! - [`archive`]: the packed file the runtime loads (built without the `compiler` feature,
 //!   with [`output`], so the runtime reads archives with the same types and no naga);
-//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares;
+//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
+//!   [`bindings`], the typed permutation keys it generates;
 //! - [`output`]: how every output file is written (atomically, never over a device or an input).
 
 pub mod archive;
 pub mod output;
 
+#[cfg(feature = "compiler")]
+pub mod bindings;
 #[cfg(feature = "compiler")]
 pub mod build;
 #[cfg(feature = "compiler")]
@@ -30,6 +33,8 @@ pub mod compile;
 pub mod permute;
 #[cfg(feature = "compiler")]
 pub mod preprocess;
+#[cfg(feature = "compiler")]
+pub mod watch;
 
 pub use archive::{Stage, Target};
 #[cfg(feature = "compiler")]

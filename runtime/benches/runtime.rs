@@ -1,9 +1,12 @@
-//! Runtime benchmarks, printed as ratios measured in one run:
-//! - archive open (embedded bytes and memory-mapped file) plus 1,000 lookups, against a
-//!   linear scan of the manifest for the same names;
-//! - shader module creation from SPIR-V passthrough against WGSL on the same permutations,
-//!   and the warm-up (every module and pipeline of a frame) both ways;
-//! - frame time of each pipeline at 640x360.
+//! Runtime benchmarks, printed as figures and ratios measured in one run. Every name comes
+//! from the archive itself (none is spelled here), so the bench follows the permutation set:
+//! - archive open (embedded bytes and memory-mapped file) plus 1,000 lookups, by name and by
+//!   dimension values, against a linear scan of the manifest for the same names;
+//! - shader module creation, SPIR-V passthrough against WGSL, per module (grouped by shader);
+//! - pipeline creation for a whole frame (every render and compute pipeline it uses, from
+//!   its keys) with a cold and a warm on-disk driver pipeline cache;
+//! - first-frame time of each pipeline (renderer creation and the first frame) against a
+//!   later frame.
 //!
 //! `cargo bench -p kiln-runtime --bench runtime` (lavapipe suffices).
 
@@ -12,8 +15,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use kiln::archive::Target;
-use kiln_runtime::pipelines::create_module;
+use kiln_runtime::pipelines::{create_spirv_module, create_wgsl_module, merge_bindings, PipelineCache};
 use kiln_runtime::scene::Scene;
+use kiln_runtime::spirv::{SpirvModule, VulkanBindings};
 use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, ModuleSource, Renderer, RendererOptions, ShaderArchive};
 
 /// Runs `f` `n` times and returns the mean duration.
@@ -55,19 +59,17 @@ fn archive_bench() {
             black_box(archive.permutations().find(|p| p.name() == *n).unwrap());
         }
     });
+    // The same permutations named by shader, level and dimension values (enum values by
+    // their index, which the builder accepts like the label).
+    let picked: Vec<_> = wanted.iter().map(|n| archive.get(n).unwrap()).collect();
     let builder = time(200, || {
-        for i in 0..1000 {
-            let p = archive
-                .shader("MobileBasePassPS")
-                .level("es3_1")
-                .with("FULLY_ROUGH", i % 2)
-                .with("MAX_DYNAMIC_POINT_LIGHTS", [0, 1, 2, 4][i % 4])
-                .with("USE_VERTEX_FOG", (i / 2) % 2)
-                .with("DEFERRED_SHADING_PATH", 0)
-                .with("MATERIAL_BLEND_MODE", "OPAQUE")
-                .find()
-                .unwrap();
-            black_box(p);
+        for p in &picked {
+            let shader = p.shader();
+            let mut q = archive.shader(&shader.name).level(&shader.level);
+            for (d, v) in shader.dimensions.iter().zip(p.values()) {
+                q = q.with(&d.name, v);
+            }
+            black_box(q.find().unwrap());
         }
     });
     println!("archive: {} bytes, {} permutations, {} blobs", bytes.len(), names.len(), archive.archive().blob_count());
@@ -161,92 +163,166 @@ fn archive_bench() {
     );
 }
 
+fn vulkan(source: ModuleSource) -> Gpu {
+    Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: true, validation: false })
+        .unwrap_or_else(|e| panic!("the runtime benchmark needs a Vulkan adapter: {e}"))
+}
+
 fn module_bench() {
-    let gpu = match Gpu::new(&GpuOptions {
-        backend: Backend::Vulkan,
-        module_source: ModuleSource::Auto,
-        timestamps: false,
-    }) {
-        Ok(g) => g,
-        Err(e) => panic!("the module benchmark needs a Vulkan adapter: {e}"),
-    };
+    let gpu = vulkan(ModuleSource::Auto);
     assert!(gpu.spirv_passthrough, "{} does not offer PASSTHROUGH_SHADERS", gpu.info.name);
     let archive = ShaderArchive::embedded().unwrap();
-    let perms: Vec<_> = archive
+    // Each permutation's module as a pipeline of that one stage makes it: SPIR-V walked,
+    // checked and renumbered for its layout, or WGSL parsed and validated by wgpu's naga.
+    struct Module {
+        shader: String,
+        name: String,
+        words: Vec<u32>,
+        wgsl: Vec<u8>,
+        reflection: kiln::archive::Reflection,
+    }
+    let modules: Vec<Module> = archive
         .permutations()
-        .filter(|p| p.blob_id(Target::Spirv).is_some() && p.blob_id(Target::Wgsl).is_some())
+        .filter_map(|p| {
+            let (spirv, wgsl) = (p.artifact(Target::Spirv).unwrap()?, p.artifact(Target::Wgsl).unwrap()?);
+            let parsed = SpirvModule::parse(&spirv).unwrap();
+            let groups = merge_bindings(p.name(), &[p.reflection()]).unwrap();
+            let numbering = VulkanBindings::new(groups.iter().map(|g| g.iter().map(|b| b.binding).collect()).collect());
+            let words = parsed.remap_bindings(|g, b| numbering.get(g, b)).unwrap_or(parsed.words);
+            Some(Module {
+                shader: p.shader().name.clone(),
+                name: p.name().to_string(),
+                words,
+                wgsl: wgsl.to_vec(),
+                reflection: p.reflection().clone(),
+            })
+        })
         .collect();
-    let create_all = |passthrough: bool| {
-        for p in &perms {
-            let (spirv, wgsl) = (p.artifact(Target::Spirv).unwrap(), p.artifact(Target::Wgsl).unwrap());
-            let m = create_module(
-                &gpu.device,
-                passthrough,
-                p.name(),
-                spirv.as_deref(),
-                wgsl.as_deref(),
-                p.reflection(),
-                "",
-            )
-            .unwrap();
-            black_box(m);
-        }
-    };
-    create_all(true);
-    create_all(false);
-    let rounds = 5;
-    let spirv = time(rounds, || create_all(true));
-    let wgsl = time(rounds, || create_all(false));
-    println!("shader modules on {} ({} permutations, mean of {rounds} rounds):", gpu.info.name, perms.len());
-    println!("  SPIR-V passthrough: {:8.2} ms  ({:.1} us per module)", us(spirv) / 1e3, us(spirv) / perms.len() as f64);
-    println!("  WGSL:               {:8.2} ms  ({:.1} us per module)", us(wgsl) / 1e3, us(wgsl) / perms.len() as f64);
-    println!("  ratio WGSL / SPIR-V passthrough: {:.1}x", wgsl.as_secs_f64() / spirv.as_secs_f64());
-    drop(gpu);
+    let rounds = 3;
+    let mut per_shader: std::collections::BTreeMap<&str, (usize, Duration, Duration)> = Default::default();
+    for m in &modules {
+        // One unmeasured creation each: the first use of a code path is not the cost per module.
+        black_box(create_spirv_module(&gpu.device, &m.name, m.words.clone(), &m.reflection).unwrap());
+        black_box(create_wgsl_module(&gpu.device, &m.name, &m.wgsl).unwrap());
+        let spirv = time(rounds, || {
+            black_box(create_spirv_module(&gpu.device, &m.name, m.words.clone(), &m.reflection).unwrap());
+        });
+        let wgsl = time(rounds, || {
+            black_box(create_wgsl_module(&gpu.device, &m.name, &m.wgsl).unwrap());
+        });
+        let e = per_shader.entry(&m.shader).or_default();
+        e.0 += 1;
+        e.1 += spirv;
+        e.2 += wgsl;
+    }
+    let (total_spirv, total_wgsl) =
+        per_shader.values().fold((Duration::ZERO, Duration::ZERO), |(a, b), (_, s, w)| (a + *s, b + *w));
+    println!(
+        "shader modules on {} ({} permutations, mean of {rounds} creations each), per module:",
+        gpu.info.name,
+        modules.len()
+    );
+    println!("  {:36} {:>5} {:>12} {:>12} {:>8}", "shader", "perms", "SPIR-V us", "WGSL us", "ratio");
+    for (shader, (n, spirv, wgsl)) in &per_shader {
+        let (s, w) = (us(*spirv) / *n as f64, us(*wgsl) / *n as f64);
+        println!("  {shader:36} {n:>5} {s:>12.1} {w:>12.1} {:>7.1}x", w / s);
+    }
+    let n = modules.len() as f64;
+    println!(
+        "  all modules: SPIR-V passthrough {:.1} us, WGSL {:.1} us per module, ratio WGSL / SPIR-V {:.1}x",
+        us(total_spirv) / n,
+        us(total_wgsl) / n,
+        total_wgsl.as_secs_f64() / total_spirv.as_secs_f64()
+    );
+}
 
-    // Warm-up of whole frames: every module and pipeline a frame uses, both ways.
-    let archive = Arc::new(archive);
+/// Pipeline creation for a whole frame, from the keys the frame uses, with the driver's
+/// pipeline cache on disk cold (no file) and warm (the file the cold run saved).
+fn pipeline_cache_bench() {
+    let gpu = vulkan(ModuleSource::Auto);
+    let archive = Arc::new(ShaderArchive::embedded().unwrap());
     let scene = Scene::bundled();
-    println!("warm-up (Renderer::new: scene upload, every module and pipeline of the frame):");
+    let dir = std::env::temp_dir().join(format!("kiln-bench-pc-{}", std::process::id()));
+    let options = |pipeline| RendererOptions { pipeline, width: 640, height: 360, comparison: false };
+    println!(
+        "pipeline creation for a whole frame on {} (every module and pipeline, from the frame's keys):",
+        gpu.info.name
+    );
     for pipeline in FramePipeline::ALL {
-        let mut ms = [0.0; 2];
-        for (i, source) in [ModuleSource::Auto, ModuleSource::Wgsl].into_iter().enumerate() {
-            let gpu =
-                Gpu::new(&GpuOptions { backend: Backend::Vulkan, module_source: source, timestamps: false }).unwrap();
-            // One unmeasured round: the driver's first-use costs are not the warm-up's.
-            black_box(
-                Renderer::new(
-                    &gpu,
-                    archive.clone(),
-                    &scene,
-                    RendererOptions { pipeline, width: 640, height: 360, comparison: false },
-                )
-                .unwrap(),
-            );
-            let t = time(3, || {
-                black_box(
-                    Renderer::new(
-                        &gpu,
-                        archive.clone(),
-                        &scene,
-                        RendererOptions { pipeline, width: 640, height: 360, comparison: false },
-                    )
-                    .unwrap(),
-                );
-            });
-            ms[i] = us(t) / 1e3;
+        let keys = Renderer::new(&gpu, archive.clone(), &scene, options(pipeline)).unwrap().pipeline_cache().keys();
+        let rounds = 3;
+        let mut cold = Duration::ZERO;
+        let mut warm = Duration::ZERO;
+        let mut size = 0;
+        // A cold run fills the file first; then each round measures warm (the file there) and
+        // cold (no file) in turn, so neither always runs on a device the other warmed.
+        let _ = std::fs::remove_dir_all(&dir);
+        let (cache, _) = PipelineCache::with_disk_cache(&gpu, archive.clone(), &dir);
+        cache.warm_up(&keys).unwrap();
+        cache.save().unwrap();
+        for _ in 0..rounds {
+            let (cache, warning) = PipelineCache::with_disk_cache(&gpu, archive.clone(), &dir);
+            assert_eq!(warning, None);
+            let start = Instant::now();
+            cache.warm_up(&keys).unwrap();
+            warm += start.elapsed();
+            let _ = std::fs::remove_dir_all(&dir);
+            let (cache, _) = PipelineCache::with_disk_cache(&gpu, archive.clone(), &dir);
+            let start = Instant::now();
+            cache.warm_up(&keys).unwrap();
+            cold += start.elapsed();
+            let path = cache.save().unwrap();
+            size = path.map(|p| std::fs::metadata(p).unwrap().len()).unwrap_or(0);
         }
+        let (cold, warm) = (us(cold / rounds) / 1e3, us(warm / rounds) / 1e3);
         println!(
-            "  {:16} SPIR-V {:8.1} ms, WGSL {:8.1} ms, ratio {:.2}x",
+            "  {:16} {:3} pipelines: cold cache {cold:8.1} ms, warm cache {warm:8.1} ms, ratio cold / warm {:.2}x (cache file {size} bytes)",
             pipeline.name(),
-            ms[0],
-            ms[1],
-            ms[1] / ms[0]
+            keys.len(),
+            cold / warm
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// First-frame time (creating the renderer: scene upload, every pipeline; then one frame)
+/// against a later frame, for each pipeline.
+fn first_frame_bench() {
+    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let scene = Scene::bundled();
+    println!("first frame at 640x360 (renderer creation + frame 1, a fresh device each) against frame 6:");
+    for pipeline in FramePipeline::ALL {
+        let gpu = vulkan(ModuleSource::Auto);
+        let start = Instant::now();
+        let r = Renderer::new(
+            &gpu,
+            archive.clone(),
+            &scene,
+            RendererOptions { pipeline, width: 640, height: 360, comparison: false },
+        )
+        .unwrap();
+        let created = start.elapsed();
+        r.render(false).unwrap();
+        let first = start.elapsed();
+        for _ in 0..4 {
+            r.render(false).unwrap();
+        }
+        let later = time(1, || {
+            r.render(false).unwrap();
+        });
+        println!(
+            "  {:16} creation {:8.1} ms, first frame {:8.1} ms (total), frame 6 {:8.1} ms, ratio first / later {:.1}x",
+            pipeline.name(),
+            us(created) / 1e3,
+            us(first) / 1e3,
+            us(later) / 1e3,
+            first.as_secs_f64() / later.as_secs_f64()
         );
     }
 }
 
 fn frame_bench() {
-    let gpu = Gpu::new(&GpuOptions::default()).unwrap();
+    let gpu = vulkan(ModuleSource::Auto);
     let archive = Arc::new(ShaderArchive::embedded().unwrap());
     let scene = Scene::bundled();
     println!(
@@ -283,5 +359,7 @@ fn frame_bench() {
 fn main() {
     archive_bench();
     module_bench();
+    pipeline_cache_bench();
+    first_frame_bench();
     frame_bench();
 }

@@ -57,11 +57,16 @@ pub struct GpuOptions {
     pub module_source: ModuleSource,
     /// Ask for timestamp queries where the adapter has them.
     pub timestamps: bool,
+    /// Create the device with the API's validation on: the Khronos validation layer on
+    /// Vulkan (an error naming the Debian package `vulkan-validationlayers` where it is
+    /// missing), debug output on GL. Its messages go to [`crate::validation`], which records
+    /// them once installed (this installs it).
+    pub validation: bool,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { backend: Backend::Vulkan, module_source: ModuleSource::Auto, timestamps: true }
+        GpuOptions { backend: Backend::Vulkan, module_source: ModuleSource::Auto, timestamps: true, validation: false }
     }
 }
 
@@ -72,8 +77,36 @@ pub enum GpuError {
          Debian package `mesa-vulkan-drivers` (lavapipe for Vulkan, llvmpipe for GL): apt-get install mesa-vulkan-drivers"
     )]
     NoAdapter { backend: Backend, detail: String },
+    #[error(
+        "validation was asked for, but the Khronos validation layer (VK_LAYER_KHRONOS_validation) is not \
+         installed: Debian package `vulkan-validationlayers` (apt-get install vulkan-validationlayers)"
+    )]
+    NoValidationLayer,
+    #[error("validation was asked for, but another `log` logger is installed, so its messages cannot be recorded")]
+    ValidationLogger,
     #[error("cannot create a {backend} device on {adapter}: {source}")]
     Device { backend: Backend, adapter: String, source: wgpu::RequestDeviceError },
+}
+
+/// Keeps Mesa's implicit `VK_LAYER_MESA_device_select` from probing for a Wayland display
+/// where none can exist.
+///
+/// wgpu enables `VK_KHR_wayland_surface` on every Vulkan instance where the loader has it, and
+/// the layer then calls `wl_display_connect` while listing devices; with no
+/// `XDG_RUNTIME_DIR` that prints `error: XDG_RUNTIME_DIR is invalid or not set in the
+/// environment.` (twice per instance) although nothing is wrong for a headless renderer. Where
+/// `XDG_RUNTIME_DIR` is unset (so no Wayland display is reachable) and the user has not chosen
+/// a device with `MESA_VK_DEVICE_SELECT` nor said anything through `NODEVICE_SELECT`, this
+/// sets the layer's own switch `NODEVICE_SELECT=1` for the process, once, before the first
+/// instance: wgpu picks the adapter itself. Any real error still prints.
+fn skip_device_select_display_probe() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let unset = |name: &str| std::env::var_os(name).is_none_or(|v| v.is_empty());
+        if unset("XDG_RUNTIME_DIR") && unset("MESA_VK_DEVICE_SELECT") && std::env::var_os("NODEVICE_SELECT").is_none() {
+            std::env::set_var("NODEVICE_SELECT", "1");
+        }
+    });
 }
 
 /// A device ready to render offscreen.
@@ -90,6 +123,19 @@ pub struct Gpu {
     pub timestamps: bool,
     /// Depth textures can be copied to buffers (not on GL).
     pub depth_copies: bool,
+    /// Why the device was lost, once it is.
+    pub lost: DeviceLost,
+}
+
+/// Why a device was lost, shared with whatever renders on it.
+#[derive(Clone, Debug, Default)]
+pub struct DeviceLost(std::sync::Arc<std::sync::Mutex<Option<String>>>);
+
+impl DeviceLost {
+    /// The reason, once the device is lost.
+    pub fn reason(&self) -> Option<String> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
 }
 
 impl fmt::Debug for Gpu {
@@ -110,8 +156,29 @@ impl Gpu {
 
     async fn new_async(options: &GpuOptions) -> Result<Gpu, GpuError> {
         let backend = options.backend;
+        if backend == Backend::Vulkan {
+            skip_device_select_display_probe();
+        }
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = backend.wgpu();
+        if options.validation {
+            if !crate::validation::install() {
+                return Err(GpuError::ValidationLogger);
+            }
+            if backend == Backend::Vulkan && crate::validation::khronos_layer_manifest().is_none() {
+                return Err(GpuError::NoValidationLayer);
+            }
+            // Vulkan: the layer as `VK_INSTANCE_LAYERS=VK_LAYER_KHRONOS_validation` enables it
+            // (its core checks: wgpu's own VALIDATION flag adds synchronization validation,
+            // which flags wgpu's store of read-only depth attachments), and DEBUG for the
+            // debug-utils messenger that hands its messages to wgpu's log. GL: VALIDATION
+            // turns debug output on.
+            match backend {
+                Backend::Vulkan => crate::validation::enable_layer_for_process(),
+                Backend::Gl => desc.flags |= wgpu::InstanceFlags::VALIDATION,
+            }
+            desc.flags |= wgpu::InstanceFlags::DEBUG;
+        }
         let instance = wgpu::Instance::new(desc);
         let adapter = match instance
             .request_adapter(&wgpu::RequestAdapterOptions {
@@ -150,6 +217,8 @@ impl Gpu {
         }
         // The desktop frame's scene depth with stencil, copyable for --dump-passes.
         features |= available & wgpu::Features::DEPTH32FLOAT_STENCIL8;
+        // The driver's pipeline cache, persisted by `PipelineCache::with_disk_cache`.
+        features |= available & wgpu::Features::PIPELINE_CACHE;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("kiln-runtime device"),
@@ -166,6 +235,12 @@ impl Gpu {
         device.on_uncaptured_error(std::sync::Arc::new(|e: wgpu::Error| {
             eprintln!("wgpu error: {}", crate::pipelines::error_chain(&e));
         }));
+        // A lost device (a driver reset, or one that gave up) is an error of the next frame.
+        let lost = DeviceLost::default();
+        let record = lost.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            *record.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(format!("{reason:?}: {message}"));
+        });
         let depth_copies =
             adapter.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES);
         Ok(Gpu {
@@ -178,7 +253,18 @@ impl Gpu {
             spirv_passthrough: passthrough,
             timestamps,
             depth_copies,
+            lost,
         })
+    }
+
+    /// The file name of this adapter's and driver's pipeline cache, where the device has one
+    /// (`Features::PIPELINE_CACHE`: Vulkan).
+    pub fn pipeline_cache_key(&self) -> Option<String> {
+        if !self.device.features().contains(wgpu::Features::PIPELINE_CACHE) {
+            return None;
+        }
+        wgpu::util::pipeline_cache_key(&self.info)
+            .map(|k| format!("{k}_{}.kpc", self.info.driver_info.replace(|c: char| !c.is_ascii_alphanumeric(), "_")))
     }
 
     /// Waits until the GPU has finished everything submitted.

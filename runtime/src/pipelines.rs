@@ -17,6 +17,7 @@ use kiln::Stage;
 
 use crate::gpu::Gpu;
 use crate::shaders::{LookupError, ShaderArchive};
+use crate::spirv::{SpirvError, SpirvModule, VulkanBindings};
 
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
@@ -28,6 +29,10 @@ pub enum PipelineError {
     NoArtifact { name: String, targets: String },
     #[error("permutation `{name}`: {message}")]
     BadArtifact { name: String, message: String },
+    #[error("permutation `{name}`: {source}")]
+    Spirv { name: String, source: SpirvError },
+    #[error("permutation `{name}`: {what}")]
+    Limit { name: String, what: String },
     #[error("{what}: wgpu rejected it: {message}")]
     Wgpu { what: String, message: String },
     #[error("pipeline `{label}`: binding @group({group}) @binding({binding}) is `{kind_a}` in one stage and `{kind_b}` in another")]
@@ -45,9 +50,15 @@ pub enum PipelineError {
 pub enum VertexLayout {
     /// No vertex buffers (full-screen triangles from the vertex index).
     None,
-    /// [`crate::gpu_types::MeshVertex`] in buffer 0 and [`crate::gpu_types::InstanceData`]
-    /// (one local-to-world matrix per instance) in buffer 1.
+    /// [`crate::gpu_types::MeshVertex`] in buffer 0 (locations 0 to 2) and
+    /// [`crate::gpu_types::InstanceData`] (one local-to-world matrix per instance, locations
+    /// 3 to 6) in buffer 1.
     MeshInstanced,
+    /// [`crate::gpu_types::MeshVertex`] in buffer 0 only (instances come from a storage
+    /// buffer indexed by `instance_index`).
+    Mesh,
+    /// A `vec3<f32>` position in buffer 0 (location 0): light volumes.
+    Position,
 }
 
 /// How a color target blends.
@@ -58,10 +69,12 @@ pub enum Blend {
     Additive,
     /// dst * (1 - src.a) + src (premultiplied translucency).
     PremultipliedAlpha,
+    /// Any other blend state.
+    State(wgpu::BlendState),
 }
 
 impl Blend {
-    fn state(self) -> Option<wgpu::BlendState> {
+    pub fn state(self) -> Option<wgpu::BlendState> {
         match self {
             Blend::Replace => None,
             Blend::Additive => Some(wgpu::BlendState {
@@ -77,16 +90,42 @@ impl Blend {
                 },
             }),
             Blend::PremultipliedAlpha => Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            Blend::State(state) => Some(state),
         }
     }
 }
 
+/// A color target: format, blending (`None`: replace) and the channels written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct ColorTarget {
     pub format: wgpu::TextureFormat,
-    pub blend: Blend,
+    pub blend: Option<wgpu::BlendState>,
+    pub write_mask: wgpu::ColorWrites,
 }
 
+impl ColorTarget {
+    /// A target writing every channel.
+    pub fn new(format: wgpu::TextureFormat, blend: Blend) -> ColorTarget {
+        ColorTarget { format, blend: blend.state(), write_mask: wgpu::ColorWrites::ALL }
+    }
+
+    pub fn with_write_mask(mut self, mask: wgpu::ColorWrites) -> ColorTarget {
+        self.write_mask = mask;
+        self
+    }
+
+    fn wgpu(&self) -> wgpu::ColorTargetState {
+        wgpu::ColorTargetState { format: self.format, blend: self.blend, write_mask: self.write_mask }
+    }
+}
+
+impl From<&wgpu::ColorTargetState> for ColorTarget {
+    fn from(t: &wgpu::ColorTargetState) -> ColorTarget {
+        ColorTarget { format: t.format, blend: t.blend, write_mask: t.write_mask }
+    }
+}
+
+/// Depth test, writes and bias. The bias floats are stored as bits so the state hashes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct DepthState {
     pub format: wgpu::TextureFormat,
@@ -94,18 +133,29 @@ pub struct DepthState {
     pub compare: wgpu::CompareFunction,
     /// Constant depth bias (shadow depths).
     pub bias: i32,
-    /// Slope-scaled bias, as `f32::to_bits` so the state hashes.
+    /// Slope-scaled bias, as `f32::to_bits`.
     pub slope_scale_bits: u32,
+    /// Bias clamp, as `f32::to_bits`.
+    pub clamp_bits: u32,
 }
 
 impl DepthState {
     /// Reverse-Z depth test (near = 1, far = 0).
     pub fn reverse_z(format: wgpu::TextureFormat, write: bool) -> DepthState {
-        DepthState { format, write, compare: wgpu::CompareFunction::GreaterEqual, bias: 0, slope_scale_bits: 0 }
+        DepthState {
+            format,
+            write,
+            compare: wgpu::CompareFunction::GreaterEqual,
+            bias: 0,
+            slope_scale_bits: 0,
+            clamp_bits: 0,
+        }
     }
 }
 
-/// The fixed-function state of a render pipeline: everything but the shaders.
+/// The fixed-function state of a render pipeline: everything but the shaders. It is the
+/// pipeline cache's key with the permutations ([`RenderKey`]), so it holds every piece of
+/// state that changes the pipeline.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct RenderState {
     pub vertex_layout: VertexLayout,
@@ -145,6 +195,34 @@ impl RenderState {
         }
     }
 
+    /// The state of triangles with this vertex layout, culling, wgpu depth-stencil state,
+    /// targets and sample count (the frames describe their passes in wgpu's terms).
+    pub fn from_wgpu(
+        vertex_layout: VertexLayout,
+        cull_mode: Option<wgpu::Face>,
+        depth_stencil: Option<&wgpu::DepthStencilState>,
+        targets: &[wgpu::ColorTargetState],
+        sample_count: u32,
+    ) -> RenderState {
+        let depth = depth_stencil.map(|d| DepthState {
+            format: d.format,
+            write: d.depth_write_enabled.unwrap_or(false),
+            compare: d.depth_compare.unwrap_or(wgpu::CompareFunction::Always),
+            bias: d.bias.constant,
+            slope_scale_bits: d.bias.slope_scale.to_bits(),
+            clamp_bits: d.bias.clamp.to_bits(),
+        });
+        RenderState {
+            vertex_layout,
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            cull_mode,
+            depth,
+            stencil: depth_stencil.map(|d| d.stencil.clone()).unwrap_or_default(),
+            color_targets: targets.iter().map(ColorTarget::from).collect(),
+            sample_count,
+        }
+    }
+
     pub fn with_depth(mut self, depth: DepthState) -> RenderState {
         self.depth = Some(depth);
         self
@@ -170,6 +248,44 @@ impl RenderState {
         self.sample_count = count;
         self
     }
+
+    fn depth_stencil(&self) -> Option<wgpu::DepthStencilState> {
+        self.depth.map(|d| wgpu::DepthStencilState {
+            format: d.format,
+            depth_write_enabled: Some(d.write),
+            depth_compare: Some(d.compare),
+            stencil: self.stencil.clone(),
+            bias: wgpu::DepthBiasState {
+                constant: d.bias,
+                slope_scale: f32::from_bits(d.slope_scale_bits),
+                clamp: f32::from_bits(d.clamp_bits),
+            },
+        })
+    }
+}
+
+/// The key of a render pipeline in the cache: its permutations and its whole fixed-function
+/// state.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct RenderKey {
+    /// The vertex permutation's canonical name.
+    pub vertex: String,
+    /// The fragment permutation's canonical name (`None`: depth only).
+    pub fragment: Option<String>,
+    pub state: RenderState,
+}
+
+/// The key of a compute pipeline: its permutation (compute has no fixed-function state).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct ComputeKey {
+    pub compute: String,
+}
+
+/// A pipeline to create ahead of the first frame ([`PipelineCache::warm_up`]).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub enum PipelineKey {
+    Render(RenderKey),
+    Compute(ComputeKey),
 }
 
 /// One resource binding of a pipeline, merged over its stages.
@@ -188,6 +304,8 @@ pub struct PipelineLayoutInfo {
     pub groups: Vec<Vec<MergedBinding>>,
     pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
     pub layout: wgpu::PipelineLayout,
+    /// How wgpu's Vulkan backend numbers these bindings (passthrough modules follow it).
+    pub vulkan_bindings: VulkanBindings,
 }
 
 impl PipelineLayoutInfo {
@@ -217,8 +335,11 @@ impl PipelineLayoutInfo {
         }
         let layout = &self.bind_group_layouts[group as usize];
         let scope = ErrorScopes::push(device);
-        let bind_group =
-            device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries });
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(short_label(label)),
+            layout,
+            entries: &entries,
+        });
         check_scope(scope, || format!("bind group `{label}`"))?;
         Ok(bind_group)
     }
@@ -247,13 +368,6 @@ pub struct ComputePipeline {
     pub workgroup_size: [u32; 3],
 }
 
-#[derive(Clone, Debug, PartialEq, Eq, Hash)]
-struct RenderKey {
-    vertex: String,
-    fragment: Option<String>,
-    state: RenderState,
-}
-
 /// Counters of what the cache created (for tests and the warm-up check).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CacheStats {
@@ -265,13 +379,16 @@ pub struct CacheStats {
 
 #[derive(Default)]
 struct CacheInner {
-    /// By the artifact blob the module was made from: permutations that compiled to the same
-    /// code share one module.
-    modules: HashMap<(Target, kiln::archive::BlobId), wgpu::ShaderModule>,
+    /// By the artifact blob the module was made from and, for SPIR-V passthrough, the Vulkan
+    /// binding numbers of its resources: permutations that compiled to the same code share one
+    /// module wherever their pipeline layouts number the bindings alike.
+    modules: HashMap<(Target, kiln::archive::BlobId, Vec<u32>), wgpu::ShaderModule>,
+    /// SPIR-V artifacts walked once ([`crate::spirv`]), by blob.
+    spirv: HashMap<kiln::archive::BlobId, Arc<SpirvModule>>,
     used: std::collections::BTreeSet<String>,
     layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
     render: HashMap<RenderKey, Arc<RenderPipeline>>,
-    compute: HashMap<String, Arc<ComputePipeline>>,
+    compute: HashMap<ComputeKey, Arc<ComputePipeline>>,
     stats: CacheStats,
 }
 
@@ -280,24 +397,187 @@ pub struct PipelineCache {
     archive: Arc<ShaderArchive>,
     device: wgpu::Device,
     passthrough: bool,
+    limits: wgpu::Limits,
     inner: Mutex<CacheInner>,
+    disk: Option<DiskCache>,
+}
+
+/// wgpu's driver-level pipeline cache, loaded from and saved to one file per adapter and
+/// driver.
+struct DiskCache {
+    cache: wgpu::PipelineCache,
+    path: std::path::PathBuf,
+}
+
+/// The first bytes of a pipeline cache file Kiln wrote; a blake3 hash of the data follows.
+const DISK_CACHE_MAGIC: &[u8; 8] = b"KILNPC1\0";
+
+/// The data of a pipeline cache file, or why it cannot be used.
+fn read_disk_cache(bytes: &[u8]) -> Result<&[u8], &'static str> {
+    let rest = bytes.strip_prefix(DISK_CACHE_MAGIC.as_slice()).ok_or("it is not a Kiln pipeline cache")?;
+    if rest.len() < 32 {
+        return Err("it is truncated");
+    }
+    let (hash, data) = rest.split_at(32);
+    if blake3::hash(data).as_bytes() != hash {
+        return Err("its checksum does not match (corrupt)");
+    }
+    Ok(data)
 }
 
 impl PipelineCache {
     pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>) -> PipelineCache {
         PipelineCache {
+            passthrough: gpu.spirv_passthrough && archive.trusted(),
             archive,
             device: gpu.device.clone(),
-            passthrough: gpu.spirv_passthrough,
+            limits: gpu.device.limits(),
             inner: Mutex::default(),
+            disk: None,
         }
+    }
+
+    /// A cache whose pipelines also go through wgpu's driver pipeline cache, loaded from
+    /// `dir` (one file per adapter and driver) where the backend has one (Vulkan; lavapipe
+    /// does). [`PipelineCache::save`] writes it back. A file that cannot be read or fails its
+    /// checksum is ignored: the warning says why, and the cache starts empty.
+    pub fn with_disk_cache(
+        gpu: &Gpu,
+        archive: Arc<ShaderArchive>,
+        dir: &std::path::Path,
+    ) -> (PipelineCache, Option<String>) {
+        let mut cache = PipelineCache::new(gpu, archive);
+        let Some(key) = gpu.pipeline_cache_key() else { return (cache, None) };
+        let path = dir.join(key);
+        let mut warning = None;
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => Some(b),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => {
+                warning = Some(format!("pipeline cache {} cannot be read ({e}); starting empty", path.display()));
+                None
+            }
+        };
+        let data = bytes.as_deref().and_then(|b| match read_disk_cache(b) {
+            Ok(d) => Some(d),
+            Err(why) => {
+                warning = Some(format!("pipeline cache {} is ignored: {why}", path.display()));
+                None
+            }
+        });
+        let create = |data: Option<&[u8]>| {
+            let scope = ErrorScopes::push(&gpu.device);
+            // SAFETY: the data is either none or bytes this function wrote from
+            // `PipelineCache::get_data` of a cache for the same adapter and driver (the file
+            // name is wgpu's key for them), checked against their blake3 hash; wgpu checks its
+            // own header (device, driver, version) again and the driver its own.
+            let cache = unsafe {
+                gpu.device.create_pipeline_cache(&wgpu::PipelineCacheDescriptor {
+                    label: Some("kiln pipeline cache"),
+                    data,
+                    fallback: false,
+                })
+            };
+            (cache, scope.pop())
+        };
+        let (wgpu_cache, error) = create(data);
+        let wgpu_cache = match error {
+            None => wgpu_cache,
+            Some(e) => {
+                warning = Some(format!("pipeline cache {} is ignored: {e}", path.display()));
+                match create(None) {
+                    (c, None) => c,
+                    (_, Some(e)) => {
+                        warning = Some(format!("no pipeline cache: {e}"));
+                        return (cache, warning);
+                    }
+                }
+            }
+        };
+        cache.disk = Some(DiskCache { cache: wgpu_cache, path });
+        (cache, warning)
+    }
+
+    /// Writes the driver's pipeline cache back to its file (temp file + rename); the path,
+    /// or `None` where there is no disk cache or the driver gives no data.
+    pub fn save(&self) -> std::io::Result<Option<std::path::PathBuf>> {
+        let Some(disk) = &self.disk else { return Ok(None) };
+        let Some(data) = disk.cache.get_data() else { return Ok(None) };
+        if let Some(dir) = disk.path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        let mut bytes = Vec::with_capacity(data.len() + 40);
+        bytes.extend_from_slice(DISK_CACHE_MAGIC);
+        bytes.extend_from_slice(blake3::hash(&data).as_bytes());
+        bytes.extend_from_slice(&data);
+        kiln::archive::write_atomic(&disk.path, &bytes)?;
+        Ok(Some(disk.path.clone()))
+    }
+
+    /// Whether pipelines go through a driver pipeline cache on disk.
+    pub fn has_disk_cache(&self) -> bool {
+        self.disk.is_some()
     }
 
     pub fn archive(&self) -> &ShaderArchive {
         &self.archive
     }
 
-    /// Whether modules come from SPIR-V passthrough.
+    /// Hot reload: a cache on `archive` holding this cache's layouts, modules and pipelines,
+    /// except those of the `changed` permutations (and of permutations `archive` lacks), which
+    /// are created again on first use. Its counters go on from this cache's.
+    pub fn carry_over(
+        &self,
+        archive: Arc<ShaderArchive>,
+        changed: &std::collections::HashSet<String>,
+    ) -> PipelineCache {
+        let old = self.lock();
+        let keep = |name: &str| !changed.contains(name) && archive.archive().get(name).is_some();
+        let mut inner = CacheInner { layouts: old.layouts.clone(), stats: old.stats, ..CacheInner::default() };
+        // The blobs of the kept permutations, old id to new id, per target.
+        let mut blobs = HashMap::new();
+        for name in old.used.iter().filter(|n| keep(n)) {
+            inner.used.insert(name.clone());
+            let (Some(o), Some(n)) = (self.archive.archive().get(name), archive.archive().get(name)) else { continue };
+            for target in [Target::Spirv, Target::Wgsl] {
+                if let (Some(ob), Some(nb)) = (o.blob_id(target), n.blob_id(target)) {
+                    blobs.insert((target, ob), nb);
+                }
+            }
+        }
+        for ((target, ob, numbering), m) in &old.modules {
+            if let Some(nb) = blobs.get(&(*target, *ob)) {
+                inner.modules.insert((*target, *nb, numbering.clone()), m.clone());
+            }
+        }
+        for (ob, walked) in &old.spirv {
+            if let Some(nb) = blobs.get(&(Target::Spirv, *ob)) {
+                inner.spirv.insert(*nb, walked.clone());
+            }
+        }
+        for (k, p) in &old.render {
+            if keep(&k.vertex) && k.fragment.as_deref().is_none_or(keep) {
+                inner.render.insert(k.clone(), p.clone());
+            }
+        }
+        for (k, p) in &old.compute {
+            if keep(&p.compute) {
+                inner.compute.insert(k.clone(), p.clone());
+            }
+        }
+        let passthrough = self.passthrough && archive.trusted();
+        PipelineCache {
+            archive,
+            device: self.device.clone(),
+            passthrough,
+            limits: self.limits.clone(),
+            inner: Mutex::new(inner),
+            disk: self.disk.as_ref().map(|d| DiskCache { cache: d.cache.clone(), path: d.path.clone() }),
+        }
+    }
+
+    /// Whether modules come from SPIR-V passthrough: the device allows it and the archive is
+    /// trusted ([`ShaderArchive::trusted`]); else from WGSL.
     pub fn uses_spirv_passthrough(&self) -> bool {
         self.passthrough
     }
@@ -315,42 +595,79 @@ impl PipelineCache {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The shader module of a permutation, created on first use (and shared with every
-    /// permutation whose artifact is the same blob).
-    pub fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, Reflection), PipelineError> {
+    /// The reflection of a permutation used as a `stage` shader.
+    pub fn reflection(&self, name: &str, stage: Stage) -> Result<Reflection, PipelineError> {
         let perm = self.archive.get(name)?;
         let reflection = perm.reflection().clone();
         if reflection.stage != stage {
             return Err(PipelineError::WrongStage { name: name.to_string(), found: reflection.stage, wanted: stage });
         }
-        let target =
-            if self.passthrough && perm.blob_id(Target::Spirv).is_some() { Target::Spirv } else { Target::Wgsl };
-        let key = perm.blob_id(target).map(|blob| (target, blob));
-        {
-            let mut inner = self.lock();
-            inner.used.insert(name.to_string());
-            if let Some(m) = key.and_then(|k| inner.modules.get(&k)) {
-                return Ok((m.clone(), reflection));
+        check_limits(&reflection, &self.limits)
+            .map_err(|what| PipelineError::Limit { name: name.to_string(), what })?;
+        self.lock().used.insert(name.to_string());
+        Ok(reflection)
+    }
+
+    /// The shader module of a permutation alone (a pipeline of that one stage), created on
+    /// first use.
+    pub fn module(&self, name: &str, stage: Stage) -> Result<(wgpu::ShaderModule, Reflection), PipelineError> {
+        let reflection = self.reflection(name, stage)?;
+        let groups = merge_bindings(name, &[&reflection])?;
+        let module = self.stage_module(name, &reflection, &vulkan_bindings(&groups))?;
+        Ok((module, reflection))
+    }
+
+    /// The module of a permutation for a pipeline whose layout numbers bindings as
+    /// `bindings` says, created on first use and shared with every permutation whose
+    /// artifact is the same blob (and numbered alike).
+    pub fn stage_module(
+        &self,
+        name: &str,
+        reflection: &Reflection,
+        bindings: &VulkanBindings,
+    ) -> Result<wgpu::ShaderModule, PipelineError> {
+        let perm = self.archive.get(name)?;
+        let spirv_blob = perm.blob_id(Target::Spirv).filter(|_| self.passthrough);
+        if let Some(blob) = spirv_blob {
+            let parsed = self.lock().spirv.get(&blob).cloned();
+            let parsed = match parsed {
+                Some(p) => p,
+                None => {
+                    let bytes = artifact(&perm, Target::Spirv)?.unwrap_or_default();
+                    let parsed = SpirvModule::parse(&bytes)
+                        .and_then(|m| m.check(reflection).map(|()| m))
+                        .map_err(|source| PipelineError::Spirv { name: name.to_string(), source })?;
+                    let parsed = Arc::new(parsed);
+                    self.lock().spirv.insert(blob, parsed.clone());
+                    parsed
+                }
+            };
+            let numbering: Vec<u32> = parsed.resources.iter().map(|r| bindings.get(r.group, r.binding)).collect();
+            let key = (Target::Spirv, blob, numbering);
+            if let Some(m) = self.lock().modules.get(&key) {
+                return Ok(m.clone());
             }
+            let words = parsed.remap_bindings(|g, b| bindings.get(g, b)).unwrap_or_else(|| parsed.words.clone());
+            let module = create_spirv_module(&self.device, name, words, reflection)?;
+            let mut inner = self.lock();
+            inner.stats.modules += 1;
+            inner.modules.insert(key, module.clone());
+            return Ok(module);
         }
-        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-        let spirv = if self.passthrough { artifact(&perm, Target::Spirv)? } else { None };
-        let wgsl = artifact(&perm, Target::Wgsl)?;
-        let module = create_module(
-            &self.device,
-            self.passthrough,
-            name,
-            spirv.as_deref(),
-            wgsl.as_deref(),
-            &reflection,
-            &targets,
-        )?;
+        let Some(blob) = perm.blob_id(Target::Wgsl) else {
+            let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
+            return Err(PipelineError::NoArtifact { name: name.to_string(), targets });
+        };
+        let key = (Target::Wgsl, blob, Vec::new());
+        if let Some(m) = self.lock().modules.get(&key) {
+            return Ok(m.clone());
+        }
+        let wgsl = artifact(&perm, Target::Wgsl)?.unwrap_or_default();
+        let module = create_wgsl_module(&self.device, name, &wgsl)?;
         let mut inner = self.lock();
         inner.stats.modules += 1;
-        if let Some(k) = key {
-            inner.modules.insert(k, module.clone());
-        }
-        Ok((module, reflection))
+        inner.modules.insert(key, module.clone());
+        Ok(module)
     }
 
     /// A render pipeline for (vertex permutation, fragment permutation, state), created on
@@ -363,38 +680,38 @@ impl PipelineCache {
     ) -> Result<Arc<RenderPipeline>, PipelineError> {
         let key =
             RenderKey { vertex: vertex.to_string(), fragment: fragment.map(str::to_string), state: state.clone() };
-        if let Some(p) = self.lock().render.get(&key) {
+        self.render_key(&key)
+    }
+
+    /// The render pipeline of `key`, created on first use. This is the one place the runtime
+    /// creates render pipelines.
+    pub fn render_key(&self, key: &RenderKey) -> Result<Arc<RenderPipeline>, PipelineError> {
+        if let Some(p) = self.lock().render.get(key) {
             return Ok(p.clone());
         }
+        let (vertex, fragment, state) = (key.vertex.as_str(), key.fragment.as_deref(), &key.state);
         let label = match fragment {
             Some(f) => format!("{vertex} + {f}"),
             None => vertex.to_string(),
         };
-        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
-        let fs = match fragment {
-            Some(f) => Some(self.module(f, Stage::Fragment)?),
+        let vs_reflection = self.reflection(vertex, Stage::Vertex)?;
+        let fs_reflection = match fragment {
+            Some(f) => Some(self.reflection(f, Stage::Fragment)?),
             None => None,
         };
         let mut reflections = vec![&vs_reflection];
-        if let Some((_, r)) = &fs {
-            reflections.push(r);
-        }
+        reflections.extend(fs_reflection.as_ref());
         let layout = self.layout(&label, &reflections)?;
+        let vs = self.stage_module(vertex, &vs_reflection, &layout.vulkan_bindings)?;
+        let fs = match (fragment, fs_reflection) {
+            (Some(f), Some(r)) => Some((self.stage_module(f, &r, &layout.vulkan_bindings)?, r)),
+            _ => None,
+        };
         let buffers = vertex_buffers(&label, state.vertex_layout, &vs_reflection)?;
-        let targets: Vec<Option<wgpu::ColorTargetState>> = state
-            .color_targets
-            .iter()
-            .map(|t| {
-                Some(wgpu::ColorTargetState {
-                    format: t.format,
-                    blend: t.blend.state(),
-                    write_mask: wgpu::ColorWrites::ALL,
-                })
-            })
-            .collect();
+        let targets: Vec<Option<wgpu::ColorTargetState>> = state.color_targets.iter().map(|t| Some(t.wgpu())).collect();
         let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some(&label),
+            label: Some(short_label(&label)),
             layout: Some(&layout.layout),
             vertex: wgpu::VertexState {
                 module: &vs,
@@ -408,17 +725,7 @@ impl PipelineCache {
                 front_face: wgpu::FrontFace::Ccw,
                 ..Default::default()
             },
-            depth_stencil: state.depth.map(|d| wgpu::DepthStencilState {
-                format: d.format,
-                depth_write_enabled: Some(d.write),
-                depth_compare: Some(d.compare),
-                stencil: state.stencil.clone(),
-                bias: wgpu::DepthBiasState {
-                    constant: d.bias,
-                    slope_scale: f32::from_bits(d.slope_scale_bits),
-                    clamp: 0.0,
-                },
-            }),
+            depth_stencil: state.depth_stencil(),
             multisample: wgpu::MultisampleState { count: state.sample_count, ..Default::default() },
             fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
                 module,
@@ -427,7 +734,7 @@ impl PipelineCache {
                 targets: &targets,
             }),
             multiview_mask: None,
-            cache: None,
+            cache: self.disk.as_ref().map(|d| &d.cache),
         });
         check_scope(scope, || format!("render pipeline `{label}`"))?;
         let handle = Arc::new(RenderPipeline {
@@ -438,45 +745,33 @@ impl PipelineCache {
         });
         let mut inner = self.lock();
         inner.stats.render_pipelines += 1;
-        inner.render.insert(key, handle.clone());
+        inner.render.insert(key.clone(), handle.clone());
         Ok(handle)
     }
 
     /// A compute pipeline for a compute permutation, created on first use.
     pub fn compute(&self, name: &str) -> Result<Arc<ComputePipeline>, PipelineError> {
-        self.compute_from(name, self.passthrough)
+        self.compute_key(&ComputeKey { compute: name.to_string() })
     }
 
-    /// A compute pipeline whose module is always created from the permutation's WGSL
-    /// artifact (wgpu compiles it), even where the device takes SPIR-V passthrough: for the
-    /// permutations whose Kiln SPIR-V lavapipe cannot compile (see `TranslucentVolumes`).
-    pub fn compute_from_wgsl(&self, name: &str) -> Result<Arc<ComputePipeline>, PipelineError> {
-        self.compute_from(name, false)
-    }
-
-    fn compute_from(&self, name: &str, passthrough: bool) -> Result<Arc<ComputePipeline>, PipelineError> {
-        let key = if passthrough == self.passthrough { name.to_string() } else { format!("{name} (WGSL)") };
-        if let Some(p) = self.lock().compute.get(&key) {
+    /// The compute pipeline of `key`, created on first use: the one place the runtime creates
+    /// compute pipelines.
+    pub fn compute_key(&self, key: &ComputeKey) -> Result<Arc<ComputePipeline>, PipelineError> {
+        if let Some(p) = self.lock().compute.get(key) {
             return Ok(p.clone());
         }
-        let (module, reflection) = self.module(name, Stage::Compute)?;
-        let module = if passthrough == self.passthrough {
-            module
-        } else {
-            let perm = self.archive.get(name)?;
-            let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-            let wgsl = artifact(&perm, Target::Wgsl)?;
-            create_module(&self.device, false, name, None, wgsl.as_deref(), &reflection, &targets)?
-        };
+        let name = key.compute.as_str();
+        let reflection = self.reflection(name, Stage::Compute)?;
         let layout = self.layout(name, &[&reflection])?;
+        let module = self.stage_module(name, &reflection, &layout.vulkan_bindings)?;
         let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(name),
+            label: Some(short_label(name)),
             layout: Some(&layout.layout),
             module: &module,
             entry_point: Some(&reflection.entry),
             compilation_options: Default::default(),
-            cache: None,
+            cache: self.disk.as_ref().map(|d| &d.cache),
         });
         check_scope(scope, || format!("compute pipeline `{name}`"))?;
         let handle = Arc::new(ComputePipeline {
@@ -487,14 +782,29 @@ impl PipelineCache {
         });
         let mut inner = self.lock();
         inner.stats.compute_pipelines += 1;
-        inner.compute.insert(key, handle.clone());
+        inner.compute.insert(key.clone(), handle.clone());
         Ok(handle)
     }
 
-    /// Counts a render pipeline a pass built itself from this cache's modules and layouts
-    /// (the mobile frames, whose stencil and write-mask state `RenderState` does not hold).
-    pub fn count_external_render_pipeline(&self) {
-        self.lock().stats.render_pipelines += 1;
+    /// Creates every pipeline of `keys` ahead of the first frame (those already made are
+    /// found); the first failure is returned.
+    pub fn warm_up<'k>(&self, keys: impl IntoIterator<Item = &'k PipelineKey>) -> Result<(), PipelineError> {
+        for key in keys {
+            match key {
+                PipelineKey::Render(k) => drop(self.render_key(k)?),
+                PipelineKey::Compute(k) => drop(self.compute_key(k)?),
+            }
+        }
+        Ok(())
+    }
+
+    /// The key of every pipeline created so far, render then compute, in no set order: a
+    /// list to warm another cache up with.
+    pub fn keys(&self) -> Vec<PipelineKey> {
+        let inner = self.lock();
+        let render = inner.render.keys().cloned().map(PipelineKey::Render);
+        let compute = inner.compute.keys().cloned().map(PipelineKey::Compute);
+        render.chain(compute).collect()
     }
 
     /// The pipeline layout of a set of stages, from their reflection (bind group layouts
@@ -509,7 +819,7 @@ impl PipelineCache {
                 Some(l) => l.clone(),
                 None => {
                     let l = self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                        label: Some(&format!("{label} group {g}")),
+                        label: Some(short_label(&format!("{label} group {g}"))),
                         entries: &entries,
                     });
                     inner.stats.bind_group_layouts += 1;
@@ -522,19 +832,37 @@ impl PipelineCache {
         let refs: Vec<Option<&wgpu::BindGroupLayout>> = bind_group_layouts.iter().map(Some).collect();
         let scope = ErrorScopes::push(&self.device);
         let layout = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some(label),
+            label: Some(short_label(label)),
             bind_group_layouts: &refs,
             immediate_size: 0,
         });
         check_scope(scope, || format!("pipeline layout `{label}`"))?;
-        Ok(PipelineLayoutInfo { label: label.to_string(), groups, bind_group_layouts, layout })
+        let vulkan_bindings = vulkan_bindings(&groups);
+        Ok(PipelineLayoutInfo { label: label.to_string(), groups, bind_group_layouts, layout, vulkan_bindings })
     }
 }
 
-/// Creates a module from an archive's artifacts, bypassing the cache (the benchmark compares
-/// the two paths with this).
+/// A label GL accepts: at most 255 bytes (`GL_MAX_LABEL_LENGTH` is 256 with the nul;
+/// longer labels are a GL error). Pipelines are labelled with their permutations' names,
+/// which can be longer.
+pub fn short_label(label: &str) -> &str {
+    if label.len() <= 255 {
+        return label;
+    }
+    let mut end = 255;
+    while !label.is_char_boundary(end) {
+        end -= 1;
+    }
+    &label[..end]
+}
+
+/// How wgpu-hal's Vulkan backend numbers the bindings of these groups.
+fn vulkan_bindings(groups: &[Vec<MergedBinding>]) -> VulkanBindings {
+    VulkanBindings::new(groups.iter().map(|g| g.iter().map(|b| b.binding).collect()).collect())
+}
+
 /// A permutation's artifact for `target`, read (decompressed, checked on first use) from the
-/// archive; a corrupted blob is an error naming the permutation.
+/// archive; a damaged blob is an error naming the permutation.
 pub(crate) fn artifact<'a>(
     perm: &kiln::archive::PermutationRef<'a>,
     target: Target,
@@ -543,61 +871,54 @@ pub(crate) fn artifact<'a>(
         .map_err(|e| PipelineError::BadArtifact { name: perm.name().to_string(), message: e.to_string() })
 }
 
-pub fn create_module(
+/// Creates a module from SPIR-V words as they are (passthrough), bypassing the cache. The
+/// words must have passed [`SpirvModule::parse`] and [`SpirvModule::check`] against
+/// `reflection`, and come from a trusted archive ([`ShaderArchive::trusted`]); their binding
+/// numbers must be the layout's Vulkan ones ([`SpirvModule::remap_bindings`]).
+pub fn create_spirv_module(
     device: &wgpu::Device,
-    passthrough: bool,
     name: &str,
-    spirv: Option<&[u8]>,
-    wgsl: Option<&[u8]>,
+    words: Vec<u32>,
     reflection: &Reflection,
-    targets: &str,
+) -> Result<wgpu::ShaderModule, PipelineError> {
+    let entry = wgpu::PassthroughShaderEntryPoint {
+        name: Cow::Borrowed(&reflection.entry),
+        workgroup_size: reflection.workgroup_size.map(|[x, y, z]| (x, y, z)).unwrap_or((1, 1, 1)),
+    };
+    let scope = ErrorScopes::push(device);
+    // SAFETY: the SPIR-V comes from a trusted archive (embedded at build time: produced by
+    // naga from a module naga validated, for the same wgpu/naga major version, and checked
+    // by spirv-val in Kiln's tests); it passed the structural walk of `crate::spirv` and its
+    // resources were checked against the reflection the pipeline layout is built from, with
+    // binding numbers rewritten to the layout's Vulkan ones.
+    let module = unsafe {
+        device.create_shader_module_passthrough(wgpu::ShaderModuleDescriptorPassthrough {
+            label: Some(short_label(name)),
+            entry_points: Cow::Owned(vec![entry]),
+            spirv: Some(Cow::Owned(words)),
+            ..Default::default()
+        })
+    };
+    check_scope(scope, || format!("SPIR-V module `{name}`"))?;
+    Ok(module)
+}
+
+/// Creates a module from a WGSL artifact (wgpu's naga parses and validates it), bypassing
+/// the cache.
+pub fn create_wgsl_module(
+    device: &wgpu::Device,
+    name: &str,
+    bytes: &[u8],
 ) -> Result<wgpu::ShaderModule, PipelineError> {
     let bad = |message: String| PipelineError::BadArtifact { name: name.to_string(), message };
-    if let (true, Some(bytes)) = (passthrough, spirv) {
-        let words = spirv_words(bytes).map_err(bad)?;
-        let entry = wgpu::PassthroughShaderEntryPoint {
-            name: Cow::Borrowed(&reflection.entry),
-            workgroup_size: reflection.workgroup_size.map(|[x, y, z]| (x, y, z)).unwrap_or((1, 1, 1)),
-        };
-        let scope = ErrorScopes::push(device);
-        // SAFETY: the SPIR-V was produced by naga from a module naga validated (the archive
-        // holds nothing else), for the same wgpu/naga major version, and checked by
-        // spirv-val in Kiln's tests; pipelines using it have explicit layouts built from
-        // the same module's reflection.
-        let module = unsafe {
-            device.create_shader_module_passthrough(wgpu::ShaderModuleDescriptorPassthrough {
-                label: Some(name),
-                entry_points: Cow::Owned(vec![entry]),
-                spirv: Some(Cow::Owned(words)),
-                ..Default::default()
-            })
-        };
-        check_scope(scope, || format!("SPIR-V module `{name}`"))?;
-        return Ok(module);
-    }
-    let Some(bytes) = wgsl else {
-        return Err(PipelineError::NoArtifact { name: name.to_string(), targets: targets.to_string() });
-    };
     let text = std::str::from_utf8(bytes).map_err(|e| bad(format!("WGSL artifact is not UTF-8: {e}")))?;
     let scope = ErrorScopes::push(device);
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(name),
+        label: Some(short_label(name)),
         source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(text)),
     });
     check_scope(scope, || format!("WGSL module `{name}`"))?;
     Ok(module)
-}
-
-/// SPIR-V bytes as words, checking the length and the magic number.
-pub fn spirv_words(bytes: &[u8]) -> Result<Vec<u32>, String> {
-    if !bytes.len().is_multiple_of(4) || bytes.len() < 20 {
-        return Err(format!("SPIR-V artifact is {} bytes, not a whole module", bytes.len()));
-    }
-    let words: Vec<u32> = bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-    if words[0] != 0x0723_0203 {
-        return Err(format!("SPIR-V artifact starts with {:#010x}, not the SPIR-V magic number", words[0]));
-    }
-    Ok(words)
 }
 
 /// Validation and internal errors (a backend's shader translation failing) of what runs
@@ -658,11 +979,153 @@ fn stage_bits(stage: Stage) -> wgpu::ShaderStages {
     }
 }
 
+/// Checks every field of a permutation's reflection against the device's limits (the
+/// archive's manifest is input like any other: a checksum proves no origin): groups,
+/// binding numbers, resources per stage and their sizes, vertex inputs, color outputs and
+/// workgroup size. The message names the field, its value and the limit.
+pub fn check_limits(r: &Reflection, limits: &wgpu::Limits) -> Result<(), String> {
+    fn over(what: String, value: u64, field: &str, limit: impl Into<u64>) -> Result<(), String> {
+        let limit = limit.into();
+        if value > limit {
+            Err(format!("{what} is {value}, over the device's {field} ({limit})"))
+        } else {
+            Ok(())
+        }
+    }
+    if r.entry.is_empty() || r.entry.len() > 1024 {
+        return Err(format!("entry point name of {} bytes", r.entry.len()));
+    }
+    let mut counts = [0u64; 5];
+    let mut seen = std::collections::HashSet::new();
+    for b in &r.bindings {
+        let at = format!("@group({}) @binding({})", b.group, b.binding);
+        if u64::from(b.group) >= u64::from(limits.max_bind_groups) {
+            return Err(format!(
+                "{at}: group {} is past the device's max_bind_groups ({})",
+                b.group, limits.max_bind_groups
+            ));
+        }
+        if u64::from(b.binding) >= u64::from(limits.max_bindings_per_bind_group) {
+            return Err(format!(
+                "{at}: binding {} is past the device's max_bindings_per_bind_group ({})",
+                b.binding, limits.max_bindings_per_bind_group
+            ));
+        }
+        if !seen.insert((b.group, b.binding)) {
+            return Err(format!("{at} is listed twice"));
+        }
+        match &b.kind {
+            BindingKind::UniformBuffer { min_size } => {
+                counts[0] += 1;
+                over(
+                    format!("{at}: uniform buffer size"),
+                    *min_size,
+                    "max_uniform_buffer_binding_size",
+                    limits.max_uniform_buffer_binding_size,
+                )?;
+            }
+            BindingKind::StorageBuffer { min_size, .. } => {
+                counts[1] += 1;
+                over(
+                    format!("{at}: storage buffer size"),
+                    *min_size,
+                    "max_storage_buffer_binding_size",
+                    limits.max_storage_buffer_binding_size,
+                )?;
+            }
+            BindingKind::Sampler { .. } => counts[2] += 1,
+            BindingKind::Texture { .. } => counts[3] += 1,
+            BindingKind::StorageTexture { format, .. } => {
+                counts[4] += 1;
+                if storage_format(format).is_none() {
+                    return Err(format!("{at}: storage texture format `{format}` is not known to the runtime"));
+                }
+            }
+        }
+    }
+    over(
+        "uniform buffers in the stage".into(),
+        counts[0],
+        "max_uniform_buffers_per_shader_stage",
+        limits.max_uniform_buffers_per_shader_stage,
+    )?;
+    over(
+        "storage buffers in the stage".into(),
+        counts[1],
+        "max_storage_buffers_per_shader_stage",
+        limits.max_storage_buffers_per_shader_stage,
+    )?;
+    over(
+        "samplers in the stage".into(),
+        counts[2],
+        "max_samplers_per_shader_stage",
+        limits.max_samplers_per_shader_stage,
+    )?;
+    over(
+        "sampled textures in the stage".into(),
+        counts[3],
+        "max_sampled_textures_per_shader_stage",
+        limits.max_sampled_textures_per_shader_stage,
+    )?;
+    over(
+        "storage textures in the stage".into(),
+        counts[4],
+        "max_storage_textures_per_shader_stage",
+        limits.max_storage_textures_per_shader_stage,
+    )?;
+    over("vertex inputs".into(), r.vertex_inputs.len() as u64, "max_vertex_attributes", limits.max_vertex_attributes)?;
+    for v in &r.vertex_inputs {
+        if v.location >= limits.max_vertex_attributes {
+            return Err(format!(
+                "vertex input @location({}) is past the device's max_vertex_attributes ({})",
+                v.location, limits.max_vertex_attributes
+            ));
+        }
+    }
+    over("color outputs".into(), r.color_outputs.len() as u64, "max_color_attachments", limits.max_color_attachments)?;
+    for o in &r.color_outputs {
+        if o.location >= limits.max_color_attachments {
+            return Err(format!(
+                "color output @location({}) is past the device's max_color_attachments ({})",
+                o.location, limits.max_color_attachments
+            ));
+        }
+    }
+    if let Some([x, y, z]) = r.workgroup_size {
+        if x == 0 || y == 0 || z == 0 {
+            return Err(format!("workgroup size {x}x{y}x{z} has a zero"));
+        }
+        over("workgroup size x".into(), x.into(), "max_compute_workgroup_size_x", limits.max_compute_workgroup_size_x)?;
+        over("workgroup size y".into(), y.into(), "max_compute_workgroup_size_y", limits.max_compute_workgroup_size_y)?;
+        over("workgroup size z".into(), z.into(), "max_compute_workgroup_size_z", limits.max_compute_workgroup_size_z)?;
+        let invocations = u64::from(x) * u64::from(y) * u64::from(z);
+        over(
+            "workgroup invocations".into(),
+            invocations,
+            "max_compute_invocations_per_workgroup",
+            limits.max_compute_invocations_per_workgroup,
+        )?;
+    } else if r.stage == Stage::Compute {
+        return Err("compute shader without a workgroup size".into());
+    }
+    Ok(())
+}
+
+/// Groups a layout may have at most whatever the reflection says: a backstop for callers of
+/// [`merge_bindings`] that did not [`check_limits`] first (wgpu allows at most 8).
+const MAX_GROUPS: u32 = 32;
+
 /// Merges the bindings of a pipeline's stages into groups (index = group number).
 pub fn merge_bindings(label: &str, reflections: &[&Reflection]) -> Result<Vec<Vec<MergedBinding>>, PipelineError> {
     let mut groups: Vec<Vec<MergedBinding>> = Vec::new();
     for r in reflections {
         for Binding { group, binding, name, kind } in &r.bindings {
+            if *group >= MAX_GROUPS {
+                return Err(PipelineError::Limit {
+                    name: label.to_string(),
+                    what: format!("@group({group}) @binding({binding}): group {group} is past {MAX_GROUPS}"),
+                });
+            }
             let g = *group as usize;
             if groups.len() <= g {
                 groups.resize_with(g + 1, Vec::new);
@@ -786,14 +1249,26 @@ const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
     wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
 const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
     wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
+const POSITION_ATTRIBUTES: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Float32x3];
 
 fn vertex_buffers(
     label: &str,
     layout: VertexLayout,
     reflection: &Reflection,
 ) -> Result<Vec<Option<wgpu::VertexBufferLayout<'static>>>, PipelineError> {
+    let mesh = wgpu::VertexBufferLayout {
+        array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
+        step_mode: wgpu::VertexStepMode::Vertex,
+        attributes: &MESH_ATTRIBUTES,
+    };
     let buffers = match layout {
         VertexLayout::None => Vec::new(),
+        VertexLayout::Mesh => vec![Some(mesh)],
+        VertexLayout::Position => vec![Some(wgpu::VertexBufferLayout {
+            array_stride: 12,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &POSITION_ATTRIBUTES,
+        })],
         VertexLayout::MeshInstanced => vec![
             Some(wgpu::VertexBufferLayout {
                 array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
@@ -965,16 +1440,50 @@ mod tests {
     }
 
     #[test]
-    fn spirv_words_checks_length_and_magic() {
-        let mut ok = 0x0723_0203u32.to_le_bytes().to_vec();
-        ok.extend_from_slice(&[0; 16]);
-        assert_eq!(spirv_words(&ok).unwrap()[0], 0x0723_0203);
-        assert_eq!(spirv_words(&ok[..19]).unwrap_err(), "SPIR-V artifact is 19 bytes, not a whole module");
-        let mut bad = ok.clone();
-        bad[0] = 0;
+    fn reflection_fields_are_checked_against_the_device_limits() {
+        let limits = wgpu::Limits::downlevel_defaults();
+        let sampler = BindingKind::Sampler { comparison: false };
+        let ok = reflection(Stage::Fragment, vec![binding(0, 0, "S", sampler.clone())]);
+        check_limits(&ok, &limits).unwrap();
+        let e = |r: &Reflection| check_limits(r, &limits).unwrap_err();
         assert_eq!(
-            spirv_words(&bad).unwrap_err(),
-            "SPIR-V artifact starts with 0x07230200, not the SPIR-V magic number"
+            e(&reflection(Stage::Fragment, vec![binding(4_000_000_000, 0, "S", sampler.clone())])),
+            "@group(4000000000) @binding(0): group 4000000000 is past the device's max_bind_groups (4)"
         );
+        assert_eq!(
+            e(&reflection(
+                Stage::Fragment,
+                vec![binding(0, 0, "S", sampler.clone()), binding(0, 0, "T", sampler.clone())]
+            )),
+            "@group(0) @binding(0) is listed twice"
+        );
+        let many: Vec<Binding> = (0..17).map(|i| binding(0, i, "S", sampler.clone())).collect();
+        assert_eq!(
+            e(&reflection(Stage::Fragment, many)),
+            "samplers in the stage is 17, over the device's max_samplers_per_shader_stage (16)"
+        );
+        let ub = BindingKind::UniformBuffer { min_size: 1 << 40 };
+        assert_eq!(
+            e(&reflection(Stage::Fragment, vec![binding(0, 0, "U", ub)])),
+            "@group(0) @binding(0): uniform buffer size is 1099511627776, over the device's max_uniform_buffer_binding_size (16384)"
+        );
+        let mut cs = reflection(Stage::Compute, vec![]);
+        assert_eq!(e(&cs), "compute shader without a workgroup size");
+        cs.workgroup_size = Some([0, 1, 1]);
+        assert_eq!(e(&cs), "workgroup size 0x1x1 has a zero");
+        cs.workgroup_size = Some([16, 16, 2]);
+        assert_eq!(
+            e(&cs),
+            "workgroup invocations is 512, over the device's max_compute_invocations_per_workgroup (256)"
+        );
+        let mut fs = reflection(Stage::Fragment, vec![]);
+        fs.color_outputs = vec![kiln::archive::ColorOutput {
+            location: 9,
+            ty: NumericType { scalar: ScalarKind::Float, width: 4, components: 4 },
+        }];
+        assert_eq!(e(&fs), "color output @location(9) is past the device's max_color_attachments (4)");
+        // merge_bindings refuses a huge group even unchecked, instead of allocating for it.
+        let huge = reflection(Stage::Fragment, vec![binding(4_000_000_000, 0, "S", sampler)]);
+        assert!(merge_bindings("p", &[&huge]).is_err());
     }
 }

@@ -122,6 +122,8 @@ pub enum RenderError {
     NoOutput,
     #[error("rendering the frame failed: {0}")]
     Wgpu(String),
+    #[error("the device was lost: {0}")]
+    DeviceLost(String),
 }
 
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
@@ -144,6 +146,7 @@ pub struct FrameOutput {
 
 pub struct Renderer {
     device: wgpu::Device,
+    lost: crate::gpu::DeviceLost,
     queue: wgpu::Queue,
     timestamps: bool,
     options: RendererOptions,
@@ -164,12 +167,36 @@ impl Renderer {
         scene: &Scene,
         options: RendererOptions,
     ) -> Result<Renderer, RenderError> {
+        Renderer::with_cache(gpu, PipelineCache::new(gpu, archive), scene, options)
+    }
+
+    /// Hot reload: a renderer of the same frame on `archive`, built between frames, that
+    /// creates again only the modules and pipelines of the `changed` permutations (see
+    /// [`PipelineCache::carry_over`]); every other pipeline is this renderer's. On an error
+    /// this renderer is untouched, so the caller keeps the last good pipelines.
+    pub fn reload(
+        &self,
+        gpu: &Gpu,
+        archive: Arc<ShaderArchive>,
+        scene: &Scene,
+        changed: &std::collections::HashSet<String>,
+    ) -> Result<Renderer, RenderError> {
+        Renderer::with_cache(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone())
+    }
+
+    /// As [`Renderer::new`], with pipelines from `cache` (one made with
+    /// [`PipelineCache::with_disk_cache`], say).
+    pub fn with_cache(
+        gpu: &Gpu,
+        cache: PipelineCache,
+        scene: &Scene,
+        options: RendererOptions,
+    ) -> Result<Renderer, RenderError> {
         let max = gpu.device.limits().max_texture_dimension_2d;
         if options.width == 0 || options.height == 0 || options.width > max || options.height > max {
             return Err(RenderError::Size { width: options.width, height: options.height, max });
         }
         let device = &gpu.device;
-        let cache = PipelineCache::new(gpu, archive);
         let gpu_scene = GpuScene::upload(device, scene);
         let uniform = |label: &str, bytes: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -226,6 +253,7 @@ impl Renderer {
             if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
         Ok(Renderer {
             device: device.clone(),
+            lost: gpu.lost.clone(),
             queue: gpu.queue.clone(),
             timestamps: gpu.timestamps,
             options,
@@ -246,14 +274,9 @@ impl Renderer {
     }
 
     /// Whether the frame's shader modules are created from SPIR-V (passthrough) rather than
-    /// from WGSL: the desktop frame uses WGSL unless its options say otherwise (see
-    /// [`crate::desktop::DesktopOptions::spirv_passthrough`]).
+    /// from WGSL: on Vulkan with a trusted archive, for every frame.
     pub fn uses_spirv_passthrough(&self) -> bool {
-        let passthrough = self.cache.uses_spirv_passthrough();
-        match &self.passes {
-            Passes::DesktopDeferred { frame, .. } => passthrough && frame.options().spirv_passthrough,
-            Passes::Mobile(_) => passthrough,
-        }
+        self.cache.uses_spirv_passthrough()
     }
 
     pub fn cache_stats(&self) -> CacheStats {
@@ -275,10 +298,16 @@ impl Renderer {
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.
     pub fn render(&self, capture: bool) -> Result<FrameOutput, RenderError> {
+        if let Some(reason) = self.lost.reason() {
+            return Err(RenderError::DeviceLost(reason));
+        }
         let scopes = crate::pipelines::ErrorScopes::push(&self.device);
         let result = self.record_and_submit(capture);
         if let Some(message) = scopes.pop() {
             return Err(RenderError::Wgpu(message));
+        }
+        if let Some(reason) = self.lost.reason() {
+            return Err(RenderError::DeviceLost(reason));
         }
         result
     }

@@ -35,8 +35,14 @@ fn render_missing(name: &str, nearest: &[Near]) -> String {
 }
 
 /// A loaded archive of shader permutations.
+///
+/// Archives are untrusted unless they are the one embedded at build time: the runtime hands
+/// SPIR-V to the driver unchanged (passthrough) only from a trusted archive, after a
+/// structural check; from any other it creates modules from WGSL, which wgpu's naga parses and
+/// validates (a driver may do anything with invalid SPIR-V).
 pub struct ShaderArchive {
     archive: Archive,
+    trusted: bool,
 }
 
 impl fmt::Debug for ShaderArchive {
@@ -44,6 +50,7 @@ impl fmt::Debug for ShaderArchive {
         f.debug_struct("ShaderArchive")
             .field("bytes", &self.archive.len())
             .field("permutations", &self.archive.permutations().count())
+            .field("trusted", &self.trusted)
             .finish()
     }
 }
@@ -51,21 +58,41 @@ impl fmt::Debug for ShaderArchive {
 impl ShaderArchive {
     /// Memory-maps and verifies an archive file (header, version, checksum, manifest).
     pub fn open(path: &Path) -> Result<ShaderArchive, ArchiveError> {
-        Ok(ShaderArchive { archive: Archive::open(path)? })
+        Ok(ShaderArchive { archive: Archive::open(path)?, trusted: false })
     }
 
-    /// An archive embedded with `include_bytes!`.
+    /// An archive embedded with `include_bytes!` (untrusted: see [`ShaderArchive::trusted`]).
     pub fn from_static(bytes: &'static [u8]) -> Result<ShaderArchive, ArchiveError> {
-        Ok(ShaderArchive { archive: Archive::from_static(bytes)? })
+        Ok(ShaderArchive { archive: Archive::from_static(bytes)?, trusted: false })
     }
 
     pub fn from_vec(bytes: Vec<u8>) -> Result<ShaderArchive, ArchiveError> {
-        Ok(ShaderArchive { archive: Archive::from_vec(bytes)? })
+        Ok(ShaderArchive { archive: Archive::from_vec(bytes)?, trusted: false })
     }
 
-    /// The archive built from `../permutations.toml` by `runtime/build.rs`.
+    /// The archive built from `../permutations.toml` by `runtime/build.rs`: trusted, since
+    /// Kiln's own build wrote it into this binary.
     pub fn embedded() -> Result<ShaderArchive, ArchiveError> {
-        ShaderArchive::from_static(crate::EMBEDDED_ARCHIVE)
+        Ok(ShaderArchive { archive: Archive::from_static(crate::EMBEDDED_ARCHIVE)?, trusted: true })
+    }
+
+    /// Whether SPIR-V from this archive may go to the driver unchanged (SPIR-V passthrough,
+    /// after the structural check of [`crate::spirv`]). Only the embedded archive is trusted
+    /// unless [`ShaderArchive::assume_trusted`] says otherwise.
+    pub fn trusted(&self) -> bool {
+        self.trusted
+    }
+
+    /// Marks the archive as written by Kiln's own build and not altered since, so that its
+    /// SPIR-V is passed through to the driver.
+    ///
+    /// # Safety
+    /// The structural check of [`crate::spirv`] is no validator: SPIR-V that passes it but
+    /// is invalid (a bit flipped in an operand) is undefined behaviour in the driver. Call it
+    /// only for archives from a source you trust as much as the binary itself.
+    pub unsafe fn assume_trusted(mut self) -> ShaderArchive {
+        self.trusted = true;
+        self
     }
 
     pub fn archive(&self) -> &Archive {
@@ -78,6 +105,12 @@ impl ShaderArchive {
             Lookup::Found(p) => Ok(p),
             Lookup::Missing(nearest) => Err(LookupError::Missing { name: name.to_string(), nearest }),
         }
+    }
+
+    /// O(1) lookup by the id a typed key computes (`key.permutation_id(level)` in the
+    /// `kiln_shaders.rs` that `kiln::Build::rust_bindings` generates): no name is formatted.
+    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
+        self.archive.get_by_id(id)
     }
 
     /// Starts a lookup by shader name and dimension values:

@@ -5,11 +5,58 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 fn kiln_view(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_kiln-view")).args(args).current_dir(dir).output().expect("kiln-view runs")
+    Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+        .args(args)
+        .current_dir(dir)
+        .env("KILN_PIPELINE_CACHE", dir.join("pipeline-cache"))
+        .output()
+        .expect("kiln-view runs")
 }
 
 fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).lines().filter(|l| !l.contains("XDG_RUNTIME_DIR")).collect::<Vec<_>>().join("\n")
+    String::from_utf8_lossy(&o.stderr).lines().collect::<Vec<_>>().join("\n")
+}
+
+/// Each pipeline five frames in a row on Vulkan with the Khronos validation layer on:
+/// no validation message (`--validation` fails with them), every module from SPIR-V
+/// passthrough, and none of the Wayland probe's `XDG_RUNTIME_DIR` noise.
+#[test]
+fn every_pipeline_renders_five_times_under_the_validation_layer_without_a_message() {
+    let dir = tempfile::tempdir().unwrap();
+    for pipeline in ["desktop", "mobile-forward", "mobile-deferred"] {
+        let o = Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+            .args(["--pipeline", pipeline, "--size", "320x180", "--frames", "5", "--validation", "--no-pipeline-cache"])
+            .current_dir(dir.path())
+            .env_remove("XDG_RUNTIME_DIR")
+            .output()
+            .expect("kiln-view runs");
+        let (out, err) = (String::from_utf8_lossy(&o.stdout), stderr(&o));
+        assert!(o.status.success(), "{pipeline}: {err}{out}");
+        assert!(
+            !out.contains("Validation") && !err.contains("Validation") && !err.contains("VUID"),
+            "{pipeline}: {err}{out}"
+        );
+        assert!(err.contains("modules from SPIR-V passthrough"), "{pipeline}: {err}");
+        assert!(!err.contains("XDG_RUNTIME_DIR"), "{pipeline}: {err}");
+    }
+}
+
+#[test]
+fn the_pipeline_cache_is_written_per_adapter_and_a_corrupt_one_is_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["--pipeline", "mobile-forward", "--size", "64x36", "--pipeline-cache", "pc"];
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let files: Vec<_> = std::fs::read_dir(dir.path().join("pc")).unwrap().flatten().map(|e| e.path()).collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    let name = files[0].file_name().unwrap().to_string_lossy().into_owned();
+    assert!(name.starts_with("wgpu_pipeline_cache_vulkan_"), "{name}");
+    std::fs::write(&files[0], b"not a cache").unwrap();
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let warning = format!("warning: pipeline cache pc/{name} is ignored: it is not a Kiln pipeline cache");
+    assert!(stderr(&o).contains(&warning), "{}", stderr(&o));
+    assert!(std::fs::read(&files[0]).unwrap().starts_with(b"KILNPC1"), "rewritten after the frame");
 }
 
 #[test]
@@ -81,22 +128,41 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
     kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
     let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `ParticleSimulationCS` in the archive");
+    // The frames name permutations with typed keys: the first one the frame needs is missing.
+    assert_eq!(
+        stderr(&o),
+        "error: permutation `ParticleSimulationCS@sm5{}` is not in the archive (the archive holds no permutations)"
+    );
 }
 
 #[test]
 fn verify_looks_every_permutation_up_and_creates_its_module() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("s.kpak"), kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
-    let o = kiln_view(&["--shaders", "s.kpak", "--verify"], dir.path());
-    assert!(o.status.success(), "{}", stderr(&o));
     let archive = kiln_runtime::ShaderArchive::embedded().unwrap();
     let count = archive.permutations().count();
-    let distinct: std::collections::HashSet<_> =
-        archive.permutations().map(|p| p.blob_id(kiln::archive::Target::Spirv).unwrap()).collect();
-    let out = String::from_utf8_lossy(&o.stdout);
-    let expected = format!("{count} permutations looked up by name and by dimension values; {} distinct modules created from SPIR-V passthrough on ", distinct.len());
-    assert!(out.starts_with(&expected), "{out}");
+    let distinct = |target| {
+        archive.permutations().map(|p| p.blob_id(target).unwrap()).collect::<std::collections::HashSet<_>>().len()
+    };
+    // An archive from a file is not trusted with passthrough: its modules come from WGSL,
+    // which wgpu validates; `--trust-shaders` passes its SPIR-V through.
+    for (args, target, source) in [
+        (&["--shaders", "s.kpak", "--verify"][..], kiln::archive::Target::Wgsl, "WGSL"),
+        (
+            &["--shaders", "s.kpak", "--verify", "--trust-shaders"][..],
+            kiln::archive::Target::Spirv,
+            "SPIR-V passthrough",
+        ),
+    ] {
+        let o = kiln_view(args, dir.path());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let out = String::from_utf8_lossy(&o.stdout);
+        let expected = format!(
+            "{count} permutations looked up by name and by dimension values; {} distinct modules created from {source} on ",
+            distinct(target)
+        );
+        assert!(out.starts_with(&expected), "{out}");
+    }
 }
 
 #[test]

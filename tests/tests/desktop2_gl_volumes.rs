@@ -18,9 +18,14 @@ use kiln_runtime::{Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
 const W: u32 = 320;
 const H: u32 = 180;
 
-fn device(backend: Backend) -> Gpu {
-    Gpu::new(&GpuOptions { backend, module_source: ModuleSource::Auto, timestamps: false })
-        .unwrap_or_else(|e| panic!("this test needs a {backend} adapter: {e}"))
+fn device(backend: Backend) -> kiln_runtime::validation::CheckedGpu {
+    kiln_runtime::validation::CheckedGpu::new(&GpuOptions {
+        backend,
+        module_source: ModuleSource::Auto,
+        timestamps: false,
+        validation: true,
+    })
+    .unwrap_or_else(|e| panic!("this test needs a {backend} adapter: {e}"))
 }
 
 /// One still frame (nothing moves, no TAA, motion blur, eye adaptation or reflections) with

@@ -59,9 +59,11 @@ fn hzb_top_mip_holds_the_farthest_depth() {
 /// of every mip holds a surface's depth, above 0).
 #[test]
 fn hzb_mips_are_built_on_gl_too() {
-    let gpu =
-        kiln_runtime::Gpu::new(&kiln_runtime::GpuOptions { backend: kiln_runtime::Backend::Gl, ..Default::default() })
-            .unwrap_or_else(|e| panic!("{e}"));
+    let gpu = kiln_runtime::validation::CheckedGpu::new(&kiln_runtime::GpuOptions {
+        backend: kiln_runtime::Backend::Gl,
+        ..Default::default()
+    })
+    .unwrap_or_else(|e| panic!("{e}"));
     let mut scene = Scene::bundled();
     scene.camera = Camera {
         position: Vec3::new(0.0, 9.0, 3.0),

@@ -10,7 +10,7 @@ use kiln_runtime::desktop::{DesktopFrame, DesktopOptions, LightingPath};
 use kiln_runtime::frame::{write_dump, DumpInfo, Image};
 use kiln_runtime::pipelines::PipelineCache;
 use kiln_runtime::scene::{BlendMode, Material, Mesh, Mobility, Object, PointLight, Scene};
-use kiln_runtime::{FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{FramePipeline, GpuOptions, Renderer, RendererOptions, ShaderArchive};
 
 const W: u32 = 320;
 const H: u32 = 180;
@@ -28,8 +28,8 @@ const PASSES: [&str; 9] = [
     "PostProcessing",
 ];
 
-fn gpu() -> Gpu {
-    Gpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+fn gpu() -> kiln_runtime::validation::CheckedGpu {
+    kiln_runtime::validation::CheckedGpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"))
 }
 
 fn archive() -> Arc<ShaderArchive> {
@@ -37,7 +37,7 @@ fn archive() -> Arc<ShaderArchive> {
 }
 
 struct Frame {
-    _gpu: Gpu,
+    _gpu: kiln_runtime::validation::CheckedGpu,
     _cache: PipelineCache,
     frame: DesktopFrame,
 }
@@ -116,8 +116,9 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
         spirv_passthrough: renderer.uses_spirv_passthrough(),
         permutations: &permutations,
     };
-    // The desktop frame creates its modules from WGSL (SPIR-V passthrough crashes lavapipe).
-    assert!(!renderer.uses_spirv_passthrough());
+    // The desktop frame creates every module from the archive's SPIR-V (lavapipe offers
+    // PASSTHROUGH_SHADERS and the embedded archive is trusted).
+    assert!(renderer.uses_spirv_passthrough());
     write_dump(dir.path(), &info, &out.passes).unwrap();
 
     let json: serde_json::Value =

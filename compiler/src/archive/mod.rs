@@ -27,7 +27,7 @@ pub use format::{
     write_atomic, write_atomic_unsynced, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
     COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
 };
-pub use reader::{Archive, BlobInfo, Lookup, Near, PermutationRef};
+pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef};
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,

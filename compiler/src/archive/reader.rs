@@ -37,6 +37,29 @@ impl Bytes {
 /// A loaded archive. The header and manifest are checked and parsed at open; blobs stay
 /// where they are (in the memory map or the embedded bytes) until an artifact is asked for,
 /// and are checked then, once each. `Send + Sync`.
+/// The id of a permutation: the 128-bit FNV-1a hash of the shader's name, a 0 byte, the
+/// level's name, a 0 byte, then each dimension's value (an enum's index) as 8 little-endian
+/// bytes, in declared order. Typed keys compute the same hash from their fields.
+pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
+    const OFFSET: u128 = 0x6c62272e07bb014262b821756295c58d;
+    const PRIME: u128 = 0x0000000001000000000000000000013B;
+    let mut h = OFFSET;
+    let mut eat = |bytes: &[u8]| {
+        for b in bytes {
+            h ^= u128::from(*b);
+            h = h.wrapping_mul(PRIME);
+        }
+    };
+    eat(shader.as_bytes());
+    eat(&[0]);
+    eat(level.as_bytes());
+    eat(&[0]);
+    for v in values {
+        eat(&v.to_le_bytes());
+    }
+    h
+}
+
 pub struct Archive {
     bytes: Bytes,
     manifest: Manifest,
@@ -50,6 +73,7 @@ pub struct Archive {
     ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
     by_name: HashMap<String, u32>,
     by_shader: HashMap<(String, String), u32>,
+    by_id: HashMap<u128, u32>,
 }
 
 /// Sizes of one blob.
@@ -250,6 +274,15 @@ impl Archive {
         let by_name = manifest.permutations.iter().enumerate().map(|(i, p)| (p.name.clone(), i as u32)).collect();
         let by_shader =
             manifest.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
+        let by_id = manifest
+            .permutations
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let s = &manifest.shaders[p.shader as usize];
+                (permutation_id(&s.name, &s.level, &p.values), i as u32)
+            })
+            .collect();
         let blob_count = sections.blob_count as usize;
         Ok(Archive {
             verified: (0..blob_count).map(|_| AtomicBool::new(false)).collect(),
@@ -262,6 +295,7 @@ impl Archive {
             blob_count,
             by_name,
             by_shader,
+            by_id,
         })
     }
 
@@ -392,6 +426,13 @@ impl Archive {
     /// O(1) lookup by canonical name.
     pub fn get(&self, name: &str) -> Option<PermutationRef<'_>> {
         let i = *self.by_name.get(name)?;
+        Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
+    }
+
+    /// O(1) lookup by [`permutation_id`], the id that typed keys (`Key::permutation_id`, see
+    /// `kiln::bindings`) compute from their fields without formatting a name.
+    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
+        let i = *self.by_id.get(&id)?;
         Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
     }
 

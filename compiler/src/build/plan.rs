@@ -180,10 +180,7 @@ pub(super) fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Ta
 }
 
 pub(super) fn level_limits(level: &permute::Level) -> Limits {
-    match level.limits {
-        permute::Limits::Default => Limits::desktop(),
-        permute::Limits::Downlevel => Limits::downlevel(),
-    }
+    Limits::for_level(level)
 }
 
 #[cfg(test)]

@@ -280,10 +280,14 @@ fn render_failures(
         let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
         let p = &kept[members[0]];
-        let limits = match p.level.limits {
+        let mut limits = match p.level.limits {
             permute::Limits::Default => "default",
             permute::Limits::Downlevel => "downlevel",
-        };
+        }
+        .to_string();
+        for (field, value) in &p.level.limit_overrides {
+            limits.push_str(&format!(" with {field} = {value}"));
+        }
         let note = if members.len() == 1 {
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {

@@ -19,7 +19,7 @@ mod writers;
 
 use std::ops::Range;
 
-pub use limits::Limits;
+pub use limits::{Limits, WGPU_LIMITS};
 pub use reflect::reflect;
 pub use shared::{module_hash, SharedWriters};
 
@@ -43,10 +43,7 @@ impl Options {
     pub fn for_level(level: &crate::permute::Level, filter: &[Target]) -> Options {
         Options {
             targets: level.targets.iter().copied().filter(|t| filter.is_empty() || filter.contains(t)).collect(),
-            limits: match level.limits {
-                crate::permute::Limits::Default => Limits::desktop(),
-                crate::permute::Limits::Downlevel => Limits::downlevel(),
-            },
+            limits: Limits::for_level(level),
         }
     }
 }

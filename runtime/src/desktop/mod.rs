@@ -76,14 +76,6 @@ pub struct DesktopOptions {
     pub shadow_map_size: u32,
     /// Selects the AO jitter of this frame.
     pub frame_index: u32,
-    /// Create shader modules through the runtime's cache (SPIR-V passthrough on Vulkan)
-    /// instead of from the archive's WGSL. Off by default: on lavapipe, Kiln's SPIR-V 1.0
-    /// artifacts of `StandardDeferredLightingPS` crash the driver in about a third of the
-    /// frames and `AmbientOcclusionPS{USE_AO_SETUP_AS_INPUT=1}` reads garbage, while the same
-    /// permutations from WGSL (compiled by wgpu with its bounds checks) render correctly.
-    /// Still so after the compile stage began compacting modules to their entry point: with
-    /// passthrough on, 6 of the 7 desktop test binaries segfaulted in lavapipe on each run.
-    pub spirv_passthrough: bool,
     /// Effects the mobile paths lack, on by default; the cross-check against the mobile
     /// frames turns them off. `ambient_occlusion`: the AmbientOcclusion pass; `bloom` and
     /// `vignette`: the tonemapper's inputs; `sky_gradient`: the sky's horizon gradient and sun
@@ -111,7 +103,6 @@ impl Default for DesktopOptions {
             ao_quality: 2,
             shadow_map_size: 512,
             frame_index: 0,
-            spirv_passthrough: false,
             ambient_occlusion: true,
             bloom: true,
             vignette: true,
@@ -132,6 +123,12 @@ pub enum DesktopError {
         "pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame"
     )]
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
+}
+
+impl From<crate::shaders::LookupError> for DesktopError {
+    fn from(e: crate::shaders::LookupError) -> Self {
+        DesktopError::Pipeline(e.into())
+    }
 }
 
 /// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
@@ -234,7 +231,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, device, "sm5", options.spirv_passthrough);
+        let pipelines = pipelines::Pipelines::new(cache, "sm5");
         let b = Build {
             device,
             pipelines: &pipelines,

@@ -1,15 +1,10 @@
-//! Pipelines of the desktop frame. Modules and reflection come from the runtime's
-//! [`PipelineCache`] (lazy, SPIR-V passthrough or WGSL); the desktop passes need
-//! fixed-function state the shared cache does not describe (stencil, min and multiply
-//! blending, vertex layouts of light volumes), so their pipelines are built here, from the
-//! same reflection, once per (permutations, state) when the frame is built.
+//! Pipelines of the desktop frame: the passes describe their fixed-function state in
+//! wgpu's terms ([`RenderDesc`]); the pipelines come from the runtime's one
+//! [`PipelineCache`], keyed by the permutations and that whole state.
 
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
-use kiln::Stage;
-
-use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineError};
+use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineLayoutInfo, RenderState, VertexLayout};
 
 use super::DesktopError;
 
@@ -18,7 +13,6 @@ pub struct Layout {
     pub label: String,
     pub groups: Vec<Vec<MergedBinding>>,
     pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
-    pub pipeline_layout: wgpu::PipelineLayout,
 }
 
 impl Layout {
@@ -49,7 +43,7 @@ impl Layout {
         }
         let scope = ErrorScopes::push(device);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(&format!("{} group {group}", self.label)),
+            label: Some(crate::pipelines::short_label(&format!("{} group {group}", self.label))),
             layout: &self.bind_group_layouts[group as usize],
             entries: &entries,
         });
@@ -141,191 +135,63 @@ pub struct Compute {
     pub workgroup_size: [u32; 3],
 }
 
-/// A cached render pipeline with its key (vertex, fragment, state).
-type RenderEntry = (String, Option<String>, RenderDesc, Arc<Render>);
-
-/// Builds and caches the desktop pipelines of one frame.
+/// The desktop frame's view of the runtime's one pipeline cache: its pipelines described
+/// in wgpu's terms, at the frame's level.
 pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
-    pub device: &'a wgpu::Device,
     pub level: &'a str,
-    spirv_passthrough: bool,
-    render: Mutex<Vec<RenderEntry>>,
-    compute: Mutex<HashMap<String, Arc<Compute>>>,
 }
 
 impl<'a> Pipelines<'a> {
-    pub fn new(
-        cache: &'a PipelineCache,
-        device: &'a wgpu::Device,
-        level: &'a str,
-        spirv_passthrough: bool,
-    ) -> Pipelines<'a> {
-        Pipelines {
-            cache,
-            device,
-            level,
-            spirv_passthrough,
-            render: Mutex::new(Vec::new()),
-            compute: Mutex::new(HashMap::new()),
-        }
+    pub fn new(cache: &'a PipelineCache, level: &'a str) -> Pipelines<'a> {
+        Pipelines { cache, level }
     }
 
-    /// A permutation's module and reflection: through the runtime's cache (SPIR-V
-    /// passthrough where the device has it) when `spirv_passthrough`, else from the archive's
-    /// WGSL artifact, which wgpu compiles with its own bounds checks.
-    fn module(
-        &self,
-        name: &str,
-        stage: Stage,
-    ) -> Result<(wgpu::ShaderModule, kiln::archive::Reflection), DesktopError> {
-        // Through the cache either way, so the permutation counts as used (passes.json) and
-        // its stage is checked.
-        let (module, reflection) = self.cache.module(name, stage)?;
-        if self.spirv_passthrough {
-            return Ok((module, reflection));
-        }
-        let perm = self.cache.archive().get(name).map_err(PipelineError::from)?;
-        let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
-        let module = crate::pipelines::create_module(
-            self.device,
-            false,
-            name,
-            None,
-            crate::pipelines::artifact(&perm, kiln::archive::Target::Wgsl)?.as_deref(),
-            &reflection,
-            &targets,
-        )?;
-        Ok((module, reflection))
+    /// The frame's level, for typed permutation keys ([`crate::keys`]).
+    pub fn key_level(&self) -> Result<crate::keys::Level, crate::shaders::LookupError> {
+        crate::keys::level(self.level)
     }
 
-    /// The canonical name of `shader` at the frame's level with these dimension values.
-    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, DesktopError> {
-        let mut q = self.cache.archive().shader(shader).level(self.level);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find().map_err(PipelineError::from)?.name().to_string())
-    }
-
-    /// The pipeline layout from the runtime's cache (one layout rule for every frame; bind
-    /// group layouts shared with the other pipelines).
-    fn layout(&self, label: &str, reflections: &[&kiln::archive::Reflection]) -> Result<Layout, DesktopError> {
-        let info = self.cache.layout(label, reflections)?;
-        Ok(Layout {
-            label: info.label,
-            groups: info.groups,
-            bind_group_layouts: info.bind_group_layouts,
-            pipeline_layout: info.layout,
-        })
-    }
-
-    /// A render pipeline of (vertex permutation, fragment permutation or none, state).
+    /// A render pipeline of (vertex permutation, fragment permutation or none, state), from
+    /// the runtime's one pipeline cache.
     pub fn render(&self, vertex: &str, fragment: Option<&str>, desc: &RenderDesc) -> Result<Arc<Render>, DesktopError> {
-        {
-            let cached = self.render.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some((_, _, _, r)) =
-                cached.iter().find(|(v, f, d, _)| v == vertex && f.as_deref() == fragment && d == desc)
-            {
-                return Ok(r.clone());
-            }
-        }
-        let label = match fragment {
-            Some(f) => format!("{vertex} + {f}"),
-            None => vertex.to_string(),
+        let layout = match desc.vertices {
+            Vertices::None => VertexLayout::None,
+            Vertices::Mesh => VertexLayout::Mesh,
         };
-        let (vs, vs_reflection) = self.module(vertex, Stage::Vertex)?;
-        let fs = match fragment {
-            Some(f) => Some(self.module(f, Stage::Fragment)?),
-            None => None,
-        };
-        let mut reflections = vec![&vs_reflection];
-        if let Some((_, r)) = &fs {
-            reflections.push(r);
-        }
-        let layout = self.layout(&label, &reflections)?;
-        let buffers: Vec<Option<wgpu::VertexBufferLayout<'static>>> = match desc.vertices {
-            Vertices::None => Vec::new(),
-            Vertices::Mesh => vec![Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &MESH_ATTRIBUTES,
-            })],
-        };
-        let targets: Vec<Option<wgpu::ColorTargetState>> = desc
+        let targets: Vec<wgpu::ColorTargetState> = desc
             .targets
             .iter()
-            .map(|(format, blend)| {
-                Some(wgpu::ColorTargetState { format: *format, blend: *blend, write_mask: wgpu::ColorWrites::ALL })
+            .map(|(format, blend)| wgpu::ColorTargetState {
+                format: *format,
+                blend: *blend,
+                write_mask: wgpu::ColorWrites::ALL,
             })
             .collect();
-        let scope = ErrorScopes::push(self.device);
-        let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some(&label),
-            layout: Some(&layout.pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &vs,
-                entry_point: Some(&vs_reflection.entry),
-                compilation_options: Default::default(),
-                buffers: &buffers,
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                cull_mode: desc.cull,
-                front_face: wgpu::FrontFace::Ccw,
-                ..Default::default()
-            },
-            depth_stencil: desc.depth_stencil.clone(),
-            multisample: wgpu::MultisampleState::default(),
-            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
-                module,
-                entry_point: Some(&r.entry),
-                compilation_options: Default::default(),
-                targets: &targets,
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        if let Some(message) = scope.pop() {
-            return Err(DesktopError::Wgpu { what: format!("render pipeline `{label}`"), message });
-        }
-        let handle = Arc::new(Render { pipeline, layout });
-        self.render.lock().unwrap_or_else(|e| e.into_inner()).push((
-            vertex.to_string(),
-            fragment.map(str::to_string),
-            desc.clone(),
-            handle.clone(),
-        ));
-        Ok(handle)
+        let state = RenderState::from_wgpu(layout, desc.cull, desc.depth_stencil.as_ref(), &targets, 1);
+        let built = self.cache.render(vertex, fragment, &state)?;
+        Ok(Arc::new(Render { pipeline: built.pipeline.clone(), layout: Layout::from(&built.layout) }))
     }
 
     pub fn compute(&self, name: &str) -> Result<Arc<Compute>, DesktopError> {
-        if let Some(c) = self.compute.lock().unwrap_or_else(|e| e.into_inner()).get(name) {
-            return Ok(c.clone());
-        }
-        let (module, reflection) = self.module(name, Stage::Compute)?;
-        let layout = self.layout(name, &[&reflection])?;
-        let scope = ErrorScopes::push(self.device);
-        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(name),
-            layout: Some(&layout.pipeline_layout),
-            module: &module,
-            entry_point: Some(&reflection.entry),
-            compilation_options: Default::default(),
-            cache: None,
-        });
-        if let Some(message) = scope.pop() {
-            return Err(DesktopError::Wgpu { what: format!("compute pipeline `{name}`"), message });
-        }
-        let handle =
-            Arc::new(Compute { pipeline, layout, workgroup_size: reflection.workgroup_size.unwrap_or([1, 1, 1]) });
-        self.compute.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), handle.clone());
-        Ok(handle)
+        let built = self.cache.compute(name)?;
+        Ok(Arc::new(Compute {
+            pipeline: built.pipeline.clone(),
+            layout: Layout::from(&built.layout),
+            workgroup_size: built.workgroup_size,
+        }))
     }
 }
 
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
-    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+impl From<&PipelineLayoutInfo> for Layout {
+    fn from(info: &PipelineLayoutInfo) -> Layout {
+        Layout {
+            label: info.label.clone(),
+            groups: info.groups.clone(),
+            bind_group_layouts: info.bind_group_layouts.clone(),
+        }
+    }
+}
 
 /// Blend states the desktop passes use beyond replace.
 pub mod blend {

@@ -1,18 +1,12 @@
-//! Render pipelines of the mobile passes. The mobile frames need fixed-function state the
-//! shared [`RenderState`](crate::pipelines::RenderState) does not describe (stencil tests and
-//! writes, color write masks, light volume vertex layouts), so they build their pipelines
-//! here, from the same pieces: modules created lazily by the shared
-//! [`PipelineCache`] (SPIR-V passthrough on Vulkan where allowed, WGSL otherwise) and bind
-//! group layouts from the archive's reflection ([`PipelineCache::layout`]). Every pipeline is
-//! built when its pass is built (the warm-up), and shared between passes by state.
+//! Render pipelines of the mobile passes, described in wgpu's terms ([`PipelineDesc`]) and
+//! created by the runtime's one [`PipelineCache`], keyed by the permutations and the whole
+//! fixed-function state. Every pipeline is requested when its pass is built (the warm-up),
+//! and shared between passes by state.
 
-use std::collections::HashMap;
+use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
 
-use kiln::Stage;
-
-use crate::gpu_types::{InstanceData, MeshVertex};
-use crate::pipelines::{PipelineCache, PipelineError, PipelineLayoutInfo};
+use crate::pipelines::{PipelineCache, PipelineError, PipelineLayoutInfo, RenderKey, RenderState, VertexLayout};
 
 /// Vertex buffers a mobile pipeline reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -51,10 +45,6 @@ impl PipelineDesc {
             sample_count: 1,
         }
     }
-
-    fn key(&self) -> String {
-        format!("{self:?}")
-    }
 }
 
 /// A built pipeline with its layouts (for bind groups by resource name).
@@ -84,116 +74,49 @@ impl MobilePipeline {
     }
 }
 
-/// Mobile pipelines by state, over the shared module and layout cache.
+/// The mobile frames' view of the runtime's one pipeline cache.
 pub struct MobilePipelines<'a> {
     pub cache: &'a PipelineCache,
     pub device: &'a wgpu::Device,
-    built: Mutex<HashMap<String, Arc<MobilePipeline>>>,
-}
-
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
-    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
-const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
-    wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
-const POSITION_ATTRIBUTES: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Float32x3];
-
-fn vertex_buffers(input: VertexInput) -> Vec<Option<wgpu::VertexBufferLayout<'static>>> {
-    match input {
-        VertexInput::None => Vec::new(),
-        VertexInput::MeshInstanced => vec![
-            Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<MeshVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &MESH_ATTRIBUTES,
-            }),
-            Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<InstanceData>() as u64,
-                step_mode: wgpu::VertexStepMode::Instance,
-                attributes: &INSTANCE_ATTRIBUTES,
-            }),
-        ],
-        VertexInput::Position => vec![Some(wgpu::VertexBufferLayout {
-            array_stride: 12,
-            step_mode: wgpu::VertexStepMode::Vertex,
-            attributes: &POSITION_ATTRIBUTES,
-        })],
-    }
+    /// The keys this frame asked for (how many distinct pipelines it uses).
+    used: Mutex<HashSet<RenderKey>>,
 }
 
 impl<'a> MobilePipelines<'a> {
     pub fn new(cache: &'a PipelineCache, device: &'a wgpu::Device) -> MobilePipelines<'a> {
-        MobilePipelines { cache, device, built: Mutex::default() }
+        MobilePipelines { cache, device, used: Mutex::default() }
     }
 
-    /// The canonical name of an `es3_1` permutation of `shader`.
-    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, PipelineError> {
-        let mut q = self.cache.archive().shader(shader).level(super::LEVEL);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find()?.name().to_string())
-    }
-
-    /// Builds (or finds) the pipeline for `desc`.
+    /// The pipeline for `desc`, from the runtime's one pipeline cache.
     pub fn get(&self, desc: &PipelineDesc) -> Result<Arc<MobilePipeline>, PipelineError> {
-        let key = desc.key();
-        if let Some(p) = self.built.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-            return Ok(p.clone());
+        let layout = match desc.vertex_input {
+            VertexInput::None => VertexLayout::None,
+            VertexInput::MeshInstanced => VertexLayout::MeshInstanced,
+            VertexInput::Position => VertexLayout::Position,
+        };
+        // Every slot holds a target (`untouched` for one the pipeline does not write).
+        let targets: Vec<wgpu::ColorTargetState> = desc.targets.iter().flatten().cloned().collect();
+        if targets.len() != desc.targets.len() {
+            return Err(PipelineError::Wgpu {
+                what: format!("render pipeline `{}`", desc.vertex),
+                message: "a color target slot is empty; use `untouched(format)`".into(),
+            });
         }
+        let state =
+            RenderState::from_wgpu(layout, desc.cull_mode, desc.depth_stencil.as_ref(), &targets, desc.sample_count);
+        let key = RenderKey { vertex: desc.vertex.clone(), fragment: desc.fragment.clone(), state };
+        let built = self.cache.render_key(&key)?;
+        self.used.lock().unwrap_or_else(|e| e.into_inner()).insert(key);
         let label = match &desc.fragment {
             Some(f) => format!("{} + {f}", desc.vertex),
             None => desc.vertex.clone(),
         };
-        let (vs, vs_reflection) = self.cache.module(&desc.vertex, Stage::Vertex)?;
-        let fs = match &desc.fragment {
-            Some(f) => Some(self.cache.module(f, Stage::Fragment)?),
-            None => None,
-        };
-        let mut reflections = vec![&vs_reflection];
-        if let Some((_, r)) = &fs {
-            reflections.push(r);
-        }
-        let layout = self.cache.layout(&label, &reflections)?;
-        let buffers = vertex_buffers(desc.vertex_input);
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some(&label),
-            layout: Some(&layout.layout),
-            vertex: wgpu::VertexState {
-                module: &vs,
-                entry_point: Some(&vs_reflection.entry),
-                compilation_options: Default::default(),
-                buffers: &buffers,
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                cull_mode: desc.cull_mode,
-                front_face: wgpu::FrontFace::Ccw,
-                ..Default::default()
-            },
-            depth_stencil: desc.depth_stencil.clone(),
-            multisample: wgpu::MultisampleState { count: desc.sample_count, ..Default::default() },
-            fragment: fs.as_ref().map(|(module, r)| wgpu::FragmentState {
-                module,
-                entry_point: Some(&r.entry),
-                compilation_options: Default::default(),
-                targets: &desc.targets,
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(PipelineError::Wgpu { what: format!("render pipeline `{label}`"), message: e.to_string() });
-        }
-        self.cache.count_external_render_pipeline();
-        let built = Arc::new(MobilePipeline { label, pipeline, layout });
-        self.built.lock().unwrap_or_else(|e| e.into_inner()).insert(key, built.clone());
-        Ok(built)
+        Ok(Arc::new(MobilePipeline { label, pipeline: built.pipeline.clone(), layout: built.layout.clone() }))
     }
 
     /// How many distinct pipelines were built.
     pub fn count(&self) -> usize {
-        self.built.lock().unwrap_or_else(|e| e.into_inner()).len()
+        self.used.lock().unwrap_or_else(|e| e.into_inner()).len()
     }
 }
 

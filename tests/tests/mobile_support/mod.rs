@@ -11,22 +11,24 @@ use kiln_runtime::mobile::{self, MobileOptions};
 use kiln_runtime::pipelines::PipelineCache;
 use kiln_runtime::scene::gpu::GpuScene;
 use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, Gpu, GpuOptions, ShaderArchive};
+use kiln_runtime::{Backend, GpuOptions, ShaderArchive};
 
 pub const WIDTH: u32 = 320;
 pub const HEIGHT: u32 = 180;
 
 pub struct Rig {
-    pub gpu: Gpu,
+    /// Fails the test with the messages if validation reported any.
+    pub gpu: kiln_runtime::validation::CheckedGpu,
     pub cache: PipelineCache,
 }
 
 /// A device on `backend` with the embedded archive. Panics with the package to install when
 /// there is no adapter: a render test must fail, not skip.
 pub fn rig(backend: Backend) -> Rig {
-    let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() }).unwrap_or_else(|e| {
-        panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)")
-    });
+    let gpu = kiln_runtime::validation::CheckedGpu::new(&GpuOptions { backend, ..GpuOptions::default() })
+        .unwrap_or_else(|e| {
+            panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)")
+        });
     let archive = ShaderArchive::embedded().expect("the embedded archive opens");
     let cache = PipelineCache::new(&gpu, Arc::new(archive));
     Rig { gpu, cache }
