@@ -355,10 +355,14 @@ fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Target> {
 }
 
 fn level_limits(level: &permute::Level) -> Limits {
-    match level.limits {
+    let mut limits = match level.limits {
         permute::Limits::Default => Limits::desktop(),
         permute::Limits::Downlevel => Limits::downlevel(),
+    };
+    for (field, value) in &level.limit_overrides {
+        limits.set(field, *value);
     }
+    limits
 }
 
 fn run_in_pool(options: &Options, config: &Config, cache: Option<&Cache>, start: Instant) -> Result<Report, Error> {
@@ -1024,10 +1028,14 @@ fn render_failures(
         let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
         let p = &kept[members[0]];
-        let limits = match p.level.limits {
+        let mut limits = match p.level.limits {
             permute::Limits::Default => "default",
             permute::Limits::Downlevel => "downlevel",
-        };
+        }
+        .to_string();
+        for (field, value) in &p.level.limit_overrides {
+            limits.push_str(&format!(" with {field} = {value}"));
+        }
         let note = if members.len() == 1 {
             format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
         } else {

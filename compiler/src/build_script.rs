@@ -29,6 +29,7 @@ pub struct Build {
     cache: Option<CacheDir>,
     jobs: Option<usize>,
     cargo_output: bool,
+    rust_bindings: Option<String>,
 }
 
 /// A failed [`Build::run`]: the rendered failures, or what else went wrong.
@@ -77,6 +78,7 @@ impl Build {
             cache: None,
             jobs: None,
             cargo_output: true,
+            rust_bindings: None,
         }
     }
 
@@ -128,6 +130,15 @@ impl Build {
         self
     }
 
+    /// Also writes typed permutation keys to this file in the output folder
+    /// (`OUT_DIR/kiln_shaders.rs`), for `include!(concat!(env!("OUT_DIR"), "/kiln_shaders.rs"))`.
+    /// The names follow fixed rules: see [`crate::bindings`]. The file is rewritten only when
+    /// its text changes.
+    pub fn rust_bindings(mut self, file_name: impl Into<String>) -> Build {
+        self.rust_bindings = Some(file_name.into());
+        self
+    }
+
     /// Whether to print `cargo:` lines (on by default; off for use outside build scripts).
     pub fn cargo_output(mut self, on: bool) -> Build {
         self.cargo_output = on;
@@ -169,6 +180,9 @@ impl Build {
             let _ = writeln!(out, "cargo:rerun-if-changed={}", self.config.display());
             let _ = writeln!(out, "cargo:rerun-if-env-changed=KILN_CACHE_DIR");
         }
+        if let Some(name) = &self.rust_bindings {
+            self.write_bindings(&out_dir.join(name))?;
+        }
         let result = build::run(&options);
         let report = match &result {
             Ok(r) => Some(r),
@@ -208,6 +222,21 @@ impl Build {
                 Err(BuildError { message: e.to_string(), code, report: None })
             }
         }
+    }
+}
+
+impl Build {
+    /// Writes the typed keys of the permutation set to `path` (atomically, and only when the
+    /// text differs, so that cargo does not rebuild the including crate for nothing).
+    fn write_bindings(&self, path: &Path) -> Result<(), BuildError> {
+        let usage = |message: String| BuildError { message, code: 2, report: None };
+        let config = crate::permute::load(&self.config).map_err(|e| usage(e.render_with(false)))?;
+        let text = crate::bindings::generate(&config).map_err(|e| usage(format!("error: {e}")))?;
+        if std::fs::read(path).ok().as_deref() == Some(text.as_bytes()) {
+            return Ok(());
+        }
+        crate::archive::write_atomic(path, text.as_bytes())
+            .map_err(|e| usage(format!("error: cannot write {}: {e}", path.display())))
     }
 }
 

@@ -10,10 +10,13 @@
 //! - [`cache`]: the content-addressed artifact store;
 //! - [`archive`]: the packed file the runtime loads (the only module built without the
 //!   `compiler` feature, so the runtime reads archives with the same types and no naga);
-//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares.
+//! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
+//!   [`bindings`], the typed permutation keys it generates.
 
 pub mod archive;
 
+#[cfg(feature = "compiler")]
+pub mod bindings;
 #[cfg(feature = "compiler")]
 pub mod build;
 #[cfg(feature = "compiler")]
@@ -28,6 +31,8 @@ pub mod compile;
 pub mod permute;
 #[cfg(feature = "compiler")]
 pub mod preprocess;
+#[cfg(feature = "compiler")]
+pub mod watch;
 
 pub use archive::{Stage, Target};
 #[cfg(feature = "compiler")]

@@ -12,12 +12,16 @@
 //! (device setup), [`pipelines`] (modules, layouts, pipeline cache), [`scene`] (the bundled
 //! scene and its GPU upload), [`frame`] (pass recording: debug groups, timestamps,
 //! captures), [`passes`] (one module per pass) and [`renderer`] (the frames, one function
-//! per `--pipeline`).
+//! per `--pipeline`). With the `hot-reload` feature, [`hot_reload`] rebuilds the
+//! permutations an edit touches and [`Renderer::reload`] swaps them between frames.
 
 pub mod desktop;
 pub mod frame;
 pub mod gpu;
 pub mod gpu_types;
+#[cfg(feature = "hot-reload")]
+pub mod hot_reload;
+pub mod keys;
 pub mod mobile;
 pub mod passes;
 pub mod pipelines;

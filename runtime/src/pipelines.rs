@@ -404,6 +404,7 @@ pub struct PipelineCache {
 
 /// wgpu's driver-level pipeline cache, loaded from and saved to one file per adapter and
 /// driver.
+#[derive(Clone)]
 struct DiskCache {
     cache: wgpu::PipelineCache,
     path: std::path::PathBuf,
@@ -521,6 +522,54 @@ impl PipelineCache {
 
     pub fn archive(&self) -> &ShaderArchive {
         &self.archive
+    }
+
+    /// Hot reload: a cache on `archive` holding this cache's layouts, modules and pipelines,
+    /// except those of the `changed` permutations (and of permutations `archive` lacks), which
+    /// are created again on first use. Its counters go on from this cache's.
+    pub fn carry_over(
+        &self,
+        archive: Arc<ShaderArchive>,
+        changed: &std::collections::HashSet<String>,
+    ) -> PipelineCache {
+        let old = self.lock();
+        let keep = |name: &str| !changed.contains(name) && archive.archive().get(name).is_some();
+        let mut inner = CacheInner { layouts: old.layouts.clone(), stats: old.stats, ..CacheInner::default() };
+        // The blobs of the kept permutations, old id to new id, per target.
+        let mut blobs = HashMap::new();
+        for name in old.used.iter().filter(|n| keep(n)) {
+            inner.used.insert(name.clone());
+            let (Some(o), Some(n)) = (self.archive.archive().get(name), archive.archive().get(name)) else { continue };
+            for target in [Target::Spirv, Target::Wgsl] {
+                if let (Some(ob), Some(nb)) = (o.blob_id(target), n.blob_id(target)) {
+                    blobs.insert((target, ob), nb);
+                }
+            }
+        }
+        for ((target, ob, numbering), m) in &old.modules {
+            if let Some(nb) = blobs.get(&(*target, *ob)) {
+                inner.modules.insert((*target, *nb, numbering.clone()), m.clone());
+            }
+        }
+        for (k, p) in &old.render {
+            if keep(&k.vertex) && k.fragment.as_deref().is_none_or(keep) {
+                inner.render.insert(k.clone(), p.clone());
+            }
+        }
+        for (k, p) in &old.compute {
+            if keep(&p.compute) {
+                inner.compute.insert(k.clone(), p.clone());
+            }
+        }
+        let passthrough = self.passthrough && archive.trusted();
+        PipelineCache {
+            archive,
+            device: self.device.clone(),
+            passthrough,
+            limits: self.limits.clone(),
+            inner: Mutex::new(inner),
+            disk: self.disk.clone(),
+        }
     }
 
     /// Whether modules come from SPIR-V passthrough: the device allows it and the archive is

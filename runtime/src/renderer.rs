@@ -170,6 +170,20 @@ impl Renderer {
         Renderer::with_cache(gpu, PipelineCache::new(gpu, archive), scene, options)
     }
 
+    /// Hot reload: a renderer of the same frame on `archive`, built between frames, that
+    /// creates again only the modules and pipelines of the `changed` permutations (see
+    /// [`PipelineCache::carry_over`]); every other pipeline is this renderer's. On an error
+    /// this renderer is untouched, so the caller keeps the last good pipelines.
+    pub fn reload(
+        &self,
+        gpu: &Gpu,
+        archive: Arc<ShaderArchive>,
+        scene: &Scene,
+        changed: &std::collections::HashSet<String>,
+    ) -> Result<Renderer, RenderError> {
+        Renderer::with_cache(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone())
+    }
+
     /// As [`Renderer::new`], with pipelines from `cache` (one made with
     /// [`PipelineCache::with_disk_cache`], say).
     pub fn with_cache(

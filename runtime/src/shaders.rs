@@ -107,6 +107,12 @@ impl ShaderArchive {
         }
     }
 
+    /// O(1) lookup by the id a typed key computes (`key.permutation_id(level)` in the
+    /// `kiln_shaders.rs` that `kiln::Build::rust_bindings` generates): no name is formatted.
+    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
+        self.archive.get_by_id(id)
+    }
+
     /// Starts a lookup by shader name and dimension values:
     /// `archive.shader("MobileBasePassPS").level("es3_1").with("FULLY_ROUGH", 1).find()`.
     pub fn shader<'a>(&'a self, name: &str) -> PermutationQuery<'a> {

@@ -381,6 +381,30 @@ pub struct Archive {
     blobs_start: usize,
     by_name: HashMap<String, u32>,
     by_shader: HashMap<(String, String), u32>,
+    by_id: HashMap<u128, u32>,
+}
+
+/// The id of a permutation: the 128-bit FNV-1a hash of the shader's name, a 0 byte, the
+/// level's name, a 0 byte, then each dimension's value (an enum's index) as 8 little-endian
+/// bytes, in declared order. Typed keys compute the same hash from their fields.
+pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
+    const OFFSET: u128 = 0x6c62272e07bb014262b821756295c58d;
+    const PRIME: u128 = 0x0000000001000000000000000000013B;
+    let mut h = OFFSET;
+    let mut eat = |bytes: &[u8]| {
+        for b in bytes {
+            h ^= u128::from(*b);
+            h = h.wrapping_mul(PRIME);
+        }
+    };
+    eat(shader.as_bytes());
+    eat(&[0]);
+    eat(level.as_bytes());
+    eat(&[0]);
+    for v in values {
+        eat(&v.to_le_bytes());
+    }
+    h
 }
 
 /// A permutation found in an archive.
@@ -496,7 +520,16 @@ impl Archive {
         let by_name = manifest.permutations.iter().enumerate().map(|(i, p)| (p.name.clone(), i as u32)).collect();
         let by_shader =
             manifest.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
-        Ok(Archive { bytes, manifest, blobs_start: manifest_end, by_name, by_shader })
+        let by_id = manifest
+            .permutations
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let s = &manifest.shaders[p.shader as usize];
+                (permutation_id(&s.name, &s.level, &p.values), i as u32)
+            })
+            .collect();
+        Ok(Archive { bytes, manifest, blobs_start: manifest_end, by_name, by_shader, by_id })
     }
 
     pub fn kiln_version(&self) -> &str {
@@ -541,6 +574,13 @@ impl Archive {
     /// O(1) lookup by canonical name.
     pub fn get(&self, name: &str) -> Option<PermutationRef<'_>> {
         let i = *self.by_name.get(name)?;
+        Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
+    }
+
+    /// O(1) lookup by [`permutation_id`], the id that typed keys (`Key::permutation_id`, see
+    /// [`crate::bindings`]) compute from their fields without formatting a name.
+    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
+        let i = *self.by_id.get(&id)?;
         Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
     }
 

@@ -15,8 +15,8 @@ mod reflect;
 #[cfg(feature = "compiler")]
 pub(crate) use format::write_all_vectored;
 pub use format::{
-    write_atomic, write_atomic_unsynced, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord, Lookup, Near,
-    PermutationRecord, PermutationRef, ShaderRecord, FORMAT_VERSION, MAGIC,
+    permutation_id, write_atomic, write_atomic_unsynced, Archive, ArchiveError, ArchiveWriter, BlobId, DimensionRecord,
+    Lookup, Near, PermutationRecord, PermutationRef, ShaderRecord, FORMAT_VERSION, MAGIC,
 };
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,

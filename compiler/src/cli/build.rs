@@ -39,6 +39,10 @@ pub struct Args {
     /// Write the build's counts and timings as JSON.
     #[arg(long, value_name = "FILE")]
     pub stats_json: Option<PathBuf>,
+    /// After the build, watch every file it read and rebuild on each change (one line per
+    /// rebuild) until interrupted.
+    #[arg(long)]
+    pub watch: bool,
 }
 
 pub fn parse_target(s: &str) -> Result<Target, String> {
@@ -63,9 +67,12 @@ pub fn exec(args: Args) -> CliResult {
             (false, None) => CacheDir::Auto,
         },
         stats_json: args.stats_json,
-        progress: true,
+        progress: !args.watch,
         color,
     };
+    if args.watch {
+        return watch(options);
+    }
     match build::run(&options) {
         Ok(report) => {
             for w in &report.warnings {
@@ -89,5 +96,55 @@ pub fn exec(args: Args) -> CliResult {
             )))
         }
         Err(e) => Err(Failure::usage(e.to_string())),
+    }
+}
+
+/// `--watch`: builds, then rebuilds on every change to a file the last build read. Failures
+/// are printed and the watch goes on (the last good archive stays in place).
+fn watch(options: build::Options) -> CliResult {
+    let (mut watch, first) = crate::watch::Watch::start(options).map_err(|e| Failure::usage(format!("error: {e}")))?;
+    report_rebuild(&first, watch.files().count(), true);
+    loop {
+        match watch.wait(std::time::Duration::from_secs(3600)) {
+            Ok(Some(outcome)) => report_rebuild(&outcome, watch.files().count(), false),
+            Ok(None) => {}
+            Err(e) => return Err(Failure::usage(format!("error: {e}"))),
+        }
+    }
+}
+
+/// Prints a build's warnings and failures, then its one line.
+fn report_rebuild(o: &crate::watch::Outcome, watched: usize, first: bool) {
+    let what = if first {
+        "built".to_string()
+    } else {
+        let names: Vec<String> = o
+            .changed
+            .iter()
+            .map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
+            .collect();
+        format!("rebuilt after {} changed", names.join(", "))
+    };
+    let ms = o.build_time.as_secs_f64() * 1000.0;
+    match &o.result {
+        Ok(report) => {
+            for w in &report.warnings {
+                eprintln!("{}", w.trim_end());
+            }
+            eprintln!("kiln: {what} in {ms:.0} ms: {}; watching {watched} files", report.summary());
+        }
+        Err(build::Error::Failed(report)) => {
+            for f in &report.failures {
+                eprintln!("{}\n", f.trim_end());
+            }
+            eprintln!(
+                "kiln: {what} in {ms:.0} ms: {} of {} permutations failed, archive kept; watching {watched} files",
+                report.stats.failed, report.stats.permutations
+            );
+        }
+        Err(e) => {
+            eprintln!("{}", e.to_string().trim_end());
+            eprintln!("kiln: {what} in {ms:.0} ms: the build did not run, archive kept; watching {watched} files");
+        }
     }
 }

@@ -4,7 +4,8 @@
 //! `Limits::downlevel_defaults()` (4 color attachments, 4 storage buffers per stage, 16 KiB
 //! uniform buffers, 16352 bytes of workgroup storage) with what GLES 3.1 lacks removed: no
 //! cube array textures, no per-sample shading, no storage buffers or storage textures in
-//! vertex shaders.
+//! vertex shaders. A level's `limits` table ([`Limits::set`]) raises or lowers single
+//! limits by their wgpu `Limits` field names.
 
 use crate::archive::{BindingKind, Reflection, Stage};
 
@@ -32,7 +33,71 @@ pub struct Limits {
     pub vertex_storage: bool,
     /// GLES 3.1 core has neither cube array textures nor per-sample shading.
     pub gles: bool,
+    /// The single limits a level's `limits` table sets, as written (part of the cache key;
+    /// named in errors as set by the level).
+    pub overrides: Vec<(String, u64)>,
 }
+
+/// Every field of wgpu 30's `Limits`, and whether it is a `u64` (else a `u32`). The ones
+/// Kiln checks are fields of [`Limits`]; the others are accepted and recorded.
+pub const WGPU_LIMITS: &[(&str, bool)] = &[
+    ("max_texture_dimension_1d", false),
+    ("max_texture_dimension_2d", false),
+    ("max_texture_dimension_3d", false),
+    ("max_texture_array_layers", false),
+    ("max_bind_groups", false),
+    ("max_bind_groups_plus_vertex_buffers", false),
+    ("max_bindings_per_bind_group", false),
+    ("max_dynamic_uniform_buffers_per_pipeline_layout", false),
+    ("max_dynamic_storage_buffers_per_pipeline_layout", false),
+    ("max_sampled_textures_per_shader_stage", false),
+    ("max_samplers_per_shader_stage", false),
+    ("max_storage_buffers_per_shader_stage", false),
+    ("max_storage_textures_per_shader_stage", false),
+    ("max_uniform_buffers_per_shader_stage", false),
+    ("max_binding_array_elements_per_shader_stage", false),
+    ("max_binding_array_acceleration_structure_elements_per_shader_stage", false),
+    ("max_binding_array_sampler_elements_per_shader_stage", false),
+    ("max_uniform_buffer_binding_size", true),
+    ("max_storage_buffer_binding_size", true),
+    ("max_vertex_buffers", false),
+    ("max_buffer_size", true),
+    ("max_vertex_attributes", false),
+    ("max_vertex_buffer_array_stride", false),
+    ("max_inter_stage_shader_variables", false),
+    ("min_uniform_buffer_offset_alignment", false),
+    ("min_storage_buffer_offset_alignment", false),
+    ("max_color_attachments", false),
+    ("max_color_attachment_bytes_per_sample", false),
+    ("max_compute_workgroup_storage_size", false),
+    ("max_compute_invocations_per_workgroup", false),
+    ("max_compute_workgroup_size_x", false),
+    ("max_compute_workgroup_size_y", false),
+    ("max_compute_workgroup_size_z", false),
+    ("max_compute_workgroups_per_dimension", false),
+    ("max_immediate_size", false),
+    ("max_non_sampler_bindings", false),
+    ("max_task_workgroup_total_count", false),
+    ("max_task_workgroups_per_dimension", false),
+    ("max_mesh_workgroup_total_count", false),
+    ("max_mesh_workgroups_per_dimension", false),
+    ("max_task_invocations_per_workgroup", false),
+    ("max_task_invocations_per_dimension", false),
+    ("max_mesh_invocations_per_workgroup", false),
+    ("max_mesh_invocations_per_dimension", false),
+    ("max_task_payload_size", false),
+    ("max_mesh_output_vertices", false),
+    ("max_mesh_output_primitives", false),
+    ("max_mesh_output_layers", false),
+    ("max_mesh_multiview_view_count", false),
+    ("max_blas_primitive_count", false),
+    ("max_blas_geometry_count", false),
+    ("max_tlas_instance_count", false),
+    ("max_acceleration_structures_per_shader_stage", false),
+    ("max_buffers_and_acceleration_structures_per_shader_stage", false),
+    ("max_multiview_view_count", false),
+    ("max_ray_dispatch_count", false),
+];
 
 impl Default for Limits {
     fn default() -> Self {
@@ -60,6 +125,7 @@ impl Limits {
             max_compute_workgroup_size: [256, 256, 64],
             vertex_storage: true,
             gles: false,
+            overrides: Vec::new(),
         }
     }
 
@@ -74,6 +140,41 @@ impl Limits {
             vertex_storage: false,
             gles: true,
             ..Limits::desktop()
+        }
+    }
+
+    /// Sets one limit by its wgpu `Limits` field name (the config loader has checked the name
+    /// against [`WGPU_LIMITS`] and the value's range). A field Kiln does not check is only recorded.
+    pub fn set(&mut self, field: &str, value: u64) {
+        let v32 = u32::try_from(value).unwrap_or(u32::MAX);
+        match field {
+            "max_bind_groups" => self.max_bind_groups = v32,
+            "max_bindings_per_bind_group" => self.max_bindings_per_bind_group = v32,
+            "max_samplers_per_shader_stage" => self.max_samplers_per_shader_stage = v32,
+            "max_sampled_textures_per_shader_stage" => self.max_sampled_textures_per_shader_stage = v32,
+            "max_storage_buffers_per_shader_stage" => self.max_storage_buffers_per_shader_stage = v32,
+            "max_storage_textures_per_shader_stage" => self.max_storage_textures_per_shader_stage = v32,
+            "max_uniform_buffers_per_shader_stage" => self.max_uniform_buffers_per_shader_stage = v32,
+            "max_uniform_buffer_binding_size" => self.max_uniform_buffer_binding_size = value,
+            "max_vertex_attributes" => self.max_vertex_attributes = v32,
+            "max_color_attachments" => self.max_color_attachments = v32,
+            "max_compute_workgroup_storage_size" => self.max_compute_workgroup_storage_size = value,
+            "max_compute_invocations_per_workgroup" => self.max_compute_invocations_per_workgroup = v32,
+            "max_compute_workgroup_size_x" => self.max_compute_workgroup_size[0] = v32,
+            "max_compute_workgroup_size_y" => self.max_compute_workgroup_size[1] = v32,
+            "max_compute_workgroup_size_z" => self.max_compute_workgroup_size[2] = v32,
+            _ => {}
+        }
+        self.overrides.retain(|(f, _)| f != field);
+        self.overrides.push((field.to_string(), value));
+    }
+
+    /// The note under a limit error: where the limit's value comes from.
+    fn note(&self, field: &str, value: impl std::fmt::Display) -> String {
+        if self.overrides.iter().any(|(f, _)| f == field) {
+            format!("{field} = {value}, as the level's `limits` table sets it")
+        } else {
+            format!("{field} = {value} at the {} limits", self.name)
         }
     }
 
@@ -132,7 +233,7 @@ impl Limits {
                     ),
                     at,
                     "declared here",
-                    format!("max_bind_groups = {} at the {level} limits", self.max_bind_groups),
+                    self.note("max_bind_groups", self.max_bind_groups),
                 ));
             }
             if b.binding >= self.max_bindings_per_bind_group {
@@ -143,7 +244,7 @@ impl Limits {
                     ),
                     at,
                     "declared here",
-                    format!("max_bindings_per_bind_group = {} at the {level} limits", self.max_bindings_per_bind_group),
+                    self.note("max_bindings_per_bind_group", self.max_bindings_per_bind_group),
                 ));
             }
             let slot = match &b.kind {
@@ -170,10 +271,7 @@ impl Limits {
                         ),
                         at,
                         "declared here",
-                        format!(
-                            "max_uniform_buffer_binding_size = {} at the {level} limits",
-                            self.max_uniform_buffer_binding_size
-                        ),
+                        self.note("max_uniform_buffer_binding_size", self.max_uniform_buffer_binding_size),
                     ));
                 }
             }
@@ -184,7 +282,7 @@ impl Limits {
                     format!("binding `{name}` is the {} of the {stage} stage, over the {level} limit of {max} {what} per stage", ordinal(counts[slot]) + " " + &what[..what.len() - 1]),
                     at,
                     "one too many",
-                    format!("{field} = {max} at the {level} limits"),
+                    self.note(field, max),
                 ));
             }
         }
@@ -197,7 +295,7 @@ impl Limits {
                 ),
                 None,
                 "",
-                format!("max_vertex_attributes = {} at the {level} limits", self.max_vertex_attributes),
+                self.note("max_vertex_attributes", self.max_vertex_attributes),
             ));
         }
         if let Some(c) = reflection.color_outputs.iter().find(|c| c.location >= self.max_color_attachments) {
@@ -208,7 +306,7 @@ impl Limits {
                 ),
                 None,
                 "",
-                format!("max_color_attachments = {} at the {level} limits", self.max_color_attachments),
+                self.note("max_color_attachments", self.max_color_attachments),
             ));
         }
         if let Some(size) = reflection.workgroup_size {
@@ -222,7 +320,14 @@ impl Limits {
                         ),
                         None,
                         "",
-                        format!("max_compute_workgroup_size_{} = {max} at the {level} limits", ["x", "y", "z"][axis]),
+                        self.note(
+                            [
+                                "max_compute_workgroup_size_x",
+                                "max_compute_workgroup_size_y",
+                                "max_compute_workgroup_size_z",
+                            ][axis],
+                            max,
+                        ),
                     ));
                 }
             }
@@ -236,10 +341,7 @@ impl Limits {
                     ),
                     None,
                     "",
-                    format!(
-                        "max_compute_invocations_per_workgroup = {} at the {level} limits",
-                        self.max_compute_invocations_per_workgroup
-                    ),
+                    self.note("max_compute_invocations_per_workgroup", self.max_compute_invocations_per_workgroup),
                 ));
             }
             let ep_info = info.get_entry_point(0);
@@ -267,10 +369,7 @@ impl Limits {
                 if let Some(r) = module.global_variables.get_span(h).to_range() {
                     e.labels.push((r, "the limit is crossed here".into()));
                 }
-                e.notes.push(format!(
-                    "max_compute_workgroup_storage_size = {} at the {level} limits",
-                    self.max_compute_workgroup_storage_size
-                ));
+                e.notes.push(self.note("max_compute_workgroup_storage_size", self.max_compute_workgroup_storage_size));
                 return Err(e);
             }
         }

@@ -15,7 +15,7 @@ mod writers;
 
 use std::ops::Range;
 
-pub use limits::Limits;
+pub use limits::{Limits, WGPU_LIMITS};
 pub use reflect::reflect;
 
 use crate::archive::{Reflection, Stage, Target};

@@ -58,7 +58,11 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     let _ = writeln!(t, "  shader:  {} ({}, entry {})", s.name, s.stage, s.entry);
     let _ = writeln!(t, "  source:  {} ({})", s.source, cache.display_name(&s.source_path));
     let targets: Vec<&str> = l.targets.iter().map(|t| t.name()).collect();
-    let _ = writeln!(t, "  level:   {} (targets: {}; limits: {})", l.name, targets.join(", "), l.limits.name());
+    let mut limits = l.limits.name().to_string();
+    for (field, value) in &l.limit_overrides {
+        limits.push_str(&format!(", {field} = {value}"));
+    }
+    let _ = writeln!(t, "  level:   {} (targets: {}; limits: {limits})", l.name, targets.join(", "));
     match p.skipped_by {
         None => {
             let _ = writeln!(t, "  status:  kept");

@@ -61,7 +61,10 @@ pub struct Level {
     pub defines: Vec<(String, i64)>,
     /// The targets written for this level; all of them when the file names none.
     pub targets: Vec<Target>,
+    /// The base limits (`limits = "..."`, or the table's `base`).
     pub limits: Limits,
+    /// The table form's single limits, as (wgpu `Limits` field, value), in the file's order.
+    pub limit_overrides: Vec<(String, u64)>,
 }
 
 /// Which wgpu limits a level is validated against.
@@ -112,6 +115,8 @@ pub struct Dimension {
     pub values: Vec<i64>,
     /// An enum's names (`values[i]` is `i`), else empty.
     pub labels: Vec<String>,
+    /// Written `"bool"` (values 0 and 1), rather than as a list or range.
+    pub is_bool: bool,
 }
 
 impl Dimension {

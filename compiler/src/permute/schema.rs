@@ -53,11 +53,42 @@ struct RawLevel {
     limits: Option<RawLimits>,
 }
 
-#[derive(Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// `limits`: `"default"`, `"downlevel"`, or `{ base = ..., <wgpu Limits field> = value, ... }`.
 enum RawLimits {
-    Default,
-    Downlevel,
+    Base(Limits),
+    /// The table's entries as written; checked in [`parse`] so that errors point at each one.
+    Table(Vec<(Spanned<String>, Spanned<toml::Value>)>),
+}
+
+impl<'de> Deserialize<'de> for RawLimits {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = RawLimits;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("\"default\", \"downlevel\" or a table { base = \"default\" | \"downlevel\", <wgpu Limits field> = value, ... }")
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<RawLimits, E> {
+                limits_base(v).map(RawLimits::Base).ok_or_else(|| E::unknown_variant(v, &["default", "downlevel"]))
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<RawLimits, A::Error> {
+                let mut entries = Vec::new();
+                while let Some(k) = map.next_key::<Spanned<String>>()? {
+                    entries.push((k, map.next_value::<Spanned<toml::Value>>()?));
+                }
+                Ok(RawLimits::Table(entries))
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+fn limits_base(name: &str) -> Option<Limits> {
+    match name {
+        "default" => Some(Limits::Default),
+        "downlevel" => Some(Limits::Downlevel),
+        _ => None,
+    }
 }
 
 #[derive(Deserialize)]
@@ -115,7 +146,8 @@ impl<'de> Deserialize<'de> for DefineValue {
 /// The value of one entry of `dimensions`, checked as it is read so that an error points at
 /// the value itself.
 enum DimensionKind {
-    Values(Vec<i64>),
+    /// The values, and whether they were written `"bool"`.
+    Values(Vec<i64>, bool),
     Enum(Vec<String>),
 }
 
@@ -132,7 +164,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
             }
             fn visit_str<E: de::Error>(self, v: &str) -> Result<DimensionKind, E> {
                 if v == "bool" {
-                    Ok(DimensionKind::Values(vec![0, 1]))
+                    Ok(DimensionKind::Values(vec![0, 1], true))
                 } else {
                     Err(E::custom(format!("unknown dimension kind `{v}`, expected \"bool\", a list of integers, {{ range = [lo, hi] }} or {{ enum = [...] }}")))
                 }
@@ -148,7 +180,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
                 if values.is_empty() {
                     return Err(de::Error::custom("empty dimension: a dimension needs at least one value"));
                 }
-                Ok(DimensionKind::Values(values))
+                Ok(DimensionKind::Values(values, false))
             }
             fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<DimensionKind, A::Error> {
                 let Some(key) = map.next_key::<String>()? else {
@@ -170,7 +202,7 @@ impl<'de> Deserialize<'de> for DimensionKind {
                                 "range of {count} values: a dimension may have at most {MAX_DIMENSION_VALUES}"
                             )));
                         }
-                        DimensionKind::Values((lo..=hi).collect())
+                        DimensionKind::Values((lo..=hi).collect(), false)
                     }
                     "enum" => {
                         let EnumNames(names) = map.next_value()?;
@@ -290,6 +322,32 @@ impl Checker {
             );
         }
     }
+}
+
+/// `value` in words for a message: `a string`, `-1`, `a table`.
+fn describe_value(value: &toml::Value) -> String {
+    match value {
+        toml::Value::String(s) => format!("the string {s:?}"),
+        toml::Value::Integer(n) => n.to_string(),
+        toml::Value::Float(f) => format!("the float {f}"),
+        toml::Value::Boolean(b) => format!("the boolean {b}"),
+        toml::Value::Datetime(_) => "a date".into(),
+        toml::Value::Array(_) => "an array".into(),
+        toml::Value::Table(_) => "a table".into(),
+    }
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
 }
 
 fn is_ident(s: &str) -> bool {
@@ -420,11 +478,65 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             }
             None => Target::ALL.to_vec(),
         };
-        let limits = match raw_level.limits {
-            Some(RawLimits::Downlevel) => Limits::Downlevel,
-            Some(RawLimits::Default) | None => Limits::Default,
+        let mut limit_overrides: Vec<(String, u64)> = Vec::new();
+        let limits = match &raw_level.limits {
+            Some(RawLimits::Base(b)) => *b,
+            None => Limits::Default,
+            Some(RawLimits::Table(entries)) => {
+                let mut base = Limits::Default;
+                for (k, v) in entries {
+                    let field = k.get_ref();
+                    if field == "base" {
+                        match v.get_ref().as_str().and_then(limits_base) {
+                            Some(b) => base = b,
+                            None => {
+                                c.error(
+                                    v.span(),
+                                    "`base` is \"default\" or \"downlevel\"",
+                                    "expected \"default\" or \"downlevel\"",
+                                );
+                            }
+                        }
+                        continue;
+                    }
+                    let Some(&(_, wide)) = crate::compile::WGPU_LIMITS.iter().find(|(f, _)| f == field) else {
+                        let near = crate::compile::WGPU_LIMITS
+                            .iter()
+                            .map(|(f, _)| *f)
+                            .min_by_key(|f| edit_distance(f, field))
+                            .unwrap_or("max_bind_groups");
+                        c.error(k.span(), format!("unknown limit `{field}`"), "not a field of wgpu's `Limits`")
+                            .notes
+                            .push(format!(
+                                "the table takes `base` and the fields of wgpu's `Limits`, such as `{near}`"
+                            ));
+                        continue;
+                    };
+                    let max = if wide { u64::MAX } else { u64::from(u32::MAX) };
+                    match v.get_ref().as_integer().and_then(|n| u64::try_from(n).ok()).filter(|n| *n <= max) {
+                        Some(n) => {
+                            if limit_overrides.iter().any(|(f, _)| f == field) {
+                                c.error(k.span(), format!("limit `{field}` is set twice"), "set again here");
+                            }
+                            limit_overrides.push((field.clone(), n));
+                        }
+                        None => {
+                            let ty = if wide { "u64" } else { "u32" };
+                            c.error(
+                                v.span(),
+                                format!(
+                                    "limit `{field}` takes a non-negative integer ({ty}), not {}",
+                                    describe_value(v.get_ref())
+                                ),
+                                format!("expected an integer from 0 to {max}"),
+                            );
+                        }
+                    }
+                }
+                base
+            }
         };
-        levels.push(Level { name: name.get_ref().clone(), defines, targets, limits });
+        levels.push(Level { name: name.get_ref().clone(), defines, targets, limits, limit_overrides });
     }
     let all_level_defines: HashSet<&str> =
         raw.levels.values().flat_map(|l| l.defines.keys().map(|k| k.get_ref().as_str())).collect();
@@ -543,8 +655,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
             clash(&mut c, "dimension", k, &shader_scope, dname);
             shader_scope.insert(dname.clone(), (k.span(), "dimension"));
             let dim = match v.get_ref() {
-                DimensionKind::Values(values) => {
-                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new() }
+                DimensionKind::Values(values, is_bool) => {
+                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new(), is_bool: *is_bool }
                 }
                 DimensionKind::Enum(labels) => {
                     for label in labels {
@@ -557,6 +669,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                         name: dname.clone(),
                         values: (0..labels.len() as i64).collect(),
                         labels: labels.clone(),
+                        is_bool: false,
                     }
                 }
             };

@@ -328,6 +328,35 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
     Ok(Value { v, unsigned })
 }
 
+/// How [`eval`] reads one token of a stand-alone expression: for code that translates
+/// expressions rather than evaluating them (the typed keys of [`crate::bindings`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum TokenClass {
+    /// A number or character constant, with its type.
+    Number(Value),
+    Ident,
+    Punct,
+    /// Not valid in an expression; the message says why.
+    Invalid(String),
+}
+
+/// The tokens of `expr` as [`eval`] classifies them, with their spelling.
+pub fn tokens(expr: &str) -> Vec<(TokenClass, &str)> {
+    lex(expr)
+        .into_iter()
+        .map(|(kind, r)| {
+            let text = &expr[r];
+            let class = match Token::from_lexed(kind, text, &|_| None).kind {
+                TokKind::Num(v) => TokenClass::Number(v),
+                TokKind::Ident(_) => TokenClass::Ident,
+                TokKind::Punct => TokenClass::Punct,
+                TokKind::Invalid(m) => TokenClass::Invalid(m),
+            };
+            (class, text)
+        })
+        .collect()
+}
+
 /// Evaluates tokens that are already macro-expanded, with `defined` already replaced.
 pub fn eval_tokens(toks: &[Token<'_>]) -> Result<Value, TokError> {
     if toks.is_empty() {

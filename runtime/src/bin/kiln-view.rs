@@ -81,6 +81,157 @@ struct Args {
     /// dimension values) and create its shader module on the device.
     #[arg(long)]
     verify: bool,
+    /// Build the shaders of this permutations.toml in-process, render continuously, and on
+    /// every change to a file they read rebuild the permutations it touches, swap them between
+    /// frames and rewrite `--out` (one line per reload). Needs the `hot-reload` feature.
+    #[arg(long, value_name = "CONFIG", conflicts_with_all = ["shaders", "verify", "dump_passes"])]
+    watch: Option<PathBuf>,
+    /// With --watch: stop after this many reloads (failed ones included).
+    #[arg(long, value_name = "N", requires = "watch", hide = true)]
+    watch_reloads: Option<usize>,
+}
+
+impl Args {
+    fn frame_pipeline(&self) -> FramePipeline {
+        match self.pipeline {
+            PipelineArg::Desktop => FramePipeline::Desktop,
+            PipelineArg::MobileForward => FramePipeline::MobileForward,
+            PipelineArg::MobileDeferred => FramePipeline::MobileDeferred,
+        }
+    }
+
+    fn backend(&self) -> Backend {
+        match self.backend {
+            BackendArg::Vulkan => Backend::Vulkan,
+            BackendArg::Gl => Backend::Gl,
+        }
+    }
+
+    fn gpu(&self) -> Result<Gpu, Failure> {
+        let module_source = if self.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
+        Gpu::new(&GpuOptions { backend: self.backend(), module_source, timestamps: true, validation: self.validation })
+            .map_err(|e| Failure::Render(e.to_string()))
+    }
+}
+
+#[cfg(not(feature = "hot-reload"))]
+mod watch {
+    use super::*;
+
+    pub fn run(_: &Args, _: &std::path::Path) -> Result<(), Failure> {
+        Err(Failure::Usage(
+            "--watch needs kiln-view built with the runtime's `hot-reload` feature: \
+             cargo run -p kiln-runtime --features hot-reload --bin kiln-view -- --watch CONFIG"
+                .into(),
+        ))
+    }
+}
+
+#[cfg(feature = "hot-reload")]
+mod watch {
+    //! `--watch CONFIG`: the hot-reload loop.
+
+    use std::path::Path;
+    use std::time::{Duration, Instant};
+
+    use kiln_runtime::hot_reload::{Event, HotReload};
+
+    use super::*;
+
+    /// How long to wait for a change between two frames.
+    const POLL: Duration = Duration::from_millis(50);
+
+    pub fn run(args: &Args, config: &Path) -> Result<(), Failure> {
+        let pipeline = args.frame_pipeline();
+        let mut hot = HotReload::start(config, &[pipeline.level()]).map_err(|e| Failure::Usage(e.to_string()))?;
+        let gpu = args.gpu()?;
+        let scene = Scene::bundled();
+        let (width, height) = args.size;
+        let options = RendererOptions { pipeline, width, height, comparison: args.comparison };
+        let mut renderer = Renderer::new(&gpu, hot.archive(), &scene, options).map_err(render_failure)?;
+        write_frame(args, &renderer)?;
+        println!(
+            "kiln-view: watching {} files of {} ({} on {}); wrote {}",
+            hot.watched_files(),
+            config.display(),
+            pipeline.name(),
+            gpu.info.name,
+            args.out.display()
+        );
+        let mut reloads = 0;
+        loop {
+            if args.watch_reloads.is_some_and(|max| reloads >= max) {
+                return Ok(());
+            }
+            let event = hot.poll(POLL).map_err(|e| Failure::Render(e.to_string()))?;
+            let Some(event) = event else {
+                // Nothing changed: the next frame.
+                renderer.render(false).map_err(render_failure)?;
+                continue;
+            };
+            reloads += 1;
+            match event {
+                Event::Reloaded(r) => {
+                    let before = renderer.cache_stats();
+                    match renderer.reload(&gpu, r.archive.clone(), &scene, &r.changed) {
+                        Ok(new) => {
+                            renderer = new;
+                            write_frame(args, &renderer)?;
+                            hot.accept(r.archive);
+                            let after = renderer.cache_stats();
+                            let pipelines = (after.render_pipelines + after.compute_pipelines)
+                                - (before.render_pipelines + before.compute_pipelines);
+                            println!(
+                                "kiln-view: reload after {}: {} permutations rebuilt ({} compiled, build {:.0} ms), {} pipelines created, edit to frame {:.0} ms; wrote {}",
+                                file_names(&r.files),
+                                r.changed.len(),
+                                r.compiled,
+                                r.build_time.as_secs_f64() * 1000.0,
+                                pipelines,
+                                ms_since(r.seen),
+                                args.out.display()
+                            );
+                        }
+                        Err(e) => {
+                            eprintln!("error: {e}");
+                            println!(
+                                "kiln-view: reload after {} failed: the rebuilt permutations do not make pipelines; keeping the last good ones",
+                                file_names(&r.files)
+                            );
+                        }
+                    }
+                }
+                Event::Failed { diagnostics, files, .. } => {
+                    eprintln!("{}", diagnostics.trim_end());
+                    println!(
+                        "kiln-view: reload after {} failed: the shaders do not build; keeping the last good pipelines",
+                        file_names(&files)
+                    );
+                }
+            }
+        }
+    }
+
+    fn render_failure(e: kiln_runtime::RenderError) -> Failure {
+        Failure::Render(e.to_string())
+    }
+
+    /// Renders a frame and rewrites `--out` (atomically).
+    fn write_frame(args: &Args, renderer: &Renderer) -> Result<(), Failure> {
+        let frame = renderer.render(false).map_err(render_failure)?;
+        kiln::archive::write_atomic(&args.out, &frame.image.to_png())
+            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))
+    }
+
+    fn ms_since(t: Instant) -> f64 {
+        t.elapsed().as_secs_f64() * 1000.0
+    }
+
+    fn file_names(files: &[std::path::PathBuf]) -> String {
+        let names: Vec<String> =
+            files.iter().map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()).collect();
+        names.join(", ")
+    }
 }
 
 /// Where the driver's pipeline cache lives, if anywhere.
@@ -135,6 +286,9 @@ fn main() -> ExitCode {
 }
 
 fn run(args: &Args) -> Result<(), Failure> {
+    if let Some(config) = &args.watch {
+        return watch::run(args, config);
+    }
     let archive = match &args.shaders {
         Some(path) => {
             let archive = ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?;
@@ -147,18 +301,8 @@ fn run(args: &Args) -> Result<(), Failure> {
         }
         None => ShaderArchive::embedded().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
     };
-    let pipeline = match args.pipeline {
-        PipelineArg::Desktop => FramePipeline::Desktop,
-        PipelineArg::MobileForward => FramePipeline::MobileForward,
-        PipelineArg::MobileDeferred => FramePipeline::MobileDeferred,
-    };
-    let backend = match args.backend {
-        BackendArg::Vulkan => Backend::Vulkan,
-        BackendArg::Gl => Backend::Gl,
-    };
-    let module_source = if args.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
-    let gpu = Gpu::new(&GpuOptions { backend, module_source, timestamps: true, validation: args.validation })
-        .map_err(|e| Failure::Render(e.to_string()))?;
+    let (pipeline, backend) = (args.frame_pipeline(), args.backend());
+    let gpu = args.gpu()?;
     if args.verify {
         return verify(&gpu, archive);
     }

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use glam::Vec4;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
@@ -35,7 +36,7 @@ impl AmbientOcclusion {
     pub fn new(b: &Build<'_>) -> Result<AmbientOcclusion, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
-        let vs = p.permutation("PostProcessVS", &[])?;
+        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
         let frame = b.options.frame_index;
         let jitter = Vec4::new((frame % 4) as f32, ((frame / 4) % 4) as f32, 0.0, 0.0);
         let params = |w: u32, h: u32| AmbientOcclusionUniforms {
@@ -46,7 +47,7 @@ impl AmbientOcclusion {
         let (hw, hh) = (t.ao_half.texture.width(), t.ao_half.texture.height());
         let half_uniforms = uniform(b.device, "AmbientOcclusion half", &params(hw, hh));
         let full_uniforms = uniform(b.device, "AmbientOcclusion full", &params(t.width, t.height));
-        let quality = b.options.ao_quality.min(2).to_string();
+        let quality = i64::from(b.options.ao_quality.min(2));
         let step = |name: &'static str,
                     ps: String,
                     blend: Option<wgpu::BlendState>,
@@ -58,19 +59,17 @@ impl AmbientOcclusion {
             Ok(Step { name, pipeline, groups })
         };
         let ao_ps = |setup: bool, upsample: bool| {
-            p.permutation(
-                "AmbientOcclusionPS",
-                &[
-                    ("USE_AO_SETUP_AS_INPUT", u32::from(setup).to_string()),
-                    ("USE_UPSAMPLE", u32::from(upsample).to_string()),
-                    ("SHADER_QUALITY", quality.clone()),
-                ],
-            )
+            let key = keys::ambient_occlusion_ps::Key {
+                use_ao_setup_as_input: setup,
+                use_upsample: upsample,
+                shader_quality: quality,
+            };
+            Ok::<_, DesktopError>(keys::name(key, p.key_level()?)?)
         };
         let mut ao = AmbientOcclusion {
             setup: step(
                 "Setup",
-                p.permutation("AmbientOcclusionSetupPS", &[])?,
+                keys::name(keys::ambient_occlusion_setup_ps::Key {}, p.key_level()?)?,
                 None,
                 formats::AO_SETUP,
                 &ao_resources(b, &half_uniforms),
@@ -79,7 +78,7 @@ impl AmbientOcclusion {
             full: step("FullResolution", ao_ps(false, true)?, None, formats::AO, &ao_resources(b, &full_uniforms))?,
             apply: step(
                 "ApplyToSceneColor",
-                p.permutation("AmbientOcclusionApplyPS", &[])?,
+                keys::name(keys::ambient_occlusion_apply_ps::Key {}, p.key_level()?)?,
                 Some(blend::MULTIPLY),
                 formats::SCENE_COLOR,
                 &ao_resources(b, &full_uniforms),

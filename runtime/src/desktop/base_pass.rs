@@ -9,6 +9,7 @@
 use std::sync::Arc;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
@@ -63,8 +64,8 @@ impl BasePass {
         };
         let resources = b.scene_resources();
         let sky = p.render(
-            &p.permutation("PostProcessVS", &[])?,
-            Some(&p.permutation("SkyPassPS", &[])?),
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(keys::sky_pass_ps::Key {}, p.key_level()?)?),
             &RenderDesc {
                 vertices: Vertices::None,
                 cull: None,
@@ -73,21 +74,30 @@ impl BasePass {
             },
         )?;
         let sky_groups = sky.layout.bind_groups(b.device, &resources)?;
-        let vs = p.permutation("DeferredBasePassVS", &[])?;
+        let vs = keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?;
         let mut variants = Vec::new();
         for blend in [BlendMode::Opaque, BlendMode::Masked] {
             for unlit in [false, true] {
                 if !b.buffers.draws.iter().any(|d| d.blend == blend && d.unlit == unlit) {
                     continue;
                 }
-                let ps = p.permutation(
-                    "DeferredBasePassPS",
-                    &[
-                        ("MATERIAL_BLEND_MODE", blend.label().into()),
-                        ("MATERIAL_SHADINGMODEL", if unlit { "UNLIT" } else { "DEFAULT_LIT" }.into()),
-                        ("TRANSLUCENCY_LIGHTING_MODE", "SURFACE_FORWARD_SHADING".into()),
-                    ],
-                )?;
+                use keys::deferred_base_pass_ps::{
+                    Key, MaterialBlendMode, MaterialShadingmodel, TranslucencyLightingMode,
+                };
+                let key = Key {
+                    material_blend_mode: match blend {
+                        BlendMode::Opaque => MaterialBlendMode::Opaque,
+                        BlendMode::Masked => MaterialBlendMode::Masked,
+                        BlendMode::Translucent => MaterialBlendMode::Translucent,
+                    },
+                    material_shadingmodel: if unlit {
+                        MaterialShadingmodel::Unlit
+                    } else {
+                        MaterialShadingmodel::DefaultLit
+                    },
+                    translucency_lighting_mode: TranslucencyLightingMode::SurfaceForwardShading,
+                };
+                let ps = keys::name(key, p.key_level()?)?;
                 let pipeline = p.render(
                     &vs,
                     Some(&ps),

@@ -10,9 +10,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec4};
 
+use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, perm, target_2d, uniform_buffer, view, InstancedMesh};
+use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
 use super::particles::Particles;
 
 pub const DISTORTION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
@@ -53,13 +54,13 @@ impl Distortion {
             .with_targets(&[ColorTarget::new(DISTORTION_FORMAT, Blend::Additive)])
             .with_depth(DepthState::reverse_z(depth_format, false));
         let accumulate = cache.render(
-            &perm(cache, "DistortAccumulateVS", &[])?,
-            Some(&perm(cache, "DistortAccumulatePS", &[])?),
+            &keys::name(keys::distort_accumulate_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::distort_accumulate_ps::Key {}, keys::Level::Sm5)?),
             &accumulate_state,
         )?;
         let apply = cache.render(
-            &perm(cache, "DistortApplyScreenVS", &[])?,
-            Some(&perm(cache, "DistortApplyScreenPS", &[])?),
+            &keys::name(keys::distort_apply_screen_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::distort_apply_screen_ps::Key {}, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Replace)),
         )?;
         let offsets = target_2d(

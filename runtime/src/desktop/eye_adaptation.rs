@@ -11,9 +11,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec4};
 
+use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, perm, target_2d, uniform_buffer, view};
+use super::frame_view::{groups, target_2d, uniform_buffer, view};
 
 pub const BINS: usize = 64;
 pub const MIN_LOG2_LUMINANCE: f32 = -10.0;
@@ -98,9 +99,12 @@ impl EyeAdaptation {
         inputs: &[&wgpu::TextureView],
         size: [u32; 2],
     ) -> Result<EyeAdaptation, PipelineError> {
-        let histogram_pipeline = cache.compute(&perm(cache, "PostProcessHistogramCS", &[])?)?;
-        let adapt_pipeline = cache.compute(&perm(cache, "PostProcessEyeAdaptationCS", &[])?)?;
-        let debug_pipeline = cache.compute(&perm(cache, "PostProcessHistogramDebugCS", &[])?)?;
+        let histogram_pipeline =
+            cache.compute(&keys::name(keys::post_process_histogram_cs::Key {}, keys::Level::Sm5)?)?;
+        let adapt_pipeline =
+            cache.compute(&keys::name(keys::post_process_eye_adaptation_cs::Key {}, keys::Level::Sm5)?)?;
+        let debug_pipeline =
+            cache.compute(&keys::name(keys::post_process_histogram_debug_cs::Key {}, keys::Level::Sm5)?)?;
         let histogram = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("PostProcessHistogram"),
             size: (BINS * 4) as u64,

@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
@@ -19,10 +20,12 @@ impl HeightFog {
     pub fn new(b: &Build<'_>) -> Result<HeightFog, DesktopError> {
         let p = b.pipelines;
         let pipeline = p.render(
-            &p.permutation("PostProcessVS", &[])?,
-            Some(&p.permutation(
-                "ExponentialHeightFogPS",
-                &[("SUPPORT_FOG_DIRECTIONAL_LIGHT_INSCATTERING", u32::from(b.scene.sun.enabled).to_string())],
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(
+                keys::exponential_height_fog_ps::Key {
+                    support_fog_directional_light_inscattering: b.scene.sun.enabled,
+                },
+                p.key_level()?,
             )?),
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;

@@ -7,8 +7,6 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec2, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
-use crate::pipelines::{PipelineCache, PipelineError};
-
 /// `FrameView` of `DeferredFrame2Common.ush`, member for member (mat4 and vec4 only).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -213,15 +211,6 @@ impl InstancedMesh {
         pass.set_index_buffer(self.indices.slice(..), wgpu::IndexFormat::Uint32);
         pass.draw_indexed(0..self.index_count, 0, 0..self.instance_count);
     }
-}
-
-/// The canonical name of `shader`'s `sm5` permutation with the given dimension values.
-pub fn perm(cache: &PipelineCache, shader: &str, values: &[(&str, &str)]) -> Result<String, PipelineError> {
-    let mut q = cache.archive().shader(shader).level("sm5");
-    for (d, v) in values {
-        q = q.with(d, v);
-    }
-    Ok(q.find()?.name().to_string())
 }
 
 /// A uniform buffer holding `value`, writable with `queue.write_buffer` (and the target of

@@ -17,9 +17,10 @@ use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 
+use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, perm, uniform_buffer};
+use super::frame_view::{groups, uniform_buffer};
 
 pub const HZB_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
 
@@ -62,8 +63,8 @@ impl Hzb {
         scene_depth: &wgpu::TextureView,
         scene_size: [u32; 2],
     ) -> Result<Hzb, PipelineError> {
-        let first = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "1")])?)?;
-        let rest = cache.compute(&perm(cache, "HZBBuildCS", &[("HZB_FIRST_MIP", "0")])?)?;
+        let first = cache.compute(&keys::name(keys::hzb_build_cs::Key { hzb_first_mip: true }, keys::Level::Sm5)?)?;
+        let rest = cache.compute(&keys::name(keys::hzb_build_cs::Key { hzb_first_mip: false }, keys::Level::Sm5)?)?;
         let size = hzb_size(scene_size);
         let mip_count = 32 - size[0].max(size[1]).leading_zeros();
         let texture = device.create_texture(&wgpu::TextureDescriptor {

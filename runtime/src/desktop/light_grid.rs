@@ -6,6 +6,7 @@
 use std::sync::Arc;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 
 use super::pipelines::{BindGroups, Compute, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
@@ -50,11 +51,11 @@ impl LightGrid {
         let num_culled_lights = buffer("NumCulledLightsGrid", cells * 8, rw);
         let culled_light_data = buffer("CulledLightDataGrid", capacity * 4, rw);
         let p = b.pipelines;
-        let inject = p.compute(&p.permutation("LightGridInjectionCS", &[])?)?;
-        let compact = p.compute(&p.permutation("LightGridCompactCS", &[])?)?;
+        let inject = p.compute(&keys::name(keys::light_grid_injection_cs::Key {}, p.key_level()?)?)?;
+        let compact = p.compute(&keys::name(keys::light_grid_compact_cs::Key {}, p.key_level()?)?)?;
         let visualize = p.render(
-            &p.permutation("PostProcessVS", &[])?,
-            Some(&p.permutation("VisualizeLightGridPS", &[])?),
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(keys::visualize_light_grid_ps::Key {}, p.key_level()?)?),
             &RenderDesc::fullscreen(formats::VISUALIZE, None),
         )?;
         let resources = [

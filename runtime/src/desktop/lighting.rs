@@ -21,6 +21,9 @@ use std::sync::Arc;
 use glam::{UVec4, Vec3, Vec4};
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
+use crate::keys::shadow_projection_ps::ShadowProjectionType;
+use crate::keys::standard_deferred_lighting_ps::LightType;
 
 use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
 use super::resources::{
@@ -103,12 +106,12 @@ pub struct Lighting {
     cascaded_projection: Option<wgpu::Buffer>,
 }
 
-/// Light type label of `StandardDeferredLightingPS`.
-fn light_type(l: &FrameLight) -> &'static str {
+/// `LIGHT_TYPE` of `StandardDeferredLightingPS` for a local light.
+fn light_type(l: &FrameLight) -> LightType {
     if l.spot {
-        "SPOT"
+        LightType::Spot
     } else {
-        "POINT"
+        LightType::Point
     }
 }
 
@@ -146,18 +149,20 @@ impl Lighting {
             })
         };
         // One pipeline per (light permutation, inside-the-volume or not).
-        let light_draw = |light_type: &str,
+        let light_draw = |light_type: LightType,
                           shadowed: bool,
                           inverse_squared: bool,
                           gpu: LocalLightGpu,
                           label: &str|
          -> Result<LightDraw, DesktopError> {
-            let radial = light_type != "DIRECTIONAL";
-            let vs = p.permutation("DeferredLightVS", &[("RADIAL_LIGHT", u32::from(radial).to_string())])?;
-            let mut values =
-                vec![("LIGHT_TYPE", light_type.to_string()), ("USE_SHADOW_MASK", u32::from(shadowed).to_string())];
-            values.push(("INVERSE_SQUARED_FALLOFF", u32::from(radial && inverse_squared).to_string()));
-            let ps = p.permutation("StandardDeferredLightingPS", &values)?;
+            let radial = light_type != LightType::Directional;
+            let vs = keys::name(keys::deferred_light_vs::Key { radial_light: radial }, p.key_level()?)?;
+            let key = keys::standard_deferred_lighting_ps::Key {
+                light_type,
+                use_shadow_mask: shadowed,
+                inverse_squared_falloff: radial && inverse_squared,
+            };
+            let ps = keys::name(key, p.key_level()?)?;
             let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
             // a local light: both ways of drawing its sphere, chosen every frame by where the
             // camera is (front faces depth tested from outside, back faces from inside)
@@ -219,9 +224,9 @@ impl Lighting {
                 "TiledLighting",
                 &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) },
             );
-            let cs = p.compute(&p.permutation(
-                "TiledDeferredLightingCS",
-                &[("USE_LIGHT_GRID", u32::from(use_grid).to_string()), ("VISUALIZE_LIGHT_CULLING", "0".into())],
+            let cs = p.compute(&keys::name(
+                keys::tiled_deferred_lighting_cs::Key { use_light_grid: use_grid, visualize_light_culling: false },
+                p.key_level()?,
             )?)?;
             let lights_binding =
                 if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
@@ -253,17 +258,15 @@ impl Lighting {
         }
 
         let mut shadowed = Vec::new();
-        let quality = b.options.shadow_quality.clamp(1, 3).to_string();
-        let vs = p.permutation("PostProcessVS", &[])?;
-        let projection = |kind: &str,
+        let quality = i64::from(b.options.shadow_quality.clamp(1, 3));
+        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
+        let projection = |kind: ShadowProjectionType,
                           texture: &Texture,
                           u: &super::view::ShadowProjectionUniforms,
                           label: &str|
          -> Result<(Projection, wgpu::Buffer), DesktopError> {
-            let ps = p.permutation(
-                "ShadowProjectionPS",
-                &[("SHADOW_PROJECTION_TYPE", kind.to_string()), ("SHADOW_QUALITY", quality.clone())],
-            )?;
+            let key = keys::shadow_projection_ps::Key { shadow_projection_type: kind, shadow_quality: quality };
+            let ps = keys::name(key, p.key_level()?)?;
             let pipeline = p.render(
                 &vs,
                 Some(&ps),
@@ -302,12 +305,12 @@ impl Lighting {
             };
             let mut projections = Vec::new();
             if let (Some(u), Some(texture)) = (&shadows.setup.cascaded, shadows.csm_texture()) {
-                let (projection, buffer) = projection("CASCADED", texture, u, "DirectionalLight")?;
+                let (projection, buffer) = projection(ShadowProjectionType::Cascaded, texture, u, "DirectionalLight")?;
                 projections.push(projection);
                 cascaded_projection = Some(buffer);
             }
             let shadowed_sun = !projections.is_empty();
-            let light = light_draw("DIRECTIONAL", shadowed_sun, false, gpu, "DirectionalLight")?;
+            let light = light_draw(LightType::Directional, shadowed_sun, false, gpu, "DirectionalLight")?;
             if shadowed_sun {
                 shadowed.push(ShadowedLight { name: "DirectionalLight".into(), projections, light, local: None });
             } else {
@@ -318,10 +321,12 @@ impl Lighting {
             let mut projections = Vec::new();
             for (_, u) in shadows.setup.per_object.iter().filter(|(i, _)| *i == li) {
                 let texture = shadows.per_object_texture().unwrap_or(dummy_shadow);
-                projections.push(projection("PER_OBJECT", texture, u, &l.name)?.0);
+                projections.push(projection(ShadowProjectionType::PerObject, texture, u, &l.name)?.0);
             }
             for (_, cube, u) in shadows.setup.cubes.iter().filter(|(i, _, _)| *i == li) {
-                projections.push(projection("ONE_PASS_POINT_LIGHT", shadows.cube_texture(*cube), u, &l.name)?.0);
+                projections.push(
+                    projection(ShadowProjectionType::OnePassPointLight, shadows.cube_texture(*cube), u, &l.name)?.0,
+                );
             }
             let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
             let unshadowed =

@@ -125,6 +125,12 @@ pub enum DesktopError {
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
 }
 
+impl From<crate::shaders::LookupError> for DesktopError {
+    fn from(e: crate::shaders::LookupError) -> Self {
+        DesktopError::Pipeline(e.into())
+    }
+}
+
 /// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
 /// frame; Translucency draws their sprites (additively, depth tested against the scene).
 pub struct ParticleInputs<'a> {

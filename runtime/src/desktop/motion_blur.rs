@@ -8,9 +8,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
+use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, perm, uniform_buffer};
+use super::frame_view::{color_pass, linear_sampler, uniform_buffer};
 
 /// Fraction of the frame the shutter is open (Unreal's default 0.5).
 pub const SHUTTER: f32 = 0.5;
@@ -44,8 +45,8 @@ impl MotionBlur {
         output_format: wgpu::TextureFormat,
     ) -> Result<MotionBlur, PipelineError> {
         let pipeline = cache.render(
-            &perm(cache, "MotionBlurVS", &[])?,
-            Some(&perm(cache, "MotionBlurPS", &[])?),
+            &keys::name(keys::motion_blur_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::motion_blur_ps::Key {}, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(output_format, Blend::Replace)),
         )?;
         let params = uniform_buffer(

@@ -21,9 +21,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
+use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, target_2d, view};
+use super::frame_view::{target_2d, view};
 
 /// Most queries of one frame.
 pub const MAX_QUERIES: u32 = 128;
@@ -149,8 +150,8 @@ impl OcclusionCulling {
         let state = RenderState::fullscreen(ColorTarget::new(wgpu::TextureFormat::Rgba8Unorm, Blend::Additive))
             .with_depth(DepthState::reverse_z(depth_format, false));
         let pipeline = cache.render(
-            &perm(cache, "OcclusionQueryVS", &[])?,
-            Some(&perm(cache, "OcclusionQueryPS", &[])?),
+            &keys::name(keys::occlusion_query_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::occlusion_query_ps::Key {}, keys::Level::Sm5)?),
             &state,
         )?;
         let query_set = device.create_query_set(&wgpu::QuerySetDescriptor {

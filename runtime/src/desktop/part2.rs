@@ -20,13 +20,14 @@ use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 
 use crate::frame::{FrameRecorder, PassContext, Visualize};
+use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
 use super::frame_view::{
-    groups, is_volume, perm, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
+    groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
     FrameLights, FrameView, InstancedMesh,
 };
 use super::hzb::Hzb;
@@ -202,11 +203,8 @@ impl Visualization {
         slice: u32,
     ) -> Result<Visualization, PipelineError> {
         let volume = is_volume(source);
-        let pipeline = cache.compute(&perm(
-            cache,
-            "VisualizeTextureCS",
-            &[("VISUALIZE_VOLUME", if volume { "1" } else { "0" })],
-        )?)?;
+        let pipeline = cache
+            .compute(&keys::name(keys::visualize_texture_cs::Key { visualize_volume: volume }, keys::Level::Sm5)?)?;
         let image = target_2d(
             device,
             label,

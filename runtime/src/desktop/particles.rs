@@ -12,12 +12,13 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
 
+use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout,
 };
 use crate::scene::ParticleEmitter;
 
-use super::frame_view::{groups, perm, uniform_buffer, view};
+use super::frame_view::{groups, uniform_buffer, view};
 
 pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -209,18 +210,24 @@ impl Particles {
     ) -> Result<Particles, PipelineError> {
         let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
         let distortion_layout = cache.render(
-            &perm(cache, "GPUSpriteVS", &[])?,
-            Some(&perm(cache, "GPUSpriteDistortionPS", &[])?),
+            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
             &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)),
         )?;
         let sprite_pipeline_layout = cache.render(
-            &perm(cache, "GPUSpriteVS", &[])?,
-            Some(&perm(cache, "GPUSpritePS", &[])?),
+            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?),
             &sprite_state(target.0, Some(target.1)),
         )?;
         let simulation = [
-            cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "0")])?)?,
-            cache.compute(&perm(cache, "GPUParticleSimulationCS", &[("PARTICLE_COLLISION", "1")])?)?,
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: false },
+                keys::Level::Sm5,
+            )?)?,
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: true },
+                keys::Level::Sm5,
+            )?)?,
         ];
         let mut emitters = Vec::new();
         for (index, desc) in descs.into_iter().enumerate() {

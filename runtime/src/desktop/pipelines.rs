@@ -4,9 +4,7 @@
 
 use std::sync::Arc;
 
-use crate::pipelines::{
-    ErrorScopes, MergedBinding, PipelineCache, PipelineError, PipelineLayoutInfo, RenderState, VertexLayout,
-};
+use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineLayoutInfo, RenderState, VertexLayout};
 
 use super::DesktopError;
 
@@ -149,13 +147,9 @@ impl<'a> Pipelines<'a> {
         Pipelines { cache, level }
     }
 
-    /// The canonical name of `shader` at the frame's level with these dimension values.
-    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, DesktopError> {
-        let mut q = self.cache.archive().shader(shader).level(self.level);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find().map_err(PipelineError::from)?.name().to_string())
+    /// The frame's level, for typed permutation keys ([`crate::keys`]).
+    pub fn key_level(&self) -> Result<crate::keys::Level, crate::shaders::LookupError> {
+        crate::keys::level(self.level)
     }
 
     /// A render pipeline of (vertex permutation, fragment permutation or none, state), from

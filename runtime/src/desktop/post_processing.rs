@@ -7,6 +7,7 @@ use std::sync::Arc;
 use glam::Vec4;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
@@ -34,10 +35,10 @@ impl PostProcessing {
     pub fn new(b: &Build<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
-        let vs = p.permutation("PostProcessVS", &[])?;
-        let setup_ps = p.permutation("BloomSetupPS", &[])?;
-        let down_ps = p.permutation("BloomDownsamplePS", &[])?;
-        let up_ps = p.permutation("BloomUpsamplePS", &[])?;
+        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
+        let setup_ps = keys::name(keys::bloom_setup_ps::Key {}, p.key_level()?)?;
+        let down_ps = keys::name(keys::bloom_downsample_ps::Key {}, p.key_level()?)?;
+        let up_ps = keys::name(keys::bloom_upsample_ps::Key {}, p.key_level()?)?;
         let texel = |tex: &wgpu::Texture| Vec4::new(1.0 / tex.width() as f32, 1.0 / tex.height() as f32, 0.0, 0.0);
         let mut bloom = Vec::new();
         let mut add = |ps: &str,
@@ -79,13 +80,13 @@ impl PostProcessing {
         }
         let pipeline = p.render(
             &vs,
-            Some(&p.permutation(
-                "TonemapperPS",
-                &[
-                    ("USE_BLOOM", u32::from(b.options.bloom).to_string()),
-                    ("USE_VIGNETTE", u32::from(b.options.vignette).to_string()),
-                    ("USE_GAMMA_ONLY", "0".into()),
-                ],
+            Some(&keys::name(
+                keys::tonemapper_ps::Key {
+                    use_bloom: b.options.bloom,
+                    use_vignette: b.options.vignette,
+                    use_gamma_only: false,
+                },
+                p.key_level()?,
             )?),
             &RenderDesc::fullscreen(output_format, None),
         )?;

@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
@@ -33,11 +34,12 @@ impl PrePass {
             }),
             targets: Vec::new(),
         };
-        let opaque = p.render(&p.permutation("DepthPassVS", &[("MATERIAL_MASKED", "0".into())])?, None, &desc)?;
+        let opaque =
+            p.render(&keys::name(keys::depth_pass_vs::Key { material_masked: false }, p.key_level()?)?, None, &desc)?;
         let masked_desc = RenderDesc { cull: None, ..desc };
         let masked = p.render(
-            &p.permutation("DepthPassVS", &[("MATERIAL_MASKED", "1".into())])?,
-            Some(&p.permutation("DepthPassPS", &[])?),
+            &keys::name(keys::depth_pass_vs::Key { material_masked: true }, p.key_level()?)?,
+            Some(&keys::name(keys::depth_pass_ps::Key {}, p.key_level()?)?),
             &masked_desc,
         )?;
         let resources = b.scene_resources();

@@ -12,11 +12,12 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec4};
 
+use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
 };
 
-use super::frame_view::{color_pass, groups, linear_sampler, perm, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view};
 
 pub const SSR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 pub const CAPTURE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -85,16 +86,16 @@ impl Reflections {
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<Reflections, PipelineError> {
         let ssr_pipeline = cache.render(
-            &perm(cache, "ScreenSpaceReflectionsVS", &[])?,
-            Some(&perm(cache, "ScreenSpaceReflectionsPS", &[("SSR_QUALITY", "1")])?),
+            &keys::name(keys::screen_space_reflections_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::screen_space_reflections_ps::Key { ssr_quality: 1 }, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(SSR_FORMAT, Blend::Replace)),
         )?;
         let environment = cache.render(
-            &perm(cache, "ReflectionEnvironmentVS", &[])?,
-            Some(&perm(cache, "ReflectionEnvironmentPS", &[])?),
+            &keys::name(keys::reflection_environment_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::reflection_environment_ps::Key {}, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::Additive)),
         )?;
-        let filter = cache.compute(&perm(cache, "ReflectionCaptureFilterCS", &[])?)?;
+        let filter = cache.compute(&keys::name(keys::reflection_capture_filter_cs::Key {}, keys::Level::Sm5)?)?;
         let ssr = target_2d(
             device,
             "ScreenSpaceReflections",

@@ -13,6 +13,7 @@ use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, formats, uniform, LocalShadow, SceneBuffers, Texture};
@@ -172,7 +173,7 @@ impl ShadowDepths {
         let p = b.pipelines;
         let desc = |perspective: bool| -> Result<Arc<Render>, DesktopError> {
             let name =
-                p.permutation("ShadowDepthVS", &[("PERSPECTIVE_CORRECT_DEPTH", u32::from(perspective).to_string())])?;
+                keys::name(keys::shadow_depth_vs::Key { perspective_correct_depth: perspective }, p.key_level()?)?;
             p.render(
                 &name,
                 None,
@@ -312,8 +313,8 @@ impl ShadowDepths {
             }
             let cached = shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
             let copy = b.pipelines.render(
-                &b.pipelines.permutation("CopyCachedShadowMapVS", &[])?,
-                Some(&b.pipelines.permutation("CopyCachedShadowMapPS", &[])?),
+                &keys::name(keys::copy_cached_shadow_map_vs::Key {}, b.pipelines.key_level()?)?,
+                Some(&keys::name(keys::copy_cached_shadow_map_ps::Key {}, b.pipelines.key_level()?)?),
                 &RenderDesc {
                     vertices: Vertices::None,
                     cull: None,

@@ -9,9 +9,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
+use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, perm, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view};
 
 pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weight of the current frame in the history (Unreal: 0.04 at 8 samples; a larger weight
@@ -46,8 +47,8 @@ impl TemporalAA {
         scene_depth: &wgpu::TextureView,
     ) -> Result<TemporalAA, PipelineError> {
         let pipeline = cache.render(
-            &perm(cache, "TemporalAAVS", &[])?,
-            Some(&perm(cache, "TemporalAAPS", &[])?),
+            &keys::name(keys::temporal_aavs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::temporal_aaps::Key {}, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(HISTORY_FORMAT, Blend::Replace)),
         )?;
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT

@@ -10,6 +10,7 @@
 use std::sync::Arc;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::scene::BlendMode;
 
 use super::frame_view::volume_view;
@@ -53,8 +54,8 @@ impl Translucency {
         if let Some(inputs) = particles {
             for system in inputs.systems {
                 let pipeline = p.render(
-                    &p.permutation("ParticleSpriteVS", &[])?,
-                    Some(&p.permutation("ParticleSpritePS", &[])?),
+                    &keys::name(keys::particle_sprite_vs::Key {}, p.key_level()?)?,
+                    Some(&keys::name(keys::particle_sprite_ps::Key {}, p.key_level()?)?),
                     &RenderDesc {
                         vertices: Vertices::None,
                         cull: None,
@@ -110,8 +111,8 @@ impl Translucency {
             None
         };
         let compose = p.render(
-            &p.permutation("PostProcessVS", &[])?,
-            Some(&p.permutation("ComposeSeparateTranslucencyPS", &[])?),
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(keys::compose_separate_translucency_ps::Key {}, p.key_level()?)?),
             &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
         )?;
         let compose_groups = compose.layout.bind_groups(
@@ -139,14 +140,21 @@ impl Translucency {
     ) -> Result<((Arc<Render>, BindGroups), wgpu::Buffer), DesktopError> {
         let (p, t) = (b.pipelines, b.targets);
         let pipeline = p.render(
-            &p.permutation("DeferredBasePassVS", &[])?,
-            Some(&p.permutation(
-                "DeferredBasePassPS",
-                &[
-                    ("MATERIAL_BLEND_MODE", "TRANSLUCENT".into()),
-                    ("MATERIAL_SHADINGMODEL", "DEFAULT_LIT".into()),
-                    ("TRANSLUCENCY_LIGHTING_MODE", mode.label().into()),
-                ],
+            &keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(
+                keys::deferred_base_pass_ps::Key {
+                    material_blend_mode: keys::deferred_base_pass_ps::MaterialBlendMode::Translucent,
+                    material_shadingmodel: keys::deferred_base_pass_ps::MaterialShadingmodel::DefaultLit,
+                    translucency_lighting_mode: match mode {
+                        TranslucencyLightingMode::SurfaceForwardShading => {
+                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceForwardShading
+                        }
+                        TranslucencyLightingMode::SurfaceLightingVolume => {
+                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceLightingVolume
+                        }
+                    },
+                },
+                p.key_level()?,
             )?),
             &RenderDesc {
                 vertices: Vertices::Mesh,

@@ -18,9 +18,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
+use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
-use super::frame_view::{groups, perm, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow};
 use super::view::ShadowProjectionUniforms;
 
 pub const VOLUME_SIZE: u32 = 64;
@@ -184,18 +185,15 @@ impl TranslucentVolumes {
         lights: Vec<InjectedLight>,
         shadows: &[Option<LocalLightShadow<'_>>],
     ) -> Result<TranslucentVolumes, PipelineError> {
-        let name = |shadowed: &str, kind: &str| {
-            perm(
-                cache,
-                "TranslucentVolumeInjectCS",
-                &[("DYNAMICALLY_SHADOWED", shadowed), ("SHADOW_PROJECTION_TYPE", kind)],
-            )
+        use keys::translucent_volume_inject_cs::{Key, ShadowProjectionType};
+        let name = |dynamically_shadowed: bool, shadow_projection_type: ShadowProjectionType| {
+            keys::name(Key { dynamically_shadowed, shadow_projection_type }, keys::Level::Sm5)
         };
         let inject = [
-            cache.compute(&name("0", "CASCADED")?)?,
-            cache.compute(&name("1", "CASCADED")?)?,
-            cache.compute(&name("1", "PER_OBJECT")?)?,
-            cache.compute(&name("1", "ONE_PASS_POINT_LIGHT")?)?,
+            cache.compute(&name(false, ShadowProjectionType::Cascaded)?)?,
+            cache.compute(&name(true, ShadowProjectionType::Cascaded)?)?,
+            cache.compute(&name(true, ShadowProjectionType::PerObject)?)?,
+            cache.compute(&name(true, ShadowProjectionType::OnePassPointLight)?)?,
         ];
         let local_shadow = |k: usize| shadows.get(k).and_then(Option::as_ref);
         let projections: Vec<Option<wgpu::Buffer>> = (0..lights.len())
@@ -206,7 +204,7 @@ impl TranslucentVolumes {
             })
             .collect();
         let gates = (0..lights.len()).map(|k| local_shadow(k).map(|s| s.light)).collect();
-        let filter = cache.compute(&perm(cache, "TranslucentVolumeFilterCS", &[])?)?;
+        let filter = cache.compute(&keys::name(keys::translucent_volume_filter_cs::Key {}, keys::Level::Sm5)?)?;
         let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("TranslucentVolume shadow sampler"),
             mag_filter: wgpu::FilterMode::Linear,

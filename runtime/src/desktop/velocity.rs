@@ -9,9 +9,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::Mat4;
 
+use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{perm, target_2d, uniform_buffer, view, InstancedMesh, MAX_MESH_INSTANCES};
+use super::frame_view::{target_2d, uniform_buffer, view, InstancedMesh, MAX_MESH_INSTANCES};
 
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
 
@@ -48,8 +49,11 @@ impl Velocity {
         let state = RenderState::mesh()
             .with_targets(&[ColorTarget::new(VELOCITY_FORMAT, Blend::Replace)])
             .with_depth(DepthState::reverse_z(depth_format, false));
-        let pipeline =
-            cache.render(&perm(cache, "VelocityVS", &[])?, Some(&perm(cache, "VelocityPS", &[])?), &state)?;
+        let pipeline = cache.render(
+            &keys::name(keys::velocity_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::velocity_ps::Key {}, keys::Level::Sm5)?),
+            &state,
+        )?;
         let texture = target_2d(
             device,
             "Velocity",

@@ -13,11 +13,12 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
+use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
 };
 
-use super::frame_view::{groups, linear_sampler, perm, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow};
 
 pub const TILE_SIZE: u32 = 8;
 pub const DEPTH_SLICES: u32 = 128;
@@ -124,15 +125,22 @@ impl VolumetricFog {
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<VolumetricFog, PipelineError> {
         let grid = [size[0].div_ceil(TILE_SIZE), size[1].div_ceil(TILE_SIZE), DEPTH_SLICES];
-        let init = cache.compute(&perm(cache, "VolumetricFogInitializeCS", &[])?)?;
+        let init = cache.compute(&keys::name(keys::volumetric_fog_initialize_cs::Key {}, keys::Level::Sm5)?)?;
         let scattering = [
-            cache.compute(&perm(cache, "VolumetricFogLightScatteringCS", &[("USE_TEMPORAL_REPROJECTION", "0")])?)?,
-            cache.compute(&perm(cache, "VolumetricFogLightScatteringCS", &[("USE_TEMPORAL_REPROJECTION", "1")])?)?,
+            cache.compute(&keys::name(
+                keys::volumetric_fog_light_scattering_cs::Key { use_temporal_reprojection: false },
+                keys::Level::Sm5,
+            )?)?,
+            cache.compute(&keys::name(
+                keys::volumetric_fog_light_scattering_cs::Key { use_temporal_reprojection: true },
+                keys::Level::Sm5,
+            )?)?,
         ];
-        let integration = cache.compute(&perm(cache, "VolumetricFogFinalIntegrationCS", &[])?)?;
+        let integration =
+            cache.compute(&keys::name(keys::volumetric_fog_final_integration_cs::Key {}, keys::Level::Sm5)?)?;
         let apply = cache.render(
-            &perm(cache, "VolumetricFogApplyVS", &[])?,
-            Some(&perm(cache, "VolumetricFogApplyPS", &[])?),
+            &keys::name(keys::volumetric_fog_apply_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::volumetric_fog_apply_ps::Key {}, keys::Level::Sm5)?),
             &RenderState::fullscreen(ColorTarget::new(scene_color_format, Blend::PremultipliedAlpha)),
         )?;
         let vbuffer_a = volume(device, "VBufferA", grid, VOLUME_FORMAT);

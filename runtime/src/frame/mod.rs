@@ -66,9 +66,9 @@ impl DepthCopy {
     pub const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
     pub fn new(cache: &PipelineCache, level: &str) -> Result<DepthCopy, PipelineError> {
-        let archive = cache.archive();
-        let vs = archive.shader("ScreenVS").level(level).find()?.name().to_string();
-        let ps = archive.shader("VisualizeDepthPS").level(level).find()?.name().to_string();
+        let level = crate::keys::level(level)?;
+        let vs = crate::keys::name(crate::keys::screen_vs::Key {}, level)?;
+        let ps = crate::keys::name(crate::keys::visualize_depth_ps::Key {}, level)?;
         let state = RenderState::fullscreen(ColorTarget::new(DepthCopy::FORMAT, Blend::Replace));
         Ok(DepthCopy { pipeline: cache.render(&vs, Some(&ps), &state)? })
     }

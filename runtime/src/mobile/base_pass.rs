@@ -10,6 +10,7 @@ use glam::Vec4;
 use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
@@ -22,9 +23,8 @@ use super::{
     STENCIL_SHADING_MODEL_MASK,
 };
 
-fn flag(b: bool) -> String {
-    u32::from(b).to_string()
-}
+/// The level of every mobile permutation.
+const LEVEL: keys::Level = keys::Level::Es31;
 
 /// The color targets of the base pass: SceneColor, and the GBuffer when deferred.
 pub(super) fn base_pass_formats(options: &MobileOptions) -> Vec<wgpu::TextureFormat> {
@@ -44,43 +44,48 @@ pub(super) fn depth_format(options: &MobileOptions) -> wgpu::TextureFormat {
 /// The `MobileBasePassPS` permutation of a material. `forward_lit`: shade in the pixel
 /// shader (forward, and translucency in both paths).
 pub(super) fn base_pass_ps(
-    pipelines: &MobilePipelines<'_>,
     options: &MobileOptions,
     material: &crate::scene::Material,
     forward_lit: bool,
     csm: bool,
 ) -> Result<String, PipelineError> {
+    use keys::mobile_base_pass_ps::{Key, MaterialBlendMode};
     let fully_rough = material.fully_rough;
-    let values: Vec<(&str, String)> = if forward_lit {
-        vec![
-            ("FULLY_ROUGH", flag(fully_rough)),
-            ("MAX_DYNAMIC_POINT_LIGHTS", options.max_dynamic_point_lights.to_string()),
-            ("USE_VERTEX_FOG", flag(options.vertex_fog)),
-            ("DEFERRED_SHADING_PATH", "0".into()),
-            ("DIRECTIONAL_LIGHT_CSM", flag(csm)),
-            ("HQ_REFLECTIONS", flag(options.reflections && options.hq_reflections && !fully_rough && options.hdr)),
-            ("ENABLE_SKY_LIGHT", flag(options.sky_light)),
-            ("OUTPUT_GAMMA_SPACE", flag(!options.hdr)),
-            ("MATERIAL_BLEND_MODE", material.blend.label().into()),
-        ]
-    } else {
-        vec![
-            ("FULLY_ROUGH", flag(fully_rough)),
-            ("MAX_DYNAMIC_POINT_LIGHTS", "0".into()),
-            ("USE_VERTEX_FOG", "0".into()),
-            ("DEFERRED_SHADING_PATH", "1".into()),
-            ("DIRECTIONAL_LIGHT_CSM", "0".into()),
-            ("HQ_REFLECTIONS", "0".into()),
-            ("ENABLE_SKY_LIGHT", "0".into()),
-            ("OUTPUT_GAMMA_SPACE", "0".into()),
-            ("MATERIAL_BLEND_MODE", material.blend.label().into()),
-        ]
+    let material_blend_mode = match material.blend {
+        BlendMode::Opaque => MaterialBlendMode::Opaque,
+        BlendMode::Masked => MaterialBlendMode::Masked,
+        BlendMode::Translucent => MaterialBlendMode::Translucent,
     };
-    pipelines.permutation("MobileBasePassPS", &values)
+    let key = if forward_lit {
+        Key {
+            fully_rough,
+            max_dynamic_point_lights: i64::from(options.max_dynamic_point_lights),
+            use_vertex_fog: options.vertex_fog,
+            deferred_shading_path: false,
+            directional_light_csm: csm,
+            hq_reflections: options.reflections && options.hq_reflections && !fully_rough && options.hdr,
+            enable_sky_light: options.sky_light,
+            output_gamma_space: !options.hdr,
+            material_blend_mode,
+        }
+    } else {
+        Key {
+            fully_rough,
+            max_dynamic_point_lights: 0,
+            use_vertex_fog: false,
+            deferred_shading_path: true,
+            directional_light_csm: false,
+            hq_reflections: false,
+            enable_sky_light: false,
+            output_gamma_space: false,
+            material_blend_mode,
+        }
+    };
+    Ok(keys::name(key, LEVEL)?)
 }
 
-pub(super) fn base_pass_vs(pipelines: &MobilePipelines<'_>, vertex_fog: bool) -> Result<String, PipelineError> {
-    pipelines.permutation("MobileBasePassVS", &[("USE_VERTEX_FOG", flag(vertex_fog))])
+pub(super) fn base_pass_vs(vertex_fog: bool) -> Result<String, PipelineError> {
+    Ok(keys::name(keys::mobile_base_pass_vs::Key { use_vertex_fog: vertex_fog }, LEVEL)?)
 }
 
 /// The full depth prepass: opaque (not masked) meshes, depth only.
@@ -98,7 +103,7 @@ impl PrePass {
         targets: &MobileTargets,
         shared: &SharedResources,
     ) -> Result<PrePass, PipelineError> {
-        let vs = pipelines.permutation("MobilePrePassVS", &[])?;
+        let vs = keys::name(keys::mobile_pre_pass_vs::Key {}, LEVEL)?;
         let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
         desc.cull_mode = Some(wgpu::Face::Back);
         desc.sample_count = targets.samples;
@@ -186,7 +191,7 @@ impl BasePass {
         let forward = options.path == ShadingPath::Forward;
         let formats = base_pass_formats(options);
         let csm = shared.cascades > 0;
-        let vs = base_pass_vs(pipelines, forward && options.vertex_fog)?;
+        let vs = base_pass_vs(forward && options.vertex_fog)?;
         let deferred_stencil = wgpu::StencilFaceState {
             compare: wgpu::CompareFunction::Always,
             fail_op: wgpu::StencilOperation::Keep,
@@ -216,7 +221,7 @@ impl BasePass {
             if material.blend == BlendMode::Translucent {
                 continue;
             }
-            let ps = base_pass_ps(pipelines, options, material, forward, csm)?;
+            let ps = base_pass_ps(options, material, forward, csm)?;
             let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::MeshInstanced);
             desc.cull_mode = if material.blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) };
             desc.depth_stencil = Some(depth_stencil(true, true));
@@ -232,8 +237,8 @@ impl BasePass {
                 stencil_ref: if material.unlit { 0 } else { STENCIL_DEFAULT_LIT },
             });
         }
-        let sky_vs = pipelines.permutation("MobileSkyVS", &[])?;
-        let sky_ps = pipelines.permutation("MobileSkyPS", &[("OUTPUT_GAMMA_SPACE", flag(!options.hdr))])?;
+        let sky_vs = keys::name(keys::mobile_sky_vs::Key {}, LEVEL)?;
+        let sky_ps = keys::name(keys::mobile_sky_ps::Key { output_gamma_space: !options.hdr }, LEVEL)?;
         let mut desc = PipelineDesc::new(sky_vs, Some(sky_ps), VertexInput::None);
         desc.depth_stencil = Some(depth_stencil(false, false));
         desc.targets =

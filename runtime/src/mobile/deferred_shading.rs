@@ -12,6 +12,7 @@
 use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::pipelines::PipelineError;
 
 use super::light_volumes::{unit_cone, unit_sphere, volume_to_world, VolumeMesh};
@@ -22,9 +23,8 @@ use super::{
     STENCIL_DEFAULT_LIT, STENCIL_SANDBOX, STENCIL_SHADING_MODEL_MASK,
 };
 
-fn flag(b: bool) -> String {
-    u32::from(b).to_string()
-}
+/// The level of every mobile permutation.
+const LEVEL: keys::Level = keys::Level::Es31;
 
 fn stencil_face(
     compare: wgpu::CompareFunction,
@@ -60,12 +60,12 @@ impl MobileDeferredShading {
         lights: &[LocalLight],
     ) -> Result<MobileDeferredShading, PipelineError> {
         let device = pipelines.device;
-        let fullscreen = pipelines.permutation("MobileFullscreenVS", &[])?;
+        let fullscreen = keys::name(keys::mobile_fullscreen_vs::Key {}, LEVEL)?;
 
         // SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
         let mut desc = PipelineDesc::new(
             fullscreen.clone(),
-            Some(pipelines.permutation("MobileSceneDepthAuxPS", &[])?),
+            Some(keys::name(keys::mobile_scene_depth_aux_ps::Key {}, LEVEL)?),
             VertexInput::None,
         );
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -94,13 +94,13 @@ impl MobileDeferredShading {
 
         // The directional light: full screen, default lit pixels only, adds to SceneColor.
         let csm = shared.cascades > 0;
-        let direct_ps = pipelines.permutation(
-            "MobileDirectLightPS",
-            &[
-                ("DIRECTIONAL_LIGHT_CSM", flag(csm)),
-                ("HQ_REFLECTIONS", flag(options.reflections && options.hq_reflections)),
-                ("ENABLE_SKY_LIGHT", flag(options.sky_light)),
-            ],
+        let direct_ps = keys::name(
+            keys::mobile_direct_light_ps::Key {
+                directional_light_csm: csm,
+                hq_reflections: options.reflections && options.hq_reflections,
+                enable_sky_light: options.sky_light,
+            },
+            LEVEL,
         )?;
         let only_default_lit = stencil_face(
             wgpu::CompareFunction::Equal,
@@ -126,7 +126,7 @@ impl MobileDeferredShading {
 
         // Local lights: the stencil mask (front faces, depth fail marks) and the light (back
         // faces behind the surface, unmarked default lit pixels; clears the mark).
-        let volume_vs = pipelines.permutation("MobileDeferredLightVS", &[])?;
+        let volume_vs = keys::name(keys::mobile_deferred_light_vs::Key {}, LEVEL)?;
         let mark = stencil_face(
             wgpu::CompareFunction::Always,
             wgpu::StencilOperation::Keep,
@@ -135,7 +135,7 @@ impl MobileDeferredShading {
         );
         let mut desc = PipelineDesc::new(
             volume_vs.clone(),
-            Some(pipelines.permutation("MobileLightStencilPS", &[])?),
+            Some(keys::name(keys::mobile_light_stencil_ps::Key {}, LEVEL)?),
             VertexInput::Position,
         );
         desc.cull_mode = Some(wgpu::Face::Back);
@@ -155,7 +155,7 @@ impl MobileDeferredShading {
             wgpu::StencilOperation::Zero,
         );
         let light_pipeline = |spot: bool| -> Result<_, PipelineError> {
-            let ps = pipelines.permutation("MobileRadialLightPS", &[("IS_SPOT_LIGHT", flag(spot))])?;
+            let ps = keys::name(keys::mobile_radial_light_ps::Key { is_spot_light: spot }, LEVEL)?;
             let mut desc = PipelineDesc::new(volume_vs.clone(), Some(ps), VertexInput::Position);
             desc.cull_mode = Some(wgpu::Face::Front);
             desc.targets = vec![additive(SCENE_COLOR_FORMAT)];

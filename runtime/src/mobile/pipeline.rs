@@ -87,15 +87,6 @@ impl<'a> MobilePipelines<'a> {
         MobilePipelines { cache, device, used: Mutex::default() }
     }
 
-    /// The canonical name of an `es3_1` permutation of `shader`.
-    pub fn permutation(&self, shader: &str, values: &[(&str, String)]) -> Result<String, PipelineError> {
-        let mut q = self.cache.archive().shader(shader).level(super::LEVEL);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find()?.name().to_string())
-    }
-
     /// The pipeline for `desc`, from the runtime's one pipeline cache.
     pub fn get(&self, desc: &PipelineDesc) -> Result<Arc<MobilePipeline>, PipelineError> {
         let layout = match desc.vertex_input {

@@ -7,6 +7,7 @@ use glam::Vec4;
 use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::pipelines::PipelineError;
 
 use super::pipeline::{replace, Draw, MobilePipelines, PipelineDesc, VertexInput};
@@ -22,7 +23,8 @@ const BLOOM_INTENSITY: f32 = 0.6;
 /// and which bloom target it writes.
 struct BloomStep {
     name: String,
-    shader: &'static str,
+    /// The pixel shader permutation's canonical name.
+    shader: String,
     input: usize,
     additive: Option<usize>,
     output: usize,
@@ -58,9 +60,10 @@ impl PostProcessing {
         shared: &SharedResources,
     ) -> Result<PostProcessing, PipelineError> {
         let device = pipelines.device;
-        let vs = pipelines.permutation("MobileFullscreenVS", &[])?;
-        let fullscreen = |ps: &str, format| -> Result<_, PipelineError> {
-            let mut desc = PipelineDesc::new(vs.clone(), Some(pipelines.permutation(ps, &[])?), VertexInput::None);
+        const LEVEL: keys::Level = keys::Level::Es31;
+        let vs = keys::name(keys::mobile_fullscreen_vs::Key {}, LEVEL)?;
+        let fullscreen = |ps: String, format| -> Result<_, PipelineError> {
+            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::None);
             desc.targets = vec![replace(format)];
             pipelines.get(&desc)
         };
@@ -95,7 +98,7 @@ impl PostProcessing {
             let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
             plan.push(BloomStep {
                 name: "BloomSetup".into(),
-                shader: "MobileBloomSetupPS",
+                shader: keys::name(keys::mobile_bloom_setup_ps::Key {}, LEVEL)?,
                 input: SCENE_COLOR_INPUT,
                 additive: None,
                 output: 0,
@@ -105,7 +108,7 @@ impl PostProcessing {
                 let src = level_size(w, h, level - 1);
                 plan.push(BloomStep {
                     name: format!("BloomDown{level}"),
-                    shader: "MobileBloomDownPS",
+                    shader: keys::name(keys::mobile_bloom_down_ps::Key {}, LEVEL)?,
                     input: level - 1,
                     additive: None,
                     output: level,
@@ -119,7 +122,7 @@ impl PostProcessing {
                     if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
                 plan.push(BloomStep {
                     name: format!("BloomUp{}", i + 1),
-                    shader: "MobileBloomUpPS",
+                    shader: keys::name(keys::mobile_bloom_up_ps::Key {}, LEVEL)?,
                     input,
                     additive: Some(fine),
                     output: BLOOM_LEVELS + i,
@@ -137,7 +140,7 @@ impl PostProcessing {
         };
         for step in plan {
             let b = uniform(&step.name, step.uniforms);
-            let pipeline = fullscreen(step.shader, SCENE_COLOR_FORMAT)?;
+            let pipeline = fullscreen(step.shader.clone(), SCENE_COLOR_FORMAT)?;
             let mut r = vec![
                 ("Input", view_of(step.input)),
                 ("InputSampler", sampler.clone()),
@@ -159,7 +162,7 @@ impl PostProcessing {
         });
         let tonemap = Draw::new(
             device,
-            fullscreen("MobileTonemapPS", OUTPUT_FORMAT)?,
+            fullscreen(keys::name(keys::mobile_tonemap_ps::Key {}, LEVEL)?, OUTPUT_FORMAT)?,
             &[
                 ("SceneColor", scene_color.clone()),
                 ("BloomTexture", bloom_result),

@@ -13,6 +13,7 @@ use glam::{Mat4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
+use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::{BlendMode, Camera, Scene};
@@ -196,7 +197,7 @@ impl ShadowDepths {
         scene: &GpuScene,
         layout: &ShadowLayout,
     ) -> Result<ShadowDepths, PipelineError> {
-        let vs = pipelines.permutation("MobileShadowDepthVS", &[])?;
+        let vs = keys::name(keys::mobile_shadow_depth_vs::Key {}, keys::Level::Es31)?;
         let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
         desc.depth_stencil = Some(wgpu::DepthStencilState {
             format: SHADOW_ATLAS_FORMAT,

@@ -30,7 +30,7 @@ impl Translucency {
         shared: &SharedResources,
     ) -> Result<Option<Translucency>, PipelineError> {
         let forward = options.path == ShadingPath::Forward;
-        let vs = base_pass_vs(pipelines, forward && options.vertex_fog)?;
+        let vs = base_pass_vs(forward && options.vertex_fog)?;
         // Translucency in the deferred frame runs after lighting, on SceneColor alone.
         let formats = if forward { base_pass_formats(options) } else { vec![super::SCENE_COLOR_FORMAT] };
         let view = shared.view_resources(targets);
@@ -57,7 +57,7 @@ impl Translucency {
         for (_, i) in items {
             let object = &gpu_scene.objects[i];
             let material = gpu_scene.material(object);
-            let ps = base_pass_ps(pipelines, &options_lit, material, true, shared.cascades > 0)?;
+            let ps = base_pass_ps(&options_lit, material, true, shared.cascades > 0)?;
             let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::MeshInstanced);
             desc.cull_mode = Some(wgpu::Face::Back);
             desc.depth_stencil = Some(wgpu::DepthStencilState {

@@ -26,7 +26,7 @@
 pub mod particles;
 
 use crate::gpu_types::formats;
-use crate::pipelines::{PipelineCache, PipelineError};
+use crate::pipelines::PipelineCache;
 use crate::scene::gpu::GpuScene;
 use crate::scene::Scene;
 
@@ -40,17 +40,6 @@ pub struct PassInit<'a> {
     pub level: &'a str,
     /// The frame's shared resources.
     pub shared: &'a SharedResources,
-}
-
-impl PassInit<'_> {
-    /// The canonical name of `shader` at this pass's level with the given dimension values.
-    pub fn permutation(&self, shader: &str, values: &[(&str, &str)]) -> Result<String, PipelineError> {
-        let mut q = self.cache.archive().shader(shader).level(self.level);
-        for (d, v) in values {
-            q = q.with(d, v);
-        }
-        Ok(q.find()?.name().to_string())
-    }
 }
 
 /// A render target: texture, default view and the name it is dumped under.

@@ -10,6 +10,7 @@ use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
 use crate::gpu_types::{formats, EmitterUniforms, Particle};
+use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, ComputePipeline, DepthState, PipelineError, RenderPipeline, RenderState, VertexLayout,
 };
@@ -64,7 +65,8 @@ impl ParticleSystem {
             contents: bytemuck::cast_slice(&dead),
             usage: wgpu::BufferUsages::STORAGE,
         });
-        let simulation = init.cache.compute(&init.permutation("ParticleSimulationCS", &[])?)?;
+        let simulation =
+            init.cache.compute(&keys::name(keys::particle_simulation_cs::Key {}, keys::level(init.level)?)?)?;
         let simulation_group = simulation.layout.bind_group(
             init.device,
             0,
@@ -143,8 +145,9 @@ impl ParticleSprites {
         system: &ParticleSystem,
         depth_test: bool,
     ) -> Result<ParticleSprites, PipelineError> {
-        let vs = init.permutation("ParticleSpriteVS", &[])?;
-        let ps = init.permutation("ParticleSpritePS", &[])?;
+        let level = keys::level(init.level)?;
+        let vs = keys::name(keys::particle_sprite_vs::Key {}, level)?;
+        let ps = keys::name(keys::particle_sprite_ps::Key {}, level)?;
         let mut state = RenderState::mesh();
         if depth_test {
             state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
