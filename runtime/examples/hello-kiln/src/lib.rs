@@ -1,7 +1,8 @@
 //! The smallest app on the Kiln runtime, as a library (`src/main.rs` is its command line).
 //!
 //! `build.rs` compiles `permutations.toml` (two shaders, `shaders/`) into an archive that
-//! [`ARCHIVE`] embeds. [`render`] picks one vertex and one pixel permutation, gets their
+//! [`ARCHIVE`] embeds, and generates typed keys for it ([`shaders`]). [`render`] picks one
+//! vertex and one pixel permutation by key, gets their
 //! pipeline from the runtime's [`PipelineCache`] (lazy modules: SPIR-V passthrough on Vulkan,
 //! WGSL elsewhere; bind group layouts from the archive's reflection), draws into an
 //! offscreen texture and reads it back. Everything it uses of the runtime is public API.
@@ -9,7 +10,7 @@
 use std::sync::Arc;
 
 use kiln_runtime::pipelines::{Blend, ColorTarget, ErrorScopes, PipelineCache, PipelineError, RenderState};
-use kiln_runtime::{Gpu, LookupError, ShaderArchive};
+use kiln_runtime::{Gpu, ShaderArchive};
 use wgpu::util::DeviceExt;
 
 /// The archive `build.rs` compiled from `permutations.toml`.
@@ -19,49 +20,30 @@ pub static ARCHIVE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/shaders.kp
 /// they are, `round(value * 255)`).
 pub const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
-/// The vertex shader's `SHAPE` dimension.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Shape {
-    /// Corners (-0.5, -0.5), (0.5, -0.5), (0, 0.5) in clip space.
-    Triangle,
-    /// [-0.5, 0.5] x [-0.5, 0.5] in clip space.
-    Quad,
+/// The typed permutation keys `build.rs` generated from `permutations.toml`
+/// (`kiln::Build::rust_bindings`): `Level`, and one module per shader with its `Key` and a
+/// Rust enum per enum dimension. A dimension or value renamed in the toml is a compile error
+/// here, not a failed lookup at run time.
+pub mod shaders {
+    include!(concat!(env!("OUT_DIR"), "/kiln_shaders.rs"));
 }
 
-impl Shape {
-    /// The dimension's value as `permutations.toml` names it.
-    pub fn label(self) -> &'static str {
-        match self {
-            Shape::Triangle => "TRIANGLE",
-            Shape::Quad => "QUAD",
-        }
-    }
+pub use shaders::hello_ps::Palette;
+pub use shaders::hello_vs::Shape;
+use shaders::{Level, PermutationKey};
 
-    fn vertices(self) -> u32 {
-        match self {
-            Shape::Triangle => 3,
-            Shape::Quad => 6,
-        }
-    }
-}
+/// The one level of `permutations.toml`.
+pub const LEVEL: Level = Level::Portable;
 
-/// The pixel shader's `PALETTE` dimension.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Palette {
-    /// (1.0, 0.6, 0.2).
-    Warm,
-    /// (0.2, 0.6, 1.0).
-    Cool,
+/// How many vertices the vertex shader's `SHAPE` draws.
+fn vertices(shape: Shape) -> u32 {
+    match shape {
+        Shape::Triangle => 3,
+        Shape::Quad => 6,
+    }
 }
 
 impl Palette {
-    pub fn label(self) -> &'static str {
-        match self {
-            Palette::Warm => "WARM",
-            Palette::Cool => "COOL",
-        }
-    }
-
     /// The color the pixel shader writes for this palette, before any tint.
     pub fn color(self) -> [f32; 4] {
         match self {
@@ -118,8 +100,10 @@ impl Image {
 pub enum Error {
     #[error("the embedded shader archive cannot be read: {0}")]
     Archive(String),
-    #[error(transparent)]
-    Lookup(#[from] LookupError),
+    #[error("{shader} {key}: no such permutation at level `{level}` in permutations.toml")]
+    NoPermutation { shader: &'static str, key: String, level: &'static str },
+    #[error("{shader} {key} (`{name}`): not in the embedded archive, which is older than its keys")]
+    NotInArchive { shader: &'static str, key: String, name: String },
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
     #[error("a {width}x{height} frame is not possible: {why}")]
@@ -137,15 +121,26 @@ pub fn archive() -> Result<Arc<ShaderArchive>, Error> {
     Ok(Arc::new(unsafe { archive.assume_trusted() }))
 }
 
-/// The canonical names of the (vertex, pixel) permutations `frame` draws with.
+/// The canonical names of the (vertex, pixel) permutations `frame` draws with: typed keys,
+/// found in the archive by id (one hash-map lookup, no name formatted or parsed).
 pub fn permutations(archive: &ShaderArchive, frame: &Frame) -> Result<(String, String), Error> {
-    let vs = archive.shader("HelloVS").with("SHAPE", frame.shape.label()).find()?;
-    let ps = archive
-        .shader("HelloPS")
-        .with("PALETTE", frame.palette.label())
-        .with("TINT", u8::from(frame.tint.is_some()))
-        .find()?;
-    Ok((vs.name().to_string(), ps.name().to_string()))
+    let vs = shaders::hello_vs::Key { shape: frame.shape };
+    let ps = shaders::hello_ps::Key { palette: frame.palette, tint: frame.tint.is_some() };
+    Ok((find(archive, vs)?, find(archive, ps)?))
+}
+
+fn find<K: PermutationKey>(archive: &ShaderArchive, key: K) -> Result<String, Error> {
+    let (shader, level) = (K::SHADER, LEVEL.name());
+    let id =
+        key.permutation_id(LEVEL).ok_or_else(|| Error::NoPermutation { shader, key: format!("{key:?}"), level })?;
+    match archive.get_by_id(id) {
+        Some(permutation) => Ok(permutation.name().to_string()),
+        None => Err(Error::NotInArchive {
+            shader,
+            key: format!("{key:?}"),
+            name: key.canonical_name(LEVEL).unwrap_or_default(),
+        }),
+    }
 }
 
 /// Renders `frame` on `gpu` with pipelines from `cache` (a cache over [`archive`]) and reads
@@ -222,7 +217,7 @@ pub fn render(gpu: &Gpu, cache: &PipelineCache, frame: &Frame) -> Result<Image, 
         for (group, bind_group) in bind_groups.iter().enumerate() {
             pass.set_bind_group(group as u32, bind_group, &[]);
         }
-        pass.draw(0..frame.shape.vertices(), 0..1);
+        pass.draw(0..vertices(frame.shape), 0..1);
     }
     encoder.copy_texture_to_buffer(
         wgpu::TexelCopyTextureInfo {

@@ -25,18 +25,18 @@ fn parse(mut args: impl Iterator<Item = String>) -> Result<Args, String> {
         match arg.as_str() {
             "--out" => parsed.out = PathBuf::from(value("--out")?),
             "--shape" => {
-                parsed.frame.shape = match value("--shape")?.as_str() {
-                    "triangle" => Shape::Triangle,
-                    "quad" => Shape::Quad,
-                    other => return Err(format!("--shape: `{other}` is not triangle or quad")),
-                }
+                let v = value("--shape")?;
+                parsed.frame.shape = *Shape::ALL
+                    .iter()
+                    .find(|s| s.name().eq_ignore_ascii_case(&v))
+                    .ok_or_else(|| format!("--shape: `{v}` is not triangle or quad"))?;
             }
             "--palette" => {
-                parsed.frame.palette = match value("--palette")?.as_str() {
-                    "warm" => Palette::Warm,
-                    "cool" => Palette::Cool,
-                    other => return Err(format!("--palette: `{other}` is not warm or cool")),
-                }
+                let v = value("--palette")?;
+                parsed.frame.palette = *Palette::ALL
+                    .iter()
+                    .find(|p| p.name().eq_ignore_ascii_case(&v))
+                    .ok_or_else(|| format!("--palette: `{v}` is not warm or cool"))?;
             }
             "--no-tint" => parsed.frame.tint = None,
             "--backend" => {
