@@ -404,7 +404,6 @@ pub struct PipelineCache {
 
 /// wgpu's driver-level pipeline cache, loaded from and saved to one file per adapter and
 /// driver.
-#[derive(Clone)]
 struct DiskCache {
     cache: wgpu::PipelineCache,
     path: std::path::PathBuf,
@@ -551,6 +550,11 @@ impl PipelineCache {
                 inner.modules.insert((*target, *nb, numbering.clone()), m.clone());
             }
         }
+        for (ob, walked) in &old.spirv {
+            if let Some(nb) = blobs.get(&(Target::Spirv, *ob)) {
+                inner.spirv.insert(*nb, walked.clone());
+            }
+        }
         for (k, p) in &old.render {
             if keep(&k.vertex) && k.fragment.as_deref().is_none_or(keep) {
                 inner.render.insert(k.clone(), p.clone());
@@ -568,7 +572,7 @@ impl PipelineCache {
             passthrough,
             limits: self.limits.clone(),
             inner: Mutex::new(inner),
-            disk: self.disk.clone(),
+            disk: self.disk.as_ref().map(|d| DiskCache { cache: d.cache.clone(), path: d.path.clone() }),
         }
     }
 

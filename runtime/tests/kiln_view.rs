@@ -128,7 +128,11 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
     kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
     let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert_eq!(stderr(&o), "error: cannot name permutation: no shader named `ParticleSimulationCS` in the archive");
+    // The frames name permutations with typed keys: the first one the frame needs is missing.
+    assert_eq!(
+        stderr(&o),
+        "error: permutation `ParticleSimulationCS@sm5{}` is not in the archive (the archive holds no permutations)"
+    );
 }
 
 #[test]
