@@ -2,10 +2,13 @@
 //!
 //! `build.rs` compiles `permutations.toml` (two shaders, `shaders/`) into an archive that
 //! [`ARCHIVE`] embeds, and generates typed keys for it ([`shaders`]). [`render`] picks one
-//! vertex and one pixel permutation by key, gets their
-//! pipeline from the runtime's [`PipelineCache`] (lazy modules: SPIR-V passthrough on Vulkan,
-//! WGSL elsewhere; bind group layouts from the archive's reflection), draws into an
-//! offscreen texture and reads it back. Everything it uses of the runtime is public API.
+//! vertex and one pixel permutation by key, gets their pipeline from the runtime's
+//! [`PipelineCache`] (lazy modules: SPIR-V passthrough on Vulkan, WGSL elsewhere; bind group
+//! layouts from the archive's reflection), draws into an offscreen texture and reads it
+//! back. Everything it uses of the runtime is public API.
+//!
+//! The colors (`shaders/hello_ps.wgsl`): `PALETTE=WARM` (1.0, 0.6, 0.2), `COOL`
+//! (0.2, 0.6, 1.0), multiplied by [`Frame::tint`] when `TINT=1`.
 
 use std::sync::Arc;
 
@@ -40,16 +43,6 @@ fn vertices(shape: Shape) -> u32 {
     match shape {
         Shape::Triangle => 3,
         Shape::Quad => 6,
-    }
-}
-
-impl Palette {
-    /// The color the pixel shader writes for this palette, before any tint.
-    pub fn color(self) -> [f32; 4] {
-        match self {
-            Palette::Warm => [1.0, 0.6, 0.2, 1.0],
-            Palette::Cool => [0.2, 0.6, 1.0, 1.0],
-        }
     }
 }
 
