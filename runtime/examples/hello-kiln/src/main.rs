@@ -1,6 +1,8 @@
 //! `hello-kiln [--out hello.png] [--shape triangle|quad] [--palette warm|cool] [--no-tint]
-//! [--backend vulkan|gl] [--size WxH]`: renders one frame headless with the example's own
-//! shaders and writes it as a PNG. Exit status: 0 done, 1 rendering failed, 2 bad usage.
+//! [--backend vulkan|gl] [--size WxH] [--validation]`: renders one frame headless with the
+//! example's own shaders and writes it as a PNG. `--validation` renders with the Khronos
+//! validation layer (GL: debug output) and fails on any message. Exit status: 0 done,
+//! 1 rendering failed, 2 bad usage.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -10,16 +12,18 @@ use kiln_runtime::pipelines::PipelineCache;
 use kiln_runtime::{Backend, Gpu, GpuOptions};
 
 const USAGE: &str = "usage: hello-kiln [--out hello.png] [--shape triangle|quad] [--palette warm|cool] [--no-tint] \
-                     [--backend vulkan|gl] [--size WxH]";
+                     [--backend vulkan|gl] [--size WxH] [--validation]";
 
 struct Args {
     out: PathBuf,
     backend: Backend,
+    validation: bool,
     frame: Frame,
 }
 
 fn parse(mut args: impl Iterator<Item = String>) -> Result<Args, String> {
-    let mut parsed = Args { out: PathBuf::from("hello.png"), backend: Backend::Vulkan, frame: Frame::default() };
+    let mut parsed =
+        Args { out: PathBuf::from("hello.png"), backend: Backend::Vulkan, validation: false, frame: Frame::default() };
     while let Some(arg) = args.next() {
         let mut value = |name: &str| args.next().ok_or_else(|| format!("{name} needs a value"));
         match arg.as_str() {
@@ -39,6 +43,7 @@ fn parse(mut args: impl Iterator<Item = String>) -> Result<Args, String> {
                     .ok_or_else(|| format!("--palette: `{v}` is not warm or cool"))?;
             }
             "--no-tint" => parsed.frame.tint = None,
+            "--validation" => parsed.validation = true,
             "--backend" => {
                 let name = value("--backend")?;
                 parsed.backend =
@@ -98,6 +103,13 @@ fn main() -> ExitCode {
         let cache = PipelineCache::new(&gpu, archive);
         // 3. Render: the cache finds or creates the pipeline of the frame's permutations.
         let image = render(&gpu, &cache, &args.frame).map_err(|e| e.to_string())?;
+        if args.validation {
+            gpu.wait();
+            let messages = kiln_runtime::validation::take();
+            if !messages.is_empty() {
+                return Err(format!("{} validation message(s):\n{}", messages.len(), messages.join("\n")));
+            }
+        }
         write_png(&args.out, &image)?;
         let modules = if cache.uses_spirv_passthrough() { "SPIR-V passthrough" } else { "WGSL" };
         Ok(format!(
