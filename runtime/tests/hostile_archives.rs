@@ -52,11 +52,14 @@ fn assert_clean_exit(o: &Output, what: &str) -> String {
     err
 }
 
+/// A class of manifest field: its name, an edit putting it out of range, the limit named.
+type Case = (&'static str, fn(&mut Reflection), &'static str);
+
 #[test]
 fn out_of_range_manifest_fields_are_errors_naming_the_permutation_and_the_limit() {
     let dir = tempfile::tempdir().unwrap();
     // Each class of field, on every permutation that has one.
-    let cases: [(&str, fn(&mut Reflection), &str); 5] = [
+    let cases: [Case; 5] = [
         ("bind group index", |r| r.bindings.iter_mut().for_each(|b| b.group = 4_000_000_000), "max_bind_groups"),
         ("binding number", |r| r.bindings.iter_mut().for_each(|b| b.binding = u32::MAX), "max_bindings_per_bind_group"),
         (
