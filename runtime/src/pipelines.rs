@@ -1,11 +1,17 @@
 //! Shader modules, bind group layouts and pipelines from the archive.
 //!
-//! Modules are created lazily, once per permutation: SPIR-V passthrough when the device has
-//! it (`Gpu::spirv_passthrough`), WGSL otherwise. Bind group layouts come from the archive's
-//! reflection, merging the stages of a pipeline (visibility is the set of stages that use a
-//! binding). Pipelines are cached per (permutations, fixed-function state). Bind groups are
-//! built by resource name: a pass hands over `("View", buffer)`-style pairs and the
-//! reflection says where each goes.
+//! Takes permutation names and fixed-function state; gives modules, layouts and pipelines
+//! from the runtime's one cache ([`PipelineCache`]), keyed by [`RenderKey`] (permutations,
+//! vertex layout, primitive and cull, depth and stencil with the bias as bits, color targets
+//! with blend and write masks, sample count) or [`ComputeKey`]. Guarantees: every field of a
+//! permutation's reflection is checked against the device's limits before it is used
+//! ([`check_limits`]); bind group layouts come from the reflection, merged across stages
+//! (visibility is the set of stages that use a binding); modules are created lazily, from
+//! SPIR-V passthrough where the device allows it and the archive is trusted (walked and
+//! checked against the reflection, binding numbers rewritten to the layout's Vulkan ones:
+//! [`crate::spirv`]), from WGSL otherwise; every wgpu error is a [`PipelineError`] naming
+//! what failed. Bind groups are built by resource name: a pass hands over
+//! `("View", buffer)`-style pairs and the reflection says where each goes.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
