@@ -422,6 +422,10 @@ fn a_config_that_is_not_a_regular_file_is_an_error_without_blocking() {
         }
         let o = kiln(d, &["explain", "S@sm5{A=1}", "--config", config]);
         assert_eq!(code(&o), 2, "{}", stderr(&o));
+        // The input of `kiln preprocess` too.
+        let o = kiln(d, &["preprocess", config]);
+        assert_eq!(code(&o), 2, "preprocess {config}: {}", stderr(&o));
+        assert!(stderr(&o).contains(why) && stderr(&o).contains("not a regular file"), "{}", stderr(&o));
     }
     assert_dev_null_intact();
 }

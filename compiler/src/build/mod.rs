@@ -43,10 +43,10 @@ mod records;
 mod report;
 mod store;
 
+pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 pub use compile::map_error;
 pub use plan::Shard;
 pub use report::{DeadDimension, Report, Seconds, Stats};
-pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 pub use store::default_cache_dir;
 
 /// What to build and where.

@@ -37,8 +37,24 @@ pub fn parse_define(d: &str) -> (String, String) {
 }
 
 pub fn exec(args: Args) -> CliResult {
-    if !args.file.is_file() {
-        return Err(Failure::usage(format!("error: cannot read `{}`: no such file", args.file.display())));
+    match std::fs::metadata(&args.file) {
+        Ok(m) if m.is_file() => {}
+        Ok(m) => {
+            use std::os::unix::fs::FileTypeExt;
+            let t = m.file_type();
+            let what = if t.is_dir() {
+                "a directory"
+            } else if t.is_fifo() {
+                "a FIFO"
+            } else if t.is_char_device() || t.is_block_device() {
+                "a device"
+            } else {
+                "a socket"
+            };
+            let name = args.file.display();
+            return Err(Failure::usage(format!("error: cannot read `{name}`: it is {what}, not a regular file")));
+        }
+        Err(e) => return Err(Failure::usage(format!("error: cannot read `{}`: {e}", args.file.display()))),
     }
     for dir in &args.include {
         if !dir.is_dir() {
