@@ -148,7 +148,8 @@ pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec
     best.into_iter().map(|(_, _, n)| n).collect()
 }
 
-fn edit_distance(a: &str, b: &str) -> usize {
+/// Levenshtein distance between `a` and `b`, in characters.
+pub(super) fn edit_distance(a: &str, b: &str) -> usize {
     let b: Vec<char> = b.chars().collect();
     let mut prev: Vec<usize> = (0..=b.len()).collect();
     for (i, ca) in a.chars().enumerate() {

@@ -371,19 +371,6 @@ fn describe_value(value: &toml::Value) -> String {
     }
 }
 
-fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut cur = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        prev = cur;
-    }
-    prev[b.len()]
-}
-
 fn is_ident(s: &str) -> bool {
     let mut b = s.bytes();
     matches!(b.next(), Some(c) if c.is_ascii_alphabetic() || c == b'_')
@@ -559,7 +546,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                         let near = crate::compile::WGPU_LIMITS
                             .iter()
                             .map(|(f, _)| *f)
-                            .min_by_key(|f| edit_distance(f, field))
+                            .min_by_key(|f| super::names::edit_distance(f, field))
                             .unwrap_or("max_bind_groups");
                         c.error(k.span(), format!("unknown limit `{field}`"), "not a field of wgpu's `Limits`")
                             .notes
