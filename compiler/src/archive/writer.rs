@@ -23,9 +23,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
-    PermutationRecord, Sections, ShaderRecord, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
-    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, NO_DICTIONARY,
+    sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest, PermutationRecord,
+    Sections, ShaderRecord, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE,
+    DICTIONARY_SIZE, HEADER_LEN, NO_DICTIONARY,
 };
 use super::{Reflection, Target};
 
@@ -259,10 +259,12 @@ impl StreamingWriter {
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let (index, _) = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
         let plan = plan(entries, &index)?;
+        // The spool index is not needed past planning: free it before the archive is written.
+        drop(index);
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
-            summary = write_archive(&plan, &spool, f)?;
+            summary = write_archive(plan, &spool, f)?;
             Ok(())
         })
         .map_err(err)?;
@@ -401,7 +403,7 @@ impl ArchiveWriter {
     pub fn to_bytes(&self) -> Result<Vec<u8>, ArchiveError> {
         let plan = self.plan()?;
         let mut out = Cursor::new(Vec::new());
-        write_archive(&plan, &Spool::Memory(&self.spool), &mut out)
+        write_archive(plan, &Spool::Memory(&self.spool), &mut out)
             .map_err(|source| ArchiveError::Write { path: PathBuf::from("<memory>"), source })?;
         Ok(out.into_inner())
     }
@@ -421,7 +423,7 @@ impl ArchiveWriter {
         let plan = self.plan()?;
         let mut summary = ArchiveSummary::default();
         write_atomic_with(path, sync, |f| {
-            summary = write_archive(&plan, &Spool::Memory(&self.spool), f)?;
+            summary = write_archive(plan, &Spool::Memory(&self.spool), f)?;
             Ok(())
         })
         .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })?;
@@ -512,8 +514,8 @@ fn par_map<T: Sync, U: Send, S>(
 
 /// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
 /// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from.
-fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    let of_target: Vec<&PlannedBlob> = plan.blobs.iter().filter(|b| b.target == target).collect();
+fn train(blobs: &[PlannedBlob], target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+    let of_target: Vec<&PlannedBlob> = blobs.iter().filter(|b| b.target == target).collect();
     let total: u64 = of_target.iter().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
     let mut samples = Vec::new();
@@ -531,14 +533,17 @@ fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Opti
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
-fn write_archive<W: Write + Seek>(plan: &Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
+/// It consumes the plan: the manifest is serialized straight from it, never copied, and
+/// never held as one JSON string.
+fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
+    let Plan { mut manifest, blobs } = plan;
     let mut out = BufWriter::with_capacity(1 << 20, out);
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
     // Dictionaries, trained per target in parallel.
-    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
-    let trained = par_map(&targets, || (), |_, t| train(plan, *t, spool));
+    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.iter().any(|b| b.target == *t)).collect();
+    let trained = par_map(&targets, || (), |_, t| train(&blobs, *t, spool));
     let mut dictionaries: Vec<(Target, Vec<u8>)> = Vec::new();
     for (t, d) in targets.iter().zip(trained) {
         if let Some(d) = d? {
@@ -550,18 +555,18 @@ fn write_archive<W: Write + Seek>(plan: &Plan, spool: &Spool<'_>, out: &mut W) -
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
-    let mut summary = ArchiveSummary { permutations: plan.manifest.permutations.len(), ..Default::default() };
-    let mut table = Vec::with_capacity(plan.blobs.len() * super::format::ENTRY_LEN);
+    let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
+    let mut table = Vec::with_capacity(blobs.len() * super::format::ENTRY_LEN);
     let mut offset = 0u64;
     let mut start = 0;
-    while start < plan.blobs.len() {
+    while start < blobs.len() {
         let mut end = start;
         let mut batch_bytes = 0u64;
-        while end < plan.blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
-            batch_bytes += plan.blobs[end].len;
+        while end < blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
+            batch_bytes += blobs[end].len;
             end += 1;
         }
-        let batch = &plan.blobs[start..end];
+        let batch = &blobs[start..end];
         let stored = par_map(batch, zstd::zstd_safe::CCtx::create, |cctx, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
             let raw = spool.read(b.spool_offset, b.len)?;
             let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
@@ -595,12 +600,11 @@ fn write_archive<W: Write + Seek>(plan: &Plan, spool: &Spool<'_>, out: &mut W) -
         }
         start = end;
     }
-    summary.blobs = plan.blobs.len();
+    summary.blobs = blobs.len();
     summary.stored_bytes = offset;
     let blobs_len = offset;
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
 
-    let mut manifest = plan.manifest.clone();
     let mut dict_offset = 0u64;
     for (t, d) in &dictionaries {
         out.write_all(d)?;
@@ -613,26 +617,68 @@ fn write_archive<W: Write + Seek>(plan: &Plan, spool: &Spool<'_>, out: &mut W) -
         dict_offset += d.len() as u64;
     }
     summary.dictionary_bytes = dict_offset;
-    let manifest_bytes = serde_json::to_vec(&manifest).map_err(std::io::Error::other)?;
-    let sections = Sections {
-        blobs_len,
-        dictionaries_len: dict_offset,
-        manifest_len: manifest_bytes.len() as u64,
-        blob_count: plan.blobs.len() as u64,
-    };
+    drop(cdicts);
+    drop(dictionaries);
+    // The manifest is serialized twice, never held as bytes: once to count its length (the
+    // header fields, which the checksum covers first, need it), then into the file and the
+    // checksum at once.
+    let mut counter = Counter(0);
+    serde_json::to_writer(&mut counter, &manifest).map_err(std::io::Error::other)?;
+    let manifest_len = counter.0;
+    let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count: blobs.len() as u64 };
     let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
     pad8(&mut out, layout.dictionaries + dict_offset)?;
-    out.write_all(&manifest_bytes)?;
-    pad8(&mut out, layout.manifest + manifest_bytes.len() as u64)?;
-    out.write_all(&table)?;
     let fields = sections.header_fields();
-    let sum = header_checksum(&fields, &manifest_bytes, &table);
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(&fields);
+    let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
+    serde_json::to_writer(&mut tee, &manifest).map_err(std::io::Error::other)?;
+    if tee.written != manifest_len {
+        return Err(std::io::Error::other("the manifest serialized to two different lengths"));
+    }
+    drop(manifest);
+    pad8(&mut out, layout.manifest + manifest_len)?;
+    out.write_all(&table)?;
+    hasher.update(&table);
+    let sum = hasher.finalize();
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&fields)?;
     out.write_all(sum.as_bytes())?;
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+/// A writer that only counts.
+struct Counter(u64);
+
+impl Write for Counter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0 += buf.len() as u64;
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Writes to `out` and feeds the same bytes to `hasher`.
+struct Tee<'a, W: Write> {
+    out: &'a mut W,
+    hasher: &'a mut blake3::Hasher,
+    written: u64,
+}
+
+impl<W: Write> Write for Tee<'_, W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.out.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        self.written += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.out.flush()
+    }
 }
 
 /// Zero bytes from `at` to the next multiple of 8.
