@@ -5,7 +5,8 @@
 //! renderer's `permutations.toml` and `shader_src/`, each shader given a `MATERIAL`
 //! dimension whose value reaches the shader's text (the way materials multiply Unreal's
 //! permutations), so every material is one more real compile. `KILN_BENCH_JOBS` sets the
-//! threads (2 by default).
+//! threads (2 by default). `KILN_BENCH_SET=DIR` only writes the generated set to DIR (to
+//! profile `kiln build` on it).
 //!
 //! For each backend whose server is installed (`redis-server`, `nginx`), started here on a
 //! free loopback port:
@@ -100,7 +101,14 @@ struct Server {
 }
 
 impl Drop for Server {
+    /// SIGTERM first: nginx's master then stops its workers (a SIGKILL would leave them
+    /// running, holding the port and this process's output); SIGKILL after 5 s.
     fn drop(&mut self) {
+        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
+        let t = Instant::now();
+        while matches!(self.child.try_wait(), Ok(None)) && t.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -123,6 +131,7 @@ fn start(kind: &str) -> Option<Server> {
                 .arg("--dir")
                 .arg(dir.path())
                 .stdout(Stdio::null())
+                .stderr(Stdio::null())
                 .spawn()
                 .unwrap();
             (child, format!("redis://127.0.0.1:{port}"))
@@ -151,6 +160,7 @@ fn start(kind: &str) -> Option<Server> {
                 .arg(p.join("nginx.conf"))
                 .arg("-e")
                 .arg(p.join("error.log"))
+                .stdout(Stdio::null())
                 .stderr(Stdio::null())
                 .spawn()
                 .unwrap();
@@ -200,12 +210,16 @@ fn main() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf();
     let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
     let (generated, elsewhere) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let n = std::env::var("KILN_BENCH_PERMUTATIONS").ok().and_then(|n| n.parse().ok()).unwrap_or(1000);
+    if let Some(dir) = std::env::var_os("KILN_BENCH_SET").filter(|d| !d.is_empty()) {
+        // Only write the generated set (to profile `kiln build` on it), and stop.
+        let config = generate(&root, Path::new(&dir), n);
+        println!("generated {} ({} permutations)", config.display(), count(&config));
+        return;
+    }
     let (config, other_path) = match std::env::args().skip(1).find(|a| !a.starts_with('-')) {
         Some(c) => (PathBuf::from(c), None),
-        None => {
-            let n = std::env::var("KILN_BENCH_PERMUTATIONS").ok().and_then(|n| n.parse().ok()).unwrap_or(1000);
-            (generate(&root, generated.path(), n), Some(generate(&root, elsewhere.path(), n)))
-        }
+        None => (generate(&root, generated.path(), n), Some(generate(&root, elsewhere.path(), n))),
     };
     println!("remote cache bench: {} ({} permutations, {jobs} threads)", config.display(), count(&config));
 

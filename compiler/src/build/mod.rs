@@ -173,6 +173,12 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         progress.finish();
         return report.up_to_date(keys.len(), counts);
     }
+    if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
+        progress.finish();
+        report.warnings(store.finish());
+        report.remote(store.remote_stats());
+        return report.up_to_date(keys.len(), counts);
+    }
     let outcomes = compiler.run(&keys, &preprocessor);
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     report.warnings(store.finish());

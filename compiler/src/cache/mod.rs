@@ -372,6 +372,43 @@ impl Cache {
         }
     }
 
+    /// Copies into the local cache the remote entries of `keys` that it lacks: fetched
+    /// [`remote::BATCH`] keys per round trip, each checked as [`Cache::get`] checks it,
+    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally; a
+    /// missing or corrupted remote entry is left to the build, which looks it up again,
+    /// reports and recompiles it.
+    pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
+        let Some(layer) = &self.remote else { return false };
+        let queued: HashSet<Key> =
+            layer.fills.lock().expect("no panics while locked").entries.iter().map(|(k, _)| *k).collect();
+        let missing: Vec<Key> = self.with_index(|index| {
+            keys.iter().filter(|k| !index.by_key.contains_key(k) && !queued.contains(k)).copied().collect()
+        });
+        let complete = AtomicBool::new(true);
+        missing.par_chunks(remote::BATCH).for_each(|batch| {
+            for (key, value) in batch.iter().zip(layer.remote.get_many(batch)) {
+                let Some(bytes) = value.filter(|bytes| check(key, bytes).is_ok()) else {
+                    complete.store(false, Ordering::Relaxed);
+                    continue;
+                };
+                layer.remote.count_hit();
+                let full = {
+                    let mut fills = layer.fills.lock().expect("no panics while locked");
+                    fills.bytes += bytes.len();
+                    fills.entries.push((*key, bytes));
+                    fills.bytes >= FILL_BYTES
+                };
+                if full {
+                    // Failing to fill only costs a remote lookup next time.
+                    let _ = self.put_pack_hashed(&[]);
+                }
+            }
+        });
+        // Written now, so that the build's lookups find them here (not in the remote again).
+        let _ = self.put_pack_hashed(&[]);
+        complete.into_inner()
+    }
+
     fn get_local(&self, key: &Key) -> Lookup {
         let locations = self.with_index(|index| index.by_key.get(key).cloned().unwrap_or_default());
         let mut corrupt = None;
@@ -908,7 +945,33 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     out
 }
 
+/// Whether `bytes` is a whole entry of `key` (what [`decode`] checks, without copying the
+/// artifacts out).
+fn check(key: &Key, bytes: &[u8]) -> Result<(), String> {
+    let (_, json) = parse(key, bytes)?;
+    serde_json::from_slice::<Reflection>(json).map_err(|e| format!("bad reflection: {e}"))?;
+    Ok(())
+}
+
 fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
+    let (artifacts, json) = parse(key, bytes)?;
+    let artifacts = artifacts
+        .into_iter()
+        .map(|(name, bytes)| {
+            let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
+            let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+            Ok((target, bytes.to_vec()))
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
+    Ok(Compiled { artifacts, reflection })
+}
+
+/// An entry's artifacts (target name, bytes) and reflection JSON, once its checksum and key
+/// are checked.
+type Parsed<'a> = (Vec<(&'a [u8], &'a [u8])>, &'a [u8]);
+
+fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
     if bytes.len() < 40 || &bytes[..8] != MAGIC {
         return Err("not a cache entry of this kiln".into());
     }
@@ -945,16 +1008,7 @@ fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
     if entry_key != key.0 {
         return Err("the entry belongs to another key".into());
     }
-    let artifacts = artifacts
-        .into_iter()
-        .map(|(name, bytes)| {
-            let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
-            let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
-            Ok((target, bytes.to_vec()))
-        })
-        .collect::<Result<Vec<_>, String>>()?;
-    let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
-    Ok(Compiled { artifacts, reflection })
+    Ok((artifacts, json))
 }
 
 struct Reader<'a> {

@@ -27,6 +27,12 @@ use super::Key;
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The largest value read back (a guard against a server answering with something else).
 const MAX_VALUE: u64 = 1 << 30;
+/// Keys fetched per round trip by [`Remote::get_many`] (about 3 MB of entries of the
+/// bundled renderer's set).
+pub const BATCH: usize = 64;
+/// HTTP requests in flight at once in [`Remote::get_many`] (each on its own keep-alive
+/// connection): enough to hide a round trip behind the others' transfers.
+const HTTP_STREAMS: usize = 4;
 
 /// Whether a build writes what it compiles to the remote cache.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -271,6 +277,27 @@ impl Remote {
         }
     }
 
+    /// The values stored under `keys`, in order (`None` for a miss): one round trip per
+    /// [`BATCH`] keys with redis (`MGET`), requests on [`HTTP_STREAMS`] connections at once
+    /// with HTTP. All `None` once the store is off.
+    pub fn get_many(&self, keys: &[Key]) -> Vec<Option<Vec<u8>>> {
+        let mut out = Vec::with_capacity(keys.len());
+        for batch in keys.chunks(BATCH) {
+            if self.off.load(Ordering::Relaxed) {
+                break;
+            }
+            match self.retry(|| match &self.store {
+                Store::Redis(r) => r.get_many(batch),
+                Store::Http(h) => h.get_many(batch),
+            }) {
+                Ok(values) => out.extend(values),
+                Err(f) => self.fail("reading from", f),
+            }
+        }
+        out.resize_with(keys.len(), || None);
+        out
+    }
+
     /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
     pub fn put(&self, key: &Key, value: &[u8]) {
         if self.store(key, value) {
@@ -399,6 +426,20 @@ impl RedisStore {
     fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
         self.with_connection(|c| redis::cmd("SET").arg(Self::name(key)).arg(value).query(c))
     }
+
+    /// One `MGET` of every key.
+    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let mut cmd = redis::cmd("MGET");
+        for key in keys {
+            cmd.arg(Self::name(key));
+        }
+        let values: Vec<Option<Vec<u8>>> = self.with_connection(|c| cmd.query(c))?;
+        if values.len() != keys.len() {
+            let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
+            return Err(Fault { message, timed_out: false });
+        }
+        Ok(values)
+    }
 }
 
 /// GET and PUT of `<prefix>/<key>` through `ureq` (keep-alive connections, pooled).
@@ -450,6 +491,7 @@ impl HttpStore {
             .timeout_per_read(Some(options.timeout))
             .timeout_per_write(Some(options.timeout))
             .timeout_per_call(Some(options.timeout * 20))
+            .max_idle_connections_per_host(HTTP_STREAMS)
             .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")))
             .build();
         Ok((HttpStore { agent: config.into(), prefix, authorization }, password))
@@ -482,6 +524,46 @@ impl HttpStore {
             200 => response.body_mut().with_config().limit(MAX_VALUE).read_to_vec().map(Some).map_err(Self::fault),
             404 => Ok(None),
             _ => Err(Self::status("GET", response.status())),
+        }
+    }
+
+    /// GETs of every key, [`HTTP_STREAMS`] at once; the first fault ends the others.
+    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let failed = AtomicBool::new(false);
+        let results: Mutex<Vec<Option<Result<Option<Vec<u8>>, Fault>>>> =
+            Mutex::new((0..keys.len()).map(|_| None).collect());
+        std::thread::scope(|s| {
+            for _ in 0..HTTP_STREAMS.min(keys.len()) {
+                s.spawn(|| loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    if i >= keys.len() || failed.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    let r = self.get(&keys[i]);
+                    if r.is_err() {
+                        failed.store(true, Ordering::Relaxed);
+                    }
+                    results.lock().expect("no panics while locked")[i] = Some(r);
+                });
+            }
+        });
+        let results = results.into_inner().expect("no panics while locked");
+        // A fault, if any, is the answer; else every key has its value.
+        let mut values = Vec::with_capacity(keys.len());
+        let mut first_fault = None;
+        for r in results {
+            match r {
+                Some(Ok(v)) => values.push(v),
+                Some(Err(f)) => {
+                    first_fault.get_or_insert(f);
+                }
+                None => values.push(None),
+            }
+        }
+        match first_fault {
+            Some(f) => Err(f),
+            None => Ok(values),
         }
     }
 
