@@ -95,9 +95,20 @@ struct Server {
 
 impl Drop for Server {
     fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        stop(&mut self.child);
     }
+}
+
+/// Stops a server: SIGTERM, so that nginx's master stops its workers too (a SIGKILL would
+/// leave them running, holding the port); SIGKILL after 5 s.
+fn stop(child: &mut Child) {
+    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+    let start = Instant::now();
+    while matches!(child.try_wait(), Ok(None)) && start.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
 }
 
 impl Server {
@@ -325,18 +336,22 @@ fn hits_from_a_second_machine(kind: Kind) {
     assert_eq!((r.stats.compiled, r.stats.remote_hits, r.stats.remote_writes), (DISTINCT, 0, DISTINCT as u64));
     assert_eq!(r.stats.remote_errors, 0);
     assert_eq!(server.entries().len(), DISTINCT);
-    assert_eq!(server.keys().len(), DISTINCT + 1, "and one set of preprocessing records");
+    assert_eq!(server.keys().len(), DISTINCT + 2, "and one set of preprocessing records, and the archive");
+    assert_eq!(server.keys().iter().filter(|k| server.get(k).starts_with(b"KILNAR")).count(), 1, "one archive");
 
-    // Another machine, fresh local cache: compiles nothing, same bytes.
+    // Another machine (its checkout at another path), fresh local cache: preprocesses
+    // nothing (the records hold paths relative to the configuration's folder), compiles
+    // nothing (the entries and the archive come from the remote), same bytes.
     let other = Machine::new();
+    assert_ne!(other.dir.path(), ci.dir.path());
     let r = other.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
     assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits), (0, DISTINCT, DISTINCT as u64));
+    assert_eq!(r.stats.preprocessed, 0);
     assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
     assert_eq!(other.bytes(), ci.bytes());
     assert_eq!(other.bytes(), reference(), "the remote changes no byte of the archive");
 
-    // A machine whose checkout has the same path (CI runners, the pods of one job) also
-    // finds the preprocessing records there: it preprocesses nothing either.
+    // The same at the same path (CI runners, the pods of one job).
     std::fs::remove_dir_all(ci.dir.path().join("cache")).unwrap();
     std::fs::remove_file(ci.archive()).unwrap();
     let r = ci.build(&url);
@@ -391,9 +406,7 @@ fn killing_proxy(server: Arc<Mutex<Server>>, trigger: &'static [u8]) -> (u16, Ar
                     tail.extend_from_slice(&buf[..n]);
                     if tail.windows(trigger.len()).any(|w| w == trigger) || flag.load(Ordering::SeqCst) {
                         if !flag.swap(true, Ordering::SeqCst) {
-                            let mut s = server.lock().unwrap();
-                            let _ = s.child.kill();
-                            let _ = s.child.wait();
+                            stop(&mut server.lock().unwrap().child);
                         }
                         break;
                     }
@@ -515,6 +528,40 @@ fn redis_corrupted_entry_is_recompiled_and_overwritten() {
 #[test]
 fn http_corrupted_entry_is_recompiled_and_overwritten() {
     corrupted_entry(Kind::Http);
+}
+
+/// The archive a build stored in the remote, damaged: a warning, the archive assembled
+/// again from the entries (the remote's, checked) and stored over the damaged one.
+fn corrupted_archive(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+    Machine::new().build(&url);
+    let archives: Vec<String> = server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNAR")).collect();
+    assert_eq!(archives.len(), 1, "{:?}", server.keys());
+    let good = server.get(&archives[0]);
+    let mut bad = good.clone();
+    let middle = bad.len() / 2;
+    bad[middle] ^= 0x01;
+    server.set(&archives[0], &bad);
+
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    let corrupt: Vec<&String> = r.warnings.iter().filter(|w| w.contains("corrupted")).collect();
+    assert_eq!(corrupt.len(), 1, "{:?}", r.warnings);
+    assert!(corrupt[0].contains(&archives[0]) && corrupt[0].contains(&url), "{}", corrupt[0]);
+    assert_eq!(m.bytes(), reference());
+    assert_eq!(server.get(&archives[0]), good, "stored again, whole");
+}
+
+#[test]
+fn redis_corrupted_archive_is_assembled_again() {
+    corrupted_archive(Kind::Redis);
+}
+
+#[test]
+fn http_corrupted_archive_is_assembled_again() {
+    corrupted_archive(Kind::Http);
 }
 
 fn two_writers(kind: Kind) {
