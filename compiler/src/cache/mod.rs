@@ -372,8 +372,8 @@ impl Cache {
         }
     }
 
-    /// Copies into the local cache the remote entries of `keys` that it lacks: fetched
-    /// [`remote::BATCH`] keys per round trip, each checked as [`Cache::get`] checks it,
+    /// Copies into the local cache the remote entries of `keys` that it lacks: fetched in
+    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it,
     /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally; a
     /// missing or corrupted remote entry is left to the build, which looks it up again,
     /// reports and recompiles it.
@@ -385,23 +385,21 @@ impl Cache {
             keys.iter().filter(|k| !index.by_key.contains_key(k) && !queued.contains(k)).copied().collect()
         });
         let complete = AtomicBool::new(true);
-        missing.par_chunks(remote::BATCH).for_each(|batch| {
-            for (key, value) in batch.iter().zip(layer.remote.get_many(batch)) {
-                let Some(bytes) = value.filter(|bytes| check(key, bytes).is_ok()) else {
-                    complete.store(false, Ordering::Relaxed);
-                    continue;
-                };
-                layer.remote.count_hit();
-                let full = {
-                    let mut fills = layer.fills.lock().expect("no panics while locked");
-                    fills.bytes += bytes.len();
-                    fills.entries.push((*key, bytes));
-                    fills.bytes >= FILL_BYTES
-                };
-                if full {
-                    // Failing to fill only costs a remote lookup next time.
-                    let _ = self.put_pack_hashed(&[]);
-                }
+        layer.remote.get_each(&missing, |key, value| {
+            let Some(bytes) = value.filter(|bytes| check(key, bytes).is_ok()) else {
+                complete.store(false, Ordering::Relaxed);
+                return;
+            };
+            layer.remote.count_hit();
+            let full = {
+                let mut fills = layer.fills.lock().expect("no panics while locked");
+                fills.bytes += bytes.len();
+                fills.entries.push((*key, bytes));
+                fills.bytes >= FILL_BYTES
+            };
+            if full {
+                // Failing to fill only costs a remote lookup next time.
+                let _ = self.put_pack_hashed(&[]);
             }
         });
         // Written now, so that the build's lookups find them here (not in the remote again).

@@ -27,10 +27,10 @@ use super::Key;
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The largest value read back (a guard against a server answering with something else).
 const MAX_VALUE: u64 = 1 << 30;
-/// Keys fetched per round trip by [`Remote::get_many`] (about 3 MB of entries of the
+/// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
-/// HTTP requests in flight at once in [`Remote::get_many`] (each on its own keep-alive
+/// HTTP requests in flight at once in [`Remote::get_each`] (each on its own keep-alive
 /// connection): enough to hide a round trip behind the others' transfers.
 const HTTP_STREAMS: usize = 4;
 
@@ -277,25 +277,37 @@ impl Remote {
         }
     }
 
-    /// The values stored under `keys`, in order (`None` for a miss): one round trip per
-    /// [`BATCH`] keys with redis (`MGET`), requests on [`HTTP_STREAMS`] connections at once
-    /// with HTTP. All `None` once the store is off.
-    pub fn get_many(&self, keys: &[Key]) -> Vec<Option<Vec<u8>>> {
-        let mut out = Vec::with_capacity(keys.len());
-        for batch in keys.chunks(BATCH) {
-            if self.off.load(Ordering::Relaxed) {
-                break;
+    /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
+    /// once the store is off), from several threads, in no particular order: one round trip
+    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers), [`HTTP_STREAMS`]
+    /// requests at once with HTTP (each on its own keep-alive connection).
+    pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<Vec<u8>>) + Sync) {
+        match &self.store {
+            Store::Redis(r) => {
+                use rayon::prelude::*;
+                keys.par_chunks(BATCH).for_each(|batch| {
+                    let values = if self.off.load(Ordering::Relaxed) {
+                        None
+                    } else {
+                        self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
+                    };
+                    let mut values = values.into_iter().flatten();
+                    batch.iter().for_each(|key| f(key, values.next().flatten()));
+                });
             }
-            match self.retry(|| match &self.store {
-                Store::Redis(r) => r.get_many(batch),
-                Store::Http(h) => h.get_many(batch),
-            }) {
-                Ok(values) => out.extend(values),
-                Err(f) => self.fail("reading from", f),
+            Store::Http(_) => {
+                let next = std::sync::atomic::AtomicUsize::new(0);
+                std::thread::scope(|s| {
+                    for _ in 0..HTTP_STREAMS.min(keys.len()) {
+                        s.spawn(|| {
+                            while let Some(key) = keys.get(next.fetch_add(1, Ordering::Relaxed)) {
+                                f(key, self.get(key));
+                            }
+                        });
+                    }
+                });
             }
         }
-        out.resize_with(keys.len(), || None);
-        out
     }
 
     /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
@@ -521,49 +533,17 @@ impl HttpStore {
         }
         let mut response = request.call().map_err(Self::fault)?;
         match response.status().as_u16() {
-            200 => response.body_mut().with_config().limit(MAX_VALUE).read_to_vec().map(Some).map_err(Self::fault),
+            200 => {
+                // Read into a buffer of the announced length (not grown as it comes).
+                use std::io::Read;
+                let announced = response.body().content_length().unwrap_or(0).min(MAX_VALUE);
+                let mut value = Vec::with_capacity(announced as usize);
+                let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
+                reader.read_to_end(&mut value).map_err(|e| Self::fault(ureq::Error::Io(e)))?;
+                Ok(Some(value))
+            }
             404 => Ok(None),
             _ => Err(Self::status("GET", response.status())),
-        }
-    }
-
-    /// GETs of every key, [`HTTP_STREAMS`] at once; the first fault ends the others.
-    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
-        let next = std::sync::atomic::AtomicUsize::new(0);
-        let failed = AtomicBool::new(false);
-        let results: Mutex<Vec<Option<Result<Option<Vec<u8>>, Fault>>>> =
-            Mutex::new((0..keys.len()).map(|_| None).collect());
-        std::thread::scope(|s| {
-            for _ in 0..HTTP_STREAMS.min(keys.len()) {
-                s.spawn(|| loop {
-                    let i = next.fetch_add(1, Ordering::Relaxed);
-                    if i >= keys.len() || failed.load(Ordering::Relaxed) {
-                        break;
-                    }
-                    let r = self.get(&keys[i]);
-                    if r.is_err() {
-                        failed.store(true, Ordering::Relaxed);
-                    }
-                    results.lock().expect("no panics while locked")[i] = Some(r);
-                });
-            }
-        });
-        let results = results.into_inner().expect("no panics while locked");
-        // A fault, if any, is the answer; else every key has its value.
-        let mut values = Vec::with_capacity(keys.len());
-        let mut first_fault = None;
-        for r in results {
-            match r {
-                Some(Ok(v)) => values.push(v),
-                Some(Err(f)) => {
-                    first_fault.get_or_insert(f);
-                }
-                None => values.push(None),
-            }
-        }
-        match first_fault {
-            Some(f) => Err(f),
-            None => Ok(values),
         }
     }
 
