@@ -1,7 +1,9 @@
 //! Store: the build's one door to the cache. Lookups of compiled keys, the compiled entries
 //! streamed into packs (one pack per [`PACK_BYTES`] of artifacts, written as the build
-//! goes, so that no pack holds the whole build in memory), preprocessing records and the
-//! archive's up-to-date stamp.
+//! goes, so that no pack holds the whole build in memory), preprocessing records, the
+//! archive's up-to-date stamp, and the archive in the remote cache: stored there under the
+//! build's fingerprint when the build writes it, taken from there (with every entry copied
+//! into the local cache) instead of assembling when the local cache is fresh.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;

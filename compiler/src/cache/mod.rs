@@ -23,8 +23,9 @@
 //! Unreal layers its shared DDC under the local one: a lookup tries the local packs, then
 //! the remote; a remote entry is checked like a local one (its bytes are the same entry
 //! encoding) and then filled into the local cache; every entry a build stores goes to the
-//! local cache and, in read-write mode, to the remote. A remote that fails is one warning
-//! and the build goes on with the local cache only.
+//! local cache and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies
+//! many entries at once (batched round trips). A remote that fails is one warning and the
+//! build goes on with the local cache only.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
@@ -527,10 +528,9 @@ impl Cache {
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
     ///
-    /// Without a local copy, the remote cache's (stored by a machine whose checkout has the
-    /// same path, as CI runners and the pods of one job have) is used and kept locally.
-    /// Records name absolute paths and every file's blake3: elsewhere they simply do not
-    /// match, and the permutations are preprocessed.
+    /// Without a local copy, the remote cache's (stored by any machine that built the same
+    /// configuration) is used and kept locally. Records name every file's blake3: where the
+    /// sources differ they simply do not match, and the permutations are preprocessed.
     pub fn get_records(&self, key: &Key) -> Records {
         self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
     }

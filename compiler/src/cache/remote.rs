@@ -5,7 +5,9 @@
 //! cache's entry encoding (magic, checksum, body), so the [`super::Cache`] that layers this
 //! store checks every value it reads exactly as it checks its own packs: a corrupted or
 //! truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
-//! records (checksummed too) are shared the same way, under their own keys.
+//! records and archives (checksummed too) are shared the same way, under their own keys.
+//! [`Remote::get_each`] fetches many values with few round trips (redis `MGET`) or several
+//! requests in flight (HTTP).
 //!
 //! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
