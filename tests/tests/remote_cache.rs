@@ -29,8 +29,13 @@ static ENV: RwLock<()> = RwLock::new(());
 /// removed on drop, a failing test included.
 struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
 
-const VARIABLES: [&str; 4] =
-    ["KILN_REMOTE_CACHE", "KILN_REMOTE_CACHE_MODE", "KILN_REMOTE_CACHE_TOKEN", "KILN_REMOTE_CACHE_TIMEOUT_MS"];
+const VARIABLES: [&str; 5] = [
+    "KILN_REMOTE_CACHE",
+    "KILN_REMOTE_CACHE_MODE",
+    "KILN_REMOTE_CACHE_TOKEN",
+    "KILN_REMOTE_CACHE_TIMEOUT_MS",
+    "KILN_REMOTE_CACHE_CA",
+];
 
 impl Env {
     fn lock() -> Env {
@@ -81,6 +86,9 @@ fn wait_for_port(port: u16, server: &mut Child, log: &Path) {
 enum Kind {
     Redis,
     Http,
+    /// nginx over TLS, with a certificate authority made by the test (`ca.pem` in the
+    /// server's folder).
+    Https,
 }
 
 /// A server process, killed and reaped on drop.
@@ -136,9 +144,18 @@ impl Server {
                 }
                 c.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap()
             }
-            Kind::Http => {
+            Kind::Http | Kind::Https => {
                 require_server(nginx(), &["-v"], "nginx-light");
                 let prefix = dir.path();
+                let tls = if kind == Kind::Https {
+                    certificates(prefix);
+                    format!(
+                        "ssl; ssl_certificate {p}/server.pem; ssl_certificate_key {p}/server.key;",
+                        p = prefix.display()
+                    )
+                } else {
+                    ";".into()
+                };
                 std::fs::create_dir_all(prefix.join("data/kiln")).unwrap();
                 std::fs::create_dir_all(prefix.join("logs")).unwrap();
                 let auth = match password {
@@ -167,7 +184,7 @@ http {{
     client_max_body_size 0;
     {auth}
     server {{
-        listen 127.0.0.1:{port};
+        listen 127.0.0.1:{port} {tls}
         root {prefix}/data;
         location /kiln/ {{
             {check}
@@ -208,6 +225,7 @@ http {{
         match self.kind {
             Kind::Redis => format!("redis://127.0.0.1:{port}/0"),
             Kind::Http => format!("http://127.0.0.1:{port}/kiln"),
+            Kind::Https => format!("https://127.0.0.1:{port}/kiln"),
         }
     }
 
@@ -226,7 +244,7 @@ http {{
                 let keys: Vec<String> = redis::cmd("KEYS").arg("kiln:*").query(&mut self.redis()).unwrap();
                 keys.into_iter().map(|k| k.trim_start_matches("kiln:").to_string()).collect()
             }
-            Kind::Http => std::fs::read_dir(self.dir.path().join("data/kiln"))
+            Kind::Http | Kind::Https => std::fs::read_dir(self.dir.path().join("data/kiln"))
                 .unwrap()
                 .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
                 .collect(),
@@ -243,7 +261,7 @@ http {{
     fn get(&self, key: &str) -> Vec<u8> {
         match self.kind {
             Kind::Redis => redis::cmd("GET").arg(format!("kiln:{key}")).query(&mut self.redis()).unwrap(),
-            Kind::Http => std::fs::read(self.dir.path().join("data/kiln").join(key)).unwrap(),
+            Kind::Http | Kind::Https => std::fs::read(self.dir.path().join("data/kiln").join(key)).unwrap(),
         }
     }
 
@@ -253,7 +271,7 @@ http {{
             Kind::Redis => {
                 let () = redis::cmd("SET").arg(format!("kiln:{key}")).arg(value).query(&mut self.redis()).unwrap();
             }
-            Kind::Http => {
+            Kind::Http | Kind::Https => {
                 let status = ureq::put(format!("{}/{key}", self.url())).send(value).unwrap().status();
                 assert!(status.is_success(), "PUT answered {status}");
             }
@@ -263,6 +281,48 @@ http {{
     fn is_running(&mut self) -> bool {
         self.child.try_wait().unwrap().is_none()
     }
+}
+
+/// In `dir`: a certificate authority (`ca.pem`) and the certificate it signs for
+/// 127.0.0.1 (`server.pem`, `server.key`), P-256 keys, made with `openssl`.
+fn certificates(dir: &Path) {
+    require_server("openssl", &["version"], "openssl");
+    let openssl = |args: &[&str]| {
+        let o = Command::new("openssl").args(args).current_dir(dir).output().unwrap();
+        assert!(o.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"];
+    openssl(
+        &[
+            &["req", "-x509"],
+            &ec[..],
+            &["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=kiln test CA"],
+        ]
+        .concat(),
+    );
+    openssl(&[&["req"], &ec[..], &["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1"]].concat());
+    std::fs::write(
+        dir.join("server.ext"),
+        "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    openssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "server.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "server.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "server.ext",
+    ]);
 }
 
 /// Fails (never skips) when a server binary is missing, naming the Debian package.
@@ -432,7 +492,7 @@ fn server_killed_mid_build(kind: Kind) {
     let server = Arc::new(Mutex::new(Server::start(kind)));
     let trigger: &'static [u8] = match kind {
         Kind::Redis => b"\r\nSET\r\n",
-        Kind::Http => b"PUT /kiln/",
+        Kind::Http | Kind::Https => b"PUT /kiln/",
     };
     let (port, killed) = killing_proxy(server.clone(), trigger);
     let url = server.lock().unwrap().url_at(port);
@@ -687,4 +747,37 @@ fn the_environment_chooses_the_remote() {
     assert_eq!(e.exit_code(), 2);
     let text = e.to_string();
     assert!(text.contains("memcached://host") && !text.contains("hunter2"), "{text}");
+}
+
+/// https against nginx with TLS: a server certificate that the Mozilla roots do not trust is
+/// one warning and the build goes on; trusted through `KILN_REMOTE_CACHE_CA`, the remote
+/// serves a second machine; a CA file without a certificate is a configuration error.
+#[test]
+fn https_with_a_certificate_authority_of_ones_own() {
+    let server = Server::start(Kind::Https);
+    let url = server.url();
+    let env = Env::lock();
+    let run = |m: &Machine| build::run(&m.options(RemoteCache::Url(url.clone()), None));
+
+    let m = Machine::new();
+    let r = run(&m).unwrap();
+    assert_eq!(r.stats.compiled, DISTINCT);
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "{:?}", r.warnings);
+    assert!(warnings[0].contains(&url), "{}", warnings[0]);
+    assert!(server.keys().is_empty(), "nothing went through an untrusted connection");
+
+    env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("ca.pem").to_str().unwrap());
+    let ci = Machine::new();
+    let r = run(&ci).unwrap();
+    assert_eq!((r.stats.remote_writes, r.stats.remote_errors), (DISTINCT as u64, 0), "{:?}", r.warnings);
+    let other = Machine::new();
+    let r = run(&other).unwrap();
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64), "{:?}", r.warnings);
+    assert_eq!(other.bytes(), ci.bytes());
+
+    env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("server.ext").to_str().unwrap());
+    let e = run(&Machine::new()).unwrap_err();
+    assert_eq!(e.exit_code(), 2);
+    assert!(e.to_string().contains("KILN_REMOTE_CACHE_CA") && e.to_string().contains("no PEM certificate"), "{e}");
 }

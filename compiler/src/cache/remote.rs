@@ -506,8 +506,13 @@ impl HttpStore {
             .timeout_per_write(Some(options.timeout))
             .timeout_per_call(Some(options.timeout * 20))
             .max_idle_connections_per_host(HTTP_STREAMS)
-            .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")))
-            .build();
+            .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")));
+        #[cfg(feature = "https")]
+        let config = match std::env::var_os("KILN_REMOTE_CACHE_CA").filter(|p| !p.is_empty()) {
+            Some(path) => config.tls_config(trusted(std::path::Path::new(&path))?),
+            None => config,
+        };
+        let config = config.build();
         Ok((HttpStore { agent: config.into(), prefix, authorization }, password))
     }
 
@@ -561,6 +566,26 @@ impl HttpStore {
             Err(Self::status("PUT", response.status()))
         }
     }
+}
+
+/// TLS that trusts only the certificates of the PEM file at `path` (`KILN_REMOTE_CACHE_CA`:
+/// a company's own certificate authority, or a self-signed server's certificate) instead
+/// of the Mozilla roots.
+#[cfg(feature = "https")]
+fn trusted(path: &std::path::Path) -> Result<ureq::tls::TlsConfig, String> {
+    use ureq::tls::{parse_pem, PemItem, RootCerts, TlsConfig};
+    let why = |e: String| format!("KILN_REMOTE_CACHE_CA: {}: {e}", path.display());
+    let pem = std::fs::read(path).map_err(|e| why(e.to_string()))?;
+    let mut certificates = Vec::new();
+    for item in parse_pem(&pem) {
+        if let PemItem::Certificate(c) = item.map_err(|e| why(e.to_string()))? {
+            certificates.push(c);
+        }
+    }
+    if certificates.is_empty() {
+        return Err(why("no PEM certificate in it".into()));
+    }
+    Ok(TlsConfig::builder().root_certs(RootCerts::new_with_certs(&certificates)).build())
 }
 
 #[cfg(test)]
