@@ -513,7 +513,12 @@ impl HttpStore {
             None => config,
         };
         let config = config.build();
-        Ok((HttpStore { agent: config.into(), prefix, authorization }, password))
+        let agent = ureq::Agent::with_parts(
+            config,
+            ureq::unversioned::transport::DefaultConnector::default(),
+            OnceResolver::default(),
+        );
+        Ok((HttpStore { agent, prefix, authorization }, password))
     }
 
     fn url(&self, key: &Key) -> String {
@@ -565,6 +570,32 @@ impl HttpStore {
         } else {
             Err(Self::status("PUT", response.status()))
         }
+    }
+}
+
+/// Resolves each host once per build, then gives its addresses again. ureq's own resolver
+/// resolves before every request, on a thread of its own when the lookup has a timeout (a
+/// thousand threads for a thousand GETs: a quarter of a fresh local cache's fill with HTTP).
+/// (`ureq::unversioned`: outside ureq's semver promise, pinned by Cargo.lock.)
+#[derive(Debug, Default)]
+struct OnceResolver {
+    resolved: Mutex<std::collections::HashMap<String, ureq::unversioned::resolver::ResolvedSocketAddrs>>,
+}
+
+impl ureq::unversioned::resolver::Resolver for OnceResolver {
+    fn resolve(
+        &self,
+        uri: &ureq::http::Uri,
+        config: &ureq::config::Config,
+        timeout: ureq::unversioned::transport::NextTimeout,
+    ) -> Result<ureq::unversioned::resolver::ResolvedSocketAddrs, ureq::Error> {
+        let host = format!("{:?} {:?}", uri.scheme(), uri.authority());
+        if let Some(addresses) = self.resolved.lock().expect("no panics while locked").get(&host) {
+            return Ok(addresses.clone());
+        }
+        let addresses = ureq::unversioned::resolver::DefaultResolver::default().resolve(uri, config, timeout)?;
+        self.resolved.lock().expect("no panics while locked").insert(host, addresses.clone());
+        Ok(addresses)
     }
 }
 
