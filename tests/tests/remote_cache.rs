@@ -1,5 +1,6 @@
 //! The shared remote cache, against real servers started here on free loopback ports:
-//! `redis-server` and `nginx` with WebDAV (`dav_methods PUT`). Each scenario runs on both.
+//! `redis-server` and `nginx` with WebDAV (`dav_methods PUT`). Each scenario runs on both;
+//! https runs against nginx with TLS and a certificate authority made with `openssl`.
 //!
 //! Builds are of `tests/in/lit.toml` (24 distinct keys), each "machine" with its own local
 //! cache folder. Servers are stopped by a drop guard. A missing server binary fails the
@@ -516,6 +517,25 @@ fn redis_killed_mid_build() {
 #[test]
 fn http_killed_mid_build() {
     server_killed_mid_build(Kind::Http);
+}
+
+/// A warm remote whose server dies while a fresh local cache copies its entries (at the
+/// first `MGET`): one warning, every key compiled here, the same bytes.
+#[test]
+fn redis_killed_while_a_fresh_cache_fills() {
+    let server = Arc::new(Mutex::new(Server::start(Kind::Redis)));
+    let direct = server.lock().unwrap().url();
+    Machine::new().build(&direct);
+    let (port, killed) = killing_proxy(server.clone(), b"\r\nMGET\r\n");
+    let url = server.lock().unwrap().url_at(port);
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert!(killed.load(Ordering::SeqCst), "the fill asked for the entries");
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (DISTINCT, 0));
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "one warning: {:?}", r.warnings);
+    assert!(warnings[0].contains(&url) && warnings[0].contains("local cache only"), "{}", warnings[0]);
+    assert_eq!(m.bytes(), reference());
 }
 
 /// A port that accepts connections and never answers: the timeout bounds the wait, one
