@@ -165,8 +165,9 @@ impl Store {
 
     /// With a remote cache holding the archive of the build with `fingerprint` and every
     /// entry of `keys`: the entries copied into the local cache (each checked), the archive
-    /// (checked) written to `out` and stamped; its artifact counts. `None` otherwise (the
-    /// entries found are in the local cache all the same, for the build that follows).
+    /// (checked) written to `out` and stamped; its artifact counts. `None` otherwise: the
+    /// entries the remote holds are in the local cache all the same (fetched in batches),
+    /// and those it lacks are not asked for again, for the compile stage that follows.
     ///
     /// The archive's bytes depend only on the configuration and the keys (the build is
     /// deterministic), and `fingerprint` hashes both: an archive stored under it by any
@@ -174,7 +175,10 @@ impl Store {
     /// the dictionaries and compressing every artifact again.
     pub fn archive_from_remote(&self, out: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
-        let value = cache.remote()?.get(&remote_archive_key(fingerprint))?;
+        let value = cache.remote()?.get(&remote_archive_key(fingerprint));
+        // Without the archive too: the entries come in batches, not one round trip per key.
+        let complete = cache.fill_from_remote(keys);
+        let value = value?;
         let Some((counts, archive)) = decode_remote_archive(&value) else {
             let why = format!(
                 "warning: the archive {} in the remote cache {} is corrupted; assembling it again",
@@ -184,7 +188,7 @@ impl Store {
             self.failed.lock().expect("no panics while locked").push((0, why));
             return None;
         };
-        if !cache.fill_from_remote(keys) {
+        if !complete {
             return None;
         }
         crate::output::write(out, archive, false).ok()?;

@@ -235,6 +235,9 @@ pub struct Cache {
 struct Layer {
     remote: Remote,
     fills: Mutex<Fills>,
+    /// Keys the remote did not have when asked during this build: not asked again (a build
+    /// that fills in bulk, then compiles what was missing, asks once per key).
+    absent: Mutex<HashSet<Key>>,
 }
 
 /// Checked remote entries (their encoded bytes) to write into the next local pack.
@@ -263,7 +266,7 @@ impl Cache {
 
     /// This cache with `remote` layered under it.
     pub fn with_remote(mut self, remote: Remote) -> Cache {
-        self.remote = Some(Arc::new(Layer { remote, fills: Mutex::default() }));
+        self.remote = Some(Arc::new(Layer { remote, fills: Mutex::default(), absent: Mutex::default() }));
         self
     }
 
@@ -350,7 +353,13 @@ impl Cache {
         if matches!(local, Lookup::Hit(_)) {
             return local;
         }
-        let Some(bytes) = layer.remote.get(key) else { return local };
+        if layer.absent.lock().expect("no panics while locked").contains(key) {
+            return local;
+        }
+        let Some(bytes) = layer.remote.get(key) else {
+            layer.absent.lock().expect("no panics while locked").insert(*key);
+            return local;
+        };
         match decode(key, &bytes) {
             Ok(c) => {
                 layer.remote.count_hit();
@@ -375,22 +384,30 @@ impl Cache {
 
     /// Copies into the local cache the remote entries of `keys` that it lacks: fetched in
     /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it,
-    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally; a
-    /// missing or corrupted remote entry is left to the build, which looks it up again,
-    /// reports and recompiles it.
+    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally. A
+    /// key the remote lacks is not asked for again this build; a corrupted entry is left to
+    /// the build, which looks it up again, reports and recompiles it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
         let Some(layer) = &self.remote else { return false };
         let queued: HashSet<Key> =
             layer.fills.lock().expect("no panics while locked").entries.iter().map(|(k, _)| *k).collect();
+        let absent = layer.absent.lock().expect("no panics while locked").clone();
         let missing: Vec<Key> = self.with_index(|index| {
-            keys.iter().filter(|k| !index.by_key.contains_key(k) && !queued.contains(k)).copied().collect()
+            let known = |k: &Key| index.by_key.contains_key(k) || queued.contains(k) || absent.contains(k);
+            keys.iter().filter(|k| !known(k)).copied().collect()
         });
-        let complete = AtomicBool::new(true);
+        let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
         layer.remote.get_each(&missing, |key, value| {
-            let Some(bytes) = value.filter(|bytes| check(key, bytes).is_ok()) else {
+            let Some(bytes) = value else {
+                layer.absent.lock().expect("no panics while locked").insert(*key);
                 complete.store(false, Ordering::Relaxed);
                 return;
             };
+            if check(key, &bytes).is_err() {
+                // Looked up again by the build, which reports it and recompiles.
+                complete.store(false, Ordering::Relaxed);
+                return;
+            }
             layer.remote.count_hit();
             let full = {
                 let mut fills = layer.fills.lock().expect("no panics while locked");
