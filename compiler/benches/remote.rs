@@ -5,7 +5,8 @@
 //! renderer's `permutations.toml` and `shader_src/`, each shader given a `MATERIAL`
 //! dimension whose value reaches the shader's text (the way materials multiply Unreal's
 //! permutations), so every material is one more real compile. `KILN_BENCH_JOBS` sets the
-//! threads (2 by default).
+//! threads (2 by default). `KILN_BENCH_SET=DIR` only writes the generated set to DIR (to
+//! profile `kiln build` on it).
 //!
 //! For each backend whose server is installed (`redis-server`, `nginx`), started here on a
 //! free loopback port:
@@ -14,12 +15,13 @@
 //!    it);
 //! 3. fresh local + warm remote: an empty local cache, the remote that (2) filled: the hit
 //!    rate (goal >= 99%) and the time as a share of cold (goal <= 5%). With the generated
-//!    set, twice: at the same checkout path (CI runners, the pods of one job: the
-//!    preprocessing records come from the remote too) and at another path (a developer's
-//!    machine: every permutation is preprocessed, every compile comes from the remote).
+//!    set, twice: at the same checkout path (CI runners, the pods of one job) and at another
+//!    path (a developer's machine). Both find the preprocessing records (paths relative to
+//!    the configuration's folder), every entry and the archive in the remote.
 //!
 //! Each line gives wall time and the process's CPU time (user + system, all threads):
-//! these 2 cores are shared, CPU time is the steadier figure.
+//! these 2 cores are shared, CPU time is the steadier figure. Cold builds are the median of
+//! `KILN_BENCH_ROUNDS` (3) runs, the fresh-local builds of twice as many less one.
 
 use std::net::{TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
@@ -100,7 +102,14 @@ struct Server {
 }
 
 impl Drop for Server {
+    /// SIGTERM first: nginx's master then stops its workers (a SIGKILL would leave them
+    /// running, holding the port and this process's output); SIGKILL after 5 s.
     fn drop(&mut self) {
+        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
+        let t = Instant::now();
+        while matches!(self.child.try_wait(), Ok(None)) && t.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -123,6 +132,7 @@ fn start(kind: &str) -> Option<Server> {
                 .arg("--dir")
                 .arg(dir.path())
                 .stdout(Stdio::null())
+                .stderr(Stdio::null())
                 .spawn()
                 .unwrap();
             (child, format!("redis://127.0.0.1:{port}"))
@@ -151,6 +161,7 @@ fn start(kind: &str) -> Option<Server> {
                 .arg(p.join("nginx.conf"))
                 .arg("-e")
                 .arg(p.join("error.log"))
+                .stdout(Stdio::null())
                 .stderr(Stdio::null())
                 .spawn()
                 .unwrap();
@@ -196,22 +207,40 @@ fn run(config: &Path, remote: RemoteCache, jobs: usize) -> (f64, f64, build::Sta
     (seconds, cpu, report.stats)
 }
 
+/// `n` runs of `f`: the median wall time, the median CPU time, and the stats of the last
+/// run (every run of a bench line does the same work).
+fn median(n: usize, f: impl Fn() -> (f64, f64, build::Stats)) -> (f64, f64, build::Stats) {
+    let runs: Vec<(f64, f64, build::Stats)> = (0..n).map(|_| f()).collect();
+    let middle = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let wall = middle(runs.iter().map(|r| r.0).collect());
+    let cpu = middle(runs.iter().map(|r| r.1).collect());
+    (wall, cpu, runs.into_iter().last().expect("n >= 1").2)
+}
+
 fn main() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf();
     let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
     let (generated, elsewhere) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let n = std::env::var("KILN_BENCH_PERMUTATIONS").ok().and_then(|n| n.parse().ok()).unwrap_or(1000);
+    if let Some(dir) = std::env::var_os("KILN_BENCH_SET").filter(|d| !d.is_empty()) {
+        // Only write the generated set (to profile `kiln build` on it), and stop.
+        let config = generate(&root, Path::new(&dir), n);
+        println!("generated {} ({} permutations)", config.display(), count(&config));
+        return;
+    }
     let (config, other_path) = match std::env::args().skip(1).find(|a| !a.starts_with('-')) {
         Some(c) => (PathBuf::from(c), None),
-        None => {
-            let n = std::env::var("KILN_BENCH_PERMUTATIONS").ok().and_then(|n| n.parse().ok()).unwrap_or(1000);
-            (generate(&root, generated.path(), n), Some(generate(&root, elsewhere.path(), n)))
-        }
+        None => (generate(&root, generated.path(), n), Some(generate(&root, elsewhere.path(), n))),
     };
     println!("remote cache bench: {} ({} permutations, {jobs} threads)", config.display(), count(&config));
 
-    let (cold, cold_cpu, stats) = run(&config, RemoteCache::Disabled, jobs);
+    let rounds: usize = std::env::var("KILN_BENCH_ROUNDS").ok().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
+    let (cold, cold_cpu, stats) = median(rounds, || run(&config, RemoteCache::Disabled, jobs));
     println!(
-        "cold, no remote:                  {cold:6.2} s, CPU {cold_cpu:6.2} s  ({} distinct, {} compiled)",
+        "cold, no remote:                  {cold:6.2} s, CPU {cold_cpu:6.2} s  ({} distinct, {} compiled; median of {rounds})",
         stats.unique_sources, stats.compiled
     );
     let mut any = false;
@@ -233,15 +262,16 @@ fn main() {
         let mut warm_runs = vec![("same path", config.clone())];
         warm_runs.extend(other_path.clone().map(|p| ("other path", p)));
         for (place, config) in warm_runs {
-            let (warm, warm_cpu, s) = run(&config, remote(), jobs);
+            let (warm, warm_cpu, s) = median(2 * rounds - 1, || run(&config, remote(), jobs));
             let hit_rate = s.remote_hits as f64 / s.unique_sources.max(1) as f64;
             println!(
-                "{kind:5} fresh local, {place:10}:    {warm:6.2} s, CPU {warm_cpu:6.2} s  ({:.1}% of cold wall, {:.1}% of cold CPU, goal <= 5%; hit rate {:.1}%, goal >= 99%; {} compiled, {} preprocessed)",
+                "{kind:5} fresh local, {place:10}:    {warm:6.2} s, CPU {warm_cpu:6.2} s  ({:.1}% of cold wall, {:.1}% of cold CPU, goal <= 5%; hit rate {:.1}%, goal >= 99%; {} compiled, {} preprocessed; median of {})",
                 100.0 * warm / cold,
                 100.0 * warm_cpu / cold_cpu,
                 100.0 * hit_rate,
                 s.compiled,
-                s.preprocessed
+                s.preprocessed,
+                2 * rounds - 1
             );
         }
     }

@@ -1,5 +1,6 @@
 //! The shared remote cache, against real servers started here on free loopback ports:
-//! `redis-server` and `nginx` with WebDAV (`dav_methods PUT`). Each scenario runs on both.
+//! `redis-server` and `nginx` with WebDAV (`dav_methods PUT`). Each scenario runs on both;
+//! https runs against nginx with TLS and a certificate authority made with `openssl`.
 //!
 //! Builds are of `tests/in/lit.toml` (24 distinct keys), each "machine" with its own local
 //! cache folder. Servers are stopped by a drop guard. A missing server binary fails the
@@ -29,8 +30,13 @@ static ENV: RwLock<()> = RwLock::new(());
 /// removed on drop, a failing test included.
 struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
 
-const VARIABLES: [&str; 4] =
-    ["KILN_REMOTE_CACHE", "KILN_REMOTE_CACHE_MODE", "KILN_REMOTE_CACHE_TOKEN", "KILN_REMOTE_CACHE_TIMEOUT_MS"];
+const VARIABLES: [&str; 5] = [
+    "KILN_REMOTE_CACHE",
+    "KILN_REMOTE_CACHE_MODE",
+    "KILN_REMOTE_CACHE_TOKEN",
+    "KILN_REMOTE_CACHE_TIMEOUT_MS",
+    "KILN_REMOTE_CACHE_CA",
+];
 
 impl Env {
     fn lock() -> Env {
@@ -81,6 +87,9 @@ fn wait_for_port(port: u16, server: &mut Child, log: &Path) {
 enum Kind {
     Redis,
     Http,
+    /// nginx over TLS, with a certificate authority made by the test (`ca.pem` in the
+    /// server's folder).
+    Https,
 }
 
 /// A server process, killed and reaped on drop.
@@ -95,9 +104,20 @@ struct Server {
 
 impl Drop for Server {
     fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        stop(&mut self.child);
     }
+}
+
+/// Stops a server: SIGTERM, so that nginx's master stops its workers too (a SIGKILL would
+/// leave them running, holding the port); SIGKILL after 5 s.
+fn stop(child: &mut Child) {
+    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+    let start = Instant::now();
+    while matches!(child.try_wait(), Ok(None)) && start.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
 }
 
 impl Server {
@@ -125,9 +145,18 @@ impl Server {
                 }
                 c.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap()
             }
-            Kind::Http => {
+            Kind::Http | Kind::Https => {
                 require_server(nginx(), &["-v"], "nginx-light");
                 let prefix = dir.path();
+                let tls = if kind == Kind::Https {
+                    certificates(prefix);
+                    format!(
+                        "ssl; ssl_certificate {p}/server.pem; ssl_certificate_key {p}/server.key;",
+                        p = prefix.display()
+                    )
+                } else {
+                    ";".into()
+                };
                 std::fs::create_dir_all(prefix.join("data/kiln")).unwrap();
                 std::fs::create_dir_all(prefix.join("logs")).unwrap();
                 let auth = match password {
@@ -156,7 +185,7 @@ http {{
     client_max_body_size 0;
     {auth}
     server {{
-        listen 127.0.0.1:{port};
+        listen 127.0.0.1:{port} {tls}
         root {prefix}/data;
         location /kiln/ {{
             {check}
@@ -197,6 +226,7 @@ http {{
         match self.kind {
             Kind::Redis => format!("redis://127.0.0.1:{port}/0"),
             Kind::Http => format!("http://127.0.0.1:{port}/kiln"),
+            Kind::Https => format!("https://127.0.0.1:{port}/kiln"),
         }
     }
 
@@ -215,7 +245,7 @@ http {{
                 let keys: Vec<String> = redis::cmd("KEYS").arg("kiln:*").query(&mut self.redis()).unwrap();
                 keys.into_iter().map(|k| k.trim_start_matches("kiln:").to_string()).collect()
             }
-            Kind::Http => std::fs::read_dir(self.dir.path().join("data/kiln"))
+            Kind::Http | Kind::Https => std::fs::read_dir(self.dir.path().join("data/kiln"))
                 .unwrap()
                 .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
                 .collect(),
@@ -232,7 +262,7 @@ http {{
     fn get(&self, key: &str) -> Vec<u8> {
         match self.kind {
             Kind::Redis => redis::cmd("GET").arg(format!("kiln:{key}")).query(&mut self.redis()).unwrap(),
-            Kind::Http => std::fs::read(self.dir.path().join("data/kiln").join(key)).unwrap(),
+            Kind::Http | Kind::Https => std::fs::read(self.dir.path().join("data/kiln").join(key)).unwrap(),
         }
     }
 
@@ -242,7 +272,7 @@ http {{
             Kind::Redis => {
                 let () = redis::cmd("SET").arg(format!("kiln:{key}")).arg(value).query(&mut self.redis()).unwrap();
             }
-            Kind::Http => {
+            Kind::Http | Kind::Https => {
                 let status = ureq::put(format!("{}/{key}", self.url())).send(value).unwrap().status();
                 assert!(status.is_success(), "PUT answered {status}");
             }
@@ -252,6 +282,48 @@ http {{
     fn is_running(&mut self) -> bool {
         self.child.try_wait().unwrap().is_none()
     }
+}
+
+/// In `dir`: a certificate authority (`ca.pem`) and the certificate it signs for
+/// 127.0.0.1 (`server.pem`, `server.key`), P-256 keys, made with `openssl`.
+fn certificates(dir: &Path) {
+    require_server("openssl", &["version"], "openssl");
+    let openssl = |args: &[&str]| {
+        let o = Command::new("openssl").args(args).current_dir(dir).output().unwrap();
+        assert!(o.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"];
+    openssl(
+        &[
+            &["req", "-x509"],
+            &ec[..],
+            &["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=kiln test CA"],
+        ]
+        .concat(),
+    );
+    openssl(&[&["req"], &ec[..], &["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1"]].concat());
+    std::fs::write(
+        dir.join("server.ext"),
+        "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    openssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "server.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "server.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "server.ext",
+    ]);
 }
 
 /// Fails (never skips) when a server binary is missing, naming the Debian package.
@@ -325,18 +397,22 @@ fn hits_from_a_second_machine(kind: Kind) {
     assert_eq!((r.stats.compiled, r.stats.remote_hits, r.stats.remote_writes), (DISTINCT, 0, DISTINCT as u64));
     assert_eq!(r.stats.remote_errors, 0);
     assert_eq!(server.entries().len(), DISTINCT);
-    assert_eq!(server.keys().len(), DISTINCT + 1, "and one set of preprocessing records");
+    assert_eq!(server.keys().len(), DISTINCT + 2, "and one set of preprocessing records, and the archive");
+    assert_eq!(server.keys().iter().filter(|k| server.get(k).starts_with(b"KILNAR")).count(), 1, "one archive");
 
-    // Another machine, fresh local cache: compiles nothing, same bytes.
+    // Another machine (its checkout at another path), fresh local cache: preprocesses
+    // nothing (the records hold paths relative to the configuration's folder), compiles
+    // nothing (the entries and the archive come from the remote), same bytes.
     let other = Machine::new();
+    assert_ne!(other.dir.path(), ci.dir.path());
     let r = other.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
     assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits), (0, DISTINCT, DISTINCT as u64));
+    assert_eq!(r.stats.preprocessed, 0);
     assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
     assert_eq!(other.bytes(), ci.bytes());
     assert_eq!(other.bytes(), reference(), "the remote changes no byte of the archive");
 
-    // A machine whose checkout has the same path (CI runners, the pods of one job) also
-    // finds the preprocessing records there: it preprocesses nothing either.
+    // The same at the same path (CI runners, the pods of one job).
     std::fs::remove_dir_all(ci.dir.path().join("cache")).unwrap();
     std::fs::remove_file(ci.archive()).unwrap();
     let r = ci.build(&url);
@@ -391,9 +467,7 @@ fn killing_proxy(server: Arc<Mutex<Server>>, trigger: &'static [u8]) -> (u16, Ar
                     tail.extend_from_slice(&buf[..n]);
                     if tail.windows(trigger.len()).any(|w| w == trigger) || flag.load(Ordering::SeqCst) {
                         if !flag.swap(true, Ordering::SeqCst) {
-                            let mut s = server.lock().unwrap();
-                            let _ = s.child.kill();
-                            let _ = s.child.wait();
+                            stop(&mut server.lock().unwrap().child);
                         }
                         break;
                     }
@@ -419,7 +493,7 @@ fn server_killed_mid_build(kind: Kind) {
     let server = Arc::new(Mutex::new(Server::start(kind)));
     let trigger: &'static [u8] = match kind {
         Kind::Redis => b"\r\nSET\r\n",
-        Kind::Http => b"PUT /kiln/",
+        Kind::Http | Kind::Https => b"PUT /kiln/",
     };
     let (port, killed) = killing_proxy(server.clone(), trigger);
     let url = server.lock().unwrap().url_at(port);
@@ -443,6 +517,25 @@ fn redis_killed_mid_build() {
 #[test]
 fn http_killed_mid_build() {
     server_killed_mid_build(Kind::Http);
+}
+
+/// A warm remote whose server dies while a fresh local cache copies its entries (at the
+/// first `MGET`): one warning, every key compiled here, the same bytes.
+#[test]
+fn redis_killed_while_a_fresh_cache_fills() {
+    let server = Arc::new(Mutex::new(Server::start(Kind::Redis)));
+    let direct = server.lock().unwrap().url();
+    Machine::new().build(&direct);
+    let (port, killed) = killing_proxy(server.clone(), b"\r\nMGET\r\n");
+    let url = server.lock().unwrap().url_at(port);
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert!(killed.load(Ordering::SeqCst), "the fill asked for the entries");
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (DISTINCT, 0));
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "one warning: {:?}", r.warnings);
+    assert!(warnings[0].contains(&url) && warnings[0].contains("local cache only"), "{}", warnings[0]);
+    assert_eq!(m.bytes(), reference());
 }
 
 /// A port that accepts connections and never answers: the timeout bounds the wait, one
@@ -515,6 +608,40 @@ fn redis_corrupted_entry_is_recompiled_and_overwritten() {
 #[test]
 fn http_corrupted_entry_is_recompiled_and_overwritten() {
     corrupted_entry(Kind::Http);
+}
+
+/// The archive a build stored in the remote, damaged: a warning, the archive assembled
+/// again from the entries (the remote's, checked) and stored over the damaged one.
+fn corrupted_archive(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+    Machine::new().build(&url);
+    let archives: Vec<String> = server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNAR")).collect();
+    assert_eq!(archives.len(), 1, "{:?}", server.keys());
+    let good = server.get(&archives[0]);
+    let mut bad = good.clone();
+    let middle = bad.len() / 2;
+    bad[middle] ^= 0x01;
+    server.set(&archives[0], &bad);
+
+    let m = Machine::new();
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    let corrupt: Vec<&String> = r.warnings.iter().filter(|w| w.contains("corrupted")).collect();
+    assert_eq!(corrupt.len(), 1, "{:?}", r.warnings);
+    assert!(corrupt[0].contains(&archives[0]) && corrupt[0].contains(&url), "{}", corrupt[0]);
+    assert_eq!(m.bytes(), reference());
+    assert_eq!(server.get(&archives[0]), good, "stored again, whole");
+}
+
+#[test]
+fn redis_corrupted_archive_is_assembled_again() {
+    corrupted_archive(Kind::Redis);
+}
+
+#[test]
+fn http_corrupted_archive_is_assembled_again() {
+    corrupted_archive(Kind::Http);
 }
 
 fn two_writers(kind: Kind) {
@@ -640,4 +767,37 @@ fn the_environment_chooses_the_remote() {
     assert_eq!(e.exit_code(), 2);
     let text = e.to_string();
     assert!(text.contains("memcached://host") && !text.contains("hunter2"), "{text}");
+}
+
+/// https against nginx with TLS: a server certificate that the Mozilla roots do not trust is
+/// one warning and the build goes on; trusted through `KILN_REMOTE_CACHE_CA`, the remote
+/// serves a second machine; a CA file without a certificate is a configuration error.
+#[test]
+fn https_with_a_certificate_authority_of_ones_own() {
+    let server = Server::start(Kind::Https);
+    let url = server.url();
+    let env = Env::lock();
+    let run = |m: &Machine| build::run(&m.options(RemoteCache::Url(url.clone()), None));
+
+    let m = Machine::new();
+    let r = run(&m).unwrap();
+    assert_eq!(r.stats.compiled, DISTINCT);
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "{:?}", r.warnings);
+    assert!(warnings[0].contains(&url), "{}", warnings[0]);
+    assert!(server.keys().is_empty(), "nothing went through an untrusted connection");
+
+    env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("ca.pem").to_str().unwrap());
+    let ci = Machine::new();
+    let r = run(&ci).unwrap();
+    assert_eq!((r.stats.remote_writes, r.stats.remote_errors), (DISTINCT as u64, 0), "{:?}", r.warnings);
+    let other = Machine::new();
+    let r = run(&other).unwrap();
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64), "{:?}", r.warnings);
+    assert_eq!(other.bytes(), ci.bytes());
+
+    env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("server.ext").to_str().unwrap());
+    let e = run(&Machine::new()).unwrap_err();
+    assert_eq!(e.exit_code(), 2);
+    assert!(e.to_string().contains("KILN_REMOTE_CACHE_CA") && e.to_string().contains("no PEM certificate"), "{e}");
 }

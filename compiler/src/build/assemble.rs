@@ -139,6 +139,16 @@ impl<'p> Assembler<'p> {
         store.fresh_archive(out, &self.fingerprint(&per_permutation(pre)), &keys)
     }
 
+    /// The artifact counts of the archive when the remote cache holds this build's archive
+    /// and every key's entry: the entries are copied into the local cache and the archive
+    /// written (see [`Store::archive_from_remote`]). Same conditions as [`Self::up_to_date`].
+    pub fn from_remote(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
+        let options = self.plan.options;
+        let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
+        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
+        store.archive_from_remote(out, &self.fingerprint(&per_permutation(pre)), &keys)
+    }
+
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
     /// index, and the archive's stamp.
     /// `keys` is each kept permutation's key (`None` where preprocessing failed).

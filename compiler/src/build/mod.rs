@@ -16,8 +16,10 @@
 //! - [`compile`]: each distinct key once, from the cache where it holds it, else with naga;
 //!   a key is compiled by the worker that first preprocesses one of its permutations, so
 //!   compiling overlaps preprocessing;
-//! - [`store`]: the one place that talks to the cache: lookups, and the packs that the
-//!   compiled entries stream into;
+//! - [`store`]: the one place that talks to the cache: lookups, the packs that the
+//!   compiled entries stream into, and the remote cache's archives (a fresh local cache
+//!   with a remote holding this build's archive and entries copies them and assembles
+//!   nothing);
 //! - [`assemble`]: the archive and the loose files of `--emit-dir`, fed each key's
 //!   artifacts as they are produced;
 //! - [`report`]: counts, warnings, dead dimensions, failures rendered with their mapped
@@ -171,6 +173,12 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
 
     if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
         progress.finish();
+        return report.up_to_date(keys.len(), counts);
+    }
+    if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
+        progress.finish();
+        report.warnings(store.finish());
+        report.remote(store.remote_stats());
         return report.up_to_date(keys.len(), counts);
     }
     let outcomes = compiler.run(&keys, &preprocessor);

@@ -50,6 +50,8 @@ pub(super) struct Preprocessor<'p> {
 /// The preprocessing records of this configuration: those of the last build, and this one's.
 struct RecordSet {
     key: Key,
+    /// The configuration's folder: paths under it are stored relative to it.
+    root: PathBuf,
     base: blake3::Hash,
     old: Records,
     new: Mutex<Records>,
@@ -59,9 +61,11 @@ impl<'p> Preprocessor<'p> {
     pub fn new(plan: &'p Plan<'p>, store: &Store) -> Preprocessor<'p> {
         let records = store.enabled().then(|| {
             let key = records_key(plan.config, plan.options);
+            let root = plan.config.dir.canonicalize().unwrap_or_else(|_| plan.config.dir.clone());
             RecordSet {
-                old: store.records(&key).and_then(|b| records::decode(&b)).unwrap_or_default(),
+                old: store.records(&key).and_then(|b| records::decode_relative(&b, &root)).unwrap_or_default(),
                 key,
+                root,
                 base: direct_base(plan.config),
                 new: Mutex::new(Records::new()),
             }
@@ -133,7 +137,7 @@ impl<'p> Preprocessor<'p> {
         if let Some(r) = &self.records {
             let new = r.new.lock().expect("no panics while locked");
             if *new != r.old {
-                store.put_records(&r.key, &records::encode(&new));
+                store.put_records(&r.key, &records::encode_relative(&new, &r.root));
             }
         }
         self.records = None;
@@ -365,19 +369,18 @@ impl FileHashes {
 }
 
 /// What every permutation's preprocessing record key shares: the configuration's text (its
-/// defines, derived values, roots and sources) and folder, and the versions. Read once per
-/// build.
+/// defines, derived values, roots and sources) and the versions. Read once per build. Not
+/// the configuration's folder: records store the paths under it relative to it (see
+/// [`records::encode_relative`]), so that they hold in another checkout of the same sources.
 fn direct_base(config: &Config) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     let mut field = |bytes: &[u8]| {
         h.update(&(bytes.len() as u64).to_le_bytes());
         h.update(bytes);
     };
-    field(b"kiln direct v2");
+    field(b"kiln direct v3");
     // Unreadable now (removed during the build): a key no record has.
     field(&std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec()));
-    field(config.path.as_os_str().as_encoded_bytes());
-    field(config.dir.as_os_str().as_encoded_bytes());
     let opts = preprocess::Options::default();
     field(&(opts.max_expansion_depth as u64).to_le_bytes());
     field(&(opts.max_output_bytes as u64).to_le_bytes());
@@ -396,9 +399,13 @@ fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archiv
     Key::new(&h.finalize(), &p.shader.entry, p.shader.stage, &p.level.name, &level_limits(p.level), &targets)
 }
 
-/// The key of a configuration's set of preprocessing records: its path and the options
-/// that choose its permutations. (v3: the binary encoding of [`records`].)
+/// The key of a configuration's set of preprocessing records: its text and the options
+/// that choose its permutations; not its path, so that another checkout (another machine,
+/// another folder) finds the set in the remote cache. (v4: paths relative to the
+/// configuration's folder.)
 fn records_key(config: &Config, options: &Options) -> Key {
-    let inputs = format!("kiln records v3\n{}\n{:?}\n{:?}", config.path.display(), options.levels, options.targets);
+    let text = std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec());
+    let inputs =
+        format!("kiln records v4\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }

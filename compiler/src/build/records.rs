@@ -137,6 +137,39 @@ pub(super) fn encode(records: &Records) -> Vec<u8> {
     out
 }
 
+/// [`encode`] with every path under `root` written relative to it, so that the records
+/// hold in any checkout of the same sources (another machine, another folder); paths
+/// elsewhere stay absolute.
+pub(super) fn encode_relative(records: &Records, root: &std::path::Path) -> Vec<u8> {
+    encode(&relocate(records, |p| p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map(PathBuf::from)))
+}
+
+/// [`decode`] of [`encode_relative`]'s bytes: relative paths are joined to `root`.
+pub(super) fn decode_relative(bytes: &[u8], root: &std::path::Path) -> Option<Records> {
+    Some(relocate(&decode(bytes)?, |p| p.is_relative().then(|| root.join(p))))
+}
+
+/// `records` with each path that `map` gives a new one for replaced; lists stay shared.
+fn relocate(records: &Records, map: impl Fn(&std::path::Path) -> Option<PathBuf>) -> Records {
+    let path = |p: &PathBuf| map(p).unwrap_or_else(|| p.clone());
+    let mut files: HashMap<*const (PathBuf, [u8; 32]), FileList> = HashMap::new();
+    let mut absent: HashMap<*const PathBuf, Arc<[PathBuf]>> = HashMap::new();
+    let mut out = Records::with_capacity(records.len());
+    for (direct, row) in records {
+        let f = files
+            .entry(Arc::as_ptr(&row.files) as *const _)
+            .or_insert_with(|| row.files.iter().map(|(p, h)| (path(p), *h)).collect())
+            .clone();
+        let a = absent
+            .entry(Arc::as_ptr(&row.absent) as *const _)
+            .or_insert_with(|| row.absent.iter().map(path).collect())
+            .clone();
+        let moved = Row { files: f, absent: a, warnings: row.warnings.clone(), ..**row };
+        out.insert(*direct, Arc::new(moved));
+    }
+    out
+}
+
 struct Reader<'a> {
     bytes: &'a [u8],
     at: usize,
@@ -209,6 +242,7 @@ pub(super) fn decode(bytes: &[u8]) -> Option<Records> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::Path;
 
     #[test]
     fn round_trip_and_damage() {
@@ -235,5 +269,23 @@ mod tests {
         }
         assert_eq!(decode(b"not records"), None);
         assert_eq!(decode(&[]), None);
+
+        // Relative to a root: the paths under it move with it, the others stay.
+        let outside = i.files(vec![(PathBuf::from("/a/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])]);
+        let mut moved = records.clone();
+        let first = *moved.keys().next().unwrap();
+        let row = &moved[&first];
+        let row = Row { files: outside, absent: row.absent.clone(), warnings: row.warnings.clone(), ..**row };
+        moved.insert(first, Arc::new(row));
+        let bytes = encode_relative(&moved, Path::new("/a"));
+        assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0, "no path under the root is absolute");
+        let elsewhere = decode_relative(&bytes, Path::new("/b/c")).unwrap();
+        assert_eq!(
+            elsewhere[&first].files[..],
+            [(PathBuf::from("/b/c/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])]
+        );
+        let other = *moved.keys().nth(1).unwrap();
+        assert_eq!(elsewhere[&other].files[1].0, PathBuf::from("/b/c/c.usf"));
+        assert_eq!(decode_relative(&bytes, Path::new("/a")), Some(moved));
     }
 }

@@ -1,7 +1,9 @@
 //! Store: the build's one door to the cache. Lookups of compiled keys, the compiled entries
 //! streamed into packs (one pack per [`PACK_BYTES`] of artifacts, written as the build
-//! goes, so that no pack holds the whole build in memory), preprocessing records and the
-//! archive's up-to-date stamp.
+//! goes, so that no pack holds the whole build in memory), preprocessing records, the
+//! archive's up-to-date stamp, and the archive in the remote cache: stored there under the
+//! build's fingerprint when the build writes it, taken from there (with every entry copied
+//! into the local cache) instead of assembling when the local cache is fresh.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -27,7 +29,8 @@ pub(super) struct Store {
     /// Artifact bytes gathered before a pack is written ([`PACK_BYTES`]).
     pack_bytes: usize,
     pending: Mutex<Pending>,
-    /// Packs that could not be written: (entries, why).
+    /// Packs that could not be written: (entries, why); (0, warning) for a corrupted
+    /// remote archive.
     failed: Mutex<Vec<(usize, String)>>,
     /// Why there is no cache, when one was asked for but its folder cannot be made.
     unavailable: Option<String>,
@@ -120,7 +123,8 @@ impl Store {
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
         warnings.extend(self.unavailable.clone());
         for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {
-            warnings.push(format!("warning: cannot store {n} cache entries: {why}"));
+            // n == 0: a remote archive's warning, whole.
+            warnings.push(if n == 0 { why } else { format!("warning: cannot store {n} cache entries: {why}") });
         }
         warnings
     }
@@ -143,13 +147,88 @@ impl Store {
         self.cache.as_ref()?.fresh_archive(out, fingerprint, keys)
     }
 
-    /// Records that `out` is the output of the build with `fingerprint`. Failing to only
-    /// costs a full warm build next time.
+    /// Records that `out` is the output of the build with `fingerprint`, and stores it in
+    /// the remote cache (in read-write mode). Failing to only costs a full warm build next
+    /// time.
     pub fn stamp_archive(&self, out: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) {
-        if let Some(c) = &self.cache {
-            let _ = c.stamp_archive(out, fingerprint, counts);
+        let Some(c) = &self.cache else { return };
+        let _ = c.stamp_archive(out, fingerprint, counts);
+        if let Some(remote) = c.remote().filter(|r| r.writes()) {
+            // A regular file only (not `-o /dev/null`), read back whole: archives are small
+            // next to the entries they hold (zstd with trained dictionaries).
+            let small = std::fs::metadata(out).is_ok_and(|m| m.is_file() && m.len() <= MAX_REMOTE_ARCHIVE);
+            if let Some(bytes) = small.then(|| std::fs::read(out).ok()).flatten() {
+                remote.store(&remote_archive_key(fingerprint), &encode_remote_archive(&bytes, counts));
+            }
         }
     }
+
+    /// With a remote cache holding the archive of the build with `fingerprint` and every
+    /// entry of `keys`: the entries copied into the local cache (each checked), the archive
+    /// (checked) written to `out` and stamped; its artifact counts. `None` otherwise: the
+    /// entries the remote holds are in the local cache all the same (fetched in batches),
+    /// and those it lacks are not asked for again, for the compile stage that follows.
+    ///
+    /// The archive's bytes depend only on the configuration and the keys (the build is
+    /// deterministic), and `fingerprint` hashes both: an archive stored under it by any
+    /// machine is the one this build would write. What this saves is assembling: training
+    /// the dictionaries and compressing every artifact again.
+    pub fn archive_from_remote(&self, out: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
+        let cache = self.cache.as_ref()?;
+        let value = cache.remote()?.get(&remote_archive_key(fingerprint));
+        // Without the archive too: the entries come in batches, not one round trip per key.
+        let complete = cache.fill_from_remote(keys);
+        let value = value?;
+        let Some((counts, archive)) = decode_remote_archive(&value) else {
+            let why = format!(
+                "warning: the archive {} in the remote cache {} is corrupted; assembling it again",
+                remote_archive_key(fingerprint),
+                cache.remote()?.url()
+            );
+            self.failed.lock().expect("no panics while locked").push((0, why));
+            return None;
+        };
+        if !complete {
+            return None;
+        }
+        crate::output::write(out, archive, false).ok()?;
+        let _ = cache.stamp_archive(out, fingerprint, counts);
+        Some(counts)
+    }
+}
+
+/// Archives above this size are not stored in the remote cache (redis takes values up to
+/// 512 MiB).
+const MAX_REMOTE_ARCHIVE: u64 = 256 << 20;
+const REMOTE_ARCHIVE_MAGIC: &[u8; 8] = b"KILNAR\0\x01";
+
+/// The remote cache key of the archive of the build with `fingerprint`.
+fn remote_archive_key(fingerprint: &blake3::Hash) -> Key {
+    let tagged = blake3::hash(&[b"kiln remote archive v1\0".as_slice(), fingerprint.as_bytes()].concat());
+    Key::new(&tagged, "", crate::archive::Stage::Compute, "", &crate::compile::Limits::desktop(), &[])
+}
+
+/// magic, blake3 of the rest, the two artifact counts (u64 each), the archive.
+fn encode_remote_archive(archive: &[u8], counts: (usize, usize)) -> Vec<u8> {
+    let mut body = Vec::with_capacity(16 + archive.len());
+    body.extend_from_slice(&(counts.0 as u64).to_le_bytes());
+    body.extend_from_slice(&(counts.1 as u64).to_le_bytes());
+    body.extend_from_slice(archive);
+    let mut out = Vec::with_capacity(40 + body.len());
+    out.extend_from_slice(REMOTE_ARCHIVE_MAGIC);
+    out.extend_from_slice(blake3::hash(&body).as_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+/// The counts and the archive of a whole value of [`encode_remote_archive`].
+fn decode_remote_archive(value: &[u8]) -> Option<((usize, usize), &[u8])> {
+    if value.len() < 56 || &value[..8] != REMOTE_ARCHIVE_MAGIC || blake3::hash(&value[40..]).as_bytes() != &value[8..40]
+    {
+        return None;
+    }
+    let count = |at: usize| u64::from_le_bytes(value[at..at + 8].try_into().expect("8 bytes")) as usize;
+    Some(((count(40), count(48)), &value[56..]))
 }
 
 /// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the

@@ -23,8 +23,9 @@
 //! Unreal layers its shared DDC under the local one: a lookup tries the local packs, then
 //! the remote; a remote entry is checked like a local one (its bytes are the same entry
 //! encoding) and then filled into the local cache; every entry a build stores goes to the
-//! local cache and, in read-write mode, to the remote. A remote that fails is one warning
-//! and the build goes on with the local cache only.
+//! local cache and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies
+//! many entries at once (batched round trips). A remote that fails is one warning and the
+//! build goes on with the local cache only.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
@@ -234,6 +235,9 @@ pub struct Cache {
 struct Layer {
     remote: Remote,
     fills: Mutex<Fills>,
+    /// Keys the remote did not have when asked during this build: not asked again (a build
+    /// that fills in bulk, then compiles what was missing, asks once per key).
+    absent: Mutex<HashSet<Key>>,
 }
 
 /// Checked remote entries (their encoded bytes) to write into the next local pack.
@@ -262,7 +266,7 @@ impl Cache {
 
     /// This cache with `remote` layered under it.
     pub fn with_remote(mut self, remote: Remote) -> Cache {
-        self.remote = Some(Arc::new(Layer { remote, fills: Mutex::default() }));
+        self.remote = Some(Arc::new(Layer { remote, fills: Mutex::default(), absent: Mutex::default() }));
         self
     }
 
@@ -349,7 +353,13 @@ impl Cache {
         if matches!(local, Lookup::Hit(_)) {
             return local;
         }
-        let Some(bytes) = layer.remote.get(key) else { return local };
+        if layer.absent.lock().expect("no panics while locked").contains(key) {
+            return local;
+        }
+        let Some(bytes) = layer.remote.get(key) else {
+            layer.absent.lock().expect("no panics while locked").insert(*key);
+            return local;
+        };
         match decode(key, &bytes) {
             Ok(c) => {
                 layer.remote.count_hit();
@@ -370,6 +380,49 @@ impl Cache {
                 layer.remote.url()
             )),
         }
+    }
+
+    /// Copies into the local cache the remote entries of `keys` that it lacks: fetched in
+    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it,
+    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally. A
+    /// key the remote lacks is not asked for again this build; a corrupted entry is left to
+    /// the build, which looks it up again, reports and recompiles it.
+    pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
+        let Some(layer) = &self.remote else { return false };
+        let queued: HashSet<Key> =
+            layer.fills.lock().expect("no panics while locked").entries.iter().map(|(k, _)| *k).collect();
+        let absent = layer.absent.lock().expect("no panics while locked").clone();
+        let missing: Vec<Key> = self.with_index(|index| {
+            let known = |k: &Key| index.by_key.contains_key(k) || queued.contains(k) || absent.contains(k);
+            keys.iter().filter(|k| !known(k)).copied().collect()
+        });
+        let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
+        layer.remote.get_each(&missing, |key, value| {
+            let Some(bytes) = value else {
+                layer.absent.lock().expect("no panics while locked").insert(*key);
+                complete.store(false, Ordering::Relaxed);
+                return;
+            };
+            if check(key, &bytes).is_err() {
+                // Looked up again by the build, which reports it and recompiles.
+                complete.store(false, Ordering::Relaxed);
+                return;
+            }
+            layer.remote.count_hit();
+            let full = {
+                let mut fills = layer.fills.lock().expect("no panics while locked");
+                fills.bytes += bytes.len();
+                fills.entries.push((*key, bytes));
+                fills.bytes >= FILL_BYTES
+            };
+            if full {
+                // Failing to fill only costs a remote lookup next time.
+                let _ = self.put_pack_hashed(&[]);
+            }
+        });
+        // Written now, so that the build's lookups find them here (not in the remote again).
+        let _ = self.put_pack_hashed(&[]);
+        complete.into_inner()
     }
 
     fn get_local(&self, key: &Key) -> Lookup {
@@ -492,10 +545,9 @@ impl Cache {
     /// The preprocessing records stored under `key` (one set per configuration and
     /// options), by permutation key; empty when missing or damaged.
     ///
-    /// Without a local copy, the remote cache's (stored by a machine whose checkout has the
-    /// same path, as CI runners and the pods of one job have) is used and kept locally.
-    /// Records name absolute paths and every file's blake3: elsewhere they simply do not
-    /// match, and the permutations are preprocessed.
+    /// Without a local copy, the remote cache's (stored by any machine that built the same
+    /// configuration) is used and kept locally. Records name every file's blake3: where the
+    /// sources differ they simply do not match, and the permutations are preprocessed.
     pub fn get_records(&self, key: &Key) -> Records {
         self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
     }
@@ -908,7 +960,33 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     out
 }
 
+/// Whether `bytes` is a whole entry of `key` (what [`decode`] checks, without copying the
+/// artifacts out).
+fn check(key: &Key, bytes: &[u8]) -> Result<(), String> {
+    let (_, json) = parse(key, bytes)?;
+    serde_json::from_slice::<Reflection>(json).map_err(|e| format!("bad reflection: {e}"))?;
+    Ok(())
+}
+
 fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
+    let (artifacts, json) = parse(key, bytes)?;
+    let artifacts = artifacts
+        .into_iter()
+        .map(|(name, bytes)| {
+            let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
+            let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+            Ok((target, bytes.to_vec()))
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
+    Ok(Compiled { artifacts, reflection })
+}
+
+/// An entry's artifacts (target name, bytes) and reflection JSON, once its checksum and key
+/// are checked.
+type Parsed<'a> = (Vec<(&'a [u8], &'a [u8])>, &'a [u8]);
+
+fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
     if bytes.len() < 40 || &bytes[..8] != MAGIC {
         return Err("not a cache entry of this kiln".into());
     }
@@ -945,16 +1023,7 @@ fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
     if entry_key != key.0 {
         return Err("the entry belongs to another key".into());
     }
-    let artifacts = artifacts
-        .into_iter()
-        .map(|(name, bytes)| {
-            let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
-            let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
-            Ok((target, bytes.to_vec()))
-        })
-        .collect::<Result<Vec<_>, String>>()?;
-    let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
-    Ok(Compiled { artifacts, reflection })
+    Ok((artifacts, json))
 }
 
 struct Reader<'a> {

@@ -5,7 +5,9 @@
 //! cache's entry encoding (magic, checksum, body), so the [`super::Cache`] that layers this
 //! store checks every value it reads exactly as it checks its own packs: a corrupted or
 //! truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
-//! records (checksummed too) are shared the same way, under their own keys.
+//! records and archives (checksummed too) are shared the same way, under their own keys.
+//! [`Remote::get_each`] fetches many values with few round trips (redis `MGET`) or several
+//! requests in flight (HTTP).
 //!
 //! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
@@ -27,6 +29,12 @@ use super::Key;
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The largest value read back (a guard against a server answering with something else).
 const MAX_VALUE: u64 = 1 << 30;
+/// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
+/// bundled renderer's set).
+pub const BATCH: usize = 64;
+/// HTTP requests in flight at once in [`Remote::get_each`] (each on its own keep-alive
+/// connection): enough to hide a round trip behind the others' transfers.
+const HTTP_STREAMS: usize = 4;
 
 /// Whether a build writes what it compiles to the remote cache.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -271,6 +279,39 @@ impl Remote {
         }
     }
 
+    /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
+    /// once the store is off), from several threads, in no particular order: one round trip
+    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers), [`HTTP_STREAMS`]
+    /// requests at once with HTTP (each on its own keep-alive connection).
+    pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<Vec<u8>>) + Sync) {
+        match &self.store {
+            Store::Redis(r) => {
+                use rayon::prelude::*;
+                keys.par_chunks(BATCH).for_each(|batch| {
+                    let values = if self.off.load(Ordering::Relaxed) {
+                        None
+                    } else {
+                        self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
+                    };
+                    let mut values = values.into_iter().flatten();
+                    batch.iter().for_each(|key| f(key, values.next().flatten()));
+                });
+            }
+            Store::Http(_) => {
+                let next = std::sync::atomic::AtomicUsize::new(0);
+                std::thread::scope(|s| {
+                    for _ in 0..HTTP_STREAMS.min(keys.len()) {
+                        s.spawn(|| {
+                            while let Some(key) = keys.get(next.fetch_add(1, Ordering::Relaxed)) {
+                                f(key, self.get(key));
+                            }
+                        });
+                    }
+                });
+            }
+        }
+    }
+
     /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
     pub fn put(&self, key: &Key, value: &[u8]) {
         if self.store(key, value) {
@@ -399,6 +440,20 @@ impl RedisStore {
     fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
         self.with_connection(|c| redis::cmd("SET").arg(Self::name(key)).arg(value).query(c))
     }
+
+    /// One `MGET` of every key.
+    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let mut cmd = redis::cmd("MGET");
+        for key in keys {
+            cmd.arg(Self::name(key));
+        }
+        let values: Vec<Option<Vec<u8>>> = self.with_connection(|c| cmd.query(c))?;
+        if values.len() != keys.len() {
+            let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
+            return Err(Fault { message, timed_out: false });
+        }
+        Ok(values)
+    }
 }
 
 /// GET and PUT of `<prefix>/<key>` through `ureq` (keep-alive connections, pooled).
@@ -450,9 +505,20 @@ impl HttpStore {
             .timeout_per_read(Some(options.timeout))
             .timeout_per_write(Some(options.timeout))
             .timeout_per_call(Some(options.timeout * 20))
-            .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")))
-            .build();
-        Ok((HttpStore { agent: config.into(), prefix, authorization }, password))
+            .max_idle_connections_per_host(HTTP_STREAMS)
+            .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")));
+        #[cfg(feature = "https")]
+        let config = match std::env::var_os("KILN_REMOTE_CACHE_CA").filter(|p| !p.is_empty()) {
+            Some(path) => config.tls_config(trusted(std::path::Path::new(&path))?),
+            None => config,
+        };
+        let config = config.build();
+        let agent = ureq::Agent::with_parts(
+            config,
+            ureq::unversioned::transport::DefaultConnector::default(),
+            OnceResolver::default(),
+        );
+        Ok((HttpStore { agent, prefix, authorization }, password))
     }
 
     fn url(&self, key: &Key) -> String {
@@ -479,7 +545,15 @@ impl HttpStore {
         }
         let mut response = request.call().map_err(Self::fault)?;
         match response.status().as_u16() {
-            200 => response.body_mut().with_config().limit(MAX_VALUE).read_to_vec().map(Some).map_err(Self::fault),
+            200 => {
+                // Read into a buffer of the announced length (not grown as it comes).
+                use std::io::Read;
+                let announced = response.body().content_length().unwrap_or(0).min(MAX_VALUE);
+                let mut value = Vec::with_capacity(announced as usize);
+                let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
+                reader.read_to_end(&mut value).map_err(|e| Self::fault(ureq::Error::Io(e)))?;
+                Ok(Some(value))
+            }
             404 => Ok(None),
             _ => Err(Self::status("GET", response.status())),
         }
@@ -497,6 +571,52 @@ impl HttpStore {
             Err(Self::status("PUT", response.status()))
         }
     }
+}
+
+/// Resolves each host once per build, then gives its addresses again. ureq's own resolver
+/// resolves before every request, on a thread of its own when the lookup has a timeout (a
+/// thousand threads for a thousand GETs: a quarter of a fresh local cache's fill with HTTP).
+/// (`ureq::unversioned`: outside ureq's semver promise, pinned by Cargo.lock.)
+#[derive(Debug, Default)]
+struct OnceResolver {
+    resolved: Mutex<std::collections::HashMap<String, ureq::unversioned::resolver::ResolvedSocketAddrs>>,
+}
+
+impl ureq::unversioned::resolver::Resolver for OnceResolver {
+    fn resolve(
+        &self,
+        uri: &ureq::http::Uri,
+        config: &ureq::config::Config,
+        timeout: ureq::unversioned::transport::NextTimeout,
+    ) -> Result<ureq::unversioned::resolver::ResolvedSocketAddrs, ureq::Error> {
+        let host = format!("{:?} {:?}", uri.scheme(), uri.authority());
+        if let Some(addresses) = self.resolved.lock().expect("no panics while locked").get(&host) {
+            return Ok(addresses.clone());
+        }
+        let addresses = ureq::unversioned::resolver::DefaultResolver::default().resolve(uri, config, timeout)?;
+        self.resolved.lock().expect("no panics while locked").insert(host, addresses.clone());
+        Ok(addresses)
+    }
+}
+
+/// TLS that trusts only the certificates of the PEM file at `path` (`KILN_REMOTE_CACHE_CA`:
+/// a company's own certificate authority, or a self-signed server's certificate) instead
+/// of the Mozilla roots.
+#[cfg(feature = "https")]
+fn trusted(path: &std::path::Path) -> Result<ureq::tls::TlsConfig, String> {
+    use ureq::tls::{parse_pem, PemItem, RootCerts, TlsConfig};
+    let why = |e: String| format!("KILN_REMOTE_CACHE_CA: {}: {e}", path.display());
+    let pem = std::fs::read(path).map_err(|e| why(e.to_string()))?;
+    let mut certificates = Vec::new();
+    for item in parse_pem(&pem) {
+        if let PemItem::Certificate(c) = item.map_err(|e| why(e.to_string()))? {
+            certificates.push(c);
+        }
+    }
+    if certificates.is_empty() {
+        return Err(why("no PEM certificate in it".into()));
+    }
+    Ok(TlsConfig::builder().root_certs(RootCerts::new_with_certs(&certificates)).build())
 }
 
 #[cfg(test)]
