@@ -27,7 +27,9 @@
 //! The last lines are one table of every set's ratios.
 //!
 //! For profilers (callgrind, perf): `KILN_BENCH_ONLY=naga` runs naga alone once on CONFIG's
-//! distinct sources and exits; `KILN_BENCH_ONLY=kiln` runs one cold build without a cache.
+//! distinct sources and exits; `KILN_BENCH_ONLY=kiln` runs one cold build without a cache
+//! (`=cold`: with an empty cache);
+//! `KILN_BENCH_SHAPES_TO=DIR` writes the generated sets into DIR (`setN/permutations.toml`).
 
 mod shapes;
 
@@ -142,6 +144,14 @@ fn main() {
     let rounds: usize = args.next().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
     let jobs: usize = std::env::var("KILN_BENCH_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2);
     let bundled = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../permutations.toml"));
+    if let Some(dir) = std::env::var_os("KILN_BENCH_SHAPES_TO") {
+        // For profilers: the generated sets, one folder each, and nothing timed.
+        for (i, shape) in generated_shapes().iter().enumerate() {
+            let config = shapes::write(&Path::new(&dir).join(format!("set{i}")), shape);
+            println!("{}: {}", shape.name, config.display());
+        }
+        return;
+    }
     if let Ok(only) = std::env::var("KILN_BENCH_ONLY") {
         let config_path = given.unwrap_or(bundled);
         let config = permute::load(&config_path).unwrap_or_else(|e| panic!("{}", e.render()));
@@ -157,7 +167,7 @@ fn main() {
                     config: config_path.clone(),
                     output: Some(tmp.path().join("shaders.kpak")),
                     jobs: Some(jobs),
-                    cache: CacheDir::Disabled,
+                    cache: if only == "cold" { CacheDir::Dir(tmp.path().join("cache")) } else { CacheDir::Disabled },
                     ..build::Options::default()
                 };
                 build::run(&options).unwrap_or_else(|e| panic!("{e}"));
@@ -169,60 +179,7 @@ fn main() {
     let mut rows = vec![full(given.as_deref().unwrap_or(&bundled), rounds, jobs)];
     if given.is_none() {
         let tmp = tempfile::tempdir().unwrap();
-        let mut sets = vec![
-            // 2 shaders, 8 dimensions: 512 permutations of ~7 KB, half the header called.
-            shapes::Shape {
-                name: "few shaders x many permutations",
-                shaders: 2,
-                used: 8,
-                unused: 0,
-                helpers: 12,
-                calls: 6,
-                mobile: false,
-            },
-            // 64 shaders at 2 levels, 1 dimension: 256 permutations of ~9 KB, nearly all called.
-            shapes::Shape {
-                name: "many shaders x few permutations",
-                shaders: 64,
-                used: 1,
-                unused: 0,
-                helpers: 16,
-                calls: 14,
-                mobile: true,
-            },
-            // 8 shaders, 4 dimensions: 128 permutations of ~45 KB.
-            shapes::Shape {
-                name: "large sources",
-                shaders: 8,
-                used: 4,
-                unused: 0,
-                helpers: 80,
-                calls: 40,
-                mobile: false,
-            },
-            // 4 shaders, 2 used and 4 unused dimensions: 256 keys, 16 compacted modules.
-            shapes::Shape {
-                name: "unused-helper dimensions (dedup)",
-                shaders: 4,
-                used: 2,
-                unused: 4,
-                helpers: 16,
-                calls: 8,
-                mobile: false,
-            },
-        ];
-        if std::env::var("KILN_BENCH_SHAPES").is_ok_and(|v| v == "all") {
-            // 10 shaders, 10 dimensions: 10,240 permutations of ~3 KB.
-            sets.push(shapes::Shape {
-                name: "10k permutations",
-                shaders: 10,
-                used: 10,
-                unused: 0,
-                helpers: 5,
-                calls: 2,
-                mobile: false,
-            });
-        }
+        let sets = generated_shapes();
         for (i, shape) in sets.iter().enumerate() {
             let config = shapes::write(&tmp.path().join(format!("set{i}")), shape);
             println!("\n== {} ({} permutations)", shape.name, shape.permutations());
@@ -259,6 +216,57 @@ fn main() {
     }
     println!("(cold: an empty cache that the build fills; goal <= 1.15 on every set with >= 100 keys,");
     println!(" <= 1.0 on the bundled set, <= 0.9 on the dedup set; shared: keys whose writers another key ran)");
+}
+
+/// The generated sets of the closing table (`KILN_BENCH_SHAPES=all` adds the 10k one).
+fn generated_shapes() -> Vec<shapes::Shape> {
+    let mut sets = vec![
+        // 2 shaders, 8 dimensions: 512 permutations of ~7 KB, half the header called.
+        shapes::Shape {
+            name: "few shaders x many permutations",
+            shaders: 2,
+            used: 8,
+            unused: 0,
+            helpers: 12,
+            calls: 6,
+            mobile: false,
+        },
+        // 64 shaders at 2 levels, 1 dimension: 256 permutations of ~9 KB, nearly all called.
+        shapes::Shape {
+            name: "many shaders x few permutations",
+            shaders: 64,
+            used: 1,
+            unused: 0,
+            helpers: 16,
+            calls: 14,
+            mobile: true,
+        },
+        // 8 shaders, 4 dimensions: 128 permutations of ~45 KB.
+        shapes::Shape { name: "large sources", shaders: 8, used: 4, unused: 0, helpers: 80, calls: 40, mobile: false },
+        // 4 shaders, 2 used and 4 unused dimensions: 256 keys, 16 compacted modules.
+        shapes::Shape {
+            name: "unused-helper dimensions (dedup)",
+            shaders: 4,
+            used: 2,
+            unused: 4,
+            helpers: 16,
+            calls: 8,
+            mobile: false,
+        },
+    ];
+    if std::env::var("KILN_BENCH_SHAPES").is_ok_and(|v| v == "all") {
+        // 10 shaders, 10 dimensions: 10,240 permutations of ~3 KB.
+        sets.push(shapes::Shape {
+            name: "10k permutations",
+            shaders: 10,
+            used: 10,
+            unused: 0,
+            helpers: 5,
+            calls: 2,
+            mobile: false,
+        });
+    }
+    sets
 }
 
 /// The distinct sources of a set, preprocessed by Kiln (untimed), as Kiln's dedup sees them,

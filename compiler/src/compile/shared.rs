@@ -8,8 +8,12 @@
 //! with the entry point, the stage, the targets and the level's limits (which decide the
 //! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
 //! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
-//! thread: the first key with a module runs the writers, every later one takes a copy of
-//! its artifacts. naga's writers are deterministic functions of the module, its info and
+//! thread. The first key with a module runs the writers and keeps nothing but the hash: most
+//! modules of a build belong to one key (616 of 621 on the bundled set), and keeping a copy
+//! of every key's artifacts in case another key shares them cost more (a copy, and memory
+//! the size of the build's output, faulted in page by page) than the sharing saved. The
+//! second key with a module runs the writers again and keeps their outputs; every later one
+//! takes a copy. naga's writers are deterministic functions of the module, its info and
 //! their options, so the artifacts are byte-identical to those the key would have written
 //! itself, whatever the order the keys are compiled in.
 //!
@@ -25,11 +29,19 @@ use crate::archive::Target;
 /// The artifacts of one compacted module, or the writer's error.
 type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
 
+/// What a build knows of one compacted module.
+enum Slot {
+    /// One key had it; its artifacts were not kept.
+    Seen,
+    /// The writers' outputs, kept once a second key had it (or being written by that key).
+    Kept(Arc<OnceLock<Written>>),
+}
+
 /// The writers' outputs by compacted module, for one build. Memory stays bounded: once the
 /// artifacts kept reach [`SharedWriters::BUDGET`] bytes, a new module's are no longer kept (a
 /// later key with that module runs the writers itself, to the same bytes).
 pub struct SharedWriters {
-    map: Mutex<HashMap<blake3::Hash, Arc<OnceLock<Written>>>>,
+    map: Mutex<HashMap<blake3::Hash, Slot>>,
     shared: AtomicUsize,
     /// Bytes of artifacts held in `map`.
     kept: AtomicUsize,
@@ -72,7 +84,27 @@ impl SharedWriters {
         let v = super::validate(source, entry, stage, &options.limits)?;
         let reflection = super::checked_reflection(&v, options)?;
         let hash = module_hash(&v, options);
-        let cell = self.map.lock().expect("no panics while locked").entry(hash).or_default().clone();
+        let cell = {
+            let mut map = self.map.lock().expect("no panics while locked");
+            match map.get_mut(&hash) {
+                None => {
+                    map.insert(hash, Slot::Seen);
+                    None
+                }
+                // Over budget, keys of modules not kept run their writers without a copy.
+                Some(Slot::Seen) if self.kept.load(Ordering::Relaxed) >= Self::BUDGET => None,
+                Some(slot @ Slot::Seen) => {
+                    let cell = Arc::<OnceLock<Written>>::default();
+                    *slot = Slot::Kept(cell.clone());
+                    Some(cell)
+                }
+                Some(Slot::Kept(cell)) => Some(cell.clone()),
+            }
+        };
+        let Some(cell) = cell else {
+            // The module's first key: its artifacts are handed on, not copied.
+            return Ok(Compiled { artifacts: super::write_all(&v, options)?, reflection });
+        };
         let mut ran = false;
         let written = cell.get_or_init(|| {
             ran = true;
@@ -83,15 +115,16 @@ impl SharedWriters {
         } else if let Ok(artifacts) = written {
             let bytes: usize = artifacts.iter().map(|(_, b)| b.len()).sum();
             if self.kept.fetch_add(bytes, Ordering::Relaxed) + bytes > Self::BUDGET {
-                // Over budget: forget this module (callers already waiting on it still get it).
+                // Over budget: keep only the hash (callers already waiting on it still get it).
                 self.kept.fetch_sub(bytes, Ordering::Relaxed);
-                self.map.lock().expect("no panics while locked").remove(&hash);
+                self.map.lock().expect("no panics while locked").insert(hash, Slot::Seen);
             }
         }
         Ok(Compiled { artifacts: written.clone()?, reflection })
     }
 
-    /// How many compiles took their artifacts from an earlier one's module.
+    /// How many compiles took their artifacts from an earlier one's module (a module of `n`
+    /// keys shares `n - 2`: its first two keys run the writers).
     pub fn shared(&self) -> usize {
         self.shared.load(Ordering::Relaxed)
     }

@@ -110,10 +110,15 @@ impl Output {
 
 /// [`Output::token_hash`] of any text.
 pub fn token_hash(text: &str) -> blake3::Hash {
-    // One buffer hashed at once: the same bytes as hashing token by token, without the
-    // hasher's per-call overhead on tiny slices. Each token is its length (u32) and bytes.
+    // The hashed bytes are each token's length (u32, little-endian) then its bytes. They are
+    // gathered in a fixed buffer and fed to the hasher a chunk at a time: the same hash as
+    // hashing them all at once, without a buffer the size of the text (and its reallocations,
+    // whose fresh pages each fault in).
+    const CHUNK: usize = 16 << 10;
     let src = text.as_bytes();
-    let mut buf: Vec<u8> = Vec::with_capacity(src.len() + src.len() / 2 + 32);
+    let mut hasher = blake3::Hasher::new();
+    let mut buf = [0u8; CHUNK + 32];
+    let mut n = 0;
     let mut pos = 0;
     while pos < src.len() {
         let b = src[pos];
@@ -125,7 +130,13 @@ pub fn token_hash(text: &str) -> blake3::Hash {
                 pos += 1;
                 continue;
             }
-            b'a'..=b't' | b'v'..=b'z' | b'A'..=b'K' | b'M'..=b'T' | b'V'..=b'Z' | b'_' => lexer::ident_len(src, pos),
+            b'a'..=b't' | b'v'..=b'z' | b'A'..=b'K' | b'M'..=b'T' | b'V'..=b'Z' | b'_' => {
+                let mut i = pos + 1;
+                while i < src.len() && lexer::IDENT_CONTINUE[src[i] as usize] {
+                    i += 1;
+                }
+                i - pos
+            }
             b'(' | b')' | b'{' | b'}' | b'[' | b']' | b';' | b',' | b'?' | b'~' => 1,
             _ => match lexer::next(src, pos) {
                 (lexer::Kind::Eof, _) => break,
@@ -142,18 +153,30 @@ pub fn token_hash(text: &str) -> blake3::Hash {
                 (_, len) => len.max(1),
             },
         };
-        buf.extend_from_slice(&(len as u32).to_le_bytes());
-        // Most tokens are short: copy a fixed 16 bytes (one move, no call) and cut back.
+        if n > CHUNK {
+            hasher.update(&buf[..n]);
+            n = 0;
+        }
+        buf[n..n + 4].copy_from_slice(&(len as u32).to_le_bytes());
+        n += 4;
         if len <= 16 && pos + 16 <= src.len() {
-            let at = buf.len();
-            buf.extend_from_slice(&src[pos..pos + 16]);
-            buf.truncate(at + len);
+            // Most tokens are short: copy a fixed 16 bytes (one move) and count only `len`.
+            buf[n..n + 16].copy_from_slice(&src[pos..pos + 16]);
+            n += len;
         } else {
-            buf.extend_from_slice(&src[pos..pos + len]);
+            for piece in src[pos..pos + len].chunks(16) {
+                if n > CHUNK {
+                    hasher.update(&buf[..n]);
+                    n = 0;
+                }
+                buf[n..n + piece.len()].copy_from_slice(piece);
+                n += piece.len();
+            }
         }
         pos += len;
     }
-    blake3::hash(&buf)
+    hasher.update(&buf[..n]);
+    hasher.finalize()
 }
 
 /// The preprocessing tokens of a text, comments and whitespace dropped (for comparisons).
@@ -181,8 +204,15 @@ pub fn resolve_source(spelling: &str, opts: &Options) -> Result<PathBuf, Error> 
 
 /// Preprocesses the file at `path` (read through `cache`).
 pub fn preprocess_file(path: &Path, opts: &Options, cache: &SourceCache) -> Result<Output, Error> {
-    let canonical =
-        path.canonicalize().map_err(|e| Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()))?;
+    let canonical = match cache.canonical(path) {
+        Some(c) => c,
+        // Asked again for the error's words (an error stops only this permutation).
+        None => {
+            let e =
+                path.canonicalize().err().map_or_else(|| "it changed during the build".to_string(), |e| e.to_string());
+            return Err(Error::new(format!("cannot read `{}`: {e}", path.display()), Vec::new()));
+        }
+    };
     let (id, _) = cache.load(&canonical).map_err(|e| {
         let shown = match e {
             source::LoadError::NotUtf8 { .. } => cache.display_name(&canonical),

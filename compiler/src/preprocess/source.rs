@@ -327,12 +327,36 @@ struct Inner {
     by_path: HashMap<PathBuf, FileId>,
 }
 
+/// What a path is, as `std::fs::metadata` (symlinks followed) says.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum PathKind {
+    File,
+    Dir,
+    /// A FIFO, device or socket.
+    Other,
+    /// Missing, or not readable.
+    Missing,
+}
+
+/// The file system's answers about include paths, asked once per cache (see
+/// [`SourceCache::kind`]).
+#[derive(Default)]
+struct Lookups {
+    kinds: HashMap<PathBuf, PathKind>,
+    canonical: HashMap<PathBuf, Option<PathBuf>>,
+}
+
 /// Thread-safe store of source files shared by every permutation of a build: reads each file
 /// once (keyed by canonical path), hands out [`FileId`]s, and names files for diagnostics
-/// relative to `display_base`.
+/// relative to `display_base`. The include paths the permutations look up are asked of the
+/// file system once too ([`SourceCache::kind`], [`SourceCache::canonical`]): every
+/// permutation of a build sees the files as they were when first asked for, as it sees
+/// their contents (a build of 625 permutations otherwise made 35,000 `readlink` and `stat`
+/// calls resolving the same few includes).
 pub struct SourceCache {
     display_base: PathBuf,
     inner: RwLock<Inner>,
+    lookups: RwLock<Lookups>,
 }
 
 impl std::fmt::Debug for SourceCache {
@@ -344,7 +368,32 @@ impl std::fmt::Debug for SourceCache {
 impl SourceCache {
     pub fn new(display_base: PathBuf) -> Self {
         let display_base = display_base.canonicalize().unwrap_or(display_base);
-        SourceCache { display_base, inner: RwLock::new(Inner::default()) }
+        SourceCache { display_base, inner: RwLock::new(Inner::default()), lookups: RwLock::default() }
+    }
+
+    /// What `path` is (`std::fs::metadata`), asked of the file system the first time only.
+    pub(crate) fn kind(&self, path: &Path) -> PathKind {
+        if let Some(&k) = self.lookups.read().unwrap_or_else(|e| e.into_inner()).kinds.get(path) {
+            return k;
+        }
+        let k = match std::fs::metadata(path) {
+            Ok(m) if m.is_file() => PathKind::File,
+            Ok(m) if m.is_dir() => PathKind::Dir,
+            Ok(_) => PathKind::Other,
+            Err(_) => PathKind::Missing,
+        };
+        self.lookups.write().unwrap_or_else(|e| e.into_inner()).kinds.insert(path.to_path_buf(), k);
+        k
+    }
+
+    /// `path.canonicalize()` (`None` where it fails), asked of the file system the first time only.
+    pub(crate) fn canonical(&self, path: &Path) -> Option<PathBuf> {
+        if let Some(c) = self.lookups.read().unwrap_or_else(|e| e.into_inner()).canonical.get(path) {
+            return c.clone();
+        }
+        let c = path.canonicalize().ok();
+        self.lookups.write().unwrap_or_else(|e| e.into_inner()).canonical.insert(path.to_path_buf(), c.clone());
+        c
     }
 
     /// The canonical path of a file (an in-memory file: its name).

@@ -258,6 +258,17 @@ fn token_hash_fast_paths_agree_with_the_lexer() {
         assert_eq!(token_hash(&text), token_hash_reference(&text), "{text:?}");
         state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
     }
+    // Texts longer than the hash's buffer, with tokens of every length across its chunks.
+    for long in [1usize, 15, 16, 17, 40, 5000, 70_000] {
+        let mut text = String::new();
+        let mut i = 0;
+        while text.len() < 100_000 {
+            text.push_str(&"x".repeat(1 + i % long));
+            text.push_str(if i % 3 == 0 { " + " } else { "(" });
+            i += 1;
+        }
+        assert_eq!(token_hash(&text), token_hash_reference(&text), "tokens up to {long} bytes");
+    }
 }
 
 #[test]

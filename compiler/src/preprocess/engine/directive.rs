@@ -832,14 +832,16 @@ impl Pp<'_> {
         let mut found = Resolved::NotFound;
         let is_virtual = self.opts.virtual_roots.iter().any(|(p, _)| virtual_match(spelling, p).is_some());
         if !angle && !is_virtual && relative_ok(spelling) {
-            if let Some(dir) = self.frames.last().and_then(|f| f.source.path.parent()).filter(|d| d.is_dir()) {
+            let dir = self.frames.last().and_then(|f| f.source.path.parent());
+            if let Some(dir) = dir.filter(|d| self.cache.kind(d) == PathKind::Dir) {
                 let cand = dir.join(spelling);
-                if !cand.is_file() {
+                let is_file = self.cache.kind(&cand) == PathKind::File;
+                if !is_file {
                     self.absent.borrow_mut().push(cand.clone());
                 }
-                if cand.is_file() {
+                if is_file {
                     found = Resolved::NotFound;
-                    if let Ok(c) = cand.canonicalize() {
+                    if let Some(c) = self.cache.canonical(&cand) {
                         found = if self.roots.iter().any(|r| c.starts_with(r)) {
                             Resolved::Found(c, String::new())
                         } else {
@@ -856,7 +858,7 @@ impl Pp<'_> {
             }
         }
         if matches!(found, Resolved::NotFound) {
-            found = resolve_in_roots(spelling, self.opts, &mut self.absent.borrow_mut());
+            found = resolve_in_roots(spelling, self.opts, &mut self.absent.borrow_mut(), Some(self.cache));
         }
         found
     }

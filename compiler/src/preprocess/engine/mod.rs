@@ -25,7 +25,7 @@ use codespan_reporting::diagnostic::{Diagnostic, Label};
 use super::expr;
 use super::lexer::{self, Kind};
 use super::map::{Entry, IncludeCtx, SourceMap, NONE};
-use super::source::{FileId, LoadError, SourceCache, SourceFile};
+use super::source::{FileId, LoadError, PathKind, SourceCache, SourceFile};
 use super::{Error, Options, Output};
 use directive::DefReader;
 
@@ -396,7 +396,7 @@ fn token_budget(opts: &Options) -> usize {
 
 /// Resolves `<spelling>` through the virtual roots, then the include roots.
 pub(crate) fn resolve_angle(spelling: &str, opts: &Options) -> Result<PathBuf, String> {
-    match resolve_in_roots(spelling, opts, &mut Vec::new()) {
+    match resolve_in_roots(spelling, opts, &mut Vec::new(), None) {
         Resolved::Found(p, _) => Ok(p),
         Resolved::Escapes(p) => Err(format!("`{spelling}` resolves to `{}`, outside its root", p.display())),
         Resolved::NotFound => match non_file_in(spelling, opts, &[]) {
@@ -438,15 +438,36 @@ enum Resolved {
     NotFound,
 }
 
+/// What `path` is: from the build's source cache where there is one.
+fn path_kind(cache: Option<&SourceCache>, path: &Path) -> PathKind {
+    match cache {
+        Some(c) => c.kind(path),
+        None => match std::fs::metadata(path) {
+            Ok(m) if m.is_file() => PathKind::File,
+            Ok(m) if m.is_dir() => PathKind::Dir,
+            Ok(_) => PathKind::Other,
+            Err(_) => PathKind::Missing,
+        },
+    }
+}
+
+/// `path.canonicalize()`: from the build's source cache where there is one.
+fn canonical(cache: Option<&SourceCache>, path: &Path) -> Option<PathBuf> {
+    match cache {
+        Some(c) => c.canonical(path),
+        None => path.canonicalize().ok(),
+    }
+}
+
 /// `candidate` if it exists inside `root` (both canonicalized).
-fn contained(candidate: &Path, root: &Path) -> Resolved {
-    let Ok(c) = candidate.canonicalize() else {
+fn contained(candidate: &Path, root: &Path, cache: Option<&SourceCache>) -> Resolved {
+    let Some(c) = canonical(cache, candidate) else {
         return Resolved::NotFound;
     };
-    if !c.is_file() {
+    if path_kind(cache, &c) != PathKind::File {
         return Resolved::NotFound;
     }
-    let root = root.canonicalize().unwrap_or_else(|_| root.to_path_buf());
+    let root = canonical(cache, root).unwrap_or_else(|| root.to_path_buf());
     if c.starts_with(&root) {
         Resolved::Found(c, String::new())
     } else {
@@ -471,10 +492,15 @@ fn relative_ok(rel: &str) -> bool {
 /// Resolves `spelling` in the virtual roots, then the include roots in order; every
 /// candidate tried and found missing is pushed on `absent` (a file appearing there later
 /// would change the result).
-fn resolve_in_roots(spelling: &str, opts: &Options, absent: &mut Vec<PathBuf>) -> Resolved {
+fn resolve_in_roots(
+    spelling: &str,
+    opts: &Options,
+    absent: &mut Vec<PathBuf>,
+    cache: Option<&SourceCache>,
+) -> Resolved {
     for (prefix, dir) in &opts.virtual_roots {
         if let Some(rest) = virtual_match(spelling, prefix) {
-            return match contained(&dir.join(rest), dir) {
+            return match contained(&dir.join(rest), dir, cache) {
                 Resolved::Found(p, _) => Resolved::Found(p, format!("{}/{rest}", prefix.trim_end_matches('/'))),
                 Resolved::NotFound => {
                     absent.push(dir.join(rest));
@@ -489,7 +515,7 @@ fn resolve_in_roots(spelling: &str, opts: &Options, absent: &mut Vec<PathBuf>) -
     }
     let mut escaped = None;
     for root in &opts.include_roots {
-        match contained(&root.join(spelling), root) {
+        match contained(&root.join(spelling), root, cache) {
             Resolved::Found(p, _) => {
                 let name = format!("{}/{spelling}", root.display());
                 return Resolved::Found(p, name);
@@ -522,15 +548,15 @@ impl<'a> Pp<'a> {
             zero: it.intern("0"),
         };
         let mut roots: Vec<PathBuf> = Vec::new();
-        let main_dir = main.path.parent().filter(|p| p.is_dir()).map(|p| p.to_path_buf());
+        let main_dir = main.path.parent().filter(|p| cache.kind(p) == PathKind::Dir).map(|p| p.to_path_buf());
         if let Some(d) = &main_dir {
             roots.push(d.clone());
         }
         for r in &opts.include_roots {
-            roots.push(r.canonicalize().unwrap_or_else(|_| r.clone()));
+            roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
         }
         for (_, r) in &opts.virtual_roots {
-            roots.push(r.canonicalize().unwrap_or_else(|_| r.clone()));
+            roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
         }
         let mut pp = Pp {
             opts,
