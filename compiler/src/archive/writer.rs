@@ -23,9 +23,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest, PermutationRecord,
-    Sections, ShaderRecord, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE,
-    DICTIONARY_SIZE, HEADER_LEN, NO_DICTIONARY,
+    encode_artifact, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
+    ManifestCounts, PermutationRecord, Record, Sections, ShaderRecord, TablesOut, CODEC_STORED, CODEC_ZSTD,
+    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
 };
 use super::{Reflection, Target};
 
@@ -123,6 +123,16 @@ impl Entries {
                 i
             }
         };
+        if p.values.len() != p.shader.dimensions.len() {
+            return Err(ArchiveError::Input(format!(
+                "permutation `{}` has {} values for the {} dimensions of `{}@{}`",
+                p.name,
+                p.values.len(),
+                p.shader.dimensions.len(),
+                p.shader.name,
+                p.shader.level
+            )));
+        }
         // The caller's order of targets is kept: it is part of the permutation (the order of
         // the level's targets), not an order of arrival.
         let artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
@@ -662,19 +672,18 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
             target: *t,
             offset: dict_offset,
             len: d.len() as u64,
-            blake3: blake3::hash(d).to_hex().to_string(),
+            blake3: *blake3::hash(d).as_bytes(),
         });
         dict_offset += d.len() as u64;
     }
     summary.dictionary_bytes = dict_offset;
     drop(cdicts);
     drop(dictionaries);
-    // The manifest is serialized twice, never held as bytes: once to count its length (the
-    // header fields, which the checksum covers first, need it), then into the file and the
-    // checksum at once.
-    let mut counter = Counter(0);
-    serde_json::to_writer(&mut counter, &manifest).map_err(std::io::Error::other)?;
-    let manifest_len = counter.0;
+    // The manifest is streamed into the file and the checksum at once, never held as bytes:
+    // its length (the header fields, which the checksum covers first, need it) follows from
+    // its counts.
+    let counts = manifest_counts(&manifest)?;
+    let manifest_len = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?.end;
     let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count: blobs.len() as u64 };
     let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
     pad8(&mut out, layout.dictionaries + dict_offset)?;
@@ -682,9 +691,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     let mut hasher = blake3::Hasher::new();
     hasher.update(&fields);
     let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
-    serde_json::to_writer(&mut tee, &manifest).map_err(std::io::Error::other)?;
+    encode_manifest(&manifest, &counts, &mut tee)?;
     if tee.written != manifest_len {
-        return Err(std::io::Error::other("the manifest serialized to two different lengths"));
+        return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
     drop(manifest);
     pad8(&mut out, layout.manifest + manifest_len)?;
@@ -697,6 +706,90 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+/// The counts of `manifest`'s header (the tables' JSON is serialized once to count it).
+fn manifest_counts(manifest: &Manifest) -> std::io::Result<ManifestCounts> {
+    let mut counter = Counter(0);
+    serde_json::to_writer(&mut counter, &tables_of(manifest)).map_err(std::io::Error::other)?;
+    let p = &manifest.permutations;
+    Ok(ManifestCounts {
+        permutations: p.len() as u64,
+        values: p.iter().map(|p| p.values.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifacts.len() as u64).sum(),
+        dictionaries: manifest.dictionaries.len() as u64,
+        tables_len: counter.0,
+        names_len: p.iter().map(|p| p.name.len() as u64).sum(),
+    })
+}
+
+fn tables_of(manifest: &Manifest) -> TablesOut<'_> {
+    TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+    }
+}
+
+/// Writes the binary manifest (layout in `format.rs`) of `counts`, `manifest`'s.
+fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl Write) -> std::io::Result<()> {
+    let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
+    out.write_all(&counts.encode())?;
+    let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
+    for p in &manifest.permutations {
+        let record = Record {
+            name_offset,
+            name_len: u32::try_from(p.name.len()).map_err(|_| too_many())?,
+            shader: p.shader,
+            reflection: p.reflection,
+            first_value,
+            first_artifact,
+            artifact_count: p.artifacts.len() as u32,
+        };
+        out.write_all(&record.encode())?;
+        name_offset += p.name.len() as u64;
+        first_value =
+            u32::try_from(p.values.len()).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
+        first_artifact =
+            u32::try_from(p.artifacts.len()).ok().and_then(|n| first_artifact.checked_add(n)).ok_or_else(too_many)?;
+    }
+    let mut ids: Vec<(u128, u32)> = manifest
+        .permutations
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let s = &manifest.shaders[p.shader as usize];
+            (super::permutation_id(&s.name, &s.level, &p.values), i as u32)
+        })
+        .collect();
+    ids.sort_unstable();
+    for (id, index) in ids {
+        let mut b = [0u8; ID_LEN];
+        b[0..16].copy_from_slice(&id.to_le_bytes());
+        b[16..20].copy_from_slice(&index.to_le_bytes());
+        out.write_all(&b)?;
+    }
+    for p in &manifest.permutations {
+        for v in &p.values {
+            out.write_all(&v.to_le_bytes())?;
+        }
+    }
+    for p in &manifest.permutations {
+        for (t, b) in &p.artifacts {
+            out.write_all(&encode_artifact(*t, *b))?;
+        }
+    }
+    for d in &manifest.dictionaries {
+        out.write_all(&d.encode())?;
+    }
+    let layout = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?;
+    serde_json::to_writer(&mut *out, &tables_of(manifest)).map_err(std::io::Error::other)?;
+    pad8(out, layout.tables + counts.tables_len)?;
+    for p in &manifest.permutations {
+        out.write_all(p.name.as_bytes())?;
+    }
+    Ok(())
 }
 
 /// A writer that only counts.
