@@ -237,7 +237,7 @@ fn fifos_directories_and_old_versions_are_clear_errors() {
     let o = kiln(d, &["inspect", "old.kpak"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(
-        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 2); rebuild"),
+        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 3); rebuild"),
         "{}",
         stderr(&o)
     );

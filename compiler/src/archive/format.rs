@@ -214,7 +214,9 @@ pub(crate) struct DictionaryRecord {
     pub blake3: [u8; 32],
 }
 
-/// The manifest as the writer holds it before encoding it.
+/// The manifest as the writer holds it before encoding it: its permutations in archive
+/// order, pointing into arenas of names, values and artifacts (no allocation per
+/// permutation).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Manifest {
     pub kiln_version: String,
@@ -223,7 +225,32 @@ pub(crate) struct Manifest {
     pub reflections: Vec<Reflection>,
     pub dictionaries: Vec<DictionaryRecord>,
     /// Sorted by name.
-    pub permutations: Vec<PermutationRecord>,
+    pub permutations: Vec<ManifestPermutation>,
+    pub names: String,
+    pub values: Vec<i64>,
+    pub artifacts: Vec<(Target, BlobId)>,
+}
+
+/// A permutation of [`Manifest`]: ranges of its arenas (the values' count is its shader's
+/// dimension count), its shader and reflection in the manifest's numbering.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ManifestPermutation {
+    pub name_start: u64,
+    pub name_len: u32,
+    pub shader: u32,
+    pub reflection: u32,
+    pub first_value: u32,
+    pub first_artifact: u32,
+    pub artifact_count: u32,
+}
+
+impl Manifest {
+    pub fn name_of(&self, p: &ManifestPermutation) -> &str {
+        &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]
+    }
+    pub fn values_of(&self, p: &ManifestPermutation, count: usize) -> &[i64] {
+        &self.values[p.first_value as usize..p.first_value as usize + count]
+    }
 }
 
 /// Bytes of the manifest's header, of one permutation record, one id, one value, one

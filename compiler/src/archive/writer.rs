@@ -24,8 +24,9 @@ use std::sync::Mutex;
 
 use super::format::{
     encode_artifact, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
-    ManifestCounts, PermutationRecord, Record, Sections, ShaderRecord, TablesOut, CODEC_STORED, CODEC_ZSTD,
-    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
+    ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections, ShaderRecord, TablesOut, CODEC_STORED,
+    CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN,
+    NO_DICTIONARY,
 };
 use super::{Reflection, Target};
 
@@ -77,16 +78,21 @@ pub struct ArchiveSummary {
     pub file_bytes: u64,
 }
 
+/// A permutation waiting for `finish`: 32 bytes, its name, values and artifacts in the
+/// arenas of [`Entries`] (no allocation per permutation).
+#[derive(Clone, Copy)]
 struct Pending {
-    name: String,
+    name_start: u64,
+    name_len: u32,
     shader: u32,
-    values: Vec<i64>,
     reflection: u32,
-    artifacts: Vec<(Target, blake3::Hash)>,
+    first_value: u32,
+    first_artifact: u32,
+    artifact_count: u32,
 }
 
 /// The manifest side of a writer: interned shaders and reflections, pending permutations.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct Entries {
     naga_version: String,
     shaders: Vec<ShaderRecord>,
@@ -94,6 +100,10 @@ struct Entries {
     reflections: Vec<Reflection>,
     reflection_index: HashMap<Reflection, u32>,
     permutations: Vec<Pending>,
+    /// Every pending permutation's name, one after another.
+    names: String,
+    values: Vec<i64>,
+    artifacts: Vec<(Target, blake3::Hash)>,
 }
 
 impl Entries {
@@ -135,12 +145,29 @@ impl Entries {
         }
         // The caller's order of targets is kept: it is part of the permutation (the order of
         // the level's targets), not an order of arrival.
-        let artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
+        let artifacts = &p.artifacts;
         if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
             return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
         }
-        self.permutations.push(Pending { name: p.name, shader, values: p.values, reflection, artifacts });
+        let too_many = || ArchiveError::Input("more than 2^32 permutation values or artifacts".into());
+        let pending = Pending {
+            name_start: self.names.len() as u64,
+            name_len: u32::try_from(p.name.len()).map_err(|_| too_many())?,
+            shader,
+            reflection,
+            first_value: u32::try_from(self.values.len()).map_err(|_| too_many())?,
+            first_artifact: u32::try_from(self.artifacts.len()).map_err(|_| too_many())?,
+            artifact_count: artifacts.len() as u32,
+        };
+        self.names.push_str(&p.name);
+        self.values.extend_from_slice(&p.values);
+        self.artifacts.extend(artifacts.iter().map(|(t, k)| (*t, k.0)));
+        self.permutations.push(pending);
         Ok(())
+    }
+
+    fn name(&self, p: &Pending) -> &str {
+        &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]
     }
 }
 
@@ -269,6 +296,8 @@ impl StreamingWriter {
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let (index, _) = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
         let plan = plan(entries, &index)?;
+        #[cfg(feature = "compiler")]
+        crate::build::trace_memory("archive planned");
         // The spool index is not needed past planning: free it before the archive is written.
         drop(index);
         let spool = Spool::File(&self.spool);
@@ -387,26 +416,7 @@ impl ArchiveWriter {
         if let Some(e) = &self.error {
             return Err(ArchiveError::Input(e.clone()));
         }
-        let entries = Entries {
-            naga_version: self.entries.naga_version.clone(),
-            shaders: self.entries.shaders.clone(),
-            shader_index: HashMap::new(),
-            reflections: self.entries.reflections.clone(),
-            reflection_index: HashMap::new(),
-            permutations: self
-                .entries
-                .permutations
-                .iter()
-                .map(|p| Pending {
-                    name: p.name.clone(),
-                    shader: p.shader,
-                    values: p.values.clone(),
-                    reflection: p.reflection,
-                    artifacts: p.artifacts.clone(),
-                })
-                .collect(),
-        };
-        plan(entries, &self.index)
+        plan(self.entries.clone(), &self.index)
     }
 
     /// The whole archive as bytes.
@@ -456,13 +466,16 @@ struct Plan {
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
-/// the result depends on the set added, not on the order of adding.
+/// the result depends on the set added, not on the order of adding. The arenas are kept:
+/// the manifest's permutations point into them.
 fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<Plan, ArchiveError> {
-    let Entries { naga_version, shaders, reflections, mut permutations, .. } = entries;
-    permutations.sort_by(|a, b| a.name.cmp(&b.name));
-    if let Some(w) = permutations.windows(2).find(|w| w[0].name == w[1].name) {
-        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", w[0].name)));
+    let mut order: Vec<u32> = (0..entries.permutations.len() as u32).collect();
+    let name = |i: u32| entries.name(&entries.permutations[i as usize]);
+    order.sort_unstable_by(|&a, &b| name(a).cmp(name(b)));
+    if let Some(w) = order.windows(2).find(|w| name(w[0]) == name(w[1])) {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", name(w[0]))));
     }
+    let Entries { naga_version, shaders, reflections, permutations, names, values, artifacts, .. } = entries;
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
@@ -470,24 +483,29 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
     let mut blob_ids: HashMap<blake3::Hash, u32> = HashMap::new();
     let mut blobs = Vec::new();
-    for p in permutations {
-        let shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
+    // Each artifact's blob, in the arena's order.
+    let mut blob_of: Vec<(Target, BlobId)> = vec![(Target::Wgsl, BlobId(0)); artifacts.len()];
+    manifest.permutations.reserve_exact(order.len());
+    for i in order {
+        let mut p = permutations[i as usize];
+        p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
             manifest.shaders.len() as u32 - 1
         });
-        let reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
+        p.reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
             manifest.reflections.push(reflections[p.reflection as usize].take().expect("taken once"));
             manifest.reflections.len() as u32 - 1
         });
-        let mut artifacts = Vec::with_capacity(p.artifacts.len());
-        for (target, hash) in p.artifacts {
+        let first = p.first_artifact as usize;
+        for a in first..first + p.artifact_count as usize {
+            let (target, hash) = artifacts[a];
             let id = match blob_ids.get(&hash) {
                 Some(&id) => id,
                 None => {
                     let Some(&(spool_offset, len)) = index.get(&hash) else {
+                        let name = &names[p.name_start as usize..][..p.name_len as usize];
                         return Err(ArchiveError::Input(format!(
-                            "permutation `{}` names a {target} blob that was never added",
-                            p.name
+                            "permutation `{name}` names a {target} blob that was never added"
                         )));
                     };
                     let id = blobs.len() as u32;
@@ -496,10 +514,22 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
                     id
                 }
             };
-            artifacts.push((target, BlobId(id)));
+            blob_of[a] = (target, BlobId(id));
         }
-        manifest.permutations.push(PermutationRecord { name: p.name, shader, values: p.values, reflection, artifacts });
+        manifest.permutations.push(ManifestPermutation {
+            name_start: p.name_start,
+            name_len: p.name_len,
+            shader: p.shader,
+            reflection: p.reflection,
+            first_value: p.first_value,
+            first_artifact: p.first_artifact,
+            artifact_count: p.artifact_count,
+        });
     }
+    drop((permutations, artifacts, blob_ids));
+    manifest.names = names;
+    manifest.values = values;
+    manifest.artifacts = blob_of;
     Ok(Plan { manifest, blobs })
 }
 
@@ -715,11 +745,11 @@ fn manifest_counts(manifest: &Manifest) -> std::io::Result<ManifestCounts> {
     let p = &manifest.permutations;
     Ok(ManifestCounts {
         permutations: p.len() as u64,
-        values: p.iter().map(|p| p.values.len() as u64).sum(),
-        artifacts: p.iter().map(|p| p.artifacts.len() as u64).sum(),
+        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
         dictionaries: manifest.dictionaries.len() as u64,
         tables_len: counter.0,
-        names_len: p.iter().map(|p| p.name.len() as u64).sum(),
+        names_len: p.iter().map(|p| p.name_len as u64).sum(),
     })
 }
 
@@ -738,21 +768,20 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
     out.write_all(&counts.encode())?;
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
+        let value_count = manifest.shaders[p.shader as usize].dimensions.len();
         let record = Record {
             name_offset,
-            name_len: u32::try_from(p.name.len()).map_err(|_| too_many())?,
+            name_len: p.name_len,
             shader: p.shader,
             reflection: p.reflection,
             first_value,
             first_artifact,
-            artifact_count: p.artifacts.len() as u32,
+            artifact_count: p.artifact_count,
         };
         out.write_all(&record.encode())?;
-        name_offset += p.name.len() as u64;
-        first_value =
-            u32::try_from(p.values.len()).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
-        first_artifact =
-            u32::try_from(p.artifacts.len()).ok().and_then(|n| first_artifact.checked_add(n)).ok_or_else(too_many)?;
+        name_offset += p.name_len as u64;
+        first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
+        first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
     }
     let mut ids: Vec<(u128, u32)> = manifest
         .permutations
@@ -760,7 +789,7 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
         .enumerate()
         .map(|(i, p)| {
             let s = &manifest.shaders[p.shader as usize];
-            (super::permutation_id(&s.name, &s.level, &p.values), i as u32)
+            (super::permutation_id(&s.name, &s.level, manifest.values_of(p, s.dimensions.len())), i as u32)
         })
         .collect();
     ids.sort_unstable();
@@ -771,12 +800,13 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
         out.write_all(&b)?;
     }
     for p in &manifest.permutations {
-        for v in &p.values {
+        for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
             out.write_all(&v.to_le_bytes())?;
         }
     }
     for p in &manifest.permutations {
-        for (t, b) in &p.artifacts {
+        let first = p.first_artifact as usize;
+        for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
             out.write_all(&encode_artifact(*t, *b))?;
         }
     }
@@ -787,7 +817,7 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
     serde_json::to_writer(&mut *out, &tables_of(manifest)).map_err(std::io::Error::other)?;
     pad8(out, layout.tables + counts.tables_len)?;
     for p in &manifest.permutations {
-        out.write_all(p.name.as_bytes())?;
+        out.write_all(manifest.name_of(p).as_bytes())?;
     }
     Ok(())
 }
