@@ -130,12 +130,12 @@ fn measure(label: &str, path: &Path) {
     println!("  artifacts raw:                  {:10.2} MB", mb(raw));
     println!("  format 1 (raw blobs):           {:10.2} MB", mb(format1));
     println!(
-        "  format 2:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
+        "  format 3:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
         mb(file),
         mb(stored),
         mb(dictionaries)
     );
-    println!("  format 2 / format 1:            {:10.3}  (goal <= 0.125)", file as f64 / format1 as f64);
+    println!("  format 3 / format 1:            {:10.3}  (goal <= 0.125)", file as f64 / format1 as f64);
     println!("  open (mmap, header + manifest): {:10.1} us median  (goal <= 1000)", us(median(opens)));
     println!("  lookup + decompress, first use: {:10.1} us median  (checksum checked)", us(median(first)));
     println!("  lookup + decompress, again:     {:10.1} us median  (goal <= 100)", us(median(again)));
@@ -301,7 +301,8 @@ fn many_archive(path: &Path, count: usize) -> f64 {
         let values: Vec<i64> = (0..10).map(|d| ((k >> d) & 1) as i64).chain([(k >> 10) as i64 % 4]).collect();
         let dims: Vec<String> = (0..10).map(|d| format!("USE_FEATURE_{d}={}", values[d])).collect();
         let wgsl = format!("// {name} {level} {k}\n{}", "fn f() -> f32 { return 1.0; }\n".repeat(8 + k % 5));
-        let spirv: Vec<u8> = (0..64u32).flat_map(|x| (x * 2654435761 ^ (i as u32 / 2)).to_le_bytes()).collect();
+        let spirv: Vec<u8> =
+            (0..64u32).flat_map(|x| (x.wrapping_mul(2654435761) ^ (i as u32 / 2)).to_le_bytes()).collect();
         let artifacts = vec![(Target::Wgsl, w.add_blob(wgsl.as_bytes())), (Target::Spirv, w.add_blob(&spirv))];
         w.add_permutation(PermutationRecord {
             name: format!("{name}@{level}{{{},BLEND_MODE={}}}", dims.join(","), modes[values[10] as usize]),
