@@ -1,13 +1,17 @@
 //! The archive format in numbers, measured in one run.
 //!
 //! `cargo bench -p kiln --bench archive [-- CONFIG]` (CONFIG defaults to the workspace's
-//! `permutations.toml`, the bundled set). For each of
+//! `permutations.toml`, the bundled set; `KILN_ARCHIVE_SETS=bundled,generated,big,many` runs
+//! only some of the parts below). For each of
 //!
 //! 1. the bundled set, built through `kiln::build::run` (its cache under `target/`);
 //! 2. a generated set of 1,024 permutations (one fragment shader with 9 bool dimensions,
 //!    every dimension adding code, at two levels: real naga artifacts);
 //! 3. a generated archive of about 1 GiB (1,024 permutations, 1 MiB of incompressible bytes
 //!    each): what opening costs when the body is large and the manifest is not;
+//! 4. generated archives of 10,000 and 100,000 permutations with engine-like names (16
+//!    shader/level pairs of 11 dimensions, two small artifacts each): what opening costs when
+//!    the manifest is large;
 //!
 //! it prints the sizes (raw artifacts, what format 1 would take, what format 2 takes, the
 //! ratio), the time to write the archive, the median open time (memory map, header and
@@ -126,12 +130,12 @@ fn measure(label: &str, path: &Path) {
     println!("  artifacts raw:                  {:10.2} MB", mb(raw));
     println!("  format 1 (raw blobs):           {:10.2} MB", mb(format1));
     println!(
-        "  format 2:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
+        "  format 3:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
         mb(file),
         mb(stored),
         mb(dictionaries)
     );
-    println!("  format 2 / format 1:            {:10.3}  (goal <= 0.125)", file as f64 / format1 as f64);
+    println!("  format 3 / format 1:            {:10.3}  (goal <= 0.125)", file as f64 / format1 as f64);
     println!("  open (mmap, header + manifest): {:10.1} us median  (goal <= 1000)", us(median(opens)));
     println!("  lookup + decompress, first use: {:10.1} us median  (checksum checked)", us(median(first)));
     println!("  lookup + decompress, again:     {:10.1} us median  (goal <= 100)", us(median(again)));
@@ -259,6 +263,67 @@ fn big_archive(path: &Path, count: usize, blob: usize) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
+/// An archive of `count` permutations shaped like a generated engine set: 16 (shader, level)
+/// pairs of 11 dimensions (ten bools and an enum), so names are as long as real ones, with a
+/// WGSL and a SPIR-V artifact of a few hundred bytes each (pairs of permutations share the
+/// SPIR-V one). What opening costs when the manifest, not the body, is large.
+fn many_archive(path: &Path, count: usize) -> f64 {
+    let mut w = ArchiveWriter::new();
+    let modes = ["OPAQUE", "MASKED", "TRANSLUCENT", "ADDITIVE"];
+    let mut shaders = Vec::new();
+    for s in 0..8 {
+        for level in ["sm5", "es3_1"] {
+            let mut dimensions: Vec<DimensionRecord> =
+                (0..10).map(|d| DimensionRecord { name: format!("USE_FEATURE_{d}"), labels: vec![] }).collect();
+            dimensions.push(DimensionRecord { name: "BLEND_MODE".into(), labels: modes.map(String::from).to_vec() });
+            dimensions.push(DimensionRecord { name: "LAYER".into(), labels: vec![] });
+            let name = format!("GeneratedMaterial{s}PS");
+            let handle = w.add_shader(ShaderRecord {
+                name: name.clone(),
+                level: level.into(),
+                entry: "main_ps".into(),
+                stage: Stage::Fragment,
+                dimensions,
+            });
+            let reflection = w.add_reflection(&Reflection {
+                entry: "main_ps".into(),
+                stage: Stage::Fragment,
+                bindings: vec![],
+                vertex_inputs: vec![],
+                color_outputs: vec![],
+                workgroup_size: Some([s, 1, 1]),
+            });
+            shaders.push((name, level, handle, reflection));
+        }
+    }
+    for i in 0..count {
+        let (name, level, shader, reflection) = &shaders[i % shaders.len()];
+        let k = i / shaders.len();
+        let values: Vec<i64> =
+            (0..10).map(|d| ((k >> d) & 1) as i64).chain([(k >> 10) as i64 % 4, (k >> 12) as i64]).collect();
+        let dims: Vec<String> = (0..10).map(|d| format!("USE_FEATURE_{d}={}", values[d])).collect();
+        let wgsl = format!("// {name} {level} {k}\n{}", "fn f() -> f32 { return 1.0; }\n".repeat(8 + k % 5));
+        let spirv: Vec<u8> =
+            (0..64u32).flat_map(|x| (x.wrapping_mul(2654435761) ^ (i as u32 / 2)).to_le_bytes()).collect();
+        let artifacts = vec![(Target::Wgsl, w.add_blob(wgsl.as_bytes())), (Target::Spirv, w.add_blob(&spirv))];
+        w.add_permutation(PermutationRecord {
+            name: format!(
+                "{name}@{level}{{{},BLEND_MODE={},LAYER={}}}",
+                dims.join(","),
+                modes[values[10] as usize],
+                values[11]
+            ),
+            shader: *shader,
+            values,
+            reflection: *reflection,
+            artifacts,
+        });
+    }
+    let t = Instant::now();
+    w.write_unsynced(path).unwrap();
+    t.elapsed().as_secs_f64()
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
@@ -266,25 +331,61 @@ fn main() {
     let scratch = tempfile::tempdir().unwrap();
     let cache = root.join("target/kiln-bench-cache");
 
-    let out = scratch.path().join("bundled.kpak");
-    let secs = build_archive(&config, &out, &cache);
-    println!("(build of {} with its cache: {secs:.2} s)", config.display());
-    measure(&format!("set {}", config.display()), &out);
-    compare_schemes(&out);
+    // KILN_ARCHIVE_SETS=bundled,generated,big,many picks the parts to run (all by default).
+    let sets = std::env::var("KILN_ARCHIVE_SETS").unwrap_or_default();
+    let wanted = |set: &str| sets.is_empty() || sets.split(',').any(|s| s.trim() == set);
 
-    let gen = generate_set(scratch.path());
-    let out = scratch.path().join("generated.kpak");
-    let secs = build_archive(&gen, &out, &cache);
-    println!("(build of the generated set: {secs:.2} s)");
-    measure("generated set", &out);
-    compare_schemes(&out);
-    // Writing alone (dictionary training and compression), from the cache.
-    std::fs::remove_file(&out).unwrap();
-    let secs = build_archive(&gen, &out, &cache);
-    println!("  warm rebuild, archive rewritten: {secs:.2} s");
+    if wanted("bundled") {
+        let out = scratch.path().join("bundled.kpak");
+        let secs = build_archive(&config, &out, &cache);
+        println!("(build of {} with its cache: {secs:.2} s)", config.display());
+        measure(&format!("set {}", config.display()), &out);
+        compare_schemes(&out);
+    }
 
-    let out = scratch.path().join("big.kpak");
-    let secs = big_archive(&out, 1024, 1 << 20);
-    println!("(generated 1 GiB archive written in {secs:.2} s)");
-    measure("1 GiB archive", &out);
+    if wanted("generated") {
+        let gen = generate_set(scratch.path());
+        let out = scratch.path().join("generated.kpak");
+        let secs = build_archive(&gen, &out, &cache);
+        println!("(build of the generated set: {secs:.2} s)");
+        measure("generated set", &out);
+        compare_schemes(&out);
+        // Writing alone (dictionary training and compression), from the cache.
+        std::fs::remove_file(&out).unwrap();
+        let secs = build_archive(&gen, &out, &cache);
+        println!("  warm rebuild, archive rewritten: {secs:.2} s");
+    }
+
+    if wanted("big") {
+        let out = scratch.path().join("big.kpak");
+        let secs = big_archive(&out, 1024, 1 << 20);
+        println!("(generated 1 GiB archive written in {secs:.2} s)");
+        measure("1 GiB archive", &out);
+        std::fs::remove_file(&out).unwrap();
+    }
+
+    for count in [10_000, 100_000].into_iter().filter(|_| wanted("many")) {
+        let out = scratch.path().join(format!("many{count}.kpak"));
+        let secs = many_archive(&out, count);
+        println!("(generated archive of {count} permutations written in {secs:.2} s)");
+        measure(&format!("generated archive, {count} permutations"), &out);
+        // What opening cannot avoid: the checksum of the manifest and the blob table.
+        let bytes = std::fs::read(&out).unwrap();
+        let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
+        let blobs = u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize;
+        let checked = &bytes[bytes.len() - blobs * 64 - manifest_len.next_multiple_of(8)..];
+        let sums: Vec<Duration> = (0..21)
+            .map(|_| {
+                let t = Instant::now();
+                std::hint::black_box(blake3::hash(checked));
+                t.elapsed()
+            })
+            .collect();
+        println!(
+            "  of which blake3 of manifest + table: {:.1} us median ({:.2} MB; manifest {:.2} MB)",
+            us(median(sums)),
+            mb(checked.len() as u64),
+            mb(manifest_len as u64)
+        );
+    }
 }

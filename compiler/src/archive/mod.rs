@@ -7,8 +7,9 @@
 //! they come, from any thread) and is deterministic (the bytes depend on the set of
 //! permutations and blobs, not on the order they came in) and atomic (temp file, then
 //! rename); the reader never panics on bad bytes, checks header and manifest at open
-//! (O(manifest)), checks each blob the first time it is used, and finds a permutation by
-//! name with one hash-map lookup.
+//! (O(manifest), the manifest read in place, nothing parsed per permutation), checks each
+//! blob the first time it is used, and finds a permutation by name or id with a binary
+//! search of the manifest's sorted records.
 //!
 //! This module builds without the `compiler` feature: the runtime reads archives through
 //! these very types, with no naga in its dependency tree.

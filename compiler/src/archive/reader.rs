@@ -12,9 +12,10 @@ use std::sync::OnceLock;
 use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
-    header_checksum, ArchiveError, BlobId, DimensionRecord, Entry, Manifest, PermutationRecord, Sections, ShaderRecord,
-    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
-    NO_DICTIONARY,
+    decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
+    ManifestLayout, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CODEC_STORED, CODEC_ZSTD,
+    CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC, MAX_ARTIFACT_LEN,
+    NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
 
@@ -62,18 +63,26 @@ pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
 
 pub struct Archive {
     bytes: Bytes,
-    manifest: Manifest,
     blobs_start: usize,
     dictionaries_start: usize,
     table_start: usize,
     blob_count: usize,
+    /// Where the manifest's parts lie in `bytes` (absolute offsets).
+    records_start: usize,
+    ids_start: usize,
+    values_start: usize,
+    artifacts_start: usize,
+    names_start: usize,
+    permutation_count: usize,
+    tables: Tables,
+    dictionaries: Vec<DictionaryRecord>,
+    /// Each permutation's values, decoded on first use.
+    values: Box<[OnceLock<Box<[i64]>>]>,
     /// Whether each blob has passed its checksum.
     verified: Box<[AtomicBool]>,
     /// Each dictionary, loaded (and checked) on first use.
     ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
-    by_name: HashMap<String, u32>,
     by_shader: HashMap<(String, String), u32>,
-    by_id: HashMap<u128, u32>,
 }
 
 /// Sizes of one blob.
@@ -89,31 +98,56 @@ pub struct BlobInfo {
     pub dictionary: bool,
 }
 
-/// A permutation found in an archive.
+/// A permutation found in an archive: an index into its manifest, whose fields are read in
+/// place.
 #[derive(Clone, Copy)]
 pub struct PermutationRef<'a> {
     archive: &'a Archive,
-    record: &'a PermutationRecord,
+    index: u32,
+    record: Record,
 }
 
 impl<'a> PermutationRef<'a> {
     pub fn name(&self) -> &'a str {
-        &self.record.name
+        self.archive.name_of(&self.record)
     }
     pub fn shader(&self) -> &'a ShaderRecord {
-        &self.archive.manifest.shaders[self.record.shader as usize]
+        &self.archive.tables.shaders[self.record.shader as usize]
+    }
+    /// Index of its shader in [`Archive::shaders`].
+    pub fn shader_index(&self) -> u32 {
+        self.record.shader
     }
     pub fn values(&self) -> &'a [i64] {
-        &self.record.values
+        let archive = self.archive;
+        archive.values[self.index as usize].get_or_init(|| {
+            let n = archive.tables.shaders[self.record.shader as usize].dimensions.len();
+            let start = archive.values_start + self.record.first_value as usize * VALUE_LEN;
+            archive.bytes.as_slice()[start..start + n * VALUE_LEN]
+                .chunks_exact(VALUE_LEN)
+                .map(|b| i64::from_le_bytes(b.try_into().unwrap()))
+                .collect()
+        })
     }
     pub fn reflection(&self) -> &'a Reflection {
-        &self.archive.manifest.reflections[self.record.reflection as usize]
+        &self.archive.tables.reflections[self.record.reflection as usize]
+    }
+    /// Index of its reflection in [`Archive::reflections`].
+    pub fn reflection_index(&self) -> u32 {
+        self.record.reflection
+    }
+    /// Its artifacts' targets and blobs, in the level's order of targets.
+    fn artifacts(&self) -> impl Iterator<Item = (Target, BlobId)> + 'a {
+        let start = self.archive.artifacts_start + self.record.first_artifact as usize * ARTIFACT_LEN;
+        let bytes = &self.archive.bytes.as_slice()[start..start + self.record.artifact_count as usize * ARTIFACT_LEN];
+        // Every artifact was checked at open.
+        bytes.chunks_exact(ARTIFACT_LEN).filter_map(super::format::decode_artifact)
     }
     pub fn targets(&self) -> impl Iterator<Item = Target> + 'a {
-        self.record.artifacts.iter().map(|(t, _)| *t)
+        self.artifacts().map(|(t, _)| t)
     }
     pub fn blob_id(&self, target: Target) -> Option<BlobId> {
-        self.record.artifacts.iter().find(|(t, _)| *t == target).map(|(_, b)| *b)
+        self.artifacts().find(|(t, _)| *t == target).map(|(_, b)| b)
     }
     /// The artifact for `target` (`None` when the permutation has none), decompressed, and
     /// checked against its checksum the first time it is read. A corrupted blob is an error
@@ -121,13 +155,20 @@ impl<'a> PermutationRef<'a> {
     pub fn artifact(&self, target: Target) -> Result<Option<Cow<'a, [u8]>>, ArchiveError> {
         let Some(id) = self.blob_id(target) else { return Ok(None) };
         self.archive.blob(id).map(Some).map_err(|message| ArchiveError::Blob {
-            permutation: self.record.name.clone(),
+            permutation: self.name().to_string(),
             target,
             message,
         })
     }
-    pub fn record(&self) -> &'a PermutationRecord {
-        self.record
+    /// Its record, decoded (a copy: the manifest is read in place).
+    pub fn record(&self) -> PermutationRecord {
+        PermutationRecord {
+            name: self.name().to_string(),
+            shader: self.record.shader,
+            values: self.values().to_vec(),
+            reflection: self.record.reflection,
+            artifacts: self.artifacts().collect(),
+        }
     }
 }
 
@@ -268,62 +309,80 @@ impl Archive {
                 actual: computed.to_hex().to_string(),
             });
         }
-        let manifest: Manifest =
-            serde_json::from_slice(manifest_bytes).map_err(|e| ArchiveError::Manifest(e.to_string()))?;
-        validate(&manifest, table, &sections)?;
-        let by_name = manifest.permutations.iter().enumerate().map(|(i, p)| (p.name.clone(), i as u32)).collect();
+        let m = read_manifest(data, layout.manifest as usize, sections.manifest_len as usize, &sections)?;
+        validate_table(table, &sections, m.dictionaries.len())?;
         let by_shader =
-            manifest.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
-        let by_id = manifest
-            .permutations
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let s = &manifest.shaders[p.shader as usize];
-                (permutation_id(&s.name, &s.level, &p.values), i as u32)
-            })
-            .collect();
+            m.tables.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
         let blob_count = sections.blob_count as usize;
+        let base = layout.manifest as usize;
         Ok(Archive {
             verified: (0..blob_count).map(|_| AtomicBool::new(false)).collect(),
-            ddicts: (0..manifest.dictionaries.len()).map(|_| OnceLock::new()).collect(),
-            bytes,
-            manifest,
+            ddicts: (0..m.dictionaries.len()).map(|_| OnceLock::new()).collect(),
+            values: (0..m.counts.permutations).map(|_| OnceLock::new()).collect(),
             blobs_start: layout.blobs as usize,
             dictionaries_start: layout.dictionaries as usize,
             table_start: layout.table as usize,
             blob_count,
-            by_name,
+            records_start: base + m.layout.records as usize,
+            ids_start: base + m.layout.ids as usize,
+            values_start: base + m.layout.values as usize,
+            artifacts_start: base + m.layout.artifacts as usize,
+            names_start: base + m.layout.names as usize,
+            permutation_count: m.counts.permutations as usize,
+            tables: m.tables,
+            dictionaries: m.dictionaries,
             by_shader,
-            by_id,
+            bytes,
         })
     }
 
+    /// The record of permutation `index` (< the permutation count).
+    fn record(&self, index: usize) -> Record {
+        let at = self.records_start + index * RECORD_LEN;
+        Record::decode(&self.bytes.as_slice()[at..at + RECORD_LEN])
+    }
+
+    /// The name of a record checked at open.
+    fn name_of(&self, r: &Record) -> &str {
+        let start = self.names_start + r.name_offset as usize;
+        // Checked at open to be in bounds and valid UTF-8.
+        std::str::from_utf8(&self.bytes.as_slice()[start..start + r.name_len as usize]).unwrap_or("")
+    }
+
+    fn permutation(&self, index: usize) -> PermutationRef<'_> {
+        PermutationRef { archive: self, index: index as u32, record: self.record(index) }
+    }
+
     pub fn kiln_version(&self) -> &str {
-        &self.manifest.kiln_version
+        &self.tables.kiln_version
     }
     pub fn naga_version(&self) -> &str {
-        &self.manifest.naga_version
+        &self.tables.naga_version
     }
     /// Size of the whole archive in bytes.
     pub fn len(&self) -> usize {
         self.bytes.as_slice().len()
     }
     pub fn is_empty(&self) -> bool {
-        self.manifest.permutations.is_empty()
+        self.permutation_count == 0
+    }
+    /// Number of permutations.
+    pub fn permutation_count(&self) -> usize {
+        self.permutation_count
     }
     pub fn shaders(&self) -> &[ShaderRecord] {
-        &self.manifest.shaders
+        &self.tables.shaders
     }
     pub fn blob_count(&self) -> usize {
         self.blob_count
     }
     pub fn reflections(&self) -> &[Reflection] {
-        &self.manifest.reflections
+        &self.tables.reflections
     }
 
-    pub fn permutations(&self) -> impl Iterator<Item = PermutationRef<'_>> {
-        self.manifest.permutations.iter().map(move |record| PermutationRef { archive: self, record })
+    /// Every permutation, sorted by name.
+    pub fn permutations(&self) -> impl ExactSizeIterator<Item = PermutationRef<'_>> {
+        (0..self.permutation_count).map(move |i| self.permutation(i))
     }
 
     /// The table entry of a blob; ids come from this archive's records, checked at open.
@@ -348,17 +407,17 @@ impl Archive {
 
     /// Each target's dictionary and its size in bytes.
     pub fn dictionaries(&self) -> impl Iterator<Item = (Target, u64)> + '_ {
-        self.manifest.dictionaries.iter().map(|d| (d.target, d.len))
+        self.dictionaries.iter().map(|d| (d.target, d.len))
     }
 
     /// The dictionary `index`, checked against its checksum and loaded on first use.
     fn ddict(&self, index: usize) -> Result<&DDict<'static>, String> {
         let cell = self.ddicts.get(index).ok_or_else(|| format!("dictionary {index} does not exist"))?;
         let loaded = cell.get_or_init(|| {
-            let d = &self.manifest.dictionaries[index];
+            let d = &self.dictionaries[index];
             let start = self.dictionaries_start + d.offset as usize;
             let bytes = &self.bytes.as_slice()[start..start + d.len as usize];
-            if blake3::hash(bytes).to_hex().as_str() != d.blake3 {
+            if blake3::hash(bytes).as_bytes() != &d.blake3 {
                 return Err(format!("the {} dictionary fails its checksum", d.target));
             }
             DDict::try_create(bytes).ok_or_else(|| format!("the {} dictionary cannot be loaded", d.target))
@@ -423,22 +482,55 @@ impl Archive {
         Ok(())
     }
 
-    /// O(1) lookup by canonical name.
+    /// Lookup by canonical name: a binary search of the records, sorted by name (O(log n)
+    /// string comparisons, read in place).
     pub fn get(&self, name: &str) -> Option<PermutationRef<'_>> {
-        let i = *self.by_name.get(name)?;
-        Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
+        let (mut lo, mut hi) = (0usize, self.permutation_count);
+        while lo < hi {
+            let mid = lo + (hi - lo) / 2;
+            match self.name_of(&self.record(mid)).cmp(name) {
+                std::cmp::Ordering::Less => lo = mid + 1,
+                std::cmp::Ordering::Greater => hi = mid,
+                std::cmp::Ordering::Equal => return Some(self.permutation(mid)),
+            }
+        }
+        None
     }
 
-    /// O(1) lookup by [`permutation_id`], the id that typed keys (`Key::permutation_id`, see
-    /// `kiln::bindings`) compute from their fields without formatting a name.
+    /// Lookup by [`permutation_id`], the id that typed keys (`Key::permutation_id`, see
+    /// `kiln::bindings`) compute from their fields without formatting a name: a binary search
+    /// of the manifest's sorted ids (16-byte comparisons, read in place). The permutation
+    /// found is checked to have that id.
     pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
-        let i = *self.by_id.get(&id)?;
-        Some(PermutationRef { archive: self, record: &self.manifest.permutations[i as usize] })
+        let data = self.bytes.as_slice();
+        let at = |i: usize| {
+            let o = self.ids_start + i * ID_LEN;
+            let id = u128::from_le_bytes(data[o..o + 16].try_into().unwrap());
+            (id, u32::from_le_bytes(data[o + 16..o + 20].try_into().unwrap()) as usize)
+        };
+        let (mut lo, mut hi) = (0usize, self.permutation_count);
+        while lo < hi {
+            let mid = lo + (hi - lo) / 2;
+            let (found, index) = at(mid);
+            match found.cmp(&id) {
+                std::cmp::Ordering::Less => lo = mid + 1,
+                std::cmp::Ordering::Greater => hi = mid,
+                std::cmp::Ordering::Equal => {
+                    if index >= self.permutation_count {
+                        return None;
+                    }
+                    let p = self.permutation(index);
+                    let s = p.shader();
+                    return (permutation_id(&s.name, &s.level, p.values()) == id).then_some(p);
+                }
+            }
+        }
+        None
     }
 
     /// The (shader, level) record, if the archive has that pair.
     pub fn shader(&self, shader: &str, level: &str) -> Option<&ShaderRecord> {
-        self.by_shader.get(&(shader.to_string(), level.to_string())).map(|&i| &self.manifest.shaders[i as usize])
+        self.by_shader.get(&(shader.to_string(), level.to_string())).map(|&i| &self.tables.shaders[i as usize])
     }
 
     /// Builds the canonical name of (shader, level, values) from the shader's dimension
@@ -447,7 +539,7 @@ impl Archive {
     pub fn canonical_name(&self, shader: &str, level: &str, values: &[(&str, &str)]) -> Result<String, String> {
         let record = self.shader(shader, level).ok_or_else(|| {
             let levels: Vec<&str> =
-                self.manifest.shaders.iter().filter(|s| s.name == shader).map(|s| s.level.as_str()).collect();
+                self.tables.shaders.iter().filter(|s| s.name == shader).map(|s| s.level.as_str()).collect();
             if levels.is_empty() {
                 format!("no shader named `{shader}` in the archive")
             } else {
@@ -489,8 +581,8 @@ impl Archive {
     pub fn nearest(&self, name: &str, limit: usize) -> Vec<Near> {
         let wanted = parse_name(name);
         let mut scored: Vec<(usize, Near)> = Vec::new();
-        for p in &self.manifest.permutations {
-            let have = parse_name(&p.name);
+        for p in self.permutations() {
+            let have = parse_name(p.name());
             let mut diffs = Vec::new();
             let mut score = 0usize;
             if have.shader != wanted.shader {
@@ -520,7 +612,7 @@ impl Archive {
                     diffs.push(format!("{k}: {wv} -> (no such dimension)"));
                 }
             }
-            scored.push((score, Near { name: p.name.clone(), differences: diffs }));
+            scored.push((score, Near { name: p.name().to_string(), differences: diffs }));
         }
         scored.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| a.1.name.cmp(&b.1.name)));
         scored.into_iter().take(limit).map(|(_, n)| n).collect()
@@ -579,19 +671,79 @@ fn edit_distance(a: &str, b: &str) -> usize {
     prev[b.len()]
 }
 
-/// Checks every index and range in the manifest and the blob table, so later accessors
-/// cannot go out of bounds or allocate what the archive announces without bound.
-fn validate(m: &Manifest, table: &[u8], sections: &Sections) -> Result<(), ArchiveError> {
-    let bad = |msg: String| Err(ArchiveError::Manifest(msg));
-    for (i, d) in m.dictionaries.iter().enumerate() {
+/// The manifest, read: its counts and layout, its tables and dictionaries parsed.
+struct ReadManifest {
+    counts: ManifestCounts,
+    layout: ManifestLayout,
+    tables: Tables,
+    dictionaries: Vec<DictionaryRecord>,
+}
+
+/// Reads the manifest at `data[start..start + len]` and checks every index and range of its
+/// records, so that later accessors cannot go out of bounds. O(permutations), with no
+/// allocation per permutation: each record is a few integer comparisons.
+fn read_manifest(data: &[u8], start: usize, len: usize, sections: &Sections) -> Result<ReadManifest, ArchiveError> {
+    let bad = |msg: String| ArchiveError::Manifest(msg);
+    let m = &data[start..start + len];
+    let counts = ManifestCounts::decode(m).ok_or_else(|| bad("the manifest's header is malformed".into()))?;
+    let layout = counts.layout().ok_or_else(|| bad("the manifest's counts overflow".into()))?;
+    if layout.end != len as u64 {
+        return Err(bad(format!("the manifest's counts give {} bytes, the header {len}", layout.end)));
+    }
+    let part = |from: u64, to: u64| &m[from as usize..to as usize];
+    let tables: Tables = serde_json::from_slice(part(layout.tables, layout.tables + counts.tables_len))
+        .map_err(|e| bad(format!("its tables: {e}")))?;
+    if part(layout.tables + counts.tables_len, layout.names).iter().any(|&b| b != 0) {
+        return Err(bad("padding after the tables is not zero".into()));
+    }
+    if counts.dictionaries > NO_DICTIONARY as u64 {
+        return Err(bad(format!("{} dictionaries", counts.dictionaries)));
+    }
+    let mut dictionaries = Vec::new();
+    for (i, b) in part(layout.dictionaries, layout.tables).chunks_exact(DICTIONARY_LEN).enumerate() {
+        let d = DictionaryRecord::decode(b).ok_or_else(|| bad(format!("dictionary {i} is malformed")))?;
         match d.offset.checked_add(d.len) {
             Some(end) if end <= sections.dictionaries_len => {}
-            _ => return bad(format!("dictionary {i} lies outside the dictionary section")),
+            _ => return Err(bad(format!("dictionary {i} lies outside the dictionary section"))),
+        }
+        dictionaries.push(d);
+    }
+    for (i, b) in part(layout.artifacts, layout.dictionaries).chunks_exact(ARTIFACT_LEN).enumerate() {
+        match decode_artifact(b) {
+            Some((_, blob)) if (blob.0 as u64) < sections.blob_count => {}
+            Some((t, _)) => return Err(bad(format!("artifact {i} names a missing {t} blob"))),
+            None => return Err(bad(format!("artifact {i} is malformed"))),
         }
     }
-    if m.dictionaries.len() > NO_DICTIONARY as usize {
-        return bad(format!("{} dictionaries", m.dictionaries.len()));
+    let names = std::str::from_utf8(part(layout.names, layout.end))
+        .map_err(|e| bad(format!("permutation names are not UTF-8: {e}")))?;
+    let dims: Vec<u64> = tables.shaders.iter().map(|s| s.dimensions.len() as u64).collect();
+    let reflections = tables.reflections.len() as u64;
+    for (i, b) in part(layout.records, layout.ids).chunks_exact(RECORD_LEN).enumerate() {
+        let r = Record::decode(b);
+        let end = r.name_offset.checked_add(r.name_len as u64).unwrap_or(u64::MAX);
+        let Some(name) = usize::try_from(end).ok().and_then(|end| names.get(r.name_offset as usize..end)) else {
+            return Err(bad(format!("permutation {i}'s name lies outside the names or splits a character")));
+        };
+        let Some(&n) = dims.get(r.shader as usize) else {
+            return Err(bad(format!("permutation `{name}` names shader {} of {}", r.shader, dims.len())));
+        };
+        if r.reflection as u64 >= reflections {
+            return Err(bad(format!("permutation `{name}` names a missing reflection")));
+        }
+        if r.first_value as u64 + n > counts.values {
+            return Err(bad(format!("permutation `{name}`'s {n} values lie outside the values")));
+        }
+        if r.first_artifact as u64 + r.artifact_count as u64 > counts.artifacts {
+            return Err(bad(format!("permutation `{name}`'s artifacts lie outside the artifacts")));
+        }
     }
+    Ok(ReadManifest { counts, layout, tables, dictionaries })
+}
+
+/// Checks every entry of the blob table.
+fn validate_table(table: &[u8], sections: &Sections, dictionaries: usize) -> Result<(), ArchiveError> {
+    let bad = |msg: String| Err(ArchiveError::Manifest(msg));
     for (i, bytes) in table.chunks_exact(ENTRY_LEN).enumerate() {
         let e = Entry::decode(bytes);
         if !Entry::reserved_zero(bytes) {
@@ -607,32 +759,8 @@ fn validate(m: &Manifest, table: &[u8], sections: &Sections) -> Result<(), Archi
         match e.codec {
             CODEC_STORED if e.stored_len == e.raw_len && e.dictionary == NO_DICTIONARY => {}
             CODEC_ZSTD if e.dictionary == NO_DICTIONARY => {}
-            CODEC_ZSTD_DICT if (e.dictionary as usize) < m.dictionaries.len() => {}
+            CODEC_ZSTD_DICT if (e.dictionary as usize) < dictionaries => {}
             c => return bad(format!("blob {i} has codec {c} with dictionary {}", e.dictionary)),
-        }
-    }
-    for (i, p) in m.permutations.iter().enumerate() {
-        if i > 0 && m.permutations[i - 1].name >= p.name {
-            return bad(format!("permutation `{}` is out of order or repeated", p.name));
-        }
-        let Some(shader) = m.shaders.get(p.shader as usize) else {
-            return bad(format!("permutation `{}` names shader {} of {}", p.name, p.shader, m.shaders.len()));
-        };
-        if p.values.len() != shader.dimensions.len() {
-            return bad(format!(
-                "permutation `{}` has {} values for {} dimensions",
-                p.name,
-                p.values.len(),
-                shader.dimensions.len()
-            ));
-        }
-        if p.reflection as usize >= m.reflections.len() {
-            return bad(format!("permutation `{}` names a missing reflection", p.name));
-        }
-        for (t, blob) in &p.artifacts {
-            if blob.0 as u64 >= sections.blob_count {
-                return bad(format!("permutation `{}` names a missing {t} blob", p.name));
-            }
         }
     }
     Ok(())

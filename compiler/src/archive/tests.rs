@@ -1,6 +1,6 @@
 //! Unit tests of the archive format: round trips, determinism, damage of every kind.
 
-use super::format::{header_checksum, Entry, ENTRY_LEN, HEADER_LEN};
+use super::format::{header_checksum, Entry, ManifestCounts, Record, ENTRY_LEN, HEADER_LEN, RECORD_LEN};
 use super::*;
 
 fn shader() -> ShaderRecord {
@@ -126,6 +126,33 @@ fn round_trip_dedups_blobs_and_finds_by_name() {
     let mut sorted = names.clone();
     sorted.sort();
     assert_eq!(names, sorted, "permutations are stored sorted by name");
+}
+
+#[test]
+fn every_permutation_is_found_by_name_and_by_id() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.kpak");
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).rev().collect();
+    stream(&path, &perms, &order, 2);
+    let a = Archive::open(&path).unwrap();
+    assert_eq!(a.permutation_count(), perms.len());
+    for (i, (name, arts)) in perms.iter().enumerate() {
+        let p = a.get(name).unwrap_or_else(|| panic!("{name} not found"));
+        assert_eq!(p.name(), name);
+        assert_eq!(p.values(), &[i as i64, (i % 2) as i64]);
+        let id = permutation_id("Lit", "sm5", &[i as i64, (i % 2) as i64]);
+        assert_eq!(a.get_by_id(id).unwrap().name(), name);
+        let record = p.record();
+        assert_eq!(record.artifacts.len(), arts.len());
+        for (t, bytes) in arts {
+            assert_eq!(&p.artifact(*t).unwrap().unwrap()[..], &bytes[..], "{name} {t}");
+        }
+    }
+    assert!(a.get("Lit@sm5{FULLY_ROUGH=96,MODE=OPAQUE}").is_none());
+    assert!(a.get("").is_none());
+    assert!(a.get("~").is_none());
+    assert!(a.get_by_id(permutation_id("Lit", "sm5", &[96, 0])).is_none());
 }
 
 #[test]
@@ -363,6 +390,58 @@ fn older_and_newer_format_versions_are_named() {
     bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
     let msg = Archive::from_vec(bytes).err().unwrap().to_string();
     assert!(msg.contains("format version 7 is not supported"), "{msg}");
+}
+
+#[test]
+fn format_2_archives_are_refused_with_a_rebuild_hint() {
+    let mut bytes = sample();
+    bytes[8..12].copy_from_slice(&2u32.to_le_bytes());
+    let msg = Archive::from_vec(bytes).err().unwrap().to_string();
+    assert!(msg.contains("archive format version 2 is not supported"), "{msg}");
+    assert!(msg.contains("reads version 3") && msg.contains("rebuild"), "{msg}");
+}
+
+/// Where the manifest starts, and its length.
+fn manifest_range(bytes: &[u8]) -> (usize, usize) {
+    let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
+    let table_start = bytes.len() - a_blob_count(bytes) * ENTRY_LEN;
+    (table_start - manifest_len.next_multiple_of(8), manifest_len)
+}
+
+#[test]
+fn hostile_permutation_records_with_a_valid_checksum_are_errors() {
+    let bytes = sample();
+    let (start, _) = manifest_range(&bytes);
+    let counts = ManifestCounts::decode(&bytes[start..]).unwrap();
+    let records = start + counts.layout().unwrap().records as usize;
+    let edits: [(fn(&mut Record), &str); 6] = [
+        (|r| r.name_offset = 1 << 40, "name lies outside"),
+        (|r| r.name_len += 1000, "name lies outside"),
+        (|r| r.shader = 7, "names shader 7 of 1"),
+        (|r| r.reflection = 3, "missing reflection"),
+        (|r| r.first_value = u32::MAX, "values lie outside"),
+        (|r| r.artifact_count = 9, "artifacts lie outside"),
+    ];
+    for (edit, wanted) in edits {
+        let mut b = bytes.clone();
+        let at = records + RECORD_LEN;
+        let mut r = Record::decode(&b[at..at + RECORD_LEN]);
+        edit(&mut r);
+        b[at..at + RECORD_LEN].copy_from_slice(&r.encode());
+        reseal(&mut b);
+        let msg = Archive::from_vec(b).err().expect("hostile record accepted").to_string();
+        assert!(msg.contains(wanted), "{wanted}: {msg}");
+    }
+    // A name cut inside a UTF-8 character, and counts that do not add up to the length.
+    let mut b = bytes.clone();
+    let (_, len) = manifest_range(&b);
+    b[start + len - 1] = 0xc3;
+    reseal(&mut b);
+    assert!(Archive::from_vec(b).err().unwrap().to_string().contains("UTF-8"));
+    let mut b = bytes.clone();
+    b[start..start + 8].copy_from_slice(&5u64.to_le_bytes());
+    reseal(&mut b);
+    assert!(Archive::from_vec(b).err().unwrap().to_string().contains("counts give"));
 }
 
 #[test]

@@ -23,9 +23,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest, PermutationRecord,
-    Sections, ShaderRecord, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE,
-    DICTIONARY_SIZE, HEADER_LEN, NO_DICTIONARY,
+    encode_artifact, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
+    ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections, ShaderRecord, TablesOut, CODEC_STORED,
+    CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN,
+    NO_DICTIONARY,
 };
 use super::{Reflection, Target};
 
@@ -77,16 +78,21 @@ pub struct ArchiveSummary {
     pub file_bytes: u64,
 }
 
+/// A permutation waiting for `finish`: 32 bytes, its name, values and artifacts in the
+/// arenas of [`Entries`] (no allocation per permutation).
+#[derive(Clone, Copy)]
 struct Pending {
-    name: String,
+    name_start: u64,
+    name_len: u32,
     shader: u32,
-    values: Vec<i64>,
     reflection: u32,
-    artifacts: Vec<(Target, blake3::Hash)>,
+    first_value: u32,
+    first_artifact: u32,
+    artifact_count: u32,
 }
 
 /// The manifest side of a writer: interned shaders and reflections, pending permutations.
-#[derive(Default)]
+#[derive(Clone, Default)]
 struct Entries {
     naga_version: String,
     shaders: Vec<ShaderRecord>,
@@ -94,6 +100,10 @@ struct Entries {
     reflections: Vec<Reflection>,
     reflection_index: HashMap<Reflection, u32>,
     permutations: Vec<Pending>,
+    /// Every pending permutation's name, one after another.
+    names: String,
+    values: Vec<i64>,
+    artifacts: Vec<(Target, blake3::Hash)>,
 }
 
 impl Entries {
@@ -123,14 +133,41 @@ impl Entries {
                 i
             }
         };
+        if p.values.len() != p.shader.dimensions.len() {
+            return Err(ArchiveError::Input(format!(
+                "permutation `{}` has {} values for the {} dimensions of `{}@{}`",
+                p.name,
+                p.values.len(),
+                p.shader.dimensions.len(),
+                p.shader.name,
+                p.shader.level
+            )));
+        }
         // The caller's order of targets is kept: it is part of the permutation (the order of
         // the level's targets), not an order of arrival.
-        let artifacts: Vec<(Target, blake3::Hash)> = p.artifacts.iter().map(|(t, k)| (*t, k.0)).collect();
+        let artifacts = &p.artifacts;
         if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
             return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
         }
-        self.permutations.push(Pending { name: p.name, shader, values: p.values, reflection, artifacts });
+        let too_many = || ArchiveError::Input("more than 2^32 permutation values or artifacts".into());
+        let pending = Pending {
+            name_start: self.names.len() as u64,
+            name_len: u32::try_from(p.name.len()).map_err(|_| too_many())?,
+            shader,
+            reflection,
+            first_value: u32::try_from(self.values.len()).map_err(|_| too_many())?,
+            first_artifact: u32::try_from(self.artifacts.len()).map_err(|_| too_many())?,
+            artifact_count: artifacts.len() as u32,
+        };
+        self.names.push_str(&p.name);
+        self.values.extend_from_slice(&p.values);
+        self.artifacts.extend(artifacts.iter().map(|(t, k)| (*t, k.0)));
+        self.permutations.push(pending);
         Ok(())
+    }
+
+    fn name(&self, p: &Pending) -> &str {
+        &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]
     }
 }
 
@@ -259,6 +296,8 @@ impl StreamingWriter {
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let (index, _) = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
         let plan = plan(entries, &index)?;
+        #[cfg(feature = "compiler")]
+        crate::build::trace_memory("archive planned");
         // The spool index is not needed past planning: free it before the archive is written.
         drop(index);
         let spool = Spool::File(&self.spool);
@@ -377,26 +416,7 @@ impl ArchiveWriter {
         if let Some(e) = &self.error {
             return Err(ArchiveError::Input(e.clone()));
         }
-        let entries = Entries {
-            naga_version: self.entries.naga_version.clone(),
-            shaders: self.entries.shaders.clone(),
-            shader_index: HashMap::new(),
-            reflections: self.entries.reflections.clone(),
-            reflection_index: HashMap::new(),
-            permutations: self
-                .entries
-                .permutations
-                .iter()
-                .map(|p| Pending {
-                    name: p.name.clone(),
-                    shader: p.shader,
-                    values: p.values.clone(),
-                    reflection: p.reflection,
-                    artifacts: p.artifacts.clone(),
-                })
-                .collect(),
-        };
-        plan(entries, &self.index)
+        plan(self.entries.clone(), &self.index)
     }
 
     /// The whole archive as bytes.
@@ -446,13 +466,16 @@ struct Plan {
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
-/// the result depends on the set added, not on the order of adding.
+/// the result depends on the set added, not on the order of adding. The arenas are kept:
+/// the manifest's permutations point into them.
 fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<Plan, ArchiveError> {
-    let Entries { naga_version, shaders, reflections, mut permutations, .. } = entries;
-    permutations.sort_by(|a, b| a.name.cmp(&b.name));
-    if let Some(w) = permutations.windows(2).find(|w| w[0].name == w[1].name) {
-        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", w[0].name)));
+    let mut order: Vec<u32> = (0..entries.permutations.len() as u32).collect();
+    let name = |i: u32| entries.name(&entries.permutations[i as usize]);
+    order.sort_unstable_by(|&a, &b| name(a).cmp(name(b)));
+    if let Some(w) = order.windows(2).find(|w| name(w[0]) == name(w[1])) {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", name(w[0]))));
     }
+    let Entries { naga_version, shaders, reflections, permutations, names, values, artifacts, .. } = entries;
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
@@ -460,24 +483,29 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
     let mut blob_ids: HashMap<blake3::Hash, u32> = HashMap::new();
     let mut blobs = Vec::new();
-    for p in permutations {
-        let shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
+    // Each artifact's blob, in the arena's order.
+    let mut blob_of: Vec<(Target, BlobId)> = vec![(Target::Wgsl, BlobId(0)); artifacts.len()];
+    manifest.permutations.reserve_exact(order.len());
+    for i in order {
+        let mut p = permutations[i as usize];
+        p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
             manifest.shaders.len() as u32 - 1
         });
-        let reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
+        p.reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
             manifest.reflections.push(reflections[p.reflection as usize].take().expect("taken once"));
             manifest.reflections.len() as u32 - 1
         });
-        let mut artifacts = Vec::with_capacity(p.artifacts.len());
-        for (target, hash) in p.artifacts {
+        let first = p.first_artifact as usize;
+        for a in first..first + p.artifact_count as usize {
+            let (target, hash) = artifacts[a];
             let id = match blob_ids.get(&hash) {
                 Some(&id) => id,
                 None => {
                     let Some(&(spool_offset, len)) = index.get(&hash) else {
+                        let name = &names[p.name_start as usize..][..p.name_len as usize];
                         return Err(ArchiveError::Input(format!(
-                            "permutation `{}` names a {target} blob that was never added",
-                            p.name
+                            "permutation `{name}` names a {target} blob that was never added"
                         )));
                     };
                     let id = blobs.len() as u32;
@@ -486,10 +514,22 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
                     id
                 }
             };
-            artifacts.push((target, BlobId(id)));
+            blob_of[a] = (target, BlobId(id));
         }
-        manifest.permutations.push(PermutationRecord { name: p.name, shader, values: p.values, reflection, artifacts });
+        manifest.permutations.push(ManifestPermutation {
+            name_start: p.name_start,
+            name_len: p.name_len,
+            shader: p.shader,
+            reflection: p.reflection,
+            first_value: p.first_value,
+            first_artifact: p.first_artifact,
+            artifact_count: p.artifact_count,
+        });
     }
+    drop((permutations, artifacts, blob_ids));
+    manifest.names = names;
+    manifest.values = values;
+    manifest.artifacts = blob_of;
     Ok(Plan { manifest, blobs })
 }
 
@@ -662,19 +702,18 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
             target: *t,
             offset: dict_offset,
             len: d.len() as u64,
-            blake3: blake3::hash(d).to_hex().to_string(),
+            blake3: *blake3::hash(d).as_bytes(),
         });
         dict_offset += d.len() as u64;
     }
     summary.dictionary_bytes = dict_offset;
     drop(cdicts);
     drop(dictionaries);
-    // The manifest is serialized twice, never held as bytes: once to count its length (the
-    // header fields, which the checksum covers first, need it), then into the file and the
-    // checksum at once.
-    let mut counter = Counter(0);
-    serde_json::to_writer(&mut counter, &manifest).map_err(std::io::Error::other)?;
-    let manifest_len = counter.0;
+    // The manifest is streamed into the file and the checksum at once, never held as bytes:
+    // its length (the header fields, which the checksum covers first, need it) follows from
+    // its counts.
+    let counts = manifest_counts(&manifest)?;
+    let manifest_len = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?.end;
     let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count: blobs.len() as u64 };
     let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
     pad8(&mut out, layout.dictionaries + dict_offset)?;
@@ -682,9 +721,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     let mut hasher = blake3::Hasher::new();
     hasher.update(&fields);
     let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
-    serde_json::to_writer(&mut tee, &manifest).map_err(std::io::Error::other)?;
+    encode_manifest(&manifest, &counts, &mut tee)?;
     if tee.written != manifest_len {
-        return Err(std::io::Error::other("the manifest serialized to two different lengths"));
+        return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
     drop(manifest);
     pad8(&mut out, layout.manifest + manifest_len)?;
@@ -697,6 +736,90 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+/// The counts of `manifest`'s header (the tables' JSON is serialized once to count it).
+fn manifest_counts(manifest: &Manifest) -> std::io::Result<ManifestCounts> {
+    let mut counter = Counter(0);
+    serde_json::to_writer(&mut counter, &tables_of(manifest)).map_err(std::io::Error::other)?;
+    let p = &manifest.permutations;
+    Ok(ManifestCounts {
+        permutations: p.len() as u64,
+        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
+        dictionaries: manifest.dictionaries.len() as u64,
+        tables_len: counter.0,
+        names_len: p.iter().map(|p| p.name_len as u64).sum(),
+    })
+}
+
+fn tables_of(manifest: &Manifest) -> TablesOut<'_> {
+    TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+    }
+}
+
+/// Writes the binary manifest (layout in `format.rs`) of `counts`, `manifest`'s.
+fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl Write) -> std::io::Result<()> {
+    let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
+    out.write_all(&counts.encode())?;
+    let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
+    for p in &manifest.permutations {
+        let value_count = manifest.shaders[p.shader as usize].dimensions.len();
+        let record = Record {
+            name_offset,
+            name_len: p.name_len,
+            shader: p.shader,
+            reflection: p.reflection,
+            first_value,
+            first_artifact,
+            artifact_count: p.artifact_count,
+        };
+        out.write_all(&record.encode())?;
+        name_offset += p.name_len as u64;
+        first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
+        first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
+    }
+    let mut ids: Vec<(u128, u32)> = manifest
+        .permutations
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let s = &manifest.shaders[p.shader as usize];
+            (super::permutation_id(&s.name, &s.level, manifest.values_of(p, s.dimensions.len())), i as u32)
+        })
+        .collect();
+    ids.sort_unstable();
+    for (id, index) in ids {
+        let mut b = [0u8; ID_LEN];
+        b[0..16].copy_from_slice(&id.to_le_bytes());
+        b[16..20].copy_from_slice(&index.to_le_bytes());
+        out.write_all(&b)?;
+    }
+    for p in &manifest.permutations {
+        for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
+            out.write_all(&v.to_le_bytes())?;
+        }
+    }
+    for p in &manifest.permutations {
+        let first = p.first_artifact as usize;
+        for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
+            out.write_all(&encode_artifact(*t, *b))?;
+        }
+    }
+    for d in &manifest.dictionaries {
+        out.write_all(&d.encode())?;
+    }
+    let layout = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?;
+    serde_json::to_writer(&mut *out, &tables_of(manifest)).map_err(std::io::Error::other)?;
+    pad8(out, layout.tables + counts.tables_len)?;
+    for p in &manifest.permutations {
+        out.write_all(manifest.name_of(p).as_bytes())?;
+    }
+    Ok(())
 }
 
 /// A writer that only counts.

@@ -205,6 +205,7 @@ impl<'p> Assembler<'p> {
             .map_err(archive_error)?;
         }
         drop(keys);
+        super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
             let json = serde_json::to_vec_pretty(&index).expect("index serializes");

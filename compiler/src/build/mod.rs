@@ -156,6 +156,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let progress = report::Progress::new(options.progress);
     let plan = plan::Plan::new(config, options)?;
     report.planned(&plan);
+    trace_memory("plan");
 
     let assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
@@ -164,12 +165,14 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let pre = preprocessor.run(&progress, |i, p, pre, output| compiler.early(i, p, pre, output));
     preprocessor.save_records(store);
     report.preprocessed(&plan, &preprocessor, &pre, t);
+    trace_memory("preprocess");
     outputs::check_aliases(
         &outputs::output_files(options),
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
     let keys = plan.group(&pre);
     report.grouped(&plan, &pre, &keys);
+    trace_memory("group");
 
     if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
         progress.finish();
@@ -183,6 +186,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     }
     let outcomes = compiler.run(&keys, &preprocessor);
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
+    trace_memory("compile");
     report.warnings(store.finish());
     report.remote(store.remote_stats());
     if report.failed() {
@@ -191,8 +195,23 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     // Only the manifest is left to write: keep each permutation's key, drop the rest.
     let pre = assemble::per_permutation(&pre);
     drop((keys, compiler, preprocessor));
+    trace_memory("drop");
     report.assembled(assembler.finish(&pre, store)?);
+    trace_memory("assemble");
     report.finish()
+}
+
+/// `KILN_TRACE_MEMORY=1`: the bytes the allocator holds after a stage (glibc's `mallinfo2`:
+/// live heap, not the peak), on stderr; what grows with the set shows between sizes.
+pub(crate) fn trace_memory(stage: &str) {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    if std::env::var_os("KILN_TRACE_MEMORY").is_some() {
+        // SAFETY: mallinfo2 only reads the allocator's counters.
+        let m = unsafe { libc::mallinfo2() };
+        eprintln!("memory after {stage}: {:.1} MiB in use", (m.uordblks + m.hblkhd) as f64 / 1048576.0);
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    let _ = stage;
 }
 
 /// Workers with the preprocessor's stack run it in place (no thread per permutation).
