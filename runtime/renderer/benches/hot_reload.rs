@@ -114,7 +114,7 @@ fn main() {
     };
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     copy(&root.join("shader_src"), &d.join("shader_src"));
     std::fs::copy(root.join("permutations.toml"), d.join("permutations.toml")).unwrap();
     std::env::set_var("KILN_CACHE_DIR", d.join("cache"));
