@@ -21,6 +21,7 @@ use std::sync::{Arc, Mutex};
 use kiln::archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
 use kiln::Stage;
 
+pub use crate::gpu::error_chain;
 use crate::gpu::Gpu;
 use crate::shaders::{LookupError, ShaderArchive};
 use crate::spirv::{SpirvError, SpirvModule, VulkanBindings};
@@ -488,12 +489,28 @@ fn read_disk_cache(bytes: &[u8]) -> Result<&[u8], &'static str> {
 }
 
 impl PipelineCache {
+    /// A cache on the runtime's headless device (see [`Gpu::new`]).
     pub fn new(gpu: &Gpu, archive: Arc<ShaderArchive>) -> PipelineCache {
+        PipelineCache::on(&gpu.device, gpu.spirv_passthrough, archive)
+    }
+
+    /// A cache on the application's own wgpu device, made from `adapter` however it likes
+    /// (a window's surface, its own features and limits). Modules come from SPIR-V
+    /// passthrough when the adapter is Vulkan, the device was created with
+    /// `Features::PASSTHROUGH_SHADERS` and the archive is trusted; from WGSL otherwise.
+    /// Reflection is checked against the device's own limits.
+    pub fn for_device(adapter: &wgpu::Adapter, device: &wgpu::Device, archive: Arc<ShaderArchive>) -> PipelineCache {
+        let passthrough = adapter.get_info().backend == wgpu::Backend::Vulkan
+            && device.features().contains(wgpu::Features::PASSTHROUGH_SHADERS);
+        PipelineCache::on(device, passthrough, archive)
+    }
+
+    fn on(device: &wgpu::Device, passthrough: bool, archive: Arc<ShaderArchive>) -> PipelineCache {
         PipelineCache {
-            passthrough: gpu.spirv_passthrough && archive.trusted(),
+            passthrough: passthrough && archive.trusted(),
             archive,
-            device: gpu.device.clone(),
-            limits: gpu.device.limits(),
+            device: device.clone(),
+            limits: device.limits(),
             inner: Mutex::default(),
             disk: None,
         }
@@ -508,8 +525,28 @@ impl PipelineCache {
         archive: Arc<ShaderArchive>,
         dir: &std::path::Path,
     ) -> (PipelineCache, Option<String>) {
-        let mut cache = PipelineCache::new(gpu, archive);
-        let Some(key) = gpu.pipeline_cache_key() else { return (cache, None) };
+        let key = gpu.pipeline_cache_key();
+        PipelineCache::new(gpu, archive).load_disk_cache(key, dir)
+    }
+
+    /// As [`PipelineCache::with_disk_cache`], on the application's own device (see
+    /// [`PipelineCache::for_device`]; the device needs `Features::PIPELINE_CACHE` for a disk
+    /// cache).
+    pub fn with_disk_cache_for_device(
+        adapter: &wgpu::Adapter,
+        device: &wgpu::Device,
+        archive: Arc<ShaderArchive>,
+        dir: &std::path::Path,
+    ) -> (PipelineCache, Option<String>) {
+        let key = crate::gpu::pipeline_cache_key(&adapter.get_info(), device);
+        PipelineCache::for_device(adapter, device, archive).load_disk_cache(key, dir)
+    }
+
+    /// This cache with the driver's pipeline cache of file `key` in `dir` (none without a key).
+    fn load_disk_cache(self, key: Option<String>, dir: &std::path::Path) -> (PipelineCache, Option<String>) {
+        let mut cache = self;
+        let Some(key) = key else { return (cache, None) };
+        let device = cache.device.clone();
         let path = dir.join(key);
         let mut warning = None;
         let bytes = match std::fs::read(&path) {
@@ -528,13 +565,13 @@ impl PipelineCache {
             }
         });
         let create = |data: Option<&[u8]>| {
-            let scope = ErrorScopes::push(&gpu.device);
+            let scope = ErrorScopes::push(&device);
             // SAFETY: the data is either none or bytes this function wrote from
             // `PipelineCache::get_data` of a cache for the same adapter and driver (the file
             // name is wgpu's key for them), checked against their blake3 hash; wgpu checks its
             // own header (device, driver, version) again and the driver its own.
             let cache = unsafe {
-                gpu.device.create_pipeline_cache(&wgpu::PipelineCacheDescriptor {
+                device.create_pipeline_cache(&wgpu::PipelineCacheDescriptor {
                     label: Some("kiln pipeline cache"),
                     data,
                     fallback: false,
@@ -1016,21 +1053,6 @@ fn check_scope(scope: ErrorScopes, what: impl FnOnce() -> String) -> Result<(), 
         None => Ok(()),
         Some(message) => Err(PipelineError::Wgpu { what: what(), message }),
     }
-}
-
-/// An error and its sources on one line each (wgpu's own Display says only "Validation Error").
-pub fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        let line = s.to_string();
-        if !text.contains(&line) {
-            text.push_str(": ");
-            text.push_str(&line);
-        }
-        source = s.source();
-    }
-    text
 }
 
 fn stage_bits(stage: Stage) -> wgpu::ShaderStages {

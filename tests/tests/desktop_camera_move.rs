@@ -6,11 +6,11 @@
 //! fitted to (their depth maps, ShadowProjectionOnOpaque, the glass, the volumetric fog and the
 //! translucency volumes read them), the fire sprites' view and the translucency volumes' boxes.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::Vec3;
-use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::{Camera, Scene};
 use kiln_renderer::{Renderer, RendererOptions};
@@ -43,8 +43,8 @@ fn scene() -> Scene {
 
 /// Every effect on but eye adaptation, whose exposure adapts to the images of the frames
 /// before the move (TAA's and the fog's histories are reset at the move, in both renderers).
-fn options() -> Part2Options {
-    Part2Options { eye_adaptation: false, ..Part2Options::default() }
+fn options() -> EffectOptions {
+    EffectOptions { eye_adaptation: false, ..EffectOptions::default() }
 }
 
 fn render(r: &Renderer) -> Image {
@@ -62,14 +62,14 @@ fn a_moved_camera_renders_what_a_renderer_built_there_renders() {
 
     // A: built at C1, BEFORE frames there, then moved to C2 (histories reset), AFTER frames
     let moved = renderer(&gpu, &scene(), size.clone());
-    let part2 = moved.desktop_part2().unwrap();
-    part2.set_options(options());
+    let effects = moved.desktop_effects().unwrap();
+    effects.set_options(options());
     let mut at_c1 = None;
     for _ in 0..BEFORE {
         at_c1 = Some(render(&moved));
     }
-    part2.set_camera(c2());
-    part2.reset_history();
+    effects.set_camera(c2());
+    effects.reset_history();
     let mut after_move = None;
     for _ in 0..AFTER {
         after_move = Some(render(&moved));
@@ -86,19 +86,19 @@ fn a_moved_camera_renders_what_a_renderer_built_there_renders() {
     let mut scene_c2 = scene();
     scene_c2.camera = c2();
     let fresh = renderer(&gpu, &scene_c2, size);
-    let part2 = fresh.desktop_part2().unwrap();
-    part2.set_options(options());
+    let effects = fresh.desktop_effects().unwrap();
+    effects.set_options(options());
     for _ in 0..BEFORE {
         render(&fresh);
     }
-    part2.reset_history();
+    effects.reset_history();
     let mut built_at_c2 = None;
     for _ in 0..AFTER {
         built_at_c2 = Some(render(&fresh));
     }
     let built_at_c2 = built_at_c2.unwrap();
 
-    let dir = dump_dir("desktop2_camera_move");
+    let dir = dump_dir("desktop_camera_move");
     save(&dir, "c1", &at_c1);
     save(&dir, "moved_to_c2", &after_move);
     save(&dir, "built_at_c2", &built_at_c2);

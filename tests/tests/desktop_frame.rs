@@ -507,7 +507,7 @@ fn psnr(a: &Image, b: &Image) -> f64 {
 
 /// The desktop frame and the mobile forward frame light the same scene alike once the
 /// effects one of them lacks are off (local lights, fog, translucency, and the renderer's
-/// comparison settings: part 2, AO, bloom, vignette, the sky gradient; mobile MSAA,
+/// comparison settings: the effects, AO, bloom, vignette, the sky gradient; mobile MSAA,
 /// reflections, bloom). What still differs: the BRDF (GGX with Smith visibility against the
 /// mobile approximation and EnvBRDFApprox), the ambient term, cascaded shadows with PCF and
 /// GBuffer quantization: 22.1 dB measured on lavapipe (35.3 dB before the mobile frame's

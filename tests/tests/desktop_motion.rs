@@ -1,10 +1,10 @@
-//! Velocity and eye adaptation of the desktop frame's part 2.
+//! Velocity and eye adaptation of the desktop frame's effects.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::Vec3;
-use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;
 
@@ -15,14 +15,14 @@ fn velocity_holds_the_motion_of_the_moving_rock_only() {
     let gpu = gpu();
     let scene = Scene::bundled();
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
-    let part2 = r.desktop_part2().unwrap();
+    let effects = r.desktop_effects().unwrap();
     let rock = scene.objects.iter().position(|o| o.name == "Rock").unwrap();
     r.render(false).unwrap();
-    let before = part2.object_transforms(rock)[0].transform_point3(Vec3::ZERO);
+    let before = effects.object_transforms(rock)[0].transform_point3(Vec3::ZERO);
     r.render(false).unwrap();
-    let after = part2.object_transforms(rock)[0].transform_point3(Vec3::ZERO);
+    let after = effects.object_transforms(rock)[0].transform_point3(Vec3::ZERO);
     assert!(before.distance(after) > 0.01, "the rock does not move");
-    let (w, h, v) = read_rg16f(&gpu, &part2.velocity_texture());
+    let (w, h, v) = read_rg16f(&gpu, &effects.velocity_texture());
     let moving: Vec<(u32, u32)> = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .filter(|&(x, y)| {
@@ -57,12 +57,12 @@ fn eye_adaptation_raises_the_exposure_of_a_darker_scene_over_frames() {
     let mut scene = Scene::bundled();
     scene.sun.enabled = false;
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
-    let part2 = r.desktop_part2().unwrap();
-    part2.set_options(Part2Options { animate: false, ..Part2Options::default() });
+    let effects = r.desktop_effects().unwrap();
+    effects.set_options(EffectOptions { animate: false, ..EffectOptions::default() });
     let mut exposures = Vec::new();
     for _ in 0..6 {
         r.render(false).unwrap();
-        let e = read_buffer_f32(&gpu, &part2.eye_adaptation_buffer(), 4);
+        let e = read_buffer_f32(&gpu, &effects.eye_adaptation_buffer(), 4);
         exposures.push((e[0], e[1], e[2]));
     }
     eprintln!("exposure, average luminance, target per frame: {exposures:?}");

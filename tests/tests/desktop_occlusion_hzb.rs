@@ -1,8 +1,8 @@
-//! BuildHZB and BeginOcclusionTests of the desktop frame's part 2, on the rendered scene.
+//! BuildHZB and BeginOcclusionTests of the desktop frame's effects, on the rendered scene.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::{Mat4, Quat, Vec3};
 use kiln_renderer::desktop::occlusion::PropVisibility;
 use kiln_renderer::scene::{Camera, Mobility, Object, Scene};
@@ -23,14 +23,14 @@ fn hzb_top_mip_holds_the_farthest_depth() {
     };
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
     r.render(false).unwrap();
-    let part2 = r.desktop_part2().expect("the desktop frame has part 2");
-    let (_, _, depth) = read_f32(&gpu, &part2.scene_depth(), 0);
+    let effects = r.desktop_effects().expect("the desktop frame has effects");
+    let (_, _, depth) = read_f32(&gpu, &effects.scene_depth(), 0);
     let farthest = depth.iter().copied().fold(f32::MAX, f32::min);
     let nearest = depth.iter().copied().fold(f32::MIN, f32::max);
     assert!(farthest > 0.0, "the view sees the sky (depth 0); the camera should look at the floor");
     assert!(nearest > farthest * 1.5, "the view has little depth range: {farthest}..{nearest}");
 
-    let (hzb, mips) = part2.hzb();
+    let (hzb, mips) = effects.hzb();
     assert_eq!(
         (hzb.width(), hzb.height()),
         (128, 64),
@@ -73,8 +73,8 @@ fn hzb_mips_are_built_on_gl_too() {
     };
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
     r.render(false).unwrap();
-    let part2 = r.desktop_part2().unwrap();
-    let (hzb, mips) = part2.hzb();
+    let effects = r.desktop_effects().unwrap();
+    let (hzb, mips) = effects.hzb();
     let (_, _, mip0) = read_f32(&gpu, &hzb, 0);
     let farthest = mip0.iter().copied().fold(f32::MAX, f32::min);
     assert!(farthest > 0.0, "mip 0 sees the sky (depth 0); the camera should look at the floor");
@@ -112,21 +112,21 @@ fn prop_behind_the_wall_is_culled_after_the_query_latency_and_reappears() {
     });
     let crate_index = scene.objects.len() - 1;
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
-    let part2 = r.desktop_part2().unwrap();
+    let effects = r.desktop_effects().unwrap();
 
     // frame 1 issues the queries (the crate starts visible); frame 2 reads them
     r.render(false).unwrap();
-    assert!(part2.is_visible(crate_index), "culled before any query result came back");
+    assert!(effects.is_visible(crate_index), "culled before any query result came back");
     r.render(false).unwrap();
     assert_eq!(
-        part2.visibility(crate_index),
+        effects.visibility(crate_index),
         Some(PropVisibility::Occluded),
         "the crate behind the wall is not culled one frame after its query"
     );
     let chairs = scene.objects.iter().position(|o| o.name == "Chairs").unwrap();
-    assert!(part2.is_visible(chairs), "the chairs in plain view were culled");
+    assert!(effects.is_visible(chairs), "the chairs in plain view were culled");
     r.render(false).unwrap();
-    let stats = part2.occlusion_stats();
+    let stats = effects.occlusion_stats();
     assert!(stats.grouped_queries >= 1, "the occluded crate is not tested in a group: {stats:?}");
     assert!(stats.light_queries >= 1, "no ShadowFrustumQueries: {stats:?}");
 
@@ -137,17 +137,17 @@ fn prop_behind_the_wall_is_culled_after_the_query_latency_and_reappears() {
         fov_y: 60f32.to_radians(),
         near: 0.1,
     };
-    part2.set_camera(behind);
+    effects.set_camera(behind);
     let culled = r.render(false).unwrap();
     r.render(false).unwrap();
-    assert!(part2.is_visible(crate_index), "the crate stays culled after the camera moved round the wall");
+    assert!(effects.is_visible(crate_index), "the crate stays culled after the camera moved round the wall");
     // and it is drawn from the next frame on (this frame's draws were set up before its
     // queries were read): the centre of the view changes once the crate is back
     let shown = r.render(false).unwrap();
     let (w, h) = (shown.image.width, shown.image.height);
     let before = culled.image.mean_luma(w / 2 - 8, h / 2 - 4, w / 2 + 8, h / 2 + 12);
     let after = shown.image.mean_luma(w / 2 - 8, h / 2 - 4, w / 2 + 8, h / 2 + 12);
-    let dir = dump_dir("desktop2_occlusion");
+    let dir = dump_dir("desktop_occlusion");
     save(&dir, "culled", &culled.image);
     save(&dir, "shown", &shown.image);
     assert!((before - after).abs() > 3.0, "the crate did not reappear in the image (luma {before:.1} -> {after:.1})");

@@ -1,13 +1,13 @@
-//! The desktop frame's part 2 (issue 7): every pass appears in frame order among the core
+//! The desktop frame's effects: every pass appears in frame order among the core
 //! ones, with a non-trivial image, over several frames.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;
 
-/// The passes and steps of part 2, as dumped (`Pass` or `Pass_Step`).
+/// The passes and steps of the effects, as dumped (`Pass` or `Pass_Step`).
 const PART2_IMAGES: &[&str] = &[
     "ParticleSimulation_Position",
     "ParticleSimulation_Velocity",
@@ -32,11 +32,11 @@ const PART2_IMAGES: &[&str] = &[
 ];
 
 #[test]
-fn every_part2_pass_is_dumped_in_frame_order_with_a_non_trivial_image() {
+fn every_effect_pass_is_dumped_in_frame_order_with_a_non_trivial_image() {
     let gpu = gpu();
     let scene = Scene::bundled();
     let r = renderer(&gpu, &scene, RendererOptions { width: 320, height: 180, ..Default::default() });
-    let dir = dump_dir("desktop2_passes");
+    let dir = dump_dir("desktop_passes");
     let mut last = None;
     for _ in 0..4 {
         last = Some(r.render(true).unwrap_or_else(|e| panic!("{e}")));

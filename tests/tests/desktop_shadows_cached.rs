@@ -1,8 +1,8 @@
 //! ShadowDepths of a movable point light with a cached static depth (CopyCachedShadowMap).
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;
@@ -35,7 +35,7 @@ fn cached_cube_shadow_is_not_redrawn_while_the_light_is_still() {
     };
     let cached = find("ShadowDepths_CopyCachedShadowMap");
     let full = find("ShadowDepths_Cubemap_FireLight");
-    let dir = dump_dir("desktop2_cached_shadow");
+    let dir = dump_dir("desktop_shadows_cached");
     save(&dir, "cached", &cached);
     save(&dir, "with_movable", &full);
     assert!(luma_stddev(&cached) > 1.0, "the cached static depth is empty");

@@ -2,9 +2,9 @@
 //! hidden behind the depth buffer renders no shadow depths and no ShadowProjection once its
 //! query result has come back, and gets them back once the camera sees the volume again.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::renderer::FrameOutput;
 use kiln_renderer::scene::{Camera, Mobility, PointLight, Scene};
@@ -66,7 +66,7 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     let scene = scene();
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, comparison: true, ..Default::default() });
     let frame = r.desktop_frame().expect("the desktop frame");
-    let part2 = r.desktop_part2().unwrap();
+    let effects = r.desktop_effects().unwrap();
     let lamp_work = [
         "Lighting_ShadowedLights_ShadowProjectionOnOpaque_HiddenLamp",
         "Lighting_ShadowedLights_StandardDeferredLighting_HiddenLamp",
@@ -84,9 +84,9 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     assert_eq!(shadow_work(&first, HIDDEN_FIRE), fire_work, "before any query result");
     assert!(frame.shadow_skipped_lights().is_empty());
     assert!(
-        part2.occlusion_stats().light_queries >= 5,
+        effects.occlusion_stats().light_queries >= 5,
         "not every local light is queried: {:?}",
-        part2.occlusion_stats()
+        effects.occlusion_stats()
     );
 
     // frame 2 reads frame 1's results without waiting: both hidden volumes counted 0 samples,
@@ -128,7 +128,7 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
     );
     frame.set_shadow_frustum_culling(true);
     let skipped_again = r.render(false).unwrap();
-    let dir = dump_dir("desktop2_shadow_frustum");
+    let dir = dump_dir("desktop_shadows_frustum");
     save(&dir, "skipped", &skipped.image);
     save(&dir, "rendered", &rendered.image);
     let (noise, diff) =
@@ -142,7 +142,7 @@ fn hidden_lights_skip_their_shadow_work_after_the_query_latency_and_get_it_back(
 
     // the camera walks round the wall: the stale verdict holds for one more frame (that
     // frame's queries pass), then the shadow work is back
-    part2.set_camera(Camera {
+    effects.set_camera(Camera {
         position: Vec3::new(0.0, 2.0, -14.5),
         target: Vec3::new(0.0, 1.2, -9.0),
         fov_y: 60f32.to_radians(),

@@ -5,11 +5,11 @@
 //! while inner cells (0.156 m) around it do. Smoke that read only the outer cascade would not
 //! see the light at all.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::Vec3;
-use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::desktop::translucent_volume::TranslucentVolumes;
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::{Camera, Mobility, PointLight, Scene};
@@ -62,13 +62,13 @@ fn smoke_frame(with_light: bool) -> Image {
     let gpu = gpu();
     let r = renderer(&gpu, &scene(with_light), RendererOptions { width: W, height: H, ..Default::default() });
     // still frames, nothing that adds the light elsewhere (the volumetric fog scatters it too)
-    r.desktop_part2().unwrap().set_options(Part2Options {
+    r.desktop_effects().unwrap().set_options(EffectOptions {
         taa: false,
         motion_blur: false,
         eye_adaptation: false,
         animate: false,
         volumetric_fog: false,
-        ..Part2Options::default()
+        ..EffectOptions::default()
     });
     for _ in 1..FRAMES {
         r.render(false).unwrap_or_else(|e| panic!("{e}"));
@@ -99,7 +99,7 @@ fn smoke_near_the_camera_sees_light_only_the_inner_cascade_holds() {
     let dark = smoke_frame(false);
     let dark_again = smoke_frame(false);
     let lit = smoke_frame(true);
-    let dir = dump_dir("desktop2_smoke_cascades");
+    let dir = dump_dir("desktop_smoke_cascades");
     save(&dir, "dark", &dark);
     save(&dir, "lit", &lit);
     let (noise, gain) = (luma_gain(&dark_again, &dark) + luma_gain(&dark, &dark_again), luma_gain(&lit, &dark));

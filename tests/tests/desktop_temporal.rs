@@ -1,9 +1,9 @@
-//! Temporal effects and volumetric fog of the desktop frame's part 2, on the rendered scene.
+//! Temporal effects and volumetric fog of the desktop frame's effects, on the rendered scene.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
-use kiln_renderer::desktop::part2::Part2Options;
+use desktop_support::*;
+use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;
@@ -38,15 +38,15 @@ fn downsample(image: &Image) -> Vec<f64> {
 /// Still frames: no animation, no motion blur, a fixed exposure, no particles (their state
 /// depends on how many frames ran) and no volumetric fog (its jittered froxels converge over
 /// frames too), so only the geometry's edges differ between the renders compared.
-fn still(taa: bool) -> Part2Options {
-    Part2Options {
+fn still(taa: bool) -> EffectOptions {
+    EffectOptions {
         taa,
         motion_blur: false,
         eye_adaptation: false,
         animate: false,
         volumetric_fog: false,
         particles: false,
-        ..Part2Options::default()
+        ..EffectOptions::default()
     }
 }
 
@@ -60,7 +60,7 @@ fn taa_reduces_edge_aliasing_against_a_supersampled_reference() {
     let render = |w: u32, h: u32, taa: bool, frames: usize| {
         let gpu = gpu();
         let r = renderer(&gpu, &scene, RendererOptions { width: w, height: h, ..Default::default() });
-        r.desktop_part2().unwrap().set_options(still(taa));
+        r.desktop_effects().unwrap().set_options(still(taa));
         let mut last = None;
         for _ in 0..frames {
             last = Some(r.render(false).unwrap().image);
@@ -71,7 +71,7 @@ fn taa_reduces_edge_aliasing_against_a_supersampled_reference() {
     let reference = downsample(&reference_image);
     let aliased = render(W, H, false, 1);
     let resolved = render(W, H, true, 16);
-    let dir = dump_dir("desktop2_taa");
+    let dir = dump_dir("desktop_taa");
     save(&dir, "reference", &reference_image);
     save(&dir, "no_taa", &aliased);
     save(&dir, "taa", &resolved);
@@ -110,10 +110,10 @@ fn volumetric_fog_shows_the_directional_lights_shafts() {
         let mut scene = Scene::bundled();
         scene.sun.casts_shadows = shadows;
         let r = renderer(&gpu, &scene, RendererOptions { width: W * 2, height: H * 2, ..Default::default() });
-        r.desktop_part2().unwrap().set_options(Part2Options {
+        r.desktop_effects().unwrap().set_options(EffectOptions {
             animate: false,
             fog_density: 0.03,
-            ..Part2Options::default()
+            ..EffectOptions::default()
         });
         let mut frame = None;
         for _ in 0..3 {
@@ -130,7 +130,7 @@ fn volumetric_fog_shows_the_directional_lights_shafts() {
     };
     let shadowed = scattering(true);
     let unshadowed = scattering(false);
-    let dir = dump_dir("desktop2_fog");
+    let dir = dump_dir("desktop_fog");
     save(&dir, "shadowed", &shadowed);
     save(&dir, "unshadowed", &unshadowed);
     let mean = |i: &Image| luma(i).iter().sum::<f64>() / (i.width * i.height) as f64;

@@ -2,11 +2,11 @@
 //! `SURFACE_LIGHTING_VOLUME`): what InjectTranslucentVolume writes shows on the glass, and a
 //! light the volumes see occluded darkens the glass that lies in its shadow, not the rest.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::{Mat4, Vec3};
-use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::{Material, Mesh, Mobility, Object, Scene, SpotLight};
 use kiln_renderer::RendererOptions;
@@ -17,8 +17,8 @@ const H: u32 = 180;
 /// Still frames without the effects that move or blur (so two renders differ only by what a
 /// test changes), with the glass lit as `mode` and the volumes' directional light shadowed
 /// when `volume_shadows`.
-fn options(mode: TranslucencyLightingMode, volume_shadows: bool) -> Part2Options {
-    Part2Options {
+fn options(mode: TranslucencyLightingMode, volume_shadows: bool) -> EffectOptions {
+    EffectOptions {
         taa: false,
         motion_blur: false,
         eye_adaptation: false,
@@ -27,7 +27,7 @@ fn options(mode: TranslucencyLightingMode, volume_shadows: bool) -> Part2Options
         particles: false,
         translucency_lighting: mode,
         translucency_volume_shadows: volume_shadows,
-        ..Part2Options::default()
+        ..EffectOptions::default()
     }
 }
 
@@ -40,10 +40,10 @@ fn scene_without_fire() -> Scene {
 }
 
 /// One frame's captures by name.
-fn captures(scene: &Scene, options: Part2Options) -> Vec<(String, Image)> {
+fn captures(scene: &Scene, options: EffectOptions) -> Vec<(String, Image)> {
     let gpu = gpu();
     let r = renderer(&gpu, scene, RendererOptions { width: W, height: H, ..Default::default() });
-    r.desktop_part2().expect("the desktop frame's part 2").set_options(options);
+    r.desktop_effects().expect("the desktop frame's effects").set_options(options);
     let frame = r.render(true).unwrap_or_else(|e| panic!("{e}"));
     frame.passes.into_iter().flat_map(|p| p.images).collect()
 }
@@ -97,7 +97,7 @@ fn glass_lit_by_the_volumes_changes_with_the_volumes_lighting() {
     // in its way
     scene.camera.position = Vec3::new(6.0, 2.6, 5.0);
     scene.camera.target = Vec3::new(-0.5, 1.2, -1.0);
-    let dir = dump_dir("desktop2_translucency_volume");
+    let dir = dump_dir("desktop_translucency_volume");
     let volume_shadowed = captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, true));
     let volume_unshadowed = captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, false));
     let forward_shadowed = captures(&scene, options(TranslucencyLightingMode::SurfaceForwardShading, true));
@@ -193,7 +193,7 @@ fn a_light_occluded_in_the_volumes_darkens_the_glass_in_its_shadow() {
         mobility: Mobility::Static,
         casts_shadow: true,
     });
-    let dir = dump_dir("desktop2_translucency_volume_canopy");
+    let dir = dump_dir("desktop_translucency_volume_canopy");
     let shadowed = named(
         &captures(&scene, options(TranslucencyLightingMode::SurfaceLightingVolume, true)),
         "Translucency_SeparateTranslucency",
@@ -218,7 +218,7 @@ fn a_light_occluded_in_the_volumes_darkens_the_glass_in_its_shadow() {
 
 /// Mean luma of each glass statue in a frame's separate translucency (pixel masks from
 /// `masks`).
-fn statue_lumas(scene: &Scene, options: Part2Options, masks: &[Vec<bool>; 2]) -> [f64; 2] {
+fn statue_lumas(scene: &Scene, options: EffectOptions, masks: &[Vec<bool>; 2]) -> [f64; 2] {
     let glass = named(&captures(scene, options), "Translucency_SeparateTranslucency");
     [masked_mean(&glass, &masks[0]), masked_mean(&glass, &masks[1])]
 }

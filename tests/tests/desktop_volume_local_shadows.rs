@@ -4,11 +4,11 @@
 //! per-object shadow of the slab, a movable prop), against the same light injected unshadowed;
 //! a region beside the light, which the slab does not hide, keeps its light.
 
-mod desktop2_support;
+mod desktop_support;
 
-use desktop2_support::*;
+use desktop_support::*;
 use glam::{Mat4, Vec3};
-use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};
 use kiln_renderer::desktop::translucent_volume::{TranslucentVolumes, VOLUME_SIZE};
 use kiln_renderer::scene::{Camera, Material, Mesh, Mobility, Object, PointLight, Scene};
 use kiln_renderer::RendererOptions;
@@ -114,14 +114,14 @@ fn injected(mobility: Mobility, shadows: bool) -> [f32; 2] {
     let gpu = gpu();
     let scene = scene(mobility);
     let r = renderer(&gpu, &scene, RendererOptions { width: 160, height: 90, ..Default::default() });
-    let part2 = r.desktop_part2().unwrap();
-    part2.set_options(Part2Options {
+    let effects = r.desktop_effects().unwrap();
+    effects.set_options(EffectOptions {
         translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume,
         translucency_volume_shadows: shadows,
-        ..Part2Options::off()
+        ..EffectOptions::off()
     });
     r.render(false).unwrap_or_else(|e| panic!("{e}"));
-    let ambient = part2.translucency_volume().ambient[0].clone();
+    let ambient = effects.translucency_volume().ambient[0].clone();
     let (origin, cell) = TranslucentVolumes::cascade_box(scene.camera.position, 0);
     [BEHIND_SLAB, BESIDE].map(|p| {
         let c = ((p - origin) / cell).floor();

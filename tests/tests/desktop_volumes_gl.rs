@@ -4,12 +4,12 @@
 //! (As 3D textures, GL bound one slice of each storage volume and the fog turned the frame
 //! black.)
 
-mod desktop2_support;
+mod desktop_support;
 
 use std::sync::Arc;
 
-use desktop2_support::*;
-use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use desktop_support::*;
+use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{Renderer, RendererOptions};
@@ -40,7 +40,7 @@ fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
         RendererOptions { width: W, height: H, ..Default::default() },
     )
     .unwrap_or_else(|e| panic!("{e}"));
-    r.desktop_part2().expect("the desktop frame's part 2").set_options(Part2Options {
+    r.desktop_effects().expect("the desktop frame's effects").set_options(EffectOptions {
         taa: false,
         motion_blur: false,
         eye_adaptation: false,
@@ -49,7 +49,7 @@ fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
         volumetric_fog: fog,
         fog_density: 0.03,
         translucency_lighting: TranslucencyLightingMode::SurfaceLightingVolume,
-        ..Part2Options::default()
+        ..EffectOptions::default()
     });
     let out = r.render(true).unwrap_or_else(|e| panic!("{e}"));
     (out.image, out.passes.into_iter().flat_map(|p| p.images).collect())
@@ -90,7 +90,7 @@ fn volumetric_fog_and_volume_lit_glass_render_on_gl_like_on_vulkan() {
     let (vk_image, vk_steps) = frame(&vk, true);
     let (gl_image, gl_steps) = frame(&gl, true);
     let (vk_no_fog, _) = frame(&vk, false);
-    let dir = dump_dir("desktop2_gl_volumes");
+    let dir = dump_dir("desktop_volumes_gl");
     save(&dir, "vulkan", &vk_image);
     save(&dir, "gl", &gl_image);
     save(&dir, "vulkan_without_fog", &vk_no_fog);

@@ -49,7 +49,7 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
         }
         "MobileRadialLightPS" => archive.shader("MobileDeferredLightVS").level(&shader.level),
         name => {
-            // `FooPS` pairs with `FooVS` where the archive has one (part 2's passes, the mobile
+            // `FooPS` pairs with `FooVS` where the archive has one (the effects' passes, the mobile
             // sky), else with the full-screen vertex shader of its frame.
             let own = name.strip_suffix("PS").map(|stem| format!("{stem}VS"));
             match own.filter(|vs| archive.shader(vs).level(&shader.level).find().is_ok()) {

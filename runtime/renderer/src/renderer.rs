@@ -58,9 +58,9 @@ pub struct RendererOptions {
     pub width: u32,
     pub height: u32,
     /// Comparison settings: the effects one pipeline has and another lacks are off, so that
-    /// desktop and mobile frames of one scene can be compared like with like. Desktop: part 2
+    /// desktop and mobile frames of one scene can be compared like with like. Desktop: the effects
     /// off (no TAA and jitter, motion blur, eye adaptation, volumetric fog, sprites,
-    /// reflections or animation: [`crate::desktop::part2::Part2Options::off`]), no ambient
+    /// reflections or animation: [`crate::desktop::effects::EffectOptions::off`]), no ambient
     /// occlusion, bloom, vignette or sky gradient. Mobile: no MSAA, vertex fog, reflections,
     /// bloom or translucency ([`crate::mobile::MobileOptions::comparable`]). The fire's
     /// particles are still simulated and drawn.
@@ -90,7 +90,7 @@ impl RendererOptions {
             bloom: false,
             vignette: false,
             sky_gradient: false,
-            part2: crate::desktop::part2::Part2Options::off(),
+            effects: crate::desktop::effects::EffectOptions::off(),
             ..base
         }
     }
@@ -105,7 +105,10 @@ impl RendererOptions {
         if self.comparison {
             crate::mobile::MobileOptions::comparable(path)
         } else {
-            crate::mobile::MobileOptions::for_pipeline(self.pipeline)
+            match path {
+                crate::mobile::ShadingPath::Deferred => crate::mobile::MobileOptions::deferred(),
+                crate::mobile::ShadingPath::Forward => crate::mobile::MobileOptions::forward(),
+            }
         }
     }
 }
@@ -291,9 +294,9 @@ impl Renderer {
         }
     }
 
-    /// The desktop frame's part 2 (issue 7), for tests that look at its state across frames.
-    pub fn desktop_part2(&self) -> Option<&crate::desktop::part2::Part2> {
-        self.desktop_frame().map(|d| d.part2())
+    /// The desktop frame's effects, for tests that look at its state across frames.
+    pub fn desktop_effects(&self) -> Option<&crate::desktop::effects::Effects> {
+        self.desktop_frame().map(|d| d.effects())
     }
 
     /// Renders one frame. With `capture`, every pass's outputs come back as images.

@@ -1,4 +1,4 @@
-//! Shared by the desktop part 2 tests: the bundled archive built from the root
+//! Shared by the desktop effects tests: the bundled archive built from the root
 //! `permutations.toml` (once per test process), a lavapipe device, a desktop renderer.
 
 #![allow(dead_code)]

@@ -15,8 +15,8 @@ use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineEr
 
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
 use super::particles::Particles;
+use super::resources::formats::DISTORTION as DISTORTION_FORMAT;
 
-pub const DISTORTION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
 /// Index of refraction - 1 of the glass.
 pub const GLASS_REFRACTION: f32 = 0.5;
 

@@ -1,4 +1,4 @@
-//! The desktop frame's second part (issue 7), hooked into the frame function one call per
+//! The desktop frame's stateful effects (`Effects`), hooked into the frame function one call per
 //! pass: ParticleSimulation, BeginOcclusionTests, BuildHZB, VolumetricFog, the colliding
 //! ParticleSimulation after the BasePass, Velocity, InjectTranslucentVolume and
 //! FilterTranslucentVolume (steps of Lighting), Reflections, the volumetric fog's
@@ -9,8 +9,8 @@
 //! Takes the frame's targets and the scene; keeps everything that lives from one frame to the
 //! next (TAA and fog histories, particle state, occlusion read-backs, the previous camera and
 //! transforms), so a frame function renders several frames in a row by calling
-//! [`Part2::begin_frame`] and the pass calls once per frame. Every pipeline is created when
-//! the part is built (the warm-up); recording creates none.
+//! [`Effects::begin_frame`] and the pass calls once per frame. Every pipeline is created when
+//! the effects are built (the warm-up); recording creates none.
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -41,9 +41,9 @@ use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
 
-/// Which parts of part 2 run (all by default).
+/// Which effects run (all by default).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Part2Options {
+pub struct EffectOptions {
     /// Jittered projection and TAA.
     pub taa: bool,
     pub motion_blur: bool,
@@ -88,12 +88,12 @@ impl TranslucencyLightingMode {
     }
 }
 
-impl Part2Options {
+impl EffectOptions {
     /// Every pass still runs and is dumped, but none changes the frame: no jitter, TAA, motion
     /// blur, eye adaptation, volumetric fog, sprites or reflections, nothing moves, and the
     /// glass is forward shaded per pixel (for comparisons with frames that lack these effects).
-    pub fn off() -> Part2Options {
-        Part2Options {
+    pub fn off() -> EffectOptions {
+        EffectOptions {
             taa: false,
             motion_blur: false,
             eye_adaptation: false,
@@ -102,14 +102,14 @@ impl Part2Options {
             particles: false,
             reflections: false,
             translucency_lighting: TranslucencyLightingMode::SurfaceForwardShading,
-            ..Part2Options::default()
+            ..EffectOptions::default()
         }
     }
 }
 
-impl Default for Part2Options {
+impl Default for EffectOptions {
     fn default() -> Self {
-        Part2Options {
+        EffectOptions {
             taa: true,
             motion_blur: true,
             eye_adaptation: true,
@@ -124,8 +124,8 @@ impl Default for Part2Options {
     }
 }
 
-/// The frame's targets part 2 reads and writes.
-pub struct Part2Targets<'a> {
+/// The frame's targets the effects read and write.
+pub struct EffectTargets<'a> {
     pub size: [u32; 2],
     pub scene_depth: &'a wgpu::Texture,
     pub scene_color: &'a wgpu::Texture,
@@ -142,7 +142,7 @@ pub struct Part2Targets<'a> {
     /// shadow, where it casts one that InjectTranslucentVolume can read.
     pub local_shadows: Vec<Option<LocalLightShadow<'a>>>,
     /// The frame draws the scene emitters' fire sprites itself (the runtime's
-    /// ParticleSimulation): part 2 then draws only its sparks and smoke, and the fire's heat
+    /// ParticleSimulation): the effects then draw only its sparks and smoke, and the fire's heat
     /// haze.
     pub frame_draws_fire: bool,
 }
@@ -154,6 +154,17 @@ pub struct TranslucencyVolumeInputs {
     pub params: wgpu::Buffer,
     pub ambient: [wgpu::Texture; 2],
     pub directional: [wgpu::Texture; 2],
+}
+
+/// What the effects are built with: the device, the runtime's pipeline cache and the scene
+/// with its meshes on the GPU (`meshes`, by mesh index).
+#[derive(Clone, Copy)]
+pub struct EffectContext<'a> {
+    pub device: &'a wgpu::Device,
+    pub queue: &'a wgpu::Queue,
+    pub cache: &'a PipelineCache,
+    pub scene: &'a Scene,
+    pub meshes: &'a [MeshRef<'a>],
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -272,7 +283,7 @@ struct Visualizations {
 }
 
 struct State {
-    options: Part2Options,
+    options: EffectOptions,
     device: wgpu::Device,
     queue: wgpu::Queue,
     frame_view: wgpu::Buffer,
@@ -305,8 +316,8 @@ struct State {
     scene_depth_attachment: wgpu::TextureView,
 }
 
-/// The passes of part 2 with their state across frames.
-pub struct Part2 {
+/// The effect passes with their state across frames.
+pub struct Effects {
     state: Mutex<State>,
 }
 
@@ -319,19 +330,16 @@ pub fn animate_movable(base: Mat4, time: f32) -> Mat4 {
     Mat4::from_translation(offset) * base * Mat4::from_quat(Quat::from_rotation_y(time * 0.8))
 }
 
-impl Part2 {
-    /// Builds every pass (and so every pipeline) of part 2. `meshes`: the scene's meshes on
-    /// the GPU, by mesh index.
+impl Effects {
+    /// Builds every pass (and so every pipeline) of the effects on `context`'s device, over
+    /// the frame's `targets` and the directional light's cascades (`shadow`).
     pub fn new(
-        device: &wgpu::Device,
-        queue: &wgpu::Queue,
-        cache: &PipelineCache,
-        scene: &Scene,
-        meshes: &[MeshRef<'_>],
-        targets: &Part2Targets<'_>,
+        context: &EffectContext<'_>,
+        targets: &EffectTargets<'_>,
         shadow: Option<DirectionalShadow>,
-        options: Part2Options,
-    ) -> Result<Part2, PipelineError> {
+        options: EffectOptions,
+    ) -> Result<Effects, PipelineError> {
+        let EffectContext { device, queue, cache, scene, meshes } = *context;
         let size = targets.size;
         let frame_view = uniform_buffer(device, "FrameView", &FrameView::default());
         let depth_format = targets.scene_depth.format();
@@ -592,19 +600,19 @@ impl Part2 {
             scene_color_view: color_view,
             scene_depth_attachment: view(targets.scene_depth),
         };
-        Ok(Part2 { state: Mutex::new(state) })
+        Ok(Effects { state: Mutex::new(state) })
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    pub fn options(&self) -> Part2Options {
+    pub fn options(&self) -> EffectOptions {
         self.lock().options
     }
 
     /// Turns effects on or off (from the next frame on; every pipeline exists already).
-    pub fn set_options(&self, options: Part2Options) {
+    pub fn set_options(&self, options: EffectOptions) {
         self.lock().options = options;
     }
 
@@ -645,7 +653,7 @@ impl Part2 {
 
     /// Starts a frame: advances time, moves the movable props, computes this frame's jittered
     /// camera and the [`FrameView`]. The frame function renders with the camera returned
-    /// and draws object `i` with `transforms(i)` (see [`Part2::object_transforms`]).
+    /// and draws object `i` with `transforms(i)` (see [`Effects::object_transforms`]).
     pub fn begin_frame(&self) -> FrameCamera {
         let mut s = self.lock();
         let s = &mut *s;
@@ -984,7 +992,7 @@ impl Part2 {
         self.lock().velocity.texture.clone()
     }
 
-    /// The scene depth texture part 2 reads, for tests.
+    /// The scene depth texture the effects read, for tests.
     pub fn scene_depth(&self) -> wgpu::Texture {
         self.lock().scene_depth_attachment.texture().clone()
     }

@@ -1,4 +1,4 @@
-//! The view as the passes of the desktop frame's second part see it (`FrameView` of
+//! The view as the passes of the desktop frame's effects see it (`FrameView` of
 //! `shader_src/Private/Desktop/DeferredFrame2Common.ush`), the TAA jitter sequence, the
 //! history kept from one frame to the next, and small helpers those passes share (targets,
 //! uniform buffers, samplers, full-screen draws).
@@ -158,7 +158,7 @@ impl DirectionalShadow {
     }
 }
 
-/// A scene mesh the passes of part 2 draw again (Velocity, DistortionAccum), with the
+/// A scene mesh the effect passes draw again (Velocity, DistortionAccum), with the
 /// instance vertex buffer they keep themselves (the local vertex factory's layout:
 /// `MeshVertex` in buffer 0, one local-to-world matrix per instance in buffer 1).
 pub struct InstancedMesh {

@@ -22,15 +22,15 @@ mod shadow_depths;
 mod translucency;
 pub mod view;
 
-// Part 2 (issue 7): particles, occlusion, HZB, volumetric fog, velocity, translucency volumes,
-// reflections, distortion, temporal post-processing, driven by `part2::Part2`.
+// The stateful effects: particles, occlusion, HZB, volumetric fog, velocity, translucency
+// volumes, reflections, distortion, temporal post-processing, driven by `effects::Effects`.
 pub mod distortion;
+pub mod effects;
 pub mod eye_adaptation;
 pub mod frame_view;
 pub mod hzb;
 pub mod motion_blur;
 pub mod occlusion;
-pub mod part2;
 pub mod particles;
 pub mod reflections;
 pub mod taa;
@@ -86,9 +86,9 @@ pub struct DesktopOptions {
     pub sky_gradient: bool,
     /// Format of the output target (sRGB, so the tonemapper's output is encoded on write).
     pub output_format: wgpu::TextureFormat,
-    /// What part 2 (issue 7) changes in the frame: TAA, motion blur, eye adaptation,
-    /// volumetric fog, sprites, reflections (`Part2Options::off()` for none).
-    pub part2: part2::Part2Options,
+    /// What the effects change in the frame: TAA, motion blur, eye adaptation,
+    /// volumetric fog, sprites, reflections (`EffectOptions::off()` for none).
+    pub effects: effects::EffectOptions,
 }
 
 impl Default for DesktopOptions {
@@ -108,7 +108,7 @@ impl Default for DesktopOptions {
             vignette: true,
             sky_gradient: true,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
-            part2: part2::Part2Options::default(),
+            effects: effects::EffectOptions::default(),
         }
     }
 }
@@ -179,7 +179,7 @@ pub struct DesktopFrame {
     _lights_buffer: wgpu::Buffer,
     _view_buffer: wgpu::Buffer,
     _samplers: resources::Samplers,
-    /// This frame's view (the camera part 2 renders with, unjittered), refreshed as every
+    /// This frame's view (the camera the effects render with, unjittered), refreshed as every
     /// frame begins: everything camera-dependent is computed from it per frame.
     view: std::sync::Mutex<FrameView>,
     /// The fire sprites' view uniforms (`FViewUniforms` of the runtime's particle pass) as
@@ -195,8 +195,8 @@ pub struct DesktopFrame {
     fog: fog::HeightFog,
     translucency: translucency::Translucency,
     post: post_processing::PostProcessing,
-    part2: part2::Part2,
-    /// The View uniforms as built, patched every frame with part 2's (jittered) camera.
+    effects: effects::Effects,
+    /// The View uniforms as built, patched every frame with the effects' (jittered) camera.
     base_view: view::ViewUniforms,
     /// Every object's instance rows: (object, first row, local bounds centre, row).
     object_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
@@ -254,7 +254,7 @@ impl DesktopFrame {
         let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
         let fog = fog::HeightFog::new(&b)?;
         let post = post_processing::PostProcessing::new(&b, options.output_format)?;
-        let grid = part2::LightGridInputs {
+        let grid = effects::LightGridInputs {
             lights: &lights_buffer,
             num_culled_lights: &light_grid.num_culled_lights,
             culled_light_data: &light_grid.culled_light_data,
@@ -265,29 +265,24 @@ impl DesktopFrame {
                 .uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient))
                 .light_grid_z_params,
         };
-        let part2 = desktop_part2(
-            device,
+        let effects = build_effects(
+            &b,
             queue,
-            cache,
-            scene,
-            &buffers,
-            &targets,
-            &shadows,
-            &dummy_shadow,
-            &lights,
-            grid,
-            particles.is_some(),
-            w,
-            h,
+            EffectInputs {
+                shadows: &shadows,
+                dummy_shadow: &dummy_shadow,
+                light_grid: grid,
+                frame_draws_fire: particles.is_some(),
+            },
         )?;
-        part2.set_options(options.part2);
+        effects.set_options(options.effects);
         let translucency = translucency::Translucency::new(
             &b,
             &light_grid,
             &shadows,
             &dummy_shadow,
             particles.as_ref(),
-            &part2.translucency_volume(),
+            &effects.translucency_volume(),
         )?;
         let base_view =
             view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
@@ -317,7 +312,7 @@ impl DesktopFrame {
             fog,
             translucency,
             post,
-            part2,
+            effects,
             base_view,
             object_rows,
             shadow_frustum_culling: std::sync::atomic::AtomicBool::new(true),
@@ -336,7 +331,7 @@ impl DesktopFrame {
         fire: Option<&dyn Fn(&mut PassContext<'_>)>,
     ) {
         let (s, t) = (&self.buffers, &self.targets);
-        let p2 = &self.part2;
+        let p2 = &self.effects;
         let camera = p2.begin_frame();
         let view = FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1));
         self.write_camera(&camera, &view);
@@ -382,7 +377,7 @@ impl DesktopFrame {
     /// Whether local light `light` renders its shadow depths and projection this frame: its
     /// ShadowFrustumQuery has not come back with 0 samples (or the culling is off).
     pub fn casts_shadow(&self, light: usize) -> bool {
-        !self.shadow_frustum_culling.load(std::sync::atomic::Ordering::Relaxed) || self.part2.is_light_visible(light)
+        !self.shadow_frustum_culling.load(std::sync::atomic::Ordering::Relaxed) || self.effects.is_light_visible(light)
     }
 
     /// Turns the skipping of occluded lights' shadow work on (the default) or off.
@@ -411,15 +406,15 @@ impl DesktopFrame {
         self.shadows.invalidate_cached_shadows();
     }
 
-    /// Part 2 of the frame (its state across frames: camera, histories, occlusion).
-    pub fn part2(&self) -> &part2::Part2 {
-        &self.part2
+    /// The frame's effects (their state across frames: camera, histories, occlusion).
+    pub fn effects(&self) -> &effects::Effects {
+        &self.effects
     }
 
     /// This frame's camera (jittered for TAA) into the View uniforms, and the movable props'
     /// transforms into their instance rows.
     /// `view`: the same camera unjittered (its near plane places the light grid's slices).
-    fn write_camera(&self, camera: &part2::FrameCamera, view: &FrameView) {
+    fn write_camera(&self, camera: &effects::FrameCamera, view: &FrameView) {
         let mut v = self.base_view;
         v.view_proj = camera.view_proj;
         v.inv_view_proj = camera.inv_view_proj;
@@ -431,8 +426,8 @@ impl DesktopFrame {
         // every object's rows: movable props move, props that occlusion culling found hidden
         // get empty transforms (nothing rasterised) until a query finds them visible again
         for (object, first, local_center, template) in &self.object_rows {
-            let visible = self.part2.is_visible(*object);
-            for (i, m) in self.part2.object_transforms(*object).into_iter().enumerate() {
+            let visible = self.effects.is_visible(*object);
+            for (i, m) in self.effects.object_transforms(*object).into_iter().enumerate() {
                 let m = if visible { m } else { glam::Mat4::ZERO };
                 let row = view::InstanceGpu {
                     local_to_world: m,
@@ -452,16 +447,16 @@ impl DesktopFrame {
 
     /// What the passes built with the first camera computed from it, recomputed for this
     /// frame's `view`: the cascades of the directional light (their depth matrices, the
-    /// projections Lighting, the translucency and part 2's fog and volumes read), each local
+    /// projections Lighting, the translucency and the effects' fog and volumes read), each local
     /// light's depth bounds and whether the camera is inside its volume, the fire sprites'
-    /// view, the light grid's depth slicing as the volumetric fog reads it. (The View uniforms, the light grid's and every part 2 pass's camera are written
-    /// by [`DesktopFrame::write_camera`] and [`part2::Part2::begin_frame`].)
+    /// view, the light grid's depth slicing as the volumetric fog reads it. (The View uniforms, the light grid's and every effect pass's camera are written
+    /// by [`DesktopFrame::write_camera`] and [`effects::Effects::begin_frame`].)
     fn follow_camera(&self, view: &FrameView) {
         let cascaded = self.shadows.update_cascades(&self.queue, view);
         self.lighting.update(&self.queue, view, cascaded.as_ref());
         self.translucency.update(&self.queue, cascaded.as_ref());
-        self.part2.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
-        self.part2.set_light_grid_z_params(view.grid_z_params.extend(0.0));
+        self.effects.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
+        self.effects.set_light_grid_z_params(view.grid_z_params.extend(0.0));
         if let Some((buffer, base)) = &self.particle_view {
             let mut u = *base;
             u.view_proj = view.view_proj;
@@ -542,27 +537,29 @@ impl DesktopFrame {
     }
 }
 
-/// Part 2 of the frame over the frame's targets and the directional light's cascades.
-#[allow(clippy::too_many_arguments)]
-fn desktop_part2(
-    device: &wgpu::Device,
-    queue: &wgpu::Queue,
-    cache: &PipelineCache,
-    scene: &Scene,
-    buffers: &resources::SceneBuffers,
-    targets: &resources::Targets,
-    shadows: &shadow_depths::ShadowDepths,
-    dummy_shadow: &resources::Texture,
-    lights: &[FrameLight],
-    light_grid: part2::LightGridInputs<'_>,
+/// What the effects read of the frame besides its [`Build`] context.
+struct EffectInputs<'a> {
+    shadows: &'a shadow_depths::ShadowDepths,
+    /// Bound where the directional light has no cascades.
+    dummy_shadow: &'a resources::Texture,
+    light_grid: effects::LightGridInputs<'a>,
+    /// The frame draws the runtime's fire (its ParticleSimulation runs before the frame).
     frame_draws_fire: bool,
-    w: u32,
-    h: u32,
-) -> Result<part2::Part2, DesktopError> {
-    let meshes: Vec<part2::MeshRef<'_>> = buffers
+}
+
+/// The frame's effects over the frame's targets and the directional light's cascades.
+fn build_effects(
+    b: &Build<'_>,
+    queue: &wgpu::Queue,
+    inputs: EffectInputs<'_>,
+) -> Result<effects::Effects, DesktopError> {
+    let EffectInputs { shadows, dummy_shadow, light_grid, frame_draws_fire } = inputs;
+    let (buffers, targets, lights) = (b.buffers, b.targets, b.lights);
+    let (w, h) = (b.options.width.max(1), b.options.height.max(1));
+    let meshes: Vec<effects::MeshRef<'_>> = buffers
         .meshes
         .iter()
-        .map(|m| part2::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count })
+        .map(|m| effects::MeshRef { vertices: &m.vertices, indices: &m.indices, index_count: m.index_count })
         .collect();
     let shadow = match (shadows.csm_texture(), &shadows.setup.cascaded) {
         (Some(_), Some(c)) => Some(directional_shadow(c)),
@@ -570,7 +567,7 @@ fn desktop_part2(
     };
     let shadow_depth = shadows.csm_texture().map_or(&dummy_shadow.texture, |t| &t.texture);
     let local_shadows = translucent_volume_shadows(shadows, lights);
-    let part2_targets = part2::Part2Targets {
+    let effect_targets = effects::EffectTargets {
         size: [w, h],
         scene_depth: &targets.scene_depth.texture,
         scene_color: &targets.scene_color.texture,
@@ -584,7 +581,9 @@ fn desktop_part2(
         local_shadows,
         frame_draws_fire,
     };
-    Ok(part2::Part2::new(device, queue, cache, scene, &meshes, &part2_targets, shadow, part2::Part2Options::default())?)
+    let context =
+        effects::EffectContext { device: b.device, queue, cache: b.pipelines.cache, scene: b.scene, meshes: &meshes };
+    Ok(effects::Effects::new(&context, &effect_targets, shadow, effects::EffectOptions::default())?)
 }
 
 /// Each local light's own shadow as InjectTranslucentVolume reads it (by frame light index):
@@ -635,7 +634,7 @@ fn translucent_volume_shadows<'a>(
         .collect()
 }
 
-/// The cascades as part 2 (the volumetric fog, the translucency volumes) reads them.
+/// The cascades as the effects (the volumetric fog, the translucency volumes) reads them.
 fn directional_shadow(c: &view::ShadowProjectionUniforms) -> frame_view::DirectionalShadow {
     frame_view::DirectionalShadow {
         cascades: [c.world_to_shadow[0], c.world_to_shadow[1], c.world_to_shadow[2]],

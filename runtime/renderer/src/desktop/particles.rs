@@ -212,7 +212,7 @@ impl Particles {
         let distortion_layout = cache.render(
             &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
-            &Particles::distortion_state(super::distortion::DISTORTION_FORMAT, Some(target.1)),
+            &Particles::distortion_state(super::resources::formats::DISTORTION, Some(target.1)),
         )?;
         let sprite_pipeline_layout = cache.render(
             &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,

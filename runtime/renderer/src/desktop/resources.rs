@@ -11,6 +11,8 @@ use super::view::{InstanceGpu, LocalLightGpu, MaterialGpu};
 /// Texture formats of the desktop frame, by their Unreal names.
 pub mod formats {
     use wgpu::TextureFormat;
+    /// The distortion offsets DistortionAccum accumulates (glass and the fire's heat haze).
+    pub const DISTORTION: TextureFormat = TextureFormat::Rg16Float;
     pub const SCENE_COLOR: TextureFormat = TextureFormat::Rgba16Float;
     pub const GBUFFER_A: TextureFormat = TextureFormat::Rgb10a2Unorm;
     pub const GBUFFER_B: TextureFormat = TextureFormat::Rgba8Unorm;
@@ -118,7 +120,7 @@ impl SceneBuffers {
                 usage: wgpu::BufferUsages::STORAGE,
             })
         };
-        // movable props' rows are rewritten every frame (part 2 moves them)
+        // movable props' rows are rewritten every frame (the effects move them)
         let storage_copy_dst = |label: &str, bytes: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),

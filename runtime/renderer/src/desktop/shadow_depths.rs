@@ -40,7 +40,7 @@ struct Atlas {
     texture: Texture,
     pipeline: Arc<Render>,
     views: Vec<ShadowView>,
-    /// Cube shadows of movable lights: the static casters' depth, cached (part 2).
+    /// Cube shadows of movable lights: the static casters' depth, cached (effects).
     cache: Option<CubeCache>,
 }
 
@@ -119,7 +119,7 @@ pub fn cascade_matrices(view: &FrameView, light_direction: Vec3) -> [Mat4; CASCA
 }
 
 /// The cascaded shadow's projection uniforms for `view` (and the cascades' matrices): what
-/// ShadowProjectionOnOpaque, the forward-lit translucency and part 2 read. `size`: one
+/// ShadowProjectionOnOpaque, the forward-lit translucency and the effects read. `size`: one
 /// cascade's side in texels.
 pub fn cascaded_uniforms(
     view: &FrameView,

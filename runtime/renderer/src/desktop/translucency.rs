@@ -2,7 +2,7 @@
 //! (premultiplied color, alpha = transmittance), depth tested against the scene, and the
 //! fire's particle sprites added to it; then composited over SceneColor. The glass is lit
 //! by one of two TranslucencyLightingModes (the `TRANSLUCENCY_LIGHTING_MODE` dimension, chosen
-//! per frame by [`Part2Options::translucency_lighting`](super::part2::Part2Options)):
+//! per frame by [`EffectOptions::translucency_lighting`](super::effects::EffectOptions)):
 //! per pixel (sky light, the directional light with its cascaded shadow, the local lights of
 //! the light grid cell each pixel falls in), or with the diffuse light of the volumes' lights
 //! read from the two cascades of the translucency lighting volumes.
@@ -13,9 +13,9 @@ use crate::frame::{PassContext, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
+use super::effects::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::frame_view::volume_view;
 use super::light_grid::LightGrid;
-use super::part2::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;

@@ -16,7 +16,7 @@ use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
 
 use super::pipeline::{replace, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
-use super::uniforms::DepthPassUniforms;
+use super::shadows::DepthPassUniforms;
 use super::{
     MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT,
     GBUFFER_A_FORMAT, GBUFFER_B_FORMAT, GBUFFER_C_FORMAT, LDR_COLOR_FORMAT, SCENE_COLOR_FORMAT, STENCIL_DEFAULT_LIT,

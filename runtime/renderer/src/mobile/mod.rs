@@ -156,14 +156,6 @@ impl MobileOptions {
         MobileOptions::default()
     }
 
-    /// The defaults of a `--pipeline`.
-    pub fn for_pipeline(pipeline: crate::renderer::FramePipeline) -> MobileOptions {
-        match pipeline {
-            crate::renderer::FramePipeline::MobileDeferred => MobileOptions::deferred(),
-            _ => MobileOptions::forward(),
-        }
-    }
-
     pub fn deferred() -> MobileOptions {
         MobileOptions { path: ShadingPath::Deferred, msaa: 1, vertex_fog: false, ..MobileOptions::default() }
     }

@@ -7,6 +7,7 @@
 //! below. Each cascade bounds a slice of the camera frustum with a sphere, seen along the
 //! light by an orthographic projection deep enough to catch casters behind the slice.
 
+use bytemuck::{Pod, Zeroable};
 use glam::camera::rh::proj::directx::{orthographic, perspective};
 use glam::camera::rh::view::look_at_mat4;
 use glam::{Mat4, Vec3, Vec4};
@@ -19,7 +20,6 @@ use crate::scene::gpu::GpuScene;
 use crate::scene::{BlendMode, Camera, Scene};
 
 use super::pipeline::{Draw, MobilePipelines, PipelineDesc, VertexInput};
-use super::uniforms::{DepthPassUniforms, MAX_CASCADES};
 use super::{MobileOptions, Target, SHADOW_ATLAS_FORMAT};
 
 pub const CASCADE_TILE: u32 = 1024;
@@ -40,6 +40,18 @@ pub struct ShadowTile {
     pub far: f32,
     /// World units the casters move along their normals (normal offset bias).
     pub normal_offset: f32,
+}
+
+/// Most directional-light cascades (`MobileCommon.ush`'s `csm_matrix` array).
+pub const MAX_CASCADES: usize = 4;
+
+/// `DepthPass` of `MobileShadowDepth.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct DepthPassUniforms {
+    pub view_proj: Mat4,
+    /// x = normal offset (world units)
+    pub params: Vec4,
 }
 
 /// Where every shadow of the frame lives in the atlas.
@@ -278,6 +290,11 @@ impl ShadowDepths {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn depth_pass_uniforms_match_the_wgsl_struct() {
+        assert_eq!(std::mem::size_of::<DepthPassUniforms>(), 80);
+    }
 
     #[test]
     fn splits_cover_near_to_far_and_grow() {

@@ -1,4 +1,4 @@
-//! The uniform blocks of the mobile shaders (`MobileCommon.ush`, `MobileShadowDepth.usf`,
+//! The uniform blocks of the mobile shaders (`MobileCommon.ush`,
 //! `MobileDeferredShading.usf`, `MobileBloom.usf`, `MobileTonemap.usf`), member for member
 //! (vec4 and mat4 members only, so no padding rules apply), and how the scene fills them.
 
@@ -7,13 +7,12 @@ use glam::{Mat4, Vec3, Vec4};
 
 use crate::scene::{Scene, SpotLight};
 
-use super::shadows::ShadowLayout;
+use super::shadows::{ShadowLayout, MAX_CASCADES};
 use super::sky::Captures;
 use super::MobileOptions;
 
 /// Most local lights the forward base pass shades (`MAX_DYNAMIC_POINT_LIGHTS` at most 4).
 pub const MAX_LOCAL_LIGHTS: usize = 4;
-pub const MAX_CASCADES: usize = 4;
 
 /// `LocalLight` of `MobileCommon.ush`.
 #[repr(C)]
@@ -53,15 +52,6 @@ pub struct MobileViewUniforms {
     pub local_lights: [LocalLightData; MAX_LOCAL_LIGHTS],
     pub capture_positions: [Vec4; 3],
     pub capture_brightness: [Vec4; 3],
-}
-
-/// `DepthPass` of `MobileShadowDepth.usf`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct DepthPassUniforms {
-    pub view_proj: Mat4,
-    /// x = normal offset (world units)
-    pub params: Vec4,
 }
 
 /// `DeferredLight` of `MobileDeferredShading.usf`.
@@ -228,7 +218,6 @@ mod tests {
             std::mem::size_of::<MobileViewUniforms>(),
             2 * 64 + 6 * 16 + 4 * 64 + 16 + 4 * 16 + 4 * 16 + 4 * 128 + 6 * 16
         );
-        assert_eq!(std::mem::size_of::<DepthPassUniforms>(), 80);
         assert_eq!(std::mem::size_of::<DeferredLightUniforms>(), 192);
     }
 
