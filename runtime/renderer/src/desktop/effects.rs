@@ -28,7 +28,7 @@ use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
 use super::frame_view::{
     groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
-    FrameLights, FrameView, InstancedMesh,
+    EffectPassInit, FrameLights, FrameView, InstancedMesh,
 };
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
@@ -209,9 +209,7 @@ impl Visualization {
         label: &str,
         source: &wgpu::Texture,
         size: [u32; 2],
-        scale: Vec4,
-        bias: Vec4,
-        slice: u32,
+        values: VisualizeParams,
     ) -> Result<Visualization, PipelineError> {
         let volume = is_volume(source);
         let pipeline = cache
@@ -223,7 +221,7 @@ impl Visualization {
             wgpu::TextureFormat::Rgba8Unorm,
             wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
         );
-        let params = uniform_buffer(device, label, &VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] });
+        let params = uniform_buffer(device, label, &values);
         let src = if volume { volume_view(source) } else { view(source) };
         let dst = view(&image);
         let group = pipeline.layout.bind_group(
@@ -236,13 +234,7 @@ impl Visualization {
                 ("out_image", wgpu::BindingResource::TextureView(&dst)),
             ],
         )?;
-        Ok(Visualization {
-            pipeline,
-            group,
-            image,
-            params,
-            values: VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] },
-        })
+        Ok(Visualization { pipeline, group, image, params, values })
     }
 
     /// Shows slice `slice` of a volume from now on.
@@ -435,10 +427,9 @@ impl Effects {
 
         let hzb = Hzb::new(device, cache, &depth_view, size)?;
 
+        let init = EffectPassInit { device, cache, frame_view: &frame_view };
         let fog = VolumetricFog::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             &depth_view,
             &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare },
@@ -502,20 +493,19 @@ impl Effects {
         let taa = TemporalAA::new(device, cache, &frame_view, size, &color_view, &velocity.view, &depth_view)?;
         let [h0, h1] = taa.history_views();
         let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
-        let motion_blur = MotionBlur::new(
-            device,
-            cache,
-            &frame_view,
-            &[h0, h1],
-            &velocity.view,
-            &depth_view,
-            &eye.result,
-            scene_color_format,
-        )?;
+        let motion_blur =
+            MotionBlur::new(&init, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
 
         let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
             let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
-            Visualization::new(device, cache, label, source, s, scale, bias, slice)
+            Visualization::new(
+                device,
+                cache,
+                label,
+                source,
+                s,
+                VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] },
+            )
         };
         let sparks = particles.state_textures(true);
         let fire = particles.state_textures(false);

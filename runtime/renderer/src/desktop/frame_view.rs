@@ -132,6 +132,15 @@ impl FrameView {
     }
 }
 
+/// What an effect pass is built with: the device, the runtime's pipeline cache and the
+/// `FrameView` uniform buffer the pass binds.
+#[derive(Clone, Copy)]
+pub struct EffectPassInit<'a> {
+    pub device: &'a wgpu::Device,
+    pub cache: &'a crate::pipelines::PipelineCache,
+    pub frame_view: &'a wgpu::Buffer,
+}
+
 /// The directional light's shadow map as the fog and the translucency volumes read it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DirectionalShadow {

@@ -9,9 +9,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, uniform_buffer};
+use super::frame_view::{color_pass, linear_sampler, uniform_buffer, EffectPassInit};
 
 /// Fraction of the frame the shutter is open (Unreal's default 0.5).
 pub const SHUTTER: f32 = 0.5;
@@ -35,15 +35,14 @@ pub struct MotionBlur {
 impl MotionBlur {
     /// `inputs`: the textures the blur may read (one bind group each).
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         inputs: &[&wgpu::TextureView],
         velocity: &wgpu::TextureView,
         scene_depth: &wgpu::TextureView,
         eye_adaptation: &wgpu::Buffer,
         output_format: wgpu::TextureFormat,
     ) -> Result<MotionBlur, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let pipeline = cache.render(
             &keys::name(keys::motion_blur_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::motion_blur_ps::Key {}, keys::Level::Sm5)?),

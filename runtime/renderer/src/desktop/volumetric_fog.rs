@@ -14,11 +14,11 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
-};
+use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{
+    groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit,
+};
 
 pub const TILE_SIZE: u32 = 8;
 pub const DEPTH_SLICES: u32 = 128;
@@ -115,15 +115,14 @@ pub struct VolumetricFog {
 
 impl VolumetricFog {
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         size: [u32; 2],
         scene_depth: &wgpu::TextureView,
         shadow: &ShadowInputs<'_>,
         light_grid: &LightGridInputs<'_>,
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<VolumetricFog, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let grid = [size[0].div_ceil(TILE_SIZE), size[1].div_ceil(TILE_SIZE), DEPTH_SLICES];
         let init = cache.compute(&keys::name(keys::volumetric_fog_initialize_cs::Key {}, keys::Level::Sm5)?)?;
         let scattering = [
