@@ -233,7 +233,7 @@ impl Gpu {
         // Errors outside an error scope are reported, not panicked on: every frame and
         // pipeline creation runs in a scope that turns them into results.
         device.on_uncaptured_error(std::sync::Arc::new(|e: wgpu::Error| {
-            eprintln!("wgpu error: {}", crate::pipelines::error_chain(&e));
+            eprintln!("wgpu error: {}", error_chain(&e));
         }));
         // A lost device (a driver reset, or one that gave up) is an error of the next frame.
         let lost = DeviceLost::default();
@@ -260,15 +260,36 @@ impl Gpu {
     /// The file name of this adapter's and driver's pipeline cache, where the device has one
     /// (`Features::PIPELINE_CACHE`: Vulkan).
     pub fn pipeline_cache_key(&self) -> Option<String> {
-        if !self.device.features().contains(wgpu::Features::PIPELINE_CACHE) {
-            return None;
-        }
-        wgpu::util::pipeline_cache_key(&self.info)
-            .map(|k| format!("{k}_{}.kpc", self.info.driver_info.replace(|c: char| !c.is_ascii_alphanumeric(), "_")))
+        pipeline_cache_key(&self.info, &self.device)
     }
 
     /// Waits until the GPU has finished everything submitted.
     pub fn wait(&self) {
         let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
     }
+}
+
+/// An error and its sources on one line each (wgpu's own Display says only "Validation Error").
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let line = s.to_string();
+        if !text.contains(&line) {
+            text.push_str(": ");
+            text.push_str(&line);
+        }
+        source = s.source();
+    }
+    text
+}
+
+/// The file name of the pipeline cache of `device` on the adapter `info` describes, where the
+/// device has one (`Features::PIPELINE_CACHE`: Vulkan): one per adapter and driver.
+pub fn pipeline_cache_key(info: &wgpu::AdapterInfo, device: &wgpu::Device) -> Option<String> {
+    if !device.features().contains(wgpu::Features::PIPELINE_CACHE) {
+        return None;
+    }
+    wgpu::util::pipeline_cache_key(info)
+        .map(|k| format!("{k}_{}.kpc", info.driver_info.replace(|c: char| !c.is_ascii_alphanumeric(), "_")))
 }

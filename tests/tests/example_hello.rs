@@ -145,3 +145,51 @@ fn typed_keys_find_what_names_find() {
     assert_eq!(seen, 2 * 4);
     assert_eq!(archive.permutations().count(), 2 + 4, "the archive holds the 6 permutations of the toml");
 }
+
+/// An application's own wgpu device, not the runtime's `Gpu`: the cache takes its adapter and
+/// device, passes SPIR-V through because the device asked for `PASSTHROUGH_SHADERS`, and
+/// creates every pipeline of the example with no validation message.
+#[test]
+fn a_cache_on_the_applications_own_device_creates_every_pipeline() {
+    use kiln_runtime::pipelines::{Blend, ColorTarget, RenderState};
+    use kiln_runtime::validation;
+    assert!(validation::install(), "another logger is installed: validation messages cannot be recorded");
+    assert!(
+        validation::khronos_layer_manifest().is_some(),
+        "no Khronos validation layer (Debian: vulkan-validationlayers)"
+    );
+    validation::enable_layer_for_process();
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    desc.flags |= wgpu::InstanceFlags::DEBUG;
+    let instance = wgpu::Instance::new(desc);
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions::default()))
+        .expect("a Vulkan adapter (Debian: mesa-vulkan-drivers)");
+    let (device, _queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("the application's device"),
+        required_features: adapter.features() & wgpu::Features::PASSTHROUGH_SHADERS,
+        ..Default::default()
+    }))
+    .unwrap();
+    let cache = PipelineCache::for_device(&adapter, &device, archive().unwrap());
+    assert_eq!(
+        cache.uses_spirv_passthrough(),
+        device.features().contains(wgpu::Features::PASSTHROUGH_SHADERS),
+        "SPIR-V passthrough exactly where the device has it"
+    );
+    assert!(cache.uses_spirv_passthrough(), "lavapipe offers PASSTHROUGH_SHADERS");
+    let state = RenderState::fullscreen(ColorTarget::new(kiln_example_hello::FORMAT, Blend::Replace));
+    for shape in [Shape::Triangle, Shape::Quad] {
+        for palette in [Palette::Warm, Palette::Cool] {
+            for tint in [None, Some([0.5; 4])] {
+                let (vs, ps) =
+                    permutations(cache.archive(), &Frame { shape, palette, tint, ..Frame::default() }).unwrap();
+                cache.render(&vs, Some(&ps), &state).unwrap_or_else(|e| panic!("{vs} + {ps}: {e}"));
+            }
+        }
+    }
+    assert_eq!(cache.stats().render_pipelines, 8);
+    let _ = device.poll(wgpu::PollType::wait_indefinitely());
+    let messages = validation::take();
+    assert!(messages.is_empty(), "validation messages:\n{}", messages.join("\n"));
+}

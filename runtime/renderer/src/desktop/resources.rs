@@ -1,0 +1,531 @@
+//! What the desktop passes share: the scene on the GPU (meshes, one instance buffer, one
+//! material buffer, one draw per object), the lights, and the frame's render targets.
+
+use glam::{Mat4, UVec4, Vec3, Vec4};
+use wgpu::util::DeviceExt;
+
+use crate::scene::{BlendMode, Mesh, Mobility, Pattern, Scene};
+
+use super::view::{InstanceGpu, LocalLightGpu, MaterialGpu};
+
+/// Texture formats of the desktop frame, by their Unreal names.
+pub mod formats {
+    use wgpu::TextureFormat;
+    /// The distortion offsets DistortionAccum accumulates (glass and the fire's heat haze).
+    pub const DISTORTION: TextureFormat = TextureFormat::Rg16Float;
+    pub const SCENE_COLOR: TextureFormat = TextureFormat::Rgba16Float;
+    pub const GBUFFER_A: TextureFormat = TextureFormat::Rgb10a2Unorm;
+    pub const GBUFFER_B: TextureFormat = TextureFormat::Rgba8Unorm;
+    pub const GBUFFER_C: TextureFormat = TextureFormat::Rgba8UnormSrgb;
+    pub const SHADOW_DEPTH: TextureFormat = TextureFormat::Depth32Float;
+    pub const SHADOW_MASK: TextureFormat = TextureFormat::Rgba8Unorm;
+    pub const AO_SETUP: TextureFormat = TextureFormat::Rgba16Float;
+    pub const AO: TextureFormat = TextureFormat::Rgba8Unorm;
+    pub const TRANSLUCENCY: TextureFormat = TextureFormat::Rgba16Float;
+    pub const BLOOM: TextureFormat = TextureFormat::Rgba16Float;
+    pub const VISUALIZE: TextureFormat = TextureFormat::Rgba8Unorm;
+}
+
+/// Stencil bit the BasePass sets on lit (non-sky, non-unlit) pixels.
+pub const STENCIL_LIT: u32 = 1;
+
+/// One object's draw: a mesh, a range of rows in the instance buffer.
+#[derive(Clone, Debug)]
+pub struct Draw {
+    /// The scene object's name (a debug label).
+    pub name: String,
+    pub mesh: usize,
+    pub first_instance: u32,
+    pub instance_count: u32,
+    pub blend: BlendMode,
+    pub unlit: bool,
+    pub movable: bool,
+    pub casts_shadow: bool,
+    /// World bounding sphere of all its instances.
+    pub bounds: (Vec3, f32),
+}
+
+pub struct GpuMesh {
+    pub vertices: wgpu::Buffer,
+    pub indices: wgpu::Buffer,
+    pub index_count: u32,
+}
+
+/// The scene as the desktop shaders read it.
+pub struct SceneBuffers {
+    pub meshes: Vec<GpuMesh>,
+    pub instances: wgpu::Buffer,
+    pub materials: wgpu::Buffer,
+    pub draws: Vec<Draw>,
+    /// A unit sphere for light volumes.
+    pub sphere: GpuMesh,
+}
+
+impl SceneBuffers {
+    pub fn upload(device: &wgpu::Device, scene: &Scene) -> SceneBuffers {
+        let mesh = |m: &Mesh| GpuMesh {
+            vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{} vertices", m.name)),
+                contents: bytemuck::cast_slice(&m.vertices),
+                usage: wgpu::BufferUsages::VERTEX,
+            }),
+            indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{} indices", m.name)),
+                contents: bytemuck::cast_slice(&m.indices),
+                usage: wgpu::BufferUsages::INDEX,
+            }),
+            index_count: m.indices.len() as u32,
+        };
+        let meshes = scene.meshes.iter().map(mesh).collect();
+        let mut instances = Vec::new();
+        let mut draws = Vec::new();
+        for o in &scene.objects {
+            let material = &scene.materials[o.material];
+            let (lo, hi) = scene.meshes[o.mesh].bounds();
+            let local_center = (lo + hi) * 0.5;
+            let local_radius = (hi - lo).length() * 0.5;
+            let first = instances.len() as u32;
+            let mut all_lo = Vec3::splat(f32::MAX);
+            let mut all_hi = Vec3::splat(f32::MIN);
+            for m in &o.instances {
+                let center = m.transform_point3(local_center);
+                let scale = m.to_scale_rotation_translation().0.max_element();
+                let radius = local_radius * scale;
+                all_lo = all_lo.min(center - Vec3::splat(radius));
+                all_hi = all_hi.max(center + Vec3::splat(radius));
+                instances.push(InstanceGpu {
+                    local_to_world: *m,
+                    normal_to_world: Mat4::from_mat3(glam::Mat3::from_mat4(*m).inverse().transpose()),
+                    material: UVec4::new(o.material as u32, u32::from(o.mobility == Mobility::Movable), 0, 0),
+                    bounds: center.extend(radius),
+                });
+            }
+            draws.push(Draw {
+                name: o.name.clone(),
+                mesh: o.mesh,
+                first_instance: first,
+                instance_count: o.instances.len() as u32,
+                blend: material.blend,
+                unlit: material.unlit,
+                movable: o.mobility == Mobility::Movable,
+                casts_shadow: o.casts_shadow && material.blend != BlendMode::Translucent,
+                bounds: ((all_lo + all_hi) * 0.5, (all_hi - all_lo).length() * 0.5),
+            });
+        }
+        let materials: Vec<MaterialGpu> = scene.materials.iter().map(material_gpu).collect();
+        let storage = |label: &str, bytes: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        };
+        // movable props' rows are rewritten every frame (the effects move them)
+        let storage_copy_dst = |label: &str, bytes: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
+        };
+        let mut sphere = Mesh::new("LightSphere");
+        // 16 rings x 24 segments; vertices on a sphere of radius 1/cos(pi/16) so the faces
+        // enclose the unit sphere.
+        sphere.add_sphere(Vec3::ZERO, 1.0 / (std::f32::consts::PI / 16.0).cos(), 16, 24, 0.0, 0);
+        SceneBuffers {
+            meshes,
+            instances: storage_copy_dst("Instances", bytemuck::cast_slice(&instances)),
+            materials: storage("Materials", bytemuck::cast_slice(&materials)),
+            draws,
+            sphere: mesh(&sphere),
+        }
+    }
+
+    /// Draws `draw` with whatever pipeline and bind groups are set.
+    pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>, draw: &Draw) {
+        let m = &self.meshes[draw.mesh];
+        pass.set_vertex_buffer(0, m.vertices.slice(..));
+        pass.set_index_buffer(m.indices.slice(..), wgpu::IndexFormat::Uint32);
+        pass.draw_indexed(0..m.index_count, 0, draw.first_instance..draw.first_instance + draw.instance_count);
+    }
+}
+
+/// `MaterialData` of a scene material: patterns map onto `MaterialTemplate.ush`'s.
+pub fn material_gpu(m: &crate::scene::Material) -> MaterialGpu {
+    let (pattern, scale, contrast) = match m.pattern {
+        Pattern::None => (0.0, 1.0, 0.0),
+        // The scene's patterns, as `MaterialCommon.ush` defines them: an 8x8 checker per uv
+        // unit tinting the base color, vertical slats (6 per uv unit) masking.
+        Pattern::Checker => (7.0, 8.0, 1.0),
+        Pattern::Slats => (6.0, 6.0, 0.0),
+    };
+    let opacity = if m.blend == BlendMode::Translucent { m.opacity } else { 1.0 };
+    MaterialGpu {
+        base_color: m.base_color.extend(opacity),
+        params: Vec4::new(m.metallic, m.specular, m.roughness, 1.0),
+        emissive: m.emissive.extend(pattern),
+        pattern: Vec4::new(scale, contrast, 0.0, 0.0),
+    }
+}
+
+/// How a local light is shadowed (Unreal: movable lights render a cube shadow of the
+/// whole scene; stationary lights have their static shadows baked and render per-object
+/// shadows for movable props only).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LocalShadow {
+    None,
+    PerObject,
+    Cube,
+}
+
+/// A local light of the frame.
+#[derive(Clone, Debug)]
+pub struct FrameLight {
+    pub name: String,
+    pub gpu: LocalLightGpu,
+    pub shadow: LocalShadow,
+    pub spot: bool,
+    pub inverse_squared: bool,
+}
+
+impl FrameLight {
+    pub fn position(&self) -> Vec3 {
+        self.gpu.position_radius.truncate()
+    }
+
+    pub fn radius(&self) -> f32 {
+        self.gpu.position_radius.w
+    }
+}
+
+/// `LocalLight.spot_angles.z`: 1 for lights ShadowedLights draws.
+fn shadowed_flag(casts_shadows: bool) -> f32 {
+    if casts_shadows {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+/// Every point and spot light of the scene, in scene order (points, then spots).
+pub fn frame_lights(scene: &Scene) -> Vec<FrameLight> {
+    let shadow = |casts: bool, mobility: Mobility| match (casts, mobility) {
+        (false, _) => LocalShadow::None,
+        (true, Mobility::Movable) => LocalShadow::Cube,
+        (true, _) => LocalShadow::PerObject,
+    };
+    let mut lights = Vec::new();
+    for l in &scene.point_lights {
+        lights.push(FrameLight {
+            name: l.name.clone(),
+            gpu: LocalLightGpu {
+                position_radius: l.position.extend(l.radius),
+                color_falloff: (l.color * l.intensity).extend(0.0),
+                direction_type: Vec4::new(0.0, -1.0, 0.0, 1.0),
+                spot_angles: Vec4::new(-2.0, 1.0, shadowed_flag(l.casts_shadows), 0.0),
+            },
+            shadow: shadow(l.casts_shadows, l.mobility),
+            spot: false,
+            inverse_squared: true,
+        });
+    }
+    for l in &scene.spot_lights {
+        let (cos_outer, cos_inner) = (l.outer_angle.cos(), l.inner_angle.cos());
+        lights.push(FrameLight {
+            name: l.name.clone(),
+            gpu: LocalLightGpu {
+                position_radius: l.position.extend(l.radius),
+                color_falloff: (l.color * l.intensity).extend(0.0),
+                direction_type: l.direction.normalize().extend(2.0),
+                spot_angles: Vec4::new(
+                    cos_outer,
+                    1.0 / (cos_inner - cos_outer).max(1e-4),
+                    shadowed_flag(l.casts_shadows),
+                    0.0,
+                ),
+            },
+            shadow: shadow(l.casts_shadows, l.mobility),
+            spot: true,
+            inverse_squared: true,
+        });
+    }
+    lights
+}
+
+/// A 2D texture with a default view.
+pub struct Texture {
+    pub texture: wgpu::Texture,
+    pub view: wgpu::TextureView,
+}
+
+impl Texture {
+    pub fn new(
+        device: &wgpu::Device,
+        label: &str,
+        format: wgpu::TextureFormat,
+        width: u32,
+        height: u32,
+        usage: wgpu::TextureUsages,
+    ) -> Texture {
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d { width: width.max(1), height: height.max(1), depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&wgpu::TextureViewDescriptor { label: Some(label), ..Default::default() });
+        Texture { texture, view }
+    }
+
+    /// A render target that later passes sample and `--dump-passes` copies.
+    pub fn target(device: &wgpu::Device, label: &str, format: wgpu::TextureFormat, width: u32, height: u32) -> Texture {
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC;
+        Texture::new(device, label, format, width, height, usage)
+    }
+}
+
+/// The scene depth: reverse-Z depth with stencil; a depth-only view for sampling.
+pub struct SceneDepth {
+    pub texture: wgpu::Texture,
+    pub attachment: wgpu::TextureView,
+    pub depth_view: wgpu::TextureView,
+    pub format: wgpu::TextureFormat,
+    /// Whether the depth can be attached read-only (depth and stencil tests) while passes
+    /// sample it. wgpu's GL backend cannot; there the lighting passes test in the shader
+    /// only (depth bounds and shading model), without the attachment.
+    pub read_only_attachment: bool,
+}
+
+impl SceneDepth {
+    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> SceneDepth {
+        // Depth32FloatStencil8 can be copied out for --dump-passes; Depth24PlusStencil8 is
+        // the fallback every device has (its capture is drawn, as on GL).
+        let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
+        let format =
+            if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
+        let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
+        if d32s8 {
+            usage |= wgpu::TextureUsages::COPY_SRC;
+        }
+        let t = Texture::new(device, "SceneDepthZ", format, width, height, usage);
+        let depth_view = t.texture.create_view(&wgpu::TextureViewDescriptor {
+            label: Some("SceneDepthTexture"),
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        });
+        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
+        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment }
+    }
+}
+
+/// The frame's full and reduced resolution targets.
+pub struct Targets {
+    pub width: u32,
+    pub height: u32,
+    pub scene_depth: SceneDepth,
+    pub scene_color: Texture,
+    /// Tiled lighting writes SceneColor + lights here (storage), then copies it back.
+    pub scene_color_tiled: Texture,
+    pub gbuffer_a: Texture,
+    pub gbuffer_b: Texture,
+    pub gbuffer_c: Texture,
+    pub shadow_mask: Texture,
+    pub light_grid_visualize: Texture,
+    pub ao_setup: Texture,
+    pub ao_half: Texture,
+    pub ao_full: Texture,
+    pub translucency: Texture,
+    pub bloom: Vec<Texture>,
+}
+
+/// Levels of the bloom chain (1/2 to 1/32 resolution).
+pub const BLOOM_LEVELS: u32 = 5;
+
+impl Targets {
+    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Targets {
+        let (hw, hh) = (width.div_ceil(2), height.div_ceil(2));
+        let t = |label: &str, format, w, h| Texture::target(device, label, format, w, h);
+        let scene_color = Texture::new(
+            device,
+            "SceneColor",
+            formats::SCENE_COLOR,
+            width,
+            height,
+            wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::COPY_DST,
+        );
+        Targets {
+            width,
+            height,
+            scene_depth: SceneDepth::new(device, width, height),
+            scene_color,
+            scene_color_tiled: Texture::new(
+                device,
+                "SceneColorTiled",
+                formats::SCENE_COLOR,
+                width,
+                height,
+                wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            ),
+            gbuffer_a: t("GBufferA", formats::GBUFFER_A, width, height),
+            gbuffer_b: t("GBufferB", formats::GBUFFER_B, width, height),
+            gbuffer_c: t("GBufferC", formats::GBUFFER_C, width, height),
+            shadow_mask: t("ShadowMask", formats::SHADOW_MASK, width, height),
+            light_grid_visualize: t("LightGrid", formats::VISUALIZE, width, height),
+            ao_setup: t("AmbientOcclusionSetup", formats::AO_SETUP, hw, hh),
+            ao_half: t("AmbientOcclusionHalf", formats::AO, hw, hh),
+            ao_full: t("AmbientOcclusion", formats::AO, width, height),
+            translucency: t("SeparateTranslucency", formats::TRANSLUCENCY, width, height),
+            bloom: (1..=BLOOM_LEVELS)
+                .map(|i| t(&format!("Bloom{i}"), formats::BLOOM, (width >> i).max(1), (height >> i).max(1)))
+                .collect(),
+        }
+    }
+}
+
+/// Samplers and small constant textures.
+pub struct Samplers {
+    /// Comparison sampler of the shadow maps (standard depth: lit when ref <= stored).
+    pub shadow: wgpu::Sampler,
+    pub linear: wgpu::Sampler,
+    /// 4x4 random rotations for the ambient occlusion.
+    pub random_normals: Texture,
+}
+
+impl Samplers {
+    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Samplers {
+        let random_normals = Texture::new(
+            device,
+            "RandomNormalTexture",
+            wgpu::TextureFormat::Rgba8Unorm,
+            4,
+            4,
+            wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        );
+        // Deterministic rotations spread over the circle (a shuffled 16-step sequence).
+        let order = [0u32, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15];
+        let mut texels = Vec::with_capacity(64);
+        for k in order {
+            let a = k as f32 / 16.0 * std::f32::consts::TAU;
+            texels.extend_from_slice(&[
+                ((a.cos() * 0.5 + 0.5) * 255.0) as u8,
+                ((a.sin() * 0.5 + 0.5) * 255.0) as u8,
+                128,
+                255,
+            ]);
+        }
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &random_normals.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            &texels,
+            wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(16), rows_per_image: Some(4) },
+            wgpu::Extent3d { width: 4, height: 4, depth_or_array_layers: 1 },
+        );
+        Samplers {
+            shadow: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("ShadowDepthSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                compare: Some(wgpu::CompareFunction::LessEqual),
+                ..Default::default()
+            }),
+            linear: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("LinearSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                ..Default::default()
+            }),
+            random_normals,
+        }
+    }
+}
+
+/// A uniform buffer holding one value.
+pub fn uniform<T: bytemuck::Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(value),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+/// A storage buffer holding a slice (at least one element, so empty lists bind).
+pub fn storage<T: bytemuck::Pod + Default>(
+    device: &wgpu::Device,
+    label: &str,
+    values: &[T],
+    extra: wgpu::BufferUsages,
+) -> wgpu::Buffer {
+    let one = [T::default()];
+    let values = if values.is_empty() { &one[..] } else { values };
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::cast_slice(values),
+        usage: wgpu::BufferUsages::STORAGE | extra,
+    })
+}
+
+/// Color attachment helper.
+pub fn color_attachment(
+    view: &wgpu::TextureView,
+    clear: Option<wgpu::Color>,
+) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: clear.map_or(wgpu::LoadOp::Load, wgpu::LoadOp::Clear),
+            store: wgpu::StoreOp::Store,
+        },
+    })
+}
+
+/// A render pass with these attachments and no queries.
+pub fn begin<'e>(
+    encoder: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    colors: &[Option<wgpu::RenderPassColorAttachment<'_>>],
+    depth: Option<wgpu::RenderPassDepthStencilAttachment<'_>>,
+) -> wgpu::RenderPass<'e> {
+    encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some(label),
+        color_attachments: colors,
+        depth_stencil_attachment: depth,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    })
+}
+
+/// The scene depth bound read-only (depth and stencil tested, nothing written), so it can be
+/// sampled in the same pass.
+pub fn read_only_depth(depth: &SceneDepth) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
+    if !depth.read_only_attachment {
+        return None;
+    }
+    Some(wgpu::RenderPassDepthStencilAttachment { view: &depth.attachment, depth_ops: None, stencil_ops: None })
+}
+
+/// Stencil test "lit pixels only" (reads the BasePass's mark, writes nothing).
+pub fn stencil_lit_only() -> wgpu::StencilState {
+    let face = wgpu::StencilFaceState {
+        compare: wgpu::CompareFunction::Equal,
+        fail_op: wgpu::StencilOperation::Keep,
+        depth_fail_op: wgpu::StencilOperation::Keep,
+        pass_op: wgpu::StencilOperation::Keep,
+    };
+    wgpu::StencilState { front: face, back: face, read_mask: STENCIL_LIT, write_mask: 0 }
+}

@@ -1,0 +1,202 @@
+//! `kiln-view` as a process: exit codes, files written, and the message when there is no
+//! adapter.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn kiln_view(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+        .args(args)
+        .current_dir(dir)
+        .env("KILN_PIPELINE_CACHE", dir.join("pipeline-cache"))
+        .output()
+        .expect("kiln-view runs")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).lines().collect::<Vec<_>>().join("\n")
+}
+
+/// Each pipeline five frames in a row on Vulkan with the Khronos validation layer on:
+/// no validation message (`--validation` fails with them), every module from SPIR-V
+/// passthrough, and none of the Wayland probe's `XDG_RUNTIME_DIR` noise.
+#[test]
+fn every_pipeline_renders_five_times_under_the_validation_layer_without_a_message() {
+    let dir = tempfile::tempdir().unwrap();
+    for pipeline in ["desktop", "mobile-forward", "mobile-deferred"] {
+        let o = Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+            .args(["--pipeline", pipeline, "--size", "320x180", "--frames", "5", "--validation", "--no-pipeline-cache"])
+            .current_dir(dir.path())
+            .env_remove("XDG_RUNTIME_DIR")
+            .output()
+            .expect("kiln-view runs");
+        let (out, err) = (String::from_utf8_lossy(&o.stdout), stderr(&o));
+        assert!(o.status.success(), "{pipeline}: {err}{out}");
+        assert!(
+            !out.contains("Validation") && !err.contains("Validation") && !err.contains("VUID"),
+            "{pipeline}: {err}{out}"
+        );
+        assert!(err.contains("modules from SPIR-V passthrough"), "{pipeline}: {err}");
+        assert!(!err.contains("XDG_RUNTIME_DIR"), "{pipeline}: {err}");
+    }
+}
+
+#[test]
+fn the_pipeline_cache_is_written_per_adapter_and_a_corrupt_one_is_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["--pipeline", "mobile-forward", "--size", "64x36", "--pipeline-cache", "pc"];
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let files: Vec<_> = std::fs::read_dir(dir.path().join("pc")).unwrap().flatten().map(|e| e.path()).collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    let name = files[0].file_name().unwrap().to_string_lossy().into_owned();
+    assert!(name.starts_with("wgpu_pipeline_cache_vulkan_"), "{name}");
+    std::fs::write(&files[0], b"not a cache").unwrap();
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let warning = format!("warning: pipeline cache pc/{name} is ignored: it is not a Kiln pipeline cache");
+    assert!(stderr(&o).contains(&warning), "{}", stderr(&o));
+    assert!(std::fs::read(&files[0]).unwrap().starts_with(b"KILNPC1"), "rewritten after the frame");
+}
+
+#[test]
+fn renders_and_dumps_every_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(
+        &["--pipeline", "mobile-deferred", "--size", "160x90", "--out", "f.png", "--dump-passes", "dump"],
+        dir.path(),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = std::fs::read(dir.path().join("f.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    let names: Vec<&str> = json["passes"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["ShadowDepths", "BasePass", "MobileDeferredShading", "Translucency", "PostProcessing"]);
+    assert_eq!(json["pipeline"], "mobile-deferred");
+    // The mobile frame runs es3_1 permutations only.
+    let permutations = json["permutations"].as_array().unwrap();
+    assert!(permutations.len() >= 6);
+    assert!(permutations.iter().all(|p| p.as_str().unwrap().contains("@es3_1{")), "{permutations:?}");
+    assert!(permutations.iter().any(|p| p.as_str().unwrap().contains("DEFERRED_SHADING_PATH=1")), "{permutations:?}");
+    for pass in json["passes"].as_array().unwrap() {
+        for image in pass["images"].as_array().unwrap() {
+            assert!(dir.path().join("dump").join(image.as_str().unwrap()).is_file(), "{image}");
+        }
+        assert!(pass["gpu_ms"].is_number() || !json["timestamps"].as_bool().unwrap(), "{pass}");
+    }
+    assert!(dir.path().join("dump/04_PostProcessing_Tonemapper.png").is_file());
+    assert!(dir.path().join("dump/01_BasePass_GBufferA.png").is_file());
+}
+
+#[test]
+fn gl_backend_dumps_depth_too() {
+    let dir = tempfile::tempdir().unwrap();
+    // Mobile deferred copies its depth into SceneDepthAux (a depth target the GL device
+    // cannot copy to a buffer); the forward frame's MSAA depth is never stored, as in the seed.
+    let o = kiln_view(
+        &["--backend", "gl", "--pipeline", "mobile-deferred", "--size", "160x90", "--dump-passes", "dump"],
+        dir.path(),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.path().join("dump/00_ShadowDepths.png").is_file());
+    assert!(dir.path().join("dump/02_MobileDeferredShading_SceneDepthAux.png").is_file());
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("dump/passes.json")).unwrap()).unwrap();
+    assert_eq!(json["backend"], "gl");
+}
+
+#[test]
+fn truncated_archive_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = kiln_renderer::EMBEDDED_ARCHIVE;
+    std::fs::write(dir.path().join("cut.kpak"), &bytes[..bytes.len() / 2]).unwrap();
+    let o = kiln_view(&["--shaders", "cut.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let expected = format!(
+        "error: archive is truncated: the header announces {} bytes, the file has {}",
+        bytes.len(),
+        bytes.len() / 2
+    );
+    assert_eq!(stderr(&o), expected);
+    assert!(!dir.path().join("frame.png").exists());
+}
+
+#[test]
+fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() {
+    let dir = tempfile::tempdir().unwrap();
+    kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
+    let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    // The frames name permutations with typed keys: the first one the frame needs is missing.
+    assert_eq!(
+        stderr(&o),
+        "error: permutation `ParticleSimulationCS@sm5{}` is not in the archive (the archive holds no permutations)"
+    );
+}
+
+#[test]
+fn verify_looks_every_permutation_up_and_creates_its_module() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("s.kpak"), kiln_renderer::EMBEDDED_ARCHIVE).unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
+    let count = archive.permutations().count();
+    let distinct = |target| {
+        archive.permutations().map(|p| p.blob_id(target).unwrap()).collect::<std::collections::HashSet<_>>().len()
+    };
+    // An archive from a file is not trusted with passthrough: its modules come from WGSL,
+    // which wgpu validates; `--trust-shaders` passes its SPIR-V through.
+    for (args, target, source) in [
+        (&["--shaders", "s.kpak", "--verify"][..], kiln::archive::Target::Wgsl, "WGSL"),
+        (
+            &["--shaders", "s.kpak", "--verify", "--trust-shaders"][..],
+            kiln::archive::Target::Spirv,
+            "SPIR-V passthrough",
+        ),
+    ] {
+        let o = kiln_view(args, dir.path());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let out = String::from_utf8_lossy(&o.stdout);
+        let expected = format!(
+            "{count} permutations looked up by name and by dimension values; {} distinct modules created from {source} on ",
+            distinct(target)
+        );
+        assert!(out.starts_with(&expected), "{out}");
+    }
+}
+
+#[test]
+fn bad_size_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--size", "640by360"], dir.path());
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("`640by360` is not WIDTHxHEIGHT"), "{}", stderr(&o));
+}
+
+#[test]
+fn no_vulkan_driver_fails_naming_the_debian_package() {
+    let dir = tempfile::tempdir().unwrap();
+    // The Vulkan loader sees no driver at all: the state of a machine without
+    // mesa-vulkan-drivers.
+    let o = Command::new(env!("CARGO_BIN_EXE_kiln-view"))
+        .current_dir(dir.path())
+        .env("VK_ICD_FILENAMES", dir.path().join("none.json"))
+        .env("VK_DRIVER_FILES", dir.path().join("none.json"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let text = stderr(&o);
+    assert!(text.starts_with("error: no vulkan adapter found"), "{text}");
+    assert!(text.contains("Debian package `mesa-vulkan-drivers`"), "{text}");
+}
+
+#[test]
+fn help_documents_every_option() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = kiln_view(&["--help"], dir.path());
+    assert!(o.status.success());
+    let text = String::from_utf8_lossy(&o.stdout);
+    for option in ["--pipeline", "--backend", "--size", "--out", "--dump-passes", "--shaders"] {
+        assert!(text.contains(option), "{option} missing from --help");
+    }
+}
