@@ -27,8 +27,7 @@ use crate::scene::{Camera, Mobility, Scene};
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
 use super::frame_view::{
-    groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
-    FrameLights, FrameView, InstancedMesh,
+    groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, DirectionalShadow, InstancedMesh,
 };
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
@@ -40,6 +39,7 @@ use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolu
 use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
+use crate::scene::view::{CameraState, FrameTime};
 
 /// Which parts of part 2 run (all by default).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -127,6 +127,9 @@ impl Default for Part2Options {
 /// The frame's targets part 2 reads and writes.
 pub struct Part2Targets<'a> {
     pub size: [u32; 2],
+    /// The frame's one `SceneView` buffer (written by the frame as each frame begins), which
+    /// every pass of part 2 binds as `View`.
+    pub view: &'a wgpu::Buffer,
     pub scene_depth: &'a wgpu::Texture,
     pub scene_color: &'a wgpu::Texture,
     pub gbuffer_a: &'a wgpu::Texture,
@@ -163,15 +166,13 @@ pub struct MeshRef<'a> {
     pub index_count: u32,
 }
 
-/// This frame's camera as the frame function renders with it: the jitter is in `proj`.
+/// This frame's camera as the frame renders with it (jittered: `current.jittered_proj()`),
+/// the previous frame's, and the frame's time: what the frame's `SceneView` is built from.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FrameCamera {
-    pub view: Mat4,
-    pub proj: Mat4,
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub position: Vec3,
-    pub jitter: Vec2,
+    pub current: CameraState,
+    pub previous: CameraState,
+    pub time: FrameTime,
 }
 
 /// A visualization of a target that is not a colour (velocities, particle state, volumes).
@@ -275,7 +276,6 @@ struct State {
     options: Part2Options,
     device: wgpu::Device,
     queue: wgpu::Queue,
-    frame_view: wgpu::Buffer,
     scene: Scene,
     camera: Camera,
     aspect: f32,
@@ -333,7 +333,7 @@ impl Part2 {
         options: Part2Options,
     ) -> Result<Part2, PipelineError> {
         let size = targets.size;
-        let frame_view = uniform_buffer(device, "FrameView", &FrameView::default());
+        let frame_view = targets.view.clone();
         let depth_format = targets.scene_depth.format();
         let depth_view = targets.scene_depth.create_view(&wgpu::TextureViewDescriptor {
             label: Some("SceneDepth (part 2)"),
@@ -564,7 +564,6 @@ impl Part2 {
             options,
             device: device.clone(),
             queue: queue.clone(),
-            frame_view,
             scene: scene.clone(),
             camera: scene.camera.clone(),
             aspect: size[0] as f32 / size[1] as f32,
@@ -644,7 +643,7 @@ impl Part2 {
     }
 
     /// Starts a frame: advances time, moves the movable props, computes this frame's jittered
-    /// camera and the [`FrameView`]. The frame function renders with the camera returned
+    /// camera. The frame renders with the camera returned (and its `SceneView`)
     /// and draws object `i` with `transforms(i)` (see [`Part2::object_transforms`]).
     pub fn begin_frame(&self) -> FrameCamera {
         let mut s = self.lock();
@@ -659,26 +658,8 @@ impl Part2 {
         let jitter = if s.options.taa { taa_jitter(s.frame, s.size[0], s.size[1]) } else { Vec2::ZERO };
         let current = CameraState::new(view, proj, cam.near, jitter);
         let previous = s.previous.unwrap_or(current);
-        let sun = &s.scene.sun;
-        let lights = FrameLights {
-            sun_direction: -sun.direction,
-            sun_color: sun.color * sun.intensity,
-            sun_enabled: sun.enabled,
-            sky_color: s.scene.sky_color,
-            sky_intensity: 1.0,
-        };
-        let fv = FrameView::new(&current, &previous, s.size[0], s.size[1], s.frame, s.time, TIME_STEP, &lights);
-        s.queue.write_buffer(&s.frame_view, 0, bytemuck::bytes_of(&fv));
         s.current = Some(current);
-        let proj_j = current.jittered_proj();
-        FrameCamera {
-            view,
-            proj: proj_j,
-            view_proj: fv.view_proj,
-            inv_view_proj: fv.inv_view_proj,
-            position: current.position,
-            jitter,
-        }
+        FrameCamera { current, previous, time: FrameTime { time: s.time, delta: TIME_STEP, index: s.frame } }
     }
 
     /// Object `index`'s instance transforms this frame (movable props animated).

@@ -168,7 +168,7 @@ impl VolumetricFog {
             0,
             "InitializeVolumeAttributes",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("vbuffer_a", tex(&a)),
                 ("vbuffer_b", tex(&b)),
@@ -176,7 +176,7 @@ impl VolumetricFog {
         )?;
         let scatter_group = |history: Option<usize>, out: usize| {
             let mut r = vec![
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("vbuffer_a", tex(&a)),
                 ("vbuffer_b", tex(&b)),
@@ -204,7 +204,7 @@ impl VolumetricFog {
                 0,
                 "FinalIntegration",
                 &[
-                    ("view", frame_view.as_entire_binding()),
+                    ("View", frame_view.as_entire_binding()),
                     ("fog", params.as_entire_binding()),
                     ("light_scattering", tex(&ls[i])),
                     ("integrated", tex(&integrated_view)),
@@ -217,7 +217,7 @@ impl VolumetricFog {
             0,
             "VolumetricFog apply",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("integrated_volume", tex(&integrated_view)),
                 ("volume_sampler", wgpu::BindingResource::Sampler(&sampler)),
