@@ -6,7 +6,7 @@
 //! (the configuration, every source and header any permutation read). On a change it builds
 //! again: the cache compiles only the permutations whose preprocessed text changed, and
 //! [`Reload::changed`] names the permutations whose artifacts or reflection differ from the
-//! archive in use. [`crate::Renderer::reload`] then swaps exactly those modules and pipelines
+//! archive in use. A renderer (the bundled one: `kiln_renderer::Renderer::reload`) then swaps exactly those modules and pipelines
 //! between frames, keeping the others. A broken edit is a [`Event::Failed`] with Kiln's mapped
 //! diagnostics; the caller keeps rendering with the last good archive.
 
@@ -137,8 +137,8 @@ fn open(path: &Path) -> Result<ShaderArchive, HotReloadError> {
     let archive =
         ShaderArchive::open(path).map_err(|source| HotReloadError::Archive { path: path.to_path_buf(), source })?;
     // SAFETY: Kiln's compiler in this very process wrote the archive from the sources into a
-    // folder only this user can write (a private temporary folder), as `runtime/build.rs`
-    // writes the embedded one: it is Kiln's own, unaltered output.
+    // folder only this user can write (a private temporary folder), as a renderer's `build.rs`
+    // writes its embedded one: it is Kiln's own, unaltered output.
     Ok(unsafe { archive.assume_trusted() })
 }
 

@@ -1,39 +1,29 @@
-//! The Kiln runtime: loads a Kiln archive and renders the bundled scene with wgpu.
+//! The Kiln runtime: the thin library a wgpu renderer uses to load a Kiln archive.
 //!
-//! Takes an archive (embedded at build time from `../permutations.toml`, or any file built
-//! by `kiln build`) and a headless device (Vulkan or GL, Mesa's lavapipe and llvmpipe where
-//! there is no GPU); gives rendered frames and every pass's output. Guarantees: a corrupt
-//! archive or a missing permutation is an error naming what is wrong, never a panic;
-//! shader modules are created lazily, from SPIR-V passthrough on Vulkan where the device
-//! allows it and from WGSL otherwise; bind group layouts come from the archive's
-//! reflection; pipelines are cached per (permutations, fixed-function state).
+//! Takes an archive (any file built by `kiln build`, or one a renderer's `build.rs` compiled
+//! with `kiln::Build` and embedded) and a wgpu device (made here for headless use, or the
+//! application's own); gives permutations by canonical name, by dimension values or by typed
+//! key id, shader modules created lazily (SPIR-V passthrough on Vulkan for trusted archives,
+//! WGSL otherwise), bind group and pipeline layouts from the archive's reflection, and one
+//! pipeline cache keyed by permutations and every piece of fixed-function state. Guarantees:
+//! a corrupt archive, a missing permutation or a layout that does not fit its module is an
+//! error naming what is wrong, never a panic or invalid API usage. It holds no scene, no
+//! frames and no vertex format of its own: the bundled renderer (`kiln-renderer`, in
+//! `runtime/renderer/`) is built on this public API only.
 //!
-//! The pieces, in the order a frame uses them: [`shaders`] (archive access), [`gpu`]
-//! (device setup), [`pipelines`] (modules, layouts, pipeline cache), [`scene`] (the bundled
-//! scene and its GPU upload), [`frame`] (pass recording: debug groups, timestamps,
-//! captures), [`passes`] (one module per pass) and [`renderer`] (the frames, one function
-//! per `--pipeline`). With the `hot-reload` feature, [`hot_reload`] rebuilds the
-//! permutations an edit touches and [`Renderer::reload`] swaps them between frames.
+//! The pieces: [`shaders`] (archive access), [`gpu`] (headless device setup), [`pipelines`]
+//! (modules, layouts, pipeline cache; [`spirv`] checks and renumbers SPIR-V for passthrough),
+//! [`validation`] (the API's validation messages as test failures). With the `hot-reload`
+//! feature, [`hot_reload`] rebuilds the permutations an edit touches and names them, so a
+//! renderer can swap exactly those between frames ([`pipelines::PipelineCache::carry_over`]).
 
-pub mod desktop;
-pub mod frame;
 pub mod gpu;
-pub mod gpu_types;
 #[cfg(feature = "hot-reload")]
 pub mod hot_reload;
-pub mod keys;
-pub mod mobile;
-pub mod passes;
 pub mod pipelines;
-pub mod renderer;
-pub mod scene;
 pub mod shaders;
 pub mod spirv;
 pub mod validation;
 
 pub use gpu::{Backend, Gpu, GpuError, GpuOptions, ModuleSource};
-pub use renderer::{FramePipeline, RenderError, Renderer, RendererOptions};
 pub use shaders::{LookupError, PermutationQuery, ShaderArchive};
-
-/// The archive `runtime/build.rs` compiled from `../permutations.toml`.
-pub static EMBEDDED_ARCHIVE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/shaders.kpak"));

@@ -43,28 +43,84 @@ pub enum PipelineError {
     Wgpu { what: String, message: String },
     #[error("pipeline `{label}`: binding @group({group}) @binding({binding}) is `{kind_a}` in one stage and `{kind_b}` in another")]
     StageConflict { label: String, group: u32, binding: u32, kind_a: String, kind_b: String },
-    #[error("pipeline `{label}`: vertex input @location({location}) is not provided by the {layout:?} vertex layout")]
-    VertexInput { label: String, location: u32, layout: VertexLayout },
+    #[error("pipeline `{label}`: vertex input @location({location}) is not provided by its vertex layout (locations {provided:?})")]
+    VertexInput { label: String, location: u32, provided: Vec<u32> },
     #[error("pipeline `{label}`: storage texture format `{format}` is not known to the runtime")]
     StorageFormat { label: String, format: String },
     #[error("bind group {group} of `{label}`: no resource given for binding {binding} `{name}`")]
     MissingResource { label: String, group: u32, binding: u32, name: String },
 }
 
-/// Vertex buffers a render pipeline reads.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum VertexLayout {
-    /// No vertex buffers (full-screen triangles from the vertex index).
-    None,
-    /// [`crate::gpu_types::MeshVertex`] in buffer 0 (locations 0 to 2) and
-    /// [`crate::gpu_types::InstanceData`] (one local-to-world matrix per instance, locations
-    /// 3 to 6) in buffer 1.
-    MeshInstanced,
-    /// [`crate::gpu_types::MeshVertex`] in buffer 0 only (instances come from a storage
-    /// buffer indexed by `instance_index`).
-    Mesh,
-    /// A `vec3<f32>` position in buffer 0 (location 0): light volumes.
-    Position,
+/// One vertex buffer of a [`VertexLayout`]: stride, step mode and attributes, in wgpu's terms
+/// but owned and hashable, so that a pipeline key can hold it.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct VertexBuffer {
+    pub stride: u64,
+    pub step_mode: wgpu::VertexStepMode,
+    pub attributes: Cow<'static, [wgpu::VertexAttribute]>,
+}
+
+impl VertexBuffer {
+    /// A buffer described at compile time (`wgpu::vertex_attr_array!` in a `const`).
+    pub const fn new(
+        stride: u64,
+        step_mode: wgpu::VertexStepMode,
+        attributes: &'static [wgpu::VertexAttribute],
+    ) -> VertexBuffer {
+        VertexBuffer { stride, step_mode, attributes: Cow::Borrowed(attributes) }
+    }
+
+    /// The buffer a `wgpu::VertexBufferLayout` describes.
+    pub fn from_wgpu(layout: &wgpu::VertexBufferLayout<'_>) -> VertexBuffer {
+        VertexBuffer {
+            stride: layout.array_stride,
+            step_mode: layout.step_mode,
+            attributes: Cow::Owned(layout.attributes.to_vec()),
+        }
+    }
+
+    pub fn wgpu(&self) -> wgpu::VertexBufferLayout<'_> {
+        wgpu::VertexBufferLayout { array_stride: self.stride, step_mode: self.step_mode, attributes: &self.attributes }
+    }
+}
+
+/// The vertex buffers a render pipeline reads, in slot order, as the application describes
+/// them (the runtime knows no vertex format of its own). Every vertex input of the vertex
+/// shader's reflection must be provided by one attribute of the same size, or pipeline
+/// creation is an error naming the location ([`PipelineError::VertexInput`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Hash)]
+pub struct VertexLayout {
+    buffers: Cow<'static, [VertexBuffer]>,
+}
+
+impl VertexLayout {
+    /// No vertex buffers (full-screen triangles from the vertex index, or vertices pulled
+    /// from storage buffers).
+    pub const NONE: VertexLayout = VertexLayout { buffers: Cow::Borrowed(&[]) };
+
+    /// A layout described at compile time:
+    /// `const BUFFERS: &[VertexBuffer] = &[...]; const MESH: VertexLayout = VertexLayout::from_static(BUFFERS);`.
+    pub const fn from_static(buffers: &'static [VertexBuffer]) -> VertexLayout {
+        VertexLayout { buffers: Cow::Borrowed(buffers) }
+    }
+
+    pub fn new(buffers: Vec<VertexBuffer>) -> VertexLayout {
+        VertexLayout { buffers: Cow::Owned(buffers) }
+    }
+
+    /// The layout of these `wgpu::VertexBufferLayout`s (slot `i` is `layouts[i]`).
+    pub fn from_wgpu(layouts: &[wgpu::VertexBufferLayout<'_>]) -> VertexLayout {
+        VertexLayout::new(layouts.iter().map(VertexBuffer::from_wgpu).collect())
+    }
+
+    pub fn buffers(&self) -> &[VertexBuffer] {
+        &self.buffers
+    }
+
+    /// The shader locations the layout provides, in slot order.
+    pub fn locations(&self) -> Vec<u32> {
+        self.buffers.iter().flat_map(|b| b.attributes.iter().map(|a| a.shader_location)).collect()
+    }
 }
 
 /// How a color target blends.
@@ -175,10 +231,10 @@ pub struct RenderState {
 }
 
 impl RenderState {
-    /// Triangles from mesh vertex buffers, back faces culled, no targets yet.
-    pub fn mesh() -> RenderState {
+    /// Triangles from the vertex buffers of `vertex_layout`, back faces culled, no targets yet.
+    pub fn triangles(vertex_layout: VertexLayout) -> RenderState {
         RenderState {
-            vertex_layout: VertexLayout::MeshInstanced,
+            vertex_layout,
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: Some(wgpu::Face::Back),
             depth: None,
@@ -191,7 +247,7 @@ impl RenderState {
     /// A full-screen triangle (no vertex buffers, no culling, no depth).
     pub fn fullscreen(target: ColorTarget) -> RenderState {
         RenderState {
-            vertex_layout: VertexLayout::None,
+            vertex_layout: VertexLayout::NONE,
             topology: wgpu::PrimitiveTopology::TriangleList,
             cull_mode: None,
             depth: None,
@@ -713,7 +769,7 @@ impl PipelineCache {
             (Some(f), Some(r)) => Some((self.stage_module(f, &r, &layout.vulkan_bindings)?, r)),
             _ => None,
         };
-        let buffers = vertex_buffers(&label, state.vertex_layout, &vs_reflection)?;
+        let buffers = vertex_buffers(&label, &state.vertex_layout, &vs_reflection)?;
         let targets: Vec<Option<wgpu::ColorTargetState>> = state.color_targets.iter().map(|t| Some(t.wgpu())).collect();
         let scope = ErrorScopes::push(&self.device);
         let pipeline = self.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -1251,50 +1307,25 @@ fn layout_entry(label: &str, b: &MergedBinding) -> Result<wgpu::BindGroupLayoutE
     Ok(wgpu::BindGroupLayoutEntry { binding: b.binding, visibility: b.visibility, ty, count: None })
 }
 
-const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
-    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
-const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
-    wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
-const POSITION_ATTRIBUTES: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Float32x3];
-
-fn vertex_buffers(
+/// The vertex buffers of `layout`, once every vertex input of `reflection` is checked to be
+/// provided by an attribute of its size.
+fn vertex_buffers<'l>(
     label: &str,
-    layout: VertexLayout,
+    layout: &'l VertexLayout,
     reflection: &Reflection,
-) -> Result<Vec<Option<wgpu::VertexBufferLayout<'static>>>, PipelineError> {
-    let mesh = wgpu::VertexBufferLayout {
-        array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
-        step_mode: wgpu::VertexStepMode::Vertex,
-        attributes: &MESH_ATTRIBUTES,
-    };
-    let buffers = match layout {
-        VertexLayout::None => Vec::new(),
-        VertexLayout::Mesh => vec![Some(mesh)],
-        VertexLayout::Position => vec![Some(wgpu::VertexBufferLayout {
-            array_stride: 12,
-            step_mode: wgpu::VertexStepMode::Vertex,
-            attributes: &POSITION_ATTRIBUTES,
-        })],
-        VertexLayout::MeshInstanced => vec![
-            Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<crate::gpu_types::MeshVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &MESH_ATTRIBUTES,
-            }),
-            Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<crate::gpu_types::InstanceData>() as u64,
-                step_mode: wgpu::VertexStepMode::Instance,
-                attributes: &INSTANCE_ATTRIBUTES,
-            }),
-        ],
-    };
+) -> Result<Vec<Option<wgpu::VertexBufferLayout<'l>>>, PipelineError> {
+    let buffers: Vec<Option<wgpu::VertexBufferLayout<'l>>> = layout.buffers().iter().map(|b| Some(b.wgpu())).collect();
     for input in &reflection.vertex_inputs {
         let provided = buffers.iter().flatten().flat_map(|b| b.attributes.iter()).any(|a| {
             a.shader_location == input.location
                 && a.format.size() == u64::from(input.ty.width) * u64::from(input.ty.components)
         });
         if !provided {
-            return Err(PipelineError::VertexInput { label: label.to_string(), location: input.location, layout });
+            return Err(PipelineError::VertexInput {
+                label: label.to_string(),
+                location: input.location,
+                provided: layout.locations(),
+            });
         }
     }
     Ok(buffers)
@@ -1428,7 +1459,16 @@ mod tests {
     }
 
     #[test]
-    fn vertex_inputs_must_be_in_the_mesh_layout() {
+    fn vertex_inputs_must_be_in_the_vertex_layout() {
+        const MESH: [wgpu::VertexAttribute; 3] =
+            wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+        const INSTANCE: [wgpu::VertexAttribute; 4] =
+            wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
+        const BUFFERS: &[VertexBuffer] = &[
+            VertexBuffer::new(32, wgpu::VertexStepMode::Vertex, &MESH),
+            VertexBuffer::new(64, wgpu::VertexStepMode::Instance, &INSTANCE),
+        ];
+        const MESH_INSTANCED: VertexLayout = VertexLayout::from_static(BUFFERS);
         let input = |location, components| VertexInput {
             location,
             name: None,
@@ -1436,13 +1476,44 @@ mod tests {
         };
         let mut vs = reflection(Stage::Vertex, vec![]);
         vs.vertex_inputs = vec![input(0, 3), input(2, 2), input(6, 4)];
-        assert_eq!(vertex_buffers("p", VertexLayout::MeshInstanced, &vs).unwrap().len(), 2);
+        assert_eq!(vertex_buffers("p", &MESH_INSTANCED, &vs).unwrap().len(), 2);
         vs.vertex_inputs = vec![input(2, 4)];
-        let e = vertex_buffers("Depth", VertexLayout::MeshInstanced, &vs).unwrap_err().to_string();
-        assert_eq!(e, "pipeline `Depth`: vertex input @location(2) is not provided by the MeshInstanced vertex layout");
+        let e = vertex_buffers("Depth", &MESH_INSTANCED, &vs).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "pipeline `Depth`: vertex input @location(2) is not provided by its vertex layout (locations [0, 1, 2, 3, 4, 5, 6])"
+        );
         vs.vertex_inputs = vec![input(0, 3)];
-        let e = vertex_buffers("Screen", VertexLayout::None, &vs).unwrap_err().to_string();
-        assert_eq!(e, "pipeline `Screen`: vertex input @location(0) is not provided by the None vertex layout");
+        let e = vertex_buffers("Screen", &VertexLayout::NONE, &vs).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "pipeline `Screen`: vertex input @location(0) is not provided by its vertex layout (locations [])"
+        );
+    }
+
+    #[test]
+    fn a_user_described_vertex_layout_is_a_key_like_a_static_one() {
+        use std::hash::{BuildHasher, RandomState};
+        const ATTRIBUTES: [wgpu::VertexAttribute; 2] = wgpu::vertex_attr_array![0 => Float32x2, 1 => Unorm8x4];
+        const BUFFERS: &[VertexBuffer] = &[VertexBuffer::new(12, wgpu::VertexStepMode::Vertex, &ATTRIBUTES)];
+        const STATIC: VertexLayout = VertexLayout::from_static(BUFFERS);
+        let described = VertexLayout::from_wgpu(&[wgpu::VertexBufferLayout {
+            array_stride: 12,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &ATTRIBUTES,
+        }]);
+        let hasher = RandomState::new();
+        assert_eq!(STATIC, described);
+        assert_eq!(hasher.hash_one(&STATIC), hasher.hash_one(&described));
+        let other = VertexLayout::new(vec![VertexBuffer::new(16, wgpu::VertexStepMode::Vertex, &ATTRIBUTES)]);
+        assert_ne!(STATIC, other);
+        let mut vs = reflection(Stage::Vertex, vec![]);
+        vs.vertex_inputs = vec![VertexInput {
+            location: 1,
+            name: None,
+            ty: NumericType { scalar: ScalarKind::Float, width: 1, components: 4 },
+        }];
+        assert_eq!(vertex_buffers("p", &described, &vs).unwrap()[0].as_ref().unwrap().array_stride, 12);
     }
 
     #[test]

@@ -36,7 +36,8 @@ fn render_missing(name: &str, nearest: &[Near]) -> String {
 
 /// A loaded archive of shader permutations.
 ///
-/// Archives are untrusted unless they are the one embedded at build time: the runtime hands
+/// Archives are untrusted unless the application says it embedded them at build time
+/// ([`ShaderArchive::from_static_trusted`]): the runtime hands
 /// SPIR-V to the driver unchanged (passthrough) only from a trusted archive, after a
 /// structural check; from any other it creates modules from WGSL, which wgpu's naga parses and
 /// validates (a driver may do anything with invalid SPIR-V).
@@ -70,15 +71,19 @@ impl ShaderArchive {
         Ok(ShaderArchive { archive: Archive::from_vec(bytes)?, trusted: false })
     }
 
-    /// The archive built from `../permutations.toml` by `runtime/build.rs`: trusted, since
-    /// Kiln's own build wrote it into this binary.
-    pub fn embedded() -> Result<ShaderArchive, ArchiveError> {
-        Ok(ShaderArchive { archive: Archive::from_static(crate::EMBEDDED_ARCHIVE)?, trusted: true })
+    /// An archive the application's own `build.rs` compiled with `kiln::Build` and embedded
+    /// with `include_bytes!`: trusted, so its SPIR-V is passed through to the driver.
+    ///
+    /// # Safety
+    /// As [`ShaderArchive::assume_trusted`]: the bytes must be Kiln's own, unaltered output,
+    /// built into this binary (the archive a renderer embeds from its build script).
+    pub unsafe fn from_static_trusted(bytes: &'static [u8]) -> Result<ShaderArchive, ArchiveError> {
+        Ok(ShaderArchive { archive: Archive::from_static(bytes)?, trusted: true })
     }
 
     /// Whether SPIR-V from this archive may go to the driver unchanged (SPIR-V passthrough,
-    /// after the structural check of [`crate::spirv`]). Only the embedded archive is trusted
-    /// unless [`ShaderArchive::assume_trusted`] says otherwise.
+    /// after the structural check of [`crate::spirv`]). Only archives made with
+    /// [`ShaderArchive::from_static_trusted`] or [`ShaderArchive::assume_trusted`] are.
     pub fn trusted(&self) -> bool {
         self.trusted
     }

@@ -4,8 +4,8 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::{Mat4, Vec3};
-use kiln_runtime::scene::Scene;
-use kiln_runtime::RendererOptions;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::RendererOptions;
 
 /// While the light is still, the cube shadow's static depth is rendered once and copied
 /// every frame, with only the movable rock drawn on top; when the light moves it is

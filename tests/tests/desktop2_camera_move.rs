@@ -10,10 +10,10 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::Vec3;
-use kiln_runtime::desktop::part2::Part2Options;
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::{Camera, Scene};
-use kiln_runtime::{Renderer, RendererOptions};
+use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::{Camera, Scene};
+use kiln_renderer::{Renderer, RendererOptions};
 
 const W: u32 = 320;
 const H: u32 = 180;

@@ -9,11 +9,12 @@ mod desktop2_support;
 use std::sync::Arc;
 
 use desktop2_support::*;
-use kiln_runtime::desktop::part2::{Part2Options, TranslucencyLightingMode};
-use kiln_runtime::frame::Image;
+use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{Renderer, RendererOptions};
 use kiln_runtime::gpu::{Backend, ModuleSource};
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{Gpu, GpuOptions};
 
 const W: u32 = 320;
 const H: u32 = 180;
@@ -34,7 +35,7 @@ fn device(backend: Backend) -> kiln_runtime::validation::CheckedGpu {
 fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
     let r = Renderer::new(
         gpu,
-        Arc::new(ShaderArchive::embedded().unwrap()),
+        Arc::new(kiln_renderer::embedded_archive().unwrap()),
         &Scene::bundled(),
         RendererOptions { width: W, height: H, ..Default::default() },
     )

@@ -4,9 +4,9 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::{Mat4, Quat, Vec3};
-use kiln_runtime::desktop::occlusion::PropVisibility;
-use kiln_runtime::scene::{Camera, Mobility, Object, Scene};
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::occlusion::PropVisibility;
+use kiln_renderer::scene::{Camera, Mobility, Object, Scene};
+use kiln_renderer::RendererOptions;
 
 /// The HZB's 1x1 top mip holds the farthest (reverse-Z: smallest) depth of the whole view,
 /// and every mip holds the farthest depth of the 2x2 texels under it.

@@ -4,9 +4,9 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::Vec3;
-use kiln_runtime::desktop::part2::Part2Options;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::RendererOptions;
 
 /// The moving rock, and only it, has screen-space motion, pointing the way its screen
 /// position moved since the previous frame.

@@ -4,8 +4,8 @@
 mod desktop2_support;
 
 use desktop2_support::*;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::RendererOptions;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::RendererOptions;
 
 /// The passes and steps of part 2, as dumped (`Pass` or `Pass_Step`).
 const PART2_IMAGES: &[&str] = &[

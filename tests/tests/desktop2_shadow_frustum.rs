@@ -6,9 +6,9 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::{Mat4, Vec3};
-use kiln_runtime::renderer::FrameOutput;
-use kiln_runtime::scene::{Camera, Mobility, PointLight, Scene};
-use kiln_runtime::RendererOptions;
+use kiln_renderer::renderer::FrameOutput;
+use kiln_renderer::scene::{Camera, Mobility, PointLight, Scene};
+use kiln_renderer::RendererOptions;
 
 const HIDDEN_LAMP: &str = "HiddenLamp";
 const HIDDEN_FIRE: &str = "HiddenFire";
@@ -56,7 +56,7 @@ fn shadow_work(frame: &FrameOutput, light: &str) -> Vec<String> {
     found
 }
 
-fn max_channel_diff(a: &kiln_runtime::frame::Image, b: &kiln_runtime::frame::Image) -> u8 {
+fn max_channel_diff(a: &kiln_renderer::frame::Image, b: &kiln_renderer::frame::Image) -> u8 {
     a.rgba.iter().zip(&b.rgba).map(|(x, y)| x.abs_diff(*y)).max().unwrap_or(0)
 }
 

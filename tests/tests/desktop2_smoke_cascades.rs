@@ -9,11 +9,11 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::Vec3;
-use kiln_runtime::desktop::part2::Part2Options;
-use kiln_runtime::desktop::translucent_volume::TranslucentVolumes;
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::{Camera, Mobility, PointLight, Scene};
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::desktop::translucent_volume::TranslucentVolumes;
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::{Camera, Mobility, PointLight, Scene};
+use kiln_renderer::RendererOptions;
 
 const W: u32 = 320;
 const H: u32 = 180;

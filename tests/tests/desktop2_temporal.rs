@@ -3,10 +3,10 @@
 mod desktop2_support;
 
 use desktop2_support::*;
-use kiln_runtime::desktop::part2::Part2Options;
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::part2::Part2Options;
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::RendererOptions;
 
 const W: u32 = 160;
 const H: u32 = 90;

@@ -6,10 +6,10 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::{Mat4, Vec3};
-use kiln_runtime::desktop::part2::{Part2Options, TranslucencyLightingMode};
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::{Material, Mesh, Mobility, Object, Scene, SpotLight};
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::{Material, Mesh, Mobility, Object, Scene, SpotLight};
+use kiln_renderer::RendererOptions;
 
 const W: u32 = 320;
 const H: u32 = 180;

@@ -8,10 +8,10 @@ mod desktop2_support;
 
 use desktop2_support::*;
 use glam::{Mat4, Vec3};
-use kiln_runtime::desktop::part2::{Part2Options, TranslucencyLightingMode};
-use kiln_runtime::desktop::translucent_volume::{TranslucentVolumes, VOLUME_SIZE};
-use kiln_runtime::scene::{Camera, Material, Mesh, Mobility, Object, PointLight, Scene};
-use kiln_runtime::RendererOptions;
+use kiln_renderer::desktop::part2::{Part2Options, TranslucencyLightingMode};
+use kiln_renderer::desktop::translucent_volume::{TranslucentVolumes, VOLUME_SIZE};
+use kiln_renderer::scene::{Camera, Material, Mesh, Mobility, Object, PointLight, Scene};
+use kiln_renderer::RendererOptions;
 
 /// 3.5 m over the slab: outside the bounding sphere of the slab's draw (2.45 m, the box
 /// around its instances' spheres), which a per-object shadow needs.

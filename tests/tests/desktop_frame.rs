@@ -6,11 +6,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use glam::{Mat4, Vec3};
-use kiln_runtime::desktop::{DesktopFrame, DesktopOptions, LightingPath};
-use kiln_runtime::frame::{write_dump, DumpInfo, Image};
+use kiln_renderer::desktop::{DesktopFrame, DesktopOptions, LightingPath};
+use kiln_renderer::frame::{write_dump, DumpInfo, Image};
+use kiln_renderer::scene::{BlendMode, Material, Mesh, Mobility, Object, PointLight, Scene};
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::PipelineCache;
-use kiln_runtime::scene::{BlendMode, Material, Mesh, Mobility, Object, PointLight, Scene};
-use kiln_runtime::{FramePipeline, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{GpuOptions, ShaderArchive};
 
 const W: u32 = 320;
 const H: u32 = 180;
@@ -33,7 +34,7 @@ fn gpu() -> kiln_runtime::validation::CheckedGpu {
 }
 
 fn archive() -> Arc<ShaderArchive> {
-    Arc::new(ShaderArchive::embedded().unwrap_or_else(|e| panic!("embedded archive: {e}")))
+    Arc::new(kiln_renderer::embedded_archive().unwrap_or_else(|e| panic!("embedded archive: {e}")))
 }
 
 struct Frame {

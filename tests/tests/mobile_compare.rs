@@ -6,9 +6,10 @@ mod mobile_support;
 
 use std::sync::Arc;
 
-use kiln_runtime::mobile::{MobileOptions, ShadingPath};
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, FramePipeline, Renderer, RendererOptions, ShaderArchive};
+use kiln_renderer::mobile::{MobileOptions, ShadingPath};
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
+use kiln_runtime::Backend;
 use mobile_support::*;
 
 /// The bundled scene with its four local lights (three points, one spot), no fog and no
@@ -43,8 +44,8 @@ fn forward_and_deferred_agree_with_four_local_lights() {
     assert!(control < FORWARD_DEFERRED_PSNR - 5.0, "the control frame should differ: {control:.1} dB");
 }
 
-fn desktop(rig: &Rig, scene: &Scene) -> kiln_runtime::frame::Image {
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+fn desktop(rig: &Rig, scene: &Scene) -> kiln_renderer::frame::Image {
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let renderer = Renderer::new(
         &rig.gpu,
         archive,

@@ -6,9 +6,9 @@
 mod mobile_support;
 
 use glam::Vec3;
-use kiln_runtime::frame::Image;
-use kiln_runtime::mobile::{MobileOptions, ShadingPath};
-use kiln_runtime::scene::Scene;
+use kiln_renderer::frame::Image;
+use kiln_renderer::mobile::{MobileOptions, ShadingPath};
+use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
 use mobile_support::*;
 

@@ -2,8 +2,8 @@
 
 mod mobile_support;
 
-use kiln_runtime::mobile::MobileOptions;
-use kiln_runtime::scene::Scene;
+use kiln_renderer::mobile::MobileOptions;
+use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
 use mobile_support::*;
 

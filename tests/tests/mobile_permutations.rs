@@ -3,7 +3,6 @@
 //! the mobile limits.
 
 use kiln::archive::{BindingKind, Target};
-use kiln_runtime::ShaderArchive;
 
 fn varyings(wgsl: &str) -> usize {
     wgsl.matches("@location(").count()
@@ -11,7 +10,7 @@ fn varyings(wgsl: &str) -> usize {
 
 #[test]
 fn pack_interpolants_makes_vertex_fog_cost_no_varying() {
-    let a = ShaderArchive::embedded().unwrap();
+    let a = kiln_renderer::embedded_archive().unwrap();
     let vs = |fog: u32| {
         let p = a.shader("MobileBasePassVS").level("es3_1").with("USE_VERTEX_FOG", fog).find().unwrap();
         let text = std::str::from_utf8(&p.artifact(Target::Wgsl).unwrap().unwrap()).unwrap().to_string();
@@ -26,7 +25,7 @@ fn pack_interpolants_makes_vertex_fog_cost_no_varying() {
 
 #[test]
 fn mobile_pixel_shaders_stay_within_16_samplers_and_4_targets() {
-    let a = ShaderArchive::embedded().unwrap();
+    let a = kiln_renderer::embedded_archive().unwrap();
     let mut checked = 0;
     for p in a.permutations().filter(|p| p.shader().level == "es3_1" && p.name().starts_with("Mobile")) {
         let r = p.reflection();

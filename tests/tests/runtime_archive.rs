@@ -5,7 +5,7 @@
 use kiln_runtime::{LookupError, ShaderArchive};
 
 fn embedded() -> ShaderArchive {
-    ShaderArchive::embedded().expect("the embedded archive opens")
+    kiln_renderer::embedded_archive().expect("the embedded archive opens")
 }
 
 #[test]
@@ -126,7 +126,7 @@ fn builder_errors_name_the_unknown_part() {
 
 #[test]
 fn truncated_and_corrupted_archives_are_errors() {
-    let bytes = kiln_runtime::EMBEDDED_ARCHIVE.to_vec();
+    let bytes = kiln_renderer::EMBEDDED_ARCHIVE.to_vec();
     for len in [0, 10, 64, bytes.len() / 3, bytes.len() - 1] {
         let e = ShaderArchive::from_vec(bytes[..len].to_vec()).unwrap_err().to_string();
         assert!(e.contains("truncated") || e.contains("shorter than"), "{len}: {e}");
@@ -146,14 +146,14 @@ fn truncated_and_corrupted_archives_are_errors() {
 fn opening_a_file_maps_the_same_archive() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("shaders.kpak");
-    std::fs::write(&path, kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
+    std::fs::write(&path, kiln_renderer::EMBEDDED_ARCHIVE).unwrap();
     let a = ShaderArchive::open(&path).unwrap();
     assert_eq!(a.permutations().count(), embedded().permutations().count());
 }
 
 #[test]
 fn a_corrupted_blob_is_an_error_naming_the_permutation_when_used() {
-    let bytes = kiln_runtime::EMBEDDED_ARCHIVE.to_vec();
+    let bytes = kiln_renderer::EMBEDDED_ARCHIVE.to_vec();
     let archive = embedded();
     let p = archive.permutations().find(|p| p.blob_id(kiln::archive::Target::Wgsl).is_some()).unwrap();
     let (name, id) = (p.name().to_string(), p.blob_id(kiln::archive::Target::Wgsl).unwrap());

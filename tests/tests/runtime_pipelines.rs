@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use kiln::archive::{PermutationRef, ScalarKind};
 use kiln::Stage;
-use kiln_runtime::gpu_types::formats;
+use kiln_renderer::gpu_types::formats;
 use kiln_runtime::pipelines::{
     Blend, ColorTarget, ComputeKey, DepthState, PipelineCache, PipelineKey, RenderKey, RenderState, VertexLayout,
 };
@@ -65,12 +65,14 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
 }
 
 fn state_for(vs: &PermutationRef<'_>, fs: Option<&PermutationRef<'_>>) -> RenderState {
-    let vertex_layout =
-        if vs.reflection().vertex_inputs.is_empty() { VertexLayout::None } else { VertexLayout::MeshInstanced };
-    let mut state = RenderState::mesh();
-    state.vertex_layout = vertex_layout;
+    let mesh = !vs.reflection().vertex_inputs.is_empty();
+    let mut state = RenderState::triangles(if mesh {
+        kiln_renderer::gpu_types::layouts::MESH_INSTANCED
+    } else {
+        VertexLayout::NONE
+    });
     // Depth-only pipelines, and pixel shaders that write only depth (MobileSceneDepthAuxPS).
-    if vertex_layout == VertexLayout::MeshInstanced || fs.is_none_or(|f| f.reflection().color_outputs.is_empty()) {
+    if mesh || fs.is_none_or(|f| f.reflection().color_outputs.is_empty()) {
         state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, true));
     }
     if let Some(fs) = fs {
@@ -96,7 +98,7 @@ fn state_for(vs: &PermutationRef<'_>, fs: Option<&PermutationRef<'_>>) -> Render
 
 fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&PermutationRef<'_>) -> bool) -> (usize, bool) {
     let gpu = gpu(module_source);
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let cache = PipelineCache::new(&gpu, archive.clone());
     let mut created = 0;
     for p in archive.permutations().filter(|p| wanted(p)) {
@@ -157,7 +159,7 @@ fn every_permutation_makes_a_pipeline_from_wgsl() {
 #[test]
 fn pipelines_are_cached_per_permutation_and_state() {
     let gpu = gpu(ModuleSource::Auto);
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let cache = PipelineCache::new(&gpu, archive);
     let state = RenderState::fullscreen(ColorTarget::new(formats::OUTPUT, Blend::Replace));
     let a = cache.render("ScreenVS@sm5{}", Some("VisualizeDepthPS@sm5{}"), &state).unwrap();
@@ -180,7 +182,7 @@ fn pipelines_are_cached_per_permutation_and_state() {
 #[test]
 fn missing_permutation_and_wrong_stage_are_errors() {
     let gpu = gpu(ModuleSource::Auto);
-    let cache = PipelineCache::new(&gpu, Arc::new(ShaderArchive::embedded().unwrap()));
+    let cache = PipelineCache::new(&gpu, Arc::new(kiln_renderer::embedded_archive().unwrap()));
     let state = RenderState::fullscreen(ColorTarget::new(formats::OUTPUT, Blend::Replace));
     let e = cache
         .render(
@@ -199,14 +201,14 @@ fn missing_permutation_and_wrong_stage_are_errors() {
 #[test]
 fn a_warm_up_from_a_list_of_keys_creates_every_pipeline_once() {
     let gpu = gpu(ModuleSource::Auto);
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     // The keys of a whole frame, taken from a renderer's cache.
-    let renderer = kiln_runtime::Renderer::new(
+    let renderer = kiln_renderer::Renderer::new(
         &gpu,
         archive.clone(),
-        &kiln_runtime::scene::Scene::bundled(),
-        kiln_runtime::RendererOptions {
-            pipeline: kiln_runtime::FramePipeline::MobileDeferred,
+        &kiln_renderer::scene::Scene::bundled(),
+        kiln_renderer::RendererOptions {
+            pipeline: kiln_renderer::FramePipeline::MobileDeferred,
             width: 64,
             height: 32,
             comparison: false,
@@ -230,7 +232,7 @@ fn a_warm_up_from_a_list_of_keys_creates_every_pipeline_once() {
 #[test]
 fn every_piece_of_fixed_function_state_is_part_of_the_key() {
     let gpu = gpu(ModuleSource::Auto);
-    let cache = PipelineCache::new(&gpu, Arc::new(ShaderArchive::embedded().unwrap()));
+    let cache = PipelineCache::new(&gpu, Arc::new(kiln_renderer::embedded_archive().unwrap()));
     let base = RenderState::fullscreen(ColorTarget::new(formats::SCENE_COLOR, Blend::Replace));
     let depth = DepthState::reverse_z(formats::SCENE_DEPTH, false);
     let variants = [
@@ -262,7 +264,7 @@ fn every_piece_of_fixed_function_state_is_part_of_the_key() {
     };
     let target =
         wgpu::ColorTargetState { format: formats::SCENE_COLOR, blend: None, write_mask: wgpu::ColorWrites::ALL };
-    let from_wgpu = RenderState::from_wgpu(VertexLayout::None, None, Some(&wgpu_depth), &[target], 1);
+    let from_wgpu = RenderState::from_wgpu(VertexLayout::NONE, None, Some(&wgpu_depth), &[target], 1);
     let key = RenderKey {
         vertex: "ScreenVS@sm5{}".into(),
         fragment: Some("VisualizeDepthPS@sm5{}".into()),
@@ -275,7 +277,7 @@ fn every_piece_of_fixed_function_state_is_part_of_the_key() {
 fn the_driver_pipeline_cache_persists_per_adapter_and_a_corrupt_file_is_ignored() {
     let gpu = gpu(ModuleSource::Auto);
     let dir = tempfile::tempdir().unwrap();
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let key = gpu.pipeline_cache_key().expect("lavapipe offers PIPELINE_CACHE");
     let state = RenderState::fullscreen(ColorTarget::new(formats::OUTPUT, Blend::Replace));
     let (cache, warning) = PipelineCache::with_disk_cache(&gpu, archive.clone(), dir.path());

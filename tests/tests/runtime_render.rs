@@ -6,9 +6,10 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, ModuleSource, Renderer, RendererOptions, ShaderArchive};
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
+use kiln_runtime::{Backend, Gpu, GpuOptions, ModuleSource};
 
 const W: u32 = 320;
 const H: u32 = 180;
@@ -23,7 +24,7 @@ fn gpu(backend: Backend, module_source: ModuleSource) -> kiln_runtime::validatio
     .unwrap_or_else(|e| panic!("render tests need a {backend} adapter: {e}"))
 }
 
-fn render(gpu: &Gpu, scene: &Scene, pipeline: FramePipeline, capture: bool) -> kiln_runtime::renderer::FrameOutput {
+fn render(gpu: &Gpu, scene: &Scene, pipeline: FramePipeline, capture: bool) -> kiln_renderer::renderer::FrameOutput {
     render_with(gpu, scene, RendererOptions { pipeline, width: W, height: H, comparison: false }, capture)
 }
 
@@ -32,8 +33,8 @@ fn render_with(
     scene: &Scene,
     options: RendererOptions,
     capture: bool,
-) -> kiln_runtime::renderer::FrameOutput {
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+) -> kiln_renderer::renderer::FrameOutput {
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let renderer = Renderer::new(gpu, archive, scene, options).unwrap();
     let before = renderer.cache_stats();
     let out = renderer.render(capture).unwrap();
@@ -145,14 +146,14 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
         render_with(&gpu, &dark, RendererOptions { pipeline: FramePipeline::MobileForward, ..comparison }, false).image;
     // The mobile frames with the effects desktop lacks off too (MSAA, reflections, bloom).
     let mobile = |path| {
-        let archive = Arc::new(ShaderArchive::embedded().unwrap());
+        let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
         let cache = kiln_runtime::pipelines::PipelineCache::new(&gpu, archive);
-        let gpu_scene = kiln_runtime::scene::gpu::GpuScene::upload(&gpu.device, &scene);
-        let options = kiln_runtime::mobile::MobileOptions::comparable(path);
-        kiln_runtime::mobile::render(&gpu, &cache, &scene, &gpu_scene, options, (W, H), false).unwrap().1
+        let gpu_scene = kiln_renderer::scene::gpu::GpuScene::upload(&gpu.device, &scene);
+        let options = kiln_renderer::mobile::MobileOptions::comparable(path);
+        kiln_renderer::mobile::render(&gpu, &cache, &scene, &gpu_scene, options, (W, H), false).unwrap().1
     };
-    let forward = mobile(kiln_runtime::mobile::ShadingPath::Forward);
-    let deferred = mobile(kiln_runtime::mobile::ShadingPath::Deferred);
+    let forward = mobile(kiln_renderer::mobile::ShadingPath::Forward);
+    let deferred = mobile(kiln_renderer::mobile::ShadingPath::Deferred);
     let (a, b, c) = (psnr(&desktop, &forward), psnr(&desktop, &deferred), psnr(&forward, &deferred));
     let d = psnr(&desktop, &control);
     eprintln!("PSNR desktop/forward {a:.1}, desktop/deferred {b:.1}, forward/deferred {c:.1} dB; control desktop/forward without the sun {d:.1} dB");
@@ -172,7 +173,7 @@ fn fire_particles_glow_and_move_between_frames() {
     let scene = Scene::bundled();
     let mut no_fire = scene.clone();
     no_fire.emitters.clear();
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     // Comparison settings: nothing temporal (TAA, eye adaptation, motion blur) changes the
     // frame between frames, only the particles.
     let options = RendererOptions { pipeline: FramePipeline::Desktop, width: W, height: H, comparison: true };
@@ -291,7 +292,7 @@ fn dump_captures_every_pass_in_frame_order() {
     assert_eq!(frame.passes.last().unwrap().images.last().unwrap().1, frame.image);
     let dir = tempfile::tempdir().unwrap();
     let permutations = vec!["DepthPassVS@sm5{MATERIAL_MASKED=0}".to_string()];
-    let info = kiln_runtime::frame::DumpInfo {
+    let info = kiln_renderer::frame::DumpInfo {
         pipeline: "desktop",
         backend: "vulkan",
         adapter: &gpu.info.name,
@@ -301,7 +302,7 @@ fn dump_captures_every_pass_in_frame_order() {
         spirv_passthrough: gpu.spirv_passthrough,
         permutations: &permutations,
     };
-    kiln_runtime::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
+    kiln_renderer::frame::write_dump(dir.path(), &info, &frame.passes).unwrap();
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("passes.json")).unwrap()).unwrap();
     assert_eq!(json["passes"][7]["images"][1], "07_BasePass_GBufferA.png");
@@ -347,7 +348,7 @@ fn frames_render_on_gl_like_on_vulkan() {
         let a = render_with(&vk, &scene, options.clone(), true);
         let b = render_with(&gl, &scene, options, true);
         // Every capture, depth included, comes back on both and matches.
-        let shots = |f: &kiln_runtime::renderer::FrameOutput| {
+        let shots = |f: &kiln_renderer::renderer::FrameOutput| {
             f.passes.iter().flat_map(|p| p.images.clone()).collect::<Vec<_>>()
         };
         let (sa, sb) = (shots(&a), shots(&b));

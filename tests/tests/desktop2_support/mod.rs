@@ -6,10 +6,11 @@
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
-use kiln_runtime::frame::Image;
-use kiln_runtime::scene::Scene;
+use kiln_renderer::frame::Image;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{Renderer, RendererOptions};
 use kiln_runtime::validation::CheckedGpu;
-use kiln_runtime::{Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{Gpu, GpuOptions, ShaderArchive};
 
 /// The root `permutations.toml`'s `sm5` permutations, compiled with Kiln into a temp dir.
 pub fn archive() -> Arc<ShaderArchive> {

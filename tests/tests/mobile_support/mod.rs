@@ -6,12 +6,12 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use kiln_runtime::frame::Image;
-use kiln_runtime::mobile::{self, MobileOptions};
+use kiln_renderer::frame::Image;
+use kiln_renderer::mobile::{self, MobileOptions};
+use kiln_renderer::scene::gpu::GpuScene;
+use kiln_renderer::scene::Scene;
 use kiln_runtime::pipelines::PipelineCache;
-use kiln_runtime::scene::gpu::GpuScene;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, GpuOptions, ShaderArchive};
+use kiln_runtime::{Backend, GpuOptions};
 
 pub const WIDTH: u32 = 320;
 pub const HEIGHT: u32 = 180;
@@ -29,7 +29,7 @@ pub fn rig(backend: Backend) -> Rig {
         .unwrap_or_else(|e| {
             panic!("{e}\n(the mobile frame tests need a {backend} adapter: install `mesa-vulkan-drivers`)")
         });
-    let archive = ShaderArchive::embedded().expect("the embedded archive opens");
+    let archive = kiln_renderer::embedded_archive().expect("the embedded archive opens");
     let cache = PipelineCache::new(&gpu, Arc::new(archive));
     Rig { gpu, cache }
 }
@@ -44,7 +44,7 @@ impl Rig {
         scene: &Scene,
         options: MobileOptions,
         capture: bool,
-    ) -> (Vec<kiln_runtime::frame::PassResult>, Image) {
+    ) -> (Vec<kiln_renderer::frame::PassResult>, Image) {
         let gpu_scene = GpuScene::upload(&self.gpu.device, scene);
         let (w, h) = match std::env::var("KILN_MOBILE_SIZE")
             .ok()

@@ -108,10 +108,10 @@ pub enum Error {
 /// The embedded archive, trusted for SPIR-V passthrough: `build.rs` wrote it into this binary
 /// with Kiln's own build, so it is as trustworthy as the code.
 pub fn archive() -> Result<Arc<ShaderArchive>, Error> {
-    let archive = ShaderArchive::from_static(ARCHIVE).map_err(|e| Error::Archive(e.to_string()))?;
     // SAFETY: these bytes are the archive `kiln::Build` compiled in our build.rs and
     // `include_bytes!` put into the binary; nothing else writes them.
-    Ok(Arc::new(unsafe { archive.assume_trusted() }))
+    let archive = unsafe { ShaderArchive::from_static_trusted(ARCHIVE) };
+    Ok(Arc::new(archive.map_err(|e| Error::Archive(e.to_string()))?))
 }
 
 /// The canonical names of the (vertex, pixel) permutations `frame` draws with: typed keys,

@@ -8,17 +8,18 @@
 //! - first-frame time of each pipeline (renderer creation and the first frame) against a
 //!   later frame.
 //!
-//! `cargo bench -p kiln-runtime --bench runtime` (lavapipe suffices).
+//! `cargo bench -p kiln-renderer --bench runtime` (lavapipe suffices).
 
 use std::hint::black_box;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use kiln::archive::Target;
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::{create_spirv_module, create_wgsl_module, merge_bindings, PipelineCache};
-use kiln_runtime::scene::Scene;
 use kiln_runtime::spirv::{SpirvModule, VulkanBindings};
-use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, ModuleSource, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{Backend, Gpu, GpuOptions, ModuleSource, ShaderArchive};
 
 /// Runs `f` `n` times and returns the mean duration.
 fn time(n: u32, mut f: impl FnMut()) -> Duration {
@@ -34,12 +35,12 @@ fn us(d: Duration) -> f64 {
 }
 
 fn archive_bench() {
-    let bytes = kiln_runtime::EMBEDDED_ARCHIVE;
+    let bytes = kiln_renderer::EMBEDDED_ARCHIVE;
     let dir = std::env::temp_dir().join(format!("kiln-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("shaders.kpak");
     std::fs::write(&path, bytes).unwrap();
-    let archive = ShaderArchive::embedded().unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
     let names: Vec<String> = archive.permutations().map(|p| p.name().to_string()).collect();
     let wanted: Vec<&str> = (0..1000).map(|i| names[(i * 7919) % names.len()].as_str()).collect();
 
@@ -171,7 +172,7 @@ fn vulkan(source: ModuleSource) -> Gpu {
 fn module_bench() {
     let gpu = vulkan(ModuleSource::Auto);
     assert!(gpu.spirv_passthrough, "{} does not offer PASSTHROUGH_SHADERS", gpu.info.name);
-    let archive = ShaderArchive::embedded().unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
     // Each permutation's module as a pipeline of that one stage makes it: SPIR-V walked,
     // checked and renumbered for its layout, or WGSL parsed and validated by wgpu's naga.
     struct Module {
@@ -240,7 +241,7 @@ fn module_bench() {
 /// pipeline cache on disk cold (no file) and warm (the file the cold run saved).
 fn pipeline_cache_bench() {
     let gpu = vulkan(ModuleSource::Auto);
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let scene = Scene::bundled();
     let dir = std::env::temp_dir().join(format!("kiln-bench-pc-{}", std::process::id()));
     let options = |pipeline| RendererOptions { pipeline, width: 640, height: 360, comparison: false };
@@ -288,7 +289,7 @@ fn pipeline_cache_bench() {
 /// First-frame time (creating the renderer: scene upload, every pipeline; then one frame)
 /// against a later frame, for each pipeline.
 fn first_frame_bench() {
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let scene = Scene::bundled();
     println!("first frame at 640x360 (renderer creation + frame 1, a fresh device each) against frame 6:");
     for pipeline in FramePipeline::ALL {
@@ -323,7 +324,7 @@ fn first_frame_bench() {
 
 fn frame_bench() {
     let gpu = vulkan(ModuleSource::Auto);
-    let archive = Arc::new(ShaderArchive::embedded().unwrap());
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let scene = Scene::bundled();
     println!(
         "frame time at 640x360 on {} (mean of 5 frames, CPU wall clock incl. readback; GPU sum of passes):",

@@ -63,7 +63,7 @@ fn next_line(rx: &mpsc::Receiver<String>, errors: &mpsc::Receiver<String>) -> St
 fn watch_rerenders_after_a_header_edit_and_survives_a_broken_one() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     copy(&root.join("shader_src"), &d.join("shader_src"));
     std::fs::copy(root.join("permutations.toml"), d.join("permutations.toml")).unwrap();
     let header = d.join("shader_src/Private/Mobile/MobileLighting.ush");
@@ -100,9 +100,16 @@ fn watch_rerenders_after_a_header_edit_and_survives_a_broken_one() {
     save(&header, &original.replace(SKY, "return max(irradiance, ;"));
     let line = next_line(&out, &err);
     assert!(line.contains("failed: the shaders do not build; keeping the last good pipelines"), "{line}");
-    let stderr: String = err.try_iter().collect::<Vec<_>>().join("\n");
+    // The diagnostic goes to stderr, which its reader thread may hand over after the stdout
+    // line: read it until both parts are there or the pipe stays quiet for 30 s.
     let at = format!("shader_src/Private/Mobile/MobileLighting.ush:{broken_line}:");
-    assert!(stderr.contains(&at) && stderr.contains("MobileBasePassPS@es3_1{"), "{stderr}");
+    let mut stderr = String::new();
+    while !(stderr.contains(&at) && stderr.contains("MobileBasePassPS@es3_1{")) {
+        match err.recv_timeout(Duration::from_secs(30)) {
+            Ok(line) => stderr.push_str(&(line + "\n")),
+            Err(_) => panic!("no diagnostic at {at} naming MobileBasePassPS@es3_1 on stderr:\n{stderr}"),
+        }
+    }
     // Still rendering: the process is alive and `--out` holds the last good frame.
     std::thread::sleep(Duration::from_millis(300));
     assert!(child.0.try_wait().unwrap().is_none(), "kiln-view stopped after a broken edit");

@@ -9,15 +9,16 @@
 //! Kiln's rebuild (including the watcher's settle time), the swap (`Renderer::reload`) and the
 //! frame. This process's CPU time over the same span (user + system, every thread: Kiln's
 //! workers and lavapipe's) is printed too: on a shared, loaded machine it says what the reload
-//! costs better than the wall clock. `cargo bench -p kiln-runtime --features hot-reload --bench hot_reload` (lavapipe
+//! costs better than the wall clock. `cargo bench -p kiln-renderer --features hot-reload --bench hot_reload` (lavapipe
 //! suffices; `KILN_BENCH_BACKEND=gl` runs on llvmpipe's GL).
 
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::hot_reload::{Event, HotReload};
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions};
+use kiln_runtime::{Backend, Gpu, GpuOptions};
 
 const EDITS: usize = 5;
 
@@ -113,7 +114,7 @@ fn main() {
     };
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     copy(&root.join("shader_src"), &d.join("shader_src"));
     std::fs::copy(root.join("permutations.toml"), d.join("permutations.toml")).unwrap();
     std::env::set_var("KILN_CACHE_DIR", d.join("cache"));

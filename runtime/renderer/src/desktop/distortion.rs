@@ -49,7 +49,7 @@ impl Distortion {
         depth_format: wgpu::TextureFormat,
         refracting: Vec<InstancedMesh>,
     ) -> Result<Distortion, PipelineError> {
-        let accumulate_state = RenderState::mesh()
+        let accumulate_state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED)
             .with_cull(None)
             .with_targets(&[ColorTarget::new(DISTORTION_FORMAT, Blend::Additive)])
             .with_depth(DepthState::reverse_z(depth_format, false));

@@ -46,7 +46,7 @@ impl Velocity {
         depth_format: wgpu::TextureFormat,
         movable: Vec<InstancedMesh>,
     ) -> Result<Velocity, PipelineError> {
-        let state = RenderState::mesh()
+        let state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED)
             .with_targets(&[ColorTarget::new(VELOCITY_FORMAT, Blend::Replace)])
             .with_depth(DepthState::reverse_z(depth_format, false));
         let pipeline = cache.render(

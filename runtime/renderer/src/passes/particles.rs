@@ -148,12 +148,12 @@ impl ParticleSprites {
         let level = keys::level(init.level)?;
         let vs = keys::name(keys::particle_sprite_vs::Key {}, level)?;
         let ps = keys::name(keys::particle_sprite_ps::Key {}, level)?;
-        let mut state = RenderState::mesh();
+        let mut state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED);
         if depth_test {
             state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
         }
         let mut state = state.with_targets(&[ColorTarget::new(formats::SCENE_COLOR, Blend::Additive)]).with_cull(None);
-        state.vertex_layout = VertexLayout::None;
+        state.vertex_layout = VertexLayout::NONE;
         let pipeline = init.cache.render(&vs, Some(&ps), &state)?;
         let layout = &pipeline.layout;
         let groups = vec![

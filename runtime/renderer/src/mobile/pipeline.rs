@@ -90,9 +90,9 @@ impl<'a> MobilePipelines<'a> {
     /// The pipeline for `desc`, from the runtime's one pipeline cache.
     pub fn get(&self, desc: &PipelineDesc) -> Result<Arc<MobilePipeline>, PipelineError> {
         let layout = match desc.vertex_input {
-            VertexInput::None => VertexLayout::None,
-            VertexInput::MeshInstanced => VertexLayout::MeshInstanced,
-            VertexInput::Position => VertexLayout::Position,
+            VertexInput::None => VertexLayout::NONE,
+            VertexInput::MeshInstanced => crate::gpu_types::layouts::MESH_INSTANCED,
+            VertexInput::Position => crate::gpu_types::layouts::POSITION,
         };
         // Every slot holds a target (`untouched` for one the pipeline does not write).
         let targets: Vec<wgpu::ColorTargetState> = desc.targets.iter().flatten().cloned().collect();

@@ -5,19 +5,20 @@
 //!
 //! Each frame time is the mean over several frames after a warm-up frame: wall time of
 //! record + submit + wait, and GPU time summed from the passes' timestamp queries where the
-//! device has them. `cargo bench -p kiln-runtime --bench mobile` (lavapipe suffices;
+//! device has them. `cargo bench -p kiln-renderer --bench mobile` (lavapipe suffices;
 //! `KILN_BENCH_BACKEND=gl` runs on llvmpipe's GL).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
-use kiln_runtime::frame::FrameRecorder;
-use kiln_runtime::mobile::{MobileFrame, MobileOptions};
+use kiln_renderer::frame::FrameRecorder;
+use kiln_renderer::mobile::{MobileFrame, MobileOptions};
+use kiln_renderer::scene::gpu::GpuScene;
+use kiln_renderer::scene::{Mobility, PointLight, Scene};
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::PipelineCache;
-use kiln_runtime::scene::gpu::GpuScene;
-use kiln_runtime::scene::{Mobility, PointLight, Scene};
-use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{Backend, Gpu, GpuOptions, ShaderArchive};
 
 const WIDTH: u32 = 640;
 const HEIGHT: u32 = 360;
@@ -111,7 +112,7 @@ fn main() {
         _ => Backend::Vulkan,
     };
     let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() }).unwrap_or_else(|e| panic!("{e}"));
-    let archive = Arc::new(ShaderArchive::embedded().expect("embedded archive"));
+    let archive = Arc::new(kiln_renderer::embedded_archive().expect("embedded archive"));
     println!(
         "mobile frames at {WIDTH}x{HEIGHT} on {} ({backend}), mean of {FRAMES} frames after one warm-up",
         gpu.info.name

@@ -454,7 +454,7 @@ fn sprite_params(d: &EmitterDesc) -> SpriteParams {
 
 fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
     let mut state = RenderState::fullscreen(ColorTarget::new(format, Blend::PremultipliedAlpha));
-    state.vertex_layout = VertexLayout::None;
+    state.vertex_layout = VertexLayout::NONE;
     if let Some(depth) = depth {
         state = state.with_depth(DepthState::reverse_z(depth, false));
     }

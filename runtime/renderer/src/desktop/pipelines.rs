@@ -156,8 +156,8 @@ impl<'a> Pipelines<'a> {
     /// the runtime's one pipeline cache.
     pub fn render(&self, vertex: &str, fragment: Option<&str>, desc: &RenderDesc) -> Result<Arc<Render>, DesktopError> {
         let layout = match desc.vertices {
-            Vertices::None => VertexLayout::None,
-            Vertices::Mesh => VertexLayout::Mesh,
+            Vertices::None => VertexLayout::NONE,
+            Vertices::Mesh => crate::gpu_types::layouts::MESH,
         };
         let targets: Vec<wgpu::ColorTargetState> = desc
             .targets

@@ -2,17 +2,17 @@
 //! the frame time grows from 8 to 512 local lights, per-light volumes against the tiled
 //! path (which `Auto` picks above 80 unshadowed lights). Prints ratios measured in one run.
 //!
-//! `cargo bench -p kiln-runtime --bench desktop` (env `KILN_BENCH_FRAMES`, default 5).
+//! `cargo bench -p kiln-renderer --bench desktop` (env `KILN_BENCH_FRAMES`, default 5).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
-use kiln_runtime::desktop::{DesktopFrame, DesktopOptions, LightingPath};
-use kiln_runtime::frame::PassResult;
+use kiln_renderer::desktop::{DesktopFrame, DesktopOptions, LightingPath};
+use kiln_renderer::frame::PassResult;
+use kiln_renderer::scene::{Mobility, PointLight, Scene};
 use kiln_runtime::pipelines::PipelineCache;
-use kiln_runtime::scene::{Mobility, PointLight, Scene};
-use kiln_runtime::{Gpu, GpuOptions, ShaderArchive};
+use kiln_runtime::{Gpu, GpuOptions};
 
 const W: u32 = 640;
 const H: u32 = 360;
@@ -72,7 +72,7 @@ fn accumulate(sums: &mut Vec<(String, Option<f64>)>, passes: &[PassResult]) {
 fn main() {
     let frames: usize = std::env::var("KILN_BENCH_FRAMES").ok().and_then(|v| v.parse().ok()).unwrap_or(5);
     let gpu = Gpu::new(&GpuOptions::default()).unwrap_or_else(|e| panic!("{e}"));
-    let archive = Arc::new(ShaderArchive::embedded().unwrap_or_else(|e| panic!("{e}")));
+    let archive = Arc::new(kiln_renderer::embedded_archive().unwrap_or_else(|e| panic!("{e}")));
     let cache = PipelineCache::new(&gpu, archive);
     println!("desktop frame, {W}x{H}, {} ({}), {frames} frames each", gpu.info.name, gpu.backend);
 

@@ -6,11 +6,10 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use kiln::archive::{ArchiveWriter, PermutationRecord, Reflection, Target};
-use kiln_runtime::ShaderArchive;
 
 /// The embedded archive written again after `edit` changed reflections and artifacts.
 fn rewrite(edit: impl Fn(&str, &mut Reflection, Target, &mut Vec<u8>)) -> Vec<u8> {
-    let archive = ShaderArchive::embedded().unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
     let mut w = ArchiveWriter::new();
     w.set_naga_version(archive.archive().naga_version());
     for p in archive.permutations() {
@@ -138,7 +137,7 @@ fn trusted_spirv_is_walked_and_checked_against_its_reflection_first() {
     // The structural check is what stands between a trusted archive and the driver: every
     // module of the bundled set passes it, and a module whose resources do not match its
     // reflection is refused before it reaches the device.
-    let archive = ShaderArchive::embedded().unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
     let mut checked = 0;
     for p in archive.permutations() {
         let bytes = p.artifact(Target::Spirv).unwrap().unwrap();

@@ -23,6 +23,44 @@ pub mod formats {
     pub const OUTPUT: TextureFormat = TextureFormat::Rgba8UnormSrgb;
 }
 
+/// The frames' vertex layouts, described to the runtime's pipeline cache.
+pub mod layouts {
+    use kiln_runtime::pipelines::{VertexBuffer, VertexLayout};
+
+    use super::{InstanceData, MeshVertex};
+
+    const MESH_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
+        wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x2];
+    const INSTANCE_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
+        wgpu::vertex_attr_array![3 => Float32x4, 4 => Float32x4, 5 => Float32x4, 6 => Float32x4];
+    const POSITION_ATTRIBUTES: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Float32x3];
+    const MESH_BUFFER: VertexBuffer =
+        VertexBuffer::new(std::mem::size_of::<MeshVertex>() as u64, wgpu::VertexStepMode::Vertex, &MESH_ATTRIBUTES);
+
+    const MESH_INSTANCED_BUFFERS: &[VertexBuffer] = &[
+        MESH_BUFFER,
+        VertexBuffer::new(
+            std::mem::size_of::<InstanceData>() as u64,
+            wgpu::VertexStepMode::Instance,
+            &INSTANCE_ATTRIBUTES,
+        ),
+    ];
+    const MESH_BUFFERS: &[VertexBuffer] = &[MESH_BUFFER];
+    const POSITION_BUFFERS: &[VertexBuffer] =
+        &[VertexBuffer::new(12, wgpu::VertexStepMode::Vertex, &POSITION_ATTRIBUTES)];
+
+    /// [`MeshVertex`] in buffer 0 (locations 0 to 2) and [`InstanceData`] (one local-to-world
+    /// matrix per instance, locations 3 to 6) in buffer 1.
+    pub const MESH_INSTANCED: VertexLayout = VertexLayout::from_static(MESH_INSTANCED_BUFFERS);
+
+    /// [`MeshVertex`] in buffer 0 only (instances come from a storage buffer indexed by
+    /// `instance_index`).
+    pub const MESH: VertexLayout = VertexLayout::from_static(MESH_BUFFERS);
+
+    /// A `vec3<f32>` position in buffer 0 (location 0): light volumes.
+    pub const POSITION: VertexLayout = VertexLayout::from_static(POSITION_BUFFERS);
+}
+
 /// One mesh vertex (vertex buffer 0; locations 0 to 2).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]

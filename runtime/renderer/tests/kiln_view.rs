@@ -109,7 +109,7 @@ fn gl_backend_dumps_depth_too() {
 #[test]
 fn truncated_archive_is_a_usage_error() {
     let dir = tempfile::tempdir().unwrap();
-    let bytes = kiln_runtime::EMBEDDED_ARCHIVE;
+    let bytes = kiln_renderer::EMBEDDED_ARCHIVE;
     std::fs::write(dir.path().join("cut.kpak"), &bytes[..bytes.len() / 2]).unwrap();
     let o = kiln_view(&["--shaders", "cut.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
@@ -138,8 +138,8 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
 #[test]
 fn verify_looks_every_permutation_up_and_creates_its_module() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("s.kpak"), kiln_runtime::EMBEDDED_ARCHIVE).unwrap();
-    let archive = kiln_runtime::ShaderArchive::embedded().unwrap();
+    std::fs::write(dir.path().join("s.kpak"), kiln_renderer::EMBEDDED_ARCHIVE).unwrap();
+    let archive = kiln_renderer::embedded_archive().unwrap();
     let count = archive.permutations().count();
     let distinct = |target| {
         archive.permutations().map(|p| p.blob_id(target).unwrap()).collect::<std::collections::HashSet<_>>().len()

@@ -8,10 +8,11 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use clap::{Parser, ValueEnum};
-use kiln_runtime::frame::{write_dump, DumpInfo};
+use kiln_renderer::frame::{write_dump, DumpInfo};
+use kiln_renderer::scene::Scene;
+use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::PipelineCache;
-use kiln_runtime::scene::Scene;
-use kiln_runtime::{Backend, FramePipeline, Gpu, GpuOptions, Renderer, RendererOptions, ShaderArchive};
+use kiln_runtime::{Backend, Gpu, GpuOptions, ShaderArchive};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum PipelineArg {
@@ -121,7 +122,7 @@ mod watch {
     pub fn run(_: &Args, _: &std::path::Path) -> Result<(), Failure> {
         Err(Failure::Usage(
             "--watch needs kiln-view built with the runtime's `hot-reload` feature: \
-             cargo run -p kiln-runtime --features hot-reload --bin kiln-view -- --watch CONFIG"
+             cargo run -p kiln-renderer --features hot-reload --bin kiln-view -- --watch CONFIG"
                 .into(),
         ))
     }
@@ -212,7 +213,7 @@ mod watch {
         }
     }
 
-    fn render_failure(e: kiln_runtime::RenderError) -> Failure {
+    fn render_failure(e: kiln_renderer::RenderError) -> Failure {
         Failure::Render(e.to_string())
     }
 
@@ -299,7 +300,7 @@ fn run(args: &Args) -> Result<(), Failure> {
                 archive
             }
         }
-        None => ShaderArchive::embedded().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
+        None => kiln_renderer::embedded_archive().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
     };
     let (pipeline, backend) = (args.frame_pipeline(), args.backend());
     let gpu = args.gpu()?;
@@ -327,7 +328,7 @@ fn run(args: &Args) -> Result<(), Failure> {
     )
     .map_err(|e| match e {
         // A permutation the frame needs is missing from the archive: the archive is wrong.
-        kiln_runtime::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
+        kiln_renderer::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
             Failure::Usage(format!("{l}"))
         }
         e => Failure::Render(e.to_string()),
