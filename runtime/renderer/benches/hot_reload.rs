@@ -128,7 +128,7 @@ fn main() {
     let usf = format!("{}#include \"MobileTonemapCommon.ush\"\n{}", &tonemap[..start], &tonemap[end..]);
     std::fs::write(mobile.join("MobileTonemap.usf"), usf).unwrap();
     let lighting = std::fs::read_to_string(mobile.join("MobileLighting.ush")).unwrap();
-    const SKY: &str = "return max(irradiance, vec3<f32>(0.0)) * View.sky_color.rgb;";
+    const SKY: &str = "return max(irradiance, vec3<f32>(0.0));";
     assert!(lighting.contains(SKY));
 
     let gpu = Gpu::new(&GpuOptions { backend, ..GpuOptions::default() }).unwrap_or_else(|e| panic!("{e}"));
@@ -158,7 +158,7 @@ fn main() {
     for i in 0..EDITS {
         let a = 2.51 + 0.01 * (i + 1) as f64;
         one.push(edit(&mut hot, &mut renderer, &gpu, &scene, &mobile.join("MobileTonemapCommon.ush"), &curve(a)));
-        let sky = SKY.replace(".rgb;", &format!(".rgb * {:.2};", 1.0 + 0.05 * (i + 1) as f64));
+        let sky = SKY.replace("(0.0));", &format!("(0.0)) * {:.2};", 1.0 + 0.05 * (i + 1) as f64));
         many.push(edit(
             &mut hot,
             &mut renderer,

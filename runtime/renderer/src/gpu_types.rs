@@ -83,24 +83,6 @@ impl InstanceData {
     }
 }
 
-/// `FViewUniforms` of `Common.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct ViewUniforms {
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub shadow_view_proj: Mat4,
-    pub camera_position: Vec4,
-    pub viewport: Vec4,
-    pub directional_light_direction: Vec4,
-    pub directional_light_color: Vec4,
-    pub sky_color: Vec4,
-    pub fog_color: Vec4,
-    pub fog_params: Vec4,
-    pub shadow_params: Vec4,
-    pub post_params: Vec4,
-}
-
 /// `FMaterialUniforms` of `MaterialCommon.ush`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -158,7 +140,6 @@ mod tests {
     fn sizes_match_the_wgsl_structs() {
         assert_eq!(std::mem::size_of::<MeshVertex>(), 32);
         assert_eq!(std::mem::size_of::<InstanceData>(), 64);
-        assert_eq!(std::mem::size_of::<ViewUniforms>(), 3 * 64 + 9 * 16);
         assert_eq!(std::mem::size_of::<MaterialUniforms>(), 64);
         assert_eq!(std::mem::size_of::<LightData>(), 64);
         assert_eq!(std::mem::size_of::<MobileLocalLights>(), 4 * 64 + 16);

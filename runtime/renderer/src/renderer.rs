@@ -12,7 +12,8 @@ use crate::gpu::Gpu;
 use crate::passes::particles::ParticleSimulationPass;
 use crate::passes::{PassInit, SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
-use crate::scene::gpu::{view_uniforms, GpuScene};
+use crate::scene::gpu::GpuScene;
+use crate::scene::view::{CameraState, FrameTime, SceneView};
 use crate::scene::Scene;
 use crate::shaders::ShaderArchive;
 
@@ -209,7 +210,11 @@ impl Renderer {
             })
         };
         let shared = SharedResources {
-            view: uniform("View uniforms", bytemuck::bytes_of(&view_uniforms(scene, options.width, options.height))),
+            view: {
+                let camera = CameraState::of_scene(scene, options.width, options.height);
+                let view = SceneView::new(scene, &camera, &camera, options.width, options.height, FrameTime::default());
+                uniform("View", bytemuck::bytes_of(&view))
+            },
             targets: Targets::new(device, options.width, options.height),
         };
         let options_size = (options.width, options.height);

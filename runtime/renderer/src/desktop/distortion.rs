@@ -88,7 +88,7 @@ impl Distortion {
             device,
             0,
             "DistortionAccum",
-            &[("view", frame_view.as_entire_binding()), ("material", material.as_entire_binding())],
+            &[("View", frame_view.as_entire_binding()), ("material", material.as_entire_binding())],
         )?;
         let sampler = linear_sampler(device, "Distortion sampler");
         let apply_group = apply.layout.bind_group(

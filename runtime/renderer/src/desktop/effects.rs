@@ -27,8 +27,8 @@ use crate::scene::{Camera, Mobility, Scene};
 use super::distortion::Distortion;
 use super::eye_adaptation::EyeAdaptation;
 use super::frame_view::{
-    groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, CameraState, DirectionalShadow,
-    EffectPassInit, FrameLights, FrameView, InstancedMesh,
+    groups, is_volume, taa_jitter, target_2d, uniform_buffer, view, volume_view, DirectionalShadow, EffectPassInit,
+    InstancedMesh,
 };
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
@@ -40,6 +40,7 @@ use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolu
 use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
+use crate::scene::view::{CameraState, FrameTime};
 
 /// Which effects run (all by default).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -127,6 +128,9 @@ impl Default for EffectOptions {
 /// The frame's targets the effects read and write.
 pub struct EffectTargets<'a> {
     pub size: [u32; 2],
+    /// The frame's one `SceneView` buffer (written by the frame as each frame begins), which
+    /// every effect pass binds as `View`.
+    pub view: &'a wgpu::Buffer,
     pub scene_depth: &'a wgpu::Texture,
     pub scene_color: &'a wgpu::Texture,
     pub gbuffer_a: &'a wgpu::Texture,
@@ -174,15 +178,13 @@ pub struct MeshRef<'a> {
     pub index_count: u32,
 }
 
-/// This frame's camera as the frame function renders with it: the jitter is in `proj`.
+/// This frame's camera as the frame renders with it (jittered: `current.jittered_proj()`),
+/// the previous frame's, and the frame's time: what the frame's `SceneView` is built from.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FrameCamera {
-    pub view: Mat4,
-    pub proj: Mat4,
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub position: Vec3,
-    pub jitter: Vec2,
+    pub current: CameraState,
+    pub previous: CameraState,
+    pub time: FrameTime,
 }
 
 /// A visualization of a target that is not a colour (velocities, particle state, volumes).
@@ -278,7 +280,6 @@ struct State {
     options: EffectOptions,
     device: wgpu::Device,
     queue: wgpu::Queue,
-    frame_view: wgpu::Buffer,
     scene: Scene,
     camera: Camera,
     aspect: f32,
@@ -333,17 +334,17 @@ impl Effects {
     ) -> Result<Effects, PipelineError> {
         let EffectContext { device, queue, cache, scene, meshes } = *context;
         let size = targets.size;
-        let frame_view = uniform_buffer(device, "FrameView", &FrameView::default());
+        let frame_view = targets.view.clone();
         let depth_format = targets.scene_depth.format();
         let depth_view = targets.scene_depth.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("SceneDepth (part 2)"),
+            label: Some("SceneDepth (effects)"),
             aspect: wgpu::TextureAspect::DepthOnly,
             ..Default::default()
         });
         let color_view = view(targets.scene_color);
         let (a, b, c) = (view(targets.gbuffer_a), view(targets.gbuffer_b), view(targets.gbuffer_c));
         let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("ShadowDepth (part 2)"),
+            label: Some("ShadowDepth (effects)"),
             aspect: wgpu::TextureAspect::DepthOnly,
             ..Default::default()
         });
@@ -562,7 +563,6 @@ impl Effects {
             options,
             device: device.clone(),
             queue: queue.clone(),
-            frame_view,
             scene: scene.clone(),
             camera: scene.camera.clone(),
             aspect: size[0] as f32 / size[1] as f32,
@@ -642,7 +642,7 @@ impl Effects {
     }
 
     /// Starts a frame: advances time, moves the movable props, computes this frame's jittered
-    /// camera and the [`FrameView`]. The frame function renders with the camera returned
+    /// camera. The frame renders with the camera returned (and its `SceneView`)
     /// and draws object `i` with `transforms(i)` (see [`Effects::object_transforms`]).
     pub fn begin_frame(&self) -> FrameCamera {
         let mut s = self.lock();
@@ -657,26 +657,8 @@ impl Effects {
         let jitter = if s.options.taa { taa_jitter(s.frame, s.size[0], s.size[1]) } else { Vec2::ZERO };
         let current = CameraState::new(view, proj, cam.near, jitter);
         let previous = s.previous.unwrap_or(current);
-        let sun = &s.scene.sun;
-        let lights = FrameLights {
-            sun_direction: -sun.direction,
-            sun_color: sun.color * sun.intensity,
-            sun_enabled: sun.enabled,
-            sky_color: s.scene.sky_color,
-            sky_intensity: 1.0,
-        };
-        let fv = FrameView::new(&current, &previous, s.size[0], s.size[1], s.frame, s.time, TIME_STEP, &lights);
-        s.queue.write_buffer(&s.frame_view, 0, bytemuck::bytes_of(&fv));
         s.current = Some(current);
-        let proj_j = current.jittered_proj();
-        FrameCamera {
-            view,
-            proj: proj_j,
-            view_proj: fv.view_proj,
-            inv_view_proj: fv.inv_view_proj,
-            position: current.position,
-            jitter,
-        }
+        FrameCamera { current, previous, time: FrameTime { time: s.time, delta: TIME_STEP, index: s.frame } }
     }
 
     /// Object `index`'s instance transforms this frame (movable props animated).

@@ -1,71 +1,11 @@
-//! The view as the passes of the desktop frame's effects see it (`FrameView` of
-//! `shader_src/Private/Desktop/DeferredFrame2Common.ush`), the TAA jitter sequence, the
-//! history kept from one frame to the next, and small helpers those passes share (targets,
-//! uniform buffers, samplers, full-screen draws).
+//! The TAA jitter sequence, the directional light's cascades as the fog and the translucency
+//! volumes read them, and small helpers the passes of the desktop frame share (targets,
+//! uniform buffers, samplers, full-screen draws). The view they bind is the one
+//! [`crate::scene::view::SceneView`].
 
-use bytemuck::{Pod, Zeroable};
-use glam::{Mat4, Vec2, Vec3, Vec4};
+use bytemuck::Pod;
+use glam::{Mat4, Vec2, Vec4};
 use wgpu::util::DeviceExt;
-
-/// `FrameView` of `DeferredFrame2Common.ush`, member for member (mat4 and vec4 only).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct FrameView {
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub prev_view_proj: Mat4,
-    pub clip_to_prev_clip: Mat4,
-    pub camera_position: Vec4,
-    pub camera_forward: Vec4,
-    pub prev_camera_position: Vec4,
-    pub prev_camera_forward: Vec4,
-    pub viewport: Vec4,
-    pub jitter: Vec4,
-    pub sun_direction: Vec4,
-    pub sun_color: Vec4,
-    pub sky_color: Vec4,
-}
-
-/// One frame's camera: what the next frame's reprojection needs of it.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CameraState {
-    pub view: Mat4,
-    /// The projection without jitter (reverse-Z).
-    pub proj: Mat4,
-    pub position: Vec3,
-    pub forward: Vec3,
-    pub near: f32,
-    /// The sub-pixel offset of this frame in NDC units (0 without TAA).
-    pub jitter: Vec2,
-}
-
-impl CameraState {
-    pub fn new(view: Mat4, proj: Mat4, near: f32, jitter: Vec2) -> CameraState {
-        let inv = view.inverse();
-        CameraState {
-            view,
-            proj,
-            position: inv.w_axis.truncate(),
-            forward: -inv.z_axis.truncate().normalize(),
-            near,
-            jitter,
-        }
-    }
-
-    /// The projection the frame is rasterised with: shifted by the jitter in clip space.
-    pub fn jittered_proj(&self) -> Mat4 {
-        jitter_projection(self.proj, self.jitter)
-    }
-
-    pub fn unjittered_view_proj(&self) -> Mat4 {
-        self.proj * self.view
-    }
-}
-
-/// Shifts a projection by `jitter` NDC units: clip.xy += jitter * clip.w.
-pub fn jitter_projection(proj: Mat4, jitter: Vec2) -> Mat4 {
-    Mat4::from_translation(Vec3::new(jitter.x, jitter.y, 0.0)) * proj
-}
 
 /// Element `index` (from 1) of the Halton sequence in `base`, in [0, 1).
 pub fn halton(mut index: u32, base: u32) -> f32 {
@@ -87,53 +27,8 @@ pub fn taa_jitter(frame: u64, width: u32, height: u32) -> Vec2 {
     Vec2::new(pixel.x * 2.0 / width as f32, -pixel.y * 2.0 / height as f32)
 }
 
-/// Lighting inputs of `FrameView` (the frame's directional light and sky).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FrameLights {
-    /// Direction towards the light (normalized).
-    pub sun_direction: Vec3,
-    pub sun_color: Vec3,
-    pub sun_enabled: bool,
-    pub sky_color: Vec3,
-    pub sky_intensity: f32,
-}
-
-impl FrameView {
-    /// The view of this frame (`current`) and the previous one (`previous`: the same camera
-    /// on the first frame).
-    pub fn new(
-        current: &CameraState,
-        previous: &CameraState,
-        width: u32,
-        height: u32,
-        frame: u64,
-        time: f32,
-        delta_time: f32,
-        lights: &FrameLights,
-    ) -> FrameView {
-        let view_proj = current.jittered_proj() * current.view;
-        let prev_view_proj = previous.unjittered_view_proj();
-        let clip_to_prev_clip = prev_view_proj * current.unjittered_view_proj().inverse();
-        FrameView {
-            view_proj,
-            inv_view_proj: view_proj.inverse(),
-            prev_view_proj,
-            clip_to_prev_clip,
-            camera_position: current.position.extend(time),
-            camera_forward: current.forward.extend(current.near),
-            prev_camera_position: previous.position.extend(frame as f32),
-            prev_camera_forward: previous.forward.extend(delta_time),
-            viewport: Vec4::new(width as f32, height as f32, 1.0 / width as f32, 1.0 / height as f32),
-            jitter: Vec4::new(current.jitter.x, current.jitter.y, previous.jitter.x, previous.jitter.y),
-            sun_direction: lights.sun_direction.normalize().extend(if lights.sun_enabled { 1.0 } else { 0.0 }),
-            sun_color: lights.sun_color.extend(0.0),
-            sky_color: lights.sky_color.extend(lights.sky_intensity),
-        }
-    }
-}
-
-/// What an effect pass is built with: the device, the runtime's pipeline cache and the
-/// `FrameView` uniform buffer the pass binds.
+/// What an effect pass is built with: the device, the runtime's pipeline cache and the frame's
+/// one `SceneView` buffer, which the pass binds as `View`.
 #[derive(Clone, Copy)]
 pub struct EffectPassInit<'a> {
     pub device: &'a wgpu::Device,
@@ -334,11 +229,8 @@ pub fn color_pass<'e>(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn frame_view_matches_the_wgsl_struct_size() {
-        assert_eq!(std::mem::size_of::<FrameView>(), 4 * 64 + 9 * 16);
-    }
+    use crate::scene::view::jitter_projection;
+    use glam::Vec3;
 
     #[test]
     fn halton_sequence_starts_as_published() {
@@ -364,25 +256,5 @@ mod tests {
         let a = proj.project_point3(p);
         let b = jitter_projection(proj, j).project_point3(p);
         assert!((b.x - a.x - j.x).abs() < 1e-5 && (b.y - a.y - j.y).abs() < 1e-5 && (b.z - a.z).abs() < 1e-6);
-    }
-
-    #[test]
-    fn still_camera_reprojects_onto_itself() {
-        let view = glam::camera::rh::view::look_at_mat4(Vec3::new(1.0, 2.0, 5.0), Vec3::ZERO, Vec3::Y);
-        let proj = glam::camera::rh::proj::directx::perspective_infinite_reverse(1.0, 1.5, 0.1);
-        let cam = CameraState::new(view, proj, 0.1, Vec2::new(0.001, 0.002));
-        let lights = FrameLights {
-            sun_direction: Vec3::Y,
-            sun_color: Vec3::ONE,
-            sun_enabled: true,
-            sky_color: Vec3::ONE,
-            sky_intensity: 1.0,
-        };
-        let v = FrameView::new(&cam, &cam, 300, 200, 3, 0.0, 1.0 / 30.0, &lights);
-        let clip = Vec4::new(0.25, -0.5, 0.01, 1.0);
-        let prev = v.clip_to_prev_clip * clip;
-        assert!((prev.truncate() / prev.w - clip.truncate()).length() < 1e-4, "{prev}");
-        assert!((cam.position - Vec3::new(1.0, 2.0, 5.0)).length() < 1e-5);
-        assert!((cam.forward - (-Vec3::new(1.0, 2.0, 5.0)).normalize()).length() < 1e-5);
     }
 }

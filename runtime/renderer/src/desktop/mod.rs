@@ -40,6 +40,7 @@ pub mod volumetric_fog;
 
 use crate::frame::{FrameRecorder, Image, PassContext, PassResult, Visualize};
 use crate::pipelines::{PipelineCache, PipelineError};
+use crate::scene::view::SceneView;
 use crate::scene::Scene;
 
 pub use resources::{frame_lights, FrameLight, LocalShadow};
@@ -134,7 +135,8 @@ impl From<crate::shaders::LookupError> for DesktopError {
 /// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
 /// frame; Translucency draws their sprites (additively, depth tested against the scene).
 pub struct ParticleInputs<'a> {
-    /// The runtime's view uniforms (`FViewUniforms`), which the sprite shaders read.
+    /// The `SceneView` buffer the sprite pipelines were built with: the frame makes it its one
+    /// View buffer (every pass binds it; the frame writes it as each frame begins).
     pub view: &'a wgpu::Buffer,
     pub systems: &'a [crate::passes::particles::ParticleSystem],
 }
@@ -177,14 +179,12 @@ pub struct DesktopFrame {
     /// Bound where the directional light has no cascades (kept alive with the bind groups).
     _dummy_shadow: resources::Texture,
     _lights_buffer: wgpu::Buffer,
-    _view_buffer: wgpu::Buffer,
+    /// The one `SceneView` buffer every pass binds as `View`.
+    view_buffer: wgpu::Buffer,
     _samplers: resources::Samplers,
     /// This frame's view (the camera the effects render with, unjittered), refreshed as every
     /// frame begins: everything camera-dependent is computed from it per frame.
     view: std::sync::Mutex<FrameView>,
-    /// The fire sprites' view uniforms (`FViewUniforms` of the runtime's particle pass) as
-    /// built, and their buffer, patched every frame with the camera.
-    particle_view: Option<(wgpu::Buffer, crate::gpu_types::ViewUniforms)>,
     lights: Vec<FrameLight>,
     prepass: prepass::PrePass,
     light_grid: light_grid::LightGrid,
@@ -196,8 +196,9 @@ pub struct DesktopFrame {
     translucency: translucency::Translucency,
     post: post_processing::PostProcessing,
     effects: effects::Effects,
-    /// The View uniforms as built, patched every frame with the effects' (jittered) camera.
-    base_view: view::ViewUniforms,
+    /// The `SceneView` as built: what the scene and the light grid decide; each frame sets
+    /// its camera (the effects', jittered) and writes it.
+    base_view: SceneView,
     /// Every object's instance rows: (object, first row, local bounds centre, row).
     object_rows: Vec<(usize, u32, glam::Vec3, view::InstanceGpu)>,
     /// ShadowFrustumQueries skip the shadow work of lights whose volume is hidden (on by
@@ -222,11 +223,17 @@ impl DesktopFrame {
         let lights = frame_lights(scene);
         let gpu_lights: Vec<view::LocalLightGpu> = lights.iter().map(|l| l.gpu).collect();
         let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
-        let view_buffer = resources::uniform(
-            device,
-            "View",
-            &view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient)),
-        );
+        let base_view =
+            view.scene_view(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
+        // one View buffer: the fire sprites' (their pipelines bind it) when the runtime draws
+        // the fire, else the frame's own
+        let view_buffer = match &particles {
+            Some(p) => {
+                queue.write_buffer(p.view, 0, bytemuck::bytes_of(&base_view));
+                p.view.clone()
+            }
+            None => resources::uniform(device, "View", &base_view),
+        };
         let buffers = resources::SceneBuffers::upload(device, scene);
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
@@ -258,12 +265,8 @@ impl DesktopFrame {
             lights: &lights_buffer,
             num_culled_lights: &light_grid.num_culled_lights,
             culled_light_data: &light_grid.culled_light_data,
-            size: view
-                .uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient))
-                .light_grid_size,
-            z_params: view
-                .uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient))
-                .light_grid_z_params,
+            size: base_view.light_grid_size,
+            z_params: base_view.light_grid_z_params,
         };
         let effects = build_effects(
             &b,
@@ -272,6 +275,7 @@ impl DesktopFrame {
                 shadows: &shadows,
                 dummy_shadow: &dummy_shadow,
                 light_grid: grid,
+                view_buffer: &view_buffer,
                 frame_draws_fire: particles.is_some(),
             },
         )?;
@@ -284,10 +288,7 @@ impl DesktopFrame {
             particles.as_ref(),
             &effects.translucency_volume(),
         )?;
-        let base_view =
-            view.uniforms(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         let object_rows = object_rows(scene, &buffers);
-        let particle_view = particles.as_ref().map(|p| (p.view.clone(), crate::scene::gpu::view_uniforms(scene, w, h)));
         Ok(DesktopFrame {
             device: device.clone(),
             queue: queue.clone(),
@@ -298,10 +299,9 @@ impl DesktopFrame {
             output,
             _dummy_shadow: dummy_shadow,
             _lights_buffer: lights_buffer,
-            _view_buffer: view_buffer,
+            view_buffer,
             _samplers: samplers,
             view: std::sync::Mutex::new(view),
-            particle_view,
             lights,
             prepass,
             light_grid,
@@ -411,18 +411,14 @@ impl DesktopFrame {
         &self.effects
     }
 
-    /// This frame's camera (jittered for TAA) into the View uniforms, and the movable props'
-    /// transforms into their instance rows.
+    /// This frame's `SceneView` (the camera jittered for TAA, the previous frame's, the time)
+    /// into the one View buffer, and the movable props' transforms into their instance rows.
     /// `view`: the same camera unjittered (its near plane places the light grid's slices).
     fn write_camera(&self, camera: &effects::FrameCamera, view: &FrameView) {
         let mut v = self.base_view;
-        v.view_proj = camera.view_proj;
-        v.inv_view_proj = camera.inv_view_proj;
-        v.view = camera.view;
-        v.proj = camera.proj;
-        v.camera_position = camera.position.extend(view.near);
+        v.set_camera(&camera.current, &camera.previous, view.width, view.height, camera.time);
         v.light_grid_z_params = view.grid_z_params.extend(0.0);
-        self.queue.write_buffer(&self._view_buffer, 0, bytemuck::bytes_of(&v));
+        self.queue.write_buffer(&self.view_buffer, 0, bytemuck::bytes_of(&v));
         // every object's rows: movable props move, props that occlusion culling found hidden
         // get empty transforms (nothing rasterised) until a query finds them visible again
         for (object, first, local_center, template) in &self.object_rows {
@@ -448,22 +444,15 @@ impl DesktopFrame {
     /// What the passes built with the first camera computed from it, recomputed for this
     /// frame's `view`: the cascades of the directional light (their depth matrices, the
     /// projections Lighting, the translucency and the effects' fog and volumes read), each local
-    /// light's depth bounds and whether the camera is inside its volume, the fire sprites'
-    /// view, the light grid's depth slicing as the volumetric fog reads it. (The View uniforms, the light grid's and every effect pass's camera are written
-    /// by [`DesktopFrame::write_camera`] and [`effects::Effects::begin_frame`].)
+    /// light's depth bounds and whether the camera is inside its volume, the light grid's depth
+    /// slicing as the volumetric fog reads it. (The `SceneView`, which every pass reads the
+    /// camera from, is written by [`DesktopFrame::write_camera`].)
     fn follow_camera(&self, view: &FrameView) {
         let cascaded = self.shadows.update_cascades(&self.queue, view);
         self.lighting.update(&self.queue, view, cascaded.as_ref());
         self.translucency.update(&self.queue, cascaded.as_ref());
         self.effects.set_directional_shadow(cascaded.as_ref().map(directional_shadow));
         self.effects.set_light_grid_z_params(view.grid_z_params.extend(0.0));
-        if let Some((buffer, base)) = &self.particle_view {
-            let mut u = *base;
-            u.view_proj = view.view_proj;
-            u.inv_view_proj = view.view_proj.inverse();
-            u.camera_position = view.position.extend(u.camera_position.w);
-            self.queue.write_buffer(buffer, 0, bytemuck::bytes_of(&u));
-        }
         *self.view.lock().unwrap_or_else(|e| e.into_inner()) = *view;
     }
 
@@ -543,6 +532,8 @@ struct EffectInputs<'a> {
     /// Bound where the directional light has no cascades.
     dummy_shadow: &'a resources::Texture,
     light_grid: effects::LightGridInputs<'a>,
+    /// The frame's one `SceneView` buffer, which every effect pass binds as `View`.
+    view_buffer: &'a wgpu::Buffer,
     /// The frame draws the runtime's fire (its ParticleSimulation runs before the frame).
     frame_draws_fire: bool,
 }
@@ -553,7 +544,7 @@ fn build_effects(
     queue: &wgpu::Queue,
     inputs: EffectInputs<'_>,
 ) -> Result<effects::Effects, DesktopError> {
-    let EffectInputs { shadows, dummy_shadow, light_grid, frame_draws_fire } = inputs;
+    let EffectInputs { shadows, dummy_shadow, light_grid, view_buffer, frame_draws_fire } = inputs;
     let (buffers, targets, lights) = (b.buffers, b.targets, b.lights);
     let (w, h) = (b.options.width.max(1), b.options.height.max(1));
     let meshes: Vec<effects::MeshRef<'_>> = buffers
@@ -569,6 +560,7 @@ fn build_effects(
     let local_shadows = translucent_volume_shadows(shadows, lights);
     let effect_targets = effects::EffectTargets {
         size: [w, h],
+        view: view_buffer,
         scene_depth: &targets.scene_depth.texture,
         scene_color: &targets.scene_color.texture,
         gbuffer_a: &targets.gbuffer_a.texture,

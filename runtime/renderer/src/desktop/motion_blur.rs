@@ -62,7 +62,7 @@ impl MotionBlur {
                     0,
                     "MotionBlur",
                     &[
-                        ("view", frame_view.as_entire_binding()),
+                        ("View", frame_view.as_entire_binding()),
                         ("blur", params.as_entire_binding()),
                         ("scene_color", wgpu::BindingResource::TextureView(input)),
                         ("velocity", wgpu::BindingResource::TextureView(velocity)),

@@ -189,7 +189,7 @@ impl OcclusionCulling {
             device,
             0,
             "BeginOcclusionTests",
-            &[("view", frame_view.as_entire_binding()), ("proxies", proxies.as_entire_binding())],
+            &[("View", frame_view.as_entire_binding()), ("proxies", proxies.as_entire_binding())],
         )?;
         let debug = target_2d(
             device,

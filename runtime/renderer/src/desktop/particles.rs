@@ -264,7 +264,7 @@ impl Particles {
                     ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
                 ];
                 if desc.collides {
-                    resources.push(("view", frame_view.as_entire_binding()));
+                    resources.push(("View", frame_view.as_entire_binding()));
                     resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
                     resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
                 }
@@ -272,7 +272,7 @@ impl Particles {
             };
             let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
                 let mut resources = vec![
-                    ("view", frame_view.as_entire_binding()),
+                    ("View", frame_view.as_entire_binding()),
                     ("sprite", sprite_params.as_entire_binding()),
                     ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
                     ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),

@@ -131,7 +131,7 @@ impl Reflections {
             0,
             "ScreenSpaceReflections",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("ssr", ssr_params.as_entire_binding()),
                 ("scene_color", tex(inputs.scene_color)),
                 ("SceneDepthTexture", tex(inputs.scene_depth)),
@@ -167,7 +167,7 @@ impl Reflections {
                 0,
                 "ReflectionCaptureFilter",
                 &[
-                    ("view", frame_view.as_entire_binding()),
+                    ("View", frame_view.as_entire_binding()),
                     ("reflection", params.as_entire_binding()),
                     ("capture_face", wgpu::BindingResource::TextureView(&face_view)),
                 ],
@@ -186,7 +186,7 @@ impl Reflections {
             0,
             "ReflectionEnvironmentAndSky",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("reflection", env_params.as_entire_binding()),
                 ("SceneDepthTexture", tex(inputs.scene_depth)),
                 ("gbuffer_a", tex(inputs.gbuffer_a)),

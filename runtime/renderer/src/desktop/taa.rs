@@ -68,7 +68,7 @@ impl TemporalAA {
                 0,
                 "TemporalAA",
                 &[
-                    ("view", frame_view.as_entire_binding()),
+                    ("View", frame_view.as_entire_binding()),
                     ("taa", params.as_entire_binding()),
                     ("scene_color", wgpu::BindingResource::TextureView(scene_color)),
                     ("history", wgpu::BindingResource::TextureView(&history_views[1 - i])),

@@ -241,7 +241,7 @@ impl TranslucentVolumes {
                     inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
                 let shadowed = match (light, local_shadow(k), &projections[k]) {
                     (InjectedLight::Directional { .. }, _, _) => {
-                        resources.push(("view", frame_view.as_entire_binding()));
+                        resources.push(("View", frame_view.as_entire_binding()));
                         resources.push(("shadow_atlas", tex(shadow_atlas)));
                         resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
                         Some((

@@ -68,7 +68,7 @@ impl Velocity {
                 device,
                 0,
                 "Velocity",
-                &[("view", frame_view.as_entire_binding()), ("previous", previous.as_entire_binding())],
+                &[("View", frame_view.as_entire_binding()), ("previous", previous.as_entire_binding())],
             )?;
             meshes.push(MovableMesh { mesh, previous, bind_group });
         }

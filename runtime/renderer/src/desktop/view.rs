@@ -1,10 +1,11 @@
 //! `#[repr(C)]` mirrors of the desktop shaders' uniform and storage structs
 //! (`shader_src/Private/Desktop/*.ush`, member for member: vec4 and mat4 only), and the
-//! per-frame view they are filled from.
+//! per-frame view (camera and light grid) the frame's `SceneView` is filled from.
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
+use crate::scene::view::{CameraState, FrameTime, SceneView};
 use crate::scene::{Camera, Scene};
 
 /// Light grid tile size in pixels (Unreal's 64x64 px tiles).
@@ -13,28 +14,6 @@ pub const LIGHT_GRID_TILE: u32 = 64;
 pub const LIGHT_GRID_SLICES: u32 = 32;
 /// Far end of the light grid's last slice (meters).
 pub const LIGHT_GRID_FAR: f32 = 100.0;
-
-/// `ViewUniforms` of `DesktopCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct ViewUniforms {
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub view: Mat4,
-    pub proj: Mat4,
-    pub camera_position: Vec4,
-    pub viewport_size: Vec4,
-    pub light_grid_size: UVec4,
-    pub light_grid_z_params: Vec4,
-    pub directional_light_direction: Vec4,
-    pub directional_light_color: Vec4,
-    pub sky_color: Vec4,
-    pub ground_color: Vec4,
-    pub fog_params: Vec4,
-    pub fog_color: Vec4,
-    pub fog_directional: Vec4,
-    pub frame: UVec4,
-}
 
 /// `InstanceData` of `DesktopCommon.ush`.
 #[repr(C)]
@@ -209,36 +188,16 @@ impl FrameView {
         (lo.extend(-far_depth), hi.extend(-near_depth))
     }
 
-    /// Uniforms of `DesktopCommon.ush` for this view and scene.
-    /// `flags`: bit 0, a flat sky (`View.frame.w`).
-    pub fn uniforms(&self, scene: &Scene, num_local_lights: u32, frame_index: u32, flags: u32) -> ViewUniforms {
-        let sun = &scene.sun;
-        let to_sun = (-sun.direction).normalize();
-        let sun_color = sun.color * sun.intensity;
-        let fog = &scene.fog;
-        ViewUniforms {
-            view_proj: self.view_proj,
-            inv_view_proj: self.view_proj.inverse(),
-            view: self.view,
-            proj: self.proj,
-            camera_position: self.position.extend(self.near),
-            viewport_size: Vec4::new(
-                self.width as f32,
-                self.height as f32,
-                1.0 / self.width as f32,
-                1.0 / self.height as f32,
-            ),
-            light_grid_size: UVec4::new(self.grid[0], self.grid[1], self.grid[2], LIGHT_GRID_TILE),
-            light_grid_z_params: self.grid_z_params.extend(0.0),
-            directional_light_direction: to_sun.extend(if sun.enabled { 1.0 } else { 0.0 }),
-            directional_light_color: sun_color.extend(0.0),
-            sky_color: scene.sky_color.extend(1.0),
-            ground_color: (Vec3::new(0.4, 0.36, 0.3) * scene.sky_color.length() * 0.5).extend(0.0),
-            fog_params: Vec4::new(fog.density, fog.height_falloff, fog.base_height, fog.start_distance),
-            fog_color: fog.color.extend(fog.max_opacity),
-            fog_directional: (sun.color * sun.intensity * 0.15).extend(8.0),
-            frame: UVec4::new(frame_index, num_local_lights, 0, flags),
-        }
+    /// The frame's `SceneView` for this (unjittered) view of `scene`, with what the desktop
+    /// frame adds: the light grid and `View.frame` (frame index, local lights, flags: bit 0 a
+    /// flat sky).
+    pub fn scene_view(&self, scene: &Scene, num_local_lights: u32, frame_index: u32, flags: u32) -> SceneView {
+        let camera = CameraState::new(self.view, self.proj, self.near, glam::Vec2::ZERO);
+        let mut v = SceneView::new(scene, &camera, &camera, self.width, self.height, FrameTime::default());
+        v.frame = UVec4::new(frame_index, num_local_lights, 0, flags);
+        v.light_grid_size = UVec4::new(self.grid[0], self.grid[1], self.grid[2], LIGHT_GRID_TILE);
+        v.light_grid_z_params = self.grid_z_params.extend(0.0);
+        v
     }
 }
 
@@ -260,7 +219,6 @@ mod tests {
 
     #[test]
     fn struct_sizes_match_the_wgsl_structs() {
-        assert_eq!(std::mem::size_of::<ViewUniforms>(), 4 * 64 + 12 * 16);
         assert_eq!(std::mem::size_of::<InstanceGpu>(), 2 * 64 + 2 * 16);
         assert_eq!(std::mem::size_of::<MaterialGpu>(), 64);
         assert_eq!(std::mem::size_of::<LocalLightGpu>(), 64);

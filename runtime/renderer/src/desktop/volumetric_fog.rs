@@ -167,7 +167,7 @@ impl VolumetricFog {
             0,
             "InitializeVolumeAttributes",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("vbuffer_a", tex(&a)),
                 ("vbuffer_b", tex(&b)),
@@ -175,7 +175,7 @@ impl VolumetricFog {
         )?;
         let scatter_group = |history: Option<usize>, out: usize| {
             let mut r = vec![
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("vbuffer_a", tex(&a)),
                 ("vbuffer_b", tex(&b)),
@@ -203,7 +203,7 @@ impl VolumetricFog {
                 0,
                 "FinalIntegration",
                 &[
-                    ("view", frame_view.as_entire_binding()),
+                    ("View", frame_view.as_entire_binding()),
                     ("fog", params.as_entire_binding()),
                     ("light_scattering", tex(&ls[i])),
                     ("integrated", tex(&integrated_view)),
@@ -216,7 +216,7 @@ impl VolumetricFog {
             0,
             "VolumetricFog apply",
             &[
-                ("view", frame_view.as_entire_binding()),
+                ("View", frame_view.as_entire_binding()),
                 ("fog", params.as_entire_binding()),
                 ("integrated_volume", tex(&integrated_view)),
                 ("volume_sampler", wgpu::BindingResource::Sampler(&sampler)),

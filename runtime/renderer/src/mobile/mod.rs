@@ -45,7 +45,7 @@ use crate::scene::Scene;
 pub use pipeline::{MobilePipeline, MobilePipelines, PipelineDesc, VertexInput};
 pub use shadows::{cascade_splits, ShadowLayout};
 pub use sky::{f32_to_f16, procedural_sky};
-pub use uniforms::{LocalLight, MobileViewUniforms};
+pub use uniforms::LocalLight;
 
 /// The feature level of every mobile permutation.
 pub const LEVEL: &str = "es3_1";
@@ -383,7 +383,7 @@ impl MobileFrame {
             view_proj: view.view_proj,
             cascades: shadow_layout.cascades.len(),
             view: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("MobileView"),
+                label: Some("View"),
                 contents: bytemuck::bytes_of(&view),
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             }),

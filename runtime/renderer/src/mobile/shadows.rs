@@ -17,6 +17,7 @@ use crate::frame::{PassContext, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
+use crate::scene::view::MAX_CASCADES;
 use crate::scene::{BlendMode, Camera, Scene};
 
 use super::pipeline::{Draw, MobilePipelines, PipelineDesc, VertexInput};
@@ -41,9 +42,6 @@ pub struct ShadowTile {
     /// World units the casters move along their normals (normal offset bias).
     pub normal_offset: f32,
 }
-
-/// Most directional-light cascades (`MobileCommon.ush`'s `csm_matrix` array).
-pub const MAX_CASCADES: usize = 4;
 
 /// `DepthPass` of `MobileShadowDepth.usf`.
 #[repr(C)]

@@ -1,65 +1,25 @@
-//! The uniform blocks of the mobile shaders (`MobileCommon.ush`,
-//! `MobileDeferredShading.usf`, `MobileBloom.usf`, `MobileTonemap.usf`), member for member
-//! (vec4 and mat4 members only, so no padding rules apply), and how the scene fills them.
+//! The uniform blocks of the mobile shaders (`MobileDeferredShading.usf`, `MobileBloom.usf`, `MobileTonemap.usf`), member for member
+//! (vec4 and mat4 members only, so no padding rules apply), and how the scene fills them and
+//! the mobile part of the one `SceneView` (`shader_src/Private/SceneView.ush`).
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::scene::{Scene, SpotLight};
 
-use super::shadows::{ShadowLayout, MAX_CASCADES};
+use crate::scene::view::{CameraState, FrameTime, SceneView};
+pub use crate::scene::view::{ForwardLocalLight, MAX_CASCADES, MAX_LOCAL_LIGHTS};
+
+use super::shadows::ShadowLayout;
 use super::sky::Captures;
 use super::MobileOptions;
-
-/// Most local lights the forward base pass shades (`MAX_DYNAMIC_POINT_LIGHTS` at most 4).
-pub const MAX_LOCAL_LIGHTS: usize = 4;
-
-/// `LocalLight` of `MobileCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct LocalLightData {
-    /// xyz position, w = 1 / radius
-    pub position_inv_radius: Vec4,
-    /// rgb color times intensity, w = specular scale
-    pub color: Vec4,
-    /// xyz the direction the spot points, w = 1 for a spot light
-    pub direction: Vec4,
-    /// cos(outer), 1 / (cos(inner) - cos(outer)), shadow slot (-1: none), shadow bias
-    pub spot_angles: Vec4,
-    /// world -> shadow atlas
-    pub shadow_matrix: Mat4,
-}
-
-/// `MobileView` of `MobileCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct MobileViewUniforms {
-    pub view_proj: Mat4,
-    pub inv_view_proj: Mat4,
-    pub camera_pos: Vec4,
-    pub camera_forward: Vec4,
-    pub viewport: Vec4,
-    pub light_direction: Vec4,
-    pub light_color: Vec4,
-    pub csm_splits: Vec4,
-    pub csm_matrix: [Mat4; MAX_CASCADES],
-    pub shadow_params: Vec4,
-    pub sky_sh: [Vec4; 4],
-    pub sky_color: Vec4,
-    pub fog_color: Vec4,
-    pub fog_params: Vec4,
-    pub counts: Vec4,
-    pub local_lights: [LocalLightData; MAX_LOCAL_LIGHTS],
-    pub capture_positions: [Vec4; 3],
-    pub capture_brightness: [Vec4; 3],
-}
 
 /// `DeferredLight` of `MobileDeferredShading.usf`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct DeferredLightUniforms {
     pub volume_to_world: Mat4,
-    pub light: LocalLightData,
+    pub light: ForwardLocalLight,
 }
 
 /// `BloomParams` of `MobileBloom.usf`.
@@ -81,7 +41,7 @@ pub struct TonemapUniforms {
 #[derive(Clone, Debug, PartialEq)]
 pub struct LocalLight {
     pub name: String,
-    pub data: LocalLightData,
+    pub data: ForwardLocalLight,
     pub is_spot: bool,
     pub position: Vec3,
     pub radius: f32,
@@ -97,7 +57,7 @@ pub fn local_lights(scene: &Scene, shadows: &ShadowLayout) -> Vec<LocalLight> {
     for l in &scene.point_lights {
         out.push(LocalLight {
             name: l.name.clone(),
-            data: LocalLightData {
+            data: ForwardLocalLight {
                 position_inv_radius: l.position.extend(1.0 / l.radius.max(1e-3)),
                 color: (l.color * l.intensity).extend(1.0),
                 direction: Vec4::ZERO,
@@ -126,7 +86,7 @@ fn spot_light(l: &SpotLight, shadow: Option<(usize, Mat4)>) -> LocalLight {
     };
     LocalLight {
         name: l.name.clone(),
-        data: LocalLightData {
+        data: ForwardLocalLight {
             position_inv_radius: l.position.extend(1.0 / l.radius.max(1e-3)),
             color: (l.color * l.intensity).extend(1.0),
             direction: l.direction.normalize().extend(1.0),
@@ -150,7 +110,10 @@ pub fn forward_lights(lights: &[LocalLight], camera: Vec3, max: usize) -> Vec<Lo
     sorted
 }
 
-/// The view uniforms of the mobile frames for a `width` x `height` target.
+/// The `SceneView` of the mobile frames for a `width` x `height` target: the scene's camera
+/// (no jitter) and what the mobile shaders add: pre-exposure, the CSM cascades, the sky light's
+/// spherical harmonics, the vertex fog (zero unless `vertex_fog`), the forward local lights and
+/// the reflection captures.
 pub fn view_uniforms(
     scene: &Scene,
     options: &MobileOptions,
@@ -159,27 +122,23 @@ pub fn view_uniforms(
     shadows: &ShadowLayout,
     forward_lights: &[LocalLight],
     captures: &Captures,
-) -> MobileViewUniforms {
-    let aspect = width as f32 / height as f32;
-    let view_proj = scene.camera.view_proj(aspect);
-    let forward = (scene.camera.target - scene.camera.position).normalize();
-    let sun = &scene.sun;
-    let sun_color = if sun.enabled { sun.color * sun.intensity } else { Vec3::ZERO };
-    let mut u = MobileViewUniforms {
-        view_proj,
-        inv_view_proj: view_proj.inverse(),
-        camera_pos: scene.camera.position.extend(scene.exposure),
-        camera_forward: forward.extend(0.0),
-        viewport: Vec4::new(width as f32, height as f32, 1.0 / width as f32, 1.0 / height as f32),
-        light_direction: (-sun.direction.normalize()).extend(1.0),
-        light_color: sun_color.extend(shadows.cascades.len() as f32),
-        shadow_params: Vec4::new(1.0 / shadows.atlas_width as f32, 0.0008, 0.0, 1.0 / shadows.atlas_height as f32),
-        ..Default::default()
-    };
+) -> SceneView {
+    let camera = CameraState::of_scene(scene, width, height);
+    let mut u = SceneView::new(scene, &camera, &camera, width, height, FrameTime::default());
+    u.time.w = scene.exposure;
+    u.shadow_params = Vec4::new(
+        1.0 / shadows.atlas_width as f32,
+        0.0008,
+        shadows.cascades.len() as f32,
+        1.0 / shadows.atlas_height as f32,
+    );
     let mut splits = [f32::MAX; MAX_CASCADES];
+    let atlas = glam::Vec2::new(shadows.atlas_width as f32, shadows.atlas_height as f32);
     for (i, c) in shadows.cascades.iter().enumerate() {
         splits[i] = c.far;
-        u.csm_matrix[i] = c.atlas_matrix;
+        u.csm_view_proj[i] = c.view_proj;
+        let [x, y, w, h] = c.viewport.map(|v| v as f32);
+        u.csm_rects[i] = Vec4::new(x / atlas.x, y / atlas.y, w / atlas.x, h / atlas.y);
     }
     u.csm_splits = Vec4::from_array(splits);
     // The sky light: the scene's sky color at the zenith fading to a third of it at the nadir
@@ -188,11 +147,10 @@ pub fn view_uniforms(
         u.sky_sh[0] = (scene.sky_color * 0.665).extend(0.0);
         u.sky_sh[1] = (scene.sky_color * 0.335).extend(0.0);
     }
-    u.sky_color = Vec4::new(1.0, 1.0, 1.0, captures.max_mip() as f32);
-    if options.vertex_fog {
-        u.fog_color = scene.fog.color.extend(scene.fog.density);
-        u.fog_params =
-            Vec4::new(scene.fog.height_falloff, scene.fog.base_height, scene.fog.start_distance, scene.fog.max_opacity);
+    u.ground_color.w = captures.max_mip() as f32;
+    if !options.vertex_fog {
+        u.fog_color = Vec4::ZERO;
+        u.fog_params = Vec4::ZERO;
     }
     for (i, l) in forward_lights.iter().take(MAX_LOCAL_LIGHTS).enumerate() {
         u.local_lights[i] = l.data;
@@ -212,12 +170,6 @@ mod tests {
 
     #[test]
     fn sizes_match_the_wgsl_structs() {
-        assert_eq!(std::mem::size_of::<LocalLightData>(), 128);
-        // 2 mat4, 6 vec4, 4 mat4, 1 vec4, 4 vec4 (SH), 4 vec4, 4 lights, 6 vec4
-        assert_eq!(
-            std::mem::size_of::<MobileViewUniforms>(),
-            2 * 64 + 6 * 16 + 4 * 64 + 16 + 4 * 16 + 4 * 16 + 4 * 128 + 6 * 16
-        );
         assert_eq!(std::mem::size_of::<DeferredLightUniforms>(), 192);
     }
 
@@ -225,7 +177,7 @@ mod tests {
     fn forward_lights_are_the_nearest_and_capped() {
         let mk = |name: &str, x: f32| LocalLight {
             name: name.into(),
-            data: LocalLightData::default(),
+            data: ForwardLocalLight::default(),
             is_spot: false,
             position: Vec3::new(x, 0.0, 0.0),
             radius: 1.0,

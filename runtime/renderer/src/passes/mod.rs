@@ -95,15 +95,16 @@ impl Targets {
     }
 }
 
-/// Resources the renderer's passes bind: the view uniforms (camera and light) and the targets.
+/// Resources the renderer's passes bind: the one `SceneView` buffer (camera and light; the
+/// desktop frame writes it every frame) and the targets.
 pub struct SharedResources {
     pub view: wgpu::Buffer,
     pub targets: Targets,
 }
 
 impl SharedResources {
-    /// Group-0 resources by their names in `Common.ush`. Bind groups take the ones their
-    /// reflection lists.
+    /// Group-0 resources by their names in the shaders (`View` of `SceneView.ush`). Bind
+    /// groups take the ones their reflection lists.
     pub fn view_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
         vec![("View", self.view.as_entire_binding())]
     }

@@ -5,7 +5,7 @@ use glam::{UVec4, Vec4};
 use wgpu::util::DeviceExt;
 
 use super::{Material, PointLight, Scene, SpotLight};
-use crate::gpu_types::{InstanceData, LightData, MaterialUniforms, MobileLocalLights, ViewUniforms};
+use crate::gpu_types::{InstanceData, LightData, MaterialUniforms, MobileLocalLights};
 
 pub struct GpuMesh {
     pub vertices: wgpu::Buffer,
@@ -112,41 +112,6 @@ pub fn material_uniforms(m: &Material) -> MaterialUniforms {
 
 /// Size of the directional light's shadow map (square).
 pub const SHADOW_MAP_SIZE: u32 = 2048;
-
-/// The view uniforms of the main camera for a `width` x `height` target.
-pub fn view_uniforms(scene: &Scene, width: u32, height: u32) -> ViewUniforms {
-    let aspect = width as f32 / height as f32;
-    let view_proj = scene.camera.view_proj(aspect);
-    let sun = &scene.sun;
-    ViewUniforms {
-        view_proj,
-        inv_view_proj: view_proj.inverse(),
-        shadow_view_proj: scene.sun_shadow_view_proj(),
-        camera_position: scene.camera.position.extend(1.0),
-        viewport: Vec4::new(width as f32, height as f32, 1.0 / width as f32, 1.0 / height as f32),
-        directional_light_direction: sun.direction.extend(if sun.casts_shadows { 1.0 } else { 0.0 }),
-        directional_light_color: (sun.color * sun.intensity).extend(if sun.enabled { 1.0 } else { 0.0 }),
-        sky_color: scene.sky_color.extend(1.0),
-        fog_color: scene.fog.color.extend(scene.fog.density),
-        fog_params: Vec4::new(
-            scene.fog.height_falloff,
-            scene.fog.base_height,
-            scene.fog.start_distance,
-            scene.fog.max_opacity,
-        ),
-        shadow_params: Vec4::new(0.0015, 1.0 / SHADOW_MAP_SIZE as f32, 1.0, 0.0),
-        post_params: Vec4::new(scene.exposure, 0.0, 0.0, 0.0),
-    }
-}
-
-/// The same view as seen from the directional light (the ShadowDepths pass reuses the
-/// depth-only shaders with this view).
-pub fn shadow_view_uniforms(scene: &Scene) -> ViewUniforms {
-    let mut v = view_uniforms(scene, SHADOW_MAP_SIZE, SHADOW_MAP_SIZE);
-    v.view_proj = scene.sun_shadow_view_proj();
-    v.inv_view_proj = v.view_proj.inverse();
-    v
-}
 
 pub fn point_light_data(l: &PointLight) -> LightData {
     LightData {

@@ -8,6 +8,7 @@
 
 pub mod gpu;
 pub mod mesh;
+pub mod view;
 
 use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::look_at_mat4;
