@@ -1,240 +1,462 @@
-//! ParticleSimulation (desktop, first in the frame): the fire emitter's particles simulated
-//! in a compute shader, one thread per particle, in a storage buffer that the Translucency
-//! pass then draws as additive camera-facing sprites.
+//! ParticleSimulation: GPU sprite particles (`ParticleSimulation.usf`, `ParticleSpriteShader.usf`).
+//! Each emitter keeps its state in two pairs of textures, positions in RGBA32F (xyz, age) and
+//! velocities in RGBA16F (xyz, lifetime), one texel per particle, read by one simulation and
+//! written by the next (ping-pong). The fire emitter is simulated at the start of the frame;
+//! the sparks collide with the scene, so they are simulated after the base pass against the
+//! depth buffer and GBuffer normals. Both are drawn as camera-facing sprites, instanced (one
+//! instance per particle, 6 vertices), in Translucency; the fire's heat haze is drawn again
+//! into the distortion offsets.
 
-use std::cell::Cell;
 use std::sync::Arc;
 
-use glam::{UVec4, Vec4};
-use wgpu::util::DeviceExt;
+use bytemuck::{Pod, Zeroable};
+use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, Visualize};
-use crate::gpu_types::{formats, EmitterUniforms, Particle};
 use crate::keys;
 use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, DepthState, PipelineError, RenderPipeline, RenderState, VertexLayout,
+    Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout,
 };
 use crate::scene::ParticleEmitter;
 
-use super::{PassInit, Target};
+use super::frame_view::{groups, uniform_buffer, view};
 
-/// Simulation step (seconds); the frame is simulated at a fixed rate so images repeat.
-pub const TIME_STEP: f32 = 1.0 / 60.0;
-/// Steps simulated when the system is built, so the first frame shows a burning fire.
-pub const PREWARM_STEPS: u32 = 120;
+pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// Particles per row of the state textures.
+pub const STATE_WIDTH: u32 = 64;
+/// Fixed simulation step (the frame's time step is fixed too, so frames are reproducible).
+pub const TIME_STEP: f32 = 1.0 / 30.0;
 
-/// One emitter's particles on the GPU.
-pub struct ParticleSystem {
-    queue: wgpu::Queue,
-    emitter: EmitterUniforms,
-    uniforms: wgpu::Buffer,
-    particles: wgpu::Buffer,
-    simulation: Arc<ComputePipeline>,
-    simulation_group: wgpu::BindGroup,
-    count: u32,
-    frame: Cell<u32>,
+/// `SimulationParams` of `ParticleSimulation.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct SimulationParams {
+    emitter: Vec4,
+    initial_velocity: Vec4,
+    acceleration: Vec4,
+    timing: Vec4,
+    counts: UVec4,
 }
 
-impl ParticleSystem {
-    /// Builds the buffers and the simulation pipeline and prewarms the particles.
-    pub fn new(init: &PassInit<'_>, queue: &wgpu::Queue, e: &ParticleEmitter) -> Result<ParticleSystem, PipelineError> {
-        let count = e.max_particles.max(1);
-        let emitter = EmitterUniforms {
-            position_radius: e.position.extend(e.spawn_radius),
-            velocity_jitter: e.initial_velocity.extend(e.velocity_jitter),
-            params: Vec4::new(e.lifetime.0, e.lifetime.1, e.buoyancy, TIME_STEP),
-            size: Vec4::new(e.size.0, e.size.1, 0.0, 0.0),
-            color_start: e.color_start.extend(1.0),
-            color_end: e.color_end.extend(1.0),
-            counts: UVec4::new(count, 0, 0, 0),
-        };
-        let uniforms = init.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{} emitter uniforms", e.name)),
-            contents: bytemuck::bytes_of(&emitter),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        });
-        // Every particle starts dead (age past lifetime): the first step spawns them all,
-        // with respawn times spread by their random lifetimes.
-        let dead =
-            vec![
-                Particle { position_age: e.position.extend(1.0), velocity_lifetime: Vec4::new(0.0, 0.0, 0.0, 0.0) };
-                count as usize
-            ];
-        let particles = init.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{} particles", e.name)),
-            contents: bytemuck::cast_slice(&dead),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let simulation =
-            init.cache.compute(&keys::name(keys::particle_simulation_cs::Key {}, keys::level(init.level)?)?)?;
-        let simulation_group = simulation.layout.bind_group(
-            init.device,
-            0,
-            &format!("{} simulation", e.name),
-            &[("Emitter", uniforms.as_entire_binding()), ("Particles", particles.as_entire_binding())],
-        )?;
-        let system = ParticleSystem {
-            queue: queue.clone(),
-            emitter,
-            uniforms,
-            particles,
-            simulation,
-            simulation_group,
-            count,
-            frame: Cell::new(0),
-        };
-        // Prewarm: the particles all spawn on the first step and die at their random
-        // lifetimes, which spreads their ages out. One submit per step: each step has its
-        // own frame index in the uniform block.
-        for step in 0..PREWARM_STEPS {
-            let mut u = system.emitter;
-            u.counts.y = u32::MAX - PREWARM_STEPS + step;
-            system.queue.write_buffer(&system.uniforms, 0, bytemuck::bytes_of(&u));
-            let mut encoder =
-                init.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("particle prewarm"),
-                    timestamp_writes: None,
-                });
-                system.dispatch(&mut pass);
-            }
-            system.queue.submit([encoder.finish()]);
+/// `SpriteParams` of `ParticleSpriteShader.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct SpriteParams {
+    color_birth: Vec4,
+    color_death: Vec4,
+    size: Vec4,
+    counts: UVec4,
+    lighting: Vec4,
+}
+
+/// What an emitter simulates and draws.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmitterDesc {
+    pub name: String,
+    pub position: Vec3,
+    pub spawn_radius: f32,
+    pub max_particles: u32,
+    pub lifetime: (f32, f32),
+    pub initial_velocity: Vec3,
+    pub velocity_jitter: f32,
+    pub acceleration: Vec3,
+    pub drag: f32,
+    /// Collides with the depth buffer (simulated after the base pass).
+    pub collides: bool,
+    /// Velocity kept along the normal after a bounce.
+    pub restitution: f32,
+    pub size: (f32, f32),
+    /// Stretch of the sprite along its velocity, per m/s.
+    pub stretch: f32,
+    pub color_birth: Vec4,
+    pub color_death: Vec4,
+    /// Heat haze strength (0: no distortion).
+    pub distortion: f32,
+    /// Lit by the translucency lighting volume (the colours are albedo); else emissive.
+    pub lit: bool,
+    /// Its sprites are drawn (off where the frame draws this emitter's sprites itself; the
+    /// heat haze is drawn either way).
+    pub draw_sprites: bool,
+}
+
+impl EmitterDesc {
+    /// The scene's fire emitter (no collision, rising with buoyancy, with heat haze).
+    pub fn fire(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: e.name.clone(),
+            position: e.position,
+            spawn_radius: e.spawn_radius,
+            max_particles: e.max_particles,
+            lifetime: e.lifetime,
+            initial_velocity: e.initial_velocity,
+            velocity_jitter: e.velocity_jitter,
+            acceleration: Vec3::Y * e.buoyancy,
+            drag: 0.5,
+            collides: false,
+            restitution: 0.0,
+            size: e.size,
+            stretch: 0.0,
+            color_birth: e.color_start.extend(0.6),
+            color_death: e.color_end.extend(0.0),
+            distortion: 0.6,
+            lit: false,
+            draw_sprites: true,
         }
-        Ok(system)
     }
 
-    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>) {
-        pass.set_pipeline(&self.simulation.pipeline);
-        pass.set_bind_group(0, &self.simulation_group, &[]);
-        pass.dispatch_workgroups(self.count.div_ceil(self.simulation.workgroup_size[0].max(1)), 1, 1);
+    /// Smoke rising from the fire: grey, growing, lit by the translucency lighting volume.
+    pub fn smoke(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: format!("{}Smoke", e.name),
+            position: e.position + Vec3::Y * 0.9,
+            spawn_radius: e.spawn_radius,
+            max_particles: 256,
+            lifetime: (2.5, 4.0),
+            initial_velocity: Vec3::new(0.0, 0.5, 0.0),
+            velocity_jitter: 0.15,
+            acceleration: Vec3::new(0.1, 0.2, 0.0),
+            drag: 0.3,
+            collides: false,
+            restitution: 0.0,
+            size: (0.4, 1.4),
+            stretch: 0.0,
+            color_birth: Vec4::new(0.5, 0.5, 0.52, 0.35),
+            color_death: Vec4::new(0.6, 0.6, 0.62, 0.0),
+            distortion: 0.0,
+            lit: true,
+            draw_sprites: true,
+        }
     }
 
-    /// ParticleSimulation: one step. Reads and writes the particle buffer.
-    pub fn record_simulation(&self, ctx: &mut PassContext<'_>) {
-        let frame = self.frame.get();
-        self.frame.set(frame.wrapping_add(1));
-        let mut u = self.emitter;
-        u.counts.y = frame;
-        self.queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
-        ctx.compute_pass("ParticleSimulation", |pass| self.dispatch(pass));
-    }
-
-    /// The emitter uniforms, the particle buffer and the particle count, for frames that
-    /// draw the sprites with their own pipelines (the desktop frame's Translucency).
-    pub fn sprite_buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer, u32) {
-        (&self.uniforms, &self.particles, self.count)
-    }
-
-    pub fn count(&self) -> u32 {
-        self.count
+    /// Sparks thrown out of the fire: they fall and bounce off the floor and walls
+    /// (collision with the depth buffer).
+    pub fn sparks(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: format!("{}Sparks", e.name),
+            position: e.position + Vec3::Y * 0.4,
+            spawn_radius: e.spawn_radius * 0.5,
+            max_particles: 512,
+            lifetime: (1.5, 3.0),
+            initial_velocity: Vec3::new(0.0, 3.0, 0.0),
+            velocity_jitter: 1.6,
+            acceleration: Vec3::new(0.0, -9.8, 0.0),
+            drag: 0.2,
+            collides: true,
+            restitution: 0.5,
+            size: (0.05, 0.02),
+            stretch: 0.08,
+            color_birth: Vec4::new(12.0, 6.0, 1.5, 0.0),
+            color_death: Vec4::new(2.0, 0.4, 0.05, 0.0),
+            distortion: 0.0,
+            lit: false,
+            draw_sprites: true,
+        }
     }
 }
 
-/// The sprites of a particle system, drawn additively into SceneColor (Translucency).
-pub struct ParticleSprites {
-    pipeline: Arc<RenderPipeline>,
-    groups: Vec<wgpu::BindGroup>,
-    count: u32,
+struct Emitter {
+    desc: EmitterDesc,
+    seed: u32,
+    sim_params: wgpu::Buffer,
+    /// The sprites' `SpriteParams` (constant; kept with the bind groups that read it).
+    _sprite_params: wgpu::Buffer,
+    positions: [wgpu::Texture; 2],
+    velocities: [wgpu::Texture; 2],
+    /// simulate[i] reads state i and writes state 1 - i.
+    simulate: [wgpu::BindGroup; 2],
+    /// sprites[i] reads state i (the sprite pipeline; distortion: the heat haze's).
+    sprites: [wgpu::BindGroup; 2],
+    distortion: [wgpu::BindGroup; 2],
+    current: usize,
 }
 
-impl ParticleSprites {
-    /// `depth_test`: against SceneDepth (in the frame) or none (the pass's preview image).
+/// Inputs of the colliding simulation.
+pub struct CollisionInputs<'a> {
+    pub scene_depth: &'a wgpu::TextureView,
+    pub gbuffer_a: &'a wgpu::TextureView,
+}
+
+pub struct Particles {
+    emitters: Vec<Emitter>,
+    frame: u32,
+    /// [without collision, with collision]
+    simulation: [Arc<crate::pipelines::ComputePipeline>; 2],
+    /// The sprites over the target given to `new`, and the heat haze into RG16F offsets.
+    sprite_pipeline: Arc<RenderPipeline>,
+    distortion_pipeline: Arc<RenderPipeline>,
+    /// States of no emitter (1x1), for scenes without one.
+    empty: ([wgpu::Texture; 2], [wgpu::Texture; 2]),
+}
+
+/// The translucency lighting volumes as the lit sprites read them: both cascades (0 inner,
+/// 1 outer) of Ambient and Dir, and their boxes this frame (`TranslucencyLightingVolumeParams`,
+/// written every frame by InjectTranslucentVolume).
+pub struct LightingVolume<'a> {
+    pub params: &'a wgpu::Buffer,
+    pub ambient: [&'a wgpu::TextureView; 2],
+    pub directional: [&'a wgpu::TextureView; 2],
+}
+
+impl Particles {
+    /// `target`: the colour and depth formats of the pass the sprites are drawn in.
     pub fn new(
-        init: &PassInit<'_>,
-        system: &ParticleSystem,
-        depth_test: bool,
-    ) -> Result<ParticleSprites, PipelineError> {
-        let level = keys::level(init.level)?;
-        let vs = keys::name(keys::particle_sprite_vs::Key {}, level)?;
-        let ps = keys::name(keys::particle_sprite_ps::Key {}, level)?;
-        let mut state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED);
-        if depth_test {
-            state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
-        }
-        let mut state = state.with_targets(&[ColorTarget::new(formats::SCENE_COLOR, Blend::Additive)]).with_cull(None);
-        state.vertex_layout = VertexLayout::NONE;
-        let pipeline = init.cache.render(&vs, Some(&ps), &state)?;
-        let layout = &pipeline.layout;
-        let groups = vec![
-            layout.bind_group(init.device, 0, "particle sprites view", &init.shared.view_resources())?,
-            layout.bind_group(
-                init.device,
-                1,
-                "particle sprites",
-                &[
-                    ("Emitter", system.uniforms.as_entire_binding()),
-                    ("Particles", system.particles.as_entire_binding()),
-                ],
-            )?,
+        device: &wgpu::Device,
+        cache: &PipelineCache,
+        frame_view: &wgpu::Buffer,
+        descs: Vec<EmitterDesc>,
+        collision: &CollisionInputs<'_>,
+        target: (wgpu::TextureFormat, wgpu::TextureFormat),
+        lighting_volume: &LightingVolume<'_>,
+    ) -> Result<Particles, PipelineError> {
+        let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
+        let distortion_layout = cache.render(
+            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
+            &Particles::distortion_state(super::resources::formats::DISTORTION, Some(target.1)),
+        )?;
+        let sprite_pipeline_layout = cache.render(
+            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            Some(&keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?),
+            &sprite_state(target.0, Some(target.1)),
+        )?;
+        let simulation = [
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: false },
+                keys::Level::Sm5,
+            )?)?,
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: true },
+                keys::Level::Sm5,
+            )?)?,
         ];
-        Ok(ParticleSprites { pipeline, groups, count: system.count })
-    }
-
-    /// Draws every particle (six vertices each) into the open render pass.
-    pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&self.pipeline.pipeline);
-        for (i, g) in self.groups.iter().enumerate() {
-            pass.set_bind_group(i as u32, g, &[]);
-        }
-        pass.draw(0..6, 0..self.count);
-    }
-}
-
-/// The ParticleSimulation pass of the frame: every emitter steps once. When capturing, the
-/// particles are also drawn alone over black (no depth test), as the pass's image.
-pub struct ParticleSimulationPass {
-    systems: Vec<ParticleSystem>,
-    previews: Vec<ParticleSprites>,
-}
-
-impl ParticleSimulationPass {
-    pub fn new(init: &PassInit<'_>, queue: &wgpu::Queue) -> Result<ParticleSimulationPass, PipelineError> {
-        let mut systems = Vec::new();
-        let mut previews = Vec::new();
-        for e in &init.scene.emitters {
-            let system = ParticleSystem::new(init, queue, e)?;
-            previews.push(ParticleSprites::new(init, &system, false)?);
-            systems.push(system);
-        }
-        Ok(ParticleSimulationPass { systems, previews })
-    }
-
-    pub fn systems(&self) -> &[ParticleSystem] {
-        &self.systems
-    }
-
-    /// Reads and writes the particle buffers; when capturing, draws them into `preview`.
-    pub fn record(&self, ctx: &mut PassContext<'_>, preview: &Target) {
-        for s in &self.systems {
-            s.record_simulation(ctx);
-        }
-        if !ctx.capturing() {
-            return;
-        }
-        ctx.render_pass(
-            &wgpu::RenderPassDescriptor {
-                label: Some("ParticleSimulation preview"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &preview.view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            },
-            |pass| {
-                for p in &self.previews {
-                    p.draw(pass);
+        let mut emitters = Vec::new();
+        for (index, desc) in descs.into_iter().enumerate() {
+            let sim = &simulation[usize::from(desc.collides)];
+            let rows = desc.max_particles.div_ceil(STATE_WIDTH);
+            let state = |label: &str, format| {
+                device.create_texture(&wgpu::TextureDescriptor {
+                    label: Some(&format!("{} {label}", desc.name)),
+                    size: wgpu::Extent3d { width: STATE_WIDTH, height: rows, depth_or_array_layers: 1 },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format,
+                    usage: wgpu::TextureUsages::STORAGE_BINDING
+                        | wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_SRC,
+                    view_formats: &[],
+                })
+            };
+            let positions =
+                [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
+            let velocities =
+                [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
+            let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
+            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
+            let pos_views = [view(&positions[0]), view(&positions[1])];
+            let vel_views = [view(&velocities[0]), view(&velocities[1])];
+            let make_sim = |i: usize| {
+                let mut resources = vec![
+                    ("sim", sim_params.as_entire_binding()),
+                    ("prev_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                    ("prev_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+                    ("out_position", wgpu::BindingResource::TextureView(&pos_views[1 - i])),
+                    ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
+                ];
+                if desc.collides {
+                    resources.push(("View", frame_view.as_entire_binding()));
+                    resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
+                    resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
                 }
-            },
+                sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
+            };
+            let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
+                let mut resources = vec![
+                    ("View", frame_view.as_entire_binding()),
+                    ("sprite", sprite_params.as_entire_binding()),
+                    ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                    ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+                ];
+                if lit {
+                    resources.push((
+                        "translucency_ambient_inner",
+                        wgpu::BindingResource::TextureView(lighting_volume.ambient[0]),
+                    ));
+                    resources.push((
+                        "translucency_dir_inner",
+                        wgpu::BindingResource::TextureView(lighting_volume.directional[0]),
+                    ));
+                    resources.push((
+                        "translucency_ambient_outer",
+                        wgpu::BindingResource::TextureView(lighting_volume.ambient[1]),
+                    ));
+                    resources.push((
+                        "translucency_dir_outer",
+                        wgpu::BindingResource::TextureView(lighting_volume.directional[1]),
+                    ));
+                    resources.push(("translucency_volume", lighting_volume.params.as_entire_binding()));
+                    resources.push(("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)));
+                }
+                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
+            };
+            let sprites =
+                [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
+            let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
+            let simulate = [make_sim(0)?, make_sim(1)?];
+            emitters.push(Emitter {
+                desc,
+                seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
+                sim_params,
+                _sprite_params: sprite_params,
+                positions,
+                velocities,
+                simulate,
+                sprites,
+                distortion,
+                current: 0,
+            });
+        }
+        let empty_state = |label: &str, format| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width: 1, height: 1, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let empty = (
+            [
+                empty_state("NoParticles position", POSITION_FORMAT),
+                empty_state("NoParticles position", POSITION_FORMAT),
+            ],
+            [
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+            ],
         );
-        ctx.output(&preview.texture, Visualize::Hdr);
+        Ok(Particles {
+            emitters,
+            frame: 0,
+            simulation,
+            sprite_pipeline: sprite_pipeline_layout,
+            distortion_pipeline: distortion_layout,
+            empty,
+        })
     }
+
+    /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
+    /// or of the others (`false`, at the start of the frame).
+    pub fn simulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, colliding: bool) {
+        if !colliding {
+            self.frame += 1;
+        }
+        for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
+            let d = &e.desc;
+            let rows = d.max_particles.div_ceil(STATE_WIDTH);
+            let params = SimulationParams {
+                emitter: d.position.extend(d.spawn_radius),
+                initial_velocity: d.initial_velocity.extend(d.velocity_jitter),
+                acceleration: d.acceleration.extend(d.drag),
+                timing: Vec4::new(TIME_STEP, d.lifetime.0, d.lifetime.1, d.restitution),
+                counts: UVec4::new(STATE_WIDTH, d.max_particles, self.frame, e.seed),
+            };
+            queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
+            let pipeline = &self.simulation[usize::from(colliding)];
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&format!("ParticleSimulation {}", d.name)),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&pipeline.pipeline);
+            pass.set_bind_group(0, &e.simulate[e.current], &[]);
+            pass.dispatch_workgroups(groups(STATE_WIDTH, 8), groups(rows, 8), 1);
+            drop(pass);
+            e.current = 1 - e.current;
+        }
+    }
+
+    /// The state textures (positions, velocities) of the first emitter that (does not)
+    /// collide.
+    /// (A scene without emitters has empty 1x1 states, so the dumps still have a source.)
+    pub fn state_textures(&self, colliding: bool) -> (&[wgpu::Texture; 2], &[wgpu::Texture; 2]) {
+        match self.emitters.iter().find(|e| e.desc.collides == colliding) {
+            Some(e) => (&e.positions, &e.velocities),
+            None => (&self.empty.0, &self.empty.1),
+        }
+    }
+
+    /// Which state of that emitter holds the latest simulation (0 or 1).
+    pub fn current_index(&self, colliding: bool) -> usize {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map_or(0, |e| e.current)
+    }
+
+    /// The latest position state of the first emitter that (does not) collide, for the dump.
+    pub fn position_state(&self, colliding: bool) -> Option<&wgpu::Texture> {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map(|e| &e.positions[e.current])
+    }
+
+    pub fn velocity_state(&self, colliding: bool) -> Option<&wgpu::Texture> {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map(|e| &e.velocities[e.current])
+    }
+
+    /// Draws every emitter's sprites, instanced, into a translucency pass whose colour target
+    /// has `format` (premultiplied alpha) and, when given, a read-only reverse-Z depth test.
+    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>) {
+        self.draw_with(&self.sprite_pipeline, pass);
+    }
+
+    /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
+    /// additive offsets).
+    pub fn draw_distortion(&self, pass: &mut wgpu::RenderPass<'_>) {
+        pass.set_pipeline(&self.distortion_pipeline.pipeline);
+        for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
+            pass.set_bind_group(0, &e.distortion[e.current], &[]);
+            pass.draw(0..6, 0..e.desc.max_particles);
+        }
+    }
+
+    /// The fixed-function state of the sprites: premultiplied over the target, depth-tested
+    /// (read-only).
+    pub fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+        sprite_state(format, depth)
+    }
+
+    /// The fixed-function state of the heat haze: additive offsets.
+    pub fn distortion_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+        let mut state = sprite_state(format, depth);
+        state.color_targets[0].blend = Blend::Additive.state();
+        state
+    }
+
+    fn draw_with(&self, pipeline: &Arc<RenderPipeline>, pass: &mut wgpu::RenderPass<'_>) {
+        pass.set_pipeline(&pipeline.pipeline);
+        for e in self.emitters.iter().filter(|e| e.desc.draw_sprites) {
+            pass.set_bind_group(0, &e.sprites[e.current], &[]);
+            pass.draw(0..6, 0..e.desc.max_particles);
+        }
+    }
+}
+
+fn sprite_params(d: &EmitterDesc) -> SpriteParams {
+    SpriteParams {
+        color_birth: d.color_birth,
+        color_death: d.color_death,
+        size: Vec4::new(d.size.0, d.size.1, d.stretch, d.distortion * 0.02),
+        counts: UVec4::new(STATE_WIDTH, d.max_particles, 0, 0),
+        lighting: Vec4::new(if d.lit { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0),
+    }
+}
+
+fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+    let mut state = RenderState::fullscreen(ColorTarget::new(format, Blend::PremultipliedAlpha));
+    state.vertex_layout = VertexLayout::NONE;
+    if let Some(depth) = depth {
+        state = state.with_depth(DepthState::reverse_z(depth, false));
+    }
+    state
 }
