@@ -9,8 +9,7 @@ use wgpu::util::DeviceExt;
 
 use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
-use crate::passes::particles::ParticleSimulationPass;
-use crate::passes::{PassInit, SharedResources, Targets};
+use crate::passes::{SharedResources, Targets};
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
 use crate::scene::view::{CameraState, FrameTime, SceneView};
@@ -81,6 +80,8 @@ impl RendererOptions {
             width: self.width,
             height: self.height,
             output_format: crate::gpu_types::formats::OUTPUT,
+            // the first frame shows the fire burning
+            warm_up_particles: true,
             ..Default::default()
         };
         if !self.comparison {
@@ -133,9 +134,8 @@ pub enum RenderError {
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
 #[allow(clippy::large_enum_variant)]
 enum Passes {
-    /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
-    /// before it (the sprites are drawn in its Translucency).
-    DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
+    /// The desktop deferred frame of `crate::desktop` (its particles: `crate::passes::particles`).
+    DesktopDeferred { frame: Box<crate::desktop::DesktopFrame> },
     /// Both mobile frames (`crate::mobile`).
     Mobile(Box<crate::mobile::MobileFrame>),
 }
@@ -219,17 +219,8 @@ impl Renderer {
         };
         let options_size = (options.width, options.height);
         let passes = {
-            let init = PassInit {
-                device,
-                cache: &cache,
-                scene,
-                gpu_scene: &gpu_scene,
-                level: options.pipeline.level(),
-                shared: &shared,
-            };
             match options.pipeline {
                 FramePipeline::Desktop => {
-                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
                     let frame = crate::desktop::DesktopFrame::new(
                         device,
                         &gpu.queue,
@@ -239,9 +230,8 @@ impl Renderer {
                         // the same on every backend: the volumes are 2D array textures, which
                         // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
                         options.desktop(),
-                        Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
                     )?;
-                    Passes::DesktopDeferred { particles, frame: Box::new(frame) }
+                    Passes::DesktopDeferred { frame: Box::new(frame) }
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let mobile = options.mobile();
@@ -325,10 +315,8 @@ impl Renderer {
             FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
         let (s, t) = (&self.gpu_scene, &self.shared.targets);
         match &self.passes {
-            Passes::DesktopDeferred { particles, frame: desktop } => {
-                // The fire is the first step of the frame's one ParticleSimulation pass.
-                let fire = |ctx: &mut crate::frame::PassContext<'_>| particles.record(ctx, &t.preview);
-                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view), Some(&fire));
+            Passes::DesktopDeferred { frame: desktop } => {
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
             }
             Passes::Mobile(mobile) => mobile.record(&mut frame, s),
         }

@@ -14,8 +14,8 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
-use super::particles::Particles;
 use super::resources::formats::DISTORTION as DISTORTION_FORMAT;
+use crate::passes::particles::Particles;
 
 /// Index of refraction - 1 of the glass.
 pub const GLASS_REFRACTION: f32 = 0.5;

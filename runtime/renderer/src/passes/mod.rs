@@ -1,6 +1,6 @@
-//! The renderer's own passes (the fire's ParticleSimulation, recorded as the first step of
-//! the desktop frame's ParticleSimulation pass); the frames themselves are `crate::desktop`
-//! and `crate::mobile`. A pass is a struct built once (pipelines, bind groups, uniform
+//! The renderer's own passes and the resources they share: the one particle system
+//! ([`particles`], which the desktop frame builds and records); the frames themselves are
+//! `crate::desktop` and `crate::mobile`. A pass is a struct built once (pipelines, bind groups, uniform
 //! buffers) and a `record` that says what it reads and writes. Building a pass creates every
 //! pipeline it will use (the warm-up); recording never creates pipelines.
 //!
@@ -21,7 +21,8 @@
 //!    what `--dump-passes` writes and what the timings cover.
 //! 4. Build it in [`crate::renderer::Renderer::new`] for the frames that use it and record
 //!    it in frame order: its own `frame.pass("Name", |ctx| pass.record(ctx, ...))`, or a
-//!    step of a frame's pass (the fire: `DesktopFrame::record_into`'s `fire`).
+//!    step of a frame's pass (the particles: the desktop effects' `ParticleSimulation` pass
+//!    and its `Fire` step).
 
 pub mod particles;
 
@@ -74,29 +75,22 @@ impl Target {
     }
 }
 
-/// The renderer's own targets, created once per size: the frame's output and a scratch
-/// target for pictures of passes that write buffers (ParticleSimulation). The desktop and
+/// The renderer's own targets, created once per size: the frame's output. The desktop and
 /// mobile frames own their other targets.
 pub struct Targets {
     pub width: u32,
     pub height: u32,
     pub output: Target,
-    pub preview: Target,
 }
 
 impl Targets {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Targets {
-        Targets {
-            width,
-            height,
-            output: Target::new(device, "Output", formats::OUTPUT, width, height),
-            preview: Target::new(device, "Preview", formats::SCENE_COLOR, width, height),
-        }
+        Targets { width, height, output: Target::new(device, "Output", formats::OUTPUT, width, height) }
     }
 }
 
-/// Resources the renderer's passes bind: the one `SceneView` buffer (camera and light; the
-/// desktop frame writes it every frame) and the targets.
+/// Resources the renderer's passes bind: a `SceneView` buffer of the scene's camera (passes
+/// built with [`PassInit`]; the frames keep their own, written every frame) and the targets.
 pub struct SharedResources {
     pub view: wgpu::Buffer,
     pub targets: Targets,

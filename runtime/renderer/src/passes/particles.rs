@@ -1,31 +1,43 @@
-//! ParticleSimulation: GPU sprite particles (`ParticleSimulation.usf`, `ParticleSpriteShader.usf`).
+//! The renderer's one particle system: GPU sprite particles (`Desktop/ParticleSimulation.usf`,
+//! `Desktop/ParticleSpriteShader.usf`), every emitter stepped at one fixed [`TIME_STEP`].
 //! Each emitter keeps its state in two pairs of textures, positions in RGBA32F (xyz, age) and
 //! velocities in RGBA16F (xyz, lifetime), one texel per particle, read by one simulation and
-//! written by the next (ping-pong). The fire emitter is simulated at the start of the frame;
-//! the sparks collide with the scene, so they are simulated after the base pass against the
-//! depth buffer and GBuffer normals. Both are drawn as camera-facing sprites, instanced (one
-//! instance per particle, 6 vertices), in Translucency; the fire's heat haze is drawn again
-//! into the distortion offsets.
+//! written by the next (ping-pong). The emitters that do not collide (the scene's fire and its
+//! smoke) are simulated at the start of the frame (ParticleSimulation, whose `Fire` step also
+//! pictures them over black when capturing); the sparks collide with the scene, so they are
+//! simulated after the base pass against the depth buffer and GBuffer normals. All are drawn
+//! as camera-facing sprites, instanced (one instance per particle, 6 vertices), in
+//! Translucency; the fire's heat haze is drawn again into the distortion offsets. The scene's
+//! emitters can be warmed up when the system is built ([`EmitterDesc::prewarm`]), so the first
+//! frame shows a burning fire.
+//!
+//! Sorting: the sprites are emissive (added) or faint premultiplied smoke, drawn in emitter
+//! order without a per-particle sort. The mobile frames draw no particles.
 
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
+use wgpu::util::DeviceExt;
 
+use crate::frame::{PassContext, Visualize};
 use crate::keys;
 use crate::pipelines::{
-    Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState, VertexLayout,
+    Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
+    VertexLayout,
 };
 use crate::scene::ParticleEmitter;
-
-use super::frame_view::{groups, uniform_buffer, view};
 
 pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Particles per row of the state textures.
 pub const STATE_WIDTH: u32 = 64;
-/// Fixed simulation step (the frame's time step is fixed too, so frames are reproducible).
+/// The one fixed simulation step of every emitter (the desktop frame's time step is the same,
+/// so frames are reproducible).
 pub const TIME_STEP: f32 = 1.0 / 30.0;
+/// Steps simulated when the system is built for the emitters that are prewarmed (the scene's
+/// own: 2 s, longer than the fire's longest lifetime), so the first frame shows them burning.
+pub const PREWARM_STEPS: u32 = 60;
 
 /// `SimulationParams` of `ParticleSimulation.usf`.
 #[repr(C)]
@@ -74,9 +86,12 @@ pub struct EmitterDesc {
     pub distortion: f32,
     /// Lit by the translucency lighting volume (the colours are albedo); else emissive.
     pub lit: bool,
-    /// Its sprites are drawn (off where the frame draws this emitter's sprites itself; the
-    /// heat haze is drawn either way).
-    pub draw_sprites: bool,
+    /// One of the frame's particle effects (sparks, smoke): drawn only while the effects'
+    /// particles are on. The scene's own emitters (the fire) are drawn always.
+    pub effect: bool,
+    /// Simulated [`PREWARM_STEPS`] steps when the system is built (only for emitters that do
+    /// not collide: there is no depth buffer yet).
+    pub prewarm: bool,
 }
 
 impl EmitterDesc {
@@ -100,7 +115,8 @@ impl EmitterDesc {
             color_death: e.color_end.extend(0.0),
             distortion: 0.6,
             lit: false,
-            draw_sprites: true,
+            effect: false,
+            prewarm: true,
         }
     }
 
@@ -124,7 +140,8 @@ impl EmitterDesc {
             color_death: Vec4::new(0.6, 0.6, 0.62, 0.0),
             distortion: 0.0,
             lit: true,
-            draw_sprites: true,
+            effect: true,
+            prewarm: false,
         }
     }
 
@@ -149,7 +166,8 @@ impl EmitterDesc {
             color_death: Vec4::new(2.0, 0.4, 0.05, 0.0),
             distortion: 0.0,
             lit: false,
-            draw_sprites: true,
+            effect: true,
+            prewarm: false,
         }
     }
 }
@@ -176,14 +194,45 @@ pub struct CollisionInputs<'a> {
     pub gbuffer_a: &'a wgpu::TextureView,
 }
 
+/// The formats of the frame's passes the particles draw in.
+#[derive(Clone, Copy, Debug)]
+pub struct ParticleFormats {
+    /// The colour target of the sprites (and of the `Fire` step's picture).
+    pub color: wgpu::TextureFormat,
+    /// The depth the sprites and the heat haze are tested against (read-only).
+    pub depth: wgpu::TextureFormat,
+    /// The distortion offsets the heat haze adds to.
+    pub distortion: wgpu::TextureFormat,
+}
+
+/// What the particle system is built from.
+pub struct ParticlesInit<'a> {
+    pub device: &'a wgpu::Device,
+    /// Submits the prewarm steps.
+    pub queue: &'a wgpu::Queue,
+    pub cache: &'a PipelineCache,
+    /// The frame's `SceneView` buffer (`View`).
+    pub view: &'a wgpu::Buffer,
+    pub collision: CollisionInputs<'a>,
+    pub lighting_volume: LightingVolume<'a>,
+    pub formats: ParticleFormats,
+    /// Size of the `Fire` step's picture (the frame's).
+    pub size: [u32; 2],
+}
+
 pub struct Particles {
     emitters: Vec<Emitter>,
     frame: u32,
     /// [without collision, with collision]
-    simulation: [Arc<crate::pipelines::ComputePipeline>; 2],
-    /// The sprites over the target given to `new`, and the heat haze into RG16F offsets.
+    simulation: [Arc<ComputePipeline>; 2],
+    /// The sprites over the frame's colour target (depth tested), the same over the `Fire`
+    /// step's picture (no depth), and the heat haze into RG16F offsets.
     sprite_pipeline: Arc<RenderPipeline>,
+    preview_pipeline: Arc<RenderPipeline>,
     distortion_pipeline: Arc<RenderPipeline>,
+    /// The `Fire` step's picture: the emitters simulated at the start of the frame, alone
+    /// over black.
+    preview: (wgpu::Texture, wgpu::TextureView),
     /// States of no emitter (1x1), for scenes without one.
     empty: ([wgpu::Texture; 2], [wgpu::Texture; 2]),
 }
@@ -197,28 +246,41 @@ pub struct LightingVolume<'a> {
     pub directional: [&'a wgpu::TextureView; 2],
 }
 
+fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(value),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
+    texture.create_view(&wgpu::TextureViewDescriptor::default())
+}
+
 impl Particles {
-    /// `target`: the colour and depth formats of the pass the sprites are drawn in.
-    pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
-        descs: Vec<EmitterDesc>,
-        collision: &CollisionInputs<'_>,
-        target: (wgpu::TextureFormat, wgpu::TextureFormat),
-        lighting_volume: &LightingVolume<'_>,
-    ) -> Result<Particles, PipelineError> {
-        let volume_sampler = super::frame_view::linear_sampler(device, "particle lighting volume");
+    /// Builds the emitters' states and every pipeline, and prewarms the emitters that ask for it.
+    pub fn new(init: &ParticlesInit<'_>, descs: Vec<EmitterDesc>) -> Result<Particles, PipelineError> {
+        let ParticlesInit { device, queue, cache, view: frame_view, ref collision, ref lighting_volume, formats, size } =
+            *init;
+        let volume_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("particle lighting volume"),
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            mipmap_filter: wgpu::MipmapFilterMode::Linear,
+            ..Default::default()
+        });
+        let (vs, ps) = (
+            keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?,
+        );
         let distortion_layout = cache.render(
-            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            &vs,
             Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
-            &Particles::distortion_state(super::resources::formats::DISTORTION, Some(target.1)),
+            &Particles::distortion_state(formats.distortion, Some(formats.depth)),
         )?;
-        let sprite_pipeline_layout = cache.render(
-            &keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
-            Some(&keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?),
-            &sprite_state(target.0, Some(target.1)),
-        )?;
+        let sprite_pipeline_layout = cache.render(&vs, Some(&ps), &sprite_state(formats.color, Some(formats.depth)))?;
+        let preview_pipeline = cache.render(&vs, Some(&ps), &sprite_state(formats.color, None))?;
         let simulation = [
             cache.compute(&keys::name(
                 keys::gpu_particle_simulation_cs::Key { particle_collision: false },
@@ -278,27 +340,18 @@ impl Particles {
                     ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
                 ];
                 if lit {
-                    resources.push((
-                        "translucency_ambient_inner",
-                        wgpu::BindingResource::TextureView(lighting_volume.ambient[0]),
-                    ));
-                    resources.push((
-                        "translucency_dir_inner",
-                        wgpu::BindingResource::TextureView(lighting_volume.directional[0]),
-                    ));
-                    resources.push((
-                        "translucency_ambient_outer",
-                        wgpu::BindingResource::TextureView(lighting_volume.ambient[1]),
-                    ));
-                    resources.push((
-                        "translucency_dir_outer",
-                        wgpu::BindingResource::TextureView(lighting_volume.directional[1]),
-                    ));
-                    resources.push(("translucency_volume", lighting_volume.params.as_entire_binding()));
-                    resources.push(("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)));
+                    resources.extend([
+                        ("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])),
+                        ("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])),
+                        ("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])),
+                        ("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])),
+                        ("translucency_volume", lighting_volume.params.as_entire_binding()),
+                        ("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)),
+                    ]);
                 }
                 pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
             };
+            // (the preview pipeline has the sprite pipeline's layout: the same shaders)
             let sprites =
                 [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
             let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
@@ -340,14 +393,78 @@ impl Particles {
                 empty_state("NoParticles velocity", VELOCITY_FORMAT),
             ],
         );
-        Ok(Particles {
+        let preview = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("ParticleSimulation preview"),
+            size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: formats.color,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let preview_view = view(&preview);
+        let mut particles = Particles {
             emitters,
             frame: 0,
             simulation,
             sprite_pipeline: sprite_pipeline_layout,
+            preview_pipeline,
             distortion_pipeline: distortion_layout,
+            preview: (preview, preview_view),
             empty,
-        })
+        };
+        particles.prewarm(device, queue);
+        Ok(particles)
+    }
+
+    /// Steps the emitters that ask for it [`PREWARM_STEPS`] times, one submit per step (each
+    /// step has its own frame index in the simulation's uniform block). Their ages spread
+    /// out over the first lifetime, as they do in a running frame.
+    fn prewarm(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
+        if !self.emitters.iter().any(|e| e.desc.prewarm && !e.desc.collides) {
+            return;
+        }
+        for step in 0..PREWARM_STEPS {
+            // frame indices before the frame's own (which start at 1), for their own seeds
+            let frame = u32::MAX - PREWARM_STEPS + 1 + step;
+            let mut encoder =
+                device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
+            for e in self.emitters.iter_mut().filter(|e| e.desc.prewarm && !e.desc.collides) {
+                Self::step(&self.simulation[0], queue, &mut encoder, e, frame);
+            }
+            queue.submit([encoder.finish()]);
+        }
+    }
+
+    fn step(
+        pipeline: &ComputePipeline,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        e: &mut Emitter,
+        frame: u32,
+    ) {
+        let d = &e.desc;
+        let rows = d.max_particles.div_ceil(STATE_WIDTH);
+        let params = SimulationParams {
+            emitter: d.position.extend(d.spawn_radius),
+            initial_velocity: d.initial_velocity.extend(d.velocity_jitter),
+            acceleration: d.acceleration.extend(d.drag),
+            timing: Vec4::new(TIME_STEP, d.lifetime.0, d.lifetime.1, d.restitution),
+            counts: UVec4::new(STATE_WIDTH, d.max_particles, frame, e.seed),
+        };
+        queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(&format!("ParticleSimulation {}", d.name)),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&pipeline.pipeline);
+        pass.set_bind_group(0, &e.simulate[e.current], &[]);
+        pass.dispatch_workgroups(STATE_WIDTH.div_ceil(8), rows.div_ceil(8), 1);
+        drop(pass);
+        e.current = 1 - e.current;
     }
 
     /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
@@ -356,28 +473,42 @@ impl Particles {
         if !colliding {
             self.frame += 1;
         }
+        let pipeline = &self.simulation[usize::from(colliding)];
         for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
-            let d = &e.desc;
-            let rows = d.max_particles.div_ceil(STATE_WIDTH);
-            let params = SimulationParams {
-                emitter: d.position.extend(d.spawn_radius),
-                initial_velocity: d.initial_velocity.extend(d.velocity_jitter),
-                acceleration: d.acceleration.extend(d.drag),
-                timing: Vec4::new(TIME_STEP, d.lifetime.0, d.lifetime.1, d.restitution),
-                counts: UVec4::new(STATE_WIDTH, d.max_particles, self.frame, e.seed),
-            };
-            queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-            let pipeline = &self.simulation[usize::from(colliding)];
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(&format!("ParticleSimulation {}", d.name)),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&pipeline.pipeline);
-            pass.set_bind_group(0, &e.simulate[e.current], &[]);
-            pass.dispatch_workgroups(groups(STATE_WIDTH, 8), groups(rows, 8), 1);
-            drop(pass);
-            e.current = 1 - e.current;
+            Self::step(pipeline, queue, encoder, e, self.frame);
         }
+    }
+
+    /// When capturing: draws the emitters simulated at the start of the frame alone over
+    /// black (no depth test), as the picture of the step that simulated them.
+    pub fn record_preview(&self, ctx: &mut PassContext<'_>) {
+        if !ctx.capturing() {
+            return;
+        }
+        {
+            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("ParticleSimulation preview"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &self.preview.1,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(&self.preview_pipeline.pipeline);
+            for e in self.emitters.iter().filter(|e| !e.desc.collides) {
+                pass.set_bind_group(0, &e.sprites[e.current], &[]);
+                pass.draw(0..6, 0..e.desc.max_particles);
+            }
+        }
+        ctx.output(&self.preview.0, Visualize::Hdr);
     }
 
     /// The state textures (positions, velocities) of the first emitter that (does not)
@@ -404,10 +535,15 @@ impl Particles {
         self.emitters.iter().find(|e| e.desc.collides == colliding).map(|e| &e.velocities[e.current])
     }
 
-    /// Draws every emitter's sprites, instanced, into a translucency pass whose colour target
-    /// has `format` (premultiplied alpha) and, when given, a read-only reverse-Z depth test.
-    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>) {
-        self.draw_with(&self.sprite_pipeline, pass);
+    /// Draws the emitters' sprites, instanced, into a translucency pass over the colour target
+    /// given to `new`, depth tested (read-only): the scene's emitters always, the particle
+    /// effects (sparks, smoke) only with `effects`.
+    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
+        pass.set_pipeline(&self.sprite_pipeline.pipeline);
+        for e in self.emitters.iter().filter(|e| effects || !e.desc.effect) {
+            pass.set_bind_group(0, &e.sprites[e.current], &[]);
+            pass.draw(0..6, 0..e.desc.max_particles);
+        }
     }
 
     /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
@@ -431,14 +567,6 @@ impl Particles {
         let mut state = sprite_state(format, depth);
         state.color_targets[0].blend = Blend::Additive.state();
         state
-    }
-
-    fn draw_with(&self, pipeline: &Arc<RenderPipeline>, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&pipeline.pipeline);
-        for e in self.emitters.iter().filter(|e| e.desc.draw_sprites) {
-            pass.set_bind_group(0, &e.sprites[e.current], &[]);
-            pass.draw(0..6, 0..e.desc.max_particles);
-        }
     }
 }
 
