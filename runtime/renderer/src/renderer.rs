@@ -230,7 +230,13 @@ impl Renderer {
                         // the same on every backend: the volumes are 2D array textures, which
                         // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
                         options.desktop(),
-                    )?;
+                    )
+                    // a pipeline error of either frame is `RenderError::Pipeline` (kiln-view
+                    // reports a permutation missing from the archive as a usage error)
+                    .map_err(|e| match e {
+                        crate::desktop::DesktopError::Pipeline(p) => RenderError::Pipeline(p),
+                        e => RenderError::Desktop(e),
+                    })?;
                     Passes::DesktopDeferred { frame: Box::new(frame) }
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
