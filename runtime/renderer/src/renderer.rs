@@ -241,15 +241,8 @@ impl Renderer {
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let mobile = options.mobile();
-                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(
-                        gpu,
-                        &cache,
-                        scene,
-                        &gpu_scene,
-                        mobile,
-                        options_size.0,
-                        options_size.1,
-                    )?))
+                    let context = crate::mobile::MobileContext { gpu, cache: &cache, scene, gpu_scene: &gpu_scene };
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(&context, mobile, options_size)?))
                 }
             }
         };

@@ -419,9 +419,7 @@ impl Effects {
         let bounds: Vec<(Vec3, Vec3)> =
             scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
         let occlusion = OcclusionCulling::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             depth_format,
             bounds,
@@ -457,9 +455,7 @@ impl Effects {
 
         let hzb_view = view(&hzb.texture);
         let reflections = Reflections::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             &ReflectionInputs {
                 scene_color: &color_view,
@@ -483,16 +479,14 @@ impl Effects {
             .map(|(i, _)| i)
             .collect();
         let distortion = Distortion::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             scene_color_format,
             depth_format,
             refracting.iter().map(|&i| instanced(i, "Distortion")).collect(),
         )?;
 
-        let taa = TemporalAA::new(device, cache, &frame_view, size, &color_view, &velocity.view, &depth_view)?;
+        let taa = TemporalAA::new(&init, size, &color_view, &velocity.view, &depth_view)?;
         let [h0, h1] = taa.history_views();
         let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
         let motion_blur =
