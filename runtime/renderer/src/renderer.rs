@@ -5,14 +5,11 @@
 
 use std::sync::Arc;
 
-use wgpu::util::DeviceExt;
-
 use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
-use crate::passes::{SharedResources, Targets};
+use crate::passes::Targets;
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
-use crate::scene::view::{CameraState, FrameTime, SceneView};
 use crate::scene::Scene;
 use crate::shaders::ShaderArchive;
 
@@ -156,7 +153,8 @@ pub struct Renderer {
     options: RendererOptions,
     cache: PipelineCache,
     gpu_scene: GpuScene,
-    shared: SharedResources,
+    /// The output target (the mobile frames write their own).
+    targets: Targets,
     passes: Passes,
     depth_copy: Option<crate::frame::DepthCopy>,
 }
@@ -202,21 +200,7 @@ impl Renderer {
         }
         let device = &gpu.device;
         let gpu_scene = GpuScene::upload(device, scene);
-        let uniform = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            })
-        };
-        let shared = SharedResources {
-            view: {
-                let camera = CameraState::of_scene(scene, options.width, options.height);
-                let view = SceneView::new(scene, &camera, &camera, options.width, options.height, FrameTime::default());
-                uniform("View", bytemuck::bytes_of(&view))
-            },
-            targets: Targets::new(device, options.width, options.height),
-        };
+        let targets = Targets::new(device, options.width, options.height);
         let options_size = (options.width, options.height);
         let passes = {
             match options.pipeline {
@@ -256,7 +240,7 @@ impl Renderer {
             options,
             cache,
             gpu_scene,
-            shared,
+            targets,
             passes,
             depth_copy,
         })
@@ -312,7 +296,7 @@ impl Renderer {
     fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
         let mut frame =
             FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
-        let (s, t) = (&self.gpu_scene, &self.shared.targets);
+        let (s, t) = (&self.gpu_scene, &self.targets);
         match &self.passes {
             Passes::DesktopDeferred { frame: desktop } => {
                 desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
