@@ -44,11 +44,6 @@ static RECORDER: Recorder = Recorder;
 /// - performance hints (a vertex attribute or stage output nothing reads);
 /// - the loader's note that `VK_INSTANCE_LAYERS` added the layer, and the object lists
 ///   wgpu prints after each message (the message itself is recorded);
-/// - synchronization validation's write-after-read at the *store* of a depth attachment
-///   that the render pass only reads (wgpu 30 stores read-only depth-stencil attachments
-///   with `VK_ATTACHMENT_STORE_OP_STORE`, and enables synchronization validation whenever
-///   the layer is present; the same passes give no message under the layer's default
-///   checks). Every other synchronization hazard is recorded;
 /// - `Invalid source language operand: 10` on modules wgpu made from WGSL: with
 ///   `InstanceFlags::DEBUG` (which the debug-utils messenger needs) wgpu writes `OpSource WGSL`,
 ///   language 10 of SPIR-V's registry, which the SPIR-V tools in Debian 12's layer predate.
@@ -58,9 +53,6 @@ fn known_not_invalid_usage(message: &str) -> bool {
         || message.contains("[Loader Message")
         || message.contains("env var 'VK_INSTANCE_LAYERS' defined")
         || message.trim_start_matches(|c| c != ']').starts_with("] \tobjects:")
-        || (message.contains("SYNC-HAZARD-WRITE-AFTER-READ")
-            && message.contains("depth aspect during store with storeOp VK_ATTACHMENT_STORE_OP_STORE")
-            && message.contains("prior_usage: SYNC_FRAGMENT_SHADER_SHADER_SAMPLED_READ"))
 }
 
 /// Installs the recording logger; `false` where another logger was installed first (then

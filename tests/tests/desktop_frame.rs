@@ -46,7 +46,7 @@ struct Frame {
 fn build(scene: &Scene, options: DesktopOptions) -> Frame {
     let gpu = gpu();
     let cache = PipelineCache::new(&gpu, archive());
-    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options, None)
+    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options)
         .unwrap_or_else(|e| panic!("desktop frame: {e}"));
     Frame { _gpu: gpu, _cache: cache, frame }
 }

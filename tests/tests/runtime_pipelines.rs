@@ -35,7 +35,6 @@ fn partner(archive: &ShaderArchive, fs: &PermutationRef<'_>) -> String {
         // read only the pixel position and pair with any full-screen vertex shader.
         "DepthPassPS" => archive.shader("DepthPassVS").level(&shader.level).with("MATERIAL_MASKED", 1),
         "DeferredBasePassPS" => archive.shader("DeferredBasePassVS").level(&shader.level),
-        "ParticleSpritePS" => archive.shader("ParticleSpriteVS").level(&shader.level),
         "MobileBasePassPS" => {
             archive.shader("MobileBasePassVS").level(&shader.level).with("USE_VERTEX_FOG", value("USE_VERTEX_FOG"))
         }

@@ -150,7 +150,9 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
         let cache = kiln_runtime::pipelines::PipelineCache::new(&gpu, archive);
         let gpu_scene = kiln_renderer::scene::gpu::GpuScene::upload(&gpu.device, &scene);
         let options = kiln_renderer::mobile::MobileOptions::comparable(path);
-        kiln_renderer::mobile::render(&gpu, &cache, &scene, &gpu_scene, options, (W, H), false).unwrap().1
+        let context =
+            kiln_renderer::mobile::MobileContext { gpu: &gpu, cache: &cache, scene: &scene, gpu_scene: &gpu_scene };
+        kiln_renderer::mobile::render(&context, options, (W, H), false).unwrap().1
     };
     let forward = mobile(kiln_renderer::mobile::ShadingPath::Forward);
     let deferred = mobile(kiln_renderer::mobile::ShadingPath::Deferred);

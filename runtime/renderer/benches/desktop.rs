@@ -47,7 +47,7 @@ struct Timing {
 
 fn measure(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, path: LightingPath, frames: usize) -> Timing {
     let options = DesktopOptions { width: W, height: H, lighting_path: path, ..Default::default() };
-    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, cache, scene, options, None)
+    let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, cache, scene, options)
         .unwrap_or_else(|e| panic!("{e}"));
     let _ = frame.render(false); // warm-up: first use of every pipeline
     let mut sums: Vec<(String, Option<f64>)> = Vec::new();

@@ -111,27 +111,6 @@ pub struct MobileLocalLights {
     pub count: UVec4,
 }
 
-/// `FParticle` of `ParticleCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct Particle {
-    pub position_age: Vec4,
-    pub velocity_lifetime: Vec4,
-}
-
-/// `FEmitterUniforms` of `ParticleCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct EmitterUniforms {
-    pub position_radius: Vec4,
-    pub velocity_jitter: Vec4,
-    pub params: Vec4,
-    pub size: Vec4,
-    pub color_start: Vec4,
-    pub color_end: Vec4,
-    pub counts: UVec4,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -143,7 +122,5 @@ mod tests {
         assert_eq!(std::mem::size_of::<MaterialUniforms>(), 64);
         assert_eq!(std::mem::size_of::<LightData>(), 64);
         assert_eq!(std::mem::size_of::<MobileLocalLights>(), 4 * 64 + 16);
-        assert_eq!(std::mem::size_of::<Particle>(), 32);
-        assert_eq!(std::mem::size_of::<EmitterUniforms>(), 7 * 16);
     }
 }

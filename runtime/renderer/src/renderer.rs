@@ -5,15 +5,11 @@
 
 use std::sync::Arc;
 
-use wgpu::util::DeviceExt;
-
 use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
-use crate::passes::particles::ParticleSimulationPass;
-use crate::passes::{PassInit, SharedResources, Targets};
+use crate::passes::Targets;
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
-use crate::scene::view::{CameraState, FrameTime, SceneView};
 use crate::scene::Scene;
 use crate::shaders::ShaderArchive;
 
@@ -81,6 +77,8 @@ impl RendererOptions {
             width: self.width,
             height: self.height,
             output_format: crate::gpu_types::formats::OUTPUT,
+            // the first frame shows the fire burning
+            warm_up_particles: true,
             ..Default::default()
         };
         if !self.comparison {
@@ -133,9 +131,8 @@ pub enum RenderError {
 /// The passes of each frame, built once (one per renderer: variant sizes do not matter).
 #[allow(clippy::large_enum_variant)]
 enum Passes {
-    /// The desktop deferred frame of `crate::desktop`, with the fire's ParticleSimulation
-    /// before it (the sprites are drawn in its Translucency).
-    DesktopDeferred { particles: ParticleSimulationPass, frame: Box<crate::desktop::DesktopFrame> },
+    /// The desktop deferred frame of `crate::desktop` (its particles: `crate::passes::particles`).
+    DesktopDeferred { frame: Box<crate::desktop::DesktopFrame> },
     /// Both mobile frames (`crate::mobile`).
     Mobile(Box<crate::mobile::MobileFrame>),
 }
@@ -156,7 +153,8 @@ pub struct Renderer {
     options: RendererOptions,
     cache: PipelineCache,
     gpu_scene: GpuScene,
-    shared: SharedResources,
+    /// The output target (the mobile frames write their own).
+    targets: Targets,
     passes: Passes,
     depth_copy: Option<crate::frame::DepthCopy>,
 }
@@ -202,34 +200,11 @@ impl Renderer {
         }
         let device = &gpu.device;
         let gpu_scene = GpuScene::upload(device, scene);
-        let uniform = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            })
-        };
-        let shared = SharedResources {
-            view: {
-                let camera = CameraState::of_scene(scene, options.width, options.height);
-                let view = SceneView::new(scene, &camera, &camera, options.width, options.height, FrameTime::default());
-                uniform("View", bytemuck::bytes_of(&view))
-            },
-            targets: Targets::new(device, options.width, options.height),
-        };
+        let targets = Targets::new(device, options.width, options.height);
         let options_size = (options.width, options.height);
         let passes = {
-            let init = PassInit {
-                device,
-                cache: &cache,
-                scene,
-                gpu_scene: &gpu_scene,
-                level: options.pipeline.level(),
-                shared: &shared,
-            };
             match options.pipeline {
                 FramePipeline::Desktop => {
-                    let particles = ParticleSimulationPass::new(&init, &gpu.queue)?;
                     let frame = crate::desktop::DesktopFrame::new(
                         device,
                         &gpu.queue,
@@ -239,21 +214,19 @@ impl Renderer {
                         // the same on every backend: the volumes are 2D array textures, which
                         // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
                         options.desktop(),
-                        Some(crate::desktop::ParticleInputs { view: &init.shared.view, systems: particles.systems() }),
-                    )?;
-                    Passes::DesktopDeferred { particles, frame: Box::new(frame) }
+                    )
+                    // a pipeline error of either frame is `RenderError::Pipeline` (kiln-view
+                    // reports a permutation missing from the archive as a usage error)
+                    .map_err(|e| match e {
+                        crate::desktop::DesktopError::Pipeline(p) => RenderError::Pipeline(p),
+                        e => RenderError::Desktop(e),
+                    })?;
+                    Passes::DesktopDeferred { frame: Box::new(frame) }
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
                     let mobile = options.mobile();
-                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(
-                        gpu,
-                        &cache,
-                        scene,
-                        &gpu_scene,
-                        mobile,
-                        options_size.0,
-                        options_size.1,
-                    )?))
+                    let context = crate::mobile::MobileContext { gpu, cache: &cache, scene, gpu_scene: &gpu_scene };
+                    Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(&context, mobile, options_size)?))
                 }
             }
         };
@@ -267,7 +240,7 @@ impl Renderer {
             options,
             cache,
             gpu_scene,
-            shared,
+            targets,
             passes,
             depth_copy,
         })
@@ -323,12 +296,10 @@ impl Renderer {
     fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
         let mut frame =
             FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
-        let (s, t) = (&self.gpu_scene, &self.shared.targets);
+        let (s, t) = (&self.gpu_scene, &self.targets);
         match &self.passes {
-            Passes::DesktopDeferred { particles, frame: desktop } => {
-                // The fire is the first step of the frame's one ParticleSimulation pass.
-                let fire = |ctx: &mut crate::frame::PassContext<'_>| particles.record(ctx, &t.preview);
-                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view), Some(&fire));
+            Passes::DesktopDeferred { frame: desktop } => {
+                desktop.record_into(&mut frame, (&t.output.texture, &t.output.view));
             }
             Passes::Mobile(mobile) => mobile.record(&mut frame, s),
         }

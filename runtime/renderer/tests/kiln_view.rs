@@ -131,7 +131,7 @@ fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() 
     // The frames name permutations with typed keys: the first one the frame needs is missing.
     assert_eq!(
         stderr(&o),
-        "error: permutation `ParticleSimulationCS@sm5{}` is not in the archive (the archive holds no permutations)"
+        "error: permutation `DepthPassVS@sm5{MATERIAL_MASKED=0}` is not in the archive (the archive holds no permutations)"
     );
 }
 

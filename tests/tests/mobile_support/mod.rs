@@ -53,8 +53,13 @@ impl Rig {
             Some(size) => size,
             None => (WIDTH, HEIGHT),
         };
-        let (passes, image) = mobile::render(&self.gpu, &self.cache, scene, &gpu_scene, options, (w, h), capture)
-            .unwrap_or_else(|e| panic!("mobile frame: {e}"));
+        let (passes, image) = mobile::render(
+            &mobile::MobileContext { gpu: &self.gpu, cache: &self.cache, scene, gpu_scene: &gpu_scene },
+            options,
+            (w, h),
+            capture,
+        )
+        .unwrap_or_else(|e| panic!("mobile frame: {e}"));
         if let Ok(dir) = std::env::var("KILN_MOBILE_DUMP") {
             let dir = PathBuf::from(dir);
             std::fs::create_dir_all(&dir).unwrap();

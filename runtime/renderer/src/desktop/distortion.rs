@@ -11,11 +11,11 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, InstancedMesh};
-use super::particles::Particles;
+use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit, InstancedMesh};
 use super::resources::formats::DISTORTION as DISTORTION_FORMAT;
+use crate::passes::particles::Particles;
 
 /// Index of refraction - 1 of the glass.
 pub const GLASS_REFRACTION: f32 = 0.5;
@@ -41,14 +41,13 @@ pub struct Distortion {
 
 impl Distortion {
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         size: [u32; 2],
         scene_color_format: wgpu::TextureFormat,
         depth_format: wgpu::TextureFormat,
         refracting: Vec<InstancedMesh>,
     ) -> Result<Distortion, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let accumulate_state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED)
             .with_cull(None)
             .with_targets(&[ColorTarget::new(DISTORTION_FORMAT, Blend::Additive)])

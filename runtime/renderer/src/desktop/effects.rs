@@ -33,13 +33,15 @@ use super::frame_view::{
 use super::hzb::Hzb;
 use super::motion_blur::MotionBlur;
 use super::occlusion::{world_bounds, LightBounds, OcclusionCulling};
-use super::particles::{CollisionInputs, EmitterDesc, LightingVolume, Particles, TIME_STEP};
 use super::reflections::{CaptureDesc, ReflectionInputs, Reflections};
 use super::taa::TemporalAA;
 use super::translucent_volume::{InjectedLight, LocalLightShadow, TranslucentVolumes};
 use super::velocity::Velocity;
 pub use super::volumetric_fog::LightGridInputs;
 use super::volumetric_fog::{FogSettings, ShadowInputs, VolumetricFog};
+use crate::passes::particles::{
+    CollisionInputs, EmitterDesc, LightingVolume, ParticleFormats, Particles, ParticlesInit, TIME_STEP,
+};
 use crate::scene::view::{CameraState, FrameTime};
 
 /// Which effects run (all by default).
@@ -52,7 +54,8 @@ pub struct EffectOptions {
     /// Movable props move (the rock circles); off for still frames.
     pub animate: bool,
     pub volumetric_fog: bool,
-    /// The particle sprites and the heat haze are drawn (they are always simulated).
+    /// The particle effects' sprites (sparks, smoke) and the fire's heat haze are drawn (they
+    /// are always simulated; the scene's fire is always drawn).
     pub particles: bool,
     /// ReflectionEnvironmentAndSky adds the reflections to SceneColor (SSR is always traced).
     pub reflections: bool,
@@ -145,10 +148,6 @@ pub struct EffectTargets<'a> {
     /// Per local light (point lights, then spot lights, as `frame_lights` orders them): its own
     /// shadow, where it casts one that InjectTranslucentVolume can read.
     pub local_shadows: Vec<Option<LocalLightShadow<'a>>>,
-    /// The frame draws the scene emitters' fire sprites itself (the runtime's
-    /// ParticleSimulation): the effects then draw only its sparks and smoke, and the fire's heat
-    /// haze.
-    pub frame_draws_fire: bool,
 }
 
 /// The filtered translucency lighting volumes and their boxes this frame, as the translucent
@@ -169,6 +168,8 @@ pub struct EffectContext<'a> {
     pub cache: &'a PipelineCache,
     pub scene: &'a Scene,
     pub meshes: &'a [MeshRef<'a>],
+    /// Warm the scene's emitters up when they are built ([`EmitterDesc::prewarm`]).
+    pub warm_up_particles: bool,
 }
 
 /// A mesh's GPU buffers: vertices (`MeshVertex`), 32-bit indices, index count.
@@ -332,7 +333,7 @@ impl Effects {
         shadow: Option<DirectionalShadow>,
         options: EffectOptions,
     ) -> Result<Effects, PipelineError> {
-        let EffectContext { device, queue, cache, scene, meshes } = *context;
+        let EffectContext { device, queue, cache, scene, meshes, warm_up_particles } = *context;
         let size = targets.size;
         let frame_view = targets.view.clone();
         let depth_format = targets.scene_depth.format();
@@ -378,20 +379,13 @@ impl Effects {
                 outer_angle: l.outer_angle,
             });
         }
-        let volumes = TranslucentVolumes::new(
-            device,
-            cache,
-            &frame_view,
-            &shadow_view,
-            targets.shadow_compare,
-            lights,
-            &light_shadows,
-        )?;
+        let init = EffectPassInit { device, cache, frame_view: &frame_view };
+        let volumes = TranslucentVolumes::new(&init, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
 
         // ParticleSimulation: the scene's fire, and sparks that collide
         let mut emitters = Vec::new();
         for e in &scene.emitters {
-            emitters.push(EmitterDesc { draw_sprites: !targets.frame_draws_fire, ..EmitterDesc::fire(e) });
+            emitters.push(EmitterDesc { prewarm: warm_up_particles, ..EmitterDesc::fire(e) });
             emitters.push(EmitterDesc::sparks(e));
             emitters.push(EmitterDesc::smoke(e));
         }
@@ -404,22 +398,28 @@ impl Effects {
             directional: [&directional[0], &directional[1]],
         };
         let particles = Particles::new(
-            device,
-            cache,
-            &frame_view,
+            &ParticlesInit {
+                device,
+                queue,
+                cache,
+                view: &frame_view,
+                collision: CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a },
+                lighting_volume: lit,
+                formats: ParticleFormats {
+                    color: scene_color_format,
+                    depth: depth_format,
+                    distortion: super::resources::formats::DISTORTION,
+                },
+                size,
+            },
             emitters,
-            &CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a },
-            (scene_color_format, depth_format),
-            &lit,
         )?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> =
             scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
         let occlusion = OcclusionCulling::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             depth_format,
             bounds,
@@ -428,7 +428,6 @@ impl Effects {
 
         let hzb = Hzb::new(device, cache, &depth_view, size)?;
 
-        let init = EffectPassInit { device, cache, frame_view: &frame_view };
         let fog = VolumetricFog::new(
             &init,
             size,
@@ -456,9 +455,7 @@ impl Effects {
 
         let hzb_view = view(&hzb.texture);
         let reflections = Reflections::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             &ReflectionInputs {
                 scene_color: &color_view,
@@ -482,16 +479,14 @@ impl Effects {
             .map(|(i, _)| i)
             .collect();
         let distortion = Distortion::new(
-            device,
-            cache,
-            &frame_view,
+            &init,
             size,
             scene_color_format,
             depth_format,
             refracting.iter().map(|&i| instanced(i, "Distortion")).collect(),
         )?;
 
-        let taa = TemporalAA::new(device, cache, &frame_view, size, &color_view, &velocity.view, &depth_view)?;
+        let taa = TemporalAA::new(&init, size, &color_view, &velocity.view, &depth_view)?;
         let [h0, h1] = taa.history_views();
         let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
         let motion_blur =
@@ -692,16 +687,17 @@ impl Effects {
         self.lock().occlusion.stats.clone()
     }
 
-    /// ParticleSimulation at the start of the frame (emitters without collision).
-    /// `fire`: the runtime's fire simulation, recorded first as the `Fire` step.
-    pub fn particle_simulation(&self, frame: &mut FrameRecorder, fire: Option<&dyn Fn(&mut PassContext<'_>)>) {
+    /// ParticleSimulation at the start of the frame: the `Fire` step simulates the emitters
+    /// without collision (the fire and its smoke; pictured alone when capturing), then the
+    /// fire's state textures are shown.
+    pub fn particle_simulation(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
         frame.pass("ParticleSimulation", |ctx| {
-            if let Some(fire) = fire {
-                ctx.step("Fire", fire);
-            }
-            s.particles.simulate(&s.queue, ctx.encoder(), false);
+            ctx.step("Fire", |ctx| {
+                s.particles.simulate(&s.queue, ctx.encoder(), false);
+                s.particles.record_preview(ctx);
+            });
             let i = s.particles.current_index(false);
             s.vis.particle_position[i].output(ctx, Some("Position"));
             s.vis.particle_velocity[i].output(ctx, Some("Velocity"));
@@ -886,9 +882,7 @@ impl Effects {
                     occlusion_query_set: None,
                     multiview_mask: None,
                 });
-                if s.options.particles {
-                    s.particles.draw_sprites(&mut pass);
-                }
+                s.particles.draw_sprites(&mut pass, s.options.particles);
             }
             ctx.output(&s.scene_color, Visualize::Hdr);
         });

@@ -236,7 +236,7 @@ impl Lighting {
                     device,
                     &[
                         ("View", b.view_buffer.as_entire_binding()),
-                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
                         ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
                         ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
                         ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
@@ -284,7 +284,7 @@ impl Lighting {
                     device,
                     &[
                         ("View", b.view_buffer.as_entire_binding()),
-                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
                         ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
                         ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
                         ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
@@ -375,6 +375,8 @@ impl Lighting {
         casts_shadow: &dyn Fn(usize) -> bool,
     ) {
         let occluded = |l: &ShadowedLight| occluded_draw(l, casts_shadow).is_some();
+        // The depth is final: the lights sample its copy while testing against it.
+        t.scene_depth.copy_for_sampling(ctx.encoder());
         ctx.step("NonShadowedLights", |ctx| {
             {
                 let mut pass = begin(
@@ -467,7 +469,7 @@ fn light_resources<'r>(b: &'r Build<'_>, light: &'r wgpu::Buffer) -> Vec<(&'stat
     let t = b.targets;
     vec![
         ("View", b.view_buffer.as_entire_binding()),
-        ("SceneDepthTexture", wgpu::BindingResource::TextureView(&t.scene_depth.depth_view)),
+        ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
         ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
         ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
         ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),

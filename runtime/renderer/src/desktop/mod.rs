@@ -22,7 +22,7 @@ mod shadow_depths;
 mod translucency;
 pub mod view;
 
-// The stateful effects: particles, occlusion, HZB, volumetric fog, velocity, translucency
+// The stateful effects: particles (`crate::passes::particles`), occlusion, HZB, volumetric fog, velocity, translucency
 // volumes, reflections, distortion, temporal post-processing, driven by `effects::Effects`.
 pub mod distortion;
 pub mod effects;
@@ -31,14 +31,13 @@ pub mod frame_view;
 pub mod hzb;
 pub mod motion_blur;
 pub mod occlusion;
-pub mod particles;
 pub mod reflections;
 pub mod taa;
 pub mod translucent_volume;
 pub mod velocity;
 pub mod volumetric_fog;
 
-use crate::frame::{FrameRecorder, Image, PassContext, PassResult, Visualize};
+use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
 use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::view::SceneView;
 use crate::scene::Scene;
@@ -90,6 +89,11 @@ pub struct DesktopOptions {
     /// What the effects change in the frame: TAA, motion blur, eye adaptation,
     /// volumetric fog, sprites, reflections (`EffectOptions::off()` for none).
     pub effects: effects::EffectOptions,
+    /// The scene's particle emitters are warmed up when the frame is built
+    /// ([`crate::passes::particles::PREWARM_STEPS`] steps, as Unreal's WarmupTime), so the
+    /// first image shows the fire burning. Off by default: the frame starts its emitters
+    /// cold (its golden image); the [`crate::Renderer`] (kiln-view) turns it on.
+    pub warm_up_particles: bool,
 }
 
 impl Default for DesktopOptions {
@@ -110,6 +114,7 @@ impl Default for DesktopOptions {
             sky_gradient: true,
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
             effects: effects::EffectOptions::default(),
+            warm_up_particles: false,
         }
     }
 }
@@ -130,15 +135,6 @@ impl From<crate::shaders::LookupError> for DesktopError {
     fn from(e: crate::shaders::LookupError) -> Self {
         DesktopError::Pipeline(e.into())
     }
-}
-
-/// The fire's GPU particles, simulated by the runtime's ParticleSimulation pass before the
-/// frame; Translucency draws their sprites (additively, depth tested against the scene).
-pub struct ParticleInputs<'a> {
-    /// The `SceneView` buffer the sprite pipelines were built with: the frame makes it its one
-    /// View buffer (every pass binds it; the frame writes it as each frame begins).
-    pub view: &'a wgpu::Buffer,
-    pub systems: &'a [crate::passes::particles::ParticleSystem],
 }
 
 /// What passes read while they are built.
@@ -216,7 +212,6 @@ impl DesktopFrame {
         cache: &PipelineCache,
         scene: &Scene,
         options: DesktopOptions,
-        particles: Option<ParticleInputs<'_>>,
     ) -> Result<DesktopFrame, DesktopError> {
         let (w, h) = (options.width.max(1), options.height.max(1));
         let view = FrameView::new(scene, w, h);
@@ -225,15 +220,8 @@ impl DesktopFrame {
         let lights_buffer = resources::storage(device, "LocalLights", &gpu_lights, wgpu::BufferUsages::empty());
         let base_view =
             view.scene_view(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
-        // one View buffer: the fire sprites' (their pipelines bind it) when the runtime draws
-        // the fire, else the frame's own
-        let view_buffer = match &particles {
-            Some(p) => {
-                queue.write_buffer(p.view, 0, bytemuck::bytes_of(&base_view));
-                p.view.clone()
-            }
-            None => resources::uniform(device, "View", &base_view),
-        };
+        // the frame's one View buffer
+        let view_buffer = resources::uniform(device, "View", &base_view);
         let buffers = resources::SceneBuffers::upload(device, scene);
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
@@ -276,18 +264,11 @@ impl DesktopFrame {
                 dummy_shadow: &dummy_shadow,
                 light_grid: grid,
                 view_buffer: &view_buffer,
-                frame_draws_fire: particles.is_some(),
             },
         )?;
         effects.set_options(options.effects);
-        let translucency = translucency::Translucency::new(
-            &b,
-            &light_grid,
-            &shadows,
-            &dummy_shadow,
-            particles.as_ref(),
-            &effects.translucency_volume(),
-        )?;
+        let translucency =
+            translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, &effects.translucency_volume())?;
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
             device: device.clone(),
@@ -321,22 +302,14 @@ impl DesktopFrame {
 
     /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
     /// of `DesktopOptions::output_format` and the frame's size).
-    ///
-    /// `fire`: the runtime's fire simulation (the systems of [`ParticleInputs`]), recorded
-    /// as the `Fire` step of the frame's one ParticleSimulation pass.
-    pub fn record_into(
-        &self,
-        frame: &mut FrameRecorder,
-        output: (&wgpu::Texture, &wgpu::TextureView),
-        fire: Option<&dyn Fn(&mut PassContext<'_>)>,
-    ) {
+    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
         let (s, t) = (&self.buffers, &self.targets);
         let p2 = &self.effects;
         let camera = p2.begin_frame();
         let view = FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1));
         self.write_camera(&camera, &view);
         self.follow_camera(&view);
-        p2.particle_simulation(frame, fire);
+        p2.particle_simulation(frame);
         frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
         frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
         p2.begin_occlusion_tests(frame);
@@ -458,7 +431,7 @@ impl DesktopFrame {
 
     /// Records the frame into its own output target.
     pub fn record(&self, frame: &mut FrameRecorder) {
-        self.record_into(frame, (&self.output.texture, &self.output.view), None);
+        self.record_into(frame, (&self.output.texture, &self.output.view));
     }
 
     /// Renders one frame: the output image and every pass (with images when `capture`).
@@ -534,8 +507,6 @@ struct EffectInputs<'a> {
     light_grid: effects::LightGridInputs<'a>,
     /// The frame's one `SceneView` buffer, which every effect pass binds as `View`.
     view_buffer: &'a wgpu::Buffer,
-    /// The frame draws the runtime's fire (its ParticleSimulation runs before the frame).
-    frame_draws_fire: bool,
 }
 
 /// The frame's effects over the frame's targets and the directional light's cascades.
@@ -544,7 +515,7 @@ fn build_effects(
     queue: &wgpu::Queue,
     inputs: EffectInputs<'_>,
 ) -> Result<effects::Effects, DesktopError> {
-    let EffectInputs { shadows, dummy_shadow, light_grid, view_buffer, frame_draws_fire } = inputs;
+    let EffectInputs { shadows, dummy_shadow, light_grid, view_buffer } = inputs;
     let (buffers, targets, lights) = (b.buffers, b.targets, b.lights);
     let (w, h) = (b.options.width.max(1), b.options.height.max(1));
     let meshes: Vec<effects::MeshRef<'_>> = buffers
@@ -571,10 +542,15 @@ fn build_effects(
         shadow_compare: wgpu::CompareFunction::LessEqual,
         light_grid,
         local_shadows,
-        frame_draws_fire,
     };
-    let context =
-        effects::EffectContext { device: b.device, queue, cache: b.pipelines.cache, scene: b.scene, meshes: &meshes };
+    let context = effects::EffectContext {
+        device: b.device,
+        queue,
+        cache: b.pipelines.cache,
+        scene: b.scene,
+        meshes: &meshes,
+        warm_up_particles: b.options.warm_up_particles,
+    };
     Ok(effects::Effects::new(&context, &effect_targets, shadow, effects::EffectOptions::default())?)
 }
 

@@ -22,9 +22,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{target_2d, view};
+use super::frame_view::{target_2d, view, EffectPassInit};
 
 /// Most queries of one frame.
 pub const MAX_QUERIES: u32 = 128;
@@ -139,14 +139,13 @@ fn box_proxy((lo, hi): (Vec3, Vec3), color: Vec3) -> OcclusionProxy {
 impl OcclusionCulling {
     /// `bounds`: each prop's world-space box (a prop is an object of the scene, by index).
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         size: [u32; 2],
         depth_format: wgpu::TextureFormat,
         bounds: Vec<(Vec3, Vec3)>,
         lights: usize,
     ) -> Result<OcclusionCulling, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let state = RenderState::fullscreen(ColorTarget::new(wgpu::TextureFormat::Rgba8Unorm, Blend::Additive))
             .with_depth(DepthState::reverse_z(depth_format, false));
         let pipeline = cache.render(

@@ -13,11 +13,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, PipelineCache, PipelineError, RenderPipeline, RenderState,
-};
+use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
 
 pub const SSR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 pub const CAPTURE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -77,14 +75,13 @@ pub struct Reflections {
 
 impl Reflections {
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         size: [u32; 2],
         inputs: &ReflectionInputs<'_>,
         capture: &CaptureDesc,
         scene_color_format: wgpu::TextureFormat,
     ) -> Result<Reflections, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let ssr_pipeline = cache.render(
             &keys::name(keys::screen_space_reflections_vs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::screen_space_reflections_ps::Key { ssr_quality: 1 }, keys::Level::Sm5)?),

@@ -300,27 +300,65 @@ pub struct SceneDepth {
     /// sample it. wgpu's GL backend cannot; there the lighting passes test in the shader
     /// only (depth bounds and shading model), without the attachment.
     pub read_only_attachment: bool,
+    /// Where the depth is attached read-only: a copy of it, made once per frame by
+    /// [`SceneDepth::copy_for_sampling`] before the first such pass, that those passes
+    /// sample instead of the attached texture (as Unreal's "depth fetch" copies on
+    /// platforms that cannot read a bound depth buffer). A pass that samples the depth it
+    /// has attached, even read-only, has Vulkan store that attachment after the shader read
+    /// it (wgpu 30 stores read-only depth-stencil attachments with
+    /// `VK_ATTACHMENT_STORE_OP_STORE`): a write-after-read hazard within the pass.
+    sampled: Option<(wgpu::Texture, wgpu::TextureView)>,
 }
 
 impl SceneDepth {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> SceneDepth {
         // Depth32FloatStencil8 can be copied out for --dump-passes; Depth24PlusStencil8 is
-        // the fallback every device has (its capture is drawn, as on GL).
+        // the fallback every device has (its capture is drawn, as on GL). Both copy whole to
+        // a texture of their format (the copy for sampling).
         let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
         let format =
             if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
+        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
-        if d32s8 {
+        if d32s8 || read_only_attachment {
             usage |= wgpu::TextureUsages::COPY_SRC;
         }
+        let depth_only = |texture: &wgpu::Texture, label: &str| {
+            texture.create_view(&wgpu::TextureViewDescriptor {
+                label: Some(label),
+                aspect: wgpu::TextureAspect::DepthOnly,
+                ..Default::default()
+            })
+        };
         let t = Texture::new(device, "SceneDepthZ", format, width, height, usage);
-        let depth_view = t.texture.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("SceneDepthTexture"),
-            aspect: wgpu::TextureAspect::DepthOnly,
-            ..Default::default()
+        let depth_view = depth_only(&t.texture, "SceneDepthTexture");
+        let sampled = read_only_attachment.then(|| {
+            let copy = Texture::new(
+                device,
+                "SceneDepthCopy",
+                format,
+                width,
+                height,
+                wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            );
+            let view = depth_only(&copy.texture, "SceneDepthCopy");
+            (copy.texture, view)
         });
-        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
-        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment }
+        SceneDepth { texture: t.texture, attachment: t.view, depth_view, format, read_only_attachment, sampled }
+    }
+
+    /// The depth-only view that passes attaching the depth with [`read_only_depth`] sample:
+    /// the copy where there is one, else the depth itself (GL: those passes attach nothing).
+    pub fn sampled_view(&self) -> &wgpu::TextureView {
+        self.sampled.as_ref().map_or(&self.depth_view, |(_, view)| view)
+    }
+
+    /// Copies the depth for [`SceneDepth::sampled_view`] (where there is a copy): once per
+    /// frame, after the last pass that writes depth and before the first that reads the copy.
+    pub fn copy_for_sampling(&self, encoder: &mut wgpu::CommandEncoder) {
+        if let Some((copy, _)) = &self.sampled {
+            encoder.copy_texture_to_texture(self.texture.as_image_copy(), copy.as_image_copy(), self.texture.size());
+        }
     }
 }
 
@@ -510,8 +548,8 @@ pub fn begin<'e>(
     })
 }
 
-/// The scene depth bound read-only (depth and stencil tested, nothing written), so it can be
-/// sampled in the same pass.
+/// The scene depth bound read-only (depth and stencil tested, nothing written). A pass that
+/// attaches it samples [`SceneDepth::sampled_view`], never the attached texture.
 pub fn read_only_depth(depth: &SceneDepth) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
     if !depth.read_only_attachment {
         return None;

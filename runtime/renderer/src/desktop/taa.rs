@@ -10,9 +10,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
 
-use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view};
+use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
 
 pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weight of the current frame in the history (Unreal: 0.04 at 8 samples; a larger weight
@@ -38,14 +38,13 @@ pub struct TemporalAA {
 
 impl TemporalAA {
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         size: [u32; 2],
         scene_color: &wgpu::TextureView,
         velocity: &wgpu::TextureView,
         scene_depth: &wgpu::TextureView,
     ) -> Result<TemporalAA, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         let pipeline = cache.render(
             &keys::name(keys::temporal_aavs::Key {}, keys::Level::Sm5)?,
             Some(&keys::name(keys::temporal_aaps::Key {}, keys::Level::Sm5)?),

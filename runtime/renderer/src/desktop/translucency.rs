@@ -1,6 +1,6 @@
 //! Translucency: the glass statues, forward shaded into the separate translucency target
-//! (premultiplied color, alpha = transmittance), depth tested against the scene, and the
-//! fire's particle sprites added to it; then composited over SceneColor. The glass is lit
+//! (premultiplied color, alpha = transmittance), depth tested against the scene; then
+//! composited over SceneColor (the particle sprites follow, `Effects::particle_sprites`). The glass is lit
 //! by one of two TranslucencyLightingModes (the `TRANSLUCENCY_LIGHTING_MODE` dimension, chosen
 //! per frame by [`EffectOptions::translucency_lighting`](super::effects::EffectOptions)):
 //! per pixel (sky light, the directional light with its cascaded shadow, the local lights of
@@ -24,8 +24,6 @@ use super::{Build, DesktopError};
 pub struct Translucency {
     /// The lit translucent surfaces: [forward shaded, lit by the volumes].
     surfaces: Option<[(Arc<Render>, BindGroups); 2]>,
-    /// Particle sprites: pipeline, bind groups, particle count.
-    sprites: Vec<(Arc<Render>, BindGroups, u32)>,
     compose: Arc<Render>,
     compose_groups: BindGroups,
     /// The surfaces' `DirectionalShadow` buffers (the cascades follow the camera).
@@ -38,43 +36,10 @@ impl Translucency {
         grid: &LightGrid,
         shadows: &ShadowDepths,
         dummy_shadow: &Texture,
-        particles: Option<&super::ParticleInputs<'_>>,
         volume: &TranslucencyVolumeInputs,
     ) -> Result<Translucency, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
-        let depth_test = Some(wgpu::DepthStencilState {
-            format: t.scene_depth.format,
-            depth_write_enabled: Some(false),
-            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
-            stencil: wgpu::StencilState::default(),
-            bias: wgpu::DepthBiasState::default(),
-        });
-        let mut sprites = Vec::new();
-        if let Some(inputs) = particles {
-            for system in inputs.systems {
-                let pipeline = p.render(
-                    &keys::name(keys::particle_sprite_vs::Key {}, p.key_level()?)?,
-                    Some(&keys::name(keys::particle_sprite_ps::Key {}, p.key_level()?)?),
-                    &RenderDesc {
-                        vertices: Vertices::None,
-                        cull: None,
-                        depth_stencil: depth_test.clone(),
-                        targets: vec![(formats::TRANSLUCENCY, Some(blend::ADDITIVE))],
-                    },
-                )?;
-                let (uniforms, buffer, count) = system.sprite_buffers();
-                let groups = pipeline.layout.bind_groups(
-                    b.device,
-                    &[
-                        ("View", inputs.view.as_entire_binding()),
-                        ("Emitter", uniforms.as_entire_binding()),
-                        ("Particles", buffer.as_entire_binding()),
-                    ],
-                )?;
-                sprites.push((pipeline, groups, count));
-            }
-        }
         let mut directional_shadow = Vec::new();
         let surfaces = if b.buffers.draws.iter().any(|d| d.blend == BlendMode::Translucent) {
             let (ambient, directional) =
@@ -119,7 +84,7 @@ impl Translucency {
             b.device,
             &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))],
         )?;
-        Ok(Translucency { surfaces, sprites, compose, compose_groups, directional_shadow })
+        Ok(Translucency { surfaces, compose, compose_groups, directional_shadow })
     }
 
     /// This frame's cascades of the directional light (they follow the camera).
@@ -199,12 +164,6 @@ impl Translucency {
                     for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
                         scene.draw(&mut pass, draw);
                     }
-                }
-                // The fire's sprites add light; they cover nothing behind them.
-                for (pipeline, groups, count) in &self.sprites {
-                    pass.set_pipeline(&pipeline.pipeline);
-                    groups.set_render(&mut pass);
-                    pass.draw(0..6, 0..*count);
                 }
             }
             ctx.output(&t.translucency.texture, Visualize::Hdr);

@@ -19,9 +19,9 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
+use crate::pipelines::{ComputePipeline, PipelineError};
 
-use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow};
+use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit};
 use super::view::ShadowProjectionUniforms;
 
 pub const VOLUME_SIZE: u32 = 64;
@@ -175,16 +175,14 @@ impl TranslucentVolumes {
     /// The lights are fixed when the volumes are built (one bind group per light and cascade).
     /// `shadows[k]`: light `k`'s own shadow where it is a local light with one (the directional
     /// light is shadowed by `shadow_atlas`, its cascades).
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
-        device: &wgpu::Device,
-        cache: &PipelineCache,
-        frame_view: &wgpu::Buffer,
+        init: &EffectPassInit<'_>,
         shadow_atlas: &wgpu::TextureView,
         shadow_compare: wgpu::CompareFunction,
         lights: Vec<InjectedLight>,
         shadows: &[Option<LocalLightShadow<'_>>],
     ) -> Result<TranslucentVolumes, PipelineError> {
+        let EffectPassInit { device, cache, frame_view } = *init;
         use keys::translucent_volume_inject_cs::{Key, ShadowProjectionType};
         let name = |dynamically_shadowed: bool, shadow_projection_type: ShadowProjectionType| {
             keys::name(Key { dynamically_shadowed, shadow_projection_type }, keys::Level::Sm5)

@@ -355,17 +355,25 @@ pub struct MobileFrame {
     pipelines_built: usize,
 }
 
+/// What a mobile frame is built with: the device, the runtime's pipeline cache and the scene
+/// (with its GPU buffers).
+#[derive(Clone, Copy)]
+pub struct MobileContext<'a> {
+    pub gpu: &'a Gpu,
+    pub cache: &'a PipelineCache,
+    pub scene: &'a Scene,
+    pub gpu_scene: &'a GpuScene,
+}
+
 impl MobileFrame {
-    /// Builds every target, buffer and pipeline the frame uses.
+    /// Builds every target, buffer and pipeline the frame uses, at `size` (width, height).
     pub fn new(
-        gpu: &Gpu,
-        cache: &PipelineCache,
-        scene: &Scene,
-        gpu_scene: &GpuScene,
+        context: &MobileContext<'_>,
         options: MobileOptions,
-        width: u32,
-        height: u32,
+        size: (u32, u32),
     ) -> Result<MobileFrame, PipelineError> {
+        let MobileContext { gpu, cache, scene, gpu_scene } = *context;
+        let (width, height) = size;
         options.check()?;
         let device = &gpu.device;
         let samples = if options.path == ShadingPath::Forward { msaa_samples(&gpu.adapter, &options) } else { 1 };
@@ -537,15 +545,13 @@ pub fn read_rgba8(device: &wgpu::Device, queue: &wgpu::Queue, texture: &wgpu::Te
 /// Builds a frame, records it once and returns every pass (with its images when `capture`)
 /// and the final image.
 pub fn render(
-    gpu: &Gpu,
-    cache: &PipelineCache,
-    scene: &Scene,
-    gpu_scene: &GpuScene,
+    context: &MobileContext<'_>,
     options: MobileOptions,
     size: (u32, u32),
     capture: bool,
 ) -> Result<(Vec<PassResult>, Image), PipelineError> {
-    let frame = MobileFrame::new(gpu, cache, scene, gpu_scene, options, size.0, size.1)?;
+    let MobileContext { gpu, cache, gpu_scene, .. } = *context;
+    let frame = MobileFrame::new(context, options, size)?;
     let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
     let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);

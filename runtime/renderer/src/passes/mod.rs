@@ -1,46 +1,32 @@
-//! The renderer's own passes (the fire's ParticleSimulation, recorded as the first step of
-//! the desktop frame's ParticleSimulation pass); the frames themselves are `crate::desktop`
-//! and `crate::mobile`. A pass is a struct built once (pipelines, bind groups, uniform
-//! buffers) and a `record` that says what it reads and writes. Building a pass creates every
-//! pipeline it will use (the warm-up); recording never creates pipelines.
+//! The renderer's own passes and targets: the one particle system ([`particles`], which the
+//! desktop frame builds and records) and the output target; the frames themselves are
+//! `crate::desktop` and `crate::mobile`. A pass is a struct built once (pipelines, bind
+//! groups, uniform buffers) and a `record` that says what it reads and writes. Building a pass
+//! creates every pipeline it will use (the warm-up); recording never creates pipelines.
 //!
 //! Adding a pass:
 //! 1. Write its shaders in `shader_src/` and declare them in `permutations.toml` (the build
-//!    script recompiles the embedded archive).
-//! 2. Add `passes/<name>.rs` with a `struct` and `new(init: &PassInit) -> Result<_, PipelineError>`:
-//!    name permutations with [`PassInit::permutation`] (`("LIGHT_TYPE", "POINT")`), get
-//!    pipelines with `init.cache.render(vs, Some(ps), &RenderState::...)` (or `.compute(cs)`)
-//!    and build bind groups by resource name with `pipeline.layout.bind_group(device, group,
-//!    label, &[("SceneColorTexture", ...)])`: the reflection says which binding each name is.
-//!    New render targets go in [`Targets`] with a format constant in
-//!    [`crate::gpu_types::formats`]; uniforms are `#[repr(C)]` Pod structs in `gpu_types`.
+//!    script recompiles the embedded archive and its typed keys, [`crate::keys`]).
+//! 2. Add a module with a `struct` and a `new` that takes its frame's build context (the
+//!    desktop effects' `EffectPassInit`, the particles' [`particles::ParticlesInit`], the
+//!    desktop frame's `Build`) and returns `Result<_, PipelineError>`: name permutations with
+//!    the typed keys (`keys::name(keys::shadow_projection_ps::Key { .. }, level)`), get
+//!    pipelines from the one pipeline cache with `cache.render(vs, Some(ps), &RenderState::...)`
+//!    (or `.compute(cs)`) and build bind groups by resource name with
+//!    `pipeline.layout.bind_group(device, group, label, &[("SceneColorTexture", ...)])`: the
+//!    reflection says which binding each name is. Uniforms are `#[repr(C)]` Pod structs.
 //! 3. Add `record(&self, ctx: &mut PassContext, ...)`: open render passes with
 //!    `ctx.render_pass(&desc, |pass| ...)` (compute: `ctx.compute_pass`), wrap named steps
 //!    in `ctx.step("Bloom", |ctx| ...)`, and declare what was written with
 //!    `ctx.output(&texture, Visualize::Hdr)` / `ctx.output_named("GBufferA", ...)`: that is
 //!    what `--dump-passes` writes and what the timings cover.
-//! 4. Build it in [`crate::renderer::Renderer::new`] for the frames that use it and record
-//!    it in frame order: its own `frame.pass("Name", |ctx| pass.record(ctx, ...))`, or a
-//!    step of a frame's pass (the fire: `DesktopFrame::record_into`'s `fire`).
+//! 4. Build it where its frame builds its passes and record it in frame order: its own
+//!    `frame.pass("Name", |ctx| pass.record(ctx, ...))`, or a step of a frame's pass (the
+//!    particles: the desktop effects' `ParticleSimulation` pass and its `Fire` step).
 
 pub mod particles;
 
 use crate::gpu_types::formats;
-use crate::pipelines::PipelineCache;
-use crate::scene::gpu::GpuScene;
-use crate::scene::Scene;
-
-/// What every pass needs to build itself.
-pub struct PassInit<'a> {
-    pub device: &'a wgpu::Device,
-    pub cache: &'a PipelineCache,
-    pub scene: &'a Scene,
-    pub gpu_scene: &'a GpuScene,
-    /// The feature level whose permutations the frame uses (`sm5`, `es3_1`).
-    pub level: &'a str,
-    /// The frame's shared resources.
-    pub shared: &'a SharedResources,
-}
 
 /// A render target: texture, default view and the name it is dumped under.
 pub struct Target {
@@ -74,38 +60,16 @@ impl Target {
     }
 }
 
-/// The renderer's own targets, created once per size: the frame's output and a scratch
-/// target for pictures of passes that write buffers (ParticleSimulation). The desktop and
+/// The renderer's own targets, created once per size: the frame's output. The desktop and
 /// mobile frames own their other targets.
 pub struct Targets {
     pub width: u32,
     pub height: u32,
     pub output: Target,
-    pub preview: Target,
 }
 
 impl Targets {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Targets {
-        Targets {
-            width,
-            height,
-            output: Target::new(device, "Output", formats::OUTPUT, width, height),
-            preview: Target::new(device, "Preview", formats::SCENE_COLOR, width, height),
-        }
-    }
-}
-
-/// Resources the renderer's passes bind: the one `SceneView` buffer (camera and light; the
-/// desktop frame writes it every frame) and the targets.
-pub struct SharedResources {
-    pub view: wgpu::Buffer,
-    pub targets: Targets,
-}
-
-impl SharedResources {
-    /// Group-0 resources by their names in the shaders (`View` of `SceneView.ush`). Bind
-    /// groups take the ones their reflection lists.
-    pub fn view_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
-        vec![("View", self.view.as_entire_binding())]
+        Targets { width, height, output: Target::new(device, "Output", formats::OUTPUT, width, height) }
     }
 }

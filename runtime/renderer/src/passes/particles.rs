@@ -1,222 +1,495 @@
-//! ParticleSimulation (desktop, first in the frame): the fire emitter's particles simulated
-//! in a compute shader, one thread per particle, in a storage buffer that the Translucency
-//! pass then draws as additive camera-facing sprites.
+//! The renderer's one particle system: GPU sprite particles (`Desktop/ParticleSimulation.usf`,
+//! `Desktop/ParticleSpriteShader.usf`), every emitter stepped at one fixed [`TIME_STEP`].
+//! Each emitter keeps its state in two pairs of textures, positions in RGBA32F (xyz, age) and
+//! velocities in RGBA16F (xyz, lifetime), one texel per particle, read by one simulation and
+//! written by the next (ping-pong). The emitters that do not collide (the scene's fire and its
+//! smoke) are simulated at the start of the frame (ParticleSimulation, whose `Fire` step also
+//! pictures them over black when capturing); the sparks collide with the scene, so they are
+//! simulated after the base pass against the depth buffer and GBuffer normals. All are drawn
+//! as camera-facing sprites, instanced (one instance per particle, 6 vertices), in
+//! Translucency; the fire's heat haze is drawn again into the distortion offsets. The scene's
+//! emitters can be warmed up when the system is built ([`EmitterDesc::prewarm`]), so the first
+//! frame shows a burning fire.
+//!
+//! Sorting: the sprites are emissive (added) or faint premultiplied smoke, drawn in emitter
+//! order without a per-particle sort. The mobile frames draw no particles.
 
-use std::cell::Cell;
 use std::sync::Arc;
 
-use glam::{UVec4, Vec4};
+use bytemuck::{Pod, Zeroable};
+use glam::{UVec4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, Visualize};
-use crate::gpu_types::{formats, EmitterUniforms, Particle};
 use crate::keys;
 use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, DepthState, PipelineError, RenderPipeline, RenderState, VertexLayout,
+    Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
+    VertexLayout,
 };
 use crate::scene::ParticleEmitter;
 
-use super::{PassInit, Target};
+pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// Particles per row of the state textures.
+pub const STATE_WIDTH: u32 = 64;
+/// The one fixed simulation step of every emitter (the desktop frame's time step is the same,
+/// so frames are reproducible).
+pub const TIME_STEP: f32 = 1.0 / 30.0;
+/// Steps simulated when the system is built for the emitters that are prewarmed (the scene's
+/// own: 2 s, longer than the fire's longest lifetime), so the first frame shows them burning.
+pub const PREWARM_STEPS: u32 = 60;
 
-/// Simulation step (seconds); the frame is simulated at a fixed rate so images repeat.
-pub const TIME_STEP: f32 = 1.0 / 60.0;
-/// Steps simulated when the system is built, so the first frame shows a burning fire.
-pub const PREWARM_STEPS: u32 = 120;
-
-/// One emitter's particles on the GPU.
-pub struct ParticleSystem {
-    queue: wgpu::Queue,
-    emitter: EmitterUniforms,
-    uniforms: wgpu::Buffer,
-    particles: wgpu::Buffer,
-    simulation: Arc<ComputePipeline>,
-    simulation_group: wgpu::BindGroup,
-    count: u32,
-    frame: Cell<u32>,
+/// `SimulationParams` of `ParticleSimulation.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct SimulationParams {
+    emitter: Vec4,
+    initial_velocity: Vec4,
+    acceleration: Vec4,
+    timing: Vec4,
+    counts: UVec4,
 }
 
-impl ParticleSystem {
-    /// Builds the buffers and the simulation pipeline and prewarms the particles.
-    pub fn new(init: &PassInit<'_>, queue: &wgpu::Queue, e: &ParticleEmitter) -> Result<ParticleSystem, PipelineError> {
-        let count = e.max_particles.max(1);
-        let emitter = EmitterUniforms {
-            position_radius: e.position.extend(e.spawn_radius),
-            velocity_jitter: e.initial_velocity.extend(e.velocity_jitter),
-            params: Vec4::new(e.lifetime.0, e.lifetime.1, e.buoyancy, TIME_STEP),
-            size: Vec4::new(e.size.0, e.size.1, 0.0, 0.0),
-            color_start: e.color_start.extend(1.0),
-            color_end: e.color_end.extend(1.0),
-            counts: UVec4::new(count, 0, 0, 0),
-        };
-        let uniforms = init.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{} emitter uniforms", e.name)),
-            contents: bytemuck::bytes_of(&emitter),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+/// `SpriteParams` of `ParticleSpriteShader.usf`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct SpriteParams {
+    color_birth: Vec4,
+    color_death: Vec4,
+    size: Vec4,
+    counts: UVec4,
+    lighting: Vec4,
+}
+
+/// What an emitter simulates and draws.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmitterDesc {
+    pub name: String,
+    pub position: Vec3,
+    pub spawn_radius: f32,
+    pub max_particles: u32,
+    pub lifetime: (f32, f32),
+    pub initial_velocity: Vec3,
+    pub velocity_jitter: f32,
+    pub acceleration: Vec3,
+    pub drag: f32,
+    /// Collides with the depth buffer (simulated after the base pass).
+    pub collides: bool,
+    /// Velocity kept along the normal after a bounce.
+    pub restitution: f32,
+    pub size: (f32, f32),
+    /// Stretch of the sprite along its velocity, per m/s.
+    pub stretch: f32,
+    pub color_birth: Vec4,
+    pub color_death: Vec4,
+    /// Heat haze strength (0: no distortion).
+    pub distortion: f32,
+    /// Lit by the translucency lighting volume (the colours are albedo); else emissive.
+    pub lit: bool,
+    /// One of the frame's particle effects (sparks, smoke): drawn only while the effects'
+    /// particles are on. The scene's own emitters (the fire) are drawn always.
+    pub effect: bool,
+    /// Simulated [`PREWARM_STEPS`] steps when the system is built (only for emitters that do
+    /// not collide: there is no depth buffer yet).
+    pub prewarm: bool,
+}
+
+impl EmitterDesc {
+    /// The scene's fire emitter (no collision, rising with buoyancy, with heat haze).
+    pub fn fire(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: e.name.clone(),
+            position: e.position,
+            spawn_radius: e.spawn_radius,
+            max_particles: e.max_particles,
+            lifetime: e.lifetime,
+            initial_velocity: e.initial_velocity,
+            velocity_jitter: e.velocity_jitter,
+            acceleration: Vec3::Y * e.buoyancy,
+            drag: 0.5,
+            collides: false,
+            restitution: 0.0,
+            size: e.size,
+            stretch: 0.0,
+            color_birth: e.color_start.extend(0.6),
+            color_death: e.color_end.extend(0.0),
+            distortion: 0.6,
+            lit: false,
+            effect: false,
+            prewarm: true,
+        }
+    }
+
+    /// Smoke rising from the fire: grey, growing, lit by the translucency lighting volume.
+    pub fn smoke(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: format!("{}Smoke", e.name),
+            position: e.position + Vec3::Y * 0.9,
+            spawn_radius: e.spawn_radius,
+            max_particles: 256,
+            lifetime: (2.5, 4.0),
+            initial_velocity: Vec3::new(0.0, 0.5, 0.0),
+            velocity_jitter: 0.15,
+            acceleration: Vec3::new(0.1, 0.2, 0.0),
+            drag: 0.3,
+            collides: false,
+            restitution: 0.0,
+            size: (0.4, 1.4),
+            stretch: 0.0,
+            color_birth: Vec4::new(0.5, 0.5, 0.52, 0.35),
+            color_death: Vec4::new(0.6, 0.6, 0.62, 0.0),
+            distortion: 0.0,
+            lit: true,
+            effect: true,
+            prewarm: false,
+        }
+    }
+
+    /// Sparks thrown out of the fire: they fall and bounce off the floor and walls
+    /// (collision with the depth buffer).
+    pub fn sparks(e: &ParticleEmitter) -> EmitterDesc {
+        EmitterDesc {
+            name: format!("{}Sparks", e.name),
+            position: e.position + Vec3::Y * 0.4,
+            spawn_radius: e.spawn_radius * 0.5,
+            max_particles: 512,
+            lifetime: (1.5, 3.0),
+            initial_velocity: Vec3::new(0.0, 3.0, 0.0),
+            velocity_jitter: 1.6,
+            acceleration: Vec3::new(0.0, -9.8, 0.0),
+            drag: 0.2,
+            collides: true,
+            restitution: 0.5,
+            size: (0.05, 0.02),
+            stretch: 0.08,
+            color_birth: Vec4::new(12.0, 6.0, 1.5, 0.0),
+            color_death: Vec4::new(2.0, 0.4, 0.05, 0.0),
+            distortion: 0.0,
+            lit: false,
+            effect: true,
+            prewarm: false,
+        }
+    }
+}
+
+struct Emitter {
+    desc: EmitterDesc,
+    seed: u32,
+    sim_params: wgpu::Buffer,
+    /// The sprites' `SpriteParams` (constant; kept with the bind groups that read it).
+    _sprite_params: wgpu::Buffer,
+    positions: [wgpu::Texture; 2],
+    velocities: [wgpu::Texture; 2],
+    /// simulate[i] reads state i and writes state 1 - i.
+    simulate: [wgpu::BindGroup; 2],
+    /// sprites[i] reads state i (the sprite pipeline; distortion: the heat haze's).
+    sprites: [wgpu::BindGroup; 2],
+    distortion: [wgpu::BindGroup; 2],
+    current: usize,
+}
+
+/// Inputs of the colliding simulation.
+pub struct CollisionInputs<'a> {
+    pub scene_depth: &'a wgpu::TextureView,
+    pub gbuffer_a: &'a wgpu::TextureView,
+}
+
+/// The formats of the frame's passes the particles draw in.
+#[derive(Clone, Copy, Debug)]
+pub struct ParticleFormats {
+    /// The colour target of the sprites (and of the `Fire` step's picture).
+    pub color: wgpu::TextureFormat,
+    /// The depth the sprites and the heat haze are tested against (read-only).
+    pub depth: wgpu::TextureFormat,
+    /// The distortion offsets the heat haze adds to.
+    pub distortion: wgpu::TextureFormat,
+}
+
+/// What the particle system is built from.
+pub struct ParticlesInit<'a> {
+    pub device: &'a wgpu::Device,
+    /// Submits the prewarm steps.
+    pub queue: &'a wgpu::Queue,
+    pub cache: &'a PipelineCache,
+    /// The frame's `SceneView` buffer (`View`).
+    pub view: &'a wgpu::Buffer,
+    pub collision: CollisionInputs<'a>,
+    pub lighting_volume: LightingVolume<'a>,
+    pub formats: ParticleFormats,
+    /// Size of the `Fire` step's picture (the frame's).
+    pub size: [u32; 2],
+}
+
+pub struct Particles {
+    emitters: Vec<Emitter>,
+    frame: u32,
+    /// [without collision, with collision]
+    simulation: [Arc<ComputePipeline>; 2],
+    /// The sprites over the frame's colour target (depth tested), the same over the `Fire`
+    /// step's picture (no depth), and the heat haze into RG16F offsets.
+    sprite_pipeline: Arc<RenderPipeline>,
+    preview_pipeline: Arc<RenderPipeline>,
+    distortion_pipeline: Arc<RenderPipeline>,
+    /// The `Fire` step's picture: the emitters simulated at the start of the frame, alone
+    /// over black.
+    preview: (wgpu::Texture, wgpu::TextureView),
+    /// States of no emitter (1x1), for scenes without one.
+    empty: ([wgpu::Texture; 2], [wgpu::Texture; 2]),
+}
+
+/// The translucency lighting volumes as the lit sprites read them: both cascades (0 inner,
+/// 1 outer) of Ambient and Dir, and their boxes this frame (`TranslucencyLightingVolumeParams`,
+/// written every frame by InjectTranslucentVolume).
+pub struct LightingVolume<'a> {
+    pub params: &'a wgpu::Buffer,
+    pub ambient: [&'a wgpu::TextureView; 2],
+    pub directional: [&'a wgpu::TextureView; 2],
+}
+
+fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(value),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
+    texture.create_view(&wgpu::TextureViewDescriptor::default())
+}
+
+impl Particles {
+    /// Builds the emitters' states and every pipeline, and prewarms the emitters that ask for it.
+    pub fn new(init: &ParticlesInit<'_>, descs: Vec<EmitterDesc>) -> Result<Particles, PipelineError> {
+        let ParticlesInit { device, queue, cache, view: frame_view, ref collision, ref lighting_volume, formats, size } =
+            *init;
+        let volume_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("particle lighting volume"),
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            mipmap_filter: wgpu::MipmapFilterMode::Linear,
+            ..Default::default()
         });
-        // Every particle starts dead (age past lifetime): the first step spawns them all,
-        // with respawn times spread by their random lifetimes.
-        let dead =
-            vec![
-                Particle { position_age: e.position.extend(1.0), velocity_lifetime: Vec4::new(0.0, 0.0, 0.0, 0.0) };
-                count as usize
-            ];
-        let particles = init.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{} particles", e.name)),
-            contents: bytemuck::cast_slice(&dead),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let simulation =
-            init.cache.compute(&keys::name(keys::particle_simulation_cs::Key {}, keys::level(init.level)?)?)?;
-        let simulation_group = simulation.layout.bind_group(
-            init.device,
-            0,
-            &format!("{} simulation", e.name),
-            &[("Emitter", uniforms.as_entire_binding()), ("Particles", particles.as_entire_binding())],
+        let (vs, ps) = (
+            keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?,
+        );
+        let distortion_layout = cache.render(
+            &vs,
+            Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
+            &Particles::distortion_state(formats.distortion, Some(formats.depth)),
         )?;
-        let system = ParticleSystem {
-            queue: queue.clone(),
-            emitter,
-            uniforms,
-            particles,
-            simulation,
-            simulation_group,
-            count,
-            frame: Cell::new(0),
-        };
-        // Prewarm: the particles all spawn on the first step and die at their random
-        // lifetimes, which spreads their ages out. One submit per step: each step has its
-        // own frame index in the uniform block.
-        for step in 0..PREWARM_STEPS {
-            let mut u = system.emitter;
-            u.counts.y = u32::MAX - PREWARM_STEPS + step;
-            system.queue.write_buffer(&system.uniforms, 0, bytemuck::bytes_of(&u));
-            let mut encoder =
-                init.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("particle prewarm"),
-                    timestamp_writes: None,
-                });
-                system.dispatch(&mut pass);
-            }
-            system.queue.submit([encoder.finish()]);
-        }
-        Ok(system)
-    }
-
-    fn dispatch(&self, pass: &mut wgpu::ComputePass<'_>) {
-        pass.set_pipeline(&self.simulation.pipeline);
-        pass.set_bind_group(0, &self.simulation_group, &[]);
-        pass.dispatch_workgroups(self.count.div_ceil(self.simulation.workgroup_size[0].max(1)), 1, 1);
-    }
-
-    /// ParticleSimulation: one step. Reads and writes the particle buffer.
-    pub fn record_simulation(&self, ctx: &mut PassContext<'_>) {
-        let frame = self.frame.get();
-        self.frame.set(frame.wrapping_add(1));
-        let mut u = self.emitter;
-        u.counts.y = frame;
-        self.queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
-        ctx.compute_pass("ParticleSimulation", |pass| self.dispatch(pass));
-    }
-
-    /// The emitter uniforms, the particle buffer and the particle count, for frames that
-    /// draw the sprites with their own pipelines (the desktop frame's Translucency).
-    pub fn sprite_buffers(&self) -> (&wgpu::Buffer, &wgpu::Buffer, u32) {
-        (&self.uniforms, &self.particles, self.count)
-    }
-
-    pub fn count(&self) -> u32 {
-        self.count
-    }
-}
-
-/// The sprites of a particle system, drawn additively into SceneColor (Translucency).
-pub struct ParticleSprites {
-    pipeline: Arc<RenderPipeline>,
-    groups: Vec<wgpu::BindGroup>,
-    count: u32,
-}
-
-impl ParticleSprites {
-    /// `depth_test`: against SceneDepth (in the frame) or none (the pass's preview image).
-    pub fn new(
-        init: &PassInit<'_>,
-        system: &ParticleSystem,
-        depth_test: bool,
-    ) -> Result<ParticleSprites, PipelineError> {
-        let level = keys::level(init.level)?;
-        let vs = keys::name(keys::particle_sprite_vs::Key {}, level)?;
-        let ps = keys::name(keys::particle_sprite_ps::Key {}, level)?;
-        let mut state = RenderState::triangles(crate::gpu_types::layouts::MESH_INSTANCED);
-        if depth_test {
-            state = state.with_depth(DepthState::reverse_z(formats::SCENE_DEPTH, false));
-        }
-        let mut state = state.with_targets(&[ColorTarget::new(formats::SCENE_COLOR, Blend::Additive)]).with_cull(None);
-        state.vertex_layout = VertexLayout::NONE;
-        let pipeline = init.cache.render(&vs, Some(&ps), &state)?;
-        let layout = &pipeline.layout;
-        let groups = vec![
-            layout.bind_group(init.device, 0, "particle sprites view", &init.shared.view_resources())?,
-            layout.bind_group(
-                init.device,
-                1,
-                "particle sprites",
-                &[
-                    ("Emitter", system.uniforms.as_entire_binding()),
-                    ("Particles", system.particles.as_entire_binding()),
-                ],
-            )?,
+        let sprite_pipeline_layout = cache.render(&vs, Some(&ps), &sprite_state(formats.color, Some(formats.depth)))?;
+        let preview_pipeline = cache.render(&vs, Some(&ps), &sprite_state(formats.color, None))?;
+        let simulation = [
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: false },
+                keys::Level::Sm5,
+            )?)?,
+            cache.compute(&keys::name(
+                keys::gpu_particle_simulation_cs::Key { particle_collision: true },
+                keys::Level::Sm5,
+            )?)?,
         ];
-        Ok(ParticleSprites { pipeline, groups, count: system.count })
-    }
-
-    /// Draws every particle (six vertices each) into the open render pass.
-    pub fn draw(&self, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&self.pipeline.pipeline);
-        for (i, g) in self.groups.iter().enumerate() {
-            pass.set_bind_group(i as u32, g, &[]);
+        let mut emitters = Vec::new();
+        for (index, desc) in descs.into_iter().enumerate() {
+            let sim = &simulation[usize::from(desc.collides)];
+            let rows = desc.max_particles.div_ceil(STATE_WIDTH);
+            let state = |label: &str, format| {
+                device.create_texture(&wgpu::TextureDescriptor {
+                    label: Some(&format!("{} {label}", desc.name)),
+                    size: wgpu::Extent3d { width: STATE_WIDTH, height: rows, depth_or_array_layers: 1 },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format,
+                    usage: wgpu::TextureUsages::STORAGE_BINDING
+                        | wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_SRC,
+                    view_formats: &[],
+                })
+            };
+            let positions =
+                [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
+            let velocities =
+                [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
+            let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
+            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
+            let pos_views = [view(&positions[0]), view(&positions[1])];
+            let vel_views = [view(&velocities[0]), view(&velocities[1])];
+            let make_sim = |i: usize| {
+                let mut resources = vec![
+                    ("sim", sim_params.as_entire_binding()),
+                    ("prev_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                    ("prev_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+                    ("out_position", wgpu::BindingResource::TextureView(&pos_views[1 - i])),
+                    ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
+                ];
+                if desc.collides {
+                    resources.push(("View", frame_view.as_entire_binding()));
+                    resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
+                    resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
+                }
+                sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
+            };
+            let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
+                let mut resources = vec![
+                    ("View", frame_view.as_entire_binding()),
+                    ("sprite", sprite_params.as_entire_binding()),
+                    ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                    ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+                ];
+                if lit {
+                    resources.extend([
+                        ("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])),
+                        ("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])),
+                        ("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])),
+                        ("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])),
+                        ("translucency_volume", lighting_volume.params.as_entire_binding()),
+                        ("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)),
+                    ]);
+                }
+                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
+            };
+            // (the preview pipeline has the sprite pipeline's layout: the same shaders)
+            let sprites =
+                [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
+            let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
+            let simulate = [make_sim(0)?, make_sim(1)?];
+            emitters.push(Emitter {
+                desc,
+                seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
+                sim_params,
+                _sprite_params: sprite_params,
+                positions,
+                velocities,
+                simulate,
+                sprites,
+                distortion,
+                current: 0,
+            });
         }
-        pass.draw(0..6, 0..self.count);
+        let empty_state = |label: &str, format| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d { width: 1, height: 1, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage: wgpu::TextureUsages::STORAGE_BINDING
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::COPY_SRC,
+                view_formats: &[],
+            })
+        };
+        let empty = (
+            [
+                empty_state("NoParticles position", POSITION_FORMAT),
+                empty_state("NoParticles position", POSITION_FORMAT),
+            ],
+            [
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+                empty_state("NoParticles velocity", VELOCITY_FORMAT),
+            ],
+        );
+        let preview = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("ParticleSimulation preview"),
+            size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: formats.color,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let preview_view = view(&preview);
+        let mut particles = Particles {
+            emitters,
+            frame: 0,
+            simulation,
+            sprite_pipeline: sprite_pipeline_layout,
+            preview_pipeline,
+            distortion_pipeline: distortion_layout,
+            preview: (preview, preview_view),
+            empty,
+        };
+        particles.prewarm(device, queue);
+        Ok(particles)
     }
-}
 
-/// The ParticleSimulation pass of the frame: every emitter steps once. When capturing, the
-/// particles are also drawn alone over black (no depth test), as the pass's image.
-pub struct ParticleSimulationPass {
-    systems: Vec<ParticleSystem>,
-    previews: Vec<ParticleSprites>,
-}
-
-impl ParticleSimulationPass {
-    pub fn new(init: &PassInit<'_>, queue: &wgpu::Queue) -> Result<ParticleSimulationPass, PipelineError> {
-        let mut systems = Vec::new();
-        let mut previews = Vec::new();
-        for e in &init.scene.emitters {
-            let system = ParticleSystem::new(init, queue, e)?;
-            previews.push(ParticleSprites::new(init, &system, false)?);
-            systems.push(system);
+    /// Steps the emitters that ask for it [`PREWARM_STEPS`] times, one submit per step (each
+    /// step has its own frame index in the simulation's uniform block). Their ages spread
+    /// out over the first lifetime, as they do in a running frame.
+    fn prewarm(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
+        if !self.emitters.iter().any(|e| e.desc.prewarm && !e.desc.collides) {
+            return;
         }
-        Ok(ParticleSimulationPass { systems, previews })
-    }
-
-    pub fn systems(&self) -> &[ParticleSystem] {
-        &self.systems
-    }
-
-    /// Reads and writes the particle buffers; when capturing, draws them into `preview`.
-    pub fn record(&self, ctx: &mut PassContext<'_>, preview: &Target) {
-        for s in &self.systems {
-            s.record_simulation(ctx);
+        for step in 0..PREWARM_STEPS {
+            // frame indices before the frame's own (which start at 1), for their own seeds
+            let frame = u32::MAX - PREWARM_STEPS + 1 + step;
+            let mut encoder =
+                device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
+            for e in self.emitters.iter_mut().filter(|e| e.desc.prewarm && !e.desc.collides) {
+                Self::step(&self.simulation[0], queue, &mut encoder, e, frame);
+            }
+            queue.submit([encoder.finish()]);
         }
+    }
+
+    fn step(
+        pipeline: &ComputePipeline,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        e: &mut Emitter,
+        frame: u32,
+    ) {
+        let d = &e.desc;
+        let rows = d.max_particles.div_ceil(STATE_WIDTH);
+        let params = SimulationParams {
+            emitter: d.position.extend(d.spawn_radius),
+            initial_velocity: d.initial_velocity.extend(d.velocity_jitter),
+            acceleration: d.acceleration.extend(d.drag),
+            timing: Vec4::new(TIME_STEP, d.lifetime.0, d.lifetime.1, d.restitution),
+            counts: UVec4::new(STATE_WIDTH, d.max_particles, frame, e.seed),
+        };
+        queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(&format!("ParticleSimulation {}", d.name)),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&pipeline.pipeline);
+        pass.set_bind_group(0, &e.simulate[e.current], &[]);
+        pass.dispatch_workgroups(STATE_WIDTH.div_ceil(8), rows.div_ceil(8), 1);
+        drop(pass);
+        e.current = 1 - e.current;
+    }
+
+    /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
+    /// or of the others (`false`, at the start of the frame).
+    pub fn simulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, colliding: bool) {
+        if !colliding {
+            self.frame += 1;
+        }
+        let pipeline = &self.simulation[usize::from(colliding)];
+        for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
+            Self::step(pipeline, queue, encoder, e, self.frame);
+        }
+    }
+
+    /// When capturing: draws the emitters simulated at the start of the frame alone over
+    /// black (no depth test), as the picture of the step that simulated them.
+    pub fn record_preview(&self, ctx: &mut PassContext<'_>) {
         if !ctx.capturing() {
             return;
         }
-        ctx.render_pass(
-            &wgpu::RenderPassDescriptor {
+        {
+            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ParticleSimulation preview"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &preview.view,
+                    view: &self.preview.1,
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
@@ -228,13 +501,90 @@ impl ParticleSimulationPass {
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
-            },
-            |pass| {
-                for p in &self.previews {
-                    p.draw(pass);
-                }
-            },
-        );
-        ctx.output(&preview.texture, Visualize::Hdr);
+            });
+            pass.set_pipeline(&self.preview_pipeline.pipeline);
+            for e in self.emitters.iter().filter(|e| !e.desc.collides) {
+                pass.set_bind_group(0, &e.sprites[e.current], &[]);
+                pass.draw(0..6, 0..e.desc.max_particles);
+            }
+        }
+        ctx.output(&self.preview.0, Visualize::Hdr);
     }
+
+    /// The state textures (positions, velocities) of the first emitter that (does not)
+    /// collide.
+    /// (A scene without emitters has empty 1x1 states, so the dumps still have a source.)
+    pub fn state_textures(&self, colliding: bool) -> (&[wgpu::Texture; 2], &[wgpu::Texture; 2]) {
+        match self.emitters.iter().find(|e| e.desc.collides == colliding) {
+            Some(e) => (&e.positions, &e.velocities),
+            None => (&self.empty.0, &self.empty.1),
+        }
+    }
+
+    /// Which state of that emitter holds the latest simulation (0 or 1).
+    pub fn current_index(&self, colliding: bool) -> usize {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map_or(0, |e| e.current)
+    }
+
+    /// The latest position state of the first emitter that (does not) collide, for the dump.
+    pub fn position_state(&self, colliding: bool) -> Option<&wgpu::Texture> {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map(|e| &e.positions[e.current])
+    }
+
+    pub fn velocity_state(&self, colliding: bool) -> Option<&wgpu::Texture> {
+        self.emitters.iter().find(|e| e.desc.collides == colliding).map(|e| &e.velocities[e.current])
+    }
+
+    /// Draws the emitters' sprites, instanced, into a translucency pass over the colour target
+    /// given to `new`, depth tested (read-only): the scene's emitters always, the particle
+    /// effects (sparks, smoke) only with `effects`.
+    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
+        pass.set_pipeline(&self.sprite_pipeline.pipeline);
+        for e in self.emitters.iter().filter(|e| effects || !e.desc.effect) {
+            pass.set_bind_group(0, &e.sprites[e.current], &[]);
+            pass.draw(0..6, 0..e.desc.max_particles);
+        }
+    }
+
+    /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
+    /// additive offsets).
+    pub fn draw_distortion(&self, pass: &mut wgpu::RenderPass<'_>) {
+        pass.set_pipeline(&self.distortion_pipeline.pipeline);
+        for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
+            pass.set_bind_group(0, &e.distortion[e.current], &[]);
+            pass.draw(0..6, 0..e.desc.max_particles);
+        }
+    }
+
+    /// The fixed-function state of the sprites: premultiplied over the target, depth-tested
+    /// (read-only).
+    pub fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+        sprite_state(format, depth)
+    }
+
+    /// The fixed-function state of the heat haze: additive offsets.
+    pub fn distortion_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+        let mut state = sprite_state(format, depth);
+        state.color_targets[0].blend = Blend::Additive.state();
+        state
+    }
+}
+
+fn sprite_params(d: &EmitterDesc) -> SpriteParams {
+    SpriteParams {
+        color_birth: d.color_birth,
+        color_death: d.color_death,
+        size: Vec4::new(d.size.0, d.size.1, d.stretch, d.distortion * 0.02),
+        counts: UVec4::new(STATE_WIDTH, d.max_particles, 0, 0),
+        lighting: Vec4::new(if d.lit { 1.0 } else { 0.0 }, 0.0, 0.0, 0.0),
+    }
+}
+
+fn sprite_state(format: wgpu::TextureFormat, depth: Option<wgpu::TextureFormat>) -> RenderState {
+    let mut state = RenderState::fullscreen(ColorTarget::new(format, Blend::PremultipliedAlpha));
+    state.vertex_layout = VertexLayout::NONE;
+    if let Some(depth) = depth {
+        state = state.with_depth(DepthState::reverse_z(depth, false));
+    }
+    state
 }
