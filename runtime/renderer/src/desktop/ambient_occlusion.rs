@@ -8,13 +8,20 @@ use std::sync::Arc;
 
 use glam::Vec4;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
 use super::view::AmbientOcclusionUniforms;
 use super::{Build, DesktopError};
+
+/// The AmbientOcclusion declaration.
+pub const PASS: PassDecl = PassDecl {
+    name: "AmbientOcclusion",
+    reads: &["View", "SceneDepth", "GBufferA", "SceneColor"],
+    writes: &["AmbientOcclusion", "SceneColor"],
+};
 
 struct Step {
     name: &'static str,
@@ -92,7 +99,7 @@ impl AmbientOcclusion {
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         let draw = |ctx: &mut PassContext<'_>, step: &Step, target: &wgpu::TextureView, clear: bool| {
             let mut pass =
-                begin(ctx.encoder(), step.name, &[color_attachment(target, clear.then_some(wgpu::Color::WHITE))], None);
+                begin(ctx, step.name, &[color_attachment(target, clear.then_some(wgpu::Color::WHITE))], None);
             pass.set_pipeline(&step.pipeline.pipeline);
             step.groups.set_render(&mut pass);
             pass.draw(0..3, 0..1);

@@ -8,13 +8,20 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, SceneBuffers, Targets, STENCIL_LIT};
 use super::{Build, DesktopError};
+
+/// Tests against the prepass depth and marks lit pixels in its stencil.
+pub const PASS: PassDecl = PassDecl {
+    name: "BasePass",
+    reads: &["Scene", "View", "SceneDepth"],
+    writes: &["SceneColor", "GBufferA", "GBufferB", "GBufferC", "SceneDepth"],
+};
 
 struct Variant {
     blend: BlendMode,
@@ -119,7 +126,7 @@ impl BasePass {
         {
             let clear = Some(wgpu::Color::TRANSPARENT);
             let mut pass = begin(
-                ctx.encoder(),
+                ctx,
                 "BasePass",
                 &[
                     color_attachment(&t.scene_color.view, Some(wgpu::Color::BLACK)),

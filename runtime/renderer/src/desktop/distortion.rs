@@ -5,6 +5,7 @@
 //! offset was accumulated, fetching the copy at the moved pixel (DistortionApply,
 //! `DistortApplyScreenPS.usf`).
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -16,6 +17,13 @@ use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipe
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit, InstancedMesh};
 use super::resources::formats::DISTORTION as DISTORTION_FORMAT;
 use crate::passes::particles::Particles;
+
+/// The Distortion declaration.
+pub const PASS: PassDecl = PassDecl {
+    name: "Distortion",
+    reads: &["Scene", "View", "SceneDepth", "ParticleState", "SceneColor"],
+    writes: &["Distortion", "SceneColor"],
+};
 
 /// Index of refraction - 1 of the glass.
 pub const GLASS_REFRACTION: f32 = 0.5;
@@ -118,7 +126,7 @@ impl Distortion {
     pub fn record_accumulate(
         &mut self,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         scene_depth: &wgpu::TextureView,
         transforms: &[Vec<Mat4>],
         particles: Option<&Particles>,
@@ -126,7 +134,7 @@ impl Distortion {
         for (m, t) in self.meshes.iter_mut().zip(transforms) {
             m.set_transforms(queue, t);
         }
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("DistortionAccum"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                 view: &self.offsets_view,
@@ -159,16 +167,16 @@ impl Distortion {
     /// DistortionApply: copies SceneColor, then refracts it where offsets were accumulated.
     pub fn record_apply(
         &self,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         scene_color: &wgpu::Texture,
         scene_color_view: &wgpu::TextureView,
     ) {
-        encoder.copy_texture_to_texture(
+        ctx.encoder().copy_texture_to_texture(
             scene_color.as_image_copy(),
             self.scene_color_copy.as_image_copy(),
             scene_color.size(),
         );
-        let mut pass = color_pass(encoder, "DistortionApply", scene_color_view, wgpu::LoadOp::Load);
+        let mut pass = color_pass(ctx, "DistortionApply", scene_color_view, wgpu::LoadOp::Load);
         pass.set_pipeline(&self.apply.pipeline);
         pass.set_bind_group(0, &self.apply_group, &[]);
         pass.draw(0..3, 0..1);

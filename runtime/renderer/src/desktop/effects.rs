@@ -249,10 +249,7 @@ impl Visualization {
     /// Draws the image and declares it as the current pass or step's output `name`.
     fn output(&self, ctx: &mut PassContext<'_>, name: Option<&str>) {
         {
-            let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("VisualizeTexture"),
-                timestamp_writes: None,
-            });
+            let mut pass = ctx.open_compute_pass("VisualizeTexture");
             pass.set_pipeline(&self.pipeline.pipeline);
             pass.set_bind_group(0, &self.group, &[]);
             pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
@@ -693,9 +690,9 @@ impl Effects {
     pub fn particle_simulation(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
-        frame.pass("ParticleSimulation", |ctx| {
+        frame.pass(crate::passes::particles::SIMULATION_PASS.name, |ctx| {
             ctx.step("Fire", |ctx| {
-                s.particles.simulate(&s.queue, ctx.encoder(), false);
+                s.particles.simulate(&s.queue, ctx, false);
                 s.particles.record_preview(ctx);
             });
             let i = s.particles.current_index(false);
@@ -727,8 +724,8 @@ impl Effects {
             let b = world_bounds(s.scene.meshes[s.scene.objects[o].mesh].bounds(), &object_transforms(s, o));
             s.occlusion.set_bounds(o, b);
         }
-        frame.pass("BeginOcclusionTests", |ctx| {
-            s.occlusion.record(&s.device, &s.queue, ctx.encoder(), &s.scene_depth_attachment, camera, &lights);
+        frame.pass(super::occlusion::PASS.name, |ctx| {
+            s.occlusion.record(&s.device, &s.queue, ctx, &s.scene_depth_attachment, camera, &lights);
             ctx.output(&s.occlusion.debug, Visualize::Direct);
         });
     }
@@ -736,8 +733,8 @@ impl Effects {
     /// BuildHZB, after the occlusion tests.
     pub fn build_hzb(&self, frame: &mut FrameRecorder) {
         let s = self.lock();
-        frame.pass("BuildHZB", |ctx| {
-            s.hzb.record(ctx.encoder());
+        frame.pass(super::hzb::PASS.name, |ctx| {
+            s.hzb.record(ctx);
             ctx.output(&s.hzb.texture, Visualize::Depth);
         });
     }
@@ -747,17 +744,17 @@ impl Effects {
         let mut s = self.lock();
         let s = &mut *s;
         let settings = fog_settings(s);
-        frame.pass("VolumetricFog", |ctx| {
+        frame.pass(super::volumetric_fog::PASS.name, |ctx| {
             ctx.step("InitializeVolumeAttributes", |ctx| {
-                s.fog.record_initialize(&s.queue, ctx.encoder(), &settings);
+                s.fog.record_initialize(&s.queue, ctx, &settings);
                 s.vis.vbuffer_a.output(ctx, None);
             });
             ctx.step("LightScattering", |ctx| {
-                s.fog.record_light_scattering(ctx.encoder());
+                s.fog.record_light_scattering(ctx);
                 s.vis.light_scattering[s.fog.current_index()].output(ctx, None);
             });
             ctx.step("FinalIntegration", |ctx| {
-                s.fog.record_final_integration(ctx.encoder());
+                s.fog.record_final_integration(ctx);
                 s.vis.integrated.output(ctx, None);
             });
         });
@@ -770,8 +767,8 @@ impl Effects {
     pub fn particle_collision(&self, ctx: &mut PassContext<'_>) {
         let mut s = self.lock();
         let s = &mut *s;
-        ctx.step("ParticleCollision", |ctx| {
-            s.particles.simulate(&s.queue, ctx.encoder(), true);
+        ctx.step(crate::passes::particles::COLLISION_STEP.name, |ctx| {
+            s.particles.simulate(&s.queue, ctx, true);
             let i = s.particles.current_index(true);
             s.vis.spark_position[i].output(ctx, None);
         });
@@ -788,8 +785,8 @@ impl Effects {
             .iter()
             .map(|&o| (object_transforms(s, o), object_transforms_at(s, o, s.time - TIME_STEP)))
             .collect();
-        frame.pass("Velocity", |ctx| {
-            s.velocity.record(&s.queue, ctx.encoder(), &s.scene_depth_attachment, &transforms);
+        frame.pass(super::velocity::PASS.name, |ctx| {
+            s.velocity.record(&s.queue, ctx, &s.scene_depth_attachment, &transforms);
             s.vis.velocity.output(ctx, None);
         });
     }
@@ -810,10 +807,10 @@ impl Effects {
         let slice = room_slice(camera);
         s.vis.volume_ambient.set_slice(&s.queue, slice);
         s.vis.volume_filtered.set_slice(&s.queue, slice);
-        ctx.step("InjectTranslucentVolume", |ctx| {
+        ctx.step(super::translucent_volume::INJECT_STEP.name, |ctx| {
             s.volumes.record_inject(
                 &s.queue,
-                ctx.encoder(),
+                ctx,
                 camera,
                 s.shadow.as_ref(),
                 s.options.translucency_volume_shadows,
@@ -821,8 +818,8 @@ impl Effects {
             );
             s.vis.volume_ambient.output(ctx, None);
         });
-        ctx.step("FilterTranslucentVolume", |ctx| {
-            s.volumes.record_filter(ctx.encoder());
+        ctx.step(super::translucent_volume::FILTER_STEP.name, |ctx| {
+            s.volumes.record_filter(ctx);
             s.vis.volume_filtered.output(ctx, None);
         });
     }
@@ -831,16 +828,16 @@ impl Effects {
     pub fn reflections(&self, frame: &mut FrameRecorder) {
         let mut s = self.lock();
         let s = &mut *s;
-        frame.pass("Reflections", |ctx| {
-            s.reflections.record_capture(ctx.encoder());
+        frame.pass(super::reflections::PASS.name, |ctx| {
+            s.reflections.record_capture(ctx);
             ctx.step("ScreenSpaceReflections", |ctx| {
-                s.reflections.record_ssr(ctx.encoder());
+                s.reflections.record_ssr(ctx);
                 ctx.output(&s.reflections.ssr, Visualize::Hdr);
             });
             let apply = s.options.reflections;
             ctx.step("ReflectionEnvironmentAndSky", |ctx| {
                 if apply {
-                    s.reflections.record_environment(ctx.encoder(), &s.scene_color_view);
+                    s.reflections.record_environment(ctx, &s.scene_color_view);
                 }
                 ctx.output(&s.scene_color, Visualize::Hdr);
             });
@@ -854,8 +851,8 @@ impl Effects {
         if !s.options.volumetric_fog || s.scene.fog.density <= 0.0 {
             return;
         }
-        ctx.step("VolumetricFog", |ctx| {
-            s.fog.apply(ctx.encoder(), &s.scene_color_view);
+        ctx.step(super::volumetric_fog::APPLY_STEP.name, |ctx| {
+            s.fog.apply(ctx, &s.scene_color_view);
             ctx.output(&s.scene_color, Visualize::Hdr);
         });
     }
@@ -863,9 +860,9 @@ impl Effects {
     /// The particle sprites over SceneColor: a step of Translucency.
     pub fn particle_sprites(&self, ctx: &mut PassContext<'_>) {
         let s = self.lock();
-        ctx.step("ParticleSprites", |ctx| {
+        ctx.step(crate::passes::particles::SPRITES_STEP.name, |ctx| {
             {
-                let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+                let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("ParticleSprites"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                         view: &s.scene_color_view,
@@ -893,20 +890,14 @@ impl Effects {
         let mut s = self.lock();
         let s = &mut *s;
         let transforms: Vec<Vec<Mat4>> = s.refracting.iter().map(|&o| object_transforms(s, o)).collect();
-        frame.pass("Distortion", |ctx| {
+        frame.pass(super::distortion::PASS.name, |ctx| {
             ctx.step("DistortionAccum", |ctx| {
                 let particles = s.options.particles.then_some(&s.particles);
-                s.distortion.record_accumulate(
-                    &s.queue,
-                    ctx.encoder(),
-                    &s.scene_depth_attachment,
-                    &transforms,
-                    particles,
-                );
+                s.distortion.record_accumulate(&s.queue, ctx, &s.scene_depth_attachment, &transforms, particles);
                 s.vis.distortion.output(ctx, None);
             });
             ctx.step("DistortionApply", |ctx| {
-                s.distortion.record_apply(ctx.encoder(), &s.scene_color, &s.scene_color_view);
+                s.distortion.record_apply(ctx, &s.scene_color, &s.scene_color_view);
                 ctx.output(&s.scene_color, Visualize::Hdr);
             });
         });
@@ -919,25 +910,25 @@ impl Effects {
         let mut s = self.lock();
         let s = &mut *s;
         if s.options.taa {
-            ctx.step("TAA", |ctx| {
-                s.taa.record(&s.queue, ctx.encoder());
+            ctx.step(super::taa::STEP.name, |ctx| {
+                s.taa.record(&s.queue, ctx);
                 ctx.output(s.taa.output(), Visualize::Hdr);
             });
         } else {
-            s.taa.bypass(ctx.encoder(), &s.scene_color);
+            s.taa.bypass(ctx, &s.scene_color);
         }
         let input = s.taa.current();
         if s.options.eye_adaptation {
-            ctx.step("EyeAdaptation", |ctx| {
-                s.eye.record(&s.queue, ctx.encoder(), input, TIME_STEP);
+            ctx.step(super::eye_adaptation::STEP.name, |ctx| {
+                s.eye.record(&s.queue, ctx, input, TIME_STEP);
                 ctx.output(&s.eye.debug, Visualize::Direct);
             });
         } else {
             s.eye.set_fixed(&s.queue, 1.0);
         }
         let blur = s.options.motion_blur;
-        ctx.step("MotionBlur", |ctx| {
-            s.motion_blur.record(&s.queue, ctx.encoder(), input, &s.scene_color_view, blur);
+        ctx.step(super::motion_blur::STEP.name, |ctx| {
+            s.motion_blur.record(&s.queue, ctx, input, &s.scene_color_view, blur);
             ctx.output(&s.scene_color, Visualize::Hdr);
         });
     }

@@ -6,6 +6,7 @@
 //! the frame copies into the exposure the Bloom and Tonemapper read. A small image of the
 //! histogram is drawn for the pass dump.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -15,6 +16,10 @@ use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
 use super::frame_view::{groups, target_2d, uniform_buffer, view};
+
+/// A step of PostProcessing: adapts the previous exposure (history) to the TAA output.
+pub const STEP: PassDecl =
+    PassDecl { name: "EyeAdaptation", reads: &["TAAHistory", "EyeAdaptation"], writes: &["EyeAdaptation"] };
 
 pub const BINS: usize = 64;
 pub const MIN_LOG2_LUMINANCE: f32 = -10.0;
@@ -197,7 +202,7 @@ impl EyeAdaptation {
 
     /// Histogram of input `input`, its image, then the adapted exposure (`delta_time` seconds
     /// after the last).
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, input: usize, delta_time: f32) {
+    pub fn record(&mut self, queue: &wgpu::Queue, ctx: &mut PassContext<'_>, input: usize, delta_time: f32) {
         let s = &self.settings;
         let params = EyeAdaptationParams {
             log_range: Vec4::new(MIN_LOG2_LUMINANCE, MAX_LOG2_LUMINANCE, s.low_percent, s.high_percent),
@@ -205,11 +210,8 @@ impl EyeAdaptation {
             timing: Vec4::new(delta_time, s.compensation, if self.valid { 1.0 } else { 0.0 }, 0.0),
         };
         queue.write_buffer(&self.adapt_params, 0, bytemuck::bytes_of(&params));
-        encoder.clear_buffer(&self.histogram, 0, None);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("PostProcessHistogram"),
-            timestamp_writes: None,
-        });
+        ctx.encoder().clear_buffer(&self.histogram, 0, None);
+        let mut pass = ctx.open_compute_pass("PostProcessHistogram");
         pass.set_pipeline(&self.histogram_pipeline.pipeline);
         pass.set_bind_group(0, &self.histogram_groups[input], &[]);
         pass.dispatch_workgroups(groups(self.size[0], 16), groups(self.size[1], 16), 1);

@@ -4,12 +4,16 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::{Build, DesktopError};
+
+/// The ExponentialHeightFog declaration.
+pub const PASS: PassDecl =
+    PassDecl { name: "ExponentialHeightFog", reads: &["View", "SceneDepth", "SceneColor"], writes: &["SceneColor"] };
 
 pub struct HeightFog {
     pipeline: Arc<Render>,
@@ -41,8 +45,7 @@ impl HeightFog {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         {
-            let mut pass =
-                begin(ctx.encoder(), "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
+            let mut pass = begin(ctx, "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
             pass.set_pipeline(&self.pipeline.pipeline);
             self.groups.set_render(&mut pass);
             pass.draw(0..3, 0..1);

@@ -7,6 +7,8 @@ use bytemuck::Pod;
 use glam::{Mat4, Vec2, Vec4};
 use wgpu::util::DeviceExt;
 
+use crate::frame::{GroupedRenderPass, PassContext};
+
 /// Element `index` (from 1) of the Halton sequence in `base`, in [0, 1).
 pub fn halton(mut index: u32, base: u32) -> f32 {
     let mut f = 1.0;
@@ -206,12 +208,12 @@ pub fn groups(n: u32, workgroup: u32) -> u32 {
 
 /// A render pass over one colour target (no depth).
 pub fn color_pass<'e>(
-    encoder: &'e mut wgpu::CommandEncoder,
+    ctx: &'e mut PassContext<'_>,
     label: &str,
     target: &wgpu::TextureView,
     load: wgpu::LoadOp<wgpu::Color>,
-) -> wgpu::RenderPass<'e> {
-    encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+) -> GroupedRenderPass<'e> {
+    ctx.open_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
         color_attachments: &[Some(wgpu::RenderPassColorAttachment {
             view: target,

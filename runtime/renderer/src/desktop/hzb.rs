@@ -13,6 +13,7 @@
 //! mips 2 and 4 read 0 everywhere on llvmpipe's GL, the depth of the view on lavapipe), so the
 //! reflections found no hit there (their GL capture was black, 27.9 dB from Vulkan's).
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -21,6 +22,9 @@ use crate::keys;
 use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
 
 use super::frame_view::{groups, uniform_buffer};
+
+/// The BuildHZB declaration.
+pub const PASS: PassDecl = PassDecl { name: "BuildHZB", reads: &["SceneDepth"], writes: &["HZB"] };
 
 pub const HZB_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
 
@@ -137,13 +141,13 @@ impl Hzb {
     }
 
     /// One dispatch per mip, in order (each reads a copy of the one before).
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn record(&self, ctx: &mut PassContext<'_>) {
         for (level, bind_group) in self.bind_groups.iter().enumerate() {
             let dst = mip_size(self.size, level as u32);
             if level > 0 {
                 let parent = level as u32 - 1;
                 let [w, h] = mip_size(self.size, parent);
-                encoder.copy_texture_to_texture(
+                ctx.encoder().copy_texture_to_texture(
                     wgpu::TexelCopyTextureInfo {
                         texture: &self.texture,
                         mip_level: parent,
@@ -159,10 +163,7 @@ impl Hzb {
                     wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
                 );
             }
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1])),
-                timestamp_writes: None,
-            });
+            let mut pass = ctx.open_compute_pass(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1]));
             pass.set_pipeline(if level == 0 { &self.first.pipeline } else { &self.rest.pipeline });
             pass.set_bind_group(0, bind_group, &[]);
             pass.dispatch_workgroups(groups(dst[0], 8), groups(dst[1], 8), 1);

@@ -5,12 +5,15 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{BindGroups, Compute, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::{Build, DesktopError};
+
+/// The ComputeLightGrid declaration.
+pub const PASS: PassDecl = PassDecl { name: "ComputeLightGrid", reads: &["Scene", "View"], writes: &["LightGrid"] };
 
 /// Links each cell may hold on average before culling truncates (per light, up to this).
 const LINKS_PER_CELL: u32 = 64;
@@ -85,9 +88,7 @@ impl LightGrid {
 
     fn dispatch(&self, ctx: &mut PassContext<'_>, label: &str, pipeline: &Compute, groups: &BindGroups) {
         let [wx, wy, wz] = pipeline.workgroup_size;
-        let mut pass = ctx
-            .encoder()
-            .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+        let mut pass = ctx.open_compute_pass(label);
         pass.set_pipeline(&pipeline.pipeline);
         groups.set_compute(&mut pass);
         pass.dispatch_workgroups(self.grid[0].div_ceil(wx), self.grid[1].div_ceil(wy), self.grid[2].div_ceil(wz));
@@ -106,7 +107,7 @@ impl LightGrid {
         });
         {
             let mut pass = begin(
-                ctx.encoder(),
+                ctx,
                 "VisualizeLightGrid",
                 &[color_attachment(&targets.light_grid_visualize.view, Some(wgpu::Color::BLACK))],
                 None,

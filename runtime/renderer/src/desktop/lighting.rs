@@ -20,7 +20,7 @@ use std::sync::Arc;
 
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::keys::shadow_projection_ps::ShadowProjectionType;
 use crate::keys::standard_deferred_lighting_ps::LightType;
@@ -33,6 +33,13 @@ use super::resources::{
 use super::shadow_depths::ShadowDepths;
 use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
 use super::{Build, DesktopError, LightingPath};
+
+/// The Lighting declaration.
+pub const PASS: PassDecl = PassDecl {
+    name: "Lighting",
+    reads: &["Scene", "View", "SceneDepth", "GBufferA", "GBufferB", "GBufferC", "ShadowDepths", "SceneColor"],
+    writes: &["ShadowMask", "SceneColor"],
+};
 
 /// A light draw: its pipelines with their bind groups, and whether it is a sphere or the
 /// full screen.
@@ -380,7 +387,7 @@ impl Lighting {
         ctx.step("NonShadowedLights", |ctx| {
             {
                 let mut pass = begin(
-                    ctx.encoder(),
+                    ctx,
                     "NonShadowedLights",
                     &[color_attachment(&t.scene_color.view, None)],
                     read_only_depth(&t.scene_depth),
@@ -397,10 +404,7 @@ impl Lighting {
         if let Some((cs, groups)) = &self.tiled {
             ctx.step("TiledDeferredLighting", |ctx| {
                 {
-                    let mut pass = ctx.encoder().begin_compute_pass(&wgpu::ComputePassDescriptor {
-                        label: Some("TiledDeferredLighting"),
-                        timestamp_writes: None,
-                    });
+                    let mut pass = ctx.open_compute_pass("TiledDeferredLighting");
                     pass.set_pipeline(&cs.pipeline);
                     groups.set_compute(&mut pass);
                     let [wx, wy, _] = cs.workgroup_size;
@@ -418,7 +422,7 @@ impl Lighting {
             for light in self.shadowed.iter().filter(|l| !occluded(l)) {
                 {
                     let mut pass = begin(
-                        ctx.encoder(),
+                        ctx,
                         "ShadowProjectionOnOpaque",
                         &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))],
                         read_only_depth(&t.scene_depth),
@@ -437,7 +441,7 @@ impl Lighting {
                 );
                 {
                     let mut pass = begin(
-                        ctx.encoder(),
+                        ctx,
                         "StandardDeferredLighting",
                         &[color_attachment(&t.scene_color.view, None)],
                         read_only_depth(&t.scene_depth),

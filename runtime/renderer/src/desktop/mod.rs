@@ -37,7 +37,7 @@ pub mod translucent_volume;
 pub mod velocity;
 pub mod volumetric_fog;
 
-use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
+use crate::frame::{FramePlan, FrameRecorder, Image, PassResult, Visualize};
 use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::view::SceneView;
 use crate::scene::Scene;
@@ -310,41 +310,90 @@ impl DesktopFrame {
         self.write_camera(&camera, &view);
         self.follow_camera(&view);
         p2.particle_simulation(frame);
-        frame.pass("PrePass", |ctx| self.prepass.record(ctx, s, t));
-        frame.pass("ComputeLightGrid", |ctx| self.light_grid.record(ctx, t));
+        frame.pass(prepass::PASS.name, |ctx| self.prepass.record(ctx, s, t));
+        frame.pass(light_grid::PASS.name, |ctx| self.light_grid.record(ctx, t));
         p2.begin_occlusion_tests(frame);
         p2.build_hzb(frame);
         // this frame's verdict of the ShadowFrustumQueries (read back a frame or more ago)
         let casts_shadow = |light: usize| self.casts_shadow(light);
-        frame.pass("ShadowDepths", |ctx| self.shadows.record(ctx, s, &casts_shadow));
+        frame.pass(shadow_depths::PASS.name, |ctx| self.shadows.record(ctx, s, &casts_shadow));
         p2.volumetric_fog(frame);
-        frame.pass("BasePass", |ctx| {
+        frame.pass(base_pass::PASS.name, |ctx| {
             self.base_pass.record(ctx, s, t);
             p2.particle_collision(ctx);
         });
         p2.velocity(frame);
         if self.options.ambient_occlusion {
-            frame.pass("AmbientOcclusion", |ctx| self.ambient_occlusion.record(ctx, t));
+            frame.pass(ambient_occlusion::PASS.name, |ctx| self.ambient_occlusion.record(ctx, t));
         }
-        frame.pass("Lighting", |ctx| {
+        frame.pass(lighting::PASS.name, |ctx| {
             self.lighting.record(ctx, s, t, &casts_shadow);
             p2.translucent_volumes(ctx, &casts_shadow);
         });
         p2.reflections(frame);
-        frame.pass("ExponentialHeightFog", |ctx| {
+        frame.pass(fog::PASS.name, |ctx| {
             self.fog.record(ctx, t);
             p2.apply_volumetric_fog(ctx);
         });
-        frame.pass("Translucency", |ctx| {
+        frame.pass(translucency::PASS.name, |ctx| {
             self.translucency.record(ctx, s, t, p2.options().translucency_lighting);
             p2.particle_sprites(ctx);
         });
         p2.distortion(frame);
-        frame.pass("PostProcessing", |ctx| {
+        frame.pass(post_processing::PASS.name, |ctx| {
             p2.temporal_post_processing(ctx);
             self.post.record(ctx, t, output);
         });
         p2.end_frame();
+    }
+
+    /// The frame's passes in the order [`DesktopFrame::record_into`] records them, each
+    /// with what it reads and writes (the volumetric fog step is listed where the options
+    /// have it, though a scene without fog skips it).
+    pub fn plan(options: &DesktopOptions) -> FramePlan {
+        let e = &options.effects;
+        let mut history =
+            vec!["ParticleState", "OcclusionQueries", "VolumetricFog", "TranslucencyVolume", "TAAHistory"];
+        let mut inputs = vec!["Scene", "View"];
+        // without eye adaptation the exposure is a constant written before the frame
+        if e.eye_adaptation {
+            history.push("EyeAdaptation");
+        } else {
+            inputs.push("EyeAdaptation");
+        }
+        let mut plan = FramePlan::new(&inputs, &history)
+            .pass(&crate::passes::particles::SIMULATION_PASS)
+            .pass(&prepass::PASS)
+            .pass(&light_grid::PASS)
+            .pass(&occlusion::PASS)
+            .pass(&hzb::PASS)
+            .pass(&shadow_depths::PASS)
+            .pass(&volumetric_fog::PASS)
+            .pass(&base_pass::PASS)
+            .step(&crate::passes::particles::COLLISION_STEP)
+            .pass(&velocity::PASS);
+        if options.ambient_occlusion {
+            plan = plan.pass(&ambient_occlusion::PASS);
+        }
+        plan = plan
+            .pass(&lighting::PASS)
+            .step(&translucent_volume::INJECT_STEP)
+            .step(&translucent_volume::FILTER_STEP)
+            .pass(&reflections::PASS)
+            .pass(&fog::PASS);
+        if e.volumetric_fog {
+            plan = plan.step(&volumetric_fog::APPLY_STEP);
+        }
+        plan = plan
+            .pass(&translucency::PASS)
+            .step(&crate::passes::particles::SPRITES_STEP)
+            .pass(&distortion::PASS)
+            .pass(&post_processing::PASS)
+            .step_first(if e.taa { &taa::STEP } else { &taa::BYPASS });
+        if e.eye_adaptation {
+            plan = plan.step_first(&eye_adaptation::STEP);
+        }
+        plan.step_first(&motion_blur::STEP)
     }
 
     /// Whether local light `light` renders its shadow depths and projection this frame: its
@@ -624,4 +673,48 @@ fn object_rows(scene: &Scene, buffers: &resources::SceneBuffers) -> Vec<(usize, 
         rows.push((i, d.first_instance, (lo + hi) * 0.5, template));
     }
     rows
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_read_of_the_frame_is_written_before_it() {
+        let options = DesktopOptions::default();
+        let plan = DesktopFrame::plan(&options);
+        assert_eq!(plan.check(), Ok(()));
+        assert_eq!(
+            plan.names(),
+            vec![
+                "ParticleSimulation",
+                "PrePass",
+                "ComputeLightGrid",
+                "BeginOcclusionTests",
+                "BuildHZB",
+                "ShadowDepths",
+                "VolumetricFog",
+                "BasePass",
+                "Velocity",
+                "AmbientOcclusion",
+                "Lighting",
+                "Reflections",
+                "ExponentialHeightFog",
+                "Translucency",
+                "Distortion",
+                "PostProcessing",
+            ]
+        );
+    }
+
+    #[test]
+    fn the_frame_without_its_effects_still_reads_only_what_is_written() {
+        let options =
+            DesktopOptions { ambient_occlusion: false, effects: effects::EffectOptions::off(), ..Default::default() };
+        let plan = DesktopFrame::plan(&options);
+        assert_eq!(plan.check(), Ok(()));
+        assert!(!plan.names().contains(&"AmbientOcclusion"));
+        let steps: Vec<&str> = plan.decls().map(|d| d.name).collect();
+        assert!(steps.contains(&"TAABypass") && !steps.contains(&"EyeAdaptation"), "{steps:?}");
+    }
 }

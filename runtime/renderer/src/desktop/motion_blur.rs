@@ -3,6 +3,7 @@
 //! elsewhere), scaled by the shutter and capped, and writes the result, times the eye
 //! adaptation's exposure, back to SceneColor for the Bloom and Tonemapper that follow.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -12,6 +13,13 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, uniform_buffer, EffectPassInit};
+
+/// A step of PostProcessing: writes the TAA output back to SceneColor, blurred and exposed.
+pub const STEP: PassDecl = PassDecl {
+    name: "MotionBlur",
+    reads: &["View", "SceneDepth", "Velocity", "TAAHistory", "EyeAdaptation"],
+    writes: &["SceneColor"],
+};
 
 /// Fraction of the frame the shutter is open (Unreal's default 0.5).
 pub const SHUTTER: f32 = 0.5;
@@ -81,7 +89,7 @@ impl MotionBlur {
     pub fn record(
         &self,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         input: usize,
         output: &wgpu::TextureView,
         blur: bool,
@@ -92,7 +100,7 @@ impl MotionBlur {
             0,
             bytemuck::bytes_of(&MotionBlurParams { shutter: Vec4::new(shutter, MAX_LENGTH, SAMPLES, 0.0) }),
         );
-        let mut pass = color_pass(encoder, "MotionBlur", output, wgpu::LoadOp::Clear(wgpu::Color::BLACK));
+        let mut pass = color_pass(ctx, "MotionBlur", output, wgpu::LoadOp::Clear(wgpu::Color::BLACK));
         pass.set_pipeline(&self.pipeline.pipeline);
         pass.set_bind_group(0, &self.groups[input], &[]);
         pass.draw(0..3, 0..1);

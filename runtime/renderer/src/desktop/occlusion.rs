@@ -15,6 +15,7 @@
 //! holds the decision, with the same latency as the props' (results applied a frame or more
 //! after their query, never waited for; a light without a result yet counts as visible).
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -25,6 +26,10 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{target_2d, view, EffectPassInit};
+
+/// Reads the prepass depth; its queries come back a frame or more later (ShadowDepths reads them).
+pub const PASS: PassDecl =
+    PassDecl { name: "BeginOcclusionTests", reads: &["View", "SceneDepth"], writes: &["OcclusionQueries"] };
 
 /// Most queries of one frame.
 pub const MAX_QUERIES: u32 = 128;
@@ -308,7 +313,7 @@ impl OcclusionCulling {
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         scene_depth: &wgpu::TextureView,
         camera: Vec3,
         lights: &[LightBounds],
@@ -388,7 +393,7 @@ impl OcclusionCulling {
             queue.write_buffer(&self.proxies, 0, bytemuck::cast_slice(&proxies));
         }
         {
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("BeginOcclusionTests"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &self.debug_view,
@@ -418,8 +423,8 @@ impl OcclusionCulling {
         }
         if !queries.is_empty() {
             let n = queries.len() as u32;
-            encoder.resolve_query_set(&self.query_set, 0..n, &self.resolve, 0);
-            encoder.copy_buffer_to_buffer(&self.resolve, 0, &self.readbacks[slot].buffer, 0, u64::from(n) * 8);
+            ctx.encoder().resolve_query_set(&self.query_set, 0..n, &self.resolve, 0);
+            ctx.encoder().copy_buffer_to_buffer(&self.resolve, 0, &self.readbacks[slot].buffer, 0, u64::from(n) * 8);
             let r = &mut self.readbacks[slot];
             r.queries = queries.into_iter().map(|q| q.0).collect();
             r.in_use = true;

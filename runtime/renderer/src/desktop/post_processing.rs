@@ -6,13 +6,16 @@ use std::sync::Arc;
 
 use glam::Vec4;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
 use super::view::{BloomUniforms, TonemapUniforms};
 use super::{Build, DesktopError};
+
+/// Bloom and the Tonemapper (after the temporal steps).
+pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Bloom", "Output"] };
 
 struct Draw {
     pipeline: Arc<Render>,
@@ -113,7 +116,7 @@ impl PostProcessing {
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
         let mut pass =
-            begin(ctx.encoder(), "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
+            begin(ctx, "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
         pass.set_pipeline(&d.pipeline.pipeline);
         d.groups.set_render(&mut pass);
         pass.draw(0..3, 0..1);

@@ -4,13 +4,16 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, SceneBuffers, Targets};
 use super::{Build, DesktopError};
+
+/// The PrePass declaration.
+pub const PASS: PassDecl = PassDecl { name: "PrePass", reads: &["Scene", "View"], writes: &["SceneDepth"] };
 
 pub struct PrePass {
     opaque: Arc<Render>,
@@ -54,7 +57,7 @@ impl PrePass {
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, targets: &Targets) {
         {
             let mut pass = begin(
-                ctx.encoder(),
+                ctx,
                 "PrePass",
                 &[],
                 Some(wgpu::RenderPassDepthStencilAttachment {

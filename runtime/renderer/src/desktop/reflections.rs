@@ -7,6 +7,7 @@
 //! BRDF. The capture cubemap is filtered once, one mip per roughness, by
 //! `ReflectionCaptureFilterCS`.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -16,6 +17,13 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
+
+/// The Reflections declaration.
+pub const PASS: PassDecl = PassDecl {
+    name: "Reflections",
+    reads: &["View", "SceneDepth", "HZB", "GBufferA", "GBufferB", "GBufferC", "SceneColor"],
+    writes: &["ReflectionCapture", "ScreenSpaceReflections", "SceneColor"],
+};
 
 pub const SSR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 pub const CAPTURE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -211,14 +219,11 @@ impl Reflections {
     }
 
     /// Filters the capture cubemap (once: the capture sees static surroundings).
-    pub fn record_capture(&mut self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn record_capture(&mut self, ctx: &mut PassContext<'_>) {
         if self.captured {
             return;
         }
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("ReflectionCaptureFilter"),
-            timestamp_writes: None,
-        });
+        let mut pass = ctx.open_compute_pass("ReflectionCaptureFilter");
         pass.set_pipeline(&self.filter.pipeline);
         for (group, size) in &self.filter_groups {
             pass.set_bind_group(0, group, &[]);
@@ -228,21 +233,17 @@ impl Reflections {
     }
 
     /// ScreenSpaceReflections into the SSR target.
-    pub fn record_ssr(&self, encoder: &mut wgpu::CommandEncoder) {
-        let mut pass = color_pass(
-            encoder,
-            "ScreenSpaceReflections",
-            &self.ssr_view,
-            wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-        );
+    pub fn record_ssr(&self, ctx: &mut PassContext<'_>) {
+        let mut pass =
+            color_pass(ctx, "ScreenSpaceReflections", &self.ssr_view, wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT));
         pass.set_pipeline(&self.ssr_pipeline.pipeline);
         pass.set_bind_group(0, &self.ssr_group, &[]);
         pass.draw(0..3, 0..1);
     }
 
     /// ReflectionEnvironmentAndSky, added onto SceneColor.
-    pub fn record_environment(&self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::TextureView) {
-        let mut pass = color_pass(encoder, "ReflectionEnvironmentAndSky", scene_color, wgpu::LoadOp::Load);
+    pub fn record_environment(&self, ctx: &mut PassContext<'_>, scene_color: &wgpu::TextureView) {
+        let mut pass = color_pass(ctx, "ReflectionEnvironmentAndSky", scene_color, wgpu::LoadOp::Load);
         pass.set_pipeline(&self.environment.pipeline);
         pass.set_bind_group(0, &self.environment_group, &[]);
         pass.draw(0..3, 0..1);

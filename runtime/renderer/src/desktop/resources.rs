@@ -4,6 +4,7 @@
 use glam::{Mat4, UVec4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
+use crate::frame::{GroupedRenderPass, PassContext};
 use crate::scene::{BlendMode, Mesh, Mobility, Pattern, Scene};
 
 use super::view::{InstanceGpu, LocalLightGpu, MaterialGpu};
@@ -533,12 +534,12 @@ pub fn color_attachment(
 
 /// A render pass with these attachments and no queries.
 pub fn begin<'e>(
-    encoder: &'e mut wgpu::CommandEncoder,
+    ctx: &'e mut PassContext<'_>,
     label: &str,
     colors: &[Option<wgpu::RenderPassColorAttachment<'_>>],
     depth: Option<wgpu::RenderPassDepthStencilAttachment<'_>>,
-) -> wgpu::RenderPass<'e> {
-    encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+) -> GroupedRenderPass<'e> {
+    ctx.open_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
         color_attachments: colors,
         depth_stencil_attachment: depth,

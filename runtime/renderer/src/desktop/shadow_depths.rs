@@ -12,7 +12,7 @@ use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
@@ -20,6 +20,10 @@ use super::resources::{begin, formats, uniform, LocalShadow, SceneBuffers, Textu
 use super::view::{FrameView, ShadowDepthPassUniforms, ShadowProjectionUniforms};
 use super::{Build, DesktopError};
 use std::sync::Arc;
+
+/// Skips the lights whose ShadowFrustumQueries came back empty.
+pub const PASS: PassDecl =
+    PassDecl { name: "ShadowDepths", reads: &["Scene", "OcclusionQueries"], writes: &["ShadowDepths"] };
 
 /// View depths where the cascades end (the first starts at the near plane).
 pub const CASCADE_SPLITS: [f32; 3] = [6.0, 14.0, 32.0];
@@ -444,19 +448,15 @@ impl ShadowDepths {
                         let name = self.light_names.get(light).map_or("", String::as_str);
                         let load = if cleared { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(1.0) };
                         ctx.step(&format!("PerObject_{name}"), |ctx| {
-                            let mut pass = begin(
-                                ctx.encoder(),
-                                &format!("PerObject {name}"),
-                                &[],
-                                depth(&atlas.texture.view, load),
-                            );
+                            let mut pass =
+                                begin(ctx, &format!("PerObject {name}"), &[], depth(&atlas.texture.view, load));
                             draw_views(&mut pass, atlas, &|v| v.light == Some(light), &|_, v| v.draws.clone());
                         });
                         cleared = true;
                     }
                     if !cleared {
                         // every light occluded: the atlas is only cleared
-                        begin(ctx.encoder(), &atlas.step, &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
+                        begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
                     }
                     ctx.output(&atlas.texture.texture, Visualize::Depth);
                 });
@@ -471,19 +471,15 @@ impl ShadowDepths {
                 if let Some(cache) = &atlas.cache {
                     if !cache.valid.swap(true, std::sync::atomic::Ordering::Relaxed) {
                         // the static casters, rendered once into the cache
-                        let mut pass = begin(
-                            ctx.encoder(),
-                            "CachedShadowDepth",
-                            &[],
-                            depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)),
-                        );
+                        let mut pass =
+                            begin(ctx, "CachedShadowDepth", &[], depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)));
                         draw_views(&mut pass, atlas, &|_| true, &|i, _| cache.static_draws[i].clone());
                         cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     }
                     ctx.step("CopyCachedShadowMap", |ctx| {
                         {
                             let mut pass = begin(
-                                ctx.encoder(),
+                                ctx,
                                 "CopyCachedShadowMap",
                                 &[],
                                 depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)),
@@ -497,7 +493,7 @@ impl ShadowDepths {
                     load = wgpu::LoadOp::Load;
                 }
                 {
-                    let mut pass = begin(ctx.encoder(), &atlas.step, &[], depth(&atlas.texture.view, load));
+                    let mut pass = begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, load));
                     draw_views(&mut pass, atlas, &|_| true, &|_, v| v.draws.clone());
                 }
                 ctx.output(&atlas.texture.texture, Visualize::Depth);
@@ -524,16 +520,19 @@ pub fn dummy_shadow_texture(device: &wgpu::Device, queue: &wgpu::Queue) -> Textu
     let t = shadow_texture(device, "NoShadowDepth", 1, 1);
     let mut encoder =
         device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("clear NoShadowDepth") });
-    begin(
-        &mut encoder,
-        "clear NoShadowDepth",
-        &[],
-        Some(wgpu::RenderPassDepthStencilAttachment {
+    // made once with the renderer, outside any frame: no pass context to record through
+    encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("clear NoShadowDepth"),
+        color_attachments: &[],
+        depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
             view: &t.view,
             depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
             stencil_ops: None,
         }),
-    );
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
     queue.submit([encoder.finish()]);
     t
 }

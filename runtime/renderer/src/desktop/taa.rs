@@ -4,6 +4,7 @@
 //! current 3x3 neighbourhood's YCoCg box and blends the current frame in with weight
 //! [`CURRENT_WEIGHT`]. The output is the next frame's history (ping-pong pair).
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -13,6 +14,16 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
+
+/// The first step of PostProcessing: resolves SceneColor into the history it reprojects next frame.
+pub const STEP: PassDecl = PassDecl {
+    name: "TAA",
+    reads: &["View", "SceneDepth", "Velocity", "SceneColor", "TAAHistory"],
+    writes: &["TAAHistory"],
+};
+
+/// Without TAA: SceneColor copied into the history (no step of its own).
+pub const BYPASS: PassDecl = PassDecl { name: "TAABypass", reads: &["SceneColor"], writes: &["TAAHistory"] };
 
 pub const HISTORY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weight of the current frame in the history (Unreal: 0.04 at 8 samples; a larger weight
@@ -87,12 +98,12 @@ impl TemporalAA {
 
     /// Resolves this frame into the next history; returns the texture written (the
     /// anti-aliased SceneColor).
-    pub fn record(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder) -> &wgpu::TextureView {
+    pub fn record(&mut self, queue: &wgpu::Queue, ctx: &mut PassContext<'_>) -> &wgpu::TextureView {
         let out = 1 - self.current;
         let params =
             TaaParams { blend: Vec4::new(CURRENT_WEIGHT, if self.history_valid { 1.0 } else { 0.0 }, 0.0, 0.0) };
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let mut pass = color_pass(encoder, "TAA", &self.history_views[out], wgpu::LoadOp::Clear(wgpu::Color::BLACK));
+        let mut pass = color_pass(ctx, "TAA", &self.history_views[out], wgpu::LoadOp::Clear(wgpu::Color::BLACK));
         pass.set_pipeline(&self.pipeline.pipeline);
         pass.set_bind_group(0, &self.groups[out], &[]);
         pass.draw(0..3, 0..1);
@@ -104,9 +115,9 @@ impl TemporalAA {
 
     /// Without TAA: SceneColor copied into the next history slot as it is (the passes after
     /// read it from there); the history becomes invalid.
-    pub fn bypass(&mut self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::Texture) {
+    pub fn bypass(&mut self, ctx: &mut PassContext<'_>, scene_color: &wgpu::Texture) {
         let out = 1 - self.current;
-        encoder.copy_texture_to_texture(
+        ctx.encoder().copy_texture_to_texture(
             scene_color.as_image_copy(),
             self.history[out].as_image_copy(),
             scene_color.size(),

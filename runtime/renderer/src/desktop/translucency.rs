@@ -9,7 +9,7 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
@@ -20,6 +20,13 @@ use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
 use super::{Build, DesktopError};
+
+/// The Translucency declaration.
+pub const PASS: PassDecl = PassDecl {
+    name: "Translucency",
+    reads: &["Scene", "View", "SceneDepth", "LightGrid", "ShadowDepths", "TranslucencyVolume", "SceneColor"],
+    writes: &["SeparateTranslucency", "SceneColor"],
+};
 
 pub struct Translucency {
     /// The lit translucent surfaces: [forward shaded, lit by the volumes].
@@ -147,7 +154,7 @@ impl Translucency {
         ctx.step("SeparateTranslucency", |ctx| {
             {
                 let mut pass = begin(
-                    ctx.encoder(),
+                    ctx,
                     "SeparateTranslucency",
                     &[color_attachment(&t.translucency.view, Some(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a: 1.0 }))],
                     Some(wgpu::RenderPassDepthStencilAttachment {
@@ -170,12 +177,8 @@ impl Translucency {
         });
         ctx.step("ComposeSeparateTranslucency", |ctx| {
             {
-                let mut pass = begin(
-                    ctx.encoder(),
-                    "ComposeSeparateTranslucency",
-                    &[color_attachment(&t.scene_color.view, None)],
-                    None,
-                );
+                let mut pass =
+                    begin(ctx, "ComposeSeparateTranslucency", &[color_attachment(&t.scene_color.view, None)], None);
                 pass.set_pipeline(&self.compose.pipeline);
                 self.compose_groups.set_render(&mut pass);
                 pass.draw(0..3, 0..1);

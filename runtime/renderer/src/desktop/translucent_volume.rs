@@ -13,6 +13,7 @@
 //! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
 //! surfaces that read both cascades.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -23,6 +24,17 @@ use crate::pipelines::{ComputePipeline, PipelineError};
 
 use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit};
 use super::view::ShadowProjectionUniforms;
+
+/// A step of Lighting; blends with the previous frame's volume (history).
+pub const INJECT_STEP: PassDecl = PassDecl {
+    name: "InjectTranslucentVolume",
+    reads: &["Scene", "View", "ShadowDepths", "TranslucencyVolume"],
+    writes: &["TranslucencyVolume"],
+};
+
+/// A step of Lighting, after the injection.
+pub const FILTER_STEP: PassDecl =
+    PassDecl { name: "FilterTranslucentVolume", reads: &["TranslucencyVolume"], writes: &["TranslucencyVolume"] };
 
 pub const VOLUME_SIZE: u32 = 64;
 pub const VOLUME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -332,7 +344,7 @@ impl TranslucentVolumes {
     pub fn record_inject(
         &self,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         camera: Vec3,
         shadow: Option<&DirectionalShadow>,
         shadows: bool,
@@ -343,10 +355,7 @@ impl TranslucentVolumes {
         let n = groups(VOLUME_SIZE, 4);
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(&format!("InjectTranslucentVolume cascade {c}")),
-                timestamp_writes: None,
-            });
+            let mut pass = ctx.open_compute_pass(&format!("InjectTranslucentVolume cascade {c}"));
             for (k, light) in self.lights.iter().enumerate() {
                 let injection = &cascade.injections[k];
                 let rendered = self.gates[k].is_none_or(|l| casts_shadow(l));
@@ -391,12 +400,9 @@ impl TranslucentVolumes {
     }
 
     /// FilterTranslucentVolume: both cascades.
-    pub fn record_filter(&self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn record_filter(&self, ctx: &mut PassContext<'_>) {
         let n = groups(VOLUME_SIZE, 4);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("FilterTranslucentVolume"),
-            timestamp_writes: None,
-        });
+        let mut pass = ctx.open_compute_pass("FilterTranslucentVolume");
         pass.set_pipeline(&self.filter.pipeline);
         for cascade in &self.cascades {
             pass.set_bind_group(0, &cascade.filter_group, &[]);

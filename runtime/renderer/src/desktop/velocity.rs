@@ -4,6 +4,7 @@
 //! motion blur reproject it from depth and the camera. Depth-tested against the prepass
 //! depth (reverse-Z, greater-or-equal), no depth write.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -13,6 +14,10 @@ use crate::keys;
 use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
 
 use super::frame_view::{target_2d, uniform_buffer, view, InstancedMesh, MAX_MESH_INSTANCES};
+
+/// The Velocity declaration.
+pub const PASS: PassDecl =
+    PassDecl { name: "Velocity", reads: &["Scene", "View", "SceneDepth"], writes: &["Velocity"] };
 
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg16Float;
 
@@ -80,7 +85,7 @@ impl Velocity {
     pub fn record(
         &mut self,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        ctx: &mut PassContext<'_>,
         scene_depth: &wgpu::TextureView,
         transforms: &[(Vec<Mat4>, Vec<Mat4>)],
     ) {
@@ -92,7 +97,7 @@ impl Velocity {
             }
             queue.write_buffer(&m.previous, 0, bytemuck::bytes_of(&uniforms));
         }
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("Velocity"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                 view: &self.view,

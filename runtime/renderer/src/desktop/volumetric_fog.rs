@@ -8,6 +8,7 @@
 //!   result reprojected into this frame (the history volume);
 //! - FinalIntegration: front-to-back accumulation of in-scattering and transmittance.
 
+use crate::frame::{PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
@@ -18,6 +19,20 @@ use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, Rende
 
 use super::frame_view::{
     groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit,
+};
+
+/// Reprojects the previous frame's light scattering (history).
+pub const PASS: PassDecl = PassDecl {
+    name: "VolumetricFog",
+    reads: &["View", "SceneDepth", "LightGrid", "ShadowDepths", "VolumetricFog"],
+    writes: &["VolumetricFog"],
+};
+
+/// The step of ExponentialHeightFog that composites the fog over SceneColor.
+pub const APPLY_STEP: PassDecl = PassDecl {
+    name: "VolumetricFog",
+    reads: &["View", "SceneDepth", "VolumetricFog", "SceneColor"],
+    writes: &["SceneColor"],
 };
 
 pub const TILE_SIZE: u32 = 8;
@@ -267,12 +282,7 @@ impl VolumetricFog {
     }
 
     /// InitializeVolumeAttributes (and this frame's parameters).
-    pub fn record_initialize(
-        &mut self,
-        queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
-        settings: &FogSettings,
-    ) {
+    pub fn record_initialize(&mut self, queue: &wgpu::Queue, ctx: &mut PassContext<'_>, settings: &FogSettings) {
         let (cascades, splits, rects) = DirectionalShadow::uniforms(settings.shadow.as_ref());
         let use_history = self.history_valid;
         let params = FogParams {
@@ -302,10 +312,7 @@ impl VolumetricFog {
         self.frame = self.frame.wrapping_add(1);
         let [gx, gy, gz] = self.grid;
 
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("InitializeVolumeAttributes"),
-            timestamp_writes: None,
-        });
+        let mut pass = ctx.open_compute_pass("InitializeVolumeAttributes");
         pass.set_pipeline(&self.init.pipeline);
         pass.set_bind_group(0, &self.init_group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
@@ -313,7 +320,7 @@ impl VolumetricFog {
     }
 
     /// LightScattering, with the history when there is one.
-    pub fn record_light_scattering(&mut self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn record_light_scattering(&mut self, ctx: &mut PassContext<'_>) {
         let [gx, gy, gz] = self.grid;
         let use_history = self.use_history;
         // this frame writes `out`; the history is the other volume
@@ -323,10 +330,7 @@ impl VolumetricFog {
         } else {
             (&self.scattering[0], &self.scattering_groups[0])
         };
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("LightScattering"),
-            timestamp_writes: None,
-        });
+        let mut pass = ctx.open_compute_pass("LightScattering");
         pass.set_pipeline(&pipeline.pipeline);
         pass.set_bind_group(0, group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
@@ -336,21 +340,18 @@ impl VolumetricFog {
     }
 
     /// FinalIntegration of this frame's LightScattering.
-    pub fn record_final_integration(&mut self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn record_final_integration(&mut self, ctx: &mut PassContext<'_>) {
         let [gx, gy, _] = self.grid;
         let out = self.current;
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("FinalIntegration"),
-            timestamp_writes: None,
-        });
+        let mut pass = ctx.open_compute_pass("FinalIntegration");
         pass.set_pipeline(&self.integration.pipeline);
         pass.set_bind_group(0, &self.integration_groups[out], &[]);
         pass.dispatch_workgroups(groups(gx, 8), groups(gy, 8), 1);
     }
 
     /// Composites the integrated volume over SceneColor (after the height fog).
-    pub fn apply(&self, encoder: &mut wgpu::CommandEncoder, scene_color: &wgpu::TextureView) {
-        let mut pass = super::frame_view::color_pass(encoder, "VolumetricFog apply", scene_color, wgpu::LoadOp::Load);
+    pub fn apply(&self, ctx: &mut PassContext<'_>, scene_color: &wgpu::TextureView) {
+        let mut pass = super::frame_view::color_pass(ctx, "VolumetricFog apply", scene_color, wgpu::LoadOp::Load);
         pass.set_pipeline(&self.apply.pipeline);
         pass.set_bind_group(0, &self.apply_group, &[]);
         pass.draw(0..3, 0..1);

@@ -9,8 +9,10 @@
 //! and HDR targets mapped to a visible range). Named steps of a pass
 //! ([`PassContext::step`]) are dumped under both names, `PostProcessing_Tonemapper`.
 
+mod decl;
 mod image;
 
+pub use decl::{FramePlan, PassDecl};
 pub use image::{Image, Visualize};
 
 use std::path::Path;
@@ -316,25 +318,34 @@ impl PassContext<'_> {
         desc: &wgpu::RenderPassDescriptor<'_>,
         record: impl FnOnce(&mut wgpu::RenderPass<'_>) -> R,
     ) -> R {
-        let name = self.debug_name();
-        let mut pass = self.recorder.encoder.begin_render_pass(desc);
-        pass.push_debug_group(&name);
-        let result = record(&mut pass);
-        pass.pop_debug_group();
-        result
+        let mut pass = self.open_render_pass(desc);
+        record(&mut pass)
     }
 
     /// Begins a compute pass inside a debug group named after the pass (and step).
     pub fn compute_pass<R>(&mut self, label: &str, record: impl FnOnce(&mut wgpu::ComputePass<'_>) -> R) -> R {
+        let mut pass = self.open_compute_pass(label);
+        record(&mut pass)
+    }
+
+    /// [`PassContext::render_pass`] as a value: the render pass, its debug group popped when
+    /// it is dropped. For code that hands a pass on rather than recording in a closure.
+    pub fn open_render_pass(&mut self, desc: &wgpu::RenderPassDescriptor<'_>) -> GroupedRenderPass<'_> {
+        let name = self.debug_name();
+        let mut pass = self.recorder.encoder.begin_render_pass(desc);
+        pass.push_debug_group(&name);
+        GroupedRenderPass(pass)
+    }
+
+    /// [`PassContext::compute_pass`] as a value (see [`PassContext::open_render_pass`]).
+    pub fn open_compute_pass(&mut self, label: &str) -> GroupedComputePass<'_> {
         let name = self.debug_name();
         let mut pass = self
             .recorder
             .encoder
             .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
         pass.push_debug_group(&name);
-        let result = record(&mut pass);
-        pass.pop_debug_group();
-        result
+        GroupedComputePass(pass)
     }
 
     /// A named step of this pass, timed on its own; its render passes' debug groups are
@@ -428,6 +439,50 @@ impl PassContext<'_> {
             format,
             visualize,
         });
+    }
+}
+
+/// A render pass inside its pass's debug group, popped when dropped.
+pub struct GroupedRenderPass<'e>(wgpu::RenderPass<'e>);
+
+impl Drop for GroupedRenderPass<'_> {
+    fn drop(&mut self) {
+        self.0.pop_debug_group();
+    }
+}
+
+impl<'e> std::ops::Deref for GroupedRenderPass<'e> {
+    type Target = wgpu::RenderPass<'e>;
+    fn deref(&self) -> &wgpu::RenderPass<'e> {
+        &self.0
+    }
+}
+
+impl<'e> std::ops::DerefMut for GroupedRenderPass<'e> {
+    fn deref_mut(&mut self) -> &mut wgpu::RenderPass<'e> {
+        &mut self.0
+    }
+}
+
+/// A compute pass inside its pass's debug group, popped when dropped.
+pub struct GroupedComputePass<'e>(wgpu::ComputePass<'e>);
+
+impl Drop for GroupedComputePass<'_> {
+    fn drop(&mut self) {
+        self.0.pop_debug_group();
+    }
+}
+
+impl<'e> std::ops::Deref for GroupedComputePass<'e> {
+    type Target = wgpu::ComputePass<'e>;
+    fn deref(&self) -> &wgpu::ComputePass<'e> {
+        &self.0
+    }
+}
+
+impl<'e> std::ops::DerefMut for GroupedComputePass<'e> {
+    fn deref_mut(&mut self) -> &mut wgpu::ComputePass<'e> {
+        &mut self.0
     }
 }
 

@@ -20,13 +20,28 @@ use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
     VertexLayout,
 };
 use crate::scene::ParticleEmitter;
+
+/// The ParticleSimulation pass at the start of the frame (the emitters that do not collide).
+pub const SIMULATION_PASS: PassDecl =
+    PassDecl { name: "ParticleSimulation", reads: &["ParticleState"], writes: &["ParticleState"] };
+
+/// The step that simulates the colliding emitters once the depth is final (in the BasePass).
+pub const COLLISION_STEP: PassDecl =
+    PassDecl { name: "ParticleCollision", reads: &["View", "SceneDepth", "ParticleState"], writes: &["ParticleState"] };
+
+/// The step that draws the sprites over SceneColor (in Translucency).
+pub const SPRITES_STEP: PassDecl = PassDecl {
+    name: "ParticleSprites",
+    reads: &["View", "SceneDepth", "ParticleState", "SceneColor"],
+    writes: &["SceneColor"],
+};
 
 pub const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 pub const VELOCITY_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
@@ -433,7 +448,12 @@ impl Particles {
             let mut encoder =
                 device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("particle prewarm") });
             for e in self.emitters.iter_mut().filter(|e| e.desc.prewarm && !e.desc.collides) {
-                Self::step(&self.simulation[0], queue, &mut encoder, e, frame);
+                // made with the renderer, before any frame: no pass context to record through
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some(&format!("ParticleSimulation {}", e.desc.name)),
+                    timestamp_writes: None,
+                });
+                Self::step(&self.simulation[0], queue, &mut pass, e, frame);
             }
             queue.submit([encoder.finish()]);
         }
@@ -442,7 +462,7 @@ impl Particles {
     fn step(
         pipeline: &ComputePipeline,
         queue: &wgpu::Queue,
-        encoder: &mut wgpu::CommandEncoder,
+        pass: &mut wgpu::ComputePass<'_>,
         e: &mut Emitter,
         frame: u32,
     ) {
@@ -456,26 +476,22 @@ impl Particles {
             counts: UVec4::new(STATE_WIDTH, d.max_particles, frame, e.seed),
         };
         queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(&format!("ParticleSimulation {}", d.name)),
-            timestamp_writes: None,
-        });
         pass.set_pipeline(&pipeline.pipeline);
         pass.set_bind_group(0, &e.simulate[e.current], &[]);
         pass.dispatch_workgroups(STATE_WIDTH.div_ceil(8), rows.div_ceil(8), 1);
-        drop(pass);
         e.current = 1 - e.current;
     }
 
     /// Runs one simulation step of the emitters that collide (`true`, after the base pass)
     /// or of the others (`false`, at the start of the frame).
-    pub fn simulate(&mut self, queue: &wgpu::Queue, encoder: &mut wgpu::CommandEncoder, colliding: bool) {
+    pub fn simulate(&mut self, queue: &wgpu::Queue, ctx: &mut PassContext<'_>, colliding: bool) {
         if !colliding {
             self.frame += 1;
         }
         let pipeline = &self.simulation[usize::from(colliding)];
         for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
-            Self::step(pipeline, queue, encoder, e, self.frame);
+            let mut pass = ctx.open_compute_pass(&format!("ParticleSimulation {}", e.desc.name));
+            Self::step(pipeline, queue, &mut pass, e, self.frame);
         }
     }
 
@@ -486,7 +502,7 @@ impl Particles {
             return;
         }
         {
-            let mut pass = ctx.encoder().begin_render_pass(&wgpu::RenderPassDescriptor {
+            let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ParticleSimulation preview"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
                     view: &self.preview.1,
