@@ -9,7 +9,7 @@
 use glam::Vec4;
 use wgpu::util::DeviceExt;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
@@ -21,6 +21,23 @@ use super::{
     MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT,
     GBUFFER_A_FORMAT, GBUFFER_B_FORMAT, GBUFFER_C_FORMAT, LDR_COLOR_FORMAT, SCENE_COLOR_FORMAT, STENCIL_DEFAULT_LIT,
     STENCIL_SHADING_MODEL_MASK,
+};
+
+/// The optional full depth prepass.
+pub const PREPASS: PassDecl = PassDecl { name: "PrePass", reads: &["Scene", "View"], writes: &["SceneDepth"] };
+
+/// The forward BasePass: lit in the pixel shader (shadow atlas, reflection captures).
+pub const FORWARD_PASS: PassDecl = PassDecl {
+    name: "BasePass",
+    reads: &["Scene", "View", "ShadowAtlas", "ReflectionCaptures"],
+    writes: &["SceneColor", "SceneDepth"],
+};
+
+/// The deferred BasePass: SceneColor (emissive, sky) and the mobile GBuffer, the shading model in the stencil.
+pub const DEFERRED_PASS: PassDecl = PassDecl {
+    name: "BasePass",
+    reads: &["Scene", "View", "ShadowAtlas", "ReflectionCaptures"],
+    writes: &["SceneColor", "GBufferA", "GBufferB", "GBufferC", "SceneDepth"],
 };
 
 /// The level of every mobile permutation.

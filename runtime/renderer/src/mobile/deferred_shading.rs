@@ -11,7 +11,7 @@
 
 use wgpu::util::DeviceExt;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 
@@ -21,6 +21,22 @@ use super::uniforms::{DeferredLightUniforms, LocalLight};
 use super::{
     MobileOptions, MobileTargets, SharedResources, DEFERRED_DEPTH_FORMAT, SCENE_COLOR_FORMAT, SCENE_DEPTH_AUX_FORMAT,
     STENCIL_DEFAULT_LIT, STENCIL_SANDBOX, STENCIL_SHADING_MODEL_MASK,
+};
+
+/// Lights SceneColor from the GBuffer and the depth (through SceneDepthAux).
+pub const PASS: PassDecl = PassDecl {
+    name: "MobileDeferredShading",
+    reads: &[
+        "View",
+        "ShadowAtlas",
+        "ReflectionCaptures",
+        "GBufferA",
+        "GBufferB",
+        "GBufferC",
+        "SceneDepth",
+        "SceneColor",
+    ],
+    writes: &["SceneDepthAux", "SceneColor"],
 };
 
 /// The level of every mobile permutation.

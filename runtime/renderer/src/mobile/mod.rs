@@ -36,7 +36,7 @@ mod uniforms;
 
 use wgpu::util::DeviceExt;
 
-use crate::frame::{FrameRecorder, Image, PassResult, Visualize};
+use crate::frame::{FramePlan, FrameRecorder, Image, PassResult, Visualize};
 use crate::gpu::Gpu;
 use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
@@ -456,24 +456,60 @@ impl MobileFrame {
         self.pipelines_built
     }
 
+    /// The frame's passes in the order [`MobileFrame::record`] records them, each with what it
+    /// reads and writes (Translucency is listed where the options have it, though a scene
+    /// without translucent surfaces skips it).
+    pub fn plan(options: &MobileOptions) -> FramePlan {
+        let mut plan = FramePlan::new(&["Scene", "View", "ReflectionCaptures"], &[]).pass(&shadows::PASS);
+        if options.full_prepass {
+            plan = plan.pass(&base_pass::PREPASS);
+        }
+        plan = plan.pass(Self::base_pass_decl_for(options.path));
+        if options.path == ShadingPath::Deferred {
+            plan = plan.pass(&deferred_shading::PASS);
+        }
+        if options.translucency {
+            plan = plan.pass(&translucency::PASS);
+        }
+        if options.hdr {
+            plan = plan.pass(&post_processing::PASS);
+        }
+        plan
+    }
+
+    fn base_pass_decl_for(path: ShadingPath) -> &'static crate::frame::PassDecl {
+        match path {
+            ShadingPath::Forward => &base_pass::FORWARD_PASS,
+            ShadingPath::Deferred => &base_pass::DEFERRED_PASS,
+        }
+    }
+
+    fn base_pass_decl(&self) -> &'static crate::frame::PassDecl {
+        Self::base_pass_decl_for(if self.deferred_shading.is_some() {
+            ShadingPath::Deferred
+        } else {
+            ShadingPath::Forward
+        })
+    }
+
     /// Records the frame's passes, in the seed's order.
     pub fn record(&self, recorder: &mut FrameRecorder, scene: &GpuScene) {
         let t = &self.targets;
-        recorder.pass("ShadowDepths", |ctx| self.shadow_depths.record(ctx, scene, &t.shadow_atlas));
+        recorder.pass(shadows::PASS.name, |ctx| self.shadow_depths.record(ctx, scene, &t.shadow_atlas));
         if let Some(prepass) = &self.prepass {
-            recorder.pass("PrePass", |ctx| prepass.record(ctx, scene, t));
+            recorder.pass(base_pass::PREPASS.name, |ctx| prepass.record(ctx, scene, t));
         }
-        recorder.pass("BasePass", |ctx| {
+        recorder.pass(self.base_pass_decl().name, |ctx| {
             self.base_pass.record(ctx, scene, t, self.prepass.is_some(), self.translucency.is_some())
         });
         if let Some(d) = &self.deferred_shading {
-            recorder.pass("MobileDeferredShading", |ctx| d.record(ctx, t));
+            recorder.pass(deferred_shading::PASS.name, |ctx| d.record(ctx, t));
         }
         if let Some(tr) = &self.translucency {
-            recorder.pass("Translucency", |ctx| tr.record(ctx, scene, t));
+            recorder.pass(translucency::PASS.name, |ctx| tr.record(ctx, scene, t));
         }
         if let Some(pp) = &self.post_processing {
-            recorder.pass("PostProcessing", |ctx| pp.record(ctx, t));
+            recorder.pass(post_processing::PASS.name, |ctx| pp.record(ctx, t));
         }
     }
 
@@ -603,6 +639,40 @@ mod tests {
             check(MobileOptions { msaa: 2, ..MobileOptions::forward() }),
             Err("cannot name permutation: mobile options: MSAA is 1 or 4 samples".into())
         );
+    }
+
+    #[test]
+    fn every_read_of_the_forward_frame_is_written_before_it() {
+        for options in [
+            MobileOptions::forward(),
+            MobileOptions { full_prepass: true, ..MobileOptions::forward() },
+            MobileOptions { hdr: false, ..MobileOptions::forward() },
+        ] {
+            let plan = MobileFrame::plan(&options);
+            assert_eq!(plan.check(), Ok(()), "{options:?}");
+            assert!(!plan.names().contains(&"MobileDeferredShading"));
+        }
+        let plan = MobileFrame::plan(&MobileOptions::forward());
+        assert_eq!(plan.names(), vec!["ShadowDepths", "BasePass", "Translucency", "PostProcessing"]);
+    }
+
+    #[test]
+    fn every_read_of_the_deferred_frame_is_written_before_it() {
+        for options in [MobileOptions::deferred(), MobileOptions { full_prepass: true, ..MobileOptions::deferred() }] {
+            let plan = MobileFrame::plan(&options);
+            assert_eq!(plan.check(), Ok(()), "{options:?}");
+        }
+        let plan = MobileFrame::plan(&MobileOptions::deferred());
+        assert_eq!(
+            plan.names(),
+            vec!["ShadowDepths", "BasePass", "MobileDeferredShading", "Translucency", "PostProcessing"]
+        );
+        // the shading reads the GBuffer: the forward BasePass in its place would not do
+        let wrong = FramePlan::new(&["Scene", "View", "ReflectionCaptures"], &[])
+            .pass(&shadows::PASS)
+            .pass(&base_pass::FORWARD_PASS)
+            .pass(&deferred_shading::PASS);
+        assert!(wrong.check().is_err());
     }
 
     #[test]

@@ -6,13 +6,16 @@
 use glam::Vec4;
 use wgpu::util::DeviceExt;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 
 use super::pipeline::{replace, Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::uniforms::{BloomUniforms, TonemapUniforms};
 use super::{MobileOptions, MobileTargets, SharedResources, Target, OUTPUT_FORMAT, SCENE_COLOR_FORMAT};
+
+/// Bloom and the Tonemapper into the output.
+pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Output"] };
 
 /// Bloom levels below full resolution: 1/2, 1/4, 1/8, 1/16.
 const BLOOM_LEVELS: usize = 4;

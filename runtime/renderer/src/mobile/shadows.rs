@@ -13,7 +13,7 @@ use glam::camera::rh::view::look_at_mat4;
 use glam::{Mat4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
@@ -22,6 +22,9 @@ use crate::scene::{BlendMode, Camera, Scene};
 
 use super::pipeline::{Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::{MobileOptions, Target, SHADOW_ATLAS_FORMAT};
+
+/// The ShadowDepths pass: CSM cascades and spot shadows into one atlas.
+pub const PASS: PassDecl = PassDecl { name: "ShadowDepths", reads: &["Scene"], writes: &["ShadowAtlas"] };
 
 pub const CASCADE_TILE: u32 = 1024;
 pub const SPOT_TILE: u32 = 512;

@@ -3,7 +3,7 @@
 //! forward frame with MSAA this pass resolves the multisampled color at its end and stores
 //! nothing multisampled; the depth is tested, never written, and discarded at the end.
 
-use crate::frame::{PassContext, Visualize};
+use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::{BlendMode, Scene};
@@ -11,6 +11,13 @@ use crate::scene::{BlendMode, Scene};
 use super::base_pass::{base_pass_formats, base_pass_ps, base_pass_vs, depth_format};
 use super::pipeline::{premultiplied, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::{MobileOptions, MobileTargets, ShadingPath, SharedResources};
+
+/// Blends over SceneColor, tested against the depth.
+pub const PASS: PassDecl = PassDecl {
+    name: "Translucency",
+    reads: &["Scene", "View", "ShadowAtlas", "ReflectionCaptures", "SceneDepth", "SceneColor"],
+    writes: &["SceneColor"],
+};
 
 pub struct Translucency {
     path: ShadingPath,
