@@ -126,6 +126,8 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("passes.json")).unwrap()).unwrap();
     let passes = json["passes"].as_array().unwrap();
     let names: Vec<&str> = passes.iter().map(|p| p["name"].as_str().unwrap()).collect();
+    // the frame records the passes its plan declares (whose reads the unit tests check)
+    assert_eq!(names, DesktopFrame::plan(&DesktopOptions::default()).names());
     // Every pass of the frame, in the seeds' order (later issues may add passes between).
     let mut at = 0;
     for want in PASSES {
