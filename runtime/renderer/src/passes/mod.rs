@@ -15,14 +15,24 @@
 //!    (or `.compute(cs)`) and build bind groups by resource name with
 //!    `pipeline.layout.bind_group(device, group, label, &[("SceneColorTexture", ...)])`: the
 //!    reflection says which binding each name is. Uniforms are `#[repr(C)]` Pod structs.
-//! 3. Add `record(&self, ctx: &mut PassContext, ...)`: open render passes with
-//!    `ctx.render_pass(&desc, |pass| ...)` (compute: `ctx.compute_pass`), wrap named steps
-//!    in `ctx.step("Bloom", |ctx| ...)`, and declare what was written with
+//! 3. Declare what it reads and writes: `pub const PASS: PassDecl = PassDecl { name:
+//!    "Velocity", reads: &["Scene", "View", "SceneDepth"], writes: &["Velocity"] }` (a step
+//!    recorded inside another module's pass declares its own, `particles::COLLISION_STEP`).
+//! 4. Add `record(&self, ctx: &mut PassContext, ...)`: every render or compute pass goes
+//!    through the context, which names it with a debug group (`Pass/Step`):
+//!    `ctx.render_pass(&desc, |pass| ...)` (compute: `ctx.compute_pass`), or
+//!    `ctx.open_render_pass(&desc)` / `ctx.open_compute_pass(label)` for a pass held as a
+//!    value (its group is popped when it drops); copies and clears use `ctx.encoder()`. Wrap
+//!    named steps in `ctx.step(STEP.name, |ctx| ...)`, and declare what was written with
 //!    `ctx.output(&texture, Visualize::Hdr)` / `ctx.output_named("GBufferA", ...)`: that is
 //!    what `--dump-passes` writes and what the timings cover.
-//! 4. Build it where its frame builds its passes and record it in frame order: its own
-//!    `frame.pass("Name", |ctx| pass.record(ctx, ...))`, or a step of a frame's pass (the
-//!    particles: the desktop effects' `ParticleSimulation` pass and its `Fire` step).
+//! 5. Build it where its frame builds its passes, record it in frame order under its
+//!    declaration's name (`frame.pass(velocity::PASS.name, |ctx| pass.record(ctx, ...))`, or
+//!    a step of a frame's pass), and add the declaration to the frame's plan
+//!    (`DesktopFrame::plan`, `MobileFrame::plan`) at the same place: the frame's unit tests
+//!    check that everything it reads is written by an earlier pass, is an input of the frame
+//!    or is history the frame writes for the next one, and the render tests that the frame
+//!    records the plan's passes.
 
 pub mod particles;
 
