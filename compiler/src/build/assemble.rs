@@ -111,17 +111,20 @@ impl<'p> Assembler<'p> {
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
     /// record and key, in order, and the versions.
-    fn fingerprint(&self, keys: &[Option<Key>]) -> blake3::Hash {
+    fn fingerprint(&self, pre: &Preprocessed) -> blake3::Hash {
         let mut h = blake3::Hasher::new();
         h.update(b"kiln build fingerprint v1\0");
         h.update(crate::VERSION.as_bytes());
         h.update(b"\0");
         h.update(compile::NAGA_VERSION.as_bytes());
-        for (p, key) in self.plan.kept.iter().zip(keys) {
-            let Some(key) = key else { continue };
+        let plan = self.plan;
+        for i in 0..plan.len() {
+            let Some(key) = pre.key(i) else { continue };
+            let (shader, _) = plan.shader_level(i);
             let dims: Vec<(&str, &[String])> =
-                p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
-            let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
+                shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+            let line =
+                format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", plan.name(i), shader.entry, shader.stage, plan.values(i), dims);
             h.update(line.as_bytes());
             h.update(&key.0);
         }
@@ -135,8 +138,7 @@ impl<'p> Assembler<'p> {
     pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
-        store.fresh_archive(out, &self.fingerprint(&per_permutation(pre)), &keys)
+        store.fresh_archive(out, &self.fingerprint(pre), &keys.keys)
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive
@@ -145,14 +147,13 @@ impl<'p> Assembler<'p> {
     pub fn from_remote(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
-        store.archive_from_remote(out, &self.fingerprint(&per_permutation(pre)), &keys)
+        store.archive_from_remote(out, &self.fingerprint(pre), &keys.keys)
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
     /// index, and the archive's stamp.
-    /// `keys` is each kept permutation's key (`None` where preprocessing failed).
-    pub fn finish(self, pre: &[Option<Key>], store: &Store) -> Result<Written, Error> {
+    /// `pre` gives each kept permutation's key.
+    pub fn finish(self, pre: &Preprocessed, store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
         let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
         if !self.plan.assembles() {
@@ -168,10 +169,12 @@ impl<'p> Assembler<'p> {
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
-        for (p, key) in self.plan.kept.iter().zip(pre) {
-            let Some(key) = key else { continue };
+        let plan = self.plan;
+        for i in 0..plan.len() {
+            let Some(key) = pre.key(i) else { continue };
             let produced = &keys[key];
-            let name = p.name();
+            let (shader_of, level) = plan.shader_level(i);
+            let name = plan.name(i);
             if options.emit_dir.is_some() {
                 let files = index.entry(name.clone()).or_default();
                 for (t, hash) in &produced.artifacts {
@@ -183,13 +186,12 @@ impl<'p> Assembler<'p> {
                 distinct.extend(produced.artifacts.iter().map(|a| a.1));
             }
             let Some(w) = &self.writer else { continue };
-            let shader = shaders.entry((&p.shader.name, &p.level.name)).or_insert_with(|| ShaderRecord {
-                name: p.shader.name.clone(),
-                level: p.level.name.clone(),
-                entry: p.shader.entry.clone(),
-                stage: p.shader.stage,
-                dimensions: p
-                    .shader
+            let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
+                name: shader_of.name.clone(),
+                level: level.name.clone(),
+                entry: shader_of.entry.clone(),
+                stage: shader_of.stage,
+                dimensions: shader_of
                     .dimensions
                     .iter()
                     .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
@@ -198,7 +200,7 @@ impl<'p> Assembler<'p> {
             w.add_permutation(NewPermutation {
                 name,
                 shader,
-                values: p.values.clone(),
+                values: plan.values(i).to_vec(),
                 reflection: &produced.reflection,
                 artifacts: produced.artifacts.iter().map(|(t, h)| (*t, BlobKey::from_hash(*h))).collect(),
             })
@@ -223,10 +225,4 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
-}
-
-/// Each kept permutation's key (`None` where preprocessing failed): all that assembling
-/// needs of the preprocessing results.
-pub(super) fn per_permutation(pre: &Preprocessed) -> Vec<Option<Key>> {
-    pre.iter().map(|r| r.as_ref().ok().map(|r| r.key)).collect()
 }

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use super::assemble::Assembler;
 use super::plan::{level_limits, Keys, Plan};
-use super::preprocess::{Pre, Preprocessed, Preprocessor};
+use super::preprocess::{Preprocessed, Preprocessor};
 use super::report::Progress;
 use super::store::{Fetched, Store};
 use crate::cache::Key;
@@ -73,7 +73,7 @@ impl<'a> Compiler<'a> {
             assembler,
             progress,
             claimed: Mutex::default(),
-            early: (0..plan.kept.len()).map(|_| AtomicU8::new(0)).collect(),
+            early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
             shared: shared_writers(),
@@ -85,24 +85,24 @@ impl<'a> Compiler<'a> {
         self.shared.shared()
     }
 
-    /// During preprocessing: compiles `pre`'s key from `output` if `p` is the first of its
+    /// During preprocessing: compiles `key` from `output` if `p` is the first of its
     /// permutations preprocessed (and, with `--shard`, nothing yet: a shard knows its share
     /// only once every key is known).
-    pub fn early(&self, index: usize, p: &Permutation<'_>, pre: &Pre, output: &preprocess::Output) {
+    pub fn early(&self, index: usize, p: &Permutation<'_>, key: &Key, output: &preprocess::Output) {
         if self.plan.options.shard.is_some() || p.error.is_some() {
             return;
         }
-        let short = u64::from_le_bytes(pre.key.0[..8].try_into().expect("8 of 32 bytes"));
+        let short = u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"));
         if !self.claimed.lock().expect("no panics while locked").insert(short) {
             return;
         }
         self.started();
         // A failure is compiled again on the key's first permutation; only successes are kept.
-        match self.produce(&pre.key, p, &output.text) {
+        match self.produce(key, p, &output.text) {
             Outcome::Hit => self.early[index].store(EARLY_HIT, Ordering::Relaxed),
             Outcome::Compiled(warning) => {
                 if let Some(w) = warning {
-                    self.early_warnings.lock().expect("no panics while locked").insert(pre.key, w);
+                    self.early_warnings.lock().expect("no panics while locked").insert(*key, w);
                 }
                 self.early[index].store(EARLY_COMPILED, Ordering::Relaxed);
             }
@@ -133,12 +133,10 @@ impl<'a> Compiler<'a> {
         self.progress.stage("compiling", keys.len());
         self.started();
         let assembling = self.plan.assembles();
-        let outcomes = keys
-            .groups
-            .par_iter()
-            .zip(&keys.share)
-            .map(|((key, members), &mine)| {
-                let outcome = self.key(key, members, mine || assembling, preprocessor);
+        let outcomes = (0..keys.len())
+            .into_par_iter()
+            .map(|k| {
+                let outcome = self.key(&keys.keys[k], keys.members(k), keys.share[k] || assembling, preprocessor);
                 self.progress.inc();
                 outcome
             })
@@ -154,7 +152,7 @@ impl<'a> Compiler<'a> {
         if !wanted {
             return Outcome::Elsewhere;
         }
-        let p = &self.plan.kept[members[0]];
+        let p = &self.plan.permutation(members[0]);
         let mut warning = None;
         match self.store.get(key) {
             Fetched::Hit(c) => {
@@ -236,18 +234,23 @@ pub(super) fn failures(
     members: &[usize],
     e: &compile::Error,
 ) -> Vec<(Diagnostic<FileId>, Vec<usize>)> {
-    let rep = representative(preprocessor, &plan.kept[members[0]], key);
-    let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
+    let rep = representative(preprocessor, &plan.permutation(members[0]), key);
     let mut out = Vec::new();
     for &m in members {
-        let Ok(pm) = &pre[m] else { continue };
-        let mut diagnostic = match &rep {
-            Some(rep) if Some(pm.text_hash) == rep_hash => map_error(e, &rep.map),
+        if pre.row(m).is_none() {
+            continue;
+        }
+        let p = plan.permutation(m);
+        // The others' texts are not kept: each member is preprocessed again.
+        let own = (m != members[0]).then(|| preprocessor.preprocess(&p).ok().map(|(_, o)| o)).flatten();
+        let mut diagnostic = match (&rep, &own) {
+            (Some(rep), None) if m == members[0] => map_error(e, &rep.map),
+            (Some(rep), Some(own)) if own.text == rep.text => map_error(e, &own.map),
             // Same tokens, other spacing: this member's own spans.
-            _ => remap_member(plan, preprocessor, &plan.kept[m], e),
+            _ => remap_member(plan, preprocessor, &p, e),
         };
         if e.kind == compile::ErrorKind::EntryPoint {
-            let s = plan.kept[m].shader;
+            let s = p.shader;
             let file = plan.config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
             diagnostic.notes.push(format!(
                 "shader `{}` of {file} names entry point `{}` ({}) in {}",

@@ -162,8 +162,8 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, |i, p, pre, output| compiler.early(i, p, pre, output));
-    preprocessor.save_records(store);
+    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output));
+    preprocessor.save_records(store, &pre);
     report.preprocessed(&plan, &preprocessor, &pre, t);
     trace_memory("preprocess");
     outputs::check_aliases(
@@ -193,7 +193,6 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         return Err(Error::Failed(Box::new(report.finish()?)));
     }
     // Only the manifest is left to write: keep each permutation's key, drop the rest.
-    let pre = assemble::per_permutation(&pre);
     drop((keys, compiler, preprocessor));
     trace_memory("drop");
     report.assembled(assembler.finish(&pre, store)?);
