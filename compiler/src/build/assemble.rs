@@ -170,6 +170,17 @@ impl<'p> Assembler<'p> {
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
         let plan = self.plan;
+        if let Some(w) = &self.writer {
+            // The manifest's exact size: its arenas are allocated once.
+            let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
+            for i in (0..plan.len()).filter(|&i| pre.key(i).is_some()) {
+                n += 1;
+                names += plan.name(i).len();
+                values += plan.values(i).len();
+                artifacts += pre.key(i).and_then(|k| keys.get(k)).map_or(0, |p| p.artifacts.len());
+            }
+            w.reserve(n, names, values, artifacts);
+        }
         for i in 0..plan.len() {
             let Some(key) = pre.key(i) else { continue };
             let produced = &keys[key];

@@ -184,6 +184,11 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         report.remote(store.remote_stats());
         return report.up_to_date(keys.len(), counts);
     }
+    if options.shard.is_some() {
+        // A shard's share comes from the remote cache in batches, not key by key.
+        let share: Vec<_> = keys.keys.iter().zip(&keys.share).filter(|(_, &mine)| mine).map(|(k, _)| *k).collect();
+        store.prefetch(&share);
+    }
     let outcomes = compiler.run(&keys, &preprocessor);
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     trace_memory("compile");

@@ -129,6 +129,15 @@ impl Store {
         warnings
     }
 
+    /// Copies into the local cache the entries of `keys` that the remote cache holds and
+    /// the local one lacks, fetched in batches (redis MGET, parallel HTTP GETs) rather than
+    /// one round trip per key as the compile stage would. A shard's share, before it compiles.
+    pub fn prefetch(&self, keys: &[Key]) {
+        if let Some(c) = self.cache.as_ref().filter(|c| c.remote().is_some()) {
+            c.fill_from_remote(keys);
+        }
+    }
+
     /// The encoded preprocessing records stored under `key` (none without a cache).
     pub fn records(&self, key: &Key) -> Option<Vec<u8>> {
         self.cache.as_ref()?.get_records_bytes(key)
