@@ -149,19 +149,20 @@ impl BlobTable {
         n
     }
 
-    /// Adds a blob of `len` bytes: where its bytes go in the spool, `None` if it was added
-    /// before.
-    fn add(&mut self, hash: &blake3::Hash, len: u64) -> Option<u64> {
-        let n = self.number(hash) as usize;
-        if self.slots[n].len != NOT_ADDED {
-            return None;
+    /// Adds a blob of `len` bytes: its number, and where its bytes go in the spool (`None`
+    /// if it was added before).
+    fn add(&mut self, hash: &blake3::Hash, len: u64) -> (u32, Option<u64>) {
+        let n = self.number(hash);
+        let slot = &mut self.slots[n as usize];
+        if slot.len != NOT_ADDED {
+            return (n, None);
         }
         let offset = self.spooled;
-        self.slots[n].offset = offset;
-        self.slots[n].len = len;
+        slot.offset = offset;
+        slot.len = len;
         self.spooled += len;
         self.added += 1;
-        Some(offset)
+        (n, Some(offset))
     }
 }
 
@@ -305,16 +306,26 @@ impl StreamingWriter {
 
     /// [`StreamingWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&self, bytes: &[u8], hash: blake3::Hash) -> Result<BlobKey, ArchiveError> {
+        self.add_blob_numbered(bytes, hash).map(|_| BlobKey(hash))
+    }
+
+    /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
+    /// bytes to keep instead of its hash; [`StreamingWriter::blob_key`] gives the key back).
+    pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        let Some(offset) = lock(&self.blobs).add(&hash, bytes.len() as u64) else {
-            return Ok(BlobKey(hash));
-        };
+        let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64);
+        let Some(offset) = offset else { return Ok(n) };
         // Written outside the lock: threads spool their blobs in parallel.
         if let Err(source) = self.spool.write_all_at(bytes, offset) {
             self.failed.store(true, Ordering::Relaxed);
             return Err(ArchiveError::Write { path: self.output.clone(), source });
         }
-        Ok(BlobKey(hash))
+        Ok(n)
+    }
+
+    /// The key of the blob numbered `number` by [`StreamingWriter::add_blob_numbered`].
+    pub fn blob_key(&self, number: u32) -> Option<BlobKey> {
+        lock(&self.blobs).slots.get(number as usize).map(|s| BlobKey(s.hash))
     }
 
     /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
@@ -424,10 +435,11 @@ impl ArchiveWriter {
     /// [`ArchiveWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&mut self, bytes: &[u8], hash: blake3::Hash) -> BlobId {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        if self.blobs.add(&hash, bytes.len() as u64).is_some() {
+        let (n, offset) = self.blobs.add(&hash, bytes.len() as u64);
+        if offset.is_some() {
             self.spool.extend_from_slice(bytes);
         }
-        BlobId(self.blobs.number(&hash))
+        BlobId(n)
     }
 
     pub fn add_reflection(&mut self, reflection: &Reflection) -> u32 {

@@ -23,19 +23,39 @@ use crate::archive::{
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
-/// What stays of a key once its artifacts are written.
+/// What stays of a key once its artifacts are written: 12 bytes, its artifacts in
+/// [`Produced::artifacts`].
+#[derive(Clone, Copy)]
+struct KeyEntry {
+    reflection: u32,
+    first: u32,
+    count: u32,
+}
+
+/// What stays of the keys produced.
+#[derive(Default)]
 struct Produced {
-    reflection: Arc<Reflection>,
-    /// Each artifact's target and blake3.
-    artifacts: Vec<(Target, blake3::Hash)>,
+    keys: HashMap<Key, KeyEntry>,
+    /// Each key's artifacts, one after another: target and blob number (the archive
+    /// writer's, else an index into `hashes`).
+    artifacts: Vec<(Target, u32)>,
+    /// Each blob's blake3 when no archive is written (loose files only).
+    hashes: Vec<blake3::Hash>,
+    reflections: Vec<Arc<Reflection>>,
+    reflection_index: HashMap<Arc<Reflection>, u32>,
+}
+
+impl Produced {
+    fn artifacts(&self, e: &KeyEntry) -> &[(Target, u32)] {
+        &self.artifacts[e.first as usize..(e.first + e.count) as usize]
+    }
 }
 
 pub(super) struct Assembler<'p> {
     plan: &'p Plan<'p>,
     /// The archive's writer, with `-o`.
     writer: Option<StreamingWriter>,
-    keys: Mutex<HashMap<Key, Produced>>,
-    reflections: Mutex<HashSet<Arc<Reflection>>>,
+    produced: Mutex<Produced>,
     /// Loose files written (`--emit-dir`): blake3 → file name.
     emitted: Mutex<HashMap<blake3::Hash, String>>,
     /// The first artifact that could not be written.
@@ -58,55 +78,66 @@ impl<'p> Assembler<'p> {
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
         }
-        Ok(Assembler {
-            plan,
-            writer,
-            keys: Mutex::default(),
-            reflections: Mutex::default(),
-            emitted: Mutex::default(),
-            error: Mutex::default(),
-        })
+        Ok(Assembler { plan, writer, produced: Mutex::default(), emitted: Mutex::default(), error: Mutex::default() })
     }
 
-    /// A key's artifacts, with the blake3 of each: written now, then only their hashes kept.
+    /// A key's artifacts, with the blake3 of each: written now, then only their blob
+    /// numbers kept.
     pub fn add(&self, key: &Key, stage: Stage, c: &Compiled, hashes: &[blake3::Hash]) {
         if !self.plan.assembles() {
             return;
         }
+        let mut numbers = Vec::with_capacity(hashes.len());
         for ((t, bytes), hash) in c.artifacts.iter().zip(hashes) {
-            if let Err(e) = self.write_artifact(*t, stage, bytes, *hash) {
-                self.error.lock().expect("no panics while locked").get_or_insert(e);
-            }
-        }
-        let reflection = {
-            let mut set = self.reflections.lock().expect("no panics while locked");
-            match set.get(&c.reflection) {
-                Some(r) => r.clone(),
-                None => {
-                    let r = Arc::new(c.reflection.clone());
-                    set.insert(r.clone());
-                    r
+            match self.write_artifact(*t, stage, bytes, *hash) {
+                Ok(n) => numbers.push((*t, n)),
+                Err(e) => {
+                    // The build fails at `finish`; the key need not be kept.
+                    self.error.lock().expect("no panics while locked").get_or_insert(e);
+                    return;
                 }
             }
+        }
+        let mut p = self.produced.lock().expect("no panics while locked");
+        let reflection = match p.reflection_index.get(&c.reflection) {
+            Some(&r) => r,
+            None => {
+                let r = Arc::new(c.reflection.clone());
+                let n = p.reflections.len() as u32;
+                p.reflections.push(r.clone());
+                p.reflection_index.insert(r, n);
+                n
+            }
         };
-        let artifacts = c.artifacts.iter().zip(hashes).map(|((t, _), h)| (*t, *h)).collect();
-        self.keys.lock().expect("no panics while locked").insert(*key, Produced { reflection, artifacts });
+        let first = p.artifacts.len() as u32;
+        if self.writer.is_none() {
+            // No archive numbers the blobs: each artifact's hash, numbered here.
+            for (a, hash) in numbers.iter_mut().zip(hashes) {
+                a.1 = p.hashes.len() as u32;
+                p.hashes.push(*hash);
+            }
+        }
+        p.artifacts.extend_from_slice(&numbers);
+        p.keys.insert(*key, KeyEntry { reflection, first, count: numbers.len() as u32 });
     }
 
-    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<(), String> {
+    /// Writes an artifact to the archive's spool and the loose files; its blob number in the
+    /// archive (0 without one).
+    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<u32, String> {
+        let mut number = 0;
         if let Some(w) = &self.writer {
-            w.add_blob_hashed(bytes, hash).map_err(|e| format!("error: {e}"))?;
+            number = w.add_blob_numbered(bytes, hash).map_err(|e| format!("error: {e}"))?;
         }
         if let Some(dir) = &self.plan.options.emit_dir {
             if self.emitted.lock().expect("no panics while locked").contains_key(&hash) {
-                return Ok(());
+                return Ok(number);
             }
             let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(stage));
             archive::write_atomic_unsynced(&dir.join(&f), bytes)
                 .map_err(|e| format!("error: cannot write {}: {e}", dir.join(&f).display()))?;
             self.emitted.lock().expect("no panics while locked").insert(hash, f);
         }
-        Ok(())
+        Ok(number)
     }
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
@@ -164,39 +195,45 @@ impl<'p> Assembler<'p> {
         }
         let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
         let fingerprint = self.fingerprint(pre);
-        let keys = self.keys.into_inner().expect("no panics while locked");
+        let produced = self.produced.into_inner().expect("no panics while locked");
+        let writer = self.writer;
+        let hash_of = |n: u32| match &writer {
+            Some(w) => w.blob_key(n).expect("numbered by the writer").hash(),
+            None => produced.hashes[n as usize],
+        };
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
         let plan = self.plan;
-        if let Some(w) = &self.writer {
+        if let Some(w) = &writer {
             // The manifest's exact size: its arenas are allocated once.
             let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
             for i in (0..plan.len()).filter(|&i| pre.key(i).is_some()) {
                 n += 1;
                 names += plan.name(i).len();
                 values += plan.values(i).len();
-                artifacts += pre.key(i).and_then(|k| keys.get(k)).map_or(0, |p| p.artifacts.len());
+                artifacts += pre.key(i).and_then(|k| produced.keys.get(k)).map_or(0, |e| e.count as usize);
             }
             w.reserve(n, names, values, artifacts);
         }
         for i in 0..plan.len() {
             let Some(key) = pre.key(i) else { continue };
-            let produced = &keys[key];
+            let entry = &produced.keys[key];
+            let artifacts = produced.artifacts(entry);
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
             if options.emit_dir.is_some() {
                 let files = index.entry(name.clone()).or_default();
-                for (t, hash) in &produced.artifacts {
-                    files.insert(t.name(), emitted[hash].as_str());
+                for (t, n) in artifacts {
+                    files.insert(t.name(), emitted[&hash_of(*n)].as_str());
                 }
             }
-            written.permutation_artifacts += produced.artifacts.len();
-            if self.writer.is_none() {
-                distinct.extend(produced.artifacts.iter().map(|a| a.1));
+            written.permutation_artifacts += artifacts.len();
+            if writer.is_none() {
+                distinct.extend(artifacts.iter().map(|a| hash_of(a.1)));
             }
-            let Some(w) = &self.writer else { continue };
+            let Some(w) = &writer else { continue };
             let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
                 name: shader_of.name.clone(),
                 level: level.name.clone(),
@@ -212,12 +249,12 @@ impl<'p> Assembler<'p> {
                 name,
                 shader,
                 values: plan.values(i).to_vec(),
-                reflection: &produced.reflection,
-                artifacts: produced.artifacts.iter().map(|(t, h)| (*t, BlobKey::from_hash(*h))).collect(),
+                reflection: &produced.reflections[entry.reflection as usize],
+                artifacts: artifacts.iter().map(|(t, n)| (*t, BlobKey::from_hash(hash_of(*n)))).collect(),
             })
             .map_err(archive_error)?;
         }
-        drop(keys);
+        drop(produced);
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
@@ -226,7 +263,7 @@ impl<'p> Assembler<'p> {
             archive::write_atomic_unsynced(&path, &json)
                 .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
         }
-        if let (Some(out), Some(w)) = (&options.output, self.writer) {
+        if let (Some(out), Some(w)) = (&options.output, writer) {
             let summary = w.finish_unsynced().map_err(archive_error)?;
             written.artifacts = summary.blobs;
             written.archive = Some(out.clone());
