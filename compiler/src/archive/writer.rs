@@ -530,6 +530,8 @@ struct Plan {
     blobs: Vec<PlannedBlob>,
     /// Each blob's hash and place in the spool, by slot.
     slots: Vec<BlobSlot>,
+    /// Where the spool's blobs end.
+    spool_len: u64,
 }
 
 impl Plan {
@@ -542,7 +544,7 @@ impl Plan {
 /// the result depends on the set added, not on the order of adding. The arenas are kept:
 /// the manifest's permutations point into them.
 fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
-    let BlobTable { slots, table, .. } = table;
+    let BlobTable { slots, table, spooled: spool_len, .. } = table;
     drop(table);
     let mut order: Vec<u32> = (0..entries.permutations.len() as u32).collect();
     let name = |i: u32| entries.name(&entries.permutations[i as usize]);
@@ -606,7 +608,7 @@ fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
     manifest.names = names;
     manifest.values = values;
     manifest.artifacts = blob_of;
-    Ok(Plan { manifest, blobs, slots })
+    Ok(Plan { manifest, blobs, slots, spool_len })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
@@ -720,10 +722,10 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
-    let Plan { mut manifest, blobs, slots } = plan;
+    let Plan { mut manifest, blobs, slots, spool_len } = plan;
     let slot = |b: &PlannedBlob| slots[b.slot as usize];
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
-    let mut table = Vec::with_capacity(blobs.len() * super::format::ENTRY_LEN);
+    let mut table = TableBuf::new(spool, spool_len, blobs.len());
     let mut offset = 0u64;
     let mut start = 0;
     while start < blobs.len() {
@@ -763,7 +765,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
                 dictionary,
                 hash: *s.hash.as_bytes(),
             };
-            table.extend_from_slice(&entry.encode());
+            table.push(&entry.encode())?;
             offset += bytes.len() as u64;
             summary.raw_bytes += s.len;
         }
@@ -808,8 +810,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     }
     drop(manifest);
     pad8(&mut out, layout.manifest + manifest_len)?;
-    out.write_all(&table)?;
-    hasher.update(&table);
+    table.copy_to(&mut out, &mut hasher)?;
     let sum = hasher.finalize();
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&fields)?;
@@ -901,6 +902,68 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
         out.write_all(manifest.name_of(p).as_bytes())?;
     }
     Ok(())
+}
+
+/// The blob table while the blobs and the manifest are written (it comes last in the file):
+/// with a spool file, in that file past the blobs (the table of a 100k-permutation set is
+/// about 13 MB that memory need not hold); else in memory.
+enum TableBuf<'a> {
+    Memory(Vec<u8>),
+    File { file: &'a File, start: u64, written: u64, pending: Vec<u8> },
+}
+
+impl<'a> TableBuf<'a> {
+    fn new(spool: &Spool<'a>, spool_len: u64, blobs: usize) -> Self {
+        match spool {
+            Spool::File(file) => TableBuf::File { file, start: spool_len, written: 0, pending: Vec::new() },
+            Spool::Memory(_) => TableBuf::Memory(Vec::with_capacity(blobs * super::format::ENTRY_LEN)),
+        }
+    }
+
+    fn push(&mut self, entry: &[u8]) -> std::io::Result<()> {
+        match self {
+            TableBuf::Memory(v) => v.extend_from_slice(entry),
+            TableBuf::File { pending, .. } => {
+                pending.extend_from_slice(entry);
+                if pending.len() >= 1 << 16 {
+                    self.flush()?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        if let TableBuf::File { file, start, written, pending } = self {
+            file.write_all_at(pending, *start + *written)?;
+            *written += pending.len() as u64;
+            pending.clear();
+        }
+        Ok(())
+    }
+
+    /// Writes the table to `out` and feeds it to `hasher`.
+    fn copy_to(mut self, out: &mut impl Write, hasher: &mut blake3::Hasher) -> std::io::Result<()> {
+        self.flush()?;
+        match &self {
+            TableBuf::Memory(v) => {
+                out.write_all(v)?;
+                hasher.update(v);
+            }
+            TableBuf::File { file, start, written, .. } => {
+                let mut buf = vec![0u8; 1 << 20];
+                let mut at = 0u64;
+                while at < *written {
+                    let n = (*written - at).min(buf.len() as u64) as usize;
+                    file.read_exact_at(&mut buf[..n], *start + at)?;
+                    out.write_all(&buf[..n])?;
+                    hasher.update(&buf[..n]);
+                    at += n as u64;
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A writer that only counts.
