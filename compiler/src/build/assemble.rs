@@ -183,8 +183,9 @@ impl<'p> Assembler<'p> {
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
     /// index, and the archive's stamp.
-    /// `pre` gives each kept permutation's key.
-    pub fn finish(self, pre: &Preprocessed, store: &Store) -> Result<Written, Error> {
+    /// `pre` gives each kept permutation's key; it is dropped once the manifest has them,
+    /// before the archive is written.
+    pub fn finish(self, pre: Preprocessed, store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
         let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
         if !self.plan.assembles() {
@@ -194,7 +195,7 @@ impl<'p> Assembler<'p> {
             return Err(Error::Io(e));
         }
         let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
-        let fingerprint = self.fingerprint(pre);
+        let fingerprint = self.fingerprint(&pre);
         let produced = self.produced.into_inner().expect("no panics while locked");
         let writer = self.writer;
         let hash_of = |n: u32| match &writer {
@@ -254,7 +255,7 @@ impl<'p> Assembler<'p> {
             })
             .map_err(archive_error)?;
         }
-        drop(produced);
+        drop((produced, pre));
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {

@@ -200,7 +200,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     // Only the manifest is left to write: keep each permutation's key, drop the rest.
     drop((keys, compiler, preprocessor));
     trace_memory("drop");
-    report.assembled(assembler.finish(&pre, store)?);
+    report.assembled(assembler.finish(pre, store)?);
     trace_memory("assemble");
     report.finish()
 }
