@@ -121,6 +121,11 @@ impl Store {
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
         self.write(pending);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
+        // The build looks nothing up past here: the index need not stay while the archive is
+        // written.
+        if let Some(c) = &self.cache {
+            c.release_index();
+        }
         warnings.extend(self.unavailable.clone());
         for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {
             // n == 0: a remote archive's warning, whole.
