@@ -300,6 +300,67 @@ mod tests {
         assert!(Shard::from_completion_index(0, Some("0")).is_err());
     }
 
+    /// The compact plan gives back every kept permutation as the enumeration made it (values,
+    /// derived defines, shader and level, name), runs included, with a level filter.
+    #[test]
+    fn the_compact_plan_gives_back_each_permutation() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("A.usf"), "fn a() {}\n").unwrap();
+        std::fs::write(dir.path().join("B.usf"), "fn b() {}\n").unwrap();
+        let text = r#"
+[compiler]
+include = ["."]
+[levels.sm5]
+targets = ["spirv"]
+defines = { FL = 5 }
+[levels.es3]
+targets = ["glsl"]
+limits = "downlevel"
+defines = { FL = 3 }
+[levels.es2]
+targets = ["glsl"]
+[[shader]]
+name = "A"
+source = "A.usf"
+entry = "main"
+stage = "fragment"
+levels = ["sm5", "es3", "es2"]
+dimensions = { X = { range = [0, 4] }, Y = "bool", Z = [1, 2, 8] }
+derived = { XZ = "X * Z" }
+skip = [ { when = "FL == 3 && Z == 8", why = "t" }, { when = "X == 2 && Y == 1", why = "t" } ]
+[[shader]]
+name = "B"
+source = "B.usf"
+entry = "main"
+stage = "vertex"
+levels = ["es3", "sm5"]
+"#;
+        let config = permute::load_str(text, &dir.path().join("permutations.toml")).unwrap();
+        let options = Options { levels: vec!["sm5".into(), "es3".into()], ..Options::default() };
+        let plan = Plan::new(&config, &options).unwrap();
+        let kept: Vec<Permutation<'_>> = config.kept_where(|_, l| l.name == "sm5" || l.name == "es3").collect();
+        assert_eq!(plan.len(), kept.len());
+        assert!(kept.len() > 20, "{}", kept.len());
+        for (i, p) in kept.iter().enumerate() {
+            let q = plan.permutation(i);
+            assert_eq!(
+                (q.shader.name.as_str(), q.level.name.as_str()),
+                (p.shader.name.as_str(), p.level.name.as_str())
+            );
+            assert_eq!((&q.values, &q.derived), (&p.values, &p.derived), "{}", p.name());
+            assert_eq!(plan.values(i), &p.values[..]);
+            assert_eq!(plan.name(i), p.name());
+        }
+        let runs: Vec<(String, String, usize)> =
+            plan.runs().map(|(s, l, r)| (s.name.clone(), l.name.clone(), r.len())).collect();
+        let names: Vec<(&str, &str)> = runs.iter().map(|r| (r.0.as_str(), r.1.as_str())).collect();
+        assert_eq!(names, [("A", "sm5"), ("A", "es3"), ("B", "es3"), ("B", "sm5")]);
+        assert_eq!(runs.iter().map(|r| r.2).sum::<usize>(), kept.len());
+        // 5 x 2 x 3 values less the 5 of X == 2 && Y == 1 at sm5; es3 also skips Z == 8.
+        assert_eq!(runs[0].2, 30 - 3);
+        assert_eq!(runs[1].2, 20 - 2);
+    }
+
     #[test]
     fn assignment_balances_cost_and_ignores_order() {
         let keys: Vec<Key> = (0..40u8).map(|i| Key([i; 32])).collect();
