@@ -3,8 +3,9 @@
 //! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, from any worker
 //! and in any order: their bytes go at once to the archive's spool (a
 //! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
-//! reflection (interned) and the hashes of its blobs. [`Assembler::finish`] then adds the
-//! permutations, whose records are the manifest: the only thing that grows with the set.
+//! reflection's number and its blobs' numbers in the writer (12 bytes and 8 per artifact).
+//! [`Assembler::finish`] then adds the permutations, whose records are the manifest: with
+//! the writer's 48 bytes per blob, what grows with the set.
 //! The writer orders everything by content and name, so the bytes depend only on the set
 //! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
 //! an archive nor loose files (a check or a shard).
