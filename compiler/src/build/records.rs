@@ -56,7 +56,7 @@ pub(super) struct Records {
 impl Records {
     /// The records of `rows` (one per direct key; of two, the first is kept).
     pub fn new(mut rows: Vec<(Key, Row)>) -> Records {
-        rows.sort_by(|a, b| a.0.cmp(&b.0));
+        rows.sort_by_key(|r| r.0);
         rows.dedup_by(|a, b| a.0 == b.0);
         rows.shrink_to_fit();
         Records { rows }
