@@ -63,6 +63,8 @@ pub(super) struct Compiler<'a> {
     start: Mutex<Option<Instant>>,
     /// The writers' outputs of the compacted modules compiled so far.
     shared: compile::SharedWriters,
+    /// With `--shard`: each key's text, kept until the shard knows its share.
+    texts: Option<super::shard::Texts>,
 }
 
 impl<'a> Compiler<'a> {
@@ -77,6 +79,7 @@ impl<'a> Compiler<'a> {
             early_warnings: Mutex::default(),
             start: Mutex::default(),
             shared: shared_writers(),
+            texts: plan.options.shard.and_then(|_| super::shard::Texts::new()),
         }
     }
 
@@ -87,9 +90,15 @@ impl<'a> Compiler<'a> {
 
     /// During preprocessing: compiles `key` from `output` if `p` is the first of its
     /// permutations preprocessed (and, with `--shard`, nothing yet: a shard knows its share
-    /// only once every key is known).
+    /// only once every key is known, so it keeps the text for then).
     pub fn early(&self, index: usize, p: &Permutation<'_>, key: &Key, output: &preprocess::Output) {
-        if self.plan.options.shard.is_some() || p.error.is_some() {
+        if p.error.is_some() {
+            return;
+        }
+        if self.plan.options.shard.is_some() {
+            if let Some(texts) = &self.texts {
+                texts.keep(key, &output.text);
+            }
             return;
         }
         let short = u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"));
@@ -161,7 +170,9 @@ impl<'a> Compiler<'a> {
             }
             Fetched::Miss(w) => warning = w.or(warning),
         }
-        let Some(text) = representative(preprocessor, p, key) else {
+        // A shard's kept text, else the key's first permutation preprocessed again.
+        let kept = self.texts.as_ref().and_then(|t| t.take(key));
+        let Some(text) = kept.or_else(|| representative(preprocessor, p, key).map(|o| o.text)) else {
             let e = compile::Error {
                 kind: compile::ErrorKind::Parse,
                 message: "the sources changed during the build".into(),
@@ -170,7 +181,7 @@ impl<'a> Compiler<'a> {
             };
             return Outcome::Failed(Box::new((e, warning)));
         };
-        self.compile(key, p, &text.text, warning)
+        self.compile(key, p, &text, warning)
     }
 
     /// A key from the cache, else compiled from `text` (a permutation `p` of that key).

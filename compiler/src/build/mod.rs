@@ -15,7 +15,8 @@
 //!   that permutation's files name;
 //! - [`compile`]: each distinct key once, from the cache where it holds it, else with naga;
 //!   a key is compiled by the worker that first preprocesses one of its permutations, so
-//!   compiling overlaps preprocessing;
+//!   compiling overlaps preprocessing (a shard, which knows its share only once every key
+//!   is known, keeps each key's text for then: [`shard`]);
 //! - [`store`]: the one place that talks to the cache: lookups, the packs that the
 //!   compiled entries stream into, and the remote cache's archives (a fresh local cache
 //!   with a remote holding this build's archive and entries copies them and assembles
@@ -43,6 +44,7 @@ mod plan;
 mod preprocess;
 mod records;
 mod report;
+mod shard;
 mod store;
 
 pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
