@@ -667,6 +667,38 @@ fn two_writers(kind: Kind) {
     assert_eq!(c.bytes(), a.bytes());
 }
 
+/// A shard on a fresh machine against a warm remote takes its share in `MGET` batches, not
+/// one `GET` per key, and compiles nothing.
+#[test]
+fn a_shard_fetches_its_share_in_batches() {
+    let server = Server::start(Kind::Redis);
+    let url = server.url();
+    Machine::new().build(&url);
+    let mut redis = server.redis();
+    let () = redis::cmd("CONFIG").arg("RESETSTAT").query(&mut redis).unwrap();
+    let m = Machine::new();
+    let mut o = m.options(RemoteCache::Url(url), None);
+    o.output = None;
+    o.shard = Some(build::Shard { index: 0, count: 2 });
+    let r = {
+        let _env = ENV.read().unwrap_or_else(|e| e.into_inner());
+        build_ok(&o)
+    };
+    let share = DISTINCT - r.stats.other_shards;
+    assert!(share > 0 && r.stats.other_shards > 0, "{:?}", r.stats);
+    assert_eq!((r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits), (0, share, share as u64));
+    let info: String = redis::cmd("INFO").arg("commandstats").query(&mut redis).unwrap();
+    let calls = |command: &str| {
+        info.lines()
+            .find_map(|l| l.strip_prefix(&format!("cmdstat_{command}:calls=")))
+            .and_then(|rest| rest.split(',').next()?.parse::<u64>().ok())
+            .unwrap_or(0)
+    };
+    assert!(calls("mget") >= 1, "{info}");
+    // One GET: the preprocessing records.
+    assert!(calls("get") <= 1, "{info}");
+}
+
 #[test]
 fn redis_two_writers_at_once() {
     two_writers(Kind::Redis);

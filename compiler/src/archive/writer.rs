@@ -103,11 +103,72 @@ struct Entries {
     /// Every pending permutation's name, one after another.
     names: String,
     values: Vec<i64>,
-    artifacts: Vec<(Target, blake3::Hash)>,
+    /// Each artifact's target and blob number (in the writer's [`BlobTable`]).
+    artifacts: Vec<(Target, u32)>,
+}
+
+/// A blob a writer knows: added (its bytes spooled), or only named by a permutation so far.
+#[derive(Clone, Copy)]
+struct BlobSlot {
+    hash: blake3::Hash,
+    offset: u64,
+    /// [`NOT_ADDED`] while only named.
+    len: u64,
+}
+
+const NOT_ADDED: u64 = u64::MAX;
+
+/// The blobs of a writer, numbered by first sight and found by hash: 56 bytes per blob and a
+/// few for the table (the hash is stored once, in its slot).
+#[derive(Clone, Default)]
+struct BlobTable {
+    slots: Vec<BlobSlot>,
+    table: hashbrown::HashTable<u32>,
+    /// Blobs added.
+    added: usize,
+    /// The next free offset of the spool.
+    spooled: u64,
+}
+
+/// A blake3 hash's first 8 bytes: already uniform.
+fn table_hash(h: &blake3::Hash) -> u64 {
+    u64::from_le_bytes(h.as_bytes()[..8].try_into().expect("8 of 32 bytes"))
+}
+
+impl BlobTable {
+    /// The number of the blob with `hash`, a new one if it is not known yet.
+    fn number(&mut self, hash: &blake3::Hash) -> u32 {
+        let slots = &self.slots;
+        if let Some(&n) = self.table.find(table_hash(hash), |&n| slots[n as usize].hash == *hash) {
+            return n;
+        }
+        let n = u32::try_from(self.slots.len()).expect("fewer than 2^32 blobs");
+        self.slots.push(BlobSlot { hash: *hash, offset: 0, len: NOT_ADDED });
+        let slots = &self.slots;
+        self.table.insert_unique(table_hash(hash), n, |&m| table_hash(&slots[m as usize].hash));
+        n
+    }
+
+    /// Adds a blob of `len` bytes: its number, and where its bytes go in the spool (`None`
+    /// if it was added before).
+    fn add(&mut self, hash: &blake3::Hash, len: u64) -> (u32, Option<u64>) {
+        let n = self.number(hash);
+        let slot = &mut self.slots[n as usize];
+        if slot.len != NOT_ADDED {
+            return (n, None);
+        }
+        let offset = self.spooled;
+        slot.offset = offset;
+        slot.len = len;
+        self.spooled += len;
+        self.added += 1;
+        (n, Some(offset))
+    }
 }
 
 impl Entries {
-    fn add(&mut self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
+    /// Adds `p`, its artifacts numbered by `number`.
+    fn add(&mut self, p: NewPermutation<'_>, mut number: impl FnMut(&blake3::Hash) -> u32) -> Result<(), ArchiveError> {
         let key = (p.shader.name.clone(), p.shader.level.clone());
         let shader = match self.shader_index.get(&key) {
             Some(&i) if self.shaders[i as usize] == *p.shader => i,
@@ -161,7 +222,7 @@ impl Entries {
         };
         self.names.push_str(&p.name);
         self.values.extend_from_slice(&p.values);
-        self.artifacts.extend(artifacts.iter().map(|(t, k)| (*t, k.0)));
+        self.artifacts.extend(artifacts.iter().map(|(t, k)| (*t, number(&k.0))));
         self.permutations.push(pending);
         Ok(())
     }
@@ -190,15 +251,12 @@ impl Spool<'_> {
     }
 }
 
-/// blake3 of each spooled blob → (offset, length) in the spool; the next free offset.
-type SpoolIndex = (HashMap<blake3::Hash, (u64, u64)>, u64);
-
 /// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
 /// documentation. `Send + Sync`: share it by reference across a thread pool.
 pub struct StreamingWriter {
     output: PathBuf,
     entries: Mutex<Entries>,
-    blobs: Mutex<SpoolIndex>,
+    blobs: Mutex<BlobTable>,
     spool: File,
     failed: AtomicBool,
 }
@@ -225,7 +283,7 @@ impl StreamingWriter {
         Ok(StreamingWriter {
             output: output.to_path_buf(),
             entries: Mutex::new(entries),
-            blobs: Mutex::new((HashMap::new(), 0)),
+            blobs: Mutex::default(),
             spool,
             failed: AtomicBool::new(false),
         })
@@ -248,33 +306,48 @@ impl StreamingWriter {
 
     /// [`StreamingWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&self, bytes: &[u8], hash: blake3::Hash) -> Result<BlobKey, ArchiveError> {
+        self.add_blob_numbered(bytes, hash).map(|_| BlobKey(hash))
+    }
+
+    /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
+    /// bytes to keep instead of its hash; [`StreamingWriter::blob_key`] gives the key back).
+    pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        let offset = {
-            let mut blobs = lock(&self.blobs);
-            if blobs.0.contains_key(&hash) {
-                return Ok(BlobKey(hash));
-            }
-            let offset = blobs.1;
-            blobs.1 += bytes.len() as u64;
-            blobs.0.insert(hash, (offset, bytes.len() as u64));
-            offset
-        };
+        let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64);
+        let Some(offset) = offset else { return Ok(n) };
         // Written outside the lock: threads spool their blobs in parallel.
         if let Err(source) = self.spool.write_all_at(bytes, offset) {
             self.failed.store(true, Ordering::Relaxed);
             return Err(ArchiveError::Write { path: self.output.clone(), source });
         }
-        Ok(BlobKey(hash))
+        Ok(n)
+    }
+
+    /// The key of the blob numbered `number` by [`StreamingWriter::add_blob_numbered`].
+    pub fn blob_key(&self, number: u32) -> Option<BlobKey> {
+        lock(&self.blobs).slots.get(number as usize).map(|s| BlobKey(s.hash))
     }
 
     /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
-        lock(&self.entries).add(p)
+        let mut entries = lock(&self.entries);
+        entries.add(p, |h| lock(&self.blobs).number(h))
+    }
+
+    /// Room for `permutations` more permutations with `name_bytes` bytes of names, `values`
+    /// values and `artifacts` artifacts in all: a caller that knows the manifest's size
+    /// saves the copies of arenas that grow by doubling (and their transient peak).
+    pub fn reserve(&self, permutations: usize, name_bytes: usize, values: usize, artifacts: usize) {
+        let mut e = lock(&self.entries);
+        e.permutations.reserve_exact(permutations);
+        e.names.reserve_exact(name_bytes);
+        e.values.reserve_exact(values);
+        e.artifacts.reserve_exact(artifacts);
     }
 
     /// Number of distinct blobs added so far.
     pub fn blob_count(&self) -> usize {
-        lock(&self.blobs).0.len()
+        lock(&self.blobs).added
     }
 
     /// Assembles the archive and writes it atomically (temporary file, fsync, rename).
@@ -294,12 +367,10 @@ impl StreamingWriter {
             return Err(err(std::io::Error::other("a blob could not be spooled")));
         }
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
-        let (index, _) = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
-        let plan = plan(entries, &index)?;
+        let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
+        let plan = plan(entries, blobs)?;
         #[cfg(feature = "compiler")]
         crate::build::trace_memory("archive planned");
-        // The spool index is not needed past planning: free it before the archive is written.
-        drop(index);
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
@@ -326,10 +397,8 @@ pub struct ArchiveWriter {
     shader_handles: HashMap<(String, String), u32>,
     reflections: Vec<Reflection>,
     reflection_handles: HashMap<Reflection, u32>,
-    /// blake3 of each `BlobId`, and where its bytes lie in `spool`.
-    blob_hashes: Vec<blake3::Hash>,
-    index: HashMap<blake3::Hash, (u64, u64)>,
-    handle_of: HashMap<blake3::Hash, BlobId>,
+    /// Each blob (a `BlobId` is its number), and where its bytes lie in `spool`.
+    blobs: BlobTable,
     spool: Vec<u8>,
     /// The first inconsistency found by `add_permutation`, reported when writing.
     error: Option<String>,
@@ -366,15 +435,11 @@ impl ArchiveWriter {
     /// [`ArchiveWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&mut self, bytes: &[u8], hash: blake3::Hash) -> BlobId {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        if let Some(&id) = self.handle_of.get(&hash) {
-            return id;
+        let (n, offset) = self.blobs.add(&hash, bytes.len() as u64);
+        if offset.is_some() {
+            self.spool.extend_from_slice(bytes);
         }
-        let id = BlobId(self.blob_hashes.len() as u32);
-        self.index.insert(hash, (self.spool.len() as u64, bytes.len() as u64));
-        self.spool.extend_from_slice(bytes);
-        self.blob_hashes.push(hash);
-        self.handle_of.insert(hash, id);
-        id
+        BlobId(n)
     }
 
     pub fn add_reflection(&mut self, reflection: &Reflection) -> u32 {
@@ -395,28 +460,29 @@ impl ArchiveWriter {
         let artifacts: Option<Vec<(Target, BlobKey)>> = record
             .artifacts
             .iter()
-            .map(|(t, id)| self.blob_hashes.get(id.0 as usize).map(|h| (*t, BlobKey(*h))))
+            .map(|(t, id)| self.blobs.slots.get(id.0 as usize).map(|b| (*t, BlobKey(b.hash))))
             .collect();
         let (Some(shader), Some(reflection), Some(artifacts)) = (shader, reflection, artifacts) else {
             self.error.get_or_insert_with(|| format!("permutation `{}` names a handle of no writer", record.name));
             return;
         };
         let p = NewPermutation { name: record.name, shader, values: record.values, reflection, artifacts };
-        if let Err(e) = self.entries.add(p) {
+        let blobs = &mut self.blobs;
+        if let Err(e) = self.entries.add(p, |h| blobs.number(h)) {
             self.error.get_or_insert_with(|| e.to_string());
         }
     }
 
     /// Number of distinct blobs so far.
     pub fn blob_count(&self) -> usize {
-        self.blob_hashes.len()
+        self.blobs.added
     }
 
     fn plan(&self) -> Result<Plan, ArchiveError> {
         if let Some(e) = &self.error {
             return Err(ArchiveError::Input(e.clone()));
         }
-        plan(self.entries.clone(), &self.index)
+        plan(self.entries.clone(), self.blobs.clone())
     }
 
     /// The whole archive as bytes.
@@ -451,24 +517,35 @@ impl ArchiveWriter {
     }
 }
 
-/// A blob of the archive, in archive order.
+/// A blob of the archive, in archive order: its target and its slot in the writer's table.
+#[derive(Clone, Copy)]
 struct PlannedBlob {
     target: Target,
-    hash: blake3::Hash,
-    spool_offset: u64,
-    len: u64,
+    slot: u32,
 }
 
 /// What the archive will hold, in its final order; only the blob bytes are still elsewhere.
 struct Plan {
     manifest: Manifest,
     blobs: Vec<PlannedBlob>,
+    /// Each blob's hash and place in the spool, by slot.
+    slots: Vec<BlobSlot>,
+    /// Where the spool's blobs end.
+    spool_len: u64,
+}
+
+impl Plan {
+    fn slot(&self, b: &PlannedBlob) -> &BlobSlot {
+        &self.slots[b.slot as usize]
+    }
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
 /// the result depends on the set added, not on the order of adding. The arenas are kept:
 /// the manifest's permutations point into them.
-fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<Plan, ArchiveError> {
+fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
+    let BlobTable { slots, table, spooled: spool_len, .. } = table;
+    drop(table);
     let mut order: Vec<u32> = (0..entries.permutations.len() as u32).collect();
     let name = |i: u32| entries.name(&entries.permutations[i as usize]);
     order.sort_unstable_by(|&a, &b| name(a).cmp(name(b)));
@@ -481,7 +558,8 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
     let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
-    let mut blob_ids: HashMap<blake3::Hash, u32> = HashMap::new();
+    // Each slot's blob id, by first use.
+    let mut blob_ids: Vec<u32> = vec![u32::MAX; slots.len()];
     let mut blobs = Vec::new();
     // Each artifact's blob, in the arena's order.
     let mut blob_of: Vec<(Target, BlobId)> = vec![(Target::Wgsl, BlobId(0)); artifacts.len()];
@@ -498,21 +576,21 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
         });
         let first = p.first_artifact as usize;
         for a in first..first + p.artifact_count as usize {
-            let (target, hash) = artifacts[a];
-            let id = match blob_ids.get(&hash) {
-                Some(&id) => id,
-                None => {
-                    let Some(&(spool_offset, len)) = index.get(&hash) else {
+            let (target, slot) = artifacts[a];
+            let id = match blob_ids[slot as usize] {
+                u32::MAX => {
+                    if slots[slot as usize].len == NOT_ADDED {
                         let name = &names[p.name_start as usize..][..p.name_len as usize];
                         return Err(ArchiveError::Input(format!(
                             "permutation `{name}` names a {target} blob that was never added"
                         )));
-                    };
+                    }
                     let id = blobs.len() as u32;
-                    blobs.push(PlannedBlob { target, hash, spool_offset, len });
-                    blob_ids.insert(hash, id);
+                    blobs.push(PlannedBlob { target, slot });
+                    blob_ids[slot as usize] = id;
                     id
                 }
+                id => id,
             };
             blob_of[a] = (target, BlobId(id));
         }
@@ -530,7 +608,7 @@ fn plan(entries: Entries, index: &HashMap<blake3::Hash, (u64, u64)>) -> Result<P
     manifest.names = names;
     manifest.values = values;
     manifest.artifacts = blob_of;
-    Ok(Plan { manifest, blobs })
+    Ok(Plan { manifest, blobs, slots, spool_len })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
@@ -554,14 +632,14 @@ fn par_map<T: Sync, U: Send, S>(
 
 /// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
 /// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from.
-fn train(blobs: &[PlannedBlob], target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    let of_target: Vec<&PlannedBlob> = blobs.iter().filter(|b| b.target == target).collect();
+fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+    let of_target: Vec<&BlobSlot> = plan.blobs.iter().filter(|b| b.target == target).map(|b| plan.slot(b)).collect();
     let total: u64 = of_target.iter().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
     let mut samples = Vec::new();
     let mut sampled = 0usize;
     for b in of_target.iter().step_by(stride) {
-        samples.push(spool.read(b.spool_offset, b.len)?);
+        samples.push(spool.read(b.offset, b.len)?);
         sampled += b.len as usize;
     }
     // A dictionary pays for itself only over many artifacts of a kind.
@@ -626,14 +704,13 @@ fn train_fast_cover(samples: &[Cow<'_, [u8]>], capacity: usize) -> Option<Vec<u8
 /// It consumes the plan: the manifest is serialized straight from it, never copied, and
 /// never held as one JSON string.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { mut manifest, blobs } = plan;
     let mut out = BufWriter::with_capacity(1 << 20, out);
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
     // Dictionaries, trained per target in parallel.
-    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.iter().any(|b| b.target == *t)).collect();
-    let trained = par_map(&targets, || (), |_, t| train(&blobs, *t, spool));
+    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
+    let trained = par_map(&targets, || (), |_, t| train(&plan, *t, spool));
     let mut dictionaries: Vec<(Target, Vec<u8>)> = Vec::new();
     for (t, d) in targets.iter().zip(trained) {
         if let Some(d) = d? {
@@ -645,20 +722,23 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
+    let Plan { mut manifest, blobs, slots, spool_len } = plan;
+    let slot = |b: &PlannedBlob| slots[b.slot as usize];
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
-    let mut table = Vec::with_capacity(blobs.len() * super::format::ENTRY_LEN);
+    let mut table = TableBuf::new(spool, spool_len, blobs.len());
     let mut offset = 0u64;
     let mut start = 0;
     while start < blobs.len() {
         let mut end = start;
         let mut batch_bytes = 0u64;
         while end < blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
-            batch_bytes += blobs[end].len;
+            batch_bytes += slot(&blobs[end]).len;
             end += 1;
         }
         let batch = &blobs[start..end];
         let stored = par_map(batch, zstd::zstd_safe::CCtx::create, |cctx, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
-            let raw = spool.read(b.spool_offset, b.len)?;
+            let s = slot(b);
+            let raw = spool.read(s.offset, s.len)?;
             let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
             let mut dst = Vec::with_capacity(zstd::zstd_safe::compress_bound(raw.len()));
             let (codec, index, ok) = match dict {
@@ -676,21 +756,24 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
         for (b, s) in batch.iter().zip(stored) {
             let (codec, dictionary, bytes) = s?;
             out.write_all(&bytes)?;
+            let s = slot(b);
             let entry = Entry {
                 offset,
                 stored_len: bytes.len() as u64,
-                raw_len: b.len,
+                raw_len: s.len,
                 codec,
                 dictionary,
-                hash: *b.hash.as_bytes(),
+                hash: *s.hash.as_bytes(),
             };
-            table.extend_from_slice(&entry.encode());
+            table.push(&entry.encode())?;
             offset += bytes.len() as u64;
-            summary.raw_bytes += b.len;
+            summary.raw_bytes += s.len;
         }
         start = end;
     }
     summary.blobs = blobs.len();
+    let blob_count = blobs.len() as u64;
+    drop((blobs, slots));
     summary.stored_bytes = offset;
     let blobs_len = offset;
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
@@ -714,7 +797,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     // its counts.
     let counts = manifest_counts(&manifest)?;
     let manifest_len = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?.end;
-    let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count: blobs.len() as u64 };
+    let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count };
     let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
     pad8(&mut out, layout.dictionaries + dict_offset)?;
     let fields = sections.header_fields();
@@ -727,8 +810,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     }
     drop(manifest);
     pad8(&mut out, layout.manifest + manifest_len)?;
-    out.write_all(&table)?;
-    hasher.update(&table);
+    table.copy_to(&mut out, &mut hasher)?;
     let sum = hasher.finalize();
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&fields)?;
@@ -820,6 +902,68 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
         out.write_all(manifest.name_of(p).as_bytes())?;
     }
     Ok(())
+}
+
+/// The blob table while the blobs and the manifest are written (it comes last in the file):
+/// with a spool file, in that file past the blobs (the table of a 100k-permutation set is
+/// about 13 MB that memory need not hold); else in memory.
+enum TableBuf<'a> {
+    Memory(Vec<u8>),
+    File { file: &'a File, start: u64, written: u64, pending: Vec<u8> },
+}
+
+impl<'a> TableBuf<'a> {
+    fn new(spool: &Spool<'a>, spool_len: u64, blobs: usize) -> Self {
+        match spool {
+            Spool::File(file) => TableBuf::File { file, start: spool_len, written: 0, pending: Vec::new() },
+            Spool::Memory(_) => TableBuf::Memory(Vec::with_capacity(blobs * super::format::ENTRY_LEN)),
+        }
+    }
+
+    fn push(&mut self, entry: &[u8]) -> std::io::Result<()> {
+        match self {
+            TableBuf::Memory(v) => v.extend_from_slice(entry),
+            TableBuf::File { pending, .. } => {
+                pending.extend_from_slice(entry);
+                if pending.len() >= 1 << 16 {
+                    self.flush()?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        if let TableBuf::File { file, start, written, pending } = self {
+            file.write_all_at(pending, *start + *written)?;
+            *written += pending.len() as u64;
+            pending.clear();
+        }
+        Ok(())
+    }
+
+    /// Writes the table to `out` and feeds it to `hasher`.
+    fn copy_to(mut self, out: &mut impl Write, hasher: &mut blake3::Hasher) -> std::io::Result<()> {
+        self.flush()?;
+        match &self {
+            TableBuf::Memory(v) => {
+                out.write_all(v)?;
+                hasher.update(v);
+            }
+            TableBuf::File { file, start, written, .. } => {
+                let mut buf = vec![0u8; 1 << 20];
+                let mut at = 0u64;
+                while at < *written {
+                    let n = (*written - at).min(buf.len() as u64) as usize;
+                    file.read_exact_at(&mut buf[..n], *start + at)?;
+                    out.write_all(&buf[..n])?;
+                    hasher.update(&buf[..n]);
+                    at += n as u64;
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A writer that only counts.

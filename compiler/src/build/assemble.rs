@@ -3,8 +3,9 @@
 //! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, from any worker
 //! and in any order: their bytes go at once to the archive's spool (a
 //! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
-//! reflection (interned) and the hashes of its blobs. [`Assembler::finish`] then adds the
-//! permutations, whose records are the manifest: the only thing that grows with the set.
+//! reflection's number and its blobs' numbers in the writer (12 bytes and 8 per artifact).
+//! [`Assembler::finish`] then adds the permutations, whose records are the manifest: with
+//! the writer's 48 bytes per blob, what grows with the set.
 //! The writer orders everything by content and name, so the bytes depend only on the set
 //! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
 //! an archive nor loose files (a check or a shard).
@@ -23,19 +24,39 @@ use crate::archive::{
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
-/// What stays of a key once its artifacts are written.
+/// What stays of a key once its artifacts are written: 12 bytes, its artifacts in
+/// [`Produced::artifacts`].
+#[derive(Clone, Copy)]
+struct KeyEntry {
+    reflection: u32,
+    first: u32,
+    count: u32,
+}
+
+/// What stays of the keys produced.
+#[derive(Default)]
 struct Produced {
-    reflection: Arc<Reflection>,
-    /// Each artifact's target and blake3.
-    artifacts: Vec<(Target, blake3::Hash)>,
+    keys: HashMap<Key, KeyEntry>,
+    /// Each key's artifacts, one after another: target and blob number (the archive
+    /// writer's, else an index into `hashes`).
+    artifacts: Vec<(Target, u32)>,
+    /// Each blob's blake3 when no archive is written (loose files only).
+    hashes: Vec<blake3::Hash>,
+    reflections: Vec<Arc<Reflection>>,
+    reflection_index: HashMap<Arc<Reflection>, u32>,
+}
+
+impl Produced {
+    fn artifacts(&self, e: &KeyEntry) -> &[(Target, u32)] {
+        &self.artifacts[e.first as usize..(e.first + e.count) as usize]
+    }
 }
 
 pub(super) struct Assembler<'p> {
     plan: &'p Plan<'p>,
     /// The archive's writer, with `-o`.
     writer: Option<StreamingWriter>,
-    keys: Mutex<HashMap<Key, Produced>>,
-    reflections: Mutex<HashSet<Arc<Reflection>>>,
+    produced: Mutex<Produced>,
     /// Loose files written (`--emit-dir`): blake3 → file name.
     emitted: Mutex<HashMap<blake3::Hash, String>>,
     /// The first artifact that could not be written.
@@ -58,70 +79,84 @@ impl<'p> Assembler<'p> {
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
         }
-        Ok(Assembler {
-            plan,
-            writer,
-            keys: Mutex::default(),
-            reflections: Mutex::default(),
-            emitted: Mutex::default(),
-            error: Mutex::default(),
-        })
+        Ok(Assembler { plan, writer, produced: Mutex::default(), emitted: Mutex::default(), error: Mutex::default() })
     }
 
-    /// A key's artifacts, with the blake3 of each: written now, then only their hashes kept.
+    /// A key's artifacts, with the blake3 of each: written now, then only their blob
+    /// numbers kept.
     pub fn add(&self, key: &Key, stage: Stage, c: &Compiled, hashes: &[blake3::Hash]) {
         if !self.plan.assembles() {
             return;
         }
+        let mut numbers = Vec::with_capacity(hashes.len());
         for ((t, bytes), hash) in c.artifacts.iter().zip(hashes) {
-            if let Err(e) = self.write_artifact(*t, stage, bytes, *hash) {
-                self.error.lock().expect("no panics while locked").get_or_insert(e);
-            }
-        }
-        let reflection = {
-            let mut set = self.reflections.lock().expect("no panics while locked");
-            match set.get(&c.reflection) {
-                Some(r) => r.clone(),
-                None => {
-                    let r = Arc::new(c.reflection.clone());
-                    set.insert(r.clone());
-                    r
+            match self.write_artifact(*t, stage, bytes, *hash) {
+                Ok(n) => numbers.push((*t, n)),
+                Err(e) => {
+                    // The build fails at `finish`; the key need not be kept.
+                    self.error.lock().expect("no panics while locked").get_or_insert(e);
+                    return;
                 }
             }
+        }
+        let mut p = self.produced.lock().expect("no panics while locked");
+        let reflection = match p.reflection_index.get(&c.reflection) {
+            Some(&r) => r,
+            None => {
+                let r = Arc::new(c.reflection.clone());
+                let n = p.reflections.len() as u32;
+                p.reflections.push(r.clone());
+                p.reflection_index.insert(r, n);
+                n
+            }
         };
-        let artifacts = c.artifacts.iter().zip(hashes).map(|((t, _), h)| (*t, *h)).collect();
-        self.keys.lock().expect("no panics while locked").insert(*key, Produced { reflection, artifacts });
+        let first = p.artifacts.len() as u32;
+        if self.writer.is_none() {
+            // No archive numbers the blobs: each artifact's hash, numbered here.
+            for (a, hash) in numbers.iter_mut().zip(hashes) {
+                a.1 = p.hashes.len() as u32;
+                p.hashes.push(*hash);
+            }
+        }
+        p.artifacts.extend_from_slice(&numbers);
+        p.keys.insert(*key, KeyEntry { reflection, first, count: numbers.len() as u32 });
     }
 
-    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<(), String> {
+    /// Writes an artifact to the archive's spool and the loose files; its blob number in the
+    /// archive (0 without one).
+    fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<u32, String> {
+        let mut number = 0;
         if let Some(w) = &self.writer {
-            w.add_blob_hashed(bytes, hash).map_err(|e| format!("error: {e}"))?;
+            number = w.add_blob_numbered(bytes, hash).map_err(|e| format!("error: {e}"))?;
         }
         if let Some(dir) = &self.plan.options.emit_dir {
             if self.emitted.lock().expect("no panics while locked").contains_key(&hash) {
-                return Ok(());
+                return Ok(number);
             }
             let f = format!("{}.{}", &hash.to_hex()[..32], t.extension(stage));
             archive::write_atomic_unsynced(&dir.join(&f), bytes)
                 .map_err(|e| format!("error: cannot write {}: {e}", dir.join(&f).display()))?;
             self.emitted.lock().expect("no panics while locked").insert(hash, f);
         }
-        Ok(())
+        Ok(number)
     }
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
     /// record and key, in order, and the versions.
-    fn fingerprint(&self, keys: &[Option<Key>]) -> blake3::Hash {
+    fn fingerprint(&self, pre: &Preprocessed) -> blake3::Hash {
         let mut h = blake3::Hasher::new();
         h.update(b"kiln build fingerprint v1\0");
         h.update(crate::VERSION.as_bytes());
         h.update(b"\0");
         h.update(compile::NAGA_VERSION.as_bytes());
-        for (p, key) in self.plan.kept.iter().zip(keys) {
-            let Some(key) = key else { continue };
+        let plan = self.plan;
+        for i in 0..plan.len() {
+            let Some(key) = pre.key(i) else { continue };
+            let (shader, _) = plan.shader_level(i);
             let dims: Vec<(&str, &[String])> =
-                p.shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
-            let line = format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", p.name(), p.shader.entry, p.shader.stage, p.values, dims);
+                shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+            let line =
+                format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", plan.name(i), shader.entry, shader.stage, plan.values(i), dims);
             h.update(line.as_bytes());
             h.update(&key.0);
         }
@@ -135,8 +170,7 @@ impl<'p> Assembler<'p> {
     pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
-        store.fresh_archive(out, &self.fingerprint(&per_permutation(pre)), &keys)
+        store.fresh_archive(out, &self.fingerprint(pre), &keys.keys)
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive
@@ -145,14 +179,14 @@ impl<'p> Assembler<'p> {
     pub fn from_remote(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        let keys: Vec<Key> = keys.groups.iter().map(|g| g.0).collect();
-        store.archive_from_remote(out, &self.fingerprint(&per_permutation(pre)), &keys)
+        store.archive_from_remote(out, &self.fingerprint(pre), &keys.keys)
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
     /// index, and the archive's stamp.
-    /// `keys` is each kept permutation's key (`None` where preprocessing failed).
-    pub fn finish(self, pre: &[Option<Key>], store: &Store) -> Result<Written, Error> {
+    /// `pre` gives each kept permutation's key; it is dropped once the manifest has them,
+    /// before the archive is written.
+    pub fn finish(self, pre: Preprocessed, store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
         let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
         if !self.plan.assembles() {
@@ -162,34 +196,52 @@ impl<'p> Assembler<'p> {
             return Err(Error::Io(e));
         }
         let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
-        let fingerprint = self.fingerprint(pre);
-        let keys = self.keys.into_inner().expect("no panics while locked");
+        let fingerprint = self.fingerprint(&pre);
+        let produced = self.produced.into_inner().expect("no panics while locked");
+        let writer = self.writer;
+        let hash_of = |n: u32| match &writer {
+            Some(w) => w.blob_key(n).expect("numbered by the writer").hash(),
+            None => produced.hashes[n as usize],
+        };
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
-        for (p, key) in self.plan.kept.iter().zip(pre) {
-            let Some(key) = key else { continue };
-            let produced = &keys[key];
-            let name = p.name();
+        let plan = self.plan;
+        if let Some(w) = &writer {
+            // The manifest's exact size: its arenas are allocated once.
+            let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
+            for i in (0..plan.len()).filter(|&i| pre.key(i).is_some()) {
+                n += 1;
+                names += plan.name(i).len();
+                values += plan.values(i).len();
+                artifacts += pre.key(i).and_then(|k| produced.keys.get(k)).map_or(0, |e| e.count as usize);
+            }
+            w.reserve(n, names, values, artifacts);
+        }
+        for i in 0..plan.len() {
+            let Some(key) = pre.key(i) else { continue };
+            let entry = &produced.keys[key];
+            let artifacts = produced.artifacts(entry);
+            let (shader_of, level) = plan.shader_level(i);
+            let name = plan.name(i);
             if options.emit_dir.is_some() {
                 let files = index.entry(name.clone()).or_default();
-                for (t, hash) in &produced.artifacts {
-                    files.insert(t.name(), emitted[hash].as_str());
+                for (t, n) in artifacts {
+                    files.insert(t.name(), emitted[&hash_of(*n)].as_str());
                 }
             }
-            written.permutation_artifacts += produced.artifacts.len();
-            if self.writer.is_none() {
-                distinct.extend(produced.artifacts.iter().map(|a| a.1));
+            written.permutation_artifacts += artifacts.len();
+            if writer.is_none() {
+                distinct.extend(artifacts.iter().map(|a| hash_of(a.1)));
             }
-            let Some(w) = &self.writer else { continue };
-            let shader = shaders.entry((&p.shader.name, &p.level.name)).or_insert_with(|| ShaderRecord {
-                name: p.shader.name.clone(),
-                level: p.level.name.clone(),
-                entry: p.shader.entry.clone(),
-                stage: p.shader.stage,
-                dimensions: p
-                    .shader
+            let Some(w) = &writer else { continue };
+            let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
+                name: shader_of.name.clone(),
+                level: level.name.clone(),
+                entry: shader_of.entry.clone(),
+                stage: shader_of.stage,
+                dimensions: shader_of
                     .dimensions
                     .iter()
                     .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
@@ -198,13 +250,13 @@ impl<'p> Assembler<'p> {
             w.add_permutation(NewPermutation {
                 name,
                 shader,
-                values: p.values.clone(),
-                reflection: &produced.reflection,
-                artifacts: produced.artifacts.iter().map(|(t, h)| (*t, BlobKey::from_hash(*h))).collect(),
+                values: plan.values(i).to_vec(),
+                reflection: &produced.reflections[entry.reflection as usize],
+                artifacts: artifacts.iter().map(|(t, n)| (*t, BlobKey::from_hash(hash_of(*n)))).collect(),
             })
             .map_err(archive_error)?;
         }
-        drop(keys);
+        drop((produced, pre));
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
@@ -213,7 +265,7 @@ impl<'p> Assembler<'p> {
             archive::write_atomic_unsynced(&path, &json)
                 .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
         }
-        if let (Some(out), Some(w)) = (&options.output, self.writer) {
+        if let (Some(out), Some(w)) = (&options.output, writer) {
             let summary = w.finish_unsynced().map_err(archive_error)?;
             written.artifacts = summary.blobs;
             written.archive = Some(out.clone());
@@ -223,10 +275,4 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
-}
-
-/// Each kept permutation's key (`None` where preprocessing failed): all that assembling
-/// needs of the preprocessing results.
-pub(super) fn per_permutation(pre: &Preprocessed) -> Vec<Option<Key>> {
-    pre.iter().map(|r| r.as_ref().ok().map(|r| r.key)).collect()
 }

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use super::assemble::Assembler;
 use super::plan::{level_limits, Keys, Plan};
-use super::preprocess::{Pre, Preprocessed, Preprocessor};
+use super::preprocess::{Preprocessed, Preprocessor};
 use super::report::Progress;
 use super::store::{Fetched, Store};
 use crate::cache::Key;
@@ -63,6 +63,8 @@ pub(super) struct Compiler<'a> {
     start: Mutex<Option<Instant>>,
     /// The writers' outputs of the compacted modules compiled so far.
     shared: compile::SharedWriters,
+    /// With `--shard`: each key's text, kept until the shard knows its share.
+    texts: Option<super::shard::Texts>,
 }
 
 impl<'a> Compiler<'a> {
@@ -73,10 +75,11 @@ impl<'a> Compiler<'a> {
             assembler,
             progress,
             claimed: Mutex::default(),
-            early: (0..plan.kept.len()).map(|_| AtomicU8::new(0)).collect(),
+            early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
             shared: shared_writers(),
+            texts: plan.options.shard.and_then(|_| super::shard::Texts::new()),
         }
     }
 
@@ -85,24 +88,30 @@ impl<'a> Compiler<'a> {
         self.shared.shared()
     }
 
-    /// During preprocessing: compiles `pre`'s key from `output` if `p` is the first of its
+    /// During preprocessing: compiles `key` from `output` if `p` is the first of its
     /// permutations preprocessed (and, with `--shard`, nothing yet: a shard knows its share
-    /// only once every key is known).
-    pub fn early(&self, index: usize, p: &Permutation<'_>, pre: &Pre, output: &preprocess::Output) {
-        if self.plan.options.shard.is_some() || p.error.is_some() {
+    /// only once every key is known, so it keeps the text for then).
+    pub fn early(&self, index: usize, p: &Permutation<'_>, key: &Key, output: &preprocess::Output) {
+        if p.error.is_some() {
             return;
         }
-        let short = u64::from_le_bytes(pre.key.0[..8].try_into().expect("8 of 32 bytes"));
+        if self.plan.options.shard.is_some() {
+            if let Some(texts) = &self.texts {
+                texts.keep(key, &output.text);
+            }
+            return;
+        }
+        let short = u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"));
         if !self.claimed.lock().expect("no panics while locked").insert(short) {
             return;
         }
         self.started();
         // A failure is compiled again on the key's first permutation; only successes are kept.
-        match self.produce(&pre.key, p, &output.text) {
+        match self.produce(key, p, &output.text) {
             Outcome::Hit => self.early[index].store(EARLY_HIT, Ordering::Relaxed),
             Outcome::Compiled(warning) => {
                 if let Some(w) = warning {
-                    self.early_warnings.lock().expect("no panics while locked").insert(pre.key, w);
+                    self.early_warnings.lock().expect("no panics while locked").insert(*key, w);
                 }
                 self.early[index].store(EARLY_COMPILED, Ordering::Relaxed);
             }
@@ -133,12 +142,10 @@ impl<'a> Compiler<'a> {
         self.progress.stage("compiling", keys.len());
         self.started();
         let assembling = self.plan.assembles();
-        let outcomes = keys
-            .groups
-            .par_iter()
-            .zip(&keys.share)
-            .map(|((key, members), &mine)| {
-                let outcome = self.key(key, members, mine || assembling, preprocessor);
+        let outcomes = (0..keys.len())
+            .into_par_iter()
+            .map(|k| {
+                let outcome = self.key(&keys.keys[k], keys.members(k), keys.share[k] || assembling, preprocessor);
                 self.progress.inc();
                 outcome
             })
@@ -154,7 +161,7 @@ impl<'a> Compiler<'a> {
         if !wanted {
             return Outcome::Elsewhere;
         }
-        let p = &self.plan.kept[members[0]];
+        let p = &self.plan.permutation(members[0]);
         let mut warning = None;
         match self.store.get(key) {
             Fetched::Hit(c) => {
@@ -163,7 +170,9 @@ impl<'a> Compiler<'a> {
             }
             Fetched::Miss(w) => warning = w.or(warning),
         }
-        let Some(text) = representative(preprocessor, p, key) else {
+        // A shard's kept text, else the key's first permutation preprocessed again.
+        let kept = self.texts.as_ref().and_then(|t| t.take(key));
+        let Some(text) = kept.or_else(|| representative(preprocessor, p, key).map(|o| o.text)) else {
             let e = compile::Error {
                 kind: compile::ErrorKind::Parse,
                 message: "the sources changed during the build".into(),
@@ -172,7 +181,7 @@ impl<'a> Compiler<'a> {
             };
             return Outcome::Failed(Box::new((e, warning)));
         };
-        self.compile(key, p, &text.text, warning)
+        self.compile(key, p, &text, warning)
     }
 
     /// A key from the cache, else compiled from `text` (a permutation `p` of that key).
@@ -236,18 +245,23 @@ pub(super) fn failures(
     members: &[usize],
     e: &compile::Error,
 ) -> Vec<(Diagnostic<FileId>, Vec<usize>)> {
-    let rep = representative(preprocessor, &plan.kept[members[0]], key);
-    let rep_hash = rep.as_ref().map(|r| blake3::hash(r.text.as_bytes()));
+    let rep = representative(preprocessor, &plan.permutation(members[0]), key);
     let mut out = Vec::new();
     for &m in members {
-        let Ok(pm) = &pre[m] else { continue };
-        let mut diagnostic = match &rep {
-            Some(rep) if Some(pm.text_hash) == rep_hash => map_error(e, &rep.map),
+        if pre.row(m).is_none() {
+            continue;
+        }
+        let p = plan.permutation(m);
+        // The others' texts are not kept: each member is preprocessed again.
+        let own = (m != members[0]).then(|| preprocessor.preprocess(&p).ok().map(|(_, o)| o)).flatten();
+        let mut diagnostic = match (&rep, &own) {
+            (Some(rep), None) if m == members[0] => map_error(e, &rep.map),
+            (Some(rep), Some(own)) if own.text == rep.text => map_error(e, &own.map),
             // Same tokens, other spacing: this member's own spans.
-            _ => remap_member(plan, preprocessor, &plan.kept[m], e),
+            _ => remap_member(plan, preprocessor, &p, e),
         };
         if e.kind == compile::ErrorKind::EntryPoint {
-            let s = plan.kept[m].shader;
+            let s = p.shader;
             let file = plan.config.path.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
             diagnostic.notes.push(format!(
                 "shader `{}` of {file} names entry point `{}` ({}) in {}",

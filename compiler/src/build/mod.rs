@@ -15,7 +15,8 @@
 //!   that permutation's files name;
 //! - [`compile`]: each distinct key once, from the cache where it holds it, else with naga;
 //!   a key is compiled by the worker that first preprocesses one of its permutations, so
-//!   compiling overlaps preprocessing;
+//!   compiling overlaps preprocessing (a shard, which knows its share only once every key
+//!   is known, keeps each key's text for then: [`shard`]);
 //! - [`store`]: the one place that talks to the cache: lookups, the packs that the
 //!   compiled entries stream into, and the remote cache's archives (a fresh local cache
 //!   with a remote holding this build's archive and entries copies them and assembles
@@ -43,6 +44,7 @@ mod plan;
 mod preprocess;
 mod records;
 mod report;
+mod shard;
 mod store;
 
 pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
@@ -162,8 +164,8 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, |i, p, pre, output| compiler.early(i, p, pre, output));
-    preprocessor.save_records(store);
+    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output));
+    preprocessor.save_records(store, &pre);
     report.preprocessed(&plan, &preprocessor, &pre, t);
     trace_memory("preprocess");
     outputs::check_aliases(
@@ -184,6 +186,11 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         report.remote(store.remote_stats());
         return report.up_to_date(keys.len(), counts);
     }
+    if options.shard.is_some() {
+        // A shard's share comes from the remote cache in batches, not key by key.
+        let share: Vec<_> = keys.keys.iter().zip(&keys.share).filter(|(_, &mine)| mine).map(|(k, _)| *k).collect();
+        store.prefetch(&share);
+    }
     let outcomes = compiler.run(&keys, &preprocessor);
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     trace_memory("compile");
@@ -193,10 +200,9 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         return Err(Error::Failed(Box::new(report.finish()?)));
     }
     // Only the manifest is left to write: keep each permutation's key, drop the rest.
-    let pre = assemble::per_permutation(&pre);
     drop((keys, compiler, preprocessor));
     trace_memory("drop");
-    report.assembled(assembler.finish(&pre, store)?);
+    report.assembled(assembler.finish(pre, store)?);
     trace_memory("assemble");
     report.finish()
 }

@@ -8,7 +8,7 @@ use super::{Error, Options};
 use crate::archive::Target;
 use crate::cache::Key;
 use crate::compile::Limits;
-use crate::permute::{self, Config, Permutation};
+use crate::permute::{self, Config, Level, Permutation, Shader};
 
 /// `--shard I/N`: this process compiles share `index` (0-based) of `count`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -75,29 +75,99 @@ fn selected(options: &Options, level: &permute::Level) -> bool {
     options.levels.is_empty() || options.levels.contains(&level.name)
 }
 
-/// The permutations to build.
+/// The permutations to build, compact: each kept permutation is its values in one flat
+/// table (a few bytes per dimension), its shader and level those of its run; a
+/// [`Permutation`] is made again where one is needed ([`Plan::permutation`]).
 pub(super) struct Plan<'c> {
     pub config: &'c Config,
     pub options: &'c Options,
-    /// Kept permutations, in enumeration order (the archive's order).
-    pub kept: Vec<Permutation<'c>>,
+    /// Each run of kept permutations of one (shader, level), in enumeration order (the
+    /// archive's order).
+    runs: Vec<Run<'c>>,
+    /// Every kept permutation's values, one after another.
+    values: Vec<i64>,
+    /// Kept permutations.
+    len: usize,
     /// Permutations dropped by skip rules (saturating).
     pub skipped: u128,
+}
+
+/// Kept permutations `first..` (until the next run) of one shader at one level; their
+/// values start at `first_value`, `shader.dimensions.len()` each.
+struct Run<'c> {
+    shader: &'c Shader,
+    level: &'c Level,
+    first: usize,
+    first_value: usize,
 }
 
 impl<'c> Plan<'c> {
     /// Enumerates, pruned: a skip rule decided on the first dimensions skips their subtree.
     /// A skip rule or derived define that cannot be evaluated is a configuration error.
     pub fn new(config: &'c Config, options: &'c Options) -> Result<Plan<'c>, Error> {
-        let mut kept = Vec::new();
+        let (mut runs, mut values, mut len) = (Vec::<Run<'c>>::new(), Vec::new(), 0);
         let mut stream = config.kept_where(|_, level| selected(options, level));
         for p in &mut stream {
             if let Some(e) = config.evaluation_error(&p) {
                 return Err(Error::Config(e.render()));
             }
-            kept.push(p);
+            let same = runs.last().is_some_and(|r| std::ptr::eq(r.shader, p.shader) && std::ptr::eq(r.level, p.level));
+            if !same {
+                runs.push(Run { shader: p.shader, level: p.level, first: len, first_value: values.len() });
+            }
+            values.extend_from_slice(&p.values);
+            len += 1;
         }
-        Ok(Plan { config, options, kept, skipped: stream.skipped() })
+        runs.shrink_to_fit();
+        values.shrink_to_fit();
+        Ok(Plan { config, options, runs, values, len, skipped: stream.skipped() })
+    }
+
+    /// Kept permutations.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    fn run(&self, i: usize) -> &Run<'c> {
+        &self.runs[self.runs.partition_point(|r| r.first <= i) - 1]
+    }
+
+    /// The shader and level of kept permutation `i`.
+    pub fn shader_level(&self, i: usize) -> (&'c Shader, &'c Level) {
+        let r = self.run(i);
+        (r.shader, r.level)
+    }
+
+    /// The values of kept permutation `i`, one per dimension.
+    pub fn values(&self, i: usize) -> &[i64] {
+        let r = self.run(i);
+        let n = r.shader.dimensions.len();
+        let at = r.first_value + (i - r.first) * n;
+        &self.values[at..at + n]
+    }
+
+    /// Kept permutation `i`, evaluated again (its derived defines).
+    pub fn permutation(&self, i: usize) -> Permutation<'c> {
+        let (shader, level) = self.shader_level(i);
+        Permutation::new(shader, level, self.values(i).to_vec())
+    }
+
+    /// The canonical name of kept permutation `i`.
+    pub fn name(&self, i: usize) -> String {
+        let (shader, level) = self.shader_level(i);
+        permute::canonical_name(shader, level, self.values(i))
+    }
+
+    /// The kept permutations of each (shader, level), as index ranges, in order.
+    pub fn runs(&self) -> impl Iterator<Item = (&'c Shader, &'c Level, std::ops::Range<usize>)> + '_ {
+        self.runs.iter().enumerate().map(|(k, r)| {
+            let end = self.runs.get(k + 1).map_or(self.len, |n| n.first);
+            (r.shader, r.level, r.first..end)
+        })
     }
 
     /// The targets written for `p`: its level's, filtered by `--target`.
@@ -113,47 +183,77 @@ impl<'c> Plan<'c> {
     /// The distinct keys in order of first appearance, each with its permutations, and the
     /// keys this process must produce.
     pub fn group(&self, pre: &Preprocessed) -> Keys {
-        let mut groups: Vec<(Key, Vec<usize>)> = Vec::new();
-        let mut group_of: HashMap<Key, usize> = HashMap::new();
-        for (i, r) in pre.iter().enumerate() {
-            if let Ok(p) = r {
-                let g = *group_of.entry(p.key).or_insert_with(|| {
-                    groups.push((p.key, Vec::new()));
-                    groups.len() - 1
-                });
-                groups[g].1.push(i);
-            }
+        // Each permutation's key number, by first appearance; then the members of each key,
+        // one after another (counting sort).
+        let mut keys: Vec<Key> = Vec::new();
+        let mut number: HashMap<Key, u32> = HashMap::new();
+        let of: Vec<u32> = (0..self.len)
+            .map(|i| match pre.key(i) {
+                Some(key) => *number.entry(*key).or_insert_with(|| {
+                    keys.push(*key);
+                    keys.len() as u32 - 1
+                }),
+                None => u32::MAX,
+            })
+            .collect();
+        drop(number);
+        let mut starts = vec![0usize; keys.len() + 1];
+        for &k in of.iter().filter(|&&k| k != u32::MAX) {
+            starts[k as usize + 1] += 1;
         }
-        let share = match self.options.shard {
-            None => vec![true; groups.len()],
+        for k in 0..keys.len() {
+            starts[k + 1] += starts[k];
+        }
+        let mut next = starts.clone();
+        let mut members = vec![0usize; starts[keys.len()]];
+        for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
+            members[next[k as usize]] = i;
+            next[k as usize] += 1;
+        }
+        drop((of, next));
+        let mut keys = Keys { keys, starts, members, share: Vec::new() };
+        keys.share = match self.options.shard {
+            None => vec![true; keys.len()],
             Some(shard) => {
-                let costs: Vec<u64> = groups
-                    .iter()
-                    .map(|(_, members)| {
-                        let p = &self.kept[members[0]];
-                        let len = members.iter().filter_map(|&m| pre[m].as_ref().ok()).map(|r| r.text_len).max();
-                        len.unwrap_or(0).max(1) * self.targets(p).len().max(1) as u64
+                let costs: Vec<u64> = (0..keys.len())
+                    .map(|k| {
+                        let members = keys.members(k);
+                        let (_, level) = self.shader_level(members[0]);
+                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| r.text_len).max();
+                        len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
                     })
                     .collect();
-                let keys: Vec<Key> = groups.iter().map(|g| g.0).collect();
-                assign(&keys, &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
+                assign(&keys.keys, &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
             }
         };
-        Keys { groups, share }
+        keys
     }
 }
 
-/// The distinct keys of a build.
+/// The distinct keys of a build, by first appearance, with their permutations.
 pub(super) struct Keys {
-    /// Each key with its permutations (indices into [`Plan::kept`]), by first appearance.
-    pub groups: Vec<(Key, Vec<usize>)>,
+    pub keys: Vec<Key>,
+    /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.
+    starts: Vec<usize>,
+    /// Indices into the plan's kept permutations, ascending within each key.
+    members: Vec<usize>,
     /// Whether each key is in this process's share (every key without `--shard`).
     pub share: Vec<bool>,
 }
 
 impl Keys {
     pub fn len(&self) -> usize {
-        self.groups.len()
+        self.keys.len()
+    }
+
+    /// The permutations of key `k`, ascending.
+    pub fn members(&self, k: usize) -> &[usize] {
+        &self.members[self.starts[k]..self.starts[k + 1]]
+    }
+
+    /// Each key with its permutations, in order.
+    pub fn iter(&self) -> impl Iterator<Item = (&Key, &[usize])> + '_ {
+        self.keys.iter().enumerate().map(|(k, key)| (key, self.members(k)))
     }
 }
 
@@ -198,6 +298,67 @@ mod tests {
         assert!(Shard::from_completion_index(3, Some("3")).is_err());
         assert!(Shard::from_completion_index(3, None).is_err());
         assert!(Shard::from_completion_index(0, Some("0")).is_err());
+    }
+
+    /// The compact plan gives back every kept permutation as the enumeration made it (values,
+    /// derived defines, shader and level, name), runs included, with a level filter.
+    #[test]
+    fn the_compact_plan_gives_back_each_permutation() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("A.usf"), "fn a() {}\n").unwrap();
+        std::fs::write(dir.path().join("B.usf"), "fn b() {}\n").unwrap();
+        let text = r#"
+[compiler]
+include = ["."]
+[levels.sm5]
+targets = ["spirv"]
+defines = { FL = 5 }
+[levels.es3]
+targets = ["glsl"]
+limits = "downlevel"
+defines = { FL = 3 }
+[levels.es2]
+targets = ["glsl"]
+[[shader]]
+name = "A"
+source = "A.usf"
+entry = "main"
+stage = "fragment"
+levels = ["sm5", "es3", "es2"]
+dimensions = { X = { range = [0, 4] }, Y = "bool", Z = [1, 2, 8] }
+derived = { XZ = "X * Z" }
+skip = [ { when = "FL == 3 && Z == 8", why = "t" }, { when = "X == 2 && Y == 1", why = "t" } ]
+[[shader]]
+name = "B"
+source = "B.usf"
+entry = "main"
+stage = "vertex"
+levels = ["es3", "sm5"]
+"#;
+        let config = permute::load_str(text, &dir.path().join("permutations.toml")).unwrap();
+        let options = Options { levels: vec!["sm5".into(), "es3".into()], ..Options::default() };
+        let plan = Plan::new(&config, &options).unwrap();
+        let kept: Vec<Permutation<'_>> = config.kept_where(|_, l| l.name == "sm5" || l.name == "es3").collect();
+        assert_eq!(plan.len(), kept.len());
+        assert!(kept.len() > 20, "{}", kept.len());
+        for (i, p) in kept.iter().enumerate() {
+            let q = plan.permutation(i);
+            assert_eq!(
+                (q.shader.name.as_str(), q.level.name.as_str()),
+                (p.shader.name.as_str(), p.level.name.as_str())
+            );
+            assert_eq!((&q.values, &q.derived), (&p.values, &p.derived), "{}", p.name());
+            assert_eq!(plan.values(i), &p.values[..]);
+            assert_eq!(plan.name(i), p.name());
+        }
+        let runs: Vec<(String, String, usize)> =
+            plan.runs().map(|(s, l, r)| (s.name.clone(), l.name.clone(), r.len())).collect();
+        let names: Vec<(&str, &str)> = runs.iter().map(|r| (r.0.as_str(), r.1.as_str())).collect();
+        assert_eq!(names, [("A", "sm5"), ("A", "es3"), ("B", "es3"), ("B", "sm5")]);
+        assert_eq!(runs.iter().map(|r| r.2).sum::<usize>(), kept.len());
+        // 5 x 2 x 3 values less the 5 of X == 2 && Y == 1 at sm5; es3 also skips Z == 8.
+        assert_eq!(runs[0].2, 30 - 3);
+        assert_eq!(runs[1].2, 20 - 2);
     }
 
     #[test]

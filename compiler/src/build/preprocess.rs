@@ -5,12 +5,14 @@
 //! permutation that agrees with an already preprocessed one of its shader and level on
 //! every define the latter's files name reuses its result. A freshly preprocessed
 //! permutation's output is handed to the compile stage (which compiles its key at once if
-//! it is the key's first) and then dropped: only the small [`Pre`] is kept per permutation.
+//! it is the key's first) and then dropped. What is kept is small: per permutation the
+//! number of its [`Row`] (4 bytes), per distinct result a 56-byte row whose lists are
+//! numbers in one [`Interner`], per preprocessing record its direct key and a row number.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use codespan_reporting::diagnostic::Diagnostic;
 
@@ -24,14 +26,38 @@ use crate::compile::Limits;
 use crate::permute::{Config, Permutation};
 use crate::preprocess::{self, FileId, SourceCache};
 
-/// One kept permutation's preprocessing result, shared by the permutations that reuse it.
-pub(super) type Pre = Arc<Row>;
+/// A permutation that failed to preprocess.
+const FAILED: u32 = u32::MAX;
 
-/// One kept permutation's result (the diagnostic boxed: most permutations succeed).
-pub(super) type PreResult = Result<Pre, Box<Diagnostic<FileId>>>;
+/// Each kept permutation's result, in the plan's order: the number of its row (rows are
+/// shared by the permutations that reuse them), or its failure.
+pub(super) struct Preprocessed {
+    of: Vec<u32>,
+    rows: Vec<Row>,
+    /// The failures, by permutation (ascending).
+    errors: Vec<(usize, Box<Diagnostic<FileId>>)>,
+}
 
-/// Each kept permutation's result, in [`Plan::kept`] order.
-pub(super) type Preprocessed = Vec<PreResult>;
+impl Preprocessed {
+    pub fn len(&self) -> usize {
+        self.of.len()
+    }
+
+    /// Permutation `i`'s result; `None` where it failed.
+    pub fn row(&self, i: usize) -> Option<&Row> {
+        self.rows.get(self.of[i] as usize)
+    }
+
+    /// Permutation `i`'s key; `None` where it failed.
+    pub fn key(&self, i: usize) -> Option<&Key> {
+        self.row(i).map(|r| &r.key)
+    }
+
+    /// The failures, by permutation (ascending).
+    pub fn errors(&self) -> &[(usize, Box<Diagnostic<FileId>>)] {
+        &self.errors
+    }
+}
 
 /// The preprocessing stage's state: the shared source cache and what lets it skip work.
 pub(super) struct Preprocessor<'p> {
@@ -44,6 +70,8 @@ pub(super) struct Preprocessor<'p> {
     records: Option<RecordSet>,
     /// Interned lists (many permutations read the same files).
     interner: Mutex<Interner>,
+    /// The distinct results so far: [`Preprocessed`]'s rows.
+    rows: Mutex<Vec<Row>>,
     preprocessed: AtomicUsize,
 }
 
@@ -54,20 +82,22 @@ struct RecordSet {
     root: PathBuf,
     base: blake3::Hash,
     old: Records,
-    new: Mutex<Records>,
+    /// This build's: each permutation's direct key and row number.
+    new: Mutex<Vec<(Key, u32)>>,
 }
 
 impl<'p> Preprocessor<'p> {
     pub fn new(plan: &'p Plan<'p>, store: &Store) -> Preprocessor<'p> {
+        let mut interner = Interner::default();
         let records = store.enabled().then(|| {
             let key = records_key(plan.config, plan.options);
             let root = plan.config.dir.canonicalize().unwrap_or_else(|_| plan.config.dir.clone());
             RecordSet {
-                old: store.records(&key).and_then(|b| records::decode_relative(&b, &root)).unwrap_or_default(),
+                old: store.records(&key).and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default(),
                 key,
                 root,
                 base: direct_base(plan.config),
-                new: Mutex::new(Records::new()),
+                new: Mutex::default(),
             }
         });
         Preprocessor {
@@ -78,7 +108,8 @@ impl<'p> Preprocessor<'p> {
             reuse: Reuse::default(),
             identifiers: FileIdentifiers::default(),
             records,
-            interner: Mutex::default(),
+            interner: Mutex::new(interner),
+            rows: Mutex::default(),
             preprocessed: AtomicUsize::new(0),
         }
     }
@@ -88,44 +119,58 @@ impl<'p> Preprocessor<'p> {
         self.preprocessed.load(Ordering::Relaxed)
     }
 
+    /// The interned lists of the rows (files read, missing candidates, warnings).
+    pub fn lists(&self) -> MutexGuard<'_, Interner> {
+        self.interner.lock().expect("no panics while locked")
+    }
+
     /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
-    /// (with its permutation's index),
-    /// on the worker that made it, before it is dropped.
+    /// (with its permutation's index and key), on the worker that made it, before it is
+    /// dropped.
     pub fn run(
         &self,
         progress: &Progress,
-        fresh: impl Fn(usize, &Permutation<'_>, &Pre, &preprocess::Output) + Sync,
+        fresh: impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync,
     ) -> Preprocessed {
-        let kept = &self.plan.kept;
-        progress.stage("preprocessing", kept.len());
+        let plan = self.plan;
+        progress.stage("preprocessing", plan.len());
         // The first permutation of each (shader, level) first, so that the others find what
         // they may reuse; then all the others. Workers take the next permutation from a
         // shared counter: in order, one at a time (compile times differ widely between
         // shaders), and with no barrier between the two halves.
-        let mut first_of_group = vec![false; kept.len()];
         let mut seen_groups = HashSet::new();
-        for (i, p) in kept.iter().enumerate() {
-            first_of_group[i] = seen_groups.insert((p.shader.name.as_str(), p.level.name.as_str()));
-        }
-        let order: Vec<usize> = (0..kept.len())
-            .filter(|&i| first_of_group[i])
-            .chain((0..kept.len()).filter(|&i| !first_of_group[i]))
+        let firsts: Vec<usize> = plan
+            .runs()
+            .filter(|(shader, level, range)| !range.is_empty() && seen_groups.insert((&shader.name, &level.name)))
+            .map(|(_, _, range)| range.start)
+            .collect();
+        let order: Vec<u32> = firsts
+            .iter()
+            .map(|&i| i as u32)
+            .chain((0..plan.len() as u32).filter(|i| firsts.binary_search(&(*i as usize)).is_err()))
             .collect();
         let next = AtomicUsize::new(0);
-        let done: Mutex<Vec<Option<PreResult>>> = Mutex::new((0..kept.len()).map(|_| None).collect());
+        let of: Vec<AtomicU32> = (0..plan.len()).map(|_| AtomicU32::new(FAILED)).collect();
+        let errors = Mutex::new(Vec::new());
         rayon::scope(|s| {
             for _ in 0..rayon::current_num_threads() {
                 s.spawn(|_| loop {
                     let n = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&i) = order.get(n) else { break };
-                    let r = self.one(i, &kept[i], &fresh);
+                    let i = i as usize;
+                    match self.one(i, &plan.permutation(i), &fresh) {
+                        Ok(row) => of[i].store(row, Ordering::Relaxed),
+                        Err(d) => errors.lock().expect("no panics while locked").push((i, d)),
+                    }
                     progress.inc();
-                    done.lock().expect("no panics while locked")[i] = Some(r);
                 });
             }
         });
-        let pre = done.into_inner().expect("no panics while locked");
-        pre.into_iter().map(|r| r.expect("every permutation was preprocessed")).collect()
+        let mut errors = errors.into_inner().expect("no panics while locked");
+        errors.sort_by_key(|e| e.0);
+        let mut rows = std::mem::take(&mut *self.rows.lock().expect("no panics while locked"));
+        rows.shrink_to_fit();
+        Preprocessed { of: of.into_iter().map(AtomicU32::into_inner).collect(), rows, errors }
     }
 
     /// Stores this build's preprocessing records where they changed. Failing to only costs
@@ -133,52 +178,63 @@ impl<'p> Preprocessor<'p> {
     ///
     /// Then lets go of what only preprocessing needed (the records, what may be reused):
     /// later stages only preprocess a key's first permutation again, for its text.
-    pub fn save_records(&mut self, store: &Store) {
-        if let Some(r) = &self.records {
-            let new = r.new.lock().expect("no panics while locked");
-            if *new != r.old {
-                store.put_records(&r.key, &records::encode_relative(&new, &r.root));
+    pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
+        if let Some(r) = self.records.take() {
+            let new = r.new.into_inner().expect("no panics while locked");
+            let new = Records::new(new.into_iter().map(|(direct, row)| (direct, pre.rows[row as usize])).collect());
+            if new != r.old {
+                drop(r.old);
+                store.put_records(&r.key, &records::encode(&new, &self.lists(), &r.root));
             }
         }
-        self.records = None;
         self.reuse = Reuse::default();
     }
 
+    /// Permutation `p`'s row number.
     fn one(
         &self,
         index: usize,
         p: &Permutation<'_>,
-        fresh: &(impl Fn(usize, &Permutation<'_>, &Pre, &preprocess::Output) + Sync),
-    ) -> PreResult {
+        fresh: &(impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync),
+    ) -> Result<u32, Box<Diagnostic<FileId>>> {
         let direct = self.records.as_ref().map(|r| (r, direct_key(&r.base, p, &self.plan.options.targets)));
-        let remember = |pre: &Pre| {
+        let remember = |row: u32| {
             if let Some((records, dk)) = &direct {
-                records.new.lock().expect("no panics while locked").insert(*dk, pre.clone());
+                records.new.lock().expect("no panics while locked").push((*dk, row));
             }
         };
         if let Some((records, dk)) = &direct {
             if let Some(row) = records.old.get(dk).filter(|row| self.still_holds(row)) {
-                remember(row);
-                return Ok(row.clone());
+                let n = self.push(*row);
+                remember(n);
+                return Ok(n);
             }
         }
         let values = define_values(p);
         if p.error.is_none() {
-            if let Some(pre) = self.reuse.find(p, &values) {
-                remember(&pre);
-                return Ok(pre);
+            if let Some(n) = self.reuse.find(p, &values) {
+                remember(n);
+                return Ok(n);
             }
         }
         self.preprocessed.fetch_add(1, Ordering::Relaxed);
-        let (pre, output) = self.preprocess(p)?;
-        remember(&pre);
-        self.reuse.insert(p, &values, &output, &pre, &self.identifiers, &self.sources);
-        fresh(index, p, &pre, &output);
-        Ok(pre)
+        let (row, output) = self.preprocess(p)?;
+        let n = self.push(row);
+        remember(n);
+        self.reuse.insert(p, &values, &output, n, &self.identifiers, &self.sources);
+        fresh(index, p, &row.key, &output);
+        Ok(n)
+    }
+
+    /// Adds a distinct result; its number.
+    fn push(&self, row: Row) -> u32 {
+        let mut rows = self.rows.lock().expect("no panics while locked");
+        rows.push(row);
+        rows.len() as u32 - 1
     }
 
     /// Preprocesses `p` (no record, no reuse): its result and its output.
-    pub fn preprocess(&self, p: &Permutation<'_>) -> Result<(Pre, preprocess::Output), Box<Diagnostic<FileId>>> {
+    pub fn preprocess(&self, p: &Permutation<'_>) -> Result<(Row, preprocess::Output), Box<Diagnostic<FileId>>> {
         use codespan_reporting::files::Files;
         if let Some(message) = &p.error {
             return Err(Box::new(Diagnostic::error().with_message(message.clone())));
@@ -195,7 +251,7 @@ impl<'p> Preprocessor<'p> {
             &level_limits(p.level),
             &level_targets(p.level, &self.plan.options.targets),
         );
-        let files: Vec<(PathBuf, [u8; 32])> = output
+        let files: Vec<records::FileEntry> = output
             .files
             .iter()
             .map(|&f| {
@@ -208,26 +264,28 @@ impl<'p> Preprocessor<'p> {
             .collect();
         let warnings: Vec<String> =
             output.warnings.iter().map(|w| preprocess::render(std::slice::from_ref(w), &self.sources, false)).collect();
-        let mut interner = self.interner.lock().expect("no panics while locked");
+        let mut interner = self.lists();
         let row = Row {
             key,
-            token_hash,
-            text_hash: blake3::hash(output.text.as_bytes()),
             text_len: output.text.len() as u64,
-            files: interner.files(files),
-            absent: interner.absent(output.absent.clone()),
-            warnings: interner.warnings(warnings),
+            files: interner.files.intern(files),
+            absent: interner.absent.intern(output.absent.clone()),
+            warnings: interner.warnings.intern(warnings),
         };
         drop(interner);
-        Ok((Arc::new(row), output))
+        Ok((row, output))
     }
 
     /// Whether a record still holds: every file it lists still has the recorded contents
     /// and no file has appeared where an include looked and found none (it would be found
     /// first now).
     fn still_holds(&self, r: &Row) -> bool {
-        r.files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
-            && !r.absent.iter().any(|path| self.hashes.get(path).is_some())
+        let (files, absent) = {
+            let lists = self.lists();
+            (lists.files.get(r.files).clone(), lists.absent.get(r.absent).clone())
+        };
+        files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
+            && !absent.iter().any(|path| self.hashes.get(path).is_some())
     }
 }
 
@@ -262,8 +320,8 @@ impl FileIdentifiers {
     }
 }
 
-/// (shader, level) → [(define names that mattered, values of those names → result)].
-type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Signature, Pre>)>>;
+/// (shader, level) → [(define names that mattered, values of those names → row number)].
+type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Signature, u32>)>>;
 
 /// The values of the defines that mattered, hashed (16 bytes per entry, whatever their
 /// number: these maps hold an entry per distinct preprocessing result).
@@ -293,15 +351,15 @@ fn define_values(p: &Permutation<'_>) -> HashMap<String, i64> {
 }
 
 impl Reuse {
-    fn find(&self, p: &Permutation<'_>, values: &HashMap<String, i64>) -> Option<Pre> {
+    fn find(&self, p: &Permutation<'_>, values: &HashMap<String, i64>) -> Option<u32> {
         let groups = self.groups.lock().expect("no panics while locked");
         let sets = groups.get(&(p.shader.name.clone(), p.level.name.clone()))?;
         for (names, results) in sets {
             let Some(vals) = names.iter().map(|n| values.get(n).copied()).collect::<Option<Vec<i64>>>() else {
                 continue;
             };
-            if let Some(hit) = results.get(&signature(vals.into_iter())) {
-                return Some(hit.clone());
+            if let Some(&hit) = results.get(&signature(vals.into_iter())) {
+                return Some(hit);
             }
         }
         None
@@ -312,7 +370,7 @@ impl Reuse {
         p: &Permutation<'_>,
         values: &HashMap<String, i64>,
         output: &preprocess::Output,
-        pre: &Pre,
+        row: u32,
         identifiers: &FileIdentifiers,
         sources: &SourceCache,
     ) {
@@ -336,7 +394,7 @@ impl Reuse {
                 sets.len() - 1
             }
         };
-        sets[i].1.entry(signature).or_insert_with(|| pre.clone());
+        sets[i].1.entry(signature).or_insert(row);
     }
 }
 
@@ -371,7 +429,7 @@ impl FileHashes {
 /// What every permutation's preprocessing record key shares: the configuration's text (its
 /// defines, derived values, roots and sources) and the versions. Read once per build. Not
 /// the configuration's folder: records store the paths under it relative to it (see
-/// [`records::encode_relative`]), so that they hold in another checkout of the same sources.
+/// [`records::encode`]), so that they hold in another checkout of the same sources.
 fn direct_base(config: &Config) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     let mut field = |bytes: &[u8]| {
@@ -402,10 +460,10 @@ fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archiv
 /// The key of a configuration's set of preprocessing records: its text and the options
 /// that choose its permutations; not its path, so that another checkout (another machine,
 /// another folder) finds the set in the remote cache. (v4: paths relative to the
-/// configuration's folder.)
+/// configuration's folder; v5: compact rows.)
 fn records_key(config: &Config, options: &Options) -> Key {
     let text = std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec());
     let inputs =
-        format!("kiln records v4\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
+        format!("kiln records v5\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }

@@ -1,94 +1,131 @@
 //! Preprocessing records, compact: what preprocessing one permutation gave ([`Row`]), and
 //! the binary encoding of a configuration's set of them (stored by the cache under one key).
 //!
-//! A build keeps one [`Row`] per distinct preprocessing result, shared (`Arc`) by the
-//! permutations that reuse it, with its lists of files, missing include candidates and
-//! warnings interned: a few hundred bytes per permutation, so that a 100k-permutation set's
-//! records fit in tens of megabytes, in memory and on disk.
+//! A [`Row`] is 56 bytes: its lists of files, missing include candidates and warnings are
+//! numbers in the build's [`Interner`] (many permutations read the same files). A set of
+//! records is one table sorted by direct key, looked up by binary search: no allocation
+//! per permutation, in memory or on disk.
 //!
 //! ```text
-//! magic "KILNREC\x01"
+//! magic "KILNREC\x02"
 //! u32 count, then each file list:    u32 n, n x (u32 len, path bytes, 32-byte blake3 of its text)
 //! u32 count, then each absent list:  u32 n, n x (u32 len, path bytes)
 //! u32 count, then each warning list: u32 n, n x (u32 len, utf-8 bytes)
-//! u64 count, then each row: direct key (32), key (32), token hash (32), text hash (32),
+//! u64 count, then each row (sorted by direct key): direct key (32), key (32),
 //!     text length (u64), file list, absent list, warning list (u32 indices)
 //! ```
+//!
+//! Paths under the configuration's folder are written relative to it, so that the records
+//! hold in any checkout of the same sources (another machine, another folder).
 
 use std::collections::HashMap;
 use std::ffi::OsStr;
+use std::hash::Hash;
 use std::os::unix::ffi::OsStrExt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::cache::Key;
 
-const MAGIC: &[u8; 8] = b"KILNREC\x01";
+const MAGIC: &[u8; 8] = b"KILNREC\x02";
 
-/// Files read, each with the blake3 of the text the preprocessor read.
-pub(super) type FileList = Arc<[(PathBuf, [u8; 32])]>;
+/// A file read, with the blake3 of the text the preprocessor read.
+pub(super) type FileEntry = (PathBuf, [u8; 32]);
 
 /// What preprocessing one permutation gave.
-#[derive(Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) struct Row {
     pub key: Key,
-    pub token_hash: blake3::Hash,
-    pub text_hash: blake3::Hash,
     /// Length of the preprocessed text (the key's estimated compile cost).
     pub text_len: u64,
-    pub files: FileList,
-    /// Include candidates that were missing: the record holds only while they still are.
-    pub absent: Arc<[PathBuf]>,
-    /// Preprocessor warnings, rendered without colour.
-    pub warnings: Arc<[String]>,
+    /// Files read ([`Interner::files`]).
+    pub files: u32,
+    /// Include candidates that were missing ([`Interner::absent`]): the record holds only
+    /// while they still are.
+    pub absent: u32,
+    /// Preprocessor warnings, rendered without colour ([`Interner::warnings`]).
+    pub warnings: u32,
 }
 
-/// Each permutation's row by its direct key (see `preprocess::direct_key`).
-pub(super) type Records = HashMap<Key, Arc<Row>>;
+/// Each permutation's row by its direct key (see `preprocess::direct_key`), sorted by it.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(super) struct Records {
+    rows: Vec<(Key, Row)>,
+}
 
-/// Interns lists so that equal lists share one allocation.
+impl Records {
+    /// The records of `rows` (one per direct key; of two, the first is kept).
+    pub fn new(mut rows: Vec<(Key, Row)>) -> Records {
+        rows.sort_by_key(|r| r.0);
+        rows.dedup_by(|a, b| a.0 == b.0);
+        rows.shrink_to_fit();
+        Records { rows }
+    }
+
+    pub fn get(&self, direct: &Key) -> Option<&Row> {
+        self.rows.binary_search_by(|r| r.0.cmp(direct)).ok().map(|i| &self.rows[i].1)
+    }
+
+    #[cfg(test)]
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+}
+
+/// Distinct lists, each numbered by first appearance.
+pub(super) struct Lists<T> {
+    lists: Vec<Arc<[T]>>,
+    index: HashMap<Arc<[T]>, u32>,
+}
+
+impl<T> Default for Lists<T> {
+    fn default() -> Self {
+        Lists { lists: Vec::new(), index: HashMap::new() }
+    }
+}
+
+impl<T: Eq + Hash> Lists<T> {
+    /// The number of `v`, equal lists sharing one.
+    pub fn intern(&mut self, v: Vec<T>) -> u32 {
+        if let Some(&i) = self.index.get(&v[..]) {
+            return i;
+        }
+        let i = self.lists.len() as u32;
+        let a: Arc<[T]> = v.into();
+        self.lists.push(a.clone());
+        self.index.insert(a, i);
+        i
+    }
+}
+
+impl<T> Lists<T> {
+    pub fn get(&self, i: u32) -> &Arc<[T]> {
+        &self.lists[i as usize]
+    }
+}
+
+/// Interns lists so that equal lists share one number.
 #[derive(Default)]
 pub(super) struct Interner {
-    files: std::collections::HashSet<FileList>,
-    absent: std::collections::HashSet<Arc<[PathBuf]>>,
-    warnings: std::collections::HashSet<Arc<[String]>>,
+    pub files: Lists<FileEntry>,
+    pub absent: Lists<PathBuf>,
+    pub warnings: Lists<String>,
 }
 
-fn intern<T: Eq + std::hash::Hash + Clone>(set: &mut std::collections::HashSet<Arc<[T]>>, v: Vec<T>) -> Arc<[T]> {
-    if let Some(a) = set.get(&v[..]) {
-        return a.clone();
-    }
-    let a: Arc<[T]> = v.into();
-    set.insert(a.clone());
-    a
+/// The lists of one kind that rows refer to, renumbered in order of first reference.
+struct Table {
+    number: HashMap<u32, u32>,
+    order: Vec<u32>,
 }
 
-impl Interner {
-    pub fn files(&mut self, v: Vec<(PathBuf, [u8; 32])>) -> FileList {
-        intern(&mut self.files, v)
-    }
-    pub fn absent(&mut self, v: Vec<PathBuf>) -> Arc<[PathBuf]> {
-        intern(&mut self.absent, v)
-    }
-    pub fn warnings(&mut self, v: Vec<String>) -> Arc<[String]> {
-        intern(&mut self.warnings, v)
-    }
-}
-
-/// Index of each distinct list (by allocation) in encoding order.
-struct Table<'a, T> {
-    index: HashMap<*const T, u32>,
-    lists: Vec<&'a [T]>,
-}
-
-impl<'a, T> Table<'a, T> {
+impl Table {
     fn new() -> Self {
-        Table { index: HashMap::new(), lists: Vec::new() }
+        Table { number: HashMap::new(), order: Vec::new() }
     }
-    fn add(&mut self, list: &'a Arc<[T]>) -> u32 {
-        let n = self.lists.len() as u32;
-        *self.index.entry(Arc::as_ptr(list) as *const T).or_insert_with(|| {
-            self.lists.push(&**list);
+    fn add(&mut self, id: u32) -> u32 {
+        let n = self.order.len() as u32;
+        *self.number.entry(id).or_insert_with(|| {
+            self.order.push(id);
             n
         })
     }
@@ -99,9 +136,10 @@ fn put_bytes(out: &mut Vec<u8>, b: &[u8]) {
     out.extend_from_slice(b);
 }
 
-fn put_lists<T>(out: &mut Vec<u8>, table: &Table<'_, T>, item: impl Fn(&mut Vec<u8>, &T)) {
-    out.extend_from_slice(&(table.lists.len() as u32).to_le_bytes());
-    for list in &table.lists {
+fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl Fn(&mut Vec<u8>, &T)) {
+    out.extend_from_slice(&(table.order.len() as u32).to_le_bytes());
+    for &id in &table.order {
+        let list = lists.get(id);
         out.extend_from_slice(&(list.len() as u32).to_le_bytes());
         for x in list.iter() {
             item(out, x);
@@ -109,63 +147,33 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table<'_, T>, item: impl Fn(&mut Vec<
     }
 }
 
-/// The records as bytes, rows sorted by direct key.
-pub(super) fn encode(records: &Records) -> Vec<u8> {
-    let mut rows: Vec<(&Key, &Arc<Row>)> = records.iter().collect();
-    rows.sort_by_key(|r| r.0);
+/// The records as bytes, with every path under `root` written relative to it (paths
+/// elsewhere stay absolute).
+pub(super) fn encode(records: &Records, interner: &Interner, root: &Path) -> Vec<u8> {
+    let relative = |p: &Path| -> PathBuf {
+        p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map_or_else(|| p.to_path_buf(), PathBuf::from)
+    };
     let (mut files, mut absent, mut warnings) = (Table::new(), Table::new(), Table::new());
-    let indices: Vec<[u32; 3]> =
-        rows.iter().map(|(_, r)| [files.add(&r.files), absent.add(&r.absent), warnings.add(&r.warnings)]).collect();
+    let indices: Vec<[u32; 3]> = records
+        .rows
+        .iter()
+        .map(|(_, r)| [files.add(r.files), absent.add(r.absent), warnings.add(r.warnings)])
+        .collect();
     let mut out = MAGIC.to_vec();
-    put_lists(&mut out, &files, |o, (p, h)| {
-        put_bytes(o, p.as_os_str().as_bytes());
+    put_lists(&mut out, &files, &interner.files, |o, (p, h)| {
+        put_bytes(o, relative(p).as_os_str().as_bytes());
         o.extend_from_slice(h);
     });
-    put_lists(&mut out, &absent, |o, p| put_bytes(o, p.as_os_str().as_bytes()));
-    put_lists(&mut out, &warnings, |o, w| put_bytes(o, w.as_bytes()));
-    out.extend_from_slice(&(rows.len() as u64).to_le_bytes());
-    for ((direct, r), idx) in rows.iter().zip(indices) {
+    put_lists(&mut out, &absent, &interner.absent, |o, p| put_bytes(o, relative(p).as_os_str().as_bytes()));
+    put_lists(&mut out, &warnings, &interner.warnings, |o, w| put_bytes(o, w.as_bytes()));
+    out.extend_from_slice(&(records.rows.len() as u64).to_le_bytes());
+    for ((direct, r), idx) in records.rows.iter().zip(indices) {
         out.extend_from_slice(&direct.0);
         out.extend_from_slice(&r.key.0);
-        out.extend_from_slice(r.token_hash.as_bytes());
-        out.extend_from_slice(r.text_hash.as_bytes());
         out.extend_from_slice(&r.text_len.to_le_bytes());
         for i in idx {
             out.extend_from_slice(&i.to_le_bytes());
         }
-    }
-    out
-}
-
-/// [`encode`] with every path under `root` written relative to it, so that the records
-/// hold in any checkout of the same sources (another machine, another folder); paths
-/// elsewhere stay absolute.
-pub(super) fn encode_relative(records: &Records, root: &std::path::Path) -> Vec<u8> {
-    encode(&relocate(records, |p| p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map(PathBuf::from)))
-}
-
-/// [`decode`] of [`encode_relative`]'s bytes: relative paths are joined to `root`.
-pub(super) fn decode_relative(bytes: &[u8], root: &std::path::Path) -> Option<Records> {
-    Some(relocate(&decode(bytes)?, |p| p.is_relative().then(|| root.join(p))))
-}
-
-/// `records` with each path that `map` gives a new one for replaced; lists stay shared.
-fn relocate(records: &Records, map: impl Fn(&std::path::Path) -> Option<PathBuf>) -> Records {
-    let path = |p: &PathBuf| map(p).unwrap_or_else(|| p.clone());
-    let mut files: HashMap<*const (PathBuf, [u8; 32]), FileList> = HashMap::new();
-    let mut absent: HashMap<*const PathBuf, Arc<[PathBuf]>> = HashMap::new();
-    let mut out = Records::with_capacity(records.len());
-    for (direct, row) in records {
-        let f = files
-            .entry(Arc::as_ptr(&row.files) as *const _)
-            .or_insert_with(|| row.files.iter().map(|(p, h)| (path(p), *h)).collect())
-            .clone();
-        let a = absent
-            .entry(Arc::as_ptr(&row.absent) as *const _)
-            .or_insert_with(|| row.absent.iter().map(path).collect())
-            .clone();
-        let moved = Row { files: f, absent: a, warnings: row.warnings.clone(), ..**row };
-        out.insert(*direct, Arc::new(moved));
     }
     out
 }
@@ -195,7 +203,12 @@ impl<'a> Reader<'a> {
     fn hash(&mut self) -> Option<[u8; 32]> {
         self.take(32)?.try_into().ok()
     }
-    fn lists<T>(&mut self, mut item: impl FnMut(&mut Self) -> Option<T>) -> Option<Vec<Arc<[T]>>> {
+    /// Each list read, interned: the numbers in `lists`.
+    fn lists<T: Eq + Hash>(
+        &mut self,
+        lists: &mut Lists<T>,
+        mut item: impl FnMut(&mut Self) -> Option<T>,
+    ) -> Option<Vec<u32>> {
         let n = self.u32()? as usize;
         let mut out = Vec::with_capacity(n.min(1 << 16));
         for _ in 0..n {
@@ -204,88 +217,104 @@ impl<'a> Reader<'a> {
             for _ in 0..len {
                 list.push(item(self)?);
             }
-            out.push(list.into());
+            out.push(lists.intern(list));
         }
         Some(out)
     }
 }
 
-/// The records in `bytes`; `None` if they are not records of this encoding (the build then
-/// preprocesses everything, as with no records).
-pub(super) fn decode(bytes: &[u8]) -> Option<Records> {
+/// The records in `bytes`, their lists interned into `interner`, relative paths joined to
+/// `root`; `None` if they are not records of this encoding (the build then preprocesses
+/// everything, as with no records).
+pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Option<Records> {
     let mut r = Reader { bytes, at: 0 };
     if r.take(8)? != MAGIC {
         return None;
     }
-    let path = |b: &[u8]| PathBuf::from(OsStr::from_bytes(b));
-    let files = r.lists(|r| Some((path(r.bytes()?), r.hash()?)))?;
-    let absent = r.lists(|r| Some(path(r.bytes()?)))?;
-    let warnings = r.lists(|r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
+    let path = |b: &[u8]| {
+        let p = Path::new(OsStr::from_bytes(b));
+        if p.is_relative() {
+            root.join(p)
+        } else {
+            p.to_path_buf()
+        }
+    };
+    let files = r.lists(&mut interner.files, |r| Some((path(r.bytes()?), r.hash()?)))?;
+    let absent = r.lists(&mut interner.absent, |r| Some(path(r.bytes()?)))?;
+    let warnings = r.lists(&mut interner.warnings, |r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
     let n = r.u64()?;
-    let mut out = Records::with_capacity((n as usize).min(1 << 20));
+    // Each row is 84 bytes: a count beyond the bytes left is damage, not an allocation.
+    if n > (bytes.len() - r.at) as u64 / 84 {
+        return None;
+    }
+    let mut rows = Vec::with_capacity(n as usize);
     for _ in 0..n {
         let direct = Key(r.hash()?);
         let row = Row {
             key: Key(r.hash()?),
-            token_hash: blake3::Hash::from_bytes(r.hash()?),
-            text_hash: blake3::Hash::from_bytes(r.hash()?),
             text_len: r.u64()?,
-            files: files.get(r.u32()? as usize)?.clone(),
-            absent: absent.get(r.u32()? as usize)?.clone(),
-            warnings: warnings.get(r.u32()? as usize)?.clone(),
+            files: *files.get(r.u32()? as usize)?,
+            absent: *absent.get(r.u32()? as usize)?,
+            warnings: *warnings.get(r.u32()? as usize)?,
         };
-        out.insert(direct, Arc::new(row));
+        rows.push((direct, row));
     }
-    (r.at == bytes.len()).then_some(out)
+    (r.at == bytes.len()).then(|| Records::new(rows))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::path::Path;
+
+    fn row(i: &mut Interner, k: u8, files: Vec<FileEntry>) -> Row {
+        Row {
+            key: Key([k; 32]),
+            text_len: 100 + k as u64,
+            files: i.files.intern(files),
+            absent: i.absent.intern(vec![PathBuf::from("/a/missing.ush")]),
+            warnings: i.warnings.intern(vec!["warning: w".to_string()]),
+        }
+    }
 
     #[test]
     fn round_trip_and_damage() {
         let mut i = Interner::default();
-        let files = i.files(vec![(PathBuf::from("/a/b.ush"), [7; 32]), (PathBuf::from("/a/c.usf"), [9; 32])]);
-        let row = |k: u8| {
-            Arc::new(Row {
-                key: Key([k; 32]),
-                token_hash: blake3::hash(&[k]),
-                text_hash: blake3::hash(&[k, 1]),
-                text_len: 100 + k as u64,
-                files: files.clone(),
-                absent: i.absent.iter().next().cloned().unwrap_or_else(|| Arc::from(vec![PathBuf::from("/x")])),
-                warnings: Arc::from(vec!["warning: w".to_string()]),
-            })
-        };
-        let records: Records = (0..5u8).map(|k| (Key([k + 100; 32]), row(k))).collect();
-        let bytes = encode(&records);
-        assert_eq!(decode(&bytes), Some(records.clone()));
-        // Shared lists are written once.
-        assert_eq!(bytes.windows(8).filter(|w| w == b"/a/b.ush").count(), 1);
-        for cut in [0, 7, 9, bytes.len() / 2, bytes.len() - 1] {
-            assert_eq!(decode(&bytes[..cut]), None, "cut at {cut}");
-        }
-        assert_eq!(decode(b"not records"), None);
-        assert_eq!(decode(&[]), None);
+        let files = vec![(PathBuf::from("/a/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])];
+        let rows: Vec<(Key, Row)> =
+            (0..5u8).rev().map(|k| (Key([k + 100; 32]), row(&mut i, k, files.clone()))).collect();
+        let records = Records::new(rows.clone());
+        assert_eq!(records.len(), 5);
+        assert_eq!(records.get(&Key([102; 32])), Some(&rows[2].1));
+        assert_eq!(records.get(&Key([1; 32])), None);
+        let bytes = encode(&records, &i, Path::new("/a"));
+        // Shared lists are written once; no path under the root is absolute.
+        assert_eq!(bytes.windows(10).filter(|w| w == b"/usr/x.ush").count(), 1);
+        assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0);
 
-        // Relative to a root: the paths under it move with it, the others stay.
-        let outside = i.files(vec![(PathBuf::from("/a/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])]);
-        let mut moved = records.clone();
-        let first = *moved.keys().next().unwrap();
-        let row = &moved[&first];
-        let row = Row { files: outside, absent: row.absent.clone(), warnings: row.warnings.clone(), ..**row };
-        moved.insert(first, Arc::new(row));
-        let bytes = encode_relative(&moved, Path::new("/a"));
-        assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0, "no path under the root is absolute");
-        let elsewhere = decode_relative(&bytes, Path::new("/b/c")).unwrap();
+        // Decoded at the same root into the same interner: the same records.
+        assert_eq!(decode(&bytes, &mut i, Path::new("/a")), Some(records.clone()));
+        // Elsewhere: the paths under the root move with it, the others stay.
+        let mut j = Interner::default();
+        let elsewhere = decode(&bytes, &mut j, Path::new("/b/c")).unwrap();
+        let moved = elsewhere.get(&Key([100; 32])).unwrap();
         assert_eq!(
-            elsewhere[&first].files[..],
+            j.files.get(moved.files)[..],
             [(PathBuf::from("/b/c/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])]
         );
-        let other = *moved.keys().nth(1).unwrap();
-        assert_eq!(elsewhere[&other].files[1].0, PathBuf::from("/b/c/c.usf"));
-        assert_eq!(decode_relative(&bytes, Path::new("/a")), Some(moved));
+        assert_eq!(j.absent.get(moved.absent)[..], [PathBuf::from("/b/c/missing.ush")]);
+        assert_eq!(j.warnings.get(moved.warnings)[..], ["warning: w".to_string()]);
+        assert_eq!(moved.text_len, 100);
+
+        for cut in [0, 7, 9, bytes.len() / 2, bytes.len() - 1] {
+            assert_eq!(decode(&bytes[..cut], &mut Interner::default(), Path::new("/a")), None, "cut at {cut}");
+        }
+        let mut long = bytes.clone();
+        long.push(0);
+        assert_eq!(decode(&long, &mut Interner::default(), Path::new("/a")), None);
+        assert_eq!(decode(b"not records", &mut Interner::default(), Path::new("/a")), None);
+        // Records of the last encoding are not read.
+        let mut old = bytes.clone();
+        old[7] = 1;
+        assert_eq!(decode(&old, &mut Interner::default(), Path::new("/a")), None);
     }
 }

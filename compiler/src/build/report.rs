@@ -14,7 +14,7 @@ use super::plan::{Keys, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::{Error, Options};
 use crate::archive;
-use crate::permute::{self, Permutation};
+use crate::permute;
 use crate::preprocess::{self, FileId, SourceCache};
 
 /// The counts of `--stats-json` (DESIGN.md, "Command line").
@@ -115,9 +115,9 @@ impl<'o> Builder<'o> {
     }
 
     pub fn planned(&mut self, plan: &Plan<'_>) {
-        self.report.stats.permutations = plan.kept.len();
+        self.report.stats.permutations = plan.len();
         self.report.stats.skipped = usize::try_from(plan.skipped).unwrap_or(usize::MAX);
-        if plan.kept.is_empty() && plan.skipped > 0 {
+        if plan.is_empty() && plan.skipped > 0 {
             self.report.warnings.push(format!(
                 "warning: skip rules skip every one of the {} permutations: nothing is compiled",
                 plan.skipped
@@ -135,29 +135,27 @@ impl<'o> Builder<'o> {
         let report = &mut self.report;
         report.stats.preprocessed = preprocessor.count();
         report.stats.seconds.preprocess = t.elapsed().as_secs_f64();
-        let mut seen = HashSet::new();
-        for w in pre.iter().flatten().flat_map(|p| p.warnings.iter()) {
-            if seen.insert(w) {
-                report.warnings.push(w.clone());
-            }
-        }
+        let lists = preprocessor.lists();
+        let (mut seen, mut warning_lists, mut file_lists) = (HashSet::new(), HashSet::new(), HashSet::new());
         let mut files = BTreeSet::new();
         files.insert(plan.config.path.clone());
-        let mut lists = HashSet::new();
-        for (i, r) in pre.iter().enumerate() {
-            match r {
-                Ok(p) => {
-                    if lists.insert(std::sync::Arc::as_ptr(&p.files) as *const u8) {
-                        files.extend(p.files.iter().map(|(path, _)| path.clone()));
+        for row in (0..pre.len()).filter_map(|i| pre.row(i)) {
+            if warning_lists.insert(row.warnings) {
+                for w in lists.warnings.get(row.warnings).iter() {
+                    if seen.insert(w) {
+                        report.warnings.push(w.clone());
                     }
                 }
-                Err(d) => {
-                    self.failures.push(((**d).clone(), vec![i]));
-                    // A failed permutation still read files: the failing header among them.
-                    for l in &d.labels {
-                        files.insert(preprocessor.sources.path(l.file_id));
-                    }
-                }
+            }
+            if file_lists.insert(row.files) {
+                files.extend(lists.files.get(row.files).iter().map(|(path, _)| path.clone()));
+            }
+        }
+        for (i, d) in pre.errors() {
+            self.failures.push(((**d).clone(), vec![*i]));
+            // A failed permutation still read files: the failing header among them.
+            for l in &d.labels {
+                files.insert(preprocessor.sources.path(l.file_id));
             }
         }
         files.retain(|f| !f.as_os_str().is_empty());
@@ -168,7 +166,7 @@ impl<'o> Builder<'o> {
     pub fn grouped(&mut self, plan: &Plan<'_>, pre: &Preprocessed, keys: &Keys) {
         let report = &mut self.report;
         report.stats.unique_sources = keys.len();
-        report.dead_dimensions = dead_dimensions(&plan.kept, pre);
+        report.dead_dimensions = dead_dimensions(plan, pre);
         for d in &report.dead_dimensions {
             report.warnings.push(format!(
                 "warning: dimension `{}` of `{}` never changes the shader's text at level `{}`: its {} values multiply the permutations for nothing",
@@ -205,7 +203,7 @@ impl<'o> Builder<'o> {
         let stats = &mut self.report.stats;
         stats.seconds.compile = compiler.first_start().map_or(0.0, |t| t.elapsed().as_secs_f64());
         stats.shared_modules = compiler.shared_modules();
-        for ((key, members), outcome) in keys.groups.iter().zip(outcomes) {
+        for ((key, members), outcome) in keys.iter().zip(outcomes) {
             match outcome {
                 Outcome::Hit => stats.cache_hits += 1,
                 Outcome::Elsewhere => stats.other_shards += 1,
@@ -223,7 +221,7 @@ impl<'o> Builder<'o> {
         }
         let failures = std::mem::take(&mut self.failures);
         self.report.stats.failed = failures.iter().map(|f| f.1.len()).sum();
-        self.report.failures = render_failures(failures, &plan.kept, &preprocessor.sources, self.options.color);
+        self.report.failures = render_failures(failures, plan, &preprocessor.sources, self.options.color);
     }
 
     /// The remote cache's counts.
@@ -256,7 +254,7 @@ impl<'o> Builder<'o> {
 
 fn render_failures(
     failures: Vec<(Diagnostic<FileId>, Vec<usize>)>,
-    kept: &[Permutation<'_>],
+    plan: &Plan<'_>,
     sources: &SourceCache,
     color: bool,
 ) -> Vec<String> {
@@ -266,7 +264,7 @@ fn render_failures(
     let mut groups: HashMap<(String, String), (Diagnostic<FileId>, Vec<usize>)> = HashMap::new();
     for (d, members) in failures {
         let text = preprocess::render(std::slice::from_ref(&d), sources, false);
-        let key = (kept[members[0]].level.name.clone(), text);
+        let key = (plan.shader_level(members[0]).1.name.clone(), text);
         match groups.get_mut(&key) {
             Some(g) => g.1.extend(members),
             None => {
@@ -279,25 +277,20 @@ fn render_failures(
     for key in order {
         let (mut d, mut members) = groups.remove(&key).expect("grouped above");
         members.sort_unstable();
-        let p = &kept[members[0]];
-        let mut limits = match p.level.limits {
+        let (_, level) = plan.shader_level(members[0]);
+        let mut limits = match level.limits {
             permute::Limits::Default => "default",
             permute::Limits::Downlevel => "downlevel",
         }
         .to_string();
-        for (field, value) in &p.level.limit_overrides {
+        for (field, value) in &level.limit_overrides {
             limits.push_str(&format!(" with {field} = {value}"));
         }
         let note = if members.len() == 1 {
-            format!("in permutation {} (level `{}`, {limits} limits)", p.name(), p.level.name)
+            format!("in permutation {} (level `{}`, {limits} limits)", plan.name(members[0]), level.name)
         } else {
-            let names: Vec<String> = members.iter().map(|&m| format!("  {}", kept[m].name())).collect();
-            format!(
-                "in {} permutations (level `{}`, {limits} limits):\n{}",
-                names.len(),
-                p.level.name,
-                names.join("\n")
-            )
+            let names: Vec<String> = members.iter().map(|&m| format!("  {}", plan.name(m))).collect();
+            format!("in {} permutations (level `{}`, {limits} limits):\n{}", names.len(), level.name, names.join("\n"))
         };
         d.notes.push(note);
         out.push(preprocess::render(std::slice::from_ref(&d), sources, color));
@@ -306,32 +299,38 @@ fn render_failures(
 }
 
 /// Dimensions whose value never changes the token stream: in every set of kept permutations
-/// that differ only in that dimension, all have one token hash.
-fn dead_dimensions(kept: &[Permutation<'_>], pre: &Preprocessed) -> Vec<DeadDimension> {
-    let mut by_shader: BTreeMap<(usize, &str, &str), Vec<usize>> = BTreeMap::new();
+/// that differ only in that dimension, all have one token hash. (Within one shader at one
+/// level, keys differ exactly where token hashes do: the rest of a key is the shader's and
+/// the level's.)
+fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
+    type Runs<'c> = (&'c [permute::Dimension], Vec<std::ops::Range<usize>>);
+    let mut by_shader: BTreeMap<(usize, &str, &str), Runs<'_>> = BTreeMap::new();
     let mut first: HashMap<(&str, &str), usize> = HashMap::new();
-    for (i, p) in kept.iter().enumerate() {
+    for (shader, level, range) in plan.runs() {
         let n = first.len();
-        let order = *first.entry((&p.shader.name, &p.level.name)).or_insert(n);
-        by_shader.entry((order, &p.shader.name, &p.level.name)).or_default().push(i);
+        let order = *first.entry((&shader.name, &level.name)).or_insert(n);
+        by_shader.entry((order, &shader.name, &level.name)).or_insert((&shader.dimensions, Vec::new())).1.push(range);
     }
     let mut out = Vec::new();
-    for ((_, shader, level), members) in by_shader {
-        let dims = &kept[members[0]].shader.dimensions;
+    for ((_, shader, level), (dims, ranges)) in by_shader {
+        let members: Vec<usize> = ranges.into_iter().flatten().collect();
+        if members.is_empty() {
+            continue;
+        }
         for (d, dim) in dims.iter().enumerate() {
             if dim.values.len() < 2 {
                 continue;
             }
-            let mut rows: HashMap<Vec<i64>, Vec<blake3::Hash>> = HashMap::new();
+            let mut rows: HashMap<Vec<i64>, Vec<&crate::cache::Key>> = HashMap::new();
             let mut complete = true;
             for &m in &members {
-                let Ok(pm) = &pre[m] else {
+                let Some(key) = pre.key(m) else {
                     complete = false;
                     break;
                 };
-                let mut rest = kept[m].values.clone();
+                let mut rest = plan.values(m).to_vec();
                 rest.remove(d);
-                rows.entry(rest).or_default().push(pm.token_hash);
+                rows.entry(rest).or_default().push(key);
             }
             let varies = rows.values().any(|hs| hs.len() > 1);
             let dead = complete && varies && rows.values().all(|hs| hs.iter().all(|h| *h == hs[0]));

@@ -121,12 +121,26 @@ impl Store {
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
         self.write(pending);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
+        // The build looks nothing up past here: the index need not stay while the archive is
+        // written.
+        if let Some(c) = &self.cache {
+            c.release_index();
+        }
         warnings.extend(self.unavailable.clone());
         for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {
             // n == 0: a remote archive's warning, whole.
             warnings.push(if n == 0 { why } else { format!("warning: cannot store {n} cache entries: {why}") });
         }
         warnings
+    }
+
+    /// Copies into the local cache the entries of `keys` that the remote cache holds and
+    /// the local one lacks, fetched in batches (redis MGET, parallel HTTP GETs) rather than
+    /// one round trip per key as the compile stage would. A shard's share, before it compiles.
+    pub fn prefetch(&self, keys: &[Key]) {
+        if let Some(c) = self.cache.as_ref().filter(|c| c.remote().is_some()) {
+            c.fill_from_remote(keys);
+        }
     }
 
     /// The encoded preprocessing records stored under `key` (none without a cache).

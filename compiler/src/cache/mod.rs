@@ -291,6 +291,13 @@ impl Cache {
         f(index.get_or_insert_with(|| self.read_index()))
     }
 
+    /// Frees the in-memory index of every pack (about 130 bytes per key); the next lookup
+    /// reads it again. A build calls this once it looks nothing up any more, before it writes
+    /// the archive.
+    pub fn release_index(&self) {
+        *self.index.write().expect("no panics while locked") = None;
+    }
+
     fn read_index(&self) -> Index {
         let mut index = Index::default();
         for (path, _) in self.files() {

@@ -218,7 +218,7 @@ impl<'c> Permutation<'c> {
 }
 
 /// The canonical name of `shader` at `level` with `values`.
-pub(super) fn canonical_name(shader: &Shader, level: &Level, values: &[i64]) -> String {
+pub fn canonical_name(shader: &Shader, level: &Level, values: &[i64]) -> String {
     let mut s = String::with_capacity(shader.name.len() + level.name.len() + 2 + 16 * values.len());
     s.push_str(&shader.name);
     s.push('@');

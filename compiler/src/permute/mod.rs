@@ -28,7 +28,8 @@ pub use analysis::{
     analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed,
 };
 pub use enumerate::{
-    nominal, Define, DefineOrigin, Kept, Permutation, Permutations, RuleResult, DEFAULT_MAX_PERMUTATIONS,
+    canonical_name, nominal, Define, DefineOrigin, Kept, Permutation, Permutations, RuleResult,
+    DEFAULT_MAX_PERMUTATIONS,
 };
 pub use error::{ConfigError, Near, NotFound};
 pub use explain::{explain, Explanation};
