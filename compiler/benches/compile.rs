@@ -138,6 +138,11 @@ struct Row {
     shared: usize,
 }
 
+/// The allocator of the `kiln` binary (compiler/src/main.rs), for naga alone as much as for Kiln:
+/// the ratio is of the work each does, not of their allocators.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() {
     let mut args = std::env::args().skip(1).filter(|a| a != "--bench");
     let given = args.next().map(PathBuf::from);
