@@ -641,6 +641,32 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
     Some(dict)
 }
 
+/// The trained dictionaries, by target, and each one's compiled form for compression (the
+/// compiled form, zstd's tables of a dictionary, made on the same worker that trained it).
+type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'static>>>);
+
+/// Trains the dictionary of each of `targets` (those with enough to learn from), in parallel.
+fn dictionaries(blobs: &[PlannedBlob], targets: &[Target], spool: &Spool<'_>) -> std::io::Result<Dictionaries> {
+    let trained = par_map(
+        targets,
+        || (),
+        |_, t| -> std::io::Result<_> {
+            Ok(train(blobs, *t, spool)?.map(|d| {
+                let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
+                (*t, d, cdict)
+            }))
+        },
+    );
+    let (mut dictionaries, mut cdicts) = (Vec::new(), Vec::new());
+    for t in trained {
+        if let Some((target, d, cdict)) = t? {
+            dictionaries.push((target, d));
+            cdicts.push(cdict);
+        }
+    }
+    Ok((dictionaries, cdicts))
+}
+
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
 /// It consumes the plan: the manifest is serialized straight from it, never copied, and
 /// never held as one JSON string.
@@ -650,17 +676,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
-    // Dictionaries, trained per target in parallel.
+    // Dictionaries, trained (and made ready to compress with) per target in parallel.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.iter().any(|b| b.target == *t)).collect();
-    let trained = par_map(&targets, || (), |_, t| train(&blobs, *t, spool));
-    let mut dictionaries: Vec<(Target, Vec<u8>)> = Vec::new();
-    for (t, d) in targets.iter().zip(trained) {
-        if let Some(d) = d? {
-            dictionaries.push((*t, d));
-        }
-    }
-    let cdicts: Vec<Option<zstd::zstd_safe::CDict<'static>>> =
-        dictionaries.iter().map(|(_, d)| zstd::zstd_safe::CDict::try_create(d, COMPRESSION_LEVEL)).collect();
+    let (dictionaries, cdicts) = dictionaries(&blobs, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
