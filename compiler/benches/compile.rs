@@ -146,13 +146,9 @@ struct Row {
     shared: usize,
 }
 
-/// The allocator of the `kiln` binary (compiler/src/main.rs), for naga alone as much as for Kiln:
-/// the ratio is of the work each does, not of their allocators.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 fn main() {
-    // As `kiln`'s main does for zstd's C allocations, which stay on glibc.
+    // As `kiln`'s main does (for zstd's C allocations there; the `kiln` binary's Rust side is
+    // on mimalloc, this bench's on glibc for Kiln and naga alone alike).
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets a tuning parameter of glibc's allocator; no thread runs yet.
     unsafe {

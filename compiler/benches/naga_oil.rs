@@ -122,11 +122,6 @@ fn kiln_library(config: &kiln::permute::Config) -> usize {
     bytes
 }
 
-/// The allocator of the `kiln` binary (compiler/src/main.rs), for naga_oil as much as for Kiln:
-/// the ratio is of the work each does, not of their allocators.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 fn main() {
     let rounds: usize =
         std::env::args().skip(1).find(|a| a != "--bench").and_then(|r| r.parse().ok()).unwrap_or(5).max(1);
