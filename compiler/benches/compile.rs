@@ -27,7 +27,7 @@
 //! The last lines are one table of every set's ratios.
 //!
 //! For profilers (callgrind, perf): `KILN_BENCH_ONLY=naga` runs naga alone once on CONFIG's
-//! distinct sources and exits; `KILN_BENCH_ONLY=kiln` runs one cold build without a cache
+//! distinct sources and exits (`=compile`: `kiln::compile::compile` on them); `KILN_BENCH_ONLY=kiln` runs one cold build without a cache
 //! (`=cold`: with an empty cache);
 //! `KILN_BENCH_SHAPES_TO=DIR` writes the generated sets into DIR (`setN/permutations.toml`).
 
@@ -112,6 +112,14 @@ fn naga_alone(s: &Source, entry_only: bool) -> usize {
     bytes
 }
 
+/// `kiln::compile::compile` on one distinct source: Kiln's naga work (parse, compaction to the
+/// entry point, validation, reflection, limits, every writer), without the build around it.
+fn kiln_compile(s: &Source) -> usize {
+    let limits = if s.gles { kiln::compile::Limits::downlevel() } else { kiln::compile::Limits::desktop() };
+    let o = kiln::compile::Options { targets: s.targets.clone(), limits };
+    kiln::compile::compile(&s.text, &s.entry, s.stage, &o).unwrap().artifacts.len()
+}
+
 /// CPU time of this process so far (user + system, all threads).
 fn cpu_time() -> Duration {
     // SAFETY: getrusage only writes the struct it is given.
@@ -139,6 +147,13 @@ struct Row {
 }
 
 fn main() {
+    // As `kiln`'s main does (for zstd's C allocations there; the `kiln` binary's Rust side is
+    // on mimalloc, this bench's on glibc for Kiln and naga alone alike).
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets a tuning parameter of glibc's allocator; no thread runs yet.
+    unsafe {
+        libc::mallopt(libc::M_TOP_PAD, 16 << 20);
+    }
     let mut args = std::env::args().skip(1).filter(|a| a != "--bench");
     let given = args.next().map(PathBuf::from);
     let rounds: usize = args.next().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
@@ -159,6 +174,10 @@ fn main() {
         let (_, wall, cpu) = timed(|| match only.as_str() {
             "naga" => {
                 let out: usize = pool(jobs).install(|| distinct.par_iter().map(|s| naga_alone(s, false)).sum());
+                std::hint::black_box(out);
+            }
+            "compile" => {
+                let out: usize = pool(jobs).install(|| distinct.par_iter().map(kiln_compile).sum());
                 std::hint::black_box(out);
             }
             _ => {
@@ -416,17 +435,7 @@ fn full(config_path: &Path, rounds: usize, jobs: usize) -> Row {
         naga_times.push(t.elapsed());
         std::hint::black_box(out);
         let t = Instant::now();
-        let out: usize = pool.install(|| {
-            distinct
-                .par_iter()
-                .map(|s| {
-                    let limits =
-                        if s.gles { kiln::compile::Limits::downlevel() } else { kiln::compile::Limits::desktop() };
-                    let o = kiln::compile::Options { targets: s.targets.clone(), limits };
-                    kiln::compile::compile(&s.text, &s.entry, s.stage, &o).unwrap().artifacts.len()
-                })
-                .sum()
-        });
+        let out: usize = pool.install(|| distinct.par_iter().map(kiln_compile).sum());
         kc_times.push(t.elapsed());
         std::hint::black_box(out);
         let t = Instant::now();

@@ -249,6 +249,17 @@ impl Spool<'_> {
             }
         }
     }
+
+    /// Reads `into.len()` bytes at `offset` into `into`.
+    fn read_into(&self, offset: u64, into: &mut [u8]) -> std::io::Result<()> {
+        match self {
+            Spool::Memory(m) => {
+                into.copy_from_slice(&m[offset as usize..offset as usize + into.len()]);
+                Ok(())
+            }
+            Spool::File(f) => f.read_exact_at(into, offset),
+        }
+    }
 }
 
 /// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
@@ -631,23 +642,28 @@ fn par_map<T: Sync, U: Send, S>(
 }
 
 /// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
-/// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from.
+/// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from. The sample is
+/// read straight into the one buffer zstd trains on (no copy per blob).
 fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
     let of_target: Vec<&BlobSlot> = plan.blobs.iter().filter(|b| b.target == target).map(|b| plan.slot(b)).collect();
     let total: u64 = of_target.iter().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
-    let mut samples = Vec::new();
-    let mut sampled = 0usize;
-    for b in of_target.iter().step_by(stride) {
-        samples.push(spool.read(b.offset, b.len)?);
-        sampled += b.len as usize;
-    }
+    let sample: Vec<&BlobSlot> = of_target.into_iter().step_by(stride).collect();
+    let sizes: Vec<usize> = sample.iter().map(|b| b.len as usize).collect();
+    let sampled: usize = sizes.iter().sum();
     // A dictionary pays for itself only over many artifacts of a kind.
     let capacity = (sampled / 16).min(DICTIONARY_SIZE);
-    if samples.len() < 8 || capacity < 1024 {
+    if sample.len() < 8 || capacity < 1024 {
         return Ok(None);
     }
-    Ok(train_fast_cover(&samples, capacity).filter(|d| !d.is_empty()))
+    let mut flat = vec![0u8; sampled];
+    let mut at = 0;
+    for b in &sample {
+        let len = b.len as usize;
+        spool.read_into(b.offset, &mut flat[at..at + len])?;
+        at += len;
+    }
+    Ok(train_fast_cover(&flat, &sizes, capacity).filter(|d| !d.is_empty()))
 }
 
 /// fastCover segment size `k` and d-mer size `d` of dictionary training, fixed.
@@ -656,20 +672,23 @@ fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Opti
 /// `k` costs a fraction of that (figures in `compiler/src/archive/format.rs`).
 const FASTCOVER_K: u32 = 1024;
 const FASTCOVER_D: u32 = 8;
+/// log2 of fastCover's frequency table's entries. zstd's default, 20, zeroes and touches a
+/// 4 MiB table and a 2 MiB one per target (half of a small cold build's page faults); 18
+/// (1 MiB and 512 KiB) trains dictionaries as good to within about 1% of the archive's size.
+const FASTCOVER_F: u32 = 18;
 
-/// One fastCover training with fixed parameters on `samples` into at most `capacity` bytes;
-/// `None` when zstd finds nothing to learn. Deterministic: same samples, same dictionary.
-fn train_fast_cover(samples: &[Cow<'_, [u8]>], capacity: usize) -> Option<Vec<u8>> {
+/// One fastCover training with fixed parameters on the samples laid end to end in `flat`
+/// (`sizes` long each) into at most `capacity` bytes; `None` when zstd finds nothing to
+/// learn. Deterministic: same samples, same dictionary.
+fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec<u8>> {
     use zstd::zstd_safe::zstd_sys;
-    let mut flat = Vec::with_capacity(samples.iter().map(|s| s.len()).sum());
-    for s in samples {
-        flat.extend_from_slice(s);
+    if sizes.iter().sum::<usize>() != flat.len() {
+        return None;
     }
-    let sizes: Vec<usize> = samples.iter().map(|s| s.len()).collect();
     let params = zstd_sys::ZDICT_fastCover_params_t {
         k: FASTCOVER_K,
         d: FASTCOVER_D,
-        f: 20,
+        f: FASTCOVER_F,
         steps: 0,
         nbThreads: 1,
         splitPoint: 1.0,
@@ -680,8 +699,8 @@ fn train_fast_cover(samples: &[Cow<'_, [u8]>], capacity: usize) -> Option<Vec<u8
     };
     let mut dict = vec![0u8; capacity];
     // SAFETY: `dict` is writable for `capacity` bytes, `flat` holds exactly the sum of `sizes`
-    // bytes, and `sizes` has `samples.len()` elements (fewer than u32::MAX: the sample is
-    // bounded by DICTIONARY_SAMPLE); zstd reads and writes only within those bounds.
+    // bytes (checked above), and `sizes` has fewer than u32::MAX elements (checked by the
+    // conversion); zstd reads and writes only within those bounds.
     let written = unsafe {
         zstd_sys::ZDICT_trainFromBuffer_fastCover(
             dict.as_mut_ptr().cast(),
@@ -700,6 +719,32 @@ fn train_fast_cover(samples: &[Cow<'_, [u8]>], capacity: usize) -> Option<Vec<u8
     Some(dict)
 }
 
+/// The trained dictionaries, by target, and each one's compiled form for compression (the
+/// compiled form, zstd's tables of a dictionary, made on the same worker that trained it).
+type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'static>>>);
+
+/// Trains the dictionary of each of `targets` (those with enough to learn from), in parallel.
+fn dictionaries(plan: &Plan, targets: &[Target], spool: &Spool<'_>) -> std::io::Result<Dictionaries> {
+    let trained = par_map(
+        targets,
+        || (),
+        |_, t| -> std::io::Result<_> {
+            Ok(train(plan, *t, spool)?.map(|d| {
+                let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
+                (*t, d, cdict)
+            }))
+        },
+    );
+    let (mut dictionaries, mut cdicts) = (Vec::new(), Vec::new());
+    for t in trained {
+        if let Some((target, d, cdict)) = t? {
+            dictionaries.push((target, d));
+            cdicts.push(cdict);
+        }
+    }
+    Ok((dictionaries, cdicts))
+}
+
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
 /// It consumes the plan: the manifest is serialized straight from it, never copied, and
 /// never held as one JSON string.
@@ -708,17 +753,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
-    // Dictionaries, trained per target in parallel.
+    // Dictionaries, trained (and made ready to compress with) per target in parallel.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
-    let trained = par_map(&targets, || (), |_, t| train(&plan, *t, spool));
-    let mut dictionaries: Vec<(Target, Vec<u8>)> = Vec::new();
-    for (t, d) in targets.iter().zip(trained) {
-        if let Some(d) = d? {
-            dictionaries.push((*t, d));
-        }
-    }
-    let cdicts: Vec<Option<zstd::zstd_safe::CDict<'static>>> =
-        dictionaries.iter().map(|(_, d)| zstd::zstd_safe::CDict::try_create(d, COMPRESSION_LEVEL)).collect();
+    let (dictionaries, cdicts) = dictionaries(&plan, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
@@ -736,23 +773,16 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
             end += 1;
         }
         let batch = &blobs[start..end];
-        let stored = par_map(batch, zstd::zstd_safe::CCtx::create, |cctx, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
-            let s = slot(b);
-            let raw = spool.read(s.offset, s.len)?;
-            let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
-            let mut dst = Vec::with_capacity(zstd::zstd_safe::compress_bound(raw.len()));
-            let (codec, index, ok) = match dict {
-                Some((i, cdict)) => {
-                    (CODEC_ZSTD_DICT, i as u8, cctx.compress_using_cdict(&mut dst, &raw, cdict).is_ok())
-                }
-                None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(&mut dst, &raw, COMPRESSION_LEVEL).is_ok()),
-            };
-            if ok && dst.len() < raw.len() {
-                Ok((codec, index, dst))
-            } else {
-                Ok((CODEC_STORED, NO_DICTIONARY, raw.into_owned()))
-            }
-        });
+        let stored = par_map(
+            batch,
+            || (),
+            |_, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
+                let s = slot(b);
+                let raw = spool.read(s.offset, s.len)?;
+                let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
+                Ok(compress_blob(raw, dict))
+            },
+        );
         for (b, s) in batch.iter().zip(stored) {
             let (codec, dictionary, bytes) = s?;
             out.write_all(&bytes)?;
@@ -818,6 +848,32 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+thread_local! {
+    /// Each thread's zstd context, made once and reused for every blob it compresses (a
+    /// context per rayon split allocated and faulted in its tables again each time).
+    static CCTX: std::cell::RefCell<Option<zstd::zstd_safe::CCtx<'static>>> = const { std::cell::RefCell::new(None) };
+}
+
+/// One blob as stored: (codec, dictionary index, bytes), with its target's dictionary
+/// `dict` (index, compiled dictionary) if it has one; stored raw when zstd does not shrink
+/// it. zstd's output depends only on the input and parameters, not on the context's history.
+fn compress_blob(raw: Cow<'_, [u8]>, dict: Option<(usize, &zstd::zstd_safe::CDict<'_>)>) -> (u8, u8, Vec<u8>) {
+    let mut dst = Vec::with_capacity(zstd::zstd_safe::compress_bound(raw.len()));
+    let (codec, index, ok) = CCTX.with(|cell| {
+        let mut cell = cell.borrow_mut();
+        let cctx = cell.get_or_insert_with(zstd::zstd_safe::CCtx::create);
+        match dict {
+            Some((i, cdict)) => (CODEC_ZSTD_DICT, i as u8, cctx.compress_using_cdict(&mut dst, &raw, cdict).is_ok()),
+            None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(&mut dst, &raw, COMPRESSION_LEVEL).is_ok()),
+        }
+    });
+    if ok && dst.len() < raw.len() {
+        (codec, index, dst)
+    } else {
+        (CODEC_STORED, NO_DICTIONARY, raw.into_owned())
+    }
 }
 
 /// The counts of `manifest`'s header (the tables' JSON is serialized once to count it).
