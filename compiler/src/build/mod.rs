@@ -207,17 +207,24 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     report.finish()
 }
 
-/// `KILN_TRACE_MEMORY=1`: the bytes the allocator holds after a stage (glibc's `mallinfo2`:
-/// live heap, not the peak), on stderr; what grows with the set shows between sizes.
+/// `KILN_TRACE_MEMORY=1`: the process's resident memory after a stage and its peak so far
+/// (`VmRSS` and `VmHWM` of `/proc/self/status`, so whatever the allocator: the `kiln` binary
+/// runs on mimalloc, a library user on theirs), on stderr; what grows with the set shows
+/// between sizes.
 pub(crate) fn trace_memory(stage: &str) {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    if std::env::var_os("KILN_TRACE_MEMORY").is_some() {
-        // SAFETY: mallinfo2 only reads the allocator's counters.
-        let m = unsafe { libc::mallinfo2() };
-        eprintln!("memory after {stage}: {:.1} MiB in use", (m.uordblks + m.hblkhd) as f64 / 1048576.0);
+    if std::env::var_os("KILN_TRACE_MEMORY").is_none() {
+        return;
     }
-    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-    let _ = stage;
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let mib = |field: &str| -> Option<f64> {
+        let line = status.lines().find_map(|l| l.strip_prefix(field))?;
+        let kib: f64 = line.trim().trim_end_matches("kB").trim().parse().ok()?;
+        Some(kib / 1024.0)
+    };
+    match (mib("VmRSS:"), mib("VmHWM:")) {
+        (Some(now), Some(peak)) => eprintln!("memory after {stage}: {now:.1} MiB resident, {peak:.1} MiB at peak"),
+        _ => eprintln!("memory after {stage}: unknown (no /proc/self/status)"),
+    }
 }
 
 /// Workers with the preprocessor's stack run it in place (no thread per permutation).
