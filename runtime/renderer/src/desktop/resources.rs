@@ -298,7 +298,8 @@ pub struct SceneDepth {
     pub depth_view: wgpu::TextureView,
     pub format: wgpu::TextureFormat,
     /// Whether the depth can be attached read-only (depth and stencil tests) while passes
-    /// sample it. wgpu's GL backend cannot; there the lighting passes test in the shader
+    /// sample it. wgpu's GL backend cannot, nor a device without Depth32FloatStencil8 (the
+    /// sampled copy needs a copyable format); there the lighting passes test in the shader
     /// only (depth bounds and shading model), without the attachment.
     pub read_only_attachment: bool,
     /// Where the depth is attached read-only: a copy of it, made once per frame by
@@ -319,7 +320,10 @@ impl SceneDepth {
         let d32s8 = device.features().contains(wgpu::Features::DEPTH32FLOAT_STENCIL8);
         let format =
             if d32s8 { wgpu::TextureFormat::Depth32FloatStencil8 } else { wgpu::TextureFormat::Depth24PlusStencil8 };
-        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl;
+        // The passes that attach the depth read-only sample a copy of it (below), and wgpu
+        // copies Depth24PlusStencil8 nowhere: without Depth32FloatStencil8 those passes test
+        // in the shader only, as on GL.
+        let read_only_attachment = device.adapter_info().backend != wgpu::Backend::Gl && d32s8;
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
         if d32s8 || read_only_attachment {
             usage |= wgpu::TextureUsages::COPY_SRC;
