@@ -386,7 +386,7 @@ impl MobileFrame {
         let forward_lights =
             uniforms::forward_lights(&local_lights, scene.camera.position, options.max_dynamic_point_lights as usize);
         let captures = sky::Captures::new(device, &gpu.queue, scene);
-        let view = uniforms::view_uniforms(scene, &options, width, height, &shadow_layout, &forward_lights, &captures);
+        let view = uniforms::view_uniforms(scene, &options, size, &shadow_layout, &forward_lights, &captures);
         let shared = SharedResources {
             view_proj: view.view_proj,
             cascades: shadow_layout.cascades.len(),

@@ -117,8 +117,7 @@ pub fn forward_lights(lights: &[LocalLight], camera: Vec3, max: usize) -> Vec<Lo
 pub fn view_uniforms(
     scene: &Scene,
     options: &MobileOptions,
-    width: u32,
-    height: u32,
+    (width, height): (u32, u32),
     shadows: &ShadowLayout,
     forward_lights: &[LocalLight],
     captures: &Captures,
