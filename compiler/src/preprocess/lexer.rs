@@ -123,7 +123,8 @@ pub(crate) fn ident_len(src: &[u8], pos: usize) -> usize {
     i - pos
 }
 
-fn number_len(src: &[u8], pos: usize) -> usize {
+#[inline]
+pub(crate) fn number_len(src: &[u8], pos: usize) -> usize {
     let mut i = pos + 1;
     while i < src.len() {
         let c = src[i];

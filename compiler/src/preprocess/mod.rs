@@ -116,28 +116,34 @@ pub fn token_hash(text: &str) -> blake3::Hash {
     // whose fresh pages each fault in).
     const CHUNK: usize = 16 << 10;
     let src = text.as_bytes();
+    let end = src.len();
     let mut hasher = blake3::Hasher::new();
     let mut buf = [0u8; CHUNK + 32];
     let mut n = 0;
     let mut pos = 0;
-    while pos < src.len() {
+    while pos < end {
         let b = src[pos];
-        // Fast paths for what preprocessed WGSL is mostly made of: single blanks,
-        // identifiers (those that could start a string prefix, `L` `U` `u`, go the long way)
-        // and punctuators that never begin a longer one.
-        let len = match b {
-            b' ' | b'\n' | b'\t' => {
+        // Fast paths for what preprocessed WGSL is mostly made of: runs of blanks (indents),
+        // identifiers, numbers and punctuators that never begin a longer one. The rest (and
+        // the string and character prefixes `L` `U` `u` `u8` before a quote) goes the long way.
+        let len = match HASH_CLASS[b as usize] {
+            BLANK => {
                 pos += 1;
+                while pos < end && HASH_CLASS[src[pos] as usize] == BLANK {
+                    pos += 1;
+                }
                 continue;
             }
-            b'a'..=b't' | b'v'..=b'z' | b'A'..=b'K' | b'M'..=b'T' | b'V'..=b'Z' | b'_' => {
+            IDENT => {
                 let mut i = pos + 1;
-                while i < src.len() && lexer::IDENT_CONTINUE[src[i] as usize] {
+                while i < end && lexer::IDENT_CONTINUE[src[i] as usize] {
                     i += 1;
                 }
                 i - pos
             }
-            b'(' | b')' | b'{' | b'}' | b'[' | b']' | b';' | b',' | b'?' | b'~' => 1,
+            PREFIX if !matches!(src.get(pos + 1), Some(b'"' | b'\'' | b'8')) => lexer::ident_len(src, pos),
+            DIGIT => lexer::number_len(src, pos),
+            SINGLE => 1,
             _ => match lexer::next(src, pos) {
                 (lexer::Kind::Eof, _) => break,
                 (
@@ -159,7 +165,7 @@ pub fn token_hash(text: &str) -> blake3::Hash {
         }
         buf[n..n + 4].copy_from_slice(&(len as u32).to_le_bytes());
         n += 4;
-        if len <= 16 && pos + 16 <= src.len() {
+        if len <= 16 && pos + 16 <= end {
             // Most tokens are short: copy a fixed 16 bytes (one move) and count only `len`.
             buf[n..n + 16].copy_from_slice(&src[pos..pos + 16]);
             n += len;
@@ -178,6 +184,36 @@ pub fn token_hash(text: &str) -> blake3::Hash {
     hasher.update(&buf[..n]);
     hasher.finalize()
 }
+
+/// [`token_hash`]'s classes of a token's first byte: what the lexer would make of it.
+const OTHER: u8 = 0;
+/// ` `, `\n`, `\t`: dropped.
+const BLANK: u8 = 1;
+/// Starts an identifier, and cannot start a string or character literal.
+const IDENT: u8 = 2;
+/// `L`, `U`, `u`: an identifier unless a quote (or `8"`) follows.
+const PREFIX: u8 = 3;
+const DIGIT: u8 = 4;
+/// A punctuator that never begins a longer one.
+const SINGLE: u8 = 5;
+
+static HASH_CLASS: [u8; 256] = {
+    let mut t = [OTHER; 256];
+    let mut i = 0;
+    while i < 256 {
+        let b = i as u8;
+        t[i] = match b {
+            b' ' | b'\n' | b'\t' => BLANK,
+            b'L' | b'U' | b'u' => PREFIX,
+            b'a'..=b'z' | b'A'..=b'Z' | b'_' => IDENT,
+            b'0'..=b'9' => DIGIT,
+            b'(' | b')' | b'{' | b'}' | b'[' | b']' | b';' | b',' | b'?' | b'~' => SINGLE,
+            _ => OTHER,
+        };
+        i += 1;
+    }
+    t
+};
 
 /// The preprocessing tokens of a text, comments and whitespace dropped (for comparisons).
 pub fn tokens(text: &str) -> Vec<&str> {
