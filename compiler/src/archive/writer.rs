@@ -356,6 +356,15 @@ impl StreamingWriter {
         e.artifacts.reserve_exact(artifacts);
     }
 
+    /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of a table
+    /// that grows by doubling (its pages past the blobs added are never touched).
+    pub fn reserve_blobs(&self, blobs: usize) {
+        let mut b = lock(&self.blobs);
+        b.slots.reserve_exact(blobs);
+        let BlobTable { slots, table, .. } = &mut *b;
+        table.reserve(blobs, |&m| table_hash(&slots[m as usize].hash));
+    }
+
     /// Number of distinct blobs added so far.
     pub fn blob_count(&self) -> usize {
         lock(&self.blobs).added

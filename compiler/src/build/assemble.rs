@@ -76,10 +76,27 @@ impl<'p> Assembler<'p> {
             Some(out) => Some(StreamingWriter::new(out).map_err(|e| Error::Io(format!("error: {e}")))?),
             None => None,
         };
+        // Every per-key table at its bound once (see [`Plan::max_targets`]).
+        let (keys, artifacts) = match plan.assembles() {
+            true => (plan.len(), plan.len() * plan.max_targets()),
+            false => (0, 0),
+        };
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
+            w.reserve_blobs(artifacts);
         }
-        Ok(Assembler { plan, writer, produced: Mutex::default(), emitted: Mutex::default(), error: Mutex::default() })
+        let produced = Produced {
+            keys: HashMap::with_capacity(keys),
+            artifacts: Vec::with_capacity(artifacts),
+            ..Produced::default()
+        };
+        Ok(Assembler {
+            plan,
+            writer,
+            produced: Mutex::new(produced),
+            emitted: Mutex::default(),
+            error: Mutex::default(),
+        })
     }
 
     /// A key's artifacts, with the blake3 of each: written now, then only their blob

@@ -97,7 +97,7 @@ impl<'p> Preprocessor<'p> {
                 key,
                 root,
                 base: direct_base(plan.config),
-                new: Mutex::default(),
+                new: Mutex::new(Vec::with_capacity(plan.len())),
             }
         });
         Preprocessor {
@@ -109,7 +109,8 @@ impl<'p> Preprocessor<'p> {
             identifiers: FileIdentifiers::default(),
             records,
             interner: Mutex::new(interner),
-            rows: Mutex::default(),
+            // At most one row per permutation, allocated once (see [`Plan::max_targets`]).
+            rows: Mutex::new(Vec::with_capacity(plan.len())),
             preprocessed: AtomicUsize::new(0),
         }
     }
@@ -168,26 +169,33 @@ impl<'p> Preprocessor<'p> {
         });
         let mut errors = errors.into_inner().expect("no panics while locked");
         errors.sort_by_key(|e| e.0);
-        let mut rows = std::mem::take(&mut *self.rows.lock().expect("no panics while locked"));
-        rows.shrink_to_fit();
+        // Not shrunk: the rows not used were never touched (no resident memory), and
+        // shrinking would copy the table.
+        let rows = std::mem::take(&mut *self.rows.lock().expect("no panics while locked"));
         Preprocessed { of: of.into_iter().map(AtomicU32::into_inner).collect(), rows, errors }
     }
 
-    /// Stores this build's preprocessing records where they changed. Failing to only costs
-    /// preprocessing next time.
-    ///
-    /// Then lets go of what only preprocessing needed (the records, what may be reused):
-    /// later stages only preprocess a key's first permutation again, for its text.
-    pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
-        if let Some(r) = self.records.take() {
-            let new = r.new.into_inner().expect("no panics while locked");
-            let new = Records::new(new.into_iter().map(|(direct, row)| (direct, pre.rows[row as usize])).collect());
-            if new != r.old {
-                drop(r.old);
-                store.put_records(&r.key, &records::encode(&new, &self.lists(), &r.root));
-            }
-        }
+    /// Lets go of what only preprocessing needed (what may be reused): later stages only
+    /// preprocess a key's first permutation again, for its text.
+    pub fn release_reuse(&mut self) {
         self.reuse = Reuse::default();
+    }
+
+    /// Stores this build's preprocessing records where they changed. Failing to only costs
+    /// preprocessing next time. Called once the compile stage's tables are gone: the
+    /// records' bytes (84 per permutation) are the largest transient of a build.
+    pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
+        let Some(r) = self.records.take() else { return };
+        let mut new = r.new.into_inner().expect("no panics while locked");
+        // One record per direct key, sorted by it (of two, the first: the sort is stable).
+        new.sort_by_key(|(direct, _)| *direct);
+        new.dedup_by(|a, b| a.0 == b.0);
+        let rows = || new.iter().map(|(direct, row)| (direct, &pre.rows[*row as usize]));
+        let same = rows().map(|(k, row)| (*k, *row)).eq(r.old.iter().map(|(k, row)| (*k, *row)));
+        drop(r.old);
+        if !same {
+            store.put_records(&r.key, &records::encode(rows(), &self.lists(), &r.root));
+        }
     }
 
     /// Permutation `p`'s row number.
