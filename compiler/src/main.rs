@@ -12,6 +12,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
     tune_glibc_malloc();
+    tune_mimalloc();
     kiln::cli::main()
 }
 
@@ -24,5 +25,24 @@ fn tune_glibc_malloc() {
     // SAFETY: mallopt only sets a tuning parameter of glibc's allocator; no thread runs yet.
     unsafe {
         libc::mallopt(libc::M_TOP_PAD, 16 << 20);
+    }
+}
+
+/// mimalloc (v3) keeps the pages a build frees resident for a second (`purge_delay`, 1000
+/// ms), and purges them only when the thread that freed them allocates again: the tables
+/// one stage drops (the records' bytes, the compile stage's maps) stayed resident under the
+/// next stage's, and a rayon worker that freed pages and then idled kept them to the end.
+/// Purged at once, a generated 10k set peaks at about 40 MiB instead of 56, a 100k set at
+/// about 77 instead of 107-157. `MIMALLOC_PURGE_DELAY` in the environment still wins.
+fn tune_mimalloc() {
+    /// `mi_option_purge_delay` in the `mi_option_t` enum of mimalloc 2 and 3 (`mimalloc.h`).
+    const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
+    extern "C" {
+        fn mi_option_set(option: std::ffi::c_int, value: std::ffi::c_long);
+    }
+    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
+        // SAFETY: mi_option_set stores an option's value (libmimalloc-sys links mimalloc,
+        // the global allocator above); mimalloc reads it at each purge.
+        unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, 0) };
     }
 }
