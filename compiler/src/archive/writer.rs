@@ -357,12 +357,10 @@ impl StreamingWriter {
     }
 
     /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of a table
-    /// that grows by doubling (its pages past the blobs added are never touched).
+    /// that grows by doubling (its pages past the blobs added are never touched). The hash
+    /// table still grows: a table at a loose bound would be touched all over, empty or not.
     pub fn reserve_blobs(&self, blobs: usize) {
-        let mut b = lock(&self.blobs);
-        b.slots.reserve_exact(blobs);
-        let BlobTable { slots, table, .. } = &mut *b;
-        table.reserve(blobs, |&m| table_hash(&slots[m as usize].hash));
+        lock(&self.blobs).slots.reserve_exact(blobs);
     }
 
     /// Number of distinct blobs added so far.

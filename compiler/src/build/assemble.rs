@@ -36,7 +36,11 @@ struct KeyEntry {
 /// What stays of the keys produced.
 #[derive(Default)]
 struct Produced {
-    keys: HashMap<Key, KeyEntry>,
+    /// Each key produced, with what stays of it, in order of arrival: 44 bytes each, found
+    /// through `index` (4 bytes and a control byte a slot), not a map of (key, entry) slots
+    /// that are a third empty.
+    keys: Vec<(Key, KeyEntry)>,
+    index: hashbrown::HashTable<u32>,
     /// Each key's artifacts, one after another: target and blob number (the archive
     /// writer's, else an index into `hashes`).
     artifacts: Vec<(Target, u32)>,
@@ -46,7 +50,28 @@ struct Produced {
     reflection_index: HashMap<Arc<Reflection>, u32>,
 }
 
+/// A key's first 8 bytes: already uniform (a blake3).
+fn key_hash(key: &Key) -> u64 {
+    u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"))
+}
+
 impl Produced {
+    fn get(&self, key: &Key) -> Option<&KeyEntry> {
+        let keys = &self.keys;
+        self.index.find(key_hash(key), |&n| keys[n as usize].0 == *key).map(|&n| &keys[n as usize].1)
+    }
+
+    fn insert(&mut self, key: Key, entry: KeyEntry) {
+        if let Some(&n) = self.index.find(key_hash(&key), |&n| self.keys[n as usize].0 == key) {
+            self.keys[n as usize].1 = entry;
+            return;
+        }
+        let n = u32::try_from(self.keys.len()).expect("fewer than 2^32 keys");
+        self.keys.push((key, entry));
+        let keys = &self.keys;
+        self.index.insert_unique(key_hash(&key), n, |&m| key_hash(&keys[m as usize].0));
+    }
+
     fn artifacts(&self, e: &KeyEntry) -> &[(Target, u32)] {
         &self.artifacts[e.first as usize..(e.first + e.count) as usize]
     }
@@ -86,7 +111,7 @@ impl<'p> Assembler<'p> {
             w.reserve_blobs(artifacts);
         }
         let produced = Produced {
-            keys: HashMap::with_capacity(keys),
+            keys: Vec::with_capacity(keys),
             artifacts: Vec::with_capacity(artifacts),
             ..Produced::default()
         };
@@ -136,7 +161,7 @@ impl<'p> Assembler<'p> {
             }
         }
         p.artifacts.extend_from_slice(&numbers);
-        p.keys.insert(*key, KeyEntry { reflection, first, count: numbers.len() as u32 });
+        p.insert(*key, KeyEntry { reflection, first, count: numbers.len() as u32 });
     }
 
     /// Writes an artifact to the archive's spool and the loose files; its blob number in the
@@ -232,13 +257,13 @@ impl<'p> Assembler<'p> {
                 n += 1;
                 names += plan.name(i).len();
                 values += plan.values(i).len();
-                artifacts += pre.key(i).and_then(|k| produced.keys.get(k)).map_or(0, |e| e.count as usize);
+                artifacts += pre.key(i).and_then(|k| produced.get(k)).map_or(0, |e| e.count as usize);
             }
             w.reserve(n, names, values, artifacts);
         }
         for i in 0..plan.len() {
             let Some(key) = pre.key(i) else { continue };
-            let entry = &produced.keys[key];
+            let entry = produced.get(key).expect("every kept permutation's key was produced");
             let artifacts = produced.artifacts(entry);
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
