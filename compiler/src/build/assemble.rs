@@ -5,7 +5,7 @@
 //! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
 //! reflection's number and its blobs' numbers in the writer (12 bytes and 8 per artifact).
 //! [`Assembler::finish`] then adds the permutations, whose records are the manifest: with
-//! the writer's 48 bytes per blob, what grows with the set.
+//! the writer's 32 bytes per blob, what grows with the set.
 //! The writer orders everything by content and name, so the bytes depend only on the set
 //! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
 //! an archive nor loose files (a check or a shard).
@@ -18,9 +18,7 @@ use super::plan::{Keys, Plan};
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
-use crate::archive::{
-    self, BlobKey, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target,
-};
+use crate::archive::{self, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target};
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
@@ -44,7 +42,8 @@ struct Produced {
     /// Each key's artifacts, one after another: target and blob number (the archive
     /// writer's, else an index into `hashes`).
     artifacts: Vec<(Target, u32)>,
-    /// Each blob's blake3 when no archive is written (loose files only).
+    /// Each artifact's blake3 (`artifacts[k]`'s is `hashes[k]`), with loose files only: what
+    /// `--emit-dir` names them by.
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
     reflection_index: HashMap<Arc<Reflection>, u32>,
@@ -153,10 +152,12 @@ impl<'p> Assembler<'p> {
             }
         };
         let first = p.artifacts.len() as u32;
-        if self.writer.is_none() {
-            // No archive numbers the blobs: each artifact's hash, numbered here.
+        if self.plan.options.emit_dir.is_some() {
+            // Without an archive, that number is the artifact's hash's.
             for (a, hash) in numbers.iter_mut().zip(hashes) {
-                a.1 = p.hashes.len() as u32;
+                if self.writer.is_none() {
+                    a.1 = p.hashes.len() as u32;
+                }
                 p.hashes.push(*hash);
             }
         }
@@ -241,10 +242,6 @@ impl<'p> Assembler<'p> {
         let fingerprint = self.fingerprint(&pre);
         let produced = self.produced.into_inner().expect("no panics while locked");
         let writer = self.writer;
-        let hash_of = |n: u32| match &writer {
-            Some(w) => w.blob_key(n).expect("numbered by the writer").hash(),
-            None => produced.hashes[n as usize],
-        };
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
@@ -268,15 +265,17 @@ impl<'p> Assembler<'p> {
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
             if options.emit_dir.is_some() {
+                // With loose files, each artifact's hash is kept beside it.
+                let hashes = &produced.hashes[entry.first as usize..][..artifacts.len()];
                 let files = index.entry(name.clone()).or_default();
-                for (t, n) in artifacts {
-                    files.insert(t.name(), emitted[&hash_of(*n)].as_str());
+                for ((t, _), hash) in artifacts.iter().zip(hashes) {
+                    files.insert(t.name(), emitted[hash].as_str());
+                }
+                if writer.is_none() {
+                    distinct.extend(hashes);
                 }
             }
             written.permutation_artifacts += artifacts.len();
-            if writer.is_none() {
-                distinct.extend(artifacts.iter().map(|a| hash_of(a.1)));
-            }
             let Some(w) = &writer else { continue };
             let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
                 name: shader_of.name.clone(),
@@ -289,12 +288,12 @@ impl<'p> Assembler<'p> {
                     .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
                     .collect(),
             });
-            w.add_permutation(NewPermutation {
+            w.add_permutation_numbered(NewPermutation {
                 name,
                 shader,
                 values: plan.values(i).to_vec(),
                 reflection: &produced.reflections[entry.reflection as usize],
-                artifacts: artifacts.iter().map(|(t, n)| (*t, BlobKey::from_hash(hash_of(*n)))).collect(),
+                artifacts: artifacts.to_vec(),
             })
             .map_err(archive_error)?;
         }
