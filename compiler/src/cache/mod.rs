@@ -202,7 +202,8 @@ struct Location {
     len: u64,
 }
 
-/// Every pack's index, read once per [`Cache`] (and extended by its own writes).
+/// Every pack's index, read once per [`Cache`] (and extended by its own writes, unless
+/// [`Cache::without_indexing_puts`]: then by its remote fills only).
 #[derive(Debug, Default)]
 struct Index {
     /// Copies of each key, newest pack first.
