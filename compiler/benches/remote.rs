@@ -23,10 +23,11 @@
 //! these 2 cores are shared, CPU time is the steadier figure. Cold builds are the median of
 //! `KILN_BENCH_ROUNDS` (3) runs, the fresh-local builds of twice as many less one.
 
-use std::net::{TcpListener, TcpStream};
+#[path = "support/servers.rs"]
+mod servers;
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use kiln::build::{self, CacheDir, RemoteCache};
 
@@ -79,101 +80,6 @@ fn generate(root: &Path, dir: &Path, target: usize) -> PathBuf {
 fn count(config: &Path) -> usize {
     let c = kiln::permute::load(config).unwrap_or_else(|e| panic!("{}", e.render()));
     c.permutations_where(|_, _| true).filter(|p| p.is_kept()).count()
-}
-
-/// nginx is in /usr/sbin, which a user's PATH may lack.
-fn nginx() -> &'static str {
-    if Path::new("/usr/sbin/nginx").exists() {
-        "/usr/sbin/nginx"
-    } else {
-        "nginx"
-    }
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
-
-/// A server process, killed on drop.
-struct Server {
-    child: Child,
-    url: String,
-    _dir: tempfile::TempDir,
-}
-
-impl Drop for Server {
-    /// SIGTERM first: nginx's master then stops its workers (a SIGKILL would leave them
-    /// running, holding the port and this process's output); SIGKILL after 5 s.
-    fn drop(&mut self) {
-        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
-        let t = Instant::now();
-        while matches!(self.child.try_wait(), Ok(None)) && t.elapsed() < Duration::from_secs(5) {
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn installed(binary: &str, arg: &str) -> bool {
-    Command::new(binary).arg(arg).output().map(|o| o.status.success()).unwrap_or(false)
-}
-
-fn start(kind: &str) -> Option<Server> {
-    let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let (child, url) = match kind {
-        "redis" => {
-            if !installed("redis-server", "--version") {
-                return None;
-            }
-            let child = Command::new("redis-server")
-                .args(["--port", &port.to_string(), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"])
-                .arg("--dir")
-                .arg(dir.path())
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-                .unwrap();
-            (child, format!("redis://127.0.0.1:{port}"))
-        }
-        _ => {
-            if !installed(nginx(), "-v") {
-                return None;
-            }
-            let p = dir.path();
-            std::fs::create_dir_all(p.join("data/kiln")).unwrap();
-            std::fs::create_dir_all(p.join("logs")).unwrap();
-            let user = if unsafe { libc::geteuid() } == 0 { "user root;" } else { "" };
-            let conf = format!(
-                "{user} daemon off; worker_processes 2; pid {p}/nginx.pid; error_log {p}/error.log;
-                 events {{ worker_connections 256; }}
-                 http {{ access_log off; client_body_temp_path {p}/body; client_max_body_size 0;
-                   server {{ listen 127.0.0.1:{port}; root {p}/data;
-                     location /kiln/ {{ dav_methods PUT; create_full_put_path on; }} }} }}",
-                p = p.display()
-            );
-            std::fs::write(p.join("nginx.conf"), conf).unwrap();
-            let child = Command::new(nginx())
-                .arg("-p")
-                .arg(p)
-                .arg("-c")
-                .arg(p.join("nginx.conf"))
-                .arg("-e")
-                .arg(p.join("error.log"))
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-                .unwrap();
-            (child, format!("http://127.0.0.1:{port}/kiln"))
-        }
-    };
-    let t = Instant::now();
-    while TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(t.elapsed() < Duration::from_secs(20), "{kind} did not start");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    Some(Server { child, url, _dir: dir })
 }
 
 fn cpu_seconds() -> f64 {
@@ -244,11 +150,13 @@ fn main() {
         stats.unique_sources, stats.compiled
     );
     let mut any = false;
-    for kind in ["redis", "http"] {
-        let Some(server) = start(kind) else {
-            let package = if kind == "redis" { "redis-server" } else { "nginx-light" };
-            println!("{kind}: not installed (Debian package {package}), skipped");
-            continue;
+    for kind in servers::KINDS {
+        let server = match servers::start(kind) {
+            Ok(s) => s,
+            Err(why) => {
+                println!("{kind}: {why}; skipped");
+                continue;
+            }
         };
         any = true;
         let remote = || RemoteCache::Url(server.url.clone());

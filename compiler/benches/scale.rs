@@ -10,7 +10,13 @@
 //! 2. four shards (`--shard I/4`, one after the other, each as if on its own machine)
 //!    sharing one cache, then a plain build assembling from it, against one process: the
 //!    assembly's compile count (0), whether the archives are byte-identical, and the
-//!    scaling efficiency `T(one process) / (4 x (slowest shard + assembly))`.
+//!    scaling efficiency `T(one process) / (4 x (slowest shard + assembly))`;
+//! 3. on the same set, for each remote cache backend installed (`redis-server`, nginx with
+//!    WebDAV; started here on a free loopback port, as the `remote` bench does): a cold
+//!    build that fills an empty remote, then a build with a fresh local cache and that warm
+//!    remote (another machine of the team): its hit rate (goal at least 99%) and its time
+//!    as a share of the cold build's (goal at most 5%), wall and CPU. A backend that is not
+//!    installed is skipped with the reason.
 //!
 //! Environment: `KILN_SCALE_SIZES=1000,10000` replaces the sizes (`KILN_SCALE_QUICK=1`
 //! skips the 100k point); `KILN_SCALE_SHARD_SIZE` (default 10000) the sharded set;
@@ -19,14 +25,17 @@
 
 #[path = "../tests/support/scale_set.rs"]
 mod scale_set;
+#[path = "support/servers.rs"]
+mod servers;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-/// One `kiln build` child: wall time, peak RSS (bytes), its stats.
+/// One `kiln build` child: wall time, CPU time (user + system), peak RSS (bytes), its stats.
 struct Run {
     wall: Duration,
+    cpu: Duration,
     max_rss: u64,
     stats: serde_json::Value,
 }
@@ -45,6 +54,8 @@ fn kiln(args: &[&str], stats: &Path) -> Run {
         .arg(stats)
         .env("CI", "1")
         .env_remove("KILN_SHARD")
+        .env_remove("KILN_REMOTE_CACHE")
+        .env_remove("KILN_REMOTE_CACHE_MODE")
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("kiln starts");
@@ -63,7 +74,9 @@ fn kiln(args: &[&str], stats: &Path) -> Run {
     }
     assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "kiln {args:?} failed:\n{err}");
     let stats = serde_json::from_slice(&std::fs::read(stats).expect("stats written")).expect("stats are JSON");
-    Run { wall, max_rss: usage.ru_maxrss as u64 * 1024, stats }
+    let time = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
+    let cpu = time(usage.ru_utime) + time(usage.ru_stime);
+    Run { wall, cpu, max_rss: usage.ru_maxrss as u64 * 1024, stats }
 }
 
 fn mib(bytes: u64) -> f64 {
@@ -217,4 +230,51 @@ fn main() {
         "scaling efficiency on {shards} machines: {:.0}% (one process / ({shards} x (slowest shard + assembly)))",
         100.0 * one.wall.as_secs_f64() / (shards as f64 * sharded.as_secs_f64())
     );
+
+    // A fresh local cache with a warm remote, against the cold build above.
+    for kind in servers::KINDS {
+        let server = match servers::start(kind) {
+            Ok(s) => s,
+            Err(why) => {
+                println!("{kind}: {why}; the remote cache line is skipped");
+                continue;
+            }
+        };
+        let build = |cache: &str, stats: &str| {
+            kiln(
+                &[
+                    "build",
+                    "--config",
+                    config.to_str().unwrap(),
+                    "-o",
+                    dir.join(format!("{cache}.kpak")).to_str().unwrap(),
+                    "--cache-dir",
+                    dir.join(cache).to_str().unwrap(),
+                    "--remote-cache",
+                    &server.url,
+                    "-j",
+                    &jobs,
+                ],
+                &dir.join(stats),
+            )
+        };
+        let fill = build(&format!("cache-{kind}-fill"), &format!("{kind}-fill.json"));
+        let warm = build(&format!("cache-{kind}-fresh"), &format!("{kind}-fresh.json"));
+        let identical =
+            std::fs::read(&one_out).ok() == std::fs::read(dir.join(format!("cache-{kind}-fresh.kpak"))).ok();
+        println!(
+            "{kind:5} remote: cold + writes {:.1} s ({} writes); fresh local + warm remote {:.2} s: hit rate {:.1}% \
+             (goal >= 99%), {:.1}% of cold wall, {:.1}% of cold CPU (goal <= 5%), {} compiled, peak {:.1} MiB; \
+             archive byte-identical: {}",
+            fill.wall.as_secs_f64(),
+            fill.count("remote_writes"),
+            warm.wall.as_secs_f64(),
+            100.0 * warm.count("remote_hits") as f64 / warm.count("unique_sources").max(1) as f64,
+            100.0 * warm.wall.as_secs_f64() / one.wall.as_secs_f64(),
+            100.0 * warm.cpu.as_secs_f64() / one.cpu.as_secs_f64(),
+            warm.count("compiled"),
+            mib(warm.max_rss),
+            if identical { "yes" } else { "NO" }
+        );
+    }
 }

@@ -224,6 +224,21 @@ fn bytes_depend_on_the_set_not_on_order_or_threads() {
         w.add_permutation(PermutationRecord { name: name.clone(), shader: s, values, reflection: r, artifacts });
     }
     assert!(w.to_bytes().unwrap() == a, "ArchiveWriter and StreamingWriter disagree");
+    // Blobs named by the numbers the writer gave, as a build names them: the same bytes.
+    let w = StreamingWriter::new(&dir.path().join("c.kpak")).unwrap();
+    w.set_naga_version("30.0.1");
+    let (sh, refl) = (shader(), reflection());
+    for &i in &shuffled {
+        let (name, arts) = &perms[i];
+        let artifacts =
+            arts.iter().map(|(t, bytes)| (*t, w.add_blob_numbered(bytes, blake3::hash(bytes)).unwrap())).collect();
+        let values = vec![i as i64, (i % 2) as i64];
+        let p = NewPermutation { name: name.clone(), shader: &sh, values, reflection: &refl, artifacts };
+        w.add_permutation_numbered(p).unwrap();
+    }
+    w.finish().unwrap();
+    assert!(std::fs::read(dir.path().join("c.kpak")).unwrap() == a, "blobs by number gave other bytes");
+    std::fs::remove_file(dir.path().join("c.kpak")).unwrap();
     let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(leftovers.len(), 2, "no spool or temporary file left behind: {leftovers:?}");
 }
@@ -250,6 +265,19 @@ fn writer_rejects_inconsistent_input() {
     w.add_permutation(p).unwrap();
     let msg = w.finish().unwrap_err().to_string();
     assert!(msg.contains("was added twice"), "{msg}");
+    // A blob number the writer never gave.
+    let w = StreamingWriter::new(&dir.path().join("x.kpak")).unwrap();
+    let n = w.add_blob_numbered(b"one", blake3::hash(b"one")).unwrap();
+    let p = NewPermutation {
+        name: "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".into(),
+        shader: &sh,
+        values: vec![0, 0],
+        reflection: &refl,
+        artifacts: vec![(Target::Wgsl, n + 1)],
+    };
+    let msg = w.add_permutation_numbered(p).unwrap_err().to_string();
+    assert!(msg.contains("names a wgsl blob 1 of no writer"), "{msg}");
+    drop(w);
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "nothing written, nothing left");
 }
 

@@ -48,9 +48,11 @@ impl BlobKey {
     }
 }
 
-/// A permutation given to [`StreamingWriter::add_permutation`].
+/// A permutation given to [`StreamingWriter::add_permutation`] (its artifacts' blobs named
+/// by [`BlobKey`]), or to [`StreamingWriter::add_permutation_numbered`] (by the numbers
+/// [`StreamingWriter::add_blob_numbered`] gave).
 #[derive(Clone, Debug)]
-pub struct NewPermutation<'a> {
+pub struct NewPermutation<'a, B = BlobKey> {
     /// Canonical name, `Shader@level{DIM=value,...}`; unique in the archive.
     pub name: String,
     /// Its (shader, level) record; every permutation of a pair must give an equal record.
@@ -59,7 +61,7 @@ pub struct NewPermutation<'a> {
     pub values: Vec<i64>,
     pub reflection: &'a Reflection,
     /// At most one blob per target, each added with [`StreamingWriter::add_blob`].
-    pub artifacts: Vec<(Target, BlobKey)>,
+    pub artifacts: Vec<(Target, B)>,
 }
 
 /// What [`StreamingWriter::finish`] wrote.
@@ -107,10 +109,21 @@ struct Entries {
     artifacts: Vec<(Target, u32)>,
 }
 
+/// A blob's identity in a writer: the first 16 bytes of its blake3 (128 bits, as the
+/// cache's pack names; a collision between artifacts is not a practical concern). Its whole
+/// blake3, which the archive stores, is computed again from its bytes when they are
+/// compressed: 16 bytes less per blob to hold through a build.
+type Ident = [u8; 16];
+
+fn ident(hash: &blake3::Hash) -> Ident {
+    hash.as_bytes()[..16].try_into().expect("16 of 32 bytes")
+}
+
 /// A blob a writer knows: added (its bytes spooled), or only named by a permutation so far.
+/// 32 bytes.
 #[derive(Clone, Copy)]
 struct BlobSlot {
-    hash: blake3::Hash,
+    ident: Ident,
     offset: u64,
     /// [`NOT_ADDED`] while only named.
     len: u64,
@@ -118,8 +131,8 @@ struct BlobSlot {
 
 const NOT_ADDED: u64 = u64::MAX;
 
-/// The blobs of a writer, numbered by first sight and found by hash: 56 bytes per blob and a
-/// few for the table (the hash is stored once, in its slot).
+/// The blobs of a writer, numbered by first sight and found by identity: 32 bytes per blob
+/// and a few for the table (the identity is stored once, in its slot).
 #[derive(Clone, Default)]
 struct BlobTable {
     slots: Vec<BlobSlot>,
@@ -130,23 +143,32 @@ struct BlobTable {
     spooled: u64,
 }
 
-/// A blake3 hash's first 8 bytes: already uniform.
-fn table_hash(h: &blake3::Hash) -> u64 {
-    u64::from_le_bytes(h.as_bytes()[..8].try_into().expect("8 of 32 bytes"))
+/// An identity's first 8 bytes: already uniform.
+fn table_hash(id: &Ident) -> u64 {
+    u64::from_le_bytes(id[..8].try_into().expect("8 of 16 bytes"))
 }
 
 impl BlobTable {
     /// The number of the blob with `hash`, a new one if it is not known yet.
     fn number(&mut self, hash: &blake3::Hash) -> u32 {
+        let id = ident(hash);
         let slots = &self.slots;
-        if let Some(&n) = self.table.find(table_hash(hash), |&n| slots[n as usize].hash == *hash) {
+        if let Some(&n) = self.table.find(table_hash(&id), |&n| slots[n as usize].ident == id) {
             return n;
         }
         let n = u32::try_from(self.slots.len()).expect("fewer than 2^32 blobs");
-        self.slots.push(BlobSlot { hash: *hash, offset: 0, len: NOT_ADDED });
+        self.slots.push(BlobSlot { ident: id, offset: 0, len: NOT_ADDED });
         let slots = &self.slots;
-        self.table.insert_unique(table_hash(hash), n, |&m| table_hash(&slots[m as usize].hash));
+        self.table.insert_unique(table_hash(&id), n, |&m| table_hash(&slots[m as usize].ident));
         n
+    }
+
+    /// `artifacts` with blob numbers checked to be this table's.
+    fn check_numbers(&self, name: &str, artifacts: &[(Target, u32)]) -> Result<(), ArchiveError> {
+        match artifacts.iter().find(|(_, n)| *n as usize >= self.slots.len()) {
+            Some((t, n)) => Err(ArchiveError::Input(format!("permutation `{name}` names a {t} blob {n} of no writer"))),
+            None => Ok(()),
+        }
     }
 
     /// Adds a blob of `len` bytes: its number, and where its bytes go in the spool (`None`
@@ -167,8 +189,8 @@ impl BlobTable {
 }
 
 impl Entries {
-    /// Adds `p`, its artifacts numbered by `number`.
-    fn add(&mut self, p: NewPermutation<'_>, mut number: impl FnMut(&blake3::Hash) -> u32) -> Result<(), ArchiveError> {
+    /// Adds `p`, its artifacts' blobs numbered (in the writer's [`BlobTable`]).
+    fn add(&mut self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
         let key = (p.shader.name.clone(), p.shader.level.clone());
         let shader = match self.shader_index.get(&key) {
             Some(&i) if self.shaders[i as usize] == *p.shader => i,
@@ -222,7 +244,7 @@ impl Entries {
         };
         self.names.push_str(&p.name);
         self.values.extend_from_slice(&p.values);
-        self.artifacts.extend(artifacts.iter().map(|(t, k)| (*t, number(&k.0))));
+        self.artifacts.extend_from_slice(artifacts);
         self.permutations.push(pending);
         Ok(())
     }
@@ -334,15 +356,20 @@ impl StreamingWriter {
         Ok(n)
     }
 
-    /// The key of the blob numbered `number` by [`StreamingWriter::add_blob_numbered`].
-    pub fn blob_key(&self, number: u32) -> Option<BlobKey> {
-        lock(&self.blobs).slots.get(number as usize).map(|s| BlobKey(s.hash))
-    }
-
     /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
-        let mut entries = lock(&self.entries);
-        entries.add(p, |h| lock(&self.blobs).number(h))
+        let p = {
+            let mut blobs = lock(&self.blobs);
+            numbered(p, |k| blobs.number(&k.0))
+        };
+        lock(&self.entries).add(p)
+    }
+
+    /// [`StreamingWriter::add_permutation`] with its blobs named by the numbers
+    /// [`StreamingWriter::add_blob_numbered`] gave (a number it did not give is an error).
+    pub fn add_permutation_numbered(&self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
+        lock(&self.blobs).check_numbers(&p.name, &p.artifacts)?;
+        lock(&self.entries).add(p)
     }
 
     /// Room for `permutations` more permutations with `name_bytes` bytes of names, `values`
@@ -354,6 +381,13 @@ impl StreamingWriter {
         e.names.reserve_exact(name_bytes);
         e.values.reserve_exact(values);
         e.artifacts.reserve_exact(artifacts);
+    }
+
+    /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of a table
+    /// that grows by doubling (its pages past the blobs added are never touched). The hash
+    /// table still grows: a table at a loose bound would be touched all over, empty or not.
+    pub fn reserve_blobs(&self, blobs: usize) {
+        lock(&self.blobs).slots.reserve_exact(blobs);
     }
 
     /// Number of distinct blobs added so far.
@@ -391,6 +425,12 @@ impl StreamingWriter {
         .map_err(err)?;
         Ok(summary)
     }
+}
+
+/// `p` with its artifacts' keys turned into numbers by `number`.
+fn numbered<'a>(p: NewPermutation<'a>, mut number: impl FnMut(&BlobKey) -> u32) -> NewPermutation<'a, u32> {
+    let artifacts = p.artifacts.iter().map(|(t, k)| (*t, number(k))).collect();
+    NewPermutation { name: p.name, shader: p.shader, values: p.values, reflection: p.reflection, artifacts }
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -468,18 +508,14 @@ impl ArchiveWriter {
     pub fn add_permutation(&mut self, record: PermutationRecord) {
         let shader = self.shaders.get(record.shader as usize);
         let reflection = self.reflections.get(record.reflection as usize);
-        let artifacts: Option<Vec<(Target, BlobKey)>> = record
-            .artifacts
-            .iter()
-            .map(|(t, id)| self.blobs.slots.get(id.0 as usize).map(|b| (*t, BlobKey(b.hash))))
-            .collect();
-        let (Some(shader), Some(reflection), Some(artifacts)) = (shader, reflection, artifacts) else {
+        let artifacts: Vec<(Target, u32)> = record.artifacts.iter().map(|(t, id)| (*t, id.0)).collect();
+        let known = self.blobs.check_numbers(&record.name, &artifacts).is_ok();
+        let (Some(shader), Some(reflection), true) = (shader, reflection, known) else {
             self.error.get_or_insert_with(|| format!("permutation `{}` names a handle of no writer", record.name));
             return;
         };
         let p = NewPermutation { name: record.name, shader, values: record.values, reflection, artifacts };
-        let blobs = &mut self.blobs;
-        if let Err(e) = self.entries.add(p, |h| blobs.number(h)) {
+        if let Err(e) = self.entries.add(p) {
             self.error.get_or_insert_with(|| e.to_string());
         }
     }
@@ -776,15 +812,22 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
         let stored = par_map(
             batch,
             || (),
-            |_, b| -> std::io::Result<(u8, u8, Vec<u8>)> {
+            |_, b| -> std::io::Result<(u8, u8, Vec<u8>, blake3::Hash)> {
                 let s = slot(b);
                 let raw = spool.read(s.offset, s.len)?;
+                // The whole blake3, which the table stores, from the bytes; they must still
+                // be the ones added.
+                let hash = blake3::hash(&raw);
+                if ident(&hash) != s.ident {
+                    return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
+                }
                 let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
-                Ok(compress_blob(raw, dict))
+                let (codec, dictionary, bytes) = compress_blob(raw, dict);
+                Ok((codec, dictionary, bytes, hash))
             },
         );
         for (b, s) in batch.iter().zip(stored) {
-            let (codec, dictionary, bytes) = s?;
+            let (codec, dictionary, bytes, hash) = s?;
             out.write_all(&bytes)?;
             let s = slot(b);
             let entry = Entry {
@@ -793,7 +836,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
                 raw_len: s.len,
                 codec,
                 dictionary,
-                hash: *s.hash.as_bytes(),
+                hash: *hash.as_bytes(),
             };
             table.push(&entry.encode())?;
             offset += bytes.len() as u64;

@@ -5,12 +5,13 @@
 //! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
 //! reflection's number and its blobs' numbers in the writer (12 bytes and 8 per artifact).
 //! [`Assembler::finish`] then adds the permutations, whose records are the manifest: with
-//! the writer's 48 bytes per blob, what grows with the set.
+//! the writer's 32 bytes per blob, what grows with the set.
 //! The writer orders everything by content and name, so the bytes depend only on the set
 //! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
 //! an archive nor loose files (a check or a shard).
 
 use std::collections::{BTreeMap, HashMap, HashSet};
+use std::io::{Read, Seek, Write};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
@@ -18,9 +19,7 @@ use super::plan::{Keys, Plan};
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
-use crate::archive::{
-    self, BlobKey, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target,
-};
+use crate::archive::{self, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target};
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
@@ -33,20 +32,140 @@ struct KeyEntry {
     count: u32,
 }
 
-/// What stays of the keys produced.
-#[derive(Default)]
-struct Produced {
-    keys: HashMap<Key, KeyEntry>,
-    /// Each key's artifacts, one after another: target and blob number (the archive
-    /// writer's, else an index into `hashes`).
-    artifacts: Vec<(Target, u32)>,
-    /// Each blob's blake3 when no archive is written (loose files only).
+/// What stays of the keys produced, as they are produced: each key's record (its key,
+/// reflection number, and each artifact's target and blob number: 40 bytes and 5 per
+/// artifact) goes to an unlinked temporary file, read back by [`Assembler::finish`] once the
+/// stages before it have let go of their tables (at 100k permutations, about 6 MB less at
+/// the build's peak). In memory where no temporary file can be made.
+struct Log {
+    records: Records,
+    /// Records written.
+    keys: usize,
+    /// Artifacts in them.
+    artifacts: usize,
+    /// Each artifact's blake3 (the `k`th artifact written's is `hashes[k]`), with loose files
+    /// only: what `--emit-dir` names them by.
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
     reflection_index: HashMap<Arc<Reflection>, u32>,
 }
 
+/// Where the key records wait.
+enum Records {
+    File(std::io::BufWriter<std::fs::File>),
+    Memory(Vec<u8>),
+}
+
+impl Log {
+    /// A log whose records go to a temporary file if `spill` (and one can be made).
+    fn new(spill: bool) -> Log {
+        let records = match spill.then(tempfile::tempfile) {
+            Some(Ok(f)) => Records::File(std::io::BufWriter::new(f)),
+            _ => Records::Memory(Vec::new()),
+        };
+        Log {
+            records,
+            keys: 0,
+            artifacts: 0,
+            hashes: Vec::new(),
+            reflections: Vec::new(),
+            reflection_index: HashMap::new(),
+        }
+    }
+
+    /// Records `key`'s reflection number and artifacts.
+    fn write(&mut self, key: &Key, reflection: u32, artifacts: &[(Target, u32)]) -> std::io::Result<()> {
+        let mut record = Vec::with_capacity(40 + 5 * artifacts.len());
+        record.extend_from_slice(&key.0);
+        record.extend_from_slice(&reflection.to_le_bytes());
+        record.extend_from_slice(&(artifacts.len() as u32).to_le_bytes());
+        for (t, n) in artifacts {
+            record.push(Target::ALL.iter().position(|a| a == t).expect("a target") as u8);
+            record.extend_from_slice(&n.to_le_bytes());
+        }
+        match &mut self.records {
+            Records::File(f) => f.write_all(&record)?,
+            Records::Memory(v) => v.extend_from_slice(&record),
+        }
+        self.keys += 1;
+        self.artifacts += artifacts.len();
+        Ok(())
+    }
+
+    /// The records read back into a table.
+    fn load(self) -> std::io::Result<Produced> {
+        let mut produced = Produced {
+            keys: Vec::with_capacity(self.keys),
+            index: hashbrown::HashTable::with_capacity(self.keys),
+            artifacts: Vec::with_capacity(self.artifacts),
+            hashes: self.hashes,
+            reflections: self.reflections,
+        };
+        let mut input: Box<dyn Read> = match self.records {
+            Records::File(f) => {
+                let mut f = f.into_inner().map_err(|e| e.into_error())?;
+                f.seek(std::io::SeekFrom::Start(0))?;
+                Box::new(std::io::BufReader::new(f))
+            }
+            Records::Memory(v) => Box::new(std::io::Cursor::new(v)),
+        };
+        let damaged = || std::io::Error::other("a temporary file of the build was changed");
+        for _ in 0..self.keys {
+            let mut head = [0u8; 40];
+            input.read_exact(&mut head)?;
+            let key = Key(head[..32].try_into().expect("32 bytes"));
+            let reflection = u32::from_le_bytes(head[32..36].try_into().expect("4 bytes"));
+            let count = u32::from_le_bytes(head[36..40].try_into().expect("4 bytes"));
+            let first = produced.artifacts.len() as u32;
+            for _ in 0..count {
+                let mut a = [0u8; 5];
+                input.read_exact(&mut a)?;
+                let target = *Target::ALL.get(a[0] as usize).ok_or_else(damaged)?;
+                produced.artifacts.push((target, u32::from_le_bytes(a[1..].try_into().expect("4 bytes"))));
+            }
+            produced.insert(key, KeyEntry { reflection, first, count });
+        }
+        Ok(produced)
+    }
+}
+
+/// What stays of the keys produced, read back for the manifest.
+struct Produced {
+    /// Each key produced, with what stays of it, in order of arrival: 44 bytes each, found
+    /// through `index` (4 bytes and a control byte a slot), not a map of (key, entry) slots
+    /// that are a third empty.
+    keys: Vec<(Key, KeyEntry)>,
+    index: hashbrown::HashTable<u32>,
+    /// Each key's artifacts, one after another: target and blob number (the archive
+    /// writer's, else an index into `hashes`).
+    artifacts: Vec<(Target, u32)>,
+    /// [`Log::hashes`].
+    hashes: Vec<blake3::Hash>,
+    reflections: Vec<Arc<Reflection>>,
+}
+
+/// A key's first 8 bytes: already uniform (a blake3).
+fn key_hash(key: &Key) -> u64 {
+    u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"))
+}
+
 impl Produced {
+    fn get(&self, key: &Key) -> Option<&KeyEntry> {
+        let keys = &self.keys;
+        self.index.find(key_hash(key), |&n| keys[n as usize].0 == *key).map(|&n| &keys[n as usize].1)
+    }
+
+    fn insert(&mut self, key: Key, entry: KeyEntry) {
+        if let Some(&n) = self.index.find(key_hash(&key), |&n| self.keys[n as usize].0 == key) {
+            self.keys[n as usize].1 = entry;
+            return;
+        }
+        let n = u32::try_from(self.keys.len()).expect("fewer than 2^32 keys");
+        self.keys.push((key, entry));
+        let keys = &self.keys;
+        self.index.insert_unique(key_hash(&key), n, |&m| key_hash(&keys[m as usize].0));
+    }
+
     fn artifacts(&self, e: &KeyEntry) -> &[(Target, u32)] {
         &self.artifacts[e.first as usize..(e.first + e.count) as usize]
     }
@@ -56,7 +175,7 @@ pub(super) struct Assembler<'p> {
     plan: &'p Plan<'p>,
     /// The archive's writer, with `-o`.
     writer: Option<StreamingWriter>,
-    produced: Mutex<Produced>,
+    produced: Mutex<Log>,
     /// Loose files written (`--emit-dir`): blake3 → file name.
     emitted: Mutex<HashMap<blake3::Hash, String>>,
     /// The first artifact that could not be written.
@@ -78,8 +197,16 @@ impl<'p> Assembler<'p> {
         };
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
+            // The blob table at its bound once (see [`Plan::max_targets`]).
+            w.reserve_blobs(plan.len() * plan.max_targets());
         }
-        Ok(Assembler { plan, writer, produced: Mutex::default(), emitted: Mutex::default(), error: Mutex::default() })
+        Ok(Assembler {
+            plan,
+            writer,
+            produced: Mutex::new(Log::new(plan.assembles())),
+            emitted: Mutex::default(),
+            error: Mutex::default(),
+        })
     }
 
     /// A key's artifacts, with the blake3 of each: written now, then only their blob
@@ -110,16 +237,20 @@ impl<'p> Assembler<'p> {
                 n
             }
         };
-        let first = p.artifacts.len() as u32;
-        if self.writer.is_none() {
-            // No archive numbers the blobs: each artifact's hash, numbered here.
+        if self.plan.options.emit_dir.is_some() {
+            // Without an archive, that number is the artifact's hash's.
             for (a, hash) in numbers.iter_mut().zip(hashes) {
-                a.1 = p.hashes.len() as u32;
+                if self.writer.is_none() {
+                    a.1 = p.hashes.len() as u32;
+                }
                 p.hashes.push(*hash);
             }
         }
-        p.artifacts.extend_from_slice(&numbers);
-        p.keys.insert(*key, KeyEntry { reflection, first, count: numbers.len() as u32 });
+        if let Err(e) = p.write(key, reflection, &numbers) {
+            drop(p);
+            let e = format!("error: cannot write a temporary file of the build: {e}");
+            self.error.lock().expect("no panics while locked").get_or_insert(e);
+        }
     }
 
     /// Writes an artifact to the archive's spool and the loose files; its blob number in the
@@ -197,12 +328,13 @@ impl<'p> Assembler<'p> {
         }
         let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
         let fingerprint = self.fingerprint(&pre);
-        let produced = self.produced.into_inner().expect("no panics while locked");
+        let produced = self
+            .produced
+            .into_inner()
+            .expect("no panics while locked")
+            .load()
+            .map_err(|e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}")))?;
         let writer = self.writer;
-        let hash_of = |n: u32| match &writer {
-            Some(w) => w.blob_key(n).expect("numbered by the writer").hash(),
-            None => produced.hashes[n as usize],
-        };
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
@@ -215,26 +347,28 @@ impl<'p> Assembler<'p> {
                 n += 1;
                 names += plan.name(i).len();
                 values += plan.values(i).len();
-                artifacts += pre.key(i).and_then(|k| produced.keys.get(k)).map_or(0, |e| e.count as usize);
+                artifacts += pre.key(i).and_then(|k| produced.get(k)).map_or(0, |e| e.count as usize);
             }
             w.reserve(n, names, values, artifacts);
         }
         for i in 0..plan.len() {
             let Some(key) = pre.key(i) else { continue };
-            let entry = &produced.keys[key];
+            let entry = produced.get(key).expect("every kept permutation's key was produced");
             let artifacts = produced.artifacts(entry);
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
             if options.emit_dir.is_some() {
+                // With loose files, each artifact's hash is kept beside it.
+                let hashes = &produced.hashes[entry.first as usize..][..artifacts.len()];
                 let files = index.entry(name.clone()).or_default();
-                for (t, n) in artifacts {
-                    files.insert(t.name(), emitted[&hash_of(*n)].as_str());
+                for ((t, _), hash) in artifacts.iter().zip(hashes) {
+                    files.insert(t.name(), emitted[hash].as_str());
+                }
+                if writer.is_none() {
+                    distinct.extend(hashes);
                 }
             }
             written.permutation_artifacts += artifacts.len();
-            if writer.is_none() {
-                distinct.extend(artifacts.iter().map(|a| hash_of(a.1)));
-            }
             let Some(w) = &writer else { continue };
             let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
                 name: shader_of.name.clone(),
@@ -247,12 +381,12 @@ impl<'p> Assembler<'p> {
                     .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
                     .collect(),
             });
-            w.add_permutation(NewPermutation {
+            w.add_permutation_numbered(NewPermutation {
                 name,
                 shader,
                 values: plan.values(i).to_vec(),
                 reflection: &produced.reflections[entry.reflection as usize],
-                artifacts: artifacts.iter().map(|(t, n)| (*t, BlobKey::from_hash(hash_of(*n)))).collect(),
+                artifacts: artifacts.to_vec(),
             })
             .map_err(archive_error)?;
         }

@@ -165,7 +165,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output));
-    preprocessor.save_records(store, &pre);
+    preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t);
     trace_memory("preprocess");
     outputs::check_aliases(
@@ -178,11 +178,13 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
 
     if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
         progress.finish();
+        preprocessor.save_records(store, &pre);
         return report.up_to_date(keys.len(), counts);
     }
     if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
         progress.finish();
         report.warnings(store.finish());
+        preprocessor.save_records(store, &pre);
         report.remote(store.remote_stats());
         return report.up_to_date(keys.len(), counts);
     }
@@ -195,6 +197,8 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     trace_memory("compile");
     report.warnings(store.finish());
+    // The records once the cache's index is released (a warm build's is large).
+    preprocessor.save_records(store, &pre);
     report.remote(store.remote_stats());
     if report.failed() {
         return Err(Error::Failed(Box::new(report.finish()?)));

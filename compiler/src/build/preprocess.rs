@@ -7,7 +7,8 @@
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
 //! number of its [`Row`] (4 bytes), per distinct result a 56-byte row whose lists are
-//! numbers in one [`Interner`], per preprocessing record its direct key and a row number.
+//! numbers in one [`Interner`]. The records for the next build are made from the rows
+//! when they are saved (each permutation's direct key is made again then).
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -15,6 +16,7 @@ use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use codespan_reporting::diagnostic::Diagnostic;
+use rayon::prelude::*;
 
 use super::plan::{level_limits, level_targets, Plan};
 use super::records::{self, Interner, Records, Row};
@@ -82,8 +84,6 @@ struct RecordSet {
     root: PathBuf,
     base: blake3::Hash,
     old: Records,
-    /// This build's: each permutation's direct key and row number.
-    new: Mutex<Vec<(Key, u32)>>,
 }
 
 impl<'p> Preprocessor<'p> {
@@ -97,7 +97,6 @@ impl<'p> Preprocessor<'p> {
                 key,
                 root,
                 base: direct_base(plan.config),
-                new: Mutex::default(),
             }
         });
         Preprocessor {
@@ -109,7 +108,8 @@ impl<'p> Preprocessor<'p> {
             identifiers: FileIdentifiers::default(),
             records,
             interner: Mutex::new(interner),
-            rows: Mutex::default(),
+            // At most one row per permutation, allocated once (see [`Plan::max_targets`]).
+            rows: Mutex::new(Vec::with_capacity(plan.len())),
             preprocessed: AtomicUsize::new(0),
         }
     }
@@ -168,26 +168,40 @@ impl<'p> Preprocessor<'p> {
         });
         let mut errors = errors.into_inner().expect("no panics while locked");
         errors.sort_by_key(|e| e.0);
-        let mut rows = std::mem::take(&mut *self.rows.lock().expect("no panics while locked"));
-        rows.shrink_to_fit();
+        // Not shrunk: the rows not used were never touched (no resident memory), and
+        // shrinking would copy the table.
+        let rows = std::mem::take(&mut *self.rows.lock().expect("no panics while locked"));
         Preprocessed { of: of.into_iter().map(AtomicU32::into_inner).collect(), rows, errors }
     }
 
-    /// Stores this build's preprocessing records where they changed. Failing to only costs
-    /// preprocessing next time.
-    ///
-    /// Then lets go of what only preprocessing needed (the records, what may be reused):
-    /// later stages only preprocess a key's first permutation again, for its text.
-    pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
-        if let Some(r) = self.records.take() {
-            let new = r.new.into_inner().expect("no panics while locked");
-            let new = Records::new(new.into_iter().map(|(direct, row)| (direct, pre.rows[row as usize])).collect());
-            if new != r.old {
-                drop(r.old);
-                store.put_records(&r.key, &records::encode(&new, &self.lists(), &r.root));
-            }
-        }
+    /// Lets go of what only preprocessing needed (what may be reused): later stages only
+    /// preprocess a key's first permutation again, for its text.
+    pub fn release_reuse(&mut self) {
         self.reuse = Reuse::default();
+    }
+
+    /// Stores this build's preprocessing records where they changed. Failing to only costs
+    /// preprocessing next time. Called once the compile stage's tables are gone: the
+    /// records' bytes (84 per permutation) are the largest transient of a build.
+    pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
+        let Some(r) = self.records.take() else { return };
+        // Each preprocessed permutation's direct key, made again here rather than kept
+        // through the build (36 bytes a permutation at its peak).
+        let (plan, targets) = (self.plan, &self.plan.options.targets);
+        let mut new: Vec<(Key, u32)> = (0..plan.len())
+            .into_par_iter()
+            .filter(|&i| pre.row(i).is_some())
+            .map(|i| (direct_key(&r.base, &plan.permutation(i), targets), pre.of[i]))
+            .collect();
+        // One record per direct key (each permutation has its own), sorted by it.
+        new.sort_unstable_by_key(|(direct, _)| *direct);
+        new.dedup_by(|a, b| a.0 == b.0);
+        let rows = || new.iter().map(|(direct, row)| (direct, &pre.rows[*row as usize]));
+        let same = rows().map(|(k, row)| (*k, *row)).eq(r.old.iter().map(|(k, row)| (*k, *row)));
+        drop(r.old);
+        if !same {
+            store.put_records(&r.key, &records::encode(rows(), &self.lists(), &r.root));
+        }
     }
 
     /// Permutation `p`'s row number.
@@ -197,30 +211,21 @@ impl<'p> Preprocessor<'p> {
         p: &Permutation<'_>,
         fresh: &(impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync),
     ) -> Result<u32, Box<Diagnostic<FileId>>> {
-        let direct = self.records.as_ref().map(|r| (r, direct_key(&r.base, p, &self.plan.options.targets)));
-        let remember = |row: u32| {
-            if let Some((records, dk)) = &direct {
-                records.new.lock().expect("no panics while locked").push((*dk, row));
-            }
-        };
-        if let Some((records, dk)) = &direct {
-            if let Some(row) = records.old.get(dk).filter(|row| self.still_holds(row)) {
-                let n = self.push(*row);
-                remember(n);
-                return Ok(n);
+        if let Some(records) = &self.records {
+            let dk = direct_key(&records.base, p, &self.plan.options.targets);
+            if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(row)) {
+                return Ok(self.push(*row));
             }
         }
         let values = define_values(p);
         if p.error.is_none() {
             if let Some(n) = self.reuse.find(p, &values) {
-                remember(n);
                 return Ok(n);
             }
         }
         self.preprocessed.fetch_add(1, Ordering::Relaxed);
         let (row, output) = self.preprocess(p)?;
         let n = self.push(row);
-        remember(n);
         self.reuse.insert(p, &values, &output, n, &self.identifiers, &self.sources);
         fresh(index, p, &row.key, &output);
         Ok(n)

@@ -66,6 +66,11 @@ impl Records {
         self.rows.binary_search_by(|r| r.0.cmp(direct)).ok().map(|i| &self.rows[i].1)
     }
 
+    /// Each direct key with its row, in order.
+    pub fn iter(&self) -> impl Iterator<Item = (&Key, &Row)> + Clone {
+        self.rows.iter().map(|(k, r)| (k, r))
+    }
+
     #[cfg(test)]
     pub fn len(&self) -> usize {
         self.rows.len()
@@ -147,18 +152,26 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
     }
 }
 
-/// The records as bytes, with every path under `root` written relative to it (paths
-/// elsewhere stay absolute).
-pub(super) fn encode(records: &Records, interner: &Interner, root: &Path) -> Vec<u8> {
+/// The records of `rows` (sorted by direct key, one per direct key) as bytes, with every
+/// path under `root` written relative to it (paths elsewhere stay absolute). The rows are
+/// read twice (their lists first) and the bytes allocated once at their size: nothing per
+/// row is held besides them.
+pub(super) fn encode<'a>(
+    rows: impl Iterator<Item = (&'a Key, &'a Row)> + Clone,
+    interner: &Interner,
+    root: &Path,
+) -> Vec<u8> {
     let relative = |p: &Path| -> PathBuf {
         p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map_or_else(|| p.to_path_buf(), PathBuf::from)
     };
     let (mut files, mut absent, mut warnings) = (Table::new(), Table::new(), Table::new());
-    let indices: Vec<[u32; 3]> = records
-        .rows
-        .iter()
-        .map(|(_, r)| [files.add(r.files), absent.add(r.absent), warnings.add(r.warnings)])
-        .collect();
+    let mut n = 0usize;
+    for (_, r) in rows.clone() {
+        files.add(r.files);
+        absent.add(r.absent);
+        warnings.add(r.warnings);
+        n += 1;
+    }
     let mut out = MAGIC.to_vec();
     put_lists(&mut out, &files, &interner.files, |o, (p, h)| {
         put_bytes(o, relative(p).as_os_str().as_bytes());
@@ -166,17 +179,21 @@ pub(super) fn encode(records: &Records, interner: &Interner, root: &Path) -> Vec
     });
     put_lists(&mut out, &absent, &interner.absent, |o, p| put_bytes(o, relative(p).as_os_str().as_bytes()));
     put_lists(&mut out, &warnings, &interner.warnings, |o, w| put_bytes(o, w.as_bytes()));
-    out.extend_from_slice(&(records.rows.len() as u64).to_le_bytes());
-    for ((direct, r), idx) in records.rows.iter().zip(indices) {
+    out.reserve_exact(8 + n * ROW_BYTES);
+    out.extend_from_slice(&(n as u64).to_le_bytes());
+    for (direct, r) in rows {
         out.extend_from_slice(&direct.0);
         out.extend_from_slice(&r.key.0);
         out.extend_from_slice(&r.text_len.to_le_bytes());
-        for i in idx {
+        for i in [files.number[&r.files], absent.number[&r.absent], warnings.number[&r.warnings]] {
             out.extend_from_slice(&i.to_le_bytes());
         }
     }
     out
 }
+
+/// An encoded row: direct key, key, text length, three list numbers.
+const ROW_BYTES: usize = 32 + 32 + 8 + 3 * 4;
 
 struct Reader<'a> {
     bytes: &'a [u8],
@@ -243,8 +260,8 @@ pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Opti
     let absent = r.lists(&mut interner.absent, |r| Some(path(r.bytes()?)))?;
     let warnings = r.lists(&mut interner.warnings, |r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
     let n = r.u64()?;
-    // Each row is 84 bytes: a count beyond the bytes left is damage, not an allocation.
-    if n > (bytes.len() - r.at) as u64 / 84 {
+    // A count beyond the bytes left is damage, not an allocation.
+    if n > ((bytes.len() - r.at) / ROW_BYTES) as u64 {
         return None;
     }
     let mut rows = Vec::with_capacity(n as usize);
@@ -286,7 +303,7 @@ mod tests {
         assert_eq!(records.len(), 5);
         assert_eq!(records.get(&Key([102; 32])), Some(&rows[2].1));
         assert_eq!(records.get(&Key([1; 32])), None);
-        let bytes = encode(&records, &i, Path::new("/a"));
+        let bytes = encode(records.iter(), &i, Path::new("/a"));
         // Shared lists are written once; no path under the root is absolute.
         assert_eq!(bytes.windows(10).filter(|w| w == b"/usr/x.ush").count(), 1);
         assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0);

@@ -61,7 +61,8 @@ impl Store {
             CacheDir::Auto => Some(default_cache_dir(&config.dir)),
         };
         // A cache folder that cannot be made costs only speed, like an unwritable one.
-        let (cache, unavailable) = match dir.map(Cache::open) {
+        // The build never looks up what it compiles: its puts stay out of the index.
+        let (cache, unavailable) = match dir.map(|d| Cache::open(d).map(Cache::without_indexing_puts)) {
             None => (None, None),
             Some(Ok(c)) => (Some(with_remote(c, options)?), None),
             Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),

@@ -202,7 +202,8 @@ struct Location {
     len: u64,
 }
 
-/// Every pack's index, read once per [`Cache`] (and extended by its own writes).
+/// Every pack's index, read once per [`Cache`] (and extended by its own writes, unless
+/// [`Cache::without_indexing_puts`]: then by its remote fills only).
 #[derive(Debug, Default)]
 struct Index {
     /// Copies of each key, newest pack first.
@@ -228,6 +229,9 @@ pub struct Cache {
     dir: PathBuf,
     index: Arc<RwLock<Option<Index>>>,
     remote: Option<Arc<Layer>>,
+    /// Whether the entries put through this `Cache` join its in-memory index (see
+    /// [`Cache::without_indexing_puts`]).
+    index_puts: bool,
 }
 
 /// The remote cache under a local one, and its hits not yet in the local cache.
@@ -261,7 +265,17 @@ impl Cache {
             let _ = crate::output::write(&dir.join(TAG_NAME), TAG.as_bytes(), false);
         }
         crate::output::remove_stale_temporaries(&dir, &Self::is_cache_file_name);
-        Ok(Cache { dir, index: Arc::default(), remote: None })
+        Ok(Cache { dir, index: Arc::default(), remote: None, index_puts: true })
+    }
+
+    /// This cache, with the entries put through it left out of its in-memory index: a
+    /// build never looks up a key it compiled, and at 100k keys the index of its own puts
+    /// is about 10 MiB of its peak. Remote hits filled into the local cache still join it
+    /// (the build looks them up after a batched fill). A put key is then a miss through
+    /// this `Cache` until its index is read again (after [`Cache::release_index`]).
+    pub fn without_indexing_puts(mut self) -> Cache {
+        self.index_puts = false;
+        self
     }
 
     /// This cache with `remote` layered under it.
@@ -536,8 +550,12 @@ impl Cache {
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
-        if let Some(index) = index.as_mut() {
-            if let Ok(Some((pack, rows))) = open_pack(&path) {
+        if let Some(index) = index.as_mut().filter(|_| self.index_puts || !raw.is_empty()) {
+            if let Ok(Some((pack, mut rows))) = open_pack(&path) {
+                if !self.index_puts {
+                    // The pack's rows are the entries', then the fills'.
+                    rows.drain(..entries.len().min(rows.len()));
+                }
                 index.add(Arc::new(pack), rows);
             }
         }

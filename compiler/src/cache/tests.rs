@@ -36,6 +36,24 @@ fn key_depends_on_every_input() {
     assert_eq!(base, Key::new(&h, "main", Stage::Fragment, "sm5", &Limits::desktop(), &[Target::Wgsl]));
 }
 
+/// A build's `Cache` leaves its own puts out of its index (it never looks them up), while
+/// the index it read stays; the entries are in the packs for the next `Cache`.
+#[test]
+fn puts_stay_out_of_the_index_when_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let (old, new) = (key("old"), key("new"));
+    Cache::open(dir.path()).unwrap().put(&old, &compiled(1)).unwrap();
+    let cache = Cache::open(dir.path()).unwrap().without_indexing_puts();
+    assert!(matches!(cache.get(&old), Lookup::Hit(_)));
+    cache.put_pack(&[(new, &compiled(2))]).unwrap();
+    assert!(matches!(cache.get(&new), Lookup::Miss));
+    assert!(matches!(cache.get(&old), Lookup::Hit(_)));
+    // Read again, the index has it.
+    cache.release_index();
+    assert!(matches!(cache.get(&new), Lookup::Hit(c) if c == compiled(2)));
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&new), Lookup::Hit(c) if c == compiled(2)));
+}
+
 #[test]
 fn put_then_get_round_trips() {
     let dir = tempfile::tempdir().unwrap();
