@@ -36,11 +36,15 @@ fn tune_glibc_malloc() {
 /// | purge_delay | 10k peak  | 10k CPU | 100k peak | 100k CPU |
 /// | ----------- | --------- | ------- | --------- | -------- |
 /// | 1000 ms     | 55-57     | 4.02    | 85-92     | 40.3     |
+/// | 100 ms      | 38.5-42   |         | 66-67     |          |
 /// | 50 ms       | 39-42     | 4.08    | 68-69     | 41.1     |
 /// | 20 ms       | 38.5-39   | 4.17    | 63-66     | 40.4     |
 /// | 0           | 38-38.1   | 4.42    | 62        | 44.0     |
 ///
-/// 0 (purge at once) costs 10% of CPU time in page faults; 20 ms keeps most of its gain.
+/// 0 (purge at once) costs 10% of CPU time in page faults. 100 ms keeps most of its gain on
+/// the peaks (its row: a quiet 16-core machine pinned to 2 cores) and few of its page faults:
+/// on a 256-permutation set of many shaders (`benches/shapes`, `--no-cache`) 6.8K page faults
+/// and 490 ms CPU, against 8.9K and 502 ms at 20 ms and 5.5K and 486 ms at 1000 ms.
 /// `MIMALLOC_PURGE_DELAY` in the environment still wins.
 fn tune_mimalloc() {
     /// `mi_option_purge_delay` in the `mi_option_t` enum of mimalloc 2 and 3 (`mimalloc.h`).
@@ -51,6 +55,6 @@ fn tune_mimalloc() {
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: mi_option_set stores an option's value (libmimalloc-sys links mimalloc,
         // the global allocator above); mimalloc reads it at each purge.
-        unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, 20) };
+        unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, 100) };
     }
 }
