@@ -41,6 +41,7 @@ use rayon::prelude::*;
 use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
+mod fill;
 pub mod remote;
 
 pub use remote::Remote;
@@ -54,9 +55,9 @@ const RECORD_EXTENSION: &str = "kpp";
 const PACK_HEADER: usize = 8 + 8 + 32;
 /// Index row: key, offset of the entry in the pack (u64), its length (u64).
 const ROW: usize = 32 + 8 + 8;
-/// Remote hits waiting to be filled into the local cache are written as a pack once they
-/// hold this many bytes (and at the next [`Cache::put_pack`] in any case).
-const FILL_BYTES: usize = 32 << 20;
+/// Remote hits of single lookups ([`Cache::get`]) are streamed into a pack of this many
+/// entries at most (written whole at the next [`Cache::put_pack`] in any case).
+const FILL_ROWS: usize = 4096;
 /// The cache folder's tag (<https://bford.info/cachedir/>), written by [`Cache::open`].
 const TAG_NAME: &str = "CACHEDIR.TAG";
 const TAG: &str = "Signature: 8a477f597d28d172789f06886806bc55\n\
@@ -234,21 +235,14 @@ pub struct Cache {
     index_puts: bool,
 }
 
-/// The remote cache under a local one, and its hits not yet in the local cache.
+/// The remote cache under a local one, and the pack its hits are being written into.
 #[derive(Debug)]
 struct Layer {
     remote: Remote,
-    fills: Mutex<Fills>,
+    fills: Mutex<Option<fill::FillPack>>,
     /// Keys the remote did not have when asked during this build: not asked again (a build
     /// that fills in bulk, then compiles what was missing, asks once per key).
     absent: Mutex<HashSet<Key>>,
-}
-
-/// Checked remote entries (their encoded bytes) to write into the next local pack.
-#[derive(Debug, Default)]
-struct Fills {
-    entries: Vec<(Key, Vec<u8>)>,
-    bytes: usize,
 }
 
 impl Cache {
@@ -384,15 +378,16 @@ impl Cache {
         match decode(key, &bytes) {
             Ok(c) => {
                 layer.remote.count_hit();
-                let full = {
-                    let mut fills = layer.fills.lock().expect("no panics while locked");
-                    fills.bytes += bytes.len();
-                    fills.entries.push((*key, bytes));
-                    fills.bytes >= FILL_BYTES
-                };
-                if full {
-                    // Failing to fill only costs a remote lookup next time.
-                    let _ = self.put_pack_hashed(&[]);
+                let mut fills = layer.fills.lock().expect("no panics while locked");
+                if fills.as_ref().is_some_and(fill::FillPack::is_full) {
+                    self.finish_fills(fills.take());
+                }
+                if fills.is_none() {
+                    *fills = fill::FillPack::create(&self.dir, FILL_ROWS).ok();
+                }
+                // Failing to fill only costs a remote lookup next time.
+                if fills.as_mut().is_some_and(|p| p.push(key, &bytes).is_err()) {
+                    *fills = None;
                 }
                 Lookup::Hit(c)
             }
@@ -404,20 +399,27 @@ impl Cache {
     }
 
     /// Copies into the local cache the remote entries of `keys` that it lacks: fetched in
-    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it,
-    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally. A
-    /// key the remote lacks is not asked for again this build; a corrupted entry is left to
-    /// the build, which looks it up again, reports and recompiles it.
+    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it, and
+    /// streamed into one pack as they arrive (no entry waits in memory). Whether every key is
+    /// now held locally. A key the remote lacks is not asked for again this build; a
+    /// corrupted entry is left to the build, which looks it up again, reports and recompiles
+    /// it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
         let Some(layer) = &self.remote else { return false };
-        let queued: HashSet<Key> =
-            layer.fills.lock().expect("no panics while locked").entries.iter().map(|(k, _)| *k).collect();
+        // The single lookups' hits first: then the index knows them.
+        let pending = layer.fills.lock().expect("no panics while locked").take();
+        self.finish_fills(pending);
         let absent = layer.absent.lock().expect("no panics while locked").clone();
         let missing: Vec<Key> = self.with_index(|index| {
-            let known = |k: &Key| index.by_key.contains_key(k) || queued.contains(k) || absent.contains(k);
+            let known = |k: &Key| index.by_key.contains_key(k) || absent.contains(k);
             keys.iter().filter(|k| !known(k)).copied().collect()
         });
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
+        if missing.is_empty() {
+            return complete.into_inner();
+        }
+        // Room for every key asked; failing to fill only costs a remote lookup next time.
+        let pack = Mutex::new(fill::FillPack::create(&self.dir, missing.len()).ok());
         layer.remote.get_each(&missing, |key, value| {
             let Some(bytes) = value else {
                 layer.absent.lock().expect("no panics while locked").insert(*key);
@@ -430,20 +432,26 @@ impl Cache {
                 return;
             }
             layer.remote.count_hit();
-            let full = {
-                let mut fills = layer.fills.lock().expect("no panics while locked");
-                fills.bytes += bytes.len();
-                fills.entries.push((*key, bytes));
-                fills.bytes >= FILL_BYTES
-            };
-            if full {
-                // Failing to fill only costs a remote lookup next time.
-                let _ = self.put_pack_hashed(&[]);
+            let mut pack = pack.lock().expect("no panics while locked");
+            if pack.as_mut().is_some_and(|p| p.push(key, &bytes).is_err()) {
+                *pack = None;
             }
         });
         // Written now, so that the build's lookups find them here (not in the remote again).
-        let _ = self.put_pack_hashed(&[]);
+        self.finish_fills(pack.into_inner().expect("no panics while locked"));
         complete.into_inner()
+    }
+
+    /// Writes the index of a fill pack and renames it into place; the index of this `Cache`
+    /// (if read) then knows its entries. Failing to only costs remote lookups next time.
+    fn finish_fills(&self, pack: Option<fill::FillPack>) {
+        let Some(Ok(Some(path))) = pack.map(fill::FillPack::finish) else { return };
+        let mut index = self.index.write().expect("no panics while locked");
+        if let Some(index) = index.as_mut() {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
+                index.add(Arc::new(pack), rows);
+            }
+        }
     }
 
     fn get_local(&self, key: &Key) -> Lookup {
@@ -486,22 +494,23 @@ impl Cache {
 
     /// [`Cache::put_pack`] with the blake3 of every artifact already known (in the order of
     /// each entry's artifacts). With a remote cache, the pack also holds the remote hits not
-    /// yet filled in, and each of `entries` is stored to the remote (in read-write mode).
+    /// yet filled in (finished as a pack of their own), and each of `entries` is stored to
+    /// the remote (in read-write mode).
     pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
-        let fills = match &self.remote {
-            Some(layer) => std::mem::take(&mut *layer.fills.lock().expect("no panics while locked")).entries,
-            None => Vec::new(),
-        };
-        let local = self.write_pack(entries, &fills);
+        if let Some(layer) = &self.remote {
+            let pending = layer.fills.lock().expect("no panics while locked").take();
+            self.finish_fills(pending);
+        }
+        let local = self.write_pack(entries);
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
             entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &encode_hashed(key, c, hashes)));
         }
         local
     }
 
-    /// Writes `entries` and the already encoded (and checked) `raw` entries as one pack.
-    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])], raw: &[(Key, Vec<u8>)]) -> Result<(), Error> {
-        if entries.is_empty() && raw.is_empty() {
+    /// Writes `entries` as one pack.
+    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
+        if entries.is_empty() {
             return Ok(());
         }
         let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
@@ -518,11 +527,10 @@ impl Cache {
                 (frames, checksum, len as u64)
             })
             .collect();
-        let count = entries.len() + raw.len();
+        let count = entries.len();
         let mut rows = Vec::with_capacity(count * ROW);
         let mut offset = (PACK_HEADER + count * ROW) as u64;
-        let lens = encoded.iter().map(|e| e.2).chain(raw.iter().map(|(_, bytes)| bytes.len() as u64));
-        for (key, len) in entries.iter().map(|e| e.0).chain(raw.iter().map(|r| r.0)).zip(lens) {
+        for (key, len) in entries.iter().map(|e| e.0).zip(encoded.iter().map(|e| e.2)) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
             rows.extend_from_slice(&len.to_le_bytes());
@@ -536,9 +544,6 @@ impl Cache {
         for (_, checksum, _) in &encoded {
             name.update(checksum.as_bytes());
         }
-        for (_, bytes) in raw {
-            name.update(&bytes[8..40]);
-        }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
         for ((key, c, _), (frames, checksum, _)) in entries.iter().zip(&encoded) {
@@ -546,16 +551,11 @@ impl Cache {
             pieces.push(checksum.as_bytes());
             pieces.extend(body_pieces(key, c, frames));
         }
-        pieces.extend(raw.iter().map(|(_, bytes)| &bytes[..]));
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
-        if let Some(index) = index.as_mut().filter(|_| self.index_puts || !raw.is_empty()) {
-            if let Ok(Some((pack, mut rows))) = open_pack(&path) {
-                if !self.index_puts {
-                    // The pack's rows are the entries', then the fills'.
-                    rows.drain(..entries.len().min(rows.len()));
-                }
+        if let Some(index) = index.as_mut().filter(|_| self.index_puts) {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
                 index.add(Arc::new(pack), rows);
             }
         }
