@@ -50,6 +50,9 @@ const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
+/// A remote cache value ([`remote_value`]); its header: magic, blake3 of key and entry.
+const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x01";
+const REMOTE_HEADER: usize = 8 + 32;
 const RECORD_EXTENSION: &str = "kpp";
 /// Pack header: magic, entry count (u64), blake3 of the index rows.
 const PACK_HEADER: usize = 8 + 8 + 32;
@@ -375,8 +378,8 @@ impl Cache {
             layer.absent.lock().expect("no panics while locked").insert(*key);
             return local;
         };
-        match decode(key, &bytes) {
-            Ok(c) => {
+        match remote_entry(key, &bytes).and_then(|entry| Ok((decode(key, entry)?, entry))) {
+            Ok((c, entry)) => {
                 layer.remote.count_hit();
                 let mut fills = layer.fills.lock().expect("no panics while locked");
                 if fills.as_ref().is_some_and(fill::FillPack::is_full) {
@@ -386,7 +389,7 @@ impl Cache {
                     *fills = fill::FillPack::create(&self.dir, FILL_ROWS).ok();
                 }
                 // Failing to fill only costs a remote lookup next time.
-                if fills.as_mut().is_some_and(|p| p.push(key, &bytes).is_err()) {
+                if fills.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
                     *fills = None;
                 }
                 Lookup::Hit(c)
@@ -426,14 +429,16 @@ impl Cache {
                 complete.store(false, Ordering::Relaxed);
                 return;
             };
-            if check(key, &bytes).is_err() {
+            // The value's one checksum (one blake3 of the whole value, several times faster
+            // than one per artifact); the entry's own is checked when the build uses it.
+            let Ok(entry) = remote_entry(key, &bytes) else {
                 // Looked up again by the build, which reports it and recompiles.
                 complete.store(false, Ordering::Relaxed);
                 return;
-            }
+            };
             layer.remote.count_hit();
             let mut pack = pack.lock().expect("no panics while locked");
-            if pack.as_mut().is_some_and(|p| p.push(key, &bytes).is_err()) {
+            if pack.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
                 *pack = None;
             }
         });
@@ -503,7 +508,7 @@ impl Cache {
         }
         let local = self.write_pack(entries);
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
-            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &encode_hashed(key, c, hashes)));
+            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &remote_value(key, c, hashes)));
         }
         local
     }
@@ -974,23 +979,44 @@ fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
     encode_hashed(key, c, &hashes)
 }
 
-/// An entry as one buffer (what the remote cache stores), with its artifacts' blake3.
+/// An entry as one buffer, with its artifacts' blake3.
+#[cfg(test)]
 fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
+    remote_value(key, c, hashes).split_off(REMOTE_HEADER)
+}
+
+/// A remote cache value: [`REMOTE_MAGIC`], blake3 of the key and the entry, the entry (as a
+/// pack holds it). The value's checksum is one blake3 of a whole buffer: a fill checks it
+/// several times faster than the entry's own checksum (one blake3 per artifact, most of a few
+/// KB), which is checked when the entry is used.
+fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     let frames = frames(c);
     let pieces = body_pieces(key, c, &frames);
-    let mut out = Vec::with_capacity(MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
+    let mut out = Vec::with_capacity(REMOTE_HEADER + MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
+    out.extend_from_slice(REMOTE_MAGIC);
+    out.extend_from_slice(&[0; 32]);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(entry_checksum(key, &frames, hashes).as_bytes());
     pieces.iter().for_each(|p| out.extend_from_slice(p));
+    let sum = blake3::Hasher::new().update(&key.0).update(&out[REMOTE_HEADER..]).finalize();
+    out[8..REMOTE_HEADER].copy_from_slice(sum.as_bytes());
     out
 }
 
-/// Whether `bytes` is a whole entry of `key` (what [`decode`] checks, without copying the
-/// artifacts out).
-fn check(key: &Key, bytes: &[u8]) -> Result<(), String> {
-    let (_, json) = parse(key, bytes)?;
-    serde_json::from_slice::<Reflection>(json).map_err(|e| format!("bad reflection: {e}"))?;
-    Ok(())
+/// The entry of a whole remote `value` of `key` ([`remote_value`]): its checksum matches and
+/// it is an entry of `key` (magic, length and key; its own checksum is not checked here).
+fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
+    if value.len() < REMOTE_HEADER || &value[..8] != REMOTE_MAGIC {
+        return Err("not a remote cache entry of this kiln".into());
+    }
+    let entry = &value[REMOTE_HEADER..];
+    if blake3::Hasher::new().update(&key.0).update(entry).finalize().as_bytes() != &value[8..REMOTE_HEADER] {
+        return Err("checksum mismatch".into());
+    }
+    if entry.len() < 72 || &entry[..8] != MAGIC || entry[40..72] != key.0 {
+        return Err("the entry belongs to another key".into());
+    }
+    Ok(entry)
 }
 
 fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
