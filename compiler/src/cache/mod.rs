@@ -21,11 +21,12 @@
 //!
 //! A [`remote::Remote`] may be layered under the local folder ([`Cache::with_remote`]), as
 //! Unreal layers its shared DDC under the local one: a lookup tries the local packs, then
-//! the remote; a remote entry is checked like a local one (its bytes are the same entry
-//! encoding) and then filled into the local cache; every entry a build stores goes to the
-//! local cache and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies
-//! many entries at once (batched round trips). A remote that fails is one warning and the
-//! build goes on with the local cache only.
+//! the remote; a remote value carries the same entry encoding behind one checksum of the
+//! whole value, which is checked before the entry is filled into the local cache (and the
+//! entry's own checksum when it is used); every entry a build stores goes to the local cache
+//! and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies many entries at
+//! once (batched round trips), streaming them into a pack on disk as they arrive. A remote
+//! that fails is one warning and the build goes on with the local cache only.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
