@@ -51,7 +51,7 @@ const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
-/// A remote cache value ([`remote_value`]); its header: magic, blake3 of key and entry.
+/// A remote cache value ([`remote_value`]); its header: magic, blake3 of the entry keyed by its key.
 const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x01";
 const REMOTE_HEADER: usize = 8 + 32;
 const RECORD_EXTENSION: &str = "kpp";
@@ -986,7 +986,7 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     remote_value(key, c, hashes).split_off(REMOTE_HEADER)
 }
 
-/// A remote cache value: [`REMOTE_MAGIC`], blake3 of the key and the entry, the entry (as a
+/// A remote cache value: [`REMOTE_MAGIC`], keyed blake3 of the entry (keyed by its key), the entry (as a
 /// pack holds it). The value's checksum is one blake3 of a whole buffer: a fill checks it
 /// several times faster than the entry's own checksum (one blake3 per artifact, most of a few
 /// KB), which is checked when the entry is used.
@@ -999,7 +999,7 @@ fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(entry_checksum(key, &frames, hashes).as_bytes());
     pieces.iter().for_each(|p| out.extend_from_slice(p));
-    let sum = blake3::Hasher::new().update(&key.0).update(&out[REMOTE_HEADER..]).finalize();
+    let sum = blake3::keyed_hash(&key.0, &out[REMOTE_HEADER..]);
     out[8..REMOTE_HEADER].copy_from_slice(sum.as_bytes());
     out
 }
@@ -1011,7 +1011,7 @@ fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
         return Err("not a remote cache entry of this kiln".into());
     }
     let entry = &value[REMOTE_HEADER..];
-    if blake3::Hasher::new().update(&key.0).update(entry).finalize().as_bytes() != &value[8..REMOTE_HEADER] {
+    if blake3::keyed_hash(&key.0, entry).as_bytes() != &value[8..REMOTE_HEADER] {
         return Err("checksum mismatch".into());
     }
     if entry.len() < 72 || &entry[..8] != MAGIC || entry[40..72] != key.0 {
