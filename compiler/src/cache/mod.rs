@@ -107,24 +107,50 @@ impl Key {
             h.update(&(bytes.len() as u64).to_le_bytes());
             h.update(bytes);
         };
-        field(b"kiln cache key v1");
+        field(b"kiln cache key v2");
+        field(&shared_digest(limits));
         field(token_hash.as_bytes());
         field(entry.as_bytes());
         field(stage.name().as_bytes());
         field(level.as_bytes());
-        field(format!("{limits:?}").as_bytes());
         for t in targets {
             field(t.name().as_bytes());
         }
-        field(crate::VERSION.as_bytes());
-        field(env!("KILN_SOURCE_HASH").as_bytes());
-        field(crate::compile::NAGA_VERSION.as_bytes());
         Key(*h.finalize().as_bytes())
     }
 
     pub fn to_hex(&self) -> String {
         blake3::Hash::from_bytes(self.0).to_hex().to_string()
     }
+}
+
+/// blake3 of what a key shares with every key of the same `limits`: the limits (as their
+/// `Debug` text) and the versions of Kiln, of its sources and of naga. Kept per thread for
+/// the last limits seen (a build has a few): formatting the limits cost more than the rest
+/// of a key, and a build makes two keys per permutation.
+fn shared_digest(limits: &Limits) -> [u8; 32] {
+    thread_local! {
+        static LAST: std::cell::RefCell<Option<(Limits, [u8; 32])>> = const { std::cell::RefCell::new(None) };
+    }
+    LAST.with(|last| {
+        let mut last = last.borrow_mut();
+        if let Some((_, digest)) = last.as_ref().filter(|(l, _)| l == limits) {
+            return *digest;
+        }
+        let mut h = blake3::Hasher::new();
+        for bytes in [
+            format!("{limits:?}").as_bytes(),
+            crate::VERSION.as_bytes(),
+            env!("KILN_SOURCE_HASH").as_bytes(),
+            crate::compile::NAGA_VERSION.as_bytes(),
+        ] {
+            h.update(&(bytes.len() as u64).to_le_bytes());
+            h.update(bytes);
+        }
+        let digest = *h.finalize().as_bytes();
+        *last = Some((limits.clone(), digest));
+        digest
+    })
 }
 
 impl std::fmt::Display for Key {
