@@ -5,6 +5,8 @@ use std::io;
 use std::os::unix::fs::{FileExt, OpenOptionsExt};
 use std::os::unix::io::AsRawFd;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
 
 use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 
@@ -15,19 +17,26 @@ use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 /// never look at (rows give absolute offsets). The file is a temporary one of the cache
 /// folder (named as [`crate::output`] names them, after a pack, and locked while written, so
 /// that a writer that dies leaves a file the next `open`, `gc` or `clear` removes) and is
-/// renamed, named by its content, once whole.
+/// renamed, named by its content, once whole. Several threads push at once: each takes
+/// its entry's place under a lock and writes it outside the lock.
 pub(super) struct FillPack {
     dir: PathBuf,
     tmp: PathBuf,
     file: fs::File,
     capacity: usize,
+    rows: Mutex<Rows>,
+    /// A write failed: the pack is not finished.
+    failed: AtomicBool,
+    /// Renamed into place.
+    finished: bool,
+}
+
+struct Rows {
     rows: Vec<u8>,
     /// Where the next entry goes.
     offset: u64,
     /// The entries' checksums, for the pack's name.
     checksums: blake3::Hasher,
-    /// Renamed into place.
-    finished: bool,
 }
 
 impl FillPack {
@@ -51,31 +60,41 @@ impl FillPack {
             tmp,
             file,
             capacity,
-            rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
-            offset: (PACK_HEADER + capacity * ROW) as u64,
-            checksums: blake3::Hasher::new(),
+            rows: Mutex::new(Rows {
+                rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
+                offset: (PACK_HEADER + capacity * ROW) as u64,
+                checksums: blake3::Hasher::new(),
+            }),
+            failed: AtomicBool::new(false),
             finished: false,
         })
     }
 
     pub fn len(&self) -> usize {
-        self.rows.len() / ROW
+        self.rows.lock().expect("no panics while locked").rows.len() / ROW
     }
 
     pub fn is_full(&self) -> bool {
         self.len() >= self.capacity
     }
 
-    /// Writes the checked entry `bytes` of `key` (the pack must not be full).
-    pub fn push(&mut self, key: &Key, bytes: &[u8]) -> io::Result<()> {
-        debug_assert!(!self.is_full() && bytes.len() >= 40);
-        self.file.write_all_at(bytes, self.offset)?;
-        self.rows.extend_from_slice(&key.0);
-        self.rows.extend_from_slice(&self.offset.to_le_bytes());
-        self.rows.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
-        self.checksums.update(&bytes[8..40]);
-        self.offset += bytes.len() as u64;
-        Ok(())
+    /// Writes the checked entry `bytes` of `key`. An error when the pack is full or the
+    /// write fails (then the pack is not finished).
+    pub fn push(&self, key: &Key, bytes: &[u8]) -> io::Result<()> {
+        let offset = {
+            let mut r = self.rows.lock().expect("no panics while locked");
+            if r.rows.len() / ROW >= self.capacity || bytes.len() < 40 {
+                return Err(io::Error::other("the fill pack is full"));
+            }
+            let offset = r.offset;
+            r.rows.extend_from_slice(&key.0);
+            r.rows.extend_from_slice(&offset.to_le_bytes());
+            r.rows.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+            r.checksums.update(&bytes[8..40]);
+            r.offset += bytes.len() as u64;
+            offset
+        };
+        self.file.write_all_at(bytes, offset).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
     }
 
     /// Writes the header and the rows and renames the pack into place; its path (none when
@@ -87,19 +106,23 @@ impl FillPack {
     }
 
     fn write_index(&self) -> io::Result<Option<PathBuf>> {
-        if self.rows.is_empty() {
+        if self.failed.load(Ordering::Relaxed) {
+            return Err(io::Error::other("an entry could not be written"));
+        }
+        let r = self.rows.lock().expect("no panics while locked");
+        if r.rows.is_empty() {
             return Ok(None);
         }
-        let rows_hash = blake3::hash(&self.rows);
-        let mut head = Vec::with_capacity(PACK_HEADER + self.rows.len());
+        let rows_hash = blake3::hash(&r.rows);
+        let mut head = Vec::with_capacity(PACK_HEADER + r.rows.len());
         head.extend_from_slice(PACK_MAGIC);
-        head.extend_from_slice(&(self.len() as u64).to_le_bytes());
+        head.extend_from_slice(&((r.rows.len() / ROW) as u64).to_le_bytes());
         head.extend_from_slice(rows_hash.as_bytes());
-        head.extend_from_slice(&self.rows);
+        head.extend_from_slice(&r.rows);
         self.file.write_all_at(&head, 0)?;
         let mut name = blake3::Hasher::new();
         name.update(rows_hash.as_bytes());
-        name.update(self.checksums.finalize().as_bytes());
+        name.update(r.checksums.finalize().as_bytes());
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         fs::rename(&self.tmp, &path)?;
         Ok(Some(path))

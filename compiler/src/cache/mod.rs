@@ -449,7 +449,7 @@ impl Cache {
             return complete.into_inner();
         }
         // Room for every key asked; failing to fill only costs a remote lookup next time.
-        let pack = Mutex::new(fill::FillPack::create(&self.dir, missing.len()).ok());
+        let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
         layer.remote.get_each(&missing, |key, value| {
             let Some(bytes) = value else {
                 layer.absent.lock().expect("no panics while locked").insert(*key);
@@ -464,13 +464,13 @@ impl Cache {
                 return;
             };
             layer.remote.count_hit();
-            let mut pack = pack.lock().expect("no panics while locked");
-            if pack.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
-                *pack = None;
+            // A failed write leaves the pack unfinished (removed).
+            if let Some(p) = &pack {
+                let _ = p.push(key, entry);
             }
         });
         // Written now, so that the build's lookups find them here (not in the remote again).
-        self.finish_fills(pack.into_inner().expect("no panics while locked"));
+        self.finish_fills(pack);
         complete.into_inner()
     }
 

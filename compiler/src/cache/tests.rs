@@ -363,7 +363,7 @@ fn a_fill_pack_streams_entries_and_leaves_its_unused_rows_a_hole() {
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = (key("a"), key("b"));
     // Room for five entries, two written: three rows stay unused between index and entries.
-    let mut pack = fill::FillPack::create(dir.path(), 5).unwrap();
+    let pack = fill::FillPack::create(dir.path(), 5).unwrap();
     pack.push(&a, &encode(&a, &compiled(1))).unwrap();
     pack.push(&b, &encode(&b, &compiled(2))).unwrap();
     assert!(!pack.is_full());
@@ -376,7 +376,7 @@ fn a_fill_pack_streams_entries_and_leaves_its_unused_rows_a_hole() {
     assert_eq!(cache.stats().entries, 2);
 
     // Dropped unfinished (a failed fill) or finished empty: no file.
-    let mut unfinished = fill::FillPack::create(dir.path(), 2).unwrap();
+    let unfinished = fill::FillPack::create(dir.path(), 2).unwrap();
     unfinished.push(&a, &encode(&a, &compiled(1))).unwrap();
     drop(unfinished);
     assert_eq!(fill::FillPack::create(dir.path(), 2).unwrap().finish().unwrap(), None);
