@@ -21,11 +21,12 @@
 //!
 //! A [`remote::Remote`] may be layered under the local folder ([`Cache::with_remote`]), as
 //! Unreal layers its shared DDC under the local one: a lookup tries the local packs, then
-//! the remote; a remote entry is checked like a local one (its bytes are the same entry
-//! encoding) and then filled into the local cache; every entry a build stores goes to the
-//! local cache and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies
-//! many entries at once (batched round trips). A remote that fails is one warning and the
-//! build goes on with the local cache only.
+//! the remote; a remote value carries the same entry encoding behind one checksum of the
+//! whole value, which is checked before the entry is filled into the local cache (and the
+//! entry's own checksum when it is used); every entry a build stores goes to the local cache
+//! and, in read-write mode, to the remote. [`Cache::fill_from_remote`] copies many entries at
+//! once (batched round trips), streaming them into a pack on disk as they arrive. A remote
+//! that fails is one warning and the build goes on with the local cache only.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
@@ -41,6 +42,7 @@ use rayon::prelude::*;
 use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
+mod fill;
 pub mod remote;
 
 pub use remote::Remote;
@@ -49,14 +51,17 @@ const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
+/// A remote cache value ([`remote_value`]); its header: magic, blake3 of the entry keyed by its key.
+const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x01";
+const REMOTE_HEADER: usize = 8 + 32;
 const RECORD_EXTENSION: &str = "kpp";
 /// Pack header: magic, entry count (u64), blake3 of the index rows.
 const PACK_HEADER: usize = 8 + 8 + 32;
 /// Index row: key, offset of the entry in the pack (u64), its length (u64).
 const ROW: usize = 32 + 8 + 8;
-/// Remote hits waiting to be filled into the local cache are written as a pack once they
-/// hold this many bytes (and at the next [`Cache::put_pack`] in any case).
-const FILL_BYTES: usize = 32 << 20;
+/// Remote hits of single lookups ([`Cache::get`]) are streamed into a pack of this many
+/// entries at most (written whole at the next [`Cache::put_pack`] in any case).
+const FILL_ROWS: usize = 4096;
 /// The cache folder's tag (<https://bford.info/cachedir/>), written by [`Cache::open`].
 const TAG_NAME: &str = "CACHEDIR.TAG";
 const TAG: &str = "Signature: 8a477f597d28d172789f06886806bc55\n\
@@ -102,24 +107,50 @@ impl Key {
             h.update(&(bytes.len() as u64).to_le_bytes());
             h.update(bytes);
         };
-        field(b"kiln cache key v1");
+        field(b"kiln cache key v2");
+        field(&shared_digest(limits));
         field(token_hash.as_bytes());
         field(entry.as_bytes());
         field(stage.name().as_bytes());
         field(level.as_bytes());
-        field(format!("{limits:?}").as_bytes());
         for t in targets {
             field(t.name().as_bytes());
         }
-        field(crate::VERSION.as_bytes());
-        field(env!("KILN_SOURCE_HASH").as_bytes());
-        field(crate::compile::NAGA_VERSION.as_bytes());
         Key(*h.finalize().as_bytes())
     }
 
     pub fn to_hex(&self) -> String {
         blake3::Hash::from_bytes(self.0).to_hex().to_string()
     }
+}
+
+/// blake3 of what a key shares with every key of the same `limits`: the limits (as their
+/// `Debug` text) and the versions of Kiln, of its sources and of naga. Kept per thread for
+/// the last limits seen (a build has a few): formatting the limits cost more than the rest
+/// of a key, and a build makes two keys per permutation.
+fn shared_digest(limits: &Limits) -> [u8; 32] {
+    thread_local! {
+        static LAST: std::cell::RefCell<Option<(Limits, [u8; 32])>> = const { std::cell::RefCell::new(None) };
+    }
+    LAST.with(|last| {
+        let mut last = last.borrow_mut();
+        if let Some((_, digest)) = last.as_ref().filter(|(l, _)| l == limits) {
+            return *digest;
+        }
+        let mut h = blake3::Hasher::new();
+        for bytes in [
+            format!("{limits:?}").as_bytes(),
+            crate::VERSION.as_bytes(),
+            env!("KILN_SOURCE_HASH").as_bytes(),
+            crate::compile::NAGA_VERSION.as_bytes(),
+        ] {
+            h.update(&(bytes.len() as u64).to_le_bytes());
+            h.update(bytes);
+        }
+        let digest = *h.finalize().as_bytes();
+        *last = Some((limits.clone(), digest));
+        digest
+    })
 }
 
 impl std::fmt::Display for Key {
@@ -234,21 +265,14 @@ pub struct Cache {
     index_puts: bool,
 }
 
-/// The remote cache under a local one, and its hits not yet in the local cache.
+/// The remote cache under a local one, and the pack its hits are being written into.
 #[derive(Debug)]
 struct Layer {
     remote: Remote,
-    fills: Mutex<Fills>,
+    fills: Mutex<Option<fill::FillPack>>,
     /// Keys the remote did not have when asked during this build: not asked again (a build
     /// that fills in bulk, then compiles what was missing, asks once per key).
     absent: Mutex<HashSet<Key>>,
-}
-
-/// Checked remote entries (their encoded bytes) to write into the next local pack.
-#[derive(Debug, Default)]
-struct Fills {
-    entries: Vec<(Key, Vec<u8>)>,
-    bytes: usize,
 }
 
 impl Cache {
@@ -381,18 +405,19 @@ impl Cache {
             layer.absent.lock().expect("no panics while locked").insert(*key);
             return local;
         };
-        match decode(key, &bytes) {
-            Ok(c) => {
+        match remote_entry(key, &bytes).and_then(|entry| Ok((decode(key, entry)?, entry))) {
+            Ok((c, entry)) => {
                 layer.remote.count_hit();
-                let full = {
-                    let mut fills = layer.fills.lock().expect("no panics while locked");
-                    fills.bytes += bytes.len();
-                    fills.entries.push((*key, bytes));
-                    fills.bytes >= FILL_BYTES
-                };
-                if full {
-                    // Failing to fill only costs a remote lookup next time.
-                    let _ = self.put_pack_hashed(&[]);
+                let mut fills = layer.fills.lock().expect("no panics while locked");
+                if fills.as_ref().is_some_and(fill::FillPack::is_full) {
+                    self.finish_fills(fills.take());
+                }
+                if fills.is_none() {
+                    *fills = fill::FillPack::create(&self.dir, FILL_ROWS).ok();
+                }
+                // Failing to fill only costs a remote lookup next time.
+                if fills.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
+                    *fills = None;
                 }
                 Lookup::Hit(c)
             }
@@ -404,46 +429,61 @@ impl Cache {
     }
 
     /// Copies into the local cache the remote entries of `keys` that it lacks: fetched in
-    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it,
-    /// written as packs of at most [`FILL_BYTES`]. Whether every key is now held locally. A
-    /// key the remote lacks is not asked for again this build; a corrupted entry is left to
-    /// the build, which looks it up again, reports and recompiles it.
+    /// batches ([`Remote::get_each`]), each checked as [`Cache::get`] checks it, and
+    /// streamed into one pack as they arrive (no entry waits in memory). Whether every key is
+    /// now held locally. A key the remote lacks is not asked for again this build; a
+    /// corrupted entry is left to the build, which looks it up again, reports and recompiles
+    /// it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
         let Some(layer) = &self.remote else { return false };
-        let queued: HashSet<Key> =
-            layer.fills.lock().expect("no panics while locked").entries.iter().map(|(k, _)| *k).collect();
+        // The single lookups' hits first: then the index knows them.
+        let pending = layer.fills.lock().expect("no panics while locked").take();
+        self.finish_fills(pending);
         let absent = layer.absent.lock().expect("no panics while locked").clone();
         let missing: Vec<Key> = self.with_index(|index| {
-            let known = |k: &Key| index.by_key.contains_key(k) || queued.contains(k) || absent.contains(k);
+            let known = |k: &Key| index.by_key.contains_key(k) || absent.contains(k);
             keys.iter().filter(|k| !known(k)).copied().collect()
         });
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
+        if missing.is_empty() {
+            return complete.into_inner();
+        }
+        // Room for every key asked; failing to fill only costs a remote lookup next time.
+        let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
         layer.remote.get_each(&missing, |key, value| {
             let Some(bytes) = value else {
                 layer.absent.lock().expect("no panics while locked").insert(*key);
                 complete.store(false, Ordering::Relaxed);
                 return;
             };
-            if check(key, &bytes).is_err() {
+            // The value's one checksum (one blake3 of the whole value, several times faster
+            // than one per artifact); the entry's own is checked when the build uses it.
+            let Ok(entry) = remote_entry(key, &bytes) else {
                 // Looked up again by the build, which reports it and recompiles.
                 complete.store(false, Ordering::Relaxed);
                 return;
-            }
-            layer.remote.count_hit();
-            let full = {
-                let mut fills = layer.fills.lock().expect("no panics while locked");
-                fills.bytes += bytes.len();
-                fills.entries.push((*key, bytes));
-                fills.bytes >= FILL_BYTES
             };
-            if full {
-                // Failing to fill only costs a remote lookup next time.
-                let _ = self.put_pack_hashed(&[]);
+            layer.remote.count_hit();
+            // A failed write leaves the pack unfinished (removed).
+            if let Some(p) = &pack {
+                let _ = p.push(key, entry);
             }
         });
         // Written now, so that the build's lookups find them here (not in the remote again).
-        let _ = self.put_pack_hashed(&[]);
+        self.finish_fills(pack);
         complete.into_inner()
+    }
+
+    /// Writes the index of a fill pack and renames it into place; the index of this `Cache`
+    /// (if read) then knows its entries. Failing to only costs remote lookups next time.
+    fn finish_fills(&self, pack: Option<fill::FillPack>) {
+        let Some(Ok(Some(path))) = pack.map(fill::FillPack::finish) else { return };
+        let mut index = self.index.write().expect("no panics while locked");
+        if let Some(index) = index.as_mut() {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
+                index.add(Arc::new(pack), rows);
+            }
+        }
     }
 
     fn get_local(&self, key: &Key) -> Lookup {
@@ -486,22 +526,23 @@ impl Cache {
 
     /// [`Cache::put_pack`] with the blake3 of every artifact already known (in the order of
     /// each entry's artifacts). With a remote cache, the pack also holds the remote hits not
-    /// yet filled in, and each of `entries` is stored to the remote (in read-write mode).
+    /// yet filled in (finished as a pack of their own), and each of `entries` is stored to
+    /// the remote (in read-write mode).
     pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
-        let fills = match &self.remote {
-            Some(layer) => std::mem::take(&mut *layer.fills.lock().expect("no panics while locked")).entries,
-            None => Vec::new(),
-        };
-        let local = self.write_pack(entries, &fills);
+        if let Some(layer) = &self.remote {
+            let pending = layer.fills.lock().expect("no panics while locked").take();
+            self.finish_fills(pending);
+        }
+        let local = self.write_pack(entries);
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
-            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &encode_hashed(key, c, hashes)));
+            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &remote_value(key, c, hashes)));
         }
         local
     }
 
-    /// Writes `entries` and the already encoded (and checked) `raw` entries as one pack.
-    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])], raw: &[(Key, Vec<u8>)]) -> Result<(), Error> {
-        if entries.is_empty() && raw.is_empty() {
+    /// Writes `entries` as one pack.
+    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
+        if entries.is_empty() {
             return Ok(());
         }
         let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
@@ -518,11 +559,10 @@ impl Cache {
                 (frames, checksum, len as u64)
             })
             .collect();
-        let count = entries.len() + raw.len();
+        let count = entries.len();
         let mut rows = Vec::with_capacity(count * ROW);
         let mut offset = (PACK_HEADER + count * ROW) as u64;
-        let lens = encoded.iter().map(|e| e.2).chain(raw.iter().map(|(_, bytes)| bytes.len() as u64));
-        for (key, len) in entries.iter().map(|e| e.0).chain(raw.iter().map(|r| r.0)).zip(lens) {
+        for (key, len) in entries.iter().map(|e| e.0).zip(encoded.iter().map(|e| e.2)) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
             rows.extend_from_slice(&len.to_le_bytes());
@@ -536,9 +576,6 @@ impl Cache {
         for (_, checksum, _) in &encoded {
             name.update(checksum.as_bytes());
         }
-        for (_, bytes) in raw {
-            name.update(&bytes[8..40]);
-        }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
         for ((key, c, _), (frames, checksum, _)) in entries.iter().zip(&encoded) {
@@ -546,16 +583,11 @@ impl Cache {
             pieces.push(checksum.as_bytes());
             pieces.extend(body_pieces(key, c, frames));
         }
-        pieces.extend(raw.iter().map(|(_, bytes)| &bytes[..]));
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
-        if let Some(index) = index.as_mut().filter(|_| self.index_puts || !raw.is_empty()) {
-            if let Ok(Some((pack, mut rows))) = open_pack(&path) {
-                if !self.index_puts {
-                    // The pack's rows are the entries', then the fills'.
-                    rows.drain(..entries.len().min(rows.len()));
-                }
+        if let Some(index) = index.as_mut().filter(|_| self.index_puts) {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
                 index.add(Arc::new(pack), rows);
             }
         }
@@ -974,23 +1006,44 @@ fn encode(key: &Key, c: &Compiled) -> Vec<u8> {
     encode_hashed(key, c, &hashes)
 }
 
-/// An entry as one buffer (what the remote cache stores), with its artifacts' blake3.
+/// An entry as one buffer, with its artifacts' blake3.
+#[cfg(test)]
 fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
+    remote_value(key, c, hashes).split_off(REMOTE_HEADER)
+}
+
+/// A remote cache value: [`REMOTE_MAGIC`], keyed blake3 of the entry (keyed by its key), the entry (as a
+/// pack holds it). The value's checksum is one blake3 of a whole buffer: a fill checks it
+/// several times faster than the entry's own checksum (one blake3 per artifact, most of a few
+/// KB), which is checked when the entry is used.
+fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     let frames = frames(c);
     let pieces = body_pieces(key, c, &frames);
-    let mut out = Vec::with_capacity(MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
+    let mut out = Vec::with_capacity(REMOTE_HEADER + MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
+    out.extend_from_slice(REMOTE_MAGIC);
+    out.extend_from_slice(&[0; 32]);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(entry_checksum(key, &frames, hashes).as_bytes());
     pieces.iter().for_each(|p| out.extend_from_slice(p));
+    let sum = blake3::keyed_hash(&key.0, &out[REMOTE_HEADER..]);
+    out[8..REMOTE_HEADER].copy_from_slice(sum.as_bytes());
     out
 }
 
-/// Whether `bytes` is a whole entry of `key` (what [`decode`] checks, without copying the
-/// artifacts out).
-fn check(key: &Key, bytes: &[u8]) -> Result<(), String> {
-    let (_, json) = parse(key, bytes)?;
-    serde_json::from_slice::<Reflection>(json).map_err(|e| format!("bad reflection: {e}"))?;
-    Ok(())
+/// The entry of a whole remote `value` of `key` ([`remote_value`]): its checksum matches and
+/// it is an entry of `key` (magic, length and key; its own checksum is not checked here).
+fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
+    if value.len() < REMOTE_HEADER || &value[..8] != REMOTE_MAGIC {
+        return Err("not a remote cache entry of this kiln".into());
+    }
+    let entry = &value[REMOTE_HEADER..];
+    if blake3::keyed_hash(&key.0, entry).as_bytes() != &value[8..REMOTE_HEADER] {
+        return Err("checksum mismatch".into());
+    }
+    if entry.len() < 72 || &entry[..8] != MAGIC || entry[40..72] != key.0 {
+        return Err("the entry belongs to another key".into());
+    }
+    Ok(entry)
 }
 
 fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {

@@ -1,10 +1,11 @@
 //! The shared remote cache, layered under the local one (like Unreal's local and shared DDC).
 //!
 //! Takes a URL (`redis://host:port[/db]` or `http(s)://host[:port]/prefix`), a [`Mode`] and
-//! credentials from the environment; gives byte values by [`Key`]. The values are the local
-//! cache's entry encoding (magic, checksum, body), so the [`super::Cache`] that layers this
-//! store checks every value it reads exactly as it checks its own packs: a corrupted or
-//! truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
+//! credentials from the environment; gives byte values by [`Key`]. A value is the local
+//! cache's entry encoding (magic, checksum, body) behind a header with one blake3 of the key
+//! and the entry, which the [`super::Cache`] that layers this store checks on every value it
+//! reads (the entry's own checksum is checked when the entry is used, as in its packs): a
+//! corrupted or truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
 //! records and archives (checksummed too) are shared the same way, under their own keys.
 //! [`Remote::get_each`] fetches many values with few round trips (redis `MGET`) or several
 //! requests in flight (HTTP).

@@ -357,3 +357,44 @@ fn only_kilns_own_files_are_cleared_or_evicted() {
     // The damaged-looking foreign pack is reported, not removed.
     assert!(dir.path().join("0123456789abcdef0123456789abcdef.kcp").exists());
 }
+
+#[test]
+fn a_fill_pack_streams_entries_and_leaves_its_unused_rows_a_hole() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (key("a"), key("b"));
+    // Room for five entries, two written: three rows stay unused between index and entries.
+    let pack = fill::FillPack::create(dir.path(), 5).unwrap();
+    pack.push(&a, &encode(&a, &compiled(1))).unwrap();
+    pack.push(&b, &encode(&b, &compiled(2))).unwrap();
+    assert!(!pack.is_full());
+    let path = pack.finish().unwrap().expect("a pack of two entries");
+    let names: Vec<_> = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(names, vec![path], "the temporary file was renamed, nothing else is left");
+    let cache = Cache::open(dir.path()).unwrap();
+    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == compiled(1)));
+    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == compiled(2)));
+    assert_eq!(cache.stats().entries, 2);
+
+    // Dropped unfinished (a failed fill) or finished empty: no file.
+    let unfinished = fill::FillPack::create(dir.path(), 2).unwrap();
+    unfinished.push(&a, &encode(&a, &compiled(1))).unwrap();
+    drop(unfinished);
+    assert_eq!(fill::FillPack::create(dir.path(), 2).unwrap().finish().unwrap(), None);
+    assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+}
+
+#[test]
+fn a_remote_value_is_checked_whole_and_bound_to_its_key() {
+    let (a, b) = (key("a"), key("b"));
+    let c = compiled(1);
+    let hashes: Vec<blake3::Hash> = c.artifacts.iter().map(|(_, x)| blake3::hash(x)).collect();
+    let value = remote_value(&a, &c, &hashes);
+    assert_eq!(remote_entry(&a, &value).unwrap(), &encode(&a, &c)[..]);
+    assert!(remote_entry(&b, &value).is_err(), "stored under another key");
+    assert!(remote_entry(&a, &value[..value.len() - 1]).is_err(), "truncated");
+    for at in [0, 8, REMOTE_HEADER + 50, value.len() - 1] {
+        let mut bad = value.clone();
+        bad[at] ^= 0x40;
+        assert!(remote_entry(&a, &bad).is_err(), "byte {at} flipped");
+    }
+}

@@ -1,0 +1,145 @@
+//! Remote hits written into the local cache as they arrive: a pack streamed to disk.
+
+use std::fs;
+use std::io;
+use std::os::unix::fs::{FileExt, OpenOptionsExt};
+use std::os::unix::io::AsRawFd;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+
+use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
+
+/// A pack written entry by entry as checked remote entries arrive, so that a fill holds no
+/// entry in memory: room for `capacity` index rows is left after the header, each entry is
+/// written at once after it, and the header and rows are written last. Rows left unused
+/// (keys the remote lacked) stay a hole between the index and the first entry, which readers
+/// never look at (rows give absolute offsets). The file is a temporary one of the cache
+/// folder (named as [`crate::output`] names them, after a pack, and locked while written, so
+/// that a writer that dies leaves a file the next `open`, `gc` or `clear` removes) and is
+/// renamed, named by its content, once whole. Several threads push at once: each takes
+/// its entry's place under a lock and writes it outside the lock.
+pub(super) struct FillPack {
+    dir: PathBuf,
+    tmp: PathBuf,
+    file: fs::File,
+    capacity: usize,
+    rows: Mutex<Rows>,
+    /// A write failed: the pack is not finished.
+    failed: AtomicBool,
+    /// Renamed into place.
+    finished: bool,
+}
+
+struct Rows {
+    rows: Vec<u8>,
+    /// Where the next entry goes.
+    offset: u64,
+    /// The entries' checksums, for the pack's name.
+    checksums: blake3::Hasher,
+}
+
+impl FillPack {
+    /// A new pack in `dir` with room for `capacity` entries.
+    pub fn create(dir: &Path, capacity: usize) -> io::Result<FillPack> {
+        use std::sync::atomic::{AtomicU64, Ordering};
+        static COUNTER: AtomicU64 = AtomicU64::new(0);
+        let nanos =
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
+        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+        let pid = std::process::id();
+        let stem = blake3::hash(format!("kiln fill {pid} {nanos} {n}").as_bytes()).to_hex();
+        let tmp = dir.join(format!(".{}.{PACK_EXTENSION}.{pid}.{}.{n}.tmp", &stem[..32], nanos % 1_000_000_000));
+        let file = fs::OpenOptions::new().write(true).read(true).create_new(true).mode(0o644).open(&tmp)?;
+        // Held until the file is closed: a cleaner in another pid namespace sees it is alive.
+        // SAFETY: flock on a descriptor we own.
+        unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        let capacity = capacity.max(1);
+        Ok(FillPack {
+            dir: dir.to_path_buf(),
+            tmp,
+            file,
+            capacity,
+            rows: Mutex::new(Rows {
+                rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
+                offset: (PACK_HEADER + capacity * ROW) as u64,
+                checksums: blake3::Hasher::new(),
+            }),
+            failed: AtomicBool::new(false),
+            finished: false,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.rows.lock().expect("no panics while locked").rows.len() / ROW
+    }
+
+    pub fn is_full(&self) -> bool {
+        self.len() >= self.capacity
+    }
+
+    /// Writes the checked entry `bytes` of `key`. An error when the pack is full or the
+    /// write fails (then the pack is not finished).
+    pub fn push(&self, key: &Key, bytes: &[u8]) -> io::Result<()> {
+        let offset = {
+            let mut r = self.rows.lock().expect("no panics while locked");
+            if r.rows.len() / ROW >= self.capacity || bytes.len() < 40 {
+                return Err(io::Error::other("the fill pack is full"));
+            }
+            let offset = r.offset;
+            r.rows.extend_from_slice(&key.0);
+            r.rows.extend_from_slice(&offset.to_le_bytes());
+            r.rows.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+            r.checksums.update(&bytes[8..40]);
+            r.offset += bytes.len() as u64;
+            offset
+        };
+        self.file.write_all_at(bytes, offset).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
+    }
+
+    /// Writes the header and the rows and renames the pack into place; its path (none when
+    /// it is empty: nothing is left behind).
+    pub fn finish(mut self) -> io::Result<Option<PathBuf>> {
+        let path = self.write_index()?;
+        self.finished = path.is_some();
+        Ok(path)
+    }
+
+    fn write_index(&self) -> io::Result<Option<PathBuf>> {
+        if self.failed.load(Ordering::Relaxed) {
+            return Err(io::Error::other("an entry could not be written"));
+        }
+        let r = self.rows.lock().expect("no panics while locked");
+        if r.rows.is_empty() {
+            return Ok(None);
+        }
+        let rows_hash = blake3::hash(&r.rows);
+        let mut head = Vec::with_capacity(PACK_HEADER + r.rows.len());
+        head.extend_from_slice(PACK_MAGIC);
+        head.extend_from_slice(&((r.rows.len() / ROW) as u64).to_le_bytes());
+        head.extend_from_slice(rows_hash.as_bytes());
+        head.extend_from_slice(&r.rows);
+        self.file.write_all_at(&head, 0)?;
+        let mut name = blake3::Hasher::new();
+        name.update(rows_hash.as_bytes());
+        name.update(r.checksums.finalize().as_bytes());
+        let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
+        fs::rename(&self.tmp, &path)?;
+        Ok(Some(path))
+    }
+}
+
+impl Drop for FillPack {
+    /// A pack not finished (or whose finishing failed) leaves nothing behind.
+    fn drop(&mut self) {
+        if !self.finished {
+            let _ = fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+impl std::fmt::Debug for FillPack {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FillPack").field("tmp", &self.tmp).field("entries", &self.len()).finish()
+    }
+}
