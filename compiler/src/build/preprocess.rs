@@ -50,6 +50,16 @@ impl Preprocessed {
         self.rows.get(self.of[i] as usize)
     }
 
+    /// The number of permutation `i`'s row; `None` where it failed.
+    pub fn row_number(&self, i: usize) -> Option<usize> {
+        Some(self.of[i] as usize).filter(|&r| r < self.rows.len())
+    }
+
+    /// The distinct results (a key may have several: results that differ in what was read).
+    pub fn rows(&self) -> &[Row] {
+        &self.rows
+    }
+
     /// Permutation `i`'s key; `None` where it failed.
     pub fn key(&self, i: usize) -> Option<&Key> {
         self.row(i).map(|r| &r.key)
