@@ -334,7 +334,7 @@ impl<'c> Plan<'c> {
                     .map(|k| {
                         let members = keys.members(k);
                         let (_, level) = self.shader_level(members[0]);
-                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| r.text_len).max();
+                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| u64::from(r.text_len)).max();
                         len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
                     })
                     .collect();

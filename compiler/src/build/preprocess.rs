@@ -6,7 +6,7 @@
 //! every define the latter's files name reuses its result. A freshly preprocessed
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
-//! number of its [`Row`] (4 bytes), per distinct result a 56-byte row whose lists are
+//! number of its [`Row`] (4 bytes), per distinct result a 48-byte row whose lists are
 //! numbers in one [`Interner`]. The records for the next build are made from the rows
 //! when they are saved (each permutation's direct key is made again then).
 
@@ -282,7 +282,7 @@ impl<'p> Preprocessor<'p> {
         let mut interner = self.lists();
         let row = Row {
             key,
-            text_len: output.text.len() as u64,
+            text_len: u32::try_from(output.text.len()).unwrap_or(u32::MAX),
             files: interner.files.intern(files),
             absent: interner.absent.intern(output.absent.clone()),
             warnings: interner.warnings.intern(warnings),
