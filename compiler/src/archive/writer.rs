@@ -788,7 +788,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
-    // Dictionaries, trained (and made ready to compress with) per target in parallel.
+    // Dictionaries, trained (and made ready to compress with) one target after another.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
     let (dictionaries, cdicts) = dictionaries(&plan, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
