@@ -248,10 +248,6 @@ impl Entries {
         self.permutations.push(pending);
         Ok(())
     }
-
-    fn name(&self, p: &Pending) -> &str {
-        &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]
-    }
 }
 
 /// Where blob bytes wait until the archive is assembled.
@@ -589,17 +585,18 @@ impl Plan {
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
 /// the result depends on the set added, not on the order of adding. The arenas are kept:
-/// the manifest's permutations point into them.
+/// the manifest's permutations point into them. The permutations are sorted and the
+/// artifacts' slots turned into blob ids in place: no second copy of either table (they
+/// grow with the set, and this runs at the build's end, on top of the manifest).
 fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
     let BlobTable { slots, table, spooled: spool_len, .. } = table;
     drop(table);
-    let mut order: Vec<u32> = (0..entries.permutations.len() as u32).collect();
-    let name = |i: u32| entries.name(&entries.permutations[i as usize]);
-    order.sort_unstable_by(|&a, &b| name(a).cmp(name(b)));
-    if let Some(w) = order.windows(2).find(|w| name(w[0]) == name(w[1])) {
-        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", name(w[0]))));
+    let Entries { naga_version, shaders, reflections, mut permutations, names, values, mut artifacts, .. } = entries;
+    let name = |p: &Pending| &names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
+    permutations.sort_unstable_by(|a, b| name(a).cmp(name(b)));
+    if let Some(w) = permutations.windows(2).find(|w| name(&w[0]) == name(&w[1])) {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", name(&w[0]))));
     }
-    let Entries { naga_version, shaders, reflections, permutations, names, values, artifacts, .. } = entries;
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
@@ -608,11 +605,7 @@ fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
     // Each slot's blob id, by first use.
     let mut blob_ids: Vec<u32> = vec![u32::MAX; slots.len()];
     let mut blobs = Vec::new();
-    // Each artifact's blob, in the arena's order.
-    let mut blob_of: Vec<(Target, BlobId)> = vec![(Target::Wgsl, BlobId(0)); artifacts.len()];
-    manifest.permutations.reserve_exact(order.len());
-    for i in order {
-        let mut p = permutations[i as usize];
+    for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
             manifest.shaders.len() as u32 - 1
@@ -622,26 +615,30 @@ fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
             manifest.reflections.len() as u32 - 1
         });
         let first = p.first_artifact as usize;
-        for a in first..first + p.artifact_count as usize {
-            let (target, slot) = artifacts[a];
-            let id = match blob_ids[slot as usize] {
+        // Each artifact belongs to one permutation: its slot becomes its blob id once.
+        for (target, slot) in &mut artifacts[first..first + p.artifact_count as usize] {
+            *slot = match blob_ids[*slot as usize] {
                 u32::MAX => {
-                    if slots[slot as usize].len == NOT_ADDED {
-                        let name = &names[p.name_start as usize..][..p.name_len as usize];
+                    if slots[*slot as usize].len == NOT_ADDED {
                         return Err(ArchiveError::Input(format!(
-                            "permutation `{name}` names a {target} blob that was never added"
+                            "permutation `{}` names a {target} blob that was never added",
+                            name(p)
                         )));
                     }
                     let id = blobs.len() as u32;
-                    blobs.push(PlannedBlob { target, slot });
-                    blob_ids[slot as usize] = id;
+                    blobs.push(PlannedBlob { target: *target, slot: *slot });
+                    blob_ids[*slot as usize] = id;
                     id
                 }
                 id => id,
             };
-            blob_of[a] = (target, BlobId(id));
         }
-        manifest.permutations.push(ManifestPermutation {
+    }
+    drop(blob_ids);
+    // Same layouts: these collect in place.
+    manifest.permutations = permutations
+        .into_iter()
+        .map(|p| ManifestPermutation {
             name_start: p.name_start,
             name_len: p.name_len,
             shader: p.shader,
@@ -649,12 +646,11 @@ fn plan(entries: Entries, table: BlobTable) -> Result<Plan, ArchiveError> {
             first_value: p.first_value,
             first_artifact: p.first_artifact,
             artifact_count: p.artifact_count,
-        });
-    }
-    drop((permutations, artifacts, blob_ids));
+        })
+        .collect();
+    manifest.artifacts = artifacts.into_iter().map(|(t, id)| (t, BlobId(id))).collect();
     manifest.names = names;
     manifest.values = values;
-    manifest.artifacts = blob_of;
     Ok(Plan { manifest, blobs, slots, spool_len })
 }
 
@@ -759,18 +755,21 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
 /// compiled form, zstd's tables of a dictionary, made on the same worker that trained it).
 type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'static>>>);
 
-/// Trains the dictionary of each of `targets` (those with enough to learn from), in parallel.
+/// Trains the dictionary of each of `targets` (those with enough to learn from), one after
+/// another: a training's sample and zstd's tables are about 4 MiB, and this runs at the
+/// build's end on top of the manifest, its highest point at 100k permutations (two
+/// trainings at once put 4 MiB more on the peak to save 20 ms at 100k).
 fn dictionaries(plan: &Plan, targets: &[Target], spool: &Spool<'_>) -> std::io::Result<Dictionaries> {
-    let trained = par_map(
-        targets,
-        || (),
-        |_, t| -> std::io::Result<_> {
+    let trained: Vec<_> = targets
+        .iter()
+        .map(|t| -> std::io::Result<_> {
             Ok(train(plan, *t, spool)?.map(|d| {
                 let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
                 (*t, d, cdict)
             }))
-        },
-    );
+        })
+        .collect();
+
     let (mut dictionaries, mut cdicts) = (Vec::new(), Vec::new());
     for t in trained {
         if let Some((target, d, cdict)) = t? {
@@ -789,7 +788,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
-    // Dictionaries, trained (and made ready to compress with) per target in parallel.
+    // Dictionaries, trained (and made ready to compress with) one target after another.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
     let (dictionaries, cdicts) = dictionaries(&plan, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);

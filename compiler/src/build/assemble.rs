@@ -346,7 +346,7 @@ impl<'p> Assembler<'p> {
             for i in (0..plan.len()).filter(|&i| pre.key(i).is_some()) {
                 n += 1;
                 names += plan.name(i).len();
-                values += plan.values(i).len();
+                values += plan.shader_level(i).0.dimensions.len();
                 artifacts += pre.key(i).and_then(|k| produced.get(k)).map_or(0, |e| e.count as usize);
             }
             w.reserve(n, names, values, artifacts);
@@ -384,7 +384,7 @@ impl<'p> Assembler<'p> {
             w.add_permutation_numbered(NewPermutation {
                 name,
                 shader,
-                values: plan.values(i).to_vec(),
+                values: plan.values(i),
                 reflection: &produced.reflections[entry.reflection as usize],
                 artifacts: artifacts.to_vec(),
             })

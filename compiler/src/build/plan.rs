@@ -75,16 +75,20 @@ fn selected(options: &Options, level: &permute::Level) -> bool {
     options.levels.is_empty() || options.levels.contains(&level.name)
 }
 
-/// The permutations to build, compact: each kept permutation is its values in one flat
-/// table (a few bytes per dimension), its shader and level those of its run; a
-/// [`Permutation`] is made again where one is needed ([`Plan::permutation`]).
+/// The permutations to build, compact: each kept permutation is the number of its values
+/// in its shader's domain (4 bytes, decoded by [`Plan::values`]), or where a domain has more
+/// than 2^32 points its values in one flat table; its shader and level are those of its run.
+/// A [`Permutation`] is made again where one is needed ([`Plan::permutation`]).
 pub(super) struct Plan<'c> {
     pub config: &'c Config,
     pub options: &'c Options,
     /// Each run of kept permutations of one (shader, level), in enumeration order (the
     /// archive's order).
     runs: Vec<Run<'c>>,
-    /// Every kept permutation's values, one after another.
+    /// Each kept permutation's point in its domain, mixed radix (the first dimension the
+    /// most significant); unused (0) in the runs of a larger domain.
+    points: Vec<u32>,
+    /// The values of the kept permutations of larger domains, one after another.
     values: Vec<i64>,
     /// Kept permutations.
     len: usize,
@@ -92,20 +96,70 @@ pub(super) struct Plan<'c> {
     pub skipped: u128,
 }
 
-/// Kept permutations `first..` (until the next run) of one shader at one level; their
-/// values start at `first_value`, `shader.dimensions.len()` each.
+/// The values of point `point` of `shader`'s domain ([`Domain::point`] undone).
+fn decode(shader: &Shader, mut point: u32) -> Vec<i64> {
+    let mut values = vec![0; shader.dimensions.len()];
+    for (v, d) in values.iter_mut().zip(&shader.dimensions).rev() {
+        let n = d.values.len() as u32;
+        *v = d.values[(point % n) as usize];
+        point /= n;
+    }
+    values
+}
+
+/// Kept permutations `first..` (until the next run) of one shader at one level; with
+/// `flat`, their values start at `first_value`, `shader.dimensions.len()` each.
 struct Run<'c> {
     shader: &'c Shader,
     level: &'c Level,
     first: usize,
     first_value: usize,
+    flat: bool,
+}
+
+/// Numbers the points of a shader's domain: each dimension's value by its place in the
+/// dimension's list.
+struct Domain {
+    places: Vec<HashMap<i64, u32>>,
+}
+
+impl Domain {
+    /// `None` where the domain has more than 2^32 points.
+    fn new(shader: &Shader) -> Option<Domain> {
+        let size = shader.dimensions.iter().try_fold(1u64, |n, d| n.checked_mul(d.values.len() as u64))?;
+        if size > 1 << 32 {
+            return None;
+        }
+        let places = shader
+            .dimensions
+            .iter()
+            .map(|d| {
+                let mut places = HashMap::with_capacity(d.values.len());
+                for (k, v) in d.values.iter().enumerate() {
+                    places.entry(*v).or_insert(k as u32);
+                }
+                places
+            })
+            .collect();
+        Some(Domain { places })
+    }
+
+    /// The point of `values`; `None` for a value not in its dimension's list.
+    fn point(&self, shader: &Shader, values: &[i64]) -> Option<u32> {
+        let mut point = 0u64;
+        for ((d, places), v) in shader.dimensions.iter().zip(&self.places).zip(values) {
+            point = point * d.values.len() as u64 + u64::from(*places.get(v)?);
+        }
+        u32::try_from(point).ok()
+    }
 }
 
 impl<'c> Plan<'c> {
     /// Enumerates, pruned: a skip rule decided on the first dimensions skips their subtree.
     /// A skip rule or derived define that cannot be evaluated is a configuration error.
     pub fn new(config: &'c Config, options: &'c Options) -> Result<Plan<'c>, Error> {
-        let (mut runs, mut values, mut len) = (Vec::<Run<'c>>::new(), Vec::new(), 0);
+        let (mut runs, mut points, mut values, mut len) = (Vec::<Run<'c>>::new(), Vec::new(), Vec::new(), 0);
+        let mut domain: Option<Domain> = None;
         let mut stream = config.kept_where(|_, level| selected(options, level));
         for p in &mut stream {
             if let Some(e) = config.evaluation_error(&p) {
@@ -113,14 +167,41 @@ impl<'c> Plan<'c> {
             }
             let same = runs.last().is_some_and(|r| std::ptr::eq(r.shader, p.shader) && std::ptr::eq(r.level, p.level));
             if !same {
-                runs.push(Run { shader: p.shader, level: p.level, first: len, first_value: values.len() });
+                if runs.last().is_none_or(|r| !std::ptr::eq(r.shader, p.shader)) {
+                    domain = Domain::new(p.shader);
+                }
+                runs.push(Run {
+                    shader: p.shader,
+                    level: p.level,
+                    first: len,
+                    first_value: values.len(),
+                    flat: domain.is_none(),
+                });
             }
-            values.extend_from_slice(&p.values);
+            let run = runs.last_mut().expect("pushed above");
+            match domain.as_ref().filter(|_| !run.flat).and_then(|d| d.point(p.shader, &p.values)) {
+                Some(point) => points.push(point),
+                None if run.flat => {
+                    points.push(0);
+                    values.extend_from_slice(&p.values);
+                }
+                None => {
+                    // A value outside its list (the enumeration makes none): this run keeps
+                    // its values flat, from its first permutation.
+                    run.flat = true;
+                    for &point in &points[run.first..len] {
+                        values.extend_from_slice(&decode(run.shader, point));
+                    }
+                    points.push(0);
+                    values.extend_from_slice(&p.values);
+                }
+            }
             len += 1;
         }
         runs.shrink_to_fit();
+        points.shrink_to_fit();
         values.shrink_to_fit();
-        Ok(Plan { config, options, runs, values, len, skipped: stream.skipped() })
+        Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped() })
     }
 
     /// Kept permutations.
@@ -143,23 +224,26 @@ impl<'c> Plan<'c> {
     }
 
     /// The values of kept permutation `i`, one per dimension.
-    pub fn values(&self, i: usize) -> &[i64] {
+    pub fn values(&self, i: usize) -> Vec<i64> {
         let r = self.run(i);
-        let n = r.shader.dimensions.len();
-        let at = r.first_value + (i - r.first) * n;
-        &self.values[at..at + n]
+        if r.flat {
+            let n = r.shader.dimensions.len();
+            let at = r.first_value + (i - r.first) * n;
+            return self.values[at..at + n].to_vec();
+        }
+        decode(r.shader, self.points[i])
     }
 
     /// Kept permutation `i`, evaluated again (its derived defines).
     pub fn permutation(&self, i: usize) -> Permutation<'c> {
         let (shader, level) = self.shader_level(i);
-        Permutation::new(shader, level, self.values(i).to_vec())
+        Permutation::new(shader, level, self.values(i))
     }
 
     /// The canonical name of kept permutation `i`.
     pub fn name(&self, i: usize) -> String {
         let (shader, level) = self.shader_level(i);
-        permute::canonical_name(shader, level, self.values(i))
+        permute::canonical_name(shader, level, &self.values(i))
     }
 
     /// The kept permutations of each (shader, level), as index ranges, in order.
@@ -193,19 +277,41 @@ impl<'c> Plan<'c> {
     /// keys this process must produce.
     pub fn group(&self, pre: &Preprocessed) -> Keys {
         // Each permutation's key number, by first appearance; then the members of each key,
-        // one after another (counting sort).
-        let mut keys: Vec<Key> = Vec::with_capacity(self.len);
-        let mut number: HashMap<Key, u32> = HashMap::with_capacity(self.len);
+        // one after another (counting sort). Keys are found equal by sorting the rows (the
+        // distinct results, about one per key) by key: 12 bytes a row, where a map from key to
+        // number took about 50 a permutation.
+        let rows = pre.rows();
+        let mut order: Vec<u32> = (0..rows.len() as u32).collect();
+        order.sort_unstable_by(|&a, &b| rows[a as usize].key.cmp(&rows[b as usize].key));
+        // Each row's representative: the first row of its key in `order`.
+        let mut same = vec![0u32; rows.len()];
+        let mut distinct = 0;
+        for (k, &r) in order.iter().enumerate() {
+            let first = match k {
+                0 => r,
+                _ if rows[order[k - 1] as usize].key != rows[r as usize].key => r,
+                _ => same[order[k - 1] as usize],
+            };
+            distinct += usize::from(first == r);
+            same[r as usize] = first;
+        }
+        drop(order);
+        let mut number = vec![u32::MAX; rows.len()];
+        let mut keys: Vec<Key> = Vec::with_capacity(distinct);
         let of: Vec<u32> = (0..self.len)
-            .map(|i| match pre.key(i) {
-                Some(key) => *number.entry(*key).or_insert_with(|| {
-                    keys.push(*key);
-                    keys.len() as u32 - 1
-                }),
+            .map(|i| match pre.row_number(i) {
+                Some(r) => {
+                    let first = same[r] as usize;
+                    if number[first] == u32::MAX {
+                        number[first] = keys.len() as u32;
+                        keys.push(rows[first].key);
+                    }
+                    number[first]
+                }
                 None => u32::MAX,
             })
             .collect();
-        drop(number);
+        drop((same, number));
         let mut starts = vec![0usize; keys.len() + 1];
         for &k in of.iter().filter(|&&k| k != u32::MAX) {
             starts[k as usize + 1] += 1;
@@ -228,7 +334,7 @@ impl<'c> Plan<'c> {
                     .map(|k| {
                         let members = keys.members(k);
                         let (_, level) = self.shader_level(members[0]);
-                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| r.text_len).max();
+                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| u64::from(r.text_len)).max();
                         len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
                     })
                     .collect();
@@ -357,7 +463,7 @@ levels = ["es3", "sm5"]
                 (p.shader.name.as_str(), p.level.name.as_str())
             );
             assert_eq!((&q.values, &q.derived), (&p.values, &p.derived), "{}", p.name());
-            assert_eq!(plan.values(i), &p.values[..]);
+            assert_eq!(plan.values(i), p.values);
             assert_eq!(plan.name(i), p.name());
         }
         let runs: Vec<(String, String, usize)> =
@@ -368,6 +474,44 @@ levels = ["es3", "sm5"]
         // 5 x 2 x 3 values less the 5 of X == 2 && Y == 1 at sm5; es3 also skips Z == 8.
         assert_eq!(runs[0].2, 30 - 3);
         assert_eq!(runs[1].2, 20 - 2);
+    }
+
+    #[test]
+    fn a_domain_past_2_32_points_keeps_its_values_flat() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("A.usf"), "fn a() {}\n").unwrap();
+        let text = r#"
+[compiler]
+include = ["."]
+[levels.sm5]
+defines = { FL = 5 }
+targets = ["wgsl"]
+[[shader]]
+name = "A"
+source = "A.usf"
+entry = "main"
+stage = "fragment"
+dimensions = { X = [-3, 7, 5], Y = { range = [0, 65535] }, Z = { range = [0, 65535] }, W = [2, 1] }
+skip = [ { when = "Y > 1", why = "t" }, { when = "Z > 2", why = "t" } ]
+[[shader]]
+name = "B"
+source = "A.usf"
+entry = "main"
+stage = "fragment"
+dimensions = { X = [-3, 7, 5], Y = { range = [0, 99] } }
+"#;
+        // 3 x 65536 x 65536 x 2 points
+        let config = permute::load_str(text, &dir.path().join("permutations.toml")).unwrap();
+        let options = Options::default();
+        let plan = Plan::new(&config, &options).unwrap();
+        let kept: Vec<Permutation<'_>> = config.kept_where(|_, _| true).collect();
+        assert_eq!(plan.len(), kept.len());
+        assert_eq!(kept.len(), 3 * 2 * 3 * 2 + 3 * 100);
+        assert_eq!(plan.runs.iter().map(|r| r.flat).collect::<Vec<_>>(), [true, false]);
+        for (i, p) in kept.iter().enumerate() {
+            assert_eq!(plan.values(i), p.values, "{}", p.name());
+            assert_eq!(plan.name(i), p.name());
+        }
     }
 
     #[test]

@@ -6,7 +6,7 @@
 //! every define the latter's files name reuses its result. A freshly preprocessed
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
-//! number of its [`Row`] (4 bytes), per distinct result a 56-byte row whose lists are
+//! number of its [`Row`] (4 bytes), per distinct result a 48-byte row whose lists are
 //! numbers in one [`Interner`]. The records for the next build are made from the rows
 //! when they are saved (each permutation's direct key is made again then).
 
@@ -48,6 +48,16 @@ impl Preprocessed {
     /// Permutation `i`'s result; `None` where it failed.
     pub fn row(&self, i: usize) -> Option<&Row> {
         self.rows.get(self.of[i] as usize)
+    }
+
+    /// The number of permutation `i`'s row; `None` where it failed.
+    pub fn row_number(&self, i: usize) -> Option<usize> {
+        Some(self.of[i] as usize).filter(|&r| r < self.rows.len())
+    }
+
+    /// The distinct results (a key may have several: results that differ in what was read).
+    pub fn rows(&self) -> &[Row] {
+        &self.rows
     }
 
     /// Permutation `i`'s key; `None` where it failed.
@@ -272,7 +282,7 @@ impl<'p> Preprocessor<'p> {
         let mut interner = self.lists();
         let row = Row {
             key,
-            text_len: output.text.len() as u64,
+            text_len: u32::try_from(output.text.len()).unwrap_or(u32::MAX),
             files: interner.files.intern(files),
             absent: interner.absent.intern(output.absent.clone()),
             warnings: interner.warnings.intern(warnings),

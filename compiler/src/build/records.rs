@@ -1,7 +1,7 @@
 //! Preprocessing records, compact: what preprocessing one permutation gave ([`Row`]), and
 //! the binary encoding of a configuration's set of them (stored by the cache under one key).
 //!
-//! A [`Row`] is 56 bytes: its lists of files, missing include candidates and warnings are
+//! A [`Row`] is 48 bytes: its lists of files, missing include candidates and warnings are
 //! numbers in the build's [`Interner`] (many permutations read the same files). A set of
 //! records is one table sorted by direct key, looked up by binary search: no allocation
 //! per permutation, in memory or on disk.
@@ -36,8 +36,9 @@ pub(super) type FileEntry = (PathBuf, [u8; 32]);
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) struct Row {
     pub key: Key,
-    /// Length of the preprocessed text (the key's estimated compile cost).
-    pub text_len: u64,
+    /// Length of the preprocessed text (the key's estimated compile cost), saturating: 48
+    /// bytes a row rather than 56.
+    pub text_len: u32,
     /// Files read ([`Interner::files`]).
     pub files: u32,
     /// Include candidates that were missing ([`Interner::absent`]): the record holds only
@@ -184,7 +185,7 @@ pub(super) fn encode<'a>(
     for (direct, r) in rows {
         out.extend_from_slice(&direct.0);
         out.extend_from_slice(&r.key.0);
-        out.extend_from_slice(&r.text_len.to_le_bytes());
+        out.extend_from_slice(&u64::from(r.text_len).to_le_bytes());
         for i in [files.number[&r.files], absent.number[&r.absent], warnings.number[&r.warnings]] {
             out.extend_from_slice(&i.to_le_bytes());
         }
@@ -269,7 +270,7 @@ pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Opti
         let direct = Key(r.hash()?);
         let row = Row {
             key: Key(r.hash()?),
-            text_len: r.u64()?,
+            text_len: u32::try_from(r.u64()?).unwrap_or(u32::MAX),
             files: *files.get(r.u32()? as usize)?,
             absent: *absent.get(r.u32()? as usize)?,
             warnings: *warnings.get(r.u32()? as usize)?,
@@ -286,7 +287,7 @@ mod tests {
     fn row(i: &mut Interner, k: u8, files: Vec<FileEntry>) -> Row {
         Row {
             key: Key([k; 32]),
-            text_len: 100 + k as u64,
+            text_len: 100 + k as u32,
             files: i.files.intern(files),
             absent: i.absent.intern(vec![PathBuf::from("/a/missing.ush")]),
             warnings: i.warnings.intern(vec!["warning: w".to_string()]),

@@ -328,7 +328,7 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
                     complete = false;
                     break;
                 };
-                let mut rest = plan.values(m).to_vec();
+                let mut rest = plan.values(m);
                 rest.remove(d);
                 rows.entry(rest).or_default().push(key);
             }

@@ -8,18 +8,19 @@
 //! with the entry point, the stage, the targets and the level's limits (which decide the
 //! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
 //! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
-//! thread. The first key with a module runs the writers and keeps nothing but the hash: most
-//! modules of a build belong to one key (616 of 621 on the bundled set), and keeping a copy
-//! of every key's artifacts in case another key shares them cost more (a copy, and memory
-//! the size of the build's output, faulted in page by page) than the sharing saved. The
+//! thread. The first key with a module runs the writers and keeps nothing but 16 bytes of the
+//! hash: most modules of a build belong to one key (616 of 621 on the bundled set), and keeping
+//! a copy of every key's artifacts in case another key shares them cost more (a copy, and
+//! memory the size of the build's output, faulted in page by page) than the sharing saved. The
 //! second key with a module runs the writers again and keeps their outputs; every later one
-//! takes a copy. naga's writers are deterministic functions of the module, its info and
-//! their options, so the artifacts are byte-identical to those the key would have written
-//! itself, whatever the order the keys are compiled in.
+//! takes a copy. naga's writers are deterministic functions of the module, its info and their
+//! options, so the artifacts are byte-identical to those the key would have written itself,
+//! whatever the order the keys are compiled in.
 //!
 //! The cache key stays the token hash: this map lives for one build and changes no key.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -29,19 +30,55 @@ use crate::archive::Target;
 /// The artifacts of one compacted module, or the writer's error.
 type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
 
-/// What a build knows of one compacted module.
-enum Slot {
-    /// One key had it; its artifacts were not kept.
-    Seen,
-    /// The writers' outputs, kept once a second key had it (or being written by that key).
-    Kept(Arc<OnceLock<Written>>),
+/// A module's identity: the first 16 bytes of its [`module_hash`] (a collision among 2^32
+/// modules has odds of about 2^-64), 16 bytes a module rather than 32.
+type Ident = u128;
+
+fn ident(hash: &blake3::Hash) -> Ident {
+    let mut first = [0; 16];
+    first.copy_from_slice(&hash.as_bytes()[..16]);
+    Ident::from_le_bytes(first)
+}
+
+/// Hashes an [`Ident`] by its low 8 bytes: it is already a uniform hash.
+#[derive(Default)]
+struct IdentHasher(u64);
+
+impl Hasher for IdentHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 << 8 | u64::from(b)) ^ (self.0 >> 56);
+        }
+    }
+
+    fn write_u128(&mut self, n: u128) {
+        self.0 = n as u64;
+    }
+}
+
+type ByIdent = BuildHasherDefault<IdentHasher>;
+
+/// What a build knows of its compacted modules. Most modules belong to one key, so those
+/// are a set of identities (17 bytes a module with the table's control byte, where a map to
+/// an enum of 32-byte hashes took 49), and the few whose outputs are kept are a map beside it.
+#[derive(Default)]
+struct Modules {
+    /// Modules one key had, whose artifacts were not kept (or no longer are: over budget).
+    seen: HashSet<Ident, ByIdent>,
+    /// The writers' outputs, kept once a second key had the module (or being written by that
+    /// key).
+    kept: HashMap<Ident, Arc<OnceLock<Written>>, ByIdent>,
 }
 
 /// The writers' outputs by compacted module, for one build. Memory stays bounded: once the
 /// artifacts kept reach [`SharedWriters::BUDGET`] bytes, a new module's are no longer kept (a
 /// later key with that module runs the writers itself, to the same bytes).
 pub struct SharedWriters {
-    map: Mutex<HashMap<blake3::Hash, Slot>>,
+    map: Mutex<Modules>,
     shared: AtomicUsize,
     /// Bytes of artifacts held in `map`.
     kept: AtomicUsize,
@@ -83,22 +120,21 @@ impl SharedWriters {
         }
         let v = super::validate(source, entry, stage, &options.limits)?;
         let reflection = super::checked_reflection(&v, options)?;
-        let hash = module_hash(&v, options);
+        let id = ident(&module_hash(&v, options));
         let cell = {
             let mut map = self.map.lock().expect("no panics while locked");
-            match map.get_mut(&hash) {
-                None => {
-                    map.insert(hash, Slot::Seen);
-                    None
-                }
+            if let Some(cell) = map.kept.get(&id) {
+                Some(cell.clone())
+            } else if map.seen.insert(id) {
+                None
+            } else if self.kept.load(Ordering::Relaxed) >= Self::BUDGET {
                 // Over budget, keys of modules not kept run their writers without a copy.
-                Some(Slot::Seen) if self.kept.load(Ordering::Relaxed) >= Self::BUDGET => None,
-                Some(slot @ Slot::Seen) => {
-                    let cell = Arc::<OnceLock<Written>>::default();
-                    *slot = Slot::Kept(cell.clone());
-                    Some(cell)
-                }
-                Some(Slot::Kept(cell)) => Some(cell.clone()),
+                None
+            } else {
+                map.seen.remove(&id);
+                let cell = Arc::<OnceLock<Written>>::default();
+                map.kept.insert(id, cell.clone());
+                Some(cell)
             }
         };
         let Some(cell) = cell else {
@@ -115,9 +151,11 @@ impl SharedWriters {
         } else if let Ok(artifacts) = written {
             let bytes: usize = artifacts.iter().map(|(_, b)| b.len()).sum();
             if self.kept.fetch_add(bytes, Ordering::Relaxed) + bytes > Self::BUDGET {
-                // Over budget: keep only the hash (callers already waiting on it still get it).
+                // Over budget: keep only the identity (callers already waiting on it still get it).
                 self.kept.fetch_sub(bytes, Ordering::Relaxed);
-                self.map.lock().expect("no panics while locked").insert(hash, Slot::Seen);
+                let mut map = self.map.lock().expect("no panics while locked");
+                map.kept.remove(&id);
+                map.seen.insert(id);
             }
         }
         Ok(Compiled { artifacts: written.clone()?, reflection })
