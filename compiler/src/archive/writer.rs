@@ -3,7 +3,8 @@
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
 //! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
-//! and memory holds only hashes, offsets and the manifest. [`StreamingWriter::finish`] sorts
+//! and memory holds only the blobs' 16-byte identities and the manifest (where each blob's
+//! bytes lie goes to a second unlinked file, read back at the end). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, trains one
 //! dictionary per target on a deterministic sample, compresses, and writes the archive
 //! through a temporary file and a rename. The bytes of the archive therefore depend only on
