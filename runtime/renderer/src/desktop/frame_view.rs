@@ -7,6 +7,7 @@ use bytemuck::Pod;
 use glam::{Mat4, Vec2, Vec4};
 use wgpu::util::DeviceExt;
 
+pub use crate::frame::target_2d;
 use crate::frame::{GroupedRenderPass, PassContext};
 
 /// Element `index` (from 1) of the Halton sequence in `base`, in [0, 1).
@@ -126,26 +127,6 @@ pub fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> 
         label: Some(label),
         contents: bytemuck::bytes_of(value),
         usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-    })
-}
-
-/// A 2D render or storage target with one mip.
-pub fn target_2d(
-    device: &wgpu::Device,
-    label: &str,
-    size: [u32; 2],
-    format: wgpu::TextureFormat,
-    usage: wgpu::TextureUsages,
-) -> wgpu::Texture {
-    device.create_texture(&wgpu::TextureDescriptor {
-        label: Some(label),
-        size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format,
-        usage: usage | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
     })
 }
 

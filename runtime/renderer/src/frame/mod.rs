@@ -561,3 +561,23 @@ pub fn write_dump(dir: &Path, info: &DumpInfo<'_>, passes: &[PassResult]) -> std
     let text = serde_json::to_string_pretty(&json).map_err(std::io::Error::other)?;
     kiln::archive::write_atomic(&dir.join("passes.json"), text.as_bytes())
 }
+
+/// A 2D render or storage target with one mip (COPY_SRC added, so passes can dump it).
+pub fn target_2d(
+    device: &wgpu::Device,
+    label: &str,
+    size: [u32; 2],
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: usage | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}

@@ -311,18 +311,13 @@ impl Particles {
             let sim = &simulation[usize::from(desc.collides)];
             let rows = desc.max_particles.div_ceil(STATE_WIDTH);
             let state = |label: &str, format| {
-                device.create_texture(&wgpu::TextureDescriptor {
-                    label: Some(&format!("{} {label}", desc.name)),
-                    size: wgpu::Extent3d { width: STATE_WIDTH, height: rows, depth_or_array_layers: 1 },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: wgpu::TextureDimension::D2,
+                crate::frame::target_2d(
+                    device,
+                    &format!("{} {label}", desc.name),
+                    [STATE_WIDTH, rows],
                     format,
-                    usage: wgpu::TextureUsages::STORAGE_BINDING
-                        | wgpu::TextureUsages::TEXTURE_BINDING
-                        | wgpu::TextureUsages::COPY_SRC,
-                    view_formats: &[],
-                })
+                    wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
+                )
             };
             let positions =
                 [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
