@@ -10,21 +10,32 @@ use std::sync::Mutex;
 
 use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 
-/// A pack written entry by entry as checked remote entries arrive, so that a fill holds no
-/// entry in memory: room for `capacity` index rows is left after the header, each entry is
-/// written at once after it, and the header and rows are written last. Rows left unused
-/// (keys the remote lacked) stay a hole between the index and the first entry, which readers
-/// never look at (rows give absolute offsets). The file is a temporary one of the cache
+/// A pack written entry by entry as checked remote entries arrive, so that a fill holds at
+/// most a [`CHUNK`] of entries in memory: room for `capacity` index rows is left after the
+/// header, the entries follow from the next page on, gathered into page-aligned chunks
+/// written whole, and the header and rows are written last. Rows left unused (keys the
+/// remote lacked) stay a hole between the index and the first entry, which readers never
+/// look at (rows give absolute offsets). The file is a temporary one of the cache
 /// folder (named as [`crate::output`] names them, after a pack, and locked while written, so
 /// that a writer that dies leaves a file the next `open`, `gc` or `clear` removes) and is
-/// renamed, named by its content, once whole. Several threads push at once: each takes
-/// its entry's place under a lock and writes it outside the lock.
+/// renamed, named by its content, once whole. Several threads push at once: each copies its
+/// entry into the chunk under a lock, and the thread that fills a chunk writes it outside
+/// the lock.
+/// Entries are written in chunks of at least this size, page-aligned: ext4 takes 130 MB of
+/// entry-sized writes (17 KB, across pages) for about 57 ms of system time, of 1 MiB
+/// aligned ones for about 20 ms (a third of a warm-remote build's CPU was these writes).
+const CHUNK: usize = 1 << 20;
+const PAGE: u64 = 4096;
+
 pub(super) struct FillPack {
     dir: PathBuf,
     tmp: PathBuf,
     file: fs::File,
     capacity: usize,
     rows: Mutex<Rows>,
+    /// Chunk buffers written and free for reuse (a fresh buffer per chunk would fault in
+    /// every page of the fill once more).
+    spare: Mutex<Vec<Vec<u8>>>,
     /// A write failed: the pack is not finished.
     failed: AtomicBool,
     /// Renamed into place.
@@ -37,6 +48,9 @@ struct Rows {
     offset: u64,
     /// The entries' checksums, for the pack's name.
     checksums: blake3::Hasher,
+    /// Entry bytes not written yet, which go at `pending_at` (page-aligned).
+    pending: Vec<u8>,
+    pending_at: u64,
 }
 
 impl FillPack {
@@ -55,6 +69,7 @@ impl FillPack {
         // SAFETY: flock on a descriptor we own.
         unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
         let capacity = capacity.max(1);
+        let first = ((PACK_HEADER + capacity * ROW) as u64).div_ceil(PAGE) * PAGE;
         Ok(FillPack {
             dir: dir.to_path_buf(),
             tmp,
@@ -62,9 +77,12 @@ impl FillPack {
             capacity,
             rows: Mutex::new(Rows {
                 rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
-                offset: (PACK_HEADER + capacity * ROW) as u64,
+                offset: first,
                 checksums: blake3::Hasher::new(),
+                pending: Vec::new(),
+                pending_at: first,
             }),
+            spare: Mutex::default(),
             failed: AtomicBool::new(false),
             finished: false,
         })
@@ -78,10 +96,10 @@ impl FillPack {
         self.len() >= self.capacity
     }
 
-    /// Writes the checked entry `bytes` of `key`. An error when the pack is full or the
-    /// write fails (then the pack is not finished).
+    /// Adds the checked entry `bytes` of `key`, written with its chunk. An error when the
+    /// pack is full or a write fails (then the pack is not finished).
     pub fn push(&self, key: &Key, bytes: &[u8]) -> io::Result<()> {
-        let offset = {
+        let (chunk, at) = {
             let mut r = self.rows.lock().expect("no panics while locked");
             if r.rows.len() / ROW >= self.capacity || bytes.len() < 40 {
                 return Err(io::Error::other("the fill pack is full"));
@@ -92,9 +110,34 @@ impl FillPack {
             r.rows.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
             r.checksums.update(&bytes[8..40]);
             r.offset += bytes.len() as u64;
-            offset
+            if r.pending.capacity() == 0 {
+                r.pending = self.spare.lock().expect("no panics while locked").pop().unwrap_or_default();
+                r.pending.reserve(CHUNK + bytes.len());
+            }
+            r.pending.extend_from_slice(bytes);
+            if r.pending.len() < CHUNK {
+                return Ok(());
+            }
+            // Whole pages go now; the rest starts the next chunk.
+            let whole = r.pending.len() / PAGE as usize * PAGE as usize;
+            let mut next = self.spare.lock().expect("no panics while locked").pop().unwrap_or_default();
+            next.reserve(CHUNK + bytes.len());
+            next.extend_from_slice(&r.pending[whole..]);
+            let mut chunk = std::mem::replace(&mut r.pending, next);
+            chunk.truncate(whole);
+            let at = r.pending_at;
+            r.pending_at += whole as u64;
+            (chunk, at)
         };
-        self.file.write_all_at(bytes, offset).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
+        let written = self.write(&chunk, at);
+        let mut chunk = chunk;
+        chunk.clear();
+        self.spare.lock().expect("no panics while locked").push(chunk);
+        written
+    }
+
+    fn write(&self, bytes: &[u8], at: u64) -> io::Result<()> {
+        self.file.write_all_at(bytes, at).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
     }
 
     /// Writes the header and the rows and renames the pack into place; its path (none when
@@ -113,6 +156,7 @@ impl FillPack {
         if r.rows.is_empty() {
             return Ok(None);
         }
+        self.write(&r.pending, r.pending_at)?;
         let rows_hash = blake3::hash(&r.rows);
         let mut head = Vec::with_capacity(PACK_HEADER + r.rows.len());
         head.extend_from_slice(PACK_MAGIC);

@@ -383,6 +383,41 @@ fn a_fill_pack_streams_entries_and_leaves_its_unused_rows_a_hole() {
     assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
 }
 
+/// Entries of several chunks, from several threads: each is read back whole, the entries
+/// start on a page.
+#[test]
+fn a_fill_pack_writes_its_entries_in_chunks_from_several_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let big = |i: u32| {
+        let mut c = compiled(i as u8);
+        // 5 to 40 KB, not a multiple of a page: chunks end inside entries.
+        c.artifacts[1].1 = (0..5_000 + i * 97).flat_map(|n| (n ^ i).to_le_bytes()).collect();
+        c
+    };
+    let keys: Vec<Key> = (0..160).map(|i| key(&format!("big {i}"))).collect();
+    let pack = fill::FillPack::create(dir.path(), keys.len() + 3).unwrap();
+    std::thread::scope(|s| {
+        for part in keys.chunks(40).enumerate() {
+            let pack = &pack;
+            s.spawn(move || {
+                for (j, k) in part.1.iter().enumerate() {
+                    let i = (part.0 * 40 + j) as u32;
+                    pack.push(k, &encode(k, &big(i))).unwrap();
+                }
+            });
+        }
+    });
+    let path = pack.finish().unwrap().expect("a pack");
+    assert!(fs::metadata(&path).unwrap().len() > 3 << 20, "more than a few chunks");
+    let cache = Cache::open(dir.path()).unwrap();
+    for (i, k) in keys.iter().enumerate() {
+        assert!(matches!(cache.get(k), Lookup::Hit(c) if c == big(i as u32)), "entry {i}");
+    }
+    let (_, rows) = open_pack(&path).unwrap().unwrap();
+    let first = rows.iter().map(|r| r.1).min().unwrap();
+    assert_eq!(first % 4096, 0, "entries start on a page");
+}
+
 #[test]
 fn a_remote_value_is_checked_whole_and_bound_to_its_key() {
     let (a, b) = (key("a"), key("b"));
