@@ -2,7 +2,7 @@
 //!
 //! Takes a URL (`redis://host:port[/db]` or `http(s)://host[:port]/prefix`), a [`Mode`] and
 //! credentials from the environment; gives byte values by [`Key`]. A value is the local
-//! cache's entry encoding (magic, checksum, body) behind a header with one blake3 of the key
+//! cache's entry encoding (magic, checksum, body) behind a header with one xxh3-128 of the key
 //! and the entry, which the [`super::Cache`] that layers this store checks on every value it
 //! reads (the entry's own checksum is checked when the entry is used, as in its packs): a
 //! corrupted or truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
