@@ -458,7 +458,7 @@ impl Cache {
             };
             // The value's one checksum (one blake3 of the whole value, several times faster
             // than one per artifact); the entry's own is checked when the build uses it.
-            let Ok(entry) = remote_entry(key, &bytes) else {
+            let Ok(entry) = remote_entry(key, bytes) else {
                 // Looked up again by the build, which reports it and recompiles.
                 complete.store(false, Ordering::Relaxed);
                 return;

@@ -265,17 +265,26 @@ impl Remote {
 
     /// The value stored under `key`; `None` for a miss, and once the store is off.
     pub fn get(&self, key: &Key) -> Option<Vec<u8>> {
+        let mut value = Vec::new();
+        self.get_into(key, &mut value).then_some(value)
+    }
+
+    /// [`Remote::get`] into `value` (cleared first, its capacity kept): whether it was there.
+    fn get_into(&self, key: &Key, value: &mut Vec<u8>) -> bool {
         if self.off.load(Ordering::Relaxed) {
-            return None;
+            return false;
         }
-        match self.retry(|| match &self.store {
-            Store::Redis(r) => r.get(key),
-            Store::Http(h) => h.get(key),
+        match self.retry(|| {
+            value.clear();
+            match &self.store {
+                Store::Redis(r) => r.get(key).map(|v| v.map(|v| *value = v).is_some()),
+                Store::Http(h) => h.get_into(key, value),
+            }
         }) {
-            Ok(v) => v,
+            Ok(found) => found,
             Err(f) => {
                 self.fail("reading from", f);
-                None
+                false
             }
         }
     }
@@ -283,8 +292,9 @@ impl Remote {
     /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
     /// once the store is off), from several threads, in no particular order: one round trip
     /// per [`BATCH`] keys with redis (`MGET`, on the build's workers), [`HTTP_STREAMS`]
-    /// requests at once with HTTP (each on its own keep-alive connection).
-    pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<Vec<u8>>) + Sync) {
+    /// requests at once with HTTP (each on its own keep-alive connection, its bodies read
+    /// into one buffer).
+    pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
         match &self.store {
             Store::Redis(r) => {
                 use rayon::prelude::*;
@@ -295,7 +305,7 @@ impl Remote {
                         self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
                     };
                     let mut values = values.into_iter().flatten();
-                    batch.iter().for_each(|key| f(key, values.next().flatten()));
+                    batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
                 });
             }
             Store::Http(_) => {
@@ -303,8 +313,10 @@ impl Remote {
                 std::thread::scope(|s| {
                     for _ in 0..HTTP_STREAMS.min(keys.len()) {
                         s.spawn(|| {
+                            let mut value = Vec::new();
                             while let Some(key) = keys.get(next.fetch_add(1, Ordering::Relaxed)) {
-                                f(key, self.get(key));
+                                let found = self.get_into(key, &mut value);
+                                f(key, found.then_some(value.as_slice()));
                             }
                         });
                     }
@@ -357,7 +369,7 @@ impl Remote {
 
     /// `op` again once when it failed on something other than a timeout: a pooled
     /// connection the server closed while idle fails once, then a new one works.
-    fn retry<T>(&self, op: impl Fn() -> Result<T, Fault>) -> Result<T, Fault> {
+    fn retry<T>(&self, mut op: impl FnMut() -> Result<T, Fault>) -> Result<T, Fault> {
         match op() {
             Err(f) if !f.timed_out && !self.off.load(Ordering::Relaxed) => op(),
             r => r,
@@ -539,7 +551,8 @@ impl HttpStore {
         Fault { message: format!("{doing} answered {status}"), timed_out: false }
     }
 
-    fn get(&self, key: &Key) -> Result<Option<Vec<u8>>, Fault> {
+    /// The value of `key` appended to `value`; whether there was one.
+    fn get_into(&self, key: &Key, value: &mut Vec<u8>) -> Result<bool, Fault> {
         let mut request = self.agent.get(self.url(key));
         if let Some(a) = &self.authorization {
             request = request.header("Authorization", a);
@@ -547,15 +560,15 @@ impl HttpStore {
         let mut response = request.call().map_err(Self::fault)?;
         match response.status().as_u16() {
             200 => {
-                // Read into a buffer of the announced length (not grown as it comes).
+                // Room for the announced length at once (not grown as it comes).
                 use std::io::Read;
                 let announced = response.body().content_length().unwrap_or(0).min(MAX_VALUE);
-                let mut value = Vec::with_capacity(announced as usize);
+                value.reserve(announced as usize);
                 let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
-                reader.read_to_end(&mut value).map_err(|e| Self::fault(ureq::Error::Io(e)))?;
-                Ok(Some(value))
+                reader.read_to_end(value).map_err(|e| Self::fault(ureq::Error::Io(e)))?;
+                Ok(true)
             }
-            404 => Ok(None),
+            404 => Ok(false),
             _ => Err(Self::status("GET", response.status())),
         }
     }
