@@ -180,6 +180,39 @@ pub(super) struct Assembler<'p> {
     emitted: Mutex<HashMap<blake3::Hash, String>>,
     /// The first artifact that could not be written.
     error: Mutex<Option<String>>,
+    fingerprint: std::sync::OnceLock<blake3::Hash>,
+}
+
+/// [`Assembler::fingerprint`] with `key` giving each kept permutation's key: the text of
+/// each permutation (`\0name\0entry\0stage\0values\0dimensions\0`, values and dimensions
+/// as their `Debug`) then its key; what a shader's permutations share is formatted once
+/// per run.
+fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    h.update(b"kiln build fingerprint v1\0");
+    h.update(crate::VERSION.as_bytes());
+    h.update(b"\0");
+    h.update(compile::NAGA_VERSION.as_bytes());
+    for (shader, level, range) in plan.runs() {
+        let dims: Vec<(&str, &[String])> =
+            shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+        let entry_stage = format!("\0{}\0{}\0", shader.entry, shader.stage);
+        let dims = format!("\0{dims:?}\0");
+        let mut values = String::new();
+        for i in range {
+            let Some(key) = key(i) else { continue };
+            let v = plan.values(i);
+            values.clear();
+            std::fmt::Write::write_fmt(&mut values, format_args!("{v:?}")).expect("a String takes any text");
+            h.update(b"\0");
+            h.update(crate::permute::canonical_name(shader, level, &v).as_bytes());
+            h.update(entry_stage.as_bytes());
+            h.update(values.as_bytes());
+            h.update(dims.as_bytes());
+            h.update(&key.0);
+        }
+    }
+    h.finalize()
 }
 
 /// What [`Assembler::finish`] wrote: distinct blobs and (permutation, target) pairs.
@@ -206,6 +239,7 @@ impl<'p> Assembler<'p> {
             produced: Mutex::new(Log::new(plan.assembles())),
             emitted: Mutex::default(),
             error: Mutex::default(),
+            fingerprint: std::sync::OnceLock::new(),
         })
     }
 
@@ -273,25 +307,10 @@ impl<'p> Assembler<'p> {
     }
 
     /// Everything the archive's content depends on: each kept permutation's name, shader
-    /// record and key, in order, and the versions.
+    /// record and key, in order, and the versions. Computed once per build (a warm build
+    /// asks for it two or three times).
     fn fingerprint(&self, pre: &Preprocessed) -> blake3::Hash {
-        let mut h = blake3::Hasher::new();
-        h.update(b"kiln build fingerprint v1\0");
-        h.update(crate::VERSION.as_bytes());
-        h.update(b"\0");
-        h.update(compile::NAGA_VERSION.as_bytes());
-        let plan = self.plan;
-        for i in 0..plan.len() {
-            let Some(key) = pre.key(i) else { continue };
-            let (shader, _) = plan.shader_level(i);
-            let dims: Vec<(&str, &[String])> =
-                shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
-            let line =
-                format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", plan.name(i), shader.entry, shader.stage, plan.values(i), dims);
-            h.update(line.as_bytes());
-            h.update(&key.0);
-        }
-        h.finalize()
+        *self.fingerprint.get_or_init(|| fingerprint(self.plan, |i| pre.key(i)))
     }
 
     /// The artifact counts of the archive when it is already the output of this build:
@@ -408,5 +427,61 @@ impl<'p> Assembler<'p> {
             }
         }
         Ok(written)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The fingerprint hashes the same bytes as the one line per permutation it was defined
+    /// by (archives stored under it by earlier builds are still found).
+    #[test]
+    fn the_fingerprint_is_one_line_per_kept_permutation() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("A.usf"), "fn a() {}\n").unwrap();
+        let text = r#"
+[compiler]
+include = ["."]
+[levels.sm5]
+targets = ["spirv"]
+[levels.es3]
+targets = ["glsl"]
+[[shader]]
+name = "A"
+source = "A.usf"
+entry = "main"
+stage = "fragment"
+levels = ["sm5", "es3"]
+dimensions = { X = { range = [0, 4] }, Y = "bool", Q = { enum = ["LOW", "HIGH"] } }
+skip = [ { when = "X == 2 && Y == 1", why = "t" } ]
+[[shader]]
+name = "B"
+source = "A.usf"
+entry = "vs"
+stage = "vertex"
+levels = ["es3"]
+"#;
+        let config = crate::permute::load_str(text, &dir.path().join("permutations.toml")).unwrap();
+        let options = super::super::Options::default();
+        let plan = Plan::new(&config, &options).unwrap();
+        assert!(plan.len() > 20);
+        let keys: Vec<Option<Key>> = (0..plan.len()).map(|i| (i % 7 != 3).then(|| Key([i as u8; 32]))).collect();
+        let mut h = blake3::Hasher::new();
+        h.update(b"kiln build fingerprint v1\0");
+        h.update(crate::VERSION.as_bytes());
+        h.update(b"\0");
+        h.update(compile::NAGA_VERSION.as_bytes());
+        for i in 0..plan.len() {
+            let Some(key) = &keys[i] else { continue };
+            let (shader, _) = plan.shader_level(i);
+            let dims: Vec<(&str, &[String])> =
+                shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
+            let line =
+                format!("\0{}\0{}\0{}\0{:?}\0{:?}\0", plan.name(i), shader.entry, shader.stage, plan.values(i), dims);
+            h.update(line.as_bytes());
+            h.update(&key.0);
+        }
+        assert_eq!(fingerprint(&plan, |i| keys[i].as_ref()), h.finalize());
     }
 }
