@@ -43,6 +43,7 @@ use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
 mod fill;
+mod pipeline;
 pub mod remote;
 
 pub use remote::Remote;

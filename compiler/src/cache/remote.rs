@@ -29,7 +29,7 @@ use super::Key;
 /// The default bound of each connect, read and write.
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The largest value read back (a guard against a server answering with something else).
-const MAX_VALUE: u64 = 1 << 30;
+pub(super) const MAX_VALUE: u64 = 1 << 30;
 /// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
@@ -180,10 +180,10 @@ pub fn redact(url: &str) -> String {
 
 /// One failed operation.
 #[derive(Debug)]
-struct Fault {
-    message: String,
+pub(super) struct Fault {
+    pub message: String,
     /// A timeout is not retried (it would double the wait).
-    timed_out: bool,
+    pub timed_out: bool,
 }
 
 /// The remote cache of one build.
@@ -308,21 +308,60 @@ impl Remote {
                     batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
                 });
             }
-            Store::Http(_) => {
+            Store::Http(h) => {
+                // Plain HTTP: batches of pipelined GETs; HTTPS: one request at a time.
+                let batch = if h.pipeline.is_some() { super::pipeline::BATCH } else { 1 };
                 let next = std::sync::atomic::AtomicUsize::new(0);
                 std::thread::scope(|s| {
-                    for _ in 0..HTTP_STREAMS.min(keys.len()) {
+                    for _ in 0..HTTP_STREAMS.min(keys.len().div_ceil(batch)) {
                         s.spawn(|| {
                             let mut value = Vec::new();
-                            while let Some(key) = keys.get(next.fetch_add(1, Ordering::Relaxed)) {
-                                let found = self.get_into(key, &mut value);
-                                f(key, found.then_some(value.as_slice()));
+                            loop {
+                                let at = next.fetch_add(batch, Ordering::Relaxed).min(keys.len());
+                                let chunk = &keys[at..(at + batch).min(keys.len())];
+                                if chunk.is_empty() {
+                                    break;
+                                }
+                                match &h.pipeline {
+                                    Some(p) => self.get_pipelined(p, chunk, &mut value, &f),
+                                    None => chunk.iter().for_each(|key| {
+                                        let found = self.get_into(key, &mut value);
+                                        f(key, found.then_some(value.as_slice()));
+                                    }),
+                                }
                             }
                         });
                     }
                 });
             }
         }
+    }
+
+    /// `f` with each of `keys` and its value, through pipelined GETs: a connection the server
+    /// closed after some answers leaves the rest to a new one; a failure before any answer
+    /// is tried again once (an idle connection the server closed), except a timeout.
+    fn get_pipelined(
+        &self,
+        pipeline: &super::pipeline::Pipeline,
+        keys: &[Key],
+        value: &mut Vec<u8>,
+        f: &impl Fn(&Key, Option<&[u8]>),
+    ) {
+        let (mut done, mut retried) = (0, false);
+        while done < keys.len() && !self.off.load(Ordering::Relaxed) {
+            match pipeline.get(&keys[done..], value, f) {
+                Ok(n) => done += n,
+                Err((n, fault)) => {
+                    done += n;
+                    if n == 0 && !retried && !fault.timed_out {
+                        retried = true;
+                        continue;
+                    }
+                    self.fail("reading from", fault);
+                }
+            }
+        }
+        keys[done..].iter().for_each(|key| f(key, None));
     }
 
     /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
@@ -475,6 +514,8 @@ struct HttpStore {
     /// The URL without credentials, without a trailing slash.
     prefix: String,
     authorization: Option<String>,
+    /// A fill's pipelined GETs, with plain HTTP.
+    pipeline: Option<super::pipeline::Pipeline>,
 }
 
 impl HttpStore {
@@ -531,7 +572,12 @@ impl HttpStore {
             ureq::unversioned::transport::DefaultConnector::default(),
             OnceResolver::default(),
         );
-        Ok((HttpStore { agent, prefix, authorization }, password))
+        let pipeline = if scheme.eq_ignore_ascii_case("http") {
+            super::pipeline::Pipeline::new(host, path, authorization.as_deref(), options.timeout)
+        } else {
+            None
+        };
+        Ok((HttpStore { agent, prefix, authorization, pipeline }, password))
     }
 
     fn url(&self, key: &Key) -> String {
