@@ -520,13 +520,14 @@ fn http_killed_mid_build() {
 }
 
 /// A warm remote whose server dies while a fresh local cache copies its entries (at the
-/// first `MGET`): one warning, every key compiled here, the same bytes.
-#[test]
-fn redis_killed_while_a_fresh_cache_fills() {
-    let server = Arc::new(Mutex::new(Server::start(Kind::Redis)));
+/// first `MGET`, or the first pipelined `GET`s: only those write `Host:` capitalized,
+/// ureq's single requests write `host:`): one warning, every key compiled here, the same
+/// bytes.
+fn killed_while_a_fresh_cache_fills(kind: Kind, trigger: &'static [u8]) {
+    let server = Arc::new(Mutex::new(Server::start(kind)));
     let direct = server.lock().unwrap().url();
     Machine::new().build(&direct);
-    let (port, killed) = killing_proxy(server.clone(), b"\r\nMGET\r\n");
+    let (port, killed) = killing_proxy(server.clone(), trigger);
     let url = server.lock().unwrap().url_at(port);
     let m = Machine::new();
     let r = m.build(&url);
@@ -536,6 +537,16 @@ fn redis_killed_while_a_fresh_cache_fills() {
     assert_eq!(warnings.len(), 1, "one warning: {:?}", r.warnings);
     assert!(warnings[0].contains(&url) && warnings[0].contains("local cache only"), "{}", warnings[0]);
     assert_eq!(m.bytes(), reference());
+}
+
+#[test]
+fn redis_killed_while_a_fresh_cache_fills() {
+    killed_while_a_fresh_cache_fills(Kind::Redis, b"\r\nMGET\r\n");
+}
+
+#[test]
+fn http_killed_while_a_fresh_cache_fills() {
+    killed_while_a_fresh_cache_fills(Kind::Http, b"\r\nHost: ");
 }
 
 /// A port that accepts connections and never answers: the timeout bounds the wait, one
