@@ -466,7 +466,7 @@ levels = ["es3"]
         let options = super::super::Options::default();
         let plan = Plan::new(&config, &options).unwrap();
         assert!(plan.len() > 20);
-        let keys: Vec<Option<Key>> = (0..plan.len()).map(|i| (i % 7 != 3).then(|| Key([i as u8; 32]))).collect();
+        let keys: Vec<Option<Key>> = (0..plan.len()).map(|i| (i % 7 != 3).then_some(Key([i as u8; 32]))).collect();
         let mut h = blake3::Hasher::new();
         h.update(b"kiln build fingerprint v1\0");
         h.update(crate::VERSION.as_bytes());
