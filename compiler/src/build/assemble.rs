@@ -472,8 +472,8 @@ levels = ["es3"]
         h.update(crate::VERSION.as_bytes());
         h.update(b"\0");
         h.update(compile::NAGA_VERSION.as_bytes());
-        for i in 0..plan.len() {
-            let Some(key) = &keys[i] else { continue };
+        for (i, key) in keys.iter().enumerate() {
+            let Some(key) = key else { continue };
             let (shader, _) = plan.shader_level(i);
             let dims: Vec<(&str, &[String])> =
                 shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();

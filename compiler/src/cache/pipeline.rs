@@ -277,7 +277,9 @@ mod tests {
         (0..n).map(|i| Key([i; 32])).collect()
     }
 
-    fn answers(pipeline: &Pipeline, keys: &[Key]) -> (Result<usize, (usize, Fault)>, Vec<(Key, Option<Vec<u8>>)>) {
+    type Answers = Vec<(Key, Option<Vec<u8>>)>;
+
+    fn answers(pipeline: &Pipeline, keys: &[Key]) -> (Result<usize, (usize, Fault)>, Answers) {
         let got = Mutex::new(Vec::new());
         let mut value = Vec::new();
         let r = pipeline.get(keys, &mut value, &|k, v| got.lock().unwrap().push((*k, v.map(<[u8]>::to_vec))));
