@@ -7,8 +7,8 @@
 //! reads (the entry's own checksum is checked when the entry is used, as in its packs): a
 //! corrupted or truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
 //! records and archives (checksummed too) are shared the same way, under their own keys.
-//! [`Remote::get_each`] fetches many values with few round trips (redis `MGET`) or several
-//! requests in flight (HTTP).
+//! [`Remote::get_each`] fetches many values with few round trips: redis `MGET`, or with
+//! plain HTTP pipelined `GET`s (`super::pipeline`), on several connections at once.
 //!
 //! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
@@ -33,8 +33,9 @@ pub(super) const MAX_VALUE: u64 = 1 << 30;
 /// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
-/// HTTP requests in flight at once in [`Remote::get_each`] (each on its own keep-alive
-/// connection): enough to hide a round trip behind the others' transfers.
+/// HTTP connections used at once by [`Remote::get_each`] (each keep-alive, with a batch of
+/// pipelined requests in flight with plain HTTP, one request with HTTPS): enough to hide a
+/// round trip behind the others' transfers.
 const HTTP_STREAMS: usize = 4;
 
 /// Whether a build writes what it compiles to the remote cache.
@@ -291,9 +292,9 @@ impl Remote {
 
     /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
     /// once the store is off), from several threads, in no particular order: one round trip
-    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers), [`HTTP_STREAMS`]
-    /// requests at once with HTTP (each on its own keep-alive connection, its bodies read
-    /// into one buffer).
+    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers); with HTTP,
+    /// [`HTTP_STREAMS`] connections, each with its own body buffer, asking for a batch of
+    /// pipelined `GET`s at a time (plain HTTP) or one key (HTTPS).
     pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
         match &self.store {
             Store::Redis(r) => {
