@@ -857,6 +857,72 @@ mod tests {
         }
     }
 
+    /// A server on a free loopback port that answers each `(awaited, reply)` in turn: reads
+    /// until what it got holds `awaited`, then writes `reply`; then closes.
+    fn scripted_server(script: Vec<(&'static [u8], &'static [u8])>) -> u16 {
+        use std::io::{Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        std::thread::spawn(move || {
+            let (mut socket, _) = listener.accept().unwrap();
+            let mut got = Vec::new();
+            for (awaited, reply) in script {
+                while !got.windows(awaited.len()).any(|w| w == awaited) {
+                    let mut buffer = [0; 4096];
+                    match socket.read(&mut buffer) {
+                        Ok(0) | Err(_) => return,
+                        Ok(n) => got.extend_from_slice(&buffer[..n]),
+                    }
+                }
+                got.clear();
+                let _ = socket.write_all(reply);
+            }
+        });
+        port
+    }
+
+    fn raw_target(password: Option<&str>, db: i64) -> RawTarget {
+        RawTarget { address: Some(("127.0.0.1".into(), 0)), username: None, password: password.map(String::from), db }
+    }
+
+    fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
+        c.mget(keys)
+    }
+
+    #[test]
+    fn raw_mget_logs_in_selects_and_reads_values_and_misses() {
+        let keys = [Key([1; 32]), Key([2; 32]), Key([3; 32])];
+        let port = scripted_server(vec![
+            (b"$4\r\nAUTH\r\n$2\r\npw\r\n", b"+OK\r\n"),
+            (b"$6\r\nSELECT\r\n$1\r\n2\r\n", b"+OK\r\n"),
+            (b"0303\r\n", b"*3\r\n$3\r\nab\n\r\n$-1\r\n$0\r\n\r\n"),
+        ]);
+        let values = raw_mget(port, &raw_target(Some("pw"), 2), &keys).unwrap();
+        assert_eq!(values, vec![Some(b"ab\n".to_vec()), None, Some(Vec::new())]);
+    }
+
+    #[test]
+    fn raw_mget_faults_on_truncated_or_unexpected_replies() {
+        let keys = [Key([1; 32]), Key([2; 32])];
+        for (reply, why) in [
+            (&b"*2\r\n$5\r\nab"[..], "closed"),
+            (b"*2\r\n$2\r\nabcd\r\n$-1\r\n", "CRLF"),
+            (b"*1\r\n$-1\r\n", "answered 1 values"),
+            (b"-ERR wrong\r\n", "ERR wrong"),
+            (b":1\r\n", "reply type"),
+        ] {
+            let port = scripted_server(vec![(b"0202\r\n", reply)]);
+            let fault = raw_mget(port, &raw_target(None, 0), &keys).unwrap_err();
+            assert!(!fault.timed_out, "{why}: {}", fault.message);
+            let closed = why == "closed" && !fault.message.is_empty();
+            assert!(closed || fault.message.contains(why), "{why}: {}", fault.message);
+        }
+        let port = scripted_server(vec![(b"AUTH", b"-WRONGPASS invalid password\r\n")]);
+        let fault = raw_mget(port, &raw_target(Some("s3cret"), 0), &keys).unwrap_err();
+        assert!(fault.message.contains("WRONGPASS") && !fault.message.contains("s3cret"), "{}", fault.message);
+    }
+
     #[test]
     fn debug_output_hides_the_token() {
         let text = format!("{:?}", options("redis://:pw@h:1", Some("t0ken")));
