@@ -208,7 +208,7 @@ impl std::fmt::Debug for Remote {
 }
 
 enum Store {
-    Redis(RedisStore),
+    Redis(Box<RedisStore>),
     Http(HttpStore),
 }
 
@@ -226,7 +226,7 @@ impl Remote {
             Some("redis") => {
                 let (store, password) = RedisStore::new(options).map_err(|e| bad(scrub(&e, &secrets)))?;
                 secrets.extend(password);
-                Store::Redis(store)
+                Store::Redis(Box::new(store))
             }
             Some("http") | Some("https") => {
                 let (store, password) = HttpStore::new(options).map_err(bad)?;
