@@ -209,7 +209,7 @@ impl std::fmt::Debug for Remote {
 }
 
 enum Store {
-    Redis(RedisStore),
+    Redis(Box<RedisStore>),
     Http(HttpStore),
 }
 
@@ -227,7 +227,7 @@ impl Remote {
             Some("redis") => {
                 let (store, password) = RedisStore::new(options).map_err(|e| bad(scrub(&e, &secrets)))?;
                 secrets.extend(password);
-                Store::Redis(store)
+                Store::Redis(Box::new(store))
             }
             Some("http") | Some("https") => {
                 let (store, password) = HttpStore::new(options).map_err(bad)?;
@@ -442,6 +442,9 @@ fn scrub(text: &str, secrets: &[String]) -> String {
 struct RedisStore {
     client: redis::Client,
     idle: Mutex<Vec<redis::Connection>>,
+    /// Where `MGET`s go, and their connections kept open (see [`RawRedis`]).
+    raw: RawTarget,
+    raw_idle: Mutex<Vec<RawRedis>>,
     timeout: Duration,
 }
 
@@ -461,8 +464,20 @@ impl RedisStore {
             }
         }
         let password = info.redis_settings().password().map(str::to_string);
+        let settings = info.redis_settings();
+        let raw = RawTarget {
+            address: match info.addr() {
+                redis::ConnectionAddr::Tcp(host, port) => Some((host.clone(), *port)),
+                _ => None,
+            },
+            username: settings.username().map(str::to_string),
+            password: password.clone(),
+            db: settings.db(),
+        };
         let client = redis::Client::open(info).map_err(|e| e.to_string())?;
-        Ok((RedisStore { client, idle: Mutex::default(), timeout: options.timeout }, password))
+        let store =
+            RedisStore { client, idle: Mutex::default(), raw, raw_idle: Mutex::default(), timeout: options.timeout };
+        Ok((store, password))
     }
 
     fn with_connection<T>(&self, f: impl FnOnce(&mut redis::Connection) -> redis::RedisResult<T>) -> Result<T, Fault> {
@@ -494,8 +509,20 @@ impl RedisStore {
         self.with_connection(|c| redis::cmd("SET").arg(Self::name(key)).arg(value).query(c))
     }
 
-    /// One `MGET` of every key.
+    /// One `MGET` of every key: over a [`RawRedis`] connection when the server is reached
+    /// over plain TCP, else through the `redis` crate.
     fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        if let Some(address) = &self.raw.address {
+            let idle = self.raw_idle.lock().expect("no panics while locked").pop();
+            let mut connection = match idle {
+                Some(c) => c,
+                None => RawRedis::connect(address, &self.raw, self.timeout)?,
+            };
+            // A connection that failed is dropped (its reply may be half read).
+            let values = connection.mget(keys)?;
+            self.raw_idle.lock().expect("no panics while locked").push(connection);
+            return Ok(values);
+        }
         let mut cmd = redis::cmd("MGET");
         for key in keys {
             cmd.arg(Self::name(key));
@@ -504,6 +531,152 @@ impl RedisStore {
         if values.len() != keys.len() {
             let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
             return Err(Fault { message, timed_out: false });
+        }
+        Ok(values)
+    }
+}
+
+/// How [`RawRedis`] connections reach and log in to the server.
+struct RawTarget {
+    /// Host and port; `None` for TLS and unix sockets (left to the `redis` crate).
+    address: Option<(String, u16)>,
+    username: Option<String>,
+    password: Option<String>,
+    db: i64,
+}
+
+/// A plain RESP2 connection that only sends `MGET` and reads its reply straight from a
+/// buffered socket: each bulk string is read into a vector of its announced length, without
+/// the `redis` crate's general reply parser and `Value` tree (most of the CPU a warm-remote
+/// fill spent in the client). Every read and write is bounded by the store's timeout.
+struct RawRedis {
+    reader: std::io::BufReader<std::net::TcpStream>,
+}
+
+impl RawRedis {
+    fn io_fault(e: std::io::Error) -> Fault {
+        let timed_out = matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock);
+        Fault { message: e.to_string(), timed_out }
+    }
+
+    fn protocol(what: &str) -> Fault {
+        Fault { message: format!("unexpected reply from redis: {what}"), timed_out: false }
+    }
+
+    /// Connects, then logs in and selects the database as the URL and token say.
+    fn connect((host, port): &(String, u16), target: &RawTarget, timeout: Duration) -> Result<RawRedis, Fault> {
+        use std::net::ToSocketAddrs;
+        let addresses = (host.as_str(), *port).to_socket_addrs().map_err(Self::io_fault)?;
+        let mut last = Fault { message: format!("no address for {host}"), timed_out: false };
+        for address in addresses {
+            match std::net::TcpStream::connect_timeout(&address, timeout) {
+                Ok(stream) => {
+                    stream.set_read_timeout(Some(timeout)).map_err(Self::io_fault)?;
+                    stream.set_write_timeout(Some(timeout)).map_err(Self::io_fault)?;
+                    let _ = stream.set_nodelay(true);
+                    let mut c = RawRedis { reader: std::io::BufReader::with_capacity(1 << 16, stream) };
+                    if let Some(password) = &target.password {
+                        let mut args: Vec<&[u8]> = vec![b"AUTH"];
+                        args.extend(target.username.as_deref().map(str::as_bytes));
+                        args.push(password.as_bytes());
+                        c.send(&args)?;
+                        c.expect_ok("AUTH")?;
+                    }
+                    if target.db != 0 {
+                        let db = target.db.to_string();
+                        c.send(&[b"SELECT", db.as_bytes()])?;
+                        c.expect_ok("SELECT")?;
+                    }
+                    return Ok(c);
+                }
+                Err(e) => last = Self::io_fault(e),
+            }
+        }
+        Err(last)
+    }
+
+    fn send(&mut self, args: &[&[u8]]) -> Result<(), Fault> {
+        use std::io::Write;
+        let mut out = Vec::with_capacity(16 + args.iter().map(|a| a.len() + 16).sum::<usize>());
+        out.extend_from_slice(format!("*{}\r\n", args.len()).as_bytes());
+        for a in args {
+            out.extend_from_slice(format!("${}\r\n", a.len()).as_bytes());
+            out.extend_from_slice(a);
+            out.extend_from_slice(b"\r\n");
+        }
+        self.reader.get_mut().write_all(&out).map_err(Self::io_fault)
+    }
+
+    /// One reply line without its CRLF.
+    fn line(&mut self) -> Result<Vec<u8>, Fault> {
+        use std::io::{BufRead, Read};
+        let mut line = Vec::new();
+        (&mut self.reader).take(64 * 1024).read_until(b'\n', &mut line).map_err(Self::io_fault)?;
+        if !line.ends_with(b"\r\n") {
+            return Err(Self::protocol("a truncated reply"));
+        }
+        line.truncate(line.len() - 2);
+        Ok(line)
+    }
+
+    /// The number after the line's type byte `kind`; a server error (`-...`) is a fault
+    /// (its text never holds the password: redis does not echo arguments).
+    fn header(&mut self, kind: u8) -> Result<i64, Fault> {
+        let line = self.line()?;
+        match line.split_first() {
+            Some((&k, number)) if k == kind => std::str::from_utf8(number)
+                .ok()
+                .and_then(|n| n.parse().ok())
+                .ok_or_else(|| Self::protocol("a malformed length")),
+            Some((b'-', text)) => Err(Fault { message: String::from_utf8_lossy(text).into_owned(), timed_out: false }),
+            _ => Err(Self::protocol("an unexpected reply type")),
+        }
+    }
+
+    fn expect_ok(&mut self, command: &str) -> Result<(), Fault> {
+        let line = self.line()?;
+        match line.split_first() {
+            Some((b'+', _)) => Ok(()),
+            Some((b'-', text)) => {
+                Err(Fault { message: format!("{command}: {}", String::from_utf8_lossy(text)), timed_out: false })
+            }
+            _ => Err(Self::protocol("an unexpected reply type")),
+        }
+    }
+
+    fn mget(&mut self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        use std::io::Read;
+        let names: Vec<String> = keys.iter().map(RedisStore::name).collect();
+        let mut args: Vec<&[u8]> = Vec::with_capacity(keys.len() + 1);
+        args.push(b"MGET");
+        args.extend(names.iter().map(|n| n.as_bytes()));
+        self.send(&args)?;
+        let count = self.header(b'*')?;
+        if count != keys.len() as i64 {
+            let message = format!("MGET of {} keys answered {count} values", keys.len());
+            return Err(Fault { message, timed_out: false });
+        }
+        let mut values = Vec::with_capacity(keys.len());
+        for _ in keys {
+            let len = self.header(b'$')?;
+            if len < 0 {
+                values.push(None);
+                continue;
+            }
+            if len as u64 > MAX_VALUE {
+                return Err(Self::protocol("a value over 1 GiB"));
+            }
+            // Read into spare capacity (not zeroed first); an early end is a truncated value.
+            let mut value = Vec::with_capacity(len as usize + 2);
+            (&mut self.reader).take(len as u64 + 2).read_to_end(&mut value).map_err(Self::io_fault)?;
+            if value.len() != len as usize + 2 {
+                return Err(Self::protocol("a truncated value"));
+            }
+            if !value.ends_with(b"\r\n") {
+                return Err(Self::protocol("a bulk string without its CRLF"));
+            }
+            value.truncate(len as usize);
+            values.push(Some(value));
         }
         Ok(values)
     }
@@ -746,6 +919,71 @@ mod tests {
             assert_eq!(remote.take_warning(), None, "only one");
             assert_eq!(remote.stats(), Stats { hits: 0, writes: 0, errors: 1 });
         }
+    }
+
+    /// A server on a free loopback port that answers each `(awaited, reply)` in turn: reads
+    /// until what it got holds `awaited`, then writes `reply`; then closes.
+    fn scripted_server(script: Vec<(&'static [u8], &'static [u8])>) -> u16 {
+        use std::io::{Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        std::thread::spawn(move || {
+            let (mut socket, _) = listener.accept().unwrap();
+            let mut got = Vec::new();
+            for (awaited, reply) in script {
+                while !got.windows(awaited.len()).any(|w| w == awaited) {
+                    let mut buffer = [0; 4096];
+                    match socket.read(&mut buffer) {
+                        Ok(0) | Err(_) => return,
+                        Ok(n) => got.extend_from_slice(&buffer[..n]),
+                    }
+                }
+                got.clear();
+                let _ = socket.write_all(reply);
+            }
+        });
+        port
+    }
+
+    fn raw_target(password: Option<&str>, db: i64) -> RawTarget {
+        RawTarget { address: Some(("127.0.0.1".into(), 0)), username: None, password: password.map(String::from), db }
+    }
+
+    fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
+        c.mget(keys)
+    }
+
+    #[test]
+    fn raw_mget_logs_in_selects_and_reads_values_and_misses() {
+        let keys = [Key([1; 32]), Key([2; 32]), Key([3; 32])];
+        let port = scripted_server(vec![
+            (b"$4\r\nAUTH\r\n$2\r\npw\r\n", b"+OK\r\n"),
+            (b"$6\r\nSELECT\r\n$1\r\n2\r\n", b"+OK\r\n"),
+            (b"0303\r\n", b"*3\r\n$3\r\nab\n\r\n$-1\r\n$0\r\n\r\n"),
+        ]);
+        let values = raw_mget(port, &raw_target(Some("pw"), 2), &keys).unwrap();
+        assert_eq!(values, vec![Some(b"ab\n".to_vec()), None, Some(Vec::new())]);
+    }
+
+    #[test]
+    fn raw_mget_faults_on_truncated_or_unexpected_replies() {
+        let keys = [Key([1; 32]), Key([2; 32])];
+        for (reply, why) in [
+            (&b"*2\r\n$5\r\nab"[..], "truncated value"),
+            (b"*2\r\n$2\r\nabcd\r\n$-1\r\n", "CRLF"),
+            (b"*1\r\n$-1\r\n", "answered 1 values"),
+            (b"-ERR wrong\r\n", "ERR wrong"),
+            (b":1\r\n", "reply type"),
+        ] {
+            let port = scripted_server(vec![(b"0202\r\n", reply)]);
+            let fault = raw_mget(port, &raw_target(None, 0), &keys).unwrap_err();
+            assert!(!fault.timed_out, "{why}: {}", fault.message);
+            assert!(fault.message.contains(why), "{why}: {}", fault.message);
+        }
+        let port = scripted_server(vec![(b"AUTH", b"-WRONGPASS invalid password\r\n")]);
+        let fault = raw_mget(port, &raw_target(Some("s3cret"), 0), &keys).unwrap_err();
+        assert!(fault.message.contains("WRONGPASS") && !fault.message.contains("s3cret"), "{}", fault.message);
     }
 
     #[test]
