@@ -190,11 +190,15 @@ impl Store {
     /// the dictionaries and compressing every artifact again.
     pub fn archive_from_remote(&self, out: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
-        let value = cache.remote()?.get(&remote_archive_key(fingerprint));
-        // Without the archive too: the entries come in batches, not one round trip per key.
-        let complete = cache.fill_from_remote(keys);
-        let value = value?;
-        let Some((counts, archive)) = decode_remote_archive(&value) else {
+        let remote = cache.remote()?;
+        // The archive (fetched and checked) while the entries come; without the archive
+        // too: the entries come in batches, not one round trip per key.
+        let (value, complete) = rayon::join(
+            || remote.get(&remote_archive_key(fingerprint)).map(|v| (remote_archive_is_whole(&v), v)),
+            || cache.fill_from_remote(keys),
+        );
+        let (whole, value) = value?;
+        let Some((counts, archive)) = whole.then(|| remote_archive_parts(&value)) else {
             let why = format!(
                 "warning: the archive {} in the remote cache {} is corrupted; assembling it again",
                 remote_archive_key(fingerprint),
@@ -236,14 +240,15 @@ fn encode_remote_archive(archive: &[u8], counts: (usize, usize)) -> Vec<u8> {
     out
 }
 
+/// Whether `value` is a whole value of [`encode_remote_archive`] (magic, length, checksum).
+fn remote_archive_is_whole(value: &[u8]) -> bool {
+    value.len() >= 56 && &value[..8] == REMOTE_ARCHIVE_MAGIC && blake3::hash(&value[40..]).as_bytes() == &value[8..40]
+}
+
 /// The counts and the archive of a whole value of [`encode_remote_archive`].
-fn decode_remote_archive(value: &[u8]) -> Option<((usize, usize), &[u8])> {
-    if value.len() < 56 || &value[..8] != REMOTE_ARCHIVE_MAGIC || blake3::hash(&value[40..]).as_bytes() != &value[8..40]
-    {
-        return None;
-    }
+fn remote_archive_parts(value: &[u8]) -> ((usize, usize), &[u8]) {
     let count = |at: usize| u64::from_le_bytes(value[at..at + 8].try_into().expect("8 bytes")) as usize;
-    Some(((count(40), count(48)), &value[56..]))
+    ((count(40), count(48)), &value[56..])
 }
 
 /// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the
