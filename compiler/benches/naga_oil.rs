@@ -161,6 +161,31 @@ fn main() {
 
     let (mut oil, mut build_times, mut library) = (Vec::new(), Vec::new(), Vec::new());
     let (mut oil_bytes, mut kiln_bytes) = (0, 0);
+    // `KILN_BENCH_ONLY=oil|build|library` runs one side alone (for a profiler); no ratio then.
+    let only = std::env::var("KILN_BENCH_ONLY").ok();
+    let runs = |side: &str| only.as_deref().is_none_or(|o| o == side);
+    if only.is_some() {
+        for _ in 0..rounds {
+            if runs("oil") {
+                std::hint::black_box(naga_oil_all());
+            }
+            if runs("build") {
+                let out = tempfile::tempdir().unwrap();
+                let options = build::Options {
+                    config: config_path.clone(),
+                    output: Some(out.path().join("shaders.kpak")),
+                    jobs: Some(1),
+                    cache: CacheDir::Disabled,
+                    ..build::Options::default()
+                };
+                build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+            }
+            if runs("library") {
+                std::hint::black_box(big_stack(kiln_library, &config));
+            }
+        }
+        return;
+    }
     for _ in 0..rounds {
         oil_bytes = std::hint::black_box(timed(&mut oil, naga_oil_all));
 
