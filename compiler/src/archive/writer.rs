@@ -1014,7 +1014,13 @@ fn compress_blob(raw: Cow<'_, [u8]>, dict: Option<(usize, &zstd::zstd_safe::CDic
         let mut cell = cell.borrow_mut();
         let cctx = cell.get_or_insert_with(zstd::zstd_safe::CCtx::create);
         match dict {
-            Some((i, cdict)) => (CODEC_ZSTD_DICT, i as u8, compress_attached(cctx, &mut dst, &raw, cdict).is_ok()),
+            Some((i, cdict)) => {
+                let (ok, clean) = compress_attached(cctx, &mut dst, &raw, cdict);
+                if !clean {
+                    *cell = None;
+                }
+                (CODEC_ZSTD_DICT, i as u8, ok)
+            }
             None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(&mut dst, &raw, COMPRESSION_LEVEL).is_ok()),
         }
     });
@@ -1026,25 +1032,26 @@ fn compress_blob(raw: Cow<'_, [u8]>, dict: Option<(usize, &zstd::zstd_safe::CDic
 }
 
 /// Compresses `raw` with `cdict` attached, not copied: zstd's own choice, for inputs of more
-/// than a few KiB, copies the dictionary's match tables (768 KiB at level 3) into the context
-/// before every blob, which was most of the compression of a build of small artifacts
-/// (`zstd_probe`-style measure, 256 SPIR-V artifacts of about 17 KiB with their 90 KiB
-/// dictionary: 9.5-13.5 ms copied, 7.4 ms attached, and 0.1% smaller). The frame is the one
+/// than a few KiB, copies the dictionary's match tables into the context before every blob
+/// (256 SPIR-V artifacts of about 17 KiB, their 90 KiB dictionary, measured in process: 9.5
+/// to 13.5 ms copied, 7.4 ms attached, and 0.1% smaller). The frame is the one
 /// `ZSTD_compress_usingCDict` writes (content size and dictionary id, no checksum), and
-/// deterministic: same input, dictionary and level, same bytes.
+/// deterministic: same input, dictionary and level, same bytes. Gives whether it compressed,
+/// and whether the context is clean again (it must not keep referring to `cdict`, which the
+/// writer drops once the blobs are written: a context that is not is dropped by the caller).
 fn compress_attached(
     cctx: &mut zstd::zstd_safe::CCtx<'static>,
     dst: &mut Vec<u8>,
     raw: &[u8],
     cdict: &zstd::zstd_safe::CDict<'static>,
-) -> Result<usize, zstd::zstd_safe::ErrorCode> {
-    use zstd::zstd_safe::{CParameter, DictAttachPref};
-    cctx.ref_cdict(cdict)?;
-    cctx.set_parameter(CParameter::ForceAttachDict(DictAttachPref::ForceAttach))?;
-    let written = cctx.compress2(dst, raw);
-    // Nothing referenced outlives the call (the context is the thread's, reused).
-    cctx.reset(zstd::zstd_safe::ResetDirective::SessionAndParameters)?;
-    written
+) -> (bool, bool) {
+    use zstd::zstd_safe::{CParameter, DictAttachPref, ResetDirective};
+    let compressed = cctx
+        .ref_cdict(cdict)
+        .and_then(|_| cctx.set_parameter(CParameter::ForceAttachDict(DictAttachPref::ForceAttach)))
+        .and_then(|_| cctx.compress2(dst, raw));
+    let clean = cctx.reset(ResetDirective::SessionAndParameters).is_ok();
+    (compressed.is_ok(), clean)
 }
 
 /// The counts of `manifest`'s header (the tables' JSON is serialized once to count it).
