@@ -334,6 +334,7 @@ impl<'p> Assembler<'p> {
             .expect("no panics while locked")
             .load()
             .map_err(|e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}")))?;
+        super::trace_memory("keys read back");
         let writer = self.writer;
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();

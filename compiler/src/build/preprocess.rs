@@ -16,7 +16,6 @@ use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use codespan_reporting::diagnostic::Diagnostic;
-use rayon::prelude::*;
 
 use super::plan::{level_limits, level_targets, Plan};
 use super::records::{self, Interner, Records, Row};
@@ -196,21 +195,13 @@ impl<'p> Preprocessor<'p> {
     pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
         let Some(r) = self.records.take() else { return };
         // Each preprocessed permutation's direct key, made again here rather than kept
-        // through the build (36 bytes a permutation at its peak).
+        // through the build (36 bytes a permutation at its peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
-        let mut new: Vec<(Key, u32)> = (0..plan.len())
-            .into_par_iter()
-            .filter(|&i| pre.row(i).is_some())
-            .map(|i| (direct_key(&r.base, &plan.permutation(i), targets), pre.of[i]))
-            .collect();
-        // One record per direct key (each permutation has its own), sorted by it.
-        new.sort_unstable_by_key(|(direct, _)| *direct);
-        new.dedup_by(|a, b| a.0 == b.0);
-        let rows = || new.iter().map(|(direct, row)| (direct, &pre.rows[*row as usize]));
-        let same = rows().map(|(k, row)| (*k, *row)).eq(r.old.iter().map(|(k, row)| (*k, *row)));
-        drop(r.old);
-        if !same {
-            store.put_records(&r.key, &records::encode(rows(), &self.lists(), &r.root));
+        let row = |i: usize| Some((direct_key(&r.base, &plan.permutation(i), targets), *pre.row(i)?));
+        let bytes = records::encode(plan.len(), row, pre.rows(), &self.lists(), &r.root, r.old);
+        super::trace_memory("records encoded");
+        if let Some(bytes) = bytes {
+            store.put_records(&r.key, &bytes);
         }
     }
 
