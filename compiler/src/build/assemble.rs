@@ -253,6 +253,14 @@ impl<'p> Assembler<'p> {
         }
     }
 
+    /// No more artifacts come: the archive writer lets go of the table that finds its blobs
+    /// by content (about 4.5 MB at 100k permutations).
+    pub fn seal_blobs(&self) {
+        if let Some(w) = &self.writer {
+            w.seal_blobs();
+        }
+    }
+
     /// Writes an artifact to the archive's spool and the loose files; its blob number in the
     /// archive (0 without one).
     fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<u32, String> {

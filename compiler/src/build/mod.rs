@@ -164,7 +164,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output));
+    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
     preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t);
     trace_memory("preprocess");
@@ -194,6 +194,8 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         store.prefetch(&share);
     }
     let outcomes = compiler.run(&keys, &preprocessor);
+    // Every artifact is in: the archive's table that finds blobs by content goes.
+    assembler.seal_blobs();
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     // The keys' tables are not needed past here (about 6 MB at 100k permutations).
     drop((keys, compiler));
