@@ -190,7 +190,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     }
     if options.shard.is_some() {
         // A shard's share comes from the remote cache in batches, not key by key.
-        let share: Vec<_> = keys.keys.iter().zip(&keys.share).filter(|(_, &mine)| mine).map(|(k, _)| *k).collect();
+        let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();
         store.prefetch(&share);
     }
     let outcomes = compiler.run(&keys, &preprocessor);
@@ -201,6 +201,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     drop((keys, compiler));
     trace_memory("compile");
     report.warnings(store.finish());
+    trace_memory("cache written");
     // The records once the cache's index is released (a warm build's is large).
     preprocessor.save_records(store, &pre);
     report.remote(store.remote_stats());
