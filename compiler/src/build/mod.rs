@@ -244,20 +244,25 @@ pub(crate) fn trace_memory(stage: &str) {
     }
 }
 
-/// Hands the memory freed so far back to the system, on every worker: between stages, so
-/// that the pages one stage freed do not stay resident under the next stage's tables. With
-/// mimalloc (the `kiln` binary's allocator) a page freed on another thread than the one
-/// that allocated it waits on its owner's list, and an idle worker never takes it back:
-/// the next stage then faulted in new pages beside them (at 100k permutations, peaks of 53
-/// to 90 MiB on a loaded machine where the tables themselves need about 45). A process
-/// whose allocator is another one loses nothing but a call per worker.
+/// What hands the memory freed so far on the calling thread back to the system
+/// ([`set_release_freed`]).
+static RELEASE_FREED: std::sync::OnceLock<fn()> = std::sync::OnceLock::new();
+
+/// Has a build call `release` on every worker between stages, so that the pages one stage
+/// freed do not stay resident under the next stage's tables. The `kiln` binary passes
+/// mimalloc's `mi_collect`: with mimalloc a page freed on another thread than the one that
+/// allocated it waits on its owner's list, and an idle worker never takes it back, so the
+/// next stage faulted in new pages beside them (at 100k permutations, peaks of 53 to 90
+/// MiB on a loaded machine where the tables themselves need about 45). The first call
+/// wins.
+pub fn set_release_freed(release: fn()) {
+    let _ = RELEASE_FREED.set(release);
+}
+
 fn release_freed() {
-    extern "C" {
-        fn mi_collect(force: bool);
+    if let Some(&release) = RELEASE_FREED.get() {
+        rayon::broadcast(|_| release());
     }
-    // SAFETY: mi_collect frees what the calling thread's mimalloc heap holds unused (the
-    // mimalloc crate links mimalloc into every build with the `compiler` feature).
-    rayon::broadcast(|_| unsafe { mi_collect(true) });
 }
 
 /// Workers with the preprocessor's stack run it in place (no thread per permutation).
