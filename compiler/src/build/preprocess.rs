@@ -7,7 +7,9 @@
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
 //! number of its [`Row`] (4 bytes), per distinct result a 48-byte row whose lists are
-//! numbers in one [`Interner`]. The records for the next build are made from the rows
+//! numbers in one [`Interner`] (in a temporary file until preprocessing ends, so not beside
+//! the compile work that overlaps it). What may be reused is kept per (shader, level) until
+//! its last permutation is taken. The records for the next build are made from the rows
 //! when they are saved (each permutation's direct key is made again then).
 
 use std::collections::{HashMap, HashSet};
