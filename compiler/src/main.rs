@@ -13,7 +13,19 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> ExitCode {
     tune_glibc_malloc();
     tune_mimalloc();
+    kiln::build::set_release_freed(release_freed);
     kiln::cli::main()
+}
+
+/// Hands what this thread's mimalloc heap holds freed back to the system (a build calls it
+/// on every worker between stages: see `kiln::build::set_release_freed`).
+fn release_freed() {
+    extern "C" {
+        fn mi_collect(force: bool);
+    }
+    // SAFETY: mi_collect frees the unused pages of the calling thread's heap of mimalloc,
+    // the global allocator above.
+    unsafe { mi_collect(true) };
 }
 
 /// zstd's C code (dictionary training, compression contexts) still allocates through glibc,

@@ -4,7 +4,9 @@
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
 //! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
 //! and memory holds only the blobs' 16-byte identities and the manifest (where each blob's
-//! bytes lie goes to a second unlinked file, read back at the end). [`StreamingWriter::finish`] sorts
+//! bytes lie goes to a second unlinked file, read back at the end; the identities are
+//! spooled too, and let go once the caller says no more blobs come:
+//! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, trains one
 //! dictionary per target on a deterministic sample, compresses, and writes the archive
 //! through a temporary file and a rename. The bytes of the archive therefore depend only on
@@ -120,7 +122,10 @@ fn ident(hash: &blake3::Hash) -> Ident {
     hash.as_bytes()[..16].try_into().expect("16 of 32 bytes")
 }
 
-/// Where an added blob's bytes lie in the spool.
+/// The bytes of a blob's identity in the spool, just before its bytes.
+const ID_PREFIX: u64 = 16;
+
+/// Where an added blob's bytes lie in the spool (its identity just before them).
 #[derive(Clone, Copy)]
 struct Loc {
     offset: u64,
@@ -144,9 +149,18 @@ enum LocLog {
 /// The blobs of a writer, numbered by first sight and found by identity. Memory holds only
 /// each blob's identity (16 bytes) and a bit saying whether it was added; where its bytes
 /// lie goes to a log (a file for a [`StreamingWriter`]), read back when the archive is
-/// assembled: at 100k permutations, about 3 MB less through the build.
+/// assembled: at 100k permutations, about 3 MB less through the build. Each blob's
+/// identity is spooled too, just before its bytes, where the archive's assembly checks it:
+/// once no more blobs come ([`BlobTable::seal`]) the identities and the table that finds
+/// them are let go (at 100k permutations, about 4.5 MB less while the manifest is added
+/// and the archive written).
 struct BlobTable {
+    /// Each slot's identity, until sealed.
     idents: Vec<Ident>,
+    /// Slots given.
+    slots: usize,
+    /// No more blobs: `idents` and `table` are gone.
+    sealed: bool,
     /// One bit per slot: its blob was added.
     added_bits: Vec<u64>,
     table: hashbrown::HashTable<u32>,
@@ -170,24 +184,45 @@ fn table_hash(id: &Ident) -> u64 {
 
 impl BlobTable {
     fn new(log: LocLog) -> Self {
-        BlobTable { idents: Vec::new(), added_bits: Vec::new(), table: Default::default(), log, added: 0, spooled: 0 }
+        BlobTable {
+            idents: Vec::new(),
+            slots: 0,
+            sealed: false,
+            added_bits: Vec::new(),
+            table: Default::default(),
+            log,
+            added: 0,
+            spooled: 0,
+        }
     }
 
-    /// The number of the blob with `hash`, a new one if it is not known yet.
-    fn number(&mut self, hash: &blake3::Hash) -> u32 {
+    /// The number of the blob with `hash`, a new one if it is not known yet; `None` once
+    /// sealed.
+    fn number(&mut self, hash: &blake3::Hash) -> Option<u32> {
+        if self.sealed {
+            return None;
+        }
         let id = ident(hash);
         let idents = &self.idents;
         if let Some(&n) = self.table.find(table_hash(&id), |&n| idents[n as usize] == id) {
-            return n;
+            return Some(n);
         }
         let n = u32::try_from(self.idents.len()).expect("fewer than 2^32 blobs");
         self.idents.push(id);
+        self.slots = self.idents.len();
         if self.added_bits.len() * 64 < self.idents.len() {
             self.added_bits.push(0);
         }
         let idents = &self.idents;
         self.table.insert_unique(table_hash(&id), n, |&m| table_hash(&idents[m as usize]));
-        n
+        Some(n)
+    }
+
+    /// No more blobs will be added or named: lets go of what finds them.
+    fn seal(&mut self) {
+        self.sealed = true;
+        self.idents = Vec::new();
+        self.table = hashbrown::HashTable::new();
     }
 
     fn is_added(&self, n: u32) -> bool {
@@ -196,16 +231,16 @@ impl BlobTable {
 
     /// `artifacts` with blob numbers checked to be this table's.
     fn check_numbers(&self, name: &str, artifacts: &[(Target, u32)]) -> Result<(), ArchiveError> {
-        match artifacts.iter().find(|(_, n)| *n as usize >= self.idents.len()) {
+        match artifacts.iter().find(|(_, n)| *n as usize >= self.slots) {
             Some((t, n)) => Err(ArchiveError::Input(format!("permutation `{name}` names a {t} blob {n} of no writer"))),
             None => Ok(()),
         }
     }
 
-    /// Adds a blob of `len` bytes: its number, and where its bytes go in the spool (`None`
-    /// if it was added before).
+    /// Adds a blob of `len` bytes: its number, and where its identity and then its bytes go
+    /// in the spool (`None` if it was added before).
     fn add(&mut self, hash: &blake3::Hash, len: u64) -> std::io::Result<(u32, Option<u64>)> {
-        let n = self.number(hash);
+        let n = self.number(hash).ok_or_else(|| std::io::Error::other("a blob was added after the last"))?;
         if self.is_added(n) {
             return Ok((n, None));
         }
@@ -218,22 +253,22 @@ impl BlobTable {
         }
         self.added_bits[n as usize / 64] |= 1 << (n % 64);
         let offset = self.spooled;
-        self.spooled += len;
+        self.spooled += ID_PREFIX + len;
         self.added += 1;
         Ok((n, Some(offset)))
     }
 
     /// Each slot's location, from the log (`NOT_ADDED` for blobs only named).
     fn locations(&mut self) -> std::io::Result<Vec<Loc>> {
-        let mut locs = vec![Loc { offset: 0, len: NOT_ADDED }; self.idents.len()];
+        let mut locs = vec![Loc { offset: 0, len: NOT_ADDED }; self.slots];
         let mut offset = 0u64;
         let mut put = |record: &[u8]| -> std::io::Result<()> {
             let n = u32::from_le_bytes(record[..4].try_into().expect("4 bytes")) as usize;
             let len = u64::from_le_bytes(record[4..].try_into().expect("8 bytes"));
             let loc =
                 locs.get_mut(n).ok_or_else(|| std::io::Error::other("a temporary file of the archive was changed"))?;
-            *loc = Loc { offset, len };
-            offset += len;
+            *loc = Loc { offset: offset + ID_PREFIX, len };
+            offset += ID_PREFIX + len;
             Ok(())
         };
         match &mut self.log {
@@ -328,13 +363,20 @@ enum Spool<'a> {
 }
 
 impl Spool<'_> {
-    fn read(&self, offset: u64, len: u64) -> std::io::Result<Cow<'_, [u8]>> {
+    /// The blob at `loc`: the identity spooled with it, and its bytes (one read).
+    fn read_blob(&self, loc: Loc) -> std::io::Result<(Ident, Cow<'_, [u8]>)> {
+        let (start, end) = ((loc.offset - ID_PREFIX) as usize, (loc.offset + loc.len) as usize);
         match self {
-            Spool::Memory(m) => Ok(Cow::Borrowed(&m[offset as usize..(offset + len) as usize])),
+            Spool::Memory(m) => {
+                let id = m[start..][..ID_PREFIX as usize].try_into().expect("16 bytes");
+                Ok((id, Cow::Borrowed(&m[loc.offset as usize..end])))
+            }
             Spool::File(f) => {
-                let mut buf = vec![0u8; len as usize];
-                f.read_exact_at(&mut buf, offset)?;
-                Ok(Cow::Owned(buf))
+                let mut buf = vec![0u8; end - start];
+                f.read_exact_at(&mut buf, loc.offset - ID_PREFIX)?;
+                let id = buf[..ID_PREFIX as usize].try_into().expect("16 bytes");
+                buf.drain(..ID_PREFIX as usize);
+                Ok((id, Cow::Owned(buf)))
             }
         }
     }
@@ -431,8 +473,12 @@ impl StreamingWriter {
             }
         };
         let Some(offset) = offset else { return Ok(n) };
-        // Written outside the lock: threads spool their blobs in parallel.
-        if let Err(source) = self.spool.write_all_at(bytes, offset) {
+        // Written outside the lock (threads spool their blobs in parallel), after the
+        // blob's identity, in one write.
+        let mut spooled = Vec::with_capacity(ID_PREFIX as usize + bytes.len());
+        spooled.extend_from_slice(&ident(&hash));
+        spooled.extend_from_slice(bytes);
+        if let Err(source) = self.spool.write_all_at(&spooled, offset) {
             self.failed.store(true, Ordering::Relaxed);
             return Err(ArchiveError::Write { path: self.output.clone(), source });
         }
@@ -443,7 +489,9 @@ impl StreamingWriter {
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
         let p = {
             let mut blobs = lock(&self.blobs);
-            numbered(p, |k| blobs.number(&k.0))
+            numbered(p, |k| blobs.number(&k.0)).ok_or_else(|| {
+                ArchiveError::Input("a permutation named by blob keys was added after the blobs were sealed".into())
+            })?
         };
         lock(&self.entries).add(p)
     }
@@ -480,6 +528,13 @@ impl StreamingWriter {
         lock(&self.blobs).added
     }
 
+    /// No more blobs will be added, nor permutations named by [`BlobKey`] (those are
+    /// errors now; [`StreamingWriter::add_permutation_numbered`] still works): lets go of the
+    /// table that finds blobs by content, before the manifest is added.
+    pub fn seal_blobs(&self) {
+        lock(&self.blobs).seal();
+    }
+
     /// Assembles the archive and writes it atomically (temporary file, fsync, rename).
     pub fn finish(self) -> Result<ArchiveSummary, ArchiveError> {
         self.finish_impl(true)
@@ -513,10 +568,13 @@ impl StreamingWriter {
     }
 }
 
-/// `p` with its artifacts' keys turned into numbers by `number`.
-fn numbered<'a>(p: NewPermutation<'a>, mut number: impl FnMut(&BlobKey) -> u32) -> NewPermutation<'a, u32> {
-    let artifacts = p.artifacts.iter().map(|(t, k)| (*t, number(k))).collect();
-    NewPermutation { name: p.name, shader: p.shader, values: p.values, reflection: p.reflection, artifacts }
+/// `p` with its artifacts' keys turned into numbers by `number` (`None` where it gives none).
+fn numbered<'a>(
+    p: NewPermutation<'a>,
+    mut number: impl FnMut(&BlobKey) -> Option<u32>,
+) -> Option<NewPermutation<'a, u32>> {
+    let artifacts = p.artifacts.iter().map(|(t, k)| Some((*t, number(k)?))).collect::<Option<_>>()?;
+    Some(NewPermutation { name: p.name, shader: p.shader, values: p.values, reflection: p.reflection, artifacts })
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -574,6 +632,7 @@ impl ArchiveWriter {
         debug_assert_eq!(hash, blake3::hash(bytes));
         let (n, offset) = self.blobs.add(&hash, bytes.len() as u64).expect("a log in memory");
         if offset.is_some() {
+            self.spool.extend_from_slice(&ident(&hash));
             self.spool.extend_from_slice(bytes);
         }
         BlobId(n)
@@ -619,7 +678,7 @@ impl ArchiveWriter {
             return Err(ArchiveError::Input("an in-memory writer with a log in a file".into()));
         };
         let mut table = BlobTable::new(LocLog::Memory(log.clone()));
-        table.idents = self.blobs.idents.clone();
+        table.slots = self.blobs.slots;
         table.added = self.blobs.added;
         table.spooled = self.blobs.spooled;
         let locs =
@@ -670,8 +729,6 @@ struct PlannedBlob {
 struct Plan {
     manifest: Manifest,
     blobs: Vec<PlannedBlob>,
-    /// Each blob's identity, by slot.
-    idents: Vec<Ident>,
     /// Each blob's place in the spool, by slot.
     locs: Vec<Loc>,
     /// Where the spool's blobs end.
@@ -690,8 +747,8 @@ impl Plan {
 /// artifacts' slots turned into blob ids in place: no second copy of either table (they
 /// grow with the set, and this runs at the build's end, on top of the manifest).
 fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, ArchiveError> {
-    let BlobTable { idents, table, added_bits, log, spooled: spool_len, .. } = table;
-    drop((table, added_bits, log));
+    let BlobTable { idents, table, added_bits, log, spooled: spool_len, slots, .. } = table;
+    drop((idents, table, added_bits, log));
     let Entries { naga_version, shaders, reflections, mut permutations, names, values, mut artifacts, .. } = entries;
     let name = |p: &Pending| &names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
     permutations.sort_unstable_by(|a, b| name(a).cmp(name(b)));
@@ -704,7 +761,7 @@ fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, Arch
     let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
     // Each slot's blob id, by first use.
-    let mut blob_ids: Vec<u32> = vec![u32::MAX; idents.len()];
+    let mut blob_ids: Vec<u32> = vec![u32::MAX; slots];
     let mut blobs = Vec::new();
     for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
@@ -752,7 +809,7 @@ fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, Arch
     manifest.artifacts = artifacts.into_iter().map(|(t, id)| (t, BlobId(id))).collect();
     manifest.names = names;
     manifest.values = values;
-    Ok(Plan { manifest, blobs, idents, locs, spool_len })
+    Ok(Plan { manifest, blobs, locs, spool_len })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
@@ -901,7 +958,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
-    let Plan { mut manifest, blobs, idents, locs, spool_len } = plan;
+    let Plan { mut manifest, blobs, locs, spool_len } = plan;
     let slot = |b: &PlannedBlob| locs[b.slot as usize];
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let mut table = TableBuf::new(spool, spool_len, blobs.len());
@@ -919,12 +976,11 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
             batch,
             || (),
             |_, b| -> std::io::Result<(u8, u8, Vec<u8>, blake3::Hash)> {
-                let s = slot(b);
-                let raw = spool.read(s.offset, s.len)?;
+                let (id, raw) = spool.read_blob(slot(b))?;
                 // The whole blake3, which the table stores, from the bytes; they must still
                 // be the ones added.
                 let hash = blake3::hash(&raw);
-                if ident(&hash) != idents[b.slot as usize] {
+                if ident(&hash) != id {
                     return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
                 }
                 let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
@@ -952,7 +1008,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     }
     summary.blobs = blobs.len();
     let blob_count = blobs.len() as u64;
-    drop((blobs, idents, locs));
+    drop((blobs, locs));
     summary.stored_bytes = offset;
     let blobs_len = offset;
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;

@@ -287,6 +287,14 @@ impl<'p> Assembler<'p> {
         }
     }
 
+    /// No more artifacts come: the archive writer lets go of the table that finds its blobs
+    /// by content (about 4.5 MB at 100k permutations).
+    pub fn seal_blobs(&self) {
+        if let Some(w) = &self.writer {
+            w.seal_blobs();
+        }
+    }
+
     /// Writes an artifact to the archive's spool and the loose files; its blob number in the
     /// archive (0 without one).
     fn write_artifact(&self, t: Target, stage: Stage, bytes: &[u8], hash: blake3::Hash) -> Result<u32, String> {
@@ -317,19 +325,31 @@ impl<'p> Assembler<'p> {
     /// every permutation has the key it had when the archive was written, and the archive
     /// is the file that build wrote (like cargo's freshness check). Only with a cache (the
     /// stamp lives there), nothing failed, and no `--emit-dir`.
-    pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
+    pub fn up_to_date(
+        &self,
+        store: &Store,
+        pre: &Preprocessed,
+        keys: &Keys<'_>,
+        failed: bool,
+    ) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        store.fresh_archive(out, &self.fingerprint(pre), &keys.keys)
+        store.fresh_archive(out, &self.fingerprint(pre), &keys.to_vec())
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive
     /// and every key's entry: the entries are copied into the local cache and the archive
     /// written (see [`Store::archive_from_remote`]). Same conditions as [`Self::up_to_date`].
-    pub fn from_remote(&self, store: &Store, pre: &Preprocessed, keys: &Keys, failed: bool) -> Option<(usize, usize)> {
+    pub fn from_remote(
+        &self,
+        store: &Store,
+        pre: &Preprocessed,
+        keys: &Keys<'_>,
+        failed: bool,
+    ) -> Option<(usize, usize)> {
         let options = self.plan.options;
         let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
-        store.archive_from_remote(out, &self.fingerprint(pre), &keys.keys)
+        store.archive_from_remote(out, &self.fingerprint(pre), &keys.to_vec())
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
@@ -353,6 +373,7 @@ impl<'p> Assembler<'p> {
             .expect("no panics while locked")
             .load()
             .map_err(|e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}")))?;
+        super::trace_memory("keys read back");
         let writer = self.writer;
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();

@@ -147,14 +147,14 @@ impl<'a> Compiler<'a> {
     }
 
     /// Every key's outcome, in `keys` order.
-    pub fn run(&self, keys: &Keys, preprocessor: &Preprocessor<'_>) -> Vec<Outcome> {
+    pub fn run(&self, keys: &Keys<'_>, preprocessor: &Preprocessor<'_>) -> Vec<Outcome> {
         self.progress.stage("compiling", keys.len());
         self.started();
         let assembling = self.plan.assembles();
         let outcomes = (0..keys.len())
             .into_par_iter()
             .map(|k| {
-                let outcome = self.key(&keys.keys[k], keys.members(k), keys.share[k] || assembling, preprocessor);
+                let outcome = self.key(keys.key(k), keys.members(k), keys.share[k] || assembling, preprocessor);
                 self.progress.inc();
                 outcome
             })

@@ -321,7 +321,11 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
             if dim.values.len() < 2 {
                 continue;
             }
-            let mut rows: HashMap<Vec<i64>, Vec<&crate::cache::Key>> = HashMap::new();
+            // Per set of values of the other dimensions (by a 128-bit hash of them: a
+            // collision could only move a warning), its first key, whether it has several
+            // members and whether they all have that key: 32 bytes a set, where the sets'
+            // values and members in vectors took about 100 a permutation (4 MB at 100k).
+            let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::new();
             let mut complete = true;
             for &m in &members {
                 let Some(key) = pre.key(m) else {
@@ -330,10 +334,20 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
                 };
                 let mut rest = plan.values(m);
                 rest.remove(d);
-                rows.entry(rest).or_default().push(key);
+                let mut h = blake3::Hasher::new();
+                for v in rest {
+                    h.update(&v.to_le_bytes());
+                }
+                let id = u128::from_le_bytes(h.finalize().as_bytes()[..16].try_into().expect("16 of 32 bytes"));
+                rows.entry(id)
+                    .and_modify(|(first, several, same)| {
+                        *several = true;
+                        *same &= *first == key;
+                    })
+                    .or_insert((key, false, true));
             }
-            let varies = rows.values().any(|hs| hs.len() > 1);
-            let dead = complete && varies && rows.values().all(|hs| hs.iter().all(|h| *h == hs[0]));
+            let varies = rows.values().any(|r| r.1);
+            let dead = complete && varies && rows.values().all(|r| r.2);
             if dead {
                 out.push(DeadDimension {
                     shader: shader.to_string(),

@@ -40,7 +40,7 @@ fn ident(hash: &blake3::Hash) -> Ident {
     Ident::from_le_bytes(first)
 }
 
-/// Hashes an [`Ident`] by its low 8 bytes: it is already a uniform hash.
+/// Hashes an [`Ident`] by its low 8 bytes (it is already a uniform hash), a prefix by its 4.
 #[derive(Default)]
 struct IdentHasher(u64);
 
@@ -58,17 +58,28 @@ impl Hasher for IdentHasher {
     fn write_u128(&mut self, n: u128) {
         self.0 = n as u64;
     }
+
+    /// A prefix: spread over 64 bits (the table takes its probe tag from the high bits).
+    fn write_u32(&mut self, n: u32) {
+        self.0 = u64::from(n).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
 }
 
 type ByIdent = BuildHasherDefault<IdentHasher>;
 
 /// What a build knows of its compacted modules. Most modules belong to one key, so those
-/// are a set of identities (17 bytes a module with the table's control byte, where a map to
-/// an enum of 32-byte hashes took 49), and the few whose outputs are kept are a map beside it.
+/// are a set of 4-byte prefixes of their identities (5 bytes a module with the table's
+/// control byte, where the whole identity took 17 and a map to an enum of 32-byte hashes
+/// 49), and the few whose outputs are kept are a map beside it, by whole identity.
+///
+/// The set only decides whether a module's outputs are worth keeping: a prefix shared by
+/// two modules (about one pair in a 100k set) makes the second module's key keep its own
+/// outputs, never take another's. Sharing goes only through `kept`.
 #[derive(Default)]
 struct Modules {
-    /// Modules one key had, whose artifacts were not kept (or no longer are: over budget).
-    seen: HashSet<Ident, ByIdent>,
+    /// Prefixes of the modules one key had, whose artifacts were not kept (or no longer
+    /// are: over budget).
+    seen: HashSet<u32, ByIdent>,
     /// The writers' outputs, kept once a second key had the module (or being written by that
     /// key).
     kept: HashMap<Ident, Arc<OnceLock<Written>>, ByIdent>,
@@ -125,13 +136,13 @@ impl SharedWriters {
             let mut map = self.map.lock().expect("no panics while locked");
             if let Some(cell) = map.kept.get(&id) {
                 Some(cell.clone())
-            } else if map.seen.insert(id) {
+            } else if map.seen.insert(id as u32) {
                 None
             } else if self.kept.load(Ordering::Relaxed) >= Self::BUDGET {
                 // Over budget, keys of modules not kept run their writers without a copy.
                 None
             } else {
-                map.seen.remove(&id);
+                map.seen.remove(&(id as u32));
                 let cell = Arc::<OnceLock<Written>>::default();
                 map.kept.insert(id, cell.clone());
                 Some(cell)
@@ -155,7 +166,7 @@ impl SharedWriters {
                 self.kept.fetch_sub(bytes, Ordering::Relaxed);
                 let mut map = self.map.lock().expect("no panics while locked");
                 map.kept.remove(&id);
-                map.seen.insert(id);
+                map.seen.insert(id as u32);
             }
         }
         Ok(Compiled { artifacts: written.clone()?, reflection })
