@@ -121,19 +121,49 @@
 //! Of the bundled set's 2.46 MB, blobs take 1.73 MB, dictionaries 0.31 MB, and the manifest
 //! and blob table the rest. With format 2's JSON manifest, opening was mostly parsing it
 //! (0.68 ms for the bundled set, growing with the number of permutations); format 3's binary
-//! manifest is read in place. `cargo bench -p kiln --bench archive` (release, this shared
-//! 2-core machine, medians of 51 opens):
+//! manifest is read in place, but opening still hashed the whole manifest and blob table and
+//! range-checked every record and entry: O(manifest). Format 4 hashes them per chunk, each
+//! chunk the first time a read touches it, and checks each record and entry on first use, so
+//! that opening reads the header, the chunk hashes (32 bytes per [`CHUNK_LEN`] bytes, 93 KB
+//! for the 48 MB of manifest and table of 100,000 permutations), the manifest's header,
+//! dictionaries and JSON tables, and allocates zeroed bits. `cargo bench -p kiln --bench
+//! archive` (release, this 2-core machine shared with other builds at a load average of 4.7
+//! to 5.0, medians of 51 opens; the same run for both formats):
 //!
-//! | archive                                          | format 2 open | format 3 open | of which checksum |
-//! | ------------------------------------------------ | ------------- | ------------- | ----------------- |
-//! | bundled set, 625 permutations, 2.54 MB           | 0.68 ms       | 0.29 ms       |                   |
-//! | generated, 1,024 x 1 MiB incompressible          | 0.34 ms       | 0.055 ms      |                   |
-//! | generated, 10,000 permutations (3.8 MB manifest) | ~7 ms (est.)  | 0.70 ms       | 0.48 ms           |
-//! | generated, 100,000 permutations (38 MB manifest) |               | 9.1 ms        | 6.1 ms            |
+//! | archive                                          | format 3 open | format 4 open | format 4 first lookup after open (no artifact) |
+//! | ------------------------------------------------ | ------------- | ------------- | ---------------------------------------------- |
+//! | bundled set, 622 permutations, 2.72 MB           | 0.28 ms       | 0.21 ms       | 35 µs (10 µs)                                  |
+//! | generated, 1,024 x 1 MiB incompressible          | 0.053 ms      | 0.018 ms      | 166 µs (9 µs)                                  |
+//! | generated, 10,000 permutations (3.8 MB manifest) | 0.71 ms       | 0.053 ms      | 69 µs (38 µs)                                  |
+//! | generated, 100,000 permutations (38 MB manifest) | 13.1 ms       | 0.064 ms      | 118 µs (79 µs)                                 |
 //!
-//! What remains is O(manifest): the checksum (the issue asks for it at open) and the
-//! records' range checks. The names are half of the manifest (about 200 bytes each in the
-//! generated sets); a manifest that derives them from shader and values would halve it.
+//! What remains at open is O(shaders + distinct reflections): parsing the JSON tables (most of
+//! the bundled set's 0.21 ms). A lookup by name and decompression of one artifact, median over
+//! 2,000 names: bundled 6.9 µs on first use (chunks, record, blob and dictionary checked), 1.8 µs
+//! again; 100,000 permutations 3.7 µs and 2.4 µs (format 3: 3.0 and 1.9). The first lookup after
+//! an open costs more (the table above): the pages of the map it touches fault in, each chunk
+//! its binary search reads is hashed (about 20 at 100,000 permutations), and the first
+//! artifact of a target loads its dictionary. A walk of every record (`permutations`, so
+//! `kiln inspect --list`) checks every chunk and record first: 0.05 ms for the bundled set,
+//! 0.9 ms for 10,000 permutations, 10 to 21 ms for 100,000 (format 3 paid about that at every
+//! open).
+//!
+//! [`CHUNK_LEN`] was chosen on the generated archive of 100,000 permutations (same bench,
+//! one to three runs each at a load average of 4 to 6, ranges; 10,000 alike but smaller):
+//!
+//! | chunk  | chunk hashes | open           | first lookup after open | same, no artifact | lookup + decompress, first use | walk of every record |
+//! | ------ | ------------ | -------------- | ----------------------- | ----------------- | ------------------------------ | -------------------- |
+//! | 2 KiB  | 746 KB       | 0.150 ms       | 116 µs                  |                   | 11.3 µs                        | 32 ms                |
+//! | 4 KiB  | 373 KB       | 0.092-0.097 ms | 109-114 µs              | 75-77 µs          | 7.3-7.8 µs                     | 21-29 ms             |
+//! | 8 KiB  | 187 KB       | 0.072-0.076 ms | 113-121 µs              | 76-78 µs          | 5.4-5.8 µs                     | 15-21 ms             |
+//! | 16 KiB | 93 KB        | 0.062-0.066 ms | 116-121 µs              | 79-85 µs          | 3.5-4.5 µs                     | 10-23 ms             |
+//! | 32 KiB | 47 KB        | 0.064 ms       | 162 µs                  |                   | 3.5 µs                         | 14 ms                |
+//!
+//! Smaller chunks make the chunk hashes (hashed at open) larger and a walk slower (blake3 is
+//! fastest on inputs of 16 of its 1 KiB chunks and more); larger ones make the first lookups
+//! hash more bytes per chunk they read. The first lookup after an open is mostly page faults
+//! and its first dictionary, and hardly depends on the chunk length up to 16 KiB; 16 KiB
+//! gives the fastest open and first uses, and walks as fast as any.
 
 use std::fs::File;
 use std::io::{IoSlice, Write};
@@ -146,9 +176,9 @@ use super::{Reflection, Stage, Target};
 pub const MAGIC: [u8; 8] = *b"KILNPAK\0";
 pub const FORMAT_VERSION: u32 = 4;
 pub const HEADER_LEN: usize = 128;
-/// Bytes of one chunk of the manifest and of the blob table that one hash covers (see the
-/// module doc; chosen by measuring, in the table there).
-pub const CHUNK_LEN: u32 = 8 << 10;
+/// Bytes of one chunk of the manifest and of the blob table that one hash covers (chosen by
+/// measuring: the module doc's table). The reader takes the length from the header.
+pub const CHUNK_LEN: u32 = 16 << 10;
 /// Bytes of one chunk hash.
 pub(crate) const CHUNK_HASH_LEN: usize = 32;
 /// Bytes of one blob table entry.

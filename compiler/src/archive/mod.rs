@@ -1,9 +1,10 @@
 //! The archive: one file holding every permutation of a build.
 //!
 //! Takes the artifacts and reflection the compile stage produced; gives a file with a header
-//! (magic, format version, checksum of header and manifest), a manifest (permutations, their
-//! targets, reflection), per-target zstd dictionaries and deduplicated, compressed blobs,
-//! each with its own checksum. Guarantees: the writer streams (blob bytes spool to disk as
+//! (magic, format version, checksum of header and chunk hashes), chunk hashes (one per 16 KiB
+//! of manifest and blob table), a manifest (permutations, their targets, reflection),
+//! per-target zstd dictionaries and deduplicated, compressed blobs, each with its own
+//! checksum. Guarantees: the writer streams (blob bytes spool to disk as
 //! they come, from any thread) and is deterministic (the bytes depend on the set of
 //! permutations and blobs, not on the order they came in) and atomic (temp file, then
 //! rename); the reader never panics on bad bytes, checks the header and the manifest's

@@ -1,4 +1,4 @@
-//! The writers of format 2.
+//! The writers of the archive format (`format.rs`).
 //!
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
