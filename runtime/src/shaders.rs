@@ -61,7 +61,8 @@ impl fmt::Debug for ShaderArchive {
 }
 
 impl ShaderArchive {
-    /// Memory-maps and verifies an archive file (header, version, checksum, manifest).
+    /// Memory-maps and verifies an archive file (header, version, checksum of the chunk
+    /// hashes; the manifest is checked a chunk at a time as lookups read it).
     pub fn open(path: &Path) -> Result<ShaderArchive, ArchiveError> {
         Ok(ShaderArchive { archive: Archive::open(path)?, trusted: false })
     }

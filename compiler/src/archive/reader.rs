@@ -37,9 +37,6 @@ impl Bytes {
     }
 }
 
-/// A loaded archive. The header and manifest are checked and parsed at open; blobs stay
-/// where they are (in the memory map or the embedded bytes) until an artifact is asked for,
-/// and are checked then, once each. `Send + Sync`.
 /// The id of a permutation: the 128-bit FNV-1a hash of the shader's name, a 0 byte, the
 /// level's name, a 0 byte, then each dimension's value (an enum's index) as 8 little-endian
 /// bytes, in declared order. Typed keys compute the same hash from their fields.
@@ -63,6 +60,11 @@ pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
     h
 }
 
+/// A loaded archive. Opening checks the header and the chunk hashes and parses the tables;
+/// the manifest's records and the blob table stay where they are (in the memory map or the
+/// embedded bytes) and each chunk of them is checked the first time a read touches it, each
+/// record and entry the first time it is used; blobs are checked the first time their
+/// artifact is asked for, once each. `Send + Sync`.
 pub struct Archive {
     bytes: Bytes,
     blobs_start: usize,
@@ -291,7 +293,7 @@ fn file_kind(meta: &std::fs::Metadata) -> &'static str {
 }
 
 impl Archive {
-    /// Memory-maps an archive file and checks its header and manifest. A path that is not a
+    /// Memory-maps an archive file and checks its header and chunk hashes. A path that is not a
     /// regular file (a directory, a FIFO, a device) is an error, found without blocking.
     pub fn open(path: &Path) -> Result<Archive, ArchiveError> {
         let io = |source| ArchiveError::Io { path: path.to_path_buf(), source };
