@@ -1,8 +1,9 @@
 //! The archive format in numbers, measured in one run.
 //!
 //! `cargo bench -p kiln --bench archive [-- CONFIG]` (CONFIG defaults to the workspace's
-//! `permutations.toml`, the bundled set; `KILN_ARCHIVE_SETS=bundled,generated,big,many` runs
-//! only some of the parts below). For each of
+//! `permutations.toml`, the bundled set; `KILN_ARCHIVE_SETS=bundled,generated,big,many,files`
+//! runs only some of the parts below; `KILN_ARCHIVE_FILES=a.kpak,...` adds archives built
+//! elsewhere to `files`). For each of
 //!
 //! 1. the bundled set, built through `kiln::build::run` (its cache under `target/`);
 //! 2. a generated set of 1,024 permutations (one fragment shader with 9 bool dimensions,
@@ -375,7 +376,7 @@ fn main() {
     let scratch = tempfile::tempdir().unwrap();
     let cache = root.join("target/kiln-bench-cache");
 
-    // KILN_ARCHIVE_SETS=bundled,generated,big,many picks the parts to run (all by default).
+    // KILN_ARCHIVE_SETS=bundled,generated,big,many,files picks the parts to run (all by default).
     let sets = std::env::var("KILN_ARCHIVE_SETS").unwrap_or_default();
     let wanted = |set: &str| sets.is_empty() || sets.split(',').any(|s| s.trim() == set);
 
@@ -406,6 +407,14 @@ fn main() {
         println!("(generated 1 GiB archive written in {secs:.2} s)");
         measure("1 GiB archive", &out);
         std::fs::remove_file(&out).unwrap();
+    }
+
+    // KILN_ARCHIVE_FILES=a.kpak,b.kpak: archives built elsewhere (a generated 100k set's, say),
+    // measured the same way (`KILN_ARCHIVE_SETS=files` for those alone).
+    if wanted("files") {
+        for file in std::env::var("KILN_ARCHIVE_FILES").unwrap_or_default().split(',').filter(|f| !f.is_empty()) {
+            measure(file, Path::new(file));
+        }
     }
 
     for count in [10_000, 100_000].into_iter().filter(|_| wanted("many")) {
