@@ -53,8 +53,9 @@
 //! UTF-8, and the chunks it lies in against their hashes. A bad record is an error naming the
 //! permutation, never a panic. A lookup by name is a binary search of the records (each
 //! step checks the chunks it reads), by id one of the ids. Nothing per permutation is
-//! copied, allocated or written at open: the per-permutation and per-chunk bits are zeroed
-//! allocations, and the cells of decoded values are allocated a page at a time on first use.
+//! copied, allocated or written at open: the bits of checked chunks, records and blobs and
+//! the cells of decoded values are allocated a page (4,096 bits, 1,024 cells) at a time on
+//! first use, so opening writes one empty cell per page.
 //!
 //! A blob table entry is `stored offset (u64, from the start of the blob section), stored
 //! length (u64), raw length (u64), codec (u8: 0 stored as is, 1 zstd, 2 zstd with a
@@ -126,7 +127,7 @@
 //! chunk the first time a read touches it, and checks each record and entry on first use, so
 //! that opening reads the header, the chunk hashes (32 bytes per [`CHUNK_LEN`] bytes, 93 KB
 //! for the 48 MB of manifest and table of 100,000 permutations), the manifest's header,
-//! dictionaries and JSON tables, and allocates zeroed bits. `cargo bench -p kiln --bench
+//! dictionaries and JSON tables, and one empty cell per page of bits. `cargo bench -p kiln --bench
 //! archive` (release, this 2-core machine shared with other builds at a load average of 4.7
 //! to 5.0, medians of 51 opens; the same run for both formats):
 //!

@@ -104,20 +104,26 @@ pub struct Archive {
 /// Cells of decoded values per page.
 const VALUE_PAGE: usize = 1024;
 
-/// Bits set once, read and set from any thread; created zero (one word per 64 bits, so the
-/// 100,000 permutations of a large archive cost 1,563 words).
-struct Bits(Box<[AtomicU64]>);
+/// Bits set once, read and set from any thread, in pages of [`BITS_PAGE`] bits allocated
+/// (zeroed) on the first set of one of theirs: opening writes one empty cell per page (25 for
+/// the 100,000 permutations of a large archive), nothing per bit.
+struct Bits(Box<[OnceLock<Box<[AtomicU64]>>]>);
+
+/// Bits per page of [`Bits`].
+const BITS_PAGE: usize = 4096;
 
 impl Bits {
     fn new(n: usize) -> Bits {
-        Bits((0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect())
+        Bits((0..n.div_ceil(BITS_PAGE)).map(|_| OnceLock::new()).collect())
     }
     fn get(&self, i: usize) -> bool {
-        self.0.get(i / 64).is_some_and(|w| w.load(Ordering::Acquire) & (1 << (i % 64)) != 0)
+        let word = self.0.get(i / BITS_PAGE).and_then(|p| p.get()).map(|p| &p[i % BITS_PAGE / 64]);
+        word.is_some_and(|w| w.load(Ordering::Acquire) & (1 << (i % 64)) != 0)
     }
     fn set(&self, i: usize) {
-        if let Some(w) = self.0.get(i / 64) {
-            w.fetch_or(1 << (i % 64), Ordering::Release);
+        if let Some(page) = self.0.get(i / BITS_PAGE) {
+            let page = page.get_or_init(|| (0..BITS_PAGE / 64).map(|_| AtomicU64::new(0)).collect());
+            page[i % BITS_PAGE / 64].fetch_or(1 << (i % 64), Ordering::Release);
         }
     }
 }
@@ -982,4 +988,24 @@ fn edit_distance(a: &str, b: &str) -> usize {
         prev = cur;
     }
     prev[b.len()]
+}
+
+#[cfg(test)]
+mod bits_tests {
+    use super::Bits;
+
+    #[test]
+    fn bits_across_pages_and_out_of_range() {
+        let bits = Bits::new(10_001);
+        assert!((0..10_001).all(|i| !bits.get(i)), "created zero");
+        for i in [0, 63, 64, 4095, 4096, 10_000] {
+            bits.set(i);
+        }
+        let set: Vec<usize> = (0..10_001).filter(|&i| bits.get(i)).collect();
+        assert_eq!(set, vec![0, 63, 64, 4095, 4096, 10_000]);
+        // Past the end: never set, never panics.
+        bits.set(1 << 20);
+        assert!(!bits.get(1 << 20) && !bits.get(12_288));
+        assert!(!Bits::new(0).get(0));
+    }
 }
