@@ -1,8 +1,9 @@
 //! The archive format in numbers, measured in one run.
 //!
 //! `cargo bench -p kiln --bench archive [-- CONFIG]` (CONFIG defaults to the workspace's
-//! `permutations.toml`, the bundled set; `KILN_ARCHIVE_SETS=bundled,generated,big,many` runs
-//! only some of the parts below). For each of
+//! `permutations.toml`, the bundled set; `KILN_ARCHIVE_SETS=bundled,generated,big,many,files`
+//! runs only some of the parts below; `KILN_ARCHIVE_FILES=a.kpak,...` adds archives built
+//! elsewhere to `files`). For each of
 //!
 //! 1. the bundled set, built through `kiln::build::run` (its cache under `target/`);
 //! 2. a generated set of 1,024 permutations (one fragment shader with 9 bool dimensions,
@@ -13,10 +14,12 @@
 //!    shader/level pairs of 11 dimensions, two small artifacts each): what opening costs when
 //!    the manifest is large;
 //!
-//! it prints the sizes (raw artifacts, what format 1 would take, what format 2 takes, the
-//! ratio), the time to write the archive, the median open time (memory map, header and
-//! manifest checked and parsed), and the median of one lookup by name plus decompression of
-//! one artifact, first use (checksum checked) and later uses. Goals (issue 12): at most 1/8 of
+//! it prints the sizes (raw artifacts, what format 1 would take, what this format takes, the
+//! ratio), the time to write the archive, the median open time (memory map, header and chunk
+//! hashes checked, tables parsed), the first lookup after an open (the chunks its binary
+//! search reads checked), the median of one lookup by name plus decompression of one
+//! artifact, first use (chunks, record and blob checked) and later uses, and a walk of every
+//! record (which checks every chunk of the manifest's records, values, artifacts and names). Goals (issue 12): at most 1/8 of
 //! format 1, open at most 1 ms, lookup + decompression at most 100 µs median. For the two
 //! real sets it also compares the two schemes issue 12 names (per-target dictionaries and
 //! compressed groups of similar artifacts): sizes and what one lookup costs.
@@ -102,7 +105,7 @@ fn measure(label: &str, path: &Path) {
     // Format 1 held the raw blobs (8-byte aligned) and about the same manifest.
     let format1 = file - stored - dictionaries + raw + 8 * a.blob_count() as u64;
     let perms: Vec<(String, Target)> =
-        a.permutations().map(|p| (p.name().to_string(), p.targets().next().unwrap())).collect();
+        a.permutations().unwrap().map(|p| (p.name().to_string(), p.targets().next().unwrap())).collect();
     drop(a);
 
     let opens: Vec<Duration> = (0..51)
@@ -114,31 +117,73 @@ fn measure(label: &str, path: &Path) {
             d
         })
         .collect();
-    let a = Archive::open(path).unwrap();
+    // The first lookup after open: every chunk its binary search reads is checked (the
+    // worst case of a lookup), median of fresh opens.
     let order: Vec<usize> = (0..perms.len().min(2000)).map(|i| (i * 7919) % perms.len()).collect();
-    let lookup = |i: usize| {
+    let lookup_in = |a: &Archive, i: usize| {
         let (name, t) = &perms[i];
         let t0 = Instant::now();
-        let bytes = a.get(name).unwrap().artifact(*t).unwrap().unwrap();
+        let bytes = a.get(name).unwrap().unwrap().artifact(*t).unwrap().unwrap();
         let d = t0.elapsed();
         std::hint::black_box(bytes);
         d
     };
+    let cold: Vec<Duration> = order
+        .iter()
+        .take(21)
+        .map(|&i| {
+            let a = Archive::open(path).unwrap();
+            lookup_in(&a, i)
+        })
+        .collect();
+    // The same without the artifact: the binary search alone, its chunks and record checked
+    // (no dictionary loaded, no blob decompressed).
+    let cold_get: Vec<Duration> = order
+        .iter()
+        .cycle()
+        .skip(21)
+        .take(21)
+        .map(|&i| {
+            let a = Archive::open(path).unwrap();
+            let t0 = Instant::now();
+            std::hint::black_box(a.get(&perms[i].0).unwrap().unwrap());
+            t0.elapsed()
+        })
+        .collect();
+    // A walk of every record checks them all, and every chunk they lie in.
+    let walks: Vec<Duration> = (0..5)
+        .map(|_| {
+            let a = Archive::open(path).unwrap();
+            let t = Instant::now();
+            std::hint::black_box(a.permutations().unwrap().count());
+            t.elapsed()
+        })
+        .collect();
+    let a = Archive::open(path).unwrap();
+    let lookup = |i: usize| lookup_in(&a, i);
     let first: Vec<Duration> = order.iter().map(|&i| lookup(i)).collect();
     let again: Vec<Duration> = order.iter().map(|&i| lookup(i)).collect();
     println!("{label}: {} permutations, {} distinct artifacts", perms.len(), a.blob_count());
     println!("  artifacts raw:                  {:10.2} MB", mb(raw));
     println!("  format 1 (raw blobs):           {:10.2} MB", mb(format1));
     println!(
-        "  format 3:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
+        "  format {}:                       {:10.2} MB  (blobs {:.2} MB + dictionaries {:.3} MB)",
+        kiln::archive::FORMAT_VERSION,
         mb(file),
         mb(stored),
         mb(dictionaries)
     );
-    println!("  format 3 / format 1:            {:10.3}  (goal <= 0.125)", file as f64 / format1 as f64);
-    println!("  open (mmap, header + manifest): {:10.1} us median  (goal <= 1000)", us(median(opens)));
-    println!("  lookup + decompress, first use: {:10.1} us median  (checksum checked)", us(median(first)));
+    println!(
+        "  format {} / format 1:            {:10.3}  (goal <= 0.125)",
+        kiln::archive::FORMAT_VERSION,
+        file as f64 / format1 as f64
+    );
+    println!("  open (mmap, header, chunk hashes): {:7.1} us median  (goal <= 1000)", us(median(opens)));
+    println!("  first lookup after open:        {:10.1} us median  (the chunks it reads checked)", us(median(cold)));
+    println!("  first lookup after open, no artifact: {:4.1} us median  (its chunks checked)", us(median(cold_get)));
+    println!("  lookup + decompress, first use: {:10.1} us median  (chunks, record, blob checked)", us(median(first)));
     println!("  lookup + decompress, again:     {:10.1} us median  (goal <= 100)", us(median(again)));
+    println!("  walk of every record:           {:10.1} us median  (every chunk checked)", us(median(walks)));
 }
 
 /// The two schemes issue 12 names, measured on this archive's artifacts: per-target
@@ -148,7 +193,7 @@ fn measure(label: &str, path: &Path) {
 fn compare_schemes(path: &Path) {
     use std::collections::{BTreeMap, HashSet};
     let a = Archive::open(path).unwrap();
-    let mut perms: Vec<_> = a.permutations().collect();
+    let mut perms: Vec<_> = a.permutations().unwrap().collect();
     perms.sort_by(|x, y| x.name().cmp(y.name()));
     let mut seen = HashSet::new();
     let mut blobs: Vec<(Target, u32, Vec<u8>)> = Vec::new();
@@ -156,7 +201,7 @@ fn compare_schemes(path: &Path) {
         for t in p.targets() {
             let id = p.blob_id(t).unwrap();
             if seen.insert(id) {
-                blobs.push((t, p.record().shader, a.blob(id).unwrap().into_owned()));
+                blobs.push((t, p.shader_index(), a.blob(id).unwrap().into_owned()));
             }
         }
     }
@@ -331,7 +376,7 @@ fn main() {
     let scratch = tempfile::tempdir().unwrap();
     let cache = root.join("target/kiln-bench-cache");
 
-    // KILN_ARCHIVE_SETS=bundled,generated,big,many picks the parts to run (all by default).
+    // KILN_ARCHIVE_SETS=bundled,generated,big,many,files picks the parts to run (all by default).
     let sets = std::env::var("KILN_ARCHIVE_SETS").unwrap_or_default();
     let wanted = |set: &str| sets.is_empty() || sets.split(',').any(|s| s.trim() == set);
 
@@ -364,16 +409,27 @@ fn main() {
         std::fs::remove_file(&out).unwrap();
     }
 
+    // KILN_ARCHIVE_FILES=a.kpak,b.kpak: archives built elsewhere (a generated 100k set's, say),
+    // measured the same way (`KILN_ARCHIVE_SETS=files` for those alone).
+    if wanted("files") {
+        for file in std::env::var("KILN_ARCHIVE_FILES").unwrap_or_default().split(',').filter(|f| !f.is_empty()) {
+            measure(file, Path::new(file));
+        }
+    }
+
     for count in [10_000, 100_000].into_iter().filter(|_| wanted("many")) {
         let out = scratch.path().join(format!("many{count}.kpak"));
         let secs = many_archive(&out, count);
         println!("(generated archive of {count} permutations written in {secs:.2} s)");
         measure(&format!("generated archive, {count} permutations"), &out);
-        // What opening cannot avoid: the checksum of the manifest and the blob table.
+        // What opening checks: the chunk hashes (32 bytes per chunk of manifest and table).
         let bytes = std::fs::read(&out).unwrap();
         let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
         let blobs = u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize;
-        let checked = &bytes[bytes.len() - blobs * 64 - manifest_len.next_multiple_of(8)..];
+        let chunk = u32::from_le_bytes(bytes[48..52].try_into().unwrap()) as usize;
+        let hashes = (manifest_len.div_ceil(chunk) + (blobs * 64).div_ceil(chunk)) * 32;
+        let manifest_start = bytes.len() - blobs * 64 - manifest_len.next_multiple_of(8);
+        let checked = &bytes[manifest_start - hashes..manifest_start];
         let sums: Vec<Duration> = (0..21)
             .map(|_| {
                 let t = Instant::now();
@@ -382,10 +438,11 @@ fn main() {
             })
             .collect();
         println!(
-            "  of which blake3 of manifest + table: {:.1} us median ({:.2} MB; manifest {:.2} MB)",
+            "  of which blake3 of the chunk hashes: {:.1} us median ({:.1} KB; {:.2} MB of manifest and table, {} KiB chunks)",
             us(median(sums)),
-            mb(checked.len() as u64),
-            mb(manifest_len as u64)
+            checked.len() as f64 / 1e3,
+            mb((manifest_len + blobs * 64) as u64),
+            chunk >> 10
         );
     }
 }

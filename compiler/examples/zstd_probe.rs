@@ -19,7 +19,7 @@ fn main() {
     let path = std::env::args().nth(1).unwrap();
     let a = Archive::open(std::path::Path::new(&path)).unwrap();
     // distinct blobs by first use in name-sorted order; group key (shader idx, target)
-    let mut perms: Vec<_> = a.permutations().collect();
+    let mut perms: Vec<_> = a.permutations().unwrap().collect();
     perms.sort_by(|x, y| x.name().cmp(y.name()));
     let mut seen = HashMap::new();
     let mut blobs: Vec<(Target, u32, Vec<u8>)> = vec![];

@@ -200,14 +200,14 @@ fn summary_shows_raw_and_compressed_sizes_per_target() {
     let o = kiln(d, &["inspect", "shaders.kpak"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
-    assert!(out.contains("format version: 3"), "{out}");
+    assert!(out.contains("format version: 4"), "{out}");
     for t in ["wgsl", "spirv", "msl", "glsl", "hlsl"] {
         let line = out.lines().find(|l| l.trim_start().starts_with(t)).unwrap_or_else(|| panic!("{t}: {out}"));
         assert!(line.contains(" raw, ") && line.contains(" compressed"), "{line}");
     }
     let o = kiln(d, &["inspect", "shaders.kpak", "--json"]);
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(v["format_version"], 3);
+    assert_eq!(v["format_version"], 4);
     for (t, s) in v["targets"].as_object().unwrap() {
         let (raw, compressed) = (s["raw_bytes"].as_u64().unwrap(), s["compressed_bytes"].as_u64().unwrap());
         assert!(compressed > 0 && compressed < raw, "{t}: {compressed} of {raw}");
@@ -237,8 +237,78 @@ fn fifos_directories_and_old_versions_are_clear_errors() {
     let o = kiln(d, &["inspect", "old.kpak"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(
-        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 3); rebuild"),
+        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 4); rebuild"),
         "{}",
         stderr(&o)
     );
+}
+
+/// An archive of 2,000 permutations with tiny artifacts: a manifest of many chunks.
+fn many_permutations(path: &Path) {
+    use kiln::archive::{ArchiveWriter, DimensionRecord, PermutationRecord, Reflection, ShaderRecord, Target};
+    let mut w = ArchiveWriter::new();
+    let shader = w.add_shader(ShaderRecord {
+        name: "ManyPS".into(),
+        level: "sm5".into(),
+        entry: "main_ps".into(),
+        stage: kiln::Stage::Fragment,
+        dimensions: vec![DimensionRecord { name: "VARIANT".into(), labels: vec![] }],
+    });
+    let reflection = w.add_reflection(&Reflection {
+        entry: "main_ps".into(),
+        stage: kiln::Stage::Fragment,
+        bindings: vec![],
+        vertex_inputs: vec![],
+        color_outputs: vec![],
+        workgroup_size: None,
+    });
+    for i in 0..2000i64 {
+        let blob = w.add_blob(format!("// variant {}", i % 5).as_bytes());
+        w.add_permutation(PermutationRecord {
+            name: format!("ManyPS@sm5{{VARIANT={i}}}"),
+            shader,
+            values: vec![i],
+            reflection,
+            artifacts: vec![(Target::Wgsl, blob)],
+        });
+    }
+    w.write(path).unwrap();
+}
+
+/// A damaged byte of the manifest's names (found when first read, not at open): `--list`,
+/// the summary and `--json` walk every record and fail before printing any, and a lookup
+/// that reads it names the permutation; exit code 2.
+#[test]
+fn damaged_manifest_chunk_is_a_clear_error_for_every_walk() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    many_permutations(&d.join("many.kpak"));
+    let mut bytes = std::fs::read(d.join("many.kpak")).unwrap();
+    let o = kiln(d, &["inspect", "many.kpak", "--list"]);
+    assert!(o.status.success() && stdout(&o).lines().count() == 2000, "{}", stderr(&o));
+    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap()) as usize;
+    // The names close the manifest; the blob table closes the file. The last name is
+    // `ManyPS@sm5{VARIANT=9}` (sorted by bytes, `}` after the digits).
+    let manifest_end = bytes.len() - u64_at(40) * 64 - u64_at(32).next_multiple_of(8) + u64_at(32);
+    bytes[manifest_end - 3] ^= 0x02;
+    std::fs::write(d.join("damaged.kpak"), bytes).unwrap();
+    for args in [
+        &["inspect", "damaged.kpak", "--list"][..],
+        &["inspect", "damaged.kpak"],
+        &["inspect", "damaged.kpak", "--json"],
+    ] {
+        let o = kiln(d, args);
+        assert_eq!(o.status.code(), Some(2), "{args:?}");
+        let err = stderr(&o);
+        assert!(err.contains("damaged.kpak: archive is corrupted: permutation number "), "{args:?}: {err}");
+        assert!(err.contains("fails its checksum") && !err.contains("panicked"), "{args:?}: {err}");
+        assert!(o.stdout.is_empty(), "{args:?}: nothing printed before the error");
+    }
+    let o = kiln(d, &["inspect", "damaged.kpak", "ManyPS@sm5{VARIANT=9}", "--target", "wgsl"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("permutation `ManyPS@sm5{VARIANT=9}`: looking it up"), "{}", stderr(&o));
+    // A permutation whose lookup reads only intact chunks is still found.
+    let o = kiln(d, &["inspect", "damaged.kpak", "ManyPS@sm5{VARIANT=0}", "--target", "wgsl"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(stdout(&o), "// variant 0");
 }

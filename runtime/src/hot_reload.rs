@@ -115,7 +115,8 @@ impl HotReload {
             Err(e) => return Ok(Some(Event::Failed { diagnostics: failure_text(&e), files, seen: outcome.seen })),
         };
         let archive = open(&self.archive_path)?;
-        let changed = changed_permutations(self.current.archive(), archive.archive());
+        let changed = changed_permutations(self.current.archive(), archive.archive())
+            .map_err(|source| HotReloadError::Archive { path: self.archive_path.clone(), source })?;
         Ok(Some(Event::Reloaded(Reload {
             archive: Arc::new(archive),
             changed,
@@ -158,17 +159,19 @@ fn failure_text(e: &build::Error) -> String {
     }
 }
 
-/// The permutations of `new` that `old` lacks or holds with other artifacts or reflection.
-pub fn changed_permutations(old: &Archive, new: &Archive) -> HashSet<String> {
-    new.permutations()
+/// The permutations of `new` that `old` lacks or holds with other artifacts or reflection
+/// (or a damaged record in `old`). A damaged record in `new` is an error.
+pub fn changed_permutations(old: &Archive, new: &Archive) -> Result<HashSet<String>, kiln::archive::ArchiveError> {
+    Ok(new
+        .permutations()?
         .filter(|p| match old.get(p.name()) {
-            None => true,
-            Some(o) => {
+            Ok(None) | Err(_) => true,
+            Ok(Some(o)) => {
                 o.reflection() != p.reflection()
                     || o.targets().count() != p.targets().count()
                     || p.targets().any(|t| o.artifact(t).ok().flatten() != p.artifact(t).ok().flatten())
             }
         })
         .map(|p| p.name().to_string())
-        .collect()
+        .collect())
 }

@@ -631,13 +631,15 @@ impl PipelineCache {
         changed: &std::collections::HashSet<String>,
     ) -> PipelineCache {
         let old = self.lock();
-        let keep = |name: &str| !changed.contains(name) && archive.archive().get(name).is_some();
+        let keep = |name: &str| !changed.contains(name) && matches!(archive.archive().get(name), Ok(Some(_)));
         let mut inner = CacheInner { layouts: old.layouts.clone(), stats: old.stats, ..CacheInner::default() };
         // The blobs of the kept permutations, old id to new id, per target.
         let mut blobs = HashMap::new();
         for name in old.used.iter().filter(|n| keep(n)) {
             inner.used.insert(name.clone());
-            let (Some(o), Some(n)) = (self.archive.archive().get(name), archive.archive().get(name)) else { continue };
+            let (Ok(Some(o)), Ok(Some(n))) = (self.archive.archive().get(name), archive.archive().get(name)) else {
+                continue;
+            };
             for target in [Target::Spirv, Target::Wgsl] {
                 if let (Some(ob), Some(nb)) = (o.blob_id(target), n.blob_id(target)) {
                     blobs.insert((target, ob), nb);

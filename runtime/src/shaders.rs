@@ -4,7 +4,7 @@
 use std::fmt;
 use std::path::Path;
 
-use kiln::archive::{Archive, ArchiveError, Lookup, Near, PermutationRef};
+use kiln::archive::{Archive, ArchiveError, Lookup, Near, PermutationRef, Permutations};
 
 /// Why a permutation could not be found.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -16,6 +16,10 @@ pub enum LookupError {
     /// The builder named a shader, level or dimension the archive does not know.
     #[error("cannot name permutation: {0}")]
     BadName(String),
+    /// A record or manifest chunk the lookup read is damaged (the archive's error, which
+    /// names the permutation).
+    #[error("{0}")]
+    Damaged(String),
 }
 
 fn render_missing(name: &str, nearest: &[Near]) -> String {
@@ -50,14 +54,15 @@ impl fmt::Debug for ShaderArchive {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("ShaderArchive")
             .field("bytes", &self.archive.len())
-            .field("permutations", &self.archive.permutations().count())
+            .field("permutations", &self.archive.permutation_count())
             .field("trusted", &self.trusted)
             .finish()
     }
 }
 
 impl ShaderArchive {
-    /// Memory-maps and verifies an archive file (header, version, checksum, manifest).
+    /// Memory-maps and verifies an archive file (header, version, checksum of the chunk
+    /// hashes; the manifest is checked a chunk at a time as lookups read it).
     pub fn open(path: &Path) -> Result<ShaderArchive, ArchiveError> {
         Ok(ShaderArchive { archive: Archive::open(path)?, trusted: false })
     }
@@ -107,14 +112,17 @@ impl ShaderArchive {
     /// O(1) lookup by canonical name (`Shader@level{DIM=value,...}`).
     pub fn get(&self, name: &str) -> Result<PermutationRef<'_>, LookupError> {
         match self.archive.lookup(name) {
-            Lookup::Found(p) => Ok(p),
-            Lookup::Missing(nearest) => Err(LookupError::Missing { name: name.to_string(), nearest }),
+            Ok(Lookup::Found(p)) => Ok(p),
+            Ok(Lookup::Missing(nearest)) => Err(LookupError::Missing { name: name.to_string(), nearest }),
+            Err(e) => Err(LookupError::Damaged(e.to_string())),
         }
     }
 
     /// O(1) lookup by the id a typed key computes (`key.permutation_id(level)` in the
     /// `kiln_shaders.rs` that `kiln::Build::rust_bindings` generates): no name is formatted.
-    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
+    /// `Ok(None)` when no permutation has that id; a damaged record or chunk on the way is
+    /// an error.
+    pub fn get_by_id(&self, id: u128) -> Result<Option<PermutationRef<'_>>, ArchiveError> {
         self.archive.get_by_id(id)
     }
 
@@ -124,7 +132,9 @@ impl ShaderArchive {
         PermutationQuery { archive: self, shader: name.to_string(), level: None, values: Vec::new() }
     }
 
-    pub fn permutations(&self) -> impl Iterator<Item = PermutationRef<'_>> {
+    /// Every permutation, sorted by name; the first walk checks every record first (see
+    /// [`Archive::permutations`]).
+    pub fn permutations(&self) -> Result<Permutations<'_>, ArchiveError> {
         self.archive.permutations()
     }
 }

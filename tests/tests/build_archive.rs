@@ -20,7 +20,7 @@ fn round_trip_through_archive_and_emit_dir() {
     let report = build_ok(&opts);
 
     let archive = Archive::open(&out).unwrap();
-    assert_eq!(archive.permutations().count(), report.stats.permutations);
+    assert_eq!(archive.permutations().unwrap().count(), report.stats.permutations);
     assert_eq!(archive.blob_count(), report.stats.artifacts);
     assert_eq!(archive.naga_version(), kiln::compile::NAGA_VERSION);
     assert_eq!(archive.kiln_version(), kiln::VERSION);
@@ -29,7 +29,7 @@ fn round_trip_through_archive_and_emit_dir() {
         serde_json::from_slice(&std::fs::read(emit.join("index.json")).unwrap()).unwrap();
     assert_eq!(index.len(), report.stats.permutations);
     let mut files = std::collections::BTreeSet::new();
-    for p in archive.permutations() {
+    for p in archive.permutations().unwrap() {
         let targets = &index[p.name()];
         assert_eq!(targets.len(), p.targets().count(), "{}", p.name());
         for t in p.targets() {
@@ -55,9 +55,9 @@ fn round_trip_through_archive_and_emit_dir() {
     assert_eq!(on_disk, files.len());
     assert_eq!(files.len(), report.stats.artifacts);
 
-    let p = archive.get("LitPS@es3_1{USE_FOG=1,BLEND=MASKED,NUM_LIGHTS=2}").expect("by canonical name");
+    let p = archive.get("LitPS@es3_1{USE_FOG=1,BLEND=MASKED,NUM_LIGHTS=2}").unwrap().expect("by canonical name");
     assert_eq!(p.targets().collect::<Vec<_>>(), vec![Target::Glsl, Target::Spirv, Target::Msl, Target::Wgsl]);
-    assert!(archive.get("LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=0}").is_none(), "skipped");
+    assert!(archive.get("LitPS@es3_1{USE_FOG=1,BLEND=TRANSLUCENT,NUM_LIGHTS=0}").unwrap().is_none(), "skipped");
 }
 
 #[test]
@@ -74,15 +74,24 @@ fn damaged_archives_are_clear_errors() {
         }
         e => panic!("{e}"),
     }
+    // A byte of the chunk hashes (just before the manifest), which the header checksum
+    // covers: refused at open.
+    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap()) as usize;
+    let manifest_start = bytes.len() - u64_at(40) * 64 - u64_at(32).next_multiple_of(8);
     let mut flipped = bytes.clone();
-    let at = bytes.len() - 100;
-    flipped[at] ^= 1;
-    assert!(open(flipped).to_string().starts_with("archive is corrupted: header and manifest checksum mismatch"));
+    flipped[manifest_start - 1] ^= 1;
+    assert!(open(flipped).to_string().starts_with("archive is corrupted: header checksum mismatch"));
+    // A byte of the blob table: its chunk is checked when first read.
+    let mut flipped = bytes.clone();
+    flipped[bytes.len() - 100] ^= 1;
+    let a = Archive::from_vec(flipped).expect("the blob table is checked on use");
+    let e = a.verify_all().unwrap_err().to_string();
+    assert!(e.starts_with("archive is corrupted: ") && e.contains("fails its checksum"), "{e}");
     let mut other = bytes.clone();
     other[8..12].copy_from_slice(&1u32.to_le_bytes());
     assert_eq!(
         open(other).to_string(),
-        "archive format version 1 is not supported (this build of kiln reads version 3); rebuild the archive with this kiln"
+        "archive format version 1 is not supported (this build of kiln reads version 4); rebuild the archive with this kiln"
     );
     assert!(Archive::from_vec(bytes).is_ok());
 }
@@ -104,24 +113,28 @@ fn corrupted_blob_with_valid_header_names_the_permutation() {
     let bytes = std::fs::read(&out).unwrap();
     let archive = Archive::open(&out).unwrap();
     let name = "LitPS@es3_1{USE_FOG=1,BLEND=MASKED,NUM_LIGHTS=2}";
-    let id = archive.get(name).unwrap().blob_id(Target::Spirv).unwrap();
+    let id = archive.get(name).unwrap().unwrap().blob_id(Target::Spirv).unwrap();
     let (offset, len) = blob_entry(&bytes, id);
     let mut damaged = bytes.clone();
     damaged[kiln::archive::HEADER_LEN + offset + len / 2] ^= 0x08;
     // Opening checks only the header and manifest: it succeeds.
     let a = Archive::from_vec(damaged).expect("blob damage is found on use, not at open");
-    let users: Vec<String> =
-        a.permutations().filter(|p| p.blob_id(Target::Spirv) == Some(id)).map(|p| p.name().to_string()).collect();
+    let users: Vec<String> = a
+        .permutations()
+        .unwrap()
+        .filter(|p| p.blob_id(Target::Spirv) == Some(id))
+        .map(|p| p.name().to_string())
+        .collect();
     assert!(users.iter().any(|u| u == name));
     for user in &users {
-        let e = a.get(user).unwrap().artifact(Target::Spirv).unwrap_err();
+        let e = a.get(user).unwrap().unwrap().artifact(Target::Spirv).unwrap_err();
         assert!(matches!(&e, ArchiveError::Blob { permutation, target: Target::Spirv, .. } if permutation == user));
         assert!(e.to_string().contains(&format!("the spirv artifact of permutation `{user}`")), "{e}");
         // Every later use gives the same error: nothing damaged is ever returned.
-        assert!(a.get(user).unwrap().artifact(Target::Spirv).is_err());
+        assert!(a.get(user).unwrap().unwrap().artifact(Target::Spirv).is_err());
     }
     // The other artifacts are fine.
-    assert!(a.get(name).unwrap().artifact(Target::Wgsl).unwrap().is_some());
+    assert!(a.get(name).unwrap().unwrap().artifact(Target::Wgsl).unwrap().is_some());
     assert!(a.verify_all().is_err());
     assert!(Archive::from_vec(bytes).unwrap().verify_all().is_ok());
 }
@@ -141,7 +154,7 @@ fn archive_damaged_in_place_with_size_and_mtime_kept_is_rebuilt() {
 
     // One byte of one blob flipped, in place; length and modification time put back.
     let archive = Archive::open(&out).unwrap();
-    let id = archive.permutations().next().unwrap().blob_id(Target::Wgsl).unwrap();
+    let id = archive.permutations().unwrap().next().unwrap().blob_id(Target::Wgsl).unwrap();
     drop(archive);
     let (offset, len) = blob_entry(&good, id);
     let mut damaged = good.clone();

@@ -100,6 +100,7 @@ fn a_new_header_that_shadows_an_include_is_picked_up() {
     let archive = kiln::archive::Archive::open(&out).unwrap();
     let wgsl = archive
         .permutations()
+        .unwrap()
         .filter_map(|p| p.artifact(kiln::archive::Target::Wgsl).unwrap())
         .any(|a| String::from_utf8_lossy(&a).contains("0.5"));
     assert!(wgsl, "the shadowing header's ambient reached the archive");

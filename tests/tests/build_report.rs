@@ -47,7 +47,7 @@ fn level_and_target_filters() {
     assert_eq!(r.stats.skipped, 2);
     assert_eq!(r.stats.unique_sources, 12);
     let a = Archive::open(&out).unwrap();
-    for p in a.permutations() {
+    for p in a.permutations().unwrap() {
         assert_eq!(p.shader().level, "es3_1");
         // es3_1 has no hlsl: the filter narrows, never adds.
         assert_eq!(p.targets().collect::<Vec<_>>(), vec![Target::Spirv]);

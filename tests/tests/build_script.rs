@@ -18,7 +18,7 @@ fn writes_the_archive_and_cargo_lines() {
         .run_with_output(&mut lines)
         .unwrap();
     assert_eq!(archive, out_dir.join("shaders.kpak"));
-    assert_eq!(Archive::open(&archive).unwrap().permutations().count(), 28);
+    assert_eq!(Archive::open(&archive).unwrap().permutations().unwrap().count(), 28);
     let text = String::from_utf8(lines).unwrap();
     let dir = fx.path().canonicalize().unwrap();
     let expected = format!(

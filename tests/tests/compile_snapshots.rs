@@ -97,7 +97,7 @@ fn snapshots_match_and_every_artifact_validates() {
             summary += &format!("dead {} @{} {}\n", d.shader, d.level, d.dimension);
         }
         let mut groups: BTreeMap<Vec<(Target, u32)>, usize> = BTreeMap::new();
-        for p in archive.permutations() {
+        for p in archive.permutations().unwrap() {
             let blobs: Vec<(Target, u32)> = p.targets().map(|t| (t, p.blob_id(t).unwrap().0)).collect();
             let n = groups.len();
             let group = *groups.entry(blobs).or_insert(n);

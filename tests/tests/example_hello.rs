@@ -143,7 +143,7 @@ fn typed_keys_find_what_names_find() {
         }
     }
     assert_eq!(seen, 2 * 4);
-    assert_eq!(archive.permutations().count(), 2 + 4, "the archive holds the 6 permutations of the toml");
+    assert_eq!(archive.permutations().unwrap().count(), 2 + 4, "the archive holds the 6 permutations of the toml");
 }
 
 /// An application's own wgpu device, not the runtime's `Gpu`: the cache takes its adapter and

@@ -27,7 +27,7 @@ fn pack_interpolants_makes_vertex_fog_cost_no_varying() {
 fn mobile_pixel_shaders_stay_within_16_samplers_and_4_targets() {
     let a = kiln_renderer::embedded_archive().unwrap();
     let mut checked = 0;
-    for p in a.permutations().filter(|p| p.shader().level == "es3_1" && p.name().starts_with("Mobile")) {
+    for p in a.permutations().unwrap().filter(|p| p.shader().level == "es3_1" && p.name().starts_with("Mobile")) {
         let r = p.reflection();
         let samplers = r.bindings.iter().filter(|b| matches!(b.kind, BindingKind::Sampler { .. })).count();
         let textures = r.bindings.iter().filter(|b| matches!(b.kind, BindingKind::Texture { .. })).count();

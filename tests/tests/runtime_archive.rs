@@ -11,7 +11,7 @@ fn embedded() -> ShaderArchive {
 #[test]
 fn embedded_archive_holds_both_levels() {
     let a = embedded();
-    let names: Vec<String> = a.permutations().map(|p| p.name().to_string()).collect();
+    let names: Vec<String> = a.permutations().unwrap().map(|p| p.name().to_string()).collect();
     assert!(names.len() > 50, "{} permutations", names.len());
     assert!(names.iter().any(|n| n.contains("@sm5")));
     assert!(names.iter().any(|n| n.contains("@es3_1")));
@@ -21,7 +21,7 @@ fn embedded_archive_holds_both_levels() {
 fn every_permutation_is_found_by_name_and_by_builder() {
     let a = embedded();
     let archive = a.archive();
-    for p in a.permutations() {
+    for p in a.permutations().unwrap() {
         assert_eq!(a.get(p.name()).unwrap().name(), p.name());
         let shader = p.shader();
         let mut q = a.shader(&shader.name).level(&shader.level);
@@ -29,7 +29,7 @@ fn every_permutation_is_found_by_name_and_by_builder() {
             q = q.with(&d.name, v);
         }
         assert_eq!(q.find().unwrap().name(), p.name(), "builder with indices");
-        assert!(archive.get(p.name()).is_some());
+        assert!(archive.get(p.name()).unwrap().is_some());
     }
 }
 
@@ -131,11 +131,19 @@ fn truncated_and_corrupted_archives_are_errors() {
         let e = ShaderArchive::from_vec(bytes[..len].to_vec()).unwrap_err().to_string();
         assert!(e.contains("truncated") || e.contains("shorter than"), "{len}: {e}");
     }
+    // A byte of the chunk hashes (just before the manifest): the header checksum, at open.
+    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap()) as usize;
+    let manifest_start = bytes.len() - u64_at(40) * 64 - u64_at(32).next_multiple_of(8);
     let mut flipped = bytes.clone();
-    let i = bytes.len() - 5;
-    flipped[i] ^= 0x10;
+    flipped[manifest_start - 5] ^= 0x10;
     let e = ShaderArchive::from_vec(flipped).unwrap_err().to_string();
     assert!(e.contains("checksum mismatch"), "{e}");
+    // A byte of the blob table: its chunk's hash, when first read.
+    let mut flipped = bytes.clone();
+    flipped[bytes.len() - 5] ^= 0x10;
+    let a = ShaderArchive::from_vec(flipped).expect("the table is checked on use");
+    let e = a.archive().verify_all().unwrap_err().to_string();
+    assert!(e.contains("fails its checksum"), "{e}");
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("none.kpak");
     let e = ShaderArchive::open(&missing).unwrap_err().to_string();
@@ -148,14 +156,14 @@ fn opening_a_file_maps_the_same_archive() {
     let path = dir.path().join("shaders.kpak");
     std::fs::write(&path, kiln_renderer::EMBEDDED_ARCHIVE).unwrap();
     let a = ShaderArchive::open(&path).unwrap();
-    assert_eq!(a.permutations().count(), embedded().permutations().count());
+    assert_eq!(a.permutations().unwrap().count(), embedded().permutations().unwrap().count());
 }
 
 #[test]
 fn a_corrupted_blob_is_an_error_naming_the_permutation_when_used() {
     let bytes = kiln_renderer::EMBEDDED_ARCHIVE.to_vec();
     let archive = embedded();
-    let p = archive.permutations().find(|p| p.blob_id(kiln::archive::Target::Wgsl).is_some()).unwrap();
+    let p = archive.permutations().unwrap().find(|p| p.blob_id(kiln::archive::Target::Wgsl).is_some()).unwrap();
     let (name, id) = (p.name().to_string(), p.blob_id(kiln::archive::Target::Wgsl).unwrap());
     // The blob table closes the file, 64 bytes per blob: offset and stored length first.
     let count = u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize;

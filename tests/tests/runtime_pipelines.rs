@@ -100,7 +100,7 @@ fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&Permutati
     let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
     let cache = PipelineCache::new(&gpu, archive.clone());
     let mut created = 0;
-    for p in archive.permutations().filter(|p| wanted(p)) {
+    for p in archive.permutations().unwrap().filter(|p| wanted(p)) {
         match p.reflection().stage {
             Stage::Fragment => {
                 let vs_name = partner(&archive, &p);
@@ -122,8 +122,12 @@ fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&Permutati
     let target =
         if cache.uses_spirv_passthrough() { kiln::archive::Target::Spirv } else { kiln::archive::Target::Wgsl };
     let used: std::collections::HashSet<String> = cache.permutations_used().into_iter().collect();
-    let blobs: std::collections::HashSet<_> =
-        archive.permutations().filter(|p| used.contains(p.name())).map(|p| p.blob_id(target).unwrap()).collect();
+    let blobs: std::collections::HashSet<_> = archive
+        .permutations()
+        .unwrap()
+        .filter(|p| used.contains(p.name()))
+        .map(|p| p.blob_id(target).unwrap())
+        .collect();
     // One module per distinct artifact, and for SPIR-V passthrough one per numbering of its
     // bindings by the pipeline layouts it serves (see `kiln_runtime::spirv`).
     if target == kiln::archive::Target::Wgsl {
@@ -131,7 +135,7 @@ fn create_every_pipeline(module_source: ModuleSource, wanted: impl Fn(&Permutati
     } else {
         assert!(stats.modules >= blobs.len(), "{} modules for {} artifacts", stats.modules, blobs.len());
     }
-    assert!(archive.permutations().filter(|p| wanted(p)).all(|p| used.contains(p.name())));
+    assert!(archive.permutations().unwrap().filter(|p| wanted(p)).all(|p| used.contains(p.name())));
     (created, cache.uses_spirv_passthrough())
 }
 

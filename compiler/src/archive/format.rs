@@ -1,22 +1,33 @@
-//! The byte layout of an archive (format version 3), shared by the writer and the reader.
+//! The byte layout of an archive (format version 4), shared by the writer and the reader.
 //!
 //! ```text
 //! offset  size  field
 //!      0     8  magic "KILNPAK\0"
-//!      8     4  format version (u32, little endian): 3
+//!      8     4  format version (u32, little endian): 4
 //!     12     4  flags (u32, zero)
 //!     16     8  blob section length in bytes (u64)
 //!     24     8  dictionary section length (u64)
 //!     32     8  manifest length (u64)
 //!     40     8  blob count (u64)
-//!     48    48  zero
-//!     96    32  blake3 of header bytes 0..96, then the manifest, then the blob table
-//!    128     -  blob section, padding to 8, dictionary section, padding to 8, manifest
-//!               (binary, below), padding to 8, blob table (64 bytes per blob), end of file
+//!     48     4  chunk length C in bytes (u32, a power of two from 1 KiB to 1 MiB)
+//!     52    44  zero
+//!     96    32  blake3 of header bytes 0..96, then the chunk hashes
+//!    128     -  blob section, padding to 8, dictionary section, padding to 8, chunk hashes
+//!               (below), manifest (binary, below), padding to 8, blob table (64 bytes per
+//!               blob), end of file
 //! ```
 //!
-//! The manifest (format 3; format 2 held JSON, parsed whole at open) is read in place from
-//! the memory map. Every part starts at a multiple of 8 from the manifest's start:
+//! The chunk hashes (format 4) are the blake3 (32 bytes) of each C-byte chunk of the
+//! manifest, then of each C-byte chunk of the blob table (the last chunk of each may be
+//! shorter): `ceil(manifest length / C) + ceil(blob count * 64 / C)` hashes. Opening checks
+//! the header checksum, which covers the chunk hashes (32 bytes per C bytes of manifest and
+//! table), and reads the chunks of the manifest's header, dictionaries and tables; every other
+//! chunk is checked against its hash the first time a read touches it (one bit per chunk), so
+//! that opening costs O(1) in the number of permutations (format 3 hashed the whole manifest
+//! and table at open: 9.1 ms for a 100,000-permutation archive).
+//!
+//! The manifest (format 3 and 4; format 2 held JSON, parsed whole at open) is read in place
+//! from the memory map. Every part starts at a multiple of 8 from the manifest's start:
 //!
 //! ```text
 //! manifest header, 64 bytes: permutation count P, value count V, artifact count A,
@@ -36,19 +47,23 @@
 //! names         N       the permutations' canonical names, UTF-8, one after another
 //! ```
 //!
-//! Opening checks the checksum (O(manifest)), parses the tables and checks every range of
-//! the fixed-size records, so that no accessor can go out of bounds; a lookup by name is a
-//! binary search of the records, by id one of the ids. Nothing per permutation is copied or
-//! allocated at open except one empty cell per permutation for its values, decoded on first
-//! use.
+//! Opening parses the tables; each permutation record is checked the first time it is used
+//! (a lookup that finds it, or a walk of every record, which checks each as it goes): its
+//! name, values and artifacts in range, its shader and reflection in the tables, its name
+//! UTF-8, and the chunks it lies in against their hashes. A bad record is an error naming the
+//! permutation, never a panic. A lookup by name is a binary search of the records (each
+//! step checks the chunks it reads), by id one of the ids. Nothing per permutation is
+//! copied, allocated or written at open: the bits of checked chunks, records and blobs and
+//! the cells of decoded values are allocated a page (4,096 bits, 1,024 cells) at a time on
+//! first use, so opening writes one empty cell per page.
 //!
 //! A blob table entry is `stored offset (u64, from the start of the blob section), stored
 //! length (u64), raw length (u64), codec (u8: 0 stored as is, 1 zstd, 2 zstd with a
 //! dictionary), dictionary index (u8), 6 zero bytes, blake3 of the raw bytes (32)`.
 //!
-//! Opening checks the header and manifest checksum (never the blob section: opening costs
-//! O(manifest)); each blob's blake3 is checked the first time it is decompressed, each
-//! dictionary's the first time it is loaded.
+//! Each blob table entry is checked (its chunk's hash, then its ranges, codec and
+//! dictionary) the first time its blob is used; each blob's blake3 the first time it is
+//! decompressed, each dictionary's the first time it is loaded.
 //!
 //! # Why per-target dictionaries, not compressed groups
 //!
@@ -107,19 +122,50 @@
 //! Of the bundled set's 2.46 MB, blobs take 1.73 MB, dictionaries 0.31 MB, and the manifest
 //! and blob table the rest. With format 2's JSON manifest, opening was mostly parsing it
 //! (0.68 ms for the bundled set, growing with the number of permutations); format 3's binary
-//! manifest is read in place. `cargo bench -p kiln --bench archive` (release, this shared
-//! 2-core machine, medians of 51 opens):
+//! manifest is read in place, but opening still hashed the whole manifest and blob table and
+//! range-checked every record and entry: O(manifest). Format 4 hashes them per chunk, each
+//! chunk the first time a read touches it, and checks each record and entry on first use, so
+//! that opening reads the header, the chunk hashes (32 bytes per [`CHUNK_LEN`] bytes, 93 KB
+//! for the 48 MB of manifest and table of 100,000 permutations), the manifest's header,
+//! dictionaries and JSON tables, and one empty cell per page of bits. `cargo bench -p kiln --bench
+//! archive` (release, this 2-core machine shared with other builds at a load average of 4.7
+//! to 5.0, medians of 51 opens; the same run for both formats):
 //!
-//! | archive                                          | format 2 open | format 3 open | of which checksum |
-//! | ------------------------------------------------ | ------------- | ------------- | ----------------- |
-//! | bundled set, 625 permutations, 2.54 MB           | 0.68 ms       | 0.29 ms       |                   |
-//! | generated, 1,024 x 1 MiB incompressible          | 0.34 ms       | 0.055 ms      |                   |
-//! | generated, 10,000 permutations (3.8 MB manifest) | ~7 ms (est.)  | 0.70 ms       | 0.48 ms           |
-//! | generated, 100,000 permutations (38 MB manifest) |               | 9.1 ms        | 6.1 ms            |
+//! | archive                                          | format 3 open | format 4 open | format 4 first lookup after open (no artifact) |
+//! | ------------------------------------------------ | ------------- | ------------- | ---------------------------------------------- |
+//! | bundled set, 622 permutations, 2.72 MB           | 0.28 ms       | 0.21 ms       | 35 µs (10 µs)                                  |
+//! | generated, 1,024 x 1 MiB incompressible          | 0.053 ms      | 0.018 ms      | 166 µs (9 µs)                                  |
+//! | generated, 10,000 permutations (3.8 MB manifest) | 0.71 ms       | 0.053 ms      | 69 µs (38 µs)                                  |
+//! | generated, 100,000 permutations (38 MB manifest) | 13.1 ms       | 0.064 ms      | 118 µs (79 µs)                                 |
+//! | `kiln build` of a generated 100,000-permutation set (66.2 MB; `KILN_ARCHIVE_FILES`) | 9.1 ms (an earlier run) | 0.056 ms | 109 µs (68 µs) |
 //!
-//! What remains is O(manifest): the checksum (the issue asks for it at open) and the
-//! records' range checks. The names are half of the manifest (about 200 bytes each in the
-//! generated sets); a manifest that derives them from shader and values would halve it.
+//! What remains at open is O(shaders + distinct reflections): parsing the JSON tables (most of
+//! the bundled set's 0.21 ms). A lookup by name and decompression of one artifact, median over
+//! 2,000 names: bundled 6.9 µs on first use (chunks, record, blob and dictionary checked), 1.8 µs
+//! again; 100,000 permutations 3.7 µs and 2.4 µs (format 3: 3.0 and 1.9). The first lookup after
+//! an open costs more (the table above): the pages of the map it touches fault in, each chunk
+//! its binary search reads is hashed (about 20 at 100,000 permutations), and the first
+//! artifact of a target loads its dictionary. A walk of every record (`permutations`, so
+//! `kiln inspect --list`) checks every chunk and record first: 0.05 ms for the bundled set,
+//! 0.9 ms for 10,000 permutations, 10 to 21 ms for the generated 100,000 (6.6 ms for the
+//! built one, whose names are shorter); format 3 paid about that at every open.
+//!
+//! [`CHUNK_LEN`] was chosen on the generated archive of 100,000 permutations (same bench,
+//! one to three runs each at a load average of 4 to 6, ranges; 10,000 alike but smaller):
+//!
+//! | chunk  | chunk hashes | open           | first lookup after open | same, no artifact | lookup + decompress, first use | walk of every record |
+//! | ------ | ------------ | -------------- | ----------------------- | ----------------- | ------------------------------ | -------------------- |
+//! | 2 KiB  | 746 KB       | 0.150 ms       | 116 µs                  |                   | 11.3 µs                        | 32 ms                |
+//! | 4 KiB  | 373 KB       | 0.092-0.097 ms | 109-114 µs              | 75-77 µs          | 7.3-7.8 µs                     | 21-29 ms             |
+//! | 8 KiB  | 187 KB       | 0.072-0.076 ms | 113-121 µs              | 76-78 µs          | 5.4-5.8 µs                     | 15-21 ms             |
+//! | 16 KiB | 93 KB        | 0.062-0.066 ms | 116-121 µs              | 79-85 µs          | 3.5-4.5 µs                     | 10-23 ms             |
+//! | 32 KiB | 47 KB        | 0.064 ms       | 162 µs                  |                   | 3.5 µs                         | 14 ms                |
+//!
+//! Smaller chunks make the chunk hashes (hashed at open) larger and a walk slower (blake3 is
+//! fastest on inputs of 16 of its 1 KiB chunks and more); larger ones make the first lookups
+//! hash more bytes per chunk they read. The first lookup after an open is mostly page faults
+//! and its first dictionary, and hardly depends on the chunk length up to 16 KiB; 16 KiB
+//! gives the fastest open and first uses, and walks as fast as any.
 
 use std::fs::File;
 use std::io::{IoSlice, Write};
@@ -130,8 +176,13 @@ use serde::{Deserialize, Serialize};
 use super::{Reflection, Stage, Target};
 
 pub const MAGIC: [u8; 8] = *b"KILNPAK\0";
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 pub const HEADER_LEN: usize = 128;
+/// Bytes of one chunk of the manifest and of the blob table that one hash covers (chosen by
+/// measuring: the module doc's table). The reader takes the length from the header.
+pub const CHUNK_LEN: u32 = 16 << 10;
+/// Bytes of one chunk hash.
+pub(crate) const CHUNK_HASH_LEN: usize = 32;
 /// Bytes of one blob table entry.
 pub(crate) const ENTRY_LEN: usize = 64;
 /// zstd level of artifacts (with their target's dictionary).
@@ -166,13 +217,22 @@ pub enum ArchiveError {
     Version { found: u32 },
     #[error("archive is truncated: the header announces {expected} bytes, the file has {actual}")]
     Truncated { expected: u64, actual: u64 },
-    #[error("archive is corrupted: header and manifest checksum mismatch (expected {expected}, computed {actual})")]
+    #[error("archive is corrupted: header checksum mismatch (expected {expected}, computed {actual})")]
     Checksum { expected: String, actual: String },
     #[error("archive manifest is malformed: {0}")]
     Manifest(String),
+    /// A chunk of the manifest or blob table that no permutation's use reads (an id, say)
+    /// failed its hash in [`crate::archive::Archive::verify_all`].
+    #[error("archive is corrupted: {0}")]
+    Corrupted(String),
     /// A blob failed its check or its decompression the first time it was used.
     #[error("archive is corrupted: the {target} artifact of permutation `{permutation}`: {message}")]
     Blob { permutation: String, target: Target, message: String },
+    /// A permutation record failed its check (its chunk's hash, or a range) the first time
+    /// it was read. `permutation` is its name, or the name being looked up, or its number
+    /// when its name cannot be trusted.
+    #[error("archive is corrupted: permutation {permutation}: {message}")]
+    Permutation { permutation: String, message: String },
     /// The writer was given inconsistent input.
     #[error("cannot write archive: {0}")]
     Input(String),
@@ -489,6 +549,8 @@ pub(crate) struct Sections {
     pub dictionaries_len: u64,
     pub manifest_len: u64,
     pub blob_count: u64,
+    /// Bytes per chunk hash (a power of two, checked by [`Sections::layout`]).
+    pub chunk_len: u32,
 }
 
 /// Where each section starts, and where the file ends.
@@ -496,21 +558,34 @@ pub(crate) struct Sections {
 pub(crate) struct Layout {
     pub blobs: u64,
     pub dictionaries: u64,
+    /// The chunk hashes: `manifest_chunks` of the manifest, then `table_chunks` of the table.
+    pub chunks: u64,
+    pub manifest_chunks: u64,
+    pub table_chunks: u64,
     pub manifest: u64,
     pub table: u64,
     pub end: u64,
 }
 
 impl Sections {
-    /// The offsets these lengths give, `None` on overflow.
+    /// The offsets these lengths give, `None` on overflow or a chunk length that is not a
+    /// power of two from 1 KiB to 1 MiB.
     pub fn layout(&self) -> Option<Layout> {
+        if !self.chunk_len.is_power_of_two() || !(1 << 10..=1 << 20).contains(&self.chunk_len) {
+            return None;
+        }
         let align = |v: u64| v.checked_next_multiple_of(8);
+        let table_len = self.blob_count.checked_mul(ENTRY_LEN as u64)?;
+        let manifest_chunks = self.manifest_len.div_ceil(self.chunk_len as u64);
+        let table_chunks = table_len.div_ceil(self.chunk_len as u64);
         let blobs = HEADER_LEN as u64;
         let dictionaries = align(blobs.checked_add(self.blobs_len)?)?;
-        let manifest = align(dictionaries.checked_add(self.dictionaries_len)?)?;
+        let chunks = align(dictionaries.checked_add(self.dictionaries_len)?)?;
+        let hashes = (manifest_chunks + table_chunks).checked_mul(CHUNK_HASH_LEN as u64)?;
+        let manifest = chunks.checked_add(hashes)?;
         let table = align(manifest.checked_add(self.manifest_len)?)?;
-        let end = table.checked_add(self.blob_count.checked_mul(ENTRY_LEN as u64)?)?;
-        Some(Layout { blobs, dictionaries, manifest, table, end })
+        let end = table.checked_add(table_len)?;
+        Some(Layout { blobs, dictionaries, chunks, manifest_chunks, table_chunks, manifest, table, end })
     }
 
     /// The first 96 bytes of the header (before the checksum).
@@ -522,17 +597,56 @@ impl Sections {
         h[24..32].copy_from_slice(&self.dictionaries_len.to_le_bytes());
         h[32..40].copy_from_slice(&self.manifest_len.to_le_bytes());
         h[40..48].copy_from_slice(&self.blob_count.to_le_bytes());
+        h[48..52].copy_from_slice(&self.chunk_len.to_le_bytes());
         h
     }
 }
 
-/// The checksum of the header: blake3 of its first 96 bytes, the manifest and the table.
-pub(crate) fn header_checksum(fields: &[u8], manifest: &[u8], table: &[u8]) -> blake3::Hash {
+/// The checksum of the header: blake3 of its first 96 bytes and the chunk hashes.
+pub(crate) fn header_checksum(fields: &[u8], chunk_hashes: &[u8]) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     h.update(fields);
-    h.update(manifest);
-    h.update(table);
+    h.update(chunk_hashes);
     h.finalize()
+}
+
+/// The chunk hashes of a region (the manifest, then the table) fed in pieces of any size:
+/// one blake3 per `chunk` bytes, the last chunk of each region cut short by [`finish`].
+///
+/// [`finish`]: ChunkHasher::finish
+pub(crate) struct ChunkHasher {
+    chunk: usize,
+    hasher: blake3::Hasher,
+    filled: usize,
+    /// The hashes so far, 32 bytes each.
+    pub hashes: Vec<u8>,
+}
+
+impl ChunkHasher {
+    pub fn new(chunk: u32) -> ChunkHasher {
+        ChunkHasher { chunk: chunk as usize, hasher: blake3::Hasher::new(), filled: 0, hashes: Vec::new() }
+    }
+
+    pub fn update(&mut self, mut bytes: &[u8]) {
+        while !bytes.is_empty() {
+            let n = (self.chunk - self.filled).min(bytes.len());
+            self.hasher.update(&bytes[..n]);
+            self.filled += n;
+            bytes = &bytes[n..];
+            if self.filled == self.chunk {
+                self.finish();
+            }
+        }
+    }
+
+    /// Ends the current region: its last, partial chunk gets its hash.
+    pub fn finish(&mut self) {
+        if self.filled > 0 {
+            self.hashes.extend_from_slice(self.hasher.finalize().as_bytes());
+            self.hasher.reset();
+            self.filled = 0;
+        }
+    }
 }
 
 /// Writes `bytes` to `path` as [`crate::output::write_with`] does (atomically; a device or a

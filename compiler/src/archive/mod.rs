@@ -1,15 +1,17 @@
 //! The archive: one file holding every permutation of a build.
 //!
 //! Takes the artifacts and reflection the compile stage produced; gives a file with a header
-//! (magic, format version, checksum of header and manifest), a manifest (permutations, their
-//! targets, reflection), per-target zstd dictionaries and deduplicated, compressed blobs,
-//! each with its own checksum. Guarantees: the writer streams (blob bytes spool to disk as
+//! (magic, format version, checksum of header and chunk hashes), chunk hashes (one per 16 KiB
+//! of manifest and blob table), a manifest (permutations, their targets, reflection),
+//! per-target zstd dictionaries and deduplicated, compressed blobs, each with its own
+//! checksum. Guarantees: the writer streams (blob bytes spool to disk as
 //! they come, from any thread) and is deterministic (the bytes depend on the set of
 //! permutations and blobs, not on the order they came in) and atomic (temp file, then
-//! rename); the reader never panics on bad bytes, checks header and manifest at open
-//! (O(manifest), the manifest read in place, nothing parsed per permutation), checks each
-//! blob the first time it is used, and finds a permutation by name or id with a binary
-//! search of the manifest's sorted records.
+//! rename); the reader never panics on bad bytes, checks the header and the manifest's
+//! chunk hashes at open (O(1) in the number of permutations, the manifest read in place,
+//! nothing parsed per permutation), checks each chunk of the manifest and blob table, each
+//! record and each blob the first time it is used, and finds a permutation by name or id
+//! with a binary search of the manifest's sorted records.
 //!
 //! This module builds without the `compiler` feature: the runtime reads archives through
 //! these very types, with no naga in its dependency tree.
@@ -26,9 +28,10 @@ mod tests;
 pub(crate) use format::write_atomic_impl;
 pub use format::{
     write_atomic, write_atomic_unsynced, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
-    COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
+    CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
+    MAX_ARTIFACT_LEN,
 };
-pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef};
+pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations};
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,

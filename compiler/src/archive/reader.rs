@@ -1,21 +1,23 @@
-//! Reading an archive: open (header and manifest checked, O(manifest)), lookups by name,
-//! and blobs checked and decompressed on first use.
+//! Reading an archive: open (header and chunk hashes checked, O(1) in the number of
+//! permutations), lookups by name or id (each manifest chunk checked the first time a read
+//! touches it, each record the first time it is used), and blobs checked and decompressed on
+//! first use.
 
 use std::borrow::Cow;
 use std::cell::RefCell;
 use std::collections::HashMap;
 use std::fs::File;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
     decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CODEC_STORED, CODEC_ZSTD,
-    CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC, MAX_ARTIFACT_LEN,
-    NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    ManifestLayout, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
+    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
+    MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
 
@@ -35,9 +37,6 @@ impl Bytes {
     }
 }
 
-/// A loaded archive. The header and manifest are checked and parsed at open; blobs stay
-/// where they are (in the memory map or the embedded bytes) until an artifact is asked for,
-/// and are checked then, once each. `Send + Sync`.
 /// The id of a permutation: the 128-bit FNV-1a hash of the shader's name, a 0 byte, the
 /// level's name, a 0 byte, then each dimension's value (an enum's index) as 8 little-endian
 /// bytes, in declared order. Typed keys compute the same hash from their fields.
@@ -61,28 +60,72 @@ pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
     h
 }
 
+/// A loaded archive. Opening checks the header and the chunk hashes and parses the tables;
+/// the manifest's records and the blob table stay where they are (in the memory map or the
+/// embedded bytes) and each chunk of them is checked the first time a read touches it, each
+/// record and entry the first time it is used; blobs are checked the first time their
+/// artifact is asked for, once each. `Send + Sync`.
 pub struct Archive {
     bytes: Bytes,
     blobs_start: usize,
+    blobs_len: u64,
     dictionaries_start: usize,
+    /// Where the chunk hashes lie in `bytes`, and the chunk length's log2.
+    chunk_hashes_start: usize,
+    chunk_shift: u32,
+    manifest_start: usize,
+    manifest_len: usize,
+    /// How many chunks the manifest has: the table's chunks are numbered after them.
+    manifest_chunks: usize,
     table_start: usize,
     blob_count: usize,
-    /// Where the manifest's parts lie in `bytes` (absolute offsets).
-    records_start: usize,
-    ids_start: usize,
-    values_start: usize,
-    artifacts_start: usize,
-    names_start: usize,
+    /// Where the manifest's parts lie, from the manifest's start.
+    layout: ManifestLayout,
+    counts: ManifestCounts,
     permutation_count: usize,
     tables: Tables,
     dictionaries: Vec<DictionaryRecord>,
-    /// Each permutation's values, decoded on first use.
-    values: Box<[OnceLock<Box<[i64]>>]>,
+    /// Whether each chunk of the manifest and the table has passed its hash.
+    chunks_ok: Bits,
+    /// Whether each permutation's record has passed its checks.
+    records_ok: Bits,
+    /// Whether every record has (so that a walk of them checks nothing more).
+    all_records_ok: AtomicBool,
+    /// Each permutation's values, decoded on first use, in pages of [`VALUE_PAGE`] cells
+    /// allocated on first use.
+    values: Box<[OnceLock<Box<[OnceLock<Box<[i64]>>]>>]>,
     /// Whether each blob has passed its checksum.
-    verified: Box<[AtomicBool]>,
+    verified: Bits,
     /// Each dictionary, loaded (and checked) on first use.
     ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
     by_shader: HashMap<(String, String), u32>,
+}
+
+/// Cells of decoded values per page.
+const VALUE_PAGE: usize = 1024;
+
+/// Bits set once, read and set from any thread, in pages of [`BITS_PAGE`] bits allocated
+/// (zeroed) on the first set of one of theirs: opening writes one empty cell per page (25 for
+/// the 100,000 permutations of a large archive), nothing per bit.
+struct Bits(Box<[OnceLock<Box<[AtomicU64]>>]>);
+
+/// Bits per page of [`Bits`].
+const BITS_PAGE: usize = 4096;
+
+impl Bits {
+    fn new(n: usize) -> Bits {
+        Bits((0..n.div_ceil(BITS_PAGE)).map(|_| OnceLock::new()).collect())
+    }
+    fn get(&self, i: usize) -> bool {
+        let word = self.0.get(i / BITS_PAGE).and_then(|p| p.get()).map(|p| &p[i % BITS_PAGE / 64]);
+        word.is_some_and(|w| w.load(Ordering::Acquire) & (1 << (i % 64)) != 0)
+    }
+    fn set(&self, i: usize) {
+        if let Some(page) = self.0.get(i / BITS_PAGE) {
+            let page = page.get_or_init(|| (0..BITS_PAGE / 64).map(|_| AtomicU64::new(0)).collect());
+            page[i % BITS_PAGE / 64].fetch_or(1 << (i % 64), Ordering::Release);
+        }
+    }
 }
 
 /// Sizes of one blob.
@@ -120,13 +163,16 @@ impl<'a> PermutationRef<'a> {
     }
     pub fn values(&self) -> &'a [i64] {
         let archive = self.archive;
-        archive.values[self.index as usize].get_or_init(|| {
-            let n = archive.tables.shaders[self.record.shader as usize].dimensions.len();
-            let start = archive.values_start + self.record.first_value as usize * VALUE_LEN;
-            archive.bytes.as_slice()[start..start + n * VALUE_LEN]
-                .chunks_exact(VALUE_LEN)
-                .map(|b| i64::from_le_bytes(b.try_into().unwrap()))
-                .collect()
+        let index = self.index as usize;
+        let page =
+            archive.values[index / VALUE_PAGE].get_or_init(|| (0..VALUE_PAGE).map(|_| OnceLock::new()).collect());
+        page[index % VALUE_PAGE].get_or_init(|| {
+            // In range and checked: the record was checked before this reference was made.
+            let n = self.shader().dimensions.len();
+            let start = archive.manifest_start
+                + (archive.layout.values + self.record.first_value as u64 * VALUE_LEN as u64) as usize;
+            let bytes = archive.bytes.as_slice().get(start..start + n * VALUE_LEN).unwrap_or_default();
+            bytes.chunks_exact(VALUE_LEN).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()
         })
     }
     pub fn reflection(&self) -> &'a Reflection {
@@ -138,9 +184,12 @@ impl<'a> PermutationRef<'a> {
     }
     /// Its artifacts' targets and blobs, in the level's order of targets.
     fn artifacts(&self) -> impl Iterator<Item = (Target, BlobId)> + 'a {
-        let start = self.archive.artifacts_start + self.record.first_artifact as usize * ARTIFACT_LEN;
-        let bytes = &self.archive.bytes.as_slice()[start..start + self.record.artifact_count as usize * ARTIFACT_LEN];
-        // Every artifact was checked at open.
+        let archive = self.archive;
+        let start = archive.manifest_start
+            + (archive.layout.artifacts + self.record.first_artifact as u64 * ARTIFACT_LEN as u64) as usize;
+        let len = self.record.artifact_count as usize * ARTIFACT_LEN;
+        // In range and checked: the record was checked before this reference was made.
+        let bytes = archive.bytes.as_slice().get(start..start + len).unwrap_or_default();
         bytes.chunks_exact(ARTIFACT_LEN).filter_map(super::format::decode_artifact)
     }
     pub fn targets(&self) -> impl Iterator<Item = Target> + 'a {
@@ -160,6 +209,16 @@ impl<'a> PermutationRef<'a> {
             message,
         })
     }
+    /// Sizes of the artifact for `target` (`None` when the permutation has none), from its
+    /// blob table entry; a damaged entry is an error naming this permutation and the target.
+    pub fn blob_info(&self, target: Target) -> Result<Option<BlobInfo>, ArchiveError> {
+        let Some(id) = self.blob_id(target) else { return Ok(None) };
+        self.archive.blob_info(id).map(Some).map_err(|message| ArchiveError::Blob {
+            permutation: self.name().to_string(),
+            target,
+            message,
+        })
+    }
     /// Its record, decoded (a copy: the manifest is read in place).
     pub fn record(&self) -> PermutationRecord {
         PermutationRecord {
@@ -171,6 +230,34 @@ impl<'a> PermutationRef<'a> {
         }
     }
 }
+
+/// The permutations of an archive, sorted by name ([`Archive::permutations`]); every record
+/// was checked before the walk began.
+pub struct Permutations<'a> {
+    archive: &'a Archive,
+    next: usize,
+    end: usize,
+}
+
+impl<'a> Iterator for Permutations<'a> {
+    type Item = PermutationRef<'a>;
+    fn next(&mut self) -> Option<PermutationRef<'a>> {
+        while self.next < self.end {
+            let i = self.next;
+            self.next += 1;
+            // Checked (its bit set) before the walk: this only reads the record again.
+            if let Ok(p) = self.archive.permutation(i) {
+                return Some(p);
+            }
+        }
+        None
+    }
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        (self.end - self.next, Some(self.end - self.next))
+    }
+}
+
+impl ExactSizeIterator for Permutations<'_> {}
 
 /// A near miss for a name that is not in the archive.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -212,7 +299,7 @@ fn file_kind(meta: &std::fs::Metadata) -> &'static str {
 }
 
 impl Archive {
-    /// Memory-maps an archive file and checks its header and manifest. A path that is not a
+    /// Memory-maps an archive file and checks its header and chunk hashes. A path that is not a
     /// regular file (a directory, a FIFO, a device) is an error, found without blocking.
     pub fn open(path: &Path) -> Result<Archive, ArchiveError> {
         let io = |source| ArchiveError::Io { path: path.to_path_buf(), source };
@@ -276,7 +363,7 @@ impl Archive {
         if flags != 0 {
             return Err(ArchiveError::Manifest(format!("unknown header flags {flags:#x}")));
         }
-        if data[48..96].iter().any(|&b| b != 0) {
+        if data[52..96].iter().any(|&b| b != 0) {
             return Err(ArchiveError::Manifest("reserved header bytes are not zero".into()));
         }
         let sections = Sections {
@@ -284,8 +371,11 @@ impl Archive {
             dictionaries_len: u64_at(24),
             manifest_len: u64_at(32),
             blob_count: u64_at(40),
+            chunk_len: u32_at(48),
         };
-        let layout = sections.layout().ok_or_else(|| ArchiveError::Manifest("section lengths overflow".into()))?;
+        let layout = sections.layout().ok_or_else(|| {
+            ArchiveError::Manifest("section lengths overflow or the chunk length is not allowed".into())
+        })?;
         let actual = data.len() as u64;
         if layout.end != actual {
             return Err(ArchiveError::Truncated { expected: layout.end, actual });
@@ -293,64 +383,249 @@ impl Archive {
         // The padding between sections is covered by no checksum: it must be zero.
         let pads = [
             (layout.blobs + sections.blobs_len, layout.dictionaries),
-            (layout.dictionaries + sections.dictionaries_len, layout.manifest),
+            (layout.dictionaries + sections.dictionaries_len, layout.chunks),
             (layout.manifest + sections.manifest_len, layout.table),
         ];
         if pads.iter().any(|&(from, to)| data[from as usize..to as usize].iter().any(|&b| b != 0)) {
             return Err(ArchiveError::Manifest("padding between sections is not zero".into()));
         }
-        let manifest_bytes = &data[layout.manifest as usize..(layout.manifest + sections.manifest_len) as usize];
-        let table = &data[layout.table as usize..];
+        // The header checksum covers the chunk hashes (32 bytes per chunk of the manifest and
+        // the table); every chunk is checked against its hash when first read.
         let expected: [u8; 32] = data[96..128].try_into().unwrap();
-        let computed = header_checksum(&data[..96], manifest_bytes, table);
+        let computed = header_checksum(&data[..96], &data[layout.chunks as usize..layout.manifest as usize]);
         if computed.as_bytes() != &expected {
             return Err(ArchiveError::Checksum {
                 expected: blake3::Hash::from_bytes(expected).to_hex().to_string(),
                 actual: computed.to_hex().to_string(),
             });
         }
-        let m = read_manifest(data, layout.manifest as usize, sections.manifest_len as usize, &sections)?;
-        validate_table(table, &sections, m.dictionaries.len())?;
-        let by_shader =
-            m.tables.shaders.iter().enumerate().map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32)).collect();
         let blob_count = sections.blob_count as usize;
-        let base = layout.manifest as usize;
-        Ok(Archive {
-            verified: (0..blob_count).map(|_| AtomicBool::new(false)).collect(),
-            ddicts: (0..m.dictionaries.len()).map(|_| OnceLock::new()).collect(),
-            values: (0..m.counts.permutations).map(|_| OnceLock::new()).collect(),
+        let chunks = (layout.manifest_chunks + layout.table_chunks) as usize;
+        let mut archive = Archive {
             blobs_start: layout.blobs as usize,
+            blobs_len: sections.blobs_len,
             dictionaries_start: layout.dictionaries as usize,
+            chunk_hashes_start: layout.chunks as usize,
+            chunk_shift: sections.chunk_len.trailing_zeros(),
+            manifest_start: layout.manifest as usize,
+            manifest_len: sections.manifest_len as usize,
+            manifest_chunks: layout.manifest_chunks as usize,
             table_start: layout.table as usize,
             blob_count,
-            records_start: base + m.layout.records as usize,
-            ids_start: base + m.layout.ids as usize,
-            values_start: base + m.layout.values as usize,
-            artifacts_start: base + m.layout.artifacts as usize,
-            names_start: base + m.layout.names as usize,
-            permutation_count: m.counts.permutations as usize,
-            tables: m.tables,
-            dictionaries: m.dictionaries,
-            by_shader,
+            layout: ManifestLayout {
+                records: 0,
+                ids: 0,
+                values: 0,
+                artifacts: 0,
+                dictionaries: 0,
+                tables: 0,
+                names: 0,
+                end: 0,
+            },
+            counts: ManifestCounts {
+                permutations: 0,
+                values: 0,
+                artifacts: 0,
+                dictionaries: 0,
+                tables_len: 0,
+                names_len: 0,
+            },
+            permutation_count: 0,
+            tables: Tables {
+                kiln_version: String::new(),
+                naga_version: String::new(),
+                shaders: Vec::new(),
+                reflections: Vec::new(),
+            },
+            dictionaries: Vec::new(),
+            chunks_ok: Bits::new(chunks),
+            records_ok: Bits::new(0),
+            all_records_ok: AtomicBool::new(false),
+            values: Box::new([]),
+            verified: Bits::new(blob_count),
+            ddicts: Box::new([]),
+            by_shader: HashMap::new(),
             bytes,
-        })
+        };
+        archive.read_manifest(&sections)?;
+        let permutations = archive.counts.permutations as usize;
+        archive.permutation_count = permutations;
+        archive.records_ok = Bits::new(permutations);
+        archive.values = (0..permutations.div_ceil(VALUE_PAGE)).map(|_| OnceLock::new()).collect();
+        archive.ddicts = (0..archive.dictionaries.len()).map(|_| OnceLock::new()).collect();
+        archive.by_shader = archive
+            .tables
+            .shaders
+            .iter()
+            .enumerate()
+            .map(|(i, s)| ((s.name.clone(), s.level.clone()), i as u32))
+            .collect();
+        Ok(archive)
     }
 
-    /// The record of permutation `index` (< the permutation count).
-    fn record(&self, index: usize) -> Record {
-        let at = self.records_start + index * RECORD_LEN;
-        Record::decode(&self.bytes.as_slice()[at..at + RECORD_LEN])
+    /// Reads the manifest's header, dictionaries and tables (checking the chunks they lie
+    /// in), and checks that its counts give its length, so that every record's range can be
+    /// checked against them on first use. O(1) in the number of permutations.
+    fn read_manifest(&mut self, sections: &Sections) -> Result<(), ArchiveError> {
+        let bad = |msg: String| ArchiveError::Manifest(msg);
+        let header = self.manifest_bytes(0, MANIFEST_HEADER_LEN as u64).map_err(|m| bad(format!("its header: {m}")))?;
+        let counts = ManifestCounts::decode(header).ok_or_else(|| bad("the manifest's header is malformed".into()))?;
+        let layout = counts.layout().ok_or_else(|| bad("the manifest's counts overflow".into()))?;
+        let len = self.manifest_len;
+        if layout.end != len as u64 {
+            return Err(bad(format!("the manifest's counts give {} bytes, the header {len}", layout.end)));
+        }
+        if counts.dictionaries > NO_DICTIONARY as u64 {
+            return Err(bad(format!("{} dictionaries", counts.dictionaries)));
+        }
+        let tables_bytes =
+            self.manifest_bytes(layout.tables, counts.tables_len).map_err(|m| bad(format!("its tables: {m}")))?;
+        let tables: Tables = serde_json::from_slice(tables_bytes).map_err(|e| bad(format!("its tables: {e}")))?;
+        let pad_start = layout.tables + counts.tables_len;
+        let pad =
+            self.manifest_bytes(pad_start, layout.names - pad_start).map_err(|m| bad(format!("its tables: {m}")))?;
+        if pad.iter().any(|&b| b != 0) {
+            return Err(bad("padding after the tables is not zero".into()));
+        }
+        let dict_bytes = self
+            .manifest_bytes(layout.dictionaries, layout.tables - layout.dictionaries)
+            .map_err(|m| bad(format!("its dictionaries: {m}")))?;
+        let mut dictionaries = Vec::new();
+        for (i, b) in dict_bytes.chunks_exact(DICTIONARY_LEN).enumerate() {
+            let d = DictionaryRecord::decode(b).ok_or_else(|| bad(format!("dictionary {i} is malformed")))?;
+            match d.offset.checked_add(d.len) {
+                Some(end) if end <= sections.dictionaries_len => {}
+                _ => return Err(bad(format!("dictionary {i} lies outside the dictionary section"))),
+            }
+            dictionaries.push(d);
+        }
+        self.counts = counts;
+        self.layout = layout;
+        self.tables = tables;
+        self.dictionaries = dictionaries;
+        Ok(())
     }
 
-    /// The name of a record checked at open.
+    /// `len` bytes of the manifest from `from`; each chunk they lie in is checked against its
+    /// hash the first time it is read. The error says what failed.
+    fn manifest_bytes(&self, from: u64, len: u64) -> Result<&[u8], String> {
+        self.region_bytes(self.manifest_start, self.manifest_len, 0, "manifest", from, len)
+    }
+
+    /// [`Archive::manifest_bytes`] of the blob table.
+    fn table_bytes(&self, from: u64, len: u64) -> Result<&[u8], String> {
+        let table_len = self.blob_count * ENTRY_LEN;
+        self.region_bytes(self.table_start, table_len, self.manifest_chunks, "blob table", from, len)
+    }
+
+    fn region_bytes(
+        &self,
+        start: usize,
+        region_len: usize,
+        first_chunk: usize,
+        what: &str,
+        from: u64,
+        len: u64,
+    ) -> Result<&[u8], String> {
+        let end = match from.checked_add(len) {
+            Some(end) if end <= region_len as u64 => end as usize,
+            _ => return Err(format!("bytes {from}..{from}+{len} lie outside the {what} ({region_len} bytes)")),
+        };
+        let from = from as usize;
+        let data = self.bytes.as_slice();
+        if from < end {
+            for c in from >> self.chunk_shift..=(end - 1) >> self.chunk_shift {
+                let index = first_chunk + c;
+                if self.chunks_ok.get(index) {
+                    continue;
+                }
+                let at = c << self.chunk_shift;
+                let bytes = &data[start + at..start + region_len.min(at + (1 << self.chunk_shift))];
+                let want = &data[self.chunk_hashes_start + index * CHUNK_HASH_LEN..][..CHUNK_HASH_LEN];
+                if blake3::hash(bytes).as_bytes() != want {
+                    return Err(format!(
+                        "the {what}'s chunk {c} (file bytes {}..{}) fails its checksum",
+                        start + at,
+                        start + at + bytes.len()
+                    ));
+                }
+                self.chunks_ok.set(index);
+            }
+        }
+        Ok(&data[start + from..start + end])
+    }
+
+    /// The record of permutation `index`, its chunk checked.
+    fn record_at(&self, index: usize) -> Result<Record, String> {
+        self.manifest_bytes(self.layout.records + (index * RECORD_LEN) as u64, RECORD_LEN as u64).map(Record::decode)
+    }
+
+    /// The name bytes of a record, their chunks checked.
+    fn name_bytes(&self, r: &Record) -> Result<&[u8], String> {
+        match r.name_offset.checked_add(r.name_len as u64) {
+            Some(end) if end <= self.counts.names_len => {
+                self.manifest_bytes(self.layout.names + r.name_offset, r.name_len as u64)
+            }
+            _ => Err(format!("its name lies outside the names ({} bytes at {})", r.name_len, r.name_offset)),
+        }
+    }
+
+    /// Permutation `index` (< the permutation count), its record checked the first time: the
+    /// chunks it lies in, its name, shader, reflection, values and artifacts. An error names
+    /// the permutation (by its number where its name cannot be read).
+    fn permutation(&self, index: usize) -> Result<PermutationRef<'_>, ArchiveError> {
+        let number = || format!("number {index} of {}", self.permutation_count);
+        let err = |permutation: String, message: String| ArchiveError::Permutation { permutation, message };
+        let record = self.record_at(index).map_err(|m| err(number(), format!("its record: {m}")))?;
+        if self.records_ok.get(index) {
+            return Ok(PermutationRef { archive: self, index: index as u32, record });
+        }
+        let name = self.name_bytes(&record).map_err(|m| err(number(), m))?;
+        let name = std::str::from_utf8(name).map_err(|e| err(number(), format!("its name is not UTF-8: {e}")))?;
+        let who = || format!("`{name}`");
+        let r = &record;
+        let Some(shader) = self.tables.shaders.get(r.shader as usize) else {
+            return Err(err(who(), format!("it names shader {} of {}", r.shader, self.tables.shaders.len())));
+        };
+        if r.reflection as usize >= self.tables.reflections.len() {
+            return Err(err(who(), format!("it names a missing reflection ({})", r.reflection)));
+        }
+        let n = shader.dimensions.len() as u64;
+        if r.first_value as u64 + n > self.counts.values {
+            return Err(err(who(), format!("its {n} values lie outside the values")));
+        }
+        self.manifest_bytes(self.layout.values + r.first_value as u64 * VALUE_LEN as u64, n * VALUE_LEN as u64)
+            .map_err(|m| err(who(), format!("its values: {m}")))?;
+        if r.first_artifact as u64 + r.artifact_count as u64 > self.counts.artifacts {
+            return Err(err(who(), "its artifacts lie outside the artifacts".into()));
+        }
+        let artifacts = self
+            .manifest_bytes(
+                self.layout.artifacts + r.first_artifact as u64 * ARTIFACT_LEN as u64,
+                r.artifact_count as u64 * ARTIFACT_LEN as u64,
+            )
+            .map_err(|m| err(who(), format!("its artifacts: {m}")))?;
+        for (i, b) in artifacts.chunks_exact(ARTIFACT_LEN).enumerate() {
+            match decode_artifact(b) {
+                Some((_, blob)) if (blob.0 as usize) < self.blob_count => {}
+                Some((t, blob)) => {
+                    return Err(err(who(), format!("its artifact {i} names a missing {t} blob ({})", blob.0)))
+                }
+                None => return Err(err(who(), format!("its artifact {i} is malformed"))),
+            }
+        }
+        self.records_ok.set(index);
+        Ok(PermutationRef { archive: self, index: index as u32, record })
+    }
+
+    /// The name of a record checked by [`Archive::permutation`].
     fn name_of(&self, r: &Record) -> &str {
-        let start = self.names_start + r.name_offset as usize;
-        // Checked at open to be in bounds and valid UTF-8.
-        std::str::from_utf8(&self.bytes.as_slice()[start..start + r.name_len as usize]).unwrap_or("")
-    }
-
-    fn permutation(&self, index: usize) -> PermutationRef<'_> {
-        PermutationRef { archive: self, index: index as u32, record: self.record(index) }
+        let start = self.manifest_start + (self.layout.names + r.name_offset) as usize;
+        self.bytes
+            .as_slice()
+            .get(start..start + r.name_len as usize)
+            .and_then(|b| std::str::from_utf8(b).ok())
+            .unwrap_or("")
     }
 
     pub fn kiln_version(&self) -> &str {
@@ -380,23 +655,49 @@ impl Archive {
         &self.tables.reflections
     }
 
-    /// Every permutation, sorted by name.
-    pub fn permutations(&self) -> impl ExactSizeIterator<Item = PermutationRef<'_>> {
-        (0..self.permutation_count).map(move |i| self.permutation(i))
+    /// Every permutation, sorted by name. The first walk checks every record (and so every
+    /// chunk of the manifest's records, values, artifacts and names) before it yields one:
+    /// a bad record is an error naming it, and no walk sees part of a damaged manifest.
+    pub fn permutations(&self) -> Result<Permutations<'_>, ArchiveError> {
+        if !self.all_records_ok.load(Ordering::Acquire) {
+            for i in 0..self.permutation_count {
+                self.permutation(i)?;
+            }
+            self.all_records_ok.store(true, Ordering::Release);
+        }
+        Ok(Permutations { archive: self, next: 0, end: self.permutation_count })
     }
 
-    /// The table entry of a blob; ids come from this archive's records, checked at open.
-    fn entry(&self, id: BlobId) -> Option<Entry> {
+    /// The table entry of a blob, its chunk and fields checked (each read: a few
+    /// comparisons). The error says what is wrong.
+    fn entry(&self, id: BlobId) -> Result<Entry, String> {
         let i = id.0 as usize;
         if i >= self.blob_count {
-            return None;
+            return Err(format!("blob {i} does not exist"));
         }
-        let at = self.table_start + i * ENTRY_LEN;
-        Some(Entry::decode(&self.bytes.as_slice()[at..at + ENTRY_LEN]))
+        let bytes = self.table_bytes((i * ENTRY_LEN) as u64, ENTRY_LEN as u64).map_err(|m| format!("blob {i}: {m}"))?;
+        let e = Entry::decode(bytes);
+        if !Entry::reserved_zero(bytes) {
+            return Err(format!("blob {i} has non-zero reserved bytes"));
+        }
+        match e.offset.checked_add(e.stored_len) {
+            Some(end) if end <= self.blobs_len => {}
+            _ => return Err(format!("blob {i} lies outside the blob section")),
+        }
+        if e.raw_len > MAX_ARTIFACT_LEN {
+            return Err(format!("blob {i} announces {} bytes, more than the {MAX_ARTIFACT_LEN} allowed", e.raw_len));
+        }
+        match e.codec {
+            CODEC_STORED if e.stored_len == e.raw_len && e.dictionary == NO_DICTIONARY => {}
+            CODEC_ZSTD if e.dictionary == NO_DICTIONARY => {}
+            CODEC_ZSTD_DICT if (e.dictionary as usize) < self.dictionaries.len() => {}
+            c => return Err(format!("blob {i} has codec {c} with dictionary {}", e.dictionary)),
+        }
+        Ok(e)
     }
 
-    /// Sizes of a blob, from the table (nothing is decompressed).
-    pub fn blob_info(&self, id: BlobId) -> Option<BlobInfo> {
+    /// Sizes of a blob, from its table entry (checked; nothing is decompressed).
+    pub fn blob_info(&self, id: BlobId) -> Result<BlobInfo, String> {
         self.entry(id).map(|e| BlobInfo {
             raw_len: e.raw_len,
             stored_len: e.stored_len,
@@ -429,7 +730,7 @@ impl Archive {
     /// error says what is wrong (callers add the permutation's name:
     /// [`PermutationRef::artifact`]).
     pub fn blob(&self, id: BlobId) -> Result<Cow<'_, [u8]>, String> {
-        let e = self.entry(id).ok_or_else(|| format!("blob {} does not exist", id.0))?;
+        let e = self.entry(id)?;
         let start = self.blobs_start + e.offset as usize;
         let stored = &self.bytes.as_slice()[start..start + e.stored_len as usize];
         let bytes: Cow<'_, [u8]> = match e.codec {
@@ -461,71 +762,89 @@ impl Archive {
                 }
             }
         };
-        let flag = &self.verified[id.0 as usize];
-        if !flag.load(Ordering::Acquire) {
+        if !self.verified.get(id.0 as usize) {
             if blake3::hash(&bytes).as_bytes() != &e.hash {
                 return Err("its checksum does not match its bytes".into());
             }
-            flag.store(true, Ordering::Release);
+            self.verified.set(id.0 as usize);
         }
         Ok(bytes)
     }
 
-    /// Checks every blob (decompressing each once); the first failure is returned, named
-    /// by a permutation that uses it.
+    /// Checks every byte the archive's uses read: every record, every blob (decompressing
+    /// each once) and every chunk of the manifest and blob table (the ids, and entries no
+    /// permutation uses, included). The first failure is returned, named by a permutation
+    /// where one is concerned.
     pub fn verify_all(&self) -> Result<(), ArchiveError> {
-        for p in self.permutations() {
+        for p in self.permutations()? {
             for t in p.targets() {
                 p.artifact(t)?;
             }
+        }
+        self.manifest_bytes(0, self.manifest_len as u64).map_err(ArchiveError::Corrupted)?;
+        self.table_bytes(0, (self.blob_count * ENTRY_LEN) as u64).map_err(ArchiveError::Corrupted)?;
+        for i in 0..self.blob_count {
+            self.entry(BlobId(i as u32)).map_err(ArchiveError::Corrupted)?;
         }
         Ok(())
     }
 
     /// Lookup by canonical name: a binary search of the records, sorted by name (O(log n)
-    /// string comparisons, read in place).
-    pub fn get(&self, name: &str) -> Option<PermutationRef<'_>> {
+    /// byte-string comparisons, read in place; each chunk a step reads is checked the first
+    /// time). `Ok(None)` when the archive does not hold it; a damaged record or chunk on the
+    /// way is an error naming `name`.
+    pub fn get(&self, name: &str) -> Result<Option<PermutationRef<'_>>, ArchiveError> {
+        let err = |message: String| ArchiveError::Permutation { permutation: format!("`{name}`"), message };
         let (mut lo, mut hi) = (0usize, self.permutation_count);
         while lo < hi {
             let mid = lo + (hi - lo) / 2;
-            match self.name_of(&self.record(mid)).cmp(name) {
+            let found = self
+                .record_at(mid)
+                .and_then(|r| self.name_bytes(&r))
+                .map_err(|m| err(format!("looking it up, record {mid}: {m}")))?;
+            match found.cmp(name.as_bytes()) {
                 std::cmp::Ordering::Less => lo = mid + 1,
                 std::cmp::Ordering::Greater => hi = mid,
-                std::cmp::Ordering::Equal => return Some(self.permutation(mid)),
+                std::cmp::Ordering::Equal => return self.permutation(mid).map(Some),
             }
         }
-        None
+        Ok(None)
     }
 
     /// Lookup by [`permutation_id`], the id that typed keys (`Key::permutation_id`, see
     /// `kiln::bindings`) compute from their fields without formatting a name: a binary search
     /// of the manifest's sorted ids (16-byte comparisons, read in place). The permutation
-    /// found is checked to have that id.
-    pub fn get_by_id(&self, id: u128) -> Option<PermutationRef<'_>> {
-        let data = self.bytes.as_slice();
-        let at = |i: usize| {
-            let o = self.ids_start + i * ID_LEN;
-            let id = u128::from_le_bytes(data[o..o + 16].try_into().unwrap());
-            (id, u32::from_le_bytes(data[o + 16..o + 20].try_into().unwrap()) as usize)
+    /// found is checked to have that id. `Ok(None)` when no permutation has it.
+    pub fn get_by_id(&self, id: u128) -> Result<Option<PermutationRef<'_>>, ArchiveError> {
+        let err = |message: String| ArchiveError::Permutation { permutation: format!("with id {id:032x}"), message };
+        let at = |i: usize| -> Result<(u128, usize), ArchiveError> {
+            let b = self
+                .manifest_bytes(self.layout.ids + (i * ID_LEN) as u64, ID_LEN as u64)
+                .map_err(|m| err(format!("looking it up, id {i}: {m}")))?;
+            let id = u128::from_le_bytes(b[0..16].try_into().unwrap());
+            Ok((id, u32::from_le_bytes(b[16..20].try_into().unwrap()) as usize))
         };
         let (mut lo, mut hi) = (0usize, self.permutation_count);
         while lo < hi {
             let mid = lo + (hi - lo) / 2;
-            let (found, index) = at(mid);
+            let (found, index) = at(mid)?;
             match found.cmp(&id) {
                 std::cmp::Ordering::Less => lo = mid + 1,
                 std::cmp::Ordering::Greater => hi = mid,
                 std::cmp::Ordering::Equal => {
                     if index >= self.permutation_count {
-                        return None;
+                        return Err(err(format!(
+                            "its id entry names permutation {index} of {}",
+                            self.permutation_count
+                        )));
                     }
-                    let p = self.permutation(index);
+                    let p = self.permutation(index)?;
                     let s = p.shader();
-                    return (permutation_id(&s.name, &s.level, p.values()) == id).then_some(p);
+                    return Ok((permutation_id(&s.name, &s.level, p.values()) == id).then_some(p));
                 }
             }
         }
-        None
+        Ok(None)
     }
 
     /// The (shader, level) record, if the archive has that pair.
@@ -570,18 +889,18 @@ impl Archive {
 
     /// Lookup by name with near misses: for a name that is not in the archive, the closest
     /// permutations of the same shader (fewest differing dimensions), with the differences.
-    pub fn lookup(&self, name: &str) -> Lookup<'_> {
-        if let Some(p) = self.get(name) {
-            return Lookup::Found(p);
+    pub fn lookup(&self, name: &str) -> Result<Lookup<'_>, ArchiveError> {
+        if let Some(p) = self.get(name)? {
+            return Ok(Lookup::Found(p));
         }
-        Lookup::Missing(self.nearest(name, 5))
+        Ok(Lookup::Missing(self.nearest(name, 5)?))
     }
 
     /// The `limit` permutations closest to `name`.
-    pub fn nearest(&self, name: &str, limit: usize) -> Vec<Near> {
+    pub fn nearest(&self, name: &str, limit: usize) -> Result<Vec<Near>, ArchiveError> {
         let wanted = parse_name(name);
         let mut scored: Vec<(usize, Near)> = Vec::new();
-        for p in self.permutations() {
+        for p in self.permutations()? {
             let have = parse_name(p.name());
             let mut diffs = Vec::new();
             let mut score = 0usize;
@@ -615,7 +934,7 @@ impl Archive {
             scored.push((score, Near { name: p.name().to_string(), differences: diffs }));
         }
         scored.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| a.1.name.cmp(&b.1.name)));
-        scored.into_iter().take(limit).map(|(_, n)| n).collect()
+        Ok(scored.into_iter().take(limit).map(|(_, n)| n).collect())
     }
 }
 
@@ -671,97 +990,22 @@ fn edit_distance(a: &str, b: &str) -> usize {
     prev[b.len()]
 }
 
-/// The manifest, read: its counts and layout, its tables and dictionaries parsed.
-struct ReadManifest {
-    counts: ManifestCounts,
-    layout: ManifestLayout,
-    tables: Tables,
-    dictionaries: Vec<DictionaryRecord>,
-}
+#[cfg(test)]
+mod bits_tests {
+    use super::Bits;
 
-/// Reads the manifest at `data[start..start + len]` and checks every index and range of its
-/// records, so that later accessors cannot go out of bounds. O(permutations), with no
-/// allocation per permutation: each record is a few integer comparisons.
-fn read_manifest(data: &[u8], start: usize, len: usize, sections: &Sections) -> Result<ReadManifest, ArchiveError> {
-    let bad = |msg: String| ArchiveError::Manifest(msg);
-    let m = &data[start..start + len];
-    let counts = ManifestCounts::decode(m).ok_or_else(|| bad("the manifest's header is malformed".into()))?;
-    let layout = counts.layout().ok_or_else(|| bad("the manifest's counts overflow".into()))?;
-    if layout.end != len as u64 {
-        return Err(bad(format!("the manifest's counts give {} bytes, the header {len}", layout.end)));
+    #[test]
+    fn bits_across_pages_and_out_of_range() {
+        let bits = Bits::new(10_001);
+        assert!((0..10_001).all(|i| !bits.get(i)), "created zero");
+        for i in [0, 63, 64, 4095, 4096, 10_000] {
+            bits.set(i);
+        }
+        let set: Vec<usize> = (0..10_001).filter(|&i| bits.get(i)).collect();
+        assert_eq!(set, vec![0, 63, 64, 4095, 4096, 10_000]);
+        // Past the end: never set, never panics.
+        bits.set(1 << 20);
+        assert!(!bits.get(1 << 20) && !bits.get(12_288));
+        assert!(!Bits::new(0).get(0));
     }
-    let part = |from: u64, to: u64| &m[from as usize..to as usize];
-    let tables: Tables = serde_json::from_slice(part(layout.tables, layout.tables + counts.tables_len))
-        .map_err(|e| bad(format!("its tables: {e}")))?;
-    if part(layout.tables + counts.tables_len, layout.names).iter().any(|&b| b != 0) {
-        return Err(bad("padding after the tables is not zero".into()));
-    }
-    if counts.dictionaries > NO_DICTIONARY as u64 {
-        return Err(bad(format!("{} dictionaries", counts.dictionaries)));
-    }
-    let mut dictionaries = Vec::new();
-    for (i, b) in part(layout.dictionaries, layout.tables).chunks_exact(DICTIONARY_LEN).enumerate() {
-        let d = DictionaryRecord::decode(b).ok_or_else(|| bad(format!("dictionary {i} is malformed")))?;
-        match d.offset.checked_add(d.len) {
-            Some(end) if end <= sections.dictionaries_len => {}
-            _ => return Err(bad(format!("dictionary {i} lies outside the dictionary section"))),
-        }
-        dictionaries.push(d);
-    }
-    for (i, b) in part(layout.artifacts, layout.dictionaries).chunks_exact(ARTIFACT_LEN).enumerate() {
-        match decode_artifact(b) {
-            Some((_, blob)) if (blob.0 as u64) < sections.blob_count => {}
-            Some((t, _)) => return Err(bad(format!("artifact {i} names a missing {t} blob"))),
-            None => return Err(bad(format!("artifact {i} is malformed"))),
-        }
-    }
-    let names = std::str::from_utf8(part(layout.names, layout.end))
-        .map_err(|e| bad(format!("permutation names are not UTF-8: {e}")))?;
-    let dims: Vec<u64> = tables.shaders.iter().map(|s| s.dimensions.len() as u64).collect();
-    let reflections = tables.reflections.len() as u64;
-    for (i, b) in part(layout.records, layout.ids).chunks_exact(RECORD_LEN).enumerate() {
-        let r = Record::decode(b);
-        let end = r.name_offset.checked_add(r.name_len as u64).unwrap_or(u64::MAX);
-        let Some(name) = usize::try_from(end).ok().and_then(|end| names.get(r.name_offset as usize..end)) else {
-            return Err(bad(format!("permutation {i}'s name lies outside the names or splits a character")));
-        };
-        let Some(&n) = dims.get(r.shader as usize) else {
-            return Err(bad(format!("permutation `{name}` names shader {} of {}", r.shader, dims.len())));
-        };
-        if r.reflection as u64 >= reflections {
-            return Err(bad(format!("permutation `{name}` names a missing reflection")));
-        }
-        if r.first_value as u64 + n > counts.values {
-            return Err(bad(format!("permutation `{name}`'s {n} values lie outside the values")));
-        }
-        if r.first_artifact as u64 + r.artifact_count as u64 > counts.artifacts {
-            return Err(bad(format!("permutation `{name}`'s artifacts lie outside the artifacts")));
-        }
-    }
-    Ok(ReadManifest { counts, layout, tables, dictionaries })
-}
-
-/// Checks every entry of the blob table.
-fn validate_table(table: &[u8], sections: &Sections, dictionaries: usize) -> Result<(), ArchiveError> {
-    let bad = |msg: String| Err(ArchiveError::Manifest(msg));
-    for (i, bytes) in table.chunks_exact(ENTRY_LEN).enumerate() {
-        let e = Entry::decode(bytes);
-        if !Entry::reserved_zero(bytes) {
-            return bad(format!("blob {i} has non-zero reserved bytes"));
-        }
-        match e.offset.checked_add(e.stored_len) {
-            Some(end) if end <= sections.blobs_len => {}
-            _ => return bad(format!("blob {i} lies outside the blob section")),
-        }
-        if e.raw_len > MAX_ARTIFACT_LEN {
-            return bad(format!("blob {i} announces {} bytes, more than the {MAX_ARTIFACT_LEN} allowed", e.raw_len));
-        }
-        match e.codec {
-            CODEC_STORED if e.stored_len == e.raw_len && e.dictionary == NO_DICTIONARY => {}
-            CODEC_ZSTD if e.dictionary == NO_DICTIONARY => {}
-            CODEC_ZSTD_DICT if (e.dictionary as usize) < dictionaries => {}
-            c => return bad(format!("blob {i} has codec {c} with dictionary {}", e.dictionary)),
-        }
-    }
-    Ok(())
 }

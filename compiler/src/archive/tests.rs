@@ -1,6 +1,8 @@
 //! Unit tests of the archive format: round trips, determinism, damage of every kind.
 
-use super::format::{header_checksum, Entry, ManifestCounts, Record, ENTRY_LEN, HEADER_LEN, RECORD_LEN};
+use super::format::{
+    header_checksum, ChunkHasher, Entry, Layout, ManifestCounts, Record, Sections, ENTRY_LEN, HEADER_LEN, RECORD_LEN,
+};
 use super::*;
 
 fn shader() -> ShaderRecord {
@@ -114,15 +116,15 @@ fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads:
 #[test]
 fn round_trip_dedups_blobs_and_finds_by_name() {
     let a = Archive::from_vec(sample()).unwrap();
-    assert_eq!(a.permutations().count(), 4);
+    assert_eq!(a.permutations().unwrap().count(), 4);
     assert_eq!(a.blob_count(), 4, "two wgsl blobs and two spir-v blobs, each shared by two permutations");
-    let p = a.get("Lit@sm5{FULLY_ROUGH=1,MODE=MASKED}").unwrap();
+    let p = a.get("Lit@sm5{FULLY_ROUGH=1,MODE=MASKED}").unwrap().unwrap();
     assert_eq!(&p.artifact(Target::Wgsl).unwrap().unwrap()[..], b"// wgsl 1");
     assert_eq!(&p.artifact(Target::Spirv).unwrap().unwrap()[..], &[3, 2, 0x23, 7, 1]);
     assert!(p.artifact(Target::Msl).unwrap().is_none());
     assert_eq!(p.reflection().bindings.len(), 1);
     assert_eq!(a.naga_version(), "30.0.1");
-    let names: Vec<&str> = a.permutations().map(|p| p.name()).collect();
+    let names: Vec<&str> = a.permutations().unwrap().map(|p| p.name()).collect();
     let mut sorted = names.clone();
     sorted.sort();
     assert_eq!(names, sorted, "permutations are stored sorted by name");
@@ -138,21 +140,21 @@ fn every_permutation_is_found_by_name_and_by_id() {
     let a = Archive::open(&path).unwrap();
     assert_eq!(a.permutation_count(), perms.len());
     for (i, (name, arts)) in perms.iter().enumerate() {
-        let p = a.get(name).unwrap_or_else(|| panic!("{name} not found"));
+        let p = a.get(name).unwrap().unwrap_or_else(|| panic!("{name} not found"));
         assert_eq!(p.name(), name);
         assert_eq!(p.values(), &[i as i64, (i % 2) as i64]);
         let id = permutation_id("Lit", "sm5", &[i as i64, (i % 2) as i64]);
-        assert_eq!(a.get_by_id(id).unwrap().name(), name);
+        assert_eq!(a.get_by_id(id).unwrap().unwrap().name(), name);
         let record = p.record();
         assert_eq!(record.artifacts.len(), arts.len());
         for (t, bytes) in arts {
             assert_eq!(&p.artifact(*t).unwrap().unwrap()[..], &bytes[..], "{name} {t}");
         }
     }
-    assert!(a.get("Lit@sm5{FULLY_ROUGH=96,MODE=OPAQUE}").is_none());
-    assert!(a.get("").is_none());
-    assert!(a.get("~").is_none());
-    assert!(a.get_by_id(permutation_id("Lit", "sm5", &[96, 0])).is_none());
+    assert!(a.get("Lit@sm5{FULLY_ROUGH=96,MODE=OPAQUE}").unwrap().is_none());
+    assert!(a.get("").unwrap().is_none());
+    assert!(a.get("~").unwrap().is_none());
+    assert!(a.get_by_id(permutation_id("Lit", "sm5", &[96, 0])).unwrap().is_none());
 }
 
 #[test]
@@ -160,7 +162,7 @@ fn canonical_name_accepts_labels_indices_and_any_order() {
     let a = Archive::from_vec(sample()).unwrap();
     let n = a.canonical_name("Lit", "sm5", &[("MODE", "1"), ("FULLY_ROUGH", "0")]).unwrap();
     assert_eq!(n, "Lit@sm5{FULLY_ROUGH=0,MODE=MASKED}");
-    assert!(a.get(&n).is_some());
+    assert!(a.get(&n).unwrap().is_some());
     let e = a.canonical_name("Lit", "sm5", &[("MODE", "1")]).unwrap_err();
     assert!(e.contains("FULLY_ROUGH"), "{e}");
     let e = a.canonical_name("Lit", "es3_1", &[]).unwrap_err();
@@ -170,7 +172,7 @@ fn canonical_name_accepts_labels_indices_and_any_order() {
 #[test]
 fn missing_name_lists_nearest_with_differences() {
     let a = Archive::from_vec(sample()).unwrap();
-    match a.lookup("Lit@sm5{FULLY_ROUGH=2,MODE=MASKED}") {
+    match a.lookup("Lit@sm5{FULLY_ROUGH=2,MODE=MASKED}").unwrap() {
         Lookup::Found(_) => panic!("found a name that is not there"),
         Lookup::Missing(near) => {
             assert_eq!(near[0].differences, vec!["FULLY_ROUGH: 2 -> 0".to_string()]);
@@ -192,7 +194,7 @@ fn dictionaries_are_trained_and_round_trip() {
     let raw: usize = perms.iter().flat_map(|(_, a)| a.iter().map(|(_, b)| b.len())).sum();
     assert!((a.len() as f64) < raw as f64 / 8.0, "{} bytes for {raw} raw", a.len());
     for (name, arts) in &perms {
-        let p = a.get(name).unwrap();
+        let p = a.get(name).unwrap().unwrap();
         for (t, bytes) in arts {
             assert_eq!(&p.artifact(*t).unwrap().unwrap()[..], &bytes[..], "{name} {t}");
             let info = a.blob_info(p.blob_id(*t).unwrap()).unwrap();
@@ -291,8 +293,9 @@ fn truncation_is_an_error_at_every_length() {
     }
 }
 
-/// Every flipped byte is found: at open (header, manifest, table, padding) or when the blob
-/// or dictionary it lies in is first used, as an error naming a permutation. The one
+/// Every flipped byte is found: at open (header, chunk hashes, the manifest's header and
+/// tables, padding) or when the record, table entry, blob or dictionary it lies in is first
+/// used, as an error naming a permutation (or, for an id, its chunk). The one
 /// exception is a bit of a compressed block that zstd's decoder does not depend on (an FSE
 /// or Huffman table entry of a symbol never decoded): then every artifact must still come
 /// out byte for byte the original, having passed its checksum.
@@ -314,13 +317,22 @@ fn every_flipped_byte_is_detected() {
             Err(_) => {}
             Ok(a) => match a.verify_all() {
                 Err(err) => {
+                    // A blob, a dictionary or a blob table entry names the permutation that
+                    // uses it; a record names itself; an id (which only lookups by id read)
+                    // names its chunk.
                     let msg = err.to_string();
-                    assert!(msg.contains("artifact of permutation `Lit@sm5{"), "byte {i}: {msg}");
+                    assert!(
+                        msg.contains("artifact of permutation `Lit@sm5{")
+                            || msg.contains("permutation `Lit@sm5{")
+                            || msg.contains("permutation number ")
+                            || msg.contains("the manifest's chunk"),
+                        "byte {i}: {msg}"
+                    );
                 }
                 Ok(()) => {
                     assert!(i < layout_blobs_end, "flipping byte {i}, outside the blob section, went unnoticed");
-                    for p in a.permutations() {
-                        let o = original.get(p.name()).unwrap();
+                    for p in a.permutations().unwrap() {
+                        let o = original.get(p.name()).unwrap().unwrap();
                         for t in p.targets() {
                             assert_eq!(p.artifact(t).unwrap(), o.artifact(t).unwrap(), "byte {i}: {}", p.name());
                         }
@@ -339,7 +351,7 @@ fn corrupted_blob_names_the_permutation_and_target() {
     let order: Vec<usize> = (0..perms.len()).collect();
     stream(&path, &perms, &order, 1);
     let a = Archive::open(&path).unwrap();
-    let p = a.get(&perms[5].0).unwrap();
+    let p = a.get(&perms[5].0).unwrap().unwrap();
     let id = p.blob_id(Target::Msl).unwrap();
     let info = a.blob_info(id).unwrap();
     drop(a);
@@ -352,57 +364,166 @@ fn corrupted_blob_names_the_permutation_and_target() {
     bytes[HEADER_LEN + (e.offset + e.stored_len / 2) as usize] ^= 0x01;
     let a = Archive::from_vec(bytes).unwrap();
     let sharing: Vec<&str> =
-        a.permutations().filter(|q| q.blob_id(Target::Msl) == Some(id)).map(|q| q.name()).collect();
+        a.permutations().unwrap().filter(|q| q.blob_id(Target::Msl) == Some(id)).map(|q| q.name()).collect();
     for name in &sharing {
-        let msg = a.get(name).unwrap().artifact(Target::Msl).unwrap_err().to_string();
+        let msg = a.get(name).unwrap().unwrap().artifact(Target::Msl).unwrap_err().to_string();
         assert!(msg.contains(&format!("the msl artifact of permutation `{name}`")), "{msg}");
     }
     // Its other artifacts and its neighbours are intact.
-    assert!(a.get(&perms[5].0).unwrap().artifact(Target::Wgsl).is_ok());
-    assert!(a.get(&perms[10].0).unwrap().artifact(Target::Msl).is_ok());
+    assert!(a.get(&perms[5].0).unwrap().unwrap().artifact(Target::Wgsl).is_ok());
+    assert!(a.get(&perms[10].0).unwrap().unwrap().artifact(Target::Msl).is_ok());
 }
 
 fn a_blob_count(bytes: &[u8]) -> usize {
     u64::from_le_bytes(bytes[40..48].try_into().unwrap()) as usize
 }
 
-/// Rewrites the header checksum after an edit, as a hostile tool would.
+/// The section lengths of an archive's header, and the layout they give.
+fn layout_of(bytes: &[u8]) -> (Sections, Layout) {
+    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap());
+    let sections = Sections {
+        blobs_len: u64_at(16),
+        dictionaries_len: u64_at(24),
+        manifest_len: u64_at(32),
+        blob_count: u64_at(40),
+        chunk_len: u32::from_le_bytes(bytes[48..52].try_into().unwrap()),
+    };
+    (sections, sections.layout().unwrap())
+}
+
+/// Rewrites the chunk hashes and the header checksum after an edit, as a hostile tool would.
 fn reseal(bytes: &mut [u8]) {
-    let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
-    let count = a_blob_count(bytes);
-    let table_start = bytes.len() - count * ENTRY_LEN;
-    let manifest_start = table_start - manifest_len.next_multiple_of(8);
-    reseal_at(bytes, manifest_start, manifest_len, table_start);
+    let (sections, layout) = layout_of(bytes);
+    reseal_at(bytes, &sections, &layout);
 }
 
 /// [`reseal`] with the sections where they were before the header's lengths were edited.
-fn reseal_at(bytes: &mut [u8], manifest_start: usize, manifest_len: usize, table_start: usize) {
-    let sum =
-        header_checksum(&bytes[..96], &bytes[manifest_start..manifest_start + manifest_len], &bytes[table_start..]);
+fn reseal_at(bytes: &mut [u8], sections: &Sections, layout: &Layout) {
+    let mut h = ChunkHasher::new(sections.chunk_len);
+    let manifest = layout.manifest as usize;
+    h.update(&bytes[manifest..manifest + sections.manifest_len as usize]);
+    h.finish();
+    h.update(&bytes[layout.table as usize..layout.end as usize]);
+    h.finish();
+    bytes[layout.chunks as usize..manifest].copy_from_slice(&h.hashes);
+    let sum = header_checksum(&bytes[..96], &bytes[layout.chunks as usize..manifest]);
     bytes[96..128].copy_from_slice(sum.as_bytes());
 }
 
+/// The permutation that uses blob 0 as its `target` artifact.
+fn user_of_blob_0(a: &Archive) -> (String, Target) {
+    a.permutations()
+        .unwrap()
+        .find_map(|p| p.targets().find(|t| p.blob_id(*t) == Some(BlobId(0))).map(|t| (p.name().to_string(), t)))
+        .expect("blob 0 is used")
+}
+
 #[test]
-fn hostile_table_entries_with_a_valid_checksum_are_errors() {
+fn hostile_table_entries_with_a_valid_checksum_are_errors_naming_the_permutation() {
     let bytes = sample();
+    let (name, target) = user_of_blob_0(&Archive::from_vec(bytes.clone()).unwrap());
     let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
-    let edits: [(usize, &[u8], &str); 4] = [
+    let edits: [(usize, &[u8], &str); 5] = [
         (16, &(1u64 << 40).to_le_bytes(), "announces"),
         (0, &(1u64 << 50).to_le_bytes(), "outside the blob section"),
         (24, &[9], "codec 9"),
         (25, &[3], "codec"),
+        (26, &[1], "reserved bytes"),
     ];
     for (at, patch, wanted) in edits {
         let mut b = bytes.clone();
         b[table_start + at..table_start + at + patch.len()].copy_from_slice(patch);
         reseal(&mut b);
-        let msg = Archive::from_vec(b).err().expect("hostile entry accepted").to_string();
+        // Opening reads no entry: the entry is checked when its blob is first used.
+        let a = Archive::from_vec(b).expect("entries are checked on use");
+        let p = a.get(&name).unwrap().unwrap();
+        let msg = p.artifact(target).err().expect("hostile entry accepted").to_string();
         assert!(msg.contains(wanted), "{wanted}: {msg}");
+        assert!(msg.contains(&format!("the {target} artifact of permutation `{name}`")), "{msg}");
+        assert!(p.blob_info(target).is_err() && a.verify_all().is_err());
     }
-    // Sealed as is, the archive opens: the edits above were what was refused.
+    // Sealed as is, the archive opens and reads: the edits above were what was refused.
     let mut b = bytes.clone();
     reseal(&mut b);
-    assert!(Archive::from_vec(b).is_ok());
+    Archive::from_vec(b).unwrap().verify_all().unwrap();
+}
+
+/// A blob table entry damaged in place (its chunk's hash no longer holds): an error naming
+/// the permutation and target that use it, every time, and the other entries still read.
+#[test]
+fn corrupted_blob_table_entry_names_the_permutation_and_target() {
+    let bytes = sample();
+    let (name, target) = user_of_blob_0(&Archive::from_vec(bytes.clone()).unwrap());
+    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
+    let mut b = bytes.clone();
+    b[table_start + 16] ^= 0x01; // the raw length
+    let a = Archive::from_vec(b).expect("the table is checked on use");
+    for _ in 0..2 {
+        let msg = a.get(&name).unwrap().unwrap().artifact(target).unwrap_err().to_string();
+        assert!(msg.contains(&format!("the {target} artifact of permutation `{name}`")), "{msg}");
+        assert!(msg.contains("blob table's chunk 0") && msg.contains("fails its checksum"), "{msg}");
+    }
+    assert!(a.verify_all().is_err());
+}
+
+/// A manifest chunk damaged in place: a lookup that reads it, a walk of every record and a
+/// lookup by id are errors naming the permutation; chunks not read are not checked.
+#[test]
+fn corrupted_manifest_chunk_is_an_error_naming_the_permutation() {
+    // 2,000 permutations with small artifacts: a manifest of many chunks.
+    let mut w = ArchiveWriter::new();
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    let mut names = Vec::new();
+    for i in 0..2000i64 {
+        let blob = w.add_blob(format!("// wgsl {}", i % 7).as_bytes());
+        let name = format!("Lit@sm5{{FULLY_ROUGH={i},MODE={}}}", ["OPAQUE", "MASKED"][i as usize % 2]);
+        names.push(name.clone());
+        let record = PermutationRecord { name, shader: s, values: vec![i, i % 2], reflection: r, artifacts: vec![] };
+        w.add_permutation(PermutationRecord { artifacts: vec![(Target::Wgsl, blob)], ..record });
+    }
+    names.sort();
+    let bytes = w.to_bytes().unwrap();
+    let (start, len) = manifest_range(&bytes);
+    let chunk = CHUNK_LEN as usize;
+    assert!(len > 8 * chunk, "the manifest spans many chunks ({len} bytes)");
+    let counts = ManifestCounts::decode(&bytes[start..]).unwrap();
+    let layout = counts.layout().unwrap();
+    // The last name: the last permutation's, in the manifest's last chunk.
+    let last = names.last().unwrap();
+    let mut b = bytes.clone();
+    b[start + len - 1] ^= 0x01;
+    let a = Archive::from_vec(b).expect("the names are checked on use");
+    let msg = a.get(last).err().expect("damaged name read").to_string();
+    assert!(msg.starts_with(&format!("archive is corrupted: permutation `{last}`: ")), "{msg}");
+    assert!(msg.contains("manifest's chunk") && msg.contains("fails its checksum"), "{msg}");
+    // Names in other chunks are found (the first is in another chunk than the last).
+    assert_eq!(a.get(&names[0]).unwrap().unwrap().name(), names[0]);
+    // The walk of every record is refused before it yields one.
+    let msg = a.permutations().err().expect("walk over a damaged chunk").to_string();
+    assert!(msg.contains("archive is corrupted: permutation number ") && msg.contains("fails its checksum"), "{msg}");
+    assert!(a.verify_all().is_err());
+    assert!(matches!(a.lookup(last), Err(ArchiveError::Permutation { .. })));
+
+    // A record damaged: the lookups whose binary search reads it fail, naming the name
+    // looked up; a lookup by id reading a damaged id fails naming the id.
+    let mut b = bytes.clone();
+    let mid = counts.permutations as usize / 2;
+    b[start + layout.records as usize + mid * RECORD_LEN + 9] ^= 0x01;
+    let a = Archive::from_vec(b).unwrap();
+    for name in &names {
+        match a.get(name) {
+            Ok(p) => assert_eq!(p.unwrap().name(), name.as_str()),
+            Err(e) => assert!(e.to_string().contains(&format!("permutation `{name}`: looking it up")), "{e}"),
+        }
+    }
+    assert!(a.get(&names[0]).is_err(), "the first step of every search reads the middle record");
+    let mut b = bytes.clone();
+    b[start + layout.ids as usize + (counts.permutations as usize / 2) * 24] ^= 0x01;
+    let a = Archive::from_vec(b).unwrap();
+    let id = permutation_id("Lit", "sm5", &[0, 0]);
+    let msg = a.get_by_id(id).err().expect("damaged id read").to_string();
+    assert!(msg.contains(&format!("permutation with id {id:032x}")) && msg.contains("fails its checksum"), "{msg}");
 }
 
 #[test]
@@ -421,12 +542,14 @@ fn older_and_newer_format_versions_are_named() {
 }
 
 #[test]
-fn format_2_archives_are_refused_with_a_rebuild_hint() {
-    let mut bytes = sample();
-    bytes[8..12].copy_from_slice(&2u32.to_le_bytes());
-    let msg = Archive::from_vec(bytes).err().unwrap().to_string();
-    assert!(msg.contains("archive format version 2 is not supported"), "{msg}");
-    assert!(msg.contains("reads version 3") && msg.contains("rebuild"), "{msg}");
+fn format_2_and_3_archives_are_refused_with_a_rebuild_hint() {
+    for version in [2u32, 3] {
+        let mut bytes = sample();
+        bytes[8..12].copy_from_slice(&version.to_le_bytes());
+        let msg = Archive::from_vec(bytes).err().unwrap().to_string();
+        assert!(msg.contains(&format!("archive format version {version} is not supported")), "{msg}");
+        assert!(msg.contains("reads version 4") && msg.contains("rebuild"), "{msg}");
+    }
 }
 
 /// Where the manifest starts, and its length.
@@ -457,15 +580,19 @@ fn hostile_permutation_records_with_a_valid_checksum_are_errors() {
         edit(&mut r);
         b[at..at + RECORD_LEN].copy_from_slice(&r.encode());
         reseal(&mut b);
-        let msg = Archive::from_vec(b).err().expect("hostile record accepted").to_string();
+        // Opening reads no record: each is checked when first used, here by the walk.
+        let a = Archive::from_vec(b).expect("records are checked on use");
+        let msg = a.permutations().err().expect("hostile record accepted").to_string();
         assert!(msg.contains(wanted), "{wanted}: {msg}");
+        assert!(msg.starts_with("archive is corrupted: permutation "), "{msg}");
+        assert!(a.verify_all().is_err());
     }
     // A name cut inside a UTF-8 character, and counts that do not add up to the length.
     let mut b = bytes.clone();
     let (_, len) = manifest_range(&b);
     b[start + len - 1] = 0xc3;
     reseal(&mut b);
-    assert!(Archive::from_vec(b).err().unwrap().to_string().contains("UTF-8"));
+    assert!(Archive::from_vec(b).unwrap().permutations().err().unwrap().to_string().contains("UTF-8"));
     let mut b = bytes.clone();
     b[start..start + 8].copy_from_slice(&5u64.to_le_bytes());
     reseal(&mut b);
@@ -498,7 +625,7 @@ fn atomic_write_then_mmap_open() {
 #[test]
 fn empty_archive_round_trips() {
     let a = Archive::from_vec(ArchiveWriter::new().to_bytes().unwrap()).unwrap();
-    assert_eq!(a.permutations().count(), 0);
+    assert_eq!(a.permutations().unwrap().count(), 0);
     assert_eq!(a.blob_count(), 0);
 }
 
@@ -529,9 +656,10 @@ fn resealed_random_damage_never_panics() {
     let order: Vec<usize> = (0..perms.len()).collect();
     stream(&path, &perms, &order, 1);
     let bytes = std::fs::read(&path).unwrap();
-    let manifest_len = u64::from_le_bytes(bytes[32..40].try_into().unwrap()) as usize;
-    let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
-    let manifest_start = table_start - manifest_len.next_multiple_of(8);
+    let (sections, layout) = layout_of(&bytes);
+    let manifest_len = sections.manifest_len as usize;
+    let table_start = layout.table as usize;
+    let manifest_start = layout.manifest as usize;
     let mut state = 0x9e37_79b9_7f4a_7c15u64;
     let mut next = move || {
         state ^= state << 13;
@@ -555,16 +683,23 @@ fn resealed_random_damage_never_panics() {
                 _ => next() as u8,
             };
         }
-        reseal_at(&mut b, manifest_start, manifest_len, table_start);
+        reseal_at(&mut b, &sections, &layout);
         match Archive::from_vec(b) {
             Err(_) => failed += 1,
             Ok(a) => {
                 opened += 1;
                 let _ = a.verify_all();
-                for p in a.permutations() {
+                for p in a.permutations().into_iter().flatten() {
                     let _ = a.lookup(p.name());
                     let _ = p.shader();
                     let _ = p.reflection();
+                    let _ = a.get_by_id(permutation_id(&p.shader().name, &p.shader().level, p.values()));
+                    let _ = p.targets().map(|t| p.artifact(t)).count();
+                }
+                for (name, _) in &perms {
+                    if let Ok(Some(p)) = a.get(name) {
+                        let _ = p.targets().map(|t| p.artifact(t)).count();
+                    }
                 }
                 let _ = a.lookup(&format!("Lit@sm5{{FULLY_ROUGH={round}}}"));
             }
@@ -583,7 +718,7 @@ fn artifacts_are_read_and_checked_from_many_threads_at_once() {
     let mut bytes = std::fs::read(&path).unwrap();
     // Damage the msl blob of permutation 0 (its neighbours stay intact).
     let a = Archive::from_vec(bytes.clone()).unwrap();
-    let id = a.get(&perms[0].0).unwrap().blob_id(Target::Msl).unwrap();
+    let id = a.get(&perms[0].0).unwrap().unwrap().blob_id(Target::Msl).unwrap();
     let table_start = bytes.len() - a_blob_count(&bytes) * ENTRY_LEN;
     let e = Entry::decode(&bytes[table_start + id.0 as usize * ENTRY_LEN..][..ENTRY_LEN]);
     bytes[HEADER_LEN + (e.offset + e.stored_len / 2) as usize] ^= 0x10;
@@ -592,7 +727,7 @@ fn artifacts_are_read_and_checked_from_many_threads_at_once() {
         for _ in 0..8 {
             scope.spawn(|| {
                 for (name, arts) in &perms {
-                    let p = a.get(name).unwrap();
+                    let p = a.get(name).unwrap().unwrap();
                     for (t, want) in arts {
                         match p.artifact(*t) {
                             Ok(got) => assert_eq!(&got.unwrap()[..], &want[..], "{name} {t}"),
@@ -603,5 +738,5 @@ fn artifacts_are_read_and_checked_from_many_threads_at_once() {
             });
         }
     });
-    assert!(a.get(&perms[0].0).unwrap().artifact(Target::Msl).is_err());
+    assert!(a.get(&perms[0].0).unwrap().unwrap().artifact(Target::Msl).is_err());
 }

@@ -1,4 +1,4 @@
-//! The writers of format 2.
+//! The writers of the archive format (`format.rs`).
 //!
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
@@ -19,17 +19,17 @@
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
+use std::io::{BufWriter, Cursor, Read, Seek, SeekFrom, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, sibling_name, write_atomic_with, ArchiveError, BlobId, DictionaryRecord, Entry, Manifest,
-    ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections, ShaderRecord, TablesOut, CODEC_STORED,
-    CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN,
-    NO_DICTIONARY,
+    encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, ChunkHasher,
+    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections,
+    ShaderRecord, TablesOut, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
+    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
 };
 use super::{Reflection, Target};
 
@@ -1027,26 +1027,37 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     summary.dictionary_bytes = dict_offset;
     drop(cdicts);
     drop(dictionaries);
-    // The manifest is streamed into the file and the checksum at once, never held as bytes:
-    // its length (the header fields, which the checksum covers first, need it) follows from
+    // The manifest is streamed into the file and the chunk hashes at once, never held as
+    // bytes: its length (the header fields and the chunk count need it) follows from
     // its counts.
     let counts = manifest_counts(&manifest)?;
     let manifest_len = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?.end;
-    let sections = Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count };
+    let sections =
+        Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count, chunk_len: CHUNK_LEN };
     let layout = sections.layout().ok_or_else(|| std::io::Error::other("archive sections overflow"))?;
     pad8(&mut out, layout.dictionaries + dict_offset)?;
-    let fields = sections.header_fields();
-    let mut hasher = blake3::Hasher::new();
-    hasher.update(&fields);
+    // The chunk hashes come before the manifest: their room is left now and filled once the
+    // manifest and table, hashed as they are written, are done.
+    let hashes_len = (layout.manifest - layout.chunks) as usize;
+    std::io::copy(&mut std::io::repeat(0).take(hashes_len as u64), &mut out)?;
+    let mut hasher = ChunkHasher::new(CHUNK_LEN);
     let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
     encode_manifest(&manifest, &counts, &mut tee)?;
     if tee.written != manifest_len {
         return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
     drop(manifest);
+    hasher.finish();
     pad8(&mut out, layout.manifest + manifest_len)?;
-    table.copy_to(&mut out, &mut hasher)?;
-    let sum = hasher.finalize();
+    table.copy_to(&mut out, &mut |b| hasher.update(b))?;
+    hasher.finish();
+    if hasher.hashes.len() != hashes_len {
+        return Err(std::io::Error::other("the chunk hashes' length differs from the layout's"));
+    }
+    let fields = sections.header_fields();
+    let sum = header_checksum(&fields, &hasher.hashes);
+    out.seek(SeekFrom::Start(layout.chunks))?;
+    out.write_all(&hasher.hashes)?;
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&fields)?;
     out.write_all(sum.as_bytes())?;
@@ -1232,13 +1243,13 @@ impl<'a> TableBuf<'a> {
         Ok(())
     }
 
-    /// Writes the table to `out` and feeds it to `hasher`.
-    fn copy_to(mut self, out: &mut impl Write, hasher: &mut blake3::Hasher) -> std::io::Result<()> {
+    /// Writes the table to `out` and feeds it to `hash`.
+    fn copy_to(mut self, out: &mut impl Write, hash: &mut impl FnMut(&[u8])) -> std::io::Result<()> {
         self.flush()?;
         match &self {
             TableBuf::Memory(v) => {
                 out.write_all(v)?;
-                hasher.update(v);
+                hash(v);
             }
             TableBuf::File { file, start, written, .. } => {
                 let mut buf = vec![0u8; 1 << 20];
@@ -1247,7 +1258,7 @@ impl<'a> TableBuf<'a> {
                     let n = (*written - at).min(buf.len() as u64) as usize;
                     file.read_exact_at(&mut buf[..n], *start + at)?;
                     out.write_all(&buf[..n])?;
-                    hasher.update(&buf[..n]);
+                    hash(&buf[..n]);
                     at += n as u64;
                 }
             }
@@ -1272,7 +1283,7 @@ impl Write for Counter {
 /// Writes to `out` and feeds the same bytes to `hasher`.
 struct Tee<'a, W: Write> {
     out: &'a mut W,
-    hasher: &'a mut blake3::Hasher,
+    hasher: &'a mut ChunkHasher,
     written: u64,
 }
 

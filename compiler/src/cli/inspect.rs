@@ -7,7 +7,9 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::{print_stdout, CliResult, Failure};
-use crate::archive::{Archive, BindingKind, Lookup, NumericType, PermutationRef, Reflection, ScalarKind, Target};
+use crate::archive::{
+    Archive, ArchiveError, BindingKind, Lookup, NumericType, PermutationRef, Reflection, ScalarKind, Target,
+};
 use crate::cache::format_size;
 
 /// Arguments of `kiln inspect`.
@@ -38,15 +40,17 @@ pub struct Args {
 /// Opens the archive; a missing, truncated, corrupted or foreign file, an unknown name or
 /// target and a corrupted blob are exit code 2.
 pub fn exec(args: Args) -> CliResult {
-    let archive = Archive::open(&args.archive).map_err(|e| match e {
+    let damaged = |e: crate::archive::ArchiveError| match e {
         crate::archive::ArchiveError::Io { .. } | crate::archive::ArchiveError::NotAFile { .. } => {
             Failure::usage(format!("error: {e}"))
         }
         _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
-    })?;
+    };
+    let archive = Archive::open(&args.archive).map_err(damaged)?;
     if args.list {
         let mut s = String::new();
-        for p in archive.permutations() {
+        // Every record is checked before the first name is printed.
+        for p in archive.permutations().map_err(damaged)? {
             s.push_str(p.name());
             s.push('\n');
         }
@@ -54,9 +58,9 @@ pub fn exec(args: Args) -> CliResult {
     }
     let Some(name) = &args.permutation else {
         let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
-        return print_stdout(&text);
+        return print_stdout(&text.map_err(damaged)?);
     };
-    let p = find(&archive, name)?;
+    let p = find(&archive, name).map_err(|e| e.unwrap_or_else(damaged))?;
     if let Some(t) = &args.target {
         return artifact(&p, t, args.output.as_deref());
     }
@@ -74,17 +78,18 @@ pub fn exec(args: Args) -> CliResult {
 }
 
 /// The permutation `name` names: its canonical name, or the same with enum values given by
-/// index. An unknown name lists the nearest.
-fn find<'a>(archive: &'a Archive, name: &str) -> Result<PermutationRef<'a>, Failure> {
-    if let Some(p) = archive.get(name) {
+/// index. An unknown name lists the nearest (`Err(Ok(failure))`); a damaged archive is
+/// `Err(Err(error))`.
+fn find<'a>(archive: &'a Archive, name: &str) -> Result<PermutationRef<'a>, Result<Failure, ArchiveError>> {
+    if let Some(p) = archive.get(name).map_err(Err)? {
         return Ok(p);
     }
     if let Some(canonical) = canonical_form(archive, name) {
-        if let Some(p) = archive.get(&canonical) {
+        if let Some(p) = archive.get(&canonical).map_err(Err)? {
             return Ok(p);
         }
     }
-    let near = match archive.lookup(name) {
+    let near = match archive.lookup(name).map_err(Err)? {
         Lookup::Found(p) => return Ok(p),
         Lookup::Missing(near) => near,
     };
@@ -100,7 +105,7 @@ fn find<'a>(archive: &'a Archive, name: &str) -> Result<PermutationRef<'a>, Fail
             }
         }
     }
-    Err(Failure::usage(msg))
+    Err(Ok(Failure::usage(msg)))
 }
 
 /// `Shader@level{A=1,B=0}` rewritten through the archive's dimension records (enum indices
@@ -161,16 +166,16 @@ struct TargetSizes {
     dictionary: u64,
 }
 
-fn target_sizes(a: &Archive) -> BTreeMap<Target, TargetSizes> {
+fn target_sizes(a: &Archive) -> Result<BTreeMap<Target, TargetSizes>, ArchiveError> {
     let mut seen = HashSet::new();
     let mut out: BTreeMap<Target, TargetSizes> = BTreeMap::new();
-    for p in a.permutations() {
+    for p in a.permutations()? {
         for t in p.targets() {
             let e = out.entry(t).or_default();
             e.permutations += 1;
             let Some(id) = p.blob_id(t) else { continue };
             if seen.insert(id) {
-                let info = a.blob_info(id).expect("ids of records were checked at open");
+                let Some(info) = p.blob_info(t)? else { continue };
                 e.blobs += 1;
                 e.raw += info.raw_len;
                 e.stored += info.stored_len;
@@ -180,7 +185,7 @@ fn target_sizes(a: &Archive) -> BTreeMap<Target, TargetSizes> {
     for (t, len) in a.dictionaries() {
         out.entry(t).or_default().dictionary += len;
     }
-    out
+    Ok(out)
 }
 
 fn kind_name(k: &BindingKind) -> String {
@@ -265,15 +270,15 @@ fn reflection_text(p: &PermutationRef<'_>) -> String {
     s
 }
 
-fn text(a: &Archive, path: &Path) -> String {
+fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
     let mut s = String::new();
-    let perms = a.permutations().count();
+    let perms = a.permutation_count();
     let _ = writeln!(s, "archive: {} ({})", path.display(), format_size(a.len() as u64));
     let _ = writeln!(s, "format version: {}", crate::archive::FORMAT_VERSION);
     let _ = writeln!(s, "kiln: {}  naga: {}", a.kiln_version(), a.naga_version());
     let _ = writeln!(s, "permutations: {perms}  blobs: {}  reflections: {}", a.blob_count(), a.reflections().len());
     let _ = writeln!(s, "targets:");
-    for (t, z) in target_sizes(a) {
+    for (t, z) in target_sizes(a)? {
         let dict =
             if z.dictionary > 0 { format!(" + {} dictionary", format_size(z.dictionary)) } else { String::new() };
         let ratio = if z.stored + z.dictionary > 0 { z.raw as f64 / (z.stored + z.dictionary) as f64 } else { 1.0 };
@@ -289,8 +294,8 @@ fn text(a: &Archive, path: &Path) -> String {
     }
     let _ = writeln!(s, "shaders:");
     let mut by_shader: Vec<Vec<PermutationRef<'_>>> = vec![Vec::new(); a.shaders().len()];
-    for p in a.permutations() {
-        by_shader[p.record().shader as usize].push(p);
+    for p in a.permutations()? {
+        by_shader[p.shader_index() as usize].push(p);
     }
     for (sh, ps) in a.shaders().iter().zip(&by_shader) {
         let dims: Vec<&str> = sh.dimensions.iter().map(|d| d.name.as_str()).collect();
@@ -320,7 +325,7 @@ fn text(a: &Archive, path: &Path) -> String {
             }
             if ps.len() > 1 {
                 let _ = writeln!(s, "      (reflection of {}; {} distinct among its permutations)", p.name(), {
-                    let mut rs: Vec<_> = ps.iter().map(|p| p.record().reflection).collect();
+                    let mut rs: Vec<_> = ps.iter().map(|p| p.reflection_index()).collect();
                     rs.sort_unstable();
                     rs.dedup();
                     rs.len()
@@ -328,11 +333,11 @@ fn text(a: &Archive, path: &Path) -> String {
             }
         }
     }
-    s
+    Ok(s)
 }
 
-fn json(a: &Archive) -> String {
-    let targets: serde_json::Map<String, serde_json::Value> = target_sizes(a)
+fn json(a: &Archive) -> Result<String, ArchiveError> {
+    let targets: serde_json::Map<String, serde_json::Value> = target_sizes(a)?
         .into_iter()
         .map(|(t, z)| {
             let v = serde_json::json!({
@@ -347,23 +352,16 @@ fn json(a: &Archive) -> String {
         })
         .collect();
     let permutations: Vec<serde_json::Value> = a
-        .permutations()
+        .permutations()?
         .map(|p| {
-            let sizes: serde_json::Map<String, serde_json::Value> = p
-                .targets()
-                .filter_map(|t| {
-                    let info = a.blob_info(p.blob_id(t)?)?;
-                    Some((t.name().to_string(), serde_json::json!(info.raw_len)))
-                })
-                .collect();
-            let compressed: serde_json::Map<String, serde_json::Value> = p
-                .targets()
-                .filter_map(|t| {
-                    let info = a.blob_info(p.blob_id(t)?)?;
-                    Some((t.name().to_string(), serde_json::json!(info.stored_len)))
-                })
-                .collect();
-            serde_json::json!({
+            let (mut sizes, mut compressed) = (serde_json::Map::new(), serde_json::Map::new());
+            for t in p.targets() {
+                if let Some(info) = p.blob_info(t)? {
+                    sizes.insert(t.name().to_string(), serde_json::json!(info.raw_len));
+                    compressed.insert(t.name().to_string(), serde_json::json!(info.stored_len));
+                }
+            }
+            Ok(serde_json::json!({
                 "name": p.name(),
                 "shader": p.shader().name,
                 "level": p.shader().level,
@@ -371,9 +369,9 @@ fn json(a: &Archive) -> String {
                 "artifacts": sizes,
                 "compressed": compressed,
                 "reflection": p.reflection(),
-            })
+            }))
         })
-        .collect();
+        .collect::<Result<_, ArchiveError>>()?;
     let v = serde_json::json!({
         "format_version": crate::archive::FORMAT_VERSION,
         "kiln_version": a.kiln_version(),
@@ -386,5 +384,5 @@ fn json(a: &Archive) -> String {
     });
     let mut s = serde_json::to_string_pretty(&v).expect("json");
     s.push('\n');
-    s
+    Ok(s)
 }

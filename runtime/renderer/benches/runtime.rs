@@ -41,7 +41,7 @@ fn archive_bench() {
     let path = dir.join("shaders.kpak");
     std::fs::write(&path, bytes).unwrap();
     let archive = kiln_renderer::embedded_archive().unwrap();
-    let names: Vec<String> = archive.permutations().map(|p| p.name().to_string()).collect();
+    let names: Vec<String> = archive.permutations().unwrap().map(|p| p.name().to_string()).collect();
     let wanted: Vec<&str> = (0..1000).map(|i| names[(i * 7919) % names.len()].as_str()).collect();
 
     let open_static = time(200, || {
@@ -57,7 +57,7 @@ fn archive_bench() {
     });
     let scans = time(20, || {
         for n in &wanted {
-            black_box(archive.permutations().find(|p| p.name() == *n).unwrap());
+            black_box(archive.permutations().unwrap().find(|p| p.name() == *n).unwrap());
         }
     });
     // The same permutations named by shader, level and dimension values (enum values by
@@ -142,7 +142,7 @@ fn archive_bench() {
     });
     let big_scans = time(2, || {
         for n in &big_wanted {
-            black_box(big.permutations().find(|p| p.name() == *n).unwrap());
+            black_box(big.permutations().unwrap().find(|p| p.name() == *n).unwrap());
         }
     });
     println!("synthetic archive: {} bytes, {} permutations", big_bytes.len(), big_names.len());
@@ -184,6 +184,7 @@ fn module_bench() {
     }
     let modules: Vec<Module> = archive
         .permutations()
+        .unwrap()
         .filter_map(|p| {
             let (spirv, wgsl) = (p.artifact(Target::Spirv).unwrap()?, p.artifact(Target::Wgsl).unwrap()?);
             let parsed = SpirvModule::parse(&spirv).unwrap();

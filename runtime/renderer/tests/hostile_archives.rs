@@ -12,7 +12,7 @@ fn rewrite(edit: impl Fn(&str, &mut Reflection, Target, &mut Vec<u8>)) -> Vec<u8
     let archive = kiln_renderer::embedded_archive().unwrap();
     let mut w = ArchiveWriter::new();
     w.set_naga_version(archive.archive().naga_version());
-    for p in archive.permutations() {
+    for p in archive.permutations().unwrap() {
         let shader = w.add_shader(p.shader().clone());
         let mut reflection = p.reflection().clone();
         let mut artifacts = Vec::new();
@@ -139,7 +139,7 @@ fn trusted_spirv_is_walked_and_checked_against_its_reflection_first() {
     // reflection is refused before it reaches the device.
     let archive = kiln_renderer::embedded_archive().unwrap();
     let mut checked = 0;
-    for p in archive.permutations() {
+    for p in archive.permutations().unwrap() {
         let bytes = p.artifact(Target::Spirv).unwrap().unwrap();
         let m = kiln_runtime::spirv::SpirvModule::parse(&bytes).unwrap_or_else(|e| panic!("{}: {e}", p.name()));
         m.check(p.reflection()).unwrap_or_else(|e| panic!("{}: {e}", p.name()));

@@ -140,9 +140,14 @@ fn verify_looks_every_permutation_up_and_creates_its_module() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("s.kpak"), kiln_renderer::EMBEDDED_ARCHIVE).unwrap();
     let archive = kiln_renderer::embedded_archive().unwrap();
-    let count = archive.permutations().count();
+    let count = archive.permutations().unwrap().count();
     let distinct = |target| {
-        archive.permutations().map(|p| p.blob_id(target).unwrap()).collect::<std::collections::HashSet<_>>().len()
+        archive
+            .permutations()
+            .unwrap()
+            .map(|p| p.blob_id(target).unwrap())
+            .collect::<std::collections::HashSet<_>>()
+            .len()
     };
     // An archive from a file is not trusted with passthrough: its modules come from WGSL,
     // which wgpu validates; `--trust-shaders` passes its SPIR-V through.

@@ -160,7 +160,7 @@ pub fn validate_archive(path: &Path) -> usize {
     let scratch = tempfile::tempdir().unwrap();
     let mut seen = std::collections::HashSet::new();
     let mut problems = Vec::new();
-    for p in archive.permutations() {
+    for p in archive.permutations().unwrap() {
         for t in p.targets() {
             let id = p.blob_id(t).unwrap();
             if !seen.insert(id) {

@@ -126,7 +126,7 @@ fn find<K: PermutationKey>(archive: &ShaderArchive, key: K) -> Result<String, Er
     let (shader, level) = (K::SHADER, LEVEL.name());
     let id =
         key.permutation_id(LEVEL).ok_or_else(|| Error::NoPermutation { shader, key: format!("{key:?}"), level })?;
-    match archive.get_by_id(id) {
+    match archive.get_by_id(id).map_err(|e| Error::Archive(e.to_string()))? {
         Some(permutation) => Ok(permutation.name().to_string()),
         None => Err(Error::NotInArchive {
             shader,

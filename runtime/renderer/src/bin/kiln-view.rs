@@ -402,7 +402,7 @@ fn verify(gpu: &Gpu, archive: ShaderArchive) -> Result<(), Failure> {
     let cache = kiln_runtime::pipelines::PipelineCache::new(gpu, archive.clone());
     let mut failures = Vec::new();
     let mut count = 0;
-    for p in archive.permutations() {
+    for p in archive.permutations().map_err(|e| Failure::Render(e.to_string()))? {
         count += 1;
         let shader = p.shader();
         let mut q = archive.shader(&shader.name).level(&shader.level);
