@@ -178,6 +178,17 @@ fn main() {
         if cfg!(feature = "mimalloc") { "mimalloc" } else { "glibc's allocator" }
     );
 
+    // The whole build of the set into `out`: one worker thread, no cache.
+    let kiln_build = |out: &Path| {
+        let options = build::Options {
+            config: config_path.clone(),
+            output: Some(out.join("shaders.kpak")),
+            jobs: Some(1),
+            cache: CacheDir::Disabled,
+            ..build::Options::default()
+        };
+        build::run(&options).unwrap_or_else(|e| panic!("{e}"))
+    };
     let (mut oil, mut build_times, mut library) = (Vec::new(), Vec::new(), Vec::new());
     let (mut oil_bytes, mut kiln_bytes) = (0, 0);
     // `KILN_BENCH_ONLY=oil|build|library` runs one side alone (for a profiler); no ratio then.
@@ -190,14 +201,7 @@ fn main() {
             }
             if runs("build") {
                 let out = tempfile::tempdir().unwrap();
-                let options = build::Options {
-                    config: config_path.clone(),
-                    output: Some(out.path().join("shaders.kpak")),
-                    jobs: Some(1),
-                    cache: CacheDir::Disabled,
-                    ..build::Options::default()
-                };
-                build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+                kiln_build(out.path());
             }
             if runs("library") {
                 std::hint::black_box(big_stack(kiln_library, &config));
@@ -209,14 +213,7 @@ fn main() {
         oil_bytes = std::hint::black_box(timed(&mut oil, naga_oil_all));
 
         let out = tempfile::tempdir().unwrap();
-        let options = build::Options {
-            config: config_path.clone(),
-            output: Some(out.path().join("shaders.kpak")),
-            jobs: Some(1),
-            cache: CacheDir::Disabled,
-            ..build::Options::default()
-        };
-        let report = timed(&mut build_times, || build::run(&options).unwrap_or_else(|e| panic!("{e}")));
+        let report = timed(&mut build_times, || kiln_build(out.path()));
         assert_eq!((report.stats.permutations, report.stats.compiled), (n, n));
 
         kiln_bytes = std::hint::black_box(timed(&mut library, || big_stack(kiln_library, &config)));
