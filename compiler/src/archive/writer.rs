@@ -3,9 +3,10 @@
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
 //! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
-//! and memory holds only the blobs' 16-byte identities and the manifest (where each blob's
-//! bytes lie goes to a second unlinked file, read back at the end; the identities are
-//! spooled too, and let go once the caller says no more blobs come:
+//! and memory holds only a 4-byte prefix of each blob's identity and the manifest (where
+//! each blob's bytes lie goes to a second unlinked file, read back at the end; the whole
+//! identities to a third, read back to confirm a prefix match; they are spooled too, and
+//! the prefixes are let go once the caller says no more blobs come:
 //! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, trains one
 //! dictionary per target on a deterministic sample, compresses, and writes the archive
