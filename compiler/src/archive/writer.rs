@@ -254,8 +254,7 @@ impl BlobTable {
         // Every slot with this prefix, confirmed by its whole identity (a prefix shared by
         // two blobs is rare, not impossible).
         let prefixes = &self.prefixes;
-        let mut it = self.table.iter_hash(h);
-        while let Some(&n) = it.next() {
+        for &n in self.table.iter_hash(h) {
             if prefixes[n as usize] == p && self.idents.get(n as usize)? == id {
                 return Ok(Some(n));
             }
