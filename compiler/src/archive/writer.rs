@@ -3,9 +3,10 @@
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
 //! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
-//! and memory holds only the blobs' 16-byte identities and the manifest (where each blob's
-//! bytes lie goes to a second unlinked file, read back at the end; the identities are
-//! spooled too, and let go once the caller says no more blobs come:
+//! and memory holds only a 4-byte prefix of each blob's identity and the manifest (where
+//! each blob's bytes lie goes to a second unlinked file, read back at the end; the whole
+//! identities to a third, read back to confirm a prefix match; they are spooled too, and
+//! the prefixes are let go once the caller says no more blobs come:
 //! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, trains one
 //! dictionary per target on a deterministic sample, compresses, and writes the archive
@@ -147,19 +148,20 @@ enum LocLog {
 }
 
 /// The blobs of a writer, numbered by first sight and found by identity. Memory holds only
-/// each blob's identity (16 bytes) and a bit saying whether it was added; where its bytes
-/// lie goes to a log (a file for a [`StreamingWriter`]), read back when the archive is
-/// assembled: at 100k permutations, about 3 MB less through the build. Each blob's
-/// identity is spooled too, just before its bytes, where the archive's assembly checks it:
-/// once no more blobs come ([`BlobTable::seal`]) the identities and the table that finds
-/// them are let go (at 100k permutations, about 4.5 MB less while the manifest is added
-/// and the archive written).
+/// each blob's identity prefix (4 bytes), the table that finds slots by it and a bit saying
+/// whether the blob was added; the whole identities go to [`IdentStore`] (a file for a
+/// [`StreamingWriter`]), read back to confirm a prefix match, and where the blobs' bytes lie
+/// goes to a log, read back when the archive is assembled. Each blob's identity is spooled
+/// too, just before its bytes, where the archive's assembly checks it: once no more blobs
+/// come ([`BlobTable::seal`]) the prefixes and the table that finds them are let go.
 struct BlobTable {
-    /// Each slot's identity, until sealed.
-    idents: Vec<Ident>,
+    /// Each slot's identity prefix, until sealed.
+    prefixes: Vec<u32>,
+    /// Each slot's whole identity, until sealed.
+    idents: IdentStore,
     /// Slots given.
     slots: usize,
-    /// No more blobs: `idents` and `table` are gone.
+    /// No more blobs: `prefixes`, `idents` and `table` are gone.
     sealed: bool,
     /// One bit per slot: its blob was added.
     added_bits: Vec<u64>,
@@ -171,21 +173,65 @@ struct BlobTable {
     spooled: u64,
 }
 
-impl Default for BlobTable {
-    fn default() -> Self {
-        BlobTable::new(LocLog::Memory(Vec::new()))
+/// The slots' whole identities, by slot number: in memory, or in an unlinked file (16 bytes
+/// a slot at `16 * slot`) written a chunk at a time, the last slots' in `pending`. Read only
+/// when a new identity's 4-byte prefix is a known slot's: a blob added again, or (rarely)
+/// two blobs whose prefixes agree.
+struct IdentStore {
+    file: Option<File>,
+    /// Slots before this one are in `file`.
+    flushed: usize,
+    pending: Vec<Ident>,
+}
+
+/// Identities held in memory before a file is written (64 KiB).
+const IDENT_CHUNK: usize = 4096;
+
+impl IdentStore {
+    fn get(&self, n: usize) -> std::io::Result<Ident> {
+        if n >= self.flushed {
+            return Ok(self.pending[n - self.flushed]);
+        }
+        let file = self.file.as_ref().expect("identities are flushed only to a file");
+        let mut id = [0u8; 16];
+        file.read_exact_at(&mut id, (n * ID_PREFIX as usize) as u64)?;
+        Ok(id)
+    }
+
+    fn push(&mut self, id: Ident) -> std::io::Result<()> {
+        self.pending.push(id);
+        if let (Some(file), IDENT_CHUNK) = (&self.file, self.pending.len()) {
+            file.write_all_at(self.pending.as_flattened(), (self.flushed * ID_PREFIX as usize) as u64)?;
+            self.flushed += self.pending.len();
+            self.pending.clear();
+        }
+        Ok(())
     }
 }
 
-/// An identity's first 8 bytes: already uniform.
-fn table_hash(id: &Ident) -> u64 {
-    u64::from_le_bytes(id[..8].try_into().expect("8 of 16 bytes"))
+impl Default for BlobTable {
+    fn default() -> Self {
+        BlobTable::new(LocLog::Memory(Vec::new()), None)
+    }
+}
+
+/// An identity's first 4 bytes (uniform), what the table finds slots by.
+fn prefix(id: &Ident) -> u32 {
+    u32::from_le_bytes(id[..4].try_into().expect("4 of 16 bytes"))
+}
+
+/// A prefix spread over 64 bits (the table takes its high bits as tags, its low bits as the
+/// place).
+fn table_hash(prefix: u32) -> u64 {
+    u64::from(prefix).wrapping_mul(0x9E37_79B9_7F4A_7C15)
 }
 
 impl BlobTable {
-    fn new(log: LocLog) -> Self {
+    /// A table logging locations to `log` and identities to `idents` (in memory if `None`).
+    fn new(log: LocLog, idents: Option<File>) -> Self {
         BlobTable {
-            idents: Vec::new(),
+            prefixes: Vec::new(),
+            idents: IdentStore { file: idents, flushed: 0, pending: Vec::new() },
             slots: 0,
             sealed: false,
             added_bits: Vec::new(),
@@ -198,30 +244,38 @@ impl BlobTable {
 
     /// The number of the blob with `hash`, a new one if it is not known yet; `None` once
     /// sealed.
-    fn number(&mut self, hash: &blake3::Hash) -> Option<u32> {
+    fn number(&mut self, hash: &blake3::Hash) -> std::io::Result<Option<u32>> {
         if self.sealed {
-            return None;
+            return Ok(None);
         }
         let id = ident(hash);
-        let idents = &self.idents;
-        if let Some(&n) = self.table.find(table_hash(&id), |&n| idents[n as usize] == id) {
-            return Some(n);
+        let p = prefix(&id);
+        let h = table_hash(p);
+        // Every slot with this prefix, confirmed by its whole identity (a prefix shared by
+        // two blobs is rare, not impossible).
+        let prefixes = &self.prefixes;
+        for &n in self.table.iter_hash(h) {
+            if prefixes[n as usize] == p && self.idents.get(n as usize)? == id {
+                return Ok(Some(n));
+            }
         }
-        let n = u32::try_from(self.idents.len()).expect("fewer than 2^32 blobs");
-        self.idents.push(id);
-        self.slots = self.idents.len();
-        if self.added_bits.len() * 64 < self.idents.len() {
+        let n = u32::try_from(self.prefixes.len()).expect("fewer than 2^32 blobs");
+        self.idents.push(id)?;
+        self.prefixes.push(p);
+        self.slots = self.prefixes.len();
+        if self.added_bits.len() * 64 < self.prefixes.len() {
             self.added_bits.push(0);
         }
-        let idents = &self.idents;
-        self.table.insert_unique(table_hash(&id), n, |&m| table_hash(&idents[m as usize]));
-        Some(n)
+        let prefixes = &self.prefixes;
+        self.table.insert_unique(h, n, |&m| table_hash(prefixes[m as usize]));
+        Ok(Some(n))
     }
 
     /// No more blobs will be added or named: lets go of what finds them.
     fn seal(&mut self) {
         self.sealed = true;
-        self.idents = Vec::new();
+        self.prefixes = Vec::new();
+        self.idents = IdentStore { file: None, flushed: 0, pending: Vec::new() };
         self.table = hashbrown::HashTable::new();
     }
 
@@ -240,7 +294,7 @@ impl BlobTable {
     /// Adds a blob of `len` bytes: its number, and where its identity and then its bytes go
     /// in the spool (`None` if it was added before).
     fn add(&mut self, hash: &blake3::Hash, len: u64) -> std::io::Result<(u32, Option<u64>)> {
-        let n = self.number(hash).ok_or_else(|| std::io::Error::other("a blob was added after the last"))?;
+        let n = self.number(hash)?.ok_or_else(|| std::io::Error::other("a blob was added after the last"))?;
         if self.is_added(n) {
             return Ok((n, None));
         }
@@ -428,13 +482,15 @@ impl StreamingWriter {
                 (create(&tmp).map_err(err)?, tmp)
             }
         };
-        // The blobs' locations, in a second unlinked file in the same place.
+        // The blobs' locations, in a second unlinked file in the same place, and their
+        // identities in a third.
         let log = BufWriter::with_capacity(1 << 16, create(&beside).map_err(err)?);
+        let idents = create(&beside).map_err(err)?;
         let entries = Entries { naga_version: String::new(), ..Default::default() };
         Ok(StreamingWriter {
             output: output.to_path_buf(),
             entries: Mutex::new(entries),
-            blobs: Mutex::new(BlobTable::new(LocLog::File(log))),
+            blobs: Mutex::new(BlobTable::new(LocLog::File(log), Some(idents))),
             spool,
             failed: AtomicBool::new(false),
         })
@@ -489,7 +545,19 @@ impl StreamingWriter {
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
         let p = {
             let mut blobs = lock(&self.blobs);
-            numbered(p, |k| blobs.number(&k.0)).ok_or_else(|| {
+            let mut failed = None;
+            let p = numbered(p, |k| match blobs.number(&k.0) {
+                Ok(n) => n,
+                Err(e) => {
+                    failed = Some(e);
+                    None
+                }
+            });
+            if let Some(source) = failed {
+                self.failed.store(true, Ordering::Relaxed);
+                return Err(ArchiveError::Write { path: self.output.clone(), source });
+            }
+            p.ok_or_else(|| {
                 ArchiveError::Input("a permutation named by blob keys was added after the blobs were sealed".into())
             })?
         };
@@ -519,7 +587,7 @@ impl StreamingWriter {
     /// table still grows: a table at a loose bound would be touched all over, empty or not.
     pub fn reserve_blobs(&self, blobs: usize) {
         let mut table = lock(&self.blobs);
-        table.idents.reserve_exact(blobs);
+        table.prefixes.reserve_exact(blobs);
         table.added_bits.reserve_exact(blobs.div_ceil(64));
     }
 
@@ -677,7 +745,7 @@ impl ArchiveWriter {
         let LocLog::Memory(log) = &self.blobs.log else {
             return Err(ArchiveError::Input("an in-memory writer with a log in a file".into()));
         };
-        let mut table = BlobTable::new(LocLog::Memory(log.clone()));
+        let mut table = BlobTable::new(LocLog::Memory(log.clone()), None);
         table.slots = self.blobs.slots;
         table.added = self.blobs.added;
         table.spooled = self.blobs.spooled;
@@ -747,8 +815,8 @@ impl Plan {
 /// artifacts' slots turned into blob ids in place: no second copy of either table (they
 /// grow with the set, and this runs at the build's end, on top of the manifest).
 fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, ArchiveError> {
-    let BlobTable { idents, table, added_bits, log, spooled: spool_len, slots, .. } = table;
-    drop((idents, table, added_bits, log));
+    let BlobTable { prefixes, idents, table, added_bits, log, spooled: spool_len, slots, .. } = table;
+    drop((prefixes, idents, table, added_bits, log));
     let Entries { naga_version, shaders, reflections, mut permutations, names, values, mut artifacts, .. } = entries;
     let name = |p: &Pending| &names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
     permutations.sort_unstable_by(|a, b| name(a).cmp(name(b)));
@@ -1303,4 +1371,38 @@ impl<W: Write> Write for Tee<'_, W> {
 fn pad8(out: &mut impl Write, at: u64) -> std::io::Result<()> {
     let pad = (at.next_multiple_of(8) - at) as usize;
     out.write_all(&[0u8; 8][..pad])
+}
+
+#[cfg(test)]
+mod blob_table_tests {
+    use super::*;
+
+    /// A hash whose first 4 bytes are `prefix` and whose next 4 are `rest`.
+    fn hash(prefix: u32, rest: u32) -> blake3::Hash {
+        let mut b = [0u8; 32];
+        b[..4].copy_from_slice(&prefix.to_le_bytes());
+        b[4..8].copy_from_slice(&rest.to_le_bytes());
+        blake3::Hash::from_bytes(b)
+    }
+
+    /// Slots past several flushed chunks of identities, each prefix shared by two blobs: every
+    /// blob named again finds its own slot (confirmed from the file), never its neighbour's.
+    #[test]
+    fn shared_prefixes_are_told_apart_by_the_whole_identity() {
+        for file in [None, Some(tempfile::tempfile().unwrap())] {
+            let mut t = BlobTable::new(LocLog::Memory(Vec::new()), file);
+            let count = 3 * IDENT_CHUNK as u32 + 7;
+            for i in 0..count {
+                assert_eq!(t.number(&hash(i, 1)).unwrap(), Some(2 * i));
+                assert_eq!(t.number(&hash(i, 2)).unwrap(), Some(2 * i + 1));
+            }
+            for i in (0..count).rev() {
+                assert_eq!(t.number(&hash(i, 2)).unwrap(), Some(2 * i + 1));
+                assert_eq!(t.number(&hash(i, 1)).unwrap(), Some(2 * i));
+            }
+            assert_eq!(t.slots, 2 * count as usize);
+            t.seal();
+            assert_eq!(t.number(&hash(0, 1)).unwrap(), None);
+        }
+    }
 }

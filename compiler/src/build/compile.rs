@@ -75,11 +75,13 @@ impl<'a> Compiler<'a> {
             store,
             assembler,
             progress,
-            claimed: Mutex::default(),
+            // Sized at its bound up front: growing by doubling holds the old and new tables
+            // at once (about 0.3 MB at 100k keys) where preprocessing peaks.
+            claimed: Mutex::new(hashbrown::HashTable::with_capacity(plan.len())),
             early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
-            shared: shared_writers(),
+            shared: shared_writers(plan.len()),
             texts: plan.options.shard.and_then(|_| super::shard::Texts::new()),
         }
     }
@@ -229,12 +231,13 @@ impl<'a> Compiler<'a> {
 
 /// The writers' outputs shared between keys with one compacted module. `KILN_SHARED_MODULES=0`
 /// turns the sharing off (every key runs its own writers: the same artifacts, more time).
-fn shared_writers() -> compile::SharedWriters {
+/// The build's shared writers, with room for `keys` modules.
+fn shared_writers(keys: usize) -> compile::SharedWriters {
     let off = std::env::var_os("KILN_SHARED_MODULES").is_some_and(|v| v == "0");
     if off {
         compile::SharedWriters::disabled()
     } else {
-        compile::SharedWriters::new()
+        compile::SharedWriters::with_capacity(keys)
     }
 }
 

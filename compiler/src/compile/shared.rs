@@ -113,6 +113,15 @@ impl SharedWriters {
         SharedWriters::default()
     }
 
+    /// [`SharedWriters::new`] with room for `modules` modules' prefixes (a build knows a
+    /// bound: its permutations): no copies of a table that grows by doubling, whose old and
+    /// new tables are both held while it grows.
+    pub fn with_capacity(modules: usize) -> Self {
+        let writers = SharedWriters::default();
+        writers.map.lock().expect("a new lock").seen.reserve(modules);
+        writers
+    }
+
     /// Shares nothing: [`SharedWriters::compile`] is [`super::compile`].
     pub fn disabled() -> Self {
         SharedWriters { disabled: true, ..SharedWriters::default() }
