@@ -321,6 +321,13 @@ impl<'p> Assembler<'p> {
         *self.fingerprint.get_or_init(|| fingerprint(self.plan, |i| pre.key(i)))
     }
 
+    /// The archive's path when this build writes one whole archive there (an output, no
+    /// `--emit-dir`, nothing failed): where an existing or remote archive may stand for it.
+    fn whole_archive_output(&self, failed: bool) -> Option<&'p std::path::Path> {
+        let options = self.plan.options;
+        options.output.as_deref().filter(|_| options.emit_dir.is_none() && !failed)
+    }
+
     /// The artifact counts of the archive when it is already the output of this build:
     /// every permutation has the key it had when the archive was written, and the archive
     /// is the file that build wrote (like cargo's freshness check). Only with a cache (the
@@ -332,8 +339,7 @@ impl<'p> Assembler<'p> {
         keys: &Keys<'_>,
         failed: bool,
     ) -> Option<(usize, usize)> {
-        let options = self.plan.options;
-        let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
+        let out = self.whole_archive_output(failed)?;
         store.fresh_archive(out, &self.fingerprint(pre), &keys.to_vec())
     }
 
@@ -347,8 +353,7 @@ impl<'p> Assembler<'p> {
         keys: &Keys<'_>,
         failed: bool,
     ) -> Option<(usize, usize)> {
-        let options = self.plan.options;
-        let out = options.output.as_ref().filter(|_| options.emit_dir.is_none() && !failed)?;
+        let out = self.whole_archive_output(failed)?;
         store.archive_from_remote(out, &self.fingerprint(pre), &keys.to_vec())
     }
 
