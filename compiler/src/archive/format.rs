@@ -291,14 +291,14 @@ pub(crate) struct DictionaryRecord {
 
 /// The manifest as the writer holds it before encoding it: its permutations in archive
 /// order, pointing into arenas of names, values and artifacts (no allocation per
-/// permutation).
+/// permutation). The dictionary records are added as the manifest is written, once the
+/// dictionaries are trained.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Manifest {
     pub kiln_version: String,
     pub naga_version: String,
     pub shaders: Vec<ShaderRecord>,
     pub reflections: Vec<Reflection>,
-    pub dictionaries: Vec<DictionaryRecord>,
     /// Sorted by name.
     pub permutations: Vec<ManifestPermutation>,
     pub names: String,

@@ -620,9 +620,8 @@ impl StreamingWriter {
             return Err(err(std::io::Error::other("a blob could not be spooled")));
         }
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
-        let mut blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
-        let locs = blobs.locations().map_err(err)?;
-        let plan = plan(entries, blobs, locs)?;
+        let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
+        let plan = plan(entries, blobs)?;
         #[cfg(feature = "compiler")]
         crate::build::trace_memory("archive planned");
         let spool = Spool::File(&self.spool);
@@ -749,9 +748,8 @@ impl ArchiveWriter {
         table.slots = self.blobs.slots;
         table.added = self.blobs.added;
         table.spooled = self.blobs.spooled;
-        let locs =
-            table.locations().map_err(|source| ArchiveError::Write { path: PathBuf::from("<memory>"), source })?;
-        plan(self.entries.clone(), table, locs)
+        table.added_bits = self.blobs.added_bits.clone();
+        plan(self.entries.clone(), table)
     }
 
     /// The whole archive as bytes.
@@ -797,16 +795,11 @@ struct PlannedBlob {
 struct Plan {
     manifest: Manifest,
     blobs: Vec<PlannedBlob>,
-    /// Each blob's place in the spool, by slot.
-    locs: Vec<Loc>,
+    /// The writer's blob table, sealed: where its log of blob locations is (read back once
+    /// the manifest is spilled, see [`write_archive`]).
+    table: BlobTable,
     /// Where the spool's blobs end.
     spool_len: u64,
-}
-
-impl Plan {
-    fn loc(&self, b: &PlannedBlob) -> Loc {
-        self.locs[b.slot as usize]
-    }
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
@@ -814,9 +807,9 @@ impl Plan {
 /// the manifest's permutations point into them. The permutations are sorted and the
 /// artifacts' slots turned into blob ids in place: no second copy of either table (they
 /// grow with the set, and this runs at the build's end, on top of the manifest).
-fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, ArchiveError> {
-    let BlobTable { prefixes, idents, table, added_bits, log, spooled: spool_len, slots, .. } = table;
-    drop((prefixes, idents, table, added_bits, log));
+fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
+    table.seal();
+    let (spool_len, slots) = (table.spooled, table.slots);
     let Entries { naga_version, shaders, reflections, mut permutations, names, values, mut artifacts, .. } = entries;
     let name = |p: &Pending| &names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
     permutations.sort_unstable_by(|a, b| name(a).cmp(name(b)));
@@ -845,7 +838,7 @@ fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, Arch
         for (target, slot) in &mut artifacts[first..first + p.artifact_count as usize] {
             *slot = match blob_ids[*slot as usize] {
                 u32::MAX => {
-                    if locs[*slot as usize].len == NOT_ADDED {
+                    if !table.is_added(*slot) {
                         return Err(ArchiveError::Input(format!(
                             "permutation `{}` names a {target} blob that was never added",
                             name(p)
@@ -861,6 +854,7 @@ fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, Arch
         }
     }
     drop(blob_ids);
+    table.added_bits = Vec::new();
     // Same layouts: these collect in place.
     manifest.permutations = permutations
         .into_iter()
@@ -877,7 +871,7 @@ fn plan(entries: Entries, table: BlobTable, locs: Vec<Loc>) -> Result<Plan, Arch
     manifest.artifacts = artifacts.into_iter().map(|(t, id)| (t, BlobId(id))).collect();
     manifest.names = names;
     manifest.values = values;
-    Ok(Plan { manifest, blobs, locs, spool_len })
+    Ok(Plan { manifest, blobs, table, spool_len })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
@@ -902,8 +896,8 @@ fn par_map<T: Sync, U: Send, S>(
 /// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
 /// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from. The sample is
 /// read straight into the one buffer zstd trains on (no copy per blob).
-fn train(plan: &Plan, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    let of_target: Vec<Loc> = plan.blobs.iter().filter(|b| b.target == target).map(|b| plan.loc(b)).collect();
+fn train(blobs: &[PlannedBlob], locs: &[Loc], target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+    let of_target: Vec<Loc> = blobs.iter().filter(|b| b.target == target).map(|b| locs[b.slot as usize]).collect();
     let total: u64 = of_target.iter().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
     let sample: Vec<Loc> = of_target.into_iter().step_by(stride).collect();
@@ -991,11 +985,16 @@ type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'
 /// another: a training's sample and zstd's tables are about 4 MiB, and this runs at the
 /// build's end on top of the manifest, its highest point at 100k permutations (two
 /// trainings at once put 4 MiB more on the peak to save 20 ms at 100k).
-fn dictionaries(plan: &Plan, targets: &[Target], spool: &Spool<'_>) -> std::io::Result<Dictionaries> {
+fn dictionaries(
+    blobs: &[PlannedBlob],
+    locs: &[Loc],
+    targets: &[Target],
+    spool: &Spool<'_>,
+) -> std::io::Result<Dictionaries> {
     let trained: Vec<_> = targets
         .iter()
         .map(|t| -> std::io::Result<_> {
-            Ok(train(plan, *t, spool)?.map(|d| {
+            Ok(train(blobs, locs, *t, spool)?.map(|d| {
                 let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
                 (*t, d, cdict)
             }))
@@ -1013,23 +1012,33 @@ fn dictionaries(plan: &Plan, targets: &[Target], spool: &Spool<'_>) -> std::io::
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
-/// It consumes the plan: the manifest is serialized straight from it, never copied, and
-/// never held as one JSON string.
+/// It consumes the plan: the manifest is encoded first (but for its header and dictionary
+/// records, which wait for the dictionaries) to the spool file past the blobs and their
+/// table, or to memory with an in-memory spool, and its arenas let go before the blobs are
+/// compressed; it is copied into the archive, hashed as it goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
+    let Plan { manifest, blobs, mut table, spool_len } = plan;
+    let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
+    let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
+    let spilled = spill_manifest(manifest, spool, spill_at)?;
+    // Where each blob lies, by slot: read back only now that the manifest is gone.
+    let locs = table.locations()?;
+    drop(table);
+    #[cfg(feature = "compiler")]
+    crate::build::trace_memory("manifest spilled");
+
     let mut out = BufWriter::with_capacity(1 << 20, out);
     out.seek(SeekFrom::Start(0))?;
     out.write_all(&[0u8; HEADER_LEN])?;
 
     // Dictionaries, trained (and made ready to compress with) one target after another.
-    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| plan.blobs.iter().any(|b| b.target == *t)).collect();
-    let (dictionaries, cdicts) = dictionaries(&plan, &targets, spool)?;
+    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.iter().any(|b| b.target == *t)).collect();
+    let (dictionaries, cdicts) = dictionaries(&blobs, &locs, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
-    let Plan { mut manifest, blobs, locs, spool_len } = plan;
     let slot = |b: &PlannedBlob| locs[b.slot as usize];
-    let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
-    let mut table = TableBuf::new(spool, spool_len, blobs.len());
+    let mut table = SpillBuf::new(spool, spool_len, blobs.len() * super::format::ENTRY_LEN);
     let mut offset = 0u64;
     let mut start = 0;
     while start < blobs.len() {
@@ -1082,9 +1091,10 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
 
     let mut dict_offset = 0u64;
+    let mut dictionary_records = Vec::with_capacity(dictionaries.len());
     for (t, d) in &dictionaries {
         out.write_all(d)?;
-        manifest.dictionaries.push(DictionaryRecord {
+        dictionary_records.push(DictionaryRecord {
             target: *t,
             offset: dict_offset,
             len: d.len() as u64,
@@ -1095,10 +1105,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     summary.dictionary_bytes = dict_offset;
     drop(cdicts);
     drop(dictionaries);
-    // The manifest is streamed into the file and the chunk hashes at once, never held as
-    // bytes: its length (the header fields and the chunk count need it) follows from
-    // its counts.
-    let counts = manifest_counts(&manifest)?;
+    let counts = ManifestCounts { dictionaries: dictionary_records.len() as u64, ..spilled.counts };
     let manifest_len = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?.end;
     let sections =
         Sections { blobs_len, dictionaries_len: dict_offset, manifest_len, blob_count, chunk_len: CHUNK_LEN };
@@ -1110,14 +1117,24 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     std::io::copy(&mut std::io::repeat(0).take(hashes_len as u64), &mut out)?;
     let mut hasher = ChunkHasher::new(CHUNK_LEN);
     let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
-    encode_manifest(&manifest, &counts, &mut tee)?;
+    // The manifest: its header, the spilled records, ids, values and artifacts, the
+    // dictionary records, then the spilled tables and names.
+    tee.write_all(&counts.encode())?;
+    let SpilledManifest { mut buf, front_len, .. } = spilled;
+    buf.flush()?;
+    buf.copy_range(0, front_len, &mut tee)?;
+    for d in &dictionary_records {
+        tee.write_all(&d.encode())?;
+    }
+    buf.copy_range(front_len, buf.len() - front_len, &mut tee)?;
+    drop(buf);
     if tee.written != manifest_len {
         return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
-    drop(manifest);
     hasher.finish();
     pad8(&mut out, layout.manifest + manifest_len)?;
-    table.copy_to(&mut out, &mut |b| hasher.update(b))?;
+    let mut tee = Tee { out: &mut out, hasher: &mut hasher, written: 0 };
+    table.copy_to(&mut tee)?;
     hasher.finish();
     if hasher.hashes.len() != hashes_len {
         return Err(std::io::Error::other("the chunk hashes' length differs from the layout's"));
@@ -1189,34 +1206,23 @@ fn compress_attached(
     (compressed.is_ok(), clean)
 }
 
-/// The counts of `manifest`'s header (the tables' JSON is serialized once to count it).
-fn manifest_counts(manifest: &Manifest) -> std::io::Result<ManifestCounts> {
-    let mut counter = Counter(0);
-    serde_json::to_writer(&mut counter, &tables_of(manifest)).map_err(std::io::Error::other)?;
-    let p = &manifest.permutations;
-    Ok(ManifestCounts {
-        permutations: p.len() as u64,
-        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
-        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
-        dictionaries: manifest.dictionaries.len() as u64,
-        tables_len: counter.0,
-        names_len: p.iter().map(|p| p.name_len as u64).sum(),
-    })
+/// The manifest encoded but for its header and dictionary records (see [`spill_manifest`]).
+struct SpilledManifest<'a> {
+    /// Its counts, but for the dictionaries' (zero).
+    counts: ManifestCounts,
+    /// Its records, ids, values and artifacts (`front_len` bytes), then its tables (padded
+    /// to 8) and names.
+    buf: SpillBuf<'a>,
+    front_len: u64,
 }
 
-fn tables_of(manifest: &Manifest) -> TablesOut<'_> {
-    TablesOut {
-        kiln_version: &manifest.kiln_version,
-        naga_version: &manifest.naga_version,
-        shaders: &manifest.shaders,
-        reflections: &manifest.reflections,
-    }
-}
-
-/// Writes the binary manifest (layout in `format.rs`) of `counts`, `manifest`'s.
-fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl Write) -> std::io::Result<()> {
+/// Encodes the binary manifest (layout in `format.rs`) of `manifest` to the spool file at
+/// `at` (to memory with an in-memory spool), all but its header and dictionary records,
+/// which depend on the dictionaries: the parts before the dictionary records, then those
+/// after. The manifest is dropped on return, its arenas never copied in memory.
+fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
-    out.write_all(&counts.encode())?;
+    let mut buf = SpillBuf::new(spool, at, 0);
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
         let value_count = manifest.shaders[p.shader as usize].dimensions.len();
@@ -1229,81 +1235,111 @@ fn encode_manifest(manifest: &Manifest, counts: &ManifestCounts, out: &mut impl 
             first_artifact,
             artifact_count: p.artifact_count,
         };
-        out.write_all(&record.encode())?;
+        buf.write_all(&record.encode())?;
         name_offset += p.name_len as u64;
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
         first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
     }
-    let mut ids: Vec<(u128, u32)> = manifest
+    // Sorted by (id, index), 24 bytes each ((u128, u32) takes 32).
+    let mut ids: Vec<(u64, u64, u32)> = manifest
         .permutations
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let s = &manifest.shaders[p.shader as usize];
-            (super::permutation_id(&s.name, &s.level, manifest.values_of(p, s.dimensions.len())), i as u32)
+            let id = super::permutation_id(&s.name, &s.level, manifest.values_of(p, s.dimensions.len()));
+            ((id >> 64) as u64, id as u64, i as u32)
         })
         .collect();
     ids.sort_unstable();
-    for (id, index) in ids {
+    for (high, low, index) in ids {
         let mut b = [0u8; ID_LEN];
-        b[0..16].copy_from_slice(&id.to_le_bytes());
+        b[0..16].copy_from_slice(&((u128::from(high) << 64) | u128::from(low)).to_le_bytes());
         b[16..20].copy_from_slice(&index.to_le_bytes());
-        out.write_all(&b)?;
+        buf.write_all(&b)?;
     }
     for p in &manifest.permutations {
         for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
-            out.write_all(&v.to_le_bytes())?;
+            buf.write_all(&v.to_le_bytes())?;
         }
     }
     for p in &manifest.permutations {
         let first = p.first_artifact as usize;
         for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
-            out.write_all(&encode_artifact(*t, *b))?;
+            buf.write_all(&encode_artifact(*t, *b))?;
         }
     }
-    for d in &manifest.dictionaries {
-        out.write_all(&d.encode())?;
-    }
-    let layout = counts.layout().ok_or_else(|| std::io::Error::other("the manifest's parts overflow"))?;
-    serde_json::to_writer(&mut *out, &tables_of(manifest)).map_err(std::io::Error::other)?;
-    pad8(out, layout.tables + counts.tables_len)?;
+    let front_len = buf.len();
+    let tables = TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+    };
+    serde_json::to_writer(&mut buf, &tables).map_err(std::io::Error::other)?;
+    let tables_len = buf.len() - front_len;
+    // The tables start at a multiple of 8 from the manifest's start (every part before them
+    // is a whole number of 8-byte fields), so the names' padding depends only on their length.
+    pad8(&mut buf, tables_len)?;
     for p in &manifest.permutations {
-        out.write_all(manifest.name_of(p).as_bytes())?;
+        buf.write_all(manifest.name_of(p).as_bytes())?;
     }
-    Ok(())
+    let p = &manifest.permutations;
+    let counts = ManifestCounts {
+        permutations: p.len() as u64,
+        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
+        dictionaries: 0,
+        tables_len,
+        names_len: p.iter().map(|p| p.name_len as u64).sum(),
+    };
+    Ok(SpilledManifest { counts, buf, front_len })
 }
 
-/// The blob table while the blobs and the manifest are written (it comes last in the file):
-/// with a spool file, in that file past the blobs (the table of a 100k-permutation set is
-/// about 13 MB that memory need not hold); else in memory.
-enum TableBuf<'a> {
+/// Bytes written ahead of where the archive takes them: the blob table while the blobs and
+/// the manifest are written (it comes last in the file), and the manifest while the blobs
+/// are. With a spool file, in that file past the blobs (the table of a 100k-permutation set
+/// is about 13 MB that memory need not hold, its manifest about 20 MB); else in memory.
+enum SpillBuf<'a> {
     Memory(Vec<u8>),
     File { file: &'a File, start: u64, written: u64, pending: Vec<u8> },
 }
 
-impl<'a> TableBuf<'a> {
-    fn new(spool: &Spool<'a>, spool_len: u64, blobs: usize) -> Self {
+/// A [`SpillBuf`] writes its file a buffer of this many bytes at a time.
+const SPILL_BUFFER: usize = 1 << 16;
+
+impl<'a> SpillBuf<'a> {
+    /// A buffer at `start` in `spool`'s file, or in memory (room for `capacity` bytes).
+    fn new(spool: &Spool<'a>, start: u64, capacity: usize) -> Self {
         match spool {
-            Spool::File(file) => TableBuf::File { file, start: spool_len, written: 0, pending: Vec::new() },
-            Spool::Memory(_) => TableBuf::Memory(Vec::with_capacity(blobs * super::format::ENTRY_LEN)),
+            Spool::File(file) => SpillBuf::File { file, start, written: 0, pending: Vec::new() },
+            Spool::Memory(_) => SpillBuf::Memory(Vec::with_capacity(capacity)),
         }
     }
 
-    fn push(&mut self, entry: &[u8]) -> std::io::Result<()> {
+    fn push(&mut self, bytes: &[u8]) -> std::io::Result<()> {
         match self {
-            TableBuf::Memory(v) => v.extend_from_slice(entry),
-            TableBuf::File { pending, .. } => {
-                pending.extend_from_slice(entry);
-                if pending.len() >= 1 << 16 {
-                    self.flush()?;
+            SpillBuf::Memory(v) => v.extend_from_slice(bytes),
+            SpillBuf::File { pending, .. } => {
+                pending.extend_from_slice(bytes);
+                if pending.len() >= SPILL_BUFFER {
+                    self.flush_pending()?;
                 }
             }
         }
         Ok(())
     }
 
-    fn flush(&mut self) -> std::io::Result<()> {
-        if let TableBuf::File { file, start, written, pending } = self {
+    /// Bytes pushed.
+    fn len(&self) -> u64 {
+        match self {
+            SpillBuf::Memory(v) => v.len() as u64,
+            SpillBuf::File { written, pending, .. } => *written + pending.len() as u64,
+        }
+    }
+
+    fn flush_pending(&mut self) -> std::io::Result<()> {
+        if let SpillBuf::File { file, start, written, pending } = self {
             file.write_all_at(pending, *start + *written)?;
             *written += pending.len() as u64;
             pending.clear();
@@ -1311,40 +1347,41 @@ impl<'a> TableBuf<'a> {
         Ok(())
     }
 
-    /// Writes the table to `out` and feeds it to `hash`.
-    fn copy_to(mut self, out: &mut impl Write, hash: &mut impl FnMut(&[u8])) -> std::io::Result<()> {
-        self.flush()?;
-        match &self {
-            TableBuf::Memory(v) => {
-                out.write_all(v)?;
-                hash(v);
-            }
-            TableBuf::File { file, start, written, .. } => {
-                let mut buf = vec![0u8; 1 << 20];
+    /// Writes `len` bytes from `from` to `out` (after [`SpillBuf::flush_pending`]).
+    fn copy_range(&self, from: u64, len: u64, out: &mut impl Write) -> std::io::Result<()> {
+        match self {
+            SpillBuf::Memory(v) => out.write_all(&v[from as usize..(from + len) as usize]),
+            SpillBuf::File { file, start, written, .. } => {
+                if from + len > *written {
+                    return Err(std::io::Error::other("a spilled part of the archive was not flushed"));
+                }
+                let mut buf = vec![0u8; (len as usize).min(1 << 20)];
                 let mut at = 0u64;
-                while at < *written {
-                    let n = (*written - at).min(buf.len() as u64) as usize;
-                    file.read_exact_at(&mut buf[..n], *start + at)?;
+                while at < len {
+                    let n = (len - at).min(buf.len() as u64) as usize;
+                    file.read_exact_at(&mut buf[..n], *start + from + at)?;
                     out.write_all(&buf[..n])?;
-                    hash(&buf[..n]);
                     at += n as u64;
                 }
+                Ok(())
             }
         }
-        Ok(())
+    }
+
+    /// Writes everything pushed to `out`.
+    fn copy_to(mut self, out: &mut impl Write) -> std::io::Result<()> {
+        self.flush_pending()?;
+        self.copy_range(0, self.len(), out)
     }
 }
 
-/// A writer that only counts.
-struct Counter(u64);
-
-impl Write for Counter {
+impl Write for SpillBuf<'_> {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        self.0 += buf.len() as u64;
+        self.push(buf)?;
         Ok(buf.len())
     }
     fn flush(&mut self) -> std::io::Result<()> {
-        Ok(())
+        self.flush_pending()
     }
 }
 
