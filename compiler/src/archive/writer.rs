@@ -455,6 +455,8 @@ pub struct StreamingWriter {
     blobs: Mutex<BlobTable>,
     spool: File,
     failed: AtomicBool,
+    /// Called once the manifest's arenas are freed ([`StreamingWriter::set_release_freed`]).
+    release_freed: fn(),
 }
 
 impl StreamingWriter {
@@ -493,7 +495,15 @@ impl StreamingWriter {
             blobs: Mutex::new(BlobTable::new(LocLog::File(log), Some(idents))),
             spool,
             failed: AtomicBool::new(false),
+            release_freed: || {},
         })
+    }
+
+    /// Has the writer call `release` once it has freed the manifest's arenas, before the
+    /// blobs are compressed: what hands the freed memory back to the system, where the
+    /// allocator keeps it for a while (the build's `set_release_freed`).
+    pub fn set_release_freed(&mut self, release: fn()) {
+        self.release_freed = release;
     }
 
     /// The archive's path.
@@ -627,7 +637,7 @@ impl StreamingWriter {
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
-            summary = write_archive(plan, &spool, f)?;
+            summary = write_archive(plan, &spool, f, self.release_freed)?;
             Ok(())
         })
         .map_err(err)?;
@@ -756,7 +766,7 @@ impl ArchiveWriter {
     pub fn to_bytes(&self) -> Result<Vec<u8>, ArchiveError> {
         let plan = self.plan()?;
         let mut out = Cursor::new(Vec::new());
-        write_archive(plan, &Spool::Memory(&self.spool), &mut out)
+        write_archive(plan, &Spool::Memory(&self.spool), &mut out, || {})
             .map_err(|source| ArchiveError::Write { path: PathBuf::from("<memory>"), source })?;
         Ok(out.into_inner())
     }
@@ -776,7 +786,7 @@ impl ArchiveWriter {
         let plan = self.plan()?;
         let mut summary = ArchiveSummary::default();
         write_atomic_with(path, sync, |f| {
-            summary = write_archive(plan, &Spool::Memory(&self.spool), f)?;
+            summary = write_archive(plan, &Spool::Memory(&self.spool), f, || {})?;
             Ok(())
         })
         .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })?;
@@ -1015,8 +1025,14 @@ fn dictionaries(
 /// It consumes the plan: the manifest is encoded first (but for its header and dictionary
 /// records, which wait for the dictionaries) to the spool file past the blobs and their
 /// table, or to memory with an in-memory spool, and its arenas let go before the blobs are
-/// compressed; it is copied into the archive, hashed as it goes, once the blobs are written.
-fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
+/// compressed (`release_freed` is called then); it is copied into the archive, hashed as it
+/// goes, once the blobs are written.
+fn write_archive<W: Write + Seek>(
+    plan: Plan,
+    spool: &Spool<'_>,
+    out: &mut W,
+    release_freed: fn(),
+) -> std::io::Result<ArchiveSummary> {
     let Plan { manifest, blobs, mut table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
@@ -1024,6 +1040,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     // Where each blob lies, by slot: read back only now that the manifest is gone.
     let locs = table.locations()?;
     drop(table);
+    release_freed();
     #[cfg(feature = "compiler")]
     crate::build::trace_memory("manifest spilled");
 
