@@ -150,9 +150,10 @@ fn key_hash(key: &Key) -> u64 {
 }
 
 impl Produced {
-    fn get(&self, key: &Key) -> Option<&KeyEntry> {
+    /// The number of `key`'s entry in `keys`.
+    fn position(&self, key: &Key) -> Option<u32> {
         let keys = &self.keys;
-        self.index.find(key_hash(key), |&n| keys[n as usize].0 == *key).map(|&n| &keys[n as usize].1)
+        self.index.find(key_hash(key), |&n| keys[n as usize].0 == *key).copied()
     }
 
     fn insert(&mut self, key: Key, entry: KeyEntry) {
@@ -164,6 +165,42 @@ impl Produced {
         self.keys.push((key, entry));
         let keys = &self.keys;
         self.index.insert_unique(key_hash(&key), n, |&m| key_hash(&keys[m as usize].0));
+    }
+
+    /// Each kept permutation's key's entry number (`NOT_KEPT` for the others), the keys'
+    /// entries by number, their artifacts and hashes and the reflections: what stays once
+    /// `pre` and the table finding keys go.
+    fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> ByPermutation {
+        let of = (0..plan.len())
+            .map(|i| {
+                pre.key(i).map_or(NOT_KEPT, |k| self.position(k).expect("every kept permutation's key was produced"))
+            })
+            .collect();
+        drop(pre);
+        let Produced { keys, index, artifacts, hashes, reflections } = self;
+        drop(index);
+        let entries = keys.iter().map(|(_, e)| *e).collect();
+        ByPermutation { of, entries, artifacts, hashes, reflections }
+    }
+}
+
+/// [`Produced::by_permutation`]: at 100k permutations about 4 MB, where the keys produced and
+/// `pre` took about 13.
+struct ByPermutation {
+    of: Vec<u32>,
+    entries: Vec<KeyEntry>,
+    artifacts: Vec<(Target, u32)>,
+    hashes: Vec<blake3::Hash>,
+    reflections: Vec<Arc<Reflection>>,
+}
+
+/// [`ByPermutation::of`] a permutation that is not kept (it failed, or was skipped).
+const NOT_KEPT: u32 = u32::MAX;
+
+impl ByPermutation {
+    /// Permutation `i`'s key's entry, if it is kept.
+    fn get(&self, i: usize) -> Option<&KeyEntry> {
+        self.entries.get(self.of[i] as usize)
     }
 
     fn artifacts(&self, e: &KeyEntry) -> &[(Target, u32)] {
@@ -382,26 +419,30 @@ impl<'p> Assembler<'p> {
             .load()
             .map_err(|e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}")))?;
         super::trace_memory("keys read back");
+        let plan = self.plan;
+        let produced = produced.by_permutation(plan, pre);
+        // Not kept resident under the manifest's arenas.
+        super::release_freed();
+        super::trace_memory("keys by permutation");
         let writer = self.writer;
         let emitted = self.emitted.into_inner().expect("no panics while locked");
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
-        let plan = self.plan;
         if let Some(w) = &writer {
             // The manifest's exact size: its arenas are allocated once.
             let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
-            for i in (0..plan.len()).filter(|&i| pre.key(i).is_some()) {
+            for i in 0..plan.len() {
+                let Some(e) = produced.get(i) else { continue };
                 n += 1;
                 names += plan.name(i).len();
                 values += plan.shader_level(i).0.dimensions.len();
-                artifacts += pre.key(i).and_then(|k| produced.get(k)).map_or(0, |e| e.count as usize);
+                artifacts += e.count as usize;
             }
             w.reserve(n, names, values, artifacts);
         }
         for i in 0..plan.len() {
-            let Some(key) = pre.key(i) else { continue };
-            let entry = produced.get(key).expect("every kept permutation's key was produced");
+            let Some(entry) = produced.get(i) else { continue };
             let artifacts = produced.artifacts(entry);
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
@@ -438,8 +479,7 @@ impl<'p> Assembler<'p> {
             })
             .map_err(archive_error)?;
         }
-        drop((produced, pre));
-        // Not kept resident under the archive's plan (about 9 MB at 100k permutations).
+        drop(produced);
         super::release_freed();
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
