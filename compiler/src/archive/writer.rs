@@ -8,9 +8,11 @@
 //! identities to a third, read back to confirm a prefix match; they are spooled too, and
 //! the prefixes are let go once the caller says no more blobs come:
 //! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
-//! the permutations by canonical name, orders blobs by first use in that order, trains one
-//! dictionary per target on a deterministic sample, compresses, and writes the archive
-//! through a temporary file and a rename. The bytes of the archive therefore depend only on
+//! the permutations by canonical name, orders blobs by first use in that order, encodes the
+//! manifest to the spool file past the blobs (all but its header and dictionary records) and
+//! lets go of its tables, then reads back where the blobs lie, trains one dictionary per
+//! target on a deterministic sample, compresses, and writes the archive through a temporary
+//! file and a rename, the spilled manifest copied into it. The bytes of the archive therefore depend only on
 //! the set of permutations and blobs, never on the order they were added in or on the
 //! number of threads.
 //!
