@@ -1441,6 +1441,44 @@ mod blob_table_tests {
         blake3::Hash::from_bytes(b)
     }
 
+    /// A spill buffer in a file (past other bytes, written in several buffers) gives back the
+    /// same ranges as one in memory, and leaves the bytes before its start alone.
+    #[test]
+    fn spilled_ranges_read_back_as_written() {
+        let file = tempfile::tempfile().unwrap();
+        file.write_all_at(b"blobs", 0).unwrap();
+        let bytes: Vec<u8> = (0..3 * SPILL_BUFFER + 1234).map(|i| (i * 7 % 251) as u8).collect();
+        let (spool_file, spool_memory) = (Spool::File(&file), Spool::Memory(&[]));
+        let mut bufs = [SpillBuf::new(&spool_file, 5, 0), SpillBuf::new(&spool_memory, 5, 0)];
+        for buf in &mut bufs {
+            // Pieces of uneven sizes, some larger than the buffer.
+            let mut at = 0;
+            for n in [1, 31, SPILL_BUFFER + 3, 7, 2 * SPILL_BUFFER].into_iter().cycle() {
+                let end = (at + n).min(bytes.len());
+                buf.write_all(&bytes[at..end]).unwrap();
+                at = end;
+                if at == bytes.len() {
+                    break;
+                }
+            }
+            assert_eq!(buf.len(), bytes.len() as u64);
+            buf.flush().unwrap();
+            for (from, len) in [(0, bytes.len()), (SPILL_BUFFER - 1, 2), (100, 2 * SPILL_BUFFER + 5), (bytes.len(), 0)]
+            {
+                let mut out = Vec::new();
+                buf.copy_range(from as u64, len as u64, &mut out).unwrap();
+                assert_eq!(out, &bytes[from..from + len]);
+            }
+        }
+        let [file_buf, _] = bufs;
+        let mut all = Vec::new();
+        file_buf.copy_to(&mut all).unwrap();
+        assert_eq!(all, bytes);
+        let mut head = [0u8; 5];
+        file.read_exact_at(&mut head, 0).unwrap();
+        assert_eq!(&head, b"blobs");
+    }
+
     /// Slots past several flushed chunks of identities, each prefix shared by two blobs: every
     /// blob named again finds its own slot (confirmed from the file), never its neighbour's.
     #[test]
