@@ -1,0 +1,148 @@
+//! Bundles: the entries of a build's keys in a few large remote values, so that a fresh
+//! local cache fills from a plain file server with a few `GET`s instead of one per key.
+//!
+//! A build that assembles an archive (in read-write mode, with an HTTP remote) stores, beside
+//! each entry under its own key, the entries of all its distinct keys in parts: the keys
+//! sorted, [`PART_KEYS`] to a part, each part under a key derived from the whole sorted key
+//! list and the part's number (still `<prefix>/<key>`: any server of the convention serves
+//! it, nginx with `sendfile`). A build with the same keys and a fresh local cache reads the
+//! parts as they arrive (a part is never held whole) and falls back to one `GET` per key
+//! for whatever a part lacks. With 7,516 keys nginx spent 0.09 s of CPU serving one `GET`
+//! per key, as much as the rest of a warm-remote build (0.12 s).
+//!
+//! A part: [`MAGIC`], then for each key of the part, in order, the key, the length of its
+//! value (u64) and its remote value ([`super::remote_value`], checked by its own checksum
+//! as any remote value). A record that fails its check is skipped (that key is fetched on
+//! its own); a record that is not one of the part's keys in order, or a truncated one, ends
+//! the part; either makes the part not whole, and the next build that assembles the same
+//! keys stores it again.
+
+use std::io::{self, Read};
+
+use super::remote::MAX_VALUE;
+use super::{Key, REMOTE_HEADER, REMOTE_MAGIC};
+
+/// Fewer keys than this are fetched one `GET` each (pipelined, one batch or two).
+pub(super) const MIN_KEYS: usize = 64;
+/// Keys per part (4 MB at about 17 KB an entry: a writer holds one part per worker).
+pub(super) const PART_KEYS: usize = 256;
+const MAGIC: &[u8; 8] = b"KILNBD\0\x01";
+
+/// The parts of the bundle of a set of keys.
+#[derive(Debug)]
+pub(super) struct Bundle {
+    /// Sorted, without duplicates.
+    keys: Vec<Key>,
+    /// Each part's key.
+    ids: Vec<Key>,
+}
+
+impl Bundle {
+    pub fn new(keys: &[Key]) -> Bundle {
+        let mut keys = keys.to_vec();
+        keys.sort_unstable();
+        keys.dedup();
+        let mut h = blake3::Hasher::new();
+        h.update(b"kiln remote bundle v1\0");
+        h.update(&(keys.len() as u64).to_le_bytes());
+        keys.iter().for_each(|k| {
+            h.update(&k.0);
+        });
+        let digest = h.finalize();
+        let ids = (0..keys.len().div_ceil(PART_KEYS) as u64)
+            .map(|i| {
+                let mut h = blake3::Hasher::new();
+                h.update(b"kiln remote bundle part v1\0");
+                h.update(digest.as_bytes());
+                h.update(&i.to_le_bytes());
+                Key(*h.finalize().as_bytes())
+            })
+            .collect();
+        Bundle { keys, ids }
+    }
+
+    /// Each part's key, in order.
+    pub fn ids(&self) -> &[Key] {
+        &self.ids
+    }
+
+    /// The keys of part `i`.
+    pub fn part(&self, i: usize) -> &[Key] {
+        let start = i * PART_KEYS;
+        &self.keys[start..(start + PART_KEYS).min(self.keys.len())]
+    }
+}
+
+/// The value of a part holding `keys`, each entry from `entry` (a whole, checked local
+/// entry); `None` when one is missing.
+pub(super) fn encode_part(keys: &[Key], entry: impl Fn(&Key) -> Option<Vec<u8>>) -> Option<Vec<u8>> {
+    let mut out = Vec::new();
+    out.extend_from_slice(MAGIC);
+    for key in keys {
+        let entry = entry(key)?;
+        out.reserve(32 + 8 + REMOTE_HEADER + entry.len());
+        out.extend_from_slice(&key.0);
+        out.extend_from_slice(&((REMOTE_HEADER + entry.len()) as u64).to_le_bytes());
+        out.extend_from_slice(REMOTE_MAGIC);
+        out.extend_from_slice(&super::remote_checksum(key, &entry));
+        out.extend_from_slice(&entry);
+    }
+    Some(out)
+}
+
+/// Reads the part of `keys` from `body` as it arrives, each value into `value`, and calls
+/// `entry` with each key whose value passes its check and that value's entry. Whether the
+/// part was whole: every key, each checked, and nothing after.
+pub(super) fn read_part(
+    body: &mut dyn Read,
+    keys: &[Key],
+    value: &mut Vec<u8>,
+    mut entry: impl FnMut(&Key, &[u8]),
+) -> bool {
+    let mut magic = [0; 8];
+    if body.read_exact(&mut magic).is_err() || &magic != MAGIC {
+        return false;
+    }
+    let (mut next, mut whole) = (0, true);
+    loop {
+        let mut head = [0; 40];
+        match read_up_to(body, &mut head) {
+            Ok(0) => return whole && next == keys.len(),
+            Ok(40) => {}
+            _ => return false,
+        }
+        let key = Key(head[..32].try_into().expect("32 bytes"));
+        let len = u64::from_le_bytes(head[32..].try_into().expect("8 bytes"));
+        // The part's keys in order, some possibly left out.
+        let Some(skipped) = keys[next..].iter().position(|k| *k == key) else { return false };
+        whole &= skipped == 0;
+        next += skipped + 1;
+        if len > MAX_VALUE {
+            return false;
+        }
+        value.clear();
+        value.reserve(len as usize);
+        match body.take(len).read_to_end(value) {
+            Ok(n) if n as u64 == len => {}
+            _ => return false,
+        }
+        match super::remote_entry(&key, value) {
+            Ok(e) => entry(&key, e),
+            Err(_) => whole = false,
+        }
+    }
+}
+
+/// Fills `buffer` from `reader` unless it ends first; how much was read.
+fn read_up_to(reader: &mut dyn Read, buffer: &mut [u8]) -> io::Result<usize> {
+    let mut n = 0;
+    while n < buffer.len() {
+        match reader.read(&mut buffer[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(n)
+}
