@@ -215,6 +215,9 @@ impl Store {
         }
         crate::output::write(out, archive, false).ok()?;
         let _ = cache.stamp_archive(out, fingerprint, counts);
+        // Bundle parts found missing or damaged, stored again from the entries now local
+        // (in read-write mode).
+        cache.put_bundle();
         Some(counts)
     }
 }
