@@ -940,6 +940,16 @@ fn https_with_a_certificate_authority_of_ones_own() {
     assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64), "{:?}", r.warnings);
     assert_eq!(other.bytes(), ci.bytes());
 
+    // A bundle through https (ureq's streamed bodies): it alone fills a fresh cache.
+    let ci = Machine::scale();
+    let distinct = run(&ci).unwrap().stats.compiled;
+    assert_eq!(bundle_parts(&server).len(), 1, "{:?}", server.keys());
+    remove_entries(&server);
+    let other = Machine::scale();
+    let r = run(&other).unwrap();
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, distinct as u64), "{:?}", r.warnings);
+    assert_eq!(other.bytes(), ci.bytes());
+
     env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("server.ext").to_str().unwrap());
     let e = run(&Machine::new()).unwrap_err();
     assert_eq!(e.exit_code(), 2);
