@@ -73,21 +73,32 @@ impl Bundle {
     }
 }
 
-/// The value of a part holding `keys`, each entry from `entry` (a whole, checked local
-/// entry); `None` when one is missing.
-pub(super) fn encode_part(keys: &[Key], entry: impl Fn(&Key) -> Option<Vec<u8>>) -> Option<Vec<u8>> {
-    let mut out = Vec::new();
+/// The value of a part holding `keys` (`size` bytes, room made at once), `append` adding
+/// each key's entry to it; `None` when one is missing.
+pub(super) fn encode_part(keys: &[Key], size: usize, append: impl Fn(&Key, &mut Vec<u8>) -> bool) -> Option<Vec<u8>> {
+    let mut out = Vec::with_capacity(size);
     out.extend_from_slice(MAGIC);
     for key in keys {
-        let entry = entry(key)?;
-        out.reserve(32 + 8 + REMOTE_HEADER + entry.len());
+        let at = out.len();
         out.extend_from_slice(&key.0);
-        out.extend_from_slice(&((REMOTE_HEADER + entry.len()) as u64).to_le_bytes());
+        out.extend_from_slice(&[0; 8]);
         out.extend_from_slice(REMOTE_MAGIC);
-        out.extend_from_slice(&super::remote_checksum(key, &entry));
-        out.extend_from_slice(&entry);
+        out.extend_from_slice(&[0; REMOTE_HEADER - 8]);
+        if !append(key, &mut out) {
+            return None;
+        }
+        let len = (out.len() - at - 40) as u64;
+        out[at + 32..at + 40].copy_from_slice(&len.to_le_bytes());
+        let sum = super::remote_checksum(key, &out[at + 40 + REMOTE_HEADER..]);
+        out[at + 48..at + 40 + REMOTE_HEADER].copy_from_slice(&sum);
     }
     Some(out)
+}
+
+/// The bytes a part takes beyond its entries': its magic, and a key, a length and a value
+/// header per entry.
+pub(super) fn part_overhead(keys: usize) -> usize {
+    MAGIC.len() + keys * (40 + REMOTE_HEADER)
 }
 
 /// Reads the part of `keys` from `body` as it arrives, each value into `value`, and calls

@@ -458,7 +458,12 @@ fn part_of(n: usize) -> (Vec<Key>, Vec<Vec<u8>>, Vec<u8>) {
     let mut keys: Vec<Key> = (0..n).map(|i| key(&format!("part {i}"))).collect();
     keys.sort();
     let entries: Vec<Vec<u8>> = keys.iter().enumerate().map(|(i, k)| encode(k, &compiled(i as u8))).collect();
-    let value = bundle::encode_part(&keys, |k| Some(entries[keys.iter().position(|x| x == k).unwrap()].clone()));
+    let size = bundle::part_overhead(n) + entries.iter().map(Vec::len).sum::<usize>();
+    let value = bundle::encode_part(&keys, size, |k, out| {
+        out.extend_from_slice(&entries[keys.iter().position(|x| x == k).unwrap()]);
+        true
+    });
+    assert_eq!(value.as_ref().map(Vec::len), Some(size), "the size given is the part's");
     (keys, entries, value.unwrap())
 }
 
@@ -476,7 +481,11 @@ fn a_bundle_part_reads_back_every_checked_entry() {
     assert!(whole);
     assert_eq!(got, keys.iter().copied().zip(entries.iter().cloned()).collect::<Vec<_>>());
     // A writer lacking an entry writes no part.
-    assert!(bundle::encode_part(&keys, |k| (*k != keys[2]).then(|| entries[0].clone())).is_none());
+    assert!(bundle::encode_part(&keys, 0, |k, out| {
+        out.extend_from_slice(&entries[0]);
+        *k != keys[2]
+    })
+    .is_none());
 }
 
 #[test]
