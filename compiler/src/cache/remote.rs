@@ -1096,7 +1096,6 @@ mod tests {
 
     #[test]
     fn a_streamed_value_cut_short_is_one_warning_then_misses() {
-        use std::io::Read as _;
         let port = scripted_server(vec![(b"\r\n\r\n", b"HTTP/1.1 200 OK\r\nContent-Length: 100\r\n\r\nKILN")]);
         let remote = Remote::open(&options(&format!("http://u:s3cret@127.0.0.1:{port}/kiln"), None)).unwrap();
         assert!(remote.streams());
