@@ -749,7 +749,7 @@ fn http_bundle_fills_a_fresh_cache_and_damage_is_repaired() {
     assert!(distinct >= 64, "{:?}", r.stats);
     assert_eq!(r.stats.remote_writes, distinct as u64, "bundle parts are not counted as entries");
     let parts = bundle_parts(&server);
-    assert_eq!(parts.len(), 1, "{:?}", server.keys());
+    assert!(!parts.is_empty(), "{:?}", server.keys());
     let part = server.get(&parts[0]);
 
     remove_entries(&server);
@@ -759,8 +759,8 @@ fn http_bundle_fills_a_fresh_cache_and_damage_is_repaired() {
     assert!(r.warnings.is_empty(), "{:?}", r.warnings);
     assert_eq!(m.bytes(), ci.bytes());
 
-    // The first entry damaged (magic 8, key 32, length 8, value header 24, then the entry):
-    // that key alone is compiled.
+    // The first entry of a part damaged (magic 8, key 32, length 8, value header 24, then
+    // the entry): that key alone is compiled.
     let mut bad = part.clone();
     bad[8 + 40 + 24 + 80] ^= 0x10;
     server.set(&parts[0], &bad);
@@ -770,7 +770,7 @@ fn http_bundle_fills_a_fresh_cache_and_damage_is_repaired() {
     assert_eq!(m.bytes(), ci.bytes());
     assert_eq!(server.get(&parts[0]), part, "stored whole again");
 
-    // Cut in half: the first half from the part, the rest compiled.
+    // Cut in half: the first half from the part, the rest of its keys compiled.
     server.set(&parts[0], &part[..part.len() / 2]);
     remove_entries(&server);
     let m = Machine::scale();
@@ -797,7 +797,7 @@ fn http_killed_while_a_fresh_cache_fills_from_a_bundle() {
     let direct = server.lock().unwrap().url();
     let ci = Machine::scale();
     let distinct = ci.build(&direct).stats.compiled;
-    assert_eq!(bundle_parts(&server.lock().unwrap()).len(), 1);
+    assert!(!bundle_parts(&server.lock().unwrap()).is_empty());
     // The streamed GETs write `Host:` capitalized (ureq's single requests `host:`).
     let (port, killed) = killing_proxy(server.clone(), b"\r\nHost: ");
     let url = server.lock().unwrap().url_at(port);
@@ -943,7 +943,7 @@ fn https_with_a_certificate_authority_of_ones_own() {
     // A bundle through https (ureq's streamed bodies): it alone fills a fresh cache.
     let ci = Machine::scale();
     let distinct = run(&ci).unwrap().stats.compiled;
-    assert_eq!(bundle_parts(&server).len(), 1, "{:?}", server.keys());
+    assert!(!bundle_parts(&server).is_empty(), "{:?}", server.keys());
     remove_entries(&server);
     let other = Machine::scale();
     let r = run(&other).unwrap();

@@ -439,11 +439,11 @@ impl Cache {
         }
     }
 
-    /// Copies into the local cache the remote entries of `keys` that it lacks: from the
-    /// bundle of `keys` when most are lacking and the remote streams ([`bundle`]), the rest
-    /// fetched in batches ([`Remote::get_each`]); each checked as [`Cache::get`] checks it,
-    /// and streamed into one pack as they arrive (no entry waits in memory). Whether every
-    /// key is now held locally. A key the remote lacks is not asked for again this build; a
+    /// Copies into the local cache the remote entries of `keys` that it lacks: from the parts
+    /// of the bundle of `keys` most of whose keys it lacks when the remote streams
+    /// ([`bundle`]), the rest fetched in batches ([`Remote::get_each`]); each checked as
+    /// [`Cache::get`] checks it, and streamed into one pack as they arrive (no entry waits in
+    /// memory). Whether every key is now held locally. A key the remote lacks is not asked for again this build; a
     /// corrupted entry is left to the build, which looks it up again, reports and recompiles
     /// it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
@@ -465,13 +465,11 @@ impl Cache {
         }
         // Room for every key asked; failing to fill only costs a remote lookup next time.
         let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
-        // From the bundle when most keys are lacking (else most of it would be dropped).
-        if let (Some(b), Some(p)) = (&bundle, &pack) {
-            if missing.len() >= bundle::MIN_KEYS && missing.len() * 2 >= keys.len() {
-                let filled;
-                (filled, parts) = self.fill_from_bundle(layer, b, &mut missing, p);
-                missing.retain(|k| filled.binary_search(k).is_err());
-            }
+        if let (Some(b), Some(p), true) = (&bundle, &pack, missing.len() >= bundle::MIN_KEYS) {
+            missing.sort_unstable();
+            let filled;
+            (filled, parts) = self.fill_from_bundle(layer, b, &missing, p);
+            missing.retain(|k| filled.binary_search(k).is_err());
         }
         self.keep_bundle(layer, bundle, parts);
         layer.remote.get_each(&missing, |key, value| {
@@ -498,21 +496,28 @@ impl Cache {
         complete.into_inner()
     }
 
-    /// The entries of `wanted` (sorted here) that the parts of `bundle` hold, checked and
-    /// pushed into `pack` as they arrive: the keys filled (sorted), and whether each part
-    /// was whole.
+    /// The entries of `wanted` (sorted) that the parts of `bundle` most of whose keys are
+    /// wanted hold (else most of a part would be dropped), checked and pushed into `pack` as
+    /// they arrive: the keys filled (sorted), and whether each part was whole (`None`: not
+    /// read).
     fn fill_from_bundle(
         &self,
         layer: &Layer,
         bundle: &bundle::Bundle,
-        wanted: &mut [Key],
+        wanted: &[Key],
         pack: &fill::FillPack,
     ) -> (Vec<Key>, Vec<Option<bool>>) {
-        wanted.sort_unstable();
-        let wanted = &*wanted;
+        let read: Vec<usize> = (0..bundle.ids().len())
+            .filter(|&i| {
+                let part = bundle.part(i);
+                part.iter().filter(|k| wanted.binary_search(k).is_ok()).count() * 2 >= part.len()
+            })
+            .collect();
+        let ids: Vec<Key> = read.iter().map(|&i| bundle.ids()[i]).collect();
         let filled = Mutex::new(Vec::with_capacity(wanted.len()));
         let parts = Mutex::new(vec![None; bundle.ids().len()]);
-        layer.remote.get_streamed(bundle.ids(), |i, body| {
+        layer.remote.get_streamed(&ids, |n, body| {
+            let i = read[n];
             let mut mine = Vec::new();
             let whole = body.is_some_and(|body| {
                 // One entry at a time (a part is never held whole).

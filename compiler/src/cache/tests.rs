@@ -435,22 +435,41 @@ fn a_remote_value_is_checked_whole_and_bound_to_its_key() {
 }
 
 #[test]
-fn a_bundle_parts_its_sorted_keys_under_ids_of_the_whole_set() {
-    let keys: Vec<Key> = (0..bundle::PART_KEYS * 2 + 5).map(|i| key(&format!("k{i}"))).collect();
+fn a_bundle_cuts_its_sorted_keys_by_content_and_names_each_part_by_its_keys() {
+    let keys: Vec<Key> = (0..3000).map(|i| key(&format!("k{i}"))).collect();
     let b = bundle::Bundle::new(&keys);
-    assert_eq!(b.ids().len(), 3);
-    let parts: Vec<Key> = (0..3).flat_map(|i| b.part(i).to_vec()).collect();
+    let n = b.ids().len();
+    assert!((4..40).contains(&n), "{n} parts of 3,000 keys (256 on average)");
+    let parts: Vec<Key> = (0..n).flat_map(|i| b.part(i).to_vec()).collect();
     let mut sorted = keys.clone();
     sorted.sort();
     assert_eq!(parts, sorted, "every key once, in order");
-    assert_eq!(b.part(2).len(), 5);
-    // The order keys come in does not matter, nor do duplicates; another set, other ids.
+    for i in 0..n {
+        let part = b.part(i);
+        let last = part[part.len() - 1];
+        assert!(part.len() <= bundle::MAX_PART_KEYS);
+        assert!(i == n - 1 || last.0[31] == 0 || part.len() == bundle::MAX_PART_KEYS, "cut after a key ending in 0");
+        assert!(part[..part.len() - 1].iter().all(|k| k.0[31] != 0), "and only there");
+    }
+    // The order keys come in does not matter, nor do duplicates.
     let mut shuffled: Vec<Key> = keys.iter().rev().copied().collect();
     shuffled.push(keys[7]);
     assert_eq!(bundle::Bundle::new(&shuffled).ids(), b.ids());
+    // One key less changes its own part only (or two, when it ended one).
     let fewer = bundle::Bundle::new(&keys[1..]);
-    assert!(fewer.ids().iter().all(|id| !b.ids().contains(id)));
-    assert!(!b.ids().contains(&keys[0]) && b.ids()[0] != b.ids()[1]);
+    let changed = b.ids().iter().filter(|id| !fewer.ids().contains(id)).count();
+    assert!((1..=2).contains(&changed), "{changed} parts changed");
+    // A part never longer than its maximum: keys that never end one.
+    let unending: Vec<Key> = (0..2100u32)
+        .map(|i| {
+            let mut k = [1u8; 32];
+            k[..4].copy_from_slice(&i.to_be_bytes());
+            Key(k)
+        })
+        .collect();
+    let long = bundle::Bundle::new(&unending);
+    assert_eq!((0..3).map(|i| long.part(i).len()).collect::<Vec<_>>(), vec![1024, 1024, 52]);
+    assert!(bundle::Bundle::new(&[]).ids().is_empty());
 }
 
 /// A part of `n` keys (sorted) and the entry of each.
