@@ -443,9 +443,9 @@ impl Cache {
     /// of the bundle of `keys` most of whose keys it lacks when the remote streams
     /// ([`bundle`]), the rest fetched in batches ([`Remote::get_each`]); each checked as
     /// [`Cache::get`] checks it, and streamed into one pack as they arrive (no entry waits in
-    /// memory). Whether every key is now held locally. A key the remote lacks is not asked for again this build; a
-    /// corrupted entry is left to the build, which looks it up again, reports and recompiles
-    /// it.
+    /// memory). Whether every key is now held locally. A key the remote lacks is not asked
+    /// for again this build; a corrupted entry is left to the build, which looks it up again,
+    /// reports and recompiles it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
         let Some(layer) = &self.remote else { return false };
         // The single lookups' hits first: then the index knows them.
@@ -545,10 +545,10 @@ impl Cache {
     }
 
     /// Stores the parts of the bundle of the last fill's keys ([`bundle`]) that the remote
-    /// lacks (or held damaged), from the local cache's entries, in
-    /// read-write mode. A build calls this once every key's entry is in the local cache
-    /// (after writing the archive); failing to only costs the next fresh cache a `GET` per
-    /// key.
+    /// lacks (asked with `HEAD` when the fill did not read them) or held damaged, from the
+    /// local cache's entries, in read-write mode. A build calls this once every key's entry
+    /// is in the local cache (after writing the archive); failing to only costs the next
+    /// fresh cache a `GET` per key.
     pub fn put_bundle(&self) {
         let Some(layer) = &self.remote else { return };
         let Some((bundle, parts)) = layer.bundle.lock().expect("no panics while locked").take() else { return };
