@@ -398,7 +398,9 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
 
     /// `get_streamed` of one key against `reply`: what `f` read (`None` for a miss), the
     /// result, and the connections kept.
-    fn streamed(reply: &[u8], read: usize) -> (Option<Vec<u8>>, Result<(), (bool, Fault)>, usize) {
+    type Streamed = (Option<Vec<u8>>, Result<(), (bool, Fault)>, usize);
+
+    fn streamed(reply: &[u8], read: usize) -> Streamed {
         let (port, server) = serve(reply.to_vec(), 1);
         let p = Pipeline::new(&format!("127.0.0.1:{port}"), "/kiln", None, Duration::from_secs(5)).unwrap();
         let mut got = None;
