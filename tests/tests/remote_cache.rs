@@ -7,6 +7,8 @@
 //! test, naming its Debian package.
 
 mod build_support;
+#[path = "../../compiler/tests/support/scale_set.rs"]
+mod scale_set;
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -338,11 +340,22 @@ fn require_server(binary: &str, version_arg: &[&str], package: &str) {
 /// A "machine": its own copy of the inputs and its own local cache.
 struct Machine {
     dir: tempfile::TempDir,
+    config: PathBuf,
 }
 
 impl Machine {
     fn new() -> Machine {
-        Machine { dir: fixture() }
+        let dir = fixture();
+        let config = dir.path().join("lit.toml");
+        Machine { dir, config }
+    }
+
+    /// A machine building a generated set of 80 permutations (76 distinct keys: enough for
+    /// a bundle).
+    fn scale() -> Machine {
+        let dir = tempfile::tempdir().unwrap();
+        let (config, _) = scale_set::write(&dir.path().join("set"), 5 * scale_set::PER_MATERIAL);
+        Machine { dir, config }
     }
 
     fn archive(&self) -> PathBuf {
@@ -350,7 +363,7 @@ impl Machine {
     }
 
     fn options(&self, remote: RemoteCache, mode: Option<RemoteMode>) -> build::Options {
-        let mut o = options(&self.dir.path().join("lit.toml"), &self.archive(), Some(&self.dir.path().join("cache")));
+        let mut o = options(&self.config, &self.archive(), Some(&self.dir.path().join("cache")));
         o.remote_cache = remote;
         o.remote_cache_mode = mode;
         o
@@ -710,6 +723,94 @@ fn a_shard_fetches_its_share_in_batches() {
     assert!(calls("get") <= 1, "{info}");
 }
 
+/// The values of `server` that are bundle parts.
+fn bundle_parts(server: &Server) -> Vec<String> {
+    server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNBD")).collect()
+}
+
+/// Removes every entry stored under its own key (a bundle then serves alone).
+fn remove_entries(server: &Server) {
+    for k in server.entries() {
+        std::fs::remove_file(server.dir.path().join("data/kiln").join(k)).unwrap();
+    }
+}
+
+/// With HTTP, a build of more than a few keys stores them as a bundle too: a fresh local
+/// cache fills from it alone (the entries under their own keys removed); a part damaged or
+/// cut short gives the entries that pass their checks, the rest is fetched per key or
+/// compiled, and the build (read-write) stores the part whole again; in read mode it stays.
+#[test]
+fn http_bundle_fills_a_fresh_cache_and_damage_is_repaired() {
+    let server = Server::start(Kind::Http);
+    let url = server.url();
+    let ci = Machine::scale();
+    let r = ci.build(&url);
+    let distinct = r.stats.compiled;
+    assert!(distinct >= 64, "{:?}", r.stats);
+    assert_eq!(r.stats.remote_writes, distinct as u64, "bundle parts are not counted as entries");
+    let parts = bundle_parts(&server);
+    assert!(!parts.is_empty(), "{:?}", server.keys());
+    let part = server.get(&parts[0]);
+
+    remove_entries(&server);
+    let m = Machine::scale();
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, distinct as u64));
+    assert!(r.warnings.is_empty(), "{:?}", r.warnings);
+    assert_eq!(m.bytes(), ci.bytes());
+
+    // The first entry of a part damaged (magic 8, key 32, length 8, value header 24, then
+    // the entry): that key alone is compiled.
+    let mut bad = part.clone();
+    bad[8 + 40 + 24 + 80] ^= 0x10;
+    server.set(&parts[0], &bad);
+    let m = Machine::scale();
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (1, distinct as u64 - 1));
+    assert_eq!(m.bytes(), ci.bytes());
+    assert_eq!(server.get(&parts[0]), part, "stored whole again");
+
+    // Cut in half: the first half from the part, the rest of its keys compiled.
+    server.set(&parts[0], &part[..part.len() / 2]);
+    remove_entries(&server);
+    let m = Machine::scale();
+    let r = m.build(&url);
+    assert!(r.stats.compiled > 0 && r.stats.remote_hits > 0, "{:?}", r.stats);
+    assert_eq!(r.stats.compiled as u64 + r.stats.remote_hits, distinct as u64);
+    assert_eq!(m.bytes(), ci.bytes());
+    assert_eq!(server.get(&parts[0]), part, "stored whole again");
+
+    // Read mode stores nothing, a damaged part included.
+    server.set(&parts[0], &bad);
+    let m = Machine::scale();
+    let r = m.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
+    assert_eq!(r.stats.compiled as u64 + r.stats.remote_hits, distinct as u64);
+    assert_eq!(m.bytes(), ci.bytes());
+    assert_eq!(server.get(&parts[0]), bad);
+}
+
+/// A warm remote whose server dies when a fresh local cache asks for its bundle: one
+/// warning, every key compiled here, the same bytes.
+#[test]
+fn http_killed_while_a_fresh_cache_fills_from_a_bundle() {
+    let server = Arc::new(Mutex::new(Server::start(Kind::Http)));
+    let direct = server.lock().unwrap().url();
+    let ci = Machine::scale();
+    let distinct = ci.build(&direct).stats.compiled;
+    assert!(!bundle_parts(&server.lock().unwrap()).is_empty());
+    // The streamed GETs write `Host:` capitalized (ureq's single requests `host:`).
+    let (port, killed) = killing_proxy(server.clone(), b"\r\nHost: ");
+    let url = server.lock().unwrap().url_at(port);
+    let m = Machine::scale();
+    let r = m.build(&url);
+    assert!(killed.load(Ordering::SeqCst), "the fill asked for the bundle");
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (distinct, 0));
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "one warning: {:?}", r.warnings);
+    assert!(warnings[0].contains(&url) && warnings[0].contains("local cache only"), "{}", warnings[0]);
+    assert_eq!(m.bytes(), ci.bytes());
+}
+
 #[test]
 fn redis_two_writers_at_once() {
     two_writers(Kind::Redis);
@@ -837,6 +938,16 @@ fn https_with_a_certificate_authority_of_ones_own() {
     let other = Machine::new();
     let r = run(&other).unwrap();
     assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64), "{:?}", r.warnings);
+    assert_eq!(other.bytes(), ci.bytes());
+
+    // A bundle through https (ureq's streamed bodies): it alone fills a fresh cache.
+    let ci = Machine::scale();
+    let distinct = run(&ci).unwrap().stats.compiled;
+    assert!(!bundle_parts(&server).is_empty(), "{:?}", server.keys());
+    remove_entries(&server);
+    let other = Machine::scale();
+    let r = run(&other).unwrap();
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, distinct as u64), "{:?}", r.warnings);
     assert_eq!(other.bytes(), ci.bytes());
 
     env.set("KILN_REMOTE_CACHE_CA", server.dir.path().join("server.ext").to_str().unwrap());

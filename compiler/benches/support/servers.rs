@@ -31,6 +31,30 @@ pub struct Server {
     _dir: tempfile::TempDir,
 }
 
+impl Server {
+    /// The CPU time (user and system) the server's processes have spent so far: the child
+    /// and its children (nginx's workers), from `/proc` (zero where there is none).
+    #[allow(dead_code)] // the `remote` bench does not print it
+    pub fn cpu(&self) -> Duration {
+        let pid = self.child.id();
+        let mut pids = vec![pid];
+        if let Ok(children) = std::fs::read_to_string(format!("/proc/{pid}/task/{pid}/children")) {
+            pids.extend(children.split_whitespace().filter_map(|p| p.parse::<u32>().ok()));
+        }
+        let ticks: u64 = pids
+            .iter()
+            .filter_map(|p| {
+                let stat = std::fs::read_to_string(format!("/proc/{p}/stat")).ok()?;
+                // After the command's name: state, ..., utime (the 12th), stime.
+                let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+                Some(fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?)
+            })
+            .sum();
+        let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) }.max(1) as u64;
+        Duration::from_millis(ticks * 1000 / hz)
+    }
+}
+
 impl Drop for Server {
     /// SIGTERM first: nginx's master then stops its workers (a SIGKILL would leave them
     /// running, holding the port and this process's output); SIGKILL after 5 s.

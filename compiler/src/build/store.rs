@@ -163,8 +163,8 @@ impl Store {
     }
 
     /// Records that `out` is the output of the build with `fingerprint`, and stores it in
-    /// the remote cache (in read-write mode). Failing to only costs a full warm build next
-    /// time.
+    /// the remote cache (in read-write mode) with the bundle of the build's entries (see
+    /// [`Cache::put_bundle`]). Failing to only costs a full warm build next time.
     pub fn stamp_archive(&self, out: &Path, fingerprint: &blake3::Hash, counts: (usize, usize)) {
         let Some(c) = &self.cache else { return };
         let _ = c.stamp_archive(out, fingerprint, counts);
@@ -175,6 +175,9 @@ impl Store {
             if let Some(bytes) = small.then(|| std::fs::read(out).ok()).flatten() {
                 remote.store(&remote_archive_key(fingerprint), &encode_remote_archive(&bytes, counts));
             }
+            // Every key's entry is in the local cache now: the bundle of the build's keys
+            // (with HTTP), for the next fresh local cache.
+            c.put_bundle();
         }
     }
 
@@ -212,6 +215,9 @@ impl Store {
         }
         crate::output::write(out, archive, false).ok()?;
         let _ = cache.stamp_archive(out, fingerprint, counts);
+        // Bundle parts found missing or damaged, stored again from the entries now local
+        // (in read-write mode).
+        cache.put_bundle();
         Some(counts)
     }
 }

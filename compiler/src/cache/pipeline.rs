@@ -98,6 +98,43 @@ impl Pipeline {
         Ok(keys.len())
     }
 
+    /// Asks for `key` alone and gives `f` a reader of its body as it arrives (`None` for a
+    /// 404): for values too large to hold whole. What `f` leaves unread is read and
+    /// dropped, so that the connection serves the next request. `Err((called, fault))`:
+    /// the connection failed, before `f` was called or after.
+    pub fn get_streamed(&self, key: &Key, f: &mut dyn FnMut(Option<&mut dyn Read>)) -> Result<(), (bool, Fault)> {
+        let mut connection = self.connection().map_err(|fault| (false, fault))?;
+        let request = format!(
+            "GET {}/{key} HTTP/1.1\r\nHost: {}\r\nUser-Agent: kiln/{}\r\n{}\r\n",
+            self.path,
+            self.authority,
+            env!("CARGO_PKG_VERSION"),
+            self.authorization
+        );
+        connection.get_mut().write_all(request.as_bytes()).map_err(|e| (false, io_fault("sending a request", e)))?;
+        let mut head = read_head(&mut connection).map_err(|fault| (false, fault))?;
+        match head.length.filter(|_| head.status == 200 && !head.chunked) {
+            Some(length) => {
+                let mut body = connection.by_ref().take(length);
+                f(Some(&mut body));
+                std::io::copy(&mut body, &mut std::io::sink()).map_err(|e| (true, io_fault("reading a value", e)))?;
+                if body.limit() != 0 {
+                    return Err((true, bad("a value is truncated (the connection closed)")));
+                }
+            }
+            None => {
+                // A miss, or a body without a length: read whole first.
+                let mut value = Vec::new();
+                read_body(&mut connection, &mut head, &mut value).map_err(|fault| (false, fault))?;
+                f((head.status == 200).then_some(&mut value.as_slice() as &mut dyn Read));
+            }
+        }
+        if head.keep_alive {
+            self.idle.lock().expect("no panics while locked").push(connection);
+        }
+        Ok(())
+    }
+
     fn connection(&self) -> Result<BufReader<TcpStream>, Fault> {
         if let Some(c) = self.idle.lock().expect("no panics while locked").pop() {
             return Ok(c);
@@ -149,10 +186,17 @@ fn bad(why: impl Into<String>) -> Fault {
     Fault { message: why.into(), timed_out: false }
 }
 
-/// Reads one response: its body into `value` (cleared first; for a 200 the value, else
-/// discarded); whether it was a 200 (a 404 is a miss, anything else a fault) and whether the
-/// connection stays open after it.
-fn read_response(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Result<(bool, bool), Fault> {
+/// A response's status line and headers.
+struct Head {
+    status: u16,
+    /// `Content-Length`.
+    length: Option<u64>,
+    chunked: bool,
+    keep_alive: bool,
+}
+
+/// Reads a response's head; a status other than 200 or 404 is a fault.
+fn read_head(reader: &mut BufReader<TcpStream>) -> Result<Head, Fault> {
     let mut head = Vec::with_capacity(256);
     loop {
         let before = head.len();
@@ -189,13 +233,28 @@ fn read_response(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Resu
     if status != 200 && status != 404 {
         return Err(bad(format!("GET answered {status}")));
     }
+    if length.is_some_and(|l| l > MAX_VALUE) {
+        return Err(bad(format!("a value of {} bytes is larger than any kiln stores", length.unwrap_or(0))));
+    }
+    Ok(Head { status, length, chunked, keep_alive })
+}
+
+/// Reads one response: its body into `value` (cleared first; for a 200 the value, else
+/// discarded); whether it was a 200 (a 404 is a miss, anything else a fault) and whether the
+/// connection stays open after it.
+fn read_response(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Result<(bool, bool), Fault> {
+    let mut head = read_head(reader)?;
+    read_body(reader, &mut head, value)?;
+    Ok((head.status == 200, head.keep_alive))
+}
+
+/// The body of the response of `head` into `value` (cleared first); a body that runs to
+/// the end of the connection leaves it closed.
+fn read_body(reader: &mut BufReader<TcpStream>, head: &mut Head, value: &mut Vec<u8>) -> Result<(), Fault> {
     value.clear();
-    if chunked {
+    if head.chunked {
         read_chunked(reader, value)?;
-    } else if let Some(length) = length {
-        if length > MAX_VALUE {
-            return Err(bad(format!("a value of {length} bytes is larger than any kiln stores")));
-        }
+    } else if let Some(length) = head.length {
         value.reserve(length as usize);
         let read = reader.by_ref().take(length).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
         if read as u64 != length {
@@ -204,9 +263,9 @@ fn read_response(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Resu
     } else {
         // The body runs to the end of the connection.
         reader.by_ref().take(MAX_VALUE).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
-        keep_alive = false;
+        head.keep_alive = false;
     }
-    Ok((status == 200, keep_alive))
+    Ok(())
 }
 
 /// A `Transfer-Encoding: chunked` body into `value`.
@@ -335,6 +394,50 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
             assert!(fault.message.contains(why), "{why}: {}", fault.message);
             server.join().unwrap();
         }
+    }
+
+    /// `get_streamed` of one key against `reply`: what `f` read (`None` for a miss), the
+    /// result, and the connections kept.
+    type Streamed = (Option<Vec<u8>>, Result<(), (bool, Fault)>, usize);
+
+    fn streamed(reply: &[u8], read: usize) -> Streamed {
+        let (port, server) = serve(reply.to_vec(), 1);
+        let p = Pipeline::new(&format!("127.0.0.1:{port}"), "/kiln", None, Duration::from_secs(5)).unwrap();
+        let mut got = None;
+        let r = p.get_streamed(&Key([9; 32]), &mut |body| {
+            got = body.map(|b| {
+                let mut v = Vec::new();
+                b.take(read as u64).read_to_end(&mut v).unwrap();
+                v
+            })
+        });
+        let requests = server.join().unwrap();
+        assert!(requests.starts_with(&format!("GET /kiln/{} HTTP/1.1\r\n", Key([9; 32]))), "{requests}");
+        let kept = p.idle.lock().unwrap().len();
+        (got, r, kept)
+    }
+
+    #[test]
+    fn a_streamed_body_is_read_as_it_comes_and_its_rest_dropped() {
+        let (got, r, kept) = streamed(b"HTTP/1.1 200 OK\r\nContent-Length: 10\r\n\r\n0123456789", 4);
+        assert_eq!((got.as_deref(), r.is_ok(), kept), (Some(&b"0123"[..]), true, 1));
+        let chunked = b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n0\r\n\r\n";
+        let (got, r, kept) = streamed(chunked, 100);
+        assert_eq!((got.as_deref(), r.is_ok(), kept), (Some(&b"abc"[..]), true, 1));
+        let (got, r, kept) = streamed(b"HTTP/1.1 404 Not Found\r\nContent-Length: 3\r\n\r\nno!", 100);
+        assert_eq!((got, r.is_ok(), kept), (None, true, 1));
+    }
+
+    #[test]
+    fn a_streamed_body_cut_short_or_refused_is_a_fault() {
+        let (got, r, kept) = streamed(b"HTTP/1.1 200 OK\r\nContent-Length: 10\r\n\r\n01234", 100);
+        let (called, fault) = r.unwrap_err();
+        assert_eq!((got.as_deref(), called, kept), (Some(&b"01234"[..]), true, 0));
+        assert!(fault.message.contains("truncated"), "{}", fault.message);
+        let (got, r, _) = streamed(b"HTTP/1.1 403 Forbidden\r\nContent-Length: 0\r\n\r\n", 100);
+        let (called, fault) = r.unwrap_err();
+        assert_eq!((got, called), (None, false));
+        assert!(fault.message.contains("403"), "{}", fault.message);
     }
 
     #[test]

@@ -365,6 +365,68 @@ impl Remote {
         keys[done..].iter().for_each(|key| f(key, None));
     }
 
+    /// Whether values of many megabytes are read as they arrive ([`Remote::get_streamed`]):
+    /// with HTTP. Redis hands a client each value whole (and takes values up to 512 MiB).
+    pub(crate) fn streams(&self) -> bool {
+        matches!(self.store, Store::Http(_))
+    }
+
+    /// Calls `f` with the index of each of `keys` and a reader of the value stored under it
+    /// as it arrives (`None` for a miss, once the store is off, and without
+    /// [`Remote::streams`]), on [`HTTP_STREAMS`] connections, one request at a time on each,
+    /// in no particular order. A connection that fails while `f` reads makes `f`'s reads
+    /// fail (a truncated value), then turns the store off.
+    pub(crate) fn get_streamed(&self, keys: &[Key], f: impl Fn(usize, Option<&mut dyn std::io::Read>) + Sync) {
+        let Store::Http(h) = &self.store else {
+            (0..keys.len()).for_each(|i| f(i, None));
+            return;
+        };
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        std::thread::scope(|s| {
+            for _ in 0..HTTP_STREAMS.min(keys.len()) {
+                s.spawn(|| loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(key) = keys.get(i) else { break };
+                    if self.off.load(Ordering::Relaxed) {
+                        f(i, None);
+                        continue;
+                    }
+                    let called = std::cell::Cell::new(false);
+                    let mut g = |body: Option<&mut dyn std::io::Read>| {
+                        called.set(true);
+                        f(i, body);
+                    };
+                    let mut result = h.get_streamed(key, &mut g);
+                    // Once more on a new connection (an idle one the server closed), unless
+                    // it timed out or `f` had its answer.
+                    if result.as_ref().is_err_and(|(_, fault)| !called.get() && !fault.timed_out) {
+                        result = h.get_streamed(key, &mut g);
+                    }
+                    if let Err((_, fault)) = result {
+                        self.fail("reading from", fault);
+                        if !called.get() {
+                            f(i, None);
+                        }
+                    }
+                });
+            }
+        });
+    }
+
+    /// Whether the remote holds a value under `key` (HTTP `HEAD`, redis `EXISTS`); `None`
+    /// once the store is off.
+    pub(crate) fn contains(&self, key: &Key) -> Option<bool> {
+        if self.off.load(Ordering::Relaxed) {
+            return None;
+        }
+        self.retry(|| match &self.store {
+            Store::Redis(r) => r.contains(key),
+            Store::Http(h) => h.head(key),
+        })
+        .map_err(|fault| self.fail("reading from", fault))
+        .ok()
+    }
+
     /// Stores the entry `value` under `key` (in read-write mode, while the store is on).
     pub fn put(&self, key: &Key, value: &[u8]) {
         if self.store(key, value) {
@@ -503,6 +565,10 @@ impl RedisStore {
 
     fn get(&self, key: &Key) -> Result<Option<Vec<u8>>, Fault> {
         self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))
+    }
+
+    fn contains(&self, key: &Key) -> Result<bool, Fault> {
+        self.with_connection(|c| redis::cmd("EXISTS").arg(Self::name(key)).query(c))
     }
 
     fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
@@ -793,6 +859,48 @@ impl HttpStore {
         }
     }
 
+    /// `f` with a reader of the value of `key` as it arrives (`None` for a 404): pipelined
+    /// plain HTTP's connections, else ureq's. `Err((called, fault))` as
+    /// [`super::pipeline::Pipeline::get_streamed`].
+    fn get_streamed(&self, key: &Key, f: &mut dyn FnMut(Option<&mut dyn std::io::Read>)) -> Result<(), (bool, Fault)> {
+        if let Some(p) = &self.pipeline {
+            return p.get_streamed(key, f);
+        }
+        let mut request = self.agent.get(self.url(key));
+        if let Some(a) = &self.authorization {
+            request = request.header("Authorization", a);
+        }
+        let mut response = request.call().map_err(|e| (false, Self::fault(e)))?;
+        match response.status().as_u16() {
+            200 => {
+                let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
+                f(Some(&mut reader));
+                std::io::copy(&mut reader, &mut std::io::sink())
+                    .map_err(|e| (true, Self::fault(ureq::Error::Io(e))))?;
+                Ok(())
+            }
+            404 => {
+                f(None);
+                Ok(())
+            }
+            _ => Err((false, Self::status("GET", response.status()))),
+        }
+    }
+
+    /// Whether `key` has a value (`HEAD`).
+    fn head(&self, key: &Key) -> Result<bool, Fault> {
+        let mut request = self.agent.head(self.url(key));
+        if let Some(a) = &self.authorization {
+            request = request.header("Authorization", a);
+        }
+        let response = request.call().map_err(Self::fault)?;
+        match response.status().as_u16() {
+            200 => Ok(true),
+            404 => Ok(false),
+            _ => Err(Self::status("HEAD", response.status())),
+        }
+    }
+
     fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
         let mut request = self.agent.put(self.url(key));
         if let Some(a) = &self.authorization {
@@ -984,6 +1092,30 @@ mod tests {
         let port = scripted_server(vec![(b"AUTH", b"-WRONGPASS invalid password\r\n")]);
         let fault = raw_mget(port, &raw_target(Some("s3cret"), 0), &keys).unwrap_err();
         assert!(fault.message.contains("WRONGPASS") && !fault.message.contains("s3cret"), "{}", fault.message);
+    }
+
+    #[test]
+    fn a_streamed_value_cut_short_is_one_warning_then_misses() {
+        let port = scripted_server(vec![(b"\r\n\r\n", b"HTTP/1.1 200 OK\r\nContent-Length: 100\r\n\r\nKILN")]);
+        let remote = Remote::open(&options(&format!("http://u:s3cret@127.0.0.1:{port}/kiln"), None)).unwrap();
+        assert!(remote.streams());
+        let got = Mutex::new(Vec::new());
+        let each = |i: usize, body: Option<&mut dyn std::io::Read>| {
+            let read = body.map(|b| {
+                let mut v = Vec::new();
+                let _ = b.read_to_end(&mut v);
+                v
+            });
+            got.lock().unwrap().push((i, read));
+        };
+        remote.get_streamed(&[Key([1; 32])], each);
+        // Its 4 bytes (then the value ends early), one warning; the store is off after it.
+        assert_eq!(got.lock().unwrap().drain(..).collect::<Vec<_>>(), vec![(0, Some(b"KILN".to_vec()))]);
+        let warning = remote.take_warning().expect("one warning");
+        assert!(warning.contains("truncated") && !warning.contains("s3cret"), "{warning}");
+        remote.get_streamed(&[Key([2; 32])], each);
+        assert_eq!(got.into_inner().unwrap(), vec![(0, None)]);
+        assert_eq!((remote.stats().errors, remote.take_warning()), (1, None));
     }
 
     #[test]

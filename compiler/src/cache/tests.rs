@@ -433,3 +433,106 @@ fn a_remote_value_is_checked_whole_and_bound_to_its_key() {
         assert!(remote_entry(&a, &bad).is_err(), "byte {at} flipped");
     }
 }
+
+#[test]
+fn a_bundle_cuts_its_sorted_keys_by_content_and_names_each_part_by_its_keys() {
+    let keys: Vec<Key> = (0..3000).map(|i| key(&format!("k{i}"))).collect();
+    let b = bundle::Bundle::new(&keys);
+    let n = b.ids().len();
+    assert!((4..40).contains(&n), "{n} parts of 3,000 keys (256 on average)");
+    let parts: Vec<Key> = (0..n).flat_map(|i| b.part(i).to_vec()).collect();
+    let mut sorted = keys.clone();
+    sorted.sort();
+    assert_eq!(parts, sorted, "every key once, in order");
+    for i in 0..n {
+        let part = b.part(i);
+        let last = part[part.len() - 1];
+        assert!(part.len() <= bundle::MAX_PART_KEYS);
+        assert!(i == n - 1 || last.0[31] == 0 || part.len() == bundle::MAX_PART_KEYS, "cut after a key ending in 0");
+        assert!(part[..part.len() - 1].iter().all(|k| k.0[31] != 0), "and only there");
+    }
+    // The order keys come in does not matter, nor do duplicates.
+    let mut shuffled: Vec<Key> = keys.iter().rev().copied().collect();
+    shuffled.push(keys[7]);
+    assert_eq!(bundle::Bundle::new(&shuffled).ids(), b.ids());
+    // One key less changes its own part only (or two, when it ended one).
+    let fewer = bundle::Bundle::new(&keys[1..]);
+    let changed = b.ids().iter().filter(|id| !fewer.ids().contains(id)).count();
+    assert!((1..=2).contains(&changed), "{changed} parts changed");
+    // A part never longer than its maximum: keys that never end one.
+    let unending: Vec<Key> = (0..2100u32)
+        .map(|i| {
+            let mut k = [1u8; 32];
+            k[..4].copy_from_slice(&i.to_be_bytes());
+            Key(k)
+        })
+        .collect();
+    let long = bundle::Bundle::new(&unending);
+    assert_eq!((0..3).map(|i| long.part(i).len()).collect::<Vec<_>>(), vec![1024, 1024, 52]);
+    assert!(bundle::Bundle::new(&[]).ids().is_empty());
+}
+
+/// A part of `n` keys (sorted) and the entry of each.
+fn part_of(n: usize) -> (Vec<Key>, Vec<Vec<u8>>, Vec<u8>) {
+    let mut keys: Vec<Key> = (0..n).map(|i| key(&format!("part {i}"))).collect();
+    keys.sort();
+    let entries: Vec<Vec<u8>> = keys.iter().enumerate().map(|(i, k)| encode(k, &compiled(i as u8))).collect();
+    let size = bundle::part_overhead(n) + entries.iter().map(Vec::len).sum::<usize>();
+    let value = bundle::encode_part(&keys, size, |k, out| {
+        out.extend_from_slice(&entries[keys.iter().position(|x| x == k).unwrap()]);
+        true
+    });
+    assert_eq!(value.as_ref().map(Vec::len), Some(size), "the size given is the part's");
+    (keys, entries, value.unwrap())
+}
+
+fn read(value: &[u8], keys: &[Key]) -> (bool, Vec<(Key, Vec<u8>)>) {
+    let mut got = Vec::new();
+    let mut buffer = Vec::new();
+    let whole = bundle::read_part(&mut &value[..], keys, &mut buffer, |k, e| got.push((*k, e.to_vec())));
+    (whole, got)
+}
+
+#[test]
+fn a_bundle_part_reads_back_every_checked_entry() {
+    let (keys, entries, value) = part_of(5);
+    let (whole, got) = read(&value, &keys);
+    assert!(whole);
+    assert_eq!(got, keys.iter().copied().zip(entries.iter().cloned()).collect::<Vec<_>>());
+    // A writer lacking an entry writes no part.
+    assert!(bundle::encode_part(&keys, 0, |k, out| {
+        out.extend_from_slice(&entries[0]);
+        *k != keys[2]
+    })
+    .is_none());
+}
+
+#[test]
+fn a_damaged_truncated_or_foreign_part_gives_only_checked_entries_and_is_not_whole() {
+    let (keys, entries, value) = part_of(4);
+    let record = |i: usize| 8 + (0..i).map(|j| 40 + REMOTE_HEADER + entries[j].len()).sum::<usize>();
+    // A byte of the third entry flipped: the others, not that one.
+    let mut bad = value.clone();
+    bad[record(2) + 40 + REMOTE_HEADER + 100] ^= 1;
+    let (whole, got) = read(&bad, &keys);
+    assert!(!whole);
+    assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), vec![keys[0], keys[1], keys[3]]);
+    // Cut inside the third record, or just after the second: the first two.
+    for cut in [record(2) + 60, record(2)] {
+        let (whole, got) = read(&value[..cut], &keys);
+        assert!(!whole, "cut at {cut}");
+        assert_eq!(got.len(), 2, "cut at {cut}");
+    }
+    // A length that runs past the end: nothing more.
+    let mut long = value.clone();
+    long[record(3) + 32..record(3) + 40].copy_from_slice(&u64::MAX.to_le_bytes());
+    assert_eq!(read(&long, &keys), (false, read(&value[..record(3)], &keys).1));
+    // Another part's keys, or no part at all: nothing.
+    assert_eq!(read(&value, &keys[1..]), (false, vec![]));
+    assert_eq!(read(b"<html>not found</html>", &keys), (false, vec![]));
+    // A record left out (the rest in order) still gives the others.
+    let without = [&value[..record(1)], &value[record(2)..]].concat();
+    let (whole, got) = read(&without, &keys);
+    assert!(!whole);
+    assert_eq!(got.len(), 3);
+}
