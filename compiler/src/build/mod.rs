@@ -165,6 +165,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
+    compiler.end_early();
     preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t);
     release_freed();

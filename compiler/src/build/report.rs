@@ -9,7 +9,7 @@ use std::time::Instant;
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::assemble::Written;
-use super::compile::{self, Compiler, Outcome};
+use super::compile::{self, Compiler, Outcome, Outcomes};
 use super::plan::{Keys, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::{Error, Options};
@@ -197,25 +197,23 @@ impl<'o> Builder<'o> {
         preprocessor: &Preprocessor<'_>,
         compiler: &Compiler<'_>,
         keys: &Keys,
-        outcomes: Vec<Outcome>,
+        outcomes: Outcomes,
         pre: &Preprocessed,
     ) {
         let stats = &mut self.report.stats;
         stats.seconds.compile = compiler.first_start().map_or(0.0, |t| t.elapsed().as_secs_f64());
         stats.shared_modules = compiler.shared_modules();
-        for ((key, members), outcome) in keys.iter().zip(outcomes) {
+        stats.cache_hits += outcomes.hits;
+        stats.other_shards += outcomes.elsewhere;
+        stats.compiled += outcomes.compiled;
+        for (k, outcome) in outcomes.notable {
             match outcome {
-                Outcome::Hit => stats.cache_hits += 1,
-                Outcome::Elsewhere => stats.other_shards += 1,
-                Outcome::Compiled(w) => {
-                    stats.compiled += 1;
-                    self.report.warnings.extend(w);
-                }
+                Outcome::Hit | Outcome::Elsewhere => {}
+                Outcome::Compiled(w) => self.report.warnings.extend(w),
                 Outcome::Failed(failed) => {
                     let (e, w) = *failed;
-                    stats.compiled += 1;
                     self.report.warnings.extend(w);
-                    self.failures.extend(compile::failures(plan, preprocessor, pre, key, members, &e));
+                    self.failures.extend(compile::failures(plan, preprocessor, pre, keys.key(k), keys.members(k), &e));
                 }
             }
         }
