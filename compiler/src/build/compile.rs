@@ -290,7 +290,7 @@ pub(super) fn failures(
     let rep = representative(preprocessor, &plan.permutation(first), key);
     let mut out = Vec::new();
     for m in members.iter().map(|&m| m as usize) {
-        if pre.row(m).is_none() {
+        if pre.key(m).is_none() {
             continue;
         }
         let p = plan.permutation(m);

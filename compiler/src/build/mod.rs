@@ -167,14 +167,14 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
     compiler.end_early();
     preprocessor.release_reuse();
-    report.preprocessed(&plan, &preprocessor, &pre, t);
+    report.preprocessed(&plan, &preprocessor, &pre, t)?;
     release_freed();
     trace_memory("preprocess");
     outputs::check_aliases(
         &outputs::output_files(options),
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
-    let keys = plan.group(&pre);
+    let keys = plan.group(&pre)?;
     report.grouped(&plan, &pre, &keys);
     // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
     // 100k permutations).

@@ -283,28 +283,29 @@ impl<'c> Plan<'c> {
 
     /// The distinct keys in order of first appearance, each with its permutations, and the
     /// keys this process must produce.
-    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Keys<'p> {
+    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Result<Keys<'p>, Error> {
         // Each permutation's key number, by first appearance; then the members of each key,
         // one after another (counting sort). Keys are found equal by sorting the rows (the
         // distinct results, about one per key) by key: 12 bytes a row, where a map from key to
         // number took about 50 a permutation.
-        let rows = pre.rows();
-        let mut order: Vec<u32> = (0..rows.len() as u32).collect();
-        order.sort_unstable_by(|&a, &b| rows[a as usize].key.cmp(&rows[b as usize].key));
+        let rows = pre.row_count();
+        let key = |r: u32| pre.row_key(r as usize);
+        let mut order: Vec<u32> = (0..rows as u32).collect();
+        order.sort_unstable_by(|&a, &b| key(a).cmp(key(b)));
         // Each row's representative: the first row of its key in `order`.
-        let mut same = vec![0u32; rows.len()];
+        let mut same = vec![0u32; rows];
         let mut distinct = 0;
         for (k, &r) in order.iter().enumerate() {
             let first = match k {
                 0 => r,
-                _ if rows[order[k - 1] as usize].key != rows[r as usize].key => r,
+                _ if key(order[k - 1]) != key(r) => r,
                 _ => same[order[k - 1] as usize],
             };
             distinct += usize::from(first == r);
             same[r as usize] = first;
         }
         drop(order);
-        let mut number = vec![u32::MAX; rows.len()];
+        let mut number = vec![u32::MAX; rows];
         let mut count = 0;
         let of: Vec<u32> = (0..self.len)
             .map(|i| match pre.row_number(i) {
@@ -344,19 +345,25 @@ impl<'c> Plan<'c> {
         keys.share = match self.options.shard {
             None => vec![true; keys.len()],
             Some(shard) => {
+                // Each row's text length, read again (the rows' keys alone are held).
+                let mut text_lens = Vec::with_capacity(rows);
+                pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
                 let costs: Vec<u64> = (0..keys.len())
                     .map(|k| {
                         let members = keys.members(k);
                         let (_, level) = self.shader_level(members[0] as usize);
-                        let len =
-                            members.iter().filter_map(|&m| pre.row(m as usize)).map(|r| u64::from(r.text_len)).max();
+                        let len = members
+                            .iter()
+                            .filter_map(|&m| pre.row_number(m as usize))
+                            .map(|r| u64::from(text_lens[r]))
+                            .max();
                         len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
                     })
                     .collect();
                 assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
             }
         };
-        keys
+        Ok(keys)
     }
 }
 
