@@ -183,8 +183,13 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
 
     if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
         progress.finish();
+        let distinct = keys.len();
+        drop(keys);
+        // The cache's index (read to find every key there) goes before the records are made.
+        report.warnings(store.finish());
+        release_freed();
         preprocessor.save_records(store, &pre);
-        return report.up_to_date(keys.len(), counts);
+        return report.up_to_date(distinct, counts);
     }
     if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
         progress.finish();
