@@ -165,22 +165,31 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
+    compiler.end_early();
     preprocessor.release_reuse();
-    report.preprocessed(&plan, &preprocessor, &pre, t);
+    report.preprocessed(&plan, &preprocessor, &pre, t)?;
     release_freed();
     trace_memory("preprocess");
     outputs::check_aliases(
         &outputs::output_files(options),
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
-    let keys = plan.group(&pre);
+    let keys = plan.group(&pre)?;
     report.grouped(&plan, &pre, &keys);
+    // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
+    // 100k permutations).
+    release_freed();
     trace_memory("group");
 
     if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
         progress.finish();
+        let distinct = keys.len();
+        drop(keys);
+        // The cache's index (read to find every key there) goes before the records are made.
+        report.warnings(store.finish());
+        release_freed();
         preprocessor.save_records(store, &pre);
-        return report.up_to_date(keys.len(), counts);
+        return report.up_to_date(distinct, counts);
     }
     if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
         progress.finish();

@@ -178,6 +178,14 @@ impl<'c> Plan<'c> {
                     flat: domain.is_none(),
                 });
             }
+            if len >= u32::MAX as usize {
+                // Permutations are numbered in 4 bytes through the build.
+                return Err(Error::Config(format!(
+                    "error: {} keeps more than {} permutations: build it in parts (`--level`)",
+                    options.config.display(),
+                    u32::MAX - 1
+                )));
+            }
             let run = runs.last_mut().expect("pushed above");
             match domain.as_ref().filter(|_| !run.flat).and_then(|d| d.point(p.shader, &p.values)) {
                 Some(point) => points.push(point),
@@ -275,28 +283,29 @@ impl<'c> Plan<'c> {
 
     /// The distinct keys in order of first appearance, each with its permutations, and the
     /// keys this process must produce.
-    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Keys<'p> {
+    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Result<Keys<'p>, Error> {
         // Each permutation's key number, by first appearance; then the members of each key,
         // one after another (counting sort). Keys are found equal by sorting the rows (the
         // distinct results, about one per key) by key: 12 bytes a row, where a map from key to
         // number took about 50 a permutation.
-        let rows = pre.rows();
-        let mut order: Vec<u32> = (0..rows.len() as u32).collect();
-        order.sort_unstable_by(|&a, &b| rows[a as usize].key.cmp(&rows[b as usize].key));
+        let rows = pre.row_count();
+        let key = |r: u32| pre.row_key(r as usize);
+        let mut order: Vec<u32> = (0..rows as u32).collect();
+        order.sort_unstable_by(|&a, &b| key(a).cmp(key(b)));
         // Each row's representative: the first row of its key in `order`.
-        let mut same = vec![0u32; rows.len()];
+        let mut same = vec![0u32; rows];
         let mut distinct = 0;
         for (k, &r) in order.iter().enumerate() {
             let first = match k {
                 0 => r,
-                _ if rows[order[k - 1] as usize].key != rows[r as usize].key => r,
+                _ if key(order[k - 1]) != key(r) => r,
                 _ => same[order[k - 1] as usize],
             };
             distinct += usize::from(first == r);
             same[r as usize] = first;
         }
         drop(order);
-        let mut number = vec![u32::MAX; rows.len()];
+        let mut number = vec![u32::MAX; rows];
         let mut count = 0;
         let of: Vec<u32> = (0..self.len)
             .map(|i| match pre.row_number(i) {
@@ -313,37 +322,48 @@ impl<'c> Plan<'c> {
             .collect();
         debug_assert_eq!(count as usize, distinct);
         drop((same, number));
+        // Numbers of permutations, so below 2^32 ([`Plan::new`]): 4 bytes each, not 8.
         let count = count as usize;
-        let mut starts = vec![0usize; count + 1];
+        let mut starts = vec![0u32; count + 1];
         for &k in of.iter().filter(|&&k| k != u32::MAX) {
             starts[k as usize + 1] += 1;
         }
         for k in 0..count {
             starts[k + 1] += starts[k];
         }
-        let mut next = starts.clone();
-        let mut members = vec![0usize; starts[count]];
+        let mut members = vec![0u32; starts[count] as usize];
+        // Each key's next free place: its start, moved one on per member (no second table).
         for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
-            members[next[k as usize]] = i;
-            next[k as usize] += 1;
+            members[starts[k as usize] as usize] = i as u32;
+            starts[k as usize] += 1;
         }
-        drop((of, next));
+        drop(of);
+        // Each start was moved to the next key's: shift them back.
+        starts.copy_within(0..count, 1);
+        starts[0] = 0;
         let mut keys = Keys { pre, starts, members, share: Vec::new() };
         keys.share = match self.options.shard {
             None => vec![true; keys.len()],
             Some(shard) => {
+                // Each row's text length, read again (the rows' keys alone are held).
+                let mut text_lens = Vec::with_capacity(rows);
+                pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
                 let costs: Vec<u64> = (0..keys.len())
                     .map(|k| {
                         let members = keys.members(k);
-                        let (_, level) = self.shader_level(members[0]);
-                        let len = members.iter().filter_map(|&m| pre.row(m)).map(|r| u64::from(r.text_len)).max();
+                        let (_, level) = self.shader_level(members[0] as usize);
+                        let len = members
+                            .iter()
+                            .filter_map(|&m| pre.row_number(m as usize))
+                            .map(|r| u64::from(text_lens[r]))
+                            .max();
                         len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
                     })
                     .collect();
                 assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
             }
         };
-        keys
+        Ok(keys)
     }
 }
 
@@ -352,9 +372,9 @@ impl<'c> Plan<'c> {
 pub(super) struct Keys<'p> {
     pre: &'p Preprocessed,
     /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.
-    starts: Vec<usize>,
+    starts: Vec<u32>,
     /// Indices into the plan's kept permutations, ascending within each key.
-    members: Vec<usize>,
+    members: Vec<u32>,
     /// Whether each key is in this process's share (every key without `--shard`).
     pub share: Vec<bool>,
 }
@@ -366,7 +386,7 @@ impl Keys<'_> {
 
     /// Key `k`.
     pub fn key(&self, k: usize) -> &Key {
-        self.pre.key(self.members(k)[0]).expect("a key's members were preprocessed")
+        self.pre.key(self.members(k)[0] as usize).expect("a key's members were preprocessed")
     }
 
     /// Every key, in order, copied.
@@ -375,13 +395,8 @@ impl Keys<'_> {
     }
 
     /// The permutations of key `k`, ascending.
-    pub fn members(&self, k: usize) -> &[usize] {
-        &self.members[self.starts[k]..self.starts[k + 1]]
-    }
-
-    /// Each key with its permutations, in order.
-    pub fn iter(&self) -> impl Iterator<Item = (&Key, &[usize])> + '_ {
-        (0..self.len()).map(|k| (self.key(k), self.members(k)))
+    pub fn members(&self, k: usize) -> &[u32] {
+        &self.members[self.starts[k] as usize..self.starts[k + 1] as usize]
     }
 }
 

@@ -165,7 +165,7 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
 pub(super) fn encode(
     count: usize,
     row: impl Fn(usize) -> Option<(Key, Row)> + Sync,
-    all: &[Row],
+    all: impl Iterator<Item = Row>,
     interner: &Interner,
     root: &Path,
     old: Records,
@@ -364,7 +364,7 @@ mod tests {
 
     fn encode_all(rows: &[(Key, Row)], i: &Interner, root: &Path) -> Vec<u8> {
         let all: Vec<Row> = rows.iter().map(|r| r.1).collect();
-        encode(rows.len(), |n| Some(rows[n]), &all, i, root, Records::default()).unwrap()
+        encode(rows.len(), |n| Some(rows[n]), all.iter().copied(), i, root, Records::default()).unwrap()
     }
 
     #[test]

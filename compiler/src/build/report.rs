@@ -9,7 +9,7 @@ use std::time::Instant;
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::assemble::Written;
-use super::compile::{self, Compiler, Outcome};
+use super::compile::{self, Compiler, Outcome, Outcomes};
 use super::plan::{Keys, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::{Error, Options};
@@ -131,7 +131,13 @@ impl<'o> Builder<'o> {
     }
 
     /// Counts, warnings (each distinct one once), preprocessing failures, files read.
-    pub fn preprocessed(&mut self, plan: &Plan<'_>, preprocessor: &Preprocessor<'_>, pre: &Preprocessed, t: Instant) {
+    pub fn preprocessed(
+        &mut self,
+        plan: &Plan<'_>,
+        preprocessor: &Preprocessor<'_>,
+        pre: &Preprocessed,
+        t: Instant,
+    ) -> Result<(), Error> {
         let report = &mut self.report;
         report.stats.preprocessed = preprocessor.count();
         report.stats.seconds.preprocess = t.elapsed().as_secs_f64();
@@ -139,16 +145,19 @@ impl<'o> Builder<'o> {
         let (mut seen, mut warning_lists, mut file_lists) = (HashSet::new(), HashSet::new(), HashSet::new());
         let mut files = BTreeSet::new();
         files.insert(plan.config.path.clone());
-        for row in (0..pre.len()).filter_map(|i| pre.row(i)) {
-            if warning_lists.insert(row.warnings) {
-                for w in lists.warnings.get(row.warnings).iter() {
+        // Each row's lists (the rows' keys alone are held).
+        let mut row_lists = Vec::with_capacity(pre.row_count());
+        pre.each_row(|r| row_lists.push((r.warnings, r.files))).map_err(super::preprocess::read_back)?;
+        for (warnings, file_list) in (0..pre.len()).filter_map(|i| pre.row_number(i)).map(|r| row_lists[r]) {
+            if warning_lists.insert(warnings) {
+                for w in lists.warnings.get(warnings).iter() {
                     if seen.insert(w) {
                         report.warnings.push(w.clone());
                     }
                 }
             }
-            if file_lists.insert(row.files) {
-                files.extend(lists.files.get(row.files).iter().map(|(path, _)| path.clone()));
+            if file_lists.insert(file_list) {
+                files.extend(lists.files.get(file_list).iter().map(|(path, _)| path.clone()));
             }
         }
         for (i, d) in pre.errors() {
@@ -160,6 +169,7 @@ impl<'o> Builder<'o> {
         }
         files.retain(|f| !f.as_os_str().is_empty());
         report.files_read = files.into_iter().collect();
+        Ok(())
     }
 
     /// The distinct keys, and the dimensions that never change a shader's text.
@@ -197,25 +207,23 @@ impl<'o> Builder<'o> {
         preprocessor: &Preprocessor<'_>,
         compiler: &Compiler<'_>,
         keys: &Keys,
-        outcomes: Vec<Outcome>,
+        outcomes: Outcomes,
         pre: &Preprocessed,
     ) {
         let stats = &mut self.report.stats;
         stats.seconds.compile = compiler.first_start().map_or(0.0, |t| t.elapsed().as_secs_f64());
         stats.shared_modules = compiler.shared_modules();
-        for ((key, members), outcome) in keys.iter().zip(outcomes) {
+        stats.cache_hits += outcomes.hits;
+        stats.other_shards += outcomes.elsewhere;
+        stats.compiled += outcomes.compiled;
+        for (k, outcome) in outcomes.notable {
             match outcome {
-                Outcome::Hit => stats.cache_hits += 1,
-                Outcome::Elsewhere => stats.other_shards += 1,
-                Outcome::Compiled(w) => {
-                    stats.compiled += 1;
-                    self.report.warnings.extend(w);
-                }
+                Outcome::Hit | Outcome::Elsewhere => {}
+                Outcome::Compiled(w) => self.report.warnings.extend(w),
                 Outcome::Failed(failed) => {
                     let (e, w) = *failed;
-                    stats.compiled += 1;
                     self.report.warnings.extend(w);
-                    self.failures.extend(compile::failures(plan, preprocessor, pre, key, members, &e));
+                    self.failures.extend(compile::failures(plan, preprocessor, pre, keys.key(k), keys.members(k), &e));
                 }
             }
         }
