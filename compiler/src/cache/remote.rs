@@ -33,10 +33,10 @@ pub(super) const MAX_VALUE: u64 = 1 << 30;
 /// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
-/// HTTP connections used at once by [`Remote::get_each`] (each keep-alive, with a batch of
+/// Connections used at once by [`Remote::get_each`] (each keep-alive; with HTTP, a batch of
 /// pipelined requests in flight with plain HTTP, one request with HTTPS): enough to hide a
 /// round trip behind the others' transfers.
-const HTTP_STREAMS: usize = 4;
+const STREAMS: usize = 4;
 
 /// Whether a build writes what it compiles to the remote cache.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -292,21 +292,32 @@ impl Remote {
 
     /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
     /// once the store is off), from several threads, in no particular order: one round trip
-    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers); with HTTP,
-    /// [`HTTP_STREAMS`] connections, each with its own body buffer, asking for a batch of
-    /// pipelined `GET`s at a time (plain HTTP) or one key (HTTPS).
+    /// per [`BATCH`] keys with redis (`MGET`), on [`STREAMS`] connections, so that the
+    /// server answers one while the others' answers are checked and written (two, on the
+    /// build's workers, left it idle about half the time); with HTTP, [`STREAMS`]
+    /// connections, each with its own body buffer, asking for a batch of pipelined `GET`s at
+    /// a time (plain HTTP) or one key (HTTPS).
     pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
         match &self.store {
             Store::Redis(r) => {
-                use rayon::prelude::*;
-                keys.par_chunks(BATCH).for_each(|batch| {
-                    let values = if self.off.load(Ordering::Relaxed) {
-                        None
-                    } else {
-                        self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
-                    };
-                    let mut values = values.into_iter().flatten();
-                    batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
+                let next = std::sync::atomic::AtomicUsize::new(0);
+                std::thread::scope(|s| {
+                    for _ in 0..STREAMS.min(keys.len().div_ceil(BATCH)) {
+                        s.spawn(|| loop {
+                            let at = next.fetch_add(BATCH, Ordering::Relaxed).min(keys.len());
+                            let batch = &keys[at..(at + BATCH).min(keys.len())];
+                            if batch.is_empty() {
+                                break;
+                            }
+                            let values = if self.off.load(Ordering::Relaxed) {
+                                None
+                            } else {
+                                self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
+                            };
+                            let mut values = values.into_iter().flatten();
+                            batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
+                        });
+                    }
                 });
             }
             Store::Http(h) => {
@@ -314,7 +325,7 @@ impl Remote {
                 let batch = if h.pipeline.is_some() { super::pipeline::BATCH } else { 1 };
                 let next = std::sync::atomic::AtomicUsize::new(0);
                 std::thread::scope(|s| {
-                    for _ in 0..HTTP_STREAMS.min(keys.len().div_ceil(batch)) {
+                    for _ in 0..STREAMS.min(keys.len().div_ceil(batch)) {
                         s.spawn(|| {
                             let mut value = Vec::new();
                             loop {
@@ -373,7 +384,7 @@ impl Remote {
 
     /// Calls `f` with the index of each of `keys` and a reader of the value stored under it
     /// as it arrives (`None` for a miss, once the store is off, and without
-    /// [`Remote::streams`]), on [`HTTP_STREAMS`] connections, one request at a time on each,
+    /// [`Remote::streams`]), on [`STREAMS`] connections, one request at a time on each,
     /// in no particular order. A connection that fails while `f` reads makes `f`'s reads
     /// fail (a truncated value), then turns the store off.
     pub(crate) fn get_streamed(&self, keys: &[Key], f: impl Fn(usize, Option<&mut dyn std::io::Read>) + Sync) {
@@ -383,7 +394,7 @@ impl Remote {
         };
         let next = std::sync::atomic::AtomicUsize::new(0);
         std::thread::scope(|s| {
-            for _ in 0..HTTP_STREAMS.min(keys.len()) {
+            for _ in 0..STREAMS.min(keys.len()) {
                 s.spawn(|| loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(key) = keys.get(i) else { break };
@@ -799,7 +810,7 @@ impl HttpStore {
             .timeout_per_read(Some(options.timeout))
             .timeout_per_write(Some(options.timeout))
             .timeout_per_call(Some(options.timeout * 20))
-            .max_idle_connections_per_host(HTTP_STREAMS)
+            .max_idle_connections_per_host(STREAMS)
             .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")));
         #[cfg(feature = "https")]
         let config = match std::env::var_os("KILN_REMOTE_CACHE_CA").filter(|p| !p.is_empty()) {
