@@ -303,19 +303,31 @@ impl Remote {
                 let next = std::sync::atomic::AtomicUsize::new(0);
                 std::thread::scope(|s| {
                     for _ in 0..STREAMS.min(keys.len().div_ceil(BATCH)) {
-                        s.spawn(|| loop {
-                            let at = next.fetch_add(BATCH, Ordering::Relaxed).min(keys.len());
-                            let batch = &keys[at..(at + BATCH).min(keys.len())];
-                            if batch.is_empty() {
-                                break;
+                        s.spawn(|| {
+                            let mut value = Vec::new();
+                            loop {
+                                let at = next.fetch_add(BATCH, Ordering::Relaxed).min(keys.len());
+                                let batch = &keys[at..(at + BATCH).min(keys.len())];
+                                if batch.is_empty() {
+                                    break;
+                                }
+                                // Each value handed on as it arrives; after a failure, the keys
+                                // not answered yet are asked again once (an idle connection the
+                                // server closed), then are misses.
+                                let done = std::cell::Cell::new(0);
+                                if !self.off.load(Ordering::Relaxed) {
+                                    let mut each = |key: &Key, v: Option<&[u8]>| {
+                                        f(key, v);
+                                        done.set(done.get() + 1);
+                                    };
+                                    if let Err(fault) =
+                                        self.retry(|| r.get_many(&batch[done.get()..], &mut value, &mut each))
+                                    {
+                                        self.fail("reading from", fault);
+                                    }
+                                }
+                                batch[done.get()..].iter().for_each(|key| f(key, None));
                             }
-                            let values = if self.off.load(Ordering::Relaxed) {
-                                None
-                            } else {
-                                self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
-                            };
-                            let mut values = values.into_iter().flatten();
-                            batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
                         });
                     }
                 });
@@ -588,7 +600,12 @@ impl RedisStore {
 
     /// One `MGET` of every key: over a [`RawRedis`] connection when the server is reached
     /// over plain TCP, else through the `redis` crate.
-    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+    /// `f` with each key and its value (`value` is the buffer of [`RawRedis::mget`]); an
+    /// error leaves the keys after those `f` had unanswered.
+    fn get_many(&self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
+        if keys.is_empty() {
+            return Ok(());
+        }
         if let Some(address) = &self.raw.address {
             let idle = self.raw_idle.lock().expect("no panics while locked").pop();
             let mut connection = match idle {
@@ -596,9 +613,9 @@ impl RedisStore {
                 None => RawRedis::connect(address, &self.raw, self.timeout)?,
             };
             // A connection that failed is dropped (its reply may be half read).
-            let values = connection.mget(keys)?;
+            connection.mget(keys, value, f)?;
             self.raw_idle.lock().expect("no panics while locked").push(connection);
-            return Ok(values);
+            return Ok(());
         }
         let mut cmd = redis::cmd("MGET");
         for key in keys {
@@ -609,7 +626,8 @@ impl RedisStore {
             let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
             return Err(Fault { message, timed_out: false });
         }
-        Ok(values)
+        keys.iter().zip(&values).for_each(|(key, v)| f(key, v.as_deref()));
+        Ok(())
     }
 }
 
@@ -721,7 +739,10 @@ impl RawRedis {
         }
     }
 
-    fn mget(&mut self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+    /// One `MGET` of `keys`: `f` with each key and its value as the reply arrives (read into
+    /// `value` one at a time, not gathered); an error leaves the keys after those `f` had
+    /// unanswered.
+    fn mget(&mut self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
         use std::io::Read;
         let names: Vec<String> = keys.iter().map(RedisStore::name).collect();
         let mut args: Vec<&[u8]> = Vec::with_capacity(keys.len() + 1);
@@ -733,29 +754,28 @@ impl RawRedis {
             let message = format!("MGET of {} keys answered {count} values", keys.len());
             return Err(Fault { message, timed_out: false });
         }
-        let mut values = Vec::with_capacity(keys.len());
-        for _ in keys {
+        for key in keys {
             let len = self.header(b'$')?;
             if len < 0 {
-                values.push(None);
+                f(key, None);
                 continue;
             }
             if len as u64 > MAX_VALUE {
                 return Err(Self::protocol("a value over 1 GiB"));
             }
-            // Read into spare capacity (not zeroed first); an early end is a truncated value.
-            let mut value = Vec::with_capacity(len as usize + 2);
-            (&mut self.reader).take(len as u64 + 2).read_to_end(&mut value).map_err(Self::io_fault)?;
+            // Read into spare capacity (not zeroed first; the buffer's pages are reused from
+            // value to value); an early end is a truncated value.
+            value.clear();
+            (&mut self.reader).take(len as u64 + 2).read_to_end(value).map_err(Self::io_fault)?;
             if value.len() != len as usize + 2 {
                 return Err(Self::protocol("a truncated value"));
             }
             if !value.ends_with(b"\r\n") {
                 return Err(Self::protocol("a bulk string without its CRLF"));
             }
-            value.truncate(len as usize);
-            values.push(Some(value));
+            f(key, Some(&value[..len as usize]));
         }
-        Ok(values)
+        Ok(())
     }
 }
 
@@ -1070,7 +1090,9 @@ mod tests {
 
     fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
         let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
-        c.mget(keys)
+        let mut values = Vec::new();
+        c.mget(keys, &mut Vec::new(), &mut |_, v| values.push(v.map(<[u8]>::to_vec)))?;
+        Ok(values)
     }
 
     #[test]
