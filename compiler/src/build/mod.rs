@@ -164,16 +164,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
     let t = Instant::now();
-    // The entries of the last build's keys come from the remote cache while the
-    // permutations are matched to their records (a fresh local cache; nothing to do else).
-    // Not for a shard, which fetches its share only.
-    let recorded = if options.shard.is_none() { preprocessor.recorded_keys() } else { Vec::new() };
-    let (pre, ()) = rayon::join(
-        || preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output)),
-        || store.prefetch(&recorded),
-    );
-    drop(recorded);
-    let pre = pre?;
+    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
     preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t);
     release_freed();

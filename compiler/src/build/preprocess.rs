@@ -127,17 +127,6 @@ impl<'p> Preprocessor<'p> {
         }
     }
 
-    /// The keys of the last build's records (sorted, each once): this build's keys when no
-    /// source changed, known before preprocessing (a warm-remote build fetches their entries
-    /// meanwhile).
-    pub fn recorded_keys(&self) -> Vec<crate::cache::Key> {
-        let Some(r) = &self.records else { return Vec::new() };
-        let mut keys: Vec<_> = r.old.iter().map(|(_, row)| row.key).collect();
-        keys.sort_unstable();
-        keys.dedup();
-        keys
-    }
-
     /// Permutations run through the preprocessor (the others matched a record or reused).
     pub fn count(&self) -> usize {
         self.preprocessed.load(Ordering::Relaxed)

@@ -279,9 +279,6 @@ struct Layer {
     /// when read (`None`: not read), kept for [`Cache::put_bundle`] while a part is not
     /// known whole and this build writes.
     bundle: Mutex<Option<(bundle::Bundle, Vec<Option<bool>>)>>,
-    /// The parts (ids) of the bundle of the last fill that fetched something: a later fill of
-    /// the same keys (a build's fill after its prefetch) leaves that fill's findings.
-    decided: Mutex<Vec<Key>>,
 }
 
 impl Cache {
@@ -318,7 +315,6 @@ impl Cache {
             fills: Mutex::default(),
             absent: Mutex::default(),
             bundle: Mutex::default(),
-            decided: Mutex::default(),
         }));
         self
     }
@@ -464,15 +460,8 @@ impl Cache {
         let bundle = (layer.remote.streams() && keys.len() >= bundle::MIN_KEYS).then(|| bundle::Bundle::new(keys));
         let mut parts = vec![None; bundle.as_ref().map_or(0, |b| b.ids().len())];
         if missing.is_empty() {
-            let same =
-                bundle.as_ref().is_some_and(|b| *layer.decided.lock().expect("no panics while locked") == b.ids());
-            if !same {
-                self.keep_bundle(layer, bundle, parts);
-            }
+            self.keep_bundle(layer, bundle, parts);
             return complete.into_inner();
-        }
-        if let Some(b) = &bundle {
-            *layer.decided.lock().expect("no panics while locked") = b.ids().to_vec();
         }
         // Room for every key asked; failing to fill only costs a remote lookup next time.
         let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
