@@ -175,13 +175,22 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
     let keys = plan.group(&pre)?;
-    report.grouped(&plan, &pre, &keys);
+    // The dead dimensions are found beside the archive's up-to-date check and, when that
+    // fails, the remote archive's fetch (neither changes the failures).
+    let failed = report.failed();
+    let (_, fresh) = rayon::join(
+        || report.grouped(&plan, &pre, &keys),
+        || match assembler.up_to_date(store, &pre, &keys, failed) {
+            Some(counts) => Some((counts, false)),
+            None => assembler.from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
+        },
+    );
     // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
     // 100k permutations).
     release_freed();
     trace_memory("group");
 
-    if let Some(counts) = assembler.up_to_date(store, &pre, &keys, report.failed()) {
+    if let Some((counts, from_remote)) = fresh {
         progress.finish();
         let distinct = keys.len();
         drop(keys);
@@ -189,14 +198,10 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         report.warnings(store.finish());
         release_freed();
         preprocessor.save_records(store, &pre);
+        if from_remote {
+            report.remote(store.remote_stats());
+        }
         return report.up_to_date(distinct, counts);
-    }
-    if let Some(counts) = assembler.from_remote(store, &pre, &keys, report.failed()) {
-        progress.finish();
-        report.warnings(store.finish());
-        preprocessor.save_records(store, &pre);
-        report.remote(store.remote_stats());
-        return report.up_to_date(keys.len(), counts);
     }
     if options.shard.is_some() {
         // A shard's share comes from the remote cache in batches, not key by key.

@@ -141,6 +141,8 @@ struct RecordSet {
     root: PathBuf,
     base: blake3::Hash,
     old: Records,
+    /// Permutations that matched one of `old`'s records.
+    matched: AtomicUsize,
 }
 
 impl<'p> Preprocessor<'p> {
@@ -154,6 +156,7 @@ impl<'p> Preprocessor<'p> {
                 key,
                 root,
                 base: direct_base(plan.config),
+                matched: AtomicUsize::new(0),
             }
         });
         Preprocessor {
@@ -245,6 +248,11 @@ impl<'p> Preprocessor<'p> {
     /// records' bytes (84 per permutation) are the largest transient of a build.
     pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
         let Some(r) = self.records.take() else { return };
+        // Every permutation matched one of the old records and there are no others: they are
+        // the old records (a warm build's case: no direct key hashed again to find it).
+        if r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len() {
+            return;
+        }
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (36 bytes a permutation at its peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
@@ -276,6 +284,7 @@ impl<'p> Preprocessor<'p> {
         if let Some(records) = &self.records {
             let dk = direct_key(&records.base, p, &self.plan.options.targets);
             if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(row)) {
+                records.matched.fetch_add(1, Ordering::Relaxed);
                 return Ok(self.push(*row));
             }
         }

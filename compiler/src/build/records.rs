@@ -72,7 +72,6 @@ impl Records {
         self.rows.iter().map(|(k, r)| (k, r))
     }
 
-    #[cfg(test)]
     pub fn len(&self) -> usize {
         self.rows.len()
     }

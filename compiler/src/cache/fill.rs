@@ -5,33 +5,41 @@ use std::io;
 use std::os::unix::fs::{FileExt, OpenOptionsExt};
 use std::os::unix::io::AsRawFd;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 
 /// A pack written entry by entry as checked remote entries arrive, so that a fill holds at
-/// most a [`CHUNK`] of entries in memory: room for `capacity` index rows is left after the
-/// header, the entries follow from the next page on, gathered into page-aligned chunks
+/// most a few [`CHUNK`]s of entries in memory: room for `capacity` index rows is left after
+/// the header, the entries follow from the next page on, gathered into page-aligned chunks
 /// written whole, and the header and rows are written last. Rows left unused (keys the
-/// remote lacked) stay a hole between the index and the first entry, which readers never
-/// look at (rows give absolute offsets). The file is a temporary one of the cache
-/// folder (named as [`crate::output`] names them, after a pack, and locked while written, so
-/// that a writer that dies leaves a file the next `open`, `gc` or `clear` removes) and is
-/// renamed, named by its content, once whole. Several threads push at once: each copies its
-/// entry into the chunk under a lock, and the thread that fills a chunk writes it outside
-/// the lock.
+/// remote lacked) stay a hole between the index and the first entry, and each chunk starts
+/// on a page: readers never look between entries (rows give absolute offsets). The file is
+/// a temporary one of the cache folder (named as [`crate::output`] names them, after a
+/// pack, and locked while written, so that a writer that dies leaves a file the next
+/// `open`, `gc` or `clear` removes) and is renamed, named by its content, once whole.
+/// Several threads push at once: each copies its entry into one of [`SLOTS`] chunks (the
+/// first free one), so that the copies run side by side; the thread that fills a chunk
+/// takes its place in the file and its rows under one short lock and writes it outside.
 /// Entries are written in chunks of at least this size, page-aligned: ext4 takes 130 MB of
 /// entry-sized writes (17 KB, across pages) for about 57 ms of system time, of 1 MiB
 /// aligned ones for about 20 ms (a third of a warm-remote build's CPU was these writes).
 const CHUNK: usize = 1 << 20;
 const PAGE: u64 = 4096;
+/// Chunks filled at once (one copy each; a fill runs on 4 connections).
+const SLOTS: usize = 4;
 
 pub(super) struct FillPack {
     dir: PathBuf,
     tmp: PathBuf,
     file: fs::File,
     capacity: usize,
+    /// Entries taken (at most `capacity`).
+    taken: AtomicUsize,
+    slots: [Mutex<Slot>; SLOTS],
+    /// The next slot to try first.
+    next: AtomicUsize,
     rows: Mutex<Rows>,
     /// Chunk buffers written and free for reuse (a fresh buffer per chunk would fault in
     /// every page of the fill once more).
@@ -42,21 +50,25 @@ pub(super) struct FillPack {
     finished: bool,
 }
 
+/// A chunk being filled: its entries' bytes, and each one's key, length and checksum.
+#[derive(Default)]
+struct Slot {
+    bytes: Vec<u8>,
+    entries: Vec<(Key, u64, [u8; 32])>,
+}
+
 struct Rows {
     rows: Vec<u8>,
-    /// Where the next entry goes.
+    /// Where the next chunk goes (page-aligned).
     offset: u64,
     /// The entries' checksums, for the pack's name.
     checksums: blake3::Hasher,
-    /// Entry bytes not written yet, which go at `pending_at` (page-aligned).
-    pending: Vec<u8>,
-    pending_at: u64,
 }
 
 impl FillPack {
     /// A new pack in `dir` with room for `capacity` entries.
     pub fn create(dir: &Path, capacity: usize) -> io::Result<FillPack> {
-        use std::sync::atomic::{AtomicU64, Ordering};
+        use std::sync::atomic::AtomicU64;
         static COUNTER: AtomicU64 = AtomicU64::new(0);
         let nanos =
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
@@ -75,12 +87,13 @@ impl FillPack {
             tmp,
             file,
             capacity,
+            taken: AtomicUsize::new(0),
+            slots: Default::default(),
+            next: AtomicUsize::new(0),
             rows: Mutex::new(Rows {
                 rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
                 offset: first,
                 checksums: blake3::Hasher::new(),
-                pending: Vec::new(),
-                pending_at: first,
             }),
             spare: Mutex::default(),
             failed: AtomicBool::new(false),
@@ -88,8 +101,9 @@ impl FillPack {
         })
     }
 
+    /// Entries taken so far.
     pub fn len(&self) -> usize {
-        self.rows.lock().expect("no panics while locked").rows.len() / ROW
+        self.taken.load(Ordering::Relaxed).min(self.capacity)
     }
 
     pub fn is_full(&self) -> bool {
@@ -99,40 +113,50 @@ impl FillPack {
     /// Adds the checked entry `bytes` of `key`, written with its chunk. An error when the
     /// pack is full or a write fails (then the pack is not finished).
     pub fn push(&self, key: &Key, bytes: &[u8]) -> io::Result<()> {
-        let (chunk, at) = {
+        if bytes.len() < 40 || self.taken.fetch_add(1, Ordering::Relaxed) >= self.capacity {
+            return Err(io::Error::other("the fill pack is full"));
+        }
+        // The first free slot from a rotating start; else wait on that one.
+        let start = self.next.fetch_add(1, Ordering::Relaxed);
+        let mut slot = (0..SLOTS)
+            .find_map(|i| self.slots[(start + i) % SLOTS].try_lock().ok())
+            .unwrap_or_else(|| self.slots[start % SLOTS].lock().expect("no panics while locked"));
+        if slot.bytes.capacity() == 0 {
+            slot.bytes = self.spare.lock().expect("no panics while locked").pop().unwrap_or_default();
+            slot.bytes.reserve(CHUNK + bytes.len());
+        }
+        slot.entries.push((*key, bytes.len() as u64, bytes[8..40].try_into().expect("32 bytes")));
+        slot.bytes.extend_from_slice(bytes);
+        if slot.bytes.len() < CHUNK {
+            return Ok(());
+        }
+        let full = std::mem::take(&mut *slot);
+        drop(slot);
+        self.place(full)
+    }
+
+    /// Gives the entries of `slot` their place in the file and their rows, and writes them.
+    fn place(&self, mut slot: Slot) -> io::Result<()> {
+        if slot.entries.is_empty() {
+            return Ok(());
+        }
+        let at = {
             let mut r = self.rows.lock().expect("no panics while locked");
-            if r.rows.len() / ROW >= self.capacity || bytes.len() < 40 {
-                return Err(io::Error::other("the fill pack is full"));
+            let at = r.offset;
+            let mut offset = at;
+            for (key, len, checksum) in &slot.entries {
+                r.rows.extend_from_slice(&key.0);
+                r.rows.extend_from_slice(&offset.to_le_bytes());
+                r.rows.extend_from_slice(&len.to_le_bytes());
+                r.checksums.update(checksum);
+                offset += len;
             }
-            let offset = r.offset;
-            r.rows.extend_from_slice(&key.0);
-            r.rows.extend_from_slice(&offset.to_le_bytes());
-            r.rows.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
-            r.checksums.update(&bytes[8..40]);
-            r.offset += bytes.len() as u64;
-            if r.pending.capacity() == 0 {
-                r.pending = self.spare.lock().expect("no panics while locked").pop().unwrap_or_default();
-                r.pending.reserve(CHUNK + bytes.len());
-            }
-            r.pending.extend_from_slice(bytes);
-            if r.pending.len() < CHUNK {
-                return Ok(());
-            }
-            // Whole pages go now; the rest starts the next chunk.
-            let whole = r.pending.len() / PAGE as usize * PAGE as usize;
-            let mut next = self.spare.lock().expect("no panics while locked").pop().unwrap_or_default();
-            next.reserve(CHUNK + bytes.len());
-            next.extend_from_slice(&r.pending[whole..]);
-            let mut chunk = std::mem::replace(&mut r.pending, next);
-            chunk.truncate(whole);
-            let at = r.pending_at;
-            r.pending_at += whole as u64;
-            (chunk, at)
+            r.offset = offset.div_ceil(PAGE) * PAGE;
+            at
         };
-        let written = self.write(&chunk, at);
-        let mut chunk = chunk;
-        chunk.clear();
-        self.spare.lock().expect("no panics while locked").push(chunk);
+        let written = self.write(&slot.bytes, at);
+        slot.bytes.clear();
+        self.spare.lock().expect("no panics while locked").push(slot.bytes);
         written
     }
 
@@ -154,6 +178,10 @@ impl FillPack {
     }
 
     fn write_index(&self) -> io::Result<Option<PathBuf>> {
+        for slot in &self.slots {
+            let rest = std::mem::take(&mut *slot.lock().expect("no panics while locked"));
+            self.place(rest)?;
+        }
         if self.failed.load(Ordering::Relaxed) {
             return Err(io::Error::other("an entry could not be written"));
         }
@@ -161,7 +189,6 @@ impl FillPack {
         if r.rows.is_empty() {
             return Ok(None);
         }
-        self.write(&r.pending, r.pending_at)?;
         let rows_hash = blake3::hash(&r.rows);
         let mut head = Vec::with_capacity(PACK_HEADER + r.rows.len());
         head.extend_from_slice(PACK_MAGIC);

@@ -785,15 +785,40 @@ impl Cache {
         self.write_file(&self.stamp_path(archive), text.as_bytes())
     }
 
+    /// [`Cache::stamp_archive`] for the archive `bytes` written to `file`, a temporary file
+    /// about to be renamed to `archive` (the rename keeps its length and modification
+    /// time): the stamp is written while the build still waits on other work. A stamp whose
+    /// file is not renamed after all matches no archive.
+    pub fn stamp_archive_file(
+        &self,
+        archive: &Path,
+        file: &fs::File,
+        bytes: &[u8],
+        fingerprint: &blake3::Hash,
+        counts: (usize, usize),
+    ) -> Result<(), Error> {
+        let err = |source| Error { path: archive.to_path_buf(), source };
+        let meta = file.metadata().map_err(err)?;
+        let id = identity(&meta, blake3::hash(bytes)).map_err(err)?;
+        let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
+        self.write_file(&self.stamp_path(archive), text.as_bytes())
+    }
+
     /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
-    /// build with `fingerprint`, and every key of `keys` still has its entry.
-    pub fn fresh_archive(&self, archive: &Path, fingerprint: &blake3::Hash, keys: &[Key]) -> Option<(usize, usize)> {
+    /// build with `fingerprint` (hashed only when there is a stamp), and every key of `keys`
+    /// still has its entry.
+    pub fn fresh_archive(
+        &self,
+        archive: &Path,
+        fingerprint: &dyn Fn() -> blake3::Hash,
+        keys: &[Key],
+    ) -> Option<(usize, usize)> {
         if !self.with_index(|index| keys.iter().all(|k| index.by_key.contains_key(k))) {
             return None;
         }
         let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
         let mut lines = text.lines();
-        if lines.next()? != fingerprint.to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
+        if lines.next()? != fingerprint().to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
             return None;
         }
         Some((lines.next()?.parse().ok()?, lines.next()?.parse().ok()?))
@@ -1029,10 +1054,15 @@ fn archive_identity(path: &Path) -> io::Result<String> {
     if !meta.is_file() {
         return Err(io::Error::other("not a regular file"));
     }
-    let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
     let mut hasher = blake3::Hasher::new();
     hasher.update_reader(&mut f)?;
-    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), hasher.finalize().to_hex()))
+    identity(&meta, hasher.finalize())
+}
+
+/// The identity of a regular file of `meta` whose content hashes to `hash`.
+fn identity(meta: &fs::Metadata, hash: blake3::Hash) -> io::Result<String> {
+    let mtime = meta.modified()?.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default();
+    Ok(format!("{} {}.{:09} {}", meta.len(), mtime.as_secs(), mtime.subsec_nanos(), hash.to_hex()))
 }
 
 /// `10M`, `1G`, `512k`, `2GiB`, `100` (bytes): powers of 1024.

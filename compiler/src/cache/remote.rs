@@ -33,10 +33,10 @@ pub(super) const MAX_VALUE: u64 = 1 << 30;
 /// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
-/// HTTP connections used at once by [`Remote::get_each`] (each keep-alive, with a batch of
+/// Connections used at once by [`Remote::get_each`] (each keep-alive; with HTTP, a batch of
 /// pipelined requests in flight with plain HTTP, one request with HTTPS): enough to hide a
 /// round trip behind the others' transfers.
-const HTTP_STREAMS: usize = 4;
+const STREAMS: usize = 4;
 
 /// Whether a build writes what it compiles to the remote cache.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -292,21 +292,44 @@ impl Remote {
 
     /// Calls `f` with each of `keys` and the value stored under it (`None` for a miss, and
     /// once the store is off), from several threads, in no particular order: one round trip
-    /// per [`BATCH`] keys with redis (`MGET`, on the build's workers); with HTTP,
-    /// [`HTTP_STREAMS`] connections, each with its own body buffer, asking for a batch of
-    /// pipelined `GET`s at a time (plain HTTP) or one key (HTTPS).
+    /// per [`BATCH`] keys with redis (`MGET`), on [`STREAMS`] connections, so that the
+    /// server answers one while the others' answers are checked and written (two, on the
+    /// build's workers, left it idle about half the time); with HTTP, [`STREAMS`]
+    /// connections, each with its own body buffer, asking for a batch of pipelined `GET`s at
+    /// a time (plain HTTP) or one key (HTTPS).
     pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
         match &self.store {
             Store::Redis(r) => {
-                use rayon::prelude::*;
-                keys.par_chunks(BATCH).for_each(|batch| {
-                    let values = if self.off.load(Ordering::Relaxed) {
-                        None
-                    } else {
-                        self.retry(|| r.get_many(batch)).map_err(|fault| self.fail("reading from", fault)).ok()
-                    };
-                    let mut values = values.into_iter().flatten();
-                    batch.iter().for_each(|key| f(key, values.next().flatten().as_deref()));
+                let next = std::sync::atomic::AtomicUsize::new(0);
+                std::thread::scope(|s| {
+                    for _ in 0..STREAMS.min(keys.len().div_ceil(BATCH)) {
+                        s.spawn(|| {
+                            let mut value = Vec::new();
+                            loop {
+                                let at = next.fetch_add(BATCH, Ordering::Relaxed).min(keys.len());
+                                let batch = &keys[at..(at + BATCH).min(keys.len())];
+                                if batch.is_empty() {
+                                    break;
+                                }
+                                // Each value handed on as it arrives; after a failure, the keys
+                                // not answered yet are asked again once (an idle connection the
+                                // server closed), then are misses.
+                                let done = std::cell::Cell::new(0);
+                                if !self.off.load(Ordering::Relaxed) {
+                                    let mut each = |key: &Key, v: Option<&[u8]>| {
+                                        f(key, v);
+                                        done.set(done.get() + 1);
+                                    };
+                                    if let Err(fault) =
+                                        self.retry(|| r.get_many(&batch[done.get()..], &mut value, &mut each))
+                                    {
+                                        self.fail("reading from", fault);
+                                    }
+                                }
+                                batch[done.get()..].iter().for_each(|key| f(key, None));
+                            }
+                        });
+                    }
                 });
             }
             Store::Http(h) => {
@@ -314,7 +337,7 @@ impl Remote {
                 let batch = if h.pipeline.is_some() { super::pipeline::BATCH } else { 1 };
                 let next = std::sync::atomic::AtomicUsize::new(0);
                 std::thread::scope(|s| {
-                    for _ in 0..HTTP_STREAMS.min(keys.len().div_ceil(batch)) {
+                    for _ in 0..STREAMS.min(keys.len().div_ceil(batch)) {
                         s.spawn(|| {
                             let mut value = Vec::new();
                             loop {
@@ -373,7 +396,7 @@ impl Remote {
 
     /// Calls `f` with the index of each of `keys` and a reader of the value stored under it
     /// as it arrives (`None` for a miss, once the store is off, and without
-    /// [`Remote::streams`]), on [`HTTP_STREAMS`] connections, one request at a time on each,
+    /// [`Remote::streams`]), on [`STREAMS`] connections, one request at a time on each,
     /// in no particular order. A connection that fails while `f` reads makes `f`'s reads
     /// fail (a truncated value), then turns the store off.
     pub(crate) fn get_streamed(&self, keys: &[Key], f: impl Fn(usize, Option<&mut dyn std::io::Read>) + Sync) {
@@ -383,7 +406,7 @@ impl Remote {
         };
         let next = std::sync::atomic::AtomicUsize::new(0);
         std::thread::scope(|s| {
-            for _ in 0..HTTP_STREAMS.min(keys.len()) {
+            for _ in 0..STREAMS.min(keys.len()) {
                 s.spawn(|| loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(key) = keys.get(i) else { break };
@@ -577,7 +600,12 @@ impl RedisStore {
 
     /// One `MGET` of every key: over a [`RawRedis`] connection when the server is reached
     /// over plain TCP, else through the `redis` crate.
-    fn get_many(&self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+    /// `f` with each key and its value (`value` is the buffer of [`RawRedis::mget`]); an
+    /// error leaves the keys after those `f` had unanswered.
+    fn get_many(&self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
+        if keys.is_empty() {
+            return Ok(());
+        }
         if let Some(address) = &self.raw.address {
             let idle = self.raw_idle.lock().expect("no panics while locked").pop();
             let mut connection = match idle {
@@ -585,9 +613,9 @@ impl RedisStore {
                 None => RawRedis::connect(address, &self.raw, self.timeout)?,
             };
             // A connection that failed is dropped (its reply may be half read).
-            let values = connection.mget(keys)?;
+            connection.mget(keys, value, f)?;
             self.raw_idle.lock().expect("no panics while locked").push(connection);
-            return Ok(values);
+            return Ok(());
         }
         let mut cmd = redis::cmd("MGET");
         for key in keys {
@@ -598,7 +626,8 @@ impl RedisStore {
             let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
             return Err(Fault { message, timed_out: false });
         }
-        Ok(values)
+        keys.iter().zip(&values).for_each(|(key, v)| f(key, v.as_deref()));
+        Ok(())
     }
 }
 
@@ -710,7 +739,10 @@ impl RawRedis {
         }
     }
 
-    fn mget(&mut self, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+    /// One `MGET` of `keys`: `f` with each key and its value as the reply arrives (read into
+    /// `value` one at a time, not gathered); an error leaves the keys after those `f` had
+    /// unanswered.
+    fn mget(&mut self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
         use std::io::Read;
         let names: Vec<String> = keys.iter().map(RedisStore::name).collect();
         let mut args: Vec<&[u8]> = Vec::with_capacity(keys.len() + 1);
@@ -722,29 +754,28 @@ impl RawRedis {
             let message = format!("MGET of {} keys answered {count} values", keys.len());
             return Err(Fault { message, timed_out: false });
         }
-        let mut values = Vec::with_capacity(keys.len());
-        for _ in keys {
+        for key in keys {
             let len = self.header(b'$')?;
             if len < 0 {
-                values.push(None);
+                f(key, None);
                 continue;
             }
             if len as u64 > MAX_VALUE {
                 return Err(Self::protocol("a value over 1 GiB"));
             }
-            // Read into spare capacity (not zeroed first); an early end is a truncated value.
-            let mut value = Vec::with_capacity(len as usize + 2);
-            (&mut self.reader).take(len as u64 + 2).read_to_end(&mut value).map_err(Self::io_fault)?;
+            // Read into spare capacity (not zeroed first; the buffer's pages are reused from
+            // value to value); an early end is a truncated value.
+            value.clear();
+            (&mut self.reader).take(len as u64 + 2).read_to_end(value).map_err(Self::io_fault)?;
             if value.len() != len as usize + 2 {
                 return Err(Self::protocol("a truncated value"));
             }
             if !value.ends_with(b"\r\n") {
                 return Err(Self::protocol("a bulk string without its CRLF"));
             }
-            value.truncate(len as usize);
-            values.push(Some(value));
+            f(key, Some(&value[..len as usize]));
         }
-        Ok(values)
+        Ok(())
     }
 }
 
@@ -799,7 +830,7 @@ impl HttpStore {
             .timeout_per_read(Some(options.timeout))
             .timeout_per_write(Some(options.timeout))
             .timeout_per_call(Some(options.timeout * 20))
-            .max_idle_connections_per_host(HTTP_STREAMS)
+            .max_idle_connections_per_host(STREAMS)
             .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")));
         #[cfg(feature = "https")]
         let config = match std::env::var_os("KILN_REMOTE_CACHE_CA").filter(|p| !p.is_empty()) {
@@ -1059,7 +1090,9 @@ mod tests {
 
     fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
         let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
-        c.mget(keys)
+        let mut values = Vec::new();
+        c.mget(keys, &mut Vec::new(), &mut |_, v| values.push(v.map(<[u8]>::to_vec)))?;
+        Ok(values)
     }
 
     #[test]
