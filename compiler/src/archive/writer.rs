@@ -31,8 +31,8 @@ use std::sync::Mutex;
 use super::format::{
     encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, ChunkHasher,
     DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections,
-    ShaderRecord, TablesOut, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
-    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
+    ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
+    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
 
@@ -1061,7 +1061,7 @@ fn write_archive<W: Write + Seek>(
     let Plan { manifest, targets: blobs, slots, mut table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
-    let spilled = spill_manifest(manifest, spool, spill_at)?;
+    let spilled = spill_manifest(manifest, spool, spill_at, release_freed)?;
     // Where each blob lies, by id: read back only now that the manifest is gone.
     let locs = table.locations(slots)?;
     drop(table);
@@ -1161,14 +1161,12 @@ fn write_archive<W: Write + Seek>(
     // The manifest: its header, the spilled records, ids, values and artifacts, the
     // dictionary records, then the spilled tables and names.
     tee.write_all(&counts.encode())?;
-    let SpilledManifest { mut buf, front_len, .. } = spilled;
-    buf.flush()?;
-    buf.copy_range(0, front_len, &mut tee)?;
+    let SpilledManifest { front, back, .. } = spilled;
+    front.copy_to(&mut tee)?;
     for d in &dictionary_records {
         tee.write_all(&d.encode())?;
     }
-    buf.copy_range(front_len, buf.len() - front_len, &mut tee)?;
-    drop(buf);
+    back.copy_to(&mut tee)?;
     if tee.written != manifest_len {
         return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
@@ -1251,19 +1249,57 @@ fn compress_attached(
 struct SpilledManifest<'a> {
     /// Its counts, but for the dictionaries' (zero).
     counts: ManifestCounts,
-    /// Its records, ids, values and artifacts (`front_len` bytes), then its tables (padded
-    /// to 8) and names.
-    buf: SpillBuf<'a>,
-    front_len: u64,
+    /// Its records, ids, values and artifacts: what comes before the dictionary records.
+    front: SpillBuf<'a>,
+    /// Its tables (padded to 8) and names: what comes after them.
+    back: SpillBuf<'a>,
 }
 
 /// Encodes the binary manifest (layout in `format.rs`) of `manifest` to the spool file at
 /// `at` (to memory with an in-memory spool), all but its header and dictionary records,
 /// which depend on the dictionaries: the parts before the dictionary records, then those
-/// after. The manifest is dropped on return, its arenas never copied in memory.
-fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
+/// after. Each arena goes as soon as it is encoded, the names first (the parts after the
+/// dictionary records lie past the others, whose length the counts give), so that the ids'
+/// sort is not on top of the whole manifest; `release_freed` is called once they are gone.
+fn spill_manifest<'a>(
+    mut manifest: Manifest,
+    spool: &Spool<'a>,
+    at: u64,
+    release_freed: fn(),
+) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
-    let mut buf = SpillBuf::new(spool, at, 0);
+    let p = &manifest.permutations;
+    let counts = ManifestCounts {
+        permutations: p.len() as u64,
+        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
+        dictionaries: 0,
+        tables_len: 0,
+        names_len: p.iter().map(|p| p.name_len as u64).sum(),
+    };
+    let front_len = counts.permutations * (RECORD_LEN + ID_LEN) as u64
+        + counts.values * VALUE_LEN as u64
+        + counts.artifacts * ARTIFACT_LEN as u64;
+    let mut back = SpillBuf::new(spool, at + front_len, 0);
+    let tables = TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+    };
+    serde_json::to_writer(&mut back, &tables).map_err(std::io::Error::other)?;
+    let tables_len = back.len();
+    // The tables start at a multiple of 8 from the manifest's start (every part before them
+    // is a whole number of 8-byte fields), so the names' padding depends only on their length.
+    pad8(&mut back, tables_len)?;
+    for p in &manifest.permutations {
+        back.write_all(manifest.name_of(p).as_bytes())?;
+    }
+    back.flush()?;
+    manifest.names = String::new();
+    release_freed();
+
+    let mut front = SpillBuf::new(spool, at, 0);
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
         let value_count = manifest.shaders[p.shader as usize].dimensions.len();
@@ -1276,7 +1312,7 @@ fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io
             first_artifact,
             artifact_count: p.artifact_count,
         };
-        buf.write_all(&record.encode())?;
+        front.write_all(&record.encode())?;
         name_offset += p.name_len as u64;
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
         first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
@@ -1297,44 +1333,25 @@ fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io
         let mut b = [0u8; ID_LEN];
         b[0..16].copy_from_slice(&((u128::from(high) << 64) | u128::from(low)).to_le_bytes());
         b[16..20].copy_from_slice(&index.to_le_bytes());
-        buf.write_all(&b)?;
+        front.write_all(&b)?;
     }
     for p in &manifest.permutations {
         for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
-            buf.write_all(&v.to_le_bytes())?;
+            front.write_all(&v.to_le_bytes())?;
         }
     }
+    manifest.values = Vec::new();
     for p in &manifest.permutations {
         let first = p.first_artifact as usize;
         for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
-            buf.write_all(&encode_artifact(*t, *b))?;
+            front.write_all(&encode_artifact(*t, *b))?;
         }
     }
-    let front_len = buf.len();
-    let tables = TablesOut {
-        kiln_version: &manifest.kiln_version,
-        naga_version: &manifest.naga_version,
-        shaders: &manifest.shaders,
-        reflections: &manifest.reflections,
-    };
-    serde_json::to_writer(&mut buf, &tables).map_err(std::io::Error::other)?;
-    let tables_len = buf.len() - front_len;
-    // The tables start at a multiple of 8 from the manifest's start (every part before them
-    // is a whole number of 8-byte fields), so the names' padding depends only on their length.
-    pad8(&mut buf, tables_len)?;
-    for p in &manifest.permutations {
-        buf.write_all(manifest.name_of(p).as_bytes())?;
+    front.flush()?;
+    if front.len() != front_len {
+        return Err(std::io::Error::other("the manifest's parts differ from its counts"));
     }
-    let p = &manifest.permutations;
-    let counts = ManifestCounts {
-        permutations: p.len() as u64,
-        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
-        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
-        dictionaries: 0,
-        tables_len,
-        names_len: p.iter().map(|p| p.name_len as u64).sum(),
-    };
-    Ok(SpilledManifest { counts, buf, front_len })
+    Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
 }
 
 /// Bytes written ahead of where the archive takes them: the blob table while the blobs and
