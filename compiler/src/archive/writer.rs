@@ -31,8 +31,8 @@ use std::sync::Mutex;
 use super::format::{
     encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, ChunkHasher,
     DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections,
-    ShaderRecord, TablesOut, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
-    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
+    ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
+    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
 
@@ -132,11 +132,8 @@ const ID_PREFIX: u64 = 16;
 #[derive(Clone, Copy)]
 struct Loc {
     offset: u64,
-    /// [`NOT_ADDED`] while only named.
     len: u64,
 }
-
-const NOT_ADDED: u64 = u64::MAX;
 
 /// The length of a location record: a slot number (4 bytes) and a length (8); the offset
 /// is the sum of the lengths before it (blobs are spooled in the order of their records).
@@ -314,16 +311,32 @@ impl BlobTable {
         Ok((n, Some(offset)))
     }
 
-    /// Each slot's location, from the log (`NOT_ADDED` for blobs only named).
-    fn locations(&mut self) -> std::io::Result<Vec<Loc>> {
-        let mut locs = vec![Loc { offset: 0, len: NOT_ADDED }; self.slots];
+    /// The location of each blob of the archive, by blob id, from the log: `slots` gives
+    /// each id's slot (every one added). Read in the order of the log, each record's slot
+    /// turned into its id through a table of 4 bytes a slot, let go on return: 12 bytes a
+    /// blob, where a location by slot and the ids' slots took 24.
+    fn locations(&mut self, slots: Vec<u32>) -> std::io::Result<BlobLocs> {
+        let changed = || std::io::Error::other("a temporary file of the archive was changed");
+        let mut id_of = vec![u32::MAX; self.slots];
+        for (id, &slot) in slots.iter().enumerate() {
+            *id_of.get_mut(slot as usize).ok_or_else(changed)? = id as u32;
+        }
+        let count = slots.len();
+        drop(slots);
+        let mut locs = BlobLocs { offsets: vec![u64::MAX; count], lens: vec![0; count] };
         let mut offset = 0u64;
         let mut put = |record: &[u8]| -> std::io::Result<()> {
             let n = u32::from_le_bytes(record[..4].try_into().expect("4 bytes")) as usize;
             let len = u64::from_le_bytes(record[4..].try_into().expect("8 bytes"));
-            let loc =
-                locs.get_mut(n).ok_or_else(|| std::io::Error::other("a temporary file of the archive was changed"))?;
-            *loc = Loc { offset: offset + ID_PREFIX, len };
+            match *id_of.get(n).ok_or_else(changed)? {
+                // Added, named by no permutation: not in the archive.
+                u32::MAX => {}
+                id => {
+                    locs.offsets[id as usize] = offset + ID_PREFIX;
+                    locs.lens[id as usize] = u32::try_from(len)
+                        .map_err(|_| std::io::Error::other("an artifact of 4 GiB or more cannot go in an archive"))?;
+                }
+            }
             offset += ID_PREFIX + len;
             Ok(())
         };
@@ -343,10 +356,22 @@ impl BlobTable {
                 }
             }
         }
-        if offset != self.spooled {
-            return Err(std::io::Error::other("a temporary file of the archive was changed"));
+        if offset != self.spooled || locs.offsets.contains(&u64::MAX) {
+            return Err(changed());
         }
         Ok(locs)
+    }
+}
+
+/// Where the archive's blobs lie in the spool, by blob id (see [`BlobTable::locations`]).
+struct BlobLocs {
+    offsets: Vec<u64>,
+    lens: Vec<u32>,
+}
+
+impl BlobLocs {
+    fn get(&self, id: usize) -> Loc {
+        Loc { offset: self.offsets[id], len: u64::from(self.lens[id]) }
     }
 }
 
@@ -796,17 +821,13 @@ impl ArchiveWriter {
     }
 }
 
-/// A blob of the archive, in archive order: its target and its slot in the writer's table.
-#[derive(Clone, Copy)]
-struct PlannedBlob {
-    target: Target,
-    slot: u32,
-}
-
 /// What the archive will hold, in its final order; only the blob bytes are still elsewhere.
 struct Plan {
     manifest: Manifest,
-    blobs: Vec<PlannedBlob>,
+    /// Each blob of the archive's target and slot in the writer's table, by blob id (5
+    /// bytes a blob).
+    targets: Vec<Target>,
+    slots: Vec<u32>,
     /// The writer's blob table, sealed: where its log of blob locations is (read back once
     /// the manifest is spilled, see [`write_archive`]).
     table: BlobTable,
@@ -835,7 +856,7 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
     // Each slot's blob id, by first use.
     let mut blob_ids: Vec<u32> = vec![u32::MAX; slots];
-    let mut blobs = Vec::new();
+    let (mut targets, mut blob_slots) = (Vec::new(), Vec::new());
     for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
@@ -856,8 +877,9 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
                             name(p)
                         )));
                     }
-                    let id = blobs.len() as u32;
-                    blobs.push(PlannedBlob { target: *target, slot: *slot });
+                    let id = targets.len() as u32;
+                    targets.push(*target);
+                    blob_slots.push(*slot);
                     blob_ids[*slot as usize] = id;
                     id
                 }
@@ -883,7 +905,7 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     manifest.artifacts = artifacts.into_iter().map(|(t, id)| (t, BlobId(id))).collect();
     manifest.names = names;
     manifest.values = values;
-    Ok(Plan { manifest, blobs, table, spool_len })
+    Ok(Plan { manifest, targets, slots: blob_slots, table, spool_len })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
@@ -908,8 +930,9 @@ fn par_map<T: Sync, U: Send, S>(
 /// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
 /// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from. The sample is
 /// read straight into the one buffer zstd trains on (no copy per blob).
-fn train(blobs: &[PlannedBlob], locs: &[Loc], target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    let of_target: Vec<Loc> = blobs.iter().filter(|b| b.target == target).map(|b| locs[b.slot as usize]).collect();
+fn train(targets: &[Target], locs: &BlobLocs, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+    let of_target: Vec<Loc> =
+        targets.iter().enumerate().filter(|(_, t)| **t == target).map(|(id, _)| locs.get(id)).collect();
     let total: u64 = of_target.iter().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
     let sample: Vec<Loc> = of_target.into_iter().step_by(stride).collect();
@@ -998,15 +1021,15 @@ type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'
 /// build's end on top of the manifest, its highest point at 100k permutations (two
 /// trainings at once put 4 MiB more on the peak to save 20 ms at 100k).
 fn dictionaries(
-    blobs: &[PlannedBlob],
-    locs: &[Loc],
+    blob_targets: &[Target],
+    locs: &BlobLocs,
     targets: &[Target],
     spool: &Spool<'_>,
 ) -> std::io::Result<Dictionaries> {
     let trained: Vec<_> = targets
         .iter()
         .map(|t| -> std::io::Result<_> {
-            Ok(train(blobs, locs, *t, spool)?.map(|d| {
+            Ok(train(blob_targets, locs, *t, spool)?.map(|d| {
                 let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
                 (*t, d, cdict)
             }))
@@ -1035,12 +1058,12 @@ fn write_archive<W: Write + Seek>(
     out: &mut W,
     release_freed: fn(),
 ) -> std::io::Result<ArchiveSummary> {
-    let Plan { manifest, blobs, mut table, spool_len } = plan;
+    let Plan { manifest, targets: blobs, slots, mut table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
-    let spilled = spill_manifest(manifest, spool, spill_at)?;
-    // Where each blob lies, by slot: read back only now that the manifest is gone.
-    let locs = table.locations()?;
+    let spilled = spill_manifest(manifest, spool, spill_at, release_freed)?;
+    // Where each blob lies, by id: read back only now that the manifest is gone.
+    let locs = table.locations(slots)?;
     drop(table);
     release_freed();
     #[cfg(feature = "compiler")]
@@ -1051,12 +1074,11 @@ fn write_archive<W: Write + Seek>(
     out.write_all(&[0u8; HEADER_LEN])?;
 
     // Dictionaries, trained (and made ready to compress with) one target after another.
-    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.iter().any(|b| b.target == *t)).collect();
+    let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.contains(t)).collect();
     let (dictionaries, cdicts) = dictionaries(&blobs, &locs, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
-    let slot = |b: &PlannedBlob| locs[b.slot as usize];
     let mut table = SpillBuf::new(spool, spool_len, blobs.len() * super::format::ENTRY_LEN);
     let mut offset = 0u64;
     let mut start = 0;
@@ -1064,30 +1086,30 @@ fn write_archive<W: Write + Seek>(
         let mut end = start;
         let mut batch_bytes = 0u64;
         while end < blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
-            batch_bytes += slot(&blobs[end]).len;
+            batch_bytes += locs.get(end).len;
             end += 1;
         }
-        let batch = &blobs[start..end];
+        let batch: Vec<usize> = (start..end).collect();
         let stored = par_map(
-            batch,
+            &batch,
             || (),
-            |_, b| -> std::io::Result<(u8, u8, Vec<u8>, blake3::Hash)> {
-                let (id, raw) = spool.read_blob(slot(b))?;
+            |_, &b| -> std::io::Result<(u8, u8, Vec<u8>, blake3::Hash)> {
+                let (id, raw) = spool.read_blob(locs.get(b))?;
                 // The whole blake3, which the table stores, from the bytes; they must still
                 // be the ones added.
                 let hash = blake3::hash(&raw);
                 if ident(&hash) != id {
                     return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
                 }
-                let dict = dict_of(b.target).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
+                let dict = dict_of(blobs[b]).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
                 let (codec, dictionary, bytes) = compress_blob(raw, dict);
                 Ok((codec, dictionary, bytes, hash))
             },
         );
-        for (b, s) in batch.iter().zip(stored) {
+        for (&b, s) in batch.iter().zip(stored) {
             let (codec, dictionary, bytes, hash) = s?;
             out.write_all(&bytes)?;
-            let s = slot(b);
+            let s = locs.get(b);
             let entry = Entry {
                 offset,
                 stored_len: bytes.len() as u64,
@@ -1139,14 +1161,12 @@ fn write_archive<W: Write + Seek>(
     // The manifest: its header, the spilled records, ids, values and artifacts, the
     // dictionary records, then the spilled tables and names.
     tee.write_all(&counts.encode())?;
-    let SpilledManifest { mut buf, front_len, .. } = spilled;
-    buf.flush()?;
-    buf.copy_range(0, front_len, &mut tee)?;
+    let SpilledManifest { front, back, .. } = spilled;
+    front.copy_to(&mut tee)?;
     for d in &dictionary_records {
         tee.write_all(&d.encode())?;
     }
-    buf.copy_range(front_len, buf.len() - front_len, &mut tee)?;
-    drop(buf);
+    back.copy_to(&mut tee)?;
     if tee.written != manifest_len {
         return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
@@ -1229,19 +1249,57 @@ fn compress_attached(
 struct SpilledManifest<'a> {
     /// Its counts, but for the dictionaries' (zero).
     counts: ManifestCounts,
-    /// Its records, ids, values and artifacts (`front_len` bytes), then its tables (padded
-    /// to 8) and names.
-    buf: SpillBuf<'a>,
-    front_len: u64,
+    /// Its records, ids, values and artifacts: what comes before the dictionary records.
+    front: SpillBuf<'a>,
+    /// Its tables (padded to 8) and names: what comes after them.
+    back: SpillBuf<'a>,
 }
 
 /// Encodes the binary manifest (layout in `format.rs`) of `manifest` to the spool file at
 /// `at` (to memory with an in-memory spool), all but its header and dictionary records,
 /// which depend on the dictionaries: the parts before the dictionary records, then those
-/// after. The manifest is dropped on return, its arenas never copied in memory.
-fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
+/// after. Each arena goes as soon as it is encoded, the names first (the parts after the
+/// dictionary records lie past the others, whose length the counts give), so that the ids'
+/// sort is not on top of the whole manifest; `release_freed` is called once they are gone.
+fn spill_manifest<'a>(
+    mut manifest: Manifest,
+    spool: &Spool<'a>,
+    at: u64,
+    release_freed: fn(),
+) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
-    let mut buf = SpillBuf::new(spool, at, 0);
+    let p = &manifest.permutations;
+    let counts = ManifestCounts {
+        permutations: p.len() as u64,
+        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
+        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
+        dictionaries: 0,
+        tables_len: 0,
+        names_len: p.iter().map(|p| p.name_len as u64).sum(),
+    };
+    let front_len = counts.permutations * (RECORD_LEN + ID_LEN) as u64
+        + counts.values * VALUE_LEN as u64
+        + counts.artifacts * ARTIFACT_LEN as u64;
+    let mut back = SpillBuf::new(spool, at + front_len, 0);
+    let tables = TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+    };
+    serde_json::to_writer(&mut back, &tables).map_err(std::io::Error::other)?;
+    let tables_len = back.len();
+    // The tables start at a multiple of 8 from the manifest's start (every part before them
+    // is a whole number of 8-byte fields), so the names' padding depends only on their length.
+    pad8(&mut back, tables_len)?;
+    for p in &manifest.permutations {
+        back.write_all(manifest.name_of(p).as_bytes())?;
+    }
+    back.flush()?;
+    manifest.names = String::new();
+    release_freed();
+
+    let mut front = SpillBuf::new(spool, at, 0);
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
         let value_count = manifest.shaders[p.shader as usize].dimensions.len();
@@ -1254,7 +1312,7 @@ fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io
             first_artifact,
             artifact_count: p.artifact_count,
         };
-        buf.write_all(&record.encode())?;
+        front.write_all(&record.encode())?;
         name_offset += p.name_len as u64;
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
         first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
@@ -1275,44 +1333,25 @@ fn spill_manifest<'a>(manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io
         let mut b = [0u8; ID_LEN];
         b[0..16].copy_from_slice(&((u128::from(high) << 64) | u128::from(low)).to_le_bytes());
         b[16..20].copy_from_slice(&index.to_le_bytes());
-        buf.write_all(&b)?;
+        front.write_all(&b)?;
     }
     for p in &manifest.permutations {
         for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
-            buf.write_all(&v.to_le_bytes())?;
+            front.write_all(&v.to_le_bytes())?;
         }
     }
+    manifest.values = Vec::new();
     for p in &manifest.permutations {
         let first = p.first_artifact as usize;
         for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
-            buf.write_all(&encode_artifact(*t, *b))?;
+            front.write_all(&encode_artifact(*t, *b))?;
         }
     }
-    let front_len = buf.len();
-    let tables = TablesOut {
-        kiln_version: &manifest.kiln_version,
-        naga_version: &manifest.naga_version,
-        shaders: &manifest.shaders,
-        reflections: &manifest.reflections,
-    };
-    serde_json::to_writer(&mut buf, &tables).map_err(std::io::Error::other)?;
-    let tables_len = buf.len() - front_len;
-    // The tables start at a multiple of 8 from the manifest's start (every part before them
-    // is a whole number of 8-byte fields), so the names' padding depends only on their length.
-    pad8(&mut buf, tables_len)?;
-    for p in &manifest.permutations {
-        buf.write_all(manifest.name_of(p).as_bytes())?;
+    front.flush()?;
+    if front.len() != front_len {
+        return Err(std::io::Error::other("the manifest's parts differ from its counts"));
     }
-    let p = &manifest.permutations;
-    let counts = ManifestCounts {
-        permutations: p.len() as u64,
-        values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
-        artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
-        dictionaries: 0,
-        tables_len,
-        names_len: p.iter().map(|p| p.name_len as u64).sum(),
-    };
-    Ok(SpilledManifest { counts, buf, front_len })
+    Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
 }
 
 /// Bytes written ahead of where the archive takes them: the blob table while the blobs and
