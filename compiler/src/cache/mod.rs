@@ -239,8 +239,11 @@ struct Location {
 /// [`Cache::without_indexing_puts`]: then by its remote fills only).
 #[derive(Debug, Default)]
 struct Index {
-    /// Copies of each key, newest pack first.
-    by_key: HashMap<Key, Vec<Location>>,
+    /// The newest copy of each key: one location inline, no list per key (a warm 100k
+    /// build's index is 75k keys).
+    by_key: HashMap<Key, Location>,
+    /// The other copies of the keys that have more than one, newest pack first.
+    older: HashMap<Key, Vec<Location>>,
     /// Packs whose index was damaged: (path, why, whether it was removed: not when Kiln did
     /// not write it). Their entries are misses.
     damaged: Vec<(PathBuf, String, bool)>,
@@ -249,10 +252,27 @@ struct Index {
 impl Index {
     fn add(&mut self, pack: Arc<Pack>, rows: Vec<(Key, u64, u64)>) {
         for (key, offset, len) in rows {
-            let locations = self.by_key.entry(key).or_default();
-            let at = locations.iter().position(|l| l.pack.modified < pack.modified).unwrap_or(locations.len());
-            locations.insert(at, Location { pack: pack.clone(), offset, len });
+            let mut location = Location { pack: pack.clone(), offset, len };
+            let newest = match self.by_key.entry(key) {
+                std::collections::hash_map::Entry::Vacant(v) => {
+                    v.insert(location);
+                    continue;
+                }
+                std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
+            };
+            if newest.pack.modified < location.pack.modified {
+                std::mem::swap(newest, &mut location);
+            }
+            let older = self.older.entry(key).or_default();
+            let at = older.iter().position(|l| l.pack.modified < location.pack.modified).unwrap_or(older.len());
+            older.insert(at, location);
         }
+    }
+
+    /// Every copy of `key`, newest pack first.
+    fn copies(&self, key: &Key) -> Vec<Location> {
+        let older = self.older.get(key).map_or(&[][..], Vec::as_slice);
+        self.by_key.get(key).into_iter().chain(older).cloned().collect()
     }
 }
 
@@ -340,7 +360,7 @@ impl Cache {
         f(index.get_or_insert_with(|| self.read_index()))
     }
 
-    /// Frees the in-memory index of every pack (about 130 bytes per key); the next lookup
+    /// Frees the in-memory index of every pack (about 70 bytes per key); the next lookup
     /// reads it again. A build calls this once it looks nothing up any more, before it writes
     /// the archive.
     pub fn release_index(&self) {
@@ -349,10 +369,13 @@ impl Cache {
 
     fn read_index(&self) -> Index {
         let mut index = Index::default();
-        for (path, _) in self.files() {
-            if !Self::is_pack(&path) {
-                continue;
-            }
+        let packs: Vec<PathBuf> = self.files().map(|(path, _)| path).filter(|p| Self::is_pack(p)).collect();
+        // The map at its size once (the packs' headers say how many rows they hold), not
+        // doubled while the packs are read: at 75k keys the old and new tables of a doubling
+        // were about 11 MB at once. Slots never filled are never touched.
+        let rows: u64 = packs.iter().filter_map(|p| pack_rows(p)).sum();
+        index.by_key.reserve(usize::try_from(rows).unwrap_or(0));
+        for path in packs {
             match open_pack(&path) {
                 Ok(Some((pack, rows))) => index.add(Arc::new(pack), rows),
                 Ok(None) => {} // removed meanwhile (gc or clear in another process)
@@ -398,7 +421,7 @@ impl Cache {
 
     /// The newest pack holding `key`.
     pub fn pack_of(&self, key: &Key) -> Option<PathBuf> {
-        self.with_index(|index| index.by_key.get(key).map(|l| l[0].pack.path.clone()))
+        self.with_index(|index| index.by_key.get(key).map(|l| l.pack.path.clone()))
     }
 
     /// The entry of `key`: from a local pack, else from the remote cache (checked, then
@@ -571,7 +594,7 @@ impl Cache {
     /// checksum on use (a blake3 of the 130 MB of a 10k set's entries would cost the writing
     /// build about a tenth of a second more).
     fn append_local_entry(&self, key: &Key, out: &mut Vec<u8>) -> bool {
-        let Some(l) = self.with_index(|index| index.by_key.get(key).and_then(|l| l.first().cloned())) else {
+        let Some(l) = self.with_index(|index| index.by_key.get(key).cloned()) else {
             return false;
         };
         let start = out.len();
@@ -589,7 +612,7 @@ impl Cache {
 
     /// The bytes of the local entries of `keys` (the newest copy of each).
     fn local_size(&self, keys: &[Key]) -> usize {
-        self.with_index(|index| keys.iter().filter_map(|k| index.by_key.get(k)?.first().map(|l| l.len as usize)).sum())
+        self.with_index(|index| keys.iter().filter_map(|k| index.by_key.get(k).map(|l| l.len as usize)).sum())
     }
 
     /// Writes the index of a fill pack and renames it into place; the index of this `Cache`
@@ -605,7 +628,7 @@ impl Cache {
     }
 
     fn get_local(&self, key: &Key) -> Lookup {
-        let locations = self.with_index(|index| index.by_key.get(key).cloned().unwrap_or_default());
+        let locations = self.with_index(|index| index.copies(key));
         let mut corrupt = None;
         for l in &locations {
             let mut bytes = vec![0; l.len as usize];
@@ -1002,6 +1025,18 @@ fn records_body(mut bytes: Vec<u8>) -> Option<Vec<u8>> {
     }
     bytes.drain(..40);
     Some(bytes)
+}
+
+/// How many rows the index of the pack at `path` says it holds (its header alone is read;
+/// [`open_pack`] checks the rest).
+fn pack_rows(path: &Path) -> Option<u64> {
+    let mut header = [0u8; 16];
+    let file = fs::File::open(path).ok()?;
+    file.read_exact_at(&mut header, 0).ok()?;
+    let rows = u64::from_le_bytes(header[8..16].try_into().expect("8 bytes"));
+    // A damaged count that the file cannot hold reserves nothing.
+    let fits = rows.checked_mul(ROW as u64)?.checked_add(PACK_HEADER as u64)? <= file.metadata().ok()?.len();
+    (&header[..8] == PACK_MAGIC && fits).then_some(rows)
 }
 
 /// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,

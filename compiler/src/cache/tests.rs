@@ -137,6 +137,31 @@ fn corrupted_entry_is_reported_then_served_from_the_newer_copy() {
 }
 
 #[test]
+fn a_damaged_newest_copy_is_served_from_an_older_pack() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let (a, b) = (key("a"), key("b"));
+    let (ca, cb) = (compiled(1), compiled(2));
+    cache.put_pack(&[(a, &ca)]).unwrap();
+    let old = cache.pack_of(&a).unwrap();
+    let long_ago = std::time::SystemTime::UNIX_EPOCH + std::time::Duration::from_secs(1_000_000_000);
+    fs::File::options().write(true).open(&old).unwrap().set_modified(long_ago).unwrap();
+    // A second copy of a, in a newer pack (its own contents, so its own name).
+    cache.put_pack(&[(a, &ca), (b, &cb)]).unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let new = cache.pack_of(&a).unwrap();
+    assert_ne!(new, old, "the newest copy is in the second pack");
+    // a's entry comes first in the new pack: damage its reflection's last byte, just
+    // before b's entry.
+    let bytes = fs::read(&new).unwrap();
+    let b_at = bytes.windows(32).rposition(|w| w == b.0).unwrap() - 32 - MAGIC.len();
+    flip(&new, bytes.len() - b_at + 1);
+    let cache = Cache::open(dir.path()).unwrap();
+    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca), "served from the older pack");
+    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == cb));
+}
+
+#[test]
 fn truncated_or_damaged_packs_are_never_trusted() {
     let dir = tempfile::tempdir().unwrap();
     let cache = Cache::open(dir.path()).unwrap();
