@@ -482,8 +482,6 @@ pub struct StreamingWriter {
     blobs: Mutex<BlobTable>,
     spool: File,
     failed: AtomicBool,
-    /// Called once the manifest's arenas are freed ([`StreamingWriter::set_release_freed`]).
-    release_freed: fn(),
 }
 
 impl StreamingWriter {
@@ -522,15 +520,7 @@ impl StreamingWriter {
             blobs: Mutex::new(BlobTable::new(LocLog::File(log), Some(idents))),
             spool,
             failed: AtomicBool::new(false),
-            release_freed: || {},
         })
-    }
-
-    /// Has the writer call `release` once it has freed the manifest's arenas, before the
-    /// blobs are compressed: what hands the freed memory back to the system, where the
-    /// allocator keeps it for a while (the build's `set_release_freed`).
-    pub fn set_release_freed(&mut self, release: fn()) {
-        self.release_freed = release;
     }
 
     /// The archive's path.
@@ -664,7 +654,7 @@ impl StreamingWriter {
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
-            summary = write_archive(plan, &spool, f, self.release_freed)?;
+            summary = write_archive(plan, &spool, f)?;
             Ok(())
         })
         .map_err(err)?;
@@ -793,7 +783,7 @@ impl ArchiveWriter {
     pub fn to_bytes(&self) -> Result<Vec<u8>, ArchiveError> {
         let plan = self.plan()?;
         let mut out = Cursor::new(Vec::new());
-        write_archive(plan, &Spool::Memory(&self.spool), &mut out, || {})
+        write_archive(plan, &Spool::Memory(&self.spool), &mut out)
             .map_err(|source| ArchiveError::Write { path: PathBuf::from("<memory>"), source })?;
         Ok(out.into_inner())
     }
@@ -813,7 +803,7 @@ impl ArchiveWriter {
         let plan = self.plan()?;
         let mut summary = ArchiveSummary::default();
         write_atomic_with(path, sync, |f| {
-            summary = write_archive(plan, &Spool::Memory(&self.spool), f, || {})?;
+            summary = write_archive(plan, &Spool::Memory(&self.spool), f)?;
             Ok(())
         })
         .map_err(|source| ArchiveError::Write { path: path.to_path_buf(), source })?;
@@ -1047,21 +1037,24 @@ fn dictionaries(
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
+/// Hands the memory freed so far back to the system, where a build said how
+/// ([`crate::build::set_release_freed`]: the allocator may keep freed pages for a while);
+/// nothing otherwise.
+fn release_freed() {
+    #[cfg(feature = "compiler")]
+    crate::build::release_freed();
+}
+
 /// It consumes the plan: the manifest is encoded first (but for its header and dictionary
 /// records, which wait for the dictionaries) to the spool file past the blobs and their
 /// table, or to memory with an in-memory spool, and its arenas let go before the blobs are
 /// compressed (`release_freed` is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
-fn write_archive<W: Write + Seek>(
-    plan: Plan,
-    spool: &Spool<'_>,
-    out: &mut W,
-    release_freed: fn(),
-) -> std::io::Result<ArchiveSummary> {
+fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
     let Plan { manifest, targets: blobs, slots, mut table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
-    let spilled = spill_manifest(manifest, spool, spill_at, release_freed)?;
+    let spilled = spill_manifest(manifest, spool, spill_at)?;
     // Where each blob lies, by id: read back only now that the manifest is gone.
     let locs = table.locations(slots)?;
     drop(table);
@@ -1261,12 +1254,7 @@ struct SpilledManifest<'a> {
 /// after. Each arena goes as soon as it is encoded, the names first (the parts after the
 /// dictionary records lie past the others, whose length the counts give), so that the ids'
 /// sort is not on top of the whole manifest; `release_freed` is called once they are gone.
-fn spill_manifest<'a>(
-    mut manifest: Manifest,
-    spool: &Spool<'a>,
-    at: u64,
-    release_freed: fn(),
-) -> std::io::Result<SpilledManifest<'a>> {
+fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
     let p = &manifest.permutations;
     let counts = ManifestCounts {

@@ -274,15 +274,12 @@ pub(super) struct Written {
 
 impl<'p> Assembler<'p> {
     pub fn new(plan: &'p Plan<'p>) -> Result<Assembler<'p>, Error> {
-        let mut writer = match &plan.options.output {
+        let writer = match &plan.options.output {
             Some(out) => Some(StreamingWriter::new(out).map_err(|e| Error::Io(format!("error: {e}")))?),
             None => None,
         };
-        if let Some(w) = &mut writer {
+        if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
-            // The manifest's arenas, freed before the blobs are compressed, not kept resident
-            // under the compression's tables.
-            w.set_release_freed(super::release_freed);
             // The blob table at its bound once (see [`Plan::max_targets`]).
             w.reserve_blobs(plan.len() * plan.max_targets());
         }

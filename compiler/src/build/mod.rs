@@ -273,7 +273,7 @@ pub fn set_release_freed(release: fn()) {
     let _ = RELEASE_FREED.set(release);
 }
 
-fn release_freed() {
+pub(crate) fn release_freed() {
     if let Some(&release) = RELEASE_FREED.get() {
         rayon::broadcast(|_| release());
     }
