@@ -390,7 +390,7 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.fresh_archive(out, &|| self.fingerprint(pre), &keys.to_vec())
+        store.fresh_archive(out, &|| self.fingerprint(pre), &mut (0..keys.len()).map(|k| keys.key(k)))
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive
@@ -404,7 +404,7 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.archive_from_remote(out, &|| self.fingerprint(pre), &keys.to_vec())
+        store.archive_from_remote(out, &|| self.fingerprint(pre), &|| keys.to_vec())
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'

@@ -834,12 +834,13 @@ impl Cache {
         &self,
         archive: &Path,
         fingerprint: &dyn Fn() -> blake3::Hash,
-        keys: &[Key],
+        mut keys: &mut dyn Iterator<Item = &Key>,
     ) -> Option<(usize, usize)> {
-        if !self.with_index(|index| keys.iter().all(|k| index.by_key.contains_key(k))) {
+        // The stamp first: without one (a first build) the keys are not looked at.
+        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
+        if !self.with_index(|index| Iterator::all(&mut keys, |k| index.by_key.contains_key(k))) {
             return None;
         }
-        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
         let mut lines = text.lines();
         if lines.next()? != fingerprint().to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
             return None;
