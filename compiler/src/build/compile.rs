@@ -98,9 +98,11 @@ impl<'a> Compiler<'a> {
         }
     }
 
-    /// Preprocessing is over: lets go of the keys it claimed (0.65 MB at 100k permutations).
+    /// Preprocessing is over: lets go of the keys it claimed (0.65 MB at 100k permutations)
+    /// and of the writers' outputs kept for sharing (about 3 MB there).
     pub fn end_early(&self) {
         *self.claimed.lock().expect("no panics while locked") = hashbrown::HashTable::new();
+        self.shared.forget();
     }
 
     /// How many keys took their artifacts from another key's compacted module.
