@@ -301,30 +301,133 @@ pub(crate) struct Manifest {
     pub reflections: Vec<Reflection>,
     /// Sorted by name.
     pub permutations: Vec<ManifestPermutation>,
-    pub names: String,
-    pub values: Vec<i64>,
-    pub artifacts: Vec<(Target, BlobId)>,
+    pub arenas: Arenas,
 }
 
-/// A permutation of [`Manifest`]: ranges of its arenas (the values' count is its shader's
-/// dimension count), its shader and reflection in the manifest's numbering.
+/// Where the permutations of a manifest (or of a writer, before they are sorted) keep their
+/// names, values and artifacts: about 70 bytes a permutation, where whole names, 8-byte
+/// values and (target, blob) pairs took about 100 (the writer's largest table at 100k
+/// permutations, held at the build's end).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Arenas {
+    /// Each shader's `name@level`, the start of its permutations' canonical names.
+    pub prefixes: Vec<String>,
+    /// Each permutation's name, less its shader's prefix where it begins with it.
+    pub names: String,
+    pub values: Values,
+    /// Each artifact's target, and its blob (a slot of the writer's table, then a blob id).
+    pub targets: Vec<Target>,
+    pub blobs: Vec<u32>,
+}
+
+/// Permutation values: 4 bytes each while every one fits an `i32` (dimension values are
+/// small), 8 once one does not.
+#[derive(Clone, Debug)]
+pub(crate) enum Values {
+    Narrow(Vec<i32>),
+    Wide(Vec<i64>),
+}
+
+impl Default for Values {
+    fn default() -> Self {
+        Values::Narrow(Vec::new())
+    }
+}
+
+impl Values {
+    pub fn len(&self) -> usize {
+        match self {
+            Values::Narrow(v) => v.len(),
+            Values::Wide(v) => v.len(),
+        }
+    }
+
+    pub fn reserve_exact(&mut self, n: usize) {
+        match self {
+            Values::Narrow(v) => v.reserve_exact(n),
+            Values::Wide(v) => v.reserve_exact(n),
+        }
+    }
+
+    pub fn extend(&mut self, values: &[i64]) {
+        if let Values::Narrow(v) = self {
+            if values.iter().all(|&x| i32::try_from(x).is_ok()) {
+                v.extend(values.iter().map(|&x| x as i32));
+                return;
+            }
+            let mut wide = Vec::with_capacity(v.capacity());
+            wide.extend(v.iter().map(|&x| i64::from(x)));
+            *self = Values::Wide(wide);
+        }
+        if let Values::Wide(v) = self {
+            v.extend_from_slice(values);
+        }
+    }
+
+    pub fn get(&self, i: usize) -> i64 {
+        match self {
+            Values::Narrow(v) => i64::from(v[i]),
+            Values::Wide(v) => v[i],
+        }
+    }
+}
+
+impl Arenas {
+    /// The name of `p` in two parts: its shader's prefix (empty when not `prefixed`), then
+    /// its own bytes.
+    pub fn name_parts(&self, p: &ManifestPermutation) -> (&str, &str) {
+        let own = &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
+        match p.prefixed {
+            true => (&self.prefixes[p.shader as usize], own),
+            false => ("", own),
+        }
+    }
+
+    /// The whole name of `p`, for messages.
+    pub fn name_of(&self, p: &ManifestPermutation) -> String {
+        let (prefix, own) = self.name_parts(p);
+        format!("{prefix}{own}")
+    }
+
+    /// Orders `a` and `b` by their whole names (byte order, as the archive's).
+    pub fn cmp_names(&self, a: &ManifestPermutation, b: &ManifestPermutation) -> std::cmp::Ordering {
+        let ((pa, na), (pb, nb)) = (self.name_parts(a), self.name_parts(b));
+        if pa == pb {
+            return na.cmp(nb);
+        }
+        pa.bytes().chain(na.bytes()).cmp(pb.bytes().chain(nb.bytes()))
+    }
+
+    /// The `count` values of `p` (its shader's dimension count).
+    pub fn values_of(&self, p: &ManifestPermutation, count: usize) -> impl Iterator<Item = i64> + '_ {
+        (p.first_value as usize..p.first_value as usize + count).map(|i| self.values.get(i))
+    }
+}
+
+/// A permutation of [`Manifest`] (or of a writer): ranges of its arenas (the values' count
+/// is its shader's dimension count), its shader and reflection in the manifest's (or the
+/// writer's) numbering. 28 bytes.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct ManifestPermutation {
-    pub name_start: u64,
+    pub name_start: u32,
+    /// Its own bytes in the names arena (its whole name less its shader's prefix, if
+    /// `prefixed`).
     pub name_len: u32,
     pub shader: u32,
     pub reflection: u32,
     pub first_value: u32,
     pub first_artifact: u32,
-    pub artifact_count: u32,
+    /// At most one artifact per target.
+    pub artifact_count: u8,
+    /// Whether its name begins with its shader's `name@level`, left out of the names arena.
+    pub prefixed: bool,
 }
 
-impl Manifest {
-    pub fn name_of(&self, p: &ManifestPermutation) -> &str {
-        &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]
-    }
-    pub fn values_of(&self, p: &ManifestPermutation, count: usize) -> &[i64] {
-        &self.values[p.first_value as usize..p.first_value as usize + count]
+impl ManifestPermutation {
+    /// The length of its whole name.
+    pub fn whole_name_len(&self, arenas: &Arenas) -> u64 {
+        let prefix = if self.prefixed { arenas.prefixes[self.shader as usize].len() } else { 0 };
+        (prefix + self.name_len as usize) as u64
     }
 }
 

@@ -29,7 +29,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, BlobId, ChunkHasher,
+    encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, Arenas, BlobId, ChunkHasher,
     DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections,
     ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
     DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
@@ -86,20 +86,10 @@ pub struct ArchiveSummary {
     pub file_bytes: u64,
 }
 
-/// A permutation waiting for `finish`: 32 bytes, its name, values and artifacts in the
-/// arenas of [`Entries`] (no allocation per permutation).
-#[derive(Clone, Copy)]
-struct Pending {
-    name_start: u64,
-    name_len: u32,
-    shader: u32,
-    reflection: u32,
-    first_value: u32,
-    first_artifact: u32,
-    artifact_count: u32,
-}
-
-/// The manifest side of a writer: interned shaders and reflections, pending permutations.
+/// The manifest side of a writer: interned shaders and reflections, pending permutations
+/// (in the order added, their shaders in this numbering, their artifacts' blobs numbered by
+/// the writer's [`BlobTable`]), their names, values and artifacts in arenas (no allocation
+/// per permutation).
 #[derive(Clone, Default)]
 struct Entries {
     naga_version: String,
@@ -107,12 +97,8 @@ struct Entries {
     shader_index: HashMap<(String, String), u32>,
     reflections: Vec<Reflection>,
     reflection_index: HashMap<Reflection, u32>,
-    permutations: Vec<Pending>,
-    /// Every pending permutation's name, one after another.
-    names: String,
-    values: Vec<i64>,
-    /// Each artifact's target and blob number (in the writer's [`BlobTable`]).
-    artifacts: Vec<(Target, u32)>,
+    permutations: Vec<ManifestPermutation>,
+    arenas: Arenas,
 }
 
 /// A blob's identity in a writer: the first 16 bytes of its blake3 (128 bits, as the
@@ -390,6 +376,7 @@ impl Entries {
             None => {
                 let i = self.shaders.len() as u32;
                 self.shaders.push(p.shader.clone());
+                self.arenas.prefixes.push(format!("{}@{}", key.0, key.1));
                 self.shader_index.insert(key, i);
                 i
             }
@@ -419,19 +406,25 @@ impl Entries {
         if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
             return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
         }
-        let too_many = || ArchiveError::Input("more than 2^32 permutation values or artifacts".into());
-        let pending = Pending {
-            name_start: self.names.len() as u64,
-            name_len: u32::try_from(p.name.len()).map_err(|_| too_many())?,
+        let too_many = || ArchiveError::Input("more than 2^32 bytes of names, values or artifacts".into());
+        let a = &mut self.arenas;
+        // Canonical names begin with their shader's `name@level`: kept once, not per name.
+        let own = p.name.strip_prefix(a.prefixes[shader as usize].as_str());
+        let pending = ManifestPermutation {
+            name_start: u32::try_from(a.names.len()).map_err(|_| too_many())?,
+            name_len: u32::try_from(own.unwrap_or(&p.name).len()).map_err(|_| too_many())?,
             shader,
             reflection,
-            first_value: u32::try_from(self.values.len()).map_err(|_| too_many())?,
-            first_artifact: u32::try_from(self.artifacts.len()).map_err(|_| too_many())?,
-            artifact_count: artifacts.len() as u32,
+            first_value: u32::try_from(a.values.len()).map_err(|_| too_many())?,
+            first_artifact: u32::try_from(a.targets.len()).map_err(|_| too_many())?,
+            // Distinct targets (above).
+            artifact_count: artifacts.len() as u8,
+            prefixed: own.is_some(),
         };
-        self.names.push_str(&p.name);
-        self.values.extend_from_slice(&p.values);
-        self.artifacts.extend_from_slice(artifacts);
+        a.names.push_str(own.unwrap_or(&p.name));
+        a.values.extend(&p.values);
+        a.targets.extend(artifacts.iter().map(|(t, _)| *t));
+        a.blobs.extend(artifacts.iter().map(|(_, b)| *b));
         self.permutations.push(pending);
         Ok(())
     }
@@ -598,15 +591,17 @@ impl StreamingWriter {
         lock(&self.entries).add(p)
     }
 
-    /// Room for `permutations` more permutations with `name_bytes` bytes of names, `values`
-    /// values and `artifacts` artifacts in all: a caller that knows the manifest's size
-    /// saves the copies of arenas that grow by doubling (and their transient peak).
+    /// Room for `permutations` more permutations with `name_bytes` bytes of names (at most:
+    /// less their shaders' prefixes), `values` values and `artifacts` artifacts in all: a
+    /// caller that knows the manifest's size saves the copies of arenas that grow by
+    /// doubling (and their transient peak; room never used is never touched).
     pub fn reserve(&self, permutations: usize, name_bytes: usize, values: usize, artifacts: usize) {
         let mut e = lock(&self.entries);
         e.permutations.reserve_exact(permutations);
-        e.names.reserve_exact(name_bytes);
-        e.values.reserve_exact(values);
-        e.artifacts.reserve_exact(artifacts);
+        e.arenas.names.reserve_exact(name_bytes);
+        e.arenas.values.reserve_exact(values);
+        e.arenas.targets.reserve_exact(artifacts);
+        e.arenas.blobs.reserve_exact(artifacts);
     }
 
     /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of a table
@@ -833,23 +828,25 @@ struct Plan {
 fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     table.seal();
     let (spool_len, slots) = (table.spooled, table.slots);
-    let Entries { naga_version, shaders, reflections, mut permutations, names, values, mut artifacts, .. } = entries;
-    let name = |p: &Pending| &names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
-    permutations.sort_unstable_by(|a, b| name(a).cmp(name(b)));
-    if let Some(w) = permutations.windows(2).find(|w| name(&w[0]) == name(&w[1])) {
-        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", name(&w[0]))));
+    let Entries { naga_version, shaders, reflections, mut permutations, mut arenas, .. } = entries;
+    permutations.sort_unstable_by(|a, b| arenas.cmp_names(a, b));
+    if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names(&w[0], &w[1]).is_eq()) {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0]))));
     }
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
     let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
     let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
+    // The shaders' prefixes in the manifest's numbering.
+    let mut prefixes = Vec::with_capacity(shaders.len());
     // Each slot's blob id, by first use.
     let mut blob_ids: Vec<u32> = vec![u32::MAX; slots];
     let (mut targets, mut blob_slots) = (Vec::new(), Vec::new());
     for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
+            prefixes.push(std::mem::take(&mut arenas.prefixes[p.shader as usize]));
             manifest.shaders.len() as u32 - 1
         });
         p.reflection = *reflection_map[p.reflection as usize].get_or_insert_with(|| {
@@ -857,14 +854,16 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
             manifest.reflections.len() as u32 - 1
         });
         let first = p.first_artifact as usize;
+        let range = first..first + p.artifact_count as usize;
         // Each artifact belongs to one permutation: its slot becomes its blob id once.
-        for (target, slot) in &mut artifacts[first..first + p.artifact_count as usize] {
+        for (target, slot) in arenas.targets[range.clone()].iter().zip(&mut arenas.blobs[range]) {
             *slot = match blob_ids[*slot as usize] {
                 u32::MAX => {
                     if !table.is_added(*slot) {
+                        let prefix = if p.prefixed { prefixes[p.shader as usize].as_str() } else { "" };
+                        let own = &arenas.names[p.name_start as usize..][..p.name_len as usize];
                         return Err(ArchiveError::Input(format!(
-                            "permutation `{}` names a {target} blob that was never added",
-                            name(p)
+                            "permutation `{prefix}{own}` names a {target} blob that was never added"
                         )));
                     }
                     let id = targets.len() as u32;
@@ -879,22 +878,9 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     }
     drop(blob_ids);
     table.added_bits = Vec::new();
-    // Same layouts: these collect in place.
-    manifest.permutations = permutations
-        .into_iter()
-        .map(|p| ManifestPermutation {
-            name_start: p.name_start,
-            name_len: p.name_len,
-            shader: p.shader,
-            reflection: p.reflection,
-            first_value: p.first_value,
-            first_artifact: p.first_artifact,
-            artifact_count: p.artifact_count,
-        })
-        .collect();
-    manifest.artifacts = artifacts.into_iter().map(|(t, id)| (t, BlobId(id))).collect();
-    manifest.names = names;
-    manifest.values = values;
+    arenas.prefixes = prefixes;
+    manifest.permutations = permutations;
+    manifest.arenas = arenas;
     Ok(Plan { manifest, targets, slots: blob_slots, table, spool_len })
 }
 
@@ -921,11 +907,12 @@ fn par_map<T: Sync, U: Send, S>(
 /// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from. The sample is
 /// read straight into the one buffer zstd trains on (no copy per blob).
 fn train(targets: &[Target], locs: &BlobLocs, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    let of_target: Vec<Loc> =
-        targets.iter().enumerate().filter(|(_, t)| **t == target).map(|(id, _)| locs.get(id)).collect();
-    let total: u64 = of_target.iter().map(|b| b.len).sum();
+    // The target's blobs, walked twice rather than collected (16 bytes a blob at the build's
+    // end, where it peaks).
+    let of_target = || targets.iter().enumerate().filter(|(_, t)| **t == target).map(|(id, _)| locs.get(id));
+    let total: u64 = of_target().map(|b| b.len).sum();
     let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
-    let sample: Vec<Loc> = of_target.into_iter().step_by(stride).collect();
+    let sample: Vec<Loc> = of_target().step_by(stride).collect();
     let sizes: Vec<usize> = sample.iter().map(|b| b.len as usize).collect();
     let sampled: usize = sizes.iter().sum();
     // A dictionary pays for itself only over many artifacts of a kind.
@@ -1256,14 +1243,14 @@ struct SpilledManifest<'a> {
 /// sort is not on top of the whole manifest; `release_freed` is called once they are gone.
 fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
-    let p = &manifest.permutations;
+    let (p, arenas) = (&manifest.permutations, &manifest.arenas);
     let counts = ManifestCounts {
         permutations: p.len() as u64,
         values: p.iter().map(|p| manifest.shaders[p.shader as usize].dimensions.len() as u64).sum(),
         artifacts: p.iter().map(|p| p.artifact_count as u64).sum(),
         dictionaries: 0,
         tables_len: 0,
-        names_len: p.iter().map(|p| p.name_len as u64).sum(),
+        names_len: p.iter().map(|p| p.whole_name_len(arenas)).sum(),
     };
     let front_len = counts.permutations * (RECORD_LEN + ID_LEN) as u64
         + counts.values * VALUE_LEN as u64
@@ -1281,38 +1268,44 @@ fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std
     // is a whole number of 8-byte fields), so the names' padding depends only on their length.
     pad8(&mut back, tables_len)?;
     for p in &manifest.permutations {
-        back.write_all(manifest.name_of(p).as_bytes())?;
+        let (prefix, own) = manifest.arenas.name_parts(p);
+        back.write_all(prefix.as_bytes())?;
+        back.write_all(own.as_bytes())?;
     }
     back.flush()?;
-    manifest.names = String::new();
+    manifest.arenas.names = String::new();
     release_freed();
 
     let mut front = SpillBuf::new(spool, at, 0);
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
         let value_count = manifest.shaders[p.shader as usize].dimensions.len();
+        let name_len = p.whole_name_len(&manifest.arenas);
         let record = Record {
             name_offset,
-            name_len: p.name_len,
+            name_len: u32::try_from(name_len).map_err(|_| too_many())?,
             shader: p.shader,
             reflection: p.reflection,
             first_value,
             first_artifact,
-            artifact_count: p.artifact_count,
+            artifact_count: u32::from(p.artifact_count),
         };
         front.write_all(&record.encode())?;
-        name_offset += p.name_len as u64;
+        name_offset += name_len;
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
-        first_artifact = first_artifact.checked_add(p.artifact_count).ok_or_else(too_many)?;
+        first_artifact = first_artifact.checked_add(u32::from(p.artifact_count)).ok_or_else(too_many)?;
     }
     // Sorted by (id, index), 24 bytes each ((u128, u32) takes 32).
+    let mut values = Vec::new();
     let mut ids: Vec<(u64, u64, u32)> = manifest
         .permutations
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let s = &manifest.shaders[p.shader as usize];
-            let id = super::permutation_id(&s.name, &s.level, manifest.values_of(p, s.dimensions.len()));
+            values.clear();
+            values.extend(manifest.arenas.values_of(p, s.dimensions.len()));
+            let id = super::permutation_id(&s.name, &s.level, &values);
             ((id >> 64) as u64, id as u64, i as u32)
         })
         .collect();
@@ -1324,15 +1317,16 @@ fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std
         front.write_all(&b)?;
     }
     for p in &manifest.permutations {
-        for v in manifest.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
+        for v in manifest.arenas.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
             front.write_all(&v.to_le_bytes())?;
         }
     }
-    manifest.values = Vec::new();
+    manifest.arenas.values = Default::default();
+    let a = &manifest.arenas;
     for p in &manifest.permutations {
-        let first = p.first_artifact as usize;
-        for (t, b) in &manifest.artifacts[first..first + p.artifact_count as usize] {
-            front.write_all(&encode_artifact(*t, *b))?;
+        let range = p.first_artifact as usize..p.first_artifact as usize + p.artifact_count as usize;
+        for (t, b) in a.targets[range.clone()].iter().zip(&a.blobs[range]) {
+            front.write_all(&encode_artifact(*t, BlobId(*b)))?;
         }
     }
     front.flush()?;
