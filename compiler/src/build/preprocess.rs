@@ -21,7 +21,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::plan::{level_limits, level_targets, Plan};
-use super::records::{self, Interner, Records, Row};
+use super::records::{self, Direct, Interner, Records, Row};
 use super::report::Progress;
 use super::store::Store;
 use super::Options;
@@ -652,21 +652,22 @@ fn direct_base(config: &Config) -> blake3::Hash {
 /// The key of a permutation's preprocessing record: everything preprocessing and the
 /// compile key depend on, except the files' contents (checked against the record). Its
 /// defines follow from the configuration's text (in `base`) and its canonical name.
-fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archive::Target]) -> Key {
+fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archive::Target]) -> Direct {
     let mut h = blake3::Hasher::new();
     h.update(base.as_bytes());
     h.update(p.name().as_bytes());
     let targets = level_targets(p.level, targets);
-    Key::new(&h.finalize(), &p.shader.entry, p.shader.stage, &p.level.name, &level_limits(p.level), &targets)
+    let key = Key::new(&h.finalize(), &p.shader.entry, p.shader.stage, &p.level.name, &level_limits(p.level), &targets);
+    key.0[..16].try_into().expect("16 of 32 bytes")
 }
 
 /// The key of a configuration's set of preprocessing records: its text and the options
 /// that choose its permutations; not its path, so that another checkout (another machine,
 /// another folder) finds the set in the remote cache. (v4: paths relative to the
-/// configuration's folder; v5: compact rows.)
+/// configuration's folder; v5: compact rows; v6: 16-byte direct keys.)
 fn records_key(config: &Config, options: &Options) -> Key {
     let text = std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec());
     let inputs =
-        format!("kiln records v5\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
+        format!("kiln records v6\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }

@@ -7,12 +7,12 @@
 //! per permutation, in memory or on disk.
 //!
 //! ```text
-//! magic "KILNREC\x02"
+//! magic "KILNREC\x03"
 //! u32 count, then each file list:    u32 n, n x (u32 len, path bytes, 32-byte blake3 of its text)
 //! u32 count, then each absent list:  u32 n, n x (u32 len, path bytes)
 //! u32 count, then each warning list: u32 n, n x (u32 len, utf-8 bytes)
-//! u64 count, then each row (sorted by direct key): direct key (32), key (32),
-//!     text length (u64), file list, absent list, warning list (u32 indices)
+//! u64 count, then each row (sorted by direct key): direct key (16), key (32),
+//!     text length (u32, saturating), file list, absent list, warning list (u32 indices)
 //! ```
 //!
 //! Paths under the configuration's folder are written relative to it, so that the records
@@ -27,7 +27,13 @@ use std::sync::Arc;
 
 use crate::cache::Key;
 
-const MAGIC: &[u8; 8] = b"KILNREC\x02";
+const MAGIC: &[u8; 8] = b"KILNREC\x03";
+
+/// A permutation's direct key (see `preprocess::direct_key`): the first 16 bytes of a
+/// blake3, as the cache's pack names (a collision among 2^32 permutations has odds of about
+/// 2^-64). 64 bytes a record rather than 84, on disk and in the buffer a build encodes them
+/// in (about 2 MB less at 100k permutations, where the build peaks).
+pub(super) type Direct = [u8; 16];
 
 /// A file read, with the blake3 of the text the preprocessor read.
 pub(super) type FileEntry = (PathBuf, [u8; 32]);
@@ -51,24 +57,24 @@ pub(super) struct Row {
 /// Each permutation's row by its direct key (see `preprocess::direct_key`), sorted by it.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub(super) struct Records {
-    rows: Vec<(Key, Row)>,
+    rows: Vec<(Direct, Row)>,
 }
 
 impl Records {
     /// The records of `rows` (one per direct key; of two, the first is kept).
-    pub fn new(mut rows: Vec<(Key, Row)>) -> Records {
+    pub fn new(mut rows: Vec<(Direct, Row)>) -> Records {
         rows.sort_by_key(|r| r.0);
         rows.dedup_by(|a, b| a.0 == b.0);
         rows.shrink_to_fit();
         Records { rows }
     }
 
-    pub fn get(&self, direct: &Key) -> Option<&Row> {
+    pub fn get(&self, direct: &Direct) -> Option<&Row> {
         self.rows.binary_search_by(|r| r.0.cmp(direct)).ok().map(|i| &self.rows[i].1)
     }
 
     /// Each direct key with its row, in order.
-    pub fn iter(&self) -> impl Iterator<Item = (&Key, &Row)> + Clone {
+    pub fn iter(&self) -> impl Iterator<Item = (&Direct, &Row)> + Clone {
         self.rows.iter().map(|(k, r)| (k, r))
     }
 
@@ -163,7 +169,7 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
 /// more, about 3.6 MB at 100k).
 pub(super) fn encode(
     count: usize,
-    row: impl Fn(usize) -> Option<(Key, Row)> + Sync,
+    row: impl Fn(usize) -> Option<(Direct, Row)> + Sync,
     all: impl Iterator<Item = Row>,
     interner: &Interner,
     root: &Path,
@@ -198,14 +204,14 @@ pub(super) fn encode(
     rows.par_iter_mut().enumerate().for_each(|(i, r)| match row(i) {
         Some((direct, row)) => put_row(r, &direct, &row),
         // Failed: sorted last and cut off.
-        None => r[..32].fill(0xFF),
+        None => r[..16].fill(0xFF),
     });
-    let failed = rows.par_iter().filter(|r| r[..32] == [0xFF; 32]).count();
-    rows.par_sort_unstable_by(|a, b| a[..32].cmp(&b[..32]));
+    let failed = rows.par_iter().filter(|r| r[..16] == [0xFF; 16]).count();
+    rows.par_sort_unstable_by(|a, b| a[..16].cmp(&b[..16]));
     // One record per direct key (each permutation has its own): of two, the first.
     let mut n = 0;
     for i in 0..count - failed {
-        if n == 0 || rows[n - 1][..32] != rows[i][..32] {
+        if n == 0 || rows[n - 1][..16] != rows[i][..16] {
             rows[n] = rows[i];
             n += 1;
         }
@@ -219,7 +225,7 @@ pub(super) fn encode(
     let mut tables = [Table::new(), Table::new(), Table::new()];
     for r in rows.iter_mut() {
         for (t, table) in tables.iter_mut().enumerate() {
-            let at = 72 + 4 * t;
+            let at = LISTS_AT + 4 * t;
             let id = u32::from_le_bytes(r[at..at + 4].try_into().expect("4 bytes"));
             r[at..at + 4].copy_from_slice(&table.add(id).to_le_bytes());
         }
@@ -237,31 +243,33 @@ pub(super) fn encode(
 }
 
 /// Writes a row with its lists' numbers in the interner (renumbered by [`encode`]).
-fn put_row(out: &mut [u8; ROW_BYTES], direct: &Key, r: &Row) {
-    out[..32].copy_from_slice(&direct.0);
-    out[32..64].copy_from_slice(&r.key.0);
-    out[64..72].copy_from_slice(&u64::from(r.text_len).to_le_bytes());
+fn put_row(out: &mut [u8; ROW_BYTES], direct: &Direct, r: &Row) {
+    out[..16].copy_from_slice(direct);
+    out[16..48].copy_from_slice(&r.key.0);
+    out[48..52].copy_from_slice(&r.text_len.to_le_bytes());
     for (t, id) in [r.files, r.absent, r.warnings].into_iter().enumerate() {
-        out[72 + 4 * t..76 + 4 * t].copy_from_slice(&id.to_le_bytes());
+        out[LISTS_AT + 4 * t..LISTS_AT + 4 + 4 * t].copy_from_slice(&id.to_le_bytes());
     }
 }
 
 /// A row [`put_row`] wrote.
-fn get_row(b: &[u8; ROW_BYTES]) -> (Key, Row) {
+fn get_row(b: &[u8; ROW_BYTES]) -> (Direct, Row) {
     let u32_at = |at: usize| u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"));
-    let text_len = u64::from_le_bytes(b[64..72].try_into().expect("8 bytes"));
     let row = Row {
-        key: Key(b[32..64].try_into().expect("32 bytes")),
-        text_len: u32::try_from(text_len).unwrap_or(u32::MAX),
-        files: u32_at(72),
-        absent: u32_at(76),
-        warnings: u32_at(80),
+        key: Key(b[16..48].try_into().expect("32 bytes")),
+        text_len: u32_at(48),
+        files: u32_at(LISTS_AT),
+        absent: u32_at(LISTS_AT + 4),
+        warnings: u32_at(LISTS_AT + 8),
     };
-    (Key(b[..32].try_into().expect("32 bytes")), row)
+    (b[..16].try_into().expect("16 bytes"), row)
 }
 
 /// An encoded row: direct key, key, text length, three list numbers.
-const ROW_BYTES: usize = 32 + 32 + 8 + 3 * 4;
+const ROW_BYTES: usize = 16 + 32 + 4 + 3 * 4;
+
+/// Where a row's list numbers start.
+const LISTS_AT: usize = 52;
 
 struct Reader<'a> {
     bytes: &'a [u8],
@@ -334,10 +342,10 @@ pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Opti
     }
     let mut rows = Vec::with_capacity(n as usize);
     for _ in 0..n {
-        let direct = Key(r.hash()?);
+        let direct: Direct = r.take(16)?.try_into().ok()?;
         let row = Row {
             key: Key(r.hash()?),
-            text_len: u32::try_from(r.u64()?).unwrap_or(u32::MAX),
+            text_len: r.u32()?,
             files: *files.get(r.u32()? as usize)?,
             absent: *absent.get(r.u32()? as usize)?,
             warnings: *warnings.get(r.u32()? as usize)?,
@@ -361,7 +369,7 @@ mod tests {
         }
     }
 
-    fn encode_all(rows: &[(Key, Row)], i: &Interner, root: &Path) -> Vec<u8> {
+    fn encode_all(rows: &[(Direct, Row)], i: &Interner, root: &Path) -> Vec<u8> {
         let all: Vec<Row> = rows.iter().map(|r| r.1).collect();
         encode(rows.len(), |n| Some(rows[n]), all.iter().copied(), i, root, Records::default()).unwrap()
     }
@@ -370,12 +378,11 @@ mod tests {
     fn round_trip_and_damage() {
         let mut i = Interner::default();
         let files = vec![(PathBuf::from("/a/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])];
-        let rows: Vec<(Key, Row)> =
-            (0..5u8).rev().map(|k| (Key([k + 100; 32]), row(&mut i, k, files.clone()))).collect();
+        let rows: Vec<(Direct, Row)> = (0..5u8).rev().map(|k| ([k + 100; 16], row(&mut i, k, files.clone()))).collect();
         let records = Records::new(rows.clone());
         assert_eq!(records.len(), 5);
-        assert_eq!(records.get(&Key([102; 32])), Some(&rows[2].1));
-        assert_eq!(records.get(&Key([1; 32])), None);
+        assert_eq!(records.get(&[102; 16]), Some(&rows[2].1));
+        assert_eq!(records.get(&[1; 16]), None);
         let bytes = encode_all(&rows, &i, Path::new("/a"));
         // Shared lists are written once; no path under the root is absolute.
         assert_eq!(bytes.windows(10).filter(|w| w == b"/usr/x.ush").count(), 1);
@@ -386,7 +393,7 @@ mod tests {
         // Elsewhere: the paths under the root move with it, the others stay.
         let mut j = Interner::default();
         let elsewhere = decode(&bytes, &mut j, Path::new("/b/c")).unwrap();
-        let moved = elsewhere.get(&Key([100; 32])).unwrap();
+        let moved = elsewhere.get(&[100; 16]).unwrap();
         assert_eq!(
             j.files.get(moved.files)[..],
             [(PathBuf::from("/b/c/b.ush"), [7; 32]), (PathBuf::from("/usr/x.ush"), [1; 32])]
@@ -404,7 +411,7 @@ mod tests {
         assert_eq!(decode(b"not records", &mut Interner::default(), Path::new("/a")), None);
         // Records of the last encoding are not read.
         let mut old = bytes.clone();
-        old[7] = 1;
+        old[7] = 2;
         assert_eq!(decode(&old, &mut Interner::default(), Path::new("/a")), None);
     }
 }
