@@ -16,9 +16,9 @@ use crate::permute::Config;
 /// Artifact bytes gathered before a pack is written. They wait in memory (with their
 /// encoding while the pack is written), and a large set always has a pack's worth waiting:
 /// at 100k permutations, 16 MiB here held the preprocessing, group and compile stages at
-/// 42-45 MiB, 4 MiB at 25-29 (a 10k set peaked at 37-44 and 24 MiB). A 1.3 GB cache is
-/// about 300 packs rather than 80.
-const PACK_BYTES: usize = 4 << 20;
+/// 42-45 MiB, 4 MiB at 25-29 and 2 MiB at 22-24 (a 10k set, whose peak is the archive's
+/// compression, at 37-44, 24 and 21-22). A 1.3 GB cache is about 600 packs rather than 80.
+const PACK_BYTES: usize = 2 << 20;
 
 /// A key looked up in the cache.
 pub(super) enum Fetched {
