@@ -297,31 +297,30 @@ impl BlobTable {
         Ok((n, Some(offset)))
     }
 
-    /// The location of each blob of the archive, by blob id, from the log: `slots` gives
-    /// each id's slot (every one added). Read in the order of the log, each record's slot
-    /// turned into its id through a table of 4 bytes a slot, let go on return: 12 bytes a
-    /// blob, where a location by slot and the ids' slots took 24.
-    fn locations(&mut self, slots: Vec<u32>) -> std::io::Result<BlobLocs> {
-        let changed = || std::io::Error::other("a temporary file of the archive was changed");
+    /// Each slot's blob id (`u32::MAX` for a blob added but named by no permutation), from
+    /// `slots`, each id's slot (every one added): 4 bytes a slot.
+    fn ids(&self, slots: Vec<u32>) -> std::io::Result<Vec<u32>> {
         let mut id_of = vec![u32::MAX; self.slots];
         for (id, &slot) in slots.iter().enumerate() {
             *id_of.get_mut(slot as usize).ok_or_else(changed)? = id as u32;
         }
-        let count = slots.len();
-        drop(slots);
-        let mut locs = BlobLocs { offsets: vec![u64::MAX; count], lens: vec![0; count] };
+        Ok(id_of)
+    }
+
+    /// Calls `f` with the id and location of every blob of the archive, in the order of the
+    /// log (one pass over it, 64 KiB at a time), `id_of` giving each slot's id.
+    fn scan(&mut self, id_of: &[u32], mut f: impl FnMut(usize, Loc)) -> std::io::Result<()> {
         let mut offset = 0u64;
         let mut put = |record: &[u8]| -> std::io::Result<()> {
             let n = u32::from_le_bytes(record[..4].try_into().expect("4 bytes")) as usize;
             let len = u64::from_le_bytes(record[4..].try_into().expect("8 bytes"));
+            if u32::try_from(len).is_err() {
+                return Err(std::io::Error::other("an artifact of 4 GiB or more cannot go in an archive"));
+            }
             match *id_of.get(n).ok_or_else(changed)? {
                 // Added, named by no permutation: not in the archive.
                 u32::MAX => {}
-                id => {
-                    locs.offsets[id as usize] = offset + ID_PREFIX;
-                    locs.lens[id as usize] = u32::try_from(len)
-                        .map_err(|_| std::io::Error::other("an artifact of 4 GiB or more cannot go in an archive"))?;
-                }
+                id => f(id as usize, Loc { offset: offset + ID_PREFIX, len }),
             }
             offset += ID_PREFIX + len;
             Ok(())
@@ -342,24 +341,50 @@ impl BlobTable {
                 }
             }
         }
-        if offset != self.spooled || locs.offsets.contains(&u64::MAX) {
+        if offset != self.spooled {
+            return Err(changed());
+        }
+        Ok(())
+    }
+
+    /// The locations of the blobs `ids` (a window of the archive's blobs: where all of them
+    /// lie takes 12 bytes a blob, 2.4 MB at 100k permutations, held at the build's end).
+    fn locations(&mut self, id_of: &[u32], ids: std::ops::Range<usize>) -> std::io::Result<BlobLocs> {
+        let mut locs = BlobLocs { first: ids.start, offsets: vec![u64::MAX; ids.len()], lens: vec![0; ids.len()] };
+        self.scan(id_of, |id, loc| {
+            if ids.contains(&id) {
+                locs.offsets[id - ids.start] = loc.offset;
+                locs.lens[id - ids.start] = loc.len as u32;
+            }
+        })?;
+        if locs.offsets.contains(&u64::MAX) {
             return Err(changed());
         }
         Ok(locs)
     }
 }
 
-/// Where the archive's blobs lie in the spool, by blob id (see [`BlobTable::locations`]).
+fn changed() -> std::io::Error {
+    std::io::Error::other("a temporary file of the archive was changed")
+}
+
+/// Where a window of the archive's blobs lie in the spool, by blob id from `first` (see
+/// [`BlobTable::locations`]).
 struct BlobLocs {
+    first: usize,
     offsets: Vec<u64>,
     lens: Vec<u32>,
 }
 
 impl BlobLocs {
     fn get(&self, id: usize) -> Loc {
-        Loc { offset: self.offsets[id], len: u64::from(self.lens[id]) }
+        Loc { offset: self.offsets[id - self.first], len: u64::from(self.lens[id - self.first]) }
     }
 }
+
+/// Blobs whose locations are read from the log at a time while they are compressed (384
+/// KiB of locations).
+const LOC_WINDOW: usize = 1 << 15;
 
 impl Entries {
     /// Adds `p`, its artifacts' blobs numbered (in the writer's [`BlobTable`]).
@@ -903,16 +928,10 @@ fn par_map<T: Sync, U: Send, S>(
     }
 }
 
-/// Trains a target's dictionary on an evenly spaced sample of its blobs (at most
-/// [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn from. The sample is
-/// read straight into the one buffer zstd trains on (no copy per blob).
-fn train(targets: &[Target], locs: &BlobLocs, target: Target, spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
-    // The target's blobs, walked twice rather than collected (16 bytes a blob at the build's
-    // end, where it peaks).
-    let of_target = || targets.iter().enumerate().filter(|(_, t)| **t == target).map(|(id, _)| locs.get(id));
-    let total: u64 = of_target().map(|b| b.len).sum();
-    let stride = total.div_ceil(DICTIONARY_SAMPLE as u64).max(1) as usize;
-    let sample: Vec<Loc> = of_target().step_by(stride).collect();
+/// Trains a target's dictionary on `sample` (locations of an evenly spaced sample of its
+/// blobs, at most [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn
+/// from. The sample is read straight into the one buffer zstd trains on (no copy per blob).
+fn train(sample: &[Loc], spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
     let sizes: Vec<usize> = sample.iter().map(|b| b.len as usize).collect();
     let sampled: usize = sizes.iter().sum();
     // A dictionary pays for itself only over many artifacts of a kind.
@@ -922,12 +941,44 @@ fn train(targets: &[Target], locs: &BlobLocs, target: Target, spool: &Spool<'_>)
     }
     let mut flat = vec![0u8; sampled];
     let mut at = 0;
-    for b in &sample {
+    for b in sample {
         let len = b.len as usize;
         spool.read_into(b.offset, &mut flat[at..at + len])?;
         at += len;
     }
     Ok(train_fast_cover(&flat, &sizes, capacity).filter(|d| !d.is_empty()))
+}
+
+/// Each target's sample: every `stride`-th of its blobs in id order, the stride such that
+/// the sample is at most [`DICTIONARY_SAMPLE`] bytes; located in two passes over the log
+/// (the targets' sizes, then the sample's places), not from a table of every blob's place.
+fn samples(
+    blob_targets: &[Target],
+    table: &mut BlobTable,
+    id_of: &[u32],
+) -> std::io::Result<[Vec<Loc>; Target::ALL.len()]> {
+    let mut totals = [0u64; Target::ALL.len()];
+    table.scan(id_of, |id, loc| totals[blob_targets[id] as usize] += loc.len)?;
+    let strides = totals.map(|total| total.div_ceil(DICTIONARY_SAMPLE as u64).max(1));
+    let mut seen = [0u64; Target::ALL.len()];
+    // The sample's ids, ascending, with the place of each in its target's sample.
+    let mut sampled: Vec<(u32, u32)> = Vec::new();
+    let mut counts = [0u32; Target::ALL.len()];
+    for (id, t) in blob_targets.iter().enumerate() {
+        let t = *t as usize;
+        if seen[t] % strides[t] == 0 {
+            sampled.push((id as u32, counts[t]));
+            counts[t] += 1;
+        }
+        seen[t] += 1;
+    }
+    let mut samples = counts.map(|n| vec![Loc { offset: 0, len: 0 }; n as usize]);
+    table.scan(id_of, |id, loc| {
+        if let Ok(i) = sampled.binary_search_by_key(&(id as u32), |s| s.0) {
+            samples[blob_targets[id] as usize][sampled[i].1 as usize] = loc;
+        }
+    })?;
+    Ok(samples)
 }
 
 /// fastCover segment size `k` and d-mer size `d` of dictionary training, fixed.
@@ -999,14 +1050,16 @@ type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'
 /// trainings at once put 4 MiB more on the peak to save 20 ms at 100k).
 fn dictionaries(
     blob_targets: &[Target],
-    locs: &BlobLocs,
+    table: &mut BlobTable,
+    id_of: &[u32],
     targets: &[Target],
     spool: &Spool<'_>,
 ) -> std::io::Result<Dictionaries> {
+    let samples = samples(blob_targets, table, id_of)?;
     let trained: Vec<_> = targets
         .iter()
         .map(|t| -> std::io::Result<_> {
-            Ok(train(blob_targets, locs, *t, spool)?.map(|d| {
+            Ok(train(&samples[*t as usize], spool)?.map(|d| {
                 let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
                 (*t, d, cdict)
             }))
@@ -1038,13 +1091,13 @@ fn release_freed() {
 /// compressed (`release_freed` is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { manifest, targets: blobs, slots, mut table, spool_len } = plan;
+    let Plan { manifest, targets: blobs, slots, table: mut blob_table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
     let spilled = spill_manifest(manifest, spool, spill_at)?;
-    // Where each blob lies, by id: read back only now that the manifest is gone.
-    let locs = table.locations(slots)?;
-    drop(table);
+    // Where each blob lies is read back from the log only now that the manifest is gone, a
+    // window of blob ids at a time.
+    let id_of = blob_table.ids(slots)?;
     release_freed();
     #[cfg(feature = "compiler")]
     crate::build::trace_memory("manifest spilled");
@@ -1055,17 +1108,23 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
 
     // Dictionaries, trained (and made ready to compress with) one target after another.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.contains(t)).collect();
-    let (dictionaries, cdicts) = dictionaries(&blobs, &locs, &targets, spool)?;
+    let (dictionaries, cdicts) = dictionaries(&blobs, &mut blob_table, &id_of, &targets, spool)?;
     let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
     let mut table = SpillBuf::new(spool, spool_len, blobs.len() * super::format::ENTRY_LEN);
     let mut offset = 0u64;
     let mut start = 0;
+    let mut locs = BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() };
     while start < blobs.len() {
+        if start == locs.first + locs.offsets.len() {
+            drop(std::mem::replace(&mut locs, BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() }));
+            locs = blob_table.locations(&id_of, start..blobs.len().min(start + LOC_WINDOW))?;
+        }
+        let window_end = locs.first + locs.offsets.len();
         let mut end = start;
         let mut batch_bytes = 0u64;
-        while end < blobs.len() && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
+        while end < window_end && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
             batch_bytes += locs.get(end).len;
             end += 1;
         }
@@ -1106,7 +1165,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     }
     summary.blobs = blobs.len();
     let blob_count = blobs.len() as u64;
-    drop((blobs, locs));
+    drop((blobs, locs, id_of, blob_table));
     summary.stored_bytes = offset;
     let blobs_len = offset;
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
