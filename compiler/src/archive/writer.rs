@@ -1231,34 +1231,37 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
 
 thread_local! {
     /// Each thread's zstd context, made once and reused for every blob it compresses (a
-    /// context per rayon split allocated and faulted in its tables again each time).
-    static CCTX: std::cell::RefCell<Option<zstd::zstd_safe::CCtx<'static>>> = const { std::cell::RefCell::new(None) };
+    /// context per rayon split allocated and faulted in its tables again each time), and the
+    /// buffer it compresses into.
+    static CCTX: std::cell::RefCell<(Option<zstd::zstd_safe::CCtx<'static>>, Vec<u8>)> =
+        const { std::cell::RefCell::new((None, Vec::new())) };
 }
 
 /// One blob as stored: (codec, dictionary index, bytes), with its target's dictionary
 /// `dict` (index, compiled dictionary) if it has one; stored raw when zstd does not shrink
 /// it. zstd's output depends only on the input and parameters, not on the context's history.
 fn compress_blob(raw: Cow<'_, [u8]>, dict: Option<(usize, &zstd::zstd_safe::CDict<'static>)>) -> (u8, u8, Vec<u8>) {
-    let mut dst = Vec::with_capacity(zstd::zstd_safe::compress_bound(raw.len()));
-    let (codec, index, ok) = CCTX.with(|cell| {
+    let compressed = CCTX.with(|cell| {
         let mut cell = cell.borrow_mut();
-        let cctx = cell.get_or_insert_with(zstd::zstd_safe::CCtx::create);
-        match dict {
+        let (context, dst) = &mut *cell;
+        dst.clear();
+        dst.reserve(zstd::zstd_safe::compress_bound(raw.len()));
+        let cctx = context.get_or_insert_with(zstd::zstd_safe::CCtx::create);
+        let (codec, index, ok) = match dict {
             Some((i, cdict)) => {
-                let (ok, clean) = compress_attached(cctx, &mut dst, &raw, cdict);
+                let (ok, clean) = compress_attached(cctx, dst, &raw, cdict);
                 if !clean {
-                    *cell = None;
+                    *context = None;
                 }
                 (CODEC_ZSTD_DICT, i as u8, ok)
             }
-            None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(&mut dst, &raw, COMPRESSION_LEVEL).is_ok()),
-        }
+            None => (CODEC_ZSTD, NO_DICTIONARY, cctx.compress(dst, &raw, COMPRESSION_LEVEL).is_ok()),
+        };
+        // Copied out at its size: a batch's blobs wait to be written, each in a buffer of
+        // its raw size otherwise.
+        (ok && dst.len() < raw.len()).then(|| (codec, index, dst.to_vec()))
     });
-    if ok && dst.len() < raw.len() {
-        (codec, index, dst)
-    } else {
-        (CODEC_STORED, NO_DICTIONARY, raw.into_owned())
-    }
+    compressed.unwrap_or_else(|| (CODEC_STORED, NO_DICTIONARY, raw.into_owned()))
 }
 
 /// Compresses `raw` with `cdict` attached, not copied: zstd's own choice, for inputs of more
