@@ -157,6 +157,54 @@ fn every_permutation_is_found_by_name_and_by_id() {
     assert!(a.get_by_id(permutation_id("Lit", "sm5", &[96, 0])).unwrap().is_none());
 }
 
+/// The writer keeps names less their shader's `name@level` and values as i32 while they fit:
+/// names that do not begin with it, prefixes of which one begins another (`A@es3` and
+/// `A@es3_1`) and a value past i32 still give the whole names, sorted, and the values.
+#[test]
+fn names_without_their_prefix_and_values_past_i32_round_trip() {
+    let mut w = ArchiveWriter::new();
+    let one_dim = |level: &str| ShaderRecord {
+        name: "A".into(),
+        level: level.into(),
+        entry: "main_ps".into(),
+        stage: Stage::Fragment,
+        dimensions: vec![DimensionRecord { name: "X".into(), labels: vec![] }],
+    };
+    let (es3, es3_1) = (w.add_shader(one_dim("es3")), w.add_shader(one_dim("es3_1")));
+    let r = w.add_reflection(&reflection());
+    let wide = 1i64 << 40;
+    let perms = [
+        ("A@es3{X=1}", es3, 1),
+        ("A@es3_1{X=0}", es3_1, 0),
+        ("A@es3_1{X=-7}", es3_1, -7),
+        ("A@es3{X=1099511627776}", es3, wide),
+        ("custom name", es3, 2),
+        ("A@es", es3_1, 3),
+    ];
+    for (i, (name, shader, value)) in perms.iter().enumerate() {
+        let blob = w.add_blob(format!("blob {i}").as_bytes());
+        w.add_permutation(PermutationRecord {
+            name: name.to_string(),
+            shader: *shader,
+            values: vec![*value],
+            reflection: r,
+            artifacts: vec![(Target::Wgsl, blob)],
+        });
+    }
+    let a = Archive::from_vec(w.to_bytes().unwrap()).unwrap();
+    let names: Vec<&str> = a.permutations().unwrap().map(|p| p.name()).collect();
+    let mut sorted: Vec<&str> = perms.iter().map(|p| p.0).collect();
+    sorted.sort();
+    assert_eq!(names, sorted);
+    for (i, (name, shader, value)) in perms.iter().enumerate() {
+        let p = a.get(name).unwrap().unwrap_or_else(|| panic!("{name} not found"));
+        assert_eq!(p.values(), &[*value]);
+        assert_eq!(&p.artifact(Target::Wgsl).unwrap().unwrap()[..], format!("blob {i}").as_bytes());
+        let level = if *shader == es3 { "es3" } else { "es3_1" };
+        assert_eq!(a.get_by_id(permutation_id("A", level, &[*value])).unwrap().unwrap().name(), *name);
+    }
+}
+
 #[test]
 fn canonical_name_accepts_labels_indices_and_any_order() {
     let a = Archive::from_vec(sample()).unwrap();
