@@ -256,13 +256,27 @@ impl<'p> Preprocessor<'p> {
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (36 bytes a permutation at its peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
-        // What the rows hold besides their keys, read again (16 bytes a row).
+        // What the rows hold besides their keys, read again: the text's length and the
+        // number of its three lists together (few rows differ in them), 8 bytes a row rather
+        // than 16 (0.7 MB less at 100k permutations, where the records are the build's
+        // largest transient).
         let mut rests = Vec::with_capacity(pre.row_count());
-        if pre.each_row(|r| rests.push([r.text_len, r.files, r.absent, r.warnings])).is_err() {
+        let (mut lists, mut numbers) = (Vec::new(), HashMap::new());
+        let read = pre.each_row(|r| {
+            let three = [r.files, r.absent, r.warnings];
+            let n = *numbers.entry(three).or_insert_with(|| {
+                lists.push(three);
+                lists.len() as u32 - 1
+            });
+            rests.push([r.text_len, n]);
+        });
+        if read.is_err() {
             return;
         }
+        drop(numbers);
         let whole = |n: usize| {
-            let [text_len, files, absent, warnings] = rests[n];
+            let [text_len, three] = rests[n];
+            let [files, absent, warnings] = lists[three as usize];
             Row { key: *pre.row_key(n), text_len, files, absent, warnings }
         };
         let row = |i: usize| Some((direct_key(&r.base, &plan.permutation(i), targets), whole(pre.row_number(i)?)));
