@@ -156,13 +156,26 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
     let progress = report::Progress::new(options.progress);
-    let plan = plan::Plan::new(config, options)?;
+    // The last build's preprocessing records beside the plan; a fresh local cache (its
+    // records came from the remote cache) fills their keys from the remote meanwhile, and
+    // while the permutations are matched to them. Not for a shard, which fetches its share.
+    let (plan, last) = rayon::join(
+        || plan::Plan::new(config, options),
+        || {
+            let last = preprocess::LastRecords::load(config, options, store);
+            if options.shard.is_none() {
+                store.prefill(|| last.keys());
+            }
+            last
+        },
+    );
+    let plan = plan?;
     report.planned(&plan);
     trace_memory("plan");
 
     let assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
-    let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
+    let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
     compiler.end_early();
@@ -203,6 +216,9 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         }
         return report.up_to_date(distinct, counts);
     }
+    // The compile stage looks keys up once the prefill is done (else it would ask the remote
+    // for them one by one).
+    store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
     if options.shard.is_some() {
         // A shard's share comes from the remote cache in batches, not key by key.
         let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();

@@ -479,6 +479,11 @@ impl Remote {
         self.hits.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// Counts `n` values that passed their checks (see [`super::Cache::prefill_from_remote`]).
+    pub fn count_hits(&self, n: u64) {
+        self.hits.fetch_add(n, Ordering::Relaxed);
+    }
+
     pub fn stats(&self) -> Stats {
         Stats {
             hits: self.hits.load(Ordering::Relaxed),
