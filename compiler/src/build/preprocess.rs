@@ -213,6 +213,15 @@ impl<'p> Preprocessor<'p> {
         }
     }
 
+    /// Whether this build's records are the last build's (or there are none to save): every
+    /// permutation matched one of the old records and there are no others (a warm build's
+    /// case: no direct key hashed again to find it).
+    pub fn records_unchanged(&self) -> bool {
+        self.records
+            .as_ref()
+            .is_none_or(|r| r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len())
+    }
+
     /// Permutations run through the preprocessor (the others matched a record or reused).
     pub fn count(&self) -> usize {
         self.preprocessed.load(Ordering::Relaxed)
@@ -287,12 +296,10 @@ impl<'p> Preprocessor<'p> {
     /// preprocessing next time. Called once the compile stage's tables are gone: the
     /// records' bytes (84 per permutation) are the largest transient of a build.
     pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
-        let Some(r) = self.records.take() else { return };
-        // Every permutation matched one of the old records and there are no others: they are
-        // the old records (a warm build's case: no direct key hashed again to find it).
-        if r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len() {
+        if self.records_unchanged() {
             return;
         }
+        let Some(r) = self.records.take() else { return };
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (36 bytes a permutation at its peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
