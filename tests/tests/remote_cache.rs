@@ -450,6 +450,51 @@ fn http_serves_a_second_machine() {
     hits_from_a_second_machine(Kind::Http);
 }
 
+/// A fresh local cache whose checkout differs from the build that filled the remote (a
+/// header edited): it fills the last build's keys from the remote while it matches its
+/// permutations to that build's records, so some of what it fetched is of no use to it.
+/// The keys whose tokens changed are compiled, the rest are remote hits, and the remote
+/// hits count only the keys the build uses; same bytes as a build without the remote.
+fn a_fresh_cache_of_edited_sources(kind: Kind) {
+    const WITH_FOG: usize = 12;
+    let server = Server::start(kind);
+    let url = server.url();
+    Machine::new().build(&url);
+    let edit = |m: &Machine| {
+        let fog = m.dir.path().join("include/fog.ush");
+        let text = std::fs::read_to_string(&fog).unwrap();
+        let edited = text.replace("FOG_DENSITY: f32 = 0.02", "FOG_DENSITY: f32 = 0.03");
+        assert_ne!(edited, text);
+        std::fs::write(&fog, edited).unwrap();
+    };
+    let alone = Machine::new();
+    edit(&alone);
+    let r = alone.build_with(RemoteCache::Disabled, None);
+    assert_eq!(r.stats.compiled, DISTINCT);
+
+    let m = Machine::new();
+    edit(&m);
+    let r = m.build_with(RemoteCache::Url(url.clone()), Some(RemoteMode::Read));
+    assert_eq!(
+        (r.stats.compiled, r.stats.cache_hits, r.stats.remote_hits),
+        (WITH_FOG, DISTINCT - WITH_FOG, (DISTINCT - WITH_FOG) as u64),
+        "{:?}",
+        r.stats
+    );
+    assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
+    assert_eq!(m.bytes(), alone.bytes());
+}
+
+#[test]
+fn redis_fills_a_fresh_cache_of_edited_sources() {
+    a_fresh_cache_of_edited_sources(Kind::Redis);
+}
+
+#[test]
+fn http_fills_a_fresh_cache_of_edited_sources() {
+    a_fresh_cache_of_edited_sources(Kind::Http);
+}
+
 /// A TCP proxy in front of `server` that, when a client sends `trigger` (the first
 /// remote write), kills the server and drops every connection: a server dying mid-build,
 /// at a deterministic point.

@@ -156,13 +156,26 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
     let progress = report::Progress::new(options.progress);
-    let plan = plan::Plan::new(config, options)?;
+    // The last build's preprocessing records beside the plan; a fresh local cache (its
+    // records came from the remote cache) fills their keys from the remote meanwhile, and
+    // while the permutations are matched to them. Not for a shard, which fetches its share.
+    let (plan, last) = rayon::join(
+        || plan::Plan::new(config, options),
+        || {
+            let last = preprocess::LastRecords::load(config, options, store);
+            if options.shard.is_none() {
+                store.prefill(|| last.keys());
+            }
+            last
+        },
+    );
+    let plan = plan?;
     report.planned(&plan);
     trace_memory("plan");
 
     let assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
-    let mut preprocessor = preprocess::Preprocessor::new(&plan, store);
+    let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
     let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
     compiler.end_early();
@@ -185,24 +198,31 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
             None => assembler.from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
         },
     );
-    // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
-    // 100k permutations).
-    release_freed();
     trace_memory("group");
 
     if let Some((counts, from_remote)) = fresh {
         progress.finish();
         let distinct = keys.len();
         drop(keys);
-        // The cache's index (read to find every key there) goes before the records are made.
+        // The cache's index (read to find every key there) goes before the records are made;
+        // when they are the last build's, nothing is made and the build ends here (handing
+        // memory back would only cost time: a few ms of a warm-remote build's 90).
         report.warnings(store.finish());
-        release_freed();
+        if !preprocessor.records_unchanged() {
+            release_freed();
+        }
         preprocessor.save_records(store, &pre);
         if from_remote {
             report.remote(store.remote_stats());
         }
         return report.up_to_date(distinct, counts);
     }
+    // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
+    // 100k permutations).
+    release_freed();
+    // The compile stage looks keys up once the prefill is done (else it would ask the remote
+    // for them one by one).
+    store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
     if options.shard.is_some() {
         // A shard's share comes from the remote cache in batches, not key by key.
         let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();

@@ -15,7 +15,7 @@
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU32, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use codespan_reporting::diagnostic::Diagnostic;
@@ -143,22 +143,62 @@ struct RecordSet {
     old: Records,
     /// Permutations that matched one of `old`'s records.
     matched: AtomicUsize,
+    /// Whether each of `old`'s file lists still holds (every file has its recorded
+    /// contents) and each of its absent lists (no file appeared): [`UNKNOWN`] until a row
+    /// that names it is matched. Many rows share a list: each is checked once, not once per
+    /// permutation (a lock and a path's hash per file).
+    files_hold: Vec<AtomicU8>,
+    absent_hold: Vec<AtomicU8>,
+}
+
+/// A list's state in [`RecordSet::files_hold`]: not checked yet, holds, does not.
+const UNKNOWN: u8 = 0;
+const HOLDS: u8 = 1;
+const BROKEN: u8 = 2;
+
+/// The last build's preprocessing records of a configuration, read beside its plan (they
+/// depend only on the configuration and options) and handed to [`Preprocessor::new`].
+pub(super) struct LastRecords {
+    records: Option<RecordSet>,
+    interner: Interner,
+}
+
+impl LastRecords {
+    /// The records stored for `config` and `options` (none without a cache).
+    pub fn load(config: &Config, options: &Options, store: &Store) -> LastRecords {
+        let mut interner = Interner::default();
+        let records = store.enabled().then(|| {
+            let key = records_key(config, options);
+            let root = config.dir.canonicalize().unwrap_or_else(|_| config.dir.clone());
+            let old = store.records(&key).and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default();
+            let unknown = |n: usize| (0..n).map(|_| AtomicU8::new(UNKNOWN)).collect();
+            RecordSet {
+                old,
+                key,
+                root,
+                base: direct_base(config),
+                matched: AtomicUsize::new(0),
+                files_hold: unknown(interner.files.len()),
+                absent_hold: unknown(interner.absent.len()),
+            }
+        });
+        LastRecords { records, interner }
+    }
+
+    /// The keys of the records (sorted, each once): this build's keys when no source
+    /// changed, known before the permutations are matched to the records.
+    pub fn keys(&self) -> Vec<Key> {
+        let Some(r) = &self.records else { return Vec::new() };
+        let mut keys: Vec<Key> = r.old.iter().map(|(_, row)| row.key).collect();
+        keys.sort_unstable();
+        keys.dedup();
+        keys
+    }
 }
 
 impl<'p> Preprocessor<'p> {
-    pub fn new(plan: &'p Plan<'p>, store: &Store) -> Preprocessor<'p> {
-        let mut interner = Interner::default();
-        let records = store.enabled().then(|| {
-            let key = records_key(plan.config, plan.options);
-            let root = plan.config.dir.canonicalize().unwrap_or_else(|_| plan.config.dir.clone());
-            RecordSet {
-                old: store.records(&key).and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default(),
-                key,
-                root,
-                base: direct_base(plan.config),
-                matched: AtomicUsize::new(0),
-            }
-        });
+    pub fn new(plan: &'p Plan<'p>, last: LastRecords) -> Preprocessor<'p> {
+        let LastRecords { records, interner } = last;
         Preprocessor {
             plan,
             sources: SourceCache::new(plan.config.dir.clone()),
@@ -171,6 +211,15 @@ impl<'p> Preprocessor<'p> {
             rows: Mutex::new(RowLog::new()),
             preprocessed: AtomicUsize::new(0),
         }
+    }
+
+    /// Whether this build's records are the last build's (or there are none to save): every
+    /// permutation matched one of the old records and there are no others (a warm build's
+    /// case: no direct key hashed again to find it).
+    pub fn records_unchanged(&self) -> bool {
+        self.records
+            .as_ref()
+            .is_none_or(|r| r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len())
     }
 
     /// Permutations run through the preprocessor (the others matched a record or reused).
@@ -247,12 +296,10 @@ impl<'p> Preprocessor<'p> {
     /// preprocessing next time. Called once the compile stage's tables are gone: the
     /// records' bytes (84 per permutation) are the largest transient of a build.
     pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
-        let Some(r) = self.records.take() else { return };
-        // Every permutation matched one of the old records and there are no others: they are
-        // the old records (a warm build's case: no direct key hashed again to find it).
-        if r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len() {
+        if self.records_unchanged() {
             return;
         }
+        let Some(r) = self.records.take() else { return };
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (36 bytes a permutation at its peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
@@ -297,7 +344,7 @@ impl<'p> Preprocessor<'p> {
     ) -> Result<u32, Box<Diagnostic<FileId>>> {
         if let Some(records) = &self.records {
             let dk = direct_key(&records.base, p, &self.plan.options.targets);
-            if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(row)) {
+            if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(records, row)) {
                 records.matched.fetch_add(1, Ordering::Relaxed);
                 return Ok(self.push(*row));
             }
@@ -367,13 +414,28 @@ impl<'p> Preprocessor<'p> {
     /// Whether a record still holds: every file it lists still has the recorded contents
     /// and no file has appeared where an include looked and found none (it would be found
     /// first now).
-    fn still_holds(&self, r: &Row) -> bool {
-        let (files, absent) = {
-            let lists = self.lists();
-            (lists.files.get(r.files).clone(), lists.absent.get(r.absent).clone())
+    fn still_holds(&self, records: &RecordSet, r: &Row) -> bool {
+        let once = |states: &[AtomicU8], list: u32, check: &dyn Fn() -> bool| {
+            let state = states.get(list as usize);
+            match state.map_or(UNKNOWN, |s| s.load(Ordering::Relaxed)) {
+                HOLDS => true,
+                BROKEN => false,
+                _ => {
+                    let holds = check();
+                    if let Some(s) = state {
+                        s.store(if holds { HOLDS } else { BROKEN }, Ordering::Relaxed);
+                    }
+                    holds
+                }
+            }
         };
-        files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
-            && !absent.iter().any(|path| self.hashes.get(path).is_some())
+        once(&records.files_hold, r.files, &|| {
+            let files = self.lists().files.get(r.files).clone();
+            files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
+        }) && once(&records.absent_hold, r.absent, &|| {
+            let absent = self.lists().absent.get(r.absent).clone();
+            !absent.iter().any(|path| self.hashes.get(path).is_some())
+        })
     }
 }
 

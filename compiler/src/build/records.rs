@@ -113,6 +113,10 @@ impl<T> Lists<T> {
     pub fn get(&self, i: u32) -> &Arc<[T]> {
         &self.lists[i as usize]
     }
+
+    pub fn len(&self) -> usize {
+        self.lists.len()
+    }
 }
 
 /// Interns lists so that equal lists share one number.

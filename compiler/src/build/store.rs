@@ -6,7 +6,9 @@
 //! into the local cache) instead of assembling when the local cache is fresh.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
+use std::thread::JoinHandle;
 
 use super::{CacheDir, Error, Options};
 use crate::cache::{Cache, Key, Lookup};
@@ -38,7 +40,16 @@ pub(super) struct Store {
     failed: Mutex<Vec<(usize, String)>>,
     /// Why there is no cache, when one was asked for but its folder cannot be made.
     unavailable: Option<String>,
+    /// Whether the preprocessing records came from the remote cache ([`Store::records`]).
+    records_from_remote: AtomicBool,
+    /// The fill started by [`Store::prefill`], once joined: its keys (sorted), whether each
+    /// is local now, and those it filled (sorted; not yet counted as remote hits).
+    prefill: Mutex<Option<JoinHandle<Prefilled>>>,
 }
+
+/// What the fill of [`Store::prefill`] did: its keys (sorted), whether each is local now,
+/// the keys it filled (sorted).
+type Prefilled = (Vec<Key>, bool, Vec<Key>);
 
 #[derive(Default)]
 struct Pending {
@@ -71,7 +82,15 @@ impl Store {
             Some(Ok(c)) => (Some(with_remote(c, options)?), None),
             Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),
         };
-        Ok(Store { cache, pack_bytes: PACK_BYTES, pending: Mutex::default(), failed: Mutex::default(), unavailable })
+        Ok(Store {
+            cache,
+            pack_bytes: PACK_BYTES,
+            pending: Mutex::default(),
+            failed: Mutex::default(),
+            unavailable,
+            records_from_remote: AtomicBool::new(false),
+            prefill: Mutex::default(),
+        })
     }
 
     /// The remote cache's counts (zero without one).
@@ -123,6 +142,7 @@ impl Store {
 
     /// Writes what is pending; gives the cache's warnings (damaged packs, packs not written).
     pub fn finish(&self) -> Vec<String> {
+        self.wait_prefill(std::iter::empty());
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
         self.write(pending);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
@@ -148,9 +168,63 @@ impl Store {
         }
     }
 
+    /// Starts copying into the local cache the entries of `keys()` that the remote cache
+    /// holds and the local one lacks, on a thread of its own (see [`Cache::fill_from_remote`]),
+    /// when the preprocessing records came from the remote: a local cache that never built
+    /// this configuration, whose build's keys are most likely those of the records (the
+    /// last build's). The build matches its permutations to the records meanwhile; the fill
+    /// of [`Store::archive_from_remote`] waits on this one and asks only for what it did
+    /// not cover, and the compile stage waits on it before it looks keys up
+    /// ([`Store::wait_prefill`]). Remote hits count the keys it filled that the build uses.
+    pub fn prefill(&self, keys: impl FnOnce() -> Vec<Key>) {
+        let Some(cache) = self.cache.as_ref().filter(|c| c.remote().is_some()) else { return };
+        if !self.records_from_remote.load(Ordering::Relaxed) {
+            return;
+        }
+        let keys = keys();
+        if keys.is_empty() {
+            return;
+        }
+        let cache = cache.clone();
+        let fill = move || {
+            let (complete, filled) = cache.prefill_from_remote(&keys);
+            (keys, complete, filled)
+        };
+        // A thread that cannot start only costs the overlap: the later fill asks for all.
+        *self.prefill.lock().expect("no panics while locked") =
+            std::thread::Builder::new().name("kiln-prefill".into()).spawn(fill).ok();
+    }
+
+    /// Waits for the fill of [`Store::prefill`], if one runs, and counts the keys it filled
+    /// among `used` (the build's keys, each once) as remote hits.
+    pub fn wait_prefill<'k>(&self, used: impl Iterator<Item = &'k Key>) {
+        let _ = self.prefilled(used);
+    }
+
+    /// Waits for the fill of [`Store::prefill`] and counts the keys it filled among `used`
+    /// (each once) as remote hits: whether its keys were exactly `used`, and whether each
+    /// is in the local cache now. `None` when none ran (or it panicked).
+    fn prefilled<'k>(&self, used: impl Iterator<Item = &'k Key>) -> Option<(bool, bool)> {
+        let handle = self.prefill.lock().expect("no panics while locked").take()?;
+        let (keys, complete, filled) = handle.join().ok()?;
+        let (mut used_n, mut known, mut hits) = (0, 0, 0);
+        for key in used {
+            used_n += 1;
+            known += usize::from(keys.binary_search(key).is_ok());
+            hits += u64::from(filled.binary_search(key).is_ok());
+        }
+        if let Some(remote) = self.cache.as_ref().and_then(Cache::remote) {
+            remote.count_hits(hits);
+        }
+        // Each key once on both sides: as many keys, each one of `keys`, are `keys`.
+        Some((used_n == keys.len() && known == used_n, complete))
+    }
+
     /// The encoded preprocessing records stored under `key` (none without a cache).
     pub fn records(&self, key: &Key) -> Option<Vec<u8>> {
-        self.cache.as_ref()?.get_records_bytes(key)
+        let (body, remote) = self.cache.as_ref()?.get_records_found(key)?;
+        self.records_from_remote.store(remote, Ordering::Relaxed);
+        Some(body)
     }
 
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
@@ -253,7 +327,13 @@ impl Store {
                 .ok()?;
                 Some(counts)
             });
-            let complete = cache.fill_from_remote(keys);
+            // The prefill's keys are this build's when every permutation matched a record
+            // (the records' keys, each once): then nothing is left to ask for. Else the keys
+            // it did not bring are asked for once it is done.
+            let complete = match self.prefilled(keys.iter()) {
+                Some((true, complete)) => complete,
+                _ => cache.fill_from_remote(keys),
+            };
             // The taker may have stopped already (no archive): nobody to tell.
             let _ = tell.send(complete);
             let counts = taker.join().ok().flatten()?;
@@ -262,6 +342,13 @@ impl Store {
             cache.put_bundle();
             Some(counts)
         })
+    }
+}
+
+impl Drop for Store {
+    /// A fill still running (a build that stopped early) ends before the cache goes.
+    fn drop(&mut self) {
+        self.wait_prefill(std::iter::empty());
     }
 }
 
@@ -351,6 +438,8 @@ mod tests {
             pending: Mutex::default(),
             failed: Mutex::default(),
             unavailable: None,
+            records_from_remote: AtomicBool::new(false),
+            prefill: Mutex::default(),
         };
         let key = |i: u8| Key([i; 32]);
         let packs = || {

@@ -90,9 +90,25 @@ pub struct Record {
     pub warnings: Vec<String>,
 }
 
-/// The cache key of one distinct compile.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+/// The cache key of one distinct compile. Ordered as its bytes are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Key(pub [u8; 32]);
+
+impl Ord for Key {
+    /// The bytes' order, as four big-endian words compared inline: sorted key tables are
+    /// searched many times a permutation (the derived order called `memcmp` each time, a
+    /// thirtieth of a warm-remote build's CPU).
+    fn cmp(&self, other: &Key) -> std::cmp::Ordering {
+        let word = |k: &Key, i: usize| u64::from_be_bytes(k.0[i * 8..i * 8 + 8].try_into().expect("8 bytes"));
+        (0..4).map(|i| word(self, i).cmp(&word(other, i))).find(|o| o.is_ne()).unwrap_or(std::cmp::Ordering::Equal)
+    }
+}
+
+impl PartialOrd for Key {
+    fn partial_cmp(&self, other: &Key) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
 
 impl Key {
     /// blake3 over every input that decides the outputs, each length-prefixed.
@@ -470,7 +486,28 @@ impl Cache {
     /// for again this build; a corrupted entry is left to the build, which looks it up again,
     /// reports and recompiles it.
     pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
+        self.fill(keys, None)
+    }
+
+    /// [`Cache::fill_from_remote`] without counting its hits: whether every key is held
+    /// locally now, and the keys it filled (sorted), for a caller that fetched them before
+    /// it knew which it uses to count those it does ([`Remote::count_hits`]).
+    pub fn prefill_from_remote(&self, keys: &[Key]) -> (bool, Vec<Key>) {
+        let filled = Mutex::new(Vec::new());
+        let complete = self.fill(keys, Some(&filled));
+        let mut filled = filled.into_inner().expect("no panics while locked");
+        filled.sort_unstable();
+        (complete, filled)
+    }
+
+    /// [`Cache::fill_from_remote`]; each key filled is counted as a hit, or added to
+    /// `filled`.
+    fn fill(&self, keys: &[Key], filled: Option<&Mutex<Vec<Key>>>) -> bool {
         let Some(layer) = &self.remote else { return false };
+        let hit = |key: &Key| match filled {
+            Some(f) => f.lock().expect("no panics while locked").push(*key),
+            None => layer.remote.count_hit(),
+        };
         // The single lookups' hits first: then the index knows them.
         let pending = layer.fills.lock().expect("no panics while locked").take();
         self.finish_fills(pending);
@@ -490,9 +527,10 @@ impl Cache {
         let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
         if let (Some(b), Some(p), true) = (&bundle, &pack, missing.len() >= bundle::MIN_KEYS) {
             missing.sort_unstable();
-            let filled;
-            (filled, parts) = self.fill_from_bundle(layer, b, &missing, p);
-            missing.retain(|k| filled.binary_search(k).is_err());
+            let from_parts;
+            (from_parts, parts) = self.fill_from_bundle(layer, b, &missing, p);
+            missing.retain(|k| from_parts.binary_search(k).is_err());
+            from_parts.iter().for_each(hit);
         }
         self.keep_bundle(layer, bundle, parts);
         layer.remote.get_each(&missing, |key, value| {
@@ -508,7 +546,7 @@ impl Cache {
                 complete.store(false, Ordering::Relaxed);
                 return;
             };
-            layer.remote.count_hit();
+            hit(key);
             // A failed write leaves the pack unfinished (removed).
             if let Some(p) = &pack {
                 let _ = p.push(key, entry);
@@ -547,7 +585,6 @@ impl Cache {
                 let mut value = Vec::new();
                 bundle::read_part(body, bundle.part(i), &mut value, |key, entry| {
                     if wanted.binary_search(key).is_ok() && pack.push(key, entry).is_ok() {
-                        layer.remote.count_hit();
                         mine.push(*key);
                     }
                 })
@@ -759,17 +796,23 @@ impl Cache {
     /// `None` when missing or damaged (its checksum is checked). Without a local copy, the
     /// remote cache's is used and kept locally.
     pub fn get_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        self.get_records_found(key).map(|(body, _)| body)
+    }
+
+    /// [`Cache::get_records_bytes`], and whether the body came from the remote cache (no
+    /// local copy: this local cache never built that configuration).
+    pub fn get_records_found(&self, key: &Key) -> Option<(Vec<u8>, bool)> {
         let path = self.records_path(key);
         if let Some(body) = fs::read(&path).ok().and_then(records_body) {
             if let Ok(f) = fs::File::options().append(true).open(&path) {
                 let _ = f.set_modified(SystemTime::now());
             }
-            return Some(body);
+            return Some((body, false));
         }
         let bytes = self.remote().and_then(|r| r.get(key))?;
         let body = records_body(bytes.clone())?;
         let _ = self.write_file(&path, &bytes);
-        Some(body)
+        Some((body, true))
     }
 
     /// Replaces the records file under `key` with `body` (checksummed), atomically, and

@@ -30,6 +30,9 @@ use super::Key;
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The largest value read back (a guard against a server answering with something else).
 pub(super) const MAX_VALUE: u64 = 1 << 30;
+/// The most a value's announced length reserves before its bytes arrive (larger values grow
+/// as they do).
+const MAX_RESERVE: usize = 64 << 20;
 /// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
@@ -278,7 +281,7 @@ impl Remote {
         match self.retry(|| {
             value.clear();
             match &self.store {
-                Store::Redis(r) => r.get(key).map(|v| v.map(|v| *value = v).is_some()),
+                Store::Redis(r) => r.get_into(key, value),
                 Store::Http(h) => h.get_into(key, value),
             }
         }) {
@@ -479,6 +482,11 @@ impl Remote {
         self.hits.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// Counts `n` values that passed their checks (see [`super::Cache::prefill_from_remote`]).
+    pub fn count_hits(&self, n: u64) {
+        self.hits.fetch_add(n, Ordering::Relaxed);
+    }
+
     pub fn stats(&self) -> Stats {
         Stats {
             hits: self.hits.load(Ordering::Relaxed),
@@ -586,8 +594,18 @@ impl RedisStore {
         format!("kiln:{key}")
     }
 
-    fn get(&self, key: &Key) -> Result<Option<Vec<u8>>, Fault> {
-        self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))
+    /// The value of `key` into `value`: whether it was there. Over a [`RawRedis`]
+    /// connection (an `MGET` of one key) when the server is reached over plain TCP: the
+    /// `redis` crate's parser grew its buffer step by step, each step zeroed and copied (a
+    /// 7 MB archive cost a warm-remote build about a tenth of its CPU).
+    fn get_into(&self, key: &Key, value: &mut Vec<u8>) -> Result<bool, Fault> {
+        if self.raw.address.is_none() {
+            let found: Option<Vec<u8>> = self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))?;
+            return Ok(found.map(|v| *value = v).is_some());
+        }
+        let mut found = None;
+        self.get_many(std::slice::from_ref(key), value, &mut |_, v| found = v.map(<[u8]>::len))?;
+        Ok(found.map(|len| value.truncate(len)).is_some())
     }
 
     fn contains(&self, key: &Key) -> Result<bool, Fault> {
@@ -766,6 +784,9 @@ impl RawRedis {
             // Read into spare capacity (not zeroed first; the buffer's pages are reused from
             // value to value); an early end is a truncated value.
             value.clear();
+            // Room for the whole value at once (a large one is not grown step by step), up
+            // to a bound: a damaged length reserves no more.
+            value.reserve((len as usize + 2).min(MAX_RESERVE));
             (&mut self.reader).take(len as u64 + 2).read_to_end(value).map_err(Self::io_fault)?;
             if value.len() != len as usize + 2 {
                 return Err(Self::protocol("a truncated value"));

@@ -561,3 +561,23 @@ fn a_damaged_truncated_or_foreign_part_gives_only_checked_entries_and_is_not_who
     assert!(!whole);
     assert_eq!(got.len(), 3);
 }
+
+#[test]
+fn keys_are_ordered_as_their_bytes() {
+    // Keys that differ in each word, in the last byte only, and not at all.
+    let mut keys: Vec<Key> = (0..64u8).map(|i| Key(*blake3::hash(&[i]).as_bytes())).collect();
+    for i in 0..32 {
+        let mut k = keys[0];
+        k.0[i] ^= 0x80;
+        keys.push(k);
+        k.0[31] ^= 1;
+        keys.push(k);
+    }
+    keys.push(keys[0]);
+    for a in &keys {
+        for b in &keys {
+            assert_eq!(a.cmp(b), a.0.cmp(&b.0), "{a} against {b}");
+            assert_eq!(a.partial_cmp(b), Some(a.0.cmp(&b.0)));
+        }
+    }
+}
