@@ -294,7 +294,7 @@ impl<'p> Preprocessor<'p> {
 
     /// Stores this build's preprocessing records where they changed. Failing to only costs
     /// preprocessing next time. Called once the compile stage's tables are gone: the
-    /// records' bytes (84 per permutation) are the largest transient of a build.
+    /// records' bytes (64 per permutation) are the largest transient of a build.
     pub fn save_records(&mut self, store: &Store, pre: &Preprocessed) {
         if self.records_unchanged() {
             return;
