@@ -302,63 +302,31 @@ impl Remote {
     /// a time (plain HTTP) or one key (HTTPS).
     pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
         match &self.store {
-            Store::Redis(r) => {
-                let next = std::sync::atomic::AtomicUsize::new(0);
-                std::thread::scope(|s| {
-                    for _ in 0..STREAMS.min(keys.len().div_ceil(BATCH)) {
-                        s.spawn(|| {
-                            let mut value = Vec::new();
-                            loop {
-                                let at = next.fetch_add(BATCH, Ordering::Relaxed).min(keys.len());
-                                let batch = &keys[at..(at + BATCH).min(keys.len())];
-                                if batch.is_empty() {
-                                    break;
-                                }
-                                // Each value handed on as it arrives; after a failure, the keys
-                                // not answered yet are asked again once (an idle connection the
-                                // server closed), then are misses.
-                                let done = std::cell::Cell::new(0);
-                                if !self.off.load(Ordering::Relaxed) {
-                                    let mut each = |key: &Key, v: Option<&[u8]>| {
-                                        f(key, v);
-                                        done.set(done.get() + 1);
-                                    };
-                                    if let Err(fault) =
-                                        self.retry(|| r.get_many(&batch[done.get()..], &mut value, &mut each))
-                                    {
-                                        self.fail("reading from", fault);
-                                    }
-                                }
-                                batch[done.get()..].iter().for_each(|key| f(key, None));
-                            }
-                        });
+            Store::Redis(r) => in_batches(keys, BATCH, |batch, value| {
+                // Each value handed on as it arrives; after a failure, the keys not answered
+                // yet are asked again once (an idle connection the server closed), then are
+                // misses.
+                let done = std::cell::Cell::new(0);
+                if !self.off.load(Ordering::Relaxed) {
+                    let mut each = |key: &Key, v: Option<&[u8]>| {
+                        f(key, v);
+                        done.set(done.get() + 1);
+                    };
+                    if let Err(fault) = self.retry(|| r.get_many(&batch[done.get()..], value, &mut each)) {
+                        self.fail("reading from", fault);
                     }
-                });
-            }
+                }
+                batch[done.get()..].iter().for_each(|key| f(key, None));
+            }),
             Store::Http(h) => {
                 // Plain HTTP: batches of pipelined GETs; HTTPS: one request at a time.
                 let batch = if h.pipeline.is_some() { super::pipeline::BATCH } else { 1 };
-                let next = std::sync::atomic::AtomicUsize::new(0);
-                std::thread::scope(|s| {
-                    for _ in 0..STREAMS.min(keys.len().div_ceil(batch)) {
-                        s.spawn(|| {
-                            let mut value = Vec::new();
-                            loop {
-                                let at = next.fetch_add(batch, Ordering::Relaxed).min(keys.len());
-                                let chunk = &keys[at..(at + batch).min(keys.len())];
-                                if chunk.is_empty() {
-                                    break;
-                                }
-                                match &h.pipeline {
-                                    Some(p) => self.get_pipelined(p, chunk, &mut value, &f),
-                                    None => chunk.iter().for_each(|key| {
-                                        let found = self.get_into(key, &mut value);
-                                        f(key, found.then_some(value.as_slice()));
-                                    }),
-                                }
-                            }
-                        });
-                    }
+                in_batches(keys, batch, |chunk, value| match &h.pipeline {
+                    Some(p) => self.get_pipelined(p, chunk, value, &f),
+                    None => chunk.iter().for_each(|key| {
+                        let found = self.get_into(key, value);
+                        f(key, found.then_some(value.as_slice()));
+                    }),
                 });
             }
         }
@@ -1011,6 +979,27 @@ fn trusted(path: &std::path::Path) -> Result<ureq::tls::TlsConfig, String> {
         return Err(why("no PEM certificate in it".into()));
     }
     Ok(TlsConfig::builder().root_certs(RootCerts::new_with_certs(&certificates)).build())
+}
+
+/// Runs `work` on [`STREAMS`] threads (fewer for few keys), each taking the next `batch` of
+/// `keys` until none are left, with a value buffer of its own.
+fn in_batches(keys: &[Key], batch: usize, work: impl Fn(&[Key], &mut Vec<u8>) + Sync) {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    std::thread::scope(|s| {
+        for _ in 0..STREAMS.min(keys.len().div_ceil(batch)) {
+            s.spawn(|| {
+                let mut value = Vec::new();
+                loop {
+                    let at = next.fetch_add(batch, Ordering::Relaxed).min(keys.len());
+                    let chunk = &keys[at..(at + batch).min(keys.len())];
+                    if chunk.is_empty() {
+                        break;
+                    }
+                    work(chunk, &mut value);
+                }
+            });
+        }
+    });
 }
 
 #[cfg(test)]
