@@ -8,14 +8,17 @@
 //! - [`permute`]: the configuration schema, enumeration, skip rules and derived defines;
 //! - [`compile`]: naga parse, validation per level, one writer per target, reflection;
 //! - [`cache`]: the content-addressed artifact store;
-//! - [`archive`]: the packed file the runtime loads (built without the `compiler` feature,
-//!   with [`output`], so the runtime reads archives with the same types and no naga);
+//! - [`archive`]: the packed file the runtime loads (the `kiln-archive` crate, which the
+//!   runtime reads archives with, without this crate or naga);
 //! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
 //!   [`bindings`], the typed permutation keys it generates;
-//! - [`output`]: how every output file is written (atomically, never over a device or an input).
+//! - every output file is written as `kiln_archive::output` writes it (atomically, never over a
+//!   device or an input).
 
-pub mod archive;
-pub mod output;
+/// The archive format, reader and writer, and the vocabulary shared with the runtime: the
+/// `kiln-archive` crate.
+pub use kiln_archive as archive;
+use kiln_archive::output;
 
 #[cfg(feature = "compiler")]
 pub mod bindings;

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use kiln::archive::{Archive, Target};
+use kiln_archive::{Archive, Target};
 use kiln::build::{self, CacheDir};
 
 use crate::shaders::ShaderArchive;
@@ -28,7 +28,7 @@ pub enum HotReloadError {
     #[error(transparent)]
     Watch(#[from] kiln::watch::Error),
     #[error("cannot open the rebuilt archive {path}: {source}")]
-    Archive { path: PathBuf, source: kiln::archive::ArchiveError },
+    Archive { path: PathBuf, source: kiln_archive::ArchiveError },
     #[error("cannot create {path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
 }
@@ -161,7 +161,7 @@ fn failure_text(e: &build::Error) -> String {
 
 /// The permutations of `new` that `old` lacks or holds with other artifacts or reflection
 /// (or a damaged record in `old`). A damaged record in `new` is an error.
-pub fn changed_permutations(old: &Archive, new: &Archive) -> Result<HashSet<String>, kiln::archive::ArchiveError> {
+pub fn changed_permutations(old: &Archive, new: &Archive) -> Result<HashSet<String>, kiln_archive::ArchiveError> {
     Ok(new
         .permutations()?
         .filter(|p| match old.get(p.name()) {

@@ -18,8 +18,8 @@ use std::collections::HashMap;
 use std::num::NonZeroU64;
 use std::sync::{Arc, Mutex};
 
-use kiln::archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
-use kiln::Stage;
+use kiln_archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
+use kiln_archive::Stage;
 
 pub use crate::gpu::error_chain;
 use crate::gpu::Gpu;
@@ -445,9 +445,9 @@ struct CacheInner {
     /// By the artifact blob the module was made from and, for SPIR-V passthrough, the Vulkan
     /// binding numbers of its resources: permutations that compiled to the same code share one
     /// module wherever their pipeline layouts number the bindings alike.
-    modules: HashMap<(Target, kiln::archive::BlobId, Vec<u32>), wgpu::ShaderModule>,
+    modules: HashMap<(Target, kiln_archive::BlobId, Vec<u32>), wgpu::ShaderModule>,
     /// SPIR-V artifacts walked once ([`crate::spirv`]), by blob.
-    spirv: HashMap<kiln::archive::BlobId, Arc<SpirvModule>>,
+    spirv: HashMap<kiln_archive::BlobId, Arc<SpirvModule>>,
     used: std::collections::BTreeSet<String>,
     layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
     render: HashMap<RenderKey, Arc<RenderPipeline>>,
@@ -609,7 +609,7 @@ impl PipelineCache {
         bytes.extend_from_slice(DISK_CACHE_MAGIC);
         bytes.extend_from_slice(blake3::hash(&data).as_bytes());
         bytes.extend_from_slice(&data);
-        kiln::archive::write_atomic(&disk.path, &bytes)?;
+        kiln_archive::write_atomic(&disk.path, &bytes)?;
         Ok(Some(disk.path.clone()))
     }
 
@@ -965,7 +965,7 @@ fn vulkan_bindings(groups: &[Vec<MergedBinding>]) -> VulkanBindings {
 /// A permutation's artifact for `target`, read (decompressed, checked on first use) from the
 /// archive; a damaged blob is an error naming the permutation.
 pub(crate) fn artifact<'a>(
-    perm: &kiln::archive::PermutationRef<'a>,
+    perm: &kiln_archive::PermutationRef<'a>,
     target: Target,
 ) -> Result<Option<Cow<'a, [u8]>>, PipelineError> {
     perm.artifact(target)
@@ -1357,7 +1357,7 @@ fn vertex_buffers<'l>(
 
 #[cfg(test)]
 mod tests {
-    use kiln::archive::{NumericType, ScalarKind, VertexInput};
+    use kiln_archive::{NumericType, ScalarKind, VertexInput};
 
     use super::*;
 
@@ -1578,7 +1578,7 @@ mod tests {
             "workgroup invocations is 512, over the device's max_compute_invocations_per_workgroup (256)"
         );
         let mut fs = reflection(Stage::Fragment, vec![]);
-        fs.color_outputs = vec![kiln::archive::ColorOutput {
+        fs.color_outputs = vec![kiln_archive::ColorOutput {
             location: 9,
             ty: NumericType { scalar: ScalarKind::Float, width: 4, components: 4 },
         }];

@@ -4,7 +4,7 @@
 use std::fmt;
 use std::path::Path;
 
-use kiln::archive::{Archive, ArchiveError, Lookup, Near, PermutationRef, Permutations};
+use kiln_archive::{Archive, ArchiveError, Lookup, Near, PermutationRef, Permutations};
 
 /// Why a permutation could not be found.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -20,8 +20,8 @@
 
 use std::collections::HashMap;
 
-use kiln::archive::{BindingKind, Reflection};
-use kiln::Stage;
+use kiln_archive::{BindingKind, Reflection};
+use kiln_archive::Stage;
 
 const MAGIC: u32 = 0x0723_0203;
 /// The highest SPIR-V version the runtime passes through (1.6).
@@ -380,7 +380,7 @@ impl VulkanBindings {
 
 #[cfg(test)]
 mod tests {
-    use kiln::archive::{Binding, SampleKind, TextureDim};
+    use kiln_archive::{Binding, SampleKind, TextureDim};
 
     use super::*;
 

@@ -280,6 +280,7 @@ impl<'p> Assembler<'p> {
         };
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
+            w.set_hooks(crate::archive::WriterHooks { trace: super::trace_memory, release: super::release_freed });
             // The blob table at its bound once (see [`Plan::max_targets`]).
             w.reserve_blobs(plan.len() * plan.max_targets());
         }

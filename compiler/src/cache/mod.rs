@@ -899,7 +899,7 @@ impl Cache {
     /// renames it to `path` ([`crate::output`]: the folder is made again if it was removed
     /// under us, and whatever is not a regular file at `path` is never renamed over).
     fn write_pieces(&self, path: &Path, pieces: &[&[u8]]) -> Result<(), Error> {
-        crate::archive::write_atomic_impl(path, pieces, false)
+        crate::archive::write_pieces(path, pieces, false)
             .map_err(|source| Error { path: path.to_path_buf(), source })
     }
 

@@ -14,7 +14,7 @@ use std::hint::black_box;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use kiln::archive::Target;
+use kiln_archive::Target;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::{create_spirv_module, create_wgsl_module, merge_bindings, PipelineCache};
@@ -92,21 +92,21 @@ fn archive_bench() {
 
     // Lookups stay flat as archives grow: a synthetic archive of 16,384 permutations
     // (one 4-dimension shader, every permutation its own small blob).
-    let mut w = kiln::archive::ArchiveWriter::new();
+    let mut w = kiln_archive::ArchiveWriter::new();
     let dims = ["QUALITY", "LIGHT_COUNT", "USE_FOG", "VARIANT"];
-    let shader = w.add_shader(kiln::archive::ShaderRecord {
+    let shader = w.add_shader(kiln_archive::ShaderRecord {
         name: "SyntheticPS".into(),
         level: "sm5".into(),
         entry: "main_ps".into(),
-        stage: kiln::Stage::Fragment,
+        stage: kiln_archive::Stage::Fragment,
         dimensions: dims
             .iter()
-            .map(|d| kiln::archive::DimensionRecord { name: d.to_string(), labels: vec![] })
+            .map(|d| kiln_archive::DimensionRecord { name: d.to_string(), labels: vec![] })
             .collect(),
     });
-    let reflection = w.add_reflection(&kiln::archive::Reflection {
+    let reflection = w.add_reflection(&kiln_archive::Reflection {
         entry: "main_ps".into(),
-        stage: kiln::Stage::Fragment,
+        stage: kiln_archive::Stage::Fragment,
         bindings: vec![],
         vertex_inputs: vec![],
         color_outputs: vec![],
@@ -120,7 +120,7 @@ fn archive_bench() {
             dims.iter().zip(values).map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
         );
         let blob = w.add_blob(name.as_bytes());
-        w.add_permutation(kiln::archive::PermutationRecord {
+        w.add_permutation(kiln_archive::PermutationRecord {
             name: name.clone(),
             shader,
             values: values.to_vec(),
@@ -180,7 +180,7 @@ fn module_bench() {
         name: String,
         words: Vec<u32>,
         wgsl: Vec<u8>,
-        reflection: kiln::archive::Reflection,
+        reflection: kiln_archive::Reflection,
     }
     let modules: Vec<Module> = archive
         .permutations()

@@ -36,7 +36,7 @@ pub static EMBEDDED_ARCHIVE: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/s
 
 /// The bundled archive, trusted for SPIR-V passthrough: `build.rs` wrote it into this binary
 /// with Kiln's own build.
-pub fn embedded_archive() -> Result<kiln_runtime::ShaderArchive, kiln::archive::ArchiveError> {
+pub fn embedded_archive() -> Result<kiln_runtime::ShaderArchive, kiln_archive::ArchiveError> {
     // SAFETY: these bytes are the archive `kiln::Build` compiled in this package's build.rs
     // and `include_bytes!` put into the binary; nothing else writes them.
     unsafe { kiln_runtime::ShaderArchive::from_static_trusted(EMBEDDED_ARCHIVE) }

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use kiln::archive::{ArchiveWriter, PermutationRecord, Reflection, Target};
+use kiln_archive::{ArchiveWriter, PermutationRecord, Reflection, Target};
 
 /// The embedded archive written again after `edit` changed reflections and artifacts.
 fn rewrite(edit: impl Fn(&str, &mut Reflection, Target, &mut Vec<u8>)) -> Vec<u8> {
@@ -65,7 +65,7 @@ fn out_of_range_manifest_fields_are_errors_naming_the_permutation_and_the_limit(
             "buffer size",
             |r| {
                 for b in &mut r.bindings {
-                    if let kiln::archive::BindingKind::UniformBuffer { min_size } = &mut b.kind {
+                    if let kiln_archive::BindingKind::UniformBuffer { min_size } = &mut b.kind {
                         *min_size = u64::MAX;
                     }
                 }

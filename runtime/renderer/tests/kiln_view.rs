@@ -125,7 +125,7 @@ fn truncated_archive_is_a_usage_error() {
 #[test]
 fn archive_without_the_frames_shaders_is_a_usage_error_naming_the_permutation() {
     let dir = tempfile::tempdir().unwrap();
-    kiln::archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
+    kiln_archive::ArchiveWriter::new().write(&dir.path().join("empty.kpak")).unwrap();
     let o = kiln_view(&["--shaders", "empty.kpak"], dir.path());
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     // The frames name permutations with typed keys: the first one the frame needs is missing.
@@ -152,10 +152,10 @@ fn verify_looks_every_permutation_up_and_creates_its_module() {
     // An archive from a file is not trusted with passthrough: its modules come from WGSL,
     // which wgpu validates; `--trust-shaders` passes its SPIR-V through.
     for (args, target, source) in [
-        (&["--shaders", "s.kpak", "--verify"][..], kiln::archive::Target::Wgsl, "WGSL"),
+        (&["--shaders", "s.kpak", "--verify"][..], kiln_archive::Target::Wgsl, "WGSL"),
         (
             &["--shaders", "s.kpak", "--verify", "--trust-shaders"][..],
-            kiln::archive::Target::Spirv,
+            kiln_archive::Target::Spirv,
             "SPIR-V passthrough",
         ),
     ] {

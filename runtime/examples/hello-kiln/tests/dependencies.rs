@@ -1,6 +1,6 @@
 //! The example depends on the thin runtime only: `cargo tree` (offline, `--locked`) of its
-//! normal dependencies, and of kiln-runtime's, holds no bundled renderer, no PNG or CLI crate
-//! of the runtime's, and kiln-runtime has no build script (the bundled archive is compiled and
+//! normal dependencies, and of kiln-runtime's, holds no bundled renderer, no compiler, no PNG
+//! or CLI crate of the runtime's, and kiln-runtime has no build script (the bundled archive is compiled and
 //! embedded by the renderer's `build.rs`).
 
 use std::path::Path;
@@ -37,7 +37,10 @@ fn the_runtime_pulls_in_no_renderer_png_cli_or_bundled_archive() {
     let names = crate_names(&lines);
     assert_eq!(names.first(), Some(&"kiln-runtime"), "{lines:#?}");
     assert!(names.contains(&"wgpu"), "the tree looks wrong: {lines:#?}");
-    for unwanted in ["kiln-renderer", "png", "clap", "glam"] {
+    // No compiler either: the archive is read through `kiln-archive`, whose writer (zstd's
+    // dictionary builder, rayon) stays behind its feature.
+    assert!(names.contains(&"kiln-archive"), "{lines:#?}");
+    for unwanted in ["kiln-renderer", "kiln", "png", "clap", "glam", "rayon", "codespan-reporting"] {
         assert!(!names.contains(&unwanted), "kiln-runtime depends on `{unwanted}`:\n{}", lines.join("\n"));
     }
     // No build-dependencies (the bundled archive is compiled by kiln-renderer's build.rs).

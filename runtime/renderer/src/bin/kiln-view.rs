@@ -220,7 +220,7 @@ mod watch {
     /// Renders a frame and rewrites `--out` (atomically).
     fn write_frame(args: &Args, renderer: &Renderer) -> Result<(), Failure> {
         let frame = renderer.render(false).map_err(render_failure)?;
-        kiln::archive::write_atomic(&args.out, &frame.image.to_png())
+        kiln_archive::write_atomic(&args.out, &frame.image.to_png())
             .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))
     }
 
@@ -364,7 +364,7 @@ fn run(args: &Args) -> Result<(), Failure> {
             }
         }
     }
-    kiln::archive::write_atomic(&args.out, &frame.image.to_png())
+    kiln_archive::write_atomic(&args.out, &frame.image.to_png())
         .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))?;
     if let Some(dir) = &args.dump_passes {
         let permutations = renderer.pipeline_cache().permutations_used();

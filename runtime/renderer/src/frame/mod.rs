@@ -547,7 +547,7 @@ pub fn write_dump(dir: &Path, info: &DumpInfo<'_>, passes: &[PassResult]) -> std
         let mut files = Vec::new();
         for (name, image) in &p.images {
             let file = format!("{i:02}_{name}.png");
-            kiln::archive::write_atomic(&dir.join(&file), &image.to_png())?;
+            kiln_archive::write_atomic(&dir.join(&file), &image.to_png())?;
             files.push(file);
         }
         json.passes.push(PassJson {
@@ -559,7 +559,7 @@ pub fn write_dump(dir: &Path, info: &DumpInfo<'_>, passes: &[PassResult]) -> std
         });
     }
     let text = serde_json::to_string_pretty(&json).map_err(std::io::Error::other)?;
-    kiln::archive::write_atomic(&dir.join("passes.json"), text.as_bytes())
+    kiln_archive::write_atomic(&dir.join("passes.json"), text.as_bytes())
 }
 
 /// A 2D render or storage target with one mip (COPY_SRC added, so passes can dump it).

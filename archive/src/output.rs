@@ -20,8 +20,6 @@
 use std::collections::HashSet;
 use std::fs::{self, File};
 use std::io;
-use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
-use std::os::unix::io::AsRawFd;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
@@ -53,8 +51,8 @@ pub fn write_with(path: &Path, sync: bool, fill: impl FnOnce(&mut File, Sink) ->
                     _ => path.to_path_buf(),
                 };
                 write_atomic(&real, sync, fill)
-            } else if t.is_char_device() || t.is_fifo() {
-                let mut f = open_stream(path)?;
+            } else if sys::is_stream(&t) {
+                let mut f = sys::open_stream(path)?;
                 fill(&mut f, Sink::Stream)
             } else {
                 Err(refusal(describe(&t)))
@@ -74,7 +72,7 @@ pub fn check_target(path: &Path) -> io::Result<()> {
     match fs::metadata(path) {
         Ok(meta) => {
             let t = meta.file_type();
-            if t.is_file() || t.is_char_device() || t.is_fifo() {
+            if t.is_file() || sys::is_stream(&t) {
                 Ok(())
             } else {
                 Err(refusal(describe(&t)))
@@ -85,50 +83,22 @@ pub fn check_target(path: &Path) -> io::Result<()> {
     }
 }
 
-/// Whether `a` and `b` name the same existing file (same device and inode, through links).
+/// Whether `a` and `b` name the same existing file (same device and inode, through links;
+/// where there are no inodes, the same canonical path).
 pub fn same_file(a: &Path, b: &Path) -> bool {
-    use std::os::unix::fs::MetadataExt;
-    match (fs::metadata(a), fs::metadata(b)) {
-        (Ok(x), Ok(y)) => x.dev() == y.dev() && x.ino() == y.ino(),
-        _ => false,
-    }
+    sys::same_file(a, b)
 }
 
 fn describe(t: &fs::FileType) -> &'static str {
     if t.is_dir() {
         "it is a directory"
-    } else if t.is_socket() {
-        "it is a socket"
-    } else if t.is_block_device() {
-        "it is a block device (Kiln writes through character devices and FIFOs only)"
     } else {
-        "it is not a regular file"
+        sys::describe_special(t)
     }
 }
 
 fn refusal(why: &str) -> io::Error {
     io::Error::other(format!("{why}; give the path of a file"))
-}
-
-/// Opens an existing device or FIFO for writing without creating, truncating or blocking.
-fn open_stream(path: &Path) -> io::Result<File> {
-    let f = fs::OpenOptions::new().write(true).custom_flags(libc::O_NONBLOCK).open(path).map_err(|e| {
-        if e.raw_os_error() == Some(libc::ENXIO) {
-            io::Error::other("it is a FIFO with no reader")
-        } else {
-            e
-        }
-    })?;
-    // Writes block as usual from here on (a FIFO's reader sets the pace).
-    // SAFETY: fcntl on a descriptor we own, with integer arguments only.
-    unsafe {
-        let fd = f.as_raw_fd();
-        let flags = libc::fcntl(fd, libc::F_GETFL);
-        if flags >= 0 {
-            libc::fcntl(fd, libc::F_SETFL, flags & !libc::O_NONBLOCK);
-        }
-    }
-    Ok(f)
 }
 
 /// Creates a temporary file beside `path`, fills it, syncs it when asked, renames it over
@@ -147,10 +117,7 @@ fn write_atomic(path: &Path, sync: bool, fill: impl FnOnce(&mut File, Sink) -> i
     let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.{}.{nanos}.{n}.tmp", std::process::id()));
     let result = (|| {
-        let mut f = fs::OpenOptions::new().write(true).read(true).create_new(true).mode(0o644).open(&tmp)?;
-        // Held until the file is closed: a cleaner in another pid namespace sees it is alive.
-        // SAFETY: flock on a descriptor we own.
-        unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        let mut f = sys::create_temporary(&tmp)?;
         fill(&mut f, Sink::Temporary)?;
         if sync {
             f.sync_all()?;
@@ -186,22 +153,14 @@ pub fn is_stale_temporary(path: &Path) -> bool {
     let Some(pid) = path.file_name().and_then(|n| n.to_str()).and_then(temporary_owner) else {
         return false;
     };
-    if pid == std::process::id() || pid > i32::MAX as u32 {
-        return false;
-    }
-    // SAFETY: signal 0 only checks that the process exists.
-    let gone =
-        unsafe { libc::kill(pid as i32, 0) } == -1 && io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH);
-    if !gone {
+    if pid == std::process::id() || !sys::process_gone(pid) {
         return false;
     }
     match fs::symlink_metadata(path) {
         Ok(m) if m.file_type().is_file() => {}
         _ => return false,
     }
-    let Ok(f) = fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK).open(path) else { return false };
-    // SAFETY: flock on a descriptor we own; the lock is released when `f` closes.
-    unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) == 0 }
+    sys::unlocked(path)
 }
 
 /// Removes the temporary files of [`write_with`] in `dir` whose writer died, for the files
@@ -234,9 +193,130 @@ fn remove_stale_temporaries_once(dir: &Path, name: &str) {
     }
 }
 
-#[cfg(test)]
+/// What differs between systems: devices and FIFOs, inodes, process ids and file locks.
+#[cfg(unix)]
+mod sys {
+    use std::fs::{self, File};
+    use std::io;
+    use std::os::unix::fs::{FileTypeExt, MetadataExt, OpenOptionsExt};
+    use std::os::unix::io::AsRawFd;
+    use std::path::Path;
+
+    /// A character device or a FIFO: written through, never renamed over.
+    pub fn is_stream(t: &fs::FileType) -> bool {
+        t.is_char_device() || t.is_fifo()
+    }
+
+    pub fn describe_special(t: &fs::FileType) -> &'static str {
+        if t.is_socket() {
+            "it is a socket"
+        } else if t.is_block_device() {
+            "it is a block device (Kiln writes through character devices and FIFOs only)"
+        } else {
+            "it is not a regular file"
+        }
+    }
+
+    pub fn same_file(a: &Path, b: &Path) -> bool {
+        match (fs::metadata(a), fs::metadata(b)) {
+            (Ok(x), Ok(y)) => x.dev() == y.dev() && x.ino() == y.ino(),
+            _ => false,
+        }
+    }
+
+    /// Opens an existing device or FIFO for writing without creating, truncating or blocking.
+    pub fn open_stream(path: &Path) -> io::Result<File> {
+        let f = fs::OpenOptions::new().write(true).custom_flags(libc::O_NONBLOCK).open(path).map_err(|e| {
+            if e.raw_os_error() == Some(libc::ENXIO) {
+                io::Error::other("it is a FIFO with no reader")
+            } else {
+                e
+            }
+        })?;
+        // Writes block as usual from here on (a FIFO's reader sets the pace).
+        // SAFETY: fcntl on a descriptor we own, with integer arguments only.
+        unsafe {
+            let fd = f.as_raw_fd();
+            let flags = libc::fcntl(fd, libc::F_GETFL);
+            if flags >= 0 {
+                libc::fcntl(fd, libc::F_SETFL, flags & !libc::O_NONBLOCK);
+            }
+        }
+        Ok(f)
+    }
+
+    /// A new temporary file, locked until it is closed: a cleaner in another pid namespace
+    /// sees that its writer is alive.
+    pub fn create_temporary(tmp: &Path) -> io::Result<File> {
+        let f = fs::OpenOptions::new().write(true).read(true).create_new(true).mode(0o644).open(tmp)?;
+        // SAFETY: flock on a descriptor we own.
+        unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        Ok(f)
+    }
+
+    /// Whether no process `pid` runs (signal 0 only checks that it exists).
+    pub fn process_gone(pid: u32) -> bool {
+        if pid > i32::MAX as u32 {
+            return false;
+        }
+        // SAFETY: signal 0 sends nothing.
+        let gone = unsafe { libc::kill(pid as i32, 0) } == -1;
+        gone && io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH)
+    }
+
+    /// Whether nobody holds the lock of the temporary file at `path`.
+    pub fn unlocked(path: &Path) -> bool {
+        let Ok(f) = fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK).open(path) else { return false };
+        // SAFETY: flock on a descriptor we own; the lock is released when `f` closes.
+        unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) == 0 }
+    }
+}
+
+/// The portable fallback: no FIFOs or devices to write through, no inodes, and a temporary
+/// file of another process is never taken for stale (Windows refuses to delete a file that
+/// is open anyway).
+#[cfg(not(unix))]
+mod sys {
+    use std::fs::{self, File};
+    use std::io;
+    use std::path::Path;
+
+    pub fn is_stream(_: &fs::FileType) -> bool {
+        false
+    }
+
+    pub fn describe_special(_: &fs::FileType) -> &'static str {
+        "it is not a regular file"
+    }
+
+    pub fn same_file(a: &Path, b: &Path) -> bool {
+        match (fs::canonicalize(a), fs::canonicalize(b)) {
+            (Ok(x), Ok(y)) => x == y,
+            _ => false,
+        }
+    }
+
+    pub fn open_stream(_: &Path) -> io::Result<File> {
+        Err(io::Error::other("it is not a regular file"))
+    }
+
+    pub fn create_temporary(tmp: &Path) -> io::Result<File> {
+        fs::OpenOptions::new().write(true).read(true).create_new(true).open(tmp)
+    }
+
+    pub fn process_gone(_: u32) -> bool {
+        false
+    }
+
+    pub fn unlocked(_: &Path) -> bool {
+        false
+    }
+}
+
+#[cfg(all(test, unix))]
 mod tests {
     use super::*;
+    use std::os::unix::fs::FileTypeExt;
 
     #[test]
     fn temporary_names_are_recognised_exactly() {

@@ -281,11 +281,22 @@ thread_local! {
 
 /// What a path that is not a regular file is, for the error message.
 fn file_kind(meta: &std::fs::Metadata) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
     let t = meta.file_type();
     if t.is_dir() {
-        "directory"
-    } else if t.is_fifo() {
+        return "directory";
+    }
+    special_kind(&t)
+}
+
+#[cfg(not(unix))]
+fn special_kind(_: &std::fs::FileType) -> &'static str {
+    "special file"
+}
+
+#[cfg(unix)]
+fn special_kind(t: &std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if t.is_fifo() {
         "FIFO"
     } else if t.is_socket() {
         "socket"

@@ -23,7 +23,6 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::fs::File;
 use std::io::{BufWriter, Cursor, Read, Seek, SeekFrom, Write};
-use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
@@ -93,6 +92,7 @@ pub struct ArchiveSummary {
 #[derive(Clone, Default)]
 struct Entries {
     naga_version: String,
+    hooks: WriterHooks,
     shaders: Vec<ShaderRecord>,
     shader_index: HashMap<(String, String), u32>,
     reflections: Vec<Reflection>,
@@ -492,6 +492,74 @@ impl Spool<'_> {
     }
 }
 
+/// Positioned reads and writes through a shared `&File`: the spool is written from many
+/// threads at offsets they reserved, and read back while others write.
+trait FileAt {
+    fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> std::io::Result<()>;
+    fn write_all_at(&self, buf: &[u8], offset: u64) -> std::io::Result<()>;
+}
+
+#[cfg(unix)]
+impl FileAt for File {
+    fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+        std::os::unix::fs::FileExt::read_exact_at(self, buf, offset)
+    }
+    fn write_all_at(&self, buf: &[u8], offset: u64) -> std::io::Result<()> {
+        std::os::unix::fs::FileExt::write_all_at(self, buf, offset)
+    }
+}
+
+#[cfg(windows)]
+impl FileAt for File {
+    fn read_exact_at(&self, mut buf: &mut [u8], mut offset: u64) -> std::io::Result<()> {
+        use std::os::windows::fs::FileExt;
+        while !buf.is_empty() {
+            match self.seek_read(buf, offset) {
+                Ok(0) => return Err(std::io::ErrorKind::UnexpectedEof.into()),
+                Ok(n) => {
+                    buf = &mut buf[n..];
+                    offset += n as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+    fn write_all_at(&self, mut buf: &[u8], mut offset: u64) -> std::io::Result<()> {
+        use std::os::windows::fs::FileExt;
+        while !buf.is_empty() {
+            match self.seek_write(buf, offset) {
+                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+                Ok(n) => {
+                    buf = &buf[n..];
+                    offset += n as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the writer calls at its memory milestones, so that a build can trace its memory and
+/// hand freed pages back to the system (the allocator may keep them a while) without the
+/// archive crate knowing about either. Both do nothing by default.
+#[derive(Clone, Copy, Debug)]
+pub struct WriterHooks {
+    /// Called with a stage's name once the stage's memory is in place.
+    pub trace: fn(&str),
+    /// Called where a large part of the writer's memory has just been freed.
+    pub release: fn(),
+}
+
+impl Default for WriterHooks {
+    fn default() -> Self {
+        WriterHooks { trace: |_| {}, release: || {} }
+    }
+}
+
 /// Adds blobs and permutations from any thread, spooling blob bytes to disk; see the module
 /// documentation. `Send + Sync`: share it by reference across a thread pool.
 pub struct StreamingWriter {
@@ -539,6 +607,11 @@ impl StreamingWriter {
             spool,
             failed: AtomicBool::new(false),
         })
+    }
+
+    /// Sets what the writer calls at its memory milestones ([`WriterHooks`]).
+    pub fn set_hooks(&self, hooks: WriterHooks) {
+        self.entries.lock().unwrap_or_else(|e| e.into_inner()).hooks = hooks;
     }
 
     /// The archive's path.
@@ -669,8 +742,7 @@ impl StreamingWriter {
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
         let plan = plan(entries, blobs)?;
-        #[cfg(feature = "compiler")]
-        crate::build::trace_memory("archive planned");
+        (plan.hooks.trace)("archive planned");
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
@@ -833,6 +905,7 @@ impl ArchiveWriter {
 
 /// What the archive will hold, in its final order; only the blob bytes are still elsewhere.
 struct Plan {
+    hooks: WriterHooks,
     manifest: Manifest,
     /// Each blob of the archive's target and slot in the writer's table, by blob id (5
     /// bytes a blob).
@@ -853,7 +926,7 @@ struct Plan {
 fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     table.seal();
     let (spool_len, slots) = (table.spooled, table.slots);
-    let Entries { naga_version, shaders, reflections, mut permutations, mut arenas, .. } = entries;
+    let Entries { naga_version, hooks, shaders, reflections, mut permutations, mut arenas, .. } = entries;
     permutations.sort_unstable_by(|a, b| arenas.cmp_names(a, b));
     if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names(&w[0], &w[1]).is_eq()) {
         return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0]))));
@@ -906,26 +979,18 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     arenas.prefixes = prefixes;
     manifest.permutations = permutations;
     manifest.arenas = arenas;
-    Ok(Plan { manifest, targets, slots: blob_slots, table, spool_len })
+    Ok(Plan { hooks, manifest, targets, slots: blob_slots, table, spool_len })
 }
 
-/// Runs `f` over `items` with one `init()` state per worker: on the compiler's thread pool
-/// where it is built in, else in order on this thread.
+/// Runs `f` over `items` with one `init()` state per worker of the current rayon pool (the
+/// build's own pool when a build writes the archive), the results in `items`' order.
 fn par_map<T: Sync, U: Send, S>(
     items: &[T],
     init: impl Fn() -> S + Sync + Send,
     f: impl Fn(&mut S, &T) -> U + Sync + Send,
 ) -> Vec<U> {
-    #[cfg(feature = "compiler")]
-    {
-        use rayon::prelude::*;
-        items.par_iter().map_init(init, f).collect()
-    }
-    #[cfg(not(feature = "compiler"))]
-    {
-        let mut state = init();
-        items.iter().map(|t| f(&mut state, t)).collect()
-    }
+    use rayon::prelude::*;
+    items.par_iter().map_init(init, f).collect()
 }
 
 /// Trains a target's dictionary on `sample` (locations of an evenly spaced sample of its
@@ -1077,30 +1142,22 @@ fn dictionaries(
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
-/// Hands the memory freed so far back to the system, where a build said how
-/// ([`crate::build::set_release_freed`]: the allocator may keep freed pages for a while);
-/// nothing otherwise.
-fn release_freed() {
-    #[cfg(feature = "compiler")]
-    crate::build::release_freed();
-}
 
 /// It consumes the plan: the manifest is encoded first (but for its header and dictionary
 /// records, which wait for the dictionaries) to the spool file past the blobs and their
 /// table, or to memory with an in-memory spool, and its arenas let go before the blobs are
-/// compressed (`release_freed` is called then); it is copied into the archive, hashed as it
+/// compressed (the release hook is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { manifest, targets: blobs, slots, table: mut blob_table, spool_len } = plan;
+    let Plan { hooks, manifest, targets: blobs, slots, table: mut blob_table, spool_len } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
-    let spilled = spill_manifest(manifest, spool, spill_at)?;
+    let spilled = spill_manifest(manifest, spool, spill_at, hooks)?;
     // Where each blob lies is read back from the log only now that the manifest is gone, a
     // window of blob ids at a time.
     let id_of = blob_table.ids(slots)?;
-    release_freed();
-    #[cfg(feature = "compiler")]
-    crate::build::trace_memory("manifest spilled");
+    (hooks.release)();
+    (hooks.trace)("manifest spilled");
 
     let mut out = BufWriter::with_capacity(1 << 20, out);
     out.seek(SeekFrom::Start(0))?;
@@ -1302,8 +1359,13 @@ struct SpilledManifest<'a> {
 /// which depend on the dictionaries: the parts before the dictionary records, then those
 /// after. Each arena goes as soon as it is encoded, the names first (the parts after the
 /// dictionary records lie past the others, whose length the counts give), so that the ids'
-/// sort is not on top of the whole manifest; `release_freed` is called once they are gone.
-fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std::io::Result<SpilledManifest<'a>> {
+/// sort is not on top of the whole manifest; the release hook is called once they are gone.
+fn spill_manifest<'a>(
+    mut manifest: Manifest,
+    spool: &Spool<'a>,
+    at: u64,
+    hooks: WriterHooks,
+) -> std::io::Result<SpilledManifest<'a>> {
     let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
     let (p, arenas) = (&manifest.permutations, &manifest.arenas);
     let counts = ManifestCounts {
@@ -1336,7 +1398,7 @@ fn spill_manifest<'a>(mut manifest: Manifest, spool: &Spool<'a>, at: u64) -> std
     }
     back.flush()?;
     manifest.arenas.names = String::new();
-    release_freed();
+    (hooks.release)();
 
     let mut front = SpillBuf::new(spool, at, 0);
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);

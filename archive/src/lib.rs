@@ -13,21 +13,27 @@
 //! record and each blob the first time it is used, and finds a permutation by name or id
 //! with a binary search of the manifest's sorted records.
 //!
-//! This module builds without the `compiler` feature: the runtime reads archives through
-//! these very types, with no naga in its dependency tree.
+//! This crate is the vocabulary the compiler (`kiln`) and the runtime (`kiln-runtime`)
+//! share: stages, targets, reflection and limits, the archive's format and reader, and
+//! atomic file writes ([`output`]). The writer sits behind the `writer` feature, so the
+//! runtime reads archives through these very types without linking zstd's dictionary
+//! builder, and nothing here calls back into a build: the writer's memory hooks are passed
+//! in ([`WriterHooks`]).
 
+// The manifest's arenas and layouts are the writer's; the reader reads the bytes in place.
+#[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
+pub mod output;
 mod reader;
 mod reflect;
+#[cfg(feature = "writer")]
 mod writer;
 
-#[cfg(test)]
+#[cfg(all(test, feature = "writer"))]
 mod tests;
 
-#[cfg(feature = "compiler")]
-pub(crate) use format::write_atomic_impl;
 pub use format::{
-    write_atomic, write_atomic_unsynced, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
+    write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
     CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
     MAX_ARTIFACT_LEN,
 };
@@ -36,7 +42,12 @@ pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,
 };
-pub use writer::{ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter};
+#[cfg(feature = "writer")]
+pub use writer::{ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks};
+
+/// The version of Kiln that wrote an archive (recorded in its manifest). The workspace's
+/// crates share one version.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
 
 use serde::{Deserialize, Serialize};
 

@@ -225,7 +225,7 @@ pub enum ArchiveError {
     #[error("archive manifest is malformed: {0}")]
     Manifest(String),
     /// A chunk of the manifest or blob table that no permutation's use reads (an id, say)
-    /// failed its hash in [`crate::archive::Archive::verify_all`].
+    /// failed its hash in [`crate::Archive::verify_all`].
     #[error("archive is corrupted: {0}")]
     Corrupted(String),
     /// A blob failed its check or its decompression the first time it was used.
@@ -758,16 +758,16 @@ impl ChunkHasher {
 /// Writes `bytes` to `path` as [`crate::output::write_with`] does (atomically; a device or a
 /// FIFO written through; never renamed over anything else), synced.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    write_atomic_impl(path, &[bytes], true)
+    write_pieces(path, &[bytes], true)
 }
 
 /// [`write_atomic`] without syncing the temporary file before the rename.
 pub fn write_atomic_unsynced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    write_atomic_impl(path, &[bytes], false)
+    write_pieces(path, &[bytes], false)
 }
 
 /// Writes the concatenation of `pieces` (see [`write_atomic`]).
-pub(crate) fn write_atomic_impl(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
+pub fn write_pieces(path: &Path, pieces: &[&[u8]], sync: bool) -> std::io::Result<()> {
     crate::output::write_with(path, sync, |f, _| write_all_vectored(f, pieces))
 }
 
