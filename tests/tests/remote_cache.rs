@@ -6,6 +6,7 @@
 //! cache folder. Servers are stopped by a drop guard. A missing server binary fails the
 //! test, naming its Debian package.
 
+#[path = "it/build_support/mod.rs"]
 mod build_support;
 #[path = "../../compiler/tests/support/scale_set.rs"]
 mod scale_set;

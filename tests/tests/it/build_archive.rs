@@ -2,11 +2,10 @@
 //! archive under its canonical name with the artifacts `--emit-dir` wrote, and a truncated,
 //! corrupted or foreign-version archive is a clear error.
 
-mod build_support;
 
 use std::collections::BTreeMap;
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::archive::{Archive, ArchiveError, Target};
 
 #[test]

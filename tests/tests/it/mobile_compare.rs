@@ -2,7 +2,6 @@
 //! desktop frame when the effects one of them lacks are off; each threshold is checked
 //! against a control frame that must fall below it, so it separates right from wrong.
 
-mod mobile_support;
 
 use std::sync::Arc;
 
@@ -10,7 +9,7 @@ use kiln_renderer::mobile::{MobileOptions, ShadingPath};
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::Backend;
-use mobile_support::*;
+use crate::mobile_support::*;
 
 /// The bundled scene with its four local lights (three points, one spot), no fog and no
 /// translucent meshes.

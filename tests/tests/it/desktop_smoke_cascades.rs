@@ -5,9 +5,8 @@
 //! while inner cells (0.156 m) around it do. Smoke that read only the outer cascade would not
 //! see the light at all.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::desktop::translucent_volume::TranslucentVolumes;

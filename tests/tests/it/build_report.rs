@@ -1,9 +1,8 @@
 //! What a build reports: counts, filters, dead dimensions, and failures that do not stop
 //! the other permutations.
 
-mod build_support;
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::archive::{Archive, Target};
 use kiln::build;
 

@@ -1,9 +1,8 @@
 //! `kiln::Build`, the build-script API: the archive in the output folder, the `cargo:`
 //! lines, and failures rendered with their locations.
 
-mod build_support;
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::archive::Archive;
 use kiln::Build;
 

@@ -2,9 +2,8 @@
 //! hidden behind the depth buffer renders no shadow depths and no ShadowProjection once its
 //! query result has come back, and gets them back once the camera sees the volume again.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::renderer::FrameOutput;
 use kiln_renderer::scene::{Camera, Mobility, PointLight, Scene};

@@ -1,8 +1,7 @@
 //! Velocity and eye adaptation of the desktop frame's effects.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::scene::Scene;

@@ -206,7 +206,7 @@ fn golden_path() -> PathBuf {
 /// The frame against `tests/golden/desktop_320x180.png`. Tolerance: a mean absolute
 /// difference of at most 1.5 (of 255) per channel, and at most 1% of the pixels differing by
 /// more than 24 in any channel (lavapipe's LLVM version may change rounding). Regenerate with
-/// `KILN_UPDATE_GOLDEN=1 cargo test -p kiln-tests --test desktop_frame golden`.
+/// `KILN_UPDATE_GOLDEN=1 cargo test -p kiln-tests --test it desktop_frame::golden`.
 #[test]
 fn golden_image_matches_within_tolerance() {
     let f = build(&Scene::bundled(), small());

@@ -5,12 +5,11 @@
 //! `KILN_BLESS=1` to rewrite the expected files (then review the diff). Every artifact also
 //! goes through `spirv-val`, `glslangValidator` and naga.
 
-mod build_support;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::archive::{Archive, Target};
 
 fn file_name(permutation: &str) -> String {

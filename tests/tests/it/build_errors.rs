@@ -1,9 +1,8 @@
 //! Failures rendered on the original files: header, line, column, include chain, macro,
 //! and the permutation's canonical name and level. Compared as whole rendered text.
 
-mod build_support;
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::build;
 
 /// Builds lit.toml after `edit` changed the fixture; returns every rendered failure.

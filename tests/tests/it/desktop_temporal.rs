@@ -1,8 +1,7 @@
 //! Temporal effects and volumetric fog of the desktop frame's effects, on the rendered scene.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;

@@ -5,11 +5,10 @@
 //! permutations per level, all distinct. `USE_FOG = 1` selects 1 LitVS key and 5 LitPS keys
 //! per level: 12 keys in all, the ones whose tokens change when `fog.ush` changes.
 
-mod build_support;
 
 use std::path::{Path, PathBuf};
 
-use build_support::*;
+use crate::build_support::*;
 use kiln::build;
 
 const DISTINCT: usize = 24;

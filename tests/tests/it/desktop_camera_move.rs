@@ -6,9 +6,8 @@
 //! fitted to (their depth maps, ShadowProjectionOnOpaque, the glass, the volumetric fog and the
 //! translucency volumes read them), the fire sprites' view and the translucency volumes' boxes.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::frame::Image;

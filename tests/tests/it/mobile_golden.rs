@@ -4,12 +4,11 @@
 //! differently, while a lost light, shadow or pass costs far more). `KILN_BLESS=1` rewrites
 //! the references.
 
-mod mobile_support;
 
 use kiln_renderer::mobile::MobileOptions;
 use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
-use mobile_support::*;
+use crate::mobile_support::*;
 
 const TOLERANCE_PSNR: f64 = 40.0;
 

@@ -1,8 +1,7 @@
 //! BuildHZB and BeginOcclusionTests of the desktop frame's effects, on the rendered scene.
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::{Mat4, Quat, Vec3};
 use kiln_renderer::desktop::occlusion::PropVisibility;
 use kiln_renderer::scene::{Camera, Mobility, Object, Scene};

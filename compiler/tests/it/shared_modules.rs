@@ -3,7 +3,7 @@
 //! artifacts are byte-identical to a build that shares nothing, `--stats-json` counts the
 //! shared compiles, and `kiln explain` names the permutations that share a module.
 
-#[path = "../benches/shapes/mod.rs"]
+#[path = "../../benches/shapes/mod.rs"]
 mod shapes;
 
 use std::path::Path;

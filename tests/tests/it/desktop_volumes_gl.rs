@@ -4,11 +4,10 @@
 //! (As 3D textures, GL bound one slice of each storage volume and the fog turned the frame
 //! black.)
 
-mod desktop_support;
 
 use std::sync::Arc;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;

@@ -192,7 +192,7 @@ fn two_processes_at_once_on_one_cache() {
     assert!(stdout(&o).contains("entries: 24 in "), "{}", stdout(&o));
 }
 
-#[path = "support/scale_set.rs"]
+#[path = "../support/scale_set.rs"]
 mod scale_set;
 
 /// `kiln build` in `dir` with these arguments and environment; its stats JSON.

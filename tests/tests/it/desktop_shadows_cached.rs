@@ -1,8 +1,7 @@
 //! ShadowDepths of a movable point light with a cached static depth (CopyCachedShadowMap).
 
-mod desktop_support;
 
-use desktop_support::*;
+use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;

@@ -3,11 +3,10 @@
 //! (SPIR-V), `glslangValidator` (GLSL, and HLSL through its HLSL front end) and naga (WGSL).
 //! MSL has no compiler here. `KILN_BUNDLED_CONFIG` points the test at another set.
 
-mod build_support;
 
 use std::path::PathBuf;
 
-use build_support::*;
+use crate::build_support::*;
 
 #[test]
 fn bundled_set_builds_and_every_artifact_validates() {

@@ -1,0 +1,4 @@
+//! The example's integration tests, one binary: its command line and its dependency tree.
+
+mod cli;
+mod dependencies;
