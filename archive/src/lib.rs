@@ -23,6 +23,7 @@
 // The manifest's arenas and layouts are the writer's; the reader reads the bytes in place.
 #[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
+pub mod limits;
 pub mod output;
 mod reader;
 mod reflect;
@@ -33,8 +34,8 @@ mod writer;
 mod tests;
 
 pub use format::{
-    write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, PermutationRecord, ShaderRecord,
-    CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
+    write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, PermutationRecord,
+    ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
     MAX_ARTIFACT_LEN,
 };
 pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations};

@@ -255,7 +255,7 @@ impl Build {
     fn write_bindings(&self, path: &Path) -> Result<(), BuildError> {
         let usage = |message: String| BuildError { message, code: 2, report: None };
         let config = crate::permute::load(&self.config).map_err(|e| usage(e.render_with(false)))?;
-        let text = crate::bindings::generate(&config).map_err(|e| usage(format!("error: {e}")))?;
+        let text = crate::keys::generate(&config).map_err(|e| usage(format!("error: {e}")))?;
         if std::fs::read(path).ok().as_deref() == Some(text.as_bytes()) {
             return Ok(());
         }

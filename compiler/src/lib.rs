@@ -11,7 +11,7 @@
 //! - [`archive`]: the packed file the runtime loads (the `kiln-archive` crate, which the
 //!   runtime reads archives with, without this crate or naga);
 //! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
-//!   [`bindings`], the typed permutation keys it generates;
+//!   [`keys`], the typed permutation keys it generates;
 //! - every output file is written as `kiln_archive::output` writes it (atomically, never over a
 //!   device or an input).
 
@@ -20,8 +20,6 @@
 pub use kiln_archive as archive;
 use kiln_archive::output;
 
-#[cfg(feature = "compiler")]
-pub mod bindings;
 #[cfg(feature = "compiler")]
 pub mod build;
 #[cfg(feature = "compiler")]
@@ -32,6 +30,10 @@ pub mod cache;
 pub mod cli;
 #[cfg(feature = "compiler")]
 pub mod compile;
+#[cfg(feature = "compiler")]
+pub mod explain;
+#[cfg(feature = "compiler")]
+pub mod keys;
 #[cfg(feature = "compiler")]
 pub mod permute;
 #[cfg(feature = "compiler")]

@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use kiln_archive::{Archive, Target};
 use kiln::build::{self, CacheDir};
+use kiln_archive::{Archive, Target};
 
 use crate::shaders::ShaderArchive;
 

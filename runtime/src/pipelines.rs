@@ -18,8 +18,8 @@ use std::collections::HashMap;
 use std::num::NonZeroU64;
 use std::sync::{Arc, Mutex};
 
-use kiln_archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
 use kiln_archive::Stage;
+use kiln_archive::{Binding, BindingKind, Reflection, SampleKind, StorageAccess, Target, TextureDim};
 
 pub use crate::gpu::error_chain;
 use crate::gpu::Gpu;

@@ -20,8 +20,8 @@
 
 use std::collections::HashMap;
 
-use kiln_archive::{BindingKind, Reflection};
 use kiln_archive::Stage;
+use kiln_archive::{BindingKind, Reflection};
 
 const MAGIC: u32 = 0x0723_0203;
 /// The highest SPIR-V version the runtime passes through (1.6).

@@ -21,7 +21,7 @@
 
 use std::io::{self, Read};
 
-use super::remote::MAX_VALUE;
+use super::fault::MAX_VALUE;
 use super::{Key, REMOTE_HEADER, REMOTE_MAGIC};
 
 /// Fewer keys than this are fetched one `GET` each (pipelined, one batch or two).

@@ -43,8 +43,9 @@ use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
 mod bundle;
+mod fault;
 mod fill;
-mod pipeline;
+mod http_batch;
 pub mod remote;
 
 pub use remote::Remote;
@@ -899,8 +900,7 @@ impl Cache {
     /// renames it to `path` ([`crate::output`]: the folder is made again if it was removed
     /// under us, and whatever is not a regular file at `path` is never renamed over).
     fn write_pieces(&self, path: &Path, pieces: &[&[u8]]) -> Result<(), Error> {
-        crate::archive::write_pieces(path, pieces, false)
-            .map_err(|source| Error { path: path.to_path_buf(), source })
+        crate::archive::write_pieces(path, pieces, false).map_err(|source| Error { path: path.to_path_buf(), source })
     }
 
     fn files(&self) -> impl Iterator<Item = (PathBuf, fs::Metadata)> {

@@ -8,7 +8,7 @@
 //! corrupted or truncated remote entry is a miss, recompiled and overwritten. Sets of preprocessing
 //! records and archives (checksummed too) are shared the same way, under their own keys.
 //! [`Remote::get_each`] fetches many values with few round trips: redis `MGET`, or with
-//! plain HTTP pipelined `GET`s (`super::pipeline`), on several connections at once.
+//! plain HTTP pipelined `GET`s (`super::http_batch`), on several connections at once.
 //!
 //! HTTP follows the convention of bazel-remote and of ccache's and sccache's WebDAV
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
@@ -24,12 +24,11 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Duration;
 
+use super::fault::{Fault, MAX_VALUE};
 use super::Key;
 
 /// The default bound of each connect, read and write.
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
-/// The largest value read back (a guard against a server answering with something else).
-pub(super) const MAX_VALUE: u64 = 1 << 30;
 /// The most a value's announced length reserves before its bytes arrive (larger values grow
 /// as they do).
 const MAX_RESERVE: usize = 64 << 20;
@@ -182,14 +181,6 @@ pub fn redact(url: &str) -> String {
     format!("{scheme}://{host}{path}")
 }
 
-/// One failed operation.
-#[derive(Debug)]
-pub(super) struct Fault {
-    pub message: String,
-    /// A timeout is not retried (it would double the wait).
-    pub timed_out: bool,
-}
-
 /// The remote cache of one build.
 pub struct Remote {
     store: Store,
@@ -320,8 +311,8 @@ impl Remote {
             }),
             Store::Http(h) => {
                 // Plain HTTP: batches of pipelined GETs; HTTPS: one request at a time.
-                let batch = if h.pipeline.is_some() { super::pipeline::BATCH } else { 1 };
-                in_batches(keys, batch, |chunk, value| match &h.pipeline {
+                let batch = if h.batch.is_some() { super::http_batch::BATCH } else { 1 };
+                in_batches(keys, batch, |chunk, value| match &h.batch {
                     Some(p) => self.get_pipelined(p, chunk, value, &f),
                     None => chunk.iter().for_each(|key| {
                         let found = self.get_into(key, value);
@@ -337,14 +328,14 @@ impl Remote {
     /// is tried again once (an idle connection the server closed), except a timeout.
     fn get_pipelined(
         &self,
-        pipeline: &super::pipeline::Pipeline,
+        batch: &super::http_batch::HttpBatch,
         keys: &[Key],
         value: &mut Vec<u8>,
         f: &impl Fn(&Key, Option<&[u8]>),
     ) {
         let (mut done, mut retried) = (0, false);
         while done < keys.len() && !self.off.load(Ordering::Relaxed) {
-            match pipeline.get(&keys[done..], value, f) {
+            match batch.get(&keys[done..], value, f) {
                 Ok(n) => done += n,
                 Err((n, fault)) => {
                     done += n;
@@ -775,7 +766,7 @@ struct HttpStore {
     prefix: String,
     authorization: Option<String>,
     /// A fill's pipelined GETs, with plain HTTP.
-    pipeline: Option<super::pipeline::Pipeline>,
+    batch: Option<super::http_batch::HttpBatch>,
 }
 
 impl HttpStore {
@@ -832,12 +823,12 @@ impl HttpStore {
             ureq::unversioned::transport::DefaultConnector::default(),
             OnceResolver::default(),
         );
-        let pipeline = if scheme.eq_ignore_ascii_case("http") {
-            super::pipeline::Pipeline::new(host, path, authorization.as_deref(), options.timeout)
+        let batch = if scheme.eq_ignore_ascii_case("http") {
+            super::http_batch::HttpBatch::new(host, path, authorization.as_deref(), options.timeout)
         } else {
             None
         };
-        Ok((HttpStore { agent, prefix, authorization, pipeline }, password))
+        Ok((HttpStore { agent, prefix, authorization, batch }, password))
     }
 
     fn url(&self, key: &Key) -> String {
@@ -881,9 +872,9 @@ impl HttpStore {
 
     /// `f` with a reader of the value of `key` as it arrives (`None` for a 404): pipelined
     /// plain HTTP's connections, else ureq's. `Err((called, fault))` as
-    /// [`super::pipeline::Pipeline::get_streamed`].
+    /// [`super::http_batch::HttpBatch::get_streamed`].
     fn get_streamed(&self, key: &Key, f: &mut dyn FnMut(Option<&mut dyn std::io::Read>)) -> Result<(), (bool, Fault)> {
-        if let Some(p) = &self.pipeline {
+        if let Some(p) = &self.batch {
             return p.get_streamed(key, f);
         }
         let mut request = self.agent.get(self.url(key));

@@ -5,7 +5,6 @@ use std::path::PathBuf;
 
 use super::list::load_config;
 use super::{print_stdout, CliResult, Failure};
-use crate::permute;
 use crate::preprocess::SourceCache;
 
 /// Arguments of `kiln explain`.
@@ -39,7 +38,7 @@ pub fn exec(args: Args) -> CliResult {
 pub(super) fn run(args: &Args, color: bool) -> Result<(String, Option<Failure>), Failure> {
     let config = load_config(&args.config, color, &mut std::io::stderr())?;
     let cache = SourceCache::new(config.dir.clone());
-    let report = permute::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
+    let report = crate::explain::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
     let failure = report.error.map(|d| {
         let rendered = crate::preprocess::render(std::slice::from_ref(&d), &cache, color);
         if report.kept {

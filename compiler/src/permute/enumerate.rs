@@ -551,7 +551,7 @@ impl<'c> Iterator for Kept<'c> {
 /// How many permutations of `shader` at `level` its skip rules keep, counted over only the
 /// dimensions the rules name (the others multiply the count); `None` when that takes more
 /// than `budget` rule evaluations.
-pub(super) fn count_kept(shader: &Shader, level: &Level, budget: u64) -> Option<u128> {
+pub(crate) fn count_kept(shader: &Shader, level: &Level, budget: u64) -> Option<u128> {
     let named: Vec<usize> = (0..shader.dimensions.len())
         .filter(|&i| {
             let name = &shader.dimensions[i].name;

@@ -16,9 +16,8 @@
 //! [`crate::archive::Archive::canonical_name`] builds them.
 
 mod analysis;
-mod enumerate;
+pub(crate) mod enumerate;
 mod error;
-mod explain;
 mod names;
 mod schema;
 
@@ -32,7 +31,6 @@ pub use enumerate::{
     DEFAULT_MAX_PERMUTATIONS,
 };
 pub use error::{ConfigError, Near, NotFound};
-pub use explain::{explain, Explanation};
 pub use schema::MAX_DIMENSION_VALUES;
 
 use crate::preprocess;

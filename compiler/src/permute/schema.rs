@@ -542,8 +542,8 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
                         }
                         continue;
                     }
-                    let Some(&(_, wide)) = crate::compile::WGPU_LIMITS.iter().find(|(f, _)| f == field) else {
-                        let near = crate::compile::WGPU_LIMITS
+                    let Some(&(_, wide)) = crate::archive::limits::WGPU_LIMITS.iter().find(|(f, _)| f == field) else {
+                        let near = crate::archive::limits::WGPU_LIMITS
                             .iter()
                             .map(|(f, _)| *f)
                             .min_by_key(|f| super::names::edit_distance(f, field))

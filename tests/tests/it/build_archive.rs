@@ -2,7 +2,6 @@
 //! archive under its canonical name with the artifacts `--emit-dir` wrote, and a truncated,
 //! corrupted or foreign-version archive is a clear error.
 
-
 use std::collections::BTreeMap;
 
 use crate::build_support::*;

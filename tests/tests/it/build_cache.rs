@@ -5,7 +5,6 @@
 //! permutations per level, all distinct. `USE_FOG = 1` selects 1 LitVS key and 5 LitPS keys
 //! per level: 12 keys in all, the ones whose tokens change when `fog.ush` changes.
 
-
 use std::path::{Path, PathBuf};
 
 use crate::build_support::*;

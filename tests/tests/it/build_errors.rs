@@ -1,7 +1,6 @@
 //! Failures rendered on the original files: header, line, column, include chain, macro,
 //! and the permutation's canonical name and level. Compared as whole rendered text.
 
-
 use crate::build_support::*;
 use kiln::build;
 

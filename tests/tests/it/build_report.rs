@@ -1,7 +1,6 @@
 //! What a build reports: counts, filters, dead dimensions, and failures that do not stop
 //! the other permutations.
 
-
 use crate::build_support::*;
 use kiln::archive::{Archive, Target};
 use kiln::build;

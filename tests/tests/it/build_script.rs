@@ -1,7 +1,6 @@
 //! `kiln::Build`, the build-script API: the archive in the output folder, the `cargo:`
 //! lines, and failures rendered with their locations.
 
-
 use crate::build_support::*;
 use kiln::archive::Archive;
 use kiln::Build;

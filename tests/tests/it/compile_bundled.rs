@@ -3,7 +3,6 @@
 //! (SPIR-V), `glslangValidator` (GLSL, and HLSL through its HLSL front end) and naga (WGSL).
 //! MSL has no compiler here. `KILN_BUNDLED_CONFIG` points the test at another set.
 
-
 use std::path::PathBuf;
 
 use crate::build_support::*;

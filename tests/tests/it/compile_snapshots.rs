@@ -5,7 +5,6 @@
 //! `KILN_BLESS=1` to rewrite the expected files (then review the diff). Every artifact also
 //! goes through `spirv-val`, `glslangValidator` and naga.
 
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

@@ -6,7 +6,6 @@
 //! fitted to (their depth maps, ShadowProjectionOnOpaque, the glass, the volumetric fog and the
 //! translucency volumes read them), the fire sprites' view and the translucency volumes' boxes.
 
-
 use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;

@@ -1,6 +1,5 @@
 //! Velocity and eye adaptation of the desktop frame's effects.
 
-
 use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;

@@ -1,6 +1,5 @@
 //! BuildHZB and BeginOcclusionTests of the desktop frame's effects, on the rendered scene.
 
-
 use crate::desktop_support::*;
 use glam::{Mat4, Quat, Vec3};
 use kiln_renderer::desktop::occlusion::PropVisibility;

@@ -1,7 +1,6 @@
 //! The desktop frame's effects: every pass appears in frame order among the core
 //! ones, with a non-trivial image, over several frames.
 
-
 use crate::desktop_support::*;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::RendererOptions;

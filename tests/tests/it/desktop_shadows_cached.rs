@@ -1,6 +1,5 @@
 //! ShadowDepths of a movable point light with a cached static depth (CopyCachedShadowMap).
 
-
 use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::scene::Scene;

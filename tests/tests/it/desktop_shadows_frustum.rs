@@ -2,7 +2,6 @@
 //! hidden behind the depth buffer renders no shadow depths and no ShadowProjection once its
 //! query result has come back, and gets them back once the camera sees the volume again.
 
-
 use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::renderer::FrameOutput;

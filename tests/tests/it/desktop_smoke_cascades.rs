@@ -5,7 +5,6 @@
 //! while inner cells (0.156 m) around it do. Smoke that read only the outer cascade would not
 //! see the light at all.
 
-
 use crate::desktop_support::*;
 use glam::Vec3;
 use kiln_renderer::desktop::effects::EffectOptions;

@@ -1,6 +1,5 @@
 //! Temporal effects and volumetric fog of the desktop frame's effects, on the rendered scene.
 
-
 use crate::desktop_support::*;
 use kiln_renderer::desktop::effects::EffectOptions;
 use kiln_renderer::frame::Image;

@@ -2,7 +2,6 @@
 //! `SURFACE_LIGHTING_VOLUME`): what InjectTranslucentVolume writes shows on the glass, and a
 //! light the volumes see occluded darkens the glass that lies in its shadow, not the rest.
 
-
 use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};

@@ -4,7 +4,6 @@
 //! per-object shadow of the slab, a movable prop), against the same light injected unshadowed;
 //! a region beside the light, which the slab does not hide, keeps its light.
 
-
 use crate::desktop_support::*;
 use glam::{Mat4, Vec3};
 use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};

@@ -4,7 +4,6 @@
 //! (As 3D textures, GL bound one slice of each storage volume and the fog turned the frame
 //! black.)
 
-
 use std::sync::Arc;
 
 use crate::desktop_support::*;

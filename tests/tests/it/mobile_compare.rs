@@ -2,14 +2,13 @@
 //! desktop frame when the effects one of them lacks are off; each threshold is checked
 //! against a control frame that must fall below it, so it separates right from wrong.
 
-
 use std::sync::Arc;
 
+use crate::mobile_support::*;
 use kiln_renderer::mobile::{MobileOptions, ShadingPath};
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::Backend;
-use crate::mobile_support::*;
 
 /// The bundled scene with its four local lights (three points, one spot), no fog and no
 /// translucent meshes.

@@ -3,13 +3,12 @@
 //! MAX_DYNAMIC_POINT_LIGHTS=0 drops the local lights of the forward base pass, and the
 //! frames are the same on GL and on Vulkan.
 
-
+use crate::mobile_support::*;
 use glam::Vec3;
 use kiln_renderer::frame::Image;
 use kiln_renderer::mobile::{MobileOptions, ShadingPath};
 use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
-use crate::mobile_support::*;
 
 fn luma(img: &Image, i: usize) -> f64 {
     let p = &img.rgba[i * 4..i * 4 + 3];

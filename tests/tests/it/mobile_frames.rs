@@ -1,10 +1,9 @@
 //! The mobile frames (issue 8) on lavapipe: both paths render every pass.
 
-
+use crate::mobile_support::*;
 use kiln_renderer::mobile::{MobileFrame, MobileOptions};
 use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
-use crate::mobile_support::*;
 
 #[test]
 fn forward_frame_runs_its_passes_in_order() {

@@ -4,11 +4,10 @@
 //! differently, while a lost light, shadow or pass costs far more). `KILN_BLESS=1` rewrites
 //! the references.
 
-
+use crate::mobile_support::*;
 use kiln_renderer::mobile::MobileOptions;
 use kiln_renderer::scene::Scene;
 use kiln_runtime::Backend;
-use crate::mobile_support::*;
 
 const TOLERANCE_PSNR: f64 = 40.0;
 

@@ -20,7 +20,7 @@ fn mobile() -> (permute::Config, SourceCache) {
 fn explain_names_defines_rules_files_hash_and_group() {
     let (config, cache) = mobile();
     // The enum value by index; the name comes back canonical.
-    let e = permute::explain(&config, &cache, "Tonemap@es3_1{BLEND_MODE=0,DEBUG_VIEW=1,GRAIN=0}").unwrap();
+    let e = kiln::explain::explain(&config, &cache, "Tonemap@es3_1{BLEND_MODE=0,DEBUG_VIEW=1,GRAIN=0}").unwrap();
     // What the permutation must preprocess to, written out by hand (spacing does not matter).
     let expected_tokens = "
         const MAX_LIGHTS: u32 = 4u;
@@ -75,7 +75,7 @@ compacted module: shared with no permutation of another token stream
 #[test]
 fn explain_a_skipped_permutation_with_derived_defines() {
     let (config, cache) = mobile();
-    let e = permute::explain(
+    let e = kiln::explain::explain(
         &config,
         &cache,
         "MobileBasePassPS@es3_1{USE_VERTEX_FOG=1,FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=2,DEFERRED_SHADING_PATH=1}",
@@ -123,10 +123,10 @@ fn explain_a_skipped_permutation_with_derived_defines() {
         "{}",
         e.text
     );
-    let twin = permute::explain(&config, &cache, twins[1]).unwrap();
+    let twin = kiln::explain::explain(&config, &cache, twins[1]).unwrap();
     assert_eq!(twin.group, twins);
     assert_eq!(twin.hash, e.hash);
-    let forward = permute::explain(
+    let forward = kiln::explain::explain(
         &config,
         &cache,
         "MobileBasePassPS@es3_1{FULLY_ROUGH=1,MAX_DYNAMIC_POINT_LIGHTS=2,USE_VERTEX_FOG=1,DEFERRED_SHADING_PATH=0}",
@@ -144,7 +144,8 @@ fn explain_a_skipped_permutation_with_derived_defines() {
 #[test]
 fn explain_unknown_name_lists_the_closest() {
     let (config, cache) = mobile();
-    let e = permute::explain(&config, &cache, "Tonemap@es3_1{BLEND_MODE=ADDITIVE,DEBUG_VIEW=1,GRAIN=0}").unwrap_err();
+    let e =
+        kiln::explain::explain(&config, &cache, "Tonemap@es3_1{BLEND_MODE=ADDITIVE,DEBUG_VIEW=1,GRAIN=0}").unwrap_err();
     assert_eq!(
         e.render(),
         "error: no permutation named `Tonemap@es3_1{BLEND_MODE=ADDITIVE,DEBUG_VIEW=1,GRAIN=0}`

@@ -32,7 +32,7 @@ use super::resources::{
 };
 use super::shadow_depths::ShadowDepths;
 use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
-use super::{Build, DesktopError, LightingPath};
+use super::{DesktopError, LightingPath, PassContext};
 
 /// The Lighting declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -135,7 +135,7 @@ fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
 
 impl Lighting {
     pub fn new(
-        b: &Build<'_>,
+        b: &PassContext<'_>,
         shadows: &ShadowDepths,
         dummy_shadow: &Texture,
         grid: &super::light_grid::LightGrid,
@@ -469,7 +469,10 @@ fn occluded_draw<'l>(light: &'l ShadowedLight, casts_shadow: &dyn Fn(usize) -> b
     light.local.as_ref().and_then(|(i, d)| (!casts_shadow(*i)).then_some(d))
 }
 
-fn light_resources<'r>(b: &'r Build<'_>, light: &'r wgpu::Buffer) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
+fn light_resources<'r>(
+    b: &'r PassContext<'_>,
+    light: &'r wgpu::Buffer,
+) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
     let t = b.targets;
     vec![
         ("View", b.view_buffer.as_entire_binding()),

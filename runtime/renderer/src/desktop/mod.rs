@@ -138,7 +138,7 @@ impl From<crate::shaders::LookupError> for DesktopError {
 }
 
 /// What passes read while they are built.
-pub(crate) struct Build<'a> {
+pub(crate) struct PassContext<'a> {
     pub device: &'a wgpu::Device,
     pub pipelines: &'a pipelines::Pipelines<'a>,
     pub scene: &'a Scene,
@@ -152,7 +152,7 @@ pub(crate) struct Build<'a> {
     pub options: &'a DesktopOptions,
 }
 
-impl Build<'_> {
+impl PassContext<'_> {
     /// View, instances and materials: what every mesh pass binds.
     pub fn scene_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
         vec![
@@ -227,7 +227,7 @@ impl DesktopFrame {
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
         let pipelines = pipelines::Pipelines::new(cache, "sm5");
-        let b = Build {
+        let b = PassContext {
             device,
             pipelines: &pipelines,
             scene,
@@ -304,47 +304,47 @@ impl DesktopFrame {
     /// of `DesktopOptions::output_format` and the frame's size).
     pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
         let (s, t) = (&self.buffers, &self.targets);
-        let p2 = &self.effects;
-        let camera = p2.begin_frame();
-        let view = FrameView::from_camera(&p2.camera(), self.options.width.max(1), self.options.height.max(1));
+        let effects = &self.effects;
+        let camera = effects.begin_frame();
+        let view = FrameView::from_camera(&effects.camera(), self.options.width.max(1), self.options.height.max(1));
         self.write_camera(&camera, &view);
         self.follow_camera(&view);
-        p2.particle_simulation(frame);
+        effects.particle_simulation(frame);
         frame.pass(prepass::PASS.name, |ctx| self.prepass.record(ctx, s, t));
         frame.pass(light_grid::PASS.name, |ctx| self.light_grid.record(ctx, t));
-        p2.begin_occlusion_tests(frame);
-        p2.build_hzb(frame);
+        effects.begin_occlusion_tests(frame);
+        effects.build_hzb(frame);
         // this frame's verdict of the ShadowFrustumQueries (read back a frame or more ago)
         let casts_shadow = |light: usize| self.casts_shadow(light);
         frame.pass(shadow_depths::PASS.name, |ctx| self.shadows.record(ctx, s, &casts_shadow));
-        p2.volumetric_fog(frame);
+        effects.volumetric_fog(frame);
         frame.pass(base_pass::PASS.name, |ctx| {
             self.base_pass.record(ctx, s, t);
-            p2.particle_collision(ctx);
+            effects.particle_collision(ctx);
         });
-        p2.velocity(frame);
+        effects.velocity(frame);
         if self.options.ambient_occlusion {
             frame.pass(ambient_occlusion::PASS.name, |ctx| self.ambient_occlusion.record(ctx, t));
         }
         frame.pass(lighting::PASS.name, |ctx| {
             self.lighting.record(ctx, s, t, &casts_shadow);
-            p2.translucent_volumes(ctx, &casts_shadow);
+            effects.translucent_volumes(ctx, &casts_shadow);
         });
-        p2.reflections(frame);
+        effects.reflections(frame);
         frame.pass(fog::PASS.name, |ctx| {
             self.fog.record(ctx, t);
-            p2.apply_volumetric_fog(ctx);
+            effects.apply_volumetric_fog(ctx);
         });
         frame.pass(translucency::PASS.name, |ctx| {
-            self.translucency.record(ctx, s, t, p2.options().translucency_lighting);
-            p2.particle_sprites(ctx);
+            self.translucency.record(ctx, s, t, effects.options().translucency_lighting);
+            effects.particle_sprites(ctx);
         });
-        p2.distortion(frame);
+        effects.distortion(frame);
         frame.pass(post_processing::PASS.name, |ctx| {
-            p2.temporal_post_processing(ctx);
+            effects.temporal_post_processing(ctx);
             self.post.record(ctx, t, output);
         });
-        p2.end_frame();
+        effects.end_frame();
     }
 
     /// The frame's passes in the order [`DesktopFrame::record_into`] records them, each
@@ -560,7 +560,7 @@ struct EffectInputs<'a> {
 
 /// The frame's effects over the frame's targets and the directional light's cascades.
 fn build_effects(
-    b: &Build<'_>,
+    b: &PassContext<'_>,
     queue: &wgpu::Queue,
     inputs: EffectInputs<'_>,
 ) -> Result<effects::Effects, DesktopError> {

@@ -1,4 +1,5 @@
-//! No import cycles between modules, in the renderer's and the runtime's `src/` trees.
+//! No import cycles between modules, in the `src/` trees of the renderer, the runtime, the
+//! compiler and the archive crate.
 //!
 //! Reads every `.rs` file (binaries aside), names its module by its path (`desktop/mod.rs` is
 //! `desktop`, `desktop/taa.rs` is `desktop::taa`), and adds an edge for every `crate::...` and
@@ -275,6 +276,16 @@ fn the_renderer_has_no_import_cycles() {
 #[test]
 fn the_runtime_has_no_import_cycles() {
     assert_no_cycles(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../src"));
+}
+
+#[test]
+fn the_compiler_has_no_import_cycles() {
+    assert_no_cycles(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../../compiler/src"));
+}
+
+#[test]
+fn the_archive_crate_has_no_import_cycles() {
+    assert_no_cycles(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../../archive/src"));
 }
 
 #[test]

@@ -14,7 +14,7 @@ use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use super::remote::{Fault, MAX_VALUE};
+use super::fault::{Fault, MAX_VALUE};
 use super::Key;
 
 /// The most keys whose requests go out at once on one connection (about 64 KB of requests
@@ -25,7 +25,7 @@ pub const BATCH: usize = 64;
 const MAX_HEAD: usize = 64 << 10;
 
 /// A plain-HTTP server and the prefix its values live under.
-pub struct Pipeline {
+pub struct HttpBatch {
     /// `host[:port]`, as the `Host` header gives it.
     authority: String,
     host: String,
@@ -40,9 +40,9 @@ pub struct Pipeline {
     idle: Mutex<Vec<BufReader<TcpStream>>>,
 }
 
-impl Pipeline {
+impl HttpBatch {
     /// For `http://authority/path` (no credentials in it), with the `Authorization` value.
-    pub fn new(authority: &str, path: &str, authorization: Option<&str>, timeout: Duration) -> Option<Pipeline> {
+    pub fn new(authority: &str, path: &str, authorization: Option<&str>, timeout: Duration) -> Option<HttpBatch> {
         let (host, port) = match authority.rsplit_once(':') {
             Some((h, p)) if !h.ends_with(':') && (h.starts_with('[') || !h.contains(':')) => (h, p.parse().ok()?),
             _ => (authority, 80),
@@ -51,7 +51,7 @@ impl Pipeline {
         if host.is_empty() {
             return None;
         }
-        Some(Pipeline {
+        Some(HttpBatch {
             authority: authority.to_string(),
             host: host.to_string(),
             port,
@@ -338,7 +338,7 @@ mod tests {
 
     type Answers = Vec<(Key, Option<Vec<u8>>)>;
 
-    fn answers(pipeline: &Pipeline, keys: &[Key]) -> (Result<usize, (usize, Fault)>, Answers) {
+    fn answers(pipeline: &HttpBatch, keys: &[Key]) -> (Result<usize, (usize, Fault)>, Answers) {
         let got = Mutex::new(Vec::new());
         let mut value = Vec::new();
         let r = pipeline.get(keys, &mut value, &|k, v| got.lock().unwrap().push((*k, v.map(<[u8]>::to_vec))));
@@ -353,7 +353,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
             .to_vec();
         let (port, server) = serve(reply, 3);
         let p =
-            Pipeline::new(&format!("127.0.0.1:{port}"), "/kiln/", Some("Bearer t"), Duration::from_secs(5)).unwrap();
+            HttpBatch::new(&format!("127.0.0.1:{port}"), "/kiln/", Some("Bearer t"), Duration::from_secs(5)).unwrap();
         let k = keys(3);
         let (r, got) = answers(&p, &k);
         assert_eq!(r.unwrap(), 3);
@@ -368,7 +368,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
     fn a_close_after_some_answers_leaves_the_rest() {
         let reply = b"HTTP/1.1 200 OK\r\nContent-Length: 1\r\nConnection: close\r\n\r\nA".to_vec();
         let (port, server) = serve(reply, 3);
-        let p = Pipeline::new(&format!("127.0.0.1:{port}"), "", None, Duration::from_secs(5)).unwrap();
+        let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "", None, Duration::from_secs(5)).unwrap();
         let (r, got) = answers(&p, &keys(3));
         assert_eq!(r.unwrap(), 1);
         assert_eq!(got.len(), 1);
@@ -387,7 +387,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
             (b"", 0, "closed"),
         ] {
             let (port, server) = serve(reply.to_vec(), 2);
-            let p = Pipeline::new(&format!("127.0.0.1:{port}"), "/p", None, Duration::from_secs(5)).unwrap();
+            let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "/p", None, Duration::from_secs(5)).unwrap();
             let (r, got) = answers(&p, &keys(2));
             let (n, fault) = r.unwrap_err();
             assert_eq!((n, got.len()), (answered, answered), "{why}");
@@ -402,7 +402,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
 
     fn streamed(reply: &[u8], read: usize) -> Streamed {
         let (port, server) = serve(reply.to_vec(), 1);
-        let p = Pipeline::new(&format!("127.0.0.1:{port}"), "/kiln", None, Duration::from_secs(5)).unwrap();
+        let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "/kiln", None, Duration::from_secs(5)).unwrap();
         let mut got = None;
         let r = p.get_streamed(&Key([9; 32]), &mut |body| {
             got = body.map(|b| {
@@ -442,7 +442,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
 
     #[test]
     fn authorities_give_host_and_port() {
-        let p = |a: &str| Pipeline::new(a, "/x", None, Duration::from_secs(1)).map(|p| (p.host, p.port));
+        let p = |a: &str| HttpBatch::new(a, "/x", None, Duration::from_secs(1)).map(|p| (p.host, p.port));
         assert_eq!(p("cache.example"), Some(("cache.example".into(), 80)));
         assert_eq!(p("10.0.0.1:8080"), Some(("10.0.0.1".into(), 8080)));
         assert_eq!(p("[::1]:81"), Some(("::1".into(), 81)));
@@ -453,7 +453,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
     #[test]
     fn a_server_that_is_not_there_is_a_fault() {
         let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let p = Pipeline::new(&format!("127.0.0.1:{port}"), "/p", None, Duration::from_millis(500)).unwrap();
+        let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "/p", None, Duration::from_millis(500)).unwrap();
         let (r, got) = answers(&p, &keys(2));
         assert!(r.unwrap_err().1.message.contains("connecting"));
         assert!(got.is_empty());

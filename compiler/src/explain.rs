@@ -4,7 +4,7 @@ use std::fmt::Write;
 
 use codespan_reporting::diagnostic::Diagnostic;
 
-use super::{analyze, Config, Define, NotFound, RuleResult};
+use crate::permute::{analyze, Config, Define, NotFound, RuleResult};
 use crate::preprocess::{self, FileId, SourceCache};
 
 /// One permutation explained.
@@ -56,12 +56,15 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     let mut group = Vec::new();
     // The group preprocesses every kept permutation of the shader at the level: only when
     // there are few enough (counted over the dimensions the skip rules name).
-    let kept = super::enumerate::count_kept(p.shader, p.level, 1 << 16);
+    let kept = crate::permute::enumerate::count_kept(p.shader, p.level, 1 << 16);
     let grouped = kept.is_some_and(|k| k <= GROUP_LIMIT);
     if let (Some(hash), true) = (hash, grouped) {
         let analysis = analyze(config, cache, |s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level));
         if let Some(level) = analysis.levels.first() {
-            group = level.group(hash).map(|q| super::enumerate::canonical_name(p.shader, p.level, &q.values)).collect();
+            group = level
+                .group(hash)
+                .map(|q| crate::permute::enumerate::canonical_name(p.shader, p.level, &q.values))
+                .collect();
         }
     }
 
@@ -203,13 +206,17 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
 
 /// The kept permutations of `p`'s shader and level whose compacted module equals `p`'s
 /// ([`crate::compile::module_hash`]): each distinct token stream is parsed and validated once.
-fn module_group(config: &Config, cache: &SourceCache, p: &super::Permutation<'_>) -> Result<Vec<String>, String> {
+fn module_group(
+    config: &Config,
+    cache: &SourceCache,
+    p: &crate::permute::Permutation<'_>,
+) -> Result<Vec<String>, String> {
     use rayon::prelude::*;
     use std::collections::HashMap;
 
     let options = crate::compile::Options::for_level(p.level, &[]);
-    let same = |q: &super::Permutation<'_>| std::ptr::eq(q.shader, p.shader) && std::ptr::eq(q.level, p.level);
-    let kept: Vec<super::Permutation<'_>> = config
+    let same = |q: &crate::permute::Permutation<'_>| std::ptr::eq(q.shader, p.shader) && std::ptr::eq(q.level, p.level);
+    let kept: Vec<crate::permute::Permutation<'_>> = config
         .permutations_where(|s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level))
         .filter(|q| same(q) && q.is_kept() && q.error.is_none())
         .collect();

@@ -156,7 +156,7 @@ fn generated_keys_name_every_permutation_as_kiln_list_does() {
     let config = dir.path().join("permutations.toml");
     std::fs::write(&config, CONFIG).unwrap();
     let loaded = kiln::permute::load(&config).unwrap();
-    let source = kiln::bindings::generate(&loaded).unwrap();
+    let source = kiln::keys::generate(&loaded).unwrap();
     let printed = compile_and_run(dir.path(), &source, MAIN);
     let list = kiln_list(&config);
     let want = expected(&list);
@@ -228,7 +228,7 @@ fn names_rust_cannot_spell_are_errors() {
     let bad = |shaders: &str| {
         let text = format!("[compiler]\ninclude = [\".\"]\n[levels.sm5]\n{shaders}");
         std::fs::write(&config, text).unwrap();
-        kiln::bindings::generate(&kiln::permute::load(&config).unwrap()).unwrap_err().message
+        kiln::keys::generate(&kiln::permute::load(&config).unwrap()).unwrap_err().message
     };
     let e = bad("[[shader]]\nname = \"FooBar\"\nsource = \"a.usf\"\nstage = \"compute\"\n[[shader]]\nname = \"foo_bar\"\nsource = \"a.usf\"\nstage = \"compute\"\n");
     assert_eq!(e, "shaders `FooBar` and `foo_bar` are both named `foo_bar` in Rust");
