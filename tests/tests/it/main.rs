@@ -26,6 +26,7 @@ mod desktop_temporal;
 mod desktop_translucency_volume;
 mod desktop_volume_local_shadows;
 mod desktop_volumes_gl;
+mod docs;
 mod example_hello;
 mod mobile_compare;
 mod mobile_features;

@@ -268,9 +268,9 @@ fn broken_links(root: &Path) -> Vec<String> {
                     problems.push(format!("{shown}:{n}: `{target}`: an anchor into a file that is not markdown"));
                     continue;
                 }
-                let known = anchor_cache.entry(resolved.clone()).or_insert_with(|| {
-                    anchors(&std::fs::read_to_string(&resolved).unwrap_or_default())
-                });
+                let known = anchor_cache
+                    .entry(resolved.clone())
+                    .or_insert_with(|| anchors(&std::fs::read_to_string(&resolved).unwrap_or_default()));
                 if !known.contains(&percent_decode(anchor)) {
                     problems.push(format!(
                         "{shown}:{n}: `{target}`: {relative} has no heading with anchor #{anchor} (it has: {})",
@@ -305,8 +305,11 @@ fn the_link_checker_finds_what_it_should() {
          [bad anchor](docs/guide/a.md#nope) [out](../outside.md)\n[def]: docs/guide/gone.md\n",
     )
     .unwrap();
-    std::fs::write(root.join("docs/guide/a.md"), "# A\n\n## The B_C part!\n\n## Same\n\n## Same\n\n[up](../../README.md)\n")
-        .unwrap();
+    std::fs::write(
+        root.join("docs/guide/a.md"),
+        "# A\n\n## The B_C part!\n\n## Same\n\n## Same\n\n[up](../../README.md)\n",
+    )
+    .unwrap();
     let problems = broken_links(root);
     let found: Vec<&str> = problems.iter().map(|p| p.split('`').nth(1).unwrap_or("")).collect();
     assert_eq!(
@@ -321,8 +324,13 @@ fn readme_opens_with_the_two_commands_and_stays_short() {
     let text = std::fs::read_to_string(repo().join("README.md")).unwrap();
     let lines: Vec<&str> = text.lines().collect();
     assert!(lines.len() <= 200, "README.md has {} lines; the issue allows 200", lines.len());
-    let first_block: Vec<&str> =
-        lines.iter().skip_while(|l| !l.starts_with("```")).skip(1).take_while(|l| !l.starts_with("```")).copied().collect();
+    let first_block: Vec<&str> = lines
+        .iter()
+        .skip_while(|l| !l.starts_with("```"))
+        .skip(1)
+        .take_while(|l| !l.starts_with("```"))
+        .copied()
+        .collect();
     assert!(first_block.first().is_some_and(|l| l.starts_with("cargo run --release -- build ")), "{first_block:?}");
     assert!(first_block.get(1).is_some_and(|l| l.starts_with("bash .ci/run ")), "{first_block:?}");
 }
@@ -339,7 +347,9 @@ fn newest_source(root: &Path) -> SystemTime {
         }
     }
     let mut newest = SystemTime::UNIX_EPOCH;
-    for p in ["Cargo.lock", "compiler/Cargo.toml", "compiler/src", "compiler/build.rs", "archive/Cargo.toml", "archive/src"] {
+    for p in
+        ["Cargo.lock", "compiler/Cargo.toml", "compiler/src", "compiler/build.rs", "archive/Cargo.toml", "archive/src"]
+    {
         walk(&root.join(p), &mut newest);
     }
     newest
