@@ -12,6 +12,7 @@
 //!   with [`output`], so the runtime reads archives with the same types and no naga);
 //! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
 //!   [`bindings`], the typed permutation keys it generates;
+//! - [`lsp`]: `kiln lsp`, the Language Server Protocol for editors, on the same stages;
 //! - [`output`]: how every output file is written (atomically, never over a device or an input).
 
 pub mod archive;
@@ -29,6 +30,8 @@ pub mod cache;
 pub mod cli;
 #[cfg(feature = "compiler")]
 pub mod compile;
+#[cfg(feature = "compiler")]
+pub mod lsp;
 #[cfg(feature = "compiler")]
 pub mod permute;
 #[cfg(feature = "compiler")]
