@@ -279,7 +279,16 @@ pub fn completion(ctx: &Ctx<'_>, p: &Value) -> Value {
 /// The names `#define`d in the files the active permutation read.
 fn define_names(ctx: &Ctx<'_>) -> Vec<String> {
     let mut out = Vec::new();
-    let files: Vec<PathBuf> = ctx.active.map_or_else(|| vec![ctx.path.to_path_buf()], |a| a.files.clone());
+    let mut files: Vec<PathBuf> = ctx.active.map_or_else(|| vec![ctx.path.to_path_buf()], |a| a.files.clone());
+    // While the text does not preprocess, its own includes still name the headers it reads.
+    let mut at = 0;
+    for line in ctx.text.split_inclusive('\n') {
+        if include_spelling(line).is_some() {
+            files.extend(include_target(ctx, at));
+        }
+        at += line.len();
+    }
+    files.dedup();
     for file in files {
         let text = if file == ctx.path { ctx.text.to_string() } else { std::fs::read_to_string(&file).unwrap_or_default() };
         for line in text.lines() {
