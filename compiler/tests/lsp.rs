@@ -99,7 +99,10 @@ impl Client {
     /// Starts a server and initializes it with these options.
     fn initialized(options: Value) -> Client {
         let mut c = Client::start();
-        let r = c.request("initialize", json!({ "processId": null, "rootUri": null, "capabilities": {}, "initializationOptions": options }));
+        let r = c.request(
+            "initialize",
+            json!({ "processId": null, "rootUri": null, "capabilities": {}, "initializationOptions": options }),
+        );
         assert!(r["result"]["capabilities"]["hoverProvider"].as_bool().unwrap_or(false), "{r}");
         c.notify("initialized", json!({}));
         c
@@ -178,7 +181,8 @@ impl Client {
     }
 
     fn change(&mut self, path: &Path, version: i64, text: &str) {
-        let params = json!({ "textDocument": { "uri": uri(path), "version": version }, "contentChanges": [{ "text": text }] });
+        let params =
+            json!({ "textDocument": { "uri": uri(path), "version": version }, "contentChanges": [{ "text": text }] });
         self.notify("textDocument/didChange", params);
     }
 
@@ -213,7 +217,8 @@ fn inactive_lines(params: &Value) -> Vec<u64> {
     let mut out = Vec::new();
     for d in params["diagnostics"].as_array().into_iter().flatten() {
         if d["tags"].as_array().is_some_and(|t| t.contains(&json!(1))) {
-            let (s, e) = (d["range"]["start"]["line"].as_u64().unwrap_or(0), d["range"]["end"]["line"].as_u64().unwrap_or(0));
+            let (s, e) =
+                (d["range"]["start"]["line"].as_u64().unwrap_or(0), d["range"]["end"]["line"].as_u64().unwrap_or(0));
             out.extend(s..e);
         }
     }
@@ -268,9 +273,15 @@ fn an_error_some_permutations_hit_counts_them_as_the_build_does() {
 
     let mut c = Client::initialized(json!({}));
     c.open(&lit, &text);
-    let want = format!("in {failed} of {kept} permutations of LitPS@sm5, e.g. `LitPS@sm5{{FULLY_ROUGH=0,NUM_LIGHTS=2}}`");
-    let d = c.diagnostics(&uri(&lit), |p| errors(p).iter().any(|e| e["message"].as_str().unwrap_or("").contains("permutations of")));
-    let e = errors(&d).into_iter().find(|e| e["message"].as_str().unwrap_or("").contains("permutations of")).expect("counted");
+    let want =
+        format!("in {failed} of {kept} permutations of LitPS@sm5, e.g. `LitPS@sm5{{FULLY_ROUGH=0,NUM_LIGHTS=2}}`");
+    let d = c.diagnostics(&uri(&lit), |p| {
+        errors(p).iter().any(|e| e["message"].as_str().unwrap_or("").contains("permutations of"))
+    });
+    let e = errors(&d)
+        .into_iter()
+        .find(|e| e["message"].as_str().unwrap_or("").contains("permutations of"))
+        .expect("counted");
     assert!(e["message"].as_str().unwrap_or("").ends_with(&want), "{e} / {want}");
     assert_eq!(e["range"]["start"]["line"], line_of(&text, "let bad"), "{e}");
 }
@@ -315,7 +326,8 @@ fn inactive_lines_match_kiln_preprocess_and_follow_the_active_permutation() {
     assert_eq!(r["result"]["permutations"].as_array().map(Vec::len), Some(7), "{r}");
     assert_eq!(r["result"]["active"], "LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=0}");
 
-    let r = c.request("kiln/setPermutation", json!({ "textDocument": { "uri": uri(&lit) }, "values": { "NUM_LIGHTS": 2 } }));
+    let r = c
+        .request("kiln/setPermutation", json!({ "textDocument": { "uri": uri(&lit) }, "values": { "NUM_LIGHTS": 2 } }));
     assert_eq!(r["result"]["active"], "LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=2}", "{r}");
     let expected = absent_lines(&text, &preprocessed(&root, &lit, &["FULLY_ROUGH=0", "NUM_LIGHTS=2"]));
     let d = c.diagnostics(&uri(&lit), |p| inactive_lines(p) == expected);
@@ -329,9 +341,15 @@ fn inactive_lines_match_kiln_preprocess_and_follow_the_active_permutation() {
     let want = vec![line_of(&htext, "return s.albedo *")];
     c.diagnostics(&uri(&header), |p| inactive_lines(p) == want);
 
-    let r = c.request("kiln/setPermutation", json!({ "textDocument": { "uri": uri(&lit) }, "permutation": "LitPS@sm5{NOPE=1}" }));
+    let r = c.request(
+        "kiln/setPermutation",
+        json!({ "textDocument": { "uri": uri(&lit) }, "permutation": "LitPS@sm5{NOPE=1}" }),
+    );
     assert!(r["error"].is_object(), "{r}");
-    let r = c.request("kiln/setPermutation", json!({ "textDocument": { "uri": uri(&lit) }, "permutation": "LitPS@sm5{FULLY_ROUGH=1,NUM_LIGHTS=4}" }));
+    let r = c.request(
+        "kiln/setPermutation",
+        json!({ "textDocument": { "uri": uri(&lit) }, "permutation": "LitPS@sm5{FULLY_ROUGH=1,NUM_LIGHTS=4}" }),
+    );
     assert!(r["error"].is_object(), "a skipped permutation is no choice: {r}");
 }
 
@@ -406,7 +424,10 @@ fn hover_definition_completion_and_symbols() {
     assert!(h["result"]["contents"]["value"].as_str().unwrap_or("").contains("2.0"), "{h}");
     let d = c.request("textDocument/definition", at(&header, l, column(&htext, l, "ROUGHNESS_SCALE") + 1));
     assert_eq!(d["result"]["range"]["start"]["line"], line_of(&htext, "#define ROUGHNESS_SCALE"), "{d}");
-    let d = c.request("textDocument/definition", at(&lit, line_of(&text, "f32(NUM_LIGHTS)"), column(&text, line_of(&text, "f32(NUM_LIGHTS)"), "NUM_LIGHTS")));
+    let d = c.request(
+        "textDocument/definition",
+        at(&lit, line_of(&text, "f32(NUM_LIGHTS)"), column(&text, line_of(&text, "f32(NUM_LIGHTS)"), "NUM_LIGHTS")),
+    );
     assert_eq!(d["result"]["uri"], uri(&root.join("permutations.toml")), "{d}");
 
     let edited = text.replace("#if NUM_LIGHTS > 0", "#if ");
@@ -414,7 +435,10 @@ fn hover_definition_completion_and_symbols() {
     let l = line_of(&edited, "#if ");
     let r = c.request("textDocument/completion", at(&lit, l, 4));
     let labels: Vec<&str> = r["result"].as_array().into_iter().flatten().filter_map(|i| i["label"].as_str()).collect();
-    assert!(labels.contains(&"NUM_LIGHTS") && labels.contains(&"ROUGHNESS_SCALE") && labels.contains(&"FEATURE_LEVEL"), "{labels:?}");
+    assert!(
+        labels.contains(&"NUM_LIGHTS") && labels.contains(&"ROUGHNESS_SCALE") && labels.contains(&"FEATURE_LEVEL"),
+        "{labels:?}"
+    );
     let edited = format!("#include \"\n{text}");
     c.change(&lit, 3, &edited);
     let r = c.request("textDocument/completion", at(&lit, 0, 10));
@@ -488,7 +512,10 @@ fn hostile_input_gives_diagnostics_or_errors_and_never_ends_the_server() {
     // Positions past the end, a non-file URI, an unknown document.
     let r = c.request("textDocument/hover", at(&lit, 99_999, 99_999));
     assert!(r.get("result").is_some(), "{r}");
-    let r = c.request("textDocument/definition", json!({ "textDocument": { "uri": "untitled:1" }, "position": { "line": 0, "character": 0 } }));
+    let r = c.request(
+        "textDocument/definition",
+        json!({ "textDocument": { "uri": "untitled:1" }, "position": { "line": 0, "character": 0 } }),
+    );
     assert!(r.get("result").is_some() || r.get("error").is_some(), "{r}");
     let r = c.request("kiln/permutations", json!({ "textDocument": { "uri": uri(&root.join("nowhere/x.usf")) } }));
     assert!(r.get("result").is_some() || r.get("error").is_some(), "{r}");
@@ -562,7 +589,11 @@ fn latency() {
     for i in 0..50 {
         let version = i + 2;
         // Alternately valid and broken, so errors come and go.
-        let edited = if i % 2 == 0 { format!("{text}\nconst EDIT_{i}: f32 = 1.0;\n") } else { format!("{text}\nconst EDIT_{i}: f32 = nope;\n") };
+        let edited = if i % 2 == 0 {
+            format!("{text}\nconst EDIT_{i}: f32 = 1.0;\n")
+        } else {
+            format!("{text}\nconst EDIT_{i}: f32 = nope;\n")
+        };
         let t = Instant::now();
         c.change(&shader, version, &edited);
         c.diagnostics(&uri(&shader), |p| p["version"] == version);

@@ -62,7 +62,11 @@ fn locate(d: &Diagnostic<FileId>, cache: &SourceCache, fallback: &std::path::Pat
 }
 
 /// What one permutation's text gave: its errors (none when it validates).
-fn check_text(p: &Permutation<'_>, config: &Config, cache: &SourceCache) -> (Option<preprocess::Output>, Vec<FileDiag>) {
+fn check_text(
+    p: &Permutation<'_>,
+    config: &Config,
+    cache: &SourceCache,
+) -> (Option<preprocess::Output>, Vec<FileDiag>) {
     let source = &p.shader.source_path;
     let opts = p.preprocess_options(config);
     match preprocess::preprocess_file(source, &opts, cache) {

@@ -184,10 +184,7 @@ fn location(path: &Path, range: Range) -> Value {
 }
 
 fn line_range(line: u32, cols: std::ops::Range<usize>) -> Range {
-    Range {
-        start: Position { line, character: cols.start as u32 },
-        end: Position { line, character: cols.end as u32 },
-    }
+    Range { start: Position { line, character: cols.start as u32 }, end: Position { line, character: cols.end as u32 } }
 }
 
 /// `textDocument/definition`.
@@ -290,11 +287,13 @@ fn define_names(ctx: &Ctx<'_>) -> Vec<String> {
     }
     files.dedup();
     for file in files {
-        let text = if file == ctx.path { ctx.text.to_string() } else { std::fs::read_to_string(&file).unwrap_or_default() };
+        let text =
+            if file == ctx.path { ctx.text.to_string() } else { std::fs::read_to_string(&file).unwrap_or_default() };
         for line in text.lines() {
             let t = line.trim_start();
             if let Some(rest) = t.strip_prefix('#').map(str::trim_start).and_then(|r| r.strip_prefix("define")) {
-                let name: String = rest.trim_start().chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
+                let name: String =
+                    rest.trim_start().chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
                 if !name.is_empty() {
                     out.push(name);
                 }
@@ -344,7 +343,7 @@ fn declarations(text: &str) -> Vec<(&'static str, &str, std::ops::Range<usize>)>
         for kw in ["fn", "struct", "const", "override", "alias", "var"] {
             let Some(r) = rest.strip_prefix(kw) else { continue };
             let r = if kw == "var" && r.starts_with('<') { r.find('>').map_or(r, |e| &r[e + 1..]) } else { r };
-            if !r.starts_with(|c: char| c.is_whitespace()) && !(kw == "var" && rest.starts_with("var<")) {
+            if !(r.starts_with(|c: char| c.is_whitespace()) || kw == "var" && rest.starts_with("var<")) {
                 continue;
             }
             let r = r.trim_start();

@@ -11,9 +11,7 @@ use std::sync::Arc;
 
 use lsp_server::{ErrorCode, Message, Notification, Request, RequestId, Response};
 use lsp_types::notification::Notification as _;
-use lsp_types::{
-    Diagnostic, DiagnosticSeverity, DiagnosticTag, PublishDiagnosticsParams, Url,
-};
+use lsp_types::{Diagnostic, DiagnosticSeverity, DiagnosticTag, PublishDiagnosticsParams, Url};
 use serde_json::{json, Value};
 
 use super::check::{self, FileDiag};
@@ -30,7 +28,12 @@ pub(super) enum Event {
     /// stdin ended (the client exited or crashed).
     Eof,
     /// One shader's domain, checked for generation `gen`.
-    Domain { gen: u64, config_path: PathBuf, shader: usize, diags: Vec<FileDiag> },
+    Domain {
+        gen: u64,
+        config_path: PathBuf,
+        shader: usize,
+        diags: Vec<FileDiag>,
+    },
 }
 
 /// Work for the background thread: the shaders of each set still to check.
@@ -277,7 +280,11 @@ impl Server {
                     p["textDocument"]["text"].as_str().map(str::to_string)
                 } else {
                     // Full sync: the last change holds the whole text.
-                    p["contentChanges"].as_array().and_then(|c| c.last()).and_then(|c| c["text"].as_str()).map(str::to_string)
+                    p["contentChanges"]
+                        .as_array()
+                        .and_then(|c| c.last())
+                        .and_then(|c| c["text"].as_str())
+                        .map(str::to_string)
                 };
                 let Some(text) = text else { return };
                 self.docs.insert(path.clone(), Doc { uri, version, text: text.into() });
@@ -402,15 +409,24 @@ impl Server {
         };
         if self.docs.get(path).is_some_and(|d| d.text.len() > MAX_DOC_BYTES) {
             let n = self.docs[path].text.len();
-            return Some(warn(DiagnosticSeverity::WARNING, format!("not checked: {n} bytes is over the {MAX_DOC_BYTES}-byte limit of kiln lsp")));
+            return Some(warn(
+                DiagnosticSeverity::WARNING,
+                format!("not checked: {n} bytes is over the {MAX_DOC_BYTES}-byte limit of kiln lsp"),
+            ));
         }
         let Some(w) = self.workspace_for(path) else {
-            return Some(warn(DiagnosticSeverity::WARNING, "no permutations.toml in this folder or above: not checked".into()));
+            return Some(warn(
+                DiagnosticSeverity::WARNING,
+                "no permutations.toml in this folder or above: not checked".into(),
+            ));
         };
         let ws = &self.workspaces[w];
         if let Err(e) = &ws.config {
             let first = e.lines().next().unwrap_or("").to_string();
-            return Some(warn(DiagnosticSeverity::ERROR, format!("{} does not load: {first}", ws.config_path.display())));
+            return Some(warn(
+                DiagnosticSeverity::ERROR,
+                format!("{} does not load: {first}", ws.config_path.display()),
+            ));
         }
         if !ws.serves(path) {
             return Some(warn(

@@ -100,7 +100,8 @@ impl Workspace {
         let Ok(c) = &self.config else { return Vec::new() };
         let mut out: Vec<usize> = (0..c.shaders.len())
             .filter(|i| {
-                c.shaders[*i].source_path == path || self.active.get(i).is_some_and(|a| a.files.iter().any(|f| f == path))
+                c.shaders[*i].source_path == path
+                    || self.active.get(i).is_some_and(|a| a.files.iter().any(|f| f == path))
             })
             .collect();
         out.dedup();
