@@ -379,6 +379,71 @@ fn an_edit_moves_diagnostics_and_every_change_is_answered_with_its_version() {
     assert_eq!(errors(&d)[0]["range"]["start"]["line"], line_of(&htext, "roughness: f32,") + 1, "{d:#}");
 }
 
+#[test]
+fn a_header_only_other_permutations_read_is_checked_when_edited() {
+    let (_dir, root) = project();
+    let lit = root.join("shaders/Lit.usf");
+    let extra = root.join("shaders/Extra.ush");
+    std::fs::write(&extra, "fn extra() -> f32 { return 1.0; }\n").expect("write");
+    let text = format!(
+        "#if NUM_LIGHTS == 4\n#include \"Extra.ush\"\n#endif\n{}",
+        std::fs::read_to_string(&lit).expect("read")
+    );
+    std::fs::write(&lit, &text).expect("write");
+    let mut c = Client::initialized(json!({}));
+    c.open(&lit, &text);
+    // The domain check learns that a permutation reads Extra.ush.
+    c.diagnostics(&uri(&lit), |p| p["version"] == 1);
+    std::thread::sleep(Duration::from_millis(500));
+    c.open(&extra, "fn extra() -> f32 { return nope; }\n");
+    let want = "in 1 of 7 permutations of LitPS@sm5, e.g. `LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=4}`";
+    let d =
+        c.diagnostics(&uri(&extra), |p| errors(p).iter().any(|e| e["message"].as_str().unwrap_or("").ends_with(want)));
+    assert_eq!(errors(&d)[0]["range"]["start"]["line"], 0, "{d:#}");
+}
+
+#[test]
+fn a_header_included_twice_is_inactive_only_where_both_inclusions_skip_it() {
+    let (_dir, root) = project();
+    let lit = root.join("shaders/Lit.usf");
+    let twice = root.join("shaders/Twice.ush");
+    // A guard the preprocessor cannot take for an include guard: the second inclusion skips
+    // the whole file, the first keeps it.
+    std::fs::write(&twice, "#if !defined(TWICE)\n#define TWICE 1\nconst TWICE_VALUE: f32 = 1.0;\n#if FULLY_ROUGH\nconst ROUGH_ONLY: f32 = 2.0;\n#endif\n#endif\n").expect("write");
+    let text =
+        format!("#include \"Twice.ush\"\n#include \"Twice.ush\"\n{}", std::fs::read_to_string(&lit).expect("read"));
+    let mut c = Client::initialized(json!({}));
+    c.open(&lit, &text);
+    let d = c.diagnostics(&uri(&twice), |p| !inactive_lines(p).is_empty());
+    assert_eq!(inactive_lines(&d), vec![4], "{d:#}");
+}
+
+#[test]
+fn exit_without_shutdown_ends_with_status_1() {
+    let mut c = Client::initialized(json!({}));
+    c.notify("exit", Value::Null);
+    assert_eq!(c.finish().code(), Some(1));
+}
+
+#[test]
+fn a_broken_permutation_set_is_reported_on_its_shaders() {
+    let (_dir, root) = project();
+    let lit = root.join("shaders/Lit.usf");
+    let toml = root.join("permutations.toml");
+    let ttext = std::fs::read_to_string(&toml).expect("read");
+    let mut c = Client::initialized(json!({}));
+    c.open(&lit, &std::fs::read_to_string(&lit).expect("read"));
+    c.diagnostics(&uri(&lit), |p| p["version"] == 1);
+    c.open(&toml, &ttext.replace("stage = \"fragment\"", "stage = \"pixel\""));
+    let d = c.diagnostics(&uri(&toml), |p| !errors(p).is_empty());
+    assert_eq!(errors(&d)[0]["range"]["start"]["line"], line_of(&ttext, "stage = "), "{d:#}");
+    c.diagnostics(&uri(&lit), |p| {
+        errors(p).iter().any(|e| e["message"].as_str().unwrap_or("").contains("does not load"))
+    });
+    c.change(&toml, 2, &ttext);
+    c.diagnostics(&uri(&lit), |p| errors(p).is_empty());
+}
+
 fn at(path: &Path, line: u64, character: u64) -> Value {
     json!({ "textDocument": { "uri": uri(path) }, "position": { "line": line, "character": character } })
 }

@@ -11,5 +11,6 @@ pub struct Args {
 }
 
 pub fn exec(_args: Args) -> CliResult {
-    crate::lsp::run_stdio().map_err(|e| Failure::usage(format!("error: kiln lsp: {e}")))
+    // LSP: `exit` without `shutdown` ends with status 1.
+    crate::lsp::run_stdio().map_err(|e| Failure::shader(format!("error: kiln lsp: {e}")))
 }

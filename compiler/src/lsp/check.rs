@@ -2,7 +2,7 @@
 //! in the background (distinct sources only, cancellable), each error at its original file,
 //! line and column.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -93,11 +93,47 @@ pub fn check_active(config: &Config, p: &Permutation<'_>, level: usize, overlays
     let (files, skipped) = match &output {
         Some(o) => (
             o.files.iter().map(|f| cache.path(*f)).collect(),
-            o.skipped.iter().map(|(f, r)| (cache.path(*f), r.clone())).collect(),
+            inactive_lines(o).into_iter().map(|(f, r)| (cache.path(f), r)).collect(),
         ),
         None => (vec![p.shader.source_path.clone()], Vec::new()),
     };
     Active { level, values: p.values.clone(), name, files, diags, skipped, output: output.map(|o| (o, cache)) }
+}
+
+/// The lines excluded in every inclusion of their file (a header included twice, once
+/// skipped whole by a guard written as `#if !defined(X)`, is active where the other
+/// inclusion kept it).
+fn inactive_lines(o: &preprocess::Output) -> Vec<(FileId, std::ops::Range<u32>)> {
+    let mut inclusions: HashMap<FileId, u32> = HashMap::new();
+    if let Some(main) = o.files.first() {
+        inclusions.insert(*main, 1);
+    }
+    for (_, _, child) in o.map.includes() {
+        *inclusions.entry(child).or_default() += 1;
+    }
+    if inclusions.values().all(|&n| n <= 1) {
+        return o.skipped.clone();
+    }
+    let mut counts: HashMap<(FileId, u32), u32> = HashMap::new();
+    for (f, r) in &o.skipped {
+        for line in r.clone() {
+            *counts.entry((*f, line)).or_default() += 1;
+        }
+    }
+    let mut lines: Vec<(FileId, u32)> = counts
+        .into_iter()
+        .filter(|((f, _), n)| *n >= inclusions.get(f).copied().unwrap_or(1))
+        .map(|(k, _)| k)
+        .collect();
+    lines.sort_unstable();
+    let mut out: Vec<(FileId, std::ops::Range<u32>)> = Vec::new();
+    for (f, line) in lines {
+        match out.last_mut() {
+            Some((g, r)) if *g == f && r.end == line => r.end += 1,
+            _ => out.push((f, line..line + 1)),
+        }
+    }
+    out
 }
 
 /// One error over a domain: how many permutations it breaks and one of them.
@@ -107,16 +143,20 @@ struct Tally {
     example: String,
 }
 
+/// What checking a shader's domain found.
+pub struct Domain {
+    /// Each error with how many kept permutations it breaks.
+    pub diags: Vec<FileDiag>,
+    /// Every file some kept permutation read.
+    pub files: HashSet<PathBuf>,
+}
+
 /// Checks every kept permutation of shader `i` (each distinct preprocessed text validated
 /// once). `None` when `cancelled` said so before the end.
-pub fn check_domain(
-    config: &Config,
-    i: usize,
-    overlays: &Overlays,
-    cancelled: &dyn Fn() -> bool,
-) -> Option<Vec<FileDiag>> {
+pub fn check_domain(config: &Config, i: usize, overlays: &Overlays, cancelled: &dyn Fn() -> bool) -> Option<Domain> {
     let shader = config.shaders.get(i)?;
     let mut out = Vec::new();
+    let mut files = HashSet::new();
     for level in config.levels.iter().filter(|l| shader.levels.contains(&l.name)) {
         let cache = cache_with(overlays, &config.dir);
         let limits = compile::Limits::for_level(level);
@@ -134,6 +174,11 @@ pub fn check_domain(
                     tally(&mut tallies, locate(&e.diagnostic, &cache, &shader.source_path), &p);
                 }
                 Ok(o) => {
+                    for f in &o.files {
+                        if !files.contains(&cache.path(*f)) {
+                            files.insert(cache.path(*f));
+                        }
+                    }
                     let hash = o.token_hash();
                     if let Some(known) = by_hash.get(&hash) {
                         for &k in known {
@@ -161,7 +206,7 @@ pub fn check_domain(
             out.push(d);
         }
     }
-    Some(out)
+    Some(Domain { diags: out, files })
 }
 
 /// Counts one permutation `p` against error `d`; its index in `tallies`.

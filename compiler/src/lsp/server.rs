@@ -32,7 +32,7 @@ pub(super) enum Event {
         gen: u64,
         config_path: PathBuf,
         shader: usize,
-        diags: Vec<FileDiag>,
+        domain: check::Domain,
     },
 }
 
@@ -73,6 +73,9 @@ fn serve() -> Result<(), String> {
         .map_err(|e| format!("cannot start the checker: {e}"))?;
     let mut server = Server::new(gen, job_tx);
     server.run(rx);
+    if server.exit_early {
+        return Err("the client sent `exit` before `shutdown`".into());
+    }
     Ok(())
 }
 
@@ -107,8 +110,8 @@ fn background(jobs: Receiver<Job>, tx: Sender<Event>, current: Arc<AtomicU64>) {
                     check::check_domain(config, i, &job.overlays, &cancelled)
                 }));
                 match result {
-                    Ok(Some(diags)) => {
-                        let e = Event::Domain { gen: job.gen, config_path: config_path.clone(), shader: i, diags };
+                    Ok(Some(domain)) => {
+                        let e = Event::Domain { gen: job.gen, config_path: config_path.clone(), shader: i, domain };
                         if tx.send(e).is_err() {
                             return;
                         }
@@ -136,6 +139,8 @@ pub(super) struct Server {
     jobs: Sender<Job>,
     initialized: bool,
     shutdown: bool,
+    /// `exit` came before `shutdown` (the exit status is then 1, as LSP says).
+    exit_early: bool,
 }
 
 impl Server {
@@ -151,6 +156,7 @@ impl Server {
             jobs,
             initialized: false,
             shutdown: false,
+            exit_early: false,
         }
     }
 
@@ -163,9 +169,9 @@ impl Server {
                     let body = raw.to_string();
                     write_raw(&format!("Content-Length: {}\r\n\r\n{body}", body.len()))
                 }
-                Event::Domain { gen, config_path, shader, diags } => {
+                Event::Domain { gen, config_path, shader, domain } => {
                     if gen == self.gen.load(Ordering::Relaxed) {
-                        self.domain_done(&config_path, shader, diags);
+                        self.domain_done(&config_path, shader, domain);
                     }
                     true
                 }
@@ -203,6 +209,7 @@ impl Server {
             }
             Message::Notification(n) => {
                 if n.method == "exit" {
+                    self.exit_early = !self.shutdown;
                     return false;
                 }
                 if self.initialized {
@@ -367,9 +374,8 @@ impl Server {
     /// After `path` changed (opened, edited, closed, saved): check the active permutation of
     /// every shader reading it, publish, and queue the domains in the background.
     fn changed(&mut self, path: &Path) {
-        if let Some(w) = self.workspaces.iter().position(|w| w.config_path == path) {
-            let docs = &self.docs;
-            let reloaded = Workspace::load(path, docs);
+        if let Some(w) = self.config_workspace(path) {
+            let reloaded = Workspace::load(path, &self.docs);
             self.workspaces[w] = reloaded;
             self.apply_default(w);
             self.refresh_all(w);
@@ -396,6 +402,22 @@ impl Server {
         }
         self.publish(w, touched);
         self.schedule(overlays);
+    }
+
+    /// The set whose `permutations.toml` is `path` (loaded on first use), if it is one.
+    fn config_workspace(&mut self, path: &Path) -> Option<usize> {
+        if let Some(w) = self.workspaces.iter().position(|w| w.config_path == path) {
+            return Some(w);
+        }
+        let is_config = match &self.init_config {
+            Some(c) => c == path,
+            None => path.file_name().is_some_and(|n| n == "permutations.toml"),
+        };
+        if !is_config {
+            return None;
+        }
+        self.workspaces.push(Workspace::load(path, &self.docs));
+        Some(self.workspaces.len() - 1)
     }
 
     /// Why `path` cannot be checked (too large, no set, a broken set, outside every root).
@@ -470,14 +492,15 @@ impl Server {
         let _ = self.jobs.send(Job { gen, overlays, sets });
     }
 
-    fn domain_done(&mut self, config_path: &Path, shader: usize, diags: Vec<FileDiag>) {
+    fn domain_done(&mut self, config_path: &Path, shader: usize, domain: check::Domain) {
         let Some(w) = self.workspaces.iter().position(|w| w.config_path == config_path) else { return };
         let ws = &mut self.workspaces[w];
         ws.pending.remove(&shader);
-        let mut touched: HashSet<PathBuf> = diags.iter().map(|d| d.path.clone()).collect();
-        if let Some(old) = ws.domain.insert(shader, diags) {
+        let mut touched: HashSet<PathBuf> = domain.diags.iter().map(|d| d.path.clone()).collect();
+        if let Some(old) = ws.domain.insert(shader, domain.diags) {
             touched.extend(old.into_iter().map(|d| d.path));
         }
+        ws.domain_files.insert(shader, domain.files);
         touched.extend(ws.active.get(&shader).map(|a| a.files.clone()).unwrap_or_default());
         self.publish(w, touched);
     }
@@ -494,6 +517,17 @@ impl Server {
     /// Everything known about `path` in set `w`, as it would be published.
     fn diagnostics_of(&self, w: usize, path: &Path) -> Vec<Diagnostic> {
         let ws = &self.workspaces[w];
+        if let Err(e) = &ws.config {
+            let first = e.lines().next().unwrap_or("").to_string();
+            let d = FileDiag {
+                path: path.to_path_buf(),
+                range: line_start(0),
+                severity: DiagnosticSeverity::ERROR,
+                message: format!("{} does not load: {first}", ws.config_path.display()),
+                context: String::new(),
+            };
+            return if path == ws.config_path { Vec::new() } else { vec![to_lsp(d)] };
+        }
         let mut list: Vec<FileDiag> = Vec::new();
         let mut shaders: Vec<&usize> = ws.active.keys().collect();
         shaders.sort_unstable();
@@ -532,8 +566,16 @@ impl Server {
         let mut paths: Vec<PathBuf> = paths.into_iter().collect();
         paths.sort();
         for path in paths {
-            let in_other_set = !self.workspaces[w].serves(&path) && self.docs.contains_key(&path);
-            if in_other_set {
+            let ws = &self.workspaces[w];
+            let belongs = match &ws.config {
+                Ok(_) => ws.serves(&path),
+                Err(_) => {
+                    path != ws.config_path
+                        && (self.init_config.is_some() || find_config(&path).as_ref() == Some(&ws.config_path))
+                }
+            };
+            // Files of other sets, and this set's files it cannot check, have their own words.
+            if !belongs && self.docs.contains_key(&path) {
                 continue;
             }
             let diags = self.diagnostics_of(w, &path);
@@ -650,25 +692,29 @@ fn invalid(message: &str) -> (i32, String) {
     (ErrorCode::InvalidParams as i32, message.to_string())
 }
 
-/// A config that does not load, as a diagnostic on its own file.
+/// A config that does not load, as diagnostics on its own file.
 fn config_problem(ws: &Workspace) -> Vec<FileDiag> {
-    match &ws.config {
-        Ok(_) => Vec::new(),
-        Err(e) => {
-            // The rendered error names the line: `┌─ permutations.toml:LINE:COL`.
-            let line = e
-                .lines()
-                .find_map(|l| l.split_once(".toml:").and_then(|(_, r)| r.split(':').next()?.parse::<u32>().ok()))
-                .unwrap_or(1);
-            vec![FileDiag {
-                path: ws.config_path.clone(),
-                range: line_start(line.saturating_sub(1)),
-                severity: DiagnosticSeverity::ERROR,
-                message: e.lines().next().unwrap_or("").trim_start_matches("error: ").to_string(),
-                context: String::new(),
-            }]
-        }
+    let mut out: Vec<FileDiag> = ws
+        .config_errors
+        .iter()
+        .map(|(range, message)| FileDiag {
+            path: ws.config_path.clone(),
+            range: *range,
+            severity: DiagnosticSeverity::ERROR,
+            message: message.clone(),
+            context: String::new(),
+        })
+        .collect();
+    if let (Err(e), true) = (&ws.config, out.is_empty()) {
+        out.push(FileDiag {
+            path: ws.config_path.clone(),
+            range: line_start(0),
+            severity: DiagnosticSeverity::ERROR,
+            message: e.clone(),
+            context: String::new(),
+        });
     }
+    out
 }
 
 fn to_lsp(d: FileDiag) -> Diagnostic {

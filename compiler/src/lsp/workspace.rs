@@ -58,8 +58,10 @@ pub struct Active {
 /// One permutation set and what the server knows of it.
 pub struct Workspace {
     pub config_path: PathBuf,
-    /// The checked configuration, or its rendered error.
+    /// The checked configuration, or its error in one line.
     pub config: Result<Arc<Config>, String>,
+    /// Each problem of a configuration that does not load, located in the toml.
+    pub config_errors: Vec<(lsp_types::Range, String)>,
     /// The active permutation's (level, values) of each shader that has been chosen.
     pub chosen: HashMap<usize, (usize, Vec<i64>)>,
     /// What each shader's active permutation gave (every shader, once the set is loaded).
@@ -68,23 +70,34 @@ pub struct Workspace {
     pub domain: HashMap<usize, Vec<FileDiag>>,
     /// Shaders whose domain is still to be checked.
     pub pending: HashSet<usize>,
+    /// The files each shader's last domain check found some kept permutation reading.
+    pub domain_files: HashMap<usize, HashSet<PathBuf>>,
 }
 
 impl Workspace {
     /// Loads the set at `config_path` (the open buffer's text where the toml is open).
     pub fn load(config_path: &Path, docs: &HashMap<PathBuf, Doc>) -> Workspace {
-        let config = match docs.get(config_path) {
-            Some(d) => permute::load_str(&d.text, config_path),
-            None => permute::load(config_path),
+        let (config, text) = match docs.get(config_path) {
+            Some(d) => (permute::load_str(&d.text, config_path), d.text.to_string()),
+            None => (permute::load(config_path), std::fs::read_to_string(config_path).unwrap_or_default()),
         };
+        let mut config_errors = Vec::new();
+        if let Err(e) = &config {
+            for d in &e.diagnostics {
+                let r = d.labels.first().map_or(0..0, |l| l.range.clone());
+                config_errors.push((super::text::range_of(&text, r), d.message.clone()));
+            }
+        }
         let config = config.map(Arc::new).map_err(|e| e.to_string());
         Workspace {
             config_path: config_path.to_path_buf(),
             config,
+            config_errors,
             chosen: HashMap::new(),
             active: HashMap::new(),
             domain: HashMap::new(),
             pending: HashSet::new(),
+            domain_files: HashMap::new(),
         }
     }
 
@@ -95,7 +108,8 @@ impl Workspace {
             || c.shaders.iter().any(|s| s.source_path == path)
     }
 
-    /// The shaders whose active permutation reads `path` (or whose source it is).
+    /// The shaders whose active permutation reads `path` (or whose source it is), then those
+    /// of which only other permutations read it.
     pub fn readers(&self, path: &Path) -> Vec<usize> {
         let Ok(c) = &self.config else { return Vec::new() };
         let mut out: Vec<usize> = (0..c.shaders.len())
@@ -104,7 +118,14 @@ impl Workspace {
                     || self.active.get(i).is_some_and(|a| a.files.iter().any(|f| f == path))
             })
             .collect();
-        out.dedup();
+        let mut more: Vec<usize> = self
+            .domain_files
+            .iter()
+            .filter(|(i, files)| !out.contains(i) && files.contains(path))
+            .map(|(i, _)| *i)
+            .collect();
+        more.sort_unstable();
+        out.extend(more);
         out
     }
 
