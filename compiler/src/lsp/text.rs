@@ -126,7 +126,7 @@ mod tests {
     #[test]
     fn positions_round_trip() {
         let t = "ab\nçd€f\n";
-        let p = Position { line: 1, character: 3 };
+        let p = Position { line: 1, character: 2 };
         let o = offset_of(t, p);
         assert_eq!(&t[o..o + 3], "€");
         assert_eq!(position_of(t, o), p);
