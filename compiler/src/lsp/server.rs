@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::Arc;
 
-use lsp_server::{ErrorCode, Message, Notification, Request, RequestId, Response};
+use lsp_server::{ErrorCode, Message, Notification, Request, Response};
 use lsp_types::notification::Notification as _;
 use lsp_types::{Diagnostic, DiagnosticSeverity, DiagnosticTag, PublishDiagnosticsParams, Url};
 use serde_json::{json, Value};
@@ -286,12 +286,8 @@ impl Server {
                 let text = if n.method == "textDocument/didOpen" {
                     p["textDocument"]["text"].as_str().map(str::to_string)
                 } else {
-                    // Full sync: the last change holds the whole text.
-                    p["contentChanges"]
-                        .as_array()
-                        .and_then(|c| c.last())
-                        .and_then(|c| c["text"].as_str())
-                        .map(str::to_string)
+                    let old = self.docs.get(&path).map_or(String::new(), |d| d.text.to_string());
+                    p["contentChanges"].as_array().map(|changes| apply_changes(old, changes))
                 };
                 let Some(text) = text else { return };
                 self.docs.insert(path.clone(), Doc { uri, version, text: text.into() });
@@ -688,6 +684,23 @@ impl Server {
     }
 }
 
+/// A document's text after `contentChanges`: whole texts (the full sync the server asks
+/// for) or, from a client that sends them anyway, ranged edits.
+fn apply_changes(mut text: String, changes: &[Value]) -> String {
+    for c in changes {
+        let Some(new) = c["text"].as_str() else { continue };
+        match serde_json::from_value::<lsp_types::Range>(c["range"].clone()) {
+            Ok(r) => {
+                let start = super::text::offset_of(&text, r.start);
+                let end = super::text::offset_of(&text, r.end).max(start);
+                text.replace_range(start..end, new);
+            }
+            Err(_) => text = new.to_string(),
+        }
+    }
+    text
+}
+
 fn invalid(message: &str) -> (i32, String) {
     (ErrorCode::InvalidParams as i32, message.to_string())
 }
@@ -741,6 +754,3 @@ fn write_raw(text: &str) -> bool {
     let mut lock = out.lock();
     lock.write_all(text.as_bytes()).is_ok() && lock.flush().is_ok()
 }
-
-#[allow(dead_code)]
-fn _id(_: RequestId) {}
