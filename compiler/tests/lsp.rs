@@ -533,6 +533,12 @@ fn hostile_input_gives_diagnostics_or_errors_and_never_ends_the_server() {
 
     // Malformed JSON, then a message without a header: answered or skipped, not fatal.
     c.write_raw(b"Content-Length: 9\r\n\r\n{not json");
+    c.write_raw(b"garbage line\r\n\r\n");
+    c.write_raw(b"Content-Length: 4\r\n\r\n\xff\xfe\x00\x01");
+    c.write_raw(b"Content-Length: 2\r\n\r\n[]");
+    // A length no one could allocate: skipped (the input then ends inside it, in another test).
+    c.write_raw(b"Content-Length: 300000000\r\n\r\n");
+    c.write_raw(&vec![b' '; 300_000_000]);
     let r = c.request("no/suchRequest", json!({}));
     assert_eq!(r["error"]["code"], -32601, "{r}");
     let r = c.request("textDocument/hover", json!({ "textDocument": 7 }));
@@ -602,6 +608,10 @@ fn the_end_of_stdin_ends_the_server() {
     assert_eq!(c.finish().code(), Some(0));
     let mut c = Client::initialized(json!({}));
     c.write_raw(b"Content-Length: 100\r\n\r\n{\"jsonrpc\"");
+    assert_eq!(c.finish().code(), Some(0));
+    // A length no one could allocate, then the end of input.
+    let mut c = Client::initialized(json!({}));
+    c.write_raw(b"Content-Length: 99999999999999\r\n\r\n{");
     assert_eq!(c.finish().code(), Some(0));
 }
 

@@ -79,12 +79,19 @@ fn serve() -> Result<(), String> {
     Ok(())
 }
 
+/// Largest message body read; a larger one is skipped unread (lsp-server's own reader
+/// would allocate whatever a `Content-Length` claims).
+const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
 fn read_stdin(tx: Sender<Event>) {
     let stdin = std::io::stdin();
     let mut input = stdin.lock();
     loop {
-        let event = match Message::read(&mut input) {
-            Ok(Some(m)) => Event::Msg(m),
+        let event = match read_message(&mut input) {
+            Ok(Some(body)) => match serde_json::from_slice::<Message>(&body) {
+                Ok(m) => Event::Msg(m),
+                Err(e) => Event::Malformed(format!("not a JSON-RPC message: {e}")),
+            },
             Ok(None) => Event::Eof,
             Err(e) if e.kind() == std::io::ErrorKind::InvalidData => Event::Malformed(e.to_string()),
             Err(_) => Event::Eof,
@@ -93,6 +100,55 @@ fn read_stdin(tx: Sender<Event>) {
         if tx.send(event).is_err() || end {
             return;
         }
+    }
+}
+
+/// One message body of the base protocol (`Content-Length: N\r\n\r\n` then N bytes);
+/// `None` at the end of input. A bad header or an oversized body is `InvalidData`, the
+/// input then positioned after it.
+fn read_message(input: &mut impl std::io::BufRead) -> std::io::Result<Option<Vec<u8>>> {
+    use std::io::{BufRead, Error, ErrorKind, Read};
+    let mut size: Option<usize> = None;
+    let mut bad_header = None;
+    loop {
+        let mut line = Vec::new();
+        if input.by_ref().take(64 << 10).read_until(b'\n', &mut line)? == 0 {
+            return Ok(None);
+        }
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim_end_matches(['\r', '\n']);
+        if text.is_empty() {
+            if size.is_some() || bad_header.is_some() {
+                break;
+            }
+            continue;
+        }
+        match text.split_once(':') {
+            Some((name, value)) if name.trim().eq_ignore_ascii_case("content-length") => {
+                match value.trim().parse::<usize>() {
+                    Ok(n) => size = Some(n),
+                    Err(_) => bad_header = Some(format!("bad Content-Length: {value:?}")),
+                }
+            }
+            Some(_) => {}
+            None => bad_header = Some(format!("malformed header: {text:?}")),
+        }
+    }
+    let Some(size) = size else {
+        return Err(Error::new(ErrorKind::InvalidData, bad_header.unwrap_or_else(|| "no Content-Length".into())));
+    };
+    if size > MAX_MESSAGE_BYTES {
+        let skipped = std::io::copy(&mut input.by_ref().take(size as u64), &mut std::io::sink())?;
+        if skipped < size as u64 {
+            return Ok(None);
+        }
+        return Err(Error::new(ErrorKind::InvalidData, format!("a message of {size} bytes is over the limit")));
+    }
+    let mut body = vec![0; size];
+    match input.read_exact(&mut body) {
+        Ok(()) => Ok(Some(body)),
+        Err(e) if e.kind() == ErrorKind::UnexpectedEof => Ok(None),
+        Err(e) => Err(e),
     }
 }
 
