@@ -204,7 +204,22 @@ pub fn definition(ctx: &Ctx<'_>, p: &Value) -> Value {
     if let Some((file, n, cols, _)) = find_define(ctx, word) {
         return location(&file, line_range(n, cols));
     }
-    wgsl_declaration(ctx, word).unwrap_or(Value::Null)
+    wgsl_declaration(ctx, word).or_else(|| written_declaration(ctx, word)).unwrap_or(Value::Null)
+}
+
+/// A declaration of `name` as written in this file or the files the active permutation
+/// read (when the permutation's text does not have it: an inactive line, or a text that
+/// does not preprocess).
+fn written_declaration(ctx: &Ctx<'_>, name: &str) -> Option<Value> {
+    let mut files = vec![ctx.path.to_path_buf()];
+    files.extend(ctx.active.map_or_else(Vec::new, |a| a.files.clone()));
+    for file in files {
+        let text = if file == ctx.path { ctx.text.to_string() } else { std::fs::read_to_string(&file).ok()? };
+        if let Some((_, _, r)) = declarations(&text).into_iter().find(|(_, n, _)| *n == name) {
+            return Some(location(&file, range_of(&text, r)));
+        }
+    }
+    None
 }
 
 /// A WGSL `fn`, `struct`, `const`, `override`, `alias` or module-scope `var` named `name` in
