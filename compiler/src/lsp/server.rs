@@ -191,6 +191,8 @@ pub(super) struct Server {
     pub focus: HashMap<PathBuf, usize>,
     /// Files whose last published diagnostics were not empty.
     published: HashSet<PathBuf>,
+    /// What was last published for each file.
+    last_sent: HashMap<PathBuf, blake3::Hash>,
     gen: Arc<AtomicU64>,
     jobs: Sender<Job>,
     initialized: bool,
@@ -208,6 +210,7 @@ impl Server {
             default_choice: None,
             focus: HashMap::new(),
             published: HashSet::new(),
+            last_sent: HashMap::new(),
             gen,
             jobs,
             initialized: false,
@@ -346,6 +349,10 @@ impl Server {
                     p["contentChanges"].as_array().map(|changes| apply_changes(old, changes))
                 };
                 let Some(text) = text else { return };
+                if n.method == "textDocument/didOpen" {
+                    // Always answered, even with what was published before it was opened.
+                    self.last_sent.remove(&path);
+                }
                 self.docs.insert(path.clone(), Doc { uri, version, text: text.into() });
                 self.changed(&path);
             }
@@ -595,7 +602,9 @@ impl Server {
             }
         }
         let mut out: Vec<Diagnostic> = list.into_iter().map(to_lsp).collect();
-        if let Some(a) = self.focus_of(w, path).and_then(|i| ws.active.get(&i)) {
+        // Inactive regions only for open documents: they are for reading, not a problem list.
+        let open = self.docs.contains_key(path);
+        if let Some(a) = self.focus_of(w, path).and_then(|i| ws.active.get(&i)).filter(|_| open) {
             for (_, lines) in a.skipped.iter().filter(|(p, _)| p == path) {
                 out.push(Diagnostic {
                     range: lsp_types::Range {
@@ -653,6 +662,12 @@ impl Server {
             self.published.insert(path.to_path_buf());
         }
         let params = PublishDiagnosticsParams { uri, diagnostics, version: doc.map(|d| d.version) };
+        // The same list for the same version again says nothing new (the background check
+        // of each shader reading a common header would otherwise repeat it).
+        let fingerprint = blake3::hash(serde_json::to_string(&params).unwrap_or_default().as_bytes());
+        if self.last_sent.insert(path.to_path_buf(), fingerprint) == Some(fingerprint) {
+            return;
+        }
         send(Message::Notification(Notification::new(
             lsp_types::notification::PublishDiagnostics::METHOD.into(),
             params,
