@@ -338,6 +338,8 @@ fn inactive_lines_match_kiln_preprocess_and_follow_the_active_permutation() {
     let r = c.request("kiln/setPermutation", json!({ "textDocument": { "uri": uri(&lit) }, "permutation": name }));
     assert_eq!(r["result"]["active"], name, "{r}");
     let htext = std::fs::read_to_string(&header).expect("read");
+    // Inactive regions are published for open documents.
+    c.open(&header, &htext);
     let want = vec![line_of(&htext, "return s.albedo *")];
     c.diagnostics(&uri(&header), |p| inactive_lines(p) == want);
 
@@ -419,6 +421,7 @@ fn a_header_included_twice_is_inactive_only_where_both_inclusions_skip_it() {
         format!("#include \"Twice.ush\"\n#include \"Twice.ush\"\n{}", std::fs::read_to_string(&lit).expect("read"));
     let mut c = Client::initialized(json!({}));
     c.open(&lit, &text);
+    c.open(&twice, &std::fs::read_to_string(&twice).expect("read"));
     let d = c.diagnostics(&uri(&twice), |p| !inactive_lines(p).is_empty());
     assert_eq!(inactive_lines(&d), vec![4], "{d:#}");
 }
