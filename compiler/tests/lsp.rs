@@ -427,6 +427,39 @@ fn a_header_included_twice_is_inactive_only_where_both_inclusions_skip_it() {
 }
 
 #[test]
+fn the_set_and_the_permutation_come_from_the_client_settings() {
+    let (_dir, root) = project();
+    // The set named by initializationOptions.config, the file opened from another folder name.
+    let moved = root.join("config/kiln.toml");
+    std::fs::create_dir_all(moved.parent().expect("parent")).expect("mkdir");
+    let t = std::fs::read_to_string(root.join("permutations.toml")).expect("read");
+    std::fs::write(
+        &moved,
+        t.replace("include = [\"shaders\"]", "include = [\"../shaders\"]").replace("\"shaders\" }", "\"../shaders\" }"),
+    )
+    .expect("write");
+    std::fs::remove_file(root.join("permutations.toml")).expect("rm");
+    let lit = root.join("shaders/Lit.usf");
+    let mut c = Client::initialized(json!({ "config": moved, "permutation": { "NUM_LIGHTS": 1 } }));
+    c.open(&lit, &std::fs::read_to_string(&lit).expect("read"));
+    c.diagnostics(&uri(&lit), |p| p["version"] == 1);
+    let r = c.request("kiln/permutations", json!({ "textDocument": { "uri": uri(&lit) } }));
+    assert_eq!(r["result"]["active"], "LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=1}", "{r}");
+    c.notify(
+        "workspace/didChangeConfiguration",
+        json!({ "settings": { "kiln": { "permutation": { "FULLY_ROUGH": 1, "NUM_LIGHTS": 2 } } } }),
+    );
+    let r = c.request("kiln/permutations", json!({ "textDocument": { "uri": uri(&lit) } }));
+    assert_eq!(r["result"]["active"], "LitPS@sm5{FULLY_ROUGH=1,NUM_LIGHTS=2}", "{r}");
+    c.notify(
+        "workspace/didChangeConfiguration",
+        json!({ "settings": { "permutation": "LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=4}" } }),
+    );
+    let r = c.request("kiln/permutations", json!({ "textDocument": { "uri": uri(&lit) } }));
+    assert_eq!(r["result"]["active"], "LitPS@sm5{FULLY_ROUGH=0,NUM_LIGHTS=4}", "{r}");
+}
+
+#[test]
 fn exit_without_shutdown_ends_with_status_1() {
     let mut c = Client::initialized(json!({}));
     c.notify("exit", Value::Null);
