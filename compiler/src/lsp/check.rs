@@ -83,8 +83,11 @@ fn check_text(
 }
 
 /// Preprocesses and validates permutation `p` with the open buffers' text.
-pub fn check_active(config: &Config, p: &Permutation<'_>, level: usize, overlays: &Overlays) -> Active {
-    let cache = Arc::new(cache_with(overlays, &config.dir));
+///
+/// `cache` holds the open buffers (see [`cache_with`]); one serves every shader checked
+/// after one edit, so each file is read and lexed once.
+pub fn check_active(config: &Config, p: &Permutation<'_>, level: usize, cache: &Arc<SourceCache>) -> Active {
+    let cache = cache.clone();
     let name = p.name();
     let (output, mut diags) = check_text(p, config, &cache);
     for d in &mut diags {

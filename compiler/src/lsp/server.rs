@@ -16,9 +16,9 @@ use serde_json::{json, Value};
 
 use super::check::{self, FileDiag};
 use super::text::{line_start, path_uri, uri_path};
-use super::workspace::{find_config, resolve_choice, Doc, Overlays, Workspace, MAX_DOC_BYTES};
+use super::workspace::{cache_with, find_config, resolve_choice, Doc, Overlays, Workspace, MAX_DOC_BYTES};
 use crate::permute::Config;
-use crate::preprocess;
+use crate::preprocess::{self, SourceCache};
 
 /// What the loop waits for.
 pub(super) enum Event {
@@ -410,13 +410,19 @@ impl Server {
         }
     }
 
+    /// A source cache over the open buffers for set `w`'s file names.
+    fn shared_cache(&self, w: usize, overlays: &Overlays) -> Arc<SourceCache> {
+        let base = self.workspaces[w].config_path.parent().unwrap_or(Path::new("/")).to_path_buf();
+        Arc::new(cache_with(overlays, &base))
+    }
+
     /// The open buffers, for the preprocessor.
     fn overlays(&self) -> Overlays {
         Arc::new(self.docs.iter().map(|(p, d)| (p.clone(), d.text.clone())).collect())
     }
 
     /// Re-checks shader `i`'s active permutation and queues its domain.
-    fn recheck(&mut self, w: usize, i: usize, overlays: &Overlays) {
+    fn recheck(&mut self, w: usize, i: usize, cache: &Arc<SourceCache>) {
         let ws = &mut self.workspaces[w];
         let Some((level, values)) = ws.active_key(i) else {
             ws.active.remove(&i);
@@ -424,7 +430,7 @@ impl Server {
         };
         let Ok(config) = ws.config.clone() else { return };
         let Some(p) = ws.permutation(i, level, values) else { return };
-        let active = check::check_active(&config, &p, level, overlays);
+        let active = check::check_active(&config, &p, level, cache);
         ws.active.insert(i, active);
         ws.domain.remove(&i);
         ws.pending.insert(i);
@@ -448,6 +454,7 @@ impl Server {
         };
         self.gen.fetch_add(1, Ordering::Relaxed);
         let overlays = self.overlays();
+        let cache = self.shared_cache(w, &overlays);
         if self.workspaces[w].active.is_empty() {
             self.refresh_all(w);
             return;
@@ -456,7 +463,7 @@ impl Server {
         let mut touched: HashSet<PathBuf> = HashSet::from([path.to_path_buf()]);
         for &i in &before {
             touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
-            self.recheck(w, i, &overlays);
+            self.recheck(w, i, &cache);
             touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
         }
         self.publish(w, touched);
@@ -522,11 +529,12 @@ impl Server {
     fn refresh_all(&mut self, w: usize) {
         self.gen.fetch_add(1, Ordering::Relaxed);
         let overlays = self.overlays();
+        let cache = self.shared_cache(w, &overlays);
         let n = self.workspaces[w].config.as_ref().map_or(0, |c| c.shaders.len());
         self.workspaces[w].active.clear();
         self.workspaces[w].domain.clear();
         for i in 0..n {
-            self.recheck(w, i, &overlays);
+            self.recheck(w, i, &cache);
         }
         let mut touched: HashSet<PathBuf> = self.workspaces[w].active.values().flat_map(|a| a.files.clone()).collect();
         touched.extend(self.docs.keys().cloned());
@@ -714,9 +722,10 @@ impl Server {
         self.focus.insert(path.clone(), i);
         self.gen.fetch_add(1, Ordering::Relaxed);
         let overlays = self.overlays();
+        let cache = self.shared_cache(w, &overlays);
         let mut touched: HashSet<PathBuf> = HashSet::from([path]);
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
-        self.recheck(w, i, &overlays);
+        self.recheck(w, i, &cache);
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
         touched.extend(self.published.iter().cloned());
         self.publish(w, touched);
