@@ -16,8 +16,9 @@ use serde_json::{json, Value};
 
 use super::check::{self, FileDiag};
 use super::text::{line_start, path_uri, uri_path};
+use super::workspace::Active;
 use super::workspace::{cache_with, find_config, resolve_choice, Doc, Overlays, Workspace, MAX_DOC_BYTES};
-use crate::permute::Config;
+use crate::permute::{Config, Permutation};
 use crate::preprocess::{self, SourceCache};
 
 /// What the loop waits for.
@@ -421,19 +422,24 @@ impl Server {
         Arc::new(self.docs.iter().map(|(p, d)| (p.clone(), d.text.clone())).collect())
     }
 
-    /// Re-checks shader `i`'s active permutation and queues its domain.
-    fn recheck(&mut self, w: usize, i: usize, cache: &Arc<SourceCache>) {
+    /// Re-checks the active permutation of each of `shaders` and queues their domains.
+    fn recheck(&mut self, w: usize, shaders: &[usize], cache: &Arc<SourceCache>) {
         let ws = &mut self.workspaces[w];
-        let Some((level, values)) = ws.active_key(i) else {
-            ws.active.remove(&i);
-            return;
-        };
         let Ok(config) = ws.config.clone() else { return };
-        let Some(p) = ws.permutation(i, level, values) else { return };
-        let active = check::check_active(&config, &p, level, cache);
-        ws.active.insert(i, active);
-        ws.domain.remove(&i);
-        ws.pending.insert(i);
+        let mut jobs = Vec::new();
+        for &i in shaders {
+            match ws.active_key(i) {
+                Some((level, values)) => jobs.push((i, level, values)),
+                None => {
+                    ws.active.remove(&i);
+                }
+            }
+        }
+        for (i, active) in check_all(&config, &jobs, cache) {
+            ws.active.insert(i, active);
+            ws.domain.remove(&i);
+            ws.pending.insert(i);
+        }
     }
 
     /// After `path` changed (opened, edited, closed, saved): check the active permutation of
@@ -461,11 +467,10 @@ impl Server {
         }
         let before: Vec<usize> = self.workspaces[w].readers(path);
         let mut touched: HashSet<PathBuf> = HashSet::from([path.to_path_buf()]);
-        for &i in &before {
-            touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
-            self.recheck(w, i, &cache);
-            touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
-        }
+        let files_of = |ws: &Workspace, i: &usize| ws.active.get(i).map(|a| a.files.clone()).unwrap_or_default();
+        touched.extend(before.iter().flat_map(|i| files_of(&self.workspaces[w], i)));
+        self.recheck(w, &before, &cache);
+        touched.extend(before.iter().flat_map(|i| files_of(&self.workspaces[w], i)));
         self.publish(w, touched);
         self.schedule(overlays);
     }
@@ -533,9 +538,8 @@ impl Server {
         let n = self.workspaces[w].config.as_ref().map_or(0, |c| c.shaders.len());
         self.workspaces[w].active.clear();
         self.workspaces[w].domain.clear();
-        for i in 0..n {
-            self.recheck(w, i, &cache);
-        }
+        let all: Vec<usize> = (0..n).collect();
+        self.recheck(w, &all, &cache);
         let mut touched: HashSet<PathBuf> = self.workspaces[w].active.values().flat_map(|a| a.files.clone()).collect();
         touched.extend(self.docs.keys().cloned());
         touched.extend(self.published.iter().cloned());
@@ -725,7 +729,7 @@ impl Server {
         let cache = self.shared_cache(w, &overlays);
         let mut touched: HashSet<PathBuf> = HashSet::from([path]);
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
-        self.recheck(w, i, &cache);
+        self.recheck(w, &[i], &cache);
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
         touched.extend(self.published.iter().cloned());
         self.publish(w, touched);
@@ -779,6 +783,19 @@ fn apply_changes(mut text: String, changes: &[Value]) -> String {
         }
     }
     text
+}
+
+/// [`check::check_active`] of each (shader, level, values); a check that panics is left out.
+/// One thread: measured on two busy cores, spreading a header's readers over two threads
+/// was no faster, and the background check already has the other core.
+fn check_all(config: &Config, jobs: &[(usize, usize, Vec<i64>)], cache: &Arc<SourceCache>) -> Vec<(usize, Active)> {
+    let one = |(i, level, values): &(usize, usize, Vec<i64>)| {
+        let p = Permutation::new(config.shaders.get(*i)?, config.levels.get(*level)?, values.clone());
+        let checked =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check::check_active(config, &p, *level, cache)));
+        Some((*i, checked.ok()?))
+    };
+    jobs.iter().filter_map(one).collect()
 }
 
 fn invalid(message: &str) -> (i32, String) {

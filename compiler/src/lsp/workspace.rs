@@ -140,12 +140,6 @@ impl Workspace {
         let level = c.levels.iter().position(|l| std::ptr::eq(l, p.level))?;
         Some((level, p.values))
     }
-
-    /// The permutation of shader `i` at `level` with `values`.
-    pub fn permutation(&self, i: usize, level: usize, values: Vec<i64>) -> Option<Permutation<'_>> {
-        let c = self.config.as_ref().ok()?;
-        Some(Permutation::new(c.shaders.get(i)?, c.levels.get(level)?, values))
-    }
 }
 
 /// Finds `permutations.toml` in `path`'s folder or above.
