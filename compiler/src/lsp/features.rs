@@ -92,14 +92,13 @@ fn markdown(text: String) -> Value {
 /// `textDocument/hover`.
 pub fn hover(ctx: &Ctx<'_>, p: &Value) -> Value {
     let Some(at) = ctx.offset(p) else { return Value::Null };
-    let line = &ctx.text[line_around(ctx.text, at)];
     if let Some(target) = include_target(ctx, at) {
         let shown = target.display();
-        return markdown(format!("`#include` resolves to `{shown}`{}", inactive_note(ctx, line)));
+        return markdown(format!("`#include` resolves to `{shown}`{}", active_note(ctx)));
     }
     let Some((word, _)) = word_at(ctx.text, at) else { return Value::Null };
     let perm = ctx.permutation();
-    let active = ctx.active.map_or(String::new(), |a| format!(" in `{}`", a.name));
+    let active = active_note(ctx);
     if let Some(perm) = &perm {
         if let Some(d) = perm.shader.dimensions.iter().position(|d| d.name == word) {
             return markdown(dimension_hover(ctx, perm, d, &active));
@@ -120,7 +119,8 @@ pub fn hover(ctx: &Ctx<'_>, p: &Value) -> Value {
     Value::Null
 }
 
-fn inactive_note(ctx: &Ctx<'_>, _line: &str) -> String {
+/// ` in `NAME`` of the active permutation, for hovers.
+fn active_note(ctx: &Ctx<'_>) -> String {
     ctx.active.map_or(String::new(), |a| format!(" in `{}`", a.name))
 }
 
