@@ -470,6 +470,7 @@ impl Server {
         let files_of = |ws: &Workspace, i: &usize| ws.active.get(i).map(|a| a.files.clone()).unwrap_or_default();
         touched.extend(before.iter().flat_map(|i| files_of(&self.workspaces[w], i)));
         self.recheck(w, &before, &cache);
+        self.workspaces[w].recent = before.clone();
         touched.extend(before.iter().flat_map(|i| files_of(&self.workspaces[w], i)));
         self.publish(w, touched);
         self.schedule(overlays);
@@ -556,7 +557,8 @@ impl Server {
             .filter_map(|w| {
                 let c = w.config.as_ref().ok()?.clone();
                 let mut pending: Vec<usize> = w.pending.iter().copied().collect();
-                pending.sort_unstable();
+                // The shaders of the last edit first: their counts are the ones being looked at.
+                pending.sort_unstable_by_key(|i| (!w.recent.contains(i), *i));
                 (!pending.is_empty()).then(|| (w.config_path.clone(), c, pending))
             })
             .collect();
@@ -730,6 +732,7 @@ impl Server {
         let mut touched: HashSet<PathBuf> = HashSet::from([path]);
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
         self.recheck(w, &[i], &cache);
+        self.workspaces[w].recent = vec![i];
         touched.extend(self.workspaces[w].active.get(&i).map(|a| a.files.clone()).unwrap_or_default());
         touched.extend(self.published.iter().cloned());
         self.publish(w, touched);

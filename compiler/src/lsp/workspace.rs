@@ -72,6 +72,8 @@ pub struct Workspace {
     pub pending: HashSet<usize>,
     /// The files each shader's last domain check found some kept permutation reading.
     pub domain_files: HashMap<usize, HashSet<PathBuf>>,
+    /// The shaders the last edit or choice rechecked (their domains are checked first).
+    pub recent: Vec<usize>,
 }
 
 impl Workspace {
@@ -98,6 +100,7 @@ impl Workspace {
             domain: HashMap::new(),
             pending: HashSet::new(),
             domain_files: HashMap::new(),
+            recent: Vec::new(),
         }
     }
 
