@@ -12,6 +12,7 @@
 //!   runtime reads archives with, without this crate or naga);
 //! - [`build_script`]: the `build.rs` API, which the `kiln` command line shares, and
 //!   [`keys`], the typed permutation keys it generates;
+//! - [`lsp`]: `kiln lsp`, the Language Server Protocol for editors, on the same stages;
 //! - every output file is written as `kiln_archive::output` writes it (atomically, never over a
 //!   device or an input).
 
@@ -34,6 +35,8 @@ pub mod compile;
 pub mod explain;
 #[cfg(feature = "compiler")]
 pub mod keys;
+#[cfg(feature = "compiler")]
+pub mod lsp;
 #[cfg(feature = "compiler")]
 pub mod permute;
 #[cfg(feature = "compiler")]

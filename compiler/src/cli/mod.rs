@@ -11,6 +11,7 @@ mod cache;
 mod explain;
 mod inspect;
 mod list;
+mod lsp;
 mod preprocess;
 
 /// Kiln: a shader permutation compiler for WGSL with a C preprocessor.
@@ -35,6 +36,8 @@ pub enum Command {
     Inspect(inspect::Args),
     /// Manage the artifact cache.
     Cache(cache::Args),
+    /// Serve the Language Server Protocol on stdin and stdout (for editors).
+    Lsp(lsp::Args),
 }
 
 /// How a subcommand failed: the exit code of DESIGN.md and what to print on stderr
@@ -76,6 +79,7 @@ pub fn main() -> ExitCode {
         Command::Explain(args) => explain::exec(args),
         Command::Inspect(args) => inspect::exec(args),
         Command::Cache(args) => cache::exec(args),
+        Command::Lsp(args) => lsp::exec(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

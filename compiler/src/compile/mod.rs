@@ -221,6 +221,14 @@ pub fn compile(source: &str, entry: &str, stage: Stage, options: &Options) -> Re
     Ok(Compiled { artifacts, reflection })
 }
 
+/// Everything [`compile`] checks before its writers run: parse, validation and the level's
+/// limits (what an editor shows while the text is typed; writers rarely fail on valid input).
+pub fn check(source: &str, entry: &str, stage: Stage, limits: &Limits) -> Result<(), Error> {
+    let v = validate(source, entry, stage, limits)?;
+    let reflection = reflect(&v.module, &v.info);
+    limits.check(&v.module, &v.info, &reflection)
+}
+
 /// The entry point's reflection, once the module is checked against the level's limits.
 fn checked_reflection(v: &Validated, options: &Options) -> Result<Reflection, Error> {
     let reflection = reflect(&v.module, &v.info);

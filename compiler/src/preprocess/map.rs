@@ -134,6 +134,18 @@ impl SourceMap {
         labels
     }
 
+    /// Every inclusion: (including file, the `#include` directive's original byte range in
+    /// it, included file), in the order the files were entered.
+    pub fn includes(&self) -> Vec<(FileId, Range<usize>, FileId)> {
+        self.ctxs
+            .iter()
+            .filter_map(|c| {
+                let p = self.ctxs.get(c.parent as usize)?;
+                Some((p.file, p.source.original_range(c.site.start as usize..c.site.end as usize), c.file))
+            })
+            .collect()
+    }
+
     /// Number of runs (a measure of compactness).
     pub fn len(&self) -> usize {
         self.entries.len()

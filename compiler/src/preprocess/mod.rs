@@ -98,6 +98,9 @@ pub struct Output {
     /// could change the output, so a cached result is only reused while they stay missing.
     pub absent: Vec<PathBuf>,
     pub warnings: Vec<Diagnostic<FileId>>,
+    /// Lines a false `#if`/`#ifdef`/`#elif`/`#else` group excluded: (file, 1-based lines,
+    /// end exclusive), in the order met. The conditional directives' own lines are not in it.
+    pub skipped: Vec<(FileId, std::ops::Range<u32>)>,
 }
 
 impl Output {

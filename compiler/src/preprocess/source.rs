@@ -420,6 +420,26 @@ impl SourceCache {
         id
     }
 
+    /// Gives the file at canonical path `canonical` this text, as if read from disk (an
+    /// editor's unsaved buffer): every later load of that path sees it. A path already
+    /// loaded keeps its first text (each cache sees each file once).
+    pub fn set_text(&self, canonical: &Path, text: &str) -> FileId {
+        let mut inner = self.inner.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(&id) = inner.by_path.get(canonical) {
+            return id;
+        }
+        let file = SourceFile::new(canonical.to_path_buf(), self.display_name(canonical), text.to_string());
+        let id = FileId(inner.files.len() as u32);
+        inner.files.push(Arc::new(file));
+        inner.by_path.insert(canonical.to_path_buf(), id);
+        id
+    }
+
+    /// The original text of a file (`None` for an unknown id).
+    pub fn text(&self, id: FileId) -> Option<String> {
+        self.get(id).map(|f| f.original.clone())
+    }
+
     pub(crate) fn get(&self, id: FileId) -> Option<Arc<SourceFile>> {
         let inner = self.inner.read().unwrap_or_else(|e| e.into_inner());
         inner.files.get(id.0 as usize).cloned()

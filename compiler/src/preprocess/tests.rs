@@ -331,3 +331,35 @@ fn long_lines_are_shown_cut() {
     assert!(r.contains("a a…\n"), "{r}");
     assert!(r.contains("^^^ redefined here"), "{r}");
 }
+
+/// The 1-based lines `src`'s false groups excluded.
+fn skipped(src: &str) -> Vec<u32> {
+    let out = run_with(src, &Options::default()).expect("preprocesses");
+    out.skipped.iter().flat_map(|(_, r)| r.clone()).collect()
+}
+
+#[test]
+fn skipped_lines() {
+    assert_eq!(skipped("#if 0\na\nb\n#endif\nc\n"), [2, 3]);
+    assert_eq!(skipped("#if 1\na\n#else\nb\n#endif\n"), [4]);
+    assert_eq!(skipped("#if 0\na\n#elif 0\nb\n#elif 1\nc\n#else\nd\n#endif\n"), [2, 4, 8]);
+    assert_eq!(skipped("#ifdef X\n#if 1\na\n#endif\n#endif\nb\n"), [2, 3, 4]);
+    assert_eq!(skipped("#if 0\n#endif\n"), Vec::<u32>::new());
+    assert_eq!(skipped("a\n#if 1 /* x\n y */\nb\n#endif\n"), Vec::<u32>::new());
+}
+
+#[test]
+fn buffer_text_replaces_the_file_on_disk() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let root = dir.path().canonicalize().expect("canonical");
+    std::fs::write(root.join("h.ush"), "on_disk").expect("write");
+    std::fs::write(root.join("m.usf"), "#include \"h.ush\"\n").expect("write");
+    let cache = SourceCache::new(root.clone());
+    cache.set_text(&root.join("h.ush"), "in_buffer");
+    let out = preprocess_file(&root.join("m.usf"), &Options::default(), &cache).expect("preprocesses");
+    assert_eq!(tokens(&out.text), ["in_buffer"]);
+    let inc = out.map.includes();
+    assert_eq!(inc.len(), 1);
+    assert_eq!(cache.path(inc[0].2), root.join("h.ush"));
+    assert_eq!(inc[0].1, 0..16);
+}

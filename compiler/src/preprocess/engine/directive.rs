@@ -615,9 +615,12 @@ impl Pp<'_> {
         };
         let source = frame.source.clone();
         let ctx = frame.ctx;
+        let file = frame.file;
         let text = source.text();
         let bytes = text.as_bytes();
         let mut pos = frame.pos;
+        // Where the group being skipped began (after the directive that opened it).
+        let mut group = pos;
         let mut depth = 0usize;
         loop {
             // At a line start: whitespace and comments, then maybe a directive.
@@ -645,6 +648,7 @@ impl Pp<'_> {
                     "if" | "ifdef" | "ifndef" => depth += 1,
                     "endif" if depth > 0 => depth -= 1,
                     "endif" | "else" | "elif" if depth == 0 => {
+                        self.mark_skipped(&source, file, group, hash);
                         if let Some(f) = self.frames.last_mut() {
                             f.pos = q + l;
                         }
@@ -697,6 +701,7 @@ impl Pp<'_> {
                             }
                         }
                         pos = self.frames.last().map_or(bytes.len(), |f| f.pos);
+                        group = pos;
                         continue;
                     }
                     _ => {}
@@ -715,6 +720,17 @@ impl Pp<'_> {
                     )
                 }
             };
+        }
+    }
+
+    /// Records the whole lines from spliced offset `from` (a partial first line is the
+    /// directive's own) up to the line holding spliced offset `hash` (excluded).
+    fn mark_skipped(&mut self, source: &SourceFile, file: FileId, from: usize, hash: usize) {
+        let (line, column) = source.line_col(source.original_offset(from));
+        let first = if column == 1 { line } else { line + 1 };
+        let end = source.line(source.original_offset(hash));
+        if end > first {
+            self.skipped.push((file, first as u32..end as u32));
         }
     }
 

@@ -316,6 +316,8 @@ pub(crate) struct Pp<'a> {
     base_name: String,
     /// Include candidates found missing (see [`super::Output::absent`]).
     absent: std::cell::RefCell<Vec<PathBuf>>,
+    /// Lines excluded by a false conditional (see [`super::Output::skipped`]).
+    skipped: Vec<(FileId, Range<u32>)>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -385,7 +387,7 @@ fn run_here(file: FileId, name: Option<String>, opts: &Options, cache: &SourceCa
     let mut absent = pp.absent.into_inner();
     absent.sort();
     absent.dedup();
-    Ok(Output { text: pp.out, map: pp.map, files: pp.files, absent, warnings: pp.warnings })
+    Ok(Output { text: pp.out, map: pp.map, files: pp.files, absent, warnings: pp.warnings, skipped: pp.skipped })
 }
 
 /// Tokens macro expansion may make in one run: a quarter of the output limit (a token
@@ -588,6 +590,7 @@ impl<'a> Pp<'a> {
             roots,
             base_name: String::new(),
             absent: std::cell::RefCell::new(Vec::new()),
+            skipped: Vec::new(),
         };
         for (name, b) in [
             ("__LINE__", Builtin::Line),
