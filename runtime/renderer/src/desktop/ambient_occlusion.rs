@@ -14,7 +14,7 @@ use crate::keys;
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
 use super::view::AmbientOcclusionUniforms;
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// The AmbientOcclusion declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -40,7 +40,7 @@ pub struct AmbientOcclusion {
 pub const AO_PARAMS: [f32; 4] = [1.0, 3.0, 0.1, 60.0];
 
 impl AmbientOcclusion {
-    pub fn new(b: &PassContext<'_>) -> Result<AmbientOcclusion, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<AmbientOcclusion, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
@@ -123,7 +123,7 @@ impl AmbientOcclusion {
     }
 }
 
-fn ao_resources<'r>(b: &'r PassContext<'_>, ao: &'r wgpu::Buffer) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
+fn ao_resources<'r>(b: &'r PassSetup<'_>, ao: &'r wgpu::Buffer) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
     let t = b.targets;
     vec![
         ("View", b.view_buffer.as_entire_binding()),

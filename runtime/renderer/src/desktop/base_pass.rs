@@ -14,7 +14,7 @@ use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, SceneBuffers, Targets, STENCIL_LIT};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// Tests against the prepass depth and marks lit pixels in its stencil.
 pub const PASS: PassDecl = PassDecl {
@@ -46,7 +46,7 @@ fn gbuffer_targets() -> Vec<(wgpu::TextureFormat, Option<wgpu::BlendState>)> {
 }
 
 impl BasePass {
-    pub fn new(b: &PassContext<'_>) -> Result<BasePass, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<BasePass, DesktopError> {
         let p = b.pipelines;
         let depth = |mark: bool, compare: wgpu::CompareFunction| {
             let op = if mark { wgpu::StencilOperation::Replace } else { wgpu::StencilOperation::Keep };

@@ -9,7 +9,7 @@ use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// The ExponentialHeightFog declaration.
 pub const PASS: PassDecl =
@@ -21,7 +21,7 @@ pub struct HeightFog {
 }
 
 impl HeightFog {
-    pub fn new(b: &PassContext<'_>) -> Result<HeightFog, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<HeightFog, DesktopError> {
         let p = b.pipelines;
         let pipeline = p.render(
             &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,

@@ -10,7 +10,7 @@ use crate::keys;
 
 use super::pipelines::{BindGroups, Compute, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, Targets};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// The ComputeLightGrid declaration.
 pub const PASS: PassDecl = PassDecl { name: "ComputeLightGrid", reads: &["Scene", "View"], writes: &["LightGrid"] };
@@ -35,7 +35,7 @@ pub struct LightGrid {
 }
 
 impl LightGrid {
-    pub fn new(b: &PassContext<'_>) -> Result<LightGrid, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<LightGrid, DesktopError> {
         let device = b.device;
         let cells = u64::from(b.view.grid_cells());
         let capacity = cells * u64::from(LINKS_PER_CELL.min(b.lights.len().max(1) as u32));

@@ -32,7 +32,7 @@ use super::resources::{
 };
 use super::shadow_depths::ShadowDepths;
 use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
-use super::{DesktopError, LightingPath, PassContext};
+use super::{DesktopError, LightingPath, PassSetup};
 
 /// The Lighting declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -135,7 +135,7 @@ fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
 
 impl Lighting {
     pub fn new(
-        b: &PassContext<'_>,
+        b: &PassSetup<'_>,
         shadows: &ShadowDepths,
         dummy_shadow: &Texture,
         grid: &super::light_grid::LightGrid,
@@ -470,7 +470,7 @@ fn occluded_draw<'l>(light: &'l ShadowedLight, casts_shadow: &dyn Fn(usize) -> b
 }
 
 fn light_resources<'r>(
-    b: &'r PassContext<'_>,
+    b: &'r PassSetup<'_>,
     light: &'r wgpu::Buffer,
 ) -> Vec<(&'static str, wgpu::BindingResource<'r>)> {
     let t = b.targets;

@@ -138,7 +138,7 @@ impl From<crate::shaders::LookupError> for DesktopError {
 }
 
 /// What passes read while they are built.
-pub(crate) struct PassContext<'a> {
+pub(crate) struct PassSetup<'a> {
     pub device: &'a wgpu::Device,
     pub pipelines: &'a pipelines::Pipelines<'a>,
     pub scene: &'a Scene,
@@ -152,7 +152,7 @@ pub(crate) struct PassContext<'a> {
     pub options: &'a DesktopOptions,
 }
 
-impl PassContext<'_> {
+impl PassSetup<'_> {
     /// View, instances and materials: what every mesh pass binds.
     pub fn scene_resources(&self) -> Vec<(&'static str, wgpu::BindingResource<'_>)> {
         vec![
@@ -227,7 +227,7 @@ impl DesktopFrame {
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
         let pipelines = pipelines::Pipelines::new(cache, "sm5");
-        let b = PassContext {
+        let b = PassSetup {
             device,
             pipelines: &pipelines,
             scene,
@@ -560,7 +560,7 @@ struct EffectInputs<'a> {
 
 /// The frame's effects over the frame's targets and the directional light's cascades.
 fn build_effects(
-    b: &PassContext<'_>,
+    b: &PassSetup<'_>,
     queue: &wgpu::Queue,
     inputs: EffectInputs<'_>,
 ) -> Result<effects::Effects, DesktopError> {

@@ -12,7 +12,7 @@ use crate::keys;
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
 use super::resources::{begin, color_attachment, formats, uniform, Targets};
 use super::view::{BloomUniforms, TonemapUniforms};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// Bloom and the Tonemapper (after the temporal steps).
 pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Bloom", "Output"] };
@@ -35,7 +35,7 @@ pub struct PostProcessing {
 pub const BLOOM: [f32; 3] = [1.5, 0.5, 0.2];
 
 impl PostProcessing {
-    pub fn new(b: &PassContext<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
+    pub fn new(b: &PassSetup<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;

@@ -10,7 +10,7 @@ use crate::scene::BlendMode;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, SceneBuffers, Targets};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// The PrePass declaration.
 pub const PASS: PassDecl = PassDecl { name: "PrePass", reads: &["Scene", "View"], writes: &["SceneDepth"] };
@@ -23,7 +23,7 @@ pub struct PrePass {
 }
 
 impl PrePass {
-    pub fn new(b: &PassContext<'_>) -> Result<PrePass, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<PrePass, DesktopError> {
         let p = b.pipelines;
         let desc = RenderDesc {
             vertices: Vertices::Mesh,

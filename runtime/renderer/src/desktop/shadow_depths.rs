@@ -18,7 +18,7 @@ use crate::keys;
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, formats, uniform, LocalShadow, SceneBuffers, Texture};
 use super::view::{FrameView, ShadowDepthPassUniforms, ShadowProjectionUniforms};
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 use std::sync::Arc;
 
 /// Skips the lights whose ShadowFrustumQueries came back empty.
@@ -172,7 +172,7 @@ pub fn per_object_matrix(light: Vec3, light_radius: f32, center: Vec3, radius: f
 }
 
 impl ShadowDepths {
-    pub fn new(b: &PassContext<'_>) -> Result<ShadowDepths, DesktopError> {
+    pub fn new(b: &PassSetup<'_>) -> Result<ShadowDepths, DesktopError> {
         let device = b.device;
         let p = b.pipelines;
         let desc = |perspective: bool| -> Result<Arc<Render>, DesktopError> {

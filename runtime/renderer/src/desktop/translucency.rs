@@ -19,7 +19,7 @@ use super::light_grid::LightGrid;
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
 use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
-use super::{DesktopError, PassContext};
+use super::{DesktopError, PassSetup};
 
 /// The Translucency declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -39,7 +39,7 @@ pub struct Translucency {
 
 impl Translucency {
     pub fn new(
-        b: &PassContext<'_>,
+        b: &PassSetup<'_>,
         grid: &LightGrid,
         shadows: &ShadowDepths,
         dummy_shadow: &Texture,
@@ -105,7 +105,7 @@ impl Translucency {
 
     /// The lit translucent surfaces' pipeline in `mode`, with its bind groups.
     fn surface_pipeline(
-        b: &PassContext<'_>,
+        b: &PassSetup<'_>,
         mode: TranslucencyLightingMode,
         shadows: &ShadowDepths,
         resources: &[(&str, wgpu::BindingResource<'_>)],
