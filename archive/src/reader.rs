@@ -93,13 +93,16 @@ pub struct Archive {
     all_records_ok: AtomicBool,
     /// Each permutation's values, decoded on first use, in pages of [`VALUE_PAGE`] cells
     /// allocated on first use.
-    values: Box<[OnceLock<Box<[OnceLock<Box<[i64]>>]>>]>,
+    values: Box<[OnceLock<ValuePages>]>,
     /// Whether each blob has passed its checksum.
     verified: Bits,
     /// Each dictionary, loaded (and checked) on first use.
     ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
     by_shader: HashMap<(String, String), u32>,
 }
+
+/// One permutation's values in pages of [`VALUE_PAGE`] cells, each decoded on first use.
+type ValuePages = Box<[OnceLock<Box<[i64]>>]>;
 
 /// Cells of decoded values per page.
 const VALUE_PAGE: usize = 1024;

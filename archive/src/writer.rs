@@ -635,7 +635,7 @@ impl StreamingWriter {
     }
 
     /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
-    /// bytes to keep instead of its hash; [`StreamingWriter::blob_key`] gives the key back).
+    /// bytes to keep instead of its hash, for [`StreamingWriter::add_permutation_numbered`]).
     pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
         let added = lock(&self.blobs).add(&hash, bytes.len() as u64);
@@ -1142,7 +1142,7 @@ fn dictionaries(
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
-
+///
 /// It consumes the plan: the manifest is encoded first (but for its header and dictionary
 /// records, which wait for the dictionaries) to the spool file past the blobs and their
 /// table, or to memory with an in-memory spool, and its arenas let go before the blobs are

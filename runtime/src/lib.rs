@@ -14,7 +14,7 @@
 //! The pieces: [`shaders`] (archive access), [`gpu`] (headless device setup), [`pipelines`]
 //! (modules, layouts, pipeline cache; [`spirv`] checks and renumbers SPIR-V for passthrough),
 //! [`validation`] (the API's validation messages as test failures). With the `hot-reload`
-//! feature, [`hot_reload`] rebuilds the permutations an edit touches and names them, so a
+//! feature, `hot_reload` rebuilds the permutations an edit touches and names them, so a
 //! renderer can swap exactly those between frames ([`pipelines::PipelineCache::carry_over`]).
 
 pub mod gpu;

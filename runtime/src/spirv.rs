@@ -15,7 +15,7 @@
 //! Vulkan bindings 0, 1 and 2), and rewrites the SPIR-V it generates from WGSL to match.
 //! SPIR-V passthrough gets no such rewrite, so a precompiled module whose bindings have gaps
 //! names descriptors the layout does not hold (validation: `VUID-VkGraphicsPipelineCreateInfo-
-//! layout-00756`) and the driver reads the wrong ones. [`remap_bindings`] applies the same
+//! layout-00756`) and the driver reads the wrong ones. [`SpirvModule::remap_bindings`] applies the same
 //! numbering to the module, from the pipeline layout it is created for.
 
 use std::collections::HashMap;

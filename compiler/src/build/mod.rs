@@ -31,6 +31,10 @@
 //! the configuration and sources (not on `-j`, the cache state or shards); an archive that
 //! is, byte for byte, the output of a build with the same keys is not written again.
 
+// The stage list above names private modules on purpose: it is the map a maintainer reads
+// (`cargo doc --document-private-items`), and the public docs show the names as code.
+#![allow(rustdoc::private_intra_doc_links)]
+
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -195,7 +199,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         || report.grouped(&plan, &pre, &keys),
         || match assembler.up_to_date(store, &pre, &keys, failed) {
             Some(counts) => Some((counts, false)),
-            None => assembler.from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
+            None => assembler.copied_from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
         },
     );
     trace_memory("group");

@@ -583,8 +583,11 @@ struct Reuse {
     groups: Mutex<ReuseGroups>,
     /// Each group's end in the plan (one past its last permutation), latest first; and the
     /// groups let go.
-    ends: Mutex<(Vec<(usize, GroupName)>, HashSet<GroupName>)>,
+    ends: Mutex<GroupEnds>,
 }
+
+/// Each group's end in the plan, latest first, and the groups let go.
+type GroupEnds = (Vec<(usize, GroupName)>, HashSet<GroupName>);
 
 /// A (shader, level) by name.
 type GroupName = (String, String);

@@ -592,20 +592,6 @@ pub(crate) fn count_kept(shader: &Shader, level: &Level, budget: u64) -> Option<
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::disjuncts;
-
-    #[test]
-    fn top_level_or_splits_into_conditions() {
-        assert_eq!(disjuncts("A || B && (C || D)"), ["A", "B && ( C || D )"]);
-        assert_eq!(disjuncts("A && B"), ["A && B"]);
-        assert_eq!(disjuncts("A || B ? 1 : 0"), ["A || B ? 1 : 0"]);
-        assert_eq!(disjuncts("(A || B)"), ["(A || B)"]);
-        assert_eq!(disjuncts("A || "), ["A || "]);
-    }
-}
-
 /// `2^k (n)` for a power of two, else `n`.
 fn describe_count(n: u128) -> String {
     if n == u128::MAX {
@@ -719,5 +705,19 @@ impl Config {
                     .with_message("cannot be evaluated")]);
         }
         Some(self.error(vec![d]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::disjuncts;
+
+    #[test]
+    fn top_level_or_splits_into_conditions() {
+        assert_eq!(disjuncts("A || B && (C || D)"), ["A", "B && ( C || D )"]);
+        assert_eq!(disjuncts("A && B"), ["A && B"]);
+        assert_eq!(disjuncts("A || B ? 1 : 0"), ["A || B ? 1 : 0"]);
+        assert_eq!(disjuncts("(A || B)"), ["(A || B)"]);
+        assert_eq!(disjuncts("A || "), ["A || "]);
     }
 }

@@ -329,7 +329,7 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
 }
 
 /// How [`eval`] reads one token of a stand-alone expression: for code that translates
-/// expressions rather than evaluating them (the typed keys of [`crate::bindings`]).
+/// expressions rather than evaluating them (the typed keys of [`crate::keys`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum TokenClass {
     /// A number or character constant, with its type.
