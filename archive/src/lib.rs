@@ -139,3 +139,18 @@ impl std::fmt::Display for Stage {
         f.write_str(self.name())
     }
 }
+
+/// Levenshtein distance between `a` and `b`, in characters: how names that name nothing are
+/// matched to the nearest ones, by the archive reader and the compiler's configuration alike.
+pub fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
+}

@@ -19,7 +19,7 @@ use super::format::{
     CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
     MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
-use super::{Reflection, Target};
+use super::{edit_distance, Reflection, Target};
 
 enum Bytes {
     Static(&'static [u8]),
@@ -989,19 +989,6 @@ fn parse_name(name: &str) -> ParsedName {
         })
         .collect();
     ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims }
-}
-
-fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut cur = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        prev = cur;
-    }
-    prev[b.len()]
 }
 
 #[cfg(test)]
