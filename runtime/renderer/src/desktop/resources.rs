@@ -495,15 +495,6 @@ impl Samplers {
     }
 }
 
-/// A uniform buffer holding one value.
-pub fn uniform<T: bytemuck::Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some(label),
-        contents: bytemuck::bytes_of(value),
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-    })
-}
-
 /// A storage buffer holding a slice (at least one element, so empty lists bind).
 pub fn storage<T: bytemuck::Pod + Default>(
     device: &wgpu::Device,
