@@ -24,6 +24,10 @@
 #[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
 pub mod limits;
+// Atomic file writes: the compiler writes every output through them, so the module is
+// public across the workspace's crates, but it is plumbing, not part of the documented API
+// of `kiln-archive` or of `kiln` (which re-exports this crate as `kiln::archive`).
+#[doc(hidden)]
 pub mod output;
 mod reader;
 mod reflect;

@@ -32,8 +32,6 @@ pub mod build_script;
 #[allow(clippy::type_complexity, clippy::large_enum_variant, rustdoc::private_intra_doc_links)]
 pub mod cache;
 #[cfg(feature = "compiler")]
-pub mod cli;
-#[cfg(feature = "compiler")]
 pub mod compile;
 #[cfg(feature = "compiler")]
 pub mod explain;

@@ -1,4 +1,8 @@
+//! The `kiln` command line (its subcommands in `cli/`), over the `kiln` library.
+
 use std::process::ExitCode;
+
+mod cli;
 
 /// mimalloc, not glibc's allocator: naga's front end and writers allocate and free all the
 /// time, and glibc gives freed memory back to the system at once, to fault it in again.
@@ -13,8 +17,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> ExitCode {
     tune_glibc_malloc();
     tune_mimalloc();
-    kiln::build::set_release_freed(release_freed);
-    exit_now(kiln::cli::main())
+    exit_now(cli::main())
 }
 
 /// Ends the process with `code` once stdout and stderr are flushed, without the C runtime's
@@ -35,7 +38,8 @@ fn exit_now(code: ExitCode) -> ExitCode {
 }
 
 /// Hands what this thread's mimalloc heap holds freed back to the system (a build calls it
-/// on every worker between stages: see `kiln::build::set_release_freed`).
+/// on every worker between stages: the `kiln build` subcommand passes it in
+/// `kiln::build::Options::release_freed`).
 fn release_freed() {
     extern "C" {
         fn mi_collect(force: bool);

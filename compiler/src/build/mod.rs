@@ -90,6 +90,10 @@ pub struct Options {
     /// The most permutations, of one shader at one level or of all together (`--max-permutations`); `None`
     /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
     pub max_permutations: Option<u64>,
+    /// Called on every worker between stages, so that the pages one stage freed do not stay
+    /// resident under the next stage's tables (the `kiln` binary passes mimalloc's
+    /// `mi_collect`); the first build of the process that passes one fixes it.
+    pub release_freed: Option<fn()>,
 }
 
 impl Default for Options {
@@ -109,6 +113,7 @@ impl Default for Options {
             color: false,
             shard: None,
             max_permutations: None,
+            release_freed: None,
         }
     }
 }
@@ -151,6 +156,9 @@ impl Error {
 /// Runs a build.
 pub fn run(options: &Options) -> Result<Report, Error> {
     let start = Instant::now();
+    if let Some(release) = options.release_freed {
+        set_release_freed(release);
+    }
     let config = plan::load(options)?;
     let store = store::Store::open(options, &config)?;
     worker_pool(options.jobs)?.install(|| stages(options, &config, &store, start))
@@ -286,14 +294,11 @@ pub(crate) fn trace_memory(stage: &str) {
 /// ([`set_release_freed`]).
 static RELEASE_FREED: std::sync::OnceLock<fn()> = std::sync::OnceLock::new();
 
-/// Has a build call `release` on every worker between stages, so that the pages one stage
-/// freed do not stay resident under the next stage's tables. The `kiln` binary passes
-/// mimalloc's `mi_collect`: with mimalloc a page freed on another thread than the one that
-/// allocated it waits on its owner's list, and an idle worker never takes it back, so the
-/// next stage faulted in new pages beside them (at 100k permutations, peaks of 53 to 90
-/// MiB on a loaded machine where the tables themselves need about 45). The first call
-/// wins.
-pub fn set_release_freed(release: fn()) {
+/// Has a build call `release` on every worker between stages ([`Options::release_freed`]).
+/// With mimalloc a page freed on another thread than the one that allocated it waits on its
+/// owner's list, and an idle worker never takes it back, so the next stage faulted in new
+/// pages beside them. The first call wins.
+fn set_release_freed(release: fn()) {
     let _ = RELEASE_FREED.set(release);
 }
 
