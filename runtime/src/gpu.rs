@@ -57,10 +57,11 @@ pub struct GpuOptions {
     pub module_source: ModuleSource,
     /// Ask for timestamp queries where the adapter has them.
     pub timestamps: bool,
-    /// Create the device with the API's validation on: the Khronos validation layer on
-    /// Vulkan (an error naming the Debian package `vulkan-validationlayers` where it is
-    /// missing), debug output on GL. Its messages go to [`crate::validation`], which records
-    /// them once installed (this installs it).
+    /// Create the device with the API's validation on: the instance flags that hand the
+    /// Khronos validation layer's messages (Vulkan) or the driver's debug output (GL) to the
+    /// `log` crate. Nothing global changes here: the layer itself and the logger that records
+    /// the messages are the caller's to enable (`validation::enable`, with the `validation`
+    /// feature).
     pub validation: bool,
 }
 
@@ -162,20 +163,13 @@ impl Gpu {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = backend.wgpu();
         if options.validation {
-            if !crate::validation::install() {
-                return Err(GpuError::ValidationLogger);
-            }
-            if backend == Backend::Vulkan && crate::validation::khronos_layer_manifest().is_none() {
-                return Err(GpuError::NoValidationLayer);
-            }
-            // Vulkan: the layer as `VK_INSTANCE_LAYERS=VK_LAYER_KHRONOS_validation` enables it
-            // (its core checks: wgpu's own VALIDATION flag adds synchronization validation,
-            // which flags wgpu's store of read-only depth attachments), and DEBUG for the
-            // debug-utils messenger that hands its messages to wgpu's log. GL: VALIDATION
-            // turns debug output on.
-            match backend {
-                Backend::Vulkan => crate::validation::enable_layer_for_process(),
-                Backend::Gl => desc.flags |= wgpu::InstanceFlags::VALIDATION,
+            // Vulkan: the layer comes from `VK_INSTANCE_LAYERS` (`validation::enable`; its core
+            // checks: wgpu's own VALIDATION flag adds synchronization validation, which flags
+            // wgpu's store of read-only depth attachments), and DEBUG is for the debug-utils
+            // messenger that hands its messages to wgpu's log. GL: VALIDATION turns debug
+            // output on.
+            if backend == Backend::Gl {
+                desc.flags |= wgpu::InstanceFlags::VALIDATION;
             }
             desc.flags |= wgpu::InstanceFlags::DEBUG;
         }
