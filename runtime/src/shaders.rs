@@ -87,7 +87,7 @@ impl ShaderArchive {
     }
 
     /// Whether SPIR-V from this archive may go to the driver unchanged (SPIR-V passthrough,
-    /// after the structural check of [`crate::spirv`]). Only archives made with
+    /// after the structural check of the runtime's `spirv` module). Only archives made with
     /// [`ShaderArchive::from_static_trusted`] or [`ShaderArchive::assume_trusted`] are.
     pub fn trusted(&self) -> bool {
         self.trusted
@@ -97,7 +97,7 @@ impl ShaderArchive {
     /// SPIR-V is passed through to the driver.
     ///
     /// # Safety
-    /// The structural check of [`crate::spirv`] is no validator: SPIR-V that passes it but
+    /// The structural check (the runtime's `spirv` module) is no validator: SPIR-V that passes it but
     /// is invalid (a bit flipped in an operand) is undefined behaviour in the driver. Call it
     /// only for archives from a source you trust as much as the binary itself.
     pub unsafe fn assume_trusted(mut self) -> ShaderArchive {
