@@ -178,8 +178,11 @@ use serde::{Deserialize, Serialize};
 
 use super::{Reflection, Stage, Target};
 
+/// The first 8 bytes of every archive.
 pub const MAGIC: [u8; 8] = *b"KILNPAK\0";
+/// The archive format this build reads and writes.
 pub const FORMAT_VERSION: u32 = 4;
+/// Bytes of the fixed header at the start of an archive.
 pub const HEADER_LEN: usize = 128;
 /// Bytes of one chunk of the manifest and of the blob table that one hash covers (chosen by
 /// measuring: the module doc's table). The reader takes the length from the header.
@@ -204,24 +207,68 @@ pub(crate) const CODEC_ZSTD: u8 = 1;
 pub(crate) const CODEC_ZSTD_DICT: u8 = 2;
 pub(crate) const NO_DICTIONARY: u8 = 0xff;
 
+/// Why an archive could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum ArchiveError {
+    /// The file could not be opened, mapped or read.
     #[error("cannot read archive {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The archive's path.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// The path names a directory, a device or a pipe, not a regular file.
     #[error("cannot read archive {path}: it is a {kind}, not a regular file")]
-    NotAFile { path: PathBuf, kind: &'static str },
+    NotAFile {
+        /// The archive's path.
+        path: PathBuf,
+        /// What it is instead (`directory`, `fifo`, ...).
+        kind: &'static str,
+    },
+    /// The archive could not be written.
     #[error("cannot write archive {path}: {source}")]
-    Write { path: PathBuf, source: std::io::Error },
+    Write {
+        /// The archive's path.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// Fewer bytes than the header.
     #[error("not a kiln archive: the file is {len} bytes, shorter than the {HEADER_LEN}-byte header")]
-    TooShort { len: usize },
+    TooShort {
+        /// The file's length.
+        len: usize,
+    },
+    /// The file does not start with [`MAGIC`].
     #[error("not a kiln archive: bad magic bytes {found:02x?}")]
-    BadMagic { found: [u8; 8] },
+    BadMagic {
+        /// Its first 8 bytes.
+        found: [u8; 8],
+    },
+    /// A format version other than [`FORMAT_VERSION`].
     #[error("archive format version {found} is not supported (this build of kiln reads version {FORMAT_VERSION}); rebuild the archive with this kiln")]
-    Version { found: u32 },
+    Version {
+        /// The version the header gives.
+        found: u32,
+    },
+    /// The file is shorter than its header says.
     #[error("archive is truncated: the header announces {expected} bytes, the file has {actual}")]
-    Truncated { expected: u64, actual: u64 },
+    Truncated {
+        /// The length the header announces.
+        expected: u64,
+        /// The file's length.
+        actual: u64,
+    },
+    /// The header's own checksum does not match.
     #[error("archive is corrupted: header checksum mismatch (expected {expected}, computed {actual})")]
-    Checksum { expected: String, actual: String },
+    Checksum {
+        /// The checksum the header holds (hex).
+        expected: String,
+        /// The checksum of the bytes read (hex).
+        actual: String,
+    },
+    /// The manifest does not decode: what is wrong with it.
     #[error("archive manifest is malformed: {0}")]
     Manifest(String),
     /// A chunk of the manifest or blob table that no permutation's use reads (an id, say)
@@ -230,12 +277,24 @@ pub enum ArchiveError {
     Corrupted(String),
     /// A blob failed its check or its decompression the first time it was used.
     #[error("archive is corrupted: the {target} artifact of permutation `{permutation}`: {message}")]
-    Blob { permutation: String, target: Target, message: String },
+    Blob {
+        /// The permutation's name.
+        permutation: String,
+        /// The artifact's target.
+        target: Target,
+        /// What failed.
+        message: String,
+    },
     /// A permutation record failed its check (its chunk's hash, or a range) the first time
     /// it was read. `permutation` is its name, or the name being looked up, or its number
     /// when its name cannot be trusted.
     #[error("archive is corrupted: permutation {permutation}: {message}")]
-    Permutation { permutation: String, message: String },
+    Permutation {
+        /// The permutation's name, the name looked up, or its number.
+        permutation: String,
+        /// What failed.
+        message: String,
+    },
     /// The writer was given inconsistent input.
     #[error("cannot write archive: {0}")]
     Input(String),
@@ -249,22 +308,29 @@ pub struct BlobId(pub u32);
 /// dimension values can build the canonical name.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct ShaderRecord {
+    /// The shader's name in `permutations.toml`.
     pub name: String,
+    /// The feature level.
     pub level: String,
+    /// The entry point's name.
     pub entry: String,
+    /// The entry point's stage.
     pub stage: Stage,
     /// Dimensions in declared order.
     pub dimensions: Vec<DimensionRecord>,
 }
 
+/// A dimension of a shader in the manifest.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct DimensionRecord {
+    /// The dimension's name (its define).
     pub name: String,
     /// For an enum dimension, the name of each index; empty otherwise.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub labels: Vec<String>,
 }
 
+/// A permutation of the manifest, as the writer is given it and the reader decodes it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PermutationRecord {
     /// Canonical name, `Shader@level{DIM=value,...}`.
@@ -275,6 +341,7 @@ pub struct PermutationRecord {
     pub values: Vec<i64>,
     /// Index into the manifest's reflections.
     pub reflection: u32,
+    /// One blob per target, in the level's order of targets.
     pub artifacts: Vec<(Target, BlobId)>,
 }
 

@@ -184,36 +184,95 @@ impl StageLimits {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Violation {
     /// The entry point's name is empty or over 1024 bytes long.
-    EntryName { len: usize },
+    EntryName {
+        /// The name's length in bytes.
+        len: usize,
+    },
     /// A binding's group is at or past `max_bind_groups`.
-    BindGroup { binding: usize },
+    BindGroup {
+        /// The binding's index in the reflection.
+        binding: usize,
+    },
     /// A binding's number is at or past `max_bindings_per_bind_group`.
-    BindingNumber { binding: usize },
+    BindingNumber {
+        /// The binding's index in the reflection.
+        binding: usize,
+    },
     /// A (group, binding) is listed twice.
-    Duplicate { binding: usize },
+    Duplicate {
+        /// The binding's index in the reflection.
+        binding: usize,
+    },
     /// A storage buffer or storage texture in a vertex shader without `vertex_storage`.
-    VertexStorage { binding: usize },
+    VertexStorage {
+        /// The binding's index in the reflection.
+        binding: usize,
+    },
     /// A uniform buffer over `max_uniform_buffer_binding_size`.
-    UniformSize { binding: usize, size: u64 },
+    UniformSize {
+        /// The binding's index in the reflection.
+        binding: usize,
+        /// The buffer's size in bytes.
+        size: u64,
+    },
     /// A storage buffer over `max_storage_buffer_binding_size`.
-    StorageSize { binding: usize, size: u64 },
+    StorageSize {
+        /// The binding's index in the reflection.
+        binding: usize,
+        /// The buffer's size in bytes.
+        size: u64,
+    },
     /// `binding` is the `nth` of its class, one over the class's per-stage limit; the stage
     /// has `total` of them in all.
-    TooMany { binding: usize, class: ResourceClass, nth: u32, total: u32 },
+    TooMany {
+        /// The binding's index in the reflection.
+        binding: usize,
+        /// Its class.
+        class: ResourceClass,
+        /// Its rank among the stage's bindings of the class.
+        nth: u32,
+        /// How many of the class the stage has.
+        total: u32,
+    },
     /// More vertex inputs than `max_vertex_attributes`.
-    VertexInputs { count: usize },
+    VertexInputs {
+        /// How many inputs the shader has.
+        count: usize,
+    },
     /// A vertex input's location at or past `max_vertex_attributes`.
-    VertexLocation { location: u32 },
+    VertexLocation {
+        /// The input's `@location`.
+        location: u32,
+    },
     /// More color outputs than `max_color_attachments`.
-    ColorOutputs { count: usize },
+    ColorOutputs {
+        /// How many outputs the shader has.
+        count: usize,
+    },
     /// A color output's location at or past `max_color_attachments`.
-    ColorLocation { location: u32 },
+    ColorLocation {
+        /// The output's `@location`.
+        location: u32,
+    },
     /// A workgroup size with a zero along some axis.
-    WorkgroupZero { size: [u32; 3] },
+    WorkgroupZero {
+        /// The workgroup size.
+        size: [u32; 3],
+    },
     /// A workgroup size over `max_compute_workgroup_size` along `axis` (0 to 2).
-    WorkgroupAxis { size: [u32; 3], axis: usize },
+    WorkgroupAxis {
+        /// The workgroup size.
+        size: [u32; 3],
+        /// The axis over the limit: 0, 1 or 2.
+        axis: usize,
+    },
     /// A workgroup of more than `max_compute_invocations_per_workgroup` invocations.
-    WorkgroupInvocations { size: [u32; 3], total: u64 },
+    WorkgroupInvocations {
+        /// The workgroup size.
+        size: [u32; 3],
+        /// Its invocations: x times y times z.
+        total: u64,
+    },
     /// A compute entry point without a workgroup size.
     NoWorkgroupSize,
 }

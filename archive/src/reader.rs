@@ -154,9 +154,11 @@ pub struct PermutationRef<'a> {
 }
 
 impl<'a> PermutationRef<'a> {
+    /// Its canonical name, `Shader@level{DIM=value,...}`.
     pub fn name(&self) -> &'a str {
         self.archive.name_of(&self.record)
     }
+    /// Its (shader, level) record.
     pub fn shader(&self) -> &'a ShaderRecord {
         &self.archive.tables.shaders[self.record.shader as usize]
     }
@@ -164,6 +166,7 @@ impl<'a> PermutationRef<'a> {
     pub fn shader_index(&self) -> u32 {
         self.record.shader
     }
+    /// One value per dimension of its shader, in declared order.
     pub fn values(&self) -> &'a [i64] {
         let archive = self.archive;
         let index = self.index as usize;
@@ -178,6 +181,7 @@ impl<'a> PermutationRef<'a> {
             bytes.chunks_exact(VALUE_LEN).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()
         })
     }
+    /// Its entry point's reflection.
     pub fn reflection(&self) -> &'a Reflection {
         &self.archive.tables.reflections[self.record.reflection as usize]
     }
@@ -195,9 +199,11 @@ impl<'a> PermutationRef<'a> {
         let bytes = archive.bytes.as_slice().get(start..start + len).unwrap_or_default();
         bytes.chunks_exact(ARTIFACT_LEN).filter_map(super::format::decode_artifact)
     }
+    /// The targets it has an artifact for, in the level's order.
     pub fn targets(&self) -> impl Iterator<Item = Target> + 'a {
         self.artifacts().map(|(t, _)| t)
     }
+    /// The blob holding its artifact for `target`, if it has one.
     pub fn blob_id(&self, target: Target) -> Option<BlobId> {
         self.artifacts().find(|(t, _)| *t == target).map(|(_, b)| b)
     }
@@ -265,6 +271,7 @@ impl ExactSizeIterator for Permutations<'_> {}
 /// A near miss for a name that is not in the archive.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Near {
+    /// The near permutation's canonical name.
     pub name: String,
     /// `DIM: wanted -> available` for each dimension that differs.
     pub differences: Vec<String>,
@@ -272,6 +279,7 @@ pub struct Near {
 
 /// The answer to a lookup by name.
 pub enum Lookup<'a> {
+    /// The permutation of that name.
     Found(PermutationRef<'a>),
     /// Not there; the closest permutations, best first.
     Missing(Vec<Near>),
@@ -351,6 +359,7 @@ impl Archive {
         Archive::from_source(Bytes::Static(bytes))
     }
 
+    /// Opens an archive held in memory (checked as [`Archive::open`] checks a file).
     pub fn from_vec(bytes: Vec<u8>) -> Result<Archive, ArchiveError> {
         Archive::from_source(Bytes::Owned(bytes))
     }
@@ -642,9 +651,11 @@ impl Archive {
             .unwrap_or("")
     }
 
+    /// The version of Kiln that wrote the archive.
     pub fn kiln_version(&self) -> &str {
         &self.tables.kiln_version
     }
+    /// The version of naga that compiled its artifacts.
     pub fn naga_version(&self) -> &str {
         &self.tables.naga_version
     }
@@ -652,6 +663,7 @@ impl Archive {
     pub fn len(&self) -> usize {
         self.bytes.as_slice().len()
     }
+    /// Whether the archive holds no permutation.
     pub fn is_empty(&self) -> bool {
         self.permutation_count == 0
     }
@@ -659,12 +671,15 @@ impl Archive {
     pub fn permutation_count(&self) -> usize {
         self.permutation_count
     }
+    /// Every (shader, level) record, in manifest order.
     pub fn shaders(&self) -> &[ShaderRecord] {
         &self.tables.shaders
     }
+    /// How many distinct blobs the archive holds.
     pub fn blob_count(&self) -> usize {
         self.blob_count
     }
+    /// Every distinct reflection, in manifest order.
     pub fn reflections(&self) -> &[Reflection] {
         &self.tables.reflections
     }

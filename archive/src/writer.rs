@@ -48,6 +48,7 @@ impl BlobKey {
     pub fn from_hash(hash: blake3::Hash) -> BlobKey {
         BlobKey(hash)
     }
+    /// The blob's blake3 hash.
     pub fn hash(&self) -> blake3::Hash {
         self.0
     }
@@ -64,6 +65,7 @@ pub struct NewPermutation<'a, B = BlobKey> {
     pub shader: &'a ShaderRecord,
     /// One value per dimension of the shader, in declared order.
     pub values: Vec<i64>,
+    /// Its entry point's reflection.
     pub reflection: &'a Reflection,
     /// At most one blob per target, each added with [`StreamingWriter::add_blob`].
     pub artifacts: Vec<(Target, B)>,
@@ -72,6 +74,7 @@ pub struct NewPermutation<'a, B = BlobKey> {
 /// What [`StreamingWriter::finish`] wrote.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ArchiveSummary {
+    /// Permutations in the archive.
     pub permutations: usize,
     /// Distinct blobs in the archive.
     pub blobs: usize,
@@ -786,6 +789,7 @@ pub struct ArchiveWriter {
 }
 
 impl ArchiveWriter {
+    /// An empty archive.
     pub fn new() -> Self {
         ArchiveWriter::default()
     }
@@ -824,6 +828,7 @@ impl ArchiveWriter {
         BlobId(n)
     }
 
+    /// Adds `reflection` once, and gives its index in the manifest.
     pub fn add_reflection(&mut self, reflection: &Reflection) -> u32 {
         if let Some(&i) = self.reflection_handles.get(reflection) {
             return i;

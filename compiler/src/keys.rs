@@ -37,6 +37,7 @@ use crate::preprocess::expr;
 pub struct Error {
     /// The permutation set's path, as given.
     pub config: String,
+    /// What is wrong.
     pub message: String,
 }
 

@@ -6,11 +6,14 @@ use std::fmt;
 /// The graphics API to render with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Backend {
+    /// Vulkan (lavapipe on machines without a GPU).
     Vulkan,
+    /// OpenGL ES through EGL (llvmpipe on machines without a GPU).
     Gl,
 }
 
 impl Backend {
+    /// The backend's name, as `--backend` takes it.
     pub fn name(self) -> &'static str {
         match self {
             Backend::Vulkan => "vulkan",
@@ -18,6 +21,7 @@ impl Backend {
         }
     }
 
+    /// The backend named `name`, if any.
     pub fn from_name(name: &str) -> Option<Backend> {
         match name {
             "vulkan" => Some(Backend::Vulkan),
@@ -51,9 +55,12 @@ pub enum ModuleSource {
     Wgsl,
 }
 
+/// How to create a [`Gpu`].
 #[derive(Clone, Debug)]
 pub struct GpuOptions {
+    /// The graphics API.
     pub backend: Backend,
+    /// Where shader modules come from.
     pub module_source: ModuleSource,
     /// Ask for timestamp queries where the adapter has them.
     pub timestamps: bool,
@@ -71,22 +78,39 @@ impl Default for GpuOptions {
     }
 }
 
+/// Why a device could not be created.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
+    /// No adapter of the backend.
     #[error(
         "no {backend} adapter found ({detail}); on a machine without a GPU install Mesa's software drivers, \
          Debian package `mesa-vulkan-drivers` (lavapipe for Vulkan, llvmpipe for GL): apt-get install mesa-vulkan-drivers"
     )]
-    NoAdapter { backend: Backend, detail: String },
+    NoAdapter {
+        /// The backend asked for.
+        backend: Backend,
+        /// wgpu's error and the adapters seen.
+        detail: String,
+    },
+    /// The Khronos validation layer is not installed.
     #[error(
         "validation was asked for, but the Khronos validation layer (VK_LAYER_KHRONOS_validation) is not \
          installed: Debian package `vulkan-validationlayers` (apt-get install vulkan-validationlayers)"
     )]
     NoValidationLayer,
+    /// Another `log` logger is installed.
     #[error("validation was asked for, but another `log` logger is installed, so its messages cannot be recorded")]
     ValidationLogger,
+    /// The adapter refused the device.
     #[error("cannot create a {backend} device on {adapter}: {source}")]
-    Device { backend: Backend, adapter: String, source: wgpu::RequestDeviceError },
+    Device {
+        /// The backend.
+        backend: Backend,
+        /// The adapter's name.
+        adapter: String,
+        /// wgpu's error.
+        source: wgpu::RequestDeviceError,
+    },
 }
 
 /// Keeps Mesa's implicit `VK_LAYER_MESA_device_select` from probing for a Wayland display
@@ -112,11 +136,17 @@ fn skip_device_select_display_probe() {
 
 /// A device ready to render offscreen.
 pub struct Gpu {
+    /// The wgpu instance.
     pub instance: wgpu::Instance,
+    /// The adapter the device is on.
     pub adapter: wgpu::Adapter,
+    /// The device.
     pub device: wgpu::Device,
+    /// Its queue.
     pub queue: wgpu::Queue,
+    /// The backend.
     pub backend: Backend,
+    /// The adapter's name, driver and kind.
     pub info: wgpu::AdapterInfo,
     /// Modules come from SPIR-V passthrough (else WGSL).
     pub spirv_passthrough: bool,
@@ -151,6 +181,7 @@ impl fmt::Debug for Gpu {
 }
 
 impl Gpu {
+    /// Creates an instance, an adapter and a device with `options`, blocking.
     pub fn new(options: &GpuOptions) -> Result<Gpu, GpuError> {
         pollster::block_on(Gpu::new_async(options))
     }

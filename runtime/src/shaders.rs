@@ -12,7 +12,12 @@ pub enum LookupError {
     /// The name is well formed but the archive does not hold it; `nearest` lists the closest
     /// permutations with the dimensions that differ.
     #[error("{}", render_missing(.name, .nearest))]
-    Missing { name: String, nearest: Vec<Near> },
+    Missing {
+        /// The name looked up.
+        name: String,
+        /// The closest permutations, best first.
+        nearest: Vec<Near>,
+    },
     /// The builder named a shader, level or dimension the archive does not know.
     #[error("cannot name permutation: {0}")]
     BadName(String),
@@ -72,6 +77,7 @@ impl ShaderArchive {
         Ok(ShaderArchive { archive: Archive::from_static(bytes)?, trusted: false })
     }
 
+    /// Opens an archive held in memory (not trusted for SPIR-V passthrough).
     pub fn from_vec(bytes: Vec<u8>) -> Result<ShaderArchive, ArchiveError> {
         Ok(ShaderArchive { archive: Archive::from_vec(bytes)?, trusted: false })
     }
@@ -105,6 +111,7 @@ impl ShaderArchive {
         self
     }
 
+    /// The archive itself.
     pub fn archive(&self) -> &Archive {
         &self.archive
     }

@@ -130,6 +130,7 @@ pub enum CacheDir {
     Disabled,
 }
 
+/// Why a build failed.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The configuration or a command-line choice is wrong (exit code 2). Rendered.

@@ -13,7 +13,9 @@ use crate::permute::{self, Config, Level, Permutation, Shader};
 /// `--shard I/N`: this process compiles share `index` (0-based) of `count`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Shard {
+    /// This process's share, from 0.
     pub index: usize,
+    /// How many shares there are.
     pub count: usize,
 }
 

@@ -50,21 +50,29 @@ pub struct Stats {
     pub remote_writes: u64,
     /// Failed remote operations (the first one turns the remote off for the build).
     pub remote_errors: u64,
+    /// Where the time went.
     pub seconds: Seconds,
 }
 
+/// Wall-clock seconds of a build and its stages.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct Seconds {
+    /// The whole build.
     pub total: f64,
+    /// Preprocessing (and grouping by key).
     pub preprocess: f64,
+    /// Compiling, from the first key to the last artifact.
     pub compile: f64,
 }
 
 /// A dimension that never changes its shader's text at a level.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DeadDimension {
+    /// The shader.
     pub shader: String,
+    /// The level.
     pub level: String,
+    /// The dimension.
     pub dimension: String,
     /// How many values it takes: the factor of build work it multiplies for nothing.
     pub values: usize,
@@ -73,6 +81,7 @@ pub struct DeadDimension {
 /// What a build did.
 #[derive(Debug, Default)]
 pub struct Report {
+    /// The counts (`--stats-json`).
     pub stats: Stats,
     /// The config and every file any permutation read (absolute, sorted, deduplicated).
     pub files_read: Vec<PathBuf>,
@@ -80,6 +89,7 @@ pub struct Report {
     pub warnings: Vec<String>,
     /// Rendered failures, one per distinct diagnostic, each naming its permutations.
     pub failures: Vec<String>,
+    /// The dimensions that never change their shader's text.
     pub dead_dimensions: Vec<DeadDimension>,
     /// The archive written, if any.
     pub archive: Option<PathBuf>,

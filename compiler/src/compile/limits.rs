@@ -17,18 +17,31 @@ use super::{Error, ErrorKind};
 pub struct Limits {
     /// `"desktop"` or `"downlevel"`: shown in errors and part of the cache key.
     pub name: &'static str,
+    /// wgpu's `max_bind_groups`.
     pub max_bind_groups: u32,
+    /// wgpu's `max_bindings_per_bind_group`.
     pub max_bindings_per_bind_group: u32,
+    /// wgpu's `max_samplers_per_shader_stage`.
     pub max_samplers_per_shader_stage: u32,
+    /// wgpu's `max_sampled_textures_per_shader_stage`.
     pub max_sampled_textures_per_shader_stage: u32,
+    /// wgpu's `max_storage_buffers_per_shader_stage`.
     pub max_storage_buffers_per_shader_stage: u32,
+    /// wgpu's `max_storage_textures_per_shader_stage`.
     pub max_storage_textures_per_shader_stage: u32,
+    /// wgpu's `max_uniform_buffers_per_shader_stage`.
     pub max_uniform_buffers_per_shader_stage: u32,
+    /// wgpu's `max_uniform_buffer_binding_size`.
     pub max_uniform_buffer_binding_size: u64,
+    /// wgpu's `max_vertex_attributes`.
     pub max_vertex_attributes: u32,
+    /// wgpu's `max_color_attachments`.
     pub max_color_attachments: u32,
+    /// wgpu's `max_compute_workgroup_storage_size`.
     pub max_compute_workgroup_storage_size: u64,
+    /// wgpu's `max_compute_invocations_per_workgroup`.
     pub max_compute_invocations_per_workgroup: u32,
+    /// wgpu's `max_compute_workgroup_size_x, _y and _z`.
     pub max_compute_workgroup_size: [u32; 3],
     /// GLES: vertex shaders may not use storage buffers or storage textures.
     pub vertex_storage: bool,

@@ -366,6 +366,7 @@ impl std::fmt::Debug for SourceCache {
 }
 
 impl SourceCache {
+    /// An empty cache; file names are shown relative to `display_base`.
     pub fn new(display_base: PathBuf) -> Self {
         let display_base = display_base.canonicalize().unwrap_or(display_base);
         SourceCache { display_base, inner: RwLock::new(Inner::default()), lookups: RwLock::default() }
@@ -487,6 +488,7 @@ impl SourceCache {
         self.inner.read().unwrap_or_else(|e| e.into_inner()).files.len()
     }
 
+    /// Whether no file is loaded.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
