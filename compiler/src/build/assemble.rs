@@ -15,7 +15,8 @@ use std::io::{Read, Seek, Write};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use super::plan::{Keys, Plan};
+use super::group::Keys;
+use super::plan::Plan;
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;

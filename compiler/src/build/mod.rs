@@ -43,9 +43,11 @@ use crate::permute::Config;
 
 mod assemble;
 mod compile;
+mod group;
 mod outputs;
 mod plan;
 mod preprocess;
+mod progress;
 mod records;
 mod report;
 mod shard;
@@ -168,7 +170,7 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 /// The stages, in order; every stage's state lives in its own type.
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
-    let progress = report::Progress::new(options.progress);
+    let progress = progress::Progress::new(options.progress);
     // The last build's preprocessing records beside the plan; a fresh local cache (its
     // records came from the remote cache) fills their keys from the remote meanwhile, and
     // while the permutations are matched to them. Not for a shard, which fetches its share.

@@ -21,8 +21,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::plan::{level_limits, level_targets, Plan};
+use super::progress::Progress;
 use super::records::{self, Direct, Interner, Records, Row};
-use super::report::Progress;
 use super::store::Store;
 use super::Options;
 use crate::cache::Key;
