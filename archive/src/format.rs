@@ -23,8 +23,7 @@
 //! the header checksum, which covers the chunk hashes (32 bytes per C bytes of manifest and
 //! table), and reads the chunks of the manifest's header, dictionaries and tables; every other
 //! chunk is checked against its hash the first time a read touches it (one bit per chunk), so
-//! that opening costs O(1) in the number of permutations (format 3 hashed the whole manifest
-//! and table at open: 9.1 ms for a 100,000-permutation archive).
+//! that opening costs O(1) in the number of permutations.
 //!
 //! The manifest (format 3 and 4; format 2 held JSON, parsed whole at open) is read in place
 //! from the memory map. Every part starts at a multiple of 8 from the manifest's start:
@@ -65,110 +64,17 @@
 //! dictionary) the first time its blob is used; each blob's blake3 the first time it is
 //! decompressed, each dictionary's the first time it is loaded.
 //!
-//! # Why per-target dictionaries, not compressed groups
+//! # Choices
 //!
-//! Measured on the bundled set (625 permutations, 2,457 distinct artifacts, 27.3 MiB raw;
-//! format 1 stored it in 28.6 MB) with `compiler/examples/zstd_probe.rs` (release build; the
-//! bench repeats the main rows), each artifact compressed alone and decompressed with a
-//! reused context:
-//!
-//! | scheme                                        | compressed    | ratio | decompress one (median) |
-//! | --------------------------------------------- | ------------- | ----- | ----------------------- |
-//! | zstd -3 per artifact, no dictionary           | 8.55 MB       |  3.3x |                         |
-//! | per-target dictionary 64 KiB, zstd -3         | 2.16 MB       | 13.1x | 1.2 µs                  |
-//! | per-target dictionary 128 KiB, zstd -3        | 2.08 MB       | 13.6x | 1.4 µs                  |
-//! | per-target dictionary 128 KiB, zstd -19       | 1.57 MB       | 18.0x | 7.4 µs                  |
-//! | groups (shader, target) <= 64 KiB, zstd -3    | 2.76 MB       | 10.2x | 18.7 µs                 |
-//! | groups <= 256 KiB, zstd -3                    | 1.28 MB       | 22.1x | 28.3 µs                 |
-//! | groups <= 1 MiB, zstd -3                      | 0.90 MB       | 31.4x | 54.7 µs                 |
-//! | one group per (shader, target), zstd -3       | 0.75 MB       | 37.5x | 365.8 µs                |
-//!
-//! On the generated set of `cargo bench -p kiln --bench archive` (1,024 permutations, 4,093
-//! distinct artifacts, 9.95 MB raw), whose artifacts are nearer copies of each other than real
-//! ones: no dictionary 3.7x; per-target dictionary 64 KiB 15.3x (0.6 µs), 128 KiB 13.7x
-//! (0.6 µs); groups <= 64 KiB 35.3x (14.9 µs), <= 256 KiB 70.5x (27.9 µs), <= 1 MiB 108x
-//! (74 µs). There the blobs are already only half of the archive (0.59 of 1.19 MB; the
-//! manifest and blob table are the rest), so groups would make the file at most 2x smaller.
-//!
-//! Both schemes beat the goal of 1/8 of format 1. Groups compress better the larger they
-//! are, but a lookup then decompresses (and a runtime would have to cache) a whole group to
-//! use one artifact: 20 to 250 times the work of a dictionary lookup, and the time grows with
-//! the group. Dictionaries keep every artifact its own zstd frame: a lookup decompresses
-//! exactly the bytes it needs, checks exactly one checksum, and a corrupted blob damages one
-//! permutation, not its neighbours. So Kiln trains one dictionary per target (WGSL, SPIR-V,
-//! MSL, GLSL and HLSL share little with each other) at build time on a deterministic sample
-//! of that target's artifacts, and compresses at level [`COMPRESSION_LEVEL`].
-//!
-//! The chosen scheme, measured by `cargo bench -p kiln --bench archive` (release build, this
-//! shared 2-core machine, medians):
-//!
-//! | archive                                  | format 1 | format 2 | ratio | open    | lookup + decompress (first use) |
-//! | ---------------------------------------- | -------- | -------- | ----- | ------- | ------------------------------- |
-//! | bundled set, 625 permutations            | 28.74 MB | 2.46 MB  | 0.085 | 0.68 ms | 2.4 µs (7.2 µs)                 |
-//! | generated set, 1,024 permutations        | 10.44 MB | 1.19 MB  | 0.114 | 0.63 ms | 0.9 µs (3.3 µs)                 |
-//! | generated, 1,024 x 1 MiB incompressible  | 1.07 GB  | 1.07 GB  | 1.000 | 0.34 ms | 0.3 µs (156 µs)                 |
-//!
-//! The training sample is [`DICTIONARY_SAMPLE`] per target: with 8 MiB (every artifact of the
-//! bundled set) training was about a third of a cold build's instructions; 2 MiB gives the
-//! bundled set 2.70 MB (ratio 0.094) for about 15% less build CPU time (1 MiB: 3.45 MB, 0.120).
-//! The table above was measured with 8 MiB.
-//!
-//! Training is one fastCover pass with fixed parameters (k = 1024, d = 8; `writer.rs`), not
-//! `ZDICT_trainFromBuffer`'s search over five values of k. Callgrind, bundled set, `kiln build
-//! --no-cache -j 1`: training 1.67 G instructions with the search, 0.38 G with one pass; the
-//! whole build 10.96 G -> 9.66 G; the archive 2.70 MB -> 2.54 MB (ratio 0.088), identical
-//! bytes with `-j 1` and `-j 2`. Since then fastCover runs with `accel` 4 (`FASTCOVER_ACCEL`),
-//! and each blob is compressed with its dictionary attached rather than copied into the
-//! context: the bundled set's archive 2.72 -> 2.70 MB, the naga_oil bench's set +1.5%, its
-//! build 2.1% fewer instructions (training 9.4 -> 5.9 ms). The tables above predate both.
-//!
-//! Of the bundled set's 2.46 MB, blobs take 1.73 MB, dictionaries 0.31 MB, and the manifest
-//! and blob table the rest. With format 2's JSON manifest, opening was mostly parsing it
-//! (0.68 ms for the bundled set, growing with the number of permutations); format 3's binary
-//! manifest is read in place, but opening still hashed the whole manifest and blob table and
-//! range-checked every record and entry: O(manifest). Format 4 hashes them per chunk, each
-//! chunk the first time a read touches it, and checks each record and entry on first use, so
-//! that opening reads the header, the chunk hashes (32 bytes per [`CHUNK_LEN`] bytes, 93 KB
-//! for the 48 MB of manifest and table of 100,000 permutations), the manifest's header,
-//! dictionaries and JSON tables, and one empty cell per page of bits. `cargo bench -p kiln --bench
-//! archive` (release, this 2-core machine shared with other builds at a load average of 4.7
-//! to 5.0, medians of 51 opens; the same run for both formats):
-//!
-//! | archive                                          | format 3 open | format 4 open | format 4 first lookup after open (no artifact) |
-//! | ------------------------------------------------ | ------------- | ------------- | ---------------------------------------------- |
-//! | bundled set, 622 permutations, 2.72 MB           | 0.28 ms       | 0.21 ms       | 35 µs (10 µs)                                  |
-//! | generated, 1,024 x 1 MiB incompressible          | 0.053 ms      | 0.018 ms      | 166 µs (9 µs)                                  |
-//! | generated, 10,000 permutations (3.8 MB manifest) | 0.71 ms       | 0.053 ms      | 69 µs (38 µs)                                  |
-//! | generated, 100,000 permutations (38 MB manifest) | 13.1 ms       | 0.064 ms      | 118 µs (79 µs)                                 |
-//! | `kiln build` of a generated 100,000-permutation set (66.2 MB; `KILN_ARCHIVE_FILES`) | 9.1 ms (an earlier run) | 0.056 ms | 109 µs (68 µs) |
-//!
-//! What remains at open is O(shaders + distinct reflections): parsing the JSON tables (most of
-//! the bundled set's 0.21 ms). A lookup by name and decompression of one artifact, median over
-//! 2,000 names: bundled 6.9 µs on first use (chunks, record, blob and dictionary checked), 1.8 µs
-//! again; 100,000 permutations 3.7 µs and 2.4 µs (format 3: 3.0 and 1.9). The first lookup after
-//! an open costs more (the table above): the pages of the map it touches fault in, each chunk
-//! its binary search reads is hashed (about 20 at 100,000 permutations), and the first
-//! artifact of a target loads its dictionary. A walk of every record (`permutations`, so
-//! `kiln inspect --list`) checks every chunk and record first: 0.05 ms for the bundled set,
-//! 0.9 ms for 10,000 permutations, 10 to 21 ms for the generated 100,000 (6.6 ms for the
-//! built one, whose names are shorter); format 3 paid about that at every open.
-//!
-//! [`CHUNK_LEN`] was chosen on the generated archive of 100,000 permutations (same bench,
-//! one to three runs each at a load average of 4 to 6, ranges; 10,000 alike but smaller):
-//!
-//! | chunk  | chunk hashes | open           | first lookup after open | same, no artifact | lookup + decompress, first use | walk of every record |
-//! | ------ | ------------ | -------------- | ----------------------- | ----------------- | ------------------------------ | -------------------- |
-//! | 2 KiB  | 746 KB       | 0.150 ms       | 116 µs                  |                   | 11.3 µs                        | 32 ms                |
-//! | 4 KiB  | 373 KB       | 0.092-0.097 ms | 109-114 µs              | 75-77 µs          | 7.3-7.8 µs                     | 21-29 ms             |
-//! | 8 KiB  | 187 KB       | 0.072-0.076 ms | 113-121 µs              | 76-78 µs          | 5.4-5.8 µs                     | 15-21 ms             |
-//! | 16 KiB | 93 KB        | 0.062-0.066 ms | 116-121 µs              | 79-85 µs          | 3.5-4.5 µs                     | 10-23 ms             |
-//! | 32 KiB | 47 KB        | 0.064 ms       | 162 µs                  |                   | 3.5 µs                         | 14 ms                |
-//!
-//! Smaller chunks make the chunk hashes (hashed at open) larger and a walk slower (blake3 is
-//! fastest on inputs of 16 of its 1 KiB chunks and more); larger ones make the first lookups
-//! hash more bytes per chunk they read. The first lookup after an open is mostly page faults
-//! and its first dictionary, and hardly depends on the chunk length up to 16 KiB; 16 KiB
-//! gives the fastest open and first uses, and walks as fast as any.
+//! Each artifact is its own zstd frame, compressed at [`COMPRESSION_LEVEL`] with its
+//! target's dictionary (WGSL, SPIR-V, MSL, GLSL and HLSL share little with each other),
+//! trained at build time on a deterministic sample of at most [`DICTIONARY_SAMPLE`] bytes of
+//! that target's artifacts: a lookup decompresses exactly the bytes it needs and checks one
+//! checksum, and a corrupted blob damages one permutation, not its neighbours (compressed
+//! groups of artifacts would make the file smaller and every lookup a group's work). The
+//! manifest is read in place and hashed per [`CHUNK_LEN`] chunk on first use, so that
+//! opening is O(shaders + distinct reflections), not O(permutations). The measurements
+//! behind these choices are in `docs/design/2026-11-archive-format-measurements.md`.
 
 use std::fs::File;
 use std::io::{IoSlice, Write};
@@ -178,11 +84,14 @@ use serde::{Deserialize, Serialize};
 
 use super::{Reflection, Stage, Target};
 
+/// The first 8 bytes of every archive.
 pub const MAGIC: [u8; 8] = *b"KILNPAK\0";
+/// The archive format this build reads and writes.
 pub const FORMAT_VERSION: u32 = 4;
+/// Bytes of the fixed header at the start of an archive.
 pub const HEADER_LEN: usize = 128;
 /// Bytes of one chunk of the manifest and of the blob table that one hash covers (chosen by
-/// measuring: the module doc's table). The reader takes the length from the header.
+/// measuring: see the module doc's choices). The reader takes the length from the header.
 pub const CHUNK_LEN: u32 = 16 << 10;
 /// Bytes of one chunk hash.
 pub(crate) const CHUNK_HASH_LEN: usize = 32;
@@ -204,24 +113,68 @@ pub(crate) const CODEC_ZSTD: u8 = 1;
 pub(crate) const CODEC_ZSTD_DICT: u8 = 2;
 pub(crate) const NO_DICTIONARY: u8 = 0xff;
 
+/// Why an archive could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum ArchiveError {
+    /// The file could not be opened, mapped or read.
     #[error("cannot read archive {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The archive's path.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// The path names a directory, a device or a pipe, not a regular file.
     #[error("cannot read archive {path}: it is a {kind}, not a regular file")]
-    NotAFile { path: PathBuf, kind: &'static str },
+    NotAFile {
+        /// The archive's path.
+        path: PathBuf,
+        /// What it is instead (`directory`, `fifo`, ...).
+        kind: &'static str,
+    },
+    /// The archive could not be written.
     #[error("cannot write archive {path}: {source}")]
-    Write { path: PathBuf, source: std::io::Error },
+    Write {
+        /// The archive's path.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
+    /// Fewer bytes than the header.
     #[error("not a kiln archive: the file is {len} bytes, shorter than the {HEADER_LEN}-byte header")]
-    TooShort { len: usize },
+    TooShort {
+        /// The file's length.
+        len: usize,
+    },
+    /// The file does not start with [`MAGIC`].
     #[error("not a kiln archive: bad magic bytes {found:02x?}")]
-    BadMagic { found: [u8; 8] },
+    BadMagic {
+        /// Its first 8 bytes.
+        found: [u8; 8],
+    },
+    /// A format version other than [`FORMAT_VERSION`].
     #[error("archive format version {found} is not supported (this build of kiln reads version {FORMAT_VERSION}); rebuild the archive with this kiln")]
-    Version { found: u32 },
+    Version {
+        /// The version the header gives.
+        found: u32,
+    },
+    /// The file is shorter than its header says.
     #[error("archive is truncated: the header announces {expected} bytes, the file has {actual}")]
-    Truncated { expected: u64, actual: u64 },
+    Truncated {
+        /// The length the header announces.
+        expected: u64,
+        /// The file's length.
+        actual: u64,
+    },
+    /// The header's own checksum does not match.
     #[error("archive is corrupted: header checksum mismatch (expected {expected}, computed {actual})")]
-    Checksum { expected: String, actual: String },
+    Checksum {
+        /// The checksum the header holds (hex).
+        expected: String,
+        /// The checksum of the bytes read (hex).
+        actual: String,
+    },
+    /// The manifest does not decode: what is wrong with it.
     #[error("archive manifest is malformed: {0}")]
     Manifest(String),
     /// A chunk of the manifest or blob table that no permutation's use reads (an id, say)
@@ -230,12 +183,24 @@ pub enum ArchiveError {
     Corrupted(String),
     /// A blob failed its check or its decompression the first time it was used.
     #[error("archive is corrupted: the {target} artifact of permutation `{permutation}`: {message}")]
-    Blob { permutation: String, target: Target, message: String },
+    Blob {
+        /// The permutation's name.
+        permutation: String,
+        /// The artifact's target.
+        target: Target,
+        /// What failed.
+        message: String,
+    },
     /// A permutation record failed its check (its chunk's hash, or a range) the first time
     /// it was read. `permutation` is its name, or the name being looked up, or its number
     /// when its name cannot be trusted.
     #[error("archive is corrupted: permutation {permutation}: {message}")]
-    Permutation { permutation: String, message: String },
+    Permutation {
+        /// The permutation's name, the name looked up, or its number.
+        permutation: String,
+        /// What failed.
+        message: String,
+    },
     /// The writer was given inconsistent input.
     #[error("cannot write archive: {0}")]
     Input(String),
@@ -249,22 +214,29 @@ pub struct BlobId(pub u32);
 /// dimension values can build the canonical name.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct ShaderRecord {
+    /// The shader's name in `permutations.toml`.
     pub name: String,
+    /// The feature level.
     pub level: String,
+    /// The entry point's name.
     pub entry: String,
+    /// The entry point's stage.
     pub stage: Stage,
     /// Dimensions in declared order.
     pub dimensions: Vec<DimensionRecord>,
 }
 
+/// A dimension of a shader in the manifest.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct DimensionRecord {
+    /// The dimension's name (its define).
     pub name: String,
     /// For an enum dimension, the name of each index; empty otherwise.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub labels: Vec<String>,
 }
 
+/// A permutation of the manifest, as the writer is given it and the reader decodes it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PermutationRecord {
     /// Canonical name, `Shader@level{DIM=value,...}`.
@@ -275,6 +247,7 @@ pub struct PermutationRecord {
     pub values: Vec<i64>,
     /// Index into the manifest's reflections.
     pub reflection: u32,
+    /// One blob per target, in the level's order of targets.
     pub artifacts: Vec<(Target, BlobId)>,
 }
 

@@ -20,10 +20,16 @@
 //! builder, and nothing here calls back into a build: the writer's memory hooks are passed
 //! in ([`WriterHooks`]).
 
+#![warn(missing_docs)]
+
 // The manifest's arenas and layouts are the writer's; the reader reads the bytes in place.
 #[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
 pub mod limits;
+// Atomic file writes: the compiler writes every output through them, so the module is
+// public across the workspace's crates, but it is plumbing, not part of the documented API
+// of `kiln-archive` or of `kiln` (which re-exports this crate as `kiln::archive`).
+#[doc(hidden)]
 pub mod output;
 mod reader;
 mod reflect;
@@ -56,14 +62,20 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Target {
+    /// WGSL, for wgpu on any backend.
     Wgsl,
+    /// SPIR-V, for Vulkan (passed through when trusted).
     Spirv,
+    /// Metal Shading Language.
     Msl,
+    /// GLSL (ES 3.10 for the downlevel level).
     Glsl,
+    /// HLSL (shader model 5.1).
     Hlsl,
 }
 
 impl Target {
+    /// Every target, in this order.
     pub const ALL: [Target; 5] = [Target::Wgsl, Target::Spirv, Target::Msl, Target::Glsl, Target::Hlsl];
 
     /// The name used in `permutations.toml` and on the command line.
@@ -77,6 +89,7 @@ impl Target {
         }
     }
 
+    /// The target named `name` (as `targets` lists it), if any.
     pub fn from_name(name: &str) -> Option<Target> {
         Target::ALL.into_iter().find(|t| t.name() == name)
     }
@@ -113,14 +126,19 @@ impl std::fmt::Display for Target {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Stage {
+    /// A vertex shader.
     Vertex,
+    /// A fragment shader.
     Fragment,
+    /// A compute shader.
     Compute,
 }
 
 impl Stage {
+    /// Every stage, in this order.
     pub const ALL: [Stage; 3] = [Stage::Vertex, Stage::Fragment, Stage::Compute];
 
+    /// The stage's name as `permutations.toml` and archives write it.
     pub fn name(self) -> &'static str {
         match self {
             Stage::Vertex => "vertex",
@@ -129,6 +147,7 @@ impl Stage {
         }
     }
 
+    /// The stage named `name`, if any.
     pub fn from_name(name: &str) -> Option<Stage> {
         Stage::ALL.into_iter().find(|s| s.name() == name)
     }
@@ -138,4 +157,19 @@ impl std::fmt::Display for Stage {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
     }
+}
+
+/// Levenshtein distance between `a` and `b`, in characters: how names that name nothing are
+/// matched to the nearest ones, by the archive reader and the compiler's configuration alike.
+pub fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
 }

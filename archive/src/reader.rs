@@ -19,7 +19,7 @@ use super::format::{
     CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
     MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
-use super::{Reflection, Target};
+use super::{edit_distance, Reflection, Target};
 
 enum Bytes {
     Static(&'static [u8]),
@@ -93,13 +93,16 @@ pub struct Archive {
     all_records_ok: AtomicBool,
     /// Each permutation's values, decoded on first use, in pages of [`VALUE_PAGE`] cells
     /// allocated on first use.
-    values: Box<[OnceLock<Box<[OnceLock<Box<[i64]>>]>>]>,
+    values: Box<[OnceLock<ValuePages>]>,
     /// Whether each blob has passed its checksum.
     verified: Bits,
     /// Each dictionary, loaded (and checked) on first use.
     ddicts: Box<[OnceLock<Result<DDict<'static>, String>>]>,
     by_shader: HashMap<(String, String), u32>,
 }
+
+/// One permutation's values in pages of [`VALUE_PAGE`] cells, each decoded on first use.
+type ValuePages = Box<[OnceLock<Box<[i64]>>]>;
 
 /// Cells of decoded values per page.
 const VALUE_PAGE: usize = 1024;
@@ -151,9 +154,11 @@ pub struct PermutationRef<'a> {
 }
 
 impl<'a> PermutationRef<'a> {
+    /// Its canonical name, `Shader@level{DIM=value,...}`.
     pub fn name(&self) -> &'a str {
         self.archive.name_of(&self.record)
     }
+    /// Its (shader, level) record.
     pub fn shader(&self) -> &'a ShaderRecord {
         &self.archive.tables.shaders[self.record.shader as usize]
     }
@@ -161,6 +166,7 @@ impl<'a> PermutationRef<'a> {
     pub fn shader_index(&self) -> u32 {
         self.record.shader
     }
+    /// One value per dimension of its shader, in declared order.
     pub fn values(&self) -> &'a [i64] {
         let archive = self.archive;
         let index = self.index as usize;
@@ -175,6 +181,7 @@ impl<'a> PermutationRef<'a> {
             bytes.chunks_exact(VALUE_LEN).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()
         })
     }
+    /// Its entry point's reflection.
     pub fn reflection(&self) -> &'a Reflection {
         &self.archive.tables.reflections[self.record.reflection as usize]
     }
@@ -192,9 +199,11 @@ impl<'a> PermutationRef<'a> {
         let bytes = archive.bytes.as_slice().get(start..start + len).unwrap_or_default();
         bytes.chunks_exact(ARTIFACT_LEN).filter_map(super::format::decode_artifact)
     }
+    /// The targets it has an artifact for, in the level's order.
     pub fn targets(&self) -> impl Iterator<Item = Target> + 'a {
         self.artifacts().map(|(t, _)| t)
     }
+    /// The blob holding its artifact for `target`, if it has one.
     pub fn blob_id(&self, target: Target) -> Option<BlobId> {
         self.artifacts().find(|(t, _)| *t == target).map(|(_, b)| b)
     }
@@ -262,6 +271,7 @@ impl ExactSizeIterator for Permutations<'_> {}
 /// A near miss for a name that is not in the archive.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Near {
+    /// The near permutation's canonical name.
     pub name: String,
     /// `DIM: wanted -> available` for each dimension that differs.
     pub differences: Vec<String>,
@@ -269,6 +279,7 @@ pub struct Near {
 
 /// The answer to a lookup by name.
 pub enum Lookup<'a> {
+    /// The permutation of that name.
     Found(PermutationRef<'a>),
     /// Not there; the closest permutations, best first.
     Missing(Vec<Near>),
@@ -348,6 +359,7 @@ impl Archive {
         Archive::from_source(Bytes::Static(bytes))
     }
 
+    /// Opens an archive held in memory (checked as [`Archive::open`] checks a file).
     pub fn from_vec(bytes: Vec<u8>) -> Result<Archive, ArchiveError> {
         Archive::from_source(Bytes::Owned(bytes))
     }
@@ -639,9 +651,11 @@ impl Archive {
             .unwrap_or("")
     }
 
+    /// The version of Kiln that wrote the archive.
     pub fn kiln_version(&self) -> &str {
         &self.tables.kiln_version
     }
+    /// The version of naga that compiled its artifacts.
     pub fn naga_version(&self) -> &str {
         &self.tables.naga_version
     }
@@ -649,6 +663,7 @@ impl Archive {
     pub fn len(&self) -> usize {
         self.bytes.as_slice().len()
     }
+    /// Whether the archive holds no permutation.
     pub fn is_empty(&self) -> bool {
         self.permutation_count == 0
     }
@@ -656,12 +671,15 @@ impl Archive {
     pub fn permutation_count(&self) -> usize {
         self.permutation_count
     }
+    /// Every (shader, level) record, in manifest order.
     pub fn shaders(&self) -> &[ShaderRecord] {
         &self.tables.shaders
     }
+    /// How many distinct blobs the archive holds.
     pub fn blob_count(&self) -> usize {
         self.blob_count
     }
+    /// Every distinct reflection, in manifest order.
     pub fn reflections(&self) -> &[Reflection] {
         &self.tables.reflections
     }
@@ -986,19 +1004,6 @@ fn parse_name(name: &str) -> ParsedName {
         })
         .collect();
     ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims }
-}
-
-fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut cur = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        prev = cur;
-    }
-    prev[b.len()]
 }
 
 #[cfg(test)]

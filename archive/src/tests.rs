@@ -485,7 +485,7 @@ fn hostile_table_entries_with_a_valid_checksum_are_errors_naming_the_permutation
         // Opening reads no entry: the entry is checked when its blob is first used.
         let a = Archive::from_vec(b).expect("entries are checked on use");
         let p = a.get(&name).unwrap().unwrap();
-        let msg = p.artifact(target).err().expect("hostile entry accepted").to_string();
+        let msg = p.artifact(target).expect_err("hostile entry accepted").to_string();
         assert!(msg.contains(wanted), "{wanted}: {msg}");
         assert!(msg.contains(&format!("the {target} artifact of permutation `{name}`")), "{msg}");
         assert!(p.blob_info(target).is_err() && a.verify_all().is_err());
@@ -607,13 +607,16 @@ fn manifest_range(bytes: &[u8]) -> (usize, usize) {
     (table_start - manifest_len.next_multiple_of(8), manifest_len)
 }
 
+/// A change to one permutation record.
+type Edit = fn(&mut Record);
+
 #[test]
 fn hostile_permutation_records_with_a_valid_checksum_are_errors() {
     let bytes = sample();
     let (start, _) = manifest_range(&bytes);
     let counts = ManifestCounts::decode(&bytes[start..]).unwrap();
     let records = start + counts.layout().unwrap().records as usize;
-    let edits: [(fn(&mut Record), &str); 6] = [
+    let edits: [(Edit, &str); 6] = [
         (|r| r.name_offset = 1 << 40, "name lies outside"),
         (|r| r.name_len += 1000, "name lies outside"),
         (|r| r.shader = 7, "names shader 7 of 1"),
@@ -742,11 +745,11 @@ fn resealed_random_damage_never_panics() {
                     let _ = p.shader();
                     let _ = p.reflection();
                     let _ = a.get_by_id(permutation_id(&p.shader().name, &p.shader().level, p.values()));
-                    let _ = p.targets().map(|t| p.artifact(t)).count();
+                    p.targets().for_each(|t| drop(p.artifact(t)));
                 }
                 for (name, _) in &perms {
                     if let Ok(Some(p)) = a.get(name) {
-                        let _ = p.targets().map(|t| p.artifact(t)).count();
+                        p.targets().for_each(|t| drop(p.artifact(t)));
                     }
                 }
                 let _ = a.lookup(&format!("Lit@sm5{{FULLY_ROUGH={round}}}"));

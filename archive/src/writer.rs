@@ -48,6 +48,7 @@ impl BlobKey {
     pub fn from_hash(hash: blake3::Hash) -> BlobKey {
         BlobKey(hash)
     }
+    /// The blob's blake3 hash.
     pub fn hash(&self) -> blake3::Hash {
         self.0
     }
@@ -64,6 +65,7 @@ pub struct NewPermutation<'a, B = BlobKey> {
     pub shader: &'a ShaderRecord,
     /// One value per dimension of the shader, in declared order.
     pub values: Vec<i64>,
+    /// Its entry point's reflection.
     pub reflection: &'a Reflection,
     /// At most one blob per target, each added with [`StreamingWriter::add_blob`].
     pub artifacts: Vec<(Target, B)>,
@@ -72,6 +74,7 @@ pub struct NewPermutation<'a, B = BlobKey> {
 /// What [`StreamingWriter::finish`] wrote.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ArchiveSummary {
+    /// Permutations in the archive.
     pub permutations: usize,
     /// Distinct blobs in the archive.
     pub blobs: usize,
@@ -635,7 +638,7 @@ impl StreamingWriter {
     }
 
     /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
-    /// bytes to keep instead of its hash; [`StreamingWriter::blob_key`] gives the key back).
+    /// bytes to keep instead of its hash, for [`StreamingWriter::add_permutation_numbered`]).
     pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
         let added = lock(&self.blobs).add(&hash, bytes.len() as u64);
@@ -786,6 +789,7 @@ pub struct ArchiveWriter {
 }
 
 impl ArchiveWriter {
+    /// An empty archive.
     pub fn new() -> Self {
         ArchiveWriter::default()
     }
@@ -824,6 +828,7 @@ impl ArchiveWriter {
         BlobId(n)
     }
 
+    /// Adds `reflection` once, and gives its index in the manifest.
     pub fn add_reflection(&mut self, reflection: &Reflection) -> u32 {
         if let Some(&i) = self.reflection_handles.get(reflection) {
             return i;
@@ -1046,21 +1051,19 @@ fn samples(
     Ok(samples)
 }
 
-/// fastCover segment size `k` and d-mer size `d` of dictionary training, fixed.
-/// `zstd::dict::from_samples` (ZDICT_trainFromBuffer) searches five values of `k`, each a
-/// training on 75% of the sample and a test compression of the rest; one training with a fixed
-/// `k` costs a fraction of that (figures in `compiler/src/archive/format.rs`).
+/// fastCover segment size `k` and d-mer size `d` of dictionary training, fixed: one training
+/// instead of `ZDICT_trainFromBuffer`'s search over five values of `k` (each a training and a
+/// test compression). The measurements behind this and the next two constants are in
+/// `docs/design/2026-11-archive-format-measurements.md`.
 const FASTCOVER_K: u32 = 1024;
+/// fastCover's d-mer size.
 const FASTCOVER_D: u32 = 8;
-/// log2 of fastCover's frequency table's entries. zstd's default, 20, zeroes and touches a
-/// 4 MiB table and a 2 MiB one per target (half of a small cold build's page faults); 18
-/// (1 MiB and 512 KiB) trains dictionaries as good to within about 1% of the archive's size.
+/// log2 of fastCover's frequency table's entries (zstd's default is 20): smaller tables, which
+/// a build zeroes and touches per target, for dictionaries about as good.
 const FASTCOVER_F: u32 = 18;
 
-/// fastCover's acceleration (1 to 10): how sparsely it samples the d-mers it counts. 4 trains
-/// in about 60% of the time of 1 for dictionaries within about 1% of the archive's size (256
-/// SPIR-V artifacts of about 17 KiB: 9.4 -> 5.9 ms, 684,044 -> 691,703 bytes of blobs and
-/// dictionary).
+/// fastCover's acceleration (1 to 10): how sparsely it samples the d-mers it counts; sparser
+/// trains faster for dictionaries about as good.
 const FASTCOVER_ACCEL: u32 = 4;
 
 /// One fastCover training with fixed parameters on the samples laid end to end in `flat`
@@ -1110,9 +1113,8 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
 type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'static>>>);
 
 /// Trains the dictionary of each of `targets` (those with enough to learn from), one after
-/// another: a training's sample and zstd's tables are about 4 MiB, and this runs at the
-/// build's end on top of the manifest, its highest point at 100k permutations (two
-/// trainings at once put 4 MiB more on the peak to save 20 ms at 100k).
+/// another: this runs at the build's end on top of the manifest, where a build's memory
+/// peaks, so trainings do not add their samples and tables to each other's.
 fn dictionaries(
     blob_targets: &[Target],
     table: &mut BlobTable,
@@ -1142,7 +1144,7 @@ fn dictionaries(
 }
 
 /// Writes the archive of `plan` to `out` (from its current position 0) and returns its sizes.
-
+///
 /// It consumes the plan: the manifest is encoded first (but for its header and dictionary
 /// records, which wait for the dictionaries) to the spool file past the blobs and their
 /// table, or to memory with an in-memory spool, and its arenas let go before the blobs are

@@ -86,6 +86,7 @@ fn process_cpu() -> Duration {
 fn children_cpu() -> Duration {
     // SAFETY: getrusage fills the struct we pass; a zeroed rusage is a valid value.
     let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: `ru` is a valid, writable rusage for the call to fill.
     unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut ru) };
     let us = |t: libc::timeval| Duration::new(t.tv_sec as u64, (t.tv_usec * 1000) as u32);
     us(ru.ru_utime) + us(ru.ru_stime)

@@ -83,7 +83,9 @@ fn count(config: &Path) -> usize {
 }
 
 fn cpu_seconds() -> f64 {
+    // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
     let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: `u` is a valid, writable rusage for the call to fill.
     unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
     let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
     t(u.ru_utime) + t(u.ru_stime)

@@ -62,8 +62,10 @@ fn kiln(args: &[&str], stats: &Path) -> Run {
         .expect("kiln starts");
     let pid = child.id() as libc::pid_t;
     let mut status = 0;
+    // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
     let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
     // wait4 reaps the child and gives its own resource usage (ru_maxrss in KiB on Linux).
+    // SAFETY: `status` and `usage` are valid and writable; `pid` is our own child.
     let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
     let wall = start.elapsed();
     assert_eq!(r, pid, "wait4: {}", std::io::Error::last_os_error());

@@ -153,7 +153,7 @@ impl Build {
 
     /// Also writes typed permutation keys to this file in the output folder
     /// (`OUT_DIR/kiln_shaders.rs`), for `include!(concat!(env!("OUT_DIR"), "/kiln_shaders.rs"))`.
-    /// The names follow fixed rules: see [`crate::bindings`]. The file is rewritten only when
+    /// The names follow fixed rules: see [`crate::keys`]. The file is rewritten only when
     /// its text changes.
     pub fn rust_bindings(mut self, file_name: impl Into<String>) -> Build {
         self.rust_bindings = Some(file_name.into());

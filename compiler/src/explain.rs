@@ -12,6 +12,7 @@ use crate::preprocess::{self, FileId, SourceCache};
 pub struct Explanation {
     /// Its canonical name.
     pub name: String,
+    /// Whether the skip rules keep it.
     pub kept: bool,
     /// Every define in effect, with its origin.
     pub defines: Vec<Define>,
@@ -34,15 +35,15 @@ pub struct Explanation {
     pub text: String,
 }
 
-/// Explains the permutation `name`: its defines and their origins, the skip rules, the files it
-/// reads, its token hash and its deduplication group. Preprocesses every kept permutation of
-/// its shader and level (for the group).
 /// The widest a column is padded to.
 const MAX_COLUMN: usize = 64;
 
 /// The most kept permutations of a shader at a level whose dedup group is computed.
 const GROUP_LIMIT: u128 = 100_000;
 
+/// Explains the permutation `name`: its defines and their origins, the skip rules, the files it
+/// reads, its token hash and its deduplication group. Preprocesses every kept permutation of
+/// its shader and level (for the group).
 pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Explanation, NotFound> {
     let p = config.find(name)?;
     let name = p.name();

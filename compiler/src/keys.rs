@@ -37,6 +37,7 @@ use crate::preprocess::expr;
 pub struct Error {
     /// The permutation set's path, as given.
     pub config: String,
+    /// What is wrong.
     pub message: String,
 }
 
@@ -216,6 +217,14 @@ enum FieldKind {
     Enum(String, Vec<String>),
 }
 
+/// A dimension as the key module names it: its field, its Rust type, the dimension.
+type Field<'s> = (String, FieldKind, &'s Dimension);
+
+/// `::core::option::Option`, as the generated code names it.
+const OPT: &str = "::core::option::Option";
+
+/// The module of one shader's typed keys: its constants, an enum per enum dimension, the
+/// `Key` struct with its enumeration, skip rules and names.
 fn shader_mod(
     out: &mut String,
     config: &Config,
@@ -223,8 +232,20 @@ fn shader_mod(
     ident: &str,
     levels: &[(&str, &Level)],
 ) -> Result<(), String> {
-    const OPT: &str = "::core::option::Option";
-    let mut fields: Vec<(String, FieldKind, &Dimension)> = Vec::new();
+    let fields = fields(shader)?;
+    emit_header(out, shader, ident, levels);
+    emit_enums(out, &fields);
+    emit_key(out, &fields, shader);
+    emit_enumeration(out, &fields, shader)?;
+    emit_skip_rules(out, shader, levels)?;
+    emit_names(out, &fields, levels);
+    let _ = config;
+    Ok(())
+}
+
+/// Each dimension's Rust field, checked for names that clash or are not Rust.
+fn fields(shader: &Shader) -> Result<Vec<Field<'_>>, String> {
+    let mut fields: Vec<Field<'_>> = Vec::new();
     for d in &shader.dimensions {
         let field = value_ident(&d.name.to_lowercase())
             .ok_or_else(|| format!("dimension `{}` gives no Rust field name in lowercase", d.name))?;
@@ -266,6 +287,11 @@ fn shader_mod(
         fields.push((field, kind, d));
     }
 
+    Ok(fields)
+}
+
+/// The module's opening: its doc, `NAME`, `LEVELS` and `SKIP_REASONS`.
+fn emit_header(out: &mut String, shader: &Shader, ident: &str, levels: &[(&str, &Level)]) {
     let level_list: Vec<&str> = shader.levels.iter().map(String::as_str).collect();
     let doc = format!(
         "Shader `{}`: entry `{}` ({} stage) of `{}`, at level{} {}.",
@@ -290,9 +316,11 @@ fn shader_mod(
         write!(out, "{}{:?}", if i > 0 { ", " } else { "" }, r.why).unwrap();
     }
     out.push_str("];\n\n");
+}
 
-    // Enum types.
-    for (_, kind, d) in &fields {
+/// An enum type per enum dimension, with `ALL`, `name` and `index`.
+fn emit_enums(out: &mut String, fields: &[Field<'_>]) {
+    for (_, kind, d) in fields {
         let FieldKind::Enum(ty, variants) = kind else { continue };
         writeln!(out, "    #[doc = {:?}]", format!("The values of enum dimension `{}`.", d.name)).unwrap();
         writeln!(out, "    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]").unwrap();
@@ -319,12 +347,14 @@ fn shader_mod(
         );
         out.push_str("        pub const fn index(self) -> i64 {\n            self as i64\n        }\n    }\n\n");
     }
+}
 
-    // The key.
+/// The `Key` struct and its `Default`, and the opening of its `impl`.
+fn emit_key(out: &mut String, fields: &[Field<'_>], shader: &Shader) {
     writeln!(out, "    #[doc = {:?}]", format!("A permutation of `{}`: one field per dimension.", shader.name))
         .unwrap();
     out.push_str("    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]\n    pub struct Key {\n");
-    for (field, kind, d) in &fields {
+    for (field, kind, d) in fields {
         let ty = match kind {
             FieldKind::Bool => "bool".to_string(),
             FieldKind::Int => "i64".to_string(),
@@ -336,7 +366,7 @@ fn shader_mod(
     out.push_str("    }\n\n");
     out.push_str("    /// Every dimension at its first value.\n    impl ::core::default::Default for Key {\n");
     out.push_str("        fn default() -> Key {\n            Key {\n");
-    for (field, kind, d) in &fields {
+    for (field, kind, d) in fields {
         let v = match kind {
             FieldKind::Bool => (d.values[0] != 0).to_string(),
             FieldKind::Int => int_literal(d.values[0]),
@@ -345,8 +375,10 @@ fn shader_mod(
         writeln!(out, "                {field}: {v},").unwrap();
     }
     out.push_str("            }\n        }\n    }\n\n    impl Key {\n");
+}
 
-    // COUNT, ordinal, from_ordinal.
+/// `Key::COUNT`, `ordinal`, `from_ordinal`, `all` and `values`.
+fn emit_enumeration(out: &mut String, fields: &[Field<'_>], shader: &Shader) -> Result<(), String> {
     let mut count: u64 = 1;
     for d in &shader.dimensions {
         count = count
@@ -361,7 +393,7 @@ fn shader_mod(
     );
     writeln!(out, "        pub fn ordinal(&self) -> {OPT}<u64> {{").unwrap();
     out.push_str("            let mut o: u64 = 0;\n");
-    for (field, kind, d) in &fields {
+    for (field, kind, d) in fields {
         let n = d.values.len();
         let index = match kind {
             FieldKind::Bool => format!("self.{field} as u64"),
@@ -430,8 +462,12 @@ fn shader_mod(
         })
         .collect();
     writeln!(out, "            [{}]\n        }}\n", vals.join(", ")).unwrap();
+    Ok(())
+}
 
-    // Skip rules.
+/// `Key::skip_rule`, from the skip rules translated to Rust per level, and `exists`,
+/// `skip_reason` and `is_kept` over it.
+fn emit_skip_rules(out: &mut String, shader: &Shader, levels: &[(&str, &Level)]) -> Result<(), String> {
     out.push_str("        /// The index of the first skip rule that drops the key at `level` (a rule that\n");
     out.push_str("        /// divides by zero drops nothing), without checking the domain or the level.\n");
     writeln!(out, "        pub fn skip_rule(&self, level: super::Level) -> {OPT}<usize> {{").unwrap();
@@ -477,7 +513,12 @@ fn shader_mod(
     out.push_str("        /// Whether the permutation exists at `level` and no skip rule drops it.\n");
     out.push_str("        pub fn is_kept(&self, level: super::Level) -> bool {\n");
     out.push_str("            self.exists(level) && self.skip_rule(level).is_none()\n        }\n\n");
+    Ok(())
+}
 
+/// `Key::canonical_name`, `permutation_id`, the end of the `impl` and the `PermutationKey`
+/// impl that closes the module.
+fn emit_names(out: &mut String, fields: &[Field<'_>], levels: &[(&str, &Level)]) {
     out.push_str("        /// `Shader@level{DIM=value,...}`, or `None` when the permutation is skipped, a value is\n");
     out.push_str("        /// outside its domain, or the shader is not built at `level`.\n");
     writeln!(out, "        pub fn canonical_name(&self, level: super::Level) -> {OPT}<::std::string::String> {{")
@@ -533,8 +574,6 @@ fn shader_mod(
     writeln!(out, "        fn skip_reason(&self, level: super::Level) -> {OPT}<&'static str> {{\n            Key::skip_reason(self, level)\n        }}").unwrap();
     writeln!(out, "        fn permutation_id(&self, level: super::Level) -> {OPT}<u128> {{\n            Key::permutation_id(self, level)\n        }}").unwrap();
     out.push_str("        fn exists(&self, level: super::Level) -> bool {\n            Key::exists(self, level)\n        }\n    }\n}\n\n");
-    let _ = config;
-    Ok(())
 }
 
 fn contiguous(values: &[i64]) -> bool {

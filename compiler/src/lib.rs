@@ -16,6 +16,8 @@
 //! - every output file is written as `kiln_archive::output` writes it (atomically, never over a
 //!   device or an input).
 
+#![warn(missing_docs)]
+
 /// The archive format, reader and writer, and the vocabulary shared with the runtime: the
 /// `kiln-archive` crate.
 pub use kiln_archive as archive;
@@ -25,10 +27,13 @@ use kiln_archive::output;
 pub mod build;
 #[cfg(feature = "compiler")]
 pub mod build_script;
+// cache/ is being reworked for hostile input on another branch; its clippy findings (a
+// `Result<Option<(Pack, Vec<..>)>>`, the remote's unboxed `Store::Http`), its public docs'
+// links to private items (`bundle`, `STREAMS`) and its undocumented items go with that work
+// rather than into a conflicting edit here.
 #[cfg(feature = "compiler")]
+#[allow(clippy::type_complexity, clippy::large_enum_variant, rustdoc::private_intra_doc_links, missing_docs)]
 pub mod cache;
-#[cfg(feature = "compiler")]
-pub mod cli;
 #[cfg(feature = "compiler")]
 pub mod compile;
 #[cfg(feature = "compiler")]

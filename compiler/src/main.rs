@@ -1,27 +1,26 @@
+//! The `kiln` command line (its subcommands in `cli/`), over the `kiln` library.
+
 use std::process::ExitCode;
+
+mod cli;
 
 /// mimalloc, not glibc's allocator: naga's front end and writers allocate and free all the
 /// time, and glibc gives freed memory back to the system at once, to fault it in again.
-/// Built without transparent huge pages (`no_thp`): with them the peak resident memory was
-/// about twice glibc's. Cold builds, glibc -> mimalloc (same code otherwise): a generated
-/// 256-permutation set 534 -> 483 ms of CPU time; peak resident memory (against the tree
-/// before this allocator and the archive writer's changes) 32 -> 31 MB there, 35.5 -> 35.6 MB
-/// on the bundled set, 46 -> 54 MB on a generated 10k set.
+/// Built without transparent huge pages (`no_thp`), which raised the peak resident memory.
+/// Measurements: `docs/design/2026-11-build-memory-measurements.md`.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
     tune_glibc_malloc();
     tune_mimalloc();
-    kiln::build::set_release_freed(release_freed);
-    exit_now(kiln::cli::main())
+    exit_now(cli::main())
 }
 
 /// Ends the process with `code` once stdout and stderr are flushed, without the C runtime's
-/// exit handlers: mimalloc's (linked statically) hands every free page back to the system
-/// (`mi_process_done` collects with force, an `madvise` per span), about 4 ms of a
-/// warm-remote build's 90 that the kernel does anyway when the process ends. `cli::main`
-/// has dropped everything of the build by then: its files are closed, renamed or removed.
+/// exit handlers: mimalloc's (linked statically) hands every free page back to the system,
+/// which the kernel does anyway when the process ends. `cli::main` has dropped everything
+/// of the build by then: its files are closed, renamed or removed.
 fn exit_now(code: ExitCode) -> ExitCode {
     use std::io::Write;
     let _ = std::io::stdout().flush();
@@ -35,7 +34,8 @@ fn exit_now(code: ExitCode) -> ExitCode {
 }
 
 /// Hands what this thread's mimalloc heap holds freed back to the system (a build calls it
-/// on every worker between stages: see `kiln::build::set_release_freed`).
+/// on every worker between stages: the `kiln build` subcommand passes it in
+/// `kiln::build::Options::release_freed`).
 fn release_freed() {
     extern "C" {
         fn mi_collect(force: bool);
@@ -47,8 +47,7 @@ fn release_freed() {
 
 /// zstd's C code (dictionary training, compression contexts) still allocates through glibc,
 /// which gives an arena's free top back to the system at once, so that its next tables fault
-/// in page by page again. 16 MiB of padding kept at each arena's top: a cold build of the
-/// 256-permutation set faults 4,300 -> 1,600 pages.
+/// in page by page again: 16 MiB of padding stays at each arena's top.
 fn tune_glibc_malloc() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets a tuning parameter of glibc's allocator; no thread runs yet.
@@ -58,23 +57,10 @@ fn tune_glibc_malloc() {
 }
 
 /// mimalloc (v3) keeps the pages a build frees resident for a second (`purge_delay`, 1000
-/// ms): the tables one stage drops (the records' bytes, the compile stage's maps) stayed
-/// resident under the next stage's, and the peak depended on timing (a generated 100k set:
-/// 108 or 150-157 MiB). Cold builds of the generated sets, peak MiB and CPU seconds:
-///
-/// | purge_delay | 10k peak  | 10k CPU | 100k peak | 100k CPU |
-/// | ----------- | --------- | ------- | --------- | -------- |
-/// | 1000 ms     | 55-57     | 4.02    | 85-92     | 40.3     |
-/// | 100 ms      | 38.5-42   |         | 66-67     |          |
-/// | 50 ms       | 39-42     | 4.08    | 68-69     | 41.1     |
-/// | 20 ms       | 38.5-39   | 4.17    | 63-66     | 40.4     |
-/// | 0           | 38-38.1   | 4.42    | 62        | 44.0     |
-///
-/// 0 (purge at once) costs 10% of CPU time in page faults. 100 ms keeps most of its gain on
-/// the peaks (its row: a quiet 16-core machine pinned to 2 cores) and few of its page faults:
-/// on a 256-permutation set of many shaders (`benches/shapes`, `--no-cache`) 6.8K page faults
-/// and 490 ms CPU, against 8.9K and 502 ms at 20 ms and 5.5K and 486 ms at 1000 ms.
-/// `MIMALLOC_PURGE_DELAY` in the environment still wins.
+/// ms): the tables one stage drops stayed resident under the next stage's, and the peak
+/// depended on timing. 100 ms keeps most of what purging at once gains on the peaks without
+/// its page faults. `MIMALLOC_PURGE_DELAY` in the environment still wins. Measurements:
+/// `docs/design/2026-11-build-memory-measurements.md`.
 fn tune_mimalloc() {
     /// `mi_option_purge_delay` in the `mi_option_t` enum of mimalloc 2 and 3 (`mimalloc.h`).
     const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;

@@ -23,6 +23,7 @@ const SETTLE: Duration = Duration::from_millis(8);
 /// A watch that could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
+    /// The file watcher failed.
     #[error("cannot watch files: {0}")]
     Notify(#[from] notify::Error),
 }
@@ -65,6 +66,7 @@ impl Watch {
         self.files.iter().map(PathBuf::as_path)
     }
 
+    /// The options each rebuild runs with.
     pub fn options(&self) -> &build::Options {
         &self.options
     }

@@ -6,11 +6,14 @@ use std::fmt;
 /// The graphics API to render with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Backend {
+    /// Vulkan (lavapipe on machines without a GPU).
     Vulkan,
+    /// OpenGL ES through EGL (llvmpipe on machines without a GPU).
     Gl,
 }
 
 impl Backend {
+    /// The backend's name, as `--backend` takes it.
     pub fn name(self) -> &'static str {
         match self {
             Backend::Vulkan => "vulkan",
@@ -18,6 +21,7 @@ impl Backend {
         }
     }
 
+    /// The backend named `name`, if any.
     pub fn from_name(name: &str) -> Option<Backend> {
         match name {
             "vulkan" => Some(Backend::Vulkan),
@@ -51,16 +55,20 @@ pub enum ModuleSource {
     Wgsl,
 }
 
+/// How to create a [`Gpu`].
 #[derive(Clone, Debug)]
 pub struct GpuOptions {
+    /// The graphics API.
     pub backend: Backend,
+    /// Where shader modules come from.
     pub module_source: ModuleSource,
     /// Ask for timestamp queries where the adapter has them.
     pub timestamps: bool,
-    /// Create the device with the API's validation on: the Khronos validation layer on
-    /// Vulkan (an error naming the Debian package `vulkan-validationlayers` where it is
-    /// missing), debug output on GL. Its messages go to [`crate::validation`], which records
-    /// them once installed (this installs it).
+    /// Create the device with the API's validation on: the instance flags that hand the
+    /// Khronos validation layer's messages (Vulkan) or the driver's debug output (GL) to the
+    /// `log` crate. Nothing global changes here: the layer itself and the logger that records
+    /// the messages are the caller's to enable (`validation::enable`, with the `validation`
+    /// feature).
     pub validation: bool,
 }
 
@@ -70,22 +78,39 @@ impl Default for GpuOptions {
     }
 }
 
+/// Why a device could not be created.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
+    /// No adapter of the backend.
     #[error(
         "no {backend} adapter found ({detail}); on a machine without a GPU install Mesa's software drivers, \
          Debian package `mesa-vulkan-drivers` (lavapipe for Vulkan, llvmpipe for GL): apt-get install mesa-vulkan-drivers"
     )]
-    NoAdapter { backend: Backend, detail: String },
+    NoAdapter {
+        /// The backend asked for.
+        backend: Backend,
+        /// wgpu's error and the adapters seen.
+        detail: String,
+    },
+    /// The Khronos validation layer is not installed.
     #[error(
         "validation was asked for, but the Khronos validation layer (VK_LAYER_KHRONOS_validation) is not \
          installed: Debian package `vulkan-validationlayers` (apt-get install vulkan-validationlayers)"
     )]
     NoValidationLayer,
+    /// Another `log` logger is installed.
     #[error("validation was asked for, but another `log` logger is installed, so its messages cannot be recorded")]
     ValidationLogger,
+    /// The adapter refused the device.
     #[error("cannot create a {backend} device on {adapter}: {source}")]
-    Device { backend: Backend, adapter: String, source: wgpu::RequestDeviceError },
+    Device {
+        /// The backend.
+        backend: Backend,
+        /// The adapter's name.
+        adapter: String,
+        /// wgpu's error.
+        source: wgpu::RequestDeviceError,
+    },
 }
 
 /// Keeps Mesa's implicit `VK_LAYER_MESA_device_select` from probing for a Wayland display
@@ -111,11 +136,17 @@ fn skip_device_select_display_probe() {
 
 /// A device ready to render offscreen.
 pub struct Gpu {
+    /// The wgpu instance.
     pub instance: wgpu::Instance,
+    /// The adapter the device is on.
     pub adapter: wgpu::Adapter,
+    /// The device.
     pub device: wgpu::Device,
+    /// Its queue.
     pub queue: wgpu::Queue,
+    /// The backend.
     pub backend: Backend,
+    /// The adapter's name, driver and kind.
     pub info: wgpu::AdapterInfo,
     /// Modules come from SPIR-V passthrough (else WGSL).
     pub spirv_passthrough: bool,
@@ -150,6 +181,7 @@ impl fmt::Debug for Gpu {
 }
 
 impl Gpu {
+    /// Creates an instance, an adapter and a device with `options`, blocking.
     pub fn new(options: &GpuOptions) -> Result<Gpu, GpuError> {
         pollster::block_on(Gpu::new_async(options))
     }
@@ -162,20 +194,13 @@ impl Gpu {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = backend.wgpu();
         if options.validation {
-            if !crate::validation::install() {
-                return Err(GpuError::ValidationLogger);
-            }
-            if backend == Backend::Vulkan && crate::validation::khronos_layer_manifest().is_none() {
-                return Err(GpuError::NoValidationLayer);
-            }
-            // Vulkan: the layer as `VK_INSTANCE_LAYERS=VK_LAYER_KHRONOS_validation` enables it
-            // (its core checks: wgpu's own VALIDATION flag adds synchronization validation,
-            // which flags wgpu's store of read-only depth attachments), and DEBUG for the
-            // debug-utils messenger that hands its messages to wgpu's log. GL: VALIDATION
-            // turns debug output on.
-            match backend {
-                Backend::Vulkan => crate::validation::enable_layer_for_process(),
-                Backend::Gl => desc.flags |= wgpu::InstanceFlags::VALIDATION,
+            // Vulkan: the layer comes from `VK_INSTANCE_LAYERS` (`validation::enable`; its core
+            // checks: wgpu's own VALIDATION flag adds synchronization validation, which flags
+            // wgpu's store of read-only depth attachments), and DEBUG is for the debug-utils
+            // messenger that hands its messages to wgpu's log. GL: VALIDATION turns debug
+            // output on.
+            if backend == Backend::Gl {
+                desc.flags |= wgpu::InstanceFlags::VALIDATION;
             }
             desc.flags |= wgpu::InstanceFlags::DEBUG;
         }

@@ -20,21 +20,36 @@ use kiln_archive::{Archive, Target};
 
 use crate::shaders::ShaderArchive;
 
+/// Why hot reloading could not start or go on.
 #[derive(Debug, thiserror::Error)]
 pub enum HotReloadError {
     /// The first build failed: the rendered diagnostics.
     #[error("{0}")]
     Build(String),
+    /// The file watcher failed.
     #[error(transparent)]
     Watch(#[from] kiln::watch::Error),
+    /// The rebuilt archive does not open.
     #[error("cannot open the rebuilt archive {path}: {source}")]
-    Archive { path: PathBuf, source: kiln_archive::ArchiveError },
+    Archive {
+        /// The archive.
+        path: PathBuf,
+        /// Why.
+        source: kiln_archive::ArchiveError,
+    },
+    /// A file of the watch could not be made.
     #[error("cannot create {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What the system said.
+        source: std::io::Error,
+    },
 }
 
 /// A rebuild that succeeded.
 pub struct Reload {
+    /// The rebuilt archive.
     pub archive: Arc<ShaderArchive>,
     /// The permutations whose artifacts or reflection changed (or that are new).
     pub changed: HashSet<String>,
@@ -44,16 +59,21 @@ pub struct Reload {
     pub files: Vec<PathBuf>,
     /// When the change was seen.
     pub seen: Instant,
+    /// How long the rebuild took.
     pub build_time: Duration,
 }
 
 /// What a change gave.
 pub enum Event {
+    /// The edit built: swap in the changed permutations.
     Reloaded(Reload),
     /// The edit does not build: Kiln's diagnostics, mapped to the original files.
     Failed {
+        /// Kiln's rendered diagnostics.
         diagnostics: String,
+        /// The files whose change started the build.
         files: Vec<PathBuf>,
+        /// When the change was seen.
         seen: Instant,
     },
 }

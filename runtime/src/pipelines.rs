@@ -1070,129 +1070,130 @@ fn stage_bits(stage: Stage) -> wgpu::ShaderStages {
 /// binding numbers, resources per stage and their sizes, vertex inputs, color outputs and
 /// workgroup size. The message names the field, its value and the limit.
 pub fn check_limits(r: &Reflection, limits: &wgpu::Limits) -> Result<(), String> {
-    fn over(what: String, value: u64, field: &str, limit: impl Into<u64>) -> Result<(), String> {
-        let limit = limit.into();
-        if value > limit {
-            Err(format!("{what} is {value}, over the device's {field} ({limit})"))
-        } else {
-            Ok(())
-        }
+    use kiln_archive::limits::{violations, ResourceClass, StageLimits, Violation as V};
+    let stage_limits = StageLimits {
+        max_bind_groups: limits.max_bind_groups,
+        max_bindings_per_bind_group: limits.max_bindings_per_bind_group,
+        max_uniform_buffers_per_shader_stage: limits.max_uniform_buffers_per_shader_stage,
+        max_storage_buffers_per_shader_stage: limits.max_storage_buffers_per_shader_stage,
+        max_samplers_per_shader_stage: limits.max_samplers_per_shader_stage,
+        max_sampled_textures_per_shader_stage: limits.max_sampled_textures_per_shader_stage,
+        max_storage_textures_per_shader_stage: limits.max_storage_textures_per_shader_stage,
+        max_uniform_buffer_binding_size: limits.max_uniform_buffer_binding_size,
+        max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
+        max_vertex_attributes: limits.max_vertex_attributes,
+        max_color_attachments: limits.max_color_attachments,
+        max_compute_workgroup_size: [
+            limits.max_compute_workgroup_size_x,
+            limits.max_compute_workgroup_size_y,
+            limits.max_compute_workgroup_size_z,
+        ],
+        max_compute_invocations_per_workgroup: limits.max_compute_invocations_per_workgroup,
+        vertex_storage: true,
+    };
+    let found = violations(r, &stage_limits);
+    let at = |i: usize| format!("@group({}) @binding({})", r.bindings[i].group, r.bindings[i].binding);
+    let over = |what: String, value: u64, field: &str, limit: u64| {
+        format!("{what} is {value}, over the device's {field} ({limit})")
+    };
+    // The order of report: the entry point's name, then each binding's own faults (the
+    // storage texture formats the runtime knows among them), then the counts per class,
+    // then the rest as listed.
+    if let Some(V::EntryName { len }) = found.first() {
+        return Err(format!("entry point name of {len} bytes"));
     }
-    if r.entry.is_empty() || r.entry.len() > 1024 {
-        return Err(format!("entry point name of {} bytes", r.entry.len()));
-    }
-    let mut counts = [0u64; 5];
-    let mut seen = std::collections::HashSet::new();
-    for b in &r.bindings {
-        let at = format!("@group({}) @binding({})", b.group, b.binding);
-        if u64::from(b.group) >= u64::from(limits.max_bind_groups) {
-            return Err(format!(
-                "{at}: group {} is past the device's max_bind_groups ({})",
-                b.group, limits.max_bind_groups
-            ));
-        }
-        if u64::from(b.binding) >= u64::from(limits.max_bindings_per_bind_group) {
-            return Err(format!(
-                "{at}: binding {} is past the device's max_bindings_per_bind_group ({})",
-                b.binding, limits.max_bindings_per_bind_group
-            ));
-        }
-        if !seen.insert((b.group, b.binding)) {
-            return Err(format!("{at} is listed twice"));
-        }
-        match &b.kind {
-            BindingKind::UniformBuffer { min_size } => {
-                counts[0] += 1;
-                over(
-                    format!("{at}: uniform buffer size"),
-                    *min_size,
-                    "max_uniform_buffer_binding_size",
-                    limits.max_uniform_buffer_binding_size,
-                )?;
-            }
-            BindingKind::StorageBuffer { min_size, .. } => {
-                counts[1] += 1;
-                over(
-                    format!("{at}: storage buffer size"),
-                    *min_size,
-                    "max_storage_buffer_binding_size",
-                    limits.max_storage_buffer_binding_size,
-                )?;
-            }
-            BindingKind::Sampler { .. } => counts[2] += 1,
-            BindingKind::Texture { .. } => counts[3] += 1,
-            BindingKind::StorageTexture { format, .. } => {
-                counts[4] += 1;
-                if storage_format(format).is_none() {
-                    return Err(format!("{at}: storage texture format `{format}` is not known to the runtime"));
+    let own = found.iter().find_map(|v| match *v {
+        V::BindGroup { binding } | V::BindingNumber { binding } | V::Duplicate { binding } => Some((binding, v)),
+        V::UniformSize { binding, .. } | V::StorageSize { binding, .. } => Some((binding, v)),
+        _ => None,
+    });
+    let unknown_format = r.bindings.iter().position(|b| match &b.kind {
+        BindingKind::StorageTexture { format, .. } => storage_format(format).is_none(),
+        _ => false,
+    });
+    match (own, unknown_format) {
+        (Some((i, v)), f) if f.is_none_or(|f| i <= f) => {
+            let b = &r.bindings[i];
+            return Err(match *v {
+                V::BindGroup { .. } => {
+                    format!(
+                        "{}: group {} is past the device's max_bind_groups ({})",
+                        at(i),
+                        b.group,
+                        limits.max_bind_groups
+                    )
                 }
+                V::BindingNumber { .. } => format!(
+                    "{}: binding {} is past the device's max_bindings_per_bind_group ({})",
+                    at(i),
+                    b.binding,
+                    limits.max_bindings_per_bind_group
+                ),
+                V::Duplicate { .. } => format!("{} is listed twice", at(i)),
+                V::UniformSize { size, .. } => over(
+                    format!("{}: uniform buffer size", at(i)),
+                    size,
+                    "max_uniform_buffer_binding_size",
+                    stage_limits.max_uniform_buffer_binding_size,
+                ),
+                V::StorageSize { size, .. } => over(
+                    format!("{}: storage buffer size", at(i)),
+                    size,
+                    "max_storage_buffer_binding_size",
+                    stage_limits.max_storage_buffer_binding_size,
+                ),
+                _ => unreachable!("only a binding's own faults are chosen above"),
+            });
+        }
+        (_, Some(f)) => {
+            let BindingKind::StorageTexture { format, .. } = &r.bindings[f].kind else { unreachable!() };
+            return Err(format!("{}: storage texture format `{format}` is not known to the runtime", at(f)));
+        }
+        _ => {}
+    }
+    for class in ResourceClass::ALL {
+        if let Some(V::TooMany { total, .. }) =
+            found.iter().find(|v| matches!(v, V::TooMany { class: c, .. } if *c == class))
+        {
+            let limit = stage_limits.per_stage(class).into();
+            return Err(over(format!("{} in the stage", class.plural()), (*total).into(), class.field(), limit));
+        }
+    }
+    let xyz = ["x", "y", "z"];
+    for v in &found {
+        return Err(match *v {
+            V::VertexInputs { count } => {
+                over("vertex inputs".into(), count as u64, "max_vertex_attributes", limits.max_vertex_attributes.into())
             }
-        }
-    }
-    over(
-        "uniform buffers in the stage".into(),
-        counts[0],
-        "max_uniform_buffers_per_shader_stage",
-        limits.max_uniform_buffers_per_shader_stage,
-    )?;
-    over(
-        "storage buffers in the stage".into(),
-        counts[1],
-        "max_storage_buffers_per_shader_stage",
-        limits.max_storage_buffers_per_shader_stage,
-    )?;
-    over(
-        "samplers in the stage".into(),
-        counts[2],
-        "max_samplers_per_shader_stage",
-        limits.max_samplers_per_shader_stage,
-    )?;
-    over(
-        "sampled textures in the stage".into(),
-        counts[3],
-        "max_sampled_textures_per_shader_stage",
-        limits.max_sampled_textures_per_shader_stage,
-    )?;
-    over(
-        "storage textures in the stage".into(),
-        counts[4],
-        "max_storage_textures_per_shader_stage",
-        limits.max_storage_textures_per_shader_stage,
-    )?;
-    over("vertex inputs".into(), r.vertex_inputs.len() as u64, "max_vertex_attributes", limits.max_vertex_attributes)?;
-    for v in &r.vertex_inputs {
-        if v.location >= limits.max_vertex_attributes {
-            return Err(format!(
-                "vertex input @location({}) is past the device's max_vertex_attributes ({})",
-                v.location, limits.max_vertex_attributes
-            ));
-        }
-    }
-    over("color outputs".into(), r.color_outputs.len() as u64, "max_color_attachments", limits.max_color_attachments)?;
-    for o in &r.color_outputs {
-        if o.location >= limits.max_color_attachments {
-            return Err(format!(
-                "color output @location({}) is past the device's max_color_attachments ({})",
-                o.location, limits.max_color_attachments
-            ));
-        }
-    }
-    if let Some([x, y, z]) = r.workgroup_size {
-        if x == 0 || y == 0 || z == 0 {
-            return Err(format!("workgroup size {x}x{y}x{z} has a zero"));
-        }
-        over("workgroup size x".into(), x.into(), "max_compute_workgroup_size_x", limits.max_compute_workgroup_size_x)?;
-        over("workgroup size y".into(), y.into(), "max_compute_workgroup_size_y", limits.max_compute_workgroup_size_y)?;
-        over("workgroup size z".into(), z.into(), "max_compute_workgroup_size_z", limits.max_compute_workgroup_size_z)?;
-        let invocations = u64::from(x) * u64::from(y) * u64::from(z);
-        over(
-            "workgroup invocations".into(),
-            invocations,
-            "max_compute_invocations_per_workgroup",
-            limits.max_compute_invocations_per_workgroup,
-        )?;
-    } else if r.stage == Stage::Compute {
-        return Err("compute shader without a workgroup size".into());
+            V::VertexLocation { location } => format!(
+                "vertex input @location({location}) is past the device's max_vertex_attributes ({})",
+                limits.max_vertex_attributes
+            ),
+            V::ColorOutputs { count } => {
+                over("color outputs".into(), count as u64, "max_color_attachments", limits.max_color_attachments.into())
+            }
+            V::ColorLocation { location } => format!(
+                "color output @location({location}) is past the device's max_color_attachments ({})",
+                limits.max_color_attachments
+            ),
+            V::WorkgroupZero { size: [x, y, z] } => format!("workgroup size {x}x{y}x{z} has a zero"),
+            V::WorkgroupAxis { size, axis } => over(
+                format!("workgroup size {}", xyz[axis]),
+                size[axis].into(),
+                ["max_compute_workgroup_size_x", "max_compute_workgroup_size_y", "max_compute_workgroup_size_z"][axis],
+                stage_limits.max_compute_workgroup_size[axis].into(),
+            ),
+            V::WorkgroupInvocations { total, .. } => over(
+                "workgroup invocations".into(),
+                total,
+                "max_compute_invocations_per_workgroup",
+                limits.max_compute_invocations_per_workgroup.into(),
+            ),
+            V::NoWorkgroupSize => "compute shader without a workgroup size".into(),
+            // A binding's faults and the counts are reported above; vertex storage is not a
+            // device limit here.
+            _ => continue,
+        });
     }
     Ok(())
 }

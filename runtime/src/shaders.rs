@@ -12,7 +12,12 @@ pub enum LookupError {
     /// The name is well formed but the archive does not hold it; `nearest` lists the closest
     /// permutations with the dimensions that differ.
     #[error("{}", render_missing(.name, .nearest))]
-    Missing { name: String, nearest: Vec<Near> },
+    Missing {
+        /// The name looked up.
+        name: String,
+        /// The closest permutations, best first.
+        nearest: Vec<Near>,
+    },
     /// The builder named a shader, level or dimension the archive does not know.
     #[error("cannot name permutation: {0}")]
     BadName(String),
@@ -72,6 +77,7 @@ impl ShaderArchive {
         Ok(ShaderArchive { archive: Archive::from_static(bytes)?, trusted: false })
     }
 
+    /// Opens an archive held in memory (not trusted for SPIR-V passthrough).
     pub fn from_vec(bytes: Vec<u8>) -> Result<ShaderArchive, ArchiveError> {
         Ok(ShaderArchive { archive: Archive::from_vec(bytes)?, trusted: false })
     }
@@ -87,7 +93,7 @@ impl ShaderArchive {
     }
 
     /// Whether SPIR-V from this archive may go to the driver unchanged (SPIR-V passthrough,
-    /// after the structural check of [`crate::spirv`]). Only archives made with
+    /// after the structural check of the runtime's `spirv` module). Only archives made with
     /// [`ShaderArchive::from_static_trusted`] or [`ShaderArchive::assume_trusted`] are.
     pub fn trusted(&self) -> bool {
         self.trusted
@@ -97,7 +103,7 @@ impl ShaderArchive {
     /// SPIR-V is passed through to the driver.
     ///
     /// # Safety
-    /// The structural check of [`crate::spirv`] is no validator: SPIR-V that passes it but
+    /// The structural check (the runtime's `spirv` module) is no validator: SPIR-V that passes it but
     /// is invalid (a bit flipped in an operand) is undefined behaviour in the driver. Call it
     /// only for archives from a source you trust as much as the binary itself.
     pub unsafe fn assume_trusted(mut self) -> ShaderArchive {
@@ -105,6 +111,7 @@ impl ShaderArchive {
         self
     }
 
+    /// The archive itself.
     pub fn archive(&self) -> &Archive {
         &self.archive
     }

@@ -15,7 +15,7 @@
 //! Vulkan bindings 0, 1 and 2), and rewrites the SPIR-V it generates from WGSL to match.
 //! SPIR-V passthrough gets no such rewrite, so a precompiled module whose bindings have gaps
 //! names descriptors the layout does not hold (validation: `VUID-VkGraphicsPipelineCreateInfo-
-//! layout-00756`) and the driver reads the wrong ones. [`remap_bindings`] applies the same
+//! layout-00756`) and the driver reads the wrong ones. [`SpirvModule::remap_bindings`] applies the same
 //! numbering to the module, from the pipeline layout it is created for.
 
 use std::collections::HashMap;
@@ -51,39 +51,91 @@ const STORAGE_STORAGE_BUFFER: u32 = 12;
 /// What a SPIR-V module does wrong, with the word where it was found.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum SpirvError {
+    /// The artifact's length is not a whole number of words, or too short for a header.
     #[error("SPIR-V artifact is {0} bytes, not a whole module")]
     Length(usize),
+    /// The first word is not SPIR-V's magic number.
     #[error("SPIR-V artifact starts with {0:#010x}, not the SPIR-V magic number")]
     Magic(u32),
+    /// The version word is not SPIR-V 1.0 to 1.6.
     #[error("SPIR-V version word {0:#010x} is not a version from 1.0 to 1.6")]
     Version(u32),
+    /// The id bound is out of range.
     #[error("SPIR-V id bound {0} is outside 1..={MAX_BOUND}")]
     Bound(u32),
+    /// The schema word is not 0.
     #[error("SPIR-V schema word is {0}, not 0")]
     Schema(u32),
+    /// An instruction's word count is zero or runs past the end.
     #[error("SPIR-V instruction at word {word} has word count {count}, which {why}")]
-    WordCount { word: usize, count: usize, why: &'static str },
+    WordCount {
+        /// The instruction's first word.
+        word: usize,
+        /// Its word count.
+        count: usize,
+        /// What is wrong with it.
+        why: &'static str,
+    },
+    /// An instruction names an id at or past the bound.
     #[error("SPIR-V instruction at word {word} (opcode {opcode}) names id {id}, at or past the bound {bound}")]
-    IdOutOfBound { word: usize, opcode: u32, id: u32, bound: u32 },
+    IdOutOfBound {
+        /// The instruction's first word.
+        word: usize,
+        /// Its opcode.
+        opcode: u32,
+        /// The id it names.
+        id: u32,
+        /// The module's id bound.
+        bound: u32,
+    },
+    /// An instruction is too short for its operands.
     #[error("SPIR-V instruction at word {word} (opcode {opcode}) is too short for its operands")]
-    Operands { word: usize, opcode: u32 },
+    Operands {
+        /// The instruction's first word.
+        word: usize,
+        /// Its opcode.
+        opcode: u32,
+    },
+    /// No entry point of the permutation's name and stage.
     #[error("SPIR-V module has no {stage} entry point named `{entry}`")]
-    NoEntryPoint { entry: String, stage: Stage },
+    NoEntryPoint {
+        /// The entry point's name.
+        entry: String,
+        /// Its stage.
+        stage: Stage,
+    },
+    /// A resource's descriptor class differs from the reflection's.
     #[error(
         "SPIR-V module declares @group({group}) @binding({binding}) as a {found}, \
          but the permutation's reflection {expected}"
     )]
-    Resource { group: u32, binding: u32, found: &'static str, expected: String },
+    Resource {
+        /// Its descriptor set.
+        group: u32,
+        /// Its binding.
+        binding: u32,
+        /// The class the module declares.
+        found: &'static str,
+        /// What the reflection declares there.
+        expected: String,
+    },
+    /// A resource variable with a set but no binding, or a binding but no set.
     #[error("SPIR-V module gives resource variable %{id} a descriptor set but no binding, or a binding but no set")]
-    HalfDecorated { id: u32 },
+    HalfDecorated {
+        /// The variable's id.
+        id: u32,
+    },
 }
 
 /// A resource variable of a module: its set and binding, its class, and where its binding
 /// number sits in the words.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Resource {
+    /// Its descriptor set (`@group`).
     pub group: u32,
+    /// Its binding number.
     pub binding: u32,
+    /// Its descriptor class.
     pub class: DescriptorClass,
     binding_word: usize,
 }
@@ -91,10 +143,15 @@ pub struct Resource {
 /// The descriptor class of a resource variable, as the layout must declare it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DescriptorClass {
+    /// A uniform buffer.
     UniformBuffer,
+    /// A storage buffer.
     StorageBuffer,
+    /// A sampler.
     Sampler,
+    /// A sampled image (texture).
     SampledImage,
+    /// A storage image (storage texture).
     StorageImage,
     /// A type the runtime does not bind (combined image samplers, acceleration structures).
     Other,
@@ -126,6 +183,7 @@ impl DescriptorClass {
 /// A SPIR-V module walked once: its words and what the runtime needs of them.
 #[derive(Clone, Debug)]
 pub struct SpirvModule {
+    /// The module, one word per element.
     pub words: Vec<u32>,
     /// `(execution model, name)` of every entry point.
     pub entry_points: Vec<(u32, String)>,
@@ -359,6 +417,7 @@ pub struct VulkanBindings {
 }
 
 impl VulkanBindings {
+    /// The numbering of `groups`: per group, the WebGPU binding numbers it holds.
     pub fn new(groups: Vec<Vec<u32>>) -> VulkanBindings {
         let mut groups = groups;
         for g in &mut groups {

@@ -6,6 +6,9 @@
 //! `wgpu_hal::vulkan::*` and `wgpu_hal::gles::*`, errors and warnings at those levels); the
 //! logger here records them, so that a test can fail on any, with the message in the
 //! failure. It is installed once per process, and only if no other logger is.
+//!
+//! Nothing here runs unless called: [`enable`] (or [`CheckedGpu::new`], which calls it) is
+//! what installs the logger and adds the layer to the process's environment.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -83,6 +86,22 @@ pub fn enable_layer_for_process() {
     });
 }
 
+/// Everything a device created with [`crate::GpuOptions::validation`] needs for its messages to
+/// be recorded, for this process: the recording logger ([`install`]) and, on Vulkan, the
+/// Khronos layer ([`enable_layer_for_process`], after checking that it is installed).
+pub fn enable(backend: crate::Backend) -> Result<(), crate::GpuError> {
+    if !install() {
+        return Err(crate::GpuError::ValidationLogger);
+    }
+    if backend == crate::Backend::Vulkan {
+        if khronos_layer_manifest().is_none() {
+            return Err(crate::GpuError::NoValidationLayer);
+        }
+        enable_layer_for_process();
+    }
+    Ok(())
+}
+
 /// The messages recorded since the last call, oldest first.
 pub fn take() -> Vec<String> {
     std::mem::take(&mut *MESSAGES.lock().unwrap_or_else(|e| e.into_inner()))
@@ -126,8 +145,10 @@ pub struct CheckedGpu {
 }
 
 impl CheckedGpu {
-    /// A device with validation on; the options' `validation` is ignored.
+    /// A device with validation on ([`enable`]d for its backend); the options' `validation`
+    /// is ignored.
     pub fn new(options: &crate::GpuOptions) -> Result<CheckedGpu, crate::GpuError> {
+        enable(options.backend)?;
         let options = crate::GpuOptions { validation: true, ..options.clone() };
         Ok(CheckedGpu { gpu: crate::Gpu::new(&options)? })
     }

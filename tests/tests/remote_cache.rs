@@ -114,6 +114,7 @@ impl Drop for Server {
 /// Stops a server: SIGTERM, so that nginx's master stops its workers too (a SIGKILL would
 /// leave them running, holding the port); SIGKILL after 5 s.
 fn stop(child: &mut Child) {
+    // SAFETY: kill takes no pointer; the pid is our child's, not yet reaped (no reuse).
     unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
     let start = Instant::now();
     while matches!(child.try_wait(), Ok(None)) && start.elapsed() < Duration::from_secs(5) {
@@ -174,6 +175,7 @@ impl Server {
                 };
                 let check = if password.is_some() { "if ($kiln_ok = 0) { return 401; }" } else { "" };
                 // As root, nginx's workers would run as nobody, unable to write our folders.
+                // SAFETY: geteuid cannot fail and takes no argument.
                 let user = if unsafe { libc::geteuid() } == 0 { "user root;" } else { "" };
                 let config = format!(
                     "{user}

@@ -50,6 +50,7 @@ impl Server {
                 Some(fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?)
             })
             .sum();
+        // SAFETY: sysconf reads a constant of the system; it takes no pointer.
         let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) }.max(1) as u64;
         Duration::from_millis(ticks * 1000 / hz)
     }
@@ -59,6 +60,7 @@ impl Drop for Server {
     /// SIGTERM first: nginx's master then stops its workers (a SIGKILL would leave them
     /// running, holding the port and this process's output); SIGKILL after 5 s.
     fn drop(&mut self) {
+        // SAFETY: kill takes no pointer; the pid is our child's, not yet reaped (no reuse).
         unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
         let t = Instant::now();
         while matches!(self.child.try_wait(), Ok(None)) && t.elapsed() < Duration::from_secs(5) {
@@ -99,6 +101,7 @@ pub fn start(kind: &str) -> Result<Server, String> {
             let p = dir.path();
             std::fs::create_dir_all(p.join("data/kiln")).unwrap();
             std::fs::create_dir_all(p.join("logs")).unwrap();
+            // SAFETY: geteuid cannot fail and takes no argument.
             let user = if unsafe { libc::geteuid() } == 0 { "user root;" } else { "" };
             let conf = format!(
                 "{user} daemon off; worker_processes 2; pid {p}/nginx.pid; error_log {p}/error.log;

@@ -15,7 +15,8 @@ use std::io::{Read, Seek, Write};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use super::plan::{Keys, Plan};
+use super::group::Keys;
+use super::plan::Plan;
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
@@ -397,7 +398,7 @@ impl<'p> Assembler<'p> {
     /// The artifact counts of the archive when the remote cache holds this build's archive
     /// and every key's entry: the entries are copied into the local cache and the archive
     /// written (see [`Store::archive_from_remote`]). Same conditions as [`Self::up_to_date`].
-    pub fn from_remote(
+    pub fn copied_from_remote(
         &self,
         store: &Store,
         pre: &Preprocessed,

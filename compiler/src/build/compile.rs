@@ -21,9 +21,10 @@ use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use rayon::prelude::*;
 
 use super::assemble::Assembler;
-use super::plan::{level_limits, Keys, Plan};
+use super::group::Keys;
+use super::plan::{level_limits, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
-use super::report::Progress;
+use super::progress::Progress;
 use super::store::{Fetched, Store};
 use crate::cache::Key;
 use crate::compile::{self, Compiled};

@@ -31,6 +31,10 @@
 //! the configuration and sources (not on `-j`, the cache state or shards); an archive that
 //! is, byte for byte, the output of a build with the same keys is not written again.
 
+// The stage list above names private modules on purpose: it is the map a maintainer reads
+// (`cargo doc --document-private-items`), and the public docs show the names as code.
+#![allow(rustdoc::private_intra_doc_links)]
+
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -39,9 +43,11 @@ use crate::permute::Config;
 
 mod assemble;
 mod compile;
+mod group;
 mod outputs;
 mod plan;
 mod preprocess;
+mod progress;
 mod records;
 mod report;
 mod shard;
@@ -86,6 +92,10 @@ pub struct Options {
     /// The most permutations, of one shader at one level or of all together (`--max-permutations`); `None`
     /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
     pub max_permutations: Option<u64>,
+    /// Called on every worker between stages, so that the pages one stage freed do not stay
+    /// resident under the next stage's tables (the `kiln` binary passes mimalloc's
+    /// `mi_collect`); the first build of the process that passes one fixes it.
+    pub release_freed: Option<fn()>,
 }
 
 impl Default for Options {
@@ -105,6 +115,7 @@ impl Default for Options {
             color: false,
             shard: None,
             max_permutations: None,
+            release_freed: None,
         }
     }
 }
@@ -121,6 +132,7 @@ pub enum CacheDir {
     Disabled,
 }
 
+/// Why a build failed.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The configuration or a command-line choice is wrong (exit code 2). Rendered.
@@ -147,6 +159,9 @@ impl Error {
 /// Runs a build.
 pub fn run(options: &Options) -> Result<Report, Error> {
     let start = Instant::now();
+    if let Some(release) = options.release_freed {
+        set_release_freed(release);
+    }
     let config = plan::load(options)?;
     let store = store::Store::open(options, &config)?;
     worker_pool(options.jobs)?.install(|| stages(options, &config, &store, start))
@@ -155,7 +170,7 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 /// The stages, in order; every stage's state lives in its own type.
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
-    let progress = report::Progress::new(options.progress);
+    let progress = progress::Progress::new(options.progress);
     // The last build's preprocessing records beside the plan; a fresh local cache (its
     // records came from the remote cache) fills their keys from the remote meanwhile, and
     // while the permutations are matched to them. Not for a shard, which fetches its share.
@@ -195,7 +210,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         || report.grouped(&plan, &pre, &keys),
         || match assembler.up_to_date(store, &pre, &keys, failed) {
             Some(counts) => Some((counts, false)),
-            None => assembler.from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
+            None => assembler.copied_from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
         },
     );
     trace_memory("group");
@@ -282,14 +297,11 @@ pub(crate) fn trace_memory(stage: &str) {
 /// ([`set_release_freed`]).
 static RELEASE_FREED: std::sync::OnceLock<fn()> = std::sync::OnceLock::new();
 
-/// Has a build call `release` on every worker between stages, so that the pages one stage
-/// freed do not stay resident under the next stage's tables. The `kiln` binary passes
-/// mimalloc's `mi_collect`: with mimalloc a page freed on another thread than the one that
-/// allocated it waits on its owner's list, and an idle worker never takes it back, so the
-/// next stage faulted in new pages beside them (at 100k permutations, peaks of 53 to 90
-/// MiB on a loaded machine where the tables themselves need about 45). The first call
-/// wins.
-pub fn set_release_freed(release: fn()) {
+/// Has a build call `release` on every worker between stages ([`Options::release_freed`]).
+/// With mimalloc a page freed on another thread than the one that allocated it waits on its
+/// owner's list, and an idle worker never takes it back, so the next stage faulted in new
+/// pages beside them. The first call wins.
+fn set_release_freed(release: fn()) {
     let _ = RELEASE_FREED.set(release);
 }
 

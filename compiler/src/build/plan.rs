@@ -3,17 +3,17 @@
 
 use std::collections::HashMap;
 
-use super::preprocess::Preprocessed;
 use super::{Error, Options};
 use crate::archive::Target;
-use crate::cache::Key;
 use crate::compile::Limits;
 use crate::permute::{self, Config, Level, Permutation, Shader};
 
 /// `--shard I/N`: this process compiles share `index` (0-based) of `count`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Shard {
+    /// This process's share, from 0.
     pub index: usize,
+    /// How many shares there are.
     pub count: usize,
 }
 
@@ -280,142 +280,6 @@ impl<'c> Plan<'c> {
     pub fn assembles(&self) -> bool {
         self.options.output.is_some() || self.options.emit_dir.is_some()
     }
-
-    /// The distinct keys in order of first appearance, each with its permutations, and the
-    /// keys this process must produce.
-    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Result<Keys<'p>, Error> {
-        // Each permutation's key number, by first appearance; then the members of each key,
-        // one after another (counting sort). Keys are found equal by sorting the rows (the
-        // distinct results, about one per key) by key: 12 bytes a row, where a map from key to
-        // number took about 50 a permutation.
-        let rows = pre.row_count();
-        let key = |r: u32| pre.row_key(r as usize);
-        let mut order: Vec<u32> = (0..rows as u32).collect();
-        order.sort_unstable_by(|&a, &b| key(a).cmp(key(b)));
-        // Each row's representative: the first row of its key in `order`.
-        let mut same = vec![0u32; rows];
-        let mut distinct = 0;
-        for (k, &r) in order.iter().enumerate() {
-            let first = match k {
-                0 => r,
-                _ if key(order[k - 1]) != key(r) => r,
-                _ => same[order[k - 1] as usize],
-            };
-            distinct += usize::from(first == r);
-            same[r as usize] = first;
-        }
-        drop(order);
-        let mut number = vec![u32::MAX; rows];
-        let mut count = 0;
-        let of: Vec<u32> = (0..self.len)
-            .map(|i| match pre.row_number(i) {
-                Some(r) => {
-                    let first = same[r] as usize;
-                    if number[first] == u32::MAX {
-                        number[first] = count;
-                        count += 1;
-                    }
-                    number[first]
-                }
-                None => u32::MAX,
-            })
-            .collect();
-        debug_assert_eq!(count as usize, distinct);
-        drop((same, number));
-        // Numbers of permutations, so below 2^32 ([`Plan::new`]): 4 bytes each, not 8.
-        let count = count as usize;
-        let mut starts = vec![0u32; count + 1];
-        for &k in of.iter().filter(|&&k| k != u32::MAX) {
-            starts[k as usize + 1] += 1;
-        }
-        for k in 0..count {
-            starts[k + 1] += starts[k];
-        }
-        let mut members = vec![0u32; starts[count] as usize];
-        // Each key's next free place: its start, moved one on per member (no second table).
-        for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
-            members[starts[k as usize] as usize] = i as u32;
-            starts[k as usize] += 1;
-        }
-        drop(of);
-        // Each start was moved to the next key's: shift them back.
-        starts.copy_within(0..count, 1);
-        starts[0] = 0;
-        let mut keys = Keys { pre, starts, members, share: Vec::new() };
-        keys.share = match self.options.shard {
-            None => vec![true; keys.len()],
-            Some(shard) => {
-                // Each row's text length, read again (the rows' keys alone are held).
-                let mut text_lens = Vec::with_capacity(rows);
-                pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
-                let costs: Vec<u64> = (0..keys.len())
-                    .map(|k| {
-                        let members = keys.members(k);
-                        let (_, level) = self.shader_level(members[0] as usize);
-                        let len = members
-                            .iter()
-                            .filter_map(|&m| pre.row_number(m as usize))
-                            .map(|r| u64::from(text_lens[r]))
-                            .max();
-                        len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
-                    })
-                    .collect();
-                assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
-            }
-        };
-        Ok(keys)
-    }
-}
-
-/// The distinct keys of a build, by first appearance, with their permutations. A key is
-/// its first member's (in `pre`): not a copy of each (about 2.4 MB at 100k permutations).
-pub(super) struct Keys<'p> {
-    pre: &'p Preprocessed,
-    /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.
-    starts: Vec<u32>,
-    /// Indices into the plan's kept permutations, ascending within each key.
-    members: Vec<u32>,
-    /// Whether each key is in this process's share (every key without `--shard`).
-    pub share: Vec<bool>,
-}
-
-impl Keys<'_> {
-    pub fn len(&self) -> usize {
-        self.starts.len() - 1
-    }
-
-    /// Key `k`.
-    pub fn key(&self, k: usize) -> &Key {
-        self.pre.key(self.members(k)[0] as usize).expect("a key's members were preprocessed")
-    }
-
-    /// Every key, in order, copied.
-    pub fn to_vec(&self) -> Vec<Key> {
-        (0..self.len()).map(|k| *self.key(k)).collect()
-    }
-
-    /// The permutations of key `k`, ascending.
-    pub fn members(&self, k: usize) -> &[u32] {
-        &self.members[self.starts[k] as usize..self.starts[k + 1] as usize]
-    }
-}
-
-/// Greedy longest-processing-time assignment of keys to `shards` by estimated cost: keys
-/// sorted by cost (descending), then by key bytes, each to the least loaded shard (the
-/// lowest index among equals). Depends only on the keys and their costs, so every shard
-/// process computes the same assignment.
-pub(super) fn assign(keys: &[Key], costs: &[u64], shards: usize) -> Vec<usize> {
-    let mut order: Vec<usize> = (0..keys.len()).collect();
-    order.sort_by(|&a, &b| costs[b].cmp(&costs[a]).then(keys[a].cmp(&keys[b])));
-    let mut load: std::collections::BinaryHeap<std::cmp::Reverse<(u64, usize)>> =
-        (0..shards).map(|s| std::cmp::Reverse((0u64, s))).collect();
-    let mut out = vec![0; keys.len()];
-    for k in order {
-        let std::cmp::Reverse((l, s)) = load.pop().expect("at least one shard");
-        out[k] = s;
-        load.push(std::cmp::Reverse((l + costs[k], s)));
-    }
-    out
 }
 
 pub(super) fn level_targets(level: &permute::Level, filter: &[Target]) -> Vec<Target> {
@@ -540,26 +404,5 @@ dimensions = { X = [-3, 7, 5], Y = { range = [0, 99] } }
             assert_eq!(plan.values(i), p.values, "{}", p.name());
             assert_eq!(plan.name(i), p.name());
         }
-    }
-
-    #[test]
-    fn assignment_balances_cost_and_ignores_order() {
-        let keys: Vec<Key> = (0..40u8).map(|i| Key([i; 32])).collect();
-        let costs: Vec<u64> = (0..40u64).map(|i| 1 + (i * 37) % 101).collect();
-        let a = assign(&keys, &costs, 4);
-        let mut load = [0u64; 4];
-        for (k, s) in a.iter().enumerate() {
-            load[*s] += costs[k];
-        }
-        let (min, max) = (*load.iter().min().unwrap(), *load.iter().max().unwrap());
-        assert!(max - min <= *costs.iter().max().unwrap(), "{load:?}");
-        // The same keys in another order get the same shards.
-        let mut rev_keys = keys.clone();
-        let mut rev_costs = costs.clone();
-        rev_keys.reverse();
-        rev_costs.reverse();
-        let mut b = assign(&rev_keys, &rev_costs, 4);
-        b.reverse();
-        assert_eq!(a, b);
     }
 }

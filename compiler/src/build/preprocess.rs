@@ -21,8 +21,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use codespan_reporting::diagnostic::Diagnostic;
 
 use super::plan::{level_limits, level_targets, Plan};
+use super::progress::Progress;
 use super::records::{self, Direct, Interner, Records, Row};
-use super::report::Progress;
 use super::store::Store;
 use super::Options;
 use crate::cache::Key;
@@ -583,8 +583,11 @@ struct Reuse {
     groups: Mutex<ReuseGroups>,
     /// Each group's end in the plan (one past its last permutation), latest first; and the
     /// groups let go.
-    ends: Mutex<(Vec<(usize, GroupName)>, HashSet<GroupName>)>,
+    ends: Mutex<GroupEnds>,
 }
+
+/// Each group's end in the plan, latest first, and the groups let go.
+type GroupEnds = (Vec<(usize, GroupName)>, HashSet<GroupName>);
 
 /// A (shader, level) by name.
 type GroupName = (String, String);

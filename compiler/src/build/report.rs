@@ -2,7 +2,6 @@
 //! failures rendered once per distinct diagnostic with the permutations they hit.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -10,7 +9,8 @@ use codespan_reporting::diagnostic::Diagnostic;
 
 use super::assemble::Written;
 use super::compile::{self, Compiler, Outcome, Outcomes};
-use super::plan::{Keys, Plan};
+use super::group::Keys;
+use super::plan::Plan;
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::{Error, Options};
 use crate::archive;
@@ -50,21 +50,29 @@ pub struct Stats {
     pub remote_writes: u64,
     /// Failed remote operations (the first one turns the remote off for the build).
     pub remote_errors: u64,
+    /// Where the time went.
     pub seconds: Seconds,
 }
 
+/// Wall-clock seconds of a build and its stages.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct Seconds {
+    /// The whole build.
     pub total: f64,
+    /// Preprocessing (and grouping by key).
     pub preprocess: f64,
+    /// Compiling, from the first key to the last artifact.
     pub compile: f64,
 }
 
 /// A dimension that never changes its shader's text at a level.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DeadDimension {
+    /// The shader.
     pub shader: String,
+    /// The level.
     pub level: String,
+    /// The dimension.
     pub dimension: String,
     /// How many values it takes: the factor of build work it multiplies for nothing.
     pub values: usize,
@@ -73,6 +81,7 @@ pub struct DeadDimension {
 /// What a build did.
 #[derive(Debug, Default)]
 pub struct Report {
+    /// The counts (`--stats-json`).
     pub stats: Stats,
     /// The config and every file any permutation read (absolute, sorted, deduplicated).
     pub files_read: Vec<PathBuf>,
@@ -80,6 +89,7 @@ pub struct Report {
     pub warnings: Vec<String>,
     /// Rendered failures, one per distinct diagnostic, each naming its permutations.
     pub failures: Vec<String>,
+    /// The dimensions that never change their shader's text.
     pub dead_dimensions: Vec<DeadDimension>,
     /// The archive written, if any.
     pub archive: Option<PathBuf>,
@@ -367,42 +377,4 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
         }
     }
     out
-}
-
-/// A progress bar on a terminal; nothing in CI or when stderr is redirected.
-pub(super) struct Progress {
-    bar: Option<indicatif::ProgressBar>,
-}
-
-impl Progress {
-    pub fn new(wanted: bool) -> Progress {
-        let show = wanted && std::io::stderr().is_terminal() && std::env::var_os("CI").is_none();
-        let bar = show.then(|| {
-            let bar = indicatif::ProgressBar::new(0);
-            bar.set_style(
-                indicatif::ProgressStyle::with_template("{prefix:>13} [{bar:30}] {pos}/{len} {elapsed}")
-                    .expect("valid template")
-                    .progress_chars("=> "),
-            );
-            bar
-        });
-        Progress { bar }
-    }
-    pub fn stage(&self, name: &'static str, len: usize) {
-        if let Some(b) = &self.bar {
-            b.set_length(len as u64);
-            b.set_position(0);
-            b.set_prefix(name);
-        }
-    }
-    pub fn inc(&self) {
-        if let Some(b) = &self.bar {
-            b.inc(1);
-        }
-    }
-    pub fn finish(&self) {
-        if let Some(b) = &self.bar {
-            b.finish_and_clear();
-        }
-    }
 }

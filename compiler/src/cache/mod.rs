@@ -46,7 +46,7 @@ mod bundle;
 mod fault;
 mod fill;
 mod http_batch;
-pub mod remote;
+pub(crate) mod remote;
 
 pub use remote::Remote;
 

@@ -4,8 +4,8 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use super::{CliResult, Failure};
-use crate::build::{self, CacheDir, RemoteCache, RemoteMode, Shard};
-use crate::Target;
+use kiln::build::{self, CacheDir, RemoteCache, RemoteMode, Shard};
+use kiln::Target;
 
 /// Arguments of `kiln build`.
 #[derive(Debug, clap::Args)]
@@ -122,6 +122,7 @@ pub fn exec(args: Args) -> CliResult {
         color,
         max_permutations: args.max_permutations,
         shard,
+        release_freed: Some(crate::release_freed),
     };
     if args.watch {
         return watch(options);
@@ -155,7 +156,7 @@ pub fn exec(args: Args) -> CliResult {
 /// `--watch`: builds, then rebuilds on every change to a file the last build read. Failures
 /// are printed and the watch goes on (the last good archive stays in place).
 fn watch(options: build::Options) -> CliResult {
-    let (mut watch, first) = crate::watch::Watch::start(options).map_err(|e| Failure::usage(format!("error: {e}")))?;
+    let (mut watch, first) = kiln::watch::Watch::start(options).map_err(|e| Failure::usage(format!("error: {e}")))?;
     report_rebuild(&first, watch.files().count(), true);
     loop {
         match watch.wait(std::time::Duration::from_secs(3600)) {
@@ -167,7 +168,7 @@ fn watch(options: build::Options) -> CliResult {
 }
 
 /// Prints a build's warnings and failures, then its one line.
-fn report_rebuild(o: &crate::watch::Outcome, watched: usize, first: bool) {
+fn report_rebuild(o: &kiln::watch::Outcome, watched: usize, first: bool) {
     let what = if first {
         "built".to_string()
     } else {

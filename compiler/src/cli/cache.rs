@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use super::{print_stdout, CliResult, Failure};
-use crate::cache::{format_size, parse_size, Cache};
+use kiln::cache::{format_size, parse_size, Cache};
 
 /// Arguments of `kiln cache`.
 #[derive(Debug, clap::Args)]
@@ -37,7 +37,7 @@ pub fn exec(args: Args) -> CliResult {
             .ok()
             .and_then(|p| p.parent().map(|p| p.to_path_buf()))
             .unwrap_or_else(|| PathBuf::from("."));
-        crate::build::default_cache_dir(&config_dir)
+        kiln::build::default_cache_dir(&config_dir)
     });
     let cache = Cache::open(&dir).map_err(|e| Failure::usage(format!("error: {e}")))?;
     let text = match args.action {

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use super::list::load_config;
 use super::{print_stdout, CliResult, Failure};
-use crate::preprocess::SourceCache;
+use kiln::preprocess::SourceCache;
 
 /// Arguments of `kiln explain`.
 #[derive(Debug, clap::Args)]
@@ -38,9 +38,9 @@ pub fn exec(args: Args) -> CliResult {
 pub(super) fn run(args: &Args, color: bool) -> Result<(String, Option<Failure>), Failure> {
     let config = load_config(&args.config, color, &mut std::io::stderr())?;
     let cache = SourceCache::new(config.dir.clone());
-    let report = crate::explain::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
+    let report = kiln::explain::explain(&config, &cache, &args.name).map_err(|e| Failure::usage(e.render()))?;
     let failure = report.error.map(|d| {
-        let rendered = crate::preprocess::render(std::slice::from_ref(&d), &cache, color);
+        let rendered = kiln::preprocess::render(std::slice::from_ref(&d), &cache, color);
         if report.kept {
             Failure::shader(rendered)
         } else {

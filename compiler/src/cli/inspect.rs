@@ -7,10 +7,10 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::{print_stdout, CliResult, Failure};
-use crate::archive::{
+use kiln::archive::{
     Archive, ArchiveError, BindingKind, Lookup, NumericType, PermutationRef, Reflection, ScalarKind, Target,
 };
-use crate::cache::format_size;
+use kiln::cache::format_size;
 
 /// Arguments of `kiln inspect`.
 #[derive(Debug, clap::Args)]
@@ -40,8 +40,8 @@ pub struct Args {
 /// Opens the archive; a missing, truncated, corrupted or foreign file, an unknown name or
 /// target and a corrupted blob are exit code 2.
 pub fn exec(args: Args) -> CliResult {
-    let damaged = |e: crate::archive::ArchiveError| match e {
-        crate::archive::ArchiveError::Io { .. } | crate::archive::ArchiveError::NotAFile { .. } => {
+    let damaged = |e: kiln::archive::ArchiveError| match e {
+        kiln::archive::ArchiveError::Io { .. } | kiln::archive::ArchiveError::NotAFile { .. } => {
             Failure::usage(format!("error: {e}"))
         }
         _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
@@ -152,7 +152,7 @@ fn write_output(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     match std::fs::metadata(path) {
         Ok(m) if m.is_dir() => Err(std::io::Error::other("it is a directory")),
         Ok(m) if !m.is_file() => std::fs::OpenOptions::new().write(true).open(path)?.write_all(bytes),
-        _ => crate::archive::write_atomic_unsynced(path, bytes),
+        _ => kiln::archive::write_atomic_unsynced(path, bytes),
     }
 }
 
@@ -274,7 +274,7 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
     let mut s = String::new();
     let perms = a.permutation_count();
     let _ = writeln!(s, "archive: {} ({})", path.display(), format_size(a.len() as u64));
-    let _ = writeln!(s, "format version: {}", crate::archive::FORMAT_VERSION);
+    let _ = writeln!(s, "format version: {}", kiln::archive::FORMAT_VERSION);
     let _ = writeln!(s, "kiln: {}  naga: {}", a.kiln_version(), a.naga_version());
     let _ = writeln!(s, "permutations: {perms}  blobs: {}  reflections: {}", a.blob_count(), a.reflections().len());
     let _ = writeln!(s, "targets:");
@@ -373,7 +373,7 @@ fn json(a: &Archive) -> Result<String, ArchiveError> {
         })
         .collect::<Result<_, ArchiveError>>()?;
     let v = serde_json::json!({
-        "format_version": crate::archive::FORMAT_VERSION,
+        "format_version": kiln::archive::FORMAT_VERSION,
         "kiln_version": a.kiln_version(),
         "naga_version": a.naga_version(),
         "bytes": a.len(),

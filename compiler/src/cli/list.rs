@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use serde_json::json;
 
 use super::{CliResult, Failure};
-use crate::permute::{self, Analysis, Config, Permutation};
-use crate::preprocess::{self, SourceCache};
+use kiln::permute::{self, Analysis, Config, Permutation};
+use kiln::preprocess::{self, SourceCache};
 
 /// Arguments of `kiln list`.
 #[derive(Debug, clap::Args)]

@@ -12,5 +12,5 @@ pub struct Args {
 
 pub fn exec(_args: Args) -> CliResult {
     // LSP: `exit` without `shutdown` ends with status 1.
-    crate::lsp::run_stdio().map_err(|e| Failure::shader(format!("error: kiln lsp: {e}")))
+    kiln::lsp::run_stdio().map_err(|e| Failure::shader(format!("error: kiln lsp: {e}")))
 }

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use super::{print_stdout, CliResult, Failure};
-use crate::preprocess::{self, Options, SourceCache};
+use kiln::preprocess::{self, Options, SourceCache};
 
 /// Arguments of `kiln preprocess`.
 #[derive(Debug, clap::Args)]

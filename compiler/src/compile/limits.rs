@@ -7,7 +7,8 @@
 //! vertex shaders. A level's `limits` table ([`Limits::set`]) raises or lowers single
 //! limits by their wgpu `Limits` field names.
 
-use crate::archive::{BindingKind, Reflection, Stage};
+use crate::archive::limits::{violations, ResourceClass, StageLimits, Violation, Violation as V};
+use crate::archive::Reflection;
 
 use super::{Error, ErrorKind};
 
@@ -16,18 +17,31 @@ use super::{Error, ErrorKind};
 pub struct Limits {
     /// `"desktop"` or `"downlevel"`: shown in errors and part of the cache key.
     pub name: &'static str,
+    /// wgpu's `max_bind_groups`.
     pub max_bind_groups: u32,
+    /// wgpu's `max_bindings_per_bind_group`.
     pub max_bindings_per_bind_group: u32,
+    /// wgpu's `max_samplers_per_shader_stage`.
     pub max_samplers_per_shader_stage: u32,
+    /// wgpu's `max_sampled_textures_per_shader_stage`.
     pub max_sampled_textures_per_shader_stage: u32,
+    /// wgpu's `max_storage_buffers_per_shader_stage`.
     pub max_storage_buffers_per_shader_stage: u32,
+    /// wgpu's `max_storage_textures_per_shader_stage`.
     pub max_storage_textures_per_shader_stage: u32,
+    /// wgpu's `max_uniform_buffers_per_shader_stage`.
     pub max_uniform_buffers_per_shader_stage: u32,
+    /// wgpu's `max_uniform_buffer_binding_size`.
     pub max_uniform_buffer_binding_size: u64,
+    /// wgpu's `max_vertex_attributes`.
     pub max_vertex_attributes: u32,
+    /// wgpu's `max_color_attachments`.
     pub max_color_attachments: u32,
+    /// wgpu's `max_compute_workgroup_storage_size`.
     pub max_compute_workgroup_storage_size: u64,
+    /// wgpu's `max_compute_invocations_per_workgroup`.
     pub max_compute_invocations_per_workgroup: u32,
+    /// wgpu's `max_compute_workgroup_size_x, _y and _z`.
     pub max_compute_workgroup_size: [u32; 3],
     /// GLES: vertex shaders may not use storage buffers or storage textures.
     pub vertex_storage: bool,
@@ -142,8 +156,31 @@ impl Limits {
         }
     }
 
+    /// The limits [`kiln_archive::limits::violations`] checks a reflection against: this
+    /// level's, with the sizes Kiln does not check at compile time unbounded.
+    fn stage_limits(&self) -> StageLimits {
+        StageLimits {
+            max_bind_groups: self.max_bind_groups,
+            max_bindings_per_bind_group: self.max_bindings_per_bind_group,
+            max_uniform_buffers_per_shader_stage: self.max_uniform_buffers_per_shader_stage,
+            max_storage_buffers_per_shader_stage: self.max_storage_buffers_per_shader_stage,
+            max_samplers_per_shader_stage: self.max_samplers_per_shader_stage,
+            max_sampled_textures_per_shader_stage: self.max_sampled_textures_per_shader_stage,
+            max_storage_textures_per_shader_stage: self.max_storage_textures_per_shader_stage,
+            max_uniform_buffer_binding_size: self.max_uniform_buffer_binding_size,
+            max_storage_buffer_binding_size: u64::MAX,
+            max_vertex_attributes: self.max_vertex_attributes,
+            max_color_attachments: self.max_color_attachments,
+            max_compute_workgroup_size: self.max_compute_workgroup_size,
+            max_compute_invocations_per_workgroup: self.max_compute_invocations_per_workgroup,
+            vertex_storage: self.vertex_storage,
+        }
+    }
+
     /// Checks the entry point's resources against the limits. `reflection` is the entry
-    /// point's, from [`super::reflect`].
+    /// point's, from [`super::reflect`]. The shared check ([`violations`]) finds what is over;
+    /// this words the first of it with the source span of the binding, and adds the one
+    /// check that needs naga's module: workgroup storage.
     pub(crate) fn check(
         &self,
         module: &naga::Module,
@@ -157,175 +194,190 @@ impl Limits {
                 .find(|(_, g)| g.binding.as_ref().is_some_and(|b| b.group == group && b.binding == binding))
                 .and_then(|(h, _)| module.global_variables.get_span(h).to_range())
         };
-        let fail = |message: String, at: Option<(u32, u32)>, label: &str, note: String| {
+        let fail = |message: String, at: Option<usize>, label: &str, note: String| {
             let mut e = Error::new(ErrorKind::Limit, message);
-            if let Some(range) = at.and_then(|(g, b)| span_of(g, b)) {
+            let at = at.map(|i| &reflection.bindings[i]);
+            if let Some(range) = at.and_then(|b| span_of(b.group, b.binding)) {
                 e.labels.push((range, label.to_string()));
             }
             e.notes.push(note);
             e
         };
+        // The faults only the runtime checks (names, duplicates, zero sizes, vertex input
+        // locations, the count of color outputs) never stop a compile.
+        let first = violations(reflection, &self.stage_limits()).into_iter().find(|v| {
+            !matches!(
+                v,
+                V::EntryName { .. }
+                    | V::Duplicate { .. }
+                    | V::StorageSize { .. }
+                    | V::VertexLocation { .. }
+                    | V::ColorOutputs { .. }
+                    | V::WorkgroupZero { .. }
+                    | V::NoWorkgroupSize
+            )
+        });
+        if let Some(v) = first {
+            return Err(self.word(reflection, v, fail));
+        }
+        if reflection.workgroup_size.is_some() {
+            self.check_workgroup_storage(module, info)?;
+        }
+        Ok(())
+    }
+
+    /// A violation as a compile error: its message, the span it points at and the note that
+    /// says where the limit comes from.
+    fn word(
+        &self,
+        reflection: &Reflection,
+        v: Violation,
+        fail: impl Fn(String, Option<usize>, &str, String) -> Error,
+    ) -> Error {
         let level = self.name;
         let stage = reflection.stage;
-
-        let mut counts = [0u32; 5];
-        let names = [
-            ("samplers", "max_samplers_per_shader_stage", self.max_samplers_per_shader_stage),
-            ("sampled textures", "max_sampled_textures_per_shader_stage", self.max_sampled_textures_per_shader_stage),
-            ("storage buffers", "max_storage_buffers_per_shader_stage", self.max_storage_buffers_per_shader_stage),
-            ("storage textures", "max_storage_textures_per_shader_stage", self.max_storage_textures_per_shader_stage),
-            ("uniform buffers", "max_uniform_buffers_per_shader_stage", self.max_uniform_buffers_per_shader_stage),
-        ];
-        for b in &reflection.bindings {
-            let name = b.name.as_deref().unwrap_or("<unnamed>");
-            let at = Some((b.group, b.binding));
-            if b.group >= self.max_bind_groups {
-                return Err(fail(
-                    format!(
-                        "binding `{name}` uses bind group {}, beyond the {level} limit of {} bind groups",
-                        b.group, self.max_bind_groups
-                    ),
-                    at,
-                    "declared here",
-                    self.note("max_bind_groups", self.max_bind_groups),
-                ));
-            }
-            if b.binding >= self.max_bindings_per_bind_group {
-                return Err(fail(
-                    format!(
-                        "binding `{name}` uses binding {}, beyond the {level} limit of {} bindings per group",
-                        b.binding, self.max_bindings_per_bind_group
-                    ),
-                    at,
-                    "declared here",
-                    self.note("max_bindings_per_bind_group", self.max_bindings_per_bind_group),
-                ));
-            }
-            let slot = match &b.kind {
-                BindingKind::Sampler { .. } => 0,
-                BindingKind::Texture { .. } => 1,
-                BindingKind::StorageBuffer { .. } => 2,
-                BindingKind::StorageTexture { .. } => 3,
-                BindingKind::UniformBuffer { .. } => 4,
-            };
-            if stage == Stage::Vertex && !self.vertex_storage && (slot == 2 || slot == 3) {
-                return Err(fail(
-                    format!("binding `{name}` is a {} in a vertex shader, which the {level} limits do not allow", &names[slot].0[..names[slot].0.len() - 1]),
-                    at,
-                    "used by the vertex entry point",
-                    "GLES 3.1 has no storage buffers or storage textures in vertex shaders (wgpu's VERTEX_STORAGE downlevel flag)".to_string(),
-                ));
-            }
-            if let BindingKind::UniformBuffer { min_size } = b.kind {
-                if min_size > self.max_uniform_buffer_binding_size {
-                    return Err(fail(
-                        format!(
-                            "uniform buffer `{name}` is {min_size} bytes, over the {level} limit of {} bytes",
-                            self.max_uniform_buffer_binding_size
-                        ),
-                        at,
-                        "declared here",
-                        self.note("max_uniform_buffer_binding_size", self.max_uniform_buffer_binding_size),
-                    ));
-                }
-            }
-            counts[slot] += 1;
-            let (what, field, max) = names[slot];
-            if counts[slot] > max {
-                return Err(fail(
-                    format!("binding `{name}` is the {} of the {stage} stage, over the {level} limit of {max} {what} per stage", ordinal(counts[slot]) + " " + &what[..what.len() - 1]),
-                    at,
-                    "one too many",
-                    self.note(field, max),
-                ));
-            }
-        }
-        if reflection.vertex_inputs.len() as u32 > self.max_vertex_attributes {
-            return Err(fail(
+        let name = |i: usize| reflection.bindings[i].name.as_deref().unwrap_or("<unnamed>").to_string();
+        match v {
+            V::BindGroup { binding: i } => fail(
                 format!(
-                    "the vertex shader has {} inputs, over the {level} limit of {}",
-                    reflection.vertex_inputs.len(),
-                    self.max_vertex_attributes
+                    "binding `{}` uses bind group {}, beyond the {level} limit of {} bind groups",
+                    name(i),
+                    reflection.bindings[i].group,
+                    self.max_bind_groups
                 ),
+                Some(i),
+                "declared here",
+                self.note("max_bind_groups", self.max_bind_groups),
+            ),
+            V::BindingNumber { binding: i } => fail(
+                format!(
+                    "binding `{}` uses binding {}, beyond the {level} limit of {} bindings per group",
+                    name(i),
+                    reflection.bindings[i].binding,
+                    self.max_bindings_per_bind_group
+                ),
+                Some(i),
+                "declared here",
+                self.note("max_bindings_per_bind_group", self.max_bindings_per_bind_group),
+            ),
+            V::VertexStorage { binding: i } => fail(
+                format!(
+                    "binding `{}` is a {} in a vertex shader, which the {level} limits do not allow",
+                    name(i),
+                    ResourceClass::of(&reflection.bindings[i].kind).singular()
+                ),
+                Some(i),
+                "used by the vertex entry point",
+                "GLES 3.1 has no storage buffers or storage textures in vertex shaders (wgpu's VERTEX_STORAGE downlevel flag)".to_string(),
+            ),
+            V::UniformSize { binding: i, size } => fail(
+                format!(
+                    "uniform buffer `{}` is {size} bytes, over the {level} limit of {} bytes",
+                    name(i),
+                    self.max_uniform_buffer_binding_size
+                ),
+                Some(i),
+                "declared here",
+                self.note("max_uniform_buffer_binding_size", self.max_uniform_buffer_binding_size),
+            ),
+            V::TooMany { binding: i, class, nth, .. } => {
+                let max = self.stage_limits().per_stage(class);
+                fail(
+                    format!(
+                        "binding `{}` is the {} {} of the {stage} stage, over the {level} limit of {max} {} per stage",
+                        name(i),
+                        ordinal(nth),
+                        class.singular(),
+                        class.plural()
+                    ),
+                    Some(i),
+                    "one too many",
+                    self.note(class.field(), max),
+                )
+            }
+            V::VertexInputs { count } => fail(
+                format!("the vertex shader has {count} inputs, over the {level} limit of {}", self.max_vertex_attributes),
                 None,
                 "",
                 self.note("max_vertex_attributes", self.max_vertex_attributes),
-            ));
-        }
-        if let Some(c) = reflection.color_outputs.iter().find(|c| c.location >= self.max_color_attachments) {
-            return Err(fail(
+            ),
+            V::ColorLocation { location } => fail(
                 format!(
-                    "color output @location({}) is beyond the {level} limit of {} color attachments",
-                    c.location, self.max_color_attachments
+                    "color output @location({location}) is beyond the {level} limit of {} color attachments",
+                    self.max_color_attachments
                 ),
                 None,
                 "",
                 self.note("max_color_attachments", self.max_color_attachments),
-            ));
-        }
-        if let Some(size) = reflection.workgroup_size {
-            for (axis, (&n, &max)) in size.iter().zip(&self.max_compute_workgroup_size).enumerate() {
-                if n > max {
-                    return Err(fail(
-                        format!(
-                            "workgroup size {} is {n} along {}, over the {level} limit of {max}",
-                            fmt_size(size),
-                            ["x", "y", "z"][axis]
-                        ),
-                        None,
-                        "",
-                        self.note(
-                            [
-                                "max_compute_workgroup_size_x",
-                                "max_compute_workgroup_size_y",
-                                "max_compute_workgroup_size_z",
-                            ][axis],
-                            max,
-                        ),
-                    ));
-                }
-            }
-            let total = size.iter().map(|&n| n as u64).product::<u64>();
-            if total > self.max_compute_invocations_per_workgroup as u64 {
-                return Err(fail(
+            ),
+            V::WorkgroupAxis { size, axis } => {
+                let max = self.max_compute_workgroup_size[axis];
+                fail(
                     format!(
-                        "workgroup size {} is {total} invocations, over the {level} limit of {}",
+                        "workgroup size {} is {} along {}, over the {level} limit of {max}",
                         fmt_size(size),
-                        self.max_compute_invocations_per_workgroup
+                        size[axis],
+                        ["x", "y", "z"][axis]
                     ),
                     None,
                     "",
-                    self.note("max_compute_invocations_per_workgroup", self.max_compute_invocations_per_workgroup),
-                ));
-            }
-            let ep_info = info.get_entry_point(0);
-            let mut total = 0u64;
-            let mut last = None;
-            for (h, g) in module.global_variables.iter() {
-                if g.space == naga::AddressSpace::WorkGroup && !ep_info[h].is_empty() {
-                    total += module.types[g.ty].inner.try_size(module.to_ctx()).unwrap_or(0) as u64;
-                    last = Some(h);
-                    if total > self.max_compute_workgroup_storage_size {
-                        break;
-                    }
-                }
-            }
-            if total > self.max_compute_workgroup_storage_size {
-                let h = last.expect("some workgroup variable");
-                let name = module.global_variables[h].name.as_deref().unwrap_or("<unnamed>");
-                let mut e = Error::new(
-                    ErrorKind::Limit,
-                    format!(
-                        "workgroup variables take {total} bytes up to `{name}`, over the {level} limit of {} bytes",
-                        self.max_compute_workgroup_storage_size
+                    self.note(
+                        ["max_compute_workgroup_size_x", "max_compute_workgroup_size_y", "max_compute_workgroup_size_z"]
+                            [axis],
+                        max,
                     ),
-                );
-                if let Some(r) = module.global_variables.get_span(h).to_range() {
-                    e.labels.push((r, "the limit is crossed here".into()));
-                }
-                e.notes.push(self.note("max_compute_workgroup_storage_size", self.max_compute_workgroup_storage_size));
-                return Err(e);
+                )
             }
+            V::WorkgroupInvocations { size, total } => fail(
+                format!(
+                    "workgroup size {} is {total} invocations, over the {level} limit of {}",
+                    fmt_size(size),
+                    self.max_compute_invocations_per_workgroup
+                ),
+                None,
+                "",
+                self.note("max_compute_invocations_per_workgroup", self.max_compute_invocations_per_workgroup),
+            ),
+            V::EntryName { .. }
+            | V::Duplicate { .. }
+            | V::StorageSize { .. }
+            | V::VertexLocation { .. }
+            | V::ColorOutputs { .. }
+            | V::WorkgroupZero { .. }
+            | V::NoWorkgroupSize => unreachable!("filtered out by `check`"),
+        }
+    }
+
+    /// The workgroup variables the compute entry point uses against
+    /// `max_compute_workgroup_storage_size`, pointing at the variable that crosses it.
+    fn check_workgroup_storage(&self, module: &naga::Module, info: &naga::valid::ModuleInfo) -> Result<(), Error> {
+        let ep_info = info.get_entry_point(0);
+        let mut total = 0u64;
+        let mut last = None;
+        for (h, g) in module.global_variables.iter() {
+            if g.space == naga::AddressSpace::WorkGroup && !ep_info[h].is_empty() {
+                total += module.types[g.ty].inner.try_size(module.to_ctx()).unwrap_or(0) as u64;
+                last = Some(h);
+                if total > self.max_compute_workgroup_storage_size {
+                    break;
+                }
+            }
+        }
+        if total > self.max_compute_workgroup_storage_size {
+            let h = last.expect("some workgroup variable");
+            let name = module.global_variables[h].name.as_deref().unwrap_or("<unnamed>");
+            let mut e = Error::new(
+                ErrorKind::Limit,
+                format!(
+                    "workgroup variables take {total} bytes up to `{name}`, over the {} limit of {} bytes",
+                    self.name, self.max_compute_workgroup_storage_size
+                ),
+            );
+            if let Some(r) = module.global_variables.get_span(h).to_range() {
+                e.labels.push((r, "the limit is crossed here".into()));
+            }
+            e.notes.push(self.note("max_compute_workgroup_storage_size", self.max_compute_workgroup_storage_size));
+            return Err(e);
         }
         Ok(())
     }

@@ -60,6 +60,7 @@ impl Default for Options {
 pub struct Compiled {
     /// One artifact per requested target, in the order of [`Options::targets`].
     pub artifacts: Vec<(Target, Vec<u8>)>,
+    /// The entry point's reflection.
     pub reflection: Reflection,
 }
 
@@ -67,6 +68,7 @@ pub struct Compiled {
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{message}")]
 pub struct Error {
+    /// Which step failed.
     pub kind: ErrorKind,
     /// One line, lowercase, as naga writes its messages.
     pub message: String,
@@ -76,6 +78,7 @@ pub struct Error {
     pub notes: Vec<String>,
 }
 
+/// Which step of a compile failed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum ErrorKind {
     /// The WGSL did not parse.
@@ -117,9 +120,13 @@ fn stage_name(stage: naga::ShaderStage) -> &'static str {
 
 /// A parsed and validated module holding only the requested entry point.
 pub struct Validated {
+    /// The module, compacted to the entry point.
     pub module: naga::Module,
+    /// naga's validation info for it.
     pub info: naga::valid::ModuleInfo,
+    /// The entry point's name.
     pub entry: String,
+    /// The entry point's stage.
     pub stage: Stage,
 }
 

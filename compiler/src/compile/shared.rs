@@ -109,6 +109,7 @@ impl SharedWriters {
     /// from about 80 to about 220 MiB. Past it, later keys of a module run its writers again.
     pub const BUDGET: usize = 32 << 20;
 
+    /// An empty set.
     pub fn new() -> Self {
         SharedWriters::default()
     }

@@ -20,7 +20,9 @@ pub struct Preprocessed {
 /// A permutation that failed to preprocess.
 #[derive(Debug)]
 pub struct Failed {
+    /// The permutation's canonical name.
     pub name: String,
+    /// Its preprocessing error.
     pub error: preprocess::Error,
 }
 
@@ -28,8 +30,11 @@ pub struct Failed {
 /// every group of kept permutations that differ only in it preprocesses to one stream.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DeadDimension {
+    /// The shader.
     pub shader: String,
+    /// The level.
     pub level: String,
+    /// The dimension.
     pub dimension: String,
     /// Its number of values: the factor it multiplies the permutations to preprocess by.
     pub multiplier: usize,
@@ -48,12 +53,15 @@ impl std::fmt::Display for DeadDimension {
 /// One shader at one level, preprocessed.
 #[derive(Debug, Clone)]
 pub struct LevelAnalysis {
+    /// The shader.
     pub shader: String,
+    /// The level.
     pub level: String,
     /// Every kept permutation, in enumeration order.
     pub permutations: Vec<Preprocessed>,
     /// The number of distinct token streams among those that preprocessed.
     pub distinct: usize,
+    /// Its dead dimensions.
     pub dead: Vec<DeadDimension>,
 }
 
@@ -67,16 +75,19 @@ impl LevelAnalysis {
 /// Every (shader, level) `filter` accepts, preprocessed.
 #[derive(Debug)]
 pub struct Analysis {
+    /// Each (shader, level), in configuration order.
     pub levels: Vec<LevelAnalysis>,
     /// Permutations that failed to preprocess, in enumeration order.
     pub failed: Vec<Failed>,
 }
 
 impl Analysis {
+    /// Every dead dimension of every (shader, level).
     pub fn dead(&self) -> impl Iterator<Item = &DeadDimension> {
         self.levels.iter().flat_map(|l| l.dead.iter())
     }
 
+    /// The analysis of `shader` at `level`, if it was analysed.
     pub fn find(&self, shader: &str, level: &str) -> Option<&LevelAnalysis> {
         self.levels.iter().find(|l| l.shader == shader && l.level == level)
     }

@@ -10,13 +10,22 @@ pub enum DefineOrigin {
     /// The feature level's `defines`.
     Level(String),
     /// The shader's constant `defines` (`overrides`: the level's value it replaces).
-    Shader { overrides: Option<i64> },
+    Shader {
+        /// The level's value it replaces, if any.
+        overrides: Option<i64>,
+    },
     /// A dimension's value.
     Dimension,
     /// `DIM_NAME` of an enum dimension: the index of `NAME`.
-    EnumValue { dimension: String },
+    EnumValue {
+        /// The enum dimension.
+        dimension: String,
+    },
     /// A derived define and its expression.
-    Derived { expr: String },
+    Derived {
+        /// The `#if` expression it is defined by.
+        expr: String,
+    },
 }
 
 impl std::fmt::Display for DefineOrigin {
@@ -35,8 +44,11 @@ impl std::fmt::Display for DefineOrigin {
 /// One define in effect in a permutation.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Define {
+    /// The define's name.
     pub name: String,
+    /// Its value.
     pub value: i64,
+    /// Where the value comes from.
     pub origin: DefineOrigin,
 }
 
@@ -52,7 +64,9 @@ pub struct RuleResult {
 /// One (shader, level, dimension values).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Permutation<'c> {
+    /// Its shader.
     pub shader: &'c Shader,
+    /// Its level.
     pub level: &'c Level,
     /// One value per dimension of `shader`, in declared order (an enum's index).
     pub values: Vec<i64>,
@@ -162,6 +176,7 @@ impl<'c> Permutation<'c> {
         canonical_name(self.shader, self.level, &self.values)
     }
 
+    /// Whether no skip rule matched (errors count as not matched).
     pub fn is_kept(&self) -> bool {
         self.skipped_by.is_none()
     }
@@ -592,20 +607,6 @@ pub(crate) fn count_kept(shader: &Shader, level: &Level, budget: u64) -> Option<
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::disjuncts;
-
-    #[test]
-    fn top_level_or_splits_into_conditions() {
-        assert_eq!(disjuncts("A || B && (C || D)"), ["A", "B && ( C || D )"]);
-        assert_eq!(disjuncts("A && B"), ["A && B"]);
-        assert_eq!(disjuncts("A || B ? 1 : 0"), ["A || B ? 1 : 0"]);
-        assert_eq!(disjuncts("(A || B)"), ["(A || B)"]);
-        assert_eq!(disjuncts("A || "), ["A || "]);
-    }
-}
-
 /// `2^k (n)` for a power of two, else `n`.
 fn describe_count(n: u128) -> String {
     if n == u128::MAX {
@@ -719,5 +720,19 @@ impl Config {
                     .with_message("cannot be evaluated")]);
         }
         Some(self.error(vec![d]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::disjuncts;
+
+    #[test]
+    fn top_level_or_splits_into_conditions() {
+        assert_eq!(disjuncts("A || B && (C || D)"), ["A", "B && ( C || D )"]);
+        assert_eq!(disjuncts("A && B"), ["A && B"]);
+        assert_eq!(disjuncts("A || B ? 1 : 0"), ["A || B ? 1 : 0"]);
+        assert_eq!(disjuncts("(A || B)"), ["(A || B)"]);
+        assert_eq!(disjuncts("A || "), ["A || "]);
     }
 }

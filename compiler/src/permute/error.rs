@@ -80,6 +80,7 @@ pub struct NotFound {
 /// One existing permutation close to a missing name.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Near {
+    /// Its canonical name.
     pub name: String,
     /// What differs, as `DIM: asked -> this one` (also `shader:` and `level:`).
     pub differences: Vec<String>,

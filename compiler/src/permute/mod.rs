@@ -63,7 +63,9 @@ pub struct Config {
 /// A feature level: the defines it sets, the targets it compiles to, the limits it validates against.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Level {
+    /// The level's name (the `@level` of permutation names).
     pub name: String,
+    /// The defines every permutation at the level gets.
     pub defines: Vec<(String, i64)>,
     /// The targets written for this level; all of them when the file names none.
     pub targets: Vec<Target>,
@@ -84,6 +86,7 @@ pub enum Limits {
 }
 
 impl Limits {
+    /// The name `permutations.toml` gives it.
     pub fn name(self) -> &'static str {
         match self {
             Limits::Default => "default",
@@ -95,6 +98,7 @@ impl Limits {
 /// One `[[shader]]`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Shader {
+    /// The shader's name (the start of its permutation names).
     pub name: String,
     /// `source` as written.
     pub source: String,
@@ -102,14 +106,17 @@ pub struct Shader {
     pub source_path: PathBuf,
     /// The entry point (`main` when the file names none).
     pub entry: String,
+    /// The entry point's stage.
     pub stage: Stage,
     /// The levels it is built for, in its order (every level, in file order, when the file names none).
     pub levels: Vec<String>,
     /// Constant defines; one with the name of a level define overrides it.
     pub defines: Vec<(String, i64)>,
+    /// Its dimensions, in declared order.
     pub dimensions: Vec<Dimension>,
     /// (name, `#if` expression), in order: each sees the ones before it.
     pub derived: Vec<(String, String)>,
+    /// Its skip rules, in order.
     pub skip: Vec<SkipRule>,
     /// Where its parts are in the toml file.
     pub spans: ShaderSpans,
@@ -118,6 +125,7 @@ pub struct Shader {
 /// Byte ranges of a shader's parts in the toml text, for errors found after loading.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct ShaderSpans {
+    /// The shader's name.
     pub name: std::ops::Range<usize>,
     /// From the first dimension's name to the last one's domain (the name without dimensions).
     pub dimensions: std::ops::Range<usize>,
@@ -128,6 +136,7 @@ pub struct ShaderSpans {
 /// A dimension and its domain.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Dimension {
+    /// The dimension's name: the define it sets.
     pub name: String,
     /// The values it takes, in enumeration order (an enum's indices).
     pub values: Vec<i64>,
@@ -229,10 +238,12 @@ pub fn load_str(text: &str, path: &Path) -> Result<Config, ConfigError> {
 }
 
 impl Config {
+    /// The level named `name`, if any.
     pub fn level(&self, name: &str) -> Option<&Level> {
         self.levels.iter().find(|l| l.name == name)
     }
 
+    /// The shader named `name`, if any.
     pub fn shader(&self, name: &str) -> Option<&Shader> {
         self.shaders.iter().find(|s| s.name == name)
     }
@@ -285,9 +296,13 @@ impl Config {
 /// Permutation counts of one shader at one level.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Count {
+    /// The shader.
     pub shader: String,
+    /// The level.
     pub level: String,
+    /// Permutations the skip rules keep.
     pub kept: usize,
+    /// Permutations they skip.
     pub skipped: usize,
 }
 

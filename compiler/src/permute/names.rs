@@ -2,6 +2,7 @@
 //! names nothing.
 
 use super::{Config, Near, NotFound, Permutation};
+pub(super) use crate::archive::edit_distance;
 
 /// A permutation name split into its parts, values as written.
 #[derive(Debug, PartialEq, Eq)]
@@ -146,18 +147,4 @@ pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec
         }
     }
     best.into_iter().map(|(_, _, n)| n).collect()
-}
-
-/// Levenshtein distance between `a` and `b`, in characters.
-pub(super) fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut prev: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut cur = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            cur[j + 1] = (prev[j] + usize::from(ca != *cb)).min(prev[j + 1] + 1).min(cur[j] + 1);
-        }
-        prev = cur;
-    }
-    prev[b.len()]
 }

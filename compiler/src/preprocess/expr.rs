@@ -17,6 +17,7 @@ pub struct ExprError {
     pub offset: usize,
     /// Length in bytes of the offending text (0 at the end of the expression).
     pub len: usize,
+    /// What is wrong.
     pub message: String,
 }
 
@@ -110,11 +111,14 @@ fn parse_defined<'a>(
 /// A value of an `#if` expression: 64 bits, signed unless cpp's rules make it unsigned.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Value {
+    /// The value's bits.
     pub v: i64,
+    /// Whether cpp treats it as unsigned.
     pub unsigned: bool,
 }
 
 impl Value {
+    /// A signed value.
     pub fn signed(v: i64) -> Value {
         Value { v, unsigned: false }
     }
@@ -126,14 +130,18 @@ impl Value {
 /// A token of an expression after macro expansion.
 #[derive(Clone, Debug)]
 pub struct Token<'a> {
+    /// What it is.
     pub kind: TokKind,
     /// The spelling, for messages.
     pub text: &'a str,
 }
 
+/// What an expression token is.
 #[derive(Clone, Debug)]
 pub enum TokKind {
+    /// A number or character constant.
     Num(Value),
+    /// An operator or parenthesis.
     Punct,
     /// An identifier left after expansion (0), or a token that is not valid in an expression.
     Ident(i64),
@@ -164,7 +172,9 @@ impl<'a> Token<'a> {
 /// An error at token index `at` (== tokens.len() for the end).
 #[derive(Debug, Clone)]
 pub struct TokError {
+    /// The token index.
     pub at: usize,
+    /// What is wrong.
     pub message: String,
 }
 
@@ -329,12 +339,14 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
 }
 
 /// How [`eval`] reads one token of a stand-alone expression: for code that translates
-/// expressions rather than evaluating them (the typed keys of [`crate::bindings`]).
+/// expressions rather than evaluating them (the typed keys of [`crate::keys`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum TokenClass {
     /// A number or character constant, with its type.
     Number(Value),
+    /// An identifier.
     Ident,
+    /// An operator or parenthesis.
     Punct,
     /// Not valid in an expression; the message says why.
     Invalid(String),

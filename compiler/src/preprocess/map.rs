@@ -51,11 +51,13 @@ pub struct SourceMap {
 /// The source of one output byte.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Origin {
+    /// The file it comes from.
     pub file: FileId,
     /// Bytes in that file: the copied text, or the whole macro invocation for macro-made text.
     pub span: Range<usize>,
     /// 1-based line and column (in characters) of `span.start`.
     pub line: usize,
+    /// (See `line`.)
     pub column: usize,
     /// For macro-made text: the token in the macro's definition it was made from.
     pub macro_definition: Option<(FileId, Range<usize>)>,
@@ -151,6 +153,7 @@ impl SourceMap {
         self.entries.len()
     }
 
+    /// Whether the map maps no byte.
     pub fn is_empty(&self) -> bool {
         self.entries.is_empty()
     }

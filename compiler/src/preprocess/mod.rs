@@ -69,6 +69,7 @@ impl Default for Options {
 /// A preprocessing error: one diagnostic, located, with the include chain as secondary labels.
 #[derive(Clone, Debug)]
 pub struct Error {
+    /// The diagnostic, with its labels.
     pub diagnostic: Diagnostic<FileId>,
 }
 
@@ -91,12 +92,14 @@ impl std::error::Error for Error {}
 pub struct Output {
     /// The preprocessed WGSL.
     pub text: String,
+    /// Where each output byte comes from.
     pub map: SourceMap,
     /// Every file read (main file first), deduplicated.
     pub files: Vec<FileId>,
     /// Include candidates tried and found missing (sorted): a file created at one of them
     /// could change the output, so a cached result is only reused while they stay missing.
     pub absent: Vec<PathBuf>,
+    /// Warnings (`#warning`, redefinitions), located.
     pub warnings: Vec<Diagnostic<FileId>>,
     /// Lines a false `#if`/`#ifdef`/`#elif`/`#else` group excluded: (file, 1-based lines,
     /// end exclusive), in the order met. The conditional directives' own lines are not in it.

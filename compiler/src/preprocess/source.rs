@@ -349,7 +349,7 @@ struct Lookups {
 /// Thread-safe store of source files shared by every permutation of a build: reads each file
 /// once (keyed by canonical path), hands out [`FileId`]s, and names files for diagnostics
 /// relative to `display_base`. The include paths the permutations look up are asked of the
-/// file system once too ([`SourceCache::kind`], [`SourceCache::canonical`]): every
+/// file system once too (`SourceCache::kind`, `SourceCache::canonical`): every
 /// permutation of a build sees the files as they were when first asked for, as it sees
 /// their contents (a build of 625 permutations otherwise made 35,000 `readlink` and `stat`
 /// calls resolving the same few includes).
@@ -366,6 +366,7 @@ impl std::fmt::Debug for SourceCache {
 }
 
 impl SourceCache {
+    /// An empty cache; file names are shown relative to `display_base`.
     pub fn new(display_base: PathBuf) -> Self {
         let display_base = display_base.canonicalize().unwrap_or(display_base);
         SourceCache { display_base, inner: RwLock::new(Inner::default()), lookups: RwLock::default() }
@@ -507,6 +508,7 @@ impl SourceCache {
         self.inner.read().unwrap_or_else(|e| e.into_inner()).files.len()
     }
 
+    /// Whether no file is loaded.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }

@@ -355,6 +355,9 @@ fn remote_cache_down_is_one_warning_and_credentials_are_never_printed() {
             .args(["build", "--config", "compute.toml", "--stats-json", "stats.json", "--remote-cache", &url])
             .current_dir(d)
             .env_remove("KILN_CACHE_DIR")
+            // The local cache is this fixture's own: under cargo's target folder it would
+            // hold the first URL's entries, and the second build would never ask the remote.
+            .env_remove("CARGO_TARGET_DIR")
             .env("KILN_REMOTE_CACHE_TOKEN", "t0ken-xyz")
             .env("KILN_REMOTE_CACHE_TIMEOUT_MS", "500")
             .env("CI", "1")

@@ -378,6 +378,7 @@ fn list_streams_a_large_kept_set_in_bounded_memory() {
     assert_eq!(stdout(&o).lines().filter(|l| l.starts_with("S@sm5{")).count(), 1 << 17);
     assert!(stderr(&o).contains("the analysis (distinct sources, dead dimensions) runs up to"), "{}", stderr(&o));
     // Peak memory of the largest child so far (every child of this test binary is small).
+    // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
     let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
     // SAFETY: getrusage fills the struct we pass.
     unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) };

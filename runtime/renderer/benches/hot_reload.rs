@@ -44,6 +44,7 @@ fn save(path: &Path, text: &str) {
 fn cpu_time() -> Duration {
     // SAFETY: getrusage writes the struct it is given; a zeroed rusage is a valid value.
     let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: `usage` is a valid, writable rusage for the call to fill.
     unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) };
     let tv = |t: libc::timeval| Duration::from_secs(t.tv_sec as u64) + Duration::from_micros(t.tv_usec as u64);
     tv(usage.ru_utime) + tv(usage.ru_stime)
@@ -63,12 +64,10 @@ struct Timing {
 fn edit(hot: &mut HotReload, renderer: &mut Renderer, gpu: &Gpu, scene: &Scene, path: &Path, text: &str) -> Timing {
     let (start, cpu) = (Instant::now(), cpu_time());
     save(path, text);
-    let reload = loop {
-        match hot.poll(Duration::from_secs(60)).expect("watch") {
-            Some(Event::Reloaded(r)) => break r,
-            Some(Event::Failed { diagnostics, .. }) => panic!("the edit does not build:\n{diagnostics}"),
-            None => panic!("no reload within a minute"),
-        }
+    let reload = match hot.poll(Duration::from_secs(60)).expect("watch") {
+        Some(Event::Reloaded(r)) => r,
+        Some(Event::Failed { diagnostics, .. }) => panic!("the edit does not build:\n{diagnostics}"),
+        None => panic!("no reload within a minute"),
     };
     let built = Instant::now();
     *renderer = renderer.reload(gpu, reload.archive.clone(), scene, &reload.changed).expect("reload");

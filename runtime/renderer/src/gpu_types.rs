@@ -4,6 +4,17 @@
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec4};
+use wgpu::util::DeviceExt;
+
+/// A uniform buffer holding `value`, writable with `queue.write_buffer` (and the target of
+/// GPU copies, like the eye adaptation's exposure).
+pub fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(value),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
+}
 
 /// Formats of the frame's render targets, by their Unreal names.
 pub mod formats {

@@ -67,11 +67,7 @@ impl Snapshots {
 #[test]
 fn snapshots_match_and_every_artifact_validates() {
     let out_root = Path::new(env!("CARGO_MANIFEST_DIR")).join("out");
-    let mut snapshots = Snapshots {
-        bless: std::env::var_os("KILN_BLESS").is_some(),
-        expected: BTreeMap::new(),
-        mismatches: Vec::new(),
-    };
+    let mut snapshots = Snapshots { bless: crate::support::bless(), expected: BTreeMap::new(), mismatches: Vec::new() };
     let mut sets: Vec<PathBuf> = std::fs::read_dir(inputs())
         .unwrap()
         .map(|e| e.unwrap().path())

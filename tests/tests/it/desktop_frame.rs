@@ -2,9 +2,10 @@
 //! order, a golden image, and one test per pass that says something about what it computed.
 //! Without a Vulkan adapter these tests fail (naming `mesa-vulkan-drivers`), never skip.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
+use crate::support::{bless, golden_dir, psnr, read_png};
 use glam::{Mat4, Vec3};
 use kiln_renderer::desktop::{DesktopFrame, DesktopOptions, LightingPath};
 use kiln_renderer::frame::{write_dump, DumpInfo, Image};
@@ -174,25 +175,7 @@ fn dump_passes_writes_every_pass_in_frame_order_with_gpu_times() {
     }
 }
 
-struct Png {
-    width: u32,
-    height: u32,
-    rgba: Vec<u8>,
-}
-
-fn read_png(path: &Path) -> Png {
-    let decoder = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())),
-    ));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    assert_eq!(info.color_type, png::ColorType::Rgba, "{}", path.display());
-    buf.truncate(info.buffer_size());
-    Png { width: info.width, height: info.height, rgba: buf }
-}
-
-fn distinct(img: &Png) -> usize {
+fn distinct(img: &Image) -> usize {
     let mut px: Vec<&[u8]> = img.rgba.chunks_exact(4).collect();
     px.sort_unstable();
     px.dedup();
@@ -200,20 +183,20 @@ fn distinct(img: &Png) -> usize {
 }
 
 fn golden_path() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("golden").join("desktop_320x180.png")
+    golden_dir().join("desktop_320x180.png")
 }
 
 /// The frame against `tests/golden/desktop_320x180.png`. Tolerance: a mean absolute
 /// difference of at most 1.5 (of 255) per channel, and at most 1% of the pixels differing by
 /// more than 24 in any channel (lavapipe's LLVM version may change rounding). Regenerate with
-/// `KILN_UPDATE_GOLDEN=1 cargo test -p kiln-tests --test it desktop_frame::golden`.
+/// `KILN_BLESS=1 cargo test -p kiln-tests --test it desktop_frame::golden`.
 #[test]
 fn golden_image_matches_within_tolerance() {
     let f = build(&Scene::bundled(), small());
     let (image, _) = f.frame.render(false);
     let image = image.unwrap();
     let path = golden_path();
-    if std::env::var_os("KILN_UPDATE_GOLDEN").is_some() {
+    if bless() {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         std::fs::write(&path, image.to_png()).unwrap();
     }
@@ -491,21 +474,6 @@ fn tiled_lighting_above_80_lights_matches_the_per_light_path() {
     // The extra lights are visible at all: the frame is brighter than without them.
     let (base, _) = render(&build(&Scene::bundled(), small()));
     assert!(a.mean_luma(0, 0, W, H) > base.mean_luma(0, 0, W, H) + 2.0);
-}
-
-fn psnr(a: &Image, b: &Image) -> f64 {
-    let mse: f64 = a
-        .rgba
-        .chunks_exact(4)
-        .zip(b.rgba.chunks_exact(4))
-        .flat_map(|(p, q)| (0..3).map(move |c| (f64::from(p[c]) - f64::from(q[c])).powi(2)))
-        .sum::<f64>()
-        / (f64::from(a.width * a.height) * 3.0);
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
 }
 
 /// The desktop frame and the mobile forward frame light the same scene alike once the

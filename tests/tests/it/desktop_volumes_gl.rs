@@ -7,6 +7,7 @@
 use std::sync::Arc;
 
 use crate::desktop_support::*;
+use crate::support::psnr;
 use kiln_renderer::desktop::effects::{EffectOptions, TranslucencyLightingMode};
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;
@@ -51,23 +52,6 @@ fn frame(gpu: &Gpu, fog: bool) -> (Image, Vec<(String, Image)>) {
     });
     let out = r.render(true).unwrap_or_else(|e| panic!("{e}"));
     (out.image, out.passes.into_iter().flat_map(|p| p.images).collect())
-}
-
-fn psnr(a: &Image, b: &Image) -> f64 {
-    assert_eq!((a.width, a.height), (b.width, b.height));
-    let n = (a.width * a.height * 3) as f64;
-    let mse = a
-        .rgba
-        .chunks(4)
-        .zip(b.rgba.chunks(4))
-        .map(|(p, q)| (0..3).map(|i| (f64::from(p[i]) - f64::from(q[i])).powi(2)).sum::<f64>())
-        .sum::<f64>()
-        / n;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
 }
 
 fn named<'a>(images: &'a [(String, Image)], name: &str) -> &'a Image {

@@ -6,6 +6,7 @@
 mod build_support;
 mod desktop_support;
 mod mobile_support;
+mod support;
 
 mod build_archive;
 mod build_cache;

@@ -5,6 +5,7 @@
 
 use std::sync::Arc;
 
+use crate::support::psnr;
 use glam::Vec3;
 use kiln_renderer::frame::Image;
 use kiln_renderer::scene::Scene;
@@ -57,23 +58,6 @@ fn luma_at(image: &Image, (x, y): (u32, u32)) -> f64 {
 /// the solid part of the window wall (the ray to the sun hits the wall at z > 2).
 const LIT_FLOOR: Vec3 = Vec3::new(-1.75, 0.0, 4.25);
 const SHADOWED_FLOOR: Vec3 = Vec3::new(5.25, 0.0, 4.25);
-
-fn psnr(a: &Image, b: &Image) -> f64 {
-    let mse: f64 = a
-        .rgba
-        .iter()
-        .zip(&b.rgba)
-        .enumerate()
-        .filter(|(i, _)| i % 4 != 3)
-        .map(|(_, (x, y))| (f64::from(*x) - f64::from(*y)).powi(2))
-        .sum::<f64>()
-        / (a.rgba.len() as f64 * 0.75);
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
-}
 
 #[test]
 fn desktop_frame_has_lit_and_shadowed_floor() {

@@ -110,6 +110,9 @@ impl Args {
 
     fn gpu(&self) -> Result<Gpu, Failure> {
         let module_source = if self.wgsl { kiln_runtime::ModuleSource::Wgsl } else { kiln_runtime::ModuleSource::Auto };
+        if self.validation {
+            kiln_runtime::validation::enable(self.backend()).map_err(|e| Failure::Render(e.to_string()))?;
+        }
         Gpu::new(&GpuOptions { backend: self.backend(), module_source, timestamps: true, validation: self.validation })
             .map_err(|e| Failure::Render(e.to_string()))
     }

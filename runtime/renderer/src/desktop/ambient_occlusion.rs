@@ -12,9 +12,10 @@ use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
-use super::resources::{begin, color_attachment, formats, uniform, Targets};
+use super::resources::{begin, color_attachment, formats, Targets};
 use super::view::AmbientOcclusionUniforms;
 use super::{DesktopError, PassSetup};
+use crate::gpu_types::uniform_buffer;
 
 /// The AmbientOcclusion declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -52,8 +53,8 @@ impl AmbientOcclusion {
             jitter,
         };
         let (hw, hh) = (t.ao_half.texture.width(), t.ao_half.texture.height());
-        let half_uniforms = uniform(b.device, "AmbientOcclusion half", &params(hw, hh));
-        let full_uniforms = uniform(b.device, "AmbientOcclusion full", &params(t.width, t.height));
+        let half_uniforms = uniform_buffer(b.device, "AmbientOcclusion half", &params(hw, hh));
+        let full_uniforms = uniform_buffer(b.device, "AmbientOcclusion full", &params(t.width, t.height));
         let quality = i64::from(b.options.ao_quality.min(2));
         let step = |name: &'static str,
                     ps: String,

@@ -321,6 +321,142 @@ pub fn animate_movable(base: Mat4, time: f32) -> Mat4 {
     Mat4::from_translation(offset) * base * Mat4::from_quat(Quat::from_rotation_y(time * 0.8))
 }
 
+/// The lights the translucency volumes hold, with their own shadows: the directional light
+/// where it shines (no shadow of its own: it reads the cascades), then the local lights that
+/// cast shadows (those ShadowedLights draws).
+fn injected_lights<'t>(
+    scene: &Scene,
+    targets: &EffectTargets<'t>,
+) -> (Vec<InjectedLight>, Vec<Option<LocalLightShadow<'t>>>) {
+    let mut lights = Vec::new();
+    let mut light_shadows = Vec::new();
+    let local_shadow = |index: usize| targets.local_shadows.get(index).cloned().flatten();
+    if scene.sun.enabled {
+        lights.push(InjectedLight::Directional {
+            direction: -scene.sun.direction,
+            color: scene.sun.color * scene.sun.intensity,
+        });
+        light_shadows.push(None);
+    }
+    for (i, l) in scene.point_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
+        lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
+        light_shadows.push(local_shadow(i));
+    }
+    for (i, l) in scene.spot_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
+        light_shadows.push(local_shadow(scene.point_lights.len() + i));
+        lights.push(InjectedLight::Spot {
+            position: l.position,
+            radius: l.radius,
+            color: l.color * l.intensity,
+            direction: l.direction,
+            inner_angle: l.inner_angle,
+            outer_angle: l.outer_angle,
+        });
+    }
+    (lights, light_shadows)
+}
+
+/// ParticleSimulation's emitters (the scene's fire, sparks that collide, smoke) and their
+/// passes, lit by the translucency volumes.
+fn new_particles(
+    context: &EffectContext<'_>,
+    targets: &EffectTargets<'_>,
+    volumes: &TranslucentVolumes,
+    depth_view: &wgpu::TextureView,
+    gbuffer_a: &wgpu::TextureView,
+) -> Result<Particles, PipelineError> {
+    let EffectContext { device, queue, cache, scene, warm_up_particles, .. } = *context;
+    let mut emitters = Vec::new();
+    for e in &scene.emitters {
+        emitters.push(EmitterDesc { prewarm: warm_up_particles, ..EmitterDesc::fire(e) });
+        emitters.push(EmitterDesc::sparks(e));
+        emitters.push(EmitterDesc::smoke(e));
+    }
+    // the smoke is lit by both translucency volume cascades, blended as the glass reads them
+    let ambient = [volume_view(volumes.volumes(0).0), volume_view(volumes.volumes(1).0)];
+    let directional = [volume_view(volumes.volumes(0).1), volume_view(volumes.volumes(1).1)];
+    let lit = LightingVolume {
+        params: volumes.lookup_buffer(),
+        ambient: [&ambient[0], &ambient[1]],
+        directional: [&directional[0], &directional[1]],
+    };
+    Particles::new(
+        &ParticlesInit {
+            device,
+            queue,
+            cache,
+            view: targets.view,
+            collision: CollisionInputs { scene_depth: depth_view, gbuffer_a },
+            lighting_volume: lit,
+            formats: ParticleFormats {
+                color: targets.scene_color.format(),
+                depth: targets.scene_depth.format(),
+                distortion: super::resources::formats::DISTORTION,
+            },
+            size: targets.size,
+        },
+        emitters,
+    )
+}
+
+/// The pictures the dumps show of what is not an image: particle states, velocities, the
+/// fog's and the translucency volumes' slices, the distortion offsets.
+#[allow(clippy::too_many_arguments)] // one per effect it pictures
+fn visualizations(
+    device: &wgpu::Device,
+    cache: &PipelineCache,
+    size: [u32; 2],
+    scene: &Scene,
+    particles: &Particles,
+    velocity: &Velocity,
+    fog: &VolumetricFog,
+    volumes: &TranslucentVolumes,
+    distortion: &Distortion,
+) -> Result<Visualizations, PipelineError> {
+    let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
+        let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
+        Visualization::new(device, cache, label, source, s, VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] })
+    };
+    let sparks = particles.state_textures(true);
+    let fire = particles.state_textures(false);
+    let pos_scale = Vec4::new(0.1, 0.25, 0.1, 0.0);
+    let pos_bias = Vec4::new(0.0, 0.0, 0.5, 0.0);
+    let vel_scale = Vec4::new(0.5, 0.3, 0.5, 0.0);
+    // the dumps show the large cascade's slice through the middle of the room (z = 0),
+    // chosen again every frame as the cascade follows the camera
+    let volume_slice = room_slice(scene.camera.position);
+    Ok(Visualizations {
+        particle_position: [
+            v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?,
+            v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?,
+        ],
+        particle_velocity: [
+            v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?,
+            v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?,
+        ],
+        spark_position: [
+            v("SparkStatePosition", &sparks.0[0], pos_scale, pos_bias, 0)?,
+            v("SparkStatePosition", &sparks.0[1], pos_scale, pos_bias, 0)?,
+        ],
+        velocity: v("Velocity", &velocity.texture, Vec4::new(40.0, 40.0, 0.0, 0.0), Vec4::ZERO, 0)?,
+        vbuffer_a: v("VBufferA", &fog.vbuffer_a, Vec4::splat(10.0), Vec4::ZERO, FOG_SLICE)?,
+        light_scattering: [
+            v("LightScattering", &fog.light_scattering[0], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
+            v("LightScattering", &fog.light_scattering[1], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
+        ],
+        integrated: v(
+            "IntegratedLightScattering",
+            &fog.integrated,
+            Vec4::new(2.0, 2.0, 2.0, 0.0),
+            Vec4::ZERO,
+            super::volumetric_fog::DEPTH_SLICES - 1,
+        )?,
+        volume_ambient: v("TranslucentVolume1", volumes.injected(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
+        volume_filtered: v("TranslucentVolume1", volumes.volumes(1).0, Vec4::splat(0.25), Vec4::ZERO, volume_slice)?,
+        distortion: v("Distortion", &distortion.offsets, Vec4::new(25.0, 25.0, 0.0, 0.0), Vec4::ZERO, 0)?,
+    })
+}
+
 impl Effects {
     /// Builds every pass (and so every pipeline) of the effects on `context`'s device, over
     /// the frame's `targets` and the directional light's cascades (`shadow`).
@@ -330,7 +466,7 @@ impl Effects {
         shadow: Option<DirectionalShadow>,
         options: EffectOptions,
     ) -> Result<Effects, PipelineError> {
-        let EffectContext { device, queue, cache, scene, meshes, warm_up_particles } = *context;
+        let EffectContext { device, queue, cache, scene, meshes, .. } = *context;
         let size = targets.size;
         let frame_view = targets.view.clone();
         let depth_format = targets.scene_depth.format();
@@ -348,69 +484,11 @@ impl Effects {
         });
         let scene_color_format = targets.scene_color.format();
 
-        // the lights the volumes hold: the directional light where it shines, the local lights
-        // that cast shadows (those ShadowedLights draws)
-        // (with their own shadows: none for the directional light, which reads the cascades)
-        let mut lights = Vec::new();
-        let mut light_shadows = Vec::new();
-        let local_shadow = |index: usize| targets.local_shadows.get(index).cloned().flatten();
-        if scene.sun.enabled {
-            lights.push(InjectedLight::Directional {
-                direction: -scene.sun.direction,
-                color: scene.sun.color * scene.sun.intensity,
-            });
-            light_shadows.push(None);
-        }
-        for (i, l) in scene.point_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
-            lights.push(InjectedLight::Point { position: l.position, radius: l.radius, color: l.color * l.intensity });
-            light_shadows.push(local_shadow(i));
-        }
-        for (i, l) in scene.spot_lights.iter().enumerate().filter(|(_, l)| l.casts_shadows) {
-            light_shadows.push(local_shadow(scene.point_lights.len() + i));
-            lights.push(InjectedLight::Spot {
-                position: l.position,
-                radius: l.radius,
-                color: l.color * l.intensity,
-                direction: l.direction,
-                inner_angle: l.inner_angle,
-                outer_angle: l.outer_angle,
-            });
-        }
+        let (lights, light_shadows) = injected_lights(scene, targets);
         let init = EffectPassInit { device, cache, frame_view: &frame_view };
         let volumes = TranslucentVolumes::new(&init, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
 
-        // ParticleSimulation: the scene's fire, and sparks that collide
-        let mut emitters = Vec::new();
-        for e in &scene.emitters {
-            emitters.push(EmitterDesc { prewarm: warm_up_particles, ..EmitterDesc::fire(e) });
-            emitters.push(EmitterDesc::sparks(e));
-            emitters.push(EmitterDesc::smoke(e));
-        }
-        // the smoke is lit by both translucency volume cascades, blended as the glass reads them
-        let ambient = [volume_view(volumes.volumes(0).0), volume_view(volumes.volumes(1).0)];
-        let directional = [volume_view(volumes.volumes(0).1), volume_view(volumes.volumes(1).1)];
-        let lit = LightingVolume {
-            params: volumes.lookup_buffer(),
-            ambient: [&ambient[0], &ambient[1]],
-            directional: [&directional[0], &directional[1]],
-        };
-        let particles = Particles::new(
-            &ParticlesInit {
-                device,
-                queue,
-                cache,
-                view: &frame_view,
-                collision: CollisionInputs { scene_depth: &depth_view, gbuffer_a: &a },
-                lighting_volume: lit,
-                formats: ParticleFormats {
-                    color: scene_color_format,
-                    depth: depth_format,
-                    distortion: super::resources::formats::DISTORTION,
-                },
-                size,
-            },
-            emitters,
-        )?;
+        let particles = new_particles(context, targets, &volumes, &depth_view, &a)?;
 
         // BeginOcclusionTests: every object's box; local lights' bounds
         let bounds: Vec<(Vec3, Vec3)> =
@@ -489,67 +567,7 @@ impl Effects {
         let motion_blur =
             MotionBlur::new(&init, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
 
-        let v = |label: &str, source: &wgpu::Texture, scale: Vec4, bias: Vec4, slice: u32| {
-            let s = if is_volume(source) { [size[0] / 2, size[1] / 2] } else { [source.width(), source.height()] };
-            Visualization::new(
-                device,
-                cache,
-                label,
-                source,
-                s,
-                VisualizeParams { scale, bias, slice: [slice, 0, 0, 0] },
-            )
-        };
-        let sparks = particles.state_textures(true);
-        let fire = particles.state_textures(false);
-        let pos_scale = Vec4::new(0.1, 0.25, 0.1, 0.0);
-        let pos_bias = Vec4::new(0.0, 0.0, 0.5, 0.0);
-        let vel_scale = Vec4::new(0.5, 0.3, 0.5, 0.0);
-        // the dumps show the large cascade's slice through the middle of the room (z = 0),
-        // chosen again every frame as the cascade follows the camera
-        let volume_slice = room_slice(scene.camera.position);
-        let vis = Visualizations {
-            particle_position: [
-                v("ParticleStatePosition", &fire.0[0], pos_scale, pos_bias, 0)?,
-                v("ParticleStatePosition", &fire.0[1], pos_scale, pos_bias, 0)?,
-            ],
-            particle_velocity: [
-                v("ParticleStateVelocity", &fire.1[0], vel_scale, Vec4::ZERO, 0)?,
-                v("ParticleStateVelocity", &fire.1[1], vel_scale, Vec4::ZERO, 0)?,
-            ],
-            spark_position: [
-                v("SparkStatePosition", &sparks.0[0], pos_scale, pos_bias, 0)?,
-                v("SparkStatePosition", &sparks.0[1], pos_scale, pos_bias, 0)?,
-            ],
-            velocity: v("Velocity", &velocity.texture, Vec4::new(40.0, 40.0, 0.0, 0.0), Vec4::ZERO, 0)?,
-            vbuffer_a: v("VBufferA", &fog.vbuffer_a, Vec4::splat(10.0), Vec4::ZERO, FOG_SLICE)?,
-            light_scattering: [
-                v("LightScattering", &fog.light_scattering[0], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
-                v("LightScattering", &fog.light_scattering[1], Vec4::splat(100.0), Vec4::ZERO, FOG_SLICE)?,
-            ],
-            integrated: v(
-                "IntegratedLightScattering",
-                &fog.integrated,
-                Vec4::new(2.0, 2.0, 2.0, 0.0),
-                Vec4::ZERO,
-                super::volumetric_fog::DEPTH_SLICES - 1,
-            )?,
-            volume_ambient: v(
-                "TranslucentVolume1",
-                volumes.injected(1).0,
-                Vec4::splat(0.25),
-                Vec4::ZERO,
-                volume_slice,
-            )?,
-            volume_filtered: v(
-                "TranslucentVolume1",
-                volumes.volumes(1).0,
-                Vec4::splat(0.25),
-                Vec4::ZERO,
-                volume_slice,
-            )?,
-            distortion: v("Distortion", &distortion.offsets, Vec4::new(25.0, 25.0, 0.0, 0.0), Vec4::ZERO, 0)?,
-        };
+        let vis = visualizations(device, cache, size, scene, &particles, &velocity, &fog, &volumes, &distortion)?;
 
         let state = State {
             options,

@@ -3,9 +3,7 @@
 //! uniform buffers, samplers, full-screen draws). The view they bind is the one
 //! [`crate::scene::view::SceneView`].
 
-use bytemuck::Pod;
 use glam::{Mat4, Vec2, Vec4};
-use wgpu::util::DeviceExt;
 
 pub use crate::frame::target_2d;
 use crate::frame::{GroupedRenderPass, PassContext};
@@ -120,15 +118,7 @@ impl InstancedMesh {
     }
 }
 
-/// A uniform buffer holding `value`, writable with `queue.write_buffer` (and the target of
-/// GPU copies, like the eye adaptation's exposure).
-pub fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some(label),
-        contents: bytemuck::bytes_of(value),
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-    })
-}
+pub use crate::gpu_types::uniform_buffer;
 
 /// A storage volume (froxels, translucency lighting volumes) of `size` cells: a 2D array
 /// texture with one layer per z cell (`VolumeTextureCommon.ush`). wgpu-hal 30's GL backend

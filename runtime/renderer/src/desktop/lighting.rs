@@ -27,12 +27,13 @@ use crate::keys::standard_deferred_lighting_ps::LightType;
 
 use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
 use super::resources::{
-    begin, color_attachment, formats, read_only_depth, stencil_lit_only, uniform, FrameLight, LocalShadow,
-    SceneBuffers, Targets, Texture,
+    begin, color_attachment, formats, read_only_depth, stencil_lit_only, FrameLight, LocalShadow, SceneBuffers,
+    Targets, Texture,
 };
 use super::shadow_depths::ShadowDepths;
 use super::view::{DeferredLightUniforms, FrameView, LocalLightGpu, ShadowProjectionUniforms, TiledLightingUniforms};
 use super::{DesktopError, LightingPath, PassSetup};
+use crate::gpu_types::uniform_buffer;
 
 /// The Lighting declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -197,7 +198,7 @@ impl Lighting {
                 ]
             };
             let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
-            let buffer = uniform(
+            let buffer = uniform_buffer(
                 device,
                 &format!("DeferredLight {label}"),
                 &DeferredLightUniforms { light: gpu, depth_bounds: bounds },
@@ -226,7 +227,7 @@ impl Lighting {
             let use_grid = b.options.tiled_uses_light_grid;
             let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
             let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
-            let params = uniform(
+            let params = uniform_buffer(
                 device,
                 "TiledLighting",
                 &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) },
@@ -284,7 +285,7 @@ impl Lighting {
                     targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))],
                 },
             )?;
-            let buffer = uniform(device, &format!("ShadowProjection {label}"), u);
+            let buffer = uniform_buffer(device, &format!("ShadowProjection {label}"), u);
             let groups = pipeline
                 .layout
                 .bind_groups(

@@ -221,7 +221,7 @@ impl DesktopFrame {
         let base_view =
             view.scene_view(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         // the frame's one View buffer
-        let view_buffer = resources::uniform(device, "View", &base_view);
+        let view_buffer = crate::gpu_types::uniform_buffer(device, "View", &base_view);
         let buffers = resources::SceneBuffers::upload(device, scene);
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);

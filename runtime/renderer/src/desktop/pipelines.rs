@@ -4,53 +4,39 @@
 
 use std::sync::Arc;
 
-use crate::pipelines::{ErrorScopes, MergedBinding, PipelineCache, PipelineLayoutInfo, RenderState, VertexLayout};
+use crate::pipelines::{PipelineCache, PipelineError, PipelineLayoutInfo, RenderState, VertexLayout};
 
 use super::DesktopError;
 
-/// The bind group layouts of one pipeline and a by-name way to fill them.
-pub struct Layout {
-    pub label: String,
-    pub groups: Vec<Vec<MergedBinding>>,
-    pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
-}
+/// The bind group layouts of one pipeline (the runtime's [`PipelineLayoutInfo`]) and a
+/// by-name way to fill them.
+pub struct Layout(pub PipelineLayoutInfo);
 
 impl Layout {
-    /// A bind group for `group` from `(name in the shader, resource)` pairs. Resources the
-    /// permutation does not use are left out; a binding it uses without a resource is an error.
+    /// A bind group for `group` from `(name in the shader, resource)` pairs, or `None` for a
+    /// group the pipeline does not use: the runtime's [`PipelineLayoutInfo::bind_group`],
+    /// its errors worded as the desktop frame's.
     pub fn bind_group(
         &self,
         device: &wgpu::Device,
         group: u32,
         resources: &[(&str, wgpu::BindingResource<'_>)],
     ) -> Result<Option<wgpu::BindGroup>, DesktopError> {
-        let Some(bindings) = self.groups.get(group as usize) else { return Ok(None) };
-        if bindings.is_empty() {
+        let info = &self.0;
+        if !info.uses_group(group) {
             return Ok(None);
         }
-        let mut entries = Vec::with_capacity(bindings.len());
-        for b in bindings {
-            let name = b.name.clone().unwrap_or_default();
-            let resource = resources.iter().find(|(n, _)| *n == name).map(|(_, r)| r.clone()).ok_or_else(|| {
-                DesktopError::MissingResource {
-                    pipeline: self.label.clone(),
-                    group,
-                    binding: b.binding,
-                    name: name.clone(),
-                }
-            })?;
-            entries.push(wgpu::BindGroupEntry { binding: b.binding, resource });
+        let label = format!("{} group {group}", info.label);
+        match info.bind_group(device, group, &label, resources) {
+            Ok(bind_group) => Ok(Some(bind_group)),
+            Err(PipelineError::MissingResource { label, group, binding, name }) => {
+                Err(DesktopError::MissingResource { pipeline: label, group, binding, name })
+            }
+            Err(PipelineError::Wgpu { message, .. }) => {
+                Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", info.label), message })
+            }
+            Err(e) => Err(e.into()),
         }
-        let scope = ErrorScopes::push(device);
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(crate::pipelines::short_label(&format!("{} group {group}", self.label))),
-            layout: &self.bind_group_layouts[group as usize],
-            entries: &entries,
-        });
-        if let Some(message) = scope.pop() {
-            return Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", self.label), message });
-        }
-        Ok(Some(bind_group))
     }
 
     /// Bind groups for every group the pipeline uses, from one resource list.
@@ -60,7 +46,7 @@ impl Layout {
         resources: &[(&str, wgpu::BindingResource<'_>)],
     ) -> Result<BindGroups, DesktopError> {
         let mut groups = Vec::new();
-        for g in 0..self.groups.len() as u32 {
+        for g in 0..self.0.groups.len() as u32 {
             groups.push(self.bind_group(device, g, resources)?);
         }
         Ok(BindGroups { groups, keep: Vec::new() })
@@ -185,11 +171,7 @@ impl<'a> Pipelines<'a> {
 
 impl From<&PipelineLayoutInfo> for Layout {
     fn from(info: &PipelineLayoutInfo) -> Layout {
-        Layout {
-            label: info.label.clone(),
-            groups: info.groups.clone(),
-            bind_group_layouts: info.bind_group_layouts.clone(),
-        }
+        Layout(info.clone())
     }
 }
 

@@ -10,9 +10,10 @@ use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{blend, BindGroups, Render, RenderDesc};
-use super::resources::{begin, color_attachment, formats, uniform, Targets};
+use super::resources::{begin, color_attachment, formats, Targets};
 use super::view::{BloomUniforms, TonemapUniforms};
 use super::{DesktopError, PassSetup};
+use crate::gpu_types::uniform_buffer;
 
 /// Bloom and the Tonemapper (after the temporal steps).
 pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Bloom", "Output"] };
@@ -52,7 +53,7 @@ impl PostProcessing {
                        intensity: f32|
          -> Result<(), DesktopError> {
             let pipeline = p.render(&vs, Some(ps), &RenderDesc::fullscreen(formats::BLOOM, blend))?;
-            let u = uniform(
+            let u = uniform_buffer(
                 b.device,
                 "Bloom",
                 &BloomUniforms {
@@ -93,8 +94,11 @@ impl PostProcessing {
             )?),
             &RenderDesc::fullscreen(output_format, None),
         )?;
-        let u =
-            uniform(b.device, "Tonemap", &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) });
+        let u = uniform_buffer(
+            b.device,
+            "Tonemap",
+            &TonemapUniforms { params: Vec4::new(b.scene.exposure, BLOOM[2], 0.4, 0.0) },
+        );
         let groups = pipeline
             .layout
             .bind_groups(

@@ -46,11 +46,7 @@ pub struct Draw {
     pub bounds: (Vec3, f32),
 }
 
-pub struct GpuMesh {
-    pub vertices: wgpu::Buffer,
-    pub indices: wgpu::Buffer,
-    pub index_count: u32,
-}
+pub use crate::scene::gpu::GpuMesh;
 
 /// The scene as the desktop shaders read it.
 pub struct SceneBuffers {
@@ -64,19 +60,7 @@ pub struct SceneBuffers {
 
 impl SceneBuffers {
     pub fn upload(device: &wgpu::Device, scene: &Scene) -> SceneBuffers {
-        let mesh = |m: &Mesh| GpuMesh {
-            vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("{} vertices", m.name)),
-                contents: bytemuck::cast_slice(&m.vertices),
-                usage: wgpu::BufferUsages::VERTEX,
-            }),
-            indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(&format!("{} indices", m.name)),
-                contents: bytemuck::cast_slice(&m.indices),
-                usage: wgpu::BufferUsages::INDEX,
-            }),
-            index_count: m.indices.len() as u32,
-        };
+        let mesh = |m: &Mesh| GpuMesh::upload(device, m);
         let meshes = scene.meshes.iter().map(mesh).collect();
         let mut instances = Vec::new();
         let mut draws = Vec::new();
@@ -493,15 +477,6 @@ impl Samplers {
             random_normals,
         }
     }
-}
-
-/// A uniform buffer holding one value.
-pub fn uniform<T: bytemuck::Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some(label),
-        contents: bytemuck::bytes_of(value),
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-    })
 }
 
 /// A storage buffer holding a slice (at least one element, so empty lists bind).

@@ -16,9 +16,10 @@ use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 
 use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
-use super::resources::{begin, formats, uniform, LocalShadow, SceneBuffers, Texture};
+use super::resources::{begin, formats, LocalShadow, SceneBuffers, Texture};
 use super::view::{FrameView, ShadowDepthPassUniforms, ShadowProjectionUniforms};
 use super::{DesktopError, PassSetup};
+use crate::gpu_types::uniform_buffer;
 use std::sync::Arc;
 
 /// Skips the lights whose ShadowFrustumQueries came back empty.
@@ -201,7 +202,7 @@ impl ShadowDepths {
             b.buffers.draws.iter().enumerate().filter(|(_, d)| d.casts_shadow).map(|(i, _)| i).collect();
         let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
         let view_groups = |pipeline: &Render, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
-            let buffer = uniform(device, label, &ShadowDepthPassUniforms { view_proj: m });
+            let buffer = uniform_buffer(device, label, &ShadowDepthPassUniforms { view_proj: m });
             Ok(pipeline
                 .layout
                 .bind_groups(
@@ -223,7 +224,7 @@ impl ShadowDepths {
             let (u, matrices) = cascaded_uniforms(b.view, b.scene.sun.direction, size);
             let mut views = Vec::new();
             for (i, m) in matrices.iter().enumerate() {
-                let buffer = uniform(device, &format!("Cascade{i}"), &ShadowDepthPassUniforms { view_proj: *m });
+                let buffer = uniform_buffer(device, &format!("Cascade{i}"), &ShadowDepthPassUniforms { view_proj: *m });
                 cascade_buffers.push(buffer.clone());
                 let groups = ortho
                     .layout

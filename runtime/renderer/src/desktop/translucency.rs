@@ -17,9 +17,10 @@ use super::effects::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::frame_view::volume_view;
 use super::light_grid::LightGrid;
 use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
-use super::resources::{begin, color_attachment, formats, uniform, SceneBuffers, Targets, Texture};
+use super::resources::{begin, color_attachment, formats, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
 use super::{DesktopError, PassSetup};
+use crate::gpu_types::uniform_buffer;
 
 /// The Translucency declaration.
 pub const PASS: PassDecl = PassDecl {
@@ -141,7 +142,7 @@ impl Translucency {
                 targets: vec![(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
             },
         )?;
-        let directional = uniform(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
+        let directional = uniform_buffer(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
         let mut resources = resources.to_vec();
         resources.push(("DirectionalShadow", directional.as_entire_binding()));
         let groups = pipeline.layout.bind_groups(b.device, &resources)?;

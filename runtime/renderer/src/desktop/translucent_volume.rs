@@ -358,7 +358,7 @@ impl TranslucentVolumes {
             let mut pass = ctx.open_compute_pass(&format!("InjectTranslucentVolume cascade {c}"));
             for (k, light) in self.lights.iter().enumerate() {
                 let injection = &cascade.injections[k];
-                let rendered = self.gates[k].is_none_or(|l| casts_shadow(l));
+                let rendered = self.gates[k].is_none_or(casts_shadow);
                 let (pipeline, group) = match &injection.shadowed {
                     Some((pipeline, g)) if shadows && rendered => (*pipeline, g),
                     _ => (INJECT_UNSHADOWED, &injection.unshadowed),

@@ -195,51 +195,27 @@ impl MobileOptions {
     }
 }
 
-/// A render target of the mobile frames.
-pub struct Target {
-    pub name: &'static str,
-    pub texture: wgpu::Texture,
-    pub view: wgpu::TextureView,
-}
+pub use crate::passes::Target;
 
-impl Target {
-    pub fn new(
-        device: &wgpu::Device,
-        name: &'static str,
-        format: wgpu::TextureFormat,
-        size: (u32, u32),
-        samples: u32,
-    ) -> Target {
-        let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
-        if samples == 1 {
-            usage |= wgpu::TextureUsages::TEXTURE_BINDING;
-            // Depth-stencil with a 24-bit depth cannot be copied out; everything else can be dumped.
-            if format != DEFERRED_DEPTH_FORMAT {
-                usage |= wgpu::TextureUsages::COPY_SRC;
-            }
+/// A render target of the mobile frames: a multisampled one is an attachment only; a
+/// single-sampled one is also sampled and (but for the 24-bit depth-stencil, which cannot
+/// be copied) dumped.
+fn target(
+    device: &wgpu::Device,
+    name: &'static str,
+    format: wgpu::TextureFormat,
+    size: (u32, u32),
+    samples: u32,
+) -> Target {
+    let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
+    if samples == 1 {
+        usage |= wgpu::TextureUsages::TEXTURE_BINDING;
+        // Depth-stencil with a 24-bit depth cannot be copied out; everything else can be dumped.
+        if format != DEFERRED_DEPTH_FORMAT {
+            usage |= wgpu::TextureUsages::COPY_SRC;
         }
-        let texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(name),
-            size: wgpu::Extent3d { width: size.0, height: size.1, depth_or_array_layers: 1 },
-            mip_level_count: 1,
-            sample_count: samples,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage,
-            view_formats: &[],
-        });
-        let view = texture.create_view(&wgpu::TextureViewDescriptor { label: Some(name), ..Default::default() });
-        Target { name, texture, view }
     }
-
-    /// The depth aspect alone (to sample a depth-stencil texture).
-    pub fn depth_view(&self) -> wgpu::TextureView {
-        self.texture.create_view(&wgpu::TextureViewDescriptor {
-            label: Some(self.name),
-            aspect: wgpu::TextureAspect::DepthOnly,
-            ..Default::default()
-        })
-    }
+    Target::with_usage(device, name, format, size, samples, usage)
 }
 
 /// The render targets of one mobile frame.
@@ -274,26 +250,26 @@ impl MobileTargets {
         let deferred = options.path == ShadingPath::Deferred;
         let color_format = if options.hdr { SCENE_COLOR_FORMAT } else { LDR_COLOR_FORMAT };
         let depth_format = if deferred { DEFERRED_DEPTH_FORMAT } else { FORWARD_DEPTH_FORMAT };
-        let gbuffer = |name, format| deferred.then(|| Target::new(device, name, format, size, 1));
+        let gbuffer = |name, format| deferred.then(|| target(device, name, format, size, 1));
         MobileTargets {
             width,
             height,
             samples,
-            shadow_atlas: Target::new(
+            shadow_atlas: target(
                 device,
                 "ShadowAtlas",
                 SHADOW_ATLAS_FORMAT,
                 (shadows.atlas_width, shadows.atlas_height),
                 1,
             ),
-            scene_color_msaa: (samples > 1).then(|| Target::new(device, "SceneColorMSAA", color_format, size, samples)),
-            scene_depth: Target::new(device, "SceneDepth", depth_format, size, samples),
-            scene_color: Target::new(device, "SceneColor", color_format, size, 1),
+            scene_color_msaa: (samples > 1).then(|| target(device, "SceneColorMSAA", color_format, size, samples)),
+            scene_depth: target(device, "SceneDepth", depth_format, size, samples),
+            scene_color: target(device, "SceneColor", color_format, size, 1),
             gbuffer_a: gbuffer("GBufferA", GBUFFER_A_FORMAT),
             gbuffer_b: gbuffer("GBufferB", GBUFFER_B_FORMAT),
             gbuffer_c: gbuffer("GBufferC", GBUFFER_C_FORMAT),
-            scene_depth_aux: deferred.then(|| Target::new(device, "SceneDepthAux", SCENE_DEPTH_AUX_FORMAT, size, 1)),
-            output: options.hdr.then(|| Target::new(device, "Output", OUTPUT_FORMAT, size, 1)),
+            scene_depth_aux: deferred.then(|| target(device, "SceneDepthAux", SCENE_DEPTH_AUX_FORMAT, size, 1)),
+            output: options.hdr.then(|| target(device, "Output", OUTPUT_FORMAT, size, 1)),
         }
     }
 

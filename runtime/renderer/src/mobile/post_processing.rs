@@ -12,7 +12,7 @@ use crate::pipelines::PipelineError;
 
 use super::pipeline::{replace, Draw, MobilePipelines, PipelineDesc, VertexInput};
 use super::uniforms::{BloomUniforms, TonemapUniforms};
-use super::{MobileOptions, MobileTargets, SharedResources, Target, OUTPUT_FORMAT, SCENE_COLOR_FORMAT};
+use super::{target, MobileOptions, MobileTargets, SharedResources, Target, OUTPUT_FORMAT, SCENE_COLOR_FORMAT};
 
 /// Bloom and the Tonemapper into the output.
 pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Output"] };
@@ -87,16 +87,10 @@ impl PostProcessing {
         let mut plan: Vec<BloomStep> = Vec::new();
         if options.bloom {
             for (level, name) in NAMES.iter().enumerate() {
-                bloom_targets.push(Target::new(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
+                bloom_targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
             }
             for (i, name) in UP_NAMES.iter().enumerate() {
-                bloom_targets.push(Target::new(
-                    device,
-                    name,
-                    SCENE_COLOR_FORMAT,
-                    level_size(w, h, BLOOM_LEVELS - 2 - i),
-                    1,
-                ));
+                bloom_targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, BLOOM_LEVELS - 2 - i), 1));
             }
             let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
             plan.push(BloomStep {

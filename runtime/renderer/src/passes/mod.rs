@@ -38,7 +38,7 @@ pub mod particles;
 
 use crate::gpu_types::formats;
 
-/// A render target: texture, default view and the name it is dumped under.
+/// A render target of either frame: texture, default view and the name it is dumped under.
 pub struct Target {
     pub name: &'static str,
     pub texture: wgpu::Texture,
@@ -46,6 +46,7 @@ pub struct Target {
 }
 
 impl Target {
+    /// A single-sampled `width` x `height` target that passes render to, sample and dump.
     pub fn new(
         device: &wgpu::Device,
         name: &'static str,
@@ -53,20 +54,42 @@ impl Target {
         width: u32,
         height: u32,
     ) -> Target {
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC;
+        Target::with_usage(device, name, format, (width, height), 1, usage)
+    }
+
+    /// A 2D target of `size` with `samples` per pixel and the given usage.
+    pub fn with_usage(
+        device: &wgpu::Device,
+        name: &'static str,
+        format: wgpu::TextureFormat,
+        size: (u32, u32),
+        samples: u32,
+        usage: wgpu::TextureUsages,
+    ) -> Target {
         let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some(name),
-            size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+            size: wgpu::Extent3d { width: size.0, height: size.1, depth_or_array_layers: 1 },
             mip_level_count: 1,
-            sample_count: 1,
+            sample_count: samples,
             dimension: wgpu::TextureDimension::D2,
             format,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
+            usage,
             view_formats: &[],
         });
         let view = texture.create_view(&wgpu::TextureViewDescriptor { label: Some(name), ..Default::default() });
         Target { name, texture, view }
+    }
+
+    /// The depth aspect alone (to sample a depth-stencil texture).
+    pub fn depth_view(&self) -> wgpu::TextureView {
+        self.texture.create_view(&wgpu::TextureViewDescriptor {
+            label: Some(self.name),
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        })
     }
 }
 

@@ -18,9 +18,9 @@ use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
-use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::gpu_types::uniform_buffer;
 use crate::keys;
 use crate::pipelines::{
     Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
@@ -259,14 +259,6 @@ pub struct LightingVolume<'a> {
     pub params: &'a wgpu::Buffer,
     pub ambient: [&'a wgpu::TextureView; 2],
     pub directional: [&'a wgpu::TextureView; 2],
-}
-
-fn uniform_buffer<T: Pod>(device: &wgpu::Device, label: &str, value: &T) -> wgpu::Buffer {
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some(label),
-        contents: bytemuck::bytes_of(value),
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-    })
 }
 
 fn view(texture: &wgpu::Texture) -> wgpu::TextureView {

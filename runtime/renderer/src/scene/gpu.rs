@@ -4,13 +4,33 @@
 use glam::{UVec4, Vec4};
 use wgpu::util::DeviceExt;
 
-use super::{Material, PointLight, Scene, SpotLight};
+use super::{Material, Mesh, PointLight, Scene, SpotLight};
 use crate::gpu_types::{InstanceData, LightData, MaterialUniforms, MobileLocalLights};
 
+/// A mesh's vertex and index buffers, as both frames draw it.
 pub struct GpuMesh {
     pub vertices: wgpu::Buffer,
     pub indices: wgpu::Buffer,
     pub index_count: u32,
+}
+
+impl GpuMesh {
+    /// Uploads `mesh`'s vertices and indices, labelled with its name.
+    pub fn upload(device: &wgpu::Device, mesh: &Mesh) -> GpuMesh {
+        GpuMesh {
+            vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{} vertices", mesh.name)),
+                contents: bytemuck::cast_slice(&mesh.vertices),
+                usage: wgpu::BufferUsages::VERTEX,
+            }),
+            indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(&format!("{} indices", mesh.name)),
+                contents: bytemuck::cast_slice(&mesh.indices),
+                usage: wgpu::BufferUsages::INDEX,
+            }),
+            index_count: mesh.indices.len() as u32,
+        }
+    }
 }
 
 pub struct GpuObject {
@@ -36,23 +56,7 @@ pub struct GpuScene {
 
 impl GpuScene {
     pub fn upload(device: &wgpu::Device, scene: &Scene) -> GpuScene {
-        let meshes = scene
-            .meshes
-            .iter()
-            .map(|m| GpuMesh {
-                vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(&format!("{} vertices", m.name)),
-                    contents: bytemuck::cast_slice(&m.vertices),
-                    usage: wgpu::BufferUsages::VERTEX,
-                }),
-                indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(&format!("{} indices", m.name)),
-                    contents: bytemuck::cast_slice(&m.indices),
-                    usage: wgpu::BufferUsages::INDEX,
-                }),
-                index_count: m.indices.len() as u32,
-            })
-            .collect();
+        let meshes = scene.meshes.iter().map(|m| GpuMesh::upload(device, m)).collect();
         let objects = scene
             .objects
             .iter()
