@@ -518,7 +518,10 @@ impl Cache {
             keys.iter().filter(|k| !known(k)).copied().collect()
         });
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
-        let bundle = (layer.remote.streams() && keys.len() >= bundle::MIN_KEYS).then(|| bundle::Bundle::new(keys));
+        // Not with signed values: a part is used as it streams, before its end could be
+        // checked (each value is checked by itself; see `Remote::get_each`).
+        let bundle = (layer.remote.streams() && !layer.remote.signs() && keys.len() >= bundle::MIN_KEYS)
+            .then(|| bundle::Bundle::new(keys));
         let mut parts = vec![None; bundle.as_ref().map_or(0, |b| b.ids().len())];
         if missing.is_empty() {
             self.keep_bundle(layer, bundle, parts);
