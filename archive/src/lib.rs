@@ -23,6 +23,7 @@
 // The manifest's arenas and layouts are the writer's; the reader reads the bytes in place.
 #[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
+pub mod input;
 pub mod limits;
 pub mod output;
 mod reader;

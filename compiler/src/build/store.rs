@@ -275,8 +275,7 @@ impl Store {
         if let Some(remote) = c.remote().filter(|r| r.writes()) {
             // A regular file only (not `-o /dev/null`), read back whole: archives are small
             // next to the entries they hold (zstd with trained dictionaries).
-            let small = std::fs::metadata(out).is_ok_and(|m| m.is_file() && m.len() <= MAX_REMOTE_ARCHIVE);
-            if let Some(bytes) = small.then(|| std::fs::read(out).ok()).flatten() {
+            if let Ok(bytes) = crate::archive::input::read_regular(out, MAX_REMOTE_ARCHIVE) {
                 remote.store(&remote_archive_key(fingerprint), &encode_remote_archive(&bytes, counts));
             }
             // Every key's entry is in the local cache now: the bundle of the build's keys
@@ -420,7 +419,7 @@ pub fn default_cache_dir(config_dir: &Path) -> PathBuf {
     let mut package = None;
     for dir in config_dir.ancestors() {
         let manifest = dir.join("Cargo.toml");
-        if let Ok(text) = std::fs::read_to_string(&manifest) {
+        if let Ok(text) = crate::archive::input::read_regular_to_string(&manifest, 16 << 20) {
             if text.contains("[workspace]") {
                 return dir.join("target").join("kiln-cache");
             }

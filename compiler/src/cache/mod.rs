@@ -58,6 +58,8 @@ const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x02";
 const REMOTE_HEADER: usize = 8 + 16;
 const RECORD_EXTENSION: &str = "kpp";
+/// The largest records file read (a record is 64 bytes: about 16M permutations).
+const MAX_RECORDS: u64 = 1 << 30;
 /// Pack header: magic, entry count (u64), blake3 of the index rows.
 const PACK_HEADER: usize = 8 + 8 + 32;
 /// Index row: key, offset of the entry in the pack (u64), its length (u64).
@@ -807,7 +809,8 @@ impl Cache {
     /// local copy: this local cache never built that configuration).
     pub fn get_records_found(&self, key: &Key) -> Option<(Vec<u8>, bool)> {
         let path = self.records_path(key);
-        if let Some(body) = fs::read(&path).ok().and_then(records_body) {
+        // Only a regular file, bounded (a FIFO or a device there is ignored).
+        if let Some(body) = crate::archive::input::read_regular(&path, MAX_RECORDS).ok().and_then(records_body) {
             if let Ok(f) = fs::File::options().append(true).open(&path) {
                 let _ = f.set_modified(SystemTime::now());
             }
@@ -884,7 +887,7 @@ impl Cache {
         mut keys: &mut dyn Iterator<Item = &Key>,
     ) -> Option<(usize, usize)> {
         // The stamp first: without one (a first build) the keys are not looked at.
-        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
+        let text = crate::archive::input::read_regular_to_string(&self.stamp_path(archive), 4096).ok()?;
         if !self.with_index(|index| Iterator::all(&mut keys, |k| index.by_key.contains_key(k))) {
             return None;
         }
@@ -955,7 +958,7 @@ impl Cache {
             return false;
         }
         let mut head = [0u8; 65];
-        let n = match fs::File::open(path).and_then(|mut f| f.read(&mut head)) {
+        let n = match crate::archive::input::open_regular(path).and_then(|(mut f, _)| f.read(&mut head)) {
             Ok(n) => n,
             Err(_) => return false,
         };
@@ -1078,7 +1081,7 @@ fn records_body(mut bytes: Vec<u8>) -> Option<Vec<u8>> {
 /// [`open_pack`] checks the rest).
 fn pack_rows(path: &Path) -> Option<u64> {
     let mut header = [0u8; 16];
-    let file = fs::File::open(path).ok()?;
+    let (file, _) = crate::archive::input::open_regular(path).ok()?;
     file.read_exact_at(&mut header, 0).ok()?;
     let rows = u64::from_le_bytes(header[8..16].try_into().expect("8 bytes"));
     // A damaged count that the file cannot hold reserves nothing.
@@ -1089,8 +1092,8 @@ fn pack_rows(path: &Path) -> Option<u64> {
 /// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,
 /// `Err(why)` when it is not a whole pack of this Kiln.
 fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
-    let file = match fs::File::open(path) {
-        Ok(f) => f,
+    let file = match crate::archive::input::open_regular(path) {
+        Ok((f, _)) => f,
         Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e.to_string()),
     };

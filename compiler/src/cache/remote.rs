@@ -1160,7 +1160,7 @@ impl ureq::unversioned::resolver::Resolver for OnceResolver {
 fn trusted(path: &std::path::Path) -> Result<ureq::tls::TlsConfig, String> {
     use ureq::tls::{parse_pem, PemItem, RootCerts, TlsConfig};
     let why = |e: String| format!("KILN_REMOTE_CACHE_CA: {}: {e}", path.display());
-    let pem = std::fs::read(path).map_err(|e| why(e.to_string()))?;
+    let pem = crate::archive::input::read_regular(path, 16 << 20).map_err(|e| why(e.to_string()))?;
     let mut certificates = Vec::new();
     for item in parse_pem(&pem) {
         if let PemItem::Certificate(c) = item.map_err(|e| why(e.to_string()))? {

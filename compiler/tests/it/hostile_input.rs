@@ -639,3 +639,96 @@ fn config_loader_fuzz_never_panics() {
     eprintln!("{tried} mutations, {loaded} of them loaded");
     assert!(loaded > 0, "some mutations still load");
 }
+
+// --- Issue 28 ------------------------------------------------------------------------------------
+
+/// `kiln args` in `dir` under `ulimit -v` of `kib` KiB (address space), as [`kiln`] checks it.
+fn kiln_limited(dir: &Path, kib: u64, args: &[&str]) -> Output {
+    let script = format!("ulimit -v {kib} && exec \"$0\" \"$@\"");
+    let mut full = vec!["-c", script.as_str(), env!("CARGO_BIN_EXE_kiln")];
+    full.extend_from_slice(args);
+    let o = Command::new("sh")
+        .args(&full)
+        .current_dir(dir)
+        .env_remove("KILN_CACHE_DIR")
+        .env_remove("CARGO_TARGET_DIR")
+        .env("CI", "1")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let code = o.status.code().unwrap_or_else(|| panic!("kiln {args:?} died by a signal: {}", stderr(&o)));
+    assert!(matches!(code, 0..=2), "kiln {args:?} exited {code}: {}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked") && !stderr(&o).contains("memory allocation"), "{}", stderr(&o));
+    o
+}
+
+/// Case 4: shard counts far larger than the keys cost nothing (shards past the keys get
+/// an empty share); a count or index that cannot be used is exit 2 with a message.
+#[test]
+fn shard_counts_are_bounded_by_the_keys() {
+    let fx = fixture();
+    let d = fx.path();
+    for shard in ["0/100000000", "1/10000000000", "0/18446744073709551615", "18446744073709551614/18446744073709551615"]
+    {
+        let start = Instant::now();
+        let o = kiln_limited(d, 1 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache", "--shard", shard]);
+        assert_eq!(code(&o), 0, "{shard}: {}", stderr(&o));
+        assert!(start.elapsed() < Duration::from_secs(60), "{shard}: {:?}", start.elapsed());
+    }
+    for shard in ["0/18446744073709551616", "5/5", "0/0", "-1/4"] {
+        let arg = format!("--shard={shard}");
+        let o = kiln_limited(d, 1 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache", &arg]);
+        assert_eq!(code(&o), 2, "{shard}: {}", stderr(&o));
+        assert!(stderr(&o).contains("invalid shard"), "{shard}: {}", stderr(&o));
+    }
+    let o = kiln_limited(
+        d,
+        1 << 20,
+        &["build", "--config", "p.toml", "--cache-dir", "cache", "--shards", "99999999999999999999"],
+    );
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+}
+
+/// Case 6: a FIFO, a link to `/dev/zero` or a folder where the cache keeps its records,
+/// stamps or packs is ignored: the build finishes, in bounded memory, with the same archive.
+#[test]
+fn cache_files_that_are_not_regular_are_ignored() {
+    let fx = fixture();
+    let d = fx.path();
+    assert_eq!(code(&build(d, &[])), 0);
+    let archive = std::fs::read(d.join("shaders.kpak")).unwrap();
+    let cache_files = |ext: &str| -> Vec<PathBuf> {
+        std::fs::read_dir(d.join("cache"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == ext))
+            .collect()
+    };
+    for ext in ["kpp", "stamp", "kcp"] {
+        assert!(!cache_files(ext).is_empty(), "{ext}");
+    }
+    for (n, replace) in ["fifo", "zero", "dir"].iter().enumerate() {
+        for ext in ["kpp", "stamp", "kcp"] {
+            for path in cache_files(ext) {
+                if path.is_dir() {
+                    std::fs::remove_dir(&path).unwrap();
+                } else {
+                    std::fs::remove_file(&path).unwrap();
+                }
+                match *replace {
+                    "fifo" => mkfifo(&path),
+                    "zero" => std::os::unix::fs::symlink("/dev/zero", &path).unwrap(),
+                    _ => std::fs::create_dir(&path).unwrap(),
+                }
+            }
+        }
+        std::fs::remove_file(d.join("shaders.kpak")).unwrap();
+        let o = kiln_limited(d, 2 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache"]);
+        assert_eq!(code(&o), 0, "{replace}: {}", stderr(&o));
+        assert_eq!(std::fs::read(d.join("shaders.kpak")).unwrap(), archive, "{replace} {n}");
+        // Stats and gc pass them by.
+        let o = kiln(d, &["cache", "stats", "--cache-dir", "cache"]);
+        assert_eq!(code(&o), 0, "{replace}: {}", stderr(&o));
+    }
+    assert_dev_null_intact();
+}
