@@ -337,6 +337,19 @@ impl Cache {
         Ok(Cache { dir, index: Arc::default(), remote: None, index_puts: true })
     }
 
+    /// The cache at `dir` if there is one, for commands that only read or remove: nothing
+    /// is created or tagged (a mistyped folder stays absent). `Ok(None)` when `dir` does
+    /// not exist; an error when it is not a folder.
+    pub fn open_existing(dir: impl Into<PathBuf>) -> Result<Option<Cache>, Error> {
+        let dir = dir.into();
+        match fs::metadata(&dir) {
+            Ok(m) if m.is_dir() => Ok(Some(Cache { dir, index: Arc::default(), remote: None, index_puts: true })),
+            Ok(_) => Err(Error { path: dir, source: io::Error::other("it is not a folder") }),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(Error { path: dir, source }),
+        }
+    }
+
     /// This cache, with the entries put through it left out of its in-memory index: a
     /// build never looks up a key it compiled, and at 100k keys the index of its own puts
     /// is about 10 MiB of its peak. Remote hits filled into the local cache still join it

@@ -732,3 +732,45 @@ fn cache_files_that_are_not_regular_are_ignored() {
     }
     assert_dev_null_intact();
 }
+
+/// Case 11: read-only cache commands on a mistyped folder say so and create nothing.
+#[test]
+fn cache_commands_never_create_a_folder() {
+    let fx = fixture();
+    let d = fx.path();
+    for action in [&["stats"][..], &["clear"], &["gc", "--max-size", "1M"]] {
+        let mut args = vec!["cache"];
+        args.extend_from_slice(action);
+        args.extend_from_slice(&["--cache-dir", "typo/cache"]);
+        let o = kiln(d, &args);
+        assert_eq!(code(&o), 0, "{action:?}: {}", stderr(&o));
+        assert!(stdout(&o).contains("no cache there"), "{action:?}: {}", stdout(&o));
+        assert!(!d.join("typo").exists(), "{action:?} created a folder");
+    }
+    // The default folder of a config that never built: not made either.
+    let o = kiln(d, &["cache", "stats", "--config", "p.toml"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    assert!(!d.join(".kiln-cache").exists() && !d.join("target").exists());
+    // A file where the folder should be is an error.
+    std::fs::write(d.join("file"), b"x").unwrap();
+    let o = kiln(d, &["cache", "stats", "--cache-dir", "file"]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+}
+
+/// Case 10, configurations: a name with control characters is shown escaped in the error.
+#[test]
+fn names_in_configuration_errors_are_escaped() {
+    let fx = fixture();
+    let d = fx.path();
+    std::fs::write(
+        d.join("p.toml"),
+        "[levels.sm5]\ntargets = [\"wgsl\"]\n\n[[shader]]\nname = \"S\\u001b[2J\\u0007\"\nsource = \"s.usf\"\nstage = \"compute\"\n",
+    )
+    .unwrap();
+    for cmd in ["build", "list"] {
+        let o = kiln(d, &[cmd, "--config", "p.toml"]);
+        assert_eq!(code(&o), 2, "{}", stderr(&o));
+        assert!(!o.stderr.contains(&0x1b) && !o.stderr.contains(&0x07), "{}", stderr(&o));
+        assert!(stderr(&o).contains("S\\u{1b}[2J\\u{7}"), "{}", stderr(&o));
+    }
+}
