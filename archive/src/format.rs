@@ -220,6 +220,9 @@ pub enum ArchiveError {
     Version { found: u32 },
     #[error("archive is truncated: the header announces {expected} bytes, the file has {actual}")]
     Truncated { expected: u64, actual: u64 },
+    /// Longer than its header says: bytes appended, or two files run together.
+    #[error("archive has {} bytes after its end: the header announces {expected} bytes, the file has {actual}", actual - expected)]
+    TrailingBytes { expected: u64, actual: u64 },
     #[error("archive is corrupted: header checksum mismatch (expected {expected}, computed {actual})")]
     Checksum { expected: String, actual: String },
     #[error("archive manifest is malformed: {0}")]

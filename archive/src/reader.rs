@@ -388,8 +388,11 @@ impl Archive {
             ArchiveError::Manifest("section lengths overflow or the chunk length is not allowed".into())
         })?;
         let actual = data.len() as u64;
-        if layout.end != actual {
+        if layout.end > actual {
             return Err(ArchiveError::Truncated { expected: layout.end, actual });
+        }
+        if layout.end < actual {
+            return Err(ArchiveError::TrailingBytes { expected: layout.end, actual });
         }
         // The padding between sections is covered by no checksum: it must be zero.
         let pads = [

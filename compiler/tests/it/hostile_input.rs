@@ -774,3 +774,35 @@ fn names_in_configuration_errors_are_escaped() {
         assert!(stderr(&o).contains("S\\u{1b}[2J\\u{7}"), "{}", stderr(&o));
     }
 }
+
+/// Case 12: signed overflow in `#if` and in a derived define is a located error, as cpp
+/// reports it (`-pedantic-errors`), not a silent wrap.
+#[test]
+fn arithmetic_that_overflows_is_a_located_error() {
+    let fx = fixture();
+    let d = fx.path();
+    write_config(
+        d,
+        "dimensions = { A = \"bool\" }\nderived = { X = \"A * 9223372036854775807 + 9223372036854775807\" }\n",
+    );
+    let o = build(d, &[]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("integer overflow in preprocessor expression") && stderr(&o).contains("p.toml:"),
+        "{}",
+        stderr(&o)
+    );
+    write_config(d, "");
+    std::fs::write(
+        d.join("s.usf"),
+        "#if 9223372036854775807 + 1 < 0\n#endif\n@compute @workgroup_size(1) fn main() {}\n",
+    )
+    .unwrap();
+    let o = build(d, &[]);
+    assert_eq!(code(&o), 1, "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("integer overflow in preprocessor expression") && stderr(&o).contains("s.usf:1:25"),
+        "{}",
+        stderr(&o)
+    );
+}
