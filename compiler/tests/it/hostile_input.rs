@@ -806,3 +806,30 @@ fn arithmetic_that_overflows_is_a_located_error() {
         stderr(&o)
     );
 }
+
+/// Case 9: near-miss search for a 120 KB name over 622 permutations (a long shader name
+/// too) ends quickly, for `explain` on the configuration and `inspect` on the archive.
+#[test]
+fn near_miss_search_of_a_huge_name_is_bounded() {
+    let fx = fixture();
+    let d = fx.path();
+    write_config(d, "dimensions = { A = \"bool\", B = { range = [0, 310] } }\n");
+    std::fs::write(d.join("s.usf"), "@compute @workgroup_size(1) fn main() { let b = B; }\n").unwrap();
+    std::fs::write(d.join("l.usf"), "@compute @workgroup_size(1) fn main() { }\n").unwrap();
+    // A second shader with a long name (the edit distance is over both names).
+    let second = format!("\n[[shader]]\nname = \"{}\"\nsource = \"l.usf\"\nstage = \"compute\"\n", "L".repeat(20_000));
+    let config = std::fs::read_to_string(d.join("p.toml")).unwrap();
+    std::fs::write(d.join("p.toml"), config + &second).unwrap();
+    let o = build(d, &["-o", "a.kpak"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    // 120 KB: under the kernel's bound of one argument (128 KiB).
+    let huge = format!("{}@sm5{{A=1,B=7,{}}}", "X".repeat(100_000), "C=1,".repeat(5_000));
+    for args in [vec!["explain", huge.as_str(), "--config", "p.toml"], vec!["inspect", "a.kpak", huge.as_str()]] {
+        let start = Instant::now();
+        let o = kiln(d, &args);
+        assert_eq!(code(&o), 2, "{}", stderr(&o));
+        assert!(start.elapsed() < Duration::from_secs(3), "{}: {:?}", args[0], start.elapsed());
+        let e = stderr(&o);
+        assert!(e.contains("S@sm5{A=1,B=7}"), "{}: {}", args[0], &e[e.len().saturating_sub(3000)..]);
+    }
+}
