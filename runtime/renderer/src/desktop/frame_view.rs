@@ -3,9 +3,9 @@
 //! uniform buffers, samplers, full-screen draws). The view they bind is the one
 //! [`crate::scene::view::SceneView`].
 
+use crate::gpu::BufferInit;
 use bytemuck::Pod;
 use glam::{Mat4, Vec2, Vec4};
-use wgpu::util::DeviceExt;
 
 pub use crate::frame::target_2d;
 use crate::frame::{GroupedRenderPass, PassContext};

@@ -16,9 +16,9 @@
 
 use std::sync::Arc;
 
+use crate::gpu::BufferInit;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
-use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
