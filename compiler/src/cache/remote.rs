@@ -257,7 +257,7 @@ impl std::fmt::Debug for Remote {
 
 enum Store {
     Redis(Box<RedisStore>),
-    Http(HttpStore),
+    Http(Box<HttpStore>),
 }
 
 impl Remote {
@@ -279,7 +279,7 @@ impl Remote {
             Some("http") | Some("https") => {
                 let (store, password) = HttpStore::new(options).map_err(bad)?;
                 secrets.extend(password);
-                Store::Http(store)
+                Store::Http(Box::new(store))
             }
             _ => return Err(bad("expected redis://host:port[/db] or http(s)://host[:port]/prefix".into())),
         };
