@@ -11,10 +11,11 @@
 //! Guarantees: the generated file depends on nothing but `core` and `std` (a crate that
 //! only builds shaders, and does not link Kiln, can use it); skip rules are translated from
 //! the `#if` expression language into Rust expressions with the evaluator's semantics (64-bit
-//! wrapping arithmetic, signed unless cpp's rules make an operand unsigned, short-circuit
+//! arithmetic, signed unless cpp's rules make an operand unsigned: unsigned wraps, signed
+//! overflow is an error of the rule as division by zero is; short-circuit
 //! `&&` / `||` / `?:`, `defined(X)`, unknown identifiers are 0, the level's and the shader's
 //! defines and an enum's `DIM_NAME`s as constants). A rule whose evaluation divides by zero
-//! skips nothing, as in [`crate::permute`]. A name the rules would turn into something that is
+//! or overflows skips nothing, as in [`crate::permute`]. A name the rules would turn into something that is
 //! not a Rust identifier, or two names that would collide, is an [`Error`], never a file that
 //! does not compile.
 //!
@@ -169,7 +170,7 @@ pub mod __kiln {
         } else if unsigned {
             ::core::option::Option::Some(((a as u64) / (b as u64)) as i64)
         } else {
-            ::core::option::Option::Some(a.wrapping_div(b))
+            a.checked_div(b)
         }
     }
 
@@ -799,7 +800,8 @@ fn emit(e: &Expr, scope: &Scope) -> (String, bool) {
             let (a, u) = emit(a, scope);
             let code = match *op {
                 "+" => a,
-                "-" => format!("({a}).wrapping_neg()"),
+                "-" if u => format!("({a}).wrapping_neg()"),
+                "-" => format!("({a}).checked_neg()?"),
                 "~" => format!("(!({a}))"),
                 _ => return (format!("((({a}) == 0) as i64)"), false),
             };
@@ -810,9 +812,19 @@ fn emit(e: &Expr, scope: &Scope) -> (String, bool) {
             let (b, ub) = emit(b, scope);
             let u = ua || ub;
             match *op {
-                "*" => (format!("({a}).wrapping_mul({b})"), u),
-                "+" => (format!("({a}).wrapping_add({b})"), u),
-                "-" => (format!("({a}).wrapping_sub({b})"), u),
+                // Signed overflow is an error of the rule (it skips nothing), as in the
+                // evaluator; unsigned arithmetic wraps.
+                "*" | "+" | "-" if u => {
+                    let f = match *op {
+                        "*" => "wrapping_mul",
+                        "+" => "wrapping_add",
+                        _ => "wrapping_sub",
+                    };
+                    (format!("({a}).{f}({b})"), u)
+                }
+                "*" => (format!("({a}).checked_mul({b})?"), u),
+                "+" => (format!("({a}).checked_add({b})?"), u),
+                "-" => (format!("({a}).checked_sub({b})?"), u),
                 "/" => (format!("super::__kiln::div({a}, {b}, {u})?"), u),
                 "%" => (format!("super::__kiln::rem({a}, {b}, {u})?"), u),
                 "<<" | ">>" => (format!("super::__kiln::shift({}, {a}, {ua}, {b}, {ub})", *op == "<<"), ua),
