@@ -185,17 +185,22 @@ pub mod __kiln {
     }
 
     /// `a << b` (`left`) or `a >> b` as cpp computes them: a negative count shifts the other way.
-    pub fn shift(left: bool, a: i64, a_unsigned: bool, b: i64, b_unsigned: bool) -> i64 {
+    /// `None` when a signed left shift overflows (shifting back does not give `a`).
+    pub fn shift(left: bool, a: i64, a_unsigned: bool, b: i64, b_unsigned: bool) -> ::core::option::Option<i64> {
         let (left, n) = if !b_unsigned && b < 0 { (!left, b.unsigned_abs()) } else { (left, b as u64) };
-        if left {
-            if n >= 64 { 0 } else { ((a as u64) << n) as i64 }
+        ::core::option::Option::Some(if left {
+            let v = if n >= 64 { 0 } else { ((a as u64) << n) as i64 };
+            if !a_unsigned && (if n >= 64 { 0 } else { v >> n }) != a {
+                return ::core::option::Option::None;
+            }
+            v
         } else if a_unsigned {
             if n >= 64 { 0 } else { ((a as u64) >> n) as i64 }
         } else if n >= 64 {
             if a < 0 { -1 } else { 0 }
         } else {
             a >> n
-        }
+        })
     }
 
     pub fn cmp(a: i64, b: i64, unsigned: bool) -> ::core::cmp::Ordering {
@@ -827,7 +832,7 @@ fn emit(e: &Expr, scope: &Scope) -> (String, bool) {
                 "-" => (format!("({a}).checked_sub({b})?"), u),
                 "/" => (format!("super::__kiln::div({a}, {b}, {u})?"), u),
                 "%" => (format!("super::__kiln::rem({a}, {b}, {u})?"), u),
-                "<<" | ">>" => (format!("super::__kiln::shift({}, {a}, {ua}, {b}, {ub})", *op == "<<"), ua),
+                "<<" | ">>" => (format!("super::__kiln::shift({}, {a}, {ua}, {b}, {ub})?", *op == "<<"), ua),
                 "<" | ">" | "<=" | ">=" => {
                     let test = match *op {
                         "<" => "== ::core::cmp::Ordering::Less",

@@ -527,11 +527,14 @@ impl Parser<'_, '_> {
                 let left = op == "<<";
                 let (left, n) = if !b.unsigned && b.v < 0 { (!left, b.v.unsigned_abs()) } else { (left, b.v as u64) };
                 let v = if left {
-                    if n >= 64 {
-                        0
-                    } else {
-                        ((a.v as u64) << n) as i64
+                    let v = if n >= 64 { 0 } else { ((a.v as u64) << n) as i64 };
+                    // A signed shift overflows when shifting back does not give the operand
+                    // (libcpp's `num_lshift`).
+                    let back = if n >= 64 { 0 } else { v >> n };
+                    if !a.unsigned && eval && back != a.v {
+                        return self.err(at, OVERFLOW);
                     }
+                    v
                 } else if a.unsigned {
                     if n >= 64 {
                         0
@@ -654,7 +657,7 @@ mod tests {
             ("-7 / 2", -3),
             ("-7 % 3", -1),
             ("1 << 62", 1 << 62),
-            ("1 << 63 >> 63", -1),
+            ("-1 << 63 >> 63", -1),
             ("-1 >> 70", -1),
             ("1 << -1", 0),
             ("8 >> -1", 16),
@@ -714,6 +717,10 @@ mod tests {
             ("4611686018427387904 * 2", "integer overflow in preprocessor expression@20+1"),
             ("-(-9223372036854775807 - 1)", "integer overflow in preprocessor expression@0+1"),
             ("(-9223372036854775807 - 1) / -1", "integer overflow in preprocessor expression@27+1"),
+            ("1 << 63", "integer overflow in preprocessor expression@2+2"),
+            ("2 << 62", "integer overflow in preprocessor expression@2+2"),
+            ("1 << 64", "integer overflow in preprocessor expression@2+2"),
+            ("5 >> -62", "integer overflow in preprocessor expression@2+2"),
             ("1 / 0", "division by zero in #if@2+1"),
             ("A % B", "division by zero in #if@2+1"),
             ("(1", "missing ')' in expression@0+1"),
