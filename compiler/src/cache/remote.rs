@@ -609,11 +609,13 @@ impl Remote {
         self.errors.fetch_add(1, Ordering::Relaxed);
         if !self.off.swap(true, Ordering::Relaxed) {
             let why = if fault.timed_out {
+                // Named as a timeout, with what was waited for (never the OS's words).
                 format!(
-                    "{}: {} did not answer within the timeout of {} ms",
+                    "{}: timed out: {} sent nothing within the timeout of {} ms, or a request took longer than {} ms",
                     fault.message.trim_end_matches(": timed out"),
                     self.shown,
-                    self.timeout.as_millis()
+                    self.timeout.as_millis(),
+                    super::fault::request_bound(self.timeout, 0).as_millis()
                 )
             } else {
                 fault.message
@@ -680,7 +682,10 @@ impl RedisStore {
     }
 
     fn with_connection<T>(&self, f: impl FnOnce(&mut redis::Connection) -> redis::RedisResult<T>) -> Result<T, Fault> {
-        let fault = |e: redis::RedisError| Fault { timed_out: e.is_timeout(), message: e.to_string() };
+        let fault = |e: redis::RedisError| match e.is_timeout() {
+            true => Fault::timeout("waiting for redis"),
+            false => Fault { timed_out: false, message: e.to_string() },
+        };
         let idle = self.idle.lock().expect("no panics while locked").pop();
         let mut connection = match idle {
             Some(c) => c,
@@ -1022,6 +1027,9 @@ impl HttpStore {
             ureq::Error::Io(io) => matches!(io.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock),
             _ => false,
         };
+        if timed_out {
+            return Fault::timeout("waiting for an answer");
+        }
         Fault { message: e.to_string(), timed_out }
     }
 
