@@ -76,6 +76,10 @@ impl Timed {
     /// Reads from now on end at `deadline` (`None`: only the per-read timeout).
     pub fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
+        if deadline.is_none() {
+            // The per-read bound again (a read under the deadline may have left it shorter).
+            let _ = self.stream.set_read_timeout(Some(self.timeout));
+        }
     }
 
     /// Moves the deadline `by` later (a value's length, once announced).
