@@ -166,6 +166,14 @@ pub enum ArchiveError {
         /// The file's length.
         actual: u64,
     },
+    /// Longer than its header says: bytes appended, or two files run together.
+    #[error("archive has {} bytes after its end: the header announces {expected} bytes, the file has {actual}", actual - expected)]
+    TrailingBytes {
+        /// The length the header announces.
+        expected: u64,
+        /// The file's length.
+        actual: u64,
+    },
     /// The header's own checksum does not match.
     #[error("archive is corrupted: header checksum mismatch (expected {expected}, computed {actual})")]
     Checksum {

@@ -25,6 +25,7 @@
 // The manifest's arenas and layouts are the writer's; the reader reads the bytes in place.
 #[cfg_attr(not(feature = "writer"), allow(dead_code))]
 mod format;
+pub mod input;
 pub mod limits;
 // Atomic file writes: the compiler writes every output through them, so the module is
 // public across the workspace's crates, but it is plumbing, not part of the documented API
@@ -172,4 +173,32 @@ pub fn edit_distance(a: &str, b: &str) -> usize {
         prev = cur;
     }
     prev[b.len()]
+}
+
+/// `text` for a terminal: each control character (and each bidirectional override, which
+/// reorders what follows it) shown as `\u{..}`, so that a name taken from an archive or a
+/// configuration cannot move the cursor, clear the screen or retitle the window.
+pub fn escape(text: &str) -> std::borrow::Cow<'_, str> {
+    let hostile = |c: char| c.is_control() || matches!(c, '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}');
+    if !text.chars().any(hostile) {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let mut out = String::with_capacity(text.len() + 8);
+    for c in text.chars() {
+        if hostile(c) {
+            out.push_str(&format!("\\u{{{:x}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+#[cfg(test)]
+mod escape_tests {
+    #[test]
+    fn control_characters_are_shown_escaped() {
+        assert_eq!(super::escape("plain name{A=1}"), "plain name{A=1}");
+        assert_eq!(super::escape("a\x1b[2Jb\n\u{7}\u{202e}c"), "a\\u{1b}[2Jb\\u{a}\\u{7}\\u{202e}c");
+    }
 }

@@ -400,8 +400,11 @@ impl Archive {
             ArchiveError::Manifest("section lengths overflow or the chunk length is not allowed".into())
         })?;
         let actual = data.len() as u64;
-        if layout.end != actual {
+        if layout.end > actual {
             return Err(ArchiveError::Truncated { expected: layout.end, actual });
+        }
+        if layout.end < actual {
+            return Err(ArchiveError::TrailingBytes { expected: layout.end, actual });
         }
         // The padding between sections is covered by no checksum: it must be zero.
         let pads = [
@@ -925,16 +928,36 @@ impl Archive {
         Ok(Lookup::Missing(self.nearest(name, 5)?))
     }
 
-    /// The `limit` permutations closest to `name`.
+    /// The `limit` permutations closest to `name`. The shader names are compared first, once
+    /// each (a shader's name decides most of the score), and only the permutations of the
+    /// closest shaders are compared value by value; a name is compared on its first
+    /// [`NEAR_NAME_CHARS`] characters and [`NEAR_DIMENSIONS`] dimensions.
     pub fn nearest(&self, name: &str, limit: usize) -> Result<Vec<Near>, ArchiveError> {
         let wanted = parse_name(name);
+        let wanted_shader = capped(&wanted.shader, NEAR_NAME_CHARS);
+        // Each shader's part of the score, by shader record.
+        let base: Vec<usize> = self
+            .shaders()
+            .iter()
+            .map(|s| {
+                if s.name == wanted.shader {
+                    0
+                } else {
+                    100 + edit_distance(capped(&s.name, NEAR_NAME_CHARS), wanted_shader)
+                }
+            })
+            .collect();
         let mut scored: Vec<(usize, Near)> = Vec::new();
+        let mut worst = usize::MAX;
         for p in self.permutations()? {
+            let base = base.get(p.shader_index() as usize).copied().unwrap_or(usize::MAX);
+            if scored.len() >= limit && base > worst {
+                continue;
+            }
             let have = parse_name(p.name());
             let mut diffs = Vec::new();
-            let mut score = 0usize;
+            let mut score = base;
             if have.shader != wanted.shader {
-                score += 100 + edit_distance(&have.shader, &wanted.shader);
                 diffs.push(format!("shader: {} -> {}", wanted.shader, have.shader));
             }
             if have.level != wanted.level {
@@ -960,7 +983,17 @@ impl Archive {
                     diffs.push(format!("{k}: {wv} -> (no such dimension)"));
                 }
             }
+            if scored.len() >= limit && score > worst {
+                continue;
+            }
             scored.push((score, Near { name: p.name().to_string(), differences: diffs }));
+            if scored.len() >= 4 * limit.max(1) {
+                scored.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| a.1.name.cmp(&b.1.name)));
+                scored.truncate(limit);
+            }
+            if scored.len() >= limit {
+                worst = scored.iter().map(|s| s.0).max().unwrap_or(usize::MAX);
+            }
         }
         scored.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| a.1.name.cmp(&b.1.name)));
         Ok(scored.into_iter().take(limit).map(|(_, n)| n).collect())
@@ -986,6 +1019,17 @@ struct ParsedName {
     dims: Vec<(String, String)>,
 }
 
+/// The characters of a shader name that near-miss search compares (a longer name asked
+/// for is compared on these: the search costs at most this times each shader name).
+const NEAR_NAME_CHARS: usize = 256;
+/// The dimensions of a name asked for that near-miss search compares.
+const NEAR_DIMENSIONS: usize = 64;
+
+/// `text` cut to at most `chars` characters.
+fn capped(text: &str, chars: usize) -> &str {
+    text.char_indices().nth(chars).map_or(text, |(i, _)| &text[..i])
+}
+
 fn parse_name(name: &str) -> ParsedName {
     let (head, rest) = match name.find('{') {
         Some(i) => (&name[..i], name[i + 1..].trim_end_matches('}')),
@@ -998,6 +1042,7 @@ fn parse_name(name: &str) -> ParsedName {
     let dims = rest
         .split(',')
         .filter(|s| !s.trim().is_empty())
+        .take(NEAR_DIMENSIONS)
         .map(|kv| match kv.split_once('=') {
             Some((k, v)) => (k.trim().to_string(), v.trim().to_string()),
             None => (kv.trim().to_string(), String::new()),

@@ -347,6 +347,19 @@ fn truncation_is_an_error_at_every_length() {
 /// exception is a bit of a compressed block that zstd's decoder does not depend on (an FSE
 /// or Huffman table entry of a symbol never decoded): then every artifact must still come
 /// out byte for byte the original, having passed its checksum.
+/// Issue 28, case 12: a file longer than its header says is not called truncated.
+#[test]
+fn trailing_bytes_are_not_called_truncated() {
+    let mut bytes = sample();
+    let len = bytes.len() as u64;
+    bytes.extend_from_slice(b"appended");
+    let msg = Archive::from_vec(bytes).err().expect("a longer archive accepted").to_string();
+    assert_eq!(
+        msg,
+        format!("archive has 8 bytes after its end: the header announces {len} bytes, the file has {}", len + 8)
+    );
+}
+
 #[test]
 fn every_flipped_byte_is_detected() {
     let dir = tempfile::tempdir().unwrap();

@@ -256,7 +256,7 @@ impl Build {
         let usage = |message: String| BuildError { message, code: 2, report: None };
         let config = crate::permute::load(&self.config).map_err(|e| usage(e.render_with(false)))?;
         let text = crate::keys::generate(&config).map_err(|e| usage(format!("error: {e}")))?;
-        if std::fs::read(path).ok().as_deref() == Some(text.as_bytes()) {
+        if crate::archive::input::read_regular(path, text.len() as u64).ok().as_deref() == Some(text.as_bytes()) {
             return Ok(());
         }
         crate::archive::write_atomic(path, text.as_bytes())

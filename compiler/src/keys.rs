@@ -11,10 +11,11 @@
 //! Guarantees: the generated file depends on nothing but `core` and `std` (a crate that
 //! only builds shaders, and does not link Kiln, can use it); skip rules are translated from
 //! the `#if` expression language into Rust expressions with the evaluator's semantics (64-bit
-//! wrapping arithmetic, signed unless cpp's rules make an operand unsigned, short-circuit
+//! arithmetic, signed unless cpp's rules make an operand unsigned: unsigned wraps, signed
+//! overflow is an error of the rule as division by zero is; short-circuit
 //! `&&` / `||` / `?:`, `defined(X)`, unknown identifiers are 0, the level's and the shader's
 //! defines and an enum's `DIM_NAME`s as constants). A rule whose evaluation divides by zero
-//! skips nothing, as in [`crate::permute`]. A name the rules would turn into something that is
+//! or overflows skips nothing, as in [`crate::permute`]. A name the rules would turn into something that is
 //! not a Rust identifier, or two names that would collide, is an [`Error`], never a file that
 //! does not compile.
 //!
@@ -170,7 +171,7 @@ pub mod __kiln {
         } else if unsigned {
             ::core::option::Option::Some(((a as u64) / (b as u64)) as i64)
         } else {
-            ::core::option::Option::Some(a.wrapping_div(b))
+            a.checked_div(b)
         }
     }
 
@@ -185,17 +186,22 @@ pub mod __kiln {
     }
 
     /// `a << b` (`left`) or `a >> b` as cpp computes them: a negative count shifts the other way.
-    pub fn shift(left: bool, a: i64, a_unsigned: bool, b: i64, b_unsigned: bool) -> i64 {
+    /// `None` when a signed left shift overflows (shifting back does not give `a`).
+    pub fn shift(left: bool, a: i64, a_unsigned: bool, b: i64, b_unsigned: bool) -> ::core::option::Option<i64> {
         let (left, n) = if !b_unsigned && b < 0 { (!left, b.unsigned_abs()) } else { (left, b as u64) };
-        if left {
-            if n >= 64 { 0 } else { ((a as u64) << n) as i64 }
+        ::core::option::Option::Some(if left {
+            let v = if n >= 64 { 0 } else { ((a as u64) << n) as i64 };
+            if !a_unsigned && (if n >= 64 { 0 } else { v >> n }) != a {
+                return ::core::option::Option::None;
+            }
+            v
         } else if a_unsigned {
             if n >= 64 { 0 } else { ((a as u64) >> n) as i64 }
         } else if n >= 64 {
             if a < 0 { -1 } else { 0 }
         } else {
             a >> n
-        }
+        })
     }
 
     pub fn cmp(a: i64, b: i64, unsigned: bool) -> ::core::cmp::Ordering {
@@ -838,7 +844,8 @@ fn emit(e: &Expr, scope: &Scope) -> (String, bool) {
             let (a, u) = emit(a, scope);
             let code = match *op {
                 "+" => a,
-                "-" => format!("({a}).wrapping_neg()"),
+                "-" if u => format!("({a}).wrapping_neg()"),
+                "-" => format!("({a}).checked_neg()?"),
                 "~" => format!("(!({a}))"),
                 _ => return (format!("((({a}) == 0) as i64)"), false),
             };
@@ -849,12 +856,22 @@ fn emit(e: &Expr, scope: &Scope) -> (String, bool) {
             let (b, ub) = emit(b, scope);
             let u = ua || ub;
             match *op {
-                "*" => (format!("({a}).wrapping_mul({b})"), u),
-                "+" => (format!("({a}).wrapping_add({b})"), u),
-                "-" => (format!("({a}).wrapping_sub({b})"), u),
+                // Signed overflow is an error of the rule (it skips nothing), as in the
+                // evaluator; unsigned arithmetic wraps.
+                "*" | "+" | "-" if u => {
+                    let f = match *op {
+                        "*" => "wrapping_mul",
+                        "+" => "wrapping_add",
+                        _ => "wrapping_sub",
+                    };
+                    (format!("({a}).{f}({b})"), u)
+                }
+                "*" => (format!("({a}).checked_mul({b})?"), u),
+                "+" => (format!("({a}).checked_add({b})?"), u),
+                "-" => (format!("({a}).checked_sub({b})?"), u),
                 "/" => (format!("super::__kiln::div({a}, {b}, {u})?"), u),
                 "%" => (format!("super::__kiln::rem({a}, {b}, {u})?"), u),
-                "<<" | ">>" => (format!("super::__kiln::shift({}, {a}, {ua}, {b}, {ub})", *op == "<<"), ua),
+                "<<" | ">>" => (format!("super::__kiln::shift({}, {a}, {ua}, {b}, {ub})?", *op == "<<"), ua),
                 "<" | ">" | "<=" | ">=" => {
                     let test = match *op {
                         "<" => "== ::core::cmp::Ordering::Less",

@@ -318,3 +318,37 @@ pub fn pipeline_cache_key(info: &wgpu::AdapterInfo, device: &wgpu::Device) -> Op
     wgpu::util::pipeline_cache_key(info)
         .map(|k| format!("{k}_{}.kpc", info.driver_info.replace(|c: char| !c.is_ascii_alphanumeric(), "_")))
 }
+
+/// `create_buffer_init` that never panics: `wgpu::util::DeviceExt::create_buffer_init`
+/// panics when the buffer cannot be mapped at creation (a lost device, memory exhausted).
+/// Here such a buffer is left unfilled: the device has reported the error (to the error
+/// scope around the setup, or as lost), which the caller turns into its own error before
+/// the buffer is ever used ([`DeviceLost::reason`]). Import it instead of `DeviceExt`.
+pub trait BufferInit {
+    /// Creates the buffer of `descriptor` with its contents, or unfilled where it cannot be
+    /// mapped (the device has reported why).
+    fn create_buffer_init(&self, descriptor: &wgpu::util::BufferInitDescriptor<'_>) -> wgpu::Buffer;
+}
+
+impl BufferInit for wgpu::Device {
+    fn create_buffer_init(&self, descriptor: &wgpu::util::BufferInitDescriptor<'_>) -> wgpu::Buffer {
+        let unpadded = descriptor.contents.len() as wgpu::BufferAddress;
+        // As wgpu's: a size that is a positive multiple of COPY_BUFFER_ALIGNMENT.
+        let align = wgpu::COPY_BUFFER_ALIGNMENT - 1;
+        let padded = ((unpadded + align) & !align).max(wgpu::COPY_BUFFER_ALIGNMENT);
+        let empty = descriptor.contents.is_empty();
+        let buffer = self.create_buffer(&wgpu::BufferDescriptor {
+            label: descriptor.label,
+            size: if empty { 0 } else { padded },
+            usage: descriptor.usage,
+            mapped_at_creation: !empty,
+        });
+        if !empty {
+            if let Ok(mut range) = buffer.get_mapped_range_mut(..) {
+                range.slice(..unpadded as usize).copy_from_slice(descriptor.contents);
+            }
+            buffer.unmap();
+        }
+        buffer
+    }
+}

@@ -456,6 +456,10 @@ struct CacheInner {
 }
 
 /// Creates and caches modules, layouts and pipelines for one device and one archive.
+/// The largest pipeline cache file read back: far more than a driver's cache of every
+/// pipeline of the bundled renderer (a few MB).
+const MAX_DISK_CACHE: u64 = 256 << 20;
+
 pub struct PipelineCache {
     archive: Arc<ShaderArchive>,
     device: wgpu::Device,
@@ -542,14 +546,18 @@ impl PipelineCache {
         PipelineCache::for_device(adapter, device, archive).load_disk_cache(key, dir)
     }
 
-    /// This cache with the driver's pipeline cache of file `key` in `dir` (none without a key).
+    /// This cache with the driver's pipeline cache of file `key` in `dir` (none without a key;
+    /// a file that is not regular, or larger than [`MAX_DISK_CACHE`], is a warning and
+    /// ignored).
     fn load_disk_cache(self, key: Option<String>, dir: &std::path::Path) -> (PipelineCache, Option<String>) {
         let mut cache = self;
         let Some(key) = key else { return (cache, None) };
         let device = cache.device.clone();
         let path = dir.join(key);
         let mut warning = None;
-        let bytes = match std::fs::read(&path) {
+        // Only a regular file, bounded: a FIFO or a link to a device is ignored (never waited
+        // on or read without end).
+        let bytes = match kiln_archive::input::read_regular(&path, MAX_DISK_CACHE) {
             Ok(b) => Some(b),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
             Err(e) => {

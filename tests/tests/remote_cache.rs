@@ -33,8 +33,9 @@ static ENV: RwLock<()> = RwLock::new(());
 /// removed on drop, a failing test included.
 struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
 
-const VARIABLES: [&str; 5] = [
+const VARIABLES: [&str; 6] = [
     "KILN_REMOTE_CACHE",
+    "KILN_REMOTE_CACHE_KEY",
     "KILN_REMOTE_CACHE_MODE",
     "KILN_REMOTE_CACHE_TOKEN",
     "KILN_REMOTE_CACHE_TIMEOUT_MS",
@@ -637,6 +638,142 @@ fn a_server_that_never_answers_times_out_once() {
     }
     drop(env);
     assert!(!held.lock().unwrap().is_empty(), "kiln connected");
+}
+
+/// A loopback server that answers every connection's requests with `reply`, each byte
+/// after `drip` (at once when zero), until the test ends.
+fn hostile_http(reply: &'static [u8], drip: Duration) -> u16 {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for mut c in listener.incoming().flatten() {
+            std::thread::spawn(move || {
+                let mut buffer = [0; 1 << 16];
+                while let Ok(n) = c.read(&mut buffer) {
+                    if n == 0 {
+                        return;
+                    }
+                    let requests = buffer[..n].windows(4).filter(|w| w == b"\r\n\r\n").count().max(1);
+                    for _ in 0..requests {
+                        if drip.is_zero() {
+                            if c.write_all(reply).is_err() {
+                                return;
+                            }
+                            continue;
+                        }
+                        for b in reply {
+                            std::thread::sleep(drip);
+                            if c.write_all(&[*b]).is_err() {
+                                return;
+                            }
+                        }
+                    }
+                }
+            });
+        }
+    });
+    port
+}
+
+/// Issue 28, cases 1 and 8 in a whole build: a server that answers every request with a
+/// body that is not a Kiln value, and one that drips a byte a little faster than the
+/// timeout: one warning each, the build finishes within a few timeouts, same bytes.
+#[test]
+fn hostile_servers_are_one_warning_and_change_no_byte() {
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE_TIMEOUT_MS", "300");
+    let reference = {
+        let m = Machine::new();
+        build_ok(&m.options(RemoteCache::Disabled, None));
+        m.bytes()
+    };
+    for (reply, drip, why) in [
+        (&b"HTTP/1.1 200 OK\r\nContent-Length: 11\r\n\r\nhello world"[..], Duration::ZERO, "not a Kiln value"),
+        (b"HTTP/1.1 200 OK\r\nContent-Length: 1000\r\n\r\nKILN", Duration::from_millis(250), "timeout of 300 ms"),
+    ] {
+        let port = hostile_http(reply, drip);
+        let url = format!("http://127.0.0.1:{port}/kiln");
+        let m = Machine::new();
+        let start = Instant::now();
+        let r = build_ok(&m.options(RemoteCache::Url(url.clone()), None));
+        assert!(start.elapsed() < Duration::from_secs(15), "{why}: {:?}", start.elapsed());
+        let warnings = remote_warnings(&r);
+        assert_eq!(warnings.len(), 1, "{why}: {:?}", r.warnings);
+        assert!(warnings[0].contains(why) && warnings[0].contains(&format!("127.0.0.1:{port}")), "{}", warnings[0]);
+        assert_eq!(r.stats.compiled, DISTINCT);
+        assert_eq!(m.bytes(), reference, "{why}");
+    }
+}
+
+/// `MAC` of a 32-byte key given as hex: what a team sets as `KILN_REMOTE_CACHE_KEY`.
+const SIGNING_KEY: &str = "4b494c4e2074657374206b6579202d206e6f7420666f72207265616c20757365";
+
+/// Signed entries (issue 28): with `KILN_REMOTE_CACHE_KEY`, every value stored carries a
+/// MAC; someone without the key who rewrites values on the server (an entry without its
+/// MAC, one with a forged MAC, the archive) has them refused: one warning naming the key,
+/// the entries compiled again, the archive byte-identical to a local build's.
+fn signed_entries(kind: Kind) {
+    let server = Server::start(kind);
+    let url = server.url();
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE_KEY", SIGNING_KEY);
+    let reference = {
+        let m = Machine::new();
+        build_ok(&m.options(RemoteCache::Disabled, None));
+        m.bytes()
+    };
+    let build = |m: &Machine| build_ok(&m.options(RemoteCache::Url(url.clone()), None));
+    let r = build(&Machine::new());
+    assert_eq!(r.stats.remote_writes, DISTINCT as u64);
+    let keys = server.keys();
+    assert!(keys.iter().all(|k| server.get(k).starts_with(b"KILNSG\0\x01")), "every value signed");
+
+    // Another machine with the key: every entry and the archive from the remote.
+    let m = Machine::new();
+    let r = build(&m);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
+    assert_eq!(m.bytes(), reference);
+
+    // Without the key: values are read as they are (not checked).
+    env.remove("KILN_REMOTE_CACHE_KEY");
+    let m = Machine::new();
+    let r = build(&m);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, DISTINCT as u64));
+    assert_eq!(m.bytes(), reference);
+    env.set("KILN_REMOTE_CACHE_KEY", SIGNING_KEY);
+
+    // Someone without the key rewrites values: every entry and the archive, each with
+    // its MAC left out or forged (a value of another key behind it, or its own).
+    let entries: Vec<String> = keys.iter().filter(|k| server.get(k)[40..].starts_with(b"KILNCER")).cloned().collect();
+    assert_eq!(entries.len(), DISTINCT);
+    let archive = keys.iter().find(|k| server.get(k)[40..].starts_with(b"KILNAR")).unwrap().clone();
+    for (i, key) in entries.iter().chain([&archive]).enumerate() {
+        let value = server.get(key);
+        let forged = match i % 2 {
+            0 => value[40..].to_vec(),
+            _ => [&value[..8], &[0x5a; 32][..], &server.get(&entries[0])[40..]].concat(),
+        };
+        server.set(key, &forged);
+    }
+    let m = Machine::new();
+    let r = build(&m);
+    let warnings = remote_warnings(&r);
+    assert_eq!(warnings.len(), 1, "{:?}", r.warnings);
+    assert!(warnings[0].contains("MAC") && warnings[0].contains("refused"), "{}", warnings[0]);
+    assert!(keys.iter().any(|k| warnings[0].contains(k.as_str())), "names the key: {}", warnings[0]);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (DISTINCT, 0));
+    assert_eq!(m.bytes(), reference, "no forged value is used");
+}
+
+#[test]
+fn redis_refuses_values_without_a_valid_mac() {
+    signed_entries(Kind::Redis);
+}
+
+#[test]
+fn http_refuses_values_without_a_valid_mac() {
+    signed_entries(Kind::Http);
 }
 
 fn corrupted_entry(kind: Kind) {

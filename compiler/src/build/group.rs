@@ -130,11 +130,14 @@ impl Keys<'_> {
 /// sorted by cost (descending), then by key bytes, each to the least loaded shard (the
 /// lowest index among equals). Depends only on the keys and their costs, so every shard
 /// process computes the same assignment.
+///
+/// More shards than keys leave the shards past the keys' count empty: the heap holds one
+/// entry per key at most (the same assignment), whatever the count.
 pub(super) fn assign(keys: &[Key], costs: &[u64], shards: usize) -> Vec<usize> {
     let mut order: Vec<usize> = (0..keys.len()).collect();
     order.sort_by(|&a, &b| costs[b].cmp(&costs[a]).then(keys[a].cmp(&keys[b])));
     let mut load: std::collections::BinaryHeap<std::cmp::Reverse<(u64, usize)>> =
-        (0..shards).map(|s| std::cmp::Reverse((0u64, s))).collect();
+        (0..shards.min(keys.len()).max(1)).map(|s| std::cmp::Reverse((0u64, s))).collect();
     let mut out = vec![0; keys.len()];
     for k in order {
         let std::cmp::Reverse((l, s)) = load.pop().expect("at least one shard");

@@ -690,7 +690,7 @@ impl FileHashes {
     /// The hash of the file's text as it is on disk now.
     fn get(&self, path: &Path) -> Option<[u8; 32]> {
         self.get_or_insert_with(path, || {
-            std::fs::read(path).ok().map(|bytes| {
+            crate::archive::input::read_regular(path, crate::preprocess::source::MAX_FILE_BYTES).ok().map(|bytes| {
                 let text =
                     String::from_utf8(bytes).unwrap_or_else(|e| String::from_utf8_lossy(e.as_bytes()).into_owned());
                 *blake3::hash(text.as_bytes()).as_bytes()
@@ -720,7 +720,7 @@ fn direct_base(config: &Config) -> blake3::Hash {
     };
     field(b"kiln direct v3");
     // Unreadable now (removed during the build): a key no record has.
-    field(&std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec()));
+    field(&read_config(config));
     let opts = preprocess::Options::default();
     field(&(opts.max_expansion_depth as u64).to_le_bytes());
     field(&(opts.max_output_bytes as u64).to_le_bytes());
@@ -740,12 +740,19 @@ fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archiv
     key.0[..16].try_into().expect("16 of 32 bytes")
 }
 
+/// The configuration's bytes now (a marker no record has when it cannot be read, or is no
+/// longer a regular file).
+fn read_config(config: &Config) -> Vec<u8> {
+    crate::archive::input::read_regular(&config.path, crate::permute::MAX_CONFIG_BYTES)
+        .unwrap_or_else(|_| b"\0unreadable".to_vec())
+}
+
 /// The key of a configuration's set of preprocessing records: its text and the options
 /// that choose its permutations; not its path, so that another checkout (another machine,
 /// another folder) finds the set in the remote cache. (v4: paths relative to the
 /// configuration's folder; v5: compact rows; v6: 16-byte direct keys.)
 fn records_key(config: &Config, options: &Options) -> Key {
-    let text = std::fs::read(&config.path).unwrap_or_else(|_| b"\0unreadable".to_vec());
+    let text = read_config(config);
     let inputs =
         format!("kiln records v6\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])

@@ -57,15 +57,36 @@ struct Pending {
     bytes: usize,
 }
 
-/// `cache` with the remote cache of `options` under it.
-fn with_remote(cache: Cache, options: &Options) -> Result<Cache, Error> {
+/// `cache` with the remote cache of `options` under it, refusing values larger than any
+/// this build can store ([`value_limit`]).
+fn with_remote(cache: Cache, options: &Options, config: &Config) -> Result<Cache, Error> {
     let remote = crate::cache::remote::Options::resolve(&options.remote_cache, options.remote_cache_mode)
         .and_then(|o| o.map(|o| crate::cache::Remote::open(&o)).transpose())
         .map_err(|e| Error::Config(format!("error: {e}")))?;
     Ok(match remote {
-        Some(r) => cache.with_remote(r),
+        Some(r) => {
+            r.limit_values(value_limit(config));
+            cache.with_remote(r)
+        }
         None => cache,
     })
+}
+
+/// The largest remote value this build reads, from its own figures with a wide margin:
+/// 32 MiB, plus 256 bytes per byte of its shaders' sources (an entry's artifacts and
+/// reflection come to a few times its preprocessed text), plus 256 bytes per permutation
+/// it may have (a record is 64 bytes; an archive's index rows are smaller). An archive is
+/// far smaller than this (the 10k set's is 7 MB of 130 MB of entries).
+fn value_limit(config: &Config) -> u64 {
+    let mut sources: Vec<&Path> = config.shaders.iter().map(|s| s.source_path.as_path()).collect();
+    sources.sort_unstable();
+    sources.dedup();
+    let source_bytes: u64 = sources.iter().filter_map(|p| std::fs::metadata(p).ok()).map(|m| m.len()).sum();
+    let permutations = config.shaders.iter().fold(0u64, |n, s| {
+        let each = s.dimensions.iter().fold(s.levels.len() as u64, |m, d| m.saturating_mul(d.values.len() as u64));
+        n.saturating_add(each)
+    });
+    (32u64 << 20).saturating_add(source_bytes.saturating_mul(256)).saturating_add(permutations.saturating_mul(256))
 }
 
 impl Store {
@@ -79,7 +100,7 @@ impl Store {
         // The build never looks up what it compiles: its puts stay out of the index.
         let (cache, unavailable) = match dir.map(|d| Cache::open(d).map(Cache::without_indexing_puts)) {
             None => (None, None),
-            Some(Ok(c)) => (Some(with_remote(c, options)?), None),
+            Some(Ok(c)) => (Some(with_remote(c, options, config)?), None),
             Some(Err(e)) => (None, Some(format!("warning: {e}; building without a cache"))),
         };
         Ok(Store {
@@ -254,8 +275,7 @@ impl Store {
         if let Some(remote) = c.remote().filter(|r| r.writes()) {
             // A regular file only (not `-o /dev/null`), read back whole: archives are small
             // next to the entries they hold (zstd with trained dictionaries).
-            let small = std::fs::metadata(out).is_ok_and(|m| m.is_file() && m.len() <= MAX_REMOTE_ARCHIVE);
-            if let Some(bytes) = small.then(|| std::fs::read(out).ok()).flatten() {
+            if let Ok(bytes) = crate::archive::input::read_regular(out, MAX_REMOTE_ARCHIVE) {
                 remote.store(&remote_archive_key(fingerprint), &encode_remote_archive(&bytes, counts));
             }
             // Every key's entry is in the local cache now: the bundle of the build's keys
@@ -399,7 +419,7 @@ pub fn default_cache_dir(config_dir: &Path) -> PathBuf {
     let mut package = None;
     for dir in config_dir.ancestors() {
         let manifest = dir.join("Cargo.toml");
-        if let Ok(text) = std::fs::read_to_string(&manifest) {
+        if let Ok(text) = crate::archive::input::read_regular_to_string(&manifest, 16 << 20) {
             if text.contains("[workspace]") {
                 return dir.join("target").join("kiln-cache");
             }

@@ -143,7 +143,8 @@ pub(super) fn read_part(
             return false;
         }
         value.clear();
-        value.reserve(len as usize);
+        // Grown as it comes past a megabyte: a damaged length reserves no more.
+        value.reserve((len as usize).min(1 << 20));
         match body.take(len).read_to_end(value) {
             Ok(n) if n as u64 == len => {}
             _ => return false,

@@ -5,7 +5,10 @@
 //! each: with the 7,516 entries of a 10k set, more of its CPU than reading the 130 MB.
 //!
 //! Only the fill's batches come this way (`https` and single lookups stay with `ureq`).
-//! Every connect, read and write is bounded by the store's timeout; a server that closes
+//! Every connect, read and write is bounded by the store's timeout, each response by a
+//! deadline ([`super::fault::deadline`], later by the time its announced length takes),
+//! and each value by the build's limit, checked before anything is allocated for it
+//! (chunk sizes included: one that overflows is malformed); a server that closes
 //! the connection after some answers (nginx does after `keepalive_requests`) leaves the
 //! rest of the batch to a new connection; anything unexpected is a [`Fault`].
 
@@ -14,7 +17,7 @@ use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use super::fault::{Fault, MAX_VALUE};
+use super::fault::{deadline, transfer_time, Fault, Timed};
 use super::Key;
 
 /// The most keys whose requests go out at once on one connection (about 64 KB of requests
@@ -37,7 +40,7 @@ pub struct HttpBatch {
     timeout: Duration,
     /// Resolved on first use, once per build.
     addresses: OnceLock<Result<Vec<SocketAddr>, String>>,
-    idle: Mutex<Vec<BufReader<TcpStream>>>,
+    idle: Mutex<Vec<BufReader<Timed>>>,
 }
 
 impl HttpBatch {
@@ -71,6 +74,7 @@ impl HttpBatch {
         &self,
         keys: &[Key],
         value: &mut Vec<u8>,
+        limit: u64,
         f: &impl Fn(&Key, Option<&[u8]>),
     ) -> Result<usize, (usize, Fault)> {
         let mut connection = self.connection().map_err(|fault| (0, fault))?;
@@ -88,12 +92,14 @@ impl HttpBatch {
         }
         connection.get_mut().write_all(&requests).map_err(|e| (0, io_fault("sending requests", e)))?;
         for (n, key) in keys.iter().enumerate() {
-            let (found, keep_alive) = read_response(&mut connection, value).map_err(|fault| (n, fault))?;
+            connection.get_mut().set_deadline(Some(deadline(self.timeout)));
+            let (found, keep_alive) = read_response(&mut connection, value, limit).map_err(|fault| (n, fault))?;
             f(key, found.then_some(value.as_slice()));
             if !keep_alive {
                 return Ok(n + 1);
             }
         }
+        connection.get_mut().set_deadline(None);
         self.idle.lock().expect("no panics while locked").push(connection);
         Ok(keys.len())
     }
@@ -102,7 +108,12 @@ impl HttpBatch {
     /// 404): for values too large to hold whole. What `f` leaves unread is read and
     /// dropped, so that the connection serves the next request. `Err((called, fault))`:
     /// the connection failed, before `f` was called or after.
-    pub fn get_streamed(&self, key: &Key, f: &mut dyn FnMut(Option<&mut dyn Read>)) -> Result<(), (bool, Fault)> {
+    pub fn get_streamed(
+        &self,
+        key: &Key,
+        limit: u64,
+        f: &mut dyn FnMut(Option<&mut dyn Read>),
+    ) -> Result<(), (bool, Fault)> {
         let mut connection = self.connection().map_err(|fault| (false, fault))?;
         let request = format!(
             "GET {}/{key} HTTP/1.1\r\nHost: {}\r\nUser-Agent: kiln/{}\r\n{}\r\n",
@@ -112,7 +123,8 @@ impl HttpBatch {
             self.authorization
         );
         connection.get_mut().write_all(request.as_bytes()).map_err(|e| (false, io_fault("sending a request", e)))?;
-        let mut head = read_head(&mut connection).map_err(|fault| (false, fault))?;
+        connection.get_mut().set_deadline(Some(deadline(self.timeout)));
+        let mut head = read_head(&mut connection, limit).map_err(|fault| (false, fault))?;
         match head.length.filter(|_| head.status == 200 && !head.chunked) {
             Some(length) => {
                 let mut body = connection.by_ref().take(length);
@@ -125,17 +137,18 @@ impl HttpBatch {
             None => {
                 // A miss, or a body without a length: read whole first.
                 let mut value = Vec::new();
-                read_body(&mut connection, &mut head, &mut value).map_err(|fault| (false, fault))?;
+                read_body(&mut connection, &mut head, &mut value, limit).map_err(|fault| (false, fault))?;
                 f((head.status == 200).then_some(&mut value.as_slice() as &mut dyn Read));
             }
         }
         if head.keep_alive {
+            connection.get_mut().set_deadline(None);
             self.idle.lock().expect("no panics while locked").push(connection);
         }
         Ok(())
     }
 
-    fn connection(&self) -> Result<BufReader<TcpStream>, Fault> {
+    fn connection(&self) -> Result<BufReader<Timed>, Fault> {
         if let Some(c) = self.idle.lock().expect("no panics while locked").pop() {
             return Ok(c);
         }
@@ -150,7 +163,7 @@ impl HttpBatch {
                         .and_then(|()| stream.set_write_timeout(Some(self.timeout)))
                         .and_then(|()| stream.set_nodelay(true));
                     setup.map_err(|e| io_fault("connecting", e))?;
-                    return Ok(BufReader::with_capacity(64 << 10, stream));
+                    return Ok(BufReader::with_capacity(64 << 10, Timed::new(stream, self.timeout)));
                 }
                 Err(e) => last = Some(e),
             }
@@ -178,8 +191,10 @@ fn resolve(host: &str, port: u16, timeout: Duration) -> Result<Vec<SocketAddr>, 
 }
 
 fn io_fault(doing: &str, e: std::io::Error) -> Fault {
-    let timed_out = matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock);
-    Fault { message: format!("{doing}: {e}"), timed_out }
+    if matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock) {
+        return Fault::timeout(doing);
+    }
+    Fault { message: format!("{doing}: {e}"), timed_out: false }
 }
 
 fn bad(why: impl Into<String>) -> Fault {
@@ -195,8 +210,9 @@ struct Head {
     keep_alive: bool,
 }
 
-/// Reads a response's head; a status other than 200 or 404 is a fault.
-fn read_head(reader: &mut BufReader<TcpStream>) -> Result<Head, Fault> {
+/// Reads a response's head; a status other than 200 or 404, or a length over `limit`, is a
+/// fault. The reader's deadline is moved by the time the announced length takes.
+fn read_head(reader: &mut BufReader<Timed>, limit: u64) -> Result<Head, Fault> {
     let mut head = Vec::with_capacity(256);
     loop {
         let before = head.len();
@@ -233,27 +249,28 @@ fn read_head(reader: &mut BufReader<TcpStream>) -> Result<Head, Fault> {
     if status != 200 && status != 404 {
         return Err(bad(format!("GET answered {status}")));
     }
-    if length.is_some_and(|l| l > MAX_VALUE) {
-        return Err(bad(format!("a value of {} bytes is larger than any kiln stores", length.unwrap_or(0))));
+    if let Some(l) = length.filter(|&l| l > limit) {
+        return Err(too_large(l, limit));
     }
+    reader.get_mut().extend_deadline(transfer_time(length.unwrap_or(0)));
     Ok(Head { status, length, chunked, keep_alive })
 }
 
 /// Reads one response: its body into `value` (cleared first; for a 200 the value, else
 /// discarded); whether it was a 200 (a 404 is a miss, anything else a fault) and whether the
 /// connection stays open after it.
-fn read_response(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Result<(bool, bool), Fault> {
-    let mut head = read_head(reader)?;
-    read_body(reader, &mut head, value)?;
+fn read_response(reader: &mut BufReader<Timed>, value: &mut Vec<u8>, limit: u64) -> Result<(bool, bool), Fault> {
+    let mut head = read_head(reader, limit)?;
+    read_body(reader, &mut head, value, limit)?;
     Ok((head.status == 200, head.keep_alive))
 }
 
 /// The body of the response of `head` into `value` (cleared first); a body that runs to
 /// the end of the connection leaves it closed.
-fn read_body(reader: &mut BufReader<TcpStream>, head: &mut Head, value: &mut Vec<u8>) -> Result<(), Fault> {
+fn read_body(reader: &mut BufReader<Timed>, head: &mut Head, value: &mut Vec<u8>, limit: u64) -> Result<(), Fault> {
     value.clear();
     if head.chunked {
-        read_chunked(reader, value)?;
+        read_chunked(reader, value, limit)?;
     } else if let Some(length) = head.length {
         value.reserve(length as usize);
         let read = reader.by_ref().take(length).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
@@ -261,17 +278,27 @@ fn read_body(reader: &mut BufReader<TcpStream>, head: &mut Head, value: &mut Vec
             return Err(bad("a value is truncated (the connection closed)"));
         }
     } else {
-        // The body runs to the end of the connection.
-        reader.by_ref().take(MAX_VALUE).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
+        // The body runs to the end of the connection (one byte more than the limit: a
+        // longer one is refused).
+        reader.by_ref().take(limit + 1).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
+        if value.len() as u64 > limit {
+            return Err(too_large(value.len() as u64, limit));
+        }
         head.keep_alive = false;
     }
     Ok(())
 }
 
-/// A `Transfer-Encoding: chunked` body into `value`.
-fn read_chunked(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Result<(), Fault> {
+/// A value of `length` bytes, over `limit`.
+fn too_large(length: u64, limit: u64) -> Fault {
+    bad(format!("a value of {length} bytes or more is larger than any this build stores (at most {limit})"))
+}
+
+/// A `Transfer-Encoding: chunked` body into `value`: at most `limit` bytes, each chunk's
+/// size checked before its bytes are read (a size that overflows is malformed).
+fn read_chunked(reader: &mut BufReader<Timed>, value: &mut Vec<u8>, limit: u64) -> Result<(), Fault> {
     let mut line = Vec::new();
-    let read_line = |reader: &mut BufReader<TcpStream>, line: &mut Vec<u8>| -> Result<(), Fault> {
+    let read_line = |reader: &mut BufReader<Timed>, line: &mut Vec<u8>| -> Result<(), Fault> {
         line.clear();
         let n = reader.by_ref().take(4096).read_until(b'\n', line).map_err(|e| io_fault("reading a value", e))?;
         if n == 0 || !line.ends_with(b"\n") {
@@ -281,9 +308,12 @@ fn read_chunked(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Resul
     };
     loop {
         read_line(reader, &mut line)?;
+        // At most 16 hex digits (RFC 9112 7.1: a recipient must guard against overflow).
         let size = std::str::from_utf8(&line)
             .ok()
-            .and_then(|l| u64::from_str_radix(l.split(';').next().unwrap_or("").trim(), 16).ok())
+            .map(|l| l.split(';').next().unwrap_or("").trim())
+            .filter(|digits| !digits.is_empty() && digits.len() <= 16)
+            .and_then(|digits| u64::from_str_radix(digits, 16).ok())
             .ok_or_else(|| bad("malformed chunk size"))?;
         if size == 0 {
             // Trailers, up to the empty line.
@@ -294,8 +324,9 @@ fn read_chunked(reader: &mut BufReader<TcpStream>, value: &mut Vec<u8>) -> Resul
                 }
             }
         }
-        if value.len() as u64 + size > MAX_VALUE {
-            return Err(bad("a chunked value is larger than any kiln stores"));
+        match (value.len() as u64).checked_add(size) {
+            Some(total) if total <= limit => reader.get_mut().extend_deadline(transfer_time(size)),
+            total => return Err(too_large(total.unwrap_or(u64::MAX), limit)),
         }
         let read = reader.by_ref().take(size).read_to_end(value).map_err(|e| io_fault("reading a value", e))?;
         if read as u64 != size {
@@ -341,7 +372,7 @@ mod tests {
     fn answers(pipeline: &HttpBatch, keys: &[Key]) -> (Result<usize, (usize, Fault)>, Answers) {
         let got = Mutex::new(Vec::new());
         let mut value = Vec::new();
-        let r = pipeline.get(keys, &mut value, &|k, v| got.lock().unwrap().push((*k, v.map(<[u8]>::to_vec))));
+        let r = pipeline.get(keys, &mut value, 1 << 20, &|k, v| got.lock().unwrap().push((*k, v.map(<[u8]>::to_vec))));
         (r, got.into_inner().unwrap())
     }
 
@@ -404,7 +435,7 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
         let (port, server) = serve(reply.to_vec(), 1);
         let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "/kiln", None, Duration::from_secs(5)).unwrap();
         let mut got = None;
-        let r = p.get_streamed(&Key([9; 32]), &mut |body| {
+        let r = p.get_streamed(&Key([9; 32]), 1 << 20, &mut |body| {
             got = body.map(|b| {
                 let mut v = Vec::new();
                 b.take(read as u64).read_to_end(&mut v).unwrap();
@@ -438,6 +469,26 @@ HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3;x=y\r\nabc\r\n2\r\nde\r\n
         let (called, fault) = r.unwrap_err();
         assert_eq!((got, called), (None, false));
         assert!(fault.message.contains("403"), "{}", fault.message);
+    }
+
+    /// Case 3 of issue 28: chunk sizes that overflow a u64 (or the sum) are refused, not
+    /// wrapped.
+    #[test]
+    fn chunk_sizes_that_overflow_are_refused() {
+        for (size, why) in [
+            ("ffffffffffffffff", "larger than any"),
+            ("10000000000000000", "malformed chunk size"),
+            ("", "malformed chunk size"),
+        ] {
+            let reply = format!("HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n{size}\r\nxyz");
+            let (port, server) = serve(reply.into_bytes(), 1);
+            let p = HttpBatch::new(&format!("127.0.0.1:{port}"), "/p", None, Duration::from_secs(5)).unwrap();
+            let (r, got) = answers(&p, &keys(1));
+            let (n, fault) = r.unwrap_err();
+            assert_eq!((n, got.len()), (0, 0), "{size}");
+            assert!(fault.message.contains(why), "{size}: {}", fault.message);
+            server.join().unwrap();
+        }
     }
 
     #[test]

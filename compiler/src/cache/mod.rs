@@ -58,6 +58,8 @@ const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x02";
 const REMOTE_HEADER: usize = 8 + 16;
 const RECORD_EXTENSION: &str = "kpp";
+/// The largest records file read (a record is 64 bytes: about 16M permutations).
+const MAX_RECORDS: u64 = 1 << 30;
 /// Pack header: magic, entry count (u64), blake3 of the index rows.
 const PACK_HEADER: usize = 8 + 8 + 32;
 /// Index row: key, offset of the entry in the pack (u64), its length (u64).
@@ -335,6 +337,19 @@ impl Cache {
         Ok(Cache { dir, index: Arc::default(), remote: None, index_puts: true })
     }
 
+    /// The cache at `dir` if there is one, for commands that only read or remove: nothing
+    /// is created or tagged (a mistyped folder stays absent). `Ok(None)` when `dir` does
+    /// not exist; an error when it is not a folder.
+    pub fn open_existing(dir: impl Into<PathBuf>) -> Result<Option<Cache>, Error> {
+        let dir = dir.into();
+        match fs::metadata(&dir) {
+            Ok(m) if m.is_dir() => Ok(Some(Cache { dir, index: Arc::default(), remote: None, index_puts: true })),
+            Ok(_) => Err(Error { path: dir, source: io::Error::other("it is not a folder") }),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(Error { path: dir, source }),
+        }
+    }
+
     /// This cache, with the entries put through it left out of its in-memory index: a
     /// build never looks up a key it compiled, and at 100k keys the index of its own puts
     /// is about 10 MiB of its peak. Remote hits filled into the local cache still join it
@@ -518,7 +533,10 @@ impl Cache {
             keys.iter().filter(|k| !known(k)).copied().collect()
         });
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
-        let bundle = (layer.remote.streams() && keys.len() >= bundle::MIN_KEYS).then(|| bundle::Bundle::new(keys));
+        // Not with signed values: a part is used as it streams, before its end could be
+        // checked (each value is checked by itself; see `Remote::get_each`).
+        let bundle = (layer.remote.streams() && !layer.remote.signs() && keys.len() >= bundle::MIN_KEYS)
+            .then(|| bundle::Bundle::new(keys));
         let mut parts = vec![None; bundle.as_ref().map_or(0, |b| b.ids().len())];
         if missing.is_empty() {
             self.keep_bundle(layer, bundle, parts);
@@ -804,7 +822,8 @@ impl Cache {
     /// local copy: this local cache never built that configuration).
     pub fn get_records_found(&self, key: &Key) -> Option<(Vec<u8>, bool)> {
         let path = self.records_path(key);
-        if let Some(body) = fs::read(&path).ok().and_then(records_body) {
+        // Only a regular file, bounded (a FIFO or a device there is ignored).
+        if let Some(body) = crate::archive::input::read_regular(&path, MAX_RECORDS).ok().and_then(records_body) {
             if let Ok(f) = fs::File::options().append(true).open(&path) {
                 let _ = f.set_modified(SystemTime::now());
             }
@@ -881,7 +900,7 @@ impl Cache {
         mut keys: &mut dyn Iterator<Item = &Key>,
     ) -> Option<(usize, usize)> {
         // The stamp first: without one (a first build) the keys are not looked at.
-        let text = fs::read_to_string(self.stamp_path(archive)).ok()?;
+        let text = crate::archive::input::read_regular_to_string(&self.stamp_path(archive), 4096).ok()?;
         if !self.with_index(|index| Iterator::all(&mut keys, |k| index.by_key.contains_key(k))) {
             return None;
         }
@@ -952,7 +971,7 @@ impl Cache {
             return false;
         }
         let mut head = [0u8; 65];
-        let n = match fs::File::open(path).and_then(|mut f| f.read(&mut head)) {
+        let n = match crate::archive::input::open_regular(path).and_then(|(mut f, _)| f.read(&mut head)) {
             Ok(n) => n,
             Err(_) => return false,
         };
@@ -1075,7 +1094,7 @@ fn records_body(mut bytes: Vec<u8>) -> Option<Vec<u8>> {
 /// [`open_pack`] checks the rest).
 fn pack_rows(path: &Path) -> Option<u64> {
     let mut header = [0u8; 16];
-    let file = fs::File::open(path).ok()?;
+    let (file, _) = crate::archive::input::open_regular(path).ok()?;
     file.read_exact_at(&mut header, 0).ok()?;
     let rows = u64::from_le_bytes(header[8..16].try_into().expect("8 bytes"));
     // A damaged count that the file cannot hold reserves nothing.
@@ -1086,8 +1105,8 @@ fn pack_rows(path: &Path) -> Option<u64> {
 /// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,
 /// `Err(why)` when it is not a whole pack of this Kiln.
 fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
-    let file = match fs::File::open(path) {
-        Ok(f) => f,
+    let file = match crate::archive::input::open_regular(path) {
+        Ok((f, _)) => f,
         Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e.to_string()),
     };

@@ -24,7 +24,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Duration;
 
-use super::fault::{Fault, MAX_VALUE};
+use super::fault::{deadline, request_bound, transfer_time, Fault, Timed, DEFAULT_LIMIT, MAX_VALUE};
 use super::Key;
 
 /// The default bound of each connect, read and write.
@@ -99,6 +99,33 @@ pub struct Options {
     pub token: Option<String>,
     /// Bound of each connect, read and write (`KILN_REMOTE_CACHE_TIMEOUT_MS`).
     pub timeout: Duration,
+    /// `KILN_REMOTE_CACHE_KEY`: the 32-byte key of the values' MAC (see [`Remote`]).
+    pub key: Option<SigningKey>,
+}
+
+/// The key of the remote values' MAC (blake3 in keyed mode). Never printed.
+#[derive(Clone, PartialEq, Eq)]
+pub struct SigningKey([u8; 32]);
+
+impl SigningKey {
+    /// A key of 64 hexadecimal digits.
+    pub fn parse(hex: &str) -> Result<SigningKey, String> {
+        let hex = hex.trim();
+        if hex.len() != 64 || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return Err(format!("expected 64 hexadecimal digits (32 bytes), got {} characters", hex.len()));
+        }
+        let mut key = [0u8; 32];
+        for (i, byte) in key.iter_mut().enumerate() {
+            *byte = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).expect("hex digits");
+        }
+        Ok(SigningKey(key))
+    }
+}
+
+impl std::fmt::Debug for SigningKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SigningKey(***)")
+    }
 }
 
 impl std::fmt::Debug for Options {
@@ -108,6 +135,7 @@ impl std::fmt::Debug for Options {
             .field("mode", &self.mode)
             .field("token", &self.token.as_ref().map(|_| "***"))
             .field("timeout", &self.timeout)
+            .field("key", &self.key)
             .finish()
     }
 }
@@ -146,7 +174,13 @@ impl Options {
             },
             _ => DEFAULT_TIMEOUT,
         };
-        Ok(Some(Options { url: url.trim().to_string(), mode, token, timeout }))
+        let key = match std::env::var("KILN_REMOTE_CACHE_KEY") {
+            Ok(hex) if !hex.trim().is_empty() => {
+                Some(SigningKey::parse(&hex).map_err(|why| Error::Env { name: "KILN_REMOTE_CACHE_KEY", why })?)
+            }
+            _ => None,
+        };
+        Ok(Some(Options { url: url.trim().to_string(), mode, token, timeout, key }))
     }
 }
 
@@ -166,8 +200,23 @@ pub struct Stats {
     pub hits: u64,
     /// Entries stored to it.
     pub writes: u64,
-    /// Failed operations (after the first one the store is off: usually 0 or 1).
+    /// Failed operations (after the first one the store is off: usually 0 or 1), and values
+    /// refused (not a Kiln value, or without a valid MAC).
     pub errors: u64,
+}
+
+/// A value stored with a MAC (`KILN_REMOTE_CACHE_KEY`): this magic, the MAC, the value.
+const SIGNED_MAGIC: &[u8; 8] = b"KILNSG\0\x01";
+const SIGNED_HEADER: usize = 8 + 32;
+
+/// The MAC of the value `value` stored under `key`: blake3 in keyed mode over a context
+/// string, the key and the value (a value moved to another key no longer verifies).
+fn mac(signing: &SigningKey, key: &Key, value: &[u8]) -> [u8; 32] {
+    let mut h = blake3::Hasher::new_keyed(&signing.0);
+    h.update(b"kiln remote cache value v1\0");
+    h.update(&key.0);
+    h.update(value);
+    *h.finalize().as_bytes()
 }
 
 /// `scheme://host[:port]/path` of `url`, without user, password, query or fragment: the
@@ -191,6 +240,10 @@ pub struct Remote {
     secrets: Vec<String>,
     off: AtomicBool,
     warning: Mutex<Option<String>>,
+    /// The largest value read ([`Remote::limit_values`]).
+    limit: AtomicU64,
+    timeout: Duration,
+    key: Option<SigningKey>,
     hits: AtomicU64,
     writes: AtomicU64,
     errors: AtomicU64,
@@ -204,7 +257,7 @@ impl std::fmt::Debug for Remote {
 
 enum Store {
     Redis(Box<RedisStore>),
-    Http(HttpStore),
+    Http(Box<HttpStore>),
 }
 
 impl Remote {
@@ -226,7 +279,7 @@ impl Remote {
             Some("http") | Some("https") => {
                 let (store, password) = HttpStore::new(options).map_err(bad)?;
                 secrets.extend(password);
-                Store::Http(store)
+                Store::Http(Box::new(store))
             }
             _ => return Err(bad("expected redis://host:port[/db] or http(s)://host[:port]/prefix".into())),
         };
@@ -238,6 +291,9 @@ impl Remote {
             secrets,
             off: AtomicBool::new(false),
             warning: Mutex::new(None),
+            limit: AtomicU64::new(DEFAULT_LIMIT),
+            timeout: options.timeout,
+            key: options.key.clone(),
             hits: AtomicU64::new(0),
             writes: AtomicU64::new(0),
             errors: AtomicU64::new(0),
@@ -251,6 +307,64 @@ impl Remote {
 
     pub fn mode(&self) -> Mode {
         self.mode
+    }
+
+    /// Values larger than `bytes` (at most [`MAX_VALUE`]) are refused before anything is
+    /// allocated for them: the build sets it from its own figures (what its largest entry,
+    /// archive or set of records can be, with a wide margin).
+    pub fn limit_values(&self, bytes: u64) {
+        self.limit.store(bytes.clamp(1 << 20, MAX_VALUE), Ordering::Relaxed);
+    }
+
+    fn limit(&self) -> u64 {
+        let raw = self.limit.load(Ordering::Relaxed);
+        if self.key.is_some() {
+            raw + SIGNED_HEADER as u64
+        } else {
+            raw
+        }
+    }
+
+    /// Whether values carry a MAC (`KILN_REMOTE_CACHE_KEY` is set).
+    pub(crate) fn signs(&self) -> bool {
+        self.key.is_some()
+    }
+
+    /// The value a reader hands on from what the server sent for `key`: with a key, the
+    /// value behind a valid MAC; without, the value (a signed one's MAC left unchecked).
+    /// `None`, and the store off with one warning, for anything that is not a Kiln value
+    /// or (with a key) has no valid MAC: a server that answers so is not trusted again
+    /// this build.
+    fn accept<'v>(&self, key: &Key, value: &'v [u8]) -> Option<&'v [u8]> {
+        // Values still arriving from a batch asked before the store went off are dropped.
+        if self.off.load(Ordering::Relaxed) {
+            return None;
+        }
+        let signed = value.len() >= SIGNED_HEADER && &value[..8] == SIGNED_MAGIC;
+        let why = match &self.key {
+            Some(k) if signed && mac(k, key, &value[SIGNED_HEADER..]) == value[8..SIGNED_HEADER] => {
+                return Some(&value[SIGNED_HEADER..])
+            }
+            Some(_) if signed => "its MAC does not match KILN_REMOTE_CACHE_KEY",
+            Some(_) if value.starts_with(b"KILN") => "it has no MAC (KILN_REMOTE_CACHE_KEY is set)",
+            None if signed => return Some(&value[SIGNED_HEADER..]),
+            None if value.starts_with(b"KILN") => return Some(value),
+            _ => "it is not a Kiln value",
+        };
+        self.refuse(key, why);
+        None
+    }
+
+    /// Turns the store off for a value of `key` that is refused (one warning).
+    fn refuse(&self, key: &Key, why: &str) {
+        self.errors.fetch_add(1, Ordering::Relaxed);
+        if !self.off.swap(true, Ordering::Relaxed) {
+            let message = format!(
+                "warning: remote cache {}: the value of {key} is refused ({why}); this build goes on with the local cache only",
+                self.shown
+            );
+            *self.warning.lock().expect("no panics while locked") = Some(message);
+        }
     }
 
     /// Whether entries compiled by this build go to the remote.
@@ -269,14 +383,22 @@ impl Remote {
         if self.off.load(Ordering::Relaxed) {
             return false;
         }
+        let limit = self.limit();
         match self.retry(|| {
             value.clear();
             match &self.store {
-                Store::Redis(r) => r.get_into(key, value),
-                Store::Http(h) => h.get_into(key, value),
+                Store::Redis(r) => r.get_into(key, value, limit),
+                Store::Http(h) => h.get_into(key, value, limit),
             }
         }) {
-            Ok(found) => found,
+            Ok(true) => match self.accept(key, value).map(|v| v.len()) {
+                Some(len) => {
+                    value.drain(..value.len() - len);
+                    true
+                }
+                None => false,
+            },
+            Ok(false) => false,
             Err(f) => {
                 self.fail("reading from", f);
                 false
@@ -292,6 +414,10 @@ impl Remote {
     /// connections, each with its own body buffer, asking for a batch of pipelined `GET`s at
     /// a time (plain HTTP) or one key (HTTPS).
     pub fn get_each(&self, keys: &[Key], f: impl Fn(&Key, Option<&[u8]>) + Sync) {
+        // Each value accepted (else a miss, and the store off).
+        let f_accepted = &f;
+        let f = |key: &Key, v: Option<&[u8]>| f(key, v.and_then(|v| self.accept(key, v)));
+        let limit = self.limit();
         match &self.store {
             Store::Redis(r) => in_batches(keys, BATCH, |batch, value| {
                 // Each value handed on as it arrives; after a failure, the keys not answered
@@ -303,7 +429,7 @@ impl Remote {
                         f(key, v);
                         done.set(done.get() + 1);
                     };
-                    if let Err(fault) = self.retry(|| r.get_many(&batch[done.get()..], value, &mut each)) {
+                    if let Err(fault) = self.retry(|| r.get_many(&batch[done.get()..], value, limit, &mut each)) {
                         self.fail("reading from", fault);
                     }
                 }
@@ -313,10 +439,11 @@ impl Remote {
                 // Plain HTTP: batches of pipelined GETs; HTTPS: one request at a time.
                 let batch = if h.batch.is_some() { super::http_batch::BATCH } else { 1 };
                 in_batches(keys, batch, |chunk, value| match &h.batch {
-                    Some(p) => self.get_pipelined(p, chunk, value, &f),
+                    Some(p) => self.get_pipelined(p, chunk, value, limit, &f),
                     None => chunk.iter().for_each(|key| {
+                        // Accepted already.
                         let found = self.get_into(key, value);
-                        f(key, found.then_some(value.as_slice()));
+                        f_accepted(key, found.then_some(value.as_slice()));
                     }),
                 });
             }
@@ -331,11 +458,12 @@ impl Remote {
         batch: &super::http_batch::HttpBatch,
         keys: &[Key],
         value: &mut Vec<u8>,
+        limit: u64,
         f: &impl Fn(&Key, Option<&[u8]>),
     ) {
         let (mut done, mut retried) = (0, false);
         while done < keys.len() && !self.off.load(Ordering::Relaxed) {
-            match batch.get(&keys[done..], value, f) {
+            match batch.get(&keys[done..], value, limit, f) {
                 Ok(n) => done += n,
                 Err((n, fault)) => {
                     done += n;
@@ -381,11 +509,12 @@ impl Remote {
                         called.set(true);
                         f(i, body);
                     };
-                    let mut result = h.get_streamed(key, &mut g);
+                    let limit = self.limit();
+                    let mut result = h.get_streamed(key, limit, &mut g);
                     // Once more on a new connection (an idle one the server closed), unless
                     // it timed out or `f` had its answer.
                     if result.as_ref().is_err_and(|(_, fault)| !called.get() && !fault.timed_out) {
-                        result = h.get_streamed(key, &mut g);
+                        result = h.get_streamed(key, limit, &mut g);
                     }
                     if let Err((_, fault)) = result {
                         self.fail("reading from", fault);
@@ -424,6 +553,14 @@ impl Remote {
         if !self.writes() {
             return false;
         }
+        let signed;
+        let value = match &self.key {
+            Some(k) => {
+                signed = [&SIGNED_MAGIC[..], &mac(k, key, value), value].concat();
+                &signed[..]
+            }
+            None => value,
+        };
         match self.retry(|| match &self.store {
             Store::Redis(r) => r.put(key, value),
             Store::Http(h) => h.put(key, value),
@@ -471,10 +608,22 @@ impl Remote {
     fn fail(&self, doing: &str, fault: Fault) {
         self.errors.fetch_add(1, Ordering::Relaxed);
         if !self.off.swap(true, Ordering::Relaxed) {
+            let why = if fault.timed_out {
+                // Named as a timeout, with what was waited for (never the OS's words).
+                format!(
+                    "{}: timed out: {} sent nothing within the timeout of {} ms, or a request took longer than {} ms",
+                    fault.message.trim_end_matches(": timed out"),
+                    self.shown,
+                    self.timeout.as_millis(),
+                    super::fault::request_bound(self.timeout, 0).as_millis()
+                )
+            } else {
+                fault.message
+            };
             let message = format!(
                 "warning: remote cache {}: {doing} it failed ({}); this build goes on with the local cache only",
                 self.shown,
-                scrub(&fault.message, &self.secrets)
+                scrub(&why, &self.secrets)
             );
             *self.warning.lock().expect("no panics while locked") = Some(message);
         }
@@ -533,7 +682,10 @@ impl RedisStore {
     }
 
     fn with_connection<T>(&self, f: impl FnOnce(&mut redis::Connection) -> redis::RedisResult<T>) -> Result<T, Fault> {
-        let fault = |e: redis::RedisError| Fault { timed_out: e.is_timeout(), message: e.to_string() };
+        let fault = |e: redis::RedisError| match e.is_timeout() {
+            true => Fault::timeout("waiting for redis"),
+            false => Fault { timed_out: false, message: e.to_string() },
+        };
         let idle = self.idle.lock().expect("no panics while locked").pop();
         let mut connection = match idle {
             Some(c) => c,
@@ -557,13 +709,13 @@ impl RedisStore {
     /// connection (an `MGET` of one key) when the server is reached over plain TCP: the
     /// `redis` crate's parser grew its buffer step by step, each step zeroed and copied (a
     /// 7 MB archive cost a warm-remote build about a tenth of its CPU).
-    fn get_into(&self, key: &Key, value: &mut Vec<u8>) -> Result<bool, Fault> {
+    fn get_into(&self, key: &Key, value: &mut Vec<u8>, limit: u64) -> Result<bool, Fault> {
         if self.raw.address.is_none() {
             let found: Option<Vec<u8>> = self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))?;
             return Ok(found.map(|v| *value = v).is_some());
         }
         let mut found = None;
-        self.get_many(std::slice::from_ref(key), value, &mut |_, v| found = v.map(<[u8]>::len))?;
+        self.get_many(std::slice::from_ref(key), value, limit, &mut |_, v| found = v.map(<[u8]>::len))?;
         Ok(found.map(|len| value.truncate(len)).is_some())
     }
 
@@ -579,7 +731,13 @@ impl RedisStore {
     /// over plain TCP, else through the `redis` crate.
     /// `f` with each key and its value (`value` is the buffer of [`RawRedis::mget`]); an
     /// error leaves the keys after those `f` had unanswered.
-    fn get_many(&self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
+    fn get_many(
+        &self,
+        keys: &[Key],
+        value: &mut Vec<u8>,
+        limit: u64,
+        f: &mut dyn FnMut(&Key, Option<&[u8]>),
+    ) -> Result<(), Fault> {
         if keys.is_empty() {
             return Ok(());
         }
@@ -590,7 +748,7 @@ impl RedisStore {
                 None => RawRedis::connect(address, &self.raw, self.timeout)?,
             };
             // A connection that failed is dropped (its reply may be half read).
-            connection.mget(keys, value, f)?;
+            connection.mget(keys, value, limit, f)?;
             self.raw_idle.lock().expect("no panics while locked").push(connection);
             return Ok(());
         }
@@ -622,13 +780,15 @@ struct RawTarget {
 /// the `redis` crate's general reply parser and `Value` tree (most of the CPU a warm-remote
 /// fill spent in the client). Every read and write is bounded by the store's timeout.
 struct RawRedis {
-    reader: std::io::BufReader<std::net::TcpStream>,
+    reader: std::io::BufReader<Timed>,
 }
 
 impl RawRedis {
     fn io_fault(e: std::io::Error) -> Fault {
-        let timed_out = matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock);
-        Fault { message: e.to_string(), timed_out }
+        if matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock) {
+            return Fault::timeout("reading a reply");
+        }
+        Fault { message: e.to_string(), timed_out: false }
     }
 
     fn protocol(what: &str) -> Fault {
@@ -646,7 +806,9 @@ impl RawRedis {
                     stream.set_read_timeout(Some(timeout)).map_err(Self::io_fault)?;
                     stream.set_write_timeout(Some(timeout)).map_err(Self::io_fault)?;
                     let _ = stream.set_nodelay(true);
-                    let mut c = RawRedis { reader: std::io::BufReader::with_capacity(1 << 16, stream) };
+                    let mut c =
+                        RawRedis { reader: std::io::BufReader::with_capacity(1 << 16, Timed::new(stream, timeout)) };
+                    c.reader.get_mut().set_deadline(Some(deadline(timeout)));
                     if let Some(password) = &target.password {
                         let mut args: Vec<&[u8]> = vec![b"AUTH"];
                         args.extend(target.username.as_deref().map(str::as_bytes));
@@ -659,6 +821,7 @@ impl RawRedis {
                         c.send(&[b"SELECT", db.as_bytes()])?;
                         c.expect_ok("SELECT")?;
                     }
+                    c.reader.get_mut().set_deadline(None);
                     return Ok(c);
                 }
                 Err(e) => last = Self::io_fault(e),
@@ -718,8 +881,29 @@ impl RawRedis {
 
     /// One `MGET` of `keys`: `f` with each key and its value as the reply arrives (read into
     /// `value` one at a time, not gathered); an error leaves the keys after those `f` had
-    /// unanswered.
-    fn mget(&mut self, keys: &[Key], value: &mut Vec<u8>, f: &mut dyn FnMut(&Key, Option<&[u8]>)) -> Result<(), Fault> {
+    /// unanswered. The whole reply is bounded by a deadline (moved by the time each value's
+    /// announced length takes), each value by `limit`, checked before it is allocated.
+    fn mget(
+        &mut self,
+        keys: &[Key],
+        value: &mut Vec<u8>,
+        limit: u64,
+        f: &mut dyn FnMut(&Key, Option<&[u8]>),
+    ) -> Result<(), Fault> {
+        let timeout = self.reader.get_ref().timeout();
+        self.reader.get_mut().set_deadline(Some(deadline(timeout)));
+        let result = self.mget_within(keys, value, limit, f);
+        self.reader.get_mut().set_deadline(None);
+        result
+    }
+
+    fn mget_within(
+        &mut self,
+        keys: &[Key],
+        value: &mut Vec<u8>,
+        limit: u64,
+        f: &mut dyn FnMut(&Key, Option<&[u8]>),
+    ) -> Result<(), Fault> {
         use std::io::Read;
         let names: Vec<String> = keys.iter().map(RedisStore::name).collect();
         let mut args: Vec<&[u8]> = Vec::with_capacity(keys.len() + 1);
@@ -737,9 +921,11 @@ impl RawRedis {
                 f(key, None);
                 continue;
             }
-            if len as u64 > MAX_VALUE {
-                return Err(Self::protocol("a value over 1 GiB"));
+            if len as u64 > limit {
+                let message = format!("a value of {len} bytes is larger than any this build stores (at most {limit})");
+                return Err(Fault { message, timed_out: false });
             }
+            self.reader.get_mut().extend_deadline(transfer_time(len as u64));
             // Read into spare capacity (not zeroed first; the buffer's pages are reused from
             // value to value); an early end is a truncated value.
             value.clear();
@@ -809,7 +995,7 @@ impl HttpStore {
             .timeout_resolve(Some(options.timeout))
             .timeout_per_read(Some(options.timeout))
             .timeout_per_write(Some(options.timeout))
-            .timeout_per_call(Some(options.timeout * 20))
+            .timeout_per_call(Some(request_bound(options.timeout, DEFAULT_LIMIT)))
             .max_idle_connections_per_host(STREAMS)
             .user_agent(concat!("kiln/", env!("CARGO_PKG_VERSION")));
         #[cfg(feature = "https")]
@@ -841,6 +1027,9 @@ impl HttpStore {
             ureq::Error::Io(io) => matches!(io.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock),
             _ => false,
         };
+        if timed_out {
+            return Fault::timeout("waiting for an answer");
+        }
         Fault { message: e.to_string(), timed_out }
     }
 
@@ -849,7 +1038,18 @@ impl HttpStore {
     }
 
     /// The value of `key` appended to `value`; whether there was one.
-    fn get_into(&self, key: &Key, value: &mut Vec<u8>) -> Result<bool, Fault> {
+    fn get_into(&self, key: &Key, value: &mut Vec<u8>, limit: u64) -> Result<bool, Fault> {
+        if let Some(p) = &self.batch {
+            // Plain HTTP: one request of the batches' kind (a deadline for the whole of it).
+            let found = std::cell::Cell::new(None);
+            let mut body = std::mem::take(value);
+            let r = p.get(std::slice::from_ref(key), &mut body, limit, &|_, v| found.set(Some(v.is_some())));
+            *value = body;
+            return match r {
+                Ok(_) => Ok(found.get() == Some(true)),
+                Err((_, fault)) => Err(fault),
+            };
+        }
         let mut request = self.agent.get(self.url(key));
         if let Some(a) = &self.authorization {
             request = request.header("Authorization", a);
@@ -859,9 +1059,13 @@ impl HttpStore {
             200 => {
                 // Room for the announced length at once (not grown as it comes).
                 use std::io::Read;
-                let announced = response.body().content_length().unwrap_or(0).min(MAX_VALUE);
+                let announced = response.body().content_length().unwrap_or(0);
+                if announced > limit {
+                    let message = format!("a value of {announced} bytes is larger than any this build stores");
+                    return Err(Fault { message, timed_out: false });
+                }
                 value.reserve(announced as usize);
-                let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
+                let mut reader = response.body_mut().with_config().limit(limit).reader();
                 reader.read_to_end(value).map_err(|e| Self::fault(ureq::Error::Io(e)))?;
                 Ok(true)
             }
@@ -873,9 +1077,14 @@ impl HttpStore {
     /// `f` with a reader of the value of `key` as it arrives (`None` for a 404): pipelined
     /// plain HTTP's connections, else ureq's. `Err((called, fault))` as
     /// [`super::http_batch::HttpBatch::get_streamed`].
-    fn get_streamed(&self, key: &Key, f: &mut dyn FnMut(Option<&mut dyn std::io::Read>)) -> Result<(), (bool, Fault)> {
+    fn get_streamed(
+        &self,
+        key: &Key,
+        limit: u64,
+        f: &mut dyn FnMut(Option<&mut dyn std::io::Read>),
+    ) -> Result<(), (bool, Fault)> {
         if let Some(p) = &self.batch {
-            return p.get_streamed(key, f);
+            return p.get_streamed(key, limit, f);
         }
         let mut request = self.agent.get(self.url(key));
         if let Some(a) = &self.authorization {
@@ -884,7 +1093,7 @@ impl HttpStore {
         let mut response = request.call().map_err(|e| (false, Self::fault(e)))?;
         match response.status().as_u16() {
             200 => {
-                let mut reader = response.body_mut().with_config().limit(MAX_VALUE).reader();
+                let mut reader = response.body_mut().with_config().limit(limit).reader();
                 f(Some(&mut reader));
                 std::io::copy(&mut reader, &mut std::io::sink())
                     .map_err(|e| (true, Self::fault(ureq::Error::Io(e))))?;
@@ -959,7 +1168,7 @@ impl ureq::unversioned::resolver::Resolver for OnceResolver {
 fn trusted(path: &std::path::Path) -> Result<ureq::tls::TlsConfig, String> {
     use ureq::tls::{parse_pem, PemItem, RootCerts, TlsConfig};
     let why = |e: String| format!("KILN_REMOTE_CACHE_CA: {}: {e}", path.display());
-    let pem = std::fs::read(path).map_err(|e| why(e.to_string()))?;
+    let pem = crate::archive::input::read_regular(path, 16 << 20).map_err(|e| why(e.to_string()))?;
     let mut certificates = Vec::new();
     for item in parse_pem(&pem) {
         if let PemItem::Certificate(c) = item.map_err(|e| why(e.to_string()))? {
@@ -1019,6 +1228,7 @@ mod tests {
             mode: Mode::ReadWrite,
             token: token.map(String::from),
             timeout: Duration::from_millis(200),
+            key: None,
         }
     }
 
@@ -1092,7 +1302,7 @@ mod tests {
     fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
         let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
         let mut values = Vec::new();
-        c.mget(keys, &mut Vec::new(), &mut |_, v| values.push(v.map(<[u8]>::to_vec)))?;
+        c.mget(keys, &mut Vec::new(), 1 << 20, &mut |_, v| values.push(v.map(<[u8]>::to_vec)))?;
         Ok(values)
     }
 
@@ -1150,6 +1360,161 @@ mod tests {
         remote.get_streamed(&[Key([2; 32])], each);
         assert_eq!(got.into_inner().unwrap(), vec![(0, None)]);
         assert_eq!((remote.stats().errors, remote.take_warning()), (1, None));
+    }
+
+    /// A server on a free loopback port that answers every connection (on a thread each)
+    /// with `reply` once the request's head is in, one byte every `drip` (all at once when
+    /// zero); it stops after `stop`.
+    fn hostile_server(reply: Vec<u8>, drip: Duration, stop: Duration) -> u16 {
+        use std::io::{Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let end = std::time::Instant::now() + stop;
+        std::thread::spawn(move || {
+            for socket in listener.incoming().flatten() {
+                let reply = reply.clone();
+                std::thread::spawn(move || {
+                    let mut socket = socket;
+                    let mut got = Vec::new();
+                    let mut buffer = [0; 4096];
+                    while !got.windows(4).any(|w| w == b"\r\n\r\n" || w.starts_with(b"GET ") || w == b"MGET") {
+                        match socket.read(&mut buffer) {
+                            Ok(0) | Err(_) => return,
+                            Ok(n) => got.extend_from_slice(&buffer[..n]),
+                        }
+                    }
+                    if drip.is_zero() {
+                        let _ = socket.write_all(&reply);
+                        let _ = socket.read(&mut buffer);
+                        return;
+                    }
+                    for byte in reply.iter().cycle() {
+                        if std::time::Instant::now() > end || socket.write_all(&[*byte]).is_err() {
+                            return;
+                        }
+                        std::thread::sleep(drip);
+                    }
+                });
+                if std::time::Instant::now() > end {
+                    return;
+                }
+            }
+        });
+        port
+    }
+
+    fn fetch_all(remote: &Remote, keys: &[Key]) -> Vec<Option<Vec<u8>>> {
+        let got = Mutex::new(Vec::new());
+        remote.get_each(keys, |_, v| got.lock().unwrap().push(v.map(<[u8]>::to_vec)));
+        got.into_inner().unwrap()
+    }
+
+    fn many_keys(n: usize) -> Vec<Key> {
+        (0..n).map(|i| Key([i as u8; 32])).collect()
+    }
+
+    /// Case 1 of issue 28: a server that drips one byte a little faster than the timeout
+    /// (each read is in time) is cut off by the request's deadline: one warning naming the
+    /// timeout, the server and the wait; every key a miss.
+    #[test]
+    fn a_server_that_drips_is_cut_off_by_the_request_deadline() {
+        let timeout = Duration::from_millis(200);
+        for reply in [&b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n"[..], b"*64\r\n$100000\r\n"] {
+            let port = hostile_server(reply.to_vec(), timeout * 3 / 4, Duration::from_secs(20));
+            let url = if reply.starts_with(b"HTTP") {
+                format!("http://127.0.0.1:{port}/kiln")
+            } else {
+                format!("redis://127.0.0.1:{port}")
+            };
+            let mut o = options(&url, None);
+            o.timeout = timeout;
+            let remote = Remote::open(&o).unwrap();
+            let start = std::time::Instant::now();
+            let got = fetch_all(&remote, &many_keys(300));
+            let took = start.elapsed();
+            assert!(got.iter().all(Option::is_none));
+            assert!(took < timeout * 12, "{url}: {took:?}");
+            let warning = remote.take_warning().expect("one warning");
+            assert!(
+                warning.contains("timeout of 200 ms") && warning.contains(&format!("127.0.0.1:{port}")),
+                "{warning}"
+            );
+            assert!(!warning.contains("os error"), "{warning}");
+            assert!(remote.take_warning().is_none());
+        }
+    }
+
+    /// Case 2: a value far larger than any this build stores is refused from its announced
+    /// length, before anything is allocated or read: the store is off after it.
+    #[test]
+    fn a_huge_value_is_refused_before_it_is_read() {
+        for reply in [
+            &b"HTTP/1.1 200 OK\r\nContent-Length: 1073741824\r\n\r\nKILN"[..],
+            b"*64\r\n$1073741824\r\nKILN",
+            b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n40000000\r\nKILN",
+        ] {
+            let port = hostile_server(reply.to_vec(), Duration::ZERO, Duration::from_secs(20));
+            let url = if reply.starts_with(b"HTTP") {
+                format!("http://127.0.0.1:{port}/kiln")
+            } else {
+                format!("redis://127.0.0.1:{port}")
+            };
+            let remote = Remote::open(&options(&url, None)).unwrap();
+            remote.limit_values(8 << 20);
+            let start = std::time::Instant::now();
+            assert!(fetch_all(&remote, &many_keys(64)).iter().all(Option::is_none));
+            assert_eq!(remote.get(&Key([1; 32])), None);
+            assert!(start.elapsed() < Duration::from_secs(2), "{:?}", start.elapsed());
+            let warning = remote.take_warning().expect("one warning");
+            assert!(warning.contains("larger than any this build stores"), "{warning}");
+            assert!(remote.take_warning().is_none());
+        }
+    }
+
+    /// Case 8: a server that answers every request with a body that is not a Kiln value is
+    /// switched off after the first: one warning, no more requests.
+    #[test]
+    fn a_server_that_answers_anything_but_kiln_values_is_switched_off() {
+        let port = hostile_server(
+            b"HTTP/1.1 200 OK\r\nContent-Length: 5\r\n\r\nhello".repeat(64),
+            Duration::ZERO,
+            Duration::from_secs(20),
+        );
+        let remote = Remote::open(&options(&format!("http://127.0.0.1:{port}/kiln"), None)).unwrap();
+        assert!(fetch_all(&remote, &many_keys(10)).iter().all(Option::is_none));
+        assert_eq!(remote.get(&Key([1; 32])), None);
+        let warning = remote.take_warning().expect("one warning");
+        assert!(warning.contains("not a Kiln value") && warning.contains("refused"), "{warning}");
+        assert!(remote.take_warning().is_none());
+        assert!(!remote.writes(), "off");
+        assert_eq!(remote.stats().errors, 1);
+    }
+
+    #[test]
+    fn signed_values_verify_and_anything_else_is_refused() {
+        let signing = SigningKey::parse(&"0f".repeat(32)).unwrap();
+        assert!(SigningKey::parse("abc").is_err() && SigningKey::parse(&"zz".repeat(32)).is_err());
+        assert_eq!(format!("{signing:?}"), "SigningKey(***)");
+        let mut o = options("http://127.0.0.1:9/kiln", None);
+        o.key = Some(signing.clone());
+        let key = Key([5; 32]);
+        let value = b"KILNCER\x02 a value".to_vec();
+        let signed = [&SIGNED_MAGIC[..], &mac(&signing, &key, &value), &value].concat();
+        let remote = Remote::open(&o).unwrap();
+        assert_eq!(remote.accept(&key, &signed), Some(&value[..]));
+        assert!(remote.take_warning().is_none());
+        // Under another key; with a byte changed; unsigned: refused, the first with a warning.
+        for (k, v) in
+            [(Key([6; 32]), signed.clone()), (key, [&signed[..50], b"X", &signed[51..]].concat()), (key, value.clone())]
+        {
+            let remote = Remote::open(&o).unwrap();
+            assert_eq!(remote.accept(&k, &v), None);
+            let warning = remote.take_warning().unwrap();
+            assert!(warning.contains(&k.to_string()) && warning.contains("MAC"), "{warning}");
+        }
+        // A reader without the key takes a signed value as it is.
+        let remote = Remote::open(&options("http://127.0.0.1:9/kiln", None)).unwrap();
+        assert_eq!(remote.accept(&key, &signed), Some(&value[..]));
     }
 
     #[test]

@@ -39,13 +39,17 @@ pub fn exec(args: Args) -> CliResult {
             .unwrap_or_else(|| PathBuf::from("."));
         kiln::build::default_cache_dir(&config_dir)
     });
-    let cache = Cache::open(&dir).map_err(|e| Failure::usage(format!("error: {e}")))?;
+    // Read and remove only: a folder that is not there is not made.
+    let shown = super::escape(&dir.display().to_string()).into_owned();
+    let Some(cache) = Cache::open_existing(&dir).map_err(|e| Failure::usage(format!("error: {e}")))? else {
+        return print_stdout(&format!("cache: {shown}: no cache there (nothing to do)\n"));
+    };
     let text = match args.action {
         Action::Stats => {
             let s = cache.stats();
             let mut t = format!(
                 "cache: {}\nentries: {} in {} packs\npreprocessing records: {}\nsize: {} ({} bytes)\n",
-                dir.display(),
+                shown,
                 s.entries,
                 s.packs,
                 s.records,
@@ -74,7 +78,7 @@ pub fn exec(args: Args) -> CliResult {
         }
         Action::Clear => {
             let n = cache.clear().map_err(|e| Failure::usage(format!("error: {e}")))?;
-            format!("removed {n} entries from {}\n", dir.display())
+            format!("removed {n} entries from {shown}\n")
         }
     };
     print_stdout(&text)

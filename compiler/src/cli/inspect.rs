@@ -6,7 +6,7 @@ use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-use super::{print_stdout, CliResult, Failure};
+use super::{escape, print_stdout, CliResult, Failure};
 use kiln::archive::{
     Archive, ArchiveError, BindingKind, Lookup, NumericType, PermutationRef, Reflection, ScalarKind, Target,
 };
@@ -51,7 +51,7 @@ pub fn exec(args: Args) -> CliResult {
         let mut s = String::new();
         // Every record is checked before the first name is printed.
         for p in archive.permutations().map_err(damaged)? {
-            s.push_str(p.name());
+            s.push_str(&escape(p.name()));
             s.push('\n');
         }
         return print_stdout(&s);
@@ -74,7 +74,10 @@ pub fn exec(args: Args) -> CliResult {
         };
         return print_stdout(&text);
     }
-    Err(Failure::usage(format!("error: say what to show of `{}`: --target T (its artifact) or --reflection", p.name())))
+    Err(Failure::usage(format!(
+        "error: say what to show of `{}`: --target T (its artifact) or --reflection",
+        escape(p.name())
+    )))
 }
 
 /// The permutation `name` names: its canonical name, or the same with enum values given by
@@ -93,15 +96,15 @@ fn find<'a>(archive: &'a Archive, name: &str) -> Result<PermutationRef<'a>, Resu
         Lookup::Found(p) => return Ok(p),
         Lookup::Missing(near) => near,
     };
-    let mut msg = format!("error: permutation `{name}` is not in the archive");
+    let mut msg = format!("error: permutation `{}` is not in the archive", escape(name));
     if near.is_empty() {
         msg.push_str(" (the archive holds no permutations)");
     } else {
         msg.push_str("; nearest:");
         for n in near {
-            let _ = write!(msg, "\n  {}", n.name);
+            let _ = write!(msg, "\n  {}", escape(&n.name));
             if !n.differences.is_empty() {
-                let _ = write!(msg, "  (differs in {})", n.differences.join(", "));
+                let _ = write!(msg, "  (differs in {})", escape(&n.differences.join(", ")));
             }
         }
     }
@@ -128,10 +131,9 @@ fn artifact(p: &PermutationRef<'_>, target: &str, output: Option<&Path>) -> CliR
     let t = Target::from_name(target).ok_or_else(|| {
         Failure::usage(format!("error: unknown target `{target}` (targets: wgsl, spirv, msl, glsl, hlsl)"))
     })?;
-    let bytes = p
-        .artifact(t)
-        .map_err(|e| Failure::usage(format!("error: {e}")))?
-        .ok_or_else(|| Failure::usage(format!("error: `{}` has no {t} artifact (it has: {})", p.name(), targets())))?;
+    let bytes = p.artifact(t).map_err(|e| Failure::usage(format!("error: {e}")))?.ok_or_else(|| {
+        Failure::usage(format!("error: `{}` has no {t} artifact (it has: {})", escape(p.name()), targets()))
+    })?;
     match output {
         None => {
             let mut out = std::io::stdout().lock();
@@ -233,7 +235,7 @@ fn bindings_text(s: &mut String, r: &Reflection, indent: &str) {
             "{indent}@group({}) @binding({}) {}: {}",
             b.group,
             b.binding,
-            b.name.as_deref().unwrap_or("_"),
+            escape(b.name.as_deref().unwrap_or("_")),
             kind_name(&b.kind)
         );
     }
@@ -244,7 +246,7 @@ fn reflection_text(p: &PermutationRef<'_>) -> String {
     let r = p.reflection();
     let sh = p.shader();
     let mut s = String::new();
-    let _ = writeln!(s, "permutation: {}", p.name());
+    let _ = writeln!(s, "permutation: {}", escape(p.name()));
     let _ = writeln!(s, "entry: {} `{}`", sh.stage, r.entry);
     if r.bindings.is_empty() {
         let _ = writeln!(s, "bind groups: none");
@@ -255,7 +257,13 @@ fn reflection_text(p: &PermutationRef<'_>) -> String {
     if !r.vertex_inputs.is_empty() {
         let _ = writeln!(s, "vertex inputs:");
         for v in &r.vertex_inputs {
-            let _ = writeln!(s, "  @location({}) {}: {}", v.location, v.name.as_deref().unwrap_or("_"), numeric(&v.ty));
+            let _ = writeln!(
+                s,
+                "  @location({}) {}: {}",
+                v.location,
+                escape(v.name.as_deref().unwrap_or("_")),
+                numeric(&v.ty)
+            );
         }
     }
     if !r.color_outputs.is_empty() {
@@ -302,12 +310,12 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
         let _ = writeln!(
             s,
             "  {}@{}  {} `{}`  {} permutations  dimensions: [{}]",
-            sh.name,
-            sh.level,
+            escape(&sh.name),
+            escape(&sh.level),
             sh.stage,
-            sh.entry,
+            escape(&sh.entry),
             ps.len(),
-            dims.join(", ")
+            escape(&dims.join(", "))
         );
         if let Some(p) = ps.first() {
             let r = p.reflection();
@@ -324,12 +332,13 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
                 let _ = writeln!(s, "      workgroup size ({x}, {y}, {z})");
             }
             if ps.len() > 1 {
-                let _ = writeln!(s, "      (reflection of {}; {} distinct among its permutations)", p.name(), {
-                    let mut rs: Vec<_> = ps.iter().map(|p| p.reflection_index()).collect();
-                    rs.sort_unstable();
-                    rs.dedup();
-                    rs.len()
-                });
+                let _ =
+                    writeln!(s, "      (reflection of {}; {} distinct among its permutations)", escape(p.name()), {
+                        let mut rs: Vec<_> = ps.iter().map(|p| p.reflection_index()).collect();
+                        rs.sort_unstable();
+                        rs.dedup();
+                        rs.len()
+                    });
             }
         }
     }

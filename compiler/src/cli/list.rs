@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use serde_json::json;
 
-use super::{CliResult, Failure};
+use super::{escape, CliResult, Failure};
 use kiln::permute::{self, Analysis, Config, Permutation};
 use kiln::preprocess::{self, SourceCache};
 
@@ -180,10 +180,17 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
         }
 
         for_each_listed(&config, &filter, args.all, &mut counts, &mut errors, &mut |p| match p.skipped_by {
-            None => writeln!(out, "{}", p.name()),
+            None => writeln!(out, "{}", escape(&p.name())),
             Some(i) => {
                 let rule = &p.shader.skip[i];
-                writeln!(out, "{}  skipped by rule {}: {} (when {})", p.name(), i + 1, rule.why, rule.when)
+                writeln!(
+                    out,
+                    "{}  skipped by rule {}: {} (when {})",
+                    escape(&p.name()),
+                    i + 1,
+                    escape(&rule.why),
+                    escape(&rule.when)
+                )
             }
         })?;
         out.flush()?;
@@ -218,7 +225,7 @@ fn for_each_listed(
         let mut each = |p: &Permutation<'_>, c: &mut Count| {
             if let Some(e) = &p.error {
                 if p.is_kept() {
-                    errors.push(format!("warning: {}: {e}", p.name()));
+                    errors.push(format!("warning: {}: {e}", escape(&p.name())));
                 }
             }
             if p.is_kept() {

@@ -62,6 +62,9 @@ impl Failure {
 
 pub type CliResult = Result<(), Failure>;
 
+/// A name from an archive, a configuration or the command line, for the terminal.
+pub(crate) use kiln::archive::escape;
+
 /// Entry point of the `kiln` binary.
 pub fn main() -> ExitCode {
     let cli = match Cli::try_parse() {

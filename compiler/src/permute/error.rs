@@ -32,7 +32,15 @@ impl ConfigError {
         let file = SimpleFile::new(self.file_name.as_str(), self.text.as_str());
         let config = term::Config::default();
         let mut out = String::new();
+        // Names from the file are shown escaped (a control character as `\u{..}`); lines
+        // stay lines.
+        let text = |s: &str| s.split('\n').map(|l| crate::archive::escape(l)).collect::<Vec<_>>().join("\n");
         for d in &self.diagnostics {
+            let mut d = d.clone();
+            d.message = text(&d.message);
+            d.notes = d.notes.iter().map(|n| text(n)).collect();
+            d.labels.iter_mut().for_each(|l| l.message = text(&l.message));
+            let d = &d;
             let rendered = if color {
                 let mut buf = term::termcolor::Buffer::ansi();
                 term::emit_to_write_style(&mut buf, &config, &file, d)

@@ -201,34 +201,13 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
     load_str(&text, path)
 }
 
-/// The text of the regular file at `path`. Anything else (a directory, a FIFO, a device) is
-/// an error, without blocking: the file is opened non-blocking and checked once open.
+/// The largest `permutations.toml` read.
+pub const MAX_CONFIG_BYTES: u64 = 64 << 20;
+
+/// The text of the regular file at `path`, at most [`MAX_CONFIG_BYTES`]. Anything else (a
+/// directory, a FIFO, a device) is an error, without blocking (see `kiln_archive::input`).
 fn read_regular_file(path: &Path) -> std::io::Result<String> {
-    use std::io::Read;
-    use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
-    let kind = |t: std::fs::FileType| {
-        if t.is_dir() {
-            "it is a directory"
-        } else if t.is_fifo() {
-            "it is a FIFO, not a regular file"
-        } else if t.is_char_device() || t.is_block_device() {
-            "it is a device, not a regular file"
-        } else {
-            "it is not a regular file"
-        }
-    };
-    let meta = std::fs::metadata(path)?;
-    if !meta.is_file() {
-        return Err(std::io::Error::other(kind(meta.file_type())));
-    }
-    let mut f = std::fs::File::options().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
-    let meta = f.metadata()?;
-    if !meta.is_file() {
-        return Err(std::io::Error::other(kind(meta.file_type())));
-    }
-    let mut text = String::new();
-    f.read_to_string(&mut text)?;
-    Ok(text)
+    crate::archive::input::read_regular_to_string(path, MAX_CONFIG_BYTES)
 }
 
 /// Checks the text of a `permutations.toml` located at `path` (which relative paths in it start

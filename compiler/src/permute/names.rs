@@ -95,17 +95,47 @@ pub(super) fn find<'c>(config: &'c Config, name: &str) -> Result<Permutation<'c>
     Ok(Permutation::new(shader, level, values))
 }
 
+/// The characters of a shader name that near-miss search compares (a longer name asked
+/// for is compared on these: the search costs at most this times each shader name, once).
+const NEAR_NAME_CHARS: usize = 256;
+/// The dimensions of a name asked for that near-miss search compares.
+const NEAR_DIMENSIONS: usize = 64;
+
+/// `text` cut to at most `chars` characters.
+fn capped(text: &str, chars: usize) -> &str {
+    text.char_indices().nth(chars).map_or(text, |(i, _)| &text[..i])
+}
+
 /// The `limit` kept permutations closest to `wanted`: same shader first (then by edit
 /// distance of the shader name), same level, fewest differing dimensions; ties in
-/// enumeration order. Looks at the first [`NEAREST_BUDGET`] kept permutations only.
+/// enumeration order. Shader names are compared first, once each (on their first
+/// [`NEAR_NAME_CHARS`] characters): the permutations of a shader whose name alone scores
+/// worse than the best found are never looked at. Looks at the first [`NEAREST_BUDGET`]
+/// kept permutations only, and at [`NEAR_DIMENSIONS`] dimensions of `wanted`.
 pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec<Near> {
+    let wanted_shader = capped(&wanted.shader, NEAR_NAME_CHARS);
+    let wanted_dims = &wanted.dims[..wanted.dims.len().min(NEAR_DIMENSIONS)];
+    let wanted = ParsedName { shader: wanted.shader.clone(), level: wanted.level.clone(), dims: wanted_dims.to_vec() };
+    let wanted = &wanted;
+    let base: std::collections::HashMap<&str, usize> = config
+        .shaders
+        .iter()
+        .map(|s| {
+            let d = if s.name == wanted.shader {
+                0
+            } else {
+                1000 + 10 * edit_distance(capped(&s.name, NEAR_NAME_CHARS), wanted_shader)
+            };
+            (s.name.as_str(), d)
+        })
+        .collect();
     let mut best: Vec<(usize, usize, Near)> = Vec::new();
     let mut worst = usize::MAX;
-    for (order, p) in config.kept_where(|_, _| true).take(NEAREST_BUDGET).enumerate() {
-        let mut score = 0;
-        if p.shader.name != wanted.shader {
-            score += 1000 + 10 * edit_distance(&p.shader.name, &wanted.shader);
-        }
+    let skip = |s: &super::Shader, worst: usize| base.get(s.name.as_str()).is_some_and(|&b| b > worst);
+    let worst_now = std::cell::Cell::new(usize::MAX);
+    let kept = config.kept_where(|s, _| !skip(s, worst_now.get())).take(NEAREST_BUDGET);
+    for (order, p) in kept.enumerate() {
+        let mut score = base.get(p.shader.name.as_str()).copied().unwrap_or(0);
         if p.level.name != wanted.level {
             score += 100;
         }
@@ -144,6 +174,7 @@ pub(super) fn nearest(config: &Config, wanted: &ParsedName, limit: usize) -> Vec
         best.truncate(limit);
         if best.len() >= limit {
             worst = best[best.len() - 1].0;
+            worst_now.set(worst);
         }
     }
     best.into_iter().map(|(_, _, n)| n).collect()

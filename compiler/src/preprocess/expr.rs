@@ -400,6 +400,9 @@ struct Parser<'t, 'a> {
     depth: usize,
 }
 
+/// cpp's words for signed arithmetic that overflows.
+const OVERFLOW: &str = "integer overflow in preprocessor expression";
+
 /// Deepest nesting an expression may have.
 const MAX_DEPTH: usize = 1000;
 
@@ -504,8 +507,14 @@ impl Parser<'_, '_> {
     fn apply(&self, op: &str, at: usize, a: Value, b: Value, eval: bool) -> Result<Value, TokError> {
         let u = a.unsigned || b.unsigned;
         let bool_v = |x: bool| Value::signed(x as i64);
+        // Signed arithmetic that overflows is an error where it is evaluated (cpp reports
+        // "integer overflow in preprocessor expression"); unsigned arithmetic wraps, as in C.
+        let signed = |checked: Option<i64>, wrapped: i64| match checked {
+            None if !u && eval => self.err(at, OVERFLOW),
+            _ => Ok(Value { v: if u { wrapped } else { checked.unwrap_or(wrapped) }, unsigned: u }),
+        };
         Ok(match op {
-            "*" => Value { v: a.v.wrapping_mul(b.v), unsigned: u },
+            "*" => signed(a.v.checked_mul(b.v), a.v.wrapping_mul(b.v))?,
             "/" | "%" => {
                 if b.v == 0 {
                     if !eval {
@@ -517,24 +526,27 @@ impl Parser<'_, '_> {
                     let (x, y) = (a.v as u64, b.v as u64);
                     (if op == "/" { x / y } else { x % y }) as i64
                 } else if op == "/" {
-                    a.v.wrapping_div(b.v)
+                    return signed(a.v.checked_div(b.v), a.v.wrapping_div(b.v));
                 } else {
                     a.v.wrapping_rem(b.v)
                 };
                 Value { v, unsigned: u }
             }
-            "+" => Value { v: a.v.wrapping_add(b.v), unsigned: u },
-            "-" => Value { v: a.v.wrapping_sub(b.v), unsigned: u },
+            "+" => signed(a.v.checked_add(b.v), a.v.wrapping_add(b.v))?,
+            "-" => signed(a.v.checked_sub(b.v), a.v.wrapping_sub(b.v))?,
             "<<" | ">>" => {
                 // cpp: a negative count shifts the other way; the result has the left type.
                 let left = op == "<<";
                 let (left, n) = if !b.unsigned && b.v < 0 { (!left, b.v.unsigned_abs()) } else { (left, b.v as u64) };
                 let v = if left {
-                    if n >= 64 {
-                        0
-                    } else {
-                        ((a.v as u64) << n) as i64
+                    let v = if n >= 64 { 0 } else { ((a.v as u64) << n) as i64 };
+                    // A signed shift overflows when shifting back does not give the operand
+                    // (libcpp's `num_lshift`).
+                    let back = if n >= 64 { 0 } else { v >> n };
+                    if !a.unsigned && eval && back != a.v {
+                        return self.err(at, OVERFLOW);
                     }
+                    v
                 } else if a.unsigned {
                     if n >= 64 {
                         0
@@ -611,6 +623,9 @@ impl Parser<'_, '_> {
                         return self.err(at, format!("operator '{}' has no right operand", t.text));
                     }
                     let v = self.unary(eval)?;
+                    if t.text == "-" && eval && !v.unsigned && v.v == i64::MIN {
+                        return self.err(at, OVERFLOW);
+                    }
                     Ok(match t.text {
                         "+" => v,
                         "-" => Value { v: v.v.wrapping_neg(), unsigned: v.unsigned },
@@ -654,7 +669,7 @@ mod tests {
             ("-7 / 2", -3),
             ("-7 % 3", -1),
             ("1 << 62", 1 << 62),
-            ("1 << 63 >> 63", -1),
+            ("-1 << 63 >> 63", -1),
             ("-1 >> 70", -1),
             ("1 << -1", 0),
             ("8 >> -1", 16),
@@ -668,7 +683,6 @@ mod tests {
             ("1 == 1 && 2 != 3", 1),
             ("0 || 0 || 5", 1),
             ("6 & 3 | 8 ^ 1", 11),
-            ("9223372036854775807 + 1", i64::MIN),
             ("-1 < 0u", 0),
             ("-1 > 0u", 1),
             ("0xffffffffffffffff == -1", 1),
@@ -700,12 +714,25 @@ mod tests {
         assert_eq!(ev("1 || 1 % 0"), Ok(1));
         assert_eq!(ev("1 ? 2 : 1 / 0"), Ok(2));
         assert_eq!(ev("0 ? 1 / 0 : 7"), Ok(7));
+        // Overflow where it is not evaluated, and unsigned arithmetic, are no errors.
+        assert_eq!(ev("0 && 9223372036854775807 + 1"), Ok(0));
+        assert_eq!(ev("18446744073709551615u + 1"), Ok(0));
+        assert_eq!(ev("9223372036854775807u + 1 == 9223372036854775808u"), Ok(1));
     }
 
     #[test]
     fn errors() {
         let cases: &[(&str, &str)] = &[
             ("", "#if with no expression@0+0"),
+            ("9223372036854775807 + 1", "integer overflow in preprocessor expression@20+1"),
+            ("-9223372036854775807 - 2", "integer overflow in preprocessor expression@21+1"),
+            ("4611686018427387904 * 2", "integer overflow in preprocessor expression@20+1"),
+            ("-(-9223372036854775807 - 1)", "integer overflow in preprocessor expression@0+1"),
+            ("(-9223372036854775807 - 1) / -1", "integer overflow in preprocessor expression@27+1"),
+            ("1 << 63", "integer overflow in preprocessor expression@2+2"),
+            ("2 << 62", "integer overflow in preprocessor expression@2+2"),
+            ("1 << 64", "integer overflow in preprocessor expression@2+2"),
+            ("5 >> -62", "integer overflow in preprocessor expression@2+2"),
             ("1 / 0", "division by zero in #if@2+1"),
             ("A % B", "division by zero in #if@2+1"),
             ("(1", "missing ')' in expression@0+1"),

@@ -18,7 +18,7 @@ mod engine;
 pub mod expr;
 mod lexer;
 mod map;
-mod source;
+pub(crate) mod source;
 #[cfg(test)]
 mod tests;
 

@@ -13,7 +13,7 @@ use codespan_reporting::files::{self, Files};
 use super::lexer::{self, Kind};
 
 /// Largest source file (offsets are 32-bit, with room for splicing).
-const MAX_FILE_BYTES: u64 = (u32::MAX / 2) as u64;
+pub(crate) const MAX_FILE_BYTES: u64 = (u32::MAX / 2) as u64;
 
 /// Files larger than this get no token table (it takes four bytes per byte of text): they
 /// are lexed as they are read, so a huge input costs little more memory than its text.
@@ -485,7 +485,8 @@ impl SourceCache {
                 meta.len()
             ))));
         }
-        let bytes = std::fs::read(canonical).map_err(LoadError::Io)?;
+        // Again as the file is opened (the path may have changed since).
+        let bytes = crate::archive::input::read_regular(canonical, MAX_FILE_BYTES).map_err(LoadError::Io)?;
         let (text, bad) = match String::from_utf8(bytes) {
             Ok(text) => (text, None),
             Err(e) => {

@@ -312,3 +312,59 @@ fn damaged_manifest_chunk_is_a_clear_error_for_every_walk() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(stdout(&o), "// variant 0");
 }
+
+/// Issue 28, case 10: names in a crafted archive (escape sequences, a bell, a newline, a
+/// right-to-left override) are printed escaped by every view of `kiln inspect`.
+#[test]
+fn names_from_a_crafted_archive_are_printed_escaped() {
+    use kiln::archive::{ArchiveWriter, DimensionRecord, PermutationRecord, Reflection, ShaderRecord, Stage, Target};
+    let dir = tempfile::tempdir().unwrap();
+    let evil = "S\x1b]0;owned\x07\x1b[2J\n\u{202e}";
+    let mut w = ArchiveWriter::new();
+    w.set_naga_version("30.0.1");
+    let s = w.add_shader(ShaderRecord {
+        name: evil.into(),
+        level: "sm5\x1b[31m".into(),
+        entry: "main\x1b[1m".into(),
+        stage: Stage::Compute,
+        dimensions: vec![DimensionRecord { name: "A\x1b[K".into(), labels: vec![] }],
+    });
+    let r = w.add_reflection(&Reflection {
+        entry: "main".into(),
+        stage: Stage::Compute,
+        bindings: vec![],
+        vertex_inputs: vec![],
+        color_outputs: vec![],
+        workgroup_size: Some([1, 1, 1]),
+    });
+    let blob = w.add_blob(b"// wgsl");
+    let name = format!("{evil}@sm5{{A=0}}");
+    w.add_permutation(PermutationRecord {
+        name: name.clone(),
+        shader: s,
+        values: vec![0],
+        reflection: r,
+        artifacts: vec![(Target::Wgsl, blob)],
+    });
+    std::fs::write(dir.path().join("evil.kpak"), w.to_bytes().unwrap()).unwrap();
+    let raw = |o: &Output| {
+        let bytes = [&o.stdout[..], &o.stderr[..]].concat();
+        let text = String::from_utf8_lossy(&bytes).into_owned();
+        // JSON escapes control characters itself (`\u001b`); a bidirectional override is
+        // no control byte there.
+        let json = text.starts_with('{');
+        assert!(!text.contains('\x1b') && !text.contains('\x07'), "{text:?}");
+        assert!(json || !text.contains('\u{202e}'), "{text:?}");
+        text
+    };
+    let d = dir.path();
+    let listed = raw(&kiln(d, &["inspect", "evil.kpak", "--list"]));
+    assert!(listed.contains("S\\u{1b}]0;owned\\u{7}\\u{1b}[2J\\u{a}\\u{202e}@sm5{A=0}"), "{listed}");
+    raw(&kiln(d, &["inspect", "evil.kpak"]));
+    raw(&kiln(d, &["inspect", "evil.kpak", "--json"]));
+    raw(&kiln(d, &["inspect", "evil.kpak", &name, "--reflection"]));
+    raw(&kiln(d, &["inspect", "evil.kpak", &name]));
+    let o = kiln(d, &["inspect", "evil.kpak", "S\x1b[2J@sm5{A=1}"]);
+    assert_eq!(o.status.code(), Some(2));
+    raw(&o);
+}

@@ -640,3 +640,197 @@ fn config_loader_fuzz_never_panics() {
     eprintln!("{tried} mutations, {loaded} of them loaded");
     assert!(loaded > 0, "some mutations still load");
 }
+
+// --- Issue 28 ------------------------------------------------------------------------------------
+
+/// `kiln args` in `dir` under `ulimit -v` of `kib` KiB (address space), as [`kiln`] checks it.
+fn kiln_limited(dir: &Path, kib: u64, args: &[&str]) -> Output {
+    let script = format!("ulimit -v {kib} && exec \"$0\" \"$@\"");
+    let mut full = vec!["-c", script.as_str(), env!("CARGO_BIN_EXE_kiln")];
+    full.extend_from_slice(args);
+    let o = Command::new("sh")
+        .args(&full)
+        .current_dir(dir)
+        .env_remove("KILN_CACHE_DIR")
+        .env_remove("CARGO_TARGET_DIR")
+        .env("CI", "1")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let code = o.status.code().unwrap_or_else(|| panic!("kiln {args:?} died by a signal: {}", stderr(&o)));
+    assert!(matches!(code, 0..=2), "kiln {args:?} exited {code}: {}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked") && !stderr(&o).contains("memory allocation"), "{}", stderr(&o));
+    o
+}
+
+/// Case 4: shard counts far larger than the keys cost nothing (shards past the keys get
+/// an empty share); a count or index that cannot be used is exit 2 with a message.
+#[test]
+fn shard_counts_are_bounded_by_the_keys() {
+    let fx = fixture();
+    let d = fx.path();
+    for shard in ["0/100000000", "1/10000000000", "0/18446744073709551615", "18446744073709551614/18446744073709551615"]
+    {
+        let start = Instant::now();
+        let o = kiln_limited(d, 1 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache", "--shard", shard]);
+        assert_eq!(code(&o), 0, "{shard}: {}", stderr(&o));
+        assert!(start.elapsed() < Duration::from_secs(60), "{shard}: {:?}", start.elapsed());
+    }
+    for shard in ["0/18446744073709551616", "5/5", "0/0", "-1/4"] {
+        let arg = format!("--shard={shard}");
+        let o = kiln_limited(d, 1 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache", &arg]);
+        assert_eq!(code(&o), 2, "{shard}: {}", stderr(&o));
+        assert!(stderr(&o).contains("invalid shard"), "{shard}: {}", stderr(&o));
+    }
+    let o = kiln_limited(
+        d,
+        1 << 20,
+        &["build", "--config", "p.toml", "--cache-dir", "cache", "--shards", "99999999999999999999"],
+    );
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+}
+
+/// Case 6: a FIFO, a link to `/dev/zero` or a folder where the cache keeps its records,
+/// stamps or packs is ignored: the build finishes, in bounded memory, with the same archive.
+#[test]
+fn cache_files_that_are_not_regular_are_ignored() {
+    let fx = fixture();
+    let d = fx.path();
+    assert_eq!(code(&build(d, &[])), 0);
+    let archive = std::fs::read(d.join("shaders.kpak")).unwrap();
+    let cache_files = |ext: &str| -> Vec<PathBuf> {
+        std::fs::read_dir(d.join("cache"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == ext))
+            .collect()
+    };
+    for ext in ["kpp", "stamp", "kcp"] {
+        assert!(!cache_files(ext).is_empty(), "{ext}");
+    }
+    for (n, replace) in ["fifo", "zero", "dir"].iter().enumerate() {
+        for ext in ["kpp", "stamp", "kcp"] {
+            for path in cache_files(ext) {
+                if path.is_dir() {
+                    std::fs::remove_dir(&path).unwrap();
+                } else {
+                    std::fs::remove_file(&path).unwrap();
+                }
+                match *replace {
+                    "fifo" => mkfifo(&path),
+                    "zero" => std::os::unix::fs::symlink("/dev/zero", &path).unwrap(),
+                    _ => std::fs::create_dir(&path).unwrap(),
+                }
+            }
+        }
+        std::fs::remove_file(d.join("shaders.kpak")).unwrap();
+        let o = kiln_limited(d, 2 << 20, &["build", "--config", "p.toml", "--cache-dir", "cache"]);
+        assert_eq!(code(&o), 0, "{replace}: {}", stderr(&o));
+        assert_eq!(std::fs::read(d.join("shaders.kpak")).unwrap(), archive, "{replace} {n}");
+        // Stats and gc pass them by.
+        let o = kiln(d, &["cache", "stats", "--cache-dir", "cache"]);
+        assert_eq!(code(&o), 0, "{replace}: {}", stderr(&o));
+    }
+    assert_dev_null_intact();
+}
+
+/// Case 11: read-only cache commands on a mistyped folder say so and create nothing.
+#[test]
+fn cache_commands_never_create_a_folder() {
+    let fx = fixture();
+    let d = fx.path();
+    for action in [&["stats"][..], &["clear"], &["gc", "--max-size", "1M"]] {
+        let mut args = vec!["cache"];
+        args.extend_from_slice(action);
+        args.extend_from_slice(&["--cache-dir", "typo/cache"]);
+        let o = kiln(d, &args);
+        assert_eq!(code(&o), 0, "{action:?}: {}", stderr(&o));
+        assert!(stdout(&o).contains("no cache there"), "{action:?}: {}", stdout(&o));
+        assert!(!d.join("typo").exists(), "{action:?} created a folder");
+    }
+    // The default folder of a config that never built: not made either.
+    let o = kiln(d, &["cache", "stats", "--config", "p.toml"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    assert!(!d.join(".kiln-cache").exists() && !d.join("target").exists());
+    // A file where the folder should be is an error.
+    std::fs::write(d.join("file"), b"x").unwrap();
+    let o = kiln(d, &["cache", "stats", "--cache-dir", "file"]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+}
+
+/// Case 10, configurations: a name with control characters is shown escaped in the error.
+#[test]
+fn names_in_configuration_errors_are_escaped() {
+    let fx = fixture();
+    let d = fx.path();
+    std::fs::write(
+        d.join("p.toml"),
+        "[levels.sm5]\ntargets = [\"wgsl\"]\n\n[[shader]]\nname = \"S\\u001b[2J\\u0007\"\nsource = \"s.usf\"\nstage = \"compute\"\n",
+    )
+    .unwrap();
+    for cmd in ["build", "list"] {
+        let o = kiln(d, &[cmd, "--config", "p.toml"]);
+        assert_eq!(code(&o), 2, "{}", stderr(&o));
+        assert!(!o.stderr.contains(&0x1b) && !o.stderr.contains(&0x07), "{}", stderr(&o));
+        assert!(stderr(&o).contains("S\\u{1b}[2J\\u{7}"), "{}", stderr(&o));
+    }
+}
+
+/// Case 12: signed overflow in `#if` and in a derived define is a located error, as cpp
+/// reports it (`-pedantic-errors`), not a silent wrap.
+#[test]
+fn arithmetic_that_overflows_is_a_located_error() {
+    let fx = fixture();
+    let d = fx.path();
+    write_config(
+        d,
+        "dimensions = { A = \"bool\" }\nderived = { X = \"A * 9223372036854775807 + 9223372036854775807\" }\n",
+    );
+    let o = build(d, &[]);
+    assert_eq!(code(&o), 2, "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("integer overflow in preprocessor expression") && stderr(&o).contains("p.toml:"),
+        "{}",
+        stderr(&o)
+    );
+    write_config(d, "");
+    std::fs::write(
+        d.join("s.usf"),
+        "#if 9223372036854775807 + 1 < 0\n#endif\n@compute @workgroup_size(1) fn main() {}\n",
+    )
+    .unwrap();
+    let o = build(d, &[]);
+    assert_eq!(code(&o), 1, "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("integer overflow in preprocessor expression") && stderr(&o).contains("s.usf:1:25"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+/// Case 9: near-miss search for a 120 KB name over 622 permutations (a long shader name
+/// too) ends quickly, for `explain` on the configuration and `inspect` on the archive.
+#[test]
+fn near_miss_search_of_a_huge_name_is_bounded() {
+    let fx = fixture();
+    let d = fx.path();
+    write_config(d, "dimensions = { A = \"bool\", B = { range = [0, 310] } }\n");
+    std::fs::write(d.join("s.usf"), "@compute @workgroup_size(1) fn main() { let b = B; }\n").unwrap();
+    std::fs::write(d.join("l.usf"), "@compute @workgroup_size(1) fn main() { }\n").unwrap();
+    // A second shader with a long name (the edit distance is over both names).
+    let second = format!("\n[[shader]]\nname = \"{}\"\nsource = \"l.usf\"\nstage = \"compute\"\n", "L".repeat(20_000));
+    let config = std::fs::read_to_string(d.join("p.toml")).unwrap();
+    std::fs::write(d.join("p.toml"), config + &second).unwrap();
+    let o = build(d, &["-o", "a.kpak"]);
+    assert_eq!(code(&o), 0, "{}", stderr(&o));
+    // 120 KB: under the kernel's bound of one argument (128 KiB).
+    let huge = format!("{}@sm5{{A=1,B=7,{}}}", "X".repeat(100_000), "C=1,".repeat(5_000));
+    for args in [vec!["explain", huge.as_str(), "--config", "p.toml"], vec!["inspect", "a.kpak", huge.as_str()]] {
+        let start = Instant::now();
+        let o = kiln(d, &args);
+        assert_eq!(code(&o), 2, "{}", stderr(&o));
+        assert!(start.elapsed() < Duration::from_secs(3), "{}: {:?}", args[0], start.elapsed());
+        let e = stderr(&o);
+        assert!(e.contains("S@sm5{A=1,B=7}"), "{}: {}", args[0], &e[e.len().saturating_sub(3000)..]);
+    }
+}

@@ -31,8 +31,8 @@ skip = [
   { when = "BLEND_MODE == BLEND_MODE_TRANSLUCENT && LIGHTS > 2", why = "translucency takes \"at most\" 2 lights" },
   { when = "QUALITY * 2 / (LIGHTS + 1) == 1 && -7 % 2 == -1", why = "quality twice the lights" },
   { when = "(-1 < 0u) ? 1 : (QUALITY < 0 && ES3_1_PROFILE)", why = "negative quality on mobile" },
-  { when = "((HQ_SHADOWS << 63) >> 63) == -1 && !defined(SM5_PROFILE) && TYPE", why = "sign-extended shift" },
-  { when = "(QUALITY, TYPE) && UNKNOWN == 0 && FEATURE_LEVEL == 4 && LIGHTS % 4 == 1 && (BIG + 1 < 0)", why = "wrapping" },
+  { when = "((-HQ_SHADOWS << 63) >> 63) == -1 && !defined(SM5_PROFILE) && TYPE", why = "sign-extended shift" },
+  { when = "(QUALITY, TYPE) && UNKNOWN == 0 && FEATURE_LEVEL == 4 && LIGHTS % 4 == 1 && ((BIG + 1u) >> 63) == 1 && (BIG + HQ_SHADOWS > 0)", why = "wrapping" },
   { when = "0 && QUALITY / (LIGHTS + 1)", why = "never reached" },
 ]
 

@@ -2,9 +2,9 @@
 //! Each uniform struct mirrors a WGSL struct of `shader_src/` member for member (vec4 and
 //! mat4 members only, so no padding rules apply).
 
+use crate::gpu::BufferInit;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec4};
-use wgpu::util::DeviceExt;
 
 /// A uniform buffer holding `value`, writable with `queue.write_buffer` (and the target of
 /// GPU copies, like the eye adaptation's exposure).

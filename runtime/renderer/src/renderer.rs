@@ -187,8 +187,34 @@ impl Renderer {
     }
 
     /// As [`Renderer::new`], with pipelines from `cache` (one made with
-    /// [`PipelineCache::with_disk_cache`], say).
+    /// [`PipelineCache::with_disk_cache`], say). A device lost before or during the setup,
+    /// and a failed pipeline or resource, are errors naming what failed (never a panic).
     pub fn with_cache(
+        gpu: &Gpu,
+        cache: PipelineCache,
+        scene: &Scene,
+        options: RendererOptions,
+    ) -> Result<Renderer, RenderError> {
+        if let Some(reason) = gpu.lost.reason() {
+            return Err(RenderError::DeviceLost(format!("before the frame was set up: {reason}")));
+        }
+        let scopes = crate::pipelines::ErrorScopes::push(&gpu.device);
+        let result = Renderer::set_up(gpu, cache, scene, options);
+        let error = scopes.pop();
+        // A loss the driver reported meanwhile reaches the callback on a poll.
+        let _ = gpu.device.poll(wgpu::PollType::Poll);
+        // The device's reason first: a lost device fails every step after it.
+        if let Some(reason) = gpu.lost.reason() {
+            return Err(RenderError::DeviceLost(format!("while the frame was set up: {reason}")));
+        }
+        let renderer = result?;
+        match error {
+            Some(message) => Err(RenderError::Wgpu(format!("setting up the frame: {message}"))),
+            None => Ok(renderer),
+        }
+    }
+
+    fn set_up(
         gpu: &Gpu,
         cache: PipelineCache,
         scene: &Scene,

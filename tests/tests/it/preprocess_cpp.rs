@@ -26,10 +26,13 @@ fn require_cpp() {
     }
 }
 
-/// Runs cpp from `cwd` on `file` (relative to `cwd`). Ok(stdout) or Err(stderr).
+/// Runs cpp from `cwd` on `file` (relative to `cwd`). Ok(stdout) or Err(stderr); a signed
+/// overflow in `#if`, which cpp warns about, counts as a failure.
 fn run_cpp(cwd: &Path, file: &Path, args: &[String]) -> Result<String, String> {
     let out = Command::new("cpp").args(CPP_ARGS).args(args).arg(file).current_dir(cwd).output().expect("cpp runs");
-    if out.status.success() {
+    // Kiln makes cpp's pedantic warning on signed overflow an error (as `-pedantic-errors`).
+    let overflow = String::from_utf8_lossy(&out.stderr).contains("integer overflow in preprocessor expression");
+    if out.status.success() && !overflow {
         Ok(String::from_utf8_lossy(&out.stdout).into_owned())
     } else {
         Err(String::from_utf8_lossy(&out.stderr).into_owned())
@@ -413,8 +416,30 @@ fn random_if_expressions_match_cpp() {
         }
         let name = PathBuf::from(format!("expr{file}.usf"));
         std::fs::write(dir.path().join(&name), &program).expect("write");
+        // Expressions whose signed arithmetic overflows (cpp warns, Kiln refuses) are
+        // checked by the unit tests; the rest of the file is compared here.
         if let Err(e) = run_cpp(dir.path(), &name, &[]) {
-            panic!("cpp must accept every generated expression:\n{e}");
+            let prefix = format!("{}:", name.display());
+            let warned: Vec<usize> = e
+                .lines()
+                .filter(|l| l.contains("integer overflow in preprocessor expression") && l.starts_with(&prefix))
+                .filter_map(|l| l[prefix.len()..].split(':').next()?.parse().ok())
+                .collect();
+            assert!(!warned.is_empty(), "cpp must accept every generated expression:\n{e}");
+            // Expression i's `#if` is line 2 + 5i (after `#define N 5`), five lines each.
+            let lines: Vec<&str> = program.lines().collect();
+            let mut kept = String::new();
+            for (i, block) in lines[1..].chunks(5).enumerate() {
+                if !warned.contains(&(2 + 5 * i)) {
+                    kept.push_str(&block.join("\n"));
+                    kept.push('\n');
+                }
+            }
+            program = format!("{}\n{kept}", lines[0]);
+            std::fs::write(dir.path().join(&name), &program).expect("write");
+            if let Err(e) = run_cpp(dir.path(), &name, &[]) {
+                panic!("cpp must accept every generated expression:\n{e}");
+            }
         }
         if let Some(f) = compare(dir.path(), &name, &[]) {
             failures.push(f);

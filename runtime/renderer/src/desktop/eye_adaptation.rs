@@ -118,7 +118,7 @@ impl EyeAdaptation {
         });
         // the eye starts adapted to exposure 1 and moves from there at the adaptation speed,
         // frame after frame (one frame changes the exposure by a few percent)
-        let result = wgpu::util::DeviceExt::create_buffer_init(
+        let result = crate::gpu::BufferInit::create_buffer_init(
             device,
             &wgpu::util::BufferInitDescriptor {
                 label: Some("EyeAdaptation"),

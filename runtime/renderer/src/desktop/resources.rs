@@ -1,8 +1,8 @@
 //! What the desktop passes share: the scene on the GPU (meshes, one instance buffer, one
 //! material buffer, one draw per object), the lights, and the frame's render targets.
 
+use crate::gpu::BufferInit;
 use glam::{Mat4, UVec4, Vec3, Vec4};
-use wgpu::util::DeviceExt;
 
 use crate::frame::{GroupedRenderPass, PassContext};
 use crate::scene::{BlendMode, Mesh, Mobility, Pattern, Scene};

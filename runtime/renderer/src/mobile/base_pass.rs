@@ -6,8 +6,8 @@
 //! (multisampled) SceneColor. Deferred: it writes SceneColor and GBufferA/B/C, and the
 //! shading model into the stencil for MobileDeferredShading.
 
+use crate::gpu::BufferInit;
 use glam::Vec4;
-use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;

@@ -9,7 +9,7 @@
 //! stencil is default lit and unmarked, and clears the mark (RenderLocalLight_StencilMask /
 //! RenderLocalLight of the seed). Point lights draw spheres, spot lights cones.
 
-use wgpu::util::DeviceExt;
+use crate::gpu::BufferInit;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;

@@ -2,8 +2,8 @@
 //! unit sphere and a unit cone (apex at the origin, axis +Z, base at z = 1 with radius 1),
 //! both slightly enlarged so that their faces enclose the true volume.
 
+use crate::gpu::BufferInit;
 use glam::{Mat4, Quat, Vec3};
-use wgpu::util::DeviceExt;
 
 use super::uniforms::LocalLight;
 

@@ -34,7 +34,7 @@ mod sky;
 mod translucency;
 mod uniforms;
 
-use wgpu::util::DeviceExt;
+use crate::gpu::BufferInit;
 
 use crate::frame::{FramePlan, FrameRecorder, Image, PassResult, Visualize};
 use crate::gpu::Gpu;

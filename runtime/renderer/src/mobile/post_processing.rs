@@ -3,8 +3,8 @@
 //! Tonemapper (SceneColor plus bloom, filmic curve, sRGB encoding into the 8-bit output).
 //! Each step is a full-screen triangle in its own render pass, stored for the next step.
 
+use crate::gpu::BufferInit;
 use glam::Vec4;
-use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;

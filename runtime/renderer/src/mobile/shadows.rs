@@ -7,11 +7,11 @@
 //! below. Each cascade bounds a slice of the camera frustum with a sphere, seen along the
 //! light by an orthographic projection deep enough to catch casters behind the slice.
 
+use crate::gpu::BufferInit;
 use bytemuck::{Pod, Zeroable};
 use glam::camera::rh::proj::directx::{orthographic, perspective};
 use glam::camera::rh::view::look_at_mat4;
 use glam::{Mat4, Vec3, Vec4};
-use wgpu::util::DeviceExt;
 
 use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;

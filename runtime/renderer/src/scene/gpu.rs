@@ -1,8 +1,8 @@
 //! The scene on the GPU: vertex, index and instance buffers, material uniform buffers, and
 //! the uniform blocks (view, lights) computed from the scene for a frame.
 
+use crate::gpu::BufferInit;
 use glam::{UVec4, Vec4};
-use wgpu::util::DeviceExt;
 
 use super::{Material, Mesh, PointLight, Scene, SpotLight};
 use crate::gpu_types::{InstanceData, LightData, MaterialUniforms, MobileLocalLights};

@@ -59,6 +59,45 @@ fn the_pipeline_cache_is_written_per_adapter_and_a_corrupt_one_is_a_warning() {
     assert!(std::fs::read(&files[0]).unwrap().starts_with(b"KILNPC1"), "rewritten after the frame");
 }
 
+/// Issue 28, case 5: a FIFO, a link to `/dev/zero` or a folder at the pipeline cache's path
+/// is a warning and ignored: the viewer neither waits on it nor reads it without end
+/// (run under `timeout` and `ulimit -v`).
+#[test]
+fn a_pipeline_cache_that_is_not_a_regular_file_is_ignored() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["--pipeline", "mobile-forward", "--size", "64x36", "--pipeline-cache", "pc"];
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let path = std::fs::read_dir(dir.path().join("pc")).unwrap().flatten().next().unwrap().path();
+    let name = path.file_name().unwrap().to_string_lossy().into_owned();
+    for (kind, why) in [("fifo", "FIFO"), ("zero", "device"), ("dir", "directory")] {
+        if path.is_dir() {
+            std::fs::remove_dir(&path).unwrap();
+        } else {
+            std::fs::remove_file(&path).unwrap();
+        }
+        match kind {
+            "fifo" => {
+                let c = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+                // SAFETY: a path we own.
+                assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+            }
+            "zero" => std::os::unix::fs::symlink("/dev/zero", &path).unwrap(),
+            _ => std::fs::create_dir(&path).unwrap(),
+        }
+        let o = Command::new("sh")
+            .args(["-c", "ulimit -v 8000000 && exec timeout 120 \"$0\" \"$@\"", env!("CARGO_BIN_EXE_kiln-view")])
+            .args(args)
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{kind}: {:?} {}", o.status, stderr(&o));
+        let warning = format!("warning: pipeline cache pc/{name} cannot be read (it is a {why}");
+        assert!(stderr(&o).contains(&warning), "{kind}: {}", stderr(&o));
+        assert!(!stderr(&o).contains("panicked"), "{kind}: {}", stderr(&o));
+    }
+}
+
 #[test]
 fn renders_and_dumps_every_pass() {
     let dir = tempfile::tempdir().unwrap();

@@ -6,3 +6,4 @@ mod kiln_view;
 #[cfg(feature = "hot-reload")]
 mod kiln_view_watch;
 mod module_cycles;
+mod setup_errors;
