@@ -31,6 +31,8 @@ pub mod cli;
 #[cfg(feature = "compiler")]
 pub mod compile;
 #[cfg(feature = "compiler")]
+pub mod diff;
+#[cfg(feature = "compiler")]
 pub mod explain;
 #[cfg(feature = "compiler")]
 pub mod keys;

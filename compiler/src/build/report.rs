@@ -50,6 +50,11 @@ pub struct Stats {
     pub remote_writes: u64,
     /// Failed remote operations (the first one turns the remote off for the build).
     pub remote_errors: u64,
+    /// The estimated single-core compile time of every distinct key, in milliseconds
+    /// (`kiln::permute::budget::estimate_compile_ms`); only when `[budget] max_distinct` or
+    /// `max_compile_ms` is set.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimated_compile_ms: Option<f64>,
     pub seconds: Seconds,
 }
 
@@ -123,6 +128,10 @@ impl<'o> Builder<'o> {
                 plan.skipped
             ));
         }
+    }
+
+    pub fn estimated_compile_ms(&mut self, ms: Option<f64>) {
+        self.report.stats.estimated_compile_ms = ms.map(|m| (m * 10.0).round() / 10.0);
     }
 
     /// Every file the build read so far (after [`Builder::preprocessed`]).

@@ -148,6 +148,7 @@ pub fn exec(args: Args) -> CliResult {
                 report.stats.permutations
             )))
         }
+        Err(e @ build::Error::Budget(_)) => Err(Failure::budget(e.to_string())),
         Err(e) => Err(Failure::usage(e.to_string())),
     }
 }

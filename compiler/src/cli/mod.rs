@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 mod build;
 mod cache;
+mod diff;
 mod explain;
 mod inspect;
 mod list;
@@ -35,13 +36,16 @@ pub enum Command {
     Inspect(inspect::Args),
     /// Manage the artifact cache.
     Cache(cache::Args),
+    /// Compare two permutation sets (archives or configurations): permutations added and
+    /// removed, distinct sources and archive bytes, per shader.
+    Diff(diff::Args),
 }
 
 /// How a subcommand failed: the exit code of DESIGN.md and what to print on stderr
 /// (already rendered: diagnostics come with their source snippets).
 #[derive(Debug)]
 pub struct Failure {
-    /// 1: a shader failed; 2: bad usage or bad configuration.
+    /// 1: a shader failed; 2: bad usage or bad configuration; 3: a budget is exceeded.
     pub code: u8,
     pub message: String,
 }
@@ -54,6 +58,10 @@ impl Failure {
     /// Bad usage or bad configuration (exit code 2).
     pub fn usage(message: impl Into<String>) -> Self {
         Failure { code: 2, message: message.into() }
+    }
+    /// A `[budget]` or shader budget is exceeded (exit code 3).
+    pub fn budget(message: impl Into<String>) -> Self {
+        Failure { code: 3, message: message.into() }
     }
 }
 
@@ -76,6 +84,7 @@ pub fn main() -> ExitCode {
         Command::Explain(args) => explain::exec(args),
         Command::Inspect(args) => inspect::exec(args),
         Command::Cache(args) => cache::exec(args),
+        Command::Diff(args) => diff::exec(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

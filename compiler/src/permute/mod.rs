@@ -16,6 +16,7 @@
 //! [`crate::archive::Archive::canonical_name`] builds them.
 
 mod analysis;
+pub mod budget;
 pub(crate) mod enumerate;
 mod error;
 mod names;
@@ -26,6 +27,7 @@ use std::path::{Path, PathBuf};
 pub use analysis::{
     analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed,
 };
+pub use budget::{Budget, BudgetExceeded, BudgetLimit, ShaderBudget};
 pub use enumerate::{
     canonical_name, nominal, Define, DefineOrigin, Kept, Permutation, Permutations, RuleResult,
     DEFAULT_MAX_PERMUTATIONS,
@@ -56,6 +58,8 @@ pub struct Config {
     /// `[compiler] max_permutations`: the most permutations of one shader at one level, or of
     /// all together (see [`DEFAULT_MAX_PERMUTATIONS`]).
     pub max_permutations: Option<u64>,
+    /// `[budget]`: what a CI build may grow to (see [`budget`]).
+    pub budget: Budget,
     /// (name in messages, text) of the file, for errors found after loading.
     pub source: std::sync::Arc<(String, String)>,
 }
@@ -111,6 +115,8 @@ pub struct Shader {
     /// (name, `#if` expression), in order: each sees the ones before it.
     pub derived: Vec<(String, String)>,
     pub skip: Vec<SkipRule>,
+    /// `budget = { max_permutations = N }`.
+    pub budget: ShaderBudget,
     /// Where its parts are in the toml file.
     pub spans: ShaderSpans,
 }
@@ -119,6 +125,8 @@ pub struct Shader {
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct ShaderSpans {
     pub name: std::ops::Range<usize>,
+    /// Each dimension's name, in order.
+    pub each_dimension: Vec<std::ops::Range<usize>>,
     /// From the first dimension's name to the last one's domain (the name without dimensions).
     pub dimensions: std::ops::Range<usize>,
     /// Each derived define's expression.

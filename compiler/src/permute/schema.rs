@@ -17,7 +17,7 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use super::error::ConfigError;
-use super::{Config, Dimension, Level, Limits, Shader, SkipRule};
+use super::{Budget, BudgetLimit, Config, Dimension, Level, Limits, Shader, ShaderBudget, SkipRule};
 use crate::preprocess;
 use crate::{Stage, Target};
 
@@ -33,6 +33,25 @@ struct RawConfig {
     levels: IndexMap<Spanned<String>, RawLevel>,
     #[serde(default)]
     shader: Vec<Spanned<RawShader>>,
+    #[serde(default)]
+    budget: RawBudget,
+}
+
+/// `[budget]`: limits a CI build checks ([`super::Budget`]).
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawBudget {
+    max_permutations: Option<Spanned<i64>>,
+    max_distinct: Option<Spanned<i64>>,
+    max_archive_bytes: Option<Spanned<i64>>,
+    max_compile_ms: Option<Spanned<i64>>,
+}
+
+/// A shader's `budget = { max_permutations = N }`.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawShaderBudget {
+    max_permutations: Option<Spanned<i64>>,
 }
 
 #[derive(Deserialize, Default)]
@@ -108,6 +127,7 @@ struct RawShader {
     derived: IndexMap<Spanned<String>, Spanned<String>>,
     #[serde(default)]
     skip: Vec<Spanned<RawSkip>>,
+    budget: Option<RawShaderBudget>,
 }
 
 #[derive(Deserialize)]
@@ -438,6 +458,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     let mut c = Checker { diagnostics: Vec::new(), warnings: Vec::new() };
 
     let compiler = parse_compiler(&mut c, &raw.compiler, &dir, display);
+    let budget = parse_budget(&mut c, &raw.budget);
     // Sources resolve through the roots: with a bad root, their errors would only be noise.
     let roots_ok = c.diagnostics.is_empty();
     let levels = raw.levels.iter().map(|(name, l)| parse_level(&mut c, text, name, l)).collect();
@@ -480,6 +501,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         shaders,
         warnings,
         max_permutations: compiler.max_permutations,
+        budget,
         source: std::sync::Arc::new((display.to_string(), text.to_string())),
     })
 }
@@ -525,6 +547,20 @@ fn parse_compiler(c: &mut Checker, raw: &RawCompiler, dir: &Path, display: &str)
     }
     let max_permutations = raw.max_permutations.as_ref().and_then(|m| positive(c, m, "max_permutations"));
     CompilerSection { include_roots, virtual_roots, max_permutations }
+}
+
+/// `[budget]`: each limit a positive number.
+fn parse_budget(c: &mut Checker, raw: &RawBudget) -> Budget {
+    let mut limit = |m: &Option<Spanned<i64>>, what: &str| {
+        let m = m.as_ref()?;
+        positive(c, m, what).map(|value| BudgetLimit { value, span: m.span() })
+    };
+    Budget {
+        max_permutations: limit(&raw.max_permutations, "max_permutations"),
+        max_distinct: limit(&raw.max_distinct, "max_distinct"),
+        max_archive_bytes: limit(&raw.max_archive_bytes, "max_archive_bytes"),
+        max_compile_ms: limit(&raw.max_compile_ms, "max_compile_ms"),
+    }
 }
 
 /// A positive count, or an error at its value.
@@ -730,6 +766,11 @@ fn parse_shader(
     let (derived, derived_spans) = shader_derived(c, scope, &mut names, s);
     let skip = shader_skip(c, scope, &names, s);
     let source_path = shader_source(c, scope, s);
+    let max_permutations = s
+        .budget
+        .as_ref()
+        .and_then(|b| b.max_permutations.as_ref())
+        .and_then(|m| positive(c, m, "max_permutations").map(|value| BudgetLimit { value, span: m.span() }));
     Shader {
         name: name.clone(),
         source: s.source.get_ref().clone(),
@@ -741,8 +782,10 @@ fn parse_shader(
         dimensions,
         derived,
         skip,
+        budget: ShaderBudget { max_permutations },
         spans: super::ShaderSpans {
             name: s.name.span(),
+            each_dimension: s.dimensions.keys().map(|k| k.span()).collect(),
             dimensions: match (s.dimensions.first(), s.dimensions.last()) {
                 (Some((first, _)), Some((_, last))) => first.span().start..last.span().end,
                 _ => s.name.span(),
