@@ -27,6 +27,7 @@ pub mod limits;
 pub mod output;
 mod reader;
 mod reflect;
+pub mod usage;
 #[cfg(feature = "writer")]
 mod writer;
 

@@ -645,6 +645,15 @@ impl Archive {
     pub fn naga_version(&self) -> &str {
         &self.tables.naga_version
     }
+    /// The archive's content hash, 64 hex digits: its header checksum, the blake3 hash of
+    /// the header's fields and of the chunk hashes, which cover the manifest and the table,
+    /// whose entries hold the hash of every blob and dictionary. Archives with the same hash
+    /// hold the same permutations and artifacts.
+    pub fn content_hash(&self) -> String {
+        let bytes: [u8; 32] = self.bytes.as_slice()[96..128].try_into().expect("a checked header");
+        blake3::Hash::from_bytes(bytes).to_hex().to_string()
+    }
+
     /// Size of the whole archive in bytes.
     pub fn len(&self) -> usize {
         self.bytes.as_slice().len()

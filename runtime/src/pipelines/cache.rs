@@ -55,6 +55,8 @@ pub(super) struct CacheInner {
     render: HashMap<RenderKey, Arc<RenderPipeline>>,
     compute: HashMap<ComputeKey, Arc<ComputePipeline>>,
     stats: CacheStats,
+    /// What was asked for, by frame ([`super::usage`]).
+    pub(super) recorder: super::usage::Recorder,
 }
 
 /// Creates and caches modules, layouts and pipelines for one device and one archive.
@@ -109,7 +111,12 @@ impl PipelineCache {
     ) -> PipelineCache {
         let old = self.lock();
         let keep = |name: &str| !changed.contains(name) && matches!(archive.archive().get(name), Ok(Some(_)));
-        let mut inner = CacheInner { layouts: old.layouts.clone(), stats: old.stats, ..CacheInner::default() };
+        let mut inner = CacheInner {
+            layouts: old.layouts.clone(),
+            stats: old.stats,
+            recorder: old.recorder.clone(),
+            ..CacheInner::default()
+        };
         // The blobs of the kept permutations, old id to new id, per target.
         let mut blobs = HashMap::new();
         for name in old.used.iter().filter(|n| keep(n)) {
@@ -169,7 +176,7 @@ impl PipelineCache {
         self.lock().used.iter().cloned().collect()
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, CacheInner> {
+    pub(super) fn lock(&self) -> std::sync::MutexGuard<'_, CacheInner> {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
 
@@ -264,6 +271,13 @@ impl PipelineCache {
     /// The render pipeline of `key`, created on first use. This is the one place the runtime
     /// creates render pipelines.
     pub fn render_key(&self, key: &RenderKey) -> Result<Arc<RenderPipeline>, PipelineError> {
+        let pipeline = self.create_render(key)?;
+        self.lock().recorder.render(key);
+        Ok(pipeline)
+    }
+
+    /// The render pipeline of `key`, found or created, not recorded as used by a frame.
+    pub(super) fn create_render(&self, key: &RenderKey) -> Result<Arc<RenderPipeline>, PipelineError> {
         if let Some(p) = self.lock().render.get(key) {
             return Ok(p.clone());
         }
@@ -335,6 +349,13 @@ impl PipelineCache {
     /// The compute pipeline of `key`, created on first use: the one place the runtime creates
     /// compute pipelines.
     pub fn compute_key(&self, key: &ComputeKey) -> Result<Arc<ComputePipeline>, PipelineError> {
+        let pipeline = self.create_compute(key)?;
+        self.lock().recorder.compute(key);
+        Ok(pipeline)
+    }
+
+    /// The compute pipeline of `key`, found or created, not recorded as used by a frame.
+    pub(super) fn create_compute(&self, key: &ComputeKey) -> Result<Arc<ComputePipeline>, PipelineError> {
         if let Some(p) = self.lock().compute.get(key) {
             return Ok(p.clone());
         }
@@ -365,12 +386,13 @@ impl PipelineCache {
     }
 
     /// Creates every pipeline of `keys` ahead of the first frame (those already made are
-    /// found); the first failure is returned.
+    /// found); the first failure is returned. Warming up is no frame's use: it is not
+    /// recorded ([`PipelineCache::usage`]).
     pub fn warm_up<'k>(&self, keys: impl IntoIterator<Item = &'k PipelineKey>) -> Result<(), PipelineError> {
         for key in keys {
             match key {
-                PipelineKey::Render(k) => drop(self.render_key(k)?),
-                PipelineKey::Compute(k) => drop(self.compute_key(k)?),
+                PipelineKey::Render(k) => drop(self.create_render(k)?),
+                PipelineKey::Compute(k) => drop(self.create_compute(k)?),
             }
         }
         Ok(())

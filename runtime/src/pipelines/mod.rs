@@ -16,7 +16,8 @@
 //! One concern per file: [`state`] (fixed-function state and pipeline keys), [`modules`]
 //! (shader modules and wgpu error scopes), [`layouts`] (bind group and pipeline layouts from
 //! reflection), [`limits`] (reflection against the device's limits), [`cache`] (the pipeline
-//! cache) and [`disk_cache`] (wgpu's driver pipeline cache on disk).
+//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk) and [`usage`] (what the
+//! frames asked for, as `kiln_archive::usage` files).
 
 mod cache;
 mod disk_cache;
@@ -26,6 +27,7 @@ mod modules;
 mod state;
 #[cfg(test)]
 mod tests;
+mod usage;
 
 use kiln_archive::Stage;
 
@@ -34,6 +36,7 @@ use crate::shaders::LookupError;
 use crate::spirv::SpirvError;
 
 pub use cache::{CacheStats, ComputePipeline, PipelineCache, RenderPipeline};
+pub use kiln_archive::usage::{Usage, UsageError, UsageKey, UseCount};
 pub use layouts::{merge_bindings, storage_format, MergedBinding, PipelineLayoutInfo};
 pub use limits::check_limits;
 pub use modules::{create_spirv_module, create_wgsl_module, short_label, ErrorScopes};
