@@ -13,6 +13,7 @@ mod explain;
 mod inspect;
 mod list;
 mod preprocess;
+mod usage;
 
 /// Kiln: a shader permutation compiler for WGSL with a C preprocessor.
 #[derive(Debug, Parser)]
@@ -39,6 +40,8 @@ pub enum Command {
     /// Compare two permutation sets (archives or configurations): permutations added and
     /// removed, distinct sources and archive bytes, per shader.
     Diff(diff::Args),
+    /// Usage files recorded by a renderer: merge them, or print coverage per shader.
+    Usage(usage::Args),
 }
 
 /// How a subcommand failed: the exit code of DESIGN.md and what to print on stderr
@@ -85,6 +88,7 @@ pub fn main() -> ExitCode {
         Command::Inspect(args) => inspect::exec(args),
         Command::Cache(args) => cache::exec(args),
         Command::Diff(args) => diff::exec(args),
+        Command::Usage(args) => usage::exec(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -99,7 +99,7 @@ fn compact(v: impl std::fmt::Debug) -> String {
 
 /// A render state as one word: every field of the key, `;`-separated, `-` for none.
 pub fn state_text(s: &RenderState) -> String {
-    let mut out = format!("{}", compact(s.topology));
+    let mut out = compact(s.topology);
     let _ = write!(out, ";cull={}", s.cull_mode.map_or("-".to_string(), compact));
     match &s.depth {
         Some(d) => {

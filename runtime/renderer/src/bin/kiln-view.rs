@@ -87,6 +87,11 @@ struct Args {
     /// frames and rewrite `--out` (one line per reload). Needs the `hot-reload` feature.
     #[arg(long, value_name = "CONFIG", conflicts_with_all = ["shaders", "verify", "dump_passes"])]
     watch: Option<PathBuf>,
+    /// Write which pipelines the frames asked for (permutations and whole pipeline keys, how
+    /// many frames asked for each and the first that did) to FILE, in the usage format that
+    /// `kiln usage merge` and `kiln build --usage` read.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
+    record_usage: Option<PathBuf>,
     /// With --watch: stop after this many reloads (failed ones included).
     #[arg(long, value_name = "N", requires = "watch", hide = true)]
     watch_reloads: Option<usize>,
@@ -333,10 +338,19 @@ fn run(args: &Args) -> Result<(), Failure> {
         }
         e => Failure::Render(e.to_string()),
     })?;
-    let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+    let render = |capture| {
+        let frame = renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+        renderer.pipeline_cache().next_frame();
+        frame
+    };
     let mut frame = render(false)?;
     for _ in 1..args.frames {
         frame = render(false)?;
+    }
+    if let Some(path) = &args.record_usage {
+        let usage = renderer.pipeline_cache().usage();
+        kiln_archive::write_atomic(path, usage.to_text().as_bytes())
+            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))?;
     }
     if let Err(e) = renderer.pipeline_cache().save() {
         eprintln!("warning: cannot write the pipeline cache: {e}");
