@@ -15,7 +15,7 @@ use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
     decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
+    ManifestLayout, Partial, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
     CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
     MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
@@ -447,6 +447,7 @@ impl Archive {
                 naga_version: String::new(),
                 shaders: Vec::new(),
                 reflections: Vec::new(),
+                partial: None,
             },
             dictionaries: Vec::new(),
             chunks_ok: Bits::new(chunks),
@@ -637,6 +638,16 @@ impl Archive {
             .get(start..start + r.name_len as usize)
             .and_then(|b| std::str::from_utf8(b).ok())
             .unwrap_or("")
+    }
+
+    /// What a `kiln build --usage-only` archive left out; `None` for a whole archive.
+    pub fn partial(&self) -> Option<&Partial> {
+        self.tables.partial.as_ref()
+    }
+
+    /// Whether `name` is a permutation this partial archive left out.
+    pub fn left_out(&self, name: &str) -> bool {
+        self.partial().is_some_and(|p| p.left_out.binary_search_by(|n| n.as_str().cmp(name)).is_ok())
     }
 
     pub fn kiln_version(&self) -> &str {

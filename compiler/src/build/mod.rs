@@ -47,12 +47,14 @@ mod records;
 mod report;
 mod shard;
 mod store;
+mod usage;
 
 pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 pub use compile::map_error;
 pub use plan::Shard;
 pub use report::{DeadDimension, Report, Seconds, Stats};
 pub use store::default_cache_dir;
+pub use usage::{matches as usage_pattern_matches, ShaderUsage};
 
 /// What to build and where.
 #[derive(Clone, Debug)]
@@ -87,6 +89,11 @@ pub struct Options {
     /// The most permutations, of one shader at one level or of all together (`--max-permutations`); `None`
     /// takes `[compiler] max_permutations`, else [`crate::permute::DEFAULT_MAX_PERMUTATIONS`].
     pub max_permutations: Option<u64>,
+    /// Usage files (`kiln_archive::usage`) of the permutations a renderer asked for.
+    pub usage: Vec<PathBuf>,
+    /// Build only the recorded permutations, those `[usage] keep` matches and those of
+    /// `always = true` shaders; the archive records the others as left out.
+    pub usage_only: bool,
 }
 
 impl Default for Options {
@@ -106,6 +113,8 @@ impl Default for Options {
             color: false,
             shard: None,
             max_permutations: None,
+            usage: Vec::new(),
+            usage_only: false,
         }
     }
 }

@@ -60,6 +60,9 @@ pub struct Config {
     pub max_permutations: Option<u64>,
     /// `[budget]`: what a CI build may grow to (see [`budget`]).
     pub budget: Budget,
+    /// `[usage] keep`: patterns of canonical names (`*`, `?`) a `kiln build --usage-only`
+    /// keeps whether recorded or not.
+    pub usage_keep: Vec<String>,
     /// (name in messages, text) of the file, for errors found after loading.
     pub source: std::sync::Arc<(String, String)>,
 }
@@ -117,6 +120,8 @@ pub struct Shader {
     pub skip: Vec<SkipRule>,
     /// `budget = { max_permutations = N }`.
     pub budget: ShaderBudget,
+    /// `always = true`: every kept permutation of it is built by `kiln build --usage-only`.
+    pub always: bool,
     /// Where its parts are in the toml file.
     pub spans: ShaderSpans,
 }

@@ -35,6 +35,16 @@ struct RawConfig {
     shader: Vec<Spanned<RawShader>>,
     #[serde(default)]
     budget: RawBudget,
+    #[serde(default)]
+    usage: RawUsage,
+}
+
+/// `[usage]`: what a `kiln build --usage-only` keeps beyond the recorded permutations.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawUsage {
+    #[serde(default)]
+    keep: Vec<Spanned<String>>,
 }
 
 /// `[budget]`: limits a CI build checks ([`super::Budget`]).
@@ -128,6 +138,8 @@ struct RawShader {
     #[serde(default)]
     skip: Vec<Spanned<RawSkip>>,
     budget: Option<RawShaderBudget>,
+    #[serde(default)]
+    always: bool,
 }
 
 #[derive(Deserialize)]
@@ -459,6 +471,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
 
     let compiler = parse_compiler(&mut c, &raw.compiler, &dir, display);
     let budget = parse_budget(&mut c, &raw.budget);
+    let usage_keep = parse_usage(&mut c, &raw.usage);
     // Sources resolve through the roots: with a bad root, their errors would only be noise.
     let roots_ok = c.diagnostics.is_empty();
     let levels = raw.levels.iter().map(|(name, l)| parse_level(&mut c, text, name, l)).collect();
@@ -502,6 +515,7 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
         warnings,
         max_permutations: compiler.max_permutations,
         budget,
+        usage_keep,
         source: std::sync::Arc::new((display.to_string(), text.to_string())),
     })
 }
@@ -561,6 +575,22 @@ fn parse_budget(c: &mut Checker, raw: &RawBudget) -> Budget {
         max_archive_bytes: limit(&raw.max_archive_bytes, "max_archive_bytes"),
         max_compile_ms: limit(&raw.max_compile_ms, "max_compile_ms"),
     }
+}
+
+/// `[usage] keep`: patterns over canonical names (`*` any run of characters, `?` one).
+fn parse_usage(c: &mut Checker, raw: &RawUsage) -> Vec<String> {
+    let mut keep = Vec::new();
+    for p in &raw.keep {
+        if p.get_ref().trim().is_empty() || p.get_ref().contains(char::is_whitespace) {
+            c.error(
+                p.span(),
+                "a `[usage] keep` pattern is a canonical name with `*` and `?`",
+                "expected a pattern such as \"ScreenVS@*\"",
+            );
+        }
+        keep.push(p.get_ref().clone());
+    }
+    keep
 }
 
 /// A positive count, or an error at its value.
@@ -783,6 +813,7 @@ fn parse_shader(
         derived,
         skip,
         budget: ShaderBudget { max_permutations },
+        always: s.always,
         spans: super::ShaderSpans {
             name: s.name.span(),
             each_dimension: s.dimensions.keys().map(|k| k.span()).collect(),

@@ -1,4 +1,4 @@
-//! Budgets (`[budget]`, a shader's `budget`) and `kiln diff`, as CI runs them.
+//! Budgets (`[budget]`, a shader's `budget`), `kiln diff` and builds from usage (`--usage-only`), as CI runs them.
 
 use std::path::Path;
 
@@ -152,4 +152,81 @@ fn diff_of_two_archives_has_bytes_per_target() {
     // The same archive twice: nothing changed.
     let same = stdout(&kiln(d, &["diff", "old.kpak", "old.kpak"]));
     assert!(same.starts_with("(2 shaders unchanged)\ntotal: permutations 28 -> 28 (+0 -0)"), "{same}");
+}
+
+/// A usage file recording one sm5 pipeline of the lit set.
+const LIT_USAGE: &str =
+    "kiln-usage 1\narchive 0000000000000000000000000000000000000000000000000000000000000000\nruns 1\n\
+render LitVS@sm5{USE_FOG=0,DEBUG_VIEW=0} LitPS@sm5{USE_FOG=0,BLEND=OPAQUE,NUM_LIGHTS=2} TriangleList 3 0\n";
+
+#[test]
+fn usage_only_builds_the_recorded_the_kept_and_the_always_permutations() {
+    let fx = fixture();
+    let d = fx.path();
+    std::fs::write(d.join("frame.usage"), LIT_USAGE).unwrap();
+    let lit = std::fs::read_to_string(d.join("lit.toml")).unwrap();
+    let with_usage = lit.replacen("[levels.sm5]", "[usage]\nkeep = [\"LitPS@es3_1{USE_FOG=1*\"]\n\n[levels.sm5]", 1);
+    std::fs::write(
+        d.join("usage.toml"),
+        with_usage.replace(
+            "levels = [\"sm5\", \"es3_1\"]\ndimensions = { USE_FOG = \"bool\", DEBUG_VIEW",
+            "levels = [\"sm5\", \"es3_1\"]\nalways = true\ndimensions = { USE_FOG = \"bool\", DEBUG_VIEW",
+        ),
+    )
+    .unwrap();
+    let args = |j: &str, out: &str| {
+        kiln(
+            d,
+            &[
+                "build",
+                "--config",
+                "usage.toml",
+                "--usage",
+                "frame.usage",
+                "--usage-only",
+                "-j",
+                j,
+                "-o",
+                out,
+                "--stats-json",
+                "stats.json",
+            ],
+        )
+    };
+    let o = args("1", "one.kpak");
+    assert!(o.status.success(), "{}", stderr(&o));
+    // LitVS: always, 8. LitPS: 1 recorded + es3_1 with fog (3 blends x 2 lights - 1 skipped) = 6 of 20.
+    assert!(
+        stderr(&o).contains("note: --usage-only built 14 permutations and left out 14: LitPS 14 of 20"),
+        "{}",
+        stderr(&o)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+    assert_eq!(
+        (v["permutations"].as_u64(), v["used"].as_u64(), v["left_out"].as_u64()),
+        (Some(14), Some(14), Some(14))
+    );
+    assert_eq!(v["shaders"]["LitPS"], serde_json::json!({ "used": 6, "left_out": 14 }));
+    assert_eq!(v["shaders"]["LitVS"], serde_json::json!({ "used": 8, "left_out": 0 }));
+    // Deterministic across -j and the cache.
+    let o = args("2", "two.kpak");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(d.join("one.kpak")).unwrap(), std::fs::read(d.join("two.kpak")).unwrap());
+    let o = kiln(d, &["inspect", "one.kpak", "LitPS@sm5{USE_FOG=1,BLEND=OPAQUE,NUM_LIGHTS=2}", "--reflection"]);
+    assert_eq!(o.status.code(), Some(2));
+
+    // Nothing left out: the archive is a whole one, byte for byte the plain build's.
+    let all = lit.replace("levels = [\"sm5\", \"es3_1\"]\n", "levels = [\"sm5\", \"es3_1\"]\nalways = true\n");
+    std::fs::write(d.join("all.toml"), all).unwrap();
+    let o = kiln(d, &["build", "--config", "all.toml", "--usage", "frame.usage", "--usage-only", "-o", "all.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = kiln(d, &["build", "--config", "lit.toml", "-o", "plain.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(d.join("all.kpak")).unwrap(), std::fs::read(d.join("plain.kpak")).unwrap());
+
+    // A usage file that is not one is a located error, exit 2.
+    std::fs::write(d.join("bad.usage"), "kiln-usage 1\nrender x\n").unwrap();
+    let o = kiln(d, &["build", "--config", "lit.toml", "--usage", "bad.usage", "--usage-only"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("bad.usage: line 2: expected"), "{}", stderr(&o));
 }
