@@ -34,7 +34,7 @@ pub struct ShaderSummary {
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Summary {
     pub shaders: BTreeMap<String, ShaderSummary>,
-    /// Stored artifact bytes by target name (archives only).
+    /// Stored artifact bytes by target name, with each target's dictionary (archives only).
     pub bytes: BTreeMap<String, u64>,
     /// The archive file's bytes (archives only).
     pub file_bytes: Option<u64>,
@@ -64,6 +64,10 @@ impl Summary {
                 }
             }
             sets.entry(shader).or_default().insert(set);
+        }
+        // A target's dictionary is shared by all its blobs: counted in the total only.
+        for (target, len) in archive.dictionaries() {
+            *summary.bytes.entry(target.name().to_string()).or_default() += len;
         }
         for (shader, set) in sets {
             if let Some(s) = summary.shaders.get_mut(&shader) {

@@ -103,7 +103,7 @@ pub(super) fn archive(config: &Config, path: &std::path::Path, options: &Options
         .collect();
     let targets: Vec<String> = sizes.bytes.iter().map(|(t, b)| format!("{t} {b}")).collect();
     let notes =
-        vec![format!("artifact bytes by target: {}; the rest is the manifest and dictionaries", targets.join(", "))];
+        vec![format!("artifact and dictionary bytes by target: {}; the rest is the manifest", targets.join(", "))];
     config
         .check_budget(Measure::ArchiveBytes, bytes, &per_shader, &filter(options), notes)
         .map_err(|e| exceeded(e, options))

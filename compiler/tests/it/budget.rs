@@ -84,7 +84,7 @@ fn set_budgets_count_permutations_and_distinct_sources() {
         )),
         "{err}"
     );
-    assert!(err.contains("artifact bytes by target: glsl "), "{err}");
+    assert!(err.contains("artifact and dictionary bytes by target: glsl "), "{err}");
 }
 
 #[test]
