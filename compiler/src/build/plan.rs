@@ -96,6 +96,9 @@ pub(super) struct Plan<'c> {
     pub skipped: u128,
     /// What `--usage` kept and `--usage-only` left out (`None` without `--usage`).
     pub usage: Option<super::usage::Outcome>,
+    /// The kept permutations the usage files record, ascending: preprocessed (and so
+    /// compiled) first.
+    pub recorded: Vec<usize>,
 }
 
 /// The values of point `point` of `shader`'s domain ([`Domain::point`] undone).
@@ -165,13 +168,18 @@ impl<'c> Plan<'c> {
         let mut stream = config.kept_where(|_, level| selected(options, level));
         let filter = super::usage::Filter::load(config, options)?;
         let mut usage = super::usage::Outcome::default();
+        let mut recorded = Vec::new();
         for p in &mut stream {
             if let Some(e) = config.evaluation_error(&p) {
                 return Err(Error::Config(e.render()));
             }
             if let Some(f) = &filter {
-                if !f.keeps(&p, &p.name(), &mut usage) {
+                let name = p.name();
+                if !f.keeps(&p, &name, &mut usage) {
                     continue;
+                }
+                if f.records(&name) {
+                    recorded.push(len);
                 }
             }
             let same = runs.last().is_some_and(|r| std::ptr::eq(r.shader, p.shader) && std::ptr::eq(r.level, p.level));
@@ -222,7 +230,7 @@ impl<'c> Plan<'c> {
             usage.unknown = f.unknown(&usage);
             usage
         });
-        Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped(), usage })
+        Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped(), usage, recorded })
     }
 
     /// Kept permutations.

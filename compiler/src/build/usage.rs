@@ -1,5 +1,6 @@
 //! Builds from usage: `--usage FILE...` (usage files as a renderer's pipeline cache records
-//! them, `kiln_archive::usage`) and `--usage-only`, which keeps of the configuration's kept
+//! them, `kiln_archive::usage`) preprocesses, and so compiles, the recorded permutations
+//! first (after the first permutation of each shader and level); `--usage-only` which keeps of the configuration's kept
 //! permutations only those a file recorded, those a `[usage] keep` pattern matches and those
 //! of shaders with `always = true`. The others are left out: counted per shader, named in
 //! the archive (which says it is partial, so that a lookup of one is an error naming it) and
@@ -76,6 +77,11 @@ impl Filter {
             outcome.left_out.push(name.to_string());
             false
         }
+    }
+
+    /// Whether a usage file records `name`.
+    pub fn records(&self, name: &str) -> bool {
+        self.recorded.contains(name)
     }
 
     /// Recorded permutations that no kept permutation matched (renamed or skipped since).

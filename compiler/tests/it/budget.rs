@@ -224,6 +224,15 @@ fn usage_only_builds_the_recorded_the_kept_and_the_always_permutations() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(std::fs::read(d.join("all.kpak")).unwrap(), std::fs::read(d.join("plain.kpak")).unwrap());
 
+    // `--usage` alone builds everything (the recorded permutations first): the same archive.
+    let o = kiln(
+        d,
+        &["build", "--config", "lit.toml", "--usage", "frame.usage", "-j", "2", "-o", "first.kpak", "--no-cache"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("note: the usage files record 2 of the permutations built"), "{}", stderr(&o));
+    assert_eq!(std::fs::read(d.join("first.kpak")).unwrap(), std::fs::read(d.join("plain.kpak")).unwrap());
+
     // A usage file that is not one is a located error, exit 2.
     std::fs::write(d.join("bad.usage"), "kiln-usage 1\nrender x\n").unwrap();
     let o = kiln(d, &["build", "--config", "lit.toml", "--usage", "bad.usage", "--usage-only"]);
