@@ -278,6 +278,7 @@ pub(crate) struct DictionaryRecord {
 pub(crate) struct Manifest {
     pub kiln_version: String,
     pub naga_version: String,
+    pub partial: Option<Partial>,
     pub shaders: Vec<ShaderRecord>,
     pub reflections: Vec<Reflection>,
     /// Sorted by name.
@@ -428,6 +429,10 @@ pub(crate) struct TablesOut<'a> {
     pub naga_version: &'a str,
     pub shaders: &'a [ShaderRecord],
     pub reflections: &'a [Reflection],
+    /// Absent from every archive but a `kiln build --usage-only` one: archives without it
+    /// are byte for byte what they were before it existed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub partial: Option<&'a Partial>,
 }
 
 /// The JSON tables of the manifest, as read.
@@ -437,6 +442,18 @@ pub(crate) struct Tables {
     pub naga_version: String,
     pub shaders: Vec<ShaderRecord>,
     pub reflections: Vec<Reflection>,
+    #[serde(default)]
+    pub partial: Option<Partial>,
+}
+
+/// What a partial archive (`kiln build --usage-only`) left out: the kept permutations of its
+/// configuration that no usage file recorded, no `[usage] keep` pattern matched and no
+/// `always = true` shader asked for. A lookup of one of them is an error saying so, never a
+/// substitute.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Partial {
+    /// Canonical names, sorted.
+    pub left_out: Vec<String>,
 }
 
 /// The counts of the manifest's header.

@@ -34,6 +34,7 @@ pub mod limits;
 pub mod output;
 mod reader;
 mod reflect;
+pub mod usage;
 #[cfg(feature = "writer")]
 mod writer;
 
@@ -41,9 +42,9 @@ mod writer;
 mod tests;
 
 pub use format::{
-    write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, PermutationRecord,
-    ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
-    MAX_ARTIFACT_LEN,
+    write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, Partial,
+    PermutationRecord, ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION,
+    HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
 };
 pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations};
 pub use reflect::{

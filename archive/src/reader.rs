@@ -15,7 +15,7 @@ use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
     decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
+    ManifestLayout, Partial, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
     CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
     MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
@@ -462,6 +462,7 @@ impl Archive {
                 naga_version: String::new(),
                 shaders: Vec::new(),
                 reflections: Vec::new(),
+                partial: None,
             },
             dictionaries: Vec::new(),
             chunks_ok: Bits::new(chunks),
@@ -654,6 +655,16 @@ impl Archive {
             .unwrap_or("")
     }
 
+    /// What a `kiln build --usage-only` archive left out; `None` for a whole archive.
+    pub fn partial(&self) -> Option<&Partial> {
+        self.tables.partial.as_ref()
+    }
+
+    /// Whether `name` is a permutation this partial archive left out.
+    pub fn left_out(&self, name: &str) -> bool {
+        self.partial().is_some_and(|p| p.left_out.binary_search_by(|n| n.as_str().cmp(name)).is_ok())
+    }
+
     /// The version of Kiln that wrote the archive.
     pub fn kiln_version(&self) -> &str {
         &self.tables.kiln_version
@@ -662,6 +673,15 @@ impl Archive {
     pub fn naga_version(&self) -> &str {
         &self.tables.naga_version
     }
+    /// The archive's content hash, 64 hex digits: its header checksum, the blake3 hash of
+    /// the header's fields and of the chunk hashes, which cover the manifest and the table,
+    /// whose entries hold the hash of every blob and dictionary. Archives with the same hash
+    /// hold the same permutations and artifacts.
+    pub fn content_hash(&self) -> String {
+        let bytes: [u8; 32] = self.bytes.as_slice()[96..128].try_into().expect("a checked header");
+        blake3::Hash::from_bytes(bytes).to_hex().to_string()
+    }
+
     /// Size of the whole archive in bytes.
     pub fn len(&self) -> usize {
         self.bytes.as_slice().len()

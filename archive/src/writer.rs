@@ -29,9 +29,9 @@ use std::sync::Mutex;
 
 use super::format::{
     encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, Arenas, BlobId, ChunkHasher,
-    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, PermutationRecord, Record, Sections,
-    ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL,
-    DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord, Record,
+    Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
+    COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
 
@@ -95,6 +95,7 @@ pub struct ArchiveSummary {
 #[derive(Clone, Default)]
 struct Entries {
     naga_version: String,
+    partial: Option<Partial>,
     hooks: WriterHooks,
     shaders: Vec<ShaderRecord>,
     shader_index: HashMap<(String, String), u32>,
@@ -627,6 +628,13 @@ impl StreamingWriter {
         lock(&self.entries).naga_version = version.to_string();
     }
 
+    /// Marks the archive partial: `partial.left_out` names the permutations left out (sorted
+    /// here). Without it the archive's bytes are as they always were.
+    pub fn set_partial(&self, mut partial: Partial) {
+        partial.left_out.sort_unstable();
+        lock(&self.entries).partial = Some(partial);
+    }
+
     /// Adds a blob (an artifact's bytes); adding the same bytes again is free.
     pub fn add_blob(&self, bytes: &[u8]) -> Result<BlobKey, ArchiveError> {
         self.add_blob_hashed(bytes, blake3::hash(bytes))
@@ -931,7 +939,7 @@ struct Plan {
 fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     table.seal();
     let (spool_len, slots) = (table.spooled, table.slots);
-    let Entries { naga_version, hooks, shaders, reflections, mut permutations, mut arenas, .. } = entries;
+    let Entries { naga_version, partial, hooks, shaders, reflections, mut permutations, mut arenas, .. } = entries;
     permutations.sort_unstable_by(|a, b| arenas.cmp_names(a, b));
     if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names(&w[0], &w[1]).is_eq()) {
         return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0]))));
@@ -940,7 +948,8 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
     let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
-    let mut manifest = Manifest { kiln_version: crate::VERSION.to_string(), naga_version, ..Default::default() };
+    let mut manifest =
+        Manifest { kiln_version: crate::VERSION.to_string(), naga_version, partial, ..Default::default() };
     // The shaders' prefixes in the manifest's numbering.
     let mut prefixes = Vec::with_capacity(shaders.len());
     // Each slot's blob id, by first use.
@@ -1387,6 +1396,7 @@ fn spill_manifest<'a>(
         naga_version: &manifest.naga_version,
         shaders: &manifest.shaders,
         reflections: &manifest.reflections,
+        partial: manifest.partial.as_ref(),
     };
     serde_json::to_writer(&mut back, &tables).map_err(std::io::Error::other)?;
     let tables_len = back.len();

@@ -37,6 +37,8 @@ pub mod cache;
 #[cfg(feature = "compiler")]
 pub mod compile;
 #[cfg(feature = "compiler")]
+pub mod diff;
+#[cfg(feature = "compiler")]
 pub mod explain;
 #[cfg(feature = "compiler")]
 pub mod keys;

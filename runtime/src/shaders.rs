@@ -18,6 +18,16 @@ pub enum LookupError {
         /// The closest permutations, best first.
         nearest: Vec<Near>,
     },
+    /// A partial archive (`kiln build --usage-only`) left the permutation out: no usage file
+    /// recorded it. Never answered with another permutation.
+    #[error(
+        "permutation `{name}` was left out of this archive by `kiln build --usage-only`: the usage file did not \
+         record it (record a run that uses it, or keep it with `[usage] keep` or its shader's `always = true`)"
+    )]
+    LeftOut {
+        /// The name looked up.
+        name: String,
+    },
     /// The builder named a shader, level or dimension the archive does not know.
     #[error("cannot name permutation: {0}")]
     BadName(String),
@@ -120,6 +130,9 @@ impl ShaderArchive {
     pub fn get(&self, name: &str) -> Result<PermutationRef<'_>, LookupError> {
         match self.archive.lookup(name) {
             Ok(Lookup::Found(p)) => Ok(p),
+            Ok(Lookup::Missing(_)) if self.archive.left_out(name) => {
+                Err(LookupError::LeftOut { name: name.to_string() })
+            }
             Ok(Lookup::Missing(nearest)) => Err(LookupError::Missing { name: name.to_string(), nearest }),
             Err(e) => Err(LookupError::Damaged(e.to_string())),
         }

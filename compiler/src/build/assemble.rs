@@ -263,6 +263,14 @@ fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> b
             h.update(&key.0);
         }
     }
+    // A partial archive names what it left out; a whole one's fingerprint is as it was.
+    if let Some(left_out) = plan.usage.as_ref().map(|u| &u.left_out).filter(|l| !l.is_empty()) {
+        h.update(b"\0left out\0");
+        for name in left_out {
+            h.update(name.as_bytes());
+            h.update(b"\0");
+        }
+    }
     h.finalize()
 }
 
@@ -281,6 +289,9 @@ impl<'p> Assembler<'p> {
         };
         if let Some(w) = &writer {
             w.set_naga_version(compile::NAGA_VERSION);
+            if let Some(left_out) = plan.usage.as_ref().map(|u| &u.left_out).filter(|l| !l.is_empty()) {
+                w.set_partial(crate::archive::Partial { left_out: left_out.clone() });
+            }
             w.set_hooks(crate::archive::WriterHooks { trace: super::trace_memory, release: super::release_freed });
             // The blob table at its bound once (see [`Plan::max_targets`]).
             w.reserve_blobs(plan.len() * plan.max_targets());

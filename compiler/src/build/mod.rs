@@ -42,6 +42,7 @@ use crate::archive::Target;
 use crate::permute::Config;
 
 mod assemble;
+mod budget;
 mod compile;
 mod group;
 mod outputs;
@@ -52,12 +53,14 @@ mod records;
 mod report;
 mod shard;
 mod store;
+mod usage;
 
 pub use crate::cache::remote::{Mode as RemoteMode, RemoteCache};
 pub use compile::map_error;
 pub use plan::Shard;
 pub use report::{DeadDimension, Report, Seconds, Stats};
 pub use store::default_cache_dir;
+pub use usage::{matches as usage_pattern_matches, ShaderUsage};
 
 /// What to build and where.
 #[derive(Clone, Debug)]
@@ -96,6 +99,11 @@ pub struct Options {
     /// resident under the next stage's tables (the `kiln` binary passes mimalloc's
     /// `mi_collect`); the first build of the process that passes one fixes it.
     pub release_freed: Option<fn()>,
+    /// Usage files (`kiln_archive::usage`) of the permutations a renderer asked for.
+    pub usage: Vec<PathBuf>,
+    /// Build only the recorded permutations, those `[usage] keep` matches and those of
+    /// `always = true` shaders; the archive records the others as left out.
+    pub usage_only: bool,
 }
 
 impl Default for Options {
@@ -116,6 +124,8 @@ impl Default for Options {
             shard: None,
             max_permutations: None,
             release_freed: None,
+            usage: Vec::new(),
+            usage_only: false,
         }
     }
 }
@@ -141,16 +151,21 @@ pub enum Error {
     /// Something outside the shaders failed: a file could not be written (exit code 2).
     #[error("{0}")]
     Io(String),
+    /// A budget is exceeded (exit code 3): `[budget]` or a shader's `budget`. Rendered.
+    #[error("{0}")]
+    Budget(String),
     /// At least one permutation failed (exit code 1); the report has the failures.
     #[error("{} permutation(s) failed", .0.stats.failed)]
     Failed(Box<Report>),
 }
 
 impl Error {
-    /// The exit code of DESIGN.md: 1 for shader failures, 2 for the rest.
+    /// The exit code of DESIGN.md: 1 for shader failures, 3 for a budget exceeded, 2 for
+    /// the rest.
     pub fn exit_code(&self) -> u8 {
         match self {
             Error::Failed(_) => 1,
+            Error::Budget(_) => 3,
             _ => 2,
         }
     }
@@ -164,7 +179,11 @@ pub fn run(options: &Options) -> Result<Report, Error> {
     }
     let config = plan::load(options)?;
     let store = store::Store::open(options, &config)?;
-    worker_pool(options.jobs)?.install(|| stages(options, &config, &store, start))
+    let report = worker_pool(options.jobs)?.install(|| stages(options, &config, &store, start))?;
+    if let Some(archive) = &report.archive {
+        budget::archive(&config, archive, options)?;
+    }
+    Ok(report)
 }
 
 /// The stages, in order; every stage's state lives in its own type.
@@ -186,6 +205,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     );
     let plan = plan?;
     report.planned(&plan);
+    budget::permutations(config, &plan, options)?;
     trace_memory("plan");
 
     let assembler = assemble::Assembler::new(&plan)?;
@@ -203,6 +223,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
     let keys = plan.group(&pre)?;
+    report.estimated_compile_ms(budget::keys(config, &plan, &pre, &keys, options)?);
     // The dead dimensions are found beside the archive's up-to-date check and, when that
     // fails, the remote archive's fetch (neither changes the failures).
     let failed = report.failed();

@@ -94,6 +94,11 @@ pub(super) struct Plan<'c> {
     len: usize,
     /// Permutations dropped by skip rules (saturating).
     pub skipped: u128,
+    /// What `--usage` kept and `--usage-only` left out (`None` without `--usage`).
+    pub usage: Option<super::usage::Outcome>,
+    /// The kept permutations the usage files record, ascending: preprocessed (and so
+    /// compiled) first.
+    pub recorded: Vec<usize>,
 }
 
 /// The values of point `point` of `shader`'s domain ([`Domain::point`] undone).
@@ -161,9 +166,21 @@ impl<'c> Plan<'c> {
         let (mut runs, mut points, mut values, mut len) = (Vec::<Run<'c>>::new(), Vec::new(), Vec::new(), 0);
         let mut domain: Option<Domain> = None;
         let mut stream = config.kept_where(|_, level| selected(options, level));
+        let filter = super::usage::Filter::load(config, options)?;
+        let mut usage = super::usage::Outcome::default();
+        let mut recorded = Vec::new();
         for p in &mut stream {
             if let Some(e) = config.evaluation_error(&p) {
                 return Err(Error::Config(e.render()));
+            }
+            if let Some(f) = &filter {
+                let name = p.name();
+                if !f.keeps(&p, &name, &mut usage) {
+                    continue;
+                }
+                if f.records(&name) {
+                    recorded.push(len);
+                }
             }
             let same = runs.last().is_some_and(|r| std::ptr::eq(r.shader, p.shader) && std::ptr::eq(r.level, p.level));
             if !same {
@@ -209,7 +226,11 @@ impl<'c> Plan<'c> {
         runs.shrink_to_fit();
         points.shrink_to_fit();
         values.shrink_to_fit();
-        Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped() })
+        let usage = filter.map(|f| {
+            usage.unknown = f.unknown(&usage);
+            usage
+        });
+        Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped(), usage, recorded })
     }
 
     /// Kept permutations.

@@ -252,9 +252,20 @@ impl<'p> Preprocessor<'p> {
             .filter(|(shader, level, range)| !range.is_empty() && seen_groups.insert((&shader.name, &level.name)))
             .map(|(_, _, range)| range.start)
             .collect();
-        // The order is made as it is taken, not held as a table (0.4 MB at 100k permutations).
+        // Then the permutations the usage files record (`--usage`: compiled first), then the
+        // rest in plan order. The order is made as it is taken, not held as a table (0.4 MB
+        // at 100k permutations).
+        let recorded: Vec<usize> = plan.recorded.iter().copied().filter(|i| firsts.binary_search(i).is_err()).collect();
+        let ahead = firsts.len() + recorded.len();
         let order = Mutex::new(
-            firsts.iter().copied().chain((0..plan.len()).filter(|i| firsts.binary_search(i).is_err())).enumerate(),
+            firsts
+                .iter()
+                .copied()
+                .chain(recorded.iter().copied())
+                .chain(
+                    (0..plan.len()).filter(|i| firsts.binary_search(i).is_err() && recorded.binary_search(i).is_err()),
+                )
+                .enumerate(),
         );
         let of: Vec<AtomicU32> = (0..plan.len()).map(|_| AtomicU32::new(FAILED)).collect();
         let errors = Mutex::new(Vec::new());
@@ -264,7 +275,7 @@ impl<'p> Preprocessor<'p> {
                 s.spawn(|_| loop {
                     let next = order.lock().expect("no panics while locked").next();
                     let Some((n, i)) = next else { break };
-                    if n >= firsts.len() {
+                    if n >= ahead {
                         // In plan order now: groups whose last permutation was taken are done.
                         self.reuse.retire_before(i);
                     }

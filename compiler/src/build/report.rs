@@ -50,6 +50,21 @@ pub struct Stats {
     pub remote_writes: u64,
     /// Failed remote operations (the first one turns the remote off for the build).
     pub remote_errors: u64,
+    /// The estimated single-core compile time of every distinct key, in milliseconds
+    /// (`kiln::permute::budget::estimate_compile_ms`); only when `[budget] max_distinct` or
+    /// `max_compile_ms` is set.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimated_compile_ms: Option<f64>,
+    /// With `--usage`: permutations built that the usage files record or that `[usage]
+    /// keep` or `always` keep.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub used: Option<usize>,
+    /// With `--usage`: permutations `--usage-only` left out (0 without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub left_out: Option<usize>,
+    /// With `--usage`: `used` and `left_out` per shader.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shaders: Option<std::collections::BTreeMap<String, super::ShaderUsage>>,
     /// Where the time went.
     pub seconds: Seconds,
 }
@@ -127,12 +142,22 @@ impl<'o> Builder<'o> {
     pub fn planned(&mut self, plan: &Plan<'_>) {
         self.report.stats.permutations = plan.len();
         self.report.stats.skipped = usize::try_from(plan.skipped).unwrap_or(usize::MAX);
+        if let Some(u) = &plan.usage {
+            self.report.stats.used = Some(u.shaders.values().map(|s| s.used).sum());
+            self.report.stats.left_out = Some(u.left_out.len());
+            self.report.stats.shaders = Some(u.shaders.clone());
+            self.report.warnings.push(u.summary(self.options.usage_only));
+        }
         if plan.is_empty() && plan.skipped > 0 {
             self.report.warnings.push(format!(
                 "warning: skip rules skip every one of the {} permutations: nothing is compiled",
                 plan.skipped
             ));
         }
+    }
+
+    pub fn estimated_compile_ms(&mut self, ms: Option<f64>) {
+        self.report.stats.estimated_compile_ms = ms.map(|m| (m * 10.0).round() / 10.0);
     }
 
     /// Every file the build read so far (after [`Builder::preprocessed`]).

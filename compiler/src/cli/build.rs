@@ -61,6 +61,15 @@ pub struct Args {
     /// KILN_REMOTE_CACHE_MODE, else read-write).
     #[arg(long, value_name = "M", value_parser = RemoteMode::parse)]
     pub remote_cache_mode: Option<RemoteMode>,
+    /// A usage file recorded by a renderer (`kiln-view --record-usage`; repeatable, merged):
+    /// the build says how many of its permutations the files record.
+    #[arg(long, value_name = "FILE")]
+    pub usage: Vec<PathBuf>,
+    /// Build only the permutations the --usage files record, those `[usage] keep` matches and
+    /// those of `always = true` shaders; print per shader what was left out. The archive
+    /// records that it is partial: looking a left-out permutation up is an error naming it.
+    #[arg(long, requires = "usage")]
+    pub usage_only: bool,
     /// After the build, watch every file it read and rebuild on each change (one line per
     /// rebuild) until interrupted.
     #[arg(long)]
@@ -123,6 +132,8 @@ pub fn exec(args: Args) -> CliResult {
         max_permutations: args.max_permutations,
         shard,
         release_freed: Some(crate::release_freed),
+        usage: args.usage,
+        usage_only: args.usage_only,
     };
     if args.watch {
         return watch(options);
@@ -149,6 +160,7 @@ pub fn exec(args: Args) -> CliResult {
                 report.stats.permutations
             )))
         }
+        Err(e @ build::Error::Budget(_)) => Err(Failure::budget(e.to_string())),
         Err(e) => Err(Failure::usage(e.to_string())),
     }
 }

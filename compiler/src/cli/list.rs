@@ -34,6 +34,11 @@ pub struct Args {
     /// max_permutations`, else 16777216 = 2^24); with `--all`, skipped ones count too.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     pub max_permutations: Option<u64>,
+    /// Check the set against its budgets (`[budget]`, each shader's `budget`) without
+    /// compiling: kept permutations, and distinct sources unless --no-analysis. Prints one
+    /// line per budget; exit code 3 when one is exceeded.
+    #[arg(long)]
+    pub check_budget: bool,
 }
 
 /// The most kept permutations the analysis preprocesses; above it the listing streams
@@ -108,6 +113,10 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
 
     let max = config.max_permutations(args.max_permutations);
     config.check_space(&filter, max, args.all).map_err(|e| Failure::usage(e.render_with(color)))?;
+
+    if args.check_budget {
+        return check_budget(&config, &filter, args, out, err, color);
+    }
 
     let mut counts: Vec<Count> = Vec::new();
     let mut errors: Vec<String> = Vec::new();
@@ -201,6 +210,64 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
     })());
     let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
     result
+}
+
+/// `--check-budget`: the kept permutations per shader against the shaders' budgets and
+/// `[budget] max_permutations`, then (preprocessing, not compiling) the distinct sources
+/// against `max_distinct`. One line per checked budget on `out`; exit code 3 with the
+/// located diagnostics when one is exceeded.
+fn check_budget(
+    config: &Config,
+    filter: &(dyn Fn(&permute::Shader, &permute::Level) -> bool + Sync),
+    args: &Args,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+    color: bool,
+) -> CliResult {
+    let counts = config.kept_counts(filter);
+    let total: u64 = counts.iter().map(|c| c.1).sum();
+    let mut lines = String::new();
+    for &(i, n) in &counts {
+        if let Some(l) = &config.shaders[i].budget.max_permutations {
+            lines.push_str(&format!(
+                "budget: shader {} keeps {n} of {} permutations\n",
+                config.shaders[i].name, l.value
+            ));
+        }
+    }
+    let budget = &config.budget;
+    match &budget.max_permutations {
+        Some(l) => lines.push_str(&format!("budget: {total} of {} permutations\n", l.value)),
+        None => lines.push_str(&format!("budget: {total} permutations (no max_permutations)\n")),
+    }
+    let mut result = config.check_permutation_budget(&counts, filter).map_err(|e| e.render_with(color));
+    if let (Some(l), Ok(())) = (&budget.max_distinct, &result) {
+        if args.no_analysis || total as usize > ANALYSIS_LIMIT {
+            lines.push_str("budget: max_distinct not checked (no analysis)\n");
+        } else {
+            let cache = SourceCache::new(config.dir.clone());
+            let analysis = permute::analyze(config, &cache, filter);
+            let _ = write_warnings(err, &[], Some(&analysis), &cache, color);
+            let mut per_shader: Vec<(usize, u64)> = Vec::new();
+            for level in &analysis.levels {
+                let i = config.shaders.iter().position(|s| s.name == level.shader).unwrap_or(0);
+                match per_shader.iter_mut().find(|(s, _)| *s == i) {
+                    Some((_, n)) => *n += level.distinct as u64,
+                    None => per_shader.push((i, level.distinct as u64)),
+                }
+            }
+            let distinct: u64 = per_shader.iter().map(|c| c.1).sum();
+            lines.push_str(&format!("budget: {distinct} of {} distinct sources\n", l.value));
+            result = config
+                .check_budget(permute::budget::Measure::Distinct, distinct, &per_shader, filter, Vec::new())
+                .map_err(|e| e.render_with(color));
+        }
+    }
+    if budget.max_archive_bytes.is_some() || budget.max_compile_ms.is_some() {
+        lines.push_str("budget: max_archive_bytes and max_compile_ms are checked by `kiln build`\n");
+    }
+    write_result(out.write_all(lines.as_bytes()))?;
+    result.map_err(Failure::budget)
 }
 
 /// A count as a JSON number: exact up to 2^64 - 1, a float above (64 bool dimensions

@@ -8,11 +8,13 @@ use clap::{Parser, Subcommand};
 
 mod build;
 mod cache;
+mod diff;
 mod explain;
 mod inspect;
 mod list;
 mod lsp;
 mod preprocess;
+mod usage;
 
 /// Kiln: a shader permutation compiler for WGSL with a C preprocessor.
 #[derive(Debug, Parser)]
@@ -38,13 +40,18 @@ pub enum Command {
     Cache(cache::Args),
     /// Serve the Language Server Protocol on stdin and stdout (for editors).
     Lsp(lsp::Args),
+    /// Compare two permutation sets (archives or configurations): permutations added and
+    /// removed, distinct sources and archive bytes, per shader.
+    Diff(diff::Args),
+    /// Usage files recorded by a renderer: merge them, or print coverage per shader.
+    Usage(usage::Args),
 }
 
 /// How a subcommand failed: the exit code of DESIGN.md and what to print on stderr
 /// (already rendered: diagnostics come with their source snippets).
 #[derive(Debug)]
 pub struct Failure {
-    /// 1: a shader failed; 2: bad usage or bad configuration.
+    /// 1: a shader failed; 2: bad usage or bad configuration; 3: a budget is exceeded.
     pub code: u8,
     pub message: String,
 }
@@ -57,6 +64,10 @@ impl Failure {
     /// Bad usage or bad configuration (exit code 2).
     pub fn usage(message: impl Into<String>) -> Self {
         Failure { code: 2, message: message.into() }
+    }
+    /// A `[budget]` or shader budget is exceeded (exit code 3).
+    pub fn budget(message: impl Into<String>) -> Self {
+        Failure { code: 3, message: message.into() }
     }
 }
 
@@ -83,6 +94,8 @@ pub fn main() -> ExitCode {
         Command::Inspect(args) => inspect::exec(args),
         Command::Cache(args) => cache::exec(args),
         Command::Lsp(args) => lsp::exec(args),
+        Command::Diff(args) => diff::exec(args),
+        Command::Usage(args) => usage::exec(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -16,6 +16,7 @@
 //! [`crate::archive::Archive::canonical_name`] builds them.
 
 mod analysis;
+pub mod budget;
 pub(crate) mod enumerate;
 mod error;
 mod names;
@@ -26,6 +27,7 @@ use std::path::{Path, PathBuf};
 pub use analysis::{
     analyze, dead_dimensions, dead_dimensions_in, Analysis, DeadDimension, Failed, LevelAnalysis, Preprocessed,
 };
+pub use budget::{Budget, BudgetExceeded, BudgetLimit, ShaderBudget};
 pub use enumerate::{
     canonical_name, nominal, Define, DefineOrigin, Kept, Permutation, Permutations, RuleResult,
     DEFAULT_MAX_PERMUTATIONS,
@@ -56,6 +58,11 @@ pub struct Config {
     /// `[compiler] max_permutations`: the most permutations of one shader at one level, or of
     /// all together (see [`DEFAULT_MAX_PERMUTATIONS`]).
     pub max_permutations: Option<u64>,
+    /// `[budget]`: what a CI build may grow to (see [`budget`]).
+    pub budget: Budget,
+    /// `[usage] keep`: patterns of canonical names (`*`, `?`) a `kiln build --usage-only`
+    /// keeps whether recorded or not.
+    pub usage_keep: Vec<String>,
     /// (name in messages, text) of the file, for errors found after loading.
     pub source: std::sync::Arc<(String, String)>,
 }
@@ -118,6 +125,10 @@ pub struct Shader {
     pub derived: Vec<(String, String)>,
     /// Its skip rules, in order.
     pub skip: Vec<SkipRule>,
+    /// `budget = { max_permutations = N }`.
+    pub budget: ShaderBudget,
+    /// `always = true`: every kept permutation of it is built by `kiln build --usage-only`.
+    pub always: bool,
     /// Where its parts are in the toml file.
     pub spans: ShaderSpans,
 }
@@ -127,6 +138,8 @@ pub struct Shader {
 pub struct ShaderSpans {
     /// The shader's name.
     pub name: std::ops::Range<usize>,
+    /// Each dimension's name, in order.
+    pub each_dimension: Vec<std::ops::Range<usize>>,
     /// From the first dimension's name to the last one's domain (the name without dimensions).
     pub dimensions: std::ops::Range<usize>,
     /// Each derived define's expression.

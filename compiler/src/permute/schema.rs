@@ -17,7 +17,7 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use super::error::ConfigError;
-use super::{Config, Dimension, Level, Limits, Shader, SkipRule};
+use super::{Budget, BudgetLimit, Config, Dimension, Level, Limits, Shader, ShaderBudget, SkipRule};
 use crate::preprocess;
 use crate::{Stage, Target};
 
@@ -33,6 +33,35 @@ struct RawConfig {
     levels: IndexMap<Spanned<String>, RawLevel>,
     #[serde(default)]
     shader: Vec<Spanned<RawShader>>,
+    #[serde(default)]
+    budget: RawBudget,
+    #[serde(default)]
+    usage: RawUsage,
+}
+
+/// `[usage]`: what a `kiln build --usage-only` keeps beyond the recorded permutations.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawUsage {
+    #[serde(default)]
+    keep: Vec<Spanned<String>>,
+}
+
+/// `[budget]`: limits a CI build checks ([`super::Budget`]).
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawBudget {
+    max_permutations: Option<Spanned<i64>>,
+    max_distinct: Option<Spanned<i64>>,
+    max_archive_bytes: Option<Spanned<i64>>,
+    max_compile_ms: Option<Spanned<i64>>,
+}
+
+/// A shader's `budget = { max_permutations = N }`.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RawShaderBudget {
+    max_permutations: Option<Spanned<i64>>,
 }
 
 #[derive(Deserialize, Default)]
@@ -108,6 +137,9 @@ struct RawShader {
     derived: IndexMap<Spanned<String>, Spanned<String>>,
     #[serde(default)]
     skip: Vec<Spanned<RawSkip>>,
+    budget: Option<RawShaderBudget>,
+    #[serde(default)]
+    always: bool,
 }
 
 #[derive(Deserialize)]
@@ -417,7 +449,9 @@ fn find_word(expr: &str, name: &str) -> Option<usize> {
     None
 }
 
-/// Parses and checks `text` (the contents of the file at `path`).
+/// Parses and checks `text` (the contents of the file at `path`): the toml, then each
+/// section in file order ([`parse_compiler`], [`parse_level`], [`parse_shader`]), every
+/// problem reported together, in file order.
 pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, ConfigError> {
     let fail = |diagnostics: Vec<Diagnostic<()>>| ConfigError::new(display.to_string(), text.to_string(), diagnostics);
     let raw: RawConfig = match toml::from_str(text) {
@@ -435,388 +469,28 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let mut c = Checker { diagnostics: Vec::new(), warnings: Vec::new() };
 
-    // [compiler]
-    let mut include_roots = Vec::new();
-    for inc in &raw.compiler.include {
-        let p = dir.join(inc.get_ref());
-        if !p.is_dir() {
-            c.error(inc.span(), format!("include root `{}` is not a folder", inc.get_ref()), "no such folder")
-                .notes
-                .push(format!("include roots are relative to the folder of {display}"));
-        }
-        include_roots.push(p.canonicalize().unwrap_or(p));
-    }
-    let mut virtual_roots = Vec::new();
-    for (name, target) in &raw.compiler.virtual_roots {
-        if !name.get_ref().starts_with('/') {
-            c.error(
-                name.span(),
-                format!("virtual root `{}` must start with `/`", name.get_ref()),
-                "expected a name like \"/Engine\"",
-            );
-        }
-        let p = dir.join(target.get_ref());
-        if !p.is_dir() {
-            c.error(
-                target.span(),
-                format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()),
-                "no such folder",
-            );
-        }
-        virtual_roots.push((name.get_ref().clone(), p.canonicalize().unwrap_or(p)));
-    }
-    let mut max_permutations = None;
-    if let Some(m) = &raw.compiler.max_permutations {
-        match u64::try_from(*m.get_ref()) {
-            Ok(v) if v > 0 => max_permutations = Some(v),
-            _ => {
-                c.error(m.span(), "`max_permutations` must be a positive number", "expected a number above 0");
-            }
-        }
-    }
+    let compiler = parse_compiler(&mut c, &raw.compiler, &dir, display);
+    let budget = parse_budget(&mut c, &raw.budget);
+    let usage_keep = parse_usage(&mut c, &raw.usage);
     // Sources resolve through the roots: with a bad root, their errors would only be noise.
     let roots_ok = c.diagnostics.is_empty();
-
-    // [levels.*]
-    let mut levels = Vec::new();
-    for (name, raw_level) in &raw.levels {
-        if !is_name(name.get_ref()) {
-            c.error(
-                name.span(),
-                format!("level name `{}` cannot appear in a permutation name", name.get_ref()),
-                "use letters, digits, `_`, `.` and `-`",
-            );
-        }
-        let mut defines = Vec::new();
-        for (k, v) in &raw_level.defines {
-            if !is_ident(k.get_ref()) {
-                c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
-            }
-            c.reserved(k, "define");
-            defines.push((k.get_ref().clone(), v.get_ref().0));
-        }
-        let targets = match &raw_level.targets {
-            Some(ts) if ts.is_empty() => {
-                c.error(
-                    level_targets_span(text, name.span()),
-                    format!("level `{}` has no targets", name.get_ref()),
-                    "an empty list",
-                )
-                .notes
-                .push(
-                    "list at least one of wgsl, spirv, msl, glsl, hlsl, or leave `targets` out for all of them".into(),
-                );
-                Vec::new()
-            }
-            Some(ts) => {
-                let mut out: Vec<Target> = Vec::new();
-                for t in ts {
-                    if out.contains(t.get_ref()) {
-                        c.error(t.span(), format!("target `{}` is listed twice", t.get_ref()), "listed again here");
-                    } else {
-                        out.push(*t.get_ref());
-                    }
-                }
-                out
-            }
-            None => Target::ALL.to_vec(),
-        };
-        let mut limit_overrides: Vec<(String, u64)> = Vec::new();
-        let limits = match &raw_level.limits {
-            Some(RawLimits::Base(b)) => *b,
-            None => Limits::Default,
-            Some(RawLimits::Table(entries)) => {
-                let mut base = Limits::Default;
-                for (k, v) in entries {
-                    let field = k.get_ref();
-                    if field == "base" {
-                        match v.get_ref().as_str().and_then(limits_base) {
-                            Some(b) => base = b,
-                            None => {
-                                c.error(
-                                    v.span(),
-                                    "`base` is \"default\" or \"downlevel\"",
-                                    "expected \"default\" or \"downlevel\"",
-                                );
-                            }
-                        }
-                        continue;
-                    }
-                    let Some(&(_, wide)) = crate::archive::limits::WGPU_LIMITS.iter().find(|(f, _)| f == field) else {
-                        let near = crate::archive::limits::WGPU_LIMITS
-                            .iter()
-                            .map(|(f, _)| *f)
-                            .min_by_key(|f| super::names::edit_distance(f, field))
-                            .unwrap_or("max_bind_groups");
-                        c.error(k.span(), format!("unknown limit `{field}`"), "not a field of wgpu's `Limits`")
-                            .notes
-                            .push(format!(
-                                "the table takes `base` and the fields of wgpu's `Limits`, such as `{near}`"
-                            ));
-                        continue;
-                    };
-                    let max = if wide { u64::MAX } else { u64::from(u32::MAX) };
-                    match v.get_ref().as_integer().and_then(|n| u64::try_from(n).ok()).filter(|n| *n <= max) {
-                        Some(n) => {
-                            if limit_overrides.iter().any(|(f, _)| f == field) {
-                                c.error(k.span(), format!("limit `{field}` is set twice"), "set again here");
-                            }
-                            limit_overrides.push((field.clone(), n));
-                        }
-                        None => {
-                            let ty = if wide { "u64" } else { "u32" };
-                            c.error(
-                                v.span(),
-                                format!(
-                                    "limit `{field}` takes a non-negative integer ({ty}), not {}",
-                                    describe_value(v.get_ref())
-                                ),
-                                format!("expected an integer from 0 to {max}"),
-                            );
-                        }
-                    }
-                }
-                base
-            }
-        };
-        levels.push(Level { name: name.get_ref().clone(), defines, targets, limits, limit_overrides });
-    }
-    let all_level_defines: HashSet<&str> =
-        raw.levels.values().flat_map(|l| l.defines.keys().map(|k| k.get_ref().as_str())).collect();
-    let level_defines: HashMap<&str, &IndexMap<Spanned<String>, Spanned<DefineValue>>> =
-        raw.levels.iter().map(|(k, v)| (k.get_ref().as_str(), &v.defines)).collect();
-
-    let pp_options = preprocess::Options {
-        include_roots: include_roots.clone(),
-        virtual_roots: virtual_roots.clone(),
-        ..preprocess::Options::default()
+    let levels = raw.levels.iter().map(|(name, l)| parse_level(&mut c, text, name, l)).collect();
+    let scope = LevelScope {
+        text,
+        raw_levels: &raw.levels,
+        all_defines: raw.levels.values().flat_map(|l| l.defines.keys().map(|k| k.get_ref().as_str())).collect(),
+        defines: raw.levels.iter().map(|(k, v)| (k.get_ref().as_str(), &v.defines)).collect(),
+        pp_options: preprocess::Options {
+            include_roots: compiler.include_roots.clone(),
+            virtual_roots: compiler.virtual_roots.clone(),
+            ..preprocess::Options::default()
+        },
+        roots_ok,
     };
-
-    // [[shader]]
     let mut shaders = Vec::new();
     let mut seen_names: HashMap<String, Range<usize>> = HashMap::new();
     for raw_shader in &raw.shader {
-        let s = raw_shader.get_ref();
-        let name = s.name.get_ref();
-        if !is_name(name) {
-            c.error(
-                s.name.span(),
-                format!("shader name `{name}` cannot appear in a permutation name"),
-                "use letters, digits, `_`, `.` and `-`",
-            );
-        }
-        if let Some(first) = seen_names.get(name) {
-            let d = c.error(s.name.span(), format!("duplicate shader name `{name}`"), "declared again here");
-            d.labels.push(Label::secondary((), first.clone()).with_message("first declared here"));
-        } else {
-            seen_names.insert(name.clone(), s.name.span());
-        }
-
-        // levels
-        let level_names: Vec<Spanned<String>> = match &s.levels {
-            Some(ls) => {
-                if ls.get_ref().is_empty() {
-                    c.error(ls.span(), format!("shader `{name}` has no levels"), "expected at least one level name");
-                }
-                ls.get_ref().clone()
-            }
-            None => raw.levels.keys().cloned().collect(),
-        };
-        let mut shader_levels: Vec<String> = Vec::new();
-        for l in &level_names {
-            if !level_defines.contains_key(l.get_ref().as_str()) {
-                let known: Vec<&str> = raw.levels.keys().map(|k| k.get_ref().as_str()).collect();
-                let d = c.error(
-                    l.span(),
-                    format!("unknown level `{}`", l.get_ref()),
-                    "no `[levels.*]` table has this name",
-                );
-                d.notes.push(if known.is_empty() {
-                    "no levels are declared: add a `[levels.NAME]` table".to_string()
-                } else {
-                    format!("expected one of: {}", known.join(", "))
-                });
-            } else if shader_levels.contains(l.get_ref()) {
-                c.error(l.span(), format!("level `{}` is listed twice", l.get_ref()), "listed again here");
-            } else {
-                shader_levels.push(l.get_ref().clone());
-            }
-        }
-        if s.levels.is_none() && raw.levels.is_empty() {
-            c.error(s.name.span(), format!("shader `{name}` has no levels"), "no `[levels.*]` table is declared");
-        }
-
-        // Every name a define or expression can see, with where it was written, for clashes.
-        // Level defines may differ per level: each one of the shader's levels is checked.
-        let mut defines = Vec::new();
-        let mut shader_scope: HashMap<String, (Range<usize>, &'static str)> = HashMap::new();
-        for (k, v) in &s.defines {
-            if !is_ident(k.get_ref()) {
-                c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
-            }
-            c.reserved(k, "define");
-            defines.push((k.get_ref().clone(), v.get_ref().0));
-            shader_scope.insert(k.get_ref().clone(), (k.span(), "shader define"));
-        }
-        let clash = |c: &mut Checker,
-                     what: &str,
-                     key: &Spanned<String>,
-                     shader_scope: &HashMap<String, (Range<usize>, &'static str)>,
-                     defined: &str| {
-            if let Some((span, kind)) = shader_scope.get(defined) {
-                let d = c.error(
-                    key.span(),
-                    format!("{what} `{defined}` clashes with a {kind}"),
-                    format!("{what} declared here"),
-                );
-                d.labels
-                    .push(Label::secondary((), span.clone()).with_message(format!("`{defined}` is already a {kind}")));
-                return true;
-            }
-            for l in &shader_levels {
-                if let Some((lk, _)) = level_defines[l.as_str()].get_key_value(defined) {
-                    let d = c.error(
-                        key.span(),
-                        format!("{what} `{defined}` clashes with a define of level `{l}`"),
-                        format!("{what} declared here"),
-                    );
-                    d.labels.push(
-                        Label::secondary((), lk.span())
-                            .with_message(format!("`{defined}` is defined by level `{l}` here")),
-                    );
-                    return true;
-                }
-            }
-            false
-        };
-
-        let mut dimensions = Vec::new();
-        for (k, v) in &s.dimensions {
-            let dname = k.get_ref();
-            if !is_ident(dname) {
-                c.error(k.span(), format!("`{dname}` is not a valid dimension name"), "expected an identifier");
-            }
-            c.reserved(k, "dimension");
-            clash(&mut c, "dimension", k, &shader_scope, dname);
-            shader_scope.insert(dname.clone(), (k.span(), "dimension"));
-            let dim = match v.get_ref() {
-                DimensionKind::Values(values, is_bool) => {
-                    Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new(), is_bool: *is_bool }
-                }
-                DimensionKind::Enum(labels) => {
-                    for label in labels {
-                        let define = format!("{dname}_{label}");
-                        if !clash(&mut c, "enum value", k, &shader_scope, &define) {
-                            shader_scope.insert(define, (k.span(), "dimension's enum value"));
-                        }
-                    }
-                    Dimension {
-                        name: dname.clone(),
-                        values: (0..labels.len() as i64).collect(),
-                        labels: labels.clone(),
-                        is_bool: false,
-                    }
-                }
-            };
-            dimensions.push(dim);
-        }
-
-        // derived
-        let derived_names: Vec<&str> = s.derived.keys().map(|k| k.get_ref().as_str()).collect();
-        let mut derived = Vec::new();
-        let mut derived_spans = Vec::new();
-        for (i, (k, expr)) in s.derived.iter().enumerate() {
-            let dname = k.get_ref();
-            if !is_ident(dname) {
-                c.error(k.span(), format!("`{dname}` is not a valid define name"), "expected an identifier");
-            }
-            c.reserved(k, "derived define");
-            clash(&mut c, "derived define", k, &shader_scope, dname);
-            shader_scope.insert(dname.clone(), (k.span(), "derived define"));
-            if check_expression(&mut c, text, expr) {
-                check_derived_dependencies(&mut c, text, &s.derived, &derived_names, i);
-                let known = |id: &str| {
-                    all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id)
-                };
-                c.unknown_identifiers(text, expr, &known, &format!("derived define `{dname}`"));
-            }
-            derived.push((dname.clone(), expr.get_ref().clone()));
-            derived_spans.push(expr.span());
-        }
-
-        // skip
-        let mut skip = Vec::new();
-        for rule in &s.skip {
-            let r = rule.get_ref();
-            if check_expression(&mut c, text, &r.when) {
-                for id in preprocess::expr::identifiers(r.when.get_ref()) {
-                    if let Some((dk, _)) = s.derived.get_key_value(id.as_str()) {
-                        let at = find_word(r.when.get_ref(), &id).unwrap_or(0);
-                        let span = inner_span(text, &r.when.span(), r.when.get_ref(), at, id.len());
-                        let d = c.error(
-                            span,
-                            format!("skip rule uses derived define `{id}`"),
-                            "skip rules do not see derived defines",
-                        );
-                        d.labels.push(Label::secondary((), dk.span()).with_message("derived here"));
-                        d.notes.push("skip rules see the dimensions and the level's and shader's defines; write the condition in those terms".into());
-                    }
-                }
-                let known = |id: &str| {
-                    all_level_defines.contains(id) || shader_scope.contains_key(id) || derived_names.contains(&id)
-                };
-                c.unknown_identifiers(text, &r.when, &known, "skip rule");
-            }
-            if r.why.get_ref().trim().is_empty() {
-                c.error(
-                    r.why.span(),
-                    "a skip rule needs a reason",
-                    "expected a sentence saying why these permutations are not needed",
-                );
-            }
-            skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone(), span: r.when.span() });
-        }
-
-        // source
-        let mut source_path = PathBuf::new();
-        if roots_ok {
-            match preprocess::resolve_source(s.source.get_ref(), &pp_options) {
-                Ok(p) => source_path = p,
-                Err(e) => {
-                    let d = c.error(
-                        s.source.span(),
-                        format!("cannot resolve source `{}` of shader `{name}`", s.source.get_ref()),
-                        "not found",
-                    );
-                    d.notes.push(e.to_string());
-                    d.notes.push(
-                        "a source resolves like `#include <...>`: through a virtual root or against the include roots"
-                            .into(),
-                    );
-                }
-            }
-        }
-
-        shaders.push(Shader {
-            name: name.clone(),
-            source: s.source.get_ref().clone(),
-            source_path,
-            entry: s.entry.clone().unwrap_or_else(|| "main".to_string()),
-            stage: s.stage,
-            levels: shader_levels,
-            defines,
-            dimensions,
-            derived,
-            skip,
-            spans: super::ShaderSpans {
-                name: s.name.span(),
-                dimensions: match (s.dimensions.first(), s.dimensions.last()) {
-                    (Some((first, _)), Some((_, last))) => first.span().start..last.span().end,
-                    _ => s.name.span(),
-                },
-                derived: derived_spans,
-            },
-        });
+        shaders.push(parse_shader(&mut c, &scope, &mut seen_names, raw_shader.get_ref()));
     }
 
     if !c.diagnostics.is_empty() {
@@ -834,14 +508,483 @@ pub(super) fn parse(text: &str, path: &Path, display: &str) -> Result<Config, Co
     Ok(Config {
         path,
         dir,
-        include_roots,
-        virtual_roots,
+        include_roots: compiler.include_roots,
+        virtual_roots: compiler.virtual_roots,
         levels,
         shaders,
         warnings,
-        max_permutations,
+        max_permutations: compiler.max_permutations,
+        budget,
+        usage_keep,
         source: std::sync::Arc::new((display.to_string(), text.to_string())),
     })
+}
+
+/// `[compiler]`, checked.
+struct CompilerSection {
+    include_roots: Vec<PathBuf>,
+    virtual_roots: Vec<(String, PathBuf)>,
+    max_permutations: Option<u64>,
+}
+
+/// `[compiler]`: include roots and virtual roots (folders that exist, relative to `dir`),
+/// `max_permutations`.
+fn parse_compiler(c: &mut Checker, raw: &RawCompiler, dir: &Path, display: &str) -> CompilerSection {
+    let mut include_roots = Vec::new();
+    for inc in &raw.include {
+        let p = dir.join(inc.get_ref());
+        if !p.is_dir() {
+            c.error(inc.span(), format!("include root `{}` is not a folder", inc.get_ref()), "no such folder")
+                .notes
+                .push(format!("include roots are relative to the folder of {display}"));
+        }
+        include_roots.push(p.canonicalize().unwrap_or(p));
+    }
+    let mut virtual_roots = Vec::new();
+    for (name, target) in &raw.virtual_roots {
+        if !name.get_ref().starts_with('/') {
+            c.error(
+                name.span(),
+                format!("virtual root `{}` must start with `/`", name.get_ref()),
+                "expected a name like \"/Engine\"",
+            );
+        }
+        let p = dir.join(target.get_ref());
+        if !p.is_dir() {
+            c.error(
+                target.span(),
+                format!("virtual root `{}` maps to `{}`, which is not a folder", name.get_ref(), target.get_ref()),
+                "no such folder",
+            );
+        }
+        virtual_roots.push((name.get_ref().clone(), p.canonicalize().unwrap_or(p)));
+    }
+    let max_permutations = raw.max_permutations.as_ref().and_then(|m| positive(c, m, "max_permutations"));
+    CompilerSection { include_roots, virtual_roots, max_permutations }
+}
+
+/// `[budget]`: each limit a positive number.
+fn parse_budget(c: &mut Checker, raw: &RawBudget) -> Budget {
+    let mut limit = |m: &Option<Spanned<i64>>, what: &str| {
+        let m = m.as_ref()?;
+        positive(c, m, what).map(|value| BudgetLimit { value, span: m.span() })
+    };
+    Budget {
+        max_permutations: limit(&raw.max_permutations, "max_permutations"),
+        max_distinct: limit(&raw.max_distinct, "max_distinct"),
+        max_archive_bytes: limit(&raw.max_archive_bytes, "max_archive_bytes"),
+        max_compile_ms: limit(&raw.max_compile_ms, "max_compile_ms"),
+    }
+}
+
+/// `[usage] keep`: patterns over canonical names (`*` any run of characters, `?` one).
+fn parse_usage(c: &mut Checker, raw: &RawUsage) -> Vec<String> {
+    let mut keep = Vec::new();
+    for p in &raw.keep {
+        if p.get_ref().trim().is_empty() || p.get_ref().contains(char::is_whitespace) {
+            c.error(
+                p.span(),
+                "a `[usage] keep` pattern is a canonical name with `*` and `?`",
+                "expected a pattern such as \"ScreenVS@*\"",
+            );
+        }
+        keep.push(p.get_ref().clone());
+    }
+    keep
+}
+
+/// A positive count, or an error at its value.
+fn positive(c: &mut Checker, m: &Spanned<i64>, what: &str) -> Option<u64> {
+    match u64::try_from(*m.get_ref()) {
+        Ok(v) if v > 0 => Some(v),
+        _ => {
+            c.error(m.span(), format!("`{what}` must be a positive number"), "expected a number above 0");
+            None
+        }
+    }
+}
+
+/// One `[levels.NAME]` table.
+fn parse_level(c: &mut Checker, text: &str, name: &Spanned<String>, raw: &RawLevel) -> Level {
+    if !is_name(name.get_ref()) {
+        c.error(
+            name.span(),
+            format!("level name `{}` cannot appear in a permutation name", name.get_ref()),
+            "use letters, digits, `_`, `.` and `-`",
+        );
+    }
+    let mut defines = Vec::new();
+    for (k, v) in &raw.defines {
+        if !is_ident(k.get_ref()) {
+            c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
+        }
+        c.reserved(k, "define");
+        defines.push((k.get_ref().clone(), v.get_ref().0));
+    }
+    let targets = match &raw.targets {
+        Some(ts) if ts.is_empty() => {
+            c.error(
+                level_targets_span(text, name.span()),
+                format!("level `{}` has no targets", name.get_ref()),
+                "an empty list",
+            )
+            .notes
+            .push("list at least one of wgsl, spirv, msl, glsl, hlsl, or leave `targets` out for all of them".into());
+            Vec::new()
+        }
+        Some(ts) => {
+            let mut out: Vec<Target> = Vec::new();
+            for t in ts {
+                if out.contains(t.get_ref()) {
+                    c.error(t.span(), format!("target `{}` is listed twice", t.get_ref()), "listed again here");
+                } else {
+                    out.push(*t.get_ref());
+                }
+            }
+            out
+        }
+        None => Target::ALL.to_vec(),
+    };
+    let mut limit_overrides: Vec<(String, u64)> = Vec::new();
+    let limits = match &raw.limits {
+        Some(RawLimits::Base(b)) => *b,
+        None => Limits::Default,
+        Some(RawLimits::Table(entries)) => parse_limits_table(c, entries, &mut limit_overrides),
+    };
+    Level { name: name.get_ref().clone(), defines, targets, limits, limit_overrides }
+}
+
+/// A `limits = { base = ..., field = value, ... }` table: its base, and each override in
+/// `overrides`.
+fn parse_limits_table(
+    c: &mut Checker,
+    entries: &[(Spanned<String>, Spanned<toml::Value>)],
+    overrides: &mut Vec<(String, u64)>,
+) -> Limits {
+    let mut base = Limits::Default;
+    for (k, v) in entries {
+        let field = k.get_ref();
+        if field == "base" {
+            match v.get_ref().as_str().and_then(limits_base) {
+                Some(b) => base = b,
+                None => {
+                    c.error(
+                        v.span(),
+                        "`base` is \"default\" or \"downlevel\"",
+                        "expected \"default\" or \"downlevel\"",
+                    );
+                }
+            }
+            continue;
+        }
+        let Some(&(_, wide)) = crate::archive::limits::WGPU_LIMITS.iter().find(|(f, _)| f == field) else {
+            let near = crate::archive::limits::WGPU_LIMITS
+                .iter()
+                .map(|(f, _)| *f)
+                .min_by_key(|f| super::names::edit_distance(f, field))
+                .unwrap_or("max_bind_groups");
+            c.error(k.span(), format!("unknown limit `{field}`"), "not a field of wgpu's `Limits`")
+                .notes
+                .push(format!("the table takes `base` and the fields of wgpu's `Limits`, such as `{near}`"));
+            continue;
+        };
+        let max = if wide { u64::MAX } else { u64::from(u32::MAX) };
+        match v.get_ref().as_integer().and_then(|n| u64::try_from(n).ok()).filter(|n| *n <= max) {
+            Some(n) => {
+                if overrides.iter().any(|(f, _)| f == field) {
+                    c.error(k.span(), format!("limit `{field}` is set twice"), "set again here");
+                }
+                overrides.push((field.clone(), n));
+            }
+            None => {
+                let ty = if wide { "u64" } else { "u32" };
+                c.error(
+                    v.span(),
+                    format!("limit `{field}` takes a non-negative integer ({ty}), not {}", describe_value(v.get_ref())),
+                    format!("expected an integer from 0 to {max}"),
+                );
+            }
+        }
+    }
+    base
+}
+
+/// What every `[[shader]]` sees of the rest of the file.
+struct LevelScope<'a> {
+    text: &'a str,
+    raw_levels: &'a IndexMap<Spanned<String>, RawLevel>,
+    /// Every define of every level (an expression may use any of them).
+    all_defines: HashSet<&'a str>,
+    /// Each level's defines, by level name.
+    defines: HashMap<&'a str, &'a IndexMap<Spanned<String>, Spanned<DefineValue>>>,
+    pp_options: preprocess::Options,
+    /// Whether the roots are good, so that sources can be resolved through them.
+    roots_ok: bool,
+}
+
+/// Every name a define or expression of one shader can see, with where it was written, for
+/// clashes. Level defines may differ per level: each one of the shader's levels is checked.
+struct ShaderScope<'a> {
+    names: HashMap<String, (Range<usize>, &'static str)>,
+    levels: &'a [String],
+    level_defines: &'a HashMap<&'a str, &'a IndexMap<Spanned<String>, Spanned<DefineValue>>>,
+}
+
+impl ShaderScope<'_> {
+    /// Whether `defined` (declared at `key`) clashes with a name in scope: an error if so.
+    fn clash(&self, c: &mut Checker, what: &str, key: &Spanned<String>, defined: &str) -> bool {
+        if let Some((span, kind)) = self.names.get(defined) {
+            let d = c.error(
+                key.span(),
+                format!("{what} `{defined}` clashes with a {kind}"),
+                format!("{what} declared here"),
+            );
+            d.labels.push(Label::secondary((), span.clone()).with_message(format!("`{defined}` is already a {kind}")));
+            return true;
+        }
+        for l in self.levels {
+            if let Some((lk, _)) = self.level_defines[l.as_str()].get_key_value(defined) {
+                let d = c.error(
+                    key.span(),
+                    format!("{what} `{defined}` clashes with a define of level `{l}`"),
+                    format!("{what} declared here"),
+                );
+                d.labels.push(
+                    Label::secondary((), lk.span()).with_message(format!("`{defined}` is defined by level `{l}` here")),
+                );
+                return true;
+            }
+        }
+        false
+    }
+}
+
+/// One `[[shader]]` table: its name (unique), levels, defines, dimensions, derived defines,
+/// skip rules and source.
+fn parse_shader(
+    c: &mut Checker,
+    scope: &LevelScope<'_>,
+    seen_names: &mut HashMap<String, Range<usize>>,
+    s: &RawShader,
+) -> Shader {
+    let name = s.name.get_ref();
+    if !is_name(name) {
+        c.error(
+            s.name.span(),
+            format!("shader name `{name}` cannot appear in a permutation name"),
+            "use letters, digits, `_`, `.` and `-`",
+        );
+    }
+    if let Some(first) = seen_names.get(name) {
+        let d = c.error(s.name.span(), format!("duplicate shader name `{name}`"), "declared again here");
+        d.labels.push(Label::secondary((), first.clone()).with_message("first declared here"));
+    } else {
+        seen_names.insert(name.clone(), s.name.span());
+    }
+    let levels = shader_levels(c, scope, s);
+    let mut names = ShaderScope { names: HashMap::new(), levels: &levels, level_defines: &scope.defines };
+    let mut defines = Vec::new();
+    for (k, v) in &s.defines {
+        if !is_ident(k.get_ref()) {
+            c.error(k.span(), format!("`{}` is not a valid define name", k.get_ref()), "expected an identifier");
+        }
+        c.reserved(k, "define");
+        defines.push((k.get_ref().clone(), v.get_ref().0));
+        names.names.insert(k.get_ref().clone(), (k.span(), "shader define"));
+    }
+    let dimensions = s.dimensions.iter().map(|(k, v)| shader_dimension(c, &mut names, k, v.get_ref())).collect();
+    let (derived, derived_spans) = shader_derived(c, scope, &mut names, s);
+    let skip = shader_skip(c, scope, &names, s);
+    let source_path = shader_source(c, scope, s);
+    let max_permutations = s
+        .budget
+        .as_ref()
+        .and_then(|b| b.max_permutations.as_ref())
+        .and_then(|m| positive(c, m, "max_permutations").map(|value| BudgetLimit { value, span: m.span() }));
+    Shader {
+        name: name.clone(),
+        source: s.source.get_ref().clone(),
+        source_path,
+        entry: s.entry.clone().unwrap_or_else(|| "main".to_string()),
+        stage: s.stage,
+        levels,
+        defines,
+        dimensions,
+        derived,
+        skip,
+        budget: ShaderBudget { max_permutations },
+        always: s.always,
+        spans: super::ShaderSpans {
+            name: s.name.span(),
+            each_dimension: s.dimensions.keys().map(|k| k.span()).collect(),
+            dimensions: match (s.dimensions.first(), s.dimensions.last()) {
+                (Some((first, _)), Some((_, last))) => first.span().start..last.span().end,
+                _ => s.name.span(),
+            },
+            derived: derived_spans,
+        },
+    }
+}
+
+/// A shader's `levels` (all of the file's when left out), each one declared, none twice.
+fn shader_levels(c: &mut Checker, scope: &LevelScope<'_>, s: &RawShader) -> Vec<String> {
+    let name = s.name.get_ref();
+    let level_names: Vec<Spanned<String>> = match &s.levels {
+        Some(ls) => {
+            if ls.get_ref().is_empty() {
+                c.error(ls.span(), format!("shader `{name}` has no levels"), "expected at least one level name");
+            }
+            ls.get_ref().clone()
+        }
+        None => scope.raw_levels.keys().cloned().collect(),
+    };
+    let mut shader_levels: Vec<String> = Vec::new();
+    for l in &level_names {
+        if !scope.defines.contains_key(l.get_ref().as_str()) {
+            let known: Vec<&str> = scope.raw_levels.keys().map(|k| k.get_ref().as_str()).collect();
+            let d =
+                c.error(l.span(), format!("unknown level `{}`", l.get_ref()), "no `[levels.*]` table has this name");
+            d.notes.push(if known.is_empty() {
+                "no levels are declared: add a `[levels.NAME]` table".to_string()
+            } else {
+                format!("expected one of: {}", known.join(", "))
+            });
+        } else if shader_levels.contains(l.get_ref()) {
+            c.error(l.span(), format!("level `{}` is listed twice", l.get_ref()), "listed again here");
+        } else {
+            shader_levels.push(l.get_ref().clone());
+        }
+    }
+    if s.levels.is_none() && scope.raw_levels.is_empty() {
+        c.error(s.name.span(), format!("shader `{name}` has no levels"), "no `[levels.*]` table is declared");
+    }
+    shader_levels
+}
+
+/// One dimension of a shader, its name (and an enum's `DIM_VALUE` defines) added to `names`.
+fn shader_dimension(
+    c: &mut Checker,
+    names: &mut ShaderScope<'_>,
+    k: &Spanned<String>,
+    kind: &DimensionKind,
+) -> Dimension {
+    let dname = k.get_ref();
+    if !is_ident(dname) {
+        c.error(k.span(), format!("`{dname}` is not a valid dimension name"), "expected an identifier");
+    }
+    c.reserved(k, "dimension");
+    names.clash(c, "dimension", k, dname);
+    names.names.insert(dname.clone(), (k.span(), "dimension"));
+    match kind {
+        DimensionKind::Values(values, is_bool) => {
+            Dimension { name: dname.clone(), values: values.clone(), labels: Vec::new(), is_bool: *is_bool }
+        }
+        DimensionKind::Enum(labels) => {
+            for label in labels {
+                let define = format!("{dname}_{label}");
+                if !names.clash(c, "enum value", k, &define) {
+                    names.names.insert(define, (k.span(), "dimension's enum value"));
+                }
+            }
+            Dimension {
+                name: dname.clone(),
+                values: (0..labels.len() as i64).collect(),
+                labels: labels.clone(),
+                is_bool: false,
+            }
+        }
+    }
+}
+
+/// A shader's derived defines (name, expression) and the span of each expression.
+fn shader_derived(
+    c: &mut Checker,
+    scope: &LevelScope<'_>,
+    names: &mut ShaderScope<'_>,
+    s: &RawShader,
+) -> (Vec<(String, String)>, Vec<Range<usize>>) {
+    let derived_names: Vec<&str> = s.derived.keys().map(|k| k.get_ref().as_str()).collect();
+    let mut derived = Vec::new();
+    let mut derived_spans = Vec::new();
+    for (i, (k, expr)) in s.derived.iter().enumerate() {
+        let dname = k.get_ref();
+        if !is_ident(dname) {
+            c.error(k.span(), format!("`{dname}` is not a valid define name"), "expected an identifier");
+        }
+        c.reserved(k, "derived define");
+        names.clash(c, "derived define", k, dname);
+        names.names.insert(dname.clone(), (k.span(), "derived define"));
+        if check_expression(c, scope.text, expr) {
+            check_derived_dependencies(c, scope.text, &s.derived, &derived_names, i);
+            let known = |id: &str| {
+                scope.all_defines.contains(id) || names.names.contains_key(id) || derived_names.contains(&id)
+            };
+            c.unknown_identifiers(scope.text, expr, &known, &format!("derived define `{dname}`"));
+        }
+        derived.push((dname.clone(), expr.get_ref().clone()));
+        derived_spans.push(expr.span());
+    }
+    (derived, derived_spans)
+}
+
+/// A shader's skip rules: expressions over what they may see, each with a reason.
+fn shader_skip(c: &mut Checker, scope: &LevelScope<'_>, names: &ShaderScope<'_>, s: &RawShader) -> Vec<SkipRule> {
+    let text = scope.text;
+    let derived_names: Vec<&str> = s.derived.keys().map(|k| k.get_ref().as_str()).collect();
+    let mut skip = Vec::new();
+    for rule in &s.skip {
+        let r = rule.get_ref();
+        if check_expression(c, text, &r.when) {
+            for id in preprocess::expr::identifiers(r.when.get_ref()) {
+                if let Some((dk, _)) = s.derived.get_key_value(id.as_str()) {
+                    let at = find_word(r.when.get_ref(), &id).unwrap_or(0);
+                    let span = inner_span(text, &r.when.span(), r.when.get_ref(), at, id.len());
+                    let d = c.error(
+                        span,
+                        format!("skip rule uses derived define `{id}`"),
+                        "skip rules do not see derived defines",
+                    );
+                    d.labels.push(Label::secondary((), dk.span()).with_message("derived here"));
+                    d.notes.push("skip rules see the dimensions and the level's and shader's defines; write the condition in those terms".into());
+                }
+            }
+            let known = |id: &str| {
+                scope.all_defines.contains(id) || names.names.contains_key(id) || derived_names.contains(&id)
+            };
+            c.unknown_identifiers(text, &r.when, &known, "skip rule");
+        }
+        if r.why.get_ref().trim().is_empty() {
+            c.error(
+                r.why.span(),
+                "a skip rule needs a reason",
+                "expected a sentence saying why these permutations are not needed",
+            );
+        }
+        skip.push(SkipRule { when: r.when.get_ref().clone(), why: r.why.get_ref().clone(), span: r.when.span() });
+    }
+    skip
+}
+
+/// A shader's source, resolved like `#include <...>` (empty while the roots are bad).
+fn shader_source(c: &mut Checker, scope: &LevelScope<'_>, s: &RawShader) -> PathBuf {
+    if !scope.roots_ok {
+        return PathBuf::new();
+    }
+    match preprocess::resolve_source(s.source.get_ref(), &scope.pp_options) {
+        Ok(p) => p,
+        Err(e) => {
+            let d = c.error(
+                s.source.span(),
+                format!("cannot resolve source `{}` of shader `{}`", s.source.get_ref(), s.name.get_ref()),
+                "not found",
+            );
+            d.notes.push(e.to_string());
+            d.notes.push(
+                "a source resolves like `#include <...>`: through a virtual root or against the include roots".into(),
+            );
+            PathBuf::new()
+        }
+    }
 }
 
 /// The span of the first line that nests deepest (dotted key parts, brackets, braces): where

@@ -120,7 +120,7 @@ stage = "vertex"
 fn error_unknown_top_level_key() {
     assert_eq!(
         error("[compiler]\ninclude = [\"shaders\"]\n[level.sm5]\n"),
-        r#"error: unknown field `level`, expected one of `compiler`, `levels`, `shader`
+        r#"error: unknown field `level`, expected one of `compiler`, `levels`, `shader`, `budget`, `usage`
   ┌─ permutations.toml:3:2
   │
 3 │ [level.sm5]
@@ -134,7 +134,7 @@ fn error_unknown_top_level_key() {
 fn error_unknown_shader_key() {
     assert_eq!(
         error(&format!("{LEVELS}\n[[shader]]\nname = \"S\"\nsource = \"A.usf\"\nstage = \"vertex\"\nskips = []\n")),
-        r#"error: unknown field `skips`, expected one of `name`, `source`, `entry`, `stage`, `levels`, `defines`, `dimensions`, `derived`, `skip`
+        r#"error: unknown field `skips`, expected one of `name`, `source`, `entry`, `stage`, `levels`, `defines`, `dimensions`, `derived`, `skip`, `budget`, `always`
    ┌─ permutations.toml:17:1
    │
 17 │ skips = []

@@ -44,3 +44,4 @@ mod preprocess_map;
 mod runtime_archive;
 mod runtime_pipelines;
 mod runtime_render;
+mod usage;

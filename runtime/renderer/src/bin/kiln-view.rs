@@ -87,6 +87,16 @@ struct Args {
     /// frames and rewrite `--out` (one line per reload). Needs the `hot-reload` feature.
     #[arg(long, value_name = "CONFIG", conflicts_with_all = ["shaders", "verify", "dump_passes"])]
     watch: Option<PathBuf>,
+    /// Write which pipelines the frames asked for (permutations and whole pipeline keys, how
+    /// many frames asked for each and the first that did) to FILE, in the usage format that
+    /// `kiln usage merge` and `kiln build --usage` read.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
+    record_usage: Option<PathBuf>,
+    /// Write the run's pipeline and frame timings as JSON: pipelines_created_before_first_frame,
+    /// pipelines_created_during_frames, first_frame_ms, slowest_frame_ms, frames,
+    /// fallback_draws.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
+    stats_json: Option<PathBuf>,
     /// With --watch: stop after this many reloads (failed ones included).
     #[arg(long, value_name = "N", requires = "watch", hide = true)]
     watch_reloads: Option<usize>,
@@ -336,10 +346,41 @@ fn run(args: &Args) -> Result<(), Failure> {
         }
         e => Failure::Render(e.to_string()),
     })?;
-    let render = |capture| renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+    let pipelines = |s: kiln_runtime::pipelines::CacheStats| s.render_pipelines + s.compute_pipelines;
+    let before_first_frame = pipelines(renderer.cache_stats());
+    let frame_ms = std::cell::RefCell::new(Vec::new());
+    let render = |capture| {
+        let start = std::time::Instant::now();
+        let frame = renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+        frame_ms.borrow_mut().push(start.elapsed().as_secs_f64() * 1000.0);
+        renderer.pipeline_cache().next_frame();
+        frame
+    };
     let mut frame = render(false)?;
     for _ in 1..args.frames {
         frame = render(false)?;
+    }
+    if let Some(path) = &args.stats_json {
+        let ms = frame_ms.borrow();
+        let stats = serde_json::json!({
+            "pipeline": pipeline.name(),
+            "frames": ms.len(),
+            "pipelines_created_before_first_frame": before_first_frame,
+            "pipelines_created_during_frames": pipelines(renderer.cache_stats()) - before_first_frame,
+            "first_frame_ms": ms.first().copied().unwrap_or(0.0),
+            "slowest_frame_ms": ms.iter().copied().fold(0.0, f64::max),
+            // No draw is ever skipped or drawn with a stand-in permutation: every pipeline
+            // is created before it is used.
+            "fallback_draws": 0,
+        });
+        let text = serde_json::to_string_pretty(&stats).expect("JSON of numbers") + "\n";
+        kiln_archive::write_atomic(path, text.as_bytes())
+            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))?;
+    }
+    if let Some(path) = &args.record_usage {
+        let usage = renderer.pipeline_cache().usage();
+        kiln_archive::write_atomic(path, usage.to_text().as_bytes())
+            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))?;
     }
     if let Err(e) = renderer.pipeline_cache().save() {
         eprintln!("warning: cannot write the pipeline cache: {e}");

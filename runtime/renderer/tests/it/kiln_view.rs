@@ -244,3 +244,37 @@ fn help_documents_every_option() {
         assert!(text.contains(option), "{option} missing from --help");
     }
 }
+
+/// `--record-usage` and `--stats-json`: the frames' pipelines, all created before the first
+/// frame (the renderer builds its passes up front), none during the frames.
+#[test]
+fn record_usage_and_stats_json_describe_the_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "--pipeline",
+        "mobile-forward",
+        "--size",
+        "64x36",
+        "--frames",
+        "3",
+        "--no-pipeline-cache",
+        "--record-usage",
+        "frames.usage",
+        "--stats-json",
+        "stats.json",
+    ];
+    let o = kiln_view(&args, dir.path());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let usage = std::fs::read_to_string(dir.path().join("frames.usage")).unwrap();
+    let usage = kiln_runtime::pipelines::Usage::parse(&usage).unwrap();
+    assert_eq!(usage.runs, 1);
+    assert_eq!(usage.archive, kiln_renderer::embedded_archive().unwrap().archive().content_hash());
+    assert!(usage.permutations().iter().all(|p| p.contains("@es3_1{")));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("stats.json")).unwrap()).unwrap();
+    assert_eq!(v["frames"], 3);
+    assert_eq!(v["pipelines_created_before_first_frame"].as_u64(), Some(usage.records.len() as u64));
+    assert_eq!(v["pipelines_created_during_frames"], 0);
+    assert_eq!(v["fallback_draws"], 0);
+    assert!(v["first_frame_ms"].as_f64().unwrap() > 0.0);
+    assert!(v["slowest_frame_ms"].as_f64().unwrap() >= v["first_frame_ms"].as_f64().unwrap());
+}

@@ -1,0 +1,71 @@
+//! Shader modules, bind group layouts and pipelines from the archive.
+//!
+//! Takes permutation names and fixed-function state; gives modules, layouts and pipelines
+//! from the runtime's one cache ([`PipelineCache`]), keyed by [`RenderKey`] (permutations,
+//! vertex layout, primitive and cull, depth and stencil with the bias as bits, color targets
+//! with blend and write masks, sample count) or [`ComputeKey`]. Guarantees: every field of a
+//! permutation's reflection is checked against the device's limits before it is used
+//! ([`check_limits`]); bind group layouts come from the reflection, merged across stages
+//! (visibility is the set of stages that use a binding); modules are created lazily, from
+//! SPIR-V passthrough where the device allows it and the archive is trusted (walked and
+//! checked against the reflection, binding numbers rewritten to the layout's Vulkan ones:
+//! [`crate::spirv`]), from WGSL otherwise; every wgpu error is a [`PipelineError`] naming
+//! what failed. Bind groups are built by resource name: a pass hands over
+//! `("View", buffer)`-style pairs and the reflection says where each goes.
+//!
+//! One concern per file: [`state`] (fixed-function state and pipeline keys), [`modules`]
+//! (shader modules and wgpu error scopes), [`layouts`] (bind group and pipeline layouts from
+//! reflection), [`limits`] (reflection against the device's limits), [`cache`] (the pipeline
+//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk) and [`usage`] (what the
+//! frames asked for, as `kiln_archive::usage` files).
+
+mod cache;
+mod disk_cache;
+mod layouts;
+mod limits;
+mod modules;
+mod state;
+#[cfg(test)]
+mod tests;
+mod usage;
+
+use kiln_archive::Stage;
+
+pub use crate::gpu::error_chain;
+use crate::shaders::LookupError;
+use crate::spirv::SpirvError;
+
+pub use cache::{CacheStats, ComputePipeline, PipelineCache, RenderPipeline};
+pub use kiln_archive::usage::{Usage, UsageError, UsageKey, UseCount};
+pub use layouts::{merge_bindings, storage_format, MergedBinding, PipelineLayoutInfo};
+pub use limits::check_limits;
+pub use modules::{create_spirv_module, create_wgsl_module, short_label, ErrorScopes};
+pub use state::{
+    Blend, ColorTarget, ComputeKey, DepthState, PipelineKey, RenderKey, RenderState, VertexBuffer, VertexLayout,
+};
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Lookup(#[from] LookupError),
+    #[error("permutation `{name}` is a {found} shader, used as a {wanted} shader")]
+    WrongStage { name: String, found: Stage, wanted: Stage },
+    #[error("permutation `{name}` has neither a WGSL nor a SPIR-V artifact (it has: {targets})")]
+    NoArtifact { name: String, targets: String },
+    #[error("permutation `{name}`: {message}")]
+    BadArtifact { name: String, message: String },
+    #[error("permutation `{name}`: {source}")]
+    Spirv { name: String, source: SpirvError },
+    #[error("permutation `{name}`: {what}")]
+    Limit { name: String, what: String },
+    #[error("{what}: wgpu rejected it: {message}")]
+    Wgpu { what: String, message: String },
+    #[error("pipeline `{label}`: binding @group({group}) @binding({binding}) is `{kind_a}` in one stage and `{kind_b}` in another")]
+    StageConflict { label: String, group: u32, binding: u32, kind_a: String, kind_b: String },
+    #[error("pipeline `{label}`: vertex input @location({location}) is not provided by its vertex layout (locations {provided:?})")]
+    VertexInput { label: String, location: u32, provided: Vec<u32> },
+    #[error("pipeline `{label}`: storage texture format `{format}` is not known to the runtime")]
+    StorageFormat { label: String, format: String },
+    #[error("bind group {group} of `{label}`: no resource given for binding {binding} `{name}`")]
+    MissingResource { label: String, group: u32, binding: u32, name: String },
+}
