@@ -44,7 +44,9 @@ pub use reflect::{
     VertexInput,
 };
 #[cfg(feature = "writer")]
-pub use writer::{ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks};
+pub use writer::{
+    train_dictionary, ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks,
+};
 
 /// The version of Kiln that wrote an archive (recorded in its manifest). The workspace's
 /// crates share one version.
