@@ -38,7 +38,7 @@ pub use format::{
     ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION, HEADER_LEN, MAGIC,
     MAX_ARTIFACT_LEN,
 };
-pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations};
+pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations, RELEASE_EVERY};
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,
