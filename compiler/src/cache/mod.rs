@@ -7,9 +7,11 @@
 //! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
 //! archive, a stamp (so an up-to-date archive is not rewritten).
 //!
-//! Entries are compressed ([`codec`]: zstd, with a dictionary per kind of entry kept in the
+//! Entries are compressed (`codec.rs`: zstd, with a dictionary per kind of entry kept in the
 //! folder once a build wrote enough to train one), as ccache's and sccache's are; entries of
-//! the older uncompressed format are still read. Entries are stored in packs, like git's pack files: [`Cache::put_pack`] writes every
+//! the older uncompressed format are still read.
+//!
+//! Entries are stored in packs, like git's pack files: [`Cache::put_pack`] writes every
 //! entry a build compiled into one `.kcp` file, an index of keys followed by the entries.
 //! One file per build instead of one per key: creating hundreds of small files costs more
 //! kernel time than naga takes to compile some of them. Guarantees: a pack is written to a
