@@ -46,13 +46,15 @@ pub use format::{
     PermutationRecord, ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION,
     HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
 };
-pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations};
+pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations, RELEASE_EVERY};
 pub use reflect::{
     Binding, BindingKind, ColorOutput, NumericType, Reflection, SampleKind, ScalarKind, StorageAccess, TextureDim,
     VertexInput,
 };
 #[cfg(feature = "writer")]
-pub use writer::{ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks};
+pub use writer::{
+    train_dictionary, ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks,
+};
 
 /// The version of Kiln that wrote an archive (recorded in its manifest). The workspace's
 /// crates share one version.

@@ -1075,6 +1075,13 @@ const FASTCOVER_F: u32 = 18;
 /// trains faster for dictionaries about as good.
 const FASTCOVER_ACCEL: u32 = 4;
 
+/// A dictionary of at most `capacity` bytes trained on the samples laid end to end in `flat`
+/// (`sizes` long each), with the archive's fixed fastCover parameters; `None` when zstd
+/// finds nothing to learn. Deterministic. The compiler's cache trains its own with this.
+pub fn train_dictionary(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec<u8>> {
+    train_fast_cover(flat, sizes, capacity)
+}
+
 /// One fastCover training with fixed parameters on the samples laid end to end in `flat`
 /// (`sizes` long each) into at most `capacity` bytes; `None` when zstd finds nothing to
 /// learn. Deterministic: same samples, same dictionary.

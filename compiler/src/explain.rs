@@ -221,37 +221,28 @@ fn module_group(
         .permutations_where(|s, l| std::ptr::eq(s, p.shader) && std::ptr::eq(l, p.level))
         .filter(|q| same(q) && q.is_kept() && q.error.is_none())
         .collect();
-    let outputs: Vec<Option<preprocess::Output>> = kept
+    // Each permutation's compacted module, its text dropped once hashed (every kept text at
+    // once was about 200 MB at 100k permutations); each distinct token stream is validated
+    // once (two threads may both validate one: the same answer).
+    let modules: std::sync::Mutex<HashMap<blake3::Hash, Result<blake3::Hash, String>>> = Default::default();
+    let of: Vec<Option<Result<blake3::Hash, String>>> = kept
         .par_iter()
-        .map(|q| preprocess::preprocess_file(&q.shader.source_path, &q.preprocess_options(config), cache).ok())
-        .collect();
-    let mut texts: HashMap<blake3::Hash, &str> = HashMap::new();
-    let hashes: Vec<Option<blake3::Hash>> = outputs
-        .iter()
-        .map(|o| {
-            let o = o.as_ref()?;
+        .map(|q| {
+            let o = preprocess::preprocess_file(&q.shader.source_path, &q.preprocess_options(config), cache).ok()?;
             let h = o.token_hash();
-            texts.entry(h).or_insert(&o.text);
-            Some(h)
-        })
-        .collect();
-    let modules: HashMap<blake3::Hash, Result<blake3::Hash, String>> = texts
-        .into_par_iter()
-        .map(|(h, text)| {
-            let module = crate::compile::validate(text, &p.shader.entry, p.shader.stage, &options.limits)
+            if let Some(m) = modules.lock().expect("no panics while locked").get(&h) {
+                return Some(m.clone());
+            }
+            let module = crate::compile::validate(&o.text, &p.shader.entry, p.shader.stage, &options.limits)
                 .map(|v| crate::compile::module_hash(&v, &options))
                 .map_err(|e| format!("it does not compile: {e}"));
-            (h, module)
+            modules.lock().expect("no panics while locked").insert(h, module.clone());
+            Some(module)
         })
         .collect();
+    drop(modules);
     let name = p.name();
     let index = kept.iter().position(|q| q.name() == name).ok_or("not built")?;
-    let own = hashes[index].ok_or("preprocessing failed")?;
-    let own = modules[&own].clone()?;
-    Ok(kept
-        .iter()
-        .zip(&hashes)
-        .filter(|(_, h)| h.is_some_and(|h| modules[&h].as_ref().is_ok_and(|m| *m == own)))
-        .map(|(q, _)| q.name())
-        .collect())
+    let own = of[index].clone().ok_or("preprocessing failed")??;
+    Ok(kept.iter().zip(&of).filter(|(_, m)| matches!(m, Some(Ok(m)) if *m == own)).map(|(q, _)| q.name()).collect())
 }

@@ -7,6 +7,10 @@
 //! preprocessing [`Record`] (so unchanged permutations skip the preprocessor) and, per
 //! archive, a stamp (so an up-to-date archive is not rewritten).
 //!
+//! Entries are compressed (`codec.rs`: zstd, with a dictionary per kind of entry kept in the
+//! folder once a build wrote enough to train one), as ccache's and sccache's are; entries of
+//! the older uncompressed format are still read.
+//!
 //! Entries are stored in packs, like git's pack files: [`Cache::put_pack`] writes every
 //! entry a build compiled into one `.kcp` file, an index of keys followed by the entries.
 //! One file per build instead of one per key: creating hundreds of small files costs more
@@ -43,6 +47,7 @@ use crate::archive::{Reflection, Stage, Target};
 use crate::compile::{Compiled, Limits};
 
 mod bundle;
+mod codec;
 mod fault;
 mod fill;
 mod http_batch;
@@ -50,12 +55,16 @@ pub(crate) mod remote;
 
 pub use remote::Remote;
 
+/// An entry of version 2 (uncompressed): still read; version 3 ([`codec`]) is written.
 const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 /// A remote cache value ([`remote_value`]); its header: magic, xxh3-128 of its key and entry.
-const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x02";
+/// Version 3 holds a compressed entry ([`codec`], without dictionaries); version 2 values
+/// (uncompressed entries) are still read.
+const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x03";
+const REMOTE_MAGIC_V2: &[u8; 8] = b"KILNCER\x02";
 const REMOTE_HEADER: usize = 8 + 16;
 const RECORD_EXTENSION: &str = "kpp";
 /// The largest records file read (a record is 64 bytes: about 16M permutations).
@@ -199,8 +208,15 @@ pub struct Stats {
     pub packs: u64,
     /// Sets of preprocessing records (`.kpp`, one per configuration and options).
     pub records: u64,
-    /// Bytes of packs and records.
+    /// Bytes of packs, records and dictionaries.
     pub bytes: u64,
+    /// Bytes the distinct entries would take uncompressed (as version 2 entries).
+    pub raw: u64,
+    /// Bytes the distinct entries take in their packs (their newest copy each).
+    pub stored: u64,
+    /// Compression dictionaries (`.kcd`) and their bytes.
+    pub dictionaries: u64,
+    pub dictionary_bytes: u64,
     /// Temporary files left by interrupted writes (removed by `gc` and `clear`).
     pub temporaries: u64,
 }
@@ -301,6 +317,8 @@ pub struct Cache {
     dir: PathBuf,
     index: Arc<RwLock<Option<Index>>>,
     remote: Option<Arc<Layer>>,
+    /// The compression dictionaries of the folder ([`codec`]).
+    dicts: Arc<codec::Dicts>,
     /// Whether the entries put through this `Cache` join its in-memory index (see
     /// [`Cache::without_indexing_puts`]).
     index_puts: bool,
@@ -334,7 +352,7 @@ impl Cache {
             let _ = crate::output::write(&dir.join(TAG_NAME), TAG.as_bytes(), false);
         }
         crate::output::remove_stale_temporaries(&dir, &Self::is_cache_file_name);
-        Ok(Cache { dir, index: Arc::default(), remote: None, index_puts: true })
+        Ok(Cache { dir, index: Arc::default(), remote: None, dicts: Arc::default(), index_puts: true })
     }
 
     /// The cache at `dir` if there is one, for commands that only read or remove: nothing
@@ -343,7 +361,9 @@ impl Cache {
     pub fn open_existing(dir: impl Into<PathBuf>) -> Result<Option<Cache>, Error> {
         let dir = dir.into();
         match fs::metadata(&dir) {
-            Ok(m) if m.is_dir() => Ok(Some(Cache { dir, index: Arc::default(), remote: None, index_puts: true })),
+            Ok(m) if m.is_dir() => {
+                Ok(Some(Cache { dir, index: Arc::default(), remote: None, dicts: Arc::default(), index_puts: true }))
+            }
             Ok(_) => Err(Error { path: dir, source: io::Error::other("it is not a folder") }),
             Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
             Err(source) => Err(Error { path: dir, source }),
@@ -471,7 +491,7 @@ impl Cache {
             layer.absent.lock().expect("no panics while locked").insert(*key);
             return local;
         };
-        match remote_entry(key, &bytes).and_then(|entry| Ok((decode(key, entry)?, entry))) {
+        match remote_entry(key, &bytes).and_then(|entry| Ok((self.decode(key, entry)?, entry))) {
             Ok((c, entry)) => {
                 layer.remote.count_hit();
                 let mut fills = layer.fills.lock().expect("no panics while locked");
@@ -658,12 +678,23 @@ impl Cache {
         let entry = &mut out[start..];
         let ok = l.pack.file.read_exact_at(entry, l.offset).is_ok()
             && entry.len() >= 72
-            && &entry[..8] == MAGIC
+            && (&entry[..8] == MAGIC || &entry[..8] == codec::MAGIC)
             && entry[40..72] == key.0;
         if !ok {
             out.truncate(start);
+            return false;
         }
-        ok
+        // An entry compressed with this cache's dictionaries goes out without them.
+        if out[start..].starts_with(codec::MAGIC) && codec::uses_dictionary(&out[start..]) != Ok(false) {
+            let portable = codec::decode(key, &out[start..], &|id| self.dicts.get(&self.dir, id))
+                .map(|(c, hashes)| codec::encode(key, &c, &hashes, &HashMap::new()));
+            out.truncate(start);
+            match portable {
+                Ok(entry) => out.extend_from_slice(&entry),
+                Err(_) => return false,
+            }
+        }
+        true
     }
 
     /// The bytes of the local entries of `keys` (the newest copy of each).
@@ -683,13 +714,21 @@ impl Cache {
         }
     }
 
+    /// The entry `bytes` of `key`, of either version, checked.
+    fn decode(&self, key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
+        if bytes.starts_with(codec::MAGIC) {
+            return codec::decode(key, bytes, &|id| self.dicts.get(&self.dir, id)).map(|(c, _)| c);
+        }
+        decode_v2(key, bytes)
+    }
+
     fn get_local(&self, key: &Key) -> Lookup {
         let locations = self.with_index(|index| index.copies(key));
         let mut corrupt = None;
         for l in &locations {
             let mut bytes = vec![0; l.len as usize];
             let decoded = match l.pack.file.read_exact_at(&mut bytes, l.offset) {
-                Ok(()) => decode(key, &bytes),
+                Ok(()) => self.decode(key, &bytes),
                 Err(_) => Err("entry is truncated".to_string()),
             };
             match decoded {
@@ -737,49 +776,37 @@ impl Cache {
         local
     }
 
-    /// Writes `entries` as one pack.
+    /// Writes `entries` as one pack, each entry compressed ([`codec`]; a dictionary is
+    /// trained first for each kind the cache has none of, when `entries` hold enough of it).
     fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
         if entries.is_empty() {
             return Ok(());
         }
-        let encoded: Vec<(Vec<Vec<u8>>, blake3::Hash, u64)> = entries
-            .iter()
-            .map(|(key, c, hashes)| {
-                assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
-                let frames = frames(c);
-                let checksum = entry_checksum(key, &frames, hashes);
-                let len = MAGIC.len()
-                    + 32
-                    + 32
-                    + frames.iter().map(Vec::len).sum::<usize>()
-                    + c.artifacts.iter().map(|(_, b)| b.len()).sum::<usize>();
-                (frames, checksum, len as u64)
-            })
-            .collect();
+        let files = || self.files().map(|(p, _)| p).collect();
+        let write = |path: &Path, bytes: &[u8]| self.write_file(path, bytes).is_ok();
+        let dicts = codec::dictionaries_for(&self.dicts, &self.dir, files, entries, write);
+        let encoded: Vec<Vec<u8>> =
+            entries.par_iter().map(|(key, c, hashes)| codec::encode(key, c, hashes, &dicts)).collect();
         let count = entries.len();
         let mut rows = Vec::with_capacity(count * ROW);
         let mut offset = (PACK_HEADER + count * ROW) as u64;
-        for (key, len) in entries.iter().map(|e| e.0).zip(encoded.iter().map(|e| e.2)) {
+        for (key, entry) in entries.iter().map(|e| e.0).zip(&encoded) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
-            rows.extend_from_slice(&len.to_le_bytes());
-            offset += len;
+            rows.extend_from_slice(&(entry.len() as u64).to_le_bytes());
+            offset += entry.len() as u64;
         }
         let rows_hash = blake3::hash(&rows);
         let count = (count as u64).to_le_bytes();
         // Named by content: two builds writing the same pack rename one over the other.
         let mut name = blake3::Hasher::new();
         name.update(rows_hash.as_bytes());
-        for (_, checksum, _) in &encoded {
-            name.update(checksum.as_bytes());
+        for entry in &encoded {
+            name.update(&entry[8..40]);
         }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));
         let mut pieces: Vec<&[u8]> = vec![PACK_MAGIC, &count, rows_hash.as_bytes(), &rows];
-        for ((key, c, _), (frames, checksum, _)) in entries.iter().zip(&encoded) {
-            pieces.push(MAGIC);
-            pieces.push(checksum.as_bytes());
-            pieces.extend(body_pieces(key, c, frames));
-        }
+        pieces.extend(encoded.iter().map(Vec::as_slice));
         self.write_pieces(&path, &pieces)?;
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
@@ -936,6 +963,10 @@ impl Cache {
         path.extension().is_some_and(|e| e == PACK_EXTENSION)
     }
 
+    fn is_dictionary(path: &Path) -> bool {
+        path.extension().is_some_and(|e| e == codec::DICT_EXTENSION)
+    }
+
     fn is_record(path: &Path) -> bool {
         path.extension().is_some_and(|e| e == RECORD_EXTENSION)
     }
@@ -954,7 +985,7 @@ impl Cache {
         let Some((stem, ext)) = name.split_once('.') else { return false };
         (stem.len() == 32 || stem.len() == 64)
             && stem.bytes().all(|b| b.is_ascii_hexdigit())
-            && [PACK_EXTENSION, RECORD_EXTENSION, "stamp"].contains(&ext)
+            && [PACK_EXTENSION, RECORD_EXTENSION, codec::DICT_EXTENSION, "stamp"].contains(&ext)
     }
 
     /// Whether the file at `path` is one Kiln wrote into a cache: a pack or a record with its
@@ -979,6 +1010,7 @@ impl Cache {
         match ext {
             PACK_EXTENSION => head.starts_with(PACK_MAGIC),
             RECORD_EXTENSION => head.starts_with(RECORD_MAGIC),
+            codec::DICT_EXTENSION => head.starts_with(codec::DICT_MAGIC),
             "stamp" => n == 65 && head[..64].iter().all(u8::is_ascii_hexdigit) && head[64] == b'\n',
             _ => false,
         }
@@ -999,7 +1031,21 @@ impl Cache {
             if Self::is_pack(&path) {
                 s.packs += 1;
                 s.bytes += meta.len();
-                keys.extend(Self::pack_keys(&path));
+                let Ok(Some((pack, rows))) = open_pack(&path) else { continue };
+                for (key, offset, len) in rows {
+                    if !keys.insert(key) {
+                        continue;
+                    }
+                    // The raw size from the entry's header (version 3), else its length.
+                    let mut header = [0u8; codec::HEADER];
+                    let read = len >= codec::HEADER as u64 && pack.file.read_exact_at(&mut header, offset).is_ok();
+                    s.raw += read.then(|| codec::raw_len(&header)).flatten().unwrap_or(len);
+                    s.stored += len;
+                }
+            } else if Self::is_dictionary(&path) {
+                s.dictionaries += 1;
+                s.dictionary_bytes += meta.len();
+                s.bytes += meta.len();
             } else if Self::is_record(&path) {
                 s.records += 1;
                 s.bytes += meta.len();
@@ -1076,6 +1122,7 @@ impl Cache {
             }
         }
         *self.index.write().expect("no panics while locked") = None;
+        self.dicts.reset();
         Ok(keys.len() as u64)
     }
 }
@@ -1215,7 +1262,8 @@ fn frames(c: &Compiled) -> Vec<Vec<u8>> {
     frames
 }
 
-/// The pieces of an entry's body, in file order (artifacts are borrowed, not copied).
+/// The pieces of a version 2 entry's body, in file order (tests write old entries with it).
+#[cfg(test)]
 fn body_pieces<'a>(key: &'a Key, c: &'a Compiled, frames: &'a [Vec<u8>]) -> Vec<&'a [u8]> {
     let mut body: Vec<&'a [u8]> = vec![&key.0, &frames[0]];
     for (i, (_, bytes)) in c.artifacts.iter().enumerate() {
@@ -1266,14 +1314,11 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
 /// a warm-remote build's CPU). The entry's own checksum (blake3) is checked when the entry
 /// is used.
 fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
-    let frames = frames(c);
-    let pieces = body_pieces(key, c, &frames);
-    let mut out = Vec::with_capacity(REMOTE_HEADER + MAGIC.len() + 32 + pieces.iter().map(|p| p.len()).sum::<usize>());
+    let entry = codec::encode(key, c, hashes, &HashMap::new());
+    let mut out = Vec::with_capacity(REMOTE_HEADER + entry.len());
     out.extend_from_slice(REMOTE_MAGIC);
     out.extend_from_slice(&[0; REMOTE_HEADER - 8]);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(entry_checksum(key, &frames, hashes).as_bytes());
-    pieces.iter().for_each(|p| out.extend_from_slice(p));
+    out.extend_from_slice(&entry);
     let sum = remote_checksum(key, &out[REMOTE_HEADER..]);
     out[8..REMOTE_HEADER].copy_from_slice(&sum);
     out
@@ -1290,36 +1335,44 @@ fn remote_checksum(key: &Key, entry: &[u8]) -> [u8; 16] {
 /// The entry of a whole remote `value` of `key` ([`remote_value`]): its checksum matches and
 /// it is an entry of `key` (magic, length and key; its own checksum is not checked here).
 fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
-    if value.len() < REMOTE_HEADER || &value[..8] != REMOTE_MAGIC {
+    if value.len() < REMOTE_HEADER || (&value[..8] != REMOTE_MAGIC && &value[..8] != REMOTE_MAGIC_V2) {
         return Err("not a remote cache entry of this kiln".into());
     }
     let entry = &value[REMOTE_HEADER..];
     if remote_checksum(key, entry) != value[8..REMOTE_HEADER] {
         return Err("checksum mismatch".into());
     }
-    if entry.len() < 72 || &entry[..8] != MAGIC || entry[40..72] != key.0 {
+    if entry.len() < 72 || (&entry[..8] != MAGIC && &entry[..8] != codec::MAGIC) || entry[40..72] != key.0 {
         return Err("the entry belongs to another key".into());
     }
     Ok(entry)
 }
 
-fn decode(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
+/// A version 2 entry (uncompressed), checked.
+fn decode_v2(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
+    decode_v2_hashed(key, bytes).map(|(c, _)| c)
+}
+
+/// [`decode_v2`], and the blake3 of each artifact.
+fn decode_v2_hashed(key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
     let (artifacts, json) = parse(key, bytes)?;
+    let mut hashes = Vec::with_capacity(artifacts.len());
     let artifacts = artifacts
         .into_iter()
-        .map(|(name, bytes)| {
+        .map(|(name, bytes, hash)| {
             let name = std::str::from_utf8(name).map_err(|_| "bad target name".to_string())?;
             let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+            hashes.push(hash);
             Ok((target, bytes.to_vec()))
         })
         .collect::<Result<Vec<_>, String>>()?;
     let reflection: Reflection = serde_json::from_slice(json).map_err(|e| format!("bad reflection: {e}"))?;
-    Ok(Compiled { artifacts, reflection })
+    Ok((Compiled { artifacts, reflection }, hashes))
 }
 
-/// An entry's artifacts (target name, bytes) and reflection JSON, once its checksum and key
-/// are checked.
-type Parsed<'a> = (Vec<(&'a [u8], &'a [u8])>, &'a [u8]);
+/// An entry's artifacts (target name, bytes, blake3) and reflection JSON, once its checksum
+/// and key are checked.
+type Parsed<'a> = (Vec<(&'a [u8], &'a [u8], blake3::Hash)>, &'a [u8]);
 
 fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
     if bytes.len() < 40 || &bytes[..8] != MAGIC {
@@ -1342,8 +1395,9 @@ fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
         let len = r.u64()? as usize;
         h.update(&body[frame..r.at]);
         let artifact = r.take(len)?;
-        h.update(blake3::hash(artifact).as_bytes());
-        artifacts.push((name, artifact));
+        let hash = blake3::hash(artifact);
+        h.update(hash.as_bytes());
+        artifacts.push((name, artifact, hash));
     }
     let frame = r.at;
     let len = r.u64()? as usize;

@@ -14,6 +14,34 @@ fn compiled(tag: u8) -> Compiled {
     }
 }
 
+/// An entry as Kiln wrote it before entries were compressed (version 2).
+fn encode_v2(key: &Key, c: &Compiled) -> Vec<u8> {
+    let hashes: Vec<blake3::Hash> = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
+    let frames = frames(c);
+    let mut out = MAGIC.to_vec();
+    out.extend_from_slice(entry_checksum(key, &frames, &hashes).as_bytes());
+    body_pieces(key, c, &frames).iter().for_each(|p| out.extend_from_slice(p));
+    out
+}
+
+/// A pack of `entries` as Kiln wrote it before entries were compressed.
+fn old_pack(entries: &[Vec<u8>], keys: &[Key]) -> Vec<u8> {
+    let mut rows = Vec::new();
+    let mut offset = (PACK_HEADER + entries.len() * ROW) as u64;
+    for (k, e) in keys.iter().zip(entries) {
+        rows.extend_from_slice(&k.0);
+        rows.extend_from_slice(&offset.to_le_bytes());
+        rows.extend_from_slice(&(e.len() as u64).to_le_bytes());
+        offset += e.len() as u64;
+    }
+    let mut out = PACK_MAGIC.to_vec();
+    out.extend_from_slice(&(entries.len() as u64).to_le_bytes());
+    out.extend_from_slice(blake3::hash(&rows).as_bytes());
+    out.extend_from_slice(&rows);
+    entries.iter().for_each(|e| out.extend_from_slice(e));
+    out
+}
+
 fn key(text: &str) -> Key {
     Key::new(&blake3::hash(text.as_bytes()), "main", Stage::Fragment, "sm5", &Limits::desktop(), &[Target::Wgsl])
 }
@@ -66,9 +94,20 @@ fn put_then_get_round_trips() {
         other => panic!("{other:?}"),
     }
     let pack = cache.pack_of(&k).unwrap();
+    let pack_len = fs::metadata(&pack).unwrap().len();
+    let stored = pack_len - (PACK_HEADER + ROW) as u64;
     assert_eq!(
         cache.stats(),
-        Stats { entries: 1, packs: 1, records: 0, bytes: fs::metadata(&pack).unwrap().len(), temporaries: 0 }
+        Stats {
+            entries: 1,
+            packs: 1,
+            records: 0,
+            bytes: pack_len,
+            raw: encode_v2(&k, &compiled(1)).len() as u64,
+            stored,
+            temporaries: 0,
+            ..Stats::default()
+        }
     );
     // Another `Cache` on the folder reads it from the pack.
     match Cache::open(dir.path()).unwrap().get(&k) {
@@ -122,9 +161,12 @@ fn corrupted_entry_is_reported_then_served_from_the_newer_copy() {
     flip(&pack, 3);
     let cache = Cache::open(dir.path()).unwrap();
     match cache.get(&b) {
-        Lookup::Corrupt(why) => assert_eq!(
-            why,
-            format!("cache entry {b} in {} is corrupted (checksum mismatch); recompiling", pack.display())
+        // The compressed reflection fails to decompress, or decompresses to other bytes.
+        Lookup::Corrupt(why) => assert!(
+            [" (checksum mismatch); recompiling", " (cannot decompress it); recompiling"]
+                .iter()
+                .any(|end| why == format!("cache entry {b} in {} is corrupted{end}", pack.display())),
+            "{why}"
         ),
         other => panic!("{other:?}"),
     }
@@ -580,4 +622,103 @@ fn keys_are_ordered_as_their_bytes() {
             assert_eq!(a.partial_cmp(b), Some(a.0.cmp(&b.0)));
         }
     }
+}
+
+/// A pack written before entries were compressed (version 2 entries) is still read, and
+/// `stats` counts its entries' raw size as stored.
+#[test]
+fn a_pack_of_the_old_uncompressed_format_is_still_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let keys = [key("old a"), key("old b")];
+    let entries: Vec<Vec<u8>> = keys.iter().zip(1..).map(|(k, i)| encode_v2(k, &compiled(i))).collect();
+    fs::write(dir.path().join(format!("{}.{PACK_EXTENSION}", "ab".repeat(16))), old_pack(&entries, &keys)).unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    for (k, i) in keys.iter().zip(1..) {
+        assert!(matches!(cache.get(k), Lookup::Hit(c) if c == compiled(i)));
+    }
+    let s = cache.stats();
+    let raw: u64 = entries.iter().map(|e| e.len() as u64).sum();
+    assert_eq!((s.entries, s.raw, s.stored), (2, raw, raw));
+    // A damaged old entry is reported, not trusted.
+    flip(&dir.path().join(format!("{}.{PACK_EXTENSION}", "ab".repeat(16))), 3);
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&keys[1]), Lookup::Corrupt(_)));
+}
+
+/// An old remote value (version 2: an uncompressed entry) is still read.
+#[test]
+fn an_old_remote_value_is_still_read() {
+    let (k, c) = (key("old remote"), compiled(3));
+    let entry = encode_v2(&k, &c);
+    let mut value = REMOTE_MAGIC_V2.to_vec();
+    value.extend_from_slice(&remote_checksum(&k, &entry));
+    value.extend_from_slice(&entry);
+    let cache = Cache::open(tempfile::tempdir().unwrap().path()).unwrap();
+    assert_eq!(cache.decode(&k, remote_entry(&k, &value).unwrap()).unwrap(), c);
+}
+
+/// Entries like a build's: similar texts, one per target.
+fn similar(i: u32) -> Compiled {
+    let text = |lang: &str| {
+        (0..120)
+            .map(|l| format!("{lang} let v{l} = material_{} * {l}.0 + sample(tex{}, uv);\n", i % 7, (i + l) % 5))
+            .collect::<String>()
+            .into_bytes()
+    };
+    let mut c = compiled(i as u8);
+    c.artifacts = vec![(Target::Wgsl, text("wgsl")), (Target::Msl, text("msl"))];
+    c
+}
+
+/// A pack with enough of a kind trains its dictionary, kept in the cache folder: its entries
+/// and later packs' are compressed with it; an entry whose dictionary is gone is reported and
+/// recompiled; an entry leaves for the remote (a bundle part) without the dictionary.
+#[test]
+fn a_big_pack_trains_dictionaries_that_later_entries_use() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let keys: Vec<Key> = (0..300).map(|i| key(&format!("similar {i}"))).collect();
+    let values: Vec<Compiled> = (0..300).map(similar).collect();
+    let entries: Vec<(Key, &Compiled)> = keys.iter().copied().zip(&values).collect();
+    // 100 entries (1.4 MB) are too few to train on; 200 more are enough.
+    cache.put_pack(&entries[..100]).unwrap();
+    assert_eq!(Cache::open(dir.path()).unwrap().stats().dictionaries, 0);
+    cache.put_pack(&entries[100..]).unwrap();
+    let dicts = || -> Vec<PathBuf> {
+        let mut d: Vec<PathBuf> = fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == codec::DICT_EXTENSION))
+            .collect();
+        d.sort();
+        d
+    };
+    assert_eq!(dicts().len(), 1, "one for the entries of wgsl and msl");
+    let fresh = Cache::open(dir.path()).unwrap();
+    for (k, v) in keys.iter().zip(&values) {
+        assert!(matches!(fresh.get(k), Lookup::Hit(c) if c == *v));
+    }
+    let s = fresh.stats();
+    assert_eq!((s.entries, s.dictionaries), (300, 1));
+    assert!(s.raw > 5 * s.stored, "raw {} stored {}", s.raw, s.stored);
+    // Out to the remote: no dictionary named.
+    let mut out = Vec::new();
+    assert!(fresh.append_local_entry(&keys[250], &mut out));
+    assert_eq!(codec::uses_dictionary(&out), Ok(false));
+    let no_dicts = |_: &[u8; 16]| -> Result<Arc<codec::Dict>, String> { Err("none".into()) };
+    assert_eq!(codec::decode(&keys[250], &out, &no_dicts).unwrap().0, values[250]);
+    // A dictionary gone: its entries are corrupt, recompiled; gc keeps dictionaries.
+    assert_eq!(fresh.gc(u64::MAX).removed_packs, 0);
+    assert_eq!(dicts().len(), 1);
+    for d in dicts() {
+        fs::remove_file(d).unwrap();
+    }
+    match Cache::open(dir.path()).unwrap().get(&keys[250]) {
+        Lookup::Corrupt(why) => assert!(why.contains("dictionary"), "{why}"),
+        other => panic!("{other:?}"),
+    }
+    // `clear` removes dictionaries with the rest.
+    cache.put_pack(&entries[..100]).unwrap();
+    assert_eq!(dicts().len(), 1, "written again from memory");
+    cache.clear().unwrap();
+    assert!(dicts().is_empty());
 }

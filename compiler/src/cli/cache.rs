@@ -47,11 +47,19 @@ pub fn exec(args: Args) -> CliResult {
     let text = match args.action {
         Action::Stats => {
             let s = cache.stats();
+            let ratio = if s.stored > 0 { s.raw as f64 / s.stored as f64 } else { 1.0 };
             let mut t = format!(
-                "cache: {}\nentries: {} in {} packs\npreprocessing records: {}\nsize: {} ({} bytes)\n",
+                "cache: {}\nentries: {} in {} packs\nentries raw: {} ({} bytes)\nentries stored: {} ({} bytes, \
+                 compressed {ratio:.1}x)\ndictionaries: {} ({})\npreprocessing records: {}\nsize: {} ({} bytes)\n",
                 shown,
                 s.entries,
                 s.packs,
+                format_size(s.raw),
+                s.raw,
+                format_size(s.stored),
+                s.stored,
+                s.dictionaries,
+                format_size(s.dictionary_bytes),
                 s.records,
                 format_size(s.bytes),
                 s.bytes

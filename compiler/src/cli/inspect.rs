@@ -48,17 +48,26 @@ pub fn exec(args: Args) -> CliResult {
     };
     let archive = Archive::open(&args.archive).map_err(damaged)?;
     if args.list {
-        let mut s = String::new();
-        // Every record is checked before the first name is printed.
-        for p in archive.permutations().map_err(damaged)? {
-            s.push_str(&escape(p.name()));
-            s.push('\n');
-        }
-        return print_stdout(&s);
+        // Every record is checked before the first name is printed; then the names are
+        // streamed (at 1M permutations, the list is about 60 MB).
+        let permutations = archive.permutations().map_err(damaged)?;
+        return stream_stdout(|out| {
+            for (i, p) in permutations.enumerate() {
+                out.write_all(escape(p.name()).as_bytes())?;
+                out.write_all(b"\n")?;
+                release_now(&archive, i);
+            }
+            Ok(())
+        });
     }
     let Some(name) = &args.permutation else {
-        let text = if args.json { json(&archive) } else { text(&archive, &args.archive) };
-        return print_stdout(&text.map_err(damaged)?);
+        if args.json {
+            // Every record and blob is checked (by the targets' sizes) before the first byte
+            // is printed; then the permutations are streamed.
+            let targets = target_sizes(&archive).map_err(damaged)?;
+            return stream_stdout(|out| json(&archive, targets, out));
+        }
+        return print_stdout(&text(&archive, &args.archive).map_err(damaged)?);
     };
     let p = find(&archive, name).map_err(|e| e.unwrap_or_else(damaged))?;
     if let Some(t) = &args.target {
@@ -168,15 +177,40 @@ struct TargetSizes {
     dictionary: u64,
 }
 
+/// Releases the archive's touched pages every [`kiln::archive::RELEASE_EVERY`] steps of a
+/// walk: a tool's peak then stays flat however large the archive.
+fn release_now(archive: &Archive, step: usize) {
+    if (step + 1).is_multiple_of(kiln::archive::RELEASE_EVERY) {
+        archive.release_pages();
+    }
+}
+
+/// Writes to stdout through a buffer; a closed pipe ends the output quietly.
+fn stream_stdout(write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>) -> CliResult {
+    let mut out = std::io::BufWriter::with_capacity(64 << 10, std::io::stdout().lock());
+    match write(&mut out).and_then(|_| out.flush()) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        Err(e) => Err(Failure::usage(format!("error: cannot write to stdout: {e}"))),
+    }
+}
+
 fn target_sizes(a: &Archive) -> Result<BTreeMap<Target, TargetSizes>, ArchiveError> {
-    let mut seen = HashSet::new();
+    // One bit per blob (a set of blob ids was about 30 MB at 1M permutations).
+    let mut seen = vec![0u64; a.blob_count().div_ceil(64)];
     let mut out: BTreeMap<Target, TargetSizes> = BTreeMap::new();
-    for p in a.permutations()? {
+    for (i, p) in a.permutations()?.enumerate() {
+        release_now(a, i);
         for t in p.targets() {
             let e = out.entry(t).or_default();
             e.permutations += 1;
             let Some(id) = p.blob_id(t) else { continue };
-            if seen.insert(id) {
+            let (word, bit) = (id.0 as usize / 64, 1u64 << (id.0 % 64));
+            let first = seen.get(word).is_none_or(|w| w & bit == 0);
+            if let Some(w) = seen.get_mut(word) {
+                *w |= bit;
+            }
+            if first {
                 let Some(info) = p.blob_info(t)? else { continue };
                 e.blobs += 1;
                 e.raw += info.raw_len;
@@ -301,11 +335,18 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
         );
     }
     let _ = writeln!(s, "shaders:");
-    let mut by_shader: Vec<Vec<PermutationRef<'_>>> = vec![Vec::new(); a.shaders().len()];
-    for p in a.permutations()? {
-        by_shader[p.shader_index() as usize].push(p);
+    // Per shader: its count, its first permutation and its distinct reflections (not every
+    // permutation: about 40 MB at 1M).
+    let mut by_shader: Vec<(usize, Option<PermutationRef<'_>>, HashSet<u32>)> =
+        (0..a.shaders().len()).map(|_| (0, None, HashSet::new())).collect();
+    for (i, p) in a.permutations()?.enumerate() {
+        release_now(a, i);
+        let (count, first, reflections) = &mut by_shader[p.shader_index() as usize];
+        *count += 1;
+        reflections.insert(p.reflection_index());
+        first.get_or_insert(p);
     }
-    for (sh, ps) in a.shaders().iter().zip(&by_shader) {
+    for (sh, (count, first, reflections)) in a.shaders().iter().zip(&by_shader) {
         let dims: Vec<&str> = sh.dimensions.iter().map(|d| d.name.as_str()).collect();
         let _ = writeln!(
             s,
@@ -314,10 +355,10 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
             escape(&sh.level),
             sh.stage,
             escape(&sh.entry),
-            ps.len(),
+            count,
             escape(&dims.join(", "))
         );
-        if let Some(p) = ps.first() {
+        if let Some(p) = first {
             let r = p.reflection();
             bindings_text(&mut s, r, "      ");
             if !r.vertex_inputs.is_empty() {
@@ -331,22 +372,31 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
             if let Some([x, y, z]) = r.workgroup_size {
                 let _ = writeln!(s, "      workgroup size ({x}, {y}, {z})");
             }
-            if ps.len() > 1 {
-                let _ =
-                    writeln!(s, "      (reflection of {}; {} distinct among its permutations)", escape(p.name()), {
-                        let mut rs: Vec<_> = ps.iter().map(|p| p.reflection_index()).collect();
-                        rs.sort_unstable();
-                        rs.dedup();
-                        rs.len()
-                    });
+            if *count > 1 {
+                let _ = writeln!(
+                    s,
+                    "      (reflection of {}; {} distinct among its permutations)",
+                    escape(p.name()),
+                    reflections.len()
+                );
             }
         }
     }
     Ok(s)
 }
 
-fn json(a: &Archive) -> Result<String, ArchiveError> {
-    let targets: serde_json::Map<String, serde_json::Value> = target_sizes(a)?
+/// `value` as `serde_json::to_string_pretty` writes it, its lines after the first indented
+/// by `indent` spaces (its place in the enclosing pretty document).
+fn pretty_at(value: &impl serde::Serialize, indent: usize) -> String {
+    let text = serde_json::to_string_pretty(value).expect("json");
+    text.replace('\n', &format!("\n{}", " ".repeat(indent)))
+}
+
+/// The summary as JSON, written as `serde_json::to_string_pretty` wrote the whole document
+/// (keys sorted), one permutation at a time: the document was about 2.4 GB of
+/// `serde_json::Value` at 100k permutations.
+fn json(a: &Archive, targets: BTreeMap<Target, TargetSizes>, out: &mut dyn std::io::Write) -> std::io::Result<()> {
+    let targets: serde_json::Map<String, serde_json::Value> = targets
         .into_iter()
         .map(|(t, z)| {
             let v = serde_json::json!({
@@ -360,38 +410,40 @@ fn json(a: &Archive) -> Result<String, ArchiveError> {
             (t.name().to_string(), v)
         })
         .collect();
-    let permutations: Vec<serde_json::Value> = a
-        .permutations()?
-        .map(|p| {
-            let (mut sizes, mut compressed) = (serde_json::Map::new(), serde_json::Map::new());
-            for t in p.targets() {
-                if let Some(info) = p.blob_info(t)? {
-                    sizes.insert(t.name().to_string(), serde_json::json!(info.raw_len));
-                    compressed.insert(t.name().to_string(), serde_json::json!(info.stored_len));
-                }
+    writeln!(out, "{{")?;
+    writeln!(out, "  \"blobs\": {},", a.blob_count())?;
+    writeln!(out, "  \"bytes\": {},", a.len())?;
+    writeln!(out, "  \"format_version\": {},", kiln::archive::FORMAT_VERSION)?;
+    writeln!(out, "  \"kiln_version\": {},", serde_json::to_string(a.kiln_version()).expect("json"))?;
+    writeln!(out, "  \"naga_version\": {},", serde_json::to_string(a.naga_version()).expect("json"))?;
+    let permutations = a.permutations().map_err(std::io::Error::other)?;
+    let mut first = true;
+    for (i, p) in permutations.enumerate() {
+        release_now(a, i);
+        let (mut sizes, mut compressed) = (serde_json::Map::new(), serde_json::Map::new());
+        for t in p.targets() {
+            if let Some(info) = p.blob_info(t).map_err(std::io::Error::other)? {
+                sizes.insert(t.name().to_string(), serde_json::json!(info.raw_len));
+                compressed.insert(t.name().to_string(), serde_json::json!(info.stored_len));
             }
-            Ok(serde_json::json!({
-                "name": p.name(),
-                "shader": p.shader().name,
-                "level": p.shader().level,
-                "values": p.values(),
-                "artifacts": sizes,
-                "compressed": compressed,
-                "reflection": p.reflection(),
-            }))
-        })
-        .collect::<Result<_, ArchiveError>>()?;
-    let v = serde_json::json!({
-        "format_version": kiln::archive::FORMAT_VERSION,
-        "kiln_version": a.kiln_version(),
-        "naga_version": a.naga_version(),
-        "bytes": a.len(),
-        "blobs": a.blob_count(),
-        "shaders": a.shaders(),
-        "targets": targets,
-        "permutations": permutations,
-    });
-    let mut s = serde_json::to_string_pretty(&v).expect("json");
-    s.push('\n');
-    Ok(s)
+        }
+        let v = serde_json::json!({
+            "name": p.name(),
+            "shader": p.shader().name,
+            "level": p.shader().level,
+            "values": p.decode_values().collect::<Vec<i64>>(),
+            "artifacts": sizes,
+            "compressed": compressed,
+            "reflection": p.reflection(),
+        });
+        out.write_all(if first { b"  \"permutations\": [\n    " } else { b",\n    " })?;
+        out.write_all(pretty_at(&v, 4).as_bytes())?;
+        first = false;
+    }
+    out.write_all(if first { b"  \"permutations\": [],\n" } else { b"\n  ],\n" })?;
+    // As a `Value`, as the whole document was: its keys sorted.
+    let shaders = serde_json::to_value(a.shaders()).expect("json");
+    writeln!(out, "  \"shaders\": {},", pretty_at(&shaders, 2))?;
+    writeln!(out, "  \"targets\": {}", pretty_at(&targets, 2))?;
+    writeln!(out, "}}")
 }

@@ -16,8 +16,8 @@
 //! server cleanly.
 //!
 //! Protocol plumbing uses `lsp-server` and `lsp-types` (as rust-analyzer does):
-//! [`server`] is the loop, [`workspace`] the documents, configurations and active
-//! permutations, [`check`] the diagnostics, [`features`] hover, definition, completion,
+//! `server` is the loop, `workspace` the documents, configurations and active
+//! permutations, `check` the diagnostics, `features` hover, definition, completion,
 //! symbols and semantic tokens.
 
 mod check;

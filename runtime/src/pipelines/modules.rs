@@ -33,9 +33,9 @@ pub(crate) fn artifact<'a>(
 }
 
 /// Creates a module from SPIR-V words as they are (passthrough), bypassing the cache. The
-/// words must have passed [`SpirvModule::parse`] and [`SpirvModule::check`] against
-/// `reflection`, and come from a trusted archive ([`ShaderArchive::trusted`]); their binding
-/// numbers must be the layout's Vulkan ones ([`SpirvModule::remap_bindings`]).
+/// words must have passed `SpirvModule::parse` and `SpirvModule::check` against
+/// `reflection`, and come from a trusted archive (`ShaderArchive::trusted`); their binding
+/// numbers must be the layout's Vulkan ones (`SpirvModule::remap_bindings`).
 pub fn create_spirv_module(
     device: &wgpu::Device,
     name: &str,

@@ -39,7 +39,7 @@ impl VertexBuffer {
 /// The vertex buffers a render pipeline reads, in slot order, as the application describes
 /// them (the runtime knows no vertex format of its own). Every vertex input of the vertex
 /// shader's reflection must be provided by one attribute of the same size, or pipeline
-/// creation is an error naming the location ([`PipelineError::VertexInput`]).
+/// creation is an error naming the location (`PipelineError::VertexInput`).
 #[derive(Clone, Debug, Default, PartialEq, Eq, Hash)]
 pub struct VertexLayout {
     buffers: Cow<'static, [VertexBuffer]>,
@@ -295,7 +295,7 @@ pub struct ComputeKey {
     pub compute: String,
 }
 
-/// A pipeline to create ahead of the first frame ([`PipelineCache::warm_up`]).
+/// A pipeline to create ahead of the first frame (`PipelineCache::warm_up`).
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub enum PipelineKey {
     Render(RenderKey),
