@@ -15,6 +15,25 @@
 //! - [`lsp`]: `kiln lsp`, the Language Server Protocol for editors, on the same stages;
 //! - every output file is written as `kiln_archive::output` writes it (atomically, never over a
 //!   device or an input).
+//!
+//! Most users call [`Build`] from `build.rs`, or the `kiln` command line. The stages can be
+//! called one by one; for example, the preprocessor alone, on a source held in memory, with
+//! a define set as a permutation would set it:
+//!
+//! ```
+//! use kiln::preprocess::{self, Options, SourceCache};
+//!
+//! let sources = SourceCache::new(std::env::temp_dir());
+//! let shader = sources.add_virtual(
+//!     "tint.usf",
+//!     "#if WARM\nconst TINT = vec3<f32>(1.0, 0.6, 0.2);\n#else\nconst TINT = vec3<f32>(0.2, 0.6, 1.0);\n#endif\n",
+//! );
+//! let mut options = Options::default();
+//! options.defines.push(("WARM".into(), "1".into()));
+//! let out = preprocess::preprocess_file_id(shader, &options, &sources).unwrap();
+//! assert!(out.text.contains("1.0, 0.6, 0.2"));
+//! assert!(!out.text.contains("0.2, 0.6, 1.0"));
+//! ```
 
 #![warn(missing_docs)]
 
