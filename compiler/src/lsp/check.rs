@@ -14,26 +14,8 @@ use crate::permute::{Config, Permutation};
 use crate::preprocess::{self, FileId, SourceCache};
 
 use super::text::thousands;
+pub use super::workspace::FileDiag;
 use super::workspace::{cache_with, Active, Overlays};
-
-/// A diagnostic located in a file.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct FileDiag {
-    pub path: PathBuf,
-    pub range: Range,
-    pub severity: DiagnosticSeverity,
-    /// The error's own words (what two permutations' errors are compared by).
-    pub message: String,
-    /// Which permutations it comes from, as a line under the message.
-    pub context: String,
-}
-
-impl FileDiag {
-    /// Same error at the same place (whatever permutations it names).
-    pub fn same(&self, other: &FileDiag) -> bool {
-        self.path == other.path && self.range == other.range && self.message == other.message
-    }
-}
 
 /// A codespan diagnostic from `cache`'s files as a [`FileDiag`] at its primary label
 /// (`fallback`'s first line when it has none).

@@ -5,13 +5,11 @@ use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use lsp_types::Url;
+use lsp_types::{DiagnosticSeverity, Range, Url};
 use serde_json::Value;
 
 use crate::permute::{self, Config, Permutation};
 use crate::preprocess::{self, SourceCache};
-
-use super::check::FileDiag;
 
 /// Largest buffer the server checks; larger ones get one diagnostic saying so.
 pub const MAX_DOC_BYTES: usize = 4 << 20;
@@ -200,5 +198,24 @@ pub fn resolve_choice(config: &Config, i: usize, choice: &Value) -> Result<Optio
             Ok(level_index(&found).map(|l| (l, found.values)))
         }
         _ => Err("a permutation is a canonical name or an object of dimension values".into()),
+    }
+}
+
+/// A diagnostic located in a file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FileDiag {
+    pub path: PathBuf,
+    pub range: Range,
+    pub severity: DiagnosticSeverity,
+    /// The error's own words (what two permutations' errors are compared by).
+    pub message: String,
+    /// Which permutations it comes from, as a line under the message.
+    pub context: String,
+}
+
+impl FileDiag {
+    /// Same error at the same place (whatever permutations it names).
+    pub fn same(&self, other: &FileDiag) -> bool {
+        self.path == other.path && self.range == other.range && self.message == other.message
     }
 }
