@@ -15,10 +15,6 @@ use std::path::{Component, Path, PathBuf};
 use std::process::Command;
 use std::time::SystemTime;
 
-/// Pages other work adds, which the docs may link to before they land: a link to one of them
-/// passes while it is missing, and is checked as any other once it exists.
-const PENDING: &[&str] = &[];
-
 /// The repository's root: the parent of this package's folder (`tests/`).
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
@@ -258,9 +254,7 @@ fn broken_links(root: &Path) -> Vec<String> {
                 }
                 let relative = resolved.strip_prefix(&root).expect("checked").to_string_lossy().replace('\\', "/");
                 if !resolved.exists() {
-                    if !PENDING.contains(&relative.as_str()) {
-                        problems.push(format!("{shown}:{n}: `{target}`: {relative} does not exist"));
-                    }
+                    problems.push(format!("{shown}:{n}: `{target}`: {relative} does not exist"));
                     continue;
                 }
                 let Some(anchor) = anchor.filter(|a| !a.is_empty()) else { continue };
@@ -300,7 +294,7 @@ fn the_link_checker_finds_what_it_should() {
     std::fs::write(
         root.join("README.md"),
         "# Kiln\n\n## A tour: `kiln build`\n\n[ok](docs/guide/a.md#the-b_c-part) [self](#a-tour-kiln-build)\n\
-         [dup](docs/guide/a.md#same-1) `[not](a link)` [pending](docs/guide/editor.md)\n\
+         [dup](docs/guide/a.md#same-1) `[not](a link)`\n\
          [web](https://example.com/x.md) ![img](docs/missing.png)\n\n```sh\n[code](not/checked.md)\n```\n\
          [bad anchor](docs/guide/a.md#nope) [out](../outside.md)\n[def]: docs/guide/gone.md\n",
     )
