@@ -38,22 +38,10 @@ fn kiln_no_hang(dir: &Path, args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
-fn copy(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
-}
-
 /// A copy of `tests/in` with `lit.toml` built into `shaders.kpak`.
 fn built() -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
-    copy(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/in"), dir.path());
+    crate::cli_build::copy(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/in"), dir.path());
     let o = kiln(dir.path(), &["build", "--config", "lit.toml", "--no-cache"]);
     assert!(o.status.success(), "{}", stderr(&o));
     dir
