@@ -14,7 +14,7 @@ use std::time::Instant;
 use glam::Vec3;
 use kiln_renderer::frame::FrameRecorder;
 use kiln_renderer::mobile::{MobileContext, MobileFrame, MobileOptions};
-use kiln_renderer::scene::gpu::GpuScene;
+use kiln_renderer::scene::gpu::{GpuScene, SceneLayout};
 use kiln_renderer::scene::{Mobility, PointLight, Scene};
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
 use kiln_runtime::pipelines::PipelineCache;
@@ -61,7 +61,7 @@ fn mean(frames: &[(f64, Option<f64>)]) -> Timing {
 
 fn mobile_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene, options: MobileOptions) -> Timing {
     let cache = PipelineCache::new(gpu, archive.clone());
-    let gpu_scene = GpuScene::upload(&gpu.device, scene);
+    let gpu_scene = GpuScene::upload(&gpu.device, scene, SceneLayout::PerObject);
     let context = MobileContext { gpu, cache: &cache, scene, gpu_scene: &gpu_scene };
     let frame = MobileFrame::new(&context, options, (WIDTH, HEIGHT)).expect("mobile frame");
     let mut frames = Vec::new();

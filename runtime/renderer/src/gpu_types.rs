@@ -94,6 +94,26 @@ impl InstanceData {
     }
 }
 
+/// `InstanceData` of `DesktopCommon.ush`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct InstanceGpu {
+    pub local_to_world: Mat4,
+    pub normal_to_world: Mat4,
+    pub material: UVec4,
+    pub bounds: Vec4,
+}
+
+/// `MaterialData` of `DesktopCommon.ush`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct MaterialGpu {
+    pub base_color: Vec4,
+    pub params: Vec4,
+    pub emissive: Vec4,
+    pub pattern: Vec4,
+}
+
 /// `FMaterialUniforms` of `MaterialCommon.ush`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]

@@ -9,7 +9,7 @@ use crate::frame::{FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
 use crate::passes::Targets;
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
-use crate::scene::gpu::GpuScene;
+use crate::scene::gpu::{GpuScene, SceneLayout};
 use crate::scene::Scene;
 use crate::shaders::ShaderArchive;
 
@@ -225,18 +225,23 @@ impl Renderer {
             return Err(RenderError::Size { width: options.width, height: options.height, max });
         }
         let device = &gpu.device;
-        let gpu_scene = GpuScene::upload(device, scene);
+        let layout = match options.pipeline {
+            FramePipeline::Desktop => SceneLayout::Rows,
+            FramePipeline::MobileForward | FramePipeline::MobileDeferred => SceneLayout::PerObject,
+        };
+        let gpu_scene = GpuScene::upload(device, scene, layout);
         let targets = Targets::new(device, options.width, options.height);
         let options_size = (options.width, options.height);
         let passes = {
             match options.pipeline {
                 FramePipeline::Desktop => {
-                    let frame = crate::desktop::DesktopFrame::new(
+                    let frame = crate::desktop::DesktopFrame::with_gpu_scene(
                         device,
                         &gpu.queue,
                         gpu.timestamps,
                         &cache,
                         scene,
+                        &gpu_scene,
                         // the same on every backend: the volumes are 2D array textures, which
                         // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
                         options.desktop(),

@@ -132,7 +132,11 @@ fn three_pipelines_agree_on_a_scene_lit_by_the_sun_and_sky_only() {
     let mobile = |path| {
         let archive = Arc::new(kiln_renderer::embedded_archive().unwrap());
         let cache = kiln_runtime::pipelines::PipelineCache::new(&gpu, archive);
-        let gpu_scene = kiln_renderer::scene::gpu::GpuScene::upload(&gpu.device, &scene);
+        let gpu_scene = kiln_renderer::scene::gpu::GpuScene::upload(
+            &gpu.device,
+            &scene,
+            kiln_renderer::scene::gpu::SceneLayout::PerObject,
+        );
         let options = kiln_renderer::mobile::MobileOptions::comparable(path);
         let context =
             kiln_renderer::mobile::MobileContext { gpu: &gpu, cache: &cache, scene: &scene, gpu_scene: &gpu_scene };

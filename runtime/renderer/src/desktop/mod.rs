@@ -129,6 +129,8 @@ pub enum DesktopError {
         "pipeline `{pipeline}`: bind group {group} binding {binding} `{name}` is not a resource of the desktop frame"
     )]
     MissingResource { pipeline: String, group: u32, binding: u32, name: String },
+    #[error("the scene was uploaded for the mobile frames, not in the desktop's rows layout")]
+    SceneLayout,
 }
 
 impl From<crate::shaders::LookupError> for DesktopError {
@@ -213,6 +215,24 @@ impl DesktopFrame {
         scene: &Scene,
         options: DesktopOptions,
     ) -> Result<DesktopFrame, DesktopError> {
+        use crate::scene::gpu::{GpuScene, SceneLayout};
+        let gpu_scene = GpuScene::upload(device, scene, SceneLayout::Rows);
+        DesktopFrame::with_gpu_scene(device, queue, timestamps, cache, scene, &gpu_scene, options)
+    }
+
+    /// As [`DesktopFrame::new`], over `gpu_scene`: `scene` uploaded in
+    /// [`SceneLayout::Rows`](crate::scene::gpu::SceneLayout::Rows) (the renderer's upload,
+    /// whose buffers the frame shares).
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_gpu_scene(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        timestamps: bool,
+        cache: &PipelineCache,
+        scene: &Scene,
+        gpu_scene: &crate::scene::gpu::GpuScene,
+        options: DesktopOptions,
+    ) -> Result<DesktopFrame, DesktopError> {
         let (w, h) = (options.width.max(1), options.height.max(1));
         let view = FrameView::new(scene, w, h);
         let lights = frame_lights(scene);
@@ -222,7 +242,7 @@ impl DesktopFrame {
             view.scene_view(scene, lights.len() as u32, options.frame_index, u32::from(!options.sky_gradient));
         // the frame's one View buffer
         let view_buffer = crate::gpu_types::uniform_buffer(device, "View", &base_view);
-        let buffers = resources::SceneBuffers::upload(device, scene);
+        let buffers = resources::SceneBuffers::new(device, gpu_scene)?;
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);

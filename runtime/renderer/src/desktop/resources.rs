@@ -1,13 +1,16 @@
-//! What the desktop passes share: the scene on the GPU (meshes, one instance buffer, one
-//! material buffer, one draw per object), the lights, and the frame's render targets.
+//! What the desktop passes share: their view of the scene on the GPU (meshes, one instance
+//! buffer, one material buffer, one draw per object), the lights, and the frame's render
+//! targets.
 
 use crate::gpu::BufferInit;
-use glam::{Mat4, UVec4, Vec3, Vec4};
+use glam::{Vec3, Vec4};
 
 use crate::frame::{GroupedRenderPass, PassContext};
-use crate::scene::{BlendMode, Mesh, Mobility, Pattern, Scene};
+use crate::scene::gpu::GpuScene;
+use crate::scene::{Mesh, Mobility, Scene};
 
-use super::view::{InstanceGpu, LocalLightGpu, MaterialGpu};
+use super::view::LocalLightGpu;
+use super::DesktopError;
 
 /// Texture formats of the desktop frame, by their Unreal names.
 pub mod formats {
@@ -30,25 +33,11 @@ pub mod formats {
 /// Stencil bit the BasePass sets on lit (non-sky, non-unlit) pixels.
 pub const STENCIL_LIT: u32 = 1;
 
-/// One object's draw: a mesh, a range of rows in the instance buffer.
-#[derive(Clone, Debug)]
-pub struct Draw {
-    /// The scene object's name (a debug label).
-    pub name: String,
-    pub mesh: usize,
-    pub first_instance: u32,
-    pub instance_count: u32,
-    pub blend: BlendMode,
-    pub unlit: bool,
-    pub movable: bool,
-    pub casts_shadow: bool,
-    /// World bounding sphere of all its instances.
-    pub bounds: (Vec3, f32),
-}
+pub use crate::scene::gpu::{Draw, GpuMesh};
 
-pub use crate::scene::gpu::GpuMesh;
-
-/// The scene as the desktop shaders read it.
+/// The scene as the desktop shaders read it: a view over the renderer's [`GpuScene`]
+/// uploaded in [`SceneLayout::Rows`](crate::scene::gpu::SceneLayout::Rows) (its buffers are
+/// shared, not copied).
 pub struct SceneBuffers {
     pub meshes: Vec<GpuMesh>,
     pub instances: wgpu::Buffer,
@@ -59,71 +48,21 @@ pub struct SceneBuffers {
 }
 
 impl SceneBuffers {
-    pub fn upload(device: &wgpu::Device, scene: &Scene) -> SceneBuffers {
-        let mesh = |m: &Mesh| GpuMesh::upload(device, m);
-        let meshes = scene.meshes.iter().map(mesh).collect();
-        let mut instances = Vec::new();
-        let mut draws = Vec::new();
-        for o in &scene.objects {
-            let material = &scene.materials[o.material];
-            let (lo, hi) = scene.meshes[o.mesh].bounds();
-            let local_center = (lo + hi) * 0.5;
-            let local_radius = (hi - lo).length() * 0.5;
-            let first = instances.len() as u32;
-            let mut all_lo = Vec3::splat(f32::MAX);
-            let mut all_hi = Vec3::splat(f32::MIN);
-            for m in &o.instances {
-                let center = m.transform_point3(local_center);
-                let scale = m.to_scale_rotation_translation().0.max_element();
-                let radius = local_radius * scale;
-                all_lo = all_lo.min(center - Vec3::splat(radius));
-                all_hi = all_hi.max(center + Vec3::splat(radius));
-                instances.push(InstanceGpu {
-                    local_to_world: *m,
-                    normal_to_world: Mat4::from_mat3(glam::Mat3::from_mat4(*m).inverse().transpose()),
-                    material: UVec4::new(o.material as u32, u32::from(o.mobility == Mobility::Movable), 0, 0),
-                    bounds: center.extend(radius),
-                });
-            }
-            draws.push(Draw {
-                name: o.name.clone(),
-                mesh: o.mesh,
-                first_instance: first,
-                instance_count: o.instances.len() as u32,
-                blend: material.blend,
-                unlit: material.unlit,
-                movable: o.mobility == Mobility::Movable,
-                casts_shadow: o.casts_shadow && material.blend != BlendMode::Translucent,
-                bounds: ((all_lo + all_hi) * 0.5, (all_hi - all_lo).length() * 0.5),
-            });
-        }
-        let materials: Vec<MaterialGpu> = scene.materials.iter().map(material_gpu).collect();
-        let storage = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::STORAGE,
-            })
-        };
-        // movable props' rows are rewritten every frame (the effects move them)
-        let storage_copy_dst = |label: &str, bytes: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            })
-        };
+    /// The desktop's view of `scene`, which must be in
+    /// [`SceneLayout::Rows`](crate::scene::gpu::SceneLayout::Rows); uploads only the light
+    /// volumes' sphere.
+    pub fn new(device: &wgpu::Device, scene: &GpuScene) -> Result<SceneBuffers, DesktopError> {
+        let rows = scene.rows.as_ref().ok_or(DesktopError::SceneLayout)?;
         let mut sphere = Mesh::new("LightSphere");
-        // 16 rings x 24 segments; vertices on a sphere of radius 1/cos(pi/16) so the faces
-        // enclose the unit sphere.
+        // vertices on a sphere of radius 1/cos(pi/rings) so the faces enclose the unit sphere
         sphere.add_sphere(Vec3::ZERO, 1.0 / (std::f32::consts::PI / 16.0).cos(), 16, 24, 0.0, 0);
-        SceneBuffers {
-            meshes,
-            instances: storage_copy_dst("Instances", bytemuck::cast_slice(&instances)),
-            materials: storage("Materials", bytemuck::cast_slice(&materials)),
-            draws,
-            sphere: mesh(&sphere),
-        }
+        Ok(SceneBuffers {
+            meshes: scene.meshes.clone(),
+            instances: rows.instances.clone(),
+            materials: rows.materials.clone(),
+            draws: rows.draws.clone(),
+            sphere: GpuMesh::upload(device, &sphere),
+        })
     }
 
     /// Draws `draw` with whatever pipeline and bind groups are set.
@@ -132,24 +71,6 @@ impl SceneBuffers {
         pass.set_vertex_buffer(0, m.vertices.slice(..));
         pass.set_index_buffer(m.indices.slice(..), wgpu::IndexFormat::Uint32);
         pass.draw_indexed(0..m.index_count, 0, draw.first_instance..draw.first_instance + draw.instance_count);
-    }
-}
-
-/// `MaterialData` of a scene material: patterns map onto `MaterialTemplate.ush`'s.
-pub fn material_gpu(m: &crate::scene::Material) -> MaterialGpu {
-    let (pattern, scale, contrast) = match m.pattern {
-        Pattern::None => (0.0, 1.0, 0.0),
-        // The scene's patterns, as `MaterialCommon.ush` defines them: an 8x8 checker per uv
-        // unit tinting the base color, vertical slats (6 per uv unit) masking.
-        Pattern::Checker => (7.0, 8.0, 1.0),
-        Pattern::Slats => (6.0, 6.0, 0.0),
-    };
-    let opacity = if m.blend == BlendMode::Translucent { m.opacity } else { 1.0 };
-    MaterialGpu {
-        base_color: m.base_color.extend(opacity),
-        params: Vec4::new(m.metallic, m.specular, m.roughness, 1.0),
-        emissive: m.emissive.extend(pattern),
-        pattern: Vec4::new(scale, contrast, 0.0, 0.0),
     }
 }
 

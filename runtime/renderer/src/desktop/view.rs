@@ -15,25 +15,7 @@ pub const LIGHT_GRID_SLICES: u32 = 32;
 /// Far end of the light grid's last slice (meters).
 pub const LIGHT_GRID_FAR: f32 = 100.0;
 
-/// `InstanceData` of `DesktopCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct InstanceGpu {
-    pub local_to_world: Mat4,
-    pub normal_to_world: Mat4,
-    pub material: UVec4,
-    pub bounds: Vec4,
-}
-
-/// `MaterialData` of `DesktopCommon.ush`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct MaterialGpu {
-    pub base_color: Vec4,
-    pub params: Vec4,
-    pub emissive: Vec4,
-    pub pattern: Vec4,
-}
+pub use crate::gpu_types::{InstanceGpu, MaterialGpu};
 
 /// `LocalLight` of `DesktopCommon.ush`.
 #[repr(C)]

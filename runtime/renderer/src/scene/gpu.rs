@@ -1,13 +1,15 @@
-//! The scene on the GPU: vertex, index and instance buffers, material uniform buffers, and
-//! the uniform blocks (view, lights) computed from the scene for a frame.
+//! The scene on the GPU, uploaded once per renderer: the meshes both frames draw, the
+//! instances and materials in the layout of the frame that reads them, and the uniform
+//! blocks (view, lights) computed from the scene for a frame.
 
 use crate::gpu::BufferInit;
-use glam::{UVec4, Vec4};
+use glam::{Mat4, UVec4, Vec3, Vec4};
 
-use super::{Material, Mesh, PointLight, Scene, SpotLight};
-use crate::gpu_types::{InstanceData, LightData, MaterialUniforms, MobileLocalLights};
+use super::{BlendMode, Material, Mesh, Mobility, Object, Pattern, PointLight, Scene, SpotLight};
+use crate::gpu_types::{InstanceData, InstanceGpu, LightData, MaterialGpu, MaterialUniforms, MobileLocalLights};
 
-/// A mesh's vertex and index buffers, as both frames draw it.
+/// A mesh's vertex and index buffers, as both frames draw it (a clone shares the buffers).
+#[derive(Clone)]
 pub struct GpuMesh {
     pub vertices: wgpu::Buffer,
     pub indices: wgpu::Buffer,
@@ -33,6 +35,7 @@ impl GpuMesh {
     }
 }
 
+/// An object of the mobile frames: its own instance vertex buffer.
 pub struct GpuObject {
     pub name: String,
     pub mesh: usize,
@@ -42,53 +45,77 @@ pub struct GpuObject {
     pub casts_shadow: bool,
 }
 
+/// A material of the mobile frames: its own uniform buffer.
 pub struct GpuMaterial {
     pub material: Material,
     pub uniforms: wgpu::Buffer,
 }
 
+/// How the frame that reads the scene wants its instances and materials: the meshes are
+/// the same for both.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneLayout {
+    /// The mobile frames: an instance vertex buffer per object and a uniform buffer per
+    /// material ([`GpuScene::objects`], [`GpuScene::materials`]).
+    PerObject,
+    /// The desktop frame: every instance a row of one storage buffer, every material a row
+    /// of another, and a draw per object ([`GpuScene::rows`]).
+    Rows,
+}
+
+/// One object's draw in the desktop layout: a mesh, a range of rows in the instance buffer.
+#[derive(Clone, Debug)]
+pub struct Draw {
+    /// The scene object's name (a debug label).
+    pub name: String,
+    pub mesh: usize,
+    pub first_instance: u32,
+    pub instance_count: u32,
+    pub blend: BlendMode,
+    pub unlit: bool,
+    pub movable: bool,
+    pub casts_shadow: bool,
+    /// World bounding sphere of all its instances.
+    pub bounds: (Vec3, f32),
+}
+
+/// The scene's instances and materials as the desktop shaders read them.
+pub struct SceneRows {
+    /// `InstanceData` rows of `DesktopCommon.ush`, object after object.
+    pub instances: wgpu::Buffer,
+    /// `MaterialData` rows, in scene order.
+    pub materials: wgpu::Buffer,
+    /// One draw per scene object, in scene order.
+    pub draws: Vec<Draw>,
+}
+
 /// The uploaded scene.
 pub struct GpuScene {
+    /// Every mesh of the scene, in scene order: both layouts draw these.
     pub meshes: Vec<GpuMesh>,
+    /// [`SceneLayout::PerObject`]: one per scene object (empty in the other layout).
     pub objects: Vec<GpuObject>,
+    /// [`SceneLayout::PerObject`]: one per scene material (empty in the other layout).
     pub materials: Vec<GpuMaterial>,
+    /// [`SceneLayout::Rows`]: the instance and material rows (`None` in the other layout).
+    pub rows: Option<SceneRows>,
 }
 
 impl GpuScene {
-    pub fn upload(device: &wgpu::Device, scene: &Scene) -> GpuScene {
+    /// Uploads `scene`'s meshes, and its instances and materials in `layout`.
+    pub fn upload(device: &wgpu::Device, scene: &Scene, layout: SceneLayout) -> GpuScene {
         let meshes = scene.meshes.iter().map(|m| GpuMesh::upload(device, m)).collect();
-        let objects = scene
-            .objects
-            .iter()
-            .map(|o| {
-                let instances: Vec<InstanceData> = o.instances.iter().map(|m| InstanceData::new(*m)).collect();
-                GpuObject {
-                    name: o.name.clone(),
-                    mesh: o.mesh,
-                    material: o.material,
-                    instances: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some(&format!("{} instances", o.name)),
-                        contents: bytemuck::cast_slice(&instances),
-                        usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
-                    }),
-                    instance_count: instances.len() as u32,
-                    casts_shadow: o.casts_shadow,
-                }
-            })
-            .collect();
-        let materials = scene
-            .materials
-            .iter()
-            .map(|m| GpuMaterial {
-                material: m.clone(),
-                uniforms: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(&format!("{} material uniforms", m.name)),
-                    contents: bytemuck::bytes_of(&material_uniforms(m)),
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                }),
-            })
-            .collect();
-        GpuScene { meshes, objects, materials }
+        match layout {
+            SceneLayout::PerObject => GpuScene {
+                meshes,
+                objects: scene.objects.iter().map(|o| upload_object(device, o)).collect(),
+                materials: scene.materials.iter().map(|m| upload_material(device, m)).collect(),
+                rows: None,
+            },
+            SceneLayout::Rows => {
+                GpuScene { meshes, objects: Vec::new(), materials: Vec::new(), rows: Some(upload_rows(device, scene)) }
+            }
+        }
     }
 
     /// Binds an object's buffers and draws all its instances with one call.
@@ -102,6 +129,112 @@ impl GpuScene {
 
     pub fn material(&self, object: &GpuObject) -> &Material {
         &self.materials[object.material].material
+    }
+}
+
+/// An object's instance vertex buffer (rewritable: the mobile effects move props).
+fn upload_object(device: &wgpu::Device, o: &Object) -> GpuObject {
+    let instances: Vec<InstanceData> = o.instances.iter().map(|m| InstanceData::new(*m)).collect();
+    GpuObject {
+        name: o.name.clone(),
+        mesh: o.mesh,
+        material: o.material,
+        instances: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(&format!("{} instances", o.name)),
+            contents: bytemuck::cast_slice(&instances),
+            usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+        }),
+        instance_count: instances.len() as u32,
+        casts_shadow: o.casts_shadow,
+    }
+}
+
+fn upload_material(device: &wgpu::Device, m: &Material) -> GpuMaterial {
+    GpuMaterial {
+        material: m.clone(),
+        uniforms: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(&format!("{} material uniforms", m.name)),
+            contents: bytemuck::bytes_of(&material_uniforms(m)),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        }),
+    }
+}
+
+/// The desktop layout: every object's instances as rows (with their world bounds), and a
+/// draw over each object's range.
+fn upload_rows(device: &wgpu::Device, scene: &Scene) -> SceneRows {
+    let mut instances = Vec::new();
+    let mut draws = Vec::new();
+    for o in &scene.objects {
+        let first = instances.len() as u32;
+        let bounds = push_instance_rows(scene, o, &mut instances);
+        let material = &scene.materials[o.material];
+        draws.push(Draw {
+            name: o.name.clone(),
+            mesh: o.mesh,
+            first_instance: first,
+            instance_count: o.instances.len() as u32,
+            blend: material.blend,
+            unlit: material.unlit,
+            movable: o.mobility == Mobility::Movable,
+            casts_shadow: o.casts_shadow && material.blend != BlendMode::Translucent,
+            bounds,
+        });
+    }
+    let materials: Vec<MaterialGpu> = scene.materials.iter().map(material_gpu).collect();
+    let buffer = |label: &str, bytes: &[u8], usage: wgpu::BufferUsages| {
+        device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage })
+    };
+    SceneRows {
+        // movable props' rows are rewritten every frame (the effects move them)
+        instances: buffer(
+            "Instances",
+            bytemuck::cast_slice(&instances),
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        ),
+        materials: buffer("Materials", bytemuck::cast_slice(&materials), wgpu::BufferUsages::STORAGE),
+        draws,
+    }
+}
+
+/// Appends `o`'s instance rows and returns the world bounding sphere of all of them.
+fn push_instance_rows(scene: &Scene, o: &Object, rows: &mut Vec<InstanceGpu>) -> (Vec3, f32) {
+    let (lo, hi) = scene.meshes[o.mesh].bounds();
+    let local_center = (lo + hi) * 0.5;
+    let local_radius = (hi - lo).length() * 0.5;
+    let mut all_lo = Vec3::splat(f32::MAX);
+    let mut all_hi = Vec3::splat(f32::MIN);
+    for m in &o.instances {
+        let center = m.transform_point3(local_center);
+        let scale = m.to_scale_rotation_translation().0.max_element();
+        let radius = local_radius * scale;
+        all_lo = all_lo.min(center - Vec3::splat(radius));
+        all_hi = all_hi.max(center + Vec3::splat(radius));
+        rows.push(InstanceGpu {
+            local_to_world: *m,
+            normal_to_world: Mat4::from_mat3(glam::Mat3::from_mat4(*m).inverse().transpose()),
+            material: UVec4::new(o.material as u32, u32::from(o.mobility == Mobility::Movable), 0, 0),
+            bounds: center.extend(radius),
+        });
+    }
+    ((all_lo + all_hi) * 0.5, (all_hi - all_lo).length() * 0.5)
+}
+
+/// `MaterialData` of a scene material: patterns map onto `MaterialTemplate.ush`'s.
+pub fn material_gpu(m: &Material) -> MaterialGpu {
+    let (pattern, scale, contrast) = match m.pattern {
+        Pattern::None => (0.0, 1.0, 0.0),
+        // The scene's patterns, as `MaterialCommon.ush` defines them: a checker tinting the
+        // base color, vertical slats masking (the counts are per uv unit).
+        Pattern::Checker => (7.0, 8.0, 1.0),
+        Pattern::Slats => (6.0, 6.0, 0.0),
+    };
+    let opacity = if m.blend == BlendMode::Translucent { m.opacity } else { 1.0 };
+    MaterialGpu {
+        base_color: m.base_color.extend(opacity),
+        params: Vec4::new(m.metallic, m.specular, m.roughness, 1.0),
+        emissive: m.emissive.extend(pattern),
+        pattern: Vec4::new(scale, contrast, 0.0, 0.0),
     }
 }
 

@@ -10,7 +10,7 @@ use kiln_renderer::frame::Image;
 
 pub use crate::support::{golden_dir, psnr, read_png};
 use kiln_renderer::mobile::{self, MobileOptions};
-use kiln_renderer::scene::gpu::GpuScene;
+use kiln_renderer::scene::gpu::{GpuScene, SceneLayout};
 use kiln_renderer::scene::Scene;
 use kiln_runtime::pipelines::PipelineCache;
 use kiln_runtime::{Backend, GpuOptions};
@@ -47,7 +47,7 @@ impl Rig {
         options: MobileOptions,
         capture: bool,
     ) -> (Vec<kiln_renderer::frame::PassResult>, Image) {
-        let gpu_scene = GpuScene::upload(&self.gpu.device, scene);
+        let gpu_scene = GpuScene::upload(&self.gpu.device, scene, SceneLayout::PerObject);
         let (w, h) = match std::env::var("KILN_MOBILE_SIZE")
             .ok()
             .and_then(|s| s.split_once('x').map(|(a, b)| (a.parse().unwrap(), b.parse().unwrap())))
