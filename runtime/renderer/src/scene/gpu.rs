@@ -297,3 +297,54 @@ pub fn mobile_local_lights(scene: &Scene) -> MobileLocalLights {
     out.count = UVec4::new(lights.len().min(4) as u32, 0, 0, 0);
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instance_rows_carry_material_mobility_and_the_bounds_of_every_instance() {
+        let mut scene = Scene::bundled();
+        let mut cube = Mesh::new("Cube");
+        cube.add_box(Vec3::splat(-1.0), Vec3::splat(1.0), 1.0);
+        scene.meshes.push(cube);
+        let object = Object {
+            name: "Cubes".into(),
+            mesh: scene.meshes.len() - 1,
+            material: 2,
+            instances: vec![
+                Mat4::from_translation(Vec3::new(-4.0, 0.0, 0.0)),
+                Mat4::from_scale_rotation_translation(Vec3::splat(2.0), glam::Quat::IDENTITY, Vec3::new(4.0, 0.0, 0.0)),
+            ],
+            mobility: Mobility::Movable,
+            casts_shadow: true,
+        };
+        let mut rows = vec![InstanceGpu::default()];
+        let (center, radius) = push_instance_rows(&scene, &object, &mut rows);
+        assert_eq!(rows.len(), 3, "appended after the row already there");
+        let half_diagonal = Vec3::splat(1.0).length();
+        assert_eq!(rows[1].bounds, Vec4::new(-4.0, 0.0, 0.0, half_diagonal));
+        assert_eq!(rows[2].bounds, Vec4::new(4.0, 0.0, 0.0, 2.0 * half_diagonal));
+        for row in &rows[1..] {
+            assert_eq!(row.material, UVec4::new(2, 1, 0, 0));
+        }
+        // A uniform scale of 2 scales normals by 1/2 (before they are normalized).
+        assert!(rows[2].normal_to_world.abs_diff_eq(Mat4::from_scale(Vec3::splat(0.5)), 1e-6));
+        // The sphere around both: from the left one's left edge to the right one's right edge.
+        let (lo, hi) = (-4.0 - half_diagonal, 4.0 + 2.0 * half_diagonal);
+        assert!((center.x - (lo + hi) * 0.5).abs() < 1e-5, "{center}");
+        assert!(radius >= (hi - lo) * 0.5, "{radius}");
+    }
+
+    #[test]
+    fn desktop_materials_map_patterns_and_keep_opacity_for_translucent_ones_only() {
+        let scene = Scene::bundled();
+        let find = |name: &str| &scene.materials[scene.material_index(name).unwrap()];
+        let floor = material_gpu(find("Floor"));
+        assert_eq!((floor.emissive.w, floor.pattern.x, floor.pattern.y), (7.0, 8.0, 1.0));
+        assert_eq!(floor.base_color.w, 1.0);
+        let glass = find("Glass");
+        assert_eq!(material_gpu(glass).base_color.w, glass.opacity);
+        assert_eq!(material_gpu(find("ChairWood")).emissive.w, 6.0);
+    }
+}

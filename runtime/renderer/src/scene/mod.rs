@@ -228,121 +228,10 @@ impl Scene {
 
     /// The seeds' test scene.
     pub fn bundled() -> Scene {
-        let mut meshes = Vec::new();
-        let mut add_mesh = |m: Mesh| {
-            meshes.push(m);
-            meshes.len() - 1
-        };
-
-        let mut floor = Mesh::new("Floor");
-        floor.add_quad(
-            Vec3::new(-ROOM_X, 0.0, ROOM_Z),
-            Vec3::X * 2.0 * ROOM_X,
-            Vec3::NEG_Z * 2.0 * ROOM_Z,
-            glam::Vec2::new(2.0 * ROOM_X, 2.0 * ROOM_Z) * 0.25,
-        );
-        let floor = add_mesh(floor);
-
-        let mut walls = Mesh::new("Walls");
-        walls.add_box(
-            Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z - WALL),
-            Vec3::new(ROOM_X + WALL, WALL_HEIGHT, -ROOM_Z),
-            0.5,
-        );
-        walls.add_box(Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z), Vec3::new(-ROOM_X, WALL_HEIGHT, ROOM_Z), 0.5);
-        let walls = add_mesh(walls);
-
-        // The window wall at +x with an opening 4 m wide and 2 m high, 1 m above the floor.
-        let (x0, x1) = (ROOM_X, ROOM_X + WALL);
-        let mut window_wall = Mesh::new("WindowWall");
-        window_wall.add_box(Vec3::new(x0, 0.0, -ROOM_Z), Vec3::new(x1, WALL_HEIGHT, -2.0), 0.5);
-        window_wall.add_box(Vec3::new(x0, 0.0, 2.0), Vec3::new(x1, WALL_HEIGHT, ROOM_Z), 0.5);
-        window_wall.add_box(Vec3::new(x0, 0.0, -2.0), Vec3::new(x1, 1.0, 2.0), 0.5);
-        window_wall.add_box(Vec3::new(x0, 3.0, -2.0), Vec3::new(x1, WALL_HEIGHT, 2.0), 0.5);
-        let window_wall = add_mesh(window_wall);
-
-        let mut rock = Mesh::new("Rock");
-        rock.add_sphere(Vec3::ZERO, 0.8, 16, 24, 0.35, 11);
-        let rock = add_mesh(rock);
-
-        let mut chair = Mesh::new("Chair");
-        chair.add_box(Vec3::new(-0.45, 0.85, -0.45), Vec3::new(0.45, 0.95, 0.45), 1.0);
-        for (x, z) in [(-0.4, -0.4), (0.32, -0.4), (-0.4, 0.32), (0.32, 0.32)] {
-            chair.add_box(Vec3::new(x, 0.0, z), Vec3::new(x + 0.08, 0.85, z + 0.08), 1.0);
-        }
-        chair.add_box(Vec3::new(-0.45, 0.95, -0.45), Vec3::new(0.45, 1.9, -0.37), 1.0);
-        let chair = add_mesh(chair);
-
-        let mut statue = Mesh::new("Statue");
-        statue.add_box(Vec3::new(-0.5, 0.0, -0.5), Vec3::new(0.5, 1.0, 0.5), 1.0);
-        statue.add_sphere(Vec3::new(0.0, 1.6, 0.0), 0.45, 12, 16, 0.0, 0);
-        statue.add_sphere(Vec3::new(0.0, 2.35, 0.0), 0.3, 10, 14, 0.0, 0);
-        let statue = add_mesh(statue);
-
-        let floor_mat =
-            Material { pattern: Pattern::Checker, ..Material::opaque("Floor", Vec3::new(0.55, 0.5, 0.45), 0.0, 0.7) };
-        let wall_mat =
-            Material { fully_rough: true, ..Material::opaque("Plaster", Vec3::new(0.7, 0.68, 0.62), 0.0, 0.95) };
-        let rock_mat =
-            Material { fully_rough: true, ..Material::opaque("Rock", Vec3::new(0.25, 0.23, 0.21), 0.0, 0.9) };
-        let wood_mat = Material {
-            blend: BlendMode::Masked,
-            pattern: Pattern::Slats,
-            ..Material::opaque("ChairWood", Vec3::new(0.45, 0.26, 0.12), 0.0, 0.6)
-        };
-        let bronze_mat = Material::opaque("Bronze", Vec3::new(0.8, 0.5, 0.25), 1.0, 0.3);
-        let glass_mat = Material {
-            blend: BlendMode::Translucent,
-            opacity: 0.35,
-            specular: 1.0,
-            ..Material::opaque("Glass", Vec3::new(0.6, 0.8, 0.9), 0.0, 0.05)
-        };
-        let materials = vec![floor_mat, wall_mat, rock_mat, wood_mat, bronze_mat, glass_mat];
-        let mat = |name: &str| materials.iter().position(|m| m.name == name).unwrap();
-
-        let at = |x: f32, z: f32, yaw_deg: f32| {
-            Mat4::from_rotation_translation(Quat::from_rotation_y(yaw_deg.to_radians()), Vec3::new(x, 0.0, z))
-        };
-        let object = |name: &str, mesh: usize, material: usize, instances: Vec<Mat4>, mobility: Mobility| Object {
-            name: name.to_string(),
-            mesh,
-            material,
-            instances,
-            mobility,
-            casts_shadow: true,
-        };
-        let objects = vec![
-            object("Floor", floor, mat("Floor"), vec![Mat4::IDENTITY], Mobility::Static),
-            object("Walls", walls, mat("Plaster"), vec![Mat4::IDENTITY], Mobility::Static),
-            object("WindowWall", window_wall, mat("Plaster"), vec![Mat4::IDENTITY], Mobility::Static),
-            object(
-                "Rock",
-                rock,
-                mat("Rock"),
-                vec![Mat4::from_scale_rotation_translation(
-                    Vec3::splat(1.0),
-                    Quat::from_rotation_y(0.6),
-                    Vec3::new(1.5, 0.55, 1.0),
-                )],
-                Mobility::Movable,
-            ),
-            object(
-                "Chairs",
-                chair,
-                mat("ChairWood"),
-                vec![at(-3.5, -1.5, 20.0), at(-1.8, -2.2, -15.0)],
-                Mobility::Static,
-            ),
-            object("Statues", statue, mat("Bronze"), vec![at(-5.5, -4.2, 0.0), at(3.5, -4.2, 30.0)], Mobility::Static),
-            object(
-                "GlassStatues",
-                statue,
-                mat("Glass"),
-                vec![at(-1.0, -4.2, 10.0), at(0.5, 2.5, -20.0)],
-                Mobility::Static,
-            ),
-        ];
-
+        let mut meshes = room_meshes();
+        meshes.extend(prop_meshes());
+        let materials = bundled_materials();
+        let objects = bundled_objects(&meshes, &materials);
         Scene {
             meshes,
             materials,
@@ -354,47 +243,8 @@ impl Scene {
                 casts_shadows: true,
                 enabled: true,
             },
-            point_lights: vec![
-                PointLight {
-                    name: "CeilingLampA".into(),
-                    position: Vec3::new(-4.0, 3.2, -3.0),
-                    color: Vec3::new(1.0, 0.8, 0.6),
-                    intensity: 6.0,
-                    radius: 6.0,
-                    mobility: Mobility::Stationary,
-                    casts_shadows: true,
-                },
-                PointLight {
-                    name: "CeilingLampB".into(),
-                    position: Vec3::new(0.0, 3.2, 3.0),
-                    color: Vec3::new(1.0, 0.85, 0.7),
-                    intensity: 5.0,
-                    radius: 6.0,
-                    mobility: Mobility::Stationary,
-                    casts_shadows: true,
-                },
-                PointLight {
-                    name: "FireLight".into(),
-                    position: Vec3::new(5.0, 0.8, -3.0),
-                    color: Vec3::new(1.0, 0.45, 0.1),
-                    intensity: 8.0,
-                    radius: 5.0,
-                    mobility: Mobility::Movable,
-                    casts_shadows: true,
-                },
-            ],
-            spot_lights: vec![SpotLight {
-                name: "StatueSpot".into(),
-                position: Vec3::new(3.5, 3.8, -1.5),
-                direction: Vec3::new(0.0, -1.0, -0.9).normalize(),
-                color: Vec3::new(0.7, 0.8, 1.0),
-                intensity: 12.0,
-                radius: 8.0,
-                inner_angle: 15f32.to_radians(),
-                outer_angle: 30f32.to_radians(),
-                mobility: Mobility::Stationary,
-                casts_shadows: false,
-            }],
+            point_lights: bundled_point_lights(),
+            spot_lights: vec![statue_spot()],
             camera: Camera {
                 position: Vec3::new(-3.0, 3.4, 9.5),
                 target: Vec3::new(1.0, 0.6, -1.5),
@@ -410,20 +260,7 @@ impl Scene {
                 start_distance: 2.0,
                 max_opacity: 0.8,
             },
-            emitters: vec![ParticleEmitter {
-                name: "Fire".into(),
-                position: Vec3::new(5.0, 0.1, -3.0),
-                spawn_rate: 400.0,
-                max_particles: 2048,
-                lifetime: (0.6, 1.4),
-                spawn_radius: 0.35,
-                initial_velocity: Vec3::new(0.0, 0.8, 0.0),
-                velocity_jitter: 0.3,
-                buoyancy: 1.5,
-                size: (0.25, 0.05),
-                color_start: Vec3::new(8.0, 3.0, 0.6),
-                color_end: Vec3::new(0.6, 0.1, 0.02),
-            }],
+            emitters: vec![fire_emitter()],
             exposure: 0.8,
         }
     }
@@ -439,6 +276,183 @@ impl Scene {
         // Reverse-Z: near maps to 1, far to 0 (orthographic_rh maps near -> 0, so swap).
         let proj = directx::orthographic(-radius, radius, -radius, radius, radius * 4.0, 0.01);
         proj * view
+    }
+}
+
+/// The bundled room's floor, walls and window wall (in the scene's mesh order).
+fn room_meshes() -> Vec<Mesh> {
+    let mut meshes = Vec::new();
+    let mut floor = Mesh::new("Floor");
+    floor.add_quad(
+        Vec3::new(-ROOM_X, 0.0, ROOM_Z),
+        Vec3::X * 2.0 * ROOM_X,
+        Vec3::NEG_Z * 2.0 * ROOM_Z,
+        glam::Vec2::new(2.0 * ROOM_X, 2.0 * ROOM_Z) * 0.25,
+    );
+    meshes.push(floor);
+
+    let mut walls = Mesh::new("Walls");
+    walls.add_box(Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z - WALL), Vec3::new(ROOM_X + WALL, WALL_HEIGHT, -ROOM_Z), 0.5);
+    walls.add_box(Vec3::new(-ROOM_X - WALL, 0.0, -ROOM_Z), Vec3::new(-ROOM_X, WALL_HEIGHT, ROOM_Z), 0.5);
+    meshes.push(walls);
+
+    // The window wall at +x with an opening 4 m wide and 2 m high, 1 m above the floor.
+    let (x0, x1) = (ROOM_X, ROOM_X + WALL);
+    let mut window_wall = Mesh::new("WindowWall");
+    window_wall.add_box(Vec3::new(x0, 0.0, -ROOM_Z), Vec3::new(x1, WALL_HEIGHT, -2.0), 0.5);
+    window_wall.add_box(Vec3::new(x0, 0.0, 2.0), Vec3::new(x1, WALL_HEIGHT, ROOM_Z), 0.5);
+    window_wall.add_box(Vec3::new(x0, 0.0, -2.0), Vec3::new(x1, 1.0, 2.0), 0.5);
+    window_wall.add_box(Vec3::new(x0, 3.0, -2.0), Vec3::new(x1, WALL_HEIGHT, 2.0), 0.5);
+    meshes.push(window_wall);
+    meshes
+}
+
+/// The bundled scene's props: the rock, the chair and the statue.
+fn prop_meshes() -> Vec<Mesh> {
+    let mut meshes = Vec::new();
+    let mut rock = Mesh::new("Rock");
+    rock.add_sphere(Vec3::ZERO, 0.8, 16, 24, 0.35, 11);
+    meshes.push(rock);
+
+    let mut chair = Mesh::new("Chair");
+    chair.add_box(Vec3::new(-0.45, 0.85, -0.45), Vec3::new(0.45, 0.95, 0.45), 1.0);
+    for (x, z) in [(-0.4, -0.4), (0.32, -0.4), (-0.4, 0.32), (0.32, 0.32)] {
+        chair.add_box(Vec3::new(x, 0.0, z), Vec3::new(x + 0.08, 0.85, z + 0.08), 1.0);
+    }
+    chair.add_box(Vec3::new(-0.45, 0.95, -0.45), Vec3::new(0.45, 1.9, -0.37), 1.0);
+    meshes.push(chair);
+
+    let mut statue = Mesh::new("Statue");
+    statue.add_box(Vec3::new(-0.5, 0.0, -0.5), Vec3::new(0.5, 1.0, 0.5), 1.0);
+    statue.add_sphere(Vec3::new(0.0, 1.6, 0.0), 0.45, 12, 16, 0.0, 0);
+    statue.add_sphere(Vec3::new(0.0, 2.35, 0.0), 0.3, 10, 14, 0.0, 0);
+    meshes.push(statue);
+    meshes
+}
+
+/// The bundled scene's materials: one per surface kind, the glass translucent.
+fn bundled_materials() -> Vec<Material> {
+    let floor_mat =
+        Material { pattern: Pattern::Checker, ..Material::opaque("Floor", Vec3::new(0.55, 0.5, 0.45), 0.0, 0.7) };
+    let wall_mat = Material { fully_rough: true, ..Material::opaque("Plaster", Vec3::new(0.7, 0.68, 0.62), 0.0, 0.95) };
+    let rock_mat = Material { fully_rough: true, ..Material::opaque("Rock", Vec3::new(0.25, 0.23, 0.21), 0.0, 0.9) };
+    let wood_mat = Material {
+        blend: BlendMode::Masked,
+        pattern: Pattern::Slats,
+        ..Material::opaque("ChairWood", Vec3::new(0.45, 0.26, 0.12), 0.0, 0.6)
+    };
+    let bronze_mat = Material::opaque("Bronze", Vec3::new(0.8, 0.5, 0.25), 1.0, 0.3);
+    let glass_mat = Material {
+        blend: BlendMode::Translucent,
+        opacity: 0.35,
+        specular: 1.0,
+        ..Material::opaque("Glass", Vec3::new(0.6, 0.8, 0.9), 0.0, 0.05)
+    };
+    vec![floor_mat, wall_mat, rock_mat, wood_mat, bronze_mat, glass_mat]
+}
+
+/// The bundled scene's objects over `meshes` and `materials` (found by name).
+fn bundled_objects(meshes: &[Mesh], materials: &[Material]) -> Vec<Object> {
+    let mesh = |name: &str| meshes.iter().position(|m| m.name == name).unwrap();
+    let mat = |name: &str| materials.iter().position(|m| m.name == name).unwrap();
+    let (floor, walls, window_wall) = (mesh("Floor"), mesh("Walls"), mesh("WindowWall"));
+    let (rock, chair, statue) = (mesh("Rock"), mesh("Chair"), mesh("Statue"));
+    let at = |x: f32, z: f32, yaw_deg: f32| {
+        Mat4::from_rotation_translation(Quat::from_rotation_y(yaw_deg.to_radians()), Vec3::new(x, 0.0, z))
+    };
+    let object = |name: &str, mesh: usize, material: usize, instances: Vec<Mat4>, mobility: Mobility| Object {
+        name: name.to_string(),
+        mesh,
+        material,
+        instances,
+        mobility,
+        casts_shadow: true,
+    };
+    vec![
+        object("Floor", floor, mat("Floor"), vec![Mat4::IDENTITY], Mobility::Static),
+        object("Walls", walls, mat("Plaster"), vec![Mat4::IDENTITY], Mobility::Static),
+        object("WindowWall", window_wall, mat("Plaster"), vec![Mat4::IDENTITY], Mobility::Static),
+        object(
+            "Rock",
+            rock,
+            mat("Rock"),
+            vec![Mat4::from_scale_rotation_translation(
+                Vec3::splat(1.0),
+                Quat::from_rotation_y(0.6),
+                Vec3::new(1.5, 0.55, 1.0),
+            )],
+            Mobility::Movable,
+        ),
+        object("Chairs", chair, mat("ChairWood"), vec![at(-3.5, -1.5, 20.0), at(-1.8, -2.2, -15.0)], Mobility::Static),
+        object("Statues", statue, mat("Bronze"), vec![at(-5.5, -4.2, 0.0), at(3.5, -4.2, 30.0)], Mobility::Static),
+        object("GlassStatues", statue, mat("Glass"), vec![at(-1.0, -4.2, 10.0), at(0.5, 2.5, -20.0)], Mobility::Static),
+    ]
+}
+
+/// The two ceiling lamps and the fire's light.
+fn bundled_point_lights() -> Vec<PointLight> {
+    vec![
+        PointLight {
+            name: "CeilingLampA".into(),
+            position: Vec3::new(-4.0, 3.2, -3.0),
+            color: Vec3::new(1.0, 0.8, 0.6),
+            intensity: 6.0,
+            radius: 6.0,
+            mobility: Mobility::Stationary,
+            casts_shadows: true,
+        },
+        PointLight {
+            name: "CeilingLampB".into(),
+            position: Vec3::new(0.0, 3.2, 3.0),
+            color: Vec3::new(1.0, 0.85, 0.7),
+            intensity: 5.0,
+            radius: 6.0,
+            mobility: Mobility::Stationary,
+            casts_shadows: true,
+        },
+        PointLight {
+            name: "FireLight".into(),
+            position: Vec3::new(5.0, 0.8, -3.0),
+            color: Vec3::new(1.0, 0.45, 0.1),
+            intensity: 8.0,
+            radius: 5.0,
+            mobility: Mobility::Movable,
+            casts_shadows: true,
+        },
+    ]
+}
+
+/// The spot light on the statue (casts no shadow).
+fn statue_spot() -> SpotLight {
+    SpotLight {
+        name: "StatueSpot".into(),
+        position: Vec3::new(3.5, 3.8, -1.5),
+        direction: Vec3::new(0.0, -1.0, -0.9).normalize(),
+        color: Vec3::new(0.7, 0.8, 1.0),
+        intensity: 12.0,
+        radius: 8.0,
+        inner_angle: 15f32.to_radians(),
+        outer_angle: 30f32.to_radians(),
+        mobility: Mobility::Stationary,
+        casts_shadows: false,
+    }
+}
+
+/// The fire's particles (by the fire light).
+fn fire_emitter() -> ParticleEmitter {
+    ParticleEmitter {
+        name: "Fire".into(),
+        position: Vec3::new(5.0, 0.1, -3.0),
+        spawn_rate: 400.0,
+        max_particles: 2048,
+        lifetime: (0.6, 1.4),
+        spawn_radius: 0.35,
+        initial_velocity: Vec3::new(0.0, 0.8, 0.0),
+        velocity_jitter: 0.3,
+        buoyancy: 1.5,
+        size: (0.25, 0.05),
+        color_start: Vec3::new(8.0, 3.0, 0.6),
+        color_end: Vec3::new(0.6, 0.1, 0.02),
     }
 }
 
@@ -461,6 +475,28 @@ mod tests {
         assert!(s.point_lights.iter().any(|l| l.mobility == Mobility::Movable));
         assert!(!s.spot_lights.is_empty());
         assert_eq!(s.emitters[0].name, "Fire");
+    }
+
+    #[test]
+    fn bundled_objects_draw_their_own_meshes_and_materials() {
+        let s = Scene::bundled();
+        let expected = [
+            ("Floor", "Floor", "Floor"),
+            ("Walls", "Walls", "Plaster"),
+            ("WindowWall", "WindowWall", "Plaster"),
+            ("Rock", "Rock", "Rock"),
+            ("Chairs", "Chair", "ChairWood"),
+            ("Statues", "Statue", "Bronze"),
+            ("GlassStatues", "Statue", "Glass"),
+        ];
+        let found: Vec<(&str, &str, &str)> = s
+            .objects
+            .iter()
+            .map(|o| (o.name.as_str(), s.meshes[o.mesh].name.as_str(), s.materials[o.material].name.as_str()))
+            .collect();
+        assert_eq!(found, expected);
+        let meshes: Vec<&str> = s.meshes.iter().map(|m| m.name.as_str()).collect();
+        assert_eq!(meshes, ["Floor", "Walls", "WindowWall", "Rock", "Chair", "Statue"]);
     }
 
     #[test]
