@@ -18,7 +18,7 @@
 //! layout-00756`) and the driver reads the wrong ones. [`SpirvModule::remap_bindings`] applies the same
 //! numbering to the module, from the pipeline layout it is created for.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use kiln_archive::Stage;
 use kiln_archive::{BindingKind, Reflection};
@@ -225,30 +225,196 @@ fn literal_string(operands: &[u32]) -> Option<(String, usize)> {
     None
 }
 
+/// The header's version, id bound and schema checked; gives the id bound.
+fn header_bound(words: &[u32]) -> Result<u32, SpirvError> {
+    let version = words[1];
+    if !(0x0001_0000..=MAX_VERSION).contains(&version) || version & 0xff00_00ff != 0 {
+        return Err(SpirvError::Version(version));
+    }
+    let bound = words[3];
+    if bound == 0 || bound > MAX_BOUND {
+        return Err(SpirvError::Bound(bound));
+    }
+    if words[4] != 0 {
+        return Err(SpirvError::Schema(words[4]));
+    }
+    Ok(bound)
+}
+
+/// One instruction of the walk: the word it starts at, its opcode and operands, and the
+/// module's id bound its ids must stay below.
+struct Instruction<'a> {
+    at: usize,
+    opcode: u32,
+    ops: &'a [u32],
+    bound: u32,
+}
+
+impl Instruction<'_> {
+    /// At least `n` operands, or an error naming the instruction.
+    fn need(&self, n: usize) -> Result<(), SpirvError> {
+        if self.ops.len() < n {
+            Err(SpirvError::Operands { word: self.at, opcode: self.opcode })
+        } else {
+            Ok(())
+        }
+    }
+
+    /// Operand `i` as an id: non-zero and below the bound.
+    fn id(&self, i: usize) -> Result<u32, SpirvError> {
+        let v = self.ops[i];
+        if v == 0 || v >= self.bound {
+            Err(SpirvError::IdOutOfBound { word: self.at, opcode: self.opcode, id: v, bound: self.bound })
+        } else {
+            Ok(v)
+        }
+    }
+}
+
+/// What the walk gathers, per id: entry points, decorations, the types resources can have,
+/// and the variables in the resource storage classes.
+#[derive(Default)]
+struct Declarations {
+    entry_points: Vec<(u32, String)>,
+    /// Variable -> descriptor set.
+    sets: HashMap<u32, u32>,
+    /// Variable -> (word of the binding literal, binding).
+    bindings: HashMap<u32, (usize, u32)>,
+    /// Structs decorated `BufferBlock` (storage buffers of SPIR-V 1.0-1.2).
+    buffer_blocks: HashSet<u32>,
+    types: HashMap<u32, DescriptorClass>,
+    /// Array -> element type.
+    element: HashMap<u32, u32>,
+    /// Pointer -> (storage class, pointee).
+    pointers: HashMap<u32, (u32, u32)>,
+    /// (variable, pointer type).
+    variables: Vec<(u32, u32)>,
+}
+
+impl Declarations {
+    /// Records what `ins` declares, checking the operands it reads.
+    fn record(&mut self, ins: &Instruction<'_>) -> Result<(), SpirvError> {
+        let ops = ins.ops;
+        match ins.opcode {
+            OP_ENTRY_POINT => {
+                ins.need(3)?;
+                ins.id(1)?;
+                let (name, _) =
+                    literal_string(&ops[2..]).ok_or(SpirvError::Operands { word: ins.at, opcode: ins.opcode })?;
+                self.entry_points.push((ops[0], name));
+            }
+            OP_DECORATE => self.record_decoration(ins)?,
+            OP_TYPE_SAMPLER => {
+                ins.need(1)?;
+                self.types.insert(ins.id(0)?, DescriptorClass::Sampler);
+            }
+            OP_TYPE_IMAGE => {
+                ins.need(8)?;
+                let class = match ops[6] {
+                    2 => DescriptorClass::StorageImage,
+                    _ => DescriptorClass::SampledImage,
+                };
+                self.types.insert(ins.id(0)?, class);
+            }
+            OP_TYPE_ARRAY | OP_TYPE_RUNTIME_ARRAY => {
+                ins.need(2)?;
+                self.element.insert(ins.id(0)?, ins.id(1)?);
+            }
+            OP_TYPE_STRUCT => {
+                ins.need(1)?;
+                ins.id(0)?;
+            }
+            OP_TYPE_POINTER => {
+                ins.need(3)?;
+                self.pointers.insert(ins.id(0)?, (ops[1], ins.id(2)?));
+            }
+            OP_VARIABLE => {
+                ins.need(3)?;
+                let ty = ins.id(0)?;
+                let var = ins.id(1)?;
+                if matches!(ops[2], STORAGE_UNIFORM_CONSTANT | STORAGE_UNIFORM | STORAGE_STORAGE_BUFFER) {
+                    self.variables.push((var, ty));
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// `OpDecorate`: the descriptor set, the binding (and the word of its literal, which
+    /// the remap rewrites) and `BufferBlock`; other decorations are not the runtime's.
+    fn record_decoration(&mut self, ins: &Instruction<'_>) -> Result<(), SpirvError> {
+        ins.need(2)?;
+        let target = ins.id(0)?;
+        match ins.ops[1] {
+            DECORATION_DESCRIPTOR_SET => {
+                ins.need(3)?;
+                self.sets.insert(target, ins.ops[2]);
+            }
+            DECORATION_BINDING => {
+                ins.need(3)?;
+                self.bindings.insert(target, (ins.at + 3, ins.ops[2]));
+            }
+            DECORATION_BUFFER_BLOCK => {
+                self.buffer_blocks.insert(target);
+            }
+            DECORATION_BLOCK => {}
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// The resource variables (those with a set and a binding), in declaration order.
+    fn resources(&self) -> Result<Vec<Resource>, SpirvError> {
+        let mut resources = Vec::new();
+        for &(var, ty) in &self.variables {
+            let (set, binding) = (self.sets.get(&var), self.bindings.get(&var));
+            let (Some(&group), Some(&(binding_word, binding))) = (set, binding) else {
+                if set.is_some() || binding.is_some() {
+                    return Err(SpirvError::HalfDecorated { id: var });
+                }
+                continue;
+            };
+            let Some(&(storage, pointee)) = self.pointers.get(&ty) else {
+                return Err(SpirvError::Resource {
+                    group,
+                    binding,
+                    found: "variable whose type is not a pointer",
+                    expected: "lists no such thing".into(),
+                });
+            };
+            let class = self.class(storage, pointee);
+            resources.push(Resource { group, binding, class, binding_word });
+        }
+        Ok(resources)
+    }
+
+    /// The descriptor class of a variable in `storage` pointing at `pointee`.
+    fn class(&self, storage: u32, mut pointee: u32) -> DescriptorClass {
+        // Arrays of resources bind as one descriptor of their element's class.
+        let mut depth = 0;
+        while let Some(&e) = self.element.get(&pointee) {
+            pointee = e;
+            depth += 1;
+            if depth > 8 {
+                break;
+            }
+        }
+        match storage {
+            STORAGE_STORAGE_BUFFER => DescriptorClass::StorageBuffer,
+            STORAGE_UNIFORM if self.buffer_blocks.contains(&pointee) => DescriptorClass::StorageBuffer,
+            STORAGE_UNIFORM => DescriptorClass::UniformBuffer,
+            _ => self.types.get(&pointee).copied().unwrap_or(DescriptorClass::Other),
+        }
+    }
+}
+
 impl SpirvModule {
     /// Walks every instruction of `bytes` once.
     pub fn parse(bytes: &[u8]) -> Result<SpirvModule, SpirvError> {
         let words = words(bytes)?;
-        let version = words[1];
-        if !(0x0001_0000..=MAX_VERSION).contains(&version) || version & 0xff00_00ff != 0 {
-            return Err(SpirvError::Version(version));
-        }
-        let bound = words[3];
-        if bound == 0 || bound > MAX_BOUND {
-            return Err(SpirvError::Bound(bound));
-        }
-        if words[4] != 0 {
-            return Err(SpirvError::Schema(words[4]));
-        }
-        let mut entry_points = Vec::new();
-        // Per id: (descriptor set, word of the binding literal, binding), and type facts.
-        let mut sets: HashMap<u32, u32> = HashMap::new();
-        let mut bindings: HashMap<u32, (usize, u32)> = HashMap::new();
-        let mut buffer_blocks: std::collections::HashSet<u32> = std::collections::HashSet::new();
-        let mut types: HashMap<u32, DescriptorClass> = HashMap::new();
-        let mut element: HashMap<u32, u32> = HashMap::new(); // array -> element type
-        let mut pointers: HashMap<u32, (u32, u32)> = HashMap::new(); // pointer -> (storage, pointee)
-        let mut variables: Vec<(u32, u32)> = Vec::new(); // (id, pointer type)
+        let bound = header_bound(&words)?;
+        let mut declarations = Declarations::default();
         let mut at = 5;
         while at < words.len() {
             let count = (words[at] >> 16) as usize;
@@ -259,119 +425,11 @@ impl SpirvModule {
             if at + count > words.len() {
                 return Err(SpirvError::WordCount { word: at, count, why: "runs past the end of the module" });
             }
-            let ops = &words[at + 1..at + count];
-            let need = |n: usize| {
-                if ops.len() < n {
-                    Err(SpirvError::Operands { word: at, opcode })
-                } else {
-                    Ok(())
-                }
-            };
-            let id = |i: usize| -> Result<u32, SpirvError> {
-                let v = ops[i];
-                if v == 0 || v >= bound {
-                    Err(SpirvError::IdOutOfBound { word: at, opcode, id: v, bound })
-                } else {
-                    Ok(v)
-                }
-            };
-            match opcode {
-                OP_ENTRY_POINT => {
-                    need(3)?;
-                    id(1)?;
-                    let (name, _) = literal_string(&ops[2..]).ok_or(SpirvError::Operands { word: at, opcode })?;
-                    entry_points.push((ops[0], name));
-                }
-                OP_DECORATE => {
-                    need(2)?;
-                    let target = id(0)?;
-                    match ops[1] {
-                        DECORATION_DESCRIPTOR_SET => {
-                            need(3)?;
-                            sets.insert(target, ops[2]);
-                        }
-                        DECORATION_BINDING => {
-                            need(3)?;
-                            bindings.insert(target, (at + 3, ops[2]));
-                        }
-                        DECORATION_BUFFER_BLOCK => {
-                            buffer_blocks.insert(target);
-                        }
-                        DECORATION_BLOCK => {}
-                        _ => {}
-                    }
-                }
-                OP_TYPE_SAMPLER => {
-                    need(1)?;
-                    types.insert(id(0)?, DescriptorClass::Sampler);
-                }
-                OP_TYPE_IMAGE => {
-                    need(8)?;
-                    let class = match ops[6] {
-                        2 => DescriptorClass::StorageImage,
-                        _ => DescriptorClass::SampledImage,
-                    };
-                    types.insert(id(0)?, class);
-                }
-                OP_TYPE_ARRAY | OP_TYPE_RUNTIME_ARRAY => {
-                    need(2)?;
-                    element.insert(id(0)?, id(1)?);
-                }
-                OP_TYPE_STRUCT => {
-                    need(1)?;
-                    id(0)?;
-                }
-                OP_TYPE_POINTER => {
-                    need(3)?;
-                    pointers.insert(id(0)?, (ops[1], id(2)?));
-                }
-                OP_VARIABLE => {
-                    need(3)?;
-                    let ty = id(0)?;
-                    let var = id(1)?;
-                    if matches!(ops[2], STORAGE_UNIFORM_CONSTANT | STORAGE_UNIFORM | STORAGE_STORAGE_BUFFER) {
-                        variables.push((var, ty));
-                    }
-                }
-                _ => {}
-            }
+            declarations.record(&Instruction { at, opcode, ops: &words[at + 1..at + count], bound })?;
             at += count;
         }
-        let mut resources = Vec::new();
-        for (var, ty) in variables {
-            let (set, binding) = (sets.get(&var), bindings.get(&var));
-            let (Some(&group), Some(&(binding_word, binding))) = (set, binding) else {
-                if set.is_some() || binding.is_some() {
-                    return Err(SpirvError::HalfDecorated { id: var });
-                }
-                continue;
-            };
-            let Some(&(storage, mut pointee)) = pointers.get(&ty) else {
-                return Err(SpirvError::Resource {
-                    group,
-                    binding,
-                    found: "variable whose type is not a pointer",
-                    expected: "lists no such thing".into(),
-                });
-            };
-            // Arrays of resources bind as one descriptor of their element's class.
-            let mut depth = 0;
-            while let Some(&e) = element.get(&pointee) {
-                pointee = e;
-                depth += 1;
-                if depth > 8 {
-                    break;
-                }
-            }
-            let class = match storage {
-                STORAGE_STORAGE_BUFFER => DescriptorClass::StorageBuffer,
-                STORAGE_UNIFORM if buffer_blocks.contains(&pointee) => DescriptorClass::StorageBuffer,
-                STORAGE_UNIFORM => DescriptorClass::UniformBuffer,
-                _ => types.get(&pointee).copied().unwrap_or(DescriptorClass::Other),
-            };
-            resources.push(Resource { group, binding, class, binding_word });
-        }
-        Ok(SpirvModule { words, entry_points, resources })
+        let resources = declarations.resources()?;
+        Ok(SpirvModule { words, entry_points: declarations.entry_points, resources })
     }
 
     /// Checks the module against the reflection of the permutation it serves: an entry
