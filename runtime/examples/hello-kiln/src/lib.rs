@@ -12,7 +12,9 @@
 
 use std::sync::Arc;
 
-use kiln_runtime::pipelines::{Blend, ColorTarget, ErrorScopes, PipelineCache, PipelineError, RenderState};
+use kiln_runtime::pipelines::{
+    Blend, ColorTarget, ErrorScopes, PipelineCache, PipelineError, RenderPipeline, RenderState,
+};
 use kiln_runtime::{Gpu, ShaderArchive};
 use wgpu::util::DeviceExt;
 
@@ -73,7 +75,7 @@ impl Default for Frame {
     }
 }
 
-/// A rendered image, rows top to bottom, 4 bytes (RGBA) per pixel.
+/// A rendered image, rows top to bottom, RGBA with a byte per channel.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Image {
     pub width: u32,
@@ -139,20 +141,45 @@ fn find<K: PermutationKey>(archive: &ShaderArchive, key: K) -> Result<String, Er
 /// Renders `frame` on `gpu` with pipelines from `cache` (a cache over [`archive`]) and reads
 /// the image back.
 pub fn render(gpu: &Gpu, cache: &PipelineCache, frame: &Frame) -> Result<Image, Error> {
-    let (device, queue) = (&gpu.device, &gpu.queue);
-    let max = device.limits().max_texture_dimension_2d;
-    if frame.width == 0 || frame.height == 0 || frame.width > max || frame.height > max {
-        let why = format!("each side must be 1 to {max} pixels on {}", gpu.info.name);
-        return Err(Error::Size { width: frame.width, height: frame.height, why });
-    }
+    let device = &gpu.device;
+    check_size(gpu, frame)?;
     let (vs, ps) = permutations(cache.archive(), frame)?;
     // One lookup in the runtime's cache: created on first use (modules, bind group layouts
     // from the reflection of both stages, the pipeline), found by key afterwards.
     let state = RenderState::fullscreen(ColorTarget::new(FORMAT, Blend::Replace));
     let pipeline = cache.render(&vs, Some(&ps), &state)?;
+    let (_tint, bind_groups) = bind_groups(device, &pipeline, frame)?;
 
-    // The resources the reflection asks for, by their names in the shader: `Tint` for the
-    // TINT=1 permutations; the TINT=0 ones list none.
+    let scope = ErrorScopes::push(device);
+    let target = Target::new(device, frame);
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("hello") });
+    draw(&mut encoder, &target.view, &pipeline, &bind_groups, frame);
+    target.copy_out(&mut encoder);
+    gpu.queue.submit([encoder.finish()]);
+    if let Some(message) = scope.pop() {
+        return Err(Error::Render(message));
+    }
+    target.read_back(gpu, frame)
+}
+
+/// Each side within 1 and the device's largest texture.
+fn check_size(gpu: &Gpu, frame: &Frame) -> Result<(), Error> {
+    let max = gpu.device.limits().max_texture_dimension_2d;
+    if frame.width == 0 || frame.height == 0 || frame.width > max || frame.height > max {
+        let why = format!("each side must be 1 to {max} pixels on {}", gpu.info.name);
+        return Err(Error::Size { width: frame.width, height: frame.height, why });
+    }
+    Ok(())
+}
+
+/// The resources the reflection asks for, by their names in the shader: `Tint` for the
+/// TINT=1 permutations; the TINT=0 ones list none. Gives the tint buffer (where there is
+/// one) and a bind group per group of the pipeline's layout.
+fn bind_groups(
+    device: &wgpu::Device,
+    pipeline: &RenderPipeline,
+    frame: &Frame,
+) -> Result<(Option<wgpu::Buffer>, Vec<wgpu::BindGroup>), Error> {
     let tint = frame.tint.map(|color| {
         device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("hello tint"),
@@ -167,87 +194,115 @@ pub fn render(gpu: &Gpu, cache: &PipelineCache, frame: &Frame) -> Result<Image, 
     let bind_groups = (0..pipeline.layout.groups.len() as u32)
         .map(|group| pipeline.layout.bind_group(device, group, "hello", &resources))
         .collect::<Result<Vec<_>, _>>()?;
+    Ok((tint, bind_groups))
+}
 
-    let scope = ErrorScopes::push(device);
-    let target = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("hello target"),
-        size: wgpu::Extent3d { width: frame.width, height: frame.height, depth_or_array_layers: 1 },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: FORMAT,
-        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    });
-    let view = target.create_view(&wgpu::TextureViewDescriptor::default());
-    let padded = (frame.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let readback = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("hello readback"),
-        size: u64::from(padded) * u64::from(frame.height),
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("hello") });
-    {
-        let [r, g, b, a] = frame.clear.map(f64::from);
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("hello"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: &view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a }),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-        pass.set_pipeline(&pipeline.pipeline);
-        for (group, bind_group) in bind_groups.iter().enumerate() {
-            pass.set_bind_group(group as u32, bind_group, &[]);
-        }
-        pass.draw(0..vertices(frame.shape), 0..1);
-    }
-    encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo {
-            texture: &target,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        wgpu::TexelCopyBufferInfo {
-            buffer: &readback,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(padded),
-                rows_per_image: Some(frame.height),
+/// Clears the target to the frame's clear color and draws the shape over it.
+fn draw(
+    encoder: &mut wgpu::CommandEncoder,
+    view: &wgpu::TextureView,
+    pipeline: &RenderPipeline,
+    bind_groups: &[wgpu::BindGroup],
+    frame: &Frame,
+) {
+    let [r, g, b, a] = frame.clear.map(f64::from);
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("hello"),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a }),
+                store: wgpu::StoreOp::Store,
             },
-        },
-        target.size(),
-    );
-    queue.submit([encoder.finish()]);
-    if let Some(message) = scope.pop() {
-        return Err(Error::Render(message));
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    pass.set_pipeline(&pipeline.pipeline);
+    for (group, bind_group) in bind_groups.iter().enumerate() {
+        pass.set_bind_group(group as u32, bind_group, &[]);
     }
-    let (sender, receiver) = std::sync::mpsc::channel();
-    readback.slice(..).map_async(wgpu::MapMode::Read, move |result| drop(sender.send(result)));
-    device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| Error::Render(e.to_string()))?;
-    match receiver.recv() {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => return Err(Error::Render(format!("reading the image back: {e}"))),
-        Err(_) => return Err(Error::Render("reading the image back: the map never completed".into())),
+    pass.draw(0..vertices(frame.shape), 0..1);
+}
+
+/// The offscreen texture the frame is drawn into, and the buffer it is copied to for
+/// reading (rows padded to wgpu's copy alignment).
+struct Target {
+    texture: wgpu::Texture,
+    view: wgpu::TextureView,
+    readback: wgpu::Buffer,
+    /// Bytes per row in `readback`.
+    padded: u32,
+}
+
+impl Target {
+    fn new(device: &wgpu::Device, frame: &Frame) -> Target {
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("hello target"),
+            size: wgpu::Extent3d { width: frame.width, height: frame.height, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let padded =
+            (frame.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("hello readback"),
+            size: u64::from(padded) * u64::from(frame.height),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Target { texture, view, readback, padded }
     }
-    if let Some(reason) = gpu.lost.reason() {
-        return Err(Error::Render(format!("the device was lost: {reason}")));
+
+    /// Copies the texture into the readback buffer.
+    fn copy_out(&self, encoder: &mut wgpu::CommandEncoder) {
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &self.readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(self.padded),
+                    rows_per_image: Some(self.texture.height()),
+                },
+            },
+            self.texture.size(),
+        );
     }
-    let mapped = readback.slice(..).get_mapped_range().map_err(|e| Error::Render(e.to_string()))?;
-    let mut rgba = Vec::with_capacity(frame.width as usize * frame.height as usize * 4);
-    for row in mapped.chunks_exact(padded as usize) {
-        rgba.extend_from_slice(&row[..frame.width as usize * 4]);
+
+    /// Waits for the copy, maps the buffer and gives its rows without the padding; a failed
+    /// map or a lost device is an error.
+    fn read_back(&self, gpu: &Gpu, frame: &Frame) -> Result<Image, Error> {
+        let (sender, receiver) = std::sync::mpsc::channel();
+        self.readback.slice(..).map_async(wgpu::MapMode::Read, move |result| drop(sender.send(result)));
+        gpu.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| Error::Render(e.to_string()))?;
+        match receiver.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(Error::Render(format!("reading the image back: {e}"))),
+            Err(_) => return Err(Error::Render("reading the image back: the map never completed".into())),
+        }
+        if let Some(reason) = gpu.lost.reason() {
+            return Err(Error::Render(format!("the device was lost: {reason}")));
+        }
+        let mapped = self.readback.slice(..).get_mapped_range().map_err(|e| Error::Render(e.to_string()))?;
+        let mut rgba = Vec::with_capacity(frame.width as usize * frame.height as usize * 4);
+        for row in mapped.chunks_exact(self.padded as usize) {
+            rgba.extend_from_slice(&row[..frame.width as usize * 4]);
+        }
+        Ok(Image { width: frame.width, height: frame.height, rgba })
     }
-    Ok(Image { width: frame.width, height: frame.height, rgba })
 }
