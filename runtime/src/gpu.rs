@@ -188,62 +188,10 @@ impl Gpu {
 
     async fn new_async(options: &GpuOptions) -> Result<Gpu, GpuError> {
         let backend = options.backend;
-        if backend == Backend::Vulkan {
-            skip_device_select_display_probe();
-        }
-        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = backend.wgpu();
-        if options.validation {
-            // Vulkan: the layer comes from `VK_INSTANCE_LAYERS` (`validation::enable`; its core
-            // checks: wgpu's own VALIDATION flag adds synchronization validation, which flags
-            // wgpu's store of read-only depth attachments), and DEBUG is for the debug-utils
-            // messenger that hands its messages to wgpu's log. GL: VALIDATION turns debug
-            // output on.
-            if backend == Backend::Gl {
-                desc.flags |= wgpu::InstanceFlags::VALIDATION;
-            }
-            desc.flags |= wgpu::InstanceFlags::DEBUG;
-        }
-        let instance = wgpu::Instance::new(desc);
-        let adapter = match instance
-            .request_adapter(&wgpu::RequestAdapterOptions {
-                power_preference: wgpu::PowerPreference::HighPerformance,
-                force_fallback_adapter: false,
-                compatible_surface: None,
-                apply_limit_buckets: false,
-            })
-            .await
-        {
-            Ok(a) => a,
-            Err(e) => {
-                let all = instance.enumerate_adapters(backend.wgpu()).await;
-                let detail = if all.is_empty() {
-                    format!("{e}; the {backend} backend lists no adapters")
-                } else {
-                    let names: Vec<String> = all.iter().map(|a| a.get_info().name).collect();
-                    format!("{e}; adapters seen: {}", names.join(", "))
-                };
-                return Err(GpuError::NoAdapter { backend, detail });
-            }
-        };
+        let instance = instance(options);
+        let adapter = adapter(&instance, backend).await?;
         let info = adapter.get_info();
-        let available = adapter.features();
-        let mut features = wgpu::Features::empty();
-        let passthrough = backend == Backend::Vulkan
-            && options.module_source == ModuleSource::Auto
-            && available.contains(wgpu::Features::PASSTHROUGH_SHADERS);
-        if passthrough {
-            features |= wgpu::Features::PASSTHROUGH_SHADERS;
-        }
-        let timestamp_features = wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
-        let timestamps = options.timestamps && available.contains(timestamp_features);
-        if timestamps {
-            features |= timestamp_features;
-        }
-        // The desktop frame's scene depth with stencil, copyable for --dump-passes.
-        features |= available & wgpu::Features::DEPTH32FLOAT_STENCIL8;
-        // The driver's pipeline cache, persisted by `PipelineCache::with_disk_cache`.
-        features |= available & wgpu::Features::PIPELINE_CACHE;
+        let Features { features, passthrough, timestamps } = Features::of(&adapter, options);
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("kiln-runtime device"),
@@ -255,17 +203,7 @@ impl Gpu {
             })
             .await
             .map_err(|source| GpuError::Device { backend, adapter: info.name.clone(), source })?;
-        // Errors outside an error scope are reported, not panicked on: every frame and
-        // pipeline creation runs in a scope that turns them into results.
-        device.on_uncaptured_error(std::sync::Arc::new(|e: wgpu::Error| {
-            eprintln!("wgpu error: {}", error_chain(&e));
-        }));
-        // A lost device (a driver reset, or one that gave up) is an error of the next frame.
-        let lost = DeviceLost::default();
-        let record = lost.clone();
-        device.set_device_lost_callback(move |reason, message| {
-            *record.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(format!("{reason:?}: {message}"));
-        });
+        let lost = watch(&device);
         let depth_copies =
             adapter.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES);
         Ok(Gpu {
@@ -292,6 +230,100 @@ impl Gpu {
     pub fn wait(&self) {
         let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
     }
+}
+
+/// An instance of `options.backend`, with the debug flags validation wants.
+fn instance(options: &GpuOptions) -> wgpu::Instance {
+    let backend = options.backend;
+    if backend == Backend::Vulkan {
+        skip_device_select_display_probe();
+    }
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = backend.wgpu();
+    if options.validation {
+        // Vulkan: the layer comes from `VK_INSTANCE_LAYERS` (`validation::enable`; its core
+        // checks: wgpu's own VALIDATION flag adds synchronization validation, which flags
+        // wgpu's store of read-only depth attachments), and DEBUG is for the debug-utils
+        // messenger that hands its messages to wgpu's log. GL: VALIDATION turns debug
+        // output on.
+        if backend == Backend::Gl {
+            desc.flags |= wgpu::InstanceFlags::VALIDATION;
+        }
+        desc.flags |= wgpu::InstanceFlags::DEBUG;
+    }
+    wgpu::Instance::new(desc)
+}
+
+/// The high-performance adapter of `backend`; where there is none, the error names the
+/// adapters the backend lists (or says it lists none).
+async fn adapter(instance: &wgpu::Instance, backend: Backend) -> Result<wgpu::Adapter, GpuError> {
+    let request = instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        force_fallback_adapter: false,
+        compatible_surface: None,
+        apply_limit_buckets: false,
+    });
+    match request.await {
+        Ok(a) => Ok(a),
+        Err(e) => {
+            let all = instance.enumerate_adapters(backend.wgpu()).await;
+            let detail = if all.is_empty() {
+                format!("{e}; the {backend} backend lists no adapters")
+            } else {
+                let names: Vec<String> = all.iter().map(|a| a.get_info().name).collect();
+                format!("{e}; adapters seen: {}", names.join(", "))
+            };
+            Err(GpuError::NoAdapter { backend, detail })
+        }
+    }
+}
+
+/// The optional features the device is asked for, of those the adapter has.
+struct Features {
+    features: wgpu::Features,
+    /// SPIR-V passthrough (Vulkan, where the options leave the module source to the runtime).
+    passthrough: bool,
+    /// Timestamps between passes, where the options ask for them.
+    timestamps: bool,
+}
+
+impl Features {
+    fn of(adapter: &wgpu::Adapter, options: &GpuOptions) -> Features {
+        let available = adapter.features();
+        let mut features = wgpu::Features::empty();
+        let passthrough = options.backend == Backend::Vulkan
+            && options.module_source == ModuleSource::Auto
+            && available.contains(wgpu::Features::PASSTHROUGH_SHADERS);
+        if passthrough {
+            features |= wgpu::Features::PASSTHROUGH_SHADERS;
+        }
+        let timestamp_features = wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let timestamps = options.timestamps && available.contains(timestamp_features);
+        if timestamps {
+            features |= timestamp_features;
+        }
+        // The desktop frame's scene depth with stencil, copyable for --dump-passes.
+        features |= available & wgpu::Features::DEPTH32FLOAT_STENCIL8;
+        // The driver's pipeline cache, persisted by `PipelineCache::with_disk_cache`.
+        features |= available & wgpu::Features::PIPELINE_CACHE;
+        Features { features, passthrough, timestamps }
+    }
+}
+
+/// Reports `device`'s uncaptured errors and records why it is lost, once it is.
+fn watch(device: &wgpu::Device) -> DeviceLost {
+    // Errors outside an error scope are reported, not panicked on: every frame and
+    // pipeline creation runs in a scope that turns them into results.
+    device.on_uncaptured_error(std::sync::Arc::new(|e: wgpu::Error| {
+        eprintln!("wgpu error: {}", error_chain(&e));
+    }));
+    // A lost device (a driver reset, or one that gave up) is an error of the next frame.
+    let lost = DeviceLost::default();
+    let record = lost.clone();
+    device.set_device_lost_callback(move |reason, message| {
+        *record.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(format!("{reason:?}: {message}"));
+    });
+    lost
 }
 
 /// An error and its sources on one line each (wgpu's own Display says only "Validation Error").
