@@ -8,8 +8,8 @@ use kiln_archive::{Reflection, Target};
 use super::PipelineError;
 use crate::gpu::error_chain;
 
-/// A label GL accepts: at most 255 bytes (`GL_MAX_LABEL_LENGTH` is 256 with the nul;
-/// longer labels are a GL error). Pipelines are labelled with their permutations' names,
+/// A label GL accepts: shorter than `GL_MAX_LABEL_LENGTH`, which counts the nul (longer
+/// labels are a GL error). Pipelines are labelled with their permutations' names,
 /// which can be longer.
 pub fn short_label(label: &str) -> &str {
     if label.len() <= 255 {

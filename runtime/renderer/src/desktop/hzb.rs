@@ -1,6 +1,6 @@
 //! BuildHZB: the hierarchical depth buffer of the prepass depth (`HZB.usf`). Mip 0 is the
-//! scene depth resampled to half its size rounded up to a power of two (1916x1014 -> 1024x512
-//! as in the seed's capture), every mip after it halves the one before down to 1x1, each
+//! scene depth resampled to half its size, each side rounded up to a power of two (as in the
+//! seed's capture), every mip after it halves the one before down to 1x1, each
 //! texel the farthest depth (reverse-Z: the minimum) of the texels it covers. Screen-space
 //! reflections trace against it; its top mip holds the farthest depth of the view.
 //!

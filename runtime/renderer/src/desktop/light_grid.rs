@@ -96,8 +96,8 @@ impl LightGrid {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, targets: &Targets) {
         ctx.step("CullLights", |ctx| {
-            // Unreal clears the list heads with a compute shader above 1 KiB; a buffer clear
-            // is the same on every backend wgpu has.
+            // Unreal clears large list heads with a compute shader; a buffer clear is the
+            // same on every backend wgpu has.
             ctx.encoder().clear_buffer(&self.start_offsets, 0, None);
             ctx.encoder().clear_buffer(&self.counters, 0, None);
             self.dispatch(ctx, "CullLights", &self.inject, &self.inject_groups);

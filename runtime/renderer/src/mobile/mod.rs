@@ -6,9 +6,10 @@
 //! [`FrameRecorder`], in the seed's order:
 //! - forward (`--pipeline mobile-forward`): ShadowDepths (CSM, spot shadows, one atlas),
 //!   optional PrePass, BasePass (lighting in the pixel shader, up to
-//!   `MAX_DYNAMIC_POINT_LIGHTS` local lights, reflections, sky light, MSAA 4x), Translucency
-//!   (resolves the MSAA color at the end of the pass), PostProcessing (Bloom, Tonemapper) in
-//!   HDR, or gamma-space output straight from the base pass when mobile HDR is off;
+//!   `MAX_DYNAMIC_POINT_LIGHTS` local lights, reflections, sky light, MSAA of
+//!   `MobileOptions::msaa` samples), Translucency (resolves the MSAA color at the end of the
+//!   pass), PostProcessing (Bloom, Tonemapper) in HDR, or gamma-space output straight from
+//!   the base pass when mobile HDR is off;
 //! - deferred (`--pipeline mobile-deferred`): ShadowDepths, optional PrePass, BasePass into
 //!   SceneColor + the mobile GBuffer (A: octahedral normal, precomputed shadow, per-object
 //!   data; B: metallic, specular, roughness, shading model; C: base color, AO), with the

@@ -51,7 +51,7 @@ pub const STATE_WIDTH: u32 = 64;
 /// so frames are reproducible).
 pub const TIME_STEP: f32 = 1.0 / 30.0;
 /// Steps simulated when the system is built for the emitters that are prewarmed (the scene's
-/// own: 2 s, longer than the fire's longest lifetime), so the first frame shows them burning.
+/// own: longer than the fire's longest lifetime), so the first frame shows them burning.
 pub const PREWARM_STEPS: u32 = 60;
 
 /// `SimulationParams` of `ParticleSimulation.usf`.
