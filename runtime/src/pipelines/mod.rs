@@ -16,8 +16,9 @@
 //! One concern per file: [`state`] (fixed-function state and pipeline keys), [`modules`]
 //! (shader modules and wgpu error scopes), [`layouts`] (bind group and pipeline layouts from
 //! reflection), [`limits`] (reflection against the device's limits), [`cache`] (the pipeline
-//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk) and [`usage`] (what the
-//! frames asked for, as `kiln_archive::usage` files).
+//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk), [`usage`] (what the
+//! frames asked for, as `kiln_archive::usage` files) and [`state_text`] (a usage file's
+//! render state text read back into a [`RenderState`]).
 
 mod cache;
 mod disk_cache;
@@ -25,6 +26,7 @@ mod layouts;
 mod limits;
 mod modules;
 mod state;
+mod state_text;
 #[cfg(test)]
 mod tests;
 mod usage;
@@ -43,6 +45,8 @@ pub use modules::{create_spirv_module, create_wgsl_module, short_label, ErrorSco
 pub use state::{
     Blend, ColorTarget, ComputeKey, DepthState, PipelineKey, RenderKey, RenderState, VertexBuffer, VertexLayout,
 };
+pub use state_text::StateTextError;
+pub use usage::state_text;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
