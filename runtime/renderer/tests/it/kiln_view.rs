@@ -328,3 +328,28 @@ fn a_pipeline_manifest_is_precached_before_the_first_frame() {
     let o = kiln_view(&["--no-stall=sideways"], d);
     assert_eq!(o.status.code(), Some(2));
 }
+
+/// A pipeline manifest whose state text does not read is a usage error naming the field,
+/// before any frame.
+#[test]
+fn a_manifest_state_that_does_not_read_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = kiln_archive::ArchiveWriter::new();
+    w.set_pipelines(vec![kiln_archive::PipelineRecord {
+        key: kiln_archive::usage::UsageKey::Render {
+            vertex: "V@sm5{}".into(),
+            fragment: None,
+            state: "TriangleList;cull=Sideways".into(),
+        },
+        first_frame: 0,
+    }]);
+    w.write(&dir.path().join("bad.kpak")).unwrap();
+    let o = kiln_view(&["--shaders", "bad.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).starts_with("error: the archive's pipeline manifest: render state text"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("field `cull`"), "{}", stderr(&o));
+    // Without precaching the manifest is not read: the frame's missing permutation is the error.
+    let o = kiln_view(&["--shaders", "bad.kpak", "--no-precache"], dir.path());
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("is not in the archive"), "{}", stderr(&o));
+}
