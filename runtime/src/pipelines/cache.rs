@@ -69,7 +69,7 @@ pub struct PipelineCache {
     /// held across a wgpu call, so that workers create in parallel.
     pub(super) inner: Arc<Mutex<CacheInner>>,
     pub(super) disk: Option<DiskCache>,
-    pub(super) background: Arc<super::missing::Background>,
+    pub(super) background: Arc<super::inflight::Background>,
 }
 
 impl PipelineCache {

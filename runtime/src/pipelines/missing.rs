@@ -3,19 +3,19 @@
 //! however many threads ask (the render thread, [`PipelineCache::precache`]'s workers, the
 //! background workers), and bounded background workers for [`Missing::Background`].
 //!
-//! Workers hold a view of the cache ([`PipelineCache::worker`]) that shares its maps, so
+//! The shared state lives in [`super::inflight`]. Workers hold a view of the cache ([`PipelineCache::worker`]) that shares its maps, so
 //! what they create is found by the render thread's next ask. wgpu's error scopes are per
 //! thread here (wgpu 30 with `std`), so a worker's creation errors are caught by the scopes
 //! the worker pushes: they come back to the caller as a [`PipelineError`] on its next ask for
 //! that key, never as a panic (a panic inside a creation is caught and turned into one too).
 
-use std::collections::{HashMap, HashSet, VecDeque};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
 
 use kiln_archive::Stage;
 
 use super::cache::{ComputePipeline, PipelineCache, RenderPipeline};
+use super::inflight::{lock, max_workers};
 use super::{ComputeKey, PipelineError, PipelineKey, RenderKey};
 
 /// What a frame gets when a pipeline it asks for is not created yet.
@@ -65,73 +65,6 @@ impl<T> std::fmt::Debug for Ready<T> {
 
 /// How many nearest permutations of one are tried for a [`Fallback::Nearest`] answer.
 const NEAR: usize = 8;
-
-/// The state a cache and its worker views share.
-#[derive(Default)]
-pub(super) struct Background {
-    missing: Mutex<Missing>,
-    fallbacks: AtomicU64,
-    in_flight: Mutex<HashSet<PipelineKey>>,
-    finished: Condvar,
-    jobs: Mutex<Jobs>,
-    /// Errors of background creations, until the next ask for the key returns them.
-    failed: Mutex<HashMap<PipelineKey, PipelineError>>,
-    /// Keys whose fallback was logged.
-    logged: Mutex<HashSet<PipelineKey>>,
-    /// Per permutation: the archive's nearest of the same shader and level with the same
-    /// bindings, best first.
-    near: Mutex<HashMap<String, Arc<Vec<String>>>>,
-}
-
-#[derive(Default)]
-struct Jobs {
-    queue: VecDeque<PipelineKey>,
-    queued: HashSet<PipelineKey>,
-    workers: usize,
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// A key this thread is creating; others asking for it wait until it is dropped.
-pub(super) struct Claim<'a> {
-    background: &'a Background,
-    key: Option<PipelineKey>,
-}
-
-impl Drop for Claim<'_> {
-    fn drop(&mut self) {
-        if let Some(key) = self.key.take() {
-            lock(&self.background.in_flight).remove(&key);
-            self.background.finished.notify_all();
-        }
-    }
-}
-
-impl Background {
-    /// Waits while another thread creates `key`, then claims it for this one.
-    pub(super) fn claim(&self, key: PipelineKey) -> Claim<'_> {
-        let mut set = lock(&self.in_flight);
-        while set.contains(&key) {
-            set = self.finished.wait(set).unwrap_or_else(|e| e.into_inner());
-        }
-        set.insert(key.clone());
-        Claim { background: self, key: Some(key) }
-    }
-
-    /// The same mode and count, nothing in flight (a hot-reloaded cache).
-    pub(super) fn carried(&self) -> Background {
-        let b = Background { missing: Mutex::new(*lock(&self.missing)), ..Background::default() };
-        b.fallbacks.store(self.fallbacks.load(Ordering::Relaxed), Ordering::Relaxed);
-        b
-    }
-}
-
-/// The worker threads a cache may run at once, for precaching or in the background.
-pub(super) fn max_workers() -> usize {
-    std::thread::available_parallelism().map_or(2, |n| n.get())
-}
 
 impl PipelineCache {
     /// What a frame gets when a pipeline is not created yet (see [`Missing`]).

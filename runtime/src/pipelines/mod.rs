@@ -20,10 +20,12 @@
 //! frames asked for, as `kiln_archive::usage` files), [`state_text`] (a usage file's
 //! render state text read back into a [`RenderState`]), [`precache`] (an archive's pipeline
 //! manifest created on worker threads) and [`missing`] (what a frame gets when a pipeline is
-//! not ready: [`Missing`], and the in-flight set that makes every key's creation happen once).
+//! not ready: [`Missing`]), over [`inflight`] (the in-flight set that makes every key's
+//! creation happen once, and the background job queue).
 
 mod cache;
 mod disk_cache;
+mod inflight;
 mod layouts;
 mod limits;
 mod missing;

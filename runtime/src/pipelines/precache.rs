@@ -14,7 +14,8 @@ use kiln_archive::usage::UsageKey;
 use kiln_archive::PipelineRecord;
 
 use super::cache::PipelineCache;
-use super::missing::{max_workers, pipeline_name};
+use super::inflight::max_workers;
+use super::missing::pipeline_name;
 use super::state_text::StateTextError;
 use super::{ComputeKey, PipelineError, PipelineKey, RenderKey, RenderState};
 
