@@ -260,8 +260,13 @@ fn usage_builds_store_a_pipeline_manifest_that_inspect_lists() {
          TriangleList 1 0\nrender LitVS@sm5{{USE_FOG=0,DEBUG_VIEW=0}} - PointList;\u{1b}[31m 2 1\n"
     );
     std::fs::write(d.join("frame.usage"), usage).unwrap();
-    let o = kiln(d, &["build", "--config", "lit.toml", "--usage", "frame.usage", "-o", "with.kpak"]);
+    let o = kiln(
+        d,
+        &["build", "--config", "lit.toml", "--usage", "frame.usage", "-o", "with.kpak", "--stats-json", "stats.json"],
+    );
     assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+    assert_eq!((v["pipelines"].as_u64(), v["pipelines_left_out"].as_u64()), (Some(2), Some(1)));
     assert!(
         stderr(&o).contains(
             "note: the archive's pipeline manifest holds 2 pipelines; 1 recorded pipelines are left out of it \
