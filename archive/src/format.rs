@@ -279,6 +279,7 @@ pub(crate) struct Manifest {
     pub kiln_version: String,
     pub naga_version: String,
     pub partial: Option<Partial>,
+    pub pipelines: Option<Vec<PipelineRecord>>,
     pub shaders: Vec<ShaderRecord>,
     pub reflections: Vec<Reflection>,
     /// Sorted by name.
@@ -433,6 +434,9 @@ pub(crate) struct TablesOut<'a> {
     /// are byte for byte what they were before it existed.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub partial: Option<&'a Partial>,
+    /// Absent from every archive but a `kiln build --usage` one, for the same reason.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pipelines: Option<&'a [PipelineRecord]>,
 }
 
 /// The JSON tables of the manifest, as read.
@@ -444,6 +448,21 @@ pub(crate) struct Tables {
     pub reflections: Vec<Reflection>,
     #[serde(default)]
     pub partial: Option<Partial>,
+    #[serde(default)]
+    pub pipelines: Option<Vec<PipelineRecord>>,
+}
+
+/// A pipeline of the archive's pipeline manifest (`kiln build --usage`): a pipeline a
+/// recorded run asked for, whose permutations the archive holds. The manifest lists them in
+/// the order a renderer first asked for them (first frame, then key), so that creating them
+/// in that order makes the first frames' pipelines ready first.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PipelineRecord {
+    /// The pipeline's key: its kind, permutations and (render) fixed-function state text.
+    #[serde(flatten)]
+    pub key: crate::usage::UsageKey,
+    /// The first frame that asked for it (the earliest over the merged runs).
+    pub first_frame: u64,
 }
 
 /// What a partial archive (`kiln build --usage-only`) left out: the kept permutations of its

@@ -43,8 +43,8 @@ mod tests;
 
 pub use format::{
     write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, Partial,
-    PermutationRecord, ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, FORMAT_VERSION,
-    HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
+    PermutationRecord, PipelineRecord, ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE,
+    FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
 };
 pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations, RELEASE_EVERY};
 pub use reflect::{

@@ -15,9 +15,9 @@ use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
     decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, Partial, PermutationRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN, CHUNK_HASH_LEN,
-    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, ID_LEN, MAGIC,
-    MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    ManifestLayout, Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN,
+    CHUNK_HASH_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN,
+    ID_LEN, MAGIC, MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{edit_distance, Reflection, Target};
 
@@ -470,6 +470,7 @@ impl Archive {
                 shaders: Vec::new(),
                 reflections: Vec::new(),
                 partial: None,
+                pipelines: None,
             },
             dictionaries: Vec::new(),
             chunks_ok: Bits::new(chunks),
@@ -515,6 +516,7 @@ impl Archive {
         let tables_bytes =
             self.manifest_bytes(layout.tables, counts.tables_len).map_err(|m| bad(format!("its tables: {m}")))?;
         let tables: Tables = serde_json::from_slice(tables_bytes).map_err(|e| bad(format!("its tables: {e}")))?;
+        check_pipelines(tables.pipelines.as_deref().unwrap_or_default()).map_err(bad)?;
         let pad_start = layout.tables + counts.tables_len;
         let pad =
             self.manifest_bytes(pad_start, layout.names - pad_start).map_err(|m| bad(format!("its tables: {m}")))?;
@@ -660,6 +662,12 @@ impl Archive {
             .get(start..start + r.name_len as usize)
             .and_then(|b| std::str::from_utf8(b).ok())
             .unwrap_or("")
+    }
+
+    /// The pipeline manifest of a `kiln build --usage` archive: the pipelines recorded runs
+    /// asked for, in first-use order; `None` for an archive built without usage files.
+    pub fn pipeline_manifest(&self) -> Option<&[PipelineRecord]> {
+        self.tables.pipelines.as_deref()
     }
 
     /// What a `kiln build --usage-only` archive left out; `None` for a whole archive.
@@ -1091,6 +1099,28 @@ fn parse_name(name: &str) -> ParsedName {
         })
         .collect();
     ParsedName { shader: shader.trim().to_string(), level: level.trim().to_string(), dims }
+}
+
+/// The pipeline manifest's records hold what a usage file's lines hold: names and state
+/// text, not empty and without white space (so that listing them, escaped, is one record a
+/// line).
+fn check_pipelines(records: &[PipelineRecord]) -> Result<(), String> {
+    use crate::usage::UsageKey;
+    let clean = |s: &str| !s.is_empty() && !s.chars().any(char::is_whitespace);
+    for (i, r) in records.iter().enumerate() {
+        let ok = match &r.key {
+            UsageKey::Compute { compute } => clean(compute),
+            UsageKey::Render { vertex, fragment, state } => {
+                clean(vertex) && fragment.as_deref().is_none_or(clean) && clean(state)
+            }
+        };
+        if !ok {
+            return Err(format!(
+                "pipeline {i} of its pipeline manifest has an empty name or state, or one with white space"
+            ));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

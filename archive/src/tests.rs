@@ -804,3 +804,60 @@ fn artifacts_are_read_and_checked_from_many_threads_at_once() {
     });
     assert!(a.get(&perms[0].0).unwrap().unwrap().artifact(Target::Msl).is_err());
 }
+
+fn sample_with_pipelines(pipelines: Vec<PipelineRecord>) -> Vec<u8> {
+    let mut w = ArchiveWriter::new();
+    w.set_naga_version("30.0.1");
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    let wgsl = w.add_blob(b"// wgsl");
+    w.add_permutation(PermutationRecord {
+        name: "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".into(),
+        shader: s,
+        values: vec![0, 0],
+        reflection: r,
+        artifacts: vec![(Target::Wgsl, wgsl)],
+    });
+    w.set_pipelines(pipelines);
+    w.to_bytes().unwrap()
+}
+
+#[test]
+fn pipeline_manifest_round_trips_in_its_order_and_is_absent_by_default() {
+    use crate::usage::UsageKey;
+    assert_eq!(Archive::from_vec(sample()).unwrap().pipeline_manifest(), None);
+    let records = vec![
+        PipelineRecord {
+            key: UsageKey::Render {
+                vertex: "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".into(),
+                fragment: None,
+                state: "tri;cull=Back".into(),
+            },
+            first_frame: 0,
+        },
+        PipelineRecord {
+            key: UsageKey::Compute { compute: "Lit@sm5{FULLY_ROUGH=0,MODE=OPAQUE}".into() },
+            first_frame: 2,
+        },
+    ];
+    let bytes = sample_with_pipelines(records.clone());
+    let a = Archive::from_vec(bytes).unwrap();
+    assert_eq!(a.pipeline_manifest(), Some(&records[..]));
+    a.verify_all().unwrap();
+}
+
+#[test]
+fn pipeline_records_with_spaces_or_empty_names_are_refused_at_open() {
+    use crate::usage::UsageKey;
+    for key in [
+        UsageKey::Compute { compute: String::new() },
+        UsageKey::Compute { compute: "A B".into() },
+        UsageKey::Render { vertex: "V".into(), fragment: Some("F\n".into()), state: "s".into() },
+        UsageKey::Render { vertex: "V".into(), fragment: None, state: "a b".into() },
+    ] {
+        let bytes = sample_with_pipelines(vec![PipelineRecord { key, first_frame: 0 }]);
+        let Err(e) = Archive::from_vec(bytes) else { panic!("a bad pipeline record opened") };
+        let e = e.to_string();
+        assert!(e.contains("pipeline 0 of its pipeline manifest"), "{e}");
+    }
+}

@@ -30,7 +30,8 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 /// What is recorded of one pipeline.
-#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
 pub enum UsageKey {
     Compute { compute: String },
     Render { vertex: String, fragment: Option<String>, state: String },

@@ -29,8 +29,8 @@ use std::sync::Mutex;
 
 use super::format::{
     encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, Arenas, BlobId, ChunkHasher,
-    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord, Record,
-    Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
+    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord, PipelineRecord,
+    Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
     COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::{Reflection, Target};
@@ -96,6 +96,7 @@ pub struct ArchiveSummary {
 struct Entries {
     naga_version: String,
     partial: Option<Partial>,
+    pipelines: Option<Vec<PipelineRecord>>,
     hooks: WriterHooks,
     shaders: Vec<ShaderRecord>,
     shader_index: HashMap<(String, String), u32>,
@@ -635,6 +636,12 @@ impl StreamingWriter {
         lock(&self.entries).partial = Some(partial);
     }
 
+    /// Stores a pipeline manifest (`kiln build --usage`), in the order given (a renderer
+    /// creates them in that order). Without it the archive's bytes are as they always were.
+    pub fn set_pipelines(&self, pipelines: Vec<PipelineRecord>) {
+        lock(&self.entries).pipelines = Some(pipelines);
+    }
+
     /// Adds a blob (an artifact's bytes); adding the same bytes again is free.
     pub fn add_blob(&self, bytes: &[u8]) -> Result<BlobKey, ArchiveError> {
         self.add_blob_hashed(bytes, blake3::hash(bytes))
@@ -807,6 +814,11 @@ impl ArchiveWriter {
         self.entries.naga_version = version.to_string();
     }
 
+    /// Stores a pipeline manifest, as [`StreamingWriter::set_pipelines`].
+    pub fn set_pipelines(&mut self, pipelines: Vec<PipelineRecord>) {
+        self.entries.pipelines = Some(pipelines);
+    }
+
     /// Adds a (shader, level) record; returns its handle. Adding the same pair twice returns
     /// the first handle. Shaders no permutation uses are left out of the archive.
     pub fn add_shader(&mut self, record: ShaderRecord) -> u32 {
@@ -939,7 +951,8 @@ struct Plan {
 fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     table.seal();
     let (spool_len, slots) = (table.spooled, table.slots);
-    let Entries { naga_version, partial, hooks, shaders, reflections, mut permutations, mut arenas, .. } = entries;
+    let Entries { naga_version, partial, pipelines, hooks, shaders, reflections, mut permutations, mut arenas, .. } =
+        entries;
     permutations.sort_unstable_by(|a, b| arenas.cmp_names(a, b));
     if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names(&w[0], &w[1]).is_eq()) {
         return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0]))));
@@ -949,7 +962,7 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
     let mut reflection_map: Vec<Option<u32>> = vec![None; reflections.len()];
     let mut manifest =
-        Manifest { kiln_version: crate::VERSION.to_string(), naga_version, partial, ..Default::default() };
+        Manifest { kiln_version: crate::VERSION.to_string(), naga_version, partial, pipelines, ..Default::default() };
     // The shaders' prefixes in the manifest's numbering.
     let mut prefixes = Vec::with_capacity(shaders.len());
     // Each slot's blob id, by first use.
@@ -1404,6 +1417,7 @@ fn spill_manifest<'a>(
         shaders: &manifest.shaders,
         reflections: &manifest.reflections,
         partial: manifest.partial.as_ref(),
+        pipelines: manifest.pipelines.as_deref(),
     };
     serde_json::to_writer(&mut back, &tables).map_err(std::io::Error::other)?;
     let tables_len = back.len();

@@ -39,4 +39,5 @@ mod spirv;
 pub mod validation;
 
 pub use gpu::{Backend, Gpu, GpuError, GpuOptions, ModuleSource};
+pub use pipelines::{Fallback, Missing, PipelineCache, Precache, Ready};
 pub use shaders::{LookupError, PermutationQuery, ShaderArchive};

@@ -126,6 +126,13 @@ impl ShaderArchive {
         &self.archive
     }
 
+    /// The archive's pipeline manifest (`kiln build --usage`), in first-use order; `None`
+    /// for an archive built without usage files. `pipelines::manifest_keys` turns
+    /// it into pipeline keys.
+    pub fn pipeline_manifest(&self) -> Option<&[kiln_archive::PipelineRecord]> {
+        self.archive.pipeline_manifest()
+    }
+
     /// O(1) lookup by canonical name (`Shader@level{DIM=value,...}`).
     pub fn get(&self, name: &str) -> Result<PermutationRef<'_>, LookupError> {
         match self.archive.lookup(name) {

@@ -271,6 +271,14 @@ fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> b
             h.update(b"\0");
         }
     }
+    // So is one without a pipeline manifest.
+    if let Some(pipelines) = plan.usage.as_ref().map(|u| &u.pipelines).filter(|p| !p.is_empty()) {
+        h.update(b"\0pipelines\0");
+        for r in pipelines {
+            h.update(serde_json::to_string(r).expect("a pipeline record serializes").as_bytes());
+            h.update(b"\0");
+        }
+    }
     h.finalize()
 }
 
@@ -291,6 +299,9 @@ impl<'p> Assembler<'p> {
             w.set_naga_version(compile::NAGA_VERSION);
             if let Some(left_out) = plan.usage.as_ref().map(|u| &u.left_out).filter(|l| !l.is_empty()) {
                 w.set_partial(crate::archive::Partial { left_out: left_out.clone() });
+            }
+            if let Some(pipelines) = plan.usage.as_ref().map(|u| &u.pipelines).filter(|p| !p.is_empty()) {
+                w.set_pipelines(pipelines.clone());
             }
             w.set_hooks(crate::archive::WriterHooks { trace: super::trace_memory, release: super::release_freed });
             // The blob table at its bound once (see [`Plan::max_targets`]).

@@ -228,6 +228,8 @@ impl<'c> Plan<'c> {
         values.shrink_to_fit();
         let usage = filter.map(|f| {
             usage.unknown = f.unknown(&usage);
+            f.manifest(&mut usage);
+            usage.built_recorded = Default::default();
             usage
         });
         Ok(Plan { config, options, runs, points, values, len, skipped: stream.skipped(), usage, recorded })

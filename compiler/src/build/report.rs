@@ -65,6 +65,13 @@ pub struct Stats {
     /// With `--usage`: `used` and `left_out` per shader.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shaders: Option<std::collections::BTreeMap<String, super::ShaderUsage>>,
+    /// With `--usage`: pipelines in the archive's pipeline manifest.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pipelines: Option<usize>,
+    /// With `--usage`: recorded pipelines left out of the manifest (a permutation of theirs
+    /// is not in the archive).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pipelines_left_out: Option<usize>,
     /// Where the time went.
     pub seconds: Seconds,
 }
@@ -146,6 +153,8 @@ impl<'o> Builder<'o> {
             self.report.stats.used = Some(u.shaders.values().map(|s| s.used).sum());
             self.report.stats.left_out = Some(u.left_out.len());
             self.report.stats.shaders = Some(u.shaders.clone());
+            self.report.stats.pipelines = Some(u.pipelines.len());
+            self.report.stats.pipelines_left_out = Some(u.pipelines_left_out);
             self.report.warnings.push(u.summary(self.options.usage_only));
         }
         if plan.is_empty() && plan.skipped > 0 {

@@ -6,6 +6,10 @@
 //! the archive (which says it is partial, so that a lookup of one is an error naming it) and
 //! in the build's fingerprint. What is kept depends only on the configuration and the files'
 //! contents, never on `-j`, the cache or shards.
+//!
+//! `--usage` also gives the archive its pipeline manifest: the merged files' pipelines whose
+//! permutations the archive holds, in first-use order (first frame, then key); the others
+//! are counted in the build's note.
 // The fields and variants here are named after the file format and the command's output
 // that the module documentation describes; their one-line docs are still to be written.
 #![allow(missing_docs)]
@@ -13,7 +17,8 @@
 use std::collections::{BTreeMap, HashSet};
 
 use super::{Error, Options};
-use crate::archive::usage::Usage;
+use crate::archive::usage::{Usage, UsageKey};
+use crate::archive::PipelineRecord;
 use crate::permute::{Config, Permutation};
 
 /// What the usage files and the configuration keep.
@@ -22,6 +27,8 @@ pub(super) struct Filter {
     keep: Vec<String>,
     /// Only the recorded and kept ones are built (`--usage-only`).
     only: bool,
+    /// The merged files' pipelines, in first-use order.
+    pipelines: Vec<PipelineRecord>,
 }
 
 /// Per shader: (permutations built that the filter kept, permutations left out).
@@ -41,6 +48,12 @@ pub(super) struct Outcome {
     pub recorded: usize,
     /// Recorded names that are no kept permutation of the configuration.
     pub unknown: usize,
+    /// Recorded names the build keeps (and so the archive holds).
+    pub built_recorded: HashSet<String>,
+    /// The archive's pipeline manifest: the recorded pipelines whose permutations it holds.
+    pub pipelines: Vec<PipelineRecord>,
+    /// Recorded pipelines left out of the manifest: a permutation of theirs is not built.
+    pub pipelines_left_out: usize,
 }
 
 impl Filter {
@@ -62,8 +75,15 @@ impl Filter {
                 Some(m) => m.merge(&u).map_err(|e| Error::Config(format!("error: {}: {e}", path.display())))?,
             }
         }
-        let recorded = merged.map(|u| u.permutations().into_iter().map(str::to_string).collect()).unwrap_or_default();
-        Ok(Some(Filter { recorded, keep: config.usage_keep.clone(), only: options.usage_only }))
+        let merged = merged.unwrap_or_default();
+        let recorded = merged.permutations().into_iter().map(str::to_string).collect();
+        let mut pipelines: Vec<PipelineRecord> = merged
+            .records
+            .iter()
+            .map(|(key, count)| PipelineRecord { key: key.clone(), first_frame: count.first_frame })
+            .collect();
+        pipelines.sort_by(|a, b| (a.first_frame, &a.key).cmp(&(b.first_frame, &b.key)));
+        Ok(Some(Filter { recorded, keep: config.usage_keep.clone(), only: options.usage_only, pipelines }))
     }
 
     /// Whether `p` (named `name`) is built, counting it in `outcome`.
@@ -74,6 +94,9 @@ impl Filter {
         outcome.recorded += usize::from(recorded);
         if kept || !self.only {
             s.used += usize::from(kept);
+            if recorded {
+                outcome.built_recorded.insert(name.to_string());
+            }
             true
         } else {
             s.left_out += 1;
@@ -90,6 +113,16 @@ impl Filter {
     /// Recorded permutations that no kept permutation matched (renamed or skipped since).
     pub fn unknown(&self, outcome: &Outcome) -> usize {
         self.recorded.len().saturating_sub(outcome.recorded)
+    }
+
+    /// Fills `outcome`'s pipeline manifest: the recorded pipelines whose every permutation
+    /// the build keeps, in first-use order, and counts the others.
+    pub fn manifest(&self, outcome: &mut Outcome) {
+        let built = |key: &UsageKey| key.permutations().iter().all(|n| outcome.built_recorded.contains(*n));
+        let (kept, left): (Vec<&PipelineRecord>, Vec<&PipelineRecord>) =
+            self.pipelines.iter().partition(|r| built(&r.key));
+        outcome.pipelines = kept.into_iter().cloned().collect();
+        outcome.pipelines_left_out = left.len();
     }
 }
 
@@ -109,6 +142,13 @@ impl Outcome {
             .collect();
         if only && !out.is_empty() {
             s.push_str(&format!(": {}", out.join(", ")));
+        }
+        s.push_str(&format!("\nnote: the archive's pipeline manifest holds {} pipelines", self.pipelines.len()));
+        if self.pipelines_left_out > 0 {
+            s.push_str(&format!(
+                "; {} recorded pipelines are left out of it (a permutation of theirs is not in the archive)",
+                self.pipelines_left_out
+            ));
         }
         if self.unknown > 0 {
             s.push_str(&format!(

@@ -26,6 +26,10 @@ pub struct Args {
     /// Print every permutation's canonical name, one per line.
     #[arg(long, conflicts_with_all = ["permutation", "json"])]
     pub list: bool,
+    /// Print the pipeline manifest (`kiln build --usage`): one pipeline a line, in the order
+    /// a renderer creates them (with `--json`, a JSON object).
+    #[arg(long, conflicts_with_all = ["permutation", "list"])]
+    pub pipelines: bool,
     /// The target whose artifact to print: wgsl, spirv, msl, glsl or hlsl.
     #[arg(long, short = 't', requires = "permutation", conflicts_with = "reflection")]
     pub target: Option<String>,
@@ -47,6 +51,9 @@ pub fn exec(args: Args) -> CliResult {
         _ => Failure::usage(format!("error: {}: {e}", args.archive.display())),
     };
     let archive = Archive::open(&args.archive).map_err(damaged)?;
+    if args.pipelines {
+        return print_stdout(&pipelines(archive.pipeline_manifest(), args.json));
+    }
     if args.list {
         // Every record is checked before the first name is printed; then the names are
         // streamed (at 1M permutations, the list is about 60 MB).
@@ -87,6 +94,36 @@ pub fn exec(args: Args) -> CliResult {
         "error: say what to show of `{}`: --target T (its artifact) or --reflection",
         escape(p.name())
     )))
+}
+
+/// The pipeline manifest as text (`render VERTEX FRAGMENT|- STATE FIRST_FRAME`, `compute
+/// PERMUTATION FIRST_FRAME`, names escaped) or as JSON (`{"pipelines": [...]}`, `null` for
+/// an archive without one).
+fn pipelines(manifest: Option<&[kiln::archive::PipelineRecord]>, json: bool) -> String {
+    use kiln::archive::usage::UsageKey;
+    if json {
+        let mut s = serde_json::to_string_pretty(&serde_json::json!({ "pipelines": manifest })).expect("json");
+        s.push('\n');
+        return s;
+    }
+    let Some(manifest) = manifest else {
+        return "no pipeline manifest (the archive was built without `--usage`)\n".to_string();
+    };
+    let mut s = format!("{} pipelines, in first-use order:\n", manifest.len());
+    for r in manifest {
+        let _ = match &r.key {
+            UsageKey::Compute { compute } => writeln!(s, "compute {} {}", escape(compute), r.first_frame),
+            UsageKey::Render { vertex, fragment, state } => writeln!(
+                s,
+                "render {} {} {} {}",
+                escape(vertex),
+                escape(fragment.as_deref().unwrap_or("-")),
+                escape(state),
+                r.first_frame
+            ),
+        };
+    }
+    s
 }
 
 /// The permutation `name` names: its canonical name, or the same with enum values given by

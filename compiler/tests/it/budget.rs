@@ -215,27 +215,91 @@ fn usage_only_builds_the_recorded_the_kept_and_the_always_permutations() {
     let o = kiln(d, &["inspect", "one.kpak", "LitPS@sm5{USE_FOG=1,BLEND=OPAQUE,NUM_LIGHTS=2}", "--reflection"]);
     assert_eq!(o.status.code(), Some(2));
 
-    // Nothing left out: the archive is a whole one, byte for byte the plain build's.
+    // Nothing left out: the archive is a whole one, the plain build's permutations plus the
+    // pipeline manifest.
     let all = lit.replace("levels = [\"sm5\", \"es3_1\"]\n", "levels = [\"sm5\", \"es3_1\"]\nalways = true\n");
     std::fs::write(d.join("all.toml"), all).unwrap();
     let o = kiln(d, &["build", "--config", "all.toml", "--usage", "frame.usage", "--usage-only", "-o", "all.kpak"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let o = kiln(d, &["build", "--config", "lit.toml", "-o", "plain.kpak"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert_eq!(std::fs::read(d.join("all.kpak")).unwrap(), std::fs::read(d.join("plain.kpak")).unwrap());
+    let same_permutations = |a: &str, b: &str| {
+        let list = |f: &str| stdout(&kiln(d, &["inspect", f, "--list"]));
+        assert!(!list(a).is_empty());
+        assert_eq!(list(a), list(b));
+    };
+    same_permutations("all.kpak", "plain.kpak");
+    assert!(stdout(&kiln(d, &["inspect", "all.kpak", "--pipelines"])).starts_with("1 pipelines"));
 
-    // `--usage` alone builds everything (the recorded permutations first): the same archive.
+    // `--usage` alone builds everything (the recorded permutations first): the same
+    // permutations, and the manifest.
     let o = kiln(
         d,
         &["build", "--config", "lit.toml", "--usage", "frame.usage", "-j", "2", "-o", "first.kpak", "--no-cache"],
     );
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("note: the usage files record 2 of the permutations built"), "{}", stderr(&o));
-    assert_eq!(std::fs::read(d.join("first.kpak")).unwrap(), std::fs::read(d.join("plain.kpak")).unwrap());
+    same_permutations("first.kpak", "plain.kpak");
 
     // A usage file that is not one is a located error, exit 2.
     std::fs::write(d.join("bad.usage"), "kiln-usage 1\nrender x\n").unwrap();
     let o = kiln(d, &["build", "--config", "lit.toml", "--usage", "bad.usage", "--usage-only"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("bad.usage: line 2: expected"), "{}", stderr(&o));
+}
+
+#[test]
+fn usage_builds_store_a_pipeline_manifest_that_inspect_lists() {
+    let fx = fixture();
+    let d = fx.path();
+    // Three pipelines: one the archive holds (frame 0), a compute of a permutation it holds
+    // (frame 1), one of a permutation the set does not keep (left out of the manifest), and
+    // a crafted permutation name that must come out escaped.
+    let usage = format!(
+        "{LIT_USAGE}render LitVS@sm5{{USE_FOG=1,DEBUG_VIEW=0}} LitPS@sm5{{USE_FOG=9,BLEND=OPAQUE,NUM_LIGHTS=2}} \
+         TriangleList 1 0\nrender LitVS@sm5{{USE_FOG=0,DEBUG_VIEW=0}} - PointList;\u{1b}[31m 2 1\n"
+    );
+    std::fs::write(d.join("frame.usage"), usage).unwrap();
+    let o = kiln(
+        d,
+        &["build", "--config", "lit.toml", "--usage", "frame.usage", "-o", "with.kpak", "--stats-json", "stats.json"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap();
+    assert_eq!((v["pipelines"].as_u64(), v["pipelines_left_out"].as_u64()), (Some(2), Some(1)));
+    assert!(
+        stderr(&o).contains(
+            "note: the archive's pipeline manifest holds 2 pipelines; 1 recorded pipelines are left out of it \
+             (a permutation of theirs is not in the archive)"
+        ),
+        "{}",
+        stderr(&o)
+    );
+    let text = stdout(&kiln(d, &["inspect", "with.kpak", "--pipelines"]));
+    assert_eq!(
+        text,
+        "2 pipelines, in first-use order:\n\
+         render LitVS@sm5{USE_FOG=0,DEBUG_VIEW=0} LitPS@sm5{USE_FOG=0,BLEND=OPAQUE,NUM_LIGHTS=2} TriangleList 0\n\
+         render LitVS@sm5{USE_FOG=0,DEBUG_VIEW=0} - PointList;\\u{1b}[31m 1\n"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&stdout(&kiln(d, &["inspect", "with.kpak", "--pipelines", "--json"]))).unwrap();
+    let list = json["pipelines"].as_array().unwrap();
+    assert_eq!(list.len(), 2);
+    assert_eq!(list[0]["kind"], "render");
+    assert_eq!(list[0]["fragment"], "LitPS@sm5{USE_FOG=0,BLEND=OPAQUE,NUM_LIGHTS=2}");
+    assert_eq!((list[0]["first_frame"].as_u64(), list[1]["first_frame"].as_u64()), (Some(0), Some(1)));
+    assert_eq!(list[1]["fragment"], serde_json::Value::Null);
+
+    // Without `--usage`: no manifest, and the archive is the plain one.
+    let o = kiln(d, &["build", "--config", "lit.toml", "-o", "plain.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&kiln(d, &["inspect", "plain.kpak", "--pipelines"])).starts_with("no pipeline manifest"));
+    let json = stdout(&kiln(d, &["inspect", "plain.kpak", "--pipelines", "--json"]));
+    assert_eq!(json, "{\n  \"pipelines\": null\n}\n");
+    // The manifest is part of the build's fingerprint: the same output path, rebuilt with
+    // usage, is rewritten.
+    let o = kiln(d, &["build", "--config", "lit.toml", "--usage", "frame.usage", "-o", "plain.kpak"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(d.join("plain.kpak")).unwrap(), std::fs::read(d.join("with.kpak")).unwrap());
 }

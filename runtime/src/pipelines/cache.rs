@@ -52,8 +52,8 @@ pub(super) struct CacheInner {
     spirv: HashMap<kiln_archive::BlobId, Arc<SpirvModule>>,
     used: std::collections::BTreeSet<String>,
     layouts: HashMap<Vec<wgpu::BindGroupLayoutEntry>, wgpu::BindGroupLayout>,
-    render: HashMap<RenderKey, Arc<RenderPipeline>>,
-    compute: HashMap<ComputeKey, Arc<ComputePipeline>>,
+    pub(super) render: HashMap<RenderKey, Arc<RenderPipeline>>,
+    pub(super) compute: HashMap<ComputeKey, Arc<ComputePipeline>>,
     stats: CacheStats,
     /// What was asked for, by frame ([`super::usage`]).
     pub(super) recorder: super::usage::Recorder,
@@ -65,8 +65,11 @@ pub struct PipelineCache {
     pub(super) device: wgpu::Device,
     pub(super) passthrough: bool,
     pub(super) limits: wgpu::Limits,
-    pub(super) inner: Mutex<CacheInner>,
+    /// Shared with the worker views of [`super::missing`] and [`super::precache`]; never
+    /// held across a wgpu call, so that workers create in parallel.
+    pub(super) inner: Arc<Mutex<CacheInner>>,
     pub(super) disk: Option<DiskCache>,
+    pub(super) background: Arc<super::inflight::Background>,
 }
 
 impl PipelineCache {
@@ -92,8 +95,9 @@ impl PipelineCache {
             archive,
             device: device.clone(),
             limits: device.limits(),
-            inner: Mutex::default(),
+            inner: Arc::default(),
             disk: None,
+            background: Arc::default(),
         }
     }
 
@@ -156,8 +160,9 @@ impl PipelineCache {
             device: self.device.clone(),
             passthrough,
             limits: self.limits.clone(),
-            inner: Mutex::new(inner),
+            inner: Arc::new(Mutex::new(inner)),
             disk: self.disk.as_ref().map(|d| DiskCache { cache: d.cache.clone(), path: d.path.clone() }),
+            background: Arc::new(self.background.carried()),
         }
     }
 
@@ -234,10 +239,7 @@ impl PipelineCache {
             }
             let words = parsed.remap_bindings(|g, b| bindings.get(g, b)).unwrap_or_else(|| parsed.words.clone());
             let module = create_spirv_module(&self.device, name, words, reflection)?;
-            let mut inner = self.lock();
-            inner.stats.modules += 1;
-            inner.modules.insert(key, module.clone());
-            return Ok(module);
+            return Ok(self.keep_module(key, module));
         }
         let Some(blob) = perm.blob_id(Target::Wgsl) else {
             let targets = perm.targets().map(|t| t.name()).collect::<Vec<_>>().join(", ");
@@ -249,10 +251,23 @@ impl PipelineCache {
         }
         let wgsl = artifact(&perm, Target::Wgsl)?.unwrap_or_default();
         let module = create_wgsl_module(&self.device, name, &wgsl)?;
+        Ok(self.keep_module(key, module))
+    }
+
+    /// Caches `module` unless another thread cached one of `key` meanwhile (that one is
+    /// kept, so that every pipeline shares it).
+    fn keep_module(
+        &self,
+        key: (Target, kiln_archive::BlobId, Vec<u32>),
+        module: wgpu::ShaderModule,
+    ) -> wgpu::ShaderModule {
         let mut inner = self.lock();
+        if let Some(m) = inner.modules.get(&key) {
+            return m.clone();
+        }
         inner.stats.modules += 1;
         inner.modules.insert(key, module.clone());
-        Ok(module)
+        module
     }
 
     /// A render pipeline for (vertex permutation, fragment permutation, state), created on
@@ -278,6 +293,11 @@ impl PipelineCache {
 
     /// The render pipeline of `key`, found or created, not recorded as used by a frame.
     pub(super) fn create_render(&self, key: &RenderKey) -> Result<Arc<RenderPipeline>, PipelineError> {
+        if let Some(p) = self.lock().render.get(key) {
+            return Ok(p.clone());
+        }
+        // One thread creates a key; the others wait for it and find it.
+        let _claim = self.background.claim(PipelineKey::Render(key.clone()));
         if let Some(p) = self.lock().render.get(key) {
             return Ok(p.clone());
         }
@@ -359,6 +379,10 @@ impl PipelineCache {
         if let Some(p) = self.lock().compute.get(key) {
             return Ok(p.clone());
         }
+        let _claim = self.background.claim(PipelineKey::Compute(key.clone()));
+        if let Some(p) = self.lock().compute.get(key) {
+            return Ok(p.clone());
+        }
         let name = key.compute.as_str();
         let reflection = self.reflection(name, Stage::Compute)?;
         let layout = self.layout(name, &[&reflection])?;
@@ -414,17 +438,24 @@ impl PipelineCache {
         let mut bind_group_layouts = Vec::with_capacity(groups.len());
         for (g, bindings) in groups.iter().enumerate() {
             let entries = bindings.iter().map(|b| layout_entry(label, b)).collect::<Result<Vec<_>, _>>()?;
-            let mut inner = self.lock();
-            let layout = match inner.layouts.get(&entries) {
-                Some(l) => l.clone(),
+            let found = self.lock().layouts.get(&entries).cloned();
+            let layout = match found {
+                Some(l) => l,
                 None => {
                     let l = self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                         label: Some(short_label(&format!("{label} group {g}"))),
                         entries: &entries,
                     });
-                    inner.stats.bind_group_layouts += 1;
-                    inner.layouts.insert(entries, l.clone());
-                    l
+                    // Another thread may have made the same one meanwhile: keep the first.
+                    let mut inner = self.lock();
+                    match inner.layouts.get(&entries) {
+                        Some(first) => first.clone(),
+                        None => {
+                            inner.stats.bind_group_layouts += 1;
+                            inner.layouts.insert(entries, l.clone());
+                            l
+                        }
+                    }
                 }
             };
             bind_group_layouts.push(layout);

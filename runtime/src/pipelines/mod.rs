@@ -16,15 +16,23 @@
 //! One concern per file: [`state`] (fixed-function state and pipeline keys), [`modules`]
 //! (shader modules and wgpu error scopes), [`layouts`] (bind group and pipeline layouts from
 //! reflection), [`limits`] (reflection against the device's limits), [`cache`] (the pipeline
-//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk) and [`usage`] (what the
-//! frames asked for, as `kiln_archive::usage` files).
+//! cache), [`disk_cache`] (wgpu's driver pipeline cache on disk), [`usage`] (what the
+//! frames asked for, as `kiln_archive::usage` files), [`state_text`] (a usage file's
+//! render state text read back into a [`RenderState`]), [`precache`] (an archive's pipeline
+//! manifest created on worker threads) and [`missing`] (what a frame gets when a pipeline is
+//! not ready: [`Missing`]), over [`inflight`] (the in-flight set that makes every key's
+//! creation happen once, and the background job queue).
 
 mod cache;
 mod disk_cache;
+mod inflight;
 mod layouts;
 mod limits;
+mod missing;
 mod modules;
+mod precache;
 mod state;
+mod state_text;
 #[cfg(test)]
 mod tests;
 mod usage;
@@ -39,10 +47,14 @@ pub use cache::{CacheStats, ComputePipeline, PipelineCache, RenderPipeline};
 pub use kiln_archive::usage::{Usage, UsageError, UsageKey, UseCount};
 pub use layouts::{merge_bindings, storage_format, MergedBinding, PipelineLayoutInfo};
 pub use limits::check_limits;
+pub use missing::{Fallback, Missing, Ready};
 pub use modules::{create_spirv_module, create_wgsl_module, short_label, ErrorScopes};
+pub use precache::{manifest_keys, Precache, PrecacheError, Progress};
 pub use state::{
     Blend, ColorTarget, ComputeKey, DepthState, PipelineKey, RenderKey, RenderState, VertexBuffer, VertexLayout,
 };
+pub use state_text::StateTextError;
+pub use usage::state_text;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {

@@ -93,7 +93,7 @@ impl PipelineCache {
 }
 
 /// `{:?}` without spaces.
-fn compact(v: impl std::fmt::Debug) -> String {
+pub(super) fn compact(v: impl std::fmt::Debug) -> String {
     format!("{v:?}").replace(' ', "")
 }
 

@@ -43,5 +43,6 @@ mod preprocess_fuzz;
 mod preprocess_map;
 mod runtime_archive;
 mod runtime_pipelines;
+mod runtime_precache;
 mod runtime_render;
 mod usage;

@@ -43,6 +43,28 @@ fn gpu(module_source: ModuleSource) -> kiln_runtime::validation::CheckedGpu {
 }
 
 #[test]
+fn every_recorded_render_state_reads_back_to_its_text() {
+    use kiln_runtime::pipelines::{state_text, RenderState};
+    let gpu = gpu(ModuleSource::Auto);
+    let mut states = std::collections::BTreeSet::new();
+    for pipeline in [FramePipeline::Desktop, FramePipeline::MobileForward, FramePipeline::MobileDeferred] {
+        let usage = Usage::parse(&record(&gpu, pipeline, 1)).unwrap();
+        for key in usage.records.keys() {
+            if let UsageKey::Render { state, .. } = key {
+                states.insert(state.clone());
+            }
+        }
+    }
+    // The frames draw with many states: depth only, blending, stencil, vertex layouts.
+    assert!(states.len() >= 10, "{states:?}");
+    assert!(states.iter().any(|s| s.contains("stencil=")) || states.iter().any(|s| s.contains("depth=-")));
+    for text in &states {
+        let state = RenderState::from_state_text(text).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(&state_text(&state), text);
+    }
+}
+
+#[test]
 fn recorded_frames_merge_in_any_order_to_the_same_bytes() {
     let gpu = gpu(ModuleSource::Auto);
     let runs = [

@@ -9,9 +9,10 @@ use std::sync::Arc;
 
 use clap::{Parser, ValueEnum};
 use kiln_renderer::frame::{write_dump, DumpInfo};
+use kiln_renderer::renderer::FrameOutput;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
-use kiln_runtime::pipelines::PipelineCache;
+use kiln_runtime::pipelines::{manifest_keys, Fallback, Missing, PipelineCache, Precache};
 use kiln_runtime::{Backend, Gpu, GpuOptions, ShaderArchive};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -19,6 +20,15 @@ enum PipelineArg {
     Desktop,
     MobileForward,
     MobileDeferred,
+}
+
+/// What `--no-stall` draws while a pipeline is created.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum StallArg {
+    /// Skip the draw.
+    Skip,
+    /// Draw with the nearest ready permutation of the same shader (same bindings).
+    Nearest,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -92,9 +102,19 @@ struct Args {
     /// `kiln usage merge` and `kiln build --usage` read.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
     record_usage: Option<PathBuf>,
+    /// Do not create the archive's pipeline manifest (`kiln build --usage`) before the first
+    /// frame. Without this flag an archive with a manifest has every pipeline of it created
+    /// on worker threads first (alongside the frames with `--no-stall`).
+    #[arg(long)]
+    no_precache: bool,
+    /// Never block a frame on a pipeline: one that is not ready is created on a worker
+    /// thread and its draws are skipped meanwhile (`--no-stall=nearest`: drawn with the
+    /// nearest ready permutation of the same shader with the same bindings).
+    #[arg(long, value_enum, value_name = "FALLBACK", num_args = 0..=1, require_equals = true, default_missing_value = "skip")]
+    no_stall: Option<StallArg>,
     /// Write the run's pipeline and frame timings as JSON: pipelines_created_before_first_frame,
     /// pipelines_created_during_frames, first_frame_ms, slowest_frame_ms, frames,
-    /// fallback_draws.
+    /// fallback_draws, precached.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
     stats_json: Option<PathBuf>,
     /// With --watch: stop after this many reloads (failed ones included).
@@ -108,6 +128,14 @@ impl Args {
             PipelineArg::Desktop => FramePipeline::Desktop,
             PipelineArg::MobileForward => FramePipeline::MobileForward,
             PipelineArg::MobileDeferred => FramePipeline::MobileDeferred,
+        }
+    }
+
+    fn missing(&self) -> Missing {
+        match self.no_stall {
+            None => Missing::Block,
+            Some(StallArg::Skip) => Missing::Background { fallback: Fallback::Skip },
+            Some(StallArg::Nearest) => Missing::Background { fallback: Fallback::Nearest },
         }
     }
 
@@ -303,104 +331,52 @@ fn run(args: &Args) -> Result<(), Failure> {
     if let Some(config) = &args.watch {
         return watch::run(args, config);
     }
-    let archive = match &args.shaders {
-        Some(path) => {
-            let archive = ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?;
-            if args.trust_shaders {
-                // SAFETY: the user states the archive is Kiln's own, unaltered (`--trust-shaders`).
-                unsafe { archive.assume_trusted() }
-            } else {
-                archive
-            }
-        }
-        None => kiln_renderer::embedded_archive().map_err(|e| Failure::Usage(format!("embedded archive: {e}")))?,
-    };
-    let (pipeline, backend) = (args.frame_pipeline(), args.backend());
+    let archive = open_archive(args)?;
     let gpu = args.gpu()?;
     if args.verify {
         return verify(&gpu, archive);
     }
-    let (width, height) = args.size;
-    let scene = Scene::bundled();
-    let archive = Arc::new(archive);
-    let cache = match pipeline_cache_dir(args) {
-        Some(dir) => {
-            let (cache, warning) = PipelineCache::with_disk_cache(&gpu, archive, &dir);
-            if let Some(w) = warning {
-                eprintln!("warning: {w}");
-            }
-            cache
-        }
-        None => PipelineCache::new(&gpu, archive),
-    };
-    let renderer = Renderer::with_cache(
-        &gpu,
-        cache,
-        &scene,
-        RendererOptions { pipeline, width, height, comparison: args.comparison },
-    )
-    .map_err(|e| match e {
-        // A permutation the frame needs is missing from the archive: the archive is wrong.
-        kiln_renderer::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
-            Failure::Usage(format!("{l}"))
-        }
-        e => Failure::Render(e.to_string()),
-    })?;
+    let cache = new_cache(args, &gpu, Arc::new(archive));
+    cache.set_missing(args.missing());
     let pipelines = |s: kiln_runtime::pipelines::CacheStats| s.render_pipelines + s.compute_pipelines;
-    let before_first_frame = pipelines(renderer.cache_stats());
-    let frame_ms = std::cell::RefCell::new(Vec::new());
-    let render = |capture| {
-        let start = std::time::Instant::now();
-        let frame = renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
-        frame_ms.borrow_mut().push(start.elapsed().as_secs_f64() * 1000.0);
-        renderer.pipeline_cache().next_frame();
-        frame
-    };
-    let mut frame = render(false)?;
-    for _ in 1..args.frames {
-        frame = render(false)?;
+    let mut precache = Precaching::start(args, &cache)?;
+    if args.missing() == Missing::Block {
+        // Blocking frames wait for the manifest first: no frame creates a pipeline.
+        precache.finish();
     }
+    let renderer = new_renderer(args, &gpu, cache)?;
+    let before_first_frame = pipelines(renderer.cache_stats());
+    let mut frame_ms = Vec::new();
+    let mut frame = render_frame(&renderer, false, &mut frame_ms)?;
+    for _ in 1..args.frames {
+        frame = render_frame(&renderer, false, &mut frame_ms)?;
+    }
+    let during_frames = pipelines(renderer.cache_stats()) - before_first_frame;
+    let precached = precache.finish();
     if let Some(path) = &args.stats_json {
-        let ms = frame_ms.borrow();
         let stats = serde_json::json!({
-            "pipeline": pipeline.name(),
-            "frames": ms.len(),
+            "pipeline": args.frame_pipeline().name(),
+            "frames": frame_ms.len(),
             "pipelines_created_before_first_frame": before_first_frame,
-            "pipelines_created_during_frames": pipelines(renderer.cache_stats()) - before_first_frame,
-            "first_frame_ms": ms.first().copied().unwrap_or(0.0),
-            "slowest_frame_ms": ms.iter().copied().fold(0.0, f64::max),
-            // No draw is ever skipped or drawn with a stand-in permutation: every pipeline
-            // is created before it is used.
-            "fallback_draws": 0,
+            "pipelines_created_during_frames": during_frames,
+            "first_frame_ms": frame_ms.first().copied().unwrap_or(0.0),
+            "slowest_frame_ms": frame_ms.iter().copied().fold(0.0, f64::max),
+            "fallback_draws": renderer.pipeline_cache().fallbacks(),
+            "precached": precached,
         });
-        let text = serde_json::to_string_pretty(&stats).expect("JSON of numbers") + "\n";
-        kiln_archive::write_atomic(path, text.as_bytes())
-            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))?;
+        write_file(path, (serde_json::to_string_pretty(&stats).expect("JSON of numbers") + "\n").as_bytes())?;
     }
     if let Some(path) = &args.record_usage {
-        let usage = renderer.pipeline_cache().usage();
-        kiln_archive::write_atomic(path, usage.to_text().as_bytes())
-            .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))?;
+        write_file(path, renderer.pipeline_cache().usage().to_text().as_bytes())?;
     }
     if let Err(e) = renderer.pipeline_cache().save() {
         eprintln!("warning: cannot write the pipeline cache: {e}");
     }
-    if args.validation {
-        gpu.wait();
-        let messages = kiln_runtime::validation::take();
-        if !messages.is_empty() {
-            return Err(Failure::Render(format!(
-                "{} validation message(s) over {} frame(s):\n{}",
-                messages.len(),
-                args.frames,
-                messages.join("\n")
-            )));
-        }
-    }
+    check_validation(args, &gpu)?;
     if args.dump_passes.is_some() {
         // Captures copy every pass's output inside the frame; the GPU times come from the
         // frame without them.
-        let timed = std::mem::replace(&mut frame, render(true)?);
+        let timed = std::mem::replace(&mut frame, render_frame(&renderer, true, &mut frame_ms)?);
         for (captured, timed) in frame.passes.iter_mut().zip(&timed.passes) {
             captured.gpu_ms = timed.gpu_ms;
             for (step, t) in captured.steps.iter_mut().zip(&timed.steps) {
@@ -408,8 +384,121 @@ fn run(args: &Args) -> Result<(), Failure> {
             }
         }
     }
-    kiln_archive::write_atomic(&args.out, &frame.image.to_png())
-        .map_err(|e| Failure::Render(format!("cannot write {}: {e}", args.out.display())))?;
+    write_outputs(args, &gpu, &renderer, &frame)
+}
+
+/// The `--shaders` archive (trusted with `--trust-shaders`), else the embedded one.
+fn open_archive(args: &Args) -> Result<ShaderArchive, Failure> {
+    let Some(path) = &args.shaders else {
+        return kiln_renderer::embedded_archive().map_err(|e| Failure::Usage(format!("embedded archive: {e}")));
+    };
+    let archive = ShaderArchive::open(path).map_err(|e| Failure::Usage(e.to_string()))?;
+    if args.trust_shaders {
+        // SAFETY: the user states the archive is Kiln's own, unaltered (`--trust-shaders`).
+        Ok(unsafe { archive.assume_trusted() })
+    } else {
+        Ok(archive)
+    }
+}
+
+/// The pipeline cache, with the driver's cache on disk unless told otherwise.
+fn new_cache(args: &Args, gpu: &Gpu, archive: Arc<ShaderArchive>) -> PipelineCache {
+    match pipeline_cache_dir(args) {
+        Some(dir) => {
+            let (cache, warning) = PipelineCache::with_disk_cache(gpu, archive, &dir);
+            if let Some(w) = warning {
+                eprintln!("warning: {w}");
+            }
+            cache
+        }
+        None => PipelineCache::new(gpu, archive),
+    }
+}
+
+/// The archive's pipeline manifest being created on worker threads (`--no-precache`: not).
+struct Precaching {
+    running: Option<Precache>,
+    /// Pipelines it created or found, once finished.
+    done: usize,
+}
+
+impl Precaching {
+    fn start(args: &Args, cache: &PipelineCache) -> Result<Precaching, Failure> {
+        let manifest = cache.archive().pipeline_manifest().filter(|_| !args.no_precache);
+        let running = match manifest {
+            Some(records) => {
+                let keys = manifest_keys(records)
+                    .map_err(|e| Failure::Usage(format!("the archive's pipeline manifest: {e}")))?;
+                Some(cache.precache(keys))
+            }
+            None => None,
+        };
+        Ok(Precaching { running, done: 0 })
+    }
+
+    /// Waits for it (warning of each pipeline it could not create); returns how many it
+    /// created or found.
+    fn finish(&mut self) -> usize {
+        if let Some(p) = self.running.take() {
+            let total = p.progress().total;
+            let failed = p.wait();
+            for e in &failed {
+                eprintln!("warning: precaching: {e}");
+            }
+            self.done = total - failed.len();
+        }
+        self.done
+    }
+}
+
+fn new_renderer(args: &Args, gpu: &Gpu, cache: PipelineCache) -> Result<Renderer, Failure> {
+    let (width, height) = args.size;
+    let options = RendererOptions { pipeline: args.frame_pipeline(), width, height, comparison: args.comparison };
+    Renderer::with_cache(gpu, cache, &Scene::bundled(), options).map_err(|e| match e {
+        // A permutation the frame needs is missing from the archive: the archive is wrong.
+        kiln_renderer::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
+            Failure::Usage(format!("{l}"))
+        }
+        e => Failure::Render(e.to_string()),
+    })
+}
+
+/// One frame, its wall time added to `frame_ms`; then the cache's next frame.
+fn render_frame(renderer: &Renderer, capture: bool, frame_ms: &mut Vec<f64>) -> Result<FrameOutput, Failure> {
+    let start = std::time::Instant::now();
+    let frame = renderer.render(capture).map_err(|e| Failure::Render(e.to_string()));
+    frame_ms.push(start.elapsed().as_secs_f64() * 1000.0);
+    renderer.pipeline_cache().next_frame();
+    frame
+}
+
+fn write_file(path: &std::path::Path, bytes: &[u8]) -> Result<(), Failure> {
+    kiln_archive::write_atomic(path, bytes)
+        .map_err(|e| Failure::Render(format!("cannot write {}: {e}", path.display())))
+}
+
+/// `--validation`: the messages the API reported, as a failure.
+fn check_validation(args: &Args, gpu: &Gpu) -> Result<(), Failure> {
+    if !args.validation {
+        return Ok(());
+    }
+    gpu.wait();
+    let messages = kiln_runtime::validation::take();
+    if messages.is_empty() {
+        return Ok(());
+    }
+    Err(Failure::Render(format!(
+        "{} validation message(s) over {} frame(s):\n{}",
+        messages.len(),
+        args.frames,
+        messages.join("\n")
+    )))
+}
+
+/// Writes the image, the `--dump-passes` folder, and the summary line.
+fn write_outputs(args: &Args, gpu: &Gpu, renderer: &Renderer, frame: &FrameOutput) -> Result<(), Failure> {
+    let (pipeline, backend, (width, height)) = (args.frame_pipeline(), args.backend(), args.size);
+    write_file(&args.out, &frame.image.to_png())?;
     if let Some(dir) = &args.dump_passes {
         let permutations = renderer.pipeline_cache().permutations_used();
         let info = DumpInfo {

@@ -278,3 +278,78 @@ fn record_usage_and_stats_json_describe_the_frames() {
     assert!(v["first_frame_ms"].as_f64().unwrap() > 0.0);
     assert!(v["slowest_frame_ms"].as_f64().unwrap() >= v["first_frame_ms"].as_f64().unwrap());
 }
+
+/// `kiln build --usage` of a recorded run gives an archive with a pipeline manifest, which
+/// kiln-view creates before the first frame: no frame creates a pipeline. `--no-precache`
+/// leaves it to the renderer.
+#[test]
+fn a_pipeline_manifest_is_precached_before_the_first_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let base = ["--pipeline", "mobile-forward", "--size", "64x36", "--no-pipeline-cache", "--frames", "2"];
+    let o = kiln_view(&[&base[..], &["--record-usage", "frames.usage"]].concat(), d);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let options = kiln::build::Options {
+        config: root.join("permutations.toml"),
+        output: Some(d.join("with.kpak")),
+        cache: kiln::build::CacheDir::Disabled,
+        usage: vec![d.join("frames.usage")],
+        levels: vec!["es3_1".into()],
+        jobs: Some(2),
+        ..kiln::build::Options::default()
+    };
+    kiln::build::run(&options).unwrap_or_else(|e| panic!("{e}"));
+    let usage = std::fs::read_to_string(d.join("frames.usage")).unwrap();
+    let recorded = kiln_runtime::pipelines::Usage::parse(&usage).unwrap().records.len() as u64;
+    let archive = kiln_archive::Archive::open(&d.join("with.kpak")).unwrap();
+    assert_eq!(archive.pipeline_manifest().map(|m| m.len() as u64), Some(recorded));
+    assert!(recorded > 0);
+
+    let stats = |extra: &[&str]| -> serde_json::Value {
+        let args = [&base[..], &["--shaders", "with.kpak", "--stats-json", "stats.json"], extra].concat();
+        let o = kiln_view(&args, d);
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_slice(&std::fs::read(d.join("stats.json")).unwrap()).unwrap()
+    };
+    let counts = |v: &serde_json::Value| {
+        ["precached", "pipelines_created_before_first_frame", "pipelines_created_during_frames", "fallback_draws"]
+            .map(|k| v[k].as_u64().unwrap_or_else(|| panic!("{k} in {v}")))
+    };
+    assert_eq!(counts(&stats(&[])), [recorded, recorded, 0, 0]);
+    // Without precaching the renderer creates the same pipelines as it is built.
+    assert_eq!(counts(&stats(&["--no-precache"])), [0, recorded, 0, 0]);
+    // `--no-stall` precaches alongside: the renderer, built before the first frame, waits for
+    // the pipelines being created rather than creating them again.
+    let v = stats(&["--no-stall"]);
+    assert_eq!(counts(&v)[..3], [recorded, recorded, 0]);
+    let v = stats(&["--no-stall=nearest", "--no-precache"]);
+    assert_eq!(counts(&v)[..3], [0, recorded, 0]);
+    let o = kiln_view(&["--no-stall=sideways"], d);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+/// A pipeline manifest whose state text does not read is a usage error naming the field,
+/// before any frame.
+#[test]
+fn a_manifest_state_that_does_not_read_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = kiln_archive::ArchiveWriter::new();
+    w.set_pipelines(vec![kiln_archive::PipelineRecord {
+        key: kiln_archive::usage::UsageKey::Render {
+            vertex: "V@sm5{}".into(),
+            fragment: None,
+            state: "TriangleList;cull=Sideways".into(),
+        },
+        first_frame: 0,
+    }]);
+    w.write(&dir.path().join("bad.kpak")).unwrap();
+    let o = kiln_view(&["--shaders", "bad.kpak"], dir.path());
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).starts_with("error: the archive's pipeline manifest: render state text"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("field `cull`"), "{}", stderr(&o));
+    // Without precaching the manifest is not read: the frame's missing permutation is the error.
+    let o = kiln_view(&["--shaders", "bad.kpak", "--no-precache"], dir.path());
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("is not in the archive"), "{}", stderr(&o));
+}
