@@ -215,6 +215,19 @@ impl ByPermutation {
         self.entries.get(self.of[i] as usize)
     }
 
+    /// Reserves the manifest's exact size in `w`, so that its arenas are allocated once.
+    fn reserve_manifest(&self, plan: &Plan<'_>, w: &StreamingWriter) {
+        let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
+        for i in 0..plan.len() {
+            let Some(e) = self.get(i) else { continue };
+            n += 1;
+            names += plan.name(i).len();
+            values += plan.shader_level(i).0.dimensions.len();
+            artifacts += e.count as usize;
+        }
+        w.reserve(n, names, values, artifacts);
+    }
+
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
         let range = e.first as usize..(e.first + e.count) as usize;
         let a = &self.artifacts;
@@ -453,16 +466,7 @@ impl<'p> Assembler<'p> {
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
         if let Some(w) = &writer {
-            // The manifest's exact size: its arenas are allocated once.
-            let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
-            for i in 0..plan.len() {
-                let Some(e) = produced.get(i) else { continue };
-                n += 1;
-                names += plan.name(i).len();
-                values += plan.shader_level(i).0.dimensions.len();
-                artifacts += e.count as usize;
-            }
-            w.reserve(n, names, values, artifacts);
+            produced.reserve_manifest(plan, w);
         }
         for i in 0..plan.len() {
             let Some(entry) = produced.get(i) else { continue };
@@ -482,17 +486,8 @@ impl<'p> Assembler<'p> {
             }
             written.permutation_artifacts += artifacts.len();
             let Some(w) = &writer else { continue };
-            let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
-                name: shader_of.name.clone(),
-                level: level.name.clone(),
-                entry: shader_of.entry.clone(),
-                stage: shader_of.stage,
-                dimensions: shader_of
-                    .dimensions
-                    .iter()
-                    .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
-                    .collect(),
-            });
+            let shader =
+                shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
             w.add_permutation_numbered(NewPermutation {
                 name,
                 shader,
@@ -507,10 +502,7 @@ impl<'p> Assembler<'p> {
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
-            let json = serde_json::to_vec_pretty(&index).expect("index serializes");
-            let path = dir.join("index.json");
-            archive::write_atomic_unsynced(&path, &json)
-                .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+            write_index(dir, &index)?;
         }
         if let (Some(out), Some(w)) = (&options.output, writer) {
             let summary = w.finish_unsynced().map_err(archive_error)?;
@@ -522,6 +514,29 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
+}
+
+/// The manifest's record of a shader at a level.
+fn shader_record(shader: &crate::permute::Shader, level: &crate::permute::Level) -> ShaderRecord {
+    ShaderRecord {
+        name: shader.name.clone(),
+        level: level.name.clone(),
+        entry: shader.entry.clone(),
+        stage: shader.stage,
+        dimensions: shader
+            .dimensions
+            .iter()
+            .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
+            .collect(),
+    }
+}
+
+/// `--emit-dir`'s `index.json`: each permutation's loose files by target.
+fn write_index(dir: &std::path::Path, index: &BTreeMap<String, BTreeMap<&'static str, &str>>) -> Result<(), Error> {
+    let json = serde_json::to_vec_pretty(index).expect("index serializes");
+    let path = dir.join("index.json");
+    archive::write_atomic_unsynced(&path, &json)
+        .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))
 }
 
 #[cfg(test)]
