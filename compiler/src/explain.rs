@@ -236,7 +236,7 @@ fn module_group(
         .filter(|q| same(q) && q.is_kept() && q.error.is_none())
         .collect();
     // Each permutation's compacted module, its text dropped once hashed (every kept text at
-    // once was about 200 MB at 100k permutations); each distinct token stream is validated
+    // once would grow with the set); each distinct token stream is validated
     // once (two threads may both validate one: the same answer).
     let modules: std::sync::Mutex<HashMap<blake3::Hash, Result<blake3::Hash, String>>> = Default::default();
     let of: Vec<Option<Result<blake3::Hash, String>>> = kept

@@ -36,8 +36,8 @@ struct KeyEntry {
 /// What stays of the keys produced, as they are produced: each key's record (its key,
 /// reflection number, and each artifact's target and blob number: 40 bytes and 5 per
 /// artifact) goes to an unlinked temporary file, read back by [`Assembler::finish`] once the
-/// stages before it have let go of their tables (at 100k permutations, about 6 MB less at
-/// the build's peak). In memory where no temporary file can be made.
+/// stages before it have let go of their tables, so that it adds nothing to the build's
+/// peak. In memory where no temporary file can be made.
 struct Log {
     records: Records,
     /// Records written.
@@ -189,8 +189,8 @@ impl Produced {
     }
 }
 
-/// [`Produced::by_permutation`]: at 100k permutations about 4 MB, where the keys produced and
-/// `pre` took about 13.
+/// [`Produced::by_permutation`]: a fraction of what the keys produced and `pre` took, which
+/// it replaces.
 struct ByPermutation {
     of: Vec<u32>,
     entries: Vec<KeyEntry>,
@@ -200,7 +200,7 @@ struct ByPermutation {
 }
 
 /// Artifacts one after another: each one's target and blob number, 5 bytes (a table of
-/// pairs takes 8: at 100k permutations, 0.9 MB more while the manifest is added).
+/// pairs takes 8, held while the manifest is added).
 struct Artifacts {
     targets: Vec<Target>,
     numbers: Vec<u32>,
@@ -364,7 +364,7 @@ impl<'p> Assembler<'p> {
     }
 
     /// No more artifacts come: the archive writer lets go of the table that finds its blobs
-    /// by content (about 2 MB at 100k permutations).
+    /// by content (it grows with the set).
     pub fn seal_blobs(&self) {
         if let Some(w) = &self.writer {
             w.seal_blobs();

@@ -105,7 +105,7 @@ fn members_by_key(of: Vec<u32>, count: usize) -> (Vec<u32>, Vec<u32>) {
 }
 
 /// The distinct keys of a build, by first appearance, with their permutations. A key is
-/// its first member's (in `pre`): not a copy of each (about 2.4 MB at 100k permutations).
+/// its first member's (in `pre`): not a copy of each, which would grow with the set.
 pub(super) struct Keys<'p> {
     pre: &'p Preprocessed,
     /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.

@@ -234,7 +234,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     // Every artifact is in: the archive's table that finds blobs by content goes.
     assembler.seal_blobs();
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
-    // The keys' tables are not needed past here (about 6 MB at 100k permutations).
+    // The keys' tables are not needed past here.
     drop((keys, compiler));
     trace_memory("compile");
     report.warnings(store.finish());

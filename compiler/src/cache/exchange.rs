@@ -157,8 +157,8 @@ impl Cache {
     /// Appends the newest local entry of `key` to `out`; whether there was one. Only its
     /// magic and key are checked: a build that assembles compiled or checked (on lookup or
     /// from the remote) every entry of its keys, and its readers check the entry's own
-    /// checksum on use (a blake3 of the 130 MB of a 10k set's entries would cost the writing
-    /// build about a tenth of a second more).
+    /// checksum on use (a blake3 of every entry would add a noticeable share to the writing
+    /// build's time).
     pub(super) fn append_local_entry(&self, key: &Key, out: &mut Vec<u8>) -> bool {
         let Some(l) = self.with_index(|index| index.by_key.get(key).cloned()) else {
             return false;

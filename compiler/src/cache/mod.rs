@@ -71,7 +71,7 @@ const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x03";
 const REMOTE_MAGIC_V2: &[u8; 8] = b"KILNCER\x02";
 const REMOTE_HEADER: usize = 8 + 16;
 const RECORD_EXTENSION: &str = "kpp";
-/// The largest records file read (a record is 64 bytes: about 16M permutations).
+/// The largest records file read (far more records than a set has permutations).
 const MAX_RECORDS: u64 = 1 << 30;
 /// Pack header: magic, entry count (u64), blake3 of the index rows.
 const PACK_HEADER: usize = 8 + 8 + 32;
@@ -375,8 +375,8 @@ impl Cache {
     }
 
     /// This cache, with the entries put through it left out of its in-memory index: a
-    /// build never looks up a key it compiled, and at 100k keys the index of its own puts
-    /// is about 10 MiB of its peak. Remote hits filled into the local cache still join it
+    /// build never looks up a key it compiled, and the index of its own puts grows with the
+    /// set at its peak. Remote hits filled into the local cache still join it
     /// (the build looks them up after a batched fill). A put key is then a miss through
     /// this `Cache` until its index is read again (after [`Cache::release_index`]).
     pub fn without_indexing_puts(mut self) -> Cache {
@@ -416,7 +416,7 @@ impl Cache {
         f(index.get_or_insert_with(|| self.read_index()))
     }
 
-    /// Frees the in-memory index of every pack (about 70 bytes per key); the next lookup
+    /// Frees the in-memory index of every pack (an entry per key); the next lookup
     /// reads it again. A build calls this once it looks nothing up any more, before it writes
     /// the archive.
     pub fn release_index(&self) {
@@ -427,8 +427,8 @@ impl Cache {
         let mut index = Index::default();
         let packs: Vec<PathBuf> = self.files().map(|(path, _)| path).filter(|p| Self::is_pack(p)).collect();
         // The map at its size once (the packs' headers say how many rows they hold), not
-        // doubled while the packs are read: at 75k keys the old and new tables of a doubling
-        // were about 11 MB at once. Slots never filled are never touched.
+        // doubled while the packs are read: a doubling holds the old and new tables at once.
+        // Slots never filled are never touched.
         let rows: u64 = packs.iter().filter_map(|p| pack_rows(p)).sum();
         index.by_key.reserve(usize::try_from(rows).unwrap_or(0));
         for path in packs {
@@ -653,9 +653,9 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
 /// A remote cache value: [`REMOTE_MAGIC`], the xxh3-128 of the key and the entry, the entry
 /// (as a pack holds it). The value's checksum guards against damage and truncation (not
 /// against a hostile server, which could write any value under any key whatever the hash):
-/// one pass of a non-cryptographic hash over a whole buffer, which a fill checks about ten
-/// times faster than a blake3 (a blake3 of the 130 MB of a 10k set's entries was a fifth of
-/// a warm-remote build's CPU). The entry's own checksum (blake3) is checked when the entry
+/// one pass of a non-cryptographic hash over a whole buffer, which a fill checks many
+/// times faster than a blake3 (a blake3 of every entry was a large share of a warm-remote
+/// build's CPU). The entry's own checksum (blake3) is checked when the entry
 /// is used.
 fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     let entry = codec::encode(key, c, hashes, &HashMap::new());

@@ -276,7 +276,8 @@ pub fn preprocess_file_id(file: FileId, opts: &Options, cache: &SourceCache) -> 
 /// Renders diagnostics as text the way rustc does (codespan), optionally with ANSI colour.
 ///
 /// A source line longer than [`MAX_SHOWN_LINE`] bytes is shown cut to the parts around its
-/// labels (`…` for the rest): a diagnostic on a 50 MB line is a few lines, not 50 MB.
+/// labels (`…` for the rest): a diagnostic on a line of megabytes is a few lines, not the
+/// whole line.
 pub fn render(diagnostics: &[Diagnostic<FileId>], cache: &SourceCache, color: bool) -> String {
     use codespan_reporting::term;
     let config = term::Config::default();
