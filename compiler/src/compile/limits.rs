@@ -61,6 +61,9 @@ impl Default for Limits {
     }
 }
 
+/// How `word` builds an error: message, the binding it points at, the label, the note.
+type Fail<'a> = dyn Fn(String, Option<usize>, &str, String) -> Error + 'a;
+
 impl Limits {
     /// wgpu's `Limits::defaults()`.
     pub fn desktop() -> Limits {
@@ -245,12 +248,7 @@ impl Limits {
     }
 
     /// `word` for a violation of one binding: the error points at it.
-    fn word_binding(
-        &self,
-        reflection: &Reflection,
-        v: Violation,
-        fail: &dyn Fn(String, Option<usize>, &str, String) -> Error,
-    ) -> Error {
+    fn word_binding(&self, reflection: &Reflection, v: Violation, fail: &Fail<'_>) -> Error {
         let level = self.name;
         let stage = reflection.stage;
         let name = |i: usize| reflection.bindings[i].name.as_deref().unwrap_or("<unnamed>").to_string();
@@ -318,7 +316,7 @@ impl Limits {
 
     /// `word` for a violation of the stage as a whole: vertex inputs, color
     /// outputs, workgroup size.
-    fn word_stage(&self, v: Violation, fail: &dyn Fn(String, Option<usize>, &str, String) -> Error) -> Error {
+    fn word_stage(&self, v: Violation, fail: &Fail<'_>) -> Error {
         let level = self.name;
         match v {
             V::VertexInputs { count } => fail(

@@ -1257,6 +1257,7 @@ impl Pp<'_> {
     /// A `#` in a function-like macro's body (`t`, errors at `site`): with the parameter or
     /// `__VA_OPT__` after it, it becomes one stringifying token. Whether that is a
     /// `__VA_OPT__`.
+    #[inline]
     fn body_stringify(&mut self, r: &mut DefReader, shape: &Shape, t: &mut Tok, site: &mut Tok) -> PResult<bool> {
         let next = self.def_peek(r)?;
         if let Some(n) = next.filter(|n| shape.variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
@@ -1280,6 +1281,7 @@ impl Pp<'_> {
 
     /// An identifier in a body: numbered when it names a parameter; cpp's warnings for
     /// `__VA_ARGS__` and `__VA_OPT__` outside a variadic macro when `warn`.
+    #[inline]
     fn body_ident(&mut self, shape: &Shape, t: &mut Tok, site: &Tok, warn: bool) {
         if shape.func {
             if let Some(pi) = shape.index.get(&t.sym).copied() {
@@ -1395,6 +1397,7 @@ impl Pp<'_> {
 }
 
 /// Past the whitespace and whole block comments from `p` at a line's start.
+#[inline]
 fn skip_blank(source: &SourceFile, mut p: usize) -> usize {
     loop {
         let (kind, len) = source.lex(p);
@@ -1428,6 +1431,7 @@ fn skip_line(bytes: &[u8], mut p: usize) -> Result<usize, usize> {
 
 /// Appends body token `t` while fewer than `keep` are kept; past that the body is only
 /// checked, so it is dropped and the rest of its words need not be interned.
+#[inline]
 fn keep_body_token(body: &mut Option<Vec<Tok>>, r: &mut DefReader, t: Tok, keep: usize) {
     let Some(b) = body.as_mut() else {
         return;

@@ -471,6 +471,7 @@ impl Pp<'_> {
     /// GNU `, ## __VA_ARGS__` (the comma `b`, the parameter `p`): absent variable arguments
     /// drop the comma; empty ones leave it (pasted with a placemarker); otherwise the comma
     /// stays unpasted and the arguments go in unexpanded, as `##` operands do.
+    #[inline]
     fn push_va_comma(&self, out: &mut Vec<Tok>, b: Tok, p: Tok, args: &[Vec<Tok>], absent_va: bool) {
         let arg = args.get(p.param as usize).cloned().unwrap_or_default();
         let va_paste = p.flags & PASTE_LEFT;
@@ -492,6 +493,7 @@ impl Pp<'_> {
 
     /// `#x` (the body token `b`): the argument as one string literal, made once per
     /// parameter and kept in `strung`.
+    #[inline]
     fn push_stringified(
         &mut self,
         out: &mut Vec<Tok>,
@@ -520,6 +522,7 @@ impl Pp<'_> {
 
     /// A parameter (the body token `b`, after `prev`) replaced by its argument: raw next to
     /// `##` (a placemarker when empty), else fully expanded, between cpp's paddings.
+    #[inline]
     fn push_arg(
         &mut self,
         out: &mut Vec<Tok>,

@@ -1069,6 +1069,7 @@ impl<'a> Pp<'a> {
 
     /// A string literal (an error) or character constant (a warning) with no closing quote
     /// at `pos` of the file text.
+    #[cold]
     fn unterminated_literal(&mut self, kind: Kind, ctx: u32, pos: usize) -> PResult<()> {
         if matches!(kind, Kind::Str { .. }) {
             return self.err_at(
