@@ -288,9 +288,9 @@ pub(crate) struct Manifest {
 }
 
 /// Where the permutations of a manifest (or of a writer, before they are sorted) keep their
-/// names, values and artifacts: about 70 bytes a permutation, where whole names, 8-byte
-/// values and (target, blob) pairs took about 100 (the writer's largest table at 100k
-/// permutations, held at the build's end).
+/// names, values and artifacts: names less their shared prefix, narrow values and artifacts
+/// in two parallel lists, which hold less than whole names, 8-byte values and (target, blob)
+/// pairs (this is the writer's largest table, held at the build's end).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Arenas {
     /// Each shader's `name@level`, the start of its permutations' canonical names.

@@ -178,7 +178,7 @@ impl<'a> PermutationRef<'a> {
         page[index % VALUE_PAGE].get_or_init(|| self.decode_values().collect())
     }
     /// Its dimension values, decoded from the manifest each call and not kept (a walk of
-    /// every permutation's [`PermutationRef::values`] keeps about 64 bytes each).
+    /// every permutation's [`PermutationRef::values`] keeps a page entry for each).
     pub fn decode_values(&self) -> impl Iterator<Item = i64> + 'a {
         let archive = self.archive;
         // In range and checked: the record was checked before this reference was made.
@@ -724,8 +724,8 @@ impl Archive {
 
     /// Drops the pages of a mapped archive that reads have touched from this process's
     /// resident set: they stay in the page cache and fault back in (minor faults) on the next
-    /// read. A walk of every record of a 100k-permutation archive touched about 12 MB of
-    /// them, so a tool's peak grew with the archive. Nothing for an archive in memory;
+    /// read. A walk of every record touches pages in proportion to the archive, so without
+    /// this a tool's peak grew with the archive. Nothing for an archive in memory;
     /// failing is harmless.
     pub fn release_pages(&self) {
         if let Bytes::Mapped(m) = &self.bytes {

@@ -174,7 +174,7 @@ struct IdentStore {
     pending: Vec<Ident>,
 }
 
-/// Identities held in memory before a file is written (64 KiB).
+/// Identities held in memory before a file is written.
 const IDENT_CHUNK: usize = 4096;
 
 impl IdentStore {
@@ -313,7 +313,7 @@ impl BlobTable {
     }
 
     /// Calls `f` with the id and location of every blob of the archive, in the order of the
-    /// log (one pass over it, 64 KiB at a time), `id_of` giving each slot's id.
+    /// log (one pass over it, a buffer at a time), `id_of` giving each slot's id.
     fn scan(&mut self, id_of: &[u32], mut f: impl FnMut(usize, Loc)) -> std::io::Result<()> {
         let mut offset = 0u64;
         let mut put = |record: &[u8]| -> std::io::Result<()> {
@@ -353,7 +353,7 @@ impl BlobTable {
     }
 
     /// The locations of the blobs `ids` (a window of the archive's blobs: where all of them
-    /// lie takes 12 bytes a blob, 2.4 MB at 100k permutations, held at the build's end).
+    /// lie takes 12 bytes a blob, held at the build's end, where the build peaks).
     fn locations(&mut self, id_of: &[u32], ids: std::ops::Range<usize>) -> std::io::Result<BlobLocs> {
         let mut locs = BlobLocs { first: ids.start, offsets: vec![u64::MAX; ids.len()], lens: vec![0; ids.len()] };
         self.scan(id_of, |id, loc| {
@@ -1353,9 +1353,8 @@ fn compress_blob(raw: Cow<'_, [u8]>, dict: Option<(usize, &zstd::zstd_safe::CDic
 }
 
 /// Compresses `raw` with `cdict` attached, not copied: zstd's own choice, for inputs of more
-/// than a few KiB, copies the dictionary's match tables into the context before every blob
-/// (256 SPIR-V artifacts of about 17 KiB, their 90 KiB dictionary, measured in process: 9.5
-/// to 13.5 ms copied, 7.4 ms attached, and 0.1% smaller). The frame is the one
+/// than a few kilobytes, copies the dictionary's match tables into the context before every
+/// blob, which costs more time than attaching them and saves next to no space. The frame is the one
 /// `ZSTD_compress_usingCDict` writes (content size and dictionary id, no checksum), and
 /// deterministic: same input, dictionary and level, same bytes. Gives whether it compressed,
 /// and whether the context is clean again (it must not keep referring to `cdict`, which the
@@ -1495,8 +1494,8 @@ fn spill_manifest<'a>(
 
 /// Bytes written ahead of where the archive takes them: the blob table while the blobs and
 /// the manifest are written (it comes last in the file), and the manifest while the blobs
-/// are. With a spool file, in that file past the blobs (the table of a 100k-permutation set
-/// is about 13 MB that memory need not hold, its manifest about 20 MB); else in memory.
+/// are. With a spool file, in that file past the blobs (both grow with the set, and memory
+/// need not hold them); else in memory.
 enum SpillBuf<'a> {
     Memory(Vec<u8>),
     File { file: &'a File, start: u64, written: u64, pending: Vec<u8> },

@@ -4,7 +4,7 @@ use std::fmt::Write;
 
 use codespan_reporting::diagnostic::Diagnostic;
 
-use crate::permute::{analyze, Config, Define, NotFound, RuleResult};
+use crate::permute::{analyze, Config, Define, NotFound, Permutation, RuleResult, Shader};
 use crate::preprocess::{self, FileId, SourceCache};
 
 /// One permutation explained.
@@ -46,9 +46,6 @@ const GROUP_LIMIT: u128 = 100_000;
 /// its shader and level (for the group).
 pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Explanation, NotFound> {
     let p = config.find(name)?;
-    let name = p.name();
-    let defines = p.defines();
-    let rules = p.skip_results();
     let (files, hash, error) =
         match preprocess::preprocess_file(&p.shader.source_path, &p.preprocess_options(config), cache) {
             Ok(out) => (out.files.iter().map(|f| cache.name(*f)).collect(), Some(out.token_hash()), None),
@@ -77,10 +74,34 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
         None => Err("preprocessing failed".to_string()),
     };
 
+    let mut e = Explanation {
+        name: p.name(),
+        kept: p.skipped_by.is_none(),
+        defines: p.defines(),
+        rules: p.skip_results(),
+        files,
+        hash,
+        group,
+        module_group,
+        error,
+        text: String::new(),
+    };
     let mut t = String::new();
+    write_header(&mut t, &e, &p, cache);
+    write_defines(&mut t, &e.defines);
+    write_rules(&mut t, &e.rules, p.shader);
+    write_files(&mut t, &e.files);
+    write_dedup_group(&mut t, &e, &p, grouped);
+    write_module_group(&mut t, &e, &p);
+    e.text = t;
+    Ok(e)
+}
+
+/// The permutation's name, shader, source, level, status and error.
+fn write_header(t: &mut String, e: &Explanation, p: &Permutation<'_>, cache: &SourceCache) {
     let s = p.shader;
     let l = p.level;
-    let _ = writeln!(t, "{name}");
+    let _ = writeln!(t, "{}", e.name);
     let _ = writeln!(t, "  shader:  {} ({}, entry {})", s.name, s.stage, s.entry);
     let _ = writeln!(t, "  source:  {} ({})", s.source, cache.display_name(&s.source_path));
     let targets: Vec<&str> = l.targets.iter().map(|t| t.name()).collect();
@@ -100,7 +121,10 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     if let Some(e) = &p.error {
         let _ = writeln!(t, "  error:   {e}");
     }
+}
 
+/// The defines in effect, aligned in columns, with their origins.
+fn write_defines(t: &mut String, defines: &[Define]) {
     let _ = writeln!(t, "\ndefines:");
     // Columns are aligned up to a width; a longer name runs past its column (a format width
     // must fit in a u16).
@@ -109,15 +133,18 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
     if defines.is_empty() {
         let _ = writeln!(t, "  (none)");
     }
-    for d in &defines {
+    for d in defines {
         let _ = writeln!(t, "  {:<wn$} = {:>wv$}  {}", d.name, d.value, d.origin);
     }
+}
 
+/// Each skip rule of the shader `s` and its verdict.
+fn write_rules(t: &mut String, rules: &[RuleResult], s: &Shader) {
     let _ = writeln!(t, "\nskip rules:");
     if rules.is_empty() {
         let _ = writeln!(t, "  (none)");
     }
-    for r in &rules {
+    for r in rules {
         let rule = &s.skip[r.index];
         let verdict = match &r.matched {
             Ok(true) => "matches".to_string(),
@@ -126,61 +153,61 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
         };
         let _ = writeln!(t, "  {}. {}: {verdict} ({})", r.index + 1, rule.when, rule.why);
     }
+}
 
+/// The files preprocessing read.
+fn write_files(t: &mut String, files: &[String]) {
     let _ = writeln!(t, "\nfiles read:");
     if files.is_empty() {
         let _ = writeln!(t, "  (none: preprocessing failed)");
     }
-    for f in &files {
+    for f in files {
         let _ = writeln!(t, "  {f}");
     }
+}
 
-    match hash {
-        Some(h) => {
-            let _ = writeln!(t, "\ntoken hash: {}", h.to_hex());
-            let others = group.iter().filter(|g| **g != name).count();
-            if !grouped {
-                let _ = writeln!(
-                    t,
-                    "dedup group: not computed ({}@{} keeps more than {GROUP_LIMIT} permutations)",
-                    s.name, l.name
-                );
-            } else if others == 0 {
-                let _ = writeln!(
-                    t,
-                    "dedup group: no other kept permutation of {}@{} has this token stream",
-                    s.name, l.name
-                );
-            } else {
-                let _ = writeln!(
-                    t,
-                    "dedup group: {} kept permutation(s) of {}@{} have this token stream and compile once:",
-                    group.len(),
-                    s.name,
-                    l.name
-                );
-                for g in &group {
-                    let _ = writeln!(t, "  {g}{}", if *g == name { "  (this one)" } else { "" });
-                }
-            }
-        }
-        None => {
-            let _ = writeln!(t, "\ntoken hash: (none: preprocessing failed)");
+/// The token hash and the permutations that share it (`grouped`: the group was computed).
+fn write_dedup_group(t: &mut String, e: &Explanation, p: &Permutation<'_>, grouped: bool) {
+    let Some(h) = e.hash else {
+        let _ = writeln!(t, "\ntoken hash: (none: preprocessing failed)");
+        return;
+    };
+    let (s, l) = (p.shader, p.level);
+    let _ = writeln!(t, "\ntoken hash: {}", h.to_hex());
+    let others = e.group.iter().filter(|g| **g != e.name).count();
+    if !grouped {
+        let _ =
+            writeln!(t, "dedup group: not computed ({}@{} keeps more than {GROUP_LIMIT} permutations)", s.name, l.name);
+    } else if others == 0 {
+        let _ = writeln!(t, "dedup group: no other kept permutation of {}@{} has this token stream", s.name, l.name);
+    } else {
+        let _ = writeln!(
+            t,
+            "dedup group: {} kept permutation(s) of {}@{} have this token stream and compile once:",
+            e.group.len(),
+            s.name,
+            l.name
+        );
+        for g in &e.group {
+            let _ = writeln!(t, "  {g}{}", if *g == e.name { "  (this one)" } else { "" });
         }
     }
+}
 
-    match &module_group {
-        Ok(members) if members.len() > group.len() => {
+/// The permutations whose token streams differ but whose compacted module is this one's.
+fn write_module_group(t: &mut String, e: &Explanation, p: &Permutation<'_>) {
+    match &e.module_group {
+        Ok(members) if members.len() > e.group.len() => {
             let _ = writeln!(
                 t,
                 "compacted module: {} kept permutation(s) of {}@{} compact to this one's module (their token streams differ \
                  only in code the entry point never reaches); the writers run once for all of them:",
                 members.len(),
-                s.name,
-                l.name
+                p.shader.name,
+                p.level.name
             );
             for g in members {
-                let _ = writeln!(t, "  {g}{}", if *g == name { "  (this one)" } else { "" });
+                let _ = writeln!(t, "  {g}{}", if *g == e.name { "  (this one)" } else { "" });
             }
         }
         Ok(_) => {
@@ -190,19 +217,6 @@ pub fn explain(config: &Config, cache: &SourceCache, name: &str) -> Result<Expla
             let _ = writeln!(t, "compacted module: (none: {why})");
         }
     }
-
-    Ok(Explanation {
-        name,
-        kept: p.skipped_by.is_none(),
-        defines,
-        rules,
-        files,
-        hash,
-        group,
-        module_group,
-        error,
-        text: t,
-    })
 }
 
 /// The kept permutations of `p`'s shader and level whose compacted module equals `p`'s
@@ -222,7 +236,7 @@ fn module_group(
         .filter(|q| same(q) && q.is_kept() && q.error.is_none())
         .collect();
     // Each permutation's compacted module, its text dropped once hashed (every kept text at
-    // once was about 200 MB at 100k permutations); each distinct token stream is validated
+    // once would grow with the set); each distinct token stream is validated
     // once (two threads may both validate one: the same answer).
     let modules: std::sync::Mutex<HashMap<blake3::Hash, Result<blake3::Hash, String>>> = Default::default();
     let of: Vec<Option<Result<blake3::Hash, String>>> = kept

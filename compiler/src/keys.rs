@@ -393,6 +393,18 @@ fn emit_enumeration(out: &mut String, fields: &[Field<'_>], shader: &Shader) -> 
     }
     writeln!(out, "        /// How many keys the dimensions' domains hold (skipped ones included).").unwrap();
     writeln!(out, "        pub const COUNT: u64 = {count};\n").unwrap();
+    emit_ordinal(out, fields);
+    emit_from_ordinal(out, fields);
+    out.push_str("        /// Every key of the domains, in enumeration order (skipped ones included).\n");
+    out.push_str(
+        "        pub fn all() -> impl ::core::iter::Iterator<Item = Key> {\n            (0..Key::COUNT).filter_map(Key::from_ordinal)\n        }\n\n",
+    );
+    emit_values(out, fields);
+    Ok(())
+}
+
+/// `Key::ordinal`: the key's position in the enumeration, first dimension slowest.
+fn emit_ordinal(out: &mut String, fields: &[Field<'_>]) {
     out.push_str(
         "        /// The key's position in the enumeration of the shader's permutations at a level (skipped ones\n\
          \x20       /// included; first dimension slowest), or `None` when a value is outside its dimension's domain.\n",
@@ -426,7 +438,10 @@ fn emit_enumeration(out: &mut String, fields: &[Field<'_>], shader: &Shader) -> 
         writeln!(out, "            o = o * {n} + ({index});").unwrap();
     }
     writeln!(out, "            {OPT}::Some(o)\n        }}\n").unwrap();
+}
 
+/// `Key::from_ordinal`: the inverse of `Key::ordinal`.
+fn emit_from_ordinal(out: &mut String, fields: &[Field<'_>]) {
     out.push_str("        /// The key at `ordinal` (see [`Key::ordinal`]); `None` past [`Key::COUNT`].\n");
     writeln!(out, "        pub fn from_ordinal(ordinal: u64) -> {OPT}<Key> {{").unwrap();
     writeln!(out, "            if ordinal >= Key::COUNT {{\n                return {OPT}::None;\n            }}")
@@ -451,13 +466,10 @@ fn emit_enumeration(out: &mut String, fields: &[Field<'_>], shader: &Shader) -> 
         write!(out, "{} {field}: f{i}", if i > 0 { "," } else { "" }).unwrap();
     }
     out.push_str(" })\n        }\n\n");
+}
 
-    out.push_str("        /// Every key of the domains, in enumeration order (skipped ones included).\n");
-    out.push_str(
-        "        pub fn all() -> impl ::core::iter::Iterator<Item = Key> {\n            (0..Key::COUNT).filter_map(Key::from_ordinal)\n        }\n\n",
-    );
-
-    // The values the shader sees.
+/// `Key::values`: each dimension's value as the shader sees it.
+fn emit_values(out: &mut String, fields: &[Field<'_>]) {
     out.push_str("        /// Each dimension's value as the shader sees it, in declared order.\n");
     writeln!(out, "        pub fn values(&self) -> [i64; {}] {{", fields.len()).unwrap();
     let vals: Vec<String> = fields
@@ -468,7 +480,6 @@ fn emit_enumeration(out: &mut String, fields: &[Field<'_>], shader: &Shader) -> 
         })
         .collect();
     writeln!(out, "            [{}]\n        }}\n", vals.join(", ")).unwrap();
-    Ok(())
 }
 
 /// `Key::skip_rule`, from the skip rules translated to Rust per level, and `exists`,

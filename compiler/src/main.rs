@@ -47,7 +47,7 @@ fn release_freed() {
 
 /// zstd's C code (dictionary training, compression contexts) still allocates through glibc,
 /// which gives an arena's free top back to the system at once, so that its next tables fault
-/// in page by page again: 16 MiB of padding stays at each arena's top.
+/// in page by page again: a padding stays at each arena's top.
 fn tune_glibc_malloc() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets a tuning parameter of glibc's allocator; no thread runs yet.
@@ -56,9 +56,9 @@ fn tune_glibc_malloc() {
     }
 }
 
-/// mimalloc (v3) keeps the pages a build frees resident for a second (`purge_delay`, 1000
-/// ms): the tables one stage drops stayed resident under the next stage's, and the peak
-/// depended on timing. 100 ms keeps most of what purging at once gains on the peaks without
+/// mimalloc (v3) keeps the pages a build frees resident for a second (`purge_delay`): the
+/// tables one stage drops stayed resident under the next stage's, and the peak depended on
+/// timing. A short delay keeps most of what purging at once gains on the peaks without
 /// its page faults. `MIMALLOC_PURGE_DELAY` in the environment still wins. Measurements:
 /// `docs/design/2026-11-build-memory-measurements.md`.
 fn tune_mimalloc() {

@@ -36,8 +36,8 @@ struct KeyEntry {
 /// What stays of the keys produced, as they are produced: each key's record (its key,
 /// reflection number, and each artifact's target and blob number: 40 bytes and 5 per
 /// artifact) goes to an unlinked temporary file, read back by [`Assembler::finish`] once the
-/// stages before it have let go of their tables (at 100k permutations, about 6 MB less at
-/// the build's peak). In memory where no temporary file can be made.
+/// stages before it have let go of their tables, so that it adds nothing to the build's
+/// peak. In memory where no temporary file can be made.
 struct Log {
     records: Records,
     /// Records written.
@@ -189,8 +189,8 @@ impl Produced {
     }
 }
 
-/// [`Produced::by_permutation`]: at 100k permutations about 4 MB, where the keys produced and
-/// `pre` took about 13.
+/// [`Produced::by_permutation`]: a fraction of what the keys produced and `pre` took, which
+/// it replaces.
 struct ByPermutation {
     of: Vec<u32>,
     entries: Vec<KeyEntry>,
@@ -200,7 +200,7 @@ struct ByPermutation {
 }
 
 /// Artifacts one after another: each one's target and blob number, 5 bytes (a table of
-/// pairs takes 8: at 100k permutations, 0.9 MB more while the manifest is added).
+/// pairs takes 8, held while the manifest is added).
 struct Artifacts {
     targets: Vec<Target>,
     numbers: Vec<u32>,
@@ -213,6 +213,19 @@ impl ByPermutation {
     /// Permutation `i`'s key's entry, if it is kept.
     fn get(&self, i: usize) -> Option<&KeyEntry> {
         self.entries.get(self.of[i] as usize)
+    }
+
+    /// Reserves the manifest's exact size in `w`, so that its arenas are allocated once.
+    fn reserve_manifest(&self, plan: &Plan<'_>, w: &StreamingWriter) {
+        let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
+        for i in 0..plan.len() {
+            let Some(e) = self.get(i) else { continue };
+            n += 1;
+            names += plan.name(i).len();
+            values += plan.shader_level(i).0.dimensions.len();
+            artifacts += e.count as usize;
+        }
+        w.reserve(n, names, values, artifacts);
     }
 
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
@@ -362,7 +375,7 @@ impl<'p> Assembler<'p> {
     }
 
     /// No more artifacts come: the archive writer lets go of the table that finds its blobs
-    /// by content (about 2 MB at 100k permutations).
+    /// by content (it grows with the set).
     pub fn seal_blobs(&self) {
         if let Some(w) = &self.writer {
             w.seal_blobs();
@@ -464,16 +477,7 @@ impl<'p> Assembler<'p> {
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
         if let Some(w) = &writer {
-            // The manifest's exact size: its arenas are allocated once.
-            let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
-            for i in 0..plan.len() {
-                let Some(e) = produced.get(i) else { continue };
-                n += 1;
-                names += plan.name(i).len();
-                values += plan.shader_level(i).0.dimensions.len();
-                artifacts += e.count as usize;
-            }
-            w.reserve(n, names, values, artifacts);
+            produced.reserve_manifest(plan, w);
         }
         for i in 0..plan.len() {
             let Some(entry) = produced.get(i) else { continue };
@@ -493,17 +497,8 @@ impl<'p> Assembler<'p> {
             }
             written.permutation_artifacts += artifacts.len();
             let Some(w) = &writer else { continue };
-            let shader = shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| ShaderRecord {
-                name: shader_of.name.clone(),
-                level: level.name.clone(),
-                entry: shader_of.entry.clone(),
-                stage: shader_of.stage,
-                dimensions: shader_of
-                    .dimensions
-                    .iter()
-                    .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
-                    .collect(),
-            });
+            let shader =
+                shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
             w.add_permutation_numbered(NewPermutation {
                 name,
                 shader,
@@ -518,10 +513,7 @@ impl<'p> Assembler<'p> {
         super::trace_memory("manifest added");
         written.artifacts = distinct.len();
         if let Some(dir) = &options.emit_dir {
-            let json = serde_json::to_vec_pretty(&index).expect("index serializes");
-            let path = dir.join("index.json");
-            archive::write_atomic_unsynced(&path, &json)
-                .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))?;
+            write_index(dir, &index)?;
         }
         if let (Some(out), Some(w)) = (&options.output, writer) {
             let summary = w.finish_unsynced().map_err(archive_error)?;
@@ -533,6 +525,29 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
+}
+
+/// The manifest's record of a shader at a level.
+fn shader_record(shader: &crate::permute::Shader, level: &crate::permute::Level) -> ShaderRecord {
+    ShaderRecord {
+        name: shader.name.clone(),
+        level: level.name.clone(),
+        entry: shader.entry.clone(),
+        stage: shader.stage,
+        dimensions: shader
+            .dimensions
+            .iter()
+            .map(|d| DimensionRecord { name: d.name.clone(), labels: d.labels.clone() })
+            .collect(),
+    }
+}
+
+/// `--emit-dir`'s `index.json`: each permutation's loose files by target.
+fn write_index(dir: &std::path::Path, index: &BTreeMap<String, BTreeMap<&'static str, &str>>) -> Result<(), Error> {
+    let json = serde_json::to_vec_pretty(index).expect("index serializes");
+    let path = dir.join("index.json");
+    archive::write_atomic_unsynced(&path, &json)
+        .map_err(|e| Error::Io(format!("error: cannot write {}: {e}", path.display())))
 }
 
 #[cfg(test)]

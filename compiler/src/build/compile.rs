@@ -44,7 +44,7 @@ pub(super) enum Outcome {
 }
 
 /// The keys' outcomes, counted: only the few that carry a warning or an error are kept
-/// (an [`Outcome`] a key took 32 bytes, 2.4 MB at 100k keys, where the compile stage peaks).
+/// (an [`Outcome`] a key grew with the set where the compile stage peaks).
 #[derive(Default)]
 pub(super) struct Outcomes {
     pub hits: usize,
@@ -64,9 +64,8 @@ pub(super) struct Compiler<'a> {
     store: &'a Store,
     assembler: &'a Assembler<'a>,
     progress: &'a Progress,
-    /// Keys claimed during preprocessing, by their first 4 bytes (a collision, about one
-    /// key in a 100k set, only moves that key's compile to the compile stage): 4 bytes a
-    /// slot rather than 8, about 0.5 MB less at 100k keys.
+    /// Keys claimed during preprocessing, by their first 4 bytes (a collision, rare, only
+    /// moves that key's compile to the compile stage): 4 bytes a slot rather than 8.
     claimed: Mutex<hashbrown::HashTable<u32>>,
     /// Per kept permutation: whether it produced its key during preprocessing
     /// ([`EARLY_HIT`], [`EARLY_COMPILED`]); one byte each, not a map entry per key.
@@ -89,7 +88,7 @@ impl<'a> Compiler<'a> {
             assembler,
             progress,
             // Sized at its bound up front: growing by doubling holds the old and new tables
-            // at once (about 0.3 MB at 100k keys) where preprocessing peaks.
+            // at once where preprocessing peaks.
             claimed: Mutex::new(hashbrown::HashTable::with_capacity(plan.len())),
             early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
@@ -99,8 +98,8 @@ impl<'a> Compiler<'a> {
         }
     }
 
-    /// Preprocessing is over: lets go of the keys it claimed (0.65 MB at 100k permutations)
-    /// and of the writers' outputs kept for sharing (about 3 MB there).
+    /// Preprocessing is over: lets go of the keys it claimed and of the writers' outputs kept
+    /// for sharing, which would otherwise stay under the next stages.
     pub fn end_early(&self) {
         *self.claimed.lock().expect("no panics while locked") = hashbrown::HashTable::new();
         self.shared.forget();

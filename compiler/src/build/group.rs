@@ -10,10 +10,23 @@ impl Plan<'_> {
     /// The distinct keys in order of first appearance, each with its permutations, and the
     /// keys this process must produce.
     pub fn group<'p>(&self, pre: &'p Preprocessed) -> Result<Keys<'p>, Error> {
-        // Each permutation's key number, by first appearance; then the members of each key,
-        // one after another (counting sort). Keys are found equal by sorting the rows (the
-        // distinct results, about one per key) by key: 12 bytes a row, where a map from key to
-        // number took about 50 a permutation.
+        let (of, count) = self.key_numbers(pre);
+        let (starts, members) = members_by_key(of, count);
+        let mut keys = Keys { pre, starts, members, share: Vec::new() };
+        keys.share = match self.options.shard {
+            None => vec![true; keys.len()],
+            Some(shard) => {
+                let costs = self.key_costs(pre, &keys)?;
+                assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
+            }
+        };
+        Ok(keys)
+    }
+
+    /// Each permutation's key number, by first appearance (`u32::MAX` when it has none), and
+    /// the number of keys. Keys are found equal by sorting the rows (the distinct results,
+    /// about one per key) by key, which holds less than a map from key to number.
+    fn key_numbers(&self, pre: &Preprocessed) -> (Vec<u32>, usize) {
         let rows = pre.row_count();
         let key = |r: u32| pre.row_key(r as usize);
         let mut order: Vec<u32> = (0..rows as u32).collect();
@@ -47,54 +60,52 @@ impl Plan<'_> {
             })
             .collect();
         debug_assert_eq!(count as usize, distinct);
-        drop((same, number));
-        // Numbers of permutations, so below 2^32 ([`Plan::new`]): 4 bytes each, not 8.
-        let count = count as usize;
-        let mut starts = vec![0u32; count + 1];
-        for &k in of.iter().filter(|&&k| k != u32::MAX) {
-            starts[k as usize + 1] += 1;
-        }
-        for k in 0..count {
-            starts[k + 1] += starts[k];
-        }
-        let mut members = vec![0u32; starts[count] as usize];
-        // Each key's next free place: its start, moved one on per member (no second table).
-        for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
-            members[starts[k as usize] as usize] = i as u32;
-            starts[k as usize] += 1;
-        }
-        drop(of);
-        // Each start was moved to the next key's: shift them back.
-        starts.copy_within(0..count, 1);
-        starts[0] = 0;
-        let mut keys = Keys { pre, starts, members, share: Vec::new() };
-        keys.share = match self.options.shard {
-            None => vec![true; keys.len()],
-            Some(shard) => {
-                // Each row's text length, read again (the rows' keys alone are held).
-                let mut text_lens = Vec::with_capacity(rows);
-                pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
-                let costs: Vec<u64> = (0..keys.len())
-                    .map(|k| {
-                        let members = keys.members(k);
-                        let (_, level) = self.shader_level(members[0] as usize);
-                        let len = members
-                            .iter()
-                            .filter_map(|&m| pre.row_number(m as usize))
-                            .map(|r| u64::from(text_lens[r]))
-                            .max();
-                        len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
-                    })
-                    .collect();
-                assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
-            }
-        };
-        Ok(keys)
+        (of, count as usize)
+    }
+
+    /// Each key's cost for `--shard`: its longest member's text times its level's targets.
+    fn key_costs(&self, pre: &Preprocessed, keys: &Keys<'_>) -> Result<Vec<u64>, Error> {
+        // Each row's text length, read again (the rows' keys alone are held).
+        let mut text_lens = Vec::with_capacity(pre.row_count());
+        pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
+        Ok((0..keys.len())
+            .map(|k| {
+                let members = keys.members(k);
+                let (_, level) = self.shader_level(members[0] as usize);
+                let len =
+                    members.iter().filter_map(|&m| pre.row_number(m as usize)).map(|r| u64::from(text_lens[r])).max();
+                len.unwrap_or(0).max(1) * level_targets(level, &self.options.targets).len().max(1) as u64
+            })
+            .collect())
     }
 }
 
+/// `(starts, members)`: the members of each of `count` keys one after another, key `k`'s at
+/// `members[starts[k]..starts[k + 1]]` (a counting sort of `of`, each permutation's key
+/// number). Numbers of permutations, so below 2^32 ([`Plan::new`]).
+fn members_by_key(of: Vec<u32>, count: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut starts = vec![0u32; count + 1];
+    for &k in of.iter().filter(|&&k| k != u32::MAX) {
+        starts[k as usize + 1] += 1;
+    }
+    for k in 0..count {
+        starts[k + 1] += starts[k];
+    }
+    let mut members = vec![0u32; starts[count] as usize];
+    // Each key's next free place: its start, moved one on per member (no second table).
+    for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
+        members[starts[k as usize] as usize] = i as u32;
+        starts[k as usize] += 1;
+    }
+    drop(of);
+    // Each start was moved to the next key's: shift them back.
+    starts.copy_within(0..count, 1);
+    starts[0] = 0;
+    (starts, members)
+}
+
 /// The distinct keys of a build, by first appearance, with their permutations. A key is
-/// its first member's (in `pre`): not a copy of each (about 2.4 MB at 100k permutations).
+/// its first member's (in `pre`): not a copy of each, which would grow with the set.
 pub(super) struct Keys<'p> {
     pre: &'p Preprocessed,
     /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.

@@ -190,19 +190,8 @@ pub fn run(options: &Options) -> Result<Report, Error> {
 fn stages(options: &Options, config: &Config, store: &store::Store, start: Instant) -> Result<Report, Error> {
     let mut report = report::Builder::new(options, start);
     let progress = progress::Progress::new(options.progress);
-    // The last build's preprocessing records beside the plan; a fresh local cache (its
-    // records came from the remote cache) fills their keys from the remote meanwhile, and
-    // while the permutations are matched to them. Not for a shard, which fetches its share.
-    let (plan, last) = rayon::join(
-        || plan::Plan::new(config, options),
-        || {
-            let last = preprocess::LastRecords::load(config, options, store);
-            if options.shard.is_none() {
-                store.prefill(|| last.keys());
-            }
-            last
-        },
-    );
+    // The last build's preprocessing records beside the plan (see `last_records`).
+    let (plan, last) = rayon::join(|| plan::Plan::new(config, options), || last_records(config, options, store));
     let plan = plan?;
     report.planned(&plan);
     budget::permutations(config, &plan, options)?;
@@ -236,39 +225,16 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     );
     trace_memory("group");
 
-    if let Some((counts, from_remote)) = fresh {
+    if let Some(fresh) = fresh {
         progress.finish();
-        let distinct = keys.len();
-        drop(keys);
-        // The cache's index (read to find every key there) goes before the records are made;
-        // when they are the last build's, nothing is made and the build ends here (handing
-        // memory back would only cost time: a few ms of a warm-remote build's 90).
-        report.warnings(store.finish());
-        if !preprocessor.records_unchanged() {
-            release_freed();
-        }
-        preprocessor.save_records(store, &pre);
-        if from_remote {
-            report.remote(store.remote_stats());
-        }
-        return report.up_to_date(distinct, counts);
+        return up_to_date(report, keys, store, &mut preprocessor, &pre, fresh);
     }
-    // Grouping's sort and counting tables go back before the compile stage (about 2 MB at
-    // 100k permutations).
-    release_freed();
-    // The compile stage looks keys up once the prefill is done (else it would ask the remote
-    // for them one by one).
-    store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
-    if options.shard.is_some() {
-        // A shard's share comes from the remote cache in batches, not key by key.
-        let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();
-        store.prefetch(&share);
-    }
+    before_compile(options, store, &keys);
     let outcomes = compiler.run(&keys, &preprocessor);
     // Every artifact is in: the archive's table that finds blobs by content goes.
     assembler.seal_blobs();
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
-    // The keys' tables are not needed past here (about 6 MB at 100k permutations).
+    // The keys' tables are not needed past here.
     drop((keys, compiler));
     trace_memory("compile");
     report.warnings(store.finish());
@@ -287,6 +253,58 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     report.assembled(assembler.finish(pre, store)?);
     trace_memory("assemble");
     report.finish()
+}
+
+/// The last build's preprocessing records; a fresh local cache (its records came from the
+/// remote cache) starts filling their keys from the remote. Not for a shard, which fetches
+/// its share.
+fn last_records(config: &Config, options: &Options, store: &store::Store) -> preprocess::LastRecords {
+    let last = preprocess::LastRecords::load(config, options, store);
+    if options.shard.is_none() {
+        store.prefill(|| last.keys());
+    }
+    last
+}
+
+/// The end of a build whose archive is up to date, or was copied from the remote cache
+/// (`fresh`: its artifact counts, and whether it came from the remote).
+fn up_to_date(
+    mut report: report::Builder<'_>,
+    keys: group::Keys<'_>,
+    store: &store::Store,
+    preprocessor: &mut preprocess::Preprocessor<'_>,
+    pre: &preprocess::Preprocessed,
+    (counts, from_remote): ((usize, usize), bool),
+) -> Result<Report, Error> {
+    let distinct = keys.len();
+    drop(keys);
+    // The cache's index (read to find every key there) goes before the records are made;
+    // when they are the last build's, nothing is made and the build ends here (handing
+    // memory back would only cost time).
+    report.warnings(store.finish());
+    if !preprocessor.records_unchanged() {
+        release_freed();
+    }
+    preprocessor.save_records(store, pre);
+    if from_remote {
+        report.remote(store.remote_stats());
+    }
+    report.up_to_date(distinct, counts)
+}
+
+/// Readies the compile stage: memory handed back, the cache's prefill done, and a shard's
+/// share fetched.
+fn before_compile(options: &Options, store: &store::Store, keys: &group::Keys<'_>) {
+    // Grouping's sort and counting tables go back before the compile stage.
+    release_freed();
+    // The compile stage looks keys up once the prefill is done (else it would ask the remote
+    // for them one by one).
+    store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
+    if options.shard.is_some() {
+        // A shard's share comes from the remote cache in batches, not key by key.
+        let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();
+        store.prefetch(&share);
+    }
 }
 
 /// `KILN_TRACE_MEMORY=1`: the process's resident memory after a stage and its peak so far

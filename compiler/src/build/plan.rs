@@ -293,7 +293,7 @@ impl<'c> Plan<'c> {
     /// The most artifacts of one permutation (the most targets of a level built): with
     /// [`Plan::len`], a bound on what the per-key tables hold. They are allocated at that
     /// bound once rather than grown by doubling: a doubling copies the whole table and
-    /// holds both copies for a moment (1.5x the memory it needs at best, 3x at worst),
+    /// holds both copies for a moment (from half as much again as it needs to three times),
     /// while the untouched part of a large allocation costs no resident memory.
     pub fn max_targets(&self) -> usize {
         self.runs.iter().map(|r| level_targets(r.level, &self.options.targets).len()).max().unwrap_or(0)

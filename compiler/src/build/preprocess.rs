@@ -36,8 +36,8 @@ const FAILED: u32 = u32::MAX;
 /// Each kept permutation's result, in the plan's order: the number of its row (rows are
 /// shared by the permutations that reuse them), or its failure. Of each row only the key is
 /// in memory; the rest (16 bytes: the text's length and the numbers of its lists) stays in
-/// the rows' temporary file and is read again by the few that need it (at 100k
-/// permutations, 1.6 MB less through the compile and assembly stages).
+/// the rows' temporary file and is read again by the few that need it (so it is not held
+/// through the compile and assembly stages).
 pub(super) struct Preprocessed {
     of: Vec<u32>,
     rows: Rows,
@@ -253,8 +253,7 @@ impl<'p> Preprocessor<'p> {
             .map(|(_, _, range)| range.start)
             .collect();
         // Then the permutations the usage files record (`--usage`: compiled first), then the
-        // rest in plan order. The order is made as it is taken, not held as a table (0.4 MB
-        // at 100k permutations).
+        // rest in plan order. The order is made as it is taken, not held as a table.
         let recorded: Vec<usize> = plan.recorded.iter().copied().filter(|i| firsts.binary_search(i).is_err()).collect();
         let ahead = firsts.len() + recorded.len();
         let order = Mutex::new(
@@ -316,8 +315,7 @@ impl<'p> Preprocessor<'p> {
         let (plan, targets) = (self.plan, &self.plan.options.targets);
         // What the rows hold besides their keys, read again: the text's length and the
         // number of its three lists together (few rows differ in them), 8 bytes a row rather
-        // than 16 (0.7 MB less at 100k permutations, where the records are the build's
-        // largest transient).
+        // than 16 (where the records are the build's largest transient).
         let mut rests = Vec::with_capacity(pre.row_count());
         let (mut lists, mut numbers) = (Vec::new(), HashMap::new());
         let read = pre.each_row(|r| {
@@ -452,8 +450,8 @@ impl<'p> Preprocessor<'p> {
 
 /// The rows made while preprocessing, in order: in an unlinked temporary file (48 bytes
 /// each, through a buffer), read back into one table when preprocessing ends, so that
-/// they are not held beside the compile stage's work that overlaps preprocessing (at 100k
-/// permutations, 4.8 MB). In memory where no temporary file can be made.
+/// they are not held beside the compile stage's work that overlaps preprocessing. In
+/// memory where no temporary file can be made.
 struct RowLog {
     out: RowsOut,
     count: u32,
@@ -469,7 +467,7 @@ enum RowsOut {
 /// A row's bytes in a [`RowLog`]'s file.
 const ROW_LEN: usize = 48;
 
-/// Rows read at a time when they are read again (48 KiB).
+/// Rows read at a time when they are read again.
 const ROWS_READ: usize = 1024;
 
 fn encode_row(row: &Row) -> [u8; ROW_LEN] {
@@ -588,7 +586,7 @@ fn signature(values: impl Iterator<Item = i64>) -> Signature {
 ///
 /// A (shader, level)'s results are let go once its last permutation has been taken
 /// (permutations are taken in plan order): the maps hold the largest group's results, not
-/// the whole set's (at 100k permutations, about 2 MB less while preprocessing).
+/// the whole set's.
 #[derive(Default)]
 struct Reuse {
     groups: Mutex<ReuseGroups>,

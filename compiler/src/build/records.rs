@@ -32,7 +32,7 @@ const MAGIC: &[u8; 8] = b"KILNREC\x03";
 /// A permutation's direct key (see `preprocess::direct_key`): the first 16 bytes of a
 /// blake3, as the cache's pack names (a collision among 2^32 permutations has odds of about
 /// 2^-64). 64 bytes a record rather than 84, on disk and in the buffer a build encodes them
-/// in (about 2 MB less at 100k permutations, where the build peaks).
+/// in (where the build peaks).
 pub(super) type Direct = [u8; 16];
 
 /// A file read, with the blake3 of the text the preprocessor read.
@@ -170,7 +170,7 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
 /// The rows are encoded straight into the buffer that is returned (in parallel), sorted
 /// and renumbered there, and the lists written in front of them: nothing per row is held
 /// besides those bytes (a table of (direct key, row) to sort took 36 bytes a permutation
-/// more, about 3.6 MB at 100k).
+/// more).
 pub(super) fn encode(
     count: usize,
     row: impl Fn(usize) -> Option<(Direct, Row)> + Sync,

@@ -376,7 +376,7 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
             // Per set of values of the other dimensions (by a 128-bit hash of them: a
             // collision could only move a warning), its first key, whether it has several
             // members and whether they all have that key: 32 bytes a set, where the sets'
-            // values and members in vectors took about 100 a permutation (4 MB at 100k).
+            // values and members in vectors took several times that a permutation.
             let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::new();
             let mut complete = true;
             for &m in &members {

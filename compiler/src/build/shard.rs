@@ -4,7 +4,7 @@
 //! A shard learns its share only once every key is known (shares are balanced by cost over
 //! all keys), so it cannot compile while it preprocesses, as a plain build does. Rather than
 //! preprocessing its keys' first permutations a second time, it keeps every key's text,
-//! compressed (zstd level 1: about 2.3x on the generated sets), in an unlinked temporary
+//! compressed (zstd's fastest level), in an unlinked temporary
 //! file: memory holds 16 bytes and a table entry per key, and a killed build leaves nothing
 //! behind. A text that cannot be kept (a full disk) is only preprocessed again.
 

@@ -16,10 +16,9 @@ use crate::compile::Compiled;
 use crate::permute::Config;
 
 /// Artifact bytes gathered before a pack is written. They wait in memory (with their
-/// encoding while the pack is written), and a large set always has a pack's worth waiting:
-/// at 100k permutations, 16 MiB here held the preprocessing, group and compile stages at
-/// 42-45 MiB, 4 MiB at 25-29 and 2 MiB at 22-24 (a 10k set, whose peak is the archive's
-/// compression, at 37-44, 24 and 21-22). A 1.3 GB cache is about 600 packs rather than 80.
+/// encoding while the pack is written), and a large set always has a pack's worth waiting,
+/// so a smaller pack lowers the peaks of the preprocessing, group and compile stages; the
+/// cost is more, smaller packs in the cache folder.
 const PACK_BYTES: usize = 2 << 20;
 
 /// A key looked up in the cache.
@@ -76,7 +75,7 @@ fn with_remote(cache: Cache, options: &Options, config: &Config) -> Result<Cache
 /// 32 MiB, plus 256 bytes per byte of its shaders' sources (an entry's artifacts and
 /// reflection come to a few times its preprocessed text), plus 256 bytes per permutation
 /// it may have (a record is 64 bytes; an archive's index rows are smaller). An archive is
-/// far smaller than this (the 10k set's is 7 MB of 130 MB of entries).
+/// far smaller than this (a fraction of its entries).
 fn value_limit(config: &Config) -> u64 {
     let mut sources: Vec<&Path> = config.shaders.iter().map(|s| s.source_path.as_path()).collect();
     sources.sort_unstable();
@@ -308,7 +307,7 @@ impl Store {
     ) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
         let remote = cache.remote()?;
-        // Copied only with a remote (2.4 MB at 100k keys, where grouping peaks).
+        // Copied only with a remote (it grows with the set, where grouping peaks).
         let keys = &keys();
         let (tell, filled) = std::sync::mpsc::channel::<bool>();
         std::thread::scope(|s| {
@@ -333,7 +332,7 @@ impl Store {
                     crate::output::Sink::Temporary => {
                         std::io::Write::write_all(f, archive)?;
                         // Written back now rather than when renamed over an older archive
-                        // (which ext4 then flushes first, about 5 ms for 7 MB at the end).
+                        // (which ext4 then flushes first, at the end of the build).
                         // SAFETY: sync_file_range on a descriptor we own; only a hint.
                         unsafe {
                             use std::os::unix::io::AsRawFd;
@@ -372,8 +371,8 @@ impl Drop for Store {
     }
 }
 
-/// Archives above this size are not stored in the remote cache (redis takes values up to
-/// 512 MiB).
+/// Archives above this size are not stored in the remote cache (below redis's own cap on a
+/// value).
 const MAX_REMOTE_ARCHIVE: u64 = 256 << 20;
 const REMOTE_ARCHIVE_MAGIC: &[u8; 8] = b"KILNAR\0\x01";
 

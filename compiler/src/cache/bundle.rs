@@ -9,8 +9,8 @@
 //! key changes only its own part: after an edit a writer stores the parts of the keys it
 //! changed, not the whole set again. A build with a fresh local cache reads the parts most
 //! of whose keys it lacks as they arrive (a part is never held whole) and asks one `GET`
-//! per key for the rest. With 7,516 keys nginx spent 0.09 s of CPU serving one `GET` per
-//! key, as much as the rest of a warm-remote build (0.12 s).
+//! per key for the rest. Serving one `GET` per key cost a server about as much CPU as the
+//! rest of a warm-remote build.
 //!
 //! A part: [`MAGIC`], then for each key of the part, in order, the key, the length of its
 //! value (u64) and its remote value ([`super::remote_value`], checked by its own checksum
@@ -26,8 +26,8 @@ use super::{Key, REMOTE_HEADER, REMOTE_MAGIC};
 
 /// Fewer keys than this are fetched one `GET` each (pipelined, one batch or two).
 pub(super) const MIN_KEYS: usize = 64;
-/// The most keys of a part (about 17 MB at about 17 KB an entry; the writer holds one part
-/// per worker, 4 MB on average).
+/// The most keys of a part (the writer holds one part per worker, so this bounds its
+/// memory).
 pub(super) const MAX_PART_KEYS: usize = 1024;
 const MAGIC: &[u8; 8] = b"KILNBD\0\x01";
 

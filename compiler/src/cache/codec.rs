@@ -5,15 +5,15 @@
 //! compressed with the dictionary of its kind (its targets' names, `spirv+msl+hlsl+wgsl`)
 //! when the cache has one, else plainly. One frame per entry rather than one per artifact:
 //! a level's sources share names and constants across targets, and per-artifact framing cost
-//! about 40 bytes an artifact (13.55 against 13.04 MB of cache for a 10k set).
+//! a frame header and a weaker match history per artifact.
 //!
 //! A dictionary is trained from a pack of a build that has written enough entries of a kind
 //! without one ([`TRAIN_MIN_PIECES`] in the pack, [`TRAIN_MIN_BYTES`] in the build: a small
-//! build trains none, its fastCover training was 9% of a 100-key cold build), kept in
+//! build trains none, training would be a large share of its time), kept in
 //! the cache folder as `<id>.kcd` (magic, kind length (u8), kind, dictionary) and used by
 //! every later pack; entries name it by its id (16 bytes of the blake3 of its kind and
 //! bytes), so an entry whose dictionary is gone fails to decode and is recompiled. `gc`
-//! keeps dictionaries (about 100 KiB each), `clear` removes them. Remote values and bundle
+//! keeps dictionaries (they are small), `clear` removes them. Remote values and bundle
 //! parts never use a dictionary (another machine lacks it).
 //!
 //! Layout: [`MAGIC`], the entry's checksum (32 bytes, as version 2's: blake3 of the
@@ -36,8 +36,8 @@ pub(super) const DICT_MAGIC: &[u8; 8] = b"KILNCD\0\x01";
 pub(super) const DICT_EXTENSION: &str = "kcd";
 /// Magic, checksum, key, raw length (the dictionary id follows).
 pub(super) const HEADER: usize = 8 + 32 + 32 + 8;
-/// zstd's level with a dictionary: 3 costs a 10k cold build about 7% more CPU than storing
-/// entries raw, 6 about 20% (a cache 1.78x and 1.60x the archive's size at 100k).
+/// zstd's level with a dictionary: higher levels cost a cold build much more CPU for a
+/// cache only a little smaller.
 const LEVEL: i32 = 3;
 /// zstd's level without one (small builds, remote values): the fastest.
 const PLAIN_LEVEL: i32 = 1;

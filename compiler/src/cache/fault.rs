@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 pub(super) const MAX_VALUE: u64 = 1 << 30;
 
 /// The bound of a value when the build has not set one from its own figures: far above
-/// any entry, archive or set of records of the bundled renderer (the largest, a 10k set's
-/// archive, is about 7 MB), far below what a hostile server could send.
+/// any entry, archive or set of records of the bundled renderer and the generated sets,
+/// far below what a hostile server could send.
 pub(super) const DEFAULT_LIMIT: u64 = 64 << 20;
 
 /// How long a whole request may take, beyond its transfer (see [`deadline`]): so many

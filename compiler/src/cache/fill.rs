@@ -22,9 +22,9 @@ use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 /// Several threads push at once: each copies its entry into one of [`SLOTS`] chunks (the
 /// first free one), so that the copies run side by side; the thread that fills a chunk
 /// takes its place in the file and its rows under one short lock and writes it outside.
-/// Entries are written in chunks of at least this size, page-aligned: ext4 takes 130 MB of
-/// entry-sized writes (17 KB, across pages) for about 57 ms of system time, of 1 MiB
-/// aligned ones for about 20 ms (a third of a warm-remote build's CPU was these writes).
+/// Entries are written in chunks of at least this size, page-aligned: ext4 takes several
+/// times the system time for entry-sized writes across pages as for large aligned ones,
+/// and these writes were a large share of a warm-remote build's CPU.
 const CHUNK: usize = 1 << 20;
 const PAGE: u64 = 4096;
 /// Chunks filled at once (one copy each; a fill runs on 4 connections).
@@ -161,7 +161,7 @@ impl FillPack {
     }
 
     /// Writes `bytes` at `at`, its blocks allocated first: ext4 then takes the chunk's pages
-    /// without reserving blocks page by page (10 ms less system time per 130 MB). A file
+    /// without reserving blocks page by page (less system time). A file
     /// system without `fallocate` just writes.
     fn write(&self, bytes: &[u8], at: u64) -> io::Result<()> {
         // SAFETY: fallocate on a descriptor we own; failing only costs its speed-up.

@@ -2,7 +2,7 @@
 //! batch of keys go out in one write on a keep-alive connection, and the responses are read
 //! back in order (RFC 9112 9.3.2: a server answers pipelined requests in the order it
 //! received them). One request per entry cost a fill a send, a wake-up and a round trip
-//! each: with the 7,516 entries of a 10k set, more of its CPU than reading the 130 MB.
+//! each: on a generated set, more of its CPU than reading the entries' bytes.
 //!
 //! Only the fill's batches come this way (`https` and single lookups stay with `ureq`).
 //! Every connect, read and write is bounded by the store's timeout, each response by a
@@ -20,8 +20,8 @@ use std::time::Duration;
 use super::fault::{deadline, transfer_time, Fault, Timed};
 use super::Key;
 
-/// The most keys whose requests go out at once on one connection (about 64 KB of requests
-/// at most: they fit the socket buffers, so writing them never waits for the server to
+/// The most keys whose requests go out at once on one connection (few enough that the
+/// requests fit the socket buffers, so writing them never waits for the server to
 /// read, while it waits for this side to read its answers).
 pub const BATCH: usize = 64;
 /// The largest response head read (status line and headers).

@@ -32,7 +32,7 @@ pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(3);
 /// The most a value's announced length reserves before its bytes arrive (larger values grow
 /// as they do).
 const MAX_RESERVE: usize = 64 << 20;
-/// Keys fetched per round trip by [`Remote::get_each`] (about 3 MB of entries of the
+/// Keys fetched per round trip by [`Remote::get_each`] (a few megabytes of entries of the
 /// bundled renderer's set).
 pub const BATCH: usize = 64;
 /// Connections used at once by [`Remote::get_each`] (each keep-alive; with HTTP, a batch of
@@ -479,7 +479,7 @@ impl Remote {
     }
 
     /// Whether values of many megabytes are read as they arrive ([`Remote::get_streamed`]):
-    /// with HTTP. Redis hands a client each value whole (and takes values up to 512 MiB).
+    /// with HTTP. Redis hands a client each value whole.
     pub(crate) fn streams(&self) -> bool {
         matches!(self.store, Store::Http(_))
     }
@@ -707,8 +707,8 @@ impl RedisStore {
 
     /// The value of `key` into `value`: whether it was there. Over a [`RawRedis`]
     /// connection (an `MGET` of one key) when the server is reached over plain TCP: the
-    /// `redis` crate's parser grew its buffer step by step, each step zeroed and copied (a
-    /// 7 MB archive cost a warm-remote build about a tenth of its CPU).
+    /// `redis` crate's parser grew its buffer step by step, each step zeroed and copied (an
+    /// archive's value cost a warm-remote build a large share of its CPU).
     fn get_into(&self, key: &Key, value: &mut Vec<u8>, limit: u64) -> Result<bool, Fault> {
         if self.raw.address.is_none() {
             let found: Option<Vec<u8>> = self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))?;

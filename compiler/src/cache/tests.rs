@@ -457,7 +457,7 @@ fn a_fill_pack_writes_its_entries_in_chunks_from_several_threads() {
     let dir = tempfile::tempdir().unwrap();
     let big = |i: u32| {
         let mut c = compiled(i as u8);
-        // 5 to 40 KB, not a multiple of a page: chunks end inside entries.
+        // Of several pages and not a multiple of one: chunks end inside entries.
         c.artifacts[1].1 = (0..5_000 + i * 97).flat_map(|n| (n ^ i).to_le_bytes()).collect();
         c
     };
@@ -679,7 +679,7 @@ fn a_big_pack_trains_dictionaries_that_later_entries_use() {
     let keys: Vec<Key> = (0..300).map(|i| key(&format!("similar {i}"))).collect();
     let values: Vec<Compiled> = (0..300).map(similar).collect();
     let entries: Vec<(Key, &Compiled)> = keys.iter().copied().zip(&values).collect();
-    // 100 entries (1.4 MB) are too few to train on; 200 more are enough.
+    // 100 entries are too few to train on; 200 more are enough.
     cache.put_pack(&entries[..100]).unwrap();
     assert_eq!(Cache::open(dir.path()).unwrap().stats().dictionaries, 0);
     cache.put_pack(&entries[100..]).unwrap();

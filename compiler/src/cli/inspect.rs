@@ -56,7 +56,7 @@ pub fn exec(args: Args) -> CliResult {
     }
     if args.list {
         // Every record is checked before the first name is printed; then the names are
-        // streamed (at 1M permutations, the list is about 60 MB).
+        // streamed (the list grows with the set).
         let permutations = archive.permutations().map_err(damaged)?;
         return stream_stdout(|out| {
             for (i, p) in permutations.enumerate() {
@@ -233,7 +233,7 @@ fn stream_stdout(write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<
 }
 
 fn target_sizes(a: &Archive) -> Result<BTreeMap<Target, TargetSizes>, ArchiveError> {
-    // One bit per blob (a set of blob ids was about 30 MB at 1M permutations).
+    // One bit per blob (a set of blob ids grew large with the set).
     let mut seen = vec![0u64; a.blob_count().div_ceil(64)];
     let mut out: BTreeMap<Target, TargetSizes> = BTreeMap::new();
     for (i, p) in a.permutations()?.enumerate() {
@@ -373,7 +373,7 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
     }
     let _ = writeln!(s, "shaders:");
     // Per shader: its count, its first permutation and its distinct reflections (not every
-    // permutation: about 40 MB at 1M).
+    // permutation, which grows with the set).
     let mut by_shader: Vec<(usize, Option<PermutationRef<'_>>, HashSet<u32>)> =
         (0..a.shaders().len()).map(|_| (0, None, HashSet::new())).collect();
     for (i, p) in a.permutations()?.enumerate() {
@@ -430,8 +430,8 @@ fn pretty_at(value: &impl serde::Serialize, indent: usize) -> String {
 }
 
 /// The summary as JSON, written as `serde_json::to_string_pretty` wrote the whole document
-/// (keys sorted), one permutation at a time: the document was about 2.4 GB of
-/// `serde_json::Value` at 100k permutations.
+/// (keys sorted), one permutation at a time: the whole document as `serde_json::Value` grew
+/// many times the archive's size.
 fn json(a: &Archive, targets: BTreeMap<Target, TargetSizes>, out: &mut dyn std::io::Write) -> std::io::Result<()> {
     let targets: serde_json::Map<String, serde_json::Value> = targets
         .into_iter()

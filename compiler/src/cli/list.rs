@@ -85,6 +85,38 @@ pub fn exec(args: Args) -> CliResult {
 /// `kiln list` writing to `out` (the listing) and `err` (warnings).
 pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: bool) -> CliResult {
     let config = load_config(&args.config, color, err)?;
+    check_names(&config, args)?;
+    let shader = args.shader.clone();
+    let level = args.level.clone();
+    let filter = move |s: &permute::Shader, l: &permute::Level| {
+        shader.as_deref().is_none_or(|n| n == s.name) && level.as_deref().is_none_or(|n| n == l.name)
+    };
+
+    let max = config.max_permutations(args.max_permutations);
+    config.check_space(&filter, max, args.all).map_err(|e| Failure::usage(e.render_with(color)))?;
+
+    if args.check_budget {
+        return check_budget(&config, &filter, args, out, err, color);
+    }
+
+    // The names stream out first; the analysis (which preprocesses) comes after.
+    let cache = SourceCache::new(config.dir.clone());
+    let mut listing = Listing {
+        config: &config,
+        filter: &filter,
+        args,
+        cache: &cache,
+        counts: Vec::new(),
+        errors: Vec::new(),
+        analysis: None,
+    };
+    let result = write_result(if args.json { listing.json(out, err) } else { listing.text(out, err) });
+    let _ = write_warnings(err, &listing.errors, listing.analysis.as_ref(), &cache, color);
+    result
+}
+
+/// A usage error when `--shader` or `--level` names none of the set's.
+fn check_names(config: &Config, args: &Args) -> CliResult {
     if let Some(s) = &args.shader {
         if config.shader(s).is_none() {
             let names: Vec<&str> = config.shaders.iter().map(|s| s.name.as_str()).collect();
@@ -105,90 +137,26 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
             )));
         }
     }
-    let shader = args.shader.clone();
-    let level = args.level.clone();
-    let filter = move |s: &permute::Shader, l: &permute::Level| {
-        shader.as_deref().is_none_or(|n| n == s.name) && level.as_deref().is_none_or(|n| n == l.name)
-    };
+    Ok(())
+}
 
-    let max = config.max_permutations(args.max_permutations);
-    config.check_space(&filter, max, args.all).map_err(|e| Failure::usage(e.render_with(color)))?;
+/// One listing: what it lists, and what it counted and analysed on the way.
+struct Listing<'a> {
+    config: &'a Config,
+    filter: &'a (dyn Fn(&permute::Shader, &permute::Level) -> bool + Sync),
+    args: &'a Args,
+    cache: &'a SourceCache,
+    counts: Vec<Count>,
+    errors: Vec<String>,
+    analysis: Option<Analysis>,
+}
 
-    if args.check_budget {
-        return check_budget(&config, &filter, args, out, err, color);
-    }
-
-    let mut counts: Vec<Count> = Vec::new();
-    let mut errors: Vec<String> = Vec::new();
-
-    // The names stream out first; the analysis (which preprocesses) comes after.
-    let cache = SourceCache::new(config.dir.clone());
-    let mut analysis: Option<Analysis> = None;
-    let result = write_result((|| {
-        if args.json {
-            writeln!(out, "{{")?;
-            writeln!(out, "  \"config\": {},", json!(config.path.display().to_string()))?;
-            write!(out, "  \"permutations\": [")?;
-            let mut first = true;
-            for_each_listed(&config, &filter, args.all, &mut counts, &mut errors, &mut |p| {
-                let values: serde_json::Map<String, serde_json::Value> = p
-                    .shader
-                    .dimensions
-                    .iter()
-                    .zip(&p.values)
-                    .map(|(d, v)| (d.name.clone(), if d.labels.is_empty() { json!(v) } else { json!(d.display(*v)) }))
-                    .collect();
-                let skip = p
-                    .skipped_by
-                    .map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
-                let obj = json!({
-                    "name": p.name(), "shader": p.shader.name, "level": p.level.name, "values": values,
-                    "kept": p.is_kept(), "skip": skip,
-                });
-                write!(out, "{}\n    {obj}", if first { "" } else { "," })?;
-                first = false;
-                Ok(())
-            })?;
-            writeln!(out, "\n  ],")?;
-            if analyze(args, &counts, err) {
-                analysis = Some(permute::analyze(&config, &cache, &filter));
-            }
-            let count_json: Vec<serde_json::Value> = counts
-                .iter()
-                .map(|c| {
-                    let distinct = analysis
-                        .as_ref()
-                        .and_then(|a| a.find(&c.shader, &c.level))
-                        .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
-                        .map(|l| l.distinct);
-                    json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": json_count(c.skipped), "distinct": distinct })
-                })
-                .collect();
-            let kept: usize = counts.iter().map(|c| c.kept).sum();
-            let skipped: u128 = counts.iter().map(|c| c.skipped).fold(0, u128::saturating_add);
-            let distinct = analysis
-                .as_ref()
-                .filter(|a| a.failed.is_empty())
-                .map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
-            let dead: Vec<serde_json::Value> = analysis
-                .iter()
-                .flat_map(|a| a.dead())
-                .map(|d| json!({ "shader": d.shader, "level": d.level, "dimension": d.dimension, "multiplier": d.multiplier }))
-                .collect();
-            let failed: Vec<&str> = analysis.iter().flat_map(|a| a.failed.iter().map(|f| f.name.as_str())).collect();
-            writeln!(out, "  \"counts\": {},", serde_json::to_string(&count_json).map_err(io::Error::other)?)?;
-            writeln!(
-                out,
-                "  \"totals\": {},",
-                json!({ "kept": kept, "skipped": json_count(skipped), "distinct": distinct })
-            )?;
-            writeln!(out, "  \"dead_dimensions\": {},", json!(dead))?;
-            writeln!(out, "  \"failed\": {}", json!(failed))?;
-            writeln!(out, "}}")?;
-            return Ok(());
-        }
-
-        for_each_listed(&config, &filter, args.all, &mut counts, &mut errors, &mut |p| match p.skipped_by {
+impl Listing<'_> {
+    /// One name a line (a skipped one with its rule), then the summary table.
+    fn text(&mut self, out: &mut dyn Write, err: &mut dyn Write) -> io::Result<()> {
+        for_each_listed(self.config, self.filter, self.args.all, &mut self.counts, &mut self.errors, &mut |p| match p
+            .skipped_by
+        {
             None => writeln!(out, "{}", escape(&p.name())),
             Some(i) => {
                 let rule = &p.shader.skip[i];
@@ -203,13 +171,87 @@ pub(super) fn run(args: &Args, out: &mut dyn Write, err: &mut dyn Write, color: 
             }
         })?;
         out.flush()?;
-        if analyze(args, &counts, err) {
-            analysis = Some(permute::analyze(&config, &cache, &filter));
+        self.run_analysis(err);
+        write_summary(out, &self.counts, self.analysis.as_ref())
+    }
+
+    /// `--json`: the permutations, then the counts, totals, dead dimensions and failures.
+    fn json(&mut self, out: &mut dyn Write, err: &mut dyn Write) -> io::Result<()> {
+        writeln!(out, "{{")?;
+        writeln!(out, "  \"config\": {},", json!(self.config.path.display().to_string()))?;
+        write!(out, "  \"permutations\": [")?;
+        let mut first = true;
+        for_each_listed(self.config, self.filter, self.args.all, &mut self.counts, &mut self.errors, &mut |p| {
+            write!(out, "{}\n    {}", if first { "" } else { "," }, permutation_json(p))?;
+            first = false;
+            Ok(())
+        })?;
+        writeln!(out, "\n  ],")?;
+        self.run_analysis(err);
+        self.json_counts(out)?;
+        writeln!(out, "}}")
+    }
+
+    /// Runs the analysis when it is wanted and the set is small enough.
+    fn run_analysis(&mut self, err: &mut dyn Write) {
+        if analyze(self.args, &self.counts, err) {
+            self.analysis = Some(permute::analyze(self.config, self.cache, self.filter));
         }
-        write_summary(out, &counts, analysis.as_ref())
-    })());
-    let _ = write_warnings(err, &errors, analysis.as_ref(), &cache, color);
-    result
+    }
+
+    /// The JSON listing's `counts`, `totals`, `dead_dimensions` and `failed` members.
+    fn json_counts(&self, out: &mut dyn Write) -> io::Result<()> {
+        let analysis = &self.analysis;
+        let count_json: Vec<serde_json::Value> = self
+            .counts
+            .iter()
+            .map(|c| {
+                let distinct = analysis
+                    .as_ref()
+                    .and_then(|a| a.find(&c.shader, &c.level))
+                    .filter(|l| l.permutations.iter().all(|p| p.hash.is_some()))
+                    .map(|l| l.distinct);
+                json!({ "shader": c.shader, "level": c.level, "kept": c.kept, "skipped": json_count(c.skipped), "distinct": distinct })
+            })
+            .collect();
+        let kept: usize = self.counts.iter().map(|c| c.kept).sum();
+        let skipped: u128 = self.counts.iter().map(|c| c.skipped).fold(0, u128::saturating_add);
+        let distinct = analysis
+            .as_ref()
+            .filter(|a| a.failed.is_empty())
+            .map(|a| a.levels.iter().map(|l| l.distinct).sum::<usize>());
+        let dead: Vec<serde_json::Value> = analysis
+            .iter()
+            .flat_map(|a| a.dead())
+            .map(|d| json!({ "shader": d.shader, "level": d.level, "dimension": d.dimension, "multiplier": d.multiplier }))
+            .collect();
+        let failed: Vec<&str> = analysis.iter().flat_map(|a| a.failed.iter().map(|f| f.name.as_str())).collect();
+        writeln!(out, "  \"counts\": {},", serde_json::to_string(&count_json).map_err(io::Error::other)?)?;
+        writeln!(
+            out,
+            "  \"totals\": {},",
+            json!({ "kept": kept, "skipped": json_count(skipped), "distinct": distinct })
+        )?;
+        writeln!(out, "  \"dead_dimensions\": {},", json!(dead))?;
+        writeln!(out, "  \"failed\": {}", json!(failed))
+    }
+}
+
+/// One permutation of the JSON listing: its name, shader, level, values and skip rule.
+fn permutation_json(p: &Permutation<'_>) -> serde_json::Value {
+    let values: serde_json::Map<String, serde_json::Value> = p
+        .shader
+        .dimensions
+        .iter()
+        .zip(&p.values)
+        .map(|(d, v)| (d.name.clone(), if d.labels.is_empty() { json!(v) } else { json!(d.display(*v)) }))
+        .collect();
+    let skip =
+        p.skipped_by.map(|i| json!({ "rule": i + 1, "when": p.shader.skip[i].when, "why": p.shader.skip[i].why }));
+    json!({
+        "name": p.name(), "shader": p.shader.name, "level": p.level.name, "values": values,
+        "kept": p.is_kept(), "skip": skip,
+    })
 }
 
 /// `--check-budget`: the kept permutations per shader against the shaders' budgets and

@@ -61,6 +61,9 @@ impl Default for Limits {
     }
 }
 
+/// How `word` builds an error: message, the binding it points at, the label, the note.
+type Fail<'a> = dyn Fn(String, Option<usize>, &str, String) -> Error + 'a;
+
 impl Limits {
     /// wgpu's `Limits::defaults()`.
     pub fn desktop() -> Limits {
@@ -234,6 +237,18 @@ impl Limits {
         v: Violation,
         fail: impl Fn(String, Option<usize>, &str, String) -> Error,
     ) -> Error {
+        match v {
+            V::BindGroup { .. }
+            | V::BindingNumber { .. }
+            | V::VertexStorage { .. }
+            | V::UniformSize { .. }
+            | V::TooMany { .. } => self.word_binding(reflection, v, &fail),
+            _ => self.word_stage(v, &fail),
+        }
+    }
+
+    /// `word` for a violation of one binding: the error points at it.
+    fn word_binding(&self, reflection: &Reflection, v: Violation, fail: &Fail<'_>) -> Error {
         let level = self.name;
         let stage = reflection.stage;
         let name = |i: usize| reflection.bindings[i].name.as_deref().unwrap_or("<unnamed>").to_string();
@@ -295,8 +310,20 @@ impl Limits {
                     self.note(class.field(), max),
                 )
             }
+            _ => self.word_stage(v, fail),
+        }
+    }
+
+    /// `word` for a violation of the stage as a whole: vertex inputs, color
+    /// outputs, workgroup size.
+    fn word_stage(&self, v: Violation, fail: &Fail<'_>) -> Error {
+        let level = self.name;
+        match v {
             V::VertexInputs { count } => fail(
-                format!("the vertex shader has {count} inputs, over the {level} limit of {}", self.max_vertex_attributes),
+                format!(
+                    "the vertex shader has {count} inputs, over the {level} limit of {}",
+                    self.max_vertex_attributes
+                ),
                 None,
                 "",
                 self.note("max_vertex_attributes", self.max_vertex_attributes),
@@ -322,8 +349,11 @@ impl Limits {
                     None,
                     "",
                     self.note(
-                        ["max_compute_workgroup_size_x", "max_compute_workgroup_size_y", "max_compute_workgroup_size_z"]
-                            [axis],
+                        [
+                            "max_compute_workgroup_size_x",
+                            "max_compute_workgroup_size_y",
+                            "max_compute_workgroup_size_z",
+                        ][axis],
                         max,
                     ),
                 )
@@ -344,7 +374,12 @@ impl Limits {
             | V::VertexLocation { .. }
             | V::ColorOutputs { .. }
             | V::WorkgroupZero { .. }
-            | V::NoWorkgroupSize => unreachable!("filtered out by `check`"),
+            | V::NoWorkgroupSize
+            | V::BindGroup { .. }
+            | V::BindingNumber { .. }
+            | V::VertexStorage { .. }
+            | V::UniformSize { .. }
+            | V::TooMany { .. } => unreachable!("filtered out by `check` or worded by `word_binding`"),
         }
     }
 

@@ -31,7 +31,7 @@ use crate::archive::Target;
 type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
 
 /// A module's identity: the first 16 bytes of its [`module_hash`] (a collision among 2^32
-/// modules has odds of about 2^-64), 16 bytes a module rather than 32.
+/// modules has odds of 2^-64), 16 bytes a module rather than 32.
 type Ident = u128;
 
 fn ident(hash: &blake3::Hash) -> Ident {
@@ -105,8 +105,8 @@ impl Default for SharedWriters {
 
 impl SharedWriters {
     /// The most bytes of artifacts kept for sharing. The build streams (issue 12: memory
-    /// bounded by the work in flight), so this is small: 256 MiB here took a 10k set's peak
-    /// from about 80 to about 220 MiB. Past it, later keys of a module run its writers again.
+    /// bounded by the work in flight), so this is small: a large budget raised a generated
+    /// set's peak several times over. Past it, later keys of a module run its writers again.
     pub const BUDGET: usize = 32 << 20;
 
     /// An empty set.
@@ -184,7 +184,7 @@ impl SharedWriters {
 
     /// Lets go of every module's kept outputs and identity (a build's compile stage after
     /// preprocessing has few keys left; theirs run the writers themselves, to the same
-    /// bytes): at 100k permutations about 3 MB that would stay under the next stages.
+    /// bytes), which would otherwise stay under the next stages.
     pub fn forget(&self) {
         *self.map.lock().expect("no panics while locked") = Modules::default();
         self.kept.store(0, Ordering::Relaxed);

@@ -80,7 +80,7 @@ pub fn write(
 }
 
 /// SPIR-V words as little-endian bytes, in one allocation of the final size (a `flat_map`
-/// over the words was about 2.5% of a cold build's CPU).
+/// over the words showed up in a cold build's profile).
 fn words_to_bytes(words: &[u32]) -> Vec<u8> {
     let mut bytes = Vec::with_capacity(words.len() * 4);
     for w in words {

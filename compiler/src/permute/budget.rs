@@ -75,8 +75,8 @@ impl BudgetExceeded {
 
 /// The estimated single-core milliseconds to compile a key whose preprocessed text is
 /// `text_len` bytes, for `targets` targets: the cost the build balances shards by (text
-/// length times targets), at about 15 MB of WGSL a second per target (naga parse and
-/// validation plus one writer; all five writers run at about 3 MB/s per core). A constant,
+/// length times targets), at a fixed rate of WGSL per target (naga parse and validation plus
+/// one writer, as measured on the development machines). A constant,
 /// so that a budget passes or fails alike whatever the machine, `-j` or the cache holds.
 pub fn estimate_compile_ms(text_len: u64, targets: usize) -> f64 {
     text_len as f64 * targets.max(1) as f64 / 15_000.0

@@ -259,59 +259,7 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
     if b.len() < q + 2 || b[b.len() - 1] != b'\'' {
         return Err("missing terminating ' character".into());
     }
-    let body = &b[q + 1..b.len() - 1];
-    let mut chars: Vec<u32> = Vec::new();
-    let mut i = 0;
-    while i < body.len() {
-        if body[i] == b'\\' && i + 1 < body.len() {
-            i += 1;
-            let c = body[i];
-            i += 1;
-            let v = match c {
-                b'n' => 10,
-                b't' => 9,
-                b'r' => 13,
-                b'a' => 7,
-                b'b' => 8,
-                b'f' => 12,
-                b'v' => 11,
-                b'e' | b'E' => 27,
-                b'0'..=b'7' => {
-                    let mut v = (c - b'0') as u32;
-                    let mut n = 1;
-                    while n < 3 && i < body.len() && (b'0'..=b'7').contains(&body[i]) {
-                        v = v * 8 + (body[i] - b'0') as u32;
-                        i += 1;
-                        n += 1;
-                    }
-                    v
-                }
-                b'x' => {
-                    let mut v: u32 = 0;
-                    while i < body.len() && body[i].is_ascii_hexdigit() {
-                        v = v.wrapping_mul(16).wrapping_add((body[i] as char).to_digit(16).unwrap_or(0));
-                        i += 1;
-                    }
-                    v
-                }
-                other => other as u32,
-            };
-            chars.push(v);
-        } else {
-            // A UTF-8 sequence counts as its bytes for a plain char constant.
-            let s = std::str::from_utf8(&body[i..]).ok().and_then(|s| s.chars().next());
-            match (prefix.is_empty(), s) {
-                (false, Some(ch)) => {
-                    chars.push(ch as u32);
-                    i += ch.len_utf8();
-                }
-                _ => {
-                    chars.push(body[i] as u32);
-                    i += 1;
-                }
-            }
-        }
-    }
+    let chars = char_values(&b[q + 1..b.len() - 1], prefix.is_empty());
     if chars.is_empty() {
         return Err("empty character constant".into());
     }
@@ -336,6 +284,71 @@ pub fn parse_char(text: &str) -> Result<Value, String> {
     };
     let unsigned = matches!(prefix, "u" | "U");
     Ok(Value { v, unsigned })
+}
+
+/// The values of the characters between a character constant's quotes, escapes decoded; a
+/// UTF-8 sequence is one character with a prefix and its bytes without (`plain`).
+fn char_values(body: &[u8], plain: bool) -> Vec<u32> {
+    let mut chars: Vec<u32> = Vec::new();
+    let mut i = 0;
+    while i < body.len() {
+        if body[i] == b'\\' && i + 1 < body.len() {
+            let (v, next) = escape_value(body, i + 1);
+            chars.push(v);
+            i = next;
+            continue;
+        }
+        // A UTF-8 sequence counts as its bytes for a plain char constant.
+        let s = std::str::from_utf8(&body[i..]).ok().and_then(|s| s.chars().next());
+        match (plain, s) {
+            (false, Some(ch)) => {
+                chars.push(ch as u32);
+                i += ch.len_utf8();
+            }
+            _ => {
+                chars.push(body[i] as u32);
+                i += 1;
+            }
+        }
+    }
+    chars
+}
+
+/// The value of the escape whose letter is at `body[i]` (just after its backslash), and the
+/// offset after it: simple escapes, up to three octal digits, or any number of hex digits.
+fn escape_value(body: &[u8], mut i: usize) -> (u32, usize) {
+    let c = body[i];
+    i += 1;
+    let v = match c {
+        b'n' => 10,
+        b't' => 9,
+        b'r' => 13,
+        b'a' => 7,
+        b'b' => 8,
+        b'f' => 12,
+        b'v' => 11,
+        b'e' | b'E' => 27,
+        b'0'..=b'7' => {
+            let mut v = (c - b'0') as u32;
+            let mut n = 1;
+            while n < 3 && i < body.len() && (b'0'..=b'7').contains(&body[i]) {
+                v = v * 8 + (body[i] - b'0') as u32;
+                i += 1;
+                n += 1;
+            }
+            v
+        }
+        b'x' => {
+            let mut v: u32 = 0;
+            while i < body.len() && body[i].is_ascii_hexdigit() {
+                v = v.wrapping_mul(16).wrapping_add((body[i] as char).to_digit(16).unwrap_or(0));
+                i += 1;
+            }
+            v
+        }
+        other => other as u32,
+    };
+    (v, i)
 }
 
 /// How [`eval`] reads one token of a stand-alone expression: for code that translates

@@ -276,7 +276,8 @@ pub fn preprocess_file_id(file: FileId, opts: &Options, cache: &SourceCache) -> 
 /// Renders diagnostics as text the way rustc does (codespan), optionally with ANSI colour.
 ///
 /// A source line longer than [`MAX_SHOWN_LINE`] bytes is shown cut to the parts around its
-/// labels (`…` for the rest): a diagnostic on a 50 MB line is a few lines, not 50 MB.
+/// labels (`…` for the rest): a diagnostic on a line of megabytes is a few lines, not the
+/// whole line.
 pub fn render(diagnostics: &[Diagnostic<FileId>], cache: &SourceCache, color: bool) -> String {
     use codespan_reporting::term;
     let config = term::Config::default();
@@ -320,12 +321,8 @@ fn clip_long_lines<'c>(
     d: &Diagnostic<FileId>,
     cache: &'c SourceCache,
 ) -> Option<(ClippedFiles<'c>, Diagnostic<usize>)> {
-    use codespan_reporting::files::Files;
-    let line_of = |file: FileId, at: usize| -> Option<std::ops::Range<usize>> {
-        let i = cache.line_index(file, at).ok()?;
-        cache.line_range(file, i).ok()
-    };
-    let long = d.labels.iter().any(|l| line_of(l.file_id, l.range.start).is_some_and(|r| r.len() > MAX_SHOWN_LINE));
+    let long =
+        d.labels.iter().any(|l| line_of(cache, l.file_id, l.range.start).is_some_and(|r| r.len() > MAX_SHOWN_LINE));
     if !long {
         return None;
     }
@@ -336,50 +333,8 @@ fn clip_long_lines<'c>(
     for l in &d.labels {
         if !ids.iter().any(|(f, ..)| *f == l.file_id) {
             let text = cache.get(l.file_id)?.original.clone();
-            // Windows to keep on each long line that has a label of this file.
-            let mut keep: Vec<(usize, usize)> = Vec::new();
-            for m in d.labels.iter().filter(|m| m.file_id == l.file_id) {
-                let line = line_of(m.file_id, m.range.start)?;
-                if line.len() > MAX_SHOWN_LINE {
-                    let start = m.range.start.saturating_sub(SHOWN_CONTEXT).max(line.start);
-                    let end = (m.range.end.min(m.range.start + MAX_SHOWN_LINE) + SHOWN_CONTEXT).min(line.end);
-                    keep.push((floor_boundary(&text, start), ceil_boundary(&text, end)));
-                    keep.push((line.start, line.start));
-                    keep.push((line.end, line.end));
-                }
-            }
-            keep.sort_unstable();
-            // Cut: the text between windows of one long line becomes `…`. `moves` maps an old
-            // offset to a new one: (old start, old end, new start) of each kept piece.
-            let mut new = String::new();
-            let mut moves = Vec::new();
-            let mut at = 0;
-            let mut merged: Vec<(usize, usize)> = Vec::new();
-            for (a, b) in keep {
-                match merged.last_mut() {
-                    Some(last) if a <= last.1 => last.1 = last.1.max(b),
-                    _ => merged.push((a, b)),
-                }
-            }
-            for (a, b) in merged {
-                if a > at {
-                    // A gap within one line (up to its line ending) is cut.
-                    let gap = &text[at..a];
-                    let body = gap.trim_end_matches(['\r', '\n']);
-                    if !body.is_empty() && !body.contains(['\n', '\r']) {
-                        new.push('…');
-                        new.push_str(&gap[body.len()..]);
-                    } else {
-                        moves.push((at, a, new.len()));
-                        new.push_str(gap);
-                    }
-                }
-                moves.push((a, b, new.len()));
-                new.push_str(&text[a..b]);
-                at = b;
-            }
-            moves.push((at, text.len(), new.len()));
-            new.push_str(&text[at..]);
+            let keep = keep_windows(d, l.file_id, &text, cache)?;
+            let (new, moves) = cut_text(&text, keep);
             let id = files.files.len();
             let starts = line_starts_of(&new);
             files.files.push(ClippedFile { file: l.file_id, text: new, line_starts: starts, moves });
@@ -400,6 +355,67 @@ fn clip_long_lines<'c>(
         notes: d.notes.clone(),
     };
     Some((files, clipped))
+}
+
+/// The byte range of the line of `file` holding offset `at`.
+fn line_of(cache: &SourceCache, file: FileId, at: usize) -> Option<std::ops::Range<usize>> {
+    use codespan_reporting::files::Files;
+    let i = cache.line_index(file, at).ok()?;
+    cache.line_range(file, i).ok()
+}
+
+/// The windows of `text` (the original of `file`) to keep on each long line that has a label
+/// of `d`, with each such line's ends as empty windows, sorted.
+fn keep_windows(d: &Diagnostic<FileId>, file: FileId, text: &str, cache: &SourceCache) -> Option<Vec<(usize, usize)>> {
+    let mut keep: Vec<(usize, usize)> = Vec::new();
+    for m in d.labels.iter().filter(|m| m.file_id == file) {
+        let line = line_of(cache, m.file_id, m.range.start)?;
+        if line.len() > MAX_SHOWN_LINE {
+            let start = m.range.start.saturating_sub(SHOWN_CONTEXT).max(line.start);
+            let end = (m.range.end.min(m.range.start + MAX_SHOWN_LINE) + SHOWN_CONTEXT).min(line.end);
+            keep.push((floor_boundary(text, start), ceil_boundary(text, end)));
+            keep.push((line.start, line.start));
+            keep.push((line.end, line.end));
+        }
+    }
+    keep.sort_unstable();
+    Some(keep)
+}
+
+/// Cuts `text` to the sorted windows `keep`: the text between windows of one long line
+/// becomes `…`. Also gives the moves that map an old offset to a new one: (old start, old
+/// end, new start) of each kept piece.
+fn cut_text(text: &str, keep: Vec<(usize, usize)>) -> (String, Vec<(usize, usize, usize)>) {
+    let mut new = String::new();
+    let mut moves = Vec::new();
+    let mut at = 0;
+    let mut merged: Vec<(usize, usize)> = Vec::new();
+    for (a, b) in keep {
+        match merged.last_mut() {
+            Some(last) if a <= last.1 => last.1 = last.1.max(b),
+            _ => merged.push((a, b)),
+        }
+    }
+    for (a, b) in merged {
+        if a > at {
+            // A gap within one line (up to its line ending) is cut.
+            let gap = &text[at..a];
+            let body = gap.trim_end_matches(['\r', '\n']);
+            if !body.is_empty() && !body.contains(['\n', '\r']) {
+                new.push('…');
+                new.push_str(&gap[body.len()..]);
+            } else {
+                moves.push((at, a, new.len()));
+                new.push_str(gap);
+            }
+        }
+        moves.push((a, b, new.len()));
+        new.push_str(&text[a..b]);
+        at = b;
+    }
+    moves.push((at, text.len(), new.len()));
+    new.push_str(&text[at..]);
+    (new, moves)
 }
 
 /// Files with long lines cut (see [`clip_long_lines`]); columns are those of the original

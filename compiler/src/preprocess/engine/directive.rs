@@ -118,50 +118,16 @@ impl Pp<'_> {
         let text = source.text();
         // The directive name, read in place (include needs the raw text after it).
         let (name, p, len) = directive_name(text, frame.pos);
-        let name_range = p as u32..(p + len) as u32;
+        let after = p + len;
+        let name_range = p as u32..after as u32;
         let hash_range = hash as u32..(hash + 1) as u32;
+        let site = hash_range.start..name_range.end;
         let in_args = !self.stack.is_empty() || self.inv.is_some();
         let first_directive = frame.guard == GuardState::Start;
-        if let Some(f) = self.frames.last_mut() {
-            if !name.is_empty() {
-                f.pos = p + len;
-            }
-            let closed = matches!(f.guard, GuardState::Closed(_));
-            if closed || (first_directive && name != "ifndef") {
-                f.guard = GuardState::No;
-            }
-            if matches!(name, "else" | "elif") && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
-                f.guard = GuardState::No;
-            }
-        }
+        self.update_guard(name, after, first_directive);
         match name {
-            "define" => {
-                let Some(f) = self.frames.last() else {
-                    return Ok(());
-                };
-                let mut p = f.pos;
-                if self.line_token(&source, ctx, &mut p, false)?.is_none() {
-                    return self.err_at(
-                        ctx,
-                        name_range,
-                        "no macro name given in #define directive",
-                        "expected a macro name",
-                    );
-                }
-                self.define_directive()
-            }
-            "undef" => {
-                let (toks, _) = self.directive_rest(2)?;
-                let sym = self.directive_name(&toks, "undef", ctx, name_range)?;
-                if toks.len() > 1 {
-                    let l = self.tok_labels(&toks[1], "unexpected");
-                    self.warn("extra tokens at end of #undef directive", l);
-                }
-                if (sym as usize) < self.macro_of.len() {
-                    self.macro_of[sym as usize] = NONE;
-                }
-                Ok(())
-            }
+            "define" => self.define_checked(&source, ctx, name_range),
+            "undef" => self.undef_directive(ctx, name_range),
             "include" | "include_next" | "import" => {
                 if in_args {
                     return self.err_at(
@@ -171,146 +137,192 @@ impl Pp<'_> {
                         "inside this invocation's arguments",
                     );
                 }
-                self.include(hash_range.start, p + len)
+                self.include(hash_range.start, after)
             }
-            "if" | "ifdef" | "ifndef" => {
-                let (toks, _) = if name == "if" { self.directive_tokens()? } else { self.directive_rest(2)? };
-                let taken = match name {
-                    "if" => self.eval_if(toks, ctx, name_range.clone())?,
-                    _ => {
-                        let sym = self.directive_name(&toks, name, ctx, name_range.clone())?;
-                        if toks.len() > 1 {
-                            let l = self.tok_labels(&toks[1], "unexpected");
-                            self.warn(format!("extra tokens at end of #{name} directive"), l);
-                        }
-                        let defined = self.macro_idx(sym) != NONE;
-                        if name == "ifndef" && first_directive {
-                            if let Some(f) = self.frames.last_mut() {
-                                f.guard = if f.conds.is_empty() && toks.len() == 1 {
-                                    GuardState::Inside(sym)
-                                } else {
-                                    GuardState::No
-                                };
-                            }
-                        }
-                        if name == "ifdef" {
-                            defined
-                        } else {
-                            !defined
-                        }
-                    }
-                };
-                let nm: &'static str = match name {
-                    "if" => "if",
-                    "ifdef" => "ifdef",
-                    _ => "ifndef",
-                };
-                if let Some(f) = self.frames.last_mut() {
-                    f.conds.push(Cond { site: hash_range.start..name_range.end, name: nm, taken, else_seen: false });
-                }
-                if !taken {
-                    self.skip_group()?;
-                }
-                Ok(())
-            }
-            "elif" | "else" => {
-                let (toks, _) = self.directive_rest(1)?;
-                let Some(f) = self.frames.last_mut() else {
-                    return Ok(());
-                };
-                let Some(c) = f.conds.last_mut() else {
-                    return self.err_at(
-                        ctx,
-                        hash_range.start..name_range.end,
-                        format!("#{name} without #if"),
-                        "no open conditional",
-                    );
-                };
-                if c.else_seen {
-                    return self.err_at(
-                        ctx,
-                        hash_range.start..name_range.end,
-                        format!("#{name} after #else"),
-                        "after the #else of this conditional",
-                    );
-                }
-                if name == "else" {
-                    c.else_seen = true;
-                    if !toks.is_empty() {
-                        let l = self.tok_labels(&toks[0], "unexpected");
-                        self.warn("extra tokens at end of #else directive", l);
-                    }
-                }
-                // We were in a taken group: everything up to #endif is skipped.
-                self.skip_group()
-            }
-            "endif" => {
-                let (toks, _) = self.directive_rest(1)?;
-                let Some(f) = self.frames.last_mut() else {
-                    return Ok(());
-                };
-                if f.conds.pop().is_none() {
-                    return self.err_at(
-                        ctx,
-                        hash_range.start..name_range.end,
-                        "#endif without #if",
-                        "no open conditional",
-                    );
-                }
-                if f.conds.is_empty() {
-                    if let GuardState::Inside(sym) = f.guard {
-                        f.guard = GuardState::Closed(sym);
-                    }
-                }
-                if !toks.is_empty() {
-                    let l = self.tok_labels(&toks[0], "unexpected");
-                    self.warn("extra tokens at end of #endif directive", l);
-                }
-                Ok(())
-            }
-            "error" | "warning" => {
-                let start = p + len;
-                let (_, end) = self.directive_rest(0)?;
-                let msg = text.get(start..end as usize).unwrap_or("").trim();
-                let msg = collapse_comments(msg);
-                let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
-                let labels = self.labels_at(ctx, hash_range.start..end, "");
-                if name == "error" {
-                    return Err(Error::new(message, labels));
-                }
-                self.warn(message, labels);
-                Ok(())
-            }
-            "pragma" => self.pragma(p + len, ctx),
+            "if" | "ifdef" | "ifndef" => self.if_directive(name, ctx, site, name_range, first_directive),
+            "elif" | "else" => self.else_directive(name, ctx, site),
+            "endif" => self.endif_directive(ctx, site),
+            "error" | "warning" => self.message_directive(name, text, after, ctx, hash),
+            "pragma" => self.pragma(after, ctx),
             "line" => {
                 let (toks, _) = self.directive_tokens()?;
                 self.line_directive(toks, ctx, name_range)
             }
             "ident" | "sccs" => {
-                let start = p + len;
                 let (_, end) = self.directive_rest(0)?;
-                let rest = collapse_comments(text.get(start..end as usize).unwrap_or("").trim());
+                let rest = collapse_comments(text.get(after..end as usize).unwrap_or("").trim());
                 self.emit_line(ctx, hash, &format!("#ident {rest}"))
             }
             "assert" | "unassert" => {
                 self.directive_rest(0)?;
                 Ok(())
             }
-            "" => {
-                let (toks, _) = self.directive_tokens()?;
-                match toks.first() {
-                    None => Ok(()),
-                    // GNU line marker: `# 33 "file"`.
-                    Some(t) if t.kind == TK::Number => self.line_directive(toks, ctx, name_range),
-                    Some(t) => {
-                        let s = self.it.str(t.sym).to_string();
-                        self.err_tok(t, format!("invalid preprocessing directive #{s}"), "not a directive")
-                    }
-                }
-            }
+            "" => self.null_directive(ctx, name_range),
             other => {
                 let other = other.to_string();
                 self.err_at(ctx, name_range, format!("invalid preprocessing directive #{other}"), "unknown directive")
+            }
+        }
+    }
+
+    /// Moves the frame past the directive's name (when it has one) and updates its include
+    /// guard state: only an `#ifndef` that is the file's first directive opens a guard, and
+    /// any directive after the guard's `#endif`, or an `#else`/`#elif` of the guard, ends it.
+    fn update_guard(&mut self, name: &str, after: usize, first_directive: bool) {
+        let Some(f) = self.frames.last_mut() else {
+            return;
+        };
+        if !name.is_empty() {
+            f.pos = after;
+        }
+        let closed = matches!(f.guard, GuardState::Closed(_));
+        if closed || (first_directive && name != "ifndef") {
+            f.guard = GuardState::No;
+        }
+        if matches!(name, "else" | "elif") && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
+            f.guard = GuardState::No;
+        }
+    }
+
+    /// `#define`, after checking that a macro name follows.
+    fn define_checked(&mut self, source: &SourceFile, ctx: u32, name_range: Range<u32>) -> PResult<()> {
+        let Some(f) = self.frames.last() else {
+            return Ok(());
+        };
+        let mut p = f.pos;
+        if self.line_token(source, ctx, &mut p, false)?.is_none() {
+            return self.err_at(ctx, name_range, "no macro name given in #define directive", "expected a macro name");
+        }
+        self.define_directive()
+    }
+
+    /// `#undef NAME`.
+    fn undef_directive(&mut self, ctx: u32, name_range: Range<u32>) -> PResult<()> {
+        let (toks, _) = self.directive_rest(2)?;
+        let sym = self.directive_name(&toks, "undef", ctx, name_range)?;
+        if toks.len() > 1 {
+            let l = self.tok_labels(&toks[1], "unexpected");
+            self.warn("extra tokens at end of #undef directive", l);
+        }
+        if (sym as usize) < self.macro_of.len() {
+            self.macro_of[sym as usize] = NONE;
+        }
+        Ok(())
+    }
+
+    /// `#if`, `#ifdef` and `#ifndef`: opens a conditional and skips its group when false.
+    fn if_directive(
+        &mut self,
+        name: &str,
+        ctx: u32,
+        site: Range<u32>,
+        name_range: Range<u32>,
+        first_directive: bool,
+    ) -> PResult<()> {
+        let taken = if name == "if" {
+            let (toks, _) = self.directive_tokens()?;
+            self.eval_if(toks, ctx, name_range)?
+        } else {
+            self.ifdef_taken(name, ctx, name_range, first_directive)?
+        };
+        let nm: &'static str = match name {
+            "if" => "if",
+            "ifdef" => "ifdef",
+            _ => "ifndef",
+        };
+        if let Some(f) = self.frames.last_mut() {
+            f.conds.push(Cond { site, name: nm, taken, else_seen: false });
+        }
+        if !taken {
+            self.skip_group()?;
+        }
+        Ok(())
+    }
+
+    /// Whether the group of an `#ifdef`/`#ifndef` is taken; an `#ifndef NAME` that is the
+    /// file's first directive may open an include guard.
+    fn ifdef_taken(&mut self, name: &str, ctx: u32, name_range: Range<u32>, first_directive: bool) -> PResult<bool> {
+        let (toks, _) = self.directive_rest(2)?;
+        let sym = self.directive_name(&toks, name, ctx, name_range)?;
+        if toks.len() > 1 {
+            let l = self.tok_labels(&toks[1], "unexpected");
+            self.warn(format!("extra tokens at end of #{name} directive"), l);
+        }
+        let defined = self.macro_idx(sym) != NONE;
+        if name == "ifndef" && first_directive {
+            if let Some(f) = self.frames.last_mut() {
+                f.guard = if f.conds.is_empty() && toks.len() == 1 { GuardState::Inside(sym) } else { GuardState::No };
+            }
+        }
+        Ok(if name == "ifdef" { defined } else { !defined })
+    }
+
+    /// `#elif`/`#else` met in a taken group: everything up to `#endif` is skipped.
+    fn else_directive(&mut self, name: &str, ctx: u32, site: Range<u32>) -> PResult<()> {
+        let (toks, _) = self.directive_rest(1)?;
+        let Some(f) = self.frames.last_mut() else {
+            return Ok(());
+        };
+        let Some(c) = f.conds.last_mut() else {
+            return self.err_at(ctx, site, format!("#{name} without #if"), "no open conditional");
+        };
+        if c.else_seen {
+            return self.err_at(ctx, site, format!("#{name} after #else"), "after the #else of this conditional");
+        }
+        if name == "else" {
+            c.else_seen = true;
+            if !toks.is_empty() {
+                let l = self.tok_labels(&toks[0], "unexpected");
+                self.warn("extra tokens at end of #else directive", l);
+            }
+        }
+        self.skip_group()
+    }
+
+    /// `#endif`: closes the conditional, and the include guard when it was the guard's.
+    fn endif_directive(&mut self, ctx: u32, site: Range<u32>) -> PResult<()> {
+        let (toks, _) = self.directive_rest(1)?;
+        let Some(f) = self.frames.last_mut() else {
+            return Ok(());
+        };
+        if f.conds.pop().is_none() {
+            return self.err_at(ctx, site, "#endif without #if", "no open conditional");
+        }
+        if f.conds.is_empty() {
+            if let GuardState::Inside(sym) = f.guard {
+                f.guard = GuardState::Closed(sym);
+            }
+        }
+        if !toks.is_empty() {
+            let l = self.tok_labels(&toks[0], "unexpected");
+            self.warn("extra tokens at end of #endif directive", l);
+        }
+        Ok(())
+    }
+
+    /// `#error` (an error) and `#warning` (a warning), with the rest of the line as message.
+    fn message_directive(&mut self, name: &str, text: &str, start: usize, ctx: u32, hash: usize) -> PResult<()> {
+        let (_, end) = self.directive_rest(0)?;
+        let msg = text.get(start..end as usize).unwrap_or("").trim();
+        let msg = collapse_comments(msg);
+        let message = if msg.is_empty() { format!("#{name}") } else { format!("#{name} {msg}") };
+        let labels = self.labels_at(ctx, hash as u32..end, "");
+        if name == "error" {
+            return Err(Error::new(message, labels));
+        }
+        self.warn(message, labels);
+        Ok(())
+    }
+
+    /// A `#` with no name: empty, or a GNU line marker (`# 33 "file"`).
+    fn null_directive(&mut self, ctx: u32, name_range: Range<u32>) -> PResult<()> {
+        let (toks, _) = self.directive_tokens()?;
+        match toks.first() {
+            None => Ok(()),
+            Some(t) if t.kind == TK::Number => self.line_directive(toks, ctx, name_range),
+            Some(t) => {
+                let s = self.it.str(t.sym).to_string();
+                self.err_tok(t, format!("invalid preprocessing directive #{s}"), "not a directive")
             }
         }
     }
@@ -624,14 +636,7 @@ impl Pp<'_> {
         let mut depth = 0usize;
         loop {
             // At a line start: whitespace and comments, then maybe a directive.
-            let mut p = pos;
-            loop {
-                let (kind, len) = source.lex(p);
-                match kind {
-                    Kind::Space | Kind::BlockComment { terminated: true } => p += len,
-                    _ => break,
-                }
-            }
+            let p = skip_blank(&source, pos);
             if p >= bytes.len() {
                 if let Some(f) = self.frames.last_mut() {
                     f.pos = bytes.len();
@@ -639,66 +644,18 @@ impl Pp<'_> {
                 return Ok(()); // end_of_file reports the open conditional
             }
             let (kind, len) = source.lex(p);
-            let is_hash = kind == Kind::Punct && lexer::is_directive_hash(&bytes[p..p + len]);
-            if is_hash {
-                let hash = p;
+            if kind == Kind::Punct && lexer::is_directive_hash(&bytes[p..p + len]) {
                 let (name, q, l) = directive_name(text, p + len);
-                let name_range = q as u32..(q + l) as u32;
                 match name {
                     "if" | "ifdef" | "ifndef" => depth += 1,
                     "endif" if depth > 0 => depth -= 1,
                     "endif" | "else" | "elif" if depth == 0 => {
-                        self.mark_skipped(&source, file, group, hash);
+                        self.mark_skipped(&source, file, group, p);
                         if let Some(f) = self.frames.last_mut() {
                             f.pos = q + l;
                         }
-                        let (toks, _) = self.directive_tokens()?;
-                        let Some(f) = self.frames.last_mut() else {
+                        if self.end_of_skip(name, ctx, p as u32, q as u32..(q + l) as u32)? {
                             return Ok(());
-                        };
-                        if name != "endif" && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
-                            f.guard = GuardState::No;
-                        }
-                        let Some(c) = f.conds.last_mut() else {
-                            return Ok(());
-                        };
-                        match name {
-                            "endif" => {
-                                f.conds.pop();
-                                if f.conds.is_empty() {
-                                    if let GuardState::Inside(sym) = f.guard {
-                                        f.guard = GuardState::Closed(sym);
-                                    }
-                                }
-                                return Ok(());
-                            }
-                            _ if c.else_seen => {
-                                return self.err_at(
-                                    ctx,
-                                    hash as u32..name_range.end,
-                                    format!("#{name} after #else"),
-                                    "after the #else of this conditional",
-                                );
-                            }
-                            "else" => {
-                                c.else_seen = true;
-                                if !c.taken {
-                                    c.taken = true;
-                                    return Ok(());
-                                }
-                            }
-                            _ => {
-                                // #elif
-                                if !c.taken {
-                                    let v = self.eval_if(toks, ctx, name_range.clone())?;
-                                    if v {
-                                        if let Some(c) = self.frames.last_mut().and_then(|f| f.conds.last_mut()) {
-                                            c.taken = true;
-                                        }
-                                        return Ok(());
-                                    }
-                                }
-                            }
                         }
                         pos = self.frames.last().map_or(bytes.len(), |f| f.pos);
                         group = pos;
@@ -720,6 +677,56 @@ impl Pp<'_> {
                     )
                 }
             };
+        }
+    }
+
+    /// The `#endif`, `#else` or `#elif` (`name`, `#` at `hash`) that ends a skipped group, the
+    /// frame just past its name: `true` when skipping ends (the conditional is closed or this
+    /// branch is taken), `false` when the next group is skipped too.
+    fn end_of_skip(&mut self, name: &str, ctx: u32, hash: u32, name_range: Range<u32>) -> PResult<bool> {
+        let (toks, _) = self.directive_tokens()?;
+        let Some(f) = self.frames.last_mut() else {
+            return Ok(true);
+        };
+        if name != "endif" && f.conds.len() == 1 && matches!(f.guard, GuardState::Inside(_)) {
+            f.guard = GuardState::No;
+        }
+        let Some(c) = f.conds.last_mut() else {
+            return Ok(true);
+        };
+        match name {
+            "endif" => {
+                f.conds.pop();
+                if f.conds.is_empty() {
+                    if let GuardState::Inside(sym) = f.guard {
+                        f.guard = GuardState::Closed(sym);
+                    }
+                }
+                Ok(true)
+            }
+            _ if c.else_seen => self.err_at(
+                ctx,
+                hash..name_range.end,
+                format!("#{name} after #else"),
+                "after the #else of this conditional",
+            ),
+            "else" => {
+                c.else_seen = true;
+                let take = !c.taken;
+                c.taken = true;
+                Ok(take)
+            }
+            // #elif
+            _ if c.taken => Ok(false),
+            _ => {
+                let v = self.eval_if(toks, ctx, name_range)?;
+                if v {
+                    if let Some(c) = self.frames.last_mut().and_then(|f| f.conds.last_mut()) {
+                        c.taken = true;
+                    }
+                }
+                Ok(v)
+            }
         }
     }
 
@@ -893,47 +900,7 @@ impl Pp<'_> {
         if self.frames.len() >= 200 {
             return self.err_at(ctx, range, "#include nested depth 200 exceeds maximum of 200", "this include");
         }
-        let found = self.resolve_include(spelling, angle);
-        let (path, cpp_name) = match found {
-            Resolved::Found(p, n) => (p, n),
-            Resolved::Escapes(p) => {
-                let shown = self.cache.display_name(&p);
-                return self.err_at(
-                    ctx,
-                    range,
-                    format!("#include \"{spelling}\" resolves to `{shown}`, outside the include roots"),
-                    "this include escapes its root",
-                );
-            }
-            Resolved::NotFound => {
-                if let Some((path, what)) = self.non_file_candidate(spelling, angle) {
-                    let shown = self.cache.display_name(&path);
-                    return self.err_at(
-                        ctx,
-                        range,
-                        format!("#include \"{spelling}\" names `{shown}`, which is {what}, not a file"),
-                        "not a file",
-                    );
-                }
-                let mut e = Error::new(
-                    format!("cannot find include file `{spelling}`"),
-                    self.labels_at(ctx, range, "not found"),
-                );
-                let mut searched: Vec<String> = Vec::new();
-                if !angle {
-                    searched.push("the including file's folder".to_string());
-                }
-                for r in &self.opts.include_roots {
-                    searched.push(self.cache.display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())));
-                }
-                e.diagnostic = e.diagnostic.with_notes(vec![if searched.is_empty() {
-                    "no include roots are configured".to_string()
-                } else {
-                    format!("searched: {}", searched.join(", "))
-                }]);
-                return Err(e);
-            }
-        };
+        let (path, cpp_name) = self.include_target(spelling, angle, ctx, &range)?;
         let (id, source) = self.cache.load(&path).map_err(|e| {
             let mut labels = self.labels_at(ctx, range.clone(), "included here");
             if matches!(e, LoadError::NotUtf8 { .. }) {
@@ -965,6 +932,56 @@ impl Pp<'_> {
         }
         self.push_file(id, source, name, ctx, hash..site_end);
         Ok(())
+    }
+
+    /// The file an `#include` names and the name cpp gives it, or the error saying why there
+    /// is none: it escapes the include roots, is not a file, or is nowhere to be found.
+    fn include_target(&self, spelling: &str, angle: bool, ctx: u32, range: &Range<u32>) -> PResult<(PathBuf, String)> {
+        match self.resolve_include(spelling, angle) {
+            Resolved::Found(p, n) => Ok((p, n)),
+            Resolved::Escapes(p) => {
+                let shown = self.cache.display_name(&p);
+                self.err_at(
+                    ctx,
+                    range.clone(),
+                    format!("#include \"{spelling}\" resolves to `{shown}`, outside the include roots"),
+                    "this include escapes its root",
+                )
+            }
+            Resolved::NotFound => {
+                if let Some((path, what)) = self.non_file_candidate(spelling, angle) {
+                    let shown = self.cache.display_name(&path);
+                    return self.err_at(
+                        ctx,
+                        range.clone(),
+                        format!("#include \"{spelling}\" names `{shown}`, which is {what}, not a file"),
+                        "not a file",
+                    );
+                }
+                Err(self.include_not_found(spelling, angle, ctx, range))
+            }
+        }
+    }
+
+    /// "cannot find include file", with a note naming the folders searched.
+    fn include_not_found(&self, spelling: &str, angle: bool, ctx: u32, range: &Range<u32>) -> Error {
+        let mut e = Error::new(
+            format!("cannot find include file `{spelling}`"),
+            self.labels_at(ctx, range.clone(), "not found"),
+        );
+        let mut searched: Vec<String> = Vec::new();
+        if !angle {
+            searched.push("the including file's folder".to_string());
+        }
+        for r in &self.opts.include_roots {
+            searched.push(self.cache.display_name(&r.canonicalize().unwrap_or_else(|_| r.clone())));
+        }
+        e.diagnostic = e.diagnostic.with_notes(vec![if searched.is_empty() {
+            "no include roots are configured".to_string()
+        } else {
+            format!("searched: {}", searched.join(", "))
+        }]);
+        e
     }
 
     // -----------------------------------------------------------------------------------------
@@ -1039,75 +1056,10 @@ impl Pp<'_> {
         // token made a macro with many parameters quadratic.
         let mut index: HashMap<Sym, u16, FxBuild> = HashMap::default();
         let first = self.def_peek(r)?;
-        if first.is_some_and(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
+        if let Some(open) = first.filter(|t| t.kind == TK::Punct && t.sym == self.syms.lparen && t.flags & WHITE == 0) {
             self.def_next(r)?;
             func = true;
-            let mut prev = first.unwrap_or(name);
-            let mut expect_param = true;
-            loop {
-                let Some(t) = self.def_next(r)? else {
-                    return self.err_tok(&prev, "missing ')' in macro parameter list", "expected ')' after this");
-                };
-                prev = t;
-                let s = self.it.str(t.sym).to_string();
-                if expect_param {
-                    if t.kind == TK::Ident {
-                        if index.contains_key(&t.sym) {
-                            return self.err_tok(
-                                &t,
-                                format!("duplicate macro parameter \"{s}\""),
-                                "already a parameter",
-                            );
-                        }
-                        if t.sym == self.syms.va_args {
-                            return self.err_tok(&t, "__VA_ARGS__ can not be used as a parameter name", "here");
-                        }
-                        if params.len() + 1 >= NO_PARAM as usize {
-                            return self.err_tok(&t, "too many macro parameters", "here");
-                        }
-                        index.insert(t.sym, params.len() as u16);
-                        params.push(t.sym);
-                        expect_param = false;
-                        continue;
-                    }
-                    if s == "..." {
-                        variadic = true;
-                        index.insert(self.syms.va_args, params.len() as u16);
-                        params.push(self.syms.va_args);
-                        let Some(c) = self.def_next(r)? else {
-                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
-                        };
-                        if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
-                            return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
-                        }
-                        break;
-                    }
-                    if s == ")" && params.is_empty() {
-                        break;
-                    }
-                    return self.err_tok(
-                        &t,
-                        format!("expected parameter name, found \"{s}\""),
-                        "expected a parameter name",
-                    );
-                }
-                match s.as_str() {
-                    "," => expect_param = true,
-                    ")" => break,
-                    "..." => {
-                        // GNU named variadic parameter: `args...`.
-                        variadic = true;
-                        let Some(c) = self.def_next(r)? else {
-                            return self.err_tok(&t, "missing ')' in macro parameter list", "expected ')' after this");
-                        };
-                        if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
-                            return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
-                        }
-                        break;
-                    }
-                    _ => return self.err_tok(&t, format!("expected ',' or ')', found \"{s}\""), "expected ',' or ')'"),
-                }
-            }
+            variadic = self.define_params(r, open, &mut params, &mut index)?;
         } else if let Some(t) = first {
             if t.flags & WHITE == 0 && !predefined {
                 let l = self.tok_labels(&name, "here");
@@ -1137,18 +1089,95 @@ impl Pp<'_> {
         let old = self.macro_idx(name.sym);
         let new = self.set_macro(name.sym, m);
         if old != NONE && !self.same_definition(old, new)? {
-            let prev = &self.defs[old as usize];
-            let n = self.it.str(name.sym).to_string();
-            let mut labels = self.tok_labels(&name, "redefined here");
-            if prev.ctx != NONE {
-                if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
-                    let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
-                    labels.push(Label::secondary(c.file, r).with_message("previous definition"));
-                }
-            }
-            self.warn(format!("\"{n}\" redefined"), labels);
+            self.warn_redefined(&name, old);
         }
         Ok(())
+    }
+
+    /// Reads a function-like macro's parameter list after its `(` (the token `open`) into
+    /// `params` and `index`; whether the macro is variadic.
+    fn define_params(
+        &mut self,
+        r: &mut DefReader,
+        open: Tok,
+        params: &mut Vec<Sym>,
+        index: &mut HashMap<Sym, u16, FxBuild>,
+    ) -> PResult<bool> {
+        let mut prev = open;
+        let mut expect_param = true;
+        loop {
+            let Some(t) = self.def_next(r)? else {
+                return self.err_tok(&prev, "missing ')' in macro parameter list", "expected ')' after this");
+            };
+            prev = t;
+            let s = self.it.str(t.sym).to_string();
+            if expect_param {
+                if t.kind == TK::Ident {
+                    if index.contains_key(&t.sym) {
+                        return self.err_tok(&t, format!("duplicate macro parameter \"{s}\""), "already a parameter");
+                    }
+                    if t.sym == self.syms.va_args {
+                        return self.err_tok(&t, "__VA_ARGS__ can not be used as a parameter name", "here");
+                    }
+                    if params.len() + 1 >= NO_PARAM as usize {
+                        return self.err_tok(&t, "too many macro parameters", "here");
+                    }
+                    index.insert(t.sym, params.len() as u16);
+                    params.push(t.sym);
+                    expect_param = false;
+                    continue;
+                }
+                if s == "..." {
+                    index.insert(self.syms.va_args, params.len() as u16);
+                    params.push(self.syms.va_args);
+                    self.close_variadic(r, &t)?;
+                    return Ok(true);
+                }
+                if s == ")" && params.is_empty() {
+                    return Ok(false);
+                }
+                return self.err_tok(
+                    &t,
+                    format!("expected parameter name, found \"{s}\""),
+                    "expected a parameter name",
+                );
+            }
+            match s.as_str() {
+                "," => expect_param = true,
+                ")" => return Ok(false),
+                "..." => {
+                    // GNU named variadic parameter: `args...`.
+                    self.close_variadic(r, &t)?;
+                    return Ok(true);
+                }
+                _ => return self.err_tok(&t, format!("expected ',' or ')', found \"{s}\""), "expected ',' or ')'"),
+            }
+        }
+    }
+
+    /// The `)` that must follow a parameter list's `...` (the token `dots`).
+    fn close_variadic(&mut self, r: &mut DefReader, dots: &Tok) -> PResult<()> {
+        let Some(c) = self.def_next(r)? else {
+            return self.err_tok(dots, "missing ')' in macro parameter list", "expected ')' after this");
+        };
+        if !(c.kind == TK::Punct && c.sym == self.syms.rparen) {
+            return self.err_tok(&c, "expected ')' after \"...\"", "expected ')'");
+        }
+        Ok(())
+    }
+
+    /// Warns that macro `name` is redefined, pointing at definition `old` too.
+    fn warn_redefined(&mut self, name: &Tok, old: u32) {
+        let prev = &self.defs[old as usize];
+        let n = self.it.str(name.sym).to_string();
+        let mut labels = self.tok_labels(name, "redefined here");
+        if prev.ctx != NONE {
+            if let Some(c) = self.map.ctxs.get(prev.ctx as usize) {
+                let r = c.source.original_range(prev.site.start as usize..prev.site.end as usize);
+                labels.push(Label::secondary(c.file, r).with_message("previous definition"));
+            }
+        }
+        self.warn(format!("\"{n}\" redefined"), labels);
     }
 
     /// Reads a replacement list from `r`: `#` and `##` made flags, parameters numbered,
@@ -1157,9 +1186,6 @@ impl Pp<'_> {
     /// its source when first expanded ([`Pp::body_of`]). `warn`: report warnings (the first
     /// reading does, a re-reading does not).
     fn read_body(&mut self, r: &mut DefReader, shape: &Shape, keep: usize, warn: bool) -> PResult<Body> {
-        let Shape { func, variadic, params, index } = *shape;
-        let named_variadic = variadic && params.last() != Some(&self.syms.va_args);
-        let param_of = |sym: Sym| index.get(&sym).copied();
         let mut body: Option<Vec<Tok>> = Some(Vec::new());
         let mut len = 0usize;
         let mut start = None;
@@ -1189,41 +1215,11 @@ impl Pp<'_> {
                 pastes = true;
                 continue;
             }
-            let mut va_opt_name = variadic && t.kind == TK::Ident && t.sym == self.syms.va_opt;
-            if func && is_hash {
-                let next = self.def_peek(r)?;
-                if let Some(n) = next.filter(|n| variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
-                    // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
-                    self.def_next(r)?;
-                    site = n;
-                    t = Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
-                    va_opt_name = true;
-                } else {
-                    match next.filter(|n| n.kind == TK::Ident).and_then(|n| param_of(n.sym)) {
-                        Some(pi) => {
-                            let Some(n) = self.def_next(r)? else {
-                                return self.err_tok(&site, "'#' is not followed by a macro parameter", "here");
-                            };
-                            t = Tok { param: pi, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
-                        }
-                        None => return self.err_tok(&site, "'#' is not followed by a macro parameter", "here"),
-                    }
-                }
+            let mut va_opt_name = shape.variadic && t.kind == TK::Ident && t.sym == self.syms.va_opt;
+            if shape.func && is_hash {
+                va_opt_name = self.body_stringify(r, shape, &mut t, &mut site)?;
             } else if t.kind == TK::Ident {
-                if func {
-                    if let Some(pi) = param_of(t.sym) {
-                        t.param = pi;
-                    }
-                }
-                if warn && t.sym == self.syms.va_args && (!variadic || named_variadic) && t.param == NO_PARAM {
-                    let l = self.tok_labels(&site, "here");
-                    self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
-                }
-                if warn && t.sym == self.syms.va_opt && !variadic && t.param == NO_PARAM {
-                    // cpp's warning; the name stays a plain identifier.
-                    let l = self.tok_labels(&site, "here");
-                    self.warn("__VA_OPT__ can only appear in the expansion of a C++20 variadic macro", l);
-                }
+                self.body_ident(shape, &mut t, &site, warn);
             }
             if va_opt_name {
                 if open_va_opt.is_some() {
@@ -1246,36 +1242,65 @@ impl Pp<'_> {
                 }
             }
             len += 1;
-            if let Some(b) = body.as_mut() {
-                if b.len() < keep {
-                    b.push(t);
-                } else {
-                    // From here only checked: the rest of the words need not be interned.
-                    body = None;
-                    if let DefSource::Line { intern, .. } = &mut r.src {
-                        *intern = false;
-                    }
-                }
-            }
+            keep_body_token(&mut body, r, t, keep);
         }
         if let Some((t, _)) = open_va_opt {
             return self.err_tok(&t, "unterminated __VA_OPT__", "this __VA_OPT__ is never closed");
         }
         // GNU `, ## __VA_ARGS__`.
-        if let (true, Some(b)) = (variadic, body.as_mut()) {
-            let va = (params.len() - 1) as u16;
-            for k in 0..b.len().saturating_sub(1) {
-                if b[k].kind == TK::Punct
-                    && b[k].sym == self.syms.comma
-                    && b[k].flags & PASTE_LEFT != 0
-                    && b[k + 1].param == va
-                    && b[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
-                {
-                    b[k].flags |= VA_COMMA;
-                }
-            }
+        if let (true, Some(b)) = (shape.variadic, body.as_mut()) {
+            mark_va_commas(b, (shape.params.len() - 1) as u16, self.syms.comma);
         }
         Ok(Body { toks: body, len, start, pastes, va_opt })
+    }
+
+    /// A `#` in a function-like macro's body (`t`, errors at `site`): with the parameter or
+    /// `__VA_OPT__` after it, it becomes one stringifying token. Whether that is a
+    /// `__VA_OPT__`.
+    #[inline]
+    fn body_stringify(&mut self, r: &mut DefReader, shape: &Shape, t: &mut Tok, site: &mut Tok) -> PResult<bool> {
+        let next = self.def_peek(r)?;
+        if let Some(n) = next.filter(|n| shape.variadic && n.kind == TK::Ident && n.sym == self.syms.va_opt) {
+            // `#__VA_OPT__(...)`: stringified when the __VA_OPT__ is resolved.
+            self.def_next(r)?;
+            *site = n;
+            *t = Tok { flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
+            return Ok(true);
+        }
+        match next.filter(|n| n.kind == TK::Ident).and_then(|n| shape.index.get(&n.sym).copied()) {
+            Some(pi) => {
+                let Some(n) = self.def_next(r)? else {
+                    return self.err_tok(site, "'#' is not followed by a macro parameter", "here");
+                };
+                *t = Tok { param: pi, flags: (t.flags & WHITE) | STRINGIFY | FROM_DEF, ..n };
+                Ok(false)
+            }
+            None => self.err_tok(site, "'#' is not followed by a macro parameter", "here"),
+        }
+    }
+
+    /// An identifier in a body: numbered when it names a parameter; cpp's warnings for
+    /// `__VA_ARGS__` and `__VA_OPT__` outside a variadic macro when `warn`.
+    #[inline]
+    fn body_ident(&mut self, shape: &Shape, t: &mut Tok, site: &Tok, warn: bool) {
+        if shape.func {
+            if let Some(pi) = shape.index.get(&t.sym).copied() {
+                t.param = pi;
+            }
+        }
+        if !warn || t.param != NO_PARAM {
+            return;
+        }
+        let named_variadic = shape.variadic && shape.params.last() != Some(&self.syms.va_args);
+        if t.sym == self.syms.va_args && (!shape.variadic || named_variadic) {
+            let l = self.tok_labels(site, "here");
+            self.warn("__VA_ARGS__ can only appear in the expansion of a C99 variadic macro", l);
+        }
+        if t.sym == self.syms.va_opt && !shape.variadic {
+            // cpp's warning; the name stays a plain identifier.
+            let l = self.tok_labels(site, "here");
+            self.warn("__VA_OPT__ can only appear in the expansion of a C++20 variadic macro", l);
+        }
     }
 
     /// The replacement list of macro `m`, read again from its source first if it was too long
@@ -1371,6 +1396,18 @@ impl Pp<'_> {
     }
 }
 
+/// Past the whitespace and whole block comments from `p` at a line's start.
+#[inline]
+fn skip_blank(source: &SourceFile, mut p: usize) -> usize {
+    loop {
+        let (kind, len) = source.lex(p);
+        match kind {
+            Kind::Space | Kind::BlockComment { terminated: true } => p += len,
+            _ => return p,
+        }
+    }
+}
+
 /// Skips to the start of the next line from `p`, treating comments and literals as cpp does
 /// in a skipped group (a block comment may run over several lines). `Err(at)`: a block
 /// comment at `at` is never closed.
@@ -1390,6 +1427,38 @@ fn skip_line(bytes: &[u8], mut p: usize) -> Result<usize, usize> {
         }
     }
     Ok(bytes.len())
+}
+
+/// Appends body token `t` while fewer than `keep` are kept; past that the body is only
+/// checked, so it is dropped and the rest of its words need not be interned.
+#[inline]
+fn keep_body_token(body: &mut Option<Vec<Tok>>, r: &mut DefReader, t: Tok, keep: usize) {
+    let Some(b) = body.as_mut() else {
+        return;
+    };
+    if b.len() < keep {
+        b.push(t);
+        return;
+    }
+    *body = None;
+    if let DefSource::Line { intern, .. } = &mut r.src {
+        *intern = false;
+    }
+}
+
+/// Marks GNU `, ## __VA_ARGS__` commas (`va` is the variadic parameter's number): the comma
+/// goes when the variable arguments are empty.
+fn mark_va_commas(b: &mut [Tok], va: u16, comma: Sym) {
+    for k in 0..b.len().saturating_sub(1) {
+        if b[k].kind == TK::Punct
+            && b[k].sym == comma
+            && b[k].flags & PASTE_LEFT != 0
+            && b[k + 1].param == va
+            && b[k + 1].flags & (STRINGIFY | PASTE_LEFT) == 0
+        {
+            b[k].flags |= VA_COMMA;
+        }
+    }
 }
 
 /// Directive text with comments replaced by single spaces.

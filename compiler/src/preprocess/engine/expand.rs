@@ -440,96 +440,18 @@ impl Pp<'_> {
                 );
             }
             let b = body[i];
-            let prev_pastes = i > 0 && body[i - 1].flags & PASTE_LEFT != 0;
             if b.flags & VA_COMMA != 0 {
-                // GNU `, ## __VA_ARGS__`: absent variable arguments drop the comma; empty ones
-                // leave it (pasted with a placemarker); otherwise the comma stays unpasted and
-                // the arguments go in unexpanded, as `##` operands do.
-                let p = body[i + 1];
-                let arg = args.get(p.param as usize).cloned().unwrap_or_default();
-                let va_paste = p.flags & PASTE_LEFT;
-                if absent_va && va_paste == 0 {
-                    // Dropped with its comma.
-                } else if arg.is_empty() {
-                    out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
-                } else {
-                    out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
-                    out.extend(arg);
-                    if let Some(t) = out.last_mut() {
-                        t.flags |= va_paste;
-                    }
-                    if va_paste == 0 && self.directive_line.is_none() {
-                        out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
-                    }
-                }
+                self.push_va_comma(&mut out, b, body[i + 1], args, absent_va);
                 i += 2;
                 continue;
             }
             if b.param == NO_PARAM {
                 out.push(b);
-                i += 1;
-                continue;
-            }
-            let pi = b.param as usize;
-            if b.flags & STRINGIFY != 0 {
-                if strung.len() <= pi {
-                    strung.resize(pi + 1, None);
-                }
-                let sym = match strung[pi] {
-                    Some(sym) => sym,
-                    None => {
-                        let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
-                        self.spend_bytes(s.len(), name)?;
-                        let sym = self.it.intern(&s);
-                        strung[pi] = Some(sym);
-                        sym
-                    }
-                };
-                out.push(Tok {
-                    sym,
-                    kind: TK::Str,
-                    param: NO_PARAM,
-                    flags: (b.flags & (WHITE | PASTE_LEFT)) | FROM_DEF,
-                    ..b
-                });
-                i += 1;
-                continue;
-            }
-            let raw = b.flags & PASTE_LEFT != 0 || prev_pastes;
-            if !raw {
-                self.expanded_arg(pi, args, expanded, name)?;
-            }
-            let toks: &[Tok] = if raw {
-                args.get(pi).map_or(&[][..], |a| &a[..])
+            } else if b.flags & STRINGIFY != 0 {
+                self.push_stringified(&mut out, b, args, &mut strung, name)?;
             } else {
-                expanded.get(pi).and_then(|e| e.as_deref()).unwrap_or(&[])
-            };
-            // cpp's paddings around an argument: on the left (its source the parameter) unless
-            // it is the first token or the right operand of `##`, on the right unless `##`
-            // follows.
-            let pad = self.directive_line.is_none();
-            if pad && i > 0 && !prev_pastes {
-                out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
-            }
-            if toks.is_empty() {
-                if raw {
-                    out.push(Tok {
-                        kind: TK::Placemarker,
-                        param: NO_PARAM,
-                        flags: b.flags & (PASTE_LEFT | WHITE),
-                        ..b
-                    });
-                }
-            } else {
-                out.extend_from_slice(toks);
-                if b.flags & PASTE_LEFT != 0 {
-                    if let Some(t) = out.last_mut() {
-                        t.flags |= PASTE_LEFT;
-                    }
-                }
-            }
-            if pad && b.flags & PASTE_LEFT == 0 {
-                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
+                let prev = i.checked_sub(1).map(|k| body[k]);
+                self.push_arg(&mut out, b, prev, args, expanded, name)?;
             }
             i += 1;
         }
@@ -544,6 +466,106 @@ impl Pp<'_> {
             }
         }
         Ok(out)
+    }
+
+    /// GNU `, ## __VA_ARGS__` (the comma `b`, the parameter `p`): absent variable arguments
+    /// drop the comma; empty ones leave it (pasted with a placemarker); otherwise the comma
+    /// stays unpasted and the arguments go in unexpanded, as `##` operands do.
+    #[inline]
+    fn push_va_comma(&self, out: &mut Vec<Tok>, b: Tok, p: Tok, args: &[Vec<Tok>], absent_va: bool) {
+        let arg = args.get(p.param as usize).cloned().unwrap_or_default();
+        let va_paste = p.flags & PASTE_LEFT;
+        if absent_va && va_paste == 0 {
+            // Dropped with its comma.
+        } else if arg.is_empty() {
+            out.push(Tok { flags: (b.flags & !(PASTE_LEFT | VA_COMMA)) | va_paste, ..b });
+        } else {
+            out.push(Tok { flags: b.flags & !(PASTE_LEFT | VA_COMMA), ..b });
+            out.extend(arg);
+            if let Some(t) = out.last_mut() {
+                t.flags |= va_paste;
+            }
+            if va_paste == 0 && self.directive_line.is_none() {
+                out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
+            }
+        }
+    }
+
+    /// `#x` (the body token `b`): the argument as one string literal, made once per
+    /// parameter and kept in `strung`.
+    #[inline]
+    fn push_stringified(
+        &mut self,
+        out: &mut Vec<Tok>,
+        b: Tok,
+        args: &[Vec<Tok>],
+        strung: &mut Vec<Option<Sym>>,
+        name: &Tok,
+    ) -> PResult<()> {
+        let pi = b.param as usize;
+        if strung.len() <= pi {
+            strung.resize(pi + 1, None);
+        }
+        let sym = match strung[pi] {
+            Some(sym) => sym,
+            None => {
+                let s = self.stringify(args.get(pi).map_or(&[][..], |a| &a[..]));
+                self.spend_bytes(s.len(), name)?;
+                let sym = self.it.intern(&s);
+                strung[pi] = Some(sym);
+                sym
+            }
+        };
+        out.push(Tok { sym, kind: TK::Str, param: NO_PARAM, flags: (b.flags & (WHITE | PASTE_LEFT)) | FROM_DEF, ..b });
+        Ok(())
+    }
+
+    /// A parameter (the body token `b`, after `prev`) replaced by its argument: raw next to
+    /// `##` (a placemarker when empty), else fully expanded, between cpp's paddings.
+    #[inline]
+    fn push_arg(
+        &mut self,
+        out: &mut Vec<Tok>,
+        b: Tok,
+        prev: Option<Tok>,
+        args: &[Vec<Tok>],
+        expanded: &mut [Option<Vec<Tok>>],
+        name: &Tok,
+    ) -> PResult<()> {
+        let pi = b.param as usize;
+        let prev_pastes = prev.is_some_and(|p| p.flags & PASTE_LEFT != 0);
+        let raw = b.flags & PASTE_LEFT != 0 || prev_pastes;
+        if !raw {
+            self.expanded_arg(pi, args, expanded, name)?;
+        }
+        let toks: &[Tok] = if raw {
+            args.get(pi).map_or(&[][..], |a| &a[..])
+        } else {
+            expanded.get(pi).and_then(|e| e.as_deref()).unwrap_or(&[])
+        };
+        // cpp's paddings around an argument: on the left (its source the parameter) unless
+        // it is the first token or the right operand of `##`, on the right unless `##`
+        // follows.
+        let pad = self.directive_line.is_none();
+        if pad && prev.is_some() && !prev_pastes {
+            out.push(Tok { kind: TK::Padding, flags: b.flags & WHITE, param: NO_PARAM, ..b });
+        }
+        if toks.is_empty() {
+            if raw {
+                out.push(Tok { kind: TK::Placemarker, param: NO_PARAM, flags: b.flags & (PASTE_LEFT | WHITE), ..b });
+            }
+        } else {
+            out.extend_from_slice(toks);
+            if b.flags & PASTE_LEFT != 0 {
+                if let Some(t) = out.last_mut() {
+                    t.flags |= PASTE_LEFT;
+                }
+            }
+        }
+        if pad && b.flags & PASTE_LEFT == 0 {
+            out.push(Tok { kind: TK::Padding, flags: NULL_SOURCE, ..Tok::eof() });
+        }
+        Ok(())
     }
 
     /// Replaces each `__VA_OPT__(...)` of a body by its contents when the variable arguments

@@ -532,12 +532,27 @@ fn resolve_in_roots(
     }
 }
 
-// ---------------------------------------------------------------------------------------------
+/// Where includes are searched, in order: the main file's folder, then the include roots and
+/// the virtual roots, canonical where they exist.
+fn search_roots(opts: &Options, cache: &SourceCache, main: &SourceFile) -> Vec<PathBuf> {
+    let mut roots: Vec<PathBuf> = Vec::new();
+    let main_dir = main.path.parent().filter(|p| cache.kind(p) == PathKind::Dir).map(|p| p.to_path_buf());
+    if let Some(d) = &main_dir {
+        roots.push(d.clone());
+    }
+    for r in &opts.include_roots {
+        roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
+    }
+    for (_, r) in &opts.virtual_roots {
+        roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
+    }
+    roots
+}
 
-impl<'a> Pp<'a> {
-    fn new(opts: &'a Options, cache: &'a SourceCache, main: &SourceFile) -> PResult<Pp<'a>> {
-        let mut it = Interner::default();
-        let syms = Syms {
+impl Syms {
+    /// Interns the names the engine compares against.
+    fn new(it: &mut Interner) -> Syms {
+        Syms {
             defined: it.intern("defined"),
             va_args: it.intern("__VA_ARGS__"),
             va_opt: it.intern("__VA_OPT__"),
@@ -548,18 +563,17 @@ impl<'a> Pp<'a> {
             comma: it.intern(","),
             one: it.intern("1"),
             zero: it.intern("0"),
-        };
-        let mut roots: Vec<PathBuf> = Vec::new();
-        let main_dir = main.path.parent().filter(|p| cache.kind(p) == PathKind::Dir).map(|p| p.to_path_buf());
-        if let Some(d) = &main_dir {
-            roots.push(d.clone());
         }
-        for r in &opts.include_roots {
-            roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
-        }
-        for (_, r) in &opts.virtual_roots {
-            roots.push(cache.canonical(r).unwrap_or_else(|| r.clone()));
-        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+
+impl<'a> Pp<'a> {
+    fn new(opts: &'a Options, cache: &'a SourceCache, main: &SourceFile) -> PResult<Pp<'a>> {
+        let mut it = Interner::default();
+        let syms = Syms::new(&mut it);
+        let roots = search_roots(opts, cache, main);
         let mut pp = Pp {
             opts,
             cache,
@@ -592,6 +606,13 @@ impl<'a> Pp<'a> {
             absent: std::cell::RefCell::new(Vec::new()),
             skipped: Vec::new(),
         };
+        pp.define_builtins();
+        pp.define_predefined()?;
+        Ok(pp)
+    }
+
+    /// The macros the engine computes: `__LINE__`, `__FILE__`, `_Pragma`, `__has_include`...
+    fn define_builtins(&mut self) {
         for (name, b) in [
             ("__LINE__", Builtin::Line),
             ("__FILE__", Builtin::File),
@@ -604,8 +625,8 @@ impl<'a> Pp<'a> {
             ("__DATE__", Builtin::Date),
             ("__TIME__", Builtin::Time),
         ] {
-            let sym = pp.it.intern(name);
-            pp.set_macro(
+            let sym = self.it.intern(name);
+            self.set_macro(
                 sym,
                 Macro {
                     func: false,
@@ -622,6 +643,10 @@ impl<'a> Pp<'a> {
                 },
             );
         }
+    }
+
+    /// cpp's predefined `__STDC__` macros, then the options' `-D` definitions.
+    fn define_predefined(&mut self) -> PResult<()> {
         let predefined = [
             ("__STDC__", "1"),
             ("__STDC_VERSION__", "201112L"),
@@ -630,12 +655,13 @@ impl<'a> Pp<'a> {
             ("__STDC_UTF_32__", "1"),
         ];
         for (name, value) in predefined {
-            pp.define_text(name, value)?;
+            self.define_text(name, value)?;
         }
+        let opts = self.opts;
         for (name, value) in &opts.defines {
-            pp.define_text(name, value)?;
+            self.define_text(name, value)?;
         }
-        Ok(pp)
+        Ok(())
     }
 
     fn set_macro(&mut self, sym: Sym, m: Macro) -> u32 {
@@ -1000,46 +1026,13 @@ impl<'a> Pp<'a> {
                     bol = false;
                     match kind {
                         Kind::Ident if self.name_filter[bytes[pos] as usize] & (1u64 << (len & 63)) != 0 => {
-                            let name = &text[pos..pos + len];
-                            if let Some(sym) = self.it.get(name) {
-                                let m = self.macro_idx(sym);
-                                if m != NONE {
-                                    let func = self.defs[m as usize].func;
-                                    if !func || self.peek_file_lparen(bytes, pos + len) {
-                                        self.copy_run(ctx, text, run_start, pos, last_tok)?;
-                                        if let Some(f) = self.frames.last_mut() {
-                                            f.pos = pos + len;
-                                            f.bol = false;
-                                        }
-                                        let name_tok = Tok {
-                                            sym,
-                                            ctx,
-                                            src: pos as u32,
-                                            len: len as u32,
-                                            param: NO_PARAM,
-                                            kind: TK::Ident,
-                                            flags: 0,
-                                        };
-                                        return self.expand_top(name_tok, m);
-                                    }
-                                }
+                            if let Some((sym, m)) = self.macro_here(text, pos, len) {
+                                self.copy_run(ctx, text, run_start, pos, last_tok)?;
+                                return self.expand_here(sym, m, ctx, pos, len);
                             }
                         }
-                        Kind::Str { terminated: false } => {
-                            return self.err_at(
-                                ctx,
-                                pos as u32..pos as u32 + 1,
-                                "missing terminating \" character",
-                                "this string is never closed",
-                            );
-                        }
-                        Kind::Char { terminated: false } => {
-                            let labels = self.labels_at(
-                                ctx,
-                                pos as u32..pos as u32 + 1,
-                                "this character constant is never closed",
-                            );
-                            self.warn("missing terminating ' character", labels);
+                        Kind::Str { terminated: false } | Kind::Char { terminated: false } => {
+                            self.unterminated_literal(kind, ctx, pos)?;
                         }
                         _ => {}
                     }
@@ -1048,6 +1041,47 @@ impl<'a> Pp<'a> {
                 }
             }
         }
+    }
+
+    /// The macro that the identifier at `pos..pos + len` of the file text invokes: an
+    /// object-like macro, or a function-like one followed by `(`.
+    #[inline]
+    fn macro_here(&self, text: &str, pos: usize, len: usize) -> Option<(Sym, u32)> {
+        let sym = self.it.get(&text[pos..pos + len])?;
+        let m = self.macro_idx(sym);
+        if m == NONE {
+            return None;
+        }
+        let func = self.defs[m as usize].func;
+        (!func || self.peek_file_lparen(text.as_bytes(), pos + len)).then_some((sym, m))
+    }
+
+    /// Expands macro `m` named by the identifier `sym` at `pos..pos + len` of the file text,
+    /// the frame left after the name.
+    fn expand_here(&mut self, sym: Sym, m: u32, ctx: u32, pos: usize, len: usize) -> PResult<()> {
+        if let Some(f) = self.frames.last_mut() {
+            f.pos = pos + len;
+            f.bol = false;
+        }
+        let name_tok = Tok { sym, ctx, src: pos as u32, len: len as u32, param: NO_PARAM, kind: TK::Ident, flags: 0 };
+        self.expand_top(name_tok, m)
+    }
+
+    /// A string literal (an error) or character constant (a warning) with no closing quote
+    /// at `pos` of the file text.
+    #[cold]
+    fn unterminated_literal(&mut self, kind: Kind, ctx: u32, pos: usize) -> PResult<()> {
+        if matches!(kind, Kind::Str { .. }) {
+            return self.err_at(
+                ctx,
+                pos as u32..pos as u32 + 1,
+                "missing terminating \" character",
+                "this string is never closed",
+            );
+        }
+        let labels = self.labels_at(ctx, pos as u32..pos as u32 + 1, "this character constant is never closed");
+        self.warn("missing terminating ' character", labels);
+        Ok(())
     }
 
     /// Is the next token in the file text from `pos` a `(` (no directive line in between)?

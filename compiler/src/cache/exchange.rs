@@ -1,0 +1,206 @@
+//! Entries exchanged with the remote cache: batched fills streamed into a local pack, and
+//! the bundles of a build's keys, read on a fill and stored from the local entries.
+
+use super::*;
+
+impl Cache {
+    /// Copies into the local cache the remote entries of `keys` that it lacks: from the parts
+    /// of the bundle of `keys` most of whose keys it lacks when the remote streams
+    /// ([`bundle`]), the rest fetched in batches ([`Remote::get_each`]); each checked as
+    /// [`Cache::get`] checks it, and streamed into one pack as they arrive (no entry waits in
+    /// memory). Whether every key is now held locally. A key the remote lacks is not asked
+    /// for again this build; a corrupted entry is left to the build, which looks it up again,
+    /// reports and recompiles it.
+    pub fn fill_from_remote(&self, keys: &[Key]) -> bool {
+        self.fill(keys, None)
+    }
+
+    /// [`Cache::fill_from_remote`] without counting its hits: whether every key is held
+    /// locally now, and the keys it filled (sorted), for a caller that fetched them before
+    /// it knew which it uses to count those it does ([`Remote::count_hits`]).
+    pub fn prefill_from_remote(&self, keys: &[Key]) -> (bool, Vec<Key>) {
+        let filled = Mutex::new(Vec::new());
+        let complete = self.fill(keys, Some(&filled));
+        let mut filled = filled.into_inner().expect("no panics while locked");
+        filled.sort_unstable();
+        (complete, filled)
+    }
+
+    /// [`Cache::fill_from_remote`]; each key filled is counted as a hit, or added to
+    /// `filled`.
+    pub(super) fn fill(&self, keys: &[Key], filled: Option<&Mutex<Vec<Key>>>) -> bool {
+        let Some(layer) = &self.remote else { return false };
+        let hit = |key: &Key| match filled {
+            Some(f) => f.lock().expect("no panics while locked").push(*key),
+            None => layer.remote.count_hit(),
+        };
+        // The single lookups' hits first: then the index knows them.
+        let pending = layer.fills.lock().expect("no panics while locked").take();
+        self.finish_fills(pending);
+        let absent = layer.absent.lock().expect("no panics while locked").clone();
+        let mut missing: Vec<Key> = self.with_index(|index| {
+            let known = |k: &Key| index.by_key.contains_key(k) || absent.contains(k);
+            keys.iter().filter(|k| !known(k)).copied().collect()
+        });
+        let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
+        // Not with signed values: a part is used as it streams, before its end could be
+        // checked (each value is checked by itself; see `Remote::get_each`).
+        let bundle = (layer.remote.streams() && !layer.remote.signs() && keys.len() >= bundle::MIN_KEYS)
+            .then(|| bundle::Bundle::new(keys));
+        let mut parts = vec![None; bundle.as_ref().map_or(0, |b| b.ids().len())];
+        if missing.is_empty() {
+            self.keep_bundle(layer, bundle, parts);
+            return complete.into_inner();
+        }
+        // Room for every key asked; failing to fill only costs a remote lookup next time.
+        let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
+        if let (Some(b), Some(p), true) = (&bundle, &pack, missing.len() >= bundle::MIN_KEYS) {
+            missing.sort_unstable();
+            let from_parts;
+            (from_parts, parts) = self.fill_from_bundle(layer, b, &missing, p);
+            missing.retain(|k| from_parts.binary_search(k).is_err());
+            from_parts.iter().for_each(hit);
+        }
+        self.keep_bundle(layer, bundle, parts);
+        layer.remote.get_each(&missing, |key, value| {
+            let Some(bytes) = value else {
+                layer.absent.lock().expect("no panics while locked").insert(*key);
+                complete.store(false, Ordering::Relaxed);
+                return;
+            };
+            // The value's one checksum (one blake3 of the whole value, several times faster
+            // than one per artifact); the entry's own is checked when the build uses it.
+            let Ok(entry) = remote_entry(key, bytes) else {
+                // Looked up again by the build, which reports it and recompiles.
+                complete.store(false, Ordering::Relaxed);
+                return;
+            };
+            hit(key);
+            // A failed write leaves the pack unfinished (removed).
+            if let Some(p) = &pack {
+                let _ = p.push(key, entry);
+            }
+        });
+        // Written now, so that the build's lookups find them here (not in the remote again).
+        self.finish_fills(pack);
+        complete.into_inner()
+    }
+
+    /// The entries of `wanted` (sorted) that the parts of `bundle` most of whose keys are
+    /// wanted hold (else most of a part would be dropped), checked and pushed into `pack` as
+    /// they arrive: the keys filled (sorted), and whether each part was whole (`None`: not
+    /// read).
+    pub(super) fn fill_from_bundle(
+        &self,
+        layer: &Layer,
+        bundle: &bundle::Bundle,
+        wanted: &[Key],
+        pack: &fill::FillPack,
+    ) -> (Vec<Key>, Vec<Option<bool>>) {
+        let read: Vec<usize> = (0..bundle.ids().len())
+            .filter(|&i| {
+                let part = bundle.part(i);
+                part.iter().filter(|k| wanted.binary_search(k).is_ok()).count() * 2 >= part.len()
+            })
+            .collect();
+        let ids: Vec<Key> = read.iter().map(|&i| bundle.ids()[i]).collect();
+        let filled = Mutex::new(Vec::with_capacity(wanted.len()));
+        let parts = Mutex::new(vec![None; bundle.ids().len()]);
+        layer.remote.get_streamed(&ids, |n, body| {
+            let i = read[n];
+            let mut mine = Vec::new();
+            let whole = body.is_some_and(|body| {
+                // One entry at a time (a part is never held whole).
+                let mut value = Vec::new();
+                bundle::read_part(body, bundle.part(i), &mut value, |key, entry| {
+                    if wanted.binary_search(key).is_ok() && pack.push(key, entry).is_ok() {
+                        mine.push(*key);
+                    }
+                })
+            });
+            parts.lock().expect("no panics while locked")[i] = Some(whole);
+            filled.lock().expect("no panics while locked").extend(mine);
+        });
+        let mut filled = filled.into_inner().expect("no panics while locked");
+        filled.sort_unstable();
+        (filled, parts.into_inner().expect("no panics while locked"))
+    }
+
+    /// Keeps `bundle` for [`Cache::put_bundle`] when this build writes and a part of it is
+    /// not known whole.
+    pub(super) fn keep_bundle(&self, layer: &Layer, bundle: Option<bundle::Bundle>, parts: Vec<Option<bool>>) {
+        let keep = layer.remote.writes() && parts.iter().any(|p| *p != Some(true));
+        *layer.bundle.lock().expect("no panics while locked") = bundle.filter(|_| keep).map(|b| (b, parts));
+    }
+
+    /// Stores the parts of the bundle of the last fill's keys ([`bundle`]) that the remote
+    /// lacks (asked with `HEAD` when the fill did not read them) or held damaged, from the
+    /// local cache's entries, in read-write mode. A build calls this once every key's entry
+    /// is in the local cache (after writing the archive); failing to only costs the next
+    /// fresh cache a `GET` per key.
+    pub fn put_bundle(&self) {
+        let Some(layer) = &self.remote else { return };
+        let Some((bundle, parts)) = layer.bundle.lock().expect("no panics while locked").take() else { return };
+        (0..parts.len()).into_par_iter().for_each(|i| {
+            let id = &bundle.ids()[i];
+            if !layer.remote.writes() || parts[i].or_else(|| layer.remote.contains(id)) != Some(false) {
+                return;
+            }
+            let keys = bundle.part(i);
+            let size = bundle::part_overhead(keys.len()) + self.local_size(keys);
+            if let Some(value) = bundle::encode_part(keys, size, |key, out| self.append_local_entry(key, out)) {
+                layer.remote.store(id, &value);
+            }
+        });
+    }
+
+    /// Appends the newest local entry of `key` to `out`; whether there was one. Only its
+    /// magic and key are checked: a build that assembles compiled or checked (on lookup or
+    /// from the remote) every entry of its keys, and its readers check the entry's own
+    /// checksum on use (a blake3 of every entry would add a noticeable share to the writing
+    /// build's time).
+    pub(super) fn append_local_entry(&self, key: &Key, out: &mut Vec<u8>) -> bool {
+        let Some(l) = self.with_index(|index| index.by_key.get(key).cloned()) else {
+            return false;
+        };
+        let start = out.len();
+        out.resize(start + l.len as usize, 0);
+        let entry = &mut out[start..];
+        let ok = l.pack.file.read_exact_at(entry, l.offset).is_ok()
+            && entry.len() >= 72
+            && (&entry[..8] == MAGIC || &entry[..8] == codec::MAGIC)
+            && entry[40..72] == key.0;
+        if !ok {
+            out.truncate(start);
+            return false;
+        }
+        // An entry compressed with this cache's dictionaries goes out without them.
+        if out[start..].starts_with(codec::MAGIC) && codec::uses_dictionary(&out[start..]) != Ok(false) {
+            let portable = codec::decode(key, &out[start..], &|id| self.dicts.get(&self.dir, id))
+                .map(|(c, hashes)| codec::encode(key, &c, &hashes, &HashMap::new()));
+            out.truncate(start);
+            match portable {
+                Ok(entry) => out.extend_from_slice(&entry),
+                Err(_) => return false,
+            }
+        }
+        true
+    }
+
+    /// The bytes of the local entries of `keys` (the newest copy of each).
+    pub(super) fn local_size(&self, keys: &[Key]) -> usize {
+        self.with_index(|index| keys.iter().filter_map(|k| index.by_key.get(k).map(|l| l.len as usize)).sum())
+    }
+
+    /// Writes the index of a fill pack and renames it into place; the index of this `Cache`
+    /// (if read) then knows its entries. Failing to only costs remote lookups next time.
+    pub(super) fn finish_fills(&self, pack: Option<fill::FillPack>) {
+        let Some(Ok(Some(path))) = pack.map(fill::FillPack::finish) else { return };
+        let mut index = self.index.write().expect("no panics while locked");
+        if let Some(index) = index.as_mut() {
+            if let Ok(Some((pack, rows))) = open_pack(&path) {
+                index.add(Arc::new(pack), rows);
+            }
+        }
+    }
+}

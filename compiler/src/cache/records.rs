@@ -1,0 +1,126 @@
+//! Preprocessing records (one set per configuration and options) and archive stamps:
+//! small files beside the packs, each replaced atomically.
+
+use super::*;
+
+impl Cache {
+    /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
+    pub fn records_path(&self, key: &Key) -> PathBuf {
+        self.dir.join(format!("{}.{RECORD_EXTENSION}", key.to_hex()))
+    }
+
+    /// The preprocessing records stored under `key` (one set per configuration and
+    /// options), by permutation key; empty when missing or damaged.
+    ///
+    /// Without a local copy, the remote cache's (stored by any machine that built the same
+    /// configuration) is used and kept locally. Records name every file's blake3: where the
+    /// sources differ they simply do not match, and the permutations are preprocessed.
+    pub fn get_records(&self, key: &Key) -> Records {
+        self.get_records_bytes(key).and_then(|body| serde_json::from_slice(&body).ok()).unwrap_or_default()
+    }
+
+    /// Replaces the records stored under `key`, atomically.
+    pub fn put_records(&self, key: &Key, records: &Records) -> Result<(), Error> {
+        self.put_records_bytes(key, &serde_json::to_vec(records).expect("records serialize"))
+    }
+
+    /// The body of the records file under `key`, in whatever encoding its writer chose;
+    /// `None` when missing or damaged (its checksum is checked). Without a local copy, the
+    /// remote cache's is used and kept locally.
+    pub fn get_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        self.get_records_found(key).map(|(body, _)| body)
+    }
+
+    /// [`Cache::get_records_bytes`], and whether the body came from the remote cache (no
+    /// local copy: this local cache never built that configuration).
+    pub fn get_records_found(&self, key: &Key) -> Option<(Vec<u8>, bool)> {
+        let path = self.records_path(key);
+        // Only a regular file, bounded (a FIFO or a device there is ignored).
+        if let Some(body) = crate::archive::input::read_regular(&path, MAX_RECORDS).ok().and_then(records_body) {
+            if let Ok(f) = fs::File::options().append(true).open(&path) {
+                let _ = f.set_modified(SystemTime::now());
+            }
+            return Some((body, false));
+        }
+        let bytes = self.remote().and_then(|r| r.get(key))?;
+        let body = records_body(bytes.clone())?;
+        let _ = self.write_file(&path, &bytes);
+        Some((body, true))
+    }
+
+    /// Replaces the records file under `key` with `body` (checksummed), atomically, and
+    /// stores it in the remote cache too.
+    pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
+        let sum = blake3::hash(body);
+        if let Some(remote) = self.remote() {
+            let mut bytes = Vec::with_capacity(40 + body.len());
+            bytes.extend_from_slice(RECORD_MAGIC);
+            bytes.extend_from_slice(sum.as_bytes());
+            bytes.extend_from_slice(body);
+            remote.store(key, &bytes);
+        }
+        self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
+    }
+
+    /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.
+    pub(super) fn stamp_path(&self, archive: &Path) -> PathBuf {
+        let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());
+        let name = blake3::hash(abs.to_string_lossy().as_bytes()).to_hex();
+        self.dir.join(format!("{}.stamp", &name[..32]))
+    }
+
+    /// Records that the archive now at `archive` is the output of the build with
+    /// `fingerprint` (with its artifact counts), identified by its length, modification
+    /// time and the blake3 of its whole content.
+    pub fn stamp_archive(
+        &self,
+        archive: &Path,
+        fingerprint: &blake3::Hash,
+        counts: (usize, usize),
+    ) -> Result<(), Error> {
+        let err = |source| Error { path: archive.to_path_buf(), source };
+        let id = archive_identity(archive).map_err(err)?;
+        let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
+        self.write_file(&self.stamp_path(archive), text.as_bytes())
+    }
+
+    /// [`Cache::stamp_archive`] for the archive `bytes` written to `file`, a temporary file
+    /// about to be renamed to `archive` (the rename keeps its length and modification
+    /// time): the stamp is written while the build still waits on other work. A stamp whose
+    /// file is not renamed after all matches no archive.
+    pub fn stamp_archive_file(
+        &self,
+        archive: &Path,
+        file: &fs::File,
+        bytes: &[u8],
+        fingerprint: &blake3::Hash,
+        counts: (usize, usize),
+    ) -> Result<(), Error> {
+        let err = |source| Error { path: archive.to_path_buf(), source };
+        let meta = file.metadata().map_err(err)?;
+        let id = identity(&meta, blake3::hash(bytes)).map_err(err)?;
+        let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
+        self.write_file(&self.stamp_path(archive), text.as_bytes())
+    }
+
+    /// The artifact counts of the archive at `archive` if it is, untouched, the output of a
+    /// build with `fingerprint` (hashed only when there is a stamp), and every key of `keys`
+    /// still has its entry.
+    pub fn fresh_archive(
+        &self,
+        archive: &Path,
+        fingerprint: &dyn Fn() -> blake3::Hash,
+        mut keys: &mut dyn Iterator<Item = &Key>,
+    ) -> Option<(usize, usize)> {
+        // The stamp first: without one (a first build) the keys are not looked at.
+        let text = crate::archive::input::read_regular_to_string(&self.stamp_path(archive), 4096).ok()?;
+        if !self.with_index(|index| Iterator::all(&mut keys, |k| index.by_key.contains_key(k))) {
+            return None;
+        }
+        let mut lines = text.lines();
+        if lines.next()? != fingerprint().to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
+            return None;
+        }
+        Some((lines.next()?.parse().ok()?, lines.next()?.parse().ok()?))
+    }
+}
