@@ -6,9 +6,6 @@
 //! the archive (which says it is partial, so that a lookup of one is an error naming it) and
 //! in the build's fingerprint. What is kept depends only on the configuration and the files'
 //! contents, never on `-j`, the cache or shards.
-// The fields and variants here are named after the file format and the command's output
-// that the module documentation describes; their one-line docs are still to be written.
-#![allow(missing_docs)]
 
 use std::collections::{BTreeMap, HashSet};
 
@@ -27,7 +24,9 @@ pub(super) struct Filter {
 /// Per shader: (permutations built that the filter kept, permutations left out).
 #[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct ShaderUsage {
+    /// Permutations built.
     pub used: usize,
+    /// Permutations left out.
     pub left_out: usize,
 }
 
