@@ -111,9 +111,8 @@ pub mod gpu;
 #[cfg(feature = "hot-reload")]
 pub mod hot_reload;
 // Its docs name the private `spirv` module's checks, which passthrough modules pass; they
-// resolve in the maintainers' docs (`--document-private-items`). pipelines.rs is being split
-// on another branch: the docs of its items come with that split.
-#[allow(rustdoc::private_intra_doc_links, missing_docs)]
+// resolve in the maintainers' docs (`--document-private-items`).
+#[allow(rustdoc::private_intra_doc_links)]
 pub mod pipelines;
 pub mod shaders;
 // SPIR-V checks and renumbering for passthrough: the runtime's own; public only with the
