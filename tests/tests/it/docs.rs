@@ -542,9 +542,13 @@ fn parse_help(text: &str) -> Help {
     help
 }
 
+/// Each command of a binary (its path of subcommands, empty for the binary itself) and its
+/// help.
+type HelpTree = Vec<(Vec<String>, Help)>;
+
 /// `bin ARGS... --help`, parsed, for `path` and every subcommand under it, depth first:
 /// `(["cache", "gc"], help)`.
-fn help_tree(bin: &Path, path: Vec<String>, out: &mut Vec<(Vec<String>, Help)>) {
+fn help_tree(bin: &Path, path: Vec<String>, out: &mut HelpTree) {
     let output = Command::new(bin).args(&path).arg("--help").env("NO_COLOR", "1").output().expect("the binary runs");
     assert!(output.status.success(), "{} {} --help: {}", bin.display(), path.join(" "), output.status);
     let help = parse_help(&String::from_utf8_lossy(&output.stdout));
@@ -619,7 +623,7 @@ fn section_of(binary: &str, path: &[String]) -> String {
 /// binary): a flag or subcommand the page does not name in its section, a command without
 /// a section, and a flag the page documents (in a table's first column or the synopsis) that
 /// the command does not have. A flag whose row says `hidden` is documented on purpose.
-fn reference_gaps(text: &str, trees: &[(&str, Vec<(Vec<String>, Help)>)]) -> Vec<String> {
+fn reference_gaps(text: &str, trees: &[(&str, HelpTree)]) -> Vec<String> {
     let sections = reference_sections(text);
     let section = |name: &str| sections.iter().find(|(h, _)| h == name).map(|(_, body)| body.as_str());
     let mut problems = Vec::new();
