@@ -19,6 +19,63 @@
 //! runtime reads archives through these very types without linking zstd's dictionary
 //! builder, and nothing here calls back into a build: the writer's memory hooks are passed
 //! in ([`WriterHooks`]).
+//!
+//! # Example
+//!
+//! An archive of one shader with one dimension, written in memory with the writer (the
+//! `writer` feature; the compiler writes files with [`StreamingWriter`]), then opened and
+//! looked up as a renderer does: by canonical name, or by dimension values in any order.
+//!
+//! ```
+//! use kiln_archive::{
+//!     Archive, ArchiveWriter, DimensionRecord, PermutationRecord, Reflection, ShaderRecord, Stage, Target,
+//! };
+//!
+//! let shader = ShaderRecord {
+//!     name: "Tonemap".into(),
+//!     level: "sm5".into(),
+//!     entry: "main".into(),
+//!     stage: Stage::Compute,
+//!     dimensions: vec![DimensionRecord { name: "HDR".into(), labels: vec![] }],
+//! };
+//! let reflection = Reflection {
+//!     entry: "main".into(),
+//!     stage: Stage::Compute,
+//!     bindings: vec![],
+//!     vertex_inputs: vec![],
+//!     color_outputs: vec![],
+//!     workgroup_size: Some([8, 8, 1]),
+//! };
+//!
+//! let mut writer = ArchiveWriter::new();
+//! let s = writer.add_shader(shader);
+//! let r = writer.add_reflection(&reflection);
+//! for hdr in 0..2 {
+//!     let wgsl = writer.add_blob(format!("// HDR={hdr}\n@compute @workgroup_size(8, 8) fn main() {{}}").as_bytes());
+//!     writer.add_permutation(PermutationRecord {
+//!         name: format!("Tonemap@sm5{{HDR={hdr}}}"),
+//!         shader: s,
+//!         values: vec![hdr],
+//!         reflection: r,
+//!         artifacts: vec![(Target::Wgsl, wgsl)],
+//!     });
+//! }
+//! let bytes = writer.to_bytes()?;
+//!
+//! // Reading checks the header and the manifest's chunk hashes; each record and blob is
+//! // checked the first time it is used.
+//! let archive = Archive::from_vec(bytes)?;
+//! assert_eq!(archive.permutation_count(), 2);
+//! let name = archive.canonical_name("Tonemap", "sm5", &[("HDR", "1")])?;
+//! assert_eq!(name, "Tonemap@sm5{HDR=1}");
+//! let permutation = archive.get(&name)?.expect("written above");
+//! let wgsl = permutation.artifact(Target::Wgsl)?.expect("a WGSL artifact");
+//! assert!(wgsl.starts_with(b"// HDR=1"));
+//! assert_eq!(permutation.reflection().workgroup_size, Some([8, 8, 1]));
+//! // A name that is not there is `None`; `Archive::nearest` lists the closest ones.
+//! assert!(archive.get("Tonemap@sm5{HDR=2}")?.is_none());
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
 
 #![warn(missing_docs)]
 

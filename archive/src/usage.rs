@@ -22,9 +22,6 @@
 //! Merging adds frames and runs and keeps the earliest first frame, so it is associative and
 //! commutative: any order of merging the same files gives the same bytes. Files of different
 //! archives do not merge (their permutations need not mean the same code).
-// The fields and variants here are named after the file format and the command's output
-// that the module documentation describes; their one-line docs are still to be written.
-#![allow(missing_docs)]
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -33,8 +30,20 @@ use std::fmt::Write as _;
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum UsageKey {
-    Compute { compute: String },
-    Render { vertex: String, fragment: Option<String>, state: String },
+    /// A compute pipeline (a `compute` line).
+    Compute {
+        /// The compute permutation's canonical name.
+        compute: String,
+    },
+    /// A render pipeline (a `render` line).
+    Render {
+        /// The vertex permutation's canonical name.
+        vertex: String,
+        /// The fragment permutation's canonical name (`None`: a depth-only pipeline, `-`).
+        fragment: Option<String>,
+        /// The fixed-function state, written without spaces.
+        state: String,
+    },
 }
 
 impl UsageKey {
@@ -72,16 +81,29 @@ pub struct Usage {
     pub archive: String,
     /// Recordings merged into this one (1 for a fresh one).
     pub runs: u64,
+    /// Each pipeline asked for, and how often.
     pub records: BTreeMap<UsageKey, UseCount>,
 }
 
 /// A usage file that cannot be read or merged.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum UsageError {
+    /// A line that is not of the format.
     #[error("line {line}: {message}")]
-    Syntax { line: usize, message: String },
+    Syntax {
+        /// Its number, from 1.
+        line: usize,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// Two files recorded with different archives.
     #[error("usage files of different archives do not merge ({a} and {b})")]
-    Archives { a: String, b: String },
+    Archives {
+        /// The first file's archive content hash.
+        a: String,
+        /// The second's.
+        b: String,
+    },
 }
 
 const HEADER: &str = "kiln-usage 1";

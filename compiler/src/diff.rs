@@ -8,9 +8,6 @@
 //! token streams (what a build would compile), found by preprocessing every kept
 //! permutation. Bytes: each blob as stored in the archive (compressed), counted once, for
 //! the first shader in the archive's order that uses it.
-// The fields and variants here are named after the file format and the command's output
-// that the module documentation describes; their one-line docs are still to be written.
-#![allow(missing_docs)]
 
 use std::collections::{BTreeMap, BTreeSet, HashSet};
 use std::fmt::Write as _;
@@ -36,6 +33,7 @@ pub struct ShaderSummary {
 /// A permutation set as `kiln diff` compares it.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Summary {
+    /// Each shader's permutations, by shader name.
     pub shaders: BTreeMap<String, ShaderSummary>,
     /// Stored artifact bytes by target name, with each target's dictionary (archives only).
     pub bytes: BTreeMap<String, u64>,
@@ -118,7 +116,9 @@ impl Summary {
 /// Old and new of one number.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Change<T> {
+    /// In the old set.
     pub old: T,
+    /// In the new set.
     pub new: T,
 }
 
@@ -129,13 +129,17 @@ pub struct ShaderDiff {
     pub added: Vec<String>,
     /// Canonical names in the old set only, sorted.
     pub removed: Vec<String>,
+    /// Its permutations.
     pub permutations: Change<u64>,
+    /// Its distinct sources (`None` where a side was not analysed).
     pub distinct: Change<Option<u64>>,
     /// Stored bytes by target, where either side has some.
     pub bytes: BTreeMap<String, Change<u64>>,
 }
 
 impl ShaderDiff {
+    /// Whether nothing of the shader changed: no permutation added or removed, the same
+    /// distinct sources and bytes.
     pub fn is_unchanged(&self) -> bool {
         self.added.is_empty()
             && self.removed.is_empty()
@@ -147,12 +151,16 @@ impl ShaderDiff {
 /// What changed from one [`Summary`] to another.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Diff {
+    /// Per shader of either set, by name.
     pub shaders: BTreeMap<String, ShaderDiff>,
+    /// Stored bytes by target, with its dictionary (archives only).
     pub bytes: BTreeMap<String, Change<u64>>,
+    /// The archive files' bytes (archives only).
     pub file_bytes: Change<Option<u64>>,
 }
 
 impl Diff {
+    /// What changed from `old` to `new`, per shader.
     pub fn new(old: &Summary, new: &Summary) -> Diff {
         let empty = ShaderSummary::default();
         let names: BTreeSet<&String> = old.shaders.keys().chain(new.shaders.keys()).collect();
@@ -181,10 +189,12 @@ impl Diff {
         }
     }
 
+    /// Permutations added, over every shader.
     pub fn added(&self) -> usize {
         self.shaders.values().map(|s| s.added.len()).sum()
     }
 
+    /// Permutations removed, over every shader.
     pub fn removed(&self) -> usize {
         self.shaders.values().map(|s| s.removed.len()).sum()
     }

@@ -705,6 +705,94 @@ fn hostile_servers_are_one_warning_and_change_no_byte() {
     }
 }
 
+/// One RESP command's arguments from `c` (`None` once the client has gone).
+fn resp_command(c: &mut std::io::BufReader<TcpStream>) -> Option<Vec<Vec<u8>>> {
+    use std::io::BufRead;
+    let mut line = String::new();
+    let mut number = |c: &mut std::io::BufReader<TcpStream>, kind: char| -> Option<usize> {
+        line.clear();
+        c.read_line(&mut line).ok().filter(|n| *n > 0)?;
+        line.trim_end().strip_prefix(kind)?.parse().ok()
+    };
+    let count = number(c, '*')?;
+    let mut args = Vec::with_capacity(count);
+    for _ in 0..count {
+        let mut arg = vec![0; number(c, '$')? + 2];
+        c.read_exact(&mut arg).ok()?;
+        arg.truncate(arg.len() - 2);
+        args.push(arg);
+    }
+    Some(args)
+}
+
+/// A loopback redis that holds nothing: every `MGET` and `GET` a miss at once, every other
+/// command `+OK`, except `dripped` (`SET`, `AUTH`, ...), whose answer is an endless line
+/// sent a byte every `drip`.
+fn dripping_redis(dripped: &'static str, drip: Duration) -> u16 {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for c in listener.incoming().flatten() {
+            std::thread::spawn(move || {
+                let mut writer = c.try_clone().unwrap();
+                let mut reader = std::io::BufReader::new(c);
+                while let Some(args) = resp_command(&mut reader) {
+                    let name = String::from_utf8_lossy(&args[0]).to_ascii_uppercase();
+                    let reply = match name.as_str() {
+                        _ if name == dripped => loop {
+                            std::thread::sleep(drip);
+                            if writer.write_all(b"+").is_err() {
+                                return;
+                            }
+                        },
+                        "MGET" => format!("*{}\r\n{}", args.len() - 1, "$-1\r\n".repeat(args.len() - 1)),
+                        "GET" => "$-1\r\n".to_string(),
+                        _ => "+OK\r\n".to_string(),
+                    };
+                    if writer.write_all(reply.as_bytes()).is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    port
+}
+
+/// Issue 28, case 1 for the redis client's own requests in a whole build: a redis that
+/// drips its answer to `SET` (each entry written), or to `AUTH` (each connection's setup),
+/// a byte a little faster than the timeout: the build finishes within a few timeouts with
+/// one warning naming the server, what timed out and how long it waited, and writes the
+/// same bytes as a local build.
+#[test]
+fn a_redis_that_drips_on_set_or_auth_is_one_warning_and_changes_no_byte() {
+    let env = Env::lock();
+    env.set("KILN_REMOTE_CACHE_TIMEOUT_MS", "300");
+    env.set("KILN_REMOTE_CACHE_TOKEN", TOKEN);
+    let reference = {
+        let m = Machine::new();
+        build_ok(&m.options(RemoteCache::Disabled, None));
+        m.bytes()
+    };
+    for (dripped, what) in
+        [("SET", "writing to it failed (SET: timed out after"), ("AUTH", "connecting: timed out after")]
+    {
+        let port = dripping_redis(dripped, Duration::from_millis(250));
+        let url = format!("redis://127.0.0.1:{port}");
+        let m = Machine::new();
+        let start = Instant::now();
+        let r = build_ok(&m.options(RemoteCache::Url(url.clone()), None));
+        assert!(start.elapsed() < Duration::from_secs(15), "{dripped}: {:?}", start.elapsed());
+        let warnings = remote_warnings(&r);
+        assert_eq!(warnings.len(), 1, "{dripped}: {:?}", r.warnings);
+        let w = warnings[0];
+        assert!(w.contains(what) && w.contains(&url) && w.contains("timeout of 300 ms"), "{dripped}: {w}");
+        assert!(!w.contains(TOKEN), "{w}");
+        assert_eq!(r.stats.compiled, DISTINCT);
+        assert_eq!(m.bytes(), reference, "{dripped}");
+    }
+}
+
 /// `MAC` of a 32-byte key given as hex: what a team sets as `KILN_REMOTE_CACHE_KEY`.
 const SIGNING_KEY: &str = "4b494c4e2074657374206b6579202d206e6f7420666f72207265616c20757365";
 

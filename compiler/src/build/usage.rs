@@ -10,9 +10,6 @@
 //! `--usage` also gives the archive its pipeline manifest: the merged files' pipelines whose
 //! permutations the archive holds, in first-use order (first frame, then key); the others
 //! are counted in the build's note.
-// The fields and variants here are named after the file format and the command's output
-// that the module documentation describes; their one-line docs are still to be written.
-#![allow(missing_docs)]
 
 use std::collections::{BTreeMap, HashSet};
 
@@ -34,7 +31,9 @@ pub(super) struct Filter {
 /// Per shader: (permutations built that the filter kept, permutations left out).
 #[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct ShaderUsage {
+    /// Permutations built.
     pub used: usize,
+    /// Permutations left out.
     pub left_out: usize,
 }
 

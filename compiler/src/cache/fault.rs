@@ -1,9 +1,9 @@
 //! What the remote cache's transports share (redis, HTTP through `ureq`, and the plain-HTTP
-//! batches of `http_batch`): a failed operation, the bound on what a value may be, and the
-//! deadline of a whole request.
+//! batches of `http_batch`): a failed operation, the bound on what a value may be, the
+//! deadline of a whole request and a host lookup bounded in time.
 
 use std::io::{self, Read, Write};
-use std::net::TcpStream;
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::time::{Duration, Instant};
 
 /// The largest value any build reads back, whatever its own figures say (see
@@ -40,7 +40,7 @@ pub(super) fn request_bound(timeout: Duration, limit: u64) -> Duration {
 }
 
 /// One failed operation.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub(super) struct Fault {
     pub message: String,
     /// A timeout is not retried (it would double the wait).
@@ -52,11 +52,32 @@ impl Fault {
     pub fn timeout(doing: &str) -> Fault {
         Fault { message: format!("{doing}: timed out"), timed_out: true }
     }
+
+    /// A request that ran out of time after `waited`.
+    pub fn timeout_after(doing: &str, waited: Duration) -> Fault {
+        Fault { message: format!("{doing}: timed out after {} ms", waited.as_millis()), timed_out: true }
+    }
 }
 
-/// A socket whose reads end at a deadline for the whole request (each read waits at most
-/// the per-read timeout, and never past the deadline), not only per read: a server that
-/// drips one byte per timeout cannot hold a request open for long.
+/// The addresses of `host`, looked up on a thread of its own so that a stuck lookup is
+/// bounded by `timeout` too (the lookup itself has no timeout).
+pub(super) fn resolve(host: &str, port: u16, timeout: Duration) -> Result<Vec<SocketAddr>, Fault> {
+    let (send, receive) = std::sync::mpsc::channel();
+    let target = (host.to_string(), port);
+    std::thread::spawn(move || {
+        let _ = send.send(target.to_socket_addrs().map(Iterator::collect::<Vec<_>>));
+    });
+    match receive.recv_timeout(timeout) {
+        Ok(Ok(addresses)) => Ok(addresses),
+        Ok(Err(e)) => Err(Fault { message: format!("cannot resolve {host}: {e}"), timed_out: false }),
+        Err(_) => Err(Fault::timeout_after(&format!("resolving {host}"), timeout)),
+    }
+}
+
+/// A socket whose reads and writes end at a deadline for the whole request (each waits at
+/// most the per-read or per-write timeout, and never past the deadline), not only per read:
+/// a server that drips one byte per timeout, or takes in what it is sent as slowly, cannot
+/// hold a request open for long.
 #[derive(Debug)]
 pub(super) struct Timed {
     stream: TcpStream,
@@ -73,13 +94,26 @@ impl Timed {
         self.timeout
     }
 
-    /// Reads from now on end at `deadline` (`None`: only the per-read timeout).
+    /// Reads and writes from now on end at `deadline` (`None`: only the per-read and
+    /// per-write timeouts).
     pub fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
         if deadline.is_none() {
-            // The per-read bound again (a read under the deadline may have left it shorter).
+            // The plain bounds again (a read or write under the deadline may have left them
+            // shorter).
             let _ = self.stream.set_read_timeout(Some(self.timeout));
+            let _ = self.stream.set_write_timeout(Some(self.timeout));
         }
+    }
+
+    /// What is left of the deadline, at most a timeout; an error once it has passed.
+    fn left(&self) -> io::Result<Option<Duration>> {
+        let Some(deadline) = self.deadline else { return Ok(None) };
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(io::Error::new(io::ErrorKind::TimedOut, "the request took too long"));
+        }
+        Ok(Some(left.min(self.timeout)))
     }
 
     /// Moves the deadline `by` later (a value's length, once announced).
@@ -90,12 +124,8 @@ impl Timed {
 
 impl Read for Timed {
     fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        if let Some(deadline) = self.deadline {
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Err(io::Error::new(io::ErrorKind::TimedOut, "the request took too long"));
-            }
-            self.stream.set_read_timeout(Some(left.min(self.timeout)))?;
+        if let Some(left) = self.left()? {
+            self.stream.set_read_timeout(Some(left))?;
         }
         self.stream.read(buf)
     }
@@ -103,6 +133,9 @@ impl Read for Timed {
 
 impl Write for Timed {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        if let Some(left) = self.left()? {
+            self.stream.set_write_timeout(Some(left))?;
+        }
         self.stream.write(buf)
     }
 

@@ -13,11 +13,11 @@
 //! rest of the batch to a new connection; anything unexpected is a [`Fault`].
 
 use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::net::{SocketAddr, TcpStream};
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use super::fault::{deadline, transfer_time, Fault, Timed};
+use super::fault::{deadline, resolve, transfer_time, Fault, Timed};
 use super::Key;
 
 /// The most keys whose requests go out at once on one connection (few enough that the
@@ -39,7 +39,7 @@ pub struct HttpBatch {
     authorization: String,
     timeout: Duration,
     /// Resolved on first use, once per build.
-    addresses: OnceLock<Result<Vec<SocketAddr>, String>>,
+    addresses: OnceLock<Result<Vec<SocketAddr>, Fault>>,
     idle: Mutex<Vec<BufReader<Timed>>>,
 }
 
@@ -153,7 +153,7 @@ impl HttpBatch {
             return Ok(c);
         }
         let addresses = self.addresses.get_or_init(|| resolve(&self.host, self.port, self.timeout));
-        let addresses = addresses.as_ref().map_err(|why| Fault { message: why.clone(), timed_out: false })?;
+        let addresses = addresses.as_ref().map_err(Fault::clone)?;
         let mut last = None;
         for address in addresses {
             match TcpStream::connect_timeout(address, self.timeout) {
@@ -172,21 +172,6 @@ impl HttpBatch {
             Some(e) => io_fault("connecting", e),
             None => Fault { message: format!("{} has no address", self.host), timed_out: false },
         })
-    }
-}
-
-/// The addresses of `host`, looked up on a thread of its own so that a stuck lookup is
-/// bounded by `timeout` too.
-fn resolve(host: &str, port: u16, timeout: Duration) -> Result<Vec<SocketAddr>, String> {
-    let (send, receive) = std::sync::mpsc::channel();
-    let target = (host.to_string(), port);
-    std::thread::spawn(move || {
-        let _ = send.send(target.to_socket_addrs().map(Iterator::collect::<Vec<_>>));
-    });
-    match receive.recv_timeout(timeout) {
-        Ok(Ok(addresses)) => Ok(addresses),
-        Ok(Err(e)) => Err(format!("cannot resolve {host}: {e}")),
-        Err(_) => Err(format!("resolving {host} took longer than {timeout:?}")),
     }
 }
 

@@ -15,16 +15,18 @@
 //! serves it); a 404 is a miss. Redis stores each value under `kiln:<key>`.
 //!
 //! Guarantees: every connect, read and write is bounded by a timeout (3 s, or
-//! `KILN_REMOTE_CACHE_TIMEOUT_MS`); the first failure (server down, slow, connection
+//! `KILN_REMOTE_CACHE_TIMEOUT_MS`), and every request as a whole by a few of them (redis
+//! commands and a connection's setup included; redis is spoken over plain TCP only, by
+//! [`RawRedis`], the `redis` crate only parsing the URL); the first failure (server down, slow, connection
 //! dropped, refused credentials) turns the store off for the rest of the build and leaves
 //! exactly one warning; credentials (`KILN_REMOTE_CACHE_TOKEN`, or those in the URL) never
 //! appear in a message: URLs are shown through [`redact`].
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use super::fault::{deadline, request_bound, transfer_time, Fault, Timed, DEFAULT_LIMIT, MAX_VALUE};
+use super::fault::{deadline, request_bound, resolve, transfer_time, Fault, Timed, DEFAULT_LIMIT, MAX_VALUE};
 use super::Key;
 
 /// The default bound of each connect, read and write.
@@ -276,6 +278,7 @@ impl Remote {
                 secrets.extend(password);
                 Store::Redis(Box::new(store))
             }
+            Some("rediss") | Some("redis+unix") | Some("unix") => return Err(bad(NOT_PLAIN_REDIS.into())),
             Some("http") | Some("https") => {
                 let (store, password) = HttpStore::new(options).map_err(bad)?;
                 secrets.extend(password);
@@ -611,8 +614,8 @@ impl Remote {
             let why = if fault.timed_out {
                 // Named as a timeout, with what was waited for (never the OS's words).
                 format!(
-                    "{}: timed out: {} sent nothing within the timeout of {} ms, or a request took longer than {} ms",
-                    fault.message.trim_end_matches(": timed out"),
+                    "{}: {} sent nothing within the timeout of {} ms, or a request took longer than {} ms",
+                    fault.message,
                     self.shown,
                     self.timeout.as_millis(),
                     super::fault::request_bound(self.timeout, 0).as_millis()
@@ -639,13 +642,14 @@ fn scrub(text: &str, secrets: &[String]) -> String {
     out
 }
 
-/// Redis through the `redis` crate's sync connections, a few kept open for the workers.
+/// Redis over [`RawRedis`] connections, a few kept open for the workers. The `redis` crate
+/// parses the URL; every request (`MGET`, `GET` as an `MGET` of one key, `SET`, `EXISTS`)
+/// and every connection's setup (lookup, connect, `AUTH`, `SELECT`) runs under a deadline
+/// for the whole of it.
 struct RedisStore {
-    client: redis::Client,
-    idle: Mutex<Vec<redis::Connection>>,
-    /// Where `MGET`s go, and their connections kept open (see [`RawRedis`]).
-    raw: RawTarget,
-    raw_idle: Mutex<Vec<RawRedis>>,
+    /// Where requests go, and how connections log in.
+    target: RawTarget,
+    idle: Mutex<Vec<RawRedis>>,
     timeout: Duration,
 }
 
@@ -666,37 +670,28 @@ impl RedisStore {
         }
         let password = info.redis_settings().password().map(str::to_string);
         let settings = info.redis_settings();
-        let raw = RawTarget {
+        let target = RawTarget {
             address: match info.addr() {
-                redis::ConnectionAddr::Tcp(host, port) => Some((host.clone(), *port)),
-                _ => None,
+                redis::ConnectionAddr::Tcp(host, port) => (host.clone(), *port),
+                _ => return Err(NOT_PLAIN_REDIS.into()),
             },
             username: settings.username().map(str::to_string),
             password: password.clone(),
             db: settings.db(),
         };
-        let client = redis::Client::open(info).map_err(|e| e.to_string())?;
-        let store =
-            RedisStore { client, idle: Mutex::default(), raw, raw_idle: Mutex::default(), timeout: options.timeout };
+        let store = RedisStore { target, idle: Mutex::default(), timeout: options.timeout };
         Ok((store, password))
     }
 
-    fn with_connection<T>(&self, f: impl FnOnce(&mut redis::Connection) -> redis::RedisResult<T>) -> Result<T, Fault> {
-        let fault = |e: redis::RedisError| match e.is_timeout() {
-            true => Fault::timeout("waiting for redis"),
-            false => Fault { timed_out: false, message: e.to_string() },
-        };
+    /// `f` on an idle connection, else a new one; a connection that failed is dropped (its
+    /// reply may be half read).
+    fn with_connection<T>(&self, f: impl FnOnce(&mut RawRedis) -> Result<T, Fault>) -> Result<T, Fault> {
         let idle = self.idle.lock().expect("no panics while locked").pop();
         let mut connection = match idle {
             Some(c) => c,
-            None => {
-                let c = self.client.get_connection_with_timeout(self.timeout).map_err(fault)?;
-                c.set_read_timeout(Some(self.timeout)).map_err(fault)?;
-                c.set_write_timeout(Some(self.timeout)).map_err(fault)?;
-                c
-            }
+            None => RawRedis::connect(&self.target, self.timeout)?,
         };
-        let result = f(&mut connection).map_err(fault)?;
+        let result = f(&mut connection)?;
         self.idle.lock().expect("no panics while locked").push(connection);
         Ok(result)
     }
@@ -705,32 +700,24 @@ impl RedisStore {
         format!("kiln:{key}")
     }
 
-    /// The value of `key` into `value`: whether it was there. Over a [`RawRedis`]
-    /// connection (an `MGET` of one key) when the server is reached over plain TCP: the
-    /// `redis` crate's parser grew its buffer step by step, each step zeroed and copied (an
-    /// archive's value cost a warm-remote build a large share of its CPU).
+    /// The value of `key` into `value`: whether it was there (an `MGET` of one key: its
+    /// value is read straight into `value`, without a general reply parser).
     fn get_into(&self, key: &Key, value: &mut Vec<u8>, limit: u64) -> Result<bool, Fault> {
-        if self.raw.address.is_none() {
-            let found: Option<Vec<u8>> = self.with_connection(|c| redis::cmd("GET").arg(Self::name(key)).query(c))?;
-            return Ok(found.map(|v| *value = v).is_some());
-        }
         let mut found = None;
         self.get_many(std::slice::from_ref(key), value, limit, &mut |_, v| found = v.map(<[u8]>::len))?;
         Ok(found.map(|len| value.truncate(len)).is_some())
     }
 
     fn contains(&self, key: &Key) -> Result<bool, Fault> {
-        self.with_connection(|c| redis::cmd("EXISTS").arg(Self::name(key)).query(c))
+        self.with_connection(|c| c.exists(&Self::name(key)))
     }
 
     fn put(&self, key: &Key, value: &[u8]) -> Result<(), Fault> {
-        self.with_connection(|c| redis::cmd("SET").arg(Self::name(key)).arg(value).query(c))
+        self.with_connection(|c| c.set(&Self::name(key), value))
     }
 
-    /// One `MGET` of every key: over a [`RawRedis`] connection when the server is reached
-    /// over plain TCP, else through the `redis` crate.
-    /// `f` with each key and its value (`value` is the buffer of [`RawRedis::mget`]); an
-    /// error leaves the keys after those `f` had unanswered.
+    /// One `MGET` of every key: `f` with each key and its value (`value` is the buffer of
+    /// [`RawRedis::mget`]); an error leaves the keys after those `f` had unanswered.
     fn get_many(
         &self,
         keys: &[Key],
@@ -741,44 +728,29 @@ impl RedisStore {
         if keys.is_empty() {
             return Ok(());
         }
-        if let Some(address) = &self.raw.address {
-            let idle = self.raw_idle.lock().expect("no panics while locked").pop();
-            let mut connection = match idle {
-                Some(c) => c,
-                None => RawRedis::connect(address, &self.raw, self.timeout)?,
-            };
-            // A connection that failed is dropped (its reply may be half read).
-            connection.mget(keys, value, limit, f)?;
-            self.raw_idle.lock().expect("no panics while locked").push(connection);
-            return Ok(());
-        }
-        let mut cmd = redis::cmd("MGET");
-        for key in keys {
-            cmd.arg(Self::name(key));
-        }
-        let values: Vec<Option<Vec<u8>>> = self.with_connection(|c| cmd.query(c))?;
-        if values.len() != keys.len() {
-            let message = format!("MGET of {} keys answered {} values", keys.len(), values.len());
-            return Err(Fault { message, timed_out: false });
-        }
-        keys.iter().zip(&values).for_each(|(key, v)| f(key, v.as_deref()));
-        Ok(())
+        self.with_connection(|c| c.mget(keys, value, limit, f))
     }
 }
 
+/// Why a redis URL other than `redis://host:port[/db]` is refused.
+const NOT_PLAIN_REDIS: &str =
+    "only redis://host:port[/db] is supported (no TLS, no unix socket: a TLS tunnel such as stunnel can sit in front)";
+
 /// How [`RawRedis`] connections reach and log in to the server.
 struct RawTarget {
-    /// Host and port; `None` for TLS and unix sockets (left to the `redis` crate).
-    address: Option<(String, u16)>,
+    /// Host and port.
+    address: (String, u16),
     username: Option<String>,
     password: Option<String>,
     db: i64,
 }
 
-/// A plain RESP2 connection that only sends `MGET` and reads its reply straight from a
-/// buffered socket: each bulk string is read into a vector of its announced length, without
-/// the `redis` crate's general reply parser and `Value` tree (most of the CPU a warm-remote
-/// fill spent in the client). Every read and write is bounded by the store's timeout.
+/// A plain RESP2 connection that sends `MGET`, `SET` and `EXISTS` and reads their replies
+/// straight from a buffered socket: each bulk string is read into a vector of its announced
+/// length, without the `redis` crate's general reply parser and `Value` tree (most of the
+/// CPU a warm-remote fill spent in the client). Each request, and the connection's setup,
+/// has a deadline for the whole of it ([`RawRedis::within`]), besides the per-read and
+/// per-write timeout.
 struct RawRedis {
     reader: std::io::BufReader<Timed>,
 }
@@ -795,39 +767,93 @@ impl RawRedis {
         Fault { message: format!("unexpected reply from redis: {what}"), timed_out: false }
     }
 
-    /// Connects, then logs in and selects the database as the URL and token say.
-    fn connect((host, port): &(String, u16), target: &RawTarget, timeout: Duration) -> Result<RawRedis, Fault> {
-        use std::net::ToSocketAddrs;
-        let addresses = (host.as_str(), *port).to_socket_addrs().map_err(Self::io_fault)?;
+    /// Looks the host up, connects, then logs in and selects the database as the URL and
+    /// token say: all of it within one request's deadline.
+    fn connect(target: &RawTarget, timeout: Duration) -> Result<RawRedis, Fault> {
+        let start = Instant::now();
+        let end = deadline(timeout);
+        let (host, port) = &target.address;
+        let timed_out = |f: Fault| match f.timed_out {
+            true => Fault::timeout_after("connecting", start.elapsed()),
+            false => f,
+        };
+        let addresses = resolve(host, *port, timeout).map_err(timed_out)?;
         let mut last = Fault { message: format!("no address for {host}"), timed_out: false };
         for address in addresses {
-            match std::net::TcpStream::connect_timeout(&address, timeout) {
+            let left = end.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Err(Fault::timeout_after("connecting", start.elapsed()));
+            }
+            match std::net::TcpStream::connect_timeout(&address, left.min(timeout)) {
                 Ok(stream) => {
                     stream.set_read_timeout(Some(timeout)).map_err(Self::io_fault)?;
                     stream.set_write_timeout(Some(timeout)).map_err(Self::io_fault)?;
                     let _ = stream.set_nodelay(true);
                     let mut c =
                         RawRedis { reader: std::io::BufReader::with_capacity(1 << 16, Timed::new(stream, timeout)) };
-                    c.reader.get_mut().set_deadline(Some(deadline(timeout)));
-                    if let Some(password) = &target.password {
-                        let mut args: Vec<&[u8]> = vec![b"AUTH"];
-                        args.extend(target.username.as_deref().map(str::as_bytes));
-                        args.push(password.as_bytes());
-                        c.send(&args)?;
-                        c.expect_ok("AUTH")?;
-                    }
-                    if target.db != 0 {
-                        let db = target.db.to_string();
-                        c.send(&[b"SELECT", db.as_bytes()])?;
-                        c.expect_ok("SELECT")?;
-                    }
+                    c.reader.get_mut().set_deadline(Some(end));
+                    let logged_in = c.log_in(target);
                     c.reader.get_mut().set_deadline(None);
+                    logged_in.map_err(timed_out)?;
                     return Ok(c);
                 }
-                Err(e) => last = Self::io_fault(e),
+                Err(e) => last = timed_out(Self::io_fault(e)),
             }
         }
         Err(last)
+    }
+
+    /// `AUTH` and `SELECT`, where the target needs them.
+    fn log_in(&mut self, target: &RawTarget) -> Result<(), Fault> {
+        if let Some(password) = &target.password {
+            let mut args: Vec<&[u8]> = vec![b"AUTH"];
+            args.extend(target.username.as_deref().map(str::as_bytes));
+            args.push(password.as_bytes());
+            self.send(&args)?;
+            self.expect_ok("AUTH")?;
+        }
+        if target.db != 0 {
+            let db = target.db.to_string();
+            self.send(&[b"SELECT", db.as_bytes()])?;
+            self.expect_ok("SELECT")?;
+        }
+        Ok(())
+    }
+
+    /// `request` (named `command` in a fault) under a deadline for the whole of it: a few
+    /// timeouts, plus the transfer time of the `sending` bytes it sends (what it reads moves
+    /// the deadline as lengths are announced). A timeout is named with the time waited.
+    fn within<T>(
+        &mut self,
+        command: &str,
+        sending: u64,
+        request: impl FnOnce(&mut RawRedis) -> Result<T, Fault>,
+    ) -> Result<T, Fault> {
+        let start = Instant::now();
+        let timeout = self.reader.get_ref().timeout();
+        self.reader.get_mut().set_deadline(Some(deadline(timeout) + transfer_time(sending)));
+        let result = request(self);
+        self.reader.get_mut().set_deadline(None);
+        result.map_err(|f| match f.timed_out {
+            true => Fault::timeout_after(command, start.elapsed()),
+            false => f,
+        })
+    }
+
+    /// `SET name value`.
+    fn set(&mut self, name: &str, value: &[u8]) -> Result<(), Fault> {
+        self.within("SET", value.len() as u64, |c| {
+            c.send(&[b"SET", name.as_bytes(), value])?;
+            c.expect_ok("SET")
+        })
+    }
+
+    /// `EXISTS name`: whether the server holds it.
+    fn exists(&mut self, name: &str) -> Result<bool, Fault> {
+        self.within("EXISTS", 0, |c| {
+            c.send(&[b"EXISTS", name.as_bytes()])?;
+            Ok(c.header(b':')? > 0)
+        })
     }
 
     fn send(&mut self, args: &[&[u8]]) -> Result<(), Fault> {
@@ -890,11 +916,7 @@ impl RawRedis {
         limit: u64,
         f: &mut dyn FnMut(&Key, Option<&[u8]>),
     ) -> Result<(), Fault> {
-        let timeout = self.reader.get_ref().timeout();
-        self.reader.get_mut().set_deadline(Some(deadline(timeout)));
-        let result = self.mget_within(keys, value, limit, f);
-        self.reader.get_mut().set_deadline(None);
-        result
+        self.within("MGET", 0, |c| c.mget_within(keys, value, limit, f))
     }
 
     fn mget_within(
@@ -1295,12 +1317,12 @@ mod tests {
         port
     }
 
-    fn raw_target(password: Option<&str>, db: i64) -> RawTarget {
-        RawTarget { address: Some(("127.0.0.1".into(), 0)), username: None, password: password.map(String::from), db }
+    fn raw_target(port: u16, password: Option<&str>, db: i64) -> RawTarget {
+        RawTarget { address: ("127.0.0.1".into(), port), username: None, password: password.map(String::from), db }
     }
 
-    fn raw_mget(port: u16, target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
-        let mut c = RawRedis::connect(&("127.0.0.1".into(), port), target, Duration::from_secs(2))?;
+    fn raw_mget(target: &RawTarget, keys: &[Key]) -> Result<Vec<Option<Vec<u8>>>, Fault> {
+        let mut c = RawRedis::connect(target, Duration::from_secs(2))?;
         let mut values = Vec::new();
         c.mget(keys, &mut Vec::new(), 1 << 20, &mut |_, v| values.push(v.map(<[u8]>::to_vec)))?;
         Ok(values)
@@ -1314,7 +1336,7 @@ mod tests {
             (b"$6\r\nSELECT\r\n$1\r\n2\r\n", b"+OK\r\n"),
             (b"0303\r\n", b"*3\r\n$3\r\nab\n\r\n$-1\r\n$0\r\n\r\n"),
         ]);
-        let values = raw_mget(port, &raw_target(Some("pw"), 2), &keys).unwrap();
+        let values = raw_mget(&raw_target(port, Some("pw"), 2), &keys).unwrap();
         assert_eq!(values, vec![Some(b"ab\n".to_vec()), None, Some(Vec::new())]);
     }
 
@@ -1329,12 +1351,12 @@ mod tests {
             (b":1\r\n", "reply type"),
         ] {
             let port = scripted_server(vec![(b"0202\r\n", reply)]);
-            let fault = raw_mget(port, &raw_target(None, 0), &keys).unwrap_err();
+            let fault = raw_mget(&raw_target(port, None, 0), &keys).unwrap_err();
             assert!(!fault.timed_out, "{why}: {}", fault.message);
             assert!(fault.message.contains(why), "{why}: {}", fault.message);
         }
         let port = scripted_server(vec![(b"AUTH", b"-WRONGPASS invalid password\r\n")]);
-        let fault = raw_mget(port, &raw_target(Some("s3cret"), 0), &keys).unwrap_err();
+        let fault = raw_mget(&raw_target(port, Some("s3cret"), 0), &keys).unwrap_err();
         assert!(fault.message.contains("WRONGPASS") && !fault.message.contains("s3cret"), "{}", fault.message);
     }
 
@@ -1377,7 +1399,10 @@ mod tests {
                     let mut socket = socket;
                     let mut got = Vec::new();
                     let mut buffer = [0; 4096];
-                    while !got.windows(4).any(|w| w == b"\r\n\r\n" || w.starts_with(b"GET ") || w == b"MGET") {
+                    // An HTTP request's head, or a redis command of those a store sends.
+                    let asked =
+                        |w: &[u8]| [&b"\r\n\r\n"[..], b"GET ", b"MGET", b"\nSET", b"ISTS", b"AUTH"].contains(&w);
+                    while !got.windows(4).any(asked) {
                         match socket.read(&mut buffer) {
                             Ok(0) | Err(_) => return,
                             Ok(n) => got.extend_from_slice(&buffer[..n]),
@@ -1441,6 +1466,56 @@ mod tests {
             );
             assert!(!warning.contains("os error"), "{warning}");
             assert!(remote.take_warning().is_none());
+        }
+    }
+
+    /// Case 1 for the redis client's other requests: a server that drips its answer to
+    /// `SET`, to `EXISTS` or to `AUTH` (a connection's setup) a byte a little faster than
+    /// the timeout is cut off by the request's deadline: one warning naming the server, what
+    /// timed out and how long it waited.
+    #[test]
+    fn redis_requests_that_drip_are_cut_off_by_their_deadline() {
+        let timeout = Duration::from_millis(200);
+        let put = |r: &Remote| r.put(&Key([1; 32]), b"KILNCER\x02 a value");
+        let contains = |r: &Remote| assert_eq!(r.contains(&Key([1; 32])), None);
+        let get = |r: &Remote| assert_eq!(r.get(&Key([1; 32])), None);
+        let cases: [(&str, &str, &dyn Fn(&Remote)); 3] =
+            [("SET", "", &put), ("EXISTS", "", &contains), ("connecting", ":pw@", &get)];
+        for (what, login, request) in cases {
+            // An endless line: `+O+O+O...`, never its CRLF.
+            let port = hostile_server(b"+O".to_vec(), timeout * 3 / 4, Duration::from_secs(20));
+            let mut o = options(&format!("redis://{login}127.0.0.1:{port}"), None);
+            o.timeout = timeout;
+            let remote = Remote::open(&o).unwrap();
+            let start = std::time::Instant::now();
+            request(&remote);
+            let took = start.elapsed();
+            assert!(took < timeout * 8, "{what}: {took:?}");
+            let warning = remote.take_warning().expect("one warning");
+            let waited: u128 = warning
+                .split(&format!("{what}: timed out after "))
+                .nth(1)
+                .and_then(|rest| rest.split(" ms").next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{what}: {warning}"));
+            assert!((700..1600).contains(&waited), "{what}: {warning}");
+            assert!(
+                warning.contains("timeout of 200 ms") && warning.contains(&format!("127.0.0.1:{port}")),
+                "{warning}"
+            );
+            assert!(!warning.contains("os error") && !warning.contains("pw"), "{warning}");
+            assert_eq!((remote.take_warning(), remote.stats().errors), (None, 1));
+            assert!(!remote.writes(), "off");
+        }
+    }
+
+    /// TLS and unix-socket redis URLs are refused when the store opens (never a request
+    /// without a deadline), saying what is supported.
+    #[test]
+    fn redis_urls_other_than_plain_tcp_are_refused() {
+        for url in ["rediss://127.0.0.1:6380", "redis+unix:///tmp/redis.sock", "unix:///tmp/redis.sock"] {
+            let e = Remote::open(&options(url, None)).unwrap_err().to_string();
+            assert!(e.contains("only redis://host:port[/db] is supported"), "{url}: {e}");
         }
     }
 

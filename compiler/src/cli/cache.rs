@@ -24,6 +24,7 @@ pub enum Action {
     Stats,
     /// Evict least recently used entries until the cache fits in SIZE (10M, 1G, ...).
     Gc {
+        /// The size to fit in: bytes, or a number with a binary unit (`500K`, `1.5G`).
         #[arg(long, value_name = "SIZE", value_parser = parse_size)]
         max_size: u64,
     },

@@ -9,9 +9,6 @@
 //! A dimension's multiplier is the shader's kept permutations divided by the distinct value
 //! tuples of its other dimensions (and levels): exactly its number of values for a full
 //! product, less where skip rules drop part of it.
-// The fields and variants here are named after the file format and the command's output
-// that the module documentation describes; their one-line docs are still to be written.
-#![allow(missing_docs)]
 
 use std::collections::HashSet;
 use std::fmt::Write as _;
@@ -24,6 +21,7 @@ use super::{Config, ConfigError, Level, Shader};
 /// One limit and where it is written.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BudgetLimit {
+    /// The most the measure may reach.
     pub value: u64,
     /// Its value in the toml text.
     pub span: Range<usize>,
@@ -46,6 +44,7 @@ pub struct Budget {
 /// A shader's `budget = { max_permutations = N }`: its kept permutations over its levels.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct ShaderBudget {
+    /// Kept permutations of the shader, over its levels.
     pub max_permutations: Option<BudgetLimit>,
 }
 
@@ -85,8 +84,11 @@ pub fn estimate_compile_ms(text_len: u64, targets: usize) -> f64 {
 /// What is counted against a `[budget]` limit, with its unit for messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Measure {
+    /// Distinct keys, the compiles (`max_distinct`).
     Distinct,
+    /// Bytes of the archive file (`max_archive_bytes`).
     ArchiveBytes,
+    /// Estimated single-core compile milliseconds (`max_compile_ms`).
     CompileMs,
 }
 

@@ -2,20 +2,10 @@
 //! written, messages.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 pub(crate) fn kiln(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_kiln"))
-        .args(args)
-        .current_dir(dir)
-        .env_remove("KILN_CACHE_DIR")
-        .env_remove("CARGO_TARGET_DIR")
-        .env_remove("KILN_REMOTE_CACHE")
-        .env_remove("KILN_REMOTE_CACHE_MODE")
-        .env_remove("KILN_REMOTE_CACHE_TOKEN")
-        .env("CI", "1")
-        .output()
-        .unwrap()
+    crate::kiln_command().args(args).current_dir(dir).output().unwrap()
 }
 
 pub(crate) fn fixture() -> tempfile::TempDir {
@@ -155,7 +145,7 @@ fn two_processes_at_once_on_one_cache() {
     let fx = fixture();
     let d = fx.path();
     let spawn = |out: &str, stats: &str| {
-        Command::new(env!("CARGO_BIN_EXE_kiln"))
+        crate::kiln_command()
             .args([
                 "build",
                 "--config",
@@ -170,7 +160,6 @@ fn two_processes_at_once_on_one_cache() {
                 "2",
             ])
             .current_dir(d)
-            .env("CI", "1")
             .spawn()
             .unwrap()
     };
@@ -198,16 +187,8 @@ mod scale_set;
 
 /// `kiln build` in `dir` with these arguments and environment; its stats JSON.
 fn build_stats(dir: &Path, args: &[&str], env: &[(&str, &str)], stats: &str) -> serde_json::Value {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
-    cmd.arg("build")
-        .args(args)
-        .args(["--stats-json", stats])
-        .current_dir(dir)
-        .env_remove("KILN_CACHE_DIR")
-        .env_remove("CARGO_TARGET_DIR")
-        .env_remove("KILN_SHARD")
-        .env_remove("JOB_COMPLETION_INDEX")
-        .env("CI", "1");
+    let mut cmd = crate::kiln_command();
+    cmd.arg("build").args(args).args(["--stats-json", stats]).current_dir(dir);
     for (k, v) in env {
         cmd.env(k, v);
     }
@@ -265,12 +246,9 @@ fn archive_is_byte_identical_whatever_jobs_cache_state_and_shards() {
         .map(|i| {
             let spec = format!("{i}/3");
             let stats = format!("shard{i}.json");
-            let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
+            let mut cmd = crate::kiln_command();
             cmd.args(["build", "--config", config, "--cache-dir", "c4", "--shard", &spec, "--stats-json", &stats])
-                .current_dir(d)
-                .env_remove("KILN_CACHE_DIR")
-                .env_remove("KILN_SHARD")
-                .env("CI", "1");
+                .current_dir(d);
             (cmd.spawn().unwrap(), stats)
         })
         .collect();
@@ -314,13 +292,8 @@ fn bad_shard_specs_are_usage_errors() {
     let fx = fixture();
     let d = fx.path();
     let run = |args: &[&str], env: &[(&str, &str)]| {
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
-        cmd.args(["build", "--config", "compute.toml"])
-            .args(args)
-            .current_dir(d)
-            .env_remove("KILN_SHARD")
-            .env_remove("JOB_COMPLETION_INDEX")
-            .env("CI", "1");
+        let mut cmd = crate::kiln_command();
+        cmd.args(["build", "--config", "compute.toml"]).args(args).current_dir(d);
         for (k, v) in env {
             cmd.env(k, v);
         }
@@ -352,16 +325,11 @@ fn remote_cache_down_is_one_warning_and_credentials_are_never_printed() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     for url in [format!("redis://:hunter2@127.0.0.1:{port}/1"), format!("http://ci:hunter2@127.0.0.1:{port}/kiln")] {
         let _ = std::fs::remove_dir_all(d.join(".kiln-cache"));
-        let o = Command::new(env!("CARGO_BIN_EXE_kiln"))
+        let o = crate::kiln_command()
             .args(["build", "--config", "compute.toml", "--stats-json", "stats.json", "--remote-cache", &url])
             .current_dir(d)
-            .env_remove("KILN_CACHE_DIR")
-            // The local cache is this fixture's own: under cargo's target folder it would
-            // hold the first URL's entries, and the second build would never ask the remote.
-            .env_remove("CARGO_TARGET_DIR")
             .env("KILN_REMOTE_CACHE_TOKEN", "t0ken-xyz")
             .env("KILN_REMOTE_CACHE_TIMEOUT_MS", "500")
-            .env("CI", "1")
             .output()
             .unwrap();
         let (err, out) = (stderr(&o), stdout(&o));

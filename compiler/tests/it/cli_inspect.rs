@@ -7,20 +7,13 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn kiln(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_kiln"))
-        .args(args)
-        .current_dir(dir)
-        .env_remove("KILN_CACHE_DIR")
-        .env_remove("CARGO_TARGET_DIR")
-        .env("CI", "1")
-        .output()
-        .unwrap()
+    crate::kiln_command().args(args).current_dir(dir).output().unwrap()
 }
 
 /// Runs `kiln` and fails the test if it has not exited within a minute: a guard against a
 /// hang (a FIFO opened for reading waits for a writer forever), not a measure of speed.
 fn kiln_no_hang(dir: &Path, args: &[&str]) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_kiln"))
+    let mut child = crate::kiln_command()
         .args(args)
         .current_dir(dir)
         .stdout(Stdio::piped())

@@ -18,12 +18,9 @@ const TIMEOUT: Duration = Duration::from_secs(120);
 
 /// Runs `kiln args` in `dir`, killing it after [`TIMEOUT`]; panics on a hang or a crash.
 fn kiln(dir: &Path, args: &[&str]) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_kiln"))
+    let mut child = crate::kiln_command()
         .args(args)
         .current_dir(dir)
-        .env_remove("KILN_CACHE_DIR")
-        .env_remove("CARGO_TARGET_DIR")
-        .env("CI", "1")
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -648,12 +645,9 @@ fn kiln_limited(dir: &Path, kib: u64, args: &[&str]) -> Output {
     let script = format!("ulimit -v {kib} && exec \"$0\" \"$@\"");
     let mut full = vec!["-c", script.as_str(), env!("CARGO_BIN_EXE_kiln")];
     full.extend_from_slice(args);
-    let o = Command::new("sh")
+    let o = crate::without_settings(&mut Command::new("sh"))
         .args(&full)
         .current_dir(dir)
-        .env_remove("KILN_CACHE_DIR")
-        .env_remove("CARGO_TARGET_DIR")
-        .env("CI", "1")
         .stdin(Stdio::null())
         .output()
         .unwrap();

@@ -105,7 +105,7 @@ fn rustc() -> String {
 }
 
 fn kiln_list(config: &Path) -> serde_json::Value {
-    let out = Command::new(env!("CARGO_BIN_EXE_kiln"))
+    let out = crate::kiln_command()
         .args(["list", "--all", "--json", "--no-analysis", "--config"])
         .arg(config)
         .output()

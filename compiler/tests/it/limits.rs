@@ -1,7 +1,7 @@
 //! Limits per level: `limits = "default" | "downlevel" | { base = ..., <wgpu Limits field> = value }`.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
 /// A compute shader writing 6 storage textures: over WebGPU's default of 4 per stage, within
 /// what D3D11.1- and Vulkan-class desktop hardware runs.
@@ -36,10 +36,9 @@ fn config(limits: &str) -> String {
 fn build(dir: &Path, limits: &str) -> Output {
     std::fs::write(dir.join("blur.usf"), SHADER).unwrap();
     std::fs::write(dir.join("permutations.toml"), config(limits)).unwrap();
-    Command::new(env!("CARGO_BIN_EXE_kiln"))
+    crate::kiln_command()
         .args(["build", "--config", "permutations.toml", "--no-cache", "-o", "out.kpak"])
         .current_dir(dir)
-        .env("CI", "1")
         .output()
         .unwrap()
 }

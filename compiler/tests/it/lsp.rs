@@ -1,216 +1,18 @@
 //! `kiln lsp` through a real client: a plain JSON-RPC client over the child's stdio
 //! (protocol tests), and Neovim's built-in LSP client run headless with a Lua script
 //! (`compiler/tests/lsp/nvim.lua`). The project is `tests/in/lsp/`, copied to a temporary
-//! folder per test. `cargo test -p kiln --test lsp -- --ignored latency --nocapture` measures
-//! the diagnostics latency of 50 edits on the bundled set.
+//! folder per test. The client is `compiler/tests/support/lsp_client.rs`; the diagnostics
+//! latency and the server's memory are measured by `cargo bench -p kiln --bench lsp`.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, Command, Stdio};
-use std::sync::mpsc::{channel, Receiver};
-use std::time::{Duration, Instant};
+#[path = "../support/lsp_client.rs"]
+mod lsp_client;
 
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use lsp_client::*;
 use serde_json::{json, Value};
-
-const KILN: &str = env!("CARGO_BIN_EXE_kiln");
-const WAIT: Duration = Duration::from_secs(30);
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("repository root").to_path_buf()
-}
-
-/// A copy of `tests/in/lsp/` in a temporary folder (canonical path).
-fn project() -> (tempfile::TempDir, PathBuf) {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let root = dir.path().canonicalize().expect("canonical");
-    copy_dir(&repo().join("tests/in/lsp"), &root);
-    (dir, root)
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("mkdir");
-    for e in std::fs::read_dir(from).expect("read_dir") {
-        let e = e.expect("entry");
-        let target = to.join(e.file_name());
-        if e.file_type().expect("type").is_dir() {
-            copy_dir(&e.path(), &target);
-        } else {
-            std::fs::copy(e.path(), &target).expect("copy");
-        }
-    }
-}
-
-fn uri(path: &Path) -> String {
-    format!("file://{}", path.display())
-}
-
-/// A JSON-RPC client speaking to `kiln lsp` over its stdin and stdout.
-struct Client {
-    child: Child,
-    stdin: Option<ChildStdin>,
-    rx: Receiver<Value>,
-    next_id: i64,
-    /// Notifications received while waiting for something else.
-    pending: Vec<Value>,
-}
-
-impl Client {
-    fn start() -> Client {
-        let mut child = Command::new(KILN)
-            .arg("lsp")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("start kiln lsp");
-        let stdout = child.stdout.take().expect("stdout");
-        let (tx, rx) = channel();
-        std::thread::spawn(move || {
-            let mut r = BufReader::new(stdout);
-            loop {
-                let mut len = None;
-                loop {
-                    let mut line = String::new();
-                    if r.read_line(&mut line).unwrap_or(0) == 0 {
-                        return;
-                    }
-                    let line = line.trim_end();
-                    if line.is_empty() {
-                        break;
-                    }
-                    if let Some(v) = line.strip_prefix("Content-Length: ") {
-                        len = v.parse::<usize>().ok();
-                    }
-                }
-                let mut body = vec![0; len.expect("Content-Length")];
-                if r.read_exact(&mut body).is_err() {
-                    return;
-                }
-                let v: Value = serde_json::from_slice(&body).expect("JSON from the server");
-                if tx.send(v).is_err() {
-                    return;
-                }
-            }
-        });
-        let stdin = child.stdin.take();
-        Client { child, stdin, rx, next_id: 1, pending: Vec::new() }
-    }
-
-    /// Starts a server and initializes it with these options.
-    fn initialized(options: Value) -> Client {
-        let mut c = Client::start();
-        let r = c.request(
-            "initialize",
-            json!({ "processId": null, "rootUri": null, "capabilities": {}, "initializationOptions": options }),
-        );
-        assert!(r["result"]["capabilities"]["hoverProvider"].as_bool().unwrap_or(false), "{r}");
-        c.notify("initialized", json!({}));
-        c
-    }
-
-    fn write_raw(&mut self, bytes: &[u8]) {
-        let stdin = self.stdin.as_mut().expect("stdin open");
-        stdin.write_all(bytes).expect("write to the server");
-        stdin.flush().expect("flush");
-    }
-
-    fn send(&mut self, v: Value) {
-        let body = v.to_string();
-        self.write_raw(format!("Content-Length: {}\r\n\r\n{body}", body.len()).as_bytes());
-    }
-
-    fn notify(&mut self, method: &str, params: Value) {
-        self.send(json!({ "jsonrpc": "2.0", "method": method, "params": params }));
-    }
-
-    /// Sends a request and waits for its response (keeping notifications for later).
-    fn request(&mut self, method: &str, params: Value) -> Value {
-        let id = self.next_id;
-        self.next_id += 1;
-        self.send(json!({ "jsonrpc": "2.0", "id": id, "method": method, "params": params }));
-        self.response(json!(id))
-    }
-
-    fn response(&mut self, id: Value) -> Value {
-        let deadline = Instant::now() + WAIT;
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.rx.recv_timeout(left) {
-                Ok(v) if v.get("method").is_none() && v["id"] == id => return v,
-                Ok(v) => self.pending.push(v),
-                Err(e) => panic!("no response to request {id}: {e:?}"),
-            }
-        }
-    }
-
-    /// The next `publishDiagnostics` for `uri` that `accept` takes (earlier ones are dropped).
-    fn diagnostics(&mut self, uri: &str, accept: impl Fn(&Value) -> bool) -> Value {
-        let deadline = Instant::now() + WAIT;
-        let is_it = |v: &Value| v["method"] == "textDocument/publishDiagnostics" && v["params"]["uri"] == uri;
-        let mut seen = Vec::new();
-        let mut i = 0;
-        while i < self.pending.len() {
-            if is_it(&self.pending[i]) {
-                let v = self.pending.remove(i);
-                if accept(&v["params"]) {
-                    return v["params"].clone();
-                }
-                seen.push(v);
-            } else {
-                i += 1;
-            }
-        }
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.rx.recv_timeout(left) {
-                Ok(v) if is_it(&v) => {
-                    if accept(&v["params"]) {
-                        return v["params"].clone();
-                    }
-                    seen.push(v);
-                }
-                Ok(v) => self.pending.push(v),
-                Err(_) => panic!("no accepted diagnostics for {uri}; got: {seen:#?}"),
-            }
-        }
-    }
-
-    fn open(&mut self, path: &Path, text: &str) {
-        let params = json!({ "textDocument": { "uri": uri(path), "languageId": "wgsl", "version": 1, "text": text } });
-        self.notify("textDocument/didOpen", params);
-    }
-
-    fn change(&mut self, path: &Path, version: i64, text: &str) {
-        let params =
-            json!({ "textDocument": { "uri": uri(path), "version": version }, "contentChanges": [{ "text": text }] });
-        self.notify("textDocument/didChange", params);
-    }
-
-    /// Closes stdin and waits for the server to end; its exit status.
-    fn finish(mut self) -> std::process::ExitStatus {
-        drop(self.stdin.take());
-        let deadline = Instant::now() + WAIT;
-        loop {
-            if let Some(s) = self.child.try_wait().expect("wait") {
-                return s;
-            }
-            assert!(Instant::now() < deadline, "the server did not end after stdin closed");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-}
-
-impl Drop for Client {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// Diagnostics of a publish with severity 1 (errors).
-fn errors(params: &Value) -> Vec<Value> {
-    params["diagnostics"].as_array().map_or(Vec::new(), |d| d.iter().filter(|x| x["severity"] == 1).cloned().collect())
-}
 
 /// The 0-based lines reported inactive (`Unnecessary`-tagged hints).
 fn inactive_lines(params: &Value) -> Vec<u64> {
@@ -223,10 +25,6 @@ fn inactive_lines(params: &Value) -> Vec<u64> {
         }
     }
     out
-}
-
-fn line_of(text: &str, needle: &str) -> u64 {
-    text.lines().position(|l| l.contains(needle)).unwrap_or_else(|| panic!("no line with {needle:?}")) as u64
 }
 
 #[test]
@@ -257,7 +55,7 @@ fn an_error_some_permutations_hit_counts_them_as_the_build_does() {
     // The build's own count, from the same text on disk.
     std::fs::write(&lit, &text).expect("write");
     let stats = root.join("stats.json");
-    let out = Command::new(KILN)
+    let out = crate::kiln_command()
         .args(["build", "--no-cache", "--config"])
         .arg(root.join("permutations.toml"))
         .arg("-o")
@@ -288,7 +86,7 @@ fn an_error_some_permutations_hit_counts_them_as_the_build_does() {
 
 /// The lines of `file` that `kiln preprocess` of this permutation keeps (by their text).
 fn preprocessed(root: &Path, file: &Path, defines: &[&str]) -> String {
-    let mut cmd = Command::new(KILN);
+    let mut cmd = crate::kiln_command();
     cmd.arg("preprocess").arg(file).arg("--config").arg(root.join("permutations.toml")).args(["--level", "sm5"]);
     for d in defines {
         cmd.arg("-D").arg(d);
@@ -483,14 +281,6 @@ fn a_broken_permutation_set_is_reported_on_its_shaders() {
     });
     c.change(&toml, 2, &ttext);
     c.diagnostics(&uri(&lit), |p| errors(p).is_empty());
-}
-
-fn at(path: &Path, line: u64, character: u64) -> Value {
-    json!({ "textDocument": { "uri": uri(path) }, "position": { "line": line, "character": character } })
-}
-
-fn column(text: &str, line: u64, needle: &str) -> u64 {
-    text.lines().nth(line as usize).and_then(|l| l.find(needle)).expect("column") as u64
 }
 
 #[test]
@@ -688,91 +478,4 @@ fn neovim_shows_diagnostics_hover_and_definitions() {
     assert!(r["function_definition"].as_str().unwrap_or("").ends_with("shaders/Common.ush"), "{r:#}");
     assert_eq!(r["function_definition_line"], line_of(&htext, "fn shade"), "{r:#}");
     assert!(r["inactive"].as_u64().unwrap_or(0) > 0, "{r:#}");
-}
-
-/// `cargo test -p kiln --test lsp --release -- --ignored latency --nocapture`: 50 edits to
-/// a 265-line shader of the bundled set (read by five shaders); prints the median and p95 time from each `didChange` to
-/// its `publishDiagnostics`.
-#[test]
-#[ignore]
-fn latency() {
-    // `KILN_LSP_LATENCY_FILE=shader_src/Private/Common.ush` measures a header every shader reads.
-    let file = std::env::var("KILN_LSP_LATENCY_FILE")
-        .unwrap_or_else(|_| "shader_src/Private/Desktop/VolumetricFog.usf".into());
-    let shader = repo().join(file).canonicalize().expect("shader");
-    let text = std::fs::read_to_string(&shader).expect("read");
-    let mut c = Client::initialized(json!({}));
-    c.open(&shader, &text);
-    c.diagnostics(&uri(&shader), |p| p["version"] == 1);
-    let mut times = Vec::new();
-    for i in 0..50 {
-        let version = i + 2;
-        // Alternately valid and broken, so errors come and go.
-        let edited = if i % 2 == 0 {
-            format!("{text}\nconst EDIT_{i}: f32 = 1.0;\n")
-        } else {
-            format!("{text}\nconst EDIT_{i}: f32 = nope;\n")
-        };
-        let t = Instant::now();
-        c.change(&shader, version, &edited);
-        c.diagnostics(&uri(&shader), |p| p["version"] == version);
-        times.push(t.elapsed());
-        std::thread::sleep(Duration::from_millis(30));
-    }
-    times.sort();
-    let ms = |d: Duration| d.as_secs_f64() * 1000.0;
-    println!(
-        "kiln lsp: diagnostics after an edit to {} ({} lines), 50 edits: median {:.1} ms, p95 {:.1} ms, max {:.1} ms",
-        shader.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default(),
-        text.lines().count(),
-        ms(times[24]),
-        ms(times[47]),
-        ms(times[49])
-    );
-    let status = std::fs::read_to_string(format!("/proc/{}/status", c.child.id())).unwrap_or_default();
-    let peak = status.lines().find(|l| l.starts_with("VmHWM")).unwrap_or("VmHWM: unknown");
-    println!("kiln lsp: peak memory of the server on the bundled set: {}", peak.trim_start_matches("VmHWM:").trim());
-}
-
-/// `cargo test -p kiln --test lsp --release -- --ignored memory --nocapture`: the test
-/// project with two more dimensions (100,100 kept permutations); opens the shader, lets the
-/// background check run through the domain, lists the permutations and hovers a dimension
-/// (each walks the whole domain), and prints the server's peak memory.
-#[test]
-#[ignore]
-fn memory_100k() {
-    let (_dir, root) = project();
-    let toml = root.join("permutations.toml");
-    let t = std::fs::read_to_string(&toml).expect("read").replace(
-        "NUM_LIGHTS = [0, 1, 2, 4] }",
-        "NUM_LIGHTS = [0, 1, 2, 4], A = { range = [0, 142] }, B = { range = [0, 99] } }",
-    );
-    std::fs::write(&toml, t).expect("write");
-    let lit = root.join("shaders/Lit.usf");
-    let text = std::fs::read_to_string(&lit).expect("read");
-    let mut c = Client::initialized(json!({}));
-    let start = Instant::now();
-    c.open(
-        &lit,
-        &text.replace(
-            "    return vec4<f32>(lit, 1.0);",
-            "#if A == 7\n    let bad: i32 = 1.5;\n#endif\n    return vec4<f32>(lit, 1.0);",
-        ),
-    );
-    let d = c.diagnostics(&uri(&lit), |p| {
-        errors(p).iter().any(|e| e["message"].as_str().unwrap_or("").contains("permutations of"))
-    });
-    println!(
-        "kiln lsp: 100,100 permutations checked in {:.1} s: {}",
-        start.elapsed().as_secs_f64(),
-        errors(&d)[0]["message"]
-    );
-    let r = c.request("kiln/permutations", json!({ "textDocument": { "uri": uri(&lit) } }));
-    assert_eq!(r["result"]["permutations"].as_array().map(Vec::len), Some(100_100));
-    let l = line_of(&text, "f32(NUM_LIGHTS)");
-    let h = c.request("textDocument/hover", at(&lit, l, column(&text, l, "NUM_LIGHTS") + 1));
-    assert!(h["result"]["contents"]["value"].as_str().unwrap_or("").contains("28600 kept"), "{h}");
-    let status = std::fs::read_to_string(format!("/proc/{}/status", c.child.id())).unwrap_or_default();
-    let peak = status.lines().find(|l| l.starts_with("VmHWM")).unwrap_or("VmHWM: unknown");
-    println!("kiln lsp: peak memory on 100,100 permutations: {}", peak.trim_start_matches("VmHWM:").trim());
 }

@@ -7,11 +7,11 @@
 mod shapes;
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
 fn kiln(dir: &Path, args: &[&str], share: bool) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_kiln"));
-    c.args(args).current_dir(dir).env_remove("KILN_CACHE_DIR").env_remove("CARGO_TARGET_DIR").env("CI", "1");
+    let mut c = crate::kiln_command();
+    c.args(args).current_dir(dir);
     if share {
         c.env_remove("KILN_SHARED_MODULES");
     } else {

@@ -2,7 +2,7 @@
 //! broken one.
 
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
@@ -50,10 +50,9 @@ fn build_watch_rebuilds_on_an_edit() {
     )
     .unwrap();
     std::fs::write(d.join("h.ush"), "const K: f32 = 1.0;\n").unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_kiln"))
+    let mut child = crate::kiln_command()
         .args(["build", "--watch", "--cache-dir", "cache", "-o", "out.kpak"])
         .current_dir(d)
-        .env("CI", "1")
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()

@@ -18,27 +18,39 @@ use crate::spirv::{SpirvModule, VulkanBindings};
 /// A cached render pipeline with its layouts.
 #[derive(Debug)]
 pub struct RenderPipeline {
+    /// The wgpu pipeline, to set in a render pass.
     pub pipeline: wgpu::RenderPipeline,
+    /// Its bind group layouts, from the reflection of both stages.
     pub layout: PipelineLayoutInfo,
-    /// The permutations it runs.
+    /// The permutations it runs: the vertex one's canonical name.
     pub vertex: String,
+    /// The fragment permutation's canonical name (`None`: depth only).
     pub fragment: Option<String>,
 }
 
+/// A cached compute pipeline with its layouts.
 #[derive(Debug)]
 pub struct ComputePipeline {
+    /// The wgpu pipeline, to set in a compute pass.
     pub pipeline: wgpu::ComputePipeline,
+    /// Its bind group layouts, from the permutation's reflection.
     pub layout: PipelineLayoutInfo,
+    /// The compute permutation's canonical name.
     pub compute: String,
+    /// Its `@workgroup_size`, to size dispatches by.
     pub workgroup_size: [u32; 3],
 }
 
 /// Counters of what the cache created (for tests and the warm-up check).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CacheStats {
+    /// Shader modules created.
     pub modules: usize,
+    /// Render pipelines created.
     pub render_pipelines: usize,
+    /// Compute pipelines created.
     pub compute_pipelines: usize,
+    /// Bind group layouts created (equal ones are shared).
     pub bind_group_layouts: usize,
 }
 
@@ -101,6 +113,7 @@ impl PipelineCache {
         }
     }
 
+    /// The archive the cache creates modules from.
     pub fn archive(&self) -> &ShaderArchive {
         &self.archive
     }
@@ -172,6 +185,7 @@ impl PipelineCache {
         self.passthrough
     }
 
+    /// What the cache has created so far.
     pub fn stats(&self) -> CacheStats {
         self.lock().stats
     }

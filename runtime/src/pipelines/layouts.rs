@@ -13,18 +13,26 @@ use crate::spirv::VulkanBindings;
 /// One resource binding of a pipeline, merged over its stages.
 #[derive(Clone, Debug)]
 pub struct MergedBinding {
+    /// Its `@binding` in the group.
     pub binding: u32,
+    /// Its name in the shader (what [`PipelineLayoutInfo::bind_group`] matches resources by).
     pub name: Option<String>,
+    /// The resource it takes.
     pub kind: BindingKind,
+    /// The stages that use it.
     pub visibility: wgpu::ShaderStages,
 }
 
 /// The bind group layouts of a pipeline, one per group index from 0 to the highest used.
 #[derive(Clone, Debug)]
 pub struct PipelineLayoutInfo {
+    /// The pipeline's label, in errors and on wgpu objects.
     pub label: String,
+    /// Each group's bindings, sorted by binding.
     pub groups: Vec<Vec<MergedBinding>>,
+    /// Each group's wgpu layout.
     pub bind_group_layouts: Vec<wgpu::BindGroupLayout>,
+    /// The wgpu pipeline layout of those groups.
     pub layout: wgpu::PipelineLayout,
     /// How wgpu's Vulkan backend numbers these bindings (passthrough modules follow it).
     pub vulkan_bindings: VulkanBindings,

@@ -56,28 +56,105 @@ pub use state::{
 pub use state_text::StateTextError;
 pub use usage::state_text;
 
+/// Why a module, layout, pipeline or bind group could not be made: each names the
+/// permutation or pipeline and what is wrong.
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
+    /// The permutation is not in the archive, or its name is malformed.
     #[error(transparent)]
     Lookup(#[from] LookupError),
+    /// A permutation used for a stage it was not compiled for.
     #[error("permutation `{name}` is a {found} shader, used as a {wanted} shader")]
-    WrongStage { name: String, found: Stage, wanted: Stage },
+    WrongStage {
+        /// The permutation.
+        name: String,
+        /// Its stage in the archive.
+        found: Stage,
+        /// The stage it was used as.
+        wanted: Stage,
+    },
+    /// The permutation has no artifact the runtime can make a module from.
     #[error("permutation `{name}` has neither a WGSL nor a SPIR-V artifact (it has: {targets})")]
-    NoArtifact { name: String, targets: String },
+    NoArtifact {
+        /// The permutation.
+        name: String,
+        /// The targets it has.
+        targets: String,
+    },
+    /// The artifact cannot be read (damaged in the archive, or not UTF-8 WGSL).
     #[error("permutation `{name}`: {message}")]
-    BadArtifact { name: String, message: String },
+    BadArtifact {
+        /// The permutation.
+        name: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// The SPIR-V for passthrough failed its checks.
     #[error("permutation `{name}`: {source}")]
-    Spirv { name: String, source: SpirvError },
+    Spirv {
+        /// The permutation.
+        name: String,
+        /// The check that failed.
+        source: SpirvError,
+    },
+    /// The permutation's reflection asks for more than the device allows.
     #[error("permutation `{name}`: {what}")]
-    Limit { name: String, what: String },
+    Limit {
+        /// The permutation.
+        name: String,
+        /// The limit and by how much it is exceeded.
+        what: String,
+    },
+    /// wgpu refused to create an object.
     #[error("{what}: wgpu rejected it: {message}")]
-    Wgpu { what: String, message: String },
+    Wgpu {
+        /// The object.
+        what: String,
+        /// wgpu's message.
+        message: String,
+    },
+    /// Two stages of a pipeline declare one binding with different kinds.
     #[error("pipeline `{label}`: binding @group({group}) @binding({binding}) is `{kind_a}` in one stage and `{kind_b}` in another")]
-    StageConflict { label: String, group: u32, binding: u32, kind_a: String, kind_b: String },
+    StageConflict {
+        /// The pipeline.
+        label: String,
+        /// The binding's group.
+        group: u32,
+        /// The binding.
+        binding: u32,
+        /// Its kind in one stage.
+        kind_a: String,
+        /// Its kind in the other.
+        kind_b: String,
+    },
+    /// A vertex input that no attribute of the vertex layout provides.
     #[error("pipeline `{label}`: vertex input @location({location}) is not provided by its vertex layout (locations {provided:?})")]
-    VertexInput { label: String, location: u32, provided: Vec<u32> },
+    VertexInput {
+        /// The pipeline.
+        label: String,
+        /// The input's location.
+        location: u32,
+        /// The locations the layout provides.
+        provided: Vec<u32>,
+    },
+    /// A storage texture of a format the runtime cannot name to wgpu.
     #[error("pipeline `{label}`: storage texture format `{format}` is not known to the runtime")]
-    StorageFormat { label: String, format: String },
+    StorageFormat {
+        /// The pipeline.
+        label: String,
+        /// The format as the reflection names it.
+        format: String,
+    },
+    /// A bind group was asked for without a resource its reflection lists.
     #[error("bind group {group} of `{label}`: no resource given for binding {binding} `{name}`")]
-    MissingResource { label: String, group: u32, binding: u32, name: String },
+    MissingResource {
+        /// The pipeline.
+        label: String,
+        /// The group.
+        group: u32,
+        /// The binding.
+        binding: u32,
+        /// Its name in the shader.
+        name: String,
+    },
 }

@@ -92,6 +92,7 @@ pub struct ErrorScopes {
 }
 
 impl ErrorScopes {
+    /// Pushes a validation and an internal error scope on `device`.
     pub fn push(device: &wgpu::Device) -> ErrorScopes {
         let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);

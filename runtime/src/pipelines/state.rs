@@ -7,8 +7,11 @@ use std::borrow::Cow;
 /// but owned and hashable, so that a pipeline key can hold it.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct VertexBuffer {
+    /// Bytes from one element to the next.
     pub stride: u64,
+    /// Per vertex or per instance.
     pub step_mode: wgpu::VertexStepMode,
+    /// The attributes read from each element, with their shader locations.
     pub attributes: Cow<'static, [wgpu::VertexAttribute]>,
 }
 
@@ -31,6 +34,7 @@ impl VertexBuffer {
         }
     }
 
+    /// The same buffer as wgpu describes it.
     pub fn wgpu(&self) -> wgpu::VertexBufferLayout<'_> {
         wgpu::VertexBufferLayout { array_stride: self.stride, step_mode: self.step_mode, attributes: &self.attributes }
     }
@@ -56,6 +60,7 @@ impl VertexLayout {
         VertexLayout { buffers: Cow::Borrowed(buffers) }
     }
 
+    /// A layout of these buffers (slot `i` is `buffers[i]`).
     pub fn new(buffers: Vec<VertexBuffer>) -> VertexLayout {
         VertexLayout { buffers: Cow::Owned(buffers) }
     }
@@ -65,6 +70,7 @@ impl VertexLayout {
         VertexLayout::new(layouts.iter().map(VertexBuffer::from_wgpu).collect())
     }
 
+    /// The buffers, in slot order.
     pub fn buffers(&self) -> &[VertexBuffer] {
         &self.buffers
     }
@@ -78,6 +84,7 @@ impl VertexLayout {
 /// How a color target blends.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Blend {
+    /// No blending: the source replaces what is there.
     Replace,
     /// dst + src (lights accumulating into SceneColor).
     Additive,
@@ -88,6 +95,7 @@ pub enum Blend {
 }
 
 impl Blend {
+    /// The wgpu blend state (`None` for [`Blend::Replace`]).
     pub fn state(self) -> Option<wgpu::BlendState> {
         match self {
             Blend::Replace => None,
@@ -112,8 +120,11 @@ impl Blend {
 /// A color target: format, blending (`None`: replace) and the channels written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct ColorTarget {
+    /// The attachment's format.
     pub format: wgpu::TextureFormat,
+    /// How it blends (`None`: replace).
     pub blend: Option<wgpu::BlendState>,
+    /// The channels written.
     pub write_mask: wgpu::ColorWrites,
 }
 
@@ -123,6 +134,7 @@ impl ColorTarget {
         ColorTarget { format, blend: blend.state(), write_mask: wgpu::ColorWrites::ALL }
     }
 
+    /// The same target writing only the channels of `mask`.
     pub fn with_write_mask(mut self, mask: wgpu::ColorWrites) -> ColorTarget {
         self.write_mask = mask;
         self
@@ -142,8 +154,11 @@ impl From<&wgpu::ColorTargetState> for ColorTarget {
 /// Depth test, writes and bias. The bias floats are stored as bits so the state hashes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct DepthState {
+    /// The depth attachment's format.
     pub format: wgpu::TextureFormat,
+    /// Whether depth is written.
     pub write: bool,
+    /// The depth test.
     pub compare: wgpu::CompareFunction,
     /// Constant depth bias (shadow depths).
     pub bias: i32,
@@ -172,13 +187,19 @@ impl DepthState {
 /// state that changes the pipeline.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct RenderState {
+    /// The vertex buffers read.
     pub vertex_layout: VertexLayout,
+    /// How vertices make primitives.
     pub topology: wgpu::PrimitiveTopology,
+    /// The faces culled (`None`: none).
     pub cull_mode: Option<wgpu::Face>,
+    /// Depth test, writes and bias (`None`: no depth attachment).
     pub depth: Option<DepthState>,
     /// Stencil test and writes (needs a depth format with stencil).
     pub stencil: wgpu::StencilState,
+    /// The color attachments, in order.
     pub color_targets: Vec<ColorTarget>,
+    /// MSAA sample count of every attachment.
     pub sample_count: u32,
 }
 
@@ -237,21 +258,25 @@ impl RenderState {
         }
     }
 
+    /// The same state with this depth test.
     pub fn with_depth(mut self, depth: DepthState) -> RenderState {
         self.depth = Some(depth);
         self
     }
 
+    /// The same state with these color targets.
     pub fn with_targets(mut self, targets: &[ColorTarget]) -> RenderState {
         self.color_targets = targets.to_vec();
         self
     }
 
+    /// The same state culling `cull` (`None`: no culling).
     pub fn with_cull(mut self, cull: Option<wgpu::Face>) -> RenderState {
         self.cull_mode = cull;
         self
     }
 
+    /// The same state with this stencil test and writes.
     pub fn with_stencil(mut self, stencil: wgpu::StencilState) -> RenderState {
         self.stencil = stencil;
         self
@@ -286,18 +311,22 @@ pub struct RenderKey {
     pub vertex: String,
     /// The fragment permutation's canonical name (`None`: depth only).
     pub fragment: Option<String>,
+    /// Its fixed-function state.
     pub state: RenderState,
 }
 
 /// The key of a compute pipeline: its permutation (compute has no fixed-function state).
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub struct ComputeKey {
+    /// The compute permutation's canonical name.
     pub compute: String,
 }
 
 /// A pipeline to create ahead of the first frame (`PipelineCache::warm_up`).
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub enum PipelineKey {
+    /// A render pipeline.
     Render(RenderKey),
+    /// A compute pipeline.
     Compute(ComputeKey),
 }
