@@ -19,9 +19,9 @@ use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 
-use crate::frame::{FrameRecorder, PassContext, Visualize};
+use crate::frame::{ComputeSlot, FrameRecorder, PassContext, Slots, Visualize};
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
+use crate::pipelines::{PipelineError};
 use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
@@ -165,7 +165,7 @@ pub struct TranslucencyVolumeInputs {
 pub struct EffectContext<'a> {
     pub device: &'a wgpu::Device,
     pub queue: &'a wgpu::Queue,
-    pub cache: &'a PipelineCache,
+    pub cache: Slots<'a>,
     pub scene: &'a Scene,
     pub meshes: &'a [MeshRef<'a>],
     /// Warm the scene's emitters up when they are built ([`EmitterDesc::prewarm`]).
@@ -190,7 +190,7 @@ pub struct FrameCamera {
 
 /// A visualization of a target that is not a colour (velocities, particle state, volumes).
 struct Visualization {
-    pipeline: Arc<ComputePipeline>,
+    pipeline: Arc<ComputeSlot>,
     group: wgpu::BindGroup,
     image: wgpu::Texture,
     params: wgpu::Buffer,
@@ -208,7 +208,7 @@ struct VisualizeParams {
 impl Visualization {
     fn new(
         device: &wgpu::Device,
-        cache: &PipelineCache,
+        cache: Slots<'_>,
         label: &str,
         source: &wgpu::Texture,
         size: [u32; 2],
@@ -249,10 +249,13 @@ impl Visualization {
     /// Draws the image and declares it as the current pass or step's output `name`.
     fn output(&self, ctx: &mut PassContext<'_>, name: Option<&str>) {
         {
+            let ready = self.pipeline.ready(ctx.pipelines());
             let mut pass = ctx.open_compute_pass("VisualizeTexture");
-            pass.set_pipeline(&self.pipeline.pipeline);
-            pass.set_bind_group(0, &self.group, &[]);
-            pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                pass.set_bind_group(0, &self.group, &[]);
+                pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
+            }
         }
         match name {
             Some(n) => ctx.output_named(n, &self.image, Visualize::Direct),
@@ -404,7 +407,7 @@ fn new_particles(
 #[allow(clippy::too_many_arguments)] // one per effect it pictures
 fn visualizations(
     device: &wgpu::Device,
-    cache: &PipelineCache,
+    cache: Slots<'_>,
     size: [u32; 2],
     scene: &Scene,
     particles: &Particles,
@@ -880,6 +883,7 @@ impl Effects {
         let s = self.lock();
         ctx.step(crate::passes::particles::SPRITES_STEP.name, |ctx| {
             {
+                let pl = ctx.pipelines();
                 let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("ParticleSprites"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -897,7 +901,7 @@ impl Effects {
                     occlusion_query_set: None,
                     multiview_mask: None,
                 });
-                s.particles.draw_sprites(&mut pass, s.options.particles);
+                s.particles.draw_sprites(pl, &mut pass, s.options.particles);
             }
             ctx.output(&s.scene_color, Visualize::Hdr);
         });

@@ -20,12 +20,12 @@ use std::sync::Arc;
 
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, ComputeSlot, FramePipelines, PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 use crate::keys::shadow_projection_ps::ShadowProjectionType;
 use crate::keys::standard_deferred_lighting_ps::LightType;
 
-use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{
     begin, color_attachment, formats, read_only_depth, stencil_lit_only, FrameLight, LocalShadow, SceneBuffers,
     Targets, Texture,
@@ -47,7 +47,7 @@ pub const PASS: PassDecl = PassDecl {
 struct LightDraw {
     /// A local light: [camera outside the light volume, camera inside it]; the directional
     /// light: one, full screen.
-    variants: Vec<(Arc<Render>, BindGroups)>,
+    variants: Vec<(Arc<RenderSlot>, BindGroups)>,
     radial: bool,
     /// A local light's volume, which the camera of each frame is tested against.
     volume: Option<LightVolume>,
@@ -78,14 +78,14 @@ impl LightDraw {
         );
     }
 
-    fn variant(&self) -> &(Arc<Render>, BindGroups) {
+    fn variant(&self) -> &(Arc<RenderSlot>, BindGroups) {
         let i = usize::from(self.inside.load(Ordering::Relaxed)).min(self.variants.len() - 1);
         &self.variants[i]
     }
 }
 
 struct Projection {
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
 }
 
@@ -106,7 +106,7 @@ struct ShadowedLight {
 
 pub struct Lighting {
     non_shadowed: Vec<LightDraw>,
-    tiled: Option<(Arc<Compute>, BindGroups)>,
+    tiled: Option<(Arc<ComputeSlot>, BindGroups)>,
     shadowed: Vec<ShadowedLight>,
     /// Whether the tiled path runs this frame.
     pub tiled_path: bool,
@@ -174,26 +174,24 @@ impl Lighting {
             let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
             // a local light: both ways of drawing its sphere, chosen every frame by where the
             // camera is (front faces depth tested from outside, back faces from inside)
+            let scene_color_add = || vec![blended(formats::SCENE_COLOR, Some(blend::ADDITIVE))];
             let descs = if !radial {
-                vec![RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: read_only(wgpu::CompareFunction::Always),
-                    targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
-                }]
+                let base = PipelineDesc::new(&vs, Some(&ps), VertexInput::None);
+                vec![PipelineDesc { depth_stencil: read_only(wgpu::CompareFunction::Always), targets: scene_color_add(), ..base }]
             } else {
+                let base = PipelineDesc::new(&vs, Some(&ps), VertexInput::Mesh);
                 vec![
-                    RenderDesc {
-                        vertices: Vertices::Mesh,
-                        cull: Some(wgpu::Face::Back),
+                    PipelineDesc {
+                        cull_mode: Some(wgpu::Face::Back),
                         depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual),
-                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
+                        targets: scene_color_add(),
+                        ..base.clone()
                     },
-                    RenderDesc {
-                        vertices: Vertices::Mesh,
-                        cull: Some(wgpu::Face::Front),
+                    PipelineDesc {
+                        cull_mode: Some(wgpu::Face::Front),
                         depth_stencil: read_only(wgpu::CompareFunction::Always),
-                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
+                        targets: scene_color_add(),
+                        ..base
                     },
                 ]
             };
@@ -205,7 +203,7 @@ impl Lighting {
             );
             let mut variants = Vec::new();
             for desc in &descs {
-                let pipeline = p.render(&vs, Some(&ps), desc)?;
+                let pipeline = p.render(desc)?;
                 let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer.clone());
                 variants.push((pipeline, groups));
             }
@@ -275,16 +273,7 @@ impl Lighting {
          -> Result<(Projection, wgpu::Buffer), DesktopError> {
             let key = keys::shadow_projection_ps::Key { shadow_projection_type: kind, shadow_quality: quality };
             let ps = keys::name(key, p.key_level()?)?;
-            let pipeline = p.render(
-                &vs,
-                Some(&ps),
-                &RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: read_only(wgpu::CompareFunction::Always),
-                    targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))],
-                },
-            )?;
+            let pipeline = p.render(&PipelineDesc { cull_mode: None, depth_stencil: read_only(wgpu::CompareFunction::Always), targets: vec![blended(formats::SHADOW_MASK, Some(blend::MIN))], ..PipelineDesc::new(&vs, Some(&ps), VertexInput::None) })?;
             let buffer = uniform_buffer(device, &format!("ShadowProjection {label}"), u);
             let groups = pipeline
                 .layout
@@ -360,8 +349,9 @@ impl Lighting {
         }
     }
 
-    fn draw_light(pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
+    fn draw_light(pl: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
         let (pipeline, groups) = d.variant();
+        let Some(pipeline) = pipeline.ready(pl) else { return };
         pass.set_pipeline(&pipeline.pipeline);
         groups.set_render(pass);
         if d.radial {
@@ -383,6 +373,7 @@ impl Lighting {
         casts_shadow: &dyn Fn(usize) -> bool,
     ) {
         let occluded = |l: &ShadowedLight| occluded_draw(l, casts_shadow).is_some();
+        let pl = ctx.pipelines();
         // The depth is final: the lights sample its copy while testing against it.
         t.scene_depth.copy_for_sampling(ctx.encoder());
         ctx.step("NonShadowedLights", |ctx| {
@@ -397,7 +388,7 @@ impl Lighting {
                 for d in
                     self.non_shadowed.iter().chain(self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow)))
                 {
-                    Self::draw_light(&mut pass, scene, d);
+                    Self::draw_light(pl, &mut pass, scene, d);
                 }
             }
             ctx.output(&t.scene_color.texture, Visualize::Hdr);
@@ -406,10 +397,12 @@ impl Lighting {
             ctx.step("TiledDeferredLighting", |ctx| {
                 {
                     let mut pass = ctx.open_compute_pass("TiledDeferredLighting");
-                    pass.set_pipeline(&cs.pipeline);
-                    groups.set_compute(&mut pass);
-                    let [wx, wy, _] = cs.workgroup_size;
-                    pass.dispatch_workgroups(t.width.div_ceil(wx), t.height.div_ceil(wy), 1);
+                    if let Some(p) = cs.ready(pl) {
+                        pass.set_pipeline(&p.pipeline);
+                        groups.set_compute(&mut pass);
+                        let [wx, wy, _] = cs.workgroup_size;
+                        pass.dispatch_workgroups(t.width.div_ceil(wx), t.height.div_ceil(wy), 1);
+                    }
                 }
                 ctx.encoder().copy_texture_to_texture(
                     t.scene_color_tiled.texture.as_image_copy(),
@@ -430,7 +423,8 @@ impl Lighting {
                     );
                     pass.set_stencil_reference(super::resources::STENCIL_LIT);
                     for p in &light.projections {
-                        pass.set_pipeline(&p.pipeline.pipeline);
+                        let Some(pipeline) = p.pipeline.ready(pl) else { continue };
+                        pass.set_pipeline(&pipeline.pipeline);
                         p.groups.set_render(&mut pass);
                         pass.draw(0..3, 0..1);
                     }
@@ -448,7 +442,7 @@ impl Lighting {
                         read_only_depth(&t.scene_depth),
                     );
                     pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                    Self::draw_light(&mut pass, scene, &light.light);
+                    Self::draw_light(pl, &mut pass, scene, &light.light);
                 }
                 ctx.output_named(
                     &format!("StandardDeferredLighting_{}", light.name),

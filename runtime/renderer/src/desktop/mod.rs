@@ -94,6 +94,8 @@ pub struct DesktopOptions {
     /// first image shows the fire burning. Off by default: the frame starts its emitters
     /// cold (its golden image); the [`crate::Renderer`] (kiln-view) turns it on.
     pub warm_up_particles: bool,
+    /// When the passes' pipelines are created (eagerly, when the frame is built, by default).
+    pub pipelines: crate::frame::Creation,
 }
 
 impl Default for DesktopOptions {
@@ -115,6 +117,7 @@ impl Default for DesktopOptions {
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
             effects: effects::EffectOptions::default(),
             warm_up_particles: false,
+            pipelines: crate::frame::Creation::Eager,
         }
     }
 }
@@ -226,7 +229,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, "sm5");
+        let pipelines = pipelines::Pipelines::new(cache, "sm5", options.pipelines);
         let b = PassSetup {
             device,
             pipelines: &pipelines,
@@ -302,7 +305,7 @@ impl DesktopFrame {
 
     /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
     /// of `DesktopOptions::output_format` and the frame's size).
-    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
+    pub fn record_into(&self, frame: &mut FrameRecorder<'_>, output: (&wgpu::Texture, &wgpu::TextureView)) {
         let (s, t) = (&self.buffers, &self.targets);
         let effects = &self.effects;
         let camera = effects.begin_frame();
@@ -479,19 +482,24 @@ impl DesktopFrame {
     }
 
     /// Records the frame into its own output target.
-    pub fn record(&self, frame: &mut FrameRecorder) {
+    pub fn record(&self, frame: &mut FrameRecorder<'_>) {
         self.record_into(frame, (&self.output.texture, &self.output.view));
     }
 
-    /// Renders one frame: the output image and every pass (with images when `capture`).
-    pub fn render(&self, capture: bool) -> (Option<Image>, Vec<PassResult>) {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, None);
+    /// Renders one frame with the pipelines of `cache` (the one the frame was built with):
+    /// the output image and every pass (with images when `capture`).
+    pub fn render(
+        &self,
+        cache: &PipelineCache,
+        capture: bool,
+    ) -> Result<(Option<Image>, Vec<PassResult>), PipelineError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, cache, self.timestamps, capture, None);
         self.record(&mut frame);
-        let passes = frame.finish();
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
+        let passes = frame.finish()?;
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, cache, false, true, None);
         readback.pass("Output", |ctx| ctx.output(&self.output.texture, Visualize::Direct));
-        let image = readback.finish().pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
-        (image, passes)
+        let image = readback.finish()?.pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
+        Ok((image, passes))
     }
 
     pub fn options(&self) -> &DesktopOptions {
@@ -595,7 +603,7 @@ fn build_effects(
     let context = effects::EffectContext {
         device: b.device,
         queue,
-        cache: b.pipelines.cache,
+        cache: b.pipelines.slots(),
         scene: b.scene,
         meshes: &meshes,
         warm_up_particles: b.options.warm_up_particles,

@@ -15,7 +15,7 @@
 //! holds the decision, with the same latency as the props' (results applied a frame or more
 //! after their query, never waited for; a light without a result yet counts as visible).
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -23,7 +23,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderState};
 
 use super::frame_view::{target_2d, view, EffectPassInit};
 
@@ -96,7 +96,7 @@ pub struct OcclusionStats {
 }
 
 pub struct OcclusionCulling {
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
     query_set: wgpu::QuerySet,
     resolve: wgpu::Buffer,
     readbacks: Vec<Readback>,
@@ -392,6 +392,11 @@ impl OcclusionCulling {
         if !proxies.is_empty() {
             queue.write_buffer(&self.proxies, 0, bytemuck::cast_slice(&proxies));
         }
+        let ready = self.pipeline.ready(ctx.pipelines());
+        if ready.is_none() {
+            // nothing can be tested this frame: the last verdicts stand
+            queries.clear();
+        }
         {
             let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("BeginOcclusionTests"),
@@ -413,8 +418,10 @@ impl OcclusionCulling {
                 occlusion_query_set: Some(&self.query_set),
                 multiview_mask: None,
             });
-            pass.set_pipeline(&self.pipeline.pipeline);
-            pass.set_bind_group(0, &self.bind_group, &[]);
+            if let Some(p) = &ready {
+                pass.set_pipeline(&p.pipeline);
+                pass.set_bind_group(0, &self.bind_group, &[]);
+            }
             for (i, (_, first, count, vertices)) in queries.iter().enumerate() {
                 pass.begin_occlusion_query(i as u32);
                 pass.draw(0..*vertices, *first..*first + *count);

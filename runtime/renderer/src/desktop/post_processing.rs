@@ -6,10 +6,10 @@ use std::sync::Arc;
 
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, PassContext, PassDecl, PipelineDesc, RenderSlot, Visualize};
 use crate::keys;
 
-use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::view::{BloomUniforms, TonemapUniforms};
 use super::{DesktopError, PassSetup};
@@ -19,7 +19,7 @@ use crate::gpu_types::uniform_buffer;
 pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Bloom", "Output"] };
 
 struct Draw {
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
     /// Index into the bloom chain it writes (None: the output).
     target: Option<usize>,
@@ -52,7 +52,7 @@ impl PostProcessing {
                        blend: Option<wgpu::BlendState>,
                        intensity: f32|
          -> Result<(), DesktopError> {
-            let pipeline = p.render(&vs, Some(ps), &RenderDesc::fullscreen(formats::BLOOM, blend))?;
+            let pipeline = p.render(&PipelineDesc::fullscreen(&vs, ps, blended(formats::BLOOM, blend)))?;
             let u = uniform_buffer(
                 b.device,
                 "Bloom",
@@ -82,18 +82,14 @@ impl PostProcessing {
         for i in (1..t.bloom.len()).rev() {
             add(&up_ps, &t.bloom[i].view, &t.bloom[i].texture, i - 1, Some(blend::ADDITIVE), 1.0)?;
         }
-        let pipeline = p.render(
-            &vs,
-            Some(&keys::name(
+        let pipeline = p.render(&PipelineDesc::fullscreen(&vs, &keys::name(
                 keys::tonemapper_ps::Key {
                     use_bloom: b.options.bloom,
                     use_vignette: b.options.vignette,
                     use_gamma_only: false,
                 },
                 p.key_level()?,
-            )?),
-            &RenderDesc::fullscreen(output_format, None),
-        )?;
+            )?, blended(output_format, None)))?;
         let u = uniform_buffer(
             b.device,
             "Tonemap",
@@ -119,11 +115,14 @@ impl PostProcessing {
     }
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
+        let ready = d.pipeline.ready(ctx.pipelines());
         let mut pass =
             begin(ctx, "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
-        pass.set_pipeline(&d.pipeline.pipeline);
-        d.groups.set_render(&mut pass);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            d.groups.set_render(&mut pass);
+            pass.draw(0..3, 0..1);
+        }
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets, output: (&wgpu::Texture, &wgpu::TextureView)) {

@@ -12,10 +12,10 @@ use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 
-use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
+use super::pipelines::{BindGroups, DesktopLayout};
 use super::resources::{begin, formats, LocalShadow, SceneBuffers, Texture};
 use super::view::{FrameView, ShadowDepthPassUniforms, ShadowProjectionUniforms};
 use super::{DesktopError, PassSetup};
@@ -43,7 +43,7 @@ struct ShadowView {
 struct Atlas {
     step: String,
     texture: Texture,
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     views: Vec<ShadowView>,
     /// Cube shadows of movable lights: the static casters' depth, cached (effects).
     cache: Option<CubeCache>,
@@ -55,7 +55,7 @@ struct Atlas {
 struct CubeCache {
     texture: Texture,
     /// CopyCachedShadowMap: a full-atlas draw writing the cached depth with frag_depth.
-    copy: Arc<Render>,
+    copy: Arc<RenderSlot>,
     copy_groups: BindGroups,
     /// Per view (face): the static casters; `ShadowView::draws` keeps the movable ones.
     static_draws: Vec<Vec<usize>>,
@@ -176,32 +176,23 @@ impl ShadowDepths {
     pub fn new(b: &PassSetup<'_>) -> Result<ShadowDepths, DesktopError> {
         let device = b.device;
         let p = b.pipelines;
-        let desc = |perspective: bool| -> Result<Arc<Render>, DesktopError> {
+        let desc = |perspective: bool| -> Result<Arc<RenderSlot>, DesktopError> {
             let name =
                 keys::name(keys::shadow_depth_vs::Key { perspective_correct_depth: perspective }, p.key_level()?)?;
-            p.render(
-                &name,
-                None,
-                &RenderDesc {
-                    vertices: Vertices::Mesh,
-                    cull: None,
-                    depth_stencil: Some(wgpu::DepthStencilState {
+            p.render(&PipelineDesc { cull_mode: None, depth_stencil: Some(wgpu::DepthStencilState {
                         format: formats::SHADOW_DEPTH,
                         depth_write_enabled: Some(true),
                         depth_compare: Some(wgpu::CompareFunction::LessEqual),
                         stencil: wgpu::StencilState::default(),
                         bias: wgpu::DepthBiasState { constant: 0, slope_scale: 1.0, clamp: 0.0 },
-                    }),
-                    targets: Vec::new(),
-                },
-            )
+                    }), targets: Vec::new(), ..PipelineDesc::new(&name, None, VertexInput::Mesh) })
         };
         let ortho = desc(false)?;
         let perspective = desc(true)?;
         let casters: Vec<usize> =
             b.buffers.draws.iter().enumerate().filter(|(_, d)| d.casts_shadow).map(|(i, _)| i).collect();
         let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
-        let view_groups = |pipeline: &Render, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
+        let view_groups = |pipeline: &RenderSlot, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
             let buffer = uniform_buffer(device, label, &ShadowDepthPassUniforms { view_proj: m });
             Ok(pipeline
                 .layout
@@ -317,22 +308,13 @@ impl ShadowDepths {
                 });
             }
             let cached = shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
-            let copy = b.pipelines.render(
-                &keys::name(keys::copy_cached_shadow_map_vs::Key {}, b.pipelines.key_level()?)?,
-                Some(&keys::name(keys::copy_cached_shadow_map_ps::Key {}, b.pipelines.key_level()?)?),
-                &RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: Some(wgpu::DepthStencilState {
+            let copy = b.pipelines.render(&PipelineDesc { cull_mode: None, depth_stencil: Some(wgpu::DepthStencilState {
                         format: formats::SHADOW_DEPTH,
                         depth_write_enabled: Some(true),
                         depth_compare: Some(wgpu::CompareFunction::Always),
                         stencil: Default::default(),
                         bias: Default::default(),
-                    }),
-                    targets: Vec::new(),
-                },
-            )?;
+                    }), targets: Vec::new(), ..PipelineDesc::new(&keys::name(keys::copy_cached_shadow_map_vs::Key {}, b.pipelines.key_level()?)?, Some(&keys::name(keys::copy_cached_shadow_map_ps::Key {}, b.pipelines.key_level()?)?), VertexInput::None) })?;
             let copy_groups = copy.layout.bind_groups(
                 device,
                 &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))],
@@ -423,11 +405,13 @@ impl ShadowDepths {
     /// Records every atlas. `casts_shadow(light)`: whether local light `light` renders its
     /// shadow views this frame (ShadowFrustumQueries); the cascades always render.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, casts_shadow: &dyn Fn(usize) -> bool) {
+        let pl = ctx.pipelines();
         let draw_views = |pass: &mut wgpu::RenderPass<'_>,
                           atlas: &Atlas,
                           keep: &dyn Fn(&ShadowView) -> bool,
                           draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
-            pass.set_pipeline(&atlas.pipeline.pipeline);
+            let Some(pipeline) = atlas.pipeline.ready(pl) else { return };
+            pass.set_pipeline(&pipeline.pipeline);
             for (i, v) in atlas.views.iter().enumerate().filter(|(_, v)| keep(v)) {
                 let [x, y, w, h] = v.viewport;
                 pass.set_viewport(x, y, w, h, 0.0, 1.0);
@@ -485,9 +469,11 @@ impl ShadowDepths {
                                 &[],
                                 depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)),
                             );
-                            pass.set_pipeline(&cache.copy.pipeline);
-                            cache.copy_groups.set_render(&mut pass);
-                            pass.draw(0..3, 0..1);
+                            if let Some(p) = cache.copy.ready(pl) {
+                                pass.set_pipeline(&p.pipeline);
+                                cache.copy_groups.set_render(&mut pass);
+                                pass.draw(0..3, 0..1);
+                            }
                         }
                         ctx.output(&atlas.texture.texture, Visualize::Depth);
                     });

@@ -13,14 +13,14 @@
 //! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
 //! surfaces that read both cascades.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineError};
+use crate::pipelines::{PipelineError};
 
 use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit};
 use super::view::ShadowProjectionUniforms;
@@ -159,8 +159,8 @@ struct Cascade {
 
 pub struct TranslucentVolumes {
     cascades: Vec<Cascade>,
-    inject: [Arc<ComputePipeline>; 4],
-    filter: Arc<ComputePipeline>,
+    inject: [Arc<ComputeSlot>; 4],
+    filter: Arc<ComputeSlot>,
     lights: Vec<InjectedLight>,
     /// Per light: the frame's local light index whose ShadowFrustumQuery gates its shadow.
     gates: Vec<Option<usize>>,
@@ -353,6 +353,7 @@ impl TranslucentVolumes {
         let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
         queue.write_buffer(&self.lookup, 0, bytemuck::bytes_of(&LookupParams::new(camera)));
         let n = groups(VOLUME_SIZE, 4);
+        let pl = ctx.pipelines();
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
             let mut pass = ctx.open_compute_pass(&format!("InjectTranslucentVolume cascade {c}"));
@@ -392,7 +393,8 @@ impl TranslucentVolumes {
                     spot_angles,
                 };
                 queue.write_buffer(&injection.params, 0, bytemuck::bytes_of(&p));
-                pass.set_pipeline(&self.inject[pipeline].pipeline);
+                let Some(p) = self.inject[pipeline].ready(pl) else { continue };
+                pass.set_pipeline(&p.pipeline);
                 pass.set_bind_group(0, group, &[]);
                 pass.dispatch_workgroups(n, n, n);
             }
@@ -402,8 +404,10 @@ impl TranslucentVolumes {
     /// FilterTranslucentVolume: both cascades.
     pub fn record_filter(&self, ctx: &mut PassContext<'_>) {
         let n = groups(VOLUME_SIZE, 4);
+        let ready = self.filter.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("FilterTranslucentVolume");
-        pass.set_pipeline(&self.filter.pipeline);
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         for cascade in &self.cascades {
             pass.set_bind_group(0, &cascade.filter_group, &[]);
             pass.dispatch_workgroups(n, n, n);

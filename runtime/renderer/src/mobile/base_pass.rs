@@ -15,7 +15,8 @@ use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
 
-use super::pipeline::{replace, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use crate::frame::{replace, untouched, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::shadows::DepthPassUniforms;
 use super::{
     MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT,
@@ -121,7 +122,7 @@ impl PrePass {
         shared: &SharedResources,
     ) -> Result<PrePass, PipelineError> {
         let vs = keys::name(keys::mobile_pre_pass_vs::Key {}, LEVEL)?;
-        let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
+        let mut desc = PipelineDesc::new(&vs, None, VertexInput::MeshInstanced);
         desc.cull_mode = Some(wgpu::Face::Back);
         desc.sample_count = targets.samples;
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -151,6 +152,7 @@ impl PrePass {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets) {
         let stencil = targets.scene_depth.texture.format().has_stencil_aspect();
+        let pl = ctx.pipelines();
         {
             ctx.render_pass(
                 &wgpu::RenderPassDescriptor {
@@ -170,9 +172,10 @@ impl PrePass {
                     multiview_mask: None,
                 },
                 |pass| {
-                    self.draw.bind(pass);
-                    for &i in &self.objects {
-                        scene.draw(pass, &scene.objects[i]);
+                    if self.draw.bind(pl, pass) {
+                        for &i in &self.objects {
+                            scene.draw(pass, &scene.objects[i]);
+                        }
                     }
                 },
             );
@@ -239,7 +242,7 @@ impl BasePass {
                 continue;
             }
             let ps = base_pass_ps(options, material, forward, csm)?;
-            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::MeshInstanced);
+            let mut desc = PipelineDesc::new(&vs, Some(&ps), VertexInput::MeshInstanced);
             desc.cull_mode = if material.blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) };
             desc.depth_stencil = Some(depth_stencil(true, true));
             desc.targets = formats.iter().map(|f| replace(*f)).collect();
@@ -256,7 +259,7 @@ impl BasePass {
         }
         let sky_vs = keys::name(keys::mobile_sky_vs::Key {}, LEVEL)?;
         let sky_ps = keys::name(keys::mobile_sky_ps::Key { output_gamma_space: !options.hdr }, LEVEL)?;
-        let mut desc = PipelineDesc::new(sky_vs, Some(sky_ps), VertexInput::None);
+        let mut desc = PipelineDesc::new(&sky_vs, Some(&sky_ps), VertexInput::None);
         desc.depth_stencil = Some(depth_stencil(false, false));
         desc.targets =
             formats.iter().enumerate().map(|(i, f)| if i == 0 { replace(*f) } else { untouched(*f) }).collect();
@@ -307,6 +310,7 @@ impl BasePass {
         }
         let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
         let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
+        let pl = ctx.pipelines();
         {
             ctx.render_pass(
                 &wgpu::RenderPassDescriptor {
@@ -326,14 +330,17 @@ impl BasePass {
                 },
                 |pass| {
                     for o in &self.objects {
-                        o.draw.bind(pass);
+                        if !o.draw.bind(pl, pass) {
+                            continue;
+                        }
                         if deferred {
                             pass.set_stencil_reference(o.stencil_ref);
                         }
                         scene.draw(pass, &scene.objects[o.object]);
                     }
-                    self.sky.bind(pass);
-                    pass.draw(0..3, 0..1);
+                    if self.sky.bind(pl, pass) {
+                        pass.draw(0..3, 0..1);
+                    }
                 },
             );
         }

@@ -16,7 +16,8 @@ use crate::keys;
 use crate::pipelines::PipelineError;
 
 use super::light_volumes::{unit_cone, unit_sphere, volume_to_world, VolumeMesh};
-use super::pipeline::{additive, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use crate::frame::{additive, untouched, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::uniforms::{DeferredLightUniforms, LocalLight};
 use super::{
     MobileOptions, MobileTargets, SharedResources, DEFERRED_DEPTH_FORMAT, SCENE_COLOR_FORMAT, SCENE_DEPTH_AUX_FORMAT,
@@ -80,8 +81,8 @@ impl MobileDeferredShading {
 
         // SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
         let mut desc = PipelineDesc::new(
-            fullscreen.clone(),
-            Some(keys::name(keys::mobile_scene_depth_aux_ps::Key {}, LEVEL)?),
+            &fullscreen,
+            Some(&keys::name(keys::mobile_scene_depth_aux_ps::Key {}, LEVEL)?),
             VertexInput::None,
         );
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -124,7 +125,7 @@ impl MobileDeferredShading {
             wgpu::StencilOperation::Keep,
             wgpu::StencilOperation::Keep,
         );
-        let mut desc = PipelineDesc::new(fullscreen, Some(direct_ps), VertexInput::None);
+        let mut desc = PipelineDesc::new(&fullscreen, Some(&direct_ps), VertexInput::None);
         desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
         desc.depth_stencil = Some(wgpu::DepthStencilState {
             format: DEFERRED_DEPTH_FORMAT,
@@ -150,8 +151,8 @@ impl MobileDeferredShading {
             wgpu::StencilOperation::Keep,
         );
         let mut desc = PipelineDesc::new(
-            volume_vs.clone(),
-            Some(keys::name(keys::mobile_light_stencil_ps::Key {}, LEVEL)?),
+            &volume_vs,
+            Some(&keys::name(keys::mobile_light_stencil_ps::Key {}, LEVEL)?),
             VertexInput::Position,
         );
         desc.cull_mode = Some(wgpu::Face::Back);
@@ -172,7 +173,7 @@ impl MobileDeferredShading {
         );
         let light_pipeline = |spot: bool| -> Result<_, PipelineError> {
             let ps = keys::name(keys::mobile_radial_light_ps::Key { is_spot_light: spot }, LEVEL)?;
-            let mut desc = PipelineDesc::new(volume_vs.clone(), Some(ps), VertexInput::Position);
+            let mut desc = PipelineDesc::new(&volume_vs, Some(&ps), VertexInput::Position);
             desc.cull_mode = Some(wgpu::Face::Front);
             desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
             desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -223,6 +224,7 @@ impl MobileDeferredShading {
     /// Reads the GBuffer and the scene depth; adds light to SceneColor.
     pub fn record(&self, ctx: &mut PassContext<'_>, targets: &MobileTargets) {
         let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
+        let pl = ctx.pipelines();
         ctx.step("SceneDepthAux", |ctx| {
             {
                 ctx.render_pass(
@@ -242,8 +244,9 @@ impl MobileDeferredShading {
                         multiview_mask: None,
                     },
                     |pass| {
-                        self.depth_aux.bind(pass);
-                        pass.draw(0..3, 0..1);
+                        if self.depth_aux.bind(pl, pass) {
+                            pass.draw(0..3, 0..1);
+                        }
                     },
                 );
             }
@@ -271,19 +274,24 @@ impl MobileDeferredShading {
                 },
                 |pass| {
                     pass.push_debug_group("DirectionalLight");
-                    self.directional.bind(pass);
-                    pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-                    pass.draw(0..3, 0..1);
+                    if self.directional.bind(pl, pass) {
+                        pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                        pass.draw(0..3, 0..1);
+                    }
                     pass.pop_debug_group();
                     pass.push_debug_group("LocalLights");
                     for l in &self.lights {
                         let volume = if l.is_spot { &self.cone } else { &self.sphere };
-                        l.stencil.bind(pass);
+                        // the light is drawn only where its volume's stencil marked
+                        if !l.stencil.bind(pl, pass) {
+                            continue;
+                        }
                         pass.set_stencil_reference(STENCIL_SANDBOX);
                         volume.draw(pass);
-                        l.light.bind(pass);
-                        pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
-                        volume.draw(pass);
+                        if l.light.bind(pl, pass) {
+                            pass.set_stencil_reference(STENCIL_DEFAULT_LIT);
+                            volume.draw(pass);
+                        }
                     }
                     pass.pop_debug_group();
                 },

@@ -42,7 +42,8 @@ use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
 use crate::scene::Scene;
 
-pub use pipeline::{MobilePipeline, MobilePipelines, PipelineDesc, VertexInput};
+pub use crate::frame::{PipelineDesc, VertexInput};
+pub use pipeline::MobilePipelines;
 pub use shadows::{cascade_splits, ShadowLayout};
 pub use sky::{f32_to_f16, procedural_sky};
 pub use uniforms::LocalLight;
@@ -126,6 +127,8 @@ pub struct MobileOptions {
     pub translucency: bool,
     /// Local lights of the scene to use, in scene order (points, then spots); `None`: all.
     pub local_light_limit: Option<usize>,
+    /// When the passes' pipelines are created (eagerly, when the frame is built, by default).
+    pub pipelines: crate::frame::Creation,
 }
 
 impl Default for MobileOptions {
@@ -147,6 +150,7 @@ impl Default for MobileOptions {
             bloom: true,
             translucency: true,
             local_light_limit: None,
+            pipelines: crate::frame::Creation::Eager,
         }
     }
 }
@@ -386,7 +390,7 @@ impl MobileFrame {
             }),
             captures,
         };
-        let pipelines = MobilePipelines::new(cache, device);
+        let pipelines = MobilePipelines::new(cache, device, options.pipelines);
         let shadow_depths = shadows::ShadowDepths::new(&pipelines, gpu_scene, &shadow_layout)?;
         let prepass = if options.full_prepass {
             Some(base_pass::PrePass::new(&pipelines, gpu_scene, &options, &targets, &shared)?)
@@ -469,7 +473,7 @@ impl MobileFrame {
     }
 
     /// Records the frame's passes, in the seed's order.
-    pub fn record(&self, recorder: &mut FrameRecorder, scene: &GpuScene) {
+    pub fn record(&self, recorder: &mut FrameRecorder<'_>, scene: &GpuScene) {
         let t = &self.targets;
         recorder.pass(shadows::PASS.name, |ctx| self.shadow_depths.record(ctx, scene, &t.shadow_atlas));
         if let Some(prepass) = &self.prepass {
@@ -563,11 +567,13 @@ pub fn render(
     capture: bool,
 ) -> Result<(Vec<PassResult>, Image), PipelineError> {
     let MobileContext { gpu, cache, gpu_scene, .. } = *context;
+    let creation = options.pipelines;
     let frame = MobileFrame::new(context, options, size)?;
-    let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
-    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
+    let depth_copy =
+        if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL, creation)?) };
+    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, cache, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);
-    let passes = recorder.finish();
+    let passes = recorder.finish()?;
     let image = frame.read_output(&gpu.device, &gpu.queue);
     Ok((passes, image))
 }

@@ -10,7 +10,8 @@ use crate::frame::{PassContext, PassDecl, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 
-use super::pipeline::{replace, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use crate::frame::{replace, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::uniforms::{BloomUniforms, TonemapUniforms};
 use super::{target, MobileOptions, MobileTargets, SharedResources, Target, OUTPUT_FORMAT, SCENE_COLOR_FORMAT};
 
@@ -66,7 +67,7 @@ impl PostProcessing {
         const LEVEL: keys::Level = keys::Level::Es31;
         let vs = keys::name(keys::mobile_fullscreen_vs::Key {}, LEVEL)?;
         let fullscreen = |ps: String, format| -> Result<_, PipelineError> {
-            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::None);
+            let mut desc = PipelineDesc::new(&vs, Some(&ps), VertexInput::None);
             desc.targets = vec![replace(format)];
             pipelines.get(&desc)
         };
@@ -172,6 +173,7 @@ impl PostProcessing {
     }
 
     fn fullscreen_pass(ctx: &mut PassContext<'_>, label: &str, target: &Target, draw: &Draw) {
+        let pl = ctx.pipelines();
         ctx.render_pass(
             &wgpu::RenderPassDescriptor {
                 label: Some(label),
@@ -190,8 +192,9 @@ impl PostProcessing {
                 multiview_mask: None,
             },
             |pass| {
-                draw.bind(pass);
-                pass.draw(0..3, 0..1);
+                if draw.bind(pl, pass) {
+                    pass.draw(0..3, 0..1);
+                }
             },
         );
     }

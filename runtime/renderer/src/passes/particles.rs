@@ -19,13 +19,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{ComputeSlot, FramePipelines, PassContext, PassDecl, RenderSlot, Slots, Visualize};
 use crate::gpu_types::uniform_buffer;
 use crate::keys;
-use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
-    VertexLayout,
-};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderState, VertexLayout};
 use crate::scene::ParticleEmitter;
 
 /// The ParticleSimulation pass at the start of the frame (the emitters that do not collide).
@@ -225,7 +222,7 @@ pub struct ParticlesInit<'a> {
     pub device: &'a wgpu::Device,
     /// Submits the prewarm steps.
     pub queue: &'a wgpu::Queue,
-    pub cache: &'a PipelineCache,
+    pub cache: Slots<'a>,
     /// The frame's `SceneView` buffer (`View`).
     pub view: &'a wgpu::Buffer,
     pub collision: CollisionInputs<'a>,
@@ -239,12 +236,12 @@ pub struct Particles {
     emitters: Vec<Emitter>,
     frame: u32,
     /// [without collision, with collision]
-    simulation: [Arc<ComputePipeline>; 2],
+    simulation: [Arc<ComputeSlot>; 2],
     /// The sprites over the frame's colour target (depth tested), the same over the `Fire`
     /// step's picture (no depth), and the heat haze into RG16F offsets.
-    sprite_pipeline: Arc<RenderPipeline>,
-    preview_pipeline: Arc<RenderPipeline>,
-    distortion_pipeline: Arc<RenderPipeline>,
+    sprite_pipeline: Arc<RenderSlot>,
+    preview_pipeline: Arc<RenderSlot>,
+    distortion_pipeline: Arc<RenderSlot>,
     /// The `Fire` step's picture: the emitters simulated at the start of the frame, alone
     /// over black.
     preview: (wgpu::Texture, wgpu::TextureView),
@@ -334,7 +331,7 @@ impl Particles {
                 }
                 sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
             };
-            let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
+            let make_sprites = |i: usize, pipeline: &RenderSlot, lit: bool| {
                 let mut resources = vec![
                     ("View", frame_view.as_entire_binding()),
                     ("sprite", sprite_params.as_entire_binding()),
@@ -418,17 +415,19 @@ impl Particles {
             preview: (preview, preview_view),
             empty,
         };
-        particles.prewarm(device, queue);
+        particles.prewarm(cache.cache, device, queue)?;
         Ok(particles)
     }
 
     /// Steps the emitters that ask for it [`PREWARM_STEPS`] times, one submit per step (each
     /// step has its own frame index in the simulation's uniform block). Their ages spread
     /// out over the first lifetime, as they do in a running frame.
-    fn prewarm(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
+    fn prewarm(&mut self, cache: &PipelineCache, device: &wgpu::Device, queue: &wgpu::Queue) -> Result<(), PipelineError> {
         if !self.emitters.iter().any(|e| e.desc.prewarm && !e.desc.collides) {
-            return;
+            return Ok(());
         }
+        // no frame waits on this: the system is being built, so the pipeline is made now
+        let pipeline = cache.compute_key(self.simulation[0].key())?;
         for step in 0..PREWARM_STEPS {
             // frame indices before the frame's own (which start at 1), for their own seeds
             let frame = u32::MAX - PREWARM_STEPS + 1 + step;
@@ -440,14 +439,15 @@ impl Particles {
                     label: Some(&format!("ParticleSimulation {}", e.desc.name)),
                     timestamp_writes: None,
                 });
-                Self::step(&self.simulation[0], queue, &mut pass, e, frame);
+                Self::step(&pipeline.pipeline, queue, &mut pass, e, frame);
             }
             queue.submit([encoder.finish()]);
         }
+        Ok(())
     }
 
     fn step(
-        pipeline: &ComputePipeline,
+        pipeline: &wgpu::ComputePipeline,
         queue: &wgpu::Queue,
         pass: &mut wgpu::ComputePass<'_>,
         e: &mut Emitter,
@@ -463,7 +463,7 @@ impl Particles {
             counts: UVec4::new(STATE_WIDTH, d.max_particles, frame, e.seed),
         };
         queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-        pass.set_pipeline(&pipeline.pipeline);
+        pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &e.simulate[e.current], &[]);
         pass.dispatch_workgroups(STATE_WIDTH.div_ceil(8), rows.div_ceil(8), 1);
         e.current = 1 - e.current;
@@ -475,10 +475,10 @@ impl Particles {
         if !colliding {
             self.frame += 1;
         }
-        let pipeline = &self.simulation[usize::from(colliding)];
+        let Some(pipeline) = self.simulation[usize::from(colliding)].ready(ctx.pipelines()) else { return };
         for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
             let mut pass = ctx.open_compute_pass(&format!("ParticleSimulation {}", e.desc.name));
-            Self::step(pipeline, queue, &mut pass, e, self.frame);
+            Self::step(&pipeline.pipeline, queue, &mut pass, e, self.frame);
         }
     }
 
@@ -489,6 +489,7 @@ impl Particles {
             return;
         }
         {
+            let ready = self.preview_pipeline.ready(ctx.pipelines());
             let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ParticleSimulation preview"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -505,10 +506,12 @@ impl Particles {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_pipeline(&self.preview_pipeline.pipeline);
-            for e in self.emitters.iter().filter(|e| !e.desc.collides) {
-                pass.set_bind_group(0, &e.sprites[e.current], &[]);
-                pass.draw(0..6, 0..e.desc.max_particles);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                for e in self.emitters.iter().filter(|e| !e.desc.collides) {
+                    pass.set_bind_group(0, &e.sprites[e.current], &[]);
+                    pass.draw(0..6, 0..e.desc.max_particles);
+                }
             }
         }
         ctx.output(&self.preview.0, Visualize::Hdr);
@@ -541,8 +544,9 @@ impl Particles {
     /// Draws the emitters' sprites, instanced, into a translucency pass over the colour target
     /// given to `new`, depth tested (read-only): the scene's emitters always, the particle
     /// effects (sparks, smoke) only with `effects`.
-    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
-        pass.set_pipeline(&self.sprite_pipeline.pipeline);
+    pub fn draw_sprites(&self, pipelines: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
+        let Some(p) = self.sprite_pipeline.ready(pipelines) else { return };
+        pass.set_pipeline(&p.pipeline);
         for e in self.emitters.iter().filter(|e| effects || !e.desc.effect) {
             pass.set_bind_group(0, &e.sprites[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
@@ -551,8 +555,9 @@ impl Particles {
 
     /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
     /// additive offsets).
-    pub fn draw_distortion(&self, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&self.distortion_pipeline.pipeline);
+    pub fn draw_distortion(&self, pipelines: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>) {
+        let Some(p) = self.distortion_pipeline.ready(pipelines) else { return };
+        pass.set_pipeline(&p.pipeline);
         for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
             pass.set_bind_group(0, &e.distortion[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
