@@ -185,7 +185,13 @@ impl Renderer {
         scene: &Scene,
         changed: &std::collections::HashSet<String>,
     ) -> Result<Renderer, RenderError> {
-        Renderer::with_creation(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone(), self.creation)
+        Renderer::with_creation(
+            gpu,
+            self.cache.carry_over(archive, changed),
+            scene,
+            self.options.clone(),
+            self.creation,
+        )
     }
 
     /// As [`Renderer::new`], with pipelines from `cache` (one made with
@@ -274,8 +280,11 @@ impl Renderer {
                 }
             }
         };
-        let depth_copy =
-            if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level(), creation)?) };
+        let depth_copy = if gpu.depth_copies {
+            None
+        } else {
+            Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level(), creation)?)
+        };
         Ok(Renderer {
             device: device.clone(),
             lost: gpu.lost.clone(),
@@ -339,8 +348,14 @@ impl Renderer {
     }
 
     fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame =
-            FrameRecorder::new(&self.device, &self.queue, &self.cache, self.timestamps, capture, self.depth_copy.clone());
+        let mut frame = FrameRecorder::new(
+            &self.device,
+            &self.queue,
+            &self.cache,
+            self.timestamps,
+            capture,
+            self.depth_copy.clone(),
+        );
         let (s, t) = (&self.gpu_scene, &self.targets);
         match &self.passes {
             Passes::DesktopDeferred { frame: desktop } => {

@@ -65,7 +65,16 @@ impl BasePass {
             })
         };
         let resources = b.scene_resources();
-        let sky = p.render(&PipelineDesc { cull_mode: None, depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual), targets: gbuffer_targets(), ..PipelineDesc::new(&keys::name(keys::post_process_vs::Key {}, p.key_level()?)?, Some(&keys::name(keys::sky_pass_ps::Key {}, p.key_level()?)?), VertexInput::None) })?;
+        let sky = p.render(&PipelineDesc {
+            cull_mode: None,
+            depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual),
+            targets: gbuffer_targets(),
+            ..PipelineDesc::new(
+                &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+                Some(&keys::name(keys::sky_pass_ps::Key {}, p.key_level()?)?),
+                VertexInput::None,
+            )
+        })?;
         let sky_groups = sky.layout.bind_groups(b.device, &resources)?;
         let vs = keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?;
         let mut variants = Vec::new();
@@ -91,7 +100,12 @@ impl BasePass {
                     translucency_lighting_mode: TranslucencyLightingMode::SurfaceForwardShading,
                 };
                 let ps = keys::name(key, p.key_level()?)?;
-                let pipeline = p.render(&PipelineDesc { cull_mode: if blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) }, depth_stencil: depth(!unlit, wgpu::CompareFunction::GreaterEqual), targets: gbuffer_targets(), ..PipelineDesc::new(&vs, Some(&ps), VertexInput::Mesh) })?;
+                let pipeline = p.render(&PipelineDesc {
+                    cull_mode: if blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) },
+                    depth_stencil: depth(!unlit, wgpu::CompareFunction::GreaterEqual),
+                    targets: gbuffer_targets(),
+                    ..PipelineDesc::new(&vs, Some(&ps), VertexInput::Mesh)
+                })?;
                 let groups = pipeline.layout.bind_groups(b.device, &resources)?;
                 variants.push(Variant { blend, unlit, pipeline, groups });
             }

@@ -13,7 +13,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec4};
 
 use crate::keys;
-use crate::pipelines::{PipelineError};
+use crate::pipelines::PipelineError;
 
 use super::frame_view::{groups, target_2d, uniform_buffer, view};
 

@@ -23,12 +23,16 @@ pub struct HeightFog {
 impl HeightFog {
     pub fn new(b: &PassSetup<'_>) -> Result<HeightFog, DesktopError> {
         let p = b.pipelines;
-        let pipeline = p.render(&PipelineDesc::fullscreen(&keys::name(keys::post_process_vs::Key {}, p.key_level()?)?, &keys::name(
+        let pipeline = p.render(&PipelineDesc::fullscreen(
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            &keys::name(
                 keys::exponential_height_fog_ps::Key {
                     support_fog_directional_light_inscattering: b.scene.sun.enabled,
                 },
                 p.key_level()?,
-            )?, blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE))))?;
+            )?,
+            blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        ))?;
         let groups = pipeline.layout.bind_groups(
             b.device,
             &[

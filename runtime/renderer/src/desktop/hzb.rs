@@ -19,7 +19,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 
 use crate::keys;
-use crate::pipelines::{PipelineError};
+use crate::pipelines::PipelineError;
 
 use super::frame_view::{groups, uniform_buffer};
 

@@ -56,7 +56,11 @@ impl LightGrid {
         let p = b.pipelines;
         let inject = p.compute(&keys::name(keys::light_grid_injection_cs::Key {}, p.key_level()?)?)?;
         let compact = p.compute(&keys::name(keys::light_grid_compact_cs::Key {}, p.key_level()?)?)?;
-        let visualize = p.render(&PipelineDesc::fullscreen(&keys::name(keys::post_process_vs::Key {}, p.key_level()?)?, &keys::name(keys::visualize_light_grid_ps::Key {}, p.key_level()?)?, blended(formats::VISUALIZE, None)))?;
+        let visualize = p.render(&PipelineDesc::fullscreen(
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            &keys::name(keys::visualize_light_grid_ps::Key {}, p.key_level()?)?,
+            blended(formats::VISUALIZE, None),
+        ))?;
         let resources = [
             ("View", b.view_buffer.as_entire_binding()),
             ("LocalLights", b.lights_buffer.as_entire_binding()),

@@ -205,6 +205,60 @@ pub struct DesktopFrame {
     shadow_frustum_culling: std::sync::atomic::AtomicBool,
 }
 
+/// The passes of the desktop frame, and the cleared shadow map bound where a light has none.
+struct BuiltPasses {
+    dummy_shadow: resources::Texture,
+    prepass: prepass::PrePass,
+    light_grid: light_grid::LightGrid,
+    shadows: shadow_depths::ShadowDepths,
+    base_pass: base_pass::BasePass,
+    ambient_occlusion: ambient_occlusion::AmbientOcclusion,
+    lighting: lighting::Lighting,
+    fog: fog::HeightFog,
+    post: post_processing::PostProcessing,
+    effects: effects::Effects,
+    translucency: translucency::Translucency,
+}
+
+/// Builds every pass, each after the passes whose outputs it binds.
+fn build_passes(b: &PassSetup<'_>, queue: &wgpu::Queue, base_view: &SceneView) -> Result<BuiltPasses, DesktopError> {
+    let dummy_shadow = shadow_depths::dummy_shadow_texture(b.device, queue);
+    let prepass = prepass::PrePass::new(b)?;
+    let light_grid = light_grid::LightGrid::new(b)?;
+    let shadows = shadow_depths::ShadowDepths::new(b)?;
+    let base_pass = base_pass::BasePass::new(b)?;
+    let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(b)?;
+    let lighting = lighting::Lighting::new(b, &shadows, &dummy_shadow, &light_grid)?;
+    let fog = fog::HeightFog::new(b)?;
+    let post = post_processing::PostProcessing::new(b, b.options.output_format)?;
+    let grid = effects::LightGridInputs {
+        lights: b.lights_buffer,
+        num_culled_lights: &light_grid.num_culled_lights,
+        culled_light_data: &light_grid.culled_light_data,
+        size: base_view.light_grid_size,
+        z_params: base_view.light_grid_z_params,
+    };
+    let inputs =
+        EffectInputs { shadows: &shadows, dummy_shadow: &dummy_shadow, light_grid: grid, view_buffer: b.view_buffer };
+    let effects = build_effects(b, queue, inputs)?;
+    effects.set_options(b.options.effects);
+    let translucency =
+        translucency::Translucency::new(b, &light_grid, &shadows, &dummy_shadow, &effects.translucency_volume())?;
+    Ok(BuiltPasses {
+        dummy_shadow,
+        prepass,
+        light_grid,
+        shadows,
+        base_pass,
+        ambient_occlusion,
+        lighting,
+        fog,
+        post,
+        effects,
+        translucency,
+    })
+}
+
 impl DesktopFrame {
     /// Uploads the scene, creates the targets and builds every pass (every pipeline).
     /// `timestamps`: the device has timestamp queries inside encoders.
@@ -243,35 +297,19 @@ impl DesktopFrame {
             lights_buffer: &lights_buffer,
             options: &options,
         };
-        let dummy_shadow = shadow_depths::dummy_shadow_texture(device, queue);
-        let prepass = prepass::PrePass::new(&b)?;
-        let light_grid = light_grid::LightGrid::new(&b)?;
-        let shadows = shadow_depths::ShadowDepths::new(&b)?;
-        let base_pass = base_pass::BasePass::new(&b)?;
-        let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
-        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
-        let fog = fog::HeightFog::new(&b)?;
-        let post = post_processing::PostProcessing::new(&b, options.output_format)?;
-        let grid = effects::LightGridInputs {
-            lights: &lights_buffer,
-            num_culled_lights: &light_grid.num_culled_lights,
-            culled_light_data: &light_grid.culled_light_data,
-            size: base_view.light_grid_size,
-            z_params: base_view.light_grid_z_params,
-        };
-        let effects = build_effects(
-            &b,
-            queue,
-            EffectInputs {
-                shadows: &shadows,
-                dummy_shadow: &dummy_shadow,
-                light_grid: grid,
-                view_buffer: &view_buffer,
-            },
-        )?;
-        effects.set_options(options.effects);
-        let translucency =
-            translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, &effects.translucency_volume())?;
+        let BuiltPasses {
+            dummy_shadow,
+            prepass,
+            light_grid,
+            shadows,
+            base_pass,
+            ambient_occlusion,
+            lighting,
+            fog,
+            post,
+            effects,
+            translucency,
+        } = build_passes(&b, queue, &base_view)?;
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
             device: device.clone(),

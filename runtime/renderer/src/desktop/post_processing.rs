@@ -82,14 +82,18 @@ impl PostProcessing {
         for i in (1..t.bloom.len()).rev() {
             add(&up_ps, &t.bloom[i].view, &t.bloom[i].texture, i - 1, Some(blend::ADDITIVE), 1.0)?;
         }
-        let pipeline = p.render(&PipelineDesc::fullscreen(&vs, &keys::name(
+        let pipeline = p.render(&PipelineDesc::fullscreen(
+            &vs,
+            &keys::name(
                 keys::tonemapper_ps::Key {
                     use_bloom: b.options.bloom,
                     use_vignette: b.options.vignette,
                     use_gamma_only: false,
                 },
                 p.key_level()?,
-            )?, blended(output_format, None)))?;
+            )?,
+            blended(output_format, None),
+        ))?;
         let u = uniform_buffer(
             b.device,
             "Tonemap",

@@ -83,7 +83,11 @@ impl Translucency {
         } else {
             None
         };
-        let compose = p.render(&PipelineDesc::fullscreen(&keys::name(keys::post_process_vs::Key {}, p.key_level()?)?, &keys::name(keys::compose_separate_translucency_ps::Key {}, p.key_level()?)?, blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE))))?;
+        let compose = p.render(&PipelineDesc::fullscreen(
+            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+            &keys::name(keys::compose_separate_translucency_ps::Key {}, p.key_level()?)?,
+            blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        ))?;
         let compose_groups = compose.layout.bind_groups(
             b.device,
             &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))],
@@ -108,27 +112,36 @@ impl Translucency {
         resources: &[(&str, wgpu::BindingResource<'_>)],
     ) -> Result<((Arc<RenderSlot>, BindGroups), wgpu::Buffer), DesktopError> {
         let (p, t) = (b.pipelines, b.targets);
-        let pipeline = p.render(&PipelineDesc { cull_mode: Some(wgpu::Face::Back), depth_stencil: Some(wgpu::DepthStencilState {
-                    format: t.scene_depth.format,
-                    depth_write_enabled: Some(false),
-                    depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
-                    stencil: wgpu::StencilState::default(),
-                    bias: wgpu::DepthBiasState::default(),
-                }), targets: vec![blended(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))], ..PipelineDesc::new(&keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?, Some(&keys::name(
-                keys::deferred_base_pass_ps::Key {
-                    material_blend_mode: keys::deferred_base_pass_ps::MaterialBlendMode::Translucent,
-                    material_shadingmodel: keys::deferred_base_pass_ps::MaterialShadingmodel::DefaultLit,
-                    translucency_lighting_mode: match mode {
-                        TranslucencyLightingMode::SurfaceForwardShading => {
-                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceForwardShading
-                        }
-                        TranslucencyLightingMode::SurfaceLightingVolume => {
-                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceLightingVolume
-                        }
+        let pipeline = p.render(&PipelineDesc {
+            cull_mode: Some(wgpu::Face::Back),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: t.scene_depth.format,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            targets: vec![blended(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
+            ..PipelineDesc::new(
+                &keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?,
+                Some(&keys::name(
+                    keys::deferred_base_pass_ps::Key {
+                        material_blend_mode: keys::deferred_base_pass_ps::MaterialBlendMode::Translucent,
+                        material_shadingmodel: keys::deferred_base_pass_ps::MaterialShadingmodel::DefaultLit,
+                        translucency_lighting_mode: match mode {
+                            TranslucencyLightingMode::SurfaceForwardShading => {
+                                keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceForwardShading
+                            }
+                            TranslucencyLightingMode::SurfaceLightingVolume => {
+                                keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceLightingVolume
+                            }
+                        },
                     },
-                },
-                p.key_level()?,
-            )?), VertexInput::Mesh) })?;
+                    p.key_level()?,
+                )?),
+                VertexInput::Mesh,
+            )
+        })?;
         let directional = uniform_buffer(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
         let mut resources = resources.to_vec();
         resources.push(("DirectionalShadow", directional.as_entire_binding()));

@@ -266,7 +266,11 @@ impl RenderSlot {
     }
 
     /// The slot of the pipeline `desc` describes.
-    pub fn from_desc(cache: &PipelineCache, desc: &PipelineDesc, creation: Creation) -> Result<RenderSlot, PipelineError> {
+    pub fn from_desc(
+        cache: &PipelineCache,
+        desc: &PipelineDesc,
+        creation: Creation,
+    ) -> Result<RenderSlot, PipelineError> {
         RenderSlot::new(cache, desc.key(), creation)
     }
 

@@ -9,13 +9,12 @@
 use crate::gpu::BufferInit;
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{replace, untouched, FramePipelines, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
 
-use crate::frame::{replace, untouched, PipelineDesc, VertexInput};
 use super::pipeline::{Draw, MobilePipelines};
 use super::shadows::DepthPassUniforms;
 use super::{
@@ -281,8 +280,53 @@ impl BasePass {
         prepass: bool,
         keep_for_translucency: bool,
     ) {
-        let clear = wgpu::Color::BLACK;
         let deferred = self.path == ShadingPath::Deferred;
+        let colors = Self::color_attachments(targets, deferred, keep_for_translucency);
+        let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
+        let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
+        let pl = ctx.pipelines();
+        {
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("BasePass"),
+                    color_attachments: &colors,
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
+                        stencil_ops: deferred.then_some(wgpu::Operations {
+                            load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
+                            store: wgpu::StoreOp::Store,
+                        }),
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| self.draw(pl, pass, scene, deferred),
+            );
+        }
+        let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
+        ctx.output(&targets.scene_color.texture, vis);
+        // Forward depth survives the pass only when Translucency needs it, and only a
+        // single-sampled one can be read back.
+        if !deferred && targets.samples == 1 && depth_store == wgpu::StoreOp::Store {
+            ctx.output_named("SceneDepth", &targets.scene_depth.texture, Visualize::Depth);
+        }
+        if deferred {
+            for g in [&targets.gbuffer_a, &targets.gbuffer_b, &targets.gbuffer_c].into_iter().flatten() {
+                ctx.output_named(g.name, &g.texture, Visualize::Direct);
+            }
+        }
+    }
+
+    /// SceneColor (resolved here unless Translucency needs the samples) and, deferred, the
+    /// GBuffer.
+    fn color_attachments(
+        targets: &MobileTargets,
+        deferred: bool,
+        keep_for_translucency: bool,
+    ) -> Vec<Option<wgpu::RenderPassColorAttachment<'_>>> {
+        let clear = wgpu::Color::BLACK;
         let color_store = if targets.scene_color_msaa.is_some() && !keep_for_translucency {
             wgpu::StoreOp::Discard
         } else {
@@ -308,53 +352,22 @@ impl BasePass {
                 }));
             }
         }
-        let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
-        let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
-        let pl = ctx.pipelines();
-        {
-            ctx.render_pass(
-                &wgpu::RenderPassDescriptor {
-                    label: Some("BasePass"),
-                    color_attachments: &colors,
-                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                        view: &targets.scene_depth.view,
-                        depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
-                        stencil_ops: deferred.then_some(wgpu::Operations {
-                            load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
-                            store: wgpu::StoreOp::Store,
-                        }),
-                    }),
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                },
-                |pass| {
-                    for o in &self.objects {
-                        if !o.draw.bind(pl, pass) {
-                            continue;
-                        }
-                        if deferred {
-                            pass.set_stencil_reference(o.stencil_ref);
-                        }
-                        scene.draw(pass, &scene.objects[o.object]);
-                    }
-                    if self.sky.bind(pl, pass) {
-                        pass.draw(0..3, 0..1);
-                    }
-                },
-            );
-        }
-        let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
-        ctx.output(&targets.scene_color.texture, vis);
-        // Forward depth survives the pass only when Translucency needs it, and only a
-        // single-sampled one can be read back.
-        if !deferred && targets.samples == 1 && depth_store == wgpu::StoreOp::Store {
-            ctx.output_named("SceneDepth", &targets.scene_depth.texture, Visualize::Depth);
-        }
-        if deferred {
-            for g in [&targets.gbuffer_a, &targets.gbuffer_b, &targets.gbuffer_c].into_iter().flatten() {
-                ctx.output_named(g.name, &g.texture, Visualize::Direct);
+        colors
+    }
+
+    /// The objects (each with its shading model's stencil when deferred), then the sky.
+    fn draw(&self, pl: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, scene: &GpuScene, deferred: bool) {
+        for o in &self.objects {
+            if !o.draw.bind(pl, pass) {
+                continue;
             }
+            if deferred {
+                pass.set_stencil_reference(o.stencil_ref);
+            }
+            scene.draw(pass, &scene.objects[o.object]);
+        }
+        if self.sky.bind(pl, pass) {
+            pass.draw(0..3, 0..1);
         }
     }
 }

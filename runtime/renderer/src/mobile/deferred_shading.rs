@@ -11,12 +11,11 @@
 
 use crate::gpu::BufferInit;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{additive, untouched, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 
 use super::light_volumes::{unit_cone, unit_sphere, volume_to_world, VolumeMesh};
-use crate::frame::{additive, untouched, PipelineDesc, VertexInput};
 use super::pipeline::{Draw, MobilePipelines};
 use super::uniforms::{DeferredLightUniforms, LocalLight};
 use super::{
@@ -68,6 +67,120 @@ pub struct MobileDeferredShading {
     _depth_view: wgpu::TextureView,
 }
 
+/// SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
+fn depth_aux_desc(fullscreen: &str) -> Result<PipelineDesc, PipelineError> {
+    let ps = keys::name(keys::mobile_scene_depth_aux_ps::Key {}, LEVEL)?;
+    let mut desc = PipelineDesc::new(fullscreen, Some(&ps), VertexInput::None);
+    desc.depth_stencil = Some(wgpu::DepthStencilState {
+        format: SCENE_DEPTH_AUX_FORMAT,
+        depth_write_enabled: Some(true),
+        depth_compare: Some(wgpu::CompareFunction::Always),
+        stencil: Default::default(),
+        bias: Default::default(),
+    });
+    Ok(desc)
+}
+
+/// The directional light: full screen, default lit pixels only, adds to SceneColor.
+fn directional_desc(fullscreen: &str, options: &MobileOptions, csm: bool) -> Result<PipelineDesc, PipelineError> {
+    let direct_ps = keys::name(
+        keys::mobile_direct_light_ps::Key {
+            directional_light_csm: csm,
+            hq_reflections: options.reflections && options.hq_reflections,
+            enable_sky_light: options.sky_light,
+        },
+        LEVEL,
+    )?;
+    let only_default_lit = stencil_face(
+        wgpu::CompareFunction::Equal,
+        wgpu::StencilOperation::Keep,
+        wgpu::StencilOperation::Keep,
+        wgpu::StencilOperation::Keep,
+    );
+    let mut desc = PipelineDesc::new(fullscreen, Some(&direct_ps), VertexInput::None);
+    desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
+    desc.depth_stencil = Some(wgpu::DepthStencilState {
+        format: DEFERRED_DEPTH_FORMAT,
+        depth_write_enabled: Some(false),
+        depth_compare: Some(wgpu::CompareFunction::Always),
+        stencil: wgpu::StencilState {
+            front: only_default_lit,
+            back: only_default_lit,
+            read_mask: STENCIL_SHADING_MODEL_MASK,
+            write_mask: 0,
+        },
+        bias: Default::default(),
+    });
+    Ok(desc)
+}
+
+/// A local light's stencil mask: front faces, depth fail marks.
+fn stencil_desc(volume_vs: &str) -> Result<PipelineDesc, PipelineError> {
+    let mark = stencil_face(
+        wgpu::CompareFunction::Always,
+        wgpu::StencilOperation::Keep,
+        wgpu::StencilOperation::Replace,
+        wgpu::StencilOperation::Keep,
+    );
+    let ps = keys::name(keys::mobile_light_stencil_ps::Key {}, LEVEL)?;
+    let mut desc = PipelineDesc::new(volume_vs, Some(&ps), VertexInput::Position);
+    desc.cull_mode = Some(wgpu::Face::Back);
+    desc.targets = vec![untouched(SCENE_COLOR_FORMAT)];
+    desc.depth_stencil = Some(wgpu::DepthStencilState {
+        format: DEFERRED_DEPTH_FORMAT,
+        depth_write_enabled: Some(false),
+        depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+        stencil: wgpu::StencilState { front: mark, back: mark, read_mask: 0xff, write_mask: STENCIL_SANDBOX },
+        bias: Default::default(),
+    });
+    Ok(desc)
+}
+
+/// A local light: back faces behind the surface, unmarked default lit pixels; clears the
+/// mark.
+fn light_desc(volume_vs: &str, spot: bool) -> Result<PipelineDesc, PipelineError> {
+    let lit = stencil_face(
+        wgpu::CompareFunction::Equal,
+        wgpu::StencilOperation::Zero,
+        wgpu::StencilOperation::Zero,
+        wgpu::StencilOperation::Zero,
+    );
+    let ps = keys::name(keys::mobile_radial_light_ps::Key { is_spot_light: spot }, LEVEL)?;
+    let mut desc = PipelineDesc::new(volume_vs, Some(&ps), VertexInput::Position);
+    desc.cull_mode = Some(wgpu::Face::Front);
+    desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
+    desc.depth_stencil = Some(wgpu::DepthStencilState {
+        format: DEFERRED_DEPTH_FORMAT,
+        depth_write_enabled: Some(false),
+        depth_compare: Some(wgpu::CompareFunction::LessEqual),
+        stencil: wgpu::StencilState {
+            front: lit,
+            back: lit,
+            read_mask: STENCIL_SHADING_MODEL_MASK | STENCIL_SANDBOX,
+            write_mask: STENCIL_SANDBOX,
+        },
+        bias: Default::default(),
+    });
+    Ok(desc)
+}
+
+/// What the lights read: the view's resources, the GBuffer and SceneDepthAux.
+fn light_resources<'t>(
+    shared: &'t SharedResources,
+    targets: &'t MobileTargets,
+) -> Vec<(&'static str, wgpu::BindingResource<'t>)> {
+    fn gbuffer(t: &Option<super::Target>) -> wgpu::BindingResource<'_> {
+        wgpu::BindingResource::TextureView(&t.as_ref().expect("deferred targets have a GBuffer").view)
+    }
+    let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
+    let mut resources = shared.view_resources(targets);
+    resources.push(("GBufferATexture", gbuffer(&targets.gbuffer_a)));
+    resources.push(("GBufferBTexture", gbuffer(&targets.gbuffer_b)));
+    resources.push(("GBufferCTexture", gbuffer(&targets.gbuffer_c)));
+    resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(&aux.view)));
+    resources
+}
+
 impl MobileDeferredShading {
     pub fn new(
         pipelines: &MobilePipelines<'_>,
@@ -78,119 +191,19 @@ impl MobileDeferredShading {
     ) -> Result<MobileDeferredShading, PipelineError> {
         let device = pipelines.device;
         let fullscreen = keys::name(keys::mobile_fullscreen_vs::Key {}, LEVEL)?;
-
-        // SceneDepthAux: the scene depth into a depth texture (frag_depth = depth).
-        let mut desc = PipelineDesc::new(
-            &fullscreen,
-            Some(&keys::name(keys::mobile_scene_depth_aux_ps::Key {}, LEVEL)?),
-            VertexInput::None,
-        );
-        desc.depth_stencil = Some(wgpu::DepthStencilState {
-            format: SCENE_DEPTH_AUX_FORMAT,
-            depth_write_enabled: Some(true),
-            depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: Default::default(),
-            bias: Default::default(),
-        });
         let depth_view = targets.scene_depth.depth_view();
         let depth_aux = Draw::new(
             device,
-            pipelines.get(&desc)?,
+            pipelines.get(&depth_aux_desc(&fullscreen)?)?,
             &[("SceneDepthTexture", wgpu::BindingResource::TextureView(&depth_view))],
         )?;
-
-        let aux = targets.scene_depth_aux.as_ref().expect("deferred targets have SceneDepthAux");
-        fn gbuffer(t: &Option<super::Target>) -> wgpu::BindingResource<'_> {
-            wgpu::BindingResource::TextureView(&t.as_ref().expect("deferred targets have a GBuffer").view)
-        }
-        let mut resources = shared.view_resources(targets);
-        resources.push(("GBufferATexture", gbuffer(&targets.gbuffer_a)));
-        resources.push(("GBufferBTexture", gbuffer(&targets.gbuffer_b)));
-        resources.push(("GBufferCTexture", gbuffer(&targets.gbuffer_c)));
-        resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(&aux.view)));
-
-        // The directional light: full screen, default lit pixels only, adds to SceneColor.
-        let csm = shared.cascades > 0;
-        let direct_ps = keys::name(
-            keys::mobile_direct_light_ps::Key {
-                directional_light_csm: csm,
-                hq_reflections: options.reflections && options.hq_reflections,
-                enable_sky_light: options.sky_light,
-            },
-            LEVEL,
-        )?;
-        let only_default_lit = stencil_face(
-            wgpu::CompareFunction::Equal,
-            wgpu::StencilOperation::Keep,
-            wgpu::StencilOperation::Keep,
-            wgpu::StencilOperation::Keep,
-        );
-        let mut desc = PipelineDesc::new(&fullscreen, Some(&direct_ps), VertexInput::None);
-        desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
-        desc.depth_stencil = Some(wgpu::DepthStencilState {
-            format: DEFERRED_DEPTH_FORMAT,
-            depth_write_enabled: Some(false),
-            depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: wgpu::StencilState {
-                front: only_default_lit,
-                back: only_default_lit,
-                read_mask: STENCIL_SHADING_MODEL_MASK,
-                write_mask: 0,
-            },
-            bias: Default::default(),
-        });
-        let directional = Draw::new(device, pipelines.get(&desc)?, &resources)?;
-
-        // Local lights: the stencil mask (front faces, depth fail marks) and the light (back
-        // faces behind the surface, unmarked default lit pixels; clears the mark).
+        let resources = light_resources(shared, targets);
+        let directional_desc = directional_desc(&fullscreen, options, shared.cascades > 0)?;
+        let directional = Draw::new(device, pipelines.get(&directional_desc)?, &resources)?;
         let volume_vs = keys::name(keys::mobile_deferred_light_vs::Key {}, LEVEL)?;
-        let mark = stencil_face(
-            wgpu::CompareFunction::Always,
-            wgpu::StencilOperation::Keep,
-            wgpu::StencilOperation::Replace,
-            wgpu::StencilOperation::Keep,
-        );
-        let mut desc = PipelineDesc::new(
-            &volume_vs,
-            Some(&keys::name(keys::mobile_light_stencil_ps::Key {}, LEVEL)?),
-            VertexInput::Position,
-        );
-        desc.cull_mode = Some(wgpu::Face::Back);
-        desc.targets = vec![untouched(SCENE_COLOR_FORMAT)];
-        desc.depth_stencil = Some(wgpu::DepthStencilState {
-            format: DEFERRED_DEPTH_FORMAT,
-            depth_write_enabled: Some(false),
-            depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
-            stencil: wgpu::StencilState { front: mark, back: mark, read_mask: 0xff, write_mask: STENCIL_SANDBOX },
-            bias: Default::default(),
-        });
-        let stencil_pipeline = pipelines.get(&desc)?;
-        let lit = stencil_face(
-            wgpu::CompareFunction::Equal,
-            wgpu::StencilOperation::Zero,
-            wgpu::StencilOperation::Zero,
-            wgpu::StencilOperation::Zero,
-        );
-        let light_pipeline = |spot: bool| -> Result<_, PipelineError> {
-            let ps = keys::name(keys::mobile_radial_light_ps::Key { is_spot_light: spot }, LEVEL)?;
-            let mut desc = PipelineDesc::new(&volume_vs, Some(&ps), VertexInput::Position);
-            desc.cull_mode = Some(wgpu::Face::Front);
-            desc.targets = vec![additive(SCENE_COLOR_FORMAT)];
-            desc.depth_stencil = Some(wgpu::DepthStencilState {
-                format: DEFERRED_DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::LessEqual),
-                stencil: wgpu::StencilState {
-                    front: lit,
-                    back: lit,
-                    read_mask: STENCIL_SHADING_MODEL_MASK | STENCIL_SANDBOX,
-                    write_mask: STENCIL_SANDBOX,
-                },
-                bias: Default::default(),
-            });
-            pipelines.get(&desc)
-        };
-        let (point_pipeline, spot_pipeline) = (light_pipeline(false)?, light_pipeline(true)?);
+        let stencil_pipeline = pipelines.get(&stencil_desc(&volume_vs)?)?;
+        let point_pipeline = pipelines.get(&light_desc(&volume_vs, false)?)?;
+        let spot_pipeline = pipelines.get(&light_desc(&volume_vs, true)?)?;
         let mut buffers = Vec::new();
         let mut draws = Vec::new();
         for l in lights {

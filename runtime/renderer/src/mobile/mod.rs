@@ -301,6 +301,38 @@ pub struct SharedResources {
 }
 
 impl SharedResources {
+    /// The `View` buffer of `view`, the samplers and the reflection captures.
+    fn new(
+        device: &wgpu::Device,
+        view: &crate::scene::view::SceneView,
+        cascades: usize,
+        captures: sky::Captures,
+    ) -> SharedResources {
+        SharedResources {
+            view_proj: view.view_proj,
+            cascades,
+            view: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("View"),
+                contents: bytemuck::bytes_of(view),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            }),
+            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("ShadowSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                compare: Some(wgpu::CompareFunction::GreaterEqual),
+                ..Default::default()
+            }),
+            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("LinearSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                ..Default::default()
+            }),
+            captures,
+        }
+    }
+
     /// Group 0 of the lit shaders: `View`, the shadow atlas and the reflection captures.
     pub fn view_resources<'a>(&'a self, targets: &'a MobileTargets) -> Vec<(&'static str, wgpu::BindingResource<'a>)> {
         let c = &self.captures;
@@ -367,29 +399,7 @@ impl MobileFrame {
             uniforms::forward_lights(&local_lights, scene.camera.position, options.max_dynamic_point_lights as usize);
         let captures = sky::Captures::new(device, &gpu.queue, scene);
         let view = uniforms::view_uniforms(scene, &options, size, &shadow_layout, &forward_lights, &captures);
-        let shared = SharedResources {
-            view_proj: view.view_proj,
-            cascades: shadow_layout.cascades.len(),
-            view: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("View"),
-                contents: bytemuck::bytes_of(&view),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            }),
-            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("ShadowSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                compare: Some(wgpu::CompareFunction::GreaterEqual),
-                ..Default::default()
-            }),
-            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("LinearSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                ..Default::default()
-            }),
-            captures,
-        };
+        let shared = SharedResources::new(device, &view, shadow_layout.cascades.len(), captures);
         let pipelines = MobilePipelines::new(cache, device, options.pipelines);
         let shadow_depths = shadows::ShadowDepths::new(&pipelines, gpu_scene, &shadow_layout)?;
         let prepass = if options.full_prepass {
@@ -569,8 +579,7 @@ pub fn render(
     let MobileContext { gpu, cache, gpu_scene, .. } = *context;
     let creation = options.pipelines;
     let frame = MobileFrame::new(context, options, size)?;
-    let depth_copy =
-        if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL, creation)?) };
+    let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL, creation)?) };
     let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, cache, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);
     let passes = recorder.finish()?;

@@ -13,14 +13,13 @@ use glam::camera::rh::proj::directx::{orthographic, perspective};
 use glam::camera::rh::view::look_at_mat4;
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::view::MAX_CASCADES;
 use crate::scene::{BlendMode, Camera, Scene};
 
-use crate::frame::{PipelineDesc, VertexInput};
 use super::pipeline::{Draw, MobilePipelines};
 use super::{MobileOptions, Target, SHADOW_ATLAS_FORMAT};
 

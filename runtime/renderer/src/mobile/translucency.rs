@@ -3,13 +3,12 @@
 //! forward frame with MSAA this pass resolves the multisampled color at its end and stores
 //! nothing multisampled; the depth is tested, never written, and discarded at the end.
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{premultiplied, untouched, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::{BlendMode, Scene};
 
 use super::base_pass::{base_pass_formats, base_pass_ps, base_pass_vs, depth_format};
-use crate::frame::{premultiplied, untouched, PipelineDesc, VertexInput};
 use super::pipeline::{Draw, MobilePipelines};
 use super::{MobileOptions, MobileTargets, ShadingPath, SharedResources};
 
