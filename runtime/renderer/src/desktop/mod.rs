@@ -6,8 +6,10 @@
 //! `shader_src/Private/Desktop/` and [`DesktopOptions`]; gives the tonemapped sRGB frame and,
 //! through the [`FrameRecorder`], every pass's (and named step's) output and GPU time.
 //! Guarantees: every pipeline the frame uses is created in [`DesktopFrame::new`] (the
-//! warm-up), none while recording; a permutation missing from the archive, or a resource a
-//! permutation binds that the frame does not have, is an error naming it, never a panic.
+//! warm-up; with [`crate::frame::Creation::Lazy`], when a frame first asks for it), and each
+//! draw asks the cache for its pipeline as it is recorded; a permutation missing from the
+//! archive, or a resource a permutation binds that the frame does not have, is an error
+//! naming it, never a panic.
 
 mod ambient_occlusion;
 mod base_pass;
@@ -260,7 +262,8 @@ fn build_passes(b: &PassSetup<'_>, queue: &wgpu::Queue, base_view: &SceneView) -
 }
 
 impl DesktopFrame {
-    /// Uploads the scene, creates the targets and builds every pass (every pipeline).
+    /// Uploads the scene, creates the targets and builds every pass (and, unless the options
+    /// say [`crate::frame::Creation::Lazy`], every pipeline).
     /// `timestamps`: the device has timestamp queries inside encoders.
     pub fn new(
         device: &wgpu::Device,

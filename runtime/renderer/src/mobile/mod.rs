@@ -441,7 +441,8 @@ impl MobileFrame {
         })
     }
 
-    /// How many distinct pipelines the frame built (all before its first frame).
+    /// How many distinct pipelines the frame uses (all created before its first frame unless
+    /// it was built with [`crate::frame::Creation::Lazy`]).
     pub fn pipeline_count(&self) -> usize {
         self.pipelines_built
     }
