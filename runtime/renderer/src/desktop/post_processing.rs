@@ -37,6 +37,13 @@ pub const BLOOM: [f32; 3] = [1.5, 0.5, 0.2];
 
 impl PostProcessing {
     pub fn new(b: &PassSetup<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
+        let bloom = Self::bloom(b)?;
+        let tonemap = Self::tonemap(b, output_format)?;
+        Ok(PostProcessing { bloom, tonemap_uses_bloom: b.options.bloom, tonemap })
+    }
+
+    /// Bloom: the setup from SceneColor, down the levels, then back up adding each.
+    fn bloom(b: &PassSetup<'_>) -> Result<Vec<Draw>, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
@@ -82,6 +89,13 @@ impl PostProcessing {
         for i in (1..t.bloom.len()).rev() {
             add(&up_ps, &t.bloom[i].view, &t.bloom[i].texture, i - 1, Some(blend::ADDITIVE), 1.0)?;
         }
+        Ok(bloom)
+    }
+
+    /// The tonemapper into the output (with the bloom where the options have it).
+    fn tonemap(b: &PassSetup<'_>, output_format: wgpu::TextureFormat) -> Result<Draw, DesktopError> {
+        let (p, t) = (b.pipelines, b.targets);
+        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
         let pipeline = p.render(&PipelineDesc::fullscreen(
             &vs,
             &keys::name(
@@ -111,11 +125,7 @@ impl PostProcessing {
                 ],
             )?
             .keeping(u);
-        Ok(PostProcessing {
-            bloom,
-            tonemap_uses_bloom: b.options.bloom,
-            tonemap: Draw { pipeline, groups, target: None, clear: true },
-        })
+        Ok(Draw { pipeline, groups, target: None, clear: true })
     }
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
