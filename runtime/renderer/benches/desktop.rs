@@ -49,11 +49,11 @@ fn measure(gpu: &Gpu, cache: &PipelineCache, scene: &Scene, path: LightingPath, 
     let options = DesktopOptions { width: W, height: H, lighting_path: path, ..Default::default() };
     let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, cache, scene, options)
         .unwrap_or_else(|e| panic!("{e}"));
-    let _ = frame.render(false); // warm-up: first use of every pipeline
+    let _ = frame.render(cache, false); // warm-up: first use of every pipeline
     let mut sums: Vec<(String, Option<f64>)> = Vec::new();
     let start = Instant::now();
     for _ in 0..frames {
-        let (_, passes) = frame.render(false);
+        let (_, passes) = frame.render(cache, false).unwrap_or_else(|e| panic!("{e}"));
         accumulate(&mut sums, &passes);
     }
     let wall_ms = start.elapsed().as_secs_f64() * 1000.0 / frames as f64;

@@ -67,9 +67,9 @@ fn mobile_frame(gpu: &Gpu, archive: &Arc<ShaderArchive>, scene: &Scene, options:
     let mut frames = Vec::new();
     for i in 0..=FRAMES {
         let start = Instant::now();
-        let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, false, None);
+        let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, &cache, gpu.timestamps, false, None);
         frame.record(&mut recorder, &gpu_scene);
-        let passes = recorder.finish();
+        let passes = recorder.finish().expect("mobile frame pipelines");
         let wall = start.elapsed().as_secs_f64() * 1e3;
         let gpu_ms: Option<f64> = passes.iter().map(|p| p.gpu_ms).sum();
         if i > 0 {

@@ -1,11 +1,12 @@
 //! The frames. A [`Renderer`] owns the scene on the GPU, the render targets and every pass
-//! of one `--pipeline`, all built (and every pipeline created) in [`Renderer::new`], the
-//! warm-up. [`Renderer::render`] records the frame function of that pipeline, pass by pass
-//! in frame order, and returns the output image with each pass's timings and captures.
+//! of one `--pipeline`, all built (and, unless [`Creation::Lazy`], every pipeline created) in
+//! [`Renderer::new`], the warm-up. [`Renderer::render`] records the frame function of that
+//! pipeline, pass by pass in frame order, asking the cache for each pipeline as it records
+//! the draw, and returns the output image with each pass's timings and captures.
 
 use std::sync::Arc;
 
-use crate::frame::{FrameRecorder, Image, PassResult};
+use crate::frame::{Creation, FrameRecorder, Image, PassResult};
 use crate::gpu::Gpu;
 use crate::passes::Targets;
 use crate::pipelines::{CacheStats, PipelineCache, PipelineError};
@@ -157,6 +158,7 @@ pub struct Renderer {
     targets: Targets,
     passes: Passes,
     depth_copy: Option<crate::frame::DepthCopy>,
+    creation: Creation,
 }
 
 impl Renderer {
@@ -183,7 +185,13 @@ impl Renderer {
         scene: &Scene,
         changed: &std::collections::HashSet<String>,
     ) -> Result<Renderer, RenderError> {
-        Renderer::with_cache(gpu, self.cache.carry_over(archive, changed), scene, self.options.clone())
+        Renderer::with_creation(
+            gpu,
+            self.cache.carry_over(archive, changed),
+            scene,
+            self.options.clone(),
+            self.creation,
+        )
     }
 
     /// As [`Renderer::new`], with pipelines from `cache` (one made with
@@ -195,11 +203,26 @@ impl Renderer {
         scene: &Scene,
         options: RendererOptions,
     ) -> Result<Renderer, RenderError> {
+        Renderer::with_creation(gpu, cache, scene, options, Creation::Eager)
+    }
+
+    /// As [`Renderer::with_cache`], creating the frame's pipelines as `creation` says:
+    /// [`Creation::Lazy`] builds the passes without creating any pipeline, each being created
+    /// when a frame first asks for it (by a cache that creates pipelines off the frame, a
+    /// frame that never waits for one: `kiln-view --no-stall`). A permutation missing from
+    /// the archive is an error here either way (the passes read its reflection).
+    pub fn with_creation(
+        gpu: &Gpu,
+        cache: PipelineCache,
+        scene: &Scene,
+        options: RendererOptions,
+        creation: Creation,
+    ) -> Result<Renderer, RenderError> {
         if let Some(reason) = gpu.lost.reason() {
             return Err(RenderError::DeviceLost(format!("before the frame was set up: {reason}")));
         }
         let scopes = crate::pipelines::ErrorScopes::push(&gpu.device);
-        let result = Renderer::set_up(gpu, cache, scene, options);
+        let result = Renderer::set_up(gpu, cache, scene, options, creation);
         let error = scopes.pop();
         // A loss the driver reported meanwhile reaches the callback on a poll.
         let _ = gpu.device.poll(wgpu::PollType::Poll);
@@ -219,6 +242,7 @@ impl Renderer {
         cache: PipelineCache,
         scene: &Scene,
         options: RendererOptions,
+        creation: Creation,
     ) -> Result<Renderer, RenderError> {
         let max = gpu.device.limits().max_texture_dimension_2d;
         if options.width == 0 || options.height == 0 || options.width > max || options.height > max {
@@ -244,7 +268,7 @@ impl Renderer {
                         &gpu_scene,
                         // the same on every backend: the volumes are 2D array textures, which
                         // wgpu's GL backend binds layered (see `desktop::frame_view::volume`)
-                        options.desktop(),
+                        crate::desktop::DesktopOptions { pipelines: creation, ..options.desktop() },
                     )
                     // a pipeline error of either frame is `RenderError::Pipeline` (kiln-view
                     // reports a permutation missing from the archive as a usage error)
@@ -255,14 +279,17 @@ impl Renderer {
                     Passes::DesktopDeferred { frame: Box::new(frame) }
                 }
                 FramePipeline::MobileForward | FramePipeline::MobileDeferred => {
-                    let mobile = options.mobile();
+                    let mobile = crate::mobile::MobileOptions { pipelines: creation, ..options.mobile() };
                     let context = crate::mobile::MobileContext { gpu, cache: &cache, scene, gpu_scene: &gpu_scene };
                     Passes::Mobile(Box::new(crate::mobile::MobileFrame::new(&context, mobile, options_size)?))
                 }
             }
         };
-        let depth_copy =
-            if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level())?) };
+        let depth_copy = if gpu.depth_copies {
+            None
+        } else {
+            Some(crate::frame::DepthCopy::new(&cache, options.pipeline.level(), creation)?)
+        };
         Ok(Renderer {
             device: device.clone(),
             lost: gpu.lost.clone(),
@@ -274,6 +301,7 @@ impl Renderer {
             targets,
             passes,
             depth_copy,
+            creation,
         })
     }
 
@@ -325,8 +353,14 @@ impl Renderer {
     }
 
     fn record_and_submit(&self, capture: bool) -> Result<FrameOutput, RenderError> {
-        let mut frame =
-            FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, self.depth_copy.clone());
+        let mut frame = FrameRecorder::new(
+            &self.device,
+            &self.queue,
+            &self.cache,
+            self.timestamps,
+            capture,
+            self.depth_copy.clone(),
+        );
         let (s, t) = (&self.gpu_scene, &self.targets);
         match &self.passes {
             Passes::DesktopDeferred { frame: desktop } => {
@@ -335,14 +369,14 @@ impl Renderer {
             Passes::Mobile(mobile) => mobile.record(&mut frame, s),
         }
         // The output is always read back, as a capture of a final pseudo-pass.
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
-        let passes = frame.finish();
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, &self.cache, false, true, None);
+        let passes = frame.finish()?;
         let output = match &self.passes {
             Passes::Mobile(mobile) => mobile.output(),
             _ => &t.output.texture,
         };
         readback.pass("Output", |ctx| ctx.output(output, crate::frame::Visualize::Direct));
-        let mut out = readback.finish();
+        let mut out = readback.finish()?;
         let image = out.pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i).ok_or(RenderError::NoOutput)?;
         Ok(FrameOutput { image, passes })
     }

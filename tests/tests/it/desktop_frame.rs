@@ -40,8 +40,15 @@ fn archive() -> Arc<ShaderArchive> {
 
 struct Frame {
     _gpu: kiln_runtime::validation::CheckedGpu,
-    _cache: PipelineCache,
+    cache: PipelineCache,
     frame: DesktopFrame,
+}
+
+impl Frame {
+    /// One frame with the pipelines of the cache it was built with.
+    fn render(&self, capture: bool) -> (Option<Image>, Vec<kiln_renderer::frame::PassResult>) {
+        self.frame.render(&self.cache, capture).unwrap_or_else(|e| panic!("desktop frame: {e}"))
+    }
 }
 
 fn build(scene: &Scene, options: DesktopOptions) -> Frame {
@@ -49,7 +56,7 @@ fn build(scene: &Scene, options: DesktopOptions) -> Frame {
     let cache = PipelineCache::new(&gpu, archive());
     let frame = DesktopFrame::new(&gpu.device, &gpu.queue, gpu.timestamps, &cache, scene, options)
         .unwrap_or_else(|e| panic!("desktop frame: {e}"));
-    Frame { _gpu: gpu, _cache: cache, frame }
+    Frame { _gpu: gpu, cache, frame }
 }
 
 fn small() -> DesktopOptions {
@@ -58,7 +65,7 @@ fn small() -> DesktopOptions {
 
 /// Renders with captures; returns the output and every captured image by name.
 fn render(f: &Frame) -> (Image, Vec<(String, Image)>) {
-    let (image, passes) = f.frame.render(true);
+    let (image, passes) = f.render(true);
     let images = passes.into_iter().flat_map(|p| p.images).collect();
     (image.expect("the frame has an output image"), images)
 }
@@ -193,7 +200,7 @@ fn golden_path() -> PathBuf {
 #[test]
 fn golden_image_matches_within_tolerance() {
     let f = build(&Scene::bundled(), small());
-    let (image, _) = f.frame.render(false);
+    let (image, _) = f.render(false);
     let image = image.unwrap();
     let path = golden_path();
     if bless() {
@@ -234,7 +241,7 @@ fn light_grid_holds_exactly_the_cells_each_light_sphere_touches() {
         casts_shadows: false,
     });
     let f = build(&scene, small());
-    let _ = f.frame.render(false);
+    let _ = f.render(false);
     let (cells, data) = f.frame.read_light_grid();
     let view = f.frame.view();
     let lights = f.frame.lights();
@@ -507,7 +514,7 @@ fn desktop_agrees_with_mobile_forward_with_the_effects_mobile_lacks_turned_off()
         .unwrap_or_else(|e| panic!("render: {e}"))
         .image
     };
-    let desktop = build(&scene, options.desktop()).frame.render(false).0.unwrap();
+    let desktop = build(&scene, options.desktop()).render(false).0.unwrap();
     let mobile = mobile_frame(&scene);
     let mut dark = scene.clone();
     dark.sun.enabled = false;

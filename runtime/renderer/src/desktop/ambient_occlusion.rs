@@ -8,10 +8,10 @@ use std::sync::Arc;
 
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, PassContext, PassDecl, PipelineDesc, RenderSlot, Visualize};
 use crate::keys;
 
-use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::view::AmbientOcclusionUniforms;
 use super::{DesktopError, PassSetup};
@@ -26,7 +26,7 @@ pub const PASS: PassDecl = PassDecl {
 
 struct Step {
     name: &'static str,
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
 }
 
@@ -62,7 +62,7 @@ impl AmbientOcclusion {
                     format,
                     resources: &[(&str, wgpu::BindingResource<'_>)]|
          -> Result<Step, DesktopError> {
-            let pipeline = p.render(&vs, Some(&ps), &RenderDesc::fullscreen(format, blend))?;
+            let pipeline = p.render(&PipelineDesc::fullscreen(&vs, &ps, blended(format, blend)))?;
             let groups = pipeline.layout.bind_groups(b.device, resources)?;
             Ok(Step { name, pipeline, groups })
         };
@@ -99,11 +99,14 @@ impl AmbientOcclusion {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         let draw = |ctx: &mut PassContext<'_>, step: &Step, target: &wgpu::TextureView, clear: bool| {
+            let ready = step.pipeline.ready(ctx.pipelines());
             let mut pass =
                 begin(ctx, step.name, &[color_attachment(target, clear.then_some(wgpu::Color::WHITE))], None);
-            pass.set_pipeline(&step.pipeline.pipeline);
-            step.groups.set_render(&mut pass);
-            pass.draw(0..3, 0..1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                step.groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
         };
         ctx.step(self.setup.name, |ctx| {
             draw(ctx, &self.setup, &t.ao_setup.view, true);

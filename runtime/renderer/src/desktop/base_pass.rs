@@ -8,11 +8,11 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{replace, PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
-use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
+use super::pipelines::{BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, SceneBuffers, Targets, STENCIL_LIT};
 use super::{DesktopError, PassSetup};
 
@@ -26,23 +26,18 @@ pub const PASS: PassDecl = PassDecl {
 struct Variant {
     blend: BlendMode,
     unlit: bool,
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
 }
 
 pub struct BasePass {
-    sky: Arc<Render>,
+    sky: Arc<RenderSlot>,
     sky_groups: BindGroups,
     variants: Vec<Variant>,
 }
 
-fn gbuffer_targets() -> Vec<(wgpu::TextureFormat, Option<wgpu::BlendState>)> {
-    vec![
-        (formats::SCENE_COLOR, None),
-        (formats::GBUFFER_A, None),
-        (formats::GBUFFER_B, None),
-        (formats::GBUFFER_C, None),
-    ]
+fn gbuffer_targets() -> Vec<wgpu::ColorTargetState> {
+    [formats::SCENE_COLOR, formats::GBUFFER_A, formats::GBUFFER_B, formats::GBUFFER_C].map(replace).to_vec()
 }
 
 impl BasePass {
@@ -70,16 +65,16 @@ impl BasePass {
             })
         };
         let resources = b.scene_resources();
-        let sky = p.render(
-            &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
-            Some(&keys::name(keys::sky_pass_ps::Key {}, p.key_level()?)?),
-            &RenderDesc {
-                vertices: Vertices::None,
-                cull: None,
-                depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual),
-                targets: gbuffer_targets(),
-            },
-        )?;
+        let sky = p.render(&PipelineDesc {
+            cull_mode: None,
+            depth_stencil: depth(false, wgpu::CompareFunction::GreaterEqual),
+            targets: gbuffer_targets(),
+            ..PipelineDesc::new(
+                &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
+                Some(&keys::name(keys::sky_pass_ps::Key {}, p.key_level()?)?),
+                VertexInput::None,
+            )
+        })?;
         let sky_groups = sky.layout.bind_groups(b.device, &resources)?;
         let vs = keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?;
         let mut variants = Vec::new();
@@ -105,16 +100,12 @@ impl BasePass {
                     translucency_lighting_mode: TranslucencyLightingMode::SurfaceForwardShading,
                 };
                 let ps = keys::name(key, p.key_level()?)?;
-                let pipeline = p.render(
-                    &vs,
-                    Some(&ps),
-                    &RenderDesc {
-                        vertices: Vertices::Mesh,
-                        cull: if blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) },
-                        depth_stencil: depth(!unlit, wgpu::CompareFunction::GreaterEqual),
-                        targets: gbuffer_targets(),
-                    },
-                )?;
+                let pipeline = p.render(&PipelineDesc {
+                    cull_mode: if blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) },
+                    depth_stencil: depth(!unlit, wgpu::CompareFunction::GreaterEqual),
+                    targets: gbuffer_targets(),
+                    ..PipelineDesc::new(&vs, Some(&ps), VertexInput::Mesh)
+                })?;
                 let groups = pipeline.layout.bind_groups(b.device, &resources)?;
                 variants.push(Variant { blend, unlit, pipeline, groups });
             }
@@ -123,6 +114,7 @@ impl BasePass {
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets) {
+        let pl = ctx.pipelines();
         {
             let clear = Some(wgpu::Color::TRANSPARENT);
             let mut pass = begin(
@@ -142,11 +134,14 @@ impl BasePass {
             );
             pass.set_stencil_reference(STENCIL_LIT);
             // The skydome first, as Unreal does; the prepass keeps it from overdrawing.
-            pass.set_pipeline(&self.sky.pipeline);
-            self.sky_groups.set_render(&mut pass);
-            pass.draw(0..3, 0..1);
+            if let Some(p) = self.sky.ready(pl) {
+                pass.set_pipeline(&p.pipeline);
+                self.sky_groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
             for v in &self.variants {
-                pass.set_pipeline(&v.pipeline.pipeline);
+                let Some(p) = v.pipeline.ready(pl) else { continue };
+                pass.set_pipeline(&p.pipeline);
                 v.groups.set_render(&mut pass);
                 for draw in scene.draws.iter().filter(|d| d.blend == v.blend && d.unlit == v.unlit) {
                     scene.draw(&mut pass, draw);

@@ -5,14 +5,14 @@
 //! offset was accumulated, fetching the copy at the moved pixel (DistortionApply,
 //! `DistortApplyScreenPS.usf`).
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit, InstancedMesh};
 use super::resources::formats::DISTORTION as DISTORTION_FORMAT;
@@ -38,8 +38,8 @@ pub struct Distortion {
     pub offsets: wgpu::Texture,
     offsets_view: wgpu::TextureView,
     pub scene_color_copy: wgpu::Texture,
-    accumulate: Arc<RenderPipeline>,
-    apply: Arc<RenderPipeline>,
+    accumulate: Arc<RenderSlot>,
+    apply: Arc<RenderSlot>,
     accumulate_group: wgpu::BindGroup,
     apply_group: wgpu::BindGroup,
     /// The refracting meshes.
@@ -134,6 +134,7 @@ impl Distortion {
         for (m, t) in self.meshes.iter_mut().zip(transforms) {
             m.set_transforms(queue, t);
         }
+        let pl = ctx.pipelines();
         let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("DistortionAccum"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -154,13 +155,15 @@ impl Distortion {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(&self.accumulate.pipeline);
-        pass.set_bind_group(0, &self.accumulate_group, &[]);
-        for m in &self.meshes {
-            m.draw(&mut pass);
+        if let Some(p) = self.accumulate.ready(pl) {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.accumulate_group, &[]);
+            for m in &self.meshes {
+                m.draw(&mut pass);
+            }
         }
         if let Some(p) = particles {
-            p.draw_distortion(&mut pass);
+            p.draw_distortion(pl, &mut pass);
         }
     }
 
@@ -176,9 +179,12 @@ impl Distortion {
             self.scene_color_copy.as_image_copy(),
             scene_color.size(),
         );
+        let ready = self.apply.ready(ctx.pipelines());
         let mut pass = color_pass(ctx, "DistortionApply", scene_color_view, wgpu::LoadOp::Load);
-        pass.set_pipeline(&self.apply.pipeline);
-        pass.set_bind_group(0, &self.apply_group, &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.apply_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
     }
 }

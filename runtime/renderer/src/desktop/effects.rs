@@ -19,9 +19,9 @@ use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 
-use crate::frame::{FrameRecorder, PassContext, Visualize};
+use crate::frame::{ComputeSlot, FrameRecorder, PassContext, Slots, Visualize};
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
+use crate::pipelines::PipelineError;
 use crate::scene::{Camera, Mobility, Scene};
 
 use super::distortion::Distortion;
@@ -165,7 +165,7 @@ pub struct TranslucencyVolumeInputs {
 pub struct EffectContext<'a> {
     pub device: &'a wgpu::Device,
     pub queue: &'a wgpu::Queue,
-    pub cache: &'a PipelineCache,
+    pub cache: Slots<'a>,
     pub scene: &'a Scene,
     pub meshes: &'a [MeshRef<'a>],
     /// Warm the scene's emitters up when they are built ([`EmitterDesc::prewarm`]).
@@ -190,7 +190,7 @@ pub struct FrameCamera {
 
 /// A visualization of a target that is not a colour (velocities, particle state, volumes).
 struct Visualization {
-    pipeline: Arc<ComputePipeline>,
+    pipeline: Arc<ComputeSlot>,
     group: wgpu::BindGroup,
     image: wgpu::Texture,
     params: wgpu::Buffer,
@@ -208,7 +208,7 @@ struct VisualizeParams {
 impl Visualization {
     fn new(
         device: &wgpu::Device,
-        cache: &PipelineCache,
+        cache: Slots<'_>,
         label: &str,
         source: &wgpu::Texture,
         size: [u32; 2],
@@ -249,10 +249,13 @@ impl Visualization {
     /// Draws the image and declares it as the current pass or step's output `name`.
     fn output(&self, ctx: &mut PassContext<'_>, name: Option<&str>) {
         {
+            let ready = self.pipeline.ready(ctx.pipelines());
             let mut pass = ctx.open_compute_pass("VisualizeTexture");
-            pass.set_pipeline(&self.pipeline.pipeline);
-            pass.set_bind_group(0, &self.group, &[]);
-            pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                pass.set_bind_group(0, &self.group, &[]);
+                pass.dispatch_workgroups(groups(self.image.width(), 8), groups(self.image.height(), 8), 1);
+            }
         }
         match name {
             Some(n) => ctx.output_named(n, &self.image, Visualize::Direct),
@@ -404,7 +407,7 @@ fn new_particles(
 #[allow(clippy::too_many_arguments)] // one per effect it pictures
 fn visualizations(
     device: &wgpu::Device,
-    cache: &PipelineCache,
+    cache: Slots<'_>,
     size: [u32; 2],
     scene: &Scene,
     particles: &Particles,
@@ -457,6 +460,92 @@ fn visualizations(
     })
 }
 
+/// The frame's targets as the effects read them.
+struct TargetViews {
+    depth: wgpu::TextureView,
+    color: wgpu::TextureView,
+    gbuffer: [wgpu::TextureView; 3],
+    shadow: wgpu::TextureView,
+    depth_format: wgpu::TextureFormat,
+    color_format: wgpu::TextureFormat,
+}
+
+impl TargetViews {
+    fn new(targets: &EffectTargets<'_>) -> TargetViews {
+        TargetViews {
+            depth: targets.scene_depth.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("SceneDepth (effects)"),
+                aspect: wgpu::TextureAspect::DepthOnly,
+                ..Default::default()
+            }),
+            color: view(targets.scene_color),
+            gbuffer: [view(targets.gbuffer_a), view(targets.gbuffer_b), view(targets.gbuffer_c)],
+            shadow: targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("ShadowDepth (effects)"),
+                aspect: wgpu::TextureAspect::DepthOnly,
+                ..Default::default()
+            }),
+            depth_format: targets.scene_depth.format(),
+            color_format: targets.scene_color.format(),
+        }
+    }
+}
+
+/// The objects of `scene` that `keep` selects, by index.
+fn objects_where(scene: &Scene, keep: impl Fn(&crate::scene::Object) -> bool) -> Vec<usize> {
+    scene.objects.iter().enumerate().filter(|(_, o)| keep(o)).map(|(i, _)| i).collect()
+}
+
+/// Instanced meshes of the objects `objects`, for a pass that draws them alone.
+fn instanced_meshes(context: &EffectContext<'_>, objects: &[usize], label: &str) -> Vec<InstancedMesh> {
+    objects
+        .iter()
+        .map(|&i| {
+            let o = &context.scene.objects[i];
+            let m = &context.meshes[o.mesh];
+            InstancedMesh::new(context.device, &format!("{label} {}", o.name), m.vertices, m.indices, m.index_count)
+        })
+        .collect()
+}
+
+/// BeginOcclusionTests: every object's box; local lights' bounds.
+fn new_occlusion(
+    init: &EffectPassInit<'_>,
+    scene: &Scene,
+    size: [u32; 2],
+    depth_format: wgpu::TextureFormat,
+) -> Result<OcclusionCulling, PipelineError> {
+    let bounds: Vec<(Vec3, Vec3)> =
+        scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
+    OcclusionCulling::new(init, size, depth_format, bounds, scene.point_lights.len() + scene.spot_lights.len())
+}
+
+/// Screen-space reflections over the HZB and the room's reflection capture.
+fn new_reflections(
+    init: &EffectPassInit<'_>,
+    size: [u32; 2],
+    v: &TargetViews,
+    hzb: &Hzb,
+) -> Result<Reflections, PipelineError> {
+    let hzb_view = view(&hzb.texture);
+    Reflections::new(
+        init,
+        size,
+        &ReflectionInputs {
+            scene_color: &v.color,
+            scene_depth: &v.depth,
+            gbuffer_a: &v.gbuffer[0],
+            gbuffer_b: &v.gbuffer[1],
+            gbuffer_c: &v.gbuffer[2],
+            hzb: &hzb_view,
+            hzb_size: hzb.size,
+            hzb_mips: hzb.mip_count,
+        },
+        &CaptureDesc { position: Vec3::new(0.0, 1.8, 0.0), radius: 9.0, room_color: Vec3::new(0.3, 0.28, 0.25) },
+        v.color_format,
+    )
+}
+
 impl Effects {
     /// Builds every pass (and so every pipeline) of the effects on `context`'s device, over
     /// the frame's `targets` and the directional light's cascades (`shadow`).
@@ -466,109 +555,31 @@ impl Effects {
         shadow: Option<DirectionalShadow>,
         options: EffectOptions,
     ) -> Result<Effects, PipelineError> {
-        let EffectContext { device, queue, cache, scene, meshes, .. } = *context;
+        let EffectContext { device, queue, cache, scene, .. } = *context;
         let size = targets.size;
         let frame_view = targets.view.clone();
-        let depth_format = targets.scene_depth.format();
-        let depth_view = targets.scene_depth.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("SceneDepth (effects)"),
-            aspect: wgpu::TextureAspect::DepthOnly,
-            ..Default::default()
-        });
-        let color_view = view(targets.scene_color);
-        let (a, b, c) = (view(targets.gbuffer_a), view(targets.gbuffer_b), view(targets.gbuffer_c));
-        let shadow_view = targets.shadow_depth.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("ShadowDepth (effects)"),
-            aspect: wgpu::TextureAspect::DepthOnly,
-            ..Default::default()
-        });
-        let scene_color_format = targets.scene_color.format();
-
+        let v = TargetViews::new(targets);
         let (lights, light_shadows) = injected_lights(scene, targets);
         let init = EffectPassInit { device, cache, frame_view: &frame_view };
-        let volumes = TranslucentVolumes::new(&init, &shadow_view, targets.shadow_compare, lights, &light_shadows)?;
-
-        let particles = new_particles(context, targets, &volumes, &depth_view, &a)?;
-
-        // BeginOcclusionTests: every object's box; local lights' bounds
-        let bounds: Vec<(Vec3, Vec3)> =
-            scene.objects.iter().map(|o| world_bounds(scene.meshes[o.mesh].bounds(), &o.instances)).collect();
-        let occlusion = OcclusionCulling::new(
-            &init,
-            size,
-            depth_format,
-            bounds,
-            scene.point_lights.len() + scene.spot_lights.len(),
-        )?;
-
-        let hzb = Hzb::new(device, cache, &depth_view, size)?;
-
-        let fog = VolumetricFog::new(
-            &init,
-            size,
-            &depth_view,
-            &ShadowInputs { atlas: &shadow_view, compare: targets.shadow_compare },
-            &targets.light_grid,
-            scene_color_format,
-        )?;
-
-        let movable: Vec<usize> =
-            scene.objects.iter().enumerate().filter(|(_, o)| o.mobility == Mobility::Movable).map(|(i, _)| i).collect();
-        let instanced = |i: usize, label: &str| {
-            let o = &scene.objects[i];
-            let m = &meshes[o.mesh];
-            InstancedMesh::new(device, &format!("{label} {}", o.name), m.vertices, m.indices, m.index_count)
-        };
-        let velocity = Velocity::new(
-            device,
-            cache,
-            &frame_view,
-            size,
-            depth_format,
-            movable.iter().map(|&i| instanced(i, "Velocity")).collect(),
-        )?;
-
-        let hzb_view = view(&hzb.texture);
-        let reflections = Reflections::new(
-            &init,
-            size,
-            &ReflectionInputs {
-                scene_color: &color_view,
-                scene_depth: &depth_view,
-                gbuffer_a: &a,
-                gbuffer_b: &b,
-                gbuffer_c: &c,
-                hzb: &hzb_view,
-                hzb_size: hzb.size,
-                hzb_mips: hzb.mip_count,
-            },
-            &CaptureDesc { position: Vec3::new(0.0, 1.8, 0.0), radius: 9.0, room_color: Vec3::new(0.3, 0.28, 0.25) },
-            scene_color_format,
-        )?;
-
-        let refracting: Vec<usize> = scene
-            .objects
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| scene.materials[o.material].blend == crate::scene::BlendMode::Translucent)
-            .map(|(i, _)| i)
-            .collect();
-        let distortion = Distortion::new(
-            &init,
-            size,
-            scene_color_format,
-            depth_format,
-            refracting.iter().map(|&i| instanced(i, "Distortion")).collect(),
-        )?;
-
-        let taa = TemporalAA::new(&init, size, &color_view, &velocity.view, &depth_view)?;
+        let volumes = TranslucentVolumes::new(&init, &v.shadow, targets.shadow_compare, lights, &light_shadows)?;
+        let particles = new_particles(context, targets, &volumes, &v.depth, &v.gbuffer[0])?;
+        let occlusion = new_occlusion(&init, scene, size, v.depth_format)?;
+        let hzb = Hzb::new(device, cache, &v.depth, size)?;
+        let shadow_inputs = ShadowInputs { atlas: &v.shadow, compare: targets.shadow_compare };
+        let fog = VolumetricFog::new(&init, size, &v.depth, &shadow_inputs, &targets.light_grid, v.color_format)?;
+        let movable = objects_where(scene, |o| o.mobility == Mobility::Movable);
+        let velocity_meshes = instanced_meshes(context, &movable, "Velocity");
+        let velocity = Velocity::new(device, cache, &frame_view, size, v.depth_format, velocity_meshes)?;
+        let reflections = new_reflections(&init, size, &v, &hzb)?;
+        let refracting =
+            objects_where(scene, |o| scene.materials[o.material].blend == crate::scene::BlendMode::Translucent);
+        let distortion_meshes = instanced_meshes(context, &refracting, "Distortion");
+        let distortion = Distortion::new(&init, size, v.color_format, v.depth_format, distortion_meshes)?;
+        let taa = TemporalAA::new(&init, size, &v.color, &velocity.view, &v.depth)?;
         let [h0, h1] = taa.history_views();
         let eye = EyeAdaptation::new(device, cache, &[h0, h1], size)?;
-        let motion_blur =
-            MotionBlur::new(&init, &[h0, h1], &velocity.view, &depth_view, &eye.result, scene_color_format)?;
-
+        let motion_blur = MotionBlur::new(&init, &[h0, h1], &velocity.view, &v.depth, &eye.result, v.color_format)?;
         let vis = visualizations(device, cache, size, scene, &particles, &velocity, &fog, &volumes, &distortion)?;
-
         let state = State {
             options,
             device: device.clone(),
@@ -597,7 +608,7 @@ impl Effects {
             eye,
             vis,
             scene_color: targets.scene_color.clone(),
-            scene_color_view: color_view,
+            scene_color_view: v.color,
             scene_depth_attachment: view(targets.scene_depth),
         };
         Ok(Effects { state: Mutex::new(state) })
@@ -880,6 +891,7 @@ impl Effects {
         let s = self.lock();
         ctx.step(crate::passes::particles::SPRITES_STEP.name, |ctx| {
             {
+                let pl = ctx.pipelines();
                 let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("ParticleSprites"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -897,7 +909,7 @@ impl Effects {
                     occlusion_query_set: None,
                     multiview_mask: None,
                 });
-                s.particles.draw_sprites(&mut pass, s.options.particles);
+                s.particles.draw_sprites(pl, &mut pass, s.options.particles);
             }
             ctx.output(&s.scene_color, Visualize::Hdr);
         });

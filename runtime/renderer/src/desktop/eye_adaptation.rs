@@ -6,14 +6,14 @@
 //! the frame copies into the exposure the Bloom and Tonemapper read. A small image of the
 //! histogram is drawn for the pass dump.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl, Slots};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec4};
 
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
+use crate::pipelines::PipelineError;
 
 use super::frame_view::{groups, target_2d, uniform_buffer, view};
 
@@ -83,9 +83,9 @@ pub struct EyeAdaptation {
     pub histogram: wgpu::Buffer,
     pub result: wgpu::Buffer,
     pub debug: wgpu::Texture,
-    histogram_pipeline: Arc<ComputePipeline>,
-    adapt_pipeline: Arc<ComputePipeline>,
-    debug_pipeline: Arc<ComputePipeline>,
+    histogram_pipeline: Arc<ComputeSlot>,
+    adapt_pipeline: Arc<ComputeSlot>,
+    debug_pipeline: Arc<ComputeSlot>,
     histogram_groups: Vec<wgpu::BindGroup>,
     adapt_group: wgpu::BindGroup,
     debug_group: wgpu::BindGroup,
@@ -100,7 +100,7 @@ impl EyeAdaptation {
     /// `inputs`: the textures the histogram may measure (one bind group each).
     pub fn new(
         device: &wgpu::Device,
-        cache: &PipelineCache,
+        cache: Slots<'_>,
         inputs: &[&wgpu::TextureView],
         size: [u32; 2],
     ) -> Result<EyeAdaptation, PipelineError> {
@@ -211,17 +211,24 @@ impl EyeAdaptation {
         };
         queue.write_buffer(&self.adapt_params, 0, bytemuck::bytes_of(&params));
         ctx.encoder().clear_buffer(&self.histogram, 0, None);
+        let pl = ctx.pipelines();
         let mut pass = ctx.open_compute_pass("PostProcessHistogram");
-        pass.set_pipeline(&self.histogram_pipeline.pipeline);
+        // the exposure adapts from a histogram of this frame only: without one, it waits
+        let Some(histogram) = self.histogram_pipeline.ready(pl) else { return };
+        pass.set_pipeline(&histogram.pipeline);
         pass.set_bind_group(0, &self.histogram_groups[input], &[]);
         pass.dispatch_workgroups(groups(self.size[0], 16), groups(self.size[1], 16), 1);
-        pass.set_pipeline(&self.debug_pipeline.pipeline);
-        pass.set_bind_group(0, &self.debug_group, &[]);
-        pass.dispatch_workgroups(groups(DEBUG_SIZE[0], 8), groups(DEBUG_SIZE[1], 8), 1);
-        pass.set_pipeline(&self.adapt_pipeline.pipeline);
-        pass.set_bind_group(0, &self.adapt_group, &[]);
-        pass.dispatch_workgroups(1, 1, 1);
-        self.valid = true;
+        if let Some(debug) = self.debug_pipeline.ready(pl) {
+            pass.set_pipeline(&debug.pipeline);
+            pass.set_bind_group(0, &self.debug_group, &[]);
+            pass.dispatch_workgroups(groups(DEBUG_SIZE[0], 8), groups(DEBUG_SIZE[1], 8), 1);
+        }
+        if let Some(adapt) = self.adapt_pipeline.ready(pl) {
+            pass.set_pipeline(&adapt.pipeline);
+            pass.set_bind_group(0, &self.adapt_group, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+            self.valid = true;
+        }
     }
 
     /// Sets the exposure to `exposure` without measuring (eye adaptation off); adaptation

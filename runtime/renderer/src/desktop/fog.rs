@@ -4,10 +4,10 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, PassContext, PassDecl, PipelineDesc, RenderSlot, Visualize};
 use crate::keys;
 
-use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::{DesktopError, PassSetup};
 
@@ -16,23 +16,23 @@ pub const PASS: PassDecl =
     PassDecl { name: "ExponentialHeightFog", reads: &["View", "SceneDepth", "SceneColor"], writes: &["SceneColor"] };
 
 pub struct HeightFog {
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
 }
 
 impl HeightFog {
     pub fn new(b: &PassSetup<'_>) -> Result<HeightFog, DesktopError> {
         let p = b.pipelines;
-        let pipeline = p.render(
+        let pipeline = p.render(&PipelineDesc::fullscreen(
             &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
-            Some(&keys::name(
+            &keys::name(
                 keys::exponential_height_fog_ps::Key {
                     support_fog_directional_light_inscattering: b.scene.sun.enabled,
                 },
                 p.key_level()?,
-            )?),
-            &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
-        )?;
+            )?,
+            blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        ))?;
         let groups = pipeline.layout.bind_groups(
             b.device,
             &[
@@ -45,10 +45,13 @@ impl HeightFog {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets) {
         {
+            let ready = self.pipeline.ready(ctx.pipelines());
             let mut pass = begin(ctx, "ExponentialHeightFog", &[color_attachment(&t.scene_color.view, None)], None);
-            pass.set_pipeline(&self.pipeline.pipeline);
-            self.groups.set_render(&mut pass);
-            pass.draw(0..3, 0..1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                self.groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
         }
         ctx.output(&t.scene_color.texture, Visualize::Hdr);
     }

@@ -33,7 +33,7 @@ pub fn taa_jitter(frame: u64, width: u32, height: u32) -> Vec2 {
 #[derive(Clone, Copy)]
 pub struct EffectPassInit<'a> {
     pub device: &'a wgpu::Device,
-    pub cache: &'a crate::pipelines::PipelineCache,
+    pub cache: crate::frame::Slots<'a>,
     pub frame_view: &'a wgpu::Buffer,
 }
 

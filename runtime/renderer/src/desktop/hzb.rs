@@ -13,13 +13,13 @@
 //! mips 2 and 4 read 0 everywhere on llvmpipe's GL, the depth of the view on lavapipe), so the
 //! reflections found no hit there (their GL capture was black, 27.9 dB from Vulkan's).
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl, Slots};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineCache, PipelineError};
+use crate::pipelines::PipelineError;
 
 use super::frame_view::{groups, uniform_buffer};
 
@@ -53,8 +53,8 @@ pub struct Hzb {
     pub view: wgpu::TextureView,
     pub size: [u32; 2],
     pub mip_count: u32,
-    first: Arc<ComputePipeline>,
-    rest: Arc<ComputePipeline>,
+    first: Arc<ComputeSlot>,
+    rest: Arc<ComputeSlot>,
     bind_groups: Vec<wgpu::BindGroup>,
     _params: Vec<wgpu::Buffer>,
 }
@@ -63,7 +63,7 @@ impl Hzb {
     /// The chain for a scene depth of `scene_size`, reading `scene_depth` (a depth-aspect view).
     pub fn new(
         device: &wgpu::Device,
-        cache: &PipelineCache,
+        cache: Slots<'_>,
         scene_depth: &wgpu::TextureView,
         scene_size: [u32; 2],
     ) -> Result<Hzb, PipelineError> {
@@ -163,10 +163,13 @@ impl Hzb {
                     wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
                 );
             }
+            let ready = if level == 0 { &self.first } else { &self.rest }.ready(ctx.pipelines());
             let mut pass = ctx.open_compute_pass(&format!("HZB(mip={level}) {}x{}", dst[0], dst[1]));
-            pass.set_pipeline(if level == 0 { &self.first.pipeline } else { &self.rest.pipeline });
-            pass.set_bind_group(0, bind_group, &[]);
-            pass.dispatch_workgroups(groups(dst[0], 8), groups(dst[1], 8), 1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                pass.set_bind_group(0, bind_group, &[]);
+                pass.dispatch_workgroups(groups(dst[0], 8), groups(dst[1], 8), 1);
+            }
         }
     }
 }

@@ -5,10 +5,10 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, ComputeSlot, PassContext, PassDecl, PipelineDesc, RenderSlot, Visualize};
 use crate::keys;
 
-use super::pipelines::{BindGroups, Compute, Render, RenderDesc};
+use super::pipelines::{BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::{DesktopError, PassSetup};
 
@@ -19,9 +19,9 @@ pub const PASS: PassDecl = PassDecl { name: "ComputeLightGrid", reads: &["Scene"
 const LINKS_PER_CELL: u32 = 64;
 
 pub struct LightGrid {
-    inject: Arc<Compute>,
-    compact: Arc<Compute>,
-    visualize: Arc<Render>,
+    inject: Arc<ComputeSlot>,
+    compact: Arc<ComputeSlot>,
+    visualize: Arc<RenderSlot>,
     inject_groups: BindGroups,
     compact_groups: BindGroups,
     visualize_groups: BindGroups,
@@ -56,11 +56,11 @@ impl LightGrid {
         let p = b.pipelines;
         let inject = p.compute(&keys::name(keys::light_grid_injection_cs::Key {}, p.key_level()?)?)?;
         let compact = p.compute(&keys::name(keys::light_grid_compact_cs::Key {}, p.key_level()?)?)?;
-        let visualize = p.render(
+        let visualize = p.render(&PipelineDesc::fullscreen(
             &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
-            Some(&keys::name(keys::visualize_light_grid_ps::Key {}, p.key_level()?)?),
-            &RenderDesc::fullscreen(formats::VISUALIZE, None),
-        )?;
+            &keys::name(keys::visualize_light_grid_ps::Key {}, p.key_level()?)?,
+            blended(formats::VISUALIZE, None),
+        ))?;
         let resources = [
             ("View", b.view_buffer.as_entire_binding()),
             ("LocalLights", b.lights_buffer.as_entire_binding()),
@@ -86,10 +86,12 @@ impl LightGrid {
         })
     }
 
-    fn dispatch(&self, ctx: &mut PassContext<'_>, label: &str, pipeline: &Compute, groups: &BindGroups) {
+    fn dispatch(&self, ctx: &mut PassContext<'_>, label: &str, pipeline: &ComputeSlot, groups: &BindGroups) {
         let [wx, wy, wz] = pipeline.workgroup_size;
+        let ready = pipeline.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass(label);
-        pass.set_pipeline(&pipeline.pipeline);
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         groups.set_compute(&mut pass);
         pass.dispatch_workgroups(self.grid[0].div_ceil(wx), self.grid[1].div_ceil(wy), self.grid[2].div_ceil(wz));
     }
@@ -106,15 +108,18 @@ impl LightGrid {
             self.dispatch(ctx, "Compact", &self.compact, &self.compact_groups);
         });
         {
+            let ready = self.visualize.ready(ctx.pipelines());
             let mut pass = begin(
                 ctx,
                 "VisualizeLightGrid",
                 &[color_attachment(&targets.light_grid_visualize.view, Some(wgpu::Color::BLACK))],
                 None,
             );
-            pass.set_pipeline(&self.visualize.pipeline);
-            self.visualize_groups.set_render(&mut pass);
-            pass.draw(0..3, 0..1);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                self.visualize_groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
         }
         ctx.output(&targets.light_grid_visualize.texture, Visualize::Direct);
     }

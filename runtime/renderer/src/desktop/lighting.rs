@@ -20,12 +20,14 @@ use std::sync::Arc;
 
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{
+    blended, ComputeSlot, FramePipelines, PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize,
+};
 use crate::keys;
 use crate::keys::shadow_projection_ps::ShadowProjectionType;
 use crate::keys::standard_deferred_lighting_ps::LightType;
 
-use super::pipelines::{blend, BindGroups, Compute, Render, RenderDesc, Vertices};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{
     begin, color_attachment, formats, read_only_depth, stencil_lit_only, FrameLight, LocalShadow, SceneBuffers,
     Targets, Texture,
@@ -47,7 +49,7 @@ pub const PASS: PassDecl = PassDecl {
 struct LightDraw {
     /// A local light: [camera outside the light volume, camera inside it]; the directional
     /// light: one, full screen.
-    variants: Vec<(Arc<Render>, BindGroups)>,
+    variants: Vec<(Arc<RenderSlot>, BindGroups)>,
     radial: bool,
     /// A local light's volume, which the camera of each frame is tested against.
     volume: Option<LightVolume>,
@@ -78,14 +80,14 @@ impl LightDraw {
         );
     }
 
-    fn variant(&self) -> &(Arc<Render>, BindGroups) {
+    fn variant(&self) -> &(Arc<RenderSlot>, BindGroups) {
         let i = usize::from(self.inside.load(Ordering::Relaxed)).min(self.variants.len() - 1);
         &self.variants[i]
     }
 }
 
 struct Projection {
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
 }
 
@@ -106,7 +108,7 @@ struct ShadowedLight {
 
 pub struct Lighting {
     non_shadowed: Vec<LightDraw>,
-    tiled: Option<(Arc<Compute>, BindGroups)>,
+    tiled: Option<(Arc<ComputeSlot>, BindGroups)>,
     shadowed: Vec<ShadowedLight>,
     /// Whether the tiled path runs this frame.
     pub tiled_path: bool,
@@ -134,6 +136,218 @@ fn depth_bounds(view: &FrameView, center: Vec3, radius: f32) -> Vec4 {
     Vec4::new(view.near / far, view.near / near, 0.0, 0.0)
 }
 
+/// The scene depth bound read-only for a light draw with `compare` (none where the frame
+/// cannot attach it read-only).
+fn read_only(t: &Targets, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStencilState> {
+    if !t.scene_depth.read_only_attachment {
+        return None;
+    }
+    Some(wgpu::DepthStencilState {
+        format: t.scene_depth.format,
+        depth_write_enabled: Some(false),
+        depth_compare: Some(compare),
+        stencil: stencil_lit_only(),
+        bias: wgpu::DepthBiasState::default(),
+    })
+}
+
+/// One pipeline per (light permutation, inside-the-volume or not).
+fn light_draw(
+    b: &PassSetup<'_>,
+    light_type: LightType,
+    shadowed: bool,
+    inverse_squared: bool,
+    gpu: LocalLightGpu,
+    label: &str,
+) -> Result<LightDraw, DesktopError> {
+    let p = b.pipelines;
+    let t = b.targets;
+    let radial = light_type != LightType::Directional;
+    let vs = keys::name(keys::deferred_light_vs::Key { radial_light: radial }, p.key_level()?)?;
+    let key = keys::standard_deferred_lighting_ps::Key {
+        light_type,
+        use_shadow_mask: shadowed,
+        inverse_squared_falloff: radial && inverse_squared,
+    };
+    let ps = keys::name(key, p.key_level()?)?;
+    let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
+    // a local light: both ways of drawing its sphere, chosen every frame by where the
+    // camera is (front faces depth tested from outside, back faces from inside)
+    let targets = vec![blended(formats::SCENE_COLOR, Some(blend::ADDITIVE))];
+    let descs = if !radial {
+        let base = PipelineDesc { targets, ..PipelineDesc::new(&vs, Some(&ps), VertexInput::None) };
+        vec![PipelineDesc { depth_stencil: read_only(t, wgpu::CompareFunction::Always), ..base }]
+    } else {
+        let base = PipelineDesc { targets, ..PipelineDesc::new(&vs, Some(&ps), VertexInput::Mesh) };
+        vec![
+            PipelineDesc {
+                cull_mode: Some(wgpu::Face::Back),
+                depth_stencil: read_only(t, wgpu::CompareFunction::GreaterEqual),
+                ..base.clone()
+            },
+            PipelineDesc {
+                cull_mode: Some(wgpu::Face::Front),
+                depth_stencil: read_only(t, wgpu::CompareFunction::Always),
+                ..base
+            },
+        ]
+    };
+    let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
+    let buffer = uniform_buffer(
+        b.device,
+        &format!("DeferredLight {label}"),
+        &DeferredLightUniforms { light: gpu, depth_bounds: bounds },
+    );
+    let mut variants = Vec::new();
+    for desc in &descs {
+        let pipeline = p.render(desc)?;
+        let groups = pipeline.layout.bind_groups(b.device, &light_resources(b, &buffer))?.keeping(buffer.clone());
+        variants.push((pipeline, groups));
+    }
+    let inside = AtomicBool::new(radial && camera_inside(b.view, center, radius));
+    Ok(LightDraw { variants, radial, volume: radial.then_some(LightVolume { gpu, buffer }), inside })
+}
+
+/// TiledDeferredLighting of the unshadowed lights. With the light grid the pass reads every
+/// light (and skips the shadowed ones); culling per tile, it gets the unshadowed ones only.
+fn tiled_lighting(
+    b: &PassSetup<'_>,
+    unshadowed: &[&FrameLight],
+    grid: &super::light_grid::LightGrid,
+) -> Result<(Arc<ComputeSlot>, BindGroups), DesktopError> {
+    let (p, t, device) = (b.pipelines, b.targets, b.device);
+    let use_grid = b.options.tiled_uses_light_grid;
+    let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
+    let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
+    let params = uniform_buffer(
+        device,
+        "TiledLighting",
+        &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) },
+    );
+    let cs = p.compute(&keys::name(
+        keys::tiled_deferred_lighting_cs::Key { use_light_grid: use_grid, visualize_light_culling: false },
+        p.key_level()?,
+    )?)?;
+    let lights_binding = if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
+    let groups = cs
+        .layout
+        .bind_groups(
+            device,
+            &[
+                ("View", b.view_buffer.as_entire_binding()),
+                ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
+                ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
+                ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
+                ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
+                ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
+                ("LocalLights", lights_binding),
+                ("TiledLighting", params.as_entire_binding()),
+                ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
+                ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
+            ],
+        )?
+        .keeping(lights)
+        .keeping(params);
+    Ok((cs, groups))
+}
+
+/// A ShadowProjection of one light into the shadow mask, with its `ShadowProjection` buffer.
+fn projection(
+    b: &PassSetup<'_>,
+    kind: ShadowProjectionType,
+    texture: &Texture,
+    u: &ShadowProjectionUniforms,
+    label: &str,
+) -> Result<(Projection, wgpu::Buffer), DesktopError> {
+    let (p, t, device) = (b.pipelines, b.targets, b.device);
+    let quality = i64::from(b.options.shadow_quality.clamp(1, 3));
+    let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
+    let key = keys::shadow_projection_ps::Key { shadow_projection_type: kind, shadow_quality: quality };
+    let ps = keys::name(key, p.key_level()?)?;
+    let pipeline = p.render(&PipelineDesc {
+        depth_stencil: read_only(t, wgpu::CompareFunction::Always),
+        targets: vec![blended(formats::SHADOW_MASK, Some(blend::MIN))],
+        ..PipelineDesc::new(&vs, Some(&ps), VertexInput::None)
+    })?;
+    let buffer = uniform_buffer(device, &format!("ShadowProjection {label}"), u);
+    let groups = pipeline
+        .layout
+        .bind_groups(
+            device,
+            &[
+                ("View", b.view_buffer.as_entire_binding()),
+                ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
+                ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
+                ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
+                ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
+                ("ShadowProjection", buffer.as_entire_binding()),
+            ],
+        )?
+        .keeping(buffer.clone());
+    Ok((Projection { pipeline, groups }, buffer))
+}
+
+/// How the directional light is drawn.
+enum Sun {
+    /// With its cascades, and their `ShadowProjection` buffer (which follows the camera).
+    Shadowed(Box<ShadowedLight>, wgpu::Buffer),
+    /// Without a shadow: one of the NonShadowedLights.
+    Unshadowed(LightDraw),
+}
+
+/// The directional light: shadowed by its cascades where it has them, else a plain light
+/// draw.
+fn sun_light(b: &PassSetup<'_>, shadows: &ShadowDepths) -> Result<Option<Sun>, DesktopError> {
+    let sun = &b.scene.sun;
+    if !sun.enabled {
+        return Ok(None);
+    }
+    let gpu = LocalLightGpu {
+        position_radius: Vec4::ZERO,
+        color_falloff: (sun.color * sun.intensity).extend(0.0),
+        direction_type: (-sun.direction).normalize().extend(0.0),
+        spot_angles: Vec4::ZERO,
+    };
+    let cascaded = match (&shadows.setup.cascaded, shadows.csm_texture()) {
+        (Some(u), Some(texture)) => {
+            Some(projection(b, ShadowProjectionType::Cascaded, texture, u, "DirectionalLight")?)
+        }
+        _ => None,
+    };
+    let light = light_draw(b, LightType::Directional, cascaded.is_some(), false, gpu, "DirectionalLight")?;
+    Ok(Some(match cascaded {
+        Some((p, buffer)) => Sun::Shadowed(
+            Box::new(ShadowedLight { name: "DirectionalLight".into(), projections: vec![p], light, local: None }),
+            buffer,
+        ),
+        None => Sun::Unshadowed(light),
+    }))
+}
+
+/// A local light that casts a shadow: its projections (per-object tiles, a cube), its
+/// shadowed draw, and the same light unshadowed for frames where its shadow is occluded.
+fn shadowed_local_light(
+    b: &PassSetup<'_>,
+    shadows: &ShadowDepths,
+    dummy_shadow: &Texture,
+    li: usize,
+    l: &FrameLight,
+) -> Result<ShadowedLight, DesktopError> {
+    let mut projections = Vec::new();
+    for (_, u) in shadows.setup.per_object.iter().filter(|(i, _)| *i == li) {
+        let texture = shadows.per_object_texture().unwrap_or(dummy_shadow);
+        projections.push(projection(b, ShadowProjectionType::PerObject, texture, u, &l.name)?.0);
+    }
+    for (_, cube, u) in shadows.setup.cubes.iter().filter(|(i, _, _)| *i == li) {
+        let texture = shadows.cube_texture(*cube);
+        projections.push(projection(b, ShadowProjectionType::OnePassPointLight, texture, u, &l.name)?.0);
+    }
+    let light = light_draw(b, light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
+    let unshadowed = light_draw(b, light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
+    Ok(ShadowedLight { name: l.name.clone(), projections, light, local: Some((li, unshadowed)) })
+}
+
 impl Lighting {
     pub fn new(
         b: &PassSetup<'_>,
@@ -141,78 +355,6 @@ impl Lighting {
         dummy_shadow: &Texture,
         grid: &super::light_grid::LightGrid,
     ) -> Result<Lighting, DesktopError> {
-        let p = b.pipelines;
-        let t = b.targets;
-        let device = b.device;
-        let read_only = |compare: wgpu::CompareFunction| {
-            if !t.scene_depth.read_only_attachment {
-                return None;
-            }
-            Some(wgpu::DepthStencilState {
-                format: t.scene_depth.format,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(compare),
-                stencil: stencil_lit_only(),
-                bias: wgpu::DepthBiasState::default(),
-            })
-        };
-        // One pipeline per (light permutation, inside-the-volume or not).
-        let light_draw = |light_type: LightType,
-                          shadowed: bool,
-                          inverse_squared: bool,
-                          gpu: LocalLightGpu,
-                          label: &str|
-         -> Result<LightDraw, DesktopError> {
-            let radial = light_type != LightType::Directional;
-            let vs = keys::name(keys::deferred_light_vs::Key { radial_light: radial }, p.key_level()?)?;
-            let key = keys::standard_deferred_lighting_ps::Key {
-                light_type,
-                use_shadow_mask: shadowed,
-                inverse_squared_falloff: radial && inverse_squared,
-            };
-            let ps = keys::name(key, p.key_level()?)?;
-            let (center, radius) = (gpu.position_radius.truncate(), gpu.position_radius.w);
-            // a local light: both ways of drawing its sphere, chosen every frame by where the
-            // camera is (front faces depth tested from outside, back faces from inside)
-            let descs = if !radial {
-                vec![RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: read_only(wgpu::CompareFunction::Always),
-                    targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
-                }]
-            } else {
-                vec![
-                    RenderDesc {
-                        vertices: Vertices::Mesh,
-                        cull: Some(wgpu::Face::Back),
-                        depth_stencil: read_only(wgpu::CompareFunction::GreaterEqual),
-                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
-                    },
-                    RenderDesc {
-                        vertices: Vertices::Mesh,
-                        cull: Some(wgpu::Face::Front),
-                        depth_stencil: read_only(wgpu::CompareFunction::Always),
-                        targets: vec![(formats::SCENE_COLOR, Some(blend::ADDITIVE))],
-                    },
-                ]
-            };
-            let bounds = if radial { depth_bounds(b.view, center, radius) } else { Vec4::new(0.0, 1.0, 0.0, 0.0) };
-            let buffer = uniform_buffer(
-                device,
-                &format!("DeferredLight {label}"),
-                &DeferredLightUniforms { light: gpu, depth_bounds: bounds },
-            );
-            let mut variants = Vec::new();
-            for desc in &descs {
-                let pipeline = p.render(&vs, Some(&ps), desc)?;
-                let groups = pipeline.layout.bind_groups(device, &light_resources(b, &buffer))?.keeping(buffer.clone());
-                variants.push((pipeline, groups));
-            }
-            let inside = AtomicBool::new(radial && camera_inside(b.view, center, radius));
-            Ok(LightDraw { variants, radial, volume: radial.then_some(LightVolume { gpu, buffer }), inside })
-        };
-
         let unshadowed: Vec<&FrameLight> = b.lights.iter().filter(|l| l.shadow == LocalShadow::None).collect();
         let tiled_path = match b.options.lighting_path {
             LightingPath::Auto => unshadowed.len() > b.options.tiled_threshold,
@@ -222,124 +364,24 @@ impl Lighting {
         let mut non_shadowed = Vec::new();
         let mut tiled = None;
         if tiled_path {
-            // With the light grid the pass reads every light (and skips the shadowed ones);
-            // culling per tile, it gets the unshadowed ones only.
-            let use_grid = b.options.tiled_uses_light_grid;
-            let gpu: Vec<LocalLightGpu> = unshadowed.iter().map(|l| l.gpu).collect();
-            let lights = super::resources::storage(device, "TiledLights", &gpu, wgpu::BufferUsages::empty());
-            let params = uniform_buffer(
-                device,
-                "TiledLighting",
-                &TiledLightingUniforms { num_lights: UVec4::new(gpu.len() as u32, 0, 0, 0) },
-            );
-            let cs = p.compute(&keys::name(
-                keys::tiled_deferred_lighting_cs::Key { use_light_grid: use_grid, visualize_light_culling: false },
-                p.key_level()?,
-            )?)?;
-            let lights_binding =
-                if use_grid { b.lights_buffer.as_entire_binding() } else { lights.as_entire_binding() };
-            let groups = cs
-                .layout
-                .bind_groups(
-                    device,
-                    &[
-                        ("View", b.view_buffer.as_entire_binding()),
-                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
-                        ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
-                        ("GBufferBTexture", wgpu::BindingResource::TextureView(&t.gbuffer_b.view)),
-                        ("GBufferCTexture", wgpu::BindingResource::TextureView(&t.gbuffer_c.view)),
-                        ("SceneColorTexture", wgpu::BindingResource::TextureView(&t.scene_color.view)),
-                        ("OutSceneColor", wgpu::BindingResource::TextureView(&t.scene_color_tiled.view)),
-                        ("LocalLights", lights_binding),
-                        ("TiledLighting", params.as_entire_binding()),
-                        ("NumCulledLightsGrid", grid.num_culled_lights.as_entire_binding()),
-                        ("CulledLightDataGrid", grid.culled_light_data.as_entire_binding()),
-                    ],
-                )?
-                .keeping(lights)
-                .keeping(params);
-            tiled = Some((cs, groups));
+            tiled = Some(tiled_lighting(b, &unshadowed, grid)?);
         } else {
             for l in &unshadowed {
-                non_shadowed.push(light_draw(light_type(l), false, l.inverse_squared, l.gpu, &l.name)?);
+                non_shadowed.push(light_draw(b, light_type(l), false, l.inverse_squared, l.gpu, &l.name)?);
             }
         }
-
         let mut shadowed = Vec::new();
-        let quality = i64::from(b.options.shadow_quality.clamp(1, 3));
-        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
-        let projection = |kind: ShadowProjectionType,
-                          texture: &Texture,
-                          u: &super::view::ShadowProjectionUniforms,
-                          label: &str|
-         -> Result<(Projection, wgpu::Buffer), DesktopError> {
-            let key = keys::shadow_projection_ps::Key { shadow_projection_type: kind, shadow_quality: quality };
-            let ps = keys::name(key, p.key_level()?)?;
-            let pipeline = p.render(
-                &vs,
-                Some(&ps),
-                &RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: read_only(wgpu::CompareFunction::Always),
-                    targets: vec![(formats::SHADOW_MASK, Some(blend::MIN))],
-                },
-            )?;
-            let buffer = uniform_buffer(device, &format!("ShadowProjection {label}"), u);
-            let groups = pipeline
-                .layout
-                .bind_groups(
-                    device,
-                    &[
-                        ("View", b.view_buffer.as_entire_binding()),
-                        ("SceneDepthTexture", wgpu::BindingResource::TextureView(t.scene_depth.sampled_view())),
-                        ("GBufferATexture", wgpu::BindingResource::TextureView(&t.gbuffer_a.view)),
-                        ("ShadowDepthTexture", wgpu::BindingResource::TextureView(&texture.view)),
-                        ("ShadowDepthSampler", wgpu::BindingResource::Sampler(&b.samplers.shadow)),
-                        ("ShadowProjection", buffer.as_entire_binding()),
-                    ],
-                )?
-                .keeping(buffer.clone());
-            Ok((Projection { pipeline, groups }, buffer))
-        };
         let mut cascaded_projection = None;
-        let sun = &b.scene.sun;
-        if sun.enabled {
-            let gpu = LocalLightGpu {
-                position_radius: Vec4::ZERO,
-                color_falloff: (sun.color * sun.intensity).extend(0.0),
-                direction_type: (-sun.direction).normalize().extend(0.0),
-                spot_angles: Vec4::ZERO,
-            };
-            let mut projections = Vec::new();
-            if let (Some(u), Some(texture)) = (&shadows.setup.cascaded, shadows.csm_texture()) {
-                let (projection, buffer) = projection(ShadowProjectionType::Cascaded, texture, u, "DirectionalLight")?;
-                projections.push(projection);
+        match sun_light(b, shadows)? {
+            Some(Sun::Shadowed(light, buffer)) => {
+                shadowed.push(*light);
                 cascaded_projection = Some(buffer);
             }
-            let shadowed_sun = !projections.is_empty();
-            let light = light_draw(LightType::Directional, shadowed_sun, false, gpu, "DirectionalLight")?;
-            if shadowed_sun {
-                shadowed.push(ShadowedLight { name: "DirectionalLight".into(), projections, light, local: None });
-            } else {
-                non_shadowed.insert(0, light);
-            }
+            Some(Sun::Unshadowed(light)) => non_shadowed.insert(0, light),
+            None => {}
         }
         for (li, l) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow != LocalShadow::None) {
-            let mut projections = Vec::new();
-            for (_, u) in shadows.setup.per_object.iter().filter(|(i, _)| *i == li) {
-                let texture = shadows.per_object_texture().unwrap_or(dummy_shadow);
-                projections.push(projection(ShadowProjectionType::PerObject, texture, u, &l.name)?.0);
-            }
-            for (_, cube, u) in shadows.setup.cubes.iter().filter(|(i, _, _)| *i == li) {
-                projections.push(
-                    projection(ShadowProjectionType::OnePassPointLight, shadows.cube_texture(*cube), u, &l.name)?.0,
-                );
-            }
-            let light = light_draw(light_type(l), true, l.inverse_squared, l.gpu, &l.name)?;
-            let unshadowed =
-                light_draw(light_type(l), false, l.inverse_squared, l.gpu, &format!("{} unshadowed", l.name))?;
-            shadowed.push(ShadowedLight { name: l.name.clone(), projections, light, local: Some((li, unshadowed)) });
+            shadowed.push(shadowed_local_light(b, shadows, dummy_shadow, li, l)?);
         }
         Ok(Lighting { non_shadowed, tiled, shadowed, tiled_path, cascaded_projection })
     }
@@ -360,8 +402,9 @@ impl Lighting {
         }
     }
 
-    fn draw_light(pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
+    fn draw_light(pl: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, scene: &SceneBuffers, d: &LightDraw) {
         let (pipeline, groups) = d.variant();
+        let Some(pipeline) = pipeline.ready(pl) else { return };
         pass.set_pipeline(&pipeline.pipeline);
         groups.set_render(pass);
         if d.radial {
@@ -382,81 +425,98 @@ impl Lighting {
         t: &Targets,
         casts_shadow: &dyn Fn(usize) -> bool,
     ) {
-        let occluded = |l: &ShadowedLight| occluded_draw(l, casts_shadow).is_some();
         // The depth is final: the lights sample its copy while testing against it.
         t.scene_depth.copy_for_sampling(ctx.encoder());
-        ctx.step("NonShadowedLights", |ctx| {
-            {
-                let mut pass = begin(
-                    ctx,
-                    "NonShadowedLights",
-                    &[color_attachment(&t.scene_color.view, None)],
-                    read_only_depth(&t.scene_depth),
-                );
-                pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                for d in
-                    self.non_shadowed.iter().chain(self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow)))
-                {
-                    Self::draw_light(&mut pass, scene, d);
-                }
-            }
-            ctx.output(&t.scene_color.texture, Visualize::Hdr);
-        });
+        ctx.step("NonShadowedLights", |ctx| self.record_non_shadowed(ctx, scene, t, casts_shadow));
         if let Some((cs, groups)) = &self.tiled {
-            ctx.step("TiledDeferredLighting", |ctx| {
-                {
-                    let mut pass = ctx.open_compute_pass("TiledDeferredLighting");
-                    pass.set_pipeline(&cs.pipeline);
-                    groups.set_compute(&mut pass);
-                    let [wx, wy, _] = cs.workgroup_size;
-                    pass.dispatch_workgroups(t.width.div_ceil(wx), t.height.div_ceil(wy), 1);
-                }
-                ctx.encoder().copy_texture_to_texture(
-                    t.scene_color_tiled.texture.as_image_copy(),
-                    t.scene_color.texture.as_image_copy(),
-                    wgpu::Extent3d { width: t.width, height: t.height, depth_or_array_layers: 1 },
-                );
-                ctx.output(&t.scene_color.texture, Visualize::Hdr);
-            });
+            ctx.step("TiledDeferredLighting", |ctx| Self::record_tiled(ctx, t, cs, groups));
         }
         ctx.step("ShadowedLights", |ctx| {
-            for light in self.shadowed.iter().filter(|l| !occluded(l)) {
-                {
-                    let mut pass = begin(
-                        ctx,
-                        "ShadowProjectionOnOpaque",
-                        &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))],
-                        read_only_depth(&t.scene_depth),
-                    );
-                    pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                    for p in &light.projections {
-                        pass.set_pipeline(&p.pipeline.pipeline);
-                        p.groups.set_render(&mut pass);
-                        pass.draw(0..3, 0..1);
-                    }
-                }
-                ctx.output_named(
-                    &format!("ShadowProjectionOnOpaque_{}", light.name),
-                    &t.shadow_mask.texture,
-                    Visualize::Direct,
-                );
-                {
-                    let mut pass = begin(
-                        ctx,
-                        "StandardDeferredLighting",
-                        &[color_attachment(&t.scene_color.view, None)],
-                        read_only_depth(&t.scene_depth),
-                    );
-                    pass.set_stencil_reference(super::resources::STENCIL_LIT);
-                    Self::draw_light(&mut pass, scene, &light.light);
-                }
-                ctx.output_named(
-                    &format!("StandardDeferredLighting_{}", light.name),
-                    &t.scene_color.texture,
-                    Visualize::Hdr,
-                );
+            for light in self.shadowed.iter().filter(|l| occluded_draw(l, casts_shadow).is_none()) {
+                Self::record_shadowed(ctx, scene, t, light);
             }
         });
+    }
+
+    /// The unshadowed lights, and the shadowed ones whose shadow is occluded this frame.
+    fn record_non_shadowed(
+        &self,
+        ctx: &mut PassContext<'_>,
+        scene: &SceneBuffers,
+        t: &Targets,
+        casts_shadow: &dyn Fn(usize) -> bool,
+    ) {
+        let pl = ctx.pipelines();
+        {
+            let mut pass = begin(
+                ctx,
+                "NonShadowedLights",
+                &[color_attachment(&t.scene_color.view, None)],
+                read_only_depth(&t.scene_depth),
+            );
+            pass.set_stencil_reference(super::resources::STENCIL_LIT);
+            let occluded = self.shadowed.iter().filter_map(|l| occluded_draw(l, casts_shadow));
+            for d in self.non_shadowed.iter().chain(occluded) {
+                Self::draw_light(pl, &mut pass, scene, d);
+            }
+        }
+        ctx.output(&t.scene_color.texture, Visualize::Hdr);
+    }
+
+    /// The unshadowed lights in one dispatch, into a copy of SceneColor copied back.
+    fn record_tiled(ctx: &mut PassContext<'_>, t: &Targets, cs: &ComputeSlot, groups: &BindGroups) {
+        let ready = cs.ready(ctx.pipelines());
+        {
+            let mut pass = ctx.open_compute_pass("TiledDeferredLighting");
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                groups.set_compute(&mut pass);
+                let [wx, wy, _] = cs.workgroup_size;
+                pass.dispatch_workgroups(t.width.div_ceil(wx), t.height.div_ceil(wy), 1);
+            }
+        }
+        ctx.encoder().copy_texture_to_texture(
+            t.scene_color_tiled.texture.as_image_copy(),
+            t.scene_color.texture.as_image_copy(),
+            wgpu::Extent3d { width: t.width, height: t.height, depth_or_array_layers: 1 },
+        );
+        ctx.output(&t.scene_color.texture, Visualize::Hdr);
+    }
+
+    /// One shadowed light: its shadow projections into the shadow mask, then the light.
+    fn record_shadowed(ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets, light: &ShadowedLight) {
+        let pl = ctx.pipelines();
+        {
+            let mut pass = begin(
+                ctx,
+                "ShadowProjectionOnOpaque",
+                &[color_attachment(&t.shadow_mask.view, Some(wgpu::Color::WHITE))],
+                read_only_depth(&t.scene_depth),
+            );
+            pass.set_stencil_reference(super::resources::STENCIL_LIT);
+            for p in &light.projections {
+                let Some(pipeline) = p.pipeline.ready(pl) else { continue };
+                pass.set_pipeline(&pipeline.pipeline);
+                p.groups.set_render(&mut pass);
+                pass.draw(0..3, 0..1);
+            }
+        }
+        ctx.output_named(
+            &format!("ShadowProjectionOnOpaque_{}", light.name),
+            &t.shadow_mask.texture,
+            Visualize::Direct,
+        );
+        {
+            let mut pass = begin(
+                ctx,
+                "StandardDeferredLighting",
+                &[color_attachment(&t.scene_color.view, None)],
+                read_only_depth(&t.scene_depth),
+            );
+            pass.set_stencil_reference(super::resources::STENCIL_LIT);
+            Self::draw_light(pl, &mut pass, scene, &light.light);
+        }
+        ctx.output_named(&format!("StandardDeferredLighting_{}", light.name), &t.scene_color.texture, Visualize::Hdr);
     }
 
     /// Names of the shadowed lights, in the order they are drawn.

@@ -6,8 +6,10 @@
 //! `shader_src/Private/Desktop/` and [`DesktopOptions`]; gives the tonemapped sRGB frame and,
 //! through the [`FrameRecorder`], every pass's (and named step's) output and GPU time.
 //! Guarantees: every pipeline the frame uses is created in [`DesktopFrame::new`] (the
-//! warm-up), none while recording; a permutation missing from the archive, or a resource a
-//! permutation binds that the frame does not have, is an error naming it, never a panic.
+//! warm-up; with [`crate::frame::Creation::Lazy`], when a frame first asks for it), and each
+//! draw asks the cache for its pipeline as it is recorded; a permutation missing from the
+//! archive, or a resource a permutation binds that the frame does not have, is an error
+//! naming it, never a panic.
 
 mod ambient_occlusion;
 mod base_pass;
@@ -94,6 +96,8 @@ pub struct DesktopOptions {
     /// first image shows the fire burning. Off by default: the frame starts its emitters
     /// cold (its golden image); the [`crate::Renderer`] (kiln-view) turns it on.
     pub warm_up_particles: bool,
+    /// When the passes' pipelines are created (eagerly, when the frame is built, by default).
+    pub pipelines: crate::frame::Creation,
 }
 
 impl Default for DesktopOptions {
@@ -115,6 +119,7 @@ impl Default for DesktopOptions {
             output_format: wgpu::TextureFormat::Rgba8UnormSrgb,
             effects: effects::EffectOptions::default(),
             warm_up_particles: false,
+            pipelines: crate::frame::Creation::Eager,
         }
     }
 }
@@ -204,8 +209,63 @@ pub struct DesktopFrame {
     shadow_frustum_culling: std::sync::atomic::AtomicBool,
 }
 
+/// The passes of the desktop frame, and the cleared shadow map bound where a light has none.
+struct BuiltPasses {
+    dummy_shadow: resources::Texture,
+    prepass: prepass::PrePass,
+    light_grid: light_grid::LightGrid,
+    shadows: shadow_depths::ShadowDepths,
+    base_pass: base_pass::BasePass,
+    ambient_occlusion: ambient_occlusion::AmbientOcclusion,
+    lighting: lighting::Lighting,
+    fog: fog::HeightFog,
+    post: post_processing::PostProcessing,
+    effects: effects::Effects,
+    translucency: translucency::Translucency,
+}
+
+/// Builds every pass, each after the passes whose outputs it binds.
+fn build_passes(b: &PassSetup<'_>, queue: &wgpu::Queue, base_view: &SceneView) -> Result<BuiltPasses, DesktopError> {
+    let dummy_shadow = shadow_depths::dummy_shadow_texture(b.device, queue);
+    let prepass = prepass::PrePass::new(b)?;
+    let light_grid = light_grid::LightGrid::new(b)?;
+    let shadows = shadow_depths::ShadowDepths::new(b)?;
+    let base_pass = base_pass::BasePass::new(b)?;
+    let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(b)?;
+    let lighting = lighting::Lighting::new(b, &shadows, &dummy_shadow, &light_grid)?;
+    let fog = fog::HeightFog::new(b)?;
+    let post = post_processing::PostProcessing::new(b, b.options.output_format)?;
+    let grid = effects::LightGridInputs {
+        lights: b.lights_buffer,
+        num_culled_lights: &light_grid.num_culled_lights,
+        culled_light_data: &light_grid.culled_light_data,
+        size: base_view.light_grid_size,
+        z_params: base_view.light_grid_z_params,
+    };
+    let inputs =
+        EffectInputs { shadows: &shadows, dummy_shadow: &dummy_shadow, light_grid: grid, view_buffer: b.view_buffer };
+    let effects = build_effects(b, queue, inputs)?;
+    effects.set_options(b.options.effects);
+    let translucency =
+        translucency::Translucency::new(b, &light_grid, &shadows, &dummy_shadow, &effects.translucency_volume())?;
+    Ok(BuiltPasses {
+        dummy_shadow,
+        prepass,
+        light_grid,
+        shadows,
+        base_pass,
+        ambient_occlusion,
+        lighting,
+        fog,
+        post,
+        effects,
+        translucency,
+    })
+}
+
 impl DesktopFrame {
-    /// Uploads the scene, creates the targets and builds every pass (every pipeline).
+    /// Uploads the scene, creates the targets and builds every pass (and, unless the options
+    /// say [`crate::frame::Creation::Lazy`], every pipeline).
     /// `timestamps`: the device has timestamp queries inside encoders.
     pub fn new(
         device: &wgpu::Device,
@@ -246,7 +306,7 @@ impl DesktopFrame {
         let targets = resources::Targets::new(device, w, h);
         let samplers = resources::Samplers::new(device, queue);
         let output = resources::Texture::target(device, "Output", options.output_format, w, h);
-        let pipelines = pipelines::Pipelines::new(cache, "sm5");
+        let pipelines = pipelines::Pipelines::new(cache, "sm5", options.pipelines);
         let b = PassSetup {
             device,
             pipelines: &pipelines,
@@ -260,35 +320,19 @@ impl DesktopFrame {
             lights_buffer: &lights_buffer,
             options: &options,
         };
-        let dummy_shadow = shadow_depths::dummy_shadow_texture(device, queue);
-        let prepass = prepass::PrePass::new(&b)?;
-        let light_grid = light_grid::LightGrid::new(&b)?;
-        let shadows = shadow_depths::ShadowDepths::new(&b)?;
-        let base_pass = base_pass::BasePass::new(&b)?;
-        let ambient_occlusion = ambient_occlusion::AmbientOcclusion::new(&b)?;
-        let lighting = lighting::Lighting::new(&b, &shadows, &dummy_shadow, &light_grid)?;
-        let fog = fog::HeightFog::new(&b)?;
-        let post = post_processing::PostProcessing::new(&b, options.output_format)?;
-        let grid = effects::LightGridInputs {
-            lights: &lights_buffer,
-            num_culled_lights: &light_grid.num_culled_lights,
-            culled_light_data: &light_grid.culled_light_data,
-            size: base_view.light_grid_size,
-            z_params: base_view.light_grid_z_params,
-        };
-        let effects = build_effects(
-            &b,
-            queue,
-            EffectInputs {
-                shadows: &shadows,
-                dummy_shadow: &dummy_shadow,
-                light_grid: grid,
-                view_buffer: &view_buffer,
-            },
-        )?;
-        effects.set_options(options.effects);
-        let translucency =
-            translucency::Translucency::new(&b, &light_grid, &shadows, &dummy_shadow, &effects.translucency_volume())?;
+        let BuiltPasses {
+            dummy_shadow,
+            prepass,
+            light_grid,
+            shadows,
+            base_pass,
+            ambient_occlusion,
+            lighting,
+            fog,
+            post,
+            effects,
+            translucency,
+        } = build_passes(&b, queue, &base_view)?;
         let object_rows = object_rows(scene, &buffers);
         Ok(DesktopFrame {
             device: device.clone(),
@@ -322,7 +366,7 @@ impl DesktopFrame {
 
     /// Records the frame, pass by pass in frame order, tonemapping into `output` (a target
     /// of `DesktopOptions::output_format` and the frame's size).
-    pub fn record_into(&self, frame: &mut FrameRecorder, output: (&wgpu::Texture, &wgpu::TextureView)) {
+    pub fn record_into(&self, frame: &mut FrameRecorder<'_>, output: (&wgpu::Texture, &wgpu::TextureView)) {
         let (s, t) = (&self.buffers, &self.targets);
         let effects = &self.effects;
         let camera = effects.begin_frame();
@@ -499,19 +543,24 @@ impl DesktopFrame {
     }
 
     /// Records the frame into its own output target.
-    pub fn record(&self, frame: &mut FrameRecorder) {
+    pub fn record(&self, frame: &mut FrameRecorder<'_>) {
         self.record_into(frame, (&self.output.texture, &self.output.view));
     }
 
-    /// Renders one frame: the output image and every pass (with images when `capture`).
-    pub fn render(&self, capture: bool) -> (Option<Image>, Vec<PassResult>) {
-        let mut frame = FrameRecorder::new(&self.device, &self.queue, self.timestamps, capture, None);
+    /// Renders one frame with the pipelines of `cache` (the one the frame was built with):
+    /// the output image and every pass (with images when `capture`).
+    pub fn render(
+        &self,
+        cache: &PipelineCache,
+        capture: bool,
+    ) -> Result<(Option<Image>, Vec<PassResult>), PipelineError> {
+        let mut frame = FrameRecorder::new(&self.device, &self.queue, cache, self.timestamps, capture, None);
         self.record(&mut frame);
-        let passes = frame.finish();
-        let mut readback = FrameRecorder::new(&self.device, &self.queue, false, true, None);
+        let passes = frame.finish()?;
+        let mut readback = FrameRecorder::new(&self.device, &self.queue, cache, false, true, None);
         readback.pass("Output", |ctx| ctx.output(&self.output.texture, Visualize::Direct));
-        let image = readback.finish().pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
-        (image, passes)
+        let image = readback.finish()?.pop().and_then(|mut p| p.images.pop()).map(|(_, i)| i);
+        Ok((image, passes))
     }
 
     pub fn options(&self) -> &DesktopOptions {
@@ -615,7 +664,7 @@ fn build_effects(
     let context = effects::EffectContext {
         device: b.device,
         queue,
-        cache: b.pipelines.cache,
+        cache: b.pipelines.slots(),
         scene: b.scene,
         meshes: &meshes,
         warm_up_particles: b.options.warm_up_particles,

@@ -3,14 +3,14 @@
 //! elsewhere), scaled by the shutter and capped, and writes the result, times the eye
 //! adaptation's exposure, back to SceneColor for the Bloom and Tonemapper that follow.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, uniform_buffer, EffectPassInit};
 
@@ -34,7 +34,7 @@ struct MotionBlurParams {
 }
 
 pub struct MotionBlur {
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
     /// One bind group per input (the TAA history pair).
     groups: Vec<wgpu::BindGroup>,
     params: wgpu::Buffer,
@@ -100,9 +100,12 @@ impl MotionBlur {
             0,
             bytemuck::bytes_of(&MotionBlurParams { shutter: Vec4::new(shutter, MAX_LENGTH, SAMPLES, 0.0) }),
         );
+        let ready = self.pipeline.ready(ctx.pipelines());
         let mut pass = color_pass(ctx, "MotionBlur", output, wgpu::LoadOp::Clear(wgpu::Color::BLACK));
-        pass.set_pipeline(&self.pipeline.pipeline);
-        pass.set_bind_group(0, &self.groups[input], &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.groups[input], &[]);
+            pass.draw(0..3, 0..1);
+        }
     }
 }

@@ -15,7 +15,7 @@
 //! holds the decision, with the same latency as the props' (results applied a frame or more
 //! after their query, never waited for; a light without a result yet counts as visible).
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -96,7 +96,7 @@ pub struct OcclusionStats {
 }
 
 pub struct OcclusionCulling {
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
     query_set: wgpu::QuerySet,
     resolve: wgpu::Buffer,
     readbacks: Vec<Readback>,
@@ -138,6 +138,25 @@ fn box_proxy((lo, hi): (Vec3, Vec3), color: Vec3) -> OcclusionProxy {
     OcclusionProxy {
         unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(half),
         color_shape: color.extend(0.0),
+    }
+}
+
+/// This frame's queries as they are gathered: the proxies to draw and, per query, (kind,
+/// first proxy, proxy count, vertices per proxy).
+#[derive(Default)]
+struct QueryList {
+    proxies: Vec<OcclusionProxy>,
+    queries: Vec<(QueryKind, u32, u32, u32)>,
+}
+
+impl QueryList {
+    /// Adds a query of `list`'s proxies, unless the frame's proxies or queries are full.
+    fn push(&mut self, kind: QueryKind, list: Vec<OcclusionProxy>, vertices: u32) {
+        if self.proxies.len() + list.len() > MAX_PROXIES || self.queries.len() >= MAX_QUERIES as usize {
+            return;
+        }
+        self.queries.push((kind, self.proxies.len() as u32, list.len() as u32, vertices));
+        self.proxies.extend(list);
     }
 }
 
@@ -327,100 +346,22 @@ impl OcclusionCulling {
             self.pending_slot = None;
             return;
         };
-        let mut proxies: Vec<OcclusionProxy> = Vec::new();
-        // (query kind, first proxy, proxy count, vertices per proxy)
-        let mut queries: Vec<(QueryKind, u32, u32, u32)> = Vec::new();
-        let mut push =
-            |kind: QueryKind, list: Vec<OcclusionProxy>, vertices: u32, proxies: &mut Vec<OcclusionProxy>| {
-                if proxies.len() + list.len() > MAX_PROXIES || queries.len() >= MAX_QUERIES as usize {
-                    return;
-                }
-                queries.push((kind, proxies.len() as u32, list.len() as u32, vertices));
-                proxies.extend(list);
-            };
-        for (i, light) in lights.iter().enumerate() {
-            match *light {
-                LightBounds::Sphere { center, radius } => {
-                    if camera.distance(center) <= radius * 1.1 {
-                        self.lights.camera_inside(i);
-                        continue;
-                    }
-                    let p = OcclusionProxy {
-                        unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius)),
-                        color_shape: Vec4::new(0.5, 0.45, 0.0, 1.0),
-                    };
-                    push(QueryKind::Light(i), vec![p], SPHERE_VERTICES, &mut proxies);
-                }
-                LightBounds::Frustum { view_proj } => {
-                    // the unit cube in the light's clip space, z in [0, 1]
-                    let clip_cube =
-                        Mat4::from_translation(Vec3::new(0.0, 0.0, 0.5)) * Mat4::from_scale(Vec3::new(1.0, 1.0, 0.5));
-                    let p = OcclusionProxy {
-                        unit_to_world: view_proj.inverse() * clip_cube,
-                        color_shape: Vec4::new(0.45, 0.4, 0.0, 0.0),
-                    };
-                    push(QueryKind::Light(i), vec![p], CUBE_VERTICES, &mut proxies);
-                }
-            }
-        }
-        let contains = |(lo, hi): (Vec3, Vec3)| {
-            camera.cmpge(lo - Vec3::splat(0.2)).all() && camera.cmple(hi + Vec3::splat(0.2)).all()
-        };
-        let mut occluded = Vec::new();
-        for (p, &bounds) in self.bounds.iter().enumerate() {
-            if contains(bounds) {
-                self.visibility[p] = PropVisibility::Visible;
-                continue;
-            }
-            match self.visibility[p] {
-                PropVisibility::Visible => push(
-                    QueryKind::Individual(p),
-                    vec![box_proxy(bounds, Vec3::new(0.0, 0.6, 0.1))],
-                    CUBE_VERTICES,
-                    &mut proxies,
-                ),
-                PropVisibility::Occluded => occluded.push(p),
-            }
-        }
-        for group in occluded.chunks(GROUP_SIZE) {
-            let list = group.iter().map(|&p| box_proxy(self.bounds[p], Vec3::new(0.7, 0.05, 0.05))).collect();
-            push(QueryKind::Grouped(group.to_vec()), list, CUBE_VERTICES, &mut proxies);
-        }
+        let mut list = QueryList::default();
+        self.light_queries(camera, lights, &mut list);
+        self.prop_queries(camera, &mut list);
+        let QueryList { proxies, mut queries } = list;
         self.stats.individual_queries = queries.iter().filter(|q| matches!(q.0, QueryKind::Individual(_))).count();
         self.stats.grouped_queries = queries.iter().filter(|q| matches!(q.0, QueryKind::Grouped(_))).count();
         self.stats.light_queries = queries.iter().filter(|q| matches!(q.0, QueryKind::Light(_))).count();
         if !proxies.is_empty() {
             queue.write_buffer(&self.proxies, 0, bytemuck::cast_slice(&proxies));
         }
-        {
-            let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("BeginOcclusionTests"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &self.debug_view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: scene_depth,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: Some(&self.query_set),
-                multiview_mask: None,
-            });
-            pass.set_pipeline(&self.pipeline.pipeline);
-            pass.set_bind_group(0, &self.bind_group, &[]);
-            for (i, (_, first, count, vertices)) in queries.iter().enumerate() {
-                pass.begin_occlusion_query(i as u32);
-                pass.draw(0..*vertices, *first..*first + *count);
-                pass.end_occlusion_query();
-            }
+        let ready = self.pipeline.ready(ctx.pipelines());
+        if ready.is_none() {
+            // nothing can be tested this frame: the last verdicts stand
+            queries.clear();
         }
+        self.draw_queries(ctx, scene_depth, ready.as_deref(), &queries);
         if !queries.is_empty() {
             let n = queries.len() as u32;
             ctx.encoder().resolve_query_set(&self.query_set, 0..n, &self.resolve, 0);
@@ -432,6 +373,98 @@ impl OcclusionCulling {
             self.pending_slot = Some(slot);
         } else {
             self.pending_slot = None;
+        }
+    }
+
+    /// ShadowFrustumQueries: each light's bounds, unless the camera is inside them.
+    fn light_queries(&mut self, camera: Vec3, lights: &[LightBounds], list: &mut QueryList) {
+        for (i, light) in lights.iter().enumerate() {
+            match *light {
+                LightBounds::Sphere { center, radius } => {
+                    if camera.distance(center) <= radius * 1.1 {
+                        self.lights.camera_inside(i);
+                        continue;
+                    }
+                    let p = OcclusionProxy {
+                        unit_to_world: Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(radius)),
+                        color_shape: Vec4::new(0.5, 0.45, 0.0, 1.0),
+                    };
+                    list.push(QueryKind::Light(i), vec![p], SPHERE_VERTICES);
+                }
+                LightBounds::Frustum { view_proj } => {
+                    // the unit cube in the light's clip space, z in [0, 1]
+                    let clip_cube =
+                        Mat4::from_translation(Vec3::new(0.0, 0.0, 0.5)) * Mat4::from_scale(Vec3::new(1.0, 1.0, 0.5));
+                    let p = OcclusionProxy {
+                        unit_to_world: view_proj.inverse() * clip_cube,
+                        color_shape: Vec4::new(0.45, 0.4, 0.0, 0.0),
+                    };
+                    list.push(QueryKind::Light(i), vec![p], CUBE_VERTICES);
+                }
+            }
+        }
+    }
+
+    /// The props: visible ones one query each, occluded ones in groups; those around the
+    /// camera are visible without a query.
+    fn prop_queries(&mut self, camera: Vec3, list: &mut QueryList) {
+        let contains = |(lo, hi): (Vec3, Vec3)| {
+            camera.cmpge(lo - Vec3::splat(0.2)).all() && camera.cmple(hi + Vec3::splat(0.2)).all()
+        };
+        let mut occluded = Vec::new();
+        for (p, &bounds) in self.bounds.iter().enumerate() {
+            if contains(bounds) {
+                self.visibility[p] = PropVisibility::Visible;
+                continue;
+            }
+            match self.visibility[p] {
+                PropVisibility::Visible => list.push(
+                    QueryKind::Individual(p),
+                    vec![box_proxy(bounds, Vec3::new(0.0, 0.6, 0.1))],
+                    CUBE_VERTICES,
+                ),
+                PropVisibility::Occluded => occluded.push(p),
+            }
+        }
+        for group in occluded.chunks(GROUP_SIZE) {
+            let proxies = group.iter().map(|&p| box_proxy(self.bounds[p], Vec3::new(0.7, 0.05, 0.05))).collect();
+            list.push(QueryKind::Grouped(group.to_vec()), proxies, CUBE_VERTICES);
+        }
+    }
+
+    /// BeginOcclusionTests: each query's proxies against the depth (and into the debug view).
+    fn draw_queries(
+        &self,
+        ctx: &mut PassContext<'_>,
+        scene_depth: &wgpu::TextureView,
+        pipeline: Option<&RenderPipeline>,
+        queries: &[(QueryKind, u32, u32, u32)],
+    ) {
+        let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("BeginOcclusionTests"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &self.debug_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: scene_depth,
+                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: Some(&self.query_set),
+            multiview_mask: None,
+        });
+        if let Some(p) = pipeline {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.bind_group, &[]);
+        }
+        for (i, (_, first, count, vertices)) in queries.iter().enumerate() {
+            pass.begin_occlusion_query(i as u32);
+            pass.draw(0..*vertices, *first..*first + *count);
+            pass.end_occlusion_query();
         }
     }
 

@@ -1,55 +1,39 @@
-//! Pipelines of the desktop frame: the passes describe their fixed-function state in
-//! wgpu's terms ([`RenderDesc`]); the pipelines come from the runtime's one
-//! [`PipelineCache`], keyed by the permutations and that whole state.
+//! Pipelines of the desktop frame: the passes describe their render pipelines with the
+//! frames' one [`PipelineDesc`] and hold them as slots ([`RenderSlot`], [`ComputeSlot`]):
+//! keys into the runtime's one [`PipelineCache`], asked for when a draw is recorded.
 
 use std::sync::Arc;
 
-use crate::pipelines::{PipelineCache, PipelineError, PipelineLayoutInfo, RenderState, VertexLayout};
+use crate::frame::{ComputeSlot, Creation, PipelineDesc, RenderSlot, Slots};
+use crate::pipelines::{PipelineCache, PipelineError, PipelineLayoutInfo};
 
 use super::DesktopError;
 
-/// The bind group layouts of one pipeline (the runtime's [`PipelineLayoutInfo`]) and a
-/// by-name way to fill them.
-pub struct Layout(pub PipelineLayoutInfo);
-
-impl Layout {
-    /// A bind group for `group` from `(name in the shader, resource)` pairs, or `None` for a
-    /// group the pipeline does not use: the runtime's [`PipelineLayoutInfo::bind_group`],
-    /// its errors worded as the desktop frame's.
-    pub fn bind_group(
+/// Bind groups by resource name ([`crate::frame::bind_groups`]) for a desktop pass, their
+/// errors worded as the desktop frame's.
+pub trait DesktopLayout {
+    /// Bind groups for every group the pipeline uses, from one resource list.
+    fn bind_groups(
         &self,
         device: &wgpu::Device,
-        group: u32,
         resources: &[(&str, wgpu::BindingResource<'_>)],
-    ) -> Result<Option<wgpu::BindGroup>, DesktopError> {
-        let info = &self.0;
-        if !info.uses_group(group) {
-            return Ok(None);
-        }
-        let label = format!("{} group {group}", info.label);
-        match info.bind_group(device, group, &label, resources) {
-            Ok(bind_group) => Ok(Some(bind_group)),
-            Err(PipelineError::MissingResource { label, group, binding, name }) => {
-                Err(DesktopError::MissingResource { pipeline: label, group, binding, name })
-            }
-            Err(PipelineError::Wgpu { message, .. }) => {
-                Err(DesktopError::Wgpu { what: format!("bind group {group} of `{}`", info.label), message })
-            }
-            Err(e) => Err(e.into()),
-        }
-    }
+    ) -> Result<BindGroups, DesktopError>;
+}
 
-    /// Bind groups for every group the pipeline uses, from one resource list.
-    pub fn bind_groups(
+impl DesktopLayout for PipelineLayoutInfo {
+    fn bind_groups(
         &self,
         device: &wgpu::Device,
         resources: &[(&str, wgpu::BindingResource<'_>)],
     ) -> Result<BindGroups, DesktopError> {
-        let mut groups = Vec::new();
-        for g in 0..self.0.groups.len() as u32 {
-            groups.push(self.bind_group(device, g, resources)?);
+        match crate::frame::bind_groups(device, self, resources) {
+            Ok(groups) => Ok(BindGroups { groups, keep: Vec::new() }),
+            Err(PipelineError::MissingResource { label, group, binding, name }) => {
+                Err(DesktopError::MissingResource { pipeline: label, group, binding, name })
+            }
+            Err(PipelineError::Wgpu { what, message }) => Err(DesktopError::Wgpu { what, message }),
+            Err(e) => Err(e.into()),
         }
-        Ok(BindGroups { groups, keep: Vec::new() })
     }
 }
 
@@ -84,53 +68,23 @@ impl BindGroups {
     }
 }
 
-/// Vertex buffers a desktop pipeline reads.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Vertices {
-    /// None: a triangle from the vertex index.
-    None,
-    /// [`crate::gpu_types::MeshVertex`] in buffer 0 (locations 0 to 2); instances come from a
-    /// storage buffer indexed by `instance_index`.
-    Mesh,
-}
-
-/// The fixed-function state of a desktop render pipeline.
-#[derive(Clone, Debug, PartialEq)]
-pub struct RenderDesc {
-    pub vertices: Vertices,
-    pub cull: Option<wgpu::Face>,
-    pub depth_stencil: Option<wgpu::DepthStencilState>,
-    pub targets: Vec<(wgpu::TextureFormat, Option<wgpu::BlendState>)>,
-}
-
-impl RenderDesc {
-    pub fn fullscreen(format: wgpu::TextureFormat, blend: Option<wgpu::BlendState>) -> RenderDesc {
-        RenderDesc { vertices: Vertices::None, cull: None, depth_stencil: None, targets: vec![(format, blend)] }
-    }
-}
-
-/// A built render pipeline and its layout.
-pub struct Render {
-    pub pipeline: wgpu::RenderPipeline,
-    pub layout: Layout,
-}
-
-pub struct Compute {
-    pub pipeline: wgpu::ComputePipeline,
-    pub layout: Layout,
-    pub workgroup_size: [u32; 3],
-}
-
-/// The desktop frame's view of the runtime's one pipeline cache: its pipelines described
-/// in wgpu's terms, at the frame's level.
+/// The desktop frame's view of the runtime's one pipeline cache while its passes are built:
+/// slots at the frame's level, created as the frame's options say.
 pub struct Pipelines<'a> {
     pub cache: &'a PipelineCache,
     pub level: &'a str,
+    pub creation: Creation,
 }
 
 impl<'a> Pipelines<'a> {
-    pub fn new(cache: &'a PipelineCache, level: &'a str) -> Pipelines<'a> {
-        Pipelines { cache, level }
+    pub fn new(cache: &'a PipelineCache, level: &'a str, creation: Creation) -> Pipelines<'a> {
+        Pipelines { cache, level, creation }
+    }
+
+    /// The cache and the frame's creation, for passes that describe their state in the
+    /// runtime's terms.
+    pub fn slots(&self) -> Slots<'a> {
+        Slots::new(self.cache, self.creation)
     }
 
     /// The frame's level, for typed permutation keys ([`crate::keys`]).
@@ -138,40 +92,14 @@ impl<'a> Pipelines<'a> {
         crate::keys::level(self.level)
     }
 
-    /// A render pipeline of (vertex permutation, fragment permutation or none, state), from
-    /// the runtime's one pipeline cache.
-    pub fn render(&self, vertex: &str, fragment: Option<&str>, desc: &RenderDesc) -> Result<Arc<Render>, DesktopError> {
-        let layout = match desc.vertices {
-            Vertices::None => VertexLayout::NONE,
-            Vertices::Mesh => crate::gpu_types::layouts::MESH,
-        };
-        let targets: Vec<wgpu::ColorTargetState> = desc
-            .targets
-            .iter()
-            .map(|(format, blend)| wgpu::ColorTargetState {
-                format: *format,
-                blend: *blend,
-                write_mask: wgpu::ColorWrites::ALL,
-            })
-            .collect();
-        let state = RenderState::from_wgpu(layout, desc.cull, desc.depth_stencil.as_ref(), &targets, 1);
-        let built = self.cache.render(vertex, fragment, &state)?;
-        Ok(Arc::new(Render { pipeline: built.pipeline.clone(), layout: Layout::from(&built.layout) }))
+    /// The slot of the render pipeline `desc` describes.
+    pub fn render(&self, desc: &PipelineDesc) -> Result<Arc<RenderSlot>, DesktopError> {
+        Ok(self.slots().render_desc(desc)?)
     }
 
-    pub fn compute(&self, name: &str) -> Result<Arc<Compute>, DesktopError> {
-        let built = self.cache.compute(name)?;
-        Ok(Arc::new(Compute {
-            pipeline: built.pipeline.clone(),
-            layout: Layout::from(&built.layout),
-            workgroup_size: built.workgroup_size,
-        }))
-    }
-}
-
-impl From<&PipelineLayoutInfo> for Layout {
-    fn from(info: &PipelineLayoutInfo) -> Layout {
-        Layout(info.clone())
+    /// The slot of compute permutation `name`.
+    pub fn compute(&self, name: &str) -> Result<Arc<ComputeSlot>, DesktopError> {
+        Ok(self.slots().compute(name)?)
     }
 }
 

@@ -6,10 +6,10 @@ use std::sync::Arc;
 
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, PassContext, PassDecl, PipelineDesc, RenderSlot, Visualize};
 use crate::keys;
 
-use super::pipelines::{blend, BindGroups, Render, RenderDesc};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, Targets};
 use super::view::{BloomUniforms, TonemapUniforms};
 use super::{DesktopError, PassSetup};
@@ -19,7 +19,7 @@ use crate::gpu_types::uniform_buffer;
 pub const PASS: PassDecl = PassDecl { name: "PostProcessing", reads: &["SceneColor"], writes: &["Bloom", "Output"] };
 
 struct Draw {
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     groups: BindGroups,
     /// Index into the bloom chain it writes (None: the output).
     target: Option<usize>,
@@ -37,6 +37,13 @@ pub const BLOOM: [f32; 3] = [1.5, 0.5, 0.2];
 
 impl PostProcessing {
     pub fn new(b: &PassSetup<'_>, output_format: wgpu::TextureFormat) -> Result<PostProcessing, DesktopError> {
+        let bloom = Self::bloom(b)?;
+        let tonemap = Self::tonemap(b, output_format)?;
+        Ok(PostProcessing { bloom, tonemap_uses_bloom: b.options.bloom, tonemap })
+    }
+
+    /// Bloom: the setup from SceneColor, down the levels, then back up adding each.
+    fn bloom(b: &PassSetup<'_>) -> Result<Vec<Draw>, DesktopError> {
         let p = b.pipelines;
         let t = b.targets;
         let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
@@ -52,7 +59,7 @@ impl PostProcessing {
                        blend: Option<wgpu::BlendState>,
                        intensity: f32|
          -> Result<(), DesktopError> {
-            let pipeline = p.render(&vs, Some(ps), &RenderDesc::fullscreen(formats::BLOOM, blend))?;
+            let pipeline = p.render(&PipelineDesc::fullscreen(&vs, ps, blended(formats::BLOOM, blend)))?;
             let u = uniform_buffer(
                 b.device,
                 "Bloom",
@@ -82,18 +89,25 @@ impl PostProcessing {
         for i in (1..t.bloom.len()).rev() {
             add(&up_ps, &t.bloom[i].view, &t.bloom[i].texture, i - 1, Some(blend::ADDITIVE), 1.0)?;
         }
-        let pipeline = p.render(
+        Ok(bloom)
+    }
+
+    /// The tonemapper into the output (with the bloom where the options have it).
+    fn tonemap(b: &PassSetup<'_>, output_format: wgpu::TextureFormat) -> Result<Draw, DesktopError> {
+        let (p, t) = (b.pipelines, b.targets);
+        let vs = keys::name(keys::post_process_vs::Key {}, p.key_level()?)?;
+        let pipeline = p.render(&PipelineDesc::fullscreen(
             &vs,
-            Some(&keys::name(
+            &keys::name(
                 keys::tonemapper_ps::Key {
                     use_bloom: b.options.bloom,
                     use_vignette: b.options.vignette,
                     use_gamma_only: false,
                 },
                 p.key_level()?,
-            )?),
-            &RenderDesc::fullscreen(output_format, None),
-        )?;
+            )?,
+            blended(output_format, None),
+        ))?;
         let u = uniform_buffer(
             b.device,
             "Tonemap",
@@ -111,19 +125,18 @@ impl PostProcessing {
                 ],
             )?
             .keeping(u);
-        Ok(PostProcessing {
-            bloom,
-            tonemap_uses_bloom: b.options.bloom,
-            tonemap: Draw { pipeline, groups, target: None, clear: true },
-        })
+        Ok(Draw { pipeline, groups, target: None, clear: true })
     }
 
     fn run(ctx: &mut PassContext<'_>, d: &Draw, view: &wgpu::TextureView) {
+        let ready = d.pipeline.ready(ctx.pipelines());
         let mut pass =
             begin(ctx, "PostProcess", &[color_attachment(view, d.clear.then_some(wgpu::Color::BLACK))], None);
-        pass.set_pipeline(&d.pipeline.pipeline);
-        d.groups.set_render(&mut pass);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            d.groups.set_render(&mut pass);
+            pass.draw(0..3, 0..1);
+        }
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, t: &Targets, output: (&wgpu::Texture, &wgpu::TextureView)) {

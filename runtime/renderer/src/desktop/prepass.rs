@@ -4,11 +4,11 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
-use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
+use super::pipelines::{BindGroups, DesktopLayout};
 use super::resources::{begin, SceneBuffers, Targets};
 use super::{DesktopError, PassSetup};
 
@@ -16,8 +16,8 @@ use super::{DesktopError, PassSetup};
 pub const PASS: PassDecl = PassDecl { name: "PrePass", reads: &["Scene", "View"], writes: &["SceneDepth"] };
 
 pub struct PrePass {
-    opaque: Arc<Render>,
-    masked: Arc<Render>,
+    opaque: Arc<RenderSlot>,
+    masked: Arc<RenderSlot>,
     opaque_groups: BindGroups,
     masked_groups: BindGroups,
 }
@@ -25,9 +25,9 @@ pub struct PrePass {
 impl PrePass {
     pub fn new(b: &PassSetup<'_>) -> Result<PrePass, DesktopError> {
         let p = b.pipelines;
-        let desc = RenderDesc {
-            vertices: Vertices::Mesh,
-            cull: Some(wgpu::Face::Back),
+        let opaque_vs = keys::name(keys::depth_pass_vs::Key { material_masked: false }, p.key_level()?)?;
+        let desc = PipelineDesc {
+            cull_mode: Some(wgpu::Face::Back),
             depth_stencil: Some(wgpu::DepthStencilState {
                 format: b.targets.scene_depth.format,
                 depth_write_enabled: Some(true),
@@ -35,16 +35,15 @@ impl PrePass {
                 stencil: wgpu::StencilState::default(),
                 bias: wgpu::DepthBiasState::default(),
             }),
-            targets: Vec::new(),
+            ..PipelineDesc::new(&opaque_vs, None, VertexInput::Mesh)
         };
-        let opaque =
-            p.render(&keys::name(keys::depth_pass_vs::Key { material_masked: false }, p.key_level()?)?, None, &desc)?;
-        let masked_desc = RenderDesc { cull: None, ..desc };
-        let masked = p.render(
-            &keys::name(keys::depth_pass_vs::Key { material_masked: true }, p.key_level()?)?,
-            Some(&keys::name(keys::depth_pass_ps::Key {}, p.key_level()?)?),
-            &masked_desc,
-        )?;
+        let opaque = p.render(&desc)?;
+        let masked = p.render(&PipelineDesc {
+            vertex: keys::name(keys::depth_pass_vs::Key { material_masked: true }, p.key_level()?)?,
+            fragment: Some(keys::name(keys::depth_pass_ps::Key {}, p.key_level()?)?),
+            cull_mode: None,
+            ..desc
+        })?;
         let resources = b.scene_resources();
         Ok(PrePass {
             opaque_groups: opaque.layout.bind_groups(b.device, &resources)?,
@@ -55,6 +54,7 @@ impl PrePass {
     }
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, targets: &Targets) {
+        let pl = ctx.pipelines();
         {
             let mut pass = begin(
                 ctx,
@@ -70,7 +70,8 @@ impl PrePass {
                 (BlendMode::Opaque, &self.opaque, &self.opaque_groups),
                 (BlendMode::Masked, &self.masked, &self.masked_groups),
             ] {
-                pass.set_pipeline(&pipeline.pipeline);
+                let Some(p) = pipeline.ready(pl) else { continue };
+                pass.set_pipeline(&p.pipeline);
                 groups.set_render(&mut pass);
                 for draw in scene.draws.iter().filter(|d| d.blend == blend) {
                     pass.insert_debug_marker(&draw.name);

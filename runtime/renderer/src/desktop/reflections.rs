@@ -7,14 +7,14 @@
 //! BRDF. The capture cubemap is filtered once, one mip per roughness, by
 //! `ReflectionCaptureFilterCS`.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl, RenderSlot};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderState};
 
 use super::frame_view::{color_pass, groups, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
 
@@ -71,9 +71,9 @@ pub struct Reflections {
     pub ssr: wgpu::Texture,
     pub ssr_view: wgpu::TextureView,
     pub capture: wgpu::Texture,
-    ssr_pipeline: Arc<RenderPipeline>,
-    environment: Arc<RenderPipeline>,
-    filter: Arc<ComputePipeline>,
+    ssr_pipeline: Arc<RenderSlot>,
+    environment: Arc<RenderSlot>,
+    filter: Arc<ComputeSlot>,
     ssr_group: wgpu::BindGroup,
     environment_group: wgpu::BindGroup,
     filter_groups: Vec<(wgpu::BindGroup, u32)>,
@@ -223,8 +223,10 @@ impl Reflections {
         if self.captured {
             return;
         }
+        let ready = self.filter.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("ReflectionCaptureFilter");
-        pass.set_pipeline(&self.filter.pipeline);
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         for (group, size) in &self.filter_groups {
             pass.set_bind_group(0, group, &[]);
             pass.dispatch_workgroups(groups(*size, 8), groups(*size, 8), 6);
@@ -234,18 +236,24 @@ impl Reflections {
 
     /// ScreenSpaceReflections into the SSR target.
     pub fn record_ssr(&self, ctx: &mut PassContext<'_>) {
+        let ready = self.ssr_pipeline.ready(ctx.pipelines());
         let mut pass =
             color_pass(ctx, "ScreenSpaceReflections", &self.ssr_view, wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT));
-        pass.set_pipeline(&self.ssr_pipeline.pipeline);
-        pass.set_bind_group(0, &self.ssr_group, &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.ssr_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
     }
 
     /// ReflectionEnvironmentAndSky, added onto SceneColor.
     pub fn record_environment(&self, ctx: &mut PassContext<'_>, scene_color: &wgpu::TextureView) {
+        let ready = self.environment.ready(ctx.pipelines());
         let mut pass = color_pass(ctx, "ReflectionEnvironmentAndSky", scene_color, wgpu::LoadOp::Load);
-        pass.set_pipeline(&self.environment.pipeline);
-        pass.set_bind_group(0, &self.environment_group, &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.environment_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
     }
 }

@@ -12,10 +12,10 @@ use glam::camera::rh::proj::directx;
 use glam::camera::rh::view::{look_at_mat4, look_to_mat4};
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{FramePipelines, PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 
-use super::pipelines::{BindGroups, Render, RenderDesc, Vertices};
+use super::pipelines::{BindGroups, DesktopLayout};
 use super::resources::{begin, formats, LocalShadow, SceneBuffers, Texture};
 use super::view::{FrameView, ShadowDepthPassUniforms, ShadowProjectionUniforms};
 use super::{DesktopError, PassSetup};
@@ -43,7 +43,7 @@ struct ShadowView {
 struct Atlas {
     step: String,
     texture: Texture,
-    pipeline: Arc<Render>,
+    pipeline: Arc<RenderSlot>,
     views: Vec<ShadowView>,
     /// Cube shadows of movable lights: the static casters' depth, cached (effects).
     cache: Option<CubeCache>,
@@ -55,7 +55,7 @@ struct Atlas {
 struct CubeCache {
     texture: Texture,
     /// CopyCachedShadowMap: a full-atlas draw writing the cached depth with frag_depth.
-    copy: Arc<Render>,
+    copy: Arc<RenderSlot>,
     copy_groups: BindGroups,
     /// Per view (face): the static casters; `ShadowView::draws` keeps the movable ones.
     static_draws: Vec<Vec<usize>>,
@@ -172,199 +172,236 @@ pub fn per_object_matrix(light: Vec3, light_radius: f32, center: Vec3, radius: f
     Some(directx::perspective(2.0 * half, 1.0, near, far) * look_at_mat4(light, center, up_for(center - light)))
 }
 
+/// The depth-only pipeline of the shadow views (`perspective`: point and spot lights).
+fn depth_pipeline(b: &PassSetup<'_>, perspective: bool) -> Result<Arc<RenderSlot>, DesktopError> {
+    let p = b.pipelines;
+    let name = keys::name(keys::shadow_depth_vs::Key { perspective_correct_depth: perspective }, p.key_level()?)?;
+    p.render(&PipelineDesc {
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: formats::SHADOW_DEPTH,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::LessEqual),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState { constant: 0, slope_scale: 1.0, clamp: 0.0 },
+        }),
+        ..PipelineDesc::new(&name, None, VertexInput::Mesh)
+    })
+}
+
+/// The bind groups of one shadow view (its `ShadowDepthPass` matrix `m`), and that buffer.
+fn view_groups(
+    b: &PassSetup<'_>,
+    pipeline: &RenderSlot,
+    m: Mat4,
+    label: &str,
+) -> Result<(BindGroups, wgpu::Buffer), DesktopError> {
+    let buffer = uniform_buffer(b.device, label, &ShadowDepthPassUniforms { view_proj: m });
+    let groups = pipeline.layout.bind_groups(
+        b.device,
+        &[("ShadowDepthPass", buffer.as_entire_binding()), ("Instances", b.buffers.instances.as_entire_binding())],
+    )?;
+    Ok((groups.keeping(buffer.clone()), buffer))
+}
+
+/// The directional light's cascades side by side, with their projection uniforms and the
+/// `ShadowDepthPass` buffers that follow the camera.
+fn cascade_atlas(
+    b: &PassSetup<'_>,
+    ortho: &Arc<RenderSlot>,
+    casters: &[usize],
+    size: u32,
+) -> Result<(Atlas, ShadowProjectionUniforms, Vec<wgpu::Buffer>), DesktopError> {
+    let (u, matrices) = cascaded_uniforms(b.view, b.scene.sun.direction, size);
+    let mut views = Vec::new();
+    let mut buffers = Vec::new();
+    for (i, m) in matrices.iter().enumerate() {
+        let (groups, buffer) = view_groups(b, ortho, *m, &format!("Cascade{i}"))?;
+        buffers.push(buffer);
+        views.push(ShadowView {
+            viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32],
+            groups,
+            draws: casters.to_vec(),
+            light: None,
+        });
+    }
+    let atlas = Atlas {
+        step: "Atlas0".into(),
+        texture: shadow_texture(b.device, "ShadowDepthAtlas0", size * CASCADES as u32, size),
+        pipeline: ortho.clone(),
+        views,
+        cache: None,
+    };
+    Ok((atlas, u, buffers))
+}
+
+/// One tile per (stationary light, movable caster in its reach); their projections go to
+/// `projections`. `None` without such a pair.
+fn per_object_atlas(
+    b: &PassSetup<'_>,
+    perspective: &Arc<RenderSlot>,
+    casters: &[usize],
+    tile: u32,
+    projections: &mut Vec<(usize, ShadowProjectionUniforms)>,
+) -> Result<Option<Atlas>, DesktopError> {
+    let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
+    let mut tiles = Vec::new();
+    for (li, light) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow == LocalShadow::PerObject) {
+        for &di in &movable {
+            let (center, radius) = b.buffers.draws[di].bounds;
+            if light.position().distance(center) > light.radius() + radius {
+                continue;
+            }
+            if let Some(m) = per_object_matrix(light.position(), light.radius(), center, radius) {
+                tiles.push((li, di, m));
+            }
+        }
+    }
+    if tiles.is_empty() {
+        return Ok(None);
+    }
+    let n = tiles.len() as u32;
+    let mut views = Vec::new();
+    for (k, (li, di, m)) in tiles.iter().enumerate() {
+        let mut u = ShadowProjectionUniforms {
+            light_position: b.lights[*li].position().extend(1.0),
+            params: Vec4::new(0.0003, 0.02, 0.0, 0.0),
+            ..Default::default()
+        };
+        u.world_to_shadow[0] = *m;
+        u.atlas_rects[0] = Vec4::new(k as f32 / n as f32, 0.0, 1.0 / n as f32, 1.0);
+        projections.push((*li, u));
+        views.push(ShadowView {
+            viewport: [(k as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
+            groups: view_groups(b, perspective, *m, &format!("PerObject{k}"))?.0,
+            draws: vec![*di],
+            light: Some(*li),
+        });
+    }
+    Ok(Some(Atlas {
+        step: "Atlas1".into(),
+        texture: shadow_texture(b.device, "ShadowDepthAtlas1", tile * n, tile),
+        pipeline: perspective.clone(),
+        views,
+        cache: None,
+    }))
+}
+
+/// A movable point light's six faces (its movable casters) over a cached depth of the static
+/// ones, with the light's projection uniforms.
+fn cube_atlas(
+    b: &PassSetup<'_>,
+    perspective: &Arc<RenderSlot>,
+    casters: &[usize],
+    tile: u32,
+    (li, light): (usize, &super::resources::FrameLight),
+) -> Result<(Atlas, ShadowProjectionUniforms), DesktopError> {
+    let matrices = cube_face_matrices(light.position(), light.radius());
+    let mut u = ShadowProjectionUniforms {
+        light_position: light.position().extend(1.0),
+        params: Vec4::new(0.0002, 0.03, 0.0, 0.0),
+        ..Default::default()
+    };
+    let mut views = Vec::new();
+    let (movable_casters, static_casters): (Vec<usize>, Vec<usize>) =
+        casters.iter().partition(|&&d| b.buffers.draws[d].movable);
+    for (f, m) in matrices.iter().enumerate() {
+        u.world_to_shadow[f] = *m;
+        u.atlas_rects[f] = Vec4::new(f as f32 / 6.0, 0.0, 1.0 / 6.0, 1.0);
+        views.push(ShadowView {
+            viewport: [(f as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
+            groups: view_groups(b, perspective, *m, &format!("{} face {f}", light.name))?.0,
+            draws: movable_casters.clone(),
+            light: Some(li),
+        });
+    }
+    let cache = cube_cache(b, light, static_casters, tile)?;
+    let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+        | wgpu::TextureUsages::TEXTURE_BINDING
+        | wgpu::TextureUsages::COPY_SRC
+        | wgpu::TextureUsages::COPY_DST;
+    let texture = Texture::new(
+        b.device,
+        &format!("ShadowDepthCube {}", light.name),
+        formats::SHADOW_DEPTH,
+        tile * 6,
+        tile,
+        usage,
+    );
+    let atlas = Atlas {
+        step: format!("Cubemap_{}", light.name),
+        texture,
+        pipeline: perspective.clone(),
+        views,
+        cache: Some(cache),
+    };
+    Ok((atlas, u))
+}
+
+/// The static casters' depth of a cube, rendered once, and the draw that copies it into the
+/// cube each frame.
+fn cube_cache(
+    b: &PassSetup<'_>,
+    light: &super::resources::FrameLight,
+    static_casters: Vec<usize>,
+    tile: u32,
+) -> Result<CubeCache, DesktopError> {
+    let p = b.pipelines;
+    let cached = shadow_texture(b.device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
+    let copy = p.render(&PipelineDesc {
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: formats::SHADOW_DEPTH,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        ..PipelineDesc::new(
+            &keys::name(keys::copy_cached_shadow_map_vs::Key {}, p.key_level()?)?,
+            Some(&keys::name(keys::copy_cached_shadow_map_ps::Key {}, p.key_level()?)?),
+            VertexInput::None,
+        )
+    })?;
+    let copy_groups = copy
+        .layout
+        .bind_groups(b.device, &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))])?;
+    Ok(CubeCache {
+        texture: cached,
+        copy,
+        copy_groups,
+        static_draws: vec![static_casters; 6],
+        valid: std::sync::atomic::AtomicBool::new(false),
+        rebuilds: std::sync::atomic::AtomicU32::new(0),
+    })
+}
+
 impl ShadowDepths {
     pub fn new(b: &PassSetup<'_>) -> Result<ShadowDepths, DesktopError> {
-        let device = b.device;
-        let p = b.pipelines;
-        let desc = |perspective: bool| -> Result<Arc<Render>, DesktopError> {
-            let name =
-                keys::name(keys::shadow_depth_vs::Key { perspective_correct_depth: perspective }, p.key_level()?)?;
-            p.render(
-                &name,
-                None,
-                &RenderDesc {
-                    vertices: Vertices::Mesh,
-                    cull: None,
-                    depth_stencil: Some(wgpu::DepthStencilState {
-                        format: formats::SHADOW_DEPTH,
-                        depth_write_enabled: Some(true),
-                        depth_compare: Some(wgpu::CompareFunction::LessEqual),
-                        stencil: wgpu::StencilState::default(),
-                        bias: wgpu::DepthBiasState { constant: 0, slope_scale: 1.0, clamp: 0.0 },
-                    }),
-                    targets: Vec::new(),
-                },
-            )
-        };
-        let ortho = desc(false)?;
-        let perspective = desc(true)?;
+        let ortho = depth_pipeline(b, false)?;
+        let perspective = depth_pipeline(b, true)?;
         let casters: Vec<usize> =
             b.buffers.draws.iter().enumerate().filter(|(_, d)| d.casts_shadow).map(|(i, _)| i).collect();
-        let movable: Vec<usize> = casters.iter().copied().filter(|i| b.buffers.draws[*i].movable).collect();
-        let view_groups = |pipeline: &Render, m: Mat4, label: &str| -> Result<BindGroups, DesktopError> {
-            let buffer = uniform_buffer(device, label, &ShadowDepthPassUniforms { view_proj: m });
-            Ok(pipeline
-                .layout
-                .bind_groups(
-                    device,
-                    &[
-                        ("ShadowDepthPass", buffer.as_entire_binding()),
-                        ("Instances", b.buffers.instances.as_entire_binding()),
-                    ],
-                )?
-                .keeping(buffer))
-        };
         let size = b.options.shadow_map_size;
+        let tile = (size / 2).max(64);
         let mut atlases = Vec::new();
         let mut setup = ShadowSetup::default();
         let (mut csm, mut per_object, mut cubes) = (None, None, Vec::new());
-
         let mut cascade_buffers = Vec::new();
         if b.scene.sun.enabled && b.scene.sun.casts_shadows {
-            let (u, matrices) = cascaded_uniforms(b.view, b.scene.sun.direction, size);
-            let mut views = Vec::new();
-            for (i, m) in matrices.iter().enumerate() {
-                let buffer = uniform_buffer(device, &format!("Cascade{i}"), &ShadowDepthPassUniforms { view_proj: *m });
-                cascade_buffers.push(buffer.clone());
-                let groups = ortho
-                    .layout
-                    .bind_groups(
-                        device,
-                        &[
-                            ("ShadowDepthPass", buffer.as_entire_binding()),
-                            ("Instances", b.buffers.instances.as_entire_binding()),
-                        ],
-                    )?
-                    .keeping(buffer);
-                views.push(ShadowView {
-                    viewport: [(i as u32 * size) as f32, 0.0, size as f32, size as f32],
-                    groups,
-                    draws: casters.clone(),
-                    light: None,
-                });
-            }
+            let (atlas, u, buffers) = cascade_atlas(b, &ortho, &casters, size)?;
             setup.cascaded = Some(u);
+            cascade_buffers = buffers;
             csm = Some(atlases.len());
-            atlases.push(Atlas {
-                step: "Atlas0".into(),
-                texture: shadow_texture(device, "ShadowDepthAtlas0", size * CASCADES as u32, size),
-                pipeline: ortho.clone(),
-                views,
-                cache: None,
-            });
+            atlases.push(atlas);
         }
-
-        let tile = (size / 2).max(64);
-        let mut tiles = Vec::new();
-        for (li, light) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow == LocalShadow::PerObject) {
-            for &di in &movable {
-                let (center, radius) = b.buffers.draws[di].bounds;
-                if light.position().distance(center) > light.radius() + radius {
-                    continue;
-                }
-                if let Some(m) = per_object_matrix(light.position(), light.radius(), center, radius) {
-                    tiles.push((li, di, m));
-                }
-            }
-        }
-        if !tiles.is_empty() {
-            let n = tiles.len() as u32;
-            let mut views = Vec::new();
-            for (k, (li, di, m)) in tiles.iter().enumerate() {
-                let mut u = ShadowProjectionUniforms {
-                    light_position: b.lights[*li].position().extend(1.0),
-                    params: Vec4::new(0.0003, 0.02, 0.0, 0.0),
-                    ..Default::default()
-                };
-                u.world_to_shadow[0] = *m;
-                u.atlas_rects[0] = Vec4::new(k as f32 / n as f32, 0.0, 1.0 / n as f32, 1.0);
-                setup.per_object.push((*li, u));
-                views.push(ShadowView {
-                    viewport: [(k as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
-                    groups: view_groups(&perspective, *m, &format!("PerObject{k}"))?,
-                    draws: vec![*di],
-                    light: Some(*li),
-                });
-            }
+        if let Some(atlas) = per_object_atlas(b, &perspective, &casters, tile, &mut setup.per_object)? {
             per_object = Some(atlases.len());
-            atlases.push(Atlas {
-                step: "Atlas1".into(),
-                texture: shadow_texture(device, "ShadowDepthAtlas1", tile * n, tile),
-                pipeline: perspective.clone(),
-                views,
-                cache: None,
-            });
+            atlases.push(atlas);
         }
-
         for (li, light) in b.lights.iter().enumerate().filter(|(_, l)| l.shadow == LocalShadow::Cube) {
-            let matrices = cube_face_matrices(light.position(), light.radius());
-            let mut u = ShadowProjectionUniforms {
-                light_position: light.position().extend(1.0),
-                params: Vec4::new(0.0002, 0.03, 0.0, 0.0),
-                ..Default::default()
-            };
-            let mut views = Vec::new();
-            let (movable_casters, static_casters): (Vec<usize>, Vec<usize>) =
-                casters.iter().partition(|&&d| b.buffers.draws[d].movable);
-            for (f, m) in matrices.iter().enumerate() {
-                u.world_to_shadow[f] = *m;
-                u.atlas_rects[f] = Vec4::new(f as f32 / 6.0, 0.0, 1.0 / 6.0, 1.0);
-                views.push(ShadowView {
-                    viewport: [(f as u32 * tile) as f32, 0.0, tile as f32, tile as f32],
-                    groups: view_groups(&perspective, *m, &format!("{} face {f}", light.name))?,
-                    draws: movable_casters.clone(),
-                    light: Some(li),
-                });
-            }
-            let cached = shadow_texture(device, &format!("CachedShadowDepthCube {}", light.name), tile * 6, tile);
-            let copy = b.pipelines.render(
-                &keys::name(keys::copy_cached_shadow_map_vs::Key {}, b.pipelines.key_level()?)?,
-                Some(&keys::name(keys::copy_cached_shadow_map_ps::Key {}, b.pipelines.key_level()?)?),
-                &RenderDesc {
-                    vertices: Vertices::None,
-                    cull: None,
-                    depth_stencil: Some(wgpu::DepthStencilState {
-                        format: formats::SHADOW_DEPTH,
-                        depth_write_enabled: Some(true),
-                        depth_compare: Some(wgpu::CompareFunction::Always),
-                        stencil: Default::default(),
-                        bias: Default::default(),
-                    }),
-                    targets: Vec::new(),
-                },
-            )?;
-            let copy_groups = copy.layout.bind_groups(
-                device,
-                &[("CachedShadowDepthTexture", wgpu::BindingResource::TextureView(&cached.view))],
-            )?;
-            let cache = CubeCache {
-                texture: cached,
-                copy,
-                copy_groups,
-                static_draws: vec![static_casters; 6],
-                valid: std::sync::atomic::AtomicBool::new(false),
-                rebuilds: std::sync::atomic::AtomicU32::new(0),
-            };
+            let (atlas, u) = cube_atlas(b, &perspective, &casters, tile, (li, light))?;
             setup.cubes.push((li, cubes.len(), u));
             cubes.push(atlases.len());
-            let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC
-                | wgpu::TextureUsages::COPY_DST;
-            atlases.push(Atlas {
-                step: format!("Cubemap_{}", light.name),
-                texture: Texture::new(
-                    device,
-                    &format!("ShadowDepthCube {}", light.name),
-                    formats::SHADOW_DEPTH,
-                    tile * 6,
-                    tile,
-                    usage,
-                ),
-                pipeline: perspective.clone(),
-                views,
-                cache: Some(cache),
-            });
+            atlases.push(atlas);
         }
         Ok(ShadowDepths {
             atlases,
@@ -423,84 +460,105 @@ impl ShadowDepths {
     /// Records every atlas. `casts_shadow(light)`: whether local light `light` renders its
     /// shadow views this frame (ShadowFrustumQueries); the cascades always render.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, casts_shadow: &dyn Fn(usize) -> bool) {
-        let draw_views = |pass: &mut wgpu::RenderPass<'_>,
-                          atlas: &Atlas,
-                          keep: &dyn Fn(&ShadowView) -> bool,
-                          draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>| {
-            pass.set_pipeline(&atlas.pipeline.pipeline);
-            for (i, v) in atlas.views.iter().enumerate().filter(|(_, v)| keep(v)) {
-                let [x, y, w, h] = v.viewport;
-                pass.set_viewport(x, y, w, h, 0.0, 1.0);
-                v.groups.set_render(pass);
-                for d in draws(i, v) {
-                    scene.draw(pass, &scene.draws[d]);
-                }
-            }
-        };
         for (index, atlas) in self.atlases.iter().enumerate() {
             if Some(index) == self.per_object {
-                // one tile per (stationary light, movable prop): one step per light whose
-                // shadow is not occluded, the first clearing the atlas
-                ctx.step(&atlas.step, |ctx| {
-                    let mut lights: Vec<usize> = atlas.views.iter().filter_map(|v| v.light).collect();
-                    lights.dedup();
-                    let mut cleared = false;
-                    for light in lights.into_iter().filter(|l| casts_shadow(*l)) {
-                        let name = self.light_names.get(light).map_or("", String::as_str);
-                        let load = if cleared { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(1.0) };
-                        ctx.step(&format!("PerObject_{name}"), |ctx| {
-                            let mut pass =
-                                begin(ctx, &format!("PerObject {name}"), &[], depth(&atlas.texture.view, load));
-                            draw_views(&mut pass, atlas, &|v| v.light == Some(light), &|_, v| v.draws.clone());
-                        });
-                        cleared = true;
-                    }
-                    if !cleared {
-                        // every light occluded: the atlas is only cleared
-                        begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
-                    }
-                    ctx.output(&atlas.texture.texture, Visualize::Depth);
-                });
+                ctx.step(&atlas.step, |ctx| self.record_per_object(ctx, scene, atlas, casts_shadow));
                 continue;
             }
             // a cube shadow whose light is occluded: no step at all (its cache stays valid)
             if atlas.views.first().and_then(|v| v.light).is_some_and(|l| !casts_shadow(l)) {
                 continue;
             }
-            ctx.step(&atlas.step, |ctx| {
-                let mut load = wgpu::LoadOp::Clear(1.0);
-                if let Some(cache) = &atlas.cache {
-                    if !cache.valid.swap(true, std::sync::atomic::Ordering::Relaxed) {
-                        // the static casters, rendered once into the cache
-                        let mut pass =
-                            begin(ctx, "CachedShadowDepth", &[], depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)));
-                        draw_views(&mut pass, atlas, &|_| true, &|i, _| cache.static_draws[i].clone());
-                        cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                    ctx.step("CopyCachedShadowMap", |ctx| {
-                        {
-                            let mut pass = begin(
-                                ctx,
-                                "CopyCachedShadowMap",
-                                &[],
-                                depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)),
-                            );
-                            pass.set_pipeline(&cache.copy.pipeline);
-                            cache.copy_groups.set_render(&mut pass);
-                            pass.draw(0..3, 0..1);
-                        }
-                        ctx.output(&atlas.texture.texture, Visualize::Depth);
-                    });
-                    load = wgpu::LoadOp::Load;
+            ctx.step(&atlas.step, |ctx| Self::record_atlas(ctx, scene, atlas));
+        }
+    }
+
+    /// One tile per (stationary light, movable prop): one step per light whose shadow is not
+    /// occluded, the first clearing the atlas.
+    fn record_per_object(
+        &self,
+        ctx: &mut PassContext<'_>,
+        scene: &SceneBuffers,
+        atlas: &Atlas,
+        casts_shadow: &dyn Fn(usize) -> bool,
+    ) {
+        let pl = ctx.pipelines();
+        let mut lights: Vec<usize> = atlas.views.iter().filter_map(|v| v.light).collect();
+        lights.dedup();
+        let mut cleared = false;
+        for light in lights.into_iter().filter(|l| casts_shadow(*l)) {
+            let name = self.light_names.get(light).map_or("", String::as_str);
+            let load = if cleared { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(1.0) };
+            ctx.step(&format!("PerObject_{name}"), |ctx| {
+                let mut pass = begin(ctx, &format!("PerObject {name}"), &[], depth(&atlas.texture.view, load));
+                draw_views(pl, scene, &mut pass, atlas, &|v| v.light == Some(light), &|_, v| v.draws.clone());
+            });
+            cleared = true;
+        }
+        if !cleared {
+            // every light occluded: the atlas is only cleared
+            begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
+        }
+        ctx.output(&atlas.texture.texture, Visualize::Depth);
+    }
+
+    /// The cascades, or a cube: over its cached static depth where it has one.
+    fn record_atlas(ctx: &mut PassContext<'_>, scene: &SceneBuffers, atlas: &Atlas) {
+        let pl = ctx.pipelines();
+        let mut load = wgpu::LoadOp::Clear(1.0);
+        if let Some(cache) = &atlas.cache {
+            if !cache.valid.load(std::sync::atomic::Ordering::Relaxed) {
+                // the static casters, rendered once into the cache
+                let mut pass =
+                    begin(ctx, "CachedShadowDepth", &[], depth(&cache.texture.view, wgpu::LoadOp::Clear(1.0)));
+                if draw_views(pl, scene, &mut pass, atlas, &|_| true, &|i, _| cache.static_draws[i].clone()) {
+                    cache.valid.store(true, std::sync::atomic::Ordering::Relaxed);
+                    cache.rebuilds.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 }
+            }
+            ctx.step("CopyCachedShadowMap", |ctx| {
                 {
-                    let mut pass = begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, load));
-                    draw_views(&mut pass, atlas, &|_| true, &|_, v| v.draws.clone());
+                    let mut pass =
+                        begin(ctx, "CopyCachedShadowMap", &[], depth(&atlas.texture.view, wgpu::LoadOp::Clear(1.0)));
+                    if let Some(p) = cache.copy.ready(pl) {
+                        pass.set_pipeline(&p.pipeline);
+                        cache.copy_groups.set_render(&mut pass);
+                        pass.draw(0..3, 0..1);
+                    }
                 }
                 ctx.output(&atlas.texture.texture, Visualize::Depth);
             });
+            load = wgpu::LoadOp::Load;
+        }
+        {
+            let mut pass = begin(ctx, &atlas.step, &[], depth(&atlas.texture.view, load));
+            draw_views(pl, scene, &mut pass, atlas, &|_| true, &|_, v| v.draws.clone());
+        }
+        ctx.output(&atlas.texture.texture, Visualize::Depth);
+    }
+}
+
+/// Draws the views of `atlas` that `keep` selects, each its `draws`; `false` (nothing drawn)
+/// while the atlas's pipeline is not ready.
+fn draw_views(
+    pl: FramePipelines<'_>,
+    scene: &SceneBuffers,
+    pass: &mut wgpu::RenderPass<'_>,
+    atlas: &Atlas,
+    keep: &dyn Fn(&ShadowView) -> bool,
+    draws: &dyn Fn(usize, &ShadowView) -> Vec<usize>,
+) -> bool {
+    let Some(pipeline) = atlas.pipeline.ready(pl) else { return false };
+    pass.set_pipeline(&pipeline.pipeline);
+    for (i, v) in atlas.views.iter().enumerate().filter(|(_, v)| keep(v)) {
+        let [x, y, w, h] = v.viewport;
+        pass.set_viewport(x, y, w, h, 0.0, 1.0);
+        v.groups.set_render(pass);
+        for d in draws(i, v) {
+            scene.draw(pass, &scene.draws[d]);
         }
     }
+    true
 }
 
 /// A shadow map as the pass's depth target, stored.

@@ -4,14 +4,14 @@
 //! current 3x3 neighbourhood's YCoCg box and blends the current frame in with weight
 //! [`CURRENT_WEIGHT`]. The output is the next frame's history (ping-pong pair).
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec4;
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderState};
 
 use super::frame_view::{color_pass, linear_sampler, target_2d, uniform_buffer, view, EffectPassInit};
 
@@ -39,7 +39,7 @@ struct TaaParams {
 pub struct TemporalAA {
     pub history: [wgpu::Texture; 2],
     history_views: [wgpu::TextureView; 2],
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
     params: wgpu::Buffer,
     /// groups[i] reads history 1 - i and writes history i.
     groups: [wgpu::BindGroup; 2],
@@ -103,13 +103,17 @@ impl TemporalAA {
         let params =
             TaaParams { blend: Vec4::new(CURRENT_WEIGHT, if self.history_valid { 1.0 } else { 0.0 }, 0.0, 0.0) };
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let ready = self.pipeline.ready(ctx.pipelines());
         let mut pass = color_pass(ctx, "TAA", &self.history_views[out], wgpu::LoadOp::Clear(wgpu::Color::BLACK));
-        pass.set_pipeline(&self.pipeline.pipeline);
-        pass.set_bind_group(0, &self.groups[out], &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.groups[out], &[]);
+            pass.draw(0..3, 0..1);
+            // a frame that could not resolve leaves the history as it was
+            self.history_valid = true;
+        }
         drop(pass);
         self.current = out;
-        self.history_valid = true;
         &self.history_views[out]
     }
 

@@ -9,14 +9,14 @@
 
 use std::sync::Arc;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{blended, PassContext, PassDecl, PipelineDesc, RenderSlot, VertexInput, Visualize};
 use crate::keys;
 use crate::scene::BlendMode;
 
 use super::effects::{TranslucencyLightingMode, TranslucencyVolumeInputs};
 use super::frame_view::volume_view;
 use super::light_grid::LightGrid;
-use super::pipelines::{blend, BindGroups, Render, RenderDesc, Vertices};
+use super::pipelines::{blend, BindGroups, DesktopLayout};
 use super::resources::{begin, color_attachment, formats, SceneBuffers, Targets, Texture};
 use super::shadow_depths::ShadowDepths;
 use super::{DesktopError, PassSetup};
@@ -31,8 +31,8 @@ pub const PASS: PassDecl = PassDecl {
 
 pub struct Translucency {
     /// The lit translucent surfaces: [forward shaded, lit by the volumes].
-    surfaces: Option<[(Arc<Render>, BindGroups); 2]>,
-    compose: Arc<Render>,
+    surfaces: Option<[(Arc<RenderSlot>, BindGroups); 2]>,
+    compose: Arc<RenderSlot>,
     compose_groups: BindGroups,
     /// The surfaces' `DirectionalShadow` buffers (the cascades follow the camera).
     directional_shadow: Vec<wgpu::Buffer>,
@@ -83,11 +83,11 @@ impl Translucency {
         } else {
             None
         };
-        let compose = p.render(
+        let compose = p.render(&PipelineDesc::fullscreen(
             &keys::name(keys::post_process_vs::Key {}, p.key_level()?)?,
-            Some(&keys::name(keys::compose_separate_translucency_ps::Key {}, p.key_level()?)?),
-            &RenderDesc::fullscreen(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
-        )?;
+            &keys::name(keys::compose_separate_translucency_ps::Key {}, p.key_level()?)?,
+            blended(formats::SCENE_COLOR, Some(blend::TRANSMITTANCE)),
+        ))?;
         let compose_groups = compose.layout.bind_groups(
             b.device,
             &[("SeparateTranslucencyTexture", wgpu::BindingResource::TextureView(&t.translucency.view))],
@@ -110,38 +110,38 @@ impl Translucency {
         mode: TranslucencyLightingMode,
         shadows: &ShadowDepths,
         resources: &[(&str, wgpu::BindingResource<'_>)],
-    ) -> Result<((Arc<Render>, BindGroups), wgpu::Buffer), DesktopError> {
+    ) -> Result<((Arc<RenderSlot>, BindGroups), wgpu::Buffer), DesktopError> {
         let (p, t) = (b.pipelines, b.targets);
-        let pipeline = p.render(
-            &keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?,
-            Some(&keys::name(
-                keys::deferred_base_pass_ps::Key {
-                    material_blend_mode: keys::deferred_base_pass_ps::MaterialBlendMode::Translucent,
-                    material_shadingmodel: keys::deferred_base_pass_ps::MaterialShadingmodel::DefaultLit,
-                    translucency_lighting_mode: match mode {
-                        TranslucencyLightingMode::SurfaceForwardShading => {
-                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceForwardShading
-                        }
-                        TranslucencyLightingMode::SurfaceLightingVolume => {
-                            keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceLightingVolume
-                        }
+        let pipeline = p.render(&PipelineDesc {
+            cull_mode: Some(wgpu::Face::Back),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: t.scene_depth.format,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            targets: vec![blended(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
+            ..PipelineDesc::new(
+                &keys::name(keys::deferred_base_pass_vs::Key {}, p.key_level()?)?,
+                Some(&keys::name(
+                    keys::deferred_base_pass_ps::Key {
+                        material_blend_mode: keys::deferred_base_pass_ps::MaterialBlendMode::Translucent,
+                        material_shadingmodel: keys::deferred_base_pass_ps::MaterialShadingmodel::DefaultLit,
+                        translucency_lighting_mode: match mode {
+                            TranslucencyLightingMode::SurfaceForwardShading => {
+                                keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceForwardShading
+                            }
+                            TranslucencyLightingMode::SurfaceLightingVolume => {
+                                keys::deferred_base_pass_ps::TranslucencyLightingMode::SurfaceLightingVolume
+                            }
+                        },
                     },
-                },
-                p.key_level()?,
-            )?),
-            &RenderDesc {
-                vertices: Vertices::Mesh,
-                cull: Some(wgpu::Face::Back),
-                depth_stencil: Some(wgpu::DepthStencilState {
-                    format: t.scene_depth.format,
-                    depth_write_enabled: Some(false),
-                    depth_compare: Some(wgpu::CompareFunction::GreaterEqual),
-                    stencil: wgpu::StencilState::default(),
-                    bias: wgpu::DepthBiasState::default(),
-                }),
-                targets: vec![(formats::TRANSLUCENCY, Some(blend::TRANSLUCENT))],
-            },
-        )?;
+                    p.key_level()?,
+                )?),
+                VertexInput::Mesh,
+            )
+        })?;
         let directional = uniform_buffer(b.device, "DirectionalShadow", &shadows.setup.cascaded.unwrap_or_default());
         let mut resources = resources.to_vec();
         resources.push(("DirectionalShadow", directional.as_entire_binding()));
@@ -154,6 +154,7 @@ impl Translucency {
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &SceneBuffers, t: &Targets, mode: TranslucencyLightingMode) {
         ctx.step("SeparateTranslucency", |ctx| {
             {
+                let pl = ctx.pipelines();
                 let mut pass = begin(
                     ctx,
                     "SeparateTranslucency",
@@ -167,10 +168,12 @@ impl Translucency {
                 if let Some(surfaces) = &self.surfaces {
                     let (pipeline, groups) =
                         &surfaces[usize::from(mode == TranslucencyLightingMode::SurfaceLightingVolume)];
-                    pass.set_pipeline(&pipeline.pipeline);
-                    groups.set_render(&mut pass);
-                    for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
-                        scene.draw(&mut pass, draw);
+                    if let Some(p) = pipeline.ready(pl) {
+                        pass.set_pipeline(&p.pipeline);
+                        groups.set_render(&mut pass);
+                        for draw in scene.draws.iter().filter(|d| d.blend == BlendMode::Translucent) {
+                            scene.draw(&mut pass, draw);
+                        }
                     }
                 }
             }
@@ -178,11 +181,14 @@ impl Translucency {
         });
         ctx.step("ComposeSeparateTranslucency", |ctx| {
             {
+                let ready = self.compose.ready(ctx.pipelines());
                 let mut pass =
                     begin(ctx, "ComposeSeparateTranslucency", &[color_attachment(&t.scene_color.view, None)], None);
-                pass.set_pipeline(&self.compose.pipeline);
-                self.compose_groups.set_render(&mut pass);
-                pass.draw(0..3, 0..1);
+                if let Some(p) = ready {
+                    pass.set_pipeline(&p.pipeline);
+                    self.compose_groups.set_render(&mut pass);
+                    pass.draw(0..3, 0..1);
+                }
             }
             ctx.output(&t.scene_color.texture, Visualize::Hdr);
         });

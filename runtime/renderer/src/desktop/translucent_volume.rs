@@ -13,14 +13,14 @@
 //! uniform buffer (`TranslucencyLightingVolumeParams` of `BasePassPixelShader.usf`) for the
 //! surfaces that read both cascades.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{ComputePipeline, PipelineError};
+use crate::pipelines::PipelineError;
 
 use super::frame_view::{groups, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit};
 use super::view::ShadowProjectionUniforms;
@@ -159,8 +159,8 @@ struct Cascade {
 
 pub struct TranslucentVolumes {
     cascades: Vec<Cascade>,
-    inject: [Arc<ComputePipeline>; 4],
-    filter: Arc<ComputePipeline>,
+    inject: [Arc<ComputeSlot>; 4],
+    filter: Arc<ComputeSlot>,
     lights: Vec<InjectedLight>,
     /// Per light: the frame's local light index whose ShadowFrustumQuery gates its shadow.
     gates: Vec<Option<usize>>,
@@ -180,6 +180,103 @@ fn read_pair(k: usize) -> usize {
         0
     } else {
         written_pair(k - 1)
+    }
+}
+
+/// What every cascade's volumes and bind groups are made from.
+struct CascadeSetup<'a> {
+    device: &'a wgpu::Device,
+    frame_view: &'a wgpu::Buffer,
+    /// The directional light's cascades.
+    shadow_atlas: &'a wgpu::TextureView,
+    shadow_sampler: wgpu::Sampler,
+    inject: &'a [Arc<ComputeSlot>; 4],
+    filter: &'a ComputeSlot,
+    lights: &'a [InjectedLight],
+    shadows: &'a [Option<LocalLightShadow<'a>>],
+    /// Per light: its own shadow's `ShadowProjection` buffer.
+    projections: &'a [Option<wgpu::Buffer>],
+}
+
+impl CascadeSetup<'_> {
+    /// Cascade `c`: its volumes, one injection per light and the filter.
+    fn cascade(&self, c: usize) -> Result<Cascade, PipelineError> {
+        let (device, size) = (self.device, [VOLUME_SIZE; 3]);
+        let names = ["Zero", "A", "B", ""];
+        let ambient: [wgpu::Texture; 4] =
+            std::array::from_fn(|i| volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT));
+        let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| {
+            volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT)
+        });
+        let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(volume_view).collect();
+        let dir_views: Vec<wgpu::TextureView> = dir.iter().map(volume_view).collect();
+        let tex = wgpu::BindingResource::TextureView;
+        let injections = (0..self.lights.len())
+            .map(|k| self.injection(c, k, &ambient_views, &dir_views))
+            .collect::<Result<Vec<_>, _>>()?;
+        let last = if self.lights.is_empty() { 0 } else { written_pair(self.lights.len() - 1) };
+        let filter_group = self.filter.layout.bind_group(
+            device,
+            0,
+            "FilterTranslucentVolume",
+            &[
+                ("in_ambient", tex(&ambient_views[last])),
+                ("in_dir", tex(&dir_views[last])),
+                ("out_ambient", tex(&ambient_views[3])),
+                ("out_dir", tex(&dir_views[3])),
+            ],
+        )?;
+        Ok(Cascade { ambient, dir, injections, filter_group })
+    }
+
+    /// Light `k`'s injection into cascade `c`: unshadowed, and through its shadow where it
+    /// has one.
+    fn injection(
+        &self,
+        c: usize,
+        k: usize,
+        ambient_views: &[wgpu::TextureView],
+        dir_views: &[wgpu::TextureView],
+    ) -> Result<Injection, PipelineError> {
+        let device = self.device;
+        let tex = wgpu::BindingResource::TextureView;
+        let params =
+            uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
+        let (r, w) = (read_pair(k), written_pair(k));
+        let mut resources = vec![
+            ("volume", params.as_entire_binding()),
+            ("prev_ambient", tex(&ambient_views[r])),
+            ("prev_dir", tex(&dir_views[r])),
+            ("out_ambient", tex(&ambient_views[w])),
+            ("out_dir", tex(&dir_views[w])),
+        ];
+        let inject = self.inject;
+        let unshadowed =
+            inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
+        let sampler = wgpu::BindingResource::Sampler(&self.shadow_sampler);
+        let local_shadow = self.shadows.get(k).and_then(Option::as_ref);
+        let shadowed = match (&self.lights[k], local_shadow, &self.projections[k]) {
+            (InjectedLight::Directional { .. }, _, _) => {
+                resources.push(("View", self.frame_view.as_entire_binding()));
+                resources.push(("shadow_atlas", tex(self.shadow_atlas)));
+                resources.push(("shadow_sampler", sampler));
+                let label = "InjectTranslucentVolume (cascaded shadow)";
+                Some((INJECT_CASCADED, inject[INJECT_CASCADED].layout.bind_group(device, 0, label, &resources)?))
+            }
+            (_, Some(s), Some(projection)) => {
+                let pipeline = match s.kind {
+                    LocalShadowProjection::PerObject => INJECT_PER_OBJECT,
+                    LocalShadowProjection::OnePassPointLight => INJECT_POINT,
+                };
+                resources.push(("shadow_atlas", tex(s.atlas)));
+                resources.push(("shadow_sampler", sampler));
+                resources.push(("ShadowProjection", projection.as_entire_binding()));
+                let label = format!("InjectTranslucentVolume ({} shadow)", s.kind.label());
+                Some((pipeline, inject[pipeline].layout.bind_group(device, 0, &label, &resources)?))
+            }
+            _ => None,
+        };
+        Ok(Injection { params, unshadowed, shadowed })
     }
 }
 
@@ -215,91 +312,24 @@ impl TranslucentVolumes {
             .collect();
         let gates = (0..lights.len()).map(|k| local_shadow(k).map(|s| s.light)).collect();
         let filter = cache.compute(&keys::name(keys::translucent_volume_filter_cs::Key {}, keys::Level::Sm5)?)?;
-        let shadow_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
-            label: Some("TranslucentVolume shadow sampler"),
-            mag_filter: wgpu::FilterMode::Linear,
-            min_filter: wgpu::FilterMode::Linear,
-            compare: Some(shadow_compare),
-            ..Default::default()
-        });
-        let size = [VOLUME_SIZE; 3];
-        let mut cascades = Vec::new();
-        for c in 0..2 {
-            let names = ["Zero", "A", "B", ""];
-            let ambient: [wgpu::Texture; 4] = std::array::from_fn(|i| {
-                volume(device, &format!("TranslucentVolume{c}{}", names[i]), size, VOLUME_FORMAT)
-            });
-            let dir: [wgpu::Texture; 4] = std::array::from_fn(|i| {
-                volume(device, &format!("TranslucentVolumeDir{c}{}", names[i]), size, VOLUME_FORMAT)
-            });
-            let ambient_views: Vec<wgpu::TextureView> = ambient.iter().map(volume_view).collect();
-            let dir_views: Vec<wgpu::TextureView> = dir.iter().map(volume_view).collect();
-            let tex = wgpu::BindingResource::TextureView;
-            let mut injections = Vec::new();
-            for (k, light) in lights.iter().enumerate() {
-                let params =
-                    uniform_buffer(device, &format!("InjectTranslucentVolume {c} light {k}"), &VolumeParams::default());
-                let (r, w) = (read_pair(k), written_pair(k));
-                let mut resources = vec![
-                    ("volume", params.as_entire_binding()),
-                    ("prev_ambient", tex(&ambient_views[r])),
-                    ("prev_dir", tex(&dir_views[r])),
-                    ("out_ambient", tex(&ambient_views[w])),
-                    ("out_dir", tex(&dir_views[w])),
-                ];
-                let unshadowed =
-                    inject[INJECT_UNSHADOWED].layout.bind_group(device, 0, "InjectTranslucentVolume", &resources)?;
-                let shadowed = match (light, local_shadow(k), &projections[k]) {
-                    (InjectedLight::Directional { .. }, _, _) => {
-                        resources.push(("View", frame_view.as_entire_binding()));
-                        resources.push(("shadow_atlas", tex(shadow_atlas)));
-                        resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
-                        Some((
-                            INJECT_CASCADED,
-                            inject[INJECT_CASCADED].layout.bind_group(
-                                device,
-                                0,
-                                "InjectTranslucentVolume (cascaded shadow)",
-                                &resources,
-                            )?,
-                        ))
-                    }
-                    (_, Some(s), Some(projection)) => {
-                        let pipeline = match s.kind {
-                            LocalShadowProjection::PerObject => INJECT_PER_OBJECT,
-                            LocalShadowProjection::OnePassPointLight => INJECT_POINT,
-                        };
-                        resources.push(("shadow_atlas", tex(s.atlas)));
-                        resources.push(("shadow_sampler", wgpu::BindingResource::Sampler(&shadow_sampler)));
-                        resources.push(("ShadowProjection", projection.as_entire_binding()));
-                        Some((
-                            pipeline,
-                            inject[pipeline].layout.bind_group(
-                                device,
-                                0,
-                                &format!("InjectTranslucentVolume ({} shadow)", s.kind.label()),
-                                &resources,
-                            )?,
-                        ))
-                    }
-                    _ => None,
-                };
-                injections.push(Injection { params, unshadowed, shadowed });
-            }
-            let last = if lights.is_empty() { 0 } else { written_pair(lights.len() - 1) };
-            let filter_group = filter.layout.bind_group(
-                device,
-                0,
-                "FilterTranslucentVolume",
-                &[
-                    ("in_ambient", tex(&ambient_views[last])),
-                    ("in_dir", tex(&dir_views[last])),
-                    ("out_ambient", tex(&ambient_views[3])),
-                    ("out_dir", tex(&dir_views[3])),
-                ],
-            )?;
-            cascades.push(Cascade { ambient, dir, injections, filter_group });
-        }
+        let setup = CascadeSetup {
+            device,
+            frame_view,
+            shadow_atlas,
+            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("TranslucentVolume shadow sampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                compare: Some(shadow_compare),
+                ..Default::default()
+            }),
+            inject: &inject,
+            filter: &filter,
+            lights: &lights,
+            shadows,
+            projections: &projections,
+        };
+        let cascades = vec![setup.cascade(0)?, setup.cascade(1)?];
         let lookup = uniform_buffer(device, "TranslucencyLightingVolume", &LookupParams::default());
         Ok(TranslucentVolumes {
             cascades,
@@ -353,6 +383,7 @@ impl TranslucentVolumes {
         let (matrices, splits, rects) = DirectionalShadow::uniforms(shadow);
         queue.write_buffer(&self.lookup, 0, bytemuck::bytes_of(&LookupParams::new(camera)));
         let n = groups(VOLUME_SIZE, 4);
+        let pl = ctx.pipelines();
         for (c, cascade) in self.cascades.iter().enumerate() {
             let (origin, cell) = Self::cascade_box(camera, c);
             let mut pass = ctx.open_compute_pass(&format!("InjectTranslucentVolume cascade {c}"));
@@ -392,7 +423,8 @@ impl TranslucentVolumes {
                     spot_angles,
                 };
                 queue.write_buffer(&injection.params, 0, bytemuck::bytes_of(&p));
-                pass.set_pipeline(&self.inject[pipeline].pipeline);
+                let Some(p) = self.inject[pipeline].ready(pl) else { continue };
+                pass.set_pipeline(&p.pipeline);
                 pass.set_bind_group(0, group, &[]);
                 pass.dispatch_workgroups(n, n, n);
             }
@@ -402,8 +434,10 @@ impl TranslucentVolumes {
     /// FilterTranslucentVolume: both cascades.
     pub fn record_filter(&self, ctx: &mut PassContext<'_>) {
         let n = groups(VOLUME_SIZE, 4);
+        let ready = self.filter.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("FilterTranslucentVolume");
-        pass.set_pipeline(&self.filter.pipeline);
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         for cascade in &self.cascades {
             pass.set_bind_group(0, &cascade.filter_group, &[]);
             pass.dispatch_workgroups(n, n, n);

@@ -4,14 +4,14 @@
 //! motion blur reproject it from depth and the camera. Depth-tested against the prepass
 //! depth (reverse-Z, greater-or-equal), no depth write.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{PassContext, PassDecl, RenderSlot, Slots};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Mat4;
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineError, RenderState};
 
 use super::frame_view::{target_2d, uniform_buffer, view, InstancedMesh, MAX_MESH_INSTANCES};
 
@@ -37,7 +37,7 @@ struct MovableMesh {
 pub struct Velocity {
     pub texture: wgpu::Texture,
     pub view: wgpu::TextureView,
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
     meshes: Vec<MovableMesh>,
 }
 
@@ -45,7 +45,7 @@ impl Velocity {
     /// `movable`: the meshes that move, each with its own instance buffer.
     pub fn new(
         device: &wgpu::Device,
-        cache: &PipelineCache,
+        cache: Slots<'_>,
         frame_view: &wgpu::Buffer,
         size: [u32; 2],
         depth_format: wgpu::TextureFormat,
@@ -97,6 +97,7 @@ impl Velocity {
             }
             queue.write_buffer(&m.previous, 0, bytemuck::bytes_of(&uniforms));
         }
+        let ready = self.pipeline.ready(ctx.pipelines());
         let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("Velocity"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -117,7 +118,8 @@ impl Velocity {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(&self.pipeline.pipeline);
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         for m in &self.meshes {
             pass.set_bind_group(0, &m.bind_group, &[]);
             m.mesh.draw(&mut pass);

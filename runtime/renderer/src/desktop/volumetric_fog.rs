@@ -8,14 +8,14 @@
 //!   result reprojected into this frame (the history volume);
 //! - FinalIntegration: front-to-back accumulation of in-scattering and transmittance.
 
-use crate::frame::{PassContext, PassDecl};
+use crate::frame::{ComputeSlot, PassContext, PassDecl, RenderSlot};
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec3, Vec4};
 
 use crate::keys;
-use crate::pipelines::{Blend, ColorTarget, ComputePipeline, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineError, RenderState};
 
 use super::frame_view::{
     groups, linear_sampler, uniform_buffer, volume, volume_view, DirectionalShadow, EffectPassInit,
@@ -113,10 +113,10 @@ pub struct VolumetricFog {
     params: wgpu::Buffer,
     /// The light grid's size and depth distribution.
     light_grid: (UVec4, Vec4),
-    init: Arc<ComputePipeline>,
-    scattering: [Arc<ComputePipeline>; 2],
-    integration: Arc<ComputePipeline>,
-    apply: Arc<RenderPipeline>,
+    init: Arc<ComputeSlot>,
+    scattering: [Arc<ComputeSlot>; 2],
+    integration: Arc<ComputeSlot>,
+    apply: Arc<RenderSlot>,
     init_group: wgpu::BindGroup,
     /// [without history writing 0, with history: reads 1 - i writes i]
     scattering_groups: [wgpu::BindGroup; 3],
@@ -312,10 +312,13 @@ impl VolumetricFog {
         self.frame = self.frame.wrapping_add(1);
         let [gx, gy, gz] = self.grid;
 
+        let ready = self.init.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("InitializeVolumeAttributes");
-        pass.set_pipeline(&self.init.pipeline);
-        pass.set_bind_group(0, &self.init_group, &[]);
-        pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.init_group, &[]);
+            pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
+        }
         self.use_history = use_history;
     }
 
@@ -330,8 +333,11 @@ impl VolumetricFog {
         } else {
             (&self.scattering[0], &self.scattering_groups[0])
         };
+        let ready = pipeline.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("LightScattering");
-        pass.set_pipeline(&pipeline.pipeline);
+        // a frame that could not scatter leaves the volumes (and the history) as they were
+        let Some(p) = ready else { return };
+        pass.set_pipeline(&p.pipeline);
         pass.set_bind_group(0, group, &[]);
         pass.dispatch_workgroups(groups(gx, 4), groups(gy, 4), groups(gz, 4));
         drop(pass);
@@ -343,17 +349,23 @@ impl VolumetricFog {
     pub fn record_final_integration(&mut self, ctx: &mut PassContext<'_>) {
         let [gx, gy, _] = self.grid;
         let out = self.current;
+        let ready = self.integration.ready(ctx.pipelines());
         let mut pass = ctx.open_compute_pass("FinalIntegration");
-        pass.set_pipeline(&self.integration.pipeline);
-        pass.set_bind_group(0, &self.integration_groups[out], &[]);
-        pass.dispatch_workgroups(groups(gx, 8), groups(gy, 8), 1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.integration_groups[out], &[]);
+            pass.dispatch_workgroups(groups(gx, 8), groups(gy, 8), 1);
+        }
     }
 
     /// Composites the integrated volume over SceneColor (after the height fog).
     pub fn apply(&self, ctx: &mut PassContext<'_>, scene_color: &wgpu::TextureView) {
+        let ready = self.apply.ready(ctx.pipelines());
         let mut pass = super::frame_view::color_pass(ctx, "VolumetricFog apply", scene_color, wgpu::LoadOp::Load);
-        pass.set_pipeline(&self.apply.pipeline);
-        pass.set_bind_group(0, &self.apply_group, &[]);
-        pass.draw(0..3, 0..1);
+        if let Some(p) = ready {
+            pass.set_pipeline(&p.pipeline);
+            pass.set_bind_group(0, &self.apply_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
     }
 }

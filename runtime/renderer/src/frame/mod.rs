@@ -11,14 +11,19 @@
 
 mod decl;
 mod image;
+mod slot;
 
 pub use decl::{FramePlan, PassDecl};
 pub use image::{Image, Visualize};
+pub use slot::{
+    additive, bind_groups, blended, premultiplied, ready_compute, ready_render, replace, untouched, ComputeSlot,
+    Creation, FramePipelines, PipelineDesc, RenderSlot, Slots, VertexInput,
+};
 
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
-use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderPipeline, RenderState};
+use crate::pipelines::{Blend, ColorTarget, PipelineCache, PipelineError, RenderState};
 
 use serde::Serialize;
 
@@ -61,27 +66,31 @@ struct PassRecord {
 /// textures to buffers (GL).
 #[derive(Clone, Debug)]
 pub struct DepthCopy {
-    pipeline: Arc<RenderPipeline>,
+    pipeline: Arc<RenderSlot>,
 }
 
 impl DepthCopy {
     pub const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
-    pub fn new(cache: &PipelineCache, level: &str) -> Result<DepthCopy, PipelineError> {
+    pub fn new(cache: &PipelineCache, level: &str, creation: Creation) -> Result<DepthCopy, PipelineError> {
         let level = crate::keys::level(level)?;
         let vs = crate::keys::name(crate::keys::screen_vs::Key {}, level)?;
         let ps = crate::keys::name(crate::keys::visualize_depth_ps::Key {}, level)?;
         let state = RenderState::fullscreen(ColorTarget::new(DepthCopy::FORMAT, Blend::Replace));
-        Ok(DepthCopy { pipeline: cache.render(&vs, Some(&ps), &state)? })
+        let key = crate::pipelines::RenderKey { vertex: vs, fragment: Some(ps), state };
+        Ok(DepthCopy { pipeline: Arc::new(RenderSlot::new(cache, key, creation)?) })
     }
 
-    /// Records the copy; returns the texture holding the depth bits.
+    /// Records the copy; returns the texture holding the depth bits (`None` while its
+    /// pipeline is not ready).
     fn record(
         &self,
+        pipelines: FramePipelines<'_>,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
         depth: &wgpu::Texture,
     ) -> Option<wgpu::Texture> {
+        let pipeline = self.pipeline.ready(pipelines)?;
         let target = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("depth capture"),
             size: depth.size(),
@@ -123,7 +132,7 @@ impl DepthCopy {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(&self.pipeline.pipeline);
+        pass.set_pipeline(&pipeline.pipeline);
         pass.set_bind_group(1, &group, &[]);
         pass.draw(0..3, 0..1);
         drop(pass);
@@ -134,8 +143,17 @@ impl DepthCopy {
 /// Queries of one frame: two per pass or step.
 const MAX_QUERIES: u32 = 256;
 
-/// Records a frame's passes into one command encoder.
-pub struct FrameRecorder {
+/// Records a frame's passes into one command encoder, asking `cache` for each pipeline as
+/// it records the draw.
+pub struct FrameRecorder<'c> {
+    recording: Recording,
+    cache: &'c PipelineCache,
+    /// The first pipeline that could not be created while recording.
+    failed: Mutex<Option<PipelineError>>,
+}
+
+/// What [`FrameRecorder`] records, apart from where pipelines come from.
+struct Recording {
     device: wgpu::Device,
     queue: wgpu::Queue,
     encoder: wgpu::CommandEncoder,
@@ -150,17 +168,60 @@ pub struct FrameRecorder {
     sync_captures: bool,
 }
 
-impl FrameRecorder {
-    /// `timestamps`: the device has `TIMESTAMP_QUERY_INSIDE_ENCODERS`. `capture`: copy
-    /// every pass output for dumping. `depth_copy`: how to capture depth where the device
-    /// cannot copy depth textures to buffers.
+impl<'c> FrameRecorder<'c> {
+    /// `cache`: where the passes' pipelines come from. `timestamps`: the device has
+    /// `TIMESTAMP_QUERY_INSIDE_ENCODERS`. `capture`: copy every pass output for dumping.
+    /// `depth_copy`: how to capture depth where the device cannot copy depth textures to
+    /// buffers.
     pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        cache: &'c PipelineCache,
+        timestamps: bool,
+        capture: bool,
+        depth_copy: Option<DepthCopy>,
+    ) -> FrameRecorder<'c> {
+        FrameRecorder {
+            recording: Recording::new(device, queue, timestamps, capture, depth_copy),
+            cache,
+            failed: Mutex::new(None),
+        }
+    }
+
+    /// Records one pass: timestamps around it, its render passes in debug groups named after
+    /// it, and its outputs.
+    pub fn pass<R>(&mut self, name: &str, record: impl FnOnce(&mut PassContext<'_>) -> R) -> R {
+        let r = &mut self.recording;
+        let start = r.timestamp();
+        let index = r.passes.len();
+        r.passes.push(PassRecord { name: name.to_string(), timestamps: None, steps: Vec::new() });
+        let pipelines = FramePipelines::new(self.cache, &self.failed);
+        let result = record(&mut PassContext { recorder: &mut self.recording, pass: index, pipelines });
+        let r = &mut self.recording;
+        let end = r.timestamp();
+        r.passes[index].timestamps = start.zip(end);
+        result
+    }
+
+    /// Submits the frame, waits for it, and reads back timings and captures. A pipeline
+    /// that could not be created while recording is an error (its draws were skipped).
+    pub fn finish(self) -> Result<Vec<PassResult>, PipelineError> {
+        let results = self.recording.finish();
+        match self.failed.into_inner().unwrap_or_else(|e| e.into_inner()) {
+            Some(e) => Err(e),
+            None => Ok(results),
+        }
+    }
+}
+
+impl Recording {
+    fn new(
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         timestamps: bool,
         capture: bool,
         depth_copy: Option<DepthCopy>,
-    ) -> FrameRecorder {
+    ) -> Recording {
         let encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let queries = timestamps.then(|| {
             device.create_query_set(&wgpu::QuerySetDescriptor {
@@ -169,7 +230,7 @@ impl FrameRecorder {
                 count: MAX_QUERIES,
             })
         });
-        FrameRecorder {
+        Recording {
             device: device.clone(),
             queue: queue.clone(),
             encoder,
@@ -201,20 +262,7 @@ impl FrameRecorder {
         Some(i)
     }
 
-    /// Records one pass: timestamps around it, its render passes in debug groups named after
-    /// it, and its outputs.
-    pub fn pass<R>(&mut self, name: &str, record: impl FnOnce(&mut PassContext<'_>) -> R) -> R {
-        let start = self.timestamp();
-        let index = self.passes.len();
-        self.passes.push(PassRecord { name: name.to_string(), timestamps: None, steps: Vec::new() });
-        let result = record(&mut PassContext { recorder: self, pass: index });
-        let end = self.timestamp();
-        self.passes[index].timestamps = start.zip(end);
-        result
-    }
-
-    /// Submits the frame, waits for it, and reads back timings and captures.
-    pub fn finish(mut self) -> Vec<PassResult> {
+    fn finish(mut self) -> Vec<PassResult> {
         let resolve = self.queries.as_ref().filter(|_| self.next_query > 0).map(|set| {
             let size = u64::from(self.next_query) * 8;
             let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -279,11 +327,18 @@ impl FrameRecorder {
 
 /// What a pass records into.
 pub struct PassContext<'a> {
-    recorder: &'a mut FrameRecorder,
+    recorder: &'a mut Recording,
     pass: usize,
+    pipelines: FramePipelines<'a>,
 }
 
-impl PassContext<'_> {
+impl<'a> PassContext<'a> {
+    /// Where the pass's pipelines come from while it records ([`RenderSlot::ready`]); a copy
+    /// that does not borrow the context, for use inside its render and compute passes.
+    pub fn pipelines(&self) -> FramePipelines<'a> {
+        self.pipelines
+    }
+
     pub fn encoder(&mut self) -> &mut wgpu::CommandEncoder {
         &mut self.recorder.encoder
     }
@@ -353,7 +408,7 @@ impl PassContext<'_> {
     pub fn step<R>(&mut self, name: &str, record: impl FnOnce(&mut PassContext<'_>) -> R) -> R {
         let start = self.recorder.timestamp();
         let outer = self.recorder.current_step.replace(name.to_string());
-        let result = record(&mut PassContext { recorder: self.recorder, pass: self.pass });
+        let result = record(&mut PassContext { recorder: self.recorder, pass: self.pass, pipelines: self.pipelines });
         self.recorder.current_step = outer;
         let end = self.recorder.timestamp();
         self.recorder.passes[self.pass].steps.push((name.to_string(), start.zip(end)));
@@ -390,7 +445,7 @@ impl PassContext<'_> {
         }
         let copied;
         let texture = match (&r.depth_copy, texture.format().is_depth_stencil_format()) {
-            (Some(copy), true) => match copy.record(&r.device, &mut r.encoder, texture) {
+            (Some(copy), true) => match copy.record(self.pipelines, &r.device, &mut r.encoder, texture) {
                 Some(t) => {
                     copied = t;
                     &copied

@@ -9,13 +9,13 @@
 use crate::gpu::BufferInit;
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{replace, untouched, FramePipelines, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::BlendMode;
 
-use super::pipeline::{replace, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::shadows::DepthPassUniforms;
 use super::{
     MobileOptions, MobileTargets, ShadingPath, SharedResources, DEFERRED_DEPTH_FORMAT, FORWARD_DEPTH_FORMAT,
@@ -121,7 +121,7 @@ impl PrePass {
         shared: &SharedResources,
     ) -> Result<PrePass, PipelineError> {
         let vs = keys::name(keys::mobile_pre_pass_vs::Key {}, LEVEL)?;
-        let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
+        let mut desc = PipelineDesc::new(&vs, None, VertexInput::MeshInstanced);
         desc.cull_mode = Some(wgpu::Face::Back);
         desc.sample_count = targets.samples;
         desc.depth_stencil = Some(wgpu::DepthStencilState {
@@ -151,6 +151,7 @@ impl PrePass {
 
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets) {
         let stencil = targets.scene_depth.texture.format().has_stencil_aspect();
+        let pl = ctx.pipelines();
         {
             ctx.render_pass(
                 &wgpu::RenderPassDescriptor {
@@ -170,9 +171,10 @@ impl PrePass {
                     multiview_mask: None,
                 },
                 |pass| {
-                    self.draw.bind(pass);
-                    for &i in &self.objects {
-                        scene.draw(pass, &scene.objects[i]);
+                    if self.draw.bind(pl, pass) {
+                        for &i in &self.objects {
+                            scene.draw(pass, &scene.objects[i]);
+                        }
                     }
                 },
             );
@@ -239,7 +241,7 @@ impl BasePass {
                 continue;
             }
             let ps = base_pass_ps(options, material, forward, csm)?;
-            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::MeshInstanced);
+            let mut desc = PipelineDesc::new(&vs, Some(&ps), VertexInput::MeshInstanced);
             desc.cull_mode = if material.blend == BlendMode::Masked { None } else { Some(wgpu::Face::Back) };
             desc.depth_stencil = Some(depth_stencil(true, true));
             desc.targets = formats.iter().map(|f| replace(*f)).collect();
@@ -256,7 +258,7 @@ impl BasePass {
         }
         let sky_vs = keys::name(keys::mobile_sky_vs::Key {}, LEVEL)?;
         let sky_ps = keys::name(keys::mobile_sky_ps::Key { output_gamma_space: !options.hdr }, LEVEL)?;
-        let mut desc = PipelineDesc::new(sky_vs, Some(sky_ps), VertexInput::None);
+        let mut desc = PipelineDesc::new(&sky_vs, Some(&sky_ps), VertexInput::None);
         desc.depth_stencil = Some(depth_stencil(false, false));
         desc.targets =
             formats.iter().enumerate().map(|(i, f)| if i == 0 { replace(*f) } else { untouched(*f) }).collect();
@@ -278,8 +280,53 @@ impl BasePass {
         prepass: bool,
         keep_for_translucency: bool,
     ) {
-        let clear = wgpu::Color::BLACK;
         let deferred = self.path == ShadingPath::Deferred;
+        let colors = Self::color_attachments(targets, deferred, keep_for_translucency);
+        let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
+        let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
+        let pl = ctx.pipelines();
+        {
+            ctx.render_pass(
+                &wgpu::RenderPassDescriptor {
+                    label: Some("BasePass"),
+                    color_attachments: &colors,
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &targets.scene_depth.view,
+                        depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
+                        stencil_ops: deferred.then_some(wgpu::Operations {
+                            load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
+                            store: wgpu::StoreOp::Store,
+                        }),
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                },
+                |pass| self.draw(pl, pass, scene, deferred),
+            );
+        }
+        let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
+        ctx.output(&targets.scene_color.texture, vis);
+        // Forward depth survives the pass only when Translucency needs it, and only a
+        // single-sampled one can be read back.
+        if !deferred && targets.samples == 1 && depth_store == wgpu::StoreOp::Store {
+            ctx.output_named("SceneDepth", &targets.scene_depth.texture, Visualize::Depth);
+        }
+        if deferred {
+            for g in [&targets.gbuffer_a, &targets.gbuffer_b, &targets.gbuffer_c].into_iter().flatten() {
+                ctx.output_named(g.name, &g.texture, Visualize::Direct);
+            }
+        }
+    }
+
+    /// SceneColor (resolved here unless Translucency needs the samples) and, deferred, the
+    /// GBuffer.
+    fn color_attachments(
+        targets: &MobileTargets,
+        deferred: bool,
+        keep_for_translucency: bool,
+    ) -> Vec<Option<wgpu::RenderPassColorAttachment<'_>>> {
+        let clear = wgpu::Color::BLACK;
         let color_store = if targets.scene_color_msaa.is_some() && !keep_for_translucency {
             wgpu::StoreOp::Discard
         } else {
@@ -305,49 +352,22 @@ impl BasePass {
                 }));
             }
         }
-        let depth_load = if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0.0) };
-        let depth_store = if deferred || keep_for_translucency { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard };
-        {
-            ctx.render_pass(
-                &wgpu::RenderPassDescriptor {
-                    label: Some("BasePass"),
-                    color_attachments: &colors,
-                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                        view: &targets.scene_depth.view,
-                        depth_ops: Some(wgpu::Operations { load: depth_load, store: depth_store }),
-                        stencil_ops: deferred.then_some(wgpu::Operations {
-                            load: if prepass { wgpu::LoadOp::Load } else { wgpu::LoadOp::Clear(0) },
-                            store: wgpu::StoreOp::Store,
-                        }),
-                    }),
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                },
-                |pass| {
-                    for o in &self.objects {
-                        o.draw.bind(pass);
-                        if deferred {
-                            pass.set_stencil_reference(o.stencil_ref);
-                        }
-                        scene.draw(pass, &scene.objects[o.object]);
-                    }
-                    self.sky.bind(pass);
-                    pass.draw(0..3, 0..1);
-                },
-            );
-        }
-        let vis = if self.hdr { Visualize::Hdr } else { Visualize::Direct };
-        ctx.output(&targets.scene_color.texture, vis);
-        // Forward depth survives the pass only when Translucency needs it, and only a
-        // single-sampled one can be read back.
-        if !deferred && targets.samples == 1 && depth_store == wgpu::StoreOp::Store {
-            ctx.output_named("SceneDepth", &targets.scene_depth.texture, Visualize::Depth);
-        }
-        if deferred {
-            for g in [&targets.gbuffer_a, &targets.gbuffer_b, &targets.gbuffer_c].into_iter().flatten() {
-                ctx.output_named(g.name, &g.texture, Visualize::Direct);
+        colors
+    }
+
+    /// The objects (each with its shading model's stencil when deferred), then the sky.
+    fn draw(&self, pl: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, scene: &GpuScene, deferred: bool) {
+        for o in &self.objects {
+            if !o.draw.bind(pl, pass) {
+                continue;
             }
+            if deferred {
+                pass.set_stencil_reference(o.stencil_ref);
+            }
+            scene.draw(pass, &scene.objects[o.object]);
+        }
+        if self.sky.bind(pl, pass) {
+            pass.draw(0..3, 0..1);
         }
     }
 }

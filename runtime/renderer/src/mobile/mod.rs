@@ -43,7 +43,8 @@ use crate::pipelines::{PipelineCache, PipelineError};
 use crate::scene::gpu::GpuScene;
 use crate::scene::Scene;
 
-pub use pipeline::{MobilePipeline, MobilePipelines, PipelineDesc, VertexInput};
+pub use crate::frame::{PipelineDesc, VertexInput};
+pub use pipeline::MobilePipelines;
 pub use shadows::{cascade_splits, ShadowLayout};
 pub use sky::{f32_to_f16, procedural_sky};
 pub use uniforms::LocalLight;
@@ -127,6 +128,8 @@ pub struct MobileOptions {
     pub translucency: bool,
     /// Local lights of the scene to use, in scene order (points, then spots); `None`: all.
     pub local_light_limit: Option<usize>,
+    /// When the passes' pipelines are created (eagerly, when the frame is built, by default).
+    pub pipelines: crate::frame::Creation,
 }
 
 impl Default for MobileOptions {
@@ -148,6 +151,7 @@ impl Default for MobileOptions {
             bloom: true,
             translucency: true,
             local_light_limit: None,
+            pipelines: crate::frame::Creation::Eager,
         }
     }
 }
@@ -298,6 +302,38 @@ pub struct SharedResources {
 }
 
 impl SharedResources {
+    /// The `View` buffer of `view`, the samplers and the reflection captures.
+    fn new(
+        device: &wgpu::Device,
+        view: &crate::scene::view::SceneView,
+        cascades: usize,
+        captures: sky::Captures,
+    ) -> SharedResources {
+        SharedResources {
+            view_proj: view.view_proj,
+            cascades,
+            view: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("View"),
+                contents: bytemuck::bytes_of(view),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            }),
+            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("ShadowSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                compare: Some(wgpu::CompareFunction::GreaterEqual),
+                ..Default::default()
+            }),
+            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("LinearSampler"),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
+                ..Default::default()
+            }),
+            captures,
+        }
+    }
+
     /// Group 0 of the lit shaders: `View`, the shadow atlas and the reflection captures.
     pub fn view_resources<'a>(&'a self, targets: &'a MobileTargets) -> Vec<(&'static str, wgpu::BindingResource<'a>)> {
         let c = &self.captures;
@@ -364,30 +400,8 @@ impl MobileFrame {
             uniforms::forward_lights(&local_lights, scene.camera.position, options.max_dynamic_point_lights as usize);
         let captures = sky::Captures::new(device, &gpu.queue, scene);
         let view = uniforms::view_uniforms(scene, &options, size, &shadow_layout, &forward_lights, &captures);
-        let shared = SharedResources {
-            view_proj: view.view_proj,
-            cascades: shadow_layout.cascades.len(),
-            view: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("View"),
-                contents: bytemuck::bytes_of(&view),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            }),
-            shadow_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("ShadowSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                compare: Some(wgpu::CompareFunction::GreaterEqual),
-                ..Default::default()
-            }),
-            linear_sampler: device.create_sampler(&wgpu::SamplerDescriptor {
-                label: Some("LinearSampler"),
-                mag_filter: wgpu::FilterMode::Linear,
-                min_filter: wgpu::FilterMode::Linear,
-                ..Default::default()
-            }),
-            captures,
-        };
-        let pipelines = MobilePipelines::new(cache, device);
+        let shared = SharedResources::new(device, &view, shadow_layout.cascades.len(), captures);
+        let pipelines = MobilePipelines::new(cache, device, options.pipelines);
         let shadow_depths = shadows::ShadowDepths::new(&pipelines, gpu_scene, &shadow_layout)?;
         let prepass = if options.full_prepass {
             Some(base_pass::PrePass::new(&pipelines, gpu_scene, &options, &targets, &shared)?)
@@ -428,7 +442,8 @@ impl MobileFrame {
         })
     }
 
-    /// How many distinct pipelines the frame built (all before its first frame).
+    /// How many distinct pipelines the frame uses (all created before its first frame unless
+    /// it was built with [`crate::frame::Creation::Lazy`]).
     pub fn pipeline_count(&self) -> usize {
         self.pipelines_built
     }
@@ -470,7 +485,7 @@ impl MobileFrame {
     }
 
     /// Records the frame's passes, in the seed's order.
-    pub fn record(&self, recorder: &mut FrameRecorder, scene: &GpuScene) {
+    pub fn record(&self, recorder: &mut FrameRecorder<'_>, scene: &GpuScene) {
         let t = &self.targets;
         recorder.pass(shadows::PASS.name, |ctx| self.shadow_depths.record(ctx, scene, &t.shadow_atlas));
         if let Some(prepass) = &self.prepass {
@@ -564,11 +579,12 @@ pub fn render(
     capture: bool,
 ) -> Result<(Vec<PassResult>, Image), PipelineError> {
     let MobileContext { gpu, cache, gpu_scene, .. } = *context;
+    let creation = options.pipelines;
     let frame = MobileFrame::new(context, options, size)?;
-    let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL)?) };
-    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, gpu.timestamps, capture, depth_copy);
+    let depth_copy = if gpu.depth_copies { None } else { Some(crate::frame::DepthCopy::new(cache, LEVEL, creation)?) };
+    let mut recorder = FrameRecorder::new(&gpu.device, &gpu.queue, cache, gpu.timestamps, capture, depth_copy);
     frame.record(&mut recorder, gpu_scene);
-    let passes = recorder.finish();
+    let passes = recorder.finish()?;
     let image = frame.read_output(&gpu.device, &gpu.queue);
     Ok((passes, image))
 }

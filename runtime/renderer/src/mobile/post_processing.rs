@@ -6,11 +6,11 @@
 use crate::gpu::BufferInit;
 use glam::Vec4;
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{replace, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 
-use super::pipeline::{replace, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::uniforms::{BloomUniforms, TonemapUniforms};
 use super::{target, MobileOptions, MobileTargets, SharedResources, Target, OUTPUT_FORMAT, SCENE_COLOR_FORMAT};
 
@@ -55,6 +55,60 @@ fn level_size(width: u32, height: u32, level: usize) -> (u32, u32) {
     ((width >> (level + 1)).max(1), (height >> (level + 1)).max(1))
 }
 
+const LEVEL: keys::Level = keys::Level::Es31;
+
+/// The bloom levels: down to a sixteenth, then back up to a half.
+fn bloom_targets(device: &wgpu::Device, w: u32, h: u32) -> Vec<Target> {
+    const NAMES: [&str; 4] = ["BloomHalf", "BloomQuarter", "BloomEighth", "BloomSixteenth"];
+    const UP_NAMES: [&str; 3] = ["BloomUpEighth", "BloomUpQuarter", "BloomUpHalf"];
+    let mut targets = Vec::new();
+    for (level, name) in NAMES.iter().enumerate() {
+        targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
+    }
+    for (i, name) in UP_NAMES.iter().enumerate() {
+        targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, BLOOM_LEVELS - 2 - i), 1));
+    }
+    targets
+}
+
+/// The bloom steps in order: setup, down, then up (each adding the finer level).
+fn bloom_plan(w: u32, h: u32) -> Result<Vec<BloomStep>, PipelineError> {
+    let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
+    let mut plan = vec![BloomStep {
+        name: "BloomSetup".into(),
+        shader: keys::name(keys::mobile_bloom_setup_ps::Key {}, LEVEL)?,
+        input: SCENE_COLOR_INPUT,
+        additive: None,
+        output: 0,
+        uniforms: BloomUniforms { texel: texel((w, h)), params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) },
+    }];
+    for level in 1..BLOOM_LEVELS {
+        let src = level_size(w, h, level - 1);
+        plan.push(BloomStep {
+            name: format!("BloomDown{level}"),
+            shader: keys::name(keys::mobile_bloom_down_ps::Key {}, LEVEL)?,
+            input: level - 1,
+            additive: None,
+            output: level,
+            uniforms: BloomUniforms { texel: texel(src), params: Vec4::ZERO },
+        });
+    }
+    for i in 0..BLOOM_LEVELS - 1 {
+        let input = if i == 0 { BLOOM_LEVELS - 1 } else { BLOOM_LEVELS + i - 1 };
+        let fine = BLOOM_LEVELS - 2 - i;
+        let coarse = if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
+        plan.push(BloomStep {
+            name: format!("BloomUp{}", i + 1),
+            shader: keys::name(keys::mobile_bloom_up_ps::Key {}, LEVEL)?,
+            input,
+            additive: Some(fine),
+            output: BLOOM_LEVELS + i,
+            uniforms: BloomUniforms { texel: texel(coarse), params: Vec4::new(0.0, 0.5, 0.5, 0.0) },
+        });
+    }
+    Ok(plan)
+}
+
 impl PostProcessing {
     pub fn new(
         pipelines: &MobilePipelines<'_>,
@@ -63,15 +117,13 @@ impl PostProcessing {
         shared: &SharedResources,
     ) -> Result<PostProcessing, PipelineError> {
         let device = pipelines.device;
-        const LEVEL: keys::Level = keys::Level::Es31;
         let vs = keys::name(keys::mobile_fullscreen_vs::Key {}, LEVEL)?;
         let fullscreen = |ps: String, format| -> Result<_, PipelineError> {
-            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::None);
+            let mut desc = PipelineDesc::new(&vs, Some(&ps), VertexInput::None);
             desc.targets = vec![replace(format)];
             pipelines.get(&desc)
         };
         let (w, h) = (targets.width, targets.height);
-        let mut bloom_targets = Vec::new();
         let mut steps = Vec::new();
         let mut buffers = Vec::new();
         let sampler = wgpu::BindingResource::Sampler(&shared.linear_sampler);
@@ -82,51 +134,8 @@ impl PostProcessing {
                 usage: wgpu::BufferUsages::UNIFORM,
             })
         };
-        const NAMES: [&str; 4] = ["BloomHalf", "BloomQuarter", "BloomEighth", "BloomSixteenth"];
-        const UP_NAMES: [&str; 3] = ["BloomUpEighth", "BloomUpQuarter", "BloomUpHalf"];
-        let mut plan: Vec<BloomStep> = Vec::new();
-        if options.bloom {
-            for (level, name) in NAMES.iter().enumerate() {
-                bloom_targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, level), 1));
-            }
-            for (i, name) in UP_NAMES.iter().enumerate() {
-                bloom_targets.push(target(device, name, SCENE_COLOR_FORMAT, level_size(w, h, BLOOM_LEVELS - 2 - i), 1));
-            }
-            let texel = |(x, y): (u32, u32)| Vec4::new(1.0 / x as f32, 1.0 / y as f32, 0.0, 0.0);
-            plan.push(BloomStep {
-                name: "BloomSetup".into(),
-                shader: keys::name(keys::mobile_bloom_setup_ps::Key {}, LEVEL)?,
-                input: SCENE_COLOR_INPUT,
-                additive: None,
-                output: 0,
-                uniforms: BloomUniforms { texel: texel((w, h)), params: Vec4::new(BLOOM_THRESHOLD, 0.0, 0.0, 0.0) },
-            });
-            for level in 1..BLOOM_LEVELS {
-                let src = level_size(w, h, level - 1);
-                plan.push(BloomStep {
-                    name: format!("BloomDown{level}"),
-                    shader: keys::name(keys::mobile_bloom_down_ps::Key {}, LEVEL)?,
-                    input: level - 1,
-                    additive: None,
-                    output: level,
-                    uniforms: BloomUniforms { texel: texel(src), params: Vec4::ZERO },
-                });
-            }
-            for i in 0..BLOOM_LEVELS - 1 {
-                let input = if i == 0 { BLOOM_LEVELS - 1 } else { BLOOM_LEVELS + i - 1 };
-                let fine = BLOOM_LEVELS - 2 - i;
-                let coarse =
-                    if i == 0 { level_size(w, h, BLOOM_LEVELS - 1) } else { level_size(w, h, BLOOM_LEVELS - 1 - i) };
-                plan.push(BloomStep {
-                    name: format!("BloomUp{}", i + 1),
-                    shader: keys::name(keys::mobile_bloom_up_ps::Key {}, LEVEL)?,
-                    input,
-                    additive: Some(fine),
-                    output: BLOOM_LEVELS + i,
-                    uniforms: BloomUniforms { texel: texel(coarse), params: Vec4::new(0.0, 0.5, 0.5, 0.0) },
-                });
-            }
-        }
+        let (bloom_targets, plan) =
+            if options.bloom { (bloom_targets(device, w, h), bloom_plan(w, h)?) } else { (Vec::new(), Vec::new()) };
         let scene_color = wgpu::BindingResource::TextureView(&targets.scene_color.view);
         let view_of = |i: usize| {
             if i == SCENE_COLOR_INPUT {
@@ -172,6 +181,7 @@ impl PostProcessing {
     }
 
     fn fullscreen_pass(ctx: &mut PassContext<'_>, label: &str, target: &Target, draw: &Draw) {
+        let pl = ctx.pipelines();
         ctx.render_pass(
             &wgpu::RenderPassDescriptor {
                 label: Some(label),
@@ -190,8 +200,9 @@ impl PostProcessing {
                 multiview_mask: None,
             },
             |pass| {
-                draw.bind(pass);
-                pass.draw(0..3, 0..1);
+                if draw.bind(pl, pass) {
+                    pass.draw(0..3, 0..1);
+                }
             },
         );
     }

@@ -13,14 +13,14 @@ use glam::camera::rh::proj::directx::{orthographic, perspective};
 use glam::camera::rh::view::look_at_mat4;
 use glam::{Mat4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::keys;
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::view::MAX_CASCADES;
 use crate::scene::{BlendMode, Camera, Scene};
 
-use super::pipeline::{Draw, MobilePipelines, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::{MobileOptions, Target, SHADOW_ATLAS_FORMAT};
 
 /// The ShadowDepths pass: CSM cascades and spot shadows into one atlas.
@@ -211,7 +211,7 @@ impl ShadowDepths {
         layout: &ShadowLayout,
     ) -> Result<ShadowDepths, PipelineError> {
         let vs = keys::name(keys::mobile_shadow_depth_vs::Key {}, keys::Level::Es31)?;
-        let mut desc = PipelineDesc::new(vs, None, VertexInput::MeshInstanced);
+        let mut desc = PipelineDesc::new(&vs, None, VertexInput::MeshInstanced);
         desc.depth_stencil = Some(wgpu::DepthStencilState {
             format: SHADOW_ATLAS_FORMAT,
             depth_write_enabled: Some(true),
@@ -249,6 +249,7 @@ impl ShadowDepths {
 
     /// Writes (clears) the atlas.
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, atlas: &Target) {
+        let pl = ctx.pipelines();
         {
             ctx.render_pass(
                 &wgpu::RenderPassDescriptor {
@@ -276,7 +277,9 @@ impl ShadowDepths {
                             0.0,
                             1.0,
                         );
-                        draw.bind(pass);
+                        if !draw.bind(pl, pass) {
+                            continue;
+                        }
                         for &i in &self.casters {
                             scene.draw(pass, &scene.objects[i]);
                         }

@@ -3,13 +3,13 @@
 //! forward frame with MSAA this pass resolves the multisampled color at its end and stores
 //! nothing multisampled; the depth is tested, never written, and discarded at the end.
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{premultiplied, untouched, PassContext, PassDecl, PipelineDesc, VertexInput, Visualize};
 use crate::pipelines::PipelineError;
 use crate::scene::gpu::GpuScene;
 use crate::scene::{BlendMode, Scene};
 
 use super::base_pass::{base_pass_formats, base_pass_ps, base_pass_vs, depth_format};
-use super::pipeline::{premultiplied, untouched, Draw, MobilePipelines, PipelineDesc, VertexInput};
+use super::pipeline::{Draw, MobilePipelines};
 use super::{MobileOptions, MobileTargets, ShadingPath, SharedResources};
 
 /// Blends over SceneColor, tested against the depth.
@@ -65,7 +65,7 @@ impl Translucency {
             let object = &gpu_scene.objects[i];
             let material = gpu_scene.material(object);
             let ps = base_pass_ps(&options_lit, material, true, shared.cascades > 0)?;
-            let mut desc = PipelineDesc::new(vs.clone(), Some(ps), VertexInput::MeshInstanced);
+            let mut desc = PipelineDesc::new(&vs, Some(&ps), VertexInput::MeshInstanced);
             desc.cull_mode = Some(wgpu::Face::Back);
             desc.depth_stencil = Some(wgpu::DepthStencilState {
                 format: depth_format(options),
@@ -90,6 +90,7 @@ impl Translucency {
     pub fn record(&self, ctx: &mut PassContext<'_>, scene: &GpuScene, targets: &MobileTargets) {
         let msaa = targets.scene_color_msaa.is_some();
         let stencil = self.path == ShadingPath::Deferred;
+        let pl = ctx.pipelines();
         {
             ctx.render_pass(
                 &wgpu::RenderPassDescriptor {
@@ -116,8 +117,9 @@ impl Translucency {
                 },
                 |pass| {
                     for (i, draw) in &self.draws {
-                        draw.bind(pass);
-                        scene.draw(pass, &scene.objects[*i]);
+                        if draw.bind(pl, pass) {
+                            scene.draw(pass, &scene.objects[*i]);
+                        }
                     }
                 },
             );

@@ -1,8 +1,10 @@
 //! The renderer's own passes and targets: the one particle system ([`particles`], which the
 //! desktop frame builds and records) and the output target; the frames themselves are
-//! `crate::desktop` and `crate::mobile`. A pass is a struct built once (pipelines, bind
-//! groups, uniform buffers) and a `record` that says what it reads and writes. Building a pass
-//! creates every pipeline it will use (the warm-up); recording never creates pipelines.
+//! `crate::desktop` and `crate::mobile`. A pass is a struct built once (pipeline slots, bind
+//! groups, uniform buffers) and a `record` that says what it reads and writes. A slot
+//! ([`crate::frame::RenderSlot`]) holds a pipeline's key and layout; building a pass creates
+//! its pipelines unless the frame is built with [`crate::frame::Creation::Lazy`], and
+//! recording asks for each when it draws.
 //!
 //! Adding a pass:
 //! 1. Write its shaders in `shader_src/` and declare them in `permutations.toml` (the build
@@ -11,9 +13,9 @@
 //!    desktop effects' `EffectPassInit`, the particles' [`particles::ParticlesInit`], the
 //!    desktop frame's `Build`) and returns `Result<_, PipelineError>`: name permutations with
 //!    the typed keys (`keys::name(keys::shadow_projection_ps::Key { .. }, level)`), get
-//!    pipelines from the one pipeline cache with `cache.render(vs, Some(ps), &RenderState::...)`
-//!    (or `.compute(cs)`) and build bind groups by resource name with
-//!    `pipeline.layout.bind_group(device, group, label, &[("SceneColorTexture", ...)])`: the
+//!    pipeline slots with `slots.render(vs, Some(ps), &RenderState::...)` or the frames'
+//!    `PipelineDesc` (or `.compute(cs)`) and build bind groups by resource name with
+//!    `slot.layout.bind_group(device, group, label, &[("SceneColorTexture", ...)])`: the
 //!    reflection says which binding each name is. Uniforms are `#[repr(C)]` Pod structs.
 //! 3. Declare what it reads and writes: `pub const PASS: PassDecl = PassDecl { name:
 //!    "Velocity", reads: &["Scene", "View", "SceneDepth"], writes: &["Velocity"] }` (a step
@@ -25,7 +27,9 @@
 //!    value (its group is popped when it drops); copies and clears use `ctx.encoder()`. Wrap
 //!    named steps in `ctx.step(STEP.name, |ctx| ...)`, and declare what was written with
 //!    `ctx.output(&texture, Visualize::Hdr)` / `ctx.output_named("GBufferA", ...)`: that is
-//!    what `--dump-passes` writes and what the timings cover.
+//!    what `--dump-passes` writes and what the timings cover. Ask for each pipeline where
+//!    the draw is recorded, before opening the pass that uses it (`let ready =
+//!    slot.ready(ctx.pipelines())`), and skip the draw when it is `None`.
 //! 5. Build it where its frame builds its passes, record it in frame order under its
 //!    declaration's name (`frame.pass(velocity::PASS.name, |ctx| pass.record(ctx, ...))`, or
 //!    a step of a frame's pass), and add the declaration to the frame's plan

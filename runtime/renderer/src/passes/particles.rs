@@ -19,13 +19,10 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 use glam::{UVec4, Vec3, Vec4};
 
-use crate::frame::{PassContext, PassDecl, Visualize};
+use crate::frame::{ComputeSlot, FramePipelines, PassContext, PassDecl, RenderSlot, Slots, Visualize};
 use crate::gpu_types::uniform_buffer;
 use crate::keys;
-use crate::pipelines::{
-    Blend, ColorTarget, ComputePipeline, DepthState, PipelineCache, PipelineError, RenderPipeline, RenderState,
-    VertexLayout,
-};
+use crate::pipelines::{Blend, ColorTarget, DepthState, PipelineCache, PipelineError, RenderState, VertexLayout};
 use crate::scene::ParticleEmitter;
 
 /// The ParticleSimulation pass at the start of the frame (the emitters that do not collide).
@@ -225,7 +222,7 @@ pub struct ParticlesInit<'a> {
     pub device: &'a wgpu::Device,
     /// Submits the prewarm steps.
     pub queue: &'a wgpu::Queue,
-    pub cache: &'a PipelineCache,
+    pub cache: Slots<'a>,
     /// The frame's `SceneView` buffer (`View`).
     pub view: &'a wgpu::Buffer,
     pub collision: CollisionInputs<'a>,
@@ -239,12 +236,12 @@ pub struct Particles {
     emitters: Vec<Emitter>,
     frame: u32,
     /// [without collision, with collision]
-    simulation: [Arc<ComputePipeline>; 2],
+    simulation: [Arc<ComputeSlot>; 2],
     /// The sprites over the frame's colour target (depth tested), the same over the `Fire`
     /// step's picture (no depth), and the heat haze into RG16F offsets.
-    sprite_pipeline: Arc<RenderPipeline>,
-    preview_pipeline: Arc<RenderPipeline>,
-    distortion_pipeline: Arc<RenderPipeline>,
+    sprite_pipeline: Arc<RenderSlot>,
+    preview_pipeline: Arc<RenderSlot>,
+    distortion_pipeline: Arc<RenderSlot>,
     /// The `Fire` step's picture: the emitters simulated at the start of the frame, alone
     /// over black.
     preview: (wgpu::Texture, wgpu::TextureView),
@@ -265,11 +262,141 @@ fn view(texture: &wgpu::Texture) -> wgpu::TextureView {
     texture.create_view(&wgpu::TextureViewDescriptor::default())
 }
 
+/// The pipelines of the particle system.
+struct ParticlePipelines {
+    /// [without collision, with collision]
+    simulation: [Arc<ComputeSlot>; 2],
+    sprite: Arc<RenderSlot>,
+    /// The sprite pipeline's shaders without depth: the same layout.
+    preview: Arc<RenderSlot>,
+    distortion: Arc<RenderSlot>,
+}
+
+impl ParticlePipelines {
+    fn new(cache: Slots<'_>, formats: ParticleFormats) -> Result<ParticlePipelines, PipelineError> {
+        let (vs, ps) = (
+            keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
+            keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?,
+        );
+        let distortion = cache.render(
+            &vs,
+            Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
+            &Particles::distortion_state(formats.distortion, Some(formats.depth)),
+        )?;
+        let sprite = cache.render(&vs, Some(&ps), &sprite_state(formats.color, Some(formats.depth)))?;
+        let preview = cache.render(&vs, Some(&ps), &sprite_state(formats.color, None))?;
+        let simulation = |collision: bool| {
+            let key = keys::gpu_particle_simulation_cs::Key { particle_collision: collision };
+            cache.compute(&keys::name(key, keys::Level::Sm5)?)
+        };
+        Ok(ParticlePipelines { simulation: [simulation(false)?, simulation(true)?], sprite, preview, distortion })
+    }
+}
+
+/// The `Fire` step's picture.
+fn preview_target(device: &wgpu::Device, format: wgpu::TextureFormat, size: [u32; 2]) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("ParticleSimulation preview"),
+        size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
+impl Emitter {
+    /// Emitter `index`'s states, uniforms and bind groups.
+    fn new(
+        init: &ParticlesInit<'_>,
+        pipelines: &ParticlePipelines,
+        volume_sampler: &wgpu::Sampler,
+        index: usize,
+        desc: EmitterDesc,
+    ) -> Result<Emitter, PipelineError> {
+        let ParticlesInit { device, view: frame_view, ref collision, ref lighting_volume, .. } = *init;
+        let sim = &pipelines.simulation[usize::from(desc.collides)];
+        let rows = desc.max_particles.div_ceil(STATE_WIDTH);
+        let state = |label: &str, format| {
+            crate::frame::target_2d(
+                device,
+                &format!("{} {label}", desc.name),
+                [STATE_WIDTH, rows],
+                format,
+                wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
+            )
+        };
+        let positions =
+            [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
+        let velocities =
+            [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
+        let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
+        let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
+        let pos_views = [view(&positions[0]), view(&positions[1])];
+        let vel_views = [view(&velocities[0]), view(&velocities[1])];
+        let make_sim = |i: usize| {
+            let mut resources = vec![
+                ("sim", sim_params.as_entire_binding()),
+                ("prev_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                ("prev_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+                ("out_position", wgpu::BindingResource::TextureView(&pos_views[1 - i])),
+                ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
+            ];
+            if desc.collides {
+                resources.push(("View", frame_view.as_entire_binding()));
+                resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
+                resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
+            }
+            sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
+        };
+        let make_sprites = |i: usize, pipeline: &RenderSlot, lit: bool| {
+            let mut resources = vec![
+                ("View", frame_view.as_entire_binding()),
+                ("sprite", sprite_params.as_entire_binding()),
+                ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
+                ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
+            ];
+            if lit {
+                resources.extend([
+                    ("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])),
+                    ("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])),
+                    ("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])),
+                    ("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])),
+                    ("translucency_volume", lighting_volume.params.as_entire_binding()),
+                    ("volume_sampler", wgpu::BindingResource::Sampler(volume_sampler)),
+                ]);
+            }
+            pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
+        };
+        // (the preview pipeline has the sprite pipeline's layout: the same shaders)
+        let sprites = [make_sprites(0, &pipelines.sprite, true)?, make_sprites(1, &pipelines.sprite, true)?];
+        let distortion =
+            [make_sprites(0, &pipelines.distortion, false)?, make_sprites(1, &pipelines.distortion, false)?];
+        let simulate = [make_sim(0)?, make_sim(1)?];
+        Ok(Emitter {
+            desc,
+            seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
+            sim_params,
+            _sprite_params: sprite_params,
+            positions,
+            velocities,
+            simulate,
+            sprites,
+            distortion,
+            current: 0,
+        })
+    }
+}
+
 impl Particles {
     /// Builds the emitters' states and every pipeline, and prewarms the emitters that ask for it.
     pub fn new(init: &ParticlesInit<'_>, descs: Vec<EmitterDesc>) -> Result<Particles, PipelineError> {
-        let ParticlesInit { device, queue, cache, view: frame_view, ref collision, ref lighting_volume, formats, size } =
-            *init;
+        let (device, formats) = (init.device, init.formats);
+        let pipelines = ParticlePipelines::new(init.cache, formats)?;
         let volume_sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("particle lighting volume"),
             mag_filter: wgpu::FilterMode::Linear,
@@ -277,100 +404,11 @@ impl Particles {
             mipmap_filter: wgpu::MipmapFilterMode::Linear,
             ..Default::default()
         });
-        let (vs, ps) = (
-            keys::name(keys::gpu_sprite_vs::Key {}, keys::Level::Sm5)?,
-            keys::name(keys::gpu_sprite_ps::Key {}, keys::Level::Sm5)?,
-        );
-        let distortion_layout = cache.render(
-            &vs,
-            Some(&keys::name(keys::gpu_sprite_distortion_ps::Key {}, keys::Level::Sm5)?),
-            &Particles::distortion_state(formats.distortion, Some(formats.depth)),
-        )?;
-        let sprite_pipeline_layout = cache.render(&vs, Some(&ps), &sprite_state(formats.color, Some(formats.depth)))?;
-        let preview_pipeline = cache.render(&vs, Some(&ps), &sprite_state(formats.color, None))?;
-        let simulation = [
-            cache.compute(&keys::name(
-                keys::gpu_particle_simulation_cs::Key { particle_collision: false },
-                keys::Level::Sm5,
-            )?)?,
-            cache.compute(&keys::name(
-                keys::gpu_particle_simulation_cs::Key { particle_collision: true },
-                keys::Level::Sm5,
-            )?)?,
-        ];
-        let mut emitters = Vec::new();
-        for (index, desc) in descs.into_iter().enumerate() {
-            let sim = &simulation[usize::from(desc.collides)];
-            let rows = desc.max_particles.div_ceil(STATE_WIDTH);
-            let state = |label: &str, format| {
-                crate::frame::target_2d(
-                    device,
-                    &format!("{} {label}", desc.name),
-                    [STATE_WIDTH, rows],
-                    format,
-                    wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING,
-                )
-            };
-            let positions =
-                [state("ParticleStatePosition0", POSITION_FORMAT), state("ParticleStatePosition1", POSITION_FORMAT)];
-            let velocities =
-                [state("ParticleStateVelocity0", VELOCITY_FORMAT), state("ParticleStateVelocity1", VELOCITY_FORMAT)];
-            let sim_params = uniform_buffer(device, &format!("{} simulation", desc.name), &SimulationParams::default());
-            let sprite_params = uniform_buffer(device, &format!("{} sprites", desc.name), &sprite_params(&desc));
-            let pos_views = [view(&positions[0]), view(&positions[1])];
-            let vel_views = [view(&velocities[0]), view(&velocities[1])];
-            let make_sim = |i: usize| {
-                let mut resources = vec![
-                    ("sim", sim_params.as_entire_binding()),
-                    ("prev_position", wgpu::BindingResource::TextureView(&pos_views[i])),
-                    ("prev_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
-                    ("out_position", wgpu::BindingResource::TextureView(&pos_views[1 - i])),
-                    ("out_velocity", wgpu::BindingResource::TextureView(&vel_views[1 - i])),
-                ];
-                if desc.collides {
-                    resources.push(("View", frame_view.as_entire_binding()));
-                    resources.push(("SceneDepthTexture", wgpu::BindingResource::TextureView(collision.scene_depth)));
-                    resources.push(("gbuffer_a", wgpu::BindingResource::TextureView(collision.gbuffer_a)));
-                }
-                sim.layout.bind_group(device, 0, &format!("{} simulation {i}", desc.name), &resources)
-            };
-            let make_sprites = |i: usize, pipeline: &RenderPipeline, lit: bool| {
-                let mut resources = vec![
-                    ("View", frame_view.as_entire_binding()),
-                    ("sprite", sprite_params.as_entire_binding()),
-                    ("particle_position", wgpu::BindingResource::TextureView(&pos_views[i])),
-                    ("particle_velocity", wgpu::BindingResource::TextureView(&vel_views[i])),
-                ];
-                if lit {
-                    resources.extend([
-                        ("translucency_ambient_inner", wgpu::BindingResource::TextureView(lighting_volume.ambient[0])),
-                        ("translucency_dir_inner", wgpu::BindingResource::TextureView(lighting_volume.directional[0])),
-                        ("translucency_ambient_outer", wgpu::BindingResource::TextureView(lighting_volume.ambient[1])),
-                        ("translucency_dir_outer", wgpu::BindingResource::TextureView(lighting_volume.directional[1])),
-                        ("translucency_volume", lighting_volume.params.as_entire_binding()),
-                        ("volume_sampler", wgpu::BindingResource::Sampler(&volume_sampler)),
-                    ]);
-                }
-                pipeline.layout.bind_group(device, 0, &format!("{} sprites {i}", desc.name), &resources)
-            };
-            // (the preview pipeline has the sprite pipeline's layout: the same shaders)
-            let sprites =
-                [make_sprites(0, &sprite_pipeline_layout, true)?, make_sprites(1, &sprite_pipeline_layout, true)?];
-            let distortion = [make_sprites(0, &distortion_layout, false)?, make_sprites(1, &distortion_layout, false)?];
-            let simulate = [make_sim(0)?, make_sim(1)?];
-            emitters.push(Emitter {
-                desc,
-                seed: 0x9e37_79b9u32.wrapping_mul(index as u32 + 1),
-                sim_params,
-                _sprite_params: sprite_params,
-                positions,
-                velocities,
-                simulate,
-                sprites,
-                distortion,
-                current: 0,
-            });
-        }
+        let emitters = descs
+            .into_iter()
+            .enumerate()
+            .map(|(index, desc)| Emitter::new(init, &pipelines, &volume_sampler, index, desc))
+            .collect::<Result<Vec<_>, _>>()?;
         let empty_state = |label: &str, format| {
             device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(label),
@@ -395,40 +433,36 @@ impl Particles {
                 empty_state("NoParticles velocity", VELOCITY_FORMAT),
             ],
         );
-        let preview = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("ParticleSimulation preview"),
-            size: wgpu::Extent3d { width: size[0].max(1), height: size[1].max(1), depth_or_array_layers: 1 },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: formats.color,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let preview = preview_target(device, formats.color, init.size);
         let preview_view = view(&preview);
         let mut particles = Particles {
             emitters,
             frame: 0,
-            simulation,
-            sprite_pipeline: sprite_pipeline_layout,
-            preview_pipeline,
-            distortion_pipeline: distortion_layout,
+            simulation: pipelines.simulation,
+            sprite_pipeline: pipelines.sprite,
+            preview_pipeline: pipelines.preview,
+            distortion_pipeline: pipelines.distortion,
             preview: (preview, preview_view),
             empty,
         };
-        particles.prewarm(device, queue);
+        particles.prewarm(init.cache.cache, device, init.queue)?;
         Ok(particles)
     }
 
     /// Steps the emitters that ask for it [`PREWARM_STEPS`] times, one submit per step (each
     /// step has its own frame index in the simulation's uniform block). Their ages spread
     /// out over the first lifetime, as they do in a running frame.
-    fn prewarm(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
+    fn prewarm(
+        &mut self,
+        cache: &PipelineCache,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+    ) -> Result<(), PipelineError> {
         if !self.emitters.iter().any(|e| e.desc.prewarm && !e.desc.collides) {
-            return;
+            return Ok(());
         }
+        // no frame waits on this: the system is being built, so the pipeline is made now
+        let pipeline = cache.compute_key(self.simulation[0].key())?;
         for step in 0..PREWARM_STEPS {
             // frame indices before the frame's own (which start at 1), for their own seeds
             let frame = u32::MAX - PREWARM_STEPS + 1 + step;
@@ -440,14 +474,15 @@ impl Particles {
                     label: Some(&format!("ParticleSimulation {}", e.desc.name)),
                     timestamp_writes: None,
                 });
-                Self::step(&self.simulation[0], queue, &mut pass, e, frame);
+                Self::step(&pipeline.pipeline, queue, &mut pass, e, frame);
             }
             queue.submit([encoder.finish()]);
         }
+        Ok(())
     }
 
     fn step(
-        pipeline: &ComputePipeline,
+        pipeline: &wgpu::ComputePipeline,
         queue: &wgpu::Queue,
         pass: &mut wgpu::ComputePass<'_>,
         e: &mut Emitter,
@@ -463,7 +498,7 @@ impl Particles {
             counts: UVec4::new(STATE_WIDTH, d.max_particles, frame, e.seed),
         };
         queue.write_buffer(&e.sim_params, 0, bytemuck::bytes_of(&params));
-        pass.set_pipeline(&pipeline.pipeline);
+        pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &e.simulate[e.current], &[]);
         pass.dispatch_workgroups(STATE_WIDTH.div_ceil(8), rows.div_ceil(8), 1);
         e.current = 1 - e.current;
@@ -475,10 +510,10 @@ impl Particles {
         if !colliding {
             self.frame += 1;
         }
-        let pipeline = &self.simulation[usize::from(colliding)];
+        let Some(pipeline) = self.simulation[usize::from(colliding)].ready(ctx.pipelines()) else { return };
         for e in self.emitters.iter_mut().filter(|e| e.desc.collides == colliding) {
             let mut pass = ctx.open_compute_pass(&format!("ParticleSimulation {}", e.desc.name));
-            Self::step(pipeline, queue, &mut pass, e, self.frame);
+            Self::step(&pipeline.pipeline, queue, &mut pass, e, self.frame);
         }
     }
 
@@ -489,6 +524,7 @@ impl Particles {
             return;
         }
         {
+            let ready = self.preview_pipeline.ready(ctx.pipelines());
             let mut pass = ctx.open_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("ParticleSimulation preview"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -505,10 +541,12 @@ impl Particles {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_pipeline(&self.preview_pipeline.pipeline);
-            for e in self.emitters.iter().filter(|e| !e.desc.collides) {
-                pass.set_bind_group(0, &e.sprites[e.current], &[]);
-                pass.draw(0..6, 0..e.desc.max_particles);
+            if let Some(p) = ready {
+                pass.set_pipeline(&p.pipeline);
+                for e in self.emitters.iter().filter(|e| !e.desc.collides) {
+                    pass.set_bind_group(0, &e.sprites[e.current], &[]);
+                    pass.draw(0..6, 0..e.desc.max_particles);
+                }
             }
         }
         ctx.output(&self.preview.0, Visualize::Hdr);
@@ -541,8 +579,9 @@ impl Particles {
     /// Draws the emitters' sprites, instanced, into a translucency pass over the colour target
     /// given to `new`, depth tested (read-only): the scene's emitters always, the particle
     /// effects (sparks, smoke) only with `effects`.
-    pub fn draw_sprites(&self, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
-        pass.set_pipeline(&self.sprite_pipeline.pipeline);
+    pub fn draw_sprites(&self, pipelines: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>, effects: bool) {
+        let Some(p) = self.sprite_pipeline.ready(pipelines) else { return };
+        pass.set_pipeline(&p.pipeline);
         for e in self.emitters.iter().filter(|e| effects || !e.desc.effect) {
             pass.set_bind_group(0, &e.sprites[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
@@ -551,8 +590,9 @@ impl Particles {
 
     /// Draws the heat haze of the emitters that distort into a distortion pass (RG16F,
     /// additive offsets).
-    pub fn draw_distortion(&self, pass: &mut wgpu::RenderPass<'_>) {
-        pass.set_pipeline(&self.distortion_pipeline.pipeline);
+    pub fn draw_distortion(&self, pipelines: FramePipelines<'_>, pass: &mut wgpu::RenderPass<'_>) {
+        let Some(p) = self.distortion_pipeline.ready(pipelines) else { return };
+        pass.set_pipeline(&p.pipeline);
         for e in self.emitters.iter().filter(|e| e.desc.distortion > 0.0) {
             pass.set_bind_group(0, &e.distortion[e.current], &[]);
             pass.draw(0..6, 0..e.desc.max_particles);
