@@ -428,10 +428,12 @@ fn warm_rewrite(dir: &Path, cold: &Run, out: &Path, jobs: &str) {
     let identical = std::fs::read(out).ok() == std::fs::read(&fresh).ok();
     let _ = std::fs::remove_file(&fresh);
     println!(
-        "{:>12} warm rewrite (one material added, {} compiled): {:.1} s, {:.1}% of cold wall, {:.1}% of cold CPU \
-         (goal <= 3%), peak {:.1} MiB; byte-identical to a build without the previous archive: {}",
+        "{:>12} warm rewrite (one material added, {} compiled, {} of {} blobs copied): {:.1} s, {:.1}% of cold wall, \
+         {:.1}% of cold CPU (goal <= 3%), peak {:.1} MiB; byte-identical to a build without the previous archive: {}",
         "",
         warm.count("compiled"),
+        warm.count("archive_reused_blobs"),
+        warm.count("artifacts"),
         warm.wall.as_secs_f64(),
         100.0 * warm.wall.as_secs_f64() / cold.wall.as_secs_f64(),
         100.0 * warm.cpu.as_secs_f64() / cold.cpu.as_secs_f64(),
