@@ -22,7 +22,7 @@ use super::{Archive, Target};
 /// blake3.
 pub(crate) struct Previous {
     archive: Archive,
-    /// (first 8 bytes of the blake3 as two `u32`, blob id), sorted: 12 bytes a blob.
+    /// (start of the blake3 as two `u32`, blob id), sorted.
     index: Vec<[u32; 3]>,
     /// Each dictionary's target and blake3, by index.
     dictionaries: Vec<(Target, [u8; 32])>,
