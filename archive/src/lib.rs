@@ -91,6 +91,8 @@ pub mod limits;
 pub mod output;
 mod reader;
 mod reflect;
+#[cfg(feature = "writer")]
+mod reuse;
 pub mod usage;
 #[cfg(feature = "writer")]
 mod writer;

@@ -778,6 +778,22 @@ impl Archive {
         Ok(e)
     }
 
+    /// A blob's table entry (checked) and its bytes as stored, compressed or not, for a
+    /// writer that copies them into the next archive ([`crate::reuse`]).
+    #[cfg(feature = "writer")]
+    pub(crate) fn stored_blob(&self, id: BlobId) -> Result<(Entry, &[u8]), String> {
+        let e = self.entry(id)?;
+        let start = self.blobs_start + e.offset as usize;
+        Ok((e, &self.bytes.as_slice()[start..start + e.stored_len as usize]))
+    }
+
+    /// Each dictionary's target and blake3, by index (the blake3 is the one its record
+    /// announces: [`Archive::blob`] checks a dictionary's bytes against it when it loads it).
+    #[cfg(feature = "writer")]
+    pub(crate) fn dictionary_hashes(&self) -> Vec<(Target, [u8; 32])> {
+        self.dictionaries.iter().map(|d| (d.target, d.blake3)).collect()
+    }
+
     /// Sizes of a blob, from its table entry (checked; nothing is decompressed).
     pub fn blob_info(&self, id: BlobId) -> Result<BlobInfo, String> {
         self.entry(id).map(|e| BlobInfo {

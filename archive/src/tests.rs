@@ -87,7 +87,7 @@ fn big_permutations() -> Vec<Artifacts> {
 
 /// Writes `perms` through a streaming writer, adding blobs and permutations in the order of
 /// `order` (indices into `perms`), from `threads` threads.
-fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads: usize) {
+fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads: usize) -> ArchiveSummary {
     let w = StreamingWriter::new(path).unwrap();
     w.set_naga_version("30.0.1");
     let sh = shader();
@@ -110,7 +110,7 @@ fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads:
             });
         }
     });
-    w.finish().unwrap();
+    w.finish().unwrap()
 }
 
 #[test]
@@ -235,7 +235,8 @@ fn dictionaries_are_trained_and_round_trip() {
     let path = dir.path().join("big.kpak");
     let perms = big_permutations();
     let order: Vec<usize> = (0..perms.len()).collect();
-    stream(&path, &perms, &order, 1);
+    let summary = stream(&path, &perms, &order, 1);
+    assert_eq!(summary.reused_blobs, 0, "no previous archive");
     let a = Archive::open(&path).unwrap();
     let dicts: Vec<Target> = a.dictionaries().map(|(t, _)| t).collect();
     assert_eq!(dicts, vec![Target::Wgsl, Target::Msl], "one dictionary per target");
@@ -249,6 +250,58 @@ fn dictionaries_are_trained_and_round_trip() {
             assert!(info.dictionary && info.stored_len < info.raw_len, "{name} {t}: {info:?}");
         }
     }
+}
+
+/// `perms` with one artifact changed, one permutation gone and one added: a small edit.
+fn edited(perms: &[Artifacts]) -> Vec<Artifacts> {
+    let mut edited = perms.to_vec();
+    edited[7].1[0].1 = artifact_text(1000, "edited").into_bytes();
+    edited.remove(20);
+    edited.push((
+        "Lit@sm5{FULLY_ROUGH=500,MODE=OPAQUE}".into(),
+        vec![(Target::Wgsl, artifact_text(500, "new").into_bytes())],
+    ));
+    edited
+}
+
+#[test]
+fn rewriting_an_archive_copies_its_unchanged_blobs_and_gives_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let changed = edited(&perms);
+    let all = |p: &[Artifacts]| (0..p.len()).collect::<Vec<usize>>();
+    // The reference: the edited set written where no archive was.
+    let fresh = stream(&dir.path().join("fresh.kpak"), &changed, &all(&changed), 1);
+    assert_eq!(fresh.reused_blobs, 0);
+    let out = dir.path().join("out.kpak");
+    stream(&out, &perms, &all(&perms), 2);
+    let rewritten = stream(&out, &changed, &all(&changed), 3);
+    let fresh_bytes = std::fs::read(dir.path().join("fresh.kpak")).unwrap();
+    assert!(std::fs::read(&out).unwrap() == fresh_bytes, "a rewritten archive differs from a fresh one");
+    // A set this small samples every blob: the edit changed the WGSL dictionary, so its
+    // blobs were compressed again, and left the MSL blobs and dictionary as they were.
+    let mut msl: Vec<&[u8]> =
+        changed.iter().flat_map(|(_, a)| a.iter().filter(|(t, _)| *t == Target::Msl)).map(|(_, b)| &b[..]).collect();
+    msl.sort_unstable();
+    msl.dedup();
+    assert_eq!(rewritten.reused_blobs, msl.len(), "{rewritten:?}");
+    // The same set again: everything is copied.
+    let again = stream(&out, &changed, &all(&changed), 1);
+    assert_eq!(again.reused_blobs, again.blobs);
+    assert!(std::fs::read(&out).unwrap() == fresh_bytes);
+
+    // A damaged previous archive (a blob's bytes, which no chunk hash covers): the damaged
+    // blob is compressed again, the bytes are still the fresh archive's.
+    let mut damaged = fresh_bytes.clone();
+    damaged[HEADER_LEN + 5] ^= 0x40;
+    std::fs::write(&out, &damaged).unwrap();
+    let repaired = stream(&out, &changed, &all(&changed), 2);
+    assert!(repaired.reused_blobs < repaired.blobs, "{repaired:?}");
+    assert!(std::fs::read(&out).unwrap() == fresh_bytes, "a damaged previous archive changed the bytes");
+    // A file that is no archive: nothing is copied.
+    std::fs::write(&out, b"not an archive").unwrap();
+    assert_eq!(stream(&out, &changed, &all(&changed), 1).reused_blobs, 0);
+    assert!(std::fs::read(&out).unwrap() == fresh_bytes);
 }
 
 #[test]

@@ -33,6 +33,7 @@ use super::format::{
     Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
     COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
+use super::reuse::Previous;
 use super::{Reflection, Target};
 
 /// The content hash of a blob given to a writer: what a permutation names its artifacts by.
@@ -86,6 +87,9 @@ pub struct ArchiveSummary {
     pub dictionary_bytes: u64,
     /// Size of the archive file.
     pub file_bytes: u64,
+    /// Blobs copied, compressed as they were, from the archive the writer replaced (the
+    /// file at its output, when this version wrote it) instead of compressed again.
+    pub reused_blobs: usize,
 }
 
 /// The manifest side of a writer: interned shaders and reflections, pending permutations
@@ -147,11 +151,11 @@ enum LocLog {
 struct BlobTable {
     /// Each slot's identity prefix, until sealed.
     prefixes: Vec<u32>,
-    /// Each slot's whole identity, until sealed.
+    /// Each slot's whole identity (kept once sealed: the dictionaries' samples read them).
     idents: IdentStore,
     /// Slots given.
     slots: usize,
-    /// No more blobs: `prefixes`, `idents` and `table` are gone.
+    /// No more blobs: `prefixes` and `table` are gone.
     sealed: bool,
     /// One bit per slot: its blob was added.
     added_bits: Vec<u64>,
@@ -186,6 +190,24 @@ impl IdentStore {
         let mut id = [0u8; 16];
         file.read_exact_at(&mut id, (n * ID_PREFIX as usize) as u64)?;
         Ok(id)
+    }
+
+    /// Calls `f` with each of the first `slots` slots and its identity, in slot order (the
+    /// file read a chunk at a time).
+    fn for_each(&self, slots: usize, mut f: impl FnMut(usize, &Ident)) -> std::io::Result<()> {
+        let mut buf = vec![[0u8; ID_PREFIX as usize]; IDENT_CHUNK];
+        let mut slot = 0;
+        while slot < self.flushed.min(slots) {
+            let n = (self.flushed.min(slots) - slot).min(IDENT_CHUNK);
+            let file = self.file.as_ref().expect("identities are flushed only to a file");
+            file.read_exact_at(buf[..n].as_flattened_mut(), (slot * ID_PREFIX as usize) as u64)?;
+            buf[..n].iter().enumerate().for_each(|(i, id)| f(slot + i, id));
+            slot += n;
+        }
+        for (i, id) in self.pending.iter().enumerate().take(slots.saturating_sub(self.flushed)) {
+            f(self.flushed + i, id);
+        }
+        Ok(())
     }
 
     fn push(&mut self, id: Ident) -> std::io::Result<()> {
@@ -261,11 +283,11 @@ impl BlobTable {
         Ok(Some(n))
     }
 
-    /// No more blobs will be added or named: lets go of what finds them.
+    /// No more blobs will be added or named: lets go of what finds them (the identities
+    /// stay, for the dictionaries' samples: [`samples`]).
     fn seal(&mut self) {
         self.sealed = true;
         self.prefixes = Vec::new();
-        self.idents = IdentStore { file: None, flushed: 0, pending: Vec::new() };
         self.table = hashbrown::HashTable::new();
     }
 
@@ -483,6 +505,13 @@ impl Spool<'_> {
                 Ok((id, Cow::Owned(buf)))
             }
         }
+    }
+
+    /// The identity spooled with the blob at `loc` (not its bytes).
+    fn read_ident(&self, loc: Loc) -> std::io::Result<Ident> {
+        let mut id = [0u8; ID_PREFIX as usize];
+        self.read_into(loc.offset - ID_PREFIX, &mut id)?;
+        Ok(id)
     }
 
     /// Reads `into.len()` bytes at `offset` into `into`.
@@ -759,7 +788,8 @@ impl StreamingWriter {
         }
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
-        let plan = plan(entries, blobs)?;
+        let mut plan = plan(entries, blobs)?;
+        plan.previous = Previous::open(&self.output);
         (plan.hooks.trace)("archive planned");
         let spool = Spool::File(&self.spool);
         let mut summary = ArchiveSummary::default();
@@ -893,6 +923,7 @@ impl ArchiveWriter {
         table.added = self.blobs.added;
         table.spooled = self.blobs.spooled;
         table.added_bits = self.blobs.added_bits.clone();
+        table.idents.pending = self.blobs.idents.pending.clone();
         plan(self.entries.clone(), table)
     }
 
@@ -941,6 +972,8 @@ struct Plan {
     table: BlobTable,
     /// Where the spool's blobs end.
     spool_len: u64,
+    /// The archive this one replaces, whose compressed blobs may be copied.
+    previous: Option<Previous>,
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
@@ -1006,7 +1039,7 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     arenas.prefixes = prefixes;
     manifest.permutations = permutations;
     manifest.arenas = arenas;
-    Ok(Plan { hooks, manifest, targets, slots: blob_slots, table, spool_len })
+    Ok(Plan { hooks, manifest, targets, slots: blob_slots, table, spool_len, previous: None })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker of the current rayon pool (the
@@ -1041,9 +1074,15 @@ fn train(sample: &[Loc], spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> 
     Ok(train_fast_cover(&flat, &sizes, capacity).filter(|d| !d.is_empty()))
 }
 
-/// Each target's sample: every `stride`-th of its blobs in id order, the stride such that
-/// the sample is at most [`DICTIONARY_SAMPLE`] bytes; located in two passes over the log
-/// (the targets' sizes, then the sample's places), not from a table of every blob's place.
+/// Each target's sample: the blobs whose identity (the start of their blake3) begins with
+/// `k` zero bits, `k` the least for which the target's bytes divided by 2^k come to at most
+/// one and a half [`DICTIONARY_SAMPLE`] (so the expected sample is 0.75 to 1.5 times that),
+/// in id order, at most twice that many bytes; none for a target of fewer than [`DICTIONARY_MIN_BYTES`]. Which blobs a sample holds depends on each blob alone, not on its place
+/// among the others: a change to a few blobs leaves the sample, and so the dictionary, as
+/// it was unless one of them is sampled (or the target's bytes cross a power of two, which
+/// changes `k`), and the previous archive's compressed blobs stay
+/// reusable ([`Previous`]). Located in three passes over the log and one over the
+/// identities, not from a table of every blob's place.
 fn samples(
     blob_targets: &[Target],
     table: &mut BlobTable,
@@ -1051,25 +1090,39 @@ fn samples(
 ) -> std::io::Result<[Vec<Loc>; Target::ALL.len()]> {
     let mut totals = [0u64; Target::ALL.len()];
     table.scan(id_of, |id, loc| totals[blob_targets[id] as usize] += loc.len)?;
-    let strides = totals.map(|total| total.div_ceil(DICTIONARY_SAMPLE as u64).max(1));
-    let mut seen = [0u64; Target::ALL.len()];
-    // The sample's ids, ascending, with the place of each in its target's sample.
-    let mut sampled: Vec<(u32, u32)> = Vec::new();
-    let mut counts = [0u32; Target::ALL.len()];
-    for (id, t) in blob_targets.iter().enumerate() {
-        let t = *t as usize;
-        if seen[t] % strides[t] == 0 {
-            sampled.push((id as u32, counts[t]));
-            counts[t] += 1;
+    // A target with too few bytes to pay for a dictionary's training samples nothing.
+    let shifts = totals.map(|total| match total < DICTIONARY_MIN_BYTES {
+        true => None,
+        false => Some((0..64).find(|k| total >> k <= DICTIONARY_SAMPLE as u64 * 3 / 2).unwrap_or(64)),
+    });
+    let mut picked: Vec<u32> = Vec::new();
+    table.idents.for_each(table.slots, |slot, id| {
+        let blob = id_of.get(slot).copied().unwrap_or(u32::MAX);
+        if blob == u32::MAX {
+            return;
         }
-        seen[t] += 1;
-    }
-    let mut samples = counts.map(|n| vec![Loc { offset: 0, len: 0 }; n as usize]);
-    table.scan(id_of, |id, loc| {
-        if let Ok(i) = sampled.binary_search_by_key(&(id as u32), |s| s.0) {
-            samples[blob_targets[id] as usize][sampled[i].1 as usize] = loc;
+        let Some(k) = shifts[blob_targets[blob as usize] as usize] else { return };
+        let start = u64::from_be_bytes(id[..8].try_into().expect("8 of 16 bytes"));
+        if k == 0 || start >> (64 - k) == 0 {
+            picked.push(blob);
         }
     })?;
+    picked.sort_unstable();
+    let mut locs = vec![Loc { offset: 0, len: 0 }; picked.len()];
+    table.scan(id_of, |id, loc| {
+        if let Ok(i) = picked.binary_search(&(id as u32)) {
+            locs[i] = loc;
+        }
+    })?;
+    let mut samples: [Vec<Loc>; Target::ALL.len()] = Default::default();
+    let mut bytes = [0u64; Target::ALL.len()];
+    for (id, loc) in picked.iter().zip(locs) {
+        let t = blob_targets[*id as usize] as usize;
+        if bytes[t] + loc.len <= 2 * DICTIONARY_SAMPLE as u64 {
+            bytes[t] += loc.len;
+            samples[t].push(loc);
+        }
+    }
     Ok(samples)
 }
 
@@ -1080,9 +1133,17 @@ fn samples(
 const FASTCOVER_K: u32 = 1024;
 /// fastCover's d-mer size.
 const FASTCOVER_D: u32 = 8;
-/// log2 of fastCover's frequency table's entries (zstd's default is 20): smaller tables, which
-/// a build zeroes and touches per target, for dictionaries about as good.
+/// log2 of fastCover's frequency table's entries at most (zstd's default is 20): smaller
+/// tables, which a build zeroes and touches per target, for dictionaries about as good.
 const FASTCOVER_F: u32 = 18;
+
+/// log2 of fastCover's frequency table's entries for `sampled` bytes of samples: a quarter
+/// as many entries as bytes, from 2^14 to 2^[`FASTCOVER_F`]. A small set's samples fill
+/// few entries of a large table, which costs its zeroing and page faults for nothing.
+fn fastcover_f(sampled: usize) -> u32 {
+    let bits = usize::BITS - sampled.max(1).leading_zeros();
+    bits.saturating_sub(2).clamp(14, FASTCOVER_F)
+}
 
 /// fastCover's acceleration (1 to 10): how sparsely it samples the d-mers it counts; sparser
 /// trains faster for dictionaries about as good.
@@ -1106,7 +1167,7 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
     let params = zstd_sys::ZDICT_fastCover_params_t {
         k: FASTCOVER_K,
         d: FASTCOVER_D,
-        f: FASTCOVER_F,
+        f: fastcover_f(flat.len()),
         steps: 0,
         nbThreads: 1,
         splitPoint: 1.0,
@@ -1137,6 +1198,15 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
     Some(dict)
 }
 
+/// The fewest bytes of a target's artifacts that get a dictionary. Below this the whole
+/// target compresses to a few hundred KiB without one, and training it is a good part of a
+/// small build's time: the dictionary saves bytes nobody misses at the cost of time. The
+/// unit tests' sets are smaller, and train from a lower threshold.
+const DICTIONARY_MIN_BYTES: u64 = if cfg!(test) { 64 << 10 } else { 512 << 10 };
+
+/// The most bytes of samples, all targets together, that are trained in parallel.
+const PARALLEL_TRAINING_BYTES: u64 = 4 << 20;
+
 /// The trained dictionaries, by target, and each one's compiled form for compression (the
 /// compiled form, zstd's tables of a dictionary, made on the same worker that trained it).
 type Dictionaries = (Vec<(Target, Vec<u8>)>, Vec<Option<zstd::zstd_safe::CDict<'static>>>);
@@ -1152,15 +1222,20 @@ fn dictionaries(
     spool: &Spool<'_>,
 ) -> std::io::Result<Dictionaries> {
     let samples = samples(blob_targets, table, id_of)?;
-    let trained: Vec<_> = targets
-        .iter()
-        .map(|t| -> std::io::Result<_> {
-            Ok(train(&samples[*t as usize], spool)?.map(|d| {
-                let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
-                (*t, d, cdict)
-            }))
-        })
-        .collect();
+    let train_one = |_: &mut (), t: &Target| -> std::io::Result<_> {
+        Ok(train(&samples[*t as usize], spool)?.map(|d| {
+            let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
+            (*t, d, cdict)
+        }))
+    };
+    // Small samples train side by side: their buffers and tables are small, and on a small
+    // set the trainings are a good part of the archive's time.
+    let sampled: u64 = samples.iter().flatten().map(|l| l.len).sum();
+    let trained: Vec<_> = if sampled <= PARALLEL_TRAINING_BYTES {
+        par_map(targets, || (), train_one)
+    } else {
+        targets.iter().map(|t| train_one(&mut (), t)).collect()
+    };
 
     let (mut dictionaries, mut cdicts) = (Vec::new(), Vec::new());
     for t in trained {
@@ -1180,7 +1255,7 @@ fn dictionaries(
 /// compressed (the release hook is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { hooks, manifest, targets: blobs, slots, table: mut blob_table, spool_len } = plan;
+    let Plan { hooks, manifest, targets: blobs, slots, table: mut blob_table, spool_len, previous } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
     let spilled = spill_manifest(manifest, spool, spill_at, hooks)?;
@@ -1197,79 +1272,20 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     // Dictionaries, trained (and made ready to compress with) one target after another.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.contains(t)).collect();
     let (dictionaries, cdicts) = dictionaries(&blobs, &mut blob_table, &id_of, &targets, spool)?;
-    let dict_of = |t: Target| dictionaries.iter().position(|(dt, _)| *dt == t);
 
     // The blob section, compressed in batches so memory holds one batch at a time.
     let mut table = SpillBuf::new(spool, spool_len, blobs.len() * super::format::ENTRY_LEN);
-    let mut offset = 0u64;
-    let mut start = 0;
-    let mut locs = BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() };
-    while start < blobs.len() {
-        if start == locs.first + locs.offsets.len() {
-            drop(std::mem::replace(&mut locs, BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() }));
-            locs = blob_table.locations(&id_of, start..blobs.len().min(start + LOC_WINDOW))?;
-        }
-        let window_end = locs.first + locs.offsets.len();
-        let mut end = start;
-        let mut batch_bytes = 0u64;
-        while end < window_end && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
-            batch_bytes += locs.get(end).len;
-            end += 1;
-        }
-        let batch: Vec<usize> = (start..end).collect();
-        let stored = par_map(
-            &batch,
-            || (),
-            |_, &b| -> std::io::Result<(u8, u8, Vec<u8>, blake3::Hash)> {
-                let (id, raw) = spool.read_blob(locs.get(b))?;
-                // The whole blake3, which the table stores, from the bytes; they must still
-                // be the ones added.
-                let hash = blake3::hash(&raw);
-                if ident(&hash) != id {
-                    return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
-                }
-                let dict = dict_of(blobs[b]).and_then(|i| cdicts[i].as_ref().map(|c| (i, c)));
-                let (codec, dictionary, bytes) = compress_blob(raw, dict);
-                Ok((codec, dictionary, bytes, hash))
-            },
-        );
-        for (&b, s) in batch.iter().zip(stored) {
-            let (codec, dictionary, bytes, hash) = s?;
-            out.write_all(&bytes)?;
-            let s = locs.get(b);
-            let entry = Entry {
-                offset,
-                stored_len: bytes.len() as u64,
-                raw_len: s.len,
-                codec,
-                dictionary,
-                hash: *hash.as_bytes(),
-            };
-            table.push(&entry.encode())?;
-            offset += bytes.len() as u64;
-            summary.raw_bytes += s.len;
-        }
-        start = end;
-    }
+    let dicts = BlobDictionaries { targets: &blobs, dictionaries: &dictionaries, cdicts: &cdicts };
+    let sources = BlobSources { spool, previous: previous.as_ref() };
+    let (blobs_len, raw_bytes, reused) = write_blobs(&dicts, &sources, &mut blob_table, &id_of, &mut out, &mut table)?;
+    (summary.raw_bytes, summary.reused_blobs) = (raw_bytes, reused);
     summary.blobs = blobs.len();
     let blob_count = blobs.len() as u64;
-    drop((blobs, locs, id_of, blob_table));
-    summary.stored_bytes = offset;
-    let blobs_len = offset;
+    drop((blobs, id_of, blob_table, previous));
+    summary.stored_bytes = blobs_len;
     pad8(&mut out, HEADER_LEN as u64 + blobs_len)?;
 
-    let mut dict_offset = 0u64;
-    let mut dictionary_records = Vec::with_capacity(dictionaries.len());
-    for (t, d) in &dictionaries {
-        out.write_all(d)?;
-        dictionary_records.push(DictionaryRecord {
-            target: *t,
-            offset: dict_offset,
-            len: d.len() as u64,
-            blake3: *blake3::hash(d).as_bytes(),
-        });
-        dict_offset += d.len() as u64;
-    }
+    let (dictionary_records, dict_offset) = write_dictionaries(&dictionaries, &mut out)?;
     summary.dictionary_bytes = dict_offset;
     drop(cdicts);
     drop(dictionaries);
@@ -1315,6 +1331,117 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+/// Writes the dictionary section: each dictionary's bytes, one after another; gives their
+/// records and the section's length.
+fn write_dictionaries(
+    dictionaries: &[(Target, Vec<u8>)],
+    out: &mut impl Write,
+) -> std::io::Result<(Vec<DictionaryRecord>, u64)> {
+    let mut offset = 0u64;
+    let mut records = Vec::with_capacity(dictionaries.len());
+    for (t, d) in dictionaries {
+        out.write_all(d)?;
+        records.push(DictionaryRecord { target: *t, offset, len: d.len() as u64, blake3: *blake3::hash(d).as_bytes() });
+        offset += d.len() as u64;
+    }
+    Ok((records, offset))
+}
+
+/// Each blob's target, and the archive's dictionaries (by index) with their compiled forms.
+struct BlobDictionaries<'a> {
+    targets: &'a [Target],
+    dictionaries: &'a [(Target, Vec<u8>)],
+    cdicts: &'a [Option<zstd::zstd_safe::CDict<'static>>],
+}
+
+/// Where the blobs come from: the spool, and the archive being replaced ([`Previous`]),
+/// whose compressed blobs are copied where compressing again would give the same bytes.
+struct BlobSources<'a, 'b> {
+    spool: &'a Spool<'b>,
+    previous: Option<&'a Previous>,
+}
+
+/// A blob as it goes into the archive: codec, dictionary index, stored bytes, blake3, and
+/// whether it was copied from the previous archive.
+type StoredBlob = (u8, u8, Vec<u8>, [u8; 32], bool);
+
+/// Writes the blob section to `out` in blob id order, compressed in batches (so memory
+/// holds one batch at a time), and each blob's table entry to
+/// `table`; gives the section's length, the blobs' raw bytes and how many were copied from
+/// the previous archive.
+fn write_blobs(
+    dicts: &BlobDictionaries<'_>,
+    sources: &BlobSources<'_, '_>,
+    blob_table: &mut BlobTable,
+    id_of: &[u32],
+    out: &mut impl Write,
+    table: &mut SpillBuf<'_>,
+) -> std::io::Result<(u64, u64, usize)> {
+    let count = dicts.targets.len();
+    // The blake3 of each dictionary the blobs are compressed with (`None` where zstd could
+    // not load it, and blobs of its target are compressed without it).
+    let dict_hashes: Vec<Option<[u8; 32]>> = (dicts.dictionaries.iter().zip(dicts.cdicts))
+        .map(|((_, d), c)| c.as_ref().map(|_| *blake3::hash(d).as_bytes()))
+        .collect();
+    let dict_of = |t: Target| dicts.dictionaries.iter().position(|(dt, _)| *dt == t);
+    let (mut offset, mut raw_bytes, mut reused, mut start) = (0u64, 0u64, 0, 0);
+    let mut locs = BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() };
+    while start < count {
+        if start == locs.first + locs.offsets.len() {
+            drop(std::mem::replace(&mut locs, BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() }));
+            locs = blob_table.locations(id_of, start..count.min(start + LOC_WINDOW))?;
+        }
+        let window_end = locs.first + locs.offsets.len();
+        let mut end = start;
+        let mut batch_bytes = 0u64;
+        while end < window_end && (end == start || batch_bytes < (16 << 20)) && end - start < 512 {
+            batch_bytes += locs.get(end).len;
+            end += 1;
+        }
+        let batch: Vec<usize> = (start..end).collect();
+        let stored = par_map(
+            &batch,
+            || (),
+            |_, &b| -> std::io::Result<StoredBlob> {
+                let loc = locs.get(b);
+                let dict = dict_of(dicts.targets[b]).and_then(|i| dicts.cdicts[i].as_ref().map(|c| (i, c)));
+                if let Some(p) = sources.previous {
+                    let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
+                    if let Some((codec, bytes, hash)) = p.stored(&sources.spool.read_ident(loc)?, loc.len, want) {
+                        let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
+                        return Ok((codec, index, bytes, hash, true));
+                    }
+                }
+                let (id, raw) = sources.spool.read_blob(loc)?;
+                // The whole blake3, which the table stores, from the bytes; they must still
+                // be the ones added.
+                let hash = blake3::hash(&raw);
+                if ident(&hash) != id {
+                    return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
+                }
+                let (codec, dictionary, bytes) = compress_blob(raw, dict);
+                Ok((codec, dictionary, bytes, *hash.as_bytes(), false))
+            },
+        );
+        for (&b, s) in batch.iter().zip(stored) {
+            let (codec, dictionary, bytes, hash, copied) = s?;
+            out.write_all(&bytes)?;
+            reused += usize::from(copied);
+            let len = locs.get(b).len;
+            let entry = Entry { offset, stored_len: bytes.len() as u64, raw_len: len, codec, dictionary, hash };
+            table.push(&entry.encode())?;
+            offset += bytes.len() as u64;
+            raw_bytes += len;
+        }
+        if let Some(p) = sources.previous {
+            // The previous archive's pages read for this batch: the file keeps them.
+            p.release_pages();
+        }
+        start = end;
+    }
+    Ok((offset, raw_bytes, reused))
 }
 
 thread_local! {
@@ -1654,6 +1781,41 @@ mod blob_table_tests {
         let mut head = [0u8; 5];
         file.read_exact_at(&mut head, 0).unwrap();
         assert_eq!(&head, b"blobs");
+    }
+
+    /// A target's sample is picked by each blob's identity, not by its place among the
+    /// others: a blob added, removed or changed elsewhere leaves every other blob in or out
+    /// of the sample as it was (so the dictionary stays as it was unless one of them is
+    /// sampled), and the sample comes to about [`DICTIONARY_SAMPLE`] bytes.
+    #[test]
+    fn samples_depend_on_each_blob_not_on_its_neighbours() {
+        // Blob `n` is 3,000 + n bytes long, which names it in the sample; the set is well
+        // inside one sampling rate (a set whose size crosses a power of two changes it).
+        let sample_of = |blobs: &[u64]| -> Vec<u64> {
+            let mut t = BlobTable::new(LocLog::Memory(Vec::new()), Some(tempfile::tempfile().unwrap()));
+            for n in blobs {
+                t.add(&blake3::hash(&n.to_le_bytes()), 3000 + n).unwrap();
+            }
+            t.seal();
+            let id_of: Vec<u32> = (0..blobs.len() as u32).collect();
+            let s = samples(&vec![Target::Wgsl; blobs.len()], &mut t, &id_of).unwrap();
+            assert!(s.iter().enumerate().all(|(t, v)| t == Target::Wgsl as usize || v.is_empty()));
+            s[Target::Wgsl as usize].iter().map(|l| l.len - 3000).collect()
+        };
+        let before: Vec<u64> = (0..4096).collect();
+        let mut after = before.clone();
+        after.remove(100);
+        after.insert(2000, 5000);
+        after[3000] = 6000;
+        let (a, b) = (sample_of(&before), sample_of(&after));
+        let bytes: u64 = a.iter().map(|n| 3000 + n).sum();
+        assert!(
+            (DICTIONARY_SAMPLE as u64 / 4..=2 * DICTIONARY_SAMPLE as u64).contains(&bytes),
+            "{bytes} bytes sampled"
+        );
+        let keep = |v: &[u64], out: &[u64]| v.iter().copied().filter(|n| !out.contains(n)).collect::<Vec<u64>>();
+        assert_eq!(keep(&a, &[100, 3000]), keep(&b, &[5000, 6000]));
+        assert!(a.len() < before.len() / 4, "a sample, not every blob: {}", a.len());
     }
 
     /// Slots past several flushed chunks of identities, each prefix shared by two blobs: every

@@ -4,13 +4,21 @@
 //! the domain; three shaders, two levels), `kiln build` runs as a child process (so its
 //! peak memory is its own: `wait4`'s max RSS) and prints:
 //!
+//! 0. a small set (144 permutations, about 120 distinct sources): a cold build against
+//!    naga alone on the same distinct sources and targets (this bench as a child process:
+//!    `-- naga-alone CONFIG JOBS`, timing naga's work only), medians of 5 alternating runs,
+//!    wall and CPU (goal: at most 1.15x wall);
 //! 1. for 1k, 10k and 100k permutations: a cold build's wall time, time per distinct
 //!    compile, peak memory, archive size, and the size of the cache it filled (its files'
 //!    bytes, as `du -sb` counts them) as a ratio of the archive's, then the growth of peak
 //!    memory from 10k to 100k (goals: 10k at most 256 MiB; growth at most 1.2x; cache at
 //!    most 2x the archive). The 1M point runs only when asked for
 //!    (`KILN_SCALE_SIZES=1000,10000,100000,1000000`; not in CI: a cold 1M build took about
-//!    8 minutes on two busy cores, 1.1 GB of cache and a 606 MB archive);
+//!    8 minutes on two busy cores, 1.1 GB of cache and a 606 MB archive); after each cold
+//!    build, two warm builds that rewrite the archive, against it: one after the archive was
+//!    deleted, one after a material was added to the configuration (its previous archive in
+//!    place, whose unchanged compressed blobs it copies; goal at most 3%), each with whether
+//!    its archive is byte-identical to a build's without a previous archive;
 //! 2. four shards (`--shard I/4`, one after the other, each as if on its own machine)
 //!    sharing one cache, then a plain build assembling from it, against one process: the
 //!    assembly's compile count (0), whether the archives are byte-identical, and the
@@ -28,6 +36,8 @@
 //! `KILN_SCALE_JOBS` the threads of each build (default 2). `-- generate DIR N` only
 //! writes a set of about N permutations into DIR.
 
+#[path = "support/naga_alone.rs"]
+mod naga_alone;
 #[path = "../tests/support/scale_set.rs"]
 mod scale_set;
 #[path = "support/servers.rs"]
@@ -141,7 +151,12 @@ fn main() {
         println!("{} ({count} permutations)", config.display());
         return;
     }
+    if args.first().map(String::as_str) == Some("naga-alone") {
+        naga_alone_child(Path::new(args.get(1).expect("naga-alone CONFIG JOBS")), &args[2]);
+        return;
+    }
     let jobs = env_usize("KILN_SCALE_JOBS", 2).to_string();
+    small_set(&jobs);
     println!("kiln build, cold, -j {jobs}, as a child process (peak memory: wait4 max RSS)");
     println!(
         "{:>12} {:>9} {:>9} {:>10} {:>16} {:>12} {:>12} {:>12} {:>14}",
@@ -176,6 +191,7 @@ fn main() {
             cache as f64 / archive.max(1) as f64
         );
         peaks.push((count, run.max_rss));
+        warm_rewrite(tmp.path(), &run, &out, &jobs);
     }
     let at = |lo: usize, hi: usize| peaks.iter().find(|(c, _)| (lo..hi).contains(c)).map(|p| p.1);
     println!("(cache/archive: goal <= 2x)");
@@ -306,4 +322,122 @@ fn main() {
             if identical { "yes" } else { "NO" }
         );
     }
+}
+
+/// As a child process: naga alone on CONFIG's distinct sources (preprocessed first, untimed)
+/// on JOBS threads; prints `naga WALL_MS CPU_MS`.
+fn naga_alone_child(config: &Path, jobs: &str) {
+    use rayon::prelude::*;
+    let config = kiln::permute::load(config).unwrap_or_else(|e| panic!("{}", e.render()));
+    let (distinct, _) = naga_alone::distinct_sources(&config);
+    let pool = naga_alone::pool(jobs.parse().expect("JOBS"));
+    let (start, cpu) = (Instant::now(), cpu_time());
+    let bytes: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone::naga_alone(s, false)).sum());
+    std::hint::black_box(bytes);
+    let (wall, cpu) = (start.elapsed(), cpu_time() - cpu);
+    println!("naga {} {}", wall.as_secs_f64() * 1e3, cpu.as_secs_f64() * 1e3);
+}
+
+/// CPU time of this process so far (user + system, all threads).
+fn cpu_time() -> Duration {
+    // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: getrusage only writes the struct it is given.
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let tv = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// A small set (about 120 distinct sources): a cold `kiln build` as a whole process against
+/// naga alone on the same distinct sources and targets (a child process too, timing only
+/// naga's work, not its preprocessing), 5 runs each, alternating; medians of wall and CPU.
+fn small_set(jobs: &str) {
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let (config, count) = scale_set::write(&tmp.path().join("set"), 144);
+    let (mut kiln_wall, mut kiln_cpu, mut naga_wall, mut naga_cpu) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut distinct = 0;
+    for i in 0..5 {
+        let out = tmp.path().join("small.kpak");
+        let cache = tmp.path().join(format!("cache{i}"));
+        let args = ["build", "--config", config.to_str().unwrap(), "-o", out.to_str().unwrap()];
+        let run = kiln(
+            &[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(),
+            &tmp.path().join("s.json"),
+        );
+        distinct = run.count("unique_sources");
+        kiln_wall.push(run.wall.as_secs_f64() * 1e3);
+        kiln_cpu.push(run.cpu.as_secs_f64() * 1e3);
+        let child = Command::new(std::env::current_exe().expect("this bench"))
+            .args(["naga-alone", config.to_str().unwrap(), jobs])
+            .output()
+            .expect("naga alone runs");
+        let text = String::from_utf8_lossy(&child.stdout);
+        let line = text.lines().find_map(|l| l.strip_prefix("naga ")).expect("naga alone prints its times");
+        let mut times = line.split(' ').map(|t| t.parse::<f64>().expect("a time"));
+        naga_wall.push(times.next().expect("wall"));
+        naga_cpu.push(times.next().expect("CPU"));
+    }
+    let (kw, kc, nw, nc) = (median(kiln_wall), median(kiln_cpu), median(naga_wall), median(naga_cpu));
+    println!(
+        "small set ({count} permutations, {distinct} distinct), -j {jobs}, medians of 5 alternating runs: kiln cold \
+         build {kw:.0} ms wall ({kc:.0} ms CPU), naga alone {nw:.0} ms ({nc:.0} ms CPU): {:.2}x wall (goal <= 1.15x), \
+         {:.2}x CPU",
+        kw / nw,
+        kc / nc
+    );
+}
+
+/// After the cold build of the set in `dir` (`cold`, its archive `out`), against it: a warm
+/// build after the archive was deleted; then one material added to the configuration and a
+/// warm build that rewrites `out` (its previous archive there, whose unchanged blobs it
+/// copies), and the same set built into another file, with nothing to copy, to compare
+/// bytes.
+fn warm_rewrite(dir: &Path, cold: &Run, out: &Path, jobs: &str) {
+    let config = dir.join("set/permutations.toml");
+    let cache = dir.join("cache-one");
+    let build = |to: &Path, stats: &str| {
+        let args = ["build", "--config", config.to_str().unwrap(), "-o", to.to_str().unwrap()];
+        kiln(&[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(), &dir.join(stats))
+    };
+    // The archive gone: a warm cache, nothing to copy blobs from.
+    let cold_bytes = std::fs::read(out).ok();
+    let _ = std::fs::remove_file(out);
+    let gone = build(out, "gone.json");
+    println!(
+        "{:>12} warm rewrite (archive deleted): {:.1} s, {:.1}% of cold wall, {:.1}% of cold CPU, peak {:.1} MiB; \
+         byte-identical to the cold build's: {}",
+        "",
+        gone.wall.as_secs_f64(),
+        100.0 * gone.wall.as_secs_f64() / cold.wall.as_secs_f64(),
+        100.0 * gone.cpu.as_secs_f64() / cold.cpu.as_secs_f64(),
+        mib(gone.max_rss),
+        if std::fs::read(out).ok() == cold_bytes { "yes" } else { "NO" }
+    );
+    let text = std::fs::read_to_string(&config).expect("the set's config");
+    let Some(last) = text.split("range = [0, ").nth(1).and_then(|r| r.split(']').next()) else { return };
+    let more = (last.parse::<u64>().expect("a material count") + 1).to_string();
+    std::fs::write(&config, text.replace(&format!("range = [0, {last}]"), &format!("range = [0, {more}]"))).unwrap();
+    let warm = build(out, "rewrite.json");
+    let fresh = dir.join("fresh.kpak");
+    build(&fresh, "fresh.json");
+    let identical = std::fs::read(out).ok() == std::fs::read(&fresh).ok();
+    let _ = std::fs::remove_file(&fresh);
+    println!(
+        "{:>12} warm rewrite (one material added, {} compiled, {} of {} blobs copied): {:.1} s, {:.1}% of cold wall, \
+         {:.1}% of cold CPU (goal <= 3%), peak {:.1} MiB; byte-identical to a build without the previous archive: {}",
+        "",
+        warm.count("compiled"),
+        warm.count("archive_reused_blobs"),
+        warm.count("artifacts"),
+        warm.wall.as_secs_f64(),
+        100.0 * warm.wall.as_secs_f64() / cold.wall.as_secs_f64(),
+        100.0 * warm.cpu.as_secs_f64() / cold.cpu.as_secs_f64(),
+        mib(warm.max_rss),
+        if identical { "yes" } else { "NO" }
+    );
 }

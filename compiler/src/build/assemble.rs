@@ -299,6 +299,7 @@ fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> b
 pub(super) struct Written {
     pub artifacts: usize,
     pub permutation_artifacts: usize,
+    pub reused_blobs: usize,
     pub archive: Option<PathBuf>,
 }
 
@@ -450,7 +451,7 @@ impl<'p> Assembler<'p> {
     /// before the archive is written.
     pub fn finish(self, pre: Preprocessed, store: &Store) -> Result<Written, Error> {
         let options = self.plan.options;
-        let mut written = Written { artifacts: 0, permutation_artifacts: 0, archive: None };
+        let mut written = Written { artifacts: 0, permutation_artifacts: 0, reused_blobs: 0, archive: None };
         if !self.plan.assembles() {
             return Ok(written);
         }
@@ -518,6 +519,7 @@ impl<'p> Assembler<'p> {
         if let (Some(out), Some(w)) = (&options.output, writer) {
             let summary = w.finish_unsynced().map_err(archive_error)?;
             written.artifacts = summary.blobs;
+            written.reused_blobs = summary.reused_blobs;
             written.archive = Some(out.clone());
             if options.emit_dir.is_none() {
                 store.stamp_archive(out, &fingerprint, (written.artifacts, written.permutation_artifacts));

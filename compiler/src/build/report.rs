@@ -36,6 +36,9 @@ pub struct Stats {
     pub artifacts: usize,
     /// (permutation, target) pairs in the archive.
     pub permutation_artifacts: usize,
+    /// Blobs of the archive copied, compressed as they were, from the archive it replaced
+    /// (the output file, when this version wrote it) instead of compressed again.
+    pub archive_reused_blobs: usize,
     /// Permutations that failed to preprocess or compile.
     pub failed: usize,
     /// Permutations preprocessed by this build (the others matched their cached
@@ -289,6 +292,7 @@ impl<'o> Builder<'o> {
     pub fn assembled(&mut self, written: Written) {
         self.report.stats.artifacts = written.artifacts;
         self.report.stats.permutation_artifacts = written.permutation_artifacts;
+        self.report.stats.archive_reused_blobs = written.reused_blobs;
         self.report.archive = written.archive;
     }
 
