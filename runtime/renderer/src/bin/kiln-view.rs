@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use clap::{Parser, ValueEnum};
-use kiln_renderer::frame::{write_dump, DumpInfo};
+use kiln_renderer::frame::{write_dump, Creation, DumpInfo};
 use kiln_renderer::renderer::FrameOutput;
 use kiln_renderer::scene::Scene;
 use kiln_renderer::{FramePipeline, Renderer, RendererOptions};
@@ -114,7 +114,7 @@ struct Args {
     no_stall: Option<StallArg>,
     /// Write the run's pipeline and frame timings as JSON: pipelines_created_before_first_frame,
     /// pipelines_created_during_frames, first_frame_ms, slowest_frame_ms, frames,
-    /// fallback_draws, precached.
+    /// fallback_draws, fallback_draws_per_frame, precached.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["verify", "watch"])]
     stats_json: Option<PathBuf>,
     /// With --watch: stop after this many reloads (failed ones included).
@@ -347,10 +347,16 @@ fn run(args: &Args) -> Result<(), Failure> {
     let renderer = new_renderer(args, &gpu, cache)?;
     let before_first_frame = pipelines(renderer.cache_stats());
     let mut frame_ms = Vec::new();
+    let mut fallbacks = Vec::new();
     let mut frame = render_frame(&renderer, false, &mut frame_ms)?;
+    fallbacks.push(renderer.pipeline_cache().fallbacks());
     for _ in 1..args.frames {
         frame = render_frame(&renderer, false, &mut frame_ms)?;
+        fallbacks.push(renderer.pipeline_cache().fallbacks());
     }
+    // The cache counts fallbacks over the run; each frame's are the difference.
+    let fallback_draws_per_frame: Vec<u64> =
+        fallbacks.iter().scan(0, |before, &total| Some(total - std::mem::replace(before, total))).collect();
     let during_frames = pipelines(renderer.cache_stats()) - before_first_frame;
     let precached = precache.finish();
     if let Some(path) = &args.stats_json {
@@ -362,6 +368,7 @@ fn run(args: &Args) -> Result<(), Failure> {
             "first_frame_ms": frame_ms.first().copied().unwrap_or(0.0),
             "slowest_frame_ms": frame_ms.iter().copied().fold(0.0, f64::max),
             "fallback_draws": renderer.pipeline_cache().fallbacks(),
+            "fallback_draws_per_frame": fallback_draws_per_frame,
             "precached": precached,
         });
         write_file(path, (serde_json::to_string_pretty(&stats).expect("JSON of numbers") + "\n").as_bytes())?;
@@ -454,7 +461,10 @@ impl Precaching {
 fn new_renderer(args: &Args, gpu: &Gpu, cache: PipelineCache) -> Result<Renderer, Failure> {
     let (width, height) = args.size;
     let options = RendererOptions { pipeline: args.frame_pipeline(), width, height, comparison: args.comparison };
-    Renderer::with_cache(gpu, cache, &Scene::bundled(), options).map_err(|e| match e {
+    // A frame that never waits for a pipeline (`--no-stall`) needs a renderer that does not
+    // create them all first.
+    let creation = if args.missing() == Missing::Block { Creation::Eager } else { Creation::Lazy };
+    Renderer::with_creation(gpu, cache, &Scene::bundled(), options, creation).map_err(|e| match e {
         // A permutation the frame needs is missing from the archive: the archive is wrong.
         kiln_renderer::RenderError::Pipeline(kiln_runtime::pipelines::PipelineError::Lookup(l)) => {
             Failure::Usage(format!("{l}"))

@@ -13,20 +13,31 @@ use std::sync::{Arc, Mutex};
 use kiln_archive::Stage;
 
 use crate::pipelines::{
-    ComputeKey, ComputePipeline, PipelineCache, PipelineError, PipelineLayoutInfo, RenderKey, RenderPipeline,
+    ComputeKey, ComputePipeline, PipelineCache, PipelineError, PipelineLayoutInfo, Ready, RenderKey, RenderPipeline,
     RenderState, VertexLayout,
 };
 
 /// The record-time lookup of a render pipeline: `Some` to draw with, `None` when it is not
-/// ready (the draw is skipped). The cache's blocking lookup creates it if needed, so every
-/// frame draws with its exact pipeline.
+/// ready (the draw is skipped). What "not ready" means is the cache's [`Missing`] setting:
+/// under the default `Block` the cache creates the pipeline before answering, so every frame
+/// draws with its exact pipeline; under `Background` the answer is the pipeline if it is
+/// created, else the nearest ready permutation's (fallback `Nearest`) or none (`Skip`), and
+/// the cache counts each such draw ([`PipelineCache::fallbacks`]).
+///
+/// [`Missing`]: crate::pipelines::Missing
 pub fn ready_render(cache: &PipelineCache, key: &RenderKey) -> Result<Option<Arc<RenderPipeline>>, PipelineError> {
-    cache.render_key(key).map(Some)
+    Ok(match cache.render_ready(key)? {
+        Ready::Exact(p) | Ready::Nearest(p) => Some(p),
+        Ready::NotReady => None,
+    })
 }
 
 /// [`ready_render`] for compute pipelines.
 pub fn ready_compute(cache: &PipelineCache, key: &ComputeKey) -> Result<Option<Arc<ComputePipeline>>, PipelineError> {
-    cache.compute_key(key).map(Some)
+    Ok(match cache.compute_ready(key)? {
+        Ready::Exact(p) | Ready::Nearest(p) => Some(p),
+        Ready::NotReady => None,
+    })
 }
 
 /// When a renderer creates the pipelines of its passes.
