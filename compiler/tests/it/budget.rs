@@ -212,6 +212,18 @@ fn usage_only_builds_the_recorded_the_kept_and_the_always_permutations() {
     let o = args("2", "two.kpak");
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(std::fs::read(d.join("one.kpak")).unwrap(), std::fs::read(d.join("two.kpak")).unwrap());
+    // And across shards: two shard processes on one cache, then the assembly, which compiles
+    // nothing and writes the same bytes.
+    let usage_only = ["build", "--config", "usage.toml", "--usage", "frame.usage", "--usage-only", "--cache-dir", "sc"];
+    for shard in ["0/2", "1/2"] {
+        let o = kiln(d, &[&usage_only[..], &["--shard", shard]].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    let o = kiln(d, &[&usage_only[..], &["-o", "sharded.kpak", "--stats-json", "assembly.json"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(d.join("assembly.json")).unwrap()).unwrap();
+    assert_eq!(v["compiled"].as_u64(), Some(0), "{v}");
+    assert_eq!(std::fs::read(d.join("one.kpak")).unwrap(), std::fs::read(d.join("sharded.kpak")).unwrap());
     let o = kiln(d, &["inspect", "one.kpak", "LitPS@sm5{USE_FOG=1,BLEND=OPAQUE,NUM_LIGHTS=2}", "--reflection"]);
     assert_eq!(o.status.code(), Some(2));
 
