@@ -1,50 +1,17 @@
 //! The byte layout of an archive (format version 4), shared by the writer and the reader.
 //!
-//! ```text
-//! offset  size  field
-//!      0     8  magic "KILNPAK\0"
-//!      8     4  format version (u32, little endian): 4
-//!     12     4  flags (u32, zero)
-//!     16     8  blob section length in bytes (u64)
-//!     24     8  dictionary section length (u64)
-//!     32     8  manifest length (u64)
-//!     40     8  blob count (u64)
-//!     48     4  chunk length C in bytes (u32, a power of two from 1 KiB to 1 MiB)
-//!     52    44  zero
-//!     96    32  blake3 of header bytes 0..96, then the chunk hashes
-//!    128     -  blob section, padding to 8, dictionary section, padding to 8, chunk hashes
-//!               (below), manifest (binary, below), padding to 8, blob table (64 bytes per
-//!               blob), end of file
-//! ```
+//! The layout, field by field (the header, the sections in file order, the chunk hashes,
+//! the manifest's parts and the blob table), is specified in
+//! `docs/reference/archive-format.md`; the lengths of its fixed parts are the constants
+//! below ([`HEADER_LEN`], [`CHUNK_LEN`] and the manifest's record lengths).
 //!
-//! The chunk hashes (format 4) are the blake3 (32 bytes) of each C-byte chunk of the
-//! manifest, then of each C-byte chunk of the blob table (the last chunk of each may be
-//! shorter): `ceil(manifest length / C) + ceil(blob count * 64 / C)` hashes. Opening checks
-//! the header checksum, which covers the chunk hashes (32 bytes per C bytes of manifest and
-//! table), and reads the chunks of the manifest's header, dictionaries and tables; every other
-//! chunk is checked against its hash the first time a read touches it (one bit per chunk), so
-//! that opening costs O(1) in the number of permutations.
+//! Opening checks the header checksum, which covers the chunk hashes, and reads the chunks
+//! of the manifest's header, dictionaries and tables; every other chunk is checked against
+//! its hash the first time a read touches it (one bit per chunk), so that opening costs O(1)
+//! in the number of permutations.
 //!
 //! The manifest (format 3 and 4; format 2 held JSON, parsed whole at open) is read in place
-//! from the memory map. Every part starts at a multiple of 8 from the manifest's start:
-//!
-//! ```text
-//! manifest header, 64 bytes: permutation count P, value count V, artifact count A,
-//!     dictionary count D, tables length T, names length N (u64 each), 16 zero bytes
-//! permutations  P x 32  sorted by name: name offset (u64, into names), name length (u32),
-//!                       shader (u32), reflection (u32), first value (u32, into values),
-//!                       first artifact (u32, into artifacts), artifact count (u32); the
-//!                       value count is the shader's dimension count
-//! ids           P x 24  sorted: permutation id (u128, see `permutation_id`), permutation
-//!                       index (u32), 4 zero bytes
-//! values        V x 8   i64
-//! artifacts     A x 8   target (u8, index in `Target::ALL`), 3 zero bytes, blob (u32)
-//! dictionaries  D x 56  target (u8), 7 zero bytes, offset (u64, from the start of the
-//!                       dictionary section), length (u64), blake3 (32)
-//! tables        T       JSON: kiln and naga versions, the (shader, level) records and the
-//!                       distinct reflections, which no permutation count multiplies
-//! names         N       the permutations' canonical names, UTF-8, one after another
-//! ```
+//! from the memory map; every part starts at a multiple of 8 from the manifest's start.
 //!
 //! Opening parses the tables; each permutation record is checked the first time it is used
 //! (a lookup that finds it, or a walk of every record, which checks each as it goes): its
@@ -303,8 +270,8 @@ pub(crate) struct Arenas {
     pub blobs: Vec<u32>,
 }
 
-/// Permutation values: 4 bytes each while every one fits an `i32` (dimension values are
-/// small), 8 once one does not.
+/// Permutation values: an `i32` each while every one fits (dimension values are small), an
+/// `i64` once one does not.
 #[derive(Clone, Debug)]
 pub(crate) enum Values {
     Narrow(Vec<i32>),
@@ -389,7 +356,7 @@ impl Arenas {
 
 /// A permutation of [`Manifest`] (or of a writer): ranges of its arenas (the values' count
 /// is its shader's dimension count), its shader and reflection in the manifest's (or the
-/// writer's) numbering. 28 bytes.
+/// writer's) numbering.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct ManifestPermutation {
     pub name_start: u32,
@@ -692,7 +659,7 @@ pub(crate) struct Layout {
 
 impl Sections {
     /// The offsets these lengths give, `None` on overflow or a chunk length that is not a
-    /// power of two from 1 KiB to 1 MiB.
+    /// power of two in the range the reference page gives.
     pub fn layout(&self) -> Option<Layout> {
         if !self.chunk_len.is_power_of_two() || !(1 << 10..=1 << 20).contains(&self.chunk_len) {
             return None;
@@ -711,7 +678,7 @@ impl Sections {
         Some(Layout { blobs, dictionaries, chunks, manifest_chunks, table_chunks, manifest, table, end })
     }
 
-    /// The first 96 bytes of the header (before the checksum).
+    /// The header up to its checksum.
     pub fn header_fields(&self) -> [u8; 96] {
         let mut h = [0u8; 96];
         h[0..8].copy_from_slice(&MAGIC);
@@ -725,7 +692,7 @@ impl Sections {
     }
 }
 
-/// The checksum of the header: blake3 of its first 96 bytes and the chunk hashes.
+/// The checksum of the header: blake3 of the header up to the checksum, then the chunk hashes.
 pub(crate) fn header_checksum(fields: &[u8], chunk_hashes: &[u8]) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     h.update(fields);
@@ -741,7 +708,7 @@ pub(crate) struct ChunkHasher {
     chunk: usize,
     hasher: blake3::Hasher,
     filled: usize,
-    /// The hashes so far, 32 bytes each.
+    /// The hashes so far, `CHUNK_HASH_LEN` bytes each.
     pub hashes: Vec<u8>,
 }
 

@@ -1,7 +1,7 @@
 //! The archive: one file holding every permutation of a build.
 //!
 //! Takes the artifacts and reflection the compile stage produced; gives a file with a header
-//! (magic, format version, checksum of header and chunk hashes), chunk hashes (one per 16 KiB
+//! (magic, format version, checksum of header and chunk hashes), chunk hashes (one per chunk
 //! of manifest and blob table), a manifest (permutations, their targets, reflection),
 //! per-target zstd dictionaries and deduplicated, compressed blobs, each with its own
 //! checksum. Guarantees: the writer streams (blob bytes spool to disk as

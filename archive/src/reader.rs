@@ -422,7 +422,7 @@ impl Archive {
         if pads.iter().any(|&(from, to)| data[from as usize..to as usize].iter().any(|&b| b != 0)) {
             return Err(ArchiveError::Manifest("padding between sections is not zero".into()));
         }
-        // The header checksum covers the chunk hashes (32 bytes per chunk of the manifest and
+        // The header checksum covers the chunk hashes (one per chunk of the manifest and of
         // the table); every chunk is checked against its hash when first read.
         let expected: [u8; 32] = data[96..128].try_into().unwrap();
         let computed = header_checksum(&data[..96], &data[layout.chunks as usize..layout.manifest as usize]);

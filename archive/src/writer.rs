@@ -110,10 +110,10 @@ struct Entries {
     arenas: Arenas,
 }
 
-/// A blob's identity in a writer: the first 16 bytes of its blake3 (128 bits, as the
-/// cache's pack names; a collision between artifacts is not a practical concern). Its whole
+/// A blob's identity in a writer: a prefix of its blake3 (as long as the cache's pack
+/// names; a collision between artifacts is not a practical concern). Its whole
 /// blake3, which the archive stores, is computed again from its bytes when they are
-/// compressed: 16 bytes less per blob to hold through a build.
+/// compressed, so that a build holds less per blob.
 type Ident = [u8; 16];
 
 fn ident(hash: &blake3::Hash) -> Ident {
@@ -130,7 +130,7 @@ struct Loc {
     len: u64,
 }
 
-/// The length of a location record: a slot number (4 bytes) and a length (8); the offset
+/// The length of a location record: a slot number (`u32`) and a length (`u64`); the offset
 /// is the sum of the lengths before it (blobs are spooled in the order of their records).
 const LOC_RECORD: usize = 12;
 
@@ -142,7 +142,7 @@ enum LocLog {
 }
 
 /// The blobs of a writer, numbered by first sight and found by identity. Memory holds only
-/// each blob's identity prefix (4 bytes), the table that finds slots by it and a bit saying
+/// each blob's identity prefix, the table that finds slots by it and a bit saying
 /// whether the blob was added; the whole identities go to [`IdentStore`] (a file for a
 /// [`StreamingWriter`]), read back to confirm a prefix match, and where the blobs' bytes lie
 /// goes to a log, read back when the archive is assembled. Each blob's identity is spooled
@@ -167,8 +167,8 @@ struct BlobTable {
     spooled: u64,
 }
 
-/// The slots' whole identities, by slot number: in memory, or in an unlinked file (16 bytes
-/// a slot at `16 * slot`) written a chunk at a time, the last slots' in `pending`. Read only
+/// The slots' whole identities, by slot number: in memory, or in an unlinked file (one
+/// [`Ident`] a slot, at `16 * slot`) written a chunk at a time, the last slots' in `pending`. Read only
 /// when a new identity's 4-byte prefix is a known slot's: a blob added again, or (rarely)
 /// two blobs whose prefixes agree.
 struct IdentStore {
@@ -227,7 +227,7 @@ impl Default for BlobTable {
     }
 }
 
-/// An identity's first 4 bytes (uniform), what the table finds slots by.
+/// A prefix of an identity (uniform), what the table finds slots by.
 fn prefix(id: &Ident) -> u32 {
     u32::from_le_bytes(id[..4].try_into().expect("4 of 16 bytes"))
 }
@@ -325,7 +325,7 @@ impl BlobTable {
     }
 
     /// Each slot's blob id (`u32::MAX` for a blob added but named by no permutation), from
-    /// `slots`, each id's slot (every one added): 4 bytes a slot.
+    /// `slots`, each id's slot (every one added): a `u32` a slot.
     fn ids(&self, slots: Vec<u32>) -> std::io::Result<Vec<u32>> {
         let mut id_of = vec![u32::MAX; self.slots];
         for (id, &slot) in slots.iter().enumerate() {
@@ -375,7 +375,7 @@ impl BlobTable {
     }
 
     /// The locations of the blobs `ids` (a window of the archive's blobs: where all of them
-    /// lie takes 12 bytes a blob, held at the build's end, where the build peaks).
+    /// lie would be held per blob at the build's end, where the build peaks).
     fn locations(&mut self, id_of: &[u32], ids: std::ops::Range<usize>) -> std::io::Result<BlobLocs> {
         let mut locs = BlobLocs { first: ids.start, offsets: vec![u64::MAX; ids.len()], lens: vec![0; ids.len()] };
         self.scan(id_of, |id, loc| {
@@ -1578,7 +1578,7 @@ fn spill_manifest<'a>(
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
         first_artifact = first_artifact.checked_add(u32::from(p.artifact_count)).ok_or_else(too_many)?;
     }
-    // Sorted by (id, index), 24 bytes each ((u128, u32) takes 32).
+    // Sorted by (id, index), packed (a `(u128, u32)` tuple would be padded).
     let mut values = Vec::new();
     let mut ids: Vec<(u64, u64, u32)> = manifest
         .permutations

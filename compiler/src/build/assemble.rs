@@ -3,9 +3,9 @@
 //! Each key's artifacts arrive ([`Assembler::add`]) as they are produced, from any worker
 //! and in any order: their bytes go at once to the archive's spool (a
 //! [`StreamingWriter`]) and to the loose files, and are dropped; what stays per key is its
-//! reflection's number and its blobs' numbers in the writer (12 bytes and 8 per artifact).
+//! reflection's number and its blobs' numbers in the writer.
 //! [`Assembler::finish`] then adds the permutations, whose records are the manifest: with
-//! the writer's 32 bytes per blob, what grows with the set.
+//! the writer's per-blob identities, what grows with the set.
 //! The writer orders everything by content and name, so the bytes depend only on the set
 //! (not on `-j`, the cache state or shards). Nothing is kept when the build writes neither
 //! an archive nor loose files (a check or a shard).
@@ -24,7 +24,7 @@ use crate::archive::{self, DimensionRecord, NewPermutation, Reflection, ShaderRe
 use crate::cache::Key;
 use crate::compile::{self, Compiled};
 
-/// What stays of a key once its artifacts are written: 12 bytes, its artifacts in
+/// What stays of a key once its artifacts are written, its artifacts in
 /// [`Produced::artifacts`].
 #[derive(Clone, Copy)]
 struct KeyEntry {
@@ -34,8 +34,7 @@ struct KeyEntry {
 }
 
 /// What stays of the keys produced, as they are produced: each key's record (its key,
-/// reflection number, and each artifact's target and blob number: 40 bytes and 5 per
-/// artifact) goes to an unlinked temporary file, read back by [`Assembler::finish`] once the
+/// reflection number, and each artifact's target and blob number) goes to an unlinked temporary file, read back by [`Assembler::finish`] once the
 /// stages before it have let go of their tables, so that it adds nothing to the build's
 /// peak. In memory where no temporary file can be made.
 struct Log {
@@ -136,8 +135,8 @@ impl Log {
 
 /// What stays of the keys produced, read back for the manifest.
 struct Produced {
-    /// Each key produced, with what stays of it, in order of arrival: 44 bytes each, found
-    /// through `index` (4 bytes and a control byte a slot), not a map of (key, entry) slots
+    /// Each key produced, with what stays of it, in order of arrival, found
+    /// through `index` (a `u32` and a control byte a slot), not a map of (key, entry) slots
     /// that are a third empty.
     keys: Vec<(Key, KeyEntry)>,
     index: hashbrown::HashTable<u32>,
@@ -149,7 +148,7 @@ struct Produced {
     reflections: Vec<Arc<Reflection>>,
 }
 
-/// A key's first 8 bytes: already uniform (a blake3).
+/// A prefix of a key: already uniform (a blake3).
 fn key_hash(key: &Key) -> u64 {
     u64::from_le_bytes(key.0[..8].try_into().expect("8 of 32 bytes"))
 }
@@ -199,8 +198,8 @@ struct ByPermutation {
     reflections: Vec<Arc<Reflection>>,
 }
 
-/// Artifacts one after another: each one's target and blob number, 5 bytes (a table of
-/// pairs takes 8, held while the manifest is added).
+/// Artifacts one after another: each one's target and blob number, packed (a table of
+/// pairs would be padded, and is held while the manifest is added).
 struct Artifacts {
     targets: Vec<Target>,
     numbers: Vec<u32>,

@@ -64,8 +64,8 @@ pub(super) struct Compiler<'a> {
     store: &'a Store,
     assembler: &'a Assembler<'a>,
     progress: &'a Progress,
-    /// Keys claimed during preprocessing, by their first 4 bytes (a collision, rare, only
-    /// moves that key's compile to the compile stage): 4 bytes a slot rather than 8.
+    /// Keys claimed during preprocessing, by a prefix (a collision, rare, only
+    /// moves that key's compile to the compile stage), so that a slot stays small.
     claimed: Mutex<hashbrown::HashTable<u32>>,
     /// Per kept permutation: whether it produced its key during preprocessing
     /// ([`EARLY_HIT`], [`EARLY_COMPILED`]); one byte each, not a map entry per key.

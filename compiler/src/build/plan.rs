@@ -76,7 +76,7 @@ fn selected(options: &Options, level: &permute::Level) -> bool {
 }
 
 /// The permutations to build, compact: each kept permutation is the number of its values
-/// in its shader's domain (4 bytes, decoded by [`Plan::values`]), or where a domain has more
+/// in its shader's domain (a `u32`, decoded by [`Plan::values`]), or where a domain has more
 /// than 2^32 points its values in one flat table; its shader and level are those of its run.
 /// A [`Permutation`] is made again where one is needed ([`Plan::permutation`]).
 pub(super) struct Plan<'c> {
@@ -196,7 +196,7 @@ impl<'c> Plan<'c> {
                 });
             }
             if len >= u32::MAX as usize {
-                // Permutations are numbered in 4 bytes through the build.
+                // Permutations are numbered by a `u32` through the build.
                 return Err(Error::Config(format!(
                     "error: {} keeps more than {} permutations: build it in parts (`--level`)",
                     options.config.display(),

@@ -6,7 +6,7 @@
 //! every define the latter's files name reuses its result. A freshly preprocessed
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
-//! number of its [`Row`] (4 bytes), per distinct result a 48-byte row whose lists are
+//! number of its [`Row`], per distinct result a fixed-size row whose lists are
 //! numbers in one [`Interner`] (in a temporary file until preprocessing ends, so not beside
 //! the compile work that overlaps it; then only the rows' keys come back, and the rest is
 //! read again from the file where it is needed). What may be reused is kept per (shader,
@@ -35,7 +35,7 @@ const FAILED: u32 = u32::MAX;
 
 /// Each kept permutation's result, in the plan's order: the number of its row (rows are
 /// shared by the permutations that reuse them), or its failure. Of each row only the key is
-/// in memory; the rest (16 bytes: the text's length and the numbers of its lists) stays in
+/// in memory; the rest (the text's length and the numbers of its lists) stays in
 /// the rows' temporary file and is read again by the few that need it (so it is not held
 /// through the compile and assembly stages).
 pub(super) struct Preprocessed {
@@ -311,11 +311,11 @@ impl<'p> Preprocessor<'p> {
         }
         let Some(r) = self.records.take() else { return };
         // Each preprocessed permutation's direct key, made again here rather than kept
-        // through the build (36 bytes a permutation at its peak), straight into the bytes.
+        // through the build (where it would add to the peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
         // What the rows hold besides their keys, read again: the text's length and the
-        // number of its three lists together (few rows differ in them), 8 bytes a row rather
-        // than 16 (where the records are the build's largest transient).
+        // number of its three lists together (few rows differ in them), half of what a row
+        // holds (where the records are the build's largest transient).
         let mut rests = Vec::with_capacity(pre.row_count());
         let (mut lists, mut numbers) = (Vec::new(), HashMap::new());
         let read = pre.each_row(|r| {
@@ -448,8 +448,8 @@ impl<'p> Preprocessor<'p> {
     }
 }
 
-/// The rows made while preprocessing, in order: in an unlinked temporary file (48 bytes
-/// each, through a buffer), read back into one table when preprocessing ends, so that
+/// The rows made while preprocessing, in order: in an unlinked temporary file (fixed-size
+/// rows, through a buffer), read back into one table when preprocessing ends, so that
 /// they are not held beside the compile stage's work that overlaps preprocessing. In
 /// memory where no temporary file can be made.
 struct RowLog {
@@ -565,7 +565,7 @@ impl FileIdentifiers {
 /// (shader, level) → [(define names that mattered, values of those names → row number)].
 type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Signature, u32>)>>;
 
-/// The values of the defines that mattered, hashed (16 bytes per entry, whatever their
+/// The values of the defines that mattered, hashed (a fixed size per entry, whatever their
 /// number: these maps hold an entry per distinct preprocessing result).
 type Signature = [u8; 16];
 

@@ -1,7 +1,7 @@
 //! Preprocessing records, compact: what preprocessing one permutation gave ([`Row`]), and
 //! the binary encoding of a configuration's set of them (stored by the cache under one key).
 //!
-//! A [`Row`] is 48 bytes: its lists of files, missing include candidates and warnings are
+//! A [`Row`] is fixed-size: its lists of files, missing include candidates and warnings are
 //! numbers in the build's [`Interner`] (many permutations read the same files). A set of
 //! records is one table sorted by direct key, looked up by binary search: no allocation
 //! per permutation, in memory or on disk.
@@ -10,7 +10,7 @@
 //! magic "KILNREC\x03"
 //! u32 count, then each file list:    u32 n, n x (u32 len, path bytes, 32-byte blake3 of its text)
 //! u32 count, then each absent list:  u32 n, n x (u32 len, path bytes)
-//! u32 count, then each warning list: u32 n, n x (u32 len, utf-8 bytes)
+//! u32 count, then each warning list: u32 n, n x (u32 len, UTF-8 text)
 //! u64 count, then each row (sorted by direct key): direct key (16), key (32),
 //!     text length (u32, saturating), file list, absent list, warning list (u32 indices)
 //! ```
@@ -29,9 +29,9 @@ use crate::cache::Key;
 
 const MAGIC: &[u8; 8] = b"KILNREC\x03";
 
-/// A permutation's direct key (see `preprocess::direct_key`): the first 16 bytes of a
-/// blake3, as the cache's pack names (a collision among 2^32 permutations has odds of about
-/// 2^-64). 64 bytes a record rather than 84, on disk and in the buffer a build encodes them
+/// A permutation's direct key (see `preprocess::direct_key`): a prefix of a
+/// blake3, as long as the cache's pack names (a collision among 2^32 permutations has odds
+/// near 2^-64), so that a record is smaller than with the whole hash, on disk and in the buffer a build encodes them
 /// in (where the build peaks).
 pub(super) type Direct = [u8; 16];
 
@@ -169,8 +169,7 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
 ///
 /// The rows are encoded straight into the buffer that is returned (in parallel), sorted
 /// and renumbered there, and the lists written in front of them: nothing per row is held
-/// besides those bytes (a table of (direct key, row) to sort took 36 bytes a permutation
-/// more).
+/// besides those bytes (a table of (direct key, row) to sort took more per permutation).
 pub(super) fn encode(
     count: usize,
     row: impl Fn(usize) -> Option<(Direct, Row)> + Sync,

@@ -379,8 +379,8 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
             }
             // Per set of values of the other dimensions (by a 128-bit hash of them: a
             // collision could only move a warning), its first key, whether it has several
-            // members and whether they all have that key: 32 bytes a set, where the sets'
-            // values and members in vectors took several times that a permutation.
+            // members and whether they all have that key: a small fixed size a set, where the
+            // sets' values and members in vectors took much more a permutation.
             let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::new();
             let mut complete = true;
             for &m in &members {

@@ -5,7 +5,7 @@
 //! all keys), so it cannot compile while it preprocesses, as a plain build does. Rather than
 //! preprocessing its keys' first permutations a second time, it keeps every key's text,
 //! compressed (zstd's fastest level), in an unlinked temporary
-//! file: memory holds 16 bytes and a table entry per key, and a killed build leaves nothing
+//! file: memory holds a key's prefix and a table entry per key, and a killed build leaves nothing
 //! behind. A text that cannot be kept (a full disk) is only preprocessed again.
 
 use std::collections::HashMap;

@@ -11,12 +11,12 @@
 //! without one ([`TRAIN_MIN_PIECES`] in the pack, [`TRAIN_MIN_BYTES`] in the build: a small
 //! build trains none, training would be a large share of its time), kept in
 //! the cache folder as `<id>.kcd` (magic, kind length (u8), kind, dictionary) and used by
-//! every later pack; entries name it by its id (16 bytes of the blake3 of its kind and
+//! every later pack; entries name it by its id (a prefix of the blake3 of its kind and
 //! bytes), so an entry whose dictionary is gone fails to decode and is recompiled. `gc`
 //! keeps dictionaries (they are small), `clear` removes them. Remote values and bundle
 //! parts never use a dictionary (another machine lacks it).
 //!
-//! Layout: [`MAGIC`], the entry's checksum (32 bytes, as version 2's: blake3 of the
+//! Layout: [`MAGIC`], the entry's checksum (a blake3, as version 2's: blake3 of the
 //! uncompressed body with each artifact replaced by its blake3), the key (32), the length of
 //! the same entry in version 2 (u64: `kiln cache stats` reports it as the raw size), the
 //! dictionary id (16, zero: none), the zstd frame of the body.

@@ -587,7 +587,7 @@ pub fn format_size(bytes: u64) -> String {
     }
 }
 
-// Entry layout: MAGIC, blake3(body) (32 bytes), body.
+// Entry layout: MAGIC, blake3(body), body.
 // body: key (32), artifact count (u32), per artifact: target name length (u8) + name, length
 // (u64) + bytes; then the reflection as JSON (u64 length + bytes).
 /// The small framing pieces of an entry's body: the artifact count, one frame per artifact

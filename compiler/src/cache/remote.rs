@@ -14,8 +14,8 @@
 //! backends: `GET`, `PUT` and `HEAD` of `<prefix>/<key>` (nginx with `dav_methods PUT`
 //! serves it); a 404 is a miss. Redis stores each value under `kiln:<key>`.
 //!
-//! Guarantees: every connect, read and write is bounded by a timeout (3 s, or
-//! `KILN_REMOTE_CACHE_TIMEOUT_MS`), and every request as a whole by a few of them (redis
+//! Guarantees: every connect, read and write is bounded by a timeout ([`DEFAULT_TIMEOUT`],
+//! or `KILN_REMOTE_CACHE_TIMEOUT_MS`), and every request as a whole by a few of them (redis
 //! commands and a connection's setup included; redis is spoken over plain TCP only, by
 //! [`RawRedis`], the `redis` crate only parsing the URL); the first failure (server down, slow, connection
 //! dropped, refused credentials) turns the store off for the rest of the build and leaves

@@ -8,7 +8,7 @@
 //! with the entry point, the stage, the targets and the level's limits (which decide the
 //! validator's capabilities, and so the [`naga::valid::ModuleInfo`] the writers read).
 //! [`SharedWriters`] maps that hash to the writers' outputs for one build, shared by every
-//! thread. The first key with a module runs the writers and keeps nothing but 16 bytes of the
+//! thread. The first key with a module runs the writers and keeps nothing but a prefix of the
 //! hash: most modules of a build belong to one key (616 of 621 on the bundled set), and keeping
 //! a copy of every key's artifacts in case another key shares them cost more (a copy, and
 //! memory the size of the build's output, faulted in page by page) than the sharing saved. The
@@ -30,8 +30,8 @@ use crate::archive::Target;
 /// The artifacts of one compacted module, or the writer's error.
 type Written = Result<Vec<(Target, Vec<u8>)>, Error>;
 
-/// A module's identity: the first 16 bytes of its [`module_hash`] (a collision among 2^32
-/// modules has odds of 2^-64), 16 bytes a module rather than 32.
+/// A module's identity: a prefix of its [`module_hash`] (a collision among 2^32
+/// modules has odds of 2^-64), half the whole hash a module.
 type Ident = u128;
 
 fn ident(hash: &blake3::Hash) -> Ident {
@@ -40,7 +40,7 @@ fn ident(hash: &blake3::Hash) -> Ident {
     Ident::from_le_bytes(first)
 }
 
-/// Hashes an [`Ident`] by its low 8 bytes (it is already a uniform hash), a prefix by its 4.
+/// Hashes an [`Ident`] by its low half (it is already a uniform hash), a prefix as it is.
 #[derive(Default)]
 struct IdentHasher(u64);
 
@@ -68,9 +68,8 @@ impl Hasher for IdentHasher {
 type ByIdent = BuildHasherDefault<IdentHasher>;
 
 /// What a build knows of its compacted modules. Most modules belong to one key, so those
-/// are a set of 4-byte prefixes of their identities (5 bytes a module with the table's
-/// control byte, where the whole identity took 17 and a map to an enum of 32-byte hashes
-/// 49), and the few whose outputs are kept are a map beside it, by whole identity.
+/// are a set of prefixes of their identities (a prefix and the table's control byte a
+/// module, far less than the whole identity or a map to an enum of whole hashes), and the few whose outputs are kept are a map beside it, by whole identity.
 ///
 /// The set only decides whether a module's outputs are worth keeping: a prefix shared by
 /// two modules (about one pair in a 100k set) makes the second module's key keep its own
