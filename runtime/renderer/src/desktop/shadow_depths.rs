@@ -2,7 +2,7 @@
 //!   Atlas0: the directional light's 3 cascades side by side (3x1), orthographic, casters in
 //!     front of a cascade clamped onto its near plane.
 //!   Atlas1: per-object shadows of stationary lights, one tile per (light, movable prop).
-//!   Cubemap_<light>: a movable point light's six faces (6x1), whole scene.
+//!   `Cubemap_<light>`: a movable point light's six faces (6x1), whole scene.
 //! A local light whose ShadowFrustumQuery came back with zero samples renders none of its
 //! shadow views that frame (its `PerObject_<light>` step of Atlas1, its `Cubemap_<light>` step
 //! and the copy of its cached static depth are absent; the cache itself stays valid).
