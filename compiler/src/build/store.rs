@@ -272,10 +272,10 @@ impl Store {
         let Some(c) = &self.cache else { return };
         let _ = c.stamp_archive(out, fingerprint, counts);
         if let Some(remote) = c.remote().filter(|r| r.writes()) {
-            // A regular file only (not `-o /dev/null`), read back whole: archives are small
-            // next to the entries they hold (zstd with trained dictionaries).
-            if let Ok(bytes) = crate::archive::input::read_regular(out, MAX_REMOTE_ARCHIVE) {
-                remote.store(&remote_archive_key(fingerprint), &encode_remote_archive(&bytes, counts));
+            // A regular file only (not `-o /dev/null`), streamed from the file: held whole,
+            // the archive and its copies were most of a warm build's memory.
+            if let Ok(source) = RemoteArchive::open(out, counts) {
+                remote.store_from(&remote_archive_key(fingerprint), &source);
             }
             // Every key's entry is in the local cache now: the bundle of the build's keys
             // (with HTTP), for the next fresh local cache.
@@ -382,25 +382,52 @@ fn remote_archive_key(fingerprint: &blake3::Hash) -> Key {
     Key::new(&tagged, "", crate::archive::Stage::Compute, "", &crate::compile::Limits::desktop(), &[])
 }
 
-/// magic, blake3 of the rest, the two artifact counts (u64 each), the archive.
-fn encode_remote_archive(archive: &[u8], counts: (usize, usize)) -> Vec<u8> {
-    let mut body = Vec::with_capacity(16 + archive.len());
-    body.extend_from_slice(&(counts.0 as u64).to_le_bytes());
-    body.extend_from_slice(&(counts.1 as u64).to_le_bytes());
-    body.extend_from_slice(archive);
-    let mut out = Vec::with_capacity(40 + body.len());
-    out.extend_from_slice(REMOTE_ARCHIVE_MAGIC);
-    out.extend_from_slice(blake3::hash(&body).as_bytes());
-    out.extend_from_slice(&body);
-    out
+/// The remote value of an archive file: magic, blake3 of the rest, the two artifact counts
+/// (u64 each), the archive; read from the file each time it is sent.
+struct RemoteArchive {
+    head: [u8; 56],
+    file: std::fs::File,
+    len: u64,
 }
 
-/// Whether `value` is a whole value of [`encode_remote_archive`] (magic, length, checksum).
+impl RemoteArchive {
+    /// The value of the regular file `path`, at most [`MAX_REMOTE_ARCHIVE`] bytes.
+    fn open(path: &Path, counts: (usize, usize)) -> std::io::Result<RemoteArchive> {
+        let file = std::fs::File::open(path)?;
+        let meta = file.metadata()?;
+        if !meta.is_file() || meta.len() > MAX_REMOTE_ARCHIVE {
+            return Err(std::io::Error::other("not a regular file of a size the remote cache takes"));
+        }
+        let mut head = [0u8; 56];
+        head[..8].copy_from_slice(REMOTE_ARCHIVE_MAGIC);
+        head[40..48].copy_from_slice(&(counts.0 as u64).to_le_bytes());
+        head[48..].copy_from_slice(&(counts.1 as u64).to_le_bytes());
+        let mut h = blake3::Hasher::new();
+        h.update(&head[40..]);
+        let len = std::io::copy(&mut std::io::Read::take(&file, meta.len()), &mut h)?;
+        head[8..40].copy_from_slice(h.finalize().as_bytes());
+        Ok(RemoteArchive { head, file, len })
+    }
+}
+
+impl crate::cache::remote::Source for RemoteArchive {
+    fn len(&self) -> u64 {
+        self.head.len() as u64 + self.len
+    }
+
+    fn open(&self) -> std::io::Result<Box<dyn std::io::Read + '_>> {
+        use std::io::{Read, Seek};
+        (&self.file).seek(std::io::SeekFrom::Start(0))?;
+        Ok(Box::new(self.head.as_slice().chain((&self.file).take(self.len))))
+    }
+}
+
+/// Whether `value` is a whole value of [`RemoteArchive`] (magic, length, checksum).
 fn remote_archive_is_whole(value: &[u8]) -> bool {
     value.len() >= 56 && &value[..8] == REMOTE_ARCHIVE_MAGIC && blake3::hash(&value[40..]).as_bytes() == &value[8..40]
 }
 
-/// The counts and the archive of a whole value of [`encode_remote_archive`].
+/// The counts and the archive of a whole value of [`RemoteArchive`].
 fn remote_archive_parts(value: &[u8]) -> ((usize, usize), &[u8]) {
     let count = |at: usize| u64::from_le_bytes(value[at..at + 8].try_into().expect("8 bytes")) as usize;
     ((count(40), count(48)), &value[56..])

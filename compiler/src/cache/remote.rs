@@ -221,6 +221,28 @@ fn mac(signing: &SigningKey, key: &Key, value: &[u8]) -> [u8; 32] {
     *h.finalize().as_bytes()
 }
 
+/// [`mac`] of the value `source` reads.
+fn mac_of(signing: &SigningKey, key: &Key, source: &dyn Source) -> std::io::Result<[u8; 32]> {
+    let mut h = blake3::Hasher::new_keyed(&signing.0);
+    h.update(b"kiln remote cache value v1\0");
+    h.update(&key.0);
+    let read = std::io::copy(&mut source.open()?, &mut h)?;
+    if read != source.len() {
+        return Err(std::io::Error::other("it changed while read"));
+    }
+    Ok(*h.finalize().as_bytes())
+}
+
+/// A value for [`Remote::store_from`]: its length, and its bytes from the start as often as
+/// asked.
+pub(crate) trait Source: Sync {
+    fn len(&self) -> u64;
+    fn open(&self) -> std::io::Result<Box<dyn std::io::Read + '_>>;
+}
+
+/// Opens a [`Source`]'s bytes for one attempt.
+type Body<'a> = dyn Fn() -> std::io::Result<Box<dyn std::io::Read + 'a>> + 'a;
+
 /// `scheme://host[:port]/path` of `url`, without user, password, query or fragment: the
 /// only form of a remote cache URL that Kiln prints.
 pub fn redact(url: &str) -> String {
@@ -576,6 +598,40 @@ impl Remote {
         }
     }
 
+    /// [`Remote::store`] of a value read from `source` rather than held in memory (an
+    /// archive: the largest value a build stores). It is read once more to sign it (with
+    /// `KILN_REMOTE_CACHE_KEY`) and once per attempt; a source whose length changes while it
+    /// is sent fails the request, which the server then never sees whole.
+    pub(crate) fn store_from(&self, key: &Key, source: &dyn Source) -> bool {
+        if !self.writes() {
+            return false;
+        }
+        let prefix = match &self.key {
+            Some(k) => match mac_of(k, key, source) {
+                Ok(m) => [&SIGNED_MAGIC[..], &m].concat(),
+                Err(e) => {
+                    self.fail("writing to", Fault { message: format!("reading the value: {e}"), timed_out: false });
+                    return false;
+                }
+            },
+            None => Vec::new(),
+        };
+        let len = prefix.len() as u64 + source.len();
+        let body = || -> std::io::Result<Box<dyn std::io::Read + '_>> {
+            Ok(Box::new(std::io::Read::chain(&prefix[..], source.open()?)))
+        };
+        match self.retry(|| match &self.store {
+            Store::Redis(r) => r.put_from(key, len, &body),
+            Store::Http(h) => h.put_from(key, len, &body),
+        }) {
+            Ok(()) => true,
+            Err(f) => {
+                self.fail("writing to", f);
+                false
+            }
+        }
+    }
+
     /// Counts a value that passed its checks.
     pub(crate) fn count_hit(&self) {
         self.hits.fetch_add(1, Ordering::Relaxed);
@@ -716,6 +772,12 @@ impl RedisStore {
         self.with_connection(|c| c.set(&Self::name(key), value))
     }
 
+    fn put_from(&self, key: &Key, len: u64, body: &Body<'_>) -> Result<(), Fault> {
+        let mut body =
+            body().map_err(|e| Fault { message: format!("SET: reading the value: {e}"), timed_out: false })?;
+        self.with_connection(|c| c.set_from(&Self::name(key), len, &mut body))
+    }
+
     /// One `MGET` of every key: `f` with each key and its value (`value` is the buffer of
     /// [`RawRedis::mget`]); an error leaves the keys after those `f` had unanswered.
     fn get_many(
@@ -844,6 +906,24 @@ impl RawRedis {
     fn set(&mut self, name: &str, value: &[u8]) -> Result<(), Fault> {
         self.within("SET", value.len() as u64, |c| {
             c.send(&[b"SET", name.as_bytes(), value])?;
+            c.expect_ok("SET")
+        })
+    }
+
+    /// `SET name value` with the `len` bytes of `value` copied from it to the socket as
+    /// they are read. A value shorter than announced fails before its end is sent (the
+    /// connection is then dropped, so the server never stores it).
+    fn set_from(&mut self, name: &str, len: u64, value: &mut dyn std::io::Read) -> Result<(), Fault> {
+        use std::io::Write;
+        self.within("SET", len, |c| {
+            let head = format!("*3\r\n$3\r\nSET\r\n${}\r\n{name}\r\n${len}\r\n", name.len());
+            let socket = c.reader.get_mut();
+            socket.write_all(head.as_bytes()).map_err(Self::io_fault)?;
+            let sent = std::io::copy(&mut std::io::Read::take(value, len), socket).map_err(Self::io_fault)?;
+            if sent != len {
+                return Err(Fault { message: "SET: the value changed while it was sent".into(), timed_out: false });
+            }
+            socket.write_all(b"\r\n").map_err(Self::io_fault)?;
             c.expect_ok("SET")
         })
     }
@@ -1149,6 +1229,23 @@ impl HttpStore {
             request = request.header("Authorization", a);
         }
         let response = request.send(value).map_err(Self::fault)?;
+        if response.status().is_success() {
+            Ok(())
+        } else {
+            Err(Self::status("PUT", response.status()))
+        }
+    }
+
+    /// [`HttpStore::put`] of `len` bytes read from `body` as they are sent (with their
+    /// length announced, so a server need not take a chunked upload).
+    fn put_from(&self, key: &Key, len: u64, body: &Body<'_>) -> Result<(), Fault> {
+        let mut request = self.agent.put(self.url(key)).header("Content-Length", len.to_string());
+        if let Some(a) = &self.authorization {
+            request = request.header("Authorization", a);
+        }
+        let body = body().map_err(|e| Fault { message: format!("PUT: reading the value: {e}"), timed_out: false })?;
+        let mut exact = std::io::Read::take(body, len);
+        let response = request.send(ureq::SendBody::from_reader(&mut exact)).map_err(Self::fault)?;
         if response.status().is_success() {
             Ok(())
         } else {
