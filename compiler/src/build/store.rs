@@ -313,38 +313,11 @@ impl Store {
         std::thread::scope(|s| {
             let taker = s.spawn(move || {
                 let fingerprint = fingerprint();
-                let value = remote.get(&remote_archive_key(&fingerprint))?;
-                if !remote_archive_is_whole(&value) {
-                    let why = format!(
-                        "warning: the archive {} in the remote cache {} is corrupted; assembling it again",
-                        remote_archive_key(&fingerprint),
-                        remote.url()
-                    );
-                    self.failed.lock().expect("no panics while locked").push((0, why));
-                    return None;
-                }
-                let (counts, archive) = remote_archive_parts(&value);
                 let complete = || match filled.recv() {
                     Ok(true) => Ok(()),
                     _ => Err(std::io::Error::other("not every entry is in the remote cache")),
                 };
-                crate::output::write_with(out, false, |f, sink| match sink {
-                    crate::output::Sink::Temporary => {
-                        std::io::Write::write_all(f, archive)?;
-                        // Written back now rather than when renamed over an older archive
-                        // (which ext4 then flushes first, at the end of the build).
-                        // SAFETY: sync_file_range on a descriptor we own; only a hint.
-                        unsafe {
-                            use std::os::unix::io::AsRawFd;
-                            libc::sync_file_range(f.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE);
-                        }
-                        let _ = cache.stamp_archive_file(out, f, archive, &fingerprint, counts);
-                        complete()
-                    }
-                    crate::output::Sink::Stream => complete().and_then(|()| std::io::Write::write_all(f, archive)),
-                })
-                .ok()?;
-                Some(counts)
+                self.take_remote_archive(remote, out, &fingerprint, complete)
             });
             // The prefill's keys are this build's when every permutation matched a record
             // (the records' keys, each once): then nothing is left to ask for. Else the keys
@@ -361,6 +334,113 @@ impl Store {
             cache.put_bundle();
             Some(counts)
         })
+    }
+}
+
+impl Store {
+    /// [`Store::archive_from_remote`]'s fetch: the remote archive of the build with
+    /// `fingerprint` streamed into a temporary file beside `out` (checked as it arrives),
+    /// stamped, and renamed into place once `complete` says every entry is local. Into an
+    /// unlinked temporary file first when `out` is a stream, which is written only then.
+    fn take_remote_archive(
+        &self,
+        remote: &crate::cache::Remote,
+        out: &Path,
+        fingerprint: &blake3::Hash,
+        complete: impl FnOnce() -> std::io::Result<()>,
+    ) -> Option<(usize, usize)> {
+        let cache = self.cache.as_ref()?;
+        let key = remote_archive_key(fingerprint);
+        let fetch = |to: &mut std::fs::File| -> std::io::Result<((usize, usize), blake3::Hash)> {
+            let mut value = ArchiveValue::new(to);
+            if !remote.get_to(&key, &mut |piece| value.push(piece)) {
+                return Err(std::io::Error::other("no archive in the remote cache"));
+            }
+            value.finish().ok_or_else(|| {
+                let why = format!(
+                    "warning: the archive {key} in the remote cache {} is corrupted; assembling it again",
+                    remote.url()
+                );
+                self.failed.lock().expect("no panics while locked").push((0, why));
+                std::io::Error::other("a corrupted archive")
+            })
+        };
+        let is_stream = std::fs::metadata(out).is_ok_and(|m| !m.is_file());
+        let mut counts = None;
+        if is_stream {
+            let mut spool = tempfile::tempfile().ok()?;
+            counts = Some(fetch(&mut spool).ok()?.0);
+            crate::output::write_with(out, false, |f, _| {
+                complete()?;
+                std::io::Seek::seek(&mut spool, std::io::SeekFrom::Start(0))?;
+                std::io::copy(&mut spool, f).map(drop)
+            })
+            .ok()?;
+            return counts;
+        }
+        crate::output::write_with(out, false, |f, _| {
+            let (c, content) = fetch(f)?;
+            counts = Some(c);
+            // Written back now rather than when renamed over an older archive (which ext4
+            // then flushes first, at the end of the build).
+            // SAFETY: sync_file_range on a descriptor we own; only a hint.
+            unsafe {
+                use std::os::unix::io::AsRawFd;
+                libc::sync_file_range(f.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE);
+            }
+            let _ = cache.stamp_archive_file(out, f, content, fingerprint, c);
+            complete()
+        })
+        .ok()?;
+        counts
+    }
+}
+
+/// A remote archive value (see [`RemoteArchive`]) arriving in pieces: its head held, the
+/// archive after it written to a file, and both checked at the end.
+struct ArchiveValue<'f> {
+    to: &'f mut std::fs::File,
+    head: Vec<u8>,
+    /// Over the counts and the archive, as the head's checksum is.
+    sum: blake3::Hasher,
+    /// Over the archive alone, for its stamp.
+    content: blake3::Hasher,
+}
+
+impl<'f> ArchiveValue<'f> {
+    fn new(to: &'f mut std::fs::File) -> ArchiveValue<'f> {
+        ArchiveValue { to, head: Vec::with_capacity(56), sum: blake3::Hasher::new(), content: blake3::Hasher::new() }
+    }
+
+    fn push(&mut self, mut piece: &[u8]) -> std::io::Result<()> {
+        if self.head.len() < 56 {
+            let take = (56 - self.head.len()).min(piece.len());
+            self.head.extend_from_slice(&piece[..take]);
+            piece = &piece[take..];
+            if self.head.len() < 56 {
+                return Ok(());
+            }
+            self.sum.update(&self.head[40..]);
+        }
+        // Not an archive value: nothing written, and `finish` says so.
+        if &self.head[..8] != REMOTE_ARCHIVE_MAGIC {
+            return Ok(());
+        }
+        self.sum.update(piece);
+        self.content.update(piece);
+        std::io::Write::write_all(self.to, piece)
+    }
+
+    /// The counts and the archive's blake3, if the value was whole.
+    fn finish(self) -> Option<((usize, usize), blake3::Hash)> {
+        if self.head.len() < 56
+            || &self.head[..8] != REMOTE_ARCHIVE_MAGIC
+            || self.sum.finalize().as_bytes() != &self.head[8..40]
+        {
+            return None;
+        }
+        let count = |at: usize| u64::from_le_bytes(self.head[at..at + 8].try_into().expect("8 bytes")) as usize;
+        Some(((count(40), count(48)), self.content.finalize()))
     }
 }
 
@@ -420,17 +500,6 @@ impl crate::cache::remote::Source for RemoteArchive {
         (&self.file).seek(std::io::SeekFrom::Start(0))?;
         Ok(Box::new(self.head.as_slice().chain((&self.file).take(self.len))))
     }
-}
-
-/// Whether `value` is a whole value of [`RemoteArchive`] (magic, length, checksum).
-fn remote_archive_is_whole(value: &[u8]) -> bool {
-    value.len() >= 56 && &value[..8] == REMOTE_ARCHIVE_MAGIC && blake3::hash(&value[40..]).as_bytes() == &value[8..40]
-}
-
-/// The counts and the archive of a whole value of [`RemoteArchive`].
-fn remote_archive_parts(value: &[u8]) -> ((usize, usize), &[u8]) {
-    let count = |at: usize| u64::from_le_bytes(value[at..at + 8].try_into().expect("8 bytes")) as usize;
-    ((count(40), count(48)), &value[56..])
 }
 
 /// `KILN_CACHE_DIR`, else `$CARGO_TARGET_DIR/kiln-cache`, else `target/kiln-cache` in the

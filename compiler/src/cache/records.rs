@@ -84,7 +84,7 @@ impl Cache {
         self.write_file(&self.stamp_path(archive), text.as_bytes())
     }
 
-    /// [`Cache::stamp_archive`] for the archive `bytes` written to `file`, a temporary file
+    /// [`Cache::stamp_archive`] for the archive whose content hashes to `content`, written to `file`, a temporary file
     /// about to be renamed to `archive` (the rename keeps its length and modification
     /// time): the stamp is written while the build still waits on other work. A stamp whose
     /// file is not renamed after all matches no archive.
@@ -92,13 +92,13 @@ impl Cache {
         &self,
         archive: &Path,
         file: &fs::File,
-        bytes: &[u8],
+        content: blake3::Hash,
         fingerprint: &blake3::Hash,
         counts: (usize, usize),
     ) -> Result<(), Error> {
         let err = |source| Error { path: archive.to_path_buf(), source };
         let meta = file.metadata().map_err(err)?;
-        let id = identity(&meta, blake3::hash(bytes)).map_err(err)?;
+        let id = identity(&meta, content).map_err(err)?;
         let text = format!("{}\n{}\n{}\n{}\n", fingerprint.to_hex(), id, counts.0, counts.1);
         self.write_file(&self.stamp_path(archive), text.as_bytes())
     }

@@ -233,6 +233,117 @@ fn mac_of(signing: &SigningKey, key: &Key, source: &dyn Source) -> std::io::Resu
     Ok(*h.finalize().as_bytes())
 }
 
+/// What a value read from the remote is ([`Remote::classify`]).
+enum Kind {
+    /// Behind [`SIGNED_MAGIC`] and a MAC, which is `checked` when this build has a key.
+    Signed { checked: bool },
+    /// A Kiln value as it is (no key, no MAC).
+    Plain,
+    /// Not taken, and why.
+    Refused(&'static str),
+}
+
+/// [`Remote::get_to`]'s checks on a value arriving in pieces: its head held until it says
+/// what the value is, then the rest passed on (and hashed, when signed); whether it is
+/// accepted is known only at its end.
+struct Incoming<'a> {
+    remote: &'a Remote,
+    key: &'a Key,
+    head: Vec<u8>,
+    state: Arriving,
+    sink: &'a mut dyn FnMut(&[u8]) -> std::io::Result<()>,
+    passed: u64,
+}
+
+enum Arriving {
+    Head,
+    Passing(Option<(blake3::Hasher, [u8; 32])>),
+    Refused(&'static str),
+}
+
+impl Incoming<'_> {
+    fn push(&mut self, mut data: &[u8]) -> std::io::Result<()> {
+        if let Arriving::Head = self.state {
+            let take = (SIGNED_HEADER - self.head.len()).min(data.len());
+            self.head.extend_from_slice(&data[..take]);
+            data = &data[take..];
+            if self.head.len() < SIGNED_HEADER {
+                return Ok(());
+            }
+            self.decide()?;
+        }
+        self.pass(data)
+    }
+
+    /// The head is whole (or the value ended): what follows is passed on, or dropped.
+    fn decide(&mut self) -> std::io::Result<()> {
+        self.state = match self.remote.classify(&self.head) {
+            Kind::Signed { checked } => {
+                let check = checked.then(|| {
+                    let mut h = blake3::Hasher::new_keyed(&self.remote.key.as_ref().expect("checked with a key").0);
+                    h.update(b"kiln remote cache value v1\0");
+                    h.update(&self.key.0);
+                    (h, self.head[8..SIGNED_HEADER].try_into().expect("32 bytes"))
+                });
+                Arriving::Passing(check)
+            }
+            Kind::Plain => {
+                self.state = Arriving::Passing(None);
+                let head = std::mem::take(&mut self.head);
+                return self.pass(&head);
+            }
+            Kind::Refused(why) => Arriving::Refused(why),
+        };
+        Ok(())
+    }
+
+    fn pass(&mut self, data: &[u8]) -> std::io::Result<()> {
+        match &mut self.state {
+            Arriving::Passing(check) if !data.is_empty() => {
+                if let Some((h, _)) = check {
+                    h.update(data);
+                }
+                self.passed += data.len() as u64;
+                (self.sink)(data)
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Whether the whole value passed its checks (else it is refused, with one warning).
+    fn finish(mut self) -> std::io::Result<bool> {
+        if let Arriving::Head = self.state {
+            self.decide()?;
+        }
+        let why = match &self.state {
+            Arriving::Passing(Some((h, expected))) if h.finalize().as_bytes() != expected => {
+                "its MAC does not match KILN_REMOTE_CACHE_KEY"
+            }
+            Arriving::Passing(_) => return Ok(true),
+            Arriving::Refused(why) => why,
+            Arriving::Head => unreachable!("decided above"),
+        };
+        self.remote.refuse(self.key, why);
+        Ok(false)
+    }
+}
+
+/// Everything `from` reads, to `push` in pieces.
+fn copy_pieces(
+    from: &mut dyn std::io::Read,
+    push: &mut dyn FnMut(&[u8]) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    let mut buf = vec![0u8; 256 << 10];
+    loop {
+        match from.read(&mut buf) {
+            Ok(0) => return Ok(()),
+            Ok(n) => push(&buf[..n])?,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// A value for [`Remote::store_from`]: its length, and its bytes from the start as often as
 /// asked.
 pub(crate) trait Source: Sync {
@@ -365,19 +476,32 @@ impl Remote {
         if self.off.load(Ordering::Relaxed) {
             return None;
         }
-        let signed = value.len() >= SIGNED_HEADER && &value[..8] == SIGNED_MAGIC;
-        let why = match &self.key {
-            Some(k) if signed && mac(k, key, &value[SIGNED_HEADER..]) == value[8..SIGNED_HEADER] => {
+        let why = match self.classify(value) {
+            Kind::Signed { checked: true }
+                if mac(self.key.as_ref()?, key, &value[SIGNED_HEADER..]) == value[8..SIGNED_HEADER] =>
+            {
                 return Some(&value[SIGNED_HEADER..])
             }
-            Some(_) if signed => "its MAC does not match KILN_REMOTE_CACHE_KEY",
-            Some(_) if value.starts_with(b"KILN") => "it has no MAC (KILN_REMOTE_CACHE_KEY is set)",
-            None if signed => return Some(&value[SIGNED_HEADER..]),
-            None if value.starts_with(b"KILN") => return Some(value),
-            _ => "it is not a Kiln value",
+            Kind::Signed { checked: true } => "its MAC does not match KILN_REMOTE_CACHE_KEY",
+            Kind::Signed { checked: false } => return Some(&value[SIGNED_HEADER..]),
+            Kind::Plain => return Some(value),
+            Kind::Refused(why) => why,
         };
         self.refuse(key, why);
         None
+    }
+
+    /// What a value that starts with `head` (its first [`SIGNED_HEADER`] bytes, or all of
+    /// a shorter one) is to this build.
+    fn classify(&self, head: &[u8]) -> Kind {
+        let signed = head.len() >= SIGNED_HEADER && &head[..8] == SIGNED_MAGIC;
+        match &self.key {
+            Some(_) if signed => Kind::Signed { checked: true },
+            Some(_) if head.starts_with(b"KILN") => Kind::Refused("it has no MAC (KILN_REMOTE_CACHE_KEY is set)"),
+            None if signed => Kind::Signed { checked: false },
+            None if head.starts_with(b"KILN") => Kind::Plain,
+            _ => Kind::Refused("it is not a Kiln value"),
+        }
     }
 
     /// Turns the store off for a value of `key` that is refused (one warning).
@@ -422,6 +546,41 @@ impl Remote {
                     true
                 }
                 None => false,
+            },
+            Ok(false) => false,
+            Err(f) => {
+                self.fail("reading from", f);
+                false
+            }
+        }
+    }
+
+    /// The value stored under `key`, in pieces as it arrives, to `sink` (a value too large
+    /// to hold whole: an archive). True once the whole value arrived and passed its checks;
+    /// a signed value's MAC is known good only then, so whatever `sink` got is to be thrown
+    /// away on false (a miss, a failure or a refusal: those two with one warning).
+    pub(crate) fn get_to(&self, key: &Key, sink: &mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> bool {
+        if self.off.load(Ordering::Relaxed) {
+            return false;
+        }
+        let limit = self.limit();
+        let mut incoming = Incoming { remote: self, key, head: Vec::new(), state: Arriving::Head, sink, passed: 0 };
+        let fetch = |incoming: &mut Incoming<'_>| match &self.store {
+            Store::Redis(r) => r.get_to(key, limit, &mut |d| incoming.push(d)),
+            Store::Http(h) => h.get_to(key, limit, &mut |d| incoming.push(d)),
+        };
+        let mut result = fetch(&mut incoming);
+        // Once more on a new connection (an idle one the server closed) when nothing arrived.
+        if result.as_ref().is_err_and(|f| !f.timed_out && incoming.passed == 0 && incoming.head.is_empty()) {
+            result = fetch(&mut incoming);
+        }
+        match result {
+            Ok(true) => match incoming.finish() {
+                Ok(accepted) => accepted,
+                Err(e) => {
+                    self.fail("reading from", Fault { message: format!("keeping a value: {e}"), timed_out: false });
+                    false
+                }
             },
             Ok(false) => false,
             Err(f) => {
@@ -772,6 +931,11 @@ impl RedisStore {
         self.with_connection(|c| c.set(&Self::name(key), value))
     }
 
+    /// `GET` of `key`, its value to `push` in pieces: whether it was there.
+    fn get_to(&self, key: &Key, limit: u64, push: &mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> Result<bool, Fault> {
+        self.with_connection(|c| c.get_to(&Self::name(key), limit, push))
+    }
+
     fn put_from(&self, key: &Key, len: u64, body: &Body<'_>) -> Result<(), Fault> {
         let mut body =
             body().map_err(|e| Fault { message: format!("SET: reading the value: {e}"), timed_out: false })?;
@@ -925,6 +1089,47 @@ impl RawRedis {
             }
             socket.write_all(b"\r\n").map_err(Self::io_fault)?;
             c.expect_ok("SET")
+        })
+    }
+
+    /// `GET name`, its value to `push` in pieces as it is read: whether it was there. A
+    /// failure of `push` (the disk it writes to) fails the request.
+    fn get_to(
+        &mut self,
+        name: &str,
+        limit: u64,
+        push: &mut dyn FnMut(&[u8]) -> std::io::Result<()>,
+    ) -> Result<bool, Fault> {
+        use std::io::Read;
+        self.within("GET", 0, |c| {
+            c.send(&[b"GET", name.as_bytes()])?;
+            let len = c.header(b'$')?;
+            if len < 0 {
+                return Ok(false);
+            }
+            if len as u64 > limit {
+                let message = format!("a value of {len} bytes is larger than any this build stores (at most {limit})");
+                return Err(Fault { message, timed_out: false });
+            }
+            c.reader.get_mut().extend_deadline(transfer_time(len as u64));
+            let mut left = len as u64;
+            let mut buf = vec![0u8; 256 << 10];
+            while left > 0 {
+                let want = buf.len().min(left as usize);
+                let n = c.reader.read(&mut buf[..want]).map_err(Self::io_fault)?;
+                if n == 0 {
+                    return Err(Self::protocol("a truncated value"));
+                }
+                push(&buf[..n])
+                    .map_err(|e| Fault { message: format!("GET: keeping the value: {e}"), timed_out: false })?;
+                left -= n as u64;
+            }
+            let mut end = [0u8; 2];
+            c.reader.read_exact(&mut end).map_err(Self::io_fault)?;
+            if &end != b"\r\n" {
+                return Err(Self::protocol("a bulk string without its CRLF"));
+            }
+            Ok(true)
         })
     }
 
@@ -1207,6 +1412,18 @@ impl HttpStore {
             }
             _ => Err((false, Self::status("GET", response.status()))),
         }
+    }
+
+    /// `GET` of `key`, its body to `push` in pieces: whether it was there.
+    fn get_to(&self, key: &Key, limit: u64, push: &mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> Result<bool, Fault> {
+        let mut outcome = Ok(false);
+        let mut f = |body: Option<&mut dyn std::io::Read>| {
+            if let Some(body) = body {
+                outcome = copy_pieces(body, push).map(|()| true);
+            }
+        };
+        self.get_streamed(key, limit, &mut f).map_err(|(_, fault)| fault)?;
+        outcome.map_err(|e| Fault { message: format!("GET: {e}"), timed_out: false })
     }
 
     /// Whether `key` has a value (`HEAD`).
