@@ -12,7 +12,9 @@
 //!    compile, peak memory, archive size, and the size of the cache it filled (its files'
 //!    bytes, as `du -sb` counts them) as a ratio of the archive's, then the growth of peak
 //!    memory from 10k to 100k (goals: 10k at most 256 MiB; growth at most 1.2x; cache at
-//!    most 2x the archive). The 1M point runs only when asked for
+//!    most 2x the archive), and the peak memory of the tools on that set and archive
+//!    (`kiln inspect` and its `--list` and `--json`, `kiln list`, `kiln explain`; goal at
+//!    most 64 MiB each). The 1M point runs only when asked for
 //!    (`KILN_SCALE_SIZES=1000,10000,100000,1000000`; not in CI: a cold 1M build took about
 //!    8 minutes on two busy cores, 1.1 GB of cache and a 606 MB archive); after each cold
 //!    build, two warm builds that rewrite the archive, against it: one after the archive was
@@ -65,15 +67,22 @@ impl Run {
 }
 
 fn kiln(args: &[&str], stats: &Path) -> Run {
+    let (wall, cpu, max_rss) = measured(&[args, &["--stats-json", stats.to_str().unwrap()]].concat());
+    let stats = serde_json::from_slice(&std::fs::read(stats).expect("stats written")).expect("stats are JSON");
+    Run { wall, cpu, max_rss, stats }
+}
+
+/// Runs `kiln ARGS` (stdout thrown away) to its end: wall time, CPU time (user + system)
+/// and peak RSS in bytes (`wait4`'s, the child's own).
+fn measured(args: &[&str]) -> (Duration, Duration, u64) {
     let start = Instant::now();
     let child = Command::new(env!("CARGO_BIN_EXE_kiln"))
         .args(args)
-        .arg("--stats-json")
-        .arg(stats)
         .env("CI", "1")
         .env_remove("KILN_SHARD")
         .env_remove("KILN_REMOTE_CACHE")
         .env_remove("KILN_REMOTE_CACHE_MODE")
+        .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("kiln starts");
@@ -93,10 +102,33 @@ fn kiln(args: &[&str], stats: &Path) -> Run {
         let _ = e.read_to_string(&mut err);
     }
     assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "kiln {args:?} failed:\n{err}");
-    let stats = serde_json::from_slice(&std::fs::read(stats).expect("stats written")).expect("stats are JSON");
     let time = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
-    let cpu = time(usage.ru_utime) + time(usage.ru_stime);
-    Run { wall, cpu, max_rss: usage.ru_maxrss as u64 * 1024, stats }
+    (wall, time(usage.ru_utime) + time(usage.ru_stime), usage.ru_maxrss as u64 * 1024)
+}
+
+/// The tools on the cold build's set (its config `dir/set/permutations.toml`) and archive
+/// `out`: each one's wall time and peak memory (goal: at most 64 MiB each).
+fn tools(dir: &Path, out: &Path) {
+    let config = dir.join("set/permutations.toml");
+    let (config, out) = (config.to_str().unwrap(), out.to_str().unwrap());
+    let name = "ShadowDepthPS@sm5{MATERIAL=0,MASKED=1}";
+    let runs: [(&str, Vec<&str>); 7] = [
+        ("inspect", vec!["inspect", out]),
+        ("inspect --list", vec!["inspect", "--list", out]),
+        ("inspect --json", vec!["inspect", "--json", out]),
+        ("list", vec!["list", "--config", config]),
+        ("list --no-analysis", vec!["list", "--no-analysis", "--config", config]),
+        ("explain", vec!["explain", "--config", config, name]),
+        ("inspect NAME", vec!["inspect", out, name, "--reflection"]),
+    ];
+    let line: Vec<String> = runs
+        .iter()
+        .map(|(what, args)| {
+            let (wall, _, peak) = measured(args);
+            format!("{what} {:.1} MiB ({:.1} s)", mib(peak), wall.as_secs_f64())
+        })
+        .collect();
+    println!("{:>12} tools, peak (goal <= 64 MiB): {}", "", line.join(", "));
 }
 
 fn mib(bytes: u64) -> f64 {
@@ -201,6 +233,7 @@ fn main() {
             cache as f64 / archive.max(1) as f64
         );
         peaks.push((count, run.max_rss));
+        tools(tmp.path(), &out);
         warm_rewrite(tmp.path(), &run, &out, &jobs);
     }
     let at = |lo: usize, hi: usize| peaks.iter().find(|(c, _)| (lo..hi).contains(c)).map(|p| p.1);
