@@ -357,9 +357,11 @@ fn naga_alone_child(dir: &Path, jobs: &str) {
                 let f: Vec<&str> = line.split('\t').collect();
                 let (n, stage, entry, gles) = (f[0], f[1], f[2], f[3] == "1");
                 let stage = kiln::archive::Stage::ALL.into_iter().find(|s| s.name() == stage).expect("a stage");
-                let targets = f[4].split(',').map(|t| Target::ALL.into_iter().find(|a| a.name() == t).expect("a target"));
+                let targets =
+                    f[4].split(',').map(|t| Target::ALL.into_iter().find(|a| a.name() == t).expect("a target"));
                 let text = std::fs::read_to_string(dir.join(format!("{n}.wgsl"))).expect("a source");
-                let source = naga_alone::Source { text, entry: entry.to_string(), stage, targets: targets.collect(), gles };
+                let source =
+                    naga_alone::Source { text, entry: entry.to_string(), stage, targets: targets.collect(), gles };
                 naga_alone::naga_outputs(&source, false)
             })
             .collect()
@@ -433,7 +435,8 @@ fn small_set(dir: &Path, name: &str, config: &Path, jobs: &str) {
         let out = dir.join("small.kpak");
         let cache = dir.join(format!("cache{i}"));
         let args = ["build", "--config", config.to_str().unwrap(), "-o", out.to_str().unwrap()];
-        let run = kiln(&[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(), &dir.join("s.json"));
+        let run =
+            kiln(&[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(), &dir.join("s.json"));
         distinct = run.count("unique_sources");
         kiln_wall.push(run.wall.as_secs_f64() * 1e3);
         kiln_cpu.push(run.cpu.as_secs_f64() * 1e3);

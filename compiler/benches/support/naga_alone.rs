@@ -53,7 +53,13 @@ pub fn naga_outputs(s: &Source, entry_only: bool) -> Vec<(Target, Vec<u8>)> {
 }
 
 /// One writer's output.
-fn write_target(t: Target, module: &naga::Module, info: &naga::valid::ModuleInfo, stage: naga::ShaderStage, entry: &str) -> Vec<u8> {
+fn write_target(
+    t: Target,
+    module: &naga::Module,
+    info: &naga::valid::ModuleInfo,
+    stage: naga::ShaderStage,
+    entry: &str,
+) -> Vec<u8> {
     match t {
         Target::Wgsl => wgsl::write_string(module, info, wgsl::WriterFlags::empty()).unwrap().into_bytes(),
         Target::Spirv => {
