@@ -637,6 +637,11 @@ impl SpoolSink {
         if let Some(m) = memory.as_mut() {
             let end = offset as usize + bytes.len();
             if end <= self.limit {
+                if m.capacity() == 0 {
+                    // Room for the whole bound at once: growing by doubling copied the
+                    // bytes and touched twice the pages; pages never written stay untouched.
+                    m.reserve_exact(self.limit.min(SPOOL_MEMORY));
+                }
                 if m.len() < end {
                     m.resize(end, 0);
                 }
