@@ -4,10 +4,19 @@
 //! the domain; three shaders, two levels), `kiln build` runs as a child process (so its
 //! peak memory is its own: `wait4`'s max RSS) and prints:
 //!
-//! 0. a small set (144 permutations, about 120 distinct sources): a cold build against
-//!    naga alone on the same distinct sources and targets (this bench as a child process:
-//!    `-- naga-alone CONFIG JOBS`, timing naga's work only), medians of 5 alternating runs,
-//!    wall and CPU (goal: at most 1.15x wall);
+//! 0. small sets: a cold build against naga alone on the same distinct sources and targets,
+//!    both as whole processes measured the same way (`wait4`: from start to exit, CPU of
+//!    all threads), medians of 5 alternating runs, wall and CPU (goal: at most 1.15x wall).
+//!    Naga alone is this bench as a child (`-- naga-alone DIR JOBS`, on inputs written by
+//!    `-- naga-inputs CONFIG DIR`): it starts, reads the distinct sources (preprocessed by
+//!    Kiln beforehand, untimed: naga has no preprocessor), parses, validates and runs every
+//!    writer of each source's level on JOBS threads, and writes the outputs into one file.
+//!    Kiln's build also preprocesses every permutation, fills its cache and writes the
+//!    archive. The first line is the 144-permutation scale set (124 distinct) at
+//!    `KILN_SCALE_JOBS`; then the same at `-j 1`, and a set of another shape (25 shaders at
+//!    two levels, one dimension: 100 distinct). `KILN_SCALE_SMALL_ONLY=1` stops there;
+//!    `KILN_SCALE_KILN=PATH` measures another `kiln` binary (an older build, for a before
+//!    and after);
 //! 1. for 1k, 10k and 100k permutations: a cold build's wall time, time per distinct
 //!    compile, peak memory, archive size, and the size of the cache it filled (its files'
 //!    bytes, as `du -sb` counts them) as a ratio of the archive's, then the growth of peak
@@ -66,7 +75,8 @@ impl Run {
 }
 
 fn kiln(args: &[&str], stats: &Path) -> Run {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_kiln"));
+    let bin = std::env::var_os("KILN_SCALE_KILN").unwrap_or_else(|| env!("CARGO_BIN_EXE_kiln").into());
+    let mut cmd = Command::new(bin);
     cmd.args(args)
         .arg("--stats-json")
         .arg(stats)
