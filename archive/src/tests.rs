@@ -88,7 +88,11 @@ fn big_permutations() -> Vec<Artifacts> {
 /// Writes `perms` through a streaming writer, adding blobs and permutations in the order of
 /// `order` (indices into `perms`), from `threads` threads.
 fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads: usize) -> ArchiveSummary {
-    let w = StreamingWriter::new(path).unwrap();
+    stream_with(StreamingWriter::new(path).unwrap(), perms, order, threads)
+}
+
+/// [`stream`] through the writer `w`.
+fn stream_with(w: StreamingWriter, perms: &[Artifacts], order: &[usize], threads: usize) -> ArchiveSummary {
     w.set_naga_version("30.0.1");
     let sh = shader();
     let refl = reflection();
@@ -111,6 +115,23 @@ fn stream(path: &std::path::Path, perms: &[Artifacts], order: &[usize], threads:
         }
     });
     w.finish().unwrap()
+}
+
+#[test]
+fn the_archive_is_the_same_whether_blobs_wait_in_memory_or_in_a_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).rev().collect();
+    // All in a file, all in memory, and moved to a file part way (from three threads).
+    let mut archives = Vec::new();
+    for (i, limit) in [0, usize::MAX, 64 << 10].into_iter().enumerate() {
+        let path = dir.path().join(format!("{i}.kpak"));
+        stream_with(StreamingWriter::with_spool_memory(&path, limit).unwrap(), &perms, &order, 3);
+        archives.push(std::fs::read(&path).unwrap());
+    }
+    assert!(archives.iter().all(|a| *a == archives[0]), "the spool's place changes no byte");
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(leftovers.len(), 3, "no spool left behind: {leftovers:?}");
 }
 
 #[test]

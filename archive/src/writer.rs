@@ -1,15 +1,15 @@
 //! The writers of the archive format (`format.rs`).
 //!
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
-//! thread, in any order, as they are produced; blob bytes go straight to a spool file beside
-//! the output (unlinked as soon as it is created, so a killed build leaves nothing behind),
-//! and memory holds only a 4-byte prefix of each blob's identity and the manifest (where
+//! thread, in any order, as they are produced; blob bytes go to a spool, in memory while it
+//! is small and then a file beside the output (unlinked as soon as it is created, so a
+//! killed build leaves nothing behind), and memory holds only a 4-byte prefix of each blob's identity and the manifest (where
 //! each blob's bytes lie goes to a second unlinked file, read back at the end; the whole
 //! identities to a third, read back to confirm a prefix match; they are spooled too, and
 //! the prefixes are let go once the caller says no more blobs come:
 //! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, encodes the
-//! manifest to the spool file past the blobs (all but its header and dictionary records) and
+//! manifest to the spool past the blobs (all but its header and dictionary records) and
 //! lets go of its tables, then reads back where the blobs lie, trains one dictionary per
 //! target on a deterministic sample, compresses, and writes the archive through a temporary
 //! file and a rename, the spilled manifest copied into it. The bytes of the archive therefore depend only on
@@ -600,8 +600,72 @@ pub struct StreamingWriter {
     output: PathBuf,
     entries: Mutex<Entries>,
     blobs: Mutex<BlobTable>,
-    spool: File,
+    spool: SpoolSink,
     failed: AtomicBool,
+}
+
+/// The most blob bytes a [`StreamingWriter`] spools in memory before it moves them to a
+/// file: a small set's blobs then never touch the file system (a file written and read
+/// back costs a small build more than its compression), a large set's memory holds no more
+/// than this while its blobs stream in.
+const SPOOL_MEMORY: usize = 4 << 20;
+
+/// Where a [`StreamingWriter`]'s blobs wait: in memory up to [`SPOOL_MEMORY`] bytes, then in
+/// an unlinked file in `beside`'s folder (created then, what memory held copied into it).
+/// Which one holds them changes nothing in the archive.
+struct SpoolSink {
+    /// The spooled bytes while in memory; `None` once moved to `file`.
+    memory: Mutex<Option<Vec<u8>>>,
+    /// The most bytes `memory` holds ([`SPOOL_MEMORY`]).
+    limit: usize,
+    file: std::sync::OnceLock<File>,
+    beside: PathBuf,
+}
+
+impl SpoolSink {
+    fn new(beside: PathBuf, limit: usize) -> SpoolSink {
+        SpoolSink { memory: Mutex::new(Some(Vec::new())), limit, file: std::sync::OnceLock::new(), beside }
+    }
+
+    /// Writes `bytes` at `offset` (each offset is written once, by the thread that reserved
+    /// it, in any order).
+    fn write_all_at(&self, bytes: &[u8], offset: u64) -> std::io::Result<()> {
+        if let Some(f) = self.file.get() {
+            return f.write_all_at(bytes, offset);
+        }
+        let mut memory = lock(&self.memory);
+        if let Some(m) = memory.as_mut() {
+            let end = offset as usize + bytes.len();
+            if end <= self.limit {
+                if m.capacity() == 0 {
+                    // Room for the whole bound at once: growing by doubling copied the
+                    // bytes and touched twice the pages; pages never written stay untouched.
+                    m.reserve_exact(self.limit.min(SPOOL_MEMORY));
+                }
+                if m.len() < end {
+                    m.resize(end, 0);
+                }
+                m[offset as usize..end].copy_from_slice(bytes);
+                return Ok(());
+            }
+            // Past the bound: what memory holds goes to the file, and so does all that follows.
+            let f = unlinked_file(&self.beside)?;
+            f.write_all_at(m, 0)?;
+            let _ = self.file.set(f);
+            *memory = None;
+        }
+        drop(memory);
+        self.file.get().expect("moved to its file under the lock").write_all_at(bytes, offset)
+    }
+}
+
+/// A new file in `beside`'s folder, unlinked at once: the open handle keeps the data, and
+/// nothing is left behind whatever happens next.
+fn unlinked_file(beside: &Path) -> std::io::Result<File> {
+    let path = sibling_name(beside, "spool")?;
+    let file = std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&path)?;
+    std::fs::remove_file(&path)?;
+    Ok(file)
 }
 
 impl StreamingWriter {
@@ -609,36 +673,35 @@ impl StreamingWriter {
     /// `output`'s folder, which is created if missing; where that fails (a read-only folder,
     /// `/dev` for `-o /dev/null`), in the system's temporary folder.
     pub fn new(output: &Path) -> Result<StreamingWriter, ArchiveError> {
+        StreamingWriter::with_spool_memory(output, SPOOL_MEMORY)
+    }
+
+    /// [`StreamingWriter::new`] spooling at most `limit` bytes of blobs in memory.
+    pub(crate) fn with_spool_memory(output: &Path, limit: usize) -> Result<StreamingWriter, ArchiveError> {
         let err = |source| ArchiveError::Write { path: output.to_path_buf(), source };
-        let create = |beside: &Path| -> std::io::Result<File> {
-            let spool_path = sibling_name(beside, "spool")?;
-            let spool = std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&spool_path)?;
-            // The open handle keeps the data; nothing is left behind whatever happens next.
-            std::fs::remove_file(&spool_path)?;
-            Ok(spool)
-        };
         let regular_or_new = std::fs::metadata(output).map_or(true, |m| m.is_file());
-        let beside = match regular_or_new.then(|| create(output)) {
-            Some(Ok(f)) => Some(f),
+        // The blobs' locations, in an unlinked file beside the output (else in the system's
+        // temporary folder), their identities in a second, and their bytes in memory or
+        // a third in the same place ([`SpoolSink`]).
+        let beside = match regular_or_new.then(|| unlinked_file(output)) {
+            Some(Ok(f)) => Some((f, output.to_path_buf())),
             _ => None,
         };
-        let (spool, beside) = match beside {
-            Some(f) => (f, output.to_path_buf()),
+        let (log, beside) = match beside {
+            Some(found) => found,
             None => {
                 let tmp = std::env::temp_dir().join("kiln-archive");
-                (create(&tmp).map_err(err)?, tmp)
+                (unlinked_file(&tmp).map_err(err)?, tmp)
             }
         };
-        // The blobs' locations, in a second unlinked file in the same place, and their
-        // identities in a third.
-        let log = BufWriter::with_capacity(1 << 16, create(&beside).map_err(err)?);
-        let idents = create(&beside).map_err(err)?;
+        let log = BufWriter::with_capacity(1 << 16, log);
+        let idents = unlinked_file(&beside).map_err(err)?;
         let entries = Entries { naga_version: String::new(), ..Default::default() };
         Ok(StreamingWriter {
             output: output.to_path_buf(),
             entries: Mutex::new(entries),
             blobs: Mutex::new(BlobTable::new(LocLog::File(log), Some(idents))),
-            spool,
+            spool: SpoolSink::new(beside, limit),
             failed: AtomicBool::new(false),
         })
     }
@@ -791,7 +854,12 @@ impl StreamingWriter {
         let mut plan = plan(entries, blobs)?;
         plan.previous = Previous::open(&self.output);
         (plan.hooks.trace)("archive planned");
-        let spool = Spool::File(&self.spool);
+        let memory = self.spool.memory.into_inner().unwrap_or_else(|e| e.into_inner());
+        let spool = match (&memory, self.spool.file.get()) {
+            (Some(m), _) => Spool::Memory(m),
+            (None, Some(f)) => Spool::File(f),
+            (None, None) => return Err(err(std::io::Error::other("the spool's file is missing"))),
+        };
         let mut summary = ArchiveSummary::default();
         write_atomic_with(&self.output, sync, |f| {
             summary = write_archive(plan, &spool, f)?;

@@ -4,10 +4,19 @@
 //! the domain; three shaders, two levels), `kiln build` runs as a child process (so its
 //! peak memory is its own: `wait4`'s max RSS) and prints:
 //!
-//! 0. a small set (144 permutations, about 120 distinct sources): a cold build against
-//!    naga alone on the same distinct sources and targets (this bench as a child process:
-//!    `-- naga-alone CONFIG JOBS`, timing naga's work only), medians of 5 alternating runs,
-//!    wall and CPU (goal: at most 1.15x wall);
+//! 0. small sets: a cold build against naga alone on the same distinct sources and targets,
+//!    both as whole processes measured the same way (`wait4`: from start to exit, CPU of
+//!    all threads), medians of 5 alternating runs, wall and CPU (goal: at most 1.15x wall).
+//!    Naga alone is this bench as a child (`-- naga-alone DIR JOBS`, on inputs written by
+//!    `-- naga-inputs CONFIG DIR`): it starts, reads the distinct sources (preprocessed by
+//!    Kiln beforehand, untimed: naga has no preprocessor), parses, validates and runs every
+//!    writer of each source's level on JOBS threads, and writes the outputs into one file.
+//!    Kiln's build also preprocesses every permutation, fills its cache and writes the
+//!    archive. The first line is the 144-permutation scale set (124 distinct) at
+//!    `KILN_SCALE_JOBS`; then the same at `-j 1`, and a set of another shape (25 shaders at
+//!    two levels, one dimension: 100 distinct). `KILN_SCALE_SMALL_ONLY=1` stops there;
+//!    `KILN_SCALE_KILN=PATH` measures another `kiln` binary (an older build, for a before
+//!    and after);
 //! 1. for 1k, 10k and 100k permutations: a cold build's wall time, time per distinct
 //!    compile, peak memory, archive size, and the size of the cache it filled (its files'
 //!    bytes, as `du -sb` counts them) as a ratio of the archive's, then the growth of peak
@@ -47,10 +56,14 @@ mod naga_alone;
 mod scale_set;
 #[path = "support/servers.rs"]
 mod servers;
+#[path = "shapes/mod.rs"]
+mod shapes;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
+
+use kiln::archive::Target;
 
 /// One `kiln build` child: wall time, CPU time (user + system), peak RSS (bytes), its stats.
 struct Run {
@@ -67,25 +80,28 @@ impl Run {
 }
 
 fn kiln(args: &[&str], stats: &Path) -> Run {
-    let (wall, cpu, max_rss) = measured(&[args, &["--stats-json", stats.to_str().unwrap()]].concat());
+    let mut cmd = kiln_command();
+    cmd.args(args).arg("--stats-json").arg(stats);
+    let (wall, cpu, max_rss) = measured(&mut cmd, &format!("kiln {args:?}"));
     let stats = serde_json::from_slice(&std::fs::read(stats).expect("stats written")).expect("stats are JSON");
     Run { wall, cpu, max_rss, stats }
 }
 
-/// Runs `kiln ARGS` (stdout thrown away) to its end: wall time, CPU time (user + system)
-/// and peak RSS in bytes (`wait4`'s, the child's own).
-fn measured(args: &[&str]) -> (Duration, Duration, u64) {
+/// `kiln` (`KILN_SCALE_KILN`, else this tree's), with no remote cache or shard from the
+/// environment.
+fn kiln_command() -> Command {
+    let bin = std::env::var_os("KILN_SCALE_KILN").unwrap_or_else(|| env!("CARGO_BIN_EXE_kiln").into());
+    let mut cmd = Command::new(bin);
+    cmd.env("CI", "1").env_remove("KILN_SHARD").env_remove("KILN_REMOTE_CACHE").env_remove("KILN_REMOTE_CACHE_MODE");
+    cmd
+}
+
+/// Runs `cmd` as a whole process, from its start to its end: wall time, CPU time (user +
+/// system, its threads included) and peak RSS (bytes), as `wait4` gives them. Panics with
+/// its stderr when it fails.
+fn measured(cmd: &mut Command, what: &str) -> (Duration, Duration, u64) {
     let start = Instant::now();
-    let child = Command::new(env!("CARGO_BIN_EXE_kiln"))
-        .args(args)
-        .env("CI", "1")
-        .env_remove("KILN_SHARD")
-        .env_remove("KILN_REMOTE_CACHE")
-        .env_remove("KILN_REMOTE_CACHE_MODE")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("kiln starts");
+    let child = cmd.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::piped()).spawn().expect("starts");
     let pid = child.id() as libc::pid_t;
     let mut status = 0;
     // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
@@ -101,7 +117,7 @@ fn measured(args: &[&str]) -> (Duration, Duration, u64) {
         use std::io::Read;
         let _ = e.read_to_string(&mut err);
     }
-    assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "kiln {args:?} failed:\n{err}");
+    assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "{what} failed:\n{err}");
     let time = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
     (wall, time(usage.ru_utime) + time(usage.ru_stime), usage.ru_maxrss as u64 * 1024)
 }
@@ -124,7 +140,7 @@ fn tools(dir: &Path, out: &Path) {
     let line: Vec<String> = runs
         .iter()
         .map(|(what, args)| {
-            let (wall, _, peak) = measured(args);
+            let (wall, _, peak) = measured(kiln_command().args(args), &format!("kiln {args:?}"));
             format!("{what} {:.1} MiB ({:.1} s)", mib(peak), wall.as_secs_f64())
         })
         .collect();
@@ -186,8 +202,13 @@ fn main() {
         println!("{} ({count} permutations)", config.display());
         return;
     }
+    if args.first().map(String::as_str) == Some("naga-inputs") {
+        let n = naga_inputs(Path::new(args.get(1).expect("naga-inputs CONFIG DIR")), Path::new(&args[2]));
+        println!("{n} sources");
+        return;
+    }
     if args.first().map(String::as_str) == Some("naga-alone") {
-        naga_alone_child(Path::new(args.get(1).expect("naga-alone CONFIG JOBS")), &args[2]);
+        naga_alone_child(Path::new(args.get(1).expect("naga-alone DIR JOBS")), &args[2]);
         return;
     }
     let jobs = env_usize("KILN_SCALE_JOBS", 2).to_string();
@@ -198,7 +219,10 @@ fn main() {
         sharded(tmp.path(), &tmp.path().join("set/permutations.toml"), &one, &one_out, &jobs);
         return;
     }
-    small_set(&jobs);
+    small_sets(&jobs);
+    if std::env::var_os("KILN_SCALE_SMALL_ONLY").is_some() {
+        return;
+    }
     println!("kiln build, cold, -j {jobs}, as a child process (peak memory: wait4 max RSS)");
     println!(
         "{:>12} {:>9} {:>9} {:>10} {:>16} {:>12} {:>12} {:>12} {:>14}",
@@ -382,28 +406,55 @@ fn sharded(dir: &Path, config: &Path, one: &Run, one_out: &Path, jobs: &str) {
     );
 }
 
-/// As a child process: naga alone on CONFIG's distinct sources (preprocessed first, untimed)
-/// on JOBS threads; prints `naga WALL_MS CPU_MS`.
-fn naga_alone_child(config: &Path, jobs: &str) {
+/// As a child process, the baseline: naga alone as a tool calling it directly would run,
+/// on the sources [`naga_inputs`] wrote into DIR (`jobs.txt`, `N.wgsl`), on JOBS threads:
+/// reads each source, parses, validates and runs every writer of its level, and writes the
+/// outputs, one after another, into one file (`DIR/out.bin`; the cheapest way to write
+/// them: a file per output costs this machine's file system more than naga's work). The
+/// parent measures this whole process, as it does `kiln build`.
+fn naga_alone_child(dir: &Path, jobs: &str) {
     use rayon::prelude::*;
-    let config = kiln::permute::load(config).unwrap_or_else(|e| panic!("{}", e.render()));
-    let (distinct, _) = naga_alone::distinct_sources(&config);
+    let list = std::fs::read_to_string(dir.join("jobs.txt")).expect("jobs.txt");
     let pool = naga_alone::pool(jobs.parse().expect("JOBS"));
-    let (start, cpu) = (Instant::now(), cpu_time());
-    let bytes: usize = pool.install(|| distinct.par_iter().map(|s| naga_alone::naga_alone(s, false)).sum());
-    std::hint::black_box(bytes);
-    let (wall, cpu) = (start.elapsed(), cpu_time() - cpu);
-    println!("naga {} {}", wall.as_secs_f64() * 1e3, cpu.as_secs_f64() * 1e3);
+    let outputs: Vec<Vec<(Target, Vec<u8>)>> = pool.install(|| {
+        list.par_lines()
+            .map(|line| {
+                let f: Vec<&str> = line.split('\t').collect();
+                let (n, stage, entry, gles) = (f[0], f[1], f[2], f[3] == "1");
+                let stage = kiln::archive::Stage::ALL.into_iter().find(|s| s.name() == stage).expect("a stage");
+                let targets =
+                    f[4].split(',').map(|t| Target::ALL.into_iter().find(|a| a.name() == t).expect("a target"));
+                let text = std::fs::read_to_string(dir.join(format!("{n}.wgsl"))).expect("a source");
+                let source =
+                    naga_alone::Source { text, entry: entry.to_string(), stage, targets: targets.collect(), gles };
+                naga_alone::naga_outputs(&source, false)
+            })
+            .collect()
+    });
+    let mut out = std::io::BufWriter::new(std::fs::File::create(dir.join("out.bin")).expect("out.bin"));
+    for (_, bytes) in outputs.iter().flatten() {
+        std::io::Write::write_all(&mut out, bytes).expect("out.bin written");
+    }
+    std::io::Write::flush(&mut out).expect("out.bin written");
 }
 
-/// CPU time of this process so far (user + system, all threads).
-fn cpu_time() -> Duration {
-    // SAFETY: rusage is plain integers and timevals; all zeroes is a valid value.
-    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    // SAFETY: getrusage only writes the struct it is given.
-    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
-    let tv = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
-    tv(u.ru_utime) + tv(u.ru_stime)
+/// Writes naga alone's inputs for the set of `config` into `dir`: its distinct sources as
+/// Kiln's dedup sees them, preprocessed by Kiln (naga has no preprocessor; not timed), one
+/// `N.wgsl` each, and `jobs.txt` (a line each: N, stage, entry point, downlevel, targets).
+/// Gives the number of sources.
+fn naga_inputs(config: &Path, dir: &Path) -> usize {
+    let config = kiln::permute::load(config).unwrap_or_else(|e| panic!("{}", e.render()));
+    let (distinct, _) = naga_alone::distinct_sources(&config);
+    std::fs::create_dir_all(dir).expect("a folder for naga's inputs");
+    let mut jobs = String::new();
+    for (n, s) in distinct.iter().enumerate() {
+        std::fs::write(dir.join(format!("{n}.wgsl")), &s.text).expect("a source written");
+        let targets: Vec<&str> = s.targets.iter().map(|t| t.name()).collect();
+        let gles = if s.gles { 1 } else { 0 };
+        jobs.push_str(&format!("{n}\t{}\t{}\t{gles}\t{}\n", s.stage.name(), s.entry, targets.join(",")));
+    }
+    std::fs::write(dir.join("jobs.txt"), jobs).expect("jobs.txt written");
+    distinct.len()
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -411,40 +462,60 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// A small set (about 120 distinct sources): a cold `kiln build` as a whole process against
-/// naga alone on the same distinct sources and targets (a child process too, timing only
-/// naga's work, not its preprocessing), 5 runs each, alternating; medians of wall and CPU.
-fn small_set(jobs: &str) {
+/// The small sets: the scale set of 144 permutations (124 distinct sources) and a set of
+/// another shape (25 shaders at two levels, one dimension each: 100 distinct sources).
+fn small_sets(jobs: &str) {
     let tmp = tempfile::tempdir().expect("temp dir");
-    let (config, count) = scale_set::write(&tmp.path().join("set"), 144);
+    let (scale, count) = scale_set::write(&tmp.path().join("scale"), 144);
+    let shape = shapes::Shape {
+        name: "many shaders x few permutations",
+        shaders: 25,
+        used: 1,
+        unused: 0,
+        helpers: 16,
+        calls: 14,
+        mobile: true,
+    };
+    let other = shapes::write(&tmp.path().join("shape"), &shape);
+    let mut runs = vec![(format!("small set ({count} permutations"), scale.clone(), jobs.to_string())];
+    if jobs != "1" {
+        runs.push((format!("small set ({count} permutations"), scale, "1".to_string()));
+    }
+    runs.push((format!("{} ({} permutations", shape.name, shape.permutations()), other, jobs.to_string()));
+    for (i, (name, config, j)) in runs.into_iter().enumerate() {
+        small_set(&tmp.path().join(format!("run{i}")), &name, &config, &j);
+    }
+}
+
+/// A cold `kiln build` of `config` against naga alone ([`naga_alone_child`]) on the same
+/// distinct sources and targets, both as whole processes on `jobs` threads (start, reading
+/// the sources, compiling, writing the outputs, exit), 5 runs each, alternating; prints the
+/// medians of wall and CPU time.
+fn small_set(dir: &Path, name: &str, config: &Path, jobs: &str) {
+    let inputs = dir.join("naga");
+    let sources = naga_inputs(config, &inputs);
     let (mut kiln_wall, mut kiln_cpu, mut naga_wall, mut naga_cpu) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut distinct = 0;
     for i in 0..5 {
-        let out = tmp.path().join("small.kpak");
-        let cache = tmp.path().join(format!("cache{i}"));
+        let out = dir.join("small.kpak");
+        let cache = dir.join(format!("cache{i}"));
         let args = ["build", "--config", config.to_str().unwrap(), "-o", out.to_str().unwrap()];
-        let run = kiln(
-            &[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(),
-            &tmp.path().join("s.json"),
-        );
+        let run =
+            kiln(&[&args[..], &["--cache-dir", cache.to_str().unwrap(), "-j", jobs]].concat(), &dir.join("s.json"));
         distinct = run.count("unique_sources");
         kiln_wall.push(run.wall.as_secs_f64() * 1e3);
         kiln_cpu.push(run.cpu.as_secs_f64() * 1e3);
-        let child = Command::new(std::env::current_exe().expect("this bench"))
-            .args(["naga-alone", config.to_str().unwrap(), jobs])
-            .output()
-            .expect("naga alone runs");
-        let text = String::from_utf8_lossy(&child.stdout);
-        let line = text.lines().find_map(|l| l.strip_prefix("naga ")).expect("naga alone prints its times");
-        let mut times = line.split(' ').map(|t| t.parse::<f64>().expect("a time"));
-        naga_wall.push(times.next().expect("wall"));
-        naga_cpu.push(times.next().expect("CPU"));
+        let mut naga = Command::new(std::env::current_exe().expect("this bench"));
+        naga.args(["naga-alone", inputs.to_str().unwrap(), jobs]);
+        let (wall, cpu, _) = measured(&mut naga, "naga alone");
+        naga_wall.push(wall.as_secs_f64() * 1e3);
+        naga_cpu.push(cpu.as_secs_f64() * 1e3);
     }
+    assert_eq!(distinct as usize, sources, "naga alone compiles the distinct sources Kiln does");
     let (kw, kc, nw, nc) = (median(kiln_wall), median(kiln_cpu), median(naga_wall), median(naga_cpu));
     println!(
-        "small set ({count} permutations, {distinct} distinct), -j {jobs}, medians of 5 alternating runs: kiln cold \
-         build {kw:.0} ms wall ({kc:.0} ms CPU), naga alone {nw:.0} ms ({nc:.0} ms CPU): {:.2}x wall (goal <= 1.15x), \
-         {:.2}x CPU",
+        "{name}, {distinct} distinct), -j {jobs}, whole processes, medians of 5 alternating runs: kiln cold build \
+         {kw:.0} ms wall ({kc:.0} ms CPU), naga alone {nw:.0} ms ({nc:.0} ms CPU): {:.2}x wall (goal <= 1.15x), {:.2}x CPU",
         kw / nw,
         kc / nc
     );

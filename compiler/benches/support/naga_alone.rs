@@ -32,6 +32,11 @@ pub fn naga_stage(s: Stage) -> naga::ShaderStage {
 /// parse, validate, every writer: what a tool calling naga directly does. With
 /// `entry_only`, the module keeps only the entry point before validation, as Kiln does.
 pub fn naga_alone(s: &Source, entry_only: bool) -> usize {
+    naga_outputs(s, entry_only).iter().map(|(_, bytes)| bytes.len()).sum()
+}
+
+/// [`naga_alone`]'s outputs, by target (SPIR-V as its little-endian bytes).
+pub fn naga_outputs(s: &Source, entry_only: bool) -> Vec<(Target, Vec<u8>)> {
     let mut module = naga::front::wgsl::parse_str(&s.text).expect("parses");
     if entry_only {
         module.entry_points.retain(|e| e.name == s.entry);
@@ -44,41 +49,48 @@ pub fn naga_alone(s: &Source, entry_only: bool) -> usize {
     let info =
         naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps).validate(&module).expect("validates");
     let stage = naga_stage(s.stage);
-    let mut bytes = 0;
-    for t in &s.targets {
-        bytes += match t {
-            Target::Wgsl => wgsl::write_string(&module, &info, wgsl::WriterFlags::empty()).unwrap().len(),
-            Target::Spirv => {
-                let o = spv::Options {
-                    lang_version: (1, 0),
-                    flags: spv::WriterFlags::LABEL_VARYINGS | spv::WriterFlags::FORCE_POINT_SIZE,
-                    ..Default::default()
-                };
-                let p = spv::PipelineOptions { shader_stage: stage, entry_point: s.entry.clone() };
-                spv::write_vec(&module, &info, &o, Some(&p)).unwrap().len() * 4
-            }
-            Target::Msl => {
-                let o = msl::Options { lang_version: (2, 4), ..Default::default() };
-                let p = msl::PipelineOptions { entry_point: Some((stage, s.entry.clone())), ..Default::default() };
-                msl::write_string(&module, &info, &o, &p).unwrap().0.len()
-            }
-            Target::Glsl => {
-                let o = glsl::Options { version: glsl::Version::new_gles(310), ..Default::default() };
-                let p = glsl::PipelineOptions { shader_stage: stage, entry_point: s.entry.clone(), multiview: None };
-                let mut out = String::new();
-                glsl::Writer::new(&mut out, &module, &info, &o, &p, Default::default()).unwrap().write().unwrap();
-                out.len()
-            }
-            Target::Hlsl => {
-                let o = hlsl::Options { shader_model: hlsl::ShaderModel::V5_1, ..Default::default() };
-                let p = hlsl::PipelineOptions { entry_point: Some((stage, s.entry.clone())) };
-                let mut out = String::new();
-                hlsl::Writer::new(&mut out, &o, &p).write(&module, &info, None).unwrap();
-                out.len()
-            }
-        };
+    s.targets.iter().map(|&t| (t, write_target(t, &module, &info, stage, &s.entry))).collect()
+}
+
+/// One writer's output.
+fn write_target(
+    t: Target,
+    module: &naga::Module,
+    info: &naga::valid::ModuleInfo,
+    stage: naga::ShaderStage,
+    entry: &str,
+) -> Vec<u8> {
+    match t {
+        Target::Wgsl => wgsl::write_string(module, info, wgsl::WriterFlags::empty()).unwrap().into_bytes(),
+        Target::Spirv => {
+            let o = spv::Options {
+                lang_version: (1, 0),
+                flags: spv::WriterFlags::LABEL_VARYINGS | spv::WriterFlags::FORCE_POINT_SIZE,
+                ..Default::default()
+            };
+            let p = spv::PipelineOptions { shader_stage: stage, entry_point: entry.to_string() };
+            spv::write_vec(module, info, &o, Some(&p)).unwrap().iter().flat_map(|w| w.to_le_bytes()).collect()
+        }
+        Target::Msl => {
+            let o = msl::Options { lang_version: (2, 4), ..Default::default() };
+            let p = msl::PipelineOptions { entry_point: Some((stage, entry.to_string())), ..Default::default() };
+            msl::write_string(module, info, &o, &p).unwrap().0.into_bytes()
+        }
+        Target::Glsl => {
+            let o = glsl::Options { version: glsl::Version::new_gles(310), ..Default::default() };
+            let p = glsl::PipelineOptions { shader_stage: stage, entry_point: entry.to_string(), multiview: None };
+            let mut out = String::new();
+            glsl::Writer::new(&mut out, module, info, &o, &p, Default::default()).unwrap().write().unwrap();
+            out.into_bytes()
+        }
+        Target::Hlsl => {
+            let o = hlsl::Options { shader_model: hlsl::ShaderModel::V5_1, ..Default::default() };
+            let p = hlsl::PipelineOptions { entry_point: Some((stage, entry.to_string())) };
+            let mut out = String::new();
+            hlsl::Writer::new(&mut out, &o, &p).write(module, info, None).unwrap();
+            out.into_bytes()
+        }
     }
-    bytes
 }
 
 /// The distinct sources of a set, preprocessed by Kiln (untimed), as Kiln's dedup sees them,

@@ -52,7 +52,8 @@ const TRAIN_SAMPLE: usize = 2 << 20;
 const MAX_RAW: u64 = 1 << 30;
 
 thread_local! {
-    static CCTX: RefCell<Option<CCtx<'static>>> = const { RefCell::new(None) };
+    /// Each thread's compression context and the buffer it compresses into, made once.
+    static CCTX: RefCell<(Option<CCtx<'static>>, Vec<u8>)> = const { RefCell::new((None, Vec::new())) };
     static DCTX: RefCell<Option<DCtx<'static>>> = const { RefCell::new(None) };
 }
 
@@ -280,27 +281,33 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
     let checksum = super::entry_checksum(key, &frames, hashes);
     let raw = body(c);
     let dict = dicts.get(&kind_of(c)).and_then(|d| d.cdict().map(|c| (d.id, c)));
-    let mut out = Vec::with_capacity(HEADER + 16 + zstd::zstd_safe::compress_bound(raw.len()));
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(checksum.as_bytes());
-    out.extend_from_slice(&key.0);
-    out.extend_from_slice(&((super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
-    out.extend_from_slice(&dict.as_ref().map_or(NO_DICT, |d| d.0));
-    let start = out.len();
-    out.resize(out.capacity(), 0);
-    let written = CCTX.with(|cell| {
+    CCTX.with(|cell| {
         let mut cell = cell.borrow_mut();
-        let cctx = cell.get_or_insert_with(CCtx::create);
-        let dst = &mut out[start..];
-        match dict {
+        let (context, dst) = &mut *cell;
+        let cctx = context.get_or_insert_with(CCtx::create);
+        dst.clear();
+        dst.reserve(zstd::zstd_safe::compress_bound(raw.len()));
+        let written = match dict {
             Some((_, cdict)) => cctx.compress_using_cdict(dst, &raw, cdict),
             None => cctx.compress(dst, &raw, PLAIN_LEVEL),
+        };
+        // The bound always fits a frame; an error (none expected) leaves an empty frame,
+        // which fails to decode: the entry is then recompiled.
+        if written.is_err() {
+            dst.clear();
         }
-    });
-    // The bound always fits a frame; an error (none expected) leaves an empty frame, which
-    // fails to decode: the entry is then recompiled.
-    out.truncate(start + written.unwrap_or(0));
-    out
+        // Copied out at its size from the worker's buffer: the encoded entries of a pack
+        // wait to be written, each in a buffer of its raw size (zeroed, so faulted in)
+        // otherwise.
+        let mut out = Vec::with_capacity(HEADER + 16 + dst.len());
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(checksum.as_bytes());
+        out.extend_from_slice(&key.0);
+        out.extend_from_slice(&((super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
+        out.extend_from_slice(&dict.as_ref().map_or(NO_DICT, |d| d.0));
+        out.extend_from_slice(dst);
+        out
+    })
 }
 
 /// The raw length a whole version 3 entry's header announces.
