@@ -94,7 +94,7 @@ impl<'a> Compiler<'a> {
             early_warnings: Mutex::default(),
             start: Mutex::default(),
             shared: shared_writers(plan.len()),
-            texts: plan.options.shard.and_then(|_| super::shard::Texts::new()),
+            texts: plan.options.shard.filter(|_| !plan.hashed_shares()).and_then(|_| super::shard::Texts::new()),
         }
     }
 
@@ -111,17 +111,22 @@ impl<'a> Compiler<'a> {
     }
 
     /// During preprocessing: compiles `key` from `output` if `p` is the first of its
-    /// permutations preprocessed (and, with `--shard`, nothing yet: a shard knows its share
-    /// only once every key is known, so it keeps the text for then).
+    /// permutations preprocessed. With `--shard`, only a key of its share by hash
+    /// ([`Plan::hashed_shares`]); with shares by cost, none yet: the shard knows its share
+    /// only once every key is known, so it keeps the text for then.
     pub fn early(&self, index: usize, p: &Permutation<'_>, key: &Key, output: &preprocess::Output) {
         if p.error.is_some() {
             return;
         }
-        if self.plan.options.shard.is_some() {
-            if let Some(texts) = &self.texts {
-                texts.keep(key, &output.text);
+        match self.plan.options.shard {
+            Some(shard) if self.plan.hashed_shares() && !shard.hashes_to(key) => return,
+            Some(_) if !self.plan.hashed_shares() => {
+                if let Some(texts) = &self.texts {
+                    texts.keep(key, &output.text);
+                }
+                return;
             }
-            return;
+            _ => {}
         }
         let short = u32::from_le_bytes(key.0[..4].try_into().expect("4 of 32 bytes"));
         // Spread over 64 bits: the table takes its probe tag from the high bits.
@@ -147,6 +152,11 @@ impl<'a> Compiler<'a> {
             }
             Outcome::Failed(_) | Outcome::Elsewhere => {}
         }
+    }
+
+    /// Whether one of `members` produced its key during preprocessing.
+    pub fn produced_early(&self, members: &[u32]) -> bool {
+        members.iter().any(|&m| self.early[m as usize].load(Ordering::Relaxed) != 0)
     }
 
     /// The outcome of a key one of whose `members` produced it during preprocessing.

@@ -15,6 +15,7 @@ impl Plan<'_> {
         let mut keys = Keys { pre, starts, members, share: Vec::new() };
         keys.share = match self.options.shard {
             None => vec![true; keys.len()],
+            Some(shard) if self.hashed_shares() => (0..keys.len()).map(|k| shard.hashes_to(keys.key(k))).collect(),
             Some(shard) => {
                 let costs = self.key_costs(pre, &keys)?;
                 assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()

@@ -229,7 +229,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         progress.finish();
         return up_to_date(report, keys, store, &mut preprocessor, &pre, fresh);
     }
-    before_compile(options, store, &keys);
+    before_compile(options, store, &keys, &compiler);
     let outcomes = compiler.run(&keys, &preprocessor);
     // Every artifact is in: the archive's table that finds blobs by content goes.
     assembler.seal_blobs();
@@ -294,15 +294,19 @@ fn up_to_date(
 
 /// Readies the compile stage: memory handed back, the cache's prefill done, and a shard's
 /// share fetched.
-fn before_compile(options: &Options, store: &store::Store, keys: &group::Keys<'_>) {
+fn before_compile(options: &Options, store: &store::Store, keys: &group::Keys<'_>, compiler: &compile::Compiler<'_>) {
     // Grouping's sort and counting tables go back before the compile stage.
     release_freed();
     // The compile stage looks keys up once the prefill is done (else it would ask the remote
     // for them one by one).
     store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
     if options.shard.is_some() {
-        // A shard's share comes from the remote cache in batches, not key by key.
-        let share: Vec<_> = (0..keys.len()).filter(|&k| keys.share[k]).map(|k| *keys.key(k)).collect();
+        // A shard's share comes from the remote cache in batches, not key by key (but for
+        // the keys it produced while preprocessing, with shares by hash).
+        let share: Vec<_> = (0..keys.len())
+            .filter(|&k| keys.share[k] && !compiler.produced_early(keys.members(k)))
+            .map(|k| *keys.key(k))
+            .collect();
         store.prefetch(&share);
     }
 }

@@ -45,6 +45,22 @@ impl Shard {
     }
 }
 
+impl Shard {
+    /// Whether `key` falls to this shard by its hash ([`Plan::hashed_shares`]): a share
+    /// every shard works out from the key alone, as soon as it has it.
+    pub(super) fn hashes_to(&self, key: &crate::cache::Key) -> bool {
+        let h = u64::from_le_bytes(key.0[8..16].try_into().expect("8 of 32 bytes"));
+        h % self.count as u64 == self.index as u64
+    }
+}
+
+/// From this many kept permutations, `--shard` shares keys by their hash rather than by
+/// cost. A share balanced by cost needs every key's cost, so a shard knows its share only
+/// once it has preprocessed everything, and must keep every key's text until then; by hash
+/// it compiles its keys as it finds them, as a plain build does. With this many keys, the
+/// shares' costs even out without being balanced.
+pub(super) const HASHED_SHARES_FROM: usize = 65_536;
+
 impl std::fmt::Display for Shard {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "{}/{}", self.index, self.count)
@@ -302,6 +318,12 @@ impl<'c> Plan<'c> {
     /// Whether the build writes anything from the artifacts (an archive or loose files).
     pub fn assembles(&self) -> bool {
         self.options.output.is_some() || self.options.emit_dir.is_some()
+    }
+
+    /// Whether `--shard` shares keys by hash ([`HASHED_SHARES_FROM`]): decided by the set
+    /// alone, so every shard decides alike.
+    pub fn hashed_shares(&self) -> bool {
+        self.len >= HASHED_SHARES_FROM
     }
 }
 
