@@ -43,8 +43,8 @@
 //! opening is O(shaders + distinct reflections), not O(permutations). The measurements
 //! behind these choices are in `docs/design/2026-11-archive-format-measurements.md`.
 
-use std::fs::File;
 use std::cmp::Ordering;
+use std::fs::File;
 use std::io::{IoSlice, Write};
 use std::path::{Path, PathBuf};
 
@@ -263,7 +263,8 @@ pub(crate) struct Manifest {
 pub(crate) struct Arenas {
     /// Each shader's `name@level`, the start of its permutations' canonical names.
     pub prefixes: Vec<String>,
-    /// Each permutation's name, less its shader's prefix where it begins with it.
+    /// Each permutation's name, less its shader's prefix where it begins with it; nothing
+    /// for a derived name ([`ManifestPermutation::derived`]).
     pub names: String,
     pub values: Values,
     /// Each artifact's target, and its blob (a slot of the writer's table, then a blob id).

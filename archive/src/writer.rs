@@ -28,10 +28,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, sibling_name, write_atomic_with, write_derived, ArchiveError, Arenas, BlobId, ChunkHasher,
-    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord, PipelineRecord,
-    Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
-    COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    encode_artifact, header_checksum, sibling_name, write_atomic_with, write_derived, ArchiveError, Arenas, BlobId,
+    ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord,
+    PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD,
+    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
+    RECORD_LEN, VALUE_LEN,
 };
 use super::reuse::Previous;
 use super::{Reflection, Target};
@@ -1001,10 +1002,7 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     permutations.sort_unstable_by(|a, b| arenas.cmp_names((a, b), &shaders, &mut buffers));
     if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names((&w[0], &w[1]), &shaders, &mut buffers).is_eq())
     {
-        return Err(ArchiveError::Input(format!(
-            "permutation `{}` was added twice",
-            arenas.name_of(&w[0], &shaders)
-        )));
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0], &shaders))));
     }
     drop(buffers);
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
@@ -1568,12 +1566,7 @@ fn spill_manifest<'a>(
     // The tables start at a multiple of 8 from the manifest's start (every part before them
     // is a whole number of 8-byte fields), so the names' padding depends only on their length.
     pad8(&mut back, tables_len)?;
-    let mut name = String::new();
-    for p in &manifest.permutations {
-        name.clear();
-        manifest.arenas.write_name(p, &manifest.shaders, &mut name);
-        back.write_all(name.as_bytes())?;
-    }
+    write_names(&manifest, &mut back)?;
     back.flush()?;
     manifest.arenas.names = String::new();
     (hooks.release)();
@@ -1636,6 +1629,18 @@ fn spill_manifest<'a>(
         return Err(std::io::Error::other("the manifest's parts differ from its counts"));
     }
     Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
+}
+
+/// The whole names of the manifest's permutations, in order, one after another (derived
+/// names made again one at a time).
+fn write_names(manifest: &Manifest, out: &mut impl Write) -> std::io::Result<()> {
+    let mut name = String::new();
+    for p in &manifest.permutations {
+        name.clear();
+        manifest.arenas.write_name(p, &manifest.shaders, &mut name);
+        out.write_all(name.as_bytes())?;
+    }
+    Ok(())
 }
 
 /// Bytes written ahead of where the archive takes them: the blob table while the blobs and
