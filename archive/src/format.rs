@@ -43,6 +43,7 @@
 //! opening is O(shaders + distinct reflections), not O(permutations). The measurements
 //! behind these choices are in `docs/design/2026-11-archive-format-measurements.md`.
 
+use std::cmp::Ordering;
 use std::fs::File;
 use std::io::{IoSlice, Write};
 use std::path::{Path, PathBuf};
@@ -262,7 +263,8 @@ pub(crate) struct Manifest {
 pub(crate) struct Arenas {
     /// Each shader's `name@level`, the start of its permutations' canonical names.
     pub prefixes: Vec<String>,
-    /// Each permutation's name, less its shader's prefix where it begins with it.
+    /// Each permutation's name, less its shader's prefix where it begins with it; nothing
+    /// for a derived name ([`ManifestPermutation::derived`]).
     pub names: String,
     pub values: Values,
     /// Each artifact's target, and its blob (a slot of the writer's table, then a blob id).
@@ -323,29 +325,67 @@ impl Values {
 }
 
 impl Arenas {
-    /// The name of `p` in two parts: its shader's prefix (empty when not `prefixed`), then
-    /// its own bytes.
-    pub fn name_parts(&self, p: &ManifestPermutation) -> (&str, &str) {
-        let own = &self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize];
-        match p.prefixed {
-            true => (&self.prefixes[p.shader as usize], own),
-            false => ("", own),
+    /// Writes the whole name of `p` to `out` (`shaders` in the numbering of `p.shader`): a
+    /// derived name made again from its shader's dimensions and its values.
+    pub fn write_name(&self, p: &ManifestPermutation, shaders: &[ShaderRecord], out: &mut String) {
+        if p.prefixed {
+            out.push_str(&self.prefixes[p.shader as usize]);
         }
+        if !p.derived {
+            out.push_str(&self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]);
+            return;
+        }
+        let dims = &shaders[p.shader as usize].dimensions;
+        write_derived(dims, self.values_of(p, dims.len()), out);
     }
 
     /// The whole name of `p`, for messages.
-    pub fn name_of(&self, p: &ManifestPermutation) -> String {
-        let (prefix, own) = self.name_parts(p);
-        format!("{prefix}{own}")
+    pub fn name_of(&self, p: &ManifestPermutation, shaders: &[ShaderRecord]) -> String {
+        let mut name = String::new();
+        self.write_name(p, shaders, &mut name);
+        name
     }
 
-    /// Orders `a` and `b` by their whole names (byte order, as the archive's).
-    pub fn cmp_names(&self, a: &ManifestPermutation, b: &ManifestPermutation) -> std::cmp::Ordering {
-        let ((pa, na), (pb, nb)) = (self.name_parts(a), self.name_parts(b));
-        if pa == pb {
-            return na.cmp(nb);
+    /// Orders `a` and `b` by their whole names (byte order, as the archive's). Two derived
+    /// names of one shader differ only in their values, compared one dimension at a time
+    /// (no name is made); the others are made into `buffers`.
+    pub fn cmp_names(
+        &self,
+        (a, b): (&ManifestPermutation, &ManifestPermutation),
+        shaders: &[ShaderRecord],
+        buffers: &mut (String, String),
+    ) -> std::cmp::Ordering {
+        if a.shader == b.shader && a.prefixed == b.prefixed && !a.derived && !b.derived {
+            let own = |p: &ManifestPermutation| &self.names[p.name_start as usize..][..p.name_len as usize];
+            return own(a).cmp(own(b));
         }
-        pa.bytes().chain(na.bytes()).cmp(pb.bytes().chain(nb.bytes()))
+        if a.shader == b.shader && a.derived && b.derived {
+            return self.cmp_derived(a, b, &shaders[a.shader as usize].dimensions);
+        }
+        buffers.0.clear();
+        buffers.1.clear();
+        self.write_name(a, shaders, &mut buffers.0);
+        self.write_name(b, shaders, &mut buffers.1);
+        buffers.0.cmp(&buffers.1)
+    }
+
+    /// [`Arenas::cmp_names`] of two derived names of a shader with `dims`: each value as
+    /// written, followed by what follows it in the name (`,` or the closing `}`).
+    fn cmp_derived(&self, a: &ManifestPermutation, b: &ManifestPermutation, dims: &[DimensionRecord]) -> Ordering {
+        let values = self.values_of(a, dims.len()).zip(self.values_of(b, dims.len()));
+        let (mut x, mut y) = ([0u8; 20], [0u8; 20]);
+        for (i, (d, (va, vb))) in dims.iter().zip(values).enumerate() {
+            if va == vb {
+                continue;
+            }
+            let end = if i + 1 == dims.len() { b'}' } else { b',' };
+            let (x, y) = (shown(d, va, &mut x), shown(d, vb, &mut y));
+            match x.iter().chain([&end]).cmp(y.iter().chain([&end])) {
+                Ordering::Equal => {}
+                other => return other,
+            }
+        }
+        Ordering::Equal
     }
 
     /// The `count` values of `p` (its shader's dimension count).
@@ -371,6 +411,38 @@ pub(crate) struct ManifestPermutation {
     pub artifact_count: u8,
     /// Whether its name begins with its shader's `name@level`, left out of the names arena.
     pub prefixed: bool,
+    /// Whether the rest of its name is its shader's dimensions and its values as a canonical
+    /// name writes them (`{DIM=value,...}`, `name_len` bytes): made again where it is needed,
+    /// not kept in the names arena, which would be the largest part of a large manifest.
+    pub derived: bool,
+}
+
+/// Writes what a canonical name has after its shader's `name@level`: `{DIM=value,...}`,
+/// each value as [`shown`].
+pub(crate) fn write_derived(dims: &[DimensionRecord], values: impl Iterator<Item = i64>, out: &mut String) {
+    let mut buffer = [0u8; 20];
+    out.push('{');
+    for (i, (d, v)) in dims.iter().zip(values).enumerate() {
+        if i > 0 {
+            out.push(',');
+        }
+        out.push_str(&d.name);
+        out.push('=');
+        out.push_str(std::str::from_utf8(shown(d, v, &mut buffer)).expect("a label or a number"));
+    }
+    out.push('}');
+}
+
+/// `value` of dimension `d` as a canonical name writes it (its label, else the number, made
+/// in `buffer`: an `i64` takes at most 20 bytes).
+fn shown<'a>(d: &'a DimensionRecord, value: i64, buffer: &'a mut [u8; 20]) -> &'a [u8] {
+    if let Some(label) = usize::try_from(value).ok().and_then(|i| d.labels.get(i)) {
+        return label.as_bytes();
+    }
+    let mut rest = &mut buffer[..];
+    write!(rest, "{value}").expect("an i64 takes at most 20 bytes");
+    let len = 20 - rest.len();
+    &buffer[..len]
 }
 
 impl ManifestPermutation {

@@ -226,6 +226,46 @@ fn names_without_their_prefix_and_values_past_i32_round_trip() {
     }
 }
 
+/// Canonical names are made again from the values rather than kept: in byte order whatever
+/// the number of digits, signs and labels (values past a dimension's labels are numbers),
+/// beside names of the same shader that only look canonical (kept as they are).
+#[test]
+fn derived_names_sort_and_round_trip_beside_kept_ones() {
+    let mut w = ArchiveWriter::new();
+    let s = w.add_shader(shader());
+    let r = w.add_reflection(&reflection());
+    let mut names = Vec::new();
+    for rough in [0i64, 1, 2, 9, 10, 11, 100, -1, -10, 1 << 40] {
+        for mode in [0i64, 1, 2] {
+            let label = ["OPAQUE", "MASKED", "2"][mode as usize];
+            names.push((format!("Lit@sm5{{FULLY_ROUGH={rough},MODE={label}}}"), vec![rough, mode]));
+        }
+    }
+    names.push(("Lit@sm5{FULLY_ROUGH=01,MODE=OPAQUE}".into(), vec![1, 0]));
+    names.push(("Lit@sm5{FULLY_ROUGH=3}".into(), vec![3, 0]));
+    names.push(("Lit@sm5".into(), vec![4, 1]));
+    for (i, (name, values)) in names.iter().enumerate() {
+        let blob = w.add_blob(format!("blob {i}").as_bytes());
+        w.add_permutation(PermutationRecord {
+            name: name.clone(),
+            shader: s,
+            values: values.clone(),
+            reflection: r,
+            artifacts: vec![(Target::Wgsl, blob)],
+        });
+    }
+    let a = Archive::from_vec(w.to_bytes().unwrap()).unwrap();
+    let read: Vec<&str> = a.permutations().unwrap().map(|p| p.name()).collect();
+    let mut sorted: Vec<&str> = names.iter().map(|n| n.0.as_str()).collect();
+    sorted.sort();
+    assert_eq!(read, sorted);
+    for (i, (name, values)) in names.iter().enumerate() {
+        let p = a.get(name).unwrap().unwrap_or_else(|| panic!("{name} not found"));
+        assert_eq!(p.values(), &values[..]);
+        assert_eq!(&p.artifact(Target::Wgsl).unwrap().unwrap()[..], format!("blob {i}").as_bytes());
+    }
+}
+
 #[test]
 fn canonical_name_accepts_labels_indices_and_any_order() {
     let a = Archive::from_vec(sample()).unwrap();

@@ -28,10 +28,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, sibling_name, write_atomic_with, ArchiveError, Arenas, BlobId, ChunkHasher,
-    DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord, PipelineRecord,
-    Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT,
-    COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    encode_artifact, header_checksum, sibling_name, write_atomic_with, write_derived, ArchiveError, Arenas, BlobId,
+    ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord,
+    PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD,
+    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
+    RECORD_LEN, VALUE_LEN,
 };
 use super::reuse::Previous;
 use super::{Reflection, Target};
@@ -108,6 +109,8 @@ struct Entries {
     reflection_index: HashMap<Reflection, u32>,
     permutations: Vec<ManifestPermutation>,
     arenas: Arenas,
+    /// A derived name made for the check in [`Entries::add`].
+    scratch: String,
 }
 
 /// A blob's identity in a writer: a prefix of its blake3 (as long as the cache's pack
@@ -462,6 +465,12 @@ impl Entries {
         let a = &mut self.arenas;
         // Canonical names begin with their shader's `name@level`: kept once, not per name.
         let own = p.name.strip_prefix(a.prefixes[shader as usize].as_str());
+        // And go on with its dimensions and values, made again from them where needed.
+        let derived = own.is_some_and(|own| {
+            self.scratch.clear();
+            write_derived(&p.shader.dimensions, p.values.iter().copied(), &mut self.scratch);
+            self.scratch == own
+        });
         let pending = ManifestPermutation {
             name_start: u32::try_from(a.names.len()).map_err(|_| too_many())?,
             name_len: u32::try_from(own.unwrap_or(&p.name).len()).map_err(|_| too_many())?,
@@ -472,8 +481,11 @@ impl Entries {
             // Distinct targets (above).
             artifact_count: artifacts.len() as u8,
             prefixed: own.is_some(),
+            derived,
         };
-        a.names.push_str(own.unwrap_or(&p.name));
+        if !derived {
+            a.names.push_str(own.unwrap_or(&p.name));
+        }
         a.values.extend(&p.values);
         a.targets.extend(artifacts.iter().map(|(t, _)| *t));
         a.blobs.extend(artifacts.iter().map(|(_, b)| *b));
@@ -1054,10 +1066,13 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     let (spool_len, slots) = (table.spooled, table.slots);
     let Entries { naga_version, partial, pipelines, hooks, shaders, reflections, mut permutations, mut arenas, .. } =
         entries;
-    permutations.sort_unstable_by(|a, b| arenas.cmp_names(a, b));
-    if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names(&w[0], &w[1]).is_eq()) {
-        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0]))));
+    let mut buffers = Default::default();
+    permutations.sort_unstable_by(|a, b| arenas.cmp_names((a, b), &shaders, &mut buffers));
+    if let Some(w) = permutations.windows(2).find(|w| arenas.cmp_names((&w[0], &w[1]), &shaders, &mut buffers).is_eq())
+    {
+        return Err(ArchiveError::Input(format!("permutation `{}` was added twice", arenas.name_of(&w[0], &shaders))));
     }
+    drop(buffers);
     let mut shaders: Vec<Option<ShaderRecord>> = shaders.into_iter().map(Some).collect();
     let mut reflections: Vec<Option<Reflection>> = reflections.into_iter().map(Some).collect();
     let mut shader_map: Vec<Option<u32>> = vec![None; shaders.len()];
@@ -1086,10 +1101,11 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
             *slot = match blob_ids[*slot as usize] {
                 u32::MAX => {
                     if !table.is_added(*slot) {
-                        let prefix = if p.prefixed { prefixes[p.shader as usize].as_str() } else { "" };
-                        let own = &arenas.names[p.name_start as usize..][..p.name_len as usize];
+                        // The prefixes and shaders in the manifest's numbering, as `p`'s now.
+                        arenas.prefixes = std::mem::take(&mut prefixes);
                         return Err(ArchiveError::Input(format!(
-                            "permutation `{prefix}{own}` names a {target} blob that was never added"
+                            "permutation `{}` names a {target} blob that was never added",
+                            arenas.name_of(p, &manifest.shaders)
                         )));
                     }
                     let id = targets.len() as u32;
@@ -1618,11 +1634,7 @@ fn spill_manifest<'a>(
     // The tables start at a multiple of 8 from the manifest's start (every part before them
     // is a whole number of 8-byte fields), so the names' padding depends only on their length.
     pad8(&mut back, tables_len)?;
-    for p in &manifest.permutations {
-        let (prefix, own) = manifest.arenas.name_parts(p);
-        back.write_all(prefix.as_bytes())?;
-        back.write_all(own.as_bytes())?;
-    }
+    write_names(&manifest, &mut back)?;
     back.flush()?;
     manifest.arenas.names = String::new();
     (hooks.release)();
@@ -1685,6 +1697,18 @@ fn spill_manifest<'a>(
         return Err(std::io::Error::other("the manifest's parts differ from its counts"));
     }
     Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
+}
+
+/// The whole names of the manifest's permutations, in order, one after another (derived
+/// names made again one at a time).
+fn write_names(manifest: &Manifest, out: &mut impl Write) -> std::io::Result<()> {
+    let mut name = String::new();
+    for p in &manifest.permutations {
+        name.clear();
+        manifest.arenas.write_name(p, &manifest.shaders, &mut name);
+        out.write_all(name.as_bytes())?;
+    }
+    Ok(())
 }
 
 /// Bytes written ahead of where the archive takes them: the blob table while the blobs and

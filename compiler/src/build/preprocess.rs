@@ -140,7 +140,12 @@ struct RecordSet {
     /// The configuration's folder: paths under it are stored relative to it.
     root: PathBuf,
     base: blake3::Hash,
+    /// Let go of once preprocessing ends ([`Preprocessor::release_reuse`]): only
+    /// preprocessing matches permutations to them, and kept under the stages after it
+    /// they were a warm build's largest table.
     old: Records,
+    /// How many records `old` held.
+    old_len: usize,
     /// Permutations that matched one of `old`'s records.
     matched: AtomicUsize,
     /// Whether each of `old`'s file lists still holds (every file has its recorded
@@ -173,6 +178,7 @@ impl LastRecords {
             let old = store.records(&key).and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default();
             let unknown = |n: usize| (0..n).map(|_| AtomicU8::new(UNKNOWN)).collect();
             RecordSet {
+                old_len: old.len(),
                 old,
                 key,
                 root,
@@ -219,7 +225,7 @@ impl<'p> Preprocessor<'p> {
     pub fn records_unchanged(&self) -> bool {
         self.records
             .as_ref()
-            .is_none_or(|r| r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old.len() == self.plan.len())
+            .is_none_or(|r| r.matched.load(Ordering::Relaxed) == self.plan.len() && r.old_len == self.plan.len())
     }
 
     /// Permutations run through the preprocessor (the others matched a record or reused).
@@ -296,10 +302,16 @@ impl<'p> Preprocessor<'p> {
         Ok(Preprocessed { of: of.into_iter().map(AtomicU32::into_inner).collect(), rows, errors })
     }
 
-    /// Lets go of what only preprocessing needed (what may be reused): later stages only
-    /// preprocess a key's first permutation again, for its text.
+    /// Lets go of what only preprocessing needed (what may be reused, the last build's
+    /// records): later stages only preprocess a key's first permutation again, for its text.
+    /// Without the old records, this build's are written whenever they are not the last
+    /// build's as a whole ([`Preprocessor::records_unchanged`]): a permutation that matched
+    /// no record has a row no record had.
     pub fn release_reuse(&mut self) {
         self.reuse = Reuse::default();
+        if let Some(r) = &mut self.records {
+            r.old = Records::default();
+        }
     }
 
     /// Stores this build's preprocessing records where they changed. Failing to only costs
