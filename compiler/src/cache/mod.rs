@@ -692,12 +692,7 @@ fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
     Ok(entry)
 }
 
-/// A version 2 entry (uncompressed), checked.
-fn decode_v2(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
-    decode_v2_hashed(key, bytes).map(|(c, _)| c)
-}
-
-/// [`decode_v2`], and the blake3 of each artifact.
+/// A version 2 entry (uncompressed), checked, and the blake3 of each artifact.
 fn decode_v2_hashed(key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
     let (artifacts, json) = parse(key, bytes)?;
     let mut hashes = Vec::with_capacity(artifacts.len());
