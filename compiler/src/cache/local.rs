@@ -68,10 +68,10 @@ impl Cache {
 
     /// [`Cache::decode`], and the blake3 of each artifact (its checksum is made of them).
     pub(super) fn decode_hashed(&self, key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
-        if bytes.starts_with(codec::MAGIC) {
+        if codec::is_compressed(bytes) {
             return codec::decode(key, bytes, &|id| self.dicts.get(&self.dir, id));
         }
-        decode_v2_hashed(key, bytes)
+        decode_v2_hashed(key, bytes, None)
     }
 
     pub(super) fn get_local(&self, key: &Key) -> (Lookup, Vec<blake3::Hash>) {
