@@ -317,7 +317,13 @@ impl<'p> Preprocessor<'p> {
         if self.records_unchanged() {
             return;
         }
-        let Some(r) = self.records.take() else { return };
+        let Some(mut r) = self.records.take() else { return };
+        if r.matched.load(Ordering::Relaxed) < self.plan.len() {
+            // A permutation that matched no record (new, changed or failed) gives rows other
+            // than the last build's, so they need not be kept to compare with while the new
+            // ones are encoded (where a rewrite after a change peaks).
+            r.old = Records::default();
+        }
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (where it would add to the peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);

@@ -417,7 +417,10 @@ mod tests {
 
     fn compiled() -> Compiled {
         Compiled {
-            artifacts: vec![(Target::Wgsl, b"fn main() {}\n".repeat(9)), (Target::Spirv, vec![3, 2, 0x23, 7, 1, 0, 0, 0])],
+            artifacts: vec![
+                (Target::Wgsl, b"fn main() {}\n".repeat(9)),
+                (Target::Spirv, vec![3, 2, 0x23, 7, 1, 0, 0, 0]),
+            ],
             reflection: Reflection {
                 entry: "main".into(),
                 stage: Stage::Fragment,
