@@ -173,7 +173,7 @@ impl LastRecords {
             // A configuration changed since (a material or a shader added) finds the last
             // records of its file: a record's key holds all that decides its permutation.
             let last = || {
-                let pointer = store.records(&last_records_key(config, options))?;
+                let pointer = store.local_records(&last_records_key(config, options))?;
                 store.records(&Key(pointer.try_into().ok()?))
             };
             let bytes = store.records(&key).or_else(last);
@@ -358,7 +358,7 @@ impl<'p> Preprocessor<'p> {
         super::trace_memory("records encoded");
         if let Some(bytes) = bytes {
             store.put_records(&r.key, &bytes);
-            store.put_records(&last_records_key(plan.config, plan.options), &r.key.0);
+            store.put_local_records(&last_records_key(plan.config, plan.options), &r.key.0);
         }
     }
 
@@ -812,9 +812,9 @@ fn records_key(config: &Config, options: &Options) -> Key {
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }
 
-/// The key under which the cache keeps the [`records_key`] of the last records saved for
-/// the configuration file at this path and these options: what a build whose configuration
-/// changed since starts from.
+/// The key under which the local cache (only: the path is this machine's) keeps the
+/// [`records_key`] of the last records saved for the configuration file at this path and
+/// these options: what a build whose configuration changed since starts from.
 fn last_records_key(config: &Config, options: &Options) -> Key {
     let path = config.path.canonicalize().unwrap_or_else(|_| config.path.clone());
     let inputs = format!("kiln last records v1\n{}\n{:?}\n{:?}", path.display(), options.levels, options.targets);

@@ -248,6 +248,19 @@ impl Store {
         Some(body)
     }
 
+    /// The records file under `key` in the local cache only.
+    pub fn local_records(&self, key: &Key) -> Option<Vec<u8>> {
+        self.cache.as_ref()?.get_local_records_bytes(key)
+    }
+
+    /// Replaces the records file under `key` in the local cache only; failing to only costs
+    /// preprocessing next time.
+    pub fn put_local_records(&self, key: &Key, records: &[u8]) {
+        if let Some(c) = &self.cache {
+            let _ = c.put_local_records_bytes(key, records);
+        }
+    }
+
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
     pub fn put_records(&self, key: &Key, records: &[u8]) {
         if let Some(c) = &self.cache {
