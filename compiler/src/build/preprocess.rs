@@ -768,9 +768,9 @@ fn direct_base(config: &Config, root: &Path) -> blake3::Hash {
 
 /// The key of a permutation's preprocessing record: everything preprocessing and the
 /// compile key depend on, except the files' contents (checked against the record): `base`,
-/// its source file as the configuration names it, its defines (`defines`: the level's, the shader's, its dimensions'
-/// values and derived values, as the preprocessor is given them), entry, stage, level,
-/// limits and targets.
+/// its source file as the configuration names it, its defines (`defines`: the level's, the
+/// shader's, its dimensions' values and derived values, as the preprocessor is given
+/// them), entry, stage, level, limits and targets.
 fn direct_key(
     base: &blake3::Hash,
     p: &Permutation<'_>,

@@ -1,4 +1,5 @@
-//! The compressed encoding of a cache entry (version 4, and version 3 read), and the cache's dictionaries.
+//! The compressed encoding of a cache entry (version 4, and version 3 read), and the cache's
+//! dictionaries.
 //!
 //! An entry's body (as version 2 lays it out after the key: artifact count, each artifact's
 //! target name, length and bytes, the reflection's length and JSON) is one zstd frame,
