@@ -114,17 +114,38 @@ struct Entries {
 }
 
 /// A blob's identity in a writer: a prefix of its blake3 (as long as the cache's pack
-/// names; a collision between artifacts is not a practical concern). Its whole
-/// blake3, which the archive stores, is computed again from its bytes when they are
-/// compressed, so that a build holds less per blob.
+/// names; a collision between artifacts is not a practical concern). Its whole blake3,
+/// which the archive stores, waits in the spool beside its bytes, so that a build holds
+/// less per blob.
 type Ident = [u8; 16];
+
+/// The bytes of an [`Ident`].
+const IDENT_BYTES: usize = 16;
 
 fn ident(hash: &blake3::Hash) -> Ident {
     hash.as_bytes()[..16].try_into().expect("16 of 32 bytes")
 }
 
-/// The bytes of a blob's identity in the spool, just before its bytes.
-const ID_PREFIX: u64 = 16;
+/// What goes in the spool just before a blob's bytes: its whole blake3 (whose first bytes
+/// are its [`Ident`]), then the xxh3-64 of that blake3 and the bytes. The check sum tells
+/// a blob damaged on disk before the archive was written at a fraction of the cost of
+/// hashing its bytes with blake3 again.
+const ID_PREFIX: u64 = 40;
+
+/// A blob's header in the spool ([`ID_PREFIX`]).
+fn spool_header(hash: &blake3::Hash, bytes: &[u8]) -> [u8; ID_PREFIX as usize] {
+    let mut head = [0u8; ID_PREFIX as usize];
+    head[..32].copy_from_slice(hash.as_bytes());
+    head[32..].copy_from_slice(&spool_sum(hash.as_bytes(), bytes).to_le_bytes());
+    head
+}
+
+fn spool_sum(hash: &[u8], bytes: &[u8]) -> u64 {
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(hash);
+    h.update(bytes);
+    h.digest()
+}
 
 /// Where an added blob's bytes lie in the spool (its identity just before them).
 #[derive(Clone, Copy)]
@@ -191,19 +212,19 @@ impl IdentStore {
         }
         let file = self.file.as_ref().expect("identities are flushed only to a file");
         let mut id = [0u8; 16];
-        file.read_exact_at(&mut id, (n * ID_PREFIX as usize) as u64)?;
+        file.read_exact_at(&mut id, (n * IDENT_BYTES) as u64)?;
         Ok(id)
     }
 
     /// Calls `f` with each of the first `slots` slots and its identity, in slot order (the
     /// file read a chunk at a time).
     fn for_each(&self, slots: usize, mut f: impl FnMut(usize, &Ident)) -> std::io::Result<()> {
-        let mut buf = vec![[0u8; ID_PREFIX as usize]; IDENT_CHUNK];
+        let mut buf = vec![[0u8; IDENT_BYTES]; IDENT_CHUNK];
         let mut slot = 0;
         while slot < self.flushed.min(slots) {
             let n = (self.flushed.min(slots) - slot).min(IDENT_CHUNK);
             let file = self.file.as_ref().expect("identities are flushed only to a file");
-            file.read_exact_at(buf[..n].as_flattened_mut(), (slot * ID_PREFIX as usize) as u64)?;
+            file.read_exact_at(buf[..n].as_flattened_mut(), (slot * IDENT_BYTES) as u64)?;
             buf[..n].iter().enumerate().for_each(|(i, id)| f(slot + i, id));
             slot += n;
         }
@@ -216,7 +237,7 @@ impl IdentStore {
     fn push(&mut self, id: Ident) -> std::io::Result<()> {
         self.pending.push(id);
         if let (Some(file), IDENT_CHUNK) = (&self.file, self.pending.len()) {
-            file.write_all_at(self.pending.as_flattened(), (self.flushed * ID_PREFIX as usize) as u64)?;
+            file.write_all_at(self.pending.as_flattened(), (self.flushed * IDENT_BYTES) as u64)?;
             self.flushed += self.pending.len();
             self.pending.clear();
         }
@@ -501,27 +522,33 @@ enum Spool<'a> {
 }
 
 impl Spool<'_> {
-    /// The blob at `loc`: the identity spooled with it, and its bytes (one read).
-    fn read_blob(&self, loc: Loc) -> std::io::Result<(Ident, Cow<'_, [u8]>)> {
+    /// The blob at `loc`: the blake3 spooled with it, and its bytes (one read), once the
+    /// spool's check sum shows them as they were added.
+    fn read_blob(&self, loc: Loc) -> std::io::Result<([u8; 32], Cow<'_, [u8]>)> {
         let (start, end) = ((loc.offset - ID_PREFIX) as usize, (loc.offset + loc.len) as usize);
-        match self {
+        let (head, bytes): ([u8; ID_PREFIX as usize], Cow<'_, [u8]>) = match self {
             Spool::Memory(m) => {
-                let id = m[start..][..ID_PREFIX as usize].try_into().expect("16 bytes");
-                Ok((id, Cow::Borrowed(&m[loc.offset as usize..end])))
+                let head = m[start..][..ID_PREFIX as usize].try_into().expect("a spool header");
+                (head, Cow::Borrowed(&m[loc.offset as usize..end]))
             }
             Spool::File(f) => {
                 let mut buf = vec![0u8; end - start];
                 f.read_exact_at(&mut buf, loc.offset - ID_PREFIX)?;
-                let id = buf[..ID_PREFIX as usize].try_into().expect("16 bytes");
+                let head = buf[..ID_PREFIX as usize].try_into().expect("a spool header");
                 buf.drain(..ID_PREFIX as usize);
-                Ok((id, Cow::Owned(buf)))
+                (head, Cow::Owned(buf))
             }
+        };
+        let hash: [u8; 32] = head[..32].try_into().expect("32 bytes");
+        if spool_sum(&hash, &bytes).to_le_bytes() != head[32..] {
+            return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
         }
+        Ok((hash, bytes))
     }
 
     /// The identity spooled with the blob at `loc` (not its bytes).
     fn read_ident(&self, loc: Loc) -> std::io::Result<Ident> {
-        let mut id = [0u8; ID_PREFIX as usize];
+        let mut id = [0u8; IDENT_BYTES];
         self.read_into(loc.offset - ID_PREFIX, &mut id)?;
         Ok(id)
     }
@@ -772,7 +799,7 @@ impl StreamingWriter {
         // Written outside the lock (threads spool their blobs in parallel), after the
         // blob's identity, in one write.
         let mut spooled = Vec::with_capacity(ID_PREFIX as usize + bytes.len());
-        spooled.extend_from_slice(&ident(&hash));
+        spooled.extend_from_slice(&spool_header(&hash, bytes));
         spooled.extend_from_slice(bytes);
         if let Err(source) = self.spool.write_all_at(&spooled, offset) {
             self.failed.store(true, Ordering::Relaxed);
@@ -952,7 +979,7 @@ impl ArchiveWriter {
         debug_assert_eq!(hash, blake3::hash(bytes));
         let (n, offset) = self.blobs.add(&hash, bytes.len() as u64).expect("a log in memory");
         if offset.is_some() {
-            self.spool.extend_from_slice(&ident(&hash));
+            self.spool.extend_from_slice(&spool_header(&hash, bytes));
             self.spool.extend_from_slice(bytes);
         }
         BlobId(n)
@@ -1498,15 +1525,10 @@ fn write_blobs(
                         return Ok((codec, index, bytes, hash, true));
                     }
                 }
-                let (id, raw) = sources.spool.read_blob(loc)?;
-                // The whole blake3, which the table stores, from the bytes; they must still
-                // be the ones added.
-                let hash = blake3::hash(&raw);
-                if ident(&hash) != id {
-                    return Err(std::io::Error::other("a spooled blob changed on disk before the archive was written"));
-                }
+                // The whole blake3, which the table stores, as spooled (checked with its bytes).
+                let (hash, raw) = sources.spool.read_blob(loc)?;
                 let (codec, dictionary, bytes) = compress_blob(raw, dict);
-                Ok((codec, dictionary, bytes, *hash.as_bytes(), false))
+                Ok((codec, dictionary, bytes, hash, false))
             },
         );
         for (&b, s) in batch.iter().zip(stored) {

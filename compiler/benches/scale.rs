@@ -26,9 +26,10 @@
 //!    most 64 MiB each). The 1M point runs only when asked for
 //!    (`KILN_SCALE_SIZES=1000,10000,100000,1000000`; not in CI: a cold 1M build took about
 //!    8 minutes on two busy cores, 1.1 GB of cache and a 606 MB archive); after each cold
-//!    build, two warm builds that rewrite the archive, against it: one after the archive was
-//!    deleted, one after a material was added to the configuration (its previous archive in
-//!    place, whose unchanged compressed blobs it copies; goal at most 3%), each with whether
+//!    build, three warm builds that rewrite the archive, against it: one after the archive
+//!    was deleted, one after a material was added to the configuration, one after a
+//!    constant was edited in one shader source (these two with the previous archive in
+//!    place, whose unchanged compressed blobs they copy; goal at most 3%), each with whether
 //!    its archive is byte-identical to a build's without a previous archive;
 //! 2. eight shards (`--shard I/8`), each a process with its own local cache and `-j 1`,
 //!    sharing a redis remote cache (`redis-server`, started here on a free loopback port),
@@ -522,10 +523,11 @@ fn small_set(dir: &Path, name: &str, config: &Path, jobs: &str) {
 }
 
 /// After the cold build of the set in `dir` (`cold`, its archive `out`), against it: a warm
-/// build after the archive was deleted; then one material added to the configuration and a
-/// warm build that rewrites `out` (its previous archive there, whose unchanged blobs it
-/// copies), and the same set built into another file, with nothing to copy, to compare
-/// bytes.
+/// build after the archive was deleted; then one material added to the configuration, and
+/// then a constant edited in one shader source (the masked shadow pass's clip threshold:
+/// the keys of a subset of the permutations change), each followed by a warm build that
+/// rewrites `out` (its previous archive there, whose unchanged blobs it copies) and the
+/// same set built into another file, with nothing to copy, to compare bytes.
 fn warm_rewrite(dir: &Path, cold: &Run, out: &Path, jobs: &str) {
     let config = dir.join("set/permutations.toml");
     let cache = dir.join("cache-one");
@@ -551,16 +553,31 @@ fn warm_rewrite(dir: &Path, cold: &Run, out: &Path, jobs: &str) {
     let Some(last) = text.split("range = [0, ").nth(1).and_then(|r| r.split(']').next()) else { return };
     let more = (last.parse::<u64>().expect("a material count") + 1).to_string();
     std::fs::write(&config, text.replace(&format!("range = [0, {last}]"), &format!("range = [0, {more}]"))).unwrap();
+    rewrite(&build, dir, cold, out, "one material added");
+    let shader = dir.join("set/ShadowDepthPS.usf");
+    let source = std::fs::read_to_string(&shader).expect("the set's shadow shader");
+    let edited = source.replace("m.opacity < 0.5", "m.opacity < 0.4");
+    assert_ne!(source, edited, "the shadow shader's clip threshold");
+    std::fs::write(&shader, edited).unwrap();
+    rewrite(&build, dir, cold, out, "one shader constant edited");
+}
+
+/// A warm build that rewrites `out` (its previous archive there) after `change`, then the
+/// same set built into another file without a previous archive (with the same cache), and
+/// the comparison of their bytes.
+fn rewrite(build: &dyn Fn(&Path, &str) -> Run, dir: &Path, cold: &Run, out: &Path, change: &str) {
     let warm = build(out, "rewrite.json");
     let fresh = dir.join("fresh.kpak");
     build(&fresh, "fresh.json");
     let identical = std::fs::read(out).ok() == std::fs::read(&fresh).ok();
     let _ = std::fs::remove_file(&fresh);
     println!(
-        "{:>12} warm rewrite (one material added, {} compiled, {} of {} blobs copied): {:.1} s, {:.1}% of cold wall, \
-         {:.1}% of cold CPU (goal <= 3%), peak {:.1} MiB; byte-identical to a build without the previous archive: {}",
+        "{:>12} warm rewrite ({change}, {} compiled, {} preprocessed, {} of {} blobs copied): {:.1} s, {:.1}% of cold \
+         wall, {:.1}% of cold CPU (goal <= 3%), peak {:.1} MiB; byte-identical to a build without the previous \
+         archive: {}",
         "",
         warm.count("compiled"),
+        warm.count("preprocessed"),
         warm.count("archive_reused_blobs"),
         warm.count("artifacts"),
         warm.wall.as_secs_f64(),

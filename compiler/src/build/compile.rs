@@ -216,8 +216,8 @@ impl<'a> Compiler<'a> {
         let p = &self.plan.permutation(members[0] as usize);
         let mut warning = None;
         match self.store.get(key) {
-            Fetched::Hit(c) => {
-                self.deliver(key, p, c, false);
+            Fetched::Hit(c, hashes) => {
+                self.deliver(key, p, c, Some(hashes));
                 return Outcome::Hit;
             }
             Fetched::Miss(w) => warning = w.or(warning),
@@ -239,8 +239,8 @@ impl<'a> Compiler<'a> {
     /// A key from the cache, else compiled from `text` (a permutation `p` of that key).
     fn produce(&self, key: &Key, p: &Permutation<'_>, text: &str) -> Outcome {
         match self.store.get(key) {
-            Fetched::Hit(c) => {
-                self.deliver(key, p, c, false);
+            Fetched::Hit(c, hashes) => {
+                self.deliver(key, p, c, Some(hashes));
                 Outcome::Hit
             }
             Fetched::Miss(warning) => self.compile(key, p, text, warning),
@@ -251,18 +251,21 @@ impl<'a> Compiler<'a> {
         let opts = compile::Options { targets: self.plan.targets(p), limits: level_limits(p.level) };
         match self.shared.compile(text, &p.shader.entry, p.shader.stage, &opts) {
             Ok(c) => {
-                self.deliver(key, p, c, true);
+                self.deliver(key, p, c, None);
                 Outcome::Compiled(warning)
             }
             Err(e) => Outcome::Failed(Box::new((e, warning))),
         }
     }
 
-    /// Hands a key's artifacts to the assembler, and (when compiled now) to the store.
-    fn deliver(&self, key: &Key, p: &Permutation<'_>, c: Compiled, fresh: bool) {
-        // Every artifact's blake3, once: the archive deduplicates blobs by it and the
-        // cache's checksums are made of it.
-        let hashes: Vec<blake3::Hash> = c.artifacts.iter().map(|(_, bytes)| blake3::hash(bytes)).collect();
+    /// Hands a key's artifacts to the assembler, and (when compiled now: `cached` is `None`)
+    /// to the store. `cached` holds the blake3 of each artifact of an entry read from the
+    /// cache, computed when its checksum was checked.
+    fn deliver(&self, key: &Key, p: &Permutation<'_>, c: Compiled, cached: Option<Vec<blake3::Hash>>) {
+        // Every artifact's blake3, once per build: the archive deduplicates blobs by it and
+        // the cache's checksums are made of it.
+        let fresh = cached.is_none();
+        let hashes = cached.unwrap_or_else(|| c.artifacts.iter().map(|(_, bytes)| blake3::hash(bytes)).collect());
         self.assembler.add(key, p.shader.stage, &c, &hashes);
         if fresh {
             self.store.put(*key, c, hashes);

@@ -175,14 +175,22 @@ impl LastRecords {
         let records = store.enabled().then(|| {
             let key = records_key(config, options);
             let root = config.dir.canonicalize().unwrap_or_else(|_| config.dir.clone());
-            let old = store.records(&key).and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default();
+            // A configuration changed since (a material or a shader added) finds the last
+            // records of its file: a record's key holds all that decides its permutation.
+            let last = || {
+                let pointer = store.local_records(&last_records_key(config, options))?;
+                store.records(&Key(pointer.try_into().ok()?))
+            };
+            let bytes = store.records(&key).or_else(last);
+            let old = bytes.and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default();
+            let base = direct_base(config, &root);
             let unknown = |n: usize| (0..n).map(|_| AtomicU8::new(UNKNOWN)).collect();
             RecordSet {
                 old_len: old.len(),
                 old,
                 key,
                 root,
-                base: direct_base(config),
+                base,
                 matched: AtomicUsize::new(0),
                 files_hold: unknown(interner.files.len()),
                 absent_hold: unknown(interner.absent.len()),
@@ -321,7 +329,13 @@ impl<'p> Preprocessor<'p> {
         if self.records_unchanged() {
             return;
         }
-        let Some(r) = self.records.take() else { return };
+        let Some(mut r) = self.records.take() else { return };
+        if r.matched.load(Ordering::Relaxed) < self.plan.len() {
+            // A permutation that matched no record (new, changed or failed) gives rows other
+            // than the last build's, so they need not be kept to compare with while the new
+            // ones are encoded (where a rewrite after a change peaks).
+            r.old = Records::default();
+        }
         // Each preprocessed permutation's direct key, made again here rather than kept
         // through the build (where it would add to the peak), straight into the bytes.
         let (plan, targets) = (self.plan, &self.plan.options.targets);
@@ -347,12 +361,16 @@ impl<'p> Preprocessor<'p> {
             let [files, absent, warnings] = lists[three as usize];
             Row { key: *pre.row_key(n), text_len, files, absent, warnings }
         };
-        let row = |i: usize| Some((direct_key(&r.base, &plan.permutation(i), targets), whole(pre.row_number(i)?)));
+        let row = |i: usize| {
+            let p = plan.permutation(i);
+            Some((direct_key(&r.base, &p, &p.defines(), targets), whole(pre.row_number(i)?)))
+        };
         let bytes = records::encode(plan.len(), row, (0..rests.len()).map(whole), &self.lists(), &r.root, r.old);
         drop(rests);
         super::trace_memory("records encoded");
         if let Some(bytes) = bytes {
             store.put_records(&r.key, &bytes);
+            store.put_local_records(&last_records_key(plan.config, plan.options), &r.key.0);
         }
     }
 
@@ -363,14 +381,16 @@ impl<'p> Preprocessor<'p> {
         p: &Permutation<'_>,
         fresh: &(impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync),
     ) -> Result<u32, Box<Diagnostic<FileId>>> {
-        if let Some(records) = &self.records {
-            let dk = direct_key(&records.base, p, &self.plan.options.targets);
+        let defines = p.defines();
+        // A permutation the configuration rejects has no record: its error is reported.
+        if let Some(records) = self.records.as_ref().filter(|_| p.error.is_none()) {
+            let dk = direct_key(&records.base, p, &defines, &self.plan.options.targets);
             if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(records, row)) {
                 records.matched.fetch_add(1, Ordering::Relaxed);
                 return Ok(self.push(*row));
             }
         }
-        let values = define_values(p);
+        let values: HashMap<String, i64> = defines.into_iter().map(|d| (d.name, d.value)).collect();
         if p.error.is_none() {
             if let Some(n) = self.reuse.find(p, &values) {
                 return Ok(n);
@@ -613,10 +633,6 @@ type GroupEnds = (Vec<(usize, GroupName)>, HashSet<GroupName>);
 /// A (shader, level) by name.
 type GroupName = (String, String);
 
-fn define_values(p: &Permutation<'_>) -> HashMap<String, i64> {
-    p.defines().into_iter().map(|d| (d.name, d.value)).collect()
-}
-
 impl Reuse {
     /// Each group's end in `plan`.
     fn plan_ends(&self, plan: &Plan<'_>) {
@@ -729,20 +745,33 @@ impl FileHashes {
     }
 }
 
-/// What every permutation's preprocessing record key shares: the configuration's text (its
-/// defines, derived values, roots and sources) and the versions. Read once per build. Not
-/// the configuration's folder: records store the paths under it relative to it (see
-/// [`records::encode`]), so that they hold in another checkout of the same sources.
-fn direct_base(config: &Config) -> blake3::Hash {
+/// What every permutation's preprocessing record key shares: the include folders (those
+/// under the configuration's folder `root` relative to it, so that records hold in
+/// another checkout of the same sources, like the paths they store: see
+/// [`records::encode`]), the preprocessor's limits and the versions. Not the
+/// configuration's text: a record holds as long as its own permutation's inputs do
+/// ([`direct_key`]), so that adding a material or a shader preprocesses only what it adds.
+fn direct_base(config: &Config, root: &Path) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     let mut field = |bytes: &[u8]| {
         h.update(&(bytes.len() as u64).to_le_bytes());
         h.update(bytes);
     };
-    field(b"kiln direct v3");
-    // Unreadable now (removed during the build): a key no record has.
-    field(&read_config(config));
-    let opts = preprocess::Options::default();
+    field(b"kiln direct v4");
+    let relative = |p: &Path| {
+        let p = p.strip_prefix(root).or_else(|_| p.strip_prefix(&config.dir)).unwrap_or(p);
+        p.as_os_str().as_encoded_bytes().to_vec()
+    };
+    let opts = config.preprocess_options();
+    field(&(opts.include_roots.len() as u64).to_le_bytes());
+    for r in &opts.include_roots {
+        field(&relative(r));
+    }
+    field(&(opts.virtual_roots.len() as u64).to_le_bytes());
+    for (prefix, r) in &opts.virtual_roots {
+        field(prefix.as_bytes());
+        field(&relative(r));
+    }
     field(&(opts.max_expansion_depth as u64).to_le_bytes());
     field(&(opts.max_output_bytes as u64).to_le_bytes());
     field(crate::compile::NAGA_VERSION.as_bytes());
@@ -750,12 +779,27 @@ fn direct_base(config: &Config) -> blake3::Hash {
 }
 
 /// The key of a permutation's preprocessing record: everything preprocessing and the
-/// compile key depend on, except the files' contents (checked against the record). Its
-/// defines follow from the configuration's text (in `base`) and its canonical name.
-fn direct_key(base: &blake3::Hash, p: &Permutation<'_>, targets: &[crate::archive::Target]) -> Direct {
+/// compile key depend on, except the files' contents (checked against the record): `base`,
+/// its source file as the configuration names it, its defines (`defines`: the level's, the
+/// shader's, its dimensions' values and derived values, as the preprocessor is given
+/// them), entry, stage, level, limits and targets.
+fn direct_key(
+    base: &blake3::Hash,
+    p: &Permutation<'_>,
+    defines: &[crate::permute::Define],
+    targets: &[crate::archive::Target],
+) -> Direct {
     let mut h = blake3::Hasher::new();
     h.update(base.as_bytes());
-    h.update(p.name().as_bytes());
+    // As the configuration names it (its folder and the roots that resolve it are in `base`).
+    h.update(&(p.shader.source.len() as u64).to_le_bytes());
+    h.update(p.shader.source.as_bytes());
+    h.update(&(defines.len() as u64).to_le_bytes());
+    for d in defines {
+        h.update(&(d.name.len() as u64).to_le_bytes());
+        h.update(d.name.as_bytes());
+        h.update(&d.value.to_le_bytes());
+    }
     let targets = level_targets(p.level, targets);
     let key = Key::new(&h.finalize(), &p.shader.entry, p.shader.stage, &p.level.name, &level_limits(p.level), &targets);
     key.0[..16].try_into().expect("16 of 32 bytes")
@@ -771,10 +815,20 @@ fn read_config(config: &Config) -> Vec<u8> {
 /// The key of a configuration's set of preprocessing records: its text and the options
 /// that choose its permutations; not its path, so that another checkout (another machine,
 /// another folder) finds the set in the remote cache. (v4: paths relative to the
-/// configuration's folder; v5: compact rows; v6: 16-byte direct keys.)
+/// configuration's folder; v5: compact rows; v6: 16-byte direct keys; v7: direct keys
+/// of each permutation's own inputs.)
 fn records_key(config: &Config, options: &Options) -> Key {
     let text = read_config(config);
     let inputs =
-        format!("kiln records v6\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
+        format!("kiln records v7\n{}\n{:?}\n{:?}", blake3::hash(&text).to_hex(), options.levels, options.targets);
+    Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
+}
+
+/// The key under which the local cache (only: the path is this machine's) keeps the
+/// [`records_key`] of the last records saved for the configuration file at this path and
+/// these options: what a build whose configuration changed since starts from.
+fn last_records_key(config: &Config, options: &Options) -> Key {
+    let path = config.path.canonicalize().unwrap_or_else(|_| config.path.clone());
+    let inputs = format!("kiln last records v1\n{}\n{:?}\n{:?}", path.display(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
 }

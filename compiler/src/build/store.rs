@@ -23,7 +23,8 @@ const PACK_BYTES: usize = 2 << 20;
 
 /// A key looked up in the cache.
 pub(super) enum Fetched {
-    Hit(Compiled),
+    /// The entry, with the blake3 of each artifact (checked against the entry's checksum).
+    Hit(Compiled, Vec<blake3::Hash>),
     /// Not there (or not usable): the warning when the entry was corrupted.
     Miss(Option<String>),
 }
@@ -124,10 +125,10 @@ impl Store {
     }
 
     pub fn get(&self, key: &Key) -> Fetched {
-        match self.cache.as_ref().map(|c| c.get(key)) {
-            Some(Lookup::Hit(c)) => Fetched::Hit(c),
-            Some(Lookup::Corrupt(why)) => Fetched::Miss(Some(format!("warning: {why}"))),
-            Some(Lookup::Miss) | None => Fetched::Miss(None),
+        match self.cache.as_ref().map(|c| c.get_hashed(key)) {
+            Some((Lookup::Hit(c), hashes)) => Fetched::Hit(c, hashes),
+            Some((Lookup::Corrupt(why), _)) => Fetched::Miss(Some(format!("warning: {why}"))),
+            Some((Lookup::Miss, _)) | None => Fetched::Miss(None),
         }
     }
 
@@ -245,6 +246,19 @@ impl Store {
         let (body, remote) = self.cache.as_ref()?.get_records_found(key)?;
         self.records_from_remote.store(remote, Ordering::Relaxed);
         Some(body)
+    }
+
+    /// The records file under `key` in the local cache only.
+    pub fn local_records(&self, key: &Key) -> Option<Vec<u8>> {
+        self.cache.as_ref()?.get_local_records_bytes(key)
+    }
+
+    /// Replaces the records file under `key` in the local cache only; failing to only costs
+    /// preprocessing next time.
+    pub fn put_local_records(&self, key: &Key, records: &[u8]) {
+        if let Some(c) = &self.cache {
+            let _ = c.put_local_records_bytes(key, records);
+        }
     }
 
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
@@ -574,7 +588,7 @@ mod tests {
         assert_eq!(packs(), 2, "the rest at the end");
         for i in 0..5u8 {
             match store.get(&key(i)) {
-                Fetched::Hit(c) => assert_eq!(c, compiled(i, 400)),
+                Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
                 Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
             }
         }

@@ -1,4 +1,5 @@
-//! The compressed encoding of a cache entry (version 3), and the cache's dictionaries.
+//! The compressed encoding of a cache entry (version 4, and version 3 read), and the cache's
+//! dictionaries.
 //!
 //! An entry's body (as version 2 lays it out after the key: artifact count, each artifact's
 //! target name, length and bytes, the reflection's length and JSON) is one zstd frame,
@@ -19,7 +20,15 @@
 //! Layout: [`MAGIC`], the entry's checksum (a blake3, as version 2's: blake3 of the
 //! uncompressed body with each artifact replaced by its blake3), the key (32), the length of
 //! the same entry in version 2 (u64: `kiln cache stats` reports it as the raw size), the
-//! dictionary id (16, zero: none), the zstd frame of the body.
+//! dictionary id (16, zero: none), then (version 4) the artifact count (u32) and each
+//! artifact's blake3 (32 each), then the zstd frame of the body, with zstd's check sum of
+//! its content (version 4).
+//!
+//! Version 4 keeps the artifacts' blake3 beside the frame so that a build reading an entry
+//! need not hash its artifacts again (the archive wants them, the checksum is made of
+//! them): zstd's check sum tells a frame that decompresses to other bytes, and the
+//! checksum, computed from the stored hashes and the body's framing, tells damaged hashes.
+//! A version 3 entry is checked by hashing its artifacts.
 
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -31,7 +40,9 @@ use zstd::zstd_safe::{CCtx, CDict, DCtx, DDict};
 use super::Key;
 use crate::compile::Compiled;
 
-pub(super) const MAGIC: &[u8; 8] = b"KILNCE\0\x03";
+/// The version written (4); version 3 entries are still read.
+pub(super) const MAGIC: &[u8; 8] = b"KILNCE\0\x04";
+pub(super) const MAGIC_V3: &[u8; 8] = b"KILNCE\0\x03";
 pub(super) const DICT_MAGIC: &[u8; 8] = b"KILNCD\0\x01";
 pub(super) const DICT_EXTENSION: &str = "kcd";
 /// Magic, checksum, key, raw length (the dictionary id follows).
@@ -273,7 +284,7 @@ pub(super) fn dictionaries_for(
     chosen
 }
 
-/// `c` as a version 3 entry of `key`, with the blake3 of each artifact (`hashes`), its body
+/// `c` as a version 4 entry of `key`, with the blake3 of each artifact (`hashes`), its body
 /// compressed with its kind's dictionary in `dicts` (none: plainly).
 pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &HashMap<String, Arc<Dict>>) -> Vec<u8> {
     assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
@@ -282,15 +293,21 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
     let raw = body(c);
     let dict = dicts.get(&kind_of(c)).and_then(|d| d.cdict().map(|c| (d.id, c)));
     CCTX.with(|cell| {
+        use zstd::zstd_safe::{CParameter, ResetDirective};
         let mut cell = cell.borrow_mut();
         let (context, dst) = &mut *cell;
         let cctx = context.get_or_insert_with(CCtx::create);
         dst.clear();
         dst.reserve(zstd::zstd_safe::compress_bound(raw.len()));
-        let written = match dict {
-            Some((_, cdict)) => cctx.compress_using_cdict(dst, &raw, cdict),
-            None => cctx.compress(dst, &raw, PLAIN_LEVEL),
-        };
+        let written = (|| {
+            cctx.reset(ResetDirective::SessionAndParameters)?;
+            cctx.set_parameter(CParameter::ChecksumFlag(true))?;
+            match dict {
+                Some((_, cdict)) => cctx.ref_cdict(cdict)?,
+                None => cctx.set_parameter(CParameter::CompressionLevel(PLAIN_LEVEL))?,
+            };
+            cctx.compress2(dst, &raw)
+        })();
         // The bound always fits a frame; an error (none expected) leaves an empty frame,
         // which fails to decode: the entry is then recompiled.
         if written.is_err() {
@@ -299,37 +316,68 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
         // Copied out at its size from the worker's buffer: the encoded entries of a pack
         // wait to be written, each in a buffer of its raw size (zeroed, so faulted in)
         // otherwise.
-        let mut out = Vec::with_capacity(HEADER + 16 + dst.len());
+        let mut out = Vec::with_capacity(HEADER + 20 + 32 * hashes.len() + dst.len());
         out.extend_from_slice(MAGIC);
         out.extend_from_slice(checksum.as_bytes());
         out.extend_from_slice(&key.0);
         out.extend_from_slice(&((super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
         out.extend_from_slice(&dict.as_ref().map_or(NO_DICT, |d| d.0));
+        out.extend_from_slice(&(hashes.len() as u32).to_le_bytes());
+        for h in hashes {
+            out.extend_from_slice(h.as_bytes());
+        }
         out.extend_from_slice(dst);
         out
     })
 }
 
-/// The raw length a whole version 3 entry's header announces.
-pub(super) fn raw_len(header: &[u8]) -> Option<u64> {
-    (header.len() >= HEADER && &header[..8] == MAGIC).then(|| u64::from_le_bytes(header[72..80].try_into().unwrap()))
+/// Whether `bytes` starts as a compressed entry (version 3 or 4).
+pub(super) fn is_compressed(bytes: &[u8]) -> bool {
+    bytes.starts_with(MAGIC) || bytes.starts_with(MAGIC_V3)
 }
 
-/// Whether the version 3 entry `bytes` names a dictionary (it cannot leave this cache as
+/// The raw length a whole compressed entry's header announces.
+pub(super) fn raw_len(header: &[u8]) -> Option<u64> {
+    (header.len() >= HEADER && is_compressed(header)).then(|| u64::from_le_bytes(header[72..80].try_into().unwrap()))
+}
+
+/// Whether the compressed entry `bytes` names a dictionary (it cannot leave this cache as
 /// it is).
 pub(super) fn uses_dictionary(bytes: &[u8]) -> Result<bool, String> {
     let id = bytes.get(HEADER..HEADER + 16).ok_or("entry is truncated")?;
     Ok(id != NO_DICT)
 }
 
-/// The entry `bytes` of `key` (version 3), decompressed and checked, with its artifacts'
-/// blake3; `dict` finds a dictionary by id.
+/// The artifacts' blake3 a version 4 entry stores after its dictionary id, and where its
+/// frame starts; for version 3, none (they are computed) and the frame's start.
+fn stored_hashes(bytes: &[u8]) -> Result<(Option<Vec<blake3::Hash>>, usize), String> {
+    if bytes.starts_with(MAGIC_V3) {
+        return Ok((None, HEADER + 16));
+    }
+    let count = bytes.get(HEADER + 16..HEADER + 20).ok_or("entry is truncated")?;
+    let count = u32::from_le_bytes(count.try_into().expect("4 bytes")) as usize;
+    let start = HEADER + 20;
+    let end = count.checked_mul(32).and_then(|n| n.checked_add(start)).filter(|&e| e <= bytes.len());
+    let end = end.ok_or("entry is truncated")?;
+    let hashes =
+        bytes[start..end].chunks_exact(32).map(|h| blake3::Hash::from_bytes(h.try_into().expect("32 bytes"))).collect();
+    // Without zstd's check sum, nothing would tell a damaged frame (byte 4 of a frame is its
+    // header descriptor; bit 2 announces the check sum).
+    let frame = &bytes[end..];
+    if frame.len() < 5 || frame[4] & 0x04 == 0 {
+        return Err("its frame has no check sum".into());
+    }
+    Ok((Some(hashes), end))
+}
+
+/// The entry `bytes` of `key` (version 3 or 4), decompressed and checked, with its
+/// artifacts' blake3; `dict` finds a dictionary by id.
 pub(super) fn decode(
     key: &Key,
     bytes: &[u8],
     dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
 ) -> Result<(Compiled, Vec<blake3::Hash>), String> {
-    if bytes.len() < HEADER + 16 || &bytes[..8] != MAGIC {
+    if bytes.len() < HEADER + 16 || !is_compressed(bytes) {
         return Err("not a cache entry of this kiln".into());
     }
     if bytes[40..72] != key.0 {
@@ -340,7 +388,8 @@ pub(super) fn decode(
         return Err("bad length".into());
     }
     let id: [u8; 16] = bytes[HEADER..HEADER + 16].try_into().unwrap();
-    let frame = &bytes[HEADER + 16..];
+    let (hashes, start) = stored_hashes(bytes)?;
+    let frame = &bytes[start..];
     let d = if id == NO_DICT { None } else { Some(dict(&id)?) };
     // The version 2 entry: its header, then the body decompressed after it.
     let mut v2 = vec![0u8; raw as usize];
@@ -367,5 +416,75 @@ pub(super) fn decode(
     if result? as u64 != raw - 72 {
         return Err("bad length".into());
     }
-    super::decode_v2_hashed(key, &v2)
+    super::decode_v2_hashed(key, &v2, hashes.as_deref())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::archive::{Reflection, Stage, Target};
+
+    fn compiled() -> Compiled {
+        Compiled {
+            artifacts: vec![
+                (Target::Wgsl, b"fn main() {}\n".repeat(9)),
+                (Target::Spirv, vec![3, 2, 0x23, 7, 1, 0, 0, 0]),
+            ],
+            reflection: Reflection {
+                entry: "main".into(),
+                stage: Stage::Fragment,
+                bindings: vec![],
+                vertex_inputs: vec![],
+                color_outputs: vec![],
+                workgroup_size: None,
+            },
+        }
+    }
+
+    fn hashes(c: &Compiled) -> Vec<blake3::Hash> {
+        c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect()
+    }
+
+    fn no_dicts(_: &[u8; 16]) -> Result<Arc<Dict>, String> {
+        Err("no dictionary".into())
+    }
+
+    /// A version 4 entry gives back the hashes it was written with, and no damaged copy of
+    /// it (any one byte flipped) decodes to other artifacts or other hashes.
+    #[test]
+    fn a_version_4_entry_keeps_its_hashes_and_every_damage_is_caught() {
+        let (key, c) = (Key([7; 32]), compiled());
+        let entry = encode(&key, &c, &hashes(&c), &HashMap::new());
+        assert!(entry.starts_with(MAGIC));
+        assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
+        for at in 0..entry.len() {
+            let mut damaged = entry.clone();
+            damaged[at] ^= 0x10;
+            if let Ok(got) = decode(&key, &damaged, &no_dicts) {
+                assert_eq!(got, (c.clone(), hashes(&c)), "byte {at} flipped gave another entry");
+            }
+        }
+    }
+
+    /// A version 3 entry (no hashes stored, no check sum in its frame) is still read, its
+    /// hashes computed.
+    #[test]
+    fn a_version_3_entry_is_still_read() {
+        let (key, c) = (Key([9; 32]), compiled());
+        let raw = body(&c);
+        let mut entry = MAGIC_V3.to_vec();
+        entry.extend_from_slice(super::super::entry_checksum(&key, &super::super::frames(&c), &hashes(&c)).as_bytes());
+        entry.extend_from_slice(&key.0);
+        entry.extend_from_slice(&((super::super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
+        entry.extend_from_slice(&NO_DICT);
+        entry.extend_from_slice(&zstd::bulk::compress(&raw, PLAIN_LEVEL).unwrap());
+        assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
+        // A version 4 header on a frame without zstd's check sum is refused.
+        let mut v4 = MAGIC.to_vec();
+        v4.extend_from_slice(&entry[8..HEADER + 16]);
+        v4.extend_from_slice(&2u32.to_le_bytes());
+        hashes(&c).iter().for_each(|h| v4.extend_from_slice(h.as_bytes()));
+        v4.extend_from_slice(&entry[HEADER + 16..]);
+        assert_eq!(decode(&key, &v4, &no_dicts).unwrap_err(), "its frame has no check sum");
+    }
 }

@@ -168,14 +168,14 @@ impl Cache {
         let entry = &mut out[start..];
         let ok = l.pack.file.read_exact_at(entry, l.offset).is_ok()
             && entry.len() >= 72
-            && (&entry[..8] == MAGIC || &entry[..8] == codec::MAGIC)
+            && (&entry[..8] == MAGIC || codec::is_compressed(entry))
             && entry[40..72] == key.0;
         if !ok {
             out.truncate(start);
             return false;
         }
         // An entry compressed with this cache's dictionaries goes out without them.
-        if out[start..].starts_with(codec::MAGIC) && codec::uses_dictionary(&out[start..]) != Ok(false) {
+        if codec::is_compressed(&out[start..]) && codec::uses_dictionary(&out[start..]) != Ok(false) {
             let portable = codec::decode(key, &out[start..], &|id| self.dicts.get(&self.dir, id))
                 .map(|(c, hashes)| codec::encode(key, &c, &hashes, &HashMap::new()));
             out.truncate(start);

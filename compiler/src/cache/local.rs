@@ -16,9 +16,15 @@ impl Cache {
     /// The entry of `key`: from a local pack, else from the remote cache (checked, then
     /// queued to be filled into the local cache).
     pub fn get(&self, key: &Key) -> Lookup {
+        self.get_hashed(key).0
+    }
+
+    /// [`Cache::get`], and on a hit the blake3 of each artifact (computed to check the
+    /// entry, so that the caller need not hash the artifacts again).
+    pub fn get_hashed(&self, key: &Key) -> (Lookup, Vec<blake3::Hash>) {
         let local = self.get_local(key);
         let Some(layer) = &self.remote else { return local };
-        if matches!(local, Lookup::Hit(_)) {
+        if matches!(local.0, Lookup::Hit(_)) {
             return local;
         }
         if layer.absent.lock().expect("no panics while locked").contains(key) {
@@ -28,8 +34,8 @@ impl Cache {
             layer.absent.lock().expect("no panics while locked").insert(*key);
             return local;
         };
-        match remote_entry(key, &bytes).and_then(|entry| Ok((self.decode(key, entry)?, entry))) {
-            Ok((c, entry)) => {
+        match remote_entry(key, &bytes).and_then(|entry| Ok((self.decode_hashed(key, entry)?, entry))) {
+            Ok(((c, hashes), entry)) => {
                 layer.remote.count_hit();
                 let mut fills = layer.fills.lock().expect("no panics while locked");
                 if fills.as_ref().is_some_and(fill::FillPack::is_full) {
@@ -42,36 +48,45 @@ impl Cache {
                 if fills.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
                     *fills = None;
                 }
-                Lookup::Hit(c)
+                (Lookup::Hit(c), hashes)
             }
-            Err(why) => Lookup::Corrupt(format!(
-                "remote cache entry {key} at {} is corrupted ({why}); recompiling",
-                layer.remote.url()
-            )),
+            Err(why) => (
+                Lookup::Corrupt(format!(
+                    "remote cache entry {key} at {} is corrupted ({why}); recompiling",
+                    layer.remote.url()
+                )),
+                Vec::new(),
+            ),
         }
     }
 
     /// The entry `bytes` of `key`, of either version, checked.
+    #[cfg(test)]
     pub(super) fn decode(&self, key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
-        if bytes.starts_with(codec::MAGIC) {
-            return codec::decode(key, bytes, &|id| self.dicts.get(&self.dir, id)).map(|(c, _)| c);
-        }
-        decode_v2(key, bytes)
+        self.decode_hashed(key, bytes).map(|(c, _)| c)
     }
 
-    pub(super) fn get_local(&self, key: &Key) -> Lookup {
+    /// [`Cache::decode`], and the blake3 of each artifact (its checksum is made of them).
+    pub(super) fn decode_hashed(&self, key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
+        if codec::is_compressed(bytes) {
+            return codec::decode(key, bytes, &|id| self.dicts.get(&self.dir, id));
+        }
+        decode_v2_hashed(key, bytes, None)
+    }
+
+    pub(super) fn get_local(&self, key: &Key) -> (Lookup, Vec<blake3::Hash>) {
         let locations = self.with_index(|index| index.copies(key));
         let mut corrupt = None;
         for l in &locations {
             let mut bytes = vec![0; l.len as usize];
             let decoded = match l.pack.file.read_exact_at(&mut bytes, l.offset) {
-                Ok(()) => self.decode(key, &bytes),
+                Ok(()) => self.decode_hashed(key, &bytes),
                 Err(_) => Err("entry is truncated".to_string()),
             };
             match decoded {
-                Ok(c) => {
+                Ok((c, hashes)) => {
                     l.pack.touch();
-                    return Lookup::Hit(c);
+                    return (Lookup::Hit(c), hashes);
                 }
                 Err(why) => {
                     corrupt.get_or_insert_with(|| {
@@ -80,7 +95,7 @@ impl Cache {
                 }
             }
         }
-        corrupt.map_or(Lookup::Miss, Lookup::Corrupt)
+        (corrupt.map_or(Lookup::Miss, Lookup::Corrupt), Vec::new())
     }
 
     /// Stores one entry (a pack of one).

@@ -686,20 +686,21 @@ fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
     if remote_checksum(key, entry) != value[8..REMOTE_HEADER] {
         return Err("checksum mismatch".into());
     }
-    if entry.len() < 72 || (&entry[..8] != MAGIC && &entry[..8] != codec::MAGIC) || entry[40..72] != key.0 {
+    if entry.len() < 72 || (&entry[..8] != MAGIC && !codec::is_compressed(entry)) || entry[40..72] != key.0 {
         return Err("the entry belongs to another key".into());
     }
     Ok(entry)
 }
 
-/// A version 2 entry (uncompressed), checked.
-fn decode_v2(key: &Key, bytes: &[u8]) -> Result<Compiled, String> {
-    decode_v2_hashed(key, bytes).map(|(c, _)| c)
-}
-
-/// [`decode_v2`], and the blake3 of each artifact.
-fn decode_v2_hashed(key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
-    let (artifacts, json) = parse(key, bytes)?;
+/// A version 2 entry (uncompressed), checked, and the blake3 of each artifact: `known`
+/// where the entry stored them (then not computed: the checksum checks them), else
+/// computed from the artifacts.
+fn decode_v2_hashed(
+    key: &Key,
+    bytes: &[u8],
+    known: Option<&[blake3::Hash]>,
+) -> Result<(Compiled, Vec<blake3::Hash>), String> {
+    let (artifacts, json) = parse(key, bytes, known)?;
     let mut hashes = Vec::with_capacity(artifacts.len());
     let artifacts = artifacts
         .into_iter()
@@ -718,7 +719,7 @@ fn decode_v2_hashed(key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Ha
 /// and key are checked.
 type Parsed<'a> = (Vec<(&'a [u8], &'a [u8], blake3::Hash)>, &'a [u8]);
 
-fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
+fn parse<'a>(key: &Key, bytes: &'a [u8], known: Option<&[blake3::Hash]>) -> Result<Parsed<'a>, String> {
     if bytes.len() < 40 || &bytes[..8] != MAGIC {
         return Err("not a cache entry of this kiln".into());
     }
@@ -731,15 +732,18 @@ fn parse<'a>(key: &Key, bytes: &'a [u8]) -> Result<Parsed<'a>, String> {
     let count_bytes = r.take(4)?;
     h.update(count_bytes);
     let count = u32::from_le_bytes(count_bytes.try_into().unwrap());
+    if known.is_some_and(|k| k.len() != count as usize) {
+        return Err("checksum mismatch".into());
+    }
     let mut artifacts = Vec::new();
-    for _ in 0..count {
+    for i in 0..count as usize {
         let frame = r.at;
         let n = r.take(1)?[0] as usize;
         let name = r.take(n)?;
         let len = r.u64()? as usize;
         h.update(&body[frame..r.at]);
         let artifact = r.take(len)?;
-        let hash = blake3::hash(artifact);
+        let hash = known.map_or_else(|| blake3::hash(artifact), |k| k[i]);
         h.update(hash.as_bytes());
         artifacts.push((name, artifact, hash));
     }

@@ -62,6 +62,24 @@ impl Cache {
         self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }
 
+    /// Replaces the records file under `key` with `body` (checksummed), atomically, in this
+    /// folder only: for what only this machine's paths find, not worth a remote value.
+    pub fn put_local_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
+        let sum = blake3::hash(body);
+        self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
+    }
+
+    /// The body of the records file under `key` in this folder (never the remote cache's);
+    /// `None` when missing or damaged.
+    pub fn get_local_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        let path = self.records_path(key);
+        let body = crate::archive::input::read_regular(&path, MAX_RECORDS).ok().and_then(records_body)?;
+        if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        Some(body)
+    }
+
     /// The stamp of the archive at `archive`: `DIR/<blake3 of its absolute path>.stamp`.
     pub(super) fn stamp_path(&self, archive: &Path) -> PathBuf {
         let abs = std::path::absolute(archive).unwrap_or_else(|_| archive.to_path_buf());

@@ -129,7 +129,7 @@ fn cache_stats_gc_clear() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("entries: 4 in 1 packs\n"), "{}", stdout(&o));
     let o = kiln(d, &["cache", "--cache-dir", c, "gc", "--max-size", "1"]);
-    assert!(stdout(&o).starts_with("removed 1 packs (4 entries) and 1 preprocessing records ("), "{}", stdout(&o));
+    assert!(stdout(&o).starts_with("removed 1 packs (4 entries) and 2 preprocessing records ("), "{}", stdout(&o));
     assert!(stdout(&o).ends_with("; kept 0 entries (0 B)\n"), "{}", stdout(&o));
     let o = kiln(d, &["cache", "gc", "--max-size", "10Q", "--cache-dir", c]);
     assert_eq!(o.status.code(), Some(2));

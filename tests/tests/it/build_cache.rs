@@ -217,3 +217,37 @@ fn an_up_to_date_archive_is_left_alone_and_a_touched_one_is_rewritten() {
     assert_eq!(r.stats.compiled, DISTINCT, "other targets are other keys");
     assert_ne!(std::fs::read(&out).unwrap(), bytes);
 }
+
+/// A configuration change keeps the preprocessing records of the permutations it does not
+/// touch: a dimension value added preprocesses only the new permutations, a level's define
+/// changed preprocesses that level's again (never served a stale record), and the archive
+/// is the one a build without a cache writes.
+#[test]
+fn records_survive_a_configuration_change_that_does_not_touch_them() {
+    let fx = fixture();
+    let cache = fx.path().join("cache");
+    let config = fx.path().join("lit.toml");
+    let out = fx.path().join("shaders.kpak");
+    build_ok(&options(&config, &out, Some(&cache)));
+    let text = std::fs::read_to_string(&config).unwrap();
+    let fresh = |name: &str| {
+        let path = fx.path().join(name);
+        build_ok(&options(&config, &path, None));
+        std::fs::read(path).unwrap()
+    };
+
+    // NUM_LIGHTS = 4: six more LitPS permutations per level.
+    let more = text.replace("NUM_LIGHTS = [0, 2]", "NUM_LIGHTS = [0, 2, 4]");
+    assert_ne!(more, text);
+    std::fs::write(&config, &more).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert_eq!(r.stats.permutations, 40);
+    assert!((1..=12).contains(&r.stats.preprocessed), "only the new permutations: {:?}", r.stats);
+    assert_eq!(std::fs::read(&out).unwrap(), fresh("more.kpak"));
+
+    // A level's define changed: that level's permutations are preprocessed again.
+    std::fs::write(&config, more.replace("SM5_PROFILE = 1", "SM5_PROFILE = 2")).unwrap();
+    let r = build_ok(&options(&config, &out, Some(&cache)));
+    assert!((1..=20).contains(&r.stats.preprocessed), "the sm5 permutations only: {:?}", r.stats);
+    assert_eq!(std::fs::read(&out).unwrap(), fresh("define.kpak"));
+}
