@@ -340,6 +340,18 @@ mod tests {
     use super::*;
 
     #[test]
+    fn hashed_shares_give_each_key_to_one_shard_evenly() {
+        let mut counts = [0usize; 8];
+        for i in 0..16_000u32 {
+            let key = crate::cache::Key(*blake3::hash(&i.to_le_bytes()).as_bytes());
+            let owners: Vec<usize> = (0..8).filter(|&s| Shard { index: s, count: 8 }.hashes_to(&key)).collect();
+            assert_eq!(owners.len(), 1, "one shard per key");
+            counts[owners[0]] += 1;
+        }
+        assert!(counts.iter().all(|&c| (1_800..2_200).contains(&c)), "{counts:?}");
+    }
+
+    #[test]
     fn shard_specs() {
         assert_eq!(Shard::parse("0/4"), Ok(Shard { index: 0, count: 4 }));
         assert_eq!(Shard::parse(" 3/4 "), Ok(Shard { index: 3, count: 4 }));

@@ -44,8 +44,8 @@ pub struct Args {
     /// make a larger space acceptable.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     pub max_permutations: Option<u64>,
-    /// Compile only shard I of N (0-based): a cost-balanced share of the distinct keys,
-    /// into the cache; no archive unless -o is given. A plain build afterwards assembles
+    /// Compile only shard I of N (0-based): a share of the distinct keys (balanced by cost;
+    /// by key hash from 65,536 permutations), into the cache; no archive unless -o is given. A plain build afterwards assembles
     /// the archive from the cache. Also KILN_SHARD=I/N.
     #[arg(long, value_name = "I/N", conflicts_with = "shards")]
     pub shard: Option<String>,

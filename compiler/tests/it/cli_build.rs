@@ -287,6 +287,54 @@ fn archive_is_byte_identical_whatever_jobs_cache_state_and_shards() {
     same("lost.kpak");
 }
 
+/// A set of 65,536 permutations (256 distinct keys: one of its two dimensions is unused),
+/// where `--shard` shares keys by their hash: every key compiled by exactly one shard, and
+/// the assembly compiles none and writes the one-process archive.
+#[test]
+fn large_sets_share_keys_by_hash() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    std::fs::write(
+        d.join("p.toml"),
+        r#"
+[compiler]
+include = ["."]
+
+[levels.sm5]
+targets = ["wgsl"]
+
+[[shader]]
+name = "Tint"
+source = "tint.wgsl"
+entry = "main_ps"
+stage = "fragment"
+dimensions = { A = { range = [0, 255] }, B = { range = [0, 255] } }
+"#,
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("tint.wgsl"),
+        "@fragment\nfn main_ps() -> @location(0) vec4<f32> {\n    return vec4<f32>(f32(A) / 255.0, 0.0, 0.0, 1.0);\n}\n",
+    )
+    .unwrap();
+    let reference = build_stats(d, &["--config", "p.toml", "-o", "one.kpak", "--cache-dir", "c1"], &[], "one.json");
+    assert_eq!(count(&reference, "permutations"), 65_536);
+    let distinct = count(&reference, "unique_sources");
+    assert_eq!(distinct, 256);
+    let mut compiled = 0;
+    for i in 0..3 {
+        let spec = format!("{i}/3");
+        let s = build_stats(d, &["--config", "p.toml", "--cache-dir", "c2", "--shard", &spec], &[], "s.json");
+        assert_eq!(count(&s, "compiled") + count(&s, "other_shards"), distinct, "{s}");
+        assert!(count(&s, "compiled") > 40, "each share near a third of the keys: {s}");
+        compiled += count(&s, "compiled");
+    }
+    assert_eq!(compiled, distinct, "each key compiled by one shard");
+    let assembly = build_stats(d, &["--config", "p.toml", "-o", "sharded.kpak", "--cache-dir", "c2"], &[], "a.json");
+    assert_eq!((count(&assembly, "compiled"), count(&assembly, "cache_hits")), (0, distinct));
+    assert!(std::fs::read(d.join("one.kpak")).unwrap() == std::fs::read(d.join("sharded.kpak")).unwrap());
+}
+
 #[test]
 fn bad_shard_specs_are_usage_errors() {
     let fx = fixture();
