@@ -474,11 +474,16 @@ impl Cache {
 /// A set of preprocessing records, if `bytes` is a whole one.
 /// The body of a records file (magic, blake3 of the body, body), when whole.
 fn records_body(mut bytes: Vec<u8>) -> Option<Vec<u8>> {
-    if bytes.len() < 40 || &bytes[..8] != RECORD_MAGIC || blake3::hash(&bytes[40..]).as_bytes() != &bytes[8..40] {
+    if !records_whole(&bytes) {
         return None;
     }
     bytes.drain(..40);
     Some(bytes)
+}
+
+/// Whether `bytes` is a whole records file: magic, then the blake3 of the body after it.
+fn records_whole(bytes: &[u8]) -> bool {
+    bytes.len() >= 40 && &bytes[..8] == RECORD_MAGIC && blake3::hash(&bytes[40..]).as_bytes() == &bytes[8..40]
 }
 
 /// How many rows the index of the pack at `path` says it holds (its header alone is read;

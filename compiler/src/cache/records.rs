@@ -43,8 +43,13 @@ impl Cache {
             return Some((body, false));
         }
         let bytes = self.remote().and_then(|r| r.get(key))?;
-        let body = records_body(bytes.clone())?;
+        // Checked before it is kept; the body is the value's tail, moved, not copied.
+        if !super::records_whole(&bytes) {
+            return None;
+        }
         let _ = self.write_file(&path, &bytes);
+        let mut body = bytes;
+        body.drain(..40);
         Some((body, true))
     }
 
@@ -53,11 +58,7 @@ impl Cache {
     pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
         let sum = blake3::hash(body);
         if let Some(remote) = self.remote() {
-            let mut bytes = Vec::with_capacity(40 + body.len());
-            bytes.extend_from_slice(RECORD_MAGIC);
-            bytes.extend_from_slice(sum.as_bytes());
-            bytes.extend_from_slice(body);
-            remote.store(key, &bytes);
+            remote.store_from(key, &super::remote::Pieces(&[RECORD_MAGIC, sum.as_bytes(), body]));
         }
         self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }

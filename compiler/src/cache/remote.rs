@@ -351,6 +351,22 @@ pub(crate) trait Source: Sync {
     fn open(&self) -> std::io::Result<Box<dyn std::io::Read + '_>>;
 }
 
+/// A value in memory, in pieces, for [`Remote::store_from`]: sent as it is, without
+/// copying the pieces into one buffer (a large value, such as a set's preprocessing
+/// records, would be held twice or three times).
+pub(crate) struct Pieces<'a>(pub &'a [&'a [u8]]);
+
+impl Source for Pieces<'_> {
+    fn len(&self) -> u64 {
+        self.0.iter().map(|p| p.len() as u64).sum()
+    }
+
+    fn open(&self) -> std::io::Result<Box<dyn std::io::Read + '_>> {
+        let empty: Box<dyn std::io::Read + '_> = Box::new(std::io::empty());
+        Ok(self.0.iter().fold(empty, |all, &p| Box::new(std::io::Read::chain(all, p))))
+    }
+}
+
 /// Opens a [`Source`]'s bytes for one attempt.
 type Body<'a> = dyn Fn() -> std::io::Result<Box<dyn std::io::Read + 'a>> + 'a;
 
