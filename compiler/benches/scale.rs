@@ -24,8 +24,8 @@
 //!    most 2x the archive), and the peak memory of the tools on that set and archive
 //!    (`kiln inspect` and its `--list` and `--json`, `kiln list`, `kiln explain`; goal at
 //!    most 64 MiB each). The 1M point runs only when asked for
-//!    (`KILN_SCALE_SIZES=1000,10000,100000,1000000`; not in CI: a cold 1M build took about
-//!    8 minutes on two busy cores, 1.1 GB of cache and a 606 MB archive); after each cold
+//!    (`KILN_SCALE_SIZES=1000,10000,100000,1000000`; not in CI: a cold 1M build takes about
+//!    5 minutes of two quiet cores, 1.2 GB of cache and a 595 MB archive); after each cold
 //!    build, three warm builds that rewrite the archive, against it: one after the archive
 //!    was deleted, one after a material was added to the configuration, one after a
 //!    constant was edited in one shader source (these two with the previous archive in
