@@ -255,6 +255,8 @@ struct Incoming<'a> {
     passed: u64,
 }
 
+/// Where an [`Incoming`] value is: its head still arriving; the rest passing on (with
+/// the hasher and expected MAC of a signed value this build checks); or refused, and why.
 enum Arriving {
     Head,
     Passing(Option<(blake3::Hasher, [u8; 32])>),
