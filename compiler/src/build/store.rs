@@ -125,10 +125,10 @@ impl Store {
     }
 
     pub fn get(&self, key: &Key) -> Fetched {
-        match self.cache.as_ref().map(|c| c.get_hashed(key)) {
-            Some((Lookup::Hit(c), hashes)) => Fetched::Hit(c, hashes),
-            Some((Lookup::Corrupt(why), _)) => Fetched::Miss(Some(format!("warning: {why}"))),
-            Some((Lookup::Miss, _)) | None => Fetched::Miss(None),
+        match self.cache.as_ref().map(|c| c.get(key)) {
+            Some(Lookup::Hit(c, hashes)) => Fetched::Hit(c, hashes),
+            Some(Lookup::Corrupt(why)) => Fetched::Miss(Some(format!("warning: {why}"))),
+            Some(Lookup::Miss) | None => Fetched::Miss(None),
         }
     }
 

@@ -16,15 +16,9 @@ impl Cache {
     /// The entry of `key`: from a local pack, else from the remote cache (checked, then
     /// queued to be filled into the local cache).
     pub fn get(&self, key: &Key) -> Lookup {
-        self.get_hashed(key).0
-    }
-
-    /// [`Cache::get`], and on a hit the blake3 of each artifact (computed to check the
-    /// entry, so that the caller need not hash the artifacts again).
-    pub fn get_hashed(&self, key: &Key) -> (Lookup, Vec<blake3::Hash>) {
         let local = self.get_local(key);
         let Some(layer) = &self.remote else { return local };
-        if matches!(local.0, Lookup::Hit(_)) {
+        if matches!(local, Lookup::Hit(..)) {
             return local;
         }
         if layer.absent.lock().expect("no panics while locked").contains(key) {
@@ -48,15 +42,12 @@ impl Cache {
                 if fills.as_mut().is_some_and(|p| p.push(key, entry).is_err()) {
                     *fills = None;
                 }
-                (Lookup::Hit(c), hashes)
+                Lookup::Hit(c, hashes)
             }
-            Err(why) => (
-                Lookup::Corrupt(format!(
-                    "remote cache entry {key} at {} is corrupted ({why}); recompiling",
-                    layer.remote.url()
-                )),
-                Vec::new(),
-            ),
+            Err(why) => Lookup::Corrupt(format!(
+                "remote cache entry {key} at {} is corrupted ({why}); recompiling",
+                layer.remote.url()
+            )),
         }
     }
 
@@ -74,7 +65,7 @@ impl Cache {
         decode_v2_hashed(key, bytes, None)
     }
 
-    pub(super) fn get_local(&self, key: &Key) -> (Lookup, Vec<blake3::Hash>) {
+    pub(super) fn get_local(&self, key: &Key) -> Lookup {
         let locations = self.with_index(|index| index.copies(key));
         let mut corrupt = None;
         for l in &locations {
@@ -86,7 +77,7 @@ impl Cache {
             match decoded {
                 Ok((c, hashes)) => {
                     l.pack.touch();
-                    return (Lookup::Hit(c), hashes);
+                    return Lookup::Hit(c, hashes);
                 }
                 Err(why) => {
                     corrupt.get_or_insert_with(|| {
@@ -95,7 +86,7 @@ impl Cache {
                 }
             }
         }
-        (corrupt.map_or(Lookup::Miss, Lookup::Corrupt), Vec::new())
+        corrupt.map_or(Lookup::Miss, Lookup::Corrupt)
     }
 
     /// Stores one entry (a pack of one).

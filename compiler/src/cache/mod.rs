@@ -196,7 +196,9 @@ impl std::fmt::Display for Key {
 /// The answer to [`Cache::get`].
 #[derive(Debug)]
 pub enum Lookup {
-    Hit(Compiled),
+    /// The entry, with the blake3 of each artifact (computed or read to check the entry, so
+    /// that the caller need not hash the artifacts again).
+    Hit(Compiled, Vec<blake3::Hash>),
     Miss,
     /// Every copy of the entry fails its checksum or cannot be decoded: the reason. The
     /// caller recompiles; the new copy, in a newer pack, is the one read from then on.

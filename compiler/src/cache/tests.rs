@@ -72,14 +72,14 @@ fn puts_stay_out_of_the_index_when_asked() {
     let (old, new) = (key("old"), key("new"));
     Cache::open(dir.path()).unwrap().put(&old, &compiled(1)).unwrap();
     let cache = Cache::open(dir.path()).unwrap().without_indexing_puts();
-    assert!(matches!(cache.get(&old), Lookup::Hit(_)));
+    assert!(matches!(cache.get(&old), Lookup::Hit(..)));
     cache.put_pack(&[(new, &compiled(2))]).unwrap();
     assert!(matches!(cache.get(&new), Lookup::Miss));
-    assert!(matches!(cache.get(&old), Lookup::Hit(_)));
+    assert!(matches!(cache.get(&old), Lookup::Hit(..)));
     // Read again, the index has it.
     cache.release_index();
-    assert!(matches!(cache.get(&new), Lookup::Hit(c) if c == compiled(2)));
-    assert!(matches!(Cache::open(dir.path()).unwrap().get(&new), Lookup::Hit(c) if c == compiled(2)));
+    assert!(matches!(cache.get(&new), Lookup::Hit(c, _) if c == compiled(2)));
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&new), Lookup::Hit(c, _) if c == compiled(2)));
 }
 
 #[test]
@@ -90,7 +90,7 @@ fn put_then_get_round_trips() {
     assert!(matches!(cache.get(&k), Lookup::Miss));
     cache.put(&k, &compiled(1)).unwrap();
     match cache.get(&k) {
-        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
+        Lookup::Hit(c, _) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
     let pack = cache.pack_of(&k).unwrap();
@@ -111,7 +111,7 @@ fn put_then_get_round_trips() {
     );
     // Another `Cache` on the folder reads it from the pack.
     match Cache::open(dir.path()).unwrap().get(&k) {
-        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
+        Lookup::Hit(c, _) => assert_eq!(c, compiled(1)),
         other => panic!("{other:?}"),
     }
 }
@@ -130,7 +130,7 @@ fn a_pack_holds_many_entries_in_one_file() {
     let fresh = Cache::open(dir.path()).unwrap();
     for (k, v) in keys.iter().zip(&values) {
         match fresh.get(k) {
-            Lookup::Hit(c) => assert_eq!(&c, v),
+            Lookup::Hit(c, _) => assert_eq!(&c, v),
             other => panic!("{other:?}"),
         }
     }
@@ -170,12 +170,12 @@ fn corrupted_entry_is_reported_then_served_from_the_newer_copy() {
         ),
         other => panic!("{other:?}"),
     }
-    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca), "the other entry is intact");
+    assert!(matches!(cache.get(&a), Lookup::Hit(c, _) if c == ca), "the other entry is intact");
     // What a build does next: store the recompiled entry. From then on it is a hit, in
     // this process and the next.
     cache.put(&b, &cb).unwrap();
-    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == cb));
-    assert!(matches!(Cache::open(dir.path()).unwrap().get(&b), Lookup::Hit(c) if c == cb));
+    assert!(matches!(cache.get(&b), Lookup::Hit(c, _) if c == cb));
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&b), Lookup::Hit(c, _) if c == cb));
 }
 
 #[test]
@@ -199,8 +199,8 @@ fn a_damaged_newest_copy_is_served_from_an_older_pack() {
     let b_at = bytes.windows(32).rposition(|w| w == b.0).unwrap() - 32 - MAGIC.len();
     flip(&new, bytes.len() - b_at + 1);
     let cache = Cache::open(dir.path()).unwrap();
-    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca), "served from the older pack");
-    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == cb));
+    assert!(matches!(cache.get(&a), Lookup::Hit(c, _) if c == ca), "served from the older pack");
+    assert!(matches!(cache.get(&b), Lookup::Hit(c, _) if c == cb));
 }
 
 #[test]
@@ -216,7 +216,7 @@ fn truncated_or_damaged_packs_are_never_trusted() {
     // Truncated after a's entry: a is whole, b is corrupt.
     fs::write(&pack, &bytes[..bytes.len() - 10]).unwrap();
     let cache = Cache::open(dir.path()).unwrap();
-    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == ca));
+    assert!(matches!(cache.get(&a), Lookup::Hit(c, _) if c == ca));
     match cache.get(&b) {
         Lookup::Corrupt(why) => assert!(why.contains("(entry is truncated)"), "{why}"),
         other => panic!("{other:?}"),
@@ -292,11 +292,11 @@ fn concurrent_puts_of_one_key_both_succeed() {
                 for _ in 0..20 {
                     cache.put(&k, &compiled(1)).unwrap();
                     match cache.get(&k) {
-                        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
+                        Lookup::Hit(c, _) => assert_eq!(c, compiled(1)),
                         other => panic!("{other:?}"),
                     }
                     match Cache::open(dir.path()).unwrap().get(&k) {
-                        Lookup::Hit(c) => assert_eq!(c, compiled(1)),
+                        Lookup::Hit(c, _) => assert_eq!(c, compiled(1)),
                         other => panic!("{other:?}"),
                     }
                 }
@@ -320,7 +320,7 @@ fn gc_evicts_least_recently_used_packs_first() {
     }
     // Using "a" (from a fresh process's view) makes its pack the most recently used.
     let packs: Vec<PathBuf> = keys.iter().map(|k| cache.pack_of(k).unwrap()).collect();
-    assert!(matches!(Cache::open(dir.path()).unwrap().get(&keys[0]), Lookup::Hit(_)));
+    assert!(matches!(Cache::open(dir.path()).unwrap().get(&keys[0]), Lookup::Hit(..)));
     let one = fs::metadata(&packs[0]).unwrap().len();
     let report = cache.gc(one * 2);
     assert_eq!((report.removed, report.removed_packs, report.kept), (1, 1, 2));
@@ -438,8 +438,8 @@ fn a_fill_pack_streams_entries_and_leaves_its_unused_rows_a_hole() {
     let names: Vec<_> = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(names, vec![path], "the temporary file was renamed, nothing else is left");
     let cache = Cache::open(dir.path()).unwrap();
-    assert!(matches!(cache.get(&a), Lookup::Hit(c) if c == compiled(1)));
-    assert!(matches!(cache.get(&b), Lookup::Hit(c) if c == compiled(2)));
+    assert!(matches!(cache.get(&a), Lookup::Hit(c, _) if c == compiled(1)));
+    assert!(matches!(cache.get(&b), Lookup::Hit(c, _) if c == compiled(2)));
     assert_eq!(cache.stats().entries, 2);
 
     // Dropped unfinished (a failed fill) or finished empty: no file.
@@ -478,7 +478,7 @@ fn a_fill_pack_writes_its_entries_in_chunks_from_several_threads() {
     assert!(fs::metadata(&path).unwrap().len() > 3 << 20, "more than a few chunks");
     let cache = Cache::open(dir.path()).unwrap();
     for (i, k) in keys.iter().enumerate() {
-        assert!(matches!(cache.get(k), Lookup::Hit(c) if c == big(i as u32)), "entry {i}");
+        assert!(matches!(cache.get(k), Lookup::Hit(c, _) if c == big(i as u32)), "entry {i}");
     }
     let (_, rows) = open_pack(&path).unwrap().unwrap();
     let first = rows.iter().map(|r| r.1).min().unwrap();
@@ -634,7 +634,7 @@ fn a_pack_of_the_old_uncompressed_format_is_still_read() {
     fs::write(dir.path().join(format!("{}.{PACK_EXTENSION}", "ab".repeat(16))), old_pack(&entries, &keys)).unwrap();
     let cache = Cache::open(dir.path()).unwrap();
     for (k, i) in keys.iter().zip(1..) {
-        assert!(matches!(cache.get(k), Lookup::Hit(c) if c == compiled(i)));
+        assert!(matches!(cache.get(k), Lookup::Hit(c, _) if c == compiled(i)));
     }
     let s = cache.stats();
     let raw: u64 = entries.iter().map(|e| e.len() as u64).sum();
@@ -695,7 +695,7 @@ fn a_big_pack_trains_dictionaries_that_later_entries_use() {
     assert_eq!(dicts().len(), 1, "one for the entries of wgsl and msl");
     let fresh = Cache::open(dir.path()).unwrap();
     for (k, v) in keys.iter().zip(&values) {
-        assert!(matches!(fresh.get(k), Lookup::Hit(c) if c == *v));
+        assert!(matches!(fresh.get(k), Lookup::Hit(c, _) if c == *v));
     }
     let s = fresh.stats();
     assert_eq!((s.entries, s.dictionaries), (300, 1));
