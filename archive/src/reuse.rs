@@ -1,35 +1,55 @@
-//! The archive a writer replaces: its compressed blobs are copied into the new archive where
-//! compressing again would give the same bytes, so that a build that rewrites its archive
-//! after a small change compresses only what changed.
+//! The archive a writer replaces: a blob it already holds is added by reference (its bytes
+//! neither spooled nor read back), and its compressed bytes are copied into the new archive
+//! where compressing again would give the same bytes, so that a build that rewrites its
+//! archive after a small change compresses only what changed.
 //!
 //! A blob's stored bytes depend only on its raw bytes, the compression level and the
 //! dictionary it was compressed with (zstd is deterministic for a given input, parameters
 //! and library). So a stored blob is copied only when the previous archive was written by
-//! this version of the archive crate, holds the same bytes (its blake3) and was compressed
-//! with a dictionary of the same blake3 as the new archive's for its target, or with none
-//! when the new archive has none for it. Blobs stored uncompressed are compressed again:
-//! whether zstd shrank them depended on the dictionary their target had then. A copied blob
-//! is decompressed and checked against its blake3 first, so a damaged previous archive costs
-//! time, never different bytes: the new archive is byte for byte the one a writer without a
-//! previous archive writes.
+//! this version of the archive crate in this format, holds the same bytes (its blake3 and
+//! length) and was compressed with a dictionary of the same blake3 as the new archive's for
+//! its target, or with none when the new archive has none for it. Other referenced blobs
+//! (another dictionary, or stored uncompressed: whether zstd shrank them depended on the
+//! dictionary their target had then) are decompressed from the previous archive, checked
+//! against their blake3, and compressed again.
+//!
+//! Trust: the table entry of a blob (its blake3, lengths, codec and the check sum of its
+//! stored bytes) is covered by the archive's chunk hashes; its stored bytes are checked
+//! against that check sum ([`stored_sum`]) when the blob is found, while the writer's
+//! caller still holds its bytes (a blob that fails is spooled as usual), and again when it
+//! is copied. A damaged previous archive therefore costs time, never different bytes: the
+//! new archive is byte for byte the one a writer without a previous archive writes.
 
+use std::borrow::Cow;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
-use super::format::{BlobId, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, NO_DICTIONARY};
+use super::format::{stored_sum, BlobId, CODEC_ZSTD, CODEC_ZSTD_DICT, ENTRY_LEN, FORMAT_VERSION, NO_DICTIONARY};
 use super::{Archive, Target};
 
-/// The previous archive, mapped, and its compressed blobs found by the start of their
-/// blake3.
+/// The previous archive, mapped, and its blobs found by the start of their blake3.
 pub(crate) struct Previous {
     archive: Archive,
     /// (start of the blake3 as two `u32`, blob id), sorted.
     index: Vec<[u32; 3]>,
     /// Each dictionary's target and blake3, by index.
     dictionaries: Vec<(Target, [u8; 32])>,
+    /// Stored bytes read since the map's pages were last given back ([`RELEASE_BYTES`]).
+    read: AtomicU64,
 }
 
-/// A blob as the previous archive stores it: codec, stored bytes, blake3.
-pub(crate) type Stored = (u8, Vec<u8>, [u8; 32]);
+/// A blob of the previous archive as it goes into the new one.
+pub(crate) enum Reused<'a> {
+    /// Its stored bytes, copied as they are, and their codec.
+    Stored(u8, &'a [u8]),
+    /// Its raw bytes (checked against its blake3), to be compressed again.
+    Raw(Cow<'a, [u8]>),
+}
+
+/// Bytes (stored blobs and their table entries) read through the map between two releases
+/// of its pages: the pages of a mapped file count in the resident set, and a build reads
+/// the whole previous archive.
+const RELEASE_BYTES: u64 = 4 << 20;
 
 fn key(hash: &[u8]) -> [u32; 2] {
     [
@@ -39,21 +59,21 @@ fn key(hash: &[u8]) -> [u32; 2] {
 }
 
 impl Previous {
-    /// The archive at `path` when there is one this crate's version wrote; `None` otherwise
-    /// (missing, unreadable, damaged in its header or tables, or another version's).
+    /// The archive at `path` when there is one this crate's version wrote in this format;
+    /// `None` otherwise (missing, unreadable, damaged in its header or tables, an older
+    /// format without check sums of stored bytes, or another version's).
     pub(crate) fn open(path: &Path) -> Option<Previous> {
         let archive = Archive::open(path).ok()?;
-        if archive.kiln_version() != crate::VERSION {
+        if archive.kiln_version() != crate::VERSION || archive.format_version() != FORMAT_VERSION {
             return None;
         }
         let mut index = Vec::with_capacity(archive.blob_count());
         for id in 0..archive.blob_count() {
             match archive.stored_blob(BlobId(id as u32)) {
-                Ok((e, _)) if e.codec != CODEC_STORED => {
+                Ok((e, _)) => {
                     let [a, b] = key(&e.hash);
                     index.push([a, b, id as u32]);
                 }
-                Ok(_) => {}
                 // A damaged table: nothing of it is trusted.
                 Err(_) => return None,
             }
@@ -62,35 +82,53 @@ impl Previous {
         let dictionaries = archive.dictionary_hashes();
         // The table's pages were only read: the file keeps them.
         archive.release_pages();
-        Some(Previous { archive, index, dictionaries })
+        Some(Previous { archive, index, dictionaries, read: AtomicU64::new(0) })
     }
 
-    /// The blob whose blake3 starts with `ident` and that is `len` bytes long, as stored by
-    /// the previous archive, when compressing it with `dictionary` (the blake3 of the new
-    /// archive's dictionary for the blob's target, or `None` for none) gives those bytes.
-    pub(crate) fn stored(&self, ident: &[u8], len: u64, dictionary: Option<&[u8; 32]>) -> Option<Stored> {
-        let k = key(ident);
+    /// The id of the blob with blake3 `hash` that is `len` bytes long, when its stored bytes
+    /// are as they were written (their check sum): the writer may then let go of the bytes
+    /// and take the blob from here ([`Previous::reuse`]).
+    pub(crate) fn find(&self, hash: &[u8; 32], len: u64) -> Option<u32> {
+        let k = key(hash);
         let first = self.index.partition_point(|e| [e[0], e[1]] < k);
-        for e in self.index[first..].iter().take_while(|e| [e[0], e[1]] == k) {
-            let id = BlobId(e[2]);
-            let Ok((entry, bytes)) = self.archive.stored_blob(id) else { continue };
-            let same_dictionary = match (entry.codec, dictionary) {
-                (CODEC_ZSTD, None) => entry.dictionary == NO_DICTIONARY,
-                (CODEC_ZSTD_DICT, Some(d)) => {
-                    self.dictionaries.get(entry.dictionary as usize).is_some_and(|p| &p.1 == d)
-                }
-                _ => false,
-            };
-            if !same_dictionary || entry.raw_len != len || entry.hash[..ident.len()] != *ident {
-                continue;
-            }
-            // Checked against its blake3 (decompressed) before it is trusted.
-            if self.archive.blob(id).is_err() {
-                return None;
-            }
-            return Some((entry.codec, bytes.to_vec(), entry.hash));
+        let found = self.index[first..].iter().take_while(|e| [e[0], e[1]] == k).find_map(|e| {
+            let (entry, bytes) = self.archive.stored_blob(BlobId(e[2])).ok()?;
+            (entry.hash == *hash && entry.raw_len == len).then(|| (e[2], entry.sum, bytes))
+        });
+        let (id, sum, bytes) = found?;
+        let ok = stored_sum(bytes) == sum;
+        self.count_read(bytes.len() as u64 + ENTRY_LEN as u64);
+        ok.then_some(id)
+    }
+
+    /// Gives the map's pages back once [`RELEASE_BYTES`] more were read.
+    fn count_read(&self, len: u64) {
+        let before = self.read.fetch_add(len, Ordering::Relaxed);
+        if before / RELEASE_BYTES != (before + len) / RELEASE_BYTES {
+            self.archive.release_pages();
         }
-        None
+    }
+
+    /// Blob `id` (one [`Previous::find`] gave) for a new archive whose dictionary for its
+    /// target has blake3 `dictionary` (`None`: none): its stored bytes where compressing its
+    /// raw bytes again would give them, else its raw bytes; and its blake3. An error when
+    /// the previous archive changed since (the writer let go of the bytes).
+    pub(crate) fn reuse(&self, id: u32, dictionary: Option<&[u8; 32]>) -> Result<([u8; 32], Reused<'_>), String> {
+        let (entry, bytes) = self.archive.stored_blob(BlobId(id))?;
+        let same_dictionary = match (entry.codec, dictionary) {
+            (CODEC_ZSTD, None) => entry.dictionary == NO_DICTIONARY,
+            (CODEC_ZSTD_DICT, Some(d)) => self.dictionaries.get(entry.dictionary as usize).is_some_and(|p| &p.1 == d),
+            _ => false,
+        };
+        if same_dictionary && stored_sum(bytes) == entry.sum {
+            return Ok((entry.hash, Reused::Stored(entry.codec, bytes)));
+        }
+        self.raw(id).map(|raw| (entry.hash, Reused::Raw(raw)))
+    }
+
+    /// The raw bytes of blob `id`, decompressed and checked against its blake3.
+    pub(crate) fn raw(&self, id: u32) -> Result<Cow<'_, [u8]>, String> {
+        self.archive.blob(BlobId(id)).map_err(|why| format!("the previous archive changed during the build: {why}"))
     }
 
     /// Gives back the previous archive's pages read so far (the file keeps them).
