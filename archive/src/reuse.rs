@@ -15,10 +15,13 @@
 //!
 //! Trust: the table entry of a blob (its blake3, lengths, codec and the check sum of its
 //! stored bytes) is covered by the archive's chunk hashes; its stored bytes are checked
-//! against that check sum ([`stored_sum`]) when the blob is found, while the writer's
-//! caller still holds its bytes (a blob that fails is spooled as usual), and again when it
-//! is copied. A damaged previous archive therefore costs time, never different bytes: the
-//! new archive is byte for byte the one a writer without a previous archive writes.
+//! against that check sum ([`stored_sum`]) when the archive is opened, in one pass over the
+//! file (a blob that fails is not found, so the writer's caller spools its bytes as usual),
+//! and again when it is copied. A damaged previous archive therefore costs time, never
+//! different bytes: the new archive is byte for byte the one a writer without a previous
+//! archive writes. Finding a blob touches nothing of the file: the blobs are found by an
+//! identity as long as the writer's own (a prefix of their blake3), and their pages, read in
+//! the order of the file, would otherwise stay in the build's resident set.
 
 use std::borrow::Cow;
 use std::path::Path;
@@ -30,12 +33,11 @@ use super::{Archive, Target};
 /// The previous archive, mapped, and its blobs found by the start of their blake3.
 pub(crate) struct Previous {
     archive: Archive,
-    /// (start of the blake3 as two `u32`, blob id), sorted.
-    index: Vec<[u32; 3]>,
+    /// (the blob's identity, the first [`IDENT_WORDS`] words of its blake3; blob id),
+    /// sorted: the blobs whose stored bytes match their check sum.
+    index: Vec<[u32; IDENT_WORDS + 1]>,
     /// Each dictionary's target and blake3, by index.
     dictionaries: Vec<(Target, [u8; 32])>,
-    /// Stored bytes read since the map's pages were last given back ([`RELEASE_BYTES`]).
-    read: AtomicU64,
 }
 
 /// A blob of the previous archive as it goes into the new one.
@@ -46,16 +48,16 @@ pub(crate) enum Reused<'a> {
     Raw(Cow<'a, [u8]>),
 }
 
-/// Bytes (stored blobs and their table entries) read through the map between two releases
-/// of its pages: the pages of a mapped file count in the resident set, and a build reads
-/// the whole previous archive.
+/// Bytes read through the map between two releases of its pages (the pages of a mapped
+/// file count in the resident set).
 const RELEASE_BYTES: u64 = 4 << 20;
 
-fn key(hash: &[u8]) -> [u32; 2] {
-    [
-        u32::from_be_bytes(hash[0..4].try_into().expect("4 bytes")),
-        u32::from_be_bytes(hash[4..8].try_into().expect("4 bytes")),
-    ]
+/// The `u32` words of a blob's identity: 16 bytes of its blake3, as the writer's own
+/// identities (a collision between artifacts is not a practical concern).
+const IDENT_WORDS: usize = 4;
+
+fn key(hash: &[u8]) -> [u32; IDENT_WORDS] {
+    std::array::from_fn(|i| u32::from_be_bytes(hash[4 * i..4 * i + 4].try_into().expect("4 bytes")))
 }
 
 impl Previous {
@@ -68,11 +70,16 @@ impl Previous {
             return None;
         }
         let mut index = Vec::with_capacity(archive.blob_count());
+        let read = AtomicU64::new(0);
         for id in 0..archive.blob_count() {
             match archive.stored_blob(BlobId(id as u32)) {
-                Ok((e, _)) => {
-                    let [a, b] = key(&e.hash);
-                    index.push([a, b, id as u32]);
+                Ok((e, bytes)) => {
+                    if stored_sum(bytes) == e.sum {
+                        let mut entry = [id as u32; IDENT_WORDS + 1];
+                        entry[..IDENT_WORDS].copy_from_slice(&key(&e.hash));
+                        index.push(entry);
+                    }
+                    count_read(&archive, &read, (bytes.len() + ENTRY_LEN) as u64);
                 }
                 // A damaged table: nothing of it is trusted.
                 Err(_) => return None,
@@ -80,41 +87,35 @@ impl Previous {
         }
         index.sort_unstable();
         let dictionaries = archive.dictionary_hashes();
-        // The table's pages were only read: the file keeps them.
+        // The pages were only read: the file keeps them.
         archive.release_pages();
-        Some(Previous { archive, index, dictionaries, read: AtomicU64::new(0) })
+        Some(Previous { archive, index, dictionaries })
     }
 
-    /// The id of the blob with blake3 `hash` that is `len` bytes long, when its stored bytes
-    /// are as they were written (their check sum): the writer may then let go of the bytes
-    /// and take the blob from here ([`Previous::reuse`]).
-    pub(crate) fn find(&self, hash: &[u8; 32], len: u64) -> Option<u32> {
+    /// The id of the blob whose blake3 is `hash` when the archive holds it intact: the
+    /// writer may then let go of its bytes and take it from here ([`Previous::reuse`]).
+    pub(crate) fn find(&self, hash: &[u8; 32]) -> Option<u32> {
         let k = key(hash);
-        let first = self.index.partition_point(|e| [e[0], e[1]] < k);
-        let found = self.index[first..].iter().take_while(|e| [e[0], e[1]] == k).find_map(|e| {
-            let (entry, bytes) = self.archive.stored_blob(BlobId(e[2])).ok()?;
-            (entry.hash == *hash && entry.raw_len == len).then(|| (e[2], entry.sum, bytes))
-        });
-        let (id, sum, bytes) = found?;
-        let ok = stored_sum(bytes) == sum;
-        self.count_read(bytes.len() as u64 + ENTRY_LEN as u64);
-        ok.then_some(id)
+        let i = self.index.partition_point(|e| e[..IDENT_WORDS] < k[..]);
+        self.index.get(i).filter(|e| e[..IDENT_WORDS] == k[..]).map(|e| e[IDENT_WORDS])
     }
 
-    /// Gives the map's pages back once [`RELEASE_BYTES`] more were read.
-    fn count_read(&self, len: u64) {
-        let before = self.read.fetch_add(len, Ordering::Relaxed);
-        if before / RELEASE_BYTES != (before + len) / RELEASE_BYTES {
-            self.archive.release_pages();
-        }
-    }
 
     /// Blob `id` (one [`Previous::find`] gave) for a new archive whose dictionary for its
     /// target has blake3 `dictionary` (`None`: none): its stored bytes where compressing its
     /// raw bytes again would give them, else its raw bytes; and its blake3. An error when
-    /// the previous archive changed since (the writer let go of the bytes).
-    pub(crate) fn reuse(&self, id: u32, dictionary: Option<&[u8; 32]>) -> Result<([u8; 32], Reused<'_>), String> {
+    /// the previous archive changed since (the writer let go of the bytes), or the blob is
+    /// not `len` bytes long (another blob whose blake3 starts the same).
+    pub(crate) fn reuse(
+        &self,
+        id: u32,
+        len: u64,
+        dictionary: Option<&[u8; 32]>,
+    ) -> Result<([u8; 32], Reused<'_>), String> {
         let (entry, bytes) = self.archive.stored_blob(BlobId(id))?;
+        if entry.raw_len != len {
+            return Err(format!("blob {id} of the previous archive is not the one it was taken for"));
+        }
         let same_dictionary = match (entry.codec, dictionary) {
             (CODEC_ZSTD, None) => entry.dictionary == NO_DICTIONARY,
             (CODEC_ZSTD_DICT, Some(d)) => self.dictionaries.get(entry.dictionary as usize).is_some_and(|p| &p.1 == d),
@@ -134,5 +135,14 @@ impl Previous {
     /// Gives back the previous archive's pages read so far (the file keeps them).
     pub(crate) fn release_pages(&self) {
         self.archive.release_pages();
+    }
+}
+
+/// Counts `len` more bytes read from `archive`'s map, and gives its pages back each
+/// [`RELEASE_BYTES`].
+fn count_read(archive: &Archive, read: &AtomicU64, len: u64) {
+    let before = read.fetch_add(len, Ordering::Relaxed);
+    if before / RELEASE_BYTES != (before + len) / RELEASE_BYTES {
+        archive.release_pages();
     }
 }

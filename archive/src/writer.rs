@@ -715,13 +715,21 @@ impl SpoolSink {
                 return Ok(());
             }
             // Past the bound: what memory holds goes to the file, and so does all that follows.
+            self.move_to_file(&mut memory)?;
+        }
+        drop(memory);
+        self.file.get().expect("moved to its file under the lock").write_all_at(bytes, offset)
+    }
+
+    /// Moves what `memory` (this spool's, locked) holds to the file, created now.
+    fn move_to_file(&self, memory: &mut Option<Vec<u8>>) -> std::io::Result<()> {
+        if let Some(m) = memory.as_ref() {
             let f = unlinked_file(&self.beside)?;
             f.write_all_at(m, 0)?;
             let _ = self.file.set(f);
             *memory = None;
         }
-        drop(memory);
-        self.file.get().expect("moved to its file under the lock").write_all_at(bytes, offset)
+        Ok(())
     }
 }
 
@@ -825,9 +833,9 @@ impl StreamingWriter {
         if added {
             return Ok(n);
         }
-        // Looked up outside the lock: the check of the stored bytes reads them.
+        // The previous archive is opened (and its blobs checked) outside the lock.
         let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
-        let reference = previous.and_then(|p| p.find(hash.as_bytes(), bytes.len() as u64)).unwrap_or(SPOOLED);
+        let reference = previous.and_then(|p| p.find(hash.as_bytes())).unwrap_or(SPOOLED);
         let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64, reference).map_err(fail)?;
         let Some(offset) = offset else { return Ok(n) };
         // Written outside the lock (threads spool their blobs in parallel), after the
@@ -924,6 +932,14 @@ impl StreamingWriter {
         let mut plan = plan(entries, blobs)?;
         plan.previous = self.previous.into_inner().flatten();
         (plan.hooks.trace)("archive planned");
+        // The manifest and the blob table are spilled past the blobs: to the file when all
+        // of it would not fit the spool's memory (blobs added by reference leave the spool
+        // nearly empty, however large the set).
+        let spilled = plan.targets.len() * super::format::ENTRY_LEN
+            + plan.manifest.permutations.len() * (RECORD_LEN + ID_LEN);
+        if plan.spool_len as usize + spilled > self.spool.limit {
+            self.spool.move_to_file(&mut lock(&self.spool.memory)).map_err(err)?;
+        }
         let memory = self.spool.memory.into_inner().unwrap_or_else(|e| e.into_inner());
         let spool = match (&memory, self.spool.file.get()) {
             (Some(m), _) => Spool::Memory(m),
@@ -1214,8 +1230,12 @@ fn train(sample: &[Loc], sources: &BlobSources<'_, '_>) -> std::io::Result<Optio
         match b.previous {
             SPOOLED => sources.spool.read_into(b.offset, &mut flat[at..at + len])?,
             id => {
-                let raw = sources.previous.ok_or_else(changed)?.raw(id).map_err(std::io::Error::other)?;
+                let previous = sources.previous.ok_or_else(changed)?;
+                let raw = previous.raw(id).map_err(std::io::Error::other)?;
                 flat.get_mut(at..at + len).filter(|_| raw.len() == len).ok_or_else(changed)?.copy_from_slice(&raw);
+                // Sampled blobs lie all over the file, and each read maps the pages around
+                // it: given back as they come, not once the sample is read.
+                previous.release_pages();
             }
         }
         at += len;
@@ -1562,7 +1582,7 @@ fn write_blobs(
                     id => {
                         let p = sources.previous.ok_or_else(changed)?;
                         let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
-                        match p.reuse(id, want).map_err(std::io::Error::other)? {
+                        match p.reuse(id, loc.len, want).map_err(std::io::Error::other)? {
                             (hash, Reused::Stored(codec, bytes)) => {
                                 let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
                                 return Ok((codec, index, bytes.to_vec(), hash, true));
