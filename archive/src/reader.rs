@@ -14,11 +14,11 @@ use std::sync::OnceLock;
 use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
-    decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN,
-    CHUNK_HASH_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN, OLDEST_FORMAT_VERSION,
-    stored_sum,
-    ID_LEN, MAGIC, MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    decode_artifact, header_checksum, stored_sum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry,
+    ManifestCounts, ManifestLayout, Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, Tables,
+    ARTIFACT_LEN, CHUNK_HASH_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION,
+    HEADER_LEN, ID_LEN, MAGIC, MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, OLDEST_FORMAT_VERSION, RECORD_LEN,
+    VALUE_LEN,
 };
 use super::{edit_distance, Reflection, Target};
 

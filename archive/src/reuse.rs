@@ -100,7 +100,6 @@ impl Previous {
         self.index.get(i).filter(|e| e[..IDENT_WORDS] == k[..]).map(|e| e[IDENT_WORDS])
     }
 
-
     /// Blob `id` (one [`Previous::find`] gave) for a new archive whose dictionary for its
     /// target has blake3 `dictionary` (`None`: none): its stored bytes where compressing its
     /// raw bytes again would give them, else its raw bytes; and its blake3. An error when

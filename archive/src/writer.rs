@@ -14,7 +14,9 @@
 //! target on a deterministic sample, compresses, and writes the archive through a temporary
 //! file and a rename, the spilled manifest copied into it. The bytes of the archive therefore depend only on
 //! the set of permutations and blobs, never on the order they were added in or on the
-//! number of threads.
+//! number of threads, nor on the archive the writer replaces: a blob that archive holds
+//! intact is added by reference (nothing spooled) and its stored bytes copied or
+//! compressed again at the end ([`Previous`]).
 //!
 //! [`ArchiveWriter`] is the same assembly over an in-memory spool, with index-based handles,
 //! for tests, benches and small tools.
@@ -28,11 +30,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, stored_sum, sibling_name, write_atomic_with, write_derived, ArchiveError, Arenas, BlobId,
-    ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord,
-    PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD,
-    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
-    RECORD_LEN, VALUE_LEN,
+    encode_artifact, header_checksum, sibling_name, stored_sum, write_atomic_with, write_derived, ArchiveError, Arenas,
+    BlobId, ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial,
+    PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN,
+    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN,
+    ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
 use super::reuse::{Previous, Reused};
 use super::{Reflection, Target};
@@ -935,8 +937,8 @@ impl StreamingWriter {
         // The manifest and the blob table are spilled past the blobs: to the file when all
         // of it would not fit the spool's memory (blobs added by reference leave the spool
         // nearly empty, however large the set).
-        let spilled = plan.targets.len() * super::format::ENTRY_LEN
-            + plan.manifest.permutations.len() * (RECORD_LEN + ID_LEN);
+        let spilled =
+            plan.targets.len() * super::format::ENTRY_LEN + plan.manifest.permutations.len() * (RECORD_LEN + ID_LEN);
         if plan.spool_len as usize + spilled > self.spool.limit {
             self.spool.move_to_file(&mut lock(&self.spool.memory)).map_err(err)?;
         }
