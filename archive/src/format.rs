@@ -54,8 +54,11 @@ use super::{Reflection, Stage, Target};
 
 /// The first 8 bytes of every archive.
 pub const MAGIC: [u8; 8] = *b"KILNPAK\0";
-/// The archive format this build reads and writes.
-pub const FORMAT_VERSION: u32 = 4;
+/// The archive format this build writes.
+pub const FORMAT_VERSION: u32 = 5;
+/// The oldest format this build reads: version 4 differs only in its blob table entries,
+/// whose six reserved bytes are zero where version 5 keeps a check sum of the stored bytes.
+pub const OLDEST_FORMAT_VERSION: u32 = 4;
 /// Bytes of the fixed header at the start of an archive.
 pub const HEADER_LEN: usize = 128;
 /// Bytes of one chunk of the manifest and of the blob table that one hash covers (chosen by
@@ -121,7 +124,7 @@ pub enum ArchiveError {
         found: [u8; 8],
     },
     /// A format version other than [`FORMAT_VERSION`].
-    #[error("archive format version {found} is not supported (this build of kiln reads version {FORMAT_VERSION}); rebuild the archive with this kiln")]
+    #[error("archive format version {found} is not supported (this build of kiln reads versions {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}); rebuild the archive with this kiln")]
     Version {
         /// The version the header gives.
         found: u32,
@@ -670,8 +673,21 @@ pub(crate) struct Entry {
     pub raw_len: u64,
     pub codec: u8,
     pub dictionary: u8,
+    /// [`stored_sum`] of the stored bytes (format 5; zero in format 4).
+    pub sum: u64,
     pub hash: [u8; 32],
 }
+
+/// The check sum of a blob's stored bytes kept in its table entry (format 5): the low 48
+/// bits of their xxh3-64. It tells stored bytes damaged since they were written without
+/// decompressing them and hashing the result, so that a writer can copy a previous
+/// archive's compressed blob at the cost of reading it once.
+pub(crate) fn stored_sum(stored: &[u8]) -> u64 {
+    xxhash_rust::xxh3::xxh3_64(stored) & STORED_SUM_MASK
+}
+
+/// The bits of [`stored_sum`] an entry keeps.
+const STORED_SUM_MASK: u64 = (1 << 48) - 1;
 
 impl Entry {
     pub fn encode(&self) -> [u8; ENTRY_LEN] {
@@ -681,6 +697,7 @@ impl Entry {
         b[16..24].copy_from_slice(&self.raw_len.to_le_bytes());
         b[24] = self.codec;
         b[25] = self.dictionary;
+        b[26..32].copy_from_slice(&(self.sum & STORED_SUM_MASK).to_le_bytes()[..6]);
         b[32..64].copy_from_slice(&self.hash);
         b
     }
@@ -694,11 +711,12 @@ impl Entry {
             raw_len: u64_at(16),
             codec: bytes[24],
             dictionary: bytes[25],
+            sum: bytes[26..32].iter().rev().fold(0, |sum, &b| sum << 8 | u64::from(b)),
             hash: bytes[32..64].try_into().unwrap(),
         }
     }
 
-    /// Whether the six reserved bytes are zero.
+    /// Whether the six bytes that format 4 reserved (format 5's check sum) are zero.
     pub fn reserved_zero(bytes: &[u8]) -> bool {
         bytes[26..32].iter().all(|&b| b == 0)
     }

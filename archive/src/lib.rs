@@ -103,7 +103,7 @@ mod tests;
 pub use format::{
     write_atomic, write_atomic_unsynced, write_pieces, ArchiveError, BlobId, DimensionRecord, Partial,
     PermutationRecord, PipelineRecord, ShaderRecord, CHUNK_LEN, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE,
-    FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN,
+    FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_ARTIFACT_LEN, OLDEST_FORMAT_VERSION,
 };
 pub use reader::{permutation_id, Archive, BlobInfo, Lookup, Near, PermutationRef, Permutations, RELEASE_EVERY};
 pub use reflect::{

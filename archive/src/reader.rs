@@ -14,10 +14,11 @@ use std::sync::OnceLock;
 use zstd::zstd_safe::{DCtx, DDict};
 
 use super::format::{
-    decode_artifact, header_checksum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry, ManifestCounts,
-    ManifestLayout, Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, Tables, ARTIFACT_LEN,
-    CHUNK_HASH_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION, HEADER_LEN,
-    ID_LEN, MAGIC, MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
+    decode_artifact, header_checksum, stored_sum, ArchiveError, BlobId, DictionaryRecord, DimensionRecord, Entry,
+    ManifestCounts, ManifestLayout, Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, Tables,
+    ARTIFACT_LEN, CHUNK_HASH_LEN, CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, DICTIONARY_LEN, ENTRY_LEN, FORMAT_VERSION,
+    HEADER_LEN, ID_LEN, MAGIC, MANIFEST_HEADER_LEN, MAX_ARTIFACT_LEN, NO_DICTIONARY, OLDEST_FORMAT_VERSION, RECORD_LEN,
+    VALUE_LEN,
 };
 use super::{edit_distance, Reflection, Target};
 
@@ -67,6 +68,8 @@ pub fn permutation_id(shader: &str, level: &str, values: &[i64]) -> u128 {
 /// artifact is asked for, once each. `Send + Sync`.
 pub struct Archive {
     bytes: Bytes,
+    /// The format version of its header (one this build reads).
+    format_version: u32,
     blobs_start: usize,
     blobs_len: u64,
     dictionaries_start: usize,
@@ -376,7 +379,7 @@ impl Archive {
         if data.len() >= 12 && data[0..8] == MAGIC {
             // The version first: an archive of another version may have another header size.
             let version = u32::from_le_bytes(data[8..12].try_into().unwrap());
-            if version != FORMAT_VERSION {
+            if !(OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&version) {
                 return Err(ArchiveError::Version { found: version });
             }
         }
@@ -435,6 +438,7 @@ impl Archive {
         let blob_count = sections.blob_count as usize;
         let chunks = (layout.manifest_chunks + layout.table_chunks) as usize;
         let mut archive = Archive {
+            format_version: u32_at(8),
             blobs_start: layout.blobs as usize,
             blobs_len: sections.blobs_len,
             dictionaries_start: layout.dictionaries as usize,
@@ -680,6 +684,10 @@ impl Archive {
         self.partial().is_some_and(|p| p.left_out.binary_search_by(|n| n.as_str().cmp(name)).is_ok())
     }
 
+    /// The archive's format version (from [`OLDEST_FORMAT_VERSION`] to [`FORMAT_VERSION`]).
+    pub fn format_version(&self) -> u32 {
+        self.format_version
+    }
     /// The version of Kiln that wrote the archive.
     pub fn kiln_version(&self) -> &str {
         &self.tables.kiln_version
@@ -759,7 +767,7 @@ impl Archive {
         }
         let bytes = self.table_bytes((i * ENTRY_LEN) as u64, ENTRY_LEN as u64).map_err(|m| format!("blob {i}: {m}"))?;
         let e = Entry::decode(bytes);
-        if !Entry::reserved_zero(bytes) {
+        if self.format_version == OLDEST_FORMAT_VERSION && !Entry::reserved_zero(bytes) {
             return Err(format!("blob {i} has non-zero reserved bytes"));
         }
         match e.offset.checked_add(e.stored_len) {
@@ -861,6 +869,9 @@ impl Archive {
             }
         };
         if !self.verified.get(id.0 as usize) {
+            if self.format_version > OLDEST_FORMAT_VERSION && stored_sum(stored) != e.sum {
+                return Err("it fails the check sum of its stored bytes".into());
+            }
             if blake3::hash(&bytes).as_bytes() != &e.hash {
                 return Err("its checksum does not match its bytes".into());
             }

@@ -365,6 +365,63 @@ fn rewriting_an_archive_copies_its_unchanged_blobs_and_gives_the_same_bytes() {
     assert!(std::fs::read(&out).unwrap() == fresh_bytes);
 }
 
+/// A previous archive damaged after the writer let go of a blob it holds (the blob was
+/// added by reference) fails the build; it never gives other bytes.
+#[test]
+fn a_previous_archive_damaged_during_the_build_is_an_error_not_other_bytes() {
+    use std::io::{Seek, Write};
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let all: Vec<usize> = (0..perms.len()).collect();
+    let out = dir.path().join("out.kpak");
+    stream(&out, &perms, &all, 1);
+    let before = std::fs::read(&out).unwrap();
+    let w = StreamingWriter::new(&out).unwrap();
+    let (sh, refl) = (shader(), reflection());
+    for (i, (name, arts)) in perms.iter().enumerate() {
+        let artifacts = arts.iter().map(|(t, bytes)| (*t, w.add_blob(bytes).unwrap())).collect();
+        let values = vec![i as i64, (i % 2) as i64];
+        w.add_permutation(NewPermutation { name: name.clone(), shader: &sh, values, reflection: &refl, artifacts })
+            .unwrap();
+    }
+    // Every blob of the first blob's bytes on is damaged in place (the writer maps the file).
+    let mut f = std::fs::OpenOptions::new().write(true).open(&out).unwrap();
+    f.seek(std::io::SeekFrom::Start(HEADER_LEN as u64)).unwrap();
+    f.write_all(&vec![0x5a; 4096]).unwrap();
+    drop(f);
+    let err = w.finish().expect_err("a damaged previous archive gave an archive").to_string();
+    assert!(err.contains("the previous archive changed during the build"), "{err}");
+    // The failed build left the (damaged) file as it was, not a mix of both.
+    let after = std::fs::read(&out).unwrap();
+    assert_eq!(after.len(), before.len());
+    assert_eq!(after[HEADER_LEN..HEADER_LEN + 4096], [0x5a; 4096][..]);
+}
+
+/// An archive of format 4 (no check sums of stored bytes) is read, not reused: the writer
+/// compresses everything again and writes format 5, byte for byte a fresh build's.
+#[test]
+fn a_format_4_previous_archive_is_not_reused() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let all: Vec<usize> = (0..perms.len()).collect();
+    let fresh = dir.path().join("fresh.kpak");
+    stream(&fresh, &perms, &all, 1);
+    let fresh_bytes = std::fs::read(&fresh).unwrap();
+    // The same archive as format 4 wrote it: zero where format 5 keeps check sums.
+    let mut v4 = fresh_bytes.clone();
+    v4[8..12].copy_from_slice(&4u32.to_le_bytes());
+    let table_start = v4.len() - a_blob_count(&v4) * ENTRY_LEN;
+    for entry in v4[table_start..].chunks_exact_mut(ENTRY_LEN) {
+        entry[26..32].fill(0);
+    }
+    reseal(&mut v4);
+    Archive::from_vec(v4.clone()).unwrap().verify_all().unwrap();
+    let out = dir.path().join("out.kpak");
+    std::fs::write(&out, &v4).unwrap();
+    assert_eq!(stream(&out, &perms, &all, 2).reused_blobs, 0);
+    assert!(std::fs::read(&out).unwrap() == fresh_bytes);
+}
+
 #[test]
 fn bytes_depend_on_the_set_not_on_order_or_threads() {
     let dir = tempfile::tempdir().unwrap();
@@ -603,7 +660,7 @@ fn hostile_table_entries_with_a_valid_checksum_are_errors_naming_the_permutation
         (0, &(1u64 << 50).to_le_bytes(), "outside the blob section"),
         (24, &[9], "codec 9"),
         (25, &[3], "codec"),
-        (26, &[1], "reserved bytes"),
+        (26, &[1], "check sum of its stored bytes"),
     ];
     for (at, patch, wanted) in edits {
         let mut b = bytes.clone();
@@ -615,7 +672,9 @@ fn hostile_table_entries_with_a_valid_checksum_are_errors_naming_the_permutation
         let msg = p.artifact(target).expect_err("hostile entry accepted").to_string();
         assert!(msg.contains(wanted), "{wanted}: {msg}");
         assert!(msg.contains(&format!("the {target} artifact of permutation `{name}`")), "{msg}");
-        assert!(p.blob_info(target).is_err() && a.verify_all().is_err());
+        assert!(a.verify_all().is_err());
+        // The check sum of the stored bytes is read with them, not with the entry's sizes.
+        assert!(at == 26 || p.blob_info(target).is_err(), "{wanted}");
     }
     // Sealed as is, the archive opens and reads: the edits above were what was refused.
     let mut b = bytes.clone();
@@ -723,7 +782,7 @@ fn format_2_and_3_archives_are_refused_with_a_rebuild_hint() {
         bytes[8..12].copy_from_slice(&version.to_le_bytes());
         let msg = Archive::from_vec(bytes).err().unwrap().to_string();
         assert!(msg.contains(&format!("archive format version {version} is not supported")), "{msg}");
-        assert!(msg.contains("reads version 4") && msg.contains("rebuild"), "{msg}");
+        assert!(msg.contains("reads versions 4 to 5") && msg.contains("rebuild"), "{msg}");
     }
 }
 

@@ -14,7 +14,9 @@
 //! target on a deterministic sample, compresses, and writes the archive through a temporary
 //! file and a rename, the spilled manifest copied into it. The bytes of the archive therefore depend only on
 //! the set of permutations and blobs, never on the order they were added in or on the
-//! number of threads.
+//! number of threads, nor on the archive the writer replaces: a blob that archive holds
+//! intact is added by reference (nothing spooled) and its stored bytes copied or
+//! compressed again at the end ([`Previous`]).
 //!
 //! [`ArchiveWriter`] is the same assembly over an in-memory spool, with index-based handles,
 //! for tests, benches and small tools.
@@ -28,13 +30,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, sibling_name, write_atomic_with, write_derived, ArchiveError, Arenas, BlobId,
-    ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial, PermutationRecord,
-    PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN, CODEC_STORED, CODEC_ZSTD,
-    CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN, ID_LEN, NO_DICTIONARY,
-    RECORD_LEN, VALUE_LEN,
+    encode_artifact, header_checksum, sibling_name, stored_sum, write_atomic_with, write_derived, ArchiveError, Arenas,
+    BlobId, ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial,
+    PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN,
+    CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN,
+    ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
-use super::reuse::Previous;
+use super::reuse::{Previous, Reused};
 use super::{Reflection, Target};
 
 /// The content hash of a blob given to a writer: what a permutation names its artifacts by.
@@ -147,16 +149,24 @@ fn spool_sum(hash: &[u8], bytes: &[u8]) -> u64 {
     h.digest()
 }
 
-/// Where an added blob's bytes lie in the spool (its identity just before them).
+/// Where an added blob's bytes lie in the spool (its identity just before them), or which
+/// blob of the previous archive it is.
 #[derive(Clone, Copy)]
 struct Loc {
     offset: u64,
     len: u64,
+    /// Its id in the previous archive when it was added by reference (nothing spooled),
+    /// else [`SPOOLED`].
+    previous: u32,
 }
 
-/// The length of a location record: a slot number (`u32`) and a length (`u64`); the offset
-/// is the sum of the lengths before it (blobs are spooled in the order of their records).
-const LOC_RECORD: usize = 12;
+/// [`Loc::previous`] of a blob whose bytes are in the spool.
+const SPOOLED: u32 = u32::MAX;
+
+/// The length of a location record: a slot number (`u32`), a length (`u64`) and the blob's
+/// id in the previous archive (`u32`, [`SPOOLED`] if none); the offset is the sum of the
+/// spooled lengths before it (blobs are spooled in the order of their records).
+const LOC_RECORD: usize = 16;
 
 /// Where location records wait until `finish`.
 enum LocLog {
@@ -327,24 +337,35 @@ impl BlobTable {
         }
     }
 
-    /// Adds a blob of `len` bytes: its number, and where its identity and then its bytes go
-    /// in the spool (`None` if it was added before).
-    fn add(&mut self, hash: &blake3::Hash, len: u64) -> std::io::Result<(u32, Option<u64>)> {
+    /// The number of the blob with `hash`, and whether it was added.
+    fn find(&mut self, hash: &blake3::Hash) -> std::io::Result<(u32, bool)> {
         let n = self.number(hash)?.ok_or_else(|| std::io::Error::other("a blob was added after the last"))?;
-        if self.is_added(n) {
+        Ok((n, self.is_added(n)))
+    }
+
+    /// Adds a blob of `len` bytes, the previous archive's blob `previous` or [`SPOOLED`]:
+    /// its number, and where its identity and then its bytes go in the spool (`None` if it
+    /// was added before, or by reference).
+    fn add(&mut self, hash: &blake3::Hash, len: u64, previous: u32) -> std::io::Result<(u32, Option<u64>)> {
+        let (n, added) = self.find(hash)?;
+        if added {
             return Ok((n, None));
         }
         let mut record = [0u8; LOC_RECORD];
         record[..4].copy_from_slice(&n.to_le_bytes());
-        record[4..].copy_from_slice(&len.to_le_bytes());
+        record[4..12].copy_from_slice(&len.to_le_bytes());
+        record[12..].copy_from_slice(&previous.to_le_bytes());
         match &mut self.log {
             LocLog::Memory(v) => v.extend_from_slice(&record),
             LocLog::File(f) => f.write_all(&record)?,
         }
         self.added_bits[n as usize / 64] |= 1 << (n % 64);
+        self.added += 1;
+        if previous != SPOOLED {
+            return Ok((n, None));
+        }
         let offset = self.spooled;
         self.spooled += ID_PREFIX + len;
-        self.added += 1;
         Ok((n, Some(offset)))
     }
 
@@ -364,16 +385,19 @@ impl BlobTable {
         let mut offset = 0u64;
         let mut put = |record: &[u8]| -> std::io::Result<()> {
             let n = u32::from_le_bytes(record[..4].try_into().expect("4 bytes")) as usize;
-            let len = u64::from_le_bytes(record[4..].try_into().expect("8 bytes"));
+            let len = u64::from_le_bytes(record[4..12].try_into().expect("8 bytes"));
+            let previous = u32::from_le_bytes(record[12..].try_into().expect("4 bytes"));
             if u32::try_from(len).is_err() {
                 return Err(std::io::Error::other("an artifact of 4 GiB or more cannot go in an archive"));
             }
             match *id_of.get(n).ok_or_else(changed)? {
                 // Added, named by no permutation: not in the archive.
                 u32::MAX => {}
-                id => f(id as usize, Loc { offset: offset + ID_PREFIX, len }),
+                id => f(id as usize, Loc { offset: offset + ID_PREFIX, len, previous }),
             }
-            offset += ID_PREFIX + len;
+            if previous == SPOOLED {
+                offset += ID_PREFIX + len;
+            }
             Ok(())
         };
         match &mut self.log {
@@ -401,11 +425,17 @@ impl BlobTable {
     /// The locations of the blobs `ids` (a window of the archive's blobs: where all of them
     /// lie would be held per blob at the build's end, where the build peaks).
     fn locations(&mut self, id_of: &[u32], ids: std::ops::Range<usize>) -> std::io::Result<BlobLocs> {
-        let mut locs = BlobLocs { first: ids.start, offsets: vec![u64::MAX; ids.len()], lens: vec![0; ids.len()] };
+        let mut locs = BlobLocs {
+            first: ids.start,
+            offsets: vec![u64::MAX; ids.len()],
+            lens: vec![0; ids.len()],
+            previous: vec![SPOOLED; ids.len()],
+        };
         self.scan(id_of, |id, loc| {
             if ids.contains(&id) {
                 locs.offsets[id - ids.start] = loc.offset;
                 locs.lens[id - ids.start] = loc.len as u32;
+                locs.previous[id - ids.start] = loc.previous;
             }
         })?;
         if locs.offsets.contains(&u64::MAX) {
@@ -421,15 +451,18 @@ fn changed() -> std::io::Error {
 
 /// Where a window of the archive's blobs lie in the spool, by blob id from `first` (see
 /// [`BlobTable::locations`]).
+#[derive(Default)]
 struct BlobLocs {
     first: usize,
     offsets: Vec<u64>,
     lens: Vec<u32>,
+    previous: Vec<u32>,
 }
 
 impl BlobLocs {
     fn get(&self, id: usize) -> Loc {
-        Loc { offset: self.offsets[id - self.first], len: u64::from(self.lens[id - self.first]) }
+        let i = id - self.first;
+        Loc { offset: self.offsets[i], len: u64::from(self.lens[i]), previous: self.previous[i] }
     }
 }
 
@@ -546,13 +579,6 @@ impl Spool<'_> {
         Ok((hash, bytes))
     }
 
-    /// The identity spooled with the blob at `loc` (not its bytes).
-    fn read_ident(&self, loc: Loc) -> std::io::Result<Ident> {
-        let mut id = [0u8; IDENT_BYTES];
-        self.read_into(loc.offset - ID_PREFIX, &mut id)?;
-        Ok(id)
-    }
-
     /// Reads `into.len()` bytes at `offset` into `into`.
     fn read_into(&self, offset: u64, into: &mut [u8]) -> std::io::Result<()> {
         match self {
@@ -641,6 +667,9 @@ pub struct StreamingWriter {
     blobs: Mutex<BlobTable>,
     spool: SpoolSink,
     failed: AtomicBool,
+    /// The archive at `output` this one replaces, opened when the first blob is added (a
+    /// build that finds its archive up to date adds none, and pays nothing for it).
+    previous: std::sync::OnceLock<Option<Previous>>,
 }
 
 /// The most blob bytes a [`StreamingWriter`] spools in memory before it moves them to a
@@ -688,13 +717,21 @@ impl SpoolSink {
                 return Ok(());
             }
             // Past the bound: what memory holds goes to the file, and so does all that follows.
+            self.move_to_file(&mut memory)?;
+        }
+        drop(memory);
+        self.file.get().expect("moved to its file under the lock").write_all_at(bytes, offset)
+    }
+
+    /// Moves what `memory` (this spool's, locked) holds to the file, created now.
+    fn move_to_file(&self, memory: &mut Option<Vec<u8>>) -> std::io::Result<()> {
+        if let Some(m) = memory.as_ref() {
             let f = unlinked_file(&self.beside)?;
             f.write_all_at(m, 0)?;
             let _ = self.file.set(f);
             *memory = None;
         }
-        drop(memory);
-        self.file.get().expect("moved to its file under the lock").write_all_at(bytes, offset)
+        Ok(())
     }
 }
 
@@ -742,6 +779,7 @@ impl StreamingWriter {
             blobs: Mutex::new(BlobTable::new(LocLog::File(log), Some(idents))),
             spool: SpoolSink::new(beside, limit),
             failed: AtomicBool::new(false),
+            previous: std::sync::OnceLock::new(),
         })
     }
 
@@ -785,26 +823,29 @@ impl StreamingWriter {
 
     /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
     /// bytes to keep instead of its hash, for [`StreamingWriter::add_permutation_numbered`]).
+    /// A blob the archive being replaced holds intact is added by reference: its bytes are
+    /// not spooled ([`Previous`]).
     pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        let added = lock(&self.blobs).add(&hash, bytes.len() as u64);
-        let (n, offset) = match added {
-            Ok(a) => a,
-            Err(source) => {
-                self.failed.store(true, Ordering::Relaxed);
-                return Err(ArchiveError::Write { path: self.output.clone(), source });
-            }
+        let fail = |source| {
+            self.failed.store(true, Ordering::Relaxed);
+            ArchiveError::Write { path: self.output.clone(), source }
         };
+        let (n, added) = lock(&self.blobs).find(&hash).map_err(fail)?;
+        if added {
+            return Ok(n);
+        }
+        // The previous archive is opened (and its blobs checked) outside the lock.
+        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
+        let reference = previous.and_then(|p| p.find(hash.as_bytes())).unwrap_or(SPOOLED);
+        let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64, reference).map_err(fail)?;
         let Some(offset) = offset else { return Ok(n) };
         // Written outside the lock (threads spool their blobs in parallel), after the
         // blob's identity, in one write.
         let mut spooled = Vec::with_capacity(ID_PREFIX as usize + bytes.len());
         spooled.extend_from_slice(&spool_header(&hash, bytes));
         spooled.extend_from_slice(bytes);
-        if let Err(source) = self.spool.write_all_at(&spooled, offset) {
-            self.failed.store(true, Ordering::Relaxed);
-            return Err(ArchiveError::Write { path: self.output.clone(), source });
-        }
+        self.spool.write_all_at(&spooled, offset).map_err(fail)?;
         Ok(n)
     }
 
@@ -891,8 +932,16 @@ impl StreamingWriter {
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
         let mut plan = plan(entries, blobs)?;
-        plan.previous = Previous::open(&self.output);
+        plan.previous = self.previous.into_inner().flatten();
         (plan.hooks.trace)("archive planned");
+        // The manifest and the blob table are spilled past the blobs: to the file when all
+        // of it would not fit the spool's memory (blobs added by reference leave the spool
+        // nearly empty, however large the set).
+        let spilled =
+            plan.targets.len() * super::format::ENTRY_LEN + plan.manifest.permutations.len() * (RECORD_LEN + ID_LEN);
+        if plan.spool_len as usize + spilled > self.spool.limit {
+            self.spool.move_to_file(&mut lock(&self.spool.memory)).map_err(err)?;
+        }
         let memory = self.spool.memory.into_inner().unwrap_or_else(|e| e.into_inner());
         let spool = match (&memory, self.spool.file.get()) {
             (Some(m), _) => Spool::Memory(m),
@@ -977,7 +1026,7 @@ impl ArchiveWriter {
     /// [`ArchiveWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&mut self, bytes: &[u8], hash: blake3::Hash) -> BlobId {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        let (n, offset) = self.blobs.add(&hash, bytes.len() as u64).expect("a log in memory");
+        let (n, offset) = self.blobs.add(&hash, bytes.len() as u64, SPOOLED).expect("a log in memory");
         if offset.is_some() {
             self.spool.extend_from_slice(&spool_header(&hash, bytes));
             self.spool.extend_from_slice(bytes);
@@ -1166,8 +1215,9 @@ fn par_map<T: Sync, U: Send, S>(
 
 /// Trains a target's dictionary on `sample` (locations of an evenly spaced sample of its
 /// blobs, at most [`DICTIONARY_SAMPLE`] bytes); `None` when there is too little to learn
-/// from. The sample is read straight into the one buffer zstd trains on (no copy per blob).
-fn train(sample: &[Loc], spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> {
+/// from. The sample is read straight into the one buffer zstd trains on (no copy per blob
+/// from the spool; a blob added by reference is decompressed from the previous archive).
+fn train(sample: &[Loc], sources: &BlobSources<'_, '_>) -> std::io::Result<Option<Vec<u8>>> {
     let sizes: Vec<usize> = sample.iter().map(|b| b.len as usize).collect();
     let sampled: usize = sizes.iter().sum();
     // A dictionary pays for itself only over many artifacts of a kind.
@@ -1179,7 +1229,17 @@ fn train(sample: &[Loc], spool: &Spool<'_>) -> std::io::Result<Option<Vec<u8>>> 
     let mut at = 0;
     for b in sample {
         let len = b.len as usize;
-        spool.read_into(b.offset, &mut flat[at..at + len])?;
+        match b.previous {
+            SPOOLED => sources.spool.read_into(b.offset, &mut flat[at..at + len])?,
+            id => {
+                let previous = sources.previous.ok_or_else(changed)?;
+                let raw = previous.raw(id).map_err(std::io::Error::other)?;
+                flat.get_mut(at..at + len).filter(|_| raw.len() == len).ok_or_else(changed)?.copy_from_slice(&raw);
+                // Sampled blobs lie all over the file, and each read maps the pages around
+                // it: given back as they come, not once the sample is read.
+                previous.release_pages();
+            }
+        }
         at += len;
     }
     Ok(train_fast_cover(&flat, &sizes, capacity).filter(|d| !d.is_empty()))
@@ -1219,7 +1279,7 @@ fn samples(
         }
     })?;
     picked.sort_unstable();
-    let mut locs = vec![Loc { offset: 0, len: 0 }; picked.len()];
+    let mut locs = vec![Loc { offset: 0, len: 0, previous: SPOOLED }; picked.len()];
     table.scan(id_of, |id, loc| {
         if let Ok(i) = picked.binary_search(&(id as u32)) {
             locs[i] = loc;
@@ -1330,11 +1390,11 @@ fn dictionaries(
     table: &mut BlobTable,
     id_of: &[u32],
     targets: &[Target],
-    spool: &Spool<'_>,
+    sources: &BlobSources<'_, '_>,
 ) -> std::io::Result<Dictionaries> {
     let samples = samples(blob_targets, table, id_of)?;
     let train_one = |_: &mut (), t: &Target| -> std::io::Result<_> {
-        Ok(train(&samples[*t as usize], spool)?.map(|d| {
+        Ok(train(&samples[*t as usize], sources)?.map(|d| {
             let cdict = zstd::zstd_safe::CDict::try_create(&d, COMPRESSION_LEVEL);
             (*t, d, cdict)
         }))
@@ -1382,12 +1442,12 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
 
     // Dictionaries, trained (and made ready to compress with) one target after another.
     let targets: Vec<Target> = Target::ALL.into_iter().filter(|t| blobs.contains(t)).collect();
-    let (dictionaries, cdicts) = dictionaries(&blobs, &mut blob_table, &id_of, &targets, spool)?;
+    let sources = BlobSources { spool, previous: previous.as_ref() };
+    let (dictionaries, cdicts) = dictionaries(&blobs, &mut blob_table, &id_of, &targets, &sources)?;
 
     // The blob section, compressed in batches so memory holds one batch at a time.
     let mut table = SpillBuf::new(spool, spool_len, blobs.len() * super::format::ENTRY_LEN);
     let dicts = BlobDictionaries { targets: &blobs, dictionaries: &dictionaries, cdicts: &cdicts };
-    let sources = BlobSources { spool, previous: previous.as_ref() };
     let (blobs_len, raw_bytes, reused) = write_blobs(&dicts, &sources, &mut blob_table, &id_of, &mut out, &mut table)?;
     (summary.raw_bytes, summary.reused_blobs) = (raw_bytes, reused);
     summary.blobs = blobs.len();
@@ -1498,10 +1558,10 @@ fn write_blobs(
         .collect();
     let dict_of = |t: Target| dicts.dictionaries.iter().position(|(dt, _)| *dt == t);
     let (mut offset, mut raw_bytes, mut reused, mut start) = (0u64, 0u64, 0, 0);
-    let mut locs = BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() };
+    let mut locs = BlobLocs::default();
     while start < count {
         if start == locs.first + locs.offsets.len() {
-            drop(std::mem::replace(&mut locs, BlobLocs { first: 0, offsets: Vec::new(), lens: Vec::new() }));
+            drop(std::mem::take(&mut locs));
             locs = blob_table.locations(id_of, start..count.min(start + LOC_WINDOW))?;
         }
         let window_end = locs.first + locs.offsets.len();
@@ -1518,15 +1578,24 @@ fn write_blobs(
             |_, &b| -> std::io::Result<StoredBlob> {
                 let loc = locs.get(b);
                 let dict = dict_of(dicts.targets[b]).and_then(|i| dicts.cdicts[i].as_ref().map(|c| (i, c)));
-                if let Some(p) = sources.previous {
-                    let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
-                    if let Some((codec, bytes, hash)) = p.stored(&sources.spool.read_ident(loc)?, loc.len, want) {
-                        let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
-                        return Ok((codec, index, bytes, hash, true));
+                let (hash, raw) = match loc.previous {
+                    // The whole blake3, which the table stores, as spooled (checked with its bytes).
+                    SPOOLED => sources.spool.read_blob(loc)?,
+                    id => {
+                        let p = sources.previous.ok_or_else(changed)?;
+                        let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
+                        match p.reuse(id, loc.len, want).map_err(std::io::Error::other)? {
+                            (hash, Reused::Stored(codec, bytes)) => {
+                                let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
+                                return Ok((codec, index, bytes.to_vec(), hash, true));
+                            }
+                            (hash, Reused::Raw(raw)) => (hash, raw),
+                        }
                     }
+                };
+                if raw.len() as u64 != loc.len {
+                    return Err(changed());
                 }
-                // The whole blake3, which the table stores, as spooled (checked with its bytes).
-                let (hash, raw) = sources.spool.read_blob(loc)?;
                 let (codec, dictionary, bytes) = compress_blob(raw, dict);
                 Ok((codec, dictionary, bytes, hash, false))
             },
@@ -1536,7 +1605,8 @@ fn write_blobs(
             out.write_all(&bytes)?;
             reused += usize::from(copied);
             let len = locs.get(b).len;
-            let entry = Entry { offset, stored_len: bytes.len() as u64, raw_len: len, codec, dictionary, hash };
+            let stored_len = bytes.len() as u64;
+            let entry = Entry { offset, stored_len, raw_len: len, codec, dictionary, sum: stored_sum(&bytes), hash };
             table.push(&entry.encode())?;
             offset += bytes.len() as u64;
             raw_bytes += len;
@@ -1908,7 +1978,7 @@ mod blob_table_tests {
         let sample_of = |blobs: &[u64]| -> Vec<u64> {
             let mut t = BlobTable::new(LocLog::Memory(Vec::new()), Some(tempfile::tempfile().unwrap()));
             for n in blobs {
-                t.add(&blake3::hash(&n.to_le_bytes()), 3000 + n).unwrap();
+                t.add(&blake3::hash(&n.to_le_bytes()), 3000 + n, SPOOLED).unwrap();
             }
             t.seal();
             let id_of: Vec<u32> = (0..blobs.len() as u32).collect();

@@ -256,6 +256,9 @@ fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> b
     h.update(crate::VERSION.as_bytes());
     h.update(b"\0");
     h.update(compile::NAGA_VERSION.as_bytes());
+    // An archive of an older format is rewritten (its blobs are not reused: see
+    // `kiln_archive`'s `reuse`), not kept as up to date.
+    h.update(format!("\0archive format {}", archive::FORMAT_VERSION).as_bytes());
     for (shader, level, range) in plan.runs() {
         let dims: Vec<(&str, &[String])> =
             shader.dimensions.iter().map(|d| (d.name.as_str(), d.labels.as_slice())).collect();
@@ -593,6 +596,7 @@ levels = ["es3"]
         h.update(crate::VERSION.as_bytes());
         h.update(b"\0");
         h.update(compile::NAGA_VERSION.as_bytes());
+        h.update(format!("\0archive format {}", archive::FORMAT_VERSION).as_bytes());
         for (i, key) in keys.iter().enumerate() {
             let Some(key) = key else { continue };
             let (shader, _) = plan.shader_level(i);

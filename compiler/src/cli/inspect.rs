@@ -353,7 +353,7 @@ fn text(a: &Archive, path: &Path) -> Result<String, ArchiveError> {
     let mut s = String::new();
     let perms = a.permutation_count();
     let _ = writeln!(s, "archive: {} ({})", path.display(), format_size(a.len() as u64));
-    let _ = writeln!(s, "format version: {}", kiln::archive::FORMAT_VERSION);
+    let _ = writeln!(s, "format version: {}", a.format_version());
     let _ = writeln!(s, "kiln: {}  naga: {}", a.kiln_version(), a.naga_version());
     let _ = writeln!(s, "permutations: {perms}  blobs: {}  reflections: {}", a.blob_count(), a.reflections().len());
     let _ = writeln!(s, "targets:");
@@ -450,7 +450,7 @@ fn json(a: &Archive, targets: BTreeMap<Target, TargetSizes>, out: &mut dyn std::
     writeln!(out, "{{")?;
     writeln!(out, "  \"blobs\": {},", a.blob_count())?;
     writeln!(out, "  \"bytes\": {},", a.len())?;
-    writeln!(out, "  \"format_version\": {},", kiln::archive::FORMAT_VERSION)?;
+    writeln!(out, "  \"format_version\": {},", a.format_version())?;
     writeln!(out, "  \"kiln_version\": {},", serde_json::to_string(a.kiln_version()).expect("json"))?;
     writeln!(out, "  \"naga_version\": {},", serde_json::to_string(a.naga_version()).expect("json"))?;
     let permutations = a.permutations().map_err(std::io::Error::other)?;

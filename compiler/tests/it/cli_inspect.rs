@@ -181,14 +181,14 @@ fn summary_shows_raw_and_compressed_sizes_per_target() {
     let o = kiln(d, &["inspect", "shaders.kpak"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
-    assert!(out.contains("format version: 4"), "{out}");
+    assert!(out.contains("format version: 5"), "{out}");
     for t in ["wgsl", "spirv", "msl", "glsl", "hlsl"] {
         let line = out.lines().find(|l| l.trim_start().starts_with(t)).unwrap_or_else(|| panic!("{t}: {out}"));
         assert!(line.contains(" raw, ") && line.contains(" compressed"), "{line}");
     }
     let o = kiln(d, &["inspect", "shaders.kpak", "--json"]);
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(v["format_version"], 4);
+    assert_eq!(v["format_version"], 5);
     for (t, s) in v["targets"].as_object().unwrap() {
         let (raw, compressed) = (s["raw_bytes"].as_u64().unwrap(), s["compressed_bytes"].as_u64().unwrap());
         assert!(compressed > 0 && compressed < raw, "{t}: {compressed} of {raw}");
@@ -218,7 +218,8 @@ fn fifos_directories_and_old_versions_are_clear_errors() {
     let o = kiln(d, &["inspect", "old.kpak"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(
-        stderr(&o).contains("archive format version 1 is not supported (this build of kiln reads version 4); rebuild"),
+        stderr(&o)
+            .contains("archive format version 1 is not supported (this build of kiln reads versions 4 to 5); rebuild"),
         "{}",
         stderr(&o)
     );

@@ -89,7 +89,7 @@ fn damaged_archives_are_clear_errors() {
     other[8..12].copy_from_slice(&1u32.to_le_bytes());
     assert_eq!(
         open(other).to_string(),
-        "archive format version 1 is not supported (this build of kiln reads version 4); rebuild the archive with this kiln"
+        "archive format version 1 is not supported (this build of kiln reads versions 4 to 5); rebuild the archive with this kiln"
     );
     assert!(Archive::from_vec(bytes).is_ok());
 }
