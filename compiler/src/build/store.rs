@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::thread::JoinHandle;
 
 use super::{CacheDir, Error, Options};
-use crate::cache::{Cache, Key, Lookup};
+use crate::cache::{Cache, Key, Lookup, Packing};
 use crate::compile::Compiled;
 use crate::permute::Config;
 
@@ -20,6 +20,12 @@ use crate::permute::Config;
 /// so a smaller pack lowers the peaks of the preprocessing, group and compile stages; the
 /// cost is more, smaller packs in the cache folder.
 const PACK_BYTES: usize = 2 << 20;
+
+// A build whose compiled entries all fit one pack (less than [`PACK_BYTES`] of artifacts,
+// written when the build ends) stores them uncompressed ([`Packing::Stored`]): on a set of
+// about a hundred sources, compressing them was a large share of what the build costs beyond
+// naga's own work, for a cache of a few megabytes either way. Any larger build compresses
+// every pack, so a large cache stays compressed.
 
 /// A key looked up in the cache.
 pub(super) enum Fetched {
@@ -35,6 +41,8 @@ pub(super) struct Store {
     /// Artifact bytes gathered before a pack is written ([`PACK_BYTES`]).
     pack_bytes: usize,
     pending: Mutex<Pending>,
+    /// Whether a pack was written before the build's end (its packs are then compressed).
+    packed: AtomicBool,
     /// Packs that could not be written: (entries, why); (0, warning) for a corrupted
     /// remote archive.
     failed: Mutex<Vec<(usize, String)>>,
@@ -107,6 +115,7 @@ impl Store {
             cache,
             pack_bytes: PACK_BYTES,
             pending: Mutex::default(),
+            packed: AtomicBool::new(false),
             failed: Mutex::default(),
             unavailable,
             records_from_remote: AtomicBool::new(false),
@@ -148,15 +157,16 @@ impl Store {
             }
         };
         if let Some(p) = full {
-            self.write(p);
+            self.packed.store(true, Ordering::Relaxed);
+            self.write(p, Packing::Compressed);
         }
     }
 
-    fn write(&self, pending: Pending) {
+    fn write(&self, pending: Pending, packing: Packing) {
         let Some(c) = &self.cache else { return };
         let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
             pending.entries.iter().map(|(k, c, h)| (*k, c, &h[..])).collect();
-        if let Err(e) = c.put_pack_hashed(&entries) {
+        if let Err(e) = c.put_pack_hashed(&entries, packing) {
             self.failed.lock().expect("no panics while locked").push((entries.len(), e.to_string()));
         }
     }
@@ -165,7 +175,9 @@ impl Store {
     pub fn finish(&self) -> Vec<String> {
         self.wait_prefill(std::iter::empty());
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
-        self.write(pending);
+        // The only pack of the build: a small build's (see `PACK_BYTES`).
+        let packing = if self.packed.load(Ordering::Relaxed) { Packing::Compressed } else { Packing::Stored };
+        self.write(pending, packing);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
         // The build looks nothing up past here: the index need not stay while the archive is
         // written.
@@ -565,6 +577,7 @@ mod tests {
             cache: Some(Cache::open(dir.path()).unwrap()),
             pack_bytes: 1000,
             pending: Mutex::default(),
+            packed: AtomicBool::new(false),
             failed: Mutex::default(),
             unavailable: None,
             records_from_remote: AtomicBool::new(false),
