@@ -570,19 +570,57 @@ mod tests {
         Compiled { artifacts: vec![(Target::Wgsl, vec![tag; len])], reflection }
     }
 
-    #[test]
-    fn packs_are_written_as_the_build_goes() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store {
-            cache: Some(Cache::open(dir.path()).unwrap()),
-            pack_bytes: 1000,
+    fn store(dir: &Path, pack_bytes: usize) -> Store {
+        Store {
+            cache: Some(Cache::open(dir).unwrap()),
+            pack_bytes,
             pending: Mutex::default(),
             packed: AtomicBool::new(false),
             failed: Mutex::default(),
             unavailable: None,
             records_from_remote: AtomicBool::new(false),
             prefill: Mutex::default(),
-        };
+        }
+    }
+
+    /// The bytes of the packs in `dir`.
+    fn pack_bytes(dir: &Path) -> u64 {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "kcp"))
+            .map(|p| std::fs::metadata(p).unwrap().len())
+            .sum()
+    }
+
+    /// A build whose entries fit one pack stores them uncompressed; one that wrote a pack
+    /// before its end compresses its last one too. Both read back whole.
+    #[test]
+    fn only_a_build_of_one_pack_stores_its_entries_uncompressed() {
+        for (pack, compressed) in [(1 << 20, false), (1000, true)] {
+            let dir = tempfile::tempdir().unwrap();
+            let store = store(dir.path(), pack);
+            for i in 0..5u8 {
+                let c = compiled(i, 400);
+                let hashes = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
+                store.put(Key([i; 32]), c, hashes);
+            }
+            assert!(store.finish().is_empty());
+            // Five artifacts of 400 equal bytes: a compressed pack holds far less.
+            assert_eq!(pack_bytes(dir.path()) < 5 * 400, compressed, "pack size {}", pack_bytes(dir.path()));
+            for i in 0..5u8 {
+                match store.get(&Key([i; 32])) {
+                    Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                    Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn packs_are_written_as_the_build_goes() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = store(dir.path(), 1000);
         let key = |i: u8| Key([i; 32]);
         let packs = || {
             std::fs::read_dir(dir.path())
