@@ -1248,7 +1248,8 @@ fn train(sample: &[Loc], sources: &BlobSources<'_, '_>) -> std::io::Result<Optio
 /// Each target's sample: the blobs whose identity (the start of their blake3) begins with
 /// `k` zero bits, `k` the least for which the target's bytes divided by 2^k come to at most
 /// one and a half [`DICTIONARY_SAMPLE`] (so the expected sample is 0.75 to 1.5 times that),
-/// in id order, at most twice that many bytes; none for a target of fewer than [`DICTIONARY_MIN_BYTES`]. Which blobs a sample holds depends on each blob alone, not on its place
+/// in id order, at most twice that many bytes; none for a target of fewer than
+/// [`DICTIONARY_MIN_BYTES`] or [`DICTIONARY_MIN_BLOBS`]. Which blobs a sample holds depends on each blob alone, not on its place
 /// among the others: a change to a few blobs leaves the sample, and so the dictionary, as
 /// it was unless one of them is sampled (or the target's bytes cross a power of two, which
 /// changes `k`), and the previous archive's compressed blobs stay
@@ -1259,13 +1260,18 @@ fn samples(
     table: &mut BlobTable,
     id_of: &[u32],
 ) -> std::io::Result<[Vec<Loc>; Target::ALL.len()]> {
-    let mut totals = [0u64; Target::ALL.len()];
-    table.scan(id_of, |id, loc| totals[blob_targets[id] as usize] += loc.len)?;
-    // A target with too few bytes to pay for a dictionary's training samples nothing.
-    let shifts = totals.map(|total| match total < DICTIONARY_MIN_BYTES {
-        true => None,
-        false => Some((0..64).find(|k| total >> k <= DICTIONARY_SAMPLE as u64 * 3 / 2).unwrap_or(64)),
-    });
+    let (mut totals, mut counts) = ([0u64; Target::ALL.len()], [0usize; Target::ALL.len()]);
+    table.scan(id_of, |id, loc| {
+        totals[blob_targets[id] as usize] += loc.len;
+        counts[blob_targets[id] as usize] += 1;
+    })?;
+    // A target with too few bytes or blobs to pay for a dictionary's training samples nothing.
+    let mut shifts = [None; Target::ALL.len()];
+    for (t, shift) in shifts.iter_mut().enumerate() {
+        if totals[t] >= DICTIONARY_MIN_BYTES && counts[t] >= DICTIONARY_MIN_BLOBS {
+            *shift = Some((0..64).find(|k| totals[t] >> k <= DICTIONARY_SAMPLE as u64 * 3 / 2).unwrap_or(64));
+        }
+    }
     let mut picked: Vec<u32> = Vec::new();
     table.idents.for_each(table.slots, |slot, id| {
         let blob = id_of.get(slot).copied().unwrap_or(u32::MAX);
@@ -1374,6 +1380,14 @@ fn train_fast_cover(flat: &[u8], sizes: &[usize], capacity: usize) -> Option<Vec
 /// small build's time: the dictionary saves bytes nobody misses at the cost of time. The
 /// unit tests' sets are smaller, and train from a lower threshold.
 const DICTIONARY_MIN_BYTES: u64 = if cfg!(test) { 64 << 10 } else { 512 << 10 };
+
+/// The fewest distinct blobs of a target that get a dictionary, whatever their bytes: a set
+/// of about a hundred sources has no more per target, and there its training was a large
+/// share of what the build costs beyond naga's own work (large sources, so many bytes)
+/// while the archive it shrinks stays around a megabyte. Decided from the set's blobs
+/// alone, so the archive's bytes still depend only on the set. The unit tests' sets are
+/// smaller, and train from a lower count.
+const DICTIONARY_MIN_BLOBS: usize = if cfg!(test) { 8 } else { 128 };
 
 /// The most bytes of samples, all targets together, that are trained in parallel.
 const PARALLEL_TRAINING_BYTES: u64 = 4 << 20;

@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::thread::JoinHandle;
 
 use super::{CacheDir, Error, Options};
-use crate::cache::{Cache, Key, Lookup};
+use crate::cache::{Cache, Key, Lookup, Packing};
 use crate::compile::Compiled;
 use crate::permute::Config;
 
@@ -20,6 +20,12 @@ use crate::permute::Config;
 /// so a smaller pack lowers the peaks of the preprocessing, group and compile stages; the
 /// cost is more, smaller packs in the cache folder.
 const PACK_BYTES: usize = 2 << 20;
+
+// A build whose compiled entries all fit one pack (less than [`PACK_BYTES`] of artifacts,
+// written when the build ends) stores them uncompressed ([`Packing::Stored`]): on a set of
+// about a hundred sources, compressing them was a large share of what the build costs beyond
+// naga's own work, for a cache of a few megabytes either way. Any larger build compresses
+// every pack, so a large cache stays compressed.
 
 /// A key looked up in the cache.
 pub(super) enum Fetched {
@@ -35,6 +41,8 @@ pub(super) struct Store {
     /// Artifact bytes gathered before a pack is written ([`PACK_BYTES`]).
     pack_bytes: usize,
     pending: Mutex<Pending>,
+    /// Whether a pack was written before the build's end (its packs are then compressed).
+    packed: AtomicBool,
     /// Packs that could not be written: (entries, why); (0, warning) for a corrupted
     /// remote archive.
     failed: Mutex<Vec<(usize, String)>>,
@@ -107,6 +115,7 @@ impl Store {
             cache,
             pack_bytes: PACK_BYTES,
             pending: Mutex::default(),
+            packed: AtomicBool::new(false),
             failed: Mutex::default(),
             unavailable,
             records_from_remote: AtomicBool::new(false),
@@ -148,15 +157,16 @@ impl Store {
             }
         };
         if let Some(p) = full {
-            self.write(p);
+            self.packed.store(true, Ordering::Relaxed);
+            self.write(p, Packing::Compressed);
         }
     }
 
-    fn write(&self, pending: Pending) {
+    fn write(&self, pending: Pending, packing: Packing) {
         let Some(c) = &self.cache else { return };
         let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
             pending.entries.iter().map(|(k, c, h)| (*k, c, &h[..])).collect();
-        if let Err(e) = c.put_pack_hashed(&entries) {
+        if let Err(e) = c.put_pack_hashed(&entries, packing) {
             self.failed.lock().expect("no panics while locked").push((entries.len(), e.to_string()));
         }
     }
@@ -165,7 +175,9 @@ impl Store {
     pub fn finish(&self) -> Vec<String> {
         self.wait_prefill(std::iter::empty());
         let pending = std::mem::take(&mut *self.pending.lock().expect("no panics while locked"));
-        self.write(pending);
+        // The only pack of the build: a small build's (see `PACK_BYTES`).
+        let packing = if self.packed.load(Ordering::Relaxed) { Packing::Compressed } else { Packing::Stored };
+        self.write(pending, packing);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
         // The build looks nothing up past here: the index need not stay while the archive is
         // written.
@@ -558,18 +570,57 @@ mod tests {
         Compiled { artifacts: vec![(Target::Wgsl, vec![tag; len])], reflection }
     }
 
-    #[test]
-    fn packs_are_written_as_the_build_goes() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store {
-            cache: Some(Cache::open(dir.path()).unwrap()),
-            pack_bytes: 1000,
+    fn store(dir: &Path, pack_bytes: usize) -> Store {
+        Store {
+            cache: Some(Cache::open(dir).unwrap()),
+            pack_bytes,
             pending: Mutex::default(),
+            packed: AtomicBool::new(false),
             failed: Mutex::default(),
             unavailable: None,
             records_from_remote: AtomicBool::new(false),
             prefill: Mutex::default(),
-        };
+        }
+    }
+
+    /// The bytes of the packs in `dir`.
+    fn pack_bytes(dir: &Path) -> u64 {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "kcp"))
+            .map(|p| std::fs::metadata(p).unwrap().len())
+            .sum()
+    }
+
+    /// A build whose entries fit one pack stores them uncompressed; one that wrote a pack
+    /// before its end compresses its last one too. Both read back whole.
+    #[test]
+    fn only_a_build_of_one_pack_stores_its_entries_uncompressed() {
+        for (pack, compressed) in [(1 << 20, false), (1000, true)] {
+            let dir = tempfile::tempdir().unwrap();
+            let store = store(dir.path(), pack);
+            for i in 0..5u8 {
+                let c = compiled(i, 400);
+                let hashes = c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect();
+                store.put(Key([i; 32]), c, hashes);
+            }
+            assert!(store.finish().is_empty());
+            // Five artifacts of 400 equal bytes: a compressed pack holds far less.
+            assert_eq!(pack_bytes(dir.path()) < 5 * 400, compressed, "pack size {}", pack_bytes(dir.path()));
+            for i in 0..5u8 {
+                match store.get(&Key([i; 32])) {
+                    Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                    Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn packs_are_written_as_the_build_goes() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = store(dir.path(), 1000);
         let key = |i: u8| Key([i; 32]);
         let packs = || {
             std::fs::read_dir(dir.path())

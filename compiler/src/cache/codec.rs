@@ -8,6 +8,10 @@
 //! a level's sources share names and constants across targets, and per-artifact framing cost
 //! a frame header and a weaker match history per artifact.
 //!
+//! A build too small for compression to pay writes its only pack with [`encode_stored`]: the
+//! same entry, its frame made of raw blocks (zstd's block type for data that does not
+//! compress), read and checked as any other.
+//!
 //! A dictionary is trained from a pack of a build that has written enough entries of a kind
 //! without one ([`TRAIN_MIN_PIECES`] in the pack, [`TRAIN_MIN_BYTES`] in the build: a small
 //! build trains none, training would be a large share of its time), kept in
@@ -287,9 +291,6 @@ pub(super) fn dictionaries_for(
 /// `c` as a version 4 entry of `key`, with the blake3 of each artifact (`hashes`), its body
 /// compressed with its kind's dictionary in `dicts` (none: plainly).
 pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &HashMap<String, Arc<Dict>>) -> Vec<u8> {
-    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
-    let frames = super::frames(c);
-    let checksum = super::entry_checksum(key, &frames, hashes);
     let raw = body(c);
     let dict = dicts.get(&kind_of(c)).and_then(|d| d.cdict().map(|c| (d.id, c)));
     CCTX.with(|cell| {
@@ -316,19 +317,110 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
         // Copied out at its size from the worker's buffer: the encoded entries of a pack
         // wait to be written, each in a buffer of its raw size (zeroed, so faulted in)
         // otherwise.
-        let mut out = Vec::with_capacity(HEADER + 20 + 32 * hashes.len() + dst.len());
-        out.extend_from_slice(MAGIC);
-        out.extend_from_slice(checksum.as_bytes());
-        out.extend_from_slice(&key.0);
-        out.extend_from_slice(&((super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
-        out.extend_from_slice(&dict.as_ref().map_or(NO_DICT, |d| d.0));
-        out.extend_from_slice(&(hashes.len() as u32).to_le_bytes());
-        for h in hashes {
-            out.extend_from_slice(h.as_bytes());
-        }
-        out.extend_from_slice(dst);
-        out
+        entry(key, c, hashes, raw.len(), dict.as_ref().map_or(NO_DICT, |d| d.0), dst)
     })
+}
+
+/// [`encode`] without compressing: the body goes into a zstd frame of raw blocks
+/// ([`stored_frame`]), which any version 4 reader decodes and checks as it does a
+/// compressed one. For a build so small that compressing its entries costs a noticeable
+/// share of its time while the bytes saved do not matter (see `build::store`).
+pub(super) fn encode_stored(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
+    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
+    // The body's pieces framed as they are, not gathered into a body first: a small build's
+    // whole output goes through here, and each copy of it faults in fresh pages.
+    let frames = super::frames(c);
+    let mut pieces: Vec<&[u8]> = vec![&frames[0]];
+    for (i, (_, bytes)) in c.artifacts.iter().enumerate() {
+        pieces.push(&frames[1 + i]);
+        pieces.push(bytes);
+    }
+    let n = frames.len();
+    pieces.push(&frames[n - 2]);
+    pieces.push(&frames[n - 1]);
+    let raw_len = pieces.iter().map(|p| p.len()).sum();
+    let checksum = super::entry_checksum(key, &frames, hashes);
+    let mut out = entry_head(key, &checksum, hashes, raw_len, NO_DICT, stored_frame_len(raw_len));
+    stored_frame(&pieces, &mut out);
+    out
+}
+
+/// A version 4 entry: the header (checksum, key, the version 2 length of a body of
+/// `raw_len` bytes, dictionary id), the artifacts' blake3, then `frame`.
+fn entry(key: &Key, c: &Compiled, hashes: &[blake3::Hash], raw_len: usize, dict: [u8; 16], frame: &[u8]) -> Vec<u8> {
+    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
+    let checksum = super::entry_checksum(key, &super::frames(c), hashes);
+    let mut out = entry_head(key, &checksum, hashes, raw_len, dict, frame.len());
+    out.extend_from_slice(frame);
+    out
+}
+
+/// [`entry`] up to its frame (its `checksum` given), with room for a frame of `frame_len`
+/// bytes.
+fn entry_head(
+    key: &Key,
+    checksum: &blake3::Hash,
+    hashes: &[blake3::Hash],
+    raw_len: usize,
+    dict: [u8; 16],
+    frame_len: usize,
+) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER + 20 + 32 * hashes.len() + frame_len);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(checksum.as_bytes());
+    out.extend_from_slice(&key.0);
+    out.extend_from_slice(&((super::MAGIC.len() + 64 + raw_len) as u64).to_le_bytes());
+    out.extend_from_slice(&dict);
+    out.extend_from_slice(&(hashes.len() as u32).to_le_bytes());
+    for h in hashes {
+        out.extend_from_slice(h.as_bytes());
+    }
+    out
+}
+
+/// The largest block of a zstd frame (`Block_Maximum_Size` of RFC 8878).
+const ZSTD_BLOCK_MAX: usize = 128 << 10;
+
+/// The length of [`stored_frame`] of `len` bytes: magic, header descriptor, content size,
+/// a header per block (one at least), the content, the check sum.
+fn stored_frame_len(len: usize) -> usize {
+    4 + 1 + 8 + 3 * len.div_ceil(ZSTD_BLOCK_MAX).max(1) + len + 4
+}
+
+/// The content `pieces` (one after another) as one zstd frame (RFC 8878) of raw (stored)
+/// blocks, appended to `out`, with the frame's content size and check sum (the low 32 bits
+/// of its XXH64), as zstd itself writes a block that does not compress: no compression
+/// work, only a copy and the check sum.
+fn stored_frame(pieces: &[&[u8]], out: &mut Vec<u8>) {
+    let len: usize = pieces.iter().map(|p| p.len()).sum();
+    out.extend_from_slice(&0xFD2F_B528u32.to_le_bytes());
+    // Frame header descriptor: an 8-byte content size, a single segment (the window is the
+    // content, so no window descriptor), a check sum, no dictionary id.
+    out.push(0b1110_0100);
+    out.extend_from_slice(&(len as u64).to_le_bytes());
+    let mut sum = xxhash_rust::xxh64::Xxh64::new(0);
+    let (mut left, mut block_left) = (len, 0);
+    if len == 0 {
+        // An empty content is one empty last block.
+        out.extend_from_slice(&[1, 0, 0]);
+    }
+    for mut piece in pieces.iter().copied() {
+        while !piece.is_empty() {
+            if block_left == 0 {
+                // Block header: last-block bit, block type 0 (raw), then the size.
+                block_left = left.min(ZSTD_BLOCK_MAX);
+                left -= block_left;
+                let header = (block_left as u32) << 3 | u32::from(left == 0);
+                out.extend_from_slice(&header.to_le_bytes()[..3]);
+            }
+            let (now, rest) = piece.split_at(piece.len().min(block_left));
+            out.extend_from_slice(now);
+            sum.update(now);
+            block_left -= now.len();
+            piece = rest;
+        }
+    }
+    out.extend_from_slice(&(sum.digest() as u32).to_le_bytes());
 }
 
 /// Whether `bytes` starts as a compressed entry (version 3 or 4).
@@ -447,6 +539,38 @@ mod tests {
 
     fn no_dicts(_: &[u8; 16]) -> Result<Arc<Dict>, String> {
         Err("no dictionary".into())
+    }
+
+    /// A stored entry (raw zstd blocks) decodes as a compressed one does, zstd itself reads
+    /// its frame, and no damaged copy of it decodes to other artifacts or other hashes.
+    #[test]
+    fn a_stored_entry_is_read_as_a_compressed_one_and_every_damage_is_caught() {
+        let (key, c) = (Key([9; 32]), compiled());
+        let entry = encode_stored(&key, &c, &hashes(&c));
+        assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
+        let (_, start) = stored_hashes(&entry).unwrap();
+        assert_eq!(zstd::decode_all(&entry[start..]).unwrap(), body(&c), "a frame zstd reads");
+        for at in 0..entry.len() {
+            let mut damaged = entry.clone();
+            damaged[at] ^= 0x10;
+            if let Ok(got) = decode(&key, &damaged, &no_dicts) {
+                assert_eq!(got, (c.clone(), hashes(&c)), "byte {at} flipped gave another entry");
+            }
+        }
+    }
+
+    /// Frames of raw blocks split at zstd's block size, and the empty content, are what
+    /// zstd reads back.
+    #[test]
+    fn stored_frames_of_any_size_are_read_by_zstd() {
+        for len in [0, 1, ZSTD_BLOCK_MAX - 1, ZSTD_BLOCK_MAX, ZSTD_BLOCK_MAX + 1, 3 * ZSTD_BLOCK_MAX + 7] {
+            let content: Vec<u8> = (0..len).map(|i| (i * 7 % 251) as u8).collect();
+            let (a, b) = content.split_at(len / 3);
+            let mut frame = Vec::new();
+            stored_frame(&[a, &[], b], &mut frame);
+            assert_eq!(frame.len(), stored_frame_len(len));
+            assert_eq!(zstd::decode_all(&frame[..]).unwrap(), content, "{len} bytes");
+        }
     }
 
     /// A version 4 entry gives back the hashes it was written with, and no damaged copy of

@@ -100,19 +100,23 @@ impl Cache {
             entries.par_iter().map(|(_, c)| c.artifacts.iter().map(|(_, b)| blake3::hash(b)).collect()).collect();
         let entries: Vec<(Key, &Compiled, &[blake3::Hash])> =
             entries.iter().zip(&hashes).map(|((k, c), h)| (*k, *c, &h[..])).collect();
-        self.put_pack_hashed(&entries)
+        self.put_pack_hashed(&entries, Packing::Compressed)
     }
 
     /// [`Cache::put_pack`] with the blake3 of every artifact already known (in the order of
     /// each entry's artifacts). With a remote cache, the pack also holds the remote hits not
     /// yet filled in (finished as a pack of their own), and each of `entries` is stored to
-    /// the remote (in read-write mode).
-    pub fn put_pack_hashed(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
+    /// the remote (in read-write mode). `packing` says how the local pack stores them.
+    pub fn put_pack_hashed(
+        &self,
+        entries: &[(Key, &Compiled, &[blake3::Hash])],
+        packing: Packing,
+    ) -> Result<(), Error> {
         if let Some(layer) = &self.remote {
             let pending = layer.fills.lock().expect("no panics while locked").take();
             self.finish_fills(pending);
         }
-        let local = self.write_pack(entries);
+        let local = self.write_pack(entries, packing);
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
             entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &remote_value(key, c, hashes)));
         }
@@ -120,16 +124,27 @@ impl Cache {
     }
 
     /// Writes `entries` as one pack, each entry compressed ([`codec`]; a dictionary is
-    /// trained first for each kind the cache has none of, when `entries` hold enough of it).
-    pub(super) fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])]) -> Result<(), Error> {
+    /// trained first for each kind the cache has none of, when `entries` hold enough of it),
+    /// or stored ([`Packing::Stored`]: neither compressed nor counted towards a dictionary).
+    pub(super) fn write_pack(
+        &self,
+        entries: &[(Key, &Compiled, &[blake3::Hash])],
+        packing: Packing,
+    ) -> Result<(), Error> {
         if entries.is_empty() {
             return Ok(());
         }
-        let files = || self.files().map(|(p, _)| p).collect();
-        let write = |path: &Path, bytes: &[u8]| self.write_file(path, bytes).is_ok();
-        let dicts = codec::dictionaries_for(&self.dicts, &self.dir, files, entries, write);
-        let encoded: Vec<Vec<u8>> =
-            entries.par_iter().map(|(key, c, hashes)| codec::encode(key, c, hashes, &dicts)).collect();
+        let encoded: Vec<Vec<u8>> = match packing {
+            Packing::Stored => {
+                entries.par_iter().map(|(key, c, hashes)| codec::encode_stored(key, c, hashes)).collect()
+            }
+            Packing::Compressed => {
+                let files = || self.files().map(|(p, _)| p).collect();
+                let write = |path: &Path, bytes: &[u8]| self.write_file(path, bytes).is_ok();
+                let dicts = codec::dictionaries_for(&self.dicts, &self.dir, files, entries, write);
+                entries.par_iter().map(|(key, c, hashes)| codec::encode(key, c, hashes, &dicts)).collect()
+            }
+        };
         let count = entries.len();
         let mut rows = Vec::with_capacity(count * ROW);
         let mut offset = (PACK_HEADER + count * ROW) as u64;

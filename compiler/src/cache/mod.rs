@@ -59,6 +59,17 @@ pub(crate) mod remote;
 
 pub use remote::Remote;
 
+/// How the entries of a pack are stored ([`Cache::put_pack_hashed`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Packing {
+    /// Compressed with zstd (with the cache's dictionary of each kind, trained when a pack
+    /// brings enough of it).
+    Compressed,
+    /// In zstd frames of raw blocks: the same entry format, read and checked alike, with
+    /// no compression work (a build too small for compression to pay: `build::store`).
+    Stored,
+}
+
 /// An entry of version 2 (uncompressed): still read; version 3 ([`codec`]) is written.
 const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
