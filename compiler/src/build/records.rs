@@ -255,10 +255,10 @@ impl Encoded {
 
 /// Rows encoded, sorted and written at a time: a run's buffer is the encoding's largest
 /// allocation.
-const RUN_ROWS: usize = 1 << 16;
+const RUN_ROWS: usize = 1 << 14;
 
 /// Rows read at a time from each run while they are merged.
-const MERGE_ROWS: usize = 512;
+const MERGE_ROWS: usize = 256;
 
 /// The sorted runs of rows in one temporary file: the file and each run's (first row, rows).
 struct Runs {
