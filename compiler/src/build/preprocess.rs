@@ -182,7 +182,7 @@ impl LastRecords {
                 store.records(&Key(pointer.try_into().ok()?))
             };
             let bytes = store.records(&key).or_else(last);
-            let old = bytes.and_then(|b| records::decode(&b, &mut interner, &root)).unwrap_or_default();
+            let old = bytes.and_then(|b| records::decode(b, &mut interner, &root)).unwrap_or_default();
             let base = direct_base(config, &root);
             let unknown = |n: usize| (0..n).map(|_| AtomicU8::new(UNKNOWN)).collect();
             RecordSet {
@@ -365,11 +365,11 @@ impl<'p> Preprocessor<'p> {
             let p = plan.permutation(i);
             Some((direct_key(&r.base, &p, &p.defines(), targets), whole(pre.row_number(i)?)))
         };
-        let bytes = records::encode(plan.len(), row, (0..rests.len()).map(whole), &self.lists(), &r.root, r.old);
+        let encoded = records::encode(plan.len(), row, &self.lists(), &r.root, r.old);
         drop(rests);
         super::trace_memory("records encoded");
-        if let Some(bytes) = bytes {
-            store.put_records(&r.key, &bytes);
+        if let Some(encoded) = encoded {
+            store.put_records(&r.key, &encoded);
             store.put_local_records(&last_records_key(plan.config, plan.options), &r.key.0);
         }
     }
@@ -387,7 +387,7 @@ impl<'p> Preprocessor<'p> {
             let dk = direct_key(&records.base, p, &defines, &self.plan.options.targets);
             if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(records, row)) {
                 records.matched.fetch_add(1, Ordering::Relaxed);
-                return Ok(self.push(*row));
+                return Ok(self.push(row));
             }
         }
         let values: HashMap<String, i64> = defines.into_iter().map(|d| (d.name, d.value)).collect();

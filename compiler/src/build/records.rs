@@ -20,8 +20,11 @@
 
 use std::collections::HashMap;
 use std::ffi::OsStr;
+use std::fs::File;
 use std::hash::Hash;
+use std::io::Write;
 use std::os::unix::ffi::OsStrExt;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -54,32 +57,44 @@ pub(super) struct Row {
     pub warnings: u32,
 }
 
-/// Each permutation's row by its direct key (see `preprocess::direct_key`), sorted by it.
+/// Each permutation's row by its direct key (see `preprocess::direct_key`), sorted by it:
+/// the rows as the records file holds them, read in place (their list numbers made the
+/// interner's), so that a warm build holds the file's bytes once rather than beside a table
+/// made from them.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub(super) struct Records {
-    rows: Vec<(Direct, Row)>,
+    rows: Vec<u8>,
 }
 
 impl Records {
     /// The records of `rows` (one per direct key; of two, the first is kept).
+    #[cfg(test)]
     pub fn new(mut rows: Vec<(Direct, Row)>) -> Records {
         rows.sort_by_key(|r| r.0);
         rows.dedup_by(|a, b| a.0 == b.0);
-        rows.shrink_to_fit();
-        Records { rows }
+        let mut bytes = vec![0u8; rows.len() * ROW_BYTES];
+        for (out, (direct, row)) in bytes.as_chunks_mut::<ROW_BYTES>().0.iter_mut().zip(&rows) {
+            put_row(out, direct, row);
+        }
+        Records { rows: bytes }
     }
 
-    pub fn get(&self, direct: &Direct) -> Option<&Row> {
-        self.rows.binary_search_by(|r| r.0.cmp(direct)).ok().map(|i| &self.rows[i].1)
+    fn rows(&self) -> &[[u8; ROW_BYTES]] {
+        self.rows.as_chunks::<ROW_BYTES>().0
+    }
+
+    pub fn get(&self, direct: &Direct) -> Option<Row> {
+        let rows = self.rows();
+        rows.binary_search_by(|r| r[..16].cmp(direct)).ok().map(|i| get_row(&rows[i]).1)
     }
 
     /// Each direct key with its row, in order.
-    pub fn iter(&self) -> impl Iterator<Item = (&Direct, &Row)> + Clone {
-        self.rows.iter().map(|(k, r)| (k, r))
+    pub fn iter(&self) -> impl Iterator<Item = (Direct, Row)> + Clone + '_ {
+        self.rows().iter().map(get_row)
     }
 
     pub fn len(&self) -> usize {
-        self.rows.len()
+        self.rows().len()
     }
 }
 
@@ -162,87 +177,204 @@ fn put_lists<T>(out: &mut Vec<u8>, table: &Table, lists: &Lists<T>, item: impl F
     }
 }
 
-/// The records of `count` permutations as bytes, or `None` when they are `old`'s.
-/// `row(i)` gives permutation `i`'s direct key and row (`None` where it failed), one of
-/// `all`; the records are sorted by direct key, one per direct key, and every path under
-/// `root` is written relative to it (paths elsewhere stay absolute).
+/// The records of `count` permutations, or `None` when they are `old`'s (or a temporary
+/// file could not be used: failing to only costs preprocessing next time).
+/// `row(i)` gives permutation `i`'s direct key and row (`None` where it failed); the records
+/// are sorted by direct key, one per direct key, and every path under `root` is written
+/// relative to it (paths elsewhere stay absolute).
 ///
-/// The rows are encoded straight into the buffer that is returned (in parallel), sorted
-/// and renumbered there, and the lists written in front of them: nothing per row is held
-/// besides those bytes (a table of (direct key, row) to sort took more per permutation).
+/// An external sort, so that nothing per permutation is held in memory: the rows are
+/// encoded (in parallel) a run at a time, each run sorted and written to a temporary file,
+/// then the runs are merged, the lists renumbered by first reference, into a second
+/// temporary file that [`Encoded`] streams from.
 pub(super) fn encode(
     count: usize,
     row: impl Fn(usize) -> Option<(Direct, Row)> + Sync,
-    all: impl Iterator<Item = Row>,
     interner: &Interner,
     root: &Path,
     old: Records,
-) -> Option<Vec<u8>> {
-    use rayon::prelude::*;
+) -> Option<Encoded> {
+    let runs = sorted_runs(count, &row).ok()?;
+    drop(row);
+    let merged = merge_runs(&runs, &old).ok()??;
+    drop((runs, old));
     let relative = |p: &Path| -> PathBuf {
         p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map_or_else(|| p.to_path_buf(), PathBuf::from)
     };
-    let lists = |out: &mut Vec<u8>, tables: &[Table; 3]| {
-        put_lists(out, &tables[0], &interner.files, |o, (p, h)| {
-            put_bytes(o, relative(p).as_os_str().as_bytes());
-            o.extend_from_slice(h);
-        });
-        put_lists(out, &tables[1], &interner.absent, |o, p| put_bytes(o, relative(p).as_os_str().as_bytes()));
-        put_lists(out, &tables[2], &interner.warnings, |o, w| put_bytes(o, w.as_bytes()));
-    };
-    // Room in front for the lists of every row (those of the rows kept are as long or
-    // shorter: a list's bytes do not depend on its number).
-    let mut every = [Table::new(), Table::new(), Table::new()];
-    for r in all {
-        every[0].add(r.files);
-        every[1].add(r.absent);
-        every[2].add(r.warnings);
-    }
+    let Merged { tables, rows, count } = merged;
     let mut head = MAGIC.to_vec();
-    lists(&mut head, &every);
-    let room = head.len() + 8;
-    drop((head, every));
-    let mut out = vec![0u8; room + count * ROW_BYTES];
-    let (rows, _) = out[room..].as_chunks_mut::<ROW_BYTES>();
-    rows.par_iter_mut().enumerate().for_each(|(i, r)| match row(i) {
-        Some((direct, row)) => put_row(r, &direct, &row),
-        // Failed: sorted last and cut off.
-        None => r[..16].fill(0xFF),
+    put_lists(&mut head, &tables[0], &interner.files, |o, (p, h)| {
+        put_bytes(o, relative(p).as_os_str().as_bytes());
+        o.extend_from_slice(h);
     });
-    let failed = rows.par_iter().filter(|r| r[..16] == [0xFF; 16]).count();
-    rows.par_sort_unstable_by(|a, b| a[..16].cmp(&b[..16]));
-    // One record per direct key (each permutation has its own): of two, the first.
-    let mut n = 0;
-    for i in 0..count - failed {
-        if n == 0 || rows[n - 1][..16] != rows[i][..16] {
-            rows[n] = rows[i];
-            n += 1;
+    put_lists(&mut head, &tables[1], &interner.absent, |o, p| put_bytes(o, relative(p).as_os_str().as_bytes()));
+    put_lists(&mut head, &tables[2], &interner.warnings, |o, w| put_bytes(o, w.as_bytes()));
+    head.extend_from_slice(&(count as u64).to_le_bytes());
+    Some(Encoded { head, rows, rows_len: count as u64 * ROW_BYTES as u64 })
+}
+
+/// Encoded records: the lists and the count in memory, the rows in a temporary file.
+pub(super) struct Encoded {
+    head: Vec<u8>,
+    rows: File,
+    rows_len: u64,
+}
+
+impl Encoded {
+    /// The length of the encoding.
+    pub fn len(&self) -> u64 {
+        self.head.len() as u64 + self.rows_len
+    }
+
+    /// Calls `f` on consecutive pieces of the encoding, the rows read again from their file
+    /// through a small buffer.
+    pub fn each_piece(&self, f: &mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> std::io::Result<()> {
+        f(&self.head)?;
+        let mut buffer = vec![0u8; MERGE_ROWS * ROW_BYTES];
+        let mut at = 0u64;
+        while at < self.rows_len {
+            let n = (self.rows_len - at).min(buffer.len() as u64) as usize;
+            self.rows.read_exact_at(&mut buffer[..n], at)?;
+            f(&buffer[..n])?;
+            at += n as u64;
+        }
+        Ok(())
+    }
+
+    /// The whole encoding in memory.
+    #[cfg(test)]
+    pub fn to_vec(&self) -> std::io::Result<Vec<u8>> {
+        let mut out = Vec::with_capacity(usize::try_from(self.len()).unwrap_or(0));
+        self.each_piece(&mut |b| {
+            out.extend_from_slice(b);
+            Ok(())
+        })?;
+        Ok(out)
+    }
+}
+
+/// Rows encoded, sorted and written at a time: a run's buffer is the encoding's largest
+/// allocation.
+const RUN_ROWS: usize = 1 << 14;
+
+/// Rows read at a time from each run while they are merged.
+const MERGE_ROWS: usize = 256;
+
+/// The sorted runs of rows in one temporary file: the file and each run's (first row, rows).
+struct Runs {
+    file: File,
+    runs: Vec<(u64, usize)>,
+}
+
+/// Encodes every permutation's row, a run at a time, each run sorted by direct key (the
+/// failed ones left out) and appended to a temporary file.
+fn sorted_runs(count: usize, row: &(impl Fn(usize) -> Option<(Direct, Row)> + Sync)) -> std::io::Result<Runs> {
+    use rayon::prelude::*;
+    let mut file = tempfile::tempfile()?;
+    let mut runs = Vec::new();
+    let mut buffer = vec![0u8; RUN_ROWS.min(count) * ROW_BYTES];
+    let mut first = 0u64;
+    for start in (0..count).step_by(RUN_ROWS) {
+        let len = RUN_ROWS.min(count - start);
+        let (rows, _) = buffer[..len * ROW_BYTES].as_chunks_mut::<ROW_BYTES>();
+        rows.par_iter_mut().enumerate().for_each(|(i, r)| match row(start + i) {
+            Some((direct, row)) => put_row(r, &direct, &row),
+            // Failed: sorted last and cut off.
+            None => r[..16].fill(0xFF),
+        });
+        let failed = rows.par_iter().filter(|r| r[..16] == [0xFF; 16]).count();
+        // Stable: of two rows with one direct key, the earlier permutation's stays first.
+        rows.par_sort_by(|a, b| a[..16].cmp(&b[..16]));
+        let kept = len - failed;
+        file.write_all(&buffer[..kept * ROW_BYTES])?;
+        runs.push((first, kept));
+        first += kept as u64;
+    }
+    Ok(Runs { file, runs })
+}
+
+/// The rows merged from their runs: the lists' tables, the rows in a temporary file with
+/// their lists renumbered, and how many.
+struct Merged {
+    tables: [Table; 3],
+    rows: File,
+    count: usize,
+}
+
+/// One run being merged: its rows not read yet, and a buffer of those read.
+struct RunReader {
+    next: u64,
+    left: usize,
+    buffer: Vec<[u8; ROW_BYTES]>,
+    at: usize,
+}
+
+impl RunReader {
+    /// The run's current row, reading the next rows when the buffer is used up; `None` at
+    /// its end.
+    fn peek(&mut self, file: &File) -> std::io::Result<Option<&[u8; ROW_BYTES]>> {
+        if self.at == self.buffer.len() {
+            let n = self.left.min(MERGE_ROWS);
+            if n == 0 {
+                return Ok(None);
+            }
+            self.buffer.resize(n, [0; ROW_BYTES]);
+            file.read_exact_at(self.buffer.as_flattened_mut(), self.next * ROW_BYTES as u64)?;
+            (self.next, self.left, self.at) = (self.next + n as u64, self.left - n, 0);
+        }
+        Ok(Some(&self.buffer[self.at]))
+    }
+}
+
+fn direct_of(row: &[u8; ROW_BYTES]) -> Direct {
+    row[..16].try_into().expect("16 bytes")
+}
+
+/// Merges the runs in direct key order, one row per direct key (of two, the earlier
+/// permutation's), renumbering the lists by first reference; `None` when the rows are
+/// `old`'s.
+fn merge_runs(runs: &Runs, old: &Records) -> std::io::Result<Option<Merged>> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    let file = &runs.file;
+    let mut readers: Vec<RunReader> =
+        runs.runs.iter().map(|&(next, left)| RunReader { next, left, buffer: Vec::new(), at: 0 }).collect();
+    // By direct key, then by run (runs are in permutation order): not by the rest of the
+    // row, so that of two rows with one direct key the earlier permutation's is kept.
+    let mut heap = BinaryHeap::new();
+    for (i, r) in readers.iter_mut().enumerate() {
+        if let Some(row) = r.peek(file)? {
+            heap.push(Reverse((direct_of(row), i)));
         }
     }
-    let rows = &mut rows[..n];
-    if rows.iter().map(get_row).eq(old.iter().map(|(k, r)| (*k, *r))) {
-        return None;
-    }
-    drop(old);
-    // The lists numbered by first reference, in the rows' order.
+    let mut out = std::io::BufWriter::with_capacity(MERGE_ROWS * ROW_BYTES, tempfile::tempfile()?);
     let mut tables = [Table::new(), Table::new(), Table::new()];
-    for r in rows.iter_mut() {
+    let (mut old_rows, mut same, mut count) = (old.iter(), true, 0usize);
+    let mut last: Option<Direct> = None;
+    while let Some(Reverse((direct, i))) = heap.pop() {
+        let mut row = readers[i].buffer[readers[i].at];
+        readers[i].at += 1;
+        if let Some(next) = readers[i].peek(file)? {
+            heap.push(Reverse((direct_of(next), i)));
+        }
+        if last == Some(direct) {
+            continue;
+        }
+        last = Some(direct);
+        same = same && old_rows.next().is_some_and(|old| old == get_row(&row));
         for (t, table) in tables.iter_mut().enumerate() {
             let at = LISTS_AT + 4 * t;
-            let id = u32::from_le_bytes(r[at..at + 4].try_into().expect("4 bytes"));
-            r[at..at + 4].copy_from_slice(&table.add(id).to_le_bytes());
+            let id = u32::from_le_bytes(row[at..at + 4].try_into().expect("4 bytes"));
+            row[at..at + 4].copy_from_slice(&table.add(id).to_le_bytes());
         }
+        out.write_all(&row)?;
+        count += 1;
     }
-    let mut head = MAGIC.to_vec();
-    lists(&mut head, &tables);
-    head.extend_from_slice(&(n as u64).to_le_bytes());
-    // The rows kept and the lists just before them; the unused room in front goes (the
-    // bytes move down in place).
-    out.truncate(room + n * ROW_BYTES);
-    let skip = room - head.len();
-    out[skip..room].copy_from_slice(&head);
-    out.drain(..skip);
-    Some(out)
+    if same && old_rows.next().is_none() {
+        return Ok(None);
+    }
+    let rows = out.into_inner().map_err(|e| e.into_error())?;
+    Ok(Some(Merged { tables, rows, count }))
 }
 
 /// Writes a row with its lists' numbers in the interner (renumbered by [`encode`]).
@@ -320,10 +452,11 @@ impl<'a> Reader<'a> {
 }
 
 /// The records in `bytes`, their lists interned into `interner`, relative paths joined to
-/// `root`; `None` if they are not records of this encoding (the build then preprocesses
-/// everything, as with no records).
-pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Option<Records> {
-    let mut r = Reader { bytes, at: 0 };
+/// `root`; `None` if they are not records of this encoding, or not sorted (the build then
+/// preprocesses everything, as with no records). The rows stay in `bytes`: the lists in
+/// front of them are cut off.
+pub(super) fn decode(mut bytes: Vec<u8>, interner: &mut Interner, root: &Path) -> Option<Records> {
+    let mut r = Reader { bytes: &bytes, at: 0 };
     if r.take(8)? != MAGIC {
         return None;
     }
@@ -339,23 +472,27 @@ pub(super) fn decode(bytes: &[u8], interner: &mut Interner, root: &Path) -> Opti
     let absent = r.lists(&mut interner.absent, |r| Some(path(r.bytes()?)))?;
     let warnings = r.lists(&mut interner.warnings, |r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
     let n = r.u64()?;
-    // A count beyond the bytes left is damage, not an allocation.
-    if n > ((bytes.len() - r.at) / ROW_BYTES) as u64 {
+    let at = r.at;
+    if n.checked_mul(ROW_BYTES as u64)? != (bytes.len() - at) as u64 {
         return None;
     }
-    let mut rows = Vec::with_capacity(n as usize);
-    for _ in 0..n {
-        let direct: Direct = r.take(16)?.try_into().ok()?;
-        let row = Row {
-            key: Key(r.hash()?),
-            text_len: r.u32()?,
-            files: *files.get(r.u32()? as usize)?,
-            absent: *absent.get(r.u32()? as usize)?,
-            warnings: *warnings.get(r.u32()? as usize)?,
-        };
-        rows.push((direct, row));
+    let numbers = [files, absent, warnings];
+    let mut last: Option<Direct> = None;
+    for row in bytes[at..].as_chunks_mut::<ROW_BYTES>().0 {
+        let direct = direct_of(row);
+        // Strictly ascending, as written: lookups search them.
+        if last.is_some_and(|l| l >= direct) {
+            return None;
+        }
+        last = Some(direct);
+        for (t, numbers) in numbers.iter().enumerate() {
+            let at = LISTS_AT + 4 * t;
+            let id = u32::from_le_bytes(row[at..at + 4].try_into().expect("4 bytes"));
+            row[at..at + 4].copy_from_slice(&numbers.get(id as usize)?.to_le_bytes());
+        }
     }
-    (r.at == bytes.len()).then(|| Records::new(rows))
+    bytes.drain(..at);
+    Some(Records { rows: bytes })
 }
 
 #[cfg(test)]
@@ -373,8 +510,7 @@ mod tests {
     }
 
     fn encode_all(rows: &[(Direct, Row)], i: &Interner, root: &Path) -> Vec<u8> {
-        let all: Vec<Row> = rows.iter().map(|r| r.1).collect();
-        encode(rows.len(), |n| Some(rows[n]), all.iter().copied(), i, root, Records::default()).unwrap()
+        encode(rows.len(), |n| Some(rows[n]), i, root, Records::default()).unwrap().to_vec().unwrap()
     }
 
     #[test]
@@ -384,7 +520,7 @@ mod tests {
         let rows: Vec<(Direct, Row)> = (0..5u8).rev().map(|k| ([k + 100; 16], row(&mut i, k, files.clone()))).collect();
         let records = Records::new(rows.clone());
         assert_eq!(records.len(), 5);
-        assert_eq!(records.get(&[102; 16]), Some(&rows[2].1));
+        assert_eq!(records.get(&[102; 16]), Some(rows[2].1));
         assert_eq!(records.get(&[1; 16]), None);
         let bytes = encode_all(&rows, &i, Path::new("/a"));
         // Shared lists are written once; no path under the root is absolute.
@@ -392,10 +528,10 @@ mod tests {
         assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0);
 
         // Decoded at the same root into the same interner: the same records.
-        assert_eq!(decode(&bytes, &mut i, Path::new("/a")), Some(records.clone()));
+        assert_eq!(decode(bytes.clone(), &mut i, Path::new("/a")), Some(records.clone()));
         // Elsewhere: the paths under the root move with it, the others stay.
         let mut j = Interner::default();
-        let elsewhere = decode(&bytes, &mut j, Path::new("/b/c")).unwrap();
+        let elsewhere = decode(bytes.clone(), &mut j, Path::new("/b/c")).unwrap();
         let moved = elsewhere.get(&[100; 16]).unwrap();
         assert_eq!(
             j.files.get(moved.files)[..],
@@ -406,15 +542,44 @@ mod tests {
         assert_eq!(moved.text_len, 100);
 
         for cut in [0, 7, 9, bytes.len() / 2, bytes.len() - 1] {
-            assert_eq!(decode(&bytes[..cut], &mut Interner::default(), Path::new("/a")), None, "cut at {cut}");
+            assert_eq!(decode(bytes[..cut].to_vec(), &mut Interner::default(), Path::new("/a")), None, "cut at {cut}");
         }
         let mut long = bytes.clone();
         long.push(0);
-        assert_eq!(decode(&long, &mut Interner::default(), Path::new("/a")), None);
-        assert_eq!(decode(b"not records", &mut Interner::default(), Path::new("/a")), None);
+        assert_eq!(decode(long, &mut Interner::default(), Path::new("/a")), None);
+        // Rows out of order are not searched.
+        let mut swapped = bytes.clone();
+        let end = swapped.len();
+        let last: Vec<u8> = swapped[end - ROW_BYTES..].to_vec();
+        swapped.copy_within(end - 2 * ROW_BYTES..end - ROW_BYTES, end - ROW_BYTES);
+        swapped[end - 2 * ROW_BYTES..end - ROW_BYTES].copy_from_slice(&last);
+        assert_eq!(decode(swapped, &mut Interner::default(), Path::new("/a")), None);
+        assert_eq!(decode(b"not records".to_vec(), &mut Interner::default(), Path::new("/a")), None);
         // Records of the last encoding are not read.
         let mut old = bytes.clone();
         old[7] = 2;
-        assert_eq!(decode(&old, &mut Interner::default(), Path::new("/a")), None);
+        assert_eq!(decode(old, &mut Interner::default(), Path::new("/a")), None);
+    }
+
+    #[test]
+    fn runs_merge_like_one_sort() {
+        // More rows than a run, some failed, one direct key twice (the first is kept).
+        let mut i = Interner::default();
+        let n = RUN_ROWS * 2 + 1000;
+        let lists: Vec<Row> =
+            (0..3u8).map(|k| row(&mut i, k, vec![(PathBuf::from(format!("/a/{k}.ush")), [k; 32])])).collect();
+        let direct = |n: usize| -> Direct {
+            *blake3::hash(&(n % (RUN_ROWS * 2)).to_le_bytes()).as_bytes().first_chunk().unwrap()
+        };
+        let at = |n: usize| (n % 7 != 3).then(|| (direct(n), Row { key: Key([n as u8; 32]), ..lists[n % 3] }));
+        let bytes = encode(n, at, &i, Path::new("/a"), Records::default()).unwrap().to_vec().unwrap();
+        let mut expected: Vec<(Direct, Row)> = (0..n).filter_map(at).collect();
+        expected.sort_by_key(|r| r.0);
+        expected.dedup_by(|a, b| a.0 == b.0);
+        let decoded = decode(bytes.clone(), &mut i, Path::new("/a")).unwrap();
+        assert_eq!(decoded.len(), expected.len());
+        assert!(decoded.iter().zip(&expected).all(|(a, b)| a == *b));
+        // The same rows as the last build's: nothing to write.
+        assert!(encode(n, at, &i, Path::new("/a"), decoded).is_none());
     }
 }

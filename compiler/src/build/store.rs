@@ -274,9 +274,9 @@ impl Store {
     }
 
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
-    pub fn put_records(&self, key: &Key, records: &[u8]) {
+    pub fn put_records(&self, key: &Key, records: &super::records::Encoded) {
         if let Some(c) = &self.cache {
-            let _ = c.put_records_bytes(key, records);
+            let _ = c.put_records_streamed(key, records.len(), &|f| records.each_piece(f));
         }
     }
 

@@ -2,6 +2,10 @@
 //! small files beside the packs, each replaced atomically.
 
 use super::*;
+use std::io::Write;
+
+/// A body handed out in pieces: calls its argument on each, in order.
+pub type StreamedBody<'a> = dyn Fn(&mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> std::io::Result<()> + 'a;
 
 impl Cache {
     /// The file of a set of preprocessing records: `DIR/<key>.kpp`.
@@ -61,6 +65,38 @@ impl Cache {
             remote.store_from(key, &super::remote::Pieces(&[RECORD_MAGIC, sum.as_bytes(), body]));
         }
         self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
+    }
+
+    /// [`Cache::put_records_bytes`] for a body of `len` bytes that `body` hands out in
+    /// pieces (read twice: once for the checksum in front, once to write), so that a large
+    /// one need not be in memory. Only a remote cache's value is made whole in memory.
+    pub fn put_records_streamed(&self, key: &Key, len: u64, body: &StreamedBody<'_>) -> Result<(), Error> {
+        let path = self.records_path(key);
+        let err = |source| Error { path: path.clone(), source };
+        let mut hasher = blake3::Hasher::new();
+        body(&mut |b| {
+            hasher.update(b);
+            Ok(())
+        })
+        .map_err(err)?;
+        let sum = hasher.finalize();
+        if let Some(remote) = self.remote() {
+            let mut whole = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+            body(&mut |b| {
+                whole.extend_from_slice(b);
+                Ok(())
+            })
+            .map_err(err)?;
+            remote.store_from(key, &super::remote::Pieces(&[RECORD_MAGIC, sum.as_bytes(), &whole]));
+        }
+        crate::archive::output::write_with(&path, false, |f, _| {
+            let mut out = std::io::BufWriter::new(f);
+            out.write_all(RECORD_MAGIC)?;
+            out.write_all(sum.as_bytes())?;
+            body(&mut |b| out.write_all(b))?;
+            out.flush()
+        })
+        .map_err(err)
     }
 
     /// Replaces the records file under `key` with `body` (checksummed), atomically, in this
