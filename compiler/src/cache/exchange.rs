@@ -213,17 +213,17 @@ impl Cache {
 }
 
 impl Cache {
-    /// Stores the `entry` of `key`, encoded as the local pack holds it, to the remote (in
-    /// read-write mode), with the dictionary it names, once per build: a reader fetches the
-    /// dictionary when it first needs it ([`Cache::dict`]). An entry whose dictionary
-    /// cannot be stored is not stored either (no reader could decode it).
-    pub(super) fn put_remote_entry(&self, layer: &Layer, key: &Key, entry: &[u8]) {
+    /// The remote value of the `entry` of `key`, encoded as the local pack holds it, once
+    /// the remote holds the dictionary it names (stored once per build): a reader fetches
+    /// the dictionary when it first needs it ([`Cache::dict`]). `None` for an entry whose
+    /// dictionary cannot be stored (no reader could decode it).
+    pub(super) fn remote_value_for(&self, layer: &Layer, key: &Key, entry: &[u8]) -> Option<(Key, Vec<u8>)> {
         if let Ok(Some(id)) = codec::dictionary_of(entry) {
             if !self.share_dict(layer, &id) {
-                return;
+                return None;
             }
         }
-        layer.remote.put(key, &remote_value_of(key, entry));
+        Some((*key, remote_value_of(key, entry)))
     }
 
     /// Whether the dictionary the remote `entry` names, if any, is in this cache or fetched

@@ -119,7 +119,12 @@ impl Cache {
         let local = self.write_pack(entries, &encoded);
         // The entries as the pack holds them (compressed once, with the cache's dictionaries).
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
-            entries.par_iter().zip(&encoded).for_each(|((key, ..), entry)| self.put_remote_entry(layer, key, entry));
+            let values: Vec<(Key, Vec<u8>)> = entries
+                .iter()
+                .zip(&encoded)
+                .filter_map(|((key, ..), entry)| self.remote_value_for(layer, key, entry))
+                .collect();
+            layer.remote.put_each(&values);
         }
         local
     }
