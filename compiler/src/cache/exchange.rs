@@ -114,7 +114,10 @@ impl Cache {
                 // One entry at a time (a part is never held whole).
                 let mut value = Vec::new();
                 bundle::read_part(body, bundle.part(i), &mut value, |key, entry| {
-                    if wanted.binary_search(key).is_ok() && pack.push(key, entry).is_ok() {
+                    if wanted.binary_search(key).is_ok()
+                        && self.dictionary_at_hand(entry)
+                        && pack.push(key, entry).is_ok()
+                    {
                         mine.push(*key);
                     }
                 })
