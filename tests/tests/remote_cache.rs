@@ -1007,11 +1007,11 @@ fn a_shard_fetches_its_share_in_batches() {
 /// dictionary, which the remote then holds too: after two shards, an assembly on a fresh
 /// machine fetches their dictionaries, compiles nothing and writes the one-process archive.
 /// A damaged dictionary is refused (its content no longer hashes to its id): the entries
-/// that name it are compiled again, the archive's bytes unchanged.
-#[test]
-fn redis_entries_keep_their_cache_dictionaries() {
+/// that name it are compiled again (with HTTP, those of the assembly's bundle parts too),
+/// the archive's bytes unchanged.
+fn entries_keep_their_cache_dictionaries(kind: Kind) {
     const PERMUTATIONS: usize = 40 * scale_set::PER_MATERIAL;
-    let server = Server::start(Kind::Redis);
+    let server = Server::start(kind);
     let url = server.url();
     let reference = Machine::scale_of(PERMUTATIONS);
     let distinct = reference.build_with(RemoteCache::Disabled, None).stats.compiled;
@@ -1048,6 +1048,16 @@ fn redis_entries_keep_their_cache_dictionaries() {
     assert_eq!(r.stats.compiled, named, "{:?}", r.stats);
     assert_eq!(r.stats.compiled as u64 + r.stats.remote_hits, distinct as u64);
     assert_eq!(m.bytes(), reference.bytes());
+}
+
+#[test]
+fn redis_entries_keep_their_cache_dictionaries() {
+    entries_keep_their_cache_dictionaries(Kind::Redis);
+}
+
+#[test]
+fn http_entries_keep_their_cache_dictionaries() {
+    entries_keep_their_cache_dictionaries(Kind::Http);
 }
 
 /// The values of `server` that are bundle parts.
