@@ -362,6 +362,13 @@ impl Machine {
         Machine { dir, config }
     }
 
+    /// A machine building a generated set of about `permutations` permutations.
+    fn scale_of(permutations: usize) -> Machine {
+        let dir = tempfile::tempdir().unwrap();
+        let (config, _) = scale_set::write(&dir.path().join("set"), permutations);
+        Machine { dir, config }
+    }
+
     fn archive(&self) -> PathBuf {
         self.dir.path().join("shaders.kpak")
     }
@@ -994,6 +1001,63 @@ fn a_shard_fetches_its_share_in_batches() {
     assert!(calls("mget") >= 1, "{info}");
     // One GET: the preprocessing records.
     assert!(calls("get") <= 1, "{info}");
+}
+
+/// Entries go to the remote as the local cache holds them, compressed with the cache's
+/// dictionary, which the remote then holds too: after two shards, an assembly on a fresh
+/// machine fetches their dictionaries, compiles nothing and writes the one-process archive.
+/// A damaged dictionary is refused (its content no longer hashes to its id): the entries
+/// that name it are compiled again (with HTTP, those of the assembly's bundle parts too),
+/// the archive's bytes unchanged.
+fn entries_keep_their_cache_dictionaries(kind: Kind) {
+    const PERMUTATIONS: usize = 40 * scale_set::PER_MATERIAL;
+    let server = Server::start(kind);
+    let url = server.url();
+    let reference = Machine::scale_of(PERMUTATIONS);
+    let distinct = reference.build_with(RemoteCache::Disabled, None).stats.compiled;
+    for index in 0..2 {
+        let m = Machine::scale_of(PERMUTATIONS);
+        let mut o = m.options(RemoteCache::Url(url.clone()), None);
+        o.output = None;
+        o.shard = Some(build::Shard { index, count: 2 });
+        let _env = ENV.read().unwrap_or_else(|e| e.into_inner());
+        let r = build_ok(&o);
+        assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
+    }
+    let dicts: Vec<String> = server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNCD\0\x01")).collect();
+    assert!(!dicts.is_empty(), "the shards trained dictionaries and stored them");
+    // Remote header 24, then the entry's magic, checksum, key and raw length: its dictionary id.
+    let named = server.entries().iter().filter(|k| server.get(k)[24 + 80..24 + 96] != [0; 16]).count();
+    assert!(named > 0, "entries name a dictionary");
+
+    let m = Machine::scale_of(PERMUTATIONS);
+    let r = m.build(&url);
+    assert_eq!((r.stats.compiled, r.stats.remote_hits), (0, distinct as u64), "{:?}", r.warnings);
+    assert!(r.warnings.is_empty(), "{:?}", r.warnings);
+    assert_eq!(m.bytes(), reference.bytes());
+    let kept = std::fs::read_dir(m.dir.path().join("cache")).unwrap();
+    assert!(kept.filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "kcd")).count() >= 1);
+
+    for d in &dicts {
+        let mut value = server.get(d);
+        *value.last_mut().unwrap() ^= 1;
+        server.set(d, &value);
+    }
+    let m = Machine::scale_of(PERMUTATIONS);
+    let r = m.build_with(RemoteCache::Url(url), Some(RemoteMode::Read));
+    assert_eq!(r.stats.compiled, named, "{:?}", r.stats);
+    assert_eq!(r.stats.compiled as u64 + r.stats.remote_hits, distinct as u64);
+    assert_eq!(m.bytes(), reference.bytes());
+}
+
+#[test]
+fn redis_entries_keep_their_cache_dictionaries() {
+    entries_keep_their_cache_dictionaries(Kind::Redis);
+}
+
+#[test]
+fn http_entries_keep_their_cache_dictionaries() {
+    entries_keep_their_cache_dictionaries(Kind::Http);
 }
 
 /// The values of `server` that are bundle parts.

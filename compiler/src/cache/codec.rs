@@ -18,8 +18,9 @@
 //! the cache folder as `<id>.kcd` (magic, kind length (u8), kind, dictionary) and used by
 //! every later pack; entries name it by its id (a prefix of the blake3 of its kind and
 //! bytes), so an entry whose dictionary is gone fails to decode and is recompiled. `gc`
-//! keeps dictionaries (they are small), `clear` removes them. Remote values and bundle
-//! parts never use a dictionary (another machine lacks it).
+//! keeps dictionaries (they are small), `clear` removes them. Remote values are entries as
+//! a pack holds them: the remote holds the dictionaries they name too, and a cache that
+//! reads one fetches its dictionary into its folder (see `exchange.rs`).
 //!
 //! Layout: [`MAGIC`], the entry's checksum (a blake3, as version 2's: blake3 of the
 //! uncompressed body with each artifact replaced by its blake3), the key (32), the length of
@@ -97,8 +98,11 @@ impl Dict {
     fn ddict(&self) -> Option<&DDict<'static>> {
         self.ddict.get_or_init(|| DDict::try_create(&self.bytes)).as_ref()
     }
+    pub(super) fn id(&self) -> &[u8; 16] {
+        &self.id
+    }
     /// The file's content: magic, kind length (u8), kind, dictionary.
-    fn file_bytes(&self) -> Vec<u8> {
+    pub(super) fn file_bytes(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(9 + self.kind.len() + self.bytes.len());
         out.extend_from_slice(DICT_MAGIC);
         out.push(self.kind.len() as u8);
@@ -123,14 +127,19 @@ pub(super) fn dict_file_name(id: &[u8; 16]) -> String {
 
 /// The dictionary in the file at `path`, if whole (its id is the hash of its content).
 fn read_dict(path: &Path) -> Option<Dict> {
-    let bytes = std::fs::read(path).ok()?;
+    let d = parse_dict(&std::fs::read(path).ok()?)?;
+    (path.file_name()?.to_str()? == dict_file_name(&d.id)).then_some(d)
+}
+
+/// The dictionary a file's content ([`Dict::file_bytes`]) holds; its id is the hash of its
+/// kind and bytes, so a caller that expects an id tells a damaged one by comparing them.
+pub(super) fn parse_dict(bytes: &[u8]) -> Option<Dict> {
     if bytes.len() < 9 || &bytes[..8] != DICT_MAGIC {
         return None;
     }
     let n = bytes[8] as usize;
     let kind = std::str::from_utf8(bytes.get(9..9 + n)?).ok()?;
-    let d = Dict::new(kind, bytes[9 + n..].to_vec());
-    (path.file_name()?.to_str()? == dict_file_name(&d.id)).then_some(d)
+    Some(Dict::new(kind, bytes[9 + n..].to_vec()))
 }
 
 /// The dictionaries of a cache folder, read when first needed.
@@ -204,6 +213,13 @@ impl Dicts {
         let before = *n;
         *n += more;
         before
+    }
+
+    /// Keeps a dictionary fetched from elsewhere (the remote cache) for reading entries that
+    /// name it; it is not used to write, unless the folder's files hold it.
+    pub(super) fn keep(&self, d: Dict) -> Arc<Dict> {
+        let mut state = self.state.lock().expect("no panics while locked");
+        state.by_id.entry(d.id).or_insert_with(|| Arc::new(d)).clone()
     }
 
     /// Keeps a newly trained dictionary (written to `dir` by the caller first).
@@ -433,11 +449,16 @@ pub(super) fn raw_len(header: &[u8]) -> Option<u64> {
     (header.len() >= HEADER && is_compressed(header)).then(|| u64::from_le_bytes(header[72..80].try_into().unwrap()))
 }
 
-/// Whether the compressed entry `bytes` names a dictionary (it cannot leave this cache as
-/// it is).
+/// Whether the compressed entry `bytes` names a dictionary.
+#[cfg(test)]
 pub(super) fn uses_dictionary(bytes: &[u8]) -> Result<bool, String> {
-    let id = bytes.get(HEADER..HEADER + 16).ok_or("entry is truncated")?;
-    Ok(id != NO_DICT)
+    Ok(dictionary_of(bytes)?.is_some())
+}
+
+/// The id of the dictionary the compressed entry `bytes` names, if any.
+pub(super) fn dictionary_of(bytes: &[u8]) -> Result<Option<[u8; 16]>, String> {
+    let id: [u8; 16] = bytes.get(HEADER..HEADER + 16).ok_or("entry is truncated")?.try_into().expect("16 bytes");
+    Ok((id != NO_DICT).then_some(id))
 }
 
 /// The artifacts' blake3 a version 4 entry stores after its dictionary id, and where its

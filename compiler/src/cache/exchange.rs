@@ -70,7 +70,8 @@ impl Cache {
             };
             // The value's one checksum (one blake3 of the whole value, several times faster
             // than one per artifact); the entry's own is checked when the build uses it.
-            let Ok(entry) = remote_entry(key, bytes) else {
+            // An entry whose dictionary cannot be had is as good as damaged.
+            let Some(entry) = remote_entry(key, bytes).ok().filter(|e| self.dictionary_at_hand(e)) else {
                 // Looked up again by the build, which reports it and recompiles.
                 complete.store(false, Ordering::Relaxed);
                 return;
@@ -113,7 +114,10 @@ impl Cache {
                 // One entry at a time (a part is never held whole).
                 let mut value = Vec::new();
                 bundle::read_part(body, bundle.part(i), &mut value, |key, entry| {
-                    if wanted.binary_search(key).is_ok() && pack.push(key, entry).is_ok() {
+                    if wanted.binary_search(key).is_ok()
+                        && self.dictionary_at_hand(entry)
+                        && pack.push(key, entry).is_ok()
+                    {
                         mine.push(*key);
                     }
                 })
@@ -174,8 +178,14 @@ impl Cache {
             out.truncate(start);
             return false;
         }
-        // An entry compressed with this cache's dictionaries goes out without them.
-        if codec::is_compressed(&out[start..]) && codec::uses_dictionary(&out[start..]) != Ok(false) {
+        // An entry compressed with one of this cache's dictionaries goes out as it is once the
+        // remote holds the dictionary, else without it.
+        let shared = match codec::is_compressed(&out[start..]).then(|| codec::dictionary_of(&out[start..])) {
+            None | Some(Ok(None)) => true,
+            Some(Ok(Some(id))) => self.remote.as_ref().is_some_and(|layer| self.share_dict(layer, &id)),
+            Some(Err(_)) => false,
+        };
+        if !shared {
             let portable = codec::decode(key, &out[start..], &|id| self.dicts.get(&self.dir, id))
                 .map(|(c, hashes)| codec::encode(key, &c, &hashes, &HashMap::new()));
             out.truncate(start);
@@ -202,5 +212,70 @@ impl Cache {
                 index.add(Arc::new(pack), rows);
             }
         }
+    }
+}
+
+impl Cache {
+    /// The remote value of the `entry` of `key`, encoded as the local pack holds it, once
+    /// the remote holds the dictionary it names (stored once per build): a reader fetches
+    /// the dictionary when it first needs it ([`Cache::dict`]). `None` for an entry whose
+    /// dictionary cannot be stored (no reader could decode it).
+    pub(super) fn remote_value_for(&self, layer: &Layer, key: &Key, entry: &[u8]) -> Option<(Key, Vec<u8>)> {
+        if let Ok(Some(id)) = codec::dictionary_of(entry) {
+            if !self.share_dict(layer, &id) {
+                return None;
+            }
+        }
+        Some((*key, remote_value_of(key, entry)))
+    }
+
+    /// Whether the dictionary the remote `entry` names, if any, is in this cache or fetched
+    /// from the remote into it.
+    fn dictionary_at_hand(&self, entry: &[u8]) -> bool {
+        match codec::dictionary_of(entry) {
+            Ok(Some(id)) => self.dict(&id).is_ok(),
+            Ok(None) => true,
+            Err(_) => !codec::is_compressed(entry),
+        }
+    }
+
+    /// Whether the remote holds the dictionary `id` of this cache: stored by this build
+    /// (once), or found there.
+    pub(super) fn share_dict(&self, layer: &Layer, id: &[u8; 16]) -> bool {
+        let mut shared = layer.dicts_shared.lock().expect("no panics while locked");
+        if shared.contains(id) {
+            return true;
+        }
+        let Ok(d) = self.dicts.get(&self.dir, id) else { return false };
+        let stored = layer.remote.store(&remote_dict_key(id), &d.file_bytes());
+        if stored {
+            shared.insert(*id);
+        }
+        stored
+    }
+
+    /// The dictionary `id`: the folder's, else the remote's (an entry a remote fill brought
+    /// names the dictionary of the cache that compiled it), checked against its id and then
+    /// written into the folder for later builds (held in memory only, when it cannot be).
+    pub(super) fn dict(&self, id: &[u8; 16]) -> Result<Arc<codec::Dict>, String> {
+        let local = self.dicts.get(&self.dir, id);
+        let Some(layer) = self.remote.as_ref().filter(|_| local.is_err()) else { return local };
+        let _one = layer.dict_fetch.lock().expect("no panics while locked");
+        // Fetched by another worker meanwhile.
+        if let Ok(d) = self.dicts.get(&self.dir, id) {
+            return Ok(d);
+        }
+        let rkey = remote_dict_key(id);
+        if layer.absent.lock().expect("no panics while locked").contains(&rkey) {
+            return local;
+        }
+        let Some(d) = layer.remote.get(&rkey).and_then(|bytes| codec::parse_dict(&bytes)).filter(|d| d.id() == id)
+        else {
+            layer.absent.lock().expect("no panics while locked").insert(rkey);
+            return local;
+        };
+        let _ = self.write_file(&self.dir.join(codec::dict_file_name(id)), &d.file_bytes());
+        layer.dicts_shared.lock().expect("no panics while locked").insert(*id);
+        Ok(self.dicts.keep(d))
     }
 }

@@ -60,7 +60,7 @@ impl Cache {
     /// [`Cache::decode`], and the blake3 of each artifact (its checksum is made of them).
     pub(super) fn decode_hashed(&self, key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
         if codec::is_compressed(bytes) {
-            return codec::decode(key, bytes, &|id| self.dicts.get(&self.dir, id));
+            return codec::decode(key, bytes, &|id| self.dict(id));
         }
         decode_v2_hashed(key, bytes, None)
     }
@@ -116,25 +116,28 @@ impl Cache {
             let pending = layer.fills.lock().expect("no panics while locked").take();
             self.finish_fills(pending);
         }
-        let local = self.write_pack(entries, packing);
+        if entries.is_empty() {
+            return Ok(());
+        }
+        let encoded = self.encode_entries(entries, packing);
+        let local = self.write_pack(entries, &encoded);
+        // The entries as the pack holds them (compressed once, with the cache's dictionaries).
         if let Some(layer) = self.remote.as_ref().filter(|l| l.remote.writes()) {
-            entries.par_iter().for_each(|(key, c, hashes)| layer.remote.put(key, &remote_value(key, c, hashes)));
+            let values: Vec<(Key, Vec<u8>)> = entries
+                .iter()
+                .zip(&encoded)
+                .filter_map(|((key, ..), entry)| self.remote_value_for(layer, key, entry))
+                .collect();
+            layer.remote.put_each(&values);
         }
         local
     }
 
-    /// Writes `entries` as one pack, each entry compressed ([`codec`]; a dictionary is
-    /// trained first for each kind the cache has none of, when `entries` hold enough of it),
-    /// or stored ([`Packing::Stored`]: neither compressed nor counted towards a dictionary).
-    pub(super) fn write_pack(
-        &self,
-        entries: &[(Key, &Compiled, &[blake3::Hash])],
-        packing: Packing,
-    ) -> Result<(), Error> {
-        if entries.is_empty() {
-            return Ok(());
-        }
-        let encoded: Vec<Vec<u8>> = match packing {
+    /// `entries` as a pack holds them: compressed ([`codec`]; a dictionary is trained first
+    /// for each kind the cache has none of, when `entries` hold enough of it), or stored
+    /// ([`Packing::Stored`]: neither compressed nor counted towards a dictionary).
+    fn encode_entries(&self, entries: &[(Key, &Compiled, &[blake3::Hash])], packing: Packing) -> Vec<Vec<u8>> {
+        match packing {
             Packing::Stored => {
                 entries.par_iter().map(|(key, c, hashes)| codec::encode_stored(key, c, hashes)).collect()
             }
@@ -144,11 +147,15 @@ impl Cache {
                 let dicts = codec::dictionaries_for(&self.dicts, &self.dir, files, entries, write);
                 entries.par_iter().map(|(key, c, hashes)| codec::encode(key, c, hashes, &dicts)).collect()
             }
-        };
+        }
+    }
+
+    /// Writes `entries`, `encoded` by [`Cache::encode_entries`], as one pack.
+    fn write_pack(&self, entries: &[(Key, &Compiled, &[blake3::Hash])], encoded: &[Vec<u8>]) -> Result<(), Error> {
         let count = entries.len();
         let mut rows = Vec::with_capacity(count * ROW);
         let mut offset = (PACK_HEADER + count * ROW) as u64;
-        for (key, entry) in entries.iter().map(|e| e.0).zip(&encoded) {
+        for (key, entry) in entries.iter().map(|e| e.0).zip(encoded) {
             rows.extend_from_slice(&key.0);
             rows.extend_from_slice(&offset.to_le_bytes());
             rows.extend_from_slice(&(entry.len() as u64).to_le_bytes());
@@ -159,7 +166,7 @@ impl Cache {
         // Named by content: two builds writing the same pack rename one over the other.
         let mut name = blake3::Hasher::new();
         name.update(rows_hash.as_bytes());
-        for entry in &encoded {
+        for entry in encoded {
             name.update(&entry[8..40]);
         }
         let path = self.dir.join(format!("{}.{PACK_EXTENSION}", &name.finalize().to_hex()[..32]));

@@ -76,9 +76,11 @@ const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
 /// A remote cache value ([`remote_value`]); its header: magic, xxh3-128 of its key and entry.
-/// Version 3 holds a compressed entry ([`codec`], without dictionaries); version 2 values
-/// (uncompressed entries) are still read.
-const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x03";
+/// Version 4 holds a compressed entry ([`codec`]) as the writer's local cache holds it: with
+/// a dictionary, which the remote then holds too ([`remote_dict_key`]). Versions 3 (a
+/// compressed entry without a dictionary) and 2 (an uncompressed entry) are still read.
+const REMOTE_MAGIC: &[u8; 8] = b"KILNCER\x04";
+const REMOTE_MAGIC_V3: &[u8; 8] = b"KILNCER\x03";
 const REMOTE_MAGIC_V2: &[u8; 8] = b"KILNCER\x02";
 const REMOTE_HEADER: usize = 8 + 16;
 const RECORD_EXTENSION: &str = "kpp";
@@ -353,6 +355,12 @@ struct Layer {
     /// when read (`None`: not read), kept for [`Cache::put_bundle`] while a part is not
     /// known whole and this build writes.
     bundle: Mutex<Option<(bundle::Bundle, Vec<Option<bool>>)>>,
+    /// The dictionaries this build stored to the remote (or found there), by id: each is
+    /// stored once, before the first value that names it.
+    dicts_shared: Mutex<HashSet<[u8; 16]>>,
+    /// Held while a dictionary is fetched: the first entries that name it are decoded by
+    /// several workers at once, and one fetch serves them all.
+    dict_fetch: Mutex<()>,
 }
 
 impl Cache {
@@ -404,6 +412,8 @@ impl Cache {
             fills: Mutex::default(),
             absent: Mutex::default(),
             bundle: Mutex::default(),
+            dicts_shared: Mutex::default(),
+            dict_fetch: Mutex::default(),
         }));
         self
     }
@@ -669,21 +679,34 @@ fn encode_hashed(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
 }
 
 /// A remote cache value: [`REMOTE_MAGIC`], the xxh3-128 of the key and the entry, the entry
-/// (as a pack holds it). The value's checksum guards against damage and truncation (not
+/// (as a pack holds it, compressed once for both). The value's checksum guards against damage and truncation (not
 /// against a hostile server, which could write any value under any key whatever the hash):
 /// one pass of a non-cryptographic hash over a whole buffer, which a fill checks many
 /// times faster than a blake3 (a blake3 of every entry was a large share of a warm-remote
 /// build's CPU). The entry's own checksum (blake3) is checked when the entry
 /// is used.
+#[cfg(test)]
 fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
-    let entry = codec::encode(key, c, hashes, &HashMap::new());
+    remote_value_of(key, &codec::encode(key, c, hashes, &HashMap::new()))
+}
+
+/// The remote value of the encoded `entry` of `key` ([`remote_value`]).
+fn remote_value_of(key: &Key, entry: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(REMOTE_HEADER + entry.len());
     out.extend_from_slice(REMOTE_MAGIC);
-    out.extend_from_slice(&[0; REMOTE_HEADER - 8]);
-    out.extend_from_slice(&entry);
-    let sum = remote_checksum(key, &out[REMOTE_HEADER..]);
-    out[8..REMOTE_HEADER].copy_from_slice(&sum);
+    out.extend_from_slice(&remote_checksum(key, entry));
+    out.extend_from_slice(entry);
     out
+}
+
+/// The remote key of the cache dictionary `id`: its value is the dictionary's file
+/// ([`codec`]), whose content hashes to `id`, so a reader checks it against the id it asked
+/// for.
+fn remote_dict_key(id: &[u8; 16]) -> Key {
+    let mut h = blake3::Hasher::new();
+    h.update(b"kiln remote cache dictionary v1\0");
+    h.update(id);
+    Key(*h.finalize().as_bytes())
 }
 
 /// The checksum of a remote value: xxh3-128 of `key` then `entry`.
@@ -697,7 +720,8 @@ fn remote_checksum(key: &Key, entry: &[u8]) -> [u8; 16] {
 /// The entry of a whole remote `value` of `key` ([`remote_value`]): its checksum matches and
 /// it is an entry of `key` (magic, length and key; its own checksum is not checked here).
 fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
-    if value.len() < REMOTE_HEADER || (&value[..8] != REMOTE_MAGIC && &value[..8] != REMOTE_MAGIC_V2) {
+    let magic = value.get(..8).unwrap_or_default();
+    if value.len() < REMOTE_HEADER || ![REMOTE_MAGIC, REMOTE_MAGIC_V3, REMOTE_MAGIC_V2].iter().any(|m| magic == *m) {
         return Err("not a remote cache entry of this kiln".into());
     }
     let entry = &value[REMOTE_HEADER..];

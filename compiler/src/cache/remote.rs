@@ -750,19 +750,45 @@ impl Remote {
         }
     }
 
+    /// [`Remote::put`] of each of `entries` (key, value): with redis, [`BATCH`] `SET`s sent
+    /// at once, then their replies read (one round trip rather than one per entry, which a
+    /// shard compiling on one thread waited for one by one); with HTTP, one `PUT` each.
+    pub fn put_each(&self, entries: &[(Key, Vec<u8>)]) {
+        let Store::Redis(r) = &self.store else {
+            entries.iter().for_each(|(key, value)| self.put(key, value));
+            return;
+        };
+        for batch in entries.chunks(BATCH) {
+            if !self.writes() {
+                return;
+            }
+            let signed: Vec<std::borrow::Cow<'_, [u8]>> =
+                batch.iter().map(|(key, value)| self.signed(key, value)).collect();
+            let values: Vec<(&Key, &[u8])> = batch.iter().map(|(k, _)| k).zip(signed.iter().map(|v| &v[..])).collect();
+            match self.retry(|| r.put_many(&values)) {
+                Ok(()) => {
+                    self.writes.fetch_add(batch.len() as u64, Ordering::Relaxed);
+                }
+                Err(f) => self.fail("writing to", f),
+            }
+        }
+    }
+
+    /// `value` as stored under `key`: behind a MAC with `KILN_REMOTE_CACHE_KEY`.
+    fn signed<'v>(&self, key: &Key, value: &'v [u8]) -> std::borrow::Cow<'v, [u8]> {
+        match &self.key {
+            Some(k) => [&SIGNED_MAGIC[..], &mac(k, key, value), value].concat().into(),
+            None => value.into(),
+        }
+    }
+
     /// [`Remote::put`] of a value that is not a compiled entry (not counted in the stats).
     pub(crate) fn store(&self, key: &Key, value: &[u8]) -> bool {
         if !self.writes() {
             return false;
         }
-        let signed;
-        let value = match &self.key {
-            Some(k) => {
-                signed = [&SIGNED_MAGIC[..], &mac(k, key, value), value].concat();
-                &signed[..]
-            }
-            None => value,
-        };
+        let signed = self.signed(key, value);
+        let value = &signed[..];
         match self.retry(|| match &self.store {
             Store::Redis(r) => r.put(key, value),
             Store::Http(h) => h.put(key, value),
@@ -949,6 +975,12 @@ impl RedisStore {
         self.with_connection(|c| c.set(&Self::name(key), value))
     }
 
+    /// `SET` of each of `values`, pipelined on one connection.
+    fn put_many(&self, values: &[(&Key, &[u8])]) -> Result<(), Fault> {
+        let named: Vec<(String, &[u8])> = values.iter().map(|(k, v)| (Self::name(k), *v)).collect();
+        self.with_connection(|c| c.set_many(&named))
+    }
+
     /// `GET` of `key`, its value to `push` in pieces: whether it was there.
     fn get_to(&self, key: &Key, limit: u64, push: &mut dyn FnMut(&[u8]) -> std::io::Result<()>) -> Result<bool, Fault> {
         self.with_connection(|c| c.get_to(&Self::name(key), limit, push))
@@ -1089,6 +1121,17 @@ impl RawRedis {
         self.within("SET", value.len() as u64, |c| {
             c.send(&[b"SET", name.as_bytes(), value])?;
             c.expect_ok("SET")
+        })
+    }
+
+    /// `SET` of each (name, value), every command sent before the first reply is read.
+    fn set_many(&mut self, values: &[(String, &[u8])]) -> Result<(), Fault> {
+        let sending = values.iter().map(|(_, v)| v.len() as u64).sum();
+        self.within("SET", sending, |c| {
+            for (name, value) in values {
+                c.send(&[b"SET", name.as_bytes(), value])?;
+            }
+            values.iter().try_for_each(|_| c.expect_ok("SET"))
         })
     }
 
