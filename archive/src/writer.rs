@@ -824,7 +824,7 @@ impl StreamingWriter {
     /// [`StreamingWriter::add_blob_hashed`], giving the blob's number in this writer (4
     /// bytes to keep instead of its hash, for [`StreamingWriter::add_permutation_numbered`]).
     /// A blob the archive being replaced holds intact is added by reference: its bytes are
-    /// not spooled ([`Previous`]).
+    /// not spooled, but copied from that archive when this one is written.
     pub fn add_blob_numbered(&self, bytes: &[u8], hash: blake3::Hash) -> Result<u32, ArchiveError> {
         debug_assert_eq!(hash, blake3::hash(bytes));
         let fail = |source| {
