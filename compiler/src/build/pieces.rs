@@ -46,9 +46,12 @@ struct Piece {
 }
 
 impl Pieces {
-    /// The pieces of a plan of `len` permutations, for `shard`.
+    /// The pieces of a plan of `len` permutations, for `shard`: of [`PIECE`] permutations,
+    /// or `KILN_RECORD_PIECE`'s number (for tests: a small set in several pieces). Shards
+    /// that share pieces must cut them alike: the size is in each piece's key.
     pub fn new(len: usize, shard: &Shard, records_key: Key) -> Pieces {
-        Pieces::with_size(len, shard, records_key, PIECE)
+        let size = std::env::var("KILN_RECORD_PIECE").ok().and_then(|v| v.parse().ok()).filter(|&n: &usize| n > 0);
+        Pieces::with_size(len, shard, records_key, size.unwrap_or(PIECE))
     }
 
     fn with_size(len: usize, shard: &Shard, records_key: Key, size: usize) -> Pieces {
@@ -76,8 +79,7 @@ impl Pieces {
 
     /// The key of piece `n`'s records: the whole set's key, the cut and the piece.
     pub fn key(&self, n: usize) -> Key {
-        let inputs =
-            format!("kiln records piece v1\n{}\n{}\n{}\n{n}", self.records_key.to_hex(), self.size, self.len);
+        let inputs = format!("kiln records piece v1\n{}\n{}\n{}\n{n}", self.records_key.to_hex(), self.size, self.len);
         Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
     }
 

@@ -594,7 +594,8 @@ mod tests {
     fn small_encoding_reads_like_the_large_one() {
         let mut i = Interner::default();
         let files = vec![(PathBuf::from("/a/b.ush"), [7; 32])];
-        let mut rows: Vec<(Direct, Row)> = (0..9u8).rev().map(|k| ([k % 5; 16], row(&mut i, k, files.clone()))).collect();
+        let mut rows: Vec<(Direct, Row)> =
+            (0..9u8).rev().map(|k| ([k % 5; 16], row(&mut i, k, files.clone()))).collect();
         rows.push(([200; 16], row(&mut i, 9, vec![(PathBuf::from("/usr/x.ush"), [1; 32])])));
         let small = encode_small(rows.clone(), &i, Path::new("/a"));
         assert_eq!(small, encode_all(&rows, &i, Path::new("/a")), "the same bytes as the external sort's");
