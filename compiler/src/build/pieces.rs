@@ -74,7 +74,7 @@ impl Pieces {
 
     /// The piece that `i` starts, if it starts one.
     pub fn starts(&self, i: usize) -> Option<usize> {
-        (i % self.size == 0).then_some(i / self.size)
+        i.is_multiple_of(self.size).then_some(i / self.size)
     }
 
     /// The key of piece `n`'s records: the whole set's key, the cut and the piece.
