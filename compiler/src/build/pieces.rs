@@ -6,8 +6,11 @@
 //! of permutations; each piece's records are stored in the remote cache under a key of
 //! their own as soon as the piece is done, and a shard looks for a piece there before
 //! preprocessing it. Each shard starts at another piece (spread so that two shards run
-//! one after the other, `2k` and `2k + 1`, start half the set apart) and goes round, so
-//! that shards running together each preprocess their own part and fetch the others'.
+//! one after the other, `2k` and `2k + 1`, start half the set apart), takes half the pieces
+//! forward from there, then the others backward from the piece before its first: two
+//! shards running together each preprocess their own half and, where one is faster, meet
+//! the other inside its half rather than trailing it (which would preprocess every piece
+//! it reaches twice).
 //! A piece that is missing, damaged (its checksum) or whose records do not hold is
 //! preprocessed: pieces only skip work, they never decide a result.
 
@@ -26,8 +29,10 @@ const PIECE: usize = 4096;
 
 pub(super) struct Pieces {
     size: usize,
-    /// The first permutation this shard takes (its first piece's).
-    start: usize,
+    /// The pieces in the order this shard takes them.
+    sequence: Vec<usize>,
+    /// Where each piece's first permutation comes in that order.
+    offset: Vec<usize>,
     /// How many permutations the plan holds.
     len: usize,
     /// The key of the configuration's whole set of records.
@@ -56,20 +61,40 @@ impl Pieces {
 
     fn with_size(len: usize, shard: &Shard, records_key: Key, size: usize) -> Pieces {
         let count = len.div_ceil(size);
-        let start = spread(shard.index, shard.count, count) * size;
+        let start = spread(shard.index, shard.count, count);
+        let forward = count.div_ceil(2);
+        let sequence: Vec<usize> = (0..forward)
+            .map(|k| (start + k) % count)
+            .chain((1..=count - forward).map(|k| (start + count - k) % count))
+            .collect();
+        let mut offset = vec![0; count];
+        let mut at = 0;
+        for &p in &sequence {
+            offset[p] = at;
+            at += ((p + 1) * size).min(len) - p * size;
+        }
         let pieces = (0..count).map(|_| Piece::default()).collect();
-        Pieces { size, start, len, records_key, pieces }
+        Pieces { size, sequence, offset, len, records_key, pieces }
     }
 
-    /// The order in which this shard takes the permutations: from its first piece on,
-    /// round to the one before it.
+    /// The order in which this shard takes the permutations: piece by piece (see the
+    /// module's documentation), each piece's in plan order.
     pub fn order(&self) -> impl Iterator<Item = usize> + Send + use<> {
-        (self.start..self.len).chain(0..self.start)
+        let (size, len) = (self.size, self.len);
+        self.sequence.clone().into_iter().flat_map(move |p| p * size..((p + 1) * size).min(len))
     }
 
     /// Where permutation `i` comes in [`Pieces::order`].
     pub fn position(&self, i: usize) -> usize {
-        (i + self.len - self.start) % self.len.max(1)
+        self.offset.get(i / self.size).map_or(i, |o| o + i % self.size)
+    }
+
+    /// One past the position of the last permutation of `run` taken: the end of one of its
+    /// parts in a piece (within a piece they are taken in order).
+    pub fn run_end(&self, run: Range<usize>) -> usize {
+        let size = self.size;
+        let ends = (run.start / size + 1..run.end.div_ceil(size)).map(|p| p * size).chain([run.end]);
+        ends.map(|end| self.position(end - 1) + 1).max().unwrap_or(0)
     }
 
     /// The piece that `i` starts, if it starts one.
@@ -137,6 +162,11 @@ mod tests {
         let order: Vec<usize> = p.order().collect();
         assert_eq!(order, [4, 5, 6, 7, 8, 9, 0, 1, 2, 3]);
         assert!(order.iter().enumerate().all(|(n, &i)| p.position(i) == n));
+        assert_eq!(p.run_end(2..6), 10, "the part in piece 0 is taken last");
+        assert_eq!(p.run_end(4..6), 2);
+        let other = Pieces::with_size(10, &Shard { index: 0, count: 2 }, Key([1; 32]), 2);
+        assert_eq!(other.order().collect::<Vec<_>>(), [0, 1, 2, 3, 4, 5, 8, 9, 6, 7], "half forward, half back");
+        assert_eq!((other.run_end(5..10), other.run_end(8..10)), (10, 8));
         assert_eq!(p.starts(8), Some(2));
         assert_eq!(p.starts(9), None);
         p.found(0, Records::default());

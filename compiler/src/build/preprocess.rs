@@ -276,7 +276,7 @@ impl<'p> Preprocessor<'p> {
         let order = Mutex::new(order.enumerate());
         let of: Vec<AtomicU32> = (0..plan.len()).map(|_| AtomicU32::new(FAILED)).collect();
         let errors = Mutex::new(Vec::new());
-        self.reuse.plan_ends(plan, &position);
+        self.reuse.plan_ends(plan, &|run| pieces.map_or(run.end, |p| p.run_end(run)));
         rayon::scope(|s| {
             for _ in 0..rayon::current_num_threads() {
                 s.spawn(|_| loop {
@@ -735,16 +735,13 @@ type GroupEnds = (Vec<(usize, GroupName)>, HashSet<GroupName>);
 type GroupName = (String, String);
 
 impl Reuse {
-    /// Each group's end in `plan`, as a `position` in the order permutations are taken
-    /// (one past the last taken): a run that the order splits (it starts part way through)
-    /// ends with the order.
-    fn plan_ends(&self, plan: &Plan<'_>, position: &dyn Fn(usize) -> usize) {
+    /// Each group's end in `plan`, as a position in the order permutations are taken: one
+    /// past its last taken (`run_end` of each of its runs).
+    fn plan_ends(&self, plan: &Plan<'_>, run_end: &dyn Fn(std::ops::Range<usize>) -> usize) {
         let mut last: HashMap<GroupName, usize> = HashMap::new();
         for (shader, level, range) in plan.runs().filter(|r| !r.2.is_empty()) {
-            let (first, last_taken) = (position(range.start), position(range.end - 1));
-            let run_end = if first <= last_taken { last_taken + 1 } else { plan.len() };
             let end = last.entry((shader.name.clone(), level.name.clone())).or_default();
-            *end = (*end).max(run_end);
+            *end = (*end).max(run_end(range));
         }
         let mut ends: Vec<(usize, GroupName)> = last.into_iter().map(|(g, end)| (end, g)).collect();
         ends.sort_unstable_by(|a, b| b.cmp(a));
