@@ -33,7 +33,8 @@ static ENV: RwLock<()> = RwLock::new(());
 /// removed on drop, a failing test included.
 struct Env(#[allow(dead_code)] std::sync::RwLockWriteGuard<'static, ()>);
 
-const VARIABLES: [&str; 6] = [
+const VARIABLES: [&str; 7] = [
+    "KILN_RECORD_PIECE",
     "KILN_REMOTE_CACHE",
     "KILN_REMOTE_CACHE_KEY",
     "KILN_REMOTE_CACHE_MODE",
@@ -387,6 +388,11 @@ impl Machine {
     fn build_with(&self, remote: RemoteCache, mode: Option<RemoteMode>) -> Report {
         let _env = ENV.read().unwrap_or_else(|e| e.into_inner());
         build_ok(&self.options(remote, mode))
+    }
+
+    /// [`Machine::build_with`] for a test that holds [`Env`] already.
+    fn build_ok_locked(&self, remote: RemoteCache) -> Report {
+        build_ok(&self.options(remote, None))
     }
 
     fn bytes(&self) -> Vec<u8> {
@@ -1001,6 +1007,59 @@ fn a_shard_fetches_its_share_in_batches() {
     assert!(calls("mget") >= 1, "{info}");
     // One GET: the preprocessing records.
     assert!(calls("get") <= 1, "{info}");
+}
+
+/// Shards that find no preprocessing records share preprocessing by pieces: a shard stores
+/// each piece's records as it finishes it, and a shard on a fresh machine (the whole set
+/// gone from the remote) preprocesses nothing the pieces hold, takes the same share, and the
+/// assembly's archive is the one-process archive. A damaged piece is preprocessed again.
+#[test]
+fn shards_share_preprocessing_by_pieces() {
+    const PERMUTATIONS: usize = 8 * scale_set::PER_MATERIAL;
+    let env = Env::lock();
+    env.set("KILN_RECORD_PIECE", "16");
+    let server = Server::start(Kind::Redis);
+    let url = server.url();
+    let reference = Machine::scale_of(PERMUTATIONS);
+    reference.build_ok_locked(RemoteCache::Disabled);
+    let shard = |index: usize| {
+        let m = Machine::scale_of(PERMUTATIONS);
+        let mut o = m.options(RemoteCache::Url(url.clone()), None);
+        o.output = None;
+        o.shard = Some(build::Shard { index, count: 2 });
+        let r = build_ok(&o);
+        assert!(remote_warnings(&r).is_empty(), "{:?}", r.warnings);
+        r
+    };
+    let records =
+        || -> Vec<String> { server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNPP")).collect() };
+    // The whole set is the largest records value; forgetting it leaves the pieces alone.
+    let forget_whole = || {
+        let whole = records().into_iter().max_by_key(|k| server.get(k).len()).unwrap();
+        let () = redis::cmd("DEL").arg(format!("kiln:{whole}")).query(&mut server.redis()).unwrap();
+    };
+    let first = shard(1);
+    assert!(first.stats.preprocessed > 0);
+    assert!(records().len() > 2, "pieces besides the whole set: {:?}", records());
+    forget_whole();
+    let second = shard(0);
+    assert_eq!(second.stats.preprocessed, 0, "every piece was found");
+    forget_whole();
+    let pieces = records();
+    let mut damaged = server.get(&pieces[0]);
+    *damaged.last_mut().unwrap() ^= 1;
+    server.set(&pieces[0], &damaged);
+    let again = shard(0);
+    assert!(
+        again.stats.preprocessed > 0 && again.stats.preprocessed <= 16,
+        "only the damaged piece: {:?}",
+        again.stats
+    );
+    assert_eq!(again.stats.other_shards, second.stats.other_shards, "the same share");
+    let assembly = Machine::scale_of(PERMUTATIONS);
+    let r = build_ok(&assembly.options(RemoteCache::Url(url.clone()), None));
+    assert_eq!(r.stats.compiled, 0, "{:?}", r.stats);
+    assert_eq!(assembly.bytes(), reference.bytes());
 }
 
 /// Entries go to the remote as the local cache holds them, compressed with the cache's

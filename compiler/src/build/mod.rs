@@ -46,6 +46,7 @@ mod budget;
 mod compile;
 mod group;
 mod outputs;
+mod pieces;
 mod plan;
 mod preprocess;
 mod progress;
@@ -201,7 +202,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, |i, p, key, output| compiler.early(i, p, key, output))?;
+    let pre = preprocessor.run(&progress, store, |i, p, key, output| compiler.early(i, p, key, output))?;
     compiler.end_early();
     preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t)?;

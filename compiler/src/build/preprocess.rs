@@ -16,10 +16,11 @@
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, AtomicU8, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use codespan_reporting::diagnostic::Diagnostic;
 
+use super::pieces::Pieces;
 use super::plan::{level_limits, level_targets, Plan};
 use super::progress::Progress;
 use super::records::{self, Direct, Interner, Records, Row};
@@ -127,6 +128,9 @@ pub(super) struct Preprocessor<'p> {
     reuse: Reuse,
     identifiers: FileIdentifiers,
     records: Option<RecordSet>,
+    /// A shard's records shared by pieces with the shards that run beside it (see
+    /// [`super::pieces`]): only where its configuration's records were not found.
+    pieces: Option<Pieces>,
     /// Interned lists (many permutations read the same files).
     interner: Mutex<Interner>,
     /// The distinct results so far: [`Preprocessed`]'s rows.
@@ -152,8 +156,9 @@ struct RecordSet {
     /// contents) and each of its absent lists (no file appeared): [`UNKNOWN`] until a row
     /// that names it is matched. Many rows share a list: each is checked once, not once per
     /// permutation (a lock and a path's hash per file).
-    files_hold: Vec<AtomicU8>,
-    absent_hold: Vec<AtomicU8>,
+    /// Grown as pieces' records add lists (see [`super::pieces`]).
+    files_hold: RwLock<Vec<AtomicU8>>,
+    absent_hold: RwLock<Vec<AtomicU8>>,
 }
 
 /// A list's state in [`RecordSet::files_hold`]: not checked yet, holds, does not.
@@ -184,7 +189,7 @@ impl LastRecords {
             let bytes = store.records(&key).or_else(last);
             let old = bytes.and_then(|b| records::decode(b, &mut interner, &root)).unwrap_or_default();
             let base = direct_base(config, &root);
-            let unknown = |n: usize| (0..n).map(|_| AtomicU8::new(UNKNOWN)).collect();
+            let unknown = |n: usize| RwLock::new((0..n).map(|_| AtomicU8::new(UNKNOWN)).collect());
             RecordSet {
                 old_len: old.len(),
                 old,
@@ -213,7 +218,12 @@ impl LastRecords {
 impl<'p> Preprocessor<'p> {
     pub fn new(plan: &'p Plan<'p>, last: LastRecords) -> Preprocessor<'p> {
         let LastRecords { records, interner } = last;
+        let pieces = match (&records, plan.options.shard) {
+            (Some(r), Some(shard)) if r.old_len == 0 => Some(Pieces::new(plan.len(), &shard, r.key)),
+            _ => None,
+        };
         Preprocessor {
+            pieces,
             plan,
             sources: SourceCache::new(plan.config.dir.clone()),
             hashes: FileHashes::default(),
@@ -248,53 +258,48 @@ impl<'p> Preprocessor<'p> {
 
     /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
     /// (with its permutation's index and key), on the worker that made it, before it is
-    /// dropped.
+    /// dropped. A shard's pieces of records go through `store`'s remote cache.
     pub fn run(
         &self,
         progress: &Progress,
+        store: &Store,
         fresh: impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync,
     ) -> Result<Preprocessed, super::Error> {
         let plan = self.plan;
         progress.stage("preprocessing", plan.len());
-        // The first permutation of each (shader, level) first, so that the others find what
-        // they may reuse; then all the others. Workers take the next permutation from one
-        // shared iterator: in order, one at a time (compile times differ widely between
-        // shaders), and with no barrier between the two halves.
-        let mut seen_groups = HashSet::new();
-        let firsts: Vec<usize> = plan
-            .runs()
-            .filter(|(shader, level, range)| !range.is_empty() && seen_groups.insert((&shader.name, &level.name)))
-            .map(|(_, _, range)| range.start)
-            .collect();
-        // Then the permutations the usage files record (`--usage`: compiled first), then the
-        // rest in plan order. The order is made as it is taken, not held as a table.
-        let recorded: Vec<usize> = plan.recorded.iter().copied().filter(|i| firsts.binary_search(i).is_err()).collect();
-        let ahead = firsts.len() + recorded.len();
-        let order = Mutex::new(
-            firsts
-                .iter()
-                .copied()
-                .chain(recorded.iter().copied())
-                .chain(
-                    (0..plan.len()).filter(|i| firsts.binary_search(i).is_err() && recorded.binary_search(i).is_err()),
-                )
-                .enumerate(),
-        );
+        let pieces = self.pieces.as_ref().filter(|_| store.has_remote());
+        let position = |i: usize| pieces.map_or(i, |p| p.position(i));
+        let (order, ahead) = match pieces {
+            Some(p) => (Box::new(p.order()) as Box<dyn Iterator<Item = usize> + Send>, 0),
+            None => self.order(),
+        };
+        let order = Mutex::new(order.enumerate());
         let of: Vec<AtomicU32> = (0..plan.len()).map(|_| AtomicU32::new(FAILED)).collect();
         let errors = Mutex::new(Vec::new());
-        self.reuse.plan_ends(plan);
+        self.reuse.plan_ends(plan, &|run| pieces.map_or(run.end, |p| p.run_end(run)));
         rayon::scope(|s| {
             for _ in 0..rayon::current_num_threads() {
                 s.spawn(|_| loop {
-                    let next = order.lock().expect("no panics while locked").next();
+                    let next = {
+                        let mut order = order.lock().expect("no panics while locked");
+                        let next = order.next();
+                        // A piece is looked for before any of its permutations is taken.
+                        if let (Some((_, i)), Some(p)) = (next, pieces) {
+                            self.fetch_piece(p, i, store);
+                        }
+                        next
+                    };
                     let Some((n, i)) = next else { break };
                     if n >= ahead {
-                        // In plan order now: groups whose last permutation was taken are done.
-                        self.reuse.retire_before(i);
+                        // In order now: groups whose last permutation was taken are done.
+                        self.reuse.retire_before(position(i));
                     }
-                    match self.one(i, &plan.permutation(i), &fresh) {
+                    match self.one(i, &plan.permutation(i), pieces, &fresh) {
                         Ok(row) => of[i].store(row, Ordering::Relaxed),
                         Err(d) => errors.lock().expect("no panics while locked").push((i, d)),
+                    }
+                    if let Some((p, (piece, range))) = pieces.and_then(|p| Some((p, p.done(i)?))) {
+                        self.store_piece(store, &p.key(piece), range, &of);
                     }
                     progress.inc();
                 });
@@ -308,6 +313,78 @@ impl<'p> Preprocessor<'p> {
             .load()
             .map_err(read_back)?;
         Ok(Preprocessed { of: of.into_iter().map(AtomicU32::into_inner).collect(), rows, errors })
+    }
+
+    /// The order of a build's permutations, and how many come ahead of plan order: the
+    /// first permutation of each (shader, level) first, so that the others find what they
+    /// may reuse; then the permutations the usage files record (`--usage`: compiled first),
+    /// then the rest in plan order. Workers take the next permutation from one shared
+    /// iterator: in order, one at a time (compile times differ widely between shaders), and
+    /// with no barrier between the parts. The order is made as it is taken, not held as a
+    /// table.
+    fn order(&self) -> (Box<dyn Iterator<Item = usize> + Send + '_>, usize) {
+        let plan = self.plan;
+        let mut seen_groups = HashSet::new();
+        let firsts: Vec<usize> = plan
+            .runs()
+            .filter(|(shader, level, range)| !range.is_empty() && seen_groups.insert((&shader.name, &level.name)))
+            .map(|(_, _, range)| range.start)
+            .collect();
+        let recorded: Vec<usize> = plan.recorded.iter().copied().filter(|i| firsts.binary_search(i).is_err()).collect();
+        let ahead = firsts.len() + recorded.len();
+        let rest = (0..plan.len()).filter({
+            let (firsts, recorded) = (firsts.clone(), recorded.clone());
+            move |i| firsts.binary_search(i).is_err() && recorded.binary_search(i).is_err()
+        });
+        (Box::new(firsts.into_iter().chain(recorded).chain(rest)), ahead)
+    }
+
+    /// Looks for the records of the piece that permutation `i` starts (if it starts one) in
+    /// the remote cache; a damaged or unreadable piece is not used.
+    fn fetch_piece(&self, pieces: &Pieces, i: usize, store: &Store) {
+        let (Some(n), Some(records)) = (pieces.starts(i), &self.records) else { return };
+        let Some(bytes) = store.remote_records(&pieces.key(n)) else { return };
+        let (decoded, files, absent) = {
+            let mut interner = self.lists();
+            let decoded = records::decode(bytes, &mut interner, &records.root);
+            (decoded, interner.files.len(), interner.absent.len())
+        };
+        let Some(decoded) = decoded else { return };
+        // The lists the piece added are checked once each, like the last build's.
+        for (hold, len) in [(&records.files_hold, files), (&records.absent_hold, absent)] {
+            let mut hold = hold.write().expect("no panics while locked");
+            let grow = len.saturating_sub(hold.len());
+            hold.extend((0..grow).map(|_| AtomicU8::new(UNKNOWN)));
+        }
+        pieces.found(n, decoded);
+    }
+
+    /// Stores the records of the permutations `range` (a piece just done) in the remote
+    /// cache under `key`; failing to only costs the other shards preprocessing them.
+    fn store_piece(&self, store: &Store, key: &Key, range: std::ops::Range<usize>, of: &[AtomicU32]) {
+        let Some(r) = &self.records else { return };
+        let (plan, targets) = (self.plan, &self.plan.options.targets);
+        let mut rows = Vec::with_capacity(range.len());
+        {
+            let mut log = self.rows.lock().expect("no panics while locked");
+            for i in range {
+                let n = of[i].load(Ordering::Relaxed);
+                if n == FAILED {
+                    continue;
+                }
+                let Ok(row) = log.get(n) else { return };
+                rows.push((i, row));
+            }
+        }
+        let rows: Vec<(Direct, Row)> = rows
+            .into_iter()
+            .map(|(i, row)| {
+                let p = plan.permutation(i);
+                (direct_key(&r.base, &p, &p.defines(), targets), row)
+            })
+            .collect();
+        let body = records::encode_small(rows, &self.lists(), &r.root);
+        store.put_remote_records(key, &body);
     }
 
     /// Lets go of what only preprocessing needed (what may be reused, the last build's
@@ -379,6 +456,7 @@ impl<'p> Preprocessor<'p> {
         &self,
         index: usize,
         p: &Permutation<'_>,
+        pieces: Option<&Pieces>,
         fresh: &(impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync),
     ) -> Result<u32, Box<Diagnostic<FileId>>> {
         let defines = p.defines();
@@ -387,6 +465,12 @@ impl<'p> Preprocessor<'p> {
             let dk = direct_key(&records.base, p, &defines, &self.plan.options.targets);
             if let Some(row) = records.old.get(&dk).filter(|row| self.still_holds(records, row)) {
                 records.matched.fetch_add(1, Ordering::Relaxed);
+                return Ok(self.push(row));
+            }
+            // Another shard's piece: not counted as matched (the records are not the last
+            // build's, and are saved whole at the end).
+            let piece = pieces.and_then(|pieces| pieces.records(index));
+            if let Some(row) = piece.and_then(|r| r.get(&dk)).filter(|row| self.still_holds(records, row)) {
                 return Ok(self.push(row));
             }
         }
@@ -470,10 +554,10 @@ impl<'p> Preprocessor<'p> {
                 }
             }
         };
-        once(&records.files_hold, r.files, &|| {
+        once(&records.files_hold.read().expect("no panics while locked"), r.files, &|| {
             let files = self.lists().files.get(r.files).clone();
             files.iter().all(|(path, hash)| self.hashes.get(path) == Some(*hash))
-        }) && once(&records.absent_hold, r.absent, &|| {
+        }) && once(&records.absent_hold.read().expect("no panics while locked"), r.absent, &|| {
             let absent = self.lists().absent.get(r.absent).clone();
             !absent.iter().any(|path| self.hashes.get(path).is_some())
         })
@@ -537,6 +621,23 @@ impl RowLog {
         }
         self.count += 1;
         self.count - 1
+    }
+
+    /// Row `n`, read back while rows are still added (a piece's, to store it).
+    fn get(&mut self, n: u32) -> std::io::Result<Row> {
+        use std::os::unix::fs::FileExt;
+        if let Some(e) = &self.error {
+            return Err(std::io::Error::new(e.kind(), e.to_string()));
+        }
+        match &mut self.out {
+            RowsOut::Memory(v) => v.get(n as usize).copied().ok_or_else(|| std::io::ErrorKind::NotFound.into()),
+            RowsOut::File(f) => {
+                std::io::Write::flush(f)?;
+                let mut b = [0u8; ROW_LEN];
+                f.get_ref().read_exact_at(&mut b, u64::from(n) * ROW_LEN as u64)?;
+                Ok(decode_row(&b))
+            }
+        }
     }
 
     /// The rows' keys, in order, in a table of their number (the file kept for the rest).
@@ -634,12 +735,13 @@ type GroupEnds = (Vec<(usize, GroupName)>, HashSet<GroupName>);
 type GroupName = (String, String);
 
 impl Reuse {
-    /// Each group's end in `plan`.
-    fn plan_ends(&self, plan: &Plan<'_>) {
+    /// Each group's end in `plan`, as a position in the order permutations are taken: one
+    /// past its last taken (`run_end` of each of its runs).
+    fn plan_ends(&self, plan: &Plan<'_>, run_end: &dyn Fn(std::ops::Range<usize>) -> usize) {
         let mut last: HashMap<GroupName, usize> = HashMap::new();
-        for (shader, level, range) in plan.runs() {
+        for (shader, level, range) in plan.runs().filter(|r| !r.2.is_empty()) {
             let end = last.entry((shader.name.clone(), level.name.clone())).or_default();
-            *end = (*end).max(range.end);
+            *end = (*end).max(run_end(range));
         }
         let mut ends: Vec<(usize, GroupName)> = last.into_iter().map(|(g, end)| (end, g)).collect();
         ends.sort_unstable_by(|a, b| b.cmp(a));

@@ -198,10 +198,17 @@ pub(super) fn encode(
     drop(row);
     let merged = merge_runs(&runs, &old).ok()??;
     drop((runs, old));
+    let Merged { tables, rows, count } = merged;
+    let head = head(&tables, interner, root, count);
+    Some(Encoded { head, rows, rows_len: count as u64 * ROW_BYTES as u64 })
+}
+
+/// What comes before the rows: the magic, the lists the rows refer to (in `tables`' order,
+/// paths under `root` relative to it) and the number of rows.
+fn head(tables: &[Table; 3], interner: &Interner, root: &Path, count: usize) -> Vec<u8> {
     let relative = |p: &Path| -> PathBuf {
         p.strip_prefix(root).ok().filter(|r| !r.as_os_str().is_empty()).map_or_else(|| p.to_path_buf(), PathBuf::from)
     };
-    let Merged { tables, rows, count } = merged;
     let mut head = MAGIC.to_vec();
     put_lists(&mut head, &tables[0], &interner.files, |o, (p, h)| {
         put_bytes(o, relative(p).as_os_str().as_bytes());
@@ -210,7 +217,29 @@ pub(super) fn encode(
     put_lists(&mut head, &tables[1], &interner.absent, |o, p| put_bytes(o, relative(p).as_os_str().as_bytes()));
     put_lists(&mut head, &tables[2], &interner.warnings, |o, w| put_bytes(o, w.as_bytes()));
     head.extend_from_slice(&(count as u64).to_le_bytes());
-    Some(Encoded { head, rows, rows_len: count as u64 * ROW_BYTES as u64 })
+    head
+}
+
+/// The encoding of a few records, whole in memory and on the calling thread (no temporary
+/// file, no parallel sort: it is made while the caller holds the interner): a piece of a
+/// shard's records. One row per direct key, the first of `rows` kept; [`decode`] reads it.
+pub(super) fn encode_small(mut rows: Vec<(Direct, Row)>, interner: &Interner, root: &Path) -> Vec<u8> {
+    rows.sort_by_key(|r| r.0);
+    rows.dedup_by(|a, b| a.0 == b.0);
+    let mut tables = [Table::new(), Table::new(), Table::new()];
+    let mut bytes = vec![0u8; rows.len() * ROW_BYTES];
+    for (out, (direct, row)) in bytes.as_chunks_mut::<ROW_BYTES>().0.iter_mut().zip(&rows) {
+        let numbered = Row {
+            files: tables[0].add(row.files),
+            absent: tables[1].add(row.absent),
+            warnings: tables[2].add(row.warnings),
+            ..*row
+        };
+        put_row(out, direct, &numbered);
+    }
+    let mut out = head(&tables, interner, root, rows.len());
+    out.extend_from_slice(&bytes);
+    out
 }
 
 /// Encoded records: the lists and the count in memory, the rows in a temporary file.
@@ -559,6 +588,19 @@ mod tests {
         let mut old = bytes.clone();
         old[7] = 2;
         assert_eq!(decode(old, &mut Interner::default(), Path::new("/a")), None);
+    }
+
+    #[test]
+    fn small_encoding_reads_like_the_large_one() {
+        let mut i = Interner::default();
+        let files = vec![(PathBuf::from("/a/b.ush"), [7; 32])];
+        let mut rows: Vec<(Direct, Row)> =
+            (0..9u8).rev().map(|k| ([k % 5; 16], row(&mut i, k, files.clone()))).collect();
+        rows.push(([200; 16], row(&mut i, 9, vec![(PathBuf::from("/usr/x.ush"), [1; 32])])));
+        let small = encode_small(rows.clone(), &i, Path::new("/a"));
+        assert_eq!(small, encode_all(&rows, &i, Path::new("/a")), "the same bytes as the external sort's");
+        let decoded = decode(small, &mut Interner::default(), Path::new("/a")).unwrap();
+        assert_eq!(decoded.len(), 6, "one row per direct key");
     }
 
     #[test]

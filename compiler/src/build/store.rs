@@ -273,6 +273,24 @@ impl Store {
         }
     }
 
+    /// Whether there is a remote cache to share records through.
+    pub fn has_remote(&self) -> bool {
+        self.cache.as_ref().is_some_and(|c| c.remote().is_some())
+    }
+
+    /// The records under `key` in the remote cache only (a piece of a shard's records).
+    pub fn remote_records(&self, key: &Key) -> Option<Vec<u8>> {
+        self.cache.as_ref()?.get_remote_records_bytes(key)
+    }
+
+    /// Stores records under `key` in the remote cache only; failing to only costs another
+    /// shard preprocessing them.
+    pub fn put_remote_records(&self, key: &Key, body: &[u8]) {
+        if let Some(c) = self.cache.as_ref().filter(|c| c.remote_writes()) {
+            c.put_remote_records_bytes(key, body);
+        }
+    }
+
     /// Replaces the records under `key`; failing to only costs preprocessing next time.
     pub fn put_records(&self, key: &Key, records: &super::records::Encoded) {
         if let Some(c) = &self.cache {

@@ -106,6 +106,24 @@ impl Cache {
         self.write_pieces(&self.records_path(key), &[RECORD_MAGIC, sum.as_bytes(), body])
     }
 
+    /// Whether a remote cache that stores values is configured.
+    pub fn remote_writes(&self) -> bool {
+        self.remote().is_some_and(|r| r.writes())
+    }
+
+    /// The body of the records under `key` in the remote cache only (never kept locally:
+    /// a piece of a shard's records is read once); `None` when missing or damaged (its
+    /// checksum is checked, so that a damaged piece is preprocessed again, never trusted).
+    pub fn get_remote_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
+        self.remote().and_then(|r| r.get(key)).and_then(records_body)
+    }
+
+    /// Stores `body` (checksummed) under `key` in the remote cache only; whether it was.
+    pub fn put_remote_records_bytes(&self, key: &Key, body: &[u8]) -> bool {
+        let sum = blake3::hash(body);
+        self.remote().is_some_and(|r| r.store_from(key, &super::remote::Pieces(&[RECORD_MAGIC, sum.as_bytes(), body])))
+    }
+
     /// The body of the records file under `key` in this folder (never the remote cache's);
     /// `None` when missing or damaged.
     pub fn get_local_records_bytes(&self, key: &Key) -> Option<Vec<u8>> {
