@@ -646,8 +646,10 @@ fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String
         return Err("index checksum mismatch".into());
     }
     let word = |r: &[u8], i: usize| u64::from_le_bytes(r[i..i + 8].try_into().expect("8 bytes"));
-    let rows =
-        rows.chunks_exact(ROW).map(|r| (Key(r[..32].try_into().expect("32 bytes")), word(r, 32), word(r, 40))).collect();
+    let rows = rows
+        .chunks_exact(ROW)
+        .map(|r| (Key(r[..32].try_into().expect("32 bytes")), word(r, 32), word(r, 40)))
+        .collect();
     Ok(Some((pack, rows)))
 }
 
