@@ -39,7 +39,7 @@ impl Cache {
         self.finish_fills(pending);
         let absent = layer.absent.lock().expect("no panics while locked").clone();
         let mut missing: Vec<Key> = self.with_index(|index| {
-            let known = |k: &Key| index.by_key.contains_key(k) || absent.contains(k);
+            let known = |k: &Key| index.contains(k) || absent.contains(k);
             keys.iter().filter(|k| !known(k)).copied().collect()
         });
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
@@ -164,7 +164,7 @@ impl Cache {
     /// checksum on use (a blake3 of every entry would add a noticeable share to the writing
     /// build's time).
     pub(super) fn append_local_entry(&self, key: &Key, out: &mut Vec<u8>) -> bool {
-        let Some(l) = self.with_index(|index| index.by_key.get(key).cloned()) else {
+        let Some(l) = self.with_index(|index| index.newest(key)) else {
             return false;
         };
         let start = out.len();
@@ -199,7 +199,7 @@ impl Cache {
 
     /// The bytes of the local entries of `keys` (the newest copy of each).
     pub(super) fn local_size(&self, keys: &[Key]) -> usize {
-        self.with_index(|index| keys.iter().filter_map(|k| index.by_key.get(k).map(|l| l.len as usize)).sum())
+        self.with_index(|index| keys.iter().filter_map(|k| index.newest(k).map(|l| l.len as usize)).sum())
     }
 
     /// Writes the index of a fill pack and renames it into place; the index of this `Cache`
@@ -208,9 +208,7 @@ impl Cache {
         let Some(Ok(Some(path))) = pack.map(fill::FillPack::finish) else { return };
         let mut index = self.index.write().expect("no panics while locked");
         if let Some(index) = index.as_mut() {
-            if let Ok(Some((pack, rows))) = open_pack(&path) {
-                index.add(Arc::new(pack), rows);
-            }
+            index.add(&path);
         }
     }
 }

@@ -5,12 +5,12 @@ use super::*;
 impl Cache {
     /// Whether some pack holds `key` (its content is checked by [`Cache::get`]).
     pub fn contains(&self, key: &Key) -> bool {
-        self.with_index(|index| index.by_key.contains_key(key))
+        self.with_index(|index| index.contains(key))
     }
 
     /// The newest pack holding `key`.
     pub fn pack_of(&self, key: &Key) -> Option<PathBuf> {
-        self.with_index(|index| index.by_key.get(key).map(|l| l.pack.path.clone()))
+        self.with_index(|index| index.newest(key).map(|l| l.pack.path.clone()))
     }
 
     /// The entry of `key`: from a local pack, else from the remote cache (checked, then
@@ -176,9 +176,7 @@ impl Cache {
         // Later lookups through this `Cache` see the new pack.
         let mut index = self.index.write().expect("no panics while locked");
         if let Some(index) = index.as_mut().filter(|_| self.index_puts) {
-            if let Ok(Some((pack, rows))) = open_pack(&path) {
-                index.add(Arc::new(pack), rows);
-            }
+            index.add(&path);
         }
         Ok(())
     }

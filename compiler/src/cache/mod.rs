@@ -269,6 +269,10 @@ struct Pack {
     path: PathBuf,
     file: fs::File,
     modified: SystemTime,
+    /// The file's length when opened (no row may point past it).
+    size: u64,
+    /// The blake3 of the index rows, as the header says.
+    rows_hash: [u8; 32],
     touched: AtomicBool,
 }
 
@@ -289,44 +293,134 @@ struct Location {
     len: u64,
 }
 
+/// One key of the in-memory index: the key's first 8 bytes (as two words: a slot is then
+/// 12 bytes, with no padding) and the number of its row among all indexed packs' rows. The
+/// rest of the row (the whole key, where the entry lies) is read from the pack on lookup,
+/// so the index holds a small fixed share of each key rather than the key and its location.
+type Slot = [u32; 3];
+
+fn slot(key: &Key, row: u32) -> Slot {
+    let word = |i: usize| u32::from_be_bytes(key.0[i * 4..i * 4 + 4].try_into().expect("4 bytes"));
+    [word(0), word(1), row]
+}
+
+/// Index rows read from a pack at a time (its checksum is computed as they stream).
+const INDEX_CHUNK_ROWS: usize = 8192;
+
 /// Every pack's index, read once per [`Cache`] (and extended by its own writes, unless
 /// [`Cache::without_indexing_puts`]: then by its remote fills only).
 #[derive(Debug, Default)]
 struct Index {
-    /// The newest copy of each key: one location inline, no list per key (a warm 100k
-    /// build's index is 75k keys).
-    by_key: HashMap<Key, Location>,
-    /// The other copies of the keys that have more than one, newest pack first.
-    older: HashMap<Key, Vec<Location>>,
+    /// The indexed packs, by the number of their first row (rows are numbered in the order
+    /// packs were added).
+    packs: Vec<(u32, Arc<Pack>)>,
+    /// The number the next pack's first row gets.
+    next_row: u32,
+    /// Sorted runs of slots, the largest first: a pack added later is a run of its own,
+    /// merged into the one before it once that is at most twice its size (each slot is then
+    /// re-sorted a logarithmic number of times however many packs a build adds).
+    runs: Vec<Vec<Slot>>,
     /// Packs whose index was damaged: (path, why, whether it was removed: not when Kiln did
     /// not write it). Their entries are misses.
     damaged: Vec<(PathBuf, String, bool)>,
 }
 
 impl Index {
-    fn add(&mut self, pack: Arc<Pack>, rows: Vec<(Key, u64, u64)>) {
-        for (key, offset, len) in rows {
-            let mut location = Location { pack: pack.clone(), offset, len };
-            let newest = match self.by_key.entry(key) {
-                std::collections::hash_map::Entry::Vacant(v) => {
-                    v.insert(location);
-                    continue;
-                }
-                std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
-            };
-            if newest.pack.modified < location.pack.modified {
-                std::mem::swap(newest, &mut location);
+    /// Reads the index of the pack at `path` into `slots` (unsorted): `Ok(false)` when the
+    /// file is gone (or there are too many rows to number), `Err(why)` when it is not a
+    /// whole pack of this Kiln (then nothing of it is kept).
+    fn read_pack(&mut self, path: &Path, slots: &mut Vec<Slot>) -> Result<bool, String> {
+        let Some((pack, count)) = open_pack_header(path)? else { return Ok(false) };
+        let Some(next) = u32::try_from(count).ok().and_then(|c| self.next_row.checked_add(c)) else {
+            return Ok(false);
+        };
+        let kept = slots.len();
+        let mut hasher = blake3::Hasher::new();
+        let mut chunk = vec![0u8; INDEX_CHUNK_ROWS.min(count as usize) * ROW];
+        let mut row = 0usize;
+        while row < count as usize {
+            let n = INDEX_CHUNK_ROWS.min(count as usize - row);
+            let bytes = &mut chunk[..n * ROW];
+            if pack.file.read_exact_at(bytes, (PACK_HEADER + row * ROW) as u64).is_err() {
+                slots.truncate(kept);
+                return Err("truncated index".into());
             }
-            let older = self.older.entry(key).or_default();
-            let at = older.iter().position(|l| l.pack.modified < location.pack.modified).unwrap_or(older.len());
-            older.insert(at, location);
+            hasher.update(bytes);
+            for (i, r) in bytes.chunks_exact(ROW).enumerate() {
+                let key = Key(r[..32].try_into().expect("32 bytes"));
+                slots.push(slot(&key, self.next_row + (row + i) as u32));
+            }
+            row += n;
+        }
+        if hasher.finalize().as_bytes() != &pack.rows_hash {
+            slots.truncate(kept);
+            return Err("index checksum mismatch".into());
+        }
+        self.packs.push((self.next_row, Arc::new(pack)));
+        self.next_row = next;
+        Ok(true)
+    }
+
+    /// Reads the index of the pack at `path` and adds it as the newest run; a pack that is
+    /// gone or damaged is not added (the caller wrote it whole, so it was damaged since).
+    fn add(&mut self, path: &Path) {
+        let mut run = Vec::new();
+        if !matches!(self.read_pack(path, &mut run), Ok(true)) {
+            return;
+        }
+        run.sort_unstable();
+        self.runs.push(run);
+        while let [.., before, last] = &self.runs[..] {
+            if before.len() > 2 * last.len() {
+                break;
+            }
+            let last = self.runs.pop().expect("two runs");
+            let before = self.runs.last_mut().expect("two runs");
+            before.extend_from_slice(&last);
+            before.sort_unstable();
         }
     }
 
-    /// Every copy of `key`, newest pack first.
+    /// Where the row numbered `row` says the entry of `key` lies, when it is the row of
+    /// `key` (the slot holds only the key's first bytes) and within its pack.
+    fn location(&self, row: u32, key: &Key) -> Option<Location> {
+        let at = self.packs.partition_point(|(first, _)| *first <= row).checked_sub(1)?;
+        let (first, pack) = &self.packs[at];
+        let mut bytes = [0u8; ROW];
+        let offset = PACK_HEADER as u64 + u64::from(row - first) * ROW as u64;
+        pack.file.read_exact_at(&mut bytes, offset).ok()?;
+        if bytes[..32] != key.0 {
+            return None;
+        }
+        let word = |i: usize| u64::from_le_bytes(bytes[i..i + 8].try_into().expect("8 bytes"));
+        let (offset, len) = (word(32), word(40));
+        // A row changed since its checksum was read must not make a lookup allocate more
+        // than the pack held (a pack truncated since still gives its entries, which then
+        // read as truncated).
+        (len <= pack.size).then(|| Location { pack: pack.clone(), offset, len })
+    }
+
+    /// Every copy of `key`, newest pack first (of packs as new, the one added first).
     fn copies(&self, key: &Key) -> Vec<Location> {
-        let older = self.older.get(key).map_or(&[][..], Vec::as_slice);
-        self.by_key.get(key).into_iter().chain(older).cloned().collect()
+        let wanted = slot(key, 0);
+        let mut rows: Vec<u32> = Vec::new();
+        for run in &self.runs {
+            let from = run.partition_point(|s| s[..2] < wanted[..2]);
+            rows.extend(run[from..].iter().take_while(|s| s[..2] == wanted[..2]).map(|s| s[2]));
+        }
+        rows.sort_unstable();
+        let mut copies: Vec<Location> = rows.into_iter().filter_map(|row| self.location(row, key)).collect();
+        copies.sort_by_key(|l| std::cmp::Reverse(l.pack.modified));
+        copies
+    }
+
+    /// The newest copy of `key`.
+    fn newest(&self, key: &Key) -> Option<Location> {
+        self.copies(key).into_iter().next()
+    }
+
+    fn contains(&self, key: &Key) -> bool {
+        self.newest(key).is_some()
     }
 }
 
@@ -449,23 +543,20 @@ impl Cache {
     fn read_index(&self) -> Index {
         let mut index = Index::default();
         let packs: Vec<PathBuf> = self.files().map(|(path, _)| path).filter(|p| Self::is_pack(p)).collect();
-        // The map at its size once (the packs' headers say how many rows they hold), not
+        // The table at its size once (the packs' headers say how many rows they hold), not
         // doubled while the packs are read: a doubling holds the old and new tables at once.
-        // Slots never filled are never touched.
         let rows: u64 = packs.iter().filter_map(|p| pack_rows(p)).sum();
-        index.by_key.reserve(usize::try_from(rows).unwrap_or(0));
+        let mut slots = Vec::with_capacity(usize::try_from(rows).unwrap_or(0));
         for path in packs {
-            match open_pack(&path) {
-                Ok(Some((pack, rows))) => index.add(Arc::new(pack), rows),
-                Ok(None) => {} // removed meanwhile (gc or clear in another process)
-                Err(why) => {
-                    // Packs appear whole (renamed into place), so one of ours was damaged
-                    // afterwards: it can serve nothing. A file Kiln did not write is left alone.
-                    let removed = Self::is_own(&path) && fs::remove_file(&path).is_ok();
-                    index.damaged.push((path, why, removed));
-                }
+            if let Err(why) = index.read_pack(&path, &mut slots) {
+                // Packs appear whole (renamed into place), so one of ours was damaged
+                // afterwards: it can serve nothing. A file Kiln did not write is left alone.
+                let removed = Self::is_own(&path) && fs::remove_file(&path).is_ok();
+                index.damaged.push((path, why, removed));
             }
         }
+        slots.sort_unstable();
+        index.runs.push(slots);
         index
     }
 
@@ -521,9 +612,10 @@ fn pack_rows(path: &Path) -> Option<u64> {
     (&header[..8] == PACK_MAGIC && fits).then_some(rows)
 }
 
-/// Opens the pack at `path` and reads its index: `Ok(None)` when the file is gone,
-/// `Err(why)` when it is not a whole pack of this Kiln.
-fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
+/// Opens the pack at `path` and checks its header: the pack and its row count;
+/// `Ok(None)` when the file is gone, `Err(why)` when it is not a pack of this Kiln or too
+/// short for its rows (the rows' checksum is checked by whoever reads them).
+fn open_pack_header(path: &Path) -> Result<Option<(Pack, u64)>, String> {
     let file = match crate::archive::input::open_regular(path) {
         Ok((f, _)) => f,
         Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
@@ -536,23 +628,29 @@ fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String
     if &header[..8] != PACK_MAGIC {
         return Err("not a cache pack of this kiln".into());
     }
-    let count = u64::from_le_bytes(header[8..16].try_into().unwrap());
-    let rows_len =
-        count.checked_mul(ROW as u64).filter(|&n| PACK_HEADER as u64 + n <= size).ok_or("truncated index")?;
-    let mut rows = vec![0u8; rows_len as usize];
-    file.read_exact_at(&mut rows, PACK_HEADER as u64).map_err(|_| "truncated index".to_string())?;
-    if blake3::hash(&rows).as_bytes() != &header[16..48] {
+    let count = u64::from_le_bytes(header[8..16].try_into().expect("8 bytes"));
+    count.checked_mul(ROW as u64).filter(|&n| PACK_HEADER as u64 + n <= size).ok_or("truncated index")?;
+    let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+    let rows_hash = header[16..48].try_into().expect("32 bytes");
+    let pack = Pack { path: path.to_path_buf(), file, modified, size, rows_hash, touched: AtomicBool::new(false) };
+    Ok(Some((pack, count)))
+}
+
+/// Opens the pack at `path` and reads its index rows (key, offset, length), checked (for
+/// the commands that walk every row: the index of a build holds a slot per key instead).
+fn open_pack(path: &Path) -> Result<Option<(Pack, Vec<(Key, u64, u64)>)>, String> {
+    let Some((pack, count)) = open_pack_header(path)? else { return Ok(None) };
+    let mut rows = vec![0u8; count as usize * ROW];
+    pack.file.read_exact_at(&mut rows, PACK_HEADER as u64).map_err(|_| "truncated index".to_string())?;
+    if blake3::hash(&rows).as_bytes() != &pack.rows_hash {
         return Err("index checksum mismatch".into());
     }
+    let word = |r: &[u8], i: usize| u64::from_le_bytes(r[i..i + 8].try_into().expect("8 bytes"));
     let rows = rows
         .chunks_exact(ROW)
-        .map(|r| {
-            let key = Key(r[..32].try_into().unwrap());
-            (key, u64::from_le_bytes(r[32..40].try_into().unwrap()), u64::from_le_bytes(r[40..48].try_into().unwrap()))
-        })
+        .map(|r| (Key(r[..32].try_into().expect("32 bytes")), word(r, 32), word(r, 40)))
         .collect();
-    let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
-    Ok(Some((Pack { path: path.to_path_buf(), file, modified, touched: AtomicBool::new(false) }, rows)))
+    Ok(Some((pack, rows)))
 }
 
 /// Length, modification time and blake3 of the whole content of an archive file: an

@@ -187,7 +187,7 @@ impl Cache {
     ) -> Option<(usize, usize)> {
         // The stamp first: without one (a first build) the keys are not looked at.
         let text = crate::archive::input::read_regular_to_string(&self.stamp_path(archive), 4096).ok()?;
-        if !self.with_index(|index| Iterator::all(&mut keys, |k| index.by_key.contains_key(k))) {
+        if !self.with_index(|index| Iterator::all(&mut keys, |k| index.contains(k))) {
             return None;
         }
         let mut lines = text.lines();
