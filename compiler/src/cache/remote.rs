@@ -1865,7 +1865,9 @@ mod tests {
             let start = std::time::Instant::now();
             request(&remote);
             let took = start.elapsed();
-            assert!(took < timeout * 8, "{what}: {took:?}");
+            // Loose upper bounds: a loaded machine delays the client, while a request the
+            // deadline failed to cut would wait out the server's 20 s.
+            assert!(took < timeout * 16, "{what}: {took:?}");
             let warning = remote.take_warning().expect("one warning");
             let waited: u128 = warning
                 .split(&format!("{what}: timed out after "))
@@ -1873,7 +1875,7 @@ mod tests {
                 .and_then(|rest| rest.split(" ms").next())
                 .and_then(|n| n.parse().ok())
                 .unwrap_or_else(|| panic!("{what}: {warning}"));
-            assert!((700..1600).contains(&waited), "{what}: {warning}");
+            assert!((700..3000).contains(&waited), "{what}: {warning}");
             assert!(
                 warning.contains("timeout of 200 ms") && warning.contains(&format!("127.0.0.1:{port}")),
                 "{warning}"
