@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::thread::JoinHandle;
 
 use super::{CacheDir, Error, Options};
-use crate::cache::{Cache, Key, Lookup, Packing};
+use crate::cache::{Cache, Held, Key, Lookup, Packing};
 use crate::compile::Compiled;
 use crate::permute::Config;
 
@@ -31,6 +31,8 @@ const PACK_BYTES: usize = 2 << 20;
 pub(super) enum Fetched {
     /// The entry, with the blake3 of each artifact (checked against the entry's checksum).
     Hit(Compiled, Vec<blake3::Hash>),
+    /// The entry without its artifacts' bytes, which the archive being replaced holds.
+    Held(Held),
     /// Not there (or not usable): the warning when the entry was corrupted.
     Miss(Option<String>),
 }
@@ -134,8 +136,15 @@ impl Store {
     }
 
     pub fn get(&self, key: &Key) -> Fetched {
-        match self.cache.as_ref().map(|c| c.get(key)) {
+        self.get_unless_held(key, &|_| false)
+    }
+
+    /// [`Store::get`], or [`Fetched::Held`] for an entry whose artifacts all satisfy `held`
+    /// ([`Cache::get_unless_held`]).
+    pub fn get_unless_held(&self, key: &Key, held: &dyn Fn(&blake3::Hash) -> bool) -> Fetched {
+        match self.cache.as_ref().map(|c| c.get_unless_held(key, held)) {
             Some(Lookup::Hit(c, hashes)) => Fetched::Hit(c, hashes),
+            Some(Lookup::Held(h)) => Fetched::Held(h),
             Some(Lookup::Corrupt(why)) => Fetched::Miss(Some(format!("warning: {why}"))),
             Some(Lookup::Miss) | None => Fetched::Miss(None),
         }
