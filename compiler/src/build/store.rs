@@ -620,7 +620,19 @@ mod tests {
             for i in 0..5u8 {
                 match store.get(&Key([i; 32])) {
                     Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                    Fetched::Held(_) => panic!("key {i} held though nothing holds its artifacts"),
                     Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
+                }
+                // Its artifacts held elsewhere: the entry's head only, the same description.
+                let c = compiled(i, 400);
+                match store.get_unless_held(&Key([i; 32]), &|h| c.artifacts.iter().any(|(_, b)| blake3::hash(b) == *h)) {
+                    Fetched::Held(h) => {
+                        assert_eq!(h.reflection, c.reflection);
+                        let want: Vec<_> =
+                            c.artifacts.iter().map(|(t, b)| (*t, b.len() as u64, blake3::hash(b))).collect();
+                        assert_eq!(h.artifacts, want);
+                    }
+                    _ => panic!("key {i} not held"),
                 }
             }
         }
@@ -649,6 +661,7 @@ mod tests {
         for i in 0..5u8 {
             match store.get(&key(i)) {
                 Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                Fetched::Held(_) => panic!("key {i} held though nothing holds its artifacts"),
                 Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
             }
         }
