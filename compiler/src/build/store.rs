@@ -625,7 +625,8 @@ mod tests {
                 }
                 // Its artifacts held elsewhere: the entry's head only, the same description.
                 let c = compiled(i, 400);
-                match store.get_unless_held(&Key([i; 32]), &|h| c.artifacts.iter().any(|(_, b)| blake3::hash(b) == *h)) {
+                match store.get_unless_held(&Key([i; 32]), &|h| c.artifacts.iter().any(|(_, b)| blake3::hash(b) == *h))
+                {
                     Fetched::Held(h) => {
                         assert_eq!(h.reflection, c.reflection);
                         let want: Vec<_> =

@@ -74,7 +74,12 @@ impl Cache {
 
     /// The entry `bytes` of `key` checked: [`Lookup::Held`] when it is a version 5 entry
     /// whose artifacts all satisfy `held`, else [`Lookup::Hit`].
-    fn decode_unless_held(&self, key: &Key, bytes: &[u8], held: &dyn Fn(&blake3::Hash) -> bool) -> Result<Lookup, String> {
+    fn decode_unless_held(
+        &self,
+        key: &Key,
+        bytes: &[u8],
+        held: &dyn Fn(&blake3::Hash) -> bool,
+    ) -> Result<Lookup, String> {
         if bytes.starts_with(codec::MAGIC) {
             let head = codec::head(key, bytes)?;
             if !head.artifacts.is_empty() && head.artifacts.iter().all(|a| held(&a.2)) {
