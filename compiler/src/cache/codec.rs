@@ -1,12 +1,15 @@
-//! The compressed encoding of a cache entry (version 4, and version 3 read), and the cache's
-//! dictionaries.
+//! The compressed encoding of a cache entry (version 5, and versions 4 and 3 read), and the
+//! cache's dictionaries.
 //!
-//! An entry's body (as version 2 lays it out after the key: artifact count, each artifact's
-//! target name, length and bytes, the reflection's length and JSON) is one zstd frame,
+//! A version 5 entry keeps its description (as version 2 lays out the body after the key,
+//! without the artifacts' bytes: artifact count, each artifact's target name and length,
+//! the reflection's length and JSON) in a head before one zstd frame of its artifacts' bytes,
 //! compressed with the dictionary of its kind (its targets' names, `spirv+msl+hlsl+wgsl`)
 //! when the cache has one, else plainly. One frame per entry rather than one per artifact:
 //! a level's sources share names and constants across targets, and per-artifact framing cost
-//! a frame header and a weaker match history per artifact.
+//! a frame header and a weaker match history per artifact. The head apart lets a build that
+//! rewrites an archive holding every artifact of the entry read the reflection alone
+//! ([`head`]), never decompressing the frame.
 //!
 //! A build too small for compression to pay writes its only pack with [`encode_stored`]: the
 //! same entry, its frame made of raw blocks (zstd's block type for data that does not
@@ -22,18 +25,18 @@
 //! a pack holds them: the remote holds the dictionaries they name too, and a cache that
 //! reads one fetches its dictionary into its folder (see `exchange.rs`).
 //!
-//! Layout: [`MAGIC`], the entry's checksum (a blake3, as version 2's: blake3 of the
-//! uncompressed body with each artifact replaced by its blake3), the key (32), the length of
-//! the same entry in version 2 (u64: `kiln cache stats` reports it as the raw size), the
-//! dictionary id (16, zero: none), then (version 4) the artifact count (u32) and each
-//! artifact's blake3 (32 each), then the zstd frame of the body, with zstd's check sum of
-//! its content (version 4).
+//! Layout (version 5): [`MAGIC`], the head's check sum (xxh3-128 of the head after it, then
+//! 16 zero bytes), the key (32), the length of the same entry in version 2 (u64: `kiln cache
+//! stats` reports it as the raw size), the dictionary id (16, zero: none), the artifact
+//! count (u32) and each artifact's blake3 (32 each), the description's length (u32) and the
+//! description, then the zstd frame of the artifacts, with zstd's check sum of its content.
+//! The artifacts' blake3 are stored so that a build reading an entry need not hash its
+//! artifacts again (the archive wants them): zstd's check sum tells a frame that
+//! decompresses to other bytes, the head's check sum damaged hashes or description.
 //!
-//! Version 4 keeps the artifacts' blake3 beside the frame so that a build reading an entry
-//! need not hash its artifacts again (the archive wants them, the checksum is made of
-//! them): zstd's check sum tells a frame that decompresses to other bytes, and the
-//! checksum, computed from the stored hashes and the body's framing, tells damaged hashes.
-//! A version 3 entry is checked by hashing its artifacts.
+//! Version 4 kept the description inside the frame, the artifacts' blake3 beside it, and a
+//! blake3 checksum of the body with each artifact replaced by its blake3; version 3 stored
+//! no hashes (they are computed).
 
 use std::cell::RefCell;
 use std::collections::HashMap;
