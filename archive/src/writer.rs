@@ -849,6 +849,33 @@ impl StreamingWriter {
         Ok(n)
     }
 
+    /// Whether the archive being replaced holds the blob whose blake3 is `hash` intact:
+    /// [`StreamingWriter::add_blob_reference`] then adds it without its bytes (a cache hit
+    /// need not decompress them).
+    pub fn holds(&self, hash: &blake3::Hash) -> bool {
+        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
+        previous.is_some_and(|p| p.find(hash.as_bytes()).is_some())
+    }
+
+    /// Adds the blob of `len` bytes whose blake3 is `hash` without its bytes: its number,
+    /// or `None` when neither this writer nor the archive being replaced holds it (the
+    /// caller then adds it with [`StreamingWriter::add_blob_numbered`]).
+    pub fn add_blob_reference(&self, hash: blake3::Hash, len: u64) -> Result<Option<u32>, ArchiveError> {
+        let fail = |source| {
+            self.failed.store(true, Ordering::Relaxed);
+            ArchiveError::Write { path: self.output.clone(), source }
+        };
+        let (n, added) = lock(&self.blobs).find(&hash).map_err(fail)?;
+        if added {
+            return Ok(Some(n));
+        }
+        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
+        let Some(reference) = previous.and_then(|p| p.find(hash.as_bytes())) else { return Ok(None) };
+        let (n, offset) = lock(&self.blobs).add(&hash, len, reference).map_err(fail)?;
+        debug_assert!(offset.is_none(), "a blob by reference is not spooled");
+        Ok(Some(n))
+    }
+
     /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
         let p = {

@@ -21,7 +21,7 @@ use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
 use crate::archive::{self, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target};
-use crate::cache::Key;
+use crate::cache::{Held, Key};
 use crate::compile::{self, Compiled};
 
 /// What stays of a key once its artifacts are written, its artifacts in
@@ -350,11 +350,49 @@ impl<'p> Assembler<'p> {
                 }
             }
         }
+        self.record(key, &c.reflection, numbers, hashes);
+    }
+
+    /// Whether artifacts may be added by reference to the archive being replaced
+    /// ([`Assembler::add_held`]): only into an archive, without loose files (they need the
+    /// bytes).
+    pub fn by_reference(&self) -> bool {
+        self.plan.assembles() && self.writer.is_some() && self.plan.options.emit_dir.is_none()
+    }
+
+    /// Whether the archive being replaced holds the blob whose blake3 is `hash`.
+    pub fn holds(&self, hash: &blake3::Hash) -> bool {
+        self.writer.as_ref().is_some_and(|w| w.holds(hash))
+    }
+
+    /// A key's artifacts by reference to the archive being replaced (a cache entry read
+    /// without them): false, adding nothing of the key, when that archive lacks one (the
+    /// caller then reads the whole entry and calls [`Assembler::add`]).
+    pub fn add_held(&self, key: &Key, h: &Held) -> bool {
+        let Some(w) = self.writer.as_ref().filter(|_| self.by_reference()) else { return false };
+        let mut numbers = Vec::with_capacity(h.artifacts.len());
+        for &(t, len, hash) in &h.artifacts {
+            match w.add_blob_reference(hash, len) {
+                Ok(Some(n)) => numbers.push((t, n)),
+                Ok(None) => return false,
+                Err(e) => {
+                    self.error.lock().expect("no panics while locked").get_or_insert(format!("error: {e}"));
+                    return true;
+                }
+            }
+        }
+        let hashes: Vec<blake3::Hash> = h.artifacts.iter().map(|a| a.2).collect();
+        self.record(key, &h.reflection, numbers, &hashes);
+        true
+    }
+
+    /// Keeps a key's reflection and blob numbers (each artifact's blake3 `hashes`).
+    fn record(&self, key: &Key, reflection: &Reflection, mut numbers: Vec<(Target, u32)>, hashes: &[blake3::Hash]) {
         let mut p = self.produced.lock().expect("no panics while locked");
-        let reflection = match p.reflection_index.get(&c.reflection) {
+        let reflection = match p.reflection_index.get(reflection) {
             Some(&r) => r,
             None => {
-                let r = Arc::new(c.reflection.clone());
+                let r = Arc::new(reflection.clone());
                 let n = p.reflections.len() as u32;
                 p.reflections.push(r.clone());
                 p.reflection_index.insert(r, n);

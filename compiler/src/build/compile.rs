@@ -215,12 +215,9 @@ impl<'a> Compiler<'a> {
         }
         let p = &self.plan.permutation(members[0] as usize);
         let mut warning = None;
-        match self.store.get(key) {
-            Fetched::Hit(c, hashes) => {
-                self.deliver(key, p, c, Some(hashes));
-                return Outcome::Hit;
-            }
-            Fetched::Miss(w) => warning = w.or(warning),
+        match self.fetch(key, p) {
+            Some(Fetched::Miss(w)) => warning = w.or(warning),
+            _ => return Outcome::Hit,
         }
         // A shard's kept text, else the key's first permutation preprocessed again.
         let kept = self.texts.as_ref().and_then(|t| t.take(key));
@@ -238,12 +235,31 @@ impl<'a> Compiler<'a> {
 
     /// A key from the cache, else compiled from `text` (a permutation `p` of that key).
     fn produce(&self, key: &Key, p: &Permutation<'_>, text: &str) -> Outcome {
-        match self.store.get(key) {
+        match self.fetch(key, p) {
+            Some(Fetched::Miss(warning)) => self.compile(key, p, text, warning),
+            _ => Outcome::Hit,
+        }
+    }
+
+    /// A key from the cache, delivered (`None`), else the miss. An entry whose artifacts the
+    /// archive being replaced holds is read without them and added by reference; should
+    /// that fail, the whole entry is read.
+    fn fetch(&self, key: &Key, p: &Permutation<'_>) -> Option<Fetched> {
+        let fetched = match self.assembler.by_reference() {
+            true => self.store.get_unless_held(key, &|h| self.assembler.holds(h)),
+            false => self.store.get(key),
+        };
+        let fetched = match fetched {
+            Fetched::Held(h) if self.assembler.add_held(key, &h) => return None,
+            Fetched::Held(_) => self.store.get(key),
+            other => other,
+        };
+        match fetched {
             Fetched::Hit(c, hashes) => {
                 self.deliver(key, p, c, Some(hashes));
-                Outcome::Hit
+                None
             }
-            Fetched::Miss(warning) => self.compile(key, p, text, warning),
+            other => Some(other),
         }
     }
 

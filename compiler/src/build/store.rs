@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::thread::JoinHandle;
 
 use super::{CacheDir, Error, Options};
-use crate::cache::{Cache, Key, Lookup, Packing};
+use crate::cache::{Cache, Held, Key, Lookup, Packing};
 use crate::compile::Compiled;
 use crate::permute::Config;
 
@@ -31,6 +31,8 @@ const PACK_BYTES: usize = 2 << 20;
 pub(super) enum Fetched {
     /// The entry, with the blake3 of each artifact (checked against the entry's checksum).
     Hit(Compiled, Vec<blake3::Hash>),
+    /// The entry without its artifacts' bytes, which the archive being replaced holds.
+    Held(Held),
     /// Not there (or not usable): the warning when the entry was corrupted.
     Miss(Option<String>),
 }
@@ -134,8 +136,15 @@ impl Store {
     }
 
     pub fn get(&self, key: &Key) -> Fetched {
-        match self.cache.as_ref().map(|c| c.get(key)) {
+        self.get_unless_held(key, &|_| false)
+    }
+
+    /// [`Store::get`], or [`Fetched::Held`] for an entry whose artifacts all satisfy `held`
+    /// ([`Cache::get_unless_held`]).
+    pub fn get_unless_held(&self, key: &Key, held: &dyn Fn(&blake3::Hash) -> bool) -> Fetched {
+        match self.cache.as_ref().map(|c| c.get_unless_held(key, held)) {
             Some(Lookup::Hit(c, hashes)) => Fetched::Hit(c, hashes),
+            Some(Lookup::Held(h)) => Fetched::Held(h),
             Some(Lookup::Corrupt(why)) => Fetched::Miss(Some(format!("warning: {why}"))),
             Some(Lookup::Miss) | None => Fetched::Miss(None),
         }
@@ -629,7 +638,20 @@ mod tests {
             for i in 0..5u8 {
                 match store.get(&Key([i; 32])) {
                     Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                    Fetched::Held(_) => panic!("key {i} held though nothing holds its artifacts"),
                     Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
+                }
+                // Its artifacts held elsewhere: the entry's head only, the same description.
+                let c = compiled(i, 400);
+                match store.get_unless_held(&Key([i; 32]), &|h| c.artifacts.iter().any(|(_, b)| blake3::hash(b) == *h))
+                {
+                    Fetched::Held(h) => {
+                        assert_eq!(h.reflection, c.reflection);
+                        let want: Vec<_> =
+                            c.artifacts.iter().map(|(t, b)| (*t, b.len() as u64, blake3::hash(b))).collect();
+                        assert_eq!(h.artifacts, want);
+                    }
+                    _ => panic!("key {i} not held"),
                 }
             }
         }
@@ -658,6 +680,7 @@ mod tests {
         for i in 0..5u8 {
             match store.get(&key(i)) {
                 Fetched::Hit(c, _) => assert_eq!(c, compiled(i, 400)),
+                Fetched::Held(_) => panic!("key {i} held though nothing holds its artifacts"),
                 Fetched::Miss(w) => panic!("key {i} missing: {w:?}"),
             }
         }

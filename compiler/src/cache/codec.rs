@@ -1,12 +1,15 @@
-//! The compressed encoding of a cache entry (version 4, and version 3 read), and the cache's
-//! dictionaries.
+//! The compressed encoding of a cache entry (version 5, and versions 4 and 3 read), and the
+//! cache's dictionaries.
 //!
-//! An entry's body (as version 2 lays it out after the key: artifact count, each artifact's
-//! target name, length and bytes, the reflection's length and JSON) is one zstd frame,
+//! A version 5 entry keeps its description (as version 2 lays out the body after the key,
+//! without the artifacts' bytes: artifact count, each artifact's target name and length,
+//! the reflection's length and JSON) in a head before one zstd frame of its artifacts' bytes,
 //! compressed with the dictionary of its kind (its targets' names, `spirv+msl+hlsl+wgsl`)
 //! when the cache has one, else plainly. One frame per entry rather than one per artifact:
 //! a level's sources share names and constants across targets, and per-artifact framing cost
-//! a frame header and a weaker match history per artifact.
+//! a frame header and a weaker match history per artifact. The head apart lets a build that
+//! rewrites an archive holding every artifact of the entry read the reflection alone
+//! ([`head`]), never decompressing the frame.
 //!
 //! A build too small for compression to pay writes its only pack with [`encode_stored`]: the
 //! same entry, its frame made of raw blocks (zstd's block type for data that does not
@@ -22,18 +25,18 @@
 //! a pack holds them: the remote holds the dictionaries they name too, and a cache that
 //! reads one fetches its dictionary into its folder (see `exchange.rs`).
 //!
-//! Layout: [`MAGIC`], the entry's checksum (a blake3, as version 2's: blake3 of the
-//! uncompressed body with each artifact replaced by its blake3), the key (32), the length of
-//! the same entry in version 2 (u64: `kiln cache stats` reports it as the raw size), the
-//! dictionary id (16, zero: none), then (version 4) the artifact count (u32) and each
-//! artifact's blake3 (32 each), then the zstd frame of the body, with zstd's check sum of
-//! its content (version 4).
+//! Layout (version 5): [`MAGIC`], the head's check sum (xxh3-128 of the head after it, then
+//! 16 zero bytes), the key (32), the length of the same entry in version 2 (u64: `kiln cache
+//! stats` reports it as the raw size), the dictionary id (16, zero: none), the artifact
+//! count (u32) and each artifact's blake3 (32 each), the description's length (u32) and the
+//! description, then the zstd frame of the artifacts, with zstd's check sum of its content.
+//! The artifacts' blake3 are stored so that a build reading an entry need not hash its
+//! artifacts again (the archive wants them): zstd's check sum tells a frame that
+//! decompresses to other bytes, the head's check sum damaged hashes or description.
 //!
-//! Version 4 keeps the artifacts' blake3 beside the frame so that a build reading an entry
-//! need not hash its artifacts again (the archive wants them, the checksum is made of
-//! them): zstd's check sum tells a frame that decompresses to other bytes, and the
-//! checksum, computed from the stored hashes and the body's framing, tells damaged hashes.
-//! A version 3 entry is checked by hashing its artifacts.
+//! Version 4 kept the description inside the frame, the artifacts' blake3 beside it, and a
+//! blake3 checksum of the body with each artifact replaced by its blake3; version 3 stored
+//! no hashes (they are computed).
 
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -43,10 +46,12 @@ use std::sync::{Arc, Mutex, OnceLock};
 use zstd::zstd_safe::{CCtx, CDict, DCtx, DDict};
 
 use super::Key;
+use crate::archive::{Reflection, Target};
 use crate::compile::Compiled;
 
-/// The version written (4); version 3 entries are still read.
-pub(super) const MAGIC: &[u8; 8] = b"KILNCE\0\x04";
+/// The version written (5); versions 4 and 3 are still read.
+pub(super) const MAGIC: &[u8; 8] = b"KILNCE\0\x05";
+pub(super) const MAGIC_V4: &[u8; 8] = b"KILNCE\0\x04";
 pub(super) const MAGIC_V3: &[u8; 8] = b"KILNCE\0\x03";
 pub(super) const DICT_MAGIC: &[u8; 8] = b"KILNCD\0\x01";
 pub(super) const DICT_EXTENSION: &str = "kcd";
@@ -237,7 +242,8 @@ fn kind_of(c: &Compiled) -> String {
 }
 
 /// An entry's body as version 2 lays it out after the key: artifact count, per artifact its
-/// frame and bytes, the reflection's length and JSON.
+/// frame and bytes, the reflection's length and JSON (version 4's frame content).
+#[cfg(test)]
 fn body(c: &Compiled) -> Vec<u8> {
     let frames = super::frames(c);
     let mut out = Vec::with_capacity(
@@ -289,7 +295,7 @@ pub(super) fn dictionaries_for(
             continue;
         }
         let stride = total.div_ceil(TRAIN_SAMPLE).max(1);
-        let sample: Vec<Vec<u8>> = list.iter().step_by(stride).map(|c| body(c)).collect();
+        let sample: Vec<Vec<u8>> = list.iter().step_by(stride).map(|c| content(c)).collect();
         let sizes: Vec<usize> = sample.iter().map(Vec::len).collect();
         let flat = sample.concat();
         let capacity = (flat.len() / 16).min(crate::archive::DICTIONARY_SIZE);
@@ -304,10 +310,10 @@ pub(super) fn dictionaries_for(
     chosen
 }
 
-/// `c` as a version 4 entry of `key`, with the blake3 of each artifact (`hashes`), its body
-/// compressed with its kind's dictionary in `dicts` (none: plainly).
+/// `c` as a version 5 entry of `key`, with the blake3 of each artifact (`hashes`), its
+/// artifacts compressed with its kind's dictionary in `dicts` (none: plainly).
 pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &HashMap<String, Arc<Dict>>) -> Vec<u8> {
-    let raw = body(c);
+    let raw = content(c);
     let dict = dicts.get(&kind_of(c)).and_then(|d| d.cdict().map(|c| (d.id, c)));
     CCTX.with(|cell| {
         use zstd::zstd_safe::{CParameter, ResetDirective};
@@ -333,65 +339,69 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
         // Copied out at its size from the worker's buffer: the encoded entries of a pack
         // wait to be written, each in a buffer of its raw size (zeroed, so faulted in)
         // otherwise.
-        entry(key, c, hashes, raw.len(), dict.as_ref().map_or(NO_DICT, |d| d.0), dst)
+        let mut out = entry_head(key, c, hashes, dict.as_ref().map_or(NO_DICT, |d| d.0), dst.len());
+        out.extend_from_slice(dst);
+        out
     })
 }
 
-/// [`encode`] without compressing: the body goes into a zstd frame of raw blocks
-/// ([`stored_frame`]), which any version 4 reader decodes and checks as it does a
+/// [`encode`] without compressing: the artifacts go into a zstd frame of raw blocks
+/// ([`stored_frame`]), which any version 5 reader decodes and checks as it does a
 /// compressed one. For a build so small that compressing its entries costs a noticeable
 /// share of its time while the bytes saved do not matter (see `build::store`).
 pub(super) fn encode_stored(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
-    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
-    // The body's pieces framed as they are, not gathered into a body first: a small build's
-    // whole output goes through here, and each copy of it faults in fresh pages.
-    let frames = super::frames(c);
-    let mut pieces: Vec<&[u8]> = vec![&frames[0]];
-    for (i, (_, bytes)) in c.artifacts.iter().enumerate() {
-        pieces.push(&frames[1 + i]);
-        pieces.push(bytes);
-    }
-    let n = frames.len();
-    pieces.push(&frames[n - 2]);
-    pieces.push(&frames[n - 1]);
-    let raw_len = pieces.iter().map(|p| p.len()).sum();
-    let checksum = super::entry_checksum(key, &frames, hashes);
-    let mut out = entry_head(key, &checksum, hashes, raw_len, NO_DICT, stored_frame_len(raw_len));
+    // The artifacts framed as they are, not gathered first: a small build's whole output
+    // goes through here, and each copy of it faults in fresh pages.
+    let pieces: Vec<&[u8]> = c.artifacts.iter().map(|(_, b)| b.as_slice()).collect();
+    let len = pieces.iter().map(|p| p.len()).sum();
+    let mut out = entry_head(key, c, hashes, NO_DICT, stored_frame_len(len));
     stored_frame(&pieces, &mut out);
     out
 }
 
-/// A version 4 entry: the header (checksum, key, the version 2 length of a body of
-/// `raw_len` bytes, dictionary id), the artifacts' blake3, then `frame`.
-fn entry(key: &Key, c: &Compiled, hashes: &[blake3::Hash], raw_len: usize, dict: [u8; 16], frame: &[u8]) -> Vec<u8> {
-    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
-    let checksum = super::entry_checksum(key, &super::frames(c), hashes);
-    let mut out = entry_head(key, &checksum, hashes, raw_len, dict, frame.len());
-    out.extend_from_slice(frame);
-    out
+/// The content of an entry's frame (version 5): its artifacts, one after another.
+fn content(c: &Compiled) -> Vec<u8> {
+    c.artifacts.iter().flat_map(|(_, b)| b.iter().copied()).collect()
 }
 
-/// [`entry`] up to its frame (its `checksum` given), with room for a frame of `frame_len`
-/// bytes.
-fn entry_head(
-    key: &Key,
-    checksum: &blake3::Hash,
-    hashes: &[blake3::Hash],
-    raw_len: usize,
-    dict: [u8; 16],
-    frame_len: usize,
-) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER + 20 + 32 * hashes.len() + frame_len);
+/// An entry's description (version 5): the version 2 body without the artifacts' bytes
+/// (artifact count, each artifact's target name and length, the reflection's length and
+/// JSON).
+fn description(c: &Compiled) -> Vec<u8> {
+    super::frames(c).concat()
+}
+
+/// A version 5 entry up to its frame, with room for a frame of `frame_len` bytes: magic,
+/// check sum, key, the version 2 length, dictionary id, the artifacts' blake3, then the
+/// description's length and the description. The check sum (xxh3-128, then 16 zero
+/// bytes) covers everything after it up to the frame.
+fn entry_head(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dict: [u8; 16], frame_len: usize) -> Vec<u8> {
+    assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
+    let desc = description(c);
+    let artifacts: usize = c.artifacts.iter().map(|(_, b)| b.len()).sum();
+    let mut out = Vec::with_capacity(HEADER + 24 + 32 * hashes.len() + desc.len() + frame_len);
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(checksum.as_bytes());
+    out.extend_from_slice(&[0; 32]);
     out.extend_from_slice(&key.0);
-    out.extend_from_slice(&((super::MAGIC.len() + 64 + raw_len) as u64).to_le_bytes());
+    out.extend_from_slice(&((super::MAGIC.len() + 64 + desc.len() + artifacts) as u64).to_le_bytes());
     out.extend_from_slice(&dict);
     out.extend_from_slice(&(hashes.len() as u32).to_le_bytes());
     for h in hashes {
         out.extend_from_slice(h.as_bytes());
     }
+    out.extend_from_slice(&(desc.len() as u32).to_le_bytes());
+    out.extend_from_slice(&desc);
+    let sum = head_sum(&out[40..]);
+    out[8..24].copy_from_slice(&sum);
     out
+}
+
+/// The check sum of a version 5 entry's head (after the check sum, up to the frame). Not a
+/// blake3: it only tells damage in what this cache wrote (the artifacts' blake3 it holds
+/// were computed when they were compiled), and hashing every entry's head with blake3 was
+/// a visible share of a warm build.
+fn head_sum(bytes: &[u8]) -> [u8; 16] {
+    xxhash_rust::xxh3::xxh3_128(bytes).to_le_bytes()
 }
 
 /// The largest block of a zstd frame (`Block_Maximum_Size` of RFC 8878).
@@ -439,9 +449,9 @@ fn stored_frame(pieces: &[&[u8]], out: &mut Vec<u8>) {
     out.extend_from_slice(&(sum.digest() as u32).to_le_bytes());
 }
 
-/// Whether `bytes` starts as a compressed entry (version 3 or 4).
+/// Whether `bytes` starts as a compressed entry (version 3, 4 or 5).
 pub(super) fn is_compressed(bytes: &[u8]) -> bool {
-    bytes.starts_with(MAGIC) || bytes.starts_with(MAGIC_V3)
+    bytes.starts_with(MAGIC) || bytes.starts_with(MAGIC_V4) || bytes.starts_with(MAGIC_V3)
 }
 
 /// The raw length a whole compressed entry's header announces.
@@ -472,24 +482,138 @@ fn stored_hashes(bytes: &[u8]) -> Result<(Option<Vec<blake3::Hash>>, usize), Str
     let start = HEADER + 20;
     let end = count.checked_mul(32).and_then(|n| n.checked_add(start)).filter(|&e| e <= bytes.len());
     let end = end.ok_or("entry is truncated")?;
-    let hashes =
-        bytes[start..end].chunks_exact(32).map(|h| blake3::Hash::from_bytes(h.try_into().expect("32 bytes"))).collect();
-    // Without zstd's check sum, nothing would tell a damaged frame (byte 4 of a frame is its
-    // header descriptor; bit 2 announces the check sum).
-    let frame = &bytes[end..];
+    check_frame(&bytes[end..])?;
+    Ok((Some(read_hashes(&bytes[start..end])), end))
+}
+
+/// The blake3 hashes one after another in `bytes`.
+fn read_hashes(bytes: &[u8]) -> Vec<blake3::Hash> {
+    bytes.chunks_exact(32).map(|h| blake3::Hash::from_bytes(h.try_into().expect("32 bytes"))).collect()
+}
+
+/// Without zstd's check sum, nothing would tell a damaged frame (byte 4 of a frame is its
+/// header descriptor; bit 2 announces the check sum).
+fn check_frame(frame: &[u8]) -> Result<(), String> {
     if frame.len() < 5 || frame[4] & 0x04 == 0 {
         return Err("its frame has no check sum".into());
     }
-    Ok((Some(hashes), end))
+    Ok(())
 }
 
-/// The entry `bytes` of `key` (version 3 or 4), decompressed and checked, with its
+/// What a version 5 entry holds before its frame, checked: its artifacts (target, length,
+/// blake3), its reflection, its dictionary id, and the frame.
+pub(super) struct Head<'a> {
+    pub(super) artifacts: Vec<(Target, u64, blake3::Hash)>,
+    pub(super) reflection: Reflection,
+    dict: [u8; 16],
+    frame: &'a [u8],
+}
+
+/// The head of the version 5 entry `bytes` of `key`, checked (its frame is not read).
+pub(super) fn head<'a>(key: &Key, bytes: &'a [u8]) -> Result<Head<'a>, String> {
+    if bytes.len() < HEADER + 20 || !bytes.starts_with(MAGIC) {
+        return Err("not a cache entry of this kiln".into());
+    }
+    if bytes[40..72] != key.0 {
+        return Err("the entry belongs to another key".into());
+    }
+    let mut r = super::Reader { bytes, at: HEADER };
+    let dict: [u8; 16] = r.take(16)?.try_into().expect("16 bytes");
+    let count = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
+    let hashes = read_hashes(r.take(count.checked_mul(32).ok_or("entry is truncated")?)?);
+    let len = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
+    let desc = r.take(len)?;
+    if head_sum(&bytes[40..r.at]) != bytes[8..24] || bytes[24..40] != [0; 16] {
+        return Err("checksum mismatch".into());
+    }
+    let frame = &bytes[r.at..];
+    check_frame(frame)?;
+    let mut d = super::Reader { bytes: desc, at: 0 };
+    if u32::from_le_bytes(d.take(4)?.try_into().expect("4 bytes")) as usize != count {
+        return Err("bad artifact count".into());
+    }
+    let mut artifacts = Vec::with_capacity(count);
+    for hash in hashes {
+        let n = d.take(1)?[0] as usize;
+        let name = std::str::from_utf8(d.take(n)?).map_err(|_| "bad target name".to_string())?;
+        let target = Target::from_name(name).ok_or_else(|| format!("unknown target `{name}`"))?;
+        artifacts.push((target, d.u64()?, hash));
+    }
+    let n = d.u64()? as usize;
+    let reflection = serde_json::from_slice(d.take(n)?).map_err(|e| format!("bad reflection: {e}"))?;
+    if d.at != desc.len() {
+        return Err("trailing bytes".into());
+    }
+    Ok(Head { artifacts, reflection, dict, frame })
+}
+
+/// The version 5 entry `bytes` of `key`, its artifacts decompressed, checked.
+fn decode_v5(
+    key: &Key,
+    bytes: &[u8],
+    dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
+) -> Result<(Compiled, Vec<blake3::Hash>), String> {
+    let head = head(key, bytes)?;
+    let total = head.artifacts.iter().try_fold(0u64, |t, a| t.checked_add(a.1)).filter(|&t| t <= MAX_RAW);
+    let total = total.ok_or("bad length")? as usize;
+    let mut content = vec![0u8; total];
+    if decompress(head.frame, &head.dict, dict, &mut content)? != total {
+        return Err("bad length".into());
+    }
+    let mut at = 0;
+    let mut hashes = Vec::with_capacity(head.artifacts.len());
+    let artifacts = head
+        .artifacts
+        .into_iter()
+        .map(|(target, len, hash)| {
+            hashes.push(hash);
+            at += len as usize;
+            (target, content[at - len as usize..at].to_vec())
+        })
+        .collect();
+    Ok((Compiled { artifacts, reflection: head.reflection }, hashes))
+}
+
+/// Decompresses `frame` (with dictionary `id` unless [`NO_DICT`]) into `out`: the bytes
+/// written.
+fn decompress(
+    frame: &[u8],
+    id: &[u8; 16],
+    dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
+    out: &mut [u8],
+) -> Result<usize, String> {
+    let d = if *id == NO_DICT { None } else { Some(dict(id)?) };
+    let result = DCTX.with(|cell| {
+        let mut cell = cell.borrow_mut();
+        let dctx = match cell.as_mut() {
+            Some(d) => d,
+            None => cell.insert(DCtx::try_create().ok_or("cannot create a zstd context")?),
+        };
+        match &d {
+            Some(d) => {
+                let ddict = d.ddict().ok_or("its dictionary cannot be loaded")?;
+                dctx.decompress_using_ddict(out, frame, ddict).map_err(|_| "cannot decompress it")
+            }
+            None => dctx.decompress(out, frame).map_err(|_| "cannot decompress it"),
+        }
+    });
+    if result.is_err() {
+        // A context left mid-frame is made again.
+        DCTX.with(|cell| *cell.borrow_mut() = None);
+    }
+    Ok(result?)
+}
+
+/// The entry `bytes` of `key` (version 3, 4 or 5), decompressed and checked, with its
 /// artifacts' blake3; `dict` finds a dictionary by id.
 pub(super) fn decode(
     key: &Key,
     bytes: &[u8],
     dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
 ) -> Result<(Compiled, Vec<blake3::Hash>), String> {
+    if bytes.starts_with(MAGIC) {
+        return decode_v5(key, bytes, dict);
+    }
     if bytes.len() < HEADER + 16 || !is_compressed(bytes) {
         return Err("not a cache entry of this kiln".into());
     }
@@ -503,30 +627,11 @@ pub(super) fn decode(
     let id: [u8; 16] = bytes[HEADER..HEADER + 16].try_into().unwrap();
     let (hashes, start) = stored_hashes(bytes)?;
     let frame = &bytes[start..];
-    let d = if id == NO_DICT { None } else { Some(dict(&id)?) };
     // The version 2 entry: its header, then the body decompressed after it.
     let mut v2 = vec![0u8; raw as usize];
     v2[..8].copy_from_slice(super::MAGIC);
     v2[8..72].copy_from_slice(&bytes[8..72]);
-    let result = DCTX.with(|cell| {
-        let mut cell = cell.borrow_mut();
-        let dctx = match cell.as_mut() {
-            Some(d) => d,
-            None => cell.insert(DCtx::try_create().ok_or("cannot create a zstd context")?),
-        };
-        match &d {
-            Some(d) => {
-                let ddict = d.ddict().ok_or("its dictionary cannot be loaded")?;
-                dctx.decompress_using_ddict(&mut v2[72..], frame, ddict).map_err(|_| "cannot decompress it")
-            }
-            None => dctx.decompress(&mut v2[72..], frame).map_err(|_| "cannot decompress it"),
-        }
-    });
-    if result.is_err() {
-        // A context left mid-frame is made again.
-        DCTX.with(|cell| *cell.borrow_mut() = None);
-    }
-    if result? as u64 != raw - 72 {
+    if decompress(frame, &id, dict, &mut v2[72..])? as u64 != raw - 72 {
         return Err("bad length".into());
     }
     super::decode_v2_hashed(key, &v2, hashes.as_deref())
@@ -535,7 +640,7 @@ pub(super) fn decode(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::archive::{Reflection, Stage, Target};
+    use crate::archive::Stage;
 
     fn compiled() -> Compiled {
         Compiled {
@@ -569,8 +674,8 @@ mod tests {
         let (key, c) = (Key([9; 32]), compiled());
         let entry = encode_stored(&key, &c, &hashes(&c));
         assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
-        let (_, start) = stored_hashes(&entry).unwrap();
-        assert_eq!(zstd::decode_all(&entry[start..]).unwrap(), body(&c), "a frame zstd reads");
+        let frame = head(&key, &entry).unwrap().frame;
+        assert_eq!(zstd::decode_all(frame).unwrap(), content(&c), "a frame zstd reads");
         for at in 0..entry.len() {
             let mut damaged = entry.clone();
             damaged[at] ^= 0x10;
@@ -594,13 +699,47 @@ mod tests {
         }
     }
 
-    /// A version 4 entry gives back the hashes it was written with, and no damaged copy of
-    /// it (any one byte flipped) decodes to other artifacts or other hashes.
+    /// A version 5 entry gives back the hashes it was written with, and no damaged copy of
+    /// it (any one byte flipped) decodes to other artifacts or other hashes, nor its head
+    /// to another reflection or other hashes.
     #[test]
-    fn a_version_4_entry_keeps_its_hashes_and_every_damage_is_caught() {
+    fn a_version_5_entry_keeps_its_hashes_and_every_damage_is_caught() {
         let (key, c) = (Key([7; 32]), compiled());
         let entry = encode(&key, &c, &hashes(&c), &HashMap::new());
         assert!(entry.starts_with(MAGIC));
+        assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
+        let described = |h: Head<'_>| (h.reflection, h.artifacts);
+        let want: Vec<(Target, u64, blake3::Hash)> =
+            c.artifacts.iter().zip(hashes(&c)).map(|((t, b), h)| (*t, b.len() as u64, h)).collect();
+        assert_eq!(described(head(&key, &entry).unwrap()), (c.reflection.clone(), want.clone()));
+        for at in 0..entry.len() {
+            let mut damaged = entry.clone();
+            damaged[at] ^= 0x10;
+            if let Ok(got) = decode(&key, &damaged, &no_dicts) {
+                assert_eq!(got, (c.clone(), hashes(&c)), "byte {at} flipped gave another entry");
+            }
+            if let Ok(got) = head(&key, &damaged) {
+                assert_eq!(described(got), (c.reflection.clone(), want.clone()), "byte {at} flipped");
+            }
+        }
+    }
+
+    /// A version 4 entry (the reflection inside the frame, written by older kilns) is still
+    /// read, and no damaged copy of it decodes to other artifacts or hashes.
+    #[test]
+    fn a_version_4_entry_is_still_read() {
+        let (key, c) = (Key([5; 32]), compiled());
+        let raw = body(&c);
+        let mut entry = MAGIC_V4.to_vec();
+        entry.extend_from_slice(super::super::entry_checksum(&key, &super::super::frames(&c), &hashes(&c)).as_bytes());
+        entry.extend_from_slice(&key.0);
+        entry.extend_from_slice(&((super::super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
+        entry.extend_from_slice(&NO_DICT);
+        entry.extend_from_slice(&2u32.to_le_bytes());
+        hashes(&c).iter().for_each(|h| entry.extend_from_slice(h.as_bytes()));
+        let mut z = zstd::bulk::Compressor::new(PLAIN_LEVEL).unwrap();
+        z.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true)).unwrap();
+        entry.extend_from_slice(&z.compress(&raw).unwrap());
         assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
         for at in 0..entry.len() {
             let mut damaged = entry.clone();
@@ -625,7 +764,7 @@ mod tests {
         entry.extend_from_slice(&zstd::bulk::compress(&raw, PLAIN_LEVEL).unwrap());
         assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
         // A version 4 header on a frame without zstd's check sum is refused.
-        let mut v4 = MAGIC.to_vec();
+        let mut v4 = MAGIC_V4.to_vec();
         v4.extend_from_slice(&entry[8..HEADER + 16]);
         v4.extend_from_slice(&2u32.to_le_bytes());
         hashes(&c).iter().for_each(|h| v4.extend_from_slice(h.as_bytes()));

@@ -16,9 +16,16 @@ impl Cache {
     /// The entry of `key`: from a local pack, else from the remote cache (checked, then
     /// queued to be filled into the local cache).
     pub fn get(&self, key: &Key) -> Lookup {
-        let local = self.get_local(key);
+        self.get_unless_held(key, &|_| false)
+    }
+
+    /// [`Cache::get`], except that a local entry (version 5) whose artifacts' blake3 all
+    /// satisfy `held` is [`Lookup::Held`]: its artifacts are not decompressed (the caller
+    /// has them elsewhere, as a build has the blobs of the archive it replaces).
+    pub fn get_unless_held(&self, key: &Key, held: &dyn Fn(&blake3::Hash) -> bool) -> Lookup {
+        let local = self.get_local(key, held);
         let Some(layer) = &self.remote else { return local };
-        if matches!(local, Lookup::Hit(..)) {
+        if matches!(local, Lookup::Hit(..) | Lookup::Held(_)) {
             return local;
         }
         if layer.absent.lock().expect("no panics while locked").contains(key) {
@@ -65,19 +72,36 @@ impl Cache {
         decode_v2_hashed(key, bytes, None)
     }
 
-    pub(super) fn get_local(&self, key: &Key) -> Lookup {
+    /// The entry `bytes` of `key` checked: [`Lookup::Held`] when it is a version 5 entry
+    /// whose artifacts all satisfy `held`, else [`Lookup::Hit`].
+    fn decode_unless_held(
+        &self,
+        key: &Key,
+        bytes: &[u8],
+        held: &dyn Fn(&blake3::Hash) -> bool,
+    ) -> Result<Lookup, String> {
+        if bytes.starts_with(codec::MAGIC) {
+            let head = codec::head(key, bytes)?;
+            if !head.artifacts.is_empty() && head.artifacts.iter().all(|a| held(&a.2)) {
+                return Ok(Lookup::Held(Held { reflection: head.reflection, artifacts: head.artifacts }));
+            }
+        }
+        self.decode_hashed(key, bytes).map(|(c, hashes)| Lookup::Hit(c, hashes))
+    }
+
+    pub(super) fn get_local(&self, key: &Key, held: &dyn Fn(&blake3::Hash) -> bool) -> Lookup {
         let locations = self.with_index(|index| index.copies(key));
         let mut corrupt = None;
         for l in &locations {
             let mut bytes = vec![0; l.len as usize];
             let decoded = match l.pack.file.read_exact_at(&mut bytes, l.offset) {
-                Ok(()) => self.decode_hashed(key, &bytes),
+                Ok(()) => self.decode_unless_held(key, &bytes, held),
                 Err(_) => Err("entry is truncated".to_string()),
             };
             match decoded {
-                Ok((c, hashes)) => {
+                Ok(found) => {
                     l.pack.touch();
-                    return Lookup::Hit(c, hashes);
+                    return found;
                 }
                 Err(why) => {
                     corrupt.get_or_insert_with(|| {

@@ -212,10 +212,22 @@ pub enum Lookup {
     /// The entry, with the blake3 of each artifact (computed or read to check the entry, so
     /// that the caller need not hash the artifacts again).
     Hit(Compiled, Vec<blake3::Hash>),
+    /// The entry, whose artifacts the caller said it holds ([`Cache::get_unless_held`]):
+    /// its reflection and each artifact's target, length and blake3, its artifacts not
+    /// decompressed.
+    Held(Held),
     Miss,
     /// Every copy of the entry fails its checksum or cannot be decoded: the reason. The
     /// caller recompiles; the new copy, in a newer pack, is the one read from then on.
     Corrupt(String),
+}
+
+/// An entry without its artifacts' bytes ([`Lookup::Held`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Held {
+    pub reflection: Reflection,
+    /// Each artifact's target, length and blake3.
+    pub artifacts: Vec<(Target, u64, blake3::Hash)>,
 }
 
 /// Counts of [`Cache::stats`].
@@ -749,6 +761,7 @@ fn body_pieces<'a>(key: &'a Key, c: &'a Compiled, frames: &'a [Vec<u8>]) -> Vec<
 /// An entry's checksum: blake3 of its body with each artifact replaced by the artifact's
 /// blake3 (`hashes`), so that artifacts are hashed once per build, for the archive and the
 /// cache alike.
+#[cfg(test)]
 fn entry_checksum(key: &Key, frames: &[Vec<u8>], hashes: &[blake3::Hash]) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     h.update(&key.0);
