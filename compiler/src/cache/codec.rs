@@ -295,7 +295,8 @@ pub(super) fn dictionaries_for(
             continue;
         }
         let stride = total.div_ceil(TRAIN_SAMPLE).max(1);
-        let sample: Vec<Vec<u8>> = list.iter().step_by(stride).map(|c| content(c)).collect();
+        // Descriptions and artifacts alike: both frames of an entry use the dictionary.
+        let sample: Vec<Vec<u8>> = list.iter().step_by(stride).flat_map(|c| [description(c), content(c)]).collect();
         let sizes: Vec<usize> = sample.iter().map(Vec::len).collect();
         let flat = sample.concat();
         let capacity = (flat.len() / 16).min(crate::archive::DICTIONARY_SIZE);
@@ -313,8 +314,21 @@ pub(super) fn dictionaries_for(
 /// `c` as a version 5 entry of `key`, with the blake3 of each artifact (`hashes`), its
 /// artifacts compressed with its kind's dictionary in `dicts` (none: plainly).
 pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &HashMap<String, Arc<Dict>>) -> Vec<u8> {
-    let raw = content(c);
     let dict = dicts.get(&kind_of(c)).and_then(|d| d.cdict().map(|c| (d.id, c)));
+    let cdict = dict.as_ref().map(|d| d.1);
+    let desc = description(c);
+    let desc_frame = compress(&desc, cdict);
+    let frame = compress(&content(c), cdict);
+    let mut out = entry_head(key, c, hashes, dict.as_ref().map_or(NO_DICT, |d| d.0), &desc, &desc_frame, frame.len());
+    out.extend_from_slice(&frame);
+    out
+}
+
+/// `raw` as one zstd frame with its check sum, compressed with `cdict` (none: plainly).
+/// The returned bytes are copied out at their size from the worker's reused buffer: the
+/// encoded entries of a pack wait to be written, each in a buffer of its raw size (zeroed,
+/// so faulted in) otherwise.
+fn compress(raw: &[u8], cdict: Option<&CDict<'static>>) -> Vec<u8> {
     CCTX.with(|cell| {
         use zstd::zstd_safe::{CParameter, ResetDirective};
         let mut cell = cell.borrow_mut();
@@ -325,23 +339,18 @@ pub(super) fn encode(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dicts: &H
         let written = (|| {
             cctx.reset(ResetDirective::SessionAndParameters)?;
             cctx.set_parameter(CParameter::ChecksumFlag(true))?;
-            match dict {
-                Some((_, cdict)) => cctx.ref_cdict(cdict)?,
+            match cdict {
+                Some(cdict) => cctx.ref_cdict(cdict)?,
                 None => cctx.set_parameter(CParameter::CompressionLevel(PLAIN_LEVEL))?,
             };
-            cctx.compress2(dst, &raw)
+            cctx.compress2(dst, raw)
         })();
         // The bound always fits a frame; an error (none expected) leaves an empty frame,
         // which fails to decode: the entry is then recompiled.
         if written.is_err() {
             dst.clear();
         }
-        // Copied out at its size from the worker's buffer: the encoded entries of a pack
-        // wait to be written, each in a buffer of its raw size (zeroed, so faulted in)
-        // otherwise.
-        let mut out = entry_head(key, c, hashes, dict.as_ref().map_or(NO_DICT, |d| d.0), dst.len());
-        out.extend_from_slice(dst);
-        out
+        dst.to_vec()
     })
 }
 
@@ -354,7 +363,10 @@ pub(super) fn encode_stored(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) ->
     // goes through here, and each copy of it faults in fresh pages.
     let pieces: Vec<&[u8]> = c.artifacts.iter().map(|(_, b)| b.as_slice()).collect();
     let len = pieces.iter().map(|p| p.len()).sum();
-    let mut out = entry_head(key, c, hashes, NO_DICT, stored_frame_len(len));
+    let desc = description(c);
+    let mut desc_frame = Vec::with_capacity(stored_frame_len(desc.len()));
+    stored_frame(&[&desc], &mut desc_frame);
+    let mut out = entry_head(key, c, hashes, NO_DICT, &desc, &desc_frame, stored_frame_len(len));
     stored_frame(&pieces, &mut out);
     out
 }
@@ -373,13 +385,22 @@ fn description(c: &Compiled) -> Vec<u8> {
 
 /// A version 5 entry up to its frame, with room for a frame of `frame_len` bytes: magic,
 /// check sum, key, the version 2 length, dictionary id, the artifacts' blake3, then the
-/// description's length and the description. The check sum (xxh3-128, then 16 zero
-/// bytes) covers everything after it up to the frame.
-fn entry_head(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dict: [u8; 16], frame_len: usize) -> Vec<u8> {
+/// description's length, and the description (`desc`) as `desc_frame`'s length and its
+/// zstd frame (compressed as the artifacts are: a reflection's JSON, repeated in every entry
+/// of a shader, would otherwise be a third of a compressed cache). The check sum (xxh3-128,
+/// then 16 zero bytes) covers everything after it up to the frame.
+fn entry_head(
+    key: &Key,
+    c: &Compiled,
+    hashes: &[blake3::Hash],
+    dict: [u8; 16],
+    desc: &[u8],
+    desc_frame: &[u8],
+    frame_len: usize,
+) -> Vec<u8> {
     assert_eq!(hashes.len(), c.artifacts.len(), "one hash per artifact");
-    let desc = description(c);
     let artifacts: usize = c.artifacts.iter().map(|(_, b)| b.len()).sum();
-    let mut out = Vec::with_capacity(HEADER + 24 + 32 * hashes.len() + desc.len() + frame_len);
+    let mut out = Vec::with_capacity(HEADER + 28 + 32 * hashes.len() + desc_frame.len() + frame_len);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&[0; 32]);
     out.extend_from_slice(&key.0);
@@ -390,7 +411,8 @@ fn entry_head(key: &Key, c: &Compiled, hashes: &[blake3::Hash], dict: [u8; 16], 
         out.extend_from_slice(h.as_bytes());
     }
     out.extend_from_slice(&(desc.len() as u32).to_le_bytes());
-    out.extend_from_slice(&desc);
+    out.extend_from_slice(&(desc_frame.len() as u32).to_le_bytes());
+    out.extend_from_slice(desc_frame);
     let sum = head_sum(&out[40..]);
     out[8..24].copy_from_slice(&sum);
     out
@@ -509,8 +531,13 @@ pub(super) struct Head<'a> {
     frame: &'a [u8],
 }
 
-/// The head of the version 5 entry `bytes` of `key`, checked (its frame is not read).
-pub(super) fn head<'a>(key: &Key, bytes: &'a [u8]) -> Result<Head<'a>, String> {
+/// The head of the version 5 entry `bytes` of `key`, checked (its frame is not read); `dict`
+/// finds the dictionary its description is compressed with.
+pub(super) fn head<'a>(
+    key: &Key,
+    bytes: &'a [u8],
+    dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
+) -> Result<Head<'a>, String> {
     if bytes.len() < HEADER + 20 || !bytes.starts_with(MAGIC) {
         return Err("not a cache entry of this kiln".into());
     }
@@ -518,16 +545,25 @@ pub(super) fn head<'a>(key: &Key, bytes: &'a [u8]) -> Result<Head<'a>, String> {
         return Err("the entry belongs to another key".into());
     }
     let mut r = super::Reader { bytes, at: HEADER };
-    let dict: [u8; 16] = r.take(16)?.try_into().expect("16 bytes");
+    let dict_id: [u8; 16] = r.take(16)?.try_into().expect("16 bytes");
     let count = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
     let hashes = read_hashes(r.take(count.checked_mul(32).ok_or("entry is truncated")?)?);
-    let len = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
-    let desc = r.take(len)?;
+    let desc_len = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
+    let desc_frame_len = u32::from_le_bytes(r.take(4)?.try_into().expect("4 bytes")) as usize;
+    let desc_frame = r.take(desc_frame_len)?;
     if head_sum(&bytes[40..r.at]) != bytes[8..24] || bytes[24..40] != [0; 16] {
         return Err("checksum mismatch".into());
     }
     let frame = &bytes[r.at..];
     check_frame(frame)?;
+    if desc_len as u64 > MAX_RAW {
+        return Err("bad length".into());
+    }
+    let mut desc = vec![0u8; desc_len];
+    if decompress(desc_frame, &dict_id, dict, &mut desc)? != desc_len {
+        return Err("bad length".into());
+    }
+    let desc = &desc[..];
     let mut d = super::Reader { bytes: desc, at: 0 };
     if u32::from_le_bytes(d.take(4)?.try_into().expect("4 bytes")) as usize != count {
         return Err("bad artifact count".into());
@@ -544,7 +580,7 @@ pub(super) fn head<'a>(key: &Key, bytes: &'a [u8]) -> Result<Head<'a>, String> {
     if d.at != desc.len() {
         return Err("trailing bytes".into());
     }
-    Ok(Head { artifacts, reflection, dict, frame })
+    Ok(Head { artifacts, reflection, dict: dict_id, frame })
 }
 
 /// The version 5 entry `bytes` of `key`, its artifacts decompressed, checked.
@@ -553,7 +589,7 @@ fn decode_v5(
     bytes: &[u8],
     dict: &dyn Fn(&[u8; 16]) -> Result<Arc<Dict>, String>,
 ) -> Result<(Compiled, Vec<blake3::Hash>), String> {
-    let head = head(key, bytes)?;
+    let head = head(key, bytes, dict)?;
     let total = head.artifacts.iter().try_fold(0u64, |t, a| t.checked_add(a.1)).filter(|&t| t <= MAX_RAW);
     let total = total.ok_or("bad length")? as usize;
     let mut content = vec![0u8; total];
@@ -674,7 +710,7 @@ mod tests {
         let (key, c) = (Key([9; 32]), compiled());
         let entry = encode_stored(&key, &c, &hashes(&c));
         assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
-        let frame = head(&key, &entry).unwrap().frame;
+        let frame = head(&key, &entry, &no_dicts).unwrap().frame;
         assert_eq!(zstd::decode_all(frame).unwrap(), content(&c), "a frame zstd reads");
         for at in 0..entry.len() {
             let mut damaged = entry.clone();
@@ -711,14 +747,14 @@ mod tests {
         let described = |h: Head<'_>| (h.reflection, h.artifacts);
         let want: Vec<(Target, u64, blake3::Hash)> =
             c.artifacts.iter().zip(hashes(&c)).map(|((t, b), h)| (*t, b.len() as u64, h)).collect();
-        assert_eq!(described(head(&key, &entry).unwrap()), (c.reflection.clone(), want.clone()));
+        assert_eq!(described(head(&key, &entry, &no_dicts).unwrap()), (c.reflection.clone(), want.clone()));
         for at in 0..entry.len() {
             let mut damaged = entry.clone();
             damaged[at] ^= 0x10;
             if let Ok(got) = decode(&key, &damaged, &no_dicts) {
                 assert_eq!(got, (c.clone(), hashes(&c)), "byte {at} flipped gave another entry");
             }
-            if let Ok(got) = head(&key, &damaged) {
+            if let Ok(got) = head(&key, &damaged, &no_dicts) {
                 assert_eq!(described(got), (c.reflection.clone(), want.clone()), "byte {at} flipped");
             }
         }
