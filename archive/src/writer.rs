@@ -836,8 +836,7 @@ impl StreamingWriter {
             return Ok(n);
         }
         // The previous archive is opened (and its blobs checked) outside the lock.
-        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
-        let reference = previous.and_then(|p| p.find(hash.as_bytes())).unwrap_or(SPOOLED);
+        let reference = self.previous().and_then(|p| p.find(hash.as_bytes())).unwrap_or(SPOOLED);
         let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64, reference).map_err(fail)?;
         let Some(offset) = offset else { return Ok(n) };
         // Written outside the lock (threads spool their blobs in parallel), after the
@@ -849,12 +848,16 @@ impl StreamingWriter {
         Ok(n)
     }
 
+    /// The archive being replaced, opened (its blobs checked) when first asked for.
+    fn previous(&self) -> Option<&Previous> {
+        self.previous.get_or_init(|| Previous::open(&self.output)).as_ref()
+    }
+
     /// Whether the archive being replaced holds the blob whose blake3 is `hash` intact:
     /// [`StreamingWriter::add_blob_reference`] then adds it without its bytes (a cache hit
     /// need not decompress them).
     pub fn holds(&self, hash: &blake3::Hash) -> bool {
-        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
-        previous.is_some_and(|p| p.find(hash.as_bytes()).is_some())
+        self.previous().is_some_and(|p| p.find(hash.as_bytes()).is_some())
     }
 
     /// Adds the blob of `len` bytes whose blake3 is `hash` without its bytes: its number,
@@ -869,8 +872,7 @@ impl StreamingWriter {
         if added {
             return Ok(Some(n));
         }
-        let previous = self.previous.get_or_init(|| Previous::open(&self.output)).as_ref();
-        let Some(reference) = previous.and_then(|p| p.find(hash.as_bytes())) else { return Ok(None) };
+        let Some(reference) = self.previous().and_then(|p| p.find(hash.as_bytes())) else { return Ok(None) };
         let (n, offset) = lock(&self.blobs).add(&hash, len, reference).map_err(fail)?;
         debug_assert!(offset.is_none(), "a blob by reference is not spooled");
         Ok(Some(n))
