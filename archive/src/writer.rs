@@ -1673,9 +1673,11 @@ struct BlobSources<'a, 'b> {
     previous: Option<&'a Previous>,
 }
 
-/// A blob as it goes into the archive: codec, dictionary index, stored bytes, blake3, and
-/// whether it was copied from the previous archive.
-type StoredBlob = (u8, u8, Vec<u8>, [u8; 32], bool);
+/// A blob as it goes into the archive: codec, dictionary index, stored bytes (borrowed from
+/// the previous archive's map where copied from it, not copied again), blake3, and the
+/// check sum of its stored bytes where it was copied (read in the previous archive's
+/// table, and just checked against them, so not computed a third time).
+type StoredBlob<'a> = (u8, u8, Cow<'a, [u8]>, [u8; 32], Option<u64>);
 
 /// Writes the blob section to `out` in blob id order, compressed in batches (so memory
 /// holds one batch at a time), and each blob's table entry to
@@ -1724,9 +1726,9 @@ fn write_blobs(
                         let p = sources.previous.ok_or_else(changed)?;
                         let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
                         match p.reuse(id, loc.len, want).map_err(std::io::Error::other)? {
-                            (hash, Reused::Stored(codec, bytes)) => {
+                            (hash, Reused::Stored(codec, bytes, sum)) => {
                                 let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
-                                return Ok((codec, index, bytes.to_vec(), hash, true));
+                                return Ok((codec, index, Cow::Borrowed(bytes), hash, Some(sum)));
                             }
                             (hash, Reused::Raw(raw)) => (hash, raw),
                         }
@@ -1736,16 +1738,17 @@ fn write_blobs(
                     return Err(changed());
                 }
                 let (codec, dictionary, bytes) = compress_blob(raw, dict);
-                Ok((codec, dictionary, bytes, hash, false))
+                Ok((codec, dictionary, Cow::Owned(bytes), hash, None))
             },
         );
         for (&b, s) in batch.iter().zip(stored) {
             let (codec, dictionary, bytes, hash, copied) = s?;
             out.write_all(&bytes)?;
-            reused += usize::from(copied);
+            reused += usize::from(copied.is_some());
             let len = locs.get(b).len;
             let stored_len = bytes.len() as u64;
-            let entry = Entry { offset, stored_len, raw_len: len, codec, dictionary, sum: stored_sum(&bytes), hash };
+            let sum = copied.unwrap_or_else(|| stored_sum(&bytes));
+            let entry = Entry { offset, stored_len, raw_len: len, codec, dictionary, sum, hash };
             table.push(&entry.encode())?;
             offset += bytes.len() as u64;
             raw_bytes += len;
