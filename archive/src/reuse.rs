@@ -34,13 +34,11 @@ use super::{Archive, Target};
 /// The previous archive, mapped, and its blobs found by the start of their blake3.
 pub(crate) struct Previous {
     archive: Archive,
-    /// Of each blob whose stored bytes match their check sum, by bucket and in id order
+    /// Each blob whose stored bytes match their check sum, by bucket and in id order
     /// within it: the 64 bits of its identity that follow the bits choosing its bucket
-    /// (see [`Previous::buckets`]). Apart from the ids, a bucket's keys take a cache line
-    /// or two, and with them the index takes 12 bytes a blob.
-    keys: Vec<u64>,
-    /// The blob id of each of `keys`.
-    ids: Vec<u32>,
+    /// (see [`Previous::buckets`]), high word first, then its id. 12 bytes a blob, a
+    /// bucket's in a cache line or two (its ids with them: a lookup misses once there).
+    index: Vec<[u32; 3]>,
     /// Where each bucket of `keys` starts (its blobs' identities begin with the same
     /// `bucket_bits` bits), and where the last one ends: identities are uniform, so a
     /// lookup reads a few keys after one read of this table instead of halving the whole
@@ -109,6 +107,11 @@ fn key(identity: u128, bits: u32) -> u64 {
     (identity << bits >> 64) as u64
 }
 
+/// An entry of [`Previous::index`]: `key` and `id`.
+fn entry(key: u64, id: u32) -> [u32; 3] {
+    [(key >> 32) as u32, key as u32, id]
+}
+
 impl Previous {
     /// The archive at `path` when there is one this crate's version wrote in this format;
     /// `None` otherwise (missing, unreadable, damaged in its header or tables, an older
@@ -138,13 +141,13 @@ impl Previous {
             buckets[b] += buckets[b - 1];
         }
         let held = buckets[buckets.len() - 1] as usize;
-        let (mut keys, mut ids) = (vec![0u64; held], vec![0u32; held]);
+        let mut index = vec![[0u32; 3]; held];
         let mut next = buckets.clone();
         for id in (0..count).filter(|id| intact[id / 64] & (1 << (id % 64)) != 0) {
             let ident = identity(&archive.stored_blob(BlobId(id as u32)).ok()?.0.hash);
             count_read(&archive, &read, ENTRY_LEN as u64);
             let at = &mut next[bucket(ident, bucket_bits)];
-            (keys[*at as usize], ids[*at as usize]) = (key(ident, bucket_bits), id as u32);
+            index[*at as usize] = entry(key(ident, bucket_bits), id as u32);
             *at += 1;
         }
         drop((intact, next));
@@ -152,7 +155,7 @@ impl Previous {
         // The pages were only read: the file keeps them.
         archive.release_pages();
         let serial = SERIAL.fetch_add(1, Ordering::Relaxed);
-        Some(Previous { archive, keys, ids, buckets, bucket_bits, dictionaries, serial })
+        Some(Previous { archive, index, buckets, bucket_bits, dictionaries, serial })
     }
 
     /// The id of the blob whose blake3 is `hash` when the archive holds it intact: the
@@ -166,9 +169,8 @@ impl Previous {
         }
         let b = bucket(ident, self.bucket_bits);
         let (start, end) = (self.buckets[b] as usize, self.buckets[b + 1] as usize);
-        let k = key(ident, self.bucket_bits);
-        let at = self.keys[start..end].iter().position(|&x| x == k)?;
-        let id = self.ids[start + at];
+        let k = entry(key(ident, self.bucket_bits), 0);
+        let id = self.index[start..end].iter().find(|e| e[..2] == k[..2])?[2];
         FOUND.with(|f| {
             let mut f = f.borrow_mut();
             let next = f.next;
