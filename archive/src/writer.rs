@@ -106,13 +106,69 @@ struct Entries {
     pipelines: Option<Vec<PipelineRecord>>,
     hooks: WriterHooks,
     shaders: Vec<ShaderRecord>,
-    shader_index: HashMap<(String, String), u32>,
+    shader_index: FastMap<(String, String), u32>,
     reflections: Vec<Reflection>,
-    reflection_index: HashMap<Reflection, u32>,
+    reflection_index: FastMap<Reflection, u32>,
+    /// The shader and reflection of the last permutation added: a caller adds a shader's
+    /// permutations together, many with one reflection, and comparing a record costs less
+    /// than hashing it (and cloning the shader's key) for every permutation.
+    last: Option<(u32, u32)>,
     permutations: Vec<ManifestPermutation>,
     arenas: Arenas,
     /// A derived name made for the check in [`Entries::add`].
     scratch: String,
+}
+
+/// A map of the writer's own lookups, which only find what was added (the archive's bytes
+/// do not depend on them): with the default SipHash, hashing a reflection cost more than
+/// the rest of adding a permutation.
+type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
+
+/// A multiply-rotate hasher (FxHash's), a word at a time: fast for the small keys and the
+/// many small fields of a reflection. Not resistant to chosen collisions, which here could
+/// only slow a build whose own sources chose them.
+#[derive(Default, Clone, Copy)]
+struct FastHasher(u64);
+
+impl FastHasher {
+    fn word(&mut self, w: u64) {
+        self.0 = (self.0.rotate_left(5) ^ w).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+impl std::hash::Hasher for FastHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        let mut chunks = bytes.chunks_exact(8);
+        for c in &mut chunks {
+            self.word(u64::from_le_bytes(c.try_into().expect("8 bytes")));
+        }
+        let rest = chunks.remainder();
+        if !rest.is_empty() {
+            let mut last = [0u8; 8];
+            last[..rest.len()].copy_from_slice(rest);
+            self.word(u64::from_le_bytes(last));
+        }
+    }
+
+    fn write_u8(&mut self, n: u8) {
+        self.word(u64::from(n));
+    }
+
+    fn write_u32(&mut self, n: u32) {
+        self.word(u64::from(n));
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.word(n);
+    }
+
+    fn write_usize(&mut self, n: usize) {
+        self.word(n as u64);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0
+    }
 }
 
 /// A blob's identity in a writer: a prefix of its blake3 (as long as the cache's pack
@@ -343,13 +399,17 @@ impl BlobTable {
         Ok((n, self.is_added(n)))
     }
 
-    /// Adds a blob of `len` bytes, the previous archive's blob `previous` or [`SPOOLED`]:
-    /// its number, and where its identity and then its bytes go in the spool (`None` if it
-    /// was added before, or by reference).
-    fn add(&mut self, hash: &blake3::Hash, len: u64, previous: u32) -> std::io::Result<(u32, Option<u64>)> {
-        let (n, added) = self.find(hash)?;
-        if added {
-            return Ok((n, None));
+    /// Adds blob `n` (a number [`BlobTable::find`] gave) of `len` bytes, the previous
+    /// archive's blob `previous` or [`SPOOLED`]: where its identity and then its bytes go in
+    /// the spool (`None` if it was added meanwhile, or by reference). The number is passed
+    /// on rather than found again: finding it again probes the table and may read the
+    /// identity back from its file.
+    fn add(&mut self, n: u32, len: u64, previous: u32) -> std::io::Result<Option<u64>> {
+        if n as usize >= self.slots {
+            return Err(changed());
+        }
+        if self.is_added(n) {
+            return Ok(None);
         }
         let mut record = [0u8; LOC_RECORD];
         record[..4].copy_from_slice(&n.to_le_bytes());
@@ -362,11 +422,17 @@ impl BlobTable {
         self.added_bits[n as usize / 64] |= 1 << (n % 64);
         self.added += 1;
         if previous != SPOOLED {
-            return Ok((n, None));
+            return Ok(None);
         }
         let offset = self.spooled;
         self.spooled += ID_PREFIX + len;
-        Ok((n, Some(offset)))
+        Ok(Some(offset))
+    }
+
+    /// [`BlobTable::find`] then [`BlobTable::add`]: the blob's number too.
+    fn insert(&mut self, hash: &blake3::Hash, len: u64, previous: u32) -> std::io::Result<(u32, Option<u64>)> {
+        let (n, _) = self.find(hash)?;
+        Ok((n, self.add(n, len, previous)?))
     }
 
     /// Each slot's blob id (`u32::MAX` for a blob added but named by no permutation), from
@@ -473,8 +539,23 @@ const LOC_WINDOW: usize = 1 << 15;
 impl Entries {
     /// Adds `p`, its artifacts' blobs numbered (in the writer's [`BlobTable`]).
     fn add(&mut self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
+        let (last_shader, last_reflection) = self.last.unzip();
+        let shader = match last_shader.filter(|&s| self.shaders[s as usize] == *p.shader) {
+            Some(s) => s,
+            None => self.shader(&p)?,
+        };
+        let reflection = match last_reflection.filter(|&r| self.reflections[r as usize] == *p.reflection) {
+            Some(r) => r,
+            None => self.reflection(p.reflection),
+        };
+        self.last = Some((shader, reflection));
+        self.add_with(p, shader, reflection)
+    }
+
+    /// The index of the shader of `p`, added if new; an error if another record has its name.
+    fn shader(&mut self, p: &NewPermutation<'_, u32>) -> Result<u32, ArchiveError> {
         let key = (p.shader.name.clone(), p.shader.level.clone());
-        let shader = match self.shader_index.get(&key) {
+        Ok(match self.shader_index.get(&key) {
             Some(&i) if self.shaders[i as usize] == *p.shader => i,
             Some(_) => {
                 return Err(ArchiveError::Input(format!(
@@ -489,16 +570,24 @@ impl Entries {
                 self.shader_index.insert(key, i);
                 i
             }
-        };
-        let reflection = match self.reflection_index.get(p.reflection) {
+        })
+    }
+
+    /// The index of `reflection`, added if new.
+    fn reflection(&mut self, reflection: &Reflection) -> u32 {
+        match self.reflection_index.get(reflection) {
             Some(&i) => i,
             None => {
                 let i = self.reflections.len() as u32;
-                self.reflections.push(p.reflection.clone());
-                self.reflection_index.insert(p.reflection.clone(), i);
+                self.reflections.push(reflection.clone());
+                self.reflection_index.insert(reflection.clone(), i);
                 i
             }
-        };
+        }
+    }
+
+    /// Adds `p`, whose shader and reflection are `shader` and `reflection`.
+    fn add_with(&mut self, p: NewPermutation<'_, u32>, shader: u32, reflection: u32) -> Result<(), ArchiveError> {
         if p.values.len() != p.shader.dimensions.len() {
             return Err(ArchiveError::Input(format!(
                 "permutation `{}` has {} values for the {} dimensions of `{}@{}`",
@@ -836,9 +925,10 @@ impl StreamingWriter {
             return Ok(n);
         }
         // The previous archive is opened (and its blobs checked) outside the lock.
-        let reference = self.previous().and_then(|p| p.find(hash.as_bytes())).unwrap_or(SPOOLED);
-        let (n, offset) = lock(&self.blobs).add(&hash, bytes.len() as u64, reference).map_err(fail)?;
-        let Some(offset) = offset else { return Ok(n) };
+        let reference = self.previous_blob(&hash).unwrap_or(SPOOLED);
+        let Some(offset) = lock(&self.blobs).add(n, bytes.len() as u64, reference).map_err(fail)? else {
+            return Ok(n);
+        };
         // Written outside the lock (threads spool their blobs in parallel), after the
         // blob's identity, in one write.
         let mut spooled = Vec::with_capacity(ID_PREFIX as usize + bytes.len());
@@ -853,11 +943,17 @@ impl StreamingWriter {
         self.previous.get_or_init(|| Previous::open(&self.output)).as_ref()
     }
 
+    /// The id of the blob whose blake3 is `hash` in the archive being replaced, if it holds
+    /// it intact.
+    fn previous_blob(&self, hash: &blake3::Hash) -> Option<u32> {
+        self.previous().and_then(|p| p.find(hash.as_bytes()))
+    }
+
     /// Whether the archive being replaced holds the blob whose blake3 is `hash` intact:
     /// [`StreamingWriter::add_blob_reference`] then adds it without its bytes (a cache hit
     /// need not decompress them).
     pub fn holds(&self, hash: &blake3::Hash) -> bool {
-        self.previous().is_some_and(|p| p.find(hash.as_bytes()).is_some())
+        self.previous_blob(hash).is_some()
     }
 
     /// Adds the blob of `len` bytes whose blake3 is `hash` without its bytes: its number,
@@ -872,8 +968,8 @@ impl StreamingWriter {
         if added {
             return Ok(Some(n));
         }
-        let Some(reference) = self.previous().and_then(|p| p.find(hash.as_bytes())) else { return Ok(None) };
-        let (n, offset) = lock(&self.blobs).add(&hash, len, reference).map_err(fail)?;
+        let Some(reference) = self.previous_blob(&hash) else { return Ok(None) };
+        let offset = lock(&self.blobs).add(n, len, reference).map_err(fail)?;
         debug_assert!(offset.is_none(), "a blob by reference is not spooled");
         Ok(Some(n))
     }
@@ -1055,7 +1151,7 @@ impl ArchiveWriter {
     /// [`ArchiveWriter::add_blob`] for bytes whose blake3 `hash` the caller computed.
     pub fn add_blob_hashed(&mut self, bytes: &[u8], hash: blake3::Hash) -> BlobId {
         debug_assert_eq!(hash, blake3::hash(bytes));
-        let (n, offset) = self.blobs.add(&hash, bytes.len() as u64, SPOOLED).expect("a log in memory");
+        let (n, offset) = self.blobs.insert(&hash, bytes.len() as u64, SPOOLED).expect("a log in memory");
         if offset.is_some() {
             self.spool.extend_from_slice(&spool_header(&hash, bytes));
             self.spool.extend_from_slice(bytes);
@@ -1577,9 +1673,11 @@ struct BlobSources<'a, 'b> {
     previous: Option<&'a Previous>,
 }
 
-/// A blob as it goes into the archive: codec, dictionary index, stored bytes, blake3, and
-/// whether it was copied from the previous archive.
-type StoredBlob = (u8, u8, Vec<u8>, [u8; 32], bool);
+/// A blob as it goes into the archive: codec, dictionary index, stored bytes (borrowed from
+/// the previous archive's map where copied from it, not copied again), blake3, and the
+/// check sum of its stored bytes where it was copied (read in the previous archive's
+/// table, and just checked against them, so not computed a third time).
+type StoredBlob<'a> = (u8, u8, Cow<'a, [u8]>, [u8; 32], Option<u64>);
 
 /// Writes the blob section to `out` in blob id order, compressed in batches (so memory
 /// holds one batch at a time), and each blob's table entry to
@@ -1628,9 +1726,9 @@ fn write_blobs(
                         let p = sources.previous.ok_or_else(changed)?;
                         let want = dict.map(|(i, _)| dict_hashes[i].as_ref().expect("loaded"));
                         match p.reuse(id, loc.len, want).map_err(std::io::Error::other)? {
-                            (hash, Reused::Stored(codec, bytes)) => {
+                            (hash, Reused::Stored(codec, bytes, sum)) => {
                                 let index = dict.map_or(NO_DICTIONARY, |(i, _)| i as u8);
-                                return Ok((codec, index, bytes.to_vec(), hash, true));
+                                return Ok((codec, index, Cow::Borrowed(bytes), hash, Some(sum)));
                             }
                             (hash, Reused::Raw(raw)) => (hash, raw),
                         }
@@ -1640,16 +1738,17 @@ fn write_blobs(
                     return Err(changed());
                 }
                 let (codec, dictionary, bytes) = compress_blob(raw, dict);
-                Ok((codec, dictionary, bytes, hash, false))
+                Ok((codec, dictionary, Cow::Owned(bytes), hash, None))
             },
         );
         for (&b, s) in batch.iter().zip(stored) {
             let (codec, dictionary, bytes, hash, copied) = s?;
             out.write_all(&bytes)?;
-            reused += usize::from(copied);
+            reused += usize::from(copied.is_some());
             let len = locs.get(b).len;
             let stored_len = bytes.len() as u64;
-            let entry = Entry { offset, stored_len, raw_len: len, codec, dictionary, sum: stored_sum(&bytes), hash };
+            let sum = copied.unwrap_or_else(|| stored_sum(&bytes));
+            let entry = Entry { offset, stored_len, raw_len: len, codec, dictionary, sum, hash };
             table.push(&entry.encode())?;
             offset += bytes.len() as u64;
             raw_bytes += len;
@@ -2021,7 +2120,7 @@ mod blob_table_tests {
         let sample_of = |blobs: &[u64]| -> Vec<u64> {
             let mut t = BlobTable::new(LocLog::Memory(Vec::new()), Some(tempfile::tempfile().unwrap()));
             for n in blobs {
-                t.add(&blake3::hash(&n.to_le_bytes()), 3000 + n, SPOOLED).unwrap();
+                t.insert(&blake3::hash(&n.to_le_bytes()), 3000 + n, SPOOLED).unwrap();
             }
             t.seal();
             let id_of: Vec<u32> = (0..blobs.len() as u32).collect();
