@@ -608,7 +608,8 @@ pub(super) fn head<'a>(key: &Key, bytes: &'a [u8], dict: DictFor<'_>) -> Result<
         return Err("not a cache entry of this kiln".into());
     }
     if entry_sum(key, &bytes[24..]) != bytes[8..24] {
-        return Err("checksum mismatch, or the entry belongs to another key".into());
+        // The key is in the sum: another key's entry is a mismatch too.
+        return Err("checksum mismatch".into());
     }
     let dict_id: [u8; 16] = bytes[24..40].try_into().expect("16 bytes");
     let raw = u64::from(u32::from_le_bytes(bytes[40..44].try_into().expect("4 bytes")));
