@@ -1,18 +1,25 @@
-//! The compressed encoding of a cache entry (version 5, and versions 4 and 3 read), and the
-//! cache's dictionaries.
+//! The compressed encoding of a cache entry (version 6, and versions 5, 4 and 3 read), and
+//! the cache's dictionaries.
 //!
-//! A version 5 entry keeps its description (as version 2 lays out the body after the key,
-//! without the artifacts' bytes: artifact count, each artifact's target name and length,
-//! the reflection's length and JSON) in a head before one zstd frame of its artifacts' bytes,
-//! compressed with the dictionary of its kind (its targets' names, `spirv+msl+hlsl+wgsl`)
-//! when the cache has one, else plainly. One frame per entry rather than one per artifact:
-//! a level's sources share names and constants across targets, and per-artifact framing cost
-//! a frame header and a weaker match history per artifact. The head apart lets a build that
-//! rewrites an archive holding every artifact of the entry read the reflection alone
-//! ([`head`]), never decompressing the frame.
+//! A version 6 entry keeps what a build needs without the artifacts' bytes in a head: each
+//! artifact's target, length and blake3, and its reflection as a zstd frame of its own. Then
+//! one zstd frame of its artifacts' bytes. Both frames are compressed with the dictionary of
+//! the entry's kind (its targets' names, `spirv+msl+hlsl+wgsl`) when the cache has one, else
+//! plainly. One frame for the artifacts rather than one per artifact: a level's sources
+//! share names and constants across targets, and per-artifact framing cost a frame header
+//! and a weaker match history per artifact. The head apart lets a build that rewrites an
+//! archive holding every artifact of the entry read the reflection alone ([`head`]), never
+//! decompressing the artifacts; the reflection's frame apart from the lengths is the same
+//! bytes in every entry of a shader that shares it, so such a build decodes each distinct
+//! reflection once ([`cached_reflection`]).
+//!
+//! Everything the head already says is left out of the frames (zstd's magic, its dictionary
+//! id, its check sums: one xxh3-128 covers the whole entry), and the key is left out of the
+//! entry (the pack's index and the remote's value hold it; the check sum covers it): a
+//! cache of a million entries is then about twice its archive rather than more.
 //!
 //! A build too small for compression to pay writes its only pack with [`encode_stored`]: the
-//! same entry, its frame made of raw blocks (zstd's block type for data that does not
+//! same entry, its frames made of raw blocks (zstd's block type for data that does not
 //! compress), read and checked as any other.
 //!
 //! A dictionary is trained from a pack of a build that has written enough entries of a kind
@@ -25,18 +32,21 @@
 //! a pack holds them: the remote holds the dictionaries they name too, and a cache that
 //! reads one fetches its dictionary into its folder (see `exchange.rs`).
 //!
-//! Layout (version 5): [`MAGIC`], the head's check sum (xxh3-128 of the head after it, then
-//! 16 zero bytes), the key (32), the length of the same entry in version 2 (u64: `kiln cache
-//! stats` reports it as the raw size), the dictionary id (16, zero: none), the artifact
-//! count (u32) and each artifact's blake3 (32 each), the description's length (u32) and the
-//! description, then the zstd frame of the artifacts, with zstd's check sum of its content.
-//! The artifacts' blake3 are stored so that a build reading an entry need not hash its
-//! artifacts again (the archive wants them): zstd's check sum tells a frame that
-//! decompresses to other bytes, the head's check sum damaged hashes or description.
+//! Layout (version 6, `docs/reference/cache-format.md`): [`MAGIC`], the check sum (xxh3-128
+//! of the key, then of the entry after the check sum), the dictionary id (16, zero: none),
+//! the length of the same entry in version 2 (u32: `kiln cache stats` reports it as the raw
+//! size; the reflection's JSON length is what it leaves), the artifact count, per artifact
+//! its target's code (u8), length and blake3 (32), the reflection frame's length and the
+//! frame, then the artifacts' frame to the end (numbers as LEB128). The artifacts' blake3
+//! are stored so that a build reading an entry need not hash its artifacts again (the
+//! archive wants them).
 //!
-//! Version 4 kept the description inside the frame, the artifacts' blake3 beside it, and a
-//! blake3 checksum of the body with each artifact replaced by its blake3; version 3 stored
-//! no hashes (they are computed).
+//! Version 5 had the head's check sum before the key (padded to 32 bytes), the key, a u64
+//! raw length, the description (the artifacts' targets and lengths with the reflection) as
+//! one frame, and frames with zstd's magic, dictionary id and check sum. Version 4 kept the
+//! description inside the frame, the artifacts' blake3 beside it, and a blake3 checksum of
+//! the body with each artifact replaced by its blake3; version 3 stored no hashes (they are
+//! computed).
 
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -72,6 +82,10 @@ const TRAIN_MIN_PIECES: usize = 32;
 const TRAIN_MIN_BYTES: usize = 2 << 20;
 /// At most about this many bytes of a kind's entries (evenly spaced) train its dictionary.
 const TRAIN_SAMPLE: usize = 2 << 20;
+/// The largest dictionary trained, at most half its sample: larger than the archive's, as
+/// the cache compresses each entry alone and the dictionary is all the history its frames
+/// have; fastCover stops short of it when the sample has no more to give.
+const DICT_CAPACITY: usize = 1 << 20;
 /// The largest raw length an entry may announce (a damaged length allocates no more).
 const MAX_RAW: u64 = 1 << 30;
 
@@ -302,7 +316,7 @@ pub(super) fn dictionaries_for(
         let sample: Vec<Vec<u8>> = list.iter().step_by(stride).flat_map(|c| [reflection_json(c), content(c)]).collect();
         let sizes: Vec<usize> = sample.iter().map(Vec::len).collect();
         let flat = sample.concat();
-        let capacity = (flat.len() / 16).min(crate::archive::DICTIONARY_SIZE);
+        let capacity = (flat.len() / 2).min(DICT_CAPACITY);
         let Some(bytes) = crate::archive::train_dictionary(&flat, &sizes, capacity).filter(|d| !d.is_empty()) else {
             continue;
         };
