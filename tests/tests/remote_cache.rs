@@ -1085,8 +1085,8 @@ fn entries_keep_their_cache_dictionaries(kind: Kind) {
     }
     let dicts: Vec<String> = server.keys().into_iter().filter(|k| server.get(k).starts_with(b"KILNCD\0\x01")).collect();
     assert!(!dicts.is_empty(), "the shards trained dictionaries and stored them");
-    // Remote header 24, then the entry's magic, checksum, key and raw length: its dictionary id.
-    let named = server.entries().iter().filter(|k| server.get(k)[24 + 80..24 + 96] != [0; 16]).count();
+    // Remote header 24, then the entry's magic and check sum: its dictionary id.
+    let named = server.entries().iter().filter(|k| server.get(k)[24 + 24..24 + 40] != [0; 16]).count();
     assert!(named > 0, "entries name a dictionary");
 
     let m = Machine::scale_of(PERMUTATIONS);
@@ -1158,7 +1158,7 @@ fn http_bundle_fills_a_fresh_cache_and_damage_is_repaired() {
     // The first entry of a part damaged (magic 8, key 32, length 8, value header 24, then
     // the entry): that key alone is compiled.
     let mut bad = part.clone();
-    bad[8 + 40 + 24 + 80] ^= 0x10;
+    bad[8 + 40 + 24 + 44] ^= 0x10;
     server.set(&parts[0], &bad);
     let m = Machine::scale();
     let r = m.build(&url);

@@ -170,10 +170,7 @@ impl Cache {
         let start = out.len();
         out.resize(start + l.len as usize, 0);
         let entry = &mut out[start..];
-        let ok = l.pack.file.read_exact_at(entry, l.offset).is_ok()
-            && entry.len() >= 72
-            && (&entry[..8] == MAGIC || codec::is_compressed(entry))
-            && entry[40..72] == key.0;
+        let ok = l.pack.file.read_exact_at(entry, l.offset).is_ok() && is_entry_of(entry, key);
         if !ok {
             out.truncate(start);
             return false;

@@ -91,10 +91,11 @@ impl Cache {
                     if !keys.insert(key) {
                         continue;
                     }
-                    // The raw size from the entry's header (version 3), else its length.
+                    // The raw size from the entry's header (version 3 on), else its length.
                     let mut header = [0u8; codec::HEADER];
-                    let read = len >= codec::HEADER as u64 && pack.file.read_exact_at(&mut header, offset).is_ok();
-                    s.raw += read.then(|| codec::raw_len(&header)).flatten().unwrap_or(len);
+                    let header = &mut header[..len.min(codec::HEADER as u64) as usize];
+                    let read = pack.file.read_exact_at(header, offset).is_ok();
+                    s.raw += read.then(|| codec::raw_len(header)).flatten().unwrap_or(len);
                     s.stored += len;
                 }
             } else if Self::is_dictionary(&path) {

@@ -80,7 +80,7 @@ impl Cache {
         bytes: &[u8],
         held: &dyn Fn(&blake3::Hash) -> bool,
     ) -> Result<Lookup, String> {
-        if bytes.starts_with(codec::MAGIC) {
+        if codec::has_head(bytes) {
             let head = codec::head(key, bytes, &|id| self.dict(id))?;
             if !head.artifacts.is_empty() && head.artifacts.iter().all(|a| held(&a.2)) {
                 return Ok(Lookup::Held(Held { reflection: head.reflection, artifacts: head.artifacts }));

@@ -157,11 +157,11 @@ fn corrupted_entry_is_reported_then_served_from_the_newer_copy() {
     let (ca, cb) = (compiled(1), compiled(2));
     cache.put_pack(&[(a, &ca), (b, &cb)]).unwrap();
     let pack = cache.pack_of(&b).unwrap();
-    // The last bytes belong to b's reflection.
+    // The last bytes belong to b's artifacts' frame.
     flip(&pack, 3);
     let cache = Cache::open(dir.path()).unwrap();
     match cache.get(&b) {
-        // The compressed reflection fails to decompress, or decompresses to other bytes.
+        // The entry's check sum (version 6), or the frame's (older versions), tells it.
         Lookup::Corrupt(why) => assert!(
             [" (checksum mismatch); recompiling", " (cannot decompress it); recompiling"]
                 .iter()
@@ -193,10 +193,11 @@ fn a_damaged_newest_copy_is_served_from_an_older_pack() {
     let cache = Cache::open(dir.path()).unwrap();
     let new = cache.pack_of(&a).unwrap();
     assert_ne!(new, old, "the newest copy is in the second pack");
-    // a's entry comes first in the new pack: damage its reflection's last byte, just
-    // before b's entry.
+    // a's entry comes first in the new pack: damage its last byte, just before b's entry
+    // (where b's index row says it starts).
     let bytes = fs::read(&new).unwrap();
-    let b_at = bytes.windows(32).rposition(|w| w == b.0).unwrap() - 32 - MAGIC.len();
+    let row = bytes.windows(32).position(|w| w == b.0).unwrap();
+    let b_at = u64::from_le_bytes(bytes[row + 32..row + 40].try_into().unwrap()) as usize;
     flip(&new, bytes.len() - b_at + 1);
     let cache = Cache::open(dir.path()).unwrap();
     assert!(matches!(cache.get(&a), Lookup::Hit(c, _) if c == ca), "served from the older pack");
@@ -237,7 +238,7 @@ fn truncated_or_damaged_packs_are_never_trusted() {
     );
     assert!(!pack.exists());
 
-    // An index row moved to another key's entry: the entry names its own key.
+    // An index row moved to another key's entry: the entry's check sum covers its own key.
     let mut swapped = bytes.clone();
     let rows = PACK_HEADER..PACK_HEADER + 2 * ROW;
     let (first, second) =
@@ -248,7 +249,7 @@ fn truncated_or_damaged_packs_are_never_trusted() {
     swapped[16..48].copy_from_slice(rows_hash.as_bytes());
     fs::write(&pack, &swapped).unwrap();
     match Cache::open(dir.path()).unwrap().get(&a) {
-        Lookup::Corrupt(why) => assert!(why.contains("(the entry belongs to another key)"), "{why}"),
+        Lookup::Corrupt(why) => assert!(why.contains("(checksum mismatch)"), "{why}"),
         other => panic!("{other:?}"),
     }
 
