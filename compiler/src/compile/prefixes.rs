@@ -16,15 +16,17 @@ const ZERO_AS: u32 = 1;
 /// The set ([module docs](self)).
 #[derive(Debug, Default)]
 pub struct PrefixSet {
+    /// Empty until the first insert (a build that compiles nothing never touches them).
     slots: Vec<u32>,
     len: usize,
+    /// The prefixes it holds without growing.
+    bound: usize,
 }
 
 impl PrefixSet {
-    /// A set that holds `bound` prefixes without growing. Its pages are the allocator's
-    /// zeroed ones, faulted in as slots are written.
+    /// A set that holds `bound` prefixes without growing, allocated at the first insert.
     pub fn with_bound(bound: usize) -> PrefixSet {
-        PrefixSet { slots: vec![EMPTY; slot_count(bound)], len: 0 }
+        PrefixSet { slots: Vec::new(), len: 0, bound }
     }
 
     /// How many prefixes it holds.
@@ -47,6 +49,9 @@ impl PrefixSet {
 
     /// Adds `prefix`: true if it was not there.
     pub fn insert(&mut self, prefix: u32) -> bool {
+        if self.slots.is_empty() {
+            self.slots = vec![EMPTY; slot_count(self.bound)];
+        }
         if (self.len + 1) * 5 > self.slots.len() * 4 {
             self.grow();
         }
@@ -104,7 +109,8 @@ impl PrefixSet {
 
     /// Twice the room, every prefix placed again (only a set made without its bound grows).
     fn grow(&mut self) {
-        let old = std::mem::replace(&mut self.slots, vec![EMPTY; slot_count((self.len + 1) * 2)]);
+        self.bound = (self.len + 1) * 2;
+        let old = std::mem::replace(&mut self.slots, vec![EMPTY; slot_count(self.bound)]);
         self.len = 0;
         for p in old.into_iter().filter(|&p| p != EMPTY) {
             let at = self.find(p).expect_err("each prefix once");
@@ -161,6 +167,7 @@ mod tests {
     #[test]
     fn zero_is_a_prefix_like_one() {
         let mut set = PrefixSet::with_bound(4);
+        assert_eq!(set.slots.capacity(), 0, "nothing allocated before the first insert");
         assert!(set.insert(0));
         assert!(set.contains(0));
         assert!(!set.insert(1), "0 and 1 are taken for each other");
