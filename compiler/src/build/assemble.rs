@@ -92,11 +92,16 @@ impl Log {
         Ok(())
     }
 
-    /// The records read back into a table.
+    /// The records read back into a table: each key's prefix and entry, sorted (the whole
+    /// keys only of the few whose prefix another key shares).
     fn load(self) -> std::io::Result<Produced> {
+        let mut input: Box<dyn Input> = match self.records {
+            Records::File(f) => Box::new(f.into_inner().map_err(|e| e.into_error())?),
+            Records::Memory(v) => Box::new(std::io::Cursor::new(v)),
+        };
         let mut produced = Produced {
-            keys: Vec::with_capacity(self.keys),
-            index: hashbrown::HashTable::with_capacity(self.keys),
+            slots: Vec::with_capacity(self.keys),
+            shared: Vec::new(),
             artifacts: Artifacts {
                 targets: Vec::with_capacity(self.artifacts),
                 numbers: Vec::with_capacity(self.artifacts),
@@ -104,42 +109,87 @@ impl Log {
             hashes: self.hashes,
             reflections: self.reflections,
         };
-        let mut input: Box<dyn Read> = match self.records {
-            Records::File(f) => {
-                let mut f = f.into_inner().map_err(|e| e.into_error())?;
-                f.seek(std::io::SeekFrom::Start(0))?;
-                Box::new(std::io::BufReader::new(f))
-            }
-            Records::Memory(v) => Box::new(std::io::Cursor::new(v)),
-        };
-        let damaged = || std::io::Error::other("a temporary file of the build was changed");
-        for _ in 0..self.keys {
-            let mut head = [0u8; 40];
-            input.read_exact(&mut head)?;
-            let key = Key(head[..32].try_into().expect("32 bytes"));
-            let reflection = u32::from_le_bytes(head[32..36].try_into().expect("4 bytes"));
-            let count = u32::from_le_bytes(head[36..40].try_into().expect("4 bytes"));
-            let first = produced.artifacts.numbers.len() as u32;
-            for _ in 0..count {
-                let mut a = [0u8; 5];
-                input.read_exact(&mut a)?;
-                let target = *Target::ALL.get(a[0] as usize).ok_or_else(damaged)?;
-                produced.artifacts.targets.push(target);
-                produced.artifacts.numbers.push(u32::from_le_bytes(a[1..].try_into().expect("4 bytes")));
-            }
-            produced.insert(key, KeyEntry { reflection, first, count });
+        each_record(&mut input, self.keys, |key, entry, artifacts| {
+            let a = &mut produced.artifacts;
+            a.targets.extend(artifacts.iter().map(|x| x.0));
+            a.numbers.extend(artifacts.iter().map(|x| x.1));
+            produced.slots.push(Slot { prefix: split(key_hash(key)), entry });
+        })?;
+        produced.slots.sort_unstable_by_key(|s| s.prefix);
+        // A prefix seen twice (a key produced twice, or two keys that share it) is settled
+        // by the whole keys, read again: of a key produced twice the later record wins.
+        let repeated: HashSet<[u32; 2]> =
+            produced.slots.windows(2).filter(|w| w[0].prefix == w[1].prefix).map(|w| w[0].prefix).collect();
+        if !repeated.is_empty() {
+            produced.slots.retain(|s| !repeated.contains(&s.prefix));
+            let mut whole: HashMap<Key, KeyEntry> = HashMap::new();
+            each_record(&mut input, self.keys, |key, entry, _| {
+                if repeated.contains(&split(key_hash(key))) {
+                    whole.insert(*key, entry);
+                }
+            })?;
+            produced.shared = whole.into_iter().collect();
+            produced.shared.sort_unstable_by_key(|s| s.0);
         }
         Ok(produced)
     }
 }
 
+/// Where key records are read back from: their file, or memory.
+trait Input: Read + Seek {}
+impl<T: Read + Seek> Input for T {}
+
+/// Calls `f` with each of the `count` records of `input`, from its start: the key, its entry
+/// (`first` counting the artifacts of the records before it) and its artifacts.
+fn each_record(
+    input: &mut dyn Input,
+    count: usize,
+    mut f: impl FnMut(&Key, KeyEntry, &[(Target, u32)]),
+) -> std::io::Result<()> {
+    input.seek(std::io::SeekFrom::Start(0))?;
+    let mut input = std::io::BufReader::new(input);
+    let damaged = || std::io::Error::other("a temporary file of the build was changed");
+    let mut first = 0u32;
+    let mut artifacts = Vec::new();
+    for _ in 0..count {
+        let mut head = [0u8; 40];
+        input.read_exact(&mut head)?;
+        let key = Key(head[..32].try_into().expect("32 bytes"));
+        let reflection = u32::from_le_bytes(head[32..36].try_into().expect("4 bytes"));
+        let n = u32::from_le_bytes(head[36..40].try_into().expect("4 bytes"));
+        artifacts.clear();
+        for _ in 0..n {
+            let mut a = [0u8; 5];
+            input.read_exact(&mut a)?;
+            let target = *Target::ALL.get(a[0] as usize).ok_or_else(damaged)?;
+            artifacts.push((target, u32::from_le_bytes(a[1..].try_into().expect("4 bytes"))));
+        }
+        f(&key, KeyEntry { reflection, first, count: n }, &artifacts);
+        first = first.checked_add(n).ok_or_else(damaged)?;
+    }
+    Ok(())
+}
+
+/// A produced key's prefix and what stays of it.
+#[derive(Clone, Copy)]
+struct Slot {
+    /// [`key_hash`] as two halves, so that a slot is not padded to eight bytes' alignment.
+    prefix: [u32; 2],
+    entry: KeyEntry,
+}
+
+fn split(prefix: u64) -> [u32; 2] {
+    [(prefix >> 32) as u32, prefix as u32]
+}
+
 /// What stays of the keys produced, read back for the manifest.
 struct Produced {
-    /// Each key produced, with what stays of it, in order of arrival, found
-    /// through `index` (a `u32` and a control byte a slot), not a map of (key, entry) slots
-    /// that are a third empty.
-    keys: Vec<(Key, KeyEntry)>,
-    index: hashbrown::HashTable<u32>,
+    /// Each key produced by its prefix, sorted, but for the keys whose prefix another
+    /// produced key shares (rare), which are in `shared` whole: a prefix found here is the
+    /// key's (only produced keys are looked up). Not the whole keys and a table to find
+    /// them, which held three times as much where the assembly peaks.
+    slots: Vec<Slot>,
+    shared: Vec<(Key, KeyEntry)>,
     /// Each key's artifacts, one after another: target and blob number (the archive
     /// writer's, else an index into `hashes`).
     artifacts: Artifacts,
@@ -154,21 +204,14 @@ fn key_hash(key: &Key) -> u64 {
 }
 
 impl Produced {
-    /// The number of `key`'s entry in `keys`.
+    /// The number of `key`'s entry: its slot's, else past the slots, its place in `shared`.
     fn position(&self, key: &Key) -> Option<u32> {
-        let keys = &self.keys;
-        self.index.find(key_hash(key), |&n| keys[n as usize].0 == *key).copied()
-    }
-
-    fn insert(&mut self, key: Key, entry: KeyEntry) {
-        if let Some(&n) = self.index.find(key_hash(&key), |&n| self.keys[n as usize].0 == key) {
-            self.keys[n as usize].1 = entry;
-            return;
-        }
-        let n = u32::try_from(self.keys.len()).expect("fewer than 2^32 keys");
-        self.keys.push((key, entry));
-        let keys = &self.keys;
-        self.index.insert_unique(key_hash(&key), n, |&m| key_hash(&keys[m as usize].0));
+        let prefix = split(key_hash(key));
+        let n = match self.slots.binary_search_by_key(&prefix, |s| s.prefix) {
+            Ok(n) => n,
+            Err(_) => self.slots.len() + self.shared.binary_search_by_key(key, |s| s.0).ok()?,
+        };
+        Some(n as u32)
     }
 
     /// Each kept permutation's key's entry number (`NOT_KEPT` for the others), the keys'
@@ -181,9 +224,8 @@ impl Produced {
             })
             .collect();
         drop(pre);
-        let Produced { keys, index, artifacts, hashes, reflections } = self;
-        drop(index);
-        let entries = keys.iter().map(|(_, e)| *e).collect();
+        let Produced { slots, shared, artifacts, hashes, reflections } = self;
+        let entries = slots.iter().map(|s| s.entry).chain(shared.iter().map(|s| s.1)).collect();
         ByPermutation { of, entries, artifacts, hashes, reflections }
     }
 }
@@ -595,6 +637,38 @@ fn write_index(dir: &std::path::Path, index: &BTreeMap<String, BTreeMap<&'static
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Keys read back are found by their prefix, and those whose prefix another key shares
+    /// (or that were produced twice) by the whole key, the later record winning; through
+    /// the temporary file and in memory alike.
+    #[test]
+    fn produced_keys_are_found_by_prefix_and_whole() {
+        for spill in [true, false] {
+            let mut log = Log::new(spill);
+            let key = |first: u8, last: u8| {
+                let mut k = [first; 32];
+                k[31] = last;
+                Key(k)
+            };
+            let (a, b, c) = (key(1, 0), key(1, 1), key(2, 0));
+            log.write(&a, 0, &[(Target::Spirv, 10)]).unwrap();
+            log.write(&c, 1, &[(Target::Spirv, 11), (Target::Glsl, 12)]).unwrap();
+            log.write(&b, 2, &[]).unwrap();
+            log.write(&a, 3, &[(Target::Glsl, 13)]).unwrap();
+            let p = log.load().unwrap();
+            let entry = |k: &Key| {
+                let n = p.position(k).unwrap() as usize;
+                let e = p.slots.get(n).map_or_else(|| p.shared[n - p.slots.len()].1, |s| s.entry);
+                (e.reflection, e.first, e.count)
+            };
+            assert_eq!(entry(&a), (3, 3, 1), "the later record of a key produced twice");
+            assert_eq!(entry(&b), (2, 3, 0));
+            assert_eq!(entry(&c), (1, 1, 2));
+            assert_eq!((p.slots.len(), p.shared.len()), (1, 2), "a and b share a prefix");
+            assert_eq!(p.artifacts.numbers, [10, 11, 12, 13]);
+            assert!(p.position(&key(3, 0)).is_none());
+        }
+    }
 
     /// The fingerprint hashes the same bytes as the one line per permutation it was defined
     /// by (archives stored under it by earlier builds are still found).

@@ -27,6 +27,7 @@ use super::preprocess::{Preprocessed, Preprocessor};
 use super::progress::Progress;
 use super::store::{Fetched, Store};
 use crate::cache::Key;
+use crate::compile::prefixes::PrefixSet;
 use crate::compile::{self, Compiled};
 use crate::permute::Permutation;
 use crate::preprocess::{self, FileId};
@@ -66,7 +67,7 @@ pub(super) struct Compiler<'a> {
     progress: &'a Progress,
     /// Keys claimed during preprocessing, by a prefix (a collision, rare, only
     /// moves that key's compile to the compile stage), so that a slot stays small.
-    claimed: Mutex<hashbrown::HashTable<u32>>,
+    claimed: Mutex<PrefixSet>,
     /// Per kept permutation: whether it produced its key during preprocessing
     /// ([`EARLY_HIT`], [`EARLY_COMPILED`]); one byte each, not a map entry per key.
     early: Vec<AtomicU8>,
@@ -89,7 +90,7 @@ impl<'a> Compiler<'a> {
             progress,
             // Sized at its bound up front: growing by doubling holds the old and new tables
             // at once where preprocessing peaks.
-            claimed: Mutex::new(hashbrown::HashTable::with_capacity(plan.len())),
+            claimed: Mutex::new(PrefixSet::with_bound(plan.len())),
             early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
@@ -101,7 +102,7 @@ impl<'a> Compiler<'a> {
     /// Preprocessing is over: lets go of the keys it claimed and of the writers' outputs kept
     /// for sharing, which would otherwise stay under the next stages.
     pub fn end_early(&self) {
-        *self.claimed.lock().expect("no panics while locked") = hashbrown::HashTable::new();
+        *self.claimed.lock().expect("no panics while locked") = PrefixSet::default();
         self.shared.forget();
     }
 
@@ -129,16 +130,8 @@ impl<'a> Compiler<'a> {
             _ => {}
         }
         let short = u32::from_le_bytes(key.0[..4].try_into().expect("4 of 32 bytes"));
-        // Spread over 64 bits: the table takes its probe tag from the high bits.
-        let hash = |s: &u32| (*s as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        {
-            let mut claimed = self.claimed.lock().expect("no panics while locked");
-            match claimed.entry(hash(&short), |&s| s == short, hash) {
-                hashbrown::hash_table::Entry::Occupied(_) => return,
-                hashbrown::hash_table::Entry::Vacant(v) => {
-                    v.insert(short);
-                }
-            }
+        if !self.claimed.lock().expect("no panics while locked").insert(short) {
+            return;
         }
         self.started();
         // A failure is compiled again on the key's first permutation; only successes are kept.

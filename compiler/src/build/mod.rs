@@ -204,7 +204,6 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let t = Instant::now();
     let pre = preprocessor.run(&progress, store, |i, p, key, output| compiler.early(i, p, key, output))?;
     compiler.end_early();
-    preprocessor.release_reuse();
     report.preprocessed(&plan, &preprocessor, &pre, t)?;
     release_freed();
     trace_memory("preprocess");

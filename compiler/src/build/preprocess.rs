@@ -260,7 +260,7 @@ impl<'p> Preprocessor<'p> {
     /// (with its permutation's index and key), on the worker that made it, before it is
     /// dropped. A shard's pieces of records go through `store`'s remote cache.
     pub fn run(
-        &self,
+        &mut self,
         progress: &Progress,
         store: &Store,
         fresh: impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync,
@@ -307,8 +307,10 @@ impl<'p> Preprocessor<'p> {
         });
         let mut errors = errors.into_inner().expect("no panics while locked");
         errors.sort_by_key(|e| e.0);
-        // What may be reused goes before the rows come back.
-        self.reuse.retire_before(usize::MAX);
+        // What may be reused, and the last build's records, go before the rows come back
+        // (a warm build's rows are one a permutation, as many as the records).
+        drop(order);
+        self.release_reuse();
         let rows = std::mem::replace(&mut *self.rows.lock().expect("no panics while locked"), RowLog::new())
             .load()
             .map_err(read_back)?;
@@ -392,7 +394,7 @@ impl<'p> Preprocessor<'p> {
     /// Without the old records, this build's are written whenever they are not the last
     /// build's as a whole ([`Preprocessor::records_unchanged`]): a permutation that matched
     /// no record has a row no record had.
-    pub fn release_reuse(&mut self) {
+    fn release_reuse(&mut self) {
         self.reuse = Reuse::default();
         if let Some(r) = &mut self.records {
             r.old = Records::default();

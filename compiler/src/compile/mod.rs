@@ -12,6 +12,7 @@
 //! whose texts differ only in code the entry point never reaches), by [`module_hash`].
 
 mod limits;
+pub(crate) mod prefixes;
 mod reflect;
 mod shared;
 mod structural;

@@ -19,11 +19,12 @@
 //!
 //! The cache key stays the token hash: this map lives for one build and changes no key.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
+use super::prefixes::PrefixSet;
 use super::{Compiled, Error, Options, Validated};
 use crate::archive::Target;
 
@@ -40,7 +41,7 @@ fn ident(hash: &blake3::Hash) -> Ident {
     Ident::from_le_bytes(first)
 }
 
-/// Hashes an [`Ident`] by its low half (it is already a uniform hash), a prefix as it is.
+/// Hashes an [`Ident`] by its low half (it is already a uniform hash).
 #[derive(Default)]
 struct IdentHasher(u64);
 
@@ -58,18 +59,14 @@ impl Hasher for IdentHasher {
     fn write_u128(&mut self, n: u128) {
         self.0 = n as u64;
     }
-
-    /// A prefix: spread over 64 bits (the table takes its probe tag from the high bits).
-    fn write_u32(&mut self, n: u32) {
-        self.0 = u64::from(n).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    }
 }
 
 type ByIdent = BuildHasherDefault<IdentHasher>;
 
 /// What a build knows of its compacted modules. Most modules belong to one key, so those
-/// are a set of prefixes of their identities (a prefix and the table's control byte a
-/// module, far less than the whole identity or a map to an enum of whole hashes), and the few whose outputs are kept are a map beside it, by whole identity.
+/// are a set of prefixes of their identities ([`PrefixSet`]: far less than the whole
+/// identity or a map to an enum of whole hashes), and the few whose outputs are kept are a
+/// map beside it, by whole identity.
 ///
 /// The set only decides whether a module's outputs are worth keeping: a prefix shared by
 /// two modules (about one pair in a 100k set) makes the second module's key keep its own
@@ -78,7 +75,7 @@ type ByIdent = BuildHasherDefault<IdentHasher>;
 struct Modules {
     /// Prefixes of the modules one key had, whose artifacts were not kept (or no longer
     /// are: over budget).
-    seen: HashSet<u32, ByIdent>,
+    seen: PrefixSet,
     /// The writers' outputs, kept once a second key had the module (or being written by that
     /// key).
     kept: HashMap<Ident, Arc<OnceLock<Written>>, ByIdent>,
@@ -118,7 +115,7 @@ impl SharedWriters {
     /// new tables are both held while it grows.
     pub fn with_capacity(modules: usize) -> Self {
         let writers = SharedWriters::default();
-        writers.map.lock().expect("a new lock").seen.reserve(modules);
+        writers.map.lock().expect("a new lock").seen = PrefixSet::with_bound(modules);
         writers
     }
 
@@ -151,7 +148,7 @@ impl SharedWriters {
                 // Over budget, keys of modules not kept run their writers without a copy.
                 None
             } else {
-                map.seen.remove(&(id as u32));
+                map.seen.remove(id as u32);
                 let cell = Arc::<OnceLock<Written>>::default();
                 map.kept.insert(id, cell.clone());
                 Some(cell)
