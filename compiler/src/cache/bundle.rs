@@ -13,7 +13,7 @@
 //! rest of a warm-remote build.
 //!
 //! A part: [`MAGIC`], then for each key of the part, in order, the key, the length of its
-//! value (u64) and its remote value ([`super::remote_value`], checked by its own checksum
+//! value (u64) and its remote value ([`super::remote_value_of`], checked by its own checksum
 //! as any remote value). A record that fails its check is skipped (that key is fetched on
 //! its own); a record that is not one of the part's keys in order, or a truncated one, ends
 //! the part; either makes the part not whole, and the next build that writes and reads it

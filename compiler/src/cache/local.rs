@@ -64,7 +64,8 @@ impl Cache {
         self.decode_hashed(key, bytes).map(|(c, _)| c)
     }
 
-    /// [`Cache::decode`], and the blake3 of each artifact (its checksum is made of them).
+    /// The entry `bytes` of `key`, of either version, checked, and the blake3 of each
+    /// artifact (its checksum is made of them).
     pub(super) fn decode_hashed(&self, key: &Key, bytes: &[u8]) -> Result<(Compiled, Vec<blake3::Hash>), String> {
         if codec::is_compressed(bytes) {
             return codec::decode(key, bytes, &|id| self.dict(id));

@@ -75,7 +75,7 @@ const MAGIC: &[u8; 8] = b"KILNCE\0\x02";
 const PACK_MAGIC: &[u8; 8] = b"KILNCP\0\x02";
 const PACK_EXTENSION: &str = "kcp";
 const RECORD_MAGIC: &[u8; 8] = b"KILNPP\0\x01";
-/// A remote cache value ([`remote_value`]); its header: magic, xxh3-128 of its key and entry.
+/// A remote cache value ([`remote_value_of`]); its header: magic, xxh3-128 of its key and entry.
 /// Version 4 holds a compressed entry ([`codec`]) as the writer's local cache holds it: with
 /// a dictionary, which the remote then holds too ([`remote_dict_key`]). Versions 3 (a
 /// compressed entry without a dictionary) and 2 (an uncompressed entry) are still read.
@@ -803,7 +803,7 @@ fn remote_value(key: &Key, c: &Compiled, hashes: &[blake3::Hash]) -> Vec<u8> {
     remote_value_of(key, &codec::encode(key, c, hashes, &HashMap::new()))
 }
 
-/// The remote value of the encoded `entry` of `key` ([`remote_value`]).
+/// The remote value of the encoded `entry` of `key` ([`remote_value_of`]).
 fn remote_value_of(key: &Key, entry: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(REMOTE_HEADER + entry.len());
     out.extend_from_slice(REMOTE_MAGIC);
@@ -830,7 +830,7 @@ fn remote_checksum(key: &Key, entry: &[u8]) -> [u8; 16] {
     h.digest128().to_le_bytes()
 }
 
-/// The entry of a whole remote `value` of `key` ([`remote_value`]): its checksum matches and
+/// The entry of a whole remote `value` of `key` ([`remote_value_of`]): its checksum matches and
 /// it is an entry of `key` (magic, length and key; its own checksum is not checked here).
 fn remote_entry<'a>(key: &Key, value: &'a [u8]) -> Result<&'a [u8], String> {
     let magic = value.get(..8).unwrap_or_default();

@@ -181,7 +181,7 @@ impl Limits {
     }
 
     /// Checks the entry point's resources against the limits. `reflection` is the entry
-    /// point's, from [`super::reflect`]. The shared check ([`violations`]) finds what is over;
+    /// point's, from [`super::reflect()`]. The shared check ([`violations`]) finds what is over;
     /// this words the first of it with the source span of the binding, and adds the one
     /// check that needs naga's module: workgroup storage.
     pub(crate) fn check(
