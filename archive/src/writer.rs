@@ -3,11 +3,11 @@
 //! [`StreamingWriter`] is what a build feeds: blobs and permutations are added from any
 //! thread, in any order, as they are produced; blob bytes go to a spool, in memory while it
 //! is small and then a file beside the output (unlinked as soon as it is created, so a
-//! killed build leaves nothing behind), and memory holds only a 4-byte prefix of each blob's identity and the manifest (where
-//! each blob's bytes lie goes to a second unlinked file, read back at the end; the whole
-//! identities to a third, read back to confirm a prefix match; they are spooled too, and
-//! the prefixes are let go once the caller says no more blobs come:
-//! [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
+//! killed build leaves nothing behind), and memory holds only a table of a `u32` a cell
+//! that finds each blob's number by its identity, and the manifest (where each blob's bytes
+//! lie goes to a second unlinked file, read back at the end; the whole identities to a
+//! third, read back to confirm a match in the table; they are spooled too, and the table is
+//! let go once the caller says no more blobs come: [`StreamingWriter::seal_blobs`]). [`StreamingWriter::finish`] sorts
 //! the permutations by canonical name, orders blobs by first use in that order, encodes the
 //! manifest to the spool past the blobs (all but its header and dictionary records) and
 //! lets go of its tables, then reads back where the blobs lie, trains one dictionary per
@@ -232,24 +232,22 @@ enum LocLog {
 }
 
 /// The blobs of a writer, numbered by first sight and found by identity. Memory holds only
-/// each blob's identity prefix, the table that finds slots by it and a bit saying
-/// whether the blob was added; the whole identities go to [`IdentStore`] (a file for a
-/// [`StreamingWriter`]), read back to confirm a prefix match, and where the blobs' bytes lie
-/// goes to a log, read back when the archive is assembled. Each blob's identity is spooled
-/// too, just before its bytes, where the archive's assembly checks it: once no more blobs
-/// come ([`BlobTable::seal`]) the prefixes and the table that finds them are let go.
+/// the table that finds slots by identity prefix and a bit saying whether each blob was
+/// added; the whole identities go to [`IdentStore`] (a file for a [`StreamingWriter`]), read
+/// back to confirm a match in the table, and where the blobs' bytes lie goes to a log, read
+/// back when the archive is assembled. Each blob's identity is spooled too, just before its
+/// bytes, where the archive's assembly checks it: once no more blobs come
+/// ([`BlobTable::seal`]) the table that finds them is let go.
 struct BlobTable {
-    /// Each slot's identity prefix, until sealed.
-    prefixes: Vec<u32>,
     /// Each slot's whole identity (kept once sealed: the dictionaries' samples read them).
     idents: IdentStore,
     /// Slots given.
     slots: usize,
-    /// No more blobs: `prefixes` and `table` are gone.
+    /// No more blobs: `table` is gone.
     sealed: bool,
     /// One bit per slot: its blob was added.
     added_bits: Vec<u64>,
-    table: hashbrown::HashTable<u32>,
+    table: SlotTable,
     log: LocLog,
     /// Blobs added.
     added: usize,
@@ -257,10 +255,80 @@ struct BlobTable {
     spooled: u64,
 }
 
+/// Slots by identity prefix: open addressing with linear probing over `2^bits` cells of a
+/// `u32`, each the slot number plus one (0: empty) in its low `bits` bits and, above them,
+/// the prefix's low bits as a tag. A slot number fits in `bits` bits because the table is
+/// at most three quarters full, and the tag spares most probes the read of an identity: a
+/// tag match is only a candidate, confirmed by the whole identity. It holds no prefixes of
+/// its own, so it grows by being dropped and rebuilt from the identities, never holding
+/// the old cells and the new at once.
+#[derive(Default)]
+struct SlotTable {
+    cells: Vec<u32>,
+    bits: u32,
+    len: usize,
+}
+
+/// The smallest table's `bits`.
+const MIN_TABLE_BITS: u32 = 4;
+
+impl SlotTable {
+    fn with_bits(bits: u32) -> SlotTable {
+        SlotTable { cells: vec![0; 1 << bits], bits, len: 0 }
+    }
+
+    /// Whether one more slot would fill it past three quarters.
+    fn is_full(&self) -> bool {
+        (self.len + 1) * 4 > self.cells.len() * 3
+    }
+
+    fn mask(&self) -> u32 {
+        ((1u64 << self.bits) - 1) as u32
+    }
+
+    fn tag(&self, prefix: u32) -> u32 {
+        (u64::from(prefix) << self.bits) as u32
+    }
+
+    fn home(&self, prefix: u32) -> usize {
+        (table_hash(prefix) >> (64 - self.bits)) as usize
+    }
+
+    /// Calls `is` with each slot whose tag is `prefix`'s, until it says yes: that slot.
+    fn find(&self, prefix: u32, mut is: impl FnMut(u32) -> std::io::Result<bool>) -> std::io::Result<Option<u32>> {
+        if self.cells.is_empty() {
+            return Ok(None);
+        }
+        let (mask, tag, wrap) = (self.mask(), self.tag(prefix), self.cells.len() - 1);
+        let mut i = self.home(prefix);
+        loop {
+            let cell = self.cells[i];
+            if cell == 0 {
+                return Ok(None);
+            }
+            if cell & !mask == tag && is((cell & mask) - 1)? {
+                return Ok(Some((cell & mask) - 1));
+            }
+            i = (i + 1) & wrap;
+        }
+    }
+
+    /// Puts slot `n` (not in the table, and room for it: see [`SlotTable::is_full`]).
+    fn put(&mut self, prefix: u32, n: usize) {
+        let wrap = self.cells.len() - 1;
+        let mut i = self.home(prefix);
+        while self.cells[i] != 0 {
+            i = (i + 1) & wrap;
+        }
+        self.cells[i] = self.tag(prefix) | (n as u32 + 1);
+        self.len += 1;
+    }
+}
+
 /// The slots' whole identities, by slot number: in memory, or in an unlinked file (one
-/// [`Ident`] a slot, at `16 * slot`) written a chunk at a time, the last slots' in `pending`. Read only
-/// when a new identity's 4-byte prefix is a known slot's: a blob added again, or (rarely)
-/// two blobs whose prefixes agree.
+/// [`Ident`] a slot, at `16 * slot`) written a chunk at a time, the last slots' in `pending`. Read
+/// when a new identity's tag in the table is a known slot's (a blob added again, or rarely
+/// two blobs whose tags agree), and in slot order when the table grows.
 struct IdentStore {
     file: Option<File>,
     /// Slots before this one are in `file`.
@@ -332,12 +400,11 @@ impl BlobTable {
     /// A table logging locations to `log` and identities to `idents` (in memory if `None`).
     fn new(log: LocLog, idents: Option<File>) -> Self {
         BlobTable {
-            prefixes: Vec::new(),
             idents: IdentStore { file: idents, flushed: 0, pending: Vec::new() },
             slots: 0,
             sealed: false,
             added_bits: Vec::new(),
-            table: Default::default(),
+            table: SlotTable::default(),
             log,
             added: 0,
             spooled: 0,
@@ -352,33 +419,41 @@ impl BlobTable {
         }
         let id = ident(hash);
         let p = prefix(&id);
-        let h = table_hash(p);
-        // Every slot with this prefix, confirmed by its whole identity (a prefix shared by
-        // two blobs is rare, not impossible).
-        let prefixes = &self.prefixes;
-        for &n in self.table.iter_hash(h) {
-            if prefixes[n as usize] == p && self.idents.get(n as usize)? == id {
-                return Ok(Some(n));
-            }
+        // Every slot with this tag, confirmed by its whole identity (a tag, or a prefix,
+        // shared by two blobs is rare, not impossible).
+        let idents = &self.idents;
+        if let Some(n) = self.table.find(p, |n| Ok(idents.get(n as usize)? == id))? {
+            return Ok(Some(n));
         }
-        let n = u32::try_from(self.prefixes.len()).expect("fewer than 2^32 blobs");
+        let n = u32::try_from(self.slots).expect("fewer than 2^32 blobs");
+        if self.table.is_full() {
+            self.grow()?;
+        }
         self.idents.push(id)?;
-        self.prefixes.push(p);
-        self.slots = self.prefixes.len();
-        if self.added_bits.len() * 64 < self.prefixes.len() {
+        self.table.put(p, self.slots);
+        self.slots += 1;
+        if self.added_bits.len() * 64 < self.slots {
             self.added_bits.push(0);
         }
-        let prefixes = &self.prefixes;
-        self.table.insert_unique(h, n, |&m| table_hash(prefixes[m as usize]));
         Ok(Some(n))
+    }
+
+    /// Doubles the table: the old one is dropped first and the new one filled from the
+    /// identities (read back in slot order), so the two are never held together.
+    fn grow(&mut self) -> std::io::Result<()> {
+        let bits = (self.table.bits + 1).max(MIN_TABLE_BITS);
+        self.table = SlotTable::default();
+        let mut table = SlotTable::with_bits(bits);
+        self.idents.for_each(self.slots, |n, id| table.put(prefix(id), n))?;
+        self.table = table;
+        Ok(())
     }
 
     /// No more blobs will be added or named: lets go of what finds them (the identities
     /// stay, for the dictionaries' samples: [`samples`]).
     fn seal(&mut self) {
         self.sealed = true;
-        self.prefixes = Vec::new();
-        self.table = hashbrown::HashTable::new();
+        self.table = SlotTable::default();
     }
 
     fn is_added(&self, n: u32) -> bool {
@@ -1017,12 +1092,12 @@ impl StreamingWriter {
         e.arenas.blobs.reserve_exact(artifacts);
     }
 
-    /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of a table
-    /// that grows by doubling (its pages past the blobs added are never touched). The hash
-    /// table still grows: a table at a loose bound would be touched all over, empty or not.
+    /// Room for `blobs` more blobs: a caller that knows a bound saves the copies of the
+    /// added bits as they grow (their pages past the blobs added are never touched). The
+    /// table that finds blobs still grows: a table at a loose bound would be touched all
+    /// over, empty or not.
     pub fn reserve_blobs(&self, blobs: usize) {
         let mut table = lock(&self.blobs);
-        table.prefixes.reserve_exact(blobs);
         table.added_bits.reserve_exact(blobs.div_ceil(64));
     }
 
