@@ -186,8 +186,8 @@ impl LastRecords {
                 let pointer = store.local_records(&last_records_key(config, options))?;
                 store.records(&Key(pointer.try_into().ok()?))
             };
-            let bytes = store.records(&key).or_else(last);
-            let old = bytes.and_then(|b| records::decode(b, &mut interner, &root)).unwrap_or_default();
+            let stored = store.records(&key).or_else(last);
+            let old = stored.and_then(|s| records::decode_stored(s, &mut interner, &root)).unwrap_or_default();
             let base = direct_base(config, &root);
             let unknown = |n: usize| RwLock::new((0..n).map(|_| AtomicU8::new(UNKNOWN)).collect());
             RecordSet {

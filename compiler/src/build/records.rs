@@ -58,12 +58,88 @@ pub(super) struct Row {
 }
 
 /// Each permutation's row by its direct key (see `preprocess::direct_key`), sorted by it:
-/// the rows as the records file holds them, read in place (their list numbers made the
-/// interner's), so that a warm build holds the file's bytes once rather than beside a table
-/// made from them.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+/// the rows as the records file holds them. From the local cache they stay in the file,
+/// read in place, with only each direct key's prefix in memory for the search (a warm
+/// build's largest table was the rows read whole); from the remote cache (rare) they are in
+/// memory, their list numbers made the interner's.
+#[derive(Debug, Default)]
 pub(super) struct Records {
-    rows: Vec<u8>,
+    rows: Rows,
+}
+
+#[derive(Debug)]
+enum Rows {
+    Memory(Vec<u8>),
+    File(InPlace),
+}
+
+impl Default for Rows {
+    fn default() -> Self {
+        Rows::Memory(Vec::new())
+    }
+}
+
+/// Rows left in their file.
+#[derive(Debug)]
+struct InPlace {
+    file: File,
+    /// Where the rows start in the file.
+    at: u64,
+    /// Each row's direct key's first 8 bytes, big-endian so that they sort as the rows do:
+    /// what a lookup searches before it reads the row.
+    prefixes: Vec<u64>,
+    /// The interner's number of each of the file's lists, by kind (files, absent, warnings).
+    numbers: [Vec<u32>; 3],
+}
+
+/// Rows read at a time from a records file while it is checked or iterated.
+const READ_ROWS: usize = 4096;
+
+fn prefix_of(direct: &Direct) -> u64 {
+    u64::from_be_bytes(direct[..8].try_into().expect("8 bytes"))
+}
+
+impl InPlace {
+    /// A row read from the file, its lists numbered in the interner; `None` where the file
+    /// no longer reads as it did when it was checked.
+    fn row(&self, b: &[u8; ROW_BYTES]) -> Option<(Direct, Row)> {
+        let (direct, row) = get_row(b);
+        let number = |t: usize, id: u32| self.numbers[t].get(id as usize).copied();
+        let row = Row {
+            files: number(0, row.files)?,
+            absent: number(1, row.absent)?,
+            warnings: number(2, row.warnings)?,
+            ..row
+        };
+        Some((direct, row))
+    }
+
+    /// Up to `n` rows from row `start` on.
+    fn read(&self, start: usize, n: usize) -> Option<Vec<(Direct, Row)>> {
+        let n = n.min(self.prefixes.len().saturating_sub(start));
+        let mut buffer = vec![[0u8; ROW_BYTES]; n];
+        self.file.read_exact_at(buffer.as_flattened_mut(), self.at + (start * ROW_BYTES) as u64).ok()?;
+        buffer.iter().map(|b| self.row(b)).collect()
+    }
+
+    /// The row of `direct`: the rows that share its prefix are read, one at a time (two
+    /// share one with odds near 2^-64 a pair).
+    fn get(&self, direct: &Direct) -> Option<Row> {
+        let prefix = prefix_of(direct);
+        let first = self.prefixes.partition_point(|&p| p < prefix);
+        let same = self.prefixes[first..].iter().take_while(|&&p| p == prefix).count();
+        (first..first + same).find_map(|i| {
+            let mut b = [0u8; ROW_BYTES];
+            self.file.read_exact_at(&mut b, self.at + (i * ROW_BYTES) as u64).ok()?;
+            self.row(&b).filter(|(d, _)| d == direct).map(|(_, row)| row)
+        })
+    }
+}
+
+impl PartialEq for Records {
+    fn eq(&self, other: &Records) -> bool {
+        self.len() == other.len() && self.iter().eq(other.iter())
+    }
 }
 
 impl Records {
@@ -76,25 +152,35 @@ impl Records {
         for (out, (direct, row)) in bytes.as_chunks_mut::<ROW_BYTES>().0.iter_mut().zip(&rows) {
             put_row(out, direct, row);
         }
-        Records { rows: bytes }
-    }
-
-    fn rows(&self) -> &[[u8; ROW_BYTES]] {
-        self.rows.as_chunks::<ROW_BYTES>().0
+        Records { rows: Rows::Memory(bytes) }
     }
 
     pub fn get(&self, direct: &Direct) -> Option<Row> {
-        let rows = self.rows();
-        rows.binary_search_by(|r| r[..16].cmp(direct)).ok().map(|i| get_row(&rows[i]).1)
+        match &self.rows {
+            Rows::Memory(bytes) => {
+                let rows = bytes.as_chunks::<ROW_BYTES>().0;
+                rows.binary_search_by(|r| r[..16].cmp(direct)).ok().map(|i| get_row(&rows[i]).1)
+            }
+            Rows::File(f) => f.get(direct),
+        }
     }
 
-    /// Each direct key with its row, in order.
-    pub fn iter(&self) -> impl Iterator<Item = (Direct, Row)> + Clone + '_ {
-        self.rows().iter().map(get_row)
+    /// Each direct key with its row, in order (from a file, a few at a time: one that no
+    /// longer reads ends there).
+    pub fn iter(&self) -> Box<dyn Iterator<Item = (Direct, Row)> + '_> {
+        match &self.rows {
+            Rows::Memory(bytes) => Box::new(bytes.as_chunks::<ROW_BYTES>().0.iter().map(get_row)),
+            Rows::File(f) => {
+                Box::new((0..f.prefixes.len()).step_by(READ_ROWS).map_while(|start| f.read(start, READ_ROWS)).flatten())
+            }
+        }
     }
 
     pub fn len(&self) -> usize {
-        self.rows().len()
+        match &self.rows {
+            Rows::Memory(bytes) => bytes.len() / ROW_BYTES,
+            Rows::File(f) => f.prefixes.len(),
+        }
     }
 }
 
@@ -485,27 +571,10 @@ impl<'a> Reader<'a> {
 /// preprocesses everything, as with no records). The rows stay in `bytes`: the lists in
 /// front of them are cut off.
 pub(super) fn decode(mut bytes: Vec<u8>, interner: &mut Interner, root: &Path) -> Option<Records> {
-    let mut r = Reader { bytes: &bytes, at: 0 };
-    if r.take(8)? != MAGIC {
-        return None;
-    }
-    let path = |b: &[u8]| {
-        let p = Path::new(OsStr::from_bytes(b));
-        if p.is_relative() {
-            root.join(p)
-        } else {
-            p.to_path_buf()
-        }
-    };
-    let files = r.lists(&mut interner.files, |r| Some((path(r.bytes()?), r.hash()?)))?;
-    let absent = r.lists(&mut interner.absent, |r| Some(path(r.bytes()?)))?;
-    let warnings = r.lists(&mut interner.warnings, |r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
-    let n = r.u64()?;
-    let at = r.at;
+    let (numbers, n, at) = decode_head(&bytes, interner, root)?;
     if n.checked_mul(ROW_BYTES as u64)? != (bytes.len() - at) as u64 {
         return None;
     }
-    let numbers = [files, absent, warnings];
     let mut last: Option<Direct> = None;
     for row in bytes[at..].as_chunks_mut::<ROW_BYTES>().0 {
         let direct = direct_of(row);
@@ -521,7 +590,97 @@ pub(super) fn decode(mut bytes: Vec<u8>, interner: &mut Interner, root: &Path) -
         }
     }
     bytes.drain(..at);
-    Some(Records { rows: bytes })
+    Some(Records { rows: Rows::Memory(bytes) })
+}
+
+/// Records as the cache holds them: the local file, to be read in place (its body's start
+/// and length; its checksum was checked), or a body in memory (the remote cache's).
+pub(super) enum Stored {
+    File { file: File, at: u64, len: u64 },
+    Bytes(Vec<u8>),
+}
+
+/// [`decode`] for records as the cache holds them: a file's rows stay in it, checked
+/// through a small buffer.
+pub(super) fn decode_stored(stored: Stored, interner: &mut Interner, root: &Path) -> Option<Records> {
+    match stored {
+        Stored::Bytes(bytes) => decode(bytes, interner, root),
+        Stored::File { file, at, len } => decode_file(file, at, len, interner, root),
+    }
+}
+
+/// Bytes read first for the lists in front of a file's rows (doubled until they fit).
+const HEAD_READ: u64 = 1 << 20;
+
+/// [`decode`] for the body of `len` bytes at `at` in `file`: the lists are read whole (few
+/// beside the rows), the rows checked a few at a time and left in the file, only their
+/// direct keys' prefixes kept.
+fn decode_file(file: File, at: u64, len: u64, interner: &mut Interner, root: &Path) -> Option<Records> {
+    let mut magic = [0u8; 8];
+    file.read_exact_at(&mut magic, at).ok()?;
+    // Another encoding is not read further (nor read whole to find its lists).
+    if &magic != MAGIC {
+        return None;
+    }
+    let mut want = HEAD_READ.min(len);
+    let (numbers, n, head) = loop {
+        let mut bytes = vec![0u8; usize::try_from(want).ok()?];
+        file.read_exact_at(&mut bytes, at).ok()?;
+        match decode_head(&bytes, interner, root) {
+            Some(h) => break h,
+            None if want < len => want = want.saturating_mul(2).min(len),
+            None => return None,
+        }
+    };
+    let count = usize::try_from(n).ok()?;
+    if n.checked_mul(ROW_BYTES as u64)? != len - head as u64 {
+        return None;
+    }
+    let rows_at = at + head as u64;
+    let mut prefixes = Vec::with_capacity(count);
+    let mut buffer = vec![[0u8; ROW_BYTES]; READ_ROWS.min(count)];
+    let mut last: Option<Direct> = None;
+    for start in (0..count).step_by(READ_ROWS) {
+        let chunk = &mut buffer[..READ_ROWS.min(count - start)];
+        file.read_exact_at(chunk.as_flattened_mut(), rows_at + (start * ROW_BYTES) as u64).ok()?;
+        for row in chunk.iter() {
+            let direct = direct_of(row);
+            // Strictly ascending, as written: lookups search them.
+            if last.is_some_and(|l| l >= direct) {
+                return None;
+            }
+            last = Some(direct);
+            for (t, numbers) in numbers.iter().enumerate() {
+                let id = u32::from_le_bytes(row[LISTS_AT + 4 * t..LISTS_AT + 4 + 4 * t].try_into().expect("4 bytes"));
+                numbers.get(id as usize)?;
+            }
+            prefixes.push(prefix_of(&direct));
+        }
+    }
+    Some(Records { rows: Rows::File(InPlace { file, at: rows_at, prefixes, numbers }) })
+}
+
+/// The lists in front of the rows, interned into `interner` (each list's number there, by
+/// kind), the number of rows and where they start; `None` if `bytes` does not hold them
+/// whole or they are not of this encoding.
+fn decode_head(bytes: &[u8], interner: &mut Interner, root: &Path) -> Option<([Vec<u32>; 3], u64, usize)> {
+    let mut r = Reader { bytes, at: 0 };
+    if r.take(8)? != MAGIC {
+        return None;
+    }
+    let path = |b: &[u8]| {
+        let p = Path::new(OsStr::from_bytes(b));
+        if p.is_relative() {
+            root.join(p)
+        } else {
+            p.to_path_buf()
+        }
+    };
+    let files = r.lists(&mut interner.files, |r| Some((path(r.bytes()?), r.hash()?)))?;
+    let absent = r.lists(&mut interner.absent, |r| Some(path(r.bytes()?)))?;
+    let warnings = r.lists(&mut interner.warnings, |r| String::from_utf8(r.bytes()?.to_vec()).ok())?;
+    let n = r.u64()?;
+    Some(([files, absent, warnings], n, r.at))
 }
 
 #[cfg(test)]
@@ -557,7 +716,7 @@ mod tests {
         assert_eq!(bytes.windows(3).filter(|w| w == b"/a/").count(), 0);
 
         // Decoded at the same root into the same interner: the same records.
-        assert_eq!(decode(bytes.clone(), &mut i, Path::new("/a")), Some(records.clone()));
+        assert_eq!(decode(bytes.clone(), &mut i, Path::new("/a")), Some(Records::new(rows.clone())));
         // Elsewhere: the paths under the root move with it, the others stay.
         let mut j = Interner::default();
         let elsewhere = decode(bytes.clone(), &mut j, Path::new("/b/c")).unwrap();
@@ -601,6 +760,51 @@ mod tests {
         assert_eq!(small, encode_all(&rows, &i, Path::new("/a")), "the same bytes as the external sort's");
         let decoded = decode(small, &mut Interner::default(), Path::new("/a")).unwrap();
         assert_eq!(decoded.len(), 6, "one row per direct key");
+    }
+
+    /// `body` in a file behind 40 bytes (where the cache's magic and checksum go).
+    fn stored(body: &[u8]) -> Stored {
+        let mut file = tempfile::tempfile().unwrap();
+        file.write_all(&[0u8; 40]).unwrap();
+        file.write_all(body).unwrap();
+        Stored::File { file, at: 40, len: body.len() as u64 }
+    }
+
+    #[test]
+    fn records_read_in_place_read_like_those_in_memory() {
+        let mut i = Interner::default();
+        let n = READ_ROWS + 100;
+        let lists: Vec<Row> =
+            (0..3u8).map(|k| row(&mut i, k, vec![(PathBuf::from(format!("/a/{k}.ush")), [k; 32])])).collect();
+        let direct = |n: usize| -> Direct { *blake3::hash(&n.to_le_bytes()).as_bytes().first_chunk().unwrap() };
+        let rows: Vec<(Direct, Row)> =
+            (0..n).map(|n| (direct(n), Row { key: Key([n as u8; 32]), ..lists[n % 3] })).collect();
+        let bytes = encode_all(&rows, &i, Path::new("/a"));
+        let mut j = Interner::default();
+        let in_place = decode_stored(stored(&bytes), &mut j, Path::new("/b")).unwrap();
+        let mut k = Interner::default();
+        let memory = decode(bytes.clone(), &mut k, Path::new("/b")).unwrap();
+        assert!(matches!(in_place.rows, Rows::File(_)));
+        assert_eq!(in_place.len(), n);
+        assert!(in_place == memory, "the same rows, in order");
+        for (n, (d, _)) in rows.iter().enumerate().step_by(97) {
+            let found = in_place.get(d).unwrap();
+            assert_eq!(found, memory.get(d).unwrap());
+            let k = n % 3;
+            assert_eq!(j.files.get(found.files)[..], [(PathBuf::from(format!("/b/{k}.ush")), [k as u8; 32])]);
+        }
+        assert_eq!(in_place.get(&[7; 16]), None);
+
+        // Damaged or another encoding: not read.
+        let mut old = bytes.clone();
+        old[7] = 2;
+        assert!(decode_stored(stored(&old), &mut Interner::default(), Path::new("/b")).is_none());
+        let mut swapped = bytes.clone();
+        let end = swapped.len();
+        swapped[end - ROW_BYTES..end - ROW_BYTES + 16].copy_from_slice(&[0; 16]);
+        assert!(decode_stored(stored(&swapped), &mut Interner::default(), Path::new("/b")).is_none());
+        assert!(decode_stored(stored(&bytes[..bytes.len() - 1]), &mut Interner::default(), Path::new("/b")).is_none());
+        assert!(decode_stored(stored(b"KILNREC"), &mut Interner::default(), Path::new("/b")).is_none());
     }
 
     #[test]

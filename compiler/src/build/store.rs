@@ -262,11 +262,17 @@ impl Store {
         Some((used_n == keys.len() && known == used_n, complete))
     }
 
-    /// The encoded preprocessing records stored under `key` (none without a cache).
-    pub fn records(&self, key: &Key) -> Option<Vec<u8>> {
-        let (body, remote) = self.cache.as_ref()?.get_records_found(key)?;
+    /// The encoded preprocessing records stored under `key` (none without a cache): the
+    /// local file, opened to be read in place, else the remote cache's body.
+    pub fn records(&self, key: &Key) -> Option<super::records::Stored> {
+        let cache = self.cache.as_ref()?;
+        if let Some((file, at, len)) = cache.open_local_records(key) {
+            self.records_from_remote.store(false, Ordering::Relaxed);
+            return Some(super::records::Stored::File { file, at, len });
+        }
+        let (body, remote) = cache.get_records_found(key)?;
         self.records_from_remote.store(remote, Ordering::Relaxed);
-        Some(body)
+        Some(super::records::Stored::Bytes(body))
     }
 
     /// The records file under `key` in the local cache only.

@@ -57,6 +57,39 @@ impl Cache {
         Some((body, true))
     }
 
+    /// The records file under `key` in this folder, opened and its checksum checked (read
+    /// through a small buffer, not into memory), with where its body starts and how long
+    /// the body is: a reader looks its rows up in place, so that a large set of records
+    /// is never whole in memory. `None` when missing or damaged.
+    pub fn open_local_records(&self, key: &Key) -> Option<(fs::File, u64, u64)> {
+        let path = self.records_path(key);
+        let (file, meta) = crate::archive::input::open_regular(&path).ok()?;
+        if meta.len() > MAX_RECORDS || meta.len() < 40 {
+            return None;
+        }
+        let mut head = [0u8; 40];
+        file.read_exact_at(&mut head, 0).ok()?;
+        if &head[..8] != RECORD_MAGIC {
+            return None;
+        }
+        let mut hasher = blake3::Hasher::new();
+        let mut buffer = vec![0u8; 1 << 18];
+        let mut at = 40u64;
+        while at < meta.len() {
+            let n = (meta.len() - at).min(buffer.len() as u64) as usize;
+            file.read_exact_at(&mut buffer[..n], at).ok()?;
+            hasher.update(&buffer[..n]);
+            at += n as u64;
+        }
+        if hasher.finalize().as_bytes() != &head[8..40] {
+            return None;
+        }
+        if let Ok(f) = fs::File::options().append(true).open(&path) {
+            let _ = f.set_modified(SystemTime::now());
+        }
+        Some((file, 40, meta.len() - 40))
+    }
+
     /// Replaces the records file under `key` with `body` (checksummed), atomically, and
     /// stores it in the remote cache too.
     pub fn put_records_bytes(&self, key: &Key, body: &[u8]) -> Result<(), Error> {
