@@ -979,17 +979,24 @@ mod tests {
         }
     }
 
+    /// The header of a version 4 or 3 entry of `key` holding `c` (magic, checksum, key, raw
+    /// length, no dictionary), as older kilns wrote it.
+    fn old_header(magic: &[u8; 8], key: &Key, c: &Compiled) -> Vec<u8> {
+        let mut entry = magic.to_vec();
+        entry.extend_from_slice(super::super::entry_checksum(key, &super::super::frames(c), &hashes(c)).as_bytes());
+        entry.extend_from_slice(&key.0);
+        entry.extend_from_slice(&((super::super::MAGIC.len() + 64 + body(c).len()) as u64).to_le_bytes());
+        entry.extend_from_slice(&NO_DICT);
+        entry
+    }
+
     /// A version 4 entry (the reflection inside the frame, written by older kilns) is still
     /// read, and no damaged copy of it decodes to other artifacts or hashes.
     #[test]
     fn a_version_4_entry_is_still_read() {
         let (key, c) = (Key([5; 32]), compiled());
         let raw = body(&c);
-        let mut entry = MAGIC_V4.to_vec();
-        entry.extend_from_slice(super::super::entry_checksum(&key, &super::super::frames(&c), &hashes(&c)).as_bytes());
-        entry.extend_from_slice(&key.0);
-        entry.extend_from_slice(&((super::super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
-        entry.extend_from_slice(&NO_DICT);
+        let mut entry = old_header(MAGIC_V4, &key, &c);
         entry.extend_from_slice(&2u32.to_le_bytes());
         hashes(&c).iter().for_each(|h| entry.extend_from_slice(h.as_bytes()));
         let mut z = zstd::bulk::Compressor::new(PLAIN_LEVEL).unwrap();
@@ -1005,11 +1012,7 @@ mod tests {
     fn a_version_3_entry_is_still_read() {
         let (key, c) = (Key([9; 32]), compiled());
         let raw = body(&c);
-        let mut entry = MAGIC_V3.to_vec();
-        entry.extend_from_slice(super::super::entry_checksum(&key, &super::super::frames(&c), &hashes(&c)).as_bytes());
-        entry.extend_from_slice(&key.0);
-        entry.extend_from_slice(&((super::super::MAGIC.len() + 64 + raw.len()) as u64).to_le_bytes());
-        entry.extend_from_slice(&NO_DICT);
+        let mut entry = old_header(MAGIC_V3, &key, &c);
         entry.extend_from_slice(&zstd::bulk::compress(&raw, PLAIN_LEVEL).unwrap());
         assert_eq!(decode(&key, &entry, &no_dicts).unwrap(), (c.clone(), hashes(&c)));
         // A version 4 header on a frame without zstd's check sum is refused.
