@@ -39,9 +39,9 @@ pub(crate) struct Previous {
     /// (see [`Previous::buckets`]), high word first, then its id. 12 bytes a blob, a
     /// bucket's in a cache line or two (its ids with them: a lookup misses once there).
     index: Vec<[u32; 3]>,
-    /// Where each bucket of `keys` starts (its blobs' identities begin with the same
+    /// Where each bucket of `index` starts (its blobs' identities begin with the same
     /// `bucket_bits` bits), and where the last one ends: identities are uniform, so a
-    /// lookup reads a few keys after one read of this table instead of halving the whole
+    /// lookup reads a few entries after one read of this table instead of halving the whole
     /// index, a cache miss a step.
     buckets: Vec<u32>,
     /// About eight blobs a bucket, at most [`MAX_BUCKET_BITS`] bits.
