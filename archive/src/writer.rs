@@ -121,55 +121,9 @@ struct Entries {
 
 /// A map of the writer's own lookups, which only find what was added (the archive's bytes
 /// do not depend on them): with the default SipHash, hashing a reflection cost more than
-/// the rest of adding a permutation.
-type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
-
-/// A multiply-rotate hasher (FxHash's), a word at a time: fast for the small keys and the
-/// many small fields of a reflection. Not resistant to chosen collisions, which here could
-/// only slow a build whose own sources chose them.
-#[derive(Default, Clone, Copy)]
-struct FastHasher(u64);
-
-impl FastHasher {
-    fn word(&mut self, w: u64) {
-        self.0 = (self.0.rotate_left(5) ^ w).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-}
-
-impl std::hash::Hasher for FastHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        let mut chunks = bytes.chunks_exact(8);
-        for c in &mut chunks {
-            self.word(u64::from_le_bytes(c.try_into().expect("8 bytes")));
-        }
-        let rest = chunks.remainder();
-        if !rest.is_empty() {
-            let mut last = [0u8; 8];
-            last[..rest.len()].copy_from_slice(rest);
-            self.word(u64::from_le_bytes(last));
-        }
-    }
-
-    fn write_u8(&mut self, n: u8) {
-        self.word(u64::from(n));
-    }
-
-    fn write_u32(&mut self, n: u32) {
-        self.word(u64::from(n));
-    }
-
-    fn write_u64(&mut self, n: u64) {
-        self.word(n);
-    }
-
-    fn write_usize(&mut self, n: usize) {
-        self.word(n as u64);
-    }
-
-    fn finish(&self) -> u64 {
-        self.0
-    }
-}
+/// the rest of adding a permutation. FxHash is not resistant to chosen collisions, which
+/// here could only slow a build whose own sources chose them.
+type FastMap<K, V> = rustc_hash::FxHashMap<K, V>;
 
 /// A blob's identity in a writer: a prefix of its blake3 (as long as the cache's pack
 /// names; a collision between artifacts is not a practical concern). Its whole blake3,
