@@ -464,16 +464,6 @@ impl BlobTable {
         Ok((n, self.add(n, len, previous)?))
     }
 
-    /// Each slot's blob id (`u32::MAX` for a blob added but named by no permutation), from
-    /// `slots`, each id's slot (every one added): a `u32` a slot.
-    fn ids(&self, slots: Vec<u32>) -> std::io::Result<Vec<u32>> {
-        let mut id_of = vec![u32::MAX; self.slots];
-        for (id, &slot) in slots.iter().enumerate() {
-            *id_of.get_mut(slot as usize).ok_or_else(changed)? = id as u32;
-        }
-        Ok(id_of)
-    }
-
     /// Calls `f` with the id and location of every blob of the archive, in the order of the
     /// log (one pass over it, a buffer at a time), `id_of` giving each slot's id.
     fn scan(&mut self, id_of: &[u32], mut f: impl FnMut(usize, Loc)) -> std::io::Result<()> {
@@ -1273,10 +1263,12 @@ impl ArchiveWriter {
 struct Plan {
     hooks: WriterHooks,
     manifest: Manifest,
-    /// Each blob of the archive's target and slot in the writer's table, by blob id (5
-    /// bytes a blob).
+    /// Each blob of the archive's target, by blob id.
     targets: Vec<Target>,
-    slots: Vec<u32>,
+    /// Each slot of the writer's table's blob id (`u32::MAX` for a blob added but named by
+    /// no permutation): the numbering made here, kept for the blobs' locations rather than
+    /// made again from a list of each id's slot (4 bytes a blob fewer at the build's end).
+    id_of: Vec<u32>,
     /// The writer's blob table, sealed: where its log of blob locations is (read back once
     /// the manifest is spilled, see [`write_archive`]).
     table: BlobTable,
@@ -1313,7 +1305,9 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     let mut prefixes = Vec::with_capacity(shaders.len());
     // Each slot's blob id, by first use.
     let mut blob_ids: Vec<u32> = vec![u32::MAX; slots];
-    let (mut targets, mut blob_slots) = (Vec::new(), Vec::new());
+    // At most every blob added is named: room for them all at once, not grown by doubling
+    // on top of the manifest.
+    let mut targets = Vec::with_capacity(table.added);
     for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
@@ -1340,7 +1334,6 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
                     }
                     let id = targets.len() as u32;
                     targets.push(*target);
-                    blob_slots.push(*slot);
                     blob_ids[*slot as usize] = id;
                     id
                 }
@@ -1348,12 +1341,11 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
             };
         }
     }
-    drop(blob_ids);
     table.added_bits = Vec::new();
     arenas.prefixes = prefixes;
     manifest.permutations = permutations;
     manifest.arenas = arenas;
-    Ok(Plan { hooks, manifest, targets, slots: blob_slots, table, spool_len, previous: None })
+    Ok(Plan { hooks, manifest, targets, id_of: blob_ids, table, spool_len, previous: None })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker of the current rayon pool (the
@@ -1594,13 +1586,12 @@ fn dictionaries(
 /// compressed (the release hook is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { hooks, manifest, targets: blobs, slots, table: mut blob_table, spool_len, previous } = plan;
+    let Plan { hooks, manifest, targets: blobs, id_of, table: mut blob_table, spool_len, previous } = plan;
     let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
     let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
     let spilled = spill_manifest(manifest, spool, spill_at, hooks)?;
     // Where each blob lies is read back from the log only now that the manifest is gone, a
     // window of blob ids at a time.
-    let id_of = blob_table.ids(slots)?;
     (hooks.release)();
     (hooks.trace)("manifest spilled");
 
@@ -1644,7 +1635,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     // dictionary records, then the spilled tables and names.
     tee.write_all(&counts.encode())?;
     let SpilledManifest { front, back, .. } = spilled;
-    front.copy_to(&mut tee)?;
+    for part in front {
+        part.copy_to(&mut tee)?;
+    }
     for d in &dictionary_records {
         tee.write_all(&d.encode())?;
     }
@@ -1852,8 +1845,9 @@ fn compress_attached(
 struct SpilledManifest<'a> {
     /// Its counts, but for the dictionaries' (zero).
     counts: ManifestCounts,
-    /// Its records, ids, values and artifacts: what comes before the dictionary records.
-    front: SpillBuf<'a>,
+    /// Its records, ids, values and artifacts: what comes before the dictionary records, in
+    /// that order (each part spilled on its own, so that they can be made in another).
+    front: [SpillBuf<'a>; 4],
     /// Its tables (padded to 8) and names: what comes after them.
     back: SpillBuf<'a>,
 }
@@ -1861,16 +1855,16 @@ struct SpilledManifest<'a> {
 /// Encodes the binary manifest (layout in `format.rs`) of `manifest` to the spool file at
 /// `at` (to memory with an in-memory spool), all but its header and dictionary records,
 /// which depend on the dictionaries: the parts before the dictionary records, then those
-/// after. Each arena goes as soon as it is encoded, the names first (the parts after the
-/// dictionary records lie past the others, whose length the counts give), so that the ids'
-/// sort is not on top of the whole manifest; the release hook is called once they are gone.
+/// after. Each part lies at an offset the counts give, so each is made when it least adds
+/// to the memory held, and each arena goes as soon as nothing else needs it: the names
+/// first, then the artifacts, and the values and records once the ids (which need both)
+/// are made, before they are sorted; the release hook is called once the names are gone.
 fn spill_manifest<'a>(
     mut manifest: Manifest,
     spool: &Spool<'a>,
     at: u64,
     hooks: WriterHooks,
 ) -> std::io::Result<SpilledManifest<'a>> {
-    let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
     let (p, arenas) = (&manifest.permutations, &manifest.arenas);
     let counts = ManifestCounts {
         permutations: p.len() as u64,
@@ -1880,10 +1874,14 @@ fn spill_manifest<'a>(
         tables_len: 0,
         names_len: p.iter().map(|p| p.whole_name_len(arenas)).sum(),
     };
-    let front_len = counts.permutations * (RECORD_LEN + ID_LEN) as u64
-        + counts.values * VALUE_LEN as u64
-        + counts.artifacts * ARTIFACT_LEN as u64;
-    let mut back = SpillBuf::new(spool, at + front_len, 0);
+    let lens = [
+        counts.permutations * RECORD_LEN as u64,
+        counts.permutations * ID_LEN as u64,
+        counts.values * VALUE_LEN as u64,
+        counts.artifacts * ARTIFACT_LEN as u64,
+    ];
+    let starts = [at, at + lens[0], at + lens[0] + lens[1], at + lens[0] + lens[1] + lens[2]];
+    let mut back = SpillBuf::new(spool, starts[3] + lens[3], 0);
     let tables = TablesOut {
         kiln_version: &manifest.kiln_version,
         naga_version: &manifest.naga_version,
@@ -1902,7 +1900,23 @@ fn spill_manifest<'a>(
     manifest.arenas.names = String::new();
     (hooks.release)();
 
-    let mut front = SpillBuf::new(spool, at, 0);
+    let [records, ids, values, artifacts] = starts.map(|start| SpillBuf::new(spool, start, 0));
+    let records = write_records(&manifest, records)?;
+    let artifacts = write_artifacts(&manifest, artifacts)?;
+    manifest.arenas.targets = Vec::new();
+    manifest.arenas.blobs = Vec::new();
+    let values = write_values(&manifest, values)?;
+    let ids = write_ids(manifest, ids)?;
+    let front = [records, ids, values, artifacts];
+    if front.iter().zip(lens).any(|(part, len)| part.len() != len) {
+        return Err(std::io::Error::other("the manifest's parts differ from its counts"));
+    }
+    Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
+}
+
+/// The permutations' records (their names, values and artifacts one after another).
+fn write_records<'a>(manifest: &Manifest, mut out: SpillBuf<'a>) -> std::io::Result<SpillBuf<'a>> {
+    let too_many = || std::io::Error::other("the manifest has more than 2^32 values or artifacts");
     let (mut name_offset, mut first_value, mut first_artifact) = (0u64, 0u32, 0u32);
     for p in &manifest.permutations {
         let value_count = manifest.shaders[p.shader as usize].dimensions.len();
@@ -1916,50 +1930,81 @@ fn spill_manifest<'a>(
             first_artifact,
             artifact_count: u32::from(p.artifact_count),
         };
-        front.write_all(&record.encode())?;
+        out.write_all(&record.encode())?;
         name_offset += name_len;
         first_value = u32::try_from(value_count).ok().and_then(|n| first_value.checked_add(n)).ok_or_else(too_many)?;
         first_artifact = first_artifact.checked_add(u32::from(p.artifact_count)).ok_or_else(too_many)?;
     }
-    // Sorted by (id, index), packed (a `(u128, u32)` tuple would be padded).
-    let mut values = Vec::new();
-    let mut ids: Vec<(u64, u64, u32)> = manifest
-        .permutations
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let s = &manifest.shaders[p.shader as usize];
-            values.clear();
-            values.extend(manifest.arenas.values_of(p, s.dimensions.len()));
-            let id = super::permutation_id(&s.name, &s.level, &values);
-            ((id >> 64) as u64, id as u64, i as u32)
-        })
-        .collect();
-    ids.sort_unstable();
-    for (high, low, index) in ids {
-        let mut b = [0u8; ID_LEN];
-        b[0..16].copy_from_slice(&((u128::from(high) << 64) | u128::from(low)).to_le_bytes());
-        b[16..20].copy_from_slice(&index.to_le_bytes());
-        front.write_all(&b)?;
-    }
-    for p in &manifest.permutations {
-        for v in manifest.arenas.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
-            front.write_all(&v.to_le_bytes())?;
-        }
-    }
-    manifest.arenas.values = Default::default();
+    out.flush()?;
+    Ok(out)
+}
+
+/// The permutations' artifacts, one after another.
+fn write_artifacts<'a>(manifest: &Manifest, mut out: SpillBuf<'a>) -> std::io::Result<SpillBuf<'a>> {
     let a = &manifest.arenas;
     for p in &manifest.permutations {
         let range = p.first_artifact as usize..p.first_artifact as usize + p.artifact_count as usize;
         for (t, b) in a.targets[range.clone()].iter().zip(&a.blobs[range]) {
-            front.write_all(&encode_artifact(*t, BlobId(*b)))?;
+            out.write_all(&encode_artifact(*t, BlobId(*b)))?;
         }
     }
-    front.flush()?;
-    if front.len() != front_len {
-        return Err(std::io::Error::other("the manifest's parts differ from its counts"));
+    out.flush()?;
+    Ok(out)
+}
+
+/// The permutations' values, one after another.
+fn write_values<'a>(manifest: &Manifest, mut out: SpillBuf<'a>) -> std::io::Result<SpillBuf<'a>> {
+    for p in &manifest.permutations {
+        for v in manifest.arenas.values_of(p, manifest.shaders[p.shader as usize].dimensions.len()) {
+            out.write_all(&v.to_le_bytes())?;
+        }
     }
-    Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
+    out.flush()?;
+    Ok(out)
+}
+
+/// The permutation id of the `i`th permutation of `manifest`.
+fn id_of_permutation(manifest: &Manifest, i: usize, values: &mut Vec<i64>) -> u128 {
+    let p = &manifest.permutations[i];
+    let s = &manifest.shaders[p.shader as usize];
+    values.clear();
+    values.extend(manifest.arenas.values_of(p, s.dimensions.len()));
+    super::permutation_id(&s.name, &s.level, values)
+}
+
+/// The ids table: each permutation's id and index, sorted by id then index. What is sorted
+/// is the id's high half and the index, 12 bytes a permutation (the whole id and index are
+/// 20, padded to 24), on top of the records and values (the other arenas are gone by now);
+/// each whole id is made again as it is written, and the rare ids whose high halves agree
+/// are put in order by their whole ids then.
+fn write_ids<'a>(manifest: Manifest, mut out: SpillBuf<'a>) -> std::io::Result<SpillBuf<'a>> {
+    let mut values = Vec::new();
+    let mut ids: Vec<[u32; 3]> = (0..manifest.permutations.len())
+        .map(|i| {
+            let high = (id_of_permutation(&manifest, i, &mut values) >> 64) as u64;
+            [(high >> 32) as u32, high as u32, i as u32]
+        })
+        .collect();
+    ids.sort_unstable();
+    let mut run = Vec::new();
+    let mut start = 0;
+    while start < ids.len() {
+        let end = start + ids[start..].iter().take_while(|x| x[..2] == ids[start][..2]).count();
+        run.clear();
+        run.extend(ids[start..end].iter().map(|x| (id_of_permutation(&manifest, x[2] as usize, &mut values), x[2])));
+        if end - start > 1 {
+            run.sort_unstable();
+        }
+        for (id, index) in &run {
+            let mut b = [0u8; ID_LEN];
+            b[0..16].copy_from_slice(&id.to_le_bytes());
+            b[16..20].copy_from_slice(&index.to_le_bytes());
+            out.write_all(&b)?;
+        }
+        start = end;
+    }
+    out.flush()?;
+    Ok(out)
 }
 
 /// The whole names of the manifest's permutations, in order, one after another (derived
