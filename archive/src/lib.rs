@@ -112,7 +112,8 @@ pub use reflect::{
 };
 #[cfg(feature = "writer")]
 pub use writer::{
-    train_dictionary, ArchiveSummary, ArchiveWriter, BlobKey, NewPermutation, StreamingWriter, WriterHooks,
+    train_dictionary, ArchiveSummary, ArchiveWriter, ArtifactRange, BlobKey, NewPermutation, StreamingWriter,
+    WriterHooks,
 };
 
 /// The version of Kiln that wrote an archive (recorded in its manifest). The workspace's

@@ -75,6 +75,18 @@ pub struct NewPermutation<'a, B = BlobKey> {
     pub artifacts: Vec<(Target, B)>,
 }
 
+/// Artifacts added once for any number of permutations ([`StreamingWriter::add_artifacts`]),
+/// named by a permutation of [`StreamingWriter::add_permutation_ranged`]: `count` of them
+/// from the `first`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ArtifactRange {
+    /// The number [`StreamingWriter::add_artifacts`] gave, plus the artifacts before these
+    /// among those it added.
+    pub first: u32,
+    /// How many (at most one a target).
+    pub count: u8,
+}
+
 /// What [`StreamingWriter::finish`] wrote.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ArchiveSummary {
@@ -556,8 +568,9 @@ impl BlobLocs {
 const LOC_WINDOW: usize = 1 << 15;
 
 impl Entries {
-    /// Adds `p`, its artifacts' blobs numbered (in the writer's [`BlobTable`]).
-    fn add(&mut self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
+    /// Adds `p`, its artifacts' blobs numbered (in the writer's [`BlobTable`]): its own, or
+    /// the `range` of those already added if given (then `p` has none of its own).
+    fn add(&mut self, p: NewPermutation<'_, u32>, range: Option<ArtifactRange>) -> Result<(), ArchiveError> {
         let (last_shader, last_reflection) = self.last.unzip();
         let shader = match last_shader.filter(|&s| self.shaders[s as usize] == *p.shader) {
             Some(s) => s,
@@ -568,7 +581,7 @@ impl Entries {
             None => self.reflection(p.reflection),
         };
         self.last = Some((shader, reflection));
-        self.add_with(p, shader, reflection)
+        self.add_with(p, shader, reflection, range)
     }
 
     /// The index of the shader of `p`, added if new; an error if another record has its name.
@@ -605,8 +618,15 @@ impl Entries {
         }
     }
 
-    /// Adds `p`, whose shader and reflection are `shader` and `reflection`.
-    fn add_with(&mut self, p: NewPermutation<'_, u32>, shader: u32, reflection: u32) -> Result<(), ArchiveError> {
+    /// Adds `p`, whose shader and reflection are `shader` and `reflection` (and artifacts
+    /// `range`, if given).
+    fn add_with(
+        &mut self,
+        p: NewPermutation<'_, u32>,
+        shader: u32,
+        reflection: u32,
+        range: Option<ArtifactRange>,
+    ) -> Result<(), ArchiveError> {
         if p.values.len() != p.shader.dimensions.len() {
             return Err(ArchiveError::Input(format!(
                 "permutation `{}` has {} values for the {} dimensions of `{}@{}`",
@@ -620,11 +640,34 @@ impl Entries {
         // The caller's order of targets is kept: it is part of the permutation (the order of
         // the level's targets), not an order of arrival.
         let artifacts = &p.artifacts;
-        if artifacts.iter().enumerate().any(|(i, a)| artifacts[..i].iter().any(|b| b.0 == a.0)) {
-            return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)));
-        }
-        let too_many = || ArchiveError::Input("more than 2^32 bytes of names, values or artifacts".into());
         let a = &mut self.arenas;
+        let (first_artifact, artifact_count) = match range {
+            Some(r) => {
+                let targets =
+                    (r.first as usize).checked_add(r.count.into()).and_then(|end| a.targets.get(r.first as usize..end));
+                match targets {
+                    Some(t) if artifacts.is_empty() && distinct(t.iter()) => (r.first, r.count),
+                    _ => {
+                        return Err(ArchiveError::Input(format!(
+                            "permutation `{}` names artifacts of no writer, or two of one target",
+                            p.name
+                        )))
+                    }
+                }
+            }
+            None if distinct(artifacts.iter().map(|a| &a.0)) => {
+                let first = u32::try_from(a.targets.len())
+                    .map_err(|_| ArchiveError::Input("more than 2^32 artifacts".into()))?;
+                a.targets.extend(artifacts.iter().map(|(t, _)| *t));
+                a.blobs.extend(artifacts.iter().map(|(_, b)| *b));
+                // Distinct targets (at most one a target).
+                (first, artifacts.len() as u8)
+            }
+            None => {
+                return Err(ArchiveError::Input(format!("permutation `{}` has two artifacts of one target", p.name)))
+            }
+        };
+        let too_many = || ArchiveError::Input("more than 2^32 bytes of names, values or artifacts".into());
         // Canonical names begin with their shader's `name@level`: kept once, not per name.
         let own = p.name.strip_prefix(a.prefixes[shader as usize].as_str());
         // And go on with its dimensions and values, made again from them where needed.
@@ -639,9 +682,8 @@ impl Entries {
             shader,
             reflection,
             first_value: u32::try_from(a.values.len()).map_err(|_| too_many())?,
-            first_artifact: u32::try_from(a.targets.len()).map_err(|_| too_many())?,
-            // Distinct targets (above).
-            artifact_count: artifacts.len() as u8,
+            first_artifact,
+            artifact_count,
             prefixed: own.is_some(),
             derived,
         };
@@ -649,11 +691,14 @@ impl Entries {
             a.names.push_str(own.unwrap_or(&p.name));
         }
         a.values.extend(&p.values);
-        a.targets.extend(artifacts.iter().map(|(t, _)| *t));
-        a.blobs.extend(artifacts.iter().map(|(_, b)| *b));
         self.permutations.push(pending);
         Ok(())
     }
+}
+
+/// Whether no two of `targets` are the same.
+fn distinct<'t>(targets: impl Iterator<Item = &'t Target> + Clone) -> bool {
+    targets.clone().enumerate().all(|(i, t)| targets.clone().take(i).all(|u| u != t))
 }
 
 /// Where blob bytes wait until the archive is assembled.
@@ -1013,14 +1058,52 @@ impl StreamingWriter {
                 ArchiveError::Input("a permutation named by blob keys was added after the blobs were sealed".into())
             })?
         };
-        lock(&self.entries).add(p)
+        lock(&self.entries).add(p, None)
     }
 
     /// [`StreamingWriter::add_permutation`] with its blobs named by the numbers
     /// [`StreamingWriter::add_blob_numbered`] gave (a number it did not give is an error).
     pub fn add_permutation_numbered(&self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
         lock(&self.blobs).check_numbers(&p.name, &p.artifacts)?;
-        lock(&self.entries).add(p)
+        lock(&self.entries).add(p, None)
+    }
+
+    /// Adds artifacts (each one's target and blob, numbered by
+    /// [`StreamingWriter::add_blob_numbered`]) for permutations to name by range
+    /// ([`StreamingWriter::add_permutation_ranged`]): the first one's number. A caller whose
+    /// permutations share artifacts (those of one cache key) hands them over once, rather
+    /// than a copy per permutation; the archive is the same either way.
+    pub fn add_artifacts(&self, targets: Vec<Target>, blobs: Vec<u32>) -> Result<u32, ArchiveError> {
+        if targets.len() != blobs.len() {
+            return Err(ArchiveError::Input("artifacts of more targets than blobs, or fewer".into()));
+        }
+        let slots = lock(&self.blobs).slots;
+        if let Some(i) = blobs.iter().position(|&n| n as usize >= slots) {
+            return Err(ArchiveError::Input(format!(
+                "an artifact names a {} blob {} of no writer",
+                targets[i], blobs[i]
+            )));
+        }
+        let a = &mut lock(&self.entries).arenas;
+        let first = u32::try_from(a.targets.len()).ok().filter(|f| f.checked_add(blobs.len() as u32).is_some());
+        let first = first.ok_or_else(|| ArchiveError::Input("more than 2^32 artifacts".into()))?;
+        if a.targets.is_empty() {
+            (a.targets, a.blobs) = (targets, blobs);
+        } else {
+            a.targets.extend(targets);
+            a.blobs.extend(blobs);
+        }
+        Ok(first)
+    }
+
+    /// [`StreamingWriter::add_permutation_numbered`] of a permutation whose artifacts are the
+    /// `artifacts` of those [`StreamingWriter::add_artifacts`] added (`p` has none of its own).
+    pub fn add_permutation_ranged(
+        &self,
+        p: NewPermutation<'_, u32>,
+        artifacts: ArtifactRange,
+    ) -> Result<(), ArchiveError> {
+        lock(&self.entries).add(p, Some(artifacts))
     }
 
     /// Room for `permutations` more permutations with `name_bytes` bytes of names (at most:
@@ -1201,7 +1284,7 @@ impl ArchiveWriter {
             return;
         };
         let p = NewPermutation { name: record.name, shader, values: record.values, reflection, artifacts };
-        if let Err(e) = self.entries.add(p) {
+        if let Err(e) = self.entries.add(p, None) {
             self.error.get_or_insert_with(|| e.to_string());
         }
     }
@@ -1308,6 +1391,8 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     // At most every blob added is named: room for them all at once, not grown by doubling
     // on top of the manifest.
     let mut targets = Vec::with_capacity(table.added);
+    // One bit an artifact: its blob is numbered already.
+    let mut numbered = vec![0u64; arenas.targets.len().div_ceil(64)];
     for p in permutations.iter_mut() {
         p.shader = *shader_map[p.shader as usize].get_or_insert_with(|| {
             manifest.shaders.push(shaders[p.shader as usize].take().expect("taken once"));
@@ -1320,8 +1405,14 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
         });
         let first = p.first_artifact as usize;
         let range = first..first + p.artifact_count as usize;
-        // Each artifact belongs to one permutation: its slot becomes its blob id once.
-        for (target, slot) in arenas.targets[range.clone()].iter().zip(&mut arenas.blobs[range]) {
+        // Each artifact's slot becomes its blob id once: at the first permutation that names
+        // it (permutations may share artifacts: see `StreamingWriter::add_artifacts`).
+        for (k, (target, slot)) in range.clone().zip(arenas.targets[range.clone()].iter().zip(&mut arenas.blobs[range]))
+        {
+            if numbered[k / 64] & (1 << (k % 64)) != 0 {
+                continue;
+            }
+            numbered[k / 64] |= 1 << (k % 64);
             *slot = match blob_ids[*slot as usize] {
                 u32::MAX => {
                     if !table.is_added(*slot) {

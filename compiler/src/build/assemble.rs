@@ -20,7 +20,9 @@ use super::plan::Plan;
 use super::preprocess::Preprocessed;
 use super::store::Store;
 use super::Error;
-use crate::archive::{self, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target};
+use crate::archive::{
+    self, ArtifactRange, DimensionRecord, NewPermutation, Reflection, ShaderRecord, Stage, StreamingWriter, Target,
+};
 use crate::cache::{Held, Key};
 use crate::compile::{self, Compiled};
 
@@ -93,46 +95,47 @@ impl Log {
     }
 
     /// The records read back into a table: each key's prefix and entry, sorted (the whole
-    /// keys only of the few whose prefix another key shares).
+    /// keys only of the few whose prefix another key shares). Their artifacts are read in a
+    /// second pass ([`Produced::by_permutation`]), once the permutations' keys are gone.
     fn load(self) -> std::io::Result<Produced> {
         let mut input: Box<dyn Input> = match self.records {
             Records::File(f) => Box::new(f.into_inner().map_err(|e| e.into_error())?),
             Records::Memory(v) => Box::new(std::io::Cursor::new(v)),
         };
-        let mut produced = Produced {
-            slots: Vec::with_capacity(self.keys),
-            shared: Vec::new(),
-            artifacts: Artifacts {
-                targets: Vec::with_capacity(self.artifacts),
-                numbers: Vec::with_capacity(self.artifacts),
-            },
-            hashes: self.hashes,
-            reflections: self.reflections,
-        };
-        each_record(&mut input, self.keys, |key, entry, artifacts| {
-            let a = &mut produced.artifacts;
-            a.targets.extend(artifacts.iter().map(|x| x.0));
-            a.numbers.extend(artifacts.iter().map(|x| x.1));
-            produced.slots.push(Slot { prefix: split(key_hash(key)), entry });
+        let mut slots = Vec::with_capacity(self.keys);
+        each_record(&mut input, self.keys, |key, entry, _| {
+            slots.push(Slot { prefix: split(key_hash(key)), entry });
         })?;
-        produced.slots.sort_unstable_by_key(|s| s.prefix);
+        slots.sort_unstable_by_key(|s| s.prefix);
         // A prefix seen twice (a key produced twice, or two keys that share it) is settled
         // by the whole keys, read again: of a key produced twice the later record wins.
         let repeated: HashSet<[u32; 2]> =
-            produced.slots.windows(2).filter(|w| w[0].prefix == w[1].prefix).map(|w| w[0].prefix).collect();
+            slots.windows(2).filter(|w| w[0].prefix == w[1].prefix).map(|w| w[0].prefix).collect();
+        let mut shared = Vec::new();
         if !repeated.is_empty() {
-            produced.slots.retain(|s| !repeated.contains(&s.prefix));
+            slots.retain(|s| !repeated.contains(&s.prefix));
             let mut whole: HashMap<Key, KeyEntry> = HashMap::new();
             each_record(&mut input, self.keys, |key, entry, _| {
                 if repeated.contains(&split(key_hash(key))) {
                     whole.insert(*key, entry);
                 }
             })?;
-            produced.shared = whole.into_iter().collect();
-            produced.shared.sort_unstable_by_key(|s| s.0);
+            shared = whole.into_iter().collect();
+            shared.sort_unstable_by_key(|s: &(Key, KeyEntry)| s.0);
         }
-        Ok(produced)
+        let (keys, artifacts, hashes, reflections) = (self.keys, self.artifacts, self.hashes, self.reflections);
+        Ok(Produced { slots, shared, input, keys, artifacts, hashes, reflections })
     }
+}
+
+/// The artifacts of the `count` records of `input`, one after another.
+fn read_artifacts(input: &mut dyn Input, count: usize, artifacts: usize) -> std::io::Result<Artifacts> {
+    let mut a = Artifacts { targets: Vec::with_capacity(artifacts), numbers: Vec::with_capacity(artifacts) };
+    each_record(input, count, |_, _, artifacts| {
+        a.targets.extend(artifacts.iter().map(|x| x.0));
+        a.numbers.extend(artifacts.iter().map(|x| x.1));
+    })?;
+    Ok(a)
 }
 
 /// Where key records are read back from: their file, or memory.
@@ -190,9 +193,11 @@ struct Produced {
     /// them, which held three times as much where the assembly peaks.
     slots: Vec<Slot>,
     shared: Vec<(Key, KeyEntry)>,
-    /// Each key's artifacts, one after another: target and blob number (the archive
-    /// writer's, else an index into `hashes`).
-    artifacts: Artifacts,
+    /// The records, for their artifacts.
+    input: Box<dyn Input>,
+    /// Records and artifacts in them.
+    keys: usize,
+    artifacts: usize,
     /// [`Log::hashes`].
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
@@ -216,17 +221,19 @@ impl Produced {
 
     /// Each kept permutation's key's entry number (`NOT_KEPT` for the others), the keys'
     /// entries by number, their artifacts and hashes and the reflections: what stays once
-    /// `pre` and the table finding keys go.
-    fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> ByPermutation {
+    /// `pre` goes. The artifacts are read only then, so that they and `pre` are never held
+    /// together.
+    fn by_permutation(mut self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
         let of = (0..plan.len())
             .map(|i| {
                 pre.key(i).map_or(NOT_KEPT, |k| self.position(k).expect("every kept permutation's key was produced"))
             })
             .collect();
         drop(pre);
-        let Produced { slots, shared, artifacts, hashes, reflections } = self;
-        let entries = slots.iter().map(|s| s.entry).chain(shared.iter().map(|s| s.1)).collect();
-        ByPermutation { of, entries, artifacts, hashes, reflections }
+        super::release_freed();
+        let artifacts = read_artifacts(&mut self.input, self.keys, self.artifacts)?;
+        let Produced { slots, shared, hashes, reflections, .. } = self;
+        Ok(ByPermutation { of, slots, shared, artifacts, hashes, reflections })
     }
 }
 
@@ -234,7 +241,10 @@ impl Produced {
 /// it replaces.
 struct ByPermutation {
     of: Vec<u32>,
-    entries: Vec<KeyEntry>,
+    /// [`Produced::slots`] and [`Produced::shared`]: each key's entry by number, as found
+    /// (not copied into a table of entries beside them).
+    slots: Vec<Slot>,
+    shared: Vec<(Key, KeyEntry)>,
     artifacts: Artifacts,
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
@@ -242,6 +252,7 @@ struct ByPermutation {
 
 /// Artifacts one after another: each one's target and blob number, packed (a table of
 /// pairs would be padded, and is held while the manifest is added).
+#[derive(Default)]
 struct Artifacts {
     targets: Vec<Target>,
     numbers: Vec<u32>,
@@ -253,11 +264,16 @@ const NOT_KEPT: u32 = u32::MAX;
 impl ByPermutation {
     /// Permutation `i`'s key's entry, if it is kept.
     fn get(&self, i: usize) -> Option<&KeyEntry> {
-        self.entries.get(self.of[i] as usize)
+        let n = self.of[i] as usize;
+        match self.slots.get(n) {
+            Some(s) => Some(&s.entry),
+            None => self.shared.get(n - self.slots.len()).map(|s| &s.1),
+        }
     }
 
     /// Reserves the manifest's exact size in `w`, so that its arenas are allocated once.
-    fn reserve_manifest(&self, plan: &Plan<'_>, w: &StreamingWriter) {
+    /// Artifacts are reserved unless the permutations name their keys' (`ranged`).
+    fn reserve_manifest(&self, plan: &Plan<'_>, w: &StreamingWriter, ranged: bool) {
         let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
         for i in 0..plan.len() {
             let Some(e) = self.get(i) else { continue };
@@ -266,7 +282,7 @@ impl ByPermutation {
             values += plan.shader_level(i).0.dimensions.len();
             artifacts += e.count as usize;
         }
-        w.reserve(n, names, values, artifacts);
+        w.reserve(n, names, values, if ranged { 0 } else { artifacts });
     }
 
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
@@ -542,15 +558,11 @@ impl<'p> Assembler<'p> {
         }
         let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
         let fingerprint = self.fingerprint(&pre);
-        let produced = self
-            .produced
-            .into_inner()
-            .expect("no panics while locked")
-            .load()
-            .map_err(|e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}")))?;
+        let read_back = |e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}"));
+        let produced = self.produced.into_inner().expect("no panics while locked").load().map_err(read_back)?;
         super::trace_memory("keys read back");
         let plan = self.plan;
-        let produced = produced.by_permutation(plan, pre);
+        let mut produced = produced.by_permutation(plan, pre).map_err(read_back)?;
         // Not kept resident under the manifest's arenas.
         super::release_freed();
         super::trace_memory("keys by permutation");
@@ -559,37 +571,49 @@ impl<'p> Assembler<'p> {
         let mut index: BTreeMap<String, BTreeMap<&'static str, &str>> = BTreeMap::new();
         let mut shaders: HashMap<(&str, &str), ShaderRecord> = HashMap::new();
         let mut distinct: HashSet<blake3::Hash> = HashSet::new();
+        // Into an archive alone, the keys' artifacts go to the writer once, each permutation
+        // naming its key's (not a copy per permutation beside the keys' own).
+        let ranged = options.emit_dir.is_none();
+        let mut first = 0;
         if let Some(w) = &writer {
-            produced.reserve_manifest(plan, w);
+            produced.reserve_manifest(plan, w, ranged);
+            if ranged {
+                let a = std::mem::take(&mut produced.artifacts);
+                first = w.add_artifacts(a.targets, a.numbers).map_err(archive_error)?;
+            }
         }
         for i in 0..plan.len() {
             let Some(entry) = produced.get(i) else { continue };
-            let artifacts = produced.artifacts(entry);
             let (shader_of, level) = plan.shader_level(i);
             let name = plan.name(i);
             if options.emit_dir.is_some() {
                 // With loose files, each artifact's hash is kept beside it.
-                let hashes = &produced.hashes[entry.first as usize..][..artifacts.len()];
+                let hashes = &produced.hashes[entry.first as usize..][..entry.count as usize];
                 let files = index.entry(name.clone()).or_default();
-                for ((t, _), hash) in artifacts.iter().zip(hashes) {
+                for ((t, _), hash) in produced.artifacts(entry).iter().zip(hashes) {
                     files.insert(t.name(), emitted[hash].as_str());
                 }
                 if writer.is_none() {
                     distinct.extend(hashes);
                 }
             }
-            written.permutation_artifacts += artifacts.len();
+            written.permutation_artifacts += entry.count as usize;
             let Some(w) = &writer else { continue };
             let shader =
                 shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
-            w.add_permutation_numbered(NewPermutation {
-                name,
-                shader,
-                values: plan.values(i),
-                reflection: &produced.reflections[entry.reflection as usize],
-                artifacts,
-            })
-            .map_err(archive_error)?;
+            let reflection = &produced.reflections[entry.reflection as usize];
+            let values = plan.values(i);
+            let added = if ranged {
+                let range = ArtifactRange { first: first + entry.first, count: entry.count as u8 };
+                w.add_permutation_ranged(
+                    NewPermutation { name, shader, values, reflection, artifacts: Vec::new() },
+                    range,
+                )
+            } else {
+                let artifacts = produced.artifacts(entry);
+                w.add_permutation_numbered(NewPermutation { name, shader, values, reflection, artifacts })
+            };
+            added.map_err(archive_error)?;
         }
         drop(produced);
         super::release_freed();
@@ -655,7 +679,7 @@ mod tests {
             log.write(&c, 1, &[(Target::Spirv, 11), (Target::Glsl, 12)]).unwrap();
             log.write(&b, 2, &[]).unwrap();
             log.write(&a, 3, &[(Target::Glsl, 13)]).unwrap();
-            let p = log.load().unwrap();
+            let mut p = log.load().unwrap();
             let entry = |k: &Key| {
                 let n = p.position(k).unwrap() as usize;
                 let e = p.slots.get(n).map_or_else(|| p.shared[n - p.slots.len()].1, |s| s.entry);
@@ -665,7 +689,9 @@ mod tests {
             assert_eq!(entry(&b), (2, 3, 0));
             assert_eq!(entry(&c), (1, 1, 2));
             assert_eq!((p.slots.len(), p.shared.len()), (1, 2), "a and b share a prefix");
-            assert_eq!(p.artifacts.numbers, [10, 11, 12, 13]);
+            let artifacts = read_artifacts(&mut p.input, p.keys, p.artifacts).unwrap();
+            assert_eq!(artifacts.numbers, [10, 11, 12, 13]);
+            assert_eq!(artifacts.targets, [Target::Spirv, Target::Spirv, Target::Glsl, Target::Glsl]);
             assert!(p.position(&key(3, 0)).is_none());
         }
     }
