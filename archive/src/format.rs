@@ -269,6 +269,9 @@ pub(crate) struct Arenas {
     /// Each permutation's name, less its shader's prefix where it begins with it; nothing
     /// for a derived name ([`ManifestPermutation::derived`]).
     pub names: String,
+    /// Each name in `names`: its start and length (the few names that are not derived:
+    /// a derived one's permutation holds its length instead, 8 bytes a permutation less).
+    pub spans: Vec<(u32, u32)>,
     pub values: Values,
     /// Each artifact's target, and its blob (a slot of the writer's table, then a blob id).
     pub targets: Vec<Target>,
@@ -335,11 +338,18 @@ impl Arenas {
             out.push_str(&self.prefixes[p.shader as usize]);
         }
         if !p.derived {
-            out.push_str(&self.names[p.name_start as usize..p.name_start as usize + p.name_len as usize]);
+            out.push_str(self.own_name(p));
             return;
         }
         let dims = &shaders[p.shader as usize].dimensions;
         write_derived(dims, self.values_of(p, dims.len()), out);
+    }
+
+    /// The name of `p` kept in `names` (not derived): its whole name less its shader's
+    /// prefix if `prefixed`.
+    fn own_name(&self, p: &ManifestPermutation) -> &str {
+        let (start, len) = self.spans[p.name as usize];
+        &self.names[start as usize..][..len as usize]
     }
 
     /// The whole name of `p`, for messages.
@@ -359,8 +369,7 @@ impl Arenas {
         buffers: &mut (String, String),
     ) -> std::cmp::Ordering {
         if a.shader == b.shader && a.prefixed == b.prefixed && !a.derived && !b.derived {
-            let own = |p: &ManifestPermutation| &self.names[p.name_start as usize..][..p.name_len as usize];
-            return own(a).cmp(own(b));
+            return self.own_name(a).cmp(self.own_name(b));
         }
         if a.shader == b.shader && a.derived && b.derived {
             return self.cmp_derived(a, b, &shaders[a.shader as usize].dimensions);
@@ -400,10 +409,9 @@ impl Arenas {
 /// writer's) numbering.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct ManifestPermutation {
-    pub name_start: u32,
-    /// Its own bytes in the names arena (its whole name less its shader's prefix, if
-    /// `prefixed`).
-    pub name_len: u32,
+    /// A derived name's length (less its shader's prefix, if `prefixed`), else the number of
+    /// its span in the names arena ([`Arenas::spans`]).
+    pub name: u32,
     pub shader: u32,
     pub reflection: u32,
     pub first_value: u32,
@@ -413,7 +421,7 @@ pub(crate) struct ManifestPermutation {
     /// Whether its name begins with its shader's `name@level`, left out of the names arena.
     pub prefixed: bool,
     /// Whether the rest of its name is its shader's dimensions and its values as a canonical
-    /// name writes them (`{DIM=value,...}`, `name_len` bytes): made again where it is needed,
+    /// name writes them (`{DIM=value,...}`, `name` bytes): made again where it is needed,
     /// not kept in the names arena, which would be the largest part of a large manifest.
     pub derived: bool,
 }
@@ -505,7 +513,8 @@ impl ManifestPermutation {
     /// The length of its whole name.
     pub fn whole_name_len(&self, arenas: &Arenas) -> u64 {
         let prefix = if self.prefixed { arenas.prefixes[self.shader as usize].len() } else { 0 };
-        (prefix + self.name_len as usize) as u64
+        let own = if self.derived { self.name } else { arenas.spans[self.name as usize].1 };
+        (prefix + own as usize) as u64
     }
 }
 

@@ -676,9 +676,18 @@ impl Entries {
             write_derived(&p.shader.dimensions, p.values.iter().copied(), &mut self.scratch);
             self.scratch == own
         });
+        let own_len = u32::try_from(own.unwrap_or(&p.name).len()).map_err(|_| too_many())?;
+        let name = match derived {
+            true => own_len,
+            false => {
+                let span = (u32::try_from(a.names.len()).map_err(|_| too_many())?, own_len);
+                a.names.push_str(own.unwrap_or(&p.name));
+                a.spans.push(span);
+                u32::try_from(a.spans.len() - 1).map_err(|_| too_many())?
+            }
+        };
         let pending = ManifestPermutation {
-            name_start: u32::try_from(a.names.len()).map_err(|_| too_many())?,
-            name_len: u32::try_from(own.unwrap_or(&p.name).len()).map_err(|_| too_many())?,
+            name,
             shader,
             reflection,
             first_value: u32::try_from(a.values.len()).map_err(|_| too_many())?,
@@ -687,9 +696,6 @@ impl Entries {
             prefixed: own.is_some(),
             derived,
         };
-        if !derived {
-            a.names.push_str(own.unwrap_or(&p.name));
-        }
         a.values.extend(&p.values);
         self.permutations.push(pending);
         Ok(())

@@ -223,17 +223,20 @@ impl Produced {
     /// entries by number, their artifacts and hashes and the reflections: what stays once
     /// `pre` goes. The artifacts are read only then, so that they and `pre` are never held
     /// together.
-    fn by_permutation(mut self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
+    fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
         let of = (0..plan.len())
             .map(|i| {
                 pre.key(i).map_or(NOT_KEPT, |k| self.position(k).expect("every kept permutation's key was produced"))
             })
             .collect();
         drop(pre);
+        // The prefixes are not needed past here: the entries alone, before the artifacts come.
+        let Produced { slots, shared, mut input, keys, artifacts, hashes, reflections } = self;
+        let entries = slots.iter().map(|s| s.entry).chain(shared.iter().map(|s| s.1)).collect();
+        drop((slots, shared));
         super::release_freed();
-        let artifacts = read_artifacts(&mut self.input, self.keys, self.artifacts)?;
-        let Produced { slots, shared, hashes, reflections, .. } = self;
-        Ok(ByPermutation { of, slots, shared, artifacts, hashes, reflections })
+        let artifacts = read_artifacts(&mut input, keys, artifacts)?;
+        Ok(ByPermutation { of, entries, artifacts, hashes, reflections })
     }
 }
 
@@ -241,10 +244,7 @@ impl Produced {
 /// it replaces.
 struct ByPermutation {
     of: Vec<u32>,
-    /// [`Produced::slots`] and [`Produced::shared`]: each key's entry by number, as found
-    /// (not copied into a table of entries beside them).
-    slots: Vec<Slot>,
-    shared: Vec<(Key, KeyEntry)>,
+    entries: Vec<KeyEntry>,
     artifacts: Artifacts,
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
@@ -264,11 +264,7 @@ const NOT_KEPT: u32 = u32::MAX;
 impl ByPermutation {
     /// Permutation `i`'s key's entry, if it is kept.
     fn get(&self, i: usize) -> Option<&KeyEntry> {
-        let n = self.of[i] as usize;
-        match self.slots.get(n) {
-            Some(s) => Some(&s.entry),
-            None => self.shared.get(n - self.slots.len()).map(|s| &s.1),
-        }
+        self.entries.get(self.of[i] as usize)
     }
 
     /// Reserves the manifest's exact size in `w`, so that its arenas are allocated once.
