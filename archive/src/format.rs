@@ -278,23 +278,26 @@ pub(crate) struct Arenas {
     pub blobs: Vec<u32>,
 }
 
-/// Permutation values: an `i32` each while every one fits (dimension values are small), an
-/// `i64` once one does not.
+/// Permutation values: a `u16` each while every one fits (dimension values are small: enum
+/// indices, bools, counts), an `i32` once one does not, an `i64` once one does not fit that.
+/// Widening copies what was added once (at most twice in all).
 #[derive(Clone, Debug)]
 pub(crate) enum Values {
+    Short(Vec<u16>),
     Narrow(Vec<i32>),
     Wide(Vec<i64>),
 }
 
 impl Default for Values {
     fn default() -> Self {
-        Values::Narrow(Vec::new())
+        Values::Short(Vec::new())
     }
 }
 
 impl Values {
     pub fn len(&self) -> usize {
         match self {
+            Values::Short(v) => v.len(),
             Values::Narrow(v) => v.len(),
             Values::Wide(v) => v.len(),
         }
@@ -302,12 +305,22 @@ impl Values {
 
     pub fn reserve_exact(&mut self, n: usize) {
         match self {
+            Values::Short(v) => v.reserve_exact(n),
             Values::Narrow(v) => v.reserve_exact(n),
             Values::Wide(v) => v.reserve_exact(n),
         }
     }
 
     pub fn extend(&mut self, values: &[i64]) {
+        if let Values::Short(v) = self {
+            if values.iter().all(|&x| u16::try_from(x).is_ok()) {
+                v.extend(values.iter().map(|&x| x as u16));
+                return;
+            }
+            let mut narrow = Vec::with_capacity(v.capacity());
+            narrow.extend(v.iter().map(|&x| i32::from(x)));
+            *self = Values::Narrow(narrow);
+        }
         if let Values::Narrow(v) = self {
             if values.iter().all(|&x| i32::try_from(x).is_ok()) {
                 v.extend(values.iter().map(|&x| x as i32));
@@ -324,6 +337,7 @@ impl Values {
 
     pub fn get(&self, i: usize) -> i64 {
         match self {
+            Values::Short(v) => i64::from(v[i]),
             Values::Narrow(v) => i64::from(v[i]),
             Values::Wide(v) => v[i],
         }

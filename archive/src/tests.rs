@@ -464,6 +464,59 @@ fn bytes_depend_on_the_set_not_on_order_or_threads() {
     assert_eq!(leftovers.len(), 2, "no spool or temporary file left behind: {leftovers:?}");
 }
 
+/// Permutations that name artifacts added once by range (as a build names its keys'
+/// artifacts) give the bytes of permutations with their own; a range of no writer, or of
+/// two artifacts of one target, is an error.
+#[test]
+fn artifacts_shared_by_range_give_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    stream(&dir.path().join("a.kpak"), &perms, &order, 1);
+    let w = StreamingWriter::new(&dir.path().join("b.kpak")).unwrap();
+    w.set_naga_version("30.0.1");
+    let (sh, refl) = (shader(), reflection());
+    // Permutations with the same artifacts share one range (the later ones first).
+    let (mut targets, mut blobs, mut ranges) = (Vec::new(), Vec::new(), Vec::new());
+    for (_, arts) in perms.iter().rev() {
+        let numbered: Vec<(Target, u32)> =
+            arts.iter().map(|(t, b)| (*t, w.add_blob_numbered(b, blake3::hash(b)).unwrap())).collect();
+        let found = ranges.iter().find(|(_, n)| *n == numbered).map(|r| r.0);
+        let first = found.unwrap_or_else(|| {
+            let first = targets.len() as u32;
+            targets.extend(numbered.iter().map(|a| a.0));
+            blobs.extend(numbered.iter().map(|a| a.1));
+            first
+        });
+        ranges.push((first, numbered));
+    }
+    ranges.reverse();
+    let base = w.add_artifacts(targets, blobs).unwrap();
+    for (i, (name, _)) in perms.iter().enumerate() {
+        let values = vec![i as i64, (i % 2) as i64];
+        let p = NewPermutation { name: name.clone(), shader: &sh, values, reflection: &refl, artifacts: vec![] };
+        let range = ArtifactRange { first: base + ranges[i].0, count: ranges[i].1.len() as u8 };
+        w.add_permutation_ranged(p, range).unwrap();
+    }
+    let p = |artifacts| NewPermutation {
+        name: "Lit@sm5{FULLY_ROUGH=500,MODE=OPAQUE}".into(),
+        shader: &sh,
+        values: vec![500, 0],
+        reflection: &refl,
+        artifacts,
+    };
+    let past_the_end = ArtifactRange { first: base + 1000, count: 1 };
+    assert!(w.add_permutation_ranged(p(vec![]), past_the_end).is_err());
+    let two_of_one_target = w.add_artifacts(vec![Target::Wgsl, Target::Wgsl], vec![0, 1]).unwrap();
+    assert!(w.add_permutation_ranged(p(vec![]), ArtifactRange { first: two_of_one_target, count: 2 }).is_err());
+    assert!(w.add_permutation_ranged(p(vec![(Target::Wgsl, 0)]), ArtifactRange { first: base, count: 1 }).is_err());
+    assert!(w.add_artifacts(vec![Target::Wgsl], vec![1 << 30]).is_err(), "a blob of no writer");
+    assert!(w.add_artifacts(vec![Target::Wgsl], vec![]).is_err());
+    w.finish().unwrap();
+    let (a, b) = (std::fs::read(dir.path().join("a.kpak")).unwrap(), std::fs::read(dir.path().join("b.kpak")).unwrap());
+    assert!(a == b, "artifacts by range gave other bytes");
+}
+
 #[test]
 fn writer_rejects_inconsistent_input() {
     let dir = tempfile::tempdir().unwrap();

@@ -270,15 +270,16 @@ impl ByPermutation {
     /// Reserves the manifest's exact size in `w`, so that its arenas are allocated once.
     /// Artifacts are reserved unless the permutations name their keys' (`ranged`).
     fn reserve_manifest(&self, plan: &Plan<'_>, w: &StreamingWriter, ranged: bool) {
-        let (mut n, mut names, mut values, mut artifacts) = (0, 0, 0, 0);
+        let (mut n, mut values, mut artifacts) = (0, 0, 0);
         for i in 0..plan.len() {
             let Some(e) = self.get(i) else { continue };
             n += 1;
-            names += plan.name(i).len();
             values += plan.shader_level(i).0.dimensions.len();
             artifacts += e.count as usize;
         }
-        w.reserve(n, names, values, if ranged { 0 } else { artifacts });
+        // No room for names: canonical names are made again from the values, never kept
+        // (and making each name here to count its bytes cost a name a permutation).
+        w.reserve(n, 0, values, if ranged { 0 } else { artifacts });
     }
 
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
