@@ -282,6 +282,49 @@ impl ByPermutation {
         w.reserve(n, 0, values, if ranged { 0 } else { artifacts });
     }
 
+    /// Readies `w` for the manifest: its size reserved, and the keys' artifacts handed over
+    /// when the permutations name them by range (`ranged`): the number the first was given.
+    fn ready_writer(
+        &mut self,
+        plan: &Plan<'_>,
+        w: &StreamingWriter,
+        ranged: bool,
+    ) -> Result<Option<u32>, archive::ArchiveError> {
+        self.reserve_manifest(plan, w, ranged);
+        if !ranged {
+            return Ok(None);
+        }
+        let a = std::mem::take(&mut self.artifacts);
+        w.add_artifacts(a.targets, a.numbers).map(Some)
+    }
+
+    /// Adds permutation `i` (kept) to `w`, its shader's record `shader`: naming its key's
+    /// artifacts by range where they were handed over (`first`, see [`Self::ready_writer`]),
+    /// else with a copy of them.
+    fn add(
+        &self,
+        w: &StreamingWriter,
+        plan: &Plan<'_>,
+        i: usize,
+        shader: &ShaderRecord,
+        first: Option<u32>,
+    ) -> Result<(), archive::ArchiveError> {
+        let entry = self.get(i).expect("a kept permutation");
+        let (name, values) = (plan.name(i), plan.values(i));
+        let reflection = &self.reflections[entry.reflection as usize];
+        match first {
+            Some(first) => {
+                let range = ArtifactRange { first: first + entry.first, count: entry.count as u8 };
+                let p = NewPermutation { name, shader, values, reflection, artifacts: Vec::new() };
+                w.add_permutation_ranged(p, range)
+            }
+            None => {
+                let artifacts = self.artifacts(entry);
+                w.add_permutation_numbered(NewPermutation { name, shader, values, reflection, artifacts })
+            }
+        }
+    }
+
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
         let range = e.first as usize..(e.first + e.count) as usize;
         let a = &self.artifacts;
@@ -571,22 +614,17 @@ impl<'p> Assembler<'p> {
         // Into an archive alone, the keys' artifacts go to the writer once, each permutation
         // naming its key's (not a copy per permutation beside the keys' own).
         let ranged = options.emit_dir.is_none();
-        let mut first = 0;
-        if let Some(w) = &writer {
-            produced.reserve_manifest(plan, w, ranged);
-            if ranged {
-                let a = std::mem::take(&mut produced.artifacts);
-                first = w.add_artifacts(a.targets, a.numbers).map_err(archive_error)?;
-            }
-        }
+        let first = match &writer {
+            Some(w) => produced.ready_writer(plan, w, ranged).map_err(archive_error)?,
+            None => None,
+        };
         for i in 0..plan.len() {
             let Some(entry) = produced.get(i) else { continue };
             let (shader_of, level) = plan.shader_level(i);
-            let name = plan.name(i);
             if options.emit_dir.is_some() {
                 // With loose files, each artifact's hash is kept beside it.
                 let hashes = &produced.hashes[entry.first as usize..][..entry.count as usize];
-                let files = index.entry(name.clone()).or_default();
+                let files = index.entry(plan.name(i)).or_default();
                 for ((t, _), hash) in produced.artifacts(entry).iter().zip(hashes) {
                     files.insert(t.name(), emitted[hash].as_str());
                 }
@@ -598,19 +636,7 @@ impl<'p> Assembler<'p> {
             let Some(w) = &writer else { continue };
             let shader =
                 shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
-            let reflection = &produced.reflections[entry.reflection as usize];
-            let values = plan.values(i);
-            let added = if ranged {
-                let range = ArtifactRange { first: first + entry.first, count: entry.count as u8 };
-                w.add_permutation_ranged(
-                    NewPermutation { name, shader, values, reflection, artifacts: Vec::new() },
-                    range,
-                )
-            } else {
-                let artifacts = produced.artifacts(entry);
-                w.add_permutation_numbered(NewPermutation { name, shader, values, reflection, artifacts })
-            };
-            added.map_err(archive_error)?;
+            produced.add(w, plan, i, shader, first).map_err(archive_error)?;
         }
         drop(produced);
         super::release_freed();
