@@ -94,17 +94,20 @@ impl Log {
         Ok(())
     }
 
-    /// The records read back into a table: each key's prefix and entry, sorted (the whole
-    /// keys only of the few whose prefix another key shares). Their artifacts are read in a
-    /// second pass ([`Produced::by_permutation`]), once the permutations' keys are gone.
+    /// The records read back into a table: each key's prefix and record number, sorted (the
+    /// whole keys only of the few whose prefix another key shares). Their entries and
+    /// artifacts are read in a second pass ([`Produced::by_permutation`]), once the
+    /// permutations' keys are gone.
     fn load(self) -> std::io::Result<Produced> {
         let mut input: Box<dyn Input> = match self.records {
             Records::File(f) => Box::new(f.into_inner().map_err(|e| e.into_error())?),
             Records::Memory(v) => Box::new(std::io::Cursor::new(v)),
         };
         let mut slots = Vec::with_capacity(self.keys);
-        each_record(&mut input, self.keys, |key, entry, _| {
-            slots.push(Slot { prefix: split(key_hash(key)), entry });
+        let mut record = 0;
+        each_record(&mut input, self.keys, |key, _, _| {
+            slots.push(Slot { prefix: split(key_hash(key)), record });
+            record += 1;
         })?;
         slots.sort_unstable_by_key(|s| s.prefix);
         // A prefix seen twice (a key produced twice, or two keys that share it) is settled
@@ -114,28 +117,33 @@ impl Log {
         let mut shared = Vec::new();
         if !repeated.is_empty() {
             slots.retain(|s| !repeated.contains(&s.prefix));
-            let mut whole: HashMap<Key, KeyEntry> = HashMap::new();
-            each_record(&mut input, self.keys, |key, entry, _| {
+            let mut whole: HashMap<Key, u32> = HashMap::new();
+            let mut record = 0;
+            each_record(&mut input, self.keys, |key, _, _| {
                 if repeated.contains(&split(key_hash(key))) {
-                    whole.insert(*key, entry);
+                    whole.insert(*key, record);
                 }
+                record += 1;
             })?;
             shared = whole.into_iter().collect();
-            shared.sort_unstable_by_key(|s: &(Key, KeyEntry)| s.0);
+            shared.sort_unstable_by_key(|s: &(Key, u32)| s.0);
         }
         let (keys, artifacts, hashes, reflections) = (self.keys, self.artifacts, self.hashes, self.reflections);
         Ok(Produced { slots, shared, input, keys, artifacts, hashes, reflections })
     }
 }
 
-/// The artifacts of the `count` records of `input`, one after another.
-fn read_artifacts(input: &mut dyn Input, count: usize, artifacts: usize) -> std::io::Result<Artifacts> {
+/// The entries of the `count` records of `input`, by record number, and their artifacts one
+/// after another.
+fn read_entries(input: &mut dyn Input, count: usize, artifacts: usize) -> std::io::Result<(Vec<KeyEntry>, Artifacts)> {
+    let mut entries = Vec::with_capacity(count);
     let mut a = Artifacts { targets: Vec::with_capacity(artifacts), numbers: Vec::with_capacity(artifacts) };
-    each_record(input, count, |_, _, artifacts| {
+    each_record(input, count, |_, entry, artifacts| {
+        entries.push(entry);
         a.targets.extend(artifacts.iter().map(|x| x.0));
         a.numbers.extend(artifacts.iter().map(|x| x.1));
     })?;
-    Ok(a)
+    Ok((entries, a))
 }
 
 /// Where key records are read back from: their file, or memory.
@@ -173,12 +181,13 @@ fn each_record(
     Ok(())
 }
 
-/// A produced key's prefix and what stays of it.
+/// A produced key's prefix and the number of its record (its entry is read with the
+/// artifacts, once each permutation's record number is found: 12 bytes a key, not 20).
 #[derive(Clone, Copy)]
 struct Slot {
     /// [`key_hash`] as two halves, so that a slot is not padded to eight bytes' alignment.
     prefix: [u32; 2],
-    entry: KeyEntry,
+    record: u32,
 }
 
 fn split(prefix: u64) -> [u32; 2] {
@@ -192,8 +201,8 @@ struct Produced {
     /// key's (only produced keys are looked up). Not the whole keys and a table to find
     /// them, which held three times as much where the assembly peaks.
     slots: Vec<Slot>,
-    shared: Vec<(Key, KeyEntry)>,
-    /// The records, for their artifacts.
+    shared: Vec<(Key, u32)>,
+    /// The records, for their entries and artifacts.
     input: Box<dyn Input>,
     /// Records and artifacts in them.
     keys: usize,
@@ -212,17 +221,16 @@ impl Produced {
     /// The number of `key`'s entry: its slot's, else past the slots, its place in `shared`.
     fn position(&self, key: &Key) -> Option<u32> {
         let prefix = split(key_hash(key));
-        let n = match self.slots.binary_search_by_key(&prefix, |s| s.prefix) {
-            Ok(n) => n,
-            Err(_) => self.slots.len() + self.shared.binary_search_by_key(key, |s| s.0).ok()?,
-        };
-        Some(n as u32)
+        match self.slots.binary_search_by_key(&prefix, |s| s.prefix) {
+            Ok(n) => Some(self.slots[n].record),
+            Err(_) => self.shared.binary_search_by_key(key, |s| s.0).ok().map(|n| self.shared[n].1),
+        }
     }
 
-    /// Each kept permutation's key's entry number (`NOT_KEPT` for the others), the keys'
+    /// Each kept permutation's key's record number (`NOT_KEPT` for the others), the records'
     /// entries by number, their artifacts and hashes and the reflections: what stays once
-    /// `pre` goes. The artifacts are read only then, so that they and `pre` are never held
-    /// together.
+    /// `pre` goes. The entries and artifacts are read only then, so that they and `pre` are
+    /// never held together.
     fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
         let of = (0..plan.len())
             .map(|i| {
@@ -230,12 +238,11 @@ impl Produced {
             })
             .collect();
         drop(pre);
-        // The prefixes are not needed past here: the entries alone, before the artifacts come.
+        // The prefixes are not needed past here: they go before the entries come.
         let Produced { slots, shared, mut input, keys, artifacts, hashes, reflections } = self;
-        let entries = slots.iter().map(|s| s.entry).chain(shared.iter().map(|s| s.1)).collect();
         drop((slots, shared));
         super::release_freed();
-        let artifacts = read_artifacts(&mut input, keys, artifacts)?;
+        let (entries, artifacts) = read_entries(&mut input, keys, artifacts)?;
         Ok(ByPermutation { of, entries, artifacts, hashes, reflections })
     }
 }
@@ -703,19 +710,19 @@ mod tests {
             log.write(&b, 2, &[]).unwrap();
             log.write(&a, 3, &[(Target::Glsl, 13)]).unwrap();
             let mut p = log.load().unwrap();
-            let entry = |k: &Key| {
-                let n = p.position(k).unwrap() as usize;
-                let e = p.slots.get(n).map_or_else(|| p.shared[n - p.slots.len()].1, |s| s.entry);
+            assert_eq!((p.slots.len(), p.shared.len()), (1, 2), "a and b share a prefix");
+            assert!(p.position(&key(3, 0)).is_none());
+            let records: Vec<u32> = [a, b, c].iter().map(|k| p.position(k).unwrap()).collect();
+            let (entries, artifacts) = read_entries(&mut p.input, p.keys, p.artifacts).unwrap();
+            let entry = |n: u32| {
+                let e = entries[n as usize];
                 (e.reflection, e.first, e.count)
             };
-            assert_eq!(entry(&a), (3, 3, 1), "the later record of a key produced twice");
-            assert_eq!(entry(&b), (2, 3, 0));
-            assert_eq!(entry(&c), (1, 1, 2));
-            assert_eq!((p.slots.len(), p.shared.len()), (1, 2), "a and b share a prefix");
-            let artifacts = read_artifacts(&mut p.input, p.keys, p.artifacts).unwrap();
+            assert_eq!(entry(records[0]), (3, 3, 1), "the later record of a key produced twice");
+            assert_eq!(entry(records[1]), (2, 3, 0));
+            assert_eq!(entry(records[2]), (1, 1, 2));
             assert_eq!(artifacts.numbers, [10, 11, 12, 13]);
             assert_eq!(artifacts.targets, [Target::Spirv, Target::Spirv, Target::Glsl, Target::Glsl]);
-            assert!(p.position(&key(3, 0)).is_none());
         }
     }
 
