@@ -459,8 +459,8 @@ impl<'p> Assembler<'p> {
 
     /// No more artifacts come: the archive writer lets go of the table that finds its blobs
     /// by content (it grows with the set).
-    pub fn seal_blobs(&self) {
-        if let Some(w) = &self.writer {
+    pub fn seal_blobs(&mut self) {
+        if let Some(w) = &mut self.writer {
             w.seal_blobs();
         }
     }
