@@ -58,8 +58,8 @@ pub(super) struct Store {
 }
 
 /// What the fill of [`Store::prefill`] did: its keys (sorted), whether each is local now,
-/// the keys it filled (sorted).
-type Prefilled = (Vec<Key>, bool, Vec<Key>);
+/// which it filled (a bit a key, by place: see [`Cache::prefill_from_remote`]).
+type Prefilled = (Vec<Key>, bool, Vec<u64>);
 
 #[derive(Default)]
 struct Pending {
@@ -252,8 +252,10 @@ impl Store {
         let (mut used_n, mut known, mut hits) = (0, 0, 0);
         for key in used {
             used_n += 1;
-            known += usize::from(keys.binary_search(key).is_ok());
-            hits += u64::from(filled.binary_search(key).is_ok());
+            if let Ok(i) = keys.binary_search(key) {
+                known += 1;
+                hits += filled[i / 64] >> (i % 64) & 1;
+            }
         }
         if let Some(remote) = self.cache.as_ref().and_then(Cache::remote) {
             remote.count_hits(hits);
@@ -269,6 +271,18 @@ impl Store {
         if let Some((file, at, len)) = cache.open_local_records(key) {
             self.records_from_remote.store(false, Ordering::Relaxed);
             return Some(super::records::Stored::File { file, at, len });
+        }
+        // The remote's, streamed into the local file and read in place like a local one
+        // (held in memory only when the local file cannot be written).
+        match cache.fetch_remote_records(key) {
+            Some(false) => return None,
+            Some(true) => {
+                if let Some((file, at, len)) = cache.open_local_records(key) {
+                    self.records_from_remote.store(true, Ordering::Relaxed);
+                    return Some(super::records::Stored::File { file, at, len });
+                }
+            }
+            None => {}
         }
         let (body, remote) = cache.get_records_found(key)?;
         self.records_from_remote.store(remote, Ordering::Relaxed);
