@@ -524,7 +524,7 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.archive_from_remote(out, &|| self.fingerprint(pre), &|| keys.to_vec())
+        store.archive_from_remote(out, &|| self.fingerprint(pre), keys)
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'

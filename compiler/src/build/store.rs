@@ -223,10 +223,12 @@ impl Store {
         if !self.records_from_remote.load(Ordering::Relaxed) {
             return;
         }
-        let keys = keys();
+        let mut keys = keys();
         if keys.is_empty() {
             return;
         }
+        // Made from a row a permutation, each key once: held through the fill at its length.
+        keys.shrink_to_fit();
         let cache = cache.clone();
         let fill = move || {
             let (complete, filled) = cache.prefill_from_remote(&keys);
@@ -376,12 +378,10 @@ impl Store {
         &self,
         out: &Path,
         fingerprint: &(dyn Fn() -> blake3::Hash + Sync),
-        keys: &dyn Fn() -> Vec<Key>,
+        keys: &super::group::Keys<'_>,
     ) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
         let remote = cache.remote()?;
-        // Copied only with a remote (it grows with the set, where grouping peaks).
-        let keys = &keys();
         let (tell, filled) = std::sync::mpsc::channel::<bool>();
         std::thread::scope(|s| {
             let taker = s.spawn(move || {
@@ -395,9 +395,11 @@ impl Store {
             // The prefill's keys are this build's when every permutation matched a record
             // (the records' keys, each once): then nothing is left to ask for. Else the keys
             // it did not bring are asked for once it is done.
-            let complete = match self.prefilled(keys.iter()) {
+            // The keys are copied only for that fill (they grow with the set, and grouping,
+            // where this runs, peaks).
+            let complete = match self.prefilled((0..keys.len()).map(|k| keys.key(k))) {
                 Some((true, complete)) => complete,
-                _ => cache.fill_from_remote(keys),
+                _ => cache.fill_from_remote(&keys.to_vec()),
             };
             // The taker may have stopped already (no archive): nobody to tell.
             let _ = tell.send(complete);
