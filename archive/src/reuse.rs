@@ -180,6 +180,16 @@ impl Previous {
         Some(id)
     }
 
+    /// Lets go of the index: [`Previous::find`] finds nothing from here on, while the blobs
+    /// it found are still taken by id ([`Previous::reuse`]). The index is the largest
+    /// table a rewrite holds beyond another build's, and the manifest's stages that follow
+    /// the last lookup are a build's peak.
+    pub(crate) fn drop_index(&mut self) {
+        self.index = Vec::new();
+        self.buckets = vec![0; 2];
+        self.bucket_bits = 0;
+    }
+
     /// Blob `id` (one [`Previous::find`] gave) for a new archive whose dictionary for its
     /// target has blake3 `dictionary` (`None`: none): its stored bytes where compressing its
     /// raw bytes again would give them, else its raw bytes; and its blake3. An error when

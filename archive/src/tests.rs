@@ -397,6 +397,45 @@ fn a_previous_archive_damaged_during_the_build_is_an_error_not_other_bytes() {
     assert_eq!(after[HEADER_LEN..HEADER_LEN + 4096], [0x5a; 4096][..]);
 }
 
+/// A rewrite as a build makes it: blobs the previous archive holds added by reference (no
+/// bytes), the others with their bytes, then no more blobs (the previous archive's index
+/// dropped) before the manifest: every held blob is copied by id all the same, and the
+/// bytes are a fresh archive's.
+#[test]
+fn blobs_found_before_sealing_are_copied_after_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let changed = edited(&perms);
+    let all: Vec<usize> = (0..changed.len()).collect();
+    stream(&dir.path().join("fresh.kpak"), &changed, &all, 1);
+    let out = dir.path().join("out.kpak");
+    stream(&out, &perms, &(0..perms.len()).collect::<Vec<_>>(), 1);
+    let mut w = StreamingWriter::new(&out).unwrap();
+    w.set_naga_version("30.0.1");
+    let (sh, refl) = (shader(), reflection());
+    let mut numbered = Vec::new();
+    let mut by_reference = 0;
+    for (name, arts) in &changed {
+        let mut artifacts = Vec::new();
+        for (t, bytes) in arts {
+            let hash = blake3::hash(bytes);
+            let held = w.holds(&hash).then(|| w.add_blob_reference(hash, bytes.len() as u64).unwrap()).flatten();
+            by_reference += usize::from(held.is_some());
+            artifacts.push((*t, held.unwrap_or_else(|| w.add_blob_numbered(bytes, hash).unwrap())));
+        }
+        numbered.push((name.clone(), artifacts));
+    }
+    assert!(by_reference > 0);
+    w.seal_blobs();
+    for (i, (name, artifacts)) in numbered.into_iter().enumerate() {
+        let values = vec![i as i64, (i % 2) as i64];
+        w.add_permutation_numbered(NewPermutation { name, shader: &sh, values, reflection: &refl, artifacts }).unwrap();
+    }
+    let summary = w.finish().unwrap();
+    assert!(summary.reused_blobs > 0, "{summary:?}");
+    assert!(std::fs::read(&out).unwrap() == std::fs::read(dir.path().join("fresh.kpak")).unwrap());
+}
+
 /// An archive of format 4 (no check sums of stored bytes) is read, not reused: the writer
 /// compresses everything again and writes format 5, byte for byte a fresh build's.
 #[test]

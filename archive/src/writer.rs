@@ -1141,9 +1141,13 @@ impl StreamingWriter {
 
     /// No more blobs will be added, nor permutations named by [`BlobKey`] (those are
     /// errors now; [`StreamingWriter::add_permutation_numbered`] still works): lets go of the
-    /// table that finds blobs by content, before the manifest is added.
-    pub fn seal_blobs(&self) {
+    /// table that finds blobs by content, and of the previous archive's index (its blobs
+    /// are taken by id from here on), before the manifest is added.
+    pub fn seal_blobs(&mut self) {
         lock(&self.blobs).seal();
+        if let Some(Some(previous)) = self.previous.get_mut() {
+            previous.drop_index();
+        }
     }
 
     /// Assembles the archive and writes it atomically (temporary file, fsync, rename).

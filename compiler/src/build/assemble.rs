@@ -522,8 +522,8 @@ impl<'p> Assembler<'p> {
 
     /// No more artifacts come: the archive writer lets go of the table that finds its blobs
     /// by content (it grows with the set).
-    pub fn seal_blobs(&self) {
-        if let Some(w) = &self.writer {
+    pub fn seal_blobs(&mut self) {
+        if let Some(w) = &mut self.writer {
             w.seal_blobs();
         }
     }
@@ -587,7 +587,7 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.archive_from_remote(out, &|| self.fingerprint(pre), &|| keys.to_vec())
+        store.archive_from_remote(out, &|| self.fingerprint(pre), keys)
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'

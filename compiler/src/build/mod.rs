@@ -198,7 +198,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     budget::permutations(config, &plan, options)?;
     trace_memory("plan");
 
-    let assembler = assemble::Assembler::new(&plan)?;
+    let mut assembler = assemble::Assembler::new(&plan)?;
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
@@ -231,11 +231,11 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     }
     before_compile(options, store, &keys, &compiler);
     let outcomes = compiler.run(&keys, &preprocessor);
-    // Every artifact is in: the archive's table that finds blobs by content goes.
-    assembler.seal_blobs();
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     // The keys' tables are not needed past here.
     drop((keys, compiler));
+    // Every artifact is in: the archive's tables that find blobs by content go.
+    assembler.seal_blobs();
     trace_memory("compile");
     report.warnings(store.finish());
     release_freed();

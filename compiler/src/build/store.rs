@@ -58,8 +58,8 @@ pub(super) struct Store {
 }
 
 /// What the fill of [`Store::prefill`] did: its keys (sorted), whether each is local now,
-/// the keys it filled (sorted).
-type Prefilled = (Vec<Key>, bool, Vec<Key>);
+/// which it filled (a bit a key, by place: see [`Cache::prefill_from_remote`]).
+type Prefilled = (Vec<Key>, bool, Vec<u64>);
 
 #[derive(Default)]
 struct Pending {
@@ -223,10 +223,12 @@ impl Store {
         if !self.records_from_remote.load(Ordering::Relaxed) {
             return;
         }
-        let keys = keys();
+        let mut keys = keys();
         if keys.is_empty() {
             return;
         }
+        // Made from a row a permutation, each key once: held through the fill at its length.
+        keys.shrink_to_fit();
         let cache = cache.clone();
         let fill = move || {
             let (complete, filled) = cache.prefill_from_remote(&keys);
@@ -252,8 +254,10 @@ impl Store {
         let (mut used_n, mut known, mut hits) = (0, 0, 0);
         for key in used {
             used_n += 1;
-            known += usize::from(keys.binary_search(key).is_ok());
-            hits += u64::from(filled.binary_search(key).is_ok());
+            if let Ok(i) = keys.binary_search(key) {
+                known += 1;
+                hits += filled[i / 64] >> (i % 64) & 1;
+            }
         }
         if let Some(remote) = self.cache.as_ref().and_then(Cache::remote) {
             remote.count_hits(hits);
@@ -269,6 +273,18 @@ impl Store {
         if let Some((file, at, len)) = cache.open_local_records(key) {
             self.records_from_remote.store(false, Ordering::Relaxed);
             return Some(super::records::Stored::File { file, at, len });
+        }
+        // The remote's, streamed into the local file and read in place like a local one
+        // (held in memory only when the local file cannot be written).
+        match cache.fetch_remote_records(key) {
+            Some(false) => return None,
+            Some(true) => {
+                if let Some((file, at, len)) = cache.open_local_records(key) {
+                    self.records_from_remote.store(true, Ordering::Relaxed);
+                    return Some(super::records::Stored::File { file, at, len });
+                }
+            }
+            None => {}
         }
         let (body, remote) = cache.get_records_found(key)?;
         self.records_from_remote.store(remote, Ordering::Relaxed);
@@ -362,12 +378,10 @@ impl Store {
         &self,
         out: &Path,
         fingerprint: &(dyn Fn() -> blake3::Hash + Sync),
-        keys: &dyn Fn() -> Vec<Key>,
+        keys: &super::group::Keys<'_>,
     ) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
         let remote = cache.remote()?;
-        // Copied only with a remote (it grows with the set, where grouping peaks).
-        let keys = &keys();
         let (tell, filled) = std::sync::mpsc::channel::<bool>();
         std::thread::scope(|s| {
             let taker = s.spawn(move || {
@@ -381,9 +395,11 @@ impl Store {
             // The prefill's keys are this build's when every permutation matched a record
             // (the records' keys, each once): then nothing is left to ask for. Else the keys
             // it did not bring are asked for once it is done.
-            let complete = match self.prefilled(keys.iter()) {
+            // The keys are copied only for that fill (they grow with the set, and grouping,
+            // where this runs, peaks).
+            let complete = match self.prefilled((0..keys.len()).map(|k| keys.key(k))) {
                 Some((true, complete)) => complete,
-                _ => cache.fill_from_remote(keys),
+                _ => cache.fill_from_remote(&keys.to_vec()),
             };
             // The taker may have stopped already (no archive): nobody to tell.
             let _ = tell.send(complete);

@@ -2,6 +2,11 @@
 //! the bundles of a build's keys, read on a fill and stored from the local entries.
 
 use super::*;
+use std::sync::atomic::AtomicU64;
+
+/// Keys of a fill looked for in the local index and asked for at a time (their list is
+/// 32 bytes a key).
+const FILL_WINDOW: usize = 1 << 16;
 
 impl Cache {
     /// Copies into the local cache the remote entries of `keys` that it lacks: from the parts
@@ -15,54 +20,82 @@ impl Cache {
         self.fill(keys, None)
     }
 
-    /// [`Cache::fill_from_remote`] without counting its hits: whether every key is held
-    /// locally now, and the keys it filled (sorted), for a caller that fetched them before
-    /// it knew which it uses to count those it does ([`Remote::count_hits`]).
-    pub fn prefill_from_remote(&self, keys: &[Key]) -> (bool, Vec<Key>) {
-        let filled = Mutex::new(Vec::new());
+    /// [`Cache::fill_from_remote`] of `keys` (sorted, each once) without counting its hits:
+    /// whether every key is held locally now, and which it filled (bit `i % 64` of word
+    /// `i / 64` for `keys[i]`: a bit a key, where a list of the keys took 32 bytes a key),
+    /// for a caller that fetched them before it knew which it uses to count those it does
+    /// ([`Remote::count_hits`]).
+    pub fn prefill_from_remote(&self, keys: &[Key]) -> (bool, Vec<u64>) {
+        debug_assert!(keys.windows(2).all(|w| w[0] < w[1]), "sorted, each once");
+        let filled: Vec<AtomicU64> = (0..keys.len().div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
         let complete = self.fill(keys, Some(&filled));
-        let mut filled = filled.into_inner().expect("no panics while locked");
-        filled.sort_unstable();
-        (complete, filled)
+        (complete, filled.into_iter().map(AtomicU64::into_inner).collect())
     }
 
-    /// [`Cache::fill_from_remote`]; each key filled is counted as a hit, or added to
-    /// `filled`.
-    pub(super) fn fill(&self, keys: &[Key], filled: Option<&Mutex<Vec<Key>>>) -> bool {
+    /// [`Cache::fill_from_remote`]; each key filled is counted as a hit, or marked in
+    /// `filled` (by its place in `keys`, then sorted: see [`Cache::prefill_from_remote`]).
+    pub(super) fn fill(&self, keys: &[Key], filled: Option<&[AtomicU64]>) -> bool {
         let Some(layer) = &self.remote else { return false };
         let hit = |key: &Key| match filled {
-            Some(f) => f.lock().expect("no panics while locked").push(*key),
+            Some(bits) => {
+                if let Ok(i) = keys.binary_search(key) {
+                    bits[i / 64].fetch_or(1 << (i % 64), Ordering::Relaxed);
+                }
+            }
             None => layer.remote.count_hit(),
         };
         // The single lookups' hits first: then the index knows them.
         let pending = layer.fills.lock().expect("no panics while locked").take();
         self.finish_fills(pending);
         let absent = layer.absent.lock().expect("no panics while locked").clone();
-        let mut missing: Vec<Key> = self.with_index(|index| {
-            let known = |k: &Key| index.contains(k) || absent.contains(k);
-            keys.iter().filter(|k| !known(k)).copied().collect()
-        });
+        // The keys to ask for are found a window at a time (the keys a fresh local cache
+        // asks for are every key of the build: a list of them all doubled the fill's memory);
+        // the index only grows during the fill, so no window finds more than this count.
+        let known = |index: &Index, k: &Key| index.contains(k) || absent.contains(k);
+        let unknown = self.with_index(|index| keys.iter().filter(|k| !known(index, k)).count());
         let complete = AtomicBool::new(absent.is_empty() || keys.iter().all(|k| !absent.contains(k)));
         // Not with signed values: a part is used as it streams, before its end could be
         // checked (each value is checked by itself; see `Remote::get_each`).
         let bundle = (layer.remote.streams() && !layer.remote.signs() && keys.len() >= bundle::MIN_KEYS)
             .then(|| bundle::Bundle::new(keys));
         let mut parts = vec![None; bundle.as_ref().map_or(0, |b| b.ids().len())];
-        if missing.is_empty() {
+        if unknown == 0 {
             self.keep_bundle(layer, bundle, parts);
             return complete.into_inner();
         }
         // Room for every key asked; failing to fill only costs a remote lookup next time.
-        let pack = fill::FillPack::create(&self.dir, missing.len()).ok();
-        if let (Some(b), Some(p), true) = (&bundle, &pack, missing.len() >= bundle::MIN_KEYS) {
+        let pack = fill::FillPack::create(&self.dir, unknown).ok();
+        let mut from_parts = Vec::new();
+        if let (Some(b), Some(p), true) = (&bundle, &pack, unknown >= bundle::MIN_KEYS) {
+            let mut missing: Vec<Key> =
+                self.with_index(|index| keys.iter().filter(|k| !known(index, k)).copied().collect());
             missing.sort_unstable();
-            let from_parts;
             (from_parts, parts) = self.fill_from_bundle(layer, b, &missing, p);
-            missing.retain(|k| from_parts.binary_search(k).is_err());
             from_parts.iter().for_each(hit);
         }
         self.keep_bundle(layer, bundle, parts);
-        layer.remote.get_each(&missing, |key, value| {
+        for window in keys.chunks(FILL_WINDOW) {
+            let missing: Vec<Key> = self.with_index(|index| {
+                let asked = |k: &Key| known(index, k) || from_parts.binary_search(k).is_ok();
+                window.iter().filter(|k| !asked(k)).copied().collect()
+            });
+            self.fill_window(layer, &missing, pack.as_ref(), &complete, &hit);
+        }
+        // Written now, so that the build's lookups find them here (not in the remote again).
+        self.finish_fills(pack);
+        complete.into_inner()
+    }
+
+    /// Asks the remote for `missing` and pushes each entry that passes its check into `pack`.
+    fn fill_window(
+        &self,
+        layer: &Layer,
+        missing: &[Key],
+        pack: Option<&fill::FillPack>,
+        complete: &AtomicBool,
+        hit: &(impl Fn(&Key) + Sync),
+    ) {
+        layer.remote.get_each(missing, |key, value| {
             let Some(bytes) = value else {
                 layer.absent.lock().expect("no panics while locked").insert(*key);
                 complete.store(false, Ordering::Relaxed);
@@ -78,13 +111,10 @@ impl Cache {
             };
             hit(key);
             // A failed write leaves the pack unfinished (removed).
-            if let Some(p) = &pack {
+            if let Some(p) = pack {
                 let _ = p.push(key, entry);
             }
         });
-        // Written now, so that the build's lookups find them here (not in the remote again).
-        self.finish_fills(pack);
-        complete.into_inner()
     }
 
     /// The entries of `wanted` (sorted) that the parts of `bundle` most of whose keys are
@@ -128,6 +158,52 @@ impl Cache {
         let mut filled = filled.into_inner().expect("no panics while locked");
         filled.sort_unstable();
         (filled, parts.into_inner().expect("no panics while locked"))
+    }
+
+    /// Fetches the preprocessing records under `key` from the remote cache into this
+    /// folder's records file ([`Cache::records_path`]): streamed to a temporary file (a
+    /// large set's records, held whole, were the largest part of a fresh local cache's
+    /// memory), and renamed into place once their magic and checksum are checked; a reader
+    /// then reads them in place ([`Cache::open_local_records`]). `Some(true)` once the file
+    /// is there, `Some(false)` when the remote has no whole records under `key`, `None` when
+    /// they arrived but could not be kept (a local write failed: the caller may hold them).
+    pub fn fetch_remote_records(&self, key: &Key) -> Option<bool> {
+        let Some(remote) = self.remote() else { return Some(false) };
+        let (mut whole, mut kept) = (false, true);
+        let written = crate::output::write_with(&self.records_path(key), false, |f, _| {
+            let mut head = Vec::with_capacity(40);
+            let mut body = blake3::Hasher::new();
+            let mut out = std::io::BufWriter::with_capacity(1 << 16, f);
+            // A local write that fails is not the remote's failure: the rest is only hashed.
+            let mut write = |out: &mut std::io::BufWriter<&mut std::fs::File>, bytes: &[u8]| {
+                kept = kept && std::io::Write::write_all(out, bytes).is_ok();
+            };
+            let arrived = remote.get_to(key, &mut |mut piece| {
+                if head.len() < 40 {
+                    let n = (40 - head.len()).min(piece.len());
+                    head.extend_from_slice(&piece[..n]);
+                    write(&mut out, &piece[..n]);
+                    piece = &piece[n..];
+                }
+                body.update(piece);
+                write(&mut out, piece);
+                Ok(())
+            });
+            kept = kept && std::io::Write::flush(&mut out).is_ok();
+            whole = arrived
+                && head.len() == 40
+                && &head[..8] == RECORD_MAGIC
+                && body.finalize().as_bytes()[..] == head[8..40];
+            match whole && kept {
+                true => Ok(()),
+                false => Err(std::io::Error::other("the remote records were not kept")),
+            }
+        });
+        match (written, whole) {
+            (Ok(()), _) => Some(true),
+            (Err(_), true) => None,
+            (Err(_), false) => Some(false),
+        }
     }
 
     /// Keeps `bundle` for [`Cache::put_bundle`] when this build writes and a part of it is

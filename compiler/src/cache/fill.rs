@@ -13,7 +13,9 @@ use super::{Key, PACK_EXTENSION, PACK_HEADER, PACK_MAGIC, ROW};
 /// A pack written entry by entry as checked remote entries arrive, so that a fill holds at
 /// most a few [`CHUNK`]s of entries in memory: room for `capacity` index rows is left after
 /// the header, the entries follow from the next page on, gathered into page-aligned chunks
-/// written whole, and the header and rows are written last. Rows left unused (keys the
+/// written whole, each chunk's rows written with it in the room left for them (in the order
+/// the chunks were placed, hashed as they go: the rows of a large fill are never whole in
+/// memory), and the header is written last. Rows left unused (keys the
 /// remote lacked) stay a hole between the index and the first entry, and each chunk starts
 /// on a page: readers never look between entries (rows give absolute offsets). The file is
 /// a temporary one of the cache folder (named as [`crate::output`] names them, after a
@@ -58,7 +60,10 @@ struct Slot {
 }
 
 struct Rows {
-    rows: Vec<u8>,
+    /// Rows placed so far (written, or being written, after the header in this order).
+    count: usize,
+    /// The blake3 of those rows, for the header.
+    hash: blake3::Hasher,
     /// Where the next chunk goes (page-aligned).
     offset: u64,
     /// The entries' checksums, for the pack's name.
@@ -91,7 +96,8 @@ impl FillPack {
             slots: Default::default(),
             next: AtomicUsize::new(0),
             rows: Mutex::new(Rows {
-                rows: Vec::with_capacity(capacity.min(1 << 16) * ROW),
+                count: 0,
+                hash: blake3::Hasher::new(),
                 offset: first,
                 checksums: blake3::Hasher::new(),
             }),
@@ -135,29 +141,39 @@ impl FillPack {
         self.place(full)
     }
 
-    /// Gives the entries of `slot` their place in the file and their rows, and writes them.
+    /// Gives the entries of `slot` their place in the file and their rows, and writes both.
     fn place(&self, mut slot: Slot) -> io::Result<()> {
         if slot.entries.is_empty() {
             return Ok(());
         }
-        let at = {
+        let mut rows = Vec::with_capacity(slot.entries.len() * ROW);
+        let (at, first_row) = {
             let mut r = self.rows.lock().expect("no panics while locked");
-            let at = r.offset;
+            let (at, first_row) = (r.offset, r.count);
             let mut offset = at;
             for (key, len, checksum) in &slot.entries {
-                r.rows.extend_from_slice(&key.0);
-                r.rows.extend_from_slice(&offset.to_le_bytes());
-                r.rows.extend_from_slice(&len.to_le_bytes());
+                rows.extend_from_slice(&key.0);
+                rows.extend_from_slice(&offset.to_le_bytes());
+                rows.extend_from_slice(&len.to_le_bytes());
                 r.checksums.update(checksum);
                 offset += len;
             }
+            // Hashed in the order of the rows in the file (taken under this lock).
+            r.hash.update(&rows);
+            r.count += slot.entries.len();
             r.offset = offset.div_ceil(PAGE) * PAGE;
-            at
+            (at, first_row)
         };
-        let written = self.write(&slot.bytes, at);
+        let written =
+            self.write(&slot.bytes, at).and_then(|()| self.write_rows(&rows, (PACK_HEADER + first_row * ROW) as u64));
         slot.bytes.clear();
         self.spare.lock().expect("no panics while locked").push(slot.bytes);
         written
+    }
+
+    /// Writes index rows at `at` (within the room left after the header).
+    fn write_rows(&self, rows: &[u8], at: u64) -> io::Result<()> {
+        self.file.write_all_at(rows, at).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
     }
 
     /// Writes `bytes` at `at`, its blocks allocated first: ext4 then takes the chunk's pages
@@ -169,7 +185,7 @@ impl FillPack {
         self.file.write_all_at(bytes, at).inspect_err(|_| self.failed.store(true, Ordering::Relaxed))
     }
 
-    /// Writes the header and the rows and renames the pack into place; its path (none when
+    /// Writes the header and renames the pack into place; its path (none when
     /// it is empty: nothing is left behind).
     pub fn finish(mut self) -> io::Result<Option<PathBuf>> {
         let path = self.write_index()?;
@@ -186,15 +202,14 @@ impl FillPack {
             return Err(io::Error::other("an entry could not be written"));
         }
         let r = self.rows.lock().expect("no panics while locked");
-        if r.rows.is_empty() {
+        if r.count == 0 {
             return Ok(None);
         }
-        let rows_hash = blake3::hash(&r.rows);
-        let mut head = Vec::with_capacity(PACK_HEADER + r.rows.len());
+        let rows_hash = r.hash.finalize();
+        let mut head = Vec::with_capacity(PACK_HEADER);
         head.extend_from_slice(PACK_MAGIC);
-        head.extend_from_slice(&((r.rows.len() / ROW) as u64).to_le_bytes());
+        head.extend_from_slice(&(r.count as u64).to_le_bytes());
         head.extend_from_slice(rows_hash.as_bytes());
-        head.extend_from_slice(&r.rows);
         self.file.write_all_at(&head, 0)?;
         let mut name = blake3::Hasher::new();
         name.update(rows_hash.as_bytes());
