@@ -258,12 +258,15 @@ impl<'p> Preprocessor<'p> {
 
     /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
     /// (with its permutation's index and key), on the worker that made it, before it is
-    /// dropped. A shard's pieces of records go through `store`'s remote cache.
+    /// dropped; `ended` runs once the last permutation is done, before the rows' keys are
+    /// read back (so that what `fresh` fed is let go first: not held beside them). A
+    /// shard's pieces of records go through `store`'s remote cache.
     pub fn run(
         &mut self,
         progress: &Progress,
         store: &Store,
         fresh: impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync,
+        ended: impl FnOnce(),
     ) -> Result<Preprocessed, super::Error> {
         let plan = self.plan;
         progress.stage("preprocessing", plan.len());
@@ -311,6 +314,7 @@ impl<'p> Preprocessor<'p> {
         // (a warm build's rows are one a permutation, as many as the records).
         drop(order);
         self.release_reuse();
+        ended();
         let rows = std::mem::replace(&mut *self.rows.lock().expect("no panics while locked"), RowLog::new())
             .load()
             .map_err(read_back)?;
