@@ -34,34 +34,15 @@ impl Plan<'_> {
         order.sort_unstable_by(|&a, &b| key(a).cmp(key(b)));
         // Each row's representative: the first row of its key in `order`.
         let mut same = vec![0u32; rows];
-        let mut distinct = 0;
         for (k, &r) in order.iter().enumerate() {
-            let first = match k {
+            same[r as usize] = match k {
                 0 => r,
                 _ if key(order[k - 1]) != key(r) => r,
                 _ => same[order[k - 1] as usize],
             };
-            distinct += usize::from(first == r);
-            same[r as usize] = first;
         }
         drop(order);
-        let mut number = vec![u32::MAX; rows];
-        let mut count = 0;
-        let of: Vec<u32> = (0..self.len())
-            .map(|i| match pre.row_number(i) {
-                Some(r) => {
-                    let first = same[r] as usize;
-                    if number[first] == u32::MAX {
-                        number[first] = count;
-                        count += 1;
-                    }
-                    number[first]
-                }
-                None => u32::MAX,
-            })
-            .collect();
-        debug_assert_eq!(count as usize, distinct);
-        (of, count as usize)
+        number_by_first_appearance(same, (0..self.len()).map(|i| pre.row_number(i)))
     }
 
     /// Each key's cost for `--shard`: its longest member's text times its level's targets.
@@ -81,10 +62,55 @@ impl Plan<'_> {
     }
 }
 
+/// Each permutation's key number by first appearance, from `same` (each row's
+/// representative row) and `rows` (each permutation's row, `None` where it has none), and
+/// the number of keys. A representative's number is written over its own entry of `same`,
+/// marked by the top bit (a representative points at itself until then), so that no second
+/// table of a number a row is held beside it; past 2^31 rows, where the mark does not fit,
+/// the numbers go in a table of their own.
+fn number_by_first_appearance(mut same: Vec<u32>, rows: impl Iterator<Item = Option<usize>>) -> (Vec<u32>, usize) {
+    const NUMBERED: u32 = 1 << 31;
+    if same.len() >= NUMBERED as usize {
+        return number_apart(&same, rows);
+    }
+    let mut count = 0u32;
+    let of = rows
+        .map(|r| {
+            let Some(r) = r else { return u32::MAX };
+            // A numbered representative holds its number; any other row its representative.
+            let first = if same[r] & NUMBERED != 0 { r } else { same[r] as usize };
+            if same[first] & NUMBERED == 0 {
+                same[first] = count | NUMBERED;
+                count += 1;
+            }
+            same[first] & !NUMBERED
+        })
+        .collect();
+    (of, count as usize)
+}
+
+/// [`number_by_first_appearance`] with the numbers in a table of their own.
+fn number_apart(same: &[u32], rows: impl Iterator<Item = Option<usize>>) -> (Vec<u32>, usize) {
+    let mut number = vec![u32::MAX; same.len()];
+    let mut count = 0u32;
+    let of = rows
+        .map(|r| {
+            let Some(r) = r else { return u32::MAX };
+            let first = same[r] as usize;
+            if number[first] == u32::MAX {
+                number[first] = count;
+                count += 1;
+            }
+            number[first]
+        })
+        .collect();
+    (of, count as usize)
+}
+
 /// `(starts, members)`: the members of each of `count` keys one after another, key `k`'s at
 /// `members[starts[k]..starts[k + 1]]` (a counting sort of `of`, each permutation's key
 /// number). Numbers of permutations, so below 2^32 ([`Plan::new`]).
-fn members_by_key(of: Vec<u32>, count: usize) -> (Vec<u32>, Vec<u32>) {
+fn members_by_key(mut of: Vec<u32>, count: usize) -> (Vec<u32>, Vec<u32>) {
     let mut starts = vec![0u32; count + 1];
     for &k in of.iter().filter(|&&k| k != u32::MAX) {
         starts[k as usize + 1] += 1;
@@ -92,17 +118,55 @@ fn members_by_key(of: Vec<u32>, count: usize) -> (Vec<u32>, Vec<u32>) {
     for k in 0..count {
         starts[k + 1] += starts[k];
     }
-    let mut members = vec![0u32; starts[count] as usize];
+    let placed = starts[count] as usize;
     // Each key's next free place: its start, moved one on per member (no second table).
+    if placed == of.len() && placed < INVERTED as usize {
+        // Every permutation has a key: its place among the members goes over its key number,
+        // and the places, a permutation of them, are inverted in the same table.
+        for k in of.iter_mut() {
+            let next = &mut starts[*k as usize];
+            *k = *next;
+            *next += 1;
+        }
+        invert(&mut of);
+        return (shifted_back(starts, count), of);
+    }
+    let mut members = vec![0u32; placed];
     for (i, &k) in of.iter().enumerate().filter(|(_, &k)| k != u32::MAX) {
         members[starts[k as usize] as usize] = i as u32;
         starts[k as usize] += 1;
     }
     drop(of);
-    // Each start was moved to the next key's: shift them back.
+    (shifted_back(starts, count), members)
+}
+
+/// Each start was moved to the next key's: the starts shifted back.
+fn shifted_back(mut starts: Vec<u32>, count: usize) -> Vec<u32> {
     starts.copy_within(0..count, 1);
     starts[0] = 0;
-    (starts, members)
+    starts
+}
+
+/// The mark of a place already inverted by [`invert`].
+const INVERTED: u32 = 1 << 31;
+
+/// Inverts `places`, a permutation of `0..places.len()` (below 2^31), in place: afterwards
+/// `places[p] = i` where `places[i]` was `p`. Each cycle is followed once, its places marked.
+fn invert(places: &mut [u32]) {
+    for start in 0..places.len() {
+        if places[start] & INVERTED != 0 {
+            continue;
+        }
+        let (mut prev, mut at) = (start as u32, places[start] as usize);
+        while at != start {
+            let next = places[at];
+            places[at] = prev | INVERTED;
+            prev = at as u32;
+            at = next as usize;
+        }
+        places[start] = prev | INVERTED;
+    }
+    places.iter_mut().for_each(|p| *p &= !INVERTED);
 }
 
 /// The distinct keys of a build, by first appearance, with their permutations. A key is
@@ -162,6 +226,32 @@ pub(super) fn assign(keys: &[Key], costs: &[u64], shards: usize) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn numbering_in_place_matches_numbering_apart() {
+        // Rows 0..6: rows 1, 3 and 5 share representative 1, row 4 is represented by 0.
+        let same = vec![0, 1, 2, 1, 0, 1];
+        let rows = [Some(3), None, Some(2), Some(0), Some(1), Some(4), Some(5), None];
+        let (of, count) = number_by_first_appearance(same.clone(), rows.iter().copied());
+        assert_eq!(count, 3);
+        assert_eq!(of, vec![0, u32::MAX, 1, 2, 0, 2, 0, u32::MAX]);
+        assert_eq!((of, count), number_apart(&same, rows.iter().copied()));
+    }
+
+    #[test]
+    fn members_in_place_match_members_apart() {
+        let of = vec![2, 0, 1, 0, 2, 2, 1];
+        let (starts, members) = members_by_key(of.clone(), 3);
+        assert_eq!(starts, vec![0, 2, 4, 7]);
+        assert_eq!(members, vec![1, 3, 2, 6, 0, 4, 5]);
+        // With a permutation without a key, the members go in a table of their own.
+        let mut failed = of;
+        failed.push(u32::MAX);
+        assert_eq!(members_by_key(failed, 3), (starts, members));
+        let mut places = vec![3, 0, 4, 1, 2, 5];
+        invert(&mut places);
+        assert_eq!(places, vec![1, 3, 4, 0, 2, 5]);
+    }
 
     #[test]
     fn assignment_balances_cost_and_ignores_order() {

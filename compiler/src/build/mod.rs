@@ -202,8 +202,13 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
-    let pre = preprocessor.run(&progress, store, |i, p, key, output| compiler.early(i, p, key, output))?;
-    compiler.end_early();
+    // The keys claimed and the writers' outputs kept for sharing go before the rows' keys
+    // come back (both at once were the stage's peak).
+    let ended = || {
+        compiler.end_early();
+        release_freed();
+    };
+    let pre = preprocessor.run(&progress, store, |i, p, key, output| compiler.early(i, p, key, output), ended)?;
     report.preprocessed(&plan, &preprocessor, &pre, t)?;
     release_freed();
     trace_memory("preprocess");

@@ -258,12 +258,15 @@ impl<'p> Preprocessor<'p> {
 
     /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
     /// (with its permutation's index and key), on the worker that made it, before it is
-    /// dropped. A shard's pieces of records go through `store`'s remote cache.
+    /// dropped; `ended` runs once the last permutation is done, before the rows' keys are
+    /// read back (so that what `fresh` fed is let go first: not held beside them). A
+    /// shard's pieces of records go through `store`'s remote cache.
     pub fn run(
         &mut self,
         progress: &Progress,
         store: &Store,
         fresh: impl Fn(usize, &Permutation<'_>, &Key, &preprocess::Output) + Sync,
+        ended: impl FnOnce(),
     ) -> Result<Preprocessed, super::Error> {
         let plan = self.plan;
         progress.stage("preprocessing", plan.len());
@@ -311,6 +314,7 @@ impl<'p> Preprocessor<'p> {
         // (a warm build's rows are one a permutation, as many as the records).
         drop(order);
         self.release_reuse();
+        ended();
         let rows = std::mem::replace(&mut *self.rows.lock().expect("no panics while locked"), RowLog::new())
             .load()
             .map_err(read_back)?;
@@ -575,7 +579,15 @@ struct RowLog {
     count: u32,
     /// The first write that failed (the build fails when the rows are read back).
     error: Option<std::io::Error>,
+    /// The latest rows added, by a hash of their key: a row equal to one of them takes its
+    /// number instead of a new one. A warm build adds a row a permutation matched to a
+    /// record, and the permutations of a key mostly come close together: without this, its
+    /// rows' keys (read back whole) were one a permutation rather than about one a key.
+    recent: Vec<Option<(Row, u32)>>,
 }
+
+/// How many of the latest rows [`RowLog::push`] looks among for an equal one.
+const RECENT_ROWS: usize = 4096;
 
 enum RowsOut {
     File(std::io::BufWriter<std::fs::File>),
@@ -608,11 +620,16 @@ impl RowLog {
             Ok(f) => RowsOut::File(std::io::BufWriter::with_capacity(1 << 16, f)),
             Err(_) => RowsOut::Memory(Vec::new()),
         };
-        RowLog { out, count: 0, error: None }
+        RowLog { out, count: 0, error: None, recent: vec![None; RECENT_ROWS] }
     }
 
-    /// Adds `row`; its number.
+    /// Adds `row`; its number (an equal row's among the latest added).
     fn push(&mut self, row: &Row) -> u32 {
+        let slot = u16::from_le_bytes([row.key.0[0], row.key.0[1]]) as usize % RECENT_ROWS;
+        match self.recent[slot] {
+            Some((recent, n)) if recent == *row => return n,
+            _ => self.recent[slot] = Some((*row, self.count)),
+        }
         match &mut self.out {
             RowsOut::Memory(v) => v.push(*row),
             RowsOut::File(f) => {

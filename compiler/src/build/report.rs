@@ -369,10 +369,12 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
     }
     let mut out = Vec::new();
     for ((_, shader, level), (dims, ranges)) in by_shader {
-        let members: Vec<usize> = ranges.into_iter().flatten().collect();
-        if members.is_empty() {
+        // The members, through their runs (not collected: 8 B a permutation of the group).
+        let count: usize = ranges.iter().map(|r| r.len()).sum();
+        if count == 0 {
             continue;
         }
+        let members = || ranges.iter().flat_map(|r| r.clone());
         for (d, dim) in dims.iter().enumerate() {
             if dim.values.len() < 2 {
                 continue;
@@ -381,9 +383,12 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
             // collision could only move a warning), its first key, whether it has several
             // members and whether they all have that key: a small fixed size a set, where the
             // sets' values and members in vectors took much more a permutation.
-            let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::new();
+            // Sized once for the sets of a full product of the values (so no old and new
+            // table at once while it doubles; skip rules that leave more sets grow it).
+            let sets = count / dim.values.len();
+            let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::with_capacity(sets);
             let mut complete = true;
-            for &m in &members {
+            for m in members() {
                 let Some(key) = pre.key(m) else {
                     complete = false;
                     break;

@@ -19,7 +19,7 @@
 //!
 //! The cache key stays the token hash: this map lives for one build and changes no key.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -79,11 +79,15 @@ struct Modules {
     /// The writers' outputs, kept once a second key had the module (or being written by that
     /// key).
     kept: HashMap<Ident, Arc<OnceLock<Written>>, ByIdent>,
+    /// The modules of `kept` whose outputs are written, oldest first, with their bytes: the
+    /// first let go when the budget is reached (keys of a module come close together in the
+    /// plan's order, so a module kept long ago is the least likely to be asked for again).
+    order: VecDeque<(Ident, usize)>,
 }
 
-/// The writers' outputs by compacted module, for one build. Memory stays bounded: once the
-/// artifacts kept reach [`SharedWriters::BUDGET`] bytes, a new module's are no longer kept (a
-/// later key with that module runs the writers itself, to the same bytes).
+/// The writers' outputs by compacted module, for one build. Memory stays bounded: past
+/// [`SharedWriters::BUDGET`] bytes of artifacts kept, the oldest module's are let go (a later
+/// key with that module keeps them again, to the same bytes).
 pub struct SharedWriters {
     map: Mutex<Modules>,
     shared: AtomicUsize,
@@ -101,9 +105,11 @@ impl Default for SharedWriters {
 
 impl SharedWriters {
     /// The most bytes of artifacts kept for sharing. The build streams (issue 12: memory
-    /// bounded by the work in flight), so this is small: a large budget raised a generated
-    /// set's peak several times over. Past it, later keys of a module run its writers again.
-    pub const BUDGET: usize = 32 << 20;
+    /// bounded by the work in flight), so this is small: the keys of a module come close
+    /// together in the plan's order, so the newest modules' outputs serve nearly every key
+    /// that can share, and a larger budget only holds older modules' longer. Past it, the
+    /// oldest module's outputs go.
+    pub const BUDGET: usize = 4 << 20;
 
     /// An empty set.
     pub fn new() -> Self {
@@ -144,9 +150,6 @@ impl SharedWriters {
                 Some(cell.clone())
             } else if map.seen.insert(id as u32) {
                 None
-            } else if self.kept.load(Ordering::Relaxed) >= Self::BUDGET {
-                // Over budget, keys of modules not kept run their writers without a copy.
-                None
             } else {
                 map.seen.remove(id as u32);
                 let cell = Arc::<OnceLock<Written>>::default();
@@ -166,16 +169,29 @@ impl SharedWriters {
         if !ran {
             self.shared.fetch_add(1, Ordering::Relaxed);
         } else if let Ok(artifacts) = written {
-            let bytes: usize = artifacts.iter().map(|(_, b)| b.len()).sum();
-            if self.kept.fetch_add(bytes, Ordering::Relaxed) + bytes > Self::BUDGET {
-                // Over budget: keep only the identity (callers already waiting on it still get it).
-                self.kept.fetch_sub(bytes, Ordering::Relaxed);
-                let mut map = self.map.lock().expect("no panics while locked");
-                map.kept.remove(&id);
-                map.seen.insert(id as u32);
-            }
+            self.kept_now(id, artifacts.iter().map(|(_, b)| b.len()).sum());
+        } else {
+            // A writer's error is kept like artifacts (no bytes to count), until let go
+            // with the modules kept before it.
+            self.kept_now(id, 0);
         }
         Ok(Compiled { artifacts: written.clone()?, reflection })
+    }
+
+    /// Counts module `id`'s `bytes` just kept, and lets go of the oldest modules' outputs
+    /// past the budget (their identities stay seen; callers already holding one still get
+    /// its outputs).
+    fn kept_now(&self, id: Ident, bytes: usize) {
+        let mut map = self.map.lock().expect("no panics while locked");
+        map.order.push_back((id, bytes));
+        let mut kept = self.kept.load(Ordering::Relaxed) + bytes;
+        while kept > Self::BUDGET {
+            let Some((old, old_bytes)) = map.order.pop_front() else { break };
+            map.kept.remove(&old);
+            map.seen.insert(old as u32);
+            kept -= old_bytes;
+        }
+        self.kept.store(kept, Ordering::Relaxed);
     }
 
     /// Lets go of every module's kept outputs and identity (a build's compile stage after
