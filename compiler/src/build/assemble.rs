@@ -587,7 +587,7 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.archive_from_remote(out, &|| self.fingerprint(pre), keys)
+        store.archive_from_remote(out, &|| self.fingerprint(pre), (keys.len(), &|k| keys.key(k)))
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'

@@ -359,8 +359,10 @@ impl Store {
     }
 
     /// With a remote cache holding the archive of the build with `fingerprint` and every
-    /// entry of `keys`: the entries copied into the local cache (each checked), the archive
-    /// (checked) written to `out` and stamped; its artifact counts. `None` otherwise: the
+    /// entry of the `count` keys that `key` numbers (a closure, not grouping's table: the
+    /// store sits below grouping): the entries copied into the local cache (each checked),
+    /// the archive (checked) written to `out` and stamped; its artifact counts. `None`
+    /// otherwise: the
     /// entries the remote holds are in the local cache all the same (fetched in batches),
     /// and those it lacks are not asked for again, for the compile stage that follows.
     ///
@@ -374,11 +376,11 @@ impl Store {
     /// fetch the entries; the file is renamed into place (and stamped) only once every
     /// entry is local, else removed. (A stream output, such as a FIFO, is written only
     /// then.)
-    pub fn archive_from_remote(
+    pub fn archive_from_remote<'k>(
         &self,
         out: &Path,
         fingerprint: &(dyn Fn() -> blake3::Hash + Sync),
-        keys: &super::group::Keys<'_>,
+        (count, key): (usize, &dyn Fn(usize) -> &'k Key),
     ) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
         let remote = cache.remote()?;
@@ -397,9 +399,9 @@ impl Store {
             // it did not bring are asked for once it is done.
             // The keys are copied only for that fill (they grow with the set, and grouping,
             // where this runs, peaks).
-            let complete = match self.prefilled((0..keys.len()).map(|k| keys.key(k))) {
+            let complete = match self.prefilled((0..count).map(key)) {
                 Some((true, complete)) => complete,
-                _ => cache.fill_from_remote(&keys.to_vec()),
+                _ => cache.fill_from_remote(&(0..count).map(|k| *key(k)).collect::<Vec<_>>()),
             };
             // The taker may have stopped already (no archive): nobody to tell.
             let _ = tell.send(complete);
