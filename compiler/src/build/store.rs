@@ -362,9 +362,9 @@ impl Store {
     /// entry of the `count` keys that `key` numbers (a closure, not grouping's table: the
     /// store sits below grouping): the entries copied into the local cache (each checked),
     /// the archive (checked) written to `out` and stamped; its artifact counts. `None`
-    /// otherwise: the
-    /// entries the remote holds are in the local cache all the same (fetched in batches),
-    /// and those it lacks are not asked for again, for the compile stage that follows.
+    /// otherwise: the entries the remote holds are in the local cache all the same (fetched
+    /// in batches), and those it lacks are not asked for again, for the compile stage that
+    /// follows.
     ///
     /// The archive's bytes depend only on the configuration and the keys (the build is
     /// deterministic), and `fingerprint` hashes both: an archive stored under it by any
