@@ -594,7 +594,7 @@ pub struct Partial {
 }
 
 /// The counts of the manifest's header.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) struct ManifestCounts {
     pub permutations: u64,
     pub values: u64,

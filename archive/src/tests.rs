@@ -556,6 +556,63 @@ fn artifacts_shared_by_range_give_the_same_bytes() {
     assert!(a == b, "artifacts by range gave other bytes");
 }
 
+/// Permutations added in name order to a sorted manifest (`begin_sorted`), its parts in
+/// memory or in files, give the bytes of the same permutations added in any order; one out
+/// of name order, one added twice, and an unsorted add after it began are errors.
+#[test]
+fn a_sorted_manifest_gives_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).rev().collect();
+    stream(&dir.path().join("a.kpak"), &perms, &order, 1);
+    let a = std::fs::read(dir.path().join("a.kpak")).unwrap();
+    let (sh, refl) = (shader(), reflection());
+    let mut by_name: Vec<usize> = (0..perms.len()).collect();
+    by_name.sort_by(|&x, &y| perms[x].0.cmp(&perms[y].0));
+    for (k, limit) in [usize::MAX, 0].into_iter().enumerate() {
+        let path = dir.path().join(format!("s{k}.kpak"));
+        let w = StreamingWriter::with_spool_memory(&path, limit).unwrap();
+        w.set_naga_version("30.0.1");
+        let (mut targets, mut blobs) = (Vec::new(), Vec::new());
+        for (_, arts) in &perms {
+            for (t, b) in arts {
+                targets.push(*t);
+                blobs.push(w.add_blob_numbered(b, blake3::hash(b)).unwrap());
+            }
+        }
+        let base = w.add_artifacts(targets, blobs).unwrap();
+        w.begin_sorted(perms.len()).unwrap();
+        assert!(w.begin_sorted(perms.len()).is_err(), "begun twice");
+        let p = |i: usize| {
+            let values = vec![i as i64, (i % 2) as i64];
+            NewPermutation { name: perms[i].0.clone(), shader: &sh, values, reflection: &refl, artifacts: vec![] }
+        };
+        let range = |i: usize| ArtifactRange { first: base + 2 * i as u32, count: 2 };
+        for (n, &i) in by_name.iter().enumerate() {
+            w.add_permutation_sorted(p(i), range(i)).unwrap();
+            if n == 10 {
+                assert!(w.add_permutation_sorted(p(by_name[3]), range(by_name[3])).is_err(), "out of order");
+                assert!(w.add_permutation_sorted(p(i), range(i)).is_err(), "added twice");
+                assert!(w.add_permutation_ranged(p(i), range(i)).is_err(), "unsorted after sorted");
+            }
+        }
+        let summary = w.finish().unwrap();
+        assert_eq!(summary.permutations, perms.len());
+        assert!(std::fs::read(&path).unwrap() == a, "a sorted manifest gave other bytes (spool limit {limit})");
+    }
+    let w = StreamingWriter::new(&dir.path().join("u.kpak")).unwrap();
+    let base = w.add_artifacts(vec![Target::Wgsl], vec![w.add_blob_numbered(b"x", blake3::hash(b"x")).unwrap()]);
+    let p = NewPermutation {
+        name: perms[0].0.clone(),
+        shader: &sh,
+        values: vec![0, 0],
+        reflection: &refl,
+        artifacts: vec![],
+    };
+    w.add_permutation_ranged(p.clone(), ArtifactRange { first: base.unwrap(), count: 1 }).unwrap();
+    assert!(w.begin_sorted(1).is_err(), "sorted after unsorted");
+}
+
 #[test]
 fn writer_rejects_inconsistent_input() {
     let dir = tempfile::tempdir().unwrap();

@@ -39,6 +39,8 @@ use super::format::{
 use super::reuse::{Previous, Reused};
 use super::{Reflection, Target};
 
+mod sorted;
+
 /// The content hash of a blob given to a writer: what a permutation names its artifacts by.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct BlobKey(blake3::Hash);
@@ -829,7 +831,13 @@ pub struct StreamingWriter {
     /// The archive at `output` this one replaces, opened when the first blob is added (a
     /// build that finds its archive up to date adds none, and pays nothing for it).
     previous: std::sync::OnceLock<Option<Previous>>,
+    /// The manifest, when its permutations come in name order
+    /// ([`StreamingWriter::begin_sorted`]).
+    sorted: Mutex<Option<sorted::Sorted>>,
 }
+
+/// About the bytes of a permutation in a manifest (record, id, values, artifacts, name).
+const MANIFEST_ESTIMATE: usize = 128;
 
 /// The most blob bytes a [`StreamingWriter`] spools in memory before it moves them to a
 /// file: a small set's blobs then never touch the file system (a file written and read
@@ -939,6 +947,7 @@ impl StreamingWriter {
             spool: SpoolSink::new(beside, limit),
             failed: AtomicBool::new(false),
             previous: std::sync::OnceLock::new(),
+            sorted: Mutex::new(None),
         })
     }
 
@@ -1046,6 +1055,7 @@ impl StreamingWriter {
 
     /// Adds a permutation. Its blobs may be added before or after it, until `finish`.
     pub fn add_permutation(&self, p: NewPermutation<'_>) -> Result<(), ArchiveError> {
+        self.unsorted()?;
         let p = {
             let mut blobs = lock(&self.blobs);
             let mut failed = None;
@@ -1070,6 +1080,7 @@ impl StreamingWriter {
     /// [`StreamingWriter::add_permutation`] with its blobs named by the numbers
     /// [`StreamingWriter::add_blob_numbered`] gave (a number it did not give is an error).
     pub fn add_permutation_numbered(&self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
+        self.unsorted()?;
         lock(&self.blobs).check_numbers(&p.name, &p.artifacts)?;
         lock(&self.entries).add(p, None)
     }
@@ -1109,7 +1120,54 @@ impl StreamingWriter {
         p: NewPermutation<'_, u32>,
         artifacts: ArtifactRange,
     ) -> Result<(), ArchiveError> {
+        self.unsorted()?;
         lock(&self.entries).add(p, Some(artifacts))
+    }
+
+    /// An error once the permutations come in name order ([`StreamingWriter::begin_sorted`]).
+    fn unsorted(&self) -> Result<(), ArchiveError> {
+        match lock(&self.sorted).is_some() {
+            true => Err(ArchiveError::Input("a permutation added out of name order to a sorted manifest".into())),
+            false => Ok(()),
+        }
+    }
+
+    /// Readies the writer for about `permutations` permutations that come in the archive's
+    /// order (by name, each once), added with [`StreamingWriter::add_permutation_sorted`]
+    /// alone: each is encoded as it comes, so the writer holds nothing per permutation
+    /// (the unsorted manifest's pending permutations are the largest table of a large
+    /// build's end). The archive is the same either way. An error once permutations were
+    /// added otherwise.
+    pub fn begin_sorted(&self, permutations: usize) -> Result<(), ArchiveError> {
+        let mut sorted = lock(&self.sorted);
+        if sorted.is_some() || !lock(&self.entries).permutations.is_empty() {
+            return Err(ArchiveError::Input("a sorted manifest begun after permutations were added".into()));
+        }
+        let slots = lock(&self.blobs).slots;
+        // Its parts in files where the manifest would not fit the spool's memory, or where
+        // the blobs' bytes are in a file already (a large set).
+        let spill =
+            self.spool.file.get().is_some() || permutations.saturating_mul(MANIFEST_ESTIMATE) > self.spool.limit;
+        let s = sorted::Sorted::new(&self.spool.beside, spill, permutations, slots)
+            .map_err(|source| ArchiveError::Write { path: self.output.clone(), source })?;
+        *sorted = Some(s);
+        Ok(())
+    }
+
+    /// Adds the next permutation of a sorted manifest ([`StreamingWriter::begin_sorted`]),
+    /// its artifacts named by range as [`StreamingWriter::add_permutation_ranged`]'s: an
+    /// error if its name does not come after the last one's.
+    pub fn add_permutation_sorted(
+        &self,
+        p: NewPermutation<'_, u32>,
+        artifacts: ArtifactRange,
+    ) -> Result<(), ArchiveError> {
+        let mut sorted = lock(&self.sorted);
+        let Some(s) = sorted.as_mut() else {
+            return Err(ArchiveError::Input("a permutation added in name order to an unsorted manifest".into()));
+        };
+        let e = lock(&self.entries);
+        s.add(&p, artifacts, (&e.arenas.targets, &e.arenas.blobs))
     }
 
     /// Room for `permutations` more permutations with `name_bytes` bytes of names (at most:
@@ -1168,7 +1226,10 @@ impl StreamingWriter {
         }
         let entries = self.entries.into_inner().unwrap_or_else(|e| e.into_inner());
         let blobs = self.blobs.into_inner().unwrap_or_else(|e| e.into_inner());
-        let mut plan = plan(entries, blobs)?;
+        let mut plan = match self.sorted.into_inner().unwrap_or_else(|e| e.into_inner()) {
+            Some(sorted) => plan_sorted(entries, blobs, sorted)?,
+            None => plan(entries, blobs)?,
+        };
         plan.previous = self.previous.into_inner().flatten();
         (plan.hooks.trace)("archive planned");
         // The manifest and the blob table are spilled past the blobs: to the file when all
@@ -1369,6 +1430,9 @@ struct Plan {
     spool_len: u64,
     /// The archive this one replaces, whose compressed blobs may be copied.
     previous: Option<Previous>,
+    /// The manifest's parts, encoded as its permutations came in name order (then
+    /// `manifest` has its shaders and reflections, and no permutations).
+    sorted: Option<sorted::SortedParts>,
 }
 
 /// Sorts permutations by name and numbers shaders, reflections and blobs by first use, so
@@ -1446,7 +1510,29 @@ fn plan(entries: Entries, mut table: BlobTable) -> Result<Plan, ArchiveError> {
     arenas.prefixes = prefixes;
     manifest.permutations = permutations;
     manifest.arenas = arenas;
-    Ok(Plan { hooks, manifest, targets, id_of: blob_ids, table, spool_len, previous: None })
+    Ok(Plan { hooks, manifest, targets, id_of: blob_ids, table, spool_len, previous: None, sorted: None })
+}
+
+/// [`plan`] of a manifest whose permutations came in name order ([`sorted::Sorted`]):
+/// encoded already, its blobs numbered.
+fn plan_sorted(entries: Entries, mut table: BlobTable, sorted: sorted::Sorted) -> Result<Plan, ArchiveError> {
+    table.seal();
+    let spool_len = table.spooled;
+    let Entries { naga_version, partial, pipelines, hooks, arenas, .. } = entries;
+    // The keys' artifacts, which the permutations named by range: encoded with them.
+    drop(arenas);
+    let (id_of, targets, mut parts) = sorted.finish(&table)?;
+    table.added_bits = Vec::new();
+    let manifest = Manifest {
+        kiln_version: crate::VERSION.to_string(),
+        naga_version,
+        partial,
+        pipelines,
+        shaders: std::mem::take(&mut parts.shaders),
+        reflections: std::mem::take(&mut parts.reflections),
+        ..Default::default()
+    };
+    Ok(Plan { hooks, manifest, targets, id_of, table, spool_len, previous: None, sorted: Some(parts) })
 }
 
 /// Runs `f` over `items` with one `init()` state per worker of the current rayon pool (the
@@ -1687,10 +1773,27 @@ fn dictionaries(
 /// compressed (the release hook is called then); it is copied into the archive, hashed as it
 /// goes, once the blobs are written.
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
-    let Plan { hooks, manifest, targets: blobs, id_of, table: mut blob_table, spool_len, previous } = plan;
-    let mut summary = ArchiveSummary { permutations: manifest.permutations.len(), ..Default::default() };
-    let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
-    let spilled = spill_manifest(manifest, spool, spill_at, hooks)?;
+    let Plan { hooks, manifest, targets: blobs, id_of, table: mut blob_table, spool_len, previous, mut sorted } = plan;
+    let spilled = match sorted.as_mut() {
+        Some(parts) => {
+            let tables = TablesOut {
+                kiln_version: &manifest.kiln_version,
+                naga_version: &manifest.naga_version,
+                shaders: &manifest.shaders,
+                reflections: &manifest.reflections,
+                partial: manifest.partial.as_ref(),
+                pipelines: manifest.pipelines.as_deref(),
+            };
+            let (counts, front, back) = parts.spilled(&tables)?;
+            SpilledManifest { counts, front, back }
+        }
+        None => {
+            let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
+            spill_manifest(manifest, spool, spill_at, hooks)?
+        }
+    };
+    let summary = ArchiveSummary { permutations: spilled.counts.permutations as usize, ..Default::default() };
+    let mut summary = summary;
     // Where each blob lies is read back from the log only now that the manifest is gone, a
     // window of blob ids at a time.
     (hooks.release)();
@@ -1742,7 +1845,9 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     for d in &dictionary_records {
         tee.write_all(&d.encode())?;
     }
-    back.copy_to(&mut tee)?;
+    for part in back {
+        part.copy_to(&mut tee)?;
+    }
     if tee.written != manifest_len {
         return Err(std::io::Error::other("the manifest's length differs from its counts"));
     }
@@ -1950,7 +2055,7 @@ struct SpilledManifest<'a> {
     /// that order (each part spilled on its own, so that they can be made in another).
     front: [SpillBuf<'a>; 4],
     /// Its tables (padded to 8) and names: what comes after them.
-    back: SpillBuf<'a>,
+    back: [SpillBuf<'a>; 2],
 }
 
 /// Encodes the binary manifest (layout in `format.rs`) of `manifest` to the spool file at
@@ -2012,7 +2117,11 @@ fn spill_manifest<'a>(
     if front.iter().zip(lens).any(|(part, len)| part.len() != len) {
         return Err(std::io::Error::other("the manifest's parts differ from its counts"));
     }
-    Ok(SpilledManifest { counts: ManifestCounts { tables_len, ..counts }, front, back })
+    Ok(SpilledManifest {
+        counts: ManifestCounts { tables_len, ..counts },
+        front,
+        back: [back, SpillBuf::Memory(Vec::new())],
+    })
 }
 
 /// The permutations' records (their names, values and artifacts one after another).

@@ -289,15 +289,21 @@ impl ByPermutation {
         w.reserve(n, 0, values, if ranged { 0 } else { artifacts });
     }
 
-    /// Readies `w` for the manifest: its size reserved, and the keys' artifacts handed over
-    /// when the permutations name them by range (`ranged`): the number the first was given.
+    /// Readies `w` for the manifest: its size reserved (or, when the permutations come in
+    /// name order, `sorted` of them, a sorted manifest begun), and the keys' artifacts
+    /// handed over when the permutations name them by range (`ranged`): the number the
+    /// first was given.
     fn ready_writer(
         &mut self,
         plan: &Plan<'_>,
         w: &StreamingWriter,
         ranged: bool,
+        sorted: Option<usize>,
     ) -> Result<Option<u32>, archive::ArchiveError> {
-        self.reserve_manifest(plan, w, ranged);
+        match sorted {
+            Some(n) => w.begin_sorted(n)?,
+            None => self.reserve_manifest(plan, w, ranged),
+        }
         if !ranged {
             return Ok(None);
         }
@@ -314,7 +320,7 @@ impl ByPermutation {
         plan: &Plan<'_>,
         i: usize,
         shader: &ShaderRecord,
-        first: Option<u32>,
+        (first, sorted): (Option<u32>, bool),
     ) -> Result<(), archive::ArchiveError> {
         let entry = self.get(i).expect("a kept permutation");
         let (name, values) = (plan.name(i), plan.values(i));
@@ -323,7 +329,10 @@ impl ByPermutation {
             Some(first) => {
                 let range = ArtifactRange { first: first + entry.first, count: entry.count as u8 };
                 let p = NewPermutation { name, shader, values, reflection, artifacts: Vec::new() };
-                w.add_permutation_ranged(p, range)
+                match sorted {
+                    true => w.add_permutation_sorted(p, range),
+                    false => w.add_permutation_ranged(p, range),
+                }
             }
             None => {
                 let artifacts = self.artifacts(entry);
@@ -621,11 +630,20 @@ impl<'p> Assembler<'p> {
         // Into an archive alone, the keys' artifacts go to the writer once, each permutation
         // naming its key's (not a copy per permutation beside the keys' own).
         let ranged = options.emit_dir.is_none();
+        // Into an archive alone, the permutations go in the archive's order, which the
+        // writer then need not hold to sort (see `StreamingWriter::begin_sorted`).
+        let order = (writer.is_some() && ranged).then(|| name_order(plan, |i| produced.get(i).is_some())).flatten();
+        super::trace_memory("permutations ordered");
         let first = match &writer {
-            Some(w) => produced.ready_writer(plan, w, ranged).map_err(archive_error)?,
+            Some(w) => produced.ready_writer(plan, w, ranged, order.as_ref().map(Vec::len)).map_err(archive_error)?,
             None => None,
         };
-        for i in 0..plan.len() {
+        let sorted = order.is_some();
+        let each: Box<dyn Iterator<Item = usize>> = match order {
+            Some(order) => Box::new(order.into_iter().map(|i| i as usize)),
+            None => Box::new(0..plan.len()),
+        };
+        for i in each {
             let Some(entry) = produced.get(i) else { continue };
             let (shader_of, level) = plan.shader_level(i);
             if options.emit_dir.is_some() {
@@ -643,7 +661,7 @@ impl<'p> Assembler<'p> {
             let Some(w) = &writer else { continue };
             let shader =
                 shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
-            produced.add(w, plan, i, shader, first).map_err(archive_error)?;
+            produced.add(w, plan, i, shader, (first, sorted)).map_err(archive_error)?;
         }
         drop(produced);
         super::release_freed();
@@ -663,6 +681,81 @@ impl<'p> Assembler<'p> {
         }
         Ok(written)
     }
+}
+
+/// The kept permutations (those `kept` says) in the order of their canonical names, as the
+/// archive holds them; `None` where that order is not the one [`sort_run`] can give (names
+/// whose values' texts run into each other), and the writer sorts them itself.
+/// Each (shader, level) run's names share its `name@level{`: runs are ordered by that, and
+/// then must follow each other (checked at each run's first name).
+fn name_order(plan: &Plan<'_>, kept: impl Fn(usize) -> bool) -> Option<Vec<u32>> {
+    let mut runs: Vec<_> = plan.runs().map(|(s, l, r)| (format!("{}@{}{{", s.name, l.name), s, r)).collect();
+    runs.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut order = Vec::with_capacity((0..plan.len()).filter(|&i| kept(i)).count());
+    let mut last: Option<String> = None;
+    for (_, shader, range) in runs {
+        let start = order.len();
+        sort_run(plan, shader, range, &kept, &mut order)?;
+        let Some(&first) = order.get(start) else { continue };
+        let name = plan.name(first as usize);
+        if last.as_ref().is_some_and(|l| *l >= name) {
+            return None;
+        }
+        last = Some(plan.name(*order.last().expect("a permutation was added") as usize));
+    }
+    Some(order)
+}
+
+/// Appends the kept permutations of one run (`range`, of `shader`) to `order` in the order of
+/// their names, which differ only in their values: each value's text in the name (with
+/// the `,` or `}` that follows it) ranked among the run's values of its dimension, and the
+/// ranks compared one dimension after another. `None` where a text is a prefix of
+/// another's (then the next dimension's text decides, not the rank), two values have one
+/// text, or the ranks do not fit in one number.
+fn sort_run(
+    plan: &Plan<'_>,
+    shader: &crate::permute::Shader,
+    range: std::ops::Range<usize>,
+    kept: &impl Fn(usize) -> bool,
+    order: &mut Vec<u32>,
+) -> Option<()> {
+    let dims = &shader.dimensions;
+    let mut seen: Vec<HashSet<i64>> = vec![HashSet::new(); dims.len()];
+    for i in range.clone().filter(|&i| kept(i)) {
+        for (d, v) in seen.iter_mut().zip(plan.values(i)) {
+            d.insert(v);
+        }
+    }
+    let mut ranks: Vec<HashMap<i64, u64>> = Vec::with_capacity(dims.len());
+    let mut radix: Vec<u64> = Vec::with_capacity(dims.len());
+    for (k, (d, values)) in dims.iter().zip(seen).enumerate() {
+        let end = if k + 1 == dims.len() { '}' } else { ',' };
+        let mut texts: Vec<(String, i64)> = values.into_iter().map(|v| (format!("{}{end}", d.display(v)), v)).collect();
+        texts.sort_unstable();
+        if texts.windows(2).any(|w| w[1].0.starts_with(&w[0].0)) {
+            return None;
+        }
+        radix.push(texts.len() as u64);
+        ranks.push(texts.into_iter().enumerate().map(|(r, (_, v))| (v, r as u64)).collect());
+    }
+    // Each dimension's weight: the product of the later dimensions' counts.
+    let mut weights = vec![1u64; dims.len()];
+    for k in (0..dims.len().saturating_sub(1)).rev() {
+        weights[k] = weights[k + 1].checked_mul(radix[k + 1])?;
+    }
+    weights.first().zip(radix.first()).map_or(Some(()), |(w, r)| w.checked_mul(*r).map(drop))?;
+    let mut keyed: Vec<(u64, u32)> = Vec::new();
+    for i in range.filter(|&i| kept(i)) {
+        let values = plan.values(i);
+        let key = values.iter().zip(&ranks).zip(&weights).map(|((v, r), w)| r[v] * w).sum();
+        keyed.push((key, i as u32));
+    }
+    keyed.sort_unstable();
+    if keyed.windows(2).any(|w| w[0].0 == w[1].0) {
+        return None;
+    }
+    order.extend(keyed.into_iter().map(|k| k.1));
+    Some(())
 }
 
 /// The manifest's record of a shader at a level.
