@@ -12,7 +12,10 @@
 //! manifest to the spool past the blobs (all but its header and dictionary records) and
 //! lets go of its tables, then reads back where the blobs lie, trains one dictionary per
 //! target on a deterministic sample, compresses, and writes the archive through a temporary
-//! file and a rename, the spilled manifest copied into it. The bytes of the archive therefore depend only on
+//! file and a rename, the spilled manifest copied into it. A caller that gives the
+//! permutations in name order ([`StreamingWriter::begin_sorted`]) has each one encoded as
+//! it comes instead: the writer then holds nothing per permutation, and writes the same
+//! bytes. The bytes of the archive therefore depend only on
 //! the set of permutations and blobs, never on the order they were added in or on the
 //! number of threads, nor on the archive the writer replaces: a blob that archive holds
 //! intact is added by reference (nothing spooled) and its stored bytes copied or
@@ -1775,25 +1778,13 @@ fn dictionaries(
 fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) -> std::io::Result<ArchiveSummary> {
     let Plan { hooks, manifest, targets: blobs, id_of, table: mut blob_table, spool_len, previous, mut sorted } = plan;
     let spilled = match sorted.as_mut() {
-        Some(parts) => {
-            let tables = TablesOut {
-                kiln_version: &manifest.kiln_version,
-                naga_version: &manifest.naga_version,
-                shaders: &manifest.shaders,
-                reflections: &manifest.reflections,
-                partial: manifest.partial.as_ref(),
-                pipelines: manifest.pipelines.as_deref(),
-            };
-            let (counts, front, back) = parts.spilled(&tables)?;
-            SpilledManifest { counts, front, back }
-        }
+        Some(parts) => spilled_sorted(&manifest, parts)?,
         None => {
             let spill_at = spool_len + blobs.len() as u64 * super::format::ENTRY_LEN as u64;
             spill_manifest(manifest, spool, spill_at, hooks)?
         }
     };
-    let summary = ArchiveSummary { permutations: spilled.counts.permutations as usize, ..Default::default() };
-    let mut summary = summary;
+    let mut summary = ArchiveSummary { permutations: spilled.counts.permutations as usize, ..Default::default() };
     // Where each blob lies is read back from the log only now that the manifest is gone, a
     // window of blob ids at a time.
     (hooks.release)();
@@ -1869,6 +1860,21 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
     out.flush()?;
     summary.file_bytes = layout.end;
     Ok(summary)
+}
+
+/// The manifest whose permutations came in name order: its `parts`, encoded already, and
+/// its tables from `manifest` (which has no permutations).
+fn spilled_sorted<'a>(manifest: &Manifest, parts: &'a mut sorted::SortedParts) -> std::io::Result<SpilledManifest<'a>> {
+    let tables = TablesOut {
+        kiln_version: &manifest.kiln_version,
+        naga_version: &manifest.naga_version,
+        shaders: &manifest.shaders,
+        reflections: &manifest.reflections,
+        partial: manifest.partial.as_ref(),
+        pipelines: manifest.pipelines.as_deref(),
+    };
+    let (counts, front, back) = parts.spilled(&tables)?;
+    Ok(SpilledManifest { counts, front, back })
 }
 
 /// Writes the dictionary section: each dictionary's bytes, one after another; gives their

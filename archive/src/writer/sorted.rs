@@ -1,4 +1,4 @@
-//! A manifest added in name order ([`StreamingWriter::add_permutation_sorted`]): each
+//! A manifest added in name order ([`super::StreamingWriter::add_permutation_sorted`]): each
 //! permutation is encoded as it comes (its record, values, artifacts and name to their parts,
 //! its id to a bucket), so that the writer holds nothing per permutation. The pending
 //! permutations of an unsorted manifest, sorted and numbered at the end, are the largest

@@ -633,6 +633,8 @@ impl<'p> Assembler<'p> {
         // Into an archive alone, the permutations go in the archive's order, which the
         // writer then need not hold to sort (see `StreamingWriter::begin_sorted`).
         let order = (writer.is_some() && ranged).then(|| name_order(plan, |i| produced.get(i).is_some())).flatten();
+        // The ordering's tables (each run's values and keys) are not kept under the writer's.
+        super::release_freed();
         super::trace_memory("permutations ordered");
         let first = match &writer {
             Some(w) => produced.ready_writer(plan, w, ranged, order.as_ref().map(Vec::len)).map_err(archive_error)?,
@@ -743,19 +745,31 @@ fn sort_run(
     for k in (0..dims.len().saturating_sub(1)).rev() {
         weights[k] = weights[k + 1].checked_mul(radix[k + 1])?;
     }
-    weights.first().zip(radix.first()).map_or(Some(()), |(w, r)| w.checked_mul(*r).map(drop))?;
-    let mut keyed: Vec<(u64, u32)> = Vec::new();
-    for i in range.filter(|&i| kept(i)) {
-        let values = plan.values(i);
-        let key = values.iter().zip(&ranks).zip(&weights).map(|((v, r), w)| r[v] * w).sum();
-        keyed.push((key, i as u32));
+    let keys = weights.first().zip(radix.first()).map_or(Some(1), |(w, r)| w.checked_mul(*r))?;
+    let key = |i: usize| -> u64 { plan.values(i).iter().zip(&ranks).zip(&weights).map(|((v, r), w)| r[v] * w).sum() };
+    let start = order.len();
+    order.extend(range.clone().filter(|&i| kept(i)).map(|i| i as u32));
+    // Each permutation's key by its place in the run, as narrow as the keys allow: the
+    // run's own table, beside the order of the whole set.
+    match u32::try_from(keys) {
+        Ok(_) => sort_by_keys(&mut order[start..], range.start, |i| key(i) as u32),
+        Err(_) => sort_by_keys(&mut order[start..], range.start, key),
     }
-    keyed.sort_unstable();
-    if keyed.windows(2).any(|w| w[0].0 == w[1].0) {
-        return None;
+}
+
+/// Sorts `run` (permutation numbers from `first` on) by `key`, made once for each: `None`
+/// where two have one key.
+fn sort_by_keys<K: Ord + Copy + Default>(run: &mut [u32], first: usize, key: impl Fn(usize) -> K) -> Option<()> {
+    let Some(&last) = run.last() else { return Some(()) };
+    let mut keys = vec![K::default(); last as usize + 1 - first];
+    for &i in run.iter() {
+        keys[i as usize - first] = key(i as usize);
     }
-    order.extend(keyed.into_iter().map(|k| k.1));
-    Some(())
+    run.sort_unstable_by_key(|&i| keys[i as usize - first]);
+    match run.windows(2).any(|w| keys[w[0] as usize - first] == keys[w[1] as usize - first]) {
+        true => None,
+        false => Some(()),
+    }
 }
 
 /// The manifest's record of a shader at a level.
@@ -821,6 +835,35 @@ mod tests {
 
     /// The fingerprint hashes the same bytes as the one line per permutation it was defined
     /// by (archives stored under it by earlier builds are still found).
+    /// The kept permutations in name order are those of a sort of their names (numbers past 9,
+    /// whose text is not their order, labels, shaders whose names are prefixes of others',
+    /// a shader without dimensions).
+    #[test]
+    fn permutations_are_ordered_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("A.usf"), "fn a() {}\n").unwrap();
+        let shader = |name: &str, dims: &str| {
+            format!("[[shader]]\nname = \"{name}\"\nsource = \"A.usf\"\nentry = \"main\"\nstage = \"fragment\"\nlevels = [\"sm5\", \"es3\"]\n{dims}\n")
+        };
+        let head =
+            "[compiler]\ninclude = [\".\"]\n[levels.sm5]\ntargets = [\"spirv\"]\n[levels.es3]\ntargets = [\"glsl\"]\n";
+        let plan_of = |text: &str| {
+            let config = crate::permute::load_str(text, &dir.path().join("permutations.toml")).unwrap();
+            let options = super::super::Options::default();
+            let plan = Plan::new(&config, &options).unwrap();
+            let order = name_order(&plan, |i| i % 5 != 2);
+            let mut want: Vec<(String, u32)> =
+                (0..plan.len()).filter(|i| i % 5 != 2).map(|i| (plan.name(i), i as u32)).collect();
+            want.sort();
+            (order, want.into_iter().map(|w| w.1).collect::<Vec<u32>>())
+        };
+        let dims =
+            "dimensions = { X = { range = [0, 12] }, Y = \"bool\", Q = { enum = [\"LOW\", \"HIGH\", \"MID\"] } }";
+        let text = format!("{head}{}{}{}", shader("Ab", dims), shader("A", dims), shader("B", ""));
+        let (order, want) = plan_of(&text);
+        assert_eq!(order, Some(want));
+    }
+
     #[test]
     fn the_fingerprint_is_one_line_per_kept_permutation() {
         let dir = tempfile::tempdir().unwrap();
