@@ -103,7 +103,7 @@ impl Ids {
         bucket.pending.extend_from_slice(&id.to_le_bytes());
         bucket.pending.extend_from_slice(&index.to_le_bytes());
         // A bucket's buffer is a fraction of a bucket, so that all buffers together stay small.
-        let limit = (BUCKET_BYTES >> 4).max(PENDING_ID) / PENDING_ID * PENDING_ID;
+        let limit = (BUCKET_BYTES >> 6).max(PENDING_ID) / PENDING_ID * PENDING_ID;
         if let Some(f) = self.file.as_ref().filter(|_| bucket.pending.len() >= limit) {
             f.write_all_at(&bucket.pending, self.next)?;
             bucket.blocks.push((self.next, bucket.pending.len() as u32));
