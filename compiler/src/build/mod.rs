@@ -218,16 +218,17 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     )?;
     let keys = plan.group(&pre)?;
     report.estimated_compile_ms(budget::keys(config, &plan, &pre, &keys, options)?);
-    // The dead dimensions are found beside the archive's up-to-date check and, when that
-    // fails, the remote archive's fetch (neither changes the failures).
+    // The dead dimensions, then the archive's up-to-date check and, when that fails, the
+    // remote archive's fetch (neither changes the failures). One after the other, the
+    // search's tables handed back first: beside each other, they were held beside the
+    // cache's index that the check reads, at the stage's peak.
+    report.grouped(&plan, &pre, &keys);
+    release_freed();
     let failed = report.failed();
-    let (_, fresh) = rayon::join(
-        || report.grouped(&plan, &pre, &keys),
-        || match assembler.up_to_date(store, &pre, &keys, failed) {
-            Some(counts) => Some((counts, false)),
-            None => assembler.copied_from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
-        },
-    );
+    let fresh = match assembler.up_to_date(store, &pre, &keys, failed) {
+        Some(counts) => Some((counts, false)),
+        None => assembler.copied_from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
+    };
     trace_memory("group");
 
     if let Some(fresh) = fresh {
