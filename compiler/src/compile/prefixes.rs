@@ -21,21 +21,12 @@ pub struct PrefixSet {
     len: usize,
     /// The prefixes it holds without growing.
     bound: usize,
-    /// The most prefixes the caller expects (0: unknown): the table starts small and grows
-    /// by doubling up to this bound's size, not past it until the set holds more.
-    limit: usize,
 }
 
-/// The prefixes a set with a limit holds at its first insert.
-const FIRST_BOUND: usize = 1 << 12;
-
 impl PrefixSet {
-    /// A set that holds up to `bound` prefixes, allocated at the first insert: small, then
-    /// doubled as it fills, never past `bound`'s size. A build sizes these sets by its
-    /// permutations, but most builds fill them little (a warm build that adds a material
-    /// claims a few keys): sized at the bound up front, each took 5 bytes a permutation.
+    /// A set that holds `bound` prefixes without growing, allocated at the first insert.
     pub fn with_bound(bound: usize) -> PrefixSet {
-        PrefixSet { slots: Vec::new(), len: 0, bound: 0, limit: bound }
+        PrefixSet { slots: Vec::new(), len: 0, bound }
     }
 
     /// How many prefixes it holds.
@@ -59,9 +50,6 @@ impl PrefixSet {
     /// Adds `prefix`: true if it was not there.
     pub fn insert(&mut self, prefix: u32) -> bool {
         if self.slots.is_empty() {
-            if self.limit > 0 {
-                self.bound = self.limit.min(FIRST_BOUND);
-            }
             self.slots = vec![EMPTY; slot_count(self.bound)];
         }
         if (self.len + 1) * 5 > self.slots.len() * 4 {
@@ -119,13 +107,9 @@ impl PrefixSet {
         }
     }
 
-    /// Twice the room (up to the limit's, while the set holds fewer), every prefix placed
-    /// again.
+    /// Twice the room, every prefix placed again (only a set made without its bound grows).
     fn grow(&mut self) {
         self.bound = (self.len + 1) * 2;
-        if self.len + 1 < self.limit {
-            self.bound = self.bound.min(self.limit);
-        }
         let old = std::mem::replace(&mut self.slots, vec![EMPTY; slot_count(self.bound)]);
         self.len = 0;
         for p in old.into_iter().filter(|&p| p != EMPTY) {
@@ -189,21 +173,6 @@ mod tests {
         assert!(!set.insert(1), "0 and 1 are taken for each other");
         assert!(set.remove(1));
         assert!(set.is_empty());
-    }
-
-    #[test]
-    fn a_set_grows_up_to_its_bound_then_past_it() {
-        let mut set = PrefixSet::with_bound(100_000);
-        assert!(set.insert(7));
-        assert_eq!(set.slots.len(), slot_count(FIRST_BOUND), "small at the first insert");
-        for p in 1..=100_000u32 {
-            set.insert(p.wrapping_mul(2_654_435_761));
-        }
-        assert_eq!(set.slots.len(), slot_count(100_000), "the bound's size once full");
-        for p in 100_001..=100_010u32 {
-            assert!(set.insert(p.wrapping_mul(2_654_435_761)));
-        }
-        assert!((1..=100_010u32).all(|p| set.contains(p.wrapping_mul(2_654_435_761))));
     }
 
     #[test]
