@@ -219,10 +219,14 @@ impl<'o> Builder<'o> {
         Ok(())
     }
 
-    /// The distinct keys, and the dimensions that never change a shader's text.
-    pub fn grouped(&mut self, plan: &Plan<'_>, pre: &Preprocessed, keys: &Keys) {
+    /// The number of distinct keys.
+    pub fn distinct(&mut self, keys: usize) {
+        self.report.stats.unique_sources = keys;
+    }
+
+    /// The dimensions that never change a shader's text.
+    pub fn dead_dimensions(&mut self, plan: &Plan<'_>, pre: &Preprocessed) {
         let report = &mut self.report;
-        report.stats.unique_sources = keys.len();
         report.dead_dimensions = dead_dimensions(plan, pre);
         for d in &report.dead_dimensions {
             report.warnings.push(format!(
