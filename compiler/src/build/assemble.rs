@@ -573,16 +573,11 @@ impl<'p> Assembler<'p> {
     /// The artifact counts of the archive when it is already the output of this build:
     /// every permutation has the key it had when the archive was written, and the archive
     /// is the file that build wrote (like cargo's freshness check). Only with a cache (the
-    /// stamp lives there), nothing failed, and no `--emit-dir`.
-    pub fn up_to_date(
-        &self,
-        store: &Store,
-        pre: &Preprocessed,
-        keys: &Keys<'_>,
-        failed: bool,
-    ) -> Option<(usize, usize)> {
+    /// stamp lives there), nothing failed, and no `--emit-dir`. The keys looked for are the
+    /// rows' (each distinct key is a row's), so that grouping need not have run.
+    pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, failed: bool) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.fresh_archive(out, &|| self.fingerprint(pre), &mut (0..keys.len()).map(|k| keys.key(k)))
+        store.fresh_archive(out, &|| self.fingerprint(pre), &mut (0..pre.row_count()).map(|r| pre.row_key(r)))
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive

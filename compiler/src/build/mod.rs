@@ -216,23 +216,30 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         &outputs::output_files(options),
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
-    let keys = plan.group(&pre)?;
-    report.estimated_compile_ms(budget::keys(config, &plan, &pre, &keys, options)?);
-    // The dead dimensions are found beside the archive's up-to-date check and, when that
-    // fails, the remote archive's fetch (neither changes the failures).
+    // The dead dimensions first (their tables handed back), then the archive's up-to-date
+    // check on the rows' keys (each distinct key is a row's), then grouping: an up-to-date
+    // build lets the cache's index go before grouping's tables come in (all at once were
+    // its peak). Neither the search nor the check changes the failures.
+    report.dead_dimensions(&plan, &pre);
+    release_freed();
     let failed = report.failed();
-    let (_, fresh) = rayon::join(
-        || report.grouped(&plan, &pre, &keys),
-        || match assembler.up_to_date(store, &pre, &keys, failed) {
-            Some(counts) => Some((counts, false)),
-            None => assembler.copied_from_remote(store, &pre, &keys, failed).map(|counts| (counts, true)),
-        },
-    );
-    trace_memory("group");
-
-    if let Some(fresh) = fresh {
+    if let Some(counts) = assembler.up_to_date(store, &pre, failed) {
+        let warnings = store.finish();
+        release_freed();
+        let distinct = group(config, options, &plan, &pre, &mut report)?.len();
+        trace_memory("group");
         progress.finish();
-        return up_to_date(report, keys, store, &mut preprocessor, &pre, fresh);
+        return up_to_date(report, (distinct, warnings), &mut preprocessor, store, &pre, (counts, false));
+    }
+    let keys = group(config, options, &plan, &pre, &mut report)?;
+    let fresh = assembler.copied_from_remote(store, &pre, &keys, failed);
+    trace_memory("group");
+    if let Some(counts) = fresh {
+        progress.finish();
+        let distinct = keys.len();
+        drop(keys);
+        let warnings = store.finish();
+        return up_to_date(report, (distinct, warnings), &mut preprocessor, store, &pre, (counts, true));
     }
     before_compile(options, store, &keys, &compiler);
     let outcomes = compiler.run(&keys, &preprocessor);
@@ -271,22 +278,34 @@ fn last_records(config: &Config, options: &Options, store: &store::Store) -> pre
     last
 }
 
-/// The end of a build whose archive is up to date, or was copied from the remote cache
-/// (`fresh`: its artifact counts, and whether it came from the remote).
+/// The distinct keys, checked against the budget and counted in the report.
+fn group<'p>(
+    config: &Config,
+    options: &Options,
+    plan: &plan::Plan<'_>,
+    pre: &'p preprocess::Preprocessed,
+    report: &mut report::Builder<'_>,
+) -> Result<group::Keys<'p>, Error> {
+    let keys = plan.group(pre)?;
+    report.estimated_compile_ms(budget::keys(config, plan, pre, &keys, options)?);
+    report.distinct(keys.len());
+    Ok(keys)
+}
+
+/// The end of a build whose archive is up to date, or was copied from the remote cache:
+/// `distinct` keys, the cache's `warnings` (its index already let go), the artifact
+/// `counts` and whether they came from the remote.
 fn up_to_date(
     mut report: report::Builder<'_>,
-    keys: group::Keys<'_>,
-    store: &store::Store,
+    (distinct, warnings): (usize, Vec<String>),
     preprocessor: &mut preprocess::Preprocessor<'_>,
+    store: &store::Store,
     pre: &preprocess::Preprocessed,
     (counts, from_remote): ((usize, usize), bool),
 ) -> Result<Report, Error> {
-    let distinct = keys.len();
-    drop(keys);
-    // The cache's index (read to find every key there) goes before the records are made;
-    // when they are the last build's, nothing is made and the build ends here (handing
-    // memory back would only cost time).
-    report.warnings(store.finish());
+    // The records are made once the cache's index is gone; when they are the last build's,
+    // nothing is made and the build ends here (handing memory back would only cost time).
+    report.warnings(warnings);
     if !preprocessor.records_unchanged() {
         release_freed();
     }

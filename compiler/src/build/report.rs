@@ -219,10 +219,14 @@ impl<'o> Builder<'o> {
         Ok(())
     }
 
-    /// The distinct keys, and the dimensions that never change a shader's text.
-    pub fn grouped(&mut self, plan: &Plan<'_>, pre: &Preprocessed, keys: &Keys) {
+    /// The number of distinct keys.
+    pub fn distinct(&mut self, keys: usize) {
+        self.report.stats.unique_sources = keys;
+    }
+
+    /// The dimensions that never change a shader's text.
+    pub fn dead_dimensions(&mut self, plan: &Plan<'_>, pre: &Preprocessed) {
         let report = &mut self.report;
-        report.stats.unique_sources = keys.len();
         report.dead_dimensions = dead_dimensions(plan, pre);
         for d in &report.dead_dimensions {
             report.warnings.push(format!(
@@ -379,33 +383,31 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
             if dim.values.len() < 2 {
                 continue;
             }
-            // Per set of values of the other dimensions (by a 128-bit hash of them: a
-            // collision could only move a warning), its first key, whether it has several
-            // members and whether they all have that key: a small fixed size a set, where the
-            // sets' values and members in vectors took much more a permutation.
+            // Per set of values of the other dimensions (by a 64-bit hash of them: a
+            // collision could only move a warning), its first member's row, whether it has
+            // several members and whether they all have that row's key: 16 bytes a set, where
+            // the sets' values and members in vectors took much more a permutation.
             // Sized once for the sets of a full product of the values (so no old and new
             // table at once while it doubles; skip rules that leave more sets grow it).
             let sets = count / dim.values.len();
-            let mut rows: HashMap<u128, (&crate::cache::Key, bool, bool)> = HashMap::with_capacity(sets);
+            let mut rows: HashMap<u64, (u32, bool, bool)> = HashMap::with_capacity(sets);
             let mut complete = true;
             for m in members() {
-                let Some(key) = pre.key(m) else {
+                let Some(row) = pre.row_number(m) else {
                     complete = false;
                     break;
                 };
-                let mut rest = plan.values(m);
-                rest.remove(d);
-                let mut h = blake3::Hasher::new();
-                for v in rest {
+                let mut h = xxhash_rust::xxh3::Xxh3::new();
+                for (_, v) in plan.values(m).into_iter().enumerate().filter(|&(i, _)| i != d) {
                     h.update(&v.to_le_bytes());
                 }
-                let id = u128::from_le_bytes(h.finalize().as_bytes()[..16].try_into().expect("16 of 32 bytes"));
-                rows.entry(id)
+                // Row numbers fit in 32 bits: the plan's permutations do ([`Plan::new`]).
+                rows.entry(h.digest())
                     .and_modify(|(first, several, same)| {
                         *several = true;
-                        *same &= *first == key;
+                        *same &= *first as usize == row || pre.row_key(*first as usize) == pre.row_key(row);
                     })
-                    .or_insert((key, false, true));
+                    .or_insert((row as u32, false, true));
             }
             let varies = rows.values().any(|r| r.1);
             let dead = complete && varies && rows.values().all(|r| r.2);

@@ -218,15 +218,15 @@ impl Cache {
         fingerprint: &dyn Fn() -> blake3::Hash,
         mut keys: &mut dyn Iterator<Item = &Key>,
     ) -> Option<(usize, usize)> {
-        // The stamp first: without one (a first build) the keys are not looked at.
+        // The stamp first: without one (a first build) the keys are not looked at. Then the
+        // fingerprint and the archive: only when both match is the index read (a build whose
+        // archive is gone or out of date does not load it where grouping peaks).
         let text = crate::archive::input::read_regular_to_string(&self.stamp_path(archive), 4096).ok()?;
-        if !self.with_index(|index| Iterator::all(&mut keys, |k| index.contains(k))) {
-            return None;
-        }
         let mut lines = text.lines();
         if lines.next()? != fingerprint().to_hex().as_str() || lines.next()? != archive_identity(archive).ok()? {
             return None;
         }
-        Some((lines.next()?.parse().ok()?, lines.next()?.parse().ok()?))
+        let counts = (lines.next()?.parse().ok()?, lines.next()?.parse().ok()?);
+        self.with_index(|index| Iterator::all(&mut keys, |k| index.contains(k))).then_some(counts)
     }
 }
