@@ -249,6 +249,11 @@ fn table_room(cells: usize) -> usize {
     cells / 5 * 4
 }
 
+/// The fewest cells whose room ([`table_room`]) is `slots` slots.
+fn table_cells_for(slots: usize) -> usize {
+    (slots / 4 + 1).saturating_mul(5).max(MIN_TABLE_CELLS)
+}
+
 /// The cells of the table that follows one of `cells` cells.
 fn next_table_cells(cells: usize) -> usize {
     (cells + cells / 2).max(MIN_TABLE_CELLS)
@@ -438,6 +443,21 @@ impl BlobTable {
         let cells = next_table_cells(self.table.cells.len());
         self.table = SlotTable::default();
         let mut table = SlotTable::with_cells(cells);
+        self.idents.for_each(self.slots, |n, id| table.put(prefix(id), n))?;
+        self.table = table;
+        Ok(())
+    }
+
+    /// Makes the table room for `blobs` blobs in all at once, if it has less (and is not
+    /// sealed): a caller that knows a close bound spares the table its growth, each step of
+    /// which drops a table and builds one half again as large while the freed one may still
+    /// be resident.
+    fn expect(&mut self, blobs: usize) -> std::io::Result<()> {
+        if self.sealed || table_room(self.table.cells.len()) >= blobs {
+            return Ok(());
+        }
+        self.table = SlotTable::default();
+        let mut table = SlotTable::with_cells(table_cells_for(blobs));
         self.idents.for_each(self.slots, |n, id| table.put(prefix(id), n))?;
         self.table = table;
         Ok(())
@@ -1165,6 +1185,17 @@ impl StreamingWriter {
     /// Number of distinct blobs added so far.
     pub fn blob_count(&self) -> usize {
         lock(&self.blobs).added
+    }
+
+    /// At most `blobs` distinct blobs are named in all: the table that finds them by content
+    /// is made that large now, if it is smaller, instead of growing as they come (see
+    /// [`StreamingWriter::reserve_blobs`] for a loose bound, which should not). Only the
+    /// table's size depends on it: blob numbers and the archive's bytes do not.
+    pub fn expect_blobs(&self, blobs: usize) -> Result<(), ArchiveError> {
+        lock(&self.blobs).expect(blobs).map_err(|source| {
+            self.failed.store(true, Ordering::Relaxed);
+            ArchiveError::Write { path: self.output.clone(), source }
+        })
     }
 
     /// No more blobs will be added, nor permutations named by [`BlobKey`] (those are
