@@ -281,7 +281,7 @@ impl SlotTable {
 
     /// Where `prefix`'s probe starts: its hash's high 32 bits scaled to the table's length.
     fn home(&self, prefix: u32) -> usize {
-        ((table_hash(prefix) >> 32) * self.cells.len() as u64 >> 32) as usize
+        (((table_hash(prefix) >> 32) * self.cells.len() as u64) >> 32) as usize
     }
 
     /// The cell after cell `i`, wrapping at the end.

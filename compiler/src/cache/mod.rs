@@ -316,7 +316,7 @@ type Slot = u64;
 /// The slot of `key`'s row `row`, of `row_bits` bits (`row` fits in them).
 fn slot(key: &Key, row: u32, row_bits: u32) -> Slot {
     let prefix = u64::from_be_bytes(key.0[..8].try_into().expect("8 of 32 bytes"));
-    prefix >> row_bits << row_bits | u64::from(row)
+    (prefix >> row_bits << row_bits) | u64::from(row)
 }
 
 /// The bits that number `rows` rows (at least one).
@@ -393,7 +393,7 @@ impl Index {
             return;
         }
         let (old, mask) = (self.row_bits, (1u64 << self.row_bits) - 1);
-        let rewrite = |s: &mut Slot| *s = (*s & !mask) >> bits << bits | *s & mask;
+        let rewrite = |s: &mut Slot| *s = ((*s & !mask) >> bits << bits) | (*s & mask);
         slots.iter_mut().for_each(rewrite);
         for run in &mut self.runs {
             run.iter_mut().for_each(rewrite);
