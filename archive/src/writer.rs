@@ -448,11 +448,12 @@ impl BlobTable {
         Ok(())
     }
 
-    /// Makes the table room for `blobs` blobs in all at once, if it has less (and is not
-    /// sealed): a caller that knows a close bound spares the table its growth, each step of
-    /// which drops a table and builds one half again as large while the freed one may still
-    /// be resident.
-    fn expect(&mut self, blobs: usize) -> std::io::Result<()> {
+    /// Makes the table room for `more` blobs beyond those it has at once, if it has less
+    /// (and is not sealed): a caller that knows a close bound spares the table its growth,
+    /// each step of which drops a table and builds one half again as large while the freed
+    /// one may still be resident.
+    fn expect(&mut self, more: usize) -> std::io::Result<()> {
+        let blobs = self.slots.saturating_add(more);
         if self.sealed || table_room(self.table.cells.len()) >= blobs {
             return Ok(());
         }
@@ -1187,12 +1188,13 @@ impl StreamingWriter {
         lock(&self.blobs).added
     }
 
-    /// At most `blobs` distinct blobs are named in all: the table that finds them by content
-    /// is made that large now, if it is smaller, instead of growing as they come (see
-    /// [`StreamingWriter::reserve_blobs`] for a loose bound, which should not). Only the
-    /// table's size depends on it: blob numbers and the archive's bytes do not.
-    pub fn expect_blobs(&self, blobs: usize) -> Result<(), ArchiveError> {
-        lock(&self.blobs).expect(blobs).map_err(|source| {
+    /// At most `more` distinct blobs are named beyond those named so far: the table that
+    /// finds them by content is made that large now, if it is smaller, instead of growing
+    /// as they come (see [`StreamingWriter::reserve_blobs`] for a loose bound, which should
+    /// not). Only the table's size depends on it: blob numbers and the archive's bytes do
+    /// not.
+    pub fn expect_blobs(&self, more: usize) -> Result<(), ArchiveError> {
+        lock(&self.blobs).expect(more).map_err(|source| {
             self.failed.store(true, Ordering::Relaxed);
             ArchiveError::Write { path: self.output.clone(), source }
         })

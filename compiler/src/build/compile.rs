@@ -202,8 +202,10 @@ impl<'a> Compiler<'a> {
         }
     }
 
-    /// The most artifacts `keys` have: each key's targets (its first permutation's level's),
-    /// summed. A key's targets are the same for all its permutations (they are in its key).
+    /// The most artifacts the keys not produced during preprocessing add: each one's targets
+    /// (its first permutation's level's), summed. A key's targets are the same for all its
+    /// permutations (they are in its key). A cold build produced its keys early, so its
+    /// table, grown then, stays as it is.
     fn artifact_bound(&self, keys: &Keys<'_>) -> usize {
         // Counted by level (a few) rather than a list of targets made per key.
         let mut last: Option<(*const crate::permute::Level, usize)> = None;
@@ -216,7 +218,9 @@ impl<'a> Compiler<'a> {
             }
         };
         (0..keys.len())
-            .filter_map(|k| keys.members(k).first())
+            .map(|k| keys.members(k))
+            .filter(|members| !self.produced_early(members))
+            .filter_map(|members| members.first())
             .map(|&m| count(self.plan.shader_level(m as usize).1))
             .sum()
     }
