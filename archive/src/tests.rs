@@ -134,6 +134,42 @@ fn the_archive_is_the_same_whether_blobs_wait_in_memory_or_in_a_file() {
     assert_eq!(leftovers.len(), 3, "no spool left behind: {leftovers:?}");
 }
 
+/// The table that finds blobs only finds them: made at a bound up front (too small, tight
+/// or loose, and part way through the blobs), it changes no byte of the archive.
+#[test]
+fn the_archive_is_the_same_whatever_blobs_the_writer_expects() {
+    let dir = tempfile::tempdir().unwrap();
+    let perms = big_permutations();
+    let order: Vec<usize> = (0..perms.len()).collect();
+    let blobs: usize = perms.iter().map(|(_, a)| a.len()).sum();
+    let mut archives = Vec::new();
+    for (i, expected) in [None, Some(0), Some(3), Some(blobs), Some(blobs * 10)].into_iter().enumerate() {
+        let path = dir.path().join(format!("{i}.kpak"));
+        let w = StreamingWriter::new(&path).unwrap();
+        // Some blobs in before the bound, as a build's preprocessing adds them.
+        let (name, arts) = &perms[0];
+        let first: Vec<_> = arts.iter().map(|(t, b)| (*t, w.add_blob(b).unwrap())).collect();
+        if let Some(n) = expected {
+            w.expect_blobs(n).unwrap();
+        }
+        let (sh, refl) = (shader(), reflection());
+        let p =
+            NewPermutation { name: name.clone(), shader: &sh, values: vec![0, 0], reflection: &refl, artifacts: first };
+        w.add_permutation(p).unwrap();
+        for &i in &order[1..] {
+            let (name, arts) = &perms[i];
+            let artifacts = arts.iter().map(|(t, b)| (*t, w.add_blob(b).unwrap())).collect();
+            let values = vec![i as i64, (i % 2) as i64];
+            w.add_permutation(NewPermutation { name: name.clone(), shader: &sh, values, reflection: &refl, artifacts })
+                .unwrap();
+        }
+        w.set_naga_version("30.0.1");
+        w.finish().unwrap();
+        archives.push(std::fs::read(&path).unwrap());
+    }
+    assert!(archives.iter().all(|a| *a == archives[0]), "the table's size changes no byte");
+}
+
 #[test]
 fn round_trip_dedups_blobs_and_finds_by_name() {
     let a = Archive::from_vec(sample()).unwrap();

@@ -226,13 +226,18 @@ struct BlobTable {
     spooled: u64,
 }
 
-/// Slots by identity prefix: open addressing with linear probing over `2^bits` cells of a
+/// Slots by identity prefix: open addressing with linear probing over `cells` cells of a
 /// `u32`, each the slot number plus one (0: empty) in its low `bits` bits and, above them,
-/// the prefix's low bits as a tag. A slot number fits in `bits` bits because the table is
-/// at most three quarters full, and the tag spares most probes the read of an identity: a
-/// tag match is only a candidate, confirmed by the whole identity. It holds no prefixes of
-/// its own, so it grows by being dropped and rebuilt from the identities, never holding
-/// the old cells and the new at once.
+/// the prefix's low bits as a tag. A slot number fits in `bits` bits because the table has
+/// fewer than `2^bits` cells and is never full, and the tag spares most probes the read of
+/// an identity: a tag match is only a candidate, confirmed by the whole identity. It holds
+/// no prefixes of its own, so it grows by being dropped and rebuilt from the identities,
+/// never holding the old cells and the new at once.
+///
+/// Its length is not a power of two: a table that doubles is, over the sets a build may
+/// have, on average half again as large as it needs to be at the compile stage's end, where
+/// it is the largest table of the blob side. It grows by half instead (a place is found by
+/// multiplying, not masking), which costs each blob a few more moves as it grows.
 #[derive(Default)]
 struct SlotTable {
     cells: Vec<u32>,
@@ -240,17 +245,35 @@ struct SlotTable {
     len: usize,
 }
 
-/// The smallest table's `bits`.
-const MIN_TABLE_BITS: u32 = 4;
+/// The smallest table's cells.
+const MIN_TABLE_CELLS: usize = 16;
+
+/// The most slots a table of `cells` cells takes before it grows (four fifths of it: a
+/// probe then reads a dozen cells on average, in a cache line or two).
+fn table_room(cells: usize) -> usize {
+    cells / 5 * 4
+}
+
+/// The fewest cells whose room ([`table_room`]) is `slots` slots.
+fn table_cells_for(slots: usize) -> usize {
+    (slots / 4 + 1).saturating_mul(5).max(MIN_TABLE_CELLS)
+}
+
+/// The cells of the table that follows one of `cells` cells.
+fn next_table_cells(cells: usize) -> usize {
+    (cells + cells / 2).max(MIN_TABLE_CELLS)
+}
 
 impl SlotTable {
-    fn with_bits(bits: u32) -> SlotTable {
-        SlotTable { cells: vec![0; 1 << bits], bits, len: 0 }
+    fn with_cells(cells: usize) -> SlotTable {
+        // Enough bits for every slot number plus one (at most `cells`).
+        let bits = usize::BITS - cells.leading_zeros();
+        SlotTable { cells: vec![0; cells], bits, len: 0 }
     }
 
-    /// Whether one more slot would fill it past three quarters.
+    /// Whether one more slot would fill it past its room ([`table_room`]).
     fn is_full(&self) -> bool {
-        (self.len + 1) * 4 > self.cells.len() * 3
+        self.len + 1 > table_room(self.cells.len())
     }
 
     fn mask(&self) -> u32 {
@@ -261,8 +284,18 @@ impl SlotTable {
         (u64::from(prefix) << self.bits) as u32
     }
 
+    /// Where `prefix`'s probe starts: its hash's high 32 bits scaled to the table's length.
     fn home(&self, prefix: u32) -> usize {
-        (table_hash(prefix) >> (64 - self.bits)) as usize
+        (((table_hash(prefix) >> 32) * self.cells.len() as u64) >> 32) as usize
+    }
+
+    /// The cell after cell `i`, wrapping at the end.
+    fn next(&self, i: usize) -> usize {
+        if i + 1 == self.cells.len() {
+            0
+        } else {
+            i + 1
+        }
     }
 
     /// Calls `is` with each slot whose tag is `prefix`'s, until it says yes: that slot.
@@ -270,7 +303,7 @@ impl SlotTable {
         if self.cells.is_empty() {
             return Ok(None);
         }
-        let (mask, tag, wrap) = (self.mask(), self.tag(prefix), self.cells.len() - 1);
+        let (mask, tag) = (self.mask(), self.tag(prefix));
         let mut i = self.home(prefix);
         loop {
             let cell = self.cells[i];
@@ -280,16 +313,15 @@ impl SlotTable {
             if cell & !mask == tag && is((cell & mask) - 1)? {
                 return Ok(Some((cell & mask) - 1));
             }
-            i = (i + 1) & wrap;
+            i = self.next(i);
         }
     }
 
     /// Puts slot `n` (not in the table, and room for it: see [`SlotTable::is_full`]).
     fn put(&mut self, prefix: u32, n: usize) {
-        let wrap = self.cells.len() - 1;
         let mut i = self.home(prefix);
         while self.cells[i] != 0 {
-            i = (i + 1) & wrap;
+            i = self.next(i);
         }
         self.cells[i] = self.tag(prefix) | (n as u32 + 1);
         self.len += 1;
@@ -409,12 +441,29 @@ impl BlobTable {
         Ok(Some(n))
     }
 
-    /// Doubles the table: the old one is dropped first and the new one filled from the
-    /// identities (read back in slot order), so the two are never held together.
+    /// Grows the table by half ([`next_table_cells`]): the old one is dropped first and the
+    /// new one filled from the identities (read back in slot order), so the two are never
+    /// held together.
     fn grow(&mut self) -> std::io::Result<()> {
-        let bits = (self.table.bits + 1).max(MIN_TABLE_BITS);
+        let cells = next_table_cells(self.table.cells.len());
         self.table = SlotTable::default();
-        let mut table = SlotTable::with_bits(bits);
+        let mut table = SlotTable::with_cells(cells);
+        self.idents.for_each(self.slots, |n, id| table.put(prefix(id), n))?;
+        self.table = table;
+        Ok(())
+    }
+
+    /// Makes the table room for `more` blobs beyond those it has at once, if it has less
+    /// (and is not sealed): a caller that knows a close bound spares the table its growth,
+    /// each step of which drops a table and builds one half again as large while the freed
+    /// one may still be resident.
+    fn expect(&mut self, more: usize) -> std::io::Result<()> {
+        let blobs = self.slots.saturating_add(more);
+        if self.sealed || table_room(self.table.cells.len()) >= blobs {
+            return Ok(());
+        }
+        self.table = SlotTable::default();
+        let mut table = SlotTable::with_cells(table_cells_for(blobs));
         self.idents.for_each(self.slots, |n, id| table.put(prefix(id), n))?;
         self.table = table;
         Ok(())
@@ -1198,6 +1247,18 @@ impl StreamingWriter {
     /// Number of distinct blobs added so far.
     pub fn blob_count(&self) -> usize {
         lock(&self.blobs).added
+    }
+
+    /// At most `more` distinct blobs are named beyond those named so far: the table that
+    /// finds them by content is made that large now, if it is smaller, instead of growing
+    /// as they come (see [`StreamingWriter::reserve_blobs`] for a loose bound, which should
+    /// not). Only the table's size depends on it: blob numbers and the archive's bytes do
+    /// not.
+    pub fn expect_blobs(&self, more: usize) -> Result<(), ArchiveError> {
+        lock(&self.blobs).expect(more).map_err(|source| {
+            self.failed.store(true, Ordering::Relaxed);
+            ArchiveError::Write { path: self.output.clone(), source }
+        })
     }
 
     /// No more blobs will be added, nor permutations named by [`BlobKey`] (those are

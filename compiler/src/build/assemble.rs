@@ -529,6 +529,14 @@ impl<'p> Assembler<'p> {
         }
     }
 
+    /// At most `more` distinct artifacts come beyond those added so far (a close bound: the
+    /// archive writer's table that finds them is made at that size rather than grown).
+    pub fn expect_blobs(&self, more: usize) {
+        if let Some(Err(e)) = self.writer.as_ref().map(|w| w.expect_blobs(more)) {
+            self.error.lock().expect("no panics while locked").get_or_insert(format!("error: {e}"));
+        }
+    }
+
     /// No more artifacts come: the archive writer lets go of the table that finds its blobs
     /// by content (it grows with the set).
     pub fn seal_blobs(&mut self) {

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use super::assemble::Assembler;
 use super::group::Keys;
-use super::plan::{level_limits, Plan};
+use super::plan::{level_limits, level_targets, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::progress::Progress;
 use super::store::{Fetched, Store};
@@ -175,6 +175,9 @@ impl<'a> Compiler<'a> {
         self.progress.stage("compiling", keys.len());
         self.started();
         let assembling = self.plan.assembles();
+        if assembling {
+            self.assembler.expect_blobs(self.artifact_bound(keys));
+        }
         let [hits, elsewhere, compiled] = [(); 3].map(|_| AtomicUsize::new(0));
         let notable = (0..keys.len())
             .into_par_iter()
@@ -197,6 +200,29 @@ impl<'a> Compiler<'a> {
             compiled: compiled.into_inner(),
             notable,
         }
+    }
+
+    /// The most artifacts the keys not produced during preprocessing add: each one's targets
+    /// (its first permutation's level's), summed. A key's targets are the same for all its
+    /// permutations (they are in its key). A cold build produced its keys early, so its
+    /// table, grown then, stays as it is.
+    fn artifact_bound(&self, keys: &Keys<'_>) -> usize {
+        // Counted by level (a few) rather than a list of targets made per key.
+        let mut last: Option<(*const crate::permute::Level, usize)> = None;
+        let mut count = |level: &crate::permute::Level| match last {
+            Some((l, n)) if std::ptr::eq(l, level) => n,
+            _ => {
+                let n = level_targets(level, &self.plan.options.targets).len();
+                last = Some((level, n));
+                n
+            }
+        };
+        (0..keys.len())
+            .map(|k| keys.members(k))
+            .filter(|members| !self.produced_early(members))
+            .filter_map(|members| members.first())
+            .map(|&m| count(self.plan.shader_level(m as usize).1))
+            .sum()
     }
 
     fn key(&self, key: &Key, members: &[u32], wanted: bool, preprocessor: &Preprocessor<'_>) -> Outcome {

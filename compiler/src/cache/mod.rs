@@ -305,15 +305,23 @@ struct Location {
     len: u64,
 }
 
-/// One key of the in-memory index: the key's first 8 bytes (as two words: a slot is then
-/// 12 bytes, with no padding) and the number of its row among all indexed packs' rows. The
-/// rest of the row (the whole key, where the entry lies) is read from the pack on lookup,
-/// so the index holds a small fixed share of each key rather than the key and its location.
-type Slot = [u32; 3];
+/// One key of the in-memory index, in 8 bytes: the number of its row among all indexed
+/// packs' rows in the low [`Index::row_bits`] bits, and above them as many of the key's
+/// first bits as fit. The rest of the row (the whole key, where the entry lies) is read
+/// from the pack on lookup and the whole key compared there, so a shorter prefix costs at
+/// most a read more, never a wrong entry; the index holds a small fixed share of each key
+/// rather than the key and its location.
+type Slot = u64;
 
-fn slot(key: &Key, row: u32) -> Slot {
-    let word = |i: usize| u32::from_be_bytes(key.0[i * 4..i * 4 + 4].try_into().expect("4 bytes"));
-    [word(0), word(1), row]
+/// The slot of `key`'s row `row`, of `row_bits` bits (`row` fits in them).
+fn slot(key: &Key, row: u32, row_bits: u32) -> Slot {
+    let prefix = u64::from_be_bytes(key.0[..8].try_into().expect("8 of 32 bytes"));
+    (prefix >> row_bits << row_bits) | u64::from(row)
+}
+
+/// The bits that number `rows` rows (at least one).
+fn row_bits(rows: u64) -> u32 {
+    (u64::BITS - rows.saturating_sub(1).leading_zeros()).max(1)
 }
 
 /// Index rows read from a pack at a time (its checksum is computed as they stream).
@@ -328,6 +336,9 @@ struct Index {
     packs: Vec<(u32, Arc<Pack>)>,
     /// The number the next pack's first row gets.
     next_row: u32,
+    /// The bits of a slot that number its row (see [`Slot`]): enough for every row
+    /// indexed, widened when a pack added later needs more.
+    row_bits: u32,
     /// Sorted runs of slots, the largest first: a pack added later is a run of its own,
     /// merged into the one before it once that is at most twice its size (each slot is then
     /// re-sorted a logarithmic number of times however many packs a build adds).
@@ -346,6 +357,7 @@ impl Index {
         let Some(next) = u32::try_from(count).ok().and_then(|c| self.next_row.checked_add(c)) else {
             return Ok(false);
         };
+        self.widen(row_bits(u64::from(next)), slots);
         let kept = slots.len();
         let mut hasher = blake3::Hasher::new();
         let mut chunk = vec![0u8; INDEX_CHUNK_ROWS.min(count as usize) * ROW];
@@ -360,7 +372,7 @@ impl Index {
             hasher.update(bytes);
             for (i, r) in bytes.chunks_exact(ROW).enumerate() {
                 let key = Key(r[..32].try_into().expect("32 bytes"));
-                slots.push(slot(&key, self.next_row + (row + i) as u32));
+                slots.push(slot(&key, self.next_row + (row + i) as u32, self.row_bits));
             }
             row += n;
         }
@@ -371,6 +383,24 @@ impl Index {
         self.packs.push((self.next_row, Arc::new(pack)));
         self.next_row = next;
         Ok(true)
+    }
+
+    /// Makes the slots' row numbers `bits` bits wide if they are narrower, in `slots` (being
+    /// read) and in every run (sorted again: a shorter prefix may tie where rows were not
+    /// in order). Only a pack added after the index was read can need it.
+    fn widen(&mut self, bits: u32, slots: &mut [Slot]) {
+        if bits <= self.row_bits {
+            return;
+        }
+        let (old, mask) = (self.row_bits, (1u64 << self.row_bits) - 1);
+        let rewrite = |s: &mut Slot| *s = ((*s & !mask) >> bits << bits) | (*s & mask);
+        slots.iter_mut().for_each(rewrite);
+        for run in &mut self.runs {
+            run.iter_mut().for_each(rewrite);
+            run.sort_unstable();
+        }
+        debug_assert!(old < bits);
+        self.row_bits = bits;
     }
 
     /// Reads the index of the pack at `path` and adds it as the newest run; a pack that is
@@ -414,11 +444,12 @@ impl Index {
 
     /// Every copy of `key`, newest pack first (of packs as new, the one added first).
     fn copies(&self, key: &Key) -> Vec<Location> {
-        let wanted = slot(key, 0);
+        let mask = (1u64 << self.row_bits) - 1;
+        let wanted = slot(key, 0, self.row_bits);
         let mut rows: Vec<u32> = Vec::new();
         for run in &self.runs {
-            let from = run.partition_point(|s| s[..2] < wanted[..2]);
-            rows.extend(run[from..].iter().take_while(|s| s[..2] == wanted[..2]).map(|s| s[2]));
+            let from = run.partition_point(|&s| s < wanted);
+            rows.extend(run[from..].iter().take_while(|&&s| s & !mask == wanted).map(|&s| (s & mask) as u32));
         }
         rows.sort_unstable();
         let mut copies: Vec<Location> = rows.into_iter().filter_map(|row| self.location(row, key)).collect();
@@ -558,6 +589,7 @@ impl Cache {
         // The table at its size once (the packs' headers say how many rows they hold), not
         // doubled while the packs are read: a doubling holds the old and new tables at once.
         let rows: u64 = packs.iter().filter_map(|p| pack_rows(p)).sum();
+        index.row_bits = row_bits(rows);
         let mut slots = Vec::with_capacity(usize::try_from(rows).unwrap_or(0));
         for path in packs {
             if let Err(why) = index.read_pack(&path, &mut slots) {

@@ -723,3 +723,34 @@ fn a_big_pack_trains_dictionaries_that_later_entries_use() {
     cache.clear().unwrap();
     assert!(dicts().is_empty());
 }
+
+/// The index numbers its rows in as few bits as the packs read need, and widens them when
+/// a pack added later needs more; keys that share their first bytes (the part a slot
+/// keeps) are told apart by the whole key read from the pack.
+#[test]
+fn the_index_widens_its_row_numbers_and_tells_keys_with_one_prefix_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = Cache::open(dir.path()).unwrap();
+    let first = key("first");
+    cache.put(&first, &compiled(0)).unwrap();
+    assert!(matches!(cache.get(&first), Lookup::Hit(c, _) if c == compiled(0)));
+    // One row read: then a pack of many, half of them sharing their first 16 bytes.
+    let mut keys: Vec<Key> = (0..40).map(|i| key(&i.to_string())).collect();
+    for (i, k) in keys.iter_mut().enumerate().take(20) {
+        k.0[..16].copy_from_slice(&[7; 16]);
+        k.0[31] = i as u8;
+    }
+    let values: Vec<Compiled> = (0..40).map(|i| compiled(i as u8 + 1)).collect();
+    let entries: Vec<(Key, &Compiled)> = keys.iter().copied().zip(&values).collect();
+    cache.put_pack(&entries).unwrap();
+    let mut absent = keys[0];
+    absent.0[31] = 200;
+    for fresh in [false, true] {
+        let cache = if fresh { Cache::open(dir.path()).unwrap() } else { cache.clone() };
+        assert!(matches!(cache.get(&first), Lookup::Hit(c, _) if c == compiled(0)));
+        for (k, v) in keys.iter().zip(&values) {
+            assert!(matches!(cache.get(k), Lookup::Hit(c, _) if &c == v), "fresh {fresh}");
+        }
+        assert!(matches!(cache.get(&absent), Lookup::Miss));
+    }
+}
