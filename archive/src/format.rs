@@ -557,6 +557,20 @@ pub(crate) struct TablesOut<'a> {
     pub pipelines: Option<&'a [PipelineRecord]>,
 }
 
+impl Manifest {
+    /// Its JSON tables, as written (both manifest writers encode them from here).
+    pub(crate) fn tables_out(&self) -> TablesOut<'_> {
+        TablesOut {
+            kiln_version: &self.kiln_version,
+            naga_version: &self.naga_version,
+            shaders: &self.shaders,
+            reflections: &self.reflections,
+            partial: self.partial.as_ref(),
+            pipelines: self.pipelines.as_deref(),
+        }
+    }
+}
+
 /// The JSON tables of the manifest, as read.
 #[derive(Deserialize)]
 pub(crate) struct Tables {

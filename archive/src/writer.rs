@@ -1926,14 +1926,7 @@ fn write_archive<W: Write + Seek>(plan: Plan, spool: &Spool<'_>, out: &mut W) ->
 /// The manifest whose permutations came in name order: its `parts`, encoded already, and
 /// its tables from `manifest` (which has no permutations).
 fn spilled_sorted<'a>(manifest: &Manifest, parts: &'a mut sorted::SortedParts) -> std::io::Result<SpilledManifest<'a>> {
-    let tables = TablesOut {
-        kiln_version: &manifest.kiln_version,
-        naga_version: &manifest.naga_version,
-        shaders: &manifest.shaders,
-        reflections: &manifest.reflections,
-        partial: manifest.partial.as_ref(),
-        pipelines: manifest.pipelines.as_deref(),
-    };
+    let tables = manifest.tables_out();
     let (counts, front, back) = parts.spilled(&tables)?;
     Ok(SpilledManifest { counts, front, back })
 }
@@ -2155,14 +2148,7 @@ fn spill_manifest<'a>(
     ];
     let starts = [at, at + lens[0], at + lens[0] + lens[1], at + lens[0] + lens[1] + lens[2]];
     let mut back = SpillBuf::new(spool, starts[3] + lens[3], 0);
-    let tables = TablesOut {
-        kiln_version: &manifest.kiln_version,
-        naga_version: &manifest.naga_version,
-        shaders: &manifest.shaders,
-        reflections: &manifest.reflections,
-        partial: manifest.partial.as_ref(),
-        pipelines: manifest.pipelines.as_deref(),
-    };
+    let tables = manifest.tables_out();
     serde_json::to_writer(&mut back, &tables).map_err(std::io::Error::other)?;
     let tables_len = back.len();
     // The tables start at a multiple of 8 from the manifest's start (every part before them
