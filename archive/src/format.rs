@@ -713,6 +713,14 @@ impl Record {
     }
 }
 
+/// An entry of the manifest's ids table: a permutation's id and its index (the rest zero).
+pub(crate) fn encode_id(id: u128, index: u32) -> [u8; ID_LEN] {
+    let mut b = [0u8; ID_LEN];
+    b[0..16].copy_from_slice(&id.to_le_bytes());
+    b[16..20].copy_from_slice(&index.to_le_bytes());
+    b
+}
+
 /// An artifact of the manifest: its target's index in [`Target::ALL`] and its blob.
 pub(crate) fn encode_artifact(target: Target, blob: BlobId) -> [u8; ARTIFACT_LEN] {
     let mut b = [0u8; ARTIFACT_LEN];

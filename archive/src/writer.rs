@@ -33,9 +33,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::format::{
-    encode_artifact, header_checksum, sibling_name, stored_sum, write_atomic_with, write_derived, ArchiveError, Arenas,
-    BlobId, ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation, Partial,
-    PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN,
+    encode_artifact, encode_id, header_checksum, sibling_name, stored_sum, write_atomic_with, write_derived,
+    ArchiveError, Arenas, BlobId, ChunkHasher, DictionaryRecord, Entry, Manifest, ManifestCounts, ManifestPermutation,
+    Partial, PermutationRecord, PipelineRecord, Record, Sections, ShaderRecord, TablesOut, ARTIFACT_LEN, CHUNK_LEN,
     CODEC_STORED, CODEC_ZSTD, CODEC_ZSTD_DICT, COMPRESSION_LEVEL, DICTIONARY_SAMPLE, DICTIONARY_SIZE, HEADER_LEN,
     ID_LEN, NO_DICTIONARY, RECORD_LEN, VALUE_LEN,
 };
@@ -2258,11 +2258,8 @@ fn write_ids<'a>(manifest: Manifest, mut out: SpillBuf<'a>) -> std::io::Result<S
         if end - start > 1 {
             run.sort_unstable();
         }
-        for (id, index) in &run {
-            let mut b = [0u8; ID_LEN];
-            b[0..16].copy_from_slice(&id.to_le_bytes());
-            b[16..20].copy_from_slice(&index.to_le_bytes());
-            out.write_all(&b)?;
+        for &(id, index) in &run {
+            out.write_all(&encode_id(id, index))?;
         }
         start = end;
     }

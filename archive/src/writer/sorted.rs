@@ -132,11 +132,8 @@ impl Ids {
                 (id, u32::from_le_bytes(c[16..].try_into().expect("4 bytes")))
             }));
             ids.sort_unstable();
-            for (id, index) in &ids {
-                let mut b = [0u8; ID_LEN];
-                b[0..16].copy_from_slice(&id.to_le_bytes());
-                b[16..20].copy_from_slice(&index.to_le_bytes());
-                out.push(&b)?;
+            for &(id, index) in &ids {
+                out.push(&super::encode_id(id, index))?;
             }
         }
         Ok(())
