@@ -1,5 +1,10 @@
 //! Fingerprints Kiln's own sources into `KILN_SOURCE_HASH`, part of every cache key, so a
 //! cache never serves outputs of a different Kiln (a released version or a work tree).
+//!
+//! `KILN_PIN_SOURCE_HASH=<hex>` set while Kiln itself is built takes that value instead: for
+//! measuring a change to the build's memory or time against a large warm cache made by
+//! another binary (`KILN_SOURCE_HASH` of `target/*/build/kiln-*/output`), never for a
+//! binary that is shipped, whose cache could then serve another Kiln's outputs.
 
 use std::hash::{Hash, Hasher};
 use std::path::{Path, PathBuf};
@@ -17,6 +22,11 @@ fn files(dir: &Path, out: &mut Vec<PathBuf>) {
 }
 
 fn main() {
+    if let Ok(v) = std::env::var("KILN_PIN_SOURCE_HASH") {
+        println!("cargo:rustc-env=KILN_SOURCE_HASH={v}");
+        println!("cargo:rerun-if-env-changed=KILN_PIN_SOURCE_HASH");
+        return;
+    }
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let mut list = Vec::new();
     files(&src, &mut list);

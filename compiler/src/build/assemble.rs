@@ -232,11 +232,15 @@ impl Produced {
     /// `pre` goes. The entries and artifacts are read only then, so that they and `pre` are
     /// never held together.
     fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
+        let mut keys = pre.keys();
         let of = (0..plan.len())
             .map(|i| {
-                pre.key(i).map_or(NOT_KEPT, |k| self.position(k).expect("every kept permutation's key was produced"))
+                Ok(keys
+                    .of(i)?
+                    .map_or(NOT_KEPT, |k| self.position(&k).expect("every kept permutation's key was produced")))
             })
-            .collect();
+            .collect::<std::io::Result<_>>()?;
+        drop(keys);
         drop(pre);
         // The prefixes are not needed past here: they go before the entries come.
         let Produced { slots, shared, mut input, keys, artifacts, hashes, reflections } = self;
@@ -364,7 +368,7 @@ pub(super) struct Assembler<'p> {
 /// each permutation (`\0name\0entry\0stage\0values\0dimensions\0`, values and dimensions
 /// as their `Debug`) then its key; what a shader's permutations share is formatted once
 /// per run.
-fn fingerprint<'k>(plan: &Plan<'_>, key: impl Fn(usize) -> Option<&'k Key>) -> blake3::Hash {
+fn fingerprint(plan: &Plan<'_>, mut key: impl FnMut(usize) -> Option<Key>) -> blake3::Hash {
     let mut h = blake3::Hasher::new();
     h.update(b"kiln build fingerprint v1\0");
     h.update(crate::VERSION.as_bytes());
@@ -568,7 +572,12 @@ impl<'p> Assembler<'p> {
     /// record and key, in order, and the versions. Computed once per build (a warm build
     /// asks for it two or three times).
     fn fingerprint(&self, pre: &Preprocessed) -> blake3::Hash {
-        *self.fingerprint.get_or_init(|| fingerprint(self.plan, |i| pre.key(i)))
+        // (A key that cannot be read back gives a fingerprint no build has: the archive is
+        // not taken as up to date, and the build fails where it reads the keys again.)
+        *self.fingerprint.get_or_init(|| {
+            let mut keys = pre.keys();
+            fingerprint(self.plan, |i| keys.of(i).unwrap_or(Some(Key([0xFF; 32]))))
+        })
     }
 
     /// The archive's path when this build writes one whole archive there (an output, no
@@ -585,7 +594,10 @@ impl<'p> Assembler<'p> {
     /// rows' (each distinct key is a row's), so that grouping need not have run.
     pub fn up_to_date(&self, store: &Store, pre: &Preprocessed, failed: bool) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.fresh_archive(out, &|| self.fingerprint(pre), &mut (0..pre.row_count()).map(|r| pre.row_key(r)))
+        let mut keys = pre.keys();
+        // (The keys end at one that cannot be read back: then they are not the archive's.)
+        let mut rows = (0..pre.row_count()).map_while(|r| keys.row(r).ok());
+        store.fresh_archive(out, &|| self.fingerprint(pre), &mut rows)
     }
 
     /// The artifact counts of the archive when the remote cache holds this build's archive
@@ -599,7 +611,8 @@ impl<'p> Assembler<'p> {
         failed: bool,
     ) -> Option<(usize, usize)> {
         let out = self.whole_archive_output(failed)?;
-        store.archive_from_remote(out, &|| self.fingerprint(pre), (keys.len(), &|k| keys.key(k)))
+        // The keys are the rows' here (never read from a file).
+        store.archive_from_remote(out, &|| self.fingerprint(pre), &|| Box::new(keys.iter().map_while(Result::ok)))
     }
 
     /// Adds every permutation (the manifest) and writes the archive, the loose files'
@@ -914,6 +927,6 @@ levels = ["es3"]
             h.update(line.as_bytes());
             h.update(&key.0);
         }
-        assert_eq!(fingerprint(&plan, |i| keys[i].as_ref()), h.finalize());
+        assert_eq!(fingerprint(&plan, |i| keys[i]), h.finalize());
     }
 }

@@ -21,7 +21,7 @@ use codespan_reporting::diagnostic::{Diagnostic, Label, LabelStyle};
 use rayon::prelude::*;
 
 use super::assemble::Assembler;
-use super::group::Keys;
+use super::group::{Keys, KEYS_READ};
 use super::plan::{level_limits, level_targets, Plan};
 use super::preprocess::{Preprocessed, Preprocessor};
 use super::progress::Progress;
@@ -170,8 +170,8 @@ impl<'a> Compiler<'a> {
         *self.start.lock().expect("no panics while locked")
     }
 
-    /// Every key's outcome.
-    pub fn run(&self, keys: &Keys<'_>, preprocessor: &Preprocessor<'_>) -> Outcomes {
+    /// Every key's outcome; an error when the keys cannot be read back.
+    pub fn run(&self, keys: &Keys<'_>, preprocessor: &Preprocessor<'_>) -> std::io::Result<Outcomes> {
         self.progress.stage("compiling", keys.len());
         self.started();
         let assembling = self.plan.assembles();
@@ -179,27 +179,40 @@ impl<'a> Compiler<'a> {
             self.assembler.expect_blobs(self.artifact_bound(keys));
         }
         let [hits, elsewhere, compiled] = [(); 3].map(|_| AtomicUsize::new(0));
-        let notable = (0..keys.len())
+        // The keys are read back a block at a time (they are in a file, not memory).
+        let read_error = Mutex::new(None);
+        let notable = (0..keys.len().div_ceil(KEYS_READ))
             .into_par_iter()
-            .filter_map(|k| {
-                let outcome = self.key(keys.key(k), keys.members(k), keys.share[k] || assembling, preprocessor);
-                self.progress.inc();
-                let count = match &outcome {
-                    Outcome::Hit => &hits,
-                    Outcome::Elsewhere => &elsewhere,
-                    Outcome::Compiled(_) | Outcome::Failed(_) => &compiled,
-                };
-                count.fetch_add(1, Ordering::Relaxed);
-                matches!(outcome, Outcome::Compiled(Some(_)) | Outcome::Failed(_)).then_some((k, outcome))
+            .flat_map_iter(|b| {
+                let range = b * KEYS_READ..keys.len().min((b + 1) * KEYS_READ);
+                let block = keys.read(range.clone()).unwrap_or_else(|e| {
+                    read_error.lock().expect("no panics while locked").get_or_insert(e);
+                    Vec::new()
+                });
+                let (hits, elsewhere, compiled) = (&hits, &elsewhere, &compiled);
+                range.zip(block).filter_map(move |(k, key)| {
+                    let outcome = self.key(&key, keys.members(k), keys.share[k] || assembling, preprocessor);
+                    self.progress.inc();
+                    let count = match &outcome {
+                        Outcome::Hit => hits,
+                        Outcome::Elsewhere => elsewhere,
+                        Outcome::Compiled(_) | Outcome::Failed(_) => compiled,
+                    };
+                    count.fetch_add(1, Ordering::Relaxed);
+                    matches!(outcome, Outcome::Compiled(Some(_)) | Outcome::Failed(_)).then_some((k, outcome))
+                })
             })
             .collect();
         self.progress.finish();
-        Outcomes {
+        if let Some(e) = read_error.into_inner().expect("no panics while locked") {
+            return Err(e);
+        }
+        Ok(Outcomes {
             hits: hits.into_inner(),
             elsewhere: elsewhere.into_inner(),
             compiled: compiled.into_inner(),
             notable,
-        }
+        })
     }
 
     /// The most artifacts the keys not produced during preprocessing add: each one's targets
@@ -332,15 +345,18 @@ pub(super) fn failures(
     plan: &Plan<'_>,
     preprocessor: &Preprocessor<'_>,
     pre: &Preprocessed,
-    key: &Key,
+    key: Option<&Key>,
     members: &[u32],
     e: &compile::Error,
 ) -> Vec<(Diagnostic<FileId>, Vec<usize>)> {
     let first = members[0] as usize;
-    let rep = representative(preprocessor, &plan.permutation(first), key);
+    let rep = match key {
+        Some(key) => representative(preprocessor, &plan.permutation(first), key),
+        None => preprocessor.preprocess(&plan.permutation(first)).ok().map(|(_, o)| o),
+    };
     let mut out = Vec::new();
     for m in members.iter().map(|&m| m as usize) {
-        if pre.key(m).is_none() {
+        if pre.row_number(m).is_none() {
             continue;
         }
         let p = plan.permutation(m);

@@ -8,46 +8,31 @@ use crate::cache::Key;
 
 impl Plan<'_> {
     /// The distinct keys in order of first appearance, each with its permutations, and the
-    /// keys this process must produce.
-    pub fn group<'p>(&self, pre: &'p Preprocessed) -> Result<Keys<'p>, Error> {
-        let (of, count) = self.key_numbers(pre);
+    /// keys this process must produce; `same` is [`representatives`]'s.
+    pub fn group<'p>(&self, pre: &'p Preprocessed, same: Vec<u32>) -> Result<Keys<'p>, Error> {
+        let (of, count) = number_by_first_appearance(same, (0..self.len()).map(|i| pre.row_number(i)));
         let (starts, members) = members_by_key(of, count);
         let mut keys = Keys { pre, starts, members, share: Vec::new() };
+        let read_back = super::preprocess::read_back;
         keys.share = match self.options.shard {
             None => vec![true; keys.len()],
-            Some(shard) if self.hashed_shares() => (0..keys.len()).map(|k| shard.hashes_to(keys.key(k))).collect(),
+            Some(shard) if self.hashed_shares() => keys
+                .iter()
+                .map(|key| key.map(|key| shard.hashes_to(&key)))
+                .collect::<Result<_, _>>()
+                .map_err(read_back)?,
             Some(shard) => {
                 let costs = self.key_costs(pre, &keys)?;
-                assign(&keys.to_vec(), &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
+                let all: Vec<Key> = keys.iter().collect::<Result<_, _>>().map_err(read_back)?;
+                assign(&all, &costs, shard.count).into_iter().map(|s| s == shard.index).collect()
             }
         };
         Ok(keys)
     }
 
-    /// Each permutation's key number, by first appearance (`u32::MAX` when it has none), and
-    /// the number of keys. Keys are found equal by sorting the rows (the distinct results,
-    /// about one per key) by key, which holds less than a map from key to number.
-    fn key_numbers(&self, pre: &Preprocessed) -> (Vec<u32>, usize) {
-        let rows = pre.row_count();
-        let key = |r: u32| pre.row_key(r as usize);
-        let mut order: Vec<u32> = (0..rows as u32).collect();
-        order.sort_unstable_by(|&a, &b| key(a).cmp(key(b)));
-        // Each row's representative: the first row of its key in `order`.
-        let mut same = vec![0u32; rows];
-        for (k, &r) in order.iter().enumerate() {
-            same[r as usize] = match k {
-                0 => r,
-                _ if key(order[k - 1]) != key(r) => r,
-                _ => same[order[k - 1] as usize],
-            };
-        }
-        drop(order);
-        number_by_first_appearance(same, (0..self.len()).map(|i| pre.row_number(i)))
-    }
-
     /// Each key's cost for `--shard`: its longest member's text times its level's targets.
     fn key_costs(&self, pre: &Preprocessed, keys: &Keys<'_>) -> Result<Vec<u64>, Error> {
-        // Each row's text length, read again (the rows' keys alone are held).
+        // Each row's text length, read again (the rows are in their file).
         let mut text_lens = Vec::with_capacity(pre.row_count());
         pre.each_row(|r| text_lens.push(r.text_len)).map_err(super::preprocess::read_back)?;
         Ok((0..keys.len())
@@ -60,6 +45,44 @@ impl Plan<'_> {
             })
             .collect())
     }
+}
+
+/// Each row's representative: the first row with its key. Rows are sorted by the first
+/// four bytes of their key and their number (8 bytes a row, the keys read from the rows'
+/// file), and the rows of a shared prefix (the rows of one key, and rare collisions) are
+/// told apart by their whole keys, read again: the keys (32 bytes a row) are never held.
+pub(super) fn representatives(pre: &Preprocessed) -> std::io::Result<Vec<u32>> {
+    let rows = pre.row_count();
+    let mut pairs: Vec<u64> = Vec::with_capacity(rows);
+    let mut r = 0u64;
+    pre.each_row(|row| {
+        pairs.push(u64::from(u32::from_le_bytes(row.key.0[..4].try_into().expect("4 of 32 bytes"))) << 32 | r);
+        r += 1;
+    })?;
+    pairs.sort_unstable();
+    let mut same = vec![0u32; rows];
+    let mut keys = pre.keys();
+    let mut run = Vec::new();
+    for shared in pairs.chunk_by(|a, b| a >> 32 == b >> 32) {
+        if let [one] = shared {
+            same[*one as u32 as usize] = *one as u32;
+            continue;
+        }
+        // By key, then row: the first row of each key is its representative.
+        run.clear();
+        for &p in shared {
+            run.push((keys.row(p as u32 as usize)?, p as u32));
+        }
+        run.sort_unstable();
+        for (k, &(key, row)) in run.iter().enumerate() {
+            same[row as usize] = match k {
+                0 => row,
+                _ if run[k - 1].0 != key => row,
+                _ => same[run[k - 1].1 as usize],
+            };
+        }
+    }
+    Ok(same)
 }
 
 /// Each permutation's key number by first appearance, from `same` (each row's
@@ -170,7 +193,8 @@ fn invert(places: &mut [u32]) {
 }
 
 /// The distinct keys of a build, by first appearance, with their permutations. A key is
-/// its first member's (in `pre`): not a copy of each, which would grow with the set.
+/// its first member's, read from the rows' file where it is needed: not a copy of each,
+/// which would grow with the set.
 pub(super) struct Keys<'p> {
     pre: &'p Preprocessed,
     /// The members of key `k` are `members[starts[k]..starts[k + 1]]`.
@@ -181,19 +205,34 @@ pub(super) struct Keys<'p> {
     pub share: Vec<bool>,
 }
 
+/// Keys read at a time ([`Keys::read`]).
+pub(super) const KEYS_READ: usize = 256;
+
 impl Keys<'_> {
     pub fn len(&self) -> usize {
         self.starts.len() - 1
     }
 
     /// Key `k`.
-    pub fn key(&self, k: usize) -> &Key {
-        self.pre.key(self.members(k)[0] as usize).expect("a key's members were preprocessed")
+    pub fn key(&self, k: usize) -> std::io::Result<Key> {
+        Ok(self.read(k..k + 1)?[0])
     }
 
-    /// Every key, in order, copied.
-    pub fn to_vec(&self) -> Vec<Key> {
-        (0..self.len()).map(|k| *self.key(k)).collect()
+    /// Keys `range`, in order.
+    pub fn read(&self, range: std::ops::Range<usize>) -> std::io::Result<Vec<Key>> {
+        let mut keys = self.pre.keys();
+        range
+            .map(|k| keys.of(self.members(k)[0] as usize)?.ok_or_else(|| std::io::Error::other("a key without a row")))
+            .collect()
+    }
+
+    /// Every key in order, [`KEYS_READ`] at a time; the first error ends it.
+    pub fn iter(&self) -> impl Iterator<Item = std::io::Result<Key>> + '_ {
+        let len = self.len();
+        (0..len).step_by(KEYS_READ).flat_map(move |start| match self.read(start..len.min(start + KEYS_READ)) {
+            Ok(keys) => keys.into_iter().map(Ok).collect::<Vec<_>>(),
+            Err(e) => vec![Err(e)],
+        })
     }
 
     /// The permutations of key `k`, ascending.

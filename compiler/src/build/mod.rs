@@ -202,8 +202,8 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
     let compiler = compile::Compiler::new(&plan, store, &assembler, &progress);
     let mut preprocessor = preprocess::Preprocessor::new(&plan, last);
     let t = Instant::now();
-    // The keys claimed and the writers' outputs kept for sharing go before the rows' keys
-    // come back (both at once were the stage's peak).
+    // The keys claimed and the writers' outputs kept for sharing go before the stages that
+    // follow preprocessing.
     let ended = || {
         compiler.end_early();
         release_freed();
@@ -216,22 +216,24 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         &outputs::output_files(options),
         report.files_read().iter().map(|p| ("a file the build reads", p.as_path())),
     )?;
-    // The dead dimensions first (their tables handed back), then the archive's up-to-date
+    // Each row's representative (the first row with its key: the keys stay in the rows'
+    // file), the dead dimensions (their tables handed back), then the archive's up-to-date
     // check on the rows' keys (each distinct key is a row's), then grouping: an up-to-date
     // build lets the cache's index go before grouping's tables come in (all at once were
     // its peak). Neither the search nor the check changes the failures.
-    report.dead_dimensions(&plan, &pre);
+    let same = group::representatives(&pre).map_err(preprocess::read_back)?;
+    report.dead_dimensions(&plan, &pre, &same);
     release_freed();
     let failed = report.failed();
     if let Some(counts) = assembler.up_to_date(store, &pre, failed) {
         let warnings = store.finish();
         release_freed();
-        let distinct = group(config, options, &plan, &pre, &mut report)?.len();
+        let distinct = group(config, options, &plan, (&pre, same), &mut report)?.len();
         trace_memory("group");
         progress.finish();
         return up_to_date(report, (distinct, warnings), &mut preprocessor, store, &pre, (counts, false));
     }
-    let keys = group(config, options, &plan, &pre, &mut report)?;
+    let keys = group(config, options, &plan, (&pre, same), &mut report)?;
     let fresh = assembler.copied_from_remote(store, &pre, &keys, failed);
     trace_memory("group");
     if let Some(counts) = fresh {
@@ -242,7 +244,7 @@ fn stages(options: &Options, config: &Config, store: &store::Store, start: Insta
         return up_to_date(report, (distinct, warnings), &mut preprocessor, store, &pre, (counts, true));
     }
     before_compile(options, store, &keys, &compiler);
-    let outcomes = compiler.run(&keys, &preprocessor);
+    let outcomes = compiler.run(&keys, &preprocessor).map_err(preprocess::read_back)?;
     report.compiled(&plan, &preprocessor, &compiler, &keys, outcomes, &pre);
     // The keys' tables are not needed past here.
     drop((keys, compiler));
@@ -283,10 +285,10 @@ fn group<'p>(
     config: &Config,
     options: &Options,
     plan: &plan::Plan<'_>,
-    pre: &'p preprocess::Preprocessed,
+    (pre, same): (&'p preprocess::Preprocessed, Vec<u32>),
     report: &mut report::Builder<'_>,
 ) -> Result<group::Keys<'p>, Error> {
-    let keys = plan.group(pre)?;
+    let keys = plan.group(pre, same)?;
     report.estimated_compile_ms(budget::keys(config, plan, pre, &keys, options)?);
     report.distinct(keys.len());
     Ok(keys)
@@ -323,13 +325,17 @@ fn before_compile(options: &Options, store: &store::Store, keys: &group::Keys<'_
     release_freed();
     // The compile stage looks keys up once the prefill is done (else it would ask the remote
     // for them one by one).
-    store.wait_prefill((0..keys.len()).map(|k| keys.key(k)));
+    // (A key that cannot be read back ends the count here; the compile stage reports it.)
+    store.wait_prefill(keys.iter().map_while(Result::ok));
     if options.shard.is_some() {
         // A shard's share comes from the remote cache in batches, not key by key (but for
         // the keys it produced while preprocessing, with shares by hash).
-        let share: Vec<_> = (0..keys.len())
-            .filter(|&k| keys.share[k] && !compiler.produced_early(keys.members(k)))
-            .map(|k| *keys.key(k))
+        let share: Vec<_> = keys
+            .iter()
+            .map_while(Result::ok)
+            .enumerate()
+            .filter(|&(k, _)| keys.share[k] && !compiler.produced_early(keys.members(k)))
+            .map(|(_, key)| key)
             .collect();
         store.prefetch(&share);
     }

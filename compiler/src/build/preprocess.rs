@@ -7,9 +7,9 @@
 //! permutation's output is handed to the compile stage (which compiles its key at once if
 //! it is the key's first) and then dropped. What is kept is small: per permutation the
 //! number of its [`Row`], per distinct result a fixed-size row whose lists are
-//! numbers in one [`Interner`] (in a temporary file until preprocessing ends, so not beside
-//! the compile work that overlaps it; then only the rows' keys come back, and the rest is
-//! read again from the file where it is needed). What may be reused is kept per (shader,
+//! numbers in one [`Interner`] (in a temporary file, so not beside the compile work that
+//! overlaps it, and read again from there where it is needed: even the rows' keys, 32 bytes
+//! a distinct result, are never held all at once). What may be reused is kept per (shader,
 //! level) until its last permutation is taken. The records for the next build are made from
 //! the rows when they are saved (each permutation's direct key is made again then).
 
@@ -46,10 +46,10 @@ pub(super) struct Preprocessed {
     errors: Vec<(usize, Box<Diagnostic<FileId>>)>,
 }
 
-/// The rows: their keys, and the whole rows in their temporary file; or all in memory where
-/// no temporary file could be made.
+/// The rows, in their temporary file (read again through [`Preprocessed::keys`] and
+/// [`Preprocessed::each_row`]); or in memory where no temporary file could be made.
 enum Rows {
-    File { keys: Vec<Key>, file: std::fs::File },
+    File { count: usize, file: std::fs::File },
     Memory(Vec<Row>),
 }
 
@@ -62,16 +62,8 @@ impl Preprocessed {
     /// was read).
     pub fn row_count(&self) -> usize {
         match &self.rows {
-            Rows::File { keys, .. } => keys.len(),
+            Rows::File { count, .. } => *count,
             Rows::Memory(rows) => rows.len(),
-        }
-    }
-
-    /// Row `r`'s key.
-    pub fn row_key(&self, r: usize) -> &Key {
-        match &self.rows {
-            Rows::File { keys, .. } => &keys[r],
-            Rows::Memory(rows) => &rows[r].key,
         }
     }
 
@@ -103,14 +95,61 @@ impl Preprocessed {
         Ok(())
     }
 
-    /// Permutation `i`'s key; `None` where it failed.
-    pub fn key(&self, i: usize) -> Option<&Key> {
-        self.row_number(i).map(|r| self.row_key(r))
+    /// A reader of the rows' keys, which stay in their file (read a block of rows at a
+    /// time, the last few blocks kept): with a row a distinct result, they were the largest
+    /// table from preprocessing to the manifest.
+    pub fn keys(&self) -> RowKeys<'_> {
+        RowKeys { pre: self, blocks: Vec::new(), next: 0 }
     }
 
     /// The failures, by permutation (ascending).
     pub fn errors(&self) -> &[(usize, Box<Diagnostic<FileId>>)] {
         &self.errors
+    }
+}
+
+/// [`Preprocessed::keys`].
+pub(super) struct RowKeys<'p> {
+    pre: &'p Preprocessed,
+    /// The blocks read last: each one's first row and its rows' keys.
+    blocks: Vec<(usize, Vec<Key>)>,
+    /// The block to replace next.
+    next: usize,
+}
+
+/// Rows a block of [`RowKeys`] (12 KiB read), and how many blocks it keeps.
+const KEY_BLOCK: usize = 256;
+const KEY_BLOCKS: usize = 8;
+
+impl RowKeys<'_> {
+    /// Row `r`'s key.
+    pub fn row(&mut self, r: usize) -> std::io::Result<Key> {
+        use std::os::unix::fs::FileExt;
+        let file = match &self.pre.rows {
+            Rows::Memory(rows) => return Ok(rows[r].key),
+            Rows::File { file, .. } => file,
+        };
+        let start = r - r % KEY_BLOCK;
+        if let Some((_, keys)) = self.blocks.iter().find(|b| b.0 == start) {
+            return Ok(keys[r - start]);
+        }
+        let n = KEY_BLOCK.min(self.pre.row_count() - start);
+        let mut bytes = vec![0u8; n * ROW_LEN];
+        file.read_exact_at(&mut bytes, (start * ROW_LEN) as u64)?;
+        let keys = bytes.chunks_exact(ROW_LEN).map(|b| Key(b[..32].try_into().expect("32 bytes"))).collect();
+        let block = (start, keys);
+        if self.blocks.len() < KEY_BLOCKS {
+            self.blocks.push(block);
+        } else {
+            self.blocks[self.next] = block;
+            self.next = (self.next + 1) % KEY_BLOCKS;
+        }
+        Ok(self.blocks.iter().find(|b| b.0 == start).expect("just read").1[r - start])
+    }
+
+    /// Permutation `i`'s key; `None` where it failed.
+    pub fn of(&mut self, i: usize) -> std::io::Result<Option<Key>> {
+        self.pre.row_number(i).map(|r| self.row(r)).transpose()
     }
 }
 
@@ -258,8 +297,8 @@ impl<'p> Preprocessor<'p> {
 
     /// Every kept permutation's result. `fresh` sees each output made by the preprocessor
     /// (with its permutation's index and key), on the worker that made it, before it is
-    /// dropped; `ended` runs once the last permutation is done, before the rows' keys are
-    /// read back (so that what `fresh` fed is let go first: not held beside them). A
+    /// dropped; `ended` runs once the last permutation is done, before the rows are
+    /// handed on (so that what `fresh` fed is let go first: not held beside what follows). A
     /// shard's pieces of records go through `store`'s remote cache.
     pub fn run(
         &mut self,
@@ -310,8 +349,7 @@ impl<'p> Preprocessor<'p> {
         });
         let mut errors = errors.into_inner().expect("no panics while locked");
         errors.sort_by_key(|e| e.0);
-        // What may be reused, and the last build's records, go before the rows come back
-        // (a warm build's rows are one a permutation, as many as the records).
+        // What may be reused, and the last build's records, go before the rows are handed on.
         drop(order);
         self.release_reuse();
         ended();
@@ -439,19 +477,27 @@ impl<'p> Preprocessor<'p> {
             return;
         }
         drop(numbers);
+        // The keys a few blocks at a time (the workers share the reader); a key that cannot
+        // be read back leaves the records as they were.
+        let (keys, unreadable) = (Mutex::new(pre.keys()), std::sync::atomic::AtomicBool::new(false));
         let whole = |n: usize| {
             let [text_len, three] = rests[n];
             let [files, absent, warnings] = lists[three as usize];
-            Row { key: *pre.row_key(n), text_len, files, absent, warnings }
+            let key = keys
+                .lock()
+                .expect("no panics while locked")
+                .row(n)
+                .map_err(|_| unreadable.store(true, Ordering::Relaxed));
+            Some(Row { key: key.ok()?, text_len, files, absent, warnings })
         };
         let row = |i: usize| {
             let p = plan.permutation(i);
-            Some((direct_key(&r.base, &p, &p.defines(), targets), whole(pre.row_number(i)?)))
+            Some((direct_key(&r.base, &p, &p.defines(), targets), whole(pre.row_number(i)?)?))
         };
         let encoded = records::encode(plan.len(), row, &self.lists(), &r.root, r.old);
         drop(rests);
         super::trace_memory("records encoded");
-        if let Some(encoded) = encoded {
+        if let Some(encoded) = encoded.filter(|_| !unreadable.load(Ordering::Relaxed)) {
             store.put_records(&r.key, &encoded);
             store.put_local_records(&last_records_key(plan.config, plan.options), &r.key.0);
         }
@@ -582,7 +628,7 @@ struct RowLog {
     /// The latest rows added, by a hash of their key: a row equal to one of them takes its
     /// number instead of a new one. A warm build adds a row a permutation matched to a
     /// record, and the permutations of a key mostly come close together: without this, its
-    /// rows' keys (read back whole) were one a permutation rather than about one a key.
+    /// rows were one a permutation rather than about one a key.
     recent: Vec<Option<(Row, u32)>>,
 }
 
@@ -659,27 +705,17 @@ impl RowLog {
         }
     }
 
-    /// The rows' keys, in order, in a table of their number (the file kept for the rest).
+    /// The rows, their file kept for reading them again.
     fn load(self) -> std::io::Result<Rows> {
-        use std::io::{Read, Seek};
         if let Some(e) = self.error {
             return Err(e);
         }
-        let f = match self.out {
-            RowsOut::Memory(v) => return Ok(Rows::Memory(v)),
-            RowsOut::File(f) => f,
-        };
-        let mut f = f.into_inner().map_err(|e| e.into_error())?;
-        f.seek(std::io::SeekFrom::Start(0))?;
-        let mut input = std::io::BufReader::with_capacity(1 << 16, &mut f);
-        let mut keys = Vec::with_capacity(self.count as usize);
-        let mut b = [0u8; ROW_LEN];
-        for _ in 0..self.count {
-            input.read_exact(&mut b)?;
-            keys.push(Key(b[..32].try_into().expect("32 bytes")));
+        match self.out {
+            RowsOut::Memory(v) => Ok(Rows::Memory(v)),
+            RowsOut::File(f) => {
+                Ok(Rows::File { count: self.count as usize, file: f.into_inner().map_err(|e| e.into_error())? })
+            }
         }
-        drop(input);
-        Ok(Rows::File { keys, file: f })
     }
 }
 

@@ -192,7 +192,7 @@ impl<'o> Builder<'o> {
         let (mut seen, mut warning_lists, mut file_lists) = (HashSet::new(), HashSet::new(), HashSet::new());
         let mut files = BTreeSet::new();
         files.insert(plan.config.path.clone());
-        // Each row's lists (the rows' keys alone are held).
+        // Each row's lists (the rows are in their file).
         let mut row_lists = Vec::with_capacity(pre.row_count());
         pre.each_row(|r| row_lists.push((r.warnings, r.files))).map_err(super::preprocess::read_back)?;
         for (warnings, file_list) in (0..pre.len()).filter_map(|i| pre.row_number(i)).map(|r| row_lists[r]) {
@@ -225,9 +225,9 @@ impl<'o> Builder<'o> {
     }
 
     /// The dimensions that never change a shader's text.
-    pub fn dead_dimensions(&mut self, plan: &Plan<'_>, pre: &Preprocessed) {
+    pub fn dead_dimensions(&mut self, plan: &Plan<'_>, pre: &Preprocessed, same: &[u32]) {
         let report = &mut self.report;
-        report.dead_dimensions = dead_dimensions(plan, pre);
+        report.dead_dimensions = dead_dimensions(plan, pre, same);
         for d in &report.dead_dimensions {
             report.warnings.push(format!(
                 "warning: dimension `{}` of `{}` never changes the shader's text at level `{}`: its {} values multiply the permutations for nothing",
@@ -274,7 +274,9 @@ impl<'o> Builder<'o> {
                 Outcome::Failed(failed) => {
                     let (e, w) = *failed;
                     self.report.warnings.extend(w);
-                    self.failures.extend(compile::failures(plan, preprocessor, pre, keys.key(k), keys.members(k), &e));
+                    // (A key that cannot be read back is not checked against the text made again.)
+                    let key = keys.key(k).ok();
+                    self.failures.extend(compile::failures(plan, preprocessor, pre, key.as_ref(), keys.members(k), &e));
                 }
             }
         }
@@ -362,7 +364,7 @@ fn render_failures(
 /// that differ only in that dimension, all have one token hash. (Within one shader at one
 /// level, keys differ exactly where token hashes do: the rest of a key is the shader's and
 /// the level's.)
-fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
+fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed, same: &[u32]) -> Vec<DeadDimension> {
     type Runs<'c> = (&'c [permute::Dimension], Vec<std::ops::Range<usize>>);
     let mut by_shader: BTreeMap<(usize, &str, &str), Runs<'_>> = BTreeMap::new();
     let mut first: HashMap<(&str, &str), usize> = HashMap::new();
@@ -403,9 +405,9 @@ fn dead_dimensions(plan: &Plan<'_>, pre: &Preprocessed) -> Vec<DeadDimension> {
                 }
                 // Row numbers fit in 32 bits: the plan's permutations do ([`Plan::new`]).
                 rows.entry(h.digest())
-                    .and_modify(|(first, several, same)| {
+                    .and_modify(|(first, several, all_same)| {
                         *several = true;
-                        *same &= *first as usize == row || pre.row_key(*first as usize) == pre.row_key(row);
+                        *all_same &= same[*first as usize] == same[row];
                     })
                     .or_insert((row as u32, false, true));
             }

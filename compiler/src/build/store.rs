@@ -241,20 +241,20 @@ impl Store {
 
     /// Waits for the fill of [`Store::prefill`], if one runs, and counts the keys it filled
     /// among `used` (the build's keys, each once) as remote hits.
-    pub fn wait_prefill<'k>(&self, used: impl Iterator<Item = &'k Key>) {
+    pub fn wait_prefill(&self, used: impl Iterator<Item = Key>) {
         let _ = self.prefilled(used);
     }
 
     /// Waits for the fill of [`Store::prefill`] and counts the keys it filled among `used`
     /// (each once) as remote hits: whether its keys were exactly `used`, and whether each
     /// is in the local cache now. `None` when none ran (or it panicked).
-    fn prefilled<'k>(&self, used: impl Iterator<Item = &'k Key>) -> Option<(bool, bool)> {
+    fn prefilled(&self, used: impl Iterator<Item = Key>) -> Option<(bool, bool)> {
         let handle = self.prefill.lock().expect("no panics while locked").take()?;
         let (keys, complete, filled) = handle.join().ok()?;
         let (mut used_n, mut known, mut hits) = (0, 0, 0);
         for key in used {
             used_n += 1;
-            if let Ok(i) = keys.binary_search(key) {
+            if let Ok(i) = keys.binary_search(&key) {
                 known += 1;
                 hits += filled[i / 64] >> (i % 64) & 1;
             }
@@ -335,7 +335,7 @@ impl Store {
         &self,
         out: &Path,
         fingerprint: &dyn Fn() -> blake3::Hash,
-        keys: &mut dyn Iterator<Item = &Key>,
+        keys: &mut dyn Iterator<Item = Key>,
     ) -> Option<(usize, usize)> {
         self.cache.as_ref()?.fresh_archive(out, fingerprint, keys)
     }
@@ -380,7 +380,7 @@ impl Store {
         &self,
         out: &Path,
         fingerprint: &(dyn Fn() -> blake3::Hash + Sync),
-        (count, key): (usize, &dyn Fn(usize) -> &'k Key),
+        keys: &dyn Fn() -> Box<dyn Iterator<Item = Key> + 'k>,
     ) -> Option<(usize, usize)> {
         let cache = self.cache.as_ref()?;
         let remote = cache.remote()?;
@@ -399,9 +399,9 @@ impl Store {
             // it did not bring are asked for once it is done.
             // The keys are copied only for that fill (they grow with the set, and grouping,
             // where this runs, peaks).
-            let complete = match self.prefilled((0..count).map(key)) {
+            let complete = match self.prefilled(keys()) {
                 Some((true, complete)) => complete,
-                _ => cache.fill_from_remote(&(0..count).map(|k| *key(k)).collect::<Vec<_>>()),
+                _ => cache.fill_from_remote(&keys().collect::<Vec<_>>()),
             };
             // The taker may have stopped already (no archive): nobody to tell.
             let _ = tell.send(complete);

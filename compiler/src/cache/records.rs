@@ -216,7 +216,7 @@ impl Cache {
         &self,
         archive: &Path,
         fingerprint: &dyn Fn() -> blake3::Hash,
-        mut keys: &mut dyn Iterator<Item = &Key>,
+        mut keys: &mut dyn Iterator<Item = Key>,
     ) -> Option<(usize, usize)> {
         // The stamp first: without one (a first build) the keys are not looked at. Then the
         // fingerprint and the archive: only when both match is the index read (a build whose
@@ -227,6 +227,6 @@ impl Cache {
             return None;
         }
         let counts = (lines.next()?.parse().ok()?, lines.next()?.parse().ok()?);
-        self.with_index(|index| Iterator::all(&mut keys, |k| index.contains(k))).then_some(counts)
+        self.with_index(|index| Iterator::all(&mut keys, |k| index.contains(&k))).then_some(counts)
     }
 }
