@@ -188,10 +188,11 @@ impl Store {
         let packing = if self.packed.load(Ordering::Relaxed) { Packing::Compressed } else { Packing::Stored };
         self.write(pending, packing);
         let mut warnings = self.cache.as_ref().map(|c| c.warnings()).unwrap_or_default();
-        // The build looks nothing up past here: the index need not stay while the archive is
-        // written.
+        // The build looks nothing up past here, nor writes an entry: the index and what
+        // compresses entries need not stay while the archive is written.
         if let Some(c) = &self.cache {
             c.release_index();
+            c.release_compression();
         }
         warnings.extend(self.unavailable.clone());
         for (n, why) in self.failed.lock().expect("no panics while locked").drain(..) {

@@ -95,6 +95,13 @@ thread_local! {
     static DCTX: RefCell<Option<DCtx<'static>>> = const { RefCell::new(None) };
 }
 
+/// Drops this thread's compression context and its buffer ([`CCTX`]): a context keeps the
+/// tables of its level (and a reference to the dictionary it last compressed with, made
+/// again at each use), a few MiB a worker.
+pub(super) fn drop_thread_context() {
+    CCTX.with(|cell| *cell.borrow_mut() = (None, Vec::new()));
+}
+
 /// One dictionary of the cache.
 pub(super) struct Dict {
     id: [u8; 16],
@@ -188,7 +195,8 @@ impl std::fmt::Debug for Dicts {
 }
 
 impl Dicts {
-    /// Forgets every dictionary (the folder was cleared).
+    /// Forgets every dictionary (the folder was cleared, or no more entries are written):
+    /// each is read again from the folder when next asked for.
     pub(super) fn reset(&self) {
         *self.state.lock().expect("no panics while locked") = State::default();
     }

@@ -583,6 +583,17 @@ impl Cache {
         *self.index.write().expect("no panics while locked") = None;
     }
 
+    /// Lets go of what writing entries holds: each worker's compression context and the
+    /// dictionaries with their compression tables (read again from the folder if an entry
+    /// is written after all). A build calls it once its last entry is written: a cold
+    /// build's contexts and tables otherwise stayed under the archive's assembly.
+    pub fn release_compression(&self) {
+        // Every context first: a context refers to the last dictionary it compressed with.
+        rayon::broadcast(|_| codec::drop_thread_context());
+        codec::drop_thread_context();
+        self.dicts.reset();
+    }
+
     fn read_index(&self) -> Index {
         let mut index = Index::default();
         let packs: Vec<PathBuf> = self.files().map(|(path, _)| path).filter(|p| Self::is_pack(p)).collect();
