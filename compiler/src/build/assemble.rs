@@ -27,12 +27,29 @@ use crate::cache::{Held, Key};
 use crate::compile::{self, Compiled};
 
 /// What stays of a key once its artifacts are written, its artifacts in
-/// [`Produced::artifacts`].
+/// [`Produced::artifacts`]: 8 bytes a key, held for every key while the manifest is added
+/// (its reflection's number and its artifacts' count share a word: a key has fewer than 256
+/// artifacts, one a target, and a build fewer than 2^24 reflections).
 #[derive(Clone, Copy)]
 struct KeyEntry {
-    reflection: u32,
     first: u32,
-    count: u32,
+    reflection_count: u32,
+}
+
+impl KeyEntry {
+    /// `None` past what an entry holds (a damaged record).
+    fn new(reflection: u32, first: u32, count: u32) -> Option<KeyEntry> {
+        (reflection < 1 << 24 && count < 1 << 8)
+            .then_some(KeyEntry { first, reflection_count: reflection << 8 | count })
+    }
+
+    fn reflection(&self) -> u32 {
+        self.reflection_count >> 8
+    }
+
+    fn count(&self) -> u32 {
+        self.reflection_count & 0xFF
+    }
 }
 
 /// What stays of the keys produced, as they are produced: each key's record (its key,
@@ -175,7 +192,7 @@ fn each_record(
             let target = *Target::ALL.get(a[0] as usize).ok_or_else(damaged)?;
             artifacts.push((target, u32::from_le_bytes(a[1..].try_into().expect("4 bytes"))));
         }
-        f(&key, KeyEntry { reflection, first, count: n }, &artifacts);
+        f(&key, KeyEntry::new(reflection, first, n).ok_or_else(damaged)?, &artifacts);
         first = first.checked_add(n).ok_or_else(damaged)?;
     }
     Ok(())
@@ -286,7 +303,7 @@ impl ByPermutation {
             let Some(e) = self.get(i) else { continue };
             n += 1;
             values += plan.shader_level(i).0.dimensions.len();
-            artifacts += e.count as usize;
+            artifacts += e.count() as usize;
         }
         // No room for names: canonical names are made again from the values, never kept
         // (and making each name here to count its bytes cost a name a permutation).
@@ -328,10 +345,10 @@ impl ByPermutation {
     ) -> Result<(), archive::ArchiveError> {
         let entry = self.get(i).expect("a kept permutation");
         let (name, values) = (plan.name(i), plan.values(i));
-        let reflection = &self.reflections[entry.reflection as usize];
+        let reflection = &self.reflections[entry.reflection() as usize];
         match first {
             Some(first) => {
-                let range = ArtifactRange { first: first + entry.first, count: entry.count as u8 };
+                let range = ArtifactRange { first: first + entry.first, count: entry.count() as u8 };
                 let p = NewPermutation { name, shader, values, reflection, artifacts: Vec::new() };
                 match sorted {
                     true => w.add_permutation_sorted(p, range),
@@ -346,7 +363,7 @@ impl ByPermutation {
     }
 
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
-        let range = e.first as usize..(e.first + e.count) as usize;
+        let range = e.first as usize..(e.first + e.count()) as usize;
         let a = &self.artifacts;
         a.targets[range.clone()].iter().copied().zip(a.numbers[range].iter().copied()).collect()
     }
@@ -666,7 +683,7 @@ impl<'p> Assembler<'p> {
             let (shader_of, level) = plan.shader_level(i);
             if options.emit_dir.is_some() {
                 // With loose files, each artifact's hash is kept beside it.
-                let hashes = &produced.hashes[entry.first as usize..][..entry.count as usize];
+                let hashes = &produced.hashes[entry.first as usize..][..entry.count() as usize];
                 let files = index.entry(plan.name(i)).or_default();
                 for ((t, _), hash) in produced.artifacts(entry).iter().zip(hashes) {
                     files.insert(t.name(), emitted[hash].as_str());
@@ -675,7 +692,7 @@ impl<'p> Assembler<'p> {
                     distinct.extend(hashes);
                 }
             }
-            written.permutation_artifacts += entry.count as usize;
+            written.permutation_artifacts += entry.count() as usize;
             let Some(w) = &writer else { continue };
             let shader =
                 shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
@@ -839,7 +856,7 @@ mod tests {
             let (entries, artifacts) = read_entries(&mut p.input, p.keys, p.artifacts).unwrap();
             let entry = |n: u32| {
                 let e = entries[n as usize];
-                (e.reflection, e.first, e.count)
+                (e.reflection(), e.first, e.count())
             };
             assert_eq!(entry(records[0]), (3, 3, 1), "the later record of a key produced twice");
             assert_eq!(entry(records[1]), (2, 3, 0));
