@@ -267,6 +267,19 @@ mod tests {
     use super::*;
 
     #[test]
+    fn representatives_are_the_first_rows_of_their_keys() {
+        // Keys 1 and 3 share their first four bytes with key 0, and key 1 is key 0's again.
+        let key = |first: u8, rest: u8| {
+            let mut k = Key([rest; 32]);
+            k.0[..4].copy_from_slice(&[first, 9, 9, 9]);
+            k
+        };
+        let keys = [key(0, 1), key(0, 1), key(5, 1), key(0, 2), key(5, 1), key(7, 7)];
+        let pre = Preprocessed::of_keys(&keys);
+        assert_eq!(representatives(&pre).unwrap(), vec![0, 0, 2, 3, 2, 5]);
+    }
+
+    #[test]
     fn numbering_in_place_matches_numbering_apart() {
         // Rows 0..6: rows 1, 3 and 5 share representative 1, row 4 is represented by 0.
         let same = vec![0, 1, 2, 1, 0, 1];

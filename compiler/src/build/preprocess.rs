@@ -14,6 +14,7 @@
 //! the rows when they are saved (each permutation's direct key is made again then).
 
 use std::collections::{HashMap, HashSet};
+use std::hash::BuildHasherDefault;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
@@ -100,6 +101,19 @@ impl Preprocessed {
     /// table from preprocessing to the manifest.
     pub fn keys(&self) -> RowKeys<'_> {
         RowKeys { pre: self, blocks: Vec::new(), next: 0 }
+    }
+
+    /// Permutations whose results are rows of `keys` (each its own row, in their file), the
+    /// `i`th permutation's the `i`th row.
+    #[cfg(test)]
+    pub fn of_keys(keys: &[Key]) -> Preprocessed {
+        let mut log = RowLog::new();
+        let of = keys
+            .iter()
+            .enumerate()
+            .map(|(n, key)| log.push(&Row { key: *key, text_len: n as u32, files: 0, absent: 0, warnings: 0 }))
+            .collect();
+        Preprocessed { of, rows: log.load().expect("rows read back"), errors: Vec::new() }
     }
 
     /// The failures, by permutation (ascending).
@@ -751,7 +765,27 @@ impl FileIdentifiers {
 }
 
 /// (shader, level) → [(define names that mattered, values of those names → row number)].
-type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<Signature, u32>)>>;
+type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<u64, u32, BuildHasherDefault<Half>>)>>;
+
+/// Hashes a signature's first half by itself (it is a uniform hash already).
+#[derive(Default)]
+struct Half(u64);
+
+impl std::hash::Hasher for Half {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 << 8 | u64::from(b)) ^ (self.0 >> 56);
+        }
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.0 = n;
+    }
+}
 
 /// The values of the defines that mattered, hashed (a fixed size per entry, whatever their
 /// number: these maps hold an entry per distinct preprocessing result).
@@ -775,9 +809,14 @@ fn signature(values: impl Iterator<Item = i64>) -> Signature {
 /// A (shader, level)'s results are let go once its last permutation has been taken
 /// (permutations are taken in plan order): the maps hold the largest group's results, not
 /// the whole set's.
+///
+/// A map holds each result by the first half of its signature and the number of its entry
+/// in [`ReuseLog`], which has the whole signature and the row (read back to confirm a
+/// match): 12 bytes a result in memory, not 20, in maps that hold a group's every result.
 #[derive(Default)]
 struct Reuse {
     groups: Mutex<ReuseGroups>,
+    log: Mutex<ReuseLog>,
     /// Each group's end in the plan (one past its last permutation), latest first; and the
     /// groups let go.
     ends: Mutex<GroupEnds>,
@@ -818,6 +857,7 @@ impl Reuse {
         }
         if groups.is_empty() {
             *groups = ReuseGroups::default();
+            *self.log.lock().expect("no panics while locked") = ReuseLog::default();
         }
     }
 
@@ -828,8 +868,12 @@ impl Reuse {
             let Some(vals) = names.iter().map(|n| values.get(n).copied()).collect::<Option<Vec<i64>>>() else {
                 continue;
             };
-            if let Some(&hit) = results.get(&signature(vals.into_iter())) {
-                return Some(hit);
+            let signature = signature(vals.into_iter());
+            let Some(&entry) = results.get(&half(&signature)) else { continue };
+            // A failed read finds nothing: the permutation is preprocessed (same result).
+            match self.log.lock().expect("no panics while locked").get(entry) {
+                Ok((whole, row)) if whole == signature => return Some(row),
+                _ => {}
             }
         }
         None
@@ -866,11 +910,78 @@ impl Reuse {
         let i = match sets.iter().position(|(n, _)| *n == names) {
             Some(i) => i,
             None => {
-                sets.push((names, HashMap::new()));
+                sets.push((names, HashMap::default()));
                 sets.len() - 1
             }
         };
-        sets[i].1.entry(signature).or_insert(row);
+        if let std::collections::hash_map::Entry::Vacant(v) = sets[i].1.entry(half(&signature)) {
+            // A result that cannot be logged is not kept for reuse.
+            if let Ok(entry) = self.log.lock().expect("no panics while locked").push(&signature, row) {
+                v.insert(entry);
+            }
+        }
+    }
+}
+
+/// A signature's first half, what a reuse map holds it by.
+fn half(signature: &Signature) -> u64 {
+    u64::from_le_bytes(signature[..8].try_into().expect("8 of 16 bytes"))
+}
+
+/// Each result put in a reuse map, by number: its whole signature and its row, in an
+/// unlinked temporary file (the latest in memory until a chunk is written; all in memory
+/// where no file can be made).
+#[derive(Default)]
+struct ReuseLog {
+    file: Option<std::fs::File>,
+    /// Whether a file was tried (made on the first push).
+    tried: bool,
+    /// Entries before this one are in `file`.
+    flushed: u32,
+    pending: Vec<[u8; REUSE_ENTRY]>,
+}
+
+/// An entry of [`ReuseLog`]: the signature, then the row.
+const REUSE_ENTRY: usize = 20;
+
+/// Entries held before they are written (80 KiB).
+const REUSE_CHUNK: usize = 4096;
+
+impl ReuseLog {
+    /// Logs `signature` and `row`: the entry's number.
+    fn push(&mut self, signature: &Signature, row: u32) -> std::io::Result<u32> {
+        use std::os::unix::fs::FileExt;
+        if !self.tried {
+            self.tried = true;
+            self.file = tempfile::tempfile().ok();
+        }
+        let n = self.flushed.checked_add(self.pending.len() as u32).ok_or_else(|| std::io::Error::other("too many"))?;
+        let mut entry = [0u8; REUSE_ENTRY];
+        entry[..16].copy_from_slice(signature);
+        entry[16..].copy_from_slice(&row.to_le_bytes());
+        self.pending.push(entry);
+        if let (Some(file), REUSE_CHUNK) = (&self.file, self.pending.len()) {
+            file.write_all_at(self.pending.as_flattened(), u64::from(self.flushed) * REUSE_ENTRY as u64)?;
+            self.flushed += REUSE_CHUNK as u32;
+            self.pending.clear();
+        }
+        Ok(n)
+    }
+
+    /// Entry `n`: the signature and the row.
+    fn get(&self, n: u32) -> std::io::Result<(Signature, u32)> {
+        use std::os::unix::fs::FileExt;
+        let entry = match n.checked_sub(self.flushed) {
+            Some(i) => *self.pending.get(i as usize).ok_or_else(|| std::io::Error::other("no such entry"))?,
+            None => {
+                let file = self.file.as_ref().ok_or_else(|| std::io::Error::other("no such entry"))?;
+                let mut entry = [0u8; REUSE_ENTRY];
+                file.read_exact_at(&mut entry, u64::from(n) * REUSE_ENTRY as u64)?;
+                entry
+            }
+        };
+        let row = u32::from_le_bytes(entry[16..].try_into().expect("4 bytes"));
+        Ok((entry[..16].try_into().expect("16 bytes"), row))
     }
 }
 
@@ -988,4 +1099,50 @@ fn last_records_key(config: &Config, options: &Options) -> Key {
     let path = config.path.canonicalize().unwrap_or_else(|_| config.path.clone());
     let inputs = format!("kiln last records v1\n{}\n{:?}\n{:?}", path.display(), options.levels, options.targets);
     Key::new(&blake3::hash(inputs.as_bytes()), "", crate::Stage::Compute, "", &Limits::desktop(), &[])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_reuse_log_gives_back_each_entry_across_its_chunks() {
+        let signature = |n: u32| -> Signature { std::array::from_fn(|i| (n as usize * 7 + i) as u8) };
+        for file in [true, false] {
+            // Without a file (none could be made), every entry stays in memory.
+            let mut log = ReuseLog { tried: !file, ..ReuseLog::default() };
+            let count = REUSE_CHUNK as u32 * 2 + 5;
+            for n in 0..count {
+                assert_eq!(log.push(&signature(n), n * 3).unwrap(), n);
+            }
+            assert_eq!(log.file.is_some(), file);
+            assert_eq!(log.flushed, if file { REUSE_CHUNK as u32 * 2 } else { 0 });
+            for n in [0, 1, REUSE_CHUNK as u32 - 1, REUSE_CHUNK as u32, count - 1] {
+                assert_eq!(log.get(n).unwrap(), (signature(n), n * 3), "entry {n}");
+            }
+            assert!(log.get(count).is_err(), "past the last entry");
+        }
+    }
+
+    #[test]
+    fn row_keys_are_read_back_a_block_at_a_time() {
+        let mut log = RowLog::new();
+        let row = |n: u32| Row { key: Key([n as u8; 32]), text_len: n, files: 0, absent: 0, warnings: 0 };
+        // More rows than the reader keeps blocks of, each distinct (no row is taken for another).
+        let count = (KEY_BLOCK * (KEY_BLOCKS + 2)) as u32;
+        for n in 0..count {
+            let mut r = row(n);
+            r.key.0[1] = (n >> 8) as u8;
+            assert_eq!(log.push(&r), n);
+        }
+        let pre = Preprocessed { of: vec![3, FAILED], rows: log.load().unwrap(), errors: Vec::new() };
+        assert_eq!(pre.row_count(), count as usize);
+        let mut keys = pre.keys();
+        for n in [0, count - 1, 5, (KEY_BLOCK * 3) as u32 + 1, 5] {
+            let key = keys.row(n as usize).unwrap();
+            assert_eq!((key.0[0], key.0[1]), (n as u8, (n >> 8) as u8), "row {n}");
+        }
+        assert_eq!(keys.of(0).unwrap().map(|k| k.0[0]), Some(3));
+        assert_eq!(keys.of(1).unwrap(), None, "a failed permutation has no key");
+    }
 }
