@@ -109,7 +109,7 @@ impl SharedWriters {
     /// together in the plan's order, so the newest modules' outputs serve nearly every key
     /// that can share, and a larger budget only holds older modules' longer. Past it, the
     /// oldest module's outputs go.
-    pub const BUDGET: usize = 4 << 20;
+    pub const BUDGET: usize = 1 << 20;
 
     /// An empty set.
     pub fn new() -> Self {
