@@ -19,33 +19,36 @@
 //! file (a blob that fails is not found, so the writer's caller spools its bytes as usual),
 //! and again when it is copied. A damaged previous archive therefore costs time, never
 //! different bytes: the new archive is byte for byte the one a writer without a previous
-//! archive writes. Finding a blob touches nothing of the file (its pages, read out of the
-//! order of the file, would stay in the build's resident set): memory holds 12 bytes a
-//! blob, the 64 bits of its blake3 after those that choose its bucket, and its id; its
-//! length is checked when it is copied.
+//! archive writes. Memory holds about 5 bytes a blob: a cell of an index by the first 32
+//! bits of its blake3, with its id; a candidate found there is confirmed by the whole blake3
+//! of its entry, read from the file (not through the map, whose pages, read out of the
+//! order of the file, would stay in the build's resident set), and its length is checked
+//! when it is copied.
 
 use std::borrow::Cow;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use super::format::{stored_sum, BlobId, CODEC_ZSTD, CODEC_ZSTD_DICT, ENTRY_LEN, FORMAT_VERSION, NO_DICTIONARY};
+use super::format::{stored_sum, BlobId, Entry, CODEC_ZSTD, CODEC_ZSTD_DICT, ENTRY_LEN, FORMAT_VERSION, NO_DICTIONARY};
 use super::{Archive, Target};
+use std::fs::File;
 
 /// The previous archive, mapped, and its blobs found by the start of their blake3.
 pub(crate) struct Previous {
     archive: Archive,
-    /// Each blob whose stored bytes match their check sum, by bucket and in id order
-    /// within it: the 64 bits of its identity that follow the bits choosing its bucket
-    /// (see [`Previous::buckets`]), high word first, then its id. 12 bytes a blob, a
-    /// bucket's in a cache line or two (its ids with them: a lookup misses once there).
-    index: Vec<[u32; 3]>,
-    /// Where each bucket of `index` starts (its blobs' identities begin with the same
-    /// `bucket_bits` bits), and where the last one ends: identities are uniform, so a
-    /// lookup reads a few entries after one read of this table instead of halving the whole
-    /// index, a cache miss a step.
-    buckets: Vec<u32>,
-    /// About eight blobs a bucket, at most [`MAX_BUCKET_BITS`] bits.
-    bucket_bits: u32,
+    /// Each blob whose stored bytes match their check sum, by the first 32 bits of its
+    /// blake3: open addressing with linear probing, a cell a `u32` (about 5 bytes a blob,
+    /// where 64 bits of each identity and its id took 12), the blob's id plus one in its low
+    /// `bits` bits (0: empty) and the rest of those 32 bits above them as a tag. A tag that
+    /// matches is a candidate only, confirmed by the whole blake3 in the archive's table.
+    cells: Vec<u32>,
+    bits: u32,
+    /// The archive's file, where a candidate's entry is read to confirm it (a read, not the
+    /// map: the map's pages, faulted in out of the file's order with the pages around them,
+    /// would stay in the resident set or cost a release every few reads), and where the
+    /// blob table starts in it.
+    file: File,
+    table_start: u64,
     /// Each dictionary's target and blake3, by index.
     dictionaries: Vec<(Target, [u8; 32])>,
     /// Tells this archive's lookups from another's in [`FOUND`] (never 0).
@@ -55,7 +58,7 @@ pub(crate) struct Previous {
 /// The blobs this thread found last in a previous archive: (its serial, the blob's
 /// identity, its id), 0 for none. A build asks whether the previous archive holds each
 /// artifact of a cache entry, then adds each by reference, on the same thread: the second
-/// lookup is answered here instead of from the index, a cache miss or two each.
+/// lookup is answered here instead of from the index and the archive's table.
 struct Found {
     slots: [(u64, u128, u32); FOUND_SLOTS],
     next: usize,
@@ -85,31 +88,14 @@ pub(crate) enum Reused<'a> {
 /// file count in the resident set).
 const RELEASE_BYTES: u64 = 4 << 20;
 
-/// The most bits of an identity that choose its bucket (see [`Previous::buckets`]), far
-/// past the sets a build's memory allows: a bucket stays a few keys long at any size.
-const MAX_BUCKET_BITS: u32 = 24;
-
 /// A blob's identity: the first 16 bytes of its blake3, as the writer's own identities.
-/// Its bucket's bits and the 64 bits after them tell it from the others in the index (with
-/// its length, checked when it is copied); the rest of a blake3 is uniform too, so two
-/// blobs that differ there alone are not a practical concern.
 fn identity(hash: &[u8; 32]) -> u128 {
     u128::from_be_bytes(hash[..16].try_into().expect("16 of 32 bytes"))
 }
 
-/// The bucket of `identity`, of `bits` bits.
-fn bucket(identity: u128, bits: u32) -> usize {
-    identity.checked_shr(128 - bits).unwrap_or(0) as usize
-}
-
-/// The 64 bits of `identity` after its bucket's `bits`.
-fn key(identity: u128, bits: u32) -> u64 {
-    (identity << bits >> 64) as u64
-}
-
-/// An entry of [`Previous::index`]: `key` and `id`.
-fn entry(key: u64, id: u32) -> [u32; 3] {
-    [(key >> 32) as u32, key as u32, id]
+/// The first 32 bits of an identity, what the index finds it by (uniform already).
+fn prefix(identity: u128) -> u32 {
+    (identity >> 96) as u32
 }
 
 impl Previous {
@@ -118,44 +104,46 @@ impl Previous {
     /// format without check sums of stored bytes, or another version's).
     pub(crate) fn open(path: &Path) -> Option<Previous> {
         let archive = Archive::open(path).ok()?;
+        let file = File::open(path).ok()?;
         if archive.kiln_version() != crate::VERSION || archive.format_version() != FORMAT_VERSION {
             return None;
         }
         let count = archive.blob_count();
-        let bucket_bits = (usize::BITS - (count / 8).leading_zeros()).min(MAX_BUCKET_BITS);
-        // One pass in the order of the file checks each blob's stored bytes and counts
-        // each bucket's blobs; a second reads the table alone and puts each in its bucket.
+        // One pass in the order of the file checks each blob's stored bytes; a second reads
+        // the table alone and puts each intact one in the index.
         let mut intact = vec![0u64; count.div_ceil(64)];
-        let mut buckets = vec![0u32; (1 << bucket_bits) + 1];
+        let mut held = 0;
         let read = AtomicU64::new(0);
         for id in 0..count {
             // A damaged table: nothing of it is trusted.
             let (e, bytes) = archive.stored_blob(BlobId(id as u32)).ok()?;
             if stored_sum(bytes) == e.sum {
                 intact[id / 64] |= 1 << (id % 64);
-                buckets[bucket(identity(&e.hash), bucket_bits) + 1] += 1;
+                held += 1;
             }
             count_read(&archive, &read, (bytes.len() + ENTRY_LEN) as u64);
         }
-        for b in 1..buckets.len() {
-            buckets[b] += buckets[b - 1];
-        }
-        let held = buckets[buckets.len() - 1] as usize;
-        let mut index = vec![[0u32; 3]; held];
-        let mut next = buckets.clone();
+        // Fewer than four fifths of the cells full: a probe reads a few cells on average.
+        let mut cells = vec![0u32; (held / 4 + 1) * 5];
+        // Enough bits for every id plus one.
+        let bits = u32::BITS - (count as u32).leading_zeros();
         for id in (0..count).filter(|id| intact[id / 64] & (1 << (id % 64)) != 0) {
             let ident = identity(&archive.stored_blob(BlobId(id as u32)).ok()?.0.hash);
             count_read(&archive, &read, ENTRY_LEN as u64);
-            let at = &mut next[bucket(ident, bucket_bits)];
-            index[*at as usize] = entry(key(ident, bucket_bits), id as u32);
-            *at += 1;
+            let p = prefix(ident);
+            let mut at = home(p, cells.len());
+            while cells[at] != 0 {
+                at = (at + 1) % cells.len();
+            }
+            cells[at] = tag(p, bits) | (id as u32 + 1);
         }
-        drop((intact, next));
+        drop(intact);
         let dictionaries = archive.dictionary_hashes();
         // The pages were only read: the file keeps them.
         archive.release_pages();
         let serial = SERIAL.fetch_add(1, Ordering::Relaxed);
-        Some(Previous { archive, index, buckets, bucket_bits, dictionaries, serial })
+        let table_start = archive.table_start();
+        Some(Previous { archive, cells, bits, file, table_start, dictionaries, serial })
     }
 
     /// The id of the blob whose blake3 is `hash` when the archive holds it intact: the
@@ -167,10 +155,21 @@ impl Previous {
         if remembered.is_some() {
             return remembered;
         }
-        let b = bucket(ident, self.bucket_bits);
-        let (start, end) = (self.buckets[b] as usize, self.buckets[b + 1] as usize);
-        let k = entry(key(ident, self.bucket_bits), 0);
-        let id = self.index[start..end].iter().find(|e| e[..2] == k[..2])?[2];
+        if self.cells.is_empty() {
+            return None;
+        }
+        let (p, mask) = (prefix(ident), id_mask(self.bits));
+        let mut at = home(p, self.cells.len());
+        let id = loop {
+            let cell = self.cells[at];
+            if cell == 0 {
+                return None;
+            }
+            if cell & !mask == tag(p, self.bits) && self.confirm((cell & mask) - 1, hash) {
+                break (cell & mask) - 1;
+            }
+            at = (at + 1) % self.cells.len();
+        };
         FOUND.with(|f| {
             let mut f = f.borrow_mut();
             let next = f.next;
@@ -180,14 +179,20 @@ impl Previous {
         Some(id)
     }
 
+    /// Whether blob `id`'s blake3 in the archive's table is `hash` (a failed read: no).
+    fn confirm(&self, id: u32, hash: &[u8; 32]) -> bool {
+        use std::os::unix::fs::FileExt;
+        let mut entry = [0u8; ENTRY_LEN];
+        let at = self.table_start + u64::from(id) * ENTRY_LEN as u64;
+        self.file.read_exact_at(&mut entry, at).is_ok() && Entry::decode(&entry).hash == *hash
+    }
+
     /// Lets go of the index: [`Previous::find`] finds nothing from here on, while the blobs
     /// it found are still taken by id ([`Previous::reuse`]). The index is the largest
     /// table a rewrite holds beyond another build's, and the manifest's stages that follow
     /// the last lookup are a build's peak.
     pub(crate) fn drop_index(&mut self) {
-        self.index = Vec::new();
-        self.buckets = vec![0; 2];
-        self.bucket_bits = 0;
+        self.cells = Vec::new();
     }
 
     /// Blob `id` (one [`Previous::find`] gave) for a new archive whose dictionary for its
@@ -225,6 +230,21 @@ impl Previous {
     pub(crate) fn release_pages(&self) {
         self.archive.release_pages();
     }
+}
+
+/// Where `prefix`'s probe starts: the prefix scaled onto the table.
+fn home(prefix: u32, cells: usize) -> usize {
+    ((u64::from(prefix) * cells as u64) >> 32) as usize
+}
+
+/// The cell bits above an id's `bits`: the prefix's low bits.
+fn tag(prefix: u32, bits: u32) -> u32 {
+    prefix.checked_shl(bits).unwrap_or(0)
+}
+
+/// The cell bits of an id plus one.
+fn id_mask(bits: u32) -> u32 {
+    ((1u64 << bits) - 1) as u32
 }
 
 /// Counts `len` more bytes read from `archive`'s map, and gives its pages back each
