@@ -27,7 +27,7 @@ use super::preprocess::{Preprocessed, Preprocessor};
 use super::progress::Progress;
 use super::store::{Fetched, Store};
 use crate::cache::Key;
-use crate::compile::prefixes::PrefixSet;
+use crate::compile::prefixes::Seen;
 use crate::compile::{self, Compiled};
 use crate::permute::Permutation;
 use crate::preprocess::{self, FileId};
@@ -65,9 +65,10 @@ pub(super) struct Compiler<'a> {
     store: &'a Store,
     assembler: &'a Assembler<'a>,
     progress: &'a Progress,
-    /// Keys claimed during preprocessing, by a prefix (a collision, rare, only
-    /// moves that key's compile to the compile stage), so that a slot stays small.
-    claimed: Mutex<PrefixSet>,
+    /// Keys claimed during preprocessing, in a set that may take a key for another (a few
+    /// in a thousand: that key's compile only moves to the compile stage) and holds 12
+    /// bits a permutation.
+    claimed: Mutex<Seen>,
     /// Per kept permutation: whether it produced its key during preprocessing
     /// ([`EARLY_HIT`], [`EARLY_COMPILED`]); one byte each, not a map entry per key.
     early: Vec<AtomicU8>,
@@ -88,9 +89,8 @@ impl<'a> Compiler<'a> {
             store,
             assembler,
             progress,
-            // Sized at its bound up front: growing by doubling holds the old and new tables
-            // at once where preprocessing peaks.
-            claimed: Mutex::new(PrefixSet::with_bound(plan.len())),
+            // Sized at its bound (allocated at the first claim).
+            claimed: Mutex::new(Seen::with_bound(plan.len())),
             early: (0..plan.len()).map(|_| AtomicU8::new(0)).collect(),
             early_warnings: Mutex::default(),
             start: Mutex::default(),
@@ -102,7 +102,7 @@ impl<'a> Compiler<'a> {
     /// Preprocessing is over: lets go of the keys it claimed and of the writers' outputs kept
     /// for sharing, which would otherwise stay under the next stages.
     pub fn end_early(&self) {
-        *self.claimed.lock().expect("no panics while locked") = PrefixSet::default();
+        *self.claimed.lock().expect("no panics while locked") = Seen::default();
         self.shared.forget();
     }
 
@@ -129,8 +129,8 @@ impl<'a> Compiler<'a> {
             }
             _ => {}
         }
-        let short = u32::from_le_bytes(key.0[..4].try_into().expect("4 of 32 bytes"));
-        if !self.claimed.lock().expect("no panics while locked").insert(short) {
+        let hash = u128::from_le_bytes(key.0[..16].try_into().expect("16 of 32 bytes"));
+        if !self.claimed.lock().expect("no panics while locked").insert(hash) {
             return;
         }
         self.started();

@@ -24,7 +24,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
-use super::prefixes::PrefixSet;
+use super::prefixes::Seen;
 use super::{Compiled, Error, Options, Validated};
 use crate::archive::Target;
 
@@ -64,18 +64,17 @@ impl Hasher for IdentHasher {
 type ByIdent = BuildHasherDefault<IdentHasher>;
 
 /// What a build knows of its compacted modules. Most modules belong to one key, so those
-/// are a set of prefixes of their identities ([`PrefixSet`]: far less than the whole
-/// identity or a map to an enum of whole hashes), and the few whose outputs are kept are a
-/// map beside it, by whole identity.
+/// are a set that may answer "seen" for a module it has not seen ([`Seen`]: far less than
+/// the whole identity or a map to an enum of whole hashes), and the few whose outputs are
+/// kept are a map beside it, by whole identity.
 ///
-/// The set only decides whether a module's outputs are worth keeping: a prefix shared by
-/// two modules (about one pair in a 100k set) makes the second module's key keep its own
-/// outputs, never take another's. Sharing goes only through `kept`.
+/// The set only decides whether a module's outputs are worth keeping: a false "seen" (a
+/// few in a thousand) makes that module's key keep its own outputs, never take another's.
+/// Sharing goes only through `kept`.
 #[derive(Default)]
 struct Modules {
-    /// Prefixes of the modules one key had, whose artifacts were not kept (or no longer
-    /// are: over budget).
-    seen: PrefixSet,
+    /// The modules a key had (those kept are found in `kept` first).
+    seen: Seen,
     /// The writers' outputs, kept once a second key had the module (or being written by that
     /// key).
     kept: HashMap<Ident, Arc<OnceLock<Written>>, ByIdent>,
@@ -121,7 +120,7 @@ impl SharedWriters {
     /// new tables are both held while it grows.
     pub fn with_capacity(modules: usize) -> Self {
         let writers = SharedWriters::default();
-        writers.map.lock().expect("a new lock").seen = PrefixSet::with_bound(modules);
+        writers.map.lock().expect("a new lock").seen = Seen::with_bound(modules);
         writers
     }
 
@@ -148,10 +147,9 @@ impl SharedWriters {
             let mut map = self.map.lock().expect("no panics while locked");
             if let Some(cell) = map.kept.get(&id) {
                 Some(cell.clone())
-            } else if map.seen.insert(id as u32) {
+            } else if map.seen.insert(id) {
                 None
             } else {
-                map.seen.remove(id as u32);
                 let cell = Arc::<OnceLock<Written>>::default();
                 map.kept.insert(id, cell.clone());
                 Some(cell)
@@ -188,7 +186,7 @@ impl SharedWriters {
         while kept > Self::BUDGET {
             let Some((old, old_bytes)) = map.order.pop_front() else { break };
             map.kept.remove(&old);
-            map.seen.insert(old as u32);
+            map.seen.insert(old);
             kept -= old_bytes;
         }
         self.kept.store(kept, Ordering::Relaxed);
