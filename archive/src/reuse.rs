@@ -179,6 +179,30 @@ impl Previous {
         Some(id)
     }
 
+    /// Whether the archive may hold the blob whose blake3 is `hash`: a candidate in the
+    /// index, not confirmed (a few in a thousand that it lacks answer yes: [`Previous::find`]
+    /// then finds nothing). A build asks this of each artifact of a cache entry and then
+    /// adds the artifacts it has not added yet: those alone are confirmed.
+    pub(crate) fn may_hold(&self, hash: &[u8; 32]) -> bool {
+        let ident = identity(hash);
+        let serial = self.serial;
+        if FOUND.with(|f| f.borrow().slots.iter().any(|s| s.0 == serial && s.1 == ident)) {
+            return true;
+        }
+        if self.cells.is_empty() {
+            return false;
+        }
+        let (p, mask) = (prefix(ident), id_mask(self.bits));
+        let mut at = home(p, self.cells.len());
+        loop {
+            match self.cells[at] {
+                0 => return false,
+                cell if cell & !mask == tag(p, self.bits) => return true,
+                _ => at = (at + 1) % self.cells.len(),
+            }
+        }
+    }
+
     /// Whether blob `id`'s blake3 in the archive's table is `hash` (a failed read: no).
     fn confirm(&self, id: u32, hash: &[u8; 32]) -> bool {
         use std::os::unix::fs::FileExt;

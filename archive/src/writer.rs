@@ -1080,11 +1080,12 @@ impl StreamingWriter {
         self.previous().and_then(|p| p.find(hash.as_bytes()))
     }
 
-    /// Whether the archive being replaced holds the blob whose blake3 is `hash` intact:
+    /// Whether the archive being replaced may hold the blob whose blake3 is `hash` intact:
     /// [`StreamingWriter::add_blob_reference`] then adds it without its bytes (a cache hit
-    /// need not decompress them).
+    /// need not decompress them), or gives `None` for the few it answered yes for wrongly.
+    /// Only the blobs not added yet are then confirmed (by their entry in that archive).
     pub fn holds(&self, hash: &blake3::Hash) -> bool {
-        self.previous_blob(hash).is_some()
+        self.previous().is_some_and(|p| p.may_hold(hash.as_bytes()))
     }
 
     /// Adds the blob of `len` bytes whose blake3 is `hash` without its bytes: its number,
