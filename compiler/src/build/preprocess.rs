@@ -765,27 +765,8 @@ impl FileIdentifiers {
 }
 
 /// (shader, level) → [(define names that mattered, values of those names → row number)].
-type ReuseGroups = HashMap<(String, String), Vec<(Vec<String>, HashMap<u64, u32, BuildHasherDefault<Half>>)>>;
-
-/// Hashes a signature's first half by itself (it is a uniform hash already).
-#[derive(Default)]
-struct Half(u64);
-
-impl std::hash::Hasher for Half {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0 << 8 | u64::from(b)) ^ (self.0 >> 56);
-        }
-    }
-
-    fn write_u64(&mut self, n: u64) {
-        self.0 = n;
-    }
-}
+type ReuseGroups =
+    HashMap<(String, String), Vec<(Vec<String>, HashMap<u64, u32, BuildHasherDefault<crate::compile::IdentHasher>>)>>;
 
 /// The values of the defines that mattered, hashed (a fixed size per entry, whatever their
 /// number: these maps hold an entry per distinct preprocessing result).

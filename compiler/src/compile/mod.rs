@@ -22,6 +22,7 @@ use std::ops::Range;
 
 pub use limits::{Limits, WGPU_LIMITS};
 pub use reflect::reflect;
+pub(crate) use shared::IdentHasher;
 pub use shared::{module_hash, SharedWriters};
 
 use crate::archive::{Reflection, Stage, Target};

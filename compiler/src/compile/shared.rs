@@ -41,9 +41,10 @@ fn ident(hash: &blake3::Hash) -> Ident {
     Ident::from_le_bytes(first)
 }
 
-/// Hashes an [`Ident`] by its low half (it is already a uniform hash).
+/// Hashes an [`Ident`] by its low half, or a `u64`, by itself (each is a uniform hash
+/// already: the build's reuse maps are keyed by half a signature too).
 #[derive(Default)]
-struct IdentHasher(u64);
+pub(crate) struct IdentHasher(u64);
 
 impl Hasher for IdentHasher {
     fn finish(&self) -> u64 {
@@ -54,6 +55,10 @@ impl Hasher for IdentHasher {
         for &b in bytes {
             self.0 = (self.0 << 8 | u64::from(b)) ^ (self.0 >> 56);
         }
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.0 = n;
     }
 
     fn write_u128(&mut self, n: u128) {
