@@ -766,7 +766,7 @@ impl FileIdentifiers {
 
 /// (shader, level) → [(define names that mattered, values of those names → row number)].
 type ReuseGroups =
-    HashMap<(String, String), Vec<(Vec<String>, HashMap<u64, u32, BuildHasherDefault<crate::compile::IdentHasher>>)>>;
+    HashMap<(String, String), Vec<(Vec<String>, HashMap<u32, u32, BuildHasherDefault<crate::compile::IdentHasher>>)>>;
 
 /// The values of the defines that mattered, hashed (a fixed size per entry, whatever their
 /// number: these maps hold an entry per distinct preprocessing result).
@@ -791,9 +791,11 @@ fn signature(values: impl Iterator<Item = i64>) -> Signature {
 /// (permutations are taken in plan order): the maps hold the largest group's results, not
 /// the whole set's.
 ///
-/// A map holds each result by the first half of its signature and the number of its entry
-/// in [`ReuseLog`], which has the whole signature and the row (read back to confirm a
-/// match): 12 bytes a result in memory, not 20, in maps that hold a group's every result.
+/// A map holds each result by the first 32 bits of its signature and the number of its
+/// entry in [`ReuseLog`], which has the whole signature and the row (read back to confirm a
+/// match): 8 bytes a result in memory, not 20, in maps that hold a group's every result. (Of
+/// two results whose signatures begin alike, a few in a set of a million, the second is not
+/// kept for reuse: its permutations are preprocessed, to the same result.)
 #[derive(Default)]
 struct Reuse {
     groups: Mutex<ReuseGroups>,
@@ -904,9 +906,9 @@ impl Reuse {
     }
 }
 
-/// A signature's first half, what a reuse map holds it by.
-fn half(signature: &Signature) -> u64 {
-    u64::from_le_bytes(signature[..8].try_into().expect("8 of 16 bytes"))
+/// A signature's first 32 bits, what a reuse map holds it by.
+fn half(signature: &Signature) -> u32 {
+    u32::from_le_bytes(signature[..4].try_into().expect("4 of 16 bytes"))
 }
 
 /// Each result put in a reuse map, by number: its whole signature and its row, in an

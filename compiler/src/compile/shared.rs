@@ -41,8 +41,8 @@ fn ident(hash: &blake3::Hash) -> Ident {
     Ident::from_le_bytes(first)
 }
 
-/// Hashes an [`Ident`] by its low half, or a `u64`, by itself (each is a uniform hash
-/// already: the build's reuse maps are keyed by half a signature too).
+/// Hashes an [`Ident`] by its low half, or a `u64` or `u32` by itself (each is a uniform
+/// hash already: the build's reuse maps are keyed by part of a signature too).
 #[derive(Default)]
 pub(crate) struct IdentHasher(u64);
 
@@ -55,6 +55,11 @@ impl Hasher for IdentHasher {
         for &b in bytes {
             self.0 = (self.0 << 8 | u64::from(b)) ^ (self.0 >> 56);
         }
+    }
+
+    fn write_u32(&mut self, n: u32) {
+        // Spread over the 64 bits: a table takes its tags from the top ones.
+        self.0 = u64::from(n).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     }
 
     fn write_u64(&mut self, n: u64) {
