@@ -150,30 +150,14 @@ impl Previous {
     /// writer may then let go of its bytes and take it from here ([`Previous::reuse`]).
     pub(crate) fn find(&self, hash: &[u8; 32]) -> Option<u32> {
         let ident = identity(hash);
-        let serial = self.serial;
-        let remembered = FOUND.with(|f| f.borrow().slots.iter().find(|s| s.0 == serial && s.1 == ident).map(|s| s.2));
-        if remembered.is_some() {
-            return remembered;
+        if let Some(id) = self.remembered(ident) {
+            return Some(id);
         }
-        if self.cells.is_empty() {
-            return None;
-        }
-        let (p, mask) = (prefix(ident), id_mask(self.bits));
-        let mut at = home(p, self.cells.len());
-        let id = loop {
-            let cell = self.cells[at];
-            if cell == 0 {
-                return None;
-            }
-            if cell & !mask == tag(p, self.bits) && self.confirm((cell & mask) - 1, hash) {
-                break (cell & mask) - 1;
-            }
-            at = (at + 1) % self.cells.len();
-        };
+        let id = self.candidate(ident, |id| self.confirm(id, hash))?;
         FOUND.with(|f| {
             let mut f = f.borrow_mut();
             let next = f.next;
-            f.slots[next] = (serial, ident, id);
+            f.slots[next] = (self.serial, ident, id);
             f.next = (next + 1) % FOUND_SLOTS;
         });
         Some(id)
@@ -185,19 +169,27 @@ impl Previous {
     /// adds the artifacts it has not added yet: those alone are confirmed.
     pub(crate) fn may_hold(&self, hash: &[u8; 32]) -> bool {
         let ident = identity(hash);
-        let serial = self.serial;
-        if FOUND.with(|f| f.borrow().slots.iter().any(|s| s.0 == serial && s.1 == ident)) {
-            return true;
-        }
+        self.remembered(ident).is_some() || self.candidate(ident, |_| true).is_some()
+    }
+
+    /// The id this thread found last for `ident` in this archive, if it is remembered.
+    fn remembered(&self, ident: u128) -> Option<u32> {
+        FOUND.with(|f| f.borrow().slots.iter().find(|s| s.0 == self.serial && s.1 == ident).map(|s| s.2))
+    }
+
+    /// The first blob of the index whose tag is `ident`'s that `accept` takes.
+    fn candidate(&self, ident: u128, accept: impl Fn(u32) -> bool) -> Option<u32> {
         if self.cells.is_empty() {
-            return false;
+            return None;
         }
         let (p, mask) = (prefix(ident), id_mask(self.bits));
         let mut at = home(p, self.cells.len());
         loop {
             match self.cells[at] {
-                0 => return false,
-                cell if cell & !mask == tag(p, self.bits) => return true,
+                0 => return None,
+                cell if cell & !mask == tag(p, self.bits) && accept((cell & mask) - 1) => {
+                    return Some((cell & mask) - 1)
+                }
                 _ => at = (at + 1) % self.cells.len(),
             }
         }

@@ -150,15 +150,15 @@ impl RowKeys<'_> {
         let n = KEY_BLOCK.min(self.pre.row_count() - start);
         let mut bytes = vec![0u8; n * ROW_LEN];
         file.read_exact_at(&mut bytes, (start * ROW_LEN) as u64)?;
-        let keys = bytes.chunks_exact(ROW_LEN).map(|b| Key(b[..32].try_into().expect("32 bytes"))).collect();
-        let block = (start, keys);
+        let keys: Vec<Key> = bytes.chunks_exact(ROW_LEN).map(|b| Key(b[..32].try_into().expect("32 bytes"))).collect();
+        let key = keys[r - start];
         if self.blocks.len() < KEY_BLOCKS {
-            self.blocks.push(block);
+            self.blocks.push((start, keys));
         } else {
-            self.blocks[self.next] = block;
+            self.blocks[self.next] = (start, keys);
             self.next = (self.next + 1) % KEY_BLOCKS;
         }
-        Ok(self.blocks.iter().find(|b| b.0 == start).expect("just read").1[r - start])
+        Ok(key)
     }
 
     /// Permutation `i`'s key; `None` where it failed.
