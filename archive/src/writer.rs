@@ -1220,7 +1220,28 @@ impl StreamingWriter {
             return Err(ArchiveError::Input("a permutation added in name order to an unsorted manifest".into()));
         };
         let e = lock(&self.entries);
-        s.add(&p, artifacts, (&e.arenas.targets, &e.arenas.blobs))
+        let (targets, blobs) = (&e.arenas.targets, &e.arenas.blobs);
+        let range = (artifacts.first as usize).checked_add(artifacts.count.into()).and_then(|end| {
+            Some((targets.get(artifacts.first as usize..end)?, blobs.get(artifacts.first as usize..end)?))
+        });
+        let Some(range) = range else {
+            return Err(ArchiveError::Input(format!("permutation `{}` names artifacts of no writer", p.name)));
+        };
+        s.add(&p, range)
+    }
+
+    /// [`StreamingWriter::add_permutation_sorted`] of a permutation that names its own
+    /// artifacts (blobs numbered by [`StreamingWriter::add_blob_numbered`]): a caller that
+    /// reads each permutation's artifacts as it comes holds none of them, where handing
+    /// them over ([`StreamingWriter::add_artifacts`]) keeps all of them until the end.
+    pub fn add_permutation_sorted_numbered(&self, p: NewPermutation<'_, u32>) -> Result<(), ArchiveError> {
+        lock(&self.blobs).check_numbers(&p.name, &p.artifacts)?;
+        let mut sorted = lock(&self.sorted);
+        let Some(s) = sorted.as_mut() else {
+            return Err(ArchiveError::Input("a permutation added in name order to an unsorted manifest".into()));
+        };
+        let (targets, blobs): (Vec<Target>, Vec<u32>) = p.artifacts.iter().copied().unzip();
+        s.add(&p, (&targets, &blobs))
     }
 
     /// Room for `permutations` more permutations with `name_bytes` bytes of names (at most:

@@ -11,9 +11,8 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use super::{
-    encode_artifact, pad8, unlinked_file, ArchiveError, ArtifactRange, BlobId, BlobTable, FastMap, FileAt,
-    ManifestCounts, NewPermutation, Reflection, ShaderRecord, SpillBuf, TablesOut, Target, ID_LEN, RECORD_LEN,
-    VALUE_LEN,
+    encode_artifact, pad8, unlinked_file, ArchiveError, BlobId, BlobTable, FastMap, FileAt, ManifestCounts,
+    NewPermutation, Reflection, ShaderRecord, SpillBuf, TablesOut, Target, ID_LEN, RECORD_LEN, VALUE_LEN,
 };
 use crate::format::Record;
 
@@ -204,11 +203,10 @@ impl Sorted {
         })
     }
 
-    /// Adds `p`, whose artifacts are the `range` of `(targets, slots)` (the writer's arenas).
+    /// Adds `p`, whose artifacts are `(targets, slots)` (slots of the writer's table).
     pub(super) fn add(
         &mut self,
         p: &NewPermutation<'_, u32>,
-        range: ArtifactRange,
         (targets, slots): (&[Target], &[u32]),
     ) -> Result<(), ArchiveError> {
         let input = |m: String| ArchiveError::Input(m);
@@ -218,11 +216,8 @@ impl Sorted {
         if self.counts.permutations > 0 && p.name.as_str() <= self.previous.as_str() {
             return Err(input(format!("permutation `{}` was added twice, or out of name order", p.name)));
         }
-        let artifacts = (range.first as usize)
-            .checked_add(range.count.into())
-            .and_then(|end| Some((targets.get(range.first as usize..end)?, slots.get(range.first as usize..end)?)))
-            .filter(|(t, _)| super::distinct(t.iter()));
-        let Some((targets, slots)) = artifacts else {
+        let count = u8::try_from(targets.len()).ok().filter(|_| targets.len() == slots.len());
+        let Some(count) = count.filter(|_| super::distinct(targets.iter())) else {
             return Err(input(format!("permutation `{}` names artifacts of no writer, or two of one target", p.name)));
         };
         let shader = self.shader(p)?;
@@ -236,7 +231,7 @@ impl Sorted {
             reflection,
             first_value: u32::try_from(self.counts.values).map_err(|_| too_many())?,
             first_artifact: u32::try_from(self.counts.artifacts).map_err(|_| too_many())?,
-            artifact_count: u32::from(range.count),
+            artifact_count: u32::from(count),
         };
         let index = u32::try_from(self.counts.permutations).map_err(|_| too_many())?;
         let id = crate::permutation_id(&p.shader.name, &p.shader.level, &p.values);
@@ -245,7 +240,7 @@ impl Sorted {
         self.previous.push_str(&p.name);
         self.counts.permutations += 1;
         self.counts.values += p.values.len() as u64;
-        self.counts.artifacts += u64::from(range.count);
+        self.counts.artifacts += u64::from(count);
         self.counts.names_len += p.name.len() as u64;
         Ok(())
     }

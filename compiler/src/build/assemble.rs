@@ -94,7 +94,7 @@ impl Log {
 
     /// Records `key`'s reflection number and artifacts.
     fn write(&mut self, key: &Key, reflection: u32, artifacts: &[(Target, u32)]) -> std::io::Result<()> {
-        let mut record = Vec::with_capacity(40 + 5 * artifacts.len());
+        let mut record = Vec::with_capacity(RECORD_HEAD + RECORD_ARTIFACT * artifacts.len());
         record.extend_from_slice(&key.0);
         record.extend_from_slice(&reflection.to_le_bytes());
         record.extend_from_slice(&(artifacts.len() as u32).to_le_bytes());
@@ -122,7 +122,7 @@ impl Log {
         };
         let mut slots = Vec::with_capacity(self.keys);
         let mut record = 0;
-        each_record(&mut input, self.keys, |key, _, _| {
+        each_record(input.as_mut(), self.keys, |key, _, _| {
             slots.push(Slot { prefix: split(key_hash(key)), record });
             record += 1;
         })?;
@@ -136,7 +136,7 @@ impl Log {
             slots.retain(|s| !repeated.contains(&s.prefix));
             let mut whole: HashMap<Key, u32> = HashMap::new();
             let mut record = 0;
-            each_record(&mut input, self.keys, |key, _, _| {
+            each_record(input.as_mut(), self.keys, |key, _, _| {
                 if repeated.contains(&split(key_hash(key))) {
                     whole.insert(*key, record);
                 }
@@ -150,22 +150,51 @@ impl Log {
     }
 }
 
-/// The entries of the `count` records of `input`, by record number, and their artifacts one
-/// after another.
-fn read_entries(input: &mut dyn Input, count: usize, artifacts: usize) -> std::io::Result<(Vec<KeyEntry>, Artifacts)> {
+/// The entries of the `count` records of `input`, by record number.
+fn read_entries(input: &mut dyn Input, count: usize) -> std::io::Result<Vec<KeyEntry>> {
     let mut entries = Vec::with_capacity(count);
+    each_record(input, count, |_, entry, _| entries.push(entry))?;
+    Ok(entries)
+}
+
+/// The artifacts of the `count` records of `input` (`artifacts` in all), one after another.
+fn read_artifacts(input: &mut dyn Input, count: usize, artifacts: usize) -> std::io::Result<Artifacts> {
     let mut a = Artifacts { targets: Vec::with_capacity(artifacts), numbers: Vec::with_capacity(artifacts) };
-    each_record(input, count, |_, entry, artifacts| {
-        entries.push(entry);
+    each_record(input, count, |_, _, artifacts| {
         a.targets.extend(artifacts.iter().map(|x| x.0));
         a.numbers.extend(artifacts.iter().map(|x| x.1));
     })?;
-    Ok((entries, a))
+    Ok(a)
 }
 
 /// Where key records are read back from: their file, or memory.
-trait Input: Read + Seek {}
-impl<T: Read + Seek> Input for T {}
+trait Input: Read + Seek {
+    /// Fills `buf` from `offset` on (the position after it is unspecified).
+    fn read_exact_at(&mut self, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+        self.seek(std::io::SeekFrom::Start(offset))?;
+        self.read_exact(buf)
+    }
+}
+
+impl Input for std::io::Cursor<Vec<u8>> {}
+
+/// One read a call, not a seek and a read.
+#[cfg(unix)]
+impl Input for std::fs::File {
+    fn read_exact_at(&mut self, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+        std::os::unix::fs::FileExt::read_exact_at(self, buf, offset)
+    }
+}
+
+#[cfg(not(unix))]
+impl Input for std::fs::File {}
+
+/// The length of a key record before its artifacts: the key, its reflection's number and
+/// its artifacts' count.
+const RECORD_HEAD: usize = 40;
+
+/// The length of an artifact in a key record: its target's index and its blob's number.
+const RECORD_ARTIFACT: usize = 5;
 
 /// Calls `f` with each of the `count` records of `input`, from its start: the key, its entry
 /// (`first` counting the artifacts of the records before it) and its artifacts.
@@ -180,22 +209,27 @@ fn each_record(
     let mut first = 0u32;
     let mut artifacts = Vec::new();
     for _ in 0..count {
-        let mut head = [0u8; 40];
+        let mut head = [0u8; RECORD_HEAD];
         input.read_exact(&mut head)?;
         let key = Key(head[..32].try_into().expect("32 bytes"));
         let reflection = u32::from_le_bytes(head[32..36].try_into().expect("4 bytes"));
         let n = u32::from_le_bytes(head[36..40].try_into().expect("4 bytes"));
         artifacts.clear();
         for _ in 0..n {
-            let mut a = [0u8; 5];
+            let mut a = [0u8; RECORD_ARTIFACT];
             input.read_exact(&mut a)?;
-            let target = *Target::ALL.get(a[0] as usize).ok_or_else(damaged)?;
-            artifacts.push((target, u32::from_le_bytes(a[1..].try_into().expect("4 bytes"))));
+            artifacts.push(decode_artifact(&a).ok_or_else(damaged)?);
         }
         f(&key, KeyEntry::new(reflection, first, n).ok_or_else(damaged)?, &artifacts);
         first = first.checked_add(n).ok_or_else(damaged)?;
     }
     Ok(())
+}
+
+/// An artifact of a key record: its target and blob number (`None` for no target).
+fn decode_artifact(a: &[u8]) -> Option<(Target, u32)> {
+    let target = *Target::ALL.get(a[0] as usize)?;
+    Some((target, u32::from_le_bytes(a[1..RECORD_ARTIFACT].try_into().expect("4 bytes"))))
 }
 
 /// A produced key's prefix and the number of its record (its entry is read with the
@@ -245,9 +279,9 @@ impl Produced {
     }
 
     /// Each kept permutation's key's record number (`NOT_KEPT` for the others), the records'
-    /// entries by number, their artifacts and hashes and the reflections: what stays once
-    /// `pre` goes. The entries and artifacts are read only then, so that they and `pre` are
-    /// never held together.
+    /// entries by number, their hashes and the reflections: what stays once `pre` goes. The
+    /// entries are read only then, so that they and `pre` are never held together; the
+    /// artifacts stay in the records ([`ByPermutation::load_artifacts`]).
     fn by_permutation(self, plan: &Plan<'_>, pre: Preprocessed) -> std::io::Result<ByPermutation> {
         let mut keys = pre.keys();
         let of = (0..plan.len())
@@ -263,8 +297,17 @@ impl Produced {
         let Produced { slots, shared, mut input, keys, artifacts, hashes, reflections } = self;
         drop((slots, shared));
         super::release_freed();
-        let (entries, artifacts) = read_entries(&mut input, keys, artifacts)?;
-        Ok(ByPermutation { of, entries, artifacts, hashes, reflections })
+        let entries = read_entries(input.as_mut(), keys)?;
+        let artifacts_in_all = artifacts;
+        Ok(ByPermutation {
+            of,
+            entries,
+            artifacts: Artifacts::default(),
+            artifacts_in_all,
+            records: input,
+            hashes,
+            reflections,
+        })
     }
 }
 
@@ -273,7 +316,12 @@ impl Produced {
 struct ByPermutation {
     of: Vec<u32>,
     entries: Vec<KeyEntry>,
+    /// The keys' artifacts one after another, once loaded ([`ByPermutation::load_artifacts`]);
+    /// else each is read from `records` as its permutation is added.
     artifacts: Artifacts,
+    /// The artifacts of all the records.
+    artifacts_in_all: usize,
+    records: Box<dyn Input>,
     hashes: Vec<blake3::Hash>,
     reflections: Vec<Arc<Reflection>>,
 }
@@ -284,6 +332,26 @@ struct ByPermutation {
 struct Artifacts {
     targets: Vec<Target>,
     numbers: Vec<u32>,
+}
+
+/// How the permutations added to the archive name their artifacts
+/// ([`ByPermutation::ready_writer`]).
+#[derive(Clone, Copy)]
+enum Naming {
+    /// In name order, each with its artifacts read from the key records as it comes.
+    Sorted,
+    /// By range of the keys' artifacts handed to the writer, the first's number.
+    Ranged(u32),
+    /// Each with a copy of its key's artifacts (with loose files).
+    Numbered,
+}
+
+fn archive_error(e: archive::ArchiveError) -> Error {
+    Error::Io(format!("error: {e}"))
+}
+
+fn read_back(e: std::io::Error) -> Error {
+    Error::Io(format!("error: cannot read back a temporary file of the build: {e}"))
 }
 
 /// [`ByPermutation::of`] a permutation that is not kept (it failed, or was skipped).
@@ -310,56 +378,79 @@ impl ByPermutation {
         w.reserve(n, 0, values, if ranged { 0 } else { artifacts });
     }
 
-    /// Readies `w` for the manifest: its size reserved (or, when the permutations come in
-    /// name order, `sorted` of them, a sorted manifest begun), and the keys' artifacts
-    /// handed over when the permutations name them by range (`ranged`): the number the
-    /// first was given.
+    /// Readies `w` for the manifest and says how each permutation's artifacts will be
+    /// named: when the permutations come in name order (`sorted` of them), a sorted
+    /// manifest begun, each permutation's artifacts read as it comes; else the keys'
+    /// artifacts loaded, the manifest's size reserved and, when the permutations name
+    /// their keys' artifacts by range (`ranged`), the artifacts handed over.
     fn ready_writer(
         &mut self,
         plan: &Plan<'_>,
         w: &StreamingWriter,
         ranged: bool,
         sorted: Option<usize>,
-    ) -> Result<Option<u32>, archive::ArchiveError> {
-        match sorted {
-            Some(n) => w.begin_sorted(n)?,
-            None => self.reserve_manifest(plan, w, ranged),
+    ) -> Result<Naming, Error> {
+        if let Some(n) = sorted {
+            w.begin_sorted(n).map_err(archive_error)?;
+            return Ok(Naming::Sorted);
         }
+        self.load_artifacts().map_err(read_back)?;
+        self.reserve_manifest(plan, w, ranged);
         if !ranged {
-            return Ok(None);
+            return Ok(Naming::Numbered);
         }
         let a = std::mem::take(&mut self.artifacts);
-        w.add_artifacts(a.targets, a.numbers).map(Some)
+        w.add_artifacts(a.targets, a.numbers).map(Naming::Ranged).map_err(archive_error)
     }
 
-    /// Adds permutation `i` (kept) to `w`, its shader's record `shader`: naming its key's
-    /// artifacts by range where they were handed over (`first`, see [`Self::ready_writer`]),
-    /// else with a copy of them.
+    /// Adds permutation `i` (kept) to `w`, its shader's record `shader`, its artifacts
+    /// named as `naming` says.
     fn add(
-        &self,
+        &mut self,
         w: &StreamingWriter,
         plan: &Plan<'_>,
         i: usize,
         shader: &ShaderRecord,
-        (first, sorted): (Option<u32>, bool),
-    ) -> Result<(), archive::ArchiveError> {
-        let entry = self.get(i).expect("a kept permutation");
+        naming: Naming,
+    ) -> Result<(), Error> {
+        let record = self.of[i] as usize;
+        let entry = *self.entries.get(record).expect("a kept permutation");
+        let artifacts = match naming {
+            Naming::Sorted => self.read_artifacts(record, &entry).map_err(read_back)?,
+            Naming::Ranged(_) => Vec::new(),
+            Naming::Numbered => self.artifacts(&entry),
+        };
         let (name, values) = (plan.name(i), plan.values(i));
         let reflection = &self.reflections[entry.reflection() as usize];
-        match first {
-            Some(first) => {
-                let range = ArtifactRange { first: first + entry.first, count: entry.count() as u8 };
-                let p = NewPermutation { name, shader, values, reflection, artifacts: Vec::new() };
-                match sorted {
-                    true => w.add_permutation_sorted(p, range),
-                    false => w.add_permutation_ranged(p, range),
-                }
+        let p = NewPermutation { name, shader, values, reflection, artifacts };
+        let added = match naming {
+            Naming::Sorted => w.add_permutation_sorted_numbered(p),
+            Naming::Ranged(first) => {
+                w.add_permutation_ranged(p, ArtifactRange { first: first + entry.first, count: entry.count() as u8 })
             }
-            None => {
-                let artifacts = self.artifacts(entry);
-                w.add_permutation_numbered(NewPermutation { name, shader, values, reflection, artifacts })
-            }
-        }
+            Naming::Numbered => w.add_permutation_numbered(p),
+        };
+        added.map_err(archive_error)
+    }
+
+    /// Reads every key's artifacts into memory, where they are handed to the writer or
+    /// named by loose files (a manifest added in name order reads each permutation's from
+    /// the records instead: [`ByPermutation::read_artifacts`]).
+    fn load_artifacts(&mut self) -> std::io::Result<()> {
+        self.artifacts = read_artifacts(self.records.as_mut(), self.entries.len(), self.artifacts_in_all)?;
+        Ok(())
+    }
+
+    /// The artifacts of the key of `e`, read from its record: a read a permutation, where
+    /// the artifacts of every key would be held until the manifest's end (a fifth of the
+    /// build's tables at this stage, at a million permutations).
+    fn read_artifacts(&mut self, record: usize, e: &KeyEntry) -> std::io::Result<Vec<(Target, u32)>> {
+        let mut bytes = [0u8; RECORD_ARTIFACT * 255];
+        let bytes = &mut bytes[..RECORD_ARTIFACT * e.count() as usize];
+        let at = RECORD_HEAD * (record + 1) + RECORD_ARTIFACT * e.first as usize;
+        self.records.read_exact_at(bytes, at as u64)?;
+        let damaged = || std::io::Error::other("a temporary file of the build was changed");
+        bytes.chunks_exact(RECORD_ARTIFACT).map(|a| decode_artifact(a).ok_or_else(damaged)).collect()
     }
 
     fn artifacts(&self, e: &KeyEntry) -> Vec<(Target, u32)> {
@@ -645,9 +736,7 @@ impl<'p> Assembler<'p> {
         if let Some(e) = self.error.lock().expect("no panics while locked").take() {
             return Err(Error::Io(e));
         }
-        let archive_error = |e: archive::ArchiveError| Error::Io(format!("error: {e}"));
         let fingerprint = self.fingerprint(&pre);
-        let read_back = |e| Error::Io(format!("error: cannot read back a temporary file of the build: {e}"));
         let produced = self.produced.into_inner().expect("no panics while locked").load().map_err(read_back)?;
         super::trace_memory("keys read back");
         let plan = self.plan;
@@ -669,11 +758,13 @@ impl<'p> Assembler<'p> {
         // The ordering's tables (each run's values and keys) are not kept under the writer's.
         super::release_freed();
         super::trace_memory("permutations ordered");
-        let first = match &writer {
-            Some(w) => produced.ready_writer(plan, w, ranged, order.as_ref().map(Vec::len)).map_err(archive_error)?,
-            None => None,
+        let naming = match &writer {
+            Some(w) => produced.ready_writer(plan, w, ranged, order.as_ref().map(Vec::len))?,
+            None => {
+                produced.load_artifacts().map_err(read_back)?;
+                Naming::Numbered
+            }
         };
-        let sorted = order.is_some();
         let each: Box<dyn Iterator<Item = usize>> = match order {
             Some(order) => Box::new(order.into_iter().map(|i| i as usize)),
             None => Box::new(0..plan.len()),
@@ -696,7 +787,7 @@ impl<'p> Assembler<'p> {
             let Some(w) = &writer else { continue };
             let shader =
                 shaders.entry((&shader_of.name, &level.name)).or_insert_with(|| shader_record(shader_of, level));
-            produced.add(w, plan, i, shader, (first, sorted)).map_err(archive_error)?;
+            produced.add(w, plan, i, shader, naming)?;
         }
         drop(produced);
         super::release_freed();
@@ -853,7 +944,7 @@ mod tests {
             assert_eq!((p.slots.len(), p.shared.len()), (1, 2), "a and b share a prefix");
             assert!(p.position(&key(3, 0)).is_none());
             let records: Vec<u32> = [a, b, c].iter().map(|k| p.position(k).unwrap()).collect();
-            let (entries, artifacts) = read_entries(&mut p.input, p.keys, p.artifacts).unwrap();
+            let entries = read_entries(p.input.as_mut(), p.keys).unwrap();
             let entry = |n: u32| {
                 let e = entries[n as usize];
                 (e.reflection(), e.first, e.count())
@@ -861,8 +952,29 @@ mod tests {
             assert_eq!(entry(records[0]), (3, 3, 1), "the later record of a key produced twice");
             assert_eq!(entry(records[1]), (2, 3, 0));
             assert_eq!(entry(records[2]), (1, 1, 2));
+            let artifacts = read_artifacts(p.input.as_mut(), p.keys, p.artifacts).unwrap();
             assert_eq!(artifacts.numbers, [10, 11, 12, 13]);
             assert_eq!(artifacts.targets, [Target::Spirv, Target::Spirv, Target::Glsl, Target::Glsl]);
+            // Each record's artifacts read alone, where a sorted manifest reads them.
+            let (keys, artifacts_in_all) = (p.keys, p.artifacts);
+            let mut by = ByPermutation {
+                of: Vec::new(),
+                entries,
+                artifacts: Artifacts::default(),
+                artifacts_in_all,
+                records: p.input,
+                hashes: Vec::new(),
+                reflections: Vec::new(),
+            };
+            let mut alone = Vec::new();
+            for record in 0..keys {
+                let e = by.entries[record];
+                alone.extend(by.read_artifacts(record, &e).unwrap());
+            }
+            by.load_artifacts().unwrap();
+            let loaded: Vec<_> =
+                by.artifacts.targets.iter().copied().zip(by.artifacts.numbers.iter().copied()).collect();
+            assert_eq!(alone, loaded);
         }
     }
 
