@@ -553,12 +553,6 @@ impl Archive {
     }
 
     /// [`Archive::manifest_bytes`] of the blob table.
-    /// Where the blob table starts in the file (blob `i`'s entry at `ENTRY_LEN * i` past it).
-    #[cfg(feature = "writer")]
-    pub(crate) fn table_start(&self) -> u64 {
-        self.table_start as u64
-    }
-
     fn table_bytes(&self, from: u64, len: u64) -> Result<&[u8], String> {
         let table_len = self.blob_count * ENTRY_LEN;
         self.region_bytes(self.table_start, table_len, self.manifest_chunks, "blob table", from, len)

@@ -214,6 +214,11 @@ struct BlobTable {
     idents: IdentStore,
     /// Slots given.
     slots: usize,
+    /// Slots `0..previous` are the blobs of the archive being replaced, each slot's number
+    /// its id there ([`BlobTable::seed`]); the slots after them are new blobs.
+    previous: usize,
+    /// Whether the slots of the archive being replaced were given (or it has none).
+    seeded: bool,
     /// No more blobs: `table` is gone.
     sealed: bool,
     /// One bit per slot: its blob was added.
@@ -405,6 +410,8 @@ impl BlobTable {
         BlobTable {
             idents: IdentStore { file: idents, flushed: 0, pending: Vec::new() },
             slots: 0,
+            previous: 0,
+            seeded: false,
             sealed: false,
             added_bits: Vec::new(),
             table: SlotTable::default(),
@@ -453,12 +460,49 @@ impl BlobTable {
         Ok(())
     }
 
-    /// Makes the table room for `more` blobs beyond those it has at once, if it has less
+    /// Gives the blobs of the archive being replaced (their blake3s in id order from
+    /// `previous`) the first slots, before any other: slot `n` is its blob `n`, so that
+    /// this table alone finds the blobs of both archives.
+    fn seed(&mut self, previous: &Previous) -> std::io::Result<()> {
+        if self.slots != 0 {
+            return Err(std::io::Error::other("the previous archive's blobs come after others"));
+        }
+        let count = previous.blob_count();
+        u32::try_from(count).map_err(|_| std::io::Error::other("more than 2^32 blobs"))?;
+        self.table = SlotTable::with_cells(table_cells_for(count));
+        self.added_bits.resize(count.div_ceil(64), 0);
+        let (idents, table, slots) = (&mut self.idents, &mut self.table, &mut self.slots);
+        previous.for_each_hash(|hash| {
+            let id: Ident = hash[..16].try_into().expect("16 of 32 bytes");
+            idents.push(id)?;
+            table.put(prefix(&id), *slots);
+            *slots += 1;
+            Ok(())
+        })?;
+        self.previous = count;
+        Ok(())
+    }
+
+    /// Whether slot `n` is a blob of the archive being replaced ([`BlobTable::seed`]).
+    fn is_previous(&self, n: u32) -> bool {
+        (n as usize) < self.previous
+    }
+
+    /// Whether the blob with `hash` may be one of the archive being replaced that `accept`
+    /// takes (by its slot): a slot whose tag matches, not confirmed by its identity.
+    fn may_be_previous(&self, hash: &blake3::Hash, accept: impl Fn(u32) -> bool) -> bool {
+        let found = self.table.find(prefix(&ident(hash)), |n| Ok(self.is_previous(n) && accept(n)));
+        matches!(found, Ok(Some(_)))
+    }
+
+    /// Makes the table room for `more` blobs beyond those added at once, if it has less
     /// (and is not sealed): a caller that knows a close bound spares the table its growth,
     /// each step of which drops a table and builds one half again as large while the freed
-    /// one may still be resident.
+    /// one may still be resident. Slots given but not added yet (the previous archive's)
+    /// may be among the `more`: the table is made for the larger of its slots and the
+    /// blobs added and to come, and grows past that if it must.
     fn expect(&mut self, more: usize) -> std::io::Result<()> {
-        let blobs = self.slots.saturating_add(more);
+        let blobs = self.slots.max(self.added.saturating_add(more));
         if self.sealed || table_room(self.table.cells.len()) >= blobs {
             return Ok(());
         }
@@ -1051,15 +1095,20 @@ impl StreamingWriter {
             self.failed.store(true, Ordering::Relaxed);
             ArchiveError::Write { path: self.output.clone(), source }
         };
-        let (n, added) = lock(&self.blobs).find(&hash).map_err(fail)?;
+        let previous = self.previous();
+        let mut table = self.table(previous).map_err(fail)?;
+        let (n, added) = table.find(&hash).map_err(fail)?;
         if added {
             return Ok(n);
         }
-        // The previous archive is opened (and its blobs checked) outside the lock.
-        let reference = self.previous_blob(&hash).unwrap_or(SPOOLED);
-        let Some(offset) = lock(&self.blobs).add(n, bytes.len() as u64, reference).map_err(fail)? else {
+        let reference = match table.is_previous(n) && previous.is_some_and(|p| p.is_intact(n)) {
+            true => n,
+            false => SPOOLED,
+        };
+        let Some(offset) = table.add(n, bytes.len() as u64, reference).map_err(fail)? else {
             return Ok(n);
         };
+        drop(table);
         // Written outside the lock (threads spool their blobs in parallel), after the
         // blob's identity, in one write.
         let mut spooled = Vec::with_capacity(ID_PREFIX as usize + bytes.len());
@@ -1069,15 +1118,23 @@ impl StreamingWriter {
         Ok(n)
     }
 
-    /// The archive being replaced, opened (its blobs checked) when first asked for.
+    /// The archive being replaced, opened (its blobs checked) when first asked for: before
+    /// the first blob is numbered ([`StreamingWriter::table`]).
     fn previous(&self) -> Option<&Previous> {
         self.previous.get_or_init(|| Previous::open(&self.output)).as_ref()
     }
 
-    /// The id of the blob whose blake3 is `hash` in the archive being replaced, if it holds
-    /// it intact.
-    fn previous_blob(&self, hash: &blake3::Hash) -> Option<u32> {
-        self.previous().and_then(|p| p.find(hash.as_bytes()))
+    /// The blob table, its first slots the blobs of `previous` (this writer's
+    /// [`StreamingWriter::previous`], opened outside the lock) once it is first asked for.
+    fn table(&self, previous: Option<&Previous>) -> std::io::Result<std::sync::MutexGuard<'_, BlobTable>> {
+        let mut table = lock(&self.blobs);
+        if !table.seeded {
+            table.seeded = true;
+            if let Some(p) = previous {
+                table.seed(p)?;
+            }
+        }
+        Ok(table)
     }
 
     /// Whether the archive being replaced may hold the blob whose blake3 is `hash` intact:
@@ -1085,7 +1142,8 @@ impl StreamingWriter {
     /// need not decompress them), or gives `None` for the few it answered yes for wrongly.
     /// Only the blobs not added yet are then confirmed (by their entry in that archive).
     pub fn holds(&self, hash: &blake3::Hash) -> bool {
-        self.previous().is_some_and(|p| p.may_hold(hash.as_bytes()))
+        let Some(previous) = self.previous() else { return false };
+        self.table(Some(previous)).is_ok_and(|t| t.may_be_previous(hash, |n| previous.is_intact(n)))
     }
 
     /// Adds the blob of `len` bytes whose blake3 is `hash` without its bytes: its number,
@@ -1096,12 +1154,16 @@ impl StreamingWriter {
             self.failed.store(true, Ordering::Relaxed);
             ArchiveError::Write { path: self.output.clone(), source }
         };
-        let (n, added) = lock(&self.blobs).find(&hash).map_err(fail)?;
+        let previous = self.previous();
+        let mut table = self.table(previous).map_err(fail)?;
+        let (n, added) = table.find(&hash).map_err(fail)?;
         if added {
             return Ok(Some(n));
         }
-        let Some(reference) = self.previous_blob(&hash) else { return Ok(None) };
-        let offset = lock(&self.blobs).add(n, len, reference).map_err(fail)?;
+        if !(table.is_previous(n) && previous.is_some_and(|p| p.is_intact(n))) {
+            return Ok(None);
+        }
+        let offset = table.add(n, len, n).map_err(fail)?;
         debug_assert!(offset.is_none(), "a blob by reference is not spooled");
         Ok(Some(n))
     }
@@ -1277,7 +1339,7 @@ impl StreamingWriter {
     /// not). Only the table's size depends on it: blob numbers and the archive's bytes do
     /// not.
     pub fn expect_blobs(&self, more: usize) -> Result<(), ArchiveError> {
-        lock(&self.blobs).expect(more).map_err(|source| {
+        self.table(self.previous()).and_then(|mut t| t.expect(more)).map_err(|source| {
             self.failed.store(true, Ordering::Relaxed);
             ArchiveError::Write { path: self.output.clone(), source }
         })
@@ -1285,13 +1347,10 @@ impl StreamingWriter {
 
     /// No more blobs will be added, nor permutations named by [`BlobKey`] (those are
     /// errors now; [`StreamingWriter::add_permutation_numbered`] still works): lets go of the
-    /// table that finds blobs by content, and of the previous archive's index (its blobs
+    /// table that finds blobs by content (the previous archive's among them: those found
     /// are taken by id from here on), before the manifest is added.
     pub fn seal_blobs(&mut self) {
         lock(&self.blobs).seal();
-        if let Some(Some(previous)) = self.previous.get_mut() {
-            previous.drop_index();
-        }
     }
 
     /// Assembles the archive and writes it atomically (temporary file, fsync, rename).
