@@ -2,14 +2,16 @@
 
 use std::process::ExitCode;
 
+mod alloc;
 mod cli;
 
 /// mimalloc, not glibc's allocator: naga's front end and writers allocate and free all the
 /// time, and glibc gives freed memory back to the system at once, to fault it in again.
 /// Built without transparent huge pages (`no_thp`), which raised the peak resident memory.
+/// The largest blocks are mapped on their own ([`alloc`]).
 /// Measurements: `docs/design/2026-11-build-memory-measurements.md`.
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: alloc::Allocator = alloc::Allocator;
 
 fn main() -> ExitCode {
     tune_glibc_malloc();
