@@ -434,8 +434,8 @@ fn a_previous_archive_damaged_during_the_build_is_an_error_not_other_bytes() {
 }
 
 /// A rewrite as a build makes it: blobs the previous archive holds added by reference (no
-/// bytes), the others with their bytes, then no more blobs (the previous archive's index
-/// dropped) before the manifest: every held blob is copied by id all the same, and the
+/// bytes), the others with their bytes, then no more blobs (the table that found them in
+/// the previous archive dropped) before the manifest: every held blob is copied by id all the same, and the
 /// bytes are a fresh archive's.
 #[test]
 fn blobs_found_before_sealing_are_copied_after_it() {
@@ -593,8 +593,9 @@ fn artifacts_shared_by_range_give_the_same_bytes() {
 }
 
 /// Permutations added in name order to a sorted manifest (`begin_sorted`), its parts in
-/// memory or in files, give the bytes of the same permutations added in any order; one out
-/// of name order, one added twice, and an unsorted add after it began are errors.
+/// memory or in files, their artifacts named by range or each permutation's own, give the
+/// bytes of the same permutations added in any order; one out of name order, one added
+/// twice, and an unsorted add after it began are errors.
 #[test]
 fn a_sorted_manifest_gives_the_same_bytes() {
     let dir = tempfile::tempdir().unwrap();
@@ -605,7 +606,7 @@ fn a_sorted_manifest_gives_the_same_bytes() {
     let (sh, refl) = (shader(), reflection());
     let mut by_name: Vec<usize> = (0..perms.len()).collect();
     by_name.sort_by(|&x, &y| perms[x].0.cmp(&perms[y].0));
-    for (k, limit) in [usize::MAX, 0].into_iter().enumerate() {
+    for (k, (limit, own)) in [(usize::MAX, false), (0, false), (0, true)].into_iter().enumerate() {
         let path = dir.path().join(format!("s{k}.kpak"));
         let w = StreamingWriter::with_spool_memory(&path, limit).unwrap();
         w.set_naga_version("30.0.1");
@@ -616,7 +617,8 @@ fn a_sorted_manifest_gives_the_same_bytes() {
                 blobs.push(w.add_blob_numbered(b, blake3::hash(b)).unwrap());
             }
         }
-        let base = w.add_artifacts(targets, blobs).unwrap();
+        let own_artifacts: Vec<(Target, u32)> = targets.iter().copied().zip(blobs.iter().copied()).collect();
+        let base = if own { 0 } else { w.add_artifacts(targets, blobs).unwrap() };
         w.begin_sorted(perms.len()).unwrap();
         assert!(w.begin_sorted(perms.len()).is_err(), "begun twice");
         let p = |i: usize| {
@@ -624,13 +626,26 @@ fn a_sorted_manifest_gives_the_same_bytes() {
             NewPermutation { name: perms[i].0.clone(), shader: &sh, values, reflection: &refl, artifacts: vec![] }
         };
         let range = |i: usize| ArtifactRange { first: base + 2 * i as u32, count: 2 };
+        let add = |i: usize| match own {
+            true => {
+                let artifacts = own_artifacts[2 * i..2 * i + 2].to_vec();
+                w.add_permutation_sorted_numbered(NewPermutation { artifacts, ..p(i) })
+            }
+            false => w.add_permutation_sorted(p(i), range(i)),
+        };
         for (n, &i) in by_name.iter().enumerate() {
-            w.add_permutation_sorted(p(i), range(i)).unwrap();
+            add(i).unwrap();
             if n == 10 {
-                assert!(w.add_permutation_sorted(p(by_name[3]), range(by_name[3])).is_err(), "out of order");
-                assert!(w.add_permutation_sorted(p(i), range(i)).is_err(), "added twice");
+                assert!(add(by_name[3]).is_err(), "out of order");
+                assert!(add(i).is_err(), "added twice");
                 assert!(w.add_permutation_ranged(p(i), range(i)).is_err(), "unsorted after sorted");
             }
+        }
+        if own {
+            let name = "zzz".to_string();
+            let artifacts = vec![(Target::Wgsl, 1 << 30)];
+            let stray = NewPermutation { name, shader: &sh, values: vec![0, 0], reflection: &refl, artifacts };
+            assert!(w.add_permutation_sorted_numbered(stray).is_err(), "a blob of no writer");
         }
         let summary = w.finish().unwrap();
         assert_eq!(summary.permutations, perms.len());
