@@ -26,8 +26,9 @@ use crate::archive::{
 use crate::cache::{Held, Key};
 use crate::compile::{self, Compiled};
 
-/// What stays of a key once its artifacts are written, its artifacts in
-/// [`Produced::artifacts`]: 8 bytes a key, held for every key while the manifest is added
+/// What stays of a key once its artifacts are written, its artifacts in its record
+/// (`first` counts the artifacts of the records before it): 8 bytes a key, held for every
+/// key while the manifest is added
 /// (its reflection's number and its artifacts' count share a word: a key has fewer than 256
 /// artifacts, one a target, and a build fewer than 2^24 reflections).
 #[derive(Clone, Copy)]
