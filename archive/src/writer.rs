@@ -1140,7 +1140,8 @@ impl StreamingWriter {
     /// Whether the archive being replaced may hold the blob whose blake3 is `hash` intact:
     /// [`StreamingWriter::add_blob_reference`] then adds it without its bytes (a cache hit
     /// need not decompress them), or gives `None` for the few it answered yes for wrongly.
-    /// Only the blobs not added yet are then confirmed (by their entry in that archive).
+    /// Only the blobs not added yet are then confirmed (by their whole identity in the
+    /// table).
     pub fn holds(&self, hash: &blake3::Hash) -> bool {
         let Some(previous) = self.previous() else { return false };
         self.table(Some(previous)).is_ok_and(|t| t.may_be_previous(hash, |n| previous.is_intact(n)))
