@@ -38,4 +38,6 @@ fn main() {
     }
     println!("cargo:rustc-env=KILN_SOURCE_HASH={:016x}", h.finish());
     println!("cargo:rerun-if-changed=src");
+    // Else a pin set after an unpinned build would not run this again, and be ignored.
+    println!("cargo:rerun-if-env-changed=KILN_PIN_SOURCE_HASH");
 }
