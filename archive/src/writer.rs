@@ -744,7 +744,7 @@ impl Entries {
                 let targets =
                     (r.first as usize).checked_add(r.count.into()).and_then(|end| a.targets.get(r.first as usize..end));
                 match targets {
-                    Some(t) if artifacts.is_empty() && distinct(t.iter()) => (r.first, r.count),
+                    Some(t) if artifacts.is_empty() && distinct(t.iter().copied()) => (r.first, r.count),
                     _ => {
                         return Err(ArchiveError::Input(format!(
                             "permutation `{}` names artifacts of no writer, or two of one target",
@@ -753,7 +753,7 @@ impl Entries {
                     }
                 }
             }
-            None if distinct(artifacts.iter().map(|a| &a.0)) => {
+            None if distinct(artifacts.iter().map(|a| a.0)) => {
                 let first = u32::try_from(a.targets.len())
                     .map_err(|_| ArchiveError::Input("more than 2^32 artifacts".into()))?;
                 a.targets.extend(artifacts.iter().map(|(t, _)| *t));
@@ -801,7 +801,7 @@ impl Entries {
 }
 
 /// Whether no two of `targets` are the same.
-fn distinct<'t>(targets: impl Iterator<Item = &'t Target> + Clone) -> bool {
+fn distinct(targets: impl Iterator<Item = Target> + Clone) -> bool {
     targets.clone().enumerate().all(|(i, t)| targets.clone().take(i).all(|u| u != t))
 }
 
@@ -1290,7 +1290,7 @@ impl StreamingWriter {
         let Some(range) = range else {
             return Err(ArchiveError::Input(format!("permutation `{}` names artifacts of no writer", p.name)));
         };
-        s.add(&p, range)
+        s.add(&p, range.0.iter().copied().zip(range.1.iter().copied()))
     }
 
     /// [`StreamingWriter::add_permutation_sorted`] of a permutation that names its own
@@ -1303,8 +1303,7 @@ impl StreamingWriter {
         let Some(s) = sorted.as_mut() else {
             return Err(ArchiveError::Input("a permutation added in name order to an unsorted manifest".into()));
         };
-        let (targets, blobs): (Vec<Target>, Vec<u32>) = p.artifacts.iter().copied().unzip();
-        s.add(&p, (&targets, &blobs))
+        s.add(&p, p.artifacts.iter().copied())
     }
 
     /// Room for `permutations` more permutations with `name_bytes` bytes of names (at most:

@@ -5,7 +5,8 @@
 //! replaced it (a table that grows is both at once), and a build peaked there. A mapped
 //! block goes back to the system when it is freed, and one that grows is moved by the
 //! kernel (`mremap`), not copied. Few blocks are that large, so the system calls cost
-//! nothing that shows; the pages are faulted in on first touch either way.
+//! nothing that shows; the pages are faulted in on first touch either way. Linux only
+//! (`mremap`); elsewhere the binary runs on mimalloc alone.
 
 use std::alloc::{GlobalAlloc, Layout};
 
@@ -23,7 +24,7 @@ const MAP_ALIGN: usize = 4096;
 /// Whether a block of `layout` is mapped on its own: the same answer for a block's
 /// allocation and its release, which get the same layout.
 fn mapped(layout: Layout) -> bool {
-    cfg!(target_os = "linux") && layout.size() >= MAPPED && layout.align() <= MAP_ALIGN
+    layout.size() >= MAPPED && layout.align() <= MAP_ALIGN
 }
 
 // SAFETY: blocks are mapped with read and write access and at least MAP_ALIGN alignment
@@ -85,7 +86,6 @@ unsafe impl GlobalAlloc for Allocator {
 
 /// A new private anonymous mapping of `size` bytes (null where the system refuses), without
 /// transparent huge pages (which would make a table's first touch fault in 2 MiB).
-#[cfg(target_os = "linux")]
 fn map(size: usize) -> *mut u8 {
     // SAFETY: a new mapping at an address the kernel picks; nothing else is touched.
     let p = unsafe {
@@ -108,7 +108,6 @@ fn map(size: usize) -> *mut u8 {
 
 /// # Safety
 /// `ptr` is a mapping of `size` bytes made by [`map`] or [`remap`], not used afterwards.
-#[cfg(target_os = "linux")]
 unsafe fn unmap(ptr: *mut u8, size: usize) {
     // SAFETY: the caller's contract: the whole mapping, which nothing uses any more.
     unsafe { libc::munmap(ptr.cast(), size) };
@@ -119,7 +118,6 @@ unsafe fn unmap(ptr: *mut u8, size: usize) {
 ///
 /// # Safety
 /// `ptr` is a mapping of `old` bytes made by [`map`] or [`remap`].
-#[cfg(target_os = "linux")]
 unsafe fn remap(ptr: *mut u8, old: usize, new: usize) -> *mut u8 {
     // SAFETY: the caller's contract; the kernel keeps the contents and moves the pages.
     let p = unsafe { libc::mremap(ptr.cast(), old, new, libc::MREMAP_MAYMOVE) };
@@ -127,18 +125,4 @@ unsafe fn remap(ptr: *mut u8, old: usize, new: usize) -> *mut u8 {
         true => std::ptr::null_mut(),
         false => p.cast(),
     }
-}
-
-// Elsewhere nothing is mapped (`mapped` says no): these are never called.
-#[cfg(not(target_os = "linux"))]
-fn map(_: usize) -> *mut u8 {
-    std::ptr::null_mut()
-}
-
-#[cfg(not(target_os = "linux"))]
-unsafe fn unmap(_: *mut u8, _: usize) {}
-
-#[cfg(not(target_os = "linux"))]
-unsafe fn remap(_: *mut u8, _: usize, _: usize) -> *mut u8 {
-    std::ptr::null_mut()
 }

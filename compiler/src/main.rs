@@ -2,6 +2,7 @@
 
 use std::process::ExitCode;
 
+#[cfg(target_os = "linux")]
 mod alloc;
 mod cli;
 
@@ -10,8 +11,13 @@ mod cli;
 /// Built without transparent huge pages (`no_thp`), which raised the peak resident memory.
 /// The largest blocks are mapped on their own ([`alloc`]).
 /// Measurements: `docs/design/2026-11-build-memory-measurements.md`.
+#[cfg(target_os = "linux")]
 #[global_allocator]
 static ALLOCATOR: alloc::Allocator = alloc::Allocator;
+
+#[cfg(not(target_os = "linux"))]
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
     tune_glibc_malloc();

@@ -203,11 +203,11 @@ impl Sorted {
         })
     }
 
-    /// Adds `p`, whose artifacts are `(targets, slots)` (slots of the writer's table).
+    /// Adds `p`, whose artifacts are `artifacts` (targets and slots of the writer's table).
     pub(super) fn add(
         &mut self,
         p: &NewPermutation<'_, u32>,
-        (targets, slots): (&[Target], &[u32]),
+        artifacts: impl ExactSizeIterator<Item = (Target, u32)> + Clone,
     ) -> Result<(), ArchiveError> {
         let input = |m: String| ArchiveError::Input(m);
         if p.values.len() != p.shader.dimensions.len() {
@@ -216,8 +216,8 @@ impl Sorted {
         if self.counts.permutations > 0 && p.name.as_str() <= self.previous.as_str() {
             return Err(input(format!("permutation `{}` was added twice, or out of name order", p.name)));
         }
-        let count = u8::try_from(targets.len()).ok().filter(|_| targets.len() == slots.len());
-        let Some(count) = count.filter(|_| super::distinct(targets.iter())) else {
+        let count = u8::try_from(artifacts.len()).ok();
+        let Some(count) = count.filter(|_| super::distinct(artifacts.clone().map(|a| a.0))) else {
             return Err(input(format!("permutation `{}` names artifacts of no writer, or two of one target", p.name)));
         };
         let shader = self.shader(p)?;
@@ -235,7 +235,7 @@ impl Sorted {
         };
         let index = u32::try_from(self.counts.permutations).map_err(|_| too_many())?;
         let id = crate::permutation_id(&p.shader.name, &p.shader.level, &p.values);
-        self.write(p, &record, (targets, slots), (id, index)).map_err(|source| self.failed(source))?;
+        self.write(p, &record, artifacts, (id, index)).map_err(|source| self.failed(source))?;
         self.previous.clear();
         self.previous.push_str(&p.name);
         self.counts.permutations += 1;
@@ -250,20 +250,20 @@ impl Sorted {
         &mut self,
         p: &NewPermutation<'_, u32>,
         record: &Record,
-        (targets, slots): (&[Target], &[u32]),
+        artifacts: impl Iterator<Item = (Target, u32)>,
         (id, index): (u128, u32),
     ) -> std::io::Result<()> {
         self.records.push(&record.encode())?;
         for v in &p.values {
             self.values.push(&v.to_le_bytes())?;
         }
-        for (t, &slot) in targets.iter().zip(slots) {
+        for (t, slot) in artifacts {
             let cell = self.blob_ids.get_mut(slot as usize).ok_or_else(super::changed)?;
             if *cell == u32::MAX {
                 *cell = self.targets.len() as u32;
-                self.targets.push(*t);
+                self.targets.push(t);
             }
-            self.artifacts.push(&encode_artifact(*t, BlobId(*cell)))?;
+            self.artifacts.push(&encode_artifact(t, BlobId(*cell)))?;
         }
         self.names.push(p.name.as_bytes())?;
         self.ids.push(id, index)

@@ -180,15 +180,11 @@ trait Input: Read + Seek {
 impl Input for std::io::Cursor<Vec<u8>> {}
 
 /// One read a call, not a seek and a read.
-#[cfg(unix)]
 impl Input for std::fs::File {
     fn read_exact_at(&mut self, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
         std::os::unix::fs::FileExt::read_exact_at(self, buf, offset)
     }
 }
-
-#[cfg(not(unix))]
-impl Input for std::fs::File {}
 
 /// The length of a key record before its artifacts: the key, its reflection's number and
 /// its artifacts' count.
